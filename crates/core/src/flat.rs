@@ -1,0 +1,247 @@
+//! The flat layout: the one representation traversed on the CPU and uploaded to the GPU.
+//!
+//! # Layout (the single place it is described)
+//!
+//! * `nodes: [FlatNode]`, 32 bytes each, in depth-first order: the root is node 0 and an
+//!   interior node's **first child is the next node** (`i + 1`); its second child's index
+//!   is stored. WGSL twin: `Node` in `shaders/types.wgsl`.
+//!   - `min`, `max`: the node's box.
+//!   - `right_or_first`: interior: index of the second child; leaf: index of its first
+//!     triangle in `triangles`.
+//!   - `meta`: `count << 2 | axis`. `count > 0` marks a leaf holding triangles
+//!     `right_or_first .. right_or_first + count`; `count == 0` marks an interior node
+//!     split along `axis` (0 = x, 1 = y, 2 = z). The stackless and short-stack traversals
+//!     visit the child on the ray's side of `axis` first (Hapala et al. 2011).
+//! * `parents: [u32]`: the parent of every node (`u32::MAX` for the root). Only the stackless
+//!   and short-stack traversals read it, so only they upload it.
+//! * `triangles: [FlatTriangle]`, 48 bytes each, in leaf order (every leaf is a contiguous
+//!   range); each carries its corners and its index in the builder's input (`prim`), so no
+//!   indirection is needed to report hits. WGSL twin: `Triangle`.
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use crate::build::{BuildNode, BuildTree};
+use crate::geometry::Aabb;
+use crate::mesh::Triangle;
+
+/// The most primitives one BVH may hold (30 bits of leaf offsets and counts, with room for
+/// the miss codes in `Hit::prim`).
+pub const MAX_PRIMITIVES: usize = (1 << 30) - 1;
+
+/// `parents[0]`: the root has no parent.
+pub const NO_PARENT: u32 = u32::MAX;
+
+/// One BVH node (see the module docs for the encoding).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct FlatNode {
+    pub min: [f32; 3],
+    pub right_or_first: u32,
+    pub max: [f32; 3],
+    pub meta: u32,
+}
+
+impl FlatNode {
+    /// Number of triangles in a leaf; 0 for an interior node.
+    #[inline(always)]
+    pub fn count(&self) -> u32 {
+        self.meta >> 2
+    }
+    /// True for a leaf.
+    #[inline(always)]
+    pub fn is_leaf(&self) -> bool {
+        self.meta >> 2 != 0
+    }
+    /// Split axis of an interior node.
+    #[inline(always)]
+    pub fn axis(&self) -> usize {
+        (self.meta & 3) as usize
+    }
+    /// The node's box.
+    pub fn aabb(&self) -> Aabb {
+        Aabb {
+            min: Vec3::from(self.min),
+            max: Vec3::from(self.max),
+        }
+    }
+}
+
+/// One triangle in leaf order.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct FlatTriangle {
+    pub v0: [f32; 3],
+    /// Index of this triangle in the builder's input.
+    pub prim: u32,
+    pub v1: [f32; 3],
+    pub _pad1: u32,
+    pub v2: [f32; 3],
+    pub _pad2: u32,
+}
+
+impl FlatTriangle {
+    /// The three corners.
+    #[inline(always)]
+    pub fn corners(&self) -> [Vec3; 3] {
+        [
+            Vec3::from(self.v0),
+            Vec3::from(self.v1),
+            Vec3::from(self.v2),
+        ]
+    }
+}
+
+/// A BVH ready to traverse or upload.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FlatBvh {
+    pub nodes: Vec<FlatNode>,
+    pub parents: Vec<u32>,
+    pub triangles: Vec<FlatTriangle>,
+    /// Longest root-to-leaf path, in edges (a single leaf has depth 0).
+    pub depth: u32,
+}
+
+impl FlatBvh {
+    /// Lays out a build tree depth-first over the given triangles (the builder's input).
+    pub fn flatten(tree: &BuildTree, tris: &[Triangle]) -> FlatBvh {
+        let mut bvh = FlatBvh {
+            nodes: Vec::with_capacity(tree.node_count),
+            parents: Vec::with_capacity(tree.node_count),
+            triangles: tree
+                .prim_order
+                .iter()
+                .map(|&p| {
+                    let t = &tris[p as usize];
+                    FlatTriangle {
+                        v0: t[0].to_array(),
+                        prim: p,
+                        v1: t[1].to_array(),
+                        _pad1: 0,
+                        v2: t[2].to_array(),
+                        _pad2: 0,
+                    }
+                })
+                .collect(),
+            depth: 0,
+        };
+        bvh.emit(&tree.root, NO_PARENT, 0);
+        bvh
+    }
+
+    fn emit(&mut self, node: &BuildNode, parent: u32, depth: u32) -> u32 {
+        let index = self.nodes.len() as u32;
+        self.depth = self.depth.max(depth);
+        let b = node.bounds();
+        self.nodes.push(FlatNode {
+            min: b.min.to_array(),
+            right_or_first: 0,
+            max: b.max.to_array(),
+            meta: 0,
+        });
+        self.parents.push(parent);
+        match node {
+            BuildNode::Leaf { first, count, .. } => {
+                let n = &mut self.nodes[index as usize];
+                n.right_or_first = *first;
+                n.meta = count << 2;
+            }
+            BuildNode::Interior { axis, children, .. } => {
+                self.emit(&children[0], index, depth + 1);
+                let right = self.emit(&children[1], index, depth + 1);
+                let n = &mut self.nodes[index as usize];
+                n.right_or_first = right;
+                n.meta = *axis as u32;
+            }
+        }
+        index
+    }
+
+    /// Builds and flattens in one call.
+    pub fn build(
+        tris: &[Triangle],
+        opts: &crate::build::BuildOptions,
+    ) -> Result<FlatBvh, crate::build::BuildError> {
+        let tree = crate::build::build(tris, opts)?;
+        Ok(FlatBvh::flatten(&tree, tris))
+    }
+
+    /// Number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    /// The scene's box.
+    pub fn bounds(&self) -> Aabb {
+        self.nodes[0].aabb()
+    }
+
+    /// Bytes of the nodes, parents and triangles as uploaded.
+    pub fn byte_sizes(&self) -> (usize, usize, usize) {
+        (
+            std::mem::size_of_val(self.nodes.as_slice()),
+            std::mem::size_of_val(self.parents.as_slice()),
+            std::mem::size_of_val(self.triangles.as_slice()),
+        )
+    }
+
+    /// Checks every structural invariant; returns a description of the first violation.
+    /// Used by the tests; cheap enough to run on any tree.
+    pub fn check_invariants(&self) -> Result<(), String> {
+        let n_nodes = self.nodes.len();
+        let n_tris = self.triangles.len();
+        if n_nodes == 0 || n_nodes > 2 * n_tris.max(1) - 1 {
+            return Err(format!("{n_nodes} nodes for {n_tris} triangles"));
+        }
+        let mut seen = vec![false; n_tris];
+        let mut covered = vec![false; n_tris];
+        if self.parents[0] != NO_PARENT {
+            return Err("root has a parent".into());
+        }
+        for (i, n) in self.nodes.iter().enumerate() {
+            let b = n.aabb();
+            if n.is_leaf() {
+                let (f, c) = (n.right_or_first as usize, n.count() as usize);
+                if f + c > n_tris {
+                    return Err(format!("leaf {i} range {f}+{c} past {n_tris}"));
+                }
+                for (k, t) in self.triangles[f..f + c].iter().enumerate() {
+                    if covered[f + k] {
+                        return Err(format!("triangle slot {} in two leaves", f + k));
+                    }
+                    covered[f + k] = true;
+                    let p = t.prim as usize;
+                    if p >= n_tris || seen[p] {
+                        return Err(format!("primitive {p} repeated or out of range"));
+                    }
+                    seen[p] = true;
+                    let tb = Aabb::from_triangle(&t.corners());
+                    if !b.contains(&tb) {
+                        return Err(format!("leaf {i} box does not contain triangle {p}"));
+                    }
+                }
+            } else {
+                let l = i + 1;
+                let r = n.right_or_first as usize;
+                if r <= l || r >= n_nodes || n.axis() > 2 {
+                    return Err(format!("node {i}: bad children {l}, {r}"));
+                }
+                for c in [l, r] {
+                    if self.parents[c] as usize != i {
+                        return Err(format!(
+                            "node {c}: parent {} but is child of {i}",
+                            self.parents[c]
+                        ));
+                    }
+                    if !b.contains(&self.nodes[c].aabb()) {
+                        return Err(format!("node {i} box does not contain child {c}"));
+                    }
+                }
+            }
+        }
+        if let Some(p) = seen.iter().position(|s| !s) {
+            return Err(format!("primitive {p} is in no leaf"));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,24 @@
+//! bvhtrace core: build a SAH BVH on the CPU, flatten it into the layout the GPU kernels
+//! read, and trace rays through it on the CPU with the same arithmetic as the kernels.
+//!
+//! The flow: [`mesh::TriangleMesh`] → [`build::build`] → [`build::BuildTree`] →
+//! [`flat::FlatBvh::flatten`] → [`traverse::trace_batch`] (or the GPU crate), checked
+//! against [`oracle`]. The layout is documented once, in [`flat`].
+
+pub mod build;
+pub mod flat;
+pub mod geometry;
+pub mod intersect;
+pub mod mesh;
+pub mod oracle;
+pub mod ray;
+pub mod stats;
+pub mod traverse;
+
+pub use build::{BuildError, BuildOptions, BuilderKind, build};
+pub use flat::{FlatBvh, FlatNode, FlatTriangle};
+pub use geometry::Aabb;
+pub use mesh::{MeshError, Triangle, TriangleMesh};
+pub use ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
+pub use stats::BvhStats;
+pub use traverse::{Query, Traversal, trace_batch, trace_batch_counted, trace_ray};

@@ -1,0 +1,56 @@
+//! Tree quality: SAH cost in two conventions, depth, counts, leaf-size histogram.
+
+use crate::flat::FlatBvh;
+
+/// Quality figures of a flat BVH.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BvhStats {
+    pub triangles: usize,
+    pub nodes: usize,
+    pub leaves: usize,
+    pub depth: u32,
+    /// SAH cost with traversal 1 and intersection 1, summed over nodes (interior: area;
+    /// leaf: area x triangles) and divided by the root's area: tinybvh's `SAHCost`
+    /// convention, so the figures compare.
+    pub sah_cost: f64,
+    /// The same with PBRT's costs (traversal 1/8, intersection 1).
+    pub sah_cost_pbrt: f64,
+    /// `leaf_sizes[k]` = number of leaves holding `k` triangles.
+    pub leaf_sizes: Vec<usize>,
+}
+
+impl BvhStats {
+    /// Computes the figures.
+    pub fn of(bvh: &FlatBvh) -> Self {
+        let root_area = bvh.nodes[0].aabb().surface_area() as f64;
+        let (mut a, mut b) = (0f64, 0f64);
+        let mut leaves = 0;
+        let mut leaf_sizes = Vec::new();
+        for n in &bvh.nodes {
+            let area = n.aabb().surface_area() as f64;
+            if n.is_leaf() {
+                let c = n.count() as usize;
+                leaves += 1;
+                a += area * c as f64;
+                b += area * c as f64;
+                if leaf_sizes.len() <= c {
+                    leaf_sizes.resize(c + 1, 0);
+                }
+                leaf_sizes[c] += 1;
+            } else {
+                a += area;
+                b += area * 0.125;
+            }
+        }
+        let norm = |x: f64| if root_area > 0.0 { x / root_area } else { 0.0 };
+        BvhStats {
+            triangles: bvh.triangles.len(),
+            nodes: bvh.nodes.len(),
+            leaves,
+            depth: bvh.depth,
+            sah_cost: norm(a),
+            sah_cost_pbrt: norm(b),
+            leaf_sizes,
+        }
+    }
+}

@@ -1,0 +1,393 @@
+//! CPU traversals over the flat layout: the full-stack reference and the CPU twins of the
+//! GPU kernels (`shaders/traverse_*.wgsl`), step for step.
+//!
+//! # Hit rule (all traversals, both backends, and the oracle)
+//! A triangle hit at `t` replaces the current one when `t_min <= t` and either
+//! `t < t_best`, or `t == t_best` and its primitive index is lower. The interval is
+//! `[t_min, t_max)`. So the closest hit is the same whatever order the nodes are visited
+//! in: among exactly tied triangles, the lowest primitive index wins.
+//!
+//! Any-hit queries stop at the first accepted hit; which triangle that is depends on the
+//! visit order, so only hit/miss is compared across traversals.
+
+use std::fmt;
+use std::str::FromStr;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::flat::{FlatBvh, FlatNode};
+use crate::intersect::{PreparedRay, intersect_box, intersect_triangle};
+use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
+
+/// The most short-stack entries a kernel may be specialised for.
+pub const MAX_SHORT_STACK: u32 = 32;
+
+/// How the tree is walked.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Traversal {
+    /// A stack as deep as the tree; children visited nearest entry distance first.
+    /// The reference, and the baseline the others are measured against.
+    FullStack,
+    /// No stack: parent links and a deterministic near/far order (Hapala et al. 2011).
+    Stackless,
+    /// A ring buffer of `k` far-child entries (1..=32). When it overflows, the oldest entry
+    /// is dropped; when it runs dry after an overflow, the walk continues up the parent
+    /// links from the last node, which finds exactly the dropped subtrees, in order.
+    ShortStack(u32),
+}
+
+impl Traversal {
+    /// The name used on the command line (`short-stack` for any `k`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Traversal::FullStack => "full-stack",
+            Traversal::Stackless => "stackless",
+            Traversal::ShortStack(_) => "short-stack",
+        }
+    }
+
+    /// True when the traversal reads `FlatBvh::parents`.
+    pub fn needs_parents(&self) -> bool {
+        !matches!(self, Traversal::FullStack)
+    }
+}
+
+impl fmt::Display for Traversal {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Traversal::ShortStack(k) => write!(f, "short-stack({k})"),
+            t => f.write_str(t.name()),
+        }
+    }
+}
+
+impl FromStr for Traversal {
+    type Err = String;
+    /// `full-stack`, `stackless`, `short-stack` (k = 6) or `short-stack:K`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "full-stack" => Ok(Traversal::FullStack),
+            "stackless" => Ok(Traversal::Stackless),
+            "short-stack" => Ok(Traversal::ShortStack(DEFAULT_SHORT_STACK)),
+            _ => {
+                if let Some(k) = s.strip_prefix("short-stack:") {
+                    let k: u32 = k
+                        .parse()
+                        .map_err(|_| format!("bad short-stack size in '{s}'"))?;
+                    if (1..=MAX_SHORT_STACK).contains(&k) {
+                        return Ok(Traversal::ShortStack(k));
+                    }
+                    return Err(format!(
+                        "short-stack size must be 1..={MAX_SHORT_STACK}, got {k}"
+                    ));
+                }
+                Err(format!(
+                    "unknown traversal '{s}' (expected stackless, short-stack, short-stack:K or full-stack)"
+                ))
+            }
+        }
+    }
+}
+
+/// Default short-stack size.
+pub const DEFAULT_SHORT_STACK: u32 = 6;
+
+/// Closest hit or any hit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Query {
+    /// The nearest hit (with the tie rule above).
+    Closest,
+    /// Any hit in the interval (occlusion); stops at the first.
+    Any,
+}
+
+/// The best hit so far.
+struct Best {
+    t: f32,
+    prim: u32,
+    u: f32,
+    v: f32,
+    found: bool,
+}
+
+impl Best {
+    fn into_hit(self) -> Hit {
+        if self.found {
+            Hit {
+                t: self.t,
+                prim: self.prim,
+                u: self.u,
+                v: self.v,
+            }
+        } else {
+            Hit::miss(self.t)
+        }
+    }
+}
+
+/// Tests a leaf's triangles. Returns true when an any-hit query can stop.
+#[inline(always)]
+fn visit_leaf(
+    bvh: &FlatBvh,
+    r: &PreparedRay,
+    n: &FlatNode,
+    best: &mut Best,
+    c: &mut Counters,
+    any: bool,
+) -> bool {
+    let first = n.right_or_first as usize;
+    for tri in &bvh.triangles[first..first + n.count() as usize] {
+        c.tris += 1;
+        let [v0, v1, v2] = tri.corners();
+        if let Some(h) = intersect_triangle(r, v0, v1, v2)
+            && (h.t < best.t || (h.t == best.t && best.found && tri.prim < best.prim))
+        {
+            *best = Best {
+                t: h.t,
+                prim: tri.prim,
+                u: h.u,
+                v: h.v,
+                found: true,
+            };
+            if any {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+#[inline(always)]
+fn node_box(n: &FlatNode) -> (Vec3, Vec3) {
+    (Vec3::from(n.min), Vec3::from(n.max))
+}
+
+/// Near and far child of an interior node by the sign of the ray's direction along the
+/// split axis: the order the stackless and short-stack walks use (and must reproduce when
+/// climbing back up).
+#[inline(always)]
+fn near_far(r: &PreparedRay, index: u32, n: &FlatNode) -> (u32, u32) {
+    let (l, rt) = (index + 1, n.right_or_first);
+    if r.dir[n.axis()] >= 0.0 {
+        (l, rt)
+    } else {
+        (rt, l)
+    }
+}
+
+fn full_stack(
+    bvh: &FlatBvh,
+    r: &PreparedRay,
+    best: &mut Best,
+    c: &mut Counters,
+    any: bool,
+    stack: &mut Vec<u32>,
+) {
+    stack.clear();
+    c.nodes += 1;
+    let (lo, hi) = node_box(&bvh.nodes[0]);
+    if intersect_box(r, lo, hi, best.t).is_none() {
+        return;
+    }
+    let mut node = 0u32;
+    loop {
+        let n = &bvh.nodes[node as usize];
+        if n.is_leaf() {
+            if visit_leaf(bvh, r, n, best, c, any) {
+                return;
+            }
+        } else {
+            let (l, rt) = (node + 1, n.right_or_first);
+            c.nodes += 2;
+            let (llo, lhi) = node_box(&bvh.nodes[l as usize]);
+            let (rlo, rhi) = node_box(&bvh.nodes[rt as usize]);
+            let hl = intersect_box(r, llo, lhi, best.t);
+            let hr = intersect_box(r, rlo, rhi, best.t);
+            match (hl, hr) {
+                (Some(tl), Some(tr)) => {
+                    let (near, far) = if tr < tl { (rt, l) } else { (l, rt) };
+                    stack.push(far);
+                    node = near;
+                    continue;
+                }
+                (Some(_), None) => {
+                    node = l;
+                    continue;
+                }
+                (None, Some(_)) => {
+                    node = rt;
+                    continue;
+                }
+                (None, None) => {}
+            }
+        }
+        match stack.pop() {
+            Some(s) => node = s,
+            None => return,
+        }
+    }
+}
+
+/// Short stack of `k` entries; `k == 0` is the stackless walk.
+fn short_stack(
+    bvh: &FlatBvh,
+    r: &PreparedRay,
+    best: &mut Best,
+    c: &mut Counters,
+    any: bool,
+    k: u32,
+) {
+    let mut ring = [0u32; MAX_SHORT_STACK as usize];
+    let (mut top, mut count) = (0u32, 0u32); // next write slot, live entries
+    let mut overflow = false;
+    let mut node = 0u32;
+    'walk: loop {
+        let n = &bvh.nodes[node as usize];
+        c.nodes += 1;
+        let (lo, hi) = node_box(n);
+        if intersect_box(r, lo, hi, best.t).is_some() {
+            if !n.is_leaf() {
+                let (near, far) = near_far(r, node, n);
+                if k == 0 {
+                    overflow = true;
+                } else {
+                    if count == k {
+                        overflow = true; // the oldest entry is overwritten
+                    } else {
+                        count += 1;
+                    }
+                    ring[top as usize] = far;
+                    top = if top + 1 == k { 0 } else { top + 1 };
+                }
+                node = near;
+                continue;
+            }
+            if visit_leaf(bvh, r, n, best, c, any) {
+                return;
+            }
+        }
+        // The subtree at `node` is done: take the next pending node.
+        if count > 0 {
+            top = if top == 0 { k - 1 } else { top - 1 };
+            count -= 1;
+            node = ring[top as usize];
+            continue;
+        }
+        if !overflow {
+            return;
+        }
+        // Climb: the first ancestor entered from its near side has its far child pending.
+        loop {
+            if node == 0 {
+                return;
+            }
+            let p = bvh.parents[node as usize];
+            let pn = &bvh.nodes[p as usize];
+            let (near, far) = near_far(r, p, pn);
+            if node == near {
+                node = far;
+                continue 'walk;
+            }
+            node = p;
+        }
+    }
+}
+
+/// Traces one ray with per-ray scratch supplied by the caller (the full stack's storage).
+pub fn trace_ray_with(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    traversal: Traversal,
+    query: Query,
+    stack: &mut Vec<u32>,
+) -> (Hit, Counters) {
+    let mut c = Counters::default();
+    if !ray.is_valid() {
+        return (
+            Hit {
+                prim: INVALID_RAY,
+                ..Hit::miss(if ray.t_max.is_nan() { 0.0 } else { ray.t_max })
+            },
+            c,
+        );
+    }
+    let r = PreparedRay::new(ray);
+    let mut best = Best {
+        t: ray.t_max,
+        prim: MISS,
+        u: 0.0,
+        v: 0.0,
+        found: false,
+    };
+    if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
+        return (best.into_hit(), c);
+    }
+    let any = query == Query::Any;
+    match traversal {
+        Traversal::FullStack => full_stack(bvh, &r, &mut best, &mut c, any, stack),
+        Traversal::Stackless => short_stack(bvh, &r, &mut best, &mut c, any, 0),
+        Traversal::ShortStack(k) => {
+            short_stack(bvh, &r, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
+        }
+    }
+    (best.into_hit(), c)
+}
+
+/// Traces one ray.
+pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, traversal: Traversal, query: Query) -> (Hit, Counters) {
+    trace_ray_with(bvh, ray, traversal, query, &mut Vec::new())
+}
+
+/// Traces a batch of rays on all threads of the current rayon pool.
+pub fn trace_batch(bvh: &FlatBvh, rays: &[Ray], traversal: Traversal, query: Query) -> Vec<Hit> {
+    rays.par_iter()
+        .with_min_len(256)
+        .map_init(
+            || Vec::with_capacity(bvh.depth as usize + 1),
+            |stack, ray| trace_ray_with(bvh, ray, traversal, query, stack).0,
+        )
+        .collect()
+}
+
+/// Traces a batch and also returns each ray's counters.
+pub fn trace_batch_counted(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+) -> (Vec<Hit>, Vec<Counters>) {
+    rays.par_iter()
+        .with_min_len(256)
+        .map_init(
+            || Vec::with_capacity(bvh.depth as usize + 1),
+            |stack, ray| trace_ray_with(bvh, ray, traversal, query, stack),
+        )
+        .unzip()
+}
+
+/// Reference answer by testing every triangle with the same f32 test and hit rule: what
+/// every traversal must return exactly, for closest-hit queries.
+pub fn brute_force(bvh: &FlatBvh, ray: &Ray) -> Hit {
+    if !ray.is_valid() {
+        return trace_ray(bvh, ray, Traversal::FullStack, Query::Closest).0;
+    }
+    let r = PreparedRay::new(ray);
+    let mut best = Best {
+        t: ray.t_max,
+        prim: MISS,
+        u: 0.0,
+        v: 0.0,
+        found: false,
+    };
+    if ray.t_min <= ray.t_max {
+        let leaf = FlatNode {
+            min: [0.0; 3],
+            right_or_first: 0,
+            max: [0.0; 3],
+            meta: (bvh.triangles.len() as u32) << 2,
+        };
+        visit_leaf(bvh, &r, &leaf, &mut best, &mut Counters::default(), false);
+    }
+    best.into_hit()
+}
