@@ -17,10 +17,14 @@ pub const BOX_TFAR_SCALE: f32 = 1.000_000_4;
 #[derive(Clone, Copy, Debug)]
 pub struct PreparedRay {
     pub org: Vec3,
+    /// Direction, with subnormal components flushed to (signed) zero as GPUs do.
     pub dir: Vec3,
-    /// `1/dir` with zero (and subnormal) components replaced by `±f32::MIN_POSITIVE`
-    /// (keeping the sign) so the slab test never computes `0 * inf = NaN`.
+    /// `1/dir`, with zero components replaced by `±f32::MIN_POSITIVE` (sign kept) so the
+    /// product is finite; such axes are handled apart (see `parallel`).
     pub inv_dir: Vec3,
+    /// True when some direction component is zero: the ray is parallel to those slabs,
+    /// and [`intersect_box`] takes its general path.
+    pub parallel: bool,
     pub t_min: f32,
     /// Watertight test: the dominant axis and the two others (Woop et al. 2013).
     pub kx: usize,
@@ -30,6 +34,16 @@ pub struct PreparedRay {
     pub sx: f32,
     pub sy: f32,
     pub sz: f32,
+}
+
+/// `d`, or a zero of the same sign when `d` is subnormal.
+#[inline]
+pub fn flush_subnormal(d: f32) -> f32 {
+    if d.abs() < f32::MIN_POSITIVE {
+        0.0f32.copysign(d)
+    } else {
+        d
+    }
 }
 
 /// `1/d`, where a zero or subnormal `d` is taken as `±f32::MIN_POSITIVE` (sign kept), so the
@@ -48,7 +62,12 @@ impl PreparedRay {
     /// Precomputes a valid ray (see [`Ray::is_valid`]).
     pub fn new(ray: &Ray) -> Self {
         let org = Vec3::from(ray.origin);
-        let dir = Vec3::from(ray.dir);
+        let d = Vec3::from(ray.dir);
+        let dir = Vec3::new(
+            flush_subnormal(d.x),
+            flush_subnormal(d.y),
+            flush_subnormal(d.z),
+        );
         let inv_dir = Vec3::new(
             safe_inverse(dir.x),
             safe_inverse(dir.y),
@@ -73,6 +92,7 @@ impl PreparedRay {
             org,
             dir,
             inv_dir,
+            parallel: dir.x == 0.0 || dir.y == 0.0 || dir.z == 0.0,
             t_min: ray.t_min,
             kx,
             ky,
@@ -97,8 +117,24 @@ fn fmax(a: f32, b: f32) -> f32 {
 /// `[t_min, t_max]` overlaps the box (boundaries included), else `None`.
 #[inline(always)]
 pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_max: f32) -> Option<f32> {
-    let t0 = (bmin - r.org) * r.inv_dir;
-    let t1 = (bmax - r.org) * r.inv_dir;
+    let mut t0 = (bmin - r.org) * r.inv_dir;
+    let mut t1 = (bmax - r.org) * r.inv_dir;
+    if r.parallel {
+        // Along an axis the ray does not move, it is inside the slab for every t (its
+        // boundary included) or for none: no distance from a product with a fake inverse,
+        // which would put a ray lying on a face just outside it.
+        for a in 0..3 {
+            if r.dir[a] == 0.0 {
+                let inside = bmin[a] <= r.org[a] && r.org[a] <= bmax[a];
+                t0[a] = if inside {
+                    f32::NEG_INFINITY
+                } else {
+                    f32::INFINITY
+                };
+                t1[a] = f32::INFINITY;
+            }
+        }
+    }
     let tnear = fmax(
         fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
         fmax(fmin(t0.z, t1.z), r.t_min),

@@ -152,3 +152,71 @@ pub fn all_hits(tris: &[Triangle], ray: &Ray) -> Vec<(f64, u32)> {
     hits.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     hits
 }
+
+impl PreparedRay64 {
+    /// The three edge functions in f64 and a bound on the error the f32 test makes in each
+    /// (from rounding the translation, the shear and the products: `16 u` times the sum of
+    /// the magnitudes of the terms, `u = 2^-24`).
+    pub fn edge_functions(&self, tri: &Triangle) -> ([f64; 3], [f64; 3]) {
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let proj = |p: glam::Vec3| {
+            let a = p.as_dvec3() - self.org;
+            (
+                a[kx] - self.sx * a[kz],
+                a[ky] - self.sy * a[kz],
+                a[kx].abs() + (self.sx * a[kz]).abs(),
+                a[ky].abs() + (self.sy * a[kz]).abs(),
+            )
+        };
+        let (ax, ay, max_, may) = proj(tri[0]);
+        let (bx, by, mbx, mby) = proj(tri[1]);
+        let (cx, cy, mcx, mcy) = proj(tri[2]);
+        let u = 2f64.powi(-24) * 16.0;
+        (
+            [cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax],
+            [
+                u * (mcx * mby + mcy * mbx),
+                u * (max_ * mcy + may * mcx),
+                u * (mbx * may + mby * max_),
+            ],
+        )
+    }
+}
+
+/// True when f32 arithmetic cannot decide whether this ray hits this triangle: one of the
+/// edge functions is within its f32 error bound (the ray passes, in the test's projected
+/// space, within rounding of an edge line). Where the f32 input represents the geometry
+/// exactly and this is false for every triangle involved, the f32 test must agree with
+/// the oracle; where it is true, a difference is f32's, not the algorithm's.
+pub fn f32_indeterminate(tri: &Triangle, ray: &Ray) -> bool {
+    if !ray.is_valid() {
+        return false;
+    }
+    let (e, bound) = PreparedRay64::new(ray).edge_functions(tri);
+    e.iter().zip(&bound).any(|(e, b)| e.abs() <= *b)
+}
+
+/// A bound on the f32 test's error in `t` for this ray and triangle, from the edge
+/// functions' error bounds: `t = T / det` is ill-conditioned when the triangle is seen
+/// nearly edge-on (`det` small against its error). Infinite when the f32 `det` may be 0.
+pub fn f32_t_error_bound(tri: &Triangle, ray: &Ray) -> f64 {
+    if !ray.is_valid() {
+        return 0.0;
+    }
+    let r = PreparedRay64::new(ray);
+    let (e, b) = r.edge_functions(tri);
+    let z = tri.map(|p| r.sz * (p.as_dvec3() - r.org)[r.kz]);
+    let det: f64 = e.iter().sum();
+    let det_err: f64 =
+        b.iter().sum::<f64>() + 4.0 * f64::EPSILON * e.iter().map(|x| x.abs()).sum::<f64>();
+    if det.abs() <= det_err {
+        return f64::INFINITY;
+    }
+    let u = 2f64.powi(-24) * 8.0;
+    let t_num: f64 = (0..3).map(|i| e[i] * z[i]).sum();
+    let t_err: f64 = (0..3)
+        .map(|i| b[i] * z[i].abs() + u * (e[i] * z[i]).abs())
+        .sum();
+    let t = t_num / det;
+    (t_err + t.abs() * det_err) / (det.abs() - det_err) + u * t.abs()
+}
