@@ -1,0 +1,45 @@
+//! `bvhtrace`: render scenes through the BVH on the GPU or CPU, inspect them, benchmark.
+
+mod bench;
+mod output;
+mod render;
+mod shade;
+mod tracer;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+/// Build a SAH BVH on the CPU and trace rays through it with WGSL kernels (wgpu/Vulkan)
+/// or the CPU reference traversal.
+#[derive(Parser)]
+#[command(name = "bvhtrace", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene to a PNG (and optionally JSON stats).
+    Render(render::RenderArgs),
+    /// Print what a scene contains and the quality of its BVH.
+    Info(render::InfoArgs),
+    /// Benchmark the builders: build time, SAH cost, CPU traversal speed.
+    BenchBuild(bench::BenchBuildArgs),
+    /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
+    BenchTrace(bench::BenchTraceArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result: Result<()> = match cli.command {
+        Command::Render(a) => render::render(a),
+        Command::Info(a) => render::info(a),
+        Command::BenchBuild(a) => bench::bench_build(a),
+        Command::BenchTrace(a) => bench::bench_trace(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

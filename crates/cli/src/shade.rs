@@ -1,0 +1,217 @@
+//! Turning hits into pixels, and the secondary rays some modes need. Everything here runs
+//! on the CPU for both backends, so the GPU and CPU images differ only where hits do.
+
+use bvhtrace_core::{Hit, Ray, Triangle};
+use glam::Vec3;
+
+/// Background colour.
+pub const BACKGROUND: [u8; 3] = [24, 26, 32];
+
+/// Shading modes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Shade {
+    /// Geometric normal, facing the camera, as colour.
+    Normal,
+    /// Distance, near bright, far dark.
+    Depth,
+    /// Diffuse light with a shadow ray (any-hit) to a point light.
+    Diffuse,
+    /// Ambient occlusion from `--ao-samples` any-hit rays per pixel.
+    Ao,
+    /// Nodes visited per pixel, with a colour legend.
+    Heatmap,
+}
+
+/// Geometric normal of a triangle, flipped to face against `dir`.
+pub fn facing_normal(tri: &Triangle, dir: Vec3) -> Vec3 {
+    let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
+    let n = if n.length_squared() > 0.0 {
+        n.normalize()
+    } else {
+        -dir.normalize()
+    };
+    if n.dot(dir) > 0.0 { -n } else { n }
+}
+
+/// Hit point from the barycentrics (more accurate than `o + t d`).
+pub fn hit_point(tri: &Triangle, h: &Hit) -> Vec3 {
+    tri[0] * (1.0 - h.u - h.v) + tri[1] * h.u + tri[2] * h.v
+}
+
+/// Moves a surface point off the surface along `n` by a few ulps of its own magnitude
+/// (Wachter and Binder, Ray Tracing Gems ch. 6): no scene-scale epsilon.
+pub fn offset_origin(p: Vec3, n: Vec3) -> Vec3 {
+    const ORIGIN: f32 = 1.0 / 32.0;
+    const FLOAT_SCALE: f32 = 1.0 / 65536.0;
+    const INT_SCALE: f32 = 256.0;
+    let off = |p: f32, n: f32| {
+        let oi = (INT_SCALE * n) as i32;
+        let pi = f32::from_bits((p.to_bits() as i32 + if p < 0.0 { -oi } else { oi }) as u32);
+        if p.abs() < ORIGIN {
+            p + FLOAT_SCALE * n
+        } else {
+            pi
+        }
+    };
+    Vec3::new(off(p.x, n.x), off(p.y, n.y), off(p.z, n.z))
+}
+
+/// A small integer hash (PCG) for repeatable sampling.
+pub fn hash(mut x: u32) -> u32 {
+    x = x.wrapping_mul(747796405).wrapping_add(2891336453);
+    let w = ((x >> ((x >> 28) + 4)) ^ x).wrapping_mul(277803737);
+    (w >> 22) ^ w
+}
+
+fn unit(x: u32) -> f32 {
+    (x >> 8) as f32 / (1u32 << 24) as f32
+}
+
+/// Cosine-weighted direction around `n` for sample `s` of pixel `p`.
+pub fn cosine_dir(n: Vec3, p: u32, s: u32) -> Vec3 {
+    let h1 = hash(p.wrapping_mul(9781).wrapping_add(s.wrapping_mul(6271)) ^ 0x9e37_79b9);
+    let (u1, u2) = (unit(h1), unit(hash(h1)));
+    let r = u1.sqrt();
+    let phi = std::f32::consts::TAU * u2;
+    let (t, b) = n.any_orthonormal_pair();
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
+}
+
+/// Secondary rays for the diffuse (one shadow ray) and AO (`samples` rays) modes: for each
+/// primary hit, rays and the index of the pixel they belong to.
+pub fn secondary_rays(
+    mode: Shade,
+    tris: &[Triangle],
+    primary: &[Ray],
+    hits: &[Hit],
+    light: Vec3,
+    samples: u32,
+    ao_radius: f32,
+) -> (Vec<Ray>, Vec<u32>) {
+    let mut rays = Vec::new();
+    let mut owner = Vec::new();
+    for (i, (r, h)) in primary.iter().zip(hits).enumerate() {
+        if !h.is_hit() {
+            continue;
+        }
+        let tri = &tris[h.prim as usize];
+        let n = facing_normal(tri, Vec3::from(r.dir));
+        let o = offset_origin(hit_point(tri, h), n);
+        match mode {
+            Shade::Diffuse => {
+                rays.push(Ray::with_interval(o, light - o, 0.0, 1.0));
+                owner.push(i as u32);
+            }
+            Shade::Ao => {
+                for s in 0..samples {
+                    rays.push(Ray::with_interval(
+                        o,
+                        cosine_dir(n, i as u32, s),
+                        0.0,
+                        ao_radius,
+                    ));
+                    owner.push(i as u32);
+                }
+            }
+            _ => {}
+        }
+    }
+    (rays, owner)
+}
+
+/// A colour ramp for the heatmap (blue, cyan, green, yellow, red).
+pub fn ramp(x: f32) -> [u8; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [0.05, 0.05, 0.45],
+        [0.0, 0.7, 0.9],
+        [0.1, 0.8, 0.2],
+        [0.95, 0.85, 0.1],
+        [0.85, 0.1, 0.05],
+    ];
+    let x = x.clamp(0.0, 1.0) * 4.0;
+    let i = (x as usize).min(3);
+    let f = x - i as f32;
+    let c = |k: usize| (STOPS[i][k] * (1.0 - f) + STOPS[i + 1][k] * f) * 255.0;
+    [c(0) as u8, c(1) as u8, c(2) as u8]
+}
+
+/// 3x5 digits for the legend.
+const DIGITS: [[u8; 5]; 10] = [
+    [7, 5, 5, 5, 7],
+    [2, 6, 2, 2, 7],
+    [7, 1, 7, 4, 7],
+    [7, 1, 7, 1, 7],
+    [5, 5, 7, 1, 1],
+    [7, 4, 7, 1, 7],
+    [7, 4, 7, 5, 7],
+    [7, 1, 1, 1, 1],
+    [7, 5, 7, 5, 7],
+    [7, 5, 7, 1, 7],
+];
+
+/// Draws a number at (x, y) with `scale`-pixel dots.
+pub fn draw_number(
+    img: &mut [u8],
+    w: u32,
+    h: u32,
+    x: u32,
+    y: u32,
+    n: u32,
+    scale: u32,
+    col: [u8; 3],
+) {
+    for (k, ch) in n.to_string().bytes().enumerate() {
+        let g = DIGITS[(ch - b'0') as usize];
+        for (row, bits) in g.iter().enumerate() {
+            for c in 0..3 {
+                if bits >> (2 - c) & 1 == 1 {
+                    for dy in 0..scale {
+                        for dx in 0..scale {
+                            let px = x + (k as u32 * 4 + c) * scale + dx;
+                            let py = y + row as u32 * scale + dy;
+                            if px < w && py < h {
+                                let o = ((py * w + px) * 3) as usize;
+                                img[o..o + 3].copy_from_slice(&col);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Adds the heatmap legend: a ramp bar along the bottom with its end values.
+pub fn draw_legend(img: &mut [u8], w: u32, h: u32, max: u32) {
+    let scale = (h / 200).max(1);
+    let bar_h = 8 * scale;
+    let y0 = h.saturating_sub(bar_h + 8 * scale);
+    let (x0, x1) = (8 * scale, w.saturating_sub(8 * scale));
+    for y in y0.saturating_sub(2 * scale)..h {
+        for x in 0..w {
+            let o = ((y * w + x) * 3) as usize;
+            img[o..o + 3].copy_from_slice(&[0, 0, 0]);
+        }
+    }
+    for x in x0..x1 {
+        let c = ramp((x - x0) as f32 / (x1 - x0).max(1) as f32);
+        for y in y0..y0 + bar_h {
+            let o = ((y * w + x) * 3) as usize;
+            img[o..o + 3].copy_from_slice(&c);
+        }
+    }
+    let ty = y0 + bar_h + scale;
+    draw_number(img, w, h, x0, ty, 0, scale, [255; 3]);
+    let digits = max.to_string().len() as u32;
+    draw_number(
+        img,
+        w,
+        h,
+        x1.saturating_sub(digits * 4 * scale),
+        ty,
+        max,
+        scale,
+        [255; 3],
+    );
+}

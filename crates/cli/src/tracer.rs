@@ -1,0 +1,120 @@
+//! One interface over the CPU and GPU backends, so render and bench do not care which.
+
+use std::time::Instant;
+
+use anyhow::Result;
+use bvhtrace_core::{
+    Counters, FlatBvh, Hit, Query, Ray, Traversal, trace_batch, trace_batch_counted,
+};
+use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, TraceOptions, UploadOptions};
+
+/// Where rays are traced.
+pub enum Tracer<'a> {
+    /// The CPU reference traversals (rayon over rays).
+    Cpu(&'a FlatBvh),
+    /// The WGSL kernels through wgpu.
+    Gpu(Box<GpuBvh>),
+}
+
+/// The answer to one batch.
+pub struct Traced {
+    pub hits: Vec<Hit>,
+    pub counters: Option<Vec<Counters>>,
+    /// Wall time including (for the GPU) ray upload and readback.
+    pub wall_ms: f64,
+    /// Kernel time from GPU timestamps, when there are any.
+    pub gpu_ms: Option<f64>,
+}
+
+/// What the GPU upload needs to include for a job.
+pub struct GpuSetup<'s> {
+    pub adapter: Option<&'s str>,
+    pub traversal: Traversal,
+}
+
+impl<'a> Tracer<'a> {
+    /// Opens a GPU and uploads the BVH; returns the tracer and the upload time in ms.
+    pub fn gpu(bvh: &FlatBvh, setup: &GpuSetup) -> Result<(Tracer<'a>, f64)> {
+        let choice = match setup.adapter {
+            Some(name) => AdapterChoice::Named(name.to_string()),
+            None => AdapterChoice::Auto,
+        };
+        let ctx = GpuContext::new(choice)?;
+        let start = Instant::now();
+        let gpu = GpuBvh::upload(&ctx, bvh, &UploadOptions::for_traversal(setup.traversal))?;
+        Ok((
+            Tracer::Gpu(Box::new(gpu)),
+            start.elapsed().as_secs_f64() * 1e3,
+        ))
+    }
+
+    /// `"cpu"` or `"gpu"`.
+    pub fn backend(&self) -> &'static str {
+        match self {
+            Tracer::Cpu(_) => "cpu",
+            Tracer::Gpu(_) => "gpu",
+        }
+    }
+
+    /// The adapter's name, or the CPU's thread count.
+    pub fn adapter(&self) -> String {
+        match self {
+            Tracer::Cpu(_) => format!("cpu ({} threads)", rayon::current_num_threads()),
+            Tracer::Gpu(g) => {
+                let i = g.context().adapter_info();
+                format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
+            }
+        }
+    }
+
+    /// Bytes uploaded to the GPU (0 on the CPU).
+    pub fn uploaded_bytes(&self) -> u64 {
+        match self {
+            Tracer::Cpu(_) => 0,
+            Tracer::Gpu(g) => g.stats().total_bytes(),
+        }
+    }
+
+    /// Traces one batch.
+    pub fn trace(
+        &self,
+        rays: &[Ray],
+        traversal: Traversal,
+        query: Query,
+        counters: bool,
+    ) -> Result<Traced> {
+        match self {
+            Tracer::Cpu(bvh) => {
+                let start = Instant::now();
+                let (hits, c) = if counters {
+                    let (h, c) = trace_batch_counted(bvh, rays, traversal, query);
+                    (h, Some(c))
+                } else {
+                    (trace_batch(bvh, rays, traversal, query), None)
+                };
+                Ok(Traced {
+                    hits,
+                    counters: c,
+                    wall_ms: start.elapsed().as_secs_f64() * 1e3,
+                    gpu_ms: None,
+                })
+            }
+            Tracer::Gpu(g) => {
+                let out = g.trace_with(
+                    rays,
+                    &TraceOptions {
+                        traversal,
+                        query,
+                        counters,
+                    },
+                )?;
+                Ok(Traced {
+                    hits: out.hits,
+                    counters: out.counters,
+                    wall_ms: out.wall_ms,
+                    gpu_ms: out.gpu_ms,
+                })
+            }
+        }
+    }
+}
