@@ -1,0 +1,382 @@
+//! Headless device creation and the per-device state shared by every upload: the shader
+//! module, the bind group layouts and the pipeline cache.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use crate::error::GpuError;
+use crate::shaders::{self, KernelVariant};
+
+/// Environment variable naming the adapter to use: any substring of its name,
+/// case-insensitive (for example `llvmpipe` or `nvidia`).
+pub const ADAPTER_ENV: &str = "BVHTRACE_ADAPTER";
+
+/// Which Vulkan adapter [`GpuContext::new`] opens.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum AdapterChoice {
+    /// `$BVHTRACE_ADAPTER` when it is set and not empty; otherwise the best adapter:
+    /// a discrete GPU, else an integrated one, else a virtual one, else a CPU driver
+    /// (lavapipe), ties broken by enumeration order.
+    #[default]
+    Auto,
+    /// The first adapter whose name contains this substring (case-insensitive); for a
+    /// command-line flag. Takes precedence over `$BVHTRACE_ADAPTER`.
+    Named(String),
+}
+
+/// The adapter limits the tracer works within (a copy of the device's `wgpu::Limits`
+/// fields that matter here).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct GpuLimits {
+    /// Largest storage buffer binding, bytes.
+    pub max_storage_buffer_binding_size: u64,
+    /// Largest buffer, bytes.
+    pub max_buffer_size: u64,
+    /// Most workgroups in one dispatch dimension.
+    pub max_compute_workgroups_per_dimension: u32,
+    /// Alignment of storage buffer binding offsets, bytes.
+    pub min_storage_buffer_offset_alignment: u32,
+}
+
+impl GpuLimits {
+    /// The fields of `limits`.
+    pub fn from_wgpu(limits: &wgpu::Limits) -> Self {
+        GpuLimits {
+            max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
+            max_buffer_size: limits.max_buffer_size,
+            max_compute_workgroups_per_dimension: limits.max_compute_workgroups_per_dimension,
+            min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
+        }
+    }
+}
+
+/// A device and queue with the tracer's shared state. Cheap to clone (reference counted);
+/// every [`crate::GpuBvh`] keeps a clone.
+#[derive(Clone)]
+pub struct GpuContext {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    limits: GpuLimits,
+    timestamps: bool,
+    module: OnceLock<wgpu::ShaderModule>,
+    /// BVH group layouts: `[without parents, with parents]`.
+    bvh_layouts: [wgpu::BindGroupLayout; 2],
+    /// Batch group layouts: `[without counters, with counters]`.
+    batch_layouts: [wgpu::BindGroupLayout; 2],
+    pipelines: Mutex<HashMap<KernelVariant, wgpu::ComputePipeline>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.inner.info.name)
+            .field("backend", &self.inner.info.backend)
+            .field("limits", &self.inner.limits)
+            .field("timestamps", &self.inner.timestamps)
+            .finish()
+    }
+}
+
+fn type_rank(t: wgpu::DeviceType) -> u32 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    }
+}
+
+/// Picks an adapter among `infos` for `choice` (the environment already applied): the
+/// index of the chosen one. Pure, for the tests.
+pub fn pick_adapter(infos: &[wgpu::AdapterInfo], wanted: Option<&str>) -> Result<usize, GpuError> {
+    if infos.is_empty() {
+        return Err(GpuError::NoAdapter {
+            details: String::new(),
+        });
+    }
+    match wanted {
+        Some(w) => {
+            let lw = w.to_lowercase();
+            infos
+                .iter()
+                .position(|i| i.name.to_lowercase().contains(&lw))
+                .ok_or_else(|| GpuError::AdapterNotFound {
+                    wanted: w.to_string(),
+                    available: infos
+                        .iter()
+                        .map(|i| format!("{} ({:?})", i.name, i.device_type))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                })
+        }
+        None => Ok(infos
+            .iter()
+            .enumerate()
+            .min_by_key(|(i, info)| (type_rank(info.device_type), *i))
+            .map(|(i, _)| i)
+            .unwrap_or(0)),
+    }
+}
+
+impl AdapterChoice {
+    /// The name substring to look for, the environment applied: `Named` wins, then a
+    /// non-empty `$BVHTRACE_ADAPTER`, else `None` (the best adapter).
+    pub fn wanted_name(&self) -> Option<String> {
+        match self {
+            AdapterChoice::Named(n) => Some(n.clone()),
+            AdapterChoice::Auto => std::env::var(ADAPTER_ENV)
+                .ok()
+                .map(|s| s.trim().to_string())
+                .filter(|s| !s.is_empty()),
+        }
+    }
+}
+
+fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+impl GpuContext {
+    /// Opens a Vulkan device headlessly on the adapter `choice` selects (see
+    /// [`AdapterChoice`]). Enables `TIMESTAMP_QUERY` when the adapter has it and takes the
+    /// adapter's own limits (storage binding and buffer sizes, workgroup counts).
+    ///
+    /// Fails with [`GpuError::NoAdapter`] (which tells the user to install
+    /// `mesa-vulkan-drivers`) when there is no Vulkan adapter; never panics.
+    pub fn new(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
+        pollster::block_on(Self::new_async(choice))
+    }
+
+    /// [`GpuContext::new`], as a future.
+    pub async fn new_async(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN;
+        // Validation layers are rarely installed; wgpu's own validation stays on.
+        desc.flags = wgpu::InstanceFlags::empty().with_env();
+        let instance = wgpu::Instance::new(desc);
+        let adapters = instance.enumerate_adapters(wgpu::Backends::VULKAN).await;
+        let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+        let index = pick_adapter(&infos, choice.wanted_name().as_deref())?;
+        let adapter = &adapters[index];
+        let info = infos[index].clone();
+
+        let mut features = wgpu::Features::empty();
+        if adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            features |= wgpu::Features::TIMESTAMP_QUERY;
+        }
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("bvhtrace"),
+                required_features: features,
+                required_limits: adapter.limits(),
+                ..Default::default()
+            })
+            .await
+            .map_err(|source| GpuError::RequestDevice {
+                adapter: info.name.clone(),
+                source,
+            })?;
+        Ok(Self::from_device(device, queue, info))
+    }
+
+    /// Wraps a device someone else created (an application, the egui viewer). The tracer
+    /// uses that device's limits and, when it was created with `TIMESTAMP_QUERY`, reports
+    /// GPU times.
+    pub fn from_device(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        adapter_info: wgpu::AdapterInfo,
+    ) -> GpuContext {
+        let limits = GpuLimits::from_wgpu(&device.limits());
+        let timestamps = device.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let layout = |label: &str, entries: &[wgpu::BindGroupLayoutEntry]| {
+            device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(label),
+                entries,
+            })
+        };
+        let bvh_layouts = [
+            layout(
+                "bvhtrace bvh",
+                &[storage_entry(0, true), storage_entry(1, true)],
+            ),
+            layout(
+                "bvhtrace bvh+parents",
+                &[
+                    storage_entry(0, true),
+                    storage_entry(1, true),
+                    storage_entry(2, true),
+                ],
+            ),
+        ];
+        let batch_layouts = [
+            layout(
+                "bvhtrace batch",
+                &[storage_entry(0, true), storage_entry(1, false)],
+            ),
+            layout(
+                "bvhtrace batch+counters",
+                &[
+                    storage_entry(0, true),
+                    storage_entry(1, false),
+                    storage_entry(2, false),
+                ],
+            ),
+        ];
+        GpuContext {
+            inner: Arc::new(Inner {
+                device,
+                queue,
+                info: adapter_info,
+                limits,
+                timestamps,
+                module: OnceLock::new(),
+                bvh_layouts,
+                batch_layouts,
+                pipelines: Mutex::new(HashMap::new()),
+            }),
+        }
+    }
+
+    /// The device.
+    pub fn device(&self) -> &wgpu::Device {
+        &self.inner.device
+    }
+
+    /// The queue.
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.inner.queue
+    }
+
+    /// The adapter's description (name, type, driver).
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.inner.info
+    }
+
+    /// The limits the tracer works within.
+    pub fn limits(&self) -> &GpuLimits {
+        &self.inner.limits
+    }
+
+    /// True when GPU times are measured (the device has `TIMESTAMP_QUERY`).
+    pub fn has_timestamps(&self) -> bool {
+        self.inner.timestamps
+    }
+
+    /// The layout of the BVH bind group (group 0): bindings 0 (nodes) and 1 (triangles),
+    /// plus 2 (parents) when `with_parents`.
+    pub fn bvh_layout(&self, with_parents: bool) -> &wgpu::BindGroupLayout {
+        &self.inner.bvh_layouts[usize::from(with_parents)]
+    }
+
+    /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits), plus 2
+    /// (counters) when `with_counters`.
+    pub fn batch_layout(&self, with_counters: bool) -> &wgpu::BindGroupLayout {
+        &self.inner.batch_layouts[usize::from(with_counters)]
+    }
+
+    /// Runs `f` inside validation and out-of-memory error scopes; an error either reported
+    /// becomes a [`GpuError::Wgpu`].
+    pub(crate) fn scoped<T>(
+        &self,
+        during: &'static str,
+        f: impl FnOnce() -> T,
+    ) -> Result<T, GpuError> {
+        let device = &self.inner.device;
+        let oom = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let value = f();
+        let v = pollster::block_on(validation.pop());
+        let o = pollster::block_on(oom.pop());
+        match v.or(o) {
+            None => Ok(value),
+            Some(e) => Err(GpuError::Wgpu {
+                during,
+                message: e.to_string(),
+            }),
+        }
+    }
+
+    fn module(&self) -> Result<&wgpu::ShaderModule, GpuError> {
+        if let Some(m) = self.inner.module.get() {
+            return Ok(m);
+        }
+        let source = shaders::kernel_source();
+        let module = self.scoped("compiling the WGSL kernels", || {
+            self.inner
+                .device
+                .create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some("bvhtrace kernels"),
+                    source: wgpu::ShaderSource::Wgsl(source.into()),
+                })
+        })?;
+        // Another thread may have won the race; either module is fine.
+        Ok(self.inner.module.get_or_init(|| module))
+    }
+
+    /// The compute pipeline for one kernel variant, created on first use and cached by
+    /// (traversal, k, query, counters).
+    pub fn pipeline(&self, variant: KernelVariant) -> Result<wgpu::ComputePipeline, GpuError> {
+        if let Some(p) = self
+            .inner
+            .pipelines
+            .lock()
+            .map_err(|_| poisoned())?
+            .get(&variant)
+        {
+            return Ok(p.clone());
+        }
+        let module = self.module()?;
+        let device = &self.inner.device;
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("bvhtrace trace"),
+            bind_group_layouts: &[
+                Some(self.bvh_layout(variant.needs_parents())),
+                Some(self.batch_layout(variant.counters)),
+            ],
+            immediate_size: 0,
+        });
+        let constants = variant.constants();
+        let pipeline = self.scoped("creating a trace pipeline", || {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(variant.entry_point()),
+                layout: Some(&layout),
+                module,
+                entry_point: Some(variant.entry_point()),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            })
+        })?;
+        self.inner
+            .pipelines
+            .lock()
+            .map_err(|_| poisoned())?
+            .insert(variant, pipeline.clone());
+        Ok(pipeline)
+    }
+}
+
+fn poisoned() -> GpuError {
+    GpuError::Wgpu {
+        during: "locking the pipeline cache",
+        message: "a thread panicked while holding it".into(),
+    }
+}

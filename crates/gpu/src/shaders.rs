@@ -1,0 +1,211 @@
+//! The WGSL kernels: composed at load time from the files in the repository's `shaders/`
+//! folder, one file per concern, and specialised per pipeline with override constants.
+//!
+//! | file | concern | CPU twin |
+//! |---|---|---|
+//! | `types.wgsl` | `Node`, `Triangle`, `Ray`, `Hit`, `Counters` | `bvhtrace_core::{FlatNode, FlatTriangle, Ray, Hit, Counters}` |
+//! | `bvh_bindings.wgsl` | the BVH's storage buffers (group 0 by default) | `FlatBvh` |
+//! | `ray.wgsl` | validity, `safe_inverse`, `prepare_ray` | `Ray::is_valid`, `PreparedRay::new` |
+//! | `box.wgsl` | conservative slab test | `intersect::intersect_box` |
+//! | `triangle.wgsl` | watertight triangle test | `intersect::intersect_triangle` |
+//! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
+//! | `traverse_full_stack.wgsl` | `trace_full_stack(ray, any_hit)` | `traverse::full_stack` |
+//! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k)` (k = 0: stackless) | `traverse::short_stack` |
+//! | `entry.wgsl` | the batch entry points | `traverse::trace_batch` |
+//!
+//! [`wgsl_library`] concatenates everything but `entry.wgsl`, for use from your own
+//! shaders; [`kernel_source`] adds the entry points. Nothing is copied between variants:
+//! the stackless walk is the short-stack function with `k = 0`, the query and `k` are
+//! pipeline-overridable constants (`ANY_HIT`, `SHORT_STACK_SIZE`), and counters are written
+//! only by the `*_counted` entry points.
+
+/// The WGSL files, in composition order, as `(file name, source)`.
+pub const SHADER_FILES: &[(&str, &str)] = &[
+    ("types.wgsl", include_str!("../../../shaders/types.wgsl")),
+    (
+        "bvh_bindings.wgsl",
+        include_str!("../../../shaders/bvh_bindings.wgsl"),
+    ),
+    ("ray.wgsl", include_str!("../../../shaders/ray.wgsl")),
+    ("box.wgsl", include_str!("../../../shaders/box.wgsl")),
+    (
+        "triangle.wgsl",
+        include_str!("../../../shaders/triangle.wgsl"),
+    ),
+    (
+        "traverse_common.wgsl",
+        include_str!("../../../shaders/traverse_common.wgsl"),
+    ),
+    (
+        "traverse_full_stack.wgsl",
+        include_str!("../../../shaders/traverse_full_stack.wgsl"),
+    ),
+    (
+        "traverse_short_stack.wgsl",
+        include_str!("../../../shaders/traverse_short_stack.wgsl"),
+    ),
+];
+
+/// The entry points (`entry.wgsl`), appended to the library by [`kernel_source`].
+pub const ENTRY_WGSL: &str = include_str!("../../../shaders/entry.wgsl");
+
+/// Entries of the full-stack kernel's private stack (`FULL_STACK_SIZE` in
+/// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
+pub const FULL_STACK_SIZE: u32 = 64;
+
+/// Invocations per workgroup of the entry points (`WORKGROUP_SIZE` in `entry.wgsl`).
+pub const WORKGROUP_SIZE: u32 = 64;
+
+/// Group of the BVH bindings in [`kernel_source`].
+pub const BVH_GROUP: u32 = 0;
+/// Group of the ray batch bindings (`rays`, `hits`, `counters`) in [`kernel_source`].
+pub const BATCH_GROUP: u32 = 1;
+
+/// The traversal library without entry points, with the BVH bound at `@group(bvh_group)`:
+/// bindings 0 (`bvh_nodes: array<Node>`), 1 (`bvh_triangles: array<Triangle>`) and
+/// 2 (`bvh_parents: array<u32>`, read only by `trace_short_stack`).
+///
+/// It declares the structs `Node`, `Triangle`, `Ray`, `Hit`, `Counters`, `TraceResult` and
+/// the functions
+///
+/// * `trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult` (trees of depth up to
+///   [`FULL_STACK_SIZE`]),
+/// * `trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult`, where `k` is
+///   the ring size (`1..=32`) or `0` for the stackless walk,
+///
+/// plus helpers whose names you must not reuse (`intersect_box`, `intersect_triangle`,
+/// `prepare_ray`, `visit_leaf`, `fmin`, `fmax`, `component`, ...). Pass constants for
+/// `any_hit` and `k` and the driver folds them away. The buffers are the ones
+/// [`crate::GpuBvh`] uploads ([`crate::GpuBvh::nodes_buffer`] and friends).
+///
+/// # Example
+///
+/// A shader that traces one ray per invocation with its own bindings in group 1:
+///
+/// ```
+/// let my_shader = r#"
+/// @group(1) @binding(0) var<storage, read_write> ids: array<u32>;
+///
+/// @compute @workgroup_size(64)
+/// fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+///     let x = f32(gid.x) * 0.01;
+///     let ray = Ray(vec3<f32>(x, 0.0, 5.0), 0.0, vec3<f32>(0.0, 0.0, -1.0), 1e30);
+///     let res = trace_short_stack(ray, false, 6u); // closest hit, 6-entry short stack
+///     ids[gid.x] = res.hit.prim;
+/// }
+/// "#;
+/// let source = format!("{}\n{}", bvhtrace_gpu::wgsl_library(0), my_shader);
+/// # let module = naga::front::wgsl::parse_str(&source).expect("parses");
+/// # naga::valid::Validator::new(Default::default(), naga::valid::Capabilities::all())
+/// #     .validate(&module)
+/// #     .expect("validates");
+/// // device.create_shader_module(wgpu::ShaderModuleDescriptor {
+/// //     label: Some("my shader"),
+/// //     source: wgpu::ShaderSource::Wgsl(source.into()),
+/// // });
+/// // Bind group 0: bvh.nodes_buffer(), bvh.triangles_buffer(), bvh.parents_buffer().
+/// ```
+pub fn wgsl_library(bvh_group: u32) -> String {
+    let mut s = String::with_capacity(24 * 1024);
+    for (name, src) in SHADER_FILES {
+        s.push_str("// ---- ");
+        s.push_str(name);
+        s.push_str(" ----\n");
+        if *name == "bvh_bindings.wgsl" && bvh_group != 0 {
+            s.push_str(&src.replace("@group(0)", &format!("@group({bvh_group})")));
+        } else {
+            s.push_str(src);
+        }
+        s.push('\n');
+    }
+    s
+}
+
+/// The complete kernel module: [`wgsl_library`]`(`[`BVH_GROUP`]`)` and the entry points of
+/// `entry.wgsl` (group [`BATCH_GROUP`]: `rays`, `hits`, `counters`).
+pub fn kernel_source() -> String {
+    let mut s = wgsl_library(BVH_GROUP);
+    s.push_str("// ---- entry.wgsl ----\n");
+    s.push_str(ENTRY_WGSL);
+    s
+}
+
+/// Which entry point and which override values one pipeline uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct KernelVariant {
+    /// Full stack (false) or short stack / stackless (true).
+    pub short_stack: bool,
+    /// `SHORT_STACK_SIZE` (0 = stackless); 0 and unused for the full stack.
+    pub k: u32,
+    /// `ANY_HIT`.
+    pub any_hit: bool,
+    /// The `*_counted` entry point.
+    pub counters: bool,
+}
+
+impl KernelVariant {
+    /// The variant tracing `traversal` for `query`. `ShortStack(k)` is clamped to
+    /// `1..=MAX_SHORT_STACK`, as the CPU twin does.
+    pub fn new(
+        traversal: bvhtrace_core::Traversal,
+        query: bvhtrace_core::Query,
+        counters: bool,
+    ) -> Self {
+        use bvhtrace_core::Traversal;
+        use bvhtrace_core::traverse::MAX_SHORT_STACK;
+        let (short_stack, k) = match traversal {
+            Traversal::FullStack => (false, 0),
+            Traversal::Stackless => (true, 0),
+            Traversal::ShortStack(k) => (true, k.clamp(1, MAX_SHORT_STACK)),
+        };
+        KernelVariant {
+            short_stack,
+            k,
+            any_hit: query == bvhtrace_core::Query::Any,
+            counters,
+        }
+    }
+
+    /// Every variant the tests validate: each traversal kind (full stack, stackless, short
+    /// stack with `k`) x query x counters.
+    pub fn all_for_k(k: u32) -> Vec<KernelVariant> {
+        let mut v = Vec::new();
+        for (short_stack, kk) in [(false, 0), (true, 0), (true, k)] {
+            for any_hit in [false, true] {
+                for counters in [false, true] {
+                    v.push(KernelVariant {
+                        short_stack,
+                        k: kk,
+                        any_hit,
+                        counters,
+                    });
+                }
+            }
+        }
+        v
+    }
+
+    /// The entry point's name in [`kernel_source`].
+    pub fn entry_point(&self) -> &'static str {
+        match (self.short_stack, self.counters) {
+            (false, false) => "trace_full_stack_main",
+            (false, true) => "trace_full_stack_counted",
+            (true, false) => "trace_short_stack_main",
+            (true, true) => "trace_short_stack_counted",
+        }
+    }
+
+    /// The override constants the entry point uses, as wgpu takes them.
+    pub fn constants(&self) -> Vec<(&'static str, f64)> {
+        let mut c = vec![("ANY_HIT", if self.any_hit { 1.0 } else { 0.0 })];
+        if self.short_stack {
+            c.push(("SHORT_STACK_SIZE", f64::from(self.k)));
+        }
+        c
+    }
+
+    /// True when the kernel reads the parent links.
+    pub fn needs_parents(&self) -> bool {
+        self.short_stack
+    }
+}

@@ -1,0 +1,510 @@
+//! Tracing ray batches: the convenience [`GpuBvh::trace`] (slices in, hits out, timed) and
+//! [`GpuBvh::record`] (into the caller's encoder, with the caller's buffers).
+
+use std::num::NonZeroU64;
+use std::sync::mpsc;
+use std::time::Instant;
+
+use bvhtrace_core::{Counters, Hit, Query, Ray, Traversal};
+
+use crate::bvh::GpuBvh;
+use crate::context::{GpuContext, GpuLimits};
+use crate::error::GpuError;
+use crate::shaders::{KernelVariant, WORKGROUP_SIZE};
+
+/// Bytes of one [`Ray`] on the device.
+pub const RAY_BYTES: u64 = std::mem::size_of::<Ray>() as u64;
+/// Bytes of one [`Hit`] on the device.
+pub const HIT_BYTES: u64 = std::mem::size_of::<Hit>() as u64;
+/// Bytes of one [`Counters`] on the device.
+pub const COUNTERS_BYTES: u64 = std::mem::size_of::<Counters>() as u64;
+
+/// The most rays one dispatch handles (about 4M: 128 MiB of rays). Larger batches are split
+/// into several dispatches in one compute pass.
+pub const MAX_RAYS_PER_DISPATCH: u64 = 1 << 22;
+
+/// What to trace.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct TraceOptions {
+    /// How to walk the tree.
+    pub traversal: Traversal,
+    /// Closest or any hit.
+    pub query: Query,
+    /// Also write each ray's [`Counters`].
+    pub counters: bool,
+}
+
+/// The result of [`GpuBvh::trace`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TraceOutput {
+    /// One hit per ray, in ray order.
+    pub hits: Vec<Hit>,
+    /// One entry per ray when counters were asked for.
+    pub counters: Option<Vec<Counters>>,
+    /// Time the traversal kernels took on the GPU (timestamp queries around the compute
+    /// pass), milliseconds; `None` when the device has no timestamp queries.
+    pub gpu_ms: Option<f64>,
+    /// Wall time of the whole call: uploading the rays, the dispatches and reading the
+    /// results back, milliseconds (pipeline creation excluded).
+    pub wall_ms: f64,
+}
+
+/// The caller's buffers for [`GpuBvh::record`]. Rays are read from offset 0 of `rays`
+/// (32 bytes each, the layout of [`Ray`]); hits are written from offset 0 of `hits`
+/// (16 bytes each) and counters from offset 0 of `counters` (8 bytes each). Each buffer
+/// needs `STORAGE` usage and room for `ray_count` entries; any size is accepted: the batch
+/// is split into dispatches within the device's limits.
+#[derive(Clone, Copy, Debug)]
+pub struct RayBatch<'a> {
+    /// Rays in.
+    pub rays: &'a wgpu::Buffer,
+    /// Hits out.
+    pub hits: &'a wgpu::Buffer,
+    /// Counters out: required when [`TraceOptions::counters`] is set, ignored otherwise.
+    pub counters: Option<&'a wgpu::Buffer>,
+    /// Number of rays.
+    pub ray_count: u64,
+}
+
+/// One dispatch of a batch: rays `first_ray .. first_ray + ray_count` on a
+/// `groups_x` x `groups_y` grid of [`WORKGROUP_SIZE`]-invocation workgroups.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Dispatch {
+    /// First ray of the chunk.
+    pub first_ray: u64,
+    /// Rays in the chunk.
+    pub ray_count: u32,
+    /// Workgroups along x.
+    pub groups_x: u32,
+    /// Workgroups along y (1 unless x would exceed the per-dimension limit).
+    pub groups_y: u32,
+}
+
+/// Rays per dispatch on a device with these limits: at most [`MAX_RAYS_PER_DISPATCH`], at
+/// most what one storage binding holds, a multiple of the workgroup size and of the
+/// binding-offset alignment (so every chunk's buffer ranges are aligned).
+pub fn rays_per_dispatch(limits: &GpuLimits) -> u64 {
+    let align = u64::from(limits.min_storage_buffer_offset_alignment).max(1);
+    let step = u64::from(WORKGROUP_SIZE).max(align);
+    let by_binding = limits.max_storage_buffer_binding_size / RAY_BYTES;
+    let dim = u64::from(limits.max_compute_workgroups_per_dimension.max(1));
+    let by_groups = dim * dim * u64::from(WORKGROUP_SIZE);
+    let max = MAX_RAYS_PER_DISPATCH.min(by_binding).min(by_groups);
+    (max / step * step).max(step)
+}
+
+/// Splits a batch of `ray_count` rays into dispatches (see [`rays_per_dispatch`]).
+pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
+    let chunk = rays_per_dispatch(limits);
+    let dim = limits.max_compute_workgroups_per_dimension.max(1);
+    let mut out = Vec::new();
+    let mut first = 0;
+    while first < ray_count {
+        let n = (ray_count - first).min(chunk);
+        let groups = n.div_ceil(u64::from(WORKGROUP_SIZE)) as u32;
+        let groups_x = groups.min(dim);
+        out.push(Dispatch {
+            first_ray: first,
+            ray_count: n as u32,
+            groups_x,
+            groups_y: groups.div_ceil(groups_x),
+        });
+        first += n;
+    }
+    out
+}
+
+/// Device buffers reused by [`GpuBvh::trace`] across calls.
+pub(crate) struct Scratch {
+    capacity: u64,
+    rays: wgpu::Buffer,
+    hits: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    hits_read: wgpu::Buffer,
+    counters_read: wgpu::Buffer,
+    queries: Option<Queries>,
+}
+
+struct Queries {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+}
+
+impl Scratch {
+    fn new(ctx: &GpuContext, capacity: u64) -> Scratch {
+        let device = ctx.device();
+        let buf = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        let queries = ctx.has_timestamps().then(|| Queries {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("bvhtrace timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolve: buf(
+                "bvhtrace timestamps resolve",
+                16,
+                U::QUERY_RESOLVE | U::COPY_SRC,
+            ),
+            read: buf("bvhtrace timestamps read", 16, U::MAP_READ | U::COPY_DST),
+        });
+        Scratch {
+            capacity,
+            rays: buf(
+                "bvhtrace rays",
+                capacity * RAY_BYTES,
+                U::STORAGE | U::COPY_DST,
+            ),
+            hits: buf(
+                "bvhtrace hits",
+                capacity * HIT_BYTES,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            counters: buf(
+                "bvhtrace counters",
+                capacity * COUNTERS_BYTES,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            hits_read: buf(
+                "bvhtrace hits read",
+                capacity * HIT_BYTES,
+                U::MAP_READ | U::COPY_DST,
+            ),
+            counters_read: buf(
+                "bvhtrace counters read",
+                capacity * COUNTERS_BYTES,
+                U::MAP_READ | U::COPY_DST,
+            ),
+            queries,
+        }
+    }
+}
+
+fn check_buffer(
+    buffer: &'static str,
+    b: &wgpu::Buffer,
+    count: u64,
+    stride: u64,
+) -> Result<(), GpuError> {
+    if !b.usage().contains(wgpu::BufferUsages::STORAGE) {
+        return Err(GpuError::BadBuffer {
+            buffer,
+            problem: format!("needs STORAGE usage (has {:?})", b.usage()),
+        });
+    }
+    let need = count.saturating_mul(stride);
+    if b.size() < need {
+        return Err(GpuError::BadBuffer {
+            buffer,
+            problem: format!(
+                "{} bytes is too small for {count} entries of {stride} bytes ({need} bytes)",
+                b.size()
+            ),
+        });
+    }
+    Ok(())
+}
+
+fn binding(
+    buffer: &wgpu::Buffer,
+    first: u64,
+    count: u64,
+    stride: u64,
+) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: first * stride,
+        size: NonZeroU64::new(count * stride),
+    })
+}
+
+/// Reads a mapped range as a vector of `T` (copying; alignment-safe).
+fn read_mapped<T: bytemuck::Pod>(
+    buffer: &wgpu::Buffer,
+    bytes: u64,
+    out: &mut Vec<T>,
+) -> Result<(), GpuError> {
+    let view = buffer
+        .slice(..bytes)
+        .get_mapped_range()
+        .map_err(|e| GpuError::Wgpu {
+            during: "reading results back",
+            message: e.to_string(),
+        })?;
+    match bytemuck::try_cast_slice::<u8, T>(&view) {
+        Ok(s) => out.extend_from_slice(s),
+        Err(_) => out.extend(bytemuck::pod_collect_to_vec::<u8, T>(&view)),
+    }
+    Ok(())
+}
+
+impl GpuBvh {
+    /// Compiles (and caches) the pipeline for these options ahead of the first trace, so
+    /// that the first trace's timing is not the compiler's.
+    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        self.supports(opts.traversal)?;
+        self.ctx
+            .pipeline(KernelVariant::new(
+                opts.traversal,
+                opts.query,
+                opts.counters,
+            ))
+            .map(|_| ())
+    }
+
+    /// Traces `rays` and returns one hit per ray, with GPU and wall times.
+    pub fn trace(
+        &self,
+        rays: &[Ray],
+        traversal: Traversal,
+        query: Query,
+    ) -> Result<TraceOutput, GpuError> {
+        self.trace_with(
+            rays,
+            &TraceOptions {
+                traversal,
+                query,
+                counters: false,
+            },
+        )
+    }
+
+    /// [`GpuBvh::trace`], also returning each ray's counters (boxes and triangles tested).
+    pub fn trace_counted(
+        &self,
+        rays: &[Ray],
+        traversal: Traversal,
+        query: Query,
+    ) -> Result<TraceOutput, GpuError> {
+        self.trace_with(
+            rays,
+            &TraceOptions {
+                traversal,
+                query,
+                counters: true,
+            },
+        )
+    }
+
+    /// Traces `rays` as `opts` says: uploads them, dispatches the kernel (split as needed),
+    /// reads the hits (and counters) back. Batches larger than one device buffer allows are
+    /// traced in several submissions; times are summed.
+    pub fn trace_with(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
+        self.prepare(opts)?;
+        let start = Instant::now();
+        let n = rays.len() as u64;
+        let mut out = TraceOutput {
+            hits: Vec::with_capacity(rays.len()),
+            counters: opts.counters.then(|| Vec::with_capacity(rays.len())),
+            gpu_ms: self.ctx.has_timestamps().then_some(0.0),
+            wall_ms: 0.0,
+        };
+        if n == 0 {
+            return Ok(out);
+        }
+        let limits = self.ctx.limits();
+        let chunk = rays_per_dispatch(limits);
+        let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
+        let per_submit = by_buffer.max(chunk);
+        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+
+        let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
+            during: "locking the scratch buffers",
+            message: "a thread panicked while holding them".into(),
+        })?;
+        if guard.as_ref().is_none_or(|s| s.capacity < capacity) {
+            *guard = None; // free the old buffers first
+            *guard = Some(self.ctx.scoped("allocating ray buffers", || {
+                Scratch::new(&self.ctx, capacity)
+            })?);
+        }
+        let Some(s) = guard.as_ref() else {
+            unreachable!("scratch was just created")
+        };
+        let device = self.ctx.device();
+        let queue = self.ctx.queue();
+        let period_ns = f64::from(queue.get_timestamp_period());
+
+        for batch in rays.chunks(per_submit as usize) {
+            let count = batch.len() as u64;
+            let hit_bytes = count * HIT_BYTES;
+            let counter_bytes = count * COUNTERS_BYTES;
+            self.ctx
+                .scoped("tracing a ray batch", || -> Result<(), GpuError> {
+                    queue.write_buffer(&s.rays, 0, bytemuck::cast_slice(batch));
+                    let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("bvhtrace trace"),
+                    });
+                    let tw = s
+                        .queries
+                        .as_ref()
+                        .map(|q| wgpu::ComputePassTimestampWrites {
+                            query_set: &q.set,
+                            beginning_of_pass_write_index: Some(0),
+                            end_of_pass_write_index: Some(1),
+                        });
+                    self.record(
+                        &mut enc,
+                        &RayBatch {
+                            rays: &s.rays,
+                            hits: &s.hits,
+                            counters: opts.counters.then_some(&s.counters),
+                            ray_count: count,
+                        },
+                        opts,
+                        tw,
+                    )?;
+                    enc.copy_buffer_to_buffer(&s.hits, 0, &s.hits_read, 0, hit_bytes);
+                    if opts.counters {
+                        enc.copy_buffer_to_buffer(
+                            &s.counters,
+                            0,
+                            &s.counters_read,
+                            0,
+                            counter_bytes,
+                        );
+                    }
+                    if let Some(q) = &s.queries {
+                        enc.resolve_query_set(&q.set, 0..2, &q.resolve, 0);
+                        enc.copy_buffer_to_buffer(&q.resolve, 0, &q.read, 0, 16);
+                    }
+                    queue.submit([enc.finish()]);
+                    Ok(())
+                })??;
+
+            let (tx, rx) = mpsc::channel();
+            let mut maps = vec![(&s.hits_read, hit_bytes)];
+            if opts.counters {
+                maps.push((&s.counters_read, counter_bytes));
+            }
+            if let Some(q) = &s.queries {
+                maps.push((&q.read, 16));
+            }
+            for (b, bytes) in &maps {
+                let tx = tx.clone();
+                b.slice(..*bytes).map_async(wgpu::MapMode::Read, move |r| {
+                    let _ = tx.send(r);
+                });
+            }
+            drop(tx);
+            device.poll(wgpu::PollType::wait_indefinitely())?;
+            let mut results = Vec::with_capacity(maps.len());
+            for _ in 0..maps.len() {
+                results.push(rx.recv().map_err(|_| GpuError::Wgpu {
+                    during: "reading results back",
+                    message: "a buffer mapping never completed".into(),
+                })?);
+            }
+            let mapped = results.into_iter().collect::<Result<Vec<()>, _>>();
+            let read = mapped.map_err(GpuError::from).and_then(|_| {
+                read_mapped(&s.hits_read, hit_bytes, &mut out.hits)?;
+                if let Some(c) = out.counters.as_mut() {
+                    read_mapped(&s.counters_read, counter_bytes, c)?;
+                }
+                if let Some(q) = &s.queries {
+                    let mut ts: Vec<u64> = Vec::with_capacity(2);
+                    read_mapped(&q.read, 16, &mut ts)?;
+                    let ticks = ts[1].saturating_sub(ts[0]) as f64;
+                    if let Some(g) = out.gpu_ms.as_mut() {
+                        *g += ticks * period_ns * 1e-6;
+                    }
+                }
+                Ok(())
+            });
+            for (b, _) in &maps {
+                b.unmap();
+            }
+            read?;
+        }
+        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(out)
+    }
+
+    /// Records the traversal of `batch` into `encoder`, as one compute pass with one
+    /// dispatch per chunk of at most [`rays_per_dispatch`] rays. `timestamp_writes`, when
+    /// given, is attached to that pass (the device needs `TIMESTAMP_QUERY`).
+    ///
+    /// The buffers are checked (usage and size) before anything is recorded; the caller
+    /// submits the encoder.
+    pub fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &RayBatch<'_>,
+        opts: &TraceOptions,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) -> Result<(), GpuError> {
+        self.supports(opts.traversal)?;
+        let n = batch.ray_count;
+        check_buffer("rays", batch.rays, n, RAY_BYTES)?;
+        check_buffer("hits", batch.hits, n, HIT_BYTES)?;
+        let counters = if opts.counters {
+            let c = batch.counters.ok_or(GpuError::BadBuffer {
+                buffer: "counters",
+                problem: "counters were asked for but no counters buffer was given".into(),
+            })?;
+            check_buffer("counters", c, n, COUNTERS_BYTES)?;
+            Some(c)
+        } else {
+            None
+        };
+        let variant = KernelVariant::new(opts.traversal, opts.query, opts.counters);
+        let pipeline = self.ctx.pipeline(variant)?;
+        let group0 = if variant.needs_parents() {
+            self.group_parents
+                .as_ref()
+                .ok_or(GpuError::ParentsNotUploaded {
+                    traversal: opts.traversal,
+                })?
+        } else {
+            &self.group_plain
+        };
+        let device = self.ctx.device();
+        let dispatches = plan_dispatches(n, self.ctx.limits());
+        let groups: Vec<wgpu::BindGroup> = dispatches
+            .iter()
+            .map(|d| {
+                let (first, count) = (d.first_ray, u64::from(d.ray_count));
+                let mut entries = vec![
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: binding(batch.rays, first, count, RAY_BYTES),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: binding(batch.hits, first, count, HIT_BYTES),
+                    },
+                ];
+                if let Some(c) = counters {
+                    entries.push(wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: binding(c, first, count, COUNTERS_BYTES),
+                    });
+                }
+                device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("bvhtrace batch"),
+                    layout: self.ctx.batch_layout(opts.counters),
+                    entries: &entries,
+                })
+            })
+            .collect();
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("bvhtrace trace"),
+            timestamp_writes,
+        });
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, group0, &[]);
+        for (d, g) in dispatches.iter().zip(&groups) {
+            pass.set_bind_group(1, g, &[]);
+            pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+        }
+        Ok(())
+    }
+}

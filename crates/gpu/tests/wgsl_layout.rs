@@ -1,0 +1,226 @@
+//! Checks that need no GPU: the composed WGSL parses, its shared structs have exactly the
+//! Rust types' layout, its constants match the Rust ones, and every kernel variant
+//! validates and compiles to SPIR-V once its override constants are given values.
+
+use std::mem::{offset_of, size_of};
+
+use bvhtrace_core::intersect::BOX_TFAR_SCALE;
+use bvhtrace_core::traverse::MAX_SHORT_STACK;
+use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
+use bvhtrace_gpu::shaders::{KernelVariant, SHADER_FILES};
+use bvhtrace_gpu::{FULL_STACK_SIZE, WORKGROUP_SIZE, kernel_source, wgsl_library};
+use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
+use naga::{Expression, Literal, Module, TypeInner};
+
+fn parse(source: &str) -> Module {
+    match naga::front::wgsl::parse_str(source) {
+        Ok(m) => m,
+        Err(e) => panic!("{}", e.emit_to_string(source)),
+    }
+}
+
+fn validate(module: &Module) -> ModuleInfo {
+    Validator::new(ValidationFlags::all(), Capabilities::default())
+        .validate(module)
+        .unwrap_or_else(|e| panic!("{e:?}"))
+}
+
+/// `(name, offset)` of each member of the struct type called `name`, and its size.
+fn struct_layout(module: &Module, name: &str) -> (Vec<(String, u32)>, u32) {
+    let ty = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("no WGSL struct {name}"))
+        .1;
+    match &ty.inner {
+        TypeInner::Struct { members, span } => (
+            members
+                .iter()
+                .map(|m| (m.name.clone().unwrap_or_default(), m.offset))
+                .collect(),
+            *span,
+        ),
+        other => panic!("{name} is not a struct: {other:?}"),
+    }
+}
+
+fn check_struct(module: &Module, name: &str, size: usize, fields: &[(&str, usize)]) {
+    let (members, span) = struct_layout(module, name);
+    assert_eq!(span as usize, size, "size of {name}");
+    let got: Vec<(&str, usize)> = members
+        .iter()
+        .map(|(n, o)| (n.as_str(), *o as usize))
+        .collect();
+    assert_eq!(got, fields, "fields (name, offset) of {name}");
+}
+
+#[test]
+fn shared_structs_match_rust_layout() {
+    let module = parse(&kernel_source());
+    check_struct(
+        &module,
+        "Node",
+        size_of::<FlatNode>(),
+        &[
+            ("min", offset_of!(FlatNode, min)),
+            ("right_or_first", offset_of!(FlatNode, right_or_first)),
+            ("max", offset_of!(FlatNode, max)),
+            // `meta` is a reserved word in WGSL.
+            ("meta_bits", offset_of!(FlatNode, meta)),
+        ],
+    );
+    check_struct(
+        &module,
+        "Triangle",
+        size_of::<FlatTriangle>(),
+        &[
+            ("v0", offset_of!(FlatTriangle, v0)),
+            ("prim", offset_of!(FlatTriangle, prim)),
+            ("v1", offset_of!(FlatTriangle, v1)),
+            ("pad1", offset_of!(FlatTriangle, _pad1)),
+            ("v2", offset_of!(FlatTriangle, v2)),
+            ("pad2", offset_of!(FlatTriangle, _pad2)),
+        ],
+    );
+    check_struct(
+        &module,
+        "Ray",
+        size_of::<Ray>(),
+        &[
+            ("origin", offset_of!(Ray, origin)),
+            ("t_min", offset_of!(Ray, t_min)),
+            ("dir", offset_of!(Ray, dir)),
+            ("t_max", offset_of!(Ray, t_max)),
+        ],
+    );
+    check_struct(
+        &module,
+        "Hit",
+        size_of::<Hit>(),
+        &[
+            ("t", offset_of!(Hit, t)),
+            ("prim", offset_of!(Hit, prim)),
+            ("u", offset_of!(Hit, u)),
+            ("v", offset_of!(Hit, v)),
+        ],
+    );
+    check_struct(
+        &module,
+        "Counters",
+        size_of::<Counters>(),
+        &[
+            ("nodes", offset_of!(Counters, nodes)),
+            ("tris", offset_of!(Counters, tris)),
+        ],
+    );
+}
+
+fn constant(module: &Module, name: &str) -> Literal {
+    let (_, c) = module
+        .constants
+        .iter()
+        .find(|(_, c)| c.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("no WGSL constant {name}"));
+    match module.global_expressions[c.init] {
+        Expression::Literal(l) => l,
+        ref e => panic!("{name} is not a literal: {e:?}"),
+    }
+}
+
+#[test]
+fn constants_match_rust() {
+    let module = parse(&kernel_source());
+    match constant(&module, "BOX_TFAR_SCALE") {
+        Literal::F32(v) => assert_eq!(v.to_bits(), BOX_TFAR_SCALE.to_bits(), "BOX_TFAR_SCALE"),
+        l => panic!("BOX_TFAR_SCALE: {l:?}"),
+    }
+    assert_eq!(constant(&module, "MISS"), Literal::U32(MISS));
+    assert_eq!(constant(&module, "INVALID_RAY"), Literal::U32(INVALID_RAY));
+    assert_eq!(
+        constant(&module, "MAX_SHORT_STACK"),
+        Literal::U32(MAX_SHORT_STACK)
+    );
+    assert_eq!(
+        constant(&module, "FULL_STACK_SIZE"),
+        Literal::U32(FULL_STACK_SIZE)
+    );
+    assert_eq!(
+        constant(&module, "WORKGROUP_SIZE"),
+        Literal::U32(WORKGROUP_SIZE)
+    );
+    for ep in &module.entry_points {
+        assert_eq!(ep.workgroup_size, [WORKGROUP_SIZE, 1, 1], "{}", ep.name);
+    }
+}
+
+/// Every traversal (full stack, stackless, short stack with k = 1, 6, 32) x query x
+/// counters: overrides resolved as the pipelines resolve them, validated, and compiled to
+/// SPIR-V (what wgpu hands the Vulkan driver).
+#[test]
+fn every_variant_validates_and_compiles() {
+    let module = parse(&kernel_source());
+    let info = validate(&module);
+    let mut seen = std::collections::HashSet::new();
+    for k in [1, 6, MAX_SHORT_STACK] {
+        for v in KernelVariant::all_for_k(k) {
+            if !seen.insert(v) {
+                continue;
+            }
+            let mut constants = naga::back::PipelineConstants::default();
+            for (name, value) in v.constants() {
+                constants.insert(name.to_string(), value);
+            }
+            let entry = (naga::ShaderStage::Compute, v.entry_point());
+            let (m, i) = naga::back::pipeline_constants::process_overrides(
+                &module,
+                &info,
+                Some((entry.0, entry.1)),
+                &constants,
+            )
+            .unwrap_or_else(|e| panic!("{v:?}: {e}"));
+            let words = naga::back::spv::write_vec(
+                &m,
+                &i,
+                &naga::back::spv::Options::default(),
+                Some(&naga::back::spv::PipelineOptions {
+                    shader_stage: naga::ShaderStage::Compute,
+                    entry_point: v.entry_point().to_string(),
+                }),
+            )
+            .unwrap_or_else(|e| panic!("{v:?}: {e}"));
+            assert!(words.len() > 100, "{v:?}: SPIR-V too short");
+        }
+    }
+    // full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter settings.
+    assert_eq!(seen.len(), 5 * 2 * 2);
+}
+
+#[test]
+fn every_file_is_composed_and_the_library_rebinds_its_group() {
+    let src = kernel_source();
+    for (name, _) in SHADER_FILES {
+        assert!(src.contains(&format!("// ---- {name} ----")), "{name}");
+    }
+    let lib = wgsl_library(3);
+    assert!(!lib.contains("@compute"), "the library has no entry points");
+    let module = parse(&format!(
+        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
+         @compute @workgroup_size(1) fn main() {{\n\
+             let ray = Ray(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+             out[0] = trace_short_stack(ray, false, 0u).hit.prim + trace_full_stack(ray, true).hit.prim;\n\
+         }}"
+    ));
+    validate(&module);
+    let groups: Vec<(String, u32)> = module
+        .global_variables
+        .iter()
+        .filter_map(|(_, g)| Some((g.name.clone()?, g.binding.as_ref()?.group)))
+        .collect();
+    for name in ["bvh_nodes", "bvh_triangles", "bvh_parents"] {
+        assert!(
+            groups.contains(&(name.to_string(), 3)),
+            "{name} in group 3: {groups:?}"
+        );
+    }
+}

@@ -1,0 +1,1197 @@
+//! glTF 2.0 loading.
+//!
+//! The gltf crate parses the JSON into its typed document (`gltf::json::Root`); everything
+//! after that is done here, defensively: the GLB container, buffer resolution (GLB `BIN`
+//! chunk, external files, `data:` URIs), and every accessor read, whose byte ranges are
+//! checked against their buffer view and buffer before a byte is read. Every index the
+//! file gives (nodes, meshes, accessors, views, buffers, materials, cameras) is looked up
+//! with a check, so a malformed file gives a [`SceneError`], never a panic.
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::path::Path;
+
+use base64::Engine as _;
+use bytemuck::Pod;
+use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
+use gltf::json::{
+    self, Root, accessor::ComponentType, accessor::Type as AccessorType, mesh::Mode,
+    mesh::Semantic, validation::Checked,
+};
+
+use crate::error::{ErrorKind, SceneError};
+use crate::{Camera, Instance, Material, Mesh, Scene, glb};
+
+/// Required extensions that do not change how geometry is stored: accepted (materials and
+/// textures are not interpreted beyond the base colour factor).
+const ACCEPTED_REQUIRED: &[&str] = &[
+    "KHR_mesh_quantization",
+    "KHR_texture_transform",
+    "KHR_texture_basisu",
+    "KHR_lights_punctual",
+    "KHR_materials_variants",
+    "KHR_xmp_json_ld",
+    "EXT_texture_webp",
+    "EXT_texture_avif",
+    "MSFT_texture_dds",
+];
+
+/// The most elements an accessor without a buffer view (all zeros) may have.
+const MAX_ZERO_ACCESSOR: usize = 1 << 24;
+
+/// Loads a `.gltf` or `.glb` file (binary if it starts with the GLB magic or is named
+/// `.glb`). External buffers are resolved relative to the file's folder; image files are
+/// never read, and missing ones only give a warning.
+pub fn load_gltf_file(path: &Path) -> Result<Scene, SceneError> {
+    let label = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|e| {
+        SceneError::new(
+            &label,
+            ErrorKind::Io {
+                what: "cannot read the file".into(),
+                source: e,
+            },
+        )
+    })?;
+    load_gltf_slice(&bytes, &label, path.parent())
+}
+
+/// Loads glTF from bytes already in memory. `label` names the source in errors (and, if
+/// it ends in `.glb`, requires the GLB container); `base_dir` is where external buffer
+/// and image URIs are resolved (`None`: only embedded data can be used).
+pub fn load_gltf_slice(
+    bytes: &[u8],
+    label: &str,
+    base_dir: Option<&Path>,
+) -> Result<Scene, SceneError> {
+    let err = |kind| SceneError::new(label, kind);
+    let mut warnings = Vec::new();
+    let is_glb = bytes.starts_with(glb::MAGIC) || label.to_ascii_lowercase().ends_with(".glb");
+    let (json_bytes, bin) = if is_glb {
+        let g = glb::parse(bytes).map_err(err)?;
+        warnings.extend(g.warnings);
+        (g.json, g.bin)
+    } else {
+        (bytes, None)
+    };
+    let root = parse_json(json_bytes).map_err(err)?;
+    check_required_extensions(&root, &mut warnings).map_err(err)?;
+    let buffers = resolve_buffers(&root, bin, base_dir, &mut warnings);
+    let name = Path::new(label)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let mut loader = Loader {
+        root: &root,
+        buffers,
+        warnings,
+    };
+    let mut scene = loader.load(base_dir).map_err(err)?;
+    scene.name = name;
+    scene.description = format!("glTF file {label}");
+    scene.finish(label)
+}
+
+fn parse_json(bytes: &[u8]) -> Result<Root, ErrorKind> {
+    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let root: Root =
+        json::deserialize::from_slice(bytes).map_err(|e| ErrorKind::Json(e.to_string()))?;
+    if !root.asset.version.starts_with('2') {
+        return Err(ErrorKind::Invalid(format!(
+            "asset.version is {:?}; only glTF 2.0 is supported",
+            root.asset.version
+        )));
+    }
+    Ok(root)
+}
+
+fn check_required_extensions(root: &Root, warnings: &mut Vec<String>) -> Result<(), ErrorKind> {
+    for ext in &root.extensions_required {
+        let accepted = ACCEPTED_REQUIRED.contains(&ext.as_str())
+            || ext.starts_with("KHR_materials_")
+            || ext.starts_with("KHR_texture_");
+        if !accepted {
+            return Err(ErrorKind::UnsupportedExtension(ext.clone()));
+        }
+        if ext != "KHR_mesh_quantization" {
+            warnings.push(format!(
+                "required extension {ext} is ignored (it does not change the geometry)"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Decodes `%XX` escapes in a relative URI (invalid escapes are kept as they are).
+fn percent_decode(uri: &str) -> String {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let Some(v) = std::str::from_utf8(&b[i + 1..i + 3])
+                .ok()
+                .and_then(|h| u8::from_str_radix(h, 16).ok())
+        {
+            out.push(v);
+            i += 3;
+            continue;
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// The payload of a `data:` URI, if it is base64.
+fn decode_data_uri(uri: &str) -> Result<Vec<u8>, String> {
+    let rest = &uri["data:".len()..];
+    let Some(comma) = rest.find(',') else {
+        return Err("the data: URI has no ','".into());
+    };
+    let (header, payload) = (&rest[..comma], &rest[comma + 1..]);
+    if !header.ends_with(";base64") {
+        return Err(format!(
+            "the data: URI is not base64 (media type {header:?})"
+        ));
+    }
+    let cleaned: Cow<str> = if payload.bytes().any(|c| c.is_ascii_whitespace()) {
+        Cow::Owned(
+            payload
+                .chars()
+                .filter(|c| !c.is_ascii_whitespace())
+                .collect(),
+        )
+    } else {
+        Cow::Borrowed(payload)
+    };
+    base64::engine::general_purpose::STANDARD
+        .decode(cleaned.as_bytes())
+        .or_else(|_| {
+            base64::engine::general_purpose::STANDARD_NO_PAD
+                .decode(cleaned.trim_end_matches('=').as_bytes())
+        })
+        .map_err(|e| format!("the data: URI is not valid base64: {e}"))
+}
+
+/// Reads at most `limit` bytes of a regular file (a URI naming a device or a folder is
+/// refused rather than read forever).
+fn read_buffer_file(p: &Path, limit: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    let meta = std::fs::metadata(p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+    if !meta.is_file() {
+        return Err(format!("{} is not a regular file", p.display()));
+    }
+    let f = std::fs::File::open(p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+    let mut out = Vec::with_capacity(meta.len().min(limit) as usize);
+    f.take(limit)
+        .read_to_end(&mut out)
+        .map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+    Ok(out)
+}
+
+fn is_remote(uri: &str) -> bool {
+    uri.contains("://")
+}
+
+/// Every buffer's bytes (cut to its declared `byteLength`), or why it is unavailable.
+/// Failures are kept, not raised: they become errors only if an accessor reads them.
+fn resolve_buffers<'a>(
+    root: &Root,
+    bin: Option<&'a [u8]>,
+    base_dir: Option<&Path>,
+    warnings: &mut Vec<String>,
+) -> Vec<Result<Cow<'a, [u8]>, String>> {
+    root.buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let data: Cow<'a, [u8]> = match b.uri.as_deref() {
+                None if i == 0 => match bin {
+                    Some(bin) => Cow::Borrowed(bin),
+                    None => return Err("has no uri and the file has no GLB BIN chunk".into()),
+                },
+                None => return Err("has no uri (only buffer 0 may use the GLB BIN chunk)".into()),
+                Some(uri) if uri.starts_with("data:") => Cow::Owned(decode_data_uri(uri)?),
+                Some(uri) if is_remote(uri) => {
+                    return Err(format!("remote URI {uri:?} is not supported"));
+                }
+                Some(uri) => {
+                    let Some(dir) = base_dir else {
+                        return Err(format!(
+                            "external file {uri:?} cannot be resolved (no base folder)"
+                        ));
+                    };
+                    let p = dir.join(percent_decode(uri));
+                    Cow::Owned(read_buffer_file(&p, b.byte_length.0)?)
+                }
+            };
+            let declared = usize::try_from(b.byte_length.0).unwrap_or(usize::MAX);
+            if data.len() < declared {
+                warnings.push(format!(
+                    "buffer {i} has {} bytes but declares byteLength {declared}",
+                    data.len()
+                ));
+                Ok(data)
+            } else if data.len() > declared {
+                Ok(match data {
+                    Cow::Borrowed(s) => Cow::Borrowed(&s[..declared]),
+                    Cow::Owned(mut v) => {
+                        v.truncate(declared);
+                        Cow::Owned(v)
+                    }
+                })
+            } else {
+                Ok(data)
+            }
+        })
+        .collect()
+}
+
+fn invalid(msg: String) -> ErrorKind {
+    ErrorKind::Invalid(msg)
+}
+
+/// One triangle primitive, read and checked.
+struct Part {
+    /// The accessors of POSITION, NORMAL, TEXCOORD_0 and COLOR_0: primitives with the
+    /// same key share their vertices.
+    key: VertexKey,
+    /// The vertex data, or `None` when an earlier primitive of the mesh has the same key.
+    vertices: Option<Vertices>,
+    tris: Vec<[u32; 3]>,
+    material: Option<u32>,
+}
+
+type VertexKey = [Option<usize>; 4];
+
+struct Vertices {
+    positions: Vec<Vec3>,
+    normals: Option<Vec<Vec3>>,
+    texcoords: Option<Vec<Vec2>>,
+    colors: Option<Vec<Vec4>>,
+}
+
+struct Loader<'a, 'b> {
+    root: &'a Root,
+    buffers: Vec<Result<Cow<'b, [u8]>, String>>,
+    warnings: Vec<String>,
+}
+
+/// How a component type decodes to `f32`.
+fn component_size(ct: ComponentType) -> usize {
+    match ct {
+        ComponentType::I8 | ComponentType::U8 => 1,
+        ComponentType::I16 | ComponentType::U16 => 2,
+        ComponentType::U32 | ComponentType::F32 => 4,
+    }
+}
+
+impl<'a, 'b> Loader<'a, 'b> {
+    fn accessor(&self, ai: usize) -> Result<&'a json::Accessor, ErrorKind> {
+        self.root
+            .accessors
+            .get(ai)
+            .ok_or_else(|| invalid(format!("accessor {ai} does not exist")))
+    }
+
+    /// `len` bytes at `offset` in buffer view `vi`, checked against the view and its buffer.
+    fn view_bytes(&self, ai: usize, vi: usize, offset: u64, len: u64) -> Result<&[u8], ErrorKind> {
+        let view = self.root.buffer_views.get(vi).ok_or_else(|| {
+            invalid(format!(
+                "accessor {ai} refers to buffer view {vi}, which does not exist"
+            ))
+        })?;
+        let end_in_view = offset.saturating_add(len);
+        if end_in_view > view.byte_length.0 {
+            return Err(ErrorKind::AccessorOutOfBounds {
+                accessor: ai,
+                target: format!("buffer view {vi}"),
+                needs: end_in_view,
+                has: view.byte_length.0,
+            });
+        }
+        let bi = view.buffer.value();
+        let buf = match self.buffers.get(bi) {
+            None => {
+                return Err(invalid(format!(
+                    "buffer view {vi} refers to buffer {bi}, which does not exist"
+                )));
+            }
+            Some(Err(reason)) => {
+                return Err(ErrorKind::Buffer {
+                    buffer: bi,
+                    reason: reason.clone(),
+                });
+            }
+            Some(Ok(b)) => b,
+        };
+        let view_off = view.byte_offset.map_or(0, |o| o.0);
+        let start = view_off.saturating_add(offset);
+        let end = view_off.saturating_add(end_in_view);
+        if end > buf.len() as u64 {
+            return Err(ErrorKind::AccessorOutOfBounds {
+                accessor: ai,
+                target: format!("buffer {bi}"),
+                needs: end,
+                has: buf.len() as u64,
+            });
+        }
+        // start <= end <= buf.len(), both fit in usize.
+        Ok(&buf[start as usize..end as usize])
+    }
+
+    /// Reads accessor `ai` element by element (`elem` bytes each) with `decode`, applying
+    /// sparse substitution. With `bulk`, tightly packed data is copied in one go (the
+    /// element's little-endian bytes must be `T`'s layout).
+    fn read_raw<T: Pod>(
+        &self,
+        ai: usize,
+        elem: usize,
+        bulk: bool,
+        decode: impl Fn(&[u8]) -> T,
+    ) -> Result<Vec<T>, ErrorKind> {
+        let acc = self.accessor(ai)?;
+        let count = usize::try_from(acc.count.0).unwrap_or(usize::MAX);
+        let mut out: Vec<T>;
+        if let Some(vi) = acc.buffer_view {
+            let vi = vi.value();
+            let view = self.root.buffer_views.get(vi).ok_or_else(|| {
+                invalid(format!(
+                    "accessor {ai} refers to buffer view {vi}, which does not exist"
+                ))
+            })?;
+            let stride = match view.byte_stride {
+                Some(s) if s.0 != 0 => s.0,
+                _ => elem,
+            };
+            if stride < elem {
+                return Err(ErrorKind::Accessor {
+                    accessor: ai,
+                    reason: format!(
+                        "buffer view {vi} has byte stride {stride}, less than the accessor's {elem}-byte elements"
+                    ),
+                });
+            }
+            if count == 0 {
+                out = Vec::new();
+            } else {
+                let span = (stride as u64)
+                    .saturating_mul(count as u64 - 1)
+                    .saturating_add(elem as u64);
+                let offset = acc.byte_offset.map_or(0, |o| o.0);
+                let bytes = self.view_bytes(ai, vi, offset, span)?;
+                if bulk && stride == elem && cfg!(target_endian = "little") {
+                    debug_assert_eq!(std::mem::size_of::<T>(), elem);
+                    out = vec![T::zeroed(); count];
+                    bytemuck::cast_slice_mut::<T, u8>(&mut out)
+                        .copy_from_slice(&bytes[..count * elem]);
+                } else {
+                    out = bytes
+                        .chunks(stride)
+                        .take(count)
+                        .map(|c| decode(&c[..elem]))
+                        .collect();
+                }
+            }
+        } else {
+            if count > MAX_ZERO_ACCESSOR {
+                return Err(ErrorKind::Accessor {
+                    accessor: ai,
+                    reason: format!(
+                        "has no buffer view and {count} elements (at most {MAX_ZERO_ACCESSOR} accepted)"
+                    ),
+                });
+            }
+            out = vec![T::zeroed(); count];
+        }
+        if let Some(sparse) = &acc.sparse {
+            self.apply_sparse(ai, sparse, &mut out, elem, &decode)?;
+        }
+        Ok(out)
+    }
+
+    fn apply_sparse<T: Pod>(
+        &self,
+        ai: usize,
+        sparse: &json::accessor::sparse::Sparse,
+        out: &mut [T],
+        elem: usize,
+        decode: &impl Fn(&[u8]) -> T,
+    ) -> Result<(), ErrorKind> {
+        let n = usize::try_from(sparse.count.0).unwrap_or(usize::MAX);
+        if n > out.len() {
+            return Err(ErrorKind::Accessor {
+                accessor: ai,
+                reason: format!(
+                    "sparse count {n} is more than the accessor's {} elements",
+                    out.len()
+                ),
+            });
+        }
+        let isize = match sparse.indices.component_type {
+            Checked::Valid(c) => match c.0 {
+                ComponentType::U8 => 1,
+                ComponentType::U16 => 2,
+                ComponentType::U32 => 4,
+                other => {
+                    return Err(ErrorKind::Accessor {
+                        accessor: ai,
+                        reason: format!("sparse indices have component type {other:?}"),
+                    });
+                }
+            },
+            Checked::Invalid => {
+                return Err(ErrorKind::Accessor {
+                    accessor: ai,
+                    reason: "sparse indices have an invalid component type".into(),
+                });
+            }
+        };
+        let idx = self.view_bytes(
+            ai,
+            sparse.indices.buffer_view.value(),
+            sparse.indices.byte_offset.0,
+            (n * isize) as u64,
+        )?;
+        let vals = self.view_bytes(
+            ai,
+            sparse.values.buffer_view.value(),
+            sparse.values.byte_offset.0,
+            (n as u64).saturating_mul(elem as u64),
+        )?;
+        for k in 0..n {
+            let b = &idx[k * isize..(k + 1) * isize];
+            let i = match isize {
+                1 => b[0] as usize,
+                2 => u16::from_le_bytes([b[0], b[1]]) as usize,
+                _ => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize,
+            };
+            let Some(slot) = out.get_mut(i) else {
+                return Err(ErrorKind::Accessor {
+                    accessor: ai,
+                    reason: format!(
+                        "sparse index {i} is out of range (the accessor has {} elements)",
+                        out.len()
+                    ),
+                });
+            };
+            *slot = decode(&vals[k * elem..(k + 1) * elem]);
+        }
+        Ok(())
+    }
+
+    fn accessor_kind(&self, ai: usize) -> Result<(AccessorType, ComponentType, bool), ErrorKind> {
+        let acc = self.accessor(ai)?;
+        let bad = |what: &str| ErrorKind::Accessor {
+            accessor: ai,
+            reason: format!("invalid {what}"),
+        };
+        let ty = match acc.type_ {
+            Checked::Valid(t) => t,
+            Checked::Invalid => return Err(bad("type")),
+        };
+        let ct = match acc.component_type {
+            Checked::Valid(c) => c.0,
+            Checked::Invalid => return Err(bad("componentType")),
+        };
+        Ok((ty, ct, acc.normalized))
+    }
+
+    /// Reads a float vector accessor with `N` components of any component type
+    /// (integers converted, normalised when the accessor says so).
+    fn read_floats<const N: usize>(&self, ai: usize, what: &str) -> Result<Vec<[f32; N]>, ErrorKind>
+    where
+        [f32; N]: Pod,
+    {
+        let (ty, ct, norm) = self.accessor_kind(ai)?;
+        if ty.multiplicity() != N || matches!(ty, AccessorType::Mat2) {
+            return Err(ErrorKind::Accessor {
+                accessor: ai,
+                reason: format!("{what} must have {N} components, it is {ty:?}"),
+            });
+        }
+        let sz = component_size(ct);
+        let elem = sz * N;
+        let conv = |b: &[u8], f: &dyn Fn(&[u8]) -> f32| -> [f32; N] {
+            std::array::from_fn(|c| f(&b[c * sz..(c + 1) * sz]))
+        };
+        match ct {
+            ComponentType::F32 => self.read_raw(ai, elem, true, |b| {
+                std::array::from_fn(|c| {
+                    f32::from_le_bytes([b[4 * c], b[4 * c + 1], b[4 * c + 2], b[4 * c + 3]])
+                })
+            }),
+            ComponentType::U8 => self.read_raw(ai, elem, false, |b| {
+                conv(b, &|x| {
+                    if norm {
+                        x[0] as f32 / 255.0
+                    } else {
+                        x[0] as f32
+                    }
+                })
+            }),
+            ComponentType::I8 => self.read_raw(ai, elem, false, |b| {
+                conv(b, &|x| {
+                    let v = x[0] as i8 as f32;
+                    if norm { (v / 127.0).max(-1.0) } else { v }
+                })
+            }),
+            ComponentType::U16 => self.read_raw(ai, elem, false, |b| {
+                conv(b, &|x| {
+                    let v = u16::from_le_bytes([x[0], x[1]]) as f32;
+                    if norm { v / 65535.0 } else { v }
+                })
+            }),
+            ComponentType::I16 => self.read_raw(ai, elem, false, |b| {
+                conv(b, &|x| {
+                    let v = i16::from_le_bytes([x[0], x[1]]) as f32;
+                    if norm { (v / 32767.0).max(-1.0) } else { v }
+                })
+            }),
+            ComponentType::U32 => self.read_raw(ai, elem, false, |b| {
+                conv(b, &|x| {
+                    let v = u32::from_le_bytes([x[0], x[1], x[2], x[3]]);
+                    if norm {
+                        (v as f64 / u32::MAX as f64) as f32
+                    } else {
+                        v as f32
+                    }
+                })
+            }),
+        }
+    }
+
+    /// Reads an index accessor (`SCALAR`, unsigned 8, 16 or 32 bits).
+    fn read_indices(&self, ai: usize) -> Result<Vec<u32>, ErrorKind> {
+        let (ty, ct, _) = self.accessor_kind(ai)?;
+        if ty != AccessorType::Scalar {
+            return Err(ErrorKind::Accessor {
+                accessor: ai,
+                reason: format!("indices must be SCALAR, they are {ty:?}"),
+            });
+        }
+        match ct {
+            ComponentType::U8 => self.read_raw(ai, 1, false, |b| b[0] as u32),
+            ComponentType::U16 => {
+                self.read_raw(ai, 2, false, |b| u16::from_le_bytes([b[0], b[1]]) as u32)
+            }
+            ComponentType::U32 => self.read_raw(ai, 4, true, |b| {
+                u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+            }),
+            other => Err(ErrorKind::Accessor {
+                accessor: ai,
+                reason: format!("indices must be unsigned integers, they are {other:?}"),
+            }),
+        }
+    }
+
+    /// Reads an optional attribute: errors in its data are errors, but a wrong type or
+    /// count only drops the attribute with a warning.
+    fn optional<const N: usize>(
+        &mut self,
+        prim: &json::mesh::Primitive,
+        sem: Semantic,
+        name: &str,
+        nv: usize,
+        ctx: &str,
+    ) -> Result<Option<Vec<[f32; N]>>, ErrorKind>
+    where
+        [f32; N]: Pod,
+    {
+        let Some(ai) = prim.attributes.get(&Checked::Valid(sem)) else {
+            return Ok(None);
+        };
+        let ai = ai.value();
+        let (ty, _, _) = self.accessor_kind(ai)?;
+        if ty.multiplicity() != N || matches!(ty, AccessorType::Mat2) {
+            self.warnings.push(format!(
+                "{ctx}: {name} accessor {ai} is {ty:?}, expected {N} components; ignored"
+            ));
+            return Ok(None);
+        }
+        let v = self.read_floats::<N>(ai, name)?;
+        if v.len() != nv {
+            self.warnings.push(format!(
+                "{ctx}: {name} has {} elements but POSITION has {nv}; ignored",
+                v.len()
+            ));
+            return Ok(None);
+        }
+        Ok(Some(v))
+    }
+
+    fn load_part(
+        &mut self,
+        mi: usize,
+        pi: usize,
+        prim: &json::mesh::Primitive,
+        has_materials: bool,
+        default_material: &mut Option<u32>,
+        materials: &mut Vec<Material>,
+        seen: &HashMap<VertexKey, usize>,
+    ) -> Result<Option<Part>, ErrorKind> {
+        let ctx = format!("mesh {mi} primitive {pi}");
+        let mode = match prim.mode {
+            Checked::Valid(m) => m,
+            Checked::Invalid => {
+                self.warnings.push(format!("{ctx}: invalid mode; skipped"));
+                return Ok(None);
+            }
+        };
+        if !matches!(
+            mode,
+            Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+        ) {
+            self.warnings
+                .push(format!("{ctx}: mode {mode:?} is not triangles; skipped"));
+            return Ok(None);
+        }
+        let Some(pos) = prim.attributes.get(&Checked::Valid(Semantic::Positions)) else {
+            self.warnings
+                .push(format!("{ctx}: no POSITION attribute; skipped"));
+            return Ok(None);
+        };
+        let attr = |sem: Semantic| prim.attributes.get(&Checked::Valid(sem)).map(|a| a.value());
+        let key: VertexKey = [
+            Some(pos.value()),
+            attr(Semantic::Normals),
+            attr(Semantic::TexCoords(0)),
+            attr(Semantic::Colors(0)),
+        ];
+        let (vertices, nv) = match seen.get(&key) {
+            Some(&nv) => (None, nv),
+            None => {
+                let v = self.read_vertices(mi, pi, prim, pos.value(), &ctx)?;
+                let nv = v.positions.len();
+                (Some(v), nv)
+            }
+        };
+        let tris: Vec<[u32; 3]> = match prim.indices {
+            Some(ai) => {
+                let idx = self.read_indices(ai.value())?;
+                self.assemble(mode, &idx, &ctx)
+            }
+            None => {
+                let idx: Vec<u32> = (0..nv as u32).collect();
+                self.assemble(mode, &idx, &ctx)
+            }
+        };
+        for (t, tri) in tris.iter().enumerate() {
+            if let Some(&i) = tri.iter().find(|&&i| i as usize >= nv) {
+                return Err(ErrorKind::IndexOutOfRange {
+                    mesh: mi,
+                    primitive: pi,
+                    triangle: t,
+                    index: i,
+                    vertices: nv,
+                });
+            }
+        }
+        let material = if has_materials {
+            match prim.material.map(|m| m.value()) {
+                Some(m) if m < self.root.materials.len() => Some(m as u32),
+                other => {
+                    if let Some(m) = other {
+                        self.warnings.push(format!(
+                            "{ctx}: material {m} does not exist; the default material is used"
+                        ));
+                    }
+                    Some(*default_material.get_or_insert_with(|| {
+                        materials.push(Material {
+                            name: "default".into(),
+                            base_color: Vec4::ONE,
+                        });
+                        (materials.len() - 1) as u32
+                    }))
+                }
+            }
+        } else {
+            None
+        };
+        Ok(Some(Part {
+            key,
+            vertices,
+            tris,
+            material,
+        }))
+    }
+
+    /// Reads a primitive's vertex attributes (POSITION must be finite; the optional ones
+    /// are dropped with a warning when their type or count is wrong).
+    fn read_vertices(
+        &mut self,
+        mi: usize,
+        pi: usize,
+        prim: &json::mesh::Primitive,
+        pos: usize,
+        ctx: &str,
+    ) -> Result<Vertices, ErrorKind> {
+        let raw = self.read_floats::<3>(pos, "POSITION")?;
+        if let Some(v) = raw.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            return Err(ErrorKind::NonFinitePosition {
+                mesh: mi,
+                primitive: pi,
+                vertex: v,
+                value: raw[v],
+            });
+        }
+        let positions: Vec<Vec3> = bytemuck::cast_vec(raw);
+        let nv = positions.len();
+        if nv > u32::MAX as usize {
+            return Err(ErrorKind::TooLarge(format!("{ctx}: {nv} vertices")));
+        }
+        let normals = self
+            .optional::<3>(prim, Semantic::Normals, "NORMAL", nv, ctx)?
+            .map(|v| {
+                let mut n: Vec<Vec3> = bytemuck::cast_vec(v);
+                let mut fixed = false;
+                for x in &mut n {
+                    let l2 = x.length_squared();
+                    let u = if !x.is_finite() {
+                        Vec3::ZERO
+                    } else if (l2 - 1.0).abs() <= 1e-5 {
+                        *x
+                    } else {
+                        x.normalize_or_zero()
+                    };
+                    if u == Vec3::ZERO {
+                        fixed = true;
+                        *x = Vec3::Y;
+                    } else {
+                        *x = u;
+                    }
+                }
+                if fixed {
+                    self.warnings.push(format!(
+                        "{ctx}: some normals are zero or not finite; replaced by +Y"
+                    ));
+                }
+                n
+            });
+        let texcoords = self
+            .optional::<2>(prim, Semantic::TexCoords(0), "TEXCOORD_0", nv, ctx)?
+            .map(|v| {
+                v.into_iter()
+                    .map(|t| {
+                        let t = Vec2::from(t);
+                        if t.is_finite() { t } else { Vec2::ZERO }
+                    })
+                    .collect()
+            });
+        let colors = match prim.attributes.get(&Checked::Valid(Semantic::Colors(0))) {
+            None => None,
+            Some(ai) => match self.accessor_kind(ai.value())?.0 {
+                AccessorType::Vec3 => self
+                    .optional::<3>(prim, Semantic::Colors(0), "COLOR_0", nv, ctx)?
+                    .map(|v| v.into_iter().map(|c| Vec3::from(c).extend(1.0)).collect()),
+                _ => self
+                    .optional::<4>(prim, Semantic::Colors(0), "COLOR_0", nv, ctx)?
+                    .map(|v| v.into_iter().map(Vec4::from).collect()),
+            },
+        }
+        .map(|v: Vec<Vec4>| {
+            v.into_iter()
+                .map(|c| if c.is_finite() { c } else { Vec4::ONE })
+                .collect()
+        });
+        Ok(Vertices {
+            positions,
+            normals,
+            texcoords,
+            colors,
+        })
+    }
+
+    /// Triangles from a primitive's index list, by mode (glTF spec, section 3.7.2.1).
+    fn assemble(&mut self, mode: Mode, idx: &[u32], ctx: &str) -> Vec<[u32; 3]> {
+        match mode {
+            Mode::TriangleStrip => (0..idx.len().saturating_sub(2))
+                .map(|i| {
+                    if i % 2 == 0 {
+                        [idx[i], idx[i + 1], idx[i + 2]]
+                    } else {
+                        [idx[i], idx[i + 2], idx[i + 1]]
+                    }
+                })
+                .collect(),
+            Mode::TriangleFan => (0..idx.len().saturating_sub(2))
+                .map(|i| [idx[i + 1], idx[i + 2], idx[0]])
+                .collect(),
+            _ => {
+                if idx.len() % 3 != 0 {
+                    self.warnings.push(format!(
+                        "{ctx}: {} indices is not a multiple of 3; the last {} ignored",
+                        idx.len(),
+                        idx.len() % 3
+                    ));
+                }
+                idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+            }
+        }
+    }
+
+    fn load_mesh(
+        &mut self,
+        mi: usize,
+        default_material: &mut Option<u32>,
+        materials: &mut Vec<Material>,
+    ) -> Result<Mesh, ErrorKind> {
+        let root = self.root;
+        let mesh = root
+            .meshes
+            .get(mi)
+            .ok_or_else(|| invalid(format!("mesh {mi} does not exist")))?;
+        let has_materials = !root.materials.is_empty();
+        let mut parts = Vec::new();
+        let mut seen: HashMap<VertexKey, usize> = HashMap::new();
+        for (pi, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(p) = self.load_part(
+                mi,
+                pi,
+                prim,
+                has_materials,
+                default_material,
+                materials,
+                &seen,
+            )? {
+                if let Some(v) = &p.vertices {
+                    seen.insert(p.key, v.positions.len());
+                }
+                parts.push(p);
+            }
+        }
+        let verts = || parts.iter().filter_map(|p| p.vertices.as_ref());
+        let nv: usize = verts().map(|v| v.positions.len()).sum();
+        if nv > u32::MAX as usize {
+            return Err(ErrorKind::TooLarge(format!("mesh {mi}: {nv} vertices")));
+        }
+        let nt: usize = parts.iter().map(|p| p.tris.len()).sum();
+        let any_n = verts().any(|v| v.normals.is_some());
+        let any_t = verts().any(|v| v.texcoords.is_some());
+        let any_c = verts().any(|v| v.colors.is_some());
+        let any_m = parts.iter().any(|p| p.material.is_some());
+        let mut out = Mesh {
+            name: mesh.name.clone().unwrap_or_default(),
+            positions: Vec::with_capacity(nv),
+            indices: Vec::with_capacity(nt),
+            ..Mesh::default()
+        };
+        let mut bases: HashMap<VertexKey, u32> = HashMap::new();
+        for p in parts {
+            let base = match p.vertices {
+                None => bases.get(&p.key).copied().unwrap_or(0),
+                Some(v) => {
+                    let base = out.positions.len() as u32;
+                    bases.insert(p.key, base);
+                    let n = v.positions.len();
+                    if any_n {
+                        match v.normals {
+                            Some(x) => out.normals.extend(x),
+                            None => out
+                                .normals
+                                .extend(crate::vertex_normals(&v.positions, &p.tris)),
+                        }
+                    }
+                    if any_t {
+                        match v.texcoords {
+                            Some(x) => out.texcoords.extend(x),
+                            None => out.texcoords.extend(std::iter::repeat_n(Vec2::ZERO, n)),
+                        }
+                    }
+                    if any_c {
+                        match v.colors {
+                            Some(x) => out.colors.extend(x),
+                            None => out.colors.extend(std::iter::repeat_n(Vec4::ONE, n)),
+                        }
+                    }
+                    if out.positions.is_empty() {
+                        out.positions = v.positions;
+                    } else {
+                        out.positions.extend(v.positions);
+                    }
+                    base
+                }
+            };
+            if any_m {
+                out.materials
+                    .extend(std::iter::repeat_n(p.material.unwrap_or(0), p.tris.len()));
+            }
+            if base == 0 && out.indices.is_empty() {
+                out.indices = p.tris;
+            } else {
+                out.indices
+                    .extend(p.tris.iter().map(|t| t.map(|i| i + base)));
+            }
+        }
+        Ok(out)
+    }
+
+    fn node_matrix(node: &json::Node) -> Result<Mat4, String> {
+        if let Some(m) = node.matrix {
+            let mat = Mat4::from_cols_array(&m);
+            if !mat.is_finite() {
+                return Err(format!("its matrix is not finite ({m:?})"));
+            }
+            return Ok(mat);
+        }
+        let t = Vec3::from(node.translation.unwrap_or([0.0; 3]));
+        let s = Vec3::from(node.scale.unwrap_or([1.0; 3]));
+        let r = node.rotation.map_or([0.0, 0.0, 0.0, 1.0], |q| q.0);
+        if !t.is_finite() {
+            return Err(format!("its translation is not finite ({t})"));
+        }
+        if !s.is_finite() {
+            return Err(format!("its scale is not finite ({s})"));
+        }
+        let q = Vec4::from(r);
+        let len = q.length();
+        if !(len.is_finite() && len > 1e-6) {
+            return Err(format!("its rotation {r:?} is not a unit quaternion"));
+        }
+        let q = Quat::from_vec4(q / len);
+        Ok(Mat4::from_scale_rotation_translation(s, q, t))
+    }
+
+    fn load(&mut self, base_dir: Option<&Path>) -> Result<Scene, ErrorKind> {
+        let root = self.root;
+        let mut materials: Vec<Material> = root
+            .materials
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let c = Vec4::from(m.pbr_metallic_roughness.base_color_factor.0);
+                Material {
+                    name: m.name.clone().unwrap_or_else(|| format!("material {i}")),
+                    base_color: if c.is_finite() { c } else { Vec4::ONE },
+                }
+            })
+            .collect();
+        let mut default_material = None;
+        let mut meshes: Vec<Mesh> = Vec::new();
+        let mut mesh_map: Vec<Option<usize>> = vec![None; root.meshes.len()];
+        let mut instances = Vec::new();
+        let mut camera_at: Option<(Mat4, f32)> = None;
+        let mut skipped_cameras = 0usize;
+        let mut revisited = 0usize;
+        let mut skinned = 0usize;
+
+        // The nodes to start from: the default scene's, else the first scene's, else
+        // every node that is nobody's child.
+        let roots: Vec<usize> = match root.scene.map(|s| s.value()).or(if root.scenes.is_empty() {
+            None
+        } else {
+            Some(0)
+        }) {
+            Some(si) => root
+                .scenes
+                .get(si)
+                .ok_or_else(|| invalid(format!("the default scene {si} does not exist")))?
+                .nodes
+                .iter()
+                .map(|n| n.value())
+                .collect(),
+            None => {
+                let mut is_child = vec![false; root.nodes.len()];
+                for n in &root.nodes {
+                    for c in n.children.iter().flatten() {
+                        if let Some(f) = is_child.get_mut(c.value()) {
+                            *f = true;
+                        }
+                    }
+                }
+                (0..root.nodes.len()).filter(|&i| !is_child[i]).collect()
+            }
+        };
+
+        let mut visited = vec![false; root.nodes.len()];
+        let mut stack: Vec<(usize, Mat4)> =
+            roots.iter().rev().map(|&n| (n, Mat4::IDENTITY)).collect();
+        while let Some((ni, parent)) = stack.pop() {
+            let node = root
+                .nodes
+                .get(ni)
+                .ok_or_else(|| invalid(format!("node {ni} does not exist")))?;
+            if visited[ni] {
+                revisited += 1;
+                continue;
+            }
+            visited[ni] = true;
+            let local =
+                Self::node_matrix(node).map_err(|reason| ErrorKind::Node { node: ni, reason })?;
+            let world = parent * local;
+            if !world.is_finite() {
+                return Err(ErrorKind::Node {
+                    node: ni,
+                    reason: "its world transform is not finite (the transforms overflow f32)"
+                        .into(),
+                });
+            }
+            if let Some(m) = node.mesh {
+                let m = m.value();
+                let slot = mesh_map.get_mut(m).ok_or_else(|| {
+                    invalid(format!(
+                        "node {ni} refers to mesh {m}, which does not exist"
+                    ))
+                })?;
+                let id = match *slot {
+                    Some(id) => id,
+                    None => {
+                        let mesh = self.load_mesh(m, &mut default_material, &mut materials)?;
+                        meshes.push(mesh);
+                        let id = meshes.len() - 1;
+                        mesh_map[m] = Some(id);
+                        id
+                    }
+                };
+                instances.push(Instance {
+                    mesh: id,
+                    transform: world,
+                });
+                if node.skin.is_some() {
+                    skinned += 1;
+                }
+            }
+            if let Some(c) = node.camera {
+                let c = c.value();
+                let cam = root.cameras.get(c).ok_or_else(|| {
+                    invalid(format!(
+                        "node {ni} refers to camera {c}, which does not exist"
+                    ))
+                })?;
+                match (&cam.perspective, camera_at) {
+                    (Some(p), None)
+                        if p.yfov.is_finite() && p.yfov > 0.0 && p.yfov < std::f32::consts::PI =>
+                    {
+                        camera_at = Some((world, p.yfov.to_degrees()));
+                    }
+                    (_, None) => skipped_cameras += 1,
+                    _ => {}
+                }
+            }
+            for ch in node.children.iter().flatten().rev() {
+                stack.push((ch.value(), world));
+            }
+        }
+        if root.nodes.is_empty() && !root.meshes.is_empty() {
+            self.warnings
+                .push("the file has no nodes: each mesh is placed once, untransformed".into());
+            for m in 0..root.meshes.len() {
+                let mesh = self.load_mesh(m, &mut default_material, &mut materials)?;
+                meshes.push(mesh);
+                instances.push(Instance {
+                    mesh: meshes.len() - 1,
+                    transform: Mat4::IDENTITY,
+                });
+            }
+        }
+        if revisited > 0 {
+            self.warnings.push(format!(
+                "{revisited} node visit(s) skipped: a node has several parents or the hierarchy has a cycle"
+            ));
+        }
+        if skinned > 0 {
+            self.warnings.push(format!(
+                "{skinned} skinned mesh instance(s) are placed by their node transform (skins are not applied)"
+            ));
+        }
+        if skipped_cameras > 0 {
+            self.warnings.push(format!(
+                "{skipped_cameras} camera(s) skipped (orthographic, or an invalid field of view)"
+            ));
+        }
+        self.warn_missing_images(base_dir);
+
+        let mut scene = Scene {
+            meshes,
+            instances,
+            materials,
+            warnings: std::mem::take(&mut self.warnings),
+            ..Scene::default()
+        };
+        if scene.triangle_count() == 0 {
+            let prims: usize = root.meshes.iter().map(|m| m.primitives.len()).sum();
+            return Err(ErrorKind::NoTriangles(format!(
+                " ({} instance(s) of {} mesh(es) with {} primitive(s) in the file)",
+                scene.instances.len(),
+                root.meshes.len(),
+                prims
+            )));
+        }
+        scene.unify_attributes();
+        if let Some((world, fov)) = camera_at {
+            let eye = world.transform_point3(Vec3::ZERO);
+            let fwd = world.transform_vector3(Vec3::NEG_Z).normalize_or_zero();
+            if eye.is_finite() && fwd != Vec3::ZERO {
+                let (lo, hi) = scene.bounds();
+                let d = ((lo + hi) * 0.5 - eye).length();
+                let d = if d.is_finite() && d > 0.0 { d } else { 1.0 };
+                scene.camera = Some(Camera {
+                    eye,
+                    target: eye + fwd * d,
+                    fov_y_deg: fov,
+                });
+            } else {
+                scene
+                    .warnings
+                    .push("the camera's node transform is degenerate; camera skipped".into());
+            }
+        }
+        Ok(scene)
+    }
+
+    /// One warning listing image files that are missing (textures are never loaded).
+    fn warn_missing_images(&mut self, base_dir: Option<&Path>) {
+        let Some(dir) = base_dir else { return };
+        let files: Vec<&str> = self
+            .root
+            .images
+            .iter()
+            .filter_map(|i| i.uri.as_deref())
+            .filter(|u| !u.starts_with("data:") && !is_remote(u))
+            .collect();
+        let missing: Vec<&str> = files
+            .iter()
+            .copied()
+            .filter(|u| !dir.join(percent_decode(u)).is_file())
+            .collect();
+        if !missing.is_empty() {
+            let shown: Vec<&str> = missing.iter().copied().take(4).collect();
+            self.warnings.push(format!(
+                "{} of {} image file(s) are missing ({}{}); textures are not loaded anyway",
+                missing.len(),
+                files.len(),
+                shown.join(", "),
+                if missing.len() > shown.len() {
+                    ", ..."
+                } else {
+                    ""
+                }
+            ));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percent_decoding() {
+        assert_eq!(percent_decode("a%20b.bin"), "a b.bin");
+        assert_eq!(percent_decode("bad%2"), "bad%2");
+        assert_eq!(percent_decode("%zz"), "%zz");
+        assert_eq!(percent_decode("x%"), "x%");
+    }
+
+    #[test]
+    fn data_uris() {
+        assert_eq!(
+            decode_data_uri("data:application/octet-stream;base64,AQID").expect("ok"),
+            vec![1, 2, 3]
+        );
+        assert!(decode_data_uri("data:text/plain,abc").is_err());
+        assert!(decode_data_uri("data:;base64,@@@").is_err());
+    }
+}

@@ -1,0 +1,33 @@
+// box.wgsl: the conservative slab test, twin of `bvhtrace_core::intersect::intersect_box`.
+
+// `intersect::BOX_TFAR_SCALE` = 1 + 2 gamma(3) (the f32 nearest 1.0000004, bits 0x3f800003).
+const BOX_TFAR_SCALE: f32 = 1.0000004f;
+
+// The CPU's `fmin`/`fmax`: `if a < b { a } else { b }` (and `>`), not IEEE minNum.
+fn fmin(a: f32, b: f32) -> f32 {
+    return select(b, a, a < b);
+}
+
+fn fmax(a: f32, b: f32) -> f32 {
+    return select(b, a, a > b);
+}
+
+// Entry and exit distances of the ray's `[t_min, t_max]` through the box; the box is hit
+// when `x <= y` (see `box_hit`). The entry distance orders the full-stack walk.
+fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_max: f32) -> vec2<f32> {
+    let t0 = (bmin - r.org) * r.inv_dir;
+    let t1 = (bmax - r.org) * r.inv_dir;
+    let tnear = fmax(
+        fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
+        fmax(fmin(t0.z, t1.z), r.t_min),
+    );
+    let tfar = fmin(
+        fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
+        fmin(fmax(t0.z, t1.z), t_max),
+    ) * BOX_TFAR_SCALE;
+    return vec2<f32>(tnear, tfar);
+}
+
+fn box_hit(t: vec2<f32>) -> bool {
+    return t.x <= t.y;
+}

@@ -1,0 +1,91 @@
+// ray.wgsl: ray validity and per-ray precomputation, twin of
+// `bvhtrace_core::ray::Ray::is_valid` and `bvhtrace_core::intersect::PreparedRay::new`.
+//
+// Validity and zero tests look at the bits, so they hold even where the device flushes
+// subnormals to zero.
+
+struct PreparedRay {
+    org: vec3<f32>,
+    dir: vec3<f32>,
+    inv_dir: vec3<f32>,
+    t_min: f32,
+    kx: u32,
+    ky: u32,
+    kz: u32,
+    sx: f32,
+    sy: f32,
+    sz: f32,
+}
+
+fn is_finite_f32(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+fn is_nan_f32(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7fffffffu) > 0x7f800000u;
+}
+
+fn is_zero_f32(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7fffffffu) == 0u;
+}
+
+// `Ray::is_valid`: finite origin and direction, non-zero direction, no NaN interval end.
+fn ray_is_valid(ray: Ray) -> bool {
+    let o = ray.origin;
+    let d = ray.dir;
+    return is_finite_f32(o.x) && is_finite_f32(o.y) && is_finite_f32(o.z)
+        && is_finite_f32(d.x) && is_finite_f32(d.y) && is_finite_f32(d.z)
+        && !(is_zero_f32(d.x) && is_zero_f32(d.y) && is_zero_f32(d.z))
+        && !is_nan_f32(ray.t_min) && !is_nan_f32(ray.t_max);
+}
+
+// `intersect::safe_inverse`: `1/d`, with a zero or subnormal `d` taken as
+// `±f32::MIN_POSITIVE` (sign kept).
+fn safe_inverse(d: f32) -> f32 {
+    let bits = bitcast<u32>(d);
+    var x = d;
+    if ((bits & 0x7fffffffu) < 0x00800000u) {
+        x = bitcast<f32>((bits & 0x80000000u) | 0x00800000u);
+    }
+    return 1.0 / x;
+}
+
+// `PreparedRay::new` for a valid ray.
+fn prepare_ray(ray: Ray) -> PreparedRay {
+    let d = ray.dir;
+    let a = abs(d);
+    // Dominant axis; ties go to the lower axis.
+    var kz = 2u;
+    if (a.x >= a.y && a.x >= a.z) {
+        kz = 0u;
+    } else if (a.y >= a.z) {
+        kz = 1u;
+    }
+    var kx = kz + 1u;
+    if (kx == 3u) {
+        kx = 0u;
+    }
+    var ky = kx + 1u;
+    if (ky == 3u) {
+        ky = 0u;
+    }
+    let dz = component(d, kz);
+    // Keep the winding: swap when the dominant component is negative.
+    if (dz < 0.0) {
+        let s = kx;
+        kx = ky;
+        ky = s;
+    }
+    var p: PreparedRay;
+    p.org = ray.origin;
+    p.dir = d;
+    p.inv_dir = vec3<f32>(safe_inverse(d.x), safe_inverse(d.y), safe_inverse(d.z));
+    p.t_min = ray.t_min;
+    p.kx = kx;
+    p.ky = ky;
+    p.kz = kz;
+    p.sx = component(d, kx) / dz;
+    p.sy = component(d, ky) / dz;
+    p.sz = 1.0 / dz;
+    return p;
+}

@@ -1,0 +1,73 @@
+// traverse_common.wgsl: what every traversal shares, twin of the helpers in
+// `bvhtrace_core::traverse`: the best hit so far, the leaf visit with the hit rule, and
+// the start and end of a ray.
+//
+// Hit rule: a triangle hit at `t` replaces the best one when `t_min <= t` and either
+// `t < best.t`, or `t == best.t` and its primitive index is lower. `best.t` starts at
+// `t_max`, so the interval is `[t_min, t_max)`.
+
+struct Best {
+    t: f32,
+    prim: u32,
+    u: f32,
+    v: f32,
+    found: bool,
+}
+
+// Tests a leaf's triangles; true when an any-hit query can stop.
+fn visit_leaf(
+    r: PreparedRay,
+    n: Node,
+    best: ptr<function, Best>,
+    c: ptr<function, Counters>,
+    any_hit: bool,
+) -> bool {
+    let first = n.right_or_first;
+    let end = first + node_count(n);
+    for (var i = first; i < end; i += 1u) {
+        (*c).tris += 1u;
+        let tri = bvh_triangles[i];
+        let h = intersect_triangle(r, tri.v0, tri.v1, tri.v2);
+        if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && tri.prim < (*best).prim))) {
+            *best = Best(h.t, tri.prim, h.u, h.v, true);
+            if (any_hit) {
+                return true;
+            }
+        }
+    }
+    return false;
+}
+
+// The answer for a ray that is not traversed: invalid (`t` = `t_max`, or 0 when that is
+// NaN), or an empty interval (a miss at `t_max`).
+fn untraced_result(ray: Ray) -> TraceResult {
+    var out: TraceResult;
+    out.counters = Counters(0u, 0u);
+    if (!ray_is_valid(ray)) {
+        let t = select(ray.t_max, 0.0, is_nan_f32(ray.t_max));
+        out.hit = Hit(t, INVALID_RAY, 0.0, 0.0);
+    } else {
+        out.hit = Hit(ray.t_max, MISS, 0.0, 0.0);
+    }
+    return out;
+}
+
+// True when the ray is walked through the tree (valid, and `t_min <= t_max`).
+fn ray_is_traced(ray: Ray) -> bool {
+    return ray_is_valid(ray) && ray.t_min <= ray.t_max;
+}
+
+fn start_best(ray: Ray) -> Best {
+    return Best(ray.t_max, MISS, 0.0, 0.0, false);
+}
+
+fn finish(best: Best, c: Counters) -> TraceResult {
+    var out: TraceResult;
+    out.counters = c;
+    if (best.found) {
+        out.hit = Hit(best.t, best.prim, best.u, best.v);
+    } else {
+        out.hit = Hit(best.t, MISS, 0.0, 0.0);
+    }
+    return out;
+}

@@ -1,0 +1,70 @@
+// traverse_full_stack.wgsl: twin of `bvhtrace_core::traverse::full_stack`.
+//
+// Both children are tested at their parent; when both are hit, the one with the nearer
+// entry distance is visited first and the other pushed. The stack holds at most `depth`
+// entries (one per level of the current path), so `GpuBvh::upload` refuses trees deeper
+// than `FULL_STACK_SIZE` for this traversal: it never overflows.
+
+const FULL_STACK_SIZE: u32 = 64u;
+
+fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
+    if (!ray_is_traced(ray)) {
+        return untraced_result(ray);
+    }
+    let r = prepare_ray(ray);
+    var best = start_best(ray);
+    var c = Counters(0u, 0u);
+    var stack: array<u32, FULL_STACK_SIZE>;
+    var sp = 0u;
+
+    c.nodes += 1u;
+    let root = load_node(0u);
+    if (!box_hit(intersect_box(r, root.min, root.max, best.t))) {
+        return finish(best, c);
+    }
+    var node = 0u;
+    loop {
+        let n = load_node(node);
+        if (node_count(n) != 0u) {
+            if (visit_leaf(r, n, &best, &c, any_hit)) {
+                break;
+            }
+        } else {
+            let l = node + 1u;
+            let rt = n.right_or_first;
+            c.nodes += 2u;
+            let nl = load_node(l);
+            let nr = load_node(rt);
+            let hl = intersect_box(r, nl.min, nl.max, best.t);
+            let hr = intersect_box(r, nr.min, nr.max, best.t);
+            let ok_l = box_hit(hl);
+            let ok_r = box_hit(hr);
+            if (ok_l && ok_r) {
+                var near = l;
+                var far = rt;
+                if (hr.x < hl.x) {
+                    near = rt;
+                    far = l;
+                }
+                stack[sp] = far;
+                sp += 1u;
+                node = near;
+                continue;
+            }
+            if (ok_l) {
+                node = l;
+                continue;
+            }
+            if (ok_r) {
+                node = rt;
+                continue;
+            }
+        }
+        if (sp == 0u) {
+            break;
+        }
+        sp -= 1u;
+        node = stack[sp];
+    }
+    return finish(best, c);
+}

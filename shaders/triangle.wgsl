@@ -1,0 +1,50 @@
+// triangle.wgsl: the watertight ray/triangle test (Woop, Benthin, Wald 2013), twin of
+// `bvhtrace_core::intersect::intersect_triangle`, operation for operation.
+
+struct TriHit {
+    t: f32,
+    u: f32,
+    v: f32,
+    hit: bool,
+}
+
+fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
+    var out = TriHit(0.0, 0.0, 0.0, false);
+    let a = v0 - r.org;
+    let b = v1 - r.org;
+    let c = v2 - r.org;
+    let az_ = component(a, r.kz);
+    let bz_ = component(b, r.kz);
+    let cz_ = component(c, r.kz);
+    let ax = component(a, r.kx) - r.sx * az_;
+    let ay = component(a, r.ky) - r.sy * az_;
+    let bx = component(b, r.kx) - r.sx * bz_;
+    let by = component(b, r.ky) - r.sy * bz_;
+    let cx = component(c, r.kx) - r.sx * cz_;
+    let cy = component(c, r.ky) - r.sy * cz_;
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) {
+        return out;
+    }
+    let det = u + v + w;
+    if (det == 0.0) {
+        return out;
+    }
+    let az = r.sz * az_;
+    let bz = r.sz * bz_;
+    let cz = r.sz * cz_;
+    let t_scaled = u * az + v * bz + w * cz;
+    let inv_det = 1.0 / det;
+    let t = t_scaled * inv_det;
+    // NaN fails this comparison and is rejected.
+    if (!(t >= r.t_min)) {
+        return out;
+    }
+    out.t = t;
+    out.u = v * inv_det;
+    out.v = w * inv_det;
+    out.hit = true;
+    return out;
+}

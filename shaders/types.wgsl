@@ -1,0 +1,75 @@
+// types.wgsl: the data shared between the CPU and the GPU, field for field.
+//
+// Each struct is the WGSL twin of a `#[repr(C)]` Rust type of `bvhtrace_core`; the test
+// `crates/gpu/tests/wgsl_layout.rs` parses the composed source with naga and checks every
+// size and field offset against `std::mem::offset_of!`, so the layout has one source of
+// truth (`crates/core/src/flat.rs` and `ray.rs`).
+
+// `FlatNode` (32 bytes). Interior: the first child is the next node, `right_or_first` is the
+// second child. Leaf: triangles `right_or_first .. right_or_first + count`.
+// `meta_bits` is `FlatNode::meta` = `count << 2 | axis` (`meta` is reserved in WGSL).
+struct Node {
+    min: vec3<f32>,
+    right_or_first: u32,
+    max: vec3<f32>,
+    meta_bits: u32,
+}
+
+// `FlatTriangle` (48 bytes): the corners, and the triangle's index in the builder's input.
+struct Triangle {
+    v0: vec3<f32>,
+    prim: u32,
+    v1: vec3<f32>,
+    pad1: u32,
+    v2: vec3<f32>,
+    pad2: u32,
+}
+
+// `Ray` (32 bytes). Hits are accepted for `t_min <= t < t_max`.
+struct Ray {
+    origin: vec3<f32>,
+    t_min: f32,
+    dir: vec3<f32>,
+    t_max: f32,
+}
+
+// `Hit` (16 bytes). `prim` is the primitive index, `MISS` or `INVALID_RAY`; `u`, `v` are the
+// barycentric weights of corners 1 and 2.
+struct Hit {
+    t: f32,
+    prim: u32,
+    u: f32,
+    v: f32,
+}
+
+// `Counters` (8 bytes): boxes and triangles tested for one ray.
+struct Counters {
+    nodes: u32,
+    tris: u32,
+}
+
+// What a traversal function returns for one ray.
+struct TraceResult {
+    hit: Hit,
+    counters: Counters,
+}
+
+// `bvhtrace_core::MISS` and `bvhtrace_core::INVALID_RAY`.
+const MISS: u32 = 0xffffffffu;
+const INVALID_RAY: u32 = 0xfffffffeu;
+// `bvhtrace_core::traverse::MAX_SHORT_STACK`: the ring buffer's storage.
+const MAX_SHORT_STACK: u32 = 32u;
+
+fn node_count(n: Node) -> u32 {
+    return n.meta_bits >> 2u;
+}
+
+fn node_axis(n: Node) -> u32 {
+    return n.meta_bits & 3u;
+}
+
+// `v[k]` for k in 0..3, written as selects (a dynamic vector index costs more on
+// lavapipe; the value is the same).
+fn component(v: vec3<f32>, k: u32) -> f32 {
+    return select(select(v.z, v.y, k == 1u), v.x, k == 0u);
+}
