@@ -62,7 +62,7 @@ impl Camera {
         let center = (min + max) * 0.5;
         let mut radius = ((max - min) * 0.5).length();
         let floor = (center.abs().max_element() * 1e-6).max(1e-30);
-        if !(radius >= floor) {
+        if radius.is_nan() || radius < floor {
             radius = floor;
         }
         let aspect = if aspect.is_finite() && aspect > 0.0 {

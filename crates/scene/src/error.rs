@@ -56,7 +56,7 @@ pub enum ErrorKind {
     /// The file lists an extension in `extensionsRequired` that this loader cannot honour
     /// (compressed geometry such as `KHR_draco_mesh_compression`, `EXT_meshopt_compression`).
     #[error(
-        "requires the unsupported glTF extension {0} (listed in extensionsRequired); decompress the file first, e.g. with `gltf-transform copy`"
+        "requires the unsupported glTF extension {0} (listed in extensionsRequired); decompress the geometry first (e.g. with a glTF tool such as gltf-transform)"
     )]
     UnsupportedExtension(String),
     /// An accessor (or the buffer view under it) reads past the end of its data.

@@ -3,9 +3,11 @@
 //!
 //! What is written: every mesh (positions with min/max, `u32` indices, and normals,
 //! `TEXCOORD_0` and `COLOR_0` when [`crate::Attributes`] says the scene has them), one
-//! primitive per run of triangles sharing a material (so the triangle order survives), the materials' base colour factors, one node
-//! per instance (a `matrix` unless it is the identity) and the camera, if any, as a
-//! perspective camera on its own node. Instancing is kept: a mesh is written once.
+//! primitive per run of triangles sharing a material (the primitives share the vertex
+//! accessors, so loading the file gives back the same vertices and triangles in the same
+//! order), the materials' base colour factors, one node per instance (a `matrix` unless
+//! it is the identity) and the camera, if any, as a perspective camera on its own node.
+//! Instancing is kept: a mesh is written once.
 
 use std::path::Path;
 
@@ -30,7 +32,7 @@ struct Builder {
 impl Builder {
     /// Appends `bytes` as a new buffer view (4-byte aligned) and an accessor over it.
     fn add(&mut self, bytes: &[u8], target: u32, accessor: Value) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         self.views.push(json!({

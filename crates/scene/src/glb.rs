@@ -93,7 +93,7 @@ pub(crate) fn parse(bytes: &[u8]) -> Result<Glb<'_>, ErrorKind> {
             )));
         };
         let start = at + 8;
-        let end = start.checked_add(len as usize).unwrap_or(usize::MAX);
+        let end = start.saturating_add(len as usize);
         if end > bytes.len() {
             let what = match kind {
                 CHUNK_JSON => "the JSON chunk".to_string(),

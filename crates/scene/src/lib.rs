@@ -541,8 +541,11 @@ pub fn shared_scenes_dir() -> Option<PathBuf> {
 /// The repository's own `scenes/` folder (small scenes this project made), found from
 /// this crate's source directory, or `None` when the crate was moved out of the repo.
 pub fn repo_scenes_dir() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
-    dir.is_dir().then_some(dir)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../scenes")
+        .canonicalize()
+        .ok()
+        .filter(|d| d.is_dir())
 }
 
 #[cfg(test)]

@@ -622,6 +622,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         Ok(Some(v))
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn load_part(
         &mut self,
         mi: usize,
@@ -820,7 +821,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                 .map(|i| [idx[i + 1], idx[i + 2], idx[0]])
                 .collect(),
             _ => {
-                if idx.len() % 3 != 0 {
+                if !idx.len().is_multiple_of(3) {
                     self.warnings.push(format!(
                         "{ctx}: {} indices is not a multiple of 3; the last {} ignored",
                         idx.len(),

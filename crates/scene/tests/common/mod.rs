@@ -44,7 +44,7 @@ pub const U32: u32 = 5125;
 impl Gltf {
     /// Adds raw bytes as a buffer view and an accessor over it; returns the accessor.
     pub fn raw(&mut self, bytes: &[u8], count: usize, ty: &str, ctype: u32, extra: Value) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         self.views
