@@ -15,8 +15,17 @@ fn fmax(a: f32, b: f32) -> f32 {
 // Entry and exit distances of the ray's `[t_min, t_max]` through the box; the box is hit
 // when `x <= y` (see `box_hit`). The entry distance orders the full-stack walk.
 fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_max: f32) -> vec2<f32> {
-    let t0 = (bmin - r.org) * r.inv_dir;
-    let t1 = (bmax - r.org) * r.inv_dir;
+    var t0 = (bmin - r.org) * r.inv_dir;
+    var t1 = (bmax - r.org) * r.inv_dir;
+    if (r.parallel) {
+        // Along an axis the ray does not move, it is inside the slab for every t (its
+        // boundary included) or for none.
+        let inf = vec3<f32>(bitcast<f32>(0x7f800000u));
+        let zero = r.dir == vec3<f32>(0.0);
+        let inside = (bmin <= r.org) & (r.org <= bmax);
+        t0 = select(t0, select(inf, -inf, inside), zero);
+        t1 = select(t1, inf, zero);
+    }
     let tnear = fmax(
         fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
         fmax(fmin(t0.z, t1.z), r.t_min),

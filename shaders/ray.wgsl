@@ -6,8 +6,11 @@
 
 struct PreparedRay {
     org: vec3<f32>,
+    // Direction, subnormal components flushed to signed zero.
     dir: vec3<f32>,
     inv_dir: vec3<f32>,
+    // Some direction component is zero: `intersect_box` takes its general path.
+    parallel: bool,
     t_min: f32,
     kx: u32,
     ky: u32,
@@ -50,9 +53,22 @@ fn safe_inverse(d: f32) -> f32 {
     return 1.0 / x;
 }
 
+// `intersect::flush_subnormal`: `d`, or a zero of the same sign when `d` is subnormal.
+fn flush_subnormal(d: f32) -> f32 {
+    let bits = bitcast<u32>(d);
+    if ((bits & 0x7fffffffu) < 0x00800000u) {
+        return bitcast<f32>(bits & 0x80000000u);
+    }
+    return d;
+}
+
 // `PreparedRay::new` for a valid ray.
 fn prepare_ray(ray: Ray) -> PreparedRay {
-    let d = ray.dir;
+    let d = vec3<f32>(
+        flush_subnormal(ray.dir.x),
+        flush_subnormal(ray.dir.y),
+        flush_subnormal(ray.dir.z),
+    );
     let a = abs(d);
     // Dominant axis; ties go to the lower axis.
     var kz = 2u;
@@ -80,6 +96,7 @@ fn prepare_ray(ray: Ray) -> PreparedRay {
     p.org = ray.origin;
     p.dir = d;
     p.inv_dir = vec3<f32>(safe_inverse(d.x), safe_inverse(d.y), safe_inverse(d.z));
+    p.parallel = d.x == 0.0 || d.y == 0.0 || d.z == 0.0;
     p.t_min = ray.t_min;
     p.kx = kx;
     p.ky = ky;

@@ -14,19 +14,20 @@ struct Best {
     found: bool,
 }
 
-// Tests a leaf's triangles; true when an any-hit query can stop.
+// Tests the triangles `first .. first + count` of a leaf; true when an any-hit query can
+// stop.
 fn visit_leaf(
     r: PreparedRay,
-    n: Node,
+    first: u32,
+    count: u32,
     best: ptr<function, Best>,
     c: ptr<function, Counters>,
     any_hit: bool,
 ) -> bool {
-    let first = n.right_or_first;
-    let end = first + node_count(n);
+    let end = first + count;
     for (var i = first; i < end; i += 1u) {
         (*c).tris += 1u;
-        let tri = bvh_triangles[i];
+        let tri = load_triangle(i);
         let h = intersect_triangle(r, tri.v0, tri.v1, tri.v2);
         if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && tri.prim < (*best).prim))) {
             *best = Best(h.t, tri.prim, h.u, h.v, true);

@@ -24,14 +24,15 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
     }
     var node = 0u;
     loop {
-        let n = load_node(node);
-        if (node_count(n) != 0u) {
-            if (visit_leaf(r, n, &best, &c, any_hit)) {
+        let links = load_node_links(node);
+        let count = links.y >> 2u;
+        if (count != 0u) {
+            if (visit_leaf(r, links.x, count, &best, &c, any_hit)) {
                 break;
             }
         } else {
             let l = node + 1u;
-            let rt = n.right_or_first;
+            let rt = links.x;
             c.nodes += 2u;
             let nl = load_node(l);
             let nr = load_node(rt);

@@ -12,11 +12,12 @@
 // entry point passes the `SHORT_STACK_SIZE` override constant, so the compiler folds `k`).
 // `k` is clamped to `1..=MAX_SHORT_STACK` by the host for `Traversal::ShortStack(k)`.
 
-// Near and far child of interior node `index`: `vec2(near, far)`.
-fn near_far(r: PreparedRay, index: u32, n: Node) -> vec2<u32> {
+// Near and far child of interior node `index` with links `(right_or_first, meta)`:
+// `vec2(near, far)`.
+fn near_far(r: PreparedRay, index: u32, links: vec2<u32>) -> vec2<u32> {
     let l = index + 1u;
-    let rt = n.right_or_first;
-    if (component(r.dir, node_axis(n)) >= 0.0) {
+    let rt = links.x;
+    if (component(r.dir, links.y & 3u) >= 0.0) {
         return vec2<u32>(l, rt);
     }
     return vec2<u32>(rt, l);
@@ -39,7 +40,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
         c.nodes += 1u;
         if (box_hit(intersect_box(r, n.min, n.max, best.t))) {
             if (node_count(n) == 0u) {
-                let nf = near_far(r, node, n);
+                let nf = near_far(r, node, vec2<u32>(n.right_or_first, n.meta_bits));
                 if (k == 0u) {
                     overflow = true;
                 } else {
@@ -54,7 +55,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
                 node = nf.x;
                 continue;
             }
-            if (visit_leaf(r, n, &best, &c, any_hit)) {
+            if (visit_leaf(r, n.right_or_first, node_count(n), &best, &c, any_hit)) {
                 break;
             }
         }
@@ -74,8 +75,8 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
             if (node == 0u) {
                 break;
             }
-            let p = bvh_parents[node];
-            let nf = near_far(r, p, load_node(p));
+            let p = load_parent(node);
+            let nf = near_far(r, p, load_node_links(p));
             if (node == nf.x) {
                 node = nf.y;
                 resumed = true;

@@ -64,10 +64,6 @@ fn node_count(n: Node) -> u32 {
     return n.meta_bits >> 2u;
 }
 
-fn node_axis(n: Node) -> u32 {
-    return n.meta_bits & 3u;
-}
-
 // `v[k]` for k in 0..3, written as selects (a dynamic vector index costs more on
 // lavapipe; the value is the same).
 fn component(v: vec3<f32>, k: u32) -> f32 {

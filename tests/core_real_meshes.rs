@@ -25,22 +25,44 @@ fn sah_cost_is_no_higher_than_tinybvh() {
         let Some(tris) = mesh(name) else { return };
         // Same objective as tinybvh's builder: traversal cost 1.
         for b in [BuilderKind::Sah, BuilderKind::SweepSah] {
-            let opts = BuildOptions { cost_traversal: 1.0, ..BuildOptions::with_builder(b) };
+            let opts = BuildOptions {
+                cost_traversal: 1.0,
+                ..BuildOptions::with_builder(b)
+            };
             let bvh = FlatBvh::build(&tris, &opts).unwrap();
             bvh.check_invariants().unwrap();
             let s = BvhStats::of(&bvh);
-            eprintln!("{name} {b}: SAH {:.3} (tinybvh {theirs}), PBRT {:.3}", s.sah_cost, s.sah_cost_pbrt);
-            assert!(s.sah_cost <= theirs, "{name} {b}: {} > tinybvh's {theirs}", s.sah_cost);
+            eprintln!(
+                "{name} {b}: SAH {:.3} (tinybvh {theirs}), PBRT {:.3}",
+                s.sah_cost, s.sah_cost_pbrt
+            );
+            assert!(
+                s.sah_cost <= theirs,
+                "{name} {b}: {} > tinybvh's {theirs}",
+                s.sah_cost
+            );
         }
         // The default (PBRT costs) tree is the better one under PBRT's costs.
         let pbrt = BvhStats::of(&FlatBvh::build(&tris, &BuildOptions::default()).unwrap());
-        let unit = BvhStats::of(&FlatBvh::build(&tris, &BuildOptions { cost_traversal: 1.0, ..Default::default() }).unwrap());
+        let unit = BvhStats::of(
+            &FlatBvh::build(
+                &tris,
+                &BuildOptions {
+                    cost_traversal: 1.0,
+                    ..Default::default()
+                },
+            )
+            .unwrap(),
+        );
         assert!(pbrt.sah_cost_pbrt < unit.sah_cost_pbrt);
     }
 }
 
 fn camera_rays(tris: &[Triangle], w: u32, h: u32) -> Vec<Ray> {
-    let (lo, hi) = tris.iter().flatten().fold((Vec3::MAX, Vec3::MIN), |(l, u), p| (l.min(*p), u.max(*p)));
+    let (lo, hi) = tris
+        .iter()
+        .flatten()
+        .fold((Vec3::MAX, Vec3::MIN), |(l, u), p| (l.min(*p), u.max(*p)));
     let c = (lo + hi) * 0.5;
     let eye = c + Vec3::new(0.4, 0.3, 1.6) * (hi - lo).max_element();
     let fwd = (c - eye).normalize();
@@ -62,40 +84,80 @@ fn hits_do_not_depend_on_the_scene_scale() {
     for name in ["bunny_69k", "igea"] {
         let Some(tris) = mesh(name) else { return };
         let rays = camera_rays(&tris, 320, 240);
-        let base = trace_batch(&FlatBvh::build(&tris, &BuildOptions::default()).unwrap(), &rays, Traversal::Stackless, Query::Closest);
+        let base = trace_batch(
+            &FlatBvh::build(&tris, &BuildOptions::default()).unwrap(),
+            &rays,
+            Traversal::Stackless,
+            Query::Closest,
+        );
         let hits = base.iter().filter(|h| h.is_hit()).count();
-        assert!(hits > rays.len() / 5, "{name}: the camera sees the mesh ({hits} hits)");
+        assert!(
+            hits > rays.len() / 5,
+            "{name}: the camera sees the mesh ({hits} hits)"
+        );
         for s in [1e-3f32, 1e4] {
             let st: Vec<Triangle> = tris.iter().map(|t| t.map(|p| p * s)).collect();
-            let sr: Vec<Ray> = rays.iter().map(|r| Ray::new(Vec3::from(r.origin) * s, Vec3::from(r.dir))).collect();
+            let sr: Vec<Ray> = rays
+                .iter()
+                .map(|r| Ray::new(Vec3::from(r.origin) * s, Vec3::from(r.dir)))
+                .collect();
             let bvh = FlatBvh::build(&st, &BuildOptions::default()).unwrap();
             let mut differ = 0;
-            for (tr, ((a, b), r)) in [Traversal::FullStack, Traversal::Stackless, Traversal::ShortStack(4)]
-                .iter()
-                .flat_map(|&tr| trace_batch(&bvh, &sr, tr, Query::Closest).into_iter().zip(&base).zip(&sr).map(move |x| (tr, x)))
-            {
+            for (tr, ((a, b), r)) in [
+                Traversal::FullStack,
+                Traversal::Stackless,
+                Traversal::ShortStack(4),
+            ]
+            .iter()
+            .flat_map(|&tr| {
+                trace_batch(&bvh, &sr, tr, Query::Closest)
+                    .into_iter()
+                    .zip(&base)
+                    .zip(&sr)
+                    .map(move |x| (tr, x))
+            }) {
                 if a.prim == b.prim {
                     if a.is_hit() {
                         // Scaling rounds every coordinate: t moves by that rounding,
                         // magnified where the triangle is seen edge-on.
                         let r1 = Ray::new(Vec3::from(r.origin) / s, Vec3::from(r.dir));
-                        let tol = 1e-5 * b.t as f64 + 4.0 * f32_t_error_bound(&tris[b.prim as usize], &r1);
-                        assert!(((a.t / s) - b.t).abs() as f64 <= tol, "{name} x{s} {tr}: t {} vs {} at scale 1", a.t / s, b.t);
+                        let tol = 1e-5 * b.t as f64
+                            + 4.0 * f32_t_error_bound(&tris[b.prim as usize], &r1);
+                        assert!(
+                            ((a.t / s) - b.t).abs() as f64 <= tol,
+                            "{name} x{s} {tr}: t {} vs {} at scale 1",
+                            a.t / s,
+                            b.t
+                        );
                     }
                     continue;
                 }
                 // Only where rounding the scaled coordinates can move an edge across the ray.
-                let involved = [a.prim, b.prim].into_iter().filter(|p| (*p as usize) < st.len());
+                let involved = [a.prim, b.prim]
+                    .into_iter()
+                    .filter(|p| (*p as usize) < st.len());
                 assert!(
-                    involved.clone().any(|p| f32_indeterminate(&st[p as usize], r) || f32_indeterminate(&tris[p as usize], &Ray::new(Vec3::from(r.origin) / s, Vec3::from(r.dir)))),
+                    involved
+                        .clone()
+                        .any(|p| f32_indeterminate(&st[p as usize], r)
+                            || f32_indeterminate(
+                                &tris[p as usize],
+                                &Ray::new(Vec3::from(r.origin) / s, Vec3::from(r.dir))
+                            )),
                     "{name} x{s} {tr}: prim {} vs {} on {r:?}",
                     a.prim,
                     b.prim
                 );
                 differ += 1;
             }
-            eprintln!("{name} x{s}: {differ} of {} ray answers differ, all on edges within f32 rounding", 3 * rays.len());
-            assert!(differ * 10_000 <= 3 * rays.len(), "{name} x{s}: {differ} differences");
+            eprintln!(
+                "{name} x{s}: {differ} of {} ray answers differ, all on edges within f32 rounding",
+                3 * rays.len()
+            );
+            assert!(
+                differ * 10_000 <= 3 * rays.len(),
+                "{name} x{s}: {differ} differences"
+            );
         }
     }
 }

@@ -11,14 +11,21 @@
 //! both answers) so it can be replayed. Without any Vulkan adapter the test prints SKIP.
 
 use bvhtrace_core::{
-    BuildOptions, Counters, FlatBvh, Hit, Query, Ray, Traversal, trace_batch_counted,
+    BuildOptions, Counters, FlatBvh, Hit, INVALID_RAY, Query, Ray, Traversal, trace_batch_counted,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
+use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, GpuError, UploadOptions};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 use glam::Vec3;
 
 /// Largest `t`, `u`, `v` difference accepted, in ulps.
 const MAX_ULPS: u32 = 2;
+
+/// Scenes where the closest hit of the stackless/short-stack walks may differ from the
+/// full-stack walk's, on the CPU as on the GPU (the GPU must still equal its CPU twin):
+/// on near-degenerate slivers the watertight test's `t` can fall outside the triangle's
+/// box by more than the box test's conservative margin, so whether a nearer sliver is
+/// culled depends on which hit was found first. At most 0.1% of the rays are accepted.
+const ORDER_DEPENDENT_SCENES: &[&str] = &["builtin:degenerate"];
 
 fn context() -> Option<GpuContext> {
     match GpuContext::new(AdapterChoice::Auto) {
@@ -109,6 +116,25 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
                 }
             }
         }
+    }
+    // Axis-parallel rays lying exactly in the faces of node boxes (the box test's
+    // parallel path), both signs, both zero signs.
+    for k in 0..2048 {
+        let n = &bvh.nodes[(rng.next_u64() % bvh.nodes.len() as u64) as usize];
+        let axis = k % 3;
+        let mut o = Vec3::from(if k % 2 == 0 { n.min } else { n.max });
+        let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
+        o[axis] = if sign > 0.0 {
+            lo[axis] - 1.0
+        } else {
+            hi[axis] + 1.0
+        };
+        let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
+        d[axis] = sign;
+        rays.push(Ray::new(o, d));
+        // Also nearly parallel: a subnormal component (flushed to zero by both sides).
+        d[(axis + 1) % 3] = if k % 16 < 8 { 1e-40 } else { -1e-40 };
+        rays.push(Ray::new(o, d));
     }
     // Rays through the centre with awkward intervals.
     let towards = |from: Vec3| (center - from).normalize();
@@ -288,61 +314,81 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
         Traversal::FullStack,
     ];
     let mut failures = Vec::new();
+    let mut total_exceptions = 0;
     for (s, case) in scenes().iter().enumerate() {
         let bvh = &case.bvh;
         let rays = ray_set(bvh, 0x5eed + s as u64);
-        let gpu = GpuBvh::upload(&ctx, bvh, &UploadOptions::all()).expect("upload");
+        let gpus = [BvhStorage::Buffers, BvhStorage::Textures].map(|storage| {
+            let opts = UploadOptions::all().with_storage(storage);
+            GpuBvh::upload(&ctx, bvh, &opts).expect("upload")
+        });
         eprintln!(
-            "{}: {} triangles, {} nodes, depth {}, {} rays, uploaded {} bytes in {:.2} ms",
+            "{}: {} triangles, {} nodes, depth {}, {} rays; uploaded {} bytes in {:.2} ms \
+             (buffers), {} bytes in {:.2} ms (textures)",
             case.name,
             bvh.triangles.len(),
             bvh.nodes.len(),
             bvh.depth,
             rays.len(),
-            gpu.stats().total_bytes(),
-            gpu.stats().upload_ms
+            gpus[0].stats().total_bytes(),
+            gpus[0].stats().upload_ms,
+            gpus[1].stats().total_bytes(),
+            gpus[1].stats().upload_ms
         );
         let reference = trace_batch_counted(bvh, &rays, Traversal::FullStack, Query::Closest).0;
         let reference_any = trace_batch_counted(bvh, &rays, Traversal::FullStack, Query::Any).0;
         for traversal in traversals {
             for query in [Query::Closest, Query::Any] {
-                let label = format!("{} {traversal} {query:?}", case.name);
                 let cpu = trace_batch_counted(bvh, &rays, traversal, query);
-                let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
-                let gc = out.counters.as_deref().expect("counters");
-                let (bad_hits, bad_counters, worst) = compare(&label, &rays, &cpu, &out.hits, gc);
-                // Against the full-stack reference: closest hits are the same hit whatever
-                // the order (tie rule); any-hit only agrees on hit/miss.
-                let refs = if query == Query::Closest {
-                    &reference
-                } else {
-                    &reference_any
-                };
-                let bad_ref = out
-                    .hits
-                    .iter()
-                    .zip(refs)
-                    .filter(|(g, r)| match query {
+                for gpu in &gpus {
+                    let label = format!("{} {traversal} {query:?} {:?}", case.name, gpu.storage());
+                    let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
+                    let gc = out.counters.as_deref().expect("counters");
+                    let (bad_hits, bad_counters, worst) =
+                        compare(&label, &rays, &cpu, &out.hits, gc);
+                    // Against the full-stack reference: closest hits are the same hit whatever
+                    // the order (tie rule); any-hit only agrees on hit/miss.
+                    let refs = if query == Query::Closest {
+                        &reference
+                    } else {
+                        &reference_any
+                    };
+                    let differs = |g: &Hit, r: &Hit| match query {
                         Query::Closest => g.prim != r.prim || g.t.to_bits() != r.t.to_bits(),
                         Query::Any => {
-                            g.is_hit() != r.is_hit() || g.prim == u32::MAX - 1 && r.prim != g.prim
+                            g.is_hit() != r.is_hit()
+                                || (g.prim == INVALID_RAY) != (r.prim == INVALID_RAY)
                         }
-                    })
-                    .count();
-                if query == Query::Closest && bad_ref > 0 {
-                    let mut shown = 0;
+                    };
+                    let mut bad_ref = 0;
+                    let mut exceptions = 0;
                     for (i, (g, r)) in out.hits.iter().zip(refs).enumerate() {
-                        if (g.prim != r.prim || g.t.to_bits() != r.t.to_bits()) && shown < 4 {
-                            shown += 1;
+                        if !differs(g, r) {
+                            continue;
+                        }
+                        // The CPU twin itself departs from the reference here: the core's own
+                        // order dependence (see `ORDER_DEPENDENT_SCENES`), not the GPU's.
+                        let twin_differs = differs(&cpu.0[i], r);
+                        if twin_differs && ORDER_DEPENDENT_SCENES.contains(&case.name.as_str()) {
+                            exceptions += 1;
+                        } else {
+                            bad_ref += 1;
+                        }
+                        if exceptions + bad_ref <= 3 {
                             let bf = bvhtrace_core::traverse::brute_force(bvh, &rays[i]);
                             eprintln!(
-                                "{label}: differs from the full-stack reference (brute force: prim {:#x} t {})\n{}",
+                                "{label}: differs from the full-stack reference{} (brute force: prim {:#x} t {})\n{}",
+                                if twin_differs {
+                                    ", as the CPU twin does"
+                                } else {
+                                    ""
+                                },
                                 bf.prim,
                                 f(bf.t),
                                 describe(
                                     i,
                                     &rays[i],
-                                    "vs full-stack reference (cpu = reference)",
+                                    "cpu = full-stack reference",
                                     r,
                                     g,
                                     &Counters::default(),
@@ -351,26 +397,34 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
                             );
                         }
                     }
-                }
-                let hits = out.hits.iter().filter(|h| h.is_hit()).count();
-                let nodes: u64 = gc.iter().map(|c| u64::from(c.nodes)).sum();
-                let tris: u64 = gc.iter().map(|c| u64::from(c.tris)).sum();
-                eprintln!(
-                    "  {label}: {hits} hits; {:.1} nodes, {:.1} tris per ray; {:.1} ms gpu, {:.1} ms wall; \
-                     mismatches: hits {bad_hits}, counters {bad_counters}, vs reference {bad_ref}; worst {worst} ulp",
-                    nodes as f64 / rays.len() as f64,
-                    tris as f64 / rays.len() as f64,
-                    out.gpu_ms.unwrap_or(f64::NAN),
-                    out.wall_ms,
-                );
-                if bad_hits + bad_counters + bad_ref > 0 {
-                    failures.push(format!(
+                    total_exceptions += exceptions;
+                    if exceptions > rays.len() / 1000 {
+                        bad_ref += exceptions;
+                    }
+                    let hits = out.hits.iter().filter(|h| h.is_hit()).count();
+                    let nodes: u64 = gc.iter().map(|c| u64::from(c.nodes)).sum();
+                    let tris: u64 = gc.iter().map(|c| u64::from(c.tris)).sum();
+                    eprintln!(
+                        "  {label}: {hits} hits; {:.1} nodes, {:.1} tris per ray; {:.1} ms gpu, {:.1} ms wall; \
+                     mismatches: hits {bad_hits}, counters {bad_counters}, vs reference {bad_ref} \
+                     (+{exceptions} documented); worst {worst} ulp",
+                        nodes as f64 / rays.len() as f64,
+                        tris as f64 / rays.len() as f64,
+                        out.gpu_ms.unwrap_or(f64::NAN),
+                        out.wall_ms,
+                    );
+                    if bad_hits + bad_counters + bad_ref > 0 {
+                        failures.push(format!(
                         "{label}: {bad_hits} hit, {bad_counters} counter, {bad_ref} reference mismatches"
                     ));
+                    }
                 }
             }
         }
     }
+    eprintln!(
+        "documented exceptions (the CPU twin departs from the full-stack reference too): {total_exceptions}"
+    );
     assert!(
         failures.is_empty(),
         "GPU/CPU mismatches:\n{}",

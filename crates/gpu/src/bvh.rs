@@ -3,32 +3,37 @@
 use std::sync::Mutex;
 use std::time::Instant;
 
-use bvhtrace_core::{FlatBvh, Traversal};
+use bvhtrace_core::{FlatBvh, FlatNode, Traversal};
 use wgpu::util::DeviceExt;
 
 use crate::context::GpuContext;
 use crate::error::GpuError;
-use crate::shaders::FULL_STACK_SIZE;
+use crate::shaders::{BvhStorage, FULL_STACK_SIZE, TEXEL_ROW};
 use crate::trace::Scratch;
 
-/// What to upload for: the traversals the BVH will be traced with.
+/// What to upload for.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct UploadOptions {
-    /// The parent links are uploaded only when one of these needs them
-    /// ([`Traversal::needs_parents`]); a tree deeper than [`FULL_STACK_SIZE`] is refused
-    /// when [`Traversal::FullStack`] is listed.
+    /// The traversals the BVH will be traced with. The parent links are uploaded only when
+    /// one of them needs them ([`Traversal::needs_parents`]); a tree deeper than
+    /// [`FULL_STACK_SIZE`] is refused when [`Traversal::FullStack`] is listed.
     pub traversals: Vec<Traversal>,
+    /// Buffers or textures; `None` picks [`GpuContext::default_storage`] (textures on CPU
+    /// drivers such as lavapipe, buffers elsewhere).
+    pub storage: Option<BvhStorage>,
 }
 
 impl UploadOptions {
-    /// Upload for one traversal.
+    /// Upload for one traversal, default storage.
     pub fn for_traversal(traversal: Traversal) -> Self {
         UploadOptions {
             traversals: vec![traversal],
+            storage: None,
         }
     }
 
-    /// Upload for every traversal (parents included; the depth check applies).
+    /// Upload for every traversal (parents included; the depth check applies), default
+    /// storage.
     pub fn all() -> Self {
         UploadOptions {
             traversals: vec![
@@ -36,7 +41,14 @@ impl UploadOptions {
                 Traversal::Stackless,
                 Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
             ],
+            storage: None,
         }
+    }
+
+    /// The same options with this storage.
+    pub fn with_storage(mut self, storage: BvhStorage) -> Self {
+        self.storage = Some(storage);
+        self
     }
 }
 
@@ -50,13 +62,14 @@ impl Default for UploadOptions {
 /// What an upload cost.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct UploadStats {
-    /// Bytes of the node buffer.
+    /// Bytes of the nodes as uploaded (texture row padding included).
     pub nodes_bytes: u64,
-    /// Bytes of the triangle buffer.
+    /// Bytes of the triangles as uploaded.
     pub triangles_bytes: u64,
-    /// Bytes of the parent buffer (0 when not uploaded).
+    /// Bytes of the parent links as uploaded (0 when not uploaded).
     pub parents_bytes: u64,
-    /// Wall time to create and fill the buffers and wait for the device, milliseconds.
+    /// Wall time to create and fill the buffers or textures and wait for the device,
+    /// milliseconds.
     pub upload_ms: f64,
 }
 
@@ -67,16 +80,29 @@ impl UploadStats {
     }
 }
 
+/// The device resources of one upload.
+enum Resources {
+    Buffers {
+        nodes: wgpu::Buffer,
+        triangles: wgpu::Buffer,
+        parents: Option<wgpu::Buffer>,
+    },
+    Textures {
+        _nodes: wgpu::Texture,
+        _triangles: wgpu::Texture,
+        _parents: Option<wgpu::Texture>,
+    },
+}
+
 /// A BVH on the device, ready to trace (see [`GpuBvh::trace`] and [`GpuBvh::record`]).
 pub struct GpuBvh {
     pub(crate) ctx: GpuContext,
-    nodes: wgpu::Buffer,
-    triangles: wgpu::Buffer,
-    parents: Option<wgpu::Buffer>,
-    /// Group 0 for the full-stack kernels (nodes, triangles).
-    pub(crate) group_plain: wgpu::BindGroup,
-    /// Group 0 for the parent-link kernels, when parents were uploaded.
-    pub(crate) group_parents: Option<wgpu::BindGroup>,
+    storage: BvhStorage,
+    resources: Resources,
+    /// The BVH group for the full-stack kernels (nodes, triangles).
+    group_plain: wgpu::BindGroup,
+    /// The BVH group for the parent-link kernels, when parents were uploaded.
+    group_parents: Option<wgpu::BindGroup>,
     depth: u32,
     node_count: usize,
     triangle_count: usize,
@@ -87,10 +113,11 @@ pub struct GpuBvh {
 impl std::fmt::Debug for GpuBvh {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("GpuBvh")
+            .field("storage", &self.storage)
             .field("nodes", &self.node_count)
             .field("triangles", &self.triangle_count)
             .field("depth", &self.depth)
-            .field("parents", &self.parents.is_some())
+            .field("parents", &self.group_parents.is_some())
             .field("stats", &self.stats)
             .finish()
     }
@@ -122,12 +149,113 @@ pub(crate) fn check_size(
     Ok(())
 }
 
+/// Rows of a texel texture holding `texels` texels.
+fn texel_rows(texels: u64) -> u64 {
+    texels.div_ceil(u64::from(TEXEL_ROW)).max(1)
+}
+
+/// Checks one texel texture against the device's limits.
+fn check_texels(
+    ctx: &GpuContext,
+    what: &'static str,
+    texels: u64,
+    texel_bytes: u64,
+) -> Result<(), GpuError> {
+    let max = u64::from(ctx.limits().max_texture_dimension_2d);
+    if u64::from(TEXEL_ROW) > max || texel_rows(texels) > max {
+        return Err(GpuError::TooLarge {
+            buffer: what,
+            bytes: texels * texel_bytes,
+            limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
+            limit_name: "max_texture_dimension_2d (squared, in bytes; use BvhStorage::Buffers)",
+        });
+    }
+    Ok(())
+}
+
+/// Uploads `data` (`channels` u32 per texel) as a texture of [`TEXEL_ROW`]-texel rows,
+/// the last row zero-padded. Returns the texture and the bytes uploaded.
+fn texel_texture(
+    ctx: &GpuContext,
+    label: &str,
+    format: wgpu::TextureFormat,
+    channels: usize,
+    mut data: Vec<u32>,
+) -> (wgpu::Texture, u64) {
+    let texels = (data.len() / channels) as u64;
+    let rows = texel_rows(texels) as u32;
+    data.resize(TEXEL_ROW as usize * rows as usize * channels, 0);
+    let size = wgpu::Extent3d {
+        width: TEXEL_ROW,
+        height: rows,
+        depth_or_array_layers: 1,
+    };
+    let texture = ctx.device().create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size,
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    ctx.queue().write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(&data),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(TEXEL_ROW * 4 * channels as u32),
+            rows_per_image: Some(rows),
+        },
+        size,
+    );
+    (texture, (data.len() * 4) as u64)
+}
+
+/// The node texels of `bvh_textures.wgsl`: `(min.xyz, max.x)`, `(max.yz, right, meta)`.
+fn node_texels(nodes: &[FlatNode]) -> Vec<u32> {
+    let mut v = Vec::with_capacity(nodes.len() * 8);
+    for n in nodes {
+        v.extend_from_slice(&[
+            n.min[0].to_bits(),
+            n.min[1].to_bits(),
+            n.min[2].to_bits(),
+            n.max[0].to_bits(),
+            n.max[1].to_bits(),
+            n.max[2].to_bits(),
+            n.right_or_first,
+            n.meta,
+        ]);
+    }
+    v
+}
+
+fn buffer_entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+fn view_entry(binding: u32, view: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: wgpu::BindingResource::TextureView(view),
+    }
+}
+
 impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its parent links when one of
-    /// `opts.traversals` needs them. Every buffer is checked against the device's limits
-    /// first ([`GpuError::TooLarge`] names the buffer, its size and the limit), and a tree
-    /// deeper than [`FULL_STACK_SIZE`] is refused ([`GpuError::TooDeep`]) when the full-stack
-    /// traversal is listed.
+    /// `opts.traversals` needs them, as buffers or textures (`opts.storage`). Everything is
+    /// checked against the device's limits first ([`GpuError::TooLarge`] names the
+    /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`] is
+    /// refused ([`GpuError::TooDeep`]) when the full-stack traversal is listed.
     pub fn upload(
         ctx: &GpuContext,
         bvh: &FlatBvh,
@@ -142,62 +270,155 @@ impl GpuBvh {
                 max: FULL_STACK_SIZE,
             });
         }
+        let storage = opts.storage.unwrap_or_else(|| ctx.default_storage());
         let with_parents = opts.traversals.iter().any(|t| t.needs_parents());
         let (nb, pb, tb) = bvh.byte_sizes();
-        check_size(ctx, "nodes", nb as u64)?;
-        check_size(ctx, "triangles", tb as u64)?;
-        if with_parents {
-            check_size(ctx, "parents", pb as u64)?;
+        let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
+        match storage {
+            BvhStorage::Buffers => {
+                check_size(ctx, "nodes", nb as u64)?;
+                check_size(ctx, "triangles", tb as u64)?;
+                if with_parents {
+                    check_size(ctx, "parents", pb as u64)?;
+                }
+            }
+            BvhStorage::Textures => {
+                check_texels(ctx, "node texels", 2 * n_nodes, 16)?;
+                check_texels(ctx, "triangle texels", 3 * n_tris, 16)?;
+                if with_parents {
+                    check_texels(ctx, "parent texels", n_nodes, 4)?;
+                }
+            }
         }
 
         let start = Instant::now();
         let device = ctx.device();
-        let make = |label: &str, contents: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        let layout_plain = ctx.bvh_layout(storage, false);
+        let layout_parents = ctx.bvh_layout(storage, true);
+        let group = |label: &str, layout, entries: &[wgpu::BindGroupEntry<'_>]| {
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
-                contents,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                layout,
+                entries,
             })
         };
-        let (nodes, triangles, parents) = ctx.scoped("uploading the BVH", || {
-            (
-                make("bvhtrace nodes", bytemuck::cast_slice(&bvh.nodes)),
-                make("bvhtrace triangles", bytemuck::cast_slice(&bvh.triangles)),
-                with_parents.then(|| make("bvhtrace parents", bytemuck::cast_slice(&bvh.parents))),
-            )
-        })?;
-        fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-            wgpu::BindGroupEntry {
-                binding,
-                resource: buffer.as_entire_binding(),
-            }
-        }
-        let group_plain = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("bvhtrace bvh"),
-            layout: ctx.bvh_layout(false),
-            entries: &[entry(0, &nodes), entry(1, &triangles)],
-        });
-        let group_parents = parents.as_ref().map(|p| {
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("bvhtrace bvh+parents"),
-                layout: ctx.bvh_layout(true),
-                entries: &[entry(0, &nodes), entry(1, &triangles), entry(2, p)],
-            })
-        });
+        let (resources, group_plain, group_parents, stats) =
+            ctx.scoped("uploading the BVH", || match storage {
+                BvhStorage::Buffers => {
+                    let make = |label: &str, contents: &[u8]| {
+                        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                            label: Some(label),
+                            contents,
+                            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                        })
+                    };
+                    let nodes = make("bvhtrace nodes", bytemuck::cast_slice(&bvh.nodes));
+                    let triangles =
+                        make("bvhtrace triangles", bytemuck::cast_slice(&bvh.triangles));
+                    let parents = with_parents
+                        .then(|| make("bvhtrace parents", bytemuck::cast_slice(&bvh.parents)));
+                    let plain = group(
+                        "bvhtrace bvh",
+                        layout_plain,
+                        &[buffer_entry(0, &nodes), buffer_entry(1, &triangles)],
+                    );
+                    let with = parents.as_ref().map(|p| {
+                        group(
+                            "bvhtrace bvh+parents",
+                            layout_parents,
+                            &[
+                                buffer_entry(0, &nodes),
+                                buffer_entry(1, &triangles),
+                                buffer_entry(2, p),
+                            ],
+                        )
+                    });
+                    let stats = UploadStats {
+                        nodes_bytes: nb as u64,
+                        triangles_bytes: tb as u64,
+                        parents_bytes: if with_parents { pb as u64 } else { 0 },
+                        upload_ms: 0.0,
+                    };
+                    (
+                        Resources::Buffers {
+                            nodes,
+                            triangles,
+                            parents,
+                        },
+                        plain,
+                        with,
+                        stats,
+                    )
+                }
+                BvhStorage::Textures => {
+                    let rgba = wgpu::TextureFormat::Rgba32Uint;
+                    let (nodes, nodes_bytes) = texel_texture(
+                        ctx,
+                        "bvhtrace node texels",
+                        rgba,
+                        4,
+                        node_texels(&bvh.nodes),
+                    );
+                    let (triangles, triangles_bytes) = texel_texture(
+                        ctx,
+                        "bvhtrace triangle texels",
+                        rgba,
+                        4,
+                        bytemuck::cast_slice(&bvh.triangles).to_vec(),
+                    );
+                    let parents = with_parents.then(|| {
+                        texel_texture(
+                            ctx,
+                            "bvhtrace parent texels",
+                            wgpu::TextureFormat::R32Uint,
+                            1,
+                            bvh.parents.clone(),
+                        )
+                    });
+                    let nv = nodes.create_view(&Default::default());
+                    let tv = triangles.create_view(&Default::default());
+                    let plain = group(
+                        "bvhtrace bvh",
+                        layout_plain,
+                        &[view_entry(0, &nv), view_entry(1, &tv)],
+                    );
+                    let with = parents.as_ref().map(|(p, _)| {
+                        let pv = p.create_view(&Default::default());
+                        group(
+                            "bvhtrace bvh+parents",
+                            layout_parents,
+                            &[view_entry(0, &nv), view_entry(1, &tv), view_entry(2, &pv)],
+                        )
+                    });
+                    let stats = UploadStats {
+                        nodes_bytes,
+                        triangles_bytes,
+                        parents_bytes: parents.as_ref().map_or(0, |p| p.1),
+                        upload_ms: 0.0,
+                    };
+                    (
+                        Resources::Textures {
+                            _nodes: nodes,
+                            _triangles: triangles,
+                            _parents: parents.map(|p| p.0),
+                        },
+                        plain,
+                        with,
+                        stats,
+                    )
+                }
+            })?;
         // Make the upload complete before timing stops.
         ctx.queue().submit([]);
         device.poll(wgpu::PollType::wait_indefinitely())?;
         let stats = UploadStats {
-            nodes_bytes: nb as u64,
-            triangles_bytes: tb as u64,
-            parents_bytes: if with_parents { pb as u64 } else { 0 },
             upload_ms: start.elapsed().as_secs_f64() * 1e3,
+            ..stats
         };
         Ok(GpuBvh {
             ctx: ctx.clone(),
-            nodes,
-            triangles,
-            parents,
+            storage,
+            resources,
             group_plain,
             group_parents,
             depth: bvh.depth,
@@ -210,7 +431,7 @@ impl GpuBvh {
 
     /// Checks that this upload can run `traversal`.
     pub fn supports(&self, traversal: Traversal) -> Result<(), GpuError> {
-        if traversal.needs_parents() && self.parents.is_none() {
+        if traversal.needs_parents() && self.group_parents.is_none() {
             return Err(GpuError::ParentsNotUploaded { traversal });
         }
         if traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
@@ -225,6 +446,11 @@ impl GpuBvh {
     /// The context this BVH lives in.
     pub fn context(&self) -> &GpuContext {
         &self.ctx
+    }
+
+    /// Where the BVH lives: buffers or textures.
+    pub fn storage(&self) -> BvhStorage {
+        self.storage
     }
 
     /// What the upload cost.
@@ -247,18 +473,42 @@ impl GpuBvh {
         self.triangle_count
     }
 
-    /// The node buffer (`array<Node>`, binding 0 of the BVH group).
-    pub fn nodes_buffer(&self) -> &wgpu::Buffer {
-        &self.nodes
+    /// True when the parent links were uploaded.
+    pub fn has_parents(&self) -> bool {
+        self.group_parents.is_some()
     }
 
-    /// The triangle buffer (`array<Triangle>`, binding 1 of the BVH group).
-    pub fn triangles_buffer(&self) -> &wgpu::Buffer {
-        &self.triangles
+    /// The BVH bind group for [`GpuContext::bvh_layout`]`(self.storage(), with_parents)`;
+    /// `None` when `with_parents` is asked for but the parents were not uploaded.
+    pub fn bind_group(&self, with_parents: bool) -> Option<&wgpu::BindGroup> {
+        if with_parents {
+            self.group_parents.as_ref()
+        } else {
+            Some(&self.group_plain)
+        }
     }
 
-    /// The parent buffer (`array<u32>`, binding 2 of the BVH group), when uploaded.
+    /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads.
+    pub fn nodes_buffer(&self) -> Option<&wgpu::Buffer> {
+        match &self.resources {
+            Resources::Buffers { nodes, .. } => Some(nodes),
+            Resources::Textures { .. } => None,
+        }
+    }
+
+    /// The triangle buffer (`array<Triangle>`), for [`BvhStorage::Buffers`] uploads.
+    pub fn triangles_buffer(&self) -> Option<&wgpu::Buffer> {
+        match &self.resources {
+            Resources::Buffers { triangles, .. } => Some(triangles),
+            Resources::Textures { .. } => None,
+        }
+    }
+
+    /// The parent buffer (`array<u32>`), for [`BvhStorage::Buffers`] uploads with parents.
     pub fn parents_buffer(&self) -> Option<&wgpu::Buffer> {
-        self.parents.as_ref()
+        match &self.resources {
+            Resources::Buffers { parents, .. } => parents.as_ref(),
+            Resources::Textures { .. } => None,
+        }
     }
 }

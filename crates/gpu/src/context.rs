@@ -5,7 +5,14 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use crate::error::GpuError;
-use crate::shaders::{self, KernelVariant};
+use crate::shaders::{self, BvhStorage, KernelVariant};
+
+fn storage_index(storage: BvhStorage) -> usize {
+    match storage {
+        BvhStorage::Buffers => 0,
+        BvhStorage::Textures => 1,
+    }
+}
 
 /// Environment variable naming the adapter to use: any substring of its name,
 /// case-insensitive (for example `llvmpipe` or `nvidia`).
@@ -36,6 +43,8 @@ pub struct GpuLimits {
     pub max_compute_workgroups_per_dimension: u32,
     /// Alignment of storage buffer binding offsets, bytes.
     pub min_storage_buffer_offset_alignment: u32,
+    /// Largest 2D texture side, texels (bounds [`crate::BvhStorage::Textures`] uploads).
+    pub max_texture_dimension_2d: u32,
 }
 
 impl GpuLimits {
@@ -46,6 +55,7 @@ impl GpuLimits {
             max_buffer_size: limits.max_buffer_size,
             max_compute_workgroups_per_dimension: limits.max_compute_workgroups_per_dimension,
             min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
+            max_texture_dimension_2d: limits.max_texture_dimension_2d,
         }
     }
 }
@@ -63,9 +73,10 @@ struct Inner {
     info: wgpu::AdapterInfo,
     limits: GpuLimits,
     timestamps: bool,
-    module: OnceLock<wgpu::ShaderModule>,
-    /// BVH group layouts: `[without parents, with parents]`.
-    bvh_layouts: [wgpu::BindGroupLayout; 2],
+    /// Shader modules: `[buffers, textures]`.
+    modules: [OnceLock<wgpu::ShaderModule>; 2],
+    /// BVH group layouts: `[buffers, textures][without parents, with parents]`.
+    bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [wgpu::BindGroupLayout; 2],
     pipelines: Mutex<HashMap<KernelVariant, wgpu::ComputePipeline>>,
@@ -210,19 +221,41 @@ impl GpuContext {
                 entries,
             })
         };
+        let texture_entry = |binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Uint,
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false,
+            },
+            count: None,
+        };
         let bvh_layouts = [
-            layout(
-                "bvhtrace bvh",
-                &[storage_entry(0, true), storage_entry(1, true)],
-            ),
-            layout(
-                "bvhtrace bvh+parents",
-                &[
-                    storage_entry(0, true),
-                    storage_entry(1, true),
-                    storage_entry(2, true),
-                ],
-            ),
+            [
+                layout(
+                    "bvhtrace bvh buffers",
+                    &[storage_entry(0, true), storage_entry(1, true)],
+                ),
+                layout(
+                    "bvhtrace bvh buffers+parents",
+                    &[
+                        storage_entry(0, true),
+                        storage_entry(1, true),
+                        storage_entry(2, true),
+                    ],
+                ),
+            ],
+            [
+                layout(
+                    "bvhtrace bvh textures",
+                    &[texture_entry(0), texture_entry(1)],
+                ),
+                layout(
+                    "bvhtrace bvh textures+parents",
+                    &[texture_entry(0), texture_entry(1), texture_entry(2)],
+                ),
+            ],
         ];
         let batch_layouts = [
             layout(
@@ -245,7 +278,7 @@ impl GpuContext {
                 info: adapter_info,
                 limits,
                 timestamps,
-                module: OnceLock::new(),
+                modules: [OnceLock::new(), OnceLock::new()],
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
@@ -278,10 +311,16 @@ impl GpuContext {
         self.inner.timestamps
     }
 
-    /// The layout of the BVH bind group (group 0): bindings 0 (nodes) and 1 (triangles),
-    /// plus 2 (parents) when `with_parents`.
-    pub fn bvh_layout(&self, with_parents: bool) -> &wgpu::BindGroupLayout {
-        &self.inner.bvh_layouts[usize::from(with_parents)]
+    /// The layout of the BVH bind group (group 0 of the kernels; any group of yours, see
+    /// [`crate::wgsl_library`]): bindings 0 (nodes) and 1 (triangles), plus 2 (parents)
+    /// when `with_parents`, as buffers or textures.
+    pub fn bvh_layout(&self, storage: BvhStorage, with_parents: bool) -> &wgpu::BindGroupLayout {
+        &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_parents)]
+    }
+
+    /// The storage an upload uses when [`crate::UploadOptions::storage`] is `None`.
+    pub fn default_storage(&self) -> BvhStorage {
+        BvhStorage::default_for(self.inner.info.device_type)
     }
 
     /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits), plus 2
@@ -312,21 +351,41 @@ impl GpuContext {
         }
     }
 
-    fn module(&self) -> Result<&wgpu::ShaderModule, GpuError> {
-        if let Some(m) = self.inner.module.get() {
+    fn module(&self, storage: BvhStorage) -> Result<&wgpu::ShaderModule, GpuError> {
+        let cell = &self.inner.modules[storage_index(storage)];
+        if let Some(m) = cell.get() {
             return Ok(m);
         }
-        let source = shaders::kernel_source();
-        let module = self.scoped("compiling the WGSL kernels", || {
-            self.inner
-                .device
-                .create_shader_module(wgpu::ShaderModuleDescriptor {
+        let exp = std::env::var("BVHTRACE_EXP").unwrap_or_default();
+        let mut source = shaders::kernel_source(storage);
+        for kv in exp.split(',') {
+            if let Some((k, v)) = kv.split_once('=') {
+                if k == "sub" {
+                    let (a, b) = v.split_once('>').unwrap();
+                    let f = std::fs::read_to_string(a).unwrap();
+                    let (x, y) = f.split_once("\n=====\n").unwrap();
+                    let _ = b;
+                    assert!(source.contains(x.trim_end()), "no {a}");
+                    source = source.replace(x.trim_end(), y.trim_end());
+                }
+            }
+        }
+        let unchecked = exp.contains("unchecked");
+        let module = self.scoped("compiling the WGSL kernels", || unsafe {
+            self.inner.device.create_shader_module_trusted(
+                wgpu::ShaderModuleDescriptor {
                     label: Some("bvhtrace kernels"),
                     source: wgpu::ShaderSource::Wgsl(source.into()),
-                })
+                },
+                if unchecked {
+                    wgpu::ShaderRuntimeChecks::unchecked()
+                } else {
+                    wgpu::ShaderRuntimeChecks::checked()
+                },
+            )
         })?;
         // Another thread may have won the race; either module is fine.
-        Ok(self.inner.module.get_or_init(|| module))
+        Ok(cell.get_or_init(|| module))
     }
 
     /// The compute pipeline for one kernel variant, created on first use and cached by
@@ -341,12 +400,12 @@ impl GpuContext {
         {
             return Ok(p.clone());
         }
-        let module = self.module()?;
+        let module = self.module(variant.storage)?;
         let device = &self.inner.device;
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("bvhtrace trace"),
             bind_group_layouts: &[
-                Some(self.bvh_layout(variant.needs_parents())),
+                Some(self.bvh_layout(variant.storage, variant.needs_parents())),
                 Some(self.batch_layout(variant.counters)),
             ],
             immediate_size: 0,

@@ -23,7 +23,8 @@
 //! * [`GpuContext`]: the device (headless, or shared with [`GpuContext::from_device`]),
 //!   its limits, the shader module and the pipeline cache.
 //! * [`GpuBvh::upload`]: nodes, triangles, and the parent links only when a traversal needs
-//!   them, each checked against the device's limits.
+//!   them, each checked against the device's limits, as storage buffers or textures
+//!   ([`BvhStorage`]; textures are much faster on lavapipe).
 //! * [`GpuBvh::trace`] / [`GpuBvh::trace_counted`] / [`GpuBvh::trace_with`]: ray slices in,
 //!   [`TraceOutput`] out (hits, counters, GPU and wall milliseconds);
 //!   [`GpuBvh::record`]: the same into your own encoder and buffers.
@@ -39,7 +40,9 @@ mod trace;
 pub use bvh::{GpuBvh, UploadOptions, UploadStats};
 pub use context::{ADAPTER_ENV, AdapterChoice, GpuContext, GpuLimits, pick_adapter};
 pub use error::GpuError;
-pub use shaders::{FULL_STACK_SIZE, WORKGROUP_SIZE, kernel_source, wgsl_library};
+pub use shaders::{
+    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE, kernel_source, wgsl_library,
+};
 pub use trace::{
     COUNTERS_BYTES, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES, RayBatch, TraceOptions,
     TraceOutput, plan_dispatches, rays_per_dispatch,

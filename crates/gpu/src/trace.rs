@@ -85,10 +85,10 @@ pub struct Dispatch {
 /// binding-offset alignment (so every chunk's buffer ranges are aligned).
 pub fn rays_per_dispatch(limits: &GpuLimits) -> u64 {
     let align = u64::from(limits.min_storage_buffer_offset_alignment).max(1);
-    let step = u64::from(WORKGROUP_SIZE).max(align);
+    let step = u64::from(crate::shaders::wg()).max(align);
     let by_binding = limits.max_storage_buffer_binding_size / RAY_BYTES;
     let dim = u64::from(limits.max_compute_workgroups_per_dimension.max(1));
-    let by_groups = dim * dim * u64::from(WORKGROUP_SIZE);
+    let by_groups = dim * dim * u64::from(crate::shaders::wg());
     let max = MAX_RAYS_PER_DISPATCH.min(by_binding).min(by_groups);
     (max / step * step).max(step)
 }
@@ -101,7 +101,7 @@ pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
     let mut first = 0;
     while first < ray_count {
         let n = (ray_count - first).min(chunk);
-        let groups = n.div_ceil(u64::from(WORKGROUP_SIZE)) as u32;
+        let groups = n.div_ceil(u64::from(crate::shaders::wg())) as u32;
         let groups_x = groups.min(dim);
         out.push(Dispatch {
             first_ray: first,
@@ -253,6 +253,7 @@ impl GpuBvh {
         self.supports(opts.traversal)?;
         self.ctx
             .pipeline(KernelVariant::new(
+                self.storage(),
                 opts.traversal,
                 opts.query,
                 opts.counters,
@@ -314,7 +315,7 @@ impl GpuBvh {
         let chunk = rays_per_dispatch(limits);
         let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
         let per_submit = by_buffer.max(chunk);
-        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+        let capacity = n.min(per_submit).max(u64::from(crate::shaders::wg()));
 
         let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
             during: "locking the scratch buffers",
@@ -455,17 +456,13 @@ impl GpuBvh {
         } else {
             None
         };
-        let variant = KernelVariant::new(opts.traversal, opts.query, opts.counters);
+        let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters);
         let pipeline = self.ctx.pipeline(variant)?;
-        let group0 = if variant.needs_parents() {
-            self.group_parents
-                .as_ref()
+        let group0 =
+            self.bind_group(variant.needs_parents())
                 .ok_or(GpuError::ParentsNotUploaded {
                     traversal: opts.traversal,
-                })?
-        } else {
-            &self.group_plain
-        };
+                })?;
         let device = self.ctx.device();
         let dispatches = plan_dispatches(n, self.ctx.limits());
         let groups: Vec<wgpu::BindGroup> = dispatches

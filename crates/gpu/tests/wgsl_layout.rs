@@ -8,7 +8,11 @@ use bvhtrace_core::intersect::BOX_TFAR_SCALE;
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
 use bvhtrace_gpu::shaders::{KernelVariant, SHADER_FILES};
-use bvhtrace_gpu::{FULL_STACK_SIZE, WORKGROUP_SIZE, kernel_source, wgsl_library};
+use bvhtrace_gpu::{
+    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE, kernel_source, wgsl_library,
+};
+
+const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
 use naga::{Expression, Literal, Module, TypeInner};
 
@@ -57,9 +61,15 @@ fn check_struct(module: &Module, name: &str, size: usize, fields: &[(&str, usize
 
 #[test]
 fn shared_structs_match_rust_layout() {
-    let module = parse(&kernel_source());
+    for storage in STORAGES {
+        check_structs(&parse(&kernel_source(storage)));
+    }
+}
+
+fn check_structs(module: &Module) {
+    let module = module;
     check_struct(
-        &module,
+        module,
         "Node",
         size_of::<FlatNode>(),
         &[
@@ -71,7 +81,7 @@ fn shared_structs_match_rust_layout() {
         ],
     );
     check_struct(
-        &module,
+        module,
         "Triangle",
         size_of::<FlatTriangle>(),
         &[
@@ -84,7 +94,7 @@ fn shared_structs_match_rust_layout() {
         ],
     );
     check_struct(
-        &module,
+        module,
         "Ray",
         size_of::<Ray>(),
         &[
@@ -95,7 +105,7 @@ fn shared_structs_match_rust_layout() {
         ],
     );
     check_struct(
-        &module,
+        module,
         "Hit",
         size_of::<Hit>(),
         &[
@@ -106,7 +116,7 @@ fn shared_structs_match_rust_layout() {
         ],
     );
     check_struct(
-        &module,
+        module,
         "Counters",
         size_of::<Counters>(),
         &[
@@ -130,7 +140,16 @@ fn constant(module: &Module, name: &str) -> Literal {
 
 #[test]
 fn constants_match_rust() {
-    let module = parse(&kernel_source());
+    let module = parse(&kernel_source(BvhStorage::Textures));
+    assert_eq!(
+        constant(&module, "BVH_TEXEL_ROW_MASK"),
+        Literal::U32(TEXEL_ROW - 1)
+    );
+    assert_eq!(
+        constant(&module, "BVH_TEXEL_ROW_LOG2"),
+        Literal::U32(TEXEL_ROW.trailing_zeros())
+    );
+    assert!(TEXEL_ROW.is_power_of_two());
     match constant(&module, "BOX_TFAR_SCALE") {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_TFAR_SCALE.to_bits(), "BOX_TFAR_SCALE"),
         l => panic!("BOX_TFAR_SCALE: {l:?}"),
@@ -159,11 +178,19 @@ fn constants_match_rust() {
 /// SPIR-V (what wgpu hands the Vulkan driver).
 #[test]
 fn every_variant_validates_and_compiles() {
-    let module = parse(&kernel_source());
-    let info = validate(&module);
     let mut seen = std::collections::HashSet::new();
+    for storage in STORAGES {
+        compile_variants(storage, &mut seen);
+    }
+    // 2 storages; full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter settings.
+    assert_eq!(seen.len(), 2 * 5 * 2 * 2);
+}
+
+fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelVariant>) {
+    let module = parse(&kernel_source(storage));
+    let info = validate(&module);
     for k in [1, 6, MAX_SHORT_STACK] {
-        for v in KernelVariant::all_for_k(k) {
+        for v in KernelVariant::all_for_k(storage, k) {
             if !seen.insert(v) {
                 continue;
             }
@@ -192,17 +219,21 @@ fn every_variant_validates_and_compiles() {
             assert!(words.len() > 100, "{v:?}: SPIR-V too short");
         }
     }
-    // full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter settings.
-    assert_eq!(seen.len(), 5 * 2 * 2);
 }
 
 #[test]
 fn every_file_is_composed_and_the_library_rebinds_its_group() {
-    let src = kernel_source();
-    for (name, _) in SHADER_FILES {
+    for storage in STORAGES {
+        check_library(storage);
+    }
+}
+
+fn check_library(storage: BvhStorage) {
+    let src = kernel_source(storage);
+    for (name, _) in SHADER_FILES.iter().chain([&storage.wgsl()]) {
         assert!(src.contains(&format!("// ---- {name} ----")), "{name}");
     }
-    let lib = wgsl_library(3);
+    let lib = wgsl_library(storage, 3);
     assert!(!lib.contains("@compute"), "the library has no entry points");
     let module = parse(&format!(
         "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
@@ -217,10 +248,23 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
         .iter()
         .filter_map(|(_, g)| Some((g.name.clone()?, g.binding.as_ref()?.group)))
         .collect();
-    for name in ["bvh_nodes", "bvh_triangles", "bvh_parents"] {
-        assert!(
-            groups.contains(&(name.to_string(), 3)),
-            "{name} in group 3: {groups:?}"
-        );
+    let names = match storage {
+        BvhStorage::Buffers => ["bvh_nodes", "bvh_triangles", "bvh_parents"],
+        BvhStorage::Textures => [
+            "bvh_node_texels",
+            "bvh_triangle_texels",
+            "bvh_parent_texels",
+        ],
+    };
+    for (binding, name) in names.iter().enumerate() {
+        let found = module.global_variables.iter().any(|(_, g)| {
+            g.name.as_deref() == Some(*name)
+                && g.binding
+                    == Some(naga::ResourceBinding {
+                        group: 3,
+                        binding: binding as u32,
+                    })
+        });
+        assert!(found, "{name} at group 3 binding {binding}: {groups:?}");
     }
 }

@@ -1,0 +1,172 @@
+//! Traversal speed on the GPU against the CPU twins, on primary rays.
+//!
+//! ```text
+//! cargo run --release -p bvhtrace-gpu --example gpu_bench -- [SCENE...] [--size WxH] [--runs N]
+//! ```
+//!
+//! SCENE is any `bvhtrace_scene::load` spec; the default is `bunny_69k` and `igea` from the
+//! shared scenes. For each scene: a camera framing the mesh, W x H primary rays (default
+//! 1024x768), closest hit, each traversal traced `N` times (default 5) on the GPU with the
+//! BVH in textures and in buffers (`--storage textures|buffers|both`; median Mrays/s of the
+//! timestamp-query times and of the wall times) and on the CPU (`trace_batch`, all cores),
+//! interleaved; nodes and triangles tested per ray, and whether every GPU hit and counter
+//! equals the CPU twin's. `--traversals full-stack,stackless,short-stack:6` picks them.
+
+use std::time::Instant;
+
+use bvhtrace_core::{BuildOptions, FlatBvh, Query, Traversal, trace_batch, trace_batch_counted};
+use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions};
+use bvhtrace_scene::{Camera, shared_scenes_dir};
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn load_avg() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut specs = Vec::new();
+    let (mut w, mut h, mut runs) = (1024u32, 768u32, 5usize);
+    let mut traversals = vec![
+        Traversal::FullStack,
+        Traversal::Stackless,
+        Traversal::ShortStack(2),
+        Traversal::ShortStack(6),
+        Traversal::ShortStack(12),
+    ];
+    let mut storages = vec![BvhStorage::Textures, BvhStorage::Buffers];
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--size" => {
+                let v = args.next().ok_or("--size needs WxH")?;
+                let (a, b) = v.split_once('x').ok_or("--size needs WxH")?;
+                (w, h) = (a.parse()?, b.parse()?);
+            }
+            "--runs" => runs = args.next().ok_or("--runs needs N")?.parse()?,
+            "--storage" => {
+                storages = match args.next().as_deref() {
+                    Some("buffers") => vec![BvhStorage::Buffers],
+                    Some("textures") => vec![BvhStorage::Textures],
+                    Some("both") => vec![BvhStorage::Textures, BvhStorage::Buffers],
+                    _ => return Err("--storage needs buffers, textures or both".into()),
+                }
+            }
+            "--traversals" => {
+                traversals = args
+                    .next()
+                    .ok_or("--traversals needs a list")?
+                    .split(',')
+                    .map(|t| t.parse::<Traversal>())
+                    .collect::<Result<Vec<_>, _>>()?;
+            }
+            _ => specs.push(a),
+        }
+    }
+    if specs.is_empty() {
+        let dir = shared_scenes_dir().ok_or("no shared scenes folder; name scenes explicitly")?;
+        for f in ["bunny_69k.glb", "igea.glb"] {
+            specs.push(dir.join("glb").join(f).to_string_lossy().into_owned());
+        }
+    }
+    let ctx = GpuContext::new(AdapterChoice::Auto)?;
+    println!(
+        "device: {} ({:?}, {}); CPU threads: {}; load average at start: {}",
+        ctx.adapter_info().name,
+        ctx.adapter_info().device_type,
+        ctx.adapter_info().driver_info,
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        load_avg()
+    );
+    for spec in &specs {
+        let scene = bvhtrace_scene::load(spec)?;
+        let tris = scene.flatten().triangles()?;
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let b = bvh.bounds();
+        let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
+        let gpus = storages
+            .iter()
+            .map(|&st| GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(st)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let name = std::path::Path::new(spec)
+            .file_stem()
+            .map_or(spec.clone(), |s| s.to_string_lossy().into_owned());
+        println!(
+            "\n{name}: {} triangles, {} nodes, depth {}; {}x{} primary rays",
+            bvh.triangles.len(),
+            bvh.nodes.len(),
+            bvh.depth,
+            w,
+            h,
+        );
+        for g in &gpus {
+            println!(
+                "  upload ({:?}): {:.1} MB in {:.1} ms",
+                g.storage(),
+                g.stats().total_bytes() as f64 / 1e6,
+                g.stats().upload_ms
+            );
+        }
+        print!("{:<16}", "traversal");
+        for g in &gpus {
+            let s = format!("{:?}", g.storage()).to_lowercase();
+            print!(" {:>13} {:>13}", format!("{s} GPU"), format!("{s} wall"));
+        }
+        println!(
+            " {:>10} {:>8} {:>8} {:>8}",
+            "CPU", "nodes/r", "tris/r", "GPU=CPU"
+        );
+        let n = rays.len() as f64;
+        let mrays = |ms: f64| n / ms / 1e3;
+        for &traversal in &traversals {
+            let q = Query::Closest;
+            let (cpu_hits, cpu_counters) = trace_batch_counted(&bvh, &rays, traversal, q);
+            let mut same = true;
+            for gpu in &gpus {
+                // Warm-up (pipeline creation, lavapipe's first-dispatch cost) and checks.
+                let counted = gpu.trace_counted(&rays, traversal, q)?;
+                same &= counted.hits == cpu_hits
+                    && counted.counters.as_deref() == Some(&cpu_counters[..]);
+                gpu.trace(&rays, traversal, q)?;
+            }
+            let nodes = cpu_counters.iter().map(|c| u64::from(c.nodes)).sum::<u64>() as f64 / n;
+            let tris_per = cpu_counters.iter().map(|c| u64::from(c.tris)).sum::<u64>() as f64 / n;
+            let mut g = vec![Vec::new(); gpus.len()];
+            let mut wall = vec![Vec::new(); gpus.len()];
+            let mut cpu = Vec::new();
+            // Interleaved, so that a noisy neighbour hurts every column alike.
+            for _ in 0..runs {
+                for (i, gpu) in gpus.iter().enumerate() {
+                    let out = gpu.trace(&rays, traversal, q)?;
+                    g[i].push(out.gpu_ms.unwrap_or(f64::NAN));
+                    wall[i].push(out.wall_ms);
+                }
+                let t = Instant::now();
+                std::hint::black_box(trace_batch(&bvh, &rays, traversal, q));
+                cpu.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            print!("{:<16}", traversal.to_string());
+            for i in 0..gpus.len() {
+                print!(
+                    " {:>13.2} {:>13.2}",
+                    mrays(median(g[i].clone())),
+                    mrays(median(wall[i].clone()))
+                );
+            }
+            println!(
+                " {:>10.2} {:>8.1} {:>8.2} {:>8}",
+                mrays(median(cpu)),
+                nodes,
+                tris_per,
+                if same { "yes" } else { "NO" }
+            );
+        }
+    }
+    println!("\nload average at end: {}", load_avg());
+    Ok(())
+}

@@ -1,0 +1,57 @@
+// bvh_textures.wgsl: the uploaded BVH as `Rgba32Uint`/`R32Uint` textures
+// (`BvhStorage::Textures`), and the same fetch functions as `bvh_buffers.wgsl`.
+//
+// Why: on lavapipe (and other CPU Vulkan drivers) a storage-buffer load with a per-lane
+// index is a scalar loop over the 8 lanes with a bounds check per component, while a
+// texel fetch is a vector gather: about 2.5x faster traversal (see the crate's README
+// numbers). The values are the same bits, so the results are identical.
+//
+// Texel `t` of each texture is at `(t % BVH_TEXEL_ROW, t / BVH_TEXEL_ROW)`.
+// * `bvh_node_texels`: two texels per node, reordered so the links share a texel:
+//   `(min.x, min.y, min.z, max.x)` and `(max.y, max.z, right_or_first, meta)`.
+// * `bvh_triangle_texels`: three texels per triangle, `FlatTriangle`'s bytes:
+//   `(v0, prim)`, `(v1, pad)`, `(v2, pad)`.
+// * `bvh_parent_texels` (`R32Uint`): one texel per node.
+
+const BVH_TEXEL_ROW_LOG2: u32 = 13u;
+const BVH_TEXEL_ROW_MASK: u32 = 8191u;
+
+@group(0) @binding(0) var bvh_node_texels: texture_2d<u32>;
+@group(0) @binding(1) var bvh_triangle_texels: texture_2d<u32>;
+@group(0) @binding(2) var bvh_parent_texels: texture_2d<u32>;
+
+fn texel_coord(t: u32) -> vec2<u32> {
+    return vec2<u32>(t & BVH_TEXEL_ROW_MASK, t >> BVH_TEXEL_ROW_LOG2);
+}
+
+fn load_node(i: u32) -> Node {
+    // 2i is even and rows are even, so both texels are on one row.
+    let c = texel_coord(2u * i);
+    let a = textureLoad(bvh_node_texels, c, 0);
+    let b = textureLoad(bvh_node_texels, c + vec2<u32>(1u, 0u), 0);
+    return Node(bitcast<vec3<f32>>(a.xyz), b.z, bitcast<vec3<f32>>(vec3<u32>(a.w, b.xy)), b.w);
+}
+
+// `vec2(right_or_first, meta_bits)` of node `i`: one texel.
+fn load_node_links(i: u32) -> vec2<u32> {
+    return textureLoad(bvh_node_texels, texel_coord(2u * i + 1u), 0).zw;
+}
+
+fn load_triangle(i: u32) -> Triangle {
+    let t = 3u * i;
+    let a = textureLoad(bvh_triangle_texels, texel_coord(t), 0);
+    let b = textureLoad(bvh_triangle_texels, texel_coord(t + 1u), 0);
+    let c = textureLoad(bvh_triangle_texels, texel_coord(t + 2u), 0);
+    return Triangle(
+        bitcast<vec3<f32>>(a.xyz),
+        a.w,
+        bitcast<vec3<f32>>(b.xyz),
+        b.w,
+        bitcast<vec3<f32>>(c.xyz),
+        c.w,
+    );
+}
+
+fn load_parent(i: u32) -> u32 {
+    return textureLoad(bvh_parent_texels, texel_coord(i), 0).x;
+}
