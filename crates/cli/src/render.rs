@@ -187,6 +187,7 @@ impl Pass {
 }
 
 /// Traces rays in chunks with a progress bar.
+#[allow(clippy::too_many_arguments)]
 fn trace_chunked(
     tracer: &Tracer,
     rays: &[Ray],

@@ -80,6 +80,7 @@ pub fn cosine_dir(n: Vec3, p: u32, s: u32) -> Vec3 {
 
 /// Secondary rays for the diffuse (one shadow ray) and AO (`samples` rays) modes: for each
 /// primary hit, rays and the index of the pixel they belong to.
+#[allow(clippy::too_many_arguments)]
 pub fn secondary_rays(
     mode: Shade,
     tris: &[Triangle],

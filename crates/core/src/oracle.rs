@@ -41,7 +41,7 @@ pub struct PreparedRay64 {
 impl PreparedRay64 {
     /// Prepares a valid ray.
     pub fn new(ray: &Ray) -> Self {
-        let org = DVec3::from(glam::Vec3::from(ray.origin).as_dvec3());
+        let org: DVec3 = glam::Vec3::from(ray.origin).as_dvec3();
         let dir = glam::Vec3::from(ray.dir).as_dvec3();
         let a = dir.abs();
         let kz = if a.x >= a.y && a.x >= a.z {
