@@ -3,10 +3,10 @@
 //
 // Why: on lavapipe (and other CPU Vulkan drivers) a storage-buffer load with a per-lane
 // index is a scalar loop over the 8 lanes with a bounds check per component, while a
-// texel fetch is a vector gather: about 2.5x faster traversal (see the crate's README
-// numbers). The values are the same bits, so the results are identical.
+// texel fetch is a vector gather: traversal is 2-2.5x faster (crates/gpu/README.md). The
+// values are the same bits, so the results are identical.
 //
-// Texel `t` of each texture is at `(t % BVH_TEXEL_ROW, t / BVH_TEXEL_ROW)`.
+// Texel `t` of each texture is at `(t % 8192, t / 8192)` (`bvhtrace_gpu::TEXEL_ROW`).
 // * `bvh_node_texels`: two texels per node, reordered so the links share a texel:
 //   `(min.x, min.y, min.z, max.x)` and `(max.y, max.z, right_or_first, meta)`.
 // * `bvh_triangle_texels`: three texels per triangle, `FlatTriangle`'s bytes:

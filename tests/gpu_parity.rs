@@ -484,9 +484,7 @@ fn upload_checks_and_errors() {
     );
 }
 
-/// `record` into the caller's encoder with the caller's buffers, on a batch split into
-/// several dispatches (a tiny per-dispatch size is forced by tracing more rays than one
-/// dispatch holds is impractical here, so this checks the plumbing and the buffer checks).
+/// `record` into the caller's encoder with the caller's buffers (and its buffer checks).
 #[test]
 fn record_into_user_encoder() {
     let Some(ctx) = context() else { return };
@@ -573,4 +571,52 @@ fn bytemuck_cast(rays: &[Ray]) -> &[u8] {
     let len = std::mem::size_of_val(rays);
     // SAFETY: `Ray` is `#[repr(C)]`, `Pod`, 32 bytes without padding.
     unsafe { std::slice::from_raw_parts(rays.as_ptr().cast::<u8>(), len) }
+}
+
+/// A batch larger than one dispatch: split into chunks, the first on a 2D grid (65,536
+/// workgroups of 64 exceed lavapipe's 65,535 per dimension); every ray lands in its slot.
+#[test]
+fn batches_larger_than_a_dispatch_are_split() {
+    let Some(ctx) = context() else { return };
+    let tris = vec![[
+        Vec3::new(-1.0, -1.0, 0.0),
+        Vec3::new(1.0, -1.0, 0.0),
+        Vec3::new(0.0, 1.0, 0.0),
+    ]];
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
+    let n = bvhtrace_gpu::MAX_RAYS_PER_DISPATCH as usize + 4099;
+    let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());
+    assert!(plan.len() >= 2, "{plan:?}");
+    // Ray i starts at distance 1 + (i % 1000) / 1000 from the triangle; every fifth misses.
+    let rays: Vec<Ray> = (0..n)
+        .map(|i| {
+            let x = if i % 5 == 4 { 3.0 } else { 0.0 };
+            Ray::new(
+                Vec3::new(x, 0.0, 1.0 + (i % 1000) as f32 / 1000.0),
+                Vec3::NEG_Z,
+            )
+        })
+        .collect();
+    let out = gpu
+        .trace(&rays, Traversal::Stackless, Query::Closest)
+        .expect("trace");
+    assert_eq!(out.hits.len(), n);
+    for (i, h) in out.hits.iter().enumerate() {
+        if i % 5 == 4 {
+            assert_eq!(h.prim, u32::MAX, "ray {i}");
+        } else {
+            let t = 1.0 + (i % 1000) as f32 / 1000.0;
+            assert_eq!((h.prim, h.t), (0, t), "ray {i}");
+        }
+    }
+    eprintln!(
+        "{n} rays in {} dispatches ({:?}): {:.1} ms GPU, {:.1} ms wall",
+        plan.len(),
+        plan.iter()
+            .map(|d| (d.groups_x, d.groups_y))
+            .collect::<Vec<_>>(),
+        out.gpu_ms.unwrap_or(f64::NAN),
+        out.wall_ms
+    );
 }

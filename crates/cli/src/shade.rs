@@ -156,8 +156,7 @@ pub fn draw_number(
     img: &mut [u8],
     w: u32,
     h: u32,
-    x: u32,
-    y: u32,
+    (x, y): (u32, u32),
     n: u32,
     scale: u32,
     col: [u8; 3],
@@ -203,7 +202,7 @@ pub fn draw_legend(img: &mut [u8], w: u32, h: u32, max: u32) {
         }
     }
     let ty = y0 + bar_h + scale;
-    draw_number(img, w, h, x0, ty, 0, scale, [255; 3]);
+    draw_number(img, w, h, (x0, ty), 0, scale, [255; 3]);
     let digits = max.to_string().len() as u32;
     draw_number(
         img,

@@ -356,33 +356,14 @@ impl GpuContext {
         if let Some(m) = cell.get() {
             return Ok(m);
         }
-        let exp = std::env::var("BVHTRACE_EXP").unwrap_or_default();
-        let mut source = shaders::kernel_source(storage);
-        for kv in exp.split(',') {
-            if let Some((k, v)) = kv.split_once('=') {
-                if k == "sub" {
-                    let (a, b) = v.split_once('>').unwrap();
-                    let f = std::fs::read_to_string(a).unwrap();
-                    let (x, y) = f.split_once("\n=====\n").unwrap();
-                    let _ = b;
-                    assert!(source.contains(x.trim_end()), "no {a}");
-                    source = source.replace(x.trim_end(), y.trim_end());
-                }
-            }
-        }
-        let unchecked = exp.contains("unchecked");
-        let module = self.scoped("compiling the WGSL kernels", || unsafe {
-            self.inner.device.create_shader_module_trusted(
-                wgpu::ShaderModuleDescriptor {
+        let source = shaders::kernel_source(storage);
+        let module = self.scoped("compiling the WGSL kernels", || {
+            self.inner
+                .device
+                .create_shader_module(wgpu::ShaderModuleDescriptor {
                     label: Some("bvhtrace kernels"),
                     source: wgpu::ShaderSource::Wgsl(source.into()),
-                },
-                if unchecked {
-                    wgpu::ShaderRuntimeChecks::unchecked()
-                } else {
-                    wgpu::ShaderRuntimeChecks::checked()
-                },
-            )
+                })
         })?;
         // Another thread may have won the race; either module is fine.
         Ok(cell.get_or_init(|| module))
@@ -437,5 +418,45 @@ fn poisoned() -> GpuError {
     GpuError::Wgpu {
         during: "locking the pipeline cache",
         message: "a thread panicked while holding it".into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info(name: &str, device_type: wgpu::DeviceType) -> wgpu::AdapterInfo {
+        wgpu::AdapterInfo {
+            name: name.into(),
+            device_type,
+            ..wgpu::AdapterInfo::new(wgpu::DeviceType::Other, wgpu::Backend::Vulkan)
+        }
+    }
+
+    #[test]
+    fn adapters_are_ranked_and_named() {
+        let list = [
+            info("llvmpipe (LLVM 15.0.6, 256 bits)", wgpu::DeviceType::Cpu),
+            info("Intel(R) UHD Graphics", wgpu::DeviceType::IntegratedGpu),
+            info("NVIDIA GeForce RTX 4090", wgpu::DeviceType::DiscreteGpu),
+        ];
+        assert_eq!(pick_adapter(&list, None).ok(), Some(2));
+        assert_eq!(pick_adapter(&list[..2], None).ok(), Some(1));
+        assert_eq!(pick_adapter(&list[..1], None).ok(), Some(0));
+        assert_eq!(pick_adapter(&list, Some("LLVMPIPE")).ok(), Some(0));
+        assert_eq!(pick_adapter(&list, Some("uhd")).ok(), Some(1));
+        match pick_adapter(&list, Some("radeon")) {
+            Err(GpuError::AdapterNotFound { wanted, available }) => {
+                assert_eq!(wanted, "radeon");
+                assert!(available.contains("llvmpipe") && available.contains("RTX 4090"));
+            }
+            other => panic!("{other:?}"),
+        }
+        let err = pick_adapter(&[], None).expect_err("no adapter");
+        assert!(err.to_string().contains("mesa-vulkan-drivers"), "{err}");
+        assert_eq!(
+            AdapterChoice::Named("x".into()).wanted_name().as_deref(),
+            Some("x")
+        );
     }
 }

@@ -268,11 +268,3 @@ impl KernelVariant {
         self.short_stack
     }
 }
-
-#[doc(hidden)]
-pub fn wg() -> u32 {
-    std::env::var("BVHTRACE_WG")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(WORKGROUP_SIZE)
-}

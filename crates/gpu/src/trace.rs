@@ -85,10 +85,10 @@ pub struct Dispatch {
 /// binding-offset alignment (so every chunk's buffer ranges are aligned).
 pub fn rays_per_dispatch(limits: &GpuLimits) -> u64 {
     let align = u64::from(limits.min_storage_buffer_offset_alignment).max(1);
-    let step = u64::from(crate::shaders::wg()).max(align);
+    let step = u64::from(WORKGROUP_SIZE).max(align);
     let by_binding = limits.max_storage_buffer_binding_size / RAY_BYTES;
     let dim = u64::from(limits.max_compute_workgroups_per_dimension.max(1));
-    let by_groups = dim * dim * u64::from(crate::shaders::wg());
+    let by_groups = dim * dim * u64::from(WORKGROUP_SIZE);
     let max = MAX_RAYS_PER_DISPATCH.min(by_binding).min(by_groups);
     (max / step * step).max(step)
 }
@@ -101,7 +101,7 @@ pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
     let mut first = 0;
     while first < ray_count {
         let n = (ray_count - first).min(chunk);
-        let groups = n.div_ceil(u64::from(crate::shaders::wg())) as u32;
+        let groups = n.div_ceil(u64::from(WORKGROUP_SIZE)) as u32;
         let groups_x = groups.min(dim);
         out.push(Dispatch {
             first_ray: first,
@@ -315,7 +315,7 @@ impl GpuBvh {
         let chunk = rays_per_dispatch(limits);
         let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
         let per_submit = by_buffer.max(chunk);
-        let capacity = n.min(per_submit).max(u64::from(crate::shaders::wg()));
+        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
 
         let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
             during: "locking the scratch buffers",
@@ -503,5 +503,78 @@ impl GpuBvh {
             pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits(binding: u64, dim: u32, align: u32) -> GpuLimits {
+        GpuLimits {
+            max_storage_buffer_binding_size: binding,
+            max_buffer_size: 1 << 40,
+            max_compute_workgroups_per_dimension: dim,
+            min_storage_buffer_offset_alignment: align,
+            max_texture_dimension_2d: 8192,
+        }
+    }
+
+    fn check(ray_count: u64, l: &GpuLimits) {
+        let plan = plan_dispatches(ray_count, l);
+        let chunk = rays_per_dispatch(l);
+        let mut next = 0;
+        for d in &plan {
+            assert_eq!(d.first_ray, next, "{plan:?}");
+            assert!(u64::from(d.ray_count) <= chunk);
+            // Every chunk starts at an aligned offset in all three buffers.
+            for stride in [RAY_BYTES, HIT_BYTES, COUNTERS_BYTES] {
+                assert_eq!(
+                    d.first_ray * stride % u64::from(l.min_storage_buffer_offset_alignment),
+                    0
+                );
+            }
+            assert!(u64::from(d.ray_count) * RAY_BYTES <= l.max_storage_buffer_binding_size);
+            assert!(d.groups_x <= l.max_compute_workgroups_per_dimension);
+            assert!(d.groups_y <= l.max_compute_workgroups_per_dimension);
+            let threads = u64::from(d.groups_x) * u64::from(d.groups_y) * u64::from(WORKGROUP_SIZE);
+            assert!(threads >= u64::from(d.ray_count));
+            // No whole spare row of workgroups.
+            assert!(
+                threads - u64::from(d.ray_count)
+                    < u64::from(d.groups_x) * u64::from(WORKGROUP_SIZE)
+            );
+            next += u64::from(d.ray_count);
+        }
+        assert_eq!(next, ray_count);
+    }
+
+    #[test]
+    fn dispatch_plans_cover_the_batch_within_limits() {
+        let lavapipe = limits(128 << 20, 65_535, 64);
+        assert_eq!(rays_per_dispatch(&lavapipe), MAX_RAYS_PER_DISPATCH);
+        for n in [
+            0,
+            1,
+            63,
+            64,
+            65,
+            1000,
+            MAX_RAYS_PER_DISPATCH,
+            MAX_RAYS_PER_DISPATCH + 1,
+            3 * MAX_RAYS_PER_DISPATCH + 17,
+        ] {
+            check(n, &lavapipe);
+        }
+        // The 4M-ray chunk needs 65,536 workgroups: a 2D grid on this device.
+        let plan = plan_dispatches(MAX_RAYS_PER_DISPATCH, &lavapipe);
+        assert_eq!((plan[0].groups_x, plan[0].groups_y), (65_535, 2));
+        // Small bindings, few workgroups per dimension, large alignment.
+        let tight = limits(1 << 16, 7, 256);
+        assert_eq!(rays_per_dispatch(&tight), 2048 / 256 * 256);
+        for n in [1, 255, 256, 2047, 2048, 2049, 100_000] {
+            check(n, &tight);
+        }
+        assert!(plan_dispatches(0, &tight).is_empty());
     }
 }

@@ -67,7 +67,6 @@ fn shared_structs_match_rust_layout() {
 }
 
 fn check_structs(module: &Module) {
-    let module = module;
     check_struct(
         module,
         "Node",
