@@ -24,6 +24,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Print what a scene contains and the quality of its BVH.
     Info(render::InfoArgs),
+    /// Write a scene's triangles and primary rays for another tracer (see crates/cli/embree).
+    Dump(render::DumpArgs),
     /// Benchmark the builders: build time, SAH cost, CPU traversal speed.
     BenchBuild(bench::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
@@ -35,6 +37,7 @@ fn main() {
     let result: Result<()> = match cli.command {
         Command::Render(a) => render::render(a),
         Command::Info(a) => render::info(a),
+        Command::Dump(a) => render::dump(a),
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
     };

@@ -102,14 +102,9 @@ pub fn load_and_build(args: &SceneArgs) -> Result<(Scene, Vec<Triangle>, FlatBvh
     Ok((scene, tris, bvh, load_ms, build_ms))
 }
 
-/// `bvhtrace render`.
-#[derive(clap::Args)]
-pub struct RenderArgs {
-    #[command(flatten)]
-    pub scene: SceneArgs,
-    /// Output PNG.
-    #[arg(short, long, default_value = "out.png")]
-    pub output: PathBuf,
+/// Image size and camera.
+#[derive(clap::Args, Clone)]
+pub struct CameraArgs {
     /// Image size.
     #[arg(long, default_value = "1024x768", value_parser = parse_size)]
     pub size: (u32, u32),
@@ -122,6 +117,18 @@ pub struct RenderArgs {
     /// Vertical field of view in degrees.
     #[arg(long)]
     pub fov: Option<f32>,
+}
+
+/// `bvhtrace render`.
+#[derive(clap::Args)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// Output PNG.
+    #[arg(short, long, default_value = "out.png")]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub view: CameraArgs,
     /// gpu or cpu.
     #[arg(long, value_enum, default_value_t = Backend::Gpu)]
     pub backend: Backend,
@@ -145,10 +152,11 @@ pub struct RenderArgs {
     pub tile_rows: u32,
 }
 
-/// The camera for a render: explicit flags, else the scene's, else framing the bounds.
-pub fn camera_for(args: &RenderArgs, scene: &Scene) -> Result<Camera> {
-    let (w, h) = args.size;
-    let mut cam = match (args.eye, args.target) {
+/// The camera: explicit flags, else the scene's, else framing the bounds. Rays follow the
+/// convention documented in `bvhtrace_scene::camera`.
+pub fn camera_for(view: &CameraArgs, scene: &Scene) -> Result<Camera> {
+    let (w, h) = view.size;
+    let mut cam = match (view.eye, view.target) {
         (Some(eye), Some(target)) => Camera {
             eye,
             target,
@@ -156,7 +164,7 @@ pub fn camera_for(args: &RenderArgs, scene: &Scene) -> Result<Camera> {
         },
         _ => scene.camera_or_frame(w as f32 / h as f32),
     };
-    if let Some(f) = args.fov {
+    if let Some(f) = view.fov {
         if !(f > 0.0 && f < 180.0) {
             bail!("--fov must be between 0 and 180 degrees, got {f}");
         }
@@ -217,14 +225,14 @@ pub fn render(args: RenderArgs) -> Result<()> {
     // Fail on bad output paths before any work.
     let png = AtomicFile::create(&args.output)?;
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
-    let (w, h) = args.size;
+    let (w, h) = args.view.size;
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
     }
 
     let (scene, tris, bvh, load_ms, build_ms) = load_and_build(&args.scene)?;
     let stats = BvhStats::of(&bvh);
-    let cam = camera_for(&args, &scene)?;
+    let cam = camera_for(&args.view, &scene)?;
 
     let (tracer, upload_ms) = match args.backend {
         Backend::Cpu => (Tracer::Cpu(&bvh), 0.0),
@@ -280,7 +288,10 @@ pub fn render(args: RenderArgs) -> Result<()> {
 
     let (lo, hi) = (stats_bounds(&bvh).0, stats_bounds(&bvh).1);
     let diag = (hi - lo).length().max(f32::MIN_POSITIVE);
-    let light = (lo + hi) * 0.5 + Vec3::new(0.35, 1.0, 0.6) * diag;
+    // A point light up and to the right of the camera: it sees what the camera sees, so it
+    // works for closed rooms as well as open scenes, and casts visible shadows.
+    let (_, right, up) = cam.basis();
+    let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
     let (sec_rays, owner) = shade::secondary_rays(
         args.shade,
         &tris,
@@ -405,7 +416,7 @@ fn compose(
     owner: &[u32],
     light: Vec3,
 ) -> Vec<u8> {
-    let (w, h) = args.size;
+    let (w, h) = args.view.size;
     let mut img = vec![0u8; (w * h * 3) as usize];
     let px = |img: &mut Vec<u8>, i: usize, c: [u8; 3]| img[i * 3..i * 3 + 3].copy_from_slice(&c);
     let to8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
@@ -556,5 +567,63 @@ pub fn info(args: InfoArgs) -> Result<()> {
     println!("leaf sizes  {}", hist.join(" "));
     println!("gpu bytes   nodes {nb}, parents {pb} (stackless/short-stack only), triangles {tb}");
     println!("timing      load {load_ms:.1} ms, build {build_ms:.1} ms");
+    Ok(())
+}
+
+/// `bvhtrace dump`.
+#[derive(clap::Args)]
+pub struct DumpArgs {
+    /// A .gltf/.glb file or a `builtin:` name.
+    pub scene: Option<String>,
+    #[command(flatten)]
+    pub view: CameraArgs,
+    /// Output file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+/// Writes the scene's triangles (world space, input order) and the camera's primary rays in
+/// a flat binary form for other tracers (`crates/cli/embree/embree_trace.c`): "BVHD",
+/// u32 version 1, u32 triangle count, u32 ray count, 9 f32 per triangle, 8 f32 per ray
+/// (origin, t_min, dir, t_max), little endian.
+pub fn dump(args: DumpArgs) -> Result<()> {
+    let out = AtomicFile::create(&args.output)?;
+    let spec = args.scene.as_deref().unwrap_or(DEFAULT_SCENE);
+    let scene = bvhtrace_scene::load(spec)?;
+    let tris = scene
+        .flatten()
+        .triangles()
+        .with_context(|| format!("{spec}: bad geometry"))?;
+    let cam = camera_for(&args.view, &scene)?;
+    let (w, h) = args.view.size;
+    let rays = cam.rays(w, h);
+    let mut bytes = Vec::with_capacity(16 + tris.len() * 36 + rays.len() * 32);
+    bytes.extend_from_slice(b"BVHD");
+    for v in [1u32, tris.len() as u32, rays.len() as u32] {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    for p in tris.iter().flatten() {
+        for c in p.to_array() {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for r in &rays {
+        for c in r
+            .origin
+            .iter()
+            .chain([&r.t_min])
+            .chain(&r.dir)
+            .chain([&r.t_max])
+        {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out.finish_with_bytes(&bytes)?;
+    eprintln!(
+        "wrote {}: {} triangles, {} rays ({w}x{h})",
+        args.output.display(),
+        tris.len(),
+        rays.len()
+    );
     Ok(())
 }

@@ -1,0 +1,98 @@
+//! The bunny hit count against an independent tracer (Embree 3, robust mode) on exactly the
+//! same rays, written by `bvhtrace dump`. Skips, saying so, without a C compiler and Embree
+//! (`apt-get install libembree-dev`) or without the shared scenes.
+
+mod common;
+
+use std::process::Command;
+
+use common::*;
+
+#[test]
+fn bunny_hits_match_embree() {
+    let Some(shared) = shared() else {
+        eprintln!("SKIP: ../shared/scenes is absent");
+        return;
+    };
+    if !std::path::Path::new("/usr/include/embree3/rtcore.h").exists() {
+        eprintln!("SKIP: Embree 3 headers not found (apt-get install libembree-dev)");
+        return;
+    }
+    let dir = scratch("embree");
+    let exe = dir.join("embree_trace");
+    let src = concat!(env!("CARGO_MANIFEST_DIR"), "/embree/embree_trace.c");
+    let cc = Command::new("cc")
+        .args(["-O2", src, "-lembree3", "-lpthread", "-o"])
+        .arg(&exe)
+        .status();
+    if !matches!(cc, Ok(s) if s.success()) {
+        eprintln!("SKIP: could not compile {src} against Embree");
+        return;
+    }
+    let bunny = shared.join("glb/bunny_69k.glb");
+    let cam = [
+        "--eye",
+        "0.0540025,0.160756,0.200872",
+        "--target",
+        "-0.0168405,0.110154,-0.001537",
+        "--fov",
+        "50",
+    ];
+    let dump = dir.join("bunny.bin");
+    let mut args = vec![
+        "dump",
+        bunny.to_str().unwrap(),
+        "-o",
+        dump.to_str().unwrap(),
+    ];
+    args.extend(cam);
+    assert!(run(&args).status.success());
+    let out = Command::new(&exe)
+        .arg(&dump)
+        .args(["2", "1"])
+        .output()
+        .expect("embree_trace runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let embree: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    eprintln!("embree: {embree}");
+    assert_eq!(embree["rays"], 1024 * 768);
+    let theirs = embree["hits"].as_f64().unwrap();
+    for backend in ["cpu", "gpu"] {
+        let png = dir.join(format!("{backend}.png"));
+        let mut args = vec![
+            "render",
+            bunny.to_str().unwrap(),
+            "--backend",
+            backend,
+            "-o",
+            png.to_str().unwrap(),
+            "--json",
+            "-",
+        ];
+        args.extend(cam);
+        let r = run(&args);
+        assert!(r.status.success());
+        let ours = json(&r);
+        let hits = ours["hits"].as_f64().unwrap();
+        eprintln!(
+            "{backend} ({}): {hits} hits, embree {theirs}",
+            ours["adapter"]
+        );
+        assert!(
+            (hits - theirs).abs() <= 1e-4 * theirs,
+            "{backend}: {hits} hits vs Embree's {theirs}"
+        );
+        let (ts, tt) = (
+            ours["t_sum"].as_f64().unwrap(),
+            embree["t_sum"].as_f64().unwrap(),
+        );
+        assert!(
+            (ts - tt).abs() <= 1e-4 * tt,
+            "{backend}: t_sum {ts} vs {tt}"
+        );
+    }
+}
