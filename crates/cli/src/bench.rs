@@ -15,7 +15,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// The scenes to use: those given, else `bunny_69k` and `igea` from the shared folder.
-fn scene_specs(given: &[String]) -> Result<Vec<String>> {
+pub(crate) fn scene_specs(given: &[String]) -> Result<Vec<String>> {
     if !given.is_empty() {
         return Ok(given.to_vec());
     }

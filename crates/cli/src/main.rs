@@ -1,7 +1,10 @@
 //! `bvhtrace`: render scenes through the BVH on the GPU or CPU, inspect them, benchmark.
 
+mod accuracy;
 mod bench;
+mod bench_matrix;
 mod output;
+mod plot;
 mod render;
 mod shade;
 mod tracer;
@@ -26,6 +29,9 @@ enum Command {
     Info(render::InfoArgs),
     /// Write a scene's triangles and primary rays for another tracer (see crates/cli/embree).
     Dump(render::DumpArgs),
+    /// Error against run time for every configuration (builder, traversal, backend, ray
+    /// kind, precision), with a table, JSON/CSV and an error-vs-time plot.
+    Bench(bench_matrix::BenchArgs),
     /// Benchmark the builders: build time, SAH cost, CPU traversal speed.
     BenchBuild(bench::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
@@ -38,6 +44,7 @@ fn main() {
         Command::Render(a) => render::render(a),
         Command::Info(a) => render::info(a),
         Command::Dump(a) => render::dump(a),
+        Command::Bench(a) => bench_matrix::bench(a),
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
     };

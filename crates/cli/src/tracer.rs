@@ -14,6 +14,8 @@ pub enum Tracer<'a> {
     Cpu(&'a FlatBvh),
     /// The WGSL kernels through wgpu.
     Gpu(Box<GpuBvh>),
+    /// The same, on a BVH uploaded elsewhere.
+    GpuRef(&'a GpuBvh),
 }
 
 /// The answer to one batch.
@@ -33,6 +35,14 @@ pub struct GpuSetup<'s> {
 }
 
 impl<'a> Tracer<'a> {
+    fn gpu_bvh(&self) -> Option<&GpuBvh> {
+        match self {
+            Tracer::Cpu(_) => None,
+            Tracer::Gpu(g) => Some(g),
+            Tracer::GpuRef(g) => Some(g),
+        }
+    }
+
     /// Opens a GPU and uploads the BVH; returns the tracer and the upload time in ms.
     pub fn gpu(bvh: &FlatBvh, setup: &GpuSetup) -> Result<(Tracer<'a>, f64)> {
         let choice = match setup.adapter {
@@ -50,17 +60,14 @@ impl<'a> Tracer<'a> {
 
     /// `"cpu"` or `"gpu"`.
     pub fn backend(&self) -> &'static str {
-        match self {
-            Tracer::Cpu(_) => "cpu",
-            Tracer::Gpu(_) => "gpu",
-        }
+        if self.gpu_bvh().is_some() { "gpu" } else { "cpu" }
     }
 
     /// The adapter's name, or the CPU's thread count.
     pub fn adapter(&self) -> String {
-        match self {
-            Tracer::Cpu(_) => format!("cpu ({} threads)", rayon::current_num_threads()),
-            Tracer::Gpu(g) => {
+        match self.gpu_bvh() {
+            None => format!("cpu ({} threads)", rayon::current_num_threads()),
+            Some(g) => {
                 let i = g.context().adapter_info();
                 format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
             }
@@ -69,10 +76,7 @@ impl<'a> Tracer<'a> {
 
     /// Bytes uploaded to the GPU (0 on the CPU).
     pub fn uploaded_bytes(&self) -> u64 {
-        match self {
-            Tracer::Cpu(_) => 0,
-            Tracer::Gpu(g) => g.stats().total_bytes(),
-        }
+        self.gpu_bvh().map_or(0, |g| g.stats().total_bytes())
     }
 
     /// Traces one batch.
@@ -83,8 +87,8 @@ impl<'a> Tracer<'a> {
         query: Query,
         counters: bool,
     ) -> Result<Traced> {
-        match self {
-            Tracer::Cpu(bvh) => {
+        match (self, self.gpu_bvh()) {
+            (Tracer::Cpu(bvh), _) => {
                 let start = Instant::now();
                 let (hits, c) = if counters {
                     let (h, c) = trace_batch_counted(bvh, rays, traversal, query);
@@ -99,7 +103,7 @@ impl<'a> Tracer<'a> {
                     gpu_ms: None,
                 })
             }
-            Tracer::Gpu(g) => {
+            (_, Some(g)) => {
                 let out = g.trace_with(
                     rays,
                     &TraceOptions {
@@ -115,6 +119,7 @@ impl<'a> Tracer<'a> {
                     gpu_ms: out.gpu_ms,
                 })
             }
+            (_, None) => unreachable!("a GPU tracer has a GPU BVH"),
         }
     }
 }

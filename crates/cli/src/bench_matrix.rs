@@ -1,0 +1,461 @@
+//! `bvhtrace bench`: error against run time for every configuration.
+//!
+//! Each configuration (builder, traversal, backend, ray kind, intersection precision) is
+//! timed on the whole ray set and checked against the f64 brute-force oracle on an evenly
+//! spaced sample of the same rays, plus a small image compared with the oracle's image.
+//! By default the dimensions are swept one at a time around the default configuration
+//! (SAH, stackless, watertight f32); `--full` runs the whole cross product.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use bvhtrace_core::oracle::{self, OracleHit};
+use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, Traversal, Triangle, trace_batch};
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::accuracy::{self, ErrorStats};
+use crate::output::{AtomicFile, JsonOut};
+use crate::shade;
+use crate::tracer::Tracer;
+
+/// Which rays a configuration traces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RayKind {
+    /// Camera rays, closest hit.
+    Primary,
+    /// From each primary hit to a point light, any hit.
+    Shadow,
+    /// Cosine-weighted bounces from each primary hit, closest hit.
+    Diffuse,
+}
+
+impl RayKind {
+    fn query(self) -> Query {
+        if self == RayKind::Shadow { Query::Any } else { Query::Closest }
+    }
+    fn name(self) -> &'static str {
+        match self {
+            RayKind::Primary => "primary",
+            RayKind::Shadow => "shadow",
+            RayKind::Diffuse => "diffuse",
+        }
+    }
+}
+
+/// `bvhtrace bench`.
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Scenes (default: bunny_69k and igea from ../shared/scenes).
+    pub scenes: Vec<String>,
+    /// A small run that finishes in under a minute.
+    #[arg(long)]
+    pub quick: bool,
+    /// The full cross product of all dimensions (long), instead of one-at-a-time sweeps.
+    #[arg(long)]
+    pub full: bool,
+    /// Primary rays, WxH (default 512x384; 160x120 with --quick).
+    #[arg(long)]
+    pub size: Option<String>,
+    /// Rays per configuration compared with the f64 oracle (default 2048; 256 with --quick).
+    #[arg(long)]
+    pub sample: Option<usize>,
+    /// Timed runs per configuration; the median is reported (default 3; 1 with --quick).
+    #[arg(long)]
+    pub runs: Option<usize>,
+    /// Backends to include.
+    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
+    pub backends: Vec<String>,
+    /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
+    #[arg(long)]
+    pub adapter: Option<String>,
+    /// Write every row as JSON (`-` for stdout).
+    #[arg(long)]
+    pub json: Option<String>,
+    /// Write every row as CSV.
+    #[arg(long)]
+    pub csv: Option<PathBuf>,
+    /// Write the error-vs-time plot to PREFIX.png and PREFIX.svg (one per scene:
+    /// PREFIX-SCENE.png when there are several).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+}
+
+/// One configuration.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Config {
+    pub builder: String,
+    pub bins: usize,
+    pub traversal: String,
+    pub backend: String,
+    pub rays: RayKind,
+    pub precision: String,
+}
+
+/// One measured row.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub scene: String,
+    #[serde(flatten)]
+    pub config: Config,
+    pub ray_count: usize,
+    pub build_ms: f64,
+    pub trace_ms: f64,
+    pub mrays_per_s: f64,
+    pub nodes_per_ray: f64,
+    pub tris_per_ray: f64,
+    pub bytes: u64,
+    #[serde(flatten)]
+    pub error: ErrorStats,
+    pub error_rate: f64,
+    /// Image error against the oracle's image (primary rays only).
+    pub image_rmse: Option<f64>,
+    pub image_flip: Option<f64>,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    s.split_once('x')
+        .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
+        .filter(|&(w, h)| w > 0 && h > 0)
+        .with_context(|| format!("--size must be WxH, got '{s}'"))
+}
+
+/// Builder variants: the four builders, then SAH with other bin counts.
+fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
+    let mut v: Vec<(String, BuildOptions)> =
+        BuilderKind::ALL.iter().map(|&b| (b.name().to_string(), BuildOptions::with_builder(b))).collect();
+    let _ = full;
+    for b in [4, 8, 16] {
+        v.push(("sah".into(), BuildOptions { bins: b, ..Default::default() }));
+    }
+    v
+}
+
+const TRAVERSALS: [Traversal; 5] = [
+    Traversal::Stackless,
+    Traversal::ShortStack(2),
+    Traversal::ShortStack(4),
+    Traversal::ShortStack(8),
+    Traversal::FullStack,
+];
+
+/// Rays of every kind, generated once per scene from the reference hits so that every
+/// configuration traces exactly the same rays.
+struct RaySets {
+    primary: Vec<Ray>,
+    shadow: Vec<Ray>,
+    diffuse: Vec<Ray>,
+}
+
+fn ray_sets(tris: &[Triangle], bvh: &FlatBvh, cam: &bvhtrace_scene::Camera, w: u32, h: u32) -> RaySets {
+    let primary = cam.rays(w, h);
+    let hits = trace_batch(bvh, &primary, Traversal::FullStack, Query::Closest);
+    let (_, right, up) = cam.basis();
+    let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
+    let b = bvh.bounds();
+    let diag = (b.max - b.min).length();
+    let (shadow, _) = shade::secondary_rays(shade::Shade::Diffuse, tris, &primary, &hits, light, 1, diag);
+    let mut diffuse = Vec::new();
+    for (i, (r, h)) in primary.iter().zip(&hits).enumerate() {
+        if h.is_hit() {
+            let tri = &tris[h.prim as usize];
+            let n = shade::facing_normal(tri, Vec3::from(r.dir));
+            let o = shade::offset_origin(shade::hit_point(tri, h), n);
+            diffuse.push(Ray::new(o, shade::cosine_dir(n, i as u32, 0)));
+        }
+    }
+    RaySets { primary, shadow, diffuse }
+}
+
+/// Evenly spaced sample of at most `n` indices.
+fn sample_indices(len: usize, n: usize) -> Vec<usize> {
+    let n = n.min(len);
+    (0..n).map(|i| i * len / n.max(1)).collect()
+}
+
+fn oracle_answers(tris: &[Triangle], rays: &[Ray]) -> Vec<OracleHit> {
+    rays.par_iter().map(|r| oracle::closest_hit(tris, r)).collect()
+}
+
+/// Normal-shaded image from hits (the same mapping as `render --shade normal`).
+fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32>) -> Vec<u8> {
+    let mut img = Vec::with_capacity(rays.len() * 3);
+    for (r, p) in rays.iter().zip(prims) {
+        if let Some(t) = tris.get(p as usize) {
+            let n = shade::facing_normal(t, Vec3::from(r.dir)) * 0.5 + Vec3::splat(0.5);
+            img.extend(n.to_array().map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
+        } else {
+            img.extend(shade::BACKGROUND);
+        }
+    }
+    img
+}
+
+/// `bvhtrace bench`.
+pub fn bench(args: BenchArgs) -> Result<()> {
+    let quick = args.quick;
+    let (w, h) = parse_size(args.size.as_deref().unwrap_or(if quick { "160x120" } else { "512x384" }))?;
+    let sample_n = args.sample.unwrap_or(if quick { 256 } else { 2048 });
+    let runs = args.runs.unwrap_or(if quick { 1 } else { 3 });
+    let (iw, ih) = if quick { (48, 36) } else { (96, 72) };
+    if runs == 0 || sample_n == 0 {
+        bail!("--runs and --sample must be at least 1");
+    }
+    for b in &args.backends {
+        if b != "gpu" && b != "cpu" {
+            bail!("unknown backend '{b}' (expected gpu or cpu)");
+        }
+    }
+    // Reserve outputs before any work.
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
+    let specs = crate::bench::scene_specs(&args.scenes)?;
+    let plot_paths: Vec<(PathBuf, PathBuf)> = match &args.plot {
+        None => Vec::new(),
+        Some(prefix) => specs
+            .iter()
+            .map(|s| {
+                let stem = if specs.len() == 1 {
+                    prefix.display().to_string()
+                } else {
+                    let name = std::path::Path::new(s.split('#').next().unwrap_or(s)).file_stem().map_or("scene".into(), |n| n.to_string_lossy().to_string());
+                    format!("{}-{}", prefix.display(), name.replace(':', "_"))
+                };
+                (PathBuf::from(format!("{stem}.png")), PathBuf::from(format!("{stem}.svg")))
+            })
+            .collect(),
+    };
+    let plot_files: Vec<(AtomicFile, AtomicFile)> =
+        plot_paths.iter().map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?))).collect::<Result<_>>()?;
+
+    let gpu_ctx = if args.backends.iter().any(|b| b == "gpu") {
+        match bvhtrace_gpu::GpuContext::new(match &args.adapter {
+            Some(n) => bvhtrace_gpu::AdapterChoice::Named(n.clone()),
+            None => bvhtrace_gpu::AdapterChoice::Auto,
+        }) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                eprintln!("note: no GPU ({e}); benchmarking the CPU only");
+                None
+            }
+        }
+    } else {
+        None
+    };
+    if let Some(c) = &gpu_ctx {
+        eprintln!("GPU: {} ({:?})", c.adapter_info().name, c.adapter_info().device_type);
+    }
+    eprintln!("CPU: {} threads", rayon::current_num_threads());
+
+    let mut rows = Vec::new();
+    let mut plots = plot_files.into_iter();
+    for spec in specs {
+        let t0 = Instant::now();
+        let scene = bvhtrace_scene::load(&spec)?;
+        let tris = scene.flatten().triangles().with_context(|| format!("{spec}: bad geometry"))?;
+        let cam = scene.camera_or_frame(w as f32 / h as f32);
+        let reference = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let sets = ray_sets(&tris, &reference, &cam, w, h);
+        let kinds = [(RayKind::Primary, &sets.primary), (RayKind::Shadow, &sets.shadow), (RayKind::Diffuse, &sets.diffuse)];
+        // The oracle, once per ray kind, on the sample; and the oracle's small image.
+        let pb_oracle = ProgressBar::new_spinner();
+        pb_oracle.set_message(format!("{spec}: f64 oracle on {sample_n} rays per kind and a {iw}x{ih} image"));
+        pb_oracle.enable_steady_tick(std::time::Duration::from_millis(200));
+        let samples: Vec<(Vec<usize>, Vec<OracleHit>)> = kinds
+            .iter()
+            .map(|(_, rays)| {
+                let idx = sample_indices(rays.len(), sample_n);
+                let sampled: Vec<Ray> = idx.iter().map(|&i| rays[i]).collect();
+                let o = oracle_answers(&tris, &sampled);
+                (idx, o)
+            })
+            .collect();
+        let img_rays = cam.rays(iw, ih);
+        let img_oracle = oracle_answers(&tris, &img_rays);
+        let ref_img = normal_image(&tris, &img_rays, img_oracle.iter().map(|o| o.prim));
+        pb_oracle.finish_and_clear();
+        eprintln!("{spec}: {} triangles; rays: {} primary, {} shadow, {} diffuse; setup {:.1} s", tris.len(), sets.primary.len(), sets.shadow.len(), sets.diffuse.len(), t0.elapsed().as_secs_f64());
+
+        // The configurations.
+        let builders = builder_configs(args.full);
+        let mut plan: Vec<(usize, Traversal, &str, RayKind)> = Vec::new();
+        let backends: Vec<&str> = args.backends.iter().map(|s| s.as_str()).filter(|b| *b == "cpu" || gpu_ctx.is_some()).collect();
+        for (bi, _) in builders.iter().enumerate() {
+            for &tr in &TRAVERSALS {
+                for &be in &backends {
+                    for (kind, _) in &kinds {
+                        // Sweeps: every builder on primary rays with the default traversal;
+                        // every traversal and ray kind with the default builder.
+                        let keep = args.full || bi == 0 || (tr == Traversal::Stackless && *kind == RayKind::Primary);
+                        if keep {
+                            plan.push((bi, tr, be, *kind));
+                        }
+                    }
+                }
+            }
+        }
+        let pb = ProgressBar::new(plan.len() as u64);
+        pb.set_style(ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+        let mut built: Vec<Option<(FlatBvh, f64, Option<bvhtrace_gpu::GpuBvh>)>> = (0..builders.len()).map(|_| None).collect();
+        let mut scene_rows = Vec::new();
+        for (bi, tr, be, kind) in plan {
+            let (bname, bopts) = &builders[bi];
+            pb.set_message(format!("{bname} {tr} {be} {}", kind.name()));
+            if built[bi].is_none() {
+                let mut times = Vec::new();
+                let mut bvh = None;
+                for _ in 0..runs {
+                    let t = Instant::now();
+                    bvh = Some(FlatBvh::build(&tris, bopts)?);
+                    times.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+                let bvh = bvh.context("no build")?;
+                let gpu = match &gpu_ctx {
+                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(c, &bvh, &bvhtrace_gpu::UploadOptions::all())?),
+                    None => None,
+                };
+                built[bi] = Some((bvh, median(times), gpu));
+            }
+            let Some((bvh, build_ms, gpu)) = built[bi].as_ref() else { continue };
+            let tracer = match (be, gpu) {
+                ("gpu", Some(g)) => Tracer::GpuRef(g),
+                _ => Tracer::Cpu(bvh),
+            };
+            let (kind_idx, rays) = kinds.iter().enumerate().find(|(_, k)| k.0 == kind).map(|(i, k)| (i, k.1)).context("ray kind")?;
+            let q = kind.query();
+            // Warm-up (pipeline creation, caches), then timed runs.
+            let counted = tracer.trace(rays, tr, q, true)?;
+            let c = counted.counters.unwrap_or_default();
+            let n = rays.len().max(1) as f64;
+            let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / n;
+            let tris_per = c.iter().map(|c| c.tris as f64).sum::<f64>() / n;
+            let mut times = Vec::new();
+            let mut hits: Vec<Hit> = Vec::new();
+            for _ in 0..runs {
+                let t = tracer.trace(rays, tr, q, false)?;
+                times.push(t.gpu_ms.unwrap_or(t.wall_ms));
+                hits = t.hits;
+            }
+            let trace_ms = median(times);
+            let (idx, o) = &samples[kind_idx];
+            let ours: Vec<Hit> = idx.iter().map(|&i| hits[i]).collect();
+            let error = accuracy::compare(&ours, o, q);
+            let (image_rmse, image_flip) = if kind == RayKind::Primary {
+                let t = tracer.trace(&img_rays, tr, Query::Closest, false)?;
+                let img = normal_image(&tris, &img_rays, t.hits.iter().map(|h| h.prim));
+                (Some(accuracy::rmse(&ref_img, &img)), Some(accuracy::flip(&ref_img, &img, iw, ih)))
+            } else {
+                (None, None)
+            };
+            let bytes = match &tracer {
+                Tracer::Gpu(_) | Tracer::GpuRef(_) => tracer.uploaded_bytes(),
+                Tracer::Cpu(b) => {
+                    let (a, p, t) = b.byte_sizes();
+                    (a + if tr.needs_parents() { p } else { 0 } + t) as u64
+                }
+            };
+            scene_rows.push(Row {
+                scene: spec.clone(),
+                config: Config {
+                    builder: bname.clone(),
+                    bins: bopts.bins,
+                    traversal: tr.to_string(),
+                    backend: be.to_string(),
+                    rays: kind,
+                    precision: "watertight-f32".into(),
+                },
+                ray_count: rays.len(),
+                build_ms: *build_ms,
+                trace_ms,
+                mrays_per_s: rays.len() as f64 / trace_ms / 1e3,
+                nodes_per_ray: nodes,
+                tris_per_ray: tris_per,
+                bytes,
+                error_rate: error.error_rate(),
+                error,
+                image_rmse,
+                image_flip,
+            });
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
+        print_table(&scene_rows);
+        if let Some((png, svg)) = plots.next() {
+            crate::plot::error_vs_time(&spec, &scene_rows, png, svg)?;
+        }
+        rows.extend(scene_rows);
+    }
+    if let Some(j) = json_out {
+        j.write(&serde_json::to_value(&rows)?)?;
+    }
+    if let Some(f) = csv_out {
+        f.finish_with_bytes(to_csv(&rows).as_bytes())?;
+    }
+    for (p, s) in &plot_paths {
+        eprintln!("wrote {} and {}", p.display(), s.display());
+    }
+    Ok(())
+}
+
+fn fmt_err(x: f64) -> String {
+    if x == 0.0 { "0".into() } else { format!("{x:.1e}") }
+}
+
+fn print_table(rows: &[Row]) {
+    println!(
+        "\n{:9} {:5} {:15} {:4} {:8} {:14} {:>8} {:>9} {:>8} {:>6} {:>5} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
+        "builder", "bins", "traversal", "bknd", "rays", "precision", "build ms", "trace ms", "Mrays/s", "nodes", "tris", "bytes",
+        "sample", "wrong", "fmiss", "fhit", "t med", "t max", "img rmse", "img FLIP"
+    );
+    for r in rows {
+        println!(
+            "{:9} {:5} {:15} {:4} {:8} {:14} {:>8.1} {:>9.2} {:>8.2} {:>6.1} {:>5.2} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
+            r.config.builder,
+            r.config.bins,
+            r.config.traversal,
+            r.config.backend,
+            r.config.rays.name(),
+            r.config.precision,
+            r.build_ms,
+            r.trace_ms,
+            r.mrays_per_s,
+            r.nodes_per_ray,
+            r.tris_per_ray,
+            r.bytes,
+            r.error.sample,
+            r.error.wrong_prim,
+            r.error.false_misses,
+            r.error.false_hits,
+            fmt_err(r.error.t_rel_median),
+            fmt_err(r.error.t_rel_max),
+            r.image_rmse.map_or("-".into(), fmt_err),
+            r.image_flip.map_or("-".into(), fmt_err),
+        );
+    }
+}
+
+fn to_csv(rows: &[Row]) -> String {
+    let mut s = String::from(
+        "scene,builder,bins,traversal,backend,rays,precision,ray_count,build_ms,trace_ms,mrays_per_s,nodes_per_ray,tris_per_ray,bytes,sample,wrong_prim,false_misses,false_hits,t_rel_median,t_rel_max,error_rate,image_rmse,image_flip\n",
+    );
+    for r in rows {
+        let c = &r.config;
+        s += &format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            r.scene, c.builder, c.bins, c.traversal, c.backend, c.rays.name(), c.precision, r.ray_count, r.build_ms, r.trace_ms,
+            r.mrays_per_s, r.nodes_per_ray, r.tris_per_ray, r.bytes, r.error.sample, r.error.wrong_prim, r.error.false_misses,
+            r.error.false_hits, r.error.t_rel_median, r.error.t_rel_max, r.error_rate,
+            r.image_rmse.map_or(String::new(), |x| x.to_string()), r.image_flip.map_or(String::new(), |x| x.to_string())
+        );
+    }
+    s
+}

@@ -1,0 +1,34 @@
+//! `bvhtrace bench` end to end on a small closed mesh.
+
+mod common;
+
+use common::*;
+
+#[test]
+fn bench_quick_writes_every_output_and_watertight_never_leaks() {
+    let dir = scratch("bench");
+    let csv = dir.join("b.csv");
+    let plot = dir.join("plot");
+    let out = run(&[
+        "bench", "builtin:icosphere:3", "--quick", "--backends", "cpu", "--json", "-",
+        "--csv", csv.to_str().unwrap(), "--plot", plot.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON rows");
+    // 7 builders on primary rays + 5 traversals x 3 ray kinds, minus the shared one.
+    assert!(rows.len() >= 7 + 15 - 1, "{} rows", rows.len());
+    for r in &rows {
+        assert!(r["trace_ms"].as_f64().unwrap() > 0.0);
+        assert!(r["sample"].as_u64().unwrap() > 0);
+        if r["precision"] == "watertight-f32" {
+            assert_eq!(r["false_misses"], 0, "watertight leaked on a closed mesh: {r}");
+        }
+    }
+    let text = std::fs::read_to_string(&csv).unwrap();
+    assert_eq!(text.lines().count(), rows.len() + 1);
+    assert!(text.starts_with("scene,builder,bins,traversal,backend,rays,precision"));
+    for ext in ["png", "svg"] {
+        let p = dir.join(format!("plot.{ext}"));
+        assert!(std::fs::metadata(&p).map(|m| m.len() > 1000).unwrap_or(false), "{}", p.display());
+    }
+}
