@@ -67,7 +67,11 @@ pub fn compare(ours: &[Hit], oracle: &[OracleHit], query: Query) -> ErrorStats {
 /// Root-mean-square difference of two RGB8 images, in [0, 1].
 pub fn rmse(a: &[u8], b: &[u8]) -> f64 {
     assert_eq!(a.len(), b.len());
-    let sum: f64 = a.iter().zip(b).map(|(x, y)| ((*x as f64 - *y as f64) / 255.0).powi(2)).sum();
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| ((*x as f64 - *y as f64) / 255.0).powi(2))
+        .sum();
     (sum / a.len().max(1) as f64).sqrt()
 }
 
@@ -89,15 +93,26 @@ mod tests {
     /// the hits, misses and `t` are known exactly.
     fn quad_and_grid() -> (Vec<[Vec3; 3]>, Vec<Ray>, usize) {
         let tris = vec![
-            [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(1.0, 1.0, 0.0)],
-            [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)],
+            [
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(1.0, 0.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+            ],
+            [
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+                Vec3::new(0.0, 1.0, 0.0),
+            ],
         ];
         let mut rays = Vec::new();
         let mut inside = 0;
         for j in 0..64 {
             for i in 0..64 {
                 // Cell centres, none exactly on the quad's border.
-                let (x, y) = (-0.5 + (i as f32 + 0.5) / 32.0, -0.5 + (j as f32 + 0.5) / 32.0);
+                let (x, y) = (
+                    -0.5 + (i as f32 + 0.5) / 32.0,
+                    -0.5 + (j as f32 + 0.5) / 32.0,
+                );
                 if (0.0..=1.0).contains(&x) && (0.0..=1.0).contains(&y) {
                     inside += 1;
                 }
@@ -116,7 +131,13 @@ mod tests {
         assert_eq!(o.iter().filter(|h| h.is_hit()).count(), inside);
         assert!(o.iter().filter(|h| h.is_hit()).all(|h| h.t == 2.0));
         let s = compare(&ours, &o, Query::Closest);
-        assert_eq!(s, ErrorStats { sample: 4096, ..Default::default() });
+        assert_eq!(
+            s,
+            ErrorStats {
+                sample: 4096,
+                ..Default::default()
+            }
+        );
         assert_eq!(s.error_rate(), 0.0);
     }
 
@@ -134,7 +155,12 @@ mod tests {
             ours[i] = Hit::miss(f32::INFINITY);
         }
         for &i in &miss_idx[..5] {
-            ours[i] = Hit { t: 2.0, prim: 0, u: 0.0, v: 0.0 };
+            ours[i] = Hit {
+                t: 2.0,
+                prim: 0,
+                u: 0.0,
+                v: 0.0,
+            };
         }
         for &i in &hit_idx[7..10] {
             ours[i].prim ^= 1;

@@ -11,7 +11,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::oracle::{self, OracleHit};
-use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, Traversal, Triangle, trace_batch};
+use bvhtrace_core::{
+    BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, Traversal, Triangle, trace_batch,
+};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -36,7 +38,11 @@ pub enum RayKind {
 
 impl RayKind {
     fn query(self) -> Query {
-        if self == RayKind::Shadow { Query::Any } else { Query::Closest }
+        if self == RayKind::Shadow {
+            Query::Any
+        } else {
+            Query::Closest
+        }
     }
     fn name(self) -> &'static str {
         match self {
@@ -131,11 +137,19 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
 
 /// Builder variants: the four builders, then SAH with other bin counts.
 fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
-    let mut v: Vec<(String, BuildOptions)> =
-        BuilderKind::ALL.iter().map(|&b| (b.name().to_string(), BuildOptions::with_builder(b))).collect();
+    let mut v: Vec<(String, BuildOptions)> = BuilderKind::ALL
+        .iter()
+        .map(|&b| (b.name().to_string(), BuildOptions::with_builder(b)))
+        .collect();
     let _ = full;
     for b in [4, 8, 16] {
-        v.push(("sah".into(), BuildOptions { bins: b, ..Default::default() }));
+        v.push((
+            "sah".into(),
+            BuildOptions {
+                bins: b,
+                ..Default::default()
+            },
+        ));
     }
     v
 }
@@ -156,14 +170,21 @@ struct RaySets {
     diffuse: Vec<Ray>,
 }
 
-fn ray_sets(tris: &[Triangle], bvh: &FlatBvh, cam: &bvhtrace_scene::Camera, w: u32, h: u32) -> RaySets {
+fn ray_sets(
+    tris: &[Triangle],
+    bvh: &FlatBvh,
+    cam: &bvhtrace_scene::Camera,
+    w: u32,
+    h: u32,
+) -> RaySets {
     let primary = cam.rays(w, h);
     let hits = trace_batch(bvh, &primary, Traversal::FullStack, Query::Closest);
     let (_, right, up) = cam.basis();
     let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
     let b = bvh.bounds();
     let diag = (b.max - b.min).length();
-    let (shadow, _) = shade::secondary_rays(shade::Shade::Diffuse, tris, &primary, &hits, light, 1, diag);
+    let (shadow, _) =
+        shade::secondary_rays(shade::Shade::Diffuse, tris, &primary, &hits, light, 1, diag);
     let mut diffuse = Vec::new();
     for (i, (r, h)) in primary.iter().zip(&hits).enumerate() {
         if h.is_hit() {
@@ -173,7 +194,11 @@ fn ray_sets(tris: &[Triangle], bvh: &FlatBvh, cam: &bvhtrace_scene::Camera, w: u
             diffuse.push(Ray::new(o, shade::cosine_dir(n, i as u32, 0)));
         }
     }
-    RaySets { primary, shadow, diffuse }
+    RaySets {
+        primary,
+        shadow,
+        diffuse,
+    }
 }
 
 /// Evenly spaced sample of at most `n` indices.
@@ -183,7 +208,9 @@ fn sample_indices(len: usize, n: usize) -> Vec<usize> {
 }
 
 fn oracle_answers(tris: &[Triangle], rays: &[Ray]) -> Vec<OracleHit> {
-    rays.par_iter().map(|r| oracle::closest_hit(tris, r)).collect()
+    rays.par_iter()
+        .map(|r| oracle::closest_hit(tris, r))
+        .collect()
 }
 
 /// Normal-shaded image from hits (the same mapping as `render --shade normal`).
@@ -192,7 +219,10 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
     for (r, p) in rays.iter().zip(prims) {
         if let Some(t) = tris.get(p as usize) {
             let n = shade::facing_normal(t, Vec3::from(r.dir)) * 0.5 + Vec3::splat(0.5);
-            img.extend(n.to_array().map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
+            img.extend(
+                n.to_array()
+                    .map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8),
+            );
         } else {
             img.extend(shade::BACKGROUND);
         }
@@ -203,7 +233,12 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
 /// `bvhtrace bench`.
 pub fn bench(args: BenchArgs) -> Result<()> {
     let quick = args.quick;
-    let (w, h) = parse_size(args.size.as_deref().unwrap_or(if quick { "160x120" } else { "512x384" }))?;
+    let (w, h) =
+        parse_size(
+            args.size
+                .as_deref()
+                .unwrap_or(if quick { "160x120" } else { "512x384" }),
+        )?;
     let sample_n = args.sample.unwrap_or(if quick { 256 } else { 2048 });
     let runs = args.runs.unwrap_or(if quick { 1 } else { 3 });
     let (iw, ih) = if quick { (48, 36) } else { (96, 72) };
@@ -227,15 +262,22 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 let stem = if specs.len() == 1 {
                     prefix.display().to_string()
                 } else {
-                    let name = std::path::Path::new(s.split('#').next().unwrap_or(s)).file_stem().map_or("scene".into(), |n| n.to_string_lossy().to_string());
+                    let name = std::path::Path::new(s.split('#').next().unwrap_or(s))
+                        .file_stem()
+                        .map_or("scene".into(), |n| n.to_string_lossy().to_string());
                     format!("{}-{}", prefix.display(), name.replace(':', "_"))
                 };
-                (PathBuf::from(format!("{stem}.png")), PathBuf::from(format!("{stem}.svg")))
+                (
+                    PathBuf::from(format!("{stem}.png")),
+                    PathBuf::from(format!("{stem}.svg")),
+                )
             })
             .collect(),
     };
-    let plot_files: Vec<(AtomicFile, AtomicFile)> =
-        plot_paths.iter().map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?))).collect::<Result<_>>()?;
+    let plot_files: Vec<(AtomicFile, AtomicFile)> = plot_paths
+        .iter()
+        .map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?)))
+        .collect::<Result<_>>()?;
 
     let gpu_ctx = if args.backends.iter().any(|b| b == "gpu") {
         match bvhtrace_gpu::GpuContext::new(match &args.adapter {
@@ -252,7 +294,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         None
     };
     if let Some(c) = &gpu_ctx {
-        eprintln!("GPU: {} ({:?})", c.adapter_info().name, c.adapter_info().device_type);
+        eprintln!(
+            "GPU: {} ({:?})",
+            c.adapter_info().name,
+            c.adapter_info().device_type
+        );
     }
     eprintln!("CPU: {} threads", rayon::current_num_threads());
 
@@ -261,14 +307,23 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     for spec in specs {
         let t0 = Instant::now();
         let scene = bvhtrace_scene::load(&spec)?;
-        let tris = scene.flatten().triangles().with_context(|| format!("{spec}: bad geometry"))?;
+        let tris = scene
+            .flatten()
+            .triangles()
+            .with_context(|| format!("{spec}: bad geometry"))?;
         let cam = scene.camera_or_frame(w as f32 / h as f32);
         let reference = FlatBvh::build(&tris, &BuildOptions::default())?;
         let sets = ray_sets(&tris, &reference, &cam, w, h);
-        let kinds = [(RayKind::Primary, &sets.primary), (RayKind::Shadow, &sets.shadow), (RayKind::Diffuse, &sets.diffuse)];
+        let kinds = [
+            (RayKind::Primary, &sets.primary),
+            (RayKind::Shadow, &sets.shadow),
+            (RayKind::Diffuse, &sets.diffuse),
+        ];
         // The oracle, once per ray kind, on the sample; and the oracle's small image.
         let pb_oracle = ProgressBar::new_spinner();
-        pb_oracle.set_message(format!("{spec}: f64 oracle on {sample_n} rays per kind and a {iw}x{ih} image"));
+        pb_oracle.set_message(format!(
+            "{spec}: f64 oracle on {sample_n} rays per kind and a {iw}x{ih} image"
+        ));
         pb_oracle.enable_steady_tick(std::time::Duration::from_millis(200));
         let samples: Vec<(Vec<usize>, Vec<OracleHit>)> = kinds
             .iter()
@@ -283,19 +338,33 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let img_oracle = oracle_answers(&tris, &img_rays);
         let ref_img = normal_image(&tris, &img_rays, img_oracle.iter().map(|o| o.prim));
         pb_oracle.finish_and_clear();
-        eprintln!("{spec}: {} triangles; rays: {} primary, {} shadow, {} diffuse; setup {:.1} s", tris.len(), sets.primary.len(), sets.shadow.len(), sets.diffuse.len(), t0.elapsed().as_secs_f64());
+        eprintln!(
+            "{spec}: {} triangles; rays: {} primary, {} shadow, {} diffuse; setup {:.1} s",
+            tris.len(),
+            sets.primary.len(),
+            sets.shadow.len(),
+            sets.diffuse.len(),
+            t0.elapsed().as_secs_f64()
+        );
 
         // The configurations.
         let builders = builder_configs(args.full);
         let mut plan: Vec<(usize, Traversal, &str, RayKind)> = Vec::new();
-        let backends: Vec<&str> = args.backends.iter().map(|s| s.as_str()).filter(|b| *b == "cpu" || gpu_ctx.is_some()).collect();
+        let backends: Vec<&str> = args
+            .backends
+            .iter()
+            .map(|s| s.as_str())
+            .filter(|b| *b == "cpu" || gpu_ctx.is_some())
+            .collect();
         for (bi, _) in builders.iter().enumerate() {
             for &tr in &TRAVERSALS {
                 for &be in &backends {
                     for (kind, _) in &kinds {
                         // Sweeps: every builder on primary rays with the default traversal;
                         // every traversal and ray kind with the default builder.
-                        let keep = args.full || bi == 0 || (tr == Traversal::Stackless && *kind == RayKind::Primary);
+                        let keep = args.full
+                            || bi == 0
+                            || (tr == Traversal::Stackless && *kind == RayKind::Primary);
                         if keep {
                             plan.push((bi, tr, be, *kind));
                         }
@@ -304,8 +373,13 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             }
         }
         let pb = ProgressBar::new(plan.len() as u64);
-        pb.set_style(ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-        let mut built: Vec<Option<(FlatBvh, f64, Option<bvhtrace_gpu::GpuBvh>)>> = (0..builders.len()).map(|_| None).collect();
+        pb.set_style(
+            ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        let mut built: Vec<Option<(FlatBvh, f64, Option<bvhtrace_gpu::GpuBvh>)>> =
+            (0..builders.len()).map(|_| None).collect();
         let mut scene_rows = Vec::new();
         for (bi, tr, be, kind) in plan {
             let (bname, bopts) = &builders[bi];
@@ -320,17 +394,28 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 }
                 let bvh = bvh.context("no build")?;
                 let gpu = match &gpu_ctx {
-                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(c, &bvh, &bvhtrace_gpu::UploadOptions::all())?),
+                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(
+                        c,
+                        &bvh,
+                        &bvhtrace_gpu::UploadOptions::all(),
+                    )?),
                     None => None,
                 };
                 built[bi] = Some((bvh, median(times), gpu));
             }
-            let Some((bvh, build_ms, gpu)) = built[bi].as_ref() else { continue };
+            let Some((bvh, build_ms, gpu)) = built[bi].as_ref() else {
+                continue;
+            };
             let tracer = match (be, gpu) {
                 ("gpu", Some(g)) => Tracer::GpuRef(g),
                 _ => Tracer::Cpu(bvh),
             };
-            let (kind_idx, rays) = kinds.iter().enumerate().find(|(_, k)| k.0 == kind).map(|(i, k)| (i, k.1)).context("ray kind")?;
+            let (kind_idx, rays) = kinds
+                .iter()
+                .enumerate()
+                .find(|(_, k)| k.0 == kind)
+                .map(|(i, k)| (i, k.1))
+                .context("ray kind")?;
             let q = kind.query();
             // Warm-up (pipeline creation, caches), then timed runs.
             let counted = tracer.trace(rays, tr, q, true)?;
@@ -352,7 +437,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let (image_rmse, image_flip) = if kind == RayKind::Primary {
                 let t = tracer.trace(&img_rays, tr, Query::Closest, false)?;
                 let img = normal_image(&tris, &img_rays, t.hits.iter().map(|h| h.prim));
-                (Some(accuracy::rmse(&ref_img, &img)), Some(accuracy::flip(&ref_img, &img, iw, ih)))
+                (
+                    Some(accuracy::rmse(&ref_img, &img)),
+                    Some(accuracy::flip(&ref_img, &img, iw, ih)),
+                )
             } else {
                 (None, None)
             };
@@ -388,7 +476,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             pb.inc(1);
         }
         pb.finish_and_clear();
-        print_table(&scene_rows);
+        print_table(&scene_rows, args.json.as_deref() == Some("-"));
         if let Some((png, svg)) = plots.next() {
             crate::plot::error_vs_time(&spec, &scene_rows, png, svg)?;
         }
@@ -407,17 +495,41 @@ pub fn bench(args: BenchArgs) -> Result<()> {
 }
 
 fn fmt_err(x: f64) -> String {
-    if x == 0.0 { "0".into() } else { format!("{x:.1e}") }
+    if x == 0.0 {
+        "0".into()
+    } else {
+        format!("{x:.1e}")
+    }
 }
 
-fn print_table(rows: &[Row]) {
-    println!(
+fn print_table(rows: &[Row], to_stderr: bool) {
+    let mut out = String::new();
+    out += &format!(
         "\n{:9} {:5} {:15} {:4} {:8} {:14} {:>8} {:>9} {:>8} {:>6} {:>5} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
-        "builder", "bins", "traversal", "bknd", "rays", "precision", "build ms", "trace ms", "Mrays/s", "nodes", "tris", "bytes",
-        "sample", "wrong", "fmiss", "fhit", "t med", "t max", "img rmse", "img FLIP"
+        "builder",
+        "bins",
+        "traversal",
+        "bknd",
+        "rays",
+        "precision",
+        "build ms",
+        "trace ms",
+        "Mrays/s",
+        "nodes",
+        "tris",
+        "bytes",
+        "sample",
+        "wrong",
+        "fmiss",
+        "fhit",
+        "t med",
+        "t max",
+        "img rmse",
+        "img FLIP"
     );
+    out.push('\n');
     for r in rows {
-        println!(
+        out += &format!(
             "{:9} {:5} {:15} {:4} {:8} {:14} {:>8.1} {:>9.2} {:>8.2} {:>6.1} {:>5.2} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
             r.config.builder,
             r.config.bins,
@@ -440,6 +552,12 @@ fn print_table(rows: &[Row]) {
             r.image_rmse.map_or("-".into(), fmt_err),
             r.image_flip.map_or("-".into(), fmt_err),
         );
+        out.push('\n');
+    }
+    if to_stderr {
+        eprint!("{out}");
+    } else {
+        print!("{out}");
     }
 }
 
@@ -451,10 +569,29 @@ fn to_csv(rows: &[Row]) -> String {
         let c = &r.config;
         s += &format!(
             "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
-            r.scene, c.builder, c.bins, c.traversal, c.backend, c.rays.name(), c.precision, r.ray_count, r.build_ms, r.trace_ms,
-            r.mrays_per_s, r.nodes_per_ray, r.tris_per_ray, r.bytes, r.error.sample, r.error.wrong_prim, r.error.false_misses,
-            r.error.false_hits, r.error.t_rel_median, r.error.t_rel_max, r.error_rate,
-            r.image_rmse.map_or(String::new(), |x| x.to_string()), r.image_flip.map_or(String::new(), |x| x.to_string())
+            r.scene,
+            c.builder,
+            c.bins,
+            c.traversal,
+            c.backend,
+            c.rays.name(),
+            c.precision,
+            r.ray_count,
+            r.build_ms,
+            r.trace_ms,
+            r.mrays_per_s,
+            r.nodes_per_ray,
+            r.tris_per_ray,
+            r.bytes,
+            r.error.sample,
+            r.error.wrong_prim,
+            r.error.false_misses,
+            r.error.false_hits,
+            r.error.t_rel_median,
+            r.error.t_rel_max,
+            r.error_rate,
+            r.image_rmse.map_or(String::new(), |x| x.to_string()),
+            r.image_flip.map_or(String::new(), |x| x.to_string())
         );
     }
     s

@@ -12,7 +12,10 @@ const FLOOR: f64 = 1e-9;
 /// Registers DejaVu Sans (from the system, `fonts-dejavu-core`) for the PNG's text.
 /// Returns false when no font is found: the PNG is then drawn without text.
 fn register_font() -> bool {
-    const PATHS: [&str; 2] = ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
+    const PATHS: [&str; 2] = [
+        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+        "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    ];
     static ONCE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ONCE.get_or_init(|| {
         PATHS.iter().any(|p| {
@@ -29,7 +32,10 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<usize> {
     (0..points.len())
         .filter(|&i| {
             !points.iter().enumerate().any(|(j, q)| {
-                j != i && q.0 <= points[i].0 && q.1 <= points[i].1 && (q.0 < points[i].0 || q.1 < points[i].1)
+                j != i
+                    && q.0 <= points[i].0
+                    && q.1 <= points[i].1
+                    && (q.0 < points[i].0 || q.1 < points[i].1)
             })
         })
         .collect()
@@ -37,27 +43,57 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<usize> {
 
 fn label(r: &Row) -> String {
     let c = &r.config;
-    let b = if c.builder == "sah" && c.bins != 32 { format!("sah{}", c.bins) } else { c.builder.clone() };
-    format!("{b}/{}/{}/{}", c.traversal, c.backend, c.precision.trim_end_matches("-f32"))
+    let b = if c.builder == "sah" && c.bins != 32 {
+        format!("sah{}", c.bins)
+    } else {
+        c.builder.clone()
+    };
+    format!(
+        "{b}/{}/{}/{}",
+        c.traversal,
+        c.backend,
+        c.precision.trim_end_matches("-f32")
+    )
 }
 
-fn draw<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, title: &str, rows: &[Row], text: bool) -> Result<()>
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    rows: &[Row],
+    text: bool,
+) -> Result<()>
 where
     DB::ErrorType: 'static,
 {
     let err = |e: DrawingAreaErrorKind<DB::ErrorType>| anyhow!("plotting failed: {e}");
     root.fill(&WHITE).map_err(err)?;
     // x: nanoseconds per ray; y: the headline error.
-    let pts: Vec<(f64, f64)> = rows.iter().map(|r| (1e6 * r.trace_ms / r.ray_count.max(1) as f64, r.error.headline().max(FLOOR))).collect();
-    let (xmin, xmax) = pts.iter().fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let pts: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| {
+            (
+                1e6 * r.trace_ms / r.ray_count.max(1) as f64,
+                r.error.headline().max(FLOOR),
+            )
+        })
+        .collect();
+    let (xmin, xmax) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
     let ymax = pts.iter().fold(FLOOR * 10.0, |a, p| a.max(p.1));
     let mut chart = ChartBuilder::on(&root);
     chart.margin(20);
     if text {
-        chart.caption(title, ("sans-serif", 20)).x_label_area_size(40).y_label_area_size(70);
+        chart
+            .caption(title, ("sans-serif", 20))
+            .x_label_area_size(40)
+            .y_label_area_size(70);
     }
     let mut chart = chart
-        .build_cartesian_2d((xmin * 0.8..xmax * 1.25).log_scale(), (FLOOR * 0.5..ymax * 2.0).log_scale())
+        .build_cartesian_2d(
+            (xmin * 0.8..xmax * 1.25).log_scale(),
+            (FLOOR * 0.5..ymax * 2.0).log_scale(),
+        )
         .map_err(err)?;
     if text {
         chart
@@ -75,19 +111,28 @@ where
     for (r, p) in rows.iter().zip(&pts) {
         let c = colour(r.config.rays);
         if r.config.backend == "gpu" {
-            chart.draw_series(std::iter::once(TriangleMarker::new(*p, 6, c.filled()))).map_err(err)?;
+            chart
+                .draw_series(std::iter::once(TriangleMarker::new(*p, 6, c.filled())))
+                .map_err(err)?;
         } else {
-            chart.draw_series(std::iter::once(Circle::new(*p, 4, c.filled()))).map_err(err)?;
+            chart
+                .draw_series(std::iter::once(Circle::new(*p, 4, c.filled())))
+                .map_err(err)?;
         }
     }
     // One Pareto front per ray kind: the kinds are different workloads.
     for kind in [RayKind::Primary, RayKind::Shadow, RayKind::Diffuse] {
-        let ids: Vec<usize> = (0..rows.len()).filter(|&i| rows[i].config.rays == kind).collect();
+        let ids: Vec<usize> = (0..rows.len())
+            .filter(|&i| rows[i].config.rays == kind)
+            .collect();
         let sub: Vec<(f64, f64)> = ids.iter().map(|&i| pts[i]).collect();
         let mut front: Vec<usize> = pareto(&sub).into_iter().map(|k| ids[k]).collect();
         front.sort_by(|&a, &b| pts[a].0.total_cmp(&pts[b].0));
         chart
-            .draw_series(LineSeries::new(front.iter().map(|&i| pts[i]), colour(kind).stroke_width(2)))
+            .draw_series(LineSeries::new(
+                front.iter().map(|&i| pts[i]),
+                colour(kind).stroke_width(2),
+            ))
             .map_err(err)?;
         if text {
             for &i in &front {
@@ -130,14 +175,26 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
     {
         let text = register_font();
         if !text {
-            eprintln!("note: no DejaVu Sans font found (apt-get install fonts-dejavu-core): the PNG plot has no text; the SVG has");
+            eprintln!(
+                "note: no DejaVu Sans font found (apt-get install fonts-dejavu-core): the PNG plot has no text; the SVG has"
+            );
         }
         let mut buf = vec![0u8; (w * h * 3) as usize];
-        draw(BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area(), title, rows, text)?;
+        draw(
+            BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area(),
+            title,
+            rows,
+            text,
+        )?;
         crate::output::write_png(png, w, h, buf)?;
     }
     let mut s = String::new();
-    draw(SVGBackend::with_string(&mut s, (w, h)).into_drawing_area(), title, rows, true)?;
+    draw(
+        SVGBackend::with_string(&mut s, (w, h)).into_drawing_area(),
+        title,
+        rows,
+        true,
+    )?;
     svg.finish_with_bytes(s.as_bytes())
 }
 
@@ -145,7 +202,14 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
 mod tests {
     #[test]
     fn pareto_front_keeps_only_undominated_points() {
-        let pts = [(1.0, 5.0), (2.0, 1.0), (3.0, 1.0), (0.5, 10.0), (2.0, 3.0), (4.0, 0.5)];
+        let pts = [
+            (1.0, 5.0),
+            (2.0, 1.0),
+            (3.0, 1.0),
+            (0.5, 10.0),
+            (2.0, 3.0),
+            (4.0, 0.5),
+        ];
         assert_eq!(super::pareto(&pts), vec![0, 1, 3, 5]);
     }
 }

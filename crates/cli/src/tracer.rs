@@ -60,7 +60,11 @@ impl<'a> Tracer<'a> {
 
     /// `"cpu"` or `"gpu"`.
     pub fn backend(&self) -> &'static str {
-        if self.gpu_bvh().is_some() { "gpu" } else { "cpu" }
+        if self.gpu_bvh().is_some() {
+            "gpu"
+        } else {
+            "cpu"
+        }
     }
 
     /// The adapter's name, or the CPU's thread count.

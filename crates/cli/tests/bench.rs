@@ -10,8 +10,17 @@ fn bench_quick_writes_every_output_and_watertight_never_leaks() {
     let csv = dir.join("b.csv");
     let plot = dir.join("plot");
     let out = run(&[
-        "bench", "builtin:icosphere:3", "--quick", "--backends", "cpu", "--json", "-",
-        "--csv", csv.to_str().unwrap(), "--plot", plot.to_str().unwrap(),
+        "bench",
+        "builtin:icosphere:3",
+        "--quick",
+        "--backends",
+        "cpu",
+        "--json",
+        "-",
+        "--csv",
+        csv.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
     ]);
     assert!(out.status.success());
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON rows");
@@ -21,7 +30,10 @@ fn bench_quick_writes_every_output_and_watertight_never_leaks() {
         assert!(r["trace_ms"].as_f64().unwrap() > 0.0);
         assert!(r["sample"].as_u64().unwrap() > 0);
         if r["precision"] == "watertight-f32" {
-            assert_eq!(r["false_misses"], 0, "watertight leaked on a closed mesh: {r}");
+            assert_eq!(
+                r["false_misses"], 0,
+                "watertight leaked on a closed mesh: {r}"
+            );
         }
     }
     let text = std::fs::read_to_string(&csv).unwrap();
@@ -29,6 +41,12 @@ fn bench_quick_writes_every_output_and_watertight_never_leaks() {
     assert!(text.starts_with("scene,builder,bins,traversal,backend,rays,precision"));
     for ext in ["png", "svg"] {
         let p = dir.join(format!("plot.{ext}"));
-        assert!(std::fs::metadata(&p).map(|m| m.len() > 1000).unwrap_or(false), "{}", p.display());
+        assert!(
+            std::fs::metadata(&p)
+                .map(|m| m.len() > 1000)
+                .unwrap_or(false),
+            "{}",
+            p.display()
+        );
     }
 }
