@@ -3,6 +3,11 @@
 // `intersect::BOX_TFAR_SCALE` = 1 + 2 gamma(3) (the f32 nearest 1.0000004, bits 0x3f800003).
 const BOX_TFAR_SCALE: f32 = 1.0000004f;
 
+// `intersect::BOX_CULL_SLACK` = 32 u = 2^-19: the running best `t` is widened by this
+// times the larger magnitude of the box's slab distances along the dominant axis `kz`
+// (the error analysis is on the Rust constant). The ray's own `t_max` is never widened.
+const BOX_CULL_SLACK: f32 = 1.9073486328125e-6f;
+
 // The CPU's `fmin`/`fmax`: `if a < b { a } else { b }` (and `>`), not IEEE minNum.
 fn fmin(a: f32, b: f32) -> f32 {
     return select(b, a, a < b);
@@ -12,9 +17,11 @@ fn fmax(a: f32, b: f32) -> f32 {
     return select(b, a, a > b);
 }
 
-// Entry and exit distances of the ray's `[t_min, t_max]` through the box; the box is hit
-// when `x <= y` (see `box_hit`). The entry distance orders the full-stack walk.
-fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_max: f32) -> vec2<f32> {
+// Entry and exit distances of the ray's `[t_min, t_best]` through the box, the far end
+// widened for culling to `min(t_best + BOX_CULL_SLACK * m, r.t_max)`; the box is hit when
+// `x <= y` (see `box_hit`). `t_best` is the best hit's `t`, or `t_max` before any hit.
+// The entry distance orders the full-stack walk.
+fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best: f32) -> vec2<f32> {
     var t0 = (bmin - r.org) * r.inv_dir;
     var t1 = (bmax - r.org) * r.inv_dir;
     if (r.parallel) {
@@ -30,9 +37,12 @@ fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_max: f32) -
         fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
         fmax(fmin(t0.z, t1.z), r.t_min),
     );
+    // `fmin` returns its second operand when the first is NaN: a NaN never culls.
+    let m = fmax(abs(component(t0, r.kz)), abs(component(t1, r.kz)));
+    let limit = fmin(t_best + BOX_CULL_SLACK * m, r.t_max);
     let tfar = fmin(
         fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
-        fmin(fmax(t0.z, t1.z), t_max),
+        fmin(fmax(t0.z, t1.z), limit),
     ) * BOX_TFAR_SCALE;
     return vec2<f32>(tnear, tfar);
 }

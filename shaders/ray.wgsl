@@ -12,6 +12,8 @@ struct PreparedRay {
     // Some direction component is zero: `intersect_box` takes its general path.
     parallel: bool,
     t_min: f32,
+    // The ray's own `t_max`: the cap of the widened culling bound (`box.wgsl`).
+    t_max: f32,
     kx: u32,
     ky: u32,
     kz: u32,
@@ -98,6 +100,7 @@ fn prepare_ray(ray: Ray) -> PreparedRay {
     p.inv_dir = vec3<f32>(safe_inverse(d.x), safe_inverse(d.y), safe_inverse(d.z));
     p.parallel = d.x == 0.0 || d.y == 0.0 || d.z == 0.0;
     p.t_min = ray.t_min;
+    p.t_max = ray.t_max;
     p.kx = kx;
     p.ky = ky;
     p.kz = kz;

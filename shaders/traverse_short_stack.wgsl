@@ -1,11 +1,18 @@
 // traverse_short_stack.wgsl: twin of `bvhtrace_core::traverse::short_stack`.
 //
-// A ring buffer of `k` far-child entries (Hapala et al. 2011 with a short stack). Each node
-// is tested when it is visited; an interior node sends the walk to its near child (by the
-// sign of the ray's direction along the split axis) and pushes the far one, overwriting the
-// oldest entry when the ring is full. When the ring runs dry after an overflow, the walk
-// climbs the parent links from the last node to the first ancestor entered from its near
-// side and continues with that ancestor's far child: exactly the dropped subtrees, in order.
+// A ring buffer of `k` far-child entries (Hapala et al. 2011 with a short stack). As in
+// the full stack, an interior node's two children are tested at the node, but taken in a
+// deterministic near/far order (the sign of the ray's direction along the split axis): the
+// near child when it is hit, the far one pushed when both are (overwriting the oldest entry
+// when the ring is full). A popped node is not tested again. When the ring runs dry after
+// an overflow, the walk climbs the parent links to the first ancestor it entered from the
+// near side while the far child was hit, re-tests that far child and continues there when
+// it is still hit: exactly the dropped subtrees, in order.
+//
+// A 32-bit trail (bit `i`: the ancestor `i + 1` levels up left its far child pending) lets
+// the climb skip the other ancestors without a box test and ends the walk as soon as it is
+// empty. Bits more than 32 levels up are lost and shifted back in as set; after a pop from
+// the ring, the trail above the popped node is unknown and taken as all set.
 //
 // `k == 0` is the stackless walk: nothing is ever pushed and every subtree ends in a climb.
 // There is no separate stackless kernel: it is this function specialised with k = 0 (the
@@ -23,6 +30,16 @@ fn near_far(r: PreparedRay, index: u32, links: vec2<u32>) -> vec2<u32> {
     return vec2<u32>(rt, l);
 }
 
+// The depth after a pop from the ring, where the trail above the popped node is unknown:
+// at least 32, so that every bit the climb shifts in is set.
+const DEPTH_UNKNOWN: u32 = 0x7fffffffu;
+
+// The trail after a climb of one level to depth `depth`: bits of ancestors more than 32
+// levels up were lost and come back set.
+fn trail_up(trail: u32, depth: u32) -> u32 {
+    return (trail >> 1u) | select(0u, 0x80000000u, depth >= 32u);
+}
+
 fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
     if (!ray_is_traced(ray)) {
         return untraced_result(ray);
@@ -34,29 +51,49 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
     var top = 0u; // next write slot
     var count = 0u; // live entries
     var overflow = false;
+
+    c.nodes += 1u;
+    let root = load_node(0u);
+    if (!box_hit(intersect_box(r, root.min, root.max, best.t))) {
+        return finish(best, c);
+    }
     var node = 0u;
+    var trail = 0u;
+    var depth = 0u; // `node`'s
+    // `visit`: `node`'s box was hit (at its parent, at the root or by the climb), visit it.
+    // Otherwise `node`'s subtree is done.
+    var visit = true;
     loop {
-        let n = load_node(node);
-        c.nodes += 1u;
-        if (box_hit(intersect_box(r, n.min, n.max, best.t))) {
-            if (node_count(n) == 0u) {
-                let nf = near_far(r, node, vec2<u32>(n.right_or_first, n.meta_bits));
-                if (k == 0u) {
-                    overflow = true;
-                } else {
-                    if (count == k) {
-                        overflow = true; // the oldest entry is overwritten
-                    } else {
-                        count += 1u;
-                    }
-                    ring[top] = nf.y;
-                    top = select(top + 1u, 0u, top + 1u == k);
+        if (visit) {
+            let links = load_node_links(node);
+            let leaf_count = links.y >> 2u;
+            if (leaf_count != 0u) {
+                if (visit_leaf(r, links.x, leaf_count, &best, &c, any_hit)) {
+                    break;
                 }
-                node = nf.x;
-                continue;
-            }
-            if (visit_leaf(r, n.right_or_first, node_count(n), &best, &c, any_hit)) {
-                break;
+            } else {
+                let nf = near_far(r, node, links);
+                c.nodes += 2u;
+                let near_node = load_node(nf.x);
+                let far_node = load_node(nf.y);
+                let hit_near = box_hit(intersect_box(r, near_node.min, near_node.max, best.t));
+                let hit_far = box_hit(intersect_box(r, far_node.min, far_node.max, best.t));
+                if (hit_near || hit_far) {
+                    let both = hit_near && hit_far;
+                    trail = (trail << 1u) | select(0u, 1u, both);
+                    depth += 1u;
+                    if (both && k > 0u) {
+                        if (count == k) {
+                            overflow = true; // the oldest entry is overwritten
+                        } else {
+                            count += 1u;
+                        }
+                        ring[top] = nf.y;
+                        top = select(top + 1u, 0u, top + 1u == k);
+                    }
+                    node = select(nf.y, nf.x, hit_near);
+                    continue;
+                }
             }
         }
         // The subtree at `node` is done: take the next pending node.
@@ -64,28 +101,38 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
             top = select(top - 1u, k - 1u, top == 0u);
             count -= 1u;
             node = ring[top];
+            trail = 0xffffffffu;
+            depth = DEPTH_UNKNOWN;
+            visit = true;
             continue;
         }
-        if (!overflow) {
+        if (trail == 0u || (k > 0u && !overflow)) {
             break;
         }
-        // Climb: the first ancestor entered from its near side has its far child pending.
-        var resumed = false;
-        loop {
-            if (node == 0u) {
-                break;
-            }
-            let p = load_parent(node);
-            let nf = near_far(r, p, load_node_links(p));
-            if (node == nf.x) {
-                node = nf.y;
-                resumed = true;
-                break;
-            }
+        // Climb to the nearest ancestor whose bit is set...
+        while ((trail & 1u) == 0u) {
+            depth -= 1u;
+            node = load_parent(node);
+            trail = trail_up(trail, depth);
+        }
+        if (node == 0u) {
+            break;
+        }
+        // ...and go to the parent's far child if `node` is the near one and the far child
+        // is (still) hit; else that parent is done too.
+        let p = load_parent(node);
+        let pnf = near_far(r, p, load_node_links(p));
+        trail &= ~1u;
+        if (node == pnf.x) {
+            c.nodes += 1u;
+            let sib = load_node(pnf.y);
+            visit = box_hit(intersect_box(r, sib.min, sib.max, best.t));
+            node = pnf.y;
+        } else {
+            visit = false;
+            depth -= 1u;
             node = p;
-        }
-        if (!resumed) {
-            break;
+            trail = trail_up(trail, depth);
         }
     }
     return finish(best, c);

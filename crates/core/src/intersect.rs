@@ -13,6 +13,54 @@ use crate::ray::Ray;
 /// rounding, whatever the scene's scale.
 pub const BOX_TFAR_SCALE: f32 = 1.000_000_4;
 
+/// `C u` with `C = 32`, `u = 2^-24` (exactly `2^-19`): when a box is culled against the
+/// running best hit, the best `t` is widened by `BOX_CULL_SLACK * m`, where `m` is the
+/// larger magnitude of the box's two slab distances along the ray's dominant axis `kz`.
+/// The user's `t_max` is never widened.
+///
+/// # Why
+///
+/// The closest hit must not depend on the order in which boxes are visited: a box holding
+/// a triangle whose f32 `t` would win must never be culled against a worse hit found
+/// first. But [`intersect_triangle`]'s `t` can land before its own box's entry distance
+/// by an error proportional to `m`, not to `t` (a large triangle hit close to the ray's
+/// origin: tens of ulps of `t`), far beyond what [`BOX_TFAR_SCALE`] absorbs.
+///
+/// # Error analysis (`γ_n = n u / (1 - n u)`, first order in `u`)
+///
+/// Let the f32 edge functions `u_i` (all of one sign, `det != 0`) define the exact weights
+/// `β_i = u_i / (u_0 + u_1 + u_2)`: `β_i >= 0`, `Σ β_i = 1`. Let `Z_i = A_i[kz] / d[kz]`
+/// (exact) be the corners' distances along the dominant axis. Then:
+///
+/// * `az = sz * a[kz]`: `a[kz]` (one rounding), `sz = 1/d[kz]` (one), the product (one):
+///   `az = Z_0 (1 + θ_3)`, and likewise `bz`, `cz`;
+/// * `T = u az + v bz + w cz`: three products and two sums, `T = Σ u_i Z_i (1 + θ_6)`;
+/// * `det = u + v + w` has no cancellation (one sign): `(Σ u_i)(1 + θ_2)`, so
+///   `1/det = (1 + θ_3) / Σ u_i`, and `t = T * (1/det)` adds one rounding:
+///   `t = Σ β_i Z_i (1 + θ_10)`, i.e. `|t - Σ β_i Z_i| <= γ_10 max |Z_i|`.
+///
+/// `Σ β_i Z_i` is a convex combination of the corners' `kz` distances, which lie in the
+/// box's `kz` slab `[t0[kz], t1[kz]]`: so `max |Z_i| <= m` and, in exact arithmetic, the
+/// `t` reported by a triangle inside the box is at most `γ_10 m` before the box's `kz`
+/// slab. The box's own f32 entry distance is within `γ_3 |t_near| <= γ_3 m` of the exact
+/// one (a hit box's entry lies in its `kz` slab, so `|t_near| <= m`). So a box holding
+/// such a triangle is entered at most `(10 + 3) u m` after the triangle's `t`. Then the
+/// slack itself: `m` and the product round (relative `θ_4`: second order), and the sum
+/// `t_best + slack` rounds once (relative `u`). When the sum is non-negative,
+/// [`BOX_TFAR_SCALE`] absorbs that; when it is negative (hits behind the origin with a
+/// negative `t_min`; then `|t_best| <= m`), the scale shrinks it instead, by up to
+/// `(2 γ_3 + u) m = 7 u m`. Worst case `(13 + 7) u m = 20 u m`: `C = 32`, the next power
+/// of two (an exact f32), whose remaining `12 u m` also absorbs moderate errors of the
+/// weights (below). The box's other slabs agree with `Σ β_i Z_i` only up to the error of
+/// the weights `β_i` themselves (the edge functions' rounding, amplified by `1/det`):
+/// that part has no bound in terms of `m` (edge-on slivers), and it is exactly what
+/// [`crate::oracle::f32_t_error_bound`] and [`crate::oracle::f32_indeterminate`] account
+/// for. So two traversals can return different closest hits only when the f32 test is
+/// indeterminate for one of them, or their `t` are within those bounds of each other.
+///
+/// Culling a box a little later costs nothing measurable (`32 u m` is below `2e-6 m`).
+pub const BOX_CULL_SLACK: f32 = 1.907_348_6e-6; // 2^-19
+
 /// A ray with everything the tests need precomputed once per ray.
 #[derive(Clone, Copy, Debug)]
 pub struct PreparedRay {
@@ -26,6 +74,9 @@ pub struct PreparedRay {
     /// and [`intersect_box`] takes its general path.
     pub parallel: bool,
     pub t_min: f32,
+    /// The ray's own `t_max` (the user's interval end): what [`intersect_box`] culls
+    /// against before any hit, and the cap of the widened best after one.
+    pub t_max: f32,
     /// Watertight test: the dominant axis and the two others (Woop et al. 2013).
     pub kx: usize,
     pub ky: usize,
@@ -94,6 +145,7 @@ impl PreparedRay {
             inv_dir,
             parallel: dir.x == 0.0 || dir.y == 0.0 || dir.z == 0.0,
             t_min: ray.t_min,
+            t_max: ray.t_max,
             kx,
             ky,
             kz,
@@ -113,10 +165,16 @@ fn fmax(a: f32, b: f32) -> f32 {
     if a > b { a } else { b }
 }
 
-/// Conservative slab test. Returns the entry distance when the ray's interval
-/// `[t_min, t_max]` overlaps the box (boundaries included), else `None`.
+/// Conservative slab test against the ray's interval `[t_min, t_best]` widened for culling.
+/// Returns the entry distance when the interval overlaps the box (boundaries included),
+/// else `None`.
+///
+/// `t_best` is the `t` of the best hit so far, or the ray's `t_max` while there is none.
+/// The far end is `min(t_best + BOX_CULL_SLACK * m, r.t_max)` (see [`BOX_CULL_SLACK`]):
+/// so before any hit it is exactly the ray's `t_max`, and after one, a box that may hold a
+/// triangle reporting a `t <= t_best` is kept whatever the order of the visit.
 #[inline(always)]
-pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_max: f32) -> Option<f32> {
+pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_best: f32) -> Option<f32> {
     let mut t0 = (bmin - r.org) * r.inv_dir;
     let mut t1 = (bmax - r.org) * r.inv_dir;
     if r.parallel {
@@ -139,9 +197,13 @@ pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_max: f32) -> Opt
         fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
         fmax(fmin(t0.z, t1.z), r.t_min),
     );
+    // The slack: `m` bounds `|Z_i|` of every corner inside the box. `fmin` returns its
+    // second operand when the first is NaN (`-inf + inf`), so a NaN never culls.
+    let m = fmax(t0[r.kz].abs(), t1[r.kz].abs());
+    let limit = fmin(t_best + BOX_CULL_SLACK * m, r.t_max);
     let tfar = fmin(
         fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
-        fmin(fmax(t0.z, t1.z), t_max),
+        fmin(fmax(t0.z, t1.z), limit),
     ) * BOX_TFAR_SCALE;
     if tnear <= tfar { Some(tnear) } else { None }
 }

@@ -5,7 +5,12 @@
 //! A triangle hit at `t` replaces the current one when `t_min <= t` and either
 //! `t < t_best`, or `t == t_best` and its primitive index is lower. The interval is
 //! `[t_min, t_max)`. So the closest hit is the same whatever order the nodes are visited
-//! in: among exactly tied triangles, the lowest primitive index wins.
+//! in: among exactly tied triangles, the lowest primitive index wins. For that, a box is
+//! culled against the best hit so far only beyond a slack covering how far before the
+//! box's entry a triangle inside it can report its f32 `t` (`intersect::BOX_CULL_SLACK`,
+//! with its error analysis); the ray's own `t_max` is never widened. Two traversals can
+//! then differ only where f32 cannot decide between two triangles (the oracle's
+//! `f32_indeterminate` and `f32_t_error_bound`), which the tests check.
 //!
 //! Any-hit queries stop at the first accepted hit; which triangle that is depends on the
 //! visit order, so only hit/miss is compared across traversals.
@@ -229,7 +234,34 @@ fn full_stack(
     }
 }
 
+/// [`short_stack`]'s depth after a pop from the ring, where the trail's bits above the
+/// popped node are unknown: at least 32, so that every bit the climb shifts in is set.
+const DEPTH_UNKNOWN: u32 = 0x7fff_ffff;
+
+/// The trail after a climb of one level to depth `depth`: the bits of ancestors more than
+/// 32 levels up were lost and come back set.
+#[inline(always)]
+fn trail_up(trail: u32, depth: u32) -> u32 {
+    (trail >> 1) | if depth >= 32 { 1 << 31 } else { 0 }
+}
+
 /// Short stack of `k` entries; `k == 0` is the stackless walk.
+///
+/// Like the full stack, an interior node's two children are tested at the node (one loop
+/// trip, both boxes), but taken in the deterministic near/far order of [`near_far`]: the
+/// near child when it is hit, the far one pushed when both are. A popped node is not
+/// tested again. When the ring overflows, its oldest entry is dropped; when it runs dry
+/// after that (always, for `k == 0`), the walk climbs the parent links to the first
+/// ancestor it entered from the near side while the far child was hit, and re-tests that
+/// far child (it may be culled by now): exactly the dropped subtrees, in order.
+///
+/// A 32-bit trail says where to stop: bit `i` is set when the ancestor `i + 1` levels up
+/// left its far child pending. So the climb skips the ancestors with nothing pending
+/// without a box test, and the walk ends as soon as the trail is empty, without climbing
+/// back to the root. The bits of ancestors more than 32 levels up are shifted out; the
+/// climb shifts in set bits for them (an ancestor with a set bit whose far child is done,
+/// or was never hit, costs a re-test or a step, never a wrong answer). After a pop from the
+/// ring the trail above the popped node is unknown and is taken as all set.
 fn short_stack(
     bvh: &FlatBvh,
     r: &PreparedRay,
@@ -241,30 +273,45 @@ fn short_stack(
     let mut ring = [0u32; MAX_SHORT_STACK as usize];
     let (mut top, mut count) = (0u32, 0u32); // next write slot, live entries
     let mut overflow = false;
+    c.nodes += 1;
+    let (lo, hi) = node_box(&bvh.nodes[0]);
+    if intersect_box(r, lo, hi, best.t).is_none() {
+        return;
+    }
     let mut node = 0u32;
-    'walk: loop {
-        let n = &bvh.nodes[node as usize];
-        c.nodes += 1;
-        let (lo, hi) = node_box(n);
-        if intersect_box(r, lo, hi, best.t).is_some() {
-            if !n.is_leaf() {
-                let (near, far) = near_far(r, node, n);
-                if k == 0 {
-                    overflow = true;
-                } else {
-                    if count == k {
-                        overflow = true; // the oldest entry is overwritten
-                    } else {
-                        count += 1;
-                    }
-                    ring[top as usize] = far;
-                    top = if top + 1 == k { 0 } else { top + 1 };
+    let (mut trail, mut depth) = (0u32, 0u32); // `node`'s depth
+    // `visit`: `node`'s box was hit (at its parent, at the root or by the climb), visit it.
+    // Otherwise `node`'s subtree is done.
+    let mut visit = true;
+    loop {
+        if visit {
+            let n = &bvh.nodes[node as usize];
+            if n.is_leaf() {
+                if visit_leaf(bvh, r, n, best, c, any) {
+                    return;
                 }
-                node = near;
-                continue;
-            }
-            if visit_leaf(bvh, r, n, best, c, any) {
-                return;
+            } else {
+                let (near, far) = near_far(r, node, n);
+                c.nodes += 2;
+                let (nlo, nhi) = node_box(&bvh.nodes[near as usize]);
+                let (flo, fhi) = node_box(&bvh.nodes[far as usize]);
+                let hit_near = intersect_box(r, nlo, nhi, best.t).is_some();
+                let hit_far = intersect_box(r, flo, fhi, best.t).is_some();
+                if hit_near || hit_far {
+                    trail = (trail << 1) | u32::from(hit_near && hit_far);
+                    depth += 1;
+                    if hit_near && hit_far && k > 0 {
+                        if count == k {
+                            overflow = true; // the oldest entry is overwritten
+                        } else {
+                            count += 1;
+                        }
+                        ring[top as usize] = far;
+                        top = if top + 1 == k { 0 } else { top + 1 };
+                    }
+                    node = if hit_near { near } else { far };
+                    continue;
+                }
             }
         }
         // The subtree at `node` is done: take the next pending node.
@@ -272,24 +319,38 @@ fn short_stack(
             top = if top == 0 { k - 1 } else { top - 1 };
             count -= 1;
             node = ring[top as usize];
+            (trail, depth) = (u32::MAX, DEPTH_UNKNOWN);
+            visit = true;
             continue;
         }
-        if !overflow {
+        if trail == 0 || (k > 0 && !overflow) {
             return;
         }
-        // Climb: the first ancestor entered from its near side has its far child pending.
-        loop {
-            if node == 0 {
-                return;
-            }
-            let p = bvh.parents[node as usize];
-            let pn = &bvh.nodes[p as usize];
-            let (near, far) = near_far(r, p, pn);
-            if node == near {
-                node = far;
-                continue 'walk;
-            }
+        // Climb to the nearest ancestor whose bit is set (shifting in set bits for the
+        // ancestors more than 32 levels up, whose bits were lost)...
+        while trail & 1 == 0 {
+            depth -= 1;
+            node = bvh.parents[node as usize];
+            trail = trail_up(trail, depth);
+        }
+        if node == 0 {
+            return;
+        }
+        // ...and go to the parent's far child if `node` is the near one and the far child
+        // is (still) hit; else that parent is done too.
+        let p = bvh.parents[node as usize];
+        let (near, far) = near_far(r, p, &bvh.nodes[p as usize]);
+        trail &= !1;
+        if node == near {
+            c.nodes += 1;
+            let (flo, fhi) = node_box(&bvh.nodes[far as usize]);
+            visit = intersect_box(r, flo, fhi, best.t).is_some();
+            node = far;
+        } else {
+            visit = false;
+            depth -= 1;
             node = p;
+            trail = trail_up(trail, depth);
         }
     }
 }

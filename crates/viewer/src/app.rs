@@ -1,0 +1,1205 @@
+//! The eframe application: the traced image in the central panel, the controls in the side
+//! panel, scene jobs, progressive accumulation, the CPU comparison and screenshot runs.
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use bvhtrace_core::{BuildOptions, BuilderKind, Query, Traversal, traverse::DEFAULT_SHORT_STACK};
+use bvhtrace_gpu::GpuContext;
+use bvhtrace_scene::Camera;
+use eframe::egui::{self, Color32, RichText};
+use eframe::egui_wgpu::RenderState;
+use eframe::wgpu;
+
+use crate::camera;
+use crate::cli::Args;
+use crate::display::Display;
+use crate::jobs::{BuiltBvh, Job, JobOutput, JobRequest, SceneData, Source};
+use crate::shade::{self, Accumulation, Comparison, Shade, View};
+use crate::tracer::{Tracer, cpu_trace};
+
+/// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
+/// when the window was closed before it finished).
+pub type Outcome = Arc<Mutex<Option<Result<String, String>>>>;
+
+/// The largest traced image side, pixels.
+const MAX_SIDE: u32 = 4096;
+
+/// The tracing time per frame that automatic samples per frame aim at, milliseconds.
+pub const FRAME_BUDGET_MS: f64 = 80.0;
+
+/// The three traversal families the UI offers (the short stack's size is separate).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum TraversalKind {
+    Stackless,
+    ShortStack,
+    FullStack,
+}
+
+/// What the user chose in the side panel.
+#[derive(Clone, Debug, PartialEq)]
+struct Settings {
+    builder: BuilderKind,
+    traversal: TraversalKind,
+    short_stack: u32,
+    shade: Shade,
+    heatmap: bool,
+    samples_per_frame: u32,
+    /// Pick the samples per frame from the measured speed to keep frames near
+    /// [`FRAME_BUDGET_MS`].
+    auto_samples: bool,
+    max_samples: u32,
+    render_scale: f32,
+    prefer_cpu: bool,
+}
+
+impl Settings {
+    fn traversal(&self) -> Traversal {
+        match self.traversal {
+            TraversalKind::Stackless => Traversal::Stackless,
+            TraversalKind::ShortStack => Traversal::ShortStack(self.short_stack.clamp(1, 32)),
+            TraversalKind::FullStack => Traversal::FullStack,
+        }
+    }
+
+    fn build_options(&self) -> BuildOptions {
+        BuildOptions {
+            builder: self.builder,
+            ..Default::default()
+        }
+    }
+}
+
+/// Everything the primary pass depends on: when it changes, accumulation restarts.
+#[derive(Clone, Debug, PartialEq)]
+struct PassKey {
+    camera: Camera,
+    size: [u32; 2],
+    shade: Shade,
+    heatmap: bool,
+    traversal: Traversal,
+    prefer_cpu: bool,
+    generation: u64,
+}
+
+/// Timing of the last frame that traced something.
+#[derive(Clone, Debug, Default)]
+struct FrameStats {
+    rays: u64,
+    trace_ms: f64,
+    gpu_ms: Option<f64>,
+    on_gpu: bool,
+    frame_ms: f32,
+}
+
+/// The last comparison with the CPU twin.
+struct CompareView {
+    result: Comparison,
+    gpu_image: bool,
+    traversal: Traversal,
+    cpu_ms: f64,
+    display: Display,
+    open: bool,
+}
+
+/// A screenshot run in progress.
+struct Shot {
+    path: PathBuf,
+    frames: u32,
+    frames_done: u32,
+    requested_at: Option<u32>,
+    image: Arc<Mutex<Option<Arc<egui::ColorImage>>>>,
+}
+
+/// The viewer.
+pub struct ViewerApp {
+    gpu: Option<GpuContext>,
+    render_state: Option<RenderState>,
+    adapter_line: String,
+    /// The device is a CPU driver (lavapipe): its timestamps do not time the kernels.
+    cpu_adapter: bool,
+    scene: Option<Arc<SceneData>>,
+    built: Option<BuiltBvh>,
+    tracer: Option<Tracer>,
+    generation: u64,
+    job: Option<Job>,
+    error: Option<String>,
+    settings: Settings,
+    cam: Camera,
+    pending_camera: Option<Camera>,
+    fly_speed: f32,
+    accum: Option<Accumulation>,
+    key: Option<PassKey>,
+    view: Option<View>,
+    primary_on_gpu: bool,
+    /// Secondary rays traced per millisecond, smoothed (for automatic samples per frame).
+    secondary_rate: Option<f64>,
+    /// Samples the last frame added.
+    last_k: u32,
+    image: Vec<u8>,
+    display: Display,
+    stats: FrameStats,
+    compare: Option<CompareView>,
+    open_text: String,
+    flags_text: String,
+    flags_error: Option<String>,
+    last_aspect: f32,
+    fov_override: Option<f32>,
+    /// A new scene was installed: set its camera on the next central-panel layout.
+    reset_camera: bool,
+    shot: Option<Shot>,
+    compare_pending: bool,
+    image_rect: egui::Rect,
+    outcome: Outcome,
+}
+
+impl ViewerApp {
+    /// Creates the app from eframe's creation context: wraps eframe's wgpu device (the one
+    /// that draws the window) in a [`GpuContext`] for the traversal, and starts loading the
+    /// scene named on the command line.
+    pub fn new(cc: &eframe::CreationContext<'_>, args: &Args, outcome: Outcome) -> ViewerApp {
+        let render_state = cc.wgpu_render_state.clone();
+        let (gpu, adapter_line, cpu_adapter) = match &render_state {
+            Some(rs) => {
+                let info = rs.adapter.get_info();
+                let line = format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend);
+                let cpu = info.device_type == wgpu::DeviceType::Cpu;
+                let ctx = GpuContext::from_device(rs.device.clone(), rs.queue.clone(), info);
+                (Some(ctx), line, cpu)
+            }
+            None => (None, "no wgpu device".to_string(), true),
+        };
+        let traversal = args.traversal;
+        let (kind, k) = match traversal {
+            Traversal::Stackless => (TraversalKind::Stackless, DEFAULT_SHORT_STACK),
+            Traversal::ShortStack(k) => (TraversalKind::ShortStack, k),
+            Traversal::FullStack => (TraversalKind::FullStack, DEFAULT_SHORT_STACK),
+        };
+        let settings = Settings {
+            builder: args.builder,
+            traversal: kind,
+            short_stack: k,
+            shade: args.shade,
+            heatmap: args.heatmap,
+            samples_per_frame: if cpu_adapter { 2 } else { 8 },
+            auto_samples: true,
+            max_samples: 256,
+            render_scale: args.scale.unwrap_or(if cpu_adapter { 0.5 } else { 1.0 }),
+            prefer_cpu: args.cpu,
+        };
+        let pending_camera = match (args.eye, args.target) {
+            (Some(eye), Some(target)) => Some(Camera {
+                eye,
+                target,
+                fov_y_deg: args.fov.unwrap_or(45.0),
+            }),
+            _ => None,
+        };
+        let spec = args
+            .scene
+            .clone()
+            .unwrap_or_else(|| bvhtrace_scene::DEFAULT_SCENE.to_string());
+        let mut app = ViewerApp {
+            gpu,
+            render_state,
+            adapter_line,
+            cpu_adapter,
+            scene: None,
+            built: None,
+            tracer: None,
+            generation: 0,
+            job: None,
+            error: None,
+            settings,
+            cam: Camera::frame(glam::Vec3::splat(-1.0), glam::Vec3::splat(1.0), 1.0),
+            pending_camera,
+            fly_speed: 1.0,
+            accum: None,
+            key: None,
+            view: None,
+            primary_on_gpu: false,
+            secondary_rate: None,
+            last_k: 0,
+            image: Vec::new(),
+            display: Display::default(),
+            stats: FrameStats::default(),
+            compare: None,
+            open_text: spec.clone(),
+            flags_text: String::new(),
+            flags_error: None,
+            last_aspect: args.size.0 as f32 / args.size.1 as f32,
+            fov_override: args.fov,
+            reset_camera: false,
+            shot: args.screenshot.clone().map(|path| Shot {
+                path,
+                frames: args.frames,
+                frames_done: 0,
+                requested_at: None,
+                image: Arc::new(Mutex::new(None)),
+            }),
+            compare_pending: args.compare,
+            image_rect: egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(800.0, 600.0)),
+            outcome,
+        };
+        app.start_job(&cc.egui_ctx, Source::Load(spec));
+        app
+    }
+}
+
+fn axis(i: &egui::InputState, plus: egui::Key, minus: egui::Key) -> f32 {
+    f32::from(u8::from(i.key_down(plus))) - f32::from(u8::from(i.key_down(minus)))
+}
+
+impl ViewerApp {
+    /// Starts loading a scene or rebuilding the current one's BVH on a worker thread. A job
+    /// already running is abandoned (its result is dropped).
+    fn start_job(&mut self, ctx: &egui::Context, source: Source) {
+        let what = match &source {
+            Source::Load(s) => format!("opening {s}"),
+            Source::Reuse(s) => format!("rebuilding the BVH of {}", s.name),
+        };
+        let wake = ctx.clone();
+        self.job = Some(Job::spawn(
+            JobRequest {
+                source,
+                build: self.settings.build_options(),
+                traversal: self.settings.traversal(),
+                gpu: self.gpu.clone(),
+            },
+            what,
+            move || wake.request_repaint(),
+        ));
+    }
+
+    /// Opens a scene spec typed, dropped or given on the command line.
+    fn open(&mut self, ctx: &egui::Context, spec: &str) {
+        let spec = spec.trim();
+        if spec.is_empty() {
+            self.error = Some("type a .gltf/.glb path or a builtin: name first".into());
+            return;
+        }
+        self.start_job(ctx, Source::Load(spec.to_string()));
+    }
+
+    fn poll_job(&mut self) {
+        let Some(job) = &mut self.job else { return };
+        let Some(result) = job.poll() else { return };
+        self.job = None;
+        match result {
+            Ok(out) => self.install(out),
+            Err(e) => self.error = Some(e),
+        }
+    }
+
+    fn install(&mut self, out: JobOutput) {
+        let JobOutput {
+            scene,
+            new_scene,
+            built,
+        } = out;
+        if new_scene {
+            // The camera is set in `central`, once the image's aspect ratio is known.
+            self.reset_camera = true;
+            self.fly_speed = 0.5 * scene.diagonal();
+            self.open_text = scene.spec.clone();
+            self.compare = None;
+            self.error = None;
+        }
+        let mut tracer = Tracer::new(built.bvh.clone(), built.gpu.clone());
+        tracer.prefer_cpu = self.settings.prefer_cpu;
+        self.tracer = Some(tracer);
+        self.built = Some(built);
+        self.scene = Some(scene);
+        self.generation += 1;
+    }
+
+    /// Frames the whole scene (the `F` key).
+    fn frame_scene(&mut self) {
+        if let Some(s) = &self.scene {
+            let fov = self.cam.fov_y_deg;
+            self.cam = Camera::frame(s.bounds.0, s.bounds.1, self.last_aspect);
+            self.cam.fov_y_deg = fov;
+            // Keep the framing valid for a different field of view: move back along the view.
+            let scale = (camera_half_tan(bvhtrace_scene::camera::FRAME_FOV_Y_DEG)
+                / camera_half_tan(fov))
+            .clamp(0.05, 50.0);
+            self.cam.eye = self.cam.target + (self.cam.eye - self.cam.target) * scale;
+        }
+    }
+
+    /// Traces what this frame needs: the primary pass when anything it depends on changed,
+    /// then one batch of secondary samples while the view accumulates. Returns true when
+    /// the image changed.
+    fn step(&mut self, size: [u32; 2]) -> bool {
+        let (Some(scene), Some(tracer)) = (&self.scene, &mut self.tracer) else {
+            return false;
+        };
+        let s = &self.settings;
+        let traversal = s.traversal();
+        let key = PassKey {
+            camera: self.cam,
+            size,
+            shade: s.shade,
+            heatmap: s.heatmap,
+            traversal,
+            prefer_cpu: s.prefer_cpu,
+            generation: self.generation,
+        };
+        let mut stats = FrameStats {
+            on_gpu: true,
+            gpu_ms: Some(0.0),
+            frame_ms: self.stats.frame_ms,
+            ..Default::default()
+        };
+        let add = |stats: &mut FrameStats, n: usize, t: &crate::tracer::Traced| {
+            stats.rays += n as u64;
+            stats.trace_ms += t.wall_ms;
+            stats.on_gpu &= t.on_gpu;
+            stats.gpu_ms = match (stats.gpu_ms, t.gpu_ms) {
+                (Some(a), Some(b)) => Some(a + b),
+                _ => None,
+            };
+        };
+        let mut changed = false;
+        if self.key.as_ref() != Some(&key) {
+            if self
+                .key
+                .as_ref()
+                .is_some_and(|k| k.traversal != traversal || k.prefer_cpu != s.prefer_cpu)
+            {
+                self.secondary_rate = None;
+            }
+            if self.key.as_ref().is_some_and(|k| k.traversal != traversal) {
+                tracer.retry_gpu();
+                tracer.prepare(traversal);
+            }
+            tracer.prefer_cpu = s.prefer_cpu;
+            let rays = self.cam.rays(size[0], size[1]);
+            let t = tracer.trace(&rays, traversal, Query::Closest, s.heatmap);
+            add(&mut stats, rays.len(), &t);
+            self.primary_on_gpu = t.on_gpu;
+            self.accum = Some(Accumulation::new(
+                size[0],
+                size[1],
+                rays,
+                t.hits,
+                t.counters.unwrap_or_default(),
+                &scene.tris,
+            ));
+            self.view = Some(View::for_camera(
+                s.shade,
+                s.heatmap,
+                &self.cam,
+                scene.diagonal(),
+            ));
+            self.key = Some(key);
+            changed = true;
+        }
+        let (Some(acc), Some(view)) = (&mut self.accum, &self.view) else {
+            return changed;
+        };
+        if view.accumulates() && acc.samples < s.max_samples && acc.hit_count() > 0 {
+            let wanted = match (s.auto_samples, self.secondary_rate) {
+                (true, Some(rays_per_ms)) => {
+                    (FRAME_BUDGET_MS * rays_per_ms / acc.hit_count() as f64).floor() as u32
+                }
+                (true, None) => 1,
+                (false, _) => s.samples_per_frame,
+            };
+            let k = wanted.clamp(1, 64).min(s.max_samples - acc.samples);
+            let sec = acc.secondary_rays(view, k);
+            let t = tracer.trace(&sec, traversal, Query::Any, false);
+            add(&mut stats, sec.len(), &t);
+            let rate = sec.len() as f64 / t.wall_ms.max(1e-3);
+            self.secondary_rate = Some(match self.secondary_rate {
+                Some(r) => 0.5 * r + 0.5 * rate,
+                None => rate,
+            });
+            self.last_k = k;
+            acc.accumulate(view, &sec, &t.hits, k);
+            changed = true;
+        }
+        if changed {
+            self.image = acc.compose(view);
+            self.stats = stats;
+        }
+        changed
+    }
+
+    /// True while more frames would add samples.
+    fn accumulating(&self) -> bool {
+        match (&self.accum, &self.view) {
+            (Some(a), Some(v)) => {
+                v.accumulates() && a.samples < self.settings.max_samples && a.hit_count() > 0
+            }
+            _ => false,
+        }
+    }
+
+    /// Traces the displayed image's primary rays with the CPU twin and compares hits.
+    fn compare_with_cpu(&mut self, ctx: &egui::Context) {
+        let (Some(acc), Some(tracer), Some(key)) = (&self.accum, &self.tracer, &self.key) else {
+            return;
+        };
+        let t = cpu_trace(&tracer.bvh, &acc.rays, key.traversal, Query::Closest, false);
+        let (result, img) = shade::compare_hits(&acc.hits, &t.hits, &self.image);
+        let mut display = Display::default();
+        display.set(
+            ctx,
+            self.render_state.as_ref(),
+            "bvhtrace difference",
+            [acc.width, acc.height],
+            &img,
+        );
+        self.compare = Some(CompareView {
+            result,
+            gpu_image: self.primary_on_gpu,
+            traversal: key.traversal,
+            cpu_ms: t.wall_ms,
+            display,
+            open: true,
+        });
+    }
+
+    fn finish_shot(&mut self, ctx: &egui::Context, result: Result<String, String>) {
+        if let Ok(mut o) = self.outcome.lock() {
+            *o = Some(result);
+        }
+        self.shot = None;
+        ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+    }
+
+    /// Advances a `--screenshot` run: counts frames once the scene is shown, asks for the
+    /// screenshot, saves it and closes the window.
+    fn screenshot_step(&mut self, ctx: &egui::Context) {
+        let Some(shot) = &mut self.shot else { return };
+        ctx.request_repaint();
+        if self.job.is_some() {
+            return;
+        }
+        if self.scene.is_none() {
+            let e = self
+                .error
+                .clone()
+                .unwrap_or_else(|| "no scene loaded".into());
+            self.finish_shot(ctx, Err(e));
+            return;
+        }
+        match shot.requested_at {
+            None => {
+                if self.display.id().is_some() {
+                    shot.frames_done += 1;
+                }
+                if shot.frames_done >= shot.frames {
+                    shot.requested_at = Some(shot.frames_done);
+                    let slot = shot.image.clone();
+                    let wake = ctx.clone();
+                    ctx.request_screenshot(move |img| {
+                        if let Ok(mut s) = slot.lock() {
+                            *s = Some(img);
+                        }
+                        wake.request_repaint();
+                    });
+                }
+            }
+            Some(at) => {
+                let taken = shot.image.lock().ok().and_then(|mut g| g.take());
+                if let Some(img) = taken {
+                    let path = shot.path.clone();
+                    let [w, h] = img.size;
+                    let backend = if self.stats.on_gpu { "GPU" } else { "CPU" };
+                    let samples = self.accum.as_ref().map_or(0, |a| a.samples);
+                    let r = crate::png::write_png_atomic(&path, &img).map(|()| {
+                        format!(
+                            "wrote {} ({w}x{h}; {} frames, traced on the {backend}, {samples} \
+                             accumulated samples per pixel)",
+                            path.display(),
+                            shot.frames
+                        )
+                    });
+                    self.finish_shot(ctx, r);
+                } else {
+                    shot.frames_done += 1;
+                    if shot.frames_done > at + 300 {
+                        self.finish_shot(
+                            ctx,
+                            Err("the screenshot never arrived from the renderer".into()),
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn camera_half_tan(fov_deg: f32) -> f32 {
+    (fov_deg.clamp(1.0, 179.0).to_radians() * 0.5).tan()
+}
+
+fn fmt_count(n: usize) -> String {
+    let s = n.to_string();
+    let mut out = String::new();
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+fn vec3_editor(ui: &mut egui::Ui, label: &str, v: &mut glam::Vec3, speed: f32) -> bool {
+    let mut changed = false;
+    ui.horizontal(|ui| {
+        ui.label(label);
+        for c in [&mut v.x, &mut v.y, &mut v.z] {
+            changed |= ui
+                .add(egui::DragValue::new(c).speed(speed).max_decimals(4))
+                .changed();
+        }
+    });
+    changed
+}
+
+/// Paints the heatmap's colour ramp with its end values.
+fn heatmap_legend(ui: &mut egui::Ui, max: u32) {
+    let width = ui.available_width().min(260.0);
+    let (rect, _) = ui.allocate_exact_size(egui::vec2(width, 14.0), egui::Sense::hover());
+    let steps = 64;
+    for k in 0..steps {
+        let x0 = rect.left() + rect.width() * k as f32 / steps as f32;
+        let x1 = rect.left() + rect.width() * (k + 1) as f32 / steps as f32;
+        let [r, g, b] = shade::ramp((k as f32 + 0.5) / steps as f32);
+        ui.painter().rect_filled(
+            egui::Rect::from_min_max(
+                egui::pos2(x0, rect.top()),
+                egui::pos2(x1 + 0.5, rect.bottom()),
+            ),
+            0.0,
+            Color32::from_rgb(r, g, b),
+        );
+    }
+    ui.horizontal(|ui| {
+        ui.set_width(width);
+        ui.label("0");
+        ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
+            ui.label(max.to_string());
+        });
+    });
+    ui.label(RichText::new("box tests (nodes visited) per primary ray").small());
+}
+
+impl ViewerApp {
+    fn side_panel(&mut self, ui: &mut egui::Ui) {
+        let ctx = ui.ctx().clone();
+        ui.spacing_mut().item_spacing.y = 3.0;
+        ui.spacing_mut().interact_size.y = 18.0;
+        ui.label(RichText::new("bvhtrace viewer").strong().size(16.0));
+        if let Some(job) = &self.job {
+            ui.horizontal(|ui| {
+                ui.spinner();
+                ui.label(format!(
+                    "{} ({:.1} s)",
+                    job.stage,
+                    job.started.elapsed().as_secs_f32()
+                ));
+            });
+        }
+        egui::CollapsingHeader::new("Scene")
+            .default_open(true)
+            .show(ui, |ui| self.scene_section(ui, &ctx));
+        egui::CollapsingHeader::new("BVH and tracing")
+            .default_open(true)
+            .show(ui, |ui| self.tracing_section(ui, &ctx));
+        egui::CollapsingHeader::new("Shading")
+            .default_open(true)
+            .show(ui, |ui| self.shading_section(ui));
+        egui::CollapsingHeader::new("Performance")
+            .default_open(true)
+            .show(ui, |ui| self.performance_section(ui, &ctx));
+        egui::CollapsingHeader::new("Camera")
+            .default_open(true)
+            .show(ui, |ui| self.camera_section(ui));
+    }
+
+    fn scene_section(&mut self, ui: &mut egui::Ui, ctx: &egui::Context) {
+        ui.horizontal(|ui| {
+            let edit = ui
+                .add(
+                    egui::TextEdit::singleline(&mut self.open_text)
+                        .hint_text("file.glb or builtin:NAME")
+                        .desired_width(170.0),
+                )
+                .on_hover_text(
+                    "a .gltf/.glb path or a builtin: scene; you can also drop a file on the window",
+                );
+            let enter = edit.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter));
+            if ui.button("Open").clicked() || enter {
+                let spec = self.open_text.clone();
+                self.open(ctx, &spec);
+            }
+            ui.menu_button("Built-in", |ui| {
+                egui::ScrollArea::vertical()
+                    .max_height(300.0)
+                    .show(ui, |ui| {
+                        for (name, what) in bvhtrace_scene::builtin_names() {
+                            if ui.button(*name).on_hover_text(*what).clicked() {
+                                let spec = format!("builtin:{name}");
+                                self.open_text = spec.clone();
+                                // Names with placeholders (icosphere:N) go to the text field
+                                // to be filled in; the others open at once.
+                                if !name.chars().any(|c| c.is_ascii_uppercase()) {
+                                    self.open(ctx, &spec);
+                                }
+                                ui.close();
+                            }
+                        }
+                    });
+            });
+        });
+        let Some(scene) = &self.scene else {
+            ui.label("no scene loaded");
+            return;
+        };
+        ui.label(RichText::new(&scene.name).strong())
+            .on_hover_text(&scene.spec);
+        if !scene.description.is_empty() {
+            ui.label(RichText::new(&scene.description).small());
+        }
+        if let Some(b) = &self.built {
+            let st = &b.stats;
+            egui::Grid::new("stats").num_columns(2).show(ui, |ui| {
+                ui.label("triangles");
+                ui.label(fmt_count(st.triangles));
+                ui.end_row();
+                ui.label("nodes");
+                ui.label(format!(
+                    "{} ({} leaves)",
+                    fmt_count(st.nodes),
+                    fmt_count(st.leaves)
+                ));
+                ui.end_row();
+                ui.label("depth");
+                ui.label(st.depth.to_string());
+                ui.end_row();
+                ui.label("SAH cost")
+                    .on_hover_text("traversal 1, intersection 1 (tinybvh's convention)");
+                ui.label(format!("{:.3}", st.sah_cost));
+                ui.end_row();
+                ui.label("SAH cost (PBRT)")
+                    .on_hover_text("traversal 1/8, intersection 1");
+                ui.label(format!("{:.3}", st.sah_cost_pbrt));
+                ui.end_row();
+                ui.label("times");
+                ui.label(format!(
+                    "load {:.0} ms, build {:.0} ms, upload {:.0} ms",
+                    scene.load_ms, b.build_ms, b.upload_ms
+                ));
+                ui.end_row();
+            });
+        }
+        if !scene.warnings.is_empty() {
+            ui.label(
+                RichText::new(format!("{} loader warnings", scene.warnings.len()))
+                    .color(Color32::YELLOW),
+            )
+            .on_hover_text(scene.warnings.join("\n"));
+        }
+    }
+
+    fn tracing_section(&mut self, ui: &mut egui::Ui, ctx: &egui::Context) {
+        let busy = self.job.is_some();
+        let before = self.settings.builder;
+        ui.add_enabled_ui(!busy && self.scene.is_some(), |ui| {
+            egui::ComboBox::from_label("builder")
+                .selected_text(self.settings.builder.name())
+                .show_ui(ui, |ui| {
+                    for b in BuilderKind::ALL {
+                        ui.selectable_value(&mut self.settings.builder, b, b.name());
+                    }
+                });
+        });
+        if self.settings.builder != before
+            && let Some(scene) = self.scene.clone()
+        {
+            self.start_job(ctx, Source::Reuse(scene));
+        }
+        egui::ComboBox::from_label("traversal")
+            .selected_text(self.settings.traversal().name())
+            .show_ui(ui, |ui| {
+                let t = &mut self.settings.traversal;
+                ui.selectable_value(t, TraversalKind::Stackless, "stackless");
+                ui.selectable_value(t, TraversalKind::ShortStack, "short-stack");
+                ui.selectable_value(t, TraversalKind::FullStack, "full-stack");
+            });
+        if self.settings.traversal == TraversalKind::ShortStack {
+            ui.add(
+                egui::Slider::new(&mut self.settings.short_stack, 1..=32)
+                    .text("short-stack entries"),
+            );
+        }
+        ui.horizontal(|ui| {
+            ui.label("trace on");
+            ui.radio_value(&mut self.settings.prefer_cpu, false, "GPU");
+            ui.radio_value(&mut self.settings.prefer_cpu, true, "CPU twin");
+        });
+        ui.label(RichText::new(format!("device: {}", self.adapter_line)).small());
+        if let Some(t) = &self.tracer {
+            if let Some(g) = &t.gpu {
+                ui.label(
+                    RichText::new(format!(
+                        "BVH on the GPU as {:?}, {:.1} MiB",
+                        g.storage(),
+                        g.stats().total_bytes() as f64 / (1024.0 * 1024.0)
+                    ))
+                    .small(),
+                );
+            }
+            if let Some(p) = &t.gpu_problem {
+                ui.label(
+                    RichText::new(format!("{p}: tracing on the CPU instead"))
+                        .color(Color32::from_rgb(255, 170, 60)),
+                );
+                if t.gpu.is_some() && ui.button("Retry the GPU").clicked() {
+                    if let Some(t) = &mut self.tracer {
+                        t.retry_gpu();
+                    }
+                    self.key = None;
+                }
+            }
+        }
+        ui.separator();
+        let can_compare = self.accum.is_some() && self.job.is_none();
+        if ui
+            .add_enabled(can_compare, egui::Button::new("Compare with CPU"))
+            .on_hover_text(
+                "trace the displayed image's primary rays with the CPU twin of the traversal \
+                 and show where the hits differ",
+            )
+            .clicked()
+        {
+            self.compare_with_cpu(ctx);
+        }
+        if let Some(c) = &mut self.compare {
+            let r = &c.result;
+            let color = if r.prim_mismatches == 0 {
+                Color32::from_rgb(120, 220, 120)
+            } else {
+                Color32::from_rgb(255, 90, 90)
+            };
+            ui.label(
+                RichText::new(format!(
+                    "{} of {} rays hit a different triangle; {} differ in t only",
+                    fmt_count(r.prim_mismatches),
+                    fmt_count(r.rays),
+                    fmt_count(r.t_mismatches)
+                ))
+                .color(color),
+            );
+            if !c.open && ui.button("Show the difference image").clicked() {
+                c.open = true;
+            }
+        }
+    }
+
+    fn shading_section(&mut self, ui: &mut egui::Ui) {
+        egui::ComboBox::from_label("shading")
+            .selected_text(self.settings.shade.label())
+            .show_ui(ui, |ui| {
+                for s in Shade::ALL {
+                    ui.selectable_value(&mut self.settings.shade, s, s.label());
+                }
+            });
+        ui.checkbox(&mut self.settings.heatmap, "heatmap (box tests per pixel)");
+        if self.settings.heatmap {
+            let max = self.accum.as_ref().map_or(1, Accumulation::max_nodes);
+            heatmap_legend(ui, max);
+        }
+        if self.settings.shade.accumulates() && !self.settings.heatmap {
+            ui.horizontal(|ui| {
+                ui.checkbox(&mut self.settings.auto_samples, "auto")
+                    .on_hover_text(format!(
+                        "as many samples per frame as fit in about {FRAME_BUDGET_MS} ms"
+                    ));
+                if self.settings.auto_samples {
+                    ui.label(format!("{} samples / frame", self.last_k.max(1)));
+                } else {
+                    ui.add(
+                        egui::Slider::new(&mut self.settings.samples_per_frame, 1..=64)
+                            .text("samples / frame"),
+                    );
+                }
+            });
+            ui.add(
+                egui::Slider::new(&mut self.settings.max_samples, 1..=4096)
+                    .logarithmic(true)
+                    .text("max samples"),
+            );
+            if let Some(a) = &self.accum {
+                ui.add(
+                    egui::ProgressBar::new(
+                        a.samples as f32 / self.settings.max_samples.max(1) as f32,
+                    )
+                    .desired_width(260.0)
+                    .text(format!(
+                        "{} / {} samples",
+                        a.samples, self.settings.max_samples
+                    )),
+                );
+            }
+        }
+        ui.add(
+            egui::Slider::new(&mut self.settings.render_scale, 0.1..=2.0)
+                .text("render scale")
+                .fixed_decimals(2),
+        )
+        .on_hover_text("traced pixels per window pixel");
+    }
+
+    fn camera_section(&mut self, ui: &mut egui::Ui) {
+        let speed = self.scene.as_ref().map_or(0.01, |s| s.diagonal() * 0.002);
+        vec3_editor(ui, "eye   ", &mut self.cam.eye, speed);
+        vec3_editor(ui, "target", &mut self.cam.target, speed);
+        ui.horizontal(|ui| {
+            ui.label("fov");
+            ui.add(
+                egui::DragValue::new(&mut self.cam.fov_y_deg)
+                    .range(1.0..=179.0)
+                    .speed(0.2)
+                    .suffix("°"),
+            );
+            if ui.button("Frame (F)").clicked() {
+                self.frame_scene();
+            }
+            if ui.button("Scene camera").clicked()
+                && let Some(s) = &self.scene
+            {
+                self.cam = s.initial_camera(self.last_aspect);
+            }
+        });
+        let flags = camera::render_flags(&self.cam);
+        ui.label("as `bvhtrace render` flags:");
+        ui.add(egui::Label::new(RichText::new(&flags).monospace().size(11.0)).wrap());
+        ui.horizontal(|ui| {
+            if ui.button("Copy").clicked() {
+                ui.ctx().copy_text(flags.clone());
+            }
+            let edit = ui.add(
+                egui::TextEdit::singleline(&mut self.flags_text)
+                    .hint_text("paste flags")
+                    .desired_width(180.0),
+            );
+            let enter = edit.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter));
+            if ui.button("Apply").clicked() || enter {
+                match camera::parse_render_flags(&self.flags_text, self.cam.fov_y_deg) {
+                    Ok(c) => {
+                        self.cam = c;
+                        self.flags_error = None;
+                    }
+                    Err(e) => self.flags_error = Some(e),
+                }
+            }
+        });
+        if let Some(e) = &self.flags_error {
+            ui.label(RichText::new(e).color(Color32::from_rgb(255, 90, 90)));
+        }
+        ui.add(
+            egui::Slider::new(&mut self.fly_speed, 1e-3..=1e4)
+                .logarithmic(true)
+                .text("fly speed / s"),
+        );
+        ui.label(
+            RichText::new(
+                "drag: orbit (left), pan (right/middle) · wheel: zoom\n\
+                 W/A/S/D, Q/E: fly (Shift: faster) · F: frame the scene",
+            )
+            .small(),
+        );
+    }
+
+    fn performance_section(&mut self, ui: &mut egui::Ui, ctx: &egui::Context) {
+        let frame_ms = ctx.input(|i| i.unstable_dt) * 1e3;
+        self.stats.frame_ms = if self.stats.frame_ms == 0.0 {
+            frame_ms
+        } else {
+            self.stats.frame_ms * 0.9 + frame_ms * 0.1
+        };
+        let s = &self.stats;
+        egui::Grid::new("perf").num_columns(2).show(ui, |ui| {
+            ui.label("frame");
+            ui.label(format!("{:.1} ms", s.frame_ms));
+            ui.end_row();
+            ui.label("image");
+            let [w, h] = self.display.size();
+            ui.label(format!("{w}x{h} px"));
+            ui.end_row();
+            ui.label("last trace");
+            ui.label(format!(
+                "{} rays in {:.1} ms on the {}",
+                fmt_count(s.rays as usize),
+                s.trace_ms,
+                if s.on_gpu { "GPU" } else { "CPU" }
+            ));
+            ui.end_row();
+            ui.label("Mrays/s");
+            ui.label(format!("{:.2}", s.rays as f64 / s.trace_ms.max(1e-9) / 1e3));
+            ui.end_row();
+            if let Some(g) = s.gpu_ms
+                && s.on_gpu
+                && !self.cpu_adapter
+            {
+                ui.label("GPU timestamps")
+                    .on_hover_text("the compute passes' own time, from timestamp queries");
+                ui.label(format!(
+                    "{g:.1} ms ({:.2} Mrays/s)",
+                    s.rays as f64 / g.max(1e-9) / 1e3
+                ));
+                ui.end_row();
+            }
+        });
+    }
+
+    fn central(&mut self, ui: &mut egui::Ui) {
+        let rect = ui.available_rect_before_wrap();
+        self.image_rect = rect;
+        let resp = ui.allocate_rect(rect, egui::Sense::click_and_drag());
+        let ctx = ui.ctx().clone();
+        let ppp = ctx.pixels_per_point();
+        if rect.width() >= 1.0 && rect.height() >= 1.0 {
+            self.last_aspect = rect.width() / rect.height();
+        }
+        if self.reset_camera
+            && let Some(scene) = &self.scene
+        {
+            self.reset_camera = false;
+            self.cam = self.pending_camera.take().unwrap_or_else(|| {
+                let mut c = scene.initial_camera(self.last_aspect);
+                if let Some(f) = self.fov_override.take() {
+                    c.fov_y_deg = f;
+                }
+                c
+            });
+        }
+        if let Some(scene) = &self.scene {
+            let diag = scene.diagonal();
+            let d = resp.drag_delta();
+            if d != egui::Vec2::ZERO {
+                if resp.dragged_by(egui::PointerButton::Primary) {
+                    camera::orbit(&mut self.cam, -d.x * 0.008, d.y * 0.008);
+                } else if resp.dragged_by(egui::PointerButton::Secondary)
+                    || resp.dragged_by(egui::PointerButton::Middle)
+                {
+                    camera::pan(&mut self.cam, d.x, d.y, rect.height());
+                }
+            }
+            if resp.hovered() {
+                let scroll = ctx.input(|i| i.smooth_scroll_delta.y);
+                if scroll != 0.0 {
+                    camera::zoom(&mut self.cam, scroll / 60.0, camera::MIN_DISTANCE * diag);
+                }
+            }
+            if !ctx.egui_wants_keyboard_input() {
+                let (f, r, u, fast, frame, dt) = ctx.input(|i| {
+                    use egui::Key;
+                    (
+                        axis(i, Key::W, Key::S),
+                        axis(i, Key::D, Key::A),
+                        axis(i, Key::E, Key::Q),
+                        i.modifiers.shift,
+                        i.key_pressed(Key::F),
+                        i.stable_dt.clamp(0.0, 0.1),
+                    )
+                });
+                if f != 0.0 || r != 0.0 || u != 0.0 {
+                    let step = self.fly_speed * dt * if fast { 4.0 } else { 1.0 };
+                    camera::fly(&mut self.cam, f * step, r * step, u * step);
+                    ctx.request_repaint();
+                }
+                if frame {
+                    self.frame_scene();
+                }
+            }
+        }
+        let scale = self.settings.render_scale.clamp(0.1, 2.0);
+        let px = |v: f32| ((v * ppp * scale).round() as u32).clamp(1, MAX_SIDE);
+        let size = [px(rect.width()), px(rect.height())];
+        if self.step(size) {
+            self.display.set(
+                &ctx,
+                self.render_state.as_ref(),
+                "bvhtrace image",
+                [size[0], size[1]],
+                &self.image,
+            );
+        }
+        let painter = ui.painter_at(rect);
+        let [r, g, b] = shade::BACKGROUND;
+        painter.rect_filled(rect, 0.0, Color32::from_rgb(r, g, b));
+        if let Some(id) = self.display.id() {
+            let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
+            painter.image(id, rect, uv, Color32::WHITE);
+        }
+        let mut caption = match (&self.scene, &self.job) {
+            (_, Some(job)) => format!("{}…", job.stage),
+            (None, None) => "no scene".to_string(),
+            (Some(_), None) => String::new(),
+        };
+        if let (Some(scene), Some(key)) = (&self.scene, &self.key) {
+            if !caption.is_empty() {
+                caption.push_str("  ·  ");
+            }
+            let gpu_failed = self
+                .tracer
+                .as_ref()
+                .is_some_and(|t| t.gpu_problem.is_some() && !t.prefer_cpu);
+            caption.push_str(&format!(
+                "{}  ·  {}  ·  {}",
+                scene.name,
+                key.traversal,
+                match (self.stats.on_gpu, gpu_failed) {
+                    (true, _) => "GPU",
+                    (false, true) => "CPU (the GPU is not available: see the panel)",
+                    (false, false) => "CPU",
+                }
+            ));
+            if let (Some(a), Some(v)) = (&self.accum, &self.view)
+                && v.accumulates()
+            {
+                caption.push_str(&format!("  ·  {} samples", a.samples));
+            }
+        }
+        let galley = painter.layout_no_wrap(
+            caption,
+            egui::FontId::proportional(13.0),
+            Color32::from_gray(230),
+        );
+        let pos = rect.left_top() + egui::vec2(8.0, 6.0);
+        painter.rect_filled(
+            egui::Rect::from_min_size(
+                pos - egui::vec2(4.0, 2.0),
+                galley.size() + egui::vec2(8.0, 4.0),
+            ),
+            3.0,
+            Color32::from_black_alpha(150),
+        );
+        painter.galley(pos, galley, Color32::WHITE);
+        if ctx.input(|i| !i.raw.hovered_files.is_empty()) {
+            painter.rect_filled(rect, 0.0, Color32::from_black_alpha(140));
+            painter.text(
+                rect.center(),
+                egui::Align2::CENTER_CENTER,
+                "drop a .gltf/.glb file to open it",
+                egui::FontId::proportional(22.0),
+                Color32::WHITE,
+            );
+        }
+        if self.accumulating() || self.job.is_some() {
+            ctx.request_repaint();
+        }
+    }
+
+    fn windows(&mut self, ctx: &egui::Context) {
+        if let Some(err) = self.error.clone() {
+            let mut open = true;
+            egui::Window::new("Error")
+                .collapsible(false)
+                .resizable(false)
+                .anchor(egui::Align2::CENTER_TOP, egui::vec2(0.0, 40.0))
+                .open(&mut open)
+                .show(ctx, |ui| {
+                    ui.label(RichText::new(err).color(Color32::from_rgb(255, 120, 120)));
+                    if self.scene.is_some() {
+                        ui.label("The current scene stays loaded.");
+                    }
+                });
+            if !open {
+                self.error = None;
+            }
+        }
+        if let Some(c) = &mut self.compare
+            && c.open
+        {
+            let mut open = true;
+            egui::Window::new("GPU vs CPU twin")
+                .open(&mut open)
+                .default_width(420.0)
+                .pivot(egui::Align2::RIGHT_TOP)
+                .default_pos(self.image_rect.right_top() + egui::vec2(-12.0, 30.0))
+                .show(ctx, |ui| {
+                    let r = &c.result;
+                    ui.label(format!(
+                        "{} traversal, {} rays, CPU trace {:.1} ms{}",
+                        c.traversal,
+                        fmt_count(r.rays),
+                        c.cpu_ms,
+                        if c.gpu_image {
+                            ""
+                        } else {
+                            " (the image was traced on the CPU: both sides are the CPU)"
+                        }
+                    ));
+                    ui.label(format!(
+                        "different triangle: {} · same triangle, different t: {} (max relative {:.2e})",
+                        fmt_count(r.prim_mismatches),
+                        fmt_count(r.t_mismatches),
+                        r.max_rel_t
+                    ));
+                    ui.label(
+                        RichText::new("red: different triangle · yellow: different t · grey: equal")
+                            .small(),
+                    );
+                    if let Some(id) = c.display.id() {
+                        let [w, h] = c.display.size();
+                        let width = ui.available_width().max(100.0);
+                        let size = egui::vec2(width, width * h as f32 / w.max(1) as f32);
+                        ui.image(egui::load::SizedTexture::new(id, size));
+                    }
+                });
+            c.open = open;
+        }
+    }
+
+    fn handle_drops(&mut self, ctx: &egui::Context) {
+        let dropped: Vec<PathBuf> = ctx.input(|i| {
+            i.raw
+                .dropped_files
+                .iter()
+                .map(|f| f.path().to_path_buf())
+                .collect()
+        });
+        if let Some(p) = dropped.first() {
+            let spec = p.to_string_lossy().into_owned();
+            self.open_text = spec.clone();
+            self.open(ctx, &spec);
+        }
+    }
+}
+
+impl eframe::App for ViewerApp {
+    fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        let ctx = ui.ctx().clone();
+        self.poll_job();
+        self.handle_drops(&ctx);
+        egui::Panel::left("controls")
+            .resizable(true)
+            .default_size(330.0)
+            .size_range(220.0..=700.0)
+            .show(ui, |ui| {
+                egui::ScrollArea::vertical()
+                    .auto_shrink([false, false])
+                    .show(ui, |ui| self.side_panel(ui));
+            });
+        egui::CentralPanel::no_frame().show(ui, |ui| self.central(ui));
+        if self.compare_pending && self.accum.is_some() && self.job.is_none() {
+            self.compare_pending = false;
+            self.compare_with_cpu(&ctx);
+        }
+        self.windows(&ctx);
+        self.screenshot_step(&ctx);
+    }
+
+    fn clear_color(&self, _visuals: &egui::Visuals) -> [f32; 4] {
+        let [r, g, b] = shade::BACKGROUND;
+        Color32::from_rgb(r, g, b).to_normalized_gamma_f32()
+    }
+}

@@ -1,0 +1,163 @@
+//! The command line.
+
+use std::path::PathBuf;
+
+use bvhtrace_core::{BuilderKind, Traversal};
+use glam::Vec3;
+
+use crate::shade::Shade;
+
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| {
+            p.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("'{p}' is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vec3::new(x, y, z)),
+        _ => Err(format!("expected three finite numbers X,Y,Z, got '{s}'")),
+    }
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("expected WxH, got '{s}'"))?;
+    let w: u32 = w
+        .trim()
+        .parse()
+        .map_err(|_| format!("bad width in '{s}'"))?;
+    let h: u32 = h
+        .trim()
+        .parse()
+        .map_err(|_| format!("bad height in '{s}'"))?;
+    if !(200..=8192).contains(&w) || !(150..=8192).contains(&h) {
+        return Err(format!(
+            "the window must be between 200x150 and 8192x8192, got {s}"
+        ));
+    }
+    Ok((w, h))
+}
+
+fn parse_scale(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if (0.1..=2.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!(
+            "the render scale must be between 0.1 and 2, got {s}"
+        ))
+    }
+}
+
+fn parse_fov(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if v > 0.0 && v < 180.0 {
+        Ok(v)
+    } else {
+        Err(format!("--fov must be between 0 and 180 degrees, got {s}"))
+    }
+}
+
+/// `bvhtrace-viewer [SCENE]`: the interactive viewer. The GPU-traced image fills the
+/// window; the side panel has the scene's statistics, the builder, traversal and shading
+/// choices, the camera and a comparison with the CPU traversal.
+#[derive(clap::Parser, Debug, Clone)]
+#[command(name = "bvhtrace-viewer", version, about, long_about = None)]
+pub struct Args {
+    /// A .gltf/.glb file or a `builtin:` name (see `bvhtrace info --list`); default: the
+    /// Cornell box.
+    pub scene: Option<String>,
+    /// Render --frames frames, save a screenshot of the window to this PNG and exit
+    /// (status 0 on success, non-zero with a message on failure).
+    #[arg(long, value_name = "PNG")]
+    pub screenshot: Option<PathBuf>,
+    /// Frames to render (after the scene is loaded) before the screenshot.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub frames: u32,
+    /// Window size in points, WxH.
+    #[arg(long, default_value = "1280x800", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// Initial shading.
+    #[arg(long, value_enum, default_value_t = Shade::Normal)]
+    pub shade: Shade,
+    /// Start with the node-visit heatmap on.
+    #[arg(long)]
+    pub heatmap: bool,
+    /// stackless, short-stack, short-stack:K or full-stack.
+    #[arg(long, default_value = "stackless")]
+    pub traversal: Traversal,
+    /// BVH builder: sah, sweep-sah, median or midpoint.
+    #[arg(long, default_value = "sah")]
+    pub builder: BuilderKind,
+    /// Trace on the CPU twin instead of the GPU (the device still draws the window).
+    #[arg(long)]
+    pub cpu: bool,
+    /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
+    #[arg(long)]
+    pub adapter: Option<String>,
+    /// Traced pixels per window pixel, 0.1..=2 (default: 1 on a GPU, 0.5 on a CPU driver
+    /// such as lavapipe).
+    #[arg(long, value_parser = parse_scale)]
+    pub scale: Option<f32>,
+    /// Camera position X,Y,Z (with --target); the same flags as `bvhtrace render`.
+    #[arg(long, value_parser = parse_vec3, requires = "target", allow_hyphen_values = true)]
+    pub eye: Option<Vec3>,
+    /// Point the camera looks at.
+    #[arg(long, value_parser = parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    pub target: Option<Vec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long, value_parser = parse_fov)]
+    pub fov: Option<f32>,
+    /// Compare the first image's hits with the CPU twin's and open the difference window
+    /// (as the "Compare with CPU" button does).
+    #[arg(long)]
+    pub compare: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[test]
+    fn flags_parse() {
+        let a = Args::try_parse_from([
+            "bvhtrace-viewer",
+            "builtin:cornell",
+            "--screenshot",
+            "x.png",
+            "--frames",
+            "3",
+            "--eye",
+            "-1,2,3",
+            "--target",
+            "0,0,0",
+            "--fov",
+            "40",
+            "--traversal",
+            "short-stack:4",
+            "--shade",
+            "ao",
+        ])
+        .expect("parses");
+        assert_eq!(a.frames, 3);
+        assert_eq!(a.eye, Some(Vec3::new(-1.0, 2.0, 3.0)));
+        assert_eq!(a.traversal, Traversal::ShortStack(4));
+        assert_eq!(a.shade, Shade::Ao);
+        assert_eq!(a.size, (1280, 800));
+        for bad in [
+            &["v", "--frames", "0"][..],
+            &["v", "--eye", "1,2,3"],
+            &["v", "--size", "10x10"],
+            &["v", "--fov", "200"],
+            &["v", "--scale", "9"],
+            &["v", "--traversal", "zigzag"],
+        ] {
+            assert!(Args::try_parse_from(bad).is_err(), "{bad:?}");
+        }
+    }
+}

@@ -1,0 +1,24 @@
+//! bvhtrace-viewer: an interactive egui window over the bvhtrace GPU traversal.
+//!
+//! The window is drawn by eframe's wgpu renderer, and the rays are traced on **the same
+//! wgpu device**: [`app::ViewerApp::new`] takes eframe's `wgpu_render_state` and wraps its
+//! device and queue with [`bvhtrace_gpu::GpuContext::from_device`]. The traced image is
+//! written into a wgpu texture on that device and registered with egui's renderer.
+//!
+//! * [`camera`]: orbit, pan, zoom and fly moves, and `bvhtrace render` flags.
+//! * [`shade`]: hits to pixels (the CLI's shading modes) and progressive accumulation.
+//! * [`tracer`]: GPU tracing with a CPU fallback.
+//! * [`jobs`]: scene loading, BVH building and upload off the UI thread.
+//! * [`app`]: the eframe application; [`cli`]: the command line; [`setup`]: eframe's wgpu
+//!   configuration (the adapter choice and the device features the tracer wants).
+#![warn(missing_docs)]
+
+pub mod app;
+pub mod camera;
+pub mod cli;
+pub mod display;
+pub mod jobs;
+pub mod png;
+pub mod setup;
+pub mod shade;
+pub mod tracer;

@@ -1,0 +1,476 @@
+//! Turning hits into pixels, the same way `bvhtrace render` does (normals, depth, diffuse
+//! with a shadow ray, ambient occlusion, the node-visit heatmap), plus progressive
+//! accumulation: the diffuse and AO modes add more secondary samples every frame while the
+//! camera is still and show their running average.
+//!
+//! Everything here runs on the CPU from the traced hits, for both backends, so the GPU and
+//! CPU images differ only where the hits do.
+
+use bvhtrace_core::{Counters, Hit, Ray, Triangle};
+use bvhtrace_scene::Camera;
+use glam::Vec3;
+
+/// Background colour (the CLI's).
+pub const BACKGROUND: [u8; 3] = [24, 26, 32];
+
+/// What the image shows (besides the heatmap, which overrides it; see [`View::heatmap`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Shade {
+    /// Geometric normal, facing the camera, as colour.
+    #[default]
+    Normal,
+    /// Distance: near bright, far dark.
+    Depth,
+    /// Diffuse light from a small spherical light near the camera, with shadow rays
+    /// (any-hit) to random points on it: soft shadows that converge as samples accumulate.
+    Diffuse,
+    /// Ambient occlusion: cosine-weighted any-hit rays of a limited length.
+    Ao,
+}
+
+impl Shade {
+    /// Every mode, in the order the UI lists them.
+    pub const ALL: [Shade; 4] = [Shade::Normal, Shade::Depth, Shade::Diffuse, Shade::Ao];
+
+    /// A short name for the UI.
+    pub fn label(self) -> &'static str {
+        match self {
+            Shade::Normal => "normals",
+            Shade::Depth => "depth",
+            Shade::Diffuse => "diffuse (soft shadows)",
+            Shade::Ao => "ambient occlusion",
+        }
+    }
+
+    /// True when the mode traces secondary rays and accumulates them over frames.
+    pub fn accumulates(self) -> bool {
+        matches!(self, Shade::Diffuse | Shade::Ao)
+    }
+}
+
+/// How to shade: the mode, the heatmap switch and the secondary rays' sizes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    /// The shading mode.
+    pub shade: Shade,
+    /// Show nodes visited per primary ray instead (with a legend).
+    pub heatmap: bool,
+    /// Length of the AO rays, world units.
+    pub ao_radius: f32,
+    /// Where the diffuse light is, world space.
+    pub light: Vec3,
+    /// Radius of the diffuse light, world units.
+    pub light_radius: f32,
+}
+
+impl View {
+    /// The CLI's light placement (up and to the right of the camera, so it lights what the
+    /// camera sees in closed rooms too), AO rays 15% of the scene's diagonal long.
+    pub fn for_camera(shade: Shade, heatmap: bool, cam: &Camera, scene_diag: f32) -> View {
+        let (_, right, up) = cam.basis();
+        let dist = (cam.target - cam.eye).length();
+        View {
+            shade,
+            heatmap,
+            ao_radius: 0.15 * scene_diag,
+            light: cam.eye + (right * 0.25 + up * 0.2) * dist,
+            light_radius: 0.04 * scene_diag,
+        }
+    }
+
+    /// True when more frames add samples to this view.
+    pub fn accumulates(&self) -> bool {
+        !self.heatmap && self.shade.accumulates()
+    }
+}
+
+/// Geometric normal of a triangle, flipped to face against `dir`.
+pub fn facing_normal(tri: &Triangle, dir: Vec3) -> Vec3 {
+    let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
+    let n = if n.length_squared() > 0.0 {
+        n.normalize()
+    } else {
+        -dir.normalize()
+    };
+    if n.dot(dir) > 0.0 { -n } else { n }
+}
+
+/// Hit point from the barycentrics (more accurate than `o + t d`).
+pub fn hit_point(tri: &Triangle, h: &Hit) -> Vec3 {
+    tri[0] * (1.0 - h.u - h.v) + tri[1] * h.u + tri[2] * h.v
+}
+
+/// Moves a surface point off the surface along `n` by a few ulps of its own magnitude
+/// (Wächter and Binder, Ray Tracing Gems ch. 6): no scene-scale epsilon.
+pub fn offset_origin(p: Vec3, n: Vec3) -> Vec3 {
+    const ORIGIN: f32 = 1.0 / 32.0;
+    const FLOAT_SCALE: f32 = 1.0 / 65536.0;
+    const INT_SCALE: f32 = 256.0;
+    let off = |p: f32, n: f32| {
+        let oi = (INT_SCALE * n) as i32;
+        let pi = f32::from_bits((p.to_bits() as i32 + if p < 0.0 { -oi } else { oi }) as u32);
+        if p.abs() < ORIGIN {
+            p + FLOAT_SCALE * n
+        } else {
+            pi
+        }
+    };
+    Vec3::new(off(p.x, n.x), off(p.y, n.y), off(p.z, n.z))
+}
+
+/// A small integer hash (PCG) for repeatable sampling.
+pub fn hash(mut x: u32) -> u32 {
+    x = x.wrapping_mul(747796405).wrapping_add(2891336453);
+    let w = ((x >> ((x >> 28) + 4)) ^ x).wrapping_mul(277803737);
+    (w >> 22) ^ w
+}
+
+fn unit(x: u32) -> f32 {
+    (x >> 8) as f32 / (1u32 << 24) as f32
+}
+
+/// Two uniform numbers in [0, 1) for sample `s` of pixel `p`.
+fn uniform2(p: u32, s: u32) -> (f32, f32) {
+    let h1 = hash(p.wrapping_mul(9781).wrapping_add(s.wrapping_mul(6271)) ^ 0x9e37_79b9);
+    (unit(h1), unit(hash(h1)))
+}
+
+/// Cosine-weighted direction around `n` for sample `s` of pixel `p` (the CLI's).
+pub fn cosine_dir(n: Vec3, p: u32, s: u32) -> Vec3 {
+    let (u1, u2) = uniform2(p, s);
+    let r = u1.sqrt();
+    let phi = std::f32::consts::TAU * u2;
+    let (t, b) = n.any_orthonormal_pair();
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
+}
+
+/// A uniformly distributed point on the unit sphere for sample `s` of pixel `p`.
+pub fn sphere_point(p: u32, s: u32) -> Vec3 {
+    let (u1, u2) = uniform2(p ^ 0x5bd1_e995, s);
+    let z = 1.0 - 2.0 * u1;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = std::f32::consts::TAU * u2;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// A colour ramp for the heatmap (blue, cyan, green, yellow, red), `x` in [0, 1].
+pub fn ramp(x: f32) -> [u8; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [0.05, 0.05, 0.45],
+        [0.0, 0.7, 0.9],
+        [0.1, 0.8, 0.2],
+        [0.95, 0.85, 0.1],
+        [0.85, 0.1, 0.05],
+    ];
+    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) } * 4.0;
+    let i = (x as usize).min(3);
+    let f = x - i as f32;
+    let c = |k: usize| (STOPS[i][k] * (1.0 - f) + STOPS[i + 1][k] * f) * 255.0;
+    [c(0) as u8, c(1) as u8, c(2) as u8]
+}
+
+fn to8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// One primary pass and the secondary samples accumulated on top of it.
+#[derive(Clone, Debug, Default)]
+pub struct Accumulation {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// The primary rays, row-major (`Camera::rays`).
+    pub rays: Vec<Ray>,
+    /// Their closest hits.
+    pub hits: Vec<Hit>,
+    /// Their counters (empty unless the heatmap asked for them).
+    pub counters: Vec<Counters>,
+    /// Secondary samples per hit pixel accumulated so far.
+    pub samples: u32,
+    /// Pixels with a hit, in order: the owners of the secondary rays.
+    hit_pixels: Vec<u32>,
+    /// Facing normal and offset origin of each hit pixel.
+    surfaces: Vec<(Vec3, Vec3)>,
+    /// Per hit pixel: the sum of the samples' values.
+    sums: Vec<f32>,
+}
+
+impl Accumulation {
+    /// A fresh accumulation over a primary pass.
+    pub fn new(
+        width: u32,
+        height: u32,
+        rays: Vec<Ray>,
+        hits: Vec<Hit>,
+        counters: Vec<Counters>,
+        tris: &[Triangle],
+    ) -> Accumulation {
+        let mut hit_pixels = Vec::new();
+        let mut surfaces = Vec::new();
+        for (i, (r, h)) in rays.iter().zip(&hits).enumerate() {
+            let Some(tri) = h.is_hit().then(|| tris.get(h.prim as usize)).flatten() else {
+                continue;
+            };
+            let n = facing_normal(tri, Vec3::from(r.dir));
+            hit_pixels.push(i as u32);
+            surfaces.push((n, offset_origin(hit_point(tri, h), n)));
+        }
+        let sums = vec![0.0; hit_pixels.len()];
+        Accumulation {
+            width,
+            height,
+            rays,
+            hits,
+            counters,
+            samples: 0,
+            hit_pixels,
+            surfaces,
+            sums,
+        }
+    }
+
+    /// Number of pixels whose primary ray hit something.
+    pub fn hit_count(&self) -> usize {
+        self.hit_pixels.len()
+    }
+
+    /// The secondary rays of samples `samples .. samples + count` for every hit pixel,
+    /// pixel after pixel (`count` consecutive rays each). Empty for modes that do not
+    /// accumulate.
+    pub fn secondary_rays(&self, view: &View, count: u32) -> Vec<Ray> {
+        if !view.accumulates() || count == 0 {
+            return Vec::new();
+        }
+        let mut out = Vec::with_capacity(self.hit_pixels.len() * count as usize);
+        for (&p, &(n, o)) in self.hit_pixels.iter().zip(&self.surfaces) {
+            for k in 0..count {
+                let s = self.samples.wrapping_add(k);
+                out.push(match view.shade {
+                    Shade::Ao => Ray::with_interval(o, cosine_dir(n, p, s), 0.0, view.ao_radius),
+                    _ => {
+                        let l = view.light + sphere_point(p, s) * view.light_radius;
+                        Ray::with_interval(o, l - o, 0.0, 1.0)
+                    }
+                });
+            }
+        }
+        out
+    }
+
+    /// Adds the answers to [`Accumulation::secondary_rays`]`(view, count)`.
+    pub fn accumulate(&mut self, view: &View, rays: &[Ray], hits: &[Hit], count: u32) {
+        if count == 0 || hits.len() != self.hit_pixels.len() * count as usize {
+            return;
+        }
+        for (i, sum) in self.sums.iter_mut().enumerate() {
+            let n = self.surfaces[i].0;
+            let range = i * count as usize..(i + 1) * count as usize;
+            for (r, h) in rays[range.clone()].iter().zip(&hits[range]) {
+                if h.is_hit() {
+                    continue;
+                }
+                *sum += match view.shade {
+                    Shade::Ao => 1.0,
+                    _ => n.dot(Vec3::from(r.dir).normalize_or_zero()).max(0.0),
+                };
+            }
+        }
+        self.samples += count;
+    }
+
+    /// The most nodes any primary ray visited (the heatmap's scale), at least 1.
+    pub fn max_nodes(&self) -> u32 {
+        self.counters
+            .iter()
+            .map(|c| c.nodes)
+            .max()
+            .unwrap_or(1)
+            .max(1)
+    }
+
+    /// The image as RGBA8, row-major, top row first.
+    pub fn compose(&self, view: &View) -> Vec<u8> {
+        let n_px = self.width as usize * self.height as usize;
+        let mut img = vec![255u8; n_px * 4];
+        let mut put = |i: usize, c: [u8; 3]| img[i * 4..i * 4 + 3].copy_from_slice(&c);
+        if view.heatmap {
+            let max = self.max_nodes() as f32;
+            for i in 0..n_px {
+                let n = self.counters.get(i).map_or(0, |c| c.nodes);
+                put(i, ramp(n as f32 / max));
+            }
+            return img;
+        }
+        for i in 0..n_px {
+            put(i, BACKGROUND);
+        }
+        let (tmin, tmax) = self
+            .hits
+            .iter()
+            .filter(|h| h.is_hit())
+            .fold((f32::MAX, 0f32), |(a, b), h| (a.min(h.t), b.max(h.t)));
+        for (k, &p) in self.hit_pixels.iter().enumerate() {
+            let p = p as usize;
+            let (n, o) = self.surfaces[k];
+            let h = &self.hits[p];
+            let c = match view.shade {
+                Shade::Normal => {
+                    let c = n * 0.5 + Vec3::splat(0.5);
+                    [to8(c.x), to8(c.y), to8(c.z)]
+                }
+                Shade::Depth => {
+                    let g = 1.0 - (h.t - tmin) / (tmax - tmin).max(f32::MIN_POSITIVE);
+                    let v = to8(0.15 + 0.85 * g);
+                    [v, v, v]
+                }
+                Shade::Diffuse => {
+                    let lit = if self.samples == 0 {
+                        // No shadow samples yet: unshadowed light as a preview.
+                        n.dot((view.light - o).normalize_or_zero()).max(0.0)
+                    } else {
+                        self.sums[k] / self.samples as f32
+                    };
+                    let v = 0.08 + 0.85 * lit;
+                    [to8(v * 0.95), to8(v * 0.9), to8(v * 0.8)]
+                }
+                Shade::Ao => {
+                    let v = if self.samples == 0 {
+                        1.0
+                    } else {
+                        self.sums[k] / self.samples as f32
+                    };
+                    let v = to8(v);
+                    [v, v, v]
+                }
+            };
+            put(p, c);
+        }
+        img
+    }
+}
+
+/// The result of comparing GPU hits with the CPU twin's on the same rays.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Comparison {
+    /// Rays compared.
+    pub rays: usize,
+    /// Rays whose hit triangle differs (including hit against miss).
+    pub prim_mismatches: usize,
+    /// Rays with the same triangle but a different `t` (bitwise).
+    pub t_mismatches: usize,
+    /// The largest relative `t` difference among same-triangle hits.
+    pub max_rel_t: f32,
+}
+
+/// Compares two hit lists ray by ray and draws the difference image (RGBA8): matching pixels
+/// dimmed grey from `base` (an RGBA8 image of the same size), a different triangle in red,
+/// the same triangle at a different `t` in yellow.
+pub fn compare_hits(a: &[Hit], b: &[Hit], base: &[u8]) -> (Comparison, Vec<u8>) {
+    let mut c = Comparison {
+        rays: a.len().min(b.len()),
+        ..Default::default()
+    };
+    let mut img = vec![255u8; c.rays * 4];
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        let px = &mut img[i * 4..i * 4 + 3];
+        let same_prim = x.prim == y.prim || (!x.is_hit() && !y.is_hit());
+        if !same_prim {
+            c.prim_mismatches += 1;
+            px.copy_from_slice(&[255, 40, 40]);
+        } else if x.is_hit() && x.t.to_bits() != y.t.to_bits() {
+            c.t_mismatches += 1;
+            let rel = (x.t - y.t).abs() / x.t.abs().max(y.t.abs()).max(f32::MIN_POSITIVE);
+            c.max_rel_t = c.max_rel_t.max(rel);
+            px.copy_from_slice(&[255, 220, 40]);
+        } else {
+            let g = base
+                .get(i * 4..i * 4 + 3)
+                .map_or(0, |s| ((s[0] as u32 + s[1] as u32 + s[2] as u32) / 9) as u8);
+            px.copy_from_slice(&[g, g, g]);
+        }
+    }
+    (c, img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bvhtrace_core::{BuildOptions, FlatBvh, Query, Traversal, trace_batch};
+
+    fn quad() -> Vec<Triangle> {
+        let (a, b, c, d) = (
+            Vec3::new(-1.0, -1.0, 0.0),
+            Vec3::new(1.0, -1.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(-1.0, 1.0, 0.0),
+        );
+        vec![[a, b, c], [a, c, d]]
+    }
+
+    #[test]
+    fn ao_accumulates_towards_open_sky() {
+        let tris = quad();
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("builds");
+        let cam = Camera {
+            eye: Vec3::new(0.0, 0.0, 3.0),
+            target: Vec3::ZERO,
+            fov_y_deg: 30.0,
+        };
+        let (w, h) = (8, 6);
+        let rays = cam.rays(w, h);
+        let hits = trace_batch(&bvh, &rays, Traversal::Stackless, Query::Closest);
+        let mut acc = Accumulation::new(w, h, rays, hits, Vec::new(), &tris);
+        assert!(acc.hit_count() > 0);
+        let view = View::for_camera(Shade::Ao, false, &cam, 2.0);
+        for _ in 0..3 {
+            let sec = acc.secondary_rays(&view, 4);
+            assert_eq!(sec.len(), acc.hit_count() * 4);
+            let sh = trace_batch(&bvh, &sec, Traversal::Stackless, Query::Any);
+            acc.accumulate(&view, &sec, &sh, 4);
+        }
+        assert_eq!(acc.samples, 12);
+        // A lone quad occludes nothing in front of itself: AO is fully open.
+        let img = acc.compose(&view);
+        assert_eq!(img.len(), (w * h * 4) as usize);
+        let centre = ((h / 2 * w + w / 2) * 4) as usize;
+        assert_eq!(img[centre..centre + 3], [255, 255, 255]);
+        // Non-accumulating views trace no secondary rays.
+        let normal = View::for_camera(Shade::Normal, false, &cam, 2.0);
+        assert!(acc.secondary_rays(&normal, 4).is_empty());
+    }
+
+    #[test]
+    fn compare_counts_mismatches() {
+        let hit = |prim, t| Hit {
+            t,
+            prim,
+            u: 0.0,
+            v: 0.0,
+        };
+        let a = [
+            hit(1, 1.0),
+            hit(2, 2.0),
+            Hit::miss(f32::INFINITY),
+            hit(3, 1.0),
+        ];
+        let b = [
+            hit(1, 1.0),
+            hit(5, 2.0),
+            Hit::miss(f32::INFINITY),
+            hit(3, 1.5),
+        ];
+        let (c, img) = compare_hits(&a, &b, &[100; 16]);
+        assert_eq!((c.rays, c.prim_mismatches, c.t_mismatches), (4, 1, 1));
+        assert_eq!(&img[4..7], &[255, 40, 40]);
+        assert_eq!(&img[12..15], &[255, 220, 40]);
+        assert!((c.max_rel_t - 1.0 / 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn ramp_ends() {
+        assert_eq!(ramp(0.0), [12, 12, 114]);
+        assert_eq!(ramp(1.0), [216, 25, 12]);
+        assert_eq!(ramp(f32::NAN), ramp(0.0));
+    }
+}
