@@ -1,0 +1,527 @@
+//! The BVH in storage buffers and the ray-batch API.
+
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use ash::vk;
+use bvhtrace_core::{Counters, FlatBvh, Hit, Query, Ray, Traversal};
+use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant};
+use bvhtrace_gpu::{
+    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, WORKGROUP_SIZE, plan_dispatches,
+    rays_per_dispatch,
+};
+
+use crate::context::{Buffer, VkContext};
+use crate::error::{VkError, vkerr};
+
+/// Bytes uploaded by [`VkBvh::upload`] and how long it took.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VkUploadStats {
+    /// Node array bytes.
+    pub nodes_bytes: u64,
+    /// Triangle array bytes.
+    pub triangles_bytes: u64,
+    /// Parent array bytes.
+    pub parents_bytes: u64,
+    /// Wall time of the upload (staging copy and transfer), milliseconds.
+    pub upload_ms: f64,
+}
+
+/// The result of [`VkBvh::trace`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VkTraceOutput {
+    /// One hit per ray, in ray order.
+    pub hits: Vec<Hit>,
+    /// One entry per ray when counters were asked for.
+    pub counters: Option<Vec<Counters>>,
+    /// Time between timestamps written before the first and after the last dispatch,
+    /// nanoseconds (summed over submissions); `None` without timestamp support.
+    pub gpu_ns: Option<u64>,
+    /// Wall time of the call: writing the rays, recording, submitting, waiting and reading
+    /// back (pipeline creation excluded, as in the wgpu path).
+    pub wall: Duration,
+}
+
+/// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
+struct Scratch {
+    capacity: u64,
+    rays: Buffer,
+    hits: Buffer,
+    counters: Buffer,
+}
+
+/// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as three storage buffers (nodes,
+/// triangles, parents: the layout of [`bvhtrace_core::flat`], byte for byte).
+pub struct VkBvh {
+    ctx: VkContext,
+    nodes: Buffer,
+    triangles: Buffer,
+    parents: Buffer,
+    pool: vk::DescriptorPool,
+    set: vk::DescriptorSet,
+    depth: u32,
+    stats: VkUploadStats,
+    scratch: Mutex<Option<Scratch>>,
+}
+
+impl std::fmt::Debug for VkBvh {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VkBvh")
+            .field("depth", &self.depth)
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+impl Drop for VkBvh {
+    fn drop(&mut self) {
+        let d = &self.ctx.inner.device;
+        // SAFETY: every submission using these objects was waited for before its call
+        // returned; the context (and device) outlives this value through `ctx`.
+        unsafe {
+            d.destroy_descriptor_pool(self.pool, None);
+        }
+        for b in [&mut self.nodes, &mut self.triangles, &mut self.parents] {
+            b.destroy(d);
+        }
+        let scratch = match self.scratch.get_mut() {
+            Ok(s) => s,
+            Err(e) => e.into_inner(),
+        };
+        if let Some(mut s) = scratch.take() {
+            s.destroy(d);
+        }
+    }
+}
+
+impl Scratch {
+    fn new(ctx: &VkContext, capacity: u64) -> Result<Scratch, VkError> {
+        use vk::MemoryPropertyFlags as M;
+        let host = M::HOST_VISIBLE | M::HOST_COHERENT;
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let rays = ctx.buffer("rays", capacity * RAY_BYTES, storage, host, M::DEVICE_LOCAL)?;
+        let mut keep = vec![rays];
+        let mut more = |label, bytes, preferred| -> Result<(), VkError> {
+            let b = ctx.buffer(label, capacity * bytes, storage, host, preferred)?;
+            keep.push(b);
+            Ok(())
+        };
+        let made = more("hits", HIT_BYTES, M::HOST_CACHED)
+            .and_then(|_| more("counters", COUNTERS_BYTES, M::HOST_CACHED));
+        if let Err(e) = made {
+            for mut b in keep {
+                b.destroy(&ctx.inner.device);
+            }
+            return Err(e);
+        }
+        let counters = keep.pop();
+        let hits = keep.pop();
+        let rays = keep.pop();
+        match (rays, hits, counters) {
+            (Some(rays), Some(hits), Some(counters)) => Ok(Scratch {
+                capacity,
+                rays,
+                hits,
+                counters,
+            }),
+            _ => unreachable!("three buffers were made"),
+        }
+    }
+
+    fn destroy(&mut self, d: &ash::Device) {
+        for b in [&mut self.rays, &mut self.hits, &mut self.counters] {
+            b.destroy(d);
+        }
+    }
+}
+
+/// Writes storage-buffer descriptors `(binding, buffer, offset, range)` into `set`.
+fn write_set(d: &ash::Device, set: vk::DescriptorSet, entries: &[(u32, vk::Buffer, u64, u64)]) {
+    let infos: Vec<[vk::DescriptorBufferInfo; 1]> = entries
+        .iter()
+        .map(|&(_, buffer, offset, range)| {
+            [vk::DescriptorBufferInfo {
+                buffer,
+                offset,
+                range,
+            }]
+        })
+        .collect();
+    let writes: Vec<vk::WriteDescriptorSet> = entries
+        .iter()
+        .zip(&infos)
+        .map(|(&(binding, ..), info)| {
+            vk::WriteDescriptorSet::default()
+                .dst_set(set)
+                .dst_binding(binding)
+                .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                .buffer_info(info)
+        })
+        .collect();
+    // SAFETY: the set and buffers belong to `d`; the set is not in use by a pending
+    // submission.
+    unsafe { d.update_descriptor_sets(&writes, &[]) };
+}
+
+/// A descriptor pool for `sets` sets of three storage buffers.
+fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, VkError> {
+    let sizes = [vk::DescriptorPoolSize {
+        ty: vk::DescriptorType::STORAGE_BUFFER,
+        descriptor_count: 3 * sets,
+    }];
+    // SAFETY: plain object creation.
+    unsafe {
+        d.create_descriptor_pool(
+            &vk::DescriptorPoolCreateInfo::default()
+                .max_sets(sets)
+                .pool_sizes(&sizes),
+            None,
+        )
+    }
+    .map_err(vkerr("creating a descriptor pool"))
+}
+
+impl VkBvh {
+    /// Uploads `bvh`'s nodes, triangles and parent links to device-local storage buffers
+    /// (through one host-visible staging buffer). Each array is checked against the
+    /// device's `maxStorageBufferRange` first; the error names the array, its size and the
+    /// limit.
+    pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, VkError> {
+        let start = Instant::now();
+        let limit = ctx.limits().max_storage_buffer_binding_size;
+        let arrays: [(&'static str, &[u8]); 3] = [
+            ("nodes", bytemuck::cast_slice(&bvh.nodes)),
+            ("triangles", bytemuck::cast_slice(&bvh.triangles)),
+            ("parents", bytemuck::cast_slice(&bvh.parents)),
+        ];
+        for (name, bytes) in arrays {
+            if bytes.len() as u64 > limit {
+                return Err(VkError::TooLarge {
+                    buffer: name,
+                    bytes: bytes.len() as u64,
+                    limit,
+                });
+            }
+        }
+        use vk::BufferUsageFlags as U;
+        use vk::MemoryPropertyFlags as M;
+        let d = &ctx.inner.device;
+        let align = |x: u64| x.div_ceil(16) * 16;
+        let total: u64 = arrays.iter().map(|(_, b)| align(b.len() as u64)).sum();
+        let mut staging = ctx.buffer(
+            "staging",
+            total,
+            U::TRANSFER_SRC,
+            M::HOST_VISIBLE | M::HOST_COHERENT,
+            M::empty(),
+        )?;
+        // Device buffers, destroyed again if a later step fails.
+        let mut made: Vec<Buffer> = Vec::with_capacity(3);
+        let result = (|| -> Result<(), VkError> {
+            let mut offset = 0u64;
+            let mut data = vec![0u8; total as usize];
+            let mut regions = Vec::new();
+            for (name, bytes) in arrays {
+                data[offset as usize..offset as usize + bytes.len()].copy_from_slice(bytes);
+                let b = ctx.buffer(
+                    name,
+                    bytes.len() as u64,
+                    U::STORAGE_BUFFER | U::TRANSFER_DST,
+                    M::DEVICE_LOCAL,
+                    M::empty(),
+                )?;
+                regions.push((b.raw, offset, bytes.len() as u64));
+                made.push(b);
+                offset += align(bytes.len() as u64);
+            }
+            staging.write(&data);
+            let s = ctx.submitter()?;
+            ctx.submit_and_wait(&s, "uploading the BVH", |d, cmd| {
+                for &(dst, src_offset, size) in &regions {
+                    if size == 0 {
+                        continue;
+                    }
+                    let region = [vk::BufferCopy {
+                        src_offset,
+                        dst_offset: 0,
+                        size,
+                    }];
+                    // SAFETY: recording into the locked command buffer.
+                    unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
+                }
+                let barrier = [vk::MemoryBarrier::default()
+                    .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                    .dst_access_mask(vk::AccessFlags::SHADER_READ)];
+                // SAFETY: as above.
+                unsafe {
+                    d.cmd_pipeline_barrier(
+                        cmd,
+                        vk::PipelineStageFlags::TRANSFER,
+                        vk::PipelineStageFlags::COMPUTE_SHADER,
+                        vk::DependencyFlags::empty(),
+                        &barrier,
+                        &[],
+                        &[],
+                    )
+                };
+            })
+        })();
+        staging.destroy(d);
+        if let Err(e) = result {
+            for mut b in made {
+                b.destroy(d);
+            }
+            return Err(e);
+        }
+        let (Some(parents), Some(triangles), Some(nodes)) = (made.pop(), made.pop(), made.pop())
+        else {
+            unreachable!("three buffers were made")
+        };
+        let mut bvh_gpu = VkBvh {
+            ctx: ctx.clone(),
+            nodes,
+            triangles,
+            parents,
+            pool: vk::DescriptorPool::null(),
+            set: vk::DescriptorSet::null(),
+            depth: bvh.depth,
+            stats: VkUploadStats {
+                nodes_bytes: arrays[0].1.len() as u64,
+                triangles_bytes: arrays[1].1.len() as u64,
+                parents_bytes: arrays[2].1.len() as u64,
+                upload_ms: 0.0,
+            },
+            scratch: Mutex::new(None),
+        };
+        // From here on, dropping `bvh_gpu` frees everything.
+        bvh_gpu.pool = descriptor_pool(d, 1)?;
+        let layouts = [ctx.inner.set_layouts[0]];
+        // SAFETY: allocating from the pool just made.
+        bvh_gpu.set = unsafe {
+            d.allocate_descriptor_sets(
+                &vk::DescriptorSetAllocateInfo::default()
+                    .descriptor_pool(bvh_gpu.pool)
+                    .set_layouts(&layouts),
+            )
+        }
+        .map_err(vkerr("allocating the BVH descriptor set"))?[0];
+        let whole = |b: &Buffer| (b.raw, 0, vk::WHOLE_SIZE);
+        let entries = [
+            (0, whole(&bvh_gpu.nodes)),
+            (1, whole(&bvh_gpu.triangles)),
+            (2, whole(&bvh_gpu.parents)),
+        ]
+        .map(|(i, (b, o, r))| (i, b, o, r));
+        write_set(d, bvh_gpu.set, &entries);
+        bvh_gpu.stats.upload_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(bvh_gpu)
+    }
+
+    /// The context this BVH lives on.
+    pub fn context(&self) -> &VkContext {
+        &self.ctx
+    }
+
+    /// Sizes and time of the upload.
+    pub fn stats(&self) -> VkUploadStats {
+        self.stats
+    }
+
+    /// The kernel variant for these options (BVH in storage buffers).
+    fn variant(&self, traversal: Traversal, query: Query, counters: bool) -> KernelVariant {
+        KernelVariant::new(BvhStorage::Buffers, traversal, query, counters)
+    }
+
+    /// Creates the pipeline for these options ahead of the first trace, so that the first
+    /// trace's timing is not the compiler's.
+    pub fn prepare(
+        &self,
+        traversal: Traversal,
+        query: Query,
+        counters: bool,
+    ) -> Result<(), VkError> {
+        if traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
+            return Err(VkError::TooDeep {
+                depth: self.depth,
+                max: FULL_STACK_SIZE,
+            });
+        }
+        self.ctx
+            .pipeline(self.variant(traversal, query, counters))
+            .map(|_| ())
+    }
+
+    /// Traces `rays` and returns one hit per ray (and each ray's counters when `counters`),
+    /// the time between the dispatches' timestamps and the call's wall time. Batches are
+    /// split into dispatches within the device's limits (`plan_dispatches`, as the wgpu
+    /// path does), and into several submissions when one buffer cannot hold them.
+    pub fn trace(
+        &self,
+        rays: &[Ray],
+        traversal: Traversal,
+        query: Query,
+        counters: bool,
+    ) -> Result<VkTraceOutput, VkError> {
+        self.prepare(traversal, query, counters)?;
+        let pipeline = self
+            .ctx
+            .pipeline(self.variant(traversal, query, counters))?;
+        let start = Instant::now();
+        let inner = &self.ctx.inner;
+        let d = &inner.device;
+        let mut out = VkTraceOutput {
+            hits: Vec::with_capacity(rays.len()),
+            counters: counters.then(|| Vec::with_capacity(rays.len())),
+            gpu_ns: inner.timestamp_period_ns.map(|_| 0),
+            wall: Duration::ZERO,
+        };
+        let n = rays.len() as u64;
+        if n == 0 {
+            return Ok(out);
+        }
+        let limits = self.ctx.limits();
+        let chunk = rays_per_dispatch(limits);
+        let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
+        let per_submit = by_buffer.max(chunk);
+        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+
+        let mut guard = self
+            .scratch
+            .lock()
+            .map_err(|_| VkError::Poisoned("scratch buffers"))?;
+        if guard.as_ref().is_none_or(|s| s.capacity < capacity) {
+            if let Some(mut old) = guard.take() {
+                old.destroy(d);
+            }
+            *guard = Some(Scratch::new(&self.ctx, capacity)?);
+        }
+        let Some(s) = guard.as_ref() else {
+            unreachable!("scratch was just created")
+        };
+        let sub = self.ctx.submitter()?;
+        for batch in rays.chunks(per_submit as usize) {
+            let count = batch.len() as u64;
+            s.rays.write(bytemuck::cast_slice(batch));
+            let dispatches = plan_dispatches(count, limits);
+            let pool = descriptor_pool(d, dispatches.len() as u32)?;
+            let traced = (|| -> Result<(), VkError> {
+                let layouts = vec![inner.set_layouts[1]; dispatches.len()];
+                // SAFETY: allocating from the pool just made, sized for these sets.
+                let sets = unsafe {
+                    d.allocate_descriptor_sets(
+                        &vk::DescriptorSetAllocateInfo::default()
+                            .descriptor_pool(pool)
+                            .set_layouts(&layouts),
+                    )
+                }
+                .map_err(vkerr("allocating ray-batch descriptor sets"))?;
+                for (set, dp) in sets.iter().zip(&dispatches) {
+                    let (first, c) = (dp.first_ray, u64::from(dp.ray_count));
+                    write_set(
+                        d,
+                        *set,
+                        &[
+                            (0, s.rays.raw, first * RAY_BYTES, c * RAY_BYTES),
+                            (1, s.hits.raw, first * HIT_BYTES, c * HIT_BYTES),
+                            (
+                                2,
+                                s.counters.raw,
+                                first * COUNTERS_BYTES,
+                                c * COUNTERS_BYTES,
+                            ),
+                        ],
+                    );
+                }
+                let queries = sub.queries;
+                let timed = inner.timestamp_period_ns.is_some();
+                self.ctx
+                    .submit_and_wait(&sub, "tracing a ray batch", |d, cmd| {
+                        let bind = vk::PipelineBindPoint::COMPUTE;
+                        // SAFETY: recording into the locked command buffer; every object
+                        // belongs to this device and outlives the submission.
+                        unsafe {
+                            if timed {
+                                d.cmd_reset_query_pool(cmd, queries, 0, 2);
+                                d.cmd_write_timestamp(
+                                    cmd,
+                                    vk::PipelineStageFlags::TOP_OF_PIPE,
+                                    queries,
+                                    0,
+                                );
+                            }
+                            d.cmd_bind_pipeline(cmd, bind, pipeline);
+                            d.cmd_bind_descriptor_sets(
+                                cmd,
+                                bind,
+                                inner.pipeline_layout,
+                                0,
+                                &[self.set],
+                                &[],
+                            );
+                            for (set, dp) in sets.iter().zip(&dispatches) {
+                                d.cmd_bind_descriptor_sets(
+                                    cmd,
+                                    bind,
+                                    inner.pipeline_layout,
+                                    1,
+                                    &[*set],
+                                    &[],
+                                );
+                                d.cmd_dispatch(cmd, dp.groups_x, dp.groups_y, 1);
+                            }
+                            if timed {
+                                d.cmd_write_timestamp(
+                                    cmd,
+                                    vk::PipelineStageFlags::BOTTOM_OF_PIPE,
+                                    queries,
+                                    1,
+                                );
+                            }
+                            let barrier = [vk::MemoryBarrier::default()
+                                .src_access_mask(vk::AccessFlags::SHADER_WRITE)
+                                .dst_access_mask(vk::AccessFlags::HOST_READ)];
+                            d.cmd_pipeline_barrier(
+                                cmd,
+                                vk::PipelineStageFlags::COMPUTE_SHADER,
+                                vk::PipelineStageFlags::HOST,
+                                vk::DependencyFlags::empty(),
+                                &barrier,
+                                &[],
+                                &[],
+                            );
+                        }
+                    })?;
+                s.hits
+                    .read_into((count * HIT_BYTES) as usize, &mut out.hits);
+                if let Some(c) = out.counters.as_mut() {
+                    s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
+                }
+                if let (Some(period), Some(total)) =
+                    (inner.timestamp_period_ns, out.gpu_ns.as_mut())
+                {
+                    let mut ts = [0u64; 2];
+                    // SAFETY: both queries were written by the submission just waited for.
+                    unsafe {
+                        d.get_query_pool_results(
+                            queries,
+                            0,
+                            &mut ts,
+                            vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+                        )
+                    }
+                    .map_err(vkerr("reading timestamps"))?;
+                    let ticks = (ts[1] & inner.timestamp_mask)
+                        .wrapping_sub(ts[0] & inner.timestamp_mask)
+                        & inner.timestamp_mask;
+                    *total += (ticks as f64 * period).round() as u64;
+                }
+                Ok(())
+            })();
+            // SAFETY: the submission using the sets has completed (or never started).
+            unsafe { d.destroy_descriptor_pool(pool, None) };
+            traced?;
+        }
+        out.wall = start.elapsed();
+        Ok(out)
+    }
+}

@@ -1,0 +1,814 @@
+//! The Vulkan instance and device, the kernels translated to SPIR-V, the compute pipelines
+//! and the one command buffer everything is submitted through.
+
+use std::collections::HashMap;
+use std::ffi::{CStr, CString, c_void};
+use std::ptr::NonNull;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use ash::vk;
+use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, kernel_source};
+use bvhtrace_gpu::{AdapterChoice, GpuError, GpuLimits, pick_adapter};
+
+use crate::error::{VkError, vkerr};
+
+/// Environment variable that turns on `VK_LAYER_KHRONOS_validation` (when installed) for
+/// [`VkContext::new`]: `BVHTRACE_VK_VALIDATION=1`.
+pub const VALIDATION_ENV: &str = "BVHTRACE_VK_VALIDATION";
+
+const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
+
+/// How long a submission may take before the tracer gives up (10 minutes: lavapipe is slow
+/// on big batches).
+const FENCE_TIMEOUT_NS: u64 = 600_000_000_000;
+
+/// Options of [`VkContext::with_options`].
+#[derive(Clone, Debug, Default)]
+pub struct VkOptions {
+    /// Case-insensitive substring of the device name; `None`: the `BVHTRACE_ADAPTER`
+    /// environment variable, else the best device (discrete > integrated > virtual > CPU).
+    pub adapter: Option<String>,
+    /// Enable `VK_LAYER_KHRONOS_validation` when it is installed (ignored otherwise; see
+    /// [`VkContext::validation_enabled`]).
+    pub validation: bool,
+}
+
+/// The chosen device's description.
+#[derive(Clone, Debug)]
+pub struct VkDeviceInfo {
+    /// `deviceName`.
+    pub name: String,
+    /// `deviceType`.
+    pub device_type: vk::PhysicalDeviceType,
+    /// `apiVersion`, as `(major, minor, patch)`.
+    pub api_version: (u32, u32, u32),
+    /// `driverVersion` (vendor-specific encoding).
+    pub driver_version: u32,
+}
+
+/// A Vulkan device ready to trace: cheap to clone (shared), destroyed with its last clone
+/// and the last [`crate::VkBvh`] uploaded on it.
+#[derive(Clone)]
+pub struct VkContext {
+    pub(crate) inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for VkContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VkContext")
+            .field("device", &self.inner.info.name)
+            .field("limits", &self.inner.limits)
+            .field("timestamps", &self.inner.timestamp_period_ns.is_some())
+            .field("validation", &self.inner.instance.debug.is_some())
+            .finish()
+    }
+}
+
+/// Entry, instance and debug messenger; destroyed after everything made from the device.
+pub(crate) struct InstanceHolder {
+    _entry: ash::Entry,
+    pub(crate) instance: ash::Instance,
+    debug: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    /// Validation messages of severity error; read through the messenger's user pointer,
+    /// so boxed (stable address) and alive until the messenger is destroyed.
+    errors: Box<AtomicU64>,
+}
+
+impl Drop for InstanceHolder {
+    fn drop(&mut self) {
+        // SAFETY: every object created from this instance (the device and its children) is
+        // destroyed by `Inner::drop`, which runs before this field is dropped.
+        unsafe {
+            if let Some((loader, messenger)) = self.debug.take() {
+                loader.destroy_debug_utils_messenger(messenger, None);
+            }
+            self.instance.destroy_instance(None);
+        }
+    }
+}
+
+/// The command buffer, its fence and the timestamp pool, used one submission at a time.
+pub(crate) struct Submitter {
+    pub(crate) pool: vk::CommandPool,
+    pub(crate) cmd: vk::CommandBuffer,
+    pub(crate) fence: vk::Fence,
+    pub(crate) queries: vk::QueryPool,
+}
+
+pub(crate) struct Inner {
+    pub(crate) device: ash::Device,
+    pub(crate) queue: vk::Queue,
+    pub(crate) info: VkDeviceInfo,
+    pub(crate) limits: GpuLimits,
+    /// Nanoseconds per timestamp tick, when the compute queue has timestamps.
+    pub(crate) timestamp_period_ns: Option<f64>,
+    pub(crate) timestamp_mask: u64,
+    memory: vk::PhysicalDeviceMemoryProperties,
+    spirv_version: (u8, u8),
+    /// Naga may skip its own buffer bounds checks (robustBufferAccess2 is on), as wgpu does.
+    robust2: bool,
+    module: naga::Module,
+    module_info: naga::valid::ModuleInfo,
+    pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
+    pub(crate) pipeline_layout: vk::PipelineLayout,
+    pipelines: Mutex<HashMap<KernelVariant, vk::Pipeline>>,
+    pub(crate) submitter: Mutex<Submitter>,
+    // Dropped last (after `Drop::drop` above destroyed the device).
+    pub(crate) instance: InstanceHolder,
+}
+
+impl Drop for Inner {
+    fn drop(&mut self) {
+        // SAFETY: all handles were created from this device; null handles (objects never
+        // created because construction failed half way) are ignored by vkDestroy*. Every
+        // `VkBvh` holds an `Arc<Inner>`, so none of their objects outlives the device.
+        unsafe {
+            let d = &self.device;
+            let _ = d.device_wait_idle();
+            if let Ok(p) = self.pipelines.get_mut() {
+                for (_, pipeline) in p.drain() {
+                    d.destroy_pipeline(pipeline, None);
+                }
+            }
+            let s = match self.submitter.get_mut() {
+                Ok(s) => s,
+                Err(e) => e.into_inner(),
+            };
+            d.destroy_query_pool(s.queries, None);
+            d.destroy_fence(s.fence, None);
+            d.destroy_command_pool(s.pool, None);
+            d.destroy_pipeline_layout(self.pipeline_layout, None);
+            for l in self.set_layouts {
+                d.destroy_descriptor_set_layout(l, None);
+            }
+            d.destroy_device(None);
+        }
+    }
+}
+
+unsafe extern "system" fn debug_callback(
+    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
+    _types: vk::DebugUtilsMessageTypeFlagsEXT,
+    data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
+    user: *mut c_void,
+) -> vk::Bool32 {
+    // SAFETY: the layer passes valid callback data; `user` is the `AtomicU64` boxed in the
+    // `InstanceHolder`, which outlives the messenger.
+    unsafe {
+        let message = data
+            .as_ref()
+            .and_then(|d| d.message_as_c_str())
+            .map(|m| m.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        if severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::ERROR) {
+            if let Some(count) = (user as *const AtomicU64).as_ref() {
+                count.fetch_add(1, Ordering::Relaxed);
+            }
+            eprintln!("bvhtrace-vk validation error: {message}");
+        } else if severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING) {
+            eprintln!("bvhtrace-vk validation warning: {message}");
+        }
+    }
+    vk::FALSE
+}
+
+/// Vulkan's device type as the `DeviceType` that `bvhtrace_gpu::pick_adapter` ranks, so
+/// both backends choose the same device for the same name or environment.
+fn rank(t: vk::PhysicalDeviceType) -> bvhtrace_gpu::wgpu::DeviceType {
+    use bvhtrace_gpu::wgpu::DeviceType;
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => DeviceType::DiscreteGpu,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => DeviceType::IntegratedGpu,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => DeviceType::VirtualGpu,
+        vk::PhysicalDeviceType::CPU => DeviceType::Cpu,
+        _ => DeviceType::Other,
+    }
+}
+
+impl VkContext {
+    /// Opens the device named like `adapter` (case-insensitive substring), or, when `None`,
+    /// the one `BVHTRACE_ADAPTER` names, else the best one (discrete > integrated > CPU):
+    /// the same choice as `bvhtrace_gpu::GpuContext::new`. Validation is on when
+    /// `BVHTRACE_VK_VALIDATION=1` and the layer is installed.
+    pub fn new(adapter: Option<&str>) -> Result<VkContext, VkError> {
+        let validation = std::env::var(VALIDATION_ENV).is_ok_and(|v| v == "1");
+        Self::with_options(&VkOptions {
+            adapter: adapter.map(str::to_string),
+            validation,
+        })
+    }
+
+    /// [`VkContext::new`] with explicit options.
+    pub fn with_options(opts: &VkOptions) -> Result<VkContext, VkError> {
+        // SAFETY: loading libvulkan runs its initialisers; that is what a Vulkan
+        // application does. All later calls use handles created here, on this instance.
+        unsafe { Self::create(opts) }
+    }
+
+    unsafe fn create(opts: &VkOptions) -> Result<VkContext, VkError> {
+        unsafe {
+            let entry = ash::Entry::load().map_err(|e| VkError::LoaderMissing(e.to_string()))?;
+            let layers = entry
+                .enumerate_instance_layer_properties()
+                .map_err(vkerr("listing instance layers"))?;
+            let has_validation = layers
+                .iter()
+                .any(|l| l.layer_name_as_c_str().is_ok_and(|n| n == VALIDATION_LAYER));
+            let validation = opts.validation && has_validation;
+            if opts.validation && !has_validation {
+                eprintln!(
+                    "bvhtrace-vk: {} is not installed; running without validation",
+                    VALIDATION_LAYER.to_string_lossy()
+                );
+            }
+            let app = vk::ApplicationInfo::default()
+                .application_name(c"bvhtrace")
+                .api_version(vk::API_VERSION_1_2);
+            let layer_names = [VALIDATION_LAYER.as_ptr()];
+            let ext_names = [ash::ext::debug_utils::NAME.as_ptr()];
+            let mut ci = vk::InstanceCreateInfo::default().application_info(&app);
+            if validation {
+                ci = ci
+                    .enabled_layer_names(&layer_names)
+                    .enabled_extension_names(&ext_names);
+            }
+            let instance = match entry.create_instance(&ci, None) {
+                Ok(i) => i,
+                Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => {
+                    return Err(VkError::NoDevice {
+                        details: " (the loader found no compatible driver)".into(),
+                    });
+                }
+                Err(e) => return Err(VkError::from_vk("creating the Vulkan instance", e)),
+            };
+            let mut holder = InstanceHolder {
+                _entry: entry.clone(),
+                instance,
+                debug: None,
+                errors: Box::new(AtomicU64::new(0)),
+            };
+            if validation {
+                let loader = ash::ext::debug_utils::Instance::new(&entry, &holder.instance);
+                let info = vk::DebugUtilsMessengerCreateInfoEXT::default()
+                    .message_severity(
+                        vk::DebugUtilsMessageSeverityFlagsEXT::ERROR
+                            | vk::DebugUtilsMessageSeverityFlagsEXT::WARNING,
+                    )
+                    .message_type(
+                        vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+                            | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+                            | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+                    )
+                    .pfn_user_callback(Some(debug_callback))
+                    .user_data(&*holder.errors as *const AtomicU64 as *mut c_void);
+                let messenger = loader
+                    .create_debug_utils_messenger(&info, None)
+                    .map_err(vkerr("creating the validation messenger"))?;
+                holder.debug = Some((loader, messenger));
+            }
+            let instance = &holder.instance;
+
+            // Devices with a compute queue, described for `pick_adapter`.
+            let mut candidates = Vec::new();
+            for pd in instance
+                .enumerate_physical_devices()
+                .map_err(vkerr("listing Vulkan devices"))?
+            {
+                let props = instance.get_physical_device_properties(pd);
+                let families = instance.get_physical_device_queue_family_properties(pd);
+                let Some(family) = families
+                    .iter()
+                    .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+                else {
+                    continue;
+                };
+                candidates.push((pd, props, family as u32, families[family]));
+            }
+            let infos: Vec<bvhtrace_gpu::wgpu::AdapterInfo> = candidates
+                .iter()
+                .map(|(_, p, _, _)| bvhtrace_gpu::wgpu::AdapterInfo {
+                    name: p
+                        .device_name_as_c_str()
+                        .map(|n| n.to_string_lossy().into_owned())
+                        .unwrap_or_default(),
+                    device_type: rank(p.device_type),
+                    ..bvhtrace_gpu::wgpu::AdapterInfo::new(
+                        rank(p.device_type),
+                        bvhtrace_gpu::wgpu::Backend::Vulkan,
+                    )
+                })
+                .collect();
+            let choice = match &opts.adapter {
+                Some(n) => AdapterChoice::Named(n.clone()),
+                None => AdapterChoice::Auto,
+            };
+            let index =
+                pick_adapter(&infos, choice.wanted_name().as_deref()).map_err(|e| match e {
+                    GpuError::AdapterNotFound { wanted, available } => {
+                        VkError::AdapterNotFound { wanted, available }
+                    }
+                    other => VkError::NoDevice {
+                        details: format!(" ({other})"),
+                    },
+                })?;
+            let (pd, props, family, family_props) = candidates[index];
+            let info = VkDeviceInfo {
+                name: infos[index].name.clone(),
+                device_type: props.device_type,
+                api_version: (
+                    vk::api_version_major(props.api_version),
+                    vk::api_version_minor(props.api_version),
+                    vk::api_version_patch(props.api_version),
+                ),
+                driver_version: props.driver_version,
+            };
+
+            // Features: robustBufferAccess2 as wgpu uses it, f64 if a kernel wants it.
+            let exts = instance
+                .enumerate_device_extension_properties(pd)
+                .map_err(vkerr("listing device extensions"))?;
+            let has_ext = |name: &CStr| {
+                exts.iter()
+                    .any(|e| e.extension_name_as_c_str().is_ok_and(|n| n == name))
+            };
+            let mut robust2_query = vk::PhysicalDeviceRobustness2FeaturesEXT::default();
+            let robust2 = if has_ext(ash::ext::robustness2::NAME) {
+                let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut robust2_query);
+                instance.get_physical_device_features2(pd, &mut f2);
+                robust2_query.robust_buffer_access2 == vk::TRUE
+            } else {
+                false
+            };
+            let supported = instance.get_physical_device_features(pd);
+            let features = vk::PhysicalDeviceFeatures::default()
+                .robust_buffer_access(supported.robust_buffer_access == vk::TRUE)
+                .shader_float64(supported.shader_float64 == vk::TRUE)
+                .shader_int64(supported.shader_int64 == vk::TRUE);
+            let mut robust2_enable =
+                vk::PhysicalDeviceRobustness2FeaturesEXT::default().robust_buffer_access2(true);
+            let dev_exts = [ash::ext::robustness2::NAME.as_ptr()];
+            let priorities = [1.0f32];
+            let queue_info = [vk::DeviceQueueCreateInfo::default()
+                .queue_family_index(family)
+                .queue_priorities(&priorities)];
+            let mut dci = vk::DeviceCreateInfo::default()
+                .queue_create_infos(&queue_info)
+                .enabled_features(&features);
+            let robust2 = robust2 && supported.robust_buffer_access == vk::TRUE;
+            if robust2 {
+                dci = dci
+                    .enabled_extension_names(&dev_exts)
+                    .push_next(&mut robust2_enable);
+            }
+            let device = instance
+                .create_device(pd, &dci, None)
+                .map_err(vkerr("creating the Vulkan device"))?;
+            let queue = device.get_device_queue(family, 0);
+            let l = &props.limits;
+            let limits = GpuLimits {
+                max_storage_buffer_binding_size: u64::from(l.max_storage_buffer_range),
+                // Vulkan 1.0 has no buffer-size limit; one allocation may reach 2^32 bytes
+                // on every implementation we know; stay under it.
+                max_buffer_size: u64::from(u32::MAX),
+                max_compute_workgroups_per_dimension: l.max_compute_work_group_count[0]
+                    .min(l.max_compute_work_group_count[1]),
+                min_storage_buffer_offset_alignment: l.min_storage_buffer_offset_alignment as u32,
+                max_texture_dimension_2d: l.max_image_dimension2_d,
+            };
+            // `timestampValidBits` is 0 on queues without timestamps (whatever
+            // `timestampComputeAndGraphics` says for the device as a whole).
+            let timestamps = family_props.timestamp_valid_bits > 0 && l.timestamp_period > 0.0;
+            let timestamp_mask = match family_props.timestamp_valid_bits {
+                0 => 0,
+                64.. => u64::MAX,
+                b => (1u64 << b) - 1,
+            };
+            let spirv_version = match (info.api_version.0, info.api_version.1) {
+                (1, 0) => (1, 0),
+                (1, 1) => (1, 3),
+                _ => (1, 5), // the instance asks for Vulkan 1.2
+            };
+            let memory = instance.get_physical_device_memory_properties(pd);
+
+            // From here on, dropping `inner` destroys whatever was created.
+            let mut inner = Inner {
+                device,
+                queue,
+                info,
+                limits,
+                timestamp_period_ns: timestamps.then_some(f64::from(l.timestamp_period)),
+                timestamp_mask,
+                memory,
+                spirv_version,
+                robust2,
+                module: naga::Module::default(),
+                module_info: naga::valid::ModuleInfo::default(),
+                set_layouts: [vk::DescriptorSetLayout::null(); 2],
+                pipeline_layout: vk::PipelineLayout::null(),
+                pipelines: Mutex::new(HashMap::new()),
+                submitter: Mutex::new(Submitter {
+                    pool: vk::CommandPool::null(),
+                    cmd: vk::CommandBuffer::null(),
+                    fence: vk::Fence::null(),
+                    queries: vk::QueryPool::null(),
+                }),
+                instance: holder,
+            };
+            let d = &inner.device;
+            // Set 0: nodes, triangles, parents. Set 1: rays, hits, counters. The kernels'
+            // binding numbers; every binding is always bound (unused ones are not declared
+            // in the SPIR-V of an entry point that does not use them).
+            for set in 0..2 {
+                let bindings: Vec<vk::DescriptorSetLayoutBinding> = (0..3)
+                    .map(|b| {
+                        vk::DescriptorSetLayoutBinding::default()
+                            .binding(b)
+                            .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                            .descriptor_count(1)
+                            .stage_flags(vk::ShaderStageFlags::COMPUTE)
+                    })
+                    .collect();
+                inner.set_layouts[set] = d
+                    .create_descriptor_set_layout(
+                        &vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings),
+                        None,
+                    )
+                    .map_err(vkerr("creating descriptor set layouts"))?;
+            }
+            inner.pipeline_layout = d
+                .create_pipeline_layout(
+                    &vk::PipelineLayoutCreateInfo::default().set_layouts(&inner.set_layouts),
+                    None,
+                )
+                .map_err(vkerr("creating the pipeline layout"))?;
+            let s = inner
+                .submitter
+                .get_mut()
+                .map_err(|_| VkError::Poisoned("submitter"))?;
+            s.pool = d
+                .create_command_pool(
+                    &vk::CommandPoolCreateInfo::default()
+                        .queue_family_index(family)
+                        .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
+                    None,
+                )
+                .map_err(vkerr("creating the command pool"))?;
+            s.cmd = d
+                .allocate_command_buffers(
+                    &vk::CommandBufferAllocateInfo::default()
+                        .command_pool(s.pool)
+                        .level(vk::CommandBufferLevel::PRIMARY)
+                        .command_buffer_count(1),
+                )
+                .map_err(vkerr("allocating the command buffer"))?[0];
+            s.fence = d
+                .create_fence(&vk::FenceCreateInfo::default(), None)
+                .map_err(vkerr("creating the fence"))?;
+            if timestamps {
+                s.queries = d
+                    .create_query_pool(
+                        &vk::QueryPoolCreateInfo::default()
+                            .query_type(vk::QueryType::TIMESTAMP)
+                            .query_count(2),
+                        None,
+                    )
+                    .map_err(vkerr("creating the timestamp query pool"))?;
+            }
+
+            let source = kernel_source(BvhStorage::Buffers);
+            inner.module = naga::front::wgsl::parse_str(&source).map_err(|e| VkError::Shader {
+                during: "parsing the WGSL kernels",
+                message: e.emit_to_string(&source),
+            })?;
+            inner.module_info = naga::valid::Validator::new(
+                naga::valid::ValidationFlags::all(),
+                naga::valid::Capabilities::all(),
+            )
+            .validate(&inner.module)
+            .map_err(|e| VkError::Shader {
+                during: "validating the WGSL kernels",
+                message: e.emit_to_string(&source),
+            })?;
+            Ok(VkContext {
+                inner: Arc::new(inner),
+            })
+        }
+    }
+
+    /// The device's description.
+    pub fn device_info(&self) -> &VkDeviceInfo {
+        &self.inner.info
+    }
+
+    /// The limits the tracer works within (the same struct the wgpu path uses, filled from
+    /// `VkPhysicalDeviceLimits`).
+    pub fn limits(&self) -> &GpuLimits {
+        &self.inner.limits
+    }
+
+    /// True when dispatch times are measured with timestamp queries.
+    pub fn has_timestamps(&self) -> bool {
+        self.inner.timestamp_period_ns.is_some()
+    }
+
+    /// True when `VK_LAYER_KHRONOS_validation` is active on this context.
+    pub fn validation_enabled(&self) -> bool {
+        self.inner.instance.debug.is_some()
+    }
+
+    /// Validation errors reported so far (0 when validation is off).
+    pub fn validation_errors(&self) -> u64 {
+        self.inner.instance.errors.load(Ordering::Relaxed)
+    }
+
+    /// The SPIR-V words of one kernel variant: the composed WGSL with its override
+    /// constants resolved by naga, written for this device's SPIR-V version.
+    pub fn spirv(&self, variant: KernelVariant) -> Result<Vec<u32>, VkError> {
+        let inner = &self.inner;
+        let stage = naga::ShaderStage::Compute;
+        let mut constants = naga::back::PipelineConstants::default();
+        for (name, value) in variant.constants() {
+            constants.insert(name.to_string(), value);
+        }
+        let (module, info) = naga::back::pipeline_constants::process_overrides(
+            &inner.module,
+            &inner.module_info,
+            Some((stage, variant.entry_point())),
+            &constants,
+        )
+        .map_err(|e| VkError::Shader {
+            during: "resolving override constants",
+            message: e.to_string(),
+        })?;
+        use naga::proc::BoundsCheckPolicy as P;
+        // The pipeline layout's sets and bindings are the WGSL's groups and bindings.
+        let binding_map = (0..2u32)
+            .flat_map(|group| {
+                (0..3u32).map(move |binding| {
+                    (
+                        naga::ResourceBinding { group, binding },
+                        naga::back::spv::BindingInfo {
+                            descriptor_set: group,
+                            binding,
+                            binding_array_size: None,
+                        },
+                    )
+                })
+            })
+            .collect();
+        let options = naga::back::spv::Options {
+            lang_version: inner.spirv_version,
+            flags: naga::back::spv::WriterFlags::empty(),
+            fake_missing_bindings: false,
+            binding_map,
+            bounds_check_policies: naga::proc::BoundsCheckPolicies {
+                index: P::Restrict,
+                buffer: if inner.robust2 {
+                    P::Unchecked
+                } else {
+                    P::Restrict
+                },
+                image_load: P::Restrict,
+                binding_array: P::Unchecked,
+            },
+            zero_initialize_workgroup_memory:
+                naga::back::spv::ZeroInitializeWorkgroupMemoryMode::None,
+            ..Default::default()
+        };
+        let pipeline_options = naga::back::spv::PipelineOptions {
+            shader_stage: stage,
+            entry_point: variant.entry_point().to_string(),
+        };
+        naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline_options)).map_err(|e| {
+            VkError::Shader {
+                during: "writing SPIR-V",
+                message: e.to_string(),
+            }
+        })
+    }
+
+    /// The compute pipeline of one kernel variant (storage buffers only), created on first
+    /// use and cached.
+    pub(crate) fn pipeline(&self, variant: KernelVariant) -> Result<vk::Pipeline, VkError> {
+        let mut cache = self
+            .inner
+            .pipelines
+            .lock()
+            .map_err(|_| VkError::Poisoned("pipeline cache"))?;
+        if let Some(p) = cache.get(&variant) {
+            return Ok(*p);
+        }
+        let words = self.spirv(variant)?;
+        let d = &self.inner.device;
+        let name = CString::new(variant.entry_point()).map_err(|e| VkError::Shader {
+            during: "naming the entry point",
+            message: e.to_string(),
+        })?;
+        // SAFETY: `words` is SPIR-V from naga's validated module; the module is destroyed
+        // right after the pipeline is made from it.
+        let pipeline = unsafe {
+            let module = d
+                .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)
+                .map_err(vkerr("creating a shader module"))?;
+            let stage = vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::COMPUTE)
+                .module(module)
+                .name(&name);
+            let info = vk::ComputePipelineCreateInfo::default()
+                .stage(stage)
+                .layout(self.inner.pipeline_layout);
+            let made = d.create_compute_pipelines(vk::PipelineCache::null(), &[info], None);
+            d.destroy_shader_module(module, None);
+            match made {
+                Ok(p) => p[0],
+                Err((partial, e)) => {
+                    for p in partial {
+                        d.destroy_pipeline(p, None);
+                    }
+                    return Err(VkError::from_vk("creating a compute pipeline", e));
+                }
+            }
+        };
+        cache.insert(variant, pipeline);
+        Ok(pipeline)
+    }
+
+    /// Locks the command buffer for one submission.
+    pub(crate) fn submitter(&self) -> Result<MutexGuard<'_, Submitter>, VkError> {
+        self.inner
+            .submitter
+            .lock()
+            .map_err(|_| VkError::Poisoned("command buffer"))
+    }
+
+    /// Records with `record` into the command buffer, submits, and waits for completion.
+    pub(crate) fn submit_and_wait(
+        &self,
+        s: &Submitter,
+        during: &'static str,
+        record: impl FnOnce(&ash::Device, vk::CommandBuffer),
+    ) -> Result<(), VkError> {
+        let d = &self.inner.device;
+        // SAFETY: the command buffer and fence belong to this device and are not in use
+        // (the previous submission was waited for; the submitter lock is held).
+        unsafe {
+            d.reset_command_buffer(s.cmd, vk::CommandBufferResetFlags::empty())
+                .map_err(vkerr(during))?;
+            d.begin_command_buffer(
+                s.cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .map_err(vkerr(during))?;
+            record(d, s.cmd);
+            d.end_command_buffer(s.cmd).map_err(vkerr(during))?;
+            let cmds = [s.cmd];
+            let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
+            d.queue_submit(self.inner.queue, &submit, s.fence)
+                .map_err(vkerr(during))?;
+            let waited = d.wait_for_fences(&[s.fence], true, FENCE_TIMEOUT_NS);
+            // Reset even after a failure, so the next submission starts clean.
+            let reset = d.reset_fences(&[s.fence]);
+            match waited {
+                Err(vk::Result::TIMEOUT) => {
+                    // The fence may still signal: wait for the queue before reusing it.
+                    let _ = d.queue_wait_idle(self.inner.queue);
+                    let _ = d.reset_fences(&[s.fence]);
+                    return Err(VkError::Vulkan {
+                        during,
+                        result: vk::Result::TIMEOUT,
+                    });
+                }
+                Err(e) => return Err(VkError::from_vk(during, e)),
+                Ok(()) => {}
+            }
+            reset.map_err(vkerr(during))?;
+        }
+        Ok(())
+    }
+
+    /// Creates a buffer with its own memory: `required` memory properties, `preferred`
+    /// ones when some memory type has them too; host-visible buffers stay mapped.
+    pub(crate) fn buffer(
+        &self,
+        label: &'static str,
+        size: u64,
+        usage: vk::BufferUsageFlags,
+        required: vk::MemoryPropertyFlags,
+        preferred: vk::MemoryPropertyFlags,
+    ) -> Result<Buffer, VkError> {
+        let d = &self.inner.device;
+        let size = size.max(16);
+        // SAFETY: plain object creation on this device; on failure what was created is
+        // destroyed before returning.
+        unsafe {
+            let raw = d
+                .create_buffer(
+                    &vk::BufferCreateInfo::default()
+                        .size(size)
+                        .usage(usage)
+                        .sharing_mode(vk::SharingMode::EXCLUSIVE),
+                    None,
+                )
+                .map_err(vkerr("creating a buffer"))?;
+            let req = d.get_buffer_memory_requirements(raw);
+            let mem = &self.inner.memory;
+            let types = &mem.memory_types[..mem.memory_type_count as usize];
+            let fits = |i: usize, flags: vk::MemoryPropertyFlags| {
+                req.memory_type_bits & (1 << i) != 0 && types[i].property_flags.contains(flags)
+            };
+            let index = (0..types.len())
+                .find(|&i| fits(i, required | preferred))
+                .or_else(|| (0..types.len()).find(|&i| fits(i, required)));
+            let Some(index) = index else {
+                d.destroy_buffer(raw, None);
+                return Err(VkError::NoMemoryType {
+                    buffer: label,
+                    needs: required,
+                });
+            };
+            let memory = match d.allocate_memory(
+                &vk::MemoryAllocateInfo::default()
+                    .allocation_size(req.size)
+                    .memory_type_index(index as u32),
+                None,
+            ) {
+                Ok(m) => m,
+                Err(e) => {
+                    d.destroy_buffer(raw, None);
+                    return Err(VkError::from_vk("allocating buffer memory", e));
+                }
+            };
+            let mut b = Buffer {
+                raw,
+                memory,
+                size,
+                mapped: None,
+            };
+            if let Err(e) = d.bind_buffer_memory(raw, memory, 0) {
+                b.destroy(d);
+                return Err(VkError::from_vk("binding buffer memory", e));
+            }
+            if required.contains(vk::MemoryPropertyFlags::HOST_VISIBLE) {
+                match d.map_memory(memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) {
+                    Ok(p) => b.mapped = NonNull::new(p.cast::<u8>()),
+                    Err(e) => {
+                        b.destroy(d);
+                        return Err(VkError::from_vk("mapping buffer memory", e));
+                    }
+                }
+            }
+            Ok(b)
+        }
+    }
+}
+
+/// A buffer and its memory (mapped when host-visible).
+pub(crate) struct Buffer {
+    pub(crate) raw: vk::Buffer,
+    memory: vk::DeviceMemory,
+    pub(crate) size: u64,
+    mapped: Option<NonNull<u8>>,
+}
+
+// SAFETY: the mapping is only read or written by the owner while it holds the context's
+// submitter lock or exclusive access; Vulkan handles are plain integers.
+unsafe impl Send for Buffer {}
+// SAFETY: as above.
+unsafe impl Sync for Buffer {}
+
+impl Buffer {
+    /// Copies `data` to the start of a mapped (host-coherent) buffer.
+    pub(crate) fn write(&self, data: &[u8]) {
+        let Some(p) = self.mapped else { return };
+        let n = data.len().min(self.size as usize);
+        // SAFETY: the mapping covers `size` bytes and no submission touching it is pending.
+        unsafe { std::ptr::copy_nonoverlapping(data.as_ptr(), p.as_ptr(), n) };
+    }
+
+    /// Appends the first `bytes` bytes of a mapped (host-coherent) buffer to `out` as `T`s.
+    pub(crate) fn read_into<T: bytemuck::Pod>(&self, bytes: usize, out: &mut Vec<T>) {
+        let Some(p) = self.mapped else { return };
+        let n = bytes.min(self.size as usize) / std::mem::size_of::<T>();
+        let start = out.len();
+        out.resize(start + n, T::zeroed());
+        let dst: &mut [u8] = bytemuck::cast_slice_mut(&mut out[start..]);
+        // SAFETY: the mapping covers `size` bytes; the GPU finished writing (fence waited).
+        unsafe { std::ptr::copy_nonoverlapping(p.as_ptr(), dst.as_mut_ptr(), dst.len()) };
+    }
+
+    /// Frees the buffer and its memory.
+    pub(crate) fn destroy(&mut self, d: &ash::Device) {
+        // SAFETY: created on `d`; no submission using it is pending (callers wait first).
+        unsafe {
+            if self.mapped.take().is_some() {
+                d.unmap_memory(self.memory);
+            }
+            d.destroy_buffer(self.raw, None);
+            d.free_memory(self.memory, None);
+        }
+        self.raw = vk::Buffer::null();
+        self.memory = vk::DeviceMemory::null();
+    }
+}
