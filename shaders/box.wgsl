@@ -2,6 +2,9 @@
 
 // `intersect::BOX_TFAR_SCALE` = 1 + 2 gamma(3) (the f32 nearest 1.0000004, bits 0x3f800003).
 const BOX_TFAR_SCALE: f32 = 1.0000004f;
+// `intersect::BOX_TFAR_SCALE_NEG` = 1 - 7u (bits 0x3f7ffff9): scales a negative exit
+// distance (hits behind the origin) towards +inf, as BOX_TFAR_SCALE does a positive one.
+const BOX_TFAR_SCALE_NEG: f32 = 0.99999958f;
 
 // `intersect::BOX_CULL_SLACK` = 32 u = 2^-19: the running best `t` is widened by this
 // times the larger magnitude of the box's slab distances along the dominant axis `kz`
@@ -43,8 +46,8 @@ fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best: f32) 
     let tfar = fmin(
         fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
         fmin(fmax(t0.z, t1.z), limit),
-    ) * BOX_TFAR_SCALE;
-    return vec2<f32>(tnear, tfar);
+    );
+    return vec2<f32>(tnear, tfar * select(BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG, tfar < 0.0));
 }
 
 fn box_hit(t: vec2<f32>) -> bool {

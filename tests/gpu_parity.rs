@@ -358,6 +358,8 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
                 for gpu in &gpus {
                     let label = format!("{} {traversal} {query:?} {:?}", case.name, gpu.storage());
                     let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
+                    // Parity must be the kernel's own: no ray finished on the CPU twin.
+                    assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
                     let gc = out.counters.as_deref().expect("counters");
                     let (bad_hits, bad_counters, worst) =
                         compare(&label, &rays, &cpu, &out.hits, gc);
@@ -511,6 +513,7 @@ fn deep_trees_match_cpu_twins() {
                 let label = format!("deep {traversal} {query:?} {storage:?}");
                 let cpu = trace_batch_counted(&bvh, &rays, traversal, query);
                 let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
+                assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
                 let gc = out.counters.as_deref().expect("counters");
                 let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
                 let bad_ref = match query {

@@ -36,6 +36,10 @@ enum Command {
     BenchBuild(bench::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
     BenchTrace(bench::BenchTraceArgs),
+    /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
+    /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
+    /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
+    Stress(bvhtrace_stress::StressArgs),
 }
 
 fn main() {
@@ -47,6 +51,7 @@ fn main() {
         Command::Bench(a) => bench_matrix::bench(a),
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
+        Command::Stress(a) => bvhtrace_stress::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -8,6 +8,11 @@ pub const MISS: u32 = u32::MAX;
 /// `Hit::prim` of a ray that could not be traced (a NaN or infinite origin or direction,
 /// a zero direction, or a NaN `t_min`/`t_max`): a miss, flagged.
 pub const INVALID_RAY: u32 = u32::MAX - 1;
+/// `Hit::prim` written by a GPU kernel for a ray that spent its loop-trip budget before its
+/// answer was certain (see `TRIP_LIMIT` in `shaders/traverse_common.wgsl`): never
+/// returned by the CPU traversals, nor by `bvhtrace_gpu::GpuBvh::trace`, which finishes
+/// such rays on the CPU twin. Callers of `GpuBvh::record` see it and finish them.
+pub const INCOMPLETE: u32 = u32::MAX - 2;
 
 /// A ray with its parametric interval. Hits are accepted for `t_min <= t < t_max`.
 /// GPU layout: WGSL `Ray` in `shaders/types.wgsl` (32 bytes).

@@ -309,3 +309,44 @@ fn hits_scale_with_the_scene() {
         }
     }
 }
+
+/// Regression: a hit behind the origin (negative `t_min`) on a box that is flat along the
+/// ray. Scaling a negative exit distance by `BOX_TFAR_SCALE` moved it towards zero, so
+/// `tnear > tfar` and the quad was culled on every traversal.
+#[test]
+fn hits_behind_the_origin_on_flat_boxes_are_found() {
+    let quad: [Triangle; 2] = [
+        [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+        ],
+        [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ],
+    ];
+    let bvh = FlatBvh::build(&quad, &BuildOptions::default()).unwrap();
+    // The flat box alone, behind the origin.
+    let r = PreparedRay::new(&Ray::with_interval(
+        Vec3::new(0.75, 0.25, 2.0),
+        Vec3::Z,
+        -2.0,
+        0.0,
+    ));
+    assert_eq!(
+        intersect_box(&r, Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), 0.0),
+        Some(-2.0)
+    );
+    for dir in [Vec3::Z, -Vec3::Z] {
+        let org = Vec3::new(0.75, 0.25, 2.0 * dir.z);
+        let ray = Ray::with_interval(org, dir, -2.0, 0.0);
+        for traversal in TRAVERSALS {
+            let (hit, _) = trace_ray(&bvh, &ray, traversal, Query::Closest);
+            assert_eq!((hit.prim, hit.t), (0, -2.0), "{traversal:?} dir {dir}");
+            let (hit, _) = trace_ray(&bvh, &ray, traversal, Query::Any);
+            assert_ne!(hit.prim, MISS, "{traversal:?} any-hit dir {dir}");
+        }
+    }
+}

@@ -1,0 +1,154 @@
+//! `bvhtrace stress`: arguments, the table, the JSON.
+
+use std::io::Write;
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use crate::report::{table_header, table_rows};
+use crate::runner::{Backends, CaseReport, run_case};
+use crate::{CASE_GROUPS, Size, select_cases};
+
+/// Arguments of `bvhtrace stress`.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct StressArgs {
+    /// Cases to run: a case name (`offset-1e5`), a group (`offset`, `watertight`, ...), or
+    /// a comma list; repeatable. All cases when omitted (`--list` shows them).
+    #[arg(long = "case", value_name = "NAME", value_delimiter = ',')]
+    pub case: Vec<String>,
+    /// Also write the full report as JSON to FILE (`-`: standard output; the table then
+    /// goes to standard error).
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<String>,
+    /// Backends, comma-separated: `gpu` (the WGSL kernels, when a Vulkan adapter exists),
+    /// `cpu` (their CPU twins). The CPU twins are always traced to check the GPU against.
+    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
+    pub backends: Vec<String>,
+    /// Small sizes (what the test suite runs): seconds instead of minutes.
+    #[arg(long)]
+    pub quick: bool,
+    /// List the case groups and exit.
+    #[arg(long)]
+    pub list: bool,
+}
+
+#[derive(Serialize)]
+struct JsonReport<'a> {
+    size: Size,
+    backends: Vec<String>,
+    gpu: Option<String>,
+    gpu_note: Option<String>,
+    clean: bool,
+    cases: &'a [CaseReport],
+}
+
+/// Runs the selected cases, prints the table (one row per case x backend x traversal,
+/// closest-hit with the any-hit false misses/hits beside it, then notes per case), writes
+/// the JSON, and fails when any run broke a guarantee (see `CaseReport::clean`).
+pub fn run(args: StressArgs) -> Result<()> {
+    if args.list {
+        for (g, d) in CASE_GROUPS {
+            println!("{g:<16} {d}");
+        }
+        return Ok(());
+    }
+    let (mut cpu, mut gpu) = (false, false);
+    for b in &args.backends {
+        match b.trim() {
+            "cpu" => cpu = true,
+            "gpu" => gpu = true,
+            "" => {}
+            other => bail!("unknown backend '{other}' (expected gpu, cpu)"),
+        }
+    }
+    if !cpu && !gpu {
+        bail!("--backends lists no backend (expected gpu, cpu)");
+    }
+    let size = if args.quick { Size::Quick } else { Size::Full };
+    let to_stdout = args.json.as_deref() == Some("-");
+    let mut out: Box<dyn Write> = if to_stdout {
+        Box::new(std::io::stderr())
+    } else {
+        Box::new(std::io::stdout())
+    };
+
+    let backends = Backends::new(cpu, gpu);
+    if gpu && backends.gpu.is_none() {
+        let note = backends.gpu_note.clone().unwrap_or_default();
+        if !cpu {
+            bail!("no GPU: {note}");
+        }
+        writeln!(out, "SKIP gpu: {note}")?;
+    }
+    let cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
+    writeln!(
+        out,
+        "bvhtrace stress: {} cases ({:?} size), backends: {}{}",
+        cases.len(),
+        size,
+        if cpu { "cpu " } else { "" },
+        backends
+            .gpu_name()
+            .map_or(String::new(), |n| format!("gpu ({n})"))
+    )?;
+    writeln!(
+        out,
+        "a/b = wrong / f32-indeterminate (vs the f64 oracle; brute = vs the f32 brute force); escape = misses from inside a closed mesh (closest + any); self-hit 0/off = self-hits/rays without / with the origin offset"
+    )?;
+    writeln!(out, "{}", table_header())?;
+    let pb = ProgressBar::new(cases.len() as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} ({elapsed})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut reports = Vec::with_capacity(cases.len());
+    for case in &cases {
+        pb.set_message(case.name.clone());
+        let rep = run_case(case, &backends);
+        pb.suspend(|| -> Result<()> {
+            for line in table_rows(&rep) {
+                writeln!(out, "{line}")?;
+            }
+            out.flush()?;
+            Ok(())
+        })?;
+        reports.push(rep);
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let failed: Vec<&str> = reports
+        .iter()
+        .filter(|r| !r.clean())
+        .map(|r| r.name.as_str())
+        .collect();
+    if let Some(path) = &args.json {
+        let j = JsonReport {
+            size,
+            backends: args.backends.clone(),
+            gpu: backends.gpu_name(),
+            gpu_note: backends.gpu_note.clone(),
+            clean: failed.is_empty(),
+            cases: &reports,
+        };
+        let text = serde_json::to_string_pretty(&j)?;
+        if to_stdout {
+            println!("{text}");
+        } else {
+            // Through a temporary file beside it, so a failed write leaves no half file.
+            let tmp = format!("{path}.tmp");
+            std::fs::write(&tmp, text).with_context(|| format!("writing {tmp}"))?;
+            std::fs::rename(&tmp, path).with_context(|| format!("renaming {tmp} to {path}"))?;
+            writeln!(out, "wrote {path}")?;
+        }
+    }
+    if !failed.is_empty() {
+        bail!(
+            "{} case(s) broke a guarantee: {} (see the examples under their rows)",
+            failed.len(),
+            failed.join(", ")
+        );
+    }
+    writeln!(out, "all cases clean")?;
+    Ok(())
+}

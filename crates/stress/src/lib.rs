@@ -1,0 +1,195 @@
+//! Numerical stress cases for bvhtrace (`bvhtrace stress`): where the f32 BVH traversal is
+//! exact, where it is only as good as f32 can be, and where precision runs out.
+//!
+//! * [`cases`] generates every [`Case`]: a scene (triangles), rays, and what each ray's
+//!   answer should be ([`Expect`]): known exactly, or whatever the f64 oracle
+//!   ([`bvhtrace_core::oracle`]) says for the f32 input.
+//! * [`run_case`] builds the BVH and traces the rays on every [`Backends`] entry (the CPU
+//!   twins, and the GPU kernels when an adapter exists) with every traversal and query,
+//!   and compares: against the known answers, against the f64 oracle (differences
+//!   classified as *f32-indeterminate* or *wrong* with
+//!   [`bvhtrace_core::oracle::f32_indeterminate`] and
+//!   [`bvhtrace_core::oracle::f32_t_error_bound`]), against the f32 brute force (what
+//!   every traversal must return), and GPU against CPU bit for bit.
+//! * [`run`] is the `bvhtrace stress` command ([`StressArgs`]): a table, and JSON.
+//!
+//! `GUARANTEES.md` beside this crate states what holds and where precision runs out, with
+//! the figures this crate measured.
+
+// `!(a <= b)` rejects NaN along with the false case: keep it readable as is.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+#![warn(missing_docs)]
+
+mod cases;
+mod cli;
+pub mod geom;
+pub mod offset;
+mod report;
+mod runner;
+
+use bvhtrace_core::{BuildOptions, Ray, Triangle};
+use serde::Serialize;
+
+pub use cases::{CASE_GROUPS, cases, cases_sized, select_cases};
+pub use cli::{StressArgs, run};
+pub use offset::offset_ray_origin;
+pub use report::{format_table, table_header, table_rows};
+pub use runner::{
+    Backends, CaseReport, Differences, PrecisionRow, RunReport, TRAVERSALS, run_case,
+    run_case_with_timeout,
+};
+
+/// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+pub enum Size {
+    /// Small meshes and ray sets, for the test suite.
+    Quick,
+    /// The sizes `bvhtrace stress` runs by default.
+    Full,
+}
+
+/// What a ray's answer should be.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum Expect {
+    /// Whatever the f64 oracle says (compared on the oracle sample).
+    Oracle,
+    /// Some triangle: the ray starts strictly inside a closed surface (checked with the
+    /// oracle when the case is made), so a miss is an escape through a crack.
+    MustHit,
+    /// Exactly this primitive (closest-hit), or some hit (any-hit).
+    Prim(u32),
+    /// A miss (`MISS`, not `INVALID_RAY`).
+    Miss,
+    /// `INVALID_RAY`: a NaN or infinite origin or direction, a zero direction, or a NaN
+    /// interval end.
+    Invalid,
+    /// A secondary ray leaving primitive `origin` from its hit point, with the robust
+    /// origin offset or without it: a closest hit on `origin` is a self-hit. Otherwise the
+    /// oracle decides.
+    Secondary {
+        /// The primitive the ray leaves.
+        origin: u32,
+        /// True when the origin was moved with [`offset_ray_origin`].
+        offset: bool,
+    },
+    /// A precision-limit ray: the oracle decides, and [`Case::precision`] says which
+    /// surface the intended (unrounded) geometry puts first.
+    Surface,
+    /// Only the general contract (no NaN, the interval, GPU = CPU).
+    Unspecified,
+}
+
+/// What rounding the intended geometry to f32 did to a case's input.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct InputInfo {
+    /// The f32 input is exactly the intended geometry (every coordinate representable).
+    pub exact: bool,
+    /// Distinct vertices that rounding merged.
+    pub merged_vertices: usize,
+    /// Triangles of exactly zero area in the f32 input.
+    pub zero_area_triangles: usize,
+}
+
+/// One surface pair of the precision-limit case: two parallel squares `gap` apart.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SurfacePair {
+    /// Translation of the pair (its centre is about `offset * (1, 1, 1)`).
+    pub offset: f64,
+    /// Intended distance between the two surfaces.
+    pub gap: f64,
+    /// Corners of the lower surface that rounded onto the upper surface's plane position
+    /// exactly (the f32 input merged them).
+    pub merged_corners: usize,
+}
+
+/// Which pair a precision-limit ray probes, from where, and what it should hit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct SurfaceProbe {
+    /// Index into [`PrecisionSetup::pairs`].
+    pub pair: u32,
+    /// True when the ray starts at distance `offset` from the surfaces (a camera at the
+    /// world origin), false when at distance 1 (a camera moved with the geometry).
+    pub far: bool,
+    /// The primitive the unrounded f64 geometry puts first along this (f32) ray, or
+    /// `MISS`.
+    pub intended: u32,
+}
+
+/// The precision-limit case's bookkeeping (see [`Expect::Surface`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct PrecisionSetup {
+    /// The surface pairs.
+    pub pairs: Vec<SurfacePair>,
+    /// For each primitive: its pair, and true for the upper surface (the one the rays
+    /// meet first).
+    pub prim_surface: Vec<(u32, bool)>,
+    /// For each ray of the case: what it probes (rays of other kinds have none).
+    pub probes: Vec<Option<SurfaceProbe>>,
+}
+
+/// A stress case: a scene, rays, and what their answers should be.
+#[derive(Clone, Debug)]
+pub struct Case {
+    /// Short name (`offset-1e5`); `--case` selects by name or by group prefix.
+    pub name: String,
+    /// What the case exercises.
+    pub description: String,
+    /// The scene.
+    pub tris: Vec<Triangle>,
+    /// The rays.
+    pub rays: Vec<Ray>,
+    /// One expectation per ray.
+    pub expect: Vec<Expect>,
+    /// How to build the BVH.
+    pub build: BuildOptions,
+    /// Whether any-hit queries are traced too.
+    pub any_hit: bool,
+    /// What rounding did to the input.
+    pub input: InputInfo,
+    /// Most rays compared with the oracle (the oracle is O(rays x triangles)).
+    pub oracle_budget: usize,
+    /// Things worth saying (a mesh skipped, a point not verified inside...).
+    pub notes: Vec<String>,
+    /// The precision-limit bookkeeping, for that case only.
+    pub precision: Option<PrecisionSetup>,
+    /// False for cases measured beyond the guaranteed range (`scale-limit-*`): only the
+    /// unconditional guarantees (no crash, no NaN, the hit contract, GPU = CPU) are held
+    /// against them; their accuracy is reported, not required.
+    pub guaranteed: bool,
+}
+
+impl Case {
+    /// A case with default build options, any-hit on, no notes.
+    pub fn new(name: impl Into<String>, description: impl Into<String>) -> Case {
+        Case {
+            name: name.into(),
+            description: description.into(),
+            tris: Vec::new(),
+            rays: Vec::new(),
+            expect: Vec::new(),
+            build: BuildOptions::default(),
+            any_hit: true,
+            input: InputInfo {
+                exact: true,
+                ..Default::default()
+            },
+            oracle_budget: 4096,
+            notes: Vec::new(),
+            precision: None,
+            guaranteed: true,
+        }
+    }
+
+    /// Adds rays with one expectation.
+    pub fn push_rays(&mut self, rays: impl IntoIterator<Item = Ray>, expect: Expect) {
+        for r in rays {
+            self.rays.push(r);
+            self.expect.push(expect);
+        }
+    }
+
+    /// Number of rays with each kind of expectation that needs no oracle.
+    pub fn count(&self, pred: impl Fn(&Expect) -> bool) -> usize {
+        self.expect.iter().filter(|e| pred(e)).count()
+    }
+}

@@ -1,0 +1,993 @@
+//! Running a case on every backend, traversal and query, and judging the answers.
+
+use std::collections::HashMap;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use bvhtrace_core::intersect::flush_subnormal;
+use bvhtrace_core::oracle::{self, OracleHit, PreparedRay64};
+use bvhtrace_core::traverse::brute_force;
+use bvhtrace_core::{
+    FlatBvh, Hit, INVALID_RAY, MISS, Query, Ray, Traversal, Triangle, trace_batch,
+};
+use bvhtrace_gpu::{
+    AdapterChoice, FULL_STACK_SIZE, GpuBvh, GpuContext, GpuError, TraceOptions, UploadOptions,
+};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::geom::is_zero_area;
+use crate::{Case, Expect, InputInfo};
+
+/// The traversals every case runs, in table order. The CPU full stack has no depth limit;
+/// the GPU full-stack kernel (64 entries) runs only where the tree allows.
+pub const TRAVERSALS: [Traversal; 4] = [
+    Traversal::Stackless,
+    Traversal::ShortStack(6),
+    Traversal::ShortStack(1),
+    Traversal::FullStack,
+];
+
+/// Where to trace: the CPU twins, and the GPU kernels when a device was opened.
+#[derive(Clone)]
+pub struct Backends {
+    /// Report the CPU twins' rows (they are always traced: the GPU is compared with them).
+    pub cpu: bool,
+    /// The GPU device, when there is one and it was asked for.
+    pub gpu: Option<GpuContext>,
+    /// Why there is no GPU (no adapter, or not asked for).
+    pub gpu_note: Option<String>,
+}
+
+impl std::fmt::Debug for Backends {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Backends")
+            .field("cpu", &self.cpu)
+            .field("gpu", &self.gpu_name())
+            .field("gpu_note", &self.gpu_note)
+            .finish()
+    }
+}
+
+impl Backends {
+    /// The CPU twins only.
+    pub fn cpu_only() -> Backends {
+        Backends {
+            cpu: true,
+            gpu: None,
+            gpu_note: Some("not asked for".into()),
+        }
+    }
+
+    /// The CPU (when `cpu`) and the GPU (when `gpu` and an adapter opens: `$BVHTRACE_ADAPTER`
+    /// or the best one). Without an adapter, `gpu_note` says why.
+    pub fn new(cpu: bool, gpu: bool) -> Backends {
+        if !gpu {
+            return Backends {
+                cpu,
+                ..Backends::cpu_only()
+            };
+        }
+        match GpuContext::new(AdapterChoice::Auto) {
+            Ok(ctx) => Backends {
+                cpu,
+                gpu: Some(ctx),
+                gpu_note: None,
+            },
+            Err(e) => Backends {
+                cpu,
+                gpu: None,
+                gpu_note: Some(e.to_string()),
+            },
+        }
+    }
+
+    /// The GPU adapter's name.
+    pub fn gpu_name(&self) -> Option<String> {
+        self.gpu.as_ref().map(|g| g.adapter_info().name.clone())
+    }
+}
+
+/// Differences from a reference, split by whether f32 arithmetic could decide the ray.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Differences {
+    /// The f32 test was determinate for every triangle involved: the answer is wrong.
+    pub wrong: usize,
+    /// Some triangle involved is f32-indeterminate for this ray (an edge within rounding,
+    /// a `t` within its error bound of an interval end or of the other triangle's `t`).
+    pub indeterminate: usize,
+}
+
+impl Differences {
+    fn add(&mut self, indeterminate: bool) {
+        if indeterminate {
+            self.indeterminate += 1;
+        } else {
+            self.wrong += 1;
+        }
+    }
+
+    /// Both kinds.
+    pub fn total(&self) -> usize {
+        self.wrong + self.indeterminate
+    }
+}
+
+/// One surface pair and ray set of the precision-limit case, for one run.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct PrecisionRow {
+    /// Translation.
+    pub offset: f64,
+    /// Intended gap between the surfaces.
+    pub gap: f64,
+    /// Rays from `offset` away (true) or from 1 unit away.
+    pub far: bool,
+    /// Rays whose intended (unrounded f64 geometry) answer is a hit.
+    pub rays: usize,
+    /// Corners of the lower surface equal to the upper's in f32.
+    pub merged_corners: usize,
+    /// Rays for which the f64 oracle on the f32 input hits another surface than the
+    /// intended geometry: the input merged (or crossed) the surfaces.
+    pub input_merged: usize,
+    /// Rays for which the traversal hits another surface than the intended geometry.
+    pub traced_wrong_surface: usize,
+    /// Rays for which the traversal's primitive differs from the oracle's.
+    pub traced_vs_oracle: Differences,
+}
+
+/// One backend x traversal x query over all of a case's rays.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct RunReport {
+    /// `cpu` or `gpu`.
+    pub backend: String,
+    /// The traversal (`stackless`, `short-stack(6)`, ...).
+    pub traversal: String,
+    /// `closest` or `any`.
+    pub query: String,
+    /// `ok`, or why the run did not happen (a refused upload is expected for deep trees).
+    pub status: String,
+    /// Rays traced.
+    pub rays: usize,
+    /// Rays compared with the f64 oracle and the f32 brute force.
+    pub sample: usize,
+    /// Oracle hits, traversal misses.
+    pub false_misses: Differences,
+    /// Oracle misses, traversal hits.
+    pub false_hits: Differences,
+    /// Both hit, different primitives (closest-hit only).
+    pub wrong_prim: Differences,
+    /// Differs from the f32 brute force (closest: bit for bit; any: hit or miss): what every
+    /// traversal must return exactly, short of f32-indeterminate rays.
+    pub brute_mismatch: Differences,
+    /// Median relative `t` error where the traversal and the oracle hit the same primitive.
+    pub t_rel_median: f64,
+    /// Largest relative `t` error, same.
+    pub t_rel_max: f64,
+    /// Same-primitive hits whose `t` error exceeds `f32_t_error_bound`.
+    pub t_beyond_bound: usize,
+    /// Rays with a known answer (`Prim`, `Miss`, `Invalid`).
+    pub known: usize,
+    /// Known answers not given.
+    pub known_wrong: usize,
+    /// Rays from strictly inside a closed surface.
+    pub must_hit: usize,
+    /// Of those, misses. `wrong`: a crack (the f32 test was determinate for every triangle
+    /// the ray crosses); `indeterminate`: the origin is within f32 error of the surface
+    /// (the crossing's `t` is within `f32_t_error_bound` of `t_min`), so the f32 `t` may
+    /// come out negative. Goal: 0 of either.
+    pub escapes: Differences,
+    /// Hits whose point (`origin + t dir`) lies outside the hit triangle's box by more than
+    /// `1e-4` of (its diagonal + `|t dir|`): an f32 answer for a triangle seen with no
+    /// resolution (degenerate in projection, or tiny and far away).
+    pub phantom_hits: usize,
+    /// Outputs flagged `INVALID_RAY`.
+    pub invalid_flagged: usize,
+    /// Outputs with a NaN `t`, `u` or `v`.
+    pub nan_outputs: usize,
+    /// Outputs breaking the `Hit` contract: a hit outside `[t_min, t_max)` or on no
+    /// primitive, a miss whose `t` is not `t_max` or whose `u`, `v` are not 0, `INVALID_RAY`
+    /// for a valid ray or a valid answer for an invalid one.
+    pub contract_violations: usize,
+    /// Hits on exactly zero-area triangles.
+    pub zero_area_hits: usize,
+    /// GPU only: rays whose hit differs from the CPU twin's, bit for bit.
+    pub parity_mismatches: Option<usize>,
+    /// GPU only: rays that spent the adapter's loop-trip budget (`TRIP_LIMIT`; lavapipe
+    /// silently ends longer loops) and were finished on the CPU twin.
+    pub gpu_incomplete: Option<u64>,
+    /// Secondary rays without the origin offset (closest-hit).
+    pub secondary_plain: usize,
+    /// Of those, hits on the triangle they leave.
+    pub self_hits_plain: usize,
+    /// Secondary rays with the origin offset.
+    pub secondary_offset: usize,
+    /// Of those, hits on the triangle they leave.
+    pub self_hits_offset: usize,
+    /// Wall time of the trace (GPU: upload of the rays, dispatch and read-back).
+    pub trace_ms: f64,
+    /// Precision-limit rows (that case, closest-hit only).
+    pub precision: Vec<PrecisionRow>,
+    /// A few failing rays, described (for bug reports).
+    pub examples: Vec<String>,
+}
+
+impl RunReport {
+    /// The unconditional guarantees, at any scale: no NaN output, the hit contract kept,
+    /// the GPU equal to its CPU twin.
+    pub fn sound(&self) -> bool {
+        self.nan_outputs == 0
+            && self.contract_violations == 0
+            && self.parity_mismatches.unwrap_or(0) == 0
+    }
+
+    /// True when nothing that must hold failed: no escape, NaN, contract violation, wrong
+    /// known answer, determinate difference from the oracle or the brute force, or GPU/CPU
+    /// mismatch.
+    pub fn clean(&self) -> bool {
+        self.escapes.wrong == 0
+            && self.nan_outputs == 0
+            && self.contract_violations == 0
+            && self.known_wrong == 0
+            && self.false_misses.wrong == 0
+            && self.false_hits.wrong == 0
+            && self.wrong_prim.wrong == 0
+            && self.brute_mismatch.wrong == 0
+            && self.parity_mismatches.unwrap_or(0) == 0
+    }
+}
+
+/// Everything measured on one case.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct CaseReport {
+    /// Case name.
+    pub name: String,
+    /// What it exercises.
+    pub description: String,
+    /// Triangles.
+    pub triangles: usize,
+    /// Rays.
+    pub rays: usize,
+    /// BVH nodes.
+    pub nodes: usize,
+    /// BVH depth (edges on the longest root-to-leaf path).
+    pub depth: u32,
+    /// Build and flatten time.
+    pub build_ms: f64,
+    /// Rays compared with the oracle.
+    pub oracle_sample: usize,
+    /// Time of the oracle and the f32 brute force on the sample.
+    pub oracle_ms: f64,
+    /// What rounding did to the input.
+    pub input: InputInfo,
+    /// The case's notes.
+    pub notes: Vec<String>,
+    /// The GPU adapter, or why there was none.
+    pub gpu: String,
+    /// What uploading a tree deeper than the full-stack kernel's stack did (deep trees).
+    pub gpu_full_stack: Option<String>,
+    /// One entry per backend x traversal x query.
+    pub runs: Vec<RunReport>,
+    /// The whole case, wall time.
+    pub elapsed_ms: f64,
+    /// Why the case could not run at all.
+    pub error: Option<String>,
+    /// False beyond the guaranteed range (see `Case::guaranteed`).
+    pub guaranteed: bool,
+}
+
+impl CaseReport {
+    /// True when the case ran and every run is clean (see [`RunReport::clean`]; beyond the
+    /// guaranteed range, [`RunReport::sound`]), and a deep tree's full-stack upload was
+    /// refused.
+    pub fn clean(&self) -> bool {
+        self.error.is_none()
+            && self.runs.iter().all(|r| {
+                if self.guaranteed {
+                    r.clean()
+                } else {
+                    r.sound()
+                }
+            })
+            && self
+                .gpu_full_stack
+                .as_ref()
+                .is_none_or(|s| s.starts_with("refused"))
+    }
+}
+
+/// Per-case data every run is judged with.
+struct Judge<'a> {
+    case: &'a Case,
+    sample: Vec<usize>,
+    /// `sample` position of each ray, or `usize::MAX`.
+    position: Vec<usize>,
+    oracle: Vec<OracleHit>,
+    brute: Vec<Hit>,
+    zero_area: Vec<bool>,
+    /// [`as_traced`] of each ray.
+    traced: Vec<Option<Ray>>,
+}
+
+/// Evenly spaced indices: all of `0..n` when it fits in `max`.
+fn sample_indices(n: usize, max: usize) -> Vec<usize> {
+    if n <= max {
+        return (0..n).collect();
+    }
+    (0..max).map(|i| i * n / max).collect()
+}
+
+/// The ray the kernels actually trace: direction components below `f32::MIN_POSITIVE`
+/// flushed to signed zero (see `bvhtrace_core::intersect::PreparedRay::dir`). The oracle
+/// and the f32-indeterminacy tests are applied to this ray; `None` when flushing leaves
+/// no direction (the answer is then only held to the contract).
+fn as_traced(ray: &Ray) -> Option<Ray> {
+    if !ray.is_valid() {
+        return None;
+    }
+    let mut r = *ray;
+    r.dir = r.dir.map(flush_subnormal);
+    r.is_valid().then_some(r)
+}
+
+fn hit_bits(h: &Hit) -> [u32; 4] {
+    [h.t.to_bits(), h.prim, h.u.to_bits(), h.v.to_bits()]
+}
+
+fn t64(tri: &Triangle, ray: &Ray) -> Option<f64> {
+    PreparedRay64::new(ray).intersect(tri).map(|x| x.0)
+}
+
+/// True when `origin + t dir` (f64) lies outside the triangle's box by more than `1e-4` of
+/// (the box diagonal + `|t dir|`).
+fn phantom(tri: &Triangle, ray: &Ray, t: f32) -> bool {
+    let o = glam::Vec3::from(ray.origin).as_dvec3();
+    let d = glam::Vec3::from(ray.dir).as_dvec3();
+    let p = o + d * t as f64;
+    let [a, b, c] = tri.map(|v| v.as_dvec3());
+    let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+    let outside = (lo - p).max(p - hi).max(glam::DVec3::ZERO).length();
+    outside > 1e-4 * ((hi - lo).length() + (d * t as f64).length())
+}
+
+fn near_interval_end(ray: &Ray, t: f64, bound: f64) -> bool {
+    (t - ray.t_min as f64).abs() <= bound
+        || (ray.t_max.is_finite() && (t - ray.t_max as f64).abs() <= bound)
+}
+
+/// True when f32 may decide differently from f64 whether `tri` is accepted in the ray's
+/// interval (`t` is the f64 distance, when the f64 test hits the triangle's plane inside).
+fn acceptance_indeterminate(tri: &Triangle, ray: &Ray, t: Option<f64>) -> bool {
+    if oracle::f32_indeterminate(tri, ray) {
+        return true;
+    }
+    let b = oracle::f32_t_error_bound(tri, ray);
+    match t {
+        Some(t) => !b.is_finite() || near_interval_end(ray, t, b),
+        None => !b.is_finite(),
+    }
+}
+
+/// A difference from a reference answer; `true` when it is f32-indeterminate.
+enum Diff {
+    FalseMiss(bool),
+    FalseHit(bool),
+    WrongPrim(bool),
+}
+
+/// Judges a traced hit `h` against a reference answer (`ref_prim`, f64 `ref_t`): the kind
+/// of difference and whether it is f32-indeterminate; `None` when they agree (any-hit
+/// queries compare hit or miss only).
+fn judge(
+    tris: &[Triangle],
+    ray: &Ray,
+    h: &Hit,
+    ref_prim: u32,
+    ref_t: f64,
+    query: Query,
+) -> Option<Diff> {
+    let ref_hit = ref_prim < INVALID_RAY;
+    match (h.is_hit(), ref_hit) {
+        (false, false) => None,
+        (false, true) => {
+            // Every triangle f64 accepts must be one f32 may reject.
+            let all = oracle::all_hits(tris, ray);
+            let indet = all.is_empty()
+                || all
+                    .iter()
+                    .all(|&(t, p)| acceptance_indeterminate(&tris[p as usize], ray, Some(t)));
+            Some(Diff::FalseMiss(indet))
+        }
+        (true, false) => {
+            let tri = &tris[h.prim as usize];
+            Some(Diff::FalseHit(acceptance_indeterminate(
+                tri,
+                ray,
+                t64(tri, ray),
+            )))
+        }
+        (true, true) if query == Query::Closest && h.prim != ref_prim => {
+            let (tr, th) = (&tris[ref_prim as usize], &tris[h.prim as usize]);
+            let (br, bh) = (
+                oracle::f32_t_error_bound(tr, ray),
+                oracle::f32_t_error_bound(th, ray),
+            );
+            let tie = match t64(th, ray) {
+                Some(t) => (t - ref_t).abs() <= br + bh || near_interval_end(ray, t, bh),
+                None => false,
+            };
+            let indet = tie
+                || !br.is_finite()
+                || !bh.is_finite()
+                || oracle::f32_indeterminate(tr, ray)
+                || oracle::f32_indeterminate(th, ray)
+                || near_interval_end(ray, ref_t, br);
+            Some(Diff::WrongPrim(indet))
+        }
+        _ => None,
+    }
+}
+
+fn describe(ray: &Ray, what: &str, h: &Hit) -> String {
+    format!(
+        "{what}: origin {:?} dir {:?} [{:e}, {:e}) -> prim {} t {:e} (u {:e} v {:e})",
+        ray.origin,
+        ray.dir,
+        ray.t_min,
+        ray.t_max,
+        prim_name(h.prim),
+        h.t,
+        h.u,
+        h.v
+    )
+}
+
+fn prim_name(p: u32) -> String {
+    match p {
+        MISS => "MISS".into(),
+        INVALID_RAY => "INVALID_RAY".into(),
+        p => p.to_string(),
+    }
+}
+
+const MAX_EXAMPLES: usize = 6;
+
+impl Judge<'_> {
+    fn evaluate(
+        &self,
+        mut r: RunReport,
+        query: Query,
+        hits: &[Hit],
+        cpu: Option<&[Hit]>,
+    ) -> RunReport {
+        let case = self.case;
+        let tris = &case.tris;
+        let closest = query == Query::Closest;
+        r.rays = hits.len();
+        r.sample = self.sample.len();
+        let mut examples: Vec<String> = Vec::new();
+        let mut example = |s: String| {
+            if examples.len() < MAX_EXAMPLES {
+                examples.push(s);
+            }
+        };
+        for (i, (ray, h)) in case.rays.iter().zip(hits).enumerate() {
+            if h.t.is_nan() || h.u.is_nan() || h.v.is_nan() {
+                r.nan_outputs += 1;
+                example(describe(ray, &format!("ray {i}: NaN output"), h));
+            }
+            if h.prim == INVALID_RAY {
+                r.invalid_flagged += 1;
+            }
+            let contract_ok = if !ray.is_valid() {
+                let t = if ray.t_max.is_nan() { 0.0 } else { ray.t_max };
+                h.prim == INVALID_RAY && h.t.to_bits() == t.to_bits() && h.u == 0.0 && h.v == 0.0
+            } else if h.prim == MISS {
+                h.t.to_bits() == ray.t_max.to_bits() && h.u == 0.0 && h.v == 0.0
+            } else {
+                (h.prim as usize) < tris.len() && h.t >= ray.t_min && h.t < ray.t_max
+            };
+            if !contract_ok {
+                r.contract_violations += 1;
+                example(describe(ray, &format!("ray {i}: contract"), h));
+            }
+            if h.is_hit()
+                && self
+                    .zero_area
+                    .get(h.prim as usize)
+                    .copied()
+                    .unwrap_or(false)
+            {
+                r.zero_area_hits += 1;
+            }
+            if h.is_hit()
+                && (h.prim as usize) < tris.len()
+                && h.t.is_finite()
+                && phantom(&tris[h.prim as usize], ray, h.t)
+            {
+                r.phantom_hits += 1;
+            }
+            match case.expect[i] {
+                Expect::MustHit => {
+                    r.must_hit += 1;
+                    if !h.is_hit() {
+                        let indet = match &self.traced[i] {
+                            Some(tr) => matches!(
+                                judge(tris, tr, h, 0, 0.0, Query::Any),
+                                Some(Diff::FalseMiss(true))
+                            ),
+                            None => true,
+                        };
+                        r.escapes.add(indet);
+                        example(describe(
+                            ray,
+                            &format!(
+                                "ray {i}: escape ({})",
+                                if indet {
+                                    "f32-indeterminate"
+                                } else {
+                                    "a crack"
+                                }
+                            ),
+                            h,
+                        ));
+                    }
+                }
+                Expect::Prim(p) => {
+                    r.known += 1;
+                    let ok = if closest { h.prim == p } else { h.is_hit() };
+                    if !ok {
+                        r.known_wrong += 1;
+                        example(describe(ray, &format!("ray {i}: expected prim {p}"), h));
+                    }
+                }
+                Expect::Miss => {
+                    r.known += 1;
+                    if h.prim != MISS {
+                        r.known_wrong += 1;
+                        example(describe(ray, &format!("ray {i}: expected MISS"), h));
+                    }
+                }
+                Expect::Invalid => {
+                    r.known += 1;
+                    if h.prim != INVALID_RAY {
+                        r.known_wrong += 1;
+                        example(describe(ray, &format!("ray {i}: expected INVALID_RAY"), h));
+                    }
+                }
+                Expect::Secondary { origin, offset } if closest => {
+                    let self_hit = h.prim == origin;
+                    if offset {
+                        r.secondary_offset += 1;
+                        r.self_hits_offset += self_hit as usize;
+                    } else {
+                        r.secondary_plain += 1;
+                        r.self_hits_plain += self_hit as usize;
+                    }
+                }
+                _ => {}
+            }
+        }
+
+        // The sample: oracle and brute force.
+        struct One {
+            oracle: Option<Diff>,
+            brute: Option<Diff>,
+            t_rel: Option<f64>,
+            beyond: bool,
+        }
+        let ones: Vec<One> = self
+            .sample
+            .par_iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let h = &hits[i];
+                let Some(ray) = &self.traced[i] else {
+                    return One {
+                        oracle: None,
+                        brute: None,
+                        t_rel: None,
+                        beyond: false,
+                    };
+                };
+                let o = &self.oracle[k];
+                let b = &self.brute[k];
+                let oracle_diff = judge(tris, ray, h, o.prim, o.t, query);
+                let brute_diff = if closest {
+                    if hit_bits(h) == hit_bits(b) {
+                        None
+                    } else if h.is_hit()
+                        && b.is_hit()
+                        && h.t.to_bits() == b.t.to_bits()
+                        && tris[h.prim as usize] == tris[b.prim as usize]
+                    {
+                        // Exact duplicates tie exactly: the lower index must win, f32 or
+                        // not (the traversal skipped it or broke the tie rule).
+                        Some(Diff::WrongPrim(false))
+                    } else {
+                        let bt = if b.is_hit() {
+                            t64(&tris[b.prim as usize], ray).unwrap_or(b.t as f64)
+                        } else {
+                            0.0
+                        };
+                        Some(
+                            judge(tris, ray, h, b.prim, bt, query)
+                                .unwrap_or(Diff::WrongPrim(false)),
+                        )
+                    }
+                } else {
+                    let bt = if b.is_hit() {
+                        t64(&tris[b.prim as usize], ray).unwrap_or(b.t as f64)
+                    } else {
+                        0.0
+                    };
+                    judge(tris, ray, h, b.prim, bt, query)
+                };
+                let (mut t_rel, mut beyond) = (None, false);
+                if closest && h.is_hit() && h.prim == o.prim {
+                    let err = (h.t as f64 - o.t).abs();
+                    t_rel = Some(if o.t != 0.0 { err / o.t.abs() } else { err });
+                    let bound = oracle::f32_t_error_bound(&tris[h.prim as usize], ray);
+                    beyond = err > bound;
+                }
+                One {
+                    oracle: oracle_diff,
+                    brute: brute_diff,
+                    t_rel,
+                    beyond,
+                }
+            })
+            .collect();
+        let mut rel = Vec::new();
+        for (k, one) in ones.iter().enumerate() {
+            let i = self.sample[k];
+            let (ray, h) = (&case.rays[i], &hits[i]);
+            if let Some(d) = &one.oracle {
+                let o = &self.oracle[k];
+                let (what, indet) = match *d {
+                    Diff::FalseMiss(x) => {
+                        r.false_misses.add(x);
+                        ("false miss", x)
+                    }
+                    Diff::FalseHit(x) => {
+                        r.false_hits.add(x);
+                        ("false hit", x)
+                    }
+                    Diff::WrongPrim(x) => {
+                        r.wrong_prim.add(x);
+                        ("wrong prim", x)
+                    }
+                };
+                if !indet {
+                    example(describe(
+                        ray,
+                        &format!(
+                            "ray {i}: {what} (oracle prim {} t {:e})",
+                            prim_name(o.prim),
+                            o.t
+                        ),
+                        h,
+                    ));
+                }
+            }
+            if let Some(d) = &one.brute {
+                let indet = match *d {
+                    Diff::FalseMiss(x) | Diff::FalseHit(x) | Diff::WrongPrim(x) => x,
+                };
+                r.brute_mismatch.add(indet);
+                if !indet {
+                    let b = &self.brute[k];
+                    example(describe(
+                        ray,
+                        &format!(
+                            "ray {i}: differs from the f32 brute force (prim {} t {:e})",
+                            prim_name(b.prim),
+                            b.t
+                        ),
+                        h,
+                    ));
+                }
+            }
+            if let Some(t) = one.t_rel {
+                rel.push(t);
+            }
+            if one.beyond {
+                r.t_beyond_bound += 1;
+            }
+        }
+        rel.sort_by(f64::total_cmp);
+        r.t_rel_median = rel.get(rel.len() / 2).copied().unwrap_or(0.0);
+        r.t_rel_max = rel.last().copied().unwrap_or(0.0);
+
+        if let Some(c) = cpu {
+            let mut n = 0;
+            for (i, (g, c)) in hits.iter().zip(c).enumerate() {
+                if hit_bits(g) != hit_bits(c) {
+                    n += 1;
+                    example(describe(
+                        &case.rays[i],
+                        &format!(
+                            "ray {i}: GPU differs from the CPU twin (cpu prim {} t {:e} u {:e} v {:e})",
+                            prim_name(c.prim),
+                            c.t,
+                            c.u,
+                            c.v
+                        ),
+                        g,
+                    ));
+                }
+            }
+            r.parity_mismatches = Some(n);
+        }
+        if closest {
+            r.precision = self.precision_rows(hits);
+        }
+        r.examples = examples;
+        r
+    }
+
+    fn precision_rows(&self, hits: &[Hit]) -> Vec<PrecisionRow> {
+        let Some(setup) = &self.case.precision else {
+            return Vec::new();
+        };
+        let surface = |p: u32| setup.prim_surface.get(p as usize).copied();
+        let mut rows: HashMap<(u32, bool), PrecisionRow> = HashMap::new();
+        for (i, probe) in setup.probes.iter().enumerate() {
+            let Some(probe) = probe else { continue };
+            let pair = &setup.pairs[probe.pair as usize];
+            let row = rows
+                .entry((probe.pair, probe.far))
+                .or_insert_with(|| PrecisionRow {
+                    offset: pair.offset,
+                    gap: pair.gap,
+                    far: probe.far,
+                    merged_corners: pair.merged_corners,
+                    ..Default::default()
+                });
+            if probe.intended == MISS {
+                continue;
+            }
+            let k = self.position[i];
+            if k == usize::MAX {
+                continue;
+            }
+            row.rays += 1;
+            let want = surface(probe.intended);
+            let o = &self.oracle[k];
+            let h = &hits[i];
+            if surface(o.prim) != want {
+                row.input_merged += 1;
+            }
+            if surface(h.prim) != want {
+                row.traced_wrong_surface += 1;
+            }
+            let Some(ray) = &self.traced[i] else { continue };
+            if let Some(d) = judge(&self.case.tris, ray, h, o.prim, o.t, Query::Closest) {
+                let x = match d {
+                    Diff::FalseMiss(x) | Diff::FalseHit(x) | Diff::WrongPrim(x) => x,
+                };
+                row.traced_vs_oracle.add(x);
+            }
+        }
+        let mut v: Vec<PrecisionRow> = rows.into_values().collect();
+        v.sort_by(|a, b| {
+            b.gap
+                .total_cmp(&a.gap)
+                .then(a.far.cmp(&b.far))
+                .then(a.offset.total_cmp(&b.offset))
+        });
+        v
+    }
+}
+
+fn query_name(q: Query) -> &'static str {
+    match q {
+        Query::Closest => "closest",
+        Query::Any => "any",
+    }
+}
+
+fn ms(since: Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1e3
+}
+
+/// Builds the case's BVH, traces its rays with every traversal and query on every backend
+/// (the CPU twins always, to compare the GPU with; reported when `backends.cpu`), and
+/// judges every answer (see [`RunReport`]).
+pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
+    let start = Instant::now();
+    let mut rep = CaseReport {
+        name: case.name.clone(),
+        description: case.description.clone(),
+        triangles: case.tris.len(),
+        rays: case.rays.len(),
+        input: case.input.clone(),
+        notes: case.notes.clone(),
+        guaranteed: case.guaranteed,
+        gpu: backends
+            .gpu_name()
+            .or_else(|| backends.gpu_note.clone().map(|n| format!("none: {n}")))
+            .unwrap_or_default(),
+        ..Default::default()
+    };
+    if case.tris.is_empty() {
+        rep.error = Some("no triangles (skipped)".into());
+        return rep;
+    }
+    let t = Instant::now();
+    let bvh = match FlatBvh::build(&case.tris, &case.build) {
+        Ok(b) => b,
+        Err(e) => {
+            rep.error = Some(format!("build failed: {e}"));
+            return rep;
+        }
+    };
+    rep.build_ms = ms(t);
+    rep.nodes = bvh.nodes.len();
+    rep.depth = bvh.depth;
+
+    let t = Instant::now();
+    let sample = sample_indices(case.rays.len(), case.oracle_budget.max(1));
+    let traced: Vec<Option<Ray>> = case.rays.iter().map(as_traced).collect();
+    let oracle: Vec<OracleHit> = sample
+        .par_iter()
+        .map(|&i| match &traced[i] {
+            Some(r) => oracle::closest_hit(&case.tris, r),
+            None => oracle::closest_hit(&case.tris, &case.rays[i]),
+        })
+        .collect();
+    let brute: Vec<Hit> = sample
+        .par_iter()
+        .map(|&i| brute_force(&bvh, &case.rays[i]))
+        .collect();
+    rep.oracle_ms = ms(t);
+    rep.oracle_sample = sample.len();
+    let mut position = vec![usize::MAX; case.rays.len()];
+    for (k, &i) in sample.iter().enumerate() {
+        position[i] = k;
+    }
+    let judge = Judge {
+        case,
+        sample,
+        position,
+        oracle,
+        brute,
+        zero_area: case.tris.iter().map(is_zero_area).collect(),
+        traced,
+    };
+    let queries: &[Query] = if case.any_hit {
+        &[Query::Closest, Query::Any]
+    } else {
+        &[Query::Closest]
+    };
+    let base = |backend: &str, tr: Traversal, q: Query| RunReport {
+        backend: backend.into(),
+        traversal: tr.to_string(),
+        query: query_name(q).into(),
+        status: "ok".into(),
+        ..Default::default()
+    };
+
+    let mut cpu_hits: HashMap<(Traversal, Query), Vec<Hit>> = HashMap::new();
+    for tr in TRAVERSALS {
+        for &q in queries {
+            let t = Instant::now();
+            let hits = trace_batch(&bvh, &case.rays, tr, q);
+            let mut r = base("cpu", tr, q);
+            r.trace_ms = ms(t);
+            if backends.cpu {
+                rep.runs.push(judge.evaluate(r, q, &hits, None));
+            }
+            cpu_hits.insert((tr, q), hits);
+        }
+    }
+
+    if let Some(ctx) = &backends.gpu {
+        let deep = bvh.depth > FULL_STACK_SIZE;
+        let upload = if deep {
+            match GpuBvh::upload(ctx, &bvh, &UploadOptions::all()) {
+                Err(e @ GpuError::TooDeep { .. }) => {
+                    rep.gpu_full_stack = Some(format!("refused (as it must be): {e}"));
+                }
+                Err(e) => {
+                    rep.gpu_full_stack = Some(format!("ERROR: the upload failed otherwise: {e}"));
+                }
+                Ok(_) => {
+                    rep.gpu_full_stack = Some(format!(
+                        "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
+                        bvh.depth
+                    ));
+                }
+            }
+            let opts = UploadOptions {
+                traversals: TRAVERSALS
+                    .iter()
+                    .copied()
+                    .filter(|t| *t != Traversal::FullStack)
+                    .collect(),
+                storage: None,
+            };
+            GpuBvh::upload(ctx, &bvh, &opts)
+        } else {
+            GpuBvh::upload(ctx, &bvh, &UploadOptions::all())
+        };
+        match upload {
+            Err(e) => {
+                for tr in TRAVERSALS {
+                    for &q in queries {
+                        let mut r = base("gpu", tr, q);
+                        r.status = format!("upload failed: {e}");
+                        rep.runs.push(r);
+                    }
+                }
+            }
+            Ok(gpu) => {
+                for tr in TRAVERSALS {
+                    for &q in queries {
+                        let mut r = base("gpu", tr, q);
+                        if tr == Traversal::FullStack && deep {
+                            r.status = format!(
+                                "refused: depth {} > the kernel's {FULL_STACK_SIZE}-entry stack",
+                                bvh.depth
+                            );
+                            rep.runs.push(r);
+                            continue;
+                        }
+                        let opts = TraceOptions {
+                            traversal: tr,
+                            query: q,
+                            counters: false,
+                        };
+                        // Compile the pipeline and run it once on a few rays, so that the
+                        // timing is the trace's, not the driver's first-use work.
+                        let warm = &case.rays[..case.rays.len().min(64)];
+                        if let Err(e) = gpu.prepare(&opts).and_then(|_| gpu.trace_with(warm, &opts))
+                        {
+                            r.status = format!("pipeline failed: {e}");
+                            rep.runs.push(r);
+                            continue;
+                        }
+                        match gpu.trace_with(&case.rays, &opts) {
+                            Ok(out) => {
+                                r.trace_ms = out.wall_ms;
+                                r.gpu_incomplete = Some(out.incomplete);
+                                let cpu = cpu_hits.get(&(tr, q)).map(Vec::as_slice);
+                                rep.runs.push(judge.evaluate(r, q, &out.hits, cpu));
+                            }
+                            Err(e) => {
+                                r.status = format!("trace failed: {e}");
+                                rep.runs.push(r);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    rep.elapsed_ms = ms(start);
+    rep
+}
+
+/// [`run_case`] on its own thread, given up on after `timeout` (the thread is left to
+/// finish on its own; the error says which case hung).
+pub fn run_case_with_timeout(
+    case: &Case,
+    backends: &Backends,
+    timeout: Duration,
+) -> Result<CaseReport, String> {
+    let (tx, rx) = mpsc::channel();
+    let (case_owned, b) = (case.clone(), backends.clone());
+    let name = case.name.clone();
+    std::thread::Builder::new()
+        .name(format!("stress {name}"))
+        .spawn(move || {
+            let _ = tx.send(run_case(&case_owned, &b));
+        })
+        .map_err(|e| format!("{name}: could not start a thread: {e}"))?;
+    match rx.recv_timeout(timeout) {
+        Ok(r) => Ok(r),
+        Err(mpsc::RecvTimeoutError::Timeout) => {
+            Err(format!("{name}: no result after {timeout:?} (hang?)"))
+        }
+        Err(mpsc::RecvTimeoutError::Disconnected) => Err(format!("{name}: the case panicked")),
+    }
+}
