@@ -14,14 +14,20 @@ pub mod geometry;
 pub mod intersect;
 pub mod mesh;
 pub mod oracle;
+pub mod precision;
 pub mod ray;
 pub mod stats;
+pub mod surface;
 pub mod traverse;
 
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
 pub use flat::{FlatBvh, FlatNode, FlatTriangle};
 pub use geometry::Aabb;
 pub use mesh::{MeshError, Triangle, TriangleMesh};
-pub use ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
+pub use precision::Precision;
+pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
 pub use stats::BvhStats;
-pub use traverse::{Query, Traversal, trace_batch, trace_batch_counted, trace_ray};
+pub use traverse::{
+    Query, Traversal, trace_batch, trace_batch_counted, trace_batch_counted_precision,
+    trace_batch_precision, trace_ray, trace_ray_precision,
+};

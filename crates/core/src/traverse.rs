@@ -22,7 +22,8 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::flat::{FlatBvh, FlatNode};
-use crate::intersect::{PreparedRay, intersect_box, intersect_triangle};
+use crate::intersect::{PreparedRay, intersect_box};
+use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
 
 /// The most short-stack entries a kernel may be specialised for.
@@ -133,7 +134,7 @@ impl Best {
 
 /// Tests a leaf's triangles. Returns true when an any-hit query can stop.
 #[inline(always)]
-fn visit_leaf(
+fn visit_leaf<T: TriangleTest>(
     bvh: &FlatBvh,
     r: &PreparedRay,
     n: &FlatNode,
@@ -145,7 +146,7 @@ fn visit_leaf(
     for tri in &bvh.triangles[first..first + n.count() as usize] {
         c.tris += 1;
         let [v0, v1, v2] = tri.corners();
-        if let Some(h) = intersect_triangle(r, v0, v1, v2)
+        if let Some(h) = T::intersect(r, v0, v1, v2)
             && (h.t < best.t || (h.t == best.t && best.found && tri.prim < best.prim))
         {
             *best = Best {
@@ -181,7 +182,7 @@ fn near_far(r: &PreparedRay, index: u32, n: &FlatNode) -> (u32, u32) {
     }
 }
 
-fn full_stack(
+fn full_stack<T: TriangleTest>(
     bvh: &FlatBvh,
     r: &PreparedRay,
     best: &mut Best,
@@ -199,7 +200,7 @@ fn full_stack(
     loop {
         let n = &bvh.nodes[node as usize];
         if n.is_leaf() {
-            if visit_leaf(bvh, r, n, best, c, any) {
+            if visit_leaf::<T>(bvh, r, n, best, c, any) {
                 return;
             }
         } else {
@@ -262,7 +263,7 @@ fn trail_up(trail: u32, depth: u32) -> u32 {
 /// climb shifts in set bits for them (an ancestor with a set bit whose far child is done,
 /// or was never hit, costs a re-test or a step, never a wrong answer). After a pop from the
 /// ring the trail above the popped node is unknown and is taken as all set.
-fn short_stack(
+fn short_stack<T: TriangleTest>(
     bvh: &FlatBvh,
     r: &PreparedRay,
     best: &mut Best,
@@ -287,7 +288,7 @@ fn short_stack(
         if visit {
             let n = &bvh.nodes[node as usize];
             if n.is_leaf() {
-                if visit_leaf(bvh, r, n, best, c, any) {
+                if visit_leaf::<T>(bvh, r, n, best, c, any) {
                     return;
                 }
             } else {
@@ -363,6 +364,39 @@ pub fn trace_ray_with(
     query: Query,
     stack: &mut Vec<u32>,
 ) -> (Hit, Counters) {
+    trace_ray_generic::<WatertightF32>(bvh, ray, traversal, query, stack)
+}
+
+/// [`trace_ray_with`] with the triangle test chosen by `precision`.
+pub fn trace_ray_precision_with(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    traversal: Traversal,
+    query: Query,
+    precision: Precision,
+    stack: &mut Vec<u32>,
+) -> (Hit, Counters) {
+    match precision {
+        Precision::WatertightF32 => {
+            trace_ray_generic::<WatertightF32>(bvh, ray, traversal, query, stack)
+        }
+        Precision::MollerTrumboreF32 => {
+            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, traversal, query, stack)
+        }
+        Precision::WatertightF64 => {
+            trace_ray_generic::<WatertightF64>(bvh, ray, traversal, query, stack)
+        }
+    }
+}
+
+/// One ray, with the triangle test `T` (monomorphised: the default path is unchanged).
+pub fn trace_ray_generic<T: TriangleTest>(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    traversal: Traversal,
+    query: Query,
+    stack: &mut Vec<u32>,
+) -> (Hit, Counters) {
     let mut c = Counters::default();
     if !ray.is_valid() {
         return (
@@ -386,10 +420,10 @@ pub fn trace_ray_with(
     }
     let any = query == Query::Any;
     match traversal {
-        Traversal::FullStack => full_stack(bvh, &r, &mut best, &mut c, any, stack),
-        Traversal::Stackless => short_stack(bvh, &r, &mut best, &mut c, any, 0),
+        Traversal::FullStack => full_stack::<T>(bvh, &r, &mut best, &mut c, any, stack),
+        Traversal::Stackless => short_stack::<T>(bvh, &r, &mut best, &mut c, any, 0),
         Traversal::ShortStack(k) => {
-            short_stack(bvh, &r, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
+            short_stack::<T>(bvh, &r, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
         }
     }
     (best.into_hit(), c)
@@ -427,9 +461,69 @@ pub fn trace_batch_counted(
         .unzip()
 }
 
+/// Traces one ray with the triangle test chosen by `precision`.
+pub fn trace_ray_precision(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    traversal: Traversal,
+    query: Query,
+    precision: Precision,
+) -> (Hit, Counters) {
+    trace_ray_precision_with(bvh, ray, traversal, query, precision, &mut Vec::new())
+}
+
+/// [`trace_batch`] with the triangle test chosen by `precision`
+/// ([`Precision::WatertightF32`] gives exactly [`trace_batch`]'s answers).
+pub fn trace_batch_precision(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+    precision: Precision,
+) -> Vec<Hit> {
+    rays.par_iter()
+        .with_min_len(256)
+        .map_init(
+            || Vec::with_capacity(bvh.depth as usize + 1),
+            |stack, ray| trace_ray_precision_with(bvh, ray, traversal, query, precision, stack).0,
+        )
+        .collect()
+}
+
+/// [`trace_batch_counted`] with the triangle test chosen by `precision`.
+pub fn trace_batch_counted_precision(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+    precision: Precision,
+) -> (Vec<Hit>, Vec<Counters>) {
+    rays.par_iter()
+        .with_min_len(256)
+        .map_init(
+            || Vec::with_capacity(bvh.depth as usize + 1),
+            |stack, ray| trace_ray_precision_with(bvh, ray, traversal, query, precision, stack),
+        )
+        .unzip()
+}
+
 /// Reference answer by testing every triangle with the same f32 test and hit rule: what
 /// every traversal must return exactly, for closest-hit queries.
 pub fn brute_force(bvh: &FlatBvh, ray: &Ray) -> Hit {
+    brute_force_generic::<WatertightF32>(bvh, ray)
+}
+
+/// [`brute_force`] with the triangle test chosen by `precision`: what every traversal with
+/// that precision returns, for closest-hit queries.
+pub fn brute_force_precision(bvh: &FlatBvh, ray: &Ray, precision: Precision) -> Hit {
+    match precision {
+        Precision::WatertightF32 => brute_force_generic::<WatertightF32>(bvh, ray),
+        Precision::MollerTrumboreF32 => brute_force_generic::<MollerTrumboreF32>(bvh, ray),
+        Precision::WatertightF64 => brute_force_generic::<WatertightF64>(bvh, ray),
+    }
+}
+
+fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
     if !ray.is_valid() {
         return trace_ray(bvh, ray, Traversal::FullStack, Query::Closest).0;
     }
@@ -448,7 +542,7 @@ pub fn brute_force(bvh: &FlatBvh, ray: &Ray) -> Hit {
             max: [0.0; 3],
             meta: (bvh.triangles.len() as u32) << 2,
         };
-        visit_leaf(bvh, &r, &leaf, &mut best, &mut Counters::default(), false);
+        visit_leaf::<T>(bvh, &r, &leaf, &mut best, &mut Counters::default(), false);
     }
     best.into_hit()
 }
