@@ -23,60 +23,11 @@ pub enum Shade {
     Heatmap,
 }
 
-/// Geometric normal of a triangle, flipped to face against `dir`.
-pub fn facing_normal(tri: &Triangle, dir: Vec3) -> Vec3 {
-    let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
-    let n = if n.length_squared() > 0.0 {
-        n.normalize()
-    } else {
-        -dir.normalize()
-    };
-    if n.dot(dir) > 0.0 { -n } else { n }
-}
-
-/// Hit point from the barycentrics (more accurate than `o + t d`).
-pub fn hit_point(tri: &Triangle, h: &Hit) -> Vec3 {
-    tri[0] * (1.0 - h.u - h.v) + tri[1] * h.u + tri[2] * h.v
-}
-
-/// Moves a surface point off the surface along `n` by a few ulps of its own magnitude
-/// (Wachter and Binder, Ray Tracing Gems ch. 6): no scene-scale epsilon.
-pub fn offset_origin(p: Vec3, n: Vec3) -> Vec3 {
-    const ORIGIN: f32 = 1.0 / 32.0;
-    const FLOAT_SCALE: f32 = 1.0 / 65536.0;
-    const INT_SCALE: f32 = 256.0;
-    let off = |p: f32, n: f32| {
-        let oi = (INT_SCALE * n) as i32;
-        let pi = f32::from_bits((p.to_bits() as i32 + if p < 0.0 { -oi } else { oi }) as u32);
-        if p.abs() < ORIGIN {
-            p + FLOAT_SCALE * n
-        } else {
-            pi
-        }
-    };
-    Vec3::new(off(p.x, n.x), off(p.y, n.y), off(p.z, n.z))
-}
-
-/// A small integer hash (PCG) for repeatable sampling.
-pub fn hash(mut x: u32) -> u32 {
-    x = x.wrapping_mul(747796405).wrapping_add(2891336453);
-    let w = ((x >> ((x >> 28) + 4)) ^ x).wrapping_mul(277803737);
-    (w >> 22) ^ w
-}
-
-fn unit(x: u32) -> f32 {
-    (x >> 8) as f32 / (1u32 << 24) as f32
-}
-
-/// Cosine-weighted direction around `n` for sample `s` of pixel `p`.
-pub fn cosine_dir(n: Vec3, p: u32, s: u32) -> Vec3 {
-    let h1 = hash(p.wrapping_mul(9781).wrapping_add(s.wrapping_mul(6271)) ^ 0x9e37_79b9);
-    let (u1, u2) = (unit(h1), unit(hash(h1)));
-    let r = u1.sqrt();
-    let phi = std::f32::consts::TAU * u2;
-    let (t, b) = n.any_orthonormal_pair();
-    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
-}
+// Leaving a surface (hit point, facing normal, robust origin offset) and the repeatable
+// sampling are shared with the viewer and the stress cases.
+pub use bvhtrace_core::surface::{
+    cosine_dir, facing_normal, hit_point, offset_ray_origin as offset_origin,
+};
 
 /// Secondary rays for the diffuse (one shadow ray) and AO (`samples` rays) modes: for each
 /// primary hit, rays and the index of the pixel they belong to.

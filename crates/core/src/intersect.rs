@@ -13,6 +13,14 @@ use crate::ray::Ray;
 /// rounding, whatever the scene's scale.
 pub const BOX_TFAR_SCALE: f32 = 1.000_000_4;
 
+/// The scale for a negative exit distance (hits behind the origin, with a negative
+/// `t_min`): `1 - 7 u` (bits `0x3f7ffff9`), below `1 / BOX_TFAR_SCALE`, so that the exit
+/// moves away from zero, towards `+inf`, as [`BOX_TFAR_SCALE`] moves a positive one.
+/// Multiplying a negative exit by [`BOX_TFAR_SCALE`] would move it the wrong way and cull
+/// a box that is flat along the ray (a quad facing the ray) when it lies behind the
+/// origin. A constant multiply, not a division, so the GPU rounds it the same way.
+pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_999_6;
+
 /// `C u` with `C = 32`, `u = 2^-24` (exactly `2^-19`): when a box is culled against the
 /// running best hit, the best `t` is widened by `BOX_CULL_SLACK * m`, where `m` is the
 /// larger magnitude of the box's two slab distances along the ray's dominant axis `kz`.
@@ -48,8 +56,8 @@ pub const BOX_TFAR_SCALE: f32 = 1.000_000_4;
 /// slack itself: `m` and the product round (relative `θ_4`: second order), and the sum
 /// `t_best + slack` rounds once (relative `u`). When the sum is non-negative,
 /// [`BOX_TFAR_SCALE`] absorbs that; when it is negative (hits behind the origin with a
-/// negative `t_min`; then `|t_best| <= m`), the scale shrinks it instead, by up to
-/// `(2 γ_3 + u) m = 7 u m`. Worst case `(13 + 7) u m = 20 u m`: `C = 32`, the next power
+/// negative `t_min`; then `|t_best| <= m`), [`BOX_TFAR_SCALE_NEG`] moves it towards
+/// `+inf` by `7 u |t|`, which absorbs it as well; count `7 u m` anyway. Worst case `(13 + 7) u m = 20 u m`: `C = 32`, the next power
 /// of two (an exact f32), whose remaining `12 u m` also absorbs moderate errors of the
 /// weights (below). The box's other slabs agree with `Σ β_i Z_i` only up to the error of
 /// the weights `β_i` themselves (the edge functions' rounding, amplified by `1/det`):
@@ -204,7 +212,14 @@ pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_best: f32) -> Op
     let tfar = fmin(
         fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
         fmin(fmax(t0.z, t1.z), limit),
-    ) * BOX_TFAR_SCALE;
+    );
+    // Away from zero towards +inf, whatever the sign (see `BOX_TFAR_SCALE_NEG`).
+    let tfar = tfar
+        * if tfar < 0.0 {
+            BOX_TFAR_SCALE_NEG
+        } else {
+            BOX_TFAR_SCALE
+        };
     if tnear <= tfar { Some(tnear) } else { None }
 }
 
