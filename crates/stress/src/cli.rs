@@ -65,6 +65,12 @@ pub fn run(args: StressArgs) -> Result<()> {
     if !cpu && !gpu {
         bail!("--backends lists no backend (expected gpu, cpu)");
     }
+    // An unwritable JSON path fails now, not after minutes of work.
+    if let Some(path) = args.json.as_deref().filter(|p| *p != "-") {
+        let tmp = format!("{path}.tmp");
+        std::fs::write(&tmp, b"").with_context(|| format!("cannot write the JSON report {path}"))?;
+        let _ = std::fs::remove_file(&tmp);
+    }
     let size = if args.quick { Size::Quick } else { Size::Full };
     let to_stdout = args.json.as_deref() == Some("-");
     let mut out: Box<dyn Write> = if to_stdout {
