@@ -4,13 +4,12 @@
 // host composes one or the other.
 //
 // The group number is written `@group(0)` here; `bvhtrace_gpu::wgsl_library` rewrites it
-// for shaders that keep group 0 for themselves. `bvh_parents` is only read by the
-// stackless and short-stack walks, so a shader that calls only `trace_full_stack` need
-// not bind it.
+// for shaders that keep group 0 for themselves. The parent links (binding 2, read only by
+// the stackless and short-stack walks) are `bvh_buffers_parents.wgsl`, composed in only
+// when the traversal reads them.
 
 @group(0) @binding(0) var<storage, read> bvh_nodes: array<Node>;
 @group(0) @binding(1) var<storage, read> bvh_triangles: array<Triangle>;
-@group(0) @binding(2) var<storage, read> bvh_parents: array<u32>;
 
 fn load_node(i: u32) -> Node {
     return bvh_nodes[i];
@@ -23,8 +22,4 @@ fn load_node_links(i: u32) -> vec2<u32> {
 
 fn load_triangle(i: u32) -> Triangle {
     return bvh_triangles[i];
-}
-
-fn load_parent(i: u32) -> u32 {
-    return bvh_parents[i];
 }

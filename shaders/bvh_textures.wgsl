@@ -11,14 +11,14 @@
 //   `(min.x, min.y, min.z, max.x)` and `(max.y, max.z, right_or_first, meta)`.
 // * `bvh_triangle_texels`: three texels per triangle, `FlatTriangle`'s bytes:
 //   `(v0, prim)`, `(v1, pad)`, `(v2, pad)`.
-// * `bvh_parent_texels` (`R32Uint`): one texel per node.
+// * `bvh_parent_texels` (`R32Uint`, one texel per node) is `bvh_textures_parents.wgsl`,
+//   composed in only when the traversal reads the parent links.
 
 const BVH_TEXEL_ROW_LOG2: u32 = 13u;
 const BVH_TEXEL_ROW_MASK: u32 = 8191u;
 
 @group(0) @binding(0) var bvh_node_texels: texture_2d<u32>;
 @group(0) @binding(1) var bvh_triangle_texels: texture_2d<u32>;
-@group(0) @binding(2) var bvh_parent_texels: texture_2d<u32>;
 
 fn texel_coord(t: u32) -> vec2<u32> {
     return vec2<u32>(t & BVH_TEXEL_ROW_MASK, t >> BVH_TEXEL_ROW_LOG2);
@@ -50,8 +50,4 @@ fn load_triangle(i: u32) -> Triangle {
         bitcast<vec3<f32>>(c.xyz),
         c.w,
     );
-}
-
-fn load_parent(i: u32) -> u32 {
-    return textureLoad(bvh_parent_texels, texel_coord(i), 0).x;
 }

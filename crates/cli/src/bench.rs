@@ -7,7 +7,10 @@ use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, FlatBvh, Query, Ray, Traversal, Triangle, trace_batch,
     trace_batch_counted,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, UploadOptions};
+use bvhtrace_gpu::{
+    AdapterChoice, Composition, GpuBvh, GpuContext, PipelineFeatures, TraceOptions, UploadOptions,
+    VertexAttributes, kernel_source,
+};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -191,6 +194,12 @@ pub struct BenchTraceArgs {
     /// Also trace any-hit (occlusion) queries on the same rays.
     #[arg(long)]
     pub any_hit: bool,
+    /// Instead, compare each traversal's specialised pipeline (only the bindings and code
+    /// the closest-hit job reads) with the everything-on one (every module composed, the
+    /// parent links uploaded, counters written): bytes uploaded per triangle, pipeline
+    /// creation time, Mrays/s.
+    #[arg(long)]
+    pub everything_on: bool,
 }
 
 /// `bvhtrace bench-trace`.
@@ -214,6 +223,9 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
         info.device_type,
         rayon::current_num_threads()
     );
+    if args.everything_on {
+        return compare_everything_on(&ctx, &args, w, h);
+    }
     let traversals = [
         Traversal::FullStack,
         Traversal::Stackless,
@@ -289,6 +301,146 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     tris_,
                     nodes / full,
                     g / cpu
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One side of `bench-trace --everything-on`.
+struct Side {
+    name: &'static str,
+    composition: Composition,
+    gpu: GpuBvh,
+    opts: TraceOptions,
+    wgsl_bytes: usize,
+    bindings: usize,
+    create_ms: Vec<f64>,
+    gpu_ms: Vec<f64>,
+    wall_ms: Vec<f64>,
+}
+
+/// `bvhtrace bench-trace --everything-on`: per scene and traversal, the specialised
+/// closest-hit pipeline against the everything-on one, on the same rays; the two sides'
+/// runs are interleaved, and their hits must be equal.
+fn compare_everything_on(ctx: &GpuContext, args: &BenchTraceArgs, w: u32, h: u32) -> Result<()> {
+    let storage = ctx.default_storage();
+    println!(
+        "storage: {storage:?}; {} runs per figure (medians)",
+        args.runs
+    );
+    for spec in scene_specs(&args.scenes)? {
+        let (tris, scene, _) = load(&spec)?;
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let rays = primary_rays(&scene, w, h);
+        println!(
+            "\n{spec}: {} triangles, {} nodes, {} rays ({w}x{h})",
+            tris.len(),
+            bvh.nodes.len(),
+            rays.len()
+        );
+        println!(
+            "{:14} {:14} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9}",
+            "traversal",
+            "pipeline",
+            "bindings",
+            "WGSL KiB",
+            "upload MB",
+            "bytes/tri",
+            "create ms",
+            "GPU Mr/s",
+            "wall Mr/s"
+        );
+        for tr in [
+            Traversal::FullStack,
+            Traversal::Stackless,
+            Traversal::ShortStack(6),
+        ] {
+            let job = PipelineFeatures::for_job(
+                storage,
+                tr,
+                Query::Closest,
+                false,
+                VertexAttributes::NONE,
+                VertexAttributes::NONE,
+            );
+            let all = job.with_composition(Composition::EverythingOn);
+            let mut sides = [
+                Side {
+                    name: "specialised",
+                    composition: Composition::Specialised,
+                    gpu: GpuBvh::upload(ctx, &bvh, &job.upload_options())?,
+                    opts: TraceOptions {
+                        traversal: tr,
+                        query: Query::Closest,
+                        counters: false,
+                    },
+                    wgsl_bytes: job.source().len(),
+                    bindings: job.bindings().len(),
+                    create_ms: Vec::new(),
+                    gpu_ms: Vec::new(),
+                    wall_ms: Vec::new(),
+                },
+                Side {
+                    name: "everything-on",
+                    composition: Composition::EverythingOn,
+                    gpu: GpuBvh::upload(ctx, &bvh, &UploadOptions::all().with_storage(storage))?,
+                    opts: TraceOptions {
+                        traversal: tr,
+                        query: Query::Closest,
+                        counters: true,
+                    },
+                    wgsl_bytes: kernel_source(storage).len(),
+                    bindings: all.bindings().len(),
+                    create_ms: Vec::new(),
+                    gpu_ms: Vec::new(),
+                    wall_ms: Vec::new(),
+                },
+            ];
+            // Pipeline creation (module + pipeline, nothing cached), interleaved.
+            for _ in 0..args.runs {
+                for s in sides.iter_mut() {
+                    ctx.set_composition(s.composition);
+                    ctx.clear_pipeline_cache()?;
+                    let t = Instant::now();
+                    s.gpu.prepare(&s.opts)?;
+                    s.create_ms.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+            // Both pipelines compiled once more and kept; one untimed trace each.
+            let mut hits = Vec::new();
+            for s in sides.iter_mut() {
+                ctx.set_composition(s.composition);
+                s.gpu.prepare(&s.opts)?;
+                hits.push(s.gpu.trace_with(&rays, &s.opts)?.hits);
+            }
+            if hits[0] != hits[1] {
+                bail!("{spec} {tr}: the specialised and everything-on pipelines disagree");
+            }
+            for _ in 0..args.runs {
+                for s in sides.iter_mut() {
+                    ctx.set_composition(s.composition);
+                    let o = s.gpu.trace_with(&rays, &s.opts)?;
+                    s.wall_ms.push(o.wall_ms);
+                    s.gpu_ms.push(o.gpu_ms.unwrap_or(o.wall_ms));
+                }
+            }
+            ctx.set_composition(Composition::Specialised);
+            let n = rays.len() as f64;
+            for s in &sides {
+                let bytes = s.gpu.stats().total_bytes();
+                println!(
+                    "{:14} {:14} {:>8} {:>9.1} {:>10.2} {:>10.1} {:>9.1} {:>9.2} {:>9.2}",
+                    tr.to_string(),
+                    s.name,
+                    s.bindings,
+                    s.wgsl_bytes as f64 / 1024.0,
+                    bytes as f64 / 1e6,
+                    bytes as f64 / tris.len().max(1) as f64,
+                    median(s.create_ms.clone()),
+                    n / median(s.gpu_ms.clone()) / 1e3,
+                    n / median(s.wall_ms.clone()) / 1e3
                 );
             }
         }

@@ -7,10 +7,11 @@ use anyhow::{Context, Result, bail};
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, FlatBvh, Hit, Query, Ray, Traversal, Triangle,
 };
-use bvhtrace_scene::{Camera, DEFAULT_SCENE, Scene};
+use bvhtrace_gpu::{BvhStorage, PipelineFeatures, UploadStats, VertexAttributes};
+use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::json;
+use serde_json::{Value, json};
 
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, BACKGROUND, Shade};
@@ -343,6 +344,17 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if args.traversal.needs_parents() {
         features.push("parent-links");
     }
+    // The GPU pipelines this job ran, each composed of only what it needs.
+    let pipelines = match tracer.upload() {
+        Some((_, storage)) => render_pipelines(
+            storage,
+            args.traversal,
+            !sec_rays.is_empty(),
+            need_counters,
+            &scene.attributes,
+        ),
+        None => Vec::new(),
+    };
     eprintln!(
         "wrote {} ({}x{}, {} triangles, {} on {}): {} rays in {:.1} ms, {:.2} Mrays/s",
         args.output.display(),
@@ -382,6 +394,9 @@ pub fn render(args: RenderArgs) -> Result<()> {
             "shade": args.shade,
             "uploaded_bytes": tracer.uploaded_bytes(),
             "features": features,
+            "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
+            "upload": tracer.upload().map(|(s, storage)| upload_json(&s, storage, tris.len())),
+            "left_out": left_out(&pipelines, &scene, args.traversal),
             "camera": { "eye": cam.eye.to_array(), "target": cam.target.to_array(), "fov": cam.fov_y_deg },
         }))?;
     }
@@ -487,11 +502,127 @@ fn compose(
     img
 }
 
+/// Per-vertex data the shading modes read on the GPU: none (shading runs on the host, from
+/// the geometric normal), so a scene's normals, texture coordinates and colours are never
+/// uploaded.
+const JOB_ATTRIBUTES: VertexAttributes = VertexAttributes::NONE;
+
+/// The GPU pipelines a render job runs: closest hit for the primary rays (with counters
+/// when asked for), and any hit for the shadow or AO rays when there are any.
+fn render_pipelines(
+    storage: BvhStorage,
+    traversal: Traversal,
+    secondary: bool,
+    counters: bool,
+    scene_has: &Attributes,
+) -> Vec<PipelineFeatures> {
+    let has = VertexAttributes {
+        normals: scene_has.normals,
+    };
+    let job = |query, counters| {
+        PipelineFeatures::for_job(storage, traversal, query, counters, has, JOB_ATTRIBUTES)
+    };
+    let mut v = vec![job(Query::Closest, counters)];
+    if secondary {
+        v.push(job(Query::Any, false));
+    }
+    v
+}
+
+/// One pipeline as JSON: entry point, what it includes, its WGSL files and bindings.
+fn pipeline_json(f: &PipelineFeatures) -> Value {
+    json!({
+        "entry_point": f.variant.entry_point(),
+        "features": f.names(),
+        "wgsl_files": f.module_set().files().iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+        "bindings": f.bindings().iter().map(|b| json!({
+            "group": b.group,
+            "binding": b.binding,
+            "name": b.name,
+            "bytes_per_element": b.element_bytes,
+            "per": format!("{:?}", b.per).to_lowercase(),
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// Bytes uploaded, per buffer, in all and per triangle.
+fn upload_json(s: &UploadStats, storage: BvhStorage, triangles: usize) -> Value {
+    json!({
+        "storage": format!("{storage:?}").to_lowercase(),
+        "nodes": s.nodes_bytes,
+        "triangles": s.triangles_bytes,
+        "parents": s.parents_bytes,
+        "total": s.total_bytes(),
+        "bytes_per_triangle": s.total_bytes() as f64 / triangles.max(1) as f64,
+    })
+}
+
+/// What the pipelines leave out, and why.
+fn left_out(pipelines: &[PipelineFeatures], scene: &Scene, traversal: Traversal) -> Vec<String> {
+    let mut v = Vec::new();
+    if pipelines.is_empty() {
+        return vec!["everything: traced on the CPU, nothing uploaded".into()];
+    }
+    if !pipelines.iter().any(|p| p.module_set().parents) {
+        v.push(format!(
+            "parent links (the {traversal} walk does not climb the tree)"
+        ));
+    }
+    if !pipelines.iter().any(|p| p.variant.counters) {
+        v.push("counters (asked for only by --shade heatmap or --json)".into());
+    }
+    if !pipelines.iter().any(|p| p.module_set().short_stack) {
+        v.push("the stackless/short-stack walk".into());
+    }
+    if !pipelines.iter().any(|p| p.module_set().full_stack) {
+        v.push("the full-stack walk".into());
+    }
+    let a = &scene.attributes;
+    for (has, what) in [
+        (a.normals, "vertex normals"),
+        (a.texcoords, "texture coordinates"),
+        (a.colors, "vertex colours"),
+        (a.materials, "materials"),
+    ] {
+        v.push(if has {
+            format!("{what} (the scene has them; no GPU job reads them)")
+        } else {
+            format!("{what} (the scene has none)")
+        });
+    }
+    if scene.instance_count() > scene.meshes.len() {
+        v.push(format!(
+            "instances ({} placements, flattened to world-space triangles on the host)",
+            scene.instance_count()
+        ));
+    }
+    v
+}
+
+fn parse_storage(s: &str) -> Result<BvhStorage, String> {
+    match s {
+        "buffers" => Ok(BvhStorage::Buffers),
+        "textures" => Ok(BvhStorage::Textures),
+        _ => Err(format!("expected buffers or textures, got '{s}'")),
+    }
+}
+
 /// `bvhtrace info`.
 #[derive(clap::Args)]
 pub struct InfoArgs {
     #[command(flatten)]
     pub scene: SceneArgs,
+    /// The traversal of the job whose GPU pipeline and upload are listed.
+    #[arg(long, default_value = "stackless")]
+    pub traversal: Traversal,
+    /// The shading mode of that job (diffuse and ao add an any-hit pipeline, heatmap
+    /// counters).
+    #[arg(long, value_enum, default_value_t = Shade::Normal)]
+    pub shade: Shade,
+    /// BVH storage of that upload: buffers (the exact flat layout) or textures (what CPU
+    /// adapters such as lavapipe get).
+    #[arg(long, default_value = "buffers", value_parser = parse_storage)]
+    pub storage: BvhStorage,
     /// List the built-in scenes and exit.
     #[arg(long)]
     pub list: bool,
@@ -513,6 +644,15 @@ pub fn info(args: InfoArgs) -> Result<()> {
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
     let (nb, pb, tb) = bvh.byte_sizes();
+    let pipelines = render_pipelines(
+        args.storage,
+        args.traversal,
+        matches!(args.shade, Shade::Diffuse | Shade::Ao),
+        args.shade == Shade::Heatmap,
+        &scene.attributes,
+    );
+    // What `GpuBvh::upload` uploads for these pipelines (the same for each of them).
+    let upload = pipelines[0].upload_bytes(bvh.nodes.len() as u64, bvh.triangles.len() as u64);
     let v = json!({
         "scene": args.scene.spec(),
         "name": scene.name,
@@ -529,6 +669,9 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "sah_cost": s.sah_cost, "sah_cost_pbrt": s.sah_cost_pbrt,
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "parents": pb, "triangles": tb },
+        "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
+        "upload": upload_json(&upload, args.storage, tris.len()),
+        "left_out": left_out(&pipelines, &scene, args.traversal),
         "load_ms": load_ms, "build_ms": build_ms,
         "warnings": scene.warnings,
     });
@@ -566,6 +709,31 @@ pub fn info(args: InfoArgs) -> Result<()> {
         .collect();
     println!("leaf sizes  {}", hist.join(" "));
     println!("gpu bytes   nodes {nb}, parents {pb} (stackless/short-stack only), triangles {tb}");
+    for p in &pipelines {
+        let bindings: Vec<String> = p
+            .bindings()
+            .iter()
+            .map(|b| format!("{}.{} {}", b.group, b.binding, b.name))
+            .collect();
+        println!(
+            "pipeline    {} [{}]: {}",
+            p.variant.entry_point(),
+            p.names().join(", "),
+            bindings.join(", ")
+        );
+    }
+    println!(
+        "upload      {} bytes ({:?}: nodes {}, triangles {}, parents {}) = {:.1} bytes/triangle",
+        upload.total_bytes(),
+        args.storage,
+        upload.nodes_bytes,
+        upload.triangles_bytes,
+        upload.parents_bytes,
+        upload.total_bytes() as f64 / tris.len().max(1) as f64
+    );
+    for l in left_out(&pipelines, &scene, args.traversal) {
+        println!("left out    {l}");
+    }
     println!("timing      load {load_ms:.1} ms, build {build_ms:.1} ms");
     Ok(())
 }

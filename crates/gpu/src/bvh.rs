@@ -184,9 +184,16 @@ fn texel_texture(
 ) -> (wgpu::Texture, u64) {
     let texels = (data.len() / channels) as u64;
     let rows = texel_rows(texels) as u32;
-    data.resize(TEXEL_ROW as usize * rows as usize * channels, 0);
+    // One row is only as wide as its texels (texel `t` is still at `(t, 0)`): no padding
+    // the kernel never reads. Taller textures pad their last row.
+    let width = if rows == 1 {
+        (texels as u32).max(1)
+    } else {
+        TEXEL_ROW
+    };
+    data.resize(width as usize * rows as usize * channels, 0);
     let size = wgpu::Extent3d {
-        width: TEXEL_ROW,
+        width,
         height: rows,
         depth_or_array_layers: 1,
     };
@@ -210,7 +217,7 @@ fn texel_texture(
         bytemuck::cast_slice(&data),
         wgpu::TexelCopyBufferLayout {
             offset: 0,
-            bytes_per_row: Some(TEXEL_ROW * 4 * channels as u32),
+            bytes_per_row: Some(width * 4 * channels as u32),
             rows_per_image: Some(rows),
         },
         size,

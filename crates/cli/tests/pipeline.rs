@@ -1,0 +1,122 @@
+//! `bvhtrace info` and `render --json` list what each GPU pipeline includes (features,
+//! bindings) and the bytes uploaded, and leave out what the job does not read.
+
+mod common;
+
+use common::{json, run, scratch};
+use serde_json::Value;
+
+fn names(pipeline: &Value) -> Vec<String> {
+    pipeline["bindings"]
+        .as_array()
+        .expect("bindings")
+        .iter()
+        .map(|b| b["name"].as_str().expect("name").to_string())
+        .collect()
+}
+
+fn info(args: &[&str]) -> Value {
+    let mut a = vec!["info", "builtin:cornell", "--json"];
+    a.extend_from_slice(args);
+    let out = run(&a);
+    assert!(out.status.success());
+    json(&out)
+}
+
+#[test]
+fn info_lists_the_pipeline_and_exact_upload() {
+    // Full stack, normal shading: no parents, no counters, no attributes, one pipeline.
+    let v = info(&["--traversal", "full-stack"]);
+    let (nodes, tris) = (
+        v["nodes"].as_u64().unwrap(),
+        v["triangles"].as_u64().unwrap(),
+    );
+    let p = v["pipelines"].as_array().unwrap();
+    assert_eq!(p.len(), 1);
+    assert_eq!(p[0]["entry_point"], "trace_full_stack_main");
+    assert_eq!(
+        names(&p[0]),
+        ["bvh_nodes", "bvh_triangles", "rays", "hits"],
+        "{v}"
+    );
+    let u = &v["upload"];
+    assert_eq!(u["parents"], 0);
+    assert_eq!(u["total"].as_u64().unwrap(), nodes * 32 + tris * 48);
+    let per_tri = u["bytes_per_triangle"].as_f64().unwrap();
+    assert!((per_tri - (nodes * 32 + tris * 48) as f64 / tris as f64).abs() < 1e-9);
+    let left: Vec<&str> = v["left_out"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l.as_str().unwrap())
+        .collect();
+    assert!(
+        left.iter().any(|l| l.starts_with("parent links")),
+        "{left:?}"
+    );
+    assert!(left.iter().any(|l| l.starts_with("counters")), "{left:?}");
+
+    // Stackless heatmap: parents and counters come in.
+    let v = info(&["--traversal", "stackless", "--shade", "heatmap"]);
+    let p = &v["pipelines"][0];
+    assert_eq!(p["entry_point"], "trace_short_stack_counted");
+    let n = names(p);
+    assert!(n.contains(&"bvh_parents".to_string()) && n.contains(&"counters".to_string()));
+    assert_eq!(v["upload"]["parents"].as_u64().unwrap(), nodes * 4);
+
+    // AO: a second, any-hit pipeline without counters.
+    let v = info(&["--shade", "ao", "--storage", "textures"]);
+    let p = v["pipelines"].as_array().unwrap();
+    assert_eq!(p.len(), 2);
+    assert!(
+        p[1]["features"]
+            .as_array()
+            .unwrap()
+            .contains(&"any-hit".into())
+    );
+    assert!(!names(&p[1]).contains(&"counters".to_string()));
+    assert!(names(&p[1]).contains(&"bvh_node_texels".to_string()));
+}
+
+#[test]
+fn render_json_lists_the_pipelines_and_bytes_uploaded() {
+    let dir = scratch("pipeline-json");
+    let png = dir.join("o.png");
+    let out = run(&[
+        "render",
+        "builtin:cornell",
+        "--size",
+        "48x32",
+        "--traversal",
+        "full-stack",
+        "--shade",
+        "diffuse",
+        "-o",
+        png.to_str().unwrap(),
+        "--json",
+        "-",
+    ]);
+    assert!(out.status.success());
+    let v = json(&out);
+    if v["backend"] != "gpu" {
+        eprintln!("SKIP: no GPU, the render ran on the CPU");
+        assert!(v["pipelines"].as_array().unwrap().is_empty());
+        return;
+    }
+    let u = &v["upload"];
+    assert_eq!(u["total"], v["uploaded_bytes"]);
+    assert_eq!(u["parents"], 0, "the full stack does not read parents");
+    let p = v["pipelines"].as_array().unwrap();
+    assert_eq!(p.len(), 2, "closest hit and the shadow rays' any hit");
+    // --json asks for the counters of the primary rays (nodes_per_ray), not the shadows'.
+    assert!(names(&p[0]).contains(&"counters".to_string()));
+    assert!(!names(&p[1]).contains(&"counters".to_string()));
+    for q in p {
+        assert!(
+            !names(q)
+                .iter()
+                .any(|n| n.contains("parent") || n.contains("normal"))
+        );
+    }
+    assert!(v["nodes_per_ray"].as_f64().unwrap() > 0.0);
+}

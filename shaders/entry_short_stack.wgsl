@@ -1,0 +1,14 @@
+// entry_short_stack.wgsl: the short-stack / stackless entry point, hits only (see
+// `entry.wgsl`).
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn trace_short_stack_main(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    let i = ray_index(gid, groups);
+    if (i >= arrayLength(&rays)) {
+        return;
+    }
+    hits[i] = trace_short_stack(rays[i], ANY_HIT, SHORT_STACK_SIZE).hit;
+}
