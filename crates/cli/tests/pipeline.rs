@@ -79,6 +79,27 @@ fn info_lists_the_pipeline_and_exact_upload() {
 }
 
 #[test]
+fn attributes_a_scene_has_but_no_job_reads_are_left_out() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell.gltf");
+    let out = run(&["info", scene, "--json", "--shade", "diffuse"]);
+    assert!(out.status.success());
+    let v = json(&out);
+    assert_eq!(
+        v["attributes"]["normals"], true,
+        "the committed Cornell box has NORMAL"
+    );
+    for p in v["pipelines"].as_array().unwrap() {
+        assert!(!names(p).iter().any(|n| n.contains("normal")), "{p}");
+    }
+    let left = v["left_out"].to_string();
+    assert!(
+        left.contains("vertex normals (the scene has them"),
+        "{left}"
+    );
+    assert!(left.contains("materials (the scene has them"), "{left}");
+}
+
+#[test]
 fn render_json_lists_the_pipelines_and_bytes_uploaded() {
     let dir = scratch("pipeline-json");
     let png = dir.join("o.png");

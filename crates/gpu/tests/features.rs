@@ -254,8 +254,17 @@ fn switching_back_to_a_feature_set_does_not_recompile() {
     assert_eq!(ctx.compile_counts(), (0, 0));
     let first = gpu.trace_with(&rays, &a).expect("trace a");
     assert_eq!(ctx.compile_counts(), (1, 1));
-    gpu.trace_with(&rays, &b).expect("trace b");
+    // No counter buffers until a trace asks for counters.
+    let n = rays.len() as u64;
+    let plain = n * (bvhtrace_gpu::RAY_BYTES + 2 * bvhtrace_gpu::HIT_BYTES);
+    assert_eq!(gpu.scratch_bytes(), plain);
+    let counted = gpu.trace_with(&rays, &b).expect("trace b");
     assert_eq!(ctx.compile_counts(), (2, 2), "b has its own module");
+    assert_eq!(counted.counters.map(|c| c.len()), Some(rays.len()));
+    assert_eq!(
+        gpu.scratch_bytes(),
+        plain + 2 * n * bvhtrace_gpu::COUNTERS_BYTES
+    );
     // Back to a: cached.
     let again = gpu.trace_with(&rays, &a).expect("trace a again");
     assert_eq!(ctx.compile_counts(), (2, 2), "switching back recompiled");
