@@ -1,12 +1,7 @@
 // triangle.wgsl: the watertight ray/triangle test (Woop, Benthin, Wald 2013), twin of
-// `bvhtrace_core::intersect::intersect_triangle`, operation for operation.
-
-struct TriHit {
-    t: f32,
-    u: f32,
-    v: f32,
-    hit: bool,
-}
+// `bvhtrace_core::intersect::intersect_triangle`, operation for operation. The default
+// (`Precision::WatertightF32`); `triangle_moller_trumbore.wgsl` and `triangle_f64.wgsl`
+// define the same function for the other precisions (`TriHit` is in `triangle_hit.wgsl`).
 
 fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
     var out = TriHit(0.0, 0.0, 0.0, false);

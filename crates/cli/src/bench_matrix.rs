@@ -4,7 +4,8 @@
 //! timed on the whole ray set and checked against the f64 brute-force oracle on an evenly
 //! spaced sample of the same rays, plus a small image compared with the oracle's image.
 //! By default the dimensions are swept one at a time around the default configuration
-//! (SAH, stackless, watertight f32); `--full` runs the whole cross product.
+//! (SAH, stackless, watertight f32; the precisions with the default builder on every
+//! traversal); `--full` runs the whole cross product.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -12,7 +13,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::oracle::{self, OracleHit};
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, Traversal, Triangle, trace_batch,
+    BuildOptions, BuilderKind, FlatBvh, Hit, Precision, Query, Ray, Traversal, Triangle,
+    trace_batch,
 };
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -76,6 +78,12 @@ pub struct BenchArgs {
     /// Backends to include.
     #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
     pub backends: Vec<String>,
+    /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
+    /// all three (on the GPU, f64 only where the adapter has SHADER_F64). The non-default
+    /// ones are swept with the default builder on every backend and ray kind, stackless and
+    /// full stack (with --quick: stackless only; with --full: everything).
+    #[arg(long, value_delimiter = ',')]
+    pub precisions: Vec<String>,
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
@@ -250,6 +258,14 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             bail!("unknown backend '{b}' (expected gpu or cpu)");
         }
     }
+    let precisions: Vec<Precision> = if args.precisions.is_empty() {
+        Precision::ALL.to_vec()
+    } else {
+        args.precisions
+            .iter()
+            .map(|s| s.parse::<Precision>().map_err(anyhow::Error::msg))
+            .collect::<Result<_>>()?
+    };
     // Reserve outputs before any work.
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
@@ -299,6 +315,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             c.adapter_info().name,
             c.adapter_info().device_type
         );
+        for p in precisions.iter().filter(|p| !c.supports_precision(**p)) {
+            eprintln!("note: {p} is traced on the CPU only (the adapter has no SHADER_F64)");
+        }
     }
     eprintln!("CPU: {} threads", rayon::current_num_threads());
 
@@ -349,24 +368,40 @@ pub fn bench(args: BenchArgs) -> Result<()> {
 
         // The configurations.
         let builders = builder_configs(args.full);
-        let mut plan: Vec<(usize, Traversal, &str, RayKind)> = Vec::new();
+        let mut plan: Vec<(usize, Traversal, &str, RayKind, Precision)> = Vec::new();
         let backends: Vec<&str> = args
             .backends
             .iter()
             .map(|s| s.as_str())
             .filter(|b| *b == "cpu" || gpu_ctx.is_some())
             .collect();
-        for (bi, _) in builders.iter().enumerate() {
-            for &tr in &TRAVERSALS {
-                for &be in &backends {
-                    for (kind, _) in &kinds {
-                        // Sweeps: every builder on primary rays with the default traversal;
-                        // every traversal and ray kind with the default builder.
-                        let keep = args.full
-                            || bi == 0
-                            || (tr == Traversal::Stackless && *kind == RayKind::Primary);
-                        if keep {
-                            plan.push((bi, tr, be, *kind));
+        for &p in &precisions {
+            for (bi, _) in builders.iter().enumerate() {
+                for &tr in &TRAVERSALS {
+                    for &be in &backends {
+                        if be == "gpu" && gpu_ctx.as_ref().is_some_and(|c| !c.supports_precision(p))
+                        {
+                            continue;
+                        }
+                        for (kind, _) in &kinds {
+                            // Sweeps around the default (SAH, stackless, watertight f32):
+                            // every builder on primary rays with the default traversal;
+                            // every traversal and ray kind with the default builder; the
+                            // other precisions with the default builder, on every ray kind,
+                            // stackless and full stack (only stackless with --quick).
+                            let keep = if p == Precision::WatertightF32 {
+                                args.full
+                                    || bi == 0
+                                    || (tr == Traversal::Stackless && *kind == RayKind::Primary)
+                            } else {
+                                args.full
+                                    || (bi == 0
+                                        && (tr == Traversal::Stackless
+                                            || (!quick && tr == Traversal::FullStack)))
+                            };
+                            if keep {
+                                plan.push((bi, tr, be, *kind, p));
+                            }
                         }
                     }
                 }
@@ -381,9 +416,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let mut built: Vec<Option<(FlatBvh, f64, Option<bvhtrace_gpu::GpuBvh>)>> =
             (0..builders.len()).map(|_| None).collect();
         let mut scene_rows = Vec::new();
-        for (bi, tr, be, kind) in plan {
+        for (bi, tr, be, kind, prec) in plan {
             let (bname, bopts) = &builders[bi];
-            pb.set_message(format!("{bname} {tr} {be} {}", kind.name()));
+            pb.set_message(format!("{bname} {tr} {be} {} {prec}", kind.name()));
             if built[bi].is_none() {
                 let mut times = Vec::new();
                 let mut bvh = None;
@@ -417,8 +452,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 .map(|(i, k)| (i, k.1))
                 .context("ray kind")?;
             let q = kind.query();
-            // Warm-up (pipeline creation, caches), then timed runs.
-            let counted = tracer.trace(rays, tr, q, true)?;
+            // Warm-up (pipeline creation, caches: the counted pipeline here, the timed
+            // one on a few rays, so that no compilation lands in the timings), then timed
+            // runs.
+            let counted = tracer.trace_precision(rays, tr, q, prec, true)?;
+            tracer.trace_precision(&rays[..rays.len().min(256)], tr, q, prec, false)?;
             let c = counted.counters.unwrap_or_default();
             let n = rays.len().max(1) as f64;
             let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / n;
@@ -426,7 +464,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let mut times = Vec::new();
             let mut hits: Vec<Hit> = Vec::new();
             for _ in 0..runs {
-                let t = tracer.trace(rays, tr, q, false)?;
+                let t = tracer.trace_precision(rays, tr, q, prec, false)?;
                 times.push(t.gpu_ms.unwrap_or(t.wall_ms));
                 hits = t.hits;
             }
@@ -435,7 +473,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let ours: Vec<Hit> = idx.iter().map(|&i| hits[i]).collect();
             let error = accuracy::compare(&ours, o, q);
             let (image_rmse, image_flip) = if kind == RayKind::Primary {
-                let t = tracer.trace(&img_rays, tr, Query::Closest, false)?;
+                let t = tracer.trace_precision(&img_rays, tr, Query::Closest, prec, false)?;
                 let img = normal_image(&tris, &img_rays, t.hits.iter().map(|h| h.prim));
                 (
                     Some(accuracy::rmse(&ref_img, &img)),
@@ -459,7 +497,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     traversal: tr.to_string(),
                     backend: be.to_string(),
                     rays: kind,
-                    precision: "watertight-f32".into(),
+                    precision: prec.name().into(),
                 },
                 ray_count: rays.len(),
                 build_ms: *build_ms,
@@ -505,7 +543,7 @@ fn fmt_err(x: f64) -> String {
 fn print_table(rows: &[Row], to_stderr: bool) {
     let mut out = String::new();
     out += &format!(
-        "\n{:9} {:5} {:15} {:4} {:8} {:14} {:>8} {:>9} {:>8} {:>6} {:>5} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
+        "\n{:9} {:5} {:15} {:4} {:8} {:19} {:>8} {:>9} {:>8} {:>6} {:>5} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
         "builder",
         "bins",
         "traversal",
@@ -530,7 +568,7 @@ fn print_table(rows: &[Row], to_stderr: bool) {
     out.push('\n');
     for r in rows {
         out += &format!(
-            "{:9} {:5} {:15} {:4} {:8} {:14} {:>8.1} {:>9.2} {:>8.2} {:>6.1} {:>5.2} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
+            "{:9} {:5} {:15} {:4} {:8} {:19} {:>8.1} {:>9.2} {:>8.2} {:>6.1} {:>5.2} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
             r.config.builder,
             r.config.bins,
             r.config.traversal,

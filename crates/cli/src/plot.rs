@@ -52,7 +52,12 @@ fn label(r: &Row) -> String {
         "{b}/{}/{}/{}",
         c.traversal,
         c.backend,
-        c.precision.trim_end_matches("-f32")
+        match c.precision.as_str() {
+            "watertight-f32" => "wt",
+            "moller-trumbore-f32" => "mt",
+            "watertight-f64" => "wt64",
+            other => other,
+        }
     )
 }
 

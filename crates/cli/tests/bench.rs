@@ -29,12 +29,23 @@ fn bench_quick_writes_every_output_and_watertight_never_leaks() {
     for r in &rows {
         assert!(r["trace_ms"].as_f64().unwrap() > 0.0);
         assert!(r["sample"].as_u64().unwrap() > 0);
-        if r["precision"] == "watertight-f32" {
+        if r["precision"] != "moller-trumbore-f32" {
             assert_eq!(
                 r["false_misses"], 0,
                 "watertight leaked on a closed mesh: {r}"
             );
         }
+    }
+    // The precision axis: every precision is measured (Möller–Trumbore's false misses are
+    // counted, whatever they are), on every ray kind.
+    for p in ["watertight-f32", "moller-trumbore-f32", "watertight-f64"] {
+        let n = rows.iter().filter(|r| r["precision"] == p).count();
+        assert!(n >= 3, "{n} rows for {p}");
+        assert!(
+            rows.iter()
+                .filter(|r| r["precision"] == p)
+                .all(|r| r["false_misses"].is_u64())
+        );
     }
     let text = std::fs::read_to_string(&csv).unwrap();
     assert_eq!(text.lines().count(), rows.len() + 1);
@@ -49,4 +60,20 @@ fn bench_quick_writes_every_output_and_watertight_never_leaks() {
             p.display()
         );
     }
+}
+
+#[test]
+fn bench_rejects_an_unknown_precision() {
+    let out = run(&[
+        "bench",
+        "builtin:icosphere:1",
+        "--quick",
+        "--backends",
+        "cpu",
+        "--precisions",
+        "f16",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown precision 'f16'"), "{err}");
 }

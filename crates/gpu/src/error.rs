@@ -71,6 +71,17 @@ pub enum GpuError {
         /// The traversal asked for.
         traversal: Traversal,
     },
+    /// The kernel's triangle test needs a device feature this one lacks.
+    #[error(
+        "the {precision} triangle test needs the SHADER_F64 feature, which the adapter \
+         {adapter} does not offer; use watertight-f32 or moller-trumbore-f32"
+    )]
+    PrecisionUnsupported {
+        /// The precision asked for.
+        precision: bvhtrace_core::Precision,
+        /// The adapter's name.
+        adapter: String,
+    },
     /// A user buffer given to [`crate::GpuBvh::record`] does not fit the batch.
     #[error("the {buffer} buffer: {problem}")]
     BadBuffer {

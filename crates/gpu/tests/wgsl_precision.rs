@@ -1,0 +1,120 @@
+//! The precision variants of the kernels (`bvhtrace_core::Precision`), without a GPU: each
+//! composed module contains exactly its own triangle file, parses, validates (f64 only
+//! with naga's `FLOAT64` capability, which `SHADER_F64` grants) and compiles to SPIR-V for
+//! every entry point.
+
+use bvhtrace_core::{Precision, Query, Traversal};
+use bvhtrace_gpu::BvhStorage;
+use bvhtrace_gpu::shaders::{
+    KernelVariant, SHADER_FILES, kernel_source, kernel_source_for, triangle_wgsl,
+};
+use naga::valid::{Capabilities, ValidationFlags, Validator};
+
+const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
+
+fn parse(source: &str) -> naga::Module {
+    naga::front::wgsl::parse_str(source).unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)))
+}
+
+fn capabilities(p: Precision) -> Capabilities {
+    if p.needs_f64() {
+        Capabilities::default() | Capabilities::FLOAT64
+    } else {
+        Capabilities::default()
+    }
+}
+
+#[test]
+fn each_precision_composes_its_own_triangle_module() {
+    let names: Vec<&str> = Precision::ALL.iter().map(|&p| triangle_wgsl(p).0).collect();
+    assert_eq!(
+        names,
+        [
+            "triangle.wgsl",
+            "triangle_moller_trumbore.wgsl",
+            "triangle_f64.wgsl"
+        ]
+    );
+    for storage in STORAGES {
+        assert_eq!(
+            kernel_source(storage),
+            kernel_source_for(storage, Precision::WatertightF32),
+            "the default precision is the default kernel"
+        );
+        for p in Precision::ALL {
+            let src = kernel_source_for(storage, p);
+            for q in Precision::ALL {
+                let marker = format!("// ---- {} ----", triangle_wgsl(q).0);
+                assert_eq!(src.contains(&marker), p == q, "{p}: {}", triangle_wgsl(q).0);
+            }
+            // Everything else is shared: every other file is composed once.
+            for (name, _) in SHADER_FILES.iter().filter(|(n, _)| *n != "triangle.wgsl") {
+                assert_eq!(
+                    src.matches(&format!("// ---- {name} ----")).count(),
+                    1,
+                    "{p}: {name}"
+                );
+            }
+            assert_eq!(src.matches("fn intersect_triangle(").count(), 1, "{p}");
+        }
+    }
+}
+
+#[test]
+fn f64_needs_the_float64_capability() {
+    let module = parse(&kernel_source_for(
+        BvhStorage::Buffers,
+        Precision::WatertightF64,
+    ));
+    let err = Validator::new(ValidationFlags::all(), Capabilities::default()).validate(&module);
+    assert!(err.is_err(), "f64 validated without FLOAT64");
+}
+
+#[test]
+fn every_precision_variant_validates_and_compiles() {
+    let mut n = 0;
+    for storage in STORAGES {
+        for p in Precision::ALL {
+            let module = parse(&kernel_source_for(storage, p));
+            let info = Validator::new(ValidationFlags::all(), capabilities(p))
+                .validate(&module)
+                .unwrap_or_else(|e| panic!("{storage:?} {p}: {e:?}"));
+            for tr in [
+                Traversal::FullStack,
+                Traversal::Stackless,
+                Traversal::ShortStack(6),
+            ] {
+                for q in [Query::Closest, Query::Any] {
+                    for counters in [false, true] {
+                        let v = KernelVariant::new(storage, tr, q, counters).with_precision(p);
+                        assert_eq!(v.precision, p);
+                        let mut constants = naga::back::PipelineConstants::default();
+                        for (name, value) in v.constants() {
+                            constants.insert(name.to_string(), value);
+                        }
+                        let (m, i) = naga::back::pipeline_constants::process_overrides(
+                            &module,
+                            &info,
+                            Some((naga::ShaderStage::Compute, v.entry_point())),
+                            &constants,
+                        )
+                        .unwrap_or_else(|e| panic!("{v:?}: {e}"));
+                        let words = naga::back::spv::write_vec(
+                            &m,
+                            &i,
+                            &naga::back::spv::Options::default(),
+                            Some(&naga::back::spv::PipelineOptions {
+                                shader_stage: naga::ShaderStage::Compute,
+                                entry_point: v.entry_point().to_string(),
+                            }),
+                        )
+                        .unwrap_or_else(|e| panic!("{v:?}: {e}"));
+                        assert!(words.len() > 100, "{v:?}: SPIR-V too short");
+                        n += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert_eq!(n, 2 * 3 * 3 * 2 * 2);
+}

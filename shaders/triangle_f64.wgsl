@@ -1,0 +1,63 @@
+// triangle_f64.wgsl: the watertight ray/triangle test in f64, twin of
+// `bvhtrace_core::precision::intersect_triangle_f64` operation for operation. Composed
+// instead of `triangle.wgsl` for `Precision::WatertightF64` (the device needs
+// `SHADER_F64`); same signature. The f32 ray and corners convert to f64 exactly; the axes
+// are the f32 ray's, the shear is recomputed in f64, and `t`, `u`, `v` are rounded to f32
+// once.
+
+fn component_f64(v: vec3<f64>, i: u32) -> f64 {
+    if (i == 0u) {
+        return v.x;
+    }
+    if (i == 1u) {
+        return v.y;
+    }
+    return v.z;
+}
+
+fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
+    var out = TriHit(0.0, 0.0, 0.0, false);
+    let org = vec3<f64>(r.org);
+    let d = vec3<f64>(r.dir);
+    let dz = component_f64(d, r.kz);
+    let sx = component_f64(d, r.kx) / dz;
+    let sy = component_f64(d, r.ky) / dz;
+    let sz = f64(1.0) / dz;
+    let a = vec3<f64>(v0) - org;
+    let b = vec3<f64>(v1) - org;
+    let c = vec3<f64>(v2) - org;
+    let az_ = component_f64(a, r.kz);
+    let bz_ = component_f64(b, r.kz);
+    let cz_ = component_f64(c, r.kz);
+    let ax = component_f64(a, r.kx) - sx * az_;
+    let ay = component_f64(a, r.ky) - sy * az_;
+    let bx = component_f64(b, r.kx) - sx * bz_;
+    let by = component_f64(b, r.ky) - sy * bz_;
+    let cx = component_f64(c, r.kx) - sx * cz_;
+    let cy = component_f64(c, r.ky) - sy * cz_;
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let zero = f64(0.0);
+    if ((u < zero || v < zero || w < zero) && (u > zero || v > zero || w > zero)) {
+        return out;
+    }
+    let det = u + v + w;
+    if (det == zero) {
+        return out;
+    }
+    let az = sz * az_;
+    let bz = sz * bz_;
+    let cz = sz * cz_;
+    let t_scaled = u * az + v * bz + w * cz;
+    let t = f32(t_scaled / det);
+    // NaN fails this comparison and is rejected.
+    if (!(t >= r.t_min)) {
+        return out;
+    }
+    out.t = t;
+    out.u = f32(v / det);
+    out.v = f32(w / det);
+    out.hit = true;
+    return out;
+}
