@@ -239,3 +239,51 @@ fn gpu_equals_cpu_twin_for_every_precision() {
     }
     assert!(checked >= 12, "checked {checked} configurations");
 }
+
+/// A device created without `SHADER_F64` (as an application may hand us one): f64 kernels
+/// are refused with a clear error, before any shader is compiled; the f32 ones still run.
+#[test]
+fn f64_without_shader_f64_is_a_clear_error() {
+    use bvhtrace_gpu::wgpu;
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    let instance = wgpu::Instance::new(desc);
+    let Some(adapter) = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN))
+        .into_iter()
+        .next()
+    else {
+        eprintln!("SKIP: no Vulkan adapter");
+        return;
+    };
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("no f64"),
+        required_features: wgpu::Features::empty(),
+        required_limits: adapter.limits(),
+        ..Default::default()
+    }))
+    .expect("device");
+    let ctx = GpuContext::from_device(device, queue, adapter.get_info());
+    assert!(!ctx.supports_precision(Precision::WatertightF64));
+    assert!(ctx.supports_precision(Precision::MollerTrumboreF32));
+    let tris = triangles("builtin:icosphere:1");
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+    let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).unwrap();
+    let rays = edge_rays(&tris, centre(&tris));
+    let opts = TraceOptions {
+        traversal: Traversal::Stackless,
+        query: Query::Closest,
+        counters: false,
+    };
+    let err = gpu
+        .trace_with_precision(&rays, &opts, Precision::WatertightF64)
+        .expect_err("f64 refused");
+    let msg = err.to_string();
+    assert!(
+        matches!(err, GpuError::PrecisionUnsupported { .. }) && msg.contains("SHADER_F64"),
+        "{msg}"
+    );
+    let ok = gpu
+        .trace_with_precision(&rays, &opts, Precision::MollerTrumboreF32)
+        .expect("f32 runs");
+    assert_eq!(ok.hits.len(), rays.len());
+}
