@@ -1,10 +1,10 @@
 //! The BVH in storage buffers and the ray-batch API.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use ash::vk;
-use bvhtrace_core::{Counters, FlatBvh, Hit, Query, Ray, Traversal};
+use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Query, Ray, Traversal};
 use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant};
 use bvhtrace_gpu::{
     COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, WORKGROUP_SIZE, plan_dispatches,
@@ -40,6 +40,9 @@ pub struct VkTraceOutput {
     /// Wall time of the call: writing the rays, recording, submitting, waiting and reading
     /// back (pipeline creation excluded, as in the wgpu path).
     pub wall: Duration,
+    /// Rays that ran out of the kernel's trip budget (`TRIP_LIMIT`, bounded on CPU drivers)
+    /// and were answered by the CPU twin instead, as the wgpu path does.
+    pub incomplete: u64,
 }
 
 /// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
@@ -60,6 +63,9 @@ pub struct VkBvh {
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
     depth: u32,
+    /// The CPU twin answering rays that run out of the trip budget (only kept when the
+    /// budget is bounded).
+    twin: Option<Arc<FlatBvh>>,
     stats: VkUploadStats,
     scratch: Mutex<Option<Scratch>>,
 }
@@ -285,6 +291,7 @@ impl VkBvh {
             pool: vk::DescriptorPool::null(),
             set: vk::DescriptorSet::null(),
             depth: bvh.depth,
+            twin: (ctx.trip_limit() != u32::MAX).then(|| Arc::new(bvh.clone())),
             stats: VkUploadStats {
                 nodes_bytes: arrays[0].1.len() as u64,
                 triangles_bytes: arrays[1].1.len() as u64,
@@ -327,11 +334,6 @@ impl VkBvh {
         self.stats
     }
 
-    /// The kernel variant for these options (BVH in storage buffers).
-    fn variant(&self, traversal: Traversal, query: Query, counters: bool) -> KernelVariant {
-        KernelVariant::new(BvhStorage::Buffers, traversal, query, counters)
-    }
-
     /// Creates the pipeline for these options ahead of the first trace, so that the first
     /// trace's timing is not the compiler's.
     pub fn prepare(
@@ -340,15 +342,24 @@ impl VkBvh {
         query: Query,
         counters: bool,
     ) -> Result<(), VkError> {
-        if traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
+        self.prepare_variant(KernelVariant::new(
+            BvhStorage::Buffers,
+            traversal,
+            query,
+            counters,
+        ))
+    }
+
+    /// [`VkBvh::prepare`] for any [`KernelVariant`] with [`BvhStorage::Buffers`] (for
+    /// example another triangle-test precision, `KernelVariant::with_precision`).
+    pub fn prepare_variant(&self, variant: KernelVariant) -> Result<(), VkError> {
+        if !variant.short_stack && self.depth > FULL_STACK_SIZE {
             return Err(VkError::TooDeep {
                 depth: self.depth,
                 max: FULL_STACK_SIZE,
             });
         }
-        self.ctx
-            .pipeline(self.variant(traversal, query, counters))
-            .map(|_| ())
+        self.ctx.pipeline(variant).map(|_| ())
     }
 
     /// Traces `rays` and returns one hit per ray (and each ray's counters when `counters`),
@@ -362,10 +373,22 @@ impl VkBvh {
         query: Query,
         counters: bool,
     ) -> Result<VkTraceOutput, VkError> {
-        self.prepare(traversal, query, counters)?;
-        let pipeline = self
-            .ctx
-            .pipeline(self.variant(traversal, query, counters))?;
+        self.trace_variant(
+            rays,
+            KernelVariant::new(BvhStorage::Buffers, traversal, query, counters),
+        )
+    }
+
+    /// [`VkBvh::trace`] with the kernel variant given in full (storage must be
+    /// [`BvhStorage::Buffers`]; counters are returned when `variant.counters`).
+    pub fn trace_variant(
+        &self,
+        rays: &[Ray],
+        variant: KernelVariant,
+    ) -> Result<VkTraceOutput, VkError> {
+        self.prepare_variant(variant)?;
+        let pipeline = self.ctx.pipeline(variant)?;
+        let counters = variant.counters;
         let start = Instant::now();
         let inner = &self.ctx.inner;
         let d = &inner.device;
@@ -374,6 +397,7 @@ impl VkBvh {
             counters: counters.then(|| Vec::with_capacity(rays.len())),
             gpu_ns: inner.timestamp_period_ns.map(|_| 0),
             wall: Duration::ZERO,
+            incomplete: 0,
         };
         let n = rays.len() as u64;
         if n == 0 {
@@ -521,7 +545,45 @@ impl VkBvh {
             unsafe { d.destroy_descriptor_pool(pool, None) };
             traced?;
         }
+        drop(sub);
+        drop(guard);
+        self.finish_incomplete(rays, variant, &mut out);
         out.wall = start.elapsed();
         Ok(out)
+    }
+
+    /// Replaces every [`INCOMPLETE`] hit by the CPU twin's answer for that ray (same
+    /// traversal, query, precision and counters), counting them in `out.incomplete`.
+    fn finish_incomplete(&self, rays: &[Ray], variant: KernelVariant, out: &mut VkTraceOutput) {
+        let Some(twin) = self.twin.as_deref() else {
+            return;
+        };
+        let traversal = match (variant.short_stack, variant.k) {
+            (false, _) => Traversal::FullStack,
+            (true, 0) => Traversal::Stackless,
+            (true, k) => Traversal::ShortStack(k),
+        };
+        let query = if variant.any_hit {
+            Query::Any
+        } else {
+            Query::Closest
+        };
+        for (i, h) in out.hits.iter_mut().enumerate() {
+            if h.prim != INCOMPLETE {
+                continue;
+            }
+            let (hit, c) = bvhtrace_core::traverse::trace_ray_precision(
+                twin,
+                &rays[i],
+                traversal,
+                query,
+                variant.precision,
+            );
+            *h = hit;
+            if let Some(cs) = out.counters.as_mut() {
+                cs[i] = c;
+            }
+            out.incomplete += 1;
+        }
     }
 }

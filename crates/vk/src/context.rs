@@ -8,7 +8,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
-use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, kernel_source};
+use bvhtrace_core::Precision;
+use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, trip_limit_for};
 use bvhtrace_gpu::{AdapterChoice, GpuError, GpuLimits, pick_adapter};
 
 use crate::error::{VkError, vkerr};
@@ -16,6 +17,16 @@ use crate::error::{VkError, vkerr};
 /// Environment variable that turns on `VK_LAYER_KHRONOS_validation` (when installed) for
 /// [`VkContext::new`]: `BVHTRACE_VK_VALIDATION=1`.
 pub const VALIDATION_ENV: &str = "BVHTRACE_VK_VALIDATION";
+
+/// Validation errors reported to any context of this process, including those reported
+/// while a context is destroyed (leaked objects).
+static PROCESS_VALIDATION_ERRORS: AtomicU64 = AtomicU64::new(0);
+
+/// Validation errors reported so far to every context of this process, the destroyed ones
+/// included (the layer reports leaked objects while a device is destroyed).
+pub fn process_validation_errors() -> u64 {
+    PROCESS_VALIDATION_ERRORS.load(Ordering::Relaxed)
+}
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
 
@@ -108,8 +119,10 @@ pub(crate) struct Inner {
     spirv_version: (u8, u8),
     /// Naga may skip its own buffer bounds checks (robustBufferAccess2 is on), as wgpu does.
     robust2: bool,
-    module: naga::Module,
-    module_info: naga::valid::ModuleInfo,
+    /// The `TRIP_LIMIT` override (`bvhtrace_gpu::shaders::trip_limit_for`).
+    trip_limit: u32,
+    /// `shaderFloat64` is enabled (the f64 triangle test can run).
+    float64: bool,
     pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
     pub(crate) pipeline_layout: vk::PipelineLayout,
     pipelines: Mutex<HashMap<KernelVariant, vk::Pipeline>>,
@@ -165,6 +178,7 @@ unsafe extern "system" fn debug_callback(
             if let Some(count) = (user as *const AtomicU64).as_ref() {
                 count.fetch_add(1, Ordering::Relaxed);
             }
+            PROCESS_VALIDATION_ERRORS.fetch_add(1, Ordering::Relaxed);
             eprintln!("bvhtrace-vk validation error: {message}");
         } else if severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING) {
             eprintln!("bvhtrace-vk validation warning: {message}");
@@ -313,6 +327,7 @@ impl VkContext {
                     },
                 })?;
             let (pd, props, family, family_props) = candidates[index];
+            let trip_limit = trip_limit_for(&infos[index]);
             let info = VkDeviceInfo {
                 name: infos[index].name.clone(),
                 device_type: props.device_type,
@@ -366,11 +381,19 @@ impl VkContext {
                 .map_err(vkerr("creating the Vulkan device"))?;
             let queue = device.get_device_queue(family, 0);
             let l = &props.limits;
+            // One buffer lives in one allocation: maxMemoryAllocationSize (Vulkan 1.1);
+            // Vulkan 1.0 states none, and 2^32 - 1 bytes is safe on every implementation.
+            let max_allocation = if props.api_version >= vk::API_VERSION_1_1 {
+                let mut m3 = vk::PhysicalDeviceMaintenance3Properties::default();
+                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut m3);
+                instance.get_physical_device_properties2(pd, &mut p2);
+                m3.max_memory_allocation_size
+            } else {
+                u64::from(u32::MAX)
+            };
             let limits = GpuLimits {
                 max_storage_buffer_binding_size: u64::from(l.max_storage_buffer_range),
-                // Vulkan 1.0 has no buffer-size limit; one allocation may reach 2^32 bytes
-                // on every implementation we know; stay under it.
-                max_buffer_size: u64::from(u32::MAX),
+                max_buffer_size: max_allocation,
                 max_compute_workgroups_per_dimension: l.max_compute_work_group_count[0]
                     .min(l.max_compute_work_group_count[1]),
                 min_storage_buffer_offset_alignment: l.min_storage_buffer_offset_alignment as u32,
@@ -402,8 +425,8 @@ impl VkContext {
                 memory,
                 spirv_version,
                 robust2,
-                module: naga::Module::default(),
-                module_info: naga::valid::ModuleInfo::default(),
+                trip_limit,
+                float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
                 pipeline_layout: vk::PipelineLayout::null(),
                 pipelines: Mutex::new(HashMap::new()),
@@ -476,20 +499,6 @@ impl VkContext {
                     .map_err(vkerr("creating the timestamp query pool"))?;
             }
 
-            let source = kernel_source(BvhStorage::Buffers);
-            inner.module = naga::front::wgsl::parse_str(&source).map_err(|e| VkError::Shader {
-                during: "parsing the WGSL kernels",
-                message: e.emit_to_string(&source),
-            })?;
-            inner.module_info = naga::valid::Validator::new(
-                naga::valid::ValidationFlags::all(),
-                naga::valid::Capabilities::all(),
-            )
-            .validate(&inner.module)
-            .map_err(|e| VkError::Shader {
-                during: "validating the WGSL kernels",
-                message: e.emit_to_string(&source),
-            })?;
             Ok(VkContext {
                 inner: Arc::new(inner),
             })
@@ -522,18 +531,57 @@ impl VkContext {
         self.inner.instance.errors.load(Ordering::Relaxed)
     }
 
-    /// The SPIR-V words of one kernel variant: the composed WGSL with its override
-    /// constants resolved by naga, written for this device's SPIR-V version.
+    /// The `TRIP_LIMIT` override the pipelines get: the same per-adapter budget as the
+    /// wgpu path (`bvhtrace_gpu::shaders::trip_limit_for`; `u32::MAX` is unbounded).
+    pub fn trip_limit(&self) -> u32 {
+        self.inner.trip_limit
+    }
+
+    /// True when the device runs the f64 triangle test (`shaderFloat64`).
+    pub fn has_f64(&self) -> bool {
+        self.inner.float64
+    }
+
+    /// The SPIR-V words of one kernel variant: the variant's WGSL module
+    /// ([`KernelVariant::source`], the one the wgpu path compiles), its override constants
+    /// ([`KernelVariant::constants`] and `TRIP_LIMIT`) resolved by naga, written for this
+    /// device's SPIR-V version. Only [`BvhStorage::Buffers`] variants are supported.
     pub fn spirv(&self, variant: KernelVariant) -> Result<Vec<u32>, VkError> {
+        if variant.storage != BvhStorage::Buffers {
+            return Err(VkError::Unsupported(
+                "the ash backend reads the BVH from storage buffers only".into(),
+            ));
+        }
+        if variant.precision == Precision::WatertightF64 && !self.inner.float64 {
+            return Err(VkError::Unsupported(format!(
+                "{} has no shaderFloat64, which the f64 triangle test needs",
+                self.inner.info.name
+            )));
+        }
         let inner = &self.inner;
+        let source = variant.source();
+        let module = naga::front::wgsl::parse_str(&source).map_err(|e| VkError::Shader {
+            during: "parsing the WGSL kernels",
+            message: e.emit_to_string(&source),
+        })?;
+        let module_info = naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::all(),
+        )
+        .validate(&module)
+        .map_err(|e| VkError::Shader {
+            during: "validating the WGSL kernels",
+            message: e.emit_to_string(&source),
+        })?;
         let stage = naga::ShaderStage::Compute;
         let mut constants = naga::back::PipelineConstants::default();
         for (name, value) in variant.constants() {
             constants.insert(name.to_string(), value);
         }
+        constants.insert("TRIP_LIMIT".to_string(), f64::from(inner.trip_limit));
         let (module, info) = naga::back::pipeline_constants::process_overrides(
-            &inner.module,
-            &inner.module_info,
+            &module,
+            &module_info,
             Some((stage, variant.entry_point())),
             &constants,
         )
@@ -810,5 +858,66 @@ impl Buffer {
         }
         self.raw = vk::Buffer::null();
         self.memory = vk::DeviceMemory::null();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The messenger counts what the layer reports: a zero-sized buffer is invalid usage
+    /// (`VUID-VkBufferCreateInfo-size-00912`). Without the layer there is nothing to count.
+    #[test]
+    fn validation_errors_are_counted() {
+        let ctx = match VkContext::with_options(&VkOptions {
+            adapter: None,
+            validation: true,
+        }) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("SKIP validation_errors_are_counted: {e}");
+                return;
+            }
+        };
+        if !ctx.validation_enabled() {
+            eprintln!("SKIP validation_errors_are_counted: no validation layer installed");
+            return;
+        }
+        assert_eq!(ctx.validation_errors(), 0);
+        let d = &ctx.inner.device;
+        let info = vk::BufferCreateInfo::default()
+            .size(0)
+            .usage(vk::BufferUsageFlags::STORAGE_BUFFER);
+        // SAFETY: deliberately invalid create info (size 0), reported by the layer; lavapipe
+        // still returns a handle (or an error), destroyed right away.
+        unsafe {
+            if let Ok(b) = d.create_buffer(&info, None) {
+                d.destroy_buffer(b, None);
+            }
+        }
+        assert!(
+            ctx.validation_errors() >= 1,
+            "the layer's error was not counted"
+        );
+        assert!(process_validation_errors() >= 1);
+    }
+
+    #[test]
+    fn vulkan_results_map_to_errors() {
+        assert!(matches!(
+            VkError::from_vk("x", vk::Result::ERROR_OUT_OF_DEVICE_MEMORY),
+            VkError::OutOfMemory { .. }
+        ));
+        assert!(matches!(
+            VkError::from_vk("x", vk::Result::ERROR_OUT_OF_HOST_MEMORY),
+            VkError::OutOfMemory { .. }
+        ));
+        let lost = VkError::from_vk("tracing", vk::Result::ERROR_DEVICE_LOST);
+        assert!(matches!(lost, VkError::DeviceLost { .. }));
+        assert!(lost.to_string().contains("lost while tracing"), "{lost}");
+        assert!(matches!(
+            VkError::from_vk("x", vk::Result::ERROR_INITIALIZATION_FAILED),
+            VkError::Vulkan { .. }
+        ));
     }
 }

@@ -91,6 +91,9 @@ pub enum VkError {
         /// naga's message.
         message: String,
     },
+    /// The device or this backend cannot run what was asked for.
+    #[error("not supported: {0}")]
+    Unsupported(String),
     /// A lock was poisoned by a panicking thread.
     #[error("a thread panicked while holding the {0}")]
     Poisoned(&'static str),

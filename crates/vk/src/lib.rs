@@ -1,9 +1,10 @@
 //! bvhtrace's traversal kernels on raw Vulkan through [`ash`], for engines written on ash
 //! rather than wgpu, and to measure what wgpu's layer costs.
 //!
-//! The WGSL is the wgpu path's, composed by [`bvhtrace_gpu::kernel_source`] with the BVH
-//! in storage buffers; naga resolves each [`KernelVariant`]'s override constants and
-//! writes SPIR-V for one entry point. The BVH is uploaded in the flat layout of
+//! The WGSL is the wgpu path's: each [`KernelVariant`]'s module (`KernelVariant::source`,
+//! composed by `bvhtrace_gpu` with the BVH in storage buffers); naga resolves its override
+//! constants (and the same `TRIP_LIMIT` as the wgpu path) and writes SPIR-V for one entry
+//! point. The BVH is uploaded in the flat layout of
 //! [`bvhtrace_core::flat`], byte for byte, and the answers equal the wgpu path's and the
 //! CPU twin's bit for bit.
 //!
@@ -38,5 +39,13 @@ mod error;
 pub use ash;
 pub use bvh::{VkBvh, VkTraceOutput, VkUploadStats};
 pub use bvhtrace_gpu::shaders::KernelVariant;
-pub use context::{VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions};
+pub use context::{VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, process_validation_errors};
 pub use error::VkError;
+
+/// The context and uploaded BVHs can be shared between threads (submissions are
+/// serialised by the context).
+const _: () = {
+    const fn send_sync<T: Send + Sync>() {}
+    send_sync::<VkContext>();
+    send_sync::<VkBvh>();
+};

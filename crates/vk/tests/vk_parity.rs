@@ -3,10 +3,12 @@
 //! behaviour. Runs on lavapipe in CI; prints SKIP and passes only when there is no Vulkan
 //! loader or device at all.
 
+use bvhtrace_core::traverse::trace_batch_counted_precision;
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, Query, Ray, Traversal, trace_batch_counted,
+    BuildOptions, BuilderKind, FlatBvh, Precision, Query, Ray, Traversal, trace_batch_counted,
 };
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions};
+use bvhtrace_gpu::shaders::KernelVariant;
+use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 use bvhtrace_vk::{VkBvh, VkContext, VkError, VkOptions};
 use glam::Vec3;
@@ -184,6 +186,8 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
                 let wc = w.counters.as_deref().expect("counters asked for");
                 assert!(plain.counters.is_none());
                 assert_eq!(counted.gpu_ns.is_some(), ctx.has_timestamps());
+                // Rays past the trip budget are finished on the CPU by both backends.
+                assert_eq!(counted.incomplete, w.incomplete, "{label}: incomplete rays");
                 let checks = [
                     ("hits vs cpu", differ(&counted.hits, &cpu_hits)),
                     ("uncounted hits vs cpu", differ(&plain.hits, &cpu_hits)),
@@ -261,6 +265,12 @@ fn create_and_drop_in_a_loop() {
             drop(ctx);
         }
     }
+    // Leaked objects are reported while a device or instance is destroyed.
+    assert_eq!(
+        bvhtrace_vk::process_validation_errors(),
+        0,
+        "validation errors (leaks?) in this process"
+    );
 }
 
 #[test]
@@ -315,10 +325,174 @@ fn errors_are_errors_not_panics() {
         trace_batch_counted(&deep, &rays, Traversal::Stackless, Query::Closest);
     assert_eq!(out.hits, cpu);
     assert_eq!(out.counters.as_deref(), Some(&cpu_counters[..]));
+    // An array larger than one storage binding is refused before anything is allocated,
+    // naming both sizes (only tried where the limit is small enough to allocate here).
+    let limit = ctx.limits().max_storage_buffer_binding_size;
+    if limit <= 256 << 20 {
+        let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
+        let huge = FlatBvh {
+            nodes: deep.nodes.clone(),
+            parents: deep.parents.clone(),
+            triangles: vec![bytemuck::Zeroable::zeroed(); n],
+            depth: deep.depth,
+        };
+        match VkBvh::upload(&ctx, &huge) {
+            Err(e @ VkError::TooLarge { .. }) => {
+                let msg = e.to_string();
+                assert!(msg.contains("triangles"), "{msg}");
+                assert!(msg.contains(&limit.to_string()), "{msg}");
+                assert!(msg.contains(&(n as u64 * 48).to_string()), "{msg}");
+            }
+            other => panic!("expected TooLarge, got {other:?}"),
+        }
+    } else {
+        eprintln!("SKIP the too-large upload: maxStorageBufferRange is {limit} bytes");
+    }
     // An empty batch is fine.
     let empty = gpu
         .trace(&[], Traversal::Stackless, Query::Any, false)
         .expect("empty batch");
     assert!(empty.hits.is_empty());
+    assert_eq!(ctx.validation_errors(), 0);
+}
+
+/// The other triangle tests (Möller–Trumbore f32, watertight f64 where the device has
+/// `shaderFloat64`) compose into the same kernels: ash equals wgpu and the CPU twin too.
+#[test]
+fn precisions_match_wgpu_and_cpu() {
+    let Some(ctx) = context("precisions") else {
+        return;
+    };
+    let wgpu = GpuContext::new(AdapterChoice::Auto).expect("wgpu opens the same Vulkan device");
+    let mut precisions = vec![Precision::MollerTrumboreF32];
+    if ctx.has_f64() {
+        precisions.push(Precision::WatertightF64);
+    } else {
+        eprintln!(
+            "SKIP f64 precision: no shaderFloat64 on {}",
+            ctx.device_info().name
+        );
+    }
+    let mut failures = Vec::new();
+    for (name, bvh) in ["builtin:degenerate", "builtin:cornell"]
+        .into_iter()
+        .filter_map(load)
+    {
+        let rays = rays(&bvh);
+        let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
+        let wg = GpuBvh::upload(
+            &wgpu,
+            &bvh,
+            &UploadOptions::all().with_storage(BvhStorage::Buffers),
+        )
+        .expect("wgpu upload");
+        for &precision in &precisions {
+            for traversal in [Traversal::FullStack, Traversal::ShortStack(4)] {
+                for query in [Query::Closest, Query::Any] {
+                    let label = format!("{name} {traversal} {query:?} {precision:?}");
+                    let variant = KernelVariant::new(BvhStorage::Buffers, traversal, query, true)
+                        .with_precision(precision);
+                    let a = vk.trace_variant(&rays, variant).expect("ash trace");
+                    let opts = TraceOptions {
+                        traversal,
+                        query,
+                        counters: true,
+                    };
+                    let w = wg
+                        .trace_with_precision(&rays, &opts, precision)
+                        .expect("wgpu trace");
+                    let (cpu, cpu_counters) =
+                        trace_batch_counted_precision(&bvh, &rays, traversal, query, precision);
+                    let ac = a.counters.as_deref().expect("counters");
+                    let wc = w.counters.as_deref().expect("counters");
+                    for (what, n) in [
+                        ("hits vs cpu", differ(&a.hits, &cpu).len()),
+                        ("hits vs wgpu", differ(&a.hits, &w.hits).len()),
+                        ("counters vs cpu", differ(ac, &cpu_counters).len()),
+                        ("counters vs wgpu", differ(ac, wc).len()),
+                    ] {
+                        if n > 0 {
+                            failures.push(format!("{label}: {what}: {n} rays differ"));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_eq!(ctx.validation_errors(), 0, "validation errors");
+}
+
+/// A machine whose loader finds no driver: `VkContext::new` returns an error naming the
+/// cause (never panics). Runs itself in a child process with the driver list pointed at
+/// nothing (`VK_ICD_FILENAMES` / `VK_DRIVER_FILES`).
+#[test]
+fn no_driver_is_an_error() {
+    const CHILD: &str = "BVHTRACE_VK_TEST_CHILD";
+    if std::env::var_os(CHILD).is_some() {
+        match VkContext::new(None) {
+            Err(e @ (VkError::NoDevice { .. } | VkError::LoaderMissing(_))) => {
+                let msg = e.to_string();
+                assert!(msg.contains("mesa-vulkan-drivers"), "{msg}");
+                println!("CHILD OK: {msg}");
+            }
+            Err(e) => panic!("expected NoDevice, got {e}"),
+            Ok(ctx) => panic!("a device without drivers: {:?}", ctx.device_info()),
+        }
+        return;
+    }
+    let exe = std::env::current_exe().expect("test binary path");
+    let out = std::process::Command::new(exe)
+        .args(["no_driver_is_an_error", "--exact", "--nocapture"])
+        .env(CHILD, "1")
+        .env("VK_ICD_FILENAMES", "/nonexistent/bvhtrace_icd.json")
+        .env("VK_DRIVER_FILES", "/nonexistent/bvhtrace_icd.json")
+        .output()
+        .expect("run the child");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && stdout.contains("CHILD OK"),
+        "child failed:\n{stdout}\n{stderr}"
+    );
+}
+
+/// A batch larger than one dispatch (more rays than one storage binding holds, and more
+/// workgroups than one grid dimension allows) is split as `plan_dispatches` says; every
+/// ray is answered as the CPU answers it.
+#[test]
+fn batches_larger_than_a_dispatch_are_split() {
+    let Some(ctx) = context("split batches") else {
+        return;
+    };
+    let tris = vec![[
+        Vec3::new(-1.0, -1.0, 0.0),
+        Vec3::new(1.0, -1.0, 0.0),
+        Vec3::new(0.0, 1.0, 0.0),
+    ]];
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let n = bvhtrace_gpu::rays_per_dispatch(ctx.limits()) as usize + 1000;
+    let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());
+    assert!(plan.len() >= 2, "{plan:?}");
+    let rays: Vec<Ray> = (0..n)
+        .map(|i| {
+            let x = (i % 2048) as f32 / 1024.0 - 1.0;
+            let y = ((i / 2048) % 2048) as f32 / 1024.0 - 1.0;
+            Ray::new(Vec3::new(x, y, 5.0), Vec3::NEG_Z)
+        })
+        .collect();
+    let out = VkBvh::upload(&ctx, &bvh)
+        .expect("upload")
+        .trace(&rays, Traversal::Stackless, Query::Closest, false)
+        .expect("trace");
+    let cpu = bvhtrace_core::trace_batch(&bvh, &rays, Traversal::Stackless, Query::Closest);
+    let bad = differ(&out.hits, &cpu);
+    assert!(
+        bad.is_empty(),
+        "{} of {n} rays differ (plan {plan:?}); first {:?}",
+        bad.len(),
+        bad.first()
+    );
+    assert!(cpu.iter().any(|h| h.prim == 0) && cpu.iter().any(|h| h.prim != 0));
     assert_eq!(ctx.validation_errors(), 0);
 }
