@@ -30,8 +30,9 @@ pub const OFFSET_INT_SCALE: f32 = 256.0;
 pub fn offset_ray_origin(p: Vec3, n: Vec3) -> Vec3 {
     let off = |c: f32, n: f32| {
         let oi = (OFFSET_INT_SCALE * n) as i32;
-        let moved =
-            f32::from_bits((c.to_bits() as i32).wrapping_add(if c < 0.0 { -oi } else { oi }) as u32);
+        let moved = f32::from_bits(
+            (c.to_bits() as i32).wrapping_add(if c < 0.0 { -oi } else { oi }) as u32,
+        );
         if c.abs() < OFFSET_ORIGIN {
             c + OFFSET_FLOAT_SCALE * n
         } else {
@@ -126,7 +127,10 @@ mod tests {
         assert_eq!(facing_normal(&tri, -Vec3::Z), Vec3::Z);
         assert_eq!(facing_normal(&tri, Vec3::Z), -Vec3::Z);
         assert_eq!(geometric_normal(&tri), Vec3::Z);
-        assert_eq!(geometric_normal(&[Vec3::ZERO, Vec3::X, Vec3::X]), Vec3::ZERO);
+        assert_eq!(
+            geometric_normal(&[Vec3::ZERO, Vec3::X, Vec3::X]),
+            Vec3::ZERO
+        );
         let h = Hit {
             t: 1.0,
             prim: 0,

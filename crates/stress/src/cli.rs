@@ -68,7 +68,8 @@ pub fn run(args: StressArgs) -> Result<()> {
     // An unwritable JSON path fails now, not after minutes of work.
     if let Some(path) = args.json.as_deref().filter(|p| *p != "-") {
         let tmp = format!("{path}.tmp");
-        std::fs::write(&tmp, b"").with_context(|| format!("cannot write the JSON report {path}"))?;
+        std::fs::write(&tmp, b"")
+            .with_context(|| format!("cannot write the JSON report {path}"))?;
         let _ = std::fs::remove_file(&tmp);
     }
     let size = if args.quick { Size::Quick } else { Size::Full };
