@@ -75,7 +75,7 @@ pub struct BenchArgs {
     /// Timed runs per configuration; the median is reported (default 3; 1 with --quick).
     #[arg(long)]
     pub runs: Option<usize>,
-    /// Backends to include.
+    /// Backends to include: gpu (wgpu), vulkan (the same kernels through ash), cpu.
     #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
     pub backends: Vec<String>,
     /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
@@ -254,8 +254,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         bail!("--runs and --sample must be at least 1");
     }
     for b in &args.backends {
-        if b != "gpu" && b != "cpu" {
-            bail!("unknown backend '{b}' (expected gpu or cpu)");
+        if b != "gpu" && b != "cpu" && b != "vulkan" {
+            bail!("unknown backend '{b}' (expected gpu, vulkan or cpu)");
         }
     }
     let precisions: Vec<Precision> = if args.precisions.is_empty() {
@@ -303,6 +303,18 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             Ok(c) => Some(c),
             Err(e) => {
                 eprintln!("note: no GPU ({e}); benchmarking the CPU only");
+                None
+            }
+        }
+    } else {
+        None
+    };
+    // `vulkan`: the same kernels through ash (bvhtrace-vk), BVH in storage buffers.
+    let vk_ctx = if args.backends.iter().any(|b| b == "vulkan") {
+        match bvhtrace_vk::VkContext::new(args.adapter.as_deref()) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                eprintln!("note: no Vulkan device through ash ({e}); leaving out 'vulkan'");
                 None
             }
         }
@@ -373,13 +385,23 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             .backends
             .iter()
             .map(|s| s.as_str())
-            .filter(|b| *b == "cpu" || gpu_ctx.is_some())
+            .filter(|b| match *b {
+                "gpu" => gpu_ctx.is_some(),
+                "vulkan" => vk_ctx.is_some(),
+                _ => true,
+            })
             .collect();
         for &p in &precisions {
             for (bi, _) in builders.iter().enumerate() {
                 for &tr in &TRAVERSALS {
                     for &be in &backends {
                         if be == "gpu" && gpu_ctx.as_ref().is_some_and(|c| !c.supports_precision(p))
+                        {
+                            continue;
+                        }
+                        if be == "vulkan"
+                            && p == Precision::WatertightF64
+                            && vk_ctx.as_ref().is_some_and(|c| !c.has_f64())
                         {
                             continue;
                         }
@@ -443,6 +465,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             };
             let tracer = match (be, gpu) {
                 ("gpu", Some(g)) => Tracer::GpuRef(g),
+                ("vulkan", _) => match &vk_ctx {
+                    Some(c) => Tracer::Vulkan(Box::new(bvhtrace_vk::VkBvh::upload(c, bvh)?)),
+                    None => Tracer::Cpu(bvh),
+                },
                 _ => Tracer::Cpu(bvh),
             };
             let (kind_idx, rays) = kinds
@@ -483,7 +509,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 (None, None)
             };
             let bytes = match &tracer {
-                Tracer::Gpu(_) | Tracer::GpuRef(_) => tracer.uploaded_bytes(),
+                Tracer::Gpu(_) | Tracer::GpuRef(_) | Tracer::Vulkan(_) => tracer.uploaded_bytes(),
                 Tracer::Cpu(b) => {
                     let (a, p, t) = b.byte_sizes();
                     (a + if tr.needs_parents() { p } else { 0 } + t) as u64

@@ -8,6 +8,7 @@ mod plot;
 mod render;
 mod shade;
 mod tracer;
+mod vk_tracer;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

@@ -24,6 +24,9 @@ pub enum Backend {
     Gpu,
     /// The CPU reference traversal.
     Cpu,
+    /// The same kernels on raw Vulkan through ash (`bvhtrace-vk`, BVH in storage
+    /// buffers); an error when there is no Vulkan device.
+    Vulkan,
 }
 
 fn parse_vec3(s: &str) -> Result<Vec3, String> {
@@ -237,6 +240,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
 
     let (tracer, upload_ms) = match args.backend {
         Backend::Cpu => (Tracer::Cpu(&bvh), 0.0),
+        Backend::Vulkan => Tracer::vulkan(&bvh, args.adapter.as_deref())?,
         Backend::Gpu => match Tracer::gpu(
             &bvh,
             &GpuSetup {
