@@ -6,6 +6,31 @@
 // `t < best.t`, or `t == best.t` and its primitive index is lower. `best.t` starts at
 // `t_max`, so the interval is `[t_min, t_max)`.
 
+// The trip budget: loop trips (node steps, triangle tests, climb steps) a ray may take
+// before it gives up with `INCOMPLETE`. Unbounded by default. Some drivers end every loop
+// of an invocation silently after a fixed number of trips in all (lavapipe: 65,535 per
+// 8-lane batch, counting each inner loop's longest lane), which would return a wrong
+// answer without a sign; the host sets a budget that stays under such a limit
+// (`bvhtrace_gpu::trip_limit_for`) and finishes the rays that exhaust it.
+override TRIP_LIMIT: u32 = 0xffffffffu;
+
+// Trips left to the current ray (set by `start_best`).
+var<private> trips_left: u32;
+
+// Takes one trip; false when the budget is spent.
+fn take_trip() -> bool {
+    if (trips_left == 0u) {
+        return false;
+    }
+    trips_left -= 1u;
+    return true;
+}
+
+// The answer of a ray that spent its budget: `INCOMPLETE`, with the best `t` so far.
+fn incomplete(best: Best, c: Counters) -> TraceResult {
+    return TraceResult(Hit(best.t, INCOMPLETE, 0.0, 0.0), c);
+}
+
 struct Best {
     t: f32,
     prim: u32,
@@ -25,7 +50,7 @@ fn visit_leaf(
     any_hit: bool,
 ) -> bool {
     let end = first + count;
-    for (var i = first; i < end; i += 1u) {
+    for (var i = first; i < end && take_trip(); i += 1u) {
         (*c).tris += 1u;
         let tri = load_triangle(i);
         let h = intersect_triangle(r, tri.v0, tri.v1, tri.v2);
@@ -59,6 +84,7 @@ fn ray_is_traced(ray: Ray) -> bool {
 }
 
 fn start_best(ray: Ray) -> Best {
+    trips_left = TRIP_LIMIT;
     return Best(ray.t_max, MISS, 0.0, 0.0, false);
 }
 

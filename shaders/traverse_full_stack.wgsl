@@ -3,7 +3,8 @@
 // Both children are tested at their parent; when both are hit, the one with the nearer
 // entry distance is visited first and the other pushed. The stack holds at most `depth`
 // entries (one per level of the current path), so `GpuBvh::upload` refuses trees deeper
-// than `FULL_STACK_SIZE` for this traversal: it never overflows.
+// than `FULL_STACK_SIZE` for this traversal: it never overflows. Every loop trip takes one
+// of the ray's `TRIP_LIMIT` trips (`traverse_common.wgsl`).
 
 const FULL_STACK_SIZE: u32 = 64u;
 
@@ -24,11 +25,17 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
     }
     var node = 0u;
     loop {
+        if (!take_trip()) {
+            return incomplete(best, c);
+        }
         let links = load_node_links(node);
         let count = links.y >> 2u;
         if (count != 0u) {
             if (visit_leaf(r, links.x, count, &best, &c, any_hit)) {
                 break;
+            }
+            if (trips_left == 0u) {
+                return incomplete(best, c);
             }
         } else {
             let l = node + 1u;

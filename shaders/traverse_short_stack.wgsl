@@ -18,6 +18,7 @@
 // There is no separate stackless kernel: it is this function specialised with k = 0 (the
 // entry point passes the `SHORT_STACK_SIZE` override constant, so the compiler folds `k`).
 // `k` is clamped to `1..=MAX_SHORT_STACK` by the host for `Traversal::ShortStack(k)`.
+// Every loop trip, climb step included, takes one of the ray's `TRIP_LIMIT` trips.
 
 // Near and far child of interior node `index` with links `(right_or_first, meta)`:
 // `vec2(near, far)`.
@@ -64,12 +65,18 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
     // Otherwise `node`'s subtree is done.
     var visit = true;
     loop {
+        if (!take_trip()) {
+            return incomplete(best, c);
+        }
         if (visit) {
             let links = load_node_links(node);
             let leaf_count = links.y >> 2u;
             if (leaf_count != 0u) {
                 if (visit_leaf(r, links.x, leaf_count, &best, &c, any_hit)) {
                     break;
+                }
+                if (trips_left == 0u) {
+                    return incomplete(best, c);
                 }
             } else {
                 let nf = near_far(r, node, links);
@@ -111,6 +118,9 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
         }
         // Climb to the nearest ancestor whose bit is set...
         while ((trail & 1u) == 0u) {
+            if (!take_trip()) {
+                return incomplete(best, c);
+            }
             depth -= 1u;
             node = load_parent(node);
             trail = trail_up(trail, depth);

@@ -33,7 +33,7 @@ struct Ray {
     t_max: f32,
 }
 
-// `Hit` (16 bytes). `prim` is the primitive index, `MISS` or `INVALID_RAY`; `u`, `v` are the
+// `Hit` (16 bytes). `prim` is the primitive index, `MISS`, `INVALID_RAY` or `INCOMPLETE`; `u`, `v` are the
 // barycentric weights of corners 1 and 2.
 struct Hit {
     t: f32,
@@ -57,6 +57,9 @@ struct TraceResult {
 // `bvhtrace_core::MISS` and `bvhtrace_core::INVALID_RAY`.
 const MISS: u32 = 0xffffffffu;
 const INVALID_RAY: u32 = 0xfffffffeu;
+// `bvhtrace_core::INCOMPLETE`: the kernel ran out of its trip budget (`TRIP_LIMIT`) before
+// the ray's answer was certain; the host finishes such rays (`GpuBvh::trace`).
+const INCOMPLETE: u32 = 0xfffffffdu;
 // `bvhtrace_core::traverse::MAX_SHORT_STACK`: the ring buffer's storage.
 const MAX_SHORT_STACK: u32 = 32u;
 

@@ -115,7 +115,7 @@ where
     };
     for (r, p) in rows.iter().zip(&pts) {
         let c = colour(r.config.rays);
-        if r.config.backend == "gpu" {
+        if r.config.backend != "cpu" {
             chart
                 .draw_series(std::iter::once(TriangleMarker::new(*p, 6, c.filled())))
                 .map_err(err)?;

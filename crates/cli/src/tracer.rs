@@ -4,9 +4,12 @@ use std::time::Instant;
 
 use anyhow::Result;
 use bvhtrace_core::{
-    Counters, FlatBvh, Hit, Query, Ray, Traversal, trace_batch, trace_batch_counted,
+    Counters, FlatBvh, Hit, Precision, Query, Ray, Traversal, trace_batch_counted_precision,
+    trace_batch_precision,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, TraceOptions, UploadOptions};
+use bvhtrace_gpu::{
+    AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions, UploadStats,
+};
 
 /// Where rays are traced.
 pub enum Tracer<'a> {
@@ -16,6 +19,8 @@ pub enum Tracer<'a> {
     Gpu(Box<GpuBvh>),
     /// The same, on a BVH uploaded elsewhere.
     GpuRef(&'a GpuBvh),
+    /// The same kernels on raw Vulkan through ash (`--backend vulkan`).
+    Vulkan(Box<bvhtrace_vk::VkBvh>),
 }
 
 /// The answer to one batch.
@@ -40,6 +45,7 @@ impl<'a> Tracer<'a> {
             Tracer::Cpu(_) => None,
             Tracer::Gpu(g) => Some(g),
             Tracer::GpuRef(g) => Some(g),
+            Tracer::Vulkan(_) => None,
         }
     }
 
@@ -60,6 +66,9 @@ impl<'a> Tracer<'a> {
 
     /// `"cpu"` or `"gpu"`.
     pub fn backend(&self) -> &'static str {
+        if self.vk_bvh().is_some() {
+            return "vulkan";
+        }
         if self.gpu_bvh().is_some() {
             "gpu"
         } else {
@@ -69,6 +78,9 @@ impl<'a> Tracer<'a> {
 
     /// The adapter's name, or the CPU's thread count.
     pub fn adapter(&self) -> String {
+        if let Some(v) = self.vk_bvh() {
+            return crate::vk_tracer::adapter(v);
+        }
         match self.gpu_bvh() {
             None => format!("cpu ({} threads)", rayon::current_num_threads()),
             Some(g) => {
@@ -80,10 +92,18 @@ impl<'a> Tracer<'a> {
 
     /// Bytes uploaded to the GPU (0 on the CPU).
     pub fn uploaded_bytes(&self) -> u64 {
+        if let Some(v) = self.vk_bvh() {
+            return crate::vk_tracer::uploaded_bytes(v);
+        }
         self.gpu_bvh().map_or(0, |g| g.stats().total_bytes())
     }
 
-    /// Traces one batch.
+    /// The upload's statistics and storage (GPU only).
+    pub fn upload(&self) -> Option<(UploadStats, BvhStorage)> {
+        self.gpu_bvh().map(|g| (*g.stats(), g.storage()))
+    }
+
+    /// Traces one batch (watertight f32, the default precision).
     pub fn trace(
         &self,
         rays: &[Ray],
@@ -91,14 +111,30 @@ impl<'a> Tracer<'a> {
         query: Query,
         counters: bool,
     ) -> Result<Traced> {
+        self.trace_precision(rays, traversal, query, Precision::WatertightF32, counters)
+    }
+
+    /// Traces one batch with the triangle test of `precision`.
+    pub fn trace_precision(
+        &self,
+        rays: &[Ray],
+        traversal: Traversal,
+        query: Query,
+        precision: Precision,
+        counters: bool,
+    ) -> Result<Traced> {
         match (self, self.gpu_bvh()) {
             (Tracer::Cpu(bvh), _) => {
                 let start = Instant::now();
                 let (hits, c) = if counters {
-                    let (h, c) = trace_batch_counted(bvh, rays, traversal, query);
+                    let (h, c) =
+                        trace_batch_counted_precision(bvh, rays, traversal, query, precision);
                     (h, Some(c))
                 } else {
-                    (trace_batch(bvh, rays, traversal, query), None)
+                    (
+                        trace_batch_precision(bvh, rays, traversal, query, precision),
+                        None,
+                    )
                 };
                 Ok(Traced {
                     hits,
@@ -107,14 +143,18 @@ impl<'a> Tracer<'a> {
                     gpu_ms: None,
                 })
             }
+            (Tracer::Vulkan(v), _) => {
+                crate::vk_tracer::trace(v, rays, traversal, query, precision, counters)
+            }
             (_, Some(g)) => {
-                let out = g.trace_with(
+                let out = g.trace_with_precision(
                     rays,
                     &TraceOptions {
                         traversal,
                         query,
                         counters,
                     },
+                    precision,
                 )?;
                 Ok(Traced {
                     hits: out.hits,

@@ -107,6 +107,10 @@ pub struct GpuBvh {
     node_count: usize,
     triangle_count: usize,
     stats: UploadStats,
+    /// A host copy of the tree when the adapter bounds the kernels' loop trips
+    /// ([`GpuContext::trip_limit`]): [`GpuBvh::trace`] finishes the rays that spend the
+    /// budget on it (the CPU twin gives the answer the kernel would have given).
+    pub(crate) twin: Option<std::sync::Arc<FlatBvh>>,
     pub(crate) scratch: Mutex<Option<Scratch>>,
 }
 
@@ -432,6 +436,7 @@ impl GpuBvh {
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
             stats,
+            twin: (ctx.trip_limit() != u32::MAX).then(|| std::sync::Arc::new(bvh.clone())),
             scratch: Mutex::new(None),
         })
     }

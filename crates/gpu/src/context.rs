@@ -2,10 +2,14 @@
 //! module, the bind group layouts and the pipeline cache.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use bvhtrace_core::Precision;
 
 use crate::error::GpuError;
-use crate::shaders::{self, BvhStorage, KernelVariant};
+use crate::features::{Composition, ModuleSet, PipelineFeatures};
+use crate::shaders::{BvhStorage, KernelVariant};
 
 fn storage_index(storage: BvhStorage) -> usize {
     match storage {
@@ -73,13 +77,21 @@ struct Inner {
     info: wgpu::AdapterInfo,
     limits: GpuLimits,
     timestamps: bool,
-    /// Shader modules: `[buffers, textures]`.
-    modules: [OnceLock<wgpu::ShaderModule>; 2],
+    /// The `TRIP_LIMIT` override ([`crate::shaders::trip_limit_for`]).
+    trip_limit: u32,
+    /// Shader modules, by the files composed.
+    modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
     /// BVH group layouts: `[buffers, textures][without parents, with parents]`.
     bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [wgpu::BindGroupLayout; 2],
-    pipelines: Mutex<HashMap<KernelVariant, wgpu::ComputePipeline>>,
+    /// Pipelines, by their full feature set.
+    pipelines: Mutex<HashMap<PipelineFeatures, wgpu::ComputePipeline>>,
+    /// [`GpuContext::pipeline`] composes everything ([`Composition::EverythingOn`]).
+    everything_on: AtomicBool,
+    /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
+    modules_compiled: AtomicU64,
+    pipelines_compiled: AtomicU64,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -190,6 +202,10 @@ impl GpuContext {
         if adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
             features |= wgpu::Features::TIMESTAMP_QUERY;
         }
+        // For the f64 triangle test (`Precision::WatertightF64`), where the adapter has it.
+        if adapter.features().contains(wgpu::Features::SHADER_F64) {
+            features |= wgpu::Features::SHADER_F64;
+        }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("bvhtrace"),
@@ -271,19 +287,30 @@ impl GpuContext {
                 ],
             ),
         ];
+        let trip_limit = crate::shaders::trip_limit_for(&adapter_info);
         GpuContext {
             inner: Arc::new(Inner {
                 device,
                 queue,
                 info: adapter_info,
                 limits,
+                trip_limit,
                 timestamps,
-                modules: [OnceLock::new(), OnceLock::new()],
+                modules: Default::default(),
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
+                everything_on: AtomicBool::new(false),
+                modules_compiled: AtomicU64::new(0),
+                pipelines_compiled: AtomicU64::new(0),
             }),
         }
+    }
+
+    /// The kernels' loop-trip budget per ray on this adapter
+    /// ([`crate::shaders::trip_limit_for`]); `u32::MAX` is unbounded.
+    pub fn trip_limit(&self) -> u32 {
+        self.inner.trip_limit
     }
 
     /// The device.
@@ -351,12 +378,62 @@ impl GpuContext {
         }
     }
 
-    fn module(&self, storage: BvhStorage) -> Result<&wgpu::ShaderModule, GpuError> {
-        let cell = &self.inner.modules[storage_index(storage)];
-        if let Some(m) = cell.get() {
-            return Ok(m);
+    /// True when kernels with this triangle test can run on this device (f64 needs
+    /// `SHADER_F64`, which [`GpuContext::new`] requests whenever the adapter has it).
+    pub fn supports_precision(&self, precision: Precision) -> bool {
+        !precision.needs_f64()
+            || self
+                .inner
+                .device
+                .features()
+                .contains(wgpu::Features::SHADER_F64)
+    }
+
+    /// How [`GpuContext::pipeline`] composes modules: only what each pipeline needs (the
+    /// default), or everything (the baseline of `bvhtrace bench-trace --everything-on`).
+    /// Both kinds stay cached side by side, so switching back does not recompile.
+    pub fn set_composition(&self, composition: Composition) {
+        self.inner
+            .everything_on
+            .store(composition == Composition::EverythingOn, Ordering::Relaxed);
+    }
+
+    /// See [`GpuContext::set_composition`].
+    pub fn composition(&self) -> Composition {
+        if self.inner.everything_on.load(Ordering::Relaxed) {
+            Composition::EverythingOn
+        } else {
+            Composition::Specialised
         }
-        let source = shaders::kernel_source(storage);
+    }
+
+    /// `(shader modules, pipelines)` created by this context so far: cache hits do not
+    /// count, so a test can check that switching back to a feature set does not recompile.
+    pub fn compile_counts(&self) -> (u64, u64) {
+        (
+            self.inner.modules_compiled.load(Ordering::Relaxed),
+            self.inner.pipelines_compiled.load(Ordering::Relaxed),
+        )
+    }
+
+    /// Forgets every cached module and pipeline (for timing pipeline creation).
+    pub fn clear_pipeline_cache(&self) -> Result<(), GpuError> {
+        self.inner.pipelines.lock().map_err(|_| poisoned())?.clear();
+        self.inner.modules.lock().map_err(|_| poisoned())?.clear();
+        Ok(())
+    }
+
+    fn module(&self, set: &ModuleSet) -> Result<wgpu::ShaderModule, GpuError> {
+        if !self.supports_precision(set.precision) {
+            return Err(GpuError::PrecisionUnsupported {
+                precision: set.precision,
+                adapter: self.inner.info.name.clone(),
+            });
+        }
+        if let Some(m) = self.inner.modules.lock().map_err(|_| poisoned())?.get(set) {
+            return Ok(m.clone());
+        }
+        let source = set.compose(crate::shaders::BVH_GROUP);
         let module = self.scoped("compiling the WGSL kernels", || {
             self.inner
                 .device
@@ -365,23 +442,43 @@ impl GpuContext {
                     source: wgpu::ShaderSource::Wgsl(source.into()),
                 })
         })?;
+        self.inner.modules_compiled.fetch_add(1, Ordering::Relaxed);
         // Another thread may have won the race; either module is fine.
-        Ok(cell.get_or_init(|| module))
+        Ok(self
+            .inner
+            .modules
+            .lock()
+            .map_err(|_| poisoned())?
+            .entry(*set)
+            .or_insert(module)
+            .clone())
     }
 
-    /// The compute pipeline for one kernel variant, created on first use and cached by
-    /// (traversal, k, query, counters).
+    /// The compute pipeline for one kernel variant, composed as
+    /// [`GpuContext::composition`] says (by default only what the variant needs, see
+    /// [`PipelineFeatures`]); created on first use and cached by its full feature set.
     pub fn pipeline(&self, variant: KernelVariant) -> Result<wgpu::ComputePipeline, GpuError> {
+        self.pipeline_for(&PipelineFeatures::new(variant).with_composition(self.composition()))
+    }
+
+    /// The compute pipeline for `features`, created on first use and cached by the whole
+    /// feature set (variant, attributes, composition). Its layout binds what the entry point
+    /// reads: the parent links only for the walks that climb, counters only when on.
+    pub fn pipeline_for(
+        &self,
+        features: &PipelineFeatures,
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
         if let Some(p) = self
             .inner
             .pipelines
             .lock()
             .map_err(|_| poisoned())?
-            .get(&variant)
+            .get(features)
         {
             return Ok(p.clone());
         }
-        let module = self.module(variant.storage)?;
+        let variant = features.variant;
+        let module = self.module(&features.module_set())?;
         let device = &self.inner.device;
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("bvhtrace trace"),
@@ -391,12 +488,13 @@ impl GpuContext {
             ],
             immediate_size: 0,
         });
-        let constants = variant.constants();
+        let mut constants = variant.constants();
+        constants.push(("TRIP_LIMIT", f64::from(self.inner.trip_limit)));
         let pipeline = self.scoped("creating a trace pipeline", || {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(variant.entry_point()),
                 layout: Some(&layout),
-                module,
+                module: &module,
                 entry_point: Some(variant.entry_point()),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
@@ -406,10 +504,13 @@ impl GpuContext {
             })
         })?;
         self.inner
+            .pipelines_compiled
+            .fetch_add(1, Ordering::Relaxed);
+        self.inner
             .pipelines
             .lock()
             .map_err(|_| poisoned())?
-            .insert(variant, pipeline.clone());
+            .insert(*features, pipeline.clone());
         Ok(pipeline)
     }
 }

@@ -28,20 +28,29 @@
 //! * [`GpuBvh::trace`] / [`GpuBvh::trace_counted`] / [`GpuBvh::trace_with`]: ray slices in,
 //!   [`TraceOutput`] out (hits, counters, GPU and wall milliseconds);
 //!   [`GpuBvh::record`]: the same into your own encoder and buffers.
+//! * [`PipelineFeatures`]: what one job needs (traversal, query, counters, per-vertex
+//!   attributes), from which its WGSL module, bindings and upload are derived, leaving
+//!   out everything else; the key of the pipeline cache.
 //! * [`wgsl_library`]: the traversal functions for your own WGSL (see [`shaders`]).
 #![warn(missing_docs)]
 
 mod bvh;
 mod context;
 mod error;
+pub mod features;
 pub mod shaders;
 mod trace;
 
 pub use bvh::{GpuBvh, UploadOptions, UploadStats};
 pub use context::{ADAPTER_ENV, AdapterChoice, GpuContext, GpuLimits, pick_adapter};
 pub use error::GpuError;
+pub use features::{
+    BindingInfo, Composition, ENTRY_POINT_FILES, Entries, ModuleSet, PerElement, PipelineFeatures,
+    VertexAttributes,
+};
 pub use shaders::{
-    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE, kernel_source, wgsl_library,
+    BvhStorage, CPU_DRIVER_TRIP_LIMIT, FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE, kernel_source,
+    trip_limit_for, wgsl_library,
 };
 pub use trace::{
     COUNTERS_BYTES, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES, RayBatch, TraceOptions,

@@ -7,18 +7,26 @@
 //! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the BVH's bindings (group 0 by default) and fetch functions ([`BvhStorage`]) | `FlatBvh` |
 //! | `ray.wgsl` | validity, `safe_inverse`, `prepare_ray` | `Ray::is_valid`, `PreparedRay::new` |
 //! | `box.wgsl` | conservative slab test | `intersect::intersect_box` |
-//! | `triangle.wgsl` | watertight triangle test | `intersect::intersect_triangle` |
+//! | `triangle_hit.wgsl` | `TriHit`, what every triangle test returns | `intersect::TriHit` |
+//! | `triangle.wgsl` (or a [`Precision`] variant, [`triangle_wgsl`]) | watertight triangle test | `intersect::intersect_triangle` |
 //! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
 //! | `traverse_full_stack.wgsl` | `trace_full_stack(ray, any_hit)` | `traverse::full_stack` |
 //! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k)` (k = 0: stackless) | `traverse::short_stack` |
-//! | `entry.wgsl` | the batch entry points | `traverse::trace_batch` |
+//! | `bvh_buffers_parents.wgsl` or `bvh_textures_parents.wgsl` | the parent links (binding 2), only for the walks that climb | `FlatBvh::parents` |
+//! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
+//! | `entry.wgsl` | what the entry points share: `rays`, `hits`, the overrides | `traverse::trace_batch` |
+//! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_batch_counted` |
+//! | `entry_{full,short}_stack[_counted].wgsl` | one entry point each | |
 //!
-//! [`wgsl_library`] concatenates everything but `entry.wgsl`, for use from your own
-//! shaders; [`kernel_source`] adds the entry points. The BVH storage is chosen by which
-//! bindings file is composed in. Nothing is copied between variants:
-//! the stackless walk is the short-stack function with `k = 0`, the query and `k` are
-//! pipeline-overridable constants (`ANY_HIT`, `SHORT_STACK_SIZE`), and counters are written
-//! only by the `*_counted` entry points.
+//! [`wgsl_library`] concatenates the traversal library (every traversal, no entry point)
+//! for use from your own shaders; [`kernel_source`] adds every entry point (the
+//! everything-on module); [`KernelVariant::source`] and [`crate::PipelineFeatures`] compose
+//! only what one pipeline needs. The BVH storage is chosen by which bindings file is
+//! composed in. Nothing is copied between variants: the stackless walk is the short-stack
+//! function with `k = 0`, the query and `k` are pipeline-overridable constants (`ANY_HIT`,
+//! `SHORT_STACK_SIZE`), and counters are written only by the `*_counted` entry points.
+
+use bvhtrace_core::Precision;
 
 /// Where the kernels read the BVH from. Both give bit-identical results.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -69,9 +77,10 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ("ray.wgsl", include_str!("../../../shaders/ray.wgsl")),
     ("box.wgsl", include_str!("../../../shaders/box.wgsl")),
     (
-        "triangle.wgsl",
-        include_str!("../../../shaders/triangle.wgsl"),
+        "triangle_hit.wgsl",
+        include_str!("../../../shaders/triangle_hit.wgsl"),
     ),
+    ("triangle.wgsl", TRIANGLE_WGSL),
     (
         "traverse_common.wgsl",
         include_str!("../../../shaders/traverse_common.wgsl"),
@@ -86,12 +95,32 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ),
 ];
 
-/// The entry points (`entry.wgsl`), appended to the library by [`kernel_source`].
+/// What every entry point shares (`entry.wgsl`: the `rays` and `hits` bindings, the
+/// override constants); the entry points themselves are
+/// [`crate::features::ENTRY_POINT_FILES`].
 pub const ENTRY_WGSL: &str = include_str!("../../../shaders/entry.wgsl");
 
 /// Entries of the full-stack kernel's private stack (`FULL_STACK_SIZE` in
 /// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
 pub const FULL_STACK_SIZE: u32 = 64;
+
+/// The trip budget ([`trip_limit_for`]) on CPU drivers: lavapipe ends every loop of an
+/// invocation after 65,535 trips in all, counted per batch of 8 lanes, where an inner loop
+/// counts its longest lane. A ray's trips (node steps, triangle tests, climb steps) are
+/// at most this budget, so a batch counts at most `budget` outer trips plus, for the inner
+/// loops, the sum over its 8 lanes: at most `9 * 7,000 = 63,000`.
+pub const CPU_DRIVER_TRIP_LIMIT: u32 = 7_000;
+
+/// The `TRIP_LIMIT` override for an adapter: [`CPU_DRIVER_TRIP_LIMIT`] on CPU drivers
+/// (lavapipe), unbounded (`u32::MAX`) elsewhere. A ray that spends it comes back as
+/// [`bvhtrace_core::INCOMPLETE`] instead of a silently truncated answer.
+pub fn trip_limit_for(info: &wgpu::AdapterInfo) -> u32 {
+    if info.device_type == wgpu::DeviceType::Cpu {
+        CPU_DRIVER_TRIP_LIMIT
+    } else {
+        u32::MAX
+    }
+}
 
 /// Invocations per workgroup of the entry points (`WORKGROUP_SIZE` in `entry.wgsl`).
 pub const WORKGROUP_SIZE: u32 = 64;
@@ -100,6 +129,29 @@ pub const WORKGROUP_SIZE: u32 = 64;
 pub const BVH_GROUP: u32 = 0;
 /// Group of the ray batch bindings (`rays`, `hits`, `counters`) in [`kernel_source`].
 pub const BATCH_GROUP: u32 = 1;
+
+/// `triangle.wgsl`: the watertight f32 test, [`Precision::WatertightF32`] (the default).
+pub const TRIANGLE_WGSL: &str = include_str!("../../../shaders/triangle.wgsl");
+/// `triangle_moller_trumbore.wgsl`.
+pub const TRIANGLE_MOLLER_TRUMBORE_WGSL: &str =
+    include_str!("../../../shaders/triangle_moller_trumbore.wgsl");
+/// `triangle_f64.wgsl` (needs `wgpu::Features::SHADER_F64`).
+pub const TRIANGLE_F64_WGSL: &str = include_str!("../../../shaders/triangle_f64.wgsl");
+
+/// The triangle module composed for `precision`, as `(file name, source)`: it takes
+/// `triangle.wgsl`'s place in [`SHADER_FILES`] and defines the same
+/// `intersect_triangle(r: PreparedRay, v0, v1, v2) -> TriHit`, so the traversal code is
+/// shared by every precision.
+pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
+    match precision {
+        Precision::WatertightF32 => ("triangle.wgsl", TRIANGLE_WGSL),
+        Precision::MollerTrumboreF32 => (
+            "triangle_moller_trumbore.wgsl",
+            TRIANGLE_MOLLER_TRUMBORE_WGSL,
+        ),
+        Precision::WatertightF64 => ("triangle_f64.wgsl", TRIANGLE_F64_WGSL),
+    }
+}
 
 /// The traversal library without entry points, reading the BVH from `storage` bound at
 /// `@group(bvh_group)`, bindings 0 (nodes), 1 (triangles) and 2 (parents, read only by
@@ -149,39 +201,31 @@ pub const BATCH_GROUP: u32 = 1;
 /// // pass.set_bind_group(0, bvh.bind_group(true), &[]);
 /// ```
 pub fn wgsl_library(storage: BvhStorage, bvh_group: u32) -> String {
-    let mut s = String::with_capacity(24 * 1024);
-    let mut push = |name: &str, src: &str| {
-        s.push_str("// ---- ");
-        s.push_str(name);
-        s.push_str(" ----\n");
-        s.push_str(src);
-        s.push('\n');
-    };
-    let (bindings_name, bindings) = storage.wgsl();
-    for (i, (name, src)) in SHADER_FILES.iter().enumerate() {
-        push(name, src);
-        if i == 0 {
-            if bvh_group == 0 {
-                push(bindings_name, bindings);
-            } else {
-                push(
-                    bindings_name,
-                    &bindings.replace("@group(0)", &format!("@group({bvh_group})")),
-                );
-            }
-        }
-    }
-    s
+    wgsl_library_for(storage, Precision::WatertightF32, bvh_group)
 }
 
-/// The complete kernel module for `storage`: [`wgsl_library`] with the BVH in group
-/// [`BVH_GROUP`], and the entry points of `entry.wgsl` (group [`BATCH_GROUP`]: `rays`,
-/// `hits`, `counters`).
+/// [`wgsl_library`] with the triangle test of `precision` ([`triangle_wgsl`]) in place of
+/// `triangle.wgsl`. [`Precision::WatertightF64`] needs a device with
+/// `wgpu::Features::SHADER_F64` (naga: `Capabilities::FLOAT64`).
+pub fn wgsl_library_for(storage: BvhStorage, precision: Precision, bvh_group: u32) -> String {
+    crate::features::ModuleSet::everything(storage, precision, crate::features::Entries::None)
+        .compose(bvh_group)
+}
+
+/// The everything-on kernel module for `storage`: [`wgsl_library`] with the BVH in group
+/// [`BVH_GROUP`], and every entry point (`entry.wgsl`, `entry_counters.wgsl` and the four
+/// `entry_*.wgsl` files; group [`BATCH_GROUP`]: `rays`, `hits`, `counters`), so any
+/// [`KernelVariant::entry_point`] is in it. The pipelines [`crate::GpuContext`] builds use
+/// the specialised module of their variant instead ([`KernelVariant::source`],
+/// [`crate::PipelineFeatures`]) unless it is set to [`crate::Composition::EverythingOn`].
 pub fn kernel_source(storage: BvhStorage) -> String {
-    let mut s = wgsl_library(storage, BVH_GROUP);
-    s.push_str("// ---- entry.wgsl ----\n");
-    s.push_str(ENTRY_WGSL);
-    s
+    kernel_source_for(storage, Precision::WatertightF32)
+}
+
+/// [`kernel_source`] with the triangle test of `precision` ([`wgsl_library_for`]).
+pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
+    crate::features::ModuleSet::everything(storage, precision, crate::features::Entries::All)
+        .compose(BVH_GROUP)
 }
 
 /// Which entry point and which override values one pipeline uses.
@@ -197,6 +241,8 @@ pub struct KernelVariant {
     pub any_hit: bool,
     /// The `*_counted` entry point.
     pub counters: bool,
+    /// The triangle test composed into the module ([`triangle_wgsl`]).
+    pub precision: Precision,
 }
 
 impl KernelVariant {
@@ -221,7 +267,13 @@ impl KernelVariant {
             k,
             any_hit: query == bvhtrace_core::Query::Any,
             counters,
+            precision: Precision::WatertightF32,
         }
+    }
+
+    /// The same variant with the triangle test of `precision`.
+    pub fn with_precision(self, precision: Precision) -> Self {
+        KernelVariant { precision, ..self }
     }
 
     /// Every variant the tests validate for `storage`: each traversal kind (full stack,
@@ -237,6 +289,7 @@ impl KernelVariant {
                         k: kk,
                         any_hit,
                         counters,
+                        precision: Precision::WatertightF32,
                     });
                 }
             }

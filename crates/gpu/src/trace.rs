@@ -5,7 +5,7 @@ use std::num::NonZeroU64;
 use std::sync::mpsc;
 use std::time::Instant;
 
-use bvhtrace_core::{Counters, Hit, Query, Ray, Traversal};
+use bvhtrace_core::{Counters, Hit, INCOMPLETE, Precision, Query, Ray, Traversal};
 
 use crate::bvh::GpuBvh;
 use crate::context::{GpuContext, GpuLimits};
@@ -47,6 +47,10 @@ pub struct TraceOutput {
     /// Wall time of the whole call: uploading the rays, the dispatches and reading the
     /// results back, milliseconds (pipeline creation excluded).
     pub wall_ms: f64,
+    /// Rays the kernel gave up on when they spent the adapter's loop-trip budget
+    /// ([`GpuContext::trip_limit`](crate::GpuContext::trip_limit)), finished on the CPU
+    /// twin (hits and counters as the kernel would have given them). 0 on ordinary scenes.
+    pub incomplete: u64,
 }
 
 /// The caller's buffers for [`GpuBvh::record`]. Rays are read from offset 0 of `rays`
@@ -119,10 +123,16 @@ pub(crate) struct Scratch {
     capacity: u64,
     rays: wgpu::Buffer,
     hits: wgpu::Buffer,
-    counters: wgpu::Buffer,
     hits_read: wgpu::Buffer,
-    counters_read: wgpu::Buffer,
+    /// Allocated only once a trace asks for counters.
+    counters: Option<CounterBuffers>,
     queries: Option<Queries>,
+}
+
+/// The counters out, and their readback copy.
+struct CounterBuffers {
+    out: wgpu::Buffer,
+    read: wgpu::Buffer,
 }
 
 struct Queries {
@@ -132,7 +142,7 @@ struct Queries {
 }
 
 impl Scratch {
-    fn new(ctx: &GpuContext, capacity: u64) -> Scratch {
+    fn new(ctx: &GpuContext, capacity: u64, with_counters: bool) -> Scratch {
         let device = ctx.device();
         let buf = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -168,21 +178,23 @@ impl Scratch {
                 capacity * HIT_BYTES,
                 U::STORAGE | U::COPY_SRC,
             ),
-            counters: buf(
-                "bvhtrace counters",
-                capacity * COUNTERS_BYTES,
-                U::STORAGE | U::COPY_SRC,
-            ),
             hits_read: buf(
                 "bvhtrace hits read",
                 capacity * HIT_BYTES,
                 U::MAP_READ | U::COPY_DST,
             ),
-            counters_read: buf(
-                "bvhtrace counters read",
-                capacity * COUNTERS_BYTES,
-                U::MAP_READ | U::COPY_DST,
-            ),
+            counters: with_counters.then(|| CounterBuffers {
+                out: buf(
+                    "bvhtrace counters",
+                    capacity * COUNTERS_BYTES,
+                    U::STORAGE | U::COPY_SRC,
+                ),
+                read: buf(
+                    "bvhtrace counters read",
+                    capacity * COUNTERS_BYTES,
+                    U::MAP_READ | U::COPY_DST,
+                ),
+            }),
             queries,
         }
     }
@@ -250,15 +262,41 @@ impl GpuBvh {
     /// Compiles (and caches) the pipeline for these options ahead of the first trace, so
     /// that the first trace's timing is not the compiler's.
     pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        self.prepare_precision(opts, Precision::WatertightF32)
+    }
+
+    /// [`GpuBvh::prepare`] for the kernels with the triangle test of `precision`.
+    pub fn prepare_precision(
+        &self,
+        opts: &TraceOptions,
+        precision: Precision,
+    ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
         self.ctx
-            .pipeline(KernelVariant::new(
-                self.storage(),
-                opts.traversal,
-                opts.query,
-                opts.counters,
-            ))
+            .pipeline(
+                KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
+                    .with_precision(precision),
+            )
             .map(|_| ())
+    }
+
+    /// Device bytes of the buffers [`GpuBvh::trace`] keeps between calls: rays, hits and
+    /// their readback copy, and the counters (with theirs) only once a trace asked for them.
+    pub fn scratch_bytes(&self) -> u64 {
+        self.scratch
+            .lock()
+            .ok()
+            .and_then(|g| {
+                g.as_ref().map(|s| {
+                    s.rays.size()
+                        + s.hits.size()
+                        + s.hits_read.size()
+                        + s.counters
+                            .as_ref()
+                            .map_or(0, |c| c.out.size() + c.read.size())
+                })
+            })
+            .unwrap_or(0)
     }
 
     /// Traces `rays` and returns one hit per ray, with GPU and wall times.
@@ -299,7 +337,21 @@ impl GpuBvh {
     /// reads the hits (and counters) back. Batches larger than one device buffer allows are
     /// traced in several submissions; times are summed.
     pub fn trace_with(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        self.prepare(opts)?;
+        self.trace_with_precision(rays, opts, Precision::WatertightF32)
+    }
+
+    /// [`GpuBvh::trace_with`] with the triangle test of `precision`
+    /// ([`bvhtrace_core::Precision`]; the results equal
+    /// [`bvhtrace_core::trace_batch_precision`]'s bit for bit). f64 needs a device with
+    /// `SHADER_F64` ([`GpuContext::supports_precision`]); otherwise this returns
+    /// [`GpuError::PrecisionUnsupported`].
+    pub fn trace_with_precision(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+        precision: Precision,
+    ) -> Result<TraceOutput, GpuError> {
+        self.prepare_precision(opts, precision)?;
         let start = Instant::now();
         let n = rays.len() as u64;
         let mut out = TraceOutput {
@@ -307,6 +359,7 @@ impl GpuBvh {
             counters: opts.counters.then(|| Vec::with_capacity(rays.len())),
             gpu_ms: self.ctx.has_timestamps().then_some(0.0),
             wall_ms: 0.0,
+            incomplete: 0,
         };
         if n == 0 {
             return Ok(out);
@@ -321,14 +374,25 @@ impl GpuBvh {
             during: "locking the scratch buffers",
             message: "a thread panicked while holding them".into(),
         })?;
-        if guard.as_ref().is_none_or(|s| s.capacity < capacity) {
+        // Counter buffers only once counters are asked for; kept from then on.
+        let had_counters = guard.as_ref().is_some_and(|s| s.counters.is_some());
+        if guard
+            .as_ref()
+            .is_none_or(|s| s.capacity < capacity || (opts.counters && s.counters.is_none()))
+        {
+            let capacity = capacity.max(guard.as_ref().map_or(0, |s| s.capacity));
             *guard = None; // free the old buffers first
             *guard = Some(self.ctx.scoped("allocating ray buffers", || {
-                Scratch::new(&self.ctx, capacity)
+                Scratch::new(&self.ctx, capacity, opts.counters || had_counters)
             })?);
         }
         let Some(s) = guard.as_ref() else {
             unreachable!("scratch was just created")
+        };
+        let counter_buffers = if opts.counters {
+            s.counters.as_ref()
+        } else {
+            None
         };
         let device = self.ctx.device();
         let queue = self.ctx.queue();
@@ -352,26 +416,21 @@ impl GpuBvh {
                             beginning_of_pass_write_index: Some(0),
                             end_of_pass_write_index: Some(1),
                         });
-                    self.record(
+                    self.record_precision(
                         &mut enc,
                         &RayBatch {
                             rays: &s.rays,
                             hits: &s.hits,
-                            counters: opts.counters.then_some(&s.counters),
+                            counters: counter_buffers.map(|c| &c.out),
                             ray_count: count,
                         },
                         opts,
+                        precision,
                         tw,
                     )?;
                     enc.copy_buffer_to_buffer(&s.hits, 0, &s.hits_read, 0, hit_bytes);
-                    if opts.counters {
-                        enc.copy_buffer_to_buffer(
-                            &s.counters,
-                            0,
-                            &s.counters_read,
-                            0,
-                            counter_bytes,
-                        );
+                    if let Some(c) = counter_buffers {
+                        enc.copy_buffer_to_buffer(&c.out, 0, &c.read, 0, counter_bytes);
                     }
                     if let Some(q) = &s.queries {
                         enc.resolve_query_set(&q.set, 0..2, &q.resolve, 0);
@@ -383,8 +442,8 @@ impl GpuBvh {
 
             let (tx, rx) = mpsc::channel();
             let mut maps = vec![(&s.hits_read, hit_bytes)];
-            if opts.counters {
-                maps.push((&s.counters_read, counter_bytes));
+            if let Some(c) = counter_buffers {
+                maps.push((&c.read, counter_bytes));
             }
             if let Some(q) = &s.queries {
                 maps.push((&q.read, 16));
@@ -407,8 +466,8 @@ impl GpuBvh {
             let mapped = results.into_iter().collect::<Result<Vec<()>, _>>();
             let read = mapped.map_err(GpuError::from).and_then(|_| {
                 read_mapped(&s.hits_read, hit_bytes, &mut out.hits)?;
-                if let Some(c) = out.counters.as_mut() {
-                    read_mapped(&s.counters_read, counter_bytes, c)?;
+                if let (Some(c), Some(b)) = (out.counters.as_mut(), counter_buffers) {
+                    read_mapped(&b.read, counter_bytes, c)?;
                 }
                 if let Some(q) = &s.queries {
                     let mut ts: Vec<u64> = Vec::with_capacity(2);
@@ -425,8 +484,40 @@ impl GpuBvh {
             }
             read?;
         }
+        self.finish_incomplete(rays, opts, precision, &mut out);
         out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(out)
+    }
+
+    /// Replaces every [`INCOMPLETE`] hit by the CPU twin's answer for that ray (same
+    /// traversal, query and counters), and counts them in `out.incomplete`.
+    fn finish_incomplete(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+        precision: Precision,
+        out: &mut TraceOutput,
+    ) {
+        let Some(twin) = self.twin.as_deref() else {
+            return;
+        };
+        for (i, h) in out.hits.iter_mut().enumerate() {
+            if h.prim != INCOMPLETE {
+                continue;
+            }
+            let (hit, c) = bvhtrace_core::trace_ray_precision(
+                twin,
+                &rays[i],
+                opts.traversal,
+                opts.query,
+                precision,
+            );
+            *h = hit;
+            if let Some(cs) = out.counters.as_mut() {
+                cs[i] = c;
+            }
+            out.incomplete += 1;
+        }
     }
 
     /// Records the traversal of `batch` into `encoder`, as one compute pass with one
@@ -440,6 +531,24 @@ impl GpuBvh {
         encoder: &mut wgpu::CommandEncoder,
         batch: &RayBatch<'_>,
         opts: &TraceOptions,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) -> Result<(), GpuError> {
+        self.record_precision(
+            encoder,
+            batch,
+            opts,
+            Precision::WatertightF32,
+            timestamp_writes,
+        )
+    }
+
+    /// [`GpuBvh::record`] with the triangle test of `precision`.
+    pub fn record_precision(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &RayBatch<'_>,
+        opts: &TraceOptions,
+        precision: Precision,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
@@ -456,7 +565,8 @@ impl GpuBvh {
         } else {
             None
         };
-        let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters);
+        let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
+            .with_precision(precision);
         let pipeline = self.ctx.pipeline(variant)?;
         let group0 =
             self.bind_group(variant.needs_parents())

@@ -4,7 +4,7 @@
 
 use std::mem::{offset_of, size_of};
 
-use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE};
+use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
 use bvhtrace_gpu::shaders::{KernelVariant, SHADER_FILES};
@@ -152,6 +152,14 @@ fn constants_match_rust() {
     match constant(&module, "BOX_TFAR_SCALE") {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_TFAR_SCALE.to_bits(), "BOX_TFAR_SCALE"),
         l => panic!("BOX_TFAR_SCALE: {l:?}"),
+    }
+    match constant(&module, "BOX_TFAR_SCALE_NEG") {
+        Literal::F32(v) => assert_eq!(
+            v.to_bits(),
+            BOX_TFAR_SCALE_NEG.to_bits(),
+            "BOX_TFAR_SCALE_NEG"
+        ),
+        l => panic!("BOX_TFAR_SCALE_NEG: {l:?}"),
     }
     match constant(&module, "BOX_CULL_SLACK") {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_CULL_SLACK.to_bits(), "BOX_CULL_SLACK"),
