@@ -158,7 +158,11 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
     ];
     let mut failures = Vec::new();
     let mut checked = 0;
-    for (name, bvh) in scenes() {
+    // The built-in scenes always; the shared meshes when `../shared/scenes` is there.
+    let scenes = scenes();
+    assert!(scenes.len() >= 3, "only {} scenes loaded", scenes.len());
+    let expected = scenes.len() * traversals.len() * 2;
+    for (name, bvh) in scenes {
         let rays = rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
         let wg = GpuBvh::upload(
@@ -216,8 +220,8 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
         }
     }
     assert!(
-        checked >= 4 * 6,
-        "too few configurations checked: {checked}"
+        checked == expected,
+        "{checked} of {expected} configurations checked"
     );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert_eq!(ctx.validation_errors(), 0, "validation errors");
