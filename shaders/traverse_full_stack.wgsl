@@ -24,20 +24,25 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
         return finish(best, c);
     }
     var node = 0u;
+    // While-while (Aila and Laine 2009): the inner loop walks interior nodes until this
+    // ray stands on a leaf (or is done); the leaf is tested after it. On SIMD hardware the
+    // lanes then run the box tests together and the triangle tests together, instead of
+    // both paths in every trip whenever one lane is on a leaf. Same visit order and counts.
     loop {
-        if (!take_trip()) {
-            return incomplete(best, c);
-        }
-        let links = load_node_links(node);
-        let count = links.y >> 2u;
-        if (count != 0u) {
-            if (visit_leaf(r, links.x, count, &best, &c, any_hit)) {
-                break;
-            }
-            if (trips_left == 0u) {
+        var on_leaf = false;
+        var count = 0u;
+        var first = 0u;
+        loop {
+            if (!take_trip()) {
                 return incomplete(best, c);
             }
-        } else {
+            let links = load_node_links(node);
+            count = links.y >> 2u;
+            if (count != 0u) {
+                first = links.x;
+                on_leaf = true;
+                break;
+            }
             let l = node + 1u;
             let rt = links.x;
             c.nodes += 2u;
@@ -67,6 +72,20 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
                 node = rt;
                 continue;
             }
+            if (sp == 0u) {
+                break;
+            }
+            sp -= 1u;
+            node = stack[sp];
+        }
+        if (!on_leaf) {
+            break;
+        }
+        if (visit_leaf(r, first, count, &best, &c, any_hit)) {
+            break;
+        }
+        if (trips_left == 0u) {
+            return incomplete(best, c);
         }
         if (sp == 0u) {
             break;
