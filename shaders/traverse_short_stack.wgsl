@@ -64,43 +64,54 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
     // `visit`: `node`'s box was hit (at its parent, at the root or by the climb), visit it.
     // Otherwise `node`'s subtree is done.
     var visit = true;
+    // While-while, as in the full stack: the inner loop walks interior nodes until the ray
+    // stands on a leaf or its subtree is done; the leaf is tested after it, so SIMD lanes
+    // run box tests together and triangle tests together. Same order, counts and trips.
     loop {
-        if (!take_trip()) {
-            return incomplete(best, c);
-        }
-        if (visit) {
+        var leaf_first = 0u;
+        var leaf_count = 0u;
+        loop {
+            if (!take_trip()) {
+                return incomplete(best, c);
+            }
+            if (!visit) {
+                break;
+            }
             let links = load_node_links(node);
-            let leaf_count = links.y >> 2u;
+            leaf_count = links.y >> 2u;
             if (leaf_count != 0u) {
-                if (visit_leaf(r, links.x, leaf_count, &best, &c, any_hit)) {
-                    break;
+                leaf_first = links.x;
+                break;
+            }
+            let nf = near_far(r, node, links);
+            c.nodes += 2u;
+            let near_node = load_node(nf.x);
+            let far_node = load_node(nf.y);
+            let hit_near = box_hit(intersect_box(r, near_node.min, near_node.max, best.t));
+            let hit_far = box_hit(intersect_box(r, far_node.min, far_node.max, best.t));
+            if (!(hit_near || hit_far)) {
+                break;
+            }
+            let both = hit_near && hit_far;
+            trail = (trail << 1u) | select(0u, 1u, both);
+            depth += 1u;
+            if (both && k > 0u) {
+                if (count == k) {
+                    overflow = true; // the oldest entry is overwritten
+                } else {
+                    count += 1u;
                 }
-                if (trips_left == 0u) {
-                    return incomplete(best, c);
-                }
-            } else {
-                let nf = near_far(r, node, links);
-                c.nodes += 2u;
-                let near_node = load_node(nf.x);
-                let far_node = load_node(nf.y);
-                let hit_near = box_hit(intersect_box(r, near_node.min, near_node.max, best.t));
-                let hit_far = box_hit(intersect_box(r, far_node.min, far_node.max, best.t));
-                if (hit_near || hit_far) {
-                    let both = hit_near && hit_far;
-                    trail = (trail << 1u) | select(0u, 1u, both);
-                    depth += 1u;
-                    if (both && k > 0u) {
-                        if (count == k) {
-                            overflow = true; // the oldest entry is overwritten
-                        } else {
-                            count += 1u;
-                        }
-                        ring[top] = nf.y;
-                        top = select(top + 1u, 0u, top + 1u == k);
-                    }
-                    node = select(nf.y, nf.x, hit_near);
-                    continue;
-                }
+                ring[top] = nf.y;
+                top = select(top + 1u, 0u, top + 1u == k);
+            }
+            node = select(nf.y, nf.x, hit_near);
+        }
+        if (leaf_count != 0u) {
+            if (visit_leaf(r, leaf_first, leaf_count, &best, &c, any_hit)) {
+                break;
+            }
+            if (trips_left == 0u) {
+                return incomplete(best, c);
             }
         }
         // The subtree at `node` is done: take the next pending node.
