@@ -55,7 +55,7 @@ pub fn trace(
     Ok(Traced {
         hits: out.hits,
         counters: out.counters,
-        wall_ms: out.wall.as_secs_f64() * 1e3,
-        gpu_ms: out.gpu_ns.map(|ns| ns as f64 * 1e-6),
+        wall_ms: out.wall_ms,
+        gpu_ms: out.gpu_ms,
     })
 }

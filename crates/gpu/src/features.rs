@@ -412,11 +412,7 @@ impl PipelineFeatures {
 
     /// The traversal the variant walks.
     pub fn traversal(&self) -> Traversal {
-        match (self.variant.short_stack, self.variant.k) {
-            (false, _) => Traversal::FullStack,
-            (true, 0) => Traversal::Stackless,
-            (true, k) => Traversal::ShortStack(k),
-        }
+        self.variant.traversal()
     }
 
     /// The upload these features read: the parent links only when the traversal climbs.

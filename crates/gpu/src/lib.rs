@@ -54,7 +54,7 @@ pub use shaders::{
 };
 pub use trace::{
     COUNTERS_BYTES, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES, RayBatch, TraceOptions,
-    TraceOutput, plan_dispatches, rays_per_dispatch,
+    TraceOutput, finish_incomplete, plan_dispatches, plan_submissions, rays_per_dispatch,
 };
 
 /// Re-exported so users need not depend on the same wgpu version by hand.

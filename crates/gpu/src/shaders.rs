@@ -271,6 +271,25 @@ impl KernelVariant {
         }
     }
 
+    /// The traversal this variant walks (the inverse of [`KernelVariant::new`]).
+    pub fn traversal(&self) -> bvhtrace_core::Traversal {
+        use bvhtrace_core::Traversal;
+        match (self.short_stack, self.k) {
+            (false, _) => Traversal::FullStack,
+            (true, 0) => Traversal::Stackless,
+            (true, k) => Traversal::ShortStack(k),
+        }
+    }
+
+    /// The query this variant answers.
+    pub fn query(&self) -> bvhtrace_core::Query {
+        if self.any_hit {
+            bvhtrace_core::Query::Any
+        } else {
+            bvhtrace_core::Query::Closest
+        }
+    }
+
     /// The same variant with the triangle test of `precision`.
     pub fn with_precision(self, precision: Precision) -> Self {
         KernelVariant { precision, ..self }

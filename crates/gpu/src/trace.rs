@@ -5,7 +5,7 @@ use std::num::NonZeroU64;
 use std::sync::mpsc;
 use std::time::Instant;
 
-use bvhtrace_core::{Counters, Hit, INCOMPLETE, Precision, Query, Ray, Traversal};
+use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Precision, Query, Ray, Traversal};
 
 use crate::bvh::GpuBvh;
 use crate::context::{GpuContext, GpuLimits};
@@ -53,6 +53,32 @@ pub struct TraceOutput {
     pub incomplete: u64,
 }
 
+/// Replaces every [`INCOMPLETE`] hit in `out` by the CPU twin's answer for that ray on
+/// `twin` (same traversal, query and precision; counters too when `out` has them) and
+/// counts them in `out.incomplete`: what [`GpuBvh::trace`] does after the kernel, and any
+/// other backend running these kernels should do too.
+pub fn finish_incomplete(
+    twin: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+    precision: Precision,
+    out: &mut TraceOutput,
+) {
+    for (i, h) in out.hits.iter_mut().enumerate() {
+        if h.prim != INCOMPLETE {
+            continue;
+        }
+        let (hit, c) =
+            bvhtrace_core::trace_ray_precision(twin, &rays[i], traversal, query, precision);
+        *h = hit;
+        if let Some(cs) = out.counters.as_mut() {
+            cs[i] = c;
+        }
+        out.incomplete += 1;
+    }
+}
+
 /// The caller's buffers for [`GpuBvh::record`]. Rays are read from offset 0 of `rays`
 /// (32 bytes each, the layout of [`Ray`]); hits are written from offset 0 of `hits`
 /// (16 bytes each) and counters from offset 0 of `counters` (8 bytes each). Each buffer
@@ -95,6 +121,17 @@ pub fn rays_per_dispatch(limits: &GpuLimits) -> u64 {
     let by_groups = dim * dim * u64::from(WORKGROUP_SIZE);
     let max = MAX_RAYS_PER_DISPATCH.min(by_binding).min(by_groups);
     (max / step * step).max(step)
+}
+
+/// How a batch of `ray_count` rays is submitted: `(rays per submission, scratch capacity
+/// in rays)`. A submission holds as many whole dispatches as one device buffer allows (at
+/// least one); the scratch buffers hold one submission, and at least a workgroup.
+pub fn plan_submissions(ray_count: u64, limits: &GpuLimits) -> (u64, u64) {
+    let chunk = rays_per_dispatch(limits);
+    let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
+    let per_submit = by_buffer.max(chunk);
+    let capacity = ray_count.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+    (per_submit, capacity)
 }
 
 /// Splits a batch of `ray_count` rays into dispatches (see [`rays_per_dispatch`]).
@@ -364,11 +401,7 @@ impl GpuBvh {
         if n == 0 {
             return Ok(out);
         }
-        let limits = self.ctx.limits();
-        let chunk = rays_per_dispatch(limits);
-        let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
-        let per_submit = by_buffer.max(chunk);
-        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+        let (per_submit, capacity) = plan_submissions(n, self.ctx.limits());
 
         let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
             during: "locking the scratch buffers",
@@ -484,40 +517,11 @@ impl GpuBvh {
             }
             read?;
         }
-        self.finish_incomplete(rays, opts, precision, &mut out);
+        if let Some(twin) = self.twin.as_deref() {
+            finish_incomplete(twin, rays, opts.traversal, opts.query, precision, &mut out);
+        }
         out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(out)
-    }
-
-    /// Replaces every [`INCOMPLETE`] hit by the CPU twin's answer for that ray (same
-    /// traversal, query and counters), and counts them in `out.incomplete`.
-    fn finish_incomplete(
-        &self,
-        rays: &[Ray],
-        opts: &TraceOptions,
-        precision: Precision,
-        out: &mut TraceOutput,
-    ) {
-        let Some(twin) = self.twin.as_deref() else {
-            return;
-        };
-        for (i, h) in out.hits.iter_mut().enumerate() {
-            if h.prim != INCOMPLETE {
-                continue;
-            }
-            let (hit, c) = bvhtrace_core::trace_ray_precision(
-                twin,
-                &rays[i],
-                opts.traversal,
-                opts.query,
-                precision,
-            );
-            *h = hit;
-            if let Some(cs) = out.counters.as_mut() {
-                cs[i] = c;
-            }
-            out.incomplete += 1;
-        }
     }
 
     /// Records the traversal of `batch` into `encoder`, as one compute pass with one

@@ -106,11 +106,7 @@ fn main() -> Result<(), Box<dyn Error>> {
             let mut hits = vec![Vec::new(); 3];
             for i in 0..=runs {
                 let a = ash_bvh.trace(&rays, traversal, Query::Closest, false)?;
-                let (g, t, hh) = (
-                    a.gpu_ns.map_or(f64::NAN, |n| n as f64 * 1e-6),
-                    a.wall.as_secs_f64() * 1e3,
-                    a.hits,
-                );
+                let (g, t, hh) = (a.gpu_ms.unwrap_or(f64::NAN), a.wall_ms, a.hits);
                 let mut results = vec![(g, t, hh)];
                 for g in [&wgpu_buffers, &wgpu_textures] {
                     let out = g.trace_with(&rays, &opts)?;

@@ -1,14 +1,14 @@
 //! The BVH in storage buffers and the ray-batch API.
 
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use ash::vk;
-use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Query, Ray, Traversal};
+use bvhtrace_core::{FlatBvh, Query, Ray, Traversal};
 use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant};
 use bvhtrace_gpu::{
-    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, WORKGROUP_SIZE, plan_dispatches,
-    rays_per_dispatch,
+    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, TraceOutput, finish_incomplete,
+    plan_dispatches, plan_submissions,
 };
 
 use crate::context::{Buffer, VkContext};
@@ -25,24 +25,6 @@ pub struct VkUploadStats {
     pub parents_bytes: u64,
     /// Wall time of the upload (staging copy and transfer), milliseconds.
     pub upload_ms: f64,
-}
-
-/// The result of [`VkBvh::trace`].
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct VkTraceOutput {
-    /// One hit per ray, in ray order.
-    pub hits: Vec<Hit>,
-    /// One entry per ray when counters were asked for.
-    pub counters: Option<Vec<Counters>>,
-    /// Time between timestamps written before the first and after the last dispatch,
-    /// nanoseconds (summed over submissions); `None` without timestamp support.
-    pub gpu_ns: Option<u64>,
-    /// Wall time of the call: writing the rays, recording, submitting, waiting and reading
-    /// back (pipeline creation excluded, as in the wgpu path).
-    pub wall: Duration,
-    /// Rays that ran out of the kernel's trip budget (`TRIP_LIMIT`, bounded on CPU drivers)
-    /// and were answered by the CPU twin instead, as the wgpu path does.
-    pub incomplete: u64,
 }
 
 /// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
@@ -372,7 +354,7 @@ impl VkBvh {
         traversal: Traversal,
         query: Query,
         counters: bool,
-    ) -> Result<VkTraceOutput, VkError> {
+    ) -> Result<TraceOutput, VkError> {
         self.trace_variant(
             rays,
             KernelVariant::new(BvhStorage::Buffers, traversal, query, counters),
@@ -385,18 +367,18 @@ impl VkBvh {
         &self,
         rays: &[Ray],
         variant: KernelVariant,
-    ) -> Result<VkTraceOutput, VkError> {
+    ) -> Result<TraceOutput, VkError> {
         self.prepare_variant(variant)?;
         let pipeline = self.ctx.pipeline(variant)?;
         let counters = variant.counters;
         let start = Instant::now();
         let inner = &self.ctx.inner;
         let d = &inner.device;
-        let mut out = VkTraceOutput {
+        let mut out = TraceOutput {
             hits: Vec::with_capacity(rays.len()),
             counters: counters.then(|| Vec::with_capacity(rays.len())),
-            gpu_ns: inner.timestamp_period_ns.map(|_| 0),
-            wall: Duration::ZERO,
+            gpu_ms: inner.timestamp_period_ns.map(|_| 0.0),
+            wall_ms: 0.0,
             incomplete: 0,
         };
         let n = rays.len() as u64;
@@ -404,10 +386,7 @@ impl VkBvh {
             return Ok(out);
         }
         let limits = self.ctx.limits();
-        let chunk = rays_per_dispatch(limits);
-        let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
-        let per_submit = by_buffer.max(chunk);
-        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+        let (per_submit, capacity) = plan_submissions(n, limits);
 
         let mut guard = self
             .scratch
@@ -521,7 +500,7 @@ impl VkBvh {
                     s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
                 }
                 if let (Some(period), Some(total)) =
-                    (inner.timestamp_period_ns, out.gpu_ns.as_mut())
+                    (inner.timestamp_period_ns, out.gpu_ms.as_mut())
                 {
                     let mut ts = [0u64; 2];
                     // SAFETY: both queries were written by the submission just waited for.
@@ -537,7 +516,7 @@ impl VkBvh {
                     let ticks = (ts[1] & inner.timestamp_mask)
                         .wrapping_sub(ts[0] & inner.timestamp_mask)
                         & inner.timestamp_mask;
-                    *total += (ticks as f64 * period).round() as u64;
+                    *total += ticks as f64 * period * 1e-6;
                 }
                 Ok(())
             })();
@@ -547,43 +526,17 @@ impl VkBvh {
         }
         drop(sub);
         drop(guard);
-        self.finish_incomplete(rays, variant, &mut out);
-        out.wall = start.elapsed();
-        Ok(out)
-    }
-
-    /// Replaces every [`INCOMPLETE`] hit by the CPU twin's answer for that ray (same
-    /// traversal, query, precision and counters), counting them in `out.incomplete`.
-    fn finish_incomplete(&self, rays: &[Ray], variant: KernelVariant, out: &mut VkTraceOutput) {
-        let Some(twin) = self.twin.as_deref() else {
-            return;
-        };
-        let traversal = match (variant.short_stack, variant.k) {
-            (false, _) => Traversal::FullStack,
-            (true, 0) => Traversal::Stackless,
-            (true, k) => Traversal::ShortStack(k),
-        };
-        let query = if variant.any_hit {
-            Query::Any
-        } else {
-            Query::Closest
-        };
-        for (i, h) in out.hits.iter_mut().enumerate() {
-            if h.prim != INCOMPLETE {
-                continue;
-            }
-            let (hit, c) = bvhtrace_core::traverse::trace_ray_precision(
+        if let Some(twin) = self.twin.as_deref() {
+            finish_incomplete(
                 twin,
-                &rays[i],
-                traversal,
-                query,
+                rays,
+                variant.traversal(),
+                variant.query(),
                 variant.precision,
+                &mut out,
             );
-            *h = hit;
-            if let Some(cs) = out.counters.as_mut() {
-                cs[i] = c;
-            }
-            out.incomplete += 1;
         }
+        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(out)
     }
 }

@@ -20,7 +20,7 @@
 //! let gpu = VkBvh::upload(&ctx, &bvh)?;
 //! let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
 //! let out = gpu.trace(&rays, Traversal::Stackless, Query::Closest, false)?;
-//! println!("{:?}: {:?} ns on the device, {:?} wall", out.hits[0], out.gpu_ns, out.wall);
+//! println!("{:?}: {:?} ms on the device, {} ms wall", out.hits[0], out.gpu_ms, out.wall_ms);
 //! # Ok(()) }
 //! ```
 //!
@@ -37,7 +37,9 @@ mod context;
 mod error;
 
 pub use ash;
-pub use bvh::{VkBvh, VkTraceOutput, VkUploadStats};
+pub use bvh::{VkBvh, VkUploadStats};
+/// What [`VkBvh::trace`] returns: the wgpu path's type, so both backends report alike.
+pub use bvhtrace_gpu::TraceOutput;
 pub use bvhtrace_gpu::shaders::KernelVariant;
 pub use context::{VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, process_validation_errors};
 pub use error::VkError;
