@@ -273,37 +273,3 @@ pub fn intersect_triangle(r: &PreparedRay, v0: Vec3, v1: Vec3, v2: Vec3) -> Opti
         v: w * inv_det,
     })
 }
-
-/// The classic Moller-Trumbore test (no epsilon on the determinant other than exact zero),
-/// kept to measure what watertightness buys. Not used by the traversals by default.
-#[inline(always)]
-pub fn intersect_triangle_moller_trumbore(
-    r: &PreparedRay,
-    v0: Vec3,
-    v1: Vec3,
-    v2: Vec3,
-) -> Option<TriHit> {
-    let e1 = v1 - v0;
-    let e2 = v2 - v0;
-    let p = r.dir.cross(e2);
-    let det = e1.dot(p);
-    if det == 0.0 {
-        return None;
-    }
-    let inv = 1.0 / det;
-    let s = r.org - v0;
-    let u = s.dot(p) * inv;
-    if !(0.0..=1.0).contains(&u) {
-        return None;
-    }
-    let q = s.cross(e1);
-    let v = r.dir.dot(q) * inv;
-    if v < 0.0 || u + v > 1.0 {
-        return None;
-    }
-    let t = e2.dot(q) * inv;
-    if !(t >= r.t_min) {
-        return None;
-    }
-    Some(TriHit { t, u, v })
-}
