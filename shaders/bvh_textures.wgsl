@@ -1,10 +1,12 @@
-// bvh_textures.wgsl: the uploaded BVH as `Rgba32Uint`/`R32Uint` textures
-// (`BvhStorage::Textures`), and the same fetch functions as `bvh_buffers.wgsl`.
+// bvh_textures.wgsl: the uploaded BVH as read-only `Rgba32Uint`/`R32Uint` storage
+// textures (`BvhStorage::Textures`), and the same fetch functions as `bvh_buffers.wgsl`.
 //
 // Why: on lavapipe (and other CPU Vulkan drivers) a storage-buffer load with a per-lane
 // index is a scalar loop over the 8 lanes with a bounds check per component, while a
-// texel fetch is a vector gather: traversal is 2-2.5x faster (crates/gpu/README.md). The
-// values are the same bits, so the results are identical.
+// texel load is one address computation and a vector gather. Storage textures rather than
+// sampled ones: a sampled texel fetch goes through per-lane mip-level lookups (about 140
+// instructions a fetch on lavapipe), and was 1.35-1.5x slower on the whole walk
+// (crates/gpu/README.md). The values are the same bits, so the results are identical.
 //
 // Texel `t` of each texture is at `(t % 8192, t / 8192)` (`bvhtrace_gpu::TEXEL_ROW`).
 // * `bvh_node_texels`: two texels per node, reordered so the links share a texel:
@@ -17,8 +19,8 @@
 const BVH_TEXEL_ROW_LOG2: u32 = 13u;
 const BVH_TEXEL_ROW_MASK: u32 = 8191u;
 
-@group(0) @binding(0) var bvh_node_texels: texture_2d<u32>;
-@group(0) @binding(1) var bvh_triangle_texels: texture_2d<u32>;
+@group(0) @binding(0) var bvh_node_texels: texture_storage_2d<rgba32uint, read>;
+@group(0) @binding(1) var bvh_triangle_texels: texture_storage_2d<rgba32uint, read>;
 
 fn texel_coord(t: u32) -> vec2<u32> {
     return vec2<u32>(t & BVH_TEXEL_ROW_MASK, t >> BVH_TEXEL_ROW_LOG2);
@@ -27,21 +29,21 @@ fn texel_coord(t: u32) -> vec2<u32> {
 fn load_node(i: u32) -> Node {
     // 2i is even and rows are even, so both texels are on one row.
     let c = texel_coord(2u * i);
-    let a = textureLoad(bvh_node_texels, c, 0);
-    let b = textureLoad(bvh_node_texels, c + vec2<u32>(1u, 0u), 0);
+    let a = textureLoad(bvh_node_texels, c);
+    let b = textureLoad(bvh_node_texels, c + vec2<u32>(1u, 0u));
     return Node(bitcast<vec3<f32>>(a.xyz), b.z, bitcast<vec3<f32>>(vec3<u32>(a.w, b.xy)), b.w);
 }
 
 // `vec2(right_or_first, meta_bits)` of node `i`: one texel.
 fn load_node_links(i: u32) -> vec2<u32> {
-    return textureLoad(bvh_node_texels, texel_coord(2u * i + 1u), 0).zw;
+    return textureLoad(bvh_node_texels, texel_coord(2u * i + 1u)).zw;
 }
 
 fn load_triangle(i: u32) -> Triangle {
     let t = 3u * i;
-    let a = textureLoad(bvh_triangle_texels, texel_coord(t), 0);
-    let b = textureLoad(bvh_triangle_texels, texel_coord(t + 1u), 0);
-    let c = textureLoad(bvh_triangle_texels, texel_coord(t + 2u), 0);
+    let a = textureLoad(bvh_triangle_texels, texel_coord(t));
+    let b = textureLoad(bvh_triangle_texels, texel_coord(t + 1u));
+    let c = textureLoad(bvh_triangle_texels, texel_coord(t + 2u));
     return Triangle(
         bitcast<vec3<f32>>(a.xyz),
         a.w,

@@ -2,8 +2,8 @@
 // `R32Uint` texel per node (texel `i` at `texel_coord(i)` of `bvh_textures.wgsl`).
 // Composed in only when the traversal climbs the tree (stackless, short stack).
 
-@group(0) @binding(2) var bvh_parent_texels: texture_2d<u32>;
+@group(0) @binding(2) var bvh_parent_texels: texture_storage_2d<r32uint, read>;
 
 fn load_parent(i: u32) -> u32 {
-    return textureLoad(bvh_parent_texels, texel_coord(i), 0).x;
+    return textureLoad(bvh_parent_texels, texel_coord(i)).x;
 }

@@ -4,10 +4,11 @@
 fn trace_full_stack_main(
     @builtin(global_invocation_id) gid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
 ) {
     let i = ray_index(gid, groups);
     if (i >= arrayLength(&rays)) {
         return;
     }
-    hits[i] = trace_full_stack(rays[i], ANY_HIT).hit;
+    hits[i] = trace_full_stack(rays[i], ANY_HIT, lid).hit;
 }

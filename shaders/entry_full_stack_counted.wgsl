@@ -5,10 +5,11 @@
 fn trace_full_stack_counted(
     @builtin(global_invocation_id) gid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
 ) {
     let i = ray_index(gid, groups);
     if (i >= arrayLength(&rays)) {
         return;
     }
-    store_counted(i, trace_full_stack(rays[i], ANY_HIT));
+    store_counted(i, trace_full_stack(rays[i], ANY_HIT, lid));
 }

@@ -4,18 +4,18 @@
 // entry distance is visited first and the other pushed. The stack holds at most `depth`
 // entries (one per level of the current path), so `GpuBvh::upload` refuses trees deeper
 // than `FULL_STACK_SIZE` for this traversal: it never overflows. Every loop trip takes one
-// of the ray's `TRIP_LIMIT` trips (`traverse_common.wgsl`).
+// of the ray's `TRIP_LIMIT` trips (`traverse_common.wgsl`). The stack is `lane`'s in
+// `lane_stacks` (`traverse_stack.wgsl`).
 
-const FULL_STACK_SIZE: u32 = 64u;
+const FULL_STACK_SIZE: u32 = STACK_ENTRIES;
 
-fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
+fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
     if (!ray_is_traced(ray)) {
         return untraced_result(ray);
     }
     let r = prepare_ray(ray);
     var best = start_best(ray);
     var c = Counters(0u, 0u);
-    var stack: array<u32, FULL_STACK_SIZE>;
     var sp = 0u;
 
     c.nodes += 1u;
@@ -59,7 +59,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
                     near = rt;
                     far = l;
                 }
-                stack[sp] = far;
+                lane_stacks[stack_slot(lane, sp)] = far;
                 sp += 1u;
                 node = near;
                 continue;
@@ -76,7 +76,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
                 break;
             }
             sp -= 1u;
-            node = stack[sp];
+            node = lane_stacks[stack_slot(lane, sp)];
         }
         if (!on_leaf) {
             break;
@@ -91,7 +91,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult {
             break;
         }
         sp -= 1u;
-        node = stack[sp];
+        node = lane_stacks[stack_slot(lane, sp)];
     }
     return finish(best, c);
 }

@@ -1,6 +1,7 @@
 // traverse_short_stack.wgsl: twin of `bvhtrace_core::traverse::short_stack`.
 //
-// A ring buffer of `k` far-child entries (Hapala et al. 2011 with a short stack). As in
+// A ring buffer of `k` far-child entries (`lane`'s first `k` in `lane_stacks`,
+// `traverse_stack.wgsl`) (Hapala et al. 2011 with a short stack). As in
 // the full stack, an interior node's two children are tested at the node, but taken in a
 // deterministic near/far order (the sign of the ray's direction along the split axis): the
 // near child when it is hit, the far one pushed when both are (overwriting the oldest entry
@@ -41,14 +42,13 @@ fn trail_up(trail: u32, depth: u32) -> u32 {
     return (trail >> 1u) | select(0u, 0x80000000u, depth >= 32u);
 }
 
-fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
+fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult {
     if (!ray_is_traced(ray)) {
         return untraced_result(ray);
     }
     let r = prepare_ray(ray);
     var best = start_best(ray);
     var c = Counters(0u, 0u);
-    var ring: array<u32, MAX_SHORT_STACK>;
     var top = 0u; // next write slot
     var count = 0u; // live entries
     var overflow = false;
@@ -101,7 +101,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
                 } else {
                     count += 1u;
                 }
-                ring[top] = nf.y;
+                lane_stacks[stack_slot(lane, top)] = nf.y;
                 top = select(top + 1u, 0u, top + 1u == k);
             }
             node = select(nf.y, nf.x, hit_near);
@@ -118,7 +118,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult {
         if (count > 0u) {
             top = select(top - 1u, k - 1u, top == 0u);
             count -= 1u;
-            node = ring[top];
+            node = lane_stacks[stack_slot(lane, top)];
             trail = 0xffffffffu;
             depth = DEPTH_UNKNOWN;
             visit = true;

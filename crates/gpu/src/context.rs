@@ -206,6 +206,7 @@ impl GpuContext {
         if adapter.features().contains(wgpu::Features::SHADER_F64) {
             features |= wgpu::Features::SHADER_F64;
         }
+
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("bvhtrace"),
@@ -237,16 +238,23 @@ impl GpuContext {
                 entries,
             })
         };
-        let texture_entry = |binding| wgpu::BindGroupLayoutEntry {
+        // Read-only storage textures, not sampled ones: lavapipe fetches a sampled texel
+        // through its per-lane mip-level logic (about 140 instructions per fetch), a storage
+        // texel with one address computation and a vector gather (`bvh_textures.wgsl`).
+        let texture_entry = |binding, format| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Texture {
-                sample_type: wgpu::TextureSampleType::Uint,
+            ty: wgpu::BindingType::StorageTexture {
+                access: wgpu::StorageTextureAccess::ReadOnly,
+                format,
                 view_dimension: wgpu::TextureViewDimension::D2,
-                multisampled: false,
             },
             count: None,
         };
+        let (rgba, r) = (
+            wgpu::TextureFormat::Rgba32Uint,
+            wgpu::TextureFormat::R32Uint,
+        );
         let bvh_layouts = [
             [
                 layout(
@@ -265,11 +273,15 @@ impl GpuContext {
             [
                 layout(
                     "bvhtrace bvh textures",
-                    &[texture_entry(0), texture_entry(1)],
+                    &[texture_entry(0, rgba), texture_entry(1, rgba)],
                 ),
                 layout(
                     "bvhtrace bvh textures+parents",
-                    &[texture_entry(0), texture_entry(1), texture_entry(2)],
+                    &[
+                        texture_entry(0, rgba),
+                        texture_entry(1, rgba),
+                        texture_entry(2, r),
+                    ],
                 ),
             ],
         ];

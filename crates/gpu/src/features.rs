@@ -156,6 +156,7 @@ impl ModuleSet {
         let mut out = Vec::with_capacity(16);
         for (i, &(name, src)) in shaders::SHADER_FILES.iter().enumerate() {
             match name {
+                "traverse_stack.wgsl" if !(self.full_stack || self.short_stack) => {}
                 "traverse_full_stack.wgsl" if !self.full_stack => {}
                 "traverse_short_stack.wgsl" if !self.short_stack => {}
                 "triangle.wgsl" => out.push(shaders::triangle_wgsl(self.precision)),

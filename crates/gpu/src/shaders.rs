@@ -10,8 +10,9 @@
 //! | `triangle_hit.wgsl` | `TriHit`, what every triangle test returns | `intersect::TriHit` |
 //! | `triangle.wgsl` (or a [`Precision`] variant, [`triangle_wgsl`]) | watertight triangle test | `intersect::intersect_triangle` |
 //! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
-//! | `traverse_full_stack.wgsl` | `trace_full_stack(ray, any_hit)` | `traverse::full_stack` |
-//! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k)` (k = 0: stackless) | `traverse::short_stack` |
+//! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full and short stack | `Vec` / the ring of `traverse::short_stack` |
+//! | `traverse_full_stack.wgsl` | `trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
+//! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
 //! | `bvh_buffers_parents.wgsl` or `bvh_textures_parents.wgsl` | the parent links (binding 2), only for the walks that climb | `FlatBvh::parents` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
 //! | `entry.wgsl` | what the entry points share: `rays`, `hits`, the overrides | `traverse::trace_batch` |
@@ -86,6 +87,10 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
         include_str!("../../../shaders/traverse_common.wgsl"),
     ),
     (
+        "traverse_stack.wgsl",
+        include_str!("../../../shaders/traverse_stack.wgsl"),
+    ),
+    (
         "traverse_full_stack.wgsl",
         include_str!("../../../shaders/traverse_full_stack.wgsl"),
     ),
@@ -100,9 +105,15 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
 /// [`crate::features::ENTRY_POINT_FILES`].
 pub const ENTRY_WGSL: &str = include_str!("../../../shaders/entry.wgsl");
 
-/// Entries of the full-stack kernel's private stack (`FULL_STACK_SIZE` in
+/// Entries of the full-stack kernel's stack (`FULL_STACK_SIZE` in
 /// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
 pub const FULL_STACK_SIZE: u32 = 64;
+
+/// Lanes per workgroup the traversal stacks are laid out for (`STACK_LANES` in
+/// `traverse_stack.wgsl`): a shader that calls `trace_full_stack` or `trace_short_stack`
+/// runs workgroups of at most this many invocations and passes `local_invocation_index`
+/// as `lane`.
+pub const STACK_LANES: u32 = 64;
 
 /// The trip budget ([`trip_limit_for`]) on CPU drivers: lavapipe ends every loop of an
 /// invocation after 65,535 trips in all, counted per batch of 8 lanes, where an inner loop
@@ -161,10 +172,16 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 /// It declares the structs `Node`, `Triangle`, `Ray`, `Hit`, `Counters`, `TraceResult` and
 /// the functions
 ///
-/// * `trace_full_stack(ray: Ray, any_hit: bool) -> TraceResult` (trees of depth up to
-///   [`FULL_STACK_SIZE`]),
-/// * `trace_short_stack(ray: Ray, any_hit: bool, k: u32) -> TraceResult`, where `k` is
-///   the ring size (`1..=32`) or `0` for the stackless walk,
+/// * `trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult` (trees of depth
+///   up to [`FULL_STACK_SIZE`]),
+/// * `trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult`, where
+///   `k` is the ring size (`1..=32`) or `0` for the stackless walk,
+///
+/// where `lane` is the invocation's `local_invocation_index`: the stacks live in workgroup
+/// memory (`lane_stacks`, 16 KiB), one per lane, for workgroups of at most [`STACK_LANES`]
+/// invocations. Create the pipeline with `zero_initialize_workgroup_memory: false`: the
+/// walks write every entry before they read it, and zeroing 16 KiB per workgroup is wasted
+/// time.
 ///
 /// plus helpers whose names you must not reuse (`intersect_box`, `intersect_triangle`,
 /// `prepare_ray`, `visit_leaf`, `load_node`, `fmin`, `fmax`, `component`, ...). Pass
@@ -180,11 +197,14 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 /// let my_shader = r#"
 /// @group(1) @binding(0) var<storage, read_write> ids: array<u32>;
 ///
-/// @compute @workgroup_size(64)
-/// fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+/// @compute @workgroup_size(64) // at most STACK_LANES
+/// fn main(
+///     @builtin(global_invocation_id) gid: vec3<u32>,
+///     @builtin(local_invocation_index) lane: u32,
+/// ) {
 ///     let x = f32(gid.x) * 0.01;
 ///     let ray = Ray(vec3<f32>(x, 0.0, 5.0), 0.0, vec3<f32>(0.0, 0.0, -1.0), 1e30);
-///     let res = trace_short_stack(ray, false, 6u); // closest hit, 6-entry short stack
+///     let res = trace_short_stack(ray, false, 6u, lane); // closest hit, 6-entry short stack
 ///     ids[gid.x] = res.hit.prim;
 /// }
 /// "#;

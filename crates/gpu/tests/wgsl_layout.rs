@@ -248,9 +248,9 @@ fn check_library(storage: BvhStorage) {
     assert!(!lib.contains("@compute"), "the library has no entry points");
     let module = parse(&format!(
         "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
-         @compute @workgroup_size(1) fn main() {{\n\
+         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
              let ray = Ray(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
-             out[0] = trace_short_stack(ray, false, 0u).hit.prim + trace_full_stack(ray, true).hit.prim;\n\
+             out[0] = trace_short_stack(ray, false, 0u, lane).hit.prim + trace_full_stack(ray, true, lane).hit.prim;\n\
          }}"
     ));
     validate(&module);
