@@ -22,7 +22,10 @@ override SHORT_STACK_SIZE: u32 = 6u;
 
 const WORKGROUP_SIZE: u32 = 64u;
 
-@group(1) @binding(0) var<storage, read> rays: array<Ray>;
+// The rays (binding 0) are read with `load_ray(i)`, declared by one of
+// `entry_rays_buffer.wgsl` (a storage buffer, the default) or `entry_rays_texture.wgsl`
+// (a storage texture, for CPU drivers; `bvhtrace_gpu::RayInput`). The hits binding holds
+// exactly the chunk's rays, so its length is the ray count.
 @group(1) @binding(1) var<storage, read_write> hits: array<Hit>;
 
 fn ray_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

@@ -8,8 +8,8 @@ fn trace_short_stack_main(
     @builtin(local_invocation_index) lid: u32,
 ) {
     let i = ray_index(gid, groups);
-    if (i >= arrayLength(&rays)) {
+    if (i >= arrayLength(&hits)) {
         return;
     }
-    hits[i] = trace_short_stack(rays[i], ANY_HIT, SHORT_STACK_SIZE, lid).hit;
+    hits[i] = trace_short_stack(load_ray(i), ANY_HIT, SHORT_STACK_SIZE, lid).hit;
 }

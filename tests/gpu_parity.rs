@@ -721,3 +721,44 @@ fn batches_larger_than_a_dispatch_are_split() {
         out.wall_ms
     );
 }
+
+/// With the BVH in textures, `trace` uploads the rays to a texture of 4096 rays per row
+/// (`RayInput::Texture`): batches smaller than a row, of whole rows and of whole rows plus
+/// a part all come back ray for ray as the CPU twin's and as the buffer path's.
+#[test]
+fn ray_textures_hold_any_batch_size() {
+    let Some(ctx) = context() else { return };
+    let bvh = FlatBvh::build(
+        &bvhtrace_scene::load("builtin:cornell")
+            .expect("builtin")
+            .flatten()
+            .triangles()
+            .expect("triangles"),
+        &BuildOptions::default(),
+    )
+    .expect("build");
+    let all = ray_set(&bvh, 7);
+    let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
+        GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage)).expect("upload")
+    });
+    for n in [1, 63, 1536, 4096, 4097, 3 * 4096 + 5] {
+        let rays = &all[all.len() - n..];
+        let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
+        assert!(cpu.iter().any(|h| h.prim != u32::MAX), "{n} rays: some hit");
+        for gpu in &gpus {
+            let out = gpu
+                .trace(rays, Traversal::FullStack, Query::Closest)
+                .expect("trace");
+            assert_eq!(out.hits.len(), n);
+            for (i, (g, c)) in out.hits.iter().zip(&cpu).enumerate() {
+                assert_eq!(
+                    (g.prim, g.t.to_bits(), g.u.to_bits(), g.v.to_bits()),
+                    (c.prim, c.t.to_bits(), c.u.to_bits(), c.v.to_bits()),
+                    "{:?}, {n} rays: ray {i} {:?}",
+                    gpu.storage(),
+                    rays[i]
+                );
+            }
+        }
+    }
+}

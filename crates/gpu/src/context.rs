@@ -9,7 +9,7 @@ use bvhtrace_core::Precision;
 
 use crate::error::GpuError;
 use crate::features::{Composition, ModuleSet, PipelineFeatures};
-use crate::shaders::{BvhStorage, KernelVariant};
+use crate::shaders::{BvhStorage, KernelVariant, RayInput};
 
 fn storage_index(storage: BvhStorage) -> usize {
     match storage {
@@ -84,7 +84,7 @@ struct Inner {
     /// BVH group layouts: `[buffers, textures][without parents, with parents]`.
     bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
-    batch_layouts: [wgpu::BindGroupLayout; 2],
+    batch_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Pipelines, by their full feature set.
     pipelines: Mutex<HashMap<PipelineFeatures, wgpu::ComputePipeline>>,
     /// [`GpuContext::pipeline`] composes everything ([`Composition::EverythingOn`]).
@@ -285,19 +285,36 @@ impl GpuContext {
                 ),
             ],
         ];
+        // [buffer rays, texture rays] x [hits, hits + counters].
         let batch_layouts = [
-            layout(
-                "bvhtrace batch",
-                &[storage_entry(0, true), storage_entry(1, false)],
-            ),
-            layout(
-                "bvhtrace batch+counters",
-                &[
-                    storage_entry(0, true),
-                    storage_entry(1, false),
-                    storage_entry(2, false),
-                ],
-            ),
+            [
+                layout(
+                    "bvhtrace batch",
+                    &[storage_entry(0, true), storage_entry(1, false)],
+                ),
+                layout(
+                    "bvhtrace batch+counters",
+                    &[
+                        storage_entry(0, true),
+                        storage_entry(1, false),
+                        storage_entry(2, false),
+                    ],
+                ),
+            ],
+            [
+                layout(
+                    "bvhtrace batch (ray texture)",
+                    &[texture_entry(0, rgba), storage_entry(1, false)],
+                ),
+                layout(
+                    "bvhtrace batch+counters (ray texture)",
+                    &[
+                        texture_entry(0, rgba),
+                        storage_entry(1, false),
+                        storage_entry(2, false),
+                    ],
+                ),
+            ],
         ];
         let trip_limit = crate::shaders::trip_limit_for(&adapter_info);
         GpuContext {
@@ -362,10 +379,16 @@ impl GpuContext {
         BvhStorage::default_for(self.inner.info.device_type)
     }
 
-    /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits), plus 2
-    /// (counters) when `with_counters`.
+    /// The layout of the batch bind group (group 1) with the rays in a buffer: bindings 0
+    /// (rays) and 1 (hits), plus 2 (counters) when `with_counters`.
     pub fn batch_layout(&self, with_counters: bool) -> &wgpu::BindGroupLayout {
-        &self.inner.batch_layouts[usize::from(with_counters)]
+        self.batch_layout_for(with_counters, RayInput::Buffer)
+    }
+
+    /// [`GpuContext::batch_layout`] with the rays read from `rays`.
+    pub fn batch_layout_for(&self, with_counters: bool, rays: RayInput) -> &wgpu::BindGroupLayout {
+        let r = usize::from(rays == RayInput::Texture);
+        &self.inner.batch_layouts[r][usize::from(with_counters)]
     }
 
     /// Runs `f` inside validation and out-of-memory error scopes; an error either reported
@@ -496,7 +519,7 @@ impl GpuContext {
             label: Some("bvhtrace trace"),
             bind_group_layouts: &[
                 Some(self.bvh_layout(variant.storage, variant.needs_parents())),
-                Some(self.batch_layout(variant.counters)),
+                Some(self.batch_layout_for(variant.counters, variant.rays)),
             ],
             immediate_size: 0,
         });

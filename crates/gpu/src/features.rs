@@ -130,6 +130,8 @@ pub struct ModuleSet {
     pub attributes: VertexAttributes,
     /// Entry points (with `entry.wgsl`, and `entry_counters.wgsl` when counted).
     pub entries: Entries,
+    /// Where the entry points read the rays (`entry_rays_*.wgsl`).
+    pub rays: shaders::RayInput,
 }
 
 impl ModuleSet {
@@ -143,6 +145,7 @@ impl ModuleSet {
             short_stack: true,
             attributes: VertexAttributes::NONE,
             entries,
+            rays: shaders::RayInput::Buffer,
         }
     }
 
@@ -176,6 +179,7 @@ impl ModuleSet {
             return out;
         }
         out.push(("entry.wgsl", shaders::ENTRY_WGSL));
+        out.push(self.rays.wgsl());
         if self.has_counters() {
             out.push(("entry_counters.wgsl", ENTRY_COUNTERS_WGSL));
         }
@@ -264,7 +268,8 @@ impl PipelineFeatures {
     }
 
     /// The pipeline for a job: `traversal` and `query` on `storage`, counters when asked
-    /// for, and the attributes the scene has and the job uses.
+    /// for, and the attributes the scene has and the job uses; the rays read as
+    /// [`crate::GpuBvh::trace`] uploads them ([`shaders::RayInput::for_storage`]).
     pub fn for_job(
         storage: BvhStorage,
         traversal: Traversal,
@@ -275,7 +280,10 @@ impl PipelineFeatures {
     ) -> PipelineFeatures {
         PipelineFeatures {
             attributes: VertexAttributes::needed(scene_has, job_uses),
-            ..Self::new(KernelVariant::new(storage, traversal, query, counters))
+            ..Self::new(
+                KernelVariant::new(storage, traversal, query, counters)
+                    .with_rays(shaders::RayInput::for_storage(storage)),
+            )
         }
     }
 
@@ -289,9 +297,10 @@ impl PipelineFeatures {
     pub fn module_set(&self) -> ModuleSet {
         let v = &self.variant;
         match self.composition {
-            Composition::EverythingOn => {
-                ModuleSet::everything(v.storage, v.precision, Entries::All)
-            }
+            Composition::EverythingOn => ModuleSet {
+                rays: v.rays,
+                ..ModuleSet::everything(v.storage, v.precision, Entries::All)
+            },
             Composition::Specialised => ModuleSet {
                 storage: v.storage,
                 precision: v.precision,
@@ -304,6 +313,7 @@ impl PipelineFeatures {
                 } else {
                     Entries::Plain
                 },
+                rays: v.rays,
             },
         }
     }
@@ -353,7 +363,11 @@ impl PipelineFeatures {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
         }
         if set.entries != Entries::None {
-            b.push(batch(0, "rays", crate::trace::RAY_BYTES));
+            let rays = match set.rays {
+                shaders::RayInput::Buffer => "rays",
+                shaders::RayInput::Texture => "ray_texels",
+            };
+            b.push(batch(0, rays, crate::trace::RAY_BYTES));
             b.push(batch(1, "hits", crate::trace::HIT_BYTES));
             if set.has_counters() {
                 b.push(batch(2, "counters", crate::trace::COUNTERS_BYTES));

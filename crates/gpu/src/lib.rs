@@ -49,8 +49,8 @@ pub use features::{
     VertexAttributes,
 };
 pub use shaders::{
-    BvhStorage, CPU_DRIVER_TRIP_LIMIT, FULL_STACK_SIZE, STACK_LANES, TEXEL_ROW, WORKGROUP_SIZE,
-    kernel_source, trip_limit_for, wgsl_library,
+    BvhStorage, CPU_DRIVER_TRIP_LIMIT, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
+    WORKGROUP_SIZE, kernel_source, trip_limit_for, wgsl_library,
 };
 pub use trace::{
     COUNTERS_BYTES, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES, RayBatch, TraceOptions,

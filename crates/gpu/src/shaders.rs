@@ -248,6 +248,44 @@ pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
         .compose(BVH_GROUP)
 }
 
+/// `entry_rays_buffer.wgsl`: the rays in a storage buffer.
+pub const ENTRY_RAYS_BUFFER_WGSL: &str = include_str!("../../../shaders/entry_rays_buffer.wgsl");
+/// `entry_rays_texture.wgsl`: the rays in a storage texture.
+pub const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../../../shaders/entry_rays_texture.wgsl");
+
+/// Where an entry point reads the batch's rays (binding 0 of group [`BATCH_GROUP`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum RayInput {
+    /// A storage buffer of [`bvhtrace_core::Ray`]s (`rays`): what [`crate::GpuBvh::record`]
+    /// traces, and [`crate::GpuBvh::trace`] with [`BvhStorage::Buffers`].
+    #[default]
+    Buffer,
+    /// A read-only `Rgba32Uint` storage texture, two texels per ray (`ray_texels`,
+    /// `entry_rays_texture.wgsl`): what [`crate::GpuBvh::trace`] uploads the rays to with
+    /// [`BvhStorage::Textures`], the layout for CPU drivers, where a texel load is a vector
+    /// gather and a buffer load a loop over the lanes.
+    Texture,
+}
+
+impl RayInput {
+    /// What [`crate::GpuBvh::trace`] uses with the BVH in `storage`: a texture with
+    /// textures (CPU drivers), a buffer with buffers.
+    pub fn for_storage(storage: BvhStorage) -> RayInput {
+        match storage {
+            BvhStorage::Textures => RayInput::Texture,
+            BvhStorage::Buffers => RayInput::Buffer,
+        }
+    }
+
+    /// The WGSL file declaring this input's binding and `load_ray`.
+    pub fn wgsl(&self) -> (&'static str, &'static str) {
+        match self {
+            RayInput::Buffer => ("entry_rays_buffer.wgsl", ENTRY_RAYS_BUFFER_WGSL),
+            RayInput::Texture => ("entry_rays_texture.wgsl", ENTRY_RAYS_TEXTURE_WGSL),
+        }
+    }
+}
+
 /// Which entry point and which override values one pipeline uses.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct KernelVariant {
@@ -263,6 +301,8 @@ pub struct KernelVariant {
     pub counters: bool,
     /// The triangle test composed into the module ([`triangle_wgsl`]).
     pub precision: Precision,
+    /// Where the rays are read from.
+    pub rays: RayInput,
 }
 
 impl KernelVariant {
@@ -288,6 +328,7 @@ impl KernelVariant {
             any_hit: query == bvhtrace_core::Query::Any,
             counters,
             precision: Precision::WatertightF32,
+            rays: RayInput::Buffer,
         }
     }
 
@@ -315,6 +356,11 @@ impl KernelVariant {
         KernelVariant { precision, ..self }
     }
 
+    /// The same variant reading its rays from `rays`.
+    pub fn with_rays(self, rays: RayInput) -> Self {
+        KernelVariant { rays, ..self }
+    }
+
     /// Every variant the tests validate for `storage`: each traversal kind (full stack,
     /// stackless, short stack with `k`) x query x counters.
     pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelVariant> {
@@ -329,6 +375,7 @@ impl KernelVariant {
                         any_hit,
                         counters,
                         precision: Precision::WatertightF32,
+                        rays: RayInput::Buffer,
                     });
                 }
             }

@@ -10,7 +10,7 @@ use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Precision, Query, Ray, T
 use crate::bvh::GpuBvh;
 use crate::context::{GpuContext, GpuLimits};
 use crate::error::GpuError;
-use crate::shaders::{KernelVariant, WORKGROUP_SIZE};
+use crate::shaders::{KernelVariant, RayInput, TEXEL_ROW, WORKGROUP_SIZE};
 
 /// Bytes of one [`Ray`] on the device.
 pub const RAY_BYTES: u64 = std::mem::size_of::<Ray>() as u64;
@@ -158,12 +158,94 @@ pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
 /// Device buffers reused by [`GpuBvh::trace`] across calls.
 pub(crate) struct Scratch {
     capacity: u64,
-    rays: wgpu::Buffer,
+    rays: RayStore,
     hits: wgpu::Buffer,
     hits_read: wgpu::Buffer,
     /// Allocated only once a trace asks for counters.
     counters: Option<CounterBuffers>,
     queries: Option<Queries>,
+}
+
+/// Where [`GpuBvh::trace`] uploads the rays ([`RayInput`]).
+enum RayStore {
+    Buffer(wgpu::Buffer),
+    /// [`TEXEL_ROW`] texels wide, two texels per ray (`entry_rays_texture.wgsl`).
+    Texture(wgpu::Texture, wgpu::TextureView),
+}
+
+impl RayStore {
+    fn bytes(&self) -> u64 {
+        match self {
+            RayStore::Buffer(b) => b.size(),
+            RayStore::Texture(t, _) => u64::from(t.width()) * u64::from(t.height()) * RAY_BYTES / 2,
+        }
+    }
+
+    fn input(&self) -> RayInput {
+        match self {
+            RayStore::Buffer(_) => RayInput::Buffer,
+            RayStore::Texture(..) => RayInput::Texture,
+        }
+    }
+
+    /// Uploads `rays` to the start of the store.
+    fn write(&self, queue: &wgpu::Queue, rays: &[Ray]) {
+        match self {
+            RayStore::Buffer(b) => queue.write_buffer(b, 0, bytemuck::cast_slice(rays)),
+            RayStore::Texture(t, _) => {
+                // Whole rows, then the rest of the last row.
+                let per_row = (TEXEL_ROW / 2) as usize;
+                let full = rays.len() / per_row;
+                for (row, part, width, height) in [
+                    (0, &rays[..full * per_row], TEXEL_ROW, full as u32),
+                    (
+                        full as u32,
+                        &rays[full * per_row..],
+                        2 * (rays.len() % per_row) as u32,
+                        1,
+                    ),
+                ] {
+                    if part.is_empty() {
+                        continue;
+                    }
+                    queue.write_texture(
+                        wgpu::TexelCopyTextureInfo {
+                            texture: t,
+                            mip_level: 0,
+                            origin: wgpu::Origin3d { x: 0, y: row, z: 0 },
+                            aspect: wgpu::TextureAspect::All,
+                        },
+                        bytemuck::cast_slice(part),
+                        wgpu::TexelCopyBufferLayout {
+                            offset: 0,
+                            bytes_per_row: Some(width * 16),
+                            rows_per_image: None,
+                        },
+                        wgpu::Extent3d {
+                            width,
+                            height,
+                            depth_or_array_layers: 1,
+                        },
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// The rays a recorded dispatch reads.
+#[derive(Clone, Copy)]
+enum RaysBinding<'a> {
+    Buffer(&'a wgpu::Buffer),
+    /// Ray `i` of the batch is ray `i` of the texture: the batch is one dispatch.
+    Texture(&'a wgpu::TextureView),
+}
+
+/// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
+/// the device allows.
+fn ray_texture_capacity(limits: &GpuLimits) -> u64 {
+    let by_rows = u64::from(TEXEL_ROW / 2) * u64::from(limits.max_texture_dimension_2d);
+    rays_per_dispatch(limits).min(by_rows)
 }
 
 /// The counters out, and their readback copy.
@@ -179,7 +261,7 @@ struct Queries {
 }
 
 impl Scratch {
-    fn new(ctx: &GpuContext, capacity: u64, with_counters: bool) -> Scratch {
+    fn new(ctx: &GpuContext, capacity: u64, with_counters: bool, input: RayInput) -> Scratch {
         let device = ctx.device();
         let buf = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -205,11 +287,32 @@ impl Scratch {
         });
         Scratch {
             capacity,
-            rays: buf(
-                "bvhtrace rays",
-                capacity * RAY_BYTES,
-                U::STORAGE | U::COPY_DST,
-            ),
+            rays: match input {
+                RayInput::Buffer => RayStore::Buffer(buf(
+                    "bvhtrace rays",
+                    capacity * RAY_BYTES,
+                    U::STORAGE | U::COPY_DST,
+                )),
+                RayInput::Texture => {
+                    let rows = (2 * capacity).div_ceil(u64::from(TEXEL_ROW)) as u32;
+                    let texture = device.create_texture(&wgpu::TextureDescriptor {
+                        label: Some("bvhtrace ray texels"),
+                        size: wgpu::Extent3d {
+                            width: TEXEL_ROW,
+                            height: rows,
+                            depth_or_array_layers: 1,
+                        },
+                        mip_level_count: 1,
+                        sample_count: 1,
+                        dimension: wgpu::TextureDimension::D2,
+                        format: wgpu::TextureFormat::Rgba32Uint,
+                        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_DST,
+                        view_formats: &[],
+                    });
+                    let view = texture.create_view(&Default::default());
+                    RayStore::Texture(texture, view)
+                }
+            },
             hits: buf(
                 "bvhtrace hits",
                 capacity * HIT_BYTES,
@@ -302,7 +405,8 @@ impl GpuBvh {
         self.prepare_precision(opts, Precision::WatertightF32)
     }
 
-    /// [`GpuBvh::prepare`] for the kernels with the triangle test of `precision`.
+    /// [`GpuBvh::prepare`] for the kernels with the triangle test of `precision` (the ones
+    /// [`GpuBvh::trace`] runs: rays read as [`RayInput::for_storage`] says).
     pub fn prepare_precision(
         &self,
         opts: &TraceOptions,
@@ -312,7 +416,8 @@ impl GpuBvh {
         self.ctx
             .pipeline(
                 KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-                    .with_precision(precision),
+                    .with_precision(precision)
+                    .with_rays(RayInput::for_storage(self.storage())),
             )
             .map(|_| ())
     }
@@ -325,7 +430,7 @@ impl GpuBvh {
             .ok()
             .and_then(|g| {
                 g.as_ref().map(|s| {
-                    s.rays.size()
+                    s.rays.bytes()
                         + s.hits.size()
                         + s.hits_read.size()
                         + s.counters
@@ -401,7 +506,14 @@ impl GpuBvh {
         if n == 0 {
             return Ok(out);
         }
-        let (per_submit, capacity) = plan_submissions(n, self.ctx.limits());
+        // With the BVH in textures (CPU drivers), the rays go in a texture too, one
+        // dispatch per submission (`RayInput::Texture`).
+        let input = RayInput::for_storage(self.storage());
+        let (mut per_submit, mut capacity) = plan_submissions(n, self.ctx.limits());
+        if input == RayInput::Texture {
+            per_submit = per_submit.min(ray_texture_capacity(self.ctx.limits()));
+            capacity = capacity.min(per_submit);
+        }
 
         let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
             during: "locking the scratch buffers",
@@ -409,14 +521,15 @@ impl GpuBvh {
         })?;
         // Counter buffers only once counters are asked for; kept from then on.
         let had_counters = guard.as_ref().is_some_and(|s| s.counters.is_some());
-        if guard
-            .as_ref()
-            .is_none_or(|s| s.capacity < capacity || (opts.counters && s.counters.is_none()))
-        {
+        if guard.as_ref().is_none_or(|s| {
+            s.capacity < capacity
+                || (opts.counters && s.counters.is_none())
+                || s.rays.input() != input
+        }) {
             let capacity = capacity.max(guard.as_ref().map_or(0, |s| s.capacity));
             *guard = None; // free the old buffers first
             *guard = Some(self.ctx.scoped("allocating ray buffers", || {
-                Scratch::new(&self.ctx, capacity, opts.counters || had_counters)
+                Scratch::new(&self.ctx, capacity, opts.counters || had_counters, input)
             })?);
         }
         let Some(s) = guard.as_ref() else {
@@ -437,7 +550,7 @@ impl GpuBvh {
             let counter_bytes = count * COUNTERS_BYTES;
             self.ctx
                 .scoped("tracing a ray batch", || -> Result<(), GpuError> {
-                    queue.write_buffer(&s.rays, 0, bytemuck::cast_slice(batch));
+                    s.rays.write(queue, batch);
                     let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                         label: Some("bvhtrace trace"),
                     });
@@ -449,14 +562,16 @@ impl GpuBvh {
                             beginning_of_pass_write_index: Some(0),
                             end_of_pass_write_index: Some(1),
                         });
-                    self.record_precision(
+                    let rays = match &s.rays {
+                        RayStore::Buffer(b) => RaysBinding::Buffer(b),
+                        RayStore::Texture(_, v) => RaysBinding::Texture(v),
+                    };
+                    self.record_rays(
                         &mut enc,
-                        &RayBatch {
-                            rays: &s.rays,
-                            hits: &s.hits,
-                            counters: counter_buffers.map(|c| &c.out),
-                            ray_count: count,
-                        },
+                        rays,
+                        &s.hits,
+                        counter_buffers.map(|c| &c.out),
+                        count,
                         opts,
                         precision,
                         tw,
@@ -558,9 +673,36 @@ impl GpuBvh {
         self.supports(opts.traversal)?;
         let n = batch.ray_count;
         check_buffer("rays", batch.rays, n, RAY_BYTES)?;
-        check_buffer("hits", batch.hits, n, HIT_BYTES)?;
+        self.record_rays(
+            encoder,
+            RaysBinding::Buffer(batch.rays),
+            batch.hits,
+            batch.counters,
+            n,
+            opts,
+            precision,
+            timestamp_writes,
+        )
+    }
+
+    /// Records the traversal of `n` rays read from `rays`, hits (and counters) to the
+    /// given buffers. A texture holds the whole batch in one dispatch.
+    #[allow(clippy::too_many_arguments)]
+    fn record_rays(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        rays: RaysBinding<'_>,
+        hits: &wgpu::Buffer,
+        counters: Option<&wgpu::Buffer>,
+        n: u64,
+        opts: &TraceOptions,
+        precision: Precision,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) -> Result<(), GpuError> {
+        self.supports(opts.traversal)?;
+        check_buffer("hits", hits, n, HIT_BYTES)?;
         let counters = if opts.counters {
-            let c = batch.counters.ok_or(GpuError::BadBuffer {
+            let c = counters.ok_or(GpuError::BadBuffer {
                 buffer: "counters",
                 problem: "counters were asked for but no counters buffer was given".into(),
             })?;
@@ -569,8 +711,13 @@ impl GpuBvh {
         } else {
             None
         };
+        let input = match rays {
+            RaysBinding::Buffer(_) => RayInput::Buffer,
+            RaysBinding::Texture(_) => RayInput::Texture,
+        };
         let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-            .with_precision(precision);
+            .with_precision(precision)
+            .with_rays(input);
         let pipeline = self.ctx.pipeline(variant)?;
         let group0 =
             self.bind_group(variant.needs_parents())
@@ -579,6 +726,12 @@ impl GpuBvh {
                 })?;
         let device = self.ctx.device();
         let dispatches = plan_dispatches(n, self.ctx.limits());
+        if matches!(rays, RaysBinding::Texture(_)) && dispatches.len() > 1 {
+            return Err(GpuError::BadBuffer {
+                buffer: "rays",
+                problem: format!("{n} rays in a ray texture are more than one dispatch"),
+            });
+        }
         let groups: Vec<wgpu::BindGroup> = dispatches
             .iter()
             .map(|d| {
@@ -586,11 +739,14 @@ impl GpuBvh {
                 let mut entries = vec![
                     wgpu::BindGroupEntry {
                         binding: 0,
-                        resource: binding(batch.rays, first, count, RAY_BYTES),
+                        resource: match rays {
+                            RaysBinding::Buffer(b) => binding(b, first, count, RAY_BYTES),
+                            RaysBinding::Texture(v) => wgpu::BindingResource::TextureView(v),
+                        },
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
-                        resource: binding(batch.hits, first, count, HIT_BYTES),
+                        resource: binding(hits, first, count, HIT_BYTES),
                     },
                 ];
                 if let Some(c) = counters {
@@ -601,7 +757,7 @@ impl GpuBvh {
                 }
                 device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("bvhtrace batch"),
-                    layout: self.ctx.batch_layout(opts.counters),
+                    layout: self.ctx.batch_layout_for(opts.counters, input),
                     entries: &entries,
                 })
             })

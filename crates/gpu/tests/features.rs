@@ -10,8 +10,8 @@ use std::collections::BTreeSet;
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Precision, Query, Ray, Traversal};
 use bvhtrace_gpu::{
-    AdapterChoice, BvhStorage, Composition, GpuBvh, GpuContext, GpuError, PipelineFeatures,
-    TraceOptions, UploadOptions, VertexAttributes, kernel_source,
+    AdapterChoice, BvhStorage, Composition, Entries, GpuBvh, GpuContext, GpuError, ModuleSet,
+    PipelineFeatures, RayInput, TraceOptions, UploadOptions, VertexAttributes, kernel_source,
 };
 use glam::Vec3;
 use naga::valid::{Capabilities, ValidationFlags, Validator};
@@ -58,14 +58,23 @@ fn every_job(storage: BvhStorage) -> Vec<PipelineFeatures> {
         for query in [Query::Closest, Query::Any] {
             for counters in [false, true] {
                 // The job would shade with normals; the scene has none.
-                v.push(PipelineFeatures::for_job(
+                let f = PipelineFeatures::for_job(
                     storage,
                     traversal,
                     query,
                     counters,
                     VertexAttributes::NONE,
                     NORMALS,
-                ));
+                );
+                v.push(f);
+                // `GpuBvh::trace` reads the rays from a texture with the BVH in textures;
+                // `GpuBvh::record` from the caller's buffer.
+                if storage == BvhStorage::Textures {
+                    assert_eq!(f.variant.rays, RayInput::Texture);
+                    let mut b = f;
+                    b.variant = b.variant.with_rays(RayInput::Buffer);
+                    v.push(b);
+                }
             }
         }
     }
@@ -186,7 +195,16 @@ fn everything_on_declares_everything_and_is_kernel_source() {
     for storage in STORAGES {
         for f in every_job(storage) {
             let all = f.with_composition(Composition::EverythingOn);
-            assert_eq!(all.source(), kernel_source(storage), "{f:?}");
+            // `kernel_source` reads the rays from a buffer; a ray texture swaps that file.
+            let expected = match f.variant.rays {
+                RayInput::Buffer => kernel_source(storage),
+                RayInput::Texture => ModuleSet {
+                    rays: RayInput::Texture,
+                    ..ModuleSet::everything(storage, Precision::WatertightF32, Entries::All)
+                }
+                .compose(bvhtrace_gpu::shaders::BVH_GROUP),
+            };
+            assert_eq!(all.source(), expected, "{f:?}");
             let module = parse(&all.source());
             let names: BTreeSet<String> =
                 declared(&module).into_iter().map(|(_, _, n)| n).collect();
@@ -256,7 +274,15 @@ fn switching_back_to_a_feature_set_does_not_recompile() {
     assert_eq!(ctx.compile_counts(), (1, 1));
     // No counter buffers until a trace asks for counters.
     let n = rays.len() as u64;
-    let plain = n * (bvhtrace_gpu::RAY_BYTES + 2 * bvhtrace_gpu::HIT_BYTES);
+    // The rays: a buffer, or whole rows of a ray texture (`RayInput::for_storage`).
+    let ray_bytes = match RayInput::for_storage(gpu.storage()) {
+        RayInput::Buffer => n * bvhtrace_gpu::RAY_BYTES,
+        RayInput::Texture => {
+            let row = u64::from(bvhtrace_gpu::TEXEL_ROW);
+            (2 * n).div_ceil(row) * row * 16
+        }
+    };
+    let plain = ray_bytes + 2 * n * bvhtrace_gpu::HIT_BYTES;
     assert_eq!(gpu.scratch_bytes(), plain);
     let counted = gpu.trace_with(&rays, &b).expect("trace b");
     assert_eq!(ctx.compile_counts(), (2, 2), "b has its own module");
