@@ -1,7 +1,8 @@
 // traverse_short_stack.wgsl: twin of `bvhtrace_core::traverse::short_stack`.
 //
-// A ring buffer of `k` far-child entries (`lane`'s first `k` in `lane_stacks`,
-// `traverse_stack.wgsl`) (Hapala et al. 2011 with a short stack). As in
+// A ring buffer of `k` far-child entries (Hapala et al. 2011 with a short stack): two
+// registers for `k <= REGISTER_RING`, else `lane`'s first `k` entries in `lane_stacks`
+// (`traverse_stack.wgsl`). As in
 // the full stack, an interior node's two children are tested at the node, but taken in a
 // deterministic near/far order (the sign of the ray's direction along the split axis): the
 // near child when it is hit, the far one pushed when both are (overwriting the oldest entry
@@ -32,6 +33,12 @@ fn near_far(r: PreparedRay, index: u32, links: vec2<u32>) -> vec2<u32> {
     return vec2<u32>(rt, l);
 }
 
+// Rings of at most this many entries live in two `vec4<u32>` registers, pushed and popped
+// by shifting (on lavapipe a shift is a few vector selects, while a `lane_stacks` access is
+// a loop over the 8 lanes); larger rings in `lane_stacks`. `k` is an override constant, so
+// the driver keeps one of the two.
+const REGISTER_RING: u32 = 8u;
+
 // The depth after a pop from the ring, where the trail above the popped node is unknown:
 // at least 32, so that every bit the climb shifts in is set.
 const DEPTH_UNKNOWN: u32 = 0x7fffffffu;
@@ -49,7 +56,10 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
     let r = prepare_ray(ray);
     var best = start_best(ray);
     var c = Counters(0u, 0u);
-    var top = 0u; // next write slot
+    // The ring: in two registers when it fits (`k <= REGISTER_RING`), else in `lane_stacks`.
+    var newer = vec4<u32>(0u); // entries 0..3, `newer.x` the top
+    var older = vec4<u32>(0u); // entries 4..7
+    var top = 0u; // next write slot in `lane_stacks`
     var count = 0u; // live entries
     var overflow = false;
 
@@ -101,8 +111,14 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 } else {
                     count += 1u;
                 }
-                lane_stacks[stack_slot(lane, top)] = nf.y;
-                top = select(top + 1u, 0u, top + 1u == k);
+                if (k <= REGISTER_RING) {
+                    // Shift down one entry; the one pushed out is the oldest, past `k`.
+                    older = vec4<u32>(newer.w, older.xyz);
+                    newer = vec4<u32>(nf.y, newer.xyz);
+                } else {
+                    lane_stacks[stack_slot(lane, top)] = nf.y;
+                    top = select(top + 1u, 0u, top + 1u == k);
+                }
             }
             node = select(nf.y, nf.x, hit_near);
         }
@@ -116,9 +132,15 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
         }
         // The subtree at `node` is done: take the next pending node.
         if (count > 0u) {
-            top = select(top - 1u, k - 1u, top == 0u);
             count -= 1u;
-            node = lane_stacks[stack_slot(lane, top)];
+            if (k <= REGISTER_RING) {
+                node = newer.x;
+                newer = vec4<u32>(newer.yzw, older.x);
+                older = vec4<u32>(older.yzw, 0u);
+            } else {
+                top = select(top - 1u, k - 1u, top == 0u);
+                node = lane_stacks[stack_slot(lane, top)];
+            }
             trail = 0xffffffffu;
             depth = DEPTH_UNKNOWN;
             visit = true;

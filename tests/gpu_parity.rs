@@ -503,11 +503,14 @@ fn deep_trees_match_cpu_twins() {
             &UploadOptions::for_traversal(Traversal::Stackless).with_storage(storage),
         )
         .expect("upload");
+        // k <= 8: the ring in registers (8: full); k = 12: the ring in workgroup memory.
         for traversal in [
             Traversal::Stackless,
             Traversal::ShortStack(1),
             Traversal::ShortStack(2),
             Traversal::ShortStack(6),
+            Traversal::ShortStack(8),
+            Traversal::ShortStack(12),
         ] {
             for query in [Query::Closest, Query::Any] {
                 let label = format!("deep {traversal} {query:?} {storage:?}");
