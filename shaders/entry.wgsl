@@ -2,7 +2,7 @@
 //
 // Group 0 is the BVH (`bvh_buffers.wgsl` or `bvh_textures.wgsl`), group 1 the ray batch.
 // The host binds one chunk of at most a few million rays at a time, so
-// `arrayLength(&rays)` is the chunk's size; the grid is 2D when a chunk needs more than
+// `arrayLength(&hits)` is the chunk's size; the grid is 2D when a chunk needs more than
 // `max_compute_workgroups_per_dimension` groups.
 //
 // The entry points themselves are one file each, and a specialised module composes exactly

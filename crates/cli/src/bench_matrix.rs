@@ -542,7 +542,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         pb.finish_and_clear();
         print_table(&scene_rows, args.json.as_deref() == Some("-"));
         if let Some((png, svg)) = plots.next() {
-            crate::plot::error_vs_time(&spec, &scene_rows, png, svg)?;
+            // The file name, not the path: the plots are committed.
+            let title = std::path::Path::new(&spec)
+                .file_name()
+                .map_or(spec.clone(), |n| n.to_string_lossy().into_owned());
+            crate::plot::error_vs_time(&title, &scene_rows, png, svg)?;
         }
         rows.extend(scene_rows);
     }
