@@ -24,6 +24,9 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
         return finish(best, c);
     }
     var node = 0u;
+    // `node`'s links, carried from where its box was loaded (at its parent, or the root);
+    // a node popped from the stack loads them in the outer loop.
+    var links = vec2<u32>(root.right_or_first, root.meta_bits);
     // While-while (Aila and Laine 2009): the inner loop walks interior nodes until this
     // ray stands on a leaf (or is done); the leaf is tested after it. On SIMD hardware the
     // lanes then run the box tests together and the triangle tests together, instead of
@@ -36,7 +39,6 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             if (!take_trip()) {
                 return incomplete(best, c);
             }
-            let links = load_node_links(node);
             count = links.y >> 2u;
             if (count != 0u) {
                 first = links.x;
@@ -52,12 +54,16 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             let hr = intersect_box(r, nr.min, nr.max, best.t);
             let ok_l = box_hit(hl);
             let ok_r = box_hit(hr);
+            let links_l = vec2<u32>(nl.right_or_first, nl.meta_bits);
+            let links_r = vec2<u32>(nr.right_or_first, nr.meta_bits);
             if (ok_l && ok_r) {
                 var near = l;
                 var far = rt;
+                links = links_l;
                 if (hr.x < hl.x) {
                     near = rt;
                     far = l;
+                    links = links_r;
                 }
                 lane_stacks[stack_slot(lane, sp)] = far;
                 sp += 1u;
@@ -66,32 +72,31 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             }
             if (ok_l) {
                 node = l;
+                links = links_l;
                 continue;
             }
             if (ok_r) {
                 node = rt;
+                links = links_r;
                 continue;
             }
-            if (sp == 0u) {
+            // Neither child: the subtree is done; the outer loop pops.
+            break;
+        }
+        if (on_leaf) {
+            if (visit_leaf(r, first, count, &best, &c, any_hit)) {
                 break;
             }
-            sp -= 1u;
-            node = lane_stacks[stack_slot(lane, sp)];
-        }
-        if (!on_leaf) {
-            break;
-        }
-        if (visit_leaf(r, first, count, &best, &c, any_hit)) {
-            break;
-        }
-        if (trips_left == 0u) {
-            return incomplete(best, c);
+            if (trips_left == 0u) {
+                return incomplete(best, c);
+            }
         }
         if (sp == 0u) {
             break;
         }
         sp -= 1u;
         node = lane_stacks[stack_slot(lane, sp)];
+        links = load_node_links(node);
     }
     return finish(best, c);
 }

@@ -69,6 +69,9 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
         return finish(best, c);
     }
     var node = 0u;
+    // `node`'s links, carried from where its box was loaded (its parent's step, the root,
+    // the climb), so the inner loop loads only the two children.
+    var links = vec2<u32>(root.right_or_first, root.meta_bits);
     var trail = 0u;
     var depth = 0u; // `node`'s
     // `visit`: `node`'s box was hit (at its parent, at the root or by the climb), visit it.
@@ -87,7 +90,6 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
             if (!visit) {
                 break;
             }
-            let links = load_node_links(node);
             leaf_count = links.y >> 2u;
             if (leaf_count != 0u) {
                 leaf_first = links.x;
@@ -121,6 +123,11 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 }
             }
             node = select(nf.y, nf.x, hit_near);
+            links = select(
+                vec2<u32>(far_node.right_or_first, far_node.meta_bits),
+                vec2<u32>(near_node.right_or_first, near_node.meta_bits),
+                hit_near,
+            );
         }
         if (leaf_count != 0u) {
             if (visit_leaf(r, leaf_first, leaf_count, &best, &c, any_hit)) {
@@ -131,7 +138,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
             }
         }
         // The subtree at `node` is done: take the next pending node.
-        if (count > 0u) {
+        if (k > 0u && count > 0u) {
             count -= 1u;
             if (k <= REGISTER_RING) {
                 node = newer.x;
@@ -141,6 +148,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 top = select(top - 1u, k - 1u, top == 0u);
                 node = lane_stacks[stack_slot(lane, top)];
             }
+            links = load_node_links(node);
             trail = 0xffffffffu;
             depth = DEPTH_UNKNOWN;
             visit = true;
@@ -171,6 +179,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
             let sib = load_node(pnf.y);
             visit = box_hit(intersect_box(r, sib.min, sib.max, best.t));
             node = pnf.y;
+            links = vec2<u32>(sib.right_or_first, sib.meta_bits);
         } else {
             visit = false;
             depth -= 1u;
