@@ -16,6 +16,7 @@
 //! | `bvh_buffers_parents.wgsl` or `bvh_textures_parents.wgsl` | the parent links (binding 2), only for the walks that climb | `FlatBvh::parents` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
 //! | `entry.wgsl` | what the entry points share: `rays`, `hits`, the overrides | `traverse::trace_batch` |
+//! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from (`load_ray`, [`RayInput`]) | - |
 //! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_batch_counted` |
 //! | `entry_{full,short}_stack[_counted].wgsl` | one entry point each | |
 //!
