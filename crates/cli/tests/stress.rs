@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{run, scratch};
+use common::{bvhtrace, run, scratch};
 
 #[test]
 fn stress_runs_a_case_and_writes_json() {
@@ -45,4 +45,25 @@ fn stress_errors_name_the_cause() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/nonexistent-dir/x.json"), "{err}");
+}
+
+/// A case whose inputs are absent (the real meshes, without the shared scenes folder) is
+/// skipped, says so, and is not a failure.
+#[test]
+fn stress_skips_a_case_without_its_inputs() {
+    let absent = scratch("stress-no-scenes").join("absent");
+    let out = bvhtrace()
+        .env("BVHTRACE_SCENES", &absent)
+        .args(["stress", "--quick", "--case", "watertight-real"])
+        .output()
+        .expect("bvhtrace runs");
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{table}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(table.contains("watertight-real"), "{table}");
+    assert!(table.contains("skipped"), "{table}");
+    assert!(table.contains("1 skipped: watertight-real"), "{table}");
 }

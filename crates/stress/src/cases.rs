@@ -253,10 +253,11 @@ fn watertight(size: Size) -> Vec<Case> {
     out.push(c);
 
     // Real closed meshes.
-    let Some(dir) = bvhtrace_scene::shared_scenes_dir().map(|d| d.join("glb")) else {
+    let dir = bvhtrace_scene::shared_scenes_dir().map(|d| d.join("glb"));
+    let Some(dir) = dir.filter(|d| d.is_dir()) else {
         let mut skip = Case::new("watertight-real", "real closed meshes");
         skip.notes.push(
-            "SKIP: no shared scenes folder (set BVHTRACE_SCENES or put shared/scenes above the repository)".into(),
+            "SKIP: no shared scenes folder with a glb/ folder (set BVHTRACE_SCENES or put shared/scenes above the repository)".into(),
         );
         out.push(skip);
         return out;

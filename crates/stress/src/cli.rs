@@ -156,6 +156,20 @@ pub fn run(args: StressArgs) -> Result<()> {
             failed.join(", ")
         );
     }
-    writeln!(out, "all cases clean")?;
+    let skipped: Vec<&str> = reports
+        .iter()
+        .filter(|r| r.skipped.is_some())
+        .map(|r| r.name.as_str())
+        .collect();
+    if skipped.is_empty() {
+        writeln!(out, "all cases clean")?;
+    } else {
+        writeln!(
+            out,
+            "all cases clean ({} skipped: {})",
+            skipped.len(),
+            skipped.join(", ")
+        )?;
+    }
     Ok(())
 }

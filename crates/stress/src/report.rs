@@ -117,7 +117,7 @@ fn any_escapes(case: &CaseReport, closest: &RunReport) -> Differences {
 /// precision-limit thresholds, and a few failing rays of any run that is not clean.
 pub fn table_rows(case: &CaseReport) -> Vec<String> {
     let mut out = Vec::new();
-    if let Some(e) = &case.error {
+    if let Some(e) = case.error.as_ref().or(case.skipped.as_ref()) {
         out.push(format!("{:<24} {e}", case.name));
     }
     for c in case.runs.iter().filter(|r| r.query == "closest") {

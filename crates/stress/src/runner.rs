@@ -271,6 +271,9 @@ pub struct CaseReport {
     pub elapsed_ms: f64,
     /// Why the case could not run at all.
     pub error: Option<String>,
+    /// Why the case was skipped: its inputs are absent (the real meshes without the shared
+    /// scenes folder). Not a failure.
+    pub skipped: Option<String>,
     /// False beyond the guaranteed range (see `Case::guaranteed`).
     pub guaranteed: bool,
 }
@@ -278,7 +281,7 @@ pub struct CaseReport {
 impl CaseReport {
     /// True when the case ran and every run is clean (see [`RunReport::clean`]; beyond the
     /// guaranteed range, [`RunReport::sound`]), and a deep tree's full-stack upload was
-    /// refused.
+    /// refused; or when it was skipped (it has no runs).
     pub fn clean(&self) -> bool {
         self.error.is_none()
             && self.runs.iter().all(|r| {
@@ -810,7 +813,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         ..Default::default()
     };
     if case.tris.is_empty() {
-        rep.error = Some("no triangles (skipped)".into());
+        rep.skipped = Some("skipped: no triangles (its inputs are absent; see the notes)".into());
         return rep;
     }
     let t = Instant::now();
