@@ -36,8 +36,7 @@ pub fn adapter(g: &VkBvh) -> String {
 
 /// Bytes of the uploaded BVH arrays.
 pub fn uploaded_bytes(g: &VkBvh) -> u64 {
-    let s = g.stats();
-    s.nodes_bytes + s.triangles_bytes + s.parents_bytes
+    g.stats().total_bytes()
 }
 
 /// Traces one batch with the kernel for `traversal`, `query` and `precision`.

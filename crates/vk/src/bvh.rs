@@ -7,25 +7,12 @@ use ash::vk;
 use bvhtrace_core::{FlatBvh, Query, Ray, Traversal};
 use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant};
 use bvhtrace_gpu::{
-    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, TraceOutput, finish_incomplete,
-    plan_dispatches, plan_submissions,
+    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, TraceOutput, UploadStats,
+    finish_incomplete, plan_dispatches, plan_submissions,
 };
 
 use crate::context::{Buffer, VkContext};
 use crate::error::{VkError, vkerr};
-
-/// Bytes uploaded by [`VkBvh::upload`] and how long it took.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct VkUploadStats {
-    /// Node array bytes.
-    pub nodes_bytes: u64,
-    /// Triangle array bytes.
-    pub triangles_bytes: u64,
-    /// Parent array bytes.
-    pub parents_bytes: u64,
-    /// Wall time of the upload (staging copy and transfer), milliseconds.
-    pub upload_ms: f64,
-}
 
 /// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
 struct Scratch {
@@ -48,7 +35,7 @@ pub struct VkBvh {
     /// The CPU twin answering rays that run out of the trip budget (only kept when the
     /// budget is bounded).
     twin: Option<Arc<FlatBvh>>,
-    stats: VkUploadStats,
+    stats: UploadStats,
     scratch: Mutex<Option<Scratch>>,
 }
 
@@ -274,7 +261,7 @@ impl VkBvh {
             set: vk::DescriptorSet::null(),
             depth: bvh.depth,
             twin: (ctx.trip_limit() != u32::MAX).then(|| Arc::new(bvh.clone())),
-            stats: VkUploadStats {
+            stats: UploadStats {
                 nodes_bytes: arrays[0].1.len() as u64,
                 triangles_bytes: arrays[1].1.len() as u64,
                 parents_bytes: arrays[2].1.len() as u64,
@@ -312,7 +299,7 @@ impl VkBvh {
     }
 
     /// Sizes and time of the upload.
-    pub fn stats(&self) -> VkUploadStats {
+    pub fn stats(&self) -> UploadStats {
         self.stats
     }
 

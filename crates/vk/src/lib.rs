@@ -37,9 +37,11 @@ mod context;
 mod error;
 
 pub use ash;
-pub use bvh::{VkBvh, VkUploadStats};
+pub use bvh::VkBvh;
 /// What [`VkBvh::trace`] returns: the wgpu path's type, so both backends report alike.
 pub use bvhtrace_gpu::TraceOutput;
+/// What an upload cost: the wgpu path's type, the same arrays and bytes.
+pub use bvhtrace_gpu::UploadStats;
 pub use bvhtrace_gpu::shaders::KernelVariant;
 pub use context::{VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, process_validation_errors};
 pub use error::VkError;
