@@ -14,8 +14,10 @@ use bvhtrace_gpu::{
     PipelineFeatures, RayInput, TraceOptions, UploadOptions, VertexAttributes, kernel_source,
 };
 use glam::Vec3;
-use naga::valid::{Capabilities, ValidationFlags, Validator};
 use naga::{Module, TypeInner};
+
+mod common;
+use common::{compile_variant, parse, validate};
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 const TRAVERSALS: [Traversal; 3] = [
@@ -24,13 +26,6 @@ const TRAVERSALS: [Traversal; 3] = [
     Traversal::ShortStack(6),
 ];
 const NORMALS: VertexAttributes = VertexAttributes { normals: true };
-
-fn parse(source: &str) -> Module {
-    match naga::front::wgsl::parse_str(source) {
-        Ok(m) => m,
-        Err(e) => panic!("{}", e.emit_to_string(source)),
-    }
-}
 
 /// `(group, binding, name)` of every resource the module declares.
 fn declared(module: &Module) -> BTreeSet<(u32, u32, String)> {
@@ -83,32 +78,7 @@ fn every_job(storage: BvhStorage) -> Vec<PipelineFeatures> {
 
 /// Validates `module` and compiles its one entry point to SPIR-V with `f`'s overrides.
 fn compile(module: &Module, f: &PipelineFeatures) {
-    let info = Validator::new(ValidationFlags::all(), Capabilities::default())
-        .validate(module)
-        .unwrap_or_else(|e| panic!("{f:?}: {e:?}"));
-    let mut constants = naga::back::PipelineConstants::default();
-    for (name, value) in f.variant.constants() {
-        constants.insert(name.to_string(), value);
-    }
-    let entry = f.variant.entry_point();
-    let (m, i) = naga::back::pipeline_constants::process_overrides(
-        module,
-        &info,
-        Some((naga::ShaderStage::Compute, entry)),
-        &constants,
-    )
-    .unwrap_or_else(|e| panic!("{f:?}: {e}"));
-    let words = naga::back::spv::write_vec(
-        &m,
-        &i,
-        &naga::back::spv::Options::default(),
-        Some(&naga::back::spv::PipelineOptions {
-            shader_stage: naga::ShaderStage::Compute,
-            entry_point: entry.to_string(),
-        }),
-    )
-    .unwrap_or_else(|e| panic!("{f:?}: {e}"));
-    assert!(words.len() > 100, "{f:?}: SPIR-V too short");
+    compile_variant(module, &validate(module), &f.variant);
 }
 
 #[test]

@@ -13,21 +13,10 @@ use bvhtrace_gpu::{
 };
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
-use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
 use naga::{Expression, Literal, Module, TypeInner};
 
-fn parse(source: &str) -> Module {
-    match naga::front::wgsl::parse_str(source) {
-        Ok(m) => m,
-        Err(e) => panic!("{}", e.emit_to_string(source)),
-    }
-}
-
-fn validate(module: &Module) -> ModuleInfo {
-    Validator::new(ValidationFlags::all(), Capabilities::default())
-        .validate(module)
-        .unwrap_or_else(|e| panic!("{e:?}"))
-}
+mod common;
+use common::{compile_variant, parse, validate};
 
 /// `(name, offset)` of each member of the struct type called `name`, and its size.
 fn struct_layout(module: &Module, name: &str) -> (Vec<(String, u32)>, u32) {
@@ -205,29 +194,7 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
             if !seen.insert(v) {
                 continue;
             }
-            let mut constants = naga::back::PipelineConstants::default();
-            for (name, value) in v.constants() {
-                constants.insert(name.to_string(), value);
-            }
-            let entry = (naga::ShaderStage::Compute, v.entry_point());
-            let (m, i) = naga::back::pipeline_constants::process_overrides(
-                &module,
-                &info,
-                Some((entry.0, entry.1)),
-                &constants,
-            )
-            .unwrap_or_else(|e| panic!("{v:?}: {e}"));
-            let words = naga::back::spv::write_vec(
-                &m,
-                &i,
-                &naga::back::spv::Options::default(),
-                Some(&naga::back::spv::PipelineOptions {
-                    shader_stage: naga::ShaderStage::Compute,
-                    entry_point: v.entry_point().to_string(),
-                }),
-            )
-            .unwrap_or_else(|e| panic!("{v:?}: {e}"));
-            assert!(words.len() > 100, "{v:?}: SPIR-V too short");
+            compile_variant(&module, &info, &v);
         }
     }
 }

@@ -10,11 +10,10 @@ use bvhtrace_gpu::shaders::{
 };
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 
-const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
+mod common;
+use common::{compile_variant, parse, validate_with};
 
-fn parse(source: &str) -> naga::Module {
-    naga::front::wgsl::parse_str(source).unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)))
-}
+const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 
 fn capabilities(p: Precision) -> Capabilities {
     if p.needs_f64() {
@@ -76,9 +75,7 @@ fn every_precision_variant_validates_and_compiles() {
     for storage in STORAGES {
         for p in Precision::ALL {
             let module = parse(&kernel_source_for(storage, p));
-            let info = Validator::new(ValidationFlags::all(), capabilities(p))
-                .validate(&module)
-                .unwrap_or_else(|e| panic!("{storage:?} {p}: {e:?}"));
+            let info = validate_with(&module, capabilities(p));
             for tr in [
                 Traversal::FullStack,
                 Traversal::Stackless,
@@ -88,28 +85,7 @@ fn every_precision_variant_validates_and_compiles() {
                     for counters in [false, true] {
                         let v = KernelVariant::new(storage, tr, q, counters).with_precision(p);
                         assert_eq!(v.precision, p);
-                        let mut constants = naga::back::PipelineConstants::default();
-                        for (name, value) in v.constants() {
-                            constants.insert(name.to_string(), value);
-                        }
-                        let (m, i) = naga::back::pipeline_constants::process_overrides(
-                            &module,
-                            &info,
-                            Some((naga::ShaderStage::Compute, v.entry_point())),
-                            &constants,
-                        )
-                        .unwrap_or_else(|e| panic!("{v:?}: {e}"));
-                        let words = naga::back::spv::write_vec(
-                            &m,
-                            &i,
-                            &naga::back::spv::Options::default(),
-                            Some(&naga::back::spv::PipelineOptions {
-                                shader_stage: naga::ShaderStage::Compute,
-                                entry_point: v.entry_point().to_string(),
-                            }),
-                        )
-                        .unwrap_or_else(|e| panic!("{v:?}: {e}"));
-                        assert!(words.len() > 100, "{v:?}: SPIR-V too short");
+                        compile_variant(&module, &info, &v);
                         n += 1;
                     }
                 }
