@@ -17,8 +17,11 @@ use bvhtrace_core::{
     trace_batch_counted,
 };
 use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, GpuError, UploadOptions};
-use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_scene::Camera;
 use glam::Vec3;
+
+mod support;
+use support::{Rng, parity_scenes};
 
 /// Largest `t`, `u`, `v` difference accepted, in ulps.
 const MAX_ULPS: u32 = 2;
@@ -55,32 +58,6 @@ fn context() -> Option<GpuContext> {
             None
         }
         Err(e) => panic!("cannot open a GPU: {e}"),
-    }
-}
-
-/// A small deterministic generator (SplitMix64).
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    fn f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn unit_vector(&mut self) -> Vec3 {
-        loop {
-            let v = Vec3::new(self.f32(), self.f32(), self.f32()) * 2.0 - Vec3::ONE;
-            let l = v.length_squared();
-            if l > 1e-4 && l <= 1.0 {
-                return v / l.sqrt();
-            }
-        }
     }
 }
 
@@ -269,54 +246,6 @@ fn compare(
     (bad_hits, bad_counters, worst)
 }
 
-struct SceneCase {
-    name: String,
-    bvh: FlatBvh,
-    /// The triangles by primitive index (for the oracle).
-    tris: Vec<Triangle>,
-}
-
-fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
-    let scene = match bvhtrace_scene::load(spec) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("SKIP scene {name}: {e}");
-            return None;
-        }
-    };
-    let tris = scene
-        .flatten()
-        .triangles()
-        .unwrap_or_else(|e| panic!("{name}: {e}"));
-    let bvh =
-        FlatBvh::build(&tris, &BuildOptions::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
-    Some(SceneCase {
-        name: name.to_string(),
-        bvh,
-        tris,
-    })
-}
-
-fn scenes() -> Vec<SceneCase> {
-    let mut out = Vec::new();
-    let glb = shared_scenes_dir().map(|d| d.join("glb"));
-    match &glb {
-        Some(dir) => {
-            let p = |f: &str| dir.join(f).to_string_lossy().into_owned();
-            out.extend(load_scene(&p("suzanne_968.glb"), "suzanne_968"));
-            out.extend(load_scene(&p("bunny_69k.glb"), "bunny_69k"));
-            out.extend(load_scene(
-                &format!("{}#scale=1e-3", p("bunny_69k.glb")),
-                "bunny_69k#scale=1e-3",
-            ));
-        }
-        None => eprintln!("SKIP the shared .glb scenes: no shared/scenes folder found"),
-    }
-    out.extend(load_scene("builtin:degenerate", "builtin:degenerate"));
-    out.extend(load_scene("builtin:cornell", "builtin:cornell"));
-    out
-}
-
 #[test]
 fn gpu_matches_cpu_twins_ray_by_ray() {
     let Some(ctx) = context() else { return };
@@ -329,7 +258,7 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
     ];
     let mut failures = Vec::new();
     let mut total_exceptions = 0;
-    for (s, case) in scenes().iter().enumerate() {
+    for (s, case) in parity_scenes().iter().enumerate() {
         let bvh = &case.bvh;
         let tris = &case.tris;
         let rays = ray_set(bvh, 0x5eed + s as u64);

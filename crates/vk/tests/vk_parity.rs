@@ -9,9 +9,13 @@ use bvhtrace_core::{
 };
 use bvhtrace_gpu::shaders::KernelVariant;
 use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions};
-use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_scene::Camera;
 use bvhtrace_vk::{VkBvh, VkContext, VkError, VkOptions};
 use glam::Vec3;
+
+#[path = "../../../tests/support/mod.rs"]
+mod support;
+use support::{Rng, SceneCase, load_scene, parity_scenes};
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
 /// machine has no Vulkan at all.
@@ -36,62 +40,15 @@ fn context(test: &str) -> Option<VkContext> {
     }
 }
 
-fn load(spec: &str) -> Option<(String, FlatBvh)> {
-    let scene = match bvhtrace_scene::load(spec) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("SKIP scene {spec}: {e}");
-            return None;
-        }
-    };
-    let tris = scene
-        .flatten()
-        .triangles()
-        .unwrap_or_else(|e| panic!("{spec}: {e}"));
-    let bvh =
-        FlatBvh::build(&tris, &BuildOptions::default()).unwrap_or_else(|e| panic!("{spec}: {e}"));
-    Some((spec.to_string(), bvh))
-}
-
-/// The scenes of `tests/gpu_parity.rs`: shared meshes when present (a small one, the
-/// bunny, the bunny at 1e-3 scale), the degenerate builtin, the Cornell box, and the
-/// Cornell box at 1e-4 scale (a tiny-scale scene that is always there).
-fn scenes() -> Vec<(String, FlatBvh)> {
-    let mut out = Vec::new();
-    match shared_scenes_dir().map(|d| d.join("glb")) {
-        Some(dir) => {
-            let p = |f: &str| dir.join(f).to_string_lossy().into_owned();
-            out.extend(load(&p("suzanne_968.glb")));
-            out.extend(load(&p("bunny_69k.glb")));
-            out.extend(load(&format!("{}#scale=1e-3", p("bunny_69k.glb"))));
-        }
-        None => eprintln!("SKIP the shared .glb scenes: no shared/scenes folder found"),
-    }
-    out.extend(load("builtin:degenerate"));
-    out.extend(load("builtin:cornell"));
-    out.extend(load("builtin:cornell#scale=1e-4"));
+/// The scenes of `tests/gpu_parity.rs`, and the Cornell box at 1e-4 scale (a tiny-scale
+/// scene that is always there).
+fn scenes() -> Vec<SceneCase> {
+    let mut out = parity_scenes();
+    out.extend(load_scene(
+        "builtin:cornell#scale=1e-4",
+        "builtin:cornell#scale=1e-4",
+    ));
     out
-}
-
-/// SplitMix64.
-struct Rng(u64);
-
-impl Rng {
-    fn f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn unit(&mut self) -> Vec3 {
-        loop {
-            let v = Vec3::new(self.f32(), self.f32(), self.f32()) * 2.0 - Vec3::ONE;
-            if v.length_squared() > 1e-4 && v.length_squared() <= 1.0 {
-                return v.normalize();
-            }
-        }
-    }
 }
 
 /// 128x96 primary rays, random rays from inside the bounds (full and finite intervals),
@@ -104,7 +61,7 @@ fn rays(bvh: &FlatBvh) -> Vec<Ray> {
     let mut rng = Rng(7);
     for i in 0..3072 {
         let o = lo + size * Vec3::new(rng.f32(), rng.f32(), rng.f32());
-        let d = rng.unit();
+        let d = rng.unit_vector();
         rays.push(if i % 3 == 0 {
             Ray::with_interval(o, d, 1e-4 * size.length(), size.length() * rng.f32())
         } else {
@@ -162,7 +119,7 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
     let scenes = scenes();
     assert!(scenes.len() >= 3, "only {} scenes loaded", scenes.len());
     let expected = scenes.len() * traversals.len() * 2;
-    for (name, bvh) in scenes {
+    for SceneCase { name, bvh, .. } in scenes {
         let rays = rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
         let wg = GpuBvh::upload(
@@ -378,9 +335,9 @@ fn precisions_match_wgpu_and_cpu() {
         );
     }
     let mut failures = Vec::new();
-    for (name, bvh) in ["builtin:degenerate", "builtin:cornell"]
+    for SceneCase { name, bvh, .. } in ["builtin:degenerate", "builtin:cornell"]
         .into_iter()
-        .filter_map(load)
+        .filter_map(|spec| load_scene(spec, spec))
     {
         let rays = rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");

@@ -1,0 +1,88 @@
+//! What the parity tests share: the scenes they run on and a small deterministic generator.
+//! Used by `tests/gpu_parity.rs` and, through `#[path]`, by `crates/vk/tests/vk_parity.rs`,
+//! so both backends are checked on the same scenes.
+#![allow(dead_code)]
+
+use bvhtrace_core::{BuildOptions, FlatBvh, Triangle};
+use bvhtrace_scene::shared_scenes_dir;
+use glam::Vec3;
+
+/// A small deterministic generator (SplitMix64).
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    pub fn f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// A random unit vector (rejection sampling in the unit ball).
+    pub fn unit_vector(&mut self) -> Vec3 {
+        loop {
+            let v = Vec3::new(self.f32(), self.f32(), self.f32()) * 2.0 - Vec3::ONE;
+            let l = v.length_squared();
+            if l > 1e-4 && l <= 1.0 {
+                return v / l.sqrt();
+            }
+        }
+    }
+}
+
+/// One scene of the parity tests.
+pub struct SceneCase {
+    pub name: String,
+    pub bvh: FlatBvh,
+    /// The triangles by primitive index (for the oracle).
+    pub tris: Vec<Triangle>,
+}
+
+/// Loads and builds `spec`, or prints SKIP and returns `None` when it cannot be read.
+pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
+    let scene = match bvhtrace_scene::load(spec) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("SKIP scene {name}: {e}");
+            return None;
+        }
+    };
+    let tris = scene
+        .flatten()
+        .triangles()
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let bvh =
+        FlatBvh::build(&tris, &BuildOptions::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
+    Some(SceneCase {
+        name: name.to_string(),
+        bvh,
+        tris,
+    })
+}
+
+/// The parity scenes: shared meshes when present (a small one, `bunny_69k`, the bunny at
+/// 1e-3 scale), the degenerate-heavy builtin and the Cornell box.
+pub fn parity_scenes() -> Vec<SceneCase> {
+    let mut out = Vec::new();
+    match shared_scenes_dir().map(|d| d.join("glb")) {
+        Some(dir) => {
+            let p = |f: &str| dir.join(f).to_string_lossy().into_owned();
+            out.extend(load_scene(&p("suzanne_968.glb"), "suzanne_968"));
+            out.extend(load_scene(&p("bunny_69k.glb"), "bunny_69k"));
+            out.extend(load_scene(
+                &format!("{}#scale=1e-3", p("bunny_69k.glb")),
+                "bunny_69k#scale=1e-3",
+            ));
+        }
+        None => eprintln!("SKIP the shared .glb scenes: no shared/scenes folder found"),
+    }
+    out.extend(load_scene("builtin:degenerate", "builtin:degenerate"));
+    out.extend(load_scene("builtin:cornell", "builtin:cornell"));
+    out
+}
