@@ -21,7 +21,7 @@ use bvhtrace_scene::Camera;
 use glam::Vec3;
 
 mod support;
-use support::{Rng, parity_scenes};
+use support::{Rng, one_triangle, parity_scenes};
 
 /// Largest `t`, `u`, `v` difference accepted, in ulps.
 const MAX_ULPS: u32 = 2;
@@ -470,12 +470,7 @@ fn deep_trees_match_cpu_twins() {
 #[test]
 fn upload_checks_and_errors() {
     let Some(ctx) = context() else { return };
-    let tris = vec![[
-        Vec3::new(-1.0, -1.0, 0.0),
-        Vec3::new(1.0, -1.0, 0.0),
-        Vec3::new(0.0, 1.0, 0.0),
-    ]];
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let bvh = one_triangle();
     // Full stack only: no parents uploaded, and the parent-link traversals are refused.
     let gpu = GpuBvh::upload(
         &ctx,
@@ -521,12 +516,7 @@ fn upload_checks_and_errors() {
 #[test]
 fn record_into_user_encoder() {
     let Some(ctx) = context() else { return };
-    let tris = vec![[
-        Vec3::new(-1.0, -1.0, 0.0),
-        Vec3::new(1.0, -1.0, 0.0),
-        Vec3::new(0.0, 1.0, 0.0),
-    ]];
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let bvh = one_triangle();
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
     let rays: Vec<Ray> = (0..1000)
         .map(|i| {
@@ -611,12 +601,7 @@ fn bytemuck_cast(rays: &[Ray]) -> &[u8] {
 #[test]
 fn batches_larger_than_a_dispatch_are_split() {
     let Some(ctx) = context() else { return };
-    let tris = vec![[
-        Vec3::new(-1.0, -1.0, 0.0),
-        Vec3::new(1.0, -1.0, 0.0),
-        Vec3::new(0.0, 1.0, 0.0),
-    ]];
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let bvh = one_triangle();
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
     let n = bvhtrace_gpu::MAX_RAYS_PER_DISPATCH as usize + 4099;
     let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());

@@ -36,6 +36,17 @@ impl Rng {
     }
 }
 
+/// The BVH of one triangle in the z = 0 plane, corners (-1, -1), (1, -1), (0, 1): for
+/// tests about the API rather than the walk.
+pub fn one_triangle() -> FlatBvh {
+    let tris = vec![[
+        Vec3::new(-1.0, -1.0, 0.0),
+        Vec3::new(1.0, -1.0, 0.0),
+        Vec3::new(0.0, 1.0, 0.0),
+    ]];
+    FlatBvh::build(&tris, &BuildOptions::default()).expect("build")
+}
+
 /// One scene of the parity tests.
 pub struct SceneCase {
     pub name: String,

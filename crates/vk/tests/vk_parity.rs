@@ -15,7 +15,7 @@ use glam::Vec3;
 
 #[path = "../../../tests/support/mod.rs"]
 mod support;
-use support::{Rng, SceneCase, load_scene, parity_scenes};
+use support::{Rng, SceneCase, load_scene, one_triangle, parity_scenes};
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
 /// machine has no Vulkan at all.
@@ -191,12 +191,7 @@ fn create_and_drop_in_a_loop() {
     let Some(first) = context("create and drop") else {
         return;
     };
-    let tris = vec![[
-        Vec3::new(-1.0, -1.0, 0.0),
-        Vec3::new(1.0, -1.0, 0.0),
-        Vec3::new(0.0, 1.0, 0.0),
-    ]];
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let bvh = one_triangle();
     let rays = [
         Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z),
         Ray::new(Vec3::new(3.0, 0.0, 5.0), Vec3::NEG_Z),
@@ -426,12 +421,7 @@ fn batches_larger_than_a_dispatch_are_split() {
     let Some(ctx) = context("split batches") else {
         return;
     };
-    let tris = vec![[
-        Vec3::new(-1.0, -1.0, 0.0),
-        Vec3::new(1.0, -1.0, 0.0),
-        Vec3::new(0.0, 1.0, 0.0),
-    ]];
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let bvh = one_triangle();
     let n = bvhtrace_gpu::rays_per_dispatch(ctx.limits()) as usize + 1000;
     let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());
     assert!(plan.len() >= 2, "{plan:?}");
