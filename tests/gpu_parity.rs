@@ -21,7 +21,7 @@ use bvhtrace_scene::Camera;
 use glam::Vec3;
 
 mod support;
-use support::{Rng, one_triangle, parity_scenes};
+use support::{Rng, deep_tree, one_triangle, parity_scenes};
 
 /// Largest `t`, `u`, `v` difference accepted, in ulps.
 const MAX_ULPS: u32 = 2;
@@ -388,23 +388,7 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
 #[test]
 fn deep_trees_match_cpu_twins() {
     let Some(ctx) = context() else { return };
-    let tris: Vec<Triangle> = (0..120)
-        .map(|i| {
-            let p = Vec3::new(2f32.powi(i - 60), 0.0, 0.0);
-            [
-                p + Vec3::new(0.0, -1.0, -1.0),
-                p + Vec3::new(0.0, 1.0, -1.0),
-                p + Vec3::new(0.0, 0.0, 1.0),
-            ]
-        })
-        .collect();
-    let opts = BuildOptions {
-        builder: bvhtrace_core::BuilderKind::Midpoint,
-        max_depth: 1000,
-        max_leaf_size: 1,
-        ..Default::default()
-    };
-    let bvh = FlatBvh::build(&tris, &opts).expect("build");
+    let bvh = deep_tree();
     assert!(bvh.depth > 64, "depth {}", bvh.depth);
     let mut rays = Vec::new();
     for i in 0..120 {

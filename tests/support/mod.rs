@@ -47,6 +47,28 @@ pub fn one_triangle() -> FlatBvh {
     FlatBvh::build(&tris, &BuildOptions::default()).expect("build")
 }
 
+/// A tree deeper than the full stack's 64 entries: 120 triangles at exponentially spaced
+/// positions along x, midpoint splits, one triangle per leaf.
+pub fn deep_tree() -> FlatBvh {
+    let tris: Vec<Triangle> = (0..120)
+        .map(|i| {
+            let p = Vec3::new(2f32.powi(i - 60), 0.0, 0.0);
+            [
+                p + Vec3::new(0.0, -1.0, -1.0),
+                p + Vec3::new(0.0, 1.0, -1.0),
+                p + Vec3::new(0.0, 0.0, 1.0),
+            ]
+        })
+        .collect();
+    let opts = BuildOptions {
+        builder: bvhtrace_core::BuilderKind::Midpoint,
+        max_depth: 1000,
+        max_leaf_size: 1,
+        ..Default::default()
+    };
+    FlatBvh::build(&tris, &opts).expect("build")
+}
+
 /// One scene of the parity tests.
 pub struct SceneCase {
     pub name: String,

@@ -4,9 +4,7 @@
 //! loader or device at all.
 
 use bvhtrace_core::traverse::trace_batch_counted_precision;
-use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, Precision, Query, Ray, Traversal, trace_batch_counted,
-};
+use bvhtrace_core::{FlatBvh, Precision, Query, Ray, Traversal, trace_batch_counted};
 use bvhtrace_gpu::shaders::KernelVariant;
 use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions};
 use bvhtrace_scene::Camera;
@@ -15,7 +13,7 @@ use glam::Vec3;
 
 #[path = "../../../tests/support/mod.rs"]
 mod support;
-use support::{Rng, SceneCase, load_scene, one_triangle, parity_scenes};
+use support::{Rng, SceneCase, deep_tree, load_scene, one_triangle, parity_scenes};
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
 /// machine has no Vulkan at all.
@@ -247,26 +245,7 @@ fn errors_are_errors_not_panics() {
     assert_eq!(again.device_info().name, ctx.device_info().name);
 
     // A tree deeper than the full-stack kernel's stack is refused for that traversal only.
-    let tris: Vec<[Vec3; 3]> = (0..120)
-        .map(|i| {
-            let p = Vec3::new(2f32.powi(i - 60), 0.0, 0.0);
-            [
-                p + Vec3::new(0.0, -1.0, -1.0),
-                p + Vec3::new(0.0, 1.0, -1.0),
-                p + Vec3::new(0.0, 0.0, 1.0),
-            ]
-        })
-        .collect();
-    let deep = FlatBvh::build(
-        &tris,
-        &BuildOptions {
-            builder: BuilderKind::Midpoint,
-            max_depth: 1000,
-            max_leaf_size: 1,
-            ..Default::default()
-        },
-    )
-    .expect("build");
+    let deep = deep_tree();
     assert!(deep.depth > bvhtrace_gpu::FULL_STACK_SIZE);
     let gpu = VkBvh::upload(&ctx, &deep).expect("upload");
     let rays = [Ray::new(Vec3::new(-1.0, 0.1, 0.0), Vec3::X)];
