@@ -286,36 +286,24 @@ impl GpuContext {
             ],
         ];
         // [buffer rays, texture rays] x [hits, hits + counters].
-        let batch_layouts = [
-            [
-                layout(
-                    "bvhtrace batch",
-                    &[storage_entry(0, true), storage_entry(1, false)],
-                ),
-                layout(
-                    "bvhtrace batch+counters",
-                    &[
-                        storage_entry(0, true),
-                        storage_entry(1, false),
-                        storage_entry(2, false),
-                    ],
-                ),
-            ],
-            [
-                layout(
-                    "bvhtrace batch (ray texture)",
-                    &[texture_entry(0, rgba), storage_entry(1, false)],
-                ),
-                layout(
-                    "bvhtrace batch+counters (ray texture)",
-                    &[
-                        texture_entry(0, rgba),
-                        storage_entry(1, false),
-                        storage_entry(2, false),
-                    ],
-                ),
-            ],
-        ];
+        let batch_layout = |rays: RayInput, counters: bool| {
+            let mut entries = vec![
+                match rays {
+                    RayInput::Buffer => storage_entry(0, true),
+                    RayInput::Texture => texture_entry(0, rgba),
+                },
+                storage_entry(1, false),
+            ];
+            if counters {
+                entries.push(storage_entry(2, false));
+            }
+            layout(
+                &format!("bvhtrace batch ({rays:?} rays, counters {counters})"),
+                &entries,
+            )
+        };
+        let batch_layouts = [RayInput::Buffer, RayInput::Texture]
+            .map(|rays| [false, true].map(|counters| batch_layout(rays, counters)));
         let trip_limit = crate::shaders::trip_limit_for(&adapter_info);
         GpuContext {
             inner: Arc::new(Inner {

@@ -181,10 +181,10 @@ impl RayStore {
         }
     }
 
-    fn input(&self) -> RayInput {
+    fn binding(&self) -> RaysBinding<'_> {
         match self {
-            RayStore::Buffer(_) => RayInput::Buffer,
-            RayStore::Texture(..) => RayInput::Texture,
+            RayStore::Buffer(b) => RaysBinding::Buffer(b),
+            RayStore::Texture(_, v) => RaysBinding::Texture(v),
         }
     }
 
@@ -239,6 +239,15 @@ enum RaysBinding<'a> {
     Buffer(&'a wgpu::Buffer),
     /// Ray `i` of the batch is ray `i` of the texture: the batch is one dispatch.
     Texture(&'a wgpu::TextureView),
+}
+
+impl RaysBinding<'_> {
+    fn input(self) -> RayInput {
+        match self {
+            RaysBinding::Buffer(_) => RayInput::Buffer,
+            RaysBinding::Texture(_) => RayInput::Texture,
+        }
+    }
 }
 
 /// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
@@ -524,7 +533,7 @@ impl GpuBvh {
         if guard.as_ref().is_none_or(|s| {
             s.capacity < capacity
                 || (opts.counters && s.counters.is_none())
-                || s.rays.input() != input
+                || s.rays.binding().input() != input
         }) {
             let capacity = capacity.max(guard.as_ref().map_or(0, |s| s.capacity));
             *guard = None; // free the old buffers first
@@ -562,13 +571,9 @@ impl GpuBvh {
                             beginning_of_pass_write_index: Some(0),
                             end_of_pass_write_index: Some(1),
                         });
-                    let rays = match &s.rays {
-                        RayStore::Buffer(b) => RaysBinding::Buffer(b),
-                        RayStore::Texture(_, v) => RaysBinding::Texture(v),
-                    };
                     self.record_rays(
                         &mut enc,
-                        rays,
+                        s.rays.binding(),
                         &s.hits,
                         counter_buffers.map(|c| &c.out),
                         count,
@@ -670,15 +675,12 @@ impl GpuBvh {
         precision: Precision,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
-        self.supports(opts.traversal)?;
-        let n = batch.ray_count;
-        check_buffer("rays", batch.rays, n, RAY_BYTES)?;
         self.record_rays(
             encoder,
             RaysBinding::Buffer(batch.rays),
             batch.hits,
             batch.counters,
-            n,
+            batch.ray_count,
             opts,
             precision,
             timestamp_writes,
@@ -700,6 +702,9 @@ impl GpuBvh {
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
+        if let RaysBinding::Buffer(b) = rays {
+            check_buffer("rays", b, n, RAY_BYTES)?;
+        }
         check_buffer("hits", hits, n, HIT_BYTES)?;
         let counters = if opts.counters {
             let c = counters.ok_or(GpuError::BadBuffer {
@@ -711,10 +716,7 @@ impl GpuBvh {
         } else {
             None
         };
-        let input = match rays {
-            RaysBinding::Buffer(_) => RayInput::Buffer,
-            RaysBinding::Texture(_) => RayInput::Texture,
-        };
+        let input = rays.input();
         let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
             .with_precision(precision)
             .with_rays(input);
