@@ -153,8 +153,33 @@ pub(crate) fn check_size(
     Ok(())
 }
 
+/// A `width` x `rows` texture the kernels read as a read-only storage texture, filled by
+/// copies: the BVH's texel textures and [`crate::GpuBvh::trace`]'s ray texture.
+pub(crate) fn storage_texture(
+    ctx: &GpuContext,
+    label: &str,
+    format: wgpu::TextureFormat,
+    width: u32,
+    rows: u32,
+) -> wgpu::Texture {
+    ctx.device().create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height: rows,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    })
+}
+
 /// Rows of a texel texture holding `texels` texels.
-fn texel_rows(texels: u64) -> u64 {
+pub(crate) fn texel_rows(texels: u64) -> u64 {
     texels.div_ceil(u64::from(TEXEL_ROW)).max(1)
 }
 
@@ -196,21 +221,7 @@ fn texel_texture(
         TEXEL_ROW
     };
     data.resize(width as usize * rows as usize * channels, 0);
-    let size = wgpu::Extent3d {
-        width,
-        height: rows,
-        depth_or_array_layers: 1,
-    };
-    let texture = ctx.device().create_texture(&wgpu::TextureDescriptor {
-        label: Some(label),
-        size,
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format,
-        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
+    let texture = storage_texture(ctx, label, format, width, rows);
     ctx.queue().write_texture(
         wgpu::TexelCopyTextureInfo {
             texture: &texture,
@@ -224,7 +235,7 @@ fn texel_texture(
             bytes_per_row: Some(width * 4 * channels as u32),
             rows_per_image: Some(rows),
         },
-        size,
+        texture.size(),
     );
     (texture, (data.len() * 4) as u64)
 }

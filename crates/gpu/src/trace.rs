@@ -303,21 +303,13 @@ impl Scratch {
                     U::STORAGE | U::COPY_DST,
                 )),
                 RayInput::Texture => {
-                    let rows = (2 * capacity).div_ceil(u64::from(TEXEL_ROW)) as u32;
-                    let texture = device.create_texture(&wgpu::TextureDescriptor {
-                        label: Some("bvhtrace ray texels"),
-                        size: wgpu::Extent3d {
-                            width: TEXEL_ROW,
-                            height: rows,
-                            depth_or_array_layers: 1,
-                        },
-                        mip_level_count: 1,
-                        sample_count: 1,
-                        dimension: wgpu::TextureDimension::D2,
-                        format: wgpu::TextureFormat::Rgba32Uint,
-                        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_DST,
-                        view_formats: &[],
-                    });
+                    let texture = crate::bvh::storage_texture(
+                        ctx,
+                        "bvhtrace ray texels",
+                        wgpu::TextureFormat::Rgba32Uint,
+                        TEXEL_ROW,
+                        crate::bvh::texel_rows(2 * capacity) as u32,
+                    );
                     let view = texture.create_view(&Default::default());
                     RayStore::Texture(texture, view)
                 }
