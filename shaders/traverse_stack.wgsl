@@ -18,7 +18,7 @@ const STACK_LANES: u32 = 64u;
 // stack's ring (`MAX_SHORT_STACK`) too.
 const STACK_ENTRIES: u32 = 64u;
 
-var<workgroup> lane_stacks: array<u32, 4096>; // STACK_ENTRIES * STACK_LANES
+var<workgroup> lane_stacks: array<u32, STACK_ENTRIES * STACK_LANES>;
 
 // The slot of entry `e` of `lane`'s stack.
 fn stack_slot(lane: u32, e: u32) -> u32 {

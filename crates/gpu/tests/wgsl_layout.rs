@@ -9,7 +9,8 @@ use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
 use bvhtrace_gpu::shaders::{KernelVariant, SHADER_FILES};
 use bvhtrace_gpu::{
-    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE, kernel_source, wgsl_library,
+    BvhStorage, FULL_STACK_SIZE, STACK_LANES, TEXEL_ROW, WORKGROUP_SIZE, kernel_source,
+    wgsl_library,
 };
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
@@ -168,6 +169,11 @@ fn constants_match_rust() {
         constant(&module, "WORKGROUP_SIZE"),
         Literal::U32(WORKGROUP_SIZE)
     );
+    // The per-lane stacks: one per invocation of an entry point's workgroup, deep enough
+    // for the full stack and the short stack's largest ring.
+    assert_eq!(constant(&module, "STACK_LANES"), Literal::U32(STACK_LANES));
+    assert!(WORKGROUP_SIZE <= STACK_LANES);
+    assert!(FULL_STACK_SIZE >= MAX_SHORT_STACK);
     for ep in &module.entry_points {
         assert_eq!(ep.workgroup_size, [WORKGROUP_SIZE, 1, 1], "{}", ep.name);
     }
