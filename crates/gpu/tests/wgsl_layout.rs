@@ -172,8 +172,8 @@ fn constants_match_rust() {
     // The per-lane stacks: one per invocation of an entry point's workgroup, deep enough
     // for the full stack and the short stack's largest ring.
     assert_eq!(constant(&module, "STACK_LANES"), Literal::U32(STACK_LANES));
-    assert!(WORKGROUP_SIZE <= STACK_LANES);
-    assert!(FULL_STACK_SIZE >= MAX_SHORT_STACK);
+    const { assert!(WORKGROUP_SIZE <= STACK_LANES) };
+    const { assert!(FULL_STACK_SIZE >= MAX_SHORT_STACK) };
     for ep in &module.entry_points {
         assert_eq!(ep.workgroup_size, [WORKGROUP_SIZE, 1, 1], "{}", ep.name);
     }
