@@ -28,6 +28,28 @@ const WORKGROUP_SIZE: u32 = 64u;
 // exactly the chunk's rays, so its length is the ray count.
 @group(1) @binding(1) var<storage, read_write> hits: array<Hit>;
 
+// Worker threads among which a CPU driver splits each dispatch, as contiguous ranges of
+// workgroups in linear order (lavapipe: `LP_NUM_THREADS`, by default one per CPU); 1 on
+// GPUs, which hand out workgroups as they go (`bvhtrace_gpu::dispatch_threads_for`).
+override DISPATCH_THREADS: u32 = 1u;
+
+// The batch ray of invocation `gid`: lane `l` of workgroup `w` (of `n`) traces ray
+// `interleave(w, n) * WORKGROUP_SIZE + l`.
 fn ray_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return gid.x + gid.y * groups.x * WORKGROUP_SIZE;
+    let w = gid.x / WORKGROUP_SIZE + gid.y * groups.x;
+    return interleave(w, groups.x * groups.y) * WORKGROUP_SIZE + gid.x % WORKGROUP_SIZE;
+}
+
+// The ray block workgroup `w` of `n` traces. With `t` threads each taking `n / t`
+// consecutive workgroups, thread `k` traces blocks `k, k + t, k + 2t, ...`: every thread
+// gets its share of every part of the frame (the lower half of `bunny_69k`'s frame holds
+// two thirds of its work) and keeps to neighbouring blocks. The `n % t` workgroups left
+// over keep their own block. A bijection on `0..n`; the identity when `t` is 1.
+fn interleave(w: u32, n: u32) -> u32 {
+    let t = max(DISPATCH_THREADS, 1u);
+    let q = n / t;
+    if (w >= q * t) {
+        return w;
+    }
+    return (w % q) * t + w / q;
 }

@@ -663,3 +663,117 @@ fn ray_textures_hold_any_batch_size() {
         }
     }
 }
+
+/// Rays that run exactly in the plane of a face of the root box, parallel to it, entering
+/// the box from outside: only the box test's parallel path (`PARALLEL_RAYS`, kept because
+/// these rays have zero direction components) sees that they pass through the box. The
+/// GPU's hits and counters equal the CPU twin's.
+#[test]
+fn rays_along_box_faces_match_cpu_twins() {
+    let Some(ctx) = context() else { return };
+    let bvh = FlatBvh::build(
+        &bvhtrace_scene::load("builtin:cornell")
+            .expect("builtin")
+            .flatten()
+            .triangles()
+            .expect("triangles"),
+        &BuildOptions::default(),
+    )
+    .expect("build");
+    let b = bvh.bounds();
+    let (lo, hi) = (b.min, b.max);
+    let mid = (lo + hi) * 0.5;
+    let mut rays = Vec::new();
+    for plane_axis in 0..3 {
+        for on in [lo[plane_axis], hi[plane_axis]] {
+            for travel in (0..3).filter(|&a| a != plane_axis) {
+                for s in [0.25f32, 0.5, 0.75] {
+                    for dir_sign in [1.0f32, -1.0] {
+                        let mut o = mid;
+                        let third = 3 - plane_axis - travel;
+                        o[third] = lo[third] + s * (hi[third] - lo[third]);
+                        o[plane_axis] = on;
+                        // Outside the box along `travel`, heading in.
+                        o[travel] = if dir_sign > 0.0 {
+                            lo[travel] - 1.0
+                        } else {
+                            hi[travel] + 1.0
+                        };
+                        let mut d = Vec3::ZERO;
+                        d[travel] = dir_sign;
+                        rays.push(Ray::new(o, d));
+                    }
+                }
+            }
+        }
+    }
+    for storage in [BvhStorage::Textures, BvhStorage::Buffers] {
+        let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage))
+            .expect("upload");
+        for traversal in [
+            Traversal::FullStack,
+            Traversal::Stackless,
+            Traversal::ShortStack(6),
+        ] {
+            let (hits, counters) = trace_batch_counted(&bvh, &rays, traversal, Query::Closest);
+            assert!(
+                counters.iter().any(|c| c.nodes > 1),
+                "some face ray goes into the box"
+            );
+            let out = gpu
+                .trace_counted(&rays, traversal, Query::Closest)
+                .expect("trace");
+            let gpu_counters = out.counters.expect("counters");
+            for (i, r) in rays.iter().enumerate() {
+                assert_eq!(
+                    (out.hits[i].prim, out.hits[i].t.to_bits(), gpu_counters[i]),
+                    (hits[i].prim, hits[i].t.to_bits(), counters[i]),
+                    "{storage:?} {traversal:?}: face ray {i} {r:?}"
+                );
+            }
+        }
+    }
+}
+
+/// Whatever number of threads the workgroups are dealt out to (`DISPATCH_THREADS`), every
+/// ray of a batch is traced once, by its own invocation: the GPU's hits equal the CPU
+/// twin's for batch sizes that leave partial workgroups and a remainder of workgroups.
+#[test]
+fn interleaved_workgroups_trace_every_ray() {
+    let Some(ctx) = context() else { return };
+    let bvh = FlatBvh::build(
+        &bvhtrace_scene::load("builtin:cornell")
+            .expect("builtin")
+            .flatten()
+            .triangles()
+            .expect("triangles"),
+        &BuildOptions::default(),
+    )
+    .expect("build");
+    let all = ray_set(&bvh, 11);
+    let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
+        GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage)).expect("upload")
+    });
+    for threads in [1, 2, 3, 5] {
+        ctx.set_dispatch_threads(threads).expect("set threads");
+        assert_eq!(ctx.dispatch_threads(), threads);
+        for n in [63, 64 * 7 + 5, 4097] {
+            let rays = &all[all.len() - n - threads as usize..all.len() - threads as usize];
+            let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
+            for gpu in &gpus {
+                let out = gpu
+                    .trace(rays, Traversal::FullStack, Query::Closest)
+                    .expect("trace");
+                for (i, (g, c)) in out.hits.iter().zip(&cpu).enumerate() {
+                    assert_eq!(
+                        (g.prim, g.t.to_bits(), g.u.to_bits(), g.v.to_bits()),
+                        (c.prim, c.t.to_bits(), c.u.to_bits(), c.v.to_bits()),
+                        "{:?}, {threads} threads, {n} rays: ray {i} {:?}",
+                        gpu.storage(),
+                        rays[i]
+                    );
+                }
+            }
+        }
+    }
+}

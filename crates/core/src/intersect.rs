@@ -95,6 +95,15 @@ pub struct PreparedRay {
     pub sz: f32,
 }
 
+/// True when the direction `d` has a zero (or subnormal) component: what
+/// [`PreparedRay::parallel`] is for a ray along `d`, without the rest of the preparation.
+/// The GPU crate asks it of every ray of a batch, and compiles the box test's parallel
+/// path out when no ray needs it.
+#[inline]
+pub fn is_parallel_to_a_slab(d: Vec3) -> bool {
+    flush_subnormal(d.x) == 0.0 || flush_subnormal(d.y) == 0.0 || flush_subnormal(d.z) == 0.0
+}
+
 /// `d`, or a zero of the same sign when `d` is subnormal.
 #[inline]
 pub fn flush_subnormal(d: f32) -> f32 {
@@ -151,7 +160,7 @@ impl PreparedRay {
             org,
             dir,
             inv_dir,
-            parallel: dir.x == 0.0 || dir.y == 0.0 || dir.z == 0.0,
+            parallel: is_parallel_to_a_slab(dir),
             t_min: ray.t_min,
             t_max: ray.t_max,
             kx,

@@ -2,7 +2,7 @@
 //! module, the bind group layouts and the pipeline cache.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::Precision;
@@ -79,6 +79,8 @@ struct Inner {
     timestamps: bool,
     /// The `TRIP_LIMIT` override ([`crate::shaders::trip_limit_for`]).
     trip_limit: u32,
+    /// The `DISPATCH_THREADS` override ([`crate::shaders::dispatch_threads_for`]).
+    dispatch_threads: AtomicU32,
     /// Shader modules, by the files composed.
     modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
     /// BVH group layouts: `[buffers, textures][without parents, with parents]`.
@@ -305,6 +307,7 @@ impl GpuContext {
         let batch_layouts = [RayInput::Buffer, RayInput::Texture]
             .map(|rays| [false, true].map(|counters| batch_layout(rays, counters)));
         let trip_limit = crate::shaders::trip_limit_for(&adapter_info);
+        let dispatch_threads = AtomicU32::new(crate::shaders::dispatch_threads_for(&adapter_info));
         GpuContext {
             inner: Arc::new(Inner {
                 device,
@@ -312,6 +315,7 @@ impl GpuContext {
                 info: adapter_info,
                 limits,
                 trip_limit,
+                dispatch_threads,
                 timestamps,
                 modules: Default::default(),
                 bvh_layouts,
@@ -439,6 +443,22 @@ impl GpuContext {
         )
     }
 
+    /// The `DISPATCH_THREADS` override the pipelines get: the worker threads a CPU driver
+    /// splits each dispatch among ([`crate::shaders::dispatch_threads_for`]), 1 on GPUs.
+    pub fn dispatch_threads(&self) -> u32 {
+        self.inner.dispatch_threads.load(Ordering::Relaxed)
+    }
+
+    /// Sets the `DISPATCH_THREADS` override for the pipelines created from now on (and
+    /// forgets the cached ones): for a driver whose thread count the context cannot see.
+    /// Any value gives the same hits; clamped to `1..=MAX_DISPATCH_THREADS`.
+    pub fn set_dispatch_threads(&self, threads: u32) -> Result<(), GpuError> {
+        let t = threads.clamp(1, crate::shaders::MAX_DISPATCH_THREADS);
+        self.inner.dispatch_threads.store(t, Ordering::Relaxed);
+        self.inner.pipelines.lock().map_err(|_| poisoned())?.clear();
+        Ok(())
+    }
+
     /// Forgets every cached module and pipeline (for timing pipeline creation).
     pub fn clear_pipeline_cache(&self) -> Result<(), GpuError> {
         self.inner.pipelines.lock().map_err(|_| poisoned())?.clear();
@@ -513,6 +533,7 @@ impl GpuContext {
         });
         let mut constants = variant.constants();
         constants.push(("TRIP_LIMIT", f64::from(self.inner.trip_limit)));
+        constants.push(("DISPATCH_THREADS", f64::from(self.dispatch_threads())));
         let pipeline = self.scoped("creating a trace pipeline", || {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(variant.entry_point()),

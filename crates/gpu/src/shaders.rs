@@ -134,6 +134,39 @@ pub fn trip_limit_for(info: &wgpu::AdapterInfo) -> u32 {
     }
 }
 
+/// The `DISPATCH_THREADS` override for an adapter (`entry.wgsl`): on a CPU driver, the
+/// worker threads it splits each dispatch among, as contiguous ranges of workgroups
+/// (lavapipe: `LP_NUM_THREADS`, by default one per CPU); 1 elsewhere. The entry points
+/// deal ray blocks out to those ranges in turn, so that each thread gets a share of every
+/// part of a frame instead of one band of it.
+pub fn dispatch_threads_for(info: &wgpu::AdapterInfo) -> u32 {
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    dispatch_threads(
+        info.device_type,
+        std::env::var("LP_NUM_THREADS").ok().as_deref(),
+        cpus,
+    )
+}
+
+/// [`dispatch_threads_for`] given the `LP_NUM_THREADS` value and the CPU count: at least
+/// 1 and at most [`MAX_DISPATCH_THREADS`].
+pub fn dispatch_threads(
+    device_type: wgpu::DeviceType,
+    lp_num_threads: Option<&str>,
+    cpus: usize,
+) -> u32 {
+    if device_type != wgpu::DeviceType::Cpu {
+        return 1;
+    }
+    let threads = lp_num_threads
+        .and_then(|v| v.trim().parse::<u32>().ok())
+        .unwrap_or(u32::try_from(cpus).unwrap_or(u32::MAX));
+    threads.clamp(1, MAX_DISPATCH_THREADS)
+}
+
+/// The most threads [`dispatch_threads`] assumes (lavapipe's own cap is lower).
+pub const MAX_DISPATCH_THREADS: u32 = 64;
+
 /// Invocations per workgroup of the entry points (`WORKGROUP_SIZE` in `entry.wgsl`).
 pub const WORKGROUP_SIZE: u32 = 64;
 
@@ -304,6 +337,10 @@ pub struct KernelVariant {
     pub precision: Precision,
     /// Where the rays are read from.
     pub rays: RayInput,
+    /// `PARALLEL_RAYS` (`box.wgsl`): some ray of the batch may have a zero direction
+    /// component ([`bvhtrace_core::intersect::is_parallel_to_a_slab`]). True unless the
+    /// batch is known to have none ([`KernelVariant::for_rays`]).
+    pub parallel_rays: bool,
 }
 
 impl KernelVariant {
@@ -330,6 +367,7 @@ impl KernelVariant {
             counters,
             precision: Precision::WatertightF32,
             rays: RayInput::Buffer,
+            parallel_rays: true,
         }
     }
 
@@ -362,6 +400,18 @@ impl KernelVariant {
         KernelVariant { rays, ..self }
     }
 
+    /// The same variant specialised for `rays`: the box test's parallel path is compiled
+    /// out when none of them has a zero direction component.
+    pub fn for_rays(self, rays: &[bvhtrace_core::Ray]) -> Self {
+        let parallel_rays = rays
+            .iter()
+            .any(|r| bvhtrace_core::intersect::is_parallel_to_a_slab(glam::Vec3::from(r.dir)));
+        KernelVariant {
+            parallel_rays,
+            ..self
+        }
+    }
+
     /// Every variant the tests validate for `storage`: each traversal kind (full stack,
     /// stackless, short stack with `k`) x query x counters.
     pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelVariant> {
@@ -377,6 +427,7 @@ impl KernelVariant {
                         counters,
                         precision: Precision::WatertightF32,
                         rays: RayInput::Buffer,
+                        parallel_rays: true,
                     });
                 }
             }
@@ -396,7 +447,11 @@ impl KernelVariant {
 
     /// The override constants the entry point uses, as wgpu takes them.
     pub fn constants(&self) -> Vec<(&'static str, f64)> {
-        let mut c = vec![("ANY_HIT", if self.any_hit { 1.0 } else { 0.0 })];
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        let mut c = vec![
+            ("ANY_HIT", flag(self.any_hit)),
+            ("PARALLEL_RAYS", flag(self.parallel_rays)),
+        ];
         if self.short_stack {
             c.push(("SHORT_STACK_SIZE", f64::from(self.k)));
         }
@@ -406,5 +461,67 @@ impl KernelVariant {
     /// True when the kernel reads the parent links.
     pub fn needs_parents(&self) -> bool {
         self.short_stack
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bvhtrace_core::{Query, Ray, Traversal};
+    use glam::Vec3;
+
+    #[test]
+    fn dispatch_threads_follow_the_cpu_driver() {
+        use wgpu::DeviceType::{Cpu, DiscreteGpu, IntegratedGpu};
+        // GPUs hand out workgroups as they go: no interleave.
+        assert_eq!(dispatch_threads(DiscreteGpu, Some("8"), 16), 1);
+        assert_eq!(dispatch_threads(IntegratedGpu, None, 16), 1);
+        // lavapipe: LP_NUM_THREADS, else one thread per CPU.
+        assert_eq!(dispatch_threads(Cpu, None, 2), 2);
+        assert_eq!(dispatch_threads(Cpu, Some("3"), 2), 3);
+        assert_eq!(dispatch_threads(Cpu, Some(" 4 "), 2), 4);
+        assert_eq!(dispatch_threads(Cpu, Some("lots"), 6), 6);
+        // 0 threads: the dispatch runs on the calling thread, as one range.
+        assert_eq!(dispatch_threads(Cpu, Some("0"), 2), 1);
+        assert_eq!(dispatch_threads(Cpu, None, 0), 1);
+        assert_eq!(
+            dispatch_threads(Cpu, Some("100000"), 2),
+            MAX_DISPATCH_THREADS
+        );
+    }
+
+    #[test]
+    fn the_parallel_path_is_left_out_only_without_zero_direction_components() {
+        let v = KernelVariant::new(
+            BvhStorage::Textures,
+            Traversal::FullStack,
+            Query::Closest,
+            false,
+        );
+        assert!(v.parallel_rays, "unknown rays keep the parallel path");
+        let ray = |d: Vec3| Ray::new(Vec3::ZERO, d);
+        let oblique = [
+            ray(Vec3::new(0.3, -0.2, 1.0)),
+            ray(Vec3::new(-1.0, 1e-30, 2.0)),
+        ];
+        assert!(!v.for_rays(&oblique).parallel_rays);
+        assert!(!v.for_rays(&[]).parallel_rays);
+        for d in [
+            Vec3::new(0.0, 0.5, 1.0),
+            Vec3::new(0.5, -0.0, 1.0),
+            // Subnormal: flushed to zero by the kernels, so parallel too.
+            Vec3::new(0.5, 1.0, f32::from_bits(1)),
+        ] {
+            let mut rays = oblique.to_vec();
+            rays.push(ray(d));
+            let p = v.for_rays(&rays);
+            assert!(p.parallel_rays, "{d:?}");
+            assert!(p.constants().contains(&("PARALLEL_RAYS", 1.0)));
+        }
+        assert!(
+            v.for_rays(&oblique)
+                .constants()
+                .contains(&("PARALLEL_RAYS", 0.0))
+        );
     }
 }

@@ -406,21 +406,41 @@ impl GpuBvh {
         self.prepare_precision(opts, Precision::WatertightF32)
     }
 
+    /// The kernel variant tracing `opts` with `precision`, its rays read from `input` and,
+    /// when the host has them (`known`), specialised for them.
+    fn variant(
+        &self,
+        opts: &TraceOptions,
+        precision: Precision,
+        input: RayInput,
+        known: Option<&[Ray]>,
+    ) -> KernelVariant {
+        let v = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
+            .with_precision(precision)
+            .with_rays(input);
+        match known {
+            Some(rays) => v.for_rays(rays),
+            None => v,
+        }
+    }
+
     /// [`GpuBvh::prepare`] for the kernels with the triangle test of `precision` (the ones
-    /// [`GpuBvh::trace`] runs: rays read as [`RayInput::for_storage`] says).
+    /// [`GpuBvh::trace`] runs: rays read as [`RayInput::for_storage`] says, with the box
+    /// test's parallel path and without it, see [`KernelVariant::for_rays`]).
     pub fn prepare_precision(
         &self,
         opts: &TraceOptions,
         precision: Precision,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
-        self.ctx
-            .pipeline(
-                KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-                    .with_precision(precision)
-                    .with_rays(RayInput::for_storage(self.storage())),
-            )
-            .map(|_| ())
+        let variant = self.variant(opts, precision, RayInput::for_storage(self.storage()), None);
+        for parallel_rays in [true, false] {
+            self.ctx.pipeline(KernelVariant {
+                parallel_rays,
+                ..variant
+            })?;
+        }
+        Ok(())
     }
 
     /// Device bytes of the buffers [`GpuBvh::trace`] keeps between calls: rays, hits and
@@ -494,7 +514,12 @@ impl GpuBvh {
         opts: &TraceOptions,
         precision: Precision,
     ) -> Result<TraceOutput, GpuError> {
-        self.prepare_precision(opts, precision)?;
+        // The pipeline first: an unsupported traversal or precision fails before any
+        // upload.
+        self.supports(opts.traversal)?;
+        let input = RayInput::for_storage(self.storage());
+        self.ctx
+            .pipeline(self.variant(opts, precision, input, Some(rays)))?;
         let start = Instant::now();
         let n = rays.len() as u64;
         let mut out = TraceOutput {
@@ -509,7 +534,6 @@ impl GpuBvh {
         }
         // With the BVH in textures (CPU drivers), the rays go in a texture too, one
         // dispatch per submission (`RayInput::Texture`).
-        let input = RayInput::for_storage(self.storage());
         let (mut per_submit, mut capacity) = plan_submissions(n, self.ctx.limits());
         if input == RayInput::Texture {
             per_submit = per_submit.min(ray_texture_capacity(self.ctx.limits()));
@@ -571,6 +595,7 @@ impl GpuBvh {
                         count,
                         opts,
                         precision,
+                        Some(batch),
                         tw,
                     )?;
                     enc.copy_buffer_to_buffer(&s.hits, 0, &s.hits_read, 0, hit_bytes);
@@ -675,12 +700,14 @@ impl GpuBvh {
             batch.ray_count,
             opts,
             precision,
+            None,
             timestamp_writes,
         )
     }
 
     /// Records the traversal of `n` rays read from `rays`, hits (and counters) to the
-    /// given buffers. A texture holds the whole batch in one dispatch.
+    /// given buffers. A texture holds the whole batch in one dispatch. `known`, when the
+    /// host has the rays, specialises the pipeline for them ([`KernelVariant::for_rays`]).
     #[allow(clippy::too_many_arguments)]
     fn record_rays(
         &self,
@@ -691,6 +718,7 @@ impl GpuBvh {
         n: u64,
         opts: &TraceOptions,
         precision: Precision,
+        known: Option<&[Ray]>,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
@@ -709,9 +737,7 @@ impl GpuBvh {
             None
         };
         let input = rays.input();
-        let variant = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-            .with_precision(precision)
-            .with_rays(input);
+        let variant = self.variant(opts, precision, input, known);
         let pipeline = self.ctx.pipeline(variant)?;
         let group0 =
             self.bind_group(variant.needs_parents())

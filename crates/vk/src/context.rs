@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
 use bvhtrace_core::Precision;
-use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, trip_limit_for};
+use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, dispatch_threads_for, trip_limit_for};
 use bvhtrace_gpu::{AdapterChoice, GpuError, GpuLimits, pick_adapter};
 
 use crate::error::{VkError, vkerr};
@@ -121,6 +121,8 @@ pub(crate) struct Inner {
     robust2: bool,
     /// The `TRIP_LIMIT` override (`bvhtrace_gpu::shaders::trip_limit_for`).
     trip_limit: u32,
+    /// The `DISPATCH_THREADS` override (`bvhtrace_gpu::shaders::dispatch_threads_for`).
+    dispatch_threads: u32,
     /// `shaderFloat64` is enabled (the f64 triangle test can run).
     float64: bool,
     pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
@@ -328,6 +330,7 @@ impl VkContext {
                 })?;
             let (pd, props, family, family_props) = candidates[index];
             let trip_limit = trip_limit_for(&infos[index]);
+            let dispatch_threads = dispatch_threads_for(&infos[index]);
             let info = VkDeviceInfo {
                 name: infos[index].name.clone(),
                 device_type: props.device_type,
@@ -426,6 +429,7 @@ impl VkContext {
                 spirv_version,
                 robust2,
                 trip_limit,
+                dispatch_threads,
                 float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
                 pipeline_layout: vk::PipelineLayout::null(),
@@ -544,7 +548,7 @@ impl VkContext {
 
     /// The SPIR-V words of one kernel variant: the variant's WGSL module
     /// ([`KernelVariant::source`], the one the wgpu path compiles), its override constants
-    /// ([`KernelVariant::constants`] and `TRIP_LIMIT`) resolved by naga, written for this
+    /// ([`KernelVariant::constants`], `TRIP_LIMIT` and `DISPATCH_THREADS`) resolved by naga, written for this
     /// device's SPIR-V version. Only [`BvhStorage::Buffers`] variants are supported.
     pub fn spirv(&self, variant: KernelVariant) -> Result<Vec<u32>, VkError> {
         if variant.storage != BvhStorage::Buffers {
@@ -579,6 +583,10 @@ impl VkContext {
             constants.insert(name.to_string(), value);
         }
         constants.insert("TRIP_LIMIT".to_string(), f64::from(inner.trip_limit));
+        constants.insert(
+            "DISPATCH_THREADS".to_string(),
+            f64::from(inner.dispatch_threads),
+        );
         let (module, info) = naga::back::pipeline_constants::process_overrides(
             &module,
             &module_info,
