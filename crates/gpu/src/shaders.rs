@@ -117,11 +117,13 @@ pub const FULL_STACK_SIZE: u32 = 64;
 pub const STACK_LANES: u32 = 64;
 
 /// The trip budget ([`trip_limit_for`]) on CPU drivers: lavapipe ends every loop of an
-/// invocation after 65,535 trips in all, counted per batch of 8 lanes, where an inner loop
-/// counts its longest lane. A ray's trips (node steps, triangle tests, climb steps) are
-/// at most this budget, so a batch counts at most `budget` outer trips plus, for the inner
-/// loops, the sum over its 8 lanes: at most `9 * 7,000 = 63,000`.
-pub const CPU_DRIVER_TRIP_LIMIT: u32 = 7_000;
+/// invocation after 65,535 trips in all, counted per batch of 8 lanes over all its loops.
+/// A ray's trips (node steps, triangle tests, climb steps) are at most this budget, and
+/// every trip of an inner or climb loop, and every trip of a walk's outer loop, has some
+/// lane take one of its trips: at most `8 * budget` each. The short stack's restart loop
+/// (one trip more per climb after its ring ran dry) adds at most `budget + 1`, so a batch
+/// counts at most `17 * 3,800 + 1 = 64,601`.
+pub const CPU_DRIVER_TRIP_LIMIT: u32 = 3_800;
 
 /// The `TRIP_LIMIT` override for an adapter: [`CPU_DRIVER_TRIP_LIMIT`] on CPU drivers
 /// (lavapipe), unbounded (`u32::MAX`) elsewhere. A ray that spends it comes back as
