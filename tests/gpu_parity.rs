@@ -623,13 +623,9 @@ fn batches_larger_than_a_dispatch_are_split() {
     );
 }
 
-/// With the BVH in textures, `trace` uploads the rays to a texture of 4096 rays per row
-/// (`RayInput::Texture`): batches smaller than a row, of whole rows and of whole rows plus
-/// a part all come back ray for ray as the CPU twin's and as the buffer path's.
-#[test]
-fn ray_textures_hold_any_batch_size() {
-    let Some(ctx) = context() else { return };
-    let bvh = FlatBvh::build(
+/// The builtin Cornell box, built with the default options.
+fn cornell() -> FlatBvh {
+    FlatBvh::build(
         &bvhtrace_scene::load("builtin:cornell")
             .expect("builtin")
             .flatten()
@@ -637,7 +633,34 @@ fn ray_textures_hold_any_batch_size() {
             .expect("triangles"),
         &BuildOptions::default(),
     )
-    .expect("build");
+    .expect("build")
+}
+
+/// Traces `rays` with `gpu` (full stack, closest hit) and checks every hit against the CPU
+/// twin's, `cpu`, bit for bit.
+fn assert_full_stack_hits(gpu: &GpuBvh, rays: &[Ray], cpu: &[Hit], what: &str) {
+    let out = gpu
+        .trace(rays, Traversal::FullStack, Query::Closest)
+        .expect("trace");
+    assert_eq!(out.hits.len(), rays.len(), "{what}");
+    for (i, (g, c)) in out.hits.iter().zip(cpu).enumerate() {
+        assert_eq!(
+            (g.prim, g.t.to_bits(), g.u.to_bits(), g.v.to_bits()),
+            (c.prim, c.t.to_bits(), c.u.to_bits(), c.v.to_bits()),
+            "{:?}, {what}: ray {i} {:?}",
+            gpu.storage(),
+            rays[i]
+        );
+    }
+}
+
+/// With the BVH in textures, `trace` uploads the rays to a texture of 4096 rays per row
+/// (`RayInput::Texture`): batches smaller than a row, of whole rows and of whole rows plus
+/// a part all come back ray for ray as the CPU twin's and as the buffer path's.
+#[test]
+fn ray_textures_hold_any_batch_size() {
+    let Some(ctx) = context() else { return };
+    let bvh = cornell();
     let all = ray_set(&bvh, 7);
     let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
         GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage)).expect("upload")
@@ -647,19 +670,7 @@ fn ray_textures_hold_any_batch_size() {
         let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
         assert!(cpu.iter().any(|h| h.prim != u32::MAX), "{n} rays: some hit");
         for gpu in &gpus {
-            let out = gpu
-                .trace(rays, Traversal::FullStack, Query::Closest)
-                .expect("trace");
-            assert_eq!(out.hits.len(), n);
-            for (i, (g, c)) in out.hits.iter().zip(&cpu).enumerate() {
-                assert_eq!(
-                    (g.prim, g.t.to_bits(), g.u.to_bits(), g.v.to_bits()),
-                    (c.prim, c.t.to_bits(), c.u.to_bits(), c.v.to_bits()),
-                    "{:?}, {n} rays: ray {i} {:?}",
-                    gpu.storage(),
-                    rays[i]
-                );
-            }
+            assert_full_stack_hits(gpu, rays, &cpu, &format!("{n} rays"));
         }
     }
 }
@@ -671,15 +682,7 @@ fn ray_textures_hold_any_batch_size() {
 #[test]
 fn rays_along_box_faces_match_cpu_twins() {
     let Some(ctx) = context() else { return };
-    let bvh = FlatBvh::build(
-        &bvhtrace_scene::load("builtin:cornell")
-            .expect("builtin")
-            .flatten()
-            .triangles()
-            .expect("triangles"),
-        &BuildOptions::default(),
-    )
-    .expect("build");
+    let bvh = cornell();
     let b = bvh.bounds();
     let (lo, hi) = (b.min, b.max);
     let mid = (lo + hi) * 0.5;
@@ -741,15 +744,7 @@ fn rays_along_box_faces_match_cpu_twins() {
 #[test]
 fn interleaved_workgroups_trace_every_ray() {
     let Some(ctx) = context() else { return };
-    let bvh = FlatBvh::build(
-        &bvhtrace_scene::load("builtin:cornell")
-            .expect("builtin")
-            .flatten()
-            .triangles()
-            .expect("triangles"),
-        &BuildOptions::default(),
-    )
-    .expect("build");
+    let bvh = cornell();
     let all = ray_set(&bvh, 11);
     let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
         GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage)).expect("upload")
@@ -761,18 +756,7 @@ fn interleaved_workgroups_trace_every_ray() {
             let rays = &all[all.len() - n - threads as usize..all.len() - threads as usize];
             let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
             for gpu in &gpus {
-                let out = gpu
-                    .trace(rays, Traversal::FullStack, Query::Closest)
-                    .expect("trace");
-                for (i, (g, c)) in out.hits.iter().zip(&cpu).enumerate() {
-                    assert_eq!(
-                        (g.prim, g.t.to_bits(), g.u.to_bits(), g.v.to_bits()),
-                        (c.prim, c.t.to_bits(), c.u.to_bits(), c.v.to_bits()),
-                        "{:?}, {threads} threads, {n} rays: ray {i} {:?}",
-                        gpu.storage(),
-                        rays[i]
-                    );
-                }
+                assert_full_stack_hits(gpu, rays, &cpu, &format!("{threads} threads, {n} rays"));
             }
         }
     }
