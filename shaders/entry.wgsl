@@ -1,8 +1,7 @@
 // entry.wgsl: what every batch entry point shares (one thread per ray).
 //
 // Group 0 is the BVH (`bvh_buffers.wgsl` or `bvh_textures.wgsl`), group 1 the ray batch.
-// The host binds one chunk of at most a few million rays at a time, so
-// `arrayLength(&hits)` is the chunk's size; the grid is 2D when a chunk needs more than
+// The host binds one chunk of at most a few million rays at a time (`batch_len()`); the grid is 2D when a chunk needs more than
 // `max_compute_workgroups_per_dimension` groups.
 //
 // The entry points themselves are one file each, and a specialised module composes exactly
@@ -22,11 +21,11 @@ override SHORT_STACK_SIZE: u32 = 6u;
 
 const WORKGROUP_SIZE: u32 = 64u;
 
-// The rays (binding 0) are read with `load_ray(i)`, declared by one of
-// `entry_rays_buffer.wgsl` (a storage buffer, the default) or `entry_rays_texture.wgsl`
-// (a storage texture, for CPU drivers; `bvhtrace_gpu::RayInput`). The hits binding holds
-// exactly the chunk's rays, so its length is the ray count.
-@group(1) @binding(1) var<storage, read_write> hits: array<Hit>;
+// The rays (binding 0) and the hits (binding 1) are declared by one of
+// `entry_rays_buffer.wgsl` (storage buffers, the default) or `entry_rays_texture.wgsl`
+// (storage textures, for CPU drivers; `bvhtrace_gpu::RayInput`), with `load_ray(i)`,
+// `store_hit(i, hit)` and `batch_len()`: the rays an entry point may trace (the chunk's
+// size for buffers; for textures, whole rows, past the rays the host reads back).
 
 // Worker threads among which a CPU driver splits each dispatch, as contiguous ranges of
 // workgroups in linear order (lavapipe: `LP_NUM_THREADS`, by default one per CPU); 1 on

@@ -6,6 +6,10 @@
 @group(1) @binding(2) var<storage, read_write> counters: array<Counters>;
 
 fn store_counted(i: u32, res: TraceResult) {
-    hits[i] = res.hit;
-    counters[i] = res.counters;
+    store_hit(i, res.hit);
+    // With textures, `batch_len()` runs to the end of a row while the counters hold the
+    // chunk; WGSL lets an out-of-bounds store land anywhere in the buffer.
+    if (i < arrayLength(&counters)) {
+        counters[i] = res.counters;
+    }
 }

@@ -8,7 +8,7 @@ fn trace_full_stack_counted(
     @builtin(local_invocation_index) lid: u32,
 ) {
     let i = ray_index(gid, groups);
-    if (i >= arrayLength(&hits)) {
+    if (i >= batch_len()) {
         return;
     }
     store_counted(i, trace_full_stack(load_ray(i), ANY_HIT, lid));

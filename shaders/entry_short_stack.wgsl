@@ -8,8 +8,8 @@ fn trace_short_stack_main(
     @builtin(local_invocation_index) lid: u32,
 ) {
     let i = ray_index(gid, groups);
-    if (i >= arrayLength(&hits)) {
+    if (i >= batch_len()) {
         return;
     }
-    hits[i] = trace_short_stack(load_ray(i), ANY_HIT, SHORT_STACK_SIZE, lid).hit;
+    store_hit(i, trace_short_stack(load_ray(i), ANY_HIT, SHORT_STACK_SIZE, lid).hit);
 }

@@ -243,15 +243,18 @@ impl GpuContext {
         // Read-only storage textures, not sampled ones: lavapipe fetches a sampled texel
         // through its per-lane mip-level logic (about 140 instructions per fetch), a storage
         // texel with one address computation and a vector gather (`bvh_textures.wgsl`).
-        let texture_entry = |binding, format| wgpu::BindGroupLayoutEntry {
+        let storage_texture_entry = |binding, format, access| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
             ty: wgpu::BindingType::StorageTexture {
-                access: wgpu::StorageTextureAccess::ReadOnly,
+                access,
                 format,
                 view_dimension: wgpu::TextureViewDimension::D2,
             },
             count: None,
+        };
+        let texture_entry = |binding, format| {
+            storage_texture_entry(binding, format, wgpu::StorageTextureAccess::ReadOnly)
         };
         let (rgba, r) = (
             wgpu::TextureFormat::Rgba32Uint,
@@ -289,13 +292,13 @@ impl GpuContext {
         ];
         // [buffer rays, texture rays] x [hits, hits + counters].
         let batch_layout = |rays: RayInput, counters: bool| {
-            let mut entries = vec![
-                match rays {
-                    RayInput::Buffer => storage_entry(0, true),
-                    RayInput::Texture => texture_entry(0, rgba),
-                },
-                storage_entry(1, false),
-            ];
+            let mut entries = match rays {
+                RayInput::Buffer => vec![storage_entry(0, true), storage_entry(1, false)],
+                RayInput::Texture => vec![
+                    texture_entry(0, rgba),
+                    storage_texture_entry(1, rgba, wgpu::StorageTextureAccess::WriteOnly),
+                ],
+            };
             if counters {
                 entries.push(storage_entry(2, false));
             }

@@ -363,12 +363,12 @@ impl PipelineFeatures {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
         }
         if set.entries != Entries::None {
-            let rays = match set.rays {
-                shaders::RayInput::Buffer => "rays",
-                shaders::RayInput::Texture => "ray_texels",
+            let (rays, hits) = match set.rays {
+                shaders::RayInput::Buffer => ("rays", "hits"),
+                shaders::RayInput::Texture => ("ray_texels", "hit_texels"),
             };
             b.push(batch(0, rays, crate::trace::RAY_BYTES));
-            b.push(batch(1, "hits", crate::trace::HIT_BYTES));
+            b.push(batch(1, hits, crate::trace::HIT_BYTES));
             if set.has_counters() {
                 b.push(batch(2, "counters", crate::trace::COUNTERS_BYTES));
             }

@@ -292,14 +292,17 @@ pub const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../../../shaders/entry_r
 /// Where an entry point reads the batch's rays (binding 0 of group [`BATCH_GROUP`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum RayInput {
-    /// A storage buffer of [`bvhtrace_core::Ray`]s (`rays`): what [`crate::GpuBvh::record`]
-    /// traces, and [`crate::GpuBvh::trace`] with [`BvhStorage::Buffers`].
+    /// Storage buffers of [`bvhtrace_core::Ray`]s (`rays`) and [`bvhtrace_core::Hit`]s
+    /// (`hits`): what [`crate::GpuBvh::record`] traces, and [`crate::GpuBvh::trace`] with
+    /// [`BvhStorage::Buffers`].
     #[default]
     Buffer,
-    /// A read-only `Rgba32Uint` storage texture, two texels per ray (`ray_texels`,
-    /// `entry_rays_texture.wgsl`): what [`crate::GpuBvh::trace`] uploads the rays to with
-    /// [`BvhStorage::Textures`], the layout for CPU drivers, where a texel load is a vector
-    /// gather and a buffer load a loop over the lanes.
+    /// `Rgba32Uint` storage textures, [`TEXEL_ROW`] texels wide: the rays read-only, two
+    /// texels per ray (`ray_texels`), the hits write-only, one texel per hit
+    /// (`hit_texels`; `entry_rays_texture.wgsl`). What [`crate::GpuBvh::trace`] uses with
+    /// [`BvhStorage::Textures`], the layout for CPU drivers, where a texel access is one
+    /// vector gather or one loop over the lanes and a buffer access a loop over the lanes
+    /// per 32-bit word.
     Texture,
 }
 

@@ -159,40 +159,89 @@ pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
 pub(crate) struct Scratch {
     capacity: u64,
     rays: RayStore,
-    hits: wgpu::Buffer,
+    /// The hits' readback copy: `capacity` hits, or whole rows of the hit texture.
     hits_read: wgpu::Buffer,
     /// Allocated only once a trace asks for counters.
     counters: Option<CounterBuffers>,
     queries: Option<Queries>,
 }
 
-/// Where [`GpuBvh::trace`] uploads the rays ([`RayInput`]).
+/// Where [`GpuBvh::trace`] uploads the rays and finds the hits ([`RayInput`]).
 enum RayStore {
-    Buffer(wgpu::Buffer),
-    /// [`TEXEL_ROW`] texels wide, two texels per ray (`entry_rays_texture.wgsl`).
-    Texture(wgpu::Texture, wgpu::TextureView),
+    /// Rays, and hits.
+    Buffer(wgpu::Buffer, wgpu::Buffer),
+    /// [`TEXEL_ROW`] texels wide: two texels per ray, one per hit
+    /// (`entry_rays_texture.wgsl`).
+    Texture(Box<RayTextures>),
+}
+
+/// The ray and hit textures of [`RayStore::Texture`], with their views.
+struct RayTextures {
+    rays: wgpu::Texture,
+    rays_view: wgpu::TextureView,
+    hits: wgpu::Texture,
+    hits_view: wgpu::TextureView,
 }
 
 impl RayStore {
     fn bytes(&self) -> u64 {
         match self {
-            RayStore::Buffer(b) => b.size(),
-            RayStore::Texture(t, _) => u64::from(t.width()) * u64::from(t.height()) * RAY_BYTES / 2,
+            RayStore::Buffer(r, h) => r.size() + h.size(),
+            RayStore::Texture(t) => {
+                let texels = |t: &wgpu::Texture| u64::from(t.width()) * u64::from(t.height());
+                (texels(&t.rays) + texels(&t.hits)) * 16
+            }
         }
     }
 
     fn binding(&self) -> RaysBinding<'_> {
         match self {
-            RayStore::Buffer(b) => RaysBinding::Buffer(b),
-            RayStore::Texture(_, v) => RaysBinding::Texture(v),
+            RayStore::Buffer(rays, hits) => RaysBinding::Buffer { rays, hits },
+            RayStore::Texture(t) => RaysBinding::Texture {
+                rays: &t.rays_view,
+                hits: &t.hits_view,
+            },
+        }
+    }
+
+    /// Records the copy of the first `count` hits into `read`: the first `count` hits of a
+    /// buffer, or the rows of the hit texture that hold them (row-major, so the hits come
+    /// first, in order).
+    fn copy_hits(&self, encoder: &mut wgpu::CommandEncoder, read: &wgpu::Buffer, count: u64) {
+        match self {
+            RayStore::Buffer(_, hits) => {
+                encoder.copy_buffer_to_buffer(hits, 0, read, 0, count * HIT_BYTES)
+            }
+            RayStore::Texture(t) => encoder.copy_texture_to_buffer(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &t.hits,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                wgpu::TexelCopyBufferInfo {
+                    buffer: read,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: 0,
+                        bytes_per_row: Some(HIT_ROW_BYTES as u32),
+                        rows_per_image: None,
+                    },
+                },
+                wgpu::Extent3d {
+                    width: TEXEL_ROW,
+                    height: hit_rows(count) as u32,
+                    depth_or_array_layers: 1,
+                },
+            ),
         }
     }
 
     /// Uploads `rays` to the start of the store.
     fn write(&self, queue: &wgpu::Queue, rays: &[Ray]) {
         match self {
-            RayStore::Buffer(b) => queue.write_buffer(b, 0, bytemuck::cast_slice(rays)),
-            RayStore::Texture(t, _) => {
+            RayStore::Buffer(b, _) => queue.write_buffer(b, 0, bytemuck::cast_slice(rays)),
+            RayStore::Texture(textures) => {
+                let t = &textures.rays;
                 // Whole rows, then the rest of the last row.
                 let per_row = (TEXEL_ROW / 2) as usize;
                 let full = rays.len() / per_row;
@@ -233,21 +282,36 @@ impl RayStore {
     }
 }
 
-/// The rays a recorded dispatch reads.
+/// The rays a recorded dispatch reads and the hits it writes.
 #[derive(Clone, Copy)]
 enum RaysBinding<'a> {
-    Buffer(&'a wgpu::Buffer),
-    /// Ray `i` of the batch is ray `i` of the texture: the batch is one dispatch.
-    Texture(&'a wgpu::TextureView),
+    Buffer {
+        rays: &'a wgpu::Buffer,
+        hits: &'a wgpu::Buffer,
+    },
+    /// Ray `i` of the batch is ray `i` of the textures: the batch is one dispatch.
+    Texture {
+        rays: &'a wgpu::TextureView,
+        hits: &'a wgpu::TextureView,
+    },
 }
 
 impl RaysBinding<'_> {
     fn input(self) -> RayInput {
         match self {
-            RaysBinding::Buffer(_) => RayInput::Buffer,
-            RaysBinding::Texture(_) => RayInput::Texture,
+            RaysBinding::Buffer { .. } => RayInput::Buffer,
+            RaysBinding::Texture { .. } => RayInput::Texture,
         }
     }
+}
+
+/// Bytes of one row of the hit texture: [`TEXEL_ROW`] hits (a multiple of 256, as texture
+/// copies want).
+const HIT_ROW_BYTES: u64 = TEXEL_ROW as u64 * HIT_BYTES;
+
+/// Rows of the hit texture holding `hits` hits.
+fn hit_rows(hits: u64) -> u64 {
+    crate::bvh::texel_rows(hits)
 }
 
 /// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
@@ -297,31 +361,46 @@ impl Scratch {
         Scratch {
             capacity,
             rays: match input {
-                RayInput::Buffer => RayStore::Buffer(buf(
-                    "bvhtrace rays",
-                    capacity * RAY_BYTES,
-                    U::STORAGE | U::COPY_DST,
-                )),
+                RayInput::Buffer => RayStore::Buffer(
+                    buf(
+                        "bvhtrace rays",
+                        capacity * RAY_BYTES,
+                        U::STORAGE | U::COPY_DST,
+                    ),
+                    buf(
+                        "bvhtrace hits",
+                        capacity * HIT_BYTES,
+                        U::STORAGE | U::COPY_SRC,
+                    ),
+                ),
                 RayInput::Texture => {
-                    let texture = crate::bvh::storage_texture(
-                        ctx,
-                        "bvhtrace ray texels",
-                        wgpu::TextureFormat::Rgba32Uint,
-                        TEXEL_ROW,
-                        crate::bvh::texel_rows(2 * capacity) as u32,
-                    );
-                    let view = texture.create_view(&Default::default());
-                    RayStore::Texture(texture, view)
+                    let texels = |label, per_ray| {
+                        let t = crate::bvh::storage_texture(
+                            ctx,
+                            label,
+                            wgpu::TextureFormat::Rgba32Uint,
+                            TEXEL_ROW,
+                            crate::bvh::texel_rows(per_ray * capacity) as u32,
+                        );
+                        let v = t.create_view(&Default::default());
+                        (t, v)
+                    };
+                    let (rays, rays_view) = texels("bvhtrace ray texels", 2);
+                    let (hits, hits_view) = texels("bvhtrace hit texels", 1);
+                    RayStore::Texture(Box::new(RayTextures {
+                        rays,
+                        rays_view,
+                        hits,
+                        hits_view,
+                    }))
                 }
             },
-            hits: buf(
-                "bvhtrace hits",
-                capacity * HIT_BYTES,
-                U::STORAGE | U::COPY_SRC,
-            ),
             hits_read: buf(
                 "bvhtrace hits read",
-                capacity * HIT_BYTES,
+                match input {
+                    RayInput::Buffer => capacity * HIT_BYTES,
+                    RayInput::Texture => hit_rows(capacity) * HIT_ROW_BYTES,
+                },
                 U::MAP_READ | U::COPY_DST,
             ),
             counters: with_counters.then(|| CounterBuffers {
@@ -452,7 +531,6 @@ impl GpuBvh {
             .and_then(|g| {
                 g.as_ref().map(|s| {
                     s.rays.bytes()
-                        + s.hits.size()
                         + s.hits_read.size()
                         + s.counters
                             .as_ref()
@@ -590,7 +668,6 @@ impl GpuBvh {
                     self.record_rays(
                         &mut enc,
                         s.rays.binding(),
-                        &s.hits,
                         counter_buffers.map(|c| &c.out),
                         count,
                         opts,
@@ -598,7 +675,7 @@ impl GpuBvh {
                         Some(batch),
                         tw,
                     )?;
-                    enc.copy_buffer_to_buffer(&s.hits, 0, &s.hits_read, 0, hit_bytes);
+                    s.rays.copy_hits(&mut enc, &s.hits_read, count);
                     if let Some(c) = counter_buffers {
                         enc.copy_buffer_to_buffer(&c.out, 0, &c.read, 0, counter_bytes);
                     }
@@ -694,8 +771,10 @@ impl GpuBvh {
     ) -> Result<(), GpuError> {
         self.record_rays(
             encoder,
-            RaysBinding::Buffer(batch.rays),
-            batch.hits,
+            RaysBinding::Buffer {
+                rays: batch.rays,
+                hits: batch.hits,
+            },
             batch.counters,
             batch.ray_count,
             opts,
@@ -713,7 +792,6 @@ impl GpuBvh {
         &self,
         encoder: &mut wgpu::CommandEncoder,
         rays: RaysBinding<'_>,
-        hits: &wgpu::Buffer,
         counters: Option<&wgpu::Buffer>,
         n: u64,
         opts: &TraceOptions,
@@ -722,10 +800,10 @@ impl GpuBvh {
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
-        if let RaysBinding::Buffer(b) = rays {
-            check_buffer("rays", b, n, RAY_BYTES)?;
+        if let RaysBinding::Buffer { rays, hits } = rays {
+            check_buffer("rays", rays, n, RAY_BYTES)?;
+            check_buffer("hits", hits, n, HIT_BYTES)?;
         }
-        check_buffer("hits", hits, n, HIT_BYTES)?;
         let counters = if opts.counters {
             let c = counters.ok_or(GpuError::BadBuffer {
                 buffer: "counters",
@@ -746,7 +824,7 @@ impl GpuBvh {
                 })?;
         let device = self.ctx.device();
         let dispatches = plan_dispatches(n, self.ctx.limits());
-        if matches!(rays, RaysBinding::Texture(_)) && dispatches.len() > 1 {
+        if matches!(rays, RaysBinding::Texture { .. }) && dispatches.len() > 1 {
             return Err(GpuError::BadBuffer {
                 buffer: "rays",
                 problem: format!("{n} rays in a ray texture are more than one dispatch"),
@@ -756,17 +834,24 @@ impl GpuBvh {
             .iter()
             .map(|d| {
                 let (first, count) = (d.first_ray, u64::from(d.ray_count));
+                let (r, h) = match rays {
+                    RaysBinding::Buffer { rays, hits } => (
+                        binding(rays, first, count, RAY_BYTES),
+                        binding(hits, first, count, HIT_BYTES),
+                    ),
+                    RaysBinding::Texture { rays, hits } => (
+                        wgpu::BindingResource::TextureView(rays),
+                        wgpu::BindingResource::TextureView(hits),
+                    ),
+                };
                 let mut entries = vec![
                     wgpu::BindGroupEntry {
                         binding: 0,
-                        resource: match rays {
-                            RaysBinding::Buffer(b) => binding(b, first, count, RAY_BYTES),
-                            RaysBinding::Texture(v) => wgpu::BindingResource::TextureView(v),
-                        },
+                        resource: r,
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
-                        resource: binding(hits, first, count, HIT_BYTES),
+                        resource: h,
                     },
                 ];
                 if let Some(c) = counters {

@@ -244,15 +244,17 @@ fn switching_back_to_a_feature_set_does_not_recompile() {
     assert_eq!(ctx.compile_counts(), (1, 1));
     // No counter buffers until a trace asks for counters.
     let n = rays.len() as u64;
-    // The rays: a buffer, or whole rows of a ray texture (`RayInput::for_storage`).
-    let ray_bytes = match RayInput::for_storage(gpu.storage()) {
-        RayInput::Buffer => n * bvhtrace_gpu::RAY_BYTES,
+    // Rays and hits: buffers (and the hits' readback), or whole rows of a ray texture (two
+    // texels per ray) and of a hit texture (one), and the hit rows' readback
+    // (`RayInput::for_storage`).
+    let plain = match RayInput::for_storage(gpu.storage()) {
+        RayInput::Buffer => n * bvhtrace_gpu::RAY_BYTES + 2 * n * bvhtrace_gpu::HIT_BYTES,
         RayInput::Texture => {
             let row = u64::from(bvhtrace_gpu::TEXEL_ROW);
-            (2 * n).div_ceil(row) * row * 16
+            let rows = |texels: u64| texels.div_ceil(row) * row * 16;
+            rows(2 * n) + 2 * rows(n)
         }
     };
-    let plain = ray_bytes + 2 * n * bvhtrace_gpu::HIT_BYTES;
     assert_eq!(gpu.scratch_bytes(), plain);
     let counted = gpu.trace_with(&rays, &b).expect("trace b");
     assert_eq!(ctx.compile_counts(), (2, 2), "b has its own module");
