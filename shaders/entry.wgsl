@@ -1,8 +1,8 @@
 // entry.wgsl: what every batch entry point shares (one thread per ray).
 //
 // Group 0 is the BVH (`bvh_buffers.wgsl` or `bvh_textures.wgsl`), group 1 the ray batch.
-// The host binds one chunk of at most a few million rays at a time (`batch_len()`); the grid is 2D when a chunk needs more than
-// `max_compute_workgroups_per_dimension` groups.
+// The host binds one chunk of at most a few million rays at a time (`batch_len()`); the
+// grid is 2D when a chunk needs more than `max_compute_workgroups_per_dimension` groups.
 //
 // The entry points themselves are one file each, and a specialised module composes exactly
 // one of them (`bvhtrace_gpu::PipelineFeatures`):

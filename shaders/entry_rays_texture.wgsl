@@ -25,7 +25,8 @@ fn load_ray(i: u32) -> Ray {
 
 fn store_hit(i: u32, hit: Hit) {
     let c = vec2<u32>(i & 8191u, i >> 13u);
-    textureStore(hit_texels, c, vec4<u32>(bitcast<u32>(hit.t), hit.prim, bitcast<u32>(hit.u), bitcast<u32>(hit.v)));
+    let texel = vec4<u32>(bitcast<u32>(hit.t), hit.prim, bitcast<u32>(hit.u), bitcast<u32>(hit.v));
+    textureStore(hit_texels, c, texel);
 }
 
 // Whole rows of rays: the host dispatches one workgroup per 64 rays of the chunk, and the
