@@ -485,21 +485,20 @@ impl GpuBvh {
         self.prepare_precision(opts, Precision::WatertightF32)
     }
 
-    /// The kernel variant tracing `opts` with `precision`, its rays read from `input` and,
-    /// when the host has them (`known`), specialised for them.
+    /// The kernel variant tracing `opts` with `precision`, its rays read from `input`, with
+    /// the box test's parallel path when `parallel_rays` ([`KernelVariant::for_rays`]).
     fn variant(
         &self,
         opts: &TraceOptions,
         precision: Precision,
         input: RayInput,
-        known: Option<&[Ray]>,
+        parallel_rays: bool,
     ) -> KernelVariant {
-        let v = KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-            .with_precision(precision)
-            .with_rays(input);
-        match known {
-            Some(rays) => v.for_rays(rays),
-            None => v,
+        KernelVariant {
+            parallel_rays,
+            ..KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
+                .with_precision(precision)
+                .with_rays(input)
         }
     }
 
@@ -512,12 +511,10 @@ impl GpuBvh {
         precision: Precision,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
-        let variant = self.variant(opts, precision, RayInput::for_storage(self.storage()), None);
+        let input = RayInput::for_storage(self.storage());
         for parallel_rays in [true, false] {
-            self.ctx.pipeline(KernelVariant {
-                parallel_rays,
-                ..variant
-            })?;
+            self.ctx
+                .pipeline(self.variant(opts, precision, input, parallel_rays))?;
         }
         Ok(())
     }
@@ -593,11 +590,15 @@ impl GpuBvh {
         precision: Precision,
     ) -> Result<TraceOutput, GpuError> {
         // The pipeline first: an unsupported traversal or precision fails before any
-        // upload.
+        // upload. The rays are looked at once, and every chunk uses this variant.
         self.supports(opts.traversal)?;
         let input = RayInput::for_storage(self.storage());
+        let parallel_rays = self
+            .variant(opts, precision, input, true)
+            .for_rays(rays)
+            .parallel_rays;
         self.ctx
-            .pipeline(self.variant(opts, precision, input, Some(rays)))?;
+            .pipeline(self.variant(opts, precision, input, parallel_rays))?;
         let start = Instant::now();
         let n = rays.len() as u64;
         let mut out = TraceOutput {
@@ -672,7 +673,7 @@ impl GpuBvh {
                         count,
                         opts,
                         precision,
-                        Some(batch),
+                        parallel_rays,
                         tw,
                     )?;
                     s.rays.copy_hits(&mut enc, &s.hits_read, count);
@@ -779,14 +780,15 @@ impl GpuBvh {
             batch.ray_count,
             opts,
             precision,
-            None,
+            true,
             timestamp_writes,
         )
     }
 
     /// Records the traversal of `n` rays read from `rays`, hits (and counters) to the
-    /// given buffers. A texture holds the whole batch in one dispatch. `known`, when the
-    /// host has the rays, specialises the pipeline for them ([`KernelVariant::for_rays`]).
+    /// given buffers. A texture holds the whole batch in one dispatch. `parallel_rays` false
+    /// leaves the box test's parallel path out: only when the host has seen that no ray
+    /// needs it ([`KernelVariant::for_rays`]).
     #[allow(clippy::too_many_arguments)]
     fn record_rays(
         &self,
@@ -796,7 +798,7 @@ impl GpuBvh {
         n: u64,
         opts: &TraceOptions,
         precision: Precision,
-        known: Option<&[Ray]>,
+        parallel_rays: bool,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.supports(opts.traversal)?;
@@ -815,7 +817,7 @@ impl GpuBvh {
             None
         };
         let input = rays.input();
-        let variant = self.variant(opts, precision, input, known);
+        let variant = self.variant(opts, precision, input, parallel_rays);
         let pipeline = self.ctx.pipeline(variant)?;
         let group0 =
             self.bind_group(variant.needs_parents())
