@@ -153,8 +153,9 @@ pub(crate) fn check_size(
     Ok(())
 }
 
-/// A `width` x `rows` texture the kernels read as a read-only storage texture, filled by
-/// copies: the BVH's texel textures and [`crate::GpuBvh::trace`]'s ray texture.
+/// A `width` x `rows` storage texture, filled by copies and copied from: the BVH's texel
+/// textures and [`crate::GpuBvh::trace`]'s ray texture (read-only in the kernels), and its
+/// hit texture (write-only).
 pub(crate) fn storage_texture(
     ctx: &GpuContext,
     label: &str,

@@ -15,8 +15,8 @@
 //! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
 //! | `bvh_buffers_parents.wgsl` or `bvh_textures_parents.wgsl` | the parent links (binding 2), only for the walks that climb | `FlatBvh::parents` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
-//! | `entry.wgsl` | what the entry points share: `rays`, `hits`, the overrides | `traverse::trace_batch` |
-//! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from (`load_ray`, [`RayInput`]) | - |
+//! | `entry.wgsl` | what the entry points share: the overrides, `ray_index` | `traverse::trace_batch` |
+//! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from and the hits go (`load_ray`, `store_hit`, `batch_len`; [`RayInput`]) | - |
 //! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_batch_counted` |
 //! | `entry_{full,short}_stack[_counted].wgsl` | one entry point each | |
 //!
@@ -101,8 +101,8 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ),
 ];
 
-/// What every entry point shares (`entry.wgsl`: the `rays` and `hits` bindings, the
-/// override constants); the entry points themselves are
+/// What every entry point shares (`entry.wgsl`: the override constants, `ray_index`); the
+/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves
 /// [`crate::features::ENTRY_POINT_FILES`].
 pub const ENTRY_WGSL: &str = include_str!("../../../shaders/entry.wgsl");
 
@@ -284,12 +284,13 @@ pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
         .compose(BVH_GROUP)
 }
 
-/// `entry_rays_buffer.wgsl`: the rays in a storage buffer.
+/// `entry_rays_buffer.wgsl`: the rays and hits in storage buffers.
 pub const ENTRY_RAYS_BUFFER_WGSL: &str = include_str!("../../../shaders/entry_rays_buffer.wgsl");
-/// `entry_rays_texture.wgsl`: the rays in a storage texture.
+/// `entry_rays_texture.wgsl`: the rays and hits in storage textures.
 pub const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../../../shaders/entry_rays_texture.wgsl");
 
-/// Where an entry point reads the batch's rays (binding 0 of group [`BATCH_GROUP`]).
+/// Where an entry point reads the batch's rays and writes its hits (bindings 0 and 1 of
+/// group [`BATCH_GROUP`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum RayInput {
     /// Storage buffers of [`bvhtrace_core::Ray`]s (`rays`) and [`bvhtrace_core::Hit`]s
@@ -316,7 +317,8 @@ impl RayInput {
         }
     }
 
-    /// The WGSL file declaring this input's binding and `load_ray`.
+    /// The WGSL file declaring this input's two bindings, `load_ray`, `store_hit` and
+    /// `batch_len`.
     pub fn wgsl(&self) -> (&'static str, &'static str) {
         match self {
             RayInput::Buffer => ("entry_rays_buffer.wgsl", ENTRY_RAYS_BUFFER_WGSL),
@@ -425,14 +427,16 @@ impl KernelVariant {
             for any_hit in [false, true] {
                 for counters in [false, true] {
                     v.push(KernelVariant {
-                        storage,
                         short_stack,
                         k: kk,
                         any_hit,
                         counters,
-                        precision: Precision::WatertightF32,
-                        rays: RayInput::Buffer,
-                        parallel_rays: true,
+                        ..KernelVariant::new(
+                            storage,
+                            bvhtrace_core::Traversal::FullStack,
+                            bvhtrace_core::Query::Closest,
+                            false,
+                        )
                     });
                 }
             }

@@ -548,8 +548,9 @@ impl VkContext {
 
     /// The SPIR-V words of one kernel variant: the variant's WGSL module
     /// ([`KernelVariant::source`], the one the wgpu path compiles), its override constants
-    /// ([`KernelVariant::constants`], `TRIP_LIMIT` and `DISPATCH_THREADS`) resolved by naga, written for this
-    /// device's SPIR-V version. Only [`BvhStorage::Buffers`] variants are supported.
+    /// ([`KernelVariant::constants`], `TRIP_LIMIT` and `DISPATCH_THREADS`) resolved by
+    /// naga, written for this device's SPIR-V version. Only [`BvhStorage::Buffers`]
+    /// variants are supported.
     pub fn spirv(&self, variant: KernelVariant) -> Result<Vec<u32>, VkError> {
         if variant.storage != BvhStorage::Buffers {
             return Err(VkError::Unsupported(
