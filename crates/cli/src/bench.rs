@@ -182,8 +182,9 @@ pub fn bench_build(args: BenchBuildArgs) -> Result<()> {
 pub struct BenchTraceArgs {
     /// Scenes (default: bunny_69k and igea from ../shared/scenes).
     pub scenes: Vec<String>,
-    /// Timed runs per configuration (the median is printed).
-    #[arg(long, default_value_t = 5)]
+    /// Timed rounds (each traces every traversal once on the GPU and once on the CPU;
+    /// medians are printed, and ratios are medians of the per-round ratios).
+    #[arg(long, default_value_t = 7)]
     pub runs: usize,
     /// Primary rays, WxH.
     #[arg(long, default_value = "1024x768")]
@@ -191,6 +192,11 @@ pub struct BenchTraceArgs {
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
+    /// Traversals to compare, comma-separated (`full-stack`, `stackless`, `short-stack:K`);
+    /// the first is the one the `n/full` and `GPU/full` columns divide by. Default:
+    /// full-stack, stackless and short-stack 2, 4, 6 and 8.
+    #[arg(long, value_delimiter = ',')]
+    pub traversals: Vec<Traversal>,
     /// Also trace any-hit (occlusion) queries on the same rays.
     #[arg(long)]
     pub any_hit: bool,
@@ -226,14 +232,18 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     if args.everything_on {
         return compare_everything_on(&ctx, &args, w, h);
     }
-    let traversals = [
-        Traversal::FullStack,
-        Traversal::Stackless,
-        Traversal::ShortStack(2),
-        Traversal::ShortStack(4),
-        Traversal::ShortStack(6),
-        Traversal::ShortStack(8),
-    ];
+    let traversals = if args.traversals.is_empty() {
+        vec![
+            Traversal::FullStack,
+            Traversal::Stackless,
+            Traversal::ShortStack(2),
+            Traversal::ShortStack(4),
+            Traversal::ShortStack(6),
+            Traversal::ShortStack(8),
+        ]
+    } else {
+        args.traversals.clone()
+    };
     let queries: &[Query] = if args.any_hit {
         &[Query::Closest, Query::Any]
     } else {
@@ -251,7 +261,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             rays.len()
         );
         println!(
-            "{:16} {:8} {:>12} {:>12} {:>10} {:>8} {:>8} {:>10} {:>9}",
+            "{:16} {:8} {:>9} {:>9} {:>9} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8}",
             "traversal",
             "query",
             "GPU Mr/s",
@@ -259,48 +269,61 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             "CPU Mr/s",
             "nodes",
             "tris",
-            "vs full",
+            "n/full",
+            "GPU/full",
+            "GPU/twin",
             "GPU/CPU"
         );
+        let n = rays.len() as f64;
         for &q in queries {
-            let mut full_nodes = None;
-            for tr in traversals {
-                let counted = gpu.trace_counted(&rays, tr, q)?;
-                let c = counted.counters.unwrap_or_default();
-                let nodes =
-                    c.iter().map(|c| c.nodes as f64).sum::<f64>() / rays.len().max(1) as f64;
-                let tris_ = c.iter().map(|c| c.tris as f64).sum::<f64>() / rays.len().max(1) as f64;
-                let full = *full_nodes.get_or_insert(nodes);
-                let mut gpu_ms = Vec::new();
-                let mut wall_ms = Vec::new();
-                for _ in 0..args.runs {
+            // Counters (and the counted pipelines) first, then one untimed trace each, so
+            // that no timed run pays a pipeline's creation or first dispatch.
+            let mut counts = Vec::new();
+            for &tr in &traversals {
+                let c = gpu
+                    .trace_counted(&rays, tr, q)?
+                    .counters
+                    .unwrap_or_default();
+                let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
+                    c.iter().map(|c| f64::from(f(c))).sum::<f64>() / n.max(1.0)
+                };
+                counts.push((per_ray(|c| c.nodes), per_ray(|c| c.tris)));
+                gpu.trace(&rays, tr, q)?;
+            }
+            // Rounds of every traversal on the GPU and its twin on the CPU, one after the
+            // other: lavapipe and the CPU swing by 10-20% from minute to minute, so the
+            // ratios are taken within each round (medians over the rounds).
+            let mut gpu_ms = vec![Vec::new(); traversals.len()];
+            let mut wall_ms = vec![Vec::new(); traversals.len()];
+            let mut cpu_ms = vec![Vec::new(); traversals.len()];
+            for _ in 0..args.runs {
+                for (i, &tr) in traversals.iter().enumerate() {
                     let o = gpu.trace(&rays, tr, q)?;
-                    wall_ms.push(o.wall_ms);
-                    gpu_ms.push(o.gpu_ms.unwrap_or(o.wall_ms));
+                    wall_ms[i].push(o.wall_ms);
+                    gpu_ms[i].push(o.gpu_ms.unwrap_or(o.wall_ms));
+                    let t = Instant::now();
+                    std::hint::black_box(trace_batch(&bvh, &rays, tr, q));
+                    cpu_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
                 }
-                let cpu_s = median(
-                    (0..args.runs)
-                        .map(|_| {
-                            let t = Instant::now();
-                            trace_batch(&bvh, &rays, tr, q);
-                            t.elapsed().as_secs_f64()
-                        })
-                        .collect(),
-                );
-                let n = rays.len() as f64;
-                let (g, gw) = (n / median(gpu_ms) / 1e3, n / median(wall_ms) / 1e3);
-                let cpu = n / cpu_s / 1e6;
+            }
+            let ratio = |num: &[f64], den: &[f64]| {
+                median(num.iter().zip(den).map(|(a, b)| a / b).collect())
+            };
+            let mrays = |ms: &[f64]| n / median(ms.to_vec()) / 1e3;
+            for (i, tr) in traversals.iter().enumerate() {
                 println!(
-                    "{:16} {:8} {:>12.2} {:>12.2} {:>10.2} {:>8.1} {:>8.2} {:>9.2}x {:>8.2}x",
+                    "{:16} {:8} {:>9.2} {:>9.2} {:>9.2} {:>7.1} {:>6.2} {:>6.2}x {:>7.2}x {:>7.2}x {:>7.2}x",
                     tr.to_string(),
                     format!("{q:?}").to_lowercase(),
-                    g,
-                    gw,
-                    cpu,
-                    nodes,
-                    tris_,
-                    nodes / full,
-                    g / cpu
+                    mrays(&gpu_ms[i]),
+                    mrays(&wall_ms[i]),
+                    mrays(&cpu_ms[i]),
+                    counts[i].0,
+                    counts[i].1,
+                    counts[i].0 / counts[0].0,
+                    ratio(&gpu_ms[0], &gpu_ms[i]),
+                    ratio(&cpu_ms[i], &gpu_ms[i]),
+                    ratio(&cpu_ms[0], &gpu_ms[i]),
                 );
             }
         }

@@ -36,6 +36,13 @@ enum Command {
     /// Benchmark the builders: build time, SAH cost, CPU traversal speed.
     BenchBuild(bench::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
+    ///
+    /// Columns: Mrays/s on the GPU (timestamp queries) and wall (upload and readback
+    /// included), the CPU twin's Mrays/s, box tests and triangle tests per ray, box tests
+    /// against the first traversal (`n/full`), and the GPU's speed against the first
+    /// traversal on the GPU (`GPU/full`), against its own CPU twin (`GPU/twin`) and against
+    /// the first traversal's CPU twin, the CPU reference when that is full-stack
+    /// (`GPU/CPU`). The ratios are medians of per-round ratios.
     BenchTrace(bench::BenchTraceArgs),
     /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
