@@ -4,8 +4,8 @@
 // host composes one or the other.
 //
 // The group number is written `@group(0)` here; `bvhtrace_gpu::wgsl_library` rewrites it
-// for shaders that keep group 0 for themselves. The parent links (binding 2, read only by
-// the stackless and short-stack walks) are `bvh_buffers_parents.wgsl`, composed in only
+// for shaders that keep group 0 for themselves. The escape links (binding 2, read only by
+// the stackless and short-stack walks) are `bvh_buffers_escapes.wgsl`, composed in only
 // when the traversal reads them.
 
 @group(0) @binding(0) var<storage, read> bvh_nodes: array<Node>;

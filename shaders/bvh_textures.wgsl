@@ -13,8 +13,8 @@
 //   `(min.x, min.y, min.z, max.x)` and `(max.y, max.z, right_or_first, meta)`.
 // * `bvh_triangle_texels`: three texels per triangle, `FlatTriangle`'s bytes:
 //   `(v0, prim)`, `(v1, pad)`, `(v2, pad)`.
-// * `bvh_parent_texels` (`R32Uint`, one texel per node) is `bvh_textures_parents.wgsl`,
-//   composed in only when the traversal reads the parent links.
+// * `bvh_escape_texels` (`R32Uint`, eight texels per node) is `bvh_textures_escapes.wgsl`,
+//   composed in only when the traversal reads the escape links.
 
 const BVH_TEXEL_ROW_LOG2: u32 = 13u;
 const BVH_TEXEL_ROW_MASK: u32 = 8191u;

@@ -6,7 +6,7 @@
 // `t < best.t`, or `t == best.t` and its primitive index is lower. `best.t` starts at
 // `t_max`, so the interval is `[t_min, t_max)`.
 
-// The trip budget: loop trips (node steps, triangle tests, climb steps) a ray may take
+// The trip budget: loop trips (box tests, triangle tests) a ray may take
 // before it gives up with `INCOMPLETE`. Unbounded by default. Some drivers end every loop
 // of an invocation silently after a fixed number of trips in all (lavapipe: 65,535 per
 // 8-lane batch, counting each inner loop's longest lane), which would return a wrong

@@ -383,8 +383,8 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
 /// A tree deeper than the full stack's 64 entries (triangles at exponentially spaced
 /// positions, midpoint splits): the stackless and short-stack kernels equal their CPU twins
 /// ray by ray, hits and counters, and closest hits equal brute force. Rays through every
-/// box that miss every triangle climb more than 32 levels, where the stackless trail has
-/// lost its bits.
+/// box that miss every triangle overflow every ring, so the short stacks follow escape
+/// links from deep in the tree.
 #[test]
 fn deep_trees_match_cpu_twins() {
     let Some(ctx) = context() else { return };
@@ -455,19 +455,19 @@ fn deep_trees_match_cpu_twins() {
 fn upload_checks_and_errors() {
     let Some(ctx) = context() else { return };
     let bvh = one_triangle();
-    // Full stack only: no parents uploaded, and the parent-link traversals are refused.
+    // Full stack only: no escapes uploaded, and the escape-link traversals are refused.
     let gpu = GpuBvh::upload(
         &ctx,
         &bvh,
         &UploadOptions::for_traversal(Traversal::FullStack),
     )
     .expect("upload");
-    assert!(gpu.parents_buffer().is_none());
-    assert_eq!(gpu.stats().parents_bytes, 0);
+    assert!(gpu.escapes_buffer().is_none());
+    assert_eq!(gpu.stats().escapes_bytes, 0);
     let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
     assert!(matches!(
         gpu.trace(&rays, Traversal::Stackless, Query::Closest),
-        Err(GpuError::ParentsNotUploaded { .. })
+        Err(GpuError::EscapesNotUploaded { .. })
     ));
     let out = gpu
         .trace(&rays, Traversal::FullStack, Query::Closest)

@@ -202,7 +202,7 @@ pub struct BenchTraceArgs {
     pub any_hit: bool,
     /// Instead, compare each traversal's specialised pipeline (only the bindings and code
     /// the closest-hit job reads) with the everything-on one (every module composed, the
-    /// parent links uploaded, counters written): bytes uploaded per triangle, pipeline
+    /// escape links uploaded, counters written): bytes uploaded per triangle, pipeline
     /// creation time, Mrays/s.
     #[arg(long)]
     pub everything_on: bool,

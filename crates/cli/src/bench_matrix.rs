@@ -512,7 +512,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 Tracer::Gpu(_) | Tracer::GpuRef(_) | Tracer::Vulkan(_) => tracer.uploaded_bytes(),
                 Tracer::Cpu(b) => {
                     let (a, p, t) = b.byte_sizes();
-                    (a + if tr.needs_parents() { p } else { 0 } + t) as u64
+                    (a + if tr.needs_escapes() { p } else { 0 } + t) as u64
                 }
             };
             scene_rows.push(Row {

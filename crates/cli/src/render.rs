@@ -345,8 +345,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if need_counters {
         features.push("counters");
     }
-    if args.traversal.needs_parents() {
-        features.push("parent-links");
+    if args.traversal.needs_escapes() {
+        features.push("escape-links");
     }
     // The GPU pipelines this job ran, each composed of only what it needs.
     let pipelines = match tracer.upload() {
@@ -555,7 +555,7 @@ fn upload_json(s: &UploadStats, storage: BvhStorage, triangles: usize) -> Value 
         "storage": format!("{storage:?}").to_lowercase(),
         "nodes": s.nodes_bytes,
         "triangles": s.triangles_bytes,
-        "parents": s.parents_bytes,
+        "escapes": s.escapes_bytes,
         "total": s.total_bytes(),
         "bytes_per_triangle": s.total_bytes() as f64 / triangles.max(1) as f64,
     })
@@ -567,9 +567,9 @@ fn left_out(pipelines: &[PipelineFeatures], scene: &Scene, traversal: Traversal)
     if pipelines.is_empty() {
         return vec!["everything: traced on the CPU, nothing uploaded".into()];
     }
-    if !pipelines.iter().any(|p| p.module_set().parents) {
+    if !pipelines.iter().any(|p| p.module_set().escapes) {
         v.push(format!(
-            "parent links (the {traversal} walk does not climb the tree)"
+            "escape links (the {traversal} walk does not read them)"
         ));
     }
     if !pipelines.iter().any(|p| p.variant.counters) {
@@ -672,7 +672,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "nodes": s.nodes, "leaves": s.leaves, "depth": s.depth,
         "sah_cost": s.sah_cost, "sah_cost_pbrt": s.sah_cost_pbrt,
         "leaf_sizes": s.leaf_sizes,
-        "bytes": { "nodes": nb, "parents": pb, "triangles": tb },
+        "bytes": { "nodes": nb, "escapes": pb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
         "upload": upload_json(&upload, args.storage, tris.len()),
         "left_out": left_out(&pipelines, &scene, args.traversal),
@@ -712,7 +712,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         .map(|(k, n)| format!("{k}:{n}"))
         .collect();
     println!("leaf sizes  {}", hist.join(" "));
-    println!("gpu bytes   nodes {nb}, parents {pb} (stackless/short-stack only), triangles {tb}");
+    println!("gpu bytes   nodes {nb}, escapes {pb} (stackless/short-stack only), triangles {tb}");
     for p in &pipelines {
         let bindings: Vec<String> = p
             .bindings()
@@ -727,12 +727,12 @@ pub fn info(args: InfoArgs) -> Result<()> {
         );
     }
     println!(
-        "upload      {} bytes ({:?}: nodes {}, triangles {}, parents {}) = {:.1} bytes/triangle",
+        "upload      {} bytes ({:?}: nodes {}, triangles {}, escapes {}) = {:.1} bytes/triangle",
         upload.total_bytes(),
         args.storage,
         upload.nodes_bytes,
         upload.triangles_bytes,
-        upload.parents_bytes,
+        upload.escapes_bytes,
         upload.total_bytes() as f64 / tris.len().max(1) as f64
     );
     for l in left_out(&pipelines, &scene, args.traversal) {

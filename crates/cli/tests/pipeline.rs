@@ -25,7 +25,7 @@ fn info(args: &[&str]) -> Value {
 
 #[test]
 fn info_lists_the_pipeline_and_exact_upload() {
-    // Full stack, normal shading: no parents, no counters, no attributes, one pipeline.
+    // Full stack, normal shading: no escapes, no counters, no attributes, one pipeline.
     let v = info(&["--traversal", "full-stack"]);
     let (nodes, tris) = (
         v["nodes"].as_u64().unwrap(),
@@ -40,7 +40,7 @@ fn info_lists_the_pipeline_and_exact_upload() {
         "{v}"
     );
     let u = &v["upload"];
-    assert_eq!(u["parents"], 0);
+    assert_eq!(u["escapes"], 0);
     assert_eq!(u["total"].as_u64().unwrap(), nodes * 32 + tris * 48);
     let per_tri = u["bytes_per_triangle"].as_f64().unwrap();
     assert!((per_tri - (nodes * 32 + tris * 48) as f64 / tris as f64).abs() < 1e-9);
@@ -51,18 +51,21 @@ fn info_lists_the_pipeline_and_exact_upload() {
         .map(|l| l.as_str().unwrap())
         .collect();
     assert!(
-        left.iter().any(|l| l.starts_with("parent links")),
+        left.iter().any(|l| l.starts_with("escape links")),
         "{left:?}"
     );
     assert!(left.iter().any(|l| l.starts_with("counters")), "{left:?}");
 
-    // Stackless heatmap: parents and counters come in.
+    // Stackless heatmap: escapes and counters come in.
     let v = info(&["--traversal", "stackless", "--shade", "heatmap"]);
     let p = &v["pipelines"][0];
     assert_eq!(p["entry_point"], "trace_short_stack_counted");
     let n = names(p);
-    assert!(n.contains(&"bvh_parents".to_string()) && n.contains(&"counters".to_string()));
-    assert_eq!(v["upload"]["parents"].as_u64().unwrap(), nodes * 4);
+    assert!(n.contains(&"bvh_escapes".to_string()) && n.contains(&"counters".to_string()));
+    assert_eq!(
+        v["upload"]["escapes"].as_u64().unwrap(),
+        4 * bvhtrace_core::flat::escape_links_len(nodes as usize) as u64
+    );
 
     // AO: a second, any-hit pipeline without counters.
     let v = info(&["--shade", "ao", "--storage", "textures"]);
@@ -126,7 +129,7 @@ fn render_json_lists_the_pipelines_and_bytes_uploaded() {
     }
     let u = &v["upload"];
     assert_eq!(u["total"], v["uploaded_bytes"]);
-    assert_eq!(u["parents"], 0, "the full stack does not read parents");
+    assert_eq!(u["escapes"], 0, "the full stack does not read escapes");
     let p = v["pipelines"].as_array().unwrap();
     assert_eq!(p.len(), 2, "closest hit and the shadow rays' any hit");
     // --json asks for the counters of the primary rays (nodes_per_ray), not the shadows'.
@@ -136,7 +139,7 @@ fn render_json_lists_the_pipelines_and_bytes_uploaded() {
         assert!(
             !names(q)
                 .iter()
-                .any(|n| n.contains("parent") || n.contains("normal"))
+                .any(|n| n.contains("escape") || n.contains("normal"))
         );
     }
     assert!(v["nodes_per_ray"].as_f64().unwrap() > 0.0);

@@ -11,9 +11,14 @@
 //!   - `meta`: `count << 2 | axis`. `count > 0` marks a leaf holding triangles
 //!     `right_or_first .. right_or_first + count`; `count == 0` marks an interior node
 //!     split along `axis` (0 = x, 1 = y, 2 = z). The stackless and short-stack traversals
-//!     visit the child on the ray's side of `axis` first (Hapala et al. 2011).
-//! * `parents: [u32]`: the parent of every node (`u32::MAX` for the root). Only the stackless
-//!   and short-stack traversals read it, so only they upload it.
+//!     visit the child on the ray's side of `axis` first (Hapala et al. 2011), which
+//!     depends only on the ray's [`octant`].
+//! * `escapes: [u32]`, eight per node: `escapes[escape_index(i, o)]` is where a walk in
+//!   octant `o` goes when it is done with node `i`'s subtree: its skip link, the next node
+//!   of the octant's depth-first order ([`NO_ESCAPE`] after the last). In blocks of
+//!   [`ESCAPE_BLOCK`] consecutive nodes, octant by octant, so that the links one walk reads
+//!   (its octant's, of neighbouring nodes) share cache lines; the last block is padded.
+//!   Only the stackless and short-stack traversals read them, so only they upload them.
 //! * `triangles: [FlatTriangle]`, 48 bytes each, in leaf order (every leaf is a contiguous
 //!   range); each carries its corners and its index in the builder's input (`prim`), so no
 //!   indirection is needed to report hits. WGSL twin: `Triangle`.
@@ -29,8 +34,67 @@ use crate::mesh::Triangle;
 /// the miss codes in `Hit::prim`).
 pub const MAX_PRIMITIVES: usize = (1 << 30) - 1;
 
-/// `parents[0]`: the root has no parent.
-pub const NO_PARENT: u32 = u32::MAX;
+/// The escape link after the last node of a walk: the walk is over.
+pub const NO_ESCAPE: u32 = u32::MAX;
+
+/// Escape links per node, one per ray octant.
+pub const OCTANTS: usize = 8;
+
+/// The ray's octant: bit `a` is set when the direction's component `a` is not `>= 0`
+/// (negative or NaN). An interior node split along `a` is entered on its second child
+/// first when bit `a` is set, else on its first (`i + 1`).
+#[inline(always)]
+pub fn octant(dir: Vec3) -> usize {
+    usize::from(!(dir.x >= 0.0))
+        | usize::from(!(dir.y >= 0.0)) << 1
+        | usize::from(!(dir.z >= 0.0)) << 2
+}
+
+/// The child entered first and the one entered second, for octant `oct`, of interior node
+/// `index`.
+#[inline(always)]
+pub fn near_far(oct: usize, index: u32, n: &FlatNode) -> (u32, u32) {
+    let (l, r) = (index + 1, n.right_or_first);
+    if (oct >> n.axis()) & 1 == 0 {
+        (l, r)
+    } else {
+        (r, l)
+    }
+}
+
+/// Nodes per block of `FlatBvh::escapes`.
+pub const ESCAPE_BLOCK: usize = 16;
+
+/// Where node `i`'s escape link for octant `oct` is in `FlatBvh::escapes`.
+#[inline(always)]
+pub fn escape_index(i: u32, oct: usize) -> usize {
+    let i = i as usize;
+    (i / ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS + oct * ESCAPE_BLOCK + i % ESCAPE_BLOCK
+}
+
+/// The length of `FlatBvh::escapes` for `nodes` nodes: eight links per node, in whole
+/// blocks.
+pub fn escape_links_len(nodes: usize) -> usize {
+    nodes.div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS
+}
+
+/// The escape links of `nodes` (see the module docs): the near child of a node escapes to
+/// its far child, the far child to where the node escapes. Parents come before their
+/// children in the layout, so one pass in index order sets every link.
+pub fn escape_links(nodes: &[FlatNode]) -> Vec<u32> {
+    let mut e = vec![NO_ESCAPE; escape_links_len(nodes.len())];
+    for (i, n) in nodes.iter().enumerate() {
+        if n.is_leaf() {
+            continue;
+        }
+        for o in 0..OCTANTS {
+            let (near, far) = near_far(o, i as u32, n);
+            e[escape_index(near, o)] = far;
+            e[escape_index(far, o)] = e[escape_index(i as u32, o)];
+        }
+    }
+    e
+}
 
 /// One BVH node (see the module docs for the encoding).
 #[repr(C)]
@@ -96,7 +160,8 @@ impl FlatTriangle {
 #[derive(Clone, Debug, PartialEq)]
 pub struct FlatBvh {
     pub nodes: Vec<FlatNode>,
-    pub parents: Vec<u32>,
+    /// [`escape_links`] of `nodes`, eight per node.
+    pub escapes: Vec<u32>,
     pub triangles: Vec<FlatTriangle>,
     /// Longest root-to-leaf path, in edges (a single leaf has depth 0).
     pub depth: u32,
@@ -107,7 +172,7 @@ impl FlatBvh {
     pub fn flatten(tree: &BuildTree, tris: &[Triangle]) -> FlatBvh {
         let mut bvh = FlatBvh {
             nodes: Vec::with_capacity(tree.node_count),
-            parents: Vec::with_capacity(tree.node_count),
+            escapes: Vec::new(),
             triangles: tree
                 .prim_order
                 .iter()
@@ -125,11 +190,12 @@ impl FlatBvh {
                 .collect(),
             depth: 0,
         };
-        bvh.emit(&tree.root, NO_PARENT, 0);
+        bvh.emit(&tree.root, 0);
+        bvh.escapes = escape_links(&bvh.nodes);
         bvh
     }
 
-    fn emit(&mut self, node: &BuildNode, parent: u32, depth: u32) -> u32 {
+    fn emit(&mut self, node: &BuildNode, depth: u32) -> u32 {
         let index = self.nodes.len() as u32;
         self.depth = self.depth.max(depth);
         let b = node.bounds();
@@ -139,7 +205,6 @@ impl FlatBvh {
             max: b.max.to_array(),
             meta: 0,
         });
-        self.parents.push(parent);
         match node {
             BuildNode::Leaf { first, count, .. } => {
                 let n = &mut self.nodes[index as usize];
@@ -147,8 +212,8 @@ impl FlatBvh {
                 n.meta = count << 2;
             }
             BuildNode::Interior { axis, children, .. } => {
-                self.emit(&children[0], index, depth + 1);
-                let right = self.emit(&children[1], index, depth + 1);
+                self.emit(&children[0], depth + 1);
+                let right = self.emit(&children[1], depth + 1);
                 let n = &mut self.nodes[index as usize];
                 n.right_or_first = right;
                 n.meta = *axis as u32;
@@ -176,11 +241,11 @@ impl FlatBvh {
         self.nodes[0].aabb()
     }
 
-    /// Bytes of the nodes, parents and triangles as uploaded.
+    /// Bytes of the nodes, escape links and triangles as uploaded.
     pub fn byte_sizes(&self) -> (usize, usize, usize) {
         (
             std::mem::size_of_val(self.nodes.as_slice()),
-            std::mem::size_of_val(self.parents.as_slice()),
+            std::mem::size_of_val(self.escapes.as_slice()),
             std::mem::size_of_val(self.triangles.as_slice()),
         )
     }
@@ -195,8 +260,14 @@ impl FlatBvh {
         }
         let mut seen = vec![false; n_tris];
         let mut covered = vec![false; n_tris];
-        if self.parents[0] != NO_PARENT {
-            return Err("root has a parent".into());
+        if self.escapes.len() != escape_links_len(n_nodes) {
+            return Err(format!(
+                "{} escape links for {n_nodes} nodes",
+                self.escapes.len()
+            ));
+        }
+        if (0..OCTANTS).any(|o| self.escapes[escape_index(0, o)] != NO_ESCAPE) {
+            return Err("the root escapes somewhere".into());
         }
         for (i, n) in self.nodes.iter().enumerate() {
             let b = n.aabb();
@@ -226,13 +297,19 @@ impl FlatBvh {
                 if r <= l || r >= n_nodes || n.axis() > 2 {
                     return Err(format!("node {i}: bad children {l}, {r}"));
                 }
-                for c in [l, r] {
-                    if self.parents[c] as usize != i {
+                for o in 0..OCTANTS {
+                    let (near, far) = near_far(o, i as u32, n);
+                    let (en, ef) = (
+                        self.escapes[escape_index(near, o)],
+                        self.escapes[escape_index(far, o)],
+                    );
+                    if en != far || ef != self.escapes[escape_index(i as u32, o)] {
                         return Err(format!(
-                            "node {c}: parent {} but is child of {i}",
-                            self.parents[c]
+                            "node {i}, octant {o}: children escape to {en} and {ef}"
                         ));
                     }
+                }
+                for c in [l, r] {
                     if !b.contains(&self.nodes[c].aabb()) {
                         return Err(format!("node {i} box does not contain child {c}"));
                     }

@@ -21,7 +21,7 @@ use std::str::FromStr;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::flat::{FlatBvh, FlatNode};
+use crate::flat::{FlatBvh, FlatNode, NO_ESCAPE, escape_index, near_far, octant};
 use crate::intersect::{PreparedRay, intersect_box};
 use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
@@ -35,11 +35,13 @@ pub enum Traversal {
     /// A stack as deep as the tree; children visited nearest entry distance first.
     /// The reference, and the baseline the others are measured against.
     FullStack,
-    /// No stack: parent links and a deterministic near/far order (Hapala et al. 2011).
+    /// No stack: one box per step in a deterministic near/far order (Hapala et al. 2011),
+    /// going on at the escape (skip) link of every subtree it is done with.
     Stackless,
-    /// A ring buffer of `k` far-child entries (1..=32). When it overflows, the oldest entry
-    /// is dropped; when it runs dry after an overflow, the walk continues up the parent
-    /// links from the last node, which finds exactly the dropped subtrees, in order.
+    /// The same order, with a ring buffer of `k` second-child entries (1..=32). When it
+    /// overflows, the oldest entry is dropped; when it runs dry after an overflow, the walk
+    /// goes on at the escape link of the node it is done with: exactly the most recent
+    /// dropped entry.
     ShortStack(u32),
 }
 
@@ -53,8 +55,8 @@ impl Traversal {
         }
     }
 
-    /// True when the traversal reads `FlatBvh::parents`.
-    pub fn needs_parents(&self) -> bool {
+    /// True when the traversal reads `FlatBvh::escapes`.
+    pub fn needs_escapes(&self) -> bool {
         !matches!(self, Traversal::FullStack)
     }
 }
@@ -169,19 +171,6 @@ fn node_box(n: &FlatNode) -> (Vec3, Vec3) {
     (Vec3::from(n.min), Vec3::from(n.max))
 }
 
-/// Near and far child of an interior node by the sign of the ray's direction along the
-/// split axis: the order the stackless and short-stack walks use (and must reproduce when
-/// climbing back up).
-#[inline(always)]
-fn near_far(r: &PreparedRay, index: u32, n: &FlatNode) -> (u32, u32) {
-    let (l, rt) = (index + 1, n.right_or_first);
-    if r.dir[n.axis()] >= 0.0 {
-        (l, rt)
-    } else {
-        (rt, l)
-    }
-}
-
 fn full_stack<T: TriangleTest>(
     bvh: &FlatBvh,
     r: &PreparedRay,
@@ -235,34 +224,22 @@ fn full_stack<T: TriangleTest>(
     }
 }
 
-/// [`short_stack`]'s depth after a pop from the ring, where the trail's bits above the
-/// popped node are unknown: at least 32, so that every bit the climb shifts in is set.
-const DEPTH_UNKNOWN: u32 = 0x7fff_ffff;
-
-/// The trail after a climb of one level to depth `depth`: the bits of ancestors more than
-/// 32 levels up were lost and come back set.
-#[inline(always)]
-fn trail_up(trail: u32, depth: u32) -> u32 {
-    (trail >> 1) | if depth >= 32 { 1 << 31 } else { 0 }
-}
-
 /// Short stack of `k` entries; `k == 0` is the stackless walk.
 ///
-/// Like the full stack, an interior node's two children are tested at the node (one loop
-/// trip, both boxes), but taken in the deterministic near/far order of [`near_far`]: the
-/// near child when it is hit, the far one pushed when both are. A popped node is not
-/// tested again. When the ring overflows, its oldest entry is dropped; when it runs dry
-/// after that (always, for `k == 0`), the walk climbs the parent links to the first
-/// ancestor it entered from the near side while the far child was hit, and re-tests that
-/// far child (it may be culled by now): exactly the dropped subtrees, in order.
+/// Both walk the tree depth first, one box test per step: a node's box is tested when the
+/// walk arrives at it, and an interior node whose box is hit is entered on the child on the
+/// ray's side of its split axis ([`near_far`] for the ray's [`octant`]; Hapala et al.
+/// 2011's order). When the walk is done with a node's subtree (its box was missed, or it
+/// is a leaf), it goes to the next node of that order:
+/// * the stackless walk follows the node's escape link for the octant (a skip link,
+///   `FlatBvh::escapes`): no stack, no parent climb, no box tested twice;
+/// * the short stack pushes the second child onto a ring of `k` entries when it enters the
+///   first, overwriting the oldest entry when the ring is full, and pops it. Only when the
+///   ring runs dry after such an overflow does it follow the escape link of the node it is
+///   done with, which leads exactly to the most recent dropped entry, so it reads the
+///   escape links only on walks deeper than its ring.
 ///
-/// A 32-bit trail says where to stop: bit `i` is set when the ancestor `i + 1` levels up
-/// left its far child pending. So the climb skips the ancestors with nothing pending
-/// without a box test, and the walk ends as soon as the trail is empty, without climbing
-/// back to the root. The bits of ancestors more than 32 levels up are shifted out; the
-/// climb shifts in set bits for them (an ancestor with a set bit whose far child is done,
-/// or was never hit, costs a re-test or a step, never a wrong answer). After a pop from the
-/// ring the trail above the popped node is unknown and is taken as all set.
+/// The two visit the same nodes in the same order.
 fn short_stack<T: TriangleTest>(
     bvh: &FlatBvh,
     r: &PreparedRay,
@@ -271,87 +248,48 @@ fn short_stack<T: TriangleTest>(
     any: bool,
     k: u32,
 ) {
+    let oct = octant(r.dir);
     let mut ring = [0u32; MAX_SHORT_STACK as usize];
     let (mut top, mut count) = (0u32, 0u32); // next write slot, live entries
     let mut overflow = false;
-    c.nodes += 1;
-    let (lo, hi) = node_box(&bvh.nodes[0]);
-    if intersect_box(r, lo, hi, best.t).is_none() {
-        return;
-    }
     let mut node = 0u32;
-    let (mut trail, mut depth) = (0u32, 0u32); // `node`'s depth
-    // `visit`: `node`'s box was hit (at its parent, at the root or by the climb), visit it.
-    // Otherwise `node`'s subtree is done.
-    let mut visit = true;
     loop {
-        if visit {
-            let n = &bvh.nodes[node as usize];
-            if n.is_leaf() {
-                if visit_leaf::<T>(bvh, r, n, best, c, any) {
-                    return;
-                }
-            } else {
-                let (near, far) = near_far(r, node, n);
-                c.nodes += 2;
-                let (nlo, nhi) = node_box(&bvh.nodes[near as usize]);
-                let (flo, fhi) = node_box(&bvh.nodes[far as usize]);
-                let hit_near = intersect_box(r, nlo, nhi, best.t).is_some();
-                let hit_far = intersect_box(r, flo, fhi, best.t).is_some();
-                if hit_near || hit_far {
-                    trail = (trail << 1) | u32::from(hit_near && hit_far);
-                    depth += 1;
-                    if hit_near && hit_far && k > 0 {
-                        if count == k {
-                            overflow = true; // the oldest entry is overwritten
-                        } else {
-                            count += 1;
-                        }
-                        ring[top as usize] = far;
-                        top = if top + 1 == k { 0 } else { top + 1 };
+        c.nodes += 1;
+        let n = &bvh.nodes[node as usize];
+        let (lo, hi) = node_box(n);
+        if intersect_box(r, lo, hi, best.t).is_some() {
+            if !n.is_leaf() {
+                let (near, far) = near_far(oct, node, n);
+                if k > 0 {
+                    if count == k {
+                        overflow = true; // the oldest entry is overwritten
+                    } else {
+                        count += 1;
                     }
-                    node = if hit_near { near } else { far };
-                    continue;
+                    ring[top as usize] = far;
+                    top = if top + 1 == k { 0 } else { top + 1 };
                 }
+                node = near;
+                continue;
+            }
+            if visit_leaf::<T>(bvh, r, n, best, c, any) {
+                return;
             }
         }
-        // The subtree at `node` is done: take the next pending node.
+        // The subtree at `node` is done: the next node is on the ring, or else (after an
+        // overflow, or always without a ring) at the escape link.
         if count > 0 {
             top = if top == 0 { k - 1 } else { top - 1 };
             count -= 1;
             node = ring[top as usize];
-            (trail, depth) = (u32::MAX, DEPTH_UNKNOWN);
-            visit = true;
             continue;
         }
-        if trail == 0 || (k > 0 && !overflow) {
+        if k > 0 && !overflow {
             return;
         }
-        // Climb to the nearest ancestor whose bit is set (shifting in set bits for the
-        // ancestors more than 32 levels up, whose bits were lost)...
-        while trail & 1 == 0 {
-            depth -= 1;
-            node = bvh.parents[node as usize];
-            trail = trail_up(trail, depth);
-        }
-        if node == 0 {
+        node = bvh.escapes[escape_index(node, oct)];
+        if node == NO_ESCAPE {
             return;
-        }
-        // ...and go to the parent's far child if `node` is the near one and the far child
-        // is (still) hit; else that parent is done too.
-        let p = bvh.parents[node as usize];
-        let (near, far) = near_far(r, p, &bvh.nodes[p as usize]);
-        trail &= !1;
-        if node == near {
-            c.nodes += 1;
-            let (flo, fhi) = node_box(&bvh.nodes[far as usize]);
-            visit = intersect_box(r, flo, fhi, best.t).is_some();
-            node = far;
-        } else {
-            visit = false;
-            depth -= 1;
-            node = p;
-            trail = trail_up(trail, depth);
         }
     }
 }

@@ -225,7 +225,7 @@ fn closest_hit_does_not_depend_on_visit_order_near_the_origin() {
     };
     // The tree, pinned: root split on x into [leaf L, X = [leaf W, leaf O]]. The full stack
     // enters L and X at the same distance (the plane) and takes the left one first; the
-    // parent-link walks take the near side along x, also L. X (or W's leaf) is then tested
+    // stackless and short-stack walks take the near side along x, also L. X (or W's leaf) is then tested
     // against L's hit.
     let leaf = |ts: &[Triangle], first: u32| BuildNode::Leaf {
         bounds: bounds(ts),
@@ -333,8 +333,8 @@ fn deep_trees_are_traversed_correctly_without_a_deep_stack() {
         ));
     }
     // Rays through every box that miss every triangle (inside the boxes' corners): every
-    // leaf is visited, every interior node leaves a far child pending, and the walks
-    // climb more than 32 levels (the stackless trail's lost bits).
+    // leaf is visited, every interior node leaves a far child pending, and the short
+    // stacks' rings overflow, so they follow escape links from deep in the tree.
     for (y, z) in [(0.9f32, 0.9f32), (-0.9, 0.8), (0.95, -0.0)] {
         for dir in [Vec3::X, -Vec3::X, Vec3::new(1.0, 1e-9, -1e-9)] {
             let o = Vec3::new(if dir.x > 0.0 { -1.0 } else { 2.0 }, y, z);
@@ -402,5 +402,76 @@ fn batch_equals_single_rays() {
         for (r, h) in rays.iter().zip(&batch) {
             assert_eq!(*h, trace_ray(&bvh, r, tr, Query::Closest).0);
         }
+    }
+}
+
+#[test]
+fn short_stacks_walk_exactly_the_stackless_order() {
+    // The ring only saves escape-link reads: every ring size visits the same nodes and
+    // triangles in the same order as the stackless walk, so the counters are equal and
+    // even any-hit queries (which stop at the first hit found) agree. The deep soup makes
+    // small rings overflow and run dry, so the escape links are followed from mid-walk.
+    let tris = deep_soup(120);
+    let bvh = FlatBvh::build(&tris, &peeling()).unwrap();
+    assert!(bvh.depth > 64, "depth {}", bvh.depth);
+    let rays = common::rays_for(&tris, 7, 2000);
+    for q in [Query::Closest, Query::Any] {
+        let (hits, counters) = trace_batch_counted(&bvh, &rays, Traversal::Stackless, q);
+        for k in [1, 2, 3, 6, traverse::MAX_SHORT_STACK] {
+            let (h, c) = trace_batch_counted(&bvh, &rays, Traversal::ShortStack(k), q);
+            assert_eq!(h, hits, "short-stack({k}) {q:?}: hits");
+            assert_eq!(c, counters, "short-stack({k}) {q:?}: counters");
+        }
+    }
+}
+
+#[test]
+fn escape_links_lead_to_the_next_node_of_each_octant_order() {
+    // Against a walk with an explicit stack in the same near/far order.
+    let bvh = FlatBvh::build(&deep_soup(120), &peeling()).unwrap();
+    for oct in 0..flat::OCTANTS {
+        let mut order = Vec::new();
+        let mut stack = vec![0u32];
+        while let Some(i) = stack.pop() {
+            order.push(i);
+            let n = &bvh.nodes[i as usize];
+            if !n.is_leaf() {
+                let (near, far) = flat::near_far(oct, i, n);
+                stack.extend([far, near]);
+            }
+        }
+        assert_eq!(order.len(), bvh.nodes.len());
+        // A subtree is a contiguous run of the order: its escape is the node after the run.
+        let mut pos = vec![0usize; bvh.nodes.len()];
+        for (p, &i) in order.iter().enumerate() {
+            pos[i as usize] = p;
+        }
+        for (p, &i) in order.iter().enumerate() {
+            let size = subtree_size(&bvh, i);
+            let want = order.get(p + size).copied().unwrap_or(flat::NO_ESCAPE);
+            let got = bvh.escapes[flat::escape_index(i, oct)];
+            assert_eq!(got, want, "node {i}, octant {oct}");
+            assert!(got == flat::NO_ESCAPE || pos[got as usize] > p);
+        }
+    }
+}
+
+fn subtree_size(bvh: &FlatBvh, i: u32) -> usize {
+    let n = &bvh.nodes[i as usize];
+    if n.is_leaf() {
+        1
+    } else {
+        1 + subtree_size(bvh, i + 1) + subtree_size(bvh, n.right_or_first)
+    }
+}
+
+/// Midpoint splits down to single triangles: on `deep_soup` a tree as deep as it has
+/// triangles.
+fn peeling() -> BuildOptions {
+    BuildOptions {
+        builder: BuilderKind::Midpoint,
+        max_depth: 1000,
+        max_leaf_size: 1,
+        ..Default::default()
     }
 }

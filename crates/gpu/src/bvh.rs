@@ -14,8 +14,8 @@ use crate::trace::Scratch;
 /// What to upload for.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct UploadOptions {
-    /// The traversals the BVH will be traced with. The parent links are uploaded only when
-    /// one of them needs them ([`Traversal::needs_parents`]); a tree deeper than
+    /// The traversals the BVH will be traced with. The escape links are uploaded only when
+    /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
     /// [`FULL_STACK_SIZE`] is refused when [`Traversal::FullStack`] is listed.
     pub traversals: Vec<Traversal>,
     /// Buffers or textures; `None` picks [`GpuContext::default_storage`] (textures on CPU
@@ -32,7 +32,7 @@ impl UploadOptions {
         }
     }
 
-    /// Upload for every traversal (parents included; the depth check applies), default
+    /// Upload for every traversal (escape links included; the depth check applies), default
     /// storage.
     pub fn all() -> Self {
         UploadOptions {
@@ -66,8 +66,8 @@ pub struct UploadStats {
     pub nodes_bytes: u64,
     /// Bytes of the triangles as uploaded.
     pub triangles_bytes: u64,
-    /// Bytes of the parent links as uploaded (0 when not uploaded).
-    pub parents_bytes: u64,
+    /// Bytes of the escape links as uploaded (0 when not uploaded).
+    pub escapes_bytes: u64,
     /// Wall time to create and fill the buffers or textures and wait for the device,
     /// milliseconds.
     pub upload_ms: f64,
@@ -76,7 +76,7 @@ pub struct UploadStats {
 impl UploadStats {
     /// All bytes uploaded.
     pub fn total_bytes(&self) -> u64 {
-        self.nodes_bytes + self.triangles_bytes + self.parents_bytes
+        self.nodes_bytes + self.triangles_bytes + self.escapes_bytes
     }
 }
 
@@ -85,12 +85,12 @@ enum Resources {
     Buffers {
         nodes: wgpu::Buffer,
         triangles: wgpu::Buffer,
-        parents: Option<wgpu::Buffer>,
+        escapes: Option<wgpu::Buffer>,
     },
     Textures {
         _nodes: wgpu::Texture,
         _triangles: wgpu::Texture,
-        _parents: Option<wgpu::Texture>,
+        _escapes: Option<wgpu::Texture>,
     },
 }
 
@@ -101,8 +101,8 @@ pub struct GpuBvh {
     resources: Resources,
     /// The BVH group for the full-stack kernels (nodes, triangles).
     group_plain: wgpu::BindGroup,
-    /// The BVH group for the parent-link kernels, when parents were uploaded.
-    group_parents: Option<wgpu::BindGroup>,
+    /// The BVH group for the escape-link kernels, when the escape links were uploaded.
+    group_escapes: Option<wgpu::BindGroup>,
     depth: u32,
     node_count: usize,
     triangle_count: usize,
@@ -121,7 +121,7 @@ impl std::fmt::Debug for GpuBvh {
             .field("nodes", &self.node_count)
             .field("triangles", &self.triangle_count)
             .field("depth", &self.depth)
-            .field("parents", &self.group_parents.is_some())
+            .field("escapes", &self.group_escapes.is_some())
             .field("stats", &self.stats)
             .finish()
     }
@@ -276,7 +276,7 @@ fn view_entry(binding: u32, view: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_
 }
 
 impl GpuBvh {
-    /// Uploads `bvh`'s nodes and triangles, and its parent links when one of
+    /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
     /// `opts.traversals` needs them, as buffers or textures (`opts.storage`). Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
     /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`] is
@@ -296,22 +296,22 @@ impl GpuBvh {
             });
         }
         let storage = opts.storage.unwrap_or_else(|| ctx.default_storage());
-        let with_parents = opts.traversals.iter().any(|t| t.needs_parents());
+        let with_escapes = opts.traversals.iter().any(|t| t.needs_escapes());
         let (nb, pb, tb) = bvh.byte_sizes();
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
         match storage {
             BvhStorage::Buffers => {
                 check_size(ctx, "nodes", nb as u64)?;
                 check_size(ctx, "triangles", tb as u64)?;
-                if with_parents {
-                    check_size(ctx, "parents", pb as u64)?;
+                if with_escapes {
+                    check_size(ctx, "escapes", pb as u64)?;
                 }
             }
             BvhStorage::Textures => {
                 check_texels(ctx, "node texels", 2 * n_nodes, 16)?;
                 check_texels(ctx, "triangle texels", 3 * n_tris, 16)?;
-                if with_parents {
-                    check_texels(ctx, "parent texels", n_nodes, 4)?;
+                if with_escapes {
+                    check_texels(ctx, "escape texels", bvh.escapes.len() as u64, 4)?;
                 }
             }
         }
@@ -319,7 +319,7 @@ impl GpuBvh {
         let start = Instant::now();
         let device = ctx.device();
         let layout_plain = ctx.bvh_layout(storage, false);
-        let layout_parents = ctx.bvh_layout(storage, true);
+        let layout_escapes = ctx.bvh_layout(storage, true);
         let group = |label: &str, layout, entries: &[wgpu::BindGroupEntry<'_>]| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
@@ -327,7 +327,7 @@ impl GpuBvh {
                 entries,
             })
         };
-        let (resources, group_plain, group_parents, stats) =
+        let (resources, group_plain, group_escapes, stats) =
             ctx.scoped("uploading the BVH", || match storage {
                 BvhStorage::Buffers => {
                     let make = |label: &str, contents: &[u8]| {
@@ -340,17 +340,17 @@ impl GpuBvh {
                     let nodes = make("bvhtrace nodes", bytemuck::cast_slice(&bvh.nodes));
                     let triangles =
                         make("bvhtrace triangles", bytemuck::cast_slice(&bvh.triangles));
-                    let parents = with_parents
-                        .then(|| make("bvhtrace parents", bytemuck::cast_slice(&bvh.parents)));
+                    let escapes = with_escapes
+                        .then(|| make("bvhtrace escapes", bytemuck::cast_slice(&bvh.escapes)));
                     let plain = group(
                         "bvhtrace bvh",
                         layout_plain,
                         &[buffer_entry(0, &nodes), buffer_entry(1, &triangles)],
                     );
-                    let with = parents.as_ref().map(|p| {
+                    let with = escapes.as_ref().map(|p| {
                         group(
-                            "bvhtrace bvh+parents",
-                            layout_parents,
+                            "bvhtrace bvh+escapes",
+                            layout_escapes,
                             &[
                                 buffer_entry(0, &nodes),
                                 buffer_entry(1, &triangles),
@@ -361,14 +361,14 @@ impl GpuBvh {
                     let stats = UploadStats {
                         nodes_bytes: nb as u64,
                         triangles_bytes: tb as u64,
-                        parents_bytes: if with_parents { pb as u64 } else { 0 },
+                        escapes_bytes: if with_escapes { pb as u64 } else { 0 },
                         upload_ms: 0.0,
                     };
                     (
                         Resources::Buffers {
                             nodes,
                             triangles,
-                            parents,
+                            escapes,
                         },
                         plain,
                         with,
@@ -391,13 +391,13 @@ impl GpuBvh {
                         4,
                         bytemuck::cast_slice(&bvh.triangles).to_vec(),
                     );
-                    let parents = with_parents.then(|| {
+                    let escapes = with_escapes.then(|| {
                         texel_texture(
                             ctx,
-                            "bvhtrace parent texels",
+                            "bvhtrace escape texels",
                             wgpu::TextureFormat::R32Uint,
                             1,
-                            bvh.parents.clone(),
+                            bvh.escapes.clone(),
                         )
                     });
                     let nv = nodes.create_view(&Default::default());
@@ -407,25 +407,25 @@ impl GpuBvh {
                         layout_plain,
                         &[view_entry(0, &nv), view_entry(1, &tv)],
                     );
-                    let with = parents.as_ref().map(|(p, _)| {
+                    let with = escapes.as_ref().map(|(p, _)| {
                         let pv = p.create_view(&Default::default());
                         group(
-                            "bvhtrace bvh+parents",
-                            layout_parents,
+                            "bvhtrace bvh+escapes",
+                            layout_escapes,
                             &[view_entry(0, &nv), view_entry(1, &tv), view_entry(2, &pv)],
                         )
                     });
                     let stats = UploadStats {
                         nodes_bytes,
                         triangles_bytes,
-                        parents_bytes: parents.as_ref().map_or(0, |p| p.1),
+                        escapes_bytes: escapes.as_ref().map_or(0, |p| p.1),
                         upload_ms: 0.0,
                     };
                     (
                         Resources::Textures {
                             _nodes: nodes,
                             _triangles: triangles,
-                            _parents: parents.map(|p| p.0),
+                            _escapes: escapes.map(|p| p.0),
                         },
                         plain,
                         with,
@@ -445,7 +445,7 @@ impl GpuBvh {
             storage,
             resources,
             group_plain,
-            group_parents,
+            group_escapes,
             depth: bvh.depth,
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
@@ -457,8 +457,8 @@ impl GpuBvh {
 
     /// Checks that this upload can run `traversal`.
     pub fn supports(&self, traversal: Traversal) -> Result<(), GpuError> {
-        if traversal.needs_parents() && self.group_parents.is_none() {
-            return Err(GpuError::ParentsNotUploaded { traversal });
+        if traversal.needs_escapes() && self.group_escapes.is_none() {
+            return Err(GpuError::EscapesNotUploaded { traversal });
         }
         if traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
             return Err(GpuError::TooDeep {
@@ -499,16 +499,16 @@ impl GpuBvh {
         self.triangle_count
     }
 
-    /// True when the parent links were uploaded.
-    pub fn has_parents(&self) -> bool {
-        self.group_parents.is_some()
+    /// True when the escape links were uploaded.
+    pub fn has_escapes(&self) -> bool {
+        self.group_escapes.is_some()
     }
 
-    /// The BVH bind group for [`GpuContext::bvh_layout`]`(self.storage(), with_parents)`;
-    /// `None` when `with_parents` is asked for but the parents were not uploaded.
-    pub fn bind_group(&self, with_parents: bool) -> Option<&wgpu::BindGroup> {
-        if with_parents {
-            self.group_parents.as_ref()
+    /// The BVH bind group for [`GpuContext::bvh_layout`]`(self.storage(), with_escapes)`;
+    /// `None` when `with_escapes` is asked for but the escape links were not uploaded.
+    pub fn bind_group(&self, with_escapes: bool) -> Option<&wgpu::BindGroup> {
+        if with_escapes {
+            self.group_escapes.as_ref()
         } else {
             Some(&self.group_plain)
         }
@@ -530,10 +530,11 @@ impl GpuBvh {
         }
     }
 
-    /// The parent buffer (`array<u32>`), for [`BvhStorage::Buffers`] uploads with parents.
-    pub fn parents_buffer(&self) -> Option<&wgpu::Buffer> {
+    /// The escape-link buffer (`array<u32>`, eight links per node), for
+    /// [`BvhStorage::Buffers`] uploads with the escape links.
+    pub fn escapes_buffer(&self) -> Option<&wgpu::Buffer> {
         match &self.resources {
-            Resources::Buffers { parents, .. } => parents.as_ref(),
+            Resources::Buffers { escapes, .. } => escapes.as_ref(),
             Resources::Textures { .. } => None,
         }
     }

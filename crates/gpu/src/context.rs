@@ -83,7 +83,7 @@ struct Inner {
     dispatch_threads: AtomicU32,
     /// Shader modules, by the files composed.
     modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
-    /// BVH group layouts: `[buffers, textures][without parents, with parents]`.
+    /// BVH group layouts: `[buffers, textures][without escapes, with escapes]`.
     bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [[wgpu::BindGroupLayout; 2]; 2],
@@ -267,7 +267,7 @@ impl GpuContext {
                     &[storage_entry(0, true), storage_entry(1, true)],
                 ),
                 layout(
-                    "bvhtrace bvh buffers+parents",
+                    "bvhtrace bvh buffers+escapes",
                     &[
                         storage_entry(0, true),
                         storage_entry(1, true),
@@ -281,7 +281,7 @@ impl GpuContext {
                     &[texture_entry(0, rgba), texture_entry(1, rgba)],
                 ),
                 layout(
-                    "bvhtrace bvh textures+parents",
+                    "bvhtrace bvh textures+escapes",
                     &[
                         texture_entry(0, rgba),
                         texture_entry(1, rgba),
@@ -363,10 +363,10 @@ impl GpuContext {
     }
 
     /// The layout of the BVH bind group (group 0 of the kernels; any group of yours, see
-    /// [`crate::wgsl_library`]): bindings 0 (nodes) and 1 (triangles), plus 2 (parents)
-    /// when `with_parents`, as buffers or textures.
-    pub fn bvh_layout(&self, storage: BvhStorage, with_parents: bool) -> &wgpu::BindGroupLayout {
-        &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_parents)]
+    /// [`crate::wgsl_library`]): bindings 0 (nodes) and 1 (triangles), plus 2 (escapes)
+    /// when `with_escapes`, as buffers or textures.
+    pub fn bvh_layout(&self, storage: BvhStorage, with_escapes: bool) -> &wgpu::BindGroupLayout {
+        &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_escapes)]
     }
 
     /// The storage an upload uses when [`crate::UploadOptions::storage`] is `None`.
@@ -509,7 +509,7 @@ impl GpuContext {
 
     /// The compute pipeline for `features`, created on first use and cached by the whole
     /// feature set (variant, attributes, composition). Its layout binds what the entry point
-    /// reads: the parent links only for the walks that climb, counters only when on.
+    /// reads: the escape links only for the walks that read them, counters only when on.
     pub fn pipeline_for(
         &self,
         features: &PipelineFeatures,
@@ -529,7 +529,7 @@ impl GpuContext {
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("bvhtrace trace"),
             bind_group_layouts: &[
-                Some(self.bvh_layout(variant.storage, variant.needs_parents())),
+                Some(self.bvh_layout(variant.storage, variant.needs_escapes())),
                 Some(self.batch_layout_for(variant.counters, variant.rays)),
             ],
             immediate_size: 0,

@@ -39,7 +39,7 @@ pub enum GpuError {
          the scene is too large for this device"
     )]
     TooLarge {
-        /// Which buffer (`nodes`, `triangles`, `parents`, `rays`, ...).
+        /// Which buffer (`nodes`, `triangles`, `escapes`, `rays`, ...).
         buffer: &'static str,
         /// Bytes it needs.
         bytes: u64,
@@ -62,12 +62,12 @@ pub enum GpuError {
     /// The BVH has no node.
     #[error("the BVH is empty: nothing to upload")]
     EmptyBvh,
-    /// The traversal needs the parent links, which were not uploaded.
+    /// The traversal needs the escape links, which were not uploaded.
     #[error(
-        "the {traversal} traversal needs the parent links, which this upload left out \
+        "the {traversal} traversal needs the escape links, which this upload left out \
          (list it in UploadOptions::traversals)"
     )]
-    ParentsNotUploaded {
+    EscapesNotUploaded {
         /// The traversal asked for.
         traversal: Traversal,
     },

@@ -1,32 +1,33 @@
 //! What one trace job needs, and the pipeline built from exactly that.
 //!
-//! A [`PipelineFeatures`] says what the job uses (the traversal, hence whether the parent
+//! A [`PipelineFeatures`] says what the job uses (the traversal, hence whether the escape
 //! links are read; closest or any hit; counters; per-vertex attributes the scene has and the
 //! job shades with) and is the key of [`crate::GpuContext`]'s pipeline cache. From it come
 //!
 //! * the WGSL module ([`PipelineFeatures::source`]): composed of only the files the job
-//!   needs ([`ModuleSet`]): no parent-link binding or climbing walk for the full stack, no
+//!   needs ([`ModuleSet`]): no escape-link binding or escape-link walk for the full stack, no
 //!   `counters` binding unless counters are on, no attribute module for a positions-only
 //!   scene, one entry point;
 //! * the bindings that module declares ([`PipelineFeatures::bindings`], checked against a
 //!   naga reflection of the composed source by `crates/gpu/tests/features.rs`);
-//! * the upload ([`PipelineFeatures::upload_options`]): the parent links only when read.
+//! * the upload ([`PipelineFeatures::upload_options`]): the escape links only when read.
 //!
 //! Closest/any hit and the short-stack size stay override constants (folded when the
 //! pipeline is created). [`Composition::EverythingOn`] composes every module instead (the
 //! module [`crate::kernel_source`] returns), for comparison.
 
+use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{Precision, Query, Traversal};
 
 use crate::bvh::{UploadOptions, UploadStats};
 use crate::shaders::{self, BvhStorage, KernelVariant};
 
-/// `bvh_buffers_parents.wgsl`.
-pub const BVH_BUFFERS_PARENTS_WGSL: &str =
-    include_str!("../../../shaders/bvh_buffers_parents.wgsl");
-/// `bvh_textures_parents.wgsl`.
-pub const BVH_TEXTURES_PARENTS_WGSL: &str =
-    include_str!("../../../shaders/bvh_textures_parents.wgsl");
+/// `bvh_buffers_escapes.wgsl`.
+pub const BVH_BUFFERS_ESCAPES_WGSL: &str =
+    include_str!("../../../shaders/bvh_buffers_escapes.wgsl");
+/// `bvh_textures_escapes.wgsl`.
+pub const BVH_TEXTURES_ESCAPES_WGSL: &str =
+    include_str!("../../../shaders/bvh_textures_escapes.wgsl");
 /// `entry_counters.wgsl`: the `counters` binding, composed only when counters are on.
 pub const ENTRY_COUNTERS_WGSL: &str = include_str!("../../../shaders/entry_counters.wgsl");
 /// `attribute_normals.wgsl`: per-vertex normals, composed only when the scene has them and
@@ -60,11 +61,11 @@ pub const ENTRY_POINT_FILES: [[(&str, &str); 2]; 2] = [
 ];
 
 impl BvhStorage {
-    /// The WGSL file declaring this storage's parent-link binding and `load_parent`.
-    pub fn parents_wgsl(&self) -> (&'static str, &'static str) {
+    /// The WGSL file declaring this storage's escape-link binding and `load_escape`.
+    pub fn escapes_wgsl(&self) -> (&'static str, &'static str) {
         match self {
-            BvhStorage::Buffers => ("bvh_buffers_parents.wgsl", BVH_BUFFERS_PARENTS_WGSL),
-            BvhStorage::Textures => ("bvh_textures_parents.wgsl", BVH_TEXTURES_PARENTS_WGSL),
+            BvhStorage::Buffers => ("bvh_buffers_escapes.wgsl", BVH_BUFFERS_ESCAPES_WGSL),
+            BvhStorage::Textures => ("bvh_textures_escapes.wgsl", BVH_TEXTURES_ESCAPES_WGSL),
         }
     }
 }
@@ -95,7 +96,7 @@ pub enum Composition {
     /// Only the files the job needs (the default).
     #[default]
     Specialised,
-    /// Every traversal, the parent links and every entry point, counted or not
+    /// Every traversal, the escape links and every entry point, counted or not
     /// ([`crate::kernel_source`]): the baseline the benchmark compares against.
     EverythingOn,
 }
@@ -120,11 +121,11 @@ pub struct ModuleSet {
     pub storage: BvhStorage,
     /// The triangle test ([`shaders::triangle_wgsl`]).
     pub precision: Precision,
-    /// The parent-link binding (`bvh_*_parents.wgsl`).
-    pub parents: bool,
+    /// The escape-link binding (`bvh_*_escapes.wgsl`).
+    pub escapes: bool,
     /// `traverse_full_stack.wgsl`.
     pub full_stack: bool,
-    /// `traverse_short_stack.wgsl` (needs `parents`).
+    /// `traverse_short_stack.wgsl` (needs `escapes`).
     pub short_stack: bool,
     /// Attribute modules.
     pub attributes: VertexAttributes,
@@ -140,7 +141,7 @@ impl ModuleSet {
         ModuleSet {
             storage,
             precision,
-            parents: true,
+            escapes: true,
             full_stack: true,
             short_stack: true,
             attributes: VertexAttributes::NONE,
@@ -167,8 +168,8 @@ impl ModuleSet {
             }
             if i == 0 {
                 out.push(self.storage.wgsl());
-                if self.parents {
-                    out.push(self.storage.parents_wgsl());
+                if self.escapes {
+                    out.push(self.storage.escapes_wgsl());
                 }
             }
         }
@@ -222,6 +223,9 @@ impl ModuleSet {
 pub enum PerElement {
     /// One element per BVH node.
     Node,
+    /// One element per block of [`bvhtrace_core::flat::ESCAPE_BLOCK`] nodes (the last one
+    /// padded): the escape links.
+    NodeBlock,
     /// One element per triangle.
     Triangle,
     /// One element per ray of the batch.
@@ -304,7 +308,7 @@ impl PipelineFeatures {
             Composition::Specialised => ModuleSet {
                 storage: v.storage,
                 precision: v.precision,
-                parents: v.needs_parents(),
+                escapes: v.needs_escapes(),
                 full_stack: !v.short_stack,
                 short_stack: v.short_stack,
                 attributes: self.attributes,
@@ -345,19 +349,24 @@ impl PipelineFeatures {
             per: PerElement::Ray,
             uploaded: false,
         };
-        let (nodes, tris, parents) = if textures {
+        let (nodes, tris, escapes) = if textures {
             (
                 "bvh_node_texels",
                 "bvh_triangle_texels",
-                "bvh_parent_texels",
+                "bvh_escape_texels",
             )
         } else {
-            ("bvh_nodes", "bvh_triangles", "bvh_parents")
+            ("bvh_nodes", "bvh_triangles", "bvh_escapes")
         };
         b.push(bvh(0, nodes, 32, PerElement::Node));
         b.push(bvh(1, tris, 48, PerElement::Triangle));
-        if set.parents {
-            b.push(bvh(2, parents, 4, PerElement::Node));
+        if set.escapes {
+            b.push(bvh(
+                2,
+                escapes,
+                (ESCAPE_BLOCK * OCTANTS * 4) as u64,
+                PerElement::NodeBlock,
+            ));
         }
         if set.attributes.normals {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
@@ -387,6 +396,7 @@ impl PipelineFeatures {
                 b.element_bytes
                     * match b.per {
                         PerElement::Node => nodes,
+                        PerElement::NodeBlock => nodes.div_ceil(ESCAPE_BLOCK as u64),
                         PerElement::Triangle => triangles,
                         PerElement::Ray => 0,
                     }
@@ -416,8 +426,13 @@ impl PipelineFeatures {
         UploadStats {
             nodes_bytes: sized(nodes, 32, 2, 16),
             triangles_bytes: sized(triangles, 48, 3, 16),
-            parents_bytes: if set.parents {
-                sized(nodes, 4, 1, 4)
+            escapes_bytes: if set.escapes {
+                sized(
+                    nodes.div_ceil(ESCAPE_BLOCK as u64),
+                    (ESCAPE_BLOCK * OCTANTS * 4) as u64,
+                    (ESCAPE_BLOCK * OCTANTS) as u64,
+                    4,
+                )
             } else {
                 0
             },
@@ -430,13 +445,13 @@ impl PipelineFeatures {
         self.variant.traversal()
     }
 
-    /// The upload these features read: the parent links only when the traversal climbs.
+    /// The upload these features read: the escape links only when the traversal reads them.
     pub fn upload_options(&self) -> UploadOptions {
         UploadOptions::for_traversal(self.traversal()).with_storage(self.variant.storage)
     }
 
     /// What was included, in words, for listings: the query, the walk, and each optional
-    /// part present (`parent-links`, `counters`, `vertex-normals`, `everything-on`).
+    /// part present (`escape-links`, `counters`, `vertex-normals`, `everything-on`).
     pub fn names(&self) -> Vec<&'static str> {
         let v = &self.variant;
         let set = self.module_set();
@@ -446,8 +461,8 @@ impl PipelineFeatures {
             Traversal::Stackless => "stackless",
             Traversal::ShortStack(_) => "short-stack",
         });
-        if set.parents {
-            n.push("parent-links");
+        if set.escapes {
+            n.push("escape-links");
         }
         if v.counters {
             n.push("counters");

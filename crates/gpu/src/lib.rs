@@ -22,7 +22,7 @@
 //!
 //! * [`GpuContext`]: the device (headless, or shared with [`GpuContext::from_device`]),
 //!   its limits, the shader module and the pipeline cache.
-//! * [`GpuBvh::upload`]: nodes, triangles, and the parent links only when a traversal needs
+//! * [`GpuBvh::upload`]: nodes, triangles, and the escape links only when a traversal needs
 //!   them, each checked against the device's limits, as storage buffers or textures
 //!   ([`BvhStorage`]; textures are much faster on lavapipe).
 //! * [`GpuBvh::trace`] / [`GpuBvh::trace_counted`] / [`GpuBvh::trace_with`]: ray slices in,

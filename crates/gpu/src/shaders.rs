@@ -13,7 +13,7 @@
 //! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full and short stack | `Vec` / the ring of `traverse::short_stack` |
 //! | `traverse_full_stack.wgsl` | `trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
 //! | `traverse_short_stack.wgsl` | `trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
-//! | `bvh_buffers_parents.wgsl` or `bvh_textures_parents.wgsl` | the parent links (binding 2), only for the walks that climb | `FlatBvh::parents` |
+//! | `bvh_buffers_escapes.wgsl` or `bvh_textures_escapes.wgsl` | the escape links (binding 2), only for the walks that read them | `FlatBvh::escapes` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
 //! | `entry.wgsl` | what the entry points share: the overrides, `ray_index` | `traverse::trace_batch` |
 //! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from and the hits go (`load_ray`, `store_hit`, `batch_len`; [`RayInput`]) | - |
@@ -118,11 +118,14 @@ pub const STACK_LANES: u32 = 64;
 
 /// The trip budget ([`trip_limit_for`]) on CPU drivers: lavapipe ends every loop of an
 /// invocation after 65,535 trips in all, counted per batch of 8 lanes over all its loops.
-/// A ray's trips (node steps, triangle tests, climb steps) are at most this budget, and
-/// every trip of an inner or climb loop, and every trip of a walk's outer loop, has some
-/// lane take one of its trips: at most `8 * budget` each. The short stack's restart loop
-/// (one trip more per climb after its ring ran dry) adds at most `budget + 1`, so a batch
-/// counts at most `17 * 3,800 + 1 = 64,601`.
+/// A ray's trips (box tests, triangle tests) are at most this budget. The count goes up
+/// when a loop goes round again (not on entry), so only when some lane runs its next trip.
+/// That trip spends one of the lane's trips (or ends the lane, once): a box test for the
+/// inner loop, and for a walk's outer loop or the short stack's restart loop, the first box
+/// test of the inner loop they enter; or, for a leaf's triangle loop, a triangle test or
+/// the end of the leaf, at most once per entry, which is once per outer trip. So a batch
+/// counts at most `8 * budget + 8` for the first kind and `8 * budget + 1` for leaf ends:
+/// `16 * 3,800 + 9 = 60,809`.
 pub const CPU_DRIVER_TRIP_LIMIT: u32 = 3_800;
 
 /// The `TRIP_LIMIT` override for an adapter: [`CPU_DRIVER_TRIP_LIMIT`] on CPU drivers
@@ -201,7 +204,7 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 }
 
 /// The traversal library without entry points, reading the BVH from `storage` bound at
-/// `@group(bvh_group)`, bindings 0 (nodes), 1 (triangles) and 2 (parents, read only by
+/// `@group(bvh_group)`, bindings 0 (nodes), 1 (triangles) and 2 (escapes, read only by
 /// `trace_short_stack`). Bind [`crate::GpuBvh::bind_group`] there, with
 /// [`crate::GpuContext::bvh_layout`] in your pipeline layout.
 ///
@@ -467,8 +470,8 @@ impl KernelVariant {
         c
     }
 
-    /// True when the kernel reads the parent links.
-    pub fn needs_parents(&self) -> bool {
+    /// True when the kernel reads the escape links.
+    pub fn needs_escapes(&self) -> bool {
         self.short_stack
     }
 }

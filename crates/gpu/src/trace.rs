@@ -820,8 +820,8 @@ impl GpuBvh {
         let variant = self.variant(opts, precision, input, parallel_rays);
         let pipeline = self.ctx.pipeline(variant)?;
         let group0 =
-            self.bind_group(variant.needs_parents())
-                .ok_or(GpuError::ParentsNotUploaded {
+            self.bind_group(variant.needs_escapes())
+                .ok_or(GpuError::EscapesNotUploaded {
                     traversal: opts.traversal,
                 })?;
         let device = self.ctx.device();

@@ -1,7 +1,7 @@
 //! Leaving out what a job does not need: the specialised modules are reflected with naga
 //! (no GPU needed) and must declare exactly the bindings [`PipelineFeatures::bindings`]
 //! lists: no attribute binding for a positions-only scene, no `counters` unless counters
-//! are on, no parent links for the full stack, one entry point. On a GPU (lavapipe in CI):
+//! are on, no escape links for the full stack, one entry point. On a GPU (lavapipe in CI):
 //! the pipeline cache does not recompile when a job switches back to a feature set, the
 //! specialised and everything-on pipelines give the same hits, and the bytes uploaded are
 //! exactly the bytes the kernel's bindings declare.
@@ -104,14 +104,14 @@ fn positions_only_pipelines_declare_only_what_the_job_reads() {
                 f.variant.counters,
                 "{f:?}: {names:?}"
             );
-            // Parent links only for the walks that climb; and the other walk's code is
+            // Escape links only for the walks that read them; and the other walk's code is
             // not in the module at all.
-            let parents = names.iter().any(|n| n.contains("parent"));
+            let escapes = names.iter().any(|n| n.contains("escape"));
             let full = f.traversal() == Traversal::FullStack;
-            assert_eq!(parents, !full, "{f:?}: {names:?}");
+            assert_eq!(escapes, !full, "{f:?}: {names:?}");
             assert_eq!(has_function(&module, "trace_short_stack"), !full, "{f:?}");
             assert_eq!(has_function(&module, "trace_full_stack"), full, "{f:?}");
-            assert_eq!(has_function(&module, "load_parent"), !full, "{f:?}");
+            assert_eq!(has_function(&module, "load_escape"), !full, "{f:?}");
             // One entry point, the variant's.
             let eps: Vec<&str> = module
                 .entry_points
@@ -179,7 +179,7 @@ fn everything_on_declares_everything_and_is_kernel_source() {
             let names: BTreeSet<String> =
                 declared(&module).into_iter().map(|(_, _, n)| n).collect();
             assert!(names.contains("counters"), "{names:?}");
-            assert!(names.iter().any(|n| n.contains("parent")), "{names:?}");
+            assert!(names.iter().any(|n| n.contains("escape")), "{names:?}");
             assert_eq!(module.entry_points.len(), 4);
             // The specialised module is strictly smaller.
             assert!(f.source().len() < all.source().len());
@@ -327,18 +327,18 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                 (
                     stats.nodes_bytes,
                     stats.triangles_bytes,
-                    stats.parents_bytes
+                    stats.escapes_bytes
                 ),
                 (
                     planned.nodes_bytes,
                     planned.triangles_bytes,
-                    planned.parents_bytes
+                    planned.escapes_bytes
                 ),
                 "{f:?}: uploaded vs PipelineFeatures::upload_bytes"
             );
             assert_eq!(
-                stats.parents_bytes > 0,
-                traversal.needs_parents(),
+                stats.escapes_bytes > 0,
+                traversal.needs_escapes(),
                 "{f:?}: {stats:?}"
             );
             match storage {
@@ -350,7 +350,11 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                         .map(|(name, stride)| {
                             stride
                                 * match name.as_str() {
-                                    "bvh_nodes" | "bvh_parents" => nodes,
+                                    "bvh_nodes" => nodes,
+                                    // `array<u32>`: eight links per node, whole blocks.
+                                    "bvh_escapes" => {
+                                        bvhtrace_core::flat::escape_links_len(nodes as usize) as u64
+                                    }
                                     "bvh_triangles" => tris,
                                     other => panic!("unexpected binding {other}"),
                                 }
@@ -360,11 +364,17 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                     assert_eq!(stats.total_bytes(), declared, "{f:?}");
                 }
                 BvhStorage::Textures => {
-                    // The same texels: exactly, when each texture is one row (as here);
-                    // taller ones pad at most their last row.
+                    // The same texels: exactly, when each texture is one row (the nodes and
+                    // triangles here); taller ones (the eight escape links per node) pad at
+                    // most their last row.
                     let row = u64::from(bvhtrace_gpu::TEXEL_ROW);
                     assert!(2 * nodes <= row && 3 * tris <= row, "scene too large");
-                    assert_eq!(stats.total_bytes(), declared, "{f:?}: {stats:?}");
+                    let pad = stats.total_bytes() - declared;
+                    if traversal.needs_escapes() {
+                        assert!(8 * nodes > row && pad < 4 * row, "{f:?}: {stats:?}");
+                    } else {
+                        assert_eq!(pad, 0, "{f:?}: {stats:?}");
+                    }
                     let tall = f.upload_bytes(100 * row, 100 * row);
                     assert!(tall.total_bytes() >= f.declared_bvh_bytes(100 * row, 100 * row));
                     assert!(

@@ -233,11 +233,11 @@ fn check_library(storage: BvhStorage) {
         .filter_map(|(_, g)| Some((g.name.clone()?, g.binding.as_ref()?.group)))
         .collect();
     let names = match storage {
-        BvhStorage::Buffers => ["bvh_nodes", "bvh_triangles", "bvh_parents"],
+        BvhStorage::Buffers => ["bvh_nodes", "bvh_triangles", "bvh_escapes"],
         BvhStorage::Textures => [
             "bvh_node_texels",
             "bvh_triangle_texels",
-            "bvh_parent_texels",
+            "bvh_escape_texels",
         ],
     };
     for (binding, name) in names.iter().enumerate() {

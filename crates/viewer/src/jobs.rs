@@ -108,7 +108,7 @@ pub struct Job {
     pub what: String,
 }
 
-/// The traversals an upload of a tree this deep supports: the parent-link ones always,
+/// The traversals an upload of a tree this deep supports: the escape-link ones always,
 /// the full stack when the tree fits its stack.
 pub fn upload_options(depth: u32) -> UploadOptions {
     let mut traversals = vec![

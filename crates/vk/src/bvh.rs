@@ -23,12 +23,12 @@ struct Scratch {
 }
 
 /// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as three storage buffers (nodes,
-/// triangles, parents: the layout of [`bvhtrace_core::flat`], byte for byte).
+/// triangles, escapes: the layout of [`bvhtrace_core::flat`], byte for byte).
 pub struct VkBvh {
     ctx: VkContext,
     nodes: Buffer,
     triangles: Buffer,
-    parents: Buffer,
+    escapes: Buffer,
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
     depth: u32,
@@ -56,7 +56,7 @@ impl Drop for VkBvh {
         unsafe {
             d.destroy_descriptor_pool(self.pool, None);
         }
-        for b in [&mut self.nodes, &mut self.triangles, &mut self.parents] {
+        for b in [&mut self.nodes, &mut self.triangles, &mut self.escapes] {
             b.destroy(d);
         }
         let scratch = match self.scratch.get_mut() {
@@ -157,7 +157,7 @@ fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, VkE
 }
 
 impl VkBvh {
-    /// Uploads `bvh`'s nodes, triangles and parent links to device-local storage buffers
+    /// Uploads `bvh`'s nodes, triangles and escape links to device-local storage buffers
     /// (through one host-visible staging buffer). Each array is checked against the
     /// device's `maxStorageBufferRange` first; the error names the array, its size and the
     /// limit.
@@ -167,7 +167,7 @@ impl VkBvh {
         let arrays: [(&'static str, &[u8]); 3] = [
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),
             ("triangles", bytemuck::cast_slice(&bvh.triangles)),
-            ("parents", bytemuck::cast_slice(&bvh.parents)),
+            ("escapes", bytemuck::cast_slice(&bvh.escapes)),
         ];
         for (name, bytes) in arrays {
             if bytes.len() as u64 > limit {
@@ -248,7 +248,7 @@ impl VkBvh {
             }
             return Err(e);
         }
-        let (Some(parents), Some(triangles), Some(nodes)) = (made.pop(), made.pop(), made.pop())
+        let (Some(escapes), Some(triangles), Some(nodes)) = (made.pop(), made.pop(), made.pop())
         else {
             unreachable!("three buffers were made")
         };
@@ -256,7 +256,7 @@ impl VkBvh {
             ctx: ctx.clone(),
             nodes,
             triangles,
-            parents,
+            escapes,
             pool: vk::DescriptorPool::null(),
             set: vk::DescriptorSet::null(),
             depth: bvh.depth,
@@ -264,7 +264,7 @@ impl VkBvh {
             stats: UploadStats {
                 nodes_bytes: arrays[0].1.len() as u64,
                 triangles_bytes: arrays[1].1.len() as u64,
-                parents_bytes: arrays[2].1.len() as u64,
+                escapes_bytes: arrays[2].1.len() as u64,
                 upload_ms: 0.0,
             },
             scratch: Mutex::new(None),
@@ -285,7 +285,7 @@ impl VkBvh {
         let entries = [
             (0, whole(&bvh_gpu.nodes)),
             (1, whole(&bvh_gpu.triangles)),
-            (2, whole(&bvh_gpu.parents)),
+            (2, whole(&bvh_gpu.escapes)),
         ]
         .map(|(i, (b, o, r))| (i, b, o, r));
         write_set(d, bvh_gpu.set, &entries);

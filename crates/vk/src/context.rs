@@ -443,7 +443,7 @@ impl VkContext {
                 instance: holder,
             };
             let d = &inner.device;
-            // Set 0: nodes, triangles, parents. Set 1: rays, hits, counters. The kernels'
+            // Set 0: nodes, triangles, escapes. Set 1: rays, hits, counters. The kernels'
             // binding numbers; every binding is always bound (unused ones are not declared
             // in the SPIR-V of an entry point that does not use them).
             for set in 0..2 {

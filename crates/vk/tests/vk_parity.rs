@@ -267,7 +267,7 @@ fn errors_are_errors_not_panics() {
         let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
         let huge = FlatBvh {
             nodes: deep.nodes.clone(),
-            parents: deep.parents.clone(),
+            escapes: deep.escapes.clone(),
             triangles: vec![bytemuck::Zeroable::zeroed(); n],
             depth: deep.depth,
         };
