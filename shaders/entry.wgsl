@@ -17,7 +17,7 @@
 //   (not used by the full-stack entry points).
 
 override ANY_HIT: bool = false;
-override SHORT_STACK_SIZE: u32 = 6u;
+override SHORT_STACK_SIZE: u32 = 8u;
 
 const WORKGROUP_SIZE: u32 = 64u;
 

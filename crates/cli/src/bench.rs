@@ -378,7 +378,7 @@ fn compare_everything_on(ctx: &GpuContext, args: &BenchTraceArgs, w: u32, h: u32
         for tr in [
             Traversal::FullStack,
             Traversal::Stackless,
-            Traversal::ShortStack(6),
+            Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
         ] {
             let job = PipelineFeatures::for_job(
                 storage,
