@@ -112,18 +112,11 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                     continue;
                 }
                 // Missed: the subtree at `node` is done.
-                if (k == 0u) {
-                    node = load_escape(node, oct);
-                    if (node == NO_ESCAPE) {
-                        break;
-                    }
+                let next = next_node(&node, oct, &newer, &older, &top, &count, overflow, k, lane);
+                if (next == NEXT_ON) {
                     continue;
                 }
-                if (count > 0u) {
-                    node = pop_ring(&newer, &older, &top, &count, k, lane);
-                    continue;
-                }
-                escape = overflow;
+                escape = next == NEXT_ESCAPE;
                 break;
             }
             if (leaf_count == 0u) {
@@ -136,18 +129,11 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 return incomplete(best, c);
             }
             // The leaf's subtree is done.
-            if (k == 0u) {
-                node = load_escape(node, oct);
-                if (node == NO_ESCAPE) {
-                    break;
-                }
+            let next = next_node(&node, oct, &newer, &older, &top, &count, overflow, k, lane);
+            if (next == NEXT_ON) {
                 continue;
             }
-            if (count > 0u) {
-                node = pop_ring(&newer, &older, &top, &count, k, lane);
-                continue;
-            }
-            escape = overflow;
+            escape = next == NEXT_ESCAPE;
             break;
         }
         if (!escape) {
@@ -163,22 +149,40 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
     return finish(best, c);
 }
 
-// Pops the ring's newest entry (`count > 0`).
-fn pop_ring(
+// What the walk does when it is done with the subtree at `node`: go on at the new `node`
+// (the escape link without a ring, else the ring's newest entry), end, or (a short stack
+// whose ring ran dry after dropping entries) follow `node`'s escape link in the restart
+// loop.
+const NEXT_ON: u32 = 0u;
+const NEXT_DONE: u32 = 1u;
+const NEXT_ESCAPE: u32 = 2u;
+
+fn next_node(
+    node: ptr<function, u32>,
+    oct: u32,
     newer: ptr<function, vec4<u32>>,
     older: ptr<function, vec4<u32>>,
     top: ptr<function, u32>,
     count: ptr<function, u32>,
+    overflow: bool,
     k: u32,
     lane: u32,
 ) -> u32 {
+    if (k == 0u) {
+        *node = load_escape(*node, oct);
+        return select(NEXT_ON, NEXT_DONE, *node == NO_ESCAPE);
+    }
+    if (*count == 0u) {
+        return select(NEXT_DONE, NEXT_ESCAPE, overflow);
+    }
     *count -= 1u;
     if (k <= REGISTER_RING) {
-        let node = (*newer).x;
+        *node = (*newer).x;
         *newer = vec4<u32>((*newer).yzw, (*older).x);
         *older = vec4<u32>((*older).yzw, 0u);
-        return node;
+    } else {
+        *top = select(*top - 1u, k - 1u, *top == 0u);
+        *node = lane_stacks[stack_slot(lane, *top)];
     }
-    *top = select(*top - 1u, k - 1u, *top == 0u);
-    return lane_stacks[stack_slot(lane, *top)];
+    return NEXT_ON;
 }
