@@ -100,8 +100,8 @@ impl FromStr for Traversal {
 }
 
 /// Default short-stack size: the largest ring the GPU kernel keeps in registers. On
-/// lavapipe it is the fastest size on `bunny_69k` and `igea` (1.03-1.14x the full stack,
-/// against 0.99-1.14x for 6; README, *Traversals*).
+/// lavapipe it overflows least of the register rings on `bunny_69k` and `igea`, and is the
+/// fastest of 2, 4, 6 and 8 by median (README, *Traversals*).
 pub const DEFAULT_SHORT_STACK: u32 = 8;
 
 /// Closest hit or any hit.
