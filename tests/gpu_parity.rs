@@ -494,6 +494,35 @@ fn upload_checks_and_errors() {
         )
         .is_ok()
     );
+    // Escape links that do not match the nodes: refused for the walks that follow them.
+    let mut unlinked = bvh.clone();
+    unlinked.escapes.clear();
+    let err = GpuBvh::upload(
+        &ctx,
+        &unlinked,
+        &UploadOptions::for_traversal(Traversal::ShortStack(4)),
+    )
+    .expect_err("no escape links");
+    assert!(
+        matches!(
+            err,
+            GpuError::BadEscapeLinks {
+                nodes: 1,
+                found: 0,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    assert!(err.to_string().contains("escape_links"), "{err}");
+    assert!(
+        GpuBvh::upload(
+            &ctx,
+            &unlinked,
+            &UploadOptions::for_traversal(Traversal::FullStack)
+        )
+        .is_ok()
+    );
 }
 
 /// `record` into the caller's encoder with the caller's buffers (and its buffer checks).

@@ -283,6 +283,15 @@ fn errors_are_errors_not_panics() {
     } else {
         eprintln!("SKIP the too-large upload: maxStorageBufferRange is {limit} bytes");
     }
+    // Escape links that do not match the nodes are refused, saying how to make them.
+    let mut unlinked = deep.clone();
+    unlinked.escapes.truncate(8);
+    match VkBvh::upload(&ctx, &unlinked) {
+        Err(e @ VkError::BadEscapeLinks { found: 8, .. }) => {
+            assert!(e.to_string().contains("escape_links"), "{e}")
+        }
+        other => panic!("expected BadEscapeLinks, got {other:?}"),
+    }
     // An empty batch is fine.
     let empty = gpu
         .trace(&[], Traversal::Stackless, Query::Any, false)
