@@ -506,11 +506,11 @@ fn upload_checks_and_errors() {
     assert!(
         matches!(
             err,
-            GpuError::BadEscapeLinks {
+            GpuError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
                 nodes: 1,
                 found: 0,
                 ..
-            }
+            })
         ),
         "{err}"
     );

@@ -78,6 +78,22 @@ pub fn escape_links_len(nodes: usize) -> usize {
     nodes.div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS
 }
 
+/// `FlatBvh::escapes` does not fit `FlatBvh::nodes` (a `FlatBvh` assembled by hand, or
+/// edited after [`FlatBvh::flatten`]): a walk reading the links could leave the tree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "the BVH has {found} escape links for {nodes} nodes, where the stackless and short-stack \
+     walks need {expected} (set FlatBvh::escapes = bvhtrace_core::flat::escape_links(&nodes))"
+)]
+pub struct EscapeLinksMismatch {
+    /// Nodes in the BVH.
+    pub nodes: usize,
+    /// Links it has.
+    pub found: usize,
+    /// Links it needs ([`escape_links_len`]).
+    pub expected: usize,
+}
+
 /// The escape links of `nodes` (see the module docs): the near child of a node escapes to
 /// its far child, the far child to where the node escapes. Parents come before their
 /// children in the layout, so one pass in index order sets every link.
@@ -250,6 +266,22 @@ impl FlatBvh {
         )
     }
 
+    /// Checks that there are as many escape links as the nodes need (what a GPU upload
+    /// checks before the stackless and short-stack kernels may follow them;
+    /// [`FlatBvh::check_invariants`] checks where they lead).
+    pub fn check_escape_links(&self) -> Result<(), EscapeLinksMismatch> {
+        let expected = escape_links_len(self.nodes.len());
+        if self.escapes.len() == expected {
+            Ok(())
+        } else {
+            Err(EscapeLinksMismatch {
+                nodes: self.nodes.len(),
+                found: self.escapes.len(),
+                expected,
+            })
+        }
+    }
+
     /// Checks every structural invariant; returns a description of the first violation.
     /// Used by the tests; cheap enough to run on any tree.
     pub fn check_invariants(&self) -> Result<(), String> {
@@ -260,12 +292,7 @@ impl FlatBvh {
         }
         let mut seen = vec![false; n_tris];
         let mut covered = vec![false; n_tris];
-        if self.escapes.len() != escape_links_len(n_nodes) {
-            return Err(format!(
-                "{} escape links for {n_nodes} nodes",
-                self.escapes.len()
-            ));
-        }
+        self.check_escape_links().map_err(|e| e.to_string())?;
         if (0..OCTANTS).any(|o| self.escapes[escape_index(0, o)] != NO_ESCAPE) {
             return Err("the root escapes somewhere".into());
         }

@@ -297,13 +297,8 @@ impl GpuBvh {
         }
         let storage = opts.storage.unwrap_or_else(|| ctx.default_storage());
         let with_escapes = opts.traversals.iter().any(|t| t.needs_escapes());
-        let expected = bvhtrace_core::flat::escape_links_len(bvh.nodes.len());
-        if with_escapes && bvh.escapes.len() != expected {
-            return Err(GpuError::BadEscapeLinks {
-                nodes: bvh.nodes.len(),
-                found: bvh.escapes.len(),
-                expected,
-            });
+        if with_escapes {
+            bvh.check_escape_links()?;
         }
         let (nb, pb, tb) = bvh.byte_sizes();
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);

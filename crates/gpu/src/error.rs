@@ -62,22 +62,10 @@ pub enum GpuError {
     /// The BVH has no node.
     #[error("the BVH is empty: nothing to upload")]
     EmptyBvh,
-    /// The BVH's escape links do not match its nodes (a `FlatBvh` assembled by hand or
-    /// edited after `FlatBvh::flatten`); the stackless and short-stack walks would follow
-    /// them out of the tree.
-    #[error(
-        "the BVH has {found} escape links for {nodes} nodes, where the stackless and \
-         short-stack walks need {expected} (set FlatBvh::escapes = \
-         bvhtrace_core::flat::escape_links(&nodes))"
-    )]
-    BadEscapeLinks {
-        /// Nodes in the BVH.
-        nodes: usize,
-        /// Links it has.
-        found: usize,
-        /// Links it needs.
-        expected: usize,
-    },
+    /// The BVH's escape links do not fit its nodes; the stackless and short-stack walks
+    /// would follow them out of the tree.
+    #[error(transparent)]
+    BadEscapeLinks(#[from] bvhtrace_core::flat::EscapeLinksMismatch),
     /// The traversal needs the escape links, which were not uploaded.
     #[error(
         "the {traversal} traversal needs the escape links, which this upload left out \

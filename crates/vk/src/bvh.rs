@@ -163,14 +163,7 @@ impl VkBvh {
     /// limit.
     pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, VkError> {
         let start = Instant::now();
-        let expected = bvhtrace_core::flat::escape_links_len(bvh.nodes.len());
-        if bvh.escapes.len() != expected {
-            return Err(VkError::BadEscapeLinks {
-                nodes: bvh.nodes.len(),
-                found: bvh.escapes.len(),
-                expected,
-            });
-        }
+        bvh.check_escape_links()?;
         let limit = ctx.limits().max_storage_buffer_binding_size;
         let arrays: [(&'static str, &[u8]); 3] = [
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),

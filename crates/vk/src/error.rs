@@ -72,21 +72,10 @@ pub enum VkError {
         /// The device's limit.
         limit: u64,
     },
-    /// The BVH's escape links do not match its nodes (a `FlatBvh` assembled by hand or
-    /// edited after `FlatBvh::flatten`).
-    #[error(
-        "the BVH has {found} escape links for {nodes} nodes, where the stackless and \
-         short-stack walks need {expected} (set FlatBvh::escapes = \
-         bvhtrace_core::flat::escape_links(&nodes))"
-    )]
-    BadEscapeLinks {
-        /// Nodes in the BVH.
-        nodes: usize,
-        /// Links it has.
-        found: usize,
-        /// Links it needs.
-        expected: usize,
-    },
+    /// The BVH's escape links do not fit its nodes; the stackless and short-stack walks
+    /// would follow them out of the tree.
+    #[error(transparent)]
+    BadEscapeLinks(#[from] bvhtrace_core::flat::EscapeLinksMismatch),
     /// The full-stack kernel's stack cannot hold this tree.
     #[error(
         "the tree is {depth} levels deep, more than the full-stack kernel's stack \

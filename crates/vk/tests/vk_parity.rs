@@ -287,7 +287,11 @@ fn errors_are_errors_not_panics() {
     let mut unlinked = deep.clone();
     unlinked.escapes.truncate(8);
     match VkBvh::upload(&ctx, &unlinked) {
-        Err(e @ VkError::BadEscapeLinks { found: 8, .. }) => {
+        Err(
+            e @ VkError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
+                found: 8, ..
+            }),
+        ) => {
             assert!(e.to_string().contains("escape_links"), "{e}")
         }
         other => panic!("expected BadEscapeLinks, got {other:?}"),
