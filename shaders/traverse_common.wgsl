@@ -6,12 +6,12 @@
 // `t < best.t`, or `t == best.t` and its primitive index is lower. `best.t` starts at
 // `t_max`, so the interval is `[t_min, t_max)`.
 
-// The trip budget: loop trips (box tests, triangle tests) a ray may take
-// before it gives up with `INCOMPLETE`. Unbounded by default. Some drivers end every loop
-// of an invocation silently after a fixed number of trips in all (lavapipe: 65,535 per
-// 8-lane batch, counting each inner loop's longest lane), which would return a wrong
-// answer without a sign; the host sets a budget that stays under such a limit
-// (`bvhtrace_gpu::trip_limit_for`) and finishes the rays that exhaust it.
+// The trip budget: loop trips (box tests, triangle tests) a ray may take before it gives
+// up with `INCOMPLETE`. Unbounded by default. Some drivers end every loop of an invocation
+// silently after a fixed number of trips in all (lavapipe: 65,535 per 8-lane batch, over
+// all its loops), which would return a wrong answer without a sign; the host sets a budget
+// that stays under such a limit (`bvhtrace_gpu::trip_limit_for`, the bound on
+// `CPU_DRIVER_TRIP_LIMIT`) and finishes the rays that exhaust it.
 override TRIP_LIMIT: u32 = 0xffffffffu;
 
 // Trips left to the current ray (set by `start_best`).

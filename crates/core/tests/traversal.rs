@@ -225,8 +225,8 @@ fn closest_hit_does_not_depend_on_visit_order_near_the_origin() {
     };
     // The tree, pinned: root split on x into [leaf L, X = [leaf W, leaf O]]. The full stack
     // enters L and X at the same distance (the plane) and takes the left one first; the
-    // stackless and short-stack walks take the near side along x, also L. X (or W's leaf) is then tested
-    // against L's hit.
+    // stackless and short-stack walks take the near side along x, also L. X (or W's leaf)
+    // is then tested against L's hit.
     let leaf = |ts: &[Triangle], first: u32| BuildNode::Leaf {
         bounds: bounds(ts),
         first,

@@ -22,6 +22,14 @@ use bvhtrace_core::{Precision, Query, Traversal};
 use crate::bvh::{UploadOptions, UploadStats};
 use crate::shaders::{self, BvhStorage, KernelVariant};
 
+/// Bytes of one block of escape links ([`PerElement::NodeBlock`]).
+const ESCAPE_BLOCK_BYTES: u64 = (ESCAPE_BLOCK * OCTANTS * 4) as u64;
+
+/// Blocks of escape links for `nodes` nodes.
+fn escape_blocks(nodes: u64) -> u64 {
+    nodes.div_ceil(ESCAPE_BLOCK as u64)
+}
+
 /// `bvh_buffers_escapes.wgsl`.
 pub const BVH_BUFFERS_ESCAPES_WGSL: &str =
     include_str!("../../../shaders/bvh_buffers_escapes.wgsl");
@@ -361,12 +369,7 @@ impl PipelineFeatures {
         b.push(bvh(0, nodes, 32, PerElement::Node));
         b.push(bvh(1, tris, 48, PerElement::Triangle));
         if set.escapes {
-            b.push(bvh(
-                2,
-                escapes,
-                (ESCAPE_BLOCK * OCTANTS * 4) as u64,
-                PerElement::NodeBlock,
-            ));
+            b.push(bvh(2, escapes, ESCAPE_BLOCK_BYTES, PerElement::NodeBlock));
         }
         if set.attributes.normals {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
@@ -396,7 +399,7 @@ impl PipelineFeatures {
                 b.element_bytes
                     * match b.per {
                         PerElement::Node => nodes,
-                        PerElement::NodeBlock => nodes.div_ceil(ESCAPE_BLOCK as u64),
+                        PerElement::NodeBlock => escape_blocks(nodes),
                         PerElement::Triangle => triangles,
                         PerElement::Ray => 0,
                     }
@@ -428,9 +431,9 @@ impl PipelineFeatures {
             triangles_bytes: sized(triangles, 48, 3, 16),
             escapes_bytes: if set.escapes {
                 sized(
-                    nodes.div_ceil(ESCAPE_BLOCK as u64),
-                    (ESCAPE_BLOCK * OCTANTS * 4) as u64,
-                    (ESCAPE_BLOCK * OCTANTS) as u64,
+                    escape_blocks(nodes),
+                    ESCAPE_BLOCK_BYTES,
+                    ESCAPE_BLOCK_BYTES / 4,
                     4,
                 )
             } else {

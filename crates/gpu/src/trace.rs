@@ -593,12 +593,9 @@ impl GpuBvh {
         // upload. The rays are looked at once, and every chunk uses this variant.
         self.supports(opts.traversal)?;
         let input = RayInput::for_storage(self.storage());
-        let parallel_rays = self
-            .variant(opts, precision, input, true)
-            .for_rays(rays)
-            .parallel_rays;
-        self.ctx
-            .pipeline(self.variant(opts, precision, input, parallel_rays))?;
+        let variant = self.variant(opts, precision, input, true).for_rays(rays);
+        self.ctx.pipeline(variant)?;
+        let parallel_rays = variant.parallel_rays;
         let start = Instant::now();
         let n = rays.len() as u64;
         let mut out = TraceOutput {
