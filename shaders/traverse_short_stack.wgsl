@@ -65,6 +65,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
     var count = 0u; // live entries
     var overflow = false;
     var node = 0u;
+    var escape_link = NO_ESCAPE; // the stackless walk's link of `node`
     // For `k > 0` the escape link is followed in this loop, outside the walk's loops: a CPU
     // driver runs every loop body at least once for the whole SIMD batch, so the link's
     // load would cost every leaf, although only a ring that overflowed and ran dry needs
@@ -83,6 +84,11 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 }
                 c.nodes += 1u;
                 let n = load_node(node);
+                // The stackless walk loads the link before the box test, so that its
+                // cache miss overlaps the node's instead of waiting for the box's result.
+                if (k == 0u) {
+                    escape_link = load_escape(node, oct);
+                }
                 let hit = box_hit(intersect_box(r, n.min, n.max, best.t));
                 let count_here = n.meta_bits >> 2u;
                 if (hit && count_here != 0u) {
@@ -112,7 +118,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                     continue;
                 }
                 // Missed: the subtree at `node` is done.
-                let next = next_node(&node, oct, &newer, &older, &top, &count, overflow, k, lane);
+                let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
                 if (next == NEXT_ON) {
                     continue;
                 }
@@ -129,7 +135,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 return incomplete(best, c);
             }
             // The leaf's subtree is done.
-            let next = next_node(&node, oct, &newer, &older, &top, &count, overflow, k, lane);
+            let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
             if (next == NEXT_ON) {
                 continue;
             }
@@ -159,7 +165,7 @@ const NEXT_ESCAPE: u32 = 2u;
 
 fn next_node(
     node: ptr<function, u32>,
-    oct: u32,
+    escape_link: u32,
     newer: ptr<function, vec4<u32>>,
     older: ptr<function, vec4<u32>>,
     top: ptr<function, u32>,
@@ -169,7 +175,7 @@ fn next_node(
     lane: u32,
 ) -> u32 {
     if (k == 0u) {
-        *node = load_escape(*node, oct);
+        *node = escape_link;
         return select(NEXT_ON, NEXT_DONE, *node == NO_ESCAPE);
     }
     if (*count == 0u) {
