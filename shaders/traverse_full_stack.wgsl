@@ -17,6 +17,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
     var best = start_best(ray);
     var c = Counters(0u, 0u);
     var sp = 0u;
+    var spent = false; // the trip budget ran out
 
     c.nodes += 1u;
     let root = load_node(0u);
@@ -37,7 +38,8 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
         var first = 0u;
         loop {
             if (!take_trip()) {
-                return incomplete(best, c);
+                spent = true;
+                break;
             }
             count = links.y >> 2u;
             if (count != 0u) {
@@ -88,15 +90,19 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
                 break;
             }
             if (trips_left == 0u) {
-                return incomplete(best, c);
+                spent = true;
+                break;
             }
         }
-        if (sp == 0u) {
+        if (spent || sp == 0u) {
             break;
         }
         sp -= 1u;
         node = lane_stacks[stack_slot(lane, sp)];
         links = load_node_links(node);
+    }
+    if (spent) {
+        return incomplete(best, c);
     }
     return finish(best, c);
 }

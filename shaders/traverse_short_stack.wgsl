@@ -66,6 +66,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
     var overflow = false;
     var node = 0u;
     var escape_link = NO_ESCAPE; // the stackless walk's link of `node`
+    var spent = false; // the trip budget ran out
     // For `k > 0` the escape link is followed in this loop, outside the walk's loops: a CPU
     // driver runs every loop body at least once for the whole SIMD batch, so the link's
     // load would cost every leaf, although only a ring that overflowed and ran dry needs
@@ -80,7 +81,8 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
             var leaf_count = 0u;
             loop {
                 if (!take_trip()) {
-                    return incomplete(best, c);
+                    spent = true;
+                    break;
                 }
                 c.nodes += 1u;
                 let n = load_node(node);
@@ -132,7 +134,8 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 break;
             }
             if (trips_left == 0u) {
-                return incomplete(best, c);
+                spent = true;
+                break;
             }
             // The leaf's subtree is done.
             let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
@@ -151,6 +154,9 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
         if (node == NO_ESCAPE) {
             break;
         }
+    }
+    if (spent) {
+        return incomplete(best, c);
     }
     return finish(best, c);
 }
