@@ -4,7 +4,6 @@
 // define the same function for the other precisions (`TriHit` is in `triangle_hit.wgsl`).
 
 fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
-    var out = TriHit(0.0, 0.0, 0.0, false);
     let a = v0 - r.org;
     let b = v1 - r.org;
     let c = v2 - r.org;
@@ -20,26 +19,16 @@ fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
-    if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) {
-        return out;
-    }
-    let det = u + v + w;
-    if (det == 0.0) {
-        return out;
-    }
     let az = r.sz * az_;
     let bz = r.sz * bz_;
     let cz = r.sz * cz_;
+    let det = u + v + w;
     let t_scaled = u * az + v * bz + w * cz;
     let inv_det = 1.0 / det;
     let t = t_scaled * inv_det;
-    // NaN fails this comparison and is rejected.
-    if (!(t >= r.t_min)) {
-        return out;
-    }
-    out.t = t;
-    out.u = v * inv_det;
-    out.v = w * inv_det;
-    out.hit = true;
-    return out;
+    // Computed whatever the outcome, then judged: on a CPU driver every lane runs every
+    // branch under a mask, so early returns only add mask work. NaN fails `t >= t_min`.
+    let outside = (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0);
+    let hit = !outside && det != 0.0 && t >= r.t_min;
+    return TriHit(t, v * inv_det, w * inv_det, hit);
 }
