@@ -4,6 +4,7 @@
 
 use std::mem::{offset_of, size_of};
 
+use bvhtrace_core::flat::{ESCAPE_BLOCK, NO_ESCAPE, OCTANTS};
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
@@ -155,6 +156,18 @@ fn constants_match_rust() {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_CULL_SLACK.to_bits(), "BOX_CULL_SLACK"),
         l => panic!("BOX_CULL_SLACK: {l:?}"),
     }
+    // The escape links' layout (`flat::escape_index`), which the walks index themselves.
+    assert_eq!(
+        constant(&module, "ESCAPE_BLOCK_LOG2"),
+        Literal::U32(ESCAPE_BLOCK.trailing_zeros())
+    );
+    assert!(ESCAPE_BLOCK.is_power_of_two());
+    assert_eq!(
+        constant(&module, "ESCAPE_BLOCK"),
+        Literal::U32(ESCAPE_BLOCK as u32)
+    );
+    assert_eq!(constant(&module, "OCTANTS"), Literal::U32(OCTANTS as u32));
+    assert_eq!(constant(&module, "NO_ESCAPE"), Literal::U32(NO_ESCAPE));
     assert_eq!(constant(&module, "MISS"), Literal::U32(MISS));
     assert_eq!(constant(&module, "INVALID_RAY"), Literal::U32(INVALID_RAY));
     assert_eq!(
