@@ -61,8 +61,8 @@ pub struct BenchBuildArgs {
     #[arg(long)]
     pub threads: Option<usize>,
     /// Primary rays for the CPU traversal figures, WxH.
-    #[arg(long, default_value = "1024x768")]
-    pub size: String,
+    #[arg(long, default_value = "1024x768", value_parser = crate::render::parse_size)]
+    pub size: (u32, u32),
 }
 
 /// `bvhtrace bench-build`.
@@ -70,11 +70,7 @@ pub fn bench_build(args: BenchBuildArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.threads.unwrap_or(0))
         .build()?;
-    let (w, h) = args
-        .size
-        .split_once('x')
-        .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
-        .context("--size must be WxH")?;
+    let (w, h) = args.size;
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
@@ -187,8 +183,8 @@ pub struct BenchTraceArgs {
     #[arg(long, default_value_t = 7)]
     pub runs: usize,
     /// Primary rays, WxH.
-    #[arg(long, default_value = "1024x768")]
-    pub size: String,
+    #[arg(long, default_value = "1024x768", value_parser = crate::render::parse_size)]
+    pub size: (u32, u32),
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
@@ -210,11 +206,7 @@ pub struct BenchTraceArgs {
 
 /// `bvhtrace bench-trace`.
 pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
-    let (w, h) = args
-        .size
-        .split_once('x')
-        .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
-        .context("--size must be WxH")?;
+    let (w, h) = args.size;
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }

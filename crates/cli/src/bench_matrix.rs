@@ -67,8 +67,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub full: bool,
     /// Primary rays, WxH (default 512x384; 160x120 with --quick).
-    #[arg(long)]
-    pub size: Option<String>,
+    #[arg(long, value_parser = crate::render::parse_size)]
+    pub size: Option<(u32, u32)>,
     /// Rays per configuration compared with the f64 oracle (default 2048; 256 with --quick).
     #[arg(long)]
     pub sample: Option<usize>,
@@ -134,13 +134,6 @@ pub struct Row {
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32)> {
-    s.split_once('x')
-        .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
-        .filter(|&(w, h)| w > 0 && h > 0)
-        .with_context(|| format!("--size must be WxH, got '{s}'"))
 }
 
 /// Builder variants: the four builders, then SAH with other bin counts.
@@ -241,12 +234,9 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
 /// `bvhtrace bench`.
 pub fn bench(args: BenchArgs) -> Result<()> {
     let quick = args.quick;
-    let (w, h) =
-        parse_size(
-            args.size
-                .as_deref()
-                .unwrap_or(if quick { "160x120" } else { "512x384" }),
-        )?;
+    let (w, h) = args
+        .size
+        .unwrap_or(if quick { (160, 120) } else { (512, 384) });
     let sample_n = args.sample.unwrap_or(if quick { 256 } else { 2048 });
     let runs = args.runs.unwrap_or(if quick { 1 } else { 3 });
     let (iw, ih) = if quick { (48, 36) } else { (96, 72) };

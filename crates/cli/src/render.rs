@@ -8,7 +8,7 @@ use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, FlatBvh, Hit, Query, Ray, Traversal, Triangle,
 };
 use bvhtrace_gpu::{BvhStorage, PipelineFeatures, UploadStats, VertexAttributes};
-use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene};
+use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, camera};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
@@ -29,28 +29,10 @@ pub enum Backend {
     Vulkan,
 }
 
-fn parse_vec3(s: &str) -> Result<Vec3, String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| {
-            p.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("'{p}' is not a number"))
-        })
-        .collect::<Result<_, _>>()?;
-    match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vec3::new(x, y, z)),
-        _ => Err(format!("expected three finite numbers X,Y,Z, got '{s}'")),
-    }
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("expected WxH, got '{s}'"))?;
-    let w: u32 = w.parse().map_err(|_| format!("bad width in '{s}'"))?;
-    let h: u32 = h.parse().map_err(|_| format!("bad height in '{s}'"))?;
-    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+/// An image size flag (`--size WxH`): [`camera::parse_size`], at most 16384 a side.
+pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = camera::parse_size(s)?;
+    if w > 16384 || h > 16384 {
         return Err(format!("size must be between 1x1 and 16384x16384, got {s}"));
     }
     Ok((w, h))
@@ -113,10 +95,10 @@ pub struct CameraArgs {
     #[arg(long, default_value = "1024x768", value_parser = parse_size)]
     pub size: (u32, u32),
     /// Camera position X,Y,Z (with --target; default: the scene's camera or a framing one).
-    #[arg(long, value_parser = parse_vec3, requires = "target", allow_hyphen_values = true)]
+    #[arg(long, value_parser = camera::parse_vec3, requires = "target", allow_hyphen_values = true)]
     pub eye: Option<Vec3>,
     /// Point the camera looks at.
-    #[arg(long, value_parser = parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    #[arg(long, value_parser = camera::parse_vec3, requires = "eye", allow_hyphen_values = true)]
     pub target: Option<Vec3>,
     /// Vertical field of view in degrees.
     #[arg(long)]

@@ -6,6 +6,7 @@
 //! together, the flags round-trip exactly).
 
 use bvhtrace_scene::Camera;
+use bvhtrace_scene::camera::parse_vec3;
 use glam::Vec3;
 
 /// The largest pitch (angle above or below the target's horizontal plane) orbiting reaches,
@@ -91,24 +92,6 @@ pub fn render_flags(cam: &Camera) -> String {
         v(cam.target),
         cam.fov_y_deg
     )
-}
-
-fn parse_vec3(s: &str) -> Result<Vec3, String> {
-    let parts: Vec<&str> = s.split(',').collect();
-    if parts.len() != 3 {
-        return Err(format!("expected three numbers X,Y,Z, got '{s}'"));
-    }
-    let mut v = [0f32; 3];
-    for (slot, p) in v.iter_mut().zip(&parts) {
-        *slot = p
-            .trim()
-            .parse::<f32>()
-            .map_err(|_| format!("'{p}' is not a number"))?;
-        if !slot.is_finite() {
-            return Err(format!("'{p}' is not finite"));
-        }
-    }
-    Ok(Vec3::from(v))
 }
 
 /// Reads `--eye X,Y,Z --target X,Y,Z [--fov F]` (also `--eye=X,Y,Z`), in any order, into a

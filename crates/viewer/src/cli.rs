@@ -3,37 +3,14 @@
 use std::path::PathBuf;
 
 use bvhtrace_core::{BuilderKind, Traversal};
+use bvhtrace_scene::camera;
 use glam::Vec3;
 
 use crate::shade::Shade;
 
-fn parse_vec3(s: &str) -> Result<Vec3, String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| {
-            p.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("'{p}' is not a number"))
-        })
-        .collect::<Result<_, _>>()?;
-    match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vec3::new(x, y, z)),
-        _ => Err(format!("expected three finite numbers X,Y,Z, got '{s}'")),
-    }
-}
-
+/// The window size flag: [`camera::parse_size`], between 200x150 and 8192x8192.
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("expected WxH, got '{s}'"))?;
-    let w: u32 = w
-        .trim()
-        .parse()
-        .map_err(|_| format!("bad width in '{s}'"))?;
-    let h: u32 = h
-        .trim()
-        .parse()
-        .map_err(|_| format!("bad height in '{s}'"))?;
+    let (w, h) = camera::parse_size(s)?;
     if !(200..=8192).contains(&w) || !(150..=8192).contains(&h) {
         return Err(format!(
             "the window must be between 200x150 and 8192x8192, got {s}"
@@ -104,10 +81,10 @@ pub struct Args {
     #[arg(long, value_parser = parse_scale)]
     pub scale: Option<f32>,
     /// Camera position X,Y,Z (with --target); the same flags as `bvhtrace render`.
-    #[arg(long, value_parser = parse_vec3, requires = "target", allow_hyphen_values = true)]
+    #[arg(long, value_parser = camera::parse_vec3, requires = "target", allow_hyphen_values = true)]
     pub eye: Option<Vec3>,
     /// Point the camera looks at.
-    #[arg(long, value_parser = parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    #[arg(long, value_parser = camera::parse_vec3, requires = "eye", allow_hyphen_values = true)]
     pub target: Option<Vec3>,
     /// Vertical field of view in degrees.
     #[arg(long, value_parser = parse_fov)]
