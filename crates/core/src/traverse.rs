@@ -123,6 +123,17 @@ struct Best {
 }
 
 impl Best {
+    /// No hit yet: the interval ends at the ray's `t_max`.
+    fn start(ray: &Ray) -> Best {
+        Best {
+            t: ray.t_max,
+            prim: MISS,
+            u: 0.0,
+            v: 0.0,
+            found: false,
+        }
+    }
+
     fn into_hit(self) -> Hit {
         if self.found {
             Hit {
@@ -349,13 +360,7 @@ pub fn trace_ray_generic<T: TriangleTest>(
         );
     }
     let r = PreparedRay::new(ray);
-    let mut best = Best {
-        t: ray.t_max,
-        prim: MISS,
-        u: 0.0,
-        v: 0.0,
-        found: false,
-    };
+    let mut best = Best::start(ray);
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return (best.into_hit(), c);
     }
@@ -469,13 +474,7 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
         return trace_ray(bvh, ray, Traversal::FullStack, Query::Closest).0;
     }
     let r = PreparedRay::new(ray);
-    let mut best = Best {
-        t: ray.t_max,
-        prim: MISS,
-        u: 0.0,
-        v: 0.0,
-        found: false,
-    };
+    let mut best = Best::start(ray);
     if ray.t_min <= ray.t_max {
         let leaf = FlatNode {
             min: [0.0; 3],
