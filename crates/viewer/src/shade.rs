@@ -99,21 +99,8 @@ pub fn sphere_point(p: u32, s: u32) -> Vec3 {
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
-/// A colour ramp for the heatmap (blue, cyan, green, yellow, red), `x` in [0, 1].
-pub fn ramp(x: f32) -> [u8; 3] {
-    const STOPS: [[f32; 3]; 5] = [
-        [0.05, 0.05, 0.45],
-        [0.0, 0.7, 0.9],
-        [0.1, 0.8, 0.2],
-        [0.95, 0.85, 0.1],
-        [0.85, 0.1, 0.05],
-    ];
-    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) } * 4.0;
-    let i = (x as usize).min(3);
-    let f = x - i as f32;
-    let c = |k: usize| (STOPS[i][k] * (1.0 - f) + STOPS[i + 1][k] * f) * 255.0;
-    [c(0) as u8, c(1) as u8, c(2) as u8]
-}
+// The heatmap colours, shared with `bvhtrace render`.
+pub use bvhtrace_core::stats::heat_ramp as ramp;
 
 fn to8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
