@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use bvhtrace_core::palette;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, FlatBvh, Hit, Query, Ray, Traversal, Triangle,
 };
@@ -420,7 +421,6 @@ fn compose(
     let (w, h) = args.view.size;
     let mut img = vec![0u8; (w * h * 3) as usize];
     let px = |img: &mut Vec<u8>, i: usize, c: [u8; 3]| img[i * 3..i * 3 + 3].copy_from_slice(&c);
-    let to8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
     // Per-pixel secondary results: occluded counts.
     let mut occluded = vec![0u32; rays.len()];
     for (o, sh) in owner.iter().zip(sec_hits) {
@@ -428,10 +428,7 @@ fn compose(
             occluded[*o as usize] += 1;
         }
     }
-    let (tmin, tmax) = hits
-        .iter()
-        .filter(|h| h.is_hit())
-        .fold((f32::MAX, 0f32), |(a, b), h| (a.min(h.t), b.max(h.t)));
+    let range = palette::depth_range(hits);
     let max_nodes = {
         let mut v: Vec<u32> = counters.iter().map(|c| c.nodes).collect();
         v.sort_unstable();
@@ -454,15 +451,8 @@ fn compose(
         let d = Vec3::from(r.dir);
         let n = shade::facing_normal(tri, d);
         let c = match args.shade {
-            Shade::Normal => {
-                let c = n * 0.5 + Vec3::splat(0.5);
-                [to8(c.x), to8(c.y), to8(c.z)]
-            }
-            Shade::Depth => {
-                let g = 1.0 - (hit.t - tmin) / (tmax - tmin).max(f32::MIN_POSITIVE);
-                let v = to8(0.15 + 0.85 * g);
-                [v, v, v]
-            }
+            Shade::Normal => palette::normal_colour(n),
+            Shade::Depth => palette::depth_grey(hit.t, range),
             Shade::Diffuse => {
                 let p = shade::hit_point(tri, hit);
                 let l = (light - p).normalize_or_zero();
@@ -471,13 +461,9 @@ fn compose(
                 } else {
                     0.0
                 };
-                let v = 0.08 + 0.85 * lit;
-                [to8(v * 0.95), to8(v * 0.9), to8(v * 0.8)]
+                palette::diffuse_colour(lit)
             }
-            Shade::Ao => {
-                let v = to8(1.0 - occluded[i] as f32 / args.ao_samples as f32);
-                [v, v, v]
-            }
+            Shade::Ao => palette::ao_grey(1.0 - occluded[i] as f32 / args.ao_samples as f32),
             Shade::Heatmap => unreachable!(),
         };
         px(&mut img, i, c);

@@ -73,7 +73,7 @@ pub fn secondary_rays(
 }
 
 // The heatmap colours, shared with the viewer.
-pub use bvhtrace_core::stats::heat_ramp as ramp;
+pub use bvhtrace_core::palette::heat_ramp as ramp;
 
 /// 3x5 digits for the legend.
 const DIGITS: [[u8; 5]; 10] = [

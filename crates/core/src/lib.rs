@@ -14,6 +14,7 @@ pub mod geometry;
 pub mod intersect;
 pub mod mesh;
 pub mod oracle;
+pub mod palette;
 pub mod precision;
 pub mod ray;
 pub mod stats;

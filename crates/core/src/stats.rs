@@ -1,5 +1,4 @@
-//! Tree quality: SAH cost in two conventions, depth, counts, leaf-size histogram; and the
-//! colour ramp that shows per-ray counters as a heatmap.
+//! Tree quality: SAH cost in two conventions, depth, counts, leaf-size histogram.
 
 use crate::flat::FlatBvh;
 
@@ -54,22 +53,4 @@ impl BvhStats {
             leaf_sizes,
         }
     }
-}
-
-/// The heatmap colour for `x` in [0, 1] (blue, cyan, green, yellow, red; NaN as 0): how
-/// `bvhtrace render --shade heatmap` and the viewer show boxes tested per pixel, so their
-/// images match.
-pub fn heat_ramp(x: f32) -> [u8; 3] {
-    const STOPS: [[f32; 3]; 5] = [
-        [0.05, 0.05, 0.45],
-        [0.0, 0.7, 0.9],
-        [0.1, 0.8, 0.2],
-        [0.95, 0.85, 0.1],
-        [0.85, 0.1, 0.05],
-    ];
-    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) } * 4.0;
-    let i = (x as usize).min(3);
-    let f = x - i as f32;
-    let c = |k: usize| (STOPS[i][k] * (1.0 - f) + STOPS[i + 1][k] * f) * 255.0;
-    [c(0) as u8, c(1) as u8, c(2) as u8]
 }

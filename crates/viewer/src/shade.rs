@@ -6,6 +6,7 @@
 //! Everything here runs on the CPU from the traced hits, for both backends, so the GPU and
 //! CPU images differ only where the hits do.
 
+use bvhtrace_core::palette;
 use bvhtrace_core::{Counters, Hit, Ray, Triangle};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
@@ -100,11 +101,7 @@ pub fn sphere_point(p: u32, s: u32) -> Vec3 {
 }
 
 // The heatmap colours, shared with `bvhtrace render`.
-pub use bvhtrace_core::stats::heat_ramp as ramp;
-
-fn to8(v: f32) -> u8 {
-    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
-}
+pub use bvhtrace_core::palette::heat_ramp as ramp;
 
 /// One primary pass and the secondary samples accumulated on top of it.
 #[derive(Clone, Debug, Default)]
@@ -238,25 +235,14 @@ impl Accumulation {
         for i in 0..n_px {
             put(i, BACKGROUND);
         }
-        let (tmin, tmax) = self
-            .hits
-            .iter()
-            .filter(|h| h.is_hit())
-            .fold((f32::MAX, 0f32), |(a, b), h| (a.min(h.t), b.max(h.t)));
+        let range = palette::depth_range(&self.hits);
         for (k, &p) in self.hit_pixels.iter().enumerate() {
             let p = p as usize;
             let (n, o) = self.surfaces[k];
             let h = &self.hits[p];
             let c = match view.shade {
-                Shade::Normal => {
-                    let c = n * 0.5 + Vec3::splat(0.5);
-                    [to8(c.x), to8(c.y), to8(c.z)]
-                }
-                Shade::Depth => {
-                    let g = 1.0 - (h.t - tmin) / (tmax - tmin).max(f32::MIN_POSITIVE);
-                    let v = to8(0.15 + 0.85 * g);
-                    [v, v, v]
-                }
+                Shade::Normal => palette::normal_colour(n),
+                Shade::Depth => palette::depth_grey(h.t, range),
                 Shade::Diffuse => {
                     let lit = if self.samples == 0 {
                         // No shadow samples yet: unshadowed light as a preview.
@@ -264,8 +250,7 @@ impl Accumulation {
                     } else {
                         self.sums[k] / self.samples as f32
                     };
-                    let v = 0.08 + 0.85 * lit;
-                    [to8(v * 0.95), to8(v * 0.9), to8(v * 0.8)]
+                    palette::diffuse_colour(lit)
                 }
                 Shade::Ao => {
                     let v = if self.samples == 0 {
@@ -273,8 +258,7 @@ impl Accumulation {
                     } else {
                         self.sums[k] / self.samples as f32
                     };
-                    let v = to8(v);
-                    [v, v, v]
+                    palette::ao_grey(v)
                 }
             };
             put(p, c);
