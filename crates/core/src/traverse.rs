@@ -14,6 +14,12 @@
 //!
 //! Any-hit queries stop at the first accepted hit; which triangle that is depends on the
 //! visit order, so only hit/miss is compared across traversals.
+//!
+//! # Panics
+//! The traversals expect a [`FlatBvh`] as [`FlatBvh::flatten`] makes it (one that passes
+//! [`FlatBvh::check_invariants`]). The stackless and short-stack walks panic, naming the
+//! fix, on one whose escape links do not fit its nodes (assembled by hand without
+//! `flat::escape_links`); the GPU uploads refuse such a tree with an error instead.
 
 use std::fmt;
 use std::str::FromStr;
@@ -363,6 +369,11 @@ pub fn trace_ray_generic<T: TriangleTest>(
     let mut best = Best::start(ray);
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return (best.into_hit(), c);
+    }
+    if traversal.needs_escapes()
+        && let Err(e) = bvh.check_escape_links()
+    {
+        panic!("{traversal}: {e}");
     }
     let any = query == Query::Any;
     match traversal {

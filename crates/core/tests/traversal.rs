@@ -475,3 +475,28 @@ fn peeling() -> BuildOptions {
         ..Default::default()
     }
 }
+
+/// A tree assembled by hand without escape links: the full stack, which does not read
+/// them, traces it; the walks that do refuse it with the mismatch's message instead of
+/// indexing past the links.
+#[test]
+fn walks_name_missing_escape_links() {
+    let tris = deep_soup(10);
+    let mut bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+    let rays = common::rays_for(&tris, 3, 16);
+    let full = trace_batch(&bvh, &rays, Traversal::FullStack, Query::Closest);
+    bvh.escapes.clear();
+    assert_eq!(
+        trace_batch(&bvh, &rays, Traversal::FullStack, Query::Closest),
+        full
+    );
+    for tr in [Traversal::Stackless, Traversal::ShortStack(4)] {
+        let err = std::panic::catch_unwind(|| trace_ray(&bvh, &rays[0], tr, Query::Closest))
+            .expect_err("a walk read escape links the tree does not have");
+        let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+        assert!(
+            msg.contains("escape links for") && msg.contains("flat::escape_links"),
+            "{tr}: {msg}"
+        );
+    }
+}
