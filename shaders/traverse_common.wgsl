@@ -21,7 +21,7 @@ var<private> trips_left: u32;
 // loops and answer `incomplete` after them. Why no `return` from inside the loops, no
 // branch here and no check in the triangle loop's condition (`visit_leaf`): on lavapipe,
 // where every lane runs every branch under a mask, those cost 7-15% of the whole walk
-// (bench-trace, interleaved runs on `bunny_69k` and `igea`).
+// (`gpu_bench`, builds run interleaved on `bunny_69k` and `igea`).
 fn take_trip() -> bool {
     let ok = trips_left != 0u;
     trips_left -= select(0u, 1u, ok);

@@ -142,7 +142,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                 spent = true;
                 break;
             }
-            // The leaf's subtree is done.
+            // The leaf's subtree is done (`escape_link` is still the leaf's, loaded on its trip).
             let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
             if (next == NEXT_ON) {
                 continue;
