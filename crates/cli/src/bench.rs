@@ -12,7 +12,8 @@ use bvhtrace_gpu::{
     VertexAttributes, kernel_source,
 };
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// The median of `v` (the upper one for an even length).
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }

@@ -22,6 +22,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::accuracy::{self, ErrorStats};
+use crate::bench::median;
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade;
 use crate::tracer::Tracer;
@@ -129,11 +130,6 @@ pub struct Row {
     /// Image error against the oracle's image (primary rays only).
     pub image_rmse: Option<f64>,
     pub image_flip: Option<f64>,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// Builder variants: the four builders, then SAH with other bin counts.
@@ -501,8 +497,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let bytes = match &tracer {
                 Tracer::Gpu(_) | Tracer::GpuRef(_) | Tracer::Vulkan(_) => tracer.uploaded_bytes(),
                 Tracer::Cpu(b) => {
-                    let (a, p, t) = b.byte_sizes();
-                    (a + if tr.needs_escapes() { p } else { 0 } + t) as u64
+                    let (nb, eb, tb) = b.byte_sizes();
+                    (nb + if tr.needs_escapes() { eb } else { 0 } + tb) as u64
                 }
             };
             scene_rows.push(Row {

@@ -615,7 +615,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
     let s = BvhStats::of(&bvh);
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
-    let (nb, pb, tb) = bvh.byte_sizes();
+    let (nb, eb, tb) = bvh.byte_sizes();
     let pipelines = render_pipelines(
         args.storage,
         args.traversal,
@@ -640,7 +640,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "nodes": s.nodes, "leaves": s.leaves, "depth": s.depth,
         "sah_cost": s.sah_cost, "sah_cost_pbrt": s.sah_cost_pbrt,
         "leaf_sizes": s.leaf_sizes,
-        "bytes": { "nodes": nb, "escapes": pb, "triangles": tb },
+        "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
         "upload": upload_json(&upload, args.storage, tris.len()),
         "left_out": left_out(&pipelines, &scene, args.traversal),
@@ -680,7 +680,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         .map(|(k, n)| format!("{k}:{n}"))
         .collect();
     println!("leaf sizes  {}", hist.join(" "));
-    println!("gpu bytes   nodes {nb}, escapes {pb} (stackless/short-stack only), triangles {tb}");
+    println!("gpu bytes   nodes {nb}, escapes {eb} (stackless/short-stack only), triangles {tb}");
     for p in &pipelines {
         let bindings: Vec<String> = p
             .bindings()

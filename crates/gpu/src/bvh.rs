@@ -300,14 +300,14 @@ impl GpuBvh {
         if with_escapes {
             bvh.check_escape_links()?;
         }
-        let (nb, pb, tb) = bvh.byte_sizes();
+        let (nb, eb, tb) = bvh.byte_sizes();
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
         match storage {
             BvhStorage::Buffers => {
                 check_size(ctx, "nodes", nb as u64)?;
                 check_size(ctx, "triangles", tb as u64)?;
                 if with_escapes {
-                    check_size(ctx, "escapes", pb as u64)?;
+                    check_size(ctx, "escapes", eb as u64)?;
                 }
             }
             BvhStorage::Textures => {
@@ -364,7 +364,7 @@ impl GpuBvh {
                     let stats = UploadStats {
                         nodes_bytes: nb as u64,
                         triangles_bytes: tb as u64,
-                        escapes_bytes: if with_escapes { pb as u64 } else { 0 },
+                        escapes_bytes: if with_escapes { eb as u64 } else { 0 },
                         upload_ms: 0.0,
                     };
                     (
