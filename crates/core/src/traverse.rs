@@ -107,7 +107,8 @@ impl FromStr for Traversal {
 
 /// Default short-stack size: the largest ring the GPU kernel keeps in registers. On
 /// lavapipe it overflows least of the register rings on `bunny_69k` and `igea`, and is the
-/// fastest of 2, 4, 6 and 8 by median (README, *Traversals*).
+/// fastest of 2, 4, 6 and 8 by median (tied with 6 on `igea`'s closest hits; README,
+/// *Traversals*).
 pub const DEFAULT_SHORT_STACK: u32 = 8;
 
 /// Closest hit or any hit.
