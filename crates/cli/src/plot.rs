@@ -96,7 +96,9 @@ where
     }
     let mut chart = chart
         .build_cartesian_2d(
-            (xmin * 0.8..xmax * 1.25).log_scale(),
+            (xmin * 0.8..xmax * 1.25)
+                .log_scale()
+                .with_key_points(one_two_five(xmin * 0.8, xmax * 1.25)),
             (FLOOR * 0.5..ymax * 2.0).log_scale(),
         )
         .map_err(err)?;
@@ -104,6 +106,7 @@ where
         chart
             .configure_mesh()
             .x_desc("trace time per ray (ns, median)")
+            .x_label_formatter(&|x| format!("{x:.0}"))
             .y_desc("error vs f64 oracle (wrong-answer rate; else max rel. t error; floor = exact)")
             .draw()
             .map_err(err)?;
@@ -203,6 +206,27 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
     svg.finish_with_bytes(s.as_bytes())
 }
 
+/// The 1-2-5 values of each decade within `lo..=hi`: the time axis's marks. plotters' own
+/// marks for a log axis start at the first power of ten in the range (none left of it),
+/// with nine a decade that run into each other ("900.0" on "1000.0").
+fn one_two_five(lo: f64, hi: f64) -> Vec<f64> {
+    let mut marks = Vec::new();
+    if !(lo > 0.0 && hi.is_finite()) {
+        return marks;
+    }
+    let mut decade = 10f64.powf(lo.log10().floor());
+    while decade <= hi {
+        for m in [1.0, 2.0, 5.0] {
+            let v = decade * m;
+            if (lo..=hi).contains(&v) {
+                marks.push(v);
+            }
+        }
+        decade *= 10.0;
+    }
+    marks
+}
+
 #[cfg(test)]
 mod tests {
     #[test]
@@ -216,5 +240,19 @@ mod tests {
             (4.0, 0.5),
         ];
         assert_eq!(super::pareto(&pts), vec![0, 1, 3, 5]);
+    }
+
+    #[test]
+    fn time_marks_are_one_two_five_from_the_left_end() {
+        assert_eq!(
+            super::one_two_five(80.0, 1400.0),
+            vec![100.0, 200.0, 500.0, 1000.0]
+        );
+        assert_eq!(
+            super::one_two_five(230.0, 4100.0),
+            vec![500.0, 1000.0, 2000.0]
+        );
+        assert!(super::one_two_five(0.0, 10.0).is_empty());
+        assert!(super::one_two_five(f64::NAN, 10.0).is_empty());
     }
 }
