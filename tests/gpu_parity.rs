@@ -416,12 +416,17 @@ fn deep_trees_match_cpu_twins() {
             &UploadOptions::for_traversal(Traversal::Stackless).with_storage(storage),
         )
         .expect("upload");
-        // k <= 8: the ring in registers (8: full); k = 12: the ring in workgroup memory.
+        // k <= 8: the ring in registers, its empty entries marked; each k puts the last
+        // entry (the full test) and the entry past it (emptied after a push) at its own
+        // place in the two registers: 1, 2 in the first; 4 ends it, 7 ends one short of
+        // the second, 8 fills both. k = 12: the ring in workgroup memory, counted.
         for traversal in [
             Traversal::Stackless,
             Traversal::ShortStack(1),
             Traversal::ShortStack(2),
+            Traversal::ShortStack(4),
             Traversal::ShortStack(6),
+            Traversal::ShortStack(7),
             Traversal::ShortStack(8),
             Traversal::ShortStack(12),
         ] {
