@@ -440,7 +440,7 @@ fn compose(
     for (i, (r, hit)) in rays.iter().zip(hits).enumerate() {
         if args.shade == Shade::Heatmap {
             let n = counters.get(i).map_or(0, |c| c.nodes);
-            px(&mut img, i, shade::ramp(n as f32 / max_nodes as f32));
+            px(&mut img, i, palette::heat_ramp(n as f32 / max_nodes as f32));
             continue;
         }
         if !hit.is_hit() {

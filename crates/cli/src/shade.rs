@@ -1,6 +1,7 @@
 //! Turning hits into pixels, and the secondary rays some modes need. Everything here runs
 //! on the CPU for both backends, so the GPU and CPU images differ only where hits do.
 
+use bvhtrace_core::palette;
 use bvhtrace_core::{Hit, Ray, Triangle};
 use glam::Vec3;
 
@@ -72,9 +73,6 @@ pub fn secondary_rays(
     (rays, owner)
 }
 
-// The heatmap colours, shared with the viewer.
-pub use bvhtrace_core::palette::heat_ramp as ramp;
-
 /// 3x5 digits for the legend.
 const DIGITS: [[u8; 5]; 10] = [
     [7, 5, 5, 5, 7],
@@ -133,7 +131,7 @@ pub fn draw_legend(img: &mut [u8], w: u32, h: u32, max: u32) {
         }
     }
     for x in x0..x1 {
-        let c = ramp((x - x0) as f32 / (x1 - x0).max(1) as f32);
+        let c = palette::heat_ramp((x - x0) as f32 / (x1 - x0).max(1) as f32);
         for y in y0..y0 + bar_h {
             let o = ((y * w + x) * 3) as usize;
             img[o..o + 3].copy_from_slice(&c);

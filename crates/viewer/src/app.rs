@@ -569,7 +569,7 @@ fn heatmap_legend(ui: &mut egui::Ui, max: u32) {
     for k in 0..steps {
         let x0 = rect.left() + rect.width() * k as f32 / steps as f32;
         let x1 = rect.left() + rect.width() * (k + 1) as f32 / steps as f32;
-        let [r, g, b] = shade::ramp((k as f32 + 0.5) / steps as f32);
+        let [r, g, b] = bvhtrace_core::palette::heat_ramp((k as f32 + 0.5) / steps as f32);
         ui.painter().rect_filled(
             egui::Rect::from_min_max(
                 egui::pos2(x0, rect.top()),

@@ -100,9 +100,6 @@ pub fn sphere_point(p: u32, s: u32) -> Vec3 {
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
-// The heatmap colours, shared with `bvhtrace render`.
-pub use bvhtrace_core::palette::heat_ramp as ramp;
-
 /// One primary pass and the secondary samples accumulated on top of it.
 #[derive(Clone, Debug, Default)]
 pub struct Accumulation {
@@ -228,7 +225,7 @@ impl Accumulation {
             let max = self.max_nodes() as f32;
             for i in 0..n_px {
                 let n = self.counters.get(i).map_or(0, |c| c.nodes);
-                put(i, ramp(n as f32 / max));
+                put(i, palette::heat_ramp(n as f32 / max));
             }
             return img;
         }
@@ -386,8 +383,8 @@ mod tests {
 
     #[test]
     fn ramp_ends() {
-        assert_eq!(ramp(0.0), [12, 12, 114]);
-        assert_eq!(ramp(1.0), [216, 25, 12]);
-        assert_eq!(ramp(f32::NAN), ramp(0.0));
+        assert_eq!(palette::heat_ramp(0.0), [12, 12, 114]);
+        assert_eq!(palette::heat_ramp(1.0), [216, 25, 12]);
+        assert_eq!(palette::heat_ramp(f32::NAN), palette::heat_ramp(0.0));
     }
 }
