@@ -9,7 +9,7 @@
 @group(0) @binding(3) var<storage, read> vertex_normals: array<vec4<f32>>;
 
 // The interpolated unit normal at `h` (barycentrics `u`, `v` of corners 1 and 2).
-fn shading_normal(h: Hit) -> vec3<f32> {
+fn bvh_shading_normal(h: BvhHit) -> vec3<f32> {
     let b = 3u * h.prim;
     let n = vertex_normals[b].xyz * (1.0 - h.u - h.v) + vertex_normals[b + 1u].xyz * h.u
         + vertex_normals[b + 2u].xyz * h.v;

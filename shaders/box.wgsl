@@ -1,28 +1,28 @@
 // box.wgsl: the conservative slab test, twin of `bvhtrace_core::intersect::intersect_box`.
 
 // `intersect::BOX_TFAR_SCALE` = 1 + 2 gamma(3) (the f32 nearest 1.0000004, bits 0x3f800003).
-const BOX_TFAR_SCALE: f32 = 1.0000004f;
+const BVH_BOX_TFAR_SCALE: f32 = 1.0000004f;
 // `intersect::BOX_TFAR_SCALE_NEG` = 1 - 7u (bits 0x3f7ffff9): scales a negative exit
 // distance (hits behind the origin) towards +inf, as BOX_TFAR_SCALE does a positive one.
-const BOX_TFAR_SCALE_NEG: f32 = 0.99999958f;
+const BVH_BOX_TFAR_SCALE_NEG: f32 = 0.99999958f;
 
 // `intersect::BOX_CULL_SLACK` = 32 u = 2^-19: the running best `t` is widened by this
 // times the larger magnitude of the box's slab distances along the dominant axis `kz`
 // (the error analysis is on the Rust constant). The ray's own `t_max` is never widened.
-const BOX_CULL_SLACK: f32 = 1.9073486328125e-6f;
+const BVH_BOX_CULL_SLACK: f32 = 1.9073486328125e-6f;
 
 // False when no ray of the batch has a zero (or subnormal) direction component
 // (`bvhtrace_core::intersect::is_parallel_to_a_slab`): the parallel path below is then
 // compiled out, which on a CPU driver, where both sides of a branch run, saves a tenth of
 // every box test. A shader that traces arbitrary rays leaves it true.
-override PARALLEL_RAYS: bool = true;
+override BVH_PARALLEL_RAYS: bool = true;
 
 // The CPU's `fmin`/`fmax`: `if a < b { a } else { b }` (and `>`), not IEEE minNum.
-fn fmin(a: f32, b: f32) -> f32 {
+fn bvh_fmin(a: f32, b: f32) -> f32 {
     return select(b, a, a < b);
 }
 
-fn fmax(a: f32, b: f32) -> f32 {
+fn bvh_fmax(a: f32, b: f32) -> f32 {
     return select(b, a, a > b);
 }
 
@@ -30,10 +30,10 @@ fn fmax(a: f32, b: f32) -> f32 {
 // widened for culling to `min(t_best + BOX_CULL_SLACK * m, r.t_max)`; the box is hit when
 // `x <= y` (see `box_hit`). `t_best` is the best hit's `t`, or `t_max` before any hit.
 // The entry distance orders the full-stack walk.
-fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best: f32) -> vec2<f32> {
+fn bvh_intersect_box(r: BvhPreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best: f32) -> vec2<f32> {
     var t0 = (bmin - r.org) * r.inv_dir;
     var t1 = (bmax - r.org) * r.inv_dir;
-    if (PARALLEL_RAYS && r.parallel) {
+    if (BVH_PARALLEL_RAYS && r.parallel) {
         // Along an axis the ray does not move, it is inside the slab for every t (its
         // boundary included) or for none.
         let inf = vec3<f32>(bitcast<f32>(0x7f800000u));
@@ -42,20 +42,20 @@ fn intersect_box(r: PreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best: f32) 
         t0 = select(t0, select(inf, -inf, inside), zero);
         t1 = select(t1, inf, zero);
     }
-    let tnear = fmax(
-        fmax(fmin(t0.x, t1.x), fmin(t0.y, t1.y)),
-        fmax(fmin(t0.z, t1.z), r.t_min),
+    let tnear = bvh_fmax(
+        bvh_fmax(bvh_fmin(t0.x, t1.x), bvh_fmin(t0.y, t1.y)),
+        bvh_fmax(bvh_fmin(t0.z, t1.z), r.t_min),
     );
     // `fmin` returns its second operand when the first is NaN: a NaN never culls.
-    let m = fmax(abs(component(t0, r.kz)), abs(component(t1, r.kz)));
-    let limit = fmin(t_best + BOX_CULL_SLACK * m, r.t_max);
-    let tfar = fmin(
-        fmin(fmax(t0.x, t1.x), fmax(t0.y, t1.y)),
-        fmin(fmax(t0.z, t1.z), limit),
+    let m = bvh_fmax(abs(bvh_component(t0, r.kz)), abs(bvh_component(t1, r.kz)));
+    let limit = bvh_fmin(t_best + BVH_BOX_CULL_SLACK * m, r.t_max);
+    let tfar = bvh_fmin(
+        bvh_fmin(bvh_fmax(t0.x, t1.x), bvh_fmax(t0.y, t1.y)),
+        bvh_fmin(bvh_fmax(t0.z, t1.z), limit),
     );
-    return vec2<f32>(tnear, tfar * select(BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG, tfar < 0.0));
+    return vec2<f32>(tnear, tfar * select(BVH_BOX_TFAR_SCALE, BVH_BOX_TFAR_SCALE_NEG, tfar < 0.0));
 }
 
-fn box_hit(t: vec2<f32>) -> bool {
+fn bvh_box_hit(t: vec2<f32>) -> bool {
     return t.x <= t.y;
 }

@@ -8,18 +8,18 @@
 // the stackless and short-stack walks) are `bvh_buffers_escapes.wgsl`, composed in only
 // when the traversal reads them.
 
-@group(0) @binding(0) var<storage, read> bvh_nodes: array<Node>;
-@group(0) @binding(1) var<storage, read> bvh_triangles: array<Triangle>;
+@group(0) @binding(0) var<storage, read> bvh_nodes: array<BvhNode>;
+@group(0) @binding(1) var<storage, read> bvh_triangles: array<BvhTriangle>;
 
-fn load_node(i: u32) -> Node {
+fn bvh_load_node(i: u32) -> BvhNode {
     return bvh_nodes[i];
 }
 
 // `vec2(right_or_first, meta_bits)` of node `i`: all a walk needs to move on.
-fn load_node_links(i: u32) -> vec2<u32> {
+fn bvh_load_node_links(i: u32) -> vec2<u32> {
     return vec2<u32>(bvh_nodes[i].right_or_first, bvh_nodes[i].meta_bits);
 }
 
-fn load_triangle(i: u32) -> Triangle {
+fn bvh_load_triangle(i: u32) -> BvhTriangle {
     return bvh_triangles[i];
 }

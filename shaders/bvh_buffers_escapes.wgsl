@@ -9,6 +9,6 @@
 
 // Where a walk in octant `oct` goes when it is done with node `i`'s subtree
 // (`NO_ESCAPE`: nowhere, the walk is over).
-fn load_escape(i: u32, oct: u32) -> u32 {
-    return bvh_escapes[escape_index(i, oct)];
+fn bvh_load_escape(i: u32, oct: u32) -> u32 {
+    return bvh_escapes[bvh_escape_index(i, oct)];
 }

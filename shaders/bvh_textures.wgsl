@@ -22,29 +22,29 @@ const BVH_TEXEL_ROW_MASK: u32 = 8191u;
 @group(0) @binding(0) var bvh_node_texels: texture_storage_2d<rgba32uint, read>;
 @group(0) @binding(1) var bvh_triangle_texels: texture_storage_2d<rgba32uint, read>;
 
-fn texel_coord(t: u32) -> vec2<u32> {
+fn bvh_texel_coord(t: u32) -> vec2<u32> {
     return vec2<u32>(t & BVH_TEXEL_ROW_MASK, t >> BVH_TEXEL_ROW_LOG2);
 }
 
-fn load_node(i: u32) -> Node {
+fn bvh_load_node(i: u32) -> BvhNode {
     // 2i is even and rows are even, so both texels are on one row.
-    let c = texel_coord(2u * i);
+    let c = bvh_texel_coord(2u * i);
     let a = textureLoad(bvh_node_texels, c);
     let b = textureLoad(bvh_node_texels, c + vec2<u32>(1u, 0u));
-    return Node(bitcast<vec3<f32>>(a.xyz), b.z, bitcast<vec3<f32>>(vec3<u32>(a.w, b.xy)), b.w);
+    return BvhNode(bitcast<vec3<f32>>(a.xyz), b.z, bitcast<vec3<f32>>(vec3<u32>(a.w, b.xy)), b.w);
 }
 
 // `vec2(right_or_first, meta_bits)` of node `i`: one texel.
-fn load_node_links(i: u32) -> vec2<u32> {
-    return textureLoad(bvh_node_texels, texel_coord(2u * i + 1u)).zw;
+fn bvh_load_node_links(i: u32) -> vec2<u32> {
+    return textureLoad(bvh_node_texels, bvh_texel_coord(2u * i + 1u)).zw;
 }
 
-fn load_triangle(i: u32) -> Triangle {
+fn bvh_load_triangle(i: u32) -> BvhTriangle {
     let t = 3u * i;
-    let a = textureLoad(bvh_triangle_texels, texel_coord(t));
-    let b = textureLoad(bvh_triangle_texels, texel_coord(t + 1u));
-    let c = textureLoad(bvh_triangle_texels, texel_coord(t + 2u));
-    return Triangle(
+    let a = textureLoad(bvh_triangle_texels, bvh_texel_coord(t));
+    let b = textureLoad(bvh_triangle_texels, bvh_texel_coord(t + 1u));
+    let c = textureLoad(bvh_triangle_texels, bvh_texel_coord(t + 2u));
+    return BvhTriangle(
         bitcast<vec3<f32>>(a.xyz),
         a.w,
         bitcast<vec3<f32>>(b.xyz),

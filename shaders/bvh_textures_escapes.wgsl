@@ -7,6 +7,6 @@
 
 // Where a walk in octant `oct` goes when it is done with node `i`'s subtree
 // (`NO_ESCAPE`: nowhere, the walk is over).
-fn load_escape(i: u32, oct: u32) -> u32 {
-    return textureLoad(bvh_escape_texels, texel_coord(escape_index(i, oct))).x;
+fn bvh_load_escape(i: u32, oct: u32) -> u32 {
+    return textureLoad(bvh_escape_texels, bvh_texel_coord(bvh_escape_index(i, oct))).x;
 }

@@ -16,10 +16,10 @@
 // - `SHORT_STACK_SIZE`: the ring size `k` of the short-stack walk; 0 is the stackless walk
 //   (not used by the full-stack entry points).
 
-override ANY_HIT: bool = false;
-override SHORT_STACK_SIZE: u32 = 8u;
+override BVH_ANY_HIT: bool = false;
+override BVH_SHORT_STACK_SIZE: u32 = 8u;
 
-const WORKGROUP_SIZE: u32 = 64u;
+const BVH_WORKGROUP_SIZE: u32 = 64u;
 
 // The rays (binding 0) and the hits (binding 1) are declared by one of
 // `entry_rays_buffer.wgsl` (storage buffers, the default) or `entry_rays_texture.wgsl`
@@ -30,13 +30,13 @@ const WORKGROUP_SIZE: u32 = 64u;
 // Worker threads among which a CPU driver splits each dispatch, as contiguous ranges of
 // workgroups in linear order (lavapipe: `LP_NUM_THREADS`, by default one per CPU); 1 on
 // GPUs, which hand out workgroups as they go (`bvhtrace_gpu::dispatch_threads_for`).
-override DISPATCH_THREADS: u32 = 1u;
+override BVH_DISPATCH_THREADS: u32 = 1u;
 
 // The batch ray of invocation `gid`: lane `l` of workgroup `w` (of `n`) traces ray
 // `interleave(w, n) * WORKGROUP_SIZE + l`.
-fn ray_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    let w = gid.x / WORKGROUP_SIZE + gid.y * groups.x;
-    return interleave(w, groups.x * groups.y) * WORKGROUP_SIZE + gid.x % WORKGROUP_SIZE;
+fn bvh_ray_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    let w = gid.x / BVH_WORKGROUP_SIZE + gid.y * groups.x;
+    return bvh_interleave(w, groups.x * groups.y) * BVH_WORKGROUP_SIZE + gid.x % BVH_WORKGROUP_SIZE;
 }
 
 // The ray block workgroup `w` of `n` traces. With `t` threads each taking `n / t`
@@ -44,8 +44,8 @@ fn ray_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 // gets its share of every part of the frame (the lower half of `bunny_69k`'s frame holds
 // two thirds of its work) and keeps to neighbouring blocks. The `n % t` workgroups left
 // over keep their own block. A bijection on `0..n`; the identity when `t` is 1.
-fn interleave(w: u32, n: u32) -> u32 {
-    let t = max(DISPATCH_THREADS, 1u);
+fn bvh_interleave(w: u32, n: u32) -> u32 {
+    let t = max(BVH_DISPATCH_THREADS, 1u);
     let q = n / t;
     if (w >= q * t) {
         return w;

@@ -1,15 +1,15 @@
 // entry_full_stack_counted.wgsl: the full-stack entry point writing hits and counters
 // (needs `entry_counters.wgsl`).
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn trace_full_stack_counted(
+@compute @workgroup_size(BVH_WORKGROUP_SIZE)
+fn bvh_trace_full_stack_counted(
     @builtin(global_invocation_id) gid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = ray_index(gid, groups);
-    if (i >= batch_len()) {
+    let i = bvh_ray_index(gid, groups);
+    if (i >= bvh_batch_len()) {
         return;
     }
-    store_counted(i, trace_full_stack(load_ray(i), ANY_HIT, lid));
+    bvh_store_counted(i, bvh_trace_full_stack(bvh_load_ray(i), BVH_ANY_HIT, lid));
 }

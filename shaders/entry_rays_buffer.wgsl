@@ -2,18 +2,18 @@
 // the default, and the only input of `GpuBvh::record`, which traces the caller's buffers).
 // The hits buffer holds exactly the chunk's rays, so its length is the ray count.
 
-@group(1) @binding(0) var<storage, read> rays: array<Ray>;
+@group(1) @binding(0) var<storage, read> rays: array<BvhRay>;
 
-fn load_ray(i: u32) -> Ray {
+fn bvh_load_ray(i: u32) -> BvhRay {
     return rays[i];
 }
 
-@group(1) @binding(1) var<storage, read_write> hits: array<Hit>;
+@group(1) @binding(1) var<storage, read_write> hits: array<BvhHit>;
 
-fn store_hit(i: u32, hit: Hit) {
+fn bvh_store_hit(i: u32, hit: BvhHit) {
     hits[i] = hit;
 }
 
-fn batch_len() -> u32 {
+fn bvh_batch_len() -> u32 {
     return arrayLength(&hits);
 }

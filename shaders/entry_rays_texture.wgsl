@@ -13,17 +13,17 @@
 
 @group(1) @binding(0) var ray_texels: texture_storage_2d<rgba32uint, read>;
 
-fn load_ray(i: u32) -> Ray {
+fn bvh_load_ray(i: u32) -> BvhRay {
     let t = 2u * i;
     let c = vec2<u32>(t & 8191u, t >> 13u);
     let a = textureLoad(ray_texels, c);
     let b = textureLoad(ray_texels, c + vec2<u32>(1u, 0u));
-    return Ray(bitcast<vec3<f32>>(a.xyz), bitcast<f32>(a.w), bitcast<vec3<f32>>(b.xyz), bitcast<f32>(b.w));
+    return BvhRay(bitcast<vec3<f32>>(a.xyz), bitcast<f32>(a.w), bitcast<vec3<f32>>(b.xyz), bitcast<f32>(b.w));
 }
 
 @group(1) @binding(1) var hit_texels: texture_storage_2d<rgba32uint, write>;
 
-fn store_hit(i: u32, hit: Hit) {
+fn bvh_store_hit(i: u32, hit: BvhHit) {
     let c = vec2<u32>(i & 8191u, i >> 13u);
     let texel = vec4<u32>(bitcast<u32>(hit.t), hit.prim, bitcast<u32>(hit.u), bitcast<u32>(hit.v));
     textureStore(hit_texels, c, texel);
@@ -31,7 +31,7 @@ fn store_hit(i: u32, hit: Hit) {
 
 // Whole rows of rays: the host dispatches one workgroup per 64 rays of the chunk, and the
 // invocations past its end trace what is left in the row and write hits it does not read.
-fn batch_len() -> u32 {
+fn bvh_batch_len() -> u32 {
     let d = textureDimensions(hit_texels);
     return d.x * d.y;
 }

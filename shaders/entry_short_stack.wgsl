@@ -1,15 +1,15 @@
 // entry_short_stack.wgsl: the short-stack / stackless entry point, hits only (see
 // `entry.wgsl`).
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn trace_short_stack_main(
+@compute @workgroup_size(BVH_WORKGROUP_SIZE)
+fn bvh_trace_short_stack_main(
     @builtin(global_invocation_id) gid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = ray_index(gid, groups);
-    if (i >= batch_len()) {
+    let i = bvh_ray_index(gid, groups);
+    if (i >= bvh_batch_len()) {
         return;
     }
-    store_hit(i, trace_short_stack(load_ray(i), ANY_HIT, SHORT_STACK_SIZE, lid).hit);
+    bvh_store_hit(i, bvh_trace_short_stack(bvh_load_ray(i), BVH_ANY_HIT, BVH_SHORT_STACK_SIZE, lid).hit);
 }

@@ -4,7 +4,7 @@
 // Validity and zero tests look at the bits, so they hold even where the device flushes
 // subnormals to zero.
 
-struct PreparedRay {
+struct BvhPreparedRay {
     org: vec3<f32>,
     // Direction, subnormal components flushed to signed zero.
     dir: vec3<f32>,
@@ -22,31 +22,31 @@ struct PreparedRay {
     sz: f32,
 }
 
-fn is_finite_f32(x: f32) -> bool {
+fn bvh_is_finite_f32(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
 }
 
-fn is_nan_f32(x: f32) -> bool {
+fn bvh_is_nan_f32(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7fffffffu) > 0x7f800000u;
 }
 
-fn is_zero_f32(x: f32) -> bool {
+fn bvh_is_zero_f32(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7fffffffu) == 0u;
 }
 
 // `Ray::is_valid`: finite origin and direction, non-zero direction, no NaN interval end.
-fn ray_is_valid(ray: Ray) -> bool {
+fn bvh_ray_is_valid(ray: BvhRay) -> bool {
     let o = ray.origin;
     let d = ray.dir;
-    return is_finite_f32(o.x) && is_finite_f32(o.y) && is_finite_f32(o.z)
-        && is_finite_f32(d.x) && is_finite_f32(d.y) && is_finite_f32(d.z)
-        && !(is_zero_f32(d.x) && is_zero_f32(d.y) && is_zero_f32(d.z))
-        && !is_nan_f32(ray.t_min) && !is_nan_f32(ray.t_max);
+    return bvh_is_finite_f32(o.x) && bvh_is_finite_f32(o.y) && bvh_is_finite_f32(o.z)
+        && bvh_is_finite_f32(d.x) && bvh_is_finite_f32(d.y) && bvh_is_finite_f32(d.z)
+        && !(bvh_is_zero_f32(d.x) && bvh_is_zero_f32(d.y) && bvh_is_zero_f32(d.z))
+        && !bvh_is_nan_f32(ray.t_min) && !bvh_is_nan_f32(ray.t_max);
 }
 
 // `intersect::safe_inverse`: `1/d`, with a zero or subnormal `d` taken as
 // `±f32::MIN_POSITIVE` (sign kept).
-fn safe_inverse(d: f32) -> f32 {
+fn bvh_safe_inverse(d: f32) -> f32 {
     let bits = bitcast<u32>(d);
     var x = d;
     if ((bits & 0x7fffffffu) < 0x00800000u) {
@@ -56,7 +56,7 @@ fn safe_inverse(d: f32) -> f32 {
 }
 
 // `intersect::flush_subnormal`: `d`, or a zero of the same sign when `d` is subnormal.
-fn flush_subnormal(d: f32) -> f32 {
+fn bvh_flush_subnormal(d: f32) -> f32 {
     let bits = bitcast<u32>(d);
     if ((bits & 0x7fffffffu) < 0x00800000u) {
         return bitcast<f32>(bits & 0x80000000u);
@@ -65,11 +65,11 @@ fn flush_subnormal(d: f32) -> f32 {
 }
 
 // `PreparedRay::new` for a valid ray.
-fn prepare_ray(ray: Ray) -> PreparedRay {
+fn bvh_prepare_ray(ray: BvhRay) -> BvhPreparedRay {
     let d = vec3<f32>(
-        flush_subnormal(ray.dir.x),
-        flush_subnormal(ray.dir.y),
-        flush_subnormal(ray.dir.z),
+        bvh_flush_subnormal(ray.dir.x),
+        bvh_flush_subnormal(ray.dir.y),
+        bvh_flush_subnormal(ray.dir.z),
     );
     let a = abs(d);
     // Dominant axis; ties go to the lower axis.
@@ -87,25 +87,25 @@ fn prepare_ray(ray: Ray) -> PreparedRay {
     if (ky == 3u) {
         ky = 0u;
     }
-    let dz = component(d, kz);
+    let dz = bvh_component(d, kz);
     // Keep the winding: swap when the dominant component is negative.
     if (dz < 0.0) {
         let s = kx;
         kx = ky;
         ky = s;
     }
-    var p: PreparedRay;
+    var p: BvhPreparedRay;
     p.org = ray.origin;
     p.dir = d;
-    p.inv_dir = vec3<f32>(safe_inverse(d.x), safe_inverse(d.y), safe_inverse(d.z));
+    p.inv_dir = vec3<f32>(bvh_safe_inverse(d.x), bvh_safe_inverse(d.y), bvh_safe_inverse(d.z));
     p.parallel = d.x == 0.0 || d.y == 0.0 || d.z == 0.0;
     p.t_min = ray.t_min;
     p.t_max = ray.t_max;
     p.kx = kx;
     p.ky = ky;
     p.kz = kz;
-    p.sx = component(d, kx) / dz;
-    p.sy = component(d, ky) / dz;
+    p.sx = bvh_component(d, kx) / dz;
+    p.sy = bvh_component(d, ky) / dz;
     p.sz = 1.0 / dz;
     return p;
 }

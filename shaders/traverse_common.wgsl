@@ -12,28 +12,28 @@
 // all its loops), which would return a wrong answer without a sign; the host sets a budget
 // that stays under such a limit (`bvhtrace_gpu::trip_limit_for`, the bound on
 // `CPU_DRIVER_TRIP_LIMIT`) and finishes the rays that exhaust it.
-override TRIP_LIMIT: u32 = 0xffffffffu;
+override BVH_TRIP_LIMIT: u32 = 0xffffffffu;
 
 // Trips left to the current ray (set by `start_best`).
-var<private> trips_left: u32;
+var<private> bvh_trips_left: u32;
 
 // Takes one trip; false when the budget is spent. The walks then break out of their
 // loops and answer `incomplete` after them. Why no `return` from inside the loops, no
 // branch here and no check in the triangle loop's condition (`visit_leaf`): on lavapipe,
 // where every lane runs every branch under a mask, those cost 7-15% of the whole walk
 // (`gpu_bench`, builds run interleaved on `bunny_69k` and `igea`).
-fn take_trip() -> bool {
-    let ok = trips_left != 0u;
-    trips_left -= select(0u, 1u, ok);
+fn bvh_take_trip() -> bool {
+    let ok = bvh_trips_left != 0u;
+    bvh_trips_left -= select(0u, 1u, ok);
     return ok;
 }
 
 // The answer of a ray that spent its budget: `INCOMPLETE`, with the best `t` so far.
-fn incomplete(best: Best, c: Counters) -> TraceResult {
-    return TraceResult(Hit(best.t, INCOMPLETE, 0.0, 0.0), c);
+fn bvh_incomplete(best: BvhBest, c: BvhCounters) -> BvhTraceResult {
+    return BvhTraceResult(BvhHit(best.t, BVH_INCOMPLETE, 0.0, 0.0), c);
 }
 
-struct Best {
+struct BvhBest {
     t: f32,
     prim: u32,
     u: f32,
@@ -43,25 +43,25 @@ struct Best {
 
 // Tests the triangles `first .. first + count` of a leaf; true when an any-hit query can
 // stop.
-fn visit_leaf(
-    r: PreparedRay,
+fn bvh_visit_leaf(
+    r: BvhPreparedRay,
     first: u32,
     count: u32,
-    best: ptr<function, Best>,
-    c: ptr<function, Counters>,
+    best: ptr<function, BvhBest>,
+    c: ptr<function, BvhCounters>,
     any_hit: bool,
 ) -> bool {
     // The leaf's trips are taken together (as many as are left): a per-triangle budget
     // check in the loop's condition costs every trip on a CPU driver.
-    let taken = min(count, trips_left);
-    trips_left -= taken;
+    let taken = min(count, bvh_trips_left);
+    bvh_trips_left -= taken;
     let end = first + taken;
     for (var i = first; i < end; i += 1u) {
         (*c).tris += 1u;
-        let tri = load_triangle(i);
-        let h = intersect_triangle(r, tri.v0, tri.v1, tri.v2);
+        let tri = bvh_load_triangle(i);
+        let h = bvh_intersect_triangle(r, tri.v0, tri.v1, tri.v2);
         if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && tri.prim < (*best).prim))) {
-            *best = Best(h.t, tri.prim, h.u, h.v, true);
+            *best = BvhBest(h.t, tri.prim, h.u, h.v, true);
             if (any_hit) {
                 return true;
             }
@@ -72,35 +72,35 @@ fn visit_leaf(
 
 // The answer for a ray that is not traversed: invalid (`t` = `t_max`, or 0 when that is
 // NaN), or an empty interval (a miss at `t_max`).
-fn untraced_result(ray: Ray) -> TraceResult {
-    var out: TraceResult;
-    out.counters = Counters(0u, 0u);
-    if (!ray_is_valid(ray)) {
-        let t = select(ray.t_max, 0.0, is_nan_f32(ray.t_max));
-        out.hit = Hit(t, INVALID_RAY, 0.0, 0.0);
+fn bvh_untraced_result(ray: BvhRay) -> BvhTraceResult {
+    var out: BvhTraceResult;
+    out.counters = BvhCounters(0u, 0u);
+    if (!bvh_ray_is_valid(ray)) {
+        let t = select(ray.t_max, 0.0, bvh_is_nan_f32(ray.t_max));
+        out.hit = BvhHit(t, BVH_INVALID_RAY, 0.0, 0.0);
     } else {
-        out.hit = Hit(ray.t_max, MISS, 0.0, 0.0);
+        out.hit = BvhHit(ray.t_max, BVH_MISS, 0.0, 0.0);
     }
     return out;
 }
 
 // True when the ray is walked through the tree (valid, and `t_min <= t_max`).
-fn ray_is_traced(ray: Ray) -> bool {
-    return ray_is_valid(ray) && ray.t_min <= ray.t_max;
+fn bvh_ray_is_traced(ray: BvhRay) -> bool {
+    return bvh_ray_is_valid(ray) && ray.t_min <= ray.t_max;
 }
 
-fn start_best(ray: Ray) -> Best {
-    trips_left = TRIP_LIMIT;
-    return Best(ray.t_max, MISS, 0.0, 0.0, false);
+fn bvh_start_best(ray: BvhRay) -> BvhBest {
+    bvh_trips_left = BVH_TRIP_LIMIT;
+    return BvhBest(ray.t_max, BVH_MISS, 0.0, 0.0, false);
 }
 
-fn finish(best: Best, c: Counters) -> TraceResult {
-    var out: TraceResult;
+fn bvh_finish(best: BvhBest, c: BvhCounters) -> BvhTraceResult {
+    var out: BvhTraceResult;
     out.counters = c;
     if (best.found) {
-        out.hit = Hit(best.t, best.prim, best.u, best.v);
+        out.hit = BvhHit(best.t, best.prim, best.u, best.v);
     } else {
-        out.hit = Hit(best.t, MISS, 0.0, 0.0);
+        out.hit = BvhHit(best.t, BVH_MISS, 0.0, 0.0);
     }
     return out;
 }

@@ -7,22 +7,22 @@
 // of the ray's `TRIP_LIMIT` trips (`traverse_common.wgsl`). The stack is `lane`'s in
 // `lane_stacks` (`traverse_stack.wgsl`).
 
-const FULL_STACK_SIZE: u32 = STACK_ENTRIES;
+const BVH_FULL_STACK_SIZE: u32 = BVH_STACK_ENTRIES;
 
-fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
-    if (!ray_is_traced(ray)) {
-        return untraced_result(ray);
+fn bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult {
+    if (!bvh_ray_is_traced(ray)) {
+        return bvh_untraced_result(ray);
     }
-    let r = prepare_ray(ray);
-    var best = start_best(ray);
-    var c = Counters(0u, 0u);
+    let r = bvh_prepare_ray(ray);
+    var best = bvh_start_best(ray);
+    var c = BvhCounters(0u, 0u);
     var sp = 0u;
     var spent = false; // the trip budget ran out
 
     c.nodes += 1u;
-    let root = load_node(0u);
-    if (!box_hit(intersect_box(r, root.min, root.max, best.t))) {
-        return finish(best, c);
+    let root = bvh_load_node(0u);
+    if (!bvh_box_hit(bvh_intersect_box(r, root.min, root.max, best.t))) {
+        return bvh_finish(best, c);
     }
     var node = 0u;
     // `node`'s links, carried from where its box was loaded (at its parent, or the root);
@@ -37,7 +37,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
         var count = 0u;
         var first = 0u;
         loop {
-            if (!take_trip()) {
+            if (!bvh_take_trip()) {
                 spent = true;
                 break;
             }
@@ -50,12 +50,12 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             let l = node + 1u;
             let rt = links.x;
             c.nodes += 2u;
-            let nl = load_node(l);
-            let nr = load_node(rt);
-            let hl = intersect_box(r, nl.min, nl.max, best.t);
-            let hr = intersect_box(r, nr.min, nr.max, best.t);
-            let ok_l = box_hit(hl);
-            let ok_r = box_hit(hr);
+            let nl = bvh_load_node(l);
+            let nr = bvh_load_node(rt);
+            let hl = bvh_intersect_box(r, nl.min, nl.max, best.t);
+            let hr = bvh_intersect_box(r, nr.min, nr.max, best.t);
+            let ok_l = bvh_box_hit(hl);
+            let ok_r = bvh_box_hit(hr);
             let links_l = vec2<u32>(nl.right_or_first, nl.meta_bits);
             let links_r = vec2<u32>(nr.right_or_first, nr.meta_bits);
             if (ok_l && ok_r) {
@@ -67,7 +67,7 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
                     far = l;
                     links = links_r;
                 }
-                lane_stacks[stack_slot(lane, sp)] = far;
+                bvh_lane_stacks[bvh_stack_slot(lane, sp)] = far;
                 sp += 1u;
                 node = near;
                 continue;
@@ -86,10 +86,10 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             break;
         }
         if (on_leaf) {
-            if (visit_leaf(r, first, count, &best, &c, any_hit)) {
+            if (bvh_visit_leaf(r, first, count, &best, &c, any_hit)) {
                 break;
             }
-            if (trips_left == 0u) {
+            if (bvh_trips_left == 0u) {
                 spent = true;
                 break;
             }
@@ -98,11 +98,11 @@ fn trace_full_stack(ray: Ray, any_hit: bool, lane: u32) -> TraceResult {
             break;
         }
         sp -= 1u;
-        node = lane_stacks[stack_slot(lane, sp)];
-        links = load_node_links(node);
+        node = bvh_lane_stacks[bvh_stack_slot(lane, sp)];
+        links = bvh_load_node_links(node);
     }
     if (spent) {
-        return incomplete(best, c);
+        return bvh_incomplete(best, c);
     }
-    return finish(best, c);
+    return bvh_finish(best, c);
 }

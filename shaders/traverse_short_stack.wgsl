@@ -34,49 +34,49 @@
 
 // `bvhtrace_core::flat::NO_ESCAPE`: the walk is over; also an empty register-ring entry
 // (no node has this index).
-const NO_ESCAPE: u32 = 0xffffffffu;
+const BVH_NO_ESCAPE: u32 = 0xffffffffu;
 
 // `bvhtrace_core::flat::ESCAPE_BLOCK` (a power of two, here as its log2) and `OCTANTS`.
-const ESCAPE_BLOCK_LOG2: u32 = 4u;
-const ESCAPE_BLOCK: u32 = 1u << ESCAPE_BLOCK_LOG2;
-const OCTANTS: u32 = 8u;
+const BVH_ESCAPE_BLOCK_LOG2: u32 = 4u;
+const BVH_ESCAPE_BLOCK: u32 = 1u << BVH_ESCAPE_BLOCK_LOG2;
+const BVH_OCTANTS: u32 = 8u;
 
 // Where node `i`'s escape link for octant `oct` is (`bvhtrace_core::flat::escape_index`):
 // blocks of `ESCAPE_BLOCK` nodes, octant by octant, so the links one walk reads share cache
 // lines (on `igea`, 5-10% faster than eight links side by side per node).
-fn escape_index(i: u32, oct: u32) -> u32 {
-    return (i >> ESCAPE_BLOCK_LOG2) * (ESCAPE_BLOCK * OCTANTS) + oct * ESCAPE_BLOCK + (i & (ESCAPE_BLOCK - 1u));
+fn bvh_escape_index(i: u32, oct: u32) -> u32 {
+    return (i >> BVH_ESCAPE_BLOCK_LOG2) * (BVH_ESCAPE_BLOCK * BVH_OCTANTS) + oct * BVH_ESCAPE_BLOCK + (i & (BVH_ESCAPE_BLOCK - 1u));
 }
 
 // Rings of at most this many entries live in two `vec4<u32>` registers, pushed and popped
 // by shifting, entries past `k` kept empty (on lavapipe a shift is a few vector selects,
 // while a `lane_stacks` access is a loop over the 8 lanes); larger rings in `lane_stacks`.
 // `k` is an override constant, so the driver keeps one of the two.
-const REGISTER_RING: u32 = 8u;
+const BVH_REGISTER_RING: u32 = 8u;
 
 // The ray's octant (`bvhtrace_core::flat::octant`): bit `a` set when direction component
 // `a` is not `>= 0`. An interior node split along `a` is entered on its second child first
 // when bit `a` is set.
-fn octant(d: vec3<f32>) -> u32 {
+fn bvh_octant(d: vec3<f32>) -> u32 {
     return select(0u, 1u, !(d.x >= 0.0)) | select(0u, 2u, !(d.y >= 0.0)) | select(0u, 4u, !(d.z >= 0.0));
 }
 
-fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult {
-    if (!ray_is_traced(ray)) {
-        return untraced_result(ray);
+fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTraceResult {
+    if (!bvh_ray_is_traced(ray)) {
+        return bvh_untraced_result(ray);
     }
-    let r = prepare_ray(ray);
-    var best = start_best(ray);
-    var c = Counters(0u, 0u);
-    let oct = octant(r.dir);
+    let r = bvh_prepare_ray(ray);
+    var best = bvh_start_best(ray);
+    var c = BvhCounters(0u, 0u);
+    let oct = bvh_octant(r.dir);
     // The ring: in two registers when it fits (`k <= REGISTER_RING`), else in `lane_stacks`.
-    var newer = vec4<u32>(NO_ESCAPE); // entries 0..3, `newer.x` the top; `NO_ESCAPE`: empty
-    var older = vec4<u32>(NO_ESCAPE); // entries 4..7
+    var newer = vec4<u32>(BVH_NO_ESCAPE); // entries 0..3, `newer.x` the top; `NO_ESCAPE`: empty
+    var older = vec4<u32>(BVH_NO_ESCAPE); // entries 4..7
     var top = 0u; // next write slot in `lane_stacks`
     var count = 0u; // live entries in `lane_stacks`
     var overflow = false;
     var node = 0u;
-    var escape_link = NO_ESCAPE; // the stackless walk's link of `node`
+    var escape_link = BVH_NO_ESCAPE; // the stackless walk's link of `node`
     var spent = false; // the trip budget ran out
     // For `k > 0` the escape link is followed in this loop, outside the walk's loops: a CPU
     // driver runs every loop body at least once for the whole SIMD batch, so the link's
@@ -91,18 +91,18 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
             var leaf_first = 0u;
             var leaf_count = 0u;
             loop {
-                if (!take_trip()) {
+                if (!bvh_take_trip()) {
                     spent = true;
                     break;
                 }
                 c.nodes += 1u;
-                let n = load_node(node);
+                let n = bvh_load_node(node);
                 // The stackless walk loads the link before the box test, so that its
                 // cache miss overlaps the node's instead of waiting for the box's result.
                 if (k == 0u) {
-                    escape_link = load_escape(node, oct);
+                    escape_link = bvh_load_escape(node, oct);
                 }
-                let hit = box_hit(intersect_box(r, n.min, n.max, best.t));
+                let hit = bvh_box_hit(bvh_intersect_box(r, n.min, n.max, best.t));
                 let count_here = n.meta_bits >> 2u;
                 if (hit && count_here != 0u) {
                     leaf_first = n.right_or_first;
@@ -113,17 +113,17 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                     let second_first = ((oct >> (n.meta_bits & 3u)) & 1u) != 0u;
                     if (k > 0u) {
                         let far = select(n.right_or_first, node + 1u, second_first);
-                        if (k <= REGISTER_RING) {
+                        if (k <= BVH_REGISTER_RING) {
                             // A full ring (entry `k - 1` taken) drops its oldest entry.
                             let last = select(older[(k - 1u) & 3u], newer[(k - 1u) & 3u], k <= 4u);
-                            overflow = overflow | (last != NO_ESCAPE);
+                            overflow = overflow | (last != BVH_NO_ESCAPE);
                             older = vec4<u32>(newer.w, older.xyz);
                             newer = vec4<u32>(far, newer.xyz);
                             // Entry `k` (if there is one) got entry `k - 1`: empty it again.
                             if (k < 4u) {
-                                newer[k & 3u] = NO_ESCAPE;
+                                newer[k & 3u] = BVH_NO_ESCAPE;
                             } else if (k < 8u) {
-                                older[k & 3u] = NO_ESCAPE;
+                                older[k & 3u] = BVH_NO_ESCAPE;
                             }
                         } else {
                             if (count == k) {
@@ -131,7 +131,7 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                             } else {
                                 count += 1u;
                             }
-                            lane_stacks[stack_slot(lane, top)] = far;
+                            bvh_lane_stacks[bvh_stack_slot(lane, top)] = far;
                             top = select(top + 1u, 0u, top + 1u == k);
                         }
                     }
@@ -139,29 +139,29 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
                     continue;
                 }
                 // Missed: the subtree at `node` is done.
-                let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
-                if (next == NEXT_ON) {
+                let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
+                if (next == BVH_NEXT_ON) {
                     continue;
                 }
-                escape = next == NEXT_ESCAPE;
+                escape = next == BVH_NEXT_ESCAPE;
                 break;
             }
             if (leaf_count == 0u) {
                 break;
             }
-            if (visit_leaf(r, leaf_first, leaf_count, &best, &c, any_hit)) {
+            if (bvh_visit_leaf(r, leaf_first, leaf_count, &best, &c, any_hit)) {
                 break;
             }
-            if (trips_left == 0u) {
+            if (bvh_trips_left == 0u) {
                 spent = true;
                 break;
             }
             // The leaf's subtree is done (`escape_link` is still the leaf's, loaded on its trip).
-            let next = next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
-            if (next == NEXT_ON) {
+            let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
+            if (next == BVH_NEXT_ON) {
                 continue;
             }
-            escape = next == NEXT_ESCAPE;
+            escape = next == BVH_NEXT_ESCAPE;
             break;
         }
         if (!escape) {
@@ -169,26 +169,26 @@ fn trace_short_stack(ray: Ray, any_hit: bool, k: u32, lane: u32) -> TraceResult 
         }
         // The ring ran dry after dropping entries: the most recent dropped one is where
         // `node`'s escape link leads.
-        node = load_escape(node, oct);
-        if (node == NO_ESCAPE) {
+        node = bvh_load_escape(node, oct);
+        if (node == BVH_NO_ESCAPE) {
             break;
         }
     }
     if (spent) {
-        return incomplete(best, c);
+        return bvh_incomplete(best, c);
     }
-    return finish(best, c);
+    return bvh_finish(best, c);
 }
 
 // What the walk does when it is done with the subtree at `node`: go on at the new `node`
 // (the escape link without a ring, else the ring's newest entry), end, or (a short stack
 // whose ring ran dry after dropping entries) follow `node`'s escape link in the restart
 // loop.
-const NEXT_ON: u32 = 0u;
-const NEXT_DONE: u32 = 1u;
-const NEXT_ESCAPE: u32 = 2u;
+const BVH_NEXT_ON: u32 = 0u;
+const BVH_NEXT_DONE: u32 = 1u;
+const BVH_NEXT_ESCAPE: u32 = 2u;
 
-fn next_node(
+fn bvh_next_node(
     node: ptr<function, u32>,
     escape_link: u32,
     newer: ptr<function, vec4<u32>>,
@@ -201,24 +201,24 @@ fn next_node(
 ) -> u32 {
     if (k == 0u) {
         *node = escape_link;
-        return select(NEXT_ON, NEXT_DONE, *node == NO_ESCAPE);
+        return select(BVH_NEXT_ON, BVH_NEXT_DONE, *node == BVH_NO_ESCAPE);
     }
-    if (k <= REGISTER_RING) {
+    if (k <= BVH_REGISTER_RING) {
         // Shifting a dry ring leaves it dry.
         let popped = (*newer).x;
         *newer = vec4<u32>((*newer).yzw, (*older).x);
-        *older = vec4<u32>((*older).yzw, NO_ESCAPE);
-        if (popped == NO_ESCAPE) {
-            return select(NEXT_DONE, NEXT_ESCAPE, overflow);
+        *older = vec4<u32>((*older).yzw, BVH_NO_ESCAPE);
+        if (popped == BVH_NO_ESCAPE) {
+            return select(BVH_NEXT_DONE, BVH_NEXT_ESCAPE, overflow);
         }
         *node = popped;
-        return NEXT_ON;
+        return BVH_NEXT_ON;
     }
     if (*count == 0u) {
-        return select(NEXT_DONE, NEXT_ESCAPE, overflow);
+        return select(BVH_NEXT_DONE, BVH_NEXT_ESCAPE, overflow);
     }
     *count -= 1u;
     *top = select(*top - 1u, k - 1u, *top == 0u);
-    *node = lane_stacks[stack_slot(lane, *top)];
-    return NEXT_ON;
+    *node = bvh_lane_stacks[bvh_stack_slot(lane, *top)];
+    return BVH_NEXT_ON;
 }

@@ -13,14 +13,14 @@
 // `STACK_LANES` invocations, so lanes never share entries.
 
 // Lanes per workgroup the stacks are laid out for (`bvhtrace_gpu::STACK_LANES`).
-const STACK_LANES: u32 = 64u;
+const BVH_STACK_LANES: u32 = 64u;
 // Entries per lane: the full stack's depth (`FULL_STACK_SIZE`), which covers the short
 // stack's ring (`MAX_SHORT_STACK`) too.
-const STACK_ENTRIES: u32 = 64u;
+const BVH_STACK_ENTRIES: u32 = 64u;
 
-var<workgroup> lane_stacks: array<u32, STACK_ENTRIES * STACK_LANES>;
+var<workgroup> bvh_lane_stacks: array<u32, BVH_STACK_ENTRIES * BVH_STACK_LANES>;
 
 // The slot of entry `e` of `lane`'s stack.
-fn stack_slot(lane: u32, e: u32) -> u32 {
-    return e * STACK_LANES + lane;
+fn bvh_stack_slot(lane: u32, e: u32) -> u32 {
+    return e * BVH_STACK_LANES + lane;
 }

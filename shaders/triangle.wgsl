@@ -3,19 +3,19 @@
 // (`Precision::WatertightF32`); `triangle_moller_trumbore.wgsl` and `triangle_f64.wgsl`
 // define the same function for the other precisions (`TriHit` is in `triangle_hit.wgsl`).
 
-fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
+fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> BvhTriHit {
     let a = v0 - r.org;
     let b = v1 - r.org;
     let c = v2 - r.org;
-    let az_ = component(a, r.kz);
-    let bz_ = component(b, r.kz);
-    let cz_ = component(c, r.kz);
-    let ax = component(a, r.kx) - r.sx * az_;
-    let ay = component(a, r.ky) - r.sy * az_;
-    let bx = component(b, r.kx) - r.sx * bz_;
-    let by = component(b, r.ky) - r.sy * bz_;
-    let cx = component(c, r.kx) - r.sx * cz_;
-    let cy = component(c, r.ky) - r.sy * cz_;
+    let az_ = bvh_component(a, r.kz);
+    let bz_ = bvh_component(b, r.kz);
+    let cz_ = bvh_component(c, r.kz);
+    let ax = bvh_component(a, r.kx) - r.sx * az_;
+    let ay = bvh_component(a, r.ky) - r.sy * az_;
+    let bx = bvh_component(b, r.kx) - r.sx * bz_;
+    let by = bvh_component(b, r.ky) - r.sy * bz_;
+    let cx = bvh_component(c, r.kx) - r.sx * cz_;
+    let cy = bvh_component(c, r.ky) - r.sy * cz_;
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
@@ -30,5 +30,5 @@ fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32
     // branch under a mask, so early returns only add mask work. NaN fails `t >= t_min`.
     let outside = (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0);
     let hit = !outside && det != 0.0 && t >= r.t_min;
-    return TriHit(t, v * inv_det, w * inv_det, hit);
+    return BvhTriHit(t, v * inv_det, w * inv_det, hit);
 }

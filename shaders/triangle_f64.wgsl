@@ -5,7 +5,7 @@
 // are the f32 ray's, the shear is recomputed in f64, and `t`, `u`, `v` are rounded to f32
 // once.
 
-fn component_f64(v: vec3<f64>, i: u32) -> f64 {
+fn bvh_component_f64(v: vec3<f64>, i: u32) -> f64 {
     if (i == 0u) {
         return v.x;
     }
@@ -15,26 +15,26 @@ fn component_f64(v: vec3<f64>, i: u32) -> f64 {
     return v.z;
 }
 
-fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
-    var out = TriHit(0.0, 0.0, 0.0, false);
+fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> BvhTriHit {
+    var out = BvhTriHit(0.0, 0.0, 0.0, false);
     let org = vec3<f64>(r.org);
     let d = vec3<f64>(r.dir);
-    let dz = component_f64(d, r.kz);
-    let sx = component_f64(d, r.kx) / dz;
-    let sy = component_f64(d, r.ky) / dz;
+    let dz = bvh_component_f64(d, r.kz);
+    let sx = bvh_component_f64(d, r.kx) / dz;
+    let sy = bvh_component_f64(d, r.ky) / dz;
     let sz = f64(1.0) / dz;
     let a = vec3<f64>(v0) - org;
     let b = vec3<f64>(v1) - org;
     let c = vec3<f64>(v2) - org;
-    let az_ = component_f64(a, r.kz);
-    let bz_ = component_f64(b, r.kz);
-    let cz_ = component_f64(c, r.kz);
-    let ax = component_f64(a, r.kx) - sx * az_;
-    let ay = component_f64(a, r.ky) - sy * az_;
-    let bx = component_f64(b, r.kx) - sx * bz_;
-    let by = component_f64(b, r.ky) - sy * bz_;
-    let cx = component_f64(c, r.kx) - sx * cz_;
-    let cy = component_f64(c, r.ky) - sy * cz_;
+    let az_ = bvh_component_f64(a, r.kz);
+    let bz_ = bvh_component_f64(b, r.kz);
+    let cz_ = bvh_component_f64(c, r.kz);
+    let ax = bvh_component_f64(a, r.kx) - sx * az_;
+    let ay = bvh_component_f64(a, r.ky) - sy * az_;
+    let bx = bvh_component_f64(b, r.kx) - sx * bz_;
+    let by = bvh_component_f64(b, r.ky) - sy * bz_;
+    let cx = bvh_component_f64(c, r.kx) - sx * cz_;
+    let cy = bvh_component_f64(c, r.ky) - sy * cz_;
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;

@@ -3,7 +3,7 @@
 // module is composed after this file: `triangle.wgsl` (watertight f32, the default),
 // `triangle_moller_trumbore.wgsl` or `triangle_f64.wgsl` (`bvhtrace_core::Precision`).
 
-struct TriHit {
+struct BvhTriHit {
     t: f32,
     u: f32,
     v: f32,

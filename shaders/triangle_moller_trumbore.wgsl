@@ -3,27 +3,27 @@
 // operation for operation (glam's `cross` and `dot` written out in its order). Composed
 // instead of `triangle.wgsl` for `Precision::MollerTrumboreF32`; same signature.
 
-fn mt_cross(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
+fn bvh_mt_cross(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(a.y * b.z - b.y * a.z, a.z * b.x - b.z * a.x, a.x * b.y - b.x * a.y);
 }
 
-fn mt_dot(a: vec3<f32>, b: vec3<f32>) -> f32 {
+fn bvh_mt_dot(a: vec3<f32>, b: vec3<f32>) -> f32 {
     return (a.x * b.x) + (a.y * b.y) + (a.z * b.z);
 }
 
-fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> TriHit {
-    var out = TriHit(0.0, 0.0, 0.0, false);
+fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> BvhTriHit {
+    var out = BvhTriHit(0.0, 0.0, 0.0, false);
     let e1 = v1 - v0;
     let e2 = v2 - v0;
-    let p = mt_cross(r.dir, e2);
-    let det = mt_dot(e1, p);
+    let p = bvh_mt_cross(r.dir, e2);
+    let det = bvh_mt_dot(e1, p);
     if (det == 0.0) {
         return out;
     }
     let s = r.org - v0;
-    let un = mt_dot(s, p);
-    let q = mt_cross(s, e1);
-    let vn = mt_dot(r.dir, q);
+    let un = bvh_mt_dot(s, p);
+    let q = bvh_mt_cross(s, e1);
+    let vn = bvh_mt_dot(r.dir, q);
     // The division-free decision (see the CPU twin for why).
     var inside: bool;
     if (det > 0.0) {
@@ -35,7 +35,7 @@ fn intersect_triangle(r: PreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32
         return out;
     }
     let inv = 1.0 / det;
-    let t = mt_dot(e2, q) * inv;
+    let t = bvh_mt_dot(e2, q) * inv;
     // NaN fails this comparison and is rejected.
     if (!(t >= r.t_min)) {
         return out;

@@ -8,7 +8,7 @@
 // `FlatNode` (32 bytes). Interior: the first child is the next node, `right_or_first` is the
 // second child. Leaf: triangles `right_or_first .. right_or_first + count`.
 // `meta_bits` is `FlatNode::meta` = `count << 2 | axis` (`meta` is reserved in WGSL).
-struct Node {
+struct BvhNode {
     min: vec3<f32>,
     right_or_first: u32,
     max: vec3<f32>,
@@ -16,7 +16,7 @@ struct Node {
 }
 
 // `FlatTriangle` (48 bytes): the corners, and the triangle's index in the builder's input.
-struct Triangle {
+struct BvhTriangle {
     v0: vec3<f32>,
     prim: u32,
     v1: vec3<f32>,
@@ -26,7 +26,7 @@ struct Triangle {
 }
 
 // `Ray` (32 bytes). Hits are accepted for `t_min <= t < t_max`.
-struct Ray {
+struct BvhRay {
     origin: vec3<f32>,
     t_min: f32,
     dir: vec3<f32>,
@@ -35,7 +35,7 @@ struct Ray {
 
 // `Hit` (16 bytes). `prim` is the primitive index, `MISS`, `INVALID_RAY` or `INCOMPLETE`; `u`, `v` are the
 // barycentric weights of corners 1 and 2.
-struct Hit {
+struct BvhHit {
     t: f32,
     prim: u32,
     u: f32,
@@ -43,32 +43,32 @@ struct Hit {
 }
 
 // `Counters` (8 bytes): boxes and triangles tested for one ray.
-struct Counters {
+struct BvhCounters {
     nodes: u32,
     tris: u32,
 }
 
 // What a traversal function returns for one ray.
-struct TraceResult {
-    hit: Hit,
-    counters: Counters,
+struct BvhTraceResult {
+    hit: BvhHit,
+    counters: BvhCounters,
 }
 
 // `bvhtrace_core::MISS` and `bvhtrace_core::INVALID_RAY`.
-const MISS: u32 = 0xffffffffu;
-const INVALID_RAY: u32 = 0xfffffffeu;
+const BVH_MISS: u32 = 0xffffffffu;
+const BVH_INVALID_RAY: u32 = 0xfffffffeu;
 // `bvhtrace_core::INCOMPLETE`: the kernel ran out of its trip budget (`TRIP_LIMIT`) before
 // the ray's answer was certain; the host finishes such rays (`GpuBvh::trace`).
-const INCOMPLETE: u32 = 0xfffffffdu;
+const BVH_INCOMPLETE: u32 = 0xfffffffdu;
 // `bvhtrace_core::traverse::MAX_SHORT_STACK`: the ring buffer's storage.
-const MAX_SHORT_STACK: u32 = 32u;
+const BVH_MAX_SHORT_STACK: u32 = 32u;
 
-fn node_count(n: Node) -> u32 {
+fn bvh_node_count(n: BvhNode) -> u32 {
     return n.meta_bits >> 2u;
 }
 
 // `v[k]` for k in 0..3, written as selects (a dynamic vector index costs more on
 // lavapipe; the value is the same).
-fn component(v: vec3<f32>, k: u32) -> f32 {
+fn bvh_component(v: vec3<f32>, k: u32) -> f32 {
     return select(select(v.z, v.y, k == 1u), v.x, k == 0u);
 }

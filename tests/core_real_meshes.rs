@@ -84,12 +84,12 @@ fn hits_do_not_depend_on_the_scene_scale() {
     for name in ["bunny_69k", "igea"] {
         let Some(tris) = mesh(name) else { return };
         let rays = camera_rays(&tris, 320, 240);
-        let base = trace_batch(
+        let base = trace_rays(
             &FlatBvh::build(&tris, &BuildOptions::default()).unwrap(),
             &rays,
-            Traversal::Stackless,
-            Query::Closest,
-        );
+            &TraceOptions::closest(Traversal::Stackless),
+        )
+        .hits;
         let hits = base.iter().filter(|h| h.is_hit()).count();
         assert!(
             hits > rays.len() / 5,
@@ -110,7 +110,8 @@ fn hits_do_not_depend_on_the_scene_scale() {
             ]
             .iter()
             .flat_map(|&tr| {
-                trace_batch(&bvh, &sr, tr, Query::Closest)
+                trace_rays(&bvh, &sr, &TraceOptions::closest(tr))
+                    .hits
                     .into_iter()
                     .zip(&base)
                     .zip(&sr)

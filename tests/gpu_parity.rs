@@ -3,7 +3,7 @@
 //! For each scene (a small shared mesh, `bunny_69k`, the degenerate-heavy builtin, and the
 //! bunny scaled by 1e-3) and each traversal (stackless, short stack k = 6, k = 1 and k = 2
 //! to force overflows, full stack) x {closest, any}: the GPU's hits equal the CPU twin's
-//! (`bvhtrace_core::trace_batch_counted` with the same traversal): same primitive, `t`
+//! (`bvhtrace_core::trace_rays` with counters and the same traversal): same primitive, `t`
 //! within 2 ulps (in practice bit-identical), `u`/`v` likewise, never NaN, and the same
 //! counters. Closest hits also equal the CPU full-stack reference (same primitive, same `t`
 //! bits), except where f32 cannot decide between two triangles (see [`f32_departure`]);
@@ -13,10 +13,13 @@
 //! both answers) so it can be replayed. Without any Vulkan adapter the test prints SKIP.
 
 use bvhtrace_core::{
-    BuildOptions, Counters, FlatBvh, Hit, INVALID_RAY, Query, Ray, Traversal, Triangle, oracle,
-    trace_batch_counted,
+    BuildOptions, Counters, FlatBvh, Hit, INVALID_RAY, Precision, Query, Ray, TraceOptions,
+    Traversal, Triangle, oracle, trace_rays,
 };
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, GpuError, UploadOptions};
+use bvhtrace_gpu::{
+    AdapterChoice, BvhStorage, ContextOptions, DriverTuning, GpuBvh, GpuContext, GpuError,
+    UploadOptions,
+};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
 
@@ -39,6 +42,22 @@ fn f32_departure(tris: &[Triangle], ray: &Ray, a: &Hit, b: &Hit) -> bool {
         .iter()
         .any(|&p| tri(p).is_some_and(|t| oracle::f32_indeterminate(t, ray)))
         || (f64::from(a.t) - f64::from(b.t)).abs() <= terr(a.prim) + terr(b.prim)
+}
+
+/// The CPU twin's hits and counters for `traversal` and `query`.
+fn cpu_counted(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+) -> (Vec<Hit>, Vec<Counters>) {
+    let out = trace_rays(bvh, rays, &counted(traversal, query));
+    (out.hits, out.counters.unwrap_or_default())
+}
+
+/// Options with counters.
+fn counted(traversal: Traversal, query: Query) -> TraceOptions {
+    TraceOptions::new(traversal, query).with_counters(true)
 }
 
 fn context() -> Option<GpuContext> {
@@ -279,14 +298,14 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
             gpus[1].stats().total_bytes(),
             gpus[1].stats().upload_ms
         );
-        let reference = trace_batch_counted(bvh, &rays, Traversal::FullStack, Query::Closest).0;
-        let reference_any = trace_batch_counted(bvh, &rays, Traversal::FullStack, Query::Any).0;
+        let reference = cpu_counted(bvh, &rays, Traversal::FullStack, Query::Closest).0;
+        let reference_any = cpu_counted(bvh, &rays, Traversal::FullStack, Query::Any).0;
         for traversal in traversals {
             for query in [Query::Closest, Query::Any] {
-                let cpu = trace_batch_counted(bvh, &rays, traversal, query);
+                let cpu = cpu_counted(bvh, &rays, traversal, query);
                 for gpu in &gpus {
                     let label = format!("{} {traversal} {query:?} {:?}", case.name, gpu.storage());
-                    let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
+                    let out = gpu.trace(&rays, &counted(traversal, query)).expect("trace");
                     // Parity must be the kernel's own: no ray finished on the CPU twin.
                     assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
                     let gc = out.counters.as_deref().expect("counters");
@@ -324,7 +343,8 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
                             bad_ref += 1;
                         }
                         if exceptions + bad_ref <= 3 {
-                            let bf = bvhtrace_core::traverse::brute_force(bvh, &rays[i]);
+                            let bf =
+                                bvhtrace_core::brute_force(bvh, &rays[i], Precision::WatertightF32);
                             eprintln!(
                                 "{label}: differs from the full-stack reference{} (brute force: prim {:#x} t {})\n{}",
                                 if twin_differs {
@@ -432,8 +452,8 @@ fn deep_trees_match_cpu_twins() {
         ] {
             for query in [Query::Closest, Query::Any] {
                 let label = format!("deep {traversal} {query:?} {storage:?}");
-                let cpu = trace_batch_counted(&bvh, &rays, traversal, query);
-                let out = gpu.trace_counted(&rays, traversal, query).expect("trace");
+                let cpu = cpu_counted(&bvh, &rays, traversal, query);
+                let out = gpu.trace(&rays, &counted(traversal, query)).expect("trace");
                 assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
                 let gc = out.counters.as_deref().expect("counters");
                 let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
@@ -441,7 +461,9 @@ fn deep_trees_match_cpu_twins() {
                     Query::Closest => rays
                         .iter()
                         .zip(&out.hits)
-                        .filter(|(r, h)| bvhtrace_core::traverse::brute_force(&bvh, r) != **h)
+                        .filter(|(r, h)| {
+                            bvhtrace_core::brute_force(&bvh, r, Precision::WatertightF32) != **h
+                        })
                         .count(),
                     Query::Any => 0,
                 };
@@ -471,22 +493,31 @@ fn upload_checks_and_errors() {
     assert_eq!(gpu.stats().escapes_bytes, 0);
     let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
     assert!(matches!(
-        gpu.trace(&rays, Traversal::Stackless, Query::Closest),
+        gpu.trace(
+            &rays,
+            &TraceOptions::new(Traversal::Stackless, Query::Closest)
+        ),
         Err(GpuError::EscapesNotUploaded { .. })
     ));
     let out = gpu
-        .trace(&rays, Traversal::FullStack, Query::Closest)
+        .trace(
+            &rays,
+            &TraceOptions::new(Traversal::FullStack, Query::Closest),
+        )
         .expect("trace");
     assert_eq!(out.hits[0].prim, 0);
     assert_eq!(out.hits[0].t, 5.0);
     // An empty batch.
     let out = gpu
-        .trace(&[], Traversal::FullStack, Query::Closest)
+        .trace(
+            &[],
+            &TraceOptions::new(Traversal::FullStack, Query::Closest),
+        )
         .expect("trace");
     assert!(out.hits.is_empty());
     // A chain-like tree deeper than the full stack: refused for the full stack only.
     let mut deep = bvh.clone();
-    deep.depth = bvhtrace_gpu::FULL_STACK_SIZE + 1;
+    deep.depth = bvhtrace_gpu::kernels::FULL_STACK_SIZE + 1;
     assert!(matches!(
         GpuBvh::upload(&ctx, &deep, &UploadOptions::all()),
         Err(GpuError::TooDeep { .. })
@@ -570,11 +601,7 @@ fn record_into_user_encoder() {
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
-    let opts = bvhtrace_gpu::TraceOptions {
-        traversal: Traversal::ShortStack(4),
-        query: Query::Closest,
-        counters: false,
-    };
+    let opts = TraceOptions::closest(Traversal::ShortStack(4));
     let mut enc = device.create_command_encoder(&Default::default());
     let batch = |hits| bvhtrace_gpu::RayBatch {
         rays: &rays_buf,
@@ -600,7 +627,7 @@ fn record_into_user_encoder() {
         .chunks_exact(4)
         .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
-    let cpu = bvhtrace_core::trace_batch(&bvh, &rays, opts.traversal, opts.query);
+    let cpu = trace_rays(&bvh, &rays, &TraceOptions::new(opts.traversal, opts.query)).hits;
     for (i, h) in cpu.iter().enumerate() {
         assert_eq!(words[4 * i + 1], h.prim, "ray {i}");
         assert_eq!(words[4 * i], h.t.to_bits(), "ray {i}");
@@ -621,8 +648,8 @@ fn batches_larger_than_a_dispatch_are_split() {
     let Some(ctx) = context() else { return };
     let bvh = one_triangle();
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
-    let n = bvhtrace_gpu::MAX_RAYS_PER_DISPATCH as usize + 4099;
-    let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());
+    let n = bvhtrace_gpu::kernels::MAX_RAYS_PER_DISPATCH as usize + 4099;
+    let plan = bvhtrace_gpu::kernels::plan_dispatches(n as u64, ctx.limits());
     assert!(plan.len() >= 2, "{plan:?}");
     // Ray i starts at distance 1 + (i % 1000) / 1000 from the triangle; every fifth misses.
     let rays: Vec<Ray> = (0..n)
@@ -635,7 +662,10 @@ fn batches_larger_than_a_dispatch_are_split() {
         })
         .collect();
     let out = gpu
-        .trace(&rays, Traversal::Stackless, Query::Closest)
+        .trace(
+            &rays,
+            &TraceOptions::new(Traversal::Stackless, Query::Closest),
+        )
         .expect("trace");
     assert_eq!(out.hits.len(), n);
     for (i, h) in out.hits.iter().enumerate() {
@@ -674,7 +704,10 @@ fn cornell() -> FlatBvh {
 /// twin's, `cpu`, bit for bit.
 fn assert_full_stack_hits(gpu: &GpuBvh, rays: &[Ray], cpu: &[Hit], what: &str) {
     let out = gpu
-        .trace(rays, Traversal::FullStack, Query::Closest)
+        .trace(
+            rays,
+            &TraceOptions::new(Traversal::FullStack, Query::Closest),
+        )
         .expect("trace");
     assert_eq!(out.hits.len(), rays.len(), "{what}");
     for (i, (g, c)) in out.hits.iter().zip(cpu).enumerate() {
@@ -701,7 +734,12 @@ fn ray_textures_hold_any_batch_size() {
     });
     for n in [1, 63, 1536, 4096, 4097, 3 * 4096 + 5] {
         let rays = &all[all.len() - n..];
-        let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
+        let cpu = trace_rays(
+            &bvh,
+            rays,
+            &TraceOptions::new(Traversal::FullStack, Query::Closest),
+        )
+        .hits;
         assert!(cpu.iter().any(|h| h.prim != u32::MAX), "{n} rays: some hit");
         for gpu in &gpus {
             assert_full_stack_hits(gpu, rays, &cpu, &format!("{n} rays"));
@@ -752,13 +790,13 @@ fn rays_along_box_faces_match_cpu_twins() {
             Traversal::Stackless,
             Traversal::ShortStack(6),
         ] {
-            let (hits, counters) = trace_batch_counted(&bvh, &rays, traversal, Query::Closest);
+            let (hits, counters) = cpu_counted(&bvh, &rays, traversal, Query::Closest);
             assert!(
                 counters.iter().any(|c| c.nodes > 1),
                 "some face ray goes into the box"
             );
             let out = gpu
-                .trace_counted(&rays, traversal, Query::Closest)
+                .trace(&rays, &counted(traversal, Query::Closest))
                 .expect("trace");
             let gpu_counters = out.counters.expect("counters");
             for (i, r) in rays.iter().enumerate() {
@@ -780,15 +818,35 @@ fn interleaved_workgroups_trace_every_ray() {
     let Some(ctx) = context() else { return };
     let bvh = cornell();
     let all = ray_set(&bvh, 11);
-    let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
-        GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(storage)).expect("upload")
-    });
     for threads in [1, 2, 3, 5] {
-        ctx.set_dispatch_threads(threads).expect("set threads");
-        assert_eq!(ctx.dispatch_threads(), threads);
+        let tuning = DriverTuning {
+            dispatch_threads: threads,
+            ..*ctx.tuning()
+        };
+        let options = ContextOptions {
+            tuning: Some(tuning),
+            ..ContextOptions::default()
+        };
+        let dealt = GpuContext::from_device_with(
+            ctx.device().clone(),
+            ctx.queue().clone(),
+            ctx.adapter_info().clone(),
+            &options,
+        )
+        .expect("context");
+        assert_eq!(dealt.tuning().dispatch_threads, threads);
+        let gpus = [BvhStorage::Textures, BvhStorage::Buffers].map(|storage| {
+            GpuBvh::upload(&dealt, &bvh, &UploadOptions::all().with_storage(storage))
+                .expect("upload")
+        });
         for n in [63, 64 * 7 + 5, 4097] {
             let rays = &all[all.len() - n - threads as usize..all.len() - threads as usize];
-            let cpu = bvhtrace_core::trace_batch(&bvh, rays, Traversal::FullStack, Query::Closest);
+            let cpu = trace_rays(
+                &bvh,
+                rays,
+                &TraceOptions::new(Traversal::FullStack, Query::Closest),
+            )
+            .hits;
             for gpu in &gpus {
                 assert_full_stack_hits(gpu, rays, &cpu, &format!("{threads} threads, {n} rays"));
             }

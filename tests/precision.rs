@@ -6,16 +6,17 @@
 //!   (f32 and f64) let none escape; Möller–Trumbore's escapes are counted and, at a large
 //!   offset, are not zero (its leaks are measured, not assumed).
 //! * Every traversal returns the same closest hit as the brute-force loop with the same
-//!   test, for every precision, and the default precision is exactly `trace_batch` (on
-//!   well-conditioned scenes: where f32 is indeterminate, see `tests/gpu_parity.rs`).
+//!   test, for every precision, and the default precision is exactly what options
+//!   without one (`TraceOptions::new`) trace with (on well-conditioned scenes: where f32
+//!   is indeterminate, see `tests/gpu_parity.rs`).
 //! * On the GPU (lavapipe in CI), each precision's kernels equal their CPU twin bit for bit
 //!   (hits and counters) on two small scenes; f64 where the adapter has `SHADER_F64`.
 
 use bvhtrace_core::{
-    BuildOptions, FlatBvh, Hit, Precision, Query, Ray, Traversal, Triangle, trace_batch,
-    trace_batch_counted_precision, trace_batch_precision, traverse::brute_force_precision,
+    BuildOptions, FlatBvh, Hit, Precision, Query, Ray, TraceOptions, Traversal, Triangle,
+    brute_force, trace_rays,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, TraceOptions, UploadOptions};
+use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
 use glam::Vec3;
 
 const TRAVERSALS: [Traversal; 4] = [
@@ -67,7 +68,12 @@ fn escapes(spec: &str, precision: Precision) -> Vec<(Traversal, usize, usize)> {
     TRAVERSALS
         .iter()
         .map(|&tr| {
-            let hits = trace_batch_precision(&bvh, &rays, tr, Query::Closest, precision);
+            let hits = trace_rays(
+                &bvh,
+                &rays,
+                &TraceOptions::closest(tr).with_precision(precision),
+            )
+            .hits;
             assert!(
                 hits.iter()
                     .all(|h| !h.t.is_nan() && !h.u.is_nan() && !h.v.is_nan())
@@ -123,12 +129,10 @@ fn every_traversal_equals_brute_force_for_every_precision() {
         let scene = bvhtrace_scene::load(spec).unwrap();
         rays.extend(scene.camera_or_frame(1.0).rays(48, 48));
         for p in Precision::ALL {
-            let brute: Vec<Hit> = rays
-                .iter()
-                .map(|r| brute_force_precision(&bvh, r, p))
-                .collect();
+            let brute: Vec<Hit> = rays.iter().map(|r| brute_force(&bvh, r, p)).collect();
             for tr in TRAVERSALS {
-                let hits = trace_batch_precision(&bvh, &rays, tr, Query::Closest, p);
+                let hits =
+                    trace_rays(&bvh, &rays, &TraceOptions::closest(tr).with_precision(p)).hits;
                 let diff = hits
                     .iter()
                     .zip(&brute)
@@ -140,10 +144,15 @@ fn every_traversal_equals_brute_force_for_every_precision() {
                 );
             }
         }
-        // The default precision is the unparameterised path, bit for bit.
+        // The default precision is what options without one trace with, bit for bit.
         for tr in TRAVERSALS {
-            let a = trace_batch(&bvh, &rays, tr, Query::Closest);
-            let b = trace_batch_precision(&bvh, &rays, tr, Query::Closest, Precision::default());
+            let a = trace_rays(&bvh, &rays, &TraceOptions::closest(tr)).hits;
+            let b = trace_rays(
+                &bvh,
+                &rays,
+                &TraceOptions::closest(tr).with_precision(Precision::default()),
+            )
+            .hits;
             assert!(a.iter().zip(&b).all(|(x, y)| x.prim == y.prim
                 && x.t.to_bits() == y.t.to_bits()
                 && x.u.to_bits() == y.u.to_bits()
@@ -186,14 +195,9 @@ fn gpu_equals_cpu_twin_for_every_precision() {
         for p in Precision::ALL {
             if !ctx.supports_precision(p) {
                 let err = gpu
-                    .trace_with_precision(
+                    .trace(
                         &rays,
-                        &TraceOptions {
-                            traversal: Traversal::FullStack,
-                            query: Query::Closest,
-                            counters: false,
-                        },
-                        p,
+                        &TraceOptions::closest(Traversal::FullStack).with_precision(p),
                     )
                     .expect_err("an unsupported precision is refused");
                 assert!(matches!(err, GpuError::PrecisionUnsupported { .. }));
@@ -206,17 +210,14 @@ fn gpu_equals_cpu_twin_for_every_precision() {
                 Traversal::ShortStack(2),
             ] {
                 for q in [Query::Closest, Query::Any] {
-                    let (cpu, cpu_c) = trace_batch_counted_precision(&bvh, &rays, tr, q, p);
+                    let opts = TraceOptions::new(tr, q)
+                        .with_precision(p)
+                        .with_counters(true);
+                    let cpu = trace_rays(&bvh, &rays, &opts);
+                    let cpu_c = cpu.counters.expect("CPU counters");
+                    let cpu = cpu.hits;
                     let out = gpu
-                        .trace_with_precision(
-                            &rays,
-                            &TraceOptions {
-                                traversal: tr,
-                                query: q,
-                                counters: true,
-                            },
-                            p,
-                        )
+                        .trace(&rays, &opts)
                         .unwrap_or_else(|e| panic!("{spec} {p} {tr}: {e}"));
                     let gpu_c = out.counters.expect("counters");
                     for (i, (a, b)) in out.hits.iter().zip(&cpu).enumerate() {
@@ -262,20 +263,17 @@ fn f64_without_shader_f64_is_a_clear_error() {
         ..Default::default()
     }))
     .expect("device");
-    let ctx = GpuContext::from_device(device, queue, adapter.get_info());
+    let ctx = GpuContext::from_device(device, queue, adapter.get_info())
+        .expect("a device with the adapter's limits is accepted");
     assert!(!ctx.supports_precision(Precision::WatertightF64));
     assert!(ctx.supports_precision(Precision::MollerTrumboreF32));
     let tris = triangles("builtin:icosphere:1");
     let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).unwrap();
     let rays = edge_rays(&tris, centre(&tris));
-    let opts = TraceOptions {
-        traversal: Traversal::Stackless,
-        query: Query::Closest,
-        counters: false,
-    };
+    let opts = TraceOptions::closest(Traversal::Stackless);
     let err = gpu
-        .trace_with_precision(&rays, &opts, Precision::WatertightF64)
+        .trace(&rays, &opts.with_precision(Precision::WatertightF64))
         .expect_err("f64 refused");
     let msg = err.to_string();
     assert!(
@@ -283,7 +281,7 @@ fn f64_without_shader_f64_is_a_clear_error() {
         "{msg}"
     );
     let ok = gpu
-        .trace_with_precision(&rays, &opts, Precision::MollerTrumboreF32)
+        .trace(&rays, &opts.with_precision(Precision::MollerTrumboreF32))
         .expect("f32 runs");
     assert_eq!(ok.hits.len(), rays.len());
 }

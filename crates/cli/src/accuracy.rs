@@ -86,7 +86,7 @@ pub fn flip(reference: &[u8], test: &[u8], w: u32, h: u32) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bvhtrace_core::{BuildOptions, FlatBvh, Ray, Traversal, oracle, trace_batch};
+    use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, oracle, trace_rays};
     use glam::Vec3;
 
     /// A unit quad in z = 0 and a 64x64 grid of +z rays over [-0.5, 1.5]^2 from z = -2:
@@ -126,7 +126,7 @@ mod tests {
     fn exact_answers_give_zero_error() {
         let (tris, rays, inside) = quad_and_grid();
         let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
-        let ours = trace_batch(&bvh, &rays, Traversal::Stackless, Query::Closest);
+        let ours = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless)).hits;
         let o: Vec<_> = rays.iter().map(|r| oracle::closest_hit(&tris, r)).collect();
         assert_eq!(o.iter().filter(|h| h.is_hit()).count(), inside);
         assert!(o.iter().filter(|h| h.is_hit()).all(|h| h.t == 2.0));
@@ -146,7 +146,7 @@ mod tests {
         let (tris, rays, inside) = quad_and_grid();
         let o: Vec<_> = rays.iter().map(|r| oracle::closest_hit(&tris, r)).collect();
         let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
-        let mut ours = trace_batch(&bvh, &rays, Traversal::FullStack, Query::Closest);
+        let mut ours = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::FullStack)).hits;
         let hit_idx: Vec<usize> = (0..ours.len()).filter(|&i| ours[i].is_hit()).collect();
         let miss_idx: Vec<usize> = (0..ours.len()).filter(|&i| !ours[i].is_hit()).collect();
         assert_eq!(hit_idx.len(), inside);

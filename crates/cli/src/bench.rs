@@ -4,12 +4,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, BvhStats, FlatBvh, Query, Ray, Traversal, Triangle, trace_batch,
-    trace_batch_counted,
+    BuildOptions, BuilderKind, BvhStats, FlatBvh, Query, Ray, TraceOptions, Traversal, Triangle,
+    trace_rays,
 };
 use bvhtrace_gpu::{
-    AdapterChoice, Composition, GpuBvh, GpuContext, PipelineFeatures, TraceOptions, UploadOptions,
-    VertexAttributes, kernel_source,
+    AdapterChoice, Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions,
+    VertexAttributes,
 };
 
 /// The median of `v` (the upper one for an even length).
@@ -140,13 +140,18 @@ pub fn bench_build(args: BenchBuildArgs) -> Result<()> {
                 Traversal::Stackless,
                 Traversal::ShortStack(6),
             ] {
-                let (_, c) = pool.install(|| trace_batch_counted(&bvh, &rays, tr, Query::Closest));
+                let opts = TraceOptions::closest(tr);
+                let counted = opts.with_counters(true);
+                let c = pool
+                    .install(|| trace_rays(&bvh, &rays, &counted))
+                    .counters
+                    .unwrap_or_default();
                 let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / rays.len() as f64;
                 let t = median(
                     (0..3)
                         .map(|_| {
                             let t = Instant::now();
-                            pool.install(|| trace_batch(&bvh, &rays, tr, Query::Closest));
+                            pool.install(|| trace_rays(&bvh, &rays, &opts));
                             t.elapsed().as_secs_f64()
                         })
                         .collect(),
@@ -211,10 +216,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
-    let ctx = GpuContext::new(match &args.adapter {
-        Some(n) => AdapterChoice::Named(n.clone()),
-        None => AdapterChoice::Auto,
-    })?;
+    let ctx = GpuContext::new(AdapterChoice::from_name(args.adapter.as_deref()))?;
     let info = ctx.adapter_info();
     println!(
         "adapter: {} ({:?}); CPU: {} threads",
@@ -273,15 +275,16 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             // that no timed run pays a pipeline's creation or first dispatch.
             let mut counts = Vec::new();
             for &tr in &traversals {
+                let opts = TraceOptions::new(tr, q);
                 let c = gpu
-                    .trace_counted(&rays, tr, q)?
+                    .trace(&rays, &opts.with_counters(true))?
                     .counters
                     .unwrap_or_default();
                 let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
                     c.iter().map(|c| f64::from(f(c))).sum::<f64>() / n.max(1.0)
                 };
                 counts.push((per_ray(|c| c.nodes), per_ray(|c| c.tris)));
-                gpu.trace(&rays, tr, q)?;
+                gpu.trace(&rays, &opts)?;
             }
             // Rounds of every traversal on the GPU and its twin on the CPU, one after the
             // other: lavapipe and the CPU swing by 10-20% from minute to minute, so the
@@ -291,11 +294,12 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             let mut cpu_ms = vec![Vec::new(); traversals.len()];
             for _ in 0..args.runs {
                 for (i, &tr) in traversals.iter().enumerate() {
-                    let o = gpu.trace(&rays, tr, q)?;
+                    let opts = TraceOptions::new(tr, q);
+                    let o = gpu.trace(&rays, &opts)?;
                     wall_ms[i].push(o.wall_ms);
                     gpu_ms[i].push(o.gpu_ms.unwrap_or(o.wall_ms));
                     let t = Instant::now();
-                    std::hint::black_box(trace_batch(&bvh, &rays, tr, q));
+                    std::hint::black_box(trace_rays(&bvh, &rays, &opts));
                     cpu_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
                 }
             }
@@ -327,7 +331,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
 /// One side of `bench-trace --everything-on`.
 struct Side {
     name: &'static str,
-    composition: Composition,
+    options: ContextOptions,
     gpu: GpuBvh,
     opts: TraceOptions,
     wgsl_bytes: usize,
@@ -341,7 +345,16 @@ struct Side {
 /// closest-hit pipeline against the everything-on one, on the same rays; the two sides'
 /// runs are interleaved, and their hits must be equal.
 fn compare_everything_on(ctx: &GpuContext, args: &BenchTraceArgs, w: u32, h: u32) -> Result<()> {
-    let storage = ctx.default_storage();
+    let storage = ctx.tuning().storage;
+    // A context of its own per composition, on the one device.
+    let context = |options: &ContextOptions| {
+        GpuContext::from_device_with(
+            ctx.device().clone(),
+            ctx.queue().clone(),
+            ctx.adapter_info().clone(),
+            options,
+        )
+    };
     println!(
         "storage: {storage:?}; {} runs per figure (medians)",
         args.runs
@@ -373,76 +386,75 @@ fn compare_everything_on(ctx: &GpuContext, args: &BenchTraceArgs, w: u32, h: u32
             Traversal::Stackless,
             Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
         ] {
-            let job = PipelineFeatures::for_job(
+            let plain = TraceOptions::closest(tr);
+            let job = KernelKey::for_job(
                 storage,
-                tr,
-                Query::Closest,
-                false,
+                &plain,
                 VertexAttributes::NONE,
                 VertexAttributes::NONE,
             );
             let all = job.with_composition(Composition::EverythingOn);
+            let side = |name, composition, upload: &UploadOptions, opts, wgsl_bytes, bindings| {
+                let options = ContextOptions {
+                    composition,
+                    ..ContextOptions::default()
+                };
+                anyhow::Ok(Side {
+                    name,
+                    options,
+                    gpu: GpuBvh::upload(&context(&options)?, &bvh, upload)?,
+                    opts,
+                    wgsl_bytes,
+                    bindings,
+                    create_ms: Vec::new(),
+                    gpu_ms: Vec::new(),
+                    wall_ms: Vec::new(),
+                })
+            };
             let mut sides = [
-                Side {
-                    name: "specialised",
-                    composition: Composition::Specialised,
-                    gpu: GpuBvh::upload(ctx, &bvh, &job.upload_options())?,
-                    opts: TraceOptions {
-                        traversal: tr,
-                        query: Query::Closest,
-                        counters: false,
-                    },
-                    wgsl_bytes: job.source().len(),
-                    bindings: job.bindings().len(),
-                    create_ms: Vec::new(),
-                    gpu_ms: Vec::new(),
-                    wall_ms: Vec::new(),
-                },
-                Side {
-                    name: "everything-on",
-                    composition: Composition::EverythingOn,
-                    gpu: GpuBvh::upload(ctx, &bvh, &UploadOptions::all().with_storage(storage))?,
-                    opts: TraceOptions {
-                        traversal: tr,
-                        query: Query::Closest,
-                        counters: true,
-                    },
-                    wgsl_bytes: kernel_source(storage).len(),
-                    bindings: all.bindings().len(),
-                    create_ms: Vec::new(),
-                    gpu_ms: Vec::new(),
-                    wall_ms: Vec::new(),
-                },
+                side(
+                    "specialised",
+                    Composition::Specialised,
+                    &UploadOptions::for_traversal(tr).with_storage(storage),
+                    plain,
+                    job.source().len(),
+                    job.bindings().len(),
+                )?,
+                side(
+                    "everything-on",
+                    Composition::EverythingOn,
+                    &UploadOptions::all().with_storage(storage),
+                    plain.with_counters(true),
+                    all.source().len(),
+                    all.bindings().len(),
+                )?,
             ];
             // Pipeline creation (module + pipeline, nothing cached), interleaved.
             for _ in 0..args.runs {
                 for s in sides.iter_mut() {
-                    ctx.set_composition(s.composition);
-                    ctx.clear_pipeline_cache()?;
+                    let fresh = context(&s.options)?;
+                    let gpu = GpuBvh::upload(&fresh, &bvh, &UploadOptions::all())?;
                     let t = Instant::now();
-                    s.gpu.prepare(&s.opts)?;
+                    gpu.prepare(&s.opts)?;
                     s.create_ms.push(t.elapsed().as_secs_f64() * 1e3);
                 }
             }
             // Both pipelines compiled once more and kept; one untimed trace each.
             let mut hits = Vec::new();
             for s in sides.iter_mut() {
-                ctx.set_composition(s.composition);
                 s.gpu.prepare(&s.opts)?;
-                hits.push(s.gpu.trace_with(&rays, &s.opts)?.hits);
+                hits.push(s.gpu.trace(&rays, &s.opts)?.hits);
             }
             if hits[0] != hits[1] {
                 bail!("{spec} {tr}: the specialised and everything-on pipelines disagree");
             }
             for _ in 0..args.runs {
                 for s in sides.iter_mut() {
-                    ctx.set_composition(s.composition);
-                    let o = s.gpu.trace_with(&rays, &s.opts)?;
+                    let o = s.gpu.trace(&rays, &s.opts)?;
                     s.wall_ms.push(o.wall_ms);
                     s.gpu_ms.push(o.gpu_ms.unwrap_or(o.wall_ms));
                 }
             }
-            ctx.set_composition(Composition::Specialised);
             let n = rays.len() as f64;
             for s in &sides {
                 let bytes = s.gpu.stats().total_bytes();

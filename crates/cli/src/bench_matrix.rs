@@ -13,8 +13,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::oracle::{self, OracleHit};
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, Hit, Precision, Query, Ray, Traversal, Triangle,
-    trace_batch,
+    BuildOptions, BuilderKind, FlatBvh, Hit, Precision, Query, Ray, TraceOptions, Traversal,
+    Triangle, trace_rays,
 };
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -25,7 +25,7 @@ use crate::accuracy::{self, ErrorStats};
 use crate::bench::median;
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade;
-use crate::tracer::Tracer;
+use bvhtrace_gpu::{AdapterChoice, CpuTracer, Tracer};
 
 /// Which rays a configuration traces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -175,7 +175,7 @@ fn ray_sets(
     h: u32,
 ) -> RaySets {
     let primary = cam.rays(w, h);
-    let hits = trace_batch(bvh, &primary, Traversal::FullStack, Query::Closest);
+    let hits = trace_rays(bvh, &primary, &TraceOptions::closest(Traversal::FullStack)).hits;
     let (_, right, up) = cam.basis();
     let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
     let b = bvh.bounds();
@@ -282,10 +282,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         .collect::<Result<_>>()?;
 
     let gpu_ctx = if args.backends.iter().any(|b| b == "gpu") {
-        match bvhtrace_gpu::GpuContext::new(match &args.adapter {
-            Some(n) => bvhtrace_gpu::AdapterChoice::Named(n.clone()),
-            None => bvhtrace_gpu::AdapterChoice::Auto,
-        }) {
+        match bvhtrace_gpu::GpuContext::new(AdapterChoice::from_name(args.adapter.as_deref())) {
             Ok(c) => Some(c),
             Err(e) => {
                 eprintln!("note: no GPU ({e}); benchmarking the CPU only");
@@ -297,7 +294,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     };
     // `vulkan`: the same kernels through ash (bvhtrace-vk), BVH in storage buffers.
     let vk_ctx = if args.backends.iter().any(|b| b == "vulkan") {
-        match bvhtrace_vk::VkContext::new(args.adapter.as_deref()) {
+        match bvhtrace_vk::VkContext::new(AdapterChoice::from_name(args.adapter.as_deref())) {
             Ok(c) => Some(c),
             Err(e) => {
                 eprintln!("note: no Vulkan device through ash ({e}); leaving out 'vulkan'");
@@ -449,13 +446,15 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let Some((bvh, build_ms, gpu)) = built[bi].as_ref() else {
                 continue;
             };
-            let tracer = match (be, gpu) {
-                ("gpu", Some(g)) => Tracer::GpuRef(g),
-                ("vulkan", _) => match &vk_ctx {
-                    Some(c) => Tracer::Vulkan(Box::new(bvhtrace_vk::VkBvh::upload(c, bvh)?)),
-                    None => Tracer::Cpu(bvh),
-                },
-                _ => Tracer::Cpu(bvh),
+            let cpu = CpuTracer::new(bvh);
+            let vk = match (be, &vk_ctx) {
+                ("vulkan", Some(c)) => Some(bvhtrace_vk::VkBvh::upload(c, bvh)?),
+                _ => None,
+            };
+            let tracer: &dyn Tracer = match (be, gpu, &vk) {
+                ("gpu", Some(g), _) => g,
+                ("vulkan", _, Some(v)) => v,
+                _ => &cpu,
             };
             let (kind_idx, rays) = kinds
                 .iter()
@@ -467,8 +466,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             // Warm-up (pipeline creation, caches: the counted pipeline here, the timed
             // one on a few rays, so that no compilation lands in the timings), then timed
             // runs.
-            let counted = tracer.trace_precision(rays, tr, q, prec, true)?;
-            tracer.trace_precision(&rays[..rays.len().min(256)], tr, q, prec, false)?;
+            let opts = TraceOptions::new(tr, q).with_precision(prec);
+            let counted = tracer.trace(rays, &opts.with_counters(true))?;
+            tracer.trace(&rays[..rays.len().min(256)], &opts)?;
             let c = counted.counters.unwrap_or_default();
             let n = rays.len().max(1) as f64;
             let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / n;
@@ -476,7 +476,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let mut times = Vec::new();
             let mut hits: Vec<Hit> = Vec::new();
             for _ in 0..runs {
-                let t = tracer.trace_precision(rays, tr, q, prec, false)?;
+                let t = tracer.trace(rays, &opts)?;
                 times.push(t.gpu_ms.unwrap_or(t.wall_ms));
                 hits = t.hits;
             }
@@ -485,7 +485,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             let ours: Vec<Hit> = idx.iter().map(|&i| hits[i]).collect();
             let error = accuracy::compare(&ours, o, q);
             let (image_rmse, image_flip) = if kind == RayKind::Primary {
-                let t = tracer.trace_precision(&img_rays, tr, Query::Closest, prec, false)?;
+                let t = tracer.trace(&img_rays, &TraceOptions::closest(tr).with_precision(prec))?;
                 let img = normal_image(&tris, &img_rays, t.hits.iter().map(|h| h.prim));
                 (
                     Some(accuracy::rmse(&ref_img, &img)),
@@ -494,10 +494,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             } else {
                 (None, None)
             };
-            let bytes = match &tracer {
-                Tracer::Gpu(_) | Tracer::GpuRef(_) | Tracer::Vulkan(_) => tracer.uploaded_bytes(),
-                Tracer::Cpu(b) => {
-                    let (nb, eb, tb) = b.byte_sizes();
+            let bytes = match tracer.upload_stats() {
+                Some(u) => u.total_bytes(),
+                None => {
+                    let (nb, eb, tb) = bvh.byte_sizes();
                     (nb + if tr.needs_escapes() { eb } else { 0 } + tb) as u64
                 }
             };

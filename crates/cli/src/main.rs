@@ -1,14 +1,13 @@
 //! `bvhtrace`: render scenes through the BVH on the GPU or CPU, inspect them, benchmark.
 
 mod accuracy;
+mod backend;
 mod bench;
 mod bench_matrix;
 mod output;
 mod plot;
 mod render;
 mod shade;
-mod tracer;
-mod vk_tracer;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

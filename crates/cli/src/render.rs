@@ -1,4 +1,8 @@
 //! `bvhtrace render` and `bvhtrace info`.
+//!
+//! A render is a pipeline: the scene, its tree, the camera's rays, the trace (primary rays,
+//! then the shadow or ambient-occlusion rays the shading asks for), the shading, the image.
+//! Each step is one function below.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -6,29 +10,18 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::palette;
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, BvhStats, FlatBvh, Hit, Query, Ray, Traversal, Triangle,
+    BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, Query, Ray, TraceOptions,
+    TraceOutput, Traversal, Triangle,
 };
-use bvhtrace_gpu::{BvhStorage, PipelineFeatures, UploadStats, VertexAttributes};
+use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats, VertexAttributes};
 use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, camera};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
+use crate::backend::{self, Backend};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, BACKGROUND, Shade};
-use crate::tracer::{GpuSetup, Tracer};
-
-/// Which backend traces.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Backend {
-    /// WGSL kernels through wgpu (falls back to the CPU when there is no adapter).
-    Gpu,
-    /// The CPU reference traversal.
-    Cpu,
-    /// The same kernels on raw Vulkan through ash (`bvhtrace-vk`, BVH in storage
-    /// buffers); an error when there is no Vulkan device.
-    Vulkan,
-}
 
 /// An image size flag (`--size WxH`): [`camera::parse_size`], at most 16384 a side.
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -116,15 +109,16 @@ pub struct RenderArgs {
     pub output: PathBuf,
     #[command(flatten)]
     pub view: CameraArgs,
-    /// gpu or cpu.
+    /// Where to trace.
     #[arg(long, value_enum, default_value_t = Backend::Gpu)]
     pub backend: Backend,
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
-    /// stackless, short-stack, short-stack:K or full-stack.
-    #[arg(long, default_value = "stackless")]
-    pub traversal: Traversal,
+    /// stackless, short-stack, short-stack:K or full-stack [default: the backend's
+    /// fastest: full-stack on the CPU, stackless on a GPU].
+    #[arg(long)]
+    pub traversal: Option<Traversal>,
     /// What to show.
     #[arg(long, value_enum, default_value_t = Shade::Normal)]
     pub shade: Shade,
@@ -134,6 +128,14 @@ pub struct RenderArgs {
     /// Write run statistics as JSON to this file (`-` for stdout).
     #[arg(long)]
     pub json: Option<String>,
+    /// Count each primary ray's box and triangle tests (nodes_per_ray and tris_per_ray in
+    /// --json). Counting costs time; the heatmap always counts.
+    #[arg(long)]
+    pub counters: bool,
+    /// Trace the frame this many times and report the median time (the first run, which
+    /// includes one-time work such as pipeline creation, is reported apart in --json).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub runs: u32,
     /// Rows per tile: each tile is one batch (keeps dispatches short).
     #[arg(long, default_value_t = 64)]
     pub tile_rows: u32,
@@ -163,90 +165,139 @@ pub fn camera_for(view: &CameraArgs, scene: &Scene) -> Result<Camera> {
     Ok(cam)
 }
 
-struct Pass {
+/// The time of one pass over a frame's rays.
+#[derive(Clone, Copy, Debug, Default)]
+struct Timing {
     rays: u64,
     wall_ms: f64,
     gpu_ms: Option<f64>,
 }
 
-impl Pass {
-    fn add(&mut self, n: usize, t: &crate::tracer::Traced) {
+impl Timing {
+    fn add(&mut self, n: usize, t: &TraceOutput) {
+        let first = self.rays == 0;
         self.rays += n as u64;
         self.wall_ms += t.wall_ms;
         self.gpu_ms = match (self.gpu_ms, t.gpu_ms) {
             (Some(a), Some(b)) => Some(a + b),
-            (None, Some(b)) if self.rays == n as u64 => Some(b),
+            (None, Some(b)) if first => Some(b),
             _ => None,
         };
     }
-}
 
-/// Traces rays in chunks with a progress bar.
-#[allow(clippy::too_many_arguments)]
-fn trace_chunked(
-    tracer: &Tracer,
-    rays: &[Ray],
-    chunk: usize,
-    traversal: Traversal,
-    query: Query,
-    counters: bool,
-    pb: &ProgressBar,
-    pass: &mut Pass,
-) -> Result<(Vec<Hit>, Vec<bvhtrace_core::Counters>)> {
-    let mut hits = Vec::with_capacity(rays.len());
-    let mut cnt = Vec::new();
-    for c in rays.chunks(chunk.max(1)) {
-        let t = tracer.trace(c, traversal, query, counters)?;
-        pass.add(c.len(), &t);
-        hits.extend(t.hits);
-        if let Some(k) = t.counters {
-            cnt.extend(k);
-        }
-        pb.inc(c.len() as u64);
+    fn mrays_per_s(&self) -> f64 {
+        self.rays as f64 / self.wall_ms.max(1e-9) / 1e3
     }
-    Ok((hits, cnt))
+
+    fn json(&self) -> Value {
+        json!({ "trace_ms": self.wall_ms, "gpu_ms": self.gpu_ms, "mrays_per_s": self.mrays_per_s() })
+    }
 }
 
-/// `bvhtrace render`.
+/// What one frame's trace answered: the primary hits (and counters), and the secondary
+/// rays' hits with the pixel each belongs to.
+struct Frame {
+    hits: Vec<Hit>,
+    counters: Vec<Counters>,
+    secondary: Vec<Hit>,
+    owner: Vec<u32>,
+    timing: Timing,
+}
+
+/// What the render traces and shades with.
+struct Job<'a> {
+    args: &'a RenderArgs,
+    traversal: Traversal,
+    counters: bool,
+    light: Vec3,
+    ao_radius: f32,
+}
+
+/// `bvhtrace render`: scene, tree, rays, trace, shading, image.
 pub fn render(args: RenderArgs) -> Result<()> {
-    // Fail on bad output paths before any work.
+    // Fail on bad flags and output paths before any work.
     let png = AtomicFile::create(&args.output)?;
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
-    let (w, h) = args.view.size;
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
     }
-
     let (scene, tris, bvh, load_ms, build_ms) = load_and_build(&args.scene)?;
-    let stats = BvhStats::of(&bvh);
     let cam = camera_for(&args.view, &scene)?;
-
-    let (tracer, upload_ms) = match args.backend {
-        Backend::Cpu => (Tracer::Cpu(&bvh), 0.0),
-        Backend::Vulkan => Tracer::vulkan(&bvh, args.adapter.as_deref())?,
-        Backend::Gpu => match Tracer::gpu(
-            &bvh,
-            &GpuSetup {
-                adapter: args.adapter.as_deref(),
-                traversal: args.traversal,
-            },
-        ) {
-            Ok(t) => t,
-            Err(e) => {
-                eprintln!("note: no usable GPU ({e:#}); tracing on the CPU instead");
-                (Tracer::Cpu(&bvh), 0.0)
-            }
-        },
+    let tracer = open_tracer(&args, &bvh)?;
+    let job = Job::new(&args, &*tracer, &cam, &bvh);
+    let rays = cam.rays(args.view.size.0, args.view.size.1);
+    let (frame, runs) = trace_runs(&job, &*tracer, &tris, &rays)?;
+    let img = compose(&job, &tris, &rays, &frame);
+    write_png(png, args.view.size.0, args.view.size.1, img)?;
+    let report = Report {
+        job: &job,
+        scene: &scene,
+        tris: &tris,
+        bvh: &bvh,
+        cam: &cam,
+        tracer: &*tracer,
+        frame: &frame,
+        runs: &runs,
+        load_ms,
+        build_ms,
     };
+    report.print();
+    if let Some(j) = json_out {
+        j.write(&report.json())?;
+    }
+    Ok(())
+}
 
-    let rays = cam.rays(w, h);
-    let need_counters = args.shade == Shade::Heatmap || json_out.is_some();
-    let secondary_per_px = match args.shade {
-        Shade::Diffuse => 1,
-        Shade::Ao => args.ao_samples as u64,
-        _ => 0,
-    };
-    let pb = ProgressBar::new(rays.len() as u64 * (1 + secondary_per_px));
+/// Opens the backend and uploads the tree for the walk asked for (or the device's default).
+fn open_tracer<'a>(args: &RenderArgs, bvh: &'a FlatBvh) -> Result<Box<dyn Tracer + 'a>> {
+    let walk = args.traversal.unwrap_or(Traversal::GPU_DEFAULT);
+    backend::open(args.backend, args.adapter.as_deref(), bvh, &[walk])
+}
+
+impl<'a> Job<'a> {
+    fn new(args: &'a RenderArgs, tracer: &dyn Tracer, cam: &Camera, bvh: &FlatBvh) -> Job<'a> {
+        let b = bvh.bounds();
+        let diag = (b.max - b.min).length().max(f32::MIN_POSITIVE);
+        // A point light up and to the right of the camera: it sees what the camera sees, so
+        // it works for closed rooms as well as open scenes, and casts visible shadows.
+        let (_, right, up) = cam.basis();
+        let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
+        Job {
+            args,
+            traversal: args.traversal.unwrap_or_else(|| tracer.default_traversal()),
+            counters: args.counters || args.shade == Shade::Heatmap,
+            light,
+            ao_radius: 0.15 * diag,
+        }
+    }
+
+    fn primary(&self) -> TraceOptions {
+        TraceOptions::closest(self.traversal).with_counters(self.counters)
+    }
+
+    fn secondary(&self) -> TraceOptions {
+        TraceOptions::new(self.traversal, Query::Any)
+    }
+
+    /// Secondary rays per pixel.
+    fn secondary_per_pixel(&self) -> u64 {
+        match self.args.shade {
+            Shade::Diffuse => 1,
+            Shade::Ao => u64::from(self.args.ao_samples),
+            _ => 0,
+        }
+    }
+}
+
+/// Traces the frame `args.runs` times; returns the last frame and every run's timing.
+fn trace_runs(
+    job: &Job,
+    tracer: &dyn Tracer,
+    tris: &[Triangle],
+    rays: &[Ray],
+) -> Result<(Frame, Vec<Timing>)> {
+    let per_run = rays.len() as u64 * (1 + job.secondary_per_pixel());
+    let pb = ProgressBar::new(per_run * u64::from(job.args.runs));
     pb.set_style(
         ProgressStyle::with_template("{spinner} {msg} [{bar:40}] {percent}% ({eta})")
             .unwrap_or_else(|_| ProgressStyle::default_bar())
@@ -254,145 +305,196 @@ pub fn render(args: RenderArgs) -> Result<()> {
     );
     pb.set_message(format!(
         "tracing {} on {}",
-        args.shade_name(),
+        job.args.shade_name(),
         tracer.backend()
     ));
-    let chunk = (w * args.tile_rows) as usize;
-    let mut pass = Pass {
-        rays: 0,
-        wall_ms: 0.0,
-        gpu_ms: None,
-    };
-    let (hits, counters) = trace_chunked(
-        &tracer,
-        &rays,
-        chunk,
-        args.traversal,
-        Query::Closest,
-        need_counters,
-        &pb,
-        &mut pass,
-    )?;
-
-    let (lo, hi) = (stats_bounds(&bvh).0, stats_bounds(&bvh).1);
-    let diag = (hi - lo).length().max(f32::MIN_POSITIVE);
-    // A point light up and to the right of the camera: it sees what the camera sees, so it
-    // works for closed rooms as well as open scenes, and casts visible shadows.
-    let (_, right, up) = cam.basis();
-    let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
-    let (sec_rays, owner) = shade::secondary_rays(
-        args.shade,
-        &tris,
-        &rays,
-        &hits,
-        light,
-        args.ao_samples,
-        0.15 * diag,
-    );
-    let sec_hits = if sec_rays.is_empty() {
-        Vec::new()
-    } else {
-        pb.set_length(rays.len() as u64 + sec_rays.len() as u64);
-        trace_chunked(
-            &tracer,
-            &sec_rays,
-            chunk * 4,
-            args.traversal,
-            Query::Any,
-            false,
-            &pb,
-            &mut pass,
-        )?
-        .0
-    };
+    let mut runs = Vec::new();
+    let mut frame = trace_frame(job, tracer, tris, rays, &pb)?;
+    runs.push(frame.timing);
+    for _ in 1..job.args.runs {
+        frame = trace_frame(job, tracer, tris, rays, &pb)?;
+        runs.push(frame.timing);
+    }
     pb.finish_and_clear();
+    Ok((frame, runs))
+}
 
-    let img = compose(
-        &args, &tris, &rays, &hits, &counters, &sec_hits, &owner, light,
+/// One frame: the primary rays, then the secondary rays the shading asks for.
+fn trace_frame(
+    job: &Job,
+    tracer: &dyn Tracer,
+    tris: &[Triangle],
+    rays: &[Ray],
+    pb: &ProgressBar,
+) -> Result<Frame> {
+    let chunk = (job.args.view.size.0 * job.args.tile_rows) as usize;
+    let mut timing = Timing::default();
+    let primary = trace_chunked(tracer, rays, chunk, &job.primary(), pb, &mut timing)?;
+    let (sec_rays, owner) = shade::secondary_rays(
+        job.args.shade,
+        tris,
+        rays,
+        &primary.hits,
+        job.light,
+        job.args.ao_samples,
+        job.ao_radius,
     );
-    write_png(png, w, h, img)?;
+    let secondary = trace_chunked(
+        tracer,
+        &sec_rays,
+        chunk * 4,
+        &job.secondary(),
+        pb,
+        &mut timing,
+    )?;
+    Ok(Frame {
+        hits: primary.hits,
+        counters: primary.counters.unwrap_or_default(),
+        secondary: secondary.hits,
+        owner,
+        timing,
+    })
+}
 
-    let n_hits = hits.iter().filter(|h| h.is_hit()).count();
-    let t_sum: f64 = hits.iter().filter(|h| h.is_hit()).map(|h| h.t as f64).sum();
-    let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
-        if counters.is_empty() {
-            serde_json::Value::Null
-        } else {
-            json!(counters.iter().map(|c| f(c) as f64).sum::<f64>() / counters.len() as f64)
+/// Traces rays in chunks (one batch each, so dispatches stay short) with a progress bar.
+fn trace_chunked(
+    tracer: &dyn Tracer,
+    rays: &[Ray],
+    chunk: usize,
+    opts: &TraceOptions,
+    pb: &ProgressBar,
+    timing: &mut Timing,
+) -> Result<TraceOutput> {
+    let mut all = TraceOutput {
+        counters: opts.counters.then(Vec::new),
+        ..TraceOutput::default()
+    };
+    for c in rays.chunks(chunk.max(1)) {
+        let t = tracer.trace(c, opts)?;
+        timing.add(c.len(), &t);
+        all.hits.extend(t.hits);
+        if let (Some(all), Some(k)) = (all.counters.as_mut(), t.counters) {
+            all.extend(k);
         }
-    };
-    let mut features = vec!["closest-hit"];
-    if !sec_rays.is_empty() {
-        features.push("any-hit");
+        pb.inc(c.len() as u64);
     }
-    if need_counters {
-        features.push("counters");
+    Ok(all)
+}
+
+/// The median of the runs' timings (the lower middle one for an even count).
+fn median(runs: &[Timing]) -> Timing {
+    let mut sorted = runs.to_vec();
+    sorted.sort_by(|a, b| a.wall_ms.total_cmp(&b.wall_ms));
+    sorted[(sorted.len() - 1) / 2]
+}
+
+/// What a render reports, on the terminal and as JSON.
+struct Report<'a> {
+    job: &'a Job<'a>,
+    scene: &'a Scene,
+    tris: &'a [Triangle],
+    bvh: &'a FlatBvh,
+    cam: &'a Camera,
+    tracer: &'a dyn Tracer,
+    frame: &'a Frame,
+    runs: &'a [Timing],
+    load_ms: f64,
+    build_ms: f64,
+}
+
+impl Report<'_> {
+    /// The device pipelines the job ran, each composed of only what it needs.
+    fn pipelines(&self) -> Vec<KernelKey> {
+        match self.tracer.upload_stats() {
+            Some(u) => render_pipelines(
+                u.storage,
+                self.job.traversal,
+                !self.frame.owner.is_empty(),
+                self.job.counters,
+                &self.scene.attributes,
+            ),
+            None => Vec::new(),
+        }
     }
-    if args.traversal.needs_escapes() {
-        features.push("escape-links");
+
+    fn print(&self) {
+        let (w, h) = self.job.args.view.size;
+        let t = median(self.runs);
+        let runs = if self.runs.len() > 1 {
+            format!(" (median of {} runs)", self.runs.len())
+        } else {
+            String::new()
+        };
+        eprintln!(
+            "wrote {} ({}x{}, {} triangles, {} on {}): {} rays in {:.1} ms, {:.2} Mrays/s{runs}",
+            self.job.args.output.display(),
+            w,
+            h,
+            self.tris.len(),
+            self.job.traversal,
+            self.tracer.device_name(),
+            t.rays,
+            t.wall_ms,
+            t.mrays_per_s(),
+        );
     }
-    // The GPU pipelines this job ran, each composed of only what it needs.
-    let pipelines = match tracer.upload() {
-        Some((_, storage)) => render_pipelines(
-            storage,
-            args.traversal,
-            !sec_rays.is_empty(),
-            need_counters,
-            &scene.attributes,
-        ),
-        None => Vec::new(),
-    };
-    eprintln!(
-        "wrote {} ({}x{}, {} triangles, {} on {}): {} rays in {:.1} ms, {:.2} Mrays/s",
-        args.output.display(),
-        w,
-        h,
-        tris.len(),
-        args.traversal,
-        tracer.adapter(),
-        pass.rays,
-        pass.wall_ms,
-        pass.rays as f64 / pass.wall_ms.max(1e-9) / 1e3
-    );
-    if let Some(j) = json_out {
-        j.write(&json!({
+
+    fn json(&self) -> Value {
+        let (args, frame, stats) = (self.job.args, self.frame, BvhStats::of(self.bvh));
+        let hits = frame.hits.iter().filter(|h| h.is_hit());
+        let t_sum: f64 = hits.clone().map(|h| f64::from(h.t)).sum();
+        let per_ray = |f: fn(&Counters) -> u32| {
+            let c = &frame.counters;
+            (!c.is_empty()).then(|| c.iter().map(|c| f64::from(f(c))).sum::<f64>() / c.len() as f64)
+        };
+        let mut features = vec!["closest-hit"];
+        if !frame.owner.is_empty() {
+            features.push("any-hit");
+        }
+        if self.job.counters {
+            features.push("counters");
+        }
+        if self.job.traversal.needs_escapes() {
+            features.push("escape-links");
+        }
+        let pipelines = self.pipelines();
+        let t = median(self.runs);
+        let upload = self.tracer.upload_stats();
+        json!({
             "scene": args.scene.spec(),
-            "width": w, "height": h,
-            "triangles": tris.len(),
+            "width": args.view.size.0, "height": args.view.size.1,
+            "triangles": self.tris.len(),
             "nodes": stats.nodes,
             "depth": stats.depth,
             "sah_cost": stats.sah_cost,
             "sah_cost_pbrt": stats.sah_cost_pbrt,
-            "load_ms": load_ms,
-            "build_ms": build_ms,
-            "upload_ms": upload_ms,
-            "trace_ms": pass.wall_ms,
-            "gpu_ms": pass.gpu_ms,
-            "rays": pass.rays,
-            "mrays_per_s": pass.rays as f64 / pass.wall_ms.max(1e-9) / 1e3,
-            "hits": n_hits,
+            "load_ms": self.load_ms,
+            "build_ms": self.build_ms,
+            "upload_ms": upload.map_or(0.0, |u| u.upload_ms),
+            "runs": self.runs.len(),
+            "trace_ms": t.wall_ms,
+            "gpu_ms": t.gpu_ms,
+            "rays": t.rays,
+            "mrays_per_s": t.mrays_per_s(),
+            "first_run": self.runs[0].json(),
+            "hits": hits.count(),
             "t_sum": t_sum,
             "nodes_per_ray": per_ray(|c| c.nodes),
             "tris_per_ray": per_ray(|c| c.tris),
-            "backend": tracer.backend(),
-            "adapter": tracer.adapter(),
-            "traversal": args.traversal.to_string(),
+            "backend": self.tracer.backend(),
+            "adapter": self.tracer.device_name(),
+            "traversal": self.job.traversal.to_string(),
+            "default_traversal": self.tracer.default_traversal().to_string(),
             "builder": args.scene.builder.name(),
             "shade": args.shade,
-            "uploaded_bytes": tracer.uploaded_bytes(),
+            "uploaded_bytes": self.tracer.uploaded_bytes(),
             "features": features,
             "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-            "upload": tracer.upload().map(|(s, storage)| upload_json(&s, storage, tris.len())),
-            "left_out": left_out(&pipelines, &scene, args.traversal),
-            "camera": { "eye": cam.eye.to_array(), "target": cam.target.to_array(), "fov": cam.fov_y_deg },
-        }))?;
+            "upload": upload.map(|s| upload_json(&s, self.tris.len())),
+            "left_out": left_out(&pipelines, self.scene, self.job.traversal),
+            "camera": { "eye": self.cam.eye.to_array(), "target": self.cam.target.to_array(), "fov": self.cam.fov_y_deg },
+        })
     }
-    Ok(())
-}
-
-fn stats_bounds(bvh: &FlatBvh) -> (Vec3, Vec3) {
-    let b = bvh.bounds();
-    (b.min, b.max)
 }
 
 impl RenderArgs {
@@ -407,17 +509,11 @@ impl RenderArgs {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn compose(
-    args: &RenderArgs,
-    tris: &[Triangle],
-    rays: &[Ray],
-    hits: &[Hit],
-    counters: &[bvhtrace_core::Counters],
-    sec_hits: &[Hit],
-    owner: &[u32],
-    light: Vec3,
-) -> Vec<u8> {
+/// Shades the frame into RGB8 pixels.
+fn compose(job: &Job, tris: &[Triangle], rays: &[Ray], frame: &Frame) -> Vec<u8> {
+    let (args, light) = (job.args, job.light);
+    let (hits, counters) = (&frame.hits, &frame.counters);
+    let (owner, sec_hits) = (&frame.owner, &frame.secondary);
     let (w, h) = args.view.size;
     let mut img = vec![0u8; (w * h * 3) as usize];
     let px = |img: &mut Vec<u8>, i: usize, c: [u8; 3]| img[i * 3..i * 3 + 3].copy_from_slice(&c);
@@ -487,12 +583,13 @@ fn render_pipelines(
     secondary: bool,
     counters: bool,
     scene_has: &Attributes,
-) -> Vec<PipelineFeatures> {
+) -> Vec<KernelKey> {
     let has = VertexAttributes {
         normals: scene_has.normals,
     };
     let job = |query, counters| {
-        PipelineFeatures::for_job(storage, traversal, query, counters, has, JOB_ATTRIBUTES)
+        let opts = TraceOptions::new(traversal, query).with_counters(counters);
+        KernelKey::for_job(storage, &opts, has, JOB_ATTRIBUTES)
     };
     let mut v = vec![job(Query::Closest, counters)];
     if secondary {
@@ -502,9 +599,9 @@ fn render_pipelines(
 }
 
 /// One pipeline as JSON: entry point, what it includes, its WGSL files and bindings.
-fn pipeline_json(f: &PipelineFeatures) -> Value {
+fn pipeline_json(f: &KernelKey) -> Value {
     json!({
-        "entry_point": f.variant.entry_point(),
+        "entry_point": f.entry_point(),
         "features": f.names(),
         "wgsl_files": f.module_set().files().iter().map(|(n, _)| *n).collect::<Vec<_>>(),
         "bindings": f.bindings().iter().map(|b| json!({
@@ -518,9 +615,9 @@ fn pipeline_json(f: &PipelineFeatures) -> Value {
 }
 
 /// Bytes uploaded, per buffer, in all and per triangle.
-fn upload_json(s: &UploadStats, storage: BvhStorage, triangles: usize) -> Value {
+fn upload_json(s: &UploadStats, triangles: usize) -> Value {
     json!({
-        "storage": format!("{storage:?}").to_lowercase(),
+        "storage": format!("{:?}", s.storage).to_lowercase(),
         "nodes": s.nodes_bytes,
         "triangles": s.triangles_bytes,
         "escapes": s.escapes_bytes,
@@ -530,7 +627,7 @@ fn upload_json(s: &UploadStats, storage: BvhStorage, triangles: usize) -> Value 
 }
 
 /// What the pipelines leave out, and why.
-fn left_out(pipelines: &[PipelineFeatures], scene: &Scene, traversal: Traversal) -> Vec<String> {
+fn left_out(pipelines: &[KernelKey], scene: &Scene, traversal: Traversal) -> Vec<String> {
     let mut v = Vec::new();
     if pipelines.is_empty() {
         return vec!["everything: traced on the CPU, nothing uploaded".into()];
@@ -540,8 +637,8 @@ fn left_out(pipelines: &[PipelineFeatures], scene: &Scene, traversal: Traversal)
             "escape links (the {traversal} walk does not read them)"
         ));
     }
-    if !pipelines.iter().any(|p| p.variant.counters) {
-        v.push("counters (asked for only by --shade heatmap or --json)".into());
+    if !pipelines.iter().any(|p| p.counters) {
+        v.push("counters (asked for only by --counters or --shade heatmap)".into());
     }
     if !pipelines.iter().any(|p| p.module_set().short_stack) {
         v.push("the stackless/short-stack walk".into());
@@ -584,9 +681,10 @@ fn parse_storage(s: &str) -> Result<BvhStorage, String> {
 pub struct InfoArgs {
     #[command(flatten)]
     pub scene: SceneArgs,
-    /// The traversal of the job whose GPU pipeline and upload are listed.
-    #[arg(long, default_value = "stackless")]
-    pub traversal: Traversal,
+    /// The traversal of the job whose GPU pipeline and upload are listed [default: the
+    /// fastest on a GPU].
+    #[arg(long)]
+    pub traversal: Option<Traversal>,
     /// The shading mode of that job (diffuse and ao add an any-hit pipeline, heatmap
     /// counters).
     #[arg(long, value_enum, default_value_t = Shade::Normal)]
@@ -616,9 +714,10 @@ pub fn info(args: InfoArgs) -> Result<()> {
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
     let (nb, eb, tb) = bvh.byte_sizes();
+    let traversal = args.traversal.unwrap_or(Traversal::GPU_DEFAULT);
     let pipelines = render_pipelines(
         args.storage,
-        args.traversal,
+        traversal,
         matches!(args.shade, Shade::Diffuse | Shade::Ao),
         args.shade == Shade::Heatmap,
         &scene.attributes,
@@ -642,8 +741,10 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-        "upload": upload_json(&upload, args.storage, tris.len()),
-        "left_out": left_out(&pipelines, &scene, args.traversal),
+        "upload": upload_json(&upload, tris.len()),
+        "left_out": left_out(&pipelines, &scene, traversal),
+        "traversal": traversal.to_string(),
+        "default_traversal": { "cpu": Traversal::CPU_DEFAULT.to_string(), "gpu": Traversal::GPU_DEFAULT.to_string() },
         "load_ms": load_ms, "build_ms": build_ms,
         "warnings": scene.warnings,
     });
@@ -689,7 +790,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
             .collect();
         println!(
             "pipeline    {} [{}]: {}",
-            p.variant.entry_point(),
+            p.entry_point(),
             p.names().join(", "),
             bindings.join(", ")
         );
@@ -703,7 +804,12 @@ pub fn info(args: InfoArgs) -> Result<()> {
         upload.escapes_bytes,
         upload.total_bytes() as f64 / tris.len().max(1) as f64
     );
-    for l in left_out(&pipelines, &scene, args.traversal) {
+    println!(
+        "traversals  default {} on the CPU, {} on a GPU (the fastest on each)",
+        Traversal::CPU_DEFAULT,
+        Traversal::GPU_DEFAULT
+    );
+    for l in left_out(&pipelines, &scene, traversal) {
         println!("left out    {l}");
     }
     println!("timing      load {load_ms:.1} ms, build {build_ms:.1} ms");

@@ -33,7 +33,7 @@ fn info_lists_the_pipeline_and_exact_upload() {
     );
     let p = v["pipelines"].as_array().unwrap();
     assert_eq!(p.len(), 1);
-    assert_eq!(p[0]["entry_point"], "trace_full_stack_main");
+    assert_eq!(p[0]["entry_point"], "bvh_trace_full_stack_main");
     assert_eq!(
         names(&p[0]),
         ["bvh_nodes", "bvh_triangles", "rays", "hits"],
@@ -59,7 +59,7 @@ fn info_lists_the_pipeline_and_exact_upload() {
     // Stackless heatmap: escapes and counters come in.
     let v = info(&["--traversal", "stackless", "--shade", "heatmap"]);
     let p = &v["pipelines"][0];
-    assert_eq!(p["entry_point"], "trace_short_stack_counted");
+    assert_eq!(p["entry_point"], "bvh_trace_short_stack_counted");
     let n = names(p);
     assert!(n.contains(&"bvh_escapes".to_string()) && n.contains(&"counters".to_string()));
     assert_eq!(
@@ -122,7 +122,7 @@ fn render_json_lists_the_pipelines_and_bytes_uploaded() {
     ]);
     assert!(out.status.success());
     let v = json(&out);
-    if v["backend"] != "gpu" {
+    if v["backend"] != "wgpu" {
         eprintln!("SKIP: no GPU, the render ran on the CPU");
         assert!(v["pipelines"].as_array().unwrap().is_empty());
         return;
@@ -132,9 +132,10 @@ fn render_json_lists_the_pipelines_and_bytes_uploaded() {
     assert_eq!(u["escapes"], 0, "the full stack does not read escapes");
     let p = v["pipelines"].as_array().unwrap();
     assert_eq!(p.len(), 2, "closest hit and the shadow rays' any hit");
-    // --json asks for the counters of the primary rays (nodes_per_ray), not the shadows'.
-    assert!(names(&p[0]).contains(&"counters".to_string()));
+    // --json alone counts nothing: both kernels are the uncounted ones.
+    assert!(!names(&p[0]).contains(&"counters".to_string()));
     assert!(!names(&p[1]).contains(&"counters".to_string()));
+    assert!(v["nodes_per_ray"].is_null(), "{}", v["nodes_per_ray"]);
     for q in p {
         assert!(
             !names(q)
@@ -142,5 +143,60 @@ fn render_json_lists_the_pipelines_and_bytes_uploaded() {
                 .any(|n| n.contains("escape") || n.contains("normal"))
         );
     }
-    assert!(v["nodes_per_ray"].as_f64().unwrap() > 0.0);
+}
+
+/// Counters only when asked for: `--json` on a positions-only scene with normal shading
+/// runs the uncounted kernel and lists no counters; `--counters` and the heatmap count.
+/// `--runs N` reports N runs, the median and the first run apart.
+#[test]
+fn render_json_counts_only_when_asked() {
+    let dir = scratch("pipeline-counters");
+    let png = dir.join("o.png");
+    let render = |extra: &[&str]| {
+        let mut a = vec![
+            "render",
+            "builtin:icosphere:2",
+            "--size",
+            "40x30",
+            "-o",
+            png.to_str().unwrap(),
+            "--json",
+            "-",
+        ];
+        a.extend_from_slice(extra);
+        let out = run(&a);
+        assert!(out.status.success());
+        json(&out)
+    };
+    let counted = |v: &Value| {
+        v["features"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|f| f == "counters")
+    };
+    for backend in ["cpu", "gpu"] {
+        let plain = render(&["--backend", backend, "--shade", "normal", "--runs", "3"]);
+        assert!(!counted(&plain), "{backend}: {}", plain["features"]);
+        assert!(plain["nodes_per_ray"].is_null());
+        assert_eq!(plain["runs"], 3);
+        assert!(plain["first_run"]["mrays_per_s"].as_f64().unwrap() > 0.0);
+        assert!(plain["mrays_per_s"].as_f64().unwrap() > 0.0);
+        for p in plain["pipelines"].as_array().unwrap() {
+            assert!(!names(p).contains(&"counters".to_string()), "{p}");
+        }
+        for extra in [
+            &["--counters", "--shade", "normal"][..],
+            &["--shade", "heatmap"][..],
+        ] {
+            let mut a = vec!["--backend", backend];
+            a.extend_from_slice(extra);
+            let v = render(&a);
+            assert!(counted(&v), "{backend} {extra:?}: {}", v["features"]);
+            assert!(v["nodes_per_ray"].as_f64().unwrap() > 0.0);
+            assert_eq!(plain["hits"], v["hits"], "counting changed the hits");
+        }
+        // The default walk is the backend's fastest, and the JSON says which it is.
+        assert_eq!(plain["traversal"], plain["default_traversal"]);
+    }
 }

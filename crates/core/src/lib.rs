@@ -2,7 +2,7 @@
 //! read, and trace rays through it on the CPU with the same arithmetic as the kernels.
 //!
 //! The flow: [`mesh::TriangleMesh`] → [`build::build`] → [`build::BuildTree`] →
-//! [`flat::FlatBvh::flatten`] → [`traverse::trace_batch`] (or the GPU crate), checked
+//! [`flat::FlatBvh::flatten`] → [`traverse::trace_rays`] (or the GPU crate), checked
 //! against [`oracle`]. The layout is documented once, in [`flat`].
 
 // `!(a <= b)` is how the tests reject NaN along with the false case: keep it readable as is.
@@ -29,6 +29,5 @@ pub use precision::Precision;
 pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
 pub use stats::BvhStats;
 pub use traverse::{
-    Query, Traversal, trace_batch, trace_batch_counted, trace_batch_counted_precision,
-    trace_batch_precision, trace_ray, trace_ray_precision,
+    Query, TraceOptions, TraceOutput, Traversal, brute_force, trace_ray, trace_ray_with, trace_rays,
 };

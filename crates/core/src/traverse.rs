@@ -52,6 +52,11 @@ pub enum Traversal {
 }
 
 impl Traversal {
+    /// The fastest walk on the CPU: the default of [`TraceOptions`] and of the CPU backend.
+    pub const CPU_DEFAULT: Traversal = Traversal::FullStack;
+    /// The fastest walk in the GPU kernels: the default of the device backends.
+    pub const GPU_DEFAULT: Traversal = Traversal::Stackless;
+
     /// The name used on the command line (`short-stack` for any `k`).
     pub fn name(&self) -> &'static str {
         match self {
@@ -315,41 +320,95 @@ fn short_stack<T: TriangleTest>(
     }
 }
 
-/// Traces one ray with per-ray scratch supplied by the caller (the full stack's storage).
-pub fn trace_ray_with(
-    bvh: &FlatBvh,
-    ray: &Ray,
-    traversal: Traversal,
-    query: Query,
-    stack: &mut Vec<u32>,
-) -> (Hit, Counters) {
-    trace_ray_generic::<WatertightF32>(bvh, ray, traversal, query, stack)
+/// What one trace job asks for: the walk, the query, the triangle test, and whether to
+/// count each ray's work. Every backend (this crate's CPU walks, the wgpu and ash kernels)
+/// takes the same options and gives the same answers for them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct TraceOptions {
+    /// How to walk the tree.
+    pub traversal: Traversal,
+    /// Closest or any hit.
+    pub query: Query,
+    /// The triangle test.
+    pub precision: Precision,
+    /// Also report each ray's [`Counters`].
+    pub counters: bool,
 }
 
-/// [`trace_ray_with`] with the triangle test chosen by `precision`.
-pub fn trace_ray_precision_with(
-    bvh: &FlatBvh,
-    ray: &Ray,
-    traversal: Traversal,
-    query: Query,
-    precision: Precision,
-    stack: &mut Vec<u32>,
-) -> (Hit, Counters) {
-    match precision {
-        Precision::WatertightF32 => {
-            trace_ray_generic::<WatertightF32>(bvh, ray, traversal, query, stack)
+impl TraceOptions {
+    /// `traversal` and `query` with the watertight f32 test, without counters.
+    pub fn new(traversal: Traversal, query: Query) -> Self {
+        TraceOptions {
+            traversal,
+            query,
+            precision: Precision::WatertightF32,
+            counters: false,
         }
-        Precision::MollerTrumboreF32 => {
-            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, traversal, query, stack)
-        }
-        Precision::WatertightF64 => {
-            trace_ray_generic::<WatertightF64>(bvh, ray, traversal, query, stack)
-        }
+    }
+
+    /// Closest hits with `traversal`.
+    pub fn closest(traversal: Traversal) -> Self {
+        Self::new(traversal, Query::Closest)
+    }
+
+    /// The same options with the triangle test of `precision`.
+    pub fn with_precision(self, precision: Precision) -> Self {
+        TraceOptions { precision, ..self }
+    }
+
+    /// The same options, counting each ray's work or not.
+    pub fn with_counters(self, counters: bool) -> Self {
+        TraceOptions { counters, ..self }
     }
 }
 
-/// One ray, with the triangle test `T` (monomorphised: the default path is unchanged).
-pub fn trace_ray_generic<T: TriangleTest>(
+impl Default for TraceOptions {
+    /// Closest hits with [`Traversal::CPU_DEFAULT`], watertight f32, no counters.
+    fn default() -> Self {
+        Self::closest(Traversal::CPU_DEFAULT)
+    }
+}
+
+/// The answer to one batch of rays, from any backend.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TraceOutput {
+    /// One hit per ray, in ray order.
+    pub hits: Vec<Hit>,
+    /// One entry per ray when [`TraceOptions::counters`] was set.
+    pub counters: Option<Vec<Counters>>,
+    /// Time the kernels took on the device (timestamp queries around the compute pass),
+    /// milliseconds; `None` on the CPU and on devices without timestamp queries.
+    pub gpu_ms: Option<f64>,
+    /// Wall time of the whole call (for a device: uploading the rays, the dispatches and
+    /// reading the results back), milliseconds.
+    pub wall_ms: f64,
+    /// Rays a device kernel gave up on when they spent the adapter's loop-trip budget,
+    /// finished on the CPU with the same walk (so the hits and counters are the kernel's
+    /// answer). 0 on the CPU and on ordinary scenes.
+    pub incomplete: u64,
+}
+
+/// Traces one ray as `opts` says, returning its hit and its counters (counted whatever
+/// `opts.counters` says). `stack` is the full stack's storage, reused across rays.
+pub fn trace_ray_with(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    opts: &TraceOptions,
+    stack: &mut Vec<u32>,
+) -> (Hit, Counters) {
+    let (t, q) = (opts.traversal, opts.query);
+    match opts.precision {
+        Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, t, q, stack),
+        Precision::MollerTrumboreF32 => {
+            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, t, q, stack)
+        }
+        Precision::WatertightF64 => trace_ray_generic::<WatertightF64>(bvh, ray, t, q, stack),
+    }
+}
+
+/// One ray, with the triangle test `T` (monomorphised, so each precision's walk is as
+/// fast as if it were the only one).
+fn trace_ray_generic<T: TriangleTest>(
     bvh: &FlatBvh,
     ray: &Ray,
     traversal: Traversal,
@@ -387,93 +446,45 @@ pub fn trace_ray_generic<T: TriangleTest>(
     (best.into_hit(), c)
 }
 
-/// Traces one ray.
-pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, traversal: Traversal, query: Query) -> (Hit, Counters) {
-    trace_ray_with(bvh, ray, traversal, query, &mut Vec::new())
+/// Traces one ray as `opts` says: its hit and its counters.
+pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, opts: &TraceOptions) -> (Hit, Counters) {
+    trace_ray_with(bvh, ray, opts, &mut Vec::new())
 }
 
-/// Traces a batch of rays on all threads of the current rayon pool.
-pub fn trace_batch(bvh: &FlatBvh, rays: &[Ray], traversal: Traversal, query: Query) -> Vec<Hit> {
-    rays.par_iter()
-        .with_min_len(256)
-        .map_init(
-            || Vec::with_capacity(bvh.depth as usize + 1),
-            |stack, ray| trace_ray_with(bvh, ray, traversal, query, stack).0,
-        )
-        .collect()
+/// Traces a batch of rays as `opts` says on all threads of the current rayon pool; the
+/// counters are kept only when `opts.counters` is set. `wall_ms` is timed; `gpu_ms` is
+/// `None`.
+pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutput {
+    let start = std::time::Instant::now();
+    let stack = || Vec::with_capacity(bvh.depth as usize + 1);
+    let (hits, counters) = if opts.counters {
+        let (h, c): (Vec<Hit>, Vec<Counters>) = rays
+            .par_iter()
+            .with_min_len(256)
+            .map_init(stack, |s, ray| trace_ray_with(bvh, ray, opts, s))
+            .unzip();
+        (h, Some(c))
+    } else {
+        let h = rays
+            .par_iter()
+            .with_min_len(256)
+            .map_init(stack, |s, ray| trace_ray_with(bvh, ray, opts, s).0)
+            .collect();
+        (h, None)
+    };
+    TraceOutput {
+        hits,
+        counters,
+        gpu_ms: None,
+        wall_ms: start.elapsed().as_secs_f64() * 1e3,
+        incomplete: 0,
+    }
 }
 
-/// Traces a batch and also returns each ray's counters.
-pub fn trace_batch_counted(
-    bvh: &FlatBvh,
-    rays: &[Ray],
-    traversal: Traversal,
-    query: Query,
-) -> (Vec<Hit>, Vec<Counters>) {
-    rays.par_iter()
-        .with_min_len(256)
-        .map_init(
-            || Vec::with_capacity(bvh.depth as usize + 1),
-            |stack, ray| trace_ray_with(bvh, ray, traversal, query, stack),
-        )
-        .unzip()
-}
-
-/// Traces one ray with the triangle test chosen by `precision`.
-pub fn trace_ray_precision(
-    bvh: &FlatBvh,
-    ray: &Ray,
-    traversal: Traversal,
-    query: Query,
-    precision: Precision,
-) -> (Hit, Counters) {
-    trace_ray_precision_with(bvh, ray, traversal, query, precision, &mut Vec::new())
-}
-
-/// [`trace_batch`] with the triangle test chosen by `precision`
-/// ([`Precision::WatertightF32`] gives exactly [`trace_batch`]'s answers).
-pub fn trace_batch_precision(
-    bvh: &FlatBvh,
-    rays: &[Ray],
-    traversal: Traversal,
-    query: Query,
-    precision: Precision,
-) -> Vec<Hit> {
-    rays.par_iter()
-        .with_min_len(256)
-        .map_init(
-            || Vec::with_capacity(bvh.depth as usize + 1),
-            |stack, ray| trace_ray_precision_with(bvh, ray, traversal, query, precision, stack).0,
-        )
-        .collect()
-}
-
-/// [`trace_batch_counted`] with the triangle test chosen by `precision`.
-pub fn trace_batch_counted_precision(
-    bvh: &FlatBvh,
-    rays: &[Ray],
-    traversal: Traversal,
-    query: Query,
-    precision: Precision,
-) -> (Vec<Hit>, Vec<Counters>) {
-    rays.par_iter()
-        .with_min_len(256)
-        .map_init(
-            || Vec::with_capacity(bvh.depth as usize + 1),
-            |stack, ray| trace_ray_precision_with(bvh, ray, traversal, query, precision, stack),
-        )
-        .unzip()
-}
-
-/// Reference answer by testing every triangle with the same f32 test and hit rule: what
-/// every traversal must return exactly, for closest-hit queries.
-pub fn brute_force(bvh: &FlatBvh, ray: &Ray) -> Hit {
-    brute_force_generic::<WatertightF32>(bvh, ray)
-}
-
-/// [`brute_force`] with the triangle test chosen by `precision`: what every traversal with
-/// that precision returns, for closest-hit queries.
-pub fn brute_force_precision(bvh: &FlatBvh, ray: &Ray, precision: Precision) -> Hit {
+/// Reference answer by testing every triangle with the test of `precision` and the same
+/// hit rule: what every traversal with that precision must return exactly, for
+/// closest-hit queries.
+pub fn brute_force(bvh: &FlatBvh, ray: &Ray, precision: Precision) -> Hit {
     match precision {
         Precision::WatertightF32 => brute_force_generic::<WatertightF32>(bvh, ray),
         Precision::MollerTrumboreF32 => brute_force_generic::<MollerTrumboreF32>(bvh, ray),
@@ -483,7 +494,7 @@ pub fn brute_force_precision(bvh: &FlatBvh, ray: &Ray, precision: Precision) -> 
 
 fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
     if !ray.is_valid() {
-        return trace_ray(bvh, ray, Traversal::FullStack, Query::Closest).0;
+        return trace_ray(bvh, ray, &TraceOptions::closest(Traversal::FullStack)).0;
     }
     let r = PreparedRay::new(ray);
     let mut best = Best::start(ray);

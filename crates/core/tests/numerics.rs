@@ -105,7 +105,7 @@ fn no_ray_escapes_a_closed_mesh_at_any_scale_or_offset() {
         for from in [c, c + Vec3::new(0.3, -0.2, 0.1) * scale] {
             let rays = inside_rays(&tris, from);
             for tr in TRAVERSALS {
-                let hits = trace_batch(&bvh, &rays, tr, Query::Closest);
+                let hits = trace_rays(&bvh, &rays, &TraceOptions::closest(tr)).hits;
                 let escapes = hits.iter().filter(|h| !h.is_hit()).count();
                 assert_eq!(
                     escapes,
@@ -160,7 +160,7 @@ fn axis_parallel_rays_with_signed_zeros_give_no_nan() {
         ] {
             let ray = Ray::new(Vec3::new(x, y, -2.0), dir);
             for tr in TRAVERSALS {
-                let (h, _) = trace_ray(&bvh, &ray, tr, Query::Closest);
+                let (h, _) = trace_ray(&bvh, &ray, &TraceOptions::closest(tr));
                 assert!(h.is_hit(), "({x},{y}) {dir:?} {tr}");
                 assert_eq!(h.t, 2.0);
                 assert!(!h.u.is_nan() && !h.v.is_nan());
@@ -172,8 +172,7 @@ fn axis_parallel_rays_with_signed_zeros_give_no_nan() {
         let (h, _) = trace_ray(
             &bvh,
             &Ray::new(Vec3::new(-1.0, 0.5, 0.0), Vec3::X),
-            tr,
-            Query::Closest,
+            &TraceOptions::closest(tr),
         );
         assert!(!h.t.is_nan());
     }
@@ -238,7 +237,7 @@ fn degenerate_rays_have_defined_answers() {
     ];
     for tr in TRAVERSALS {
         for r in &invalid {
-            let (h, c) = trace_ray(&bvh, r, tr, Query::Closest);
+            let (h, c) = trace_ray(&bvh, r, &TraceOptions::closest(tr));
             assert_eq!(h.prim, INVALID_RAY);
             assert!(!h.t.is_nan() && c == Counters::default());
         }
@@ -246,31 +245,27 @@ fn degenerate_rays_have_defined_answers() {
         let (h, _) = trace_ray(
             &bvh,
             &Ray::with_interval(Vec3::ZERO, Vec3::Z, 1.0, 1.0),
-            tr,
-            Query::Closest,
+            &TraceOptions::closest(tr),
         );
         assert_eq!(h.prim, MISS);
         // The hit at exactly t_max is excluded, just past it included.
         let (h, _) = trace_ray(
             &bvh,
             &Ray::with_interval(Vec3::ZERO, Vec3::Z, 0.0, 1.0),
-            tr,
-            Query::Closest,
+            &TraceOptions::closest(tr),
         );
         assert_eq!(h.prim, MISS);
         let (h, _) = trace_ray(
             &bvh,
             &Ray::with_interval(Vec3::ZERO, Vec3::Z, 1.0, 1.0000001),
-            tr,
-            Query::Closest,
+            &TraceOptions::closest(tr),
         );
         assert_eq!((h.prim, h.t), (0, 1.0));
         // A direction component of 1e-30 is not zero.
         let (h, _) = trace_ray(
             &bvh,
             &Ray::new(Vec3::ZERO, Vec3::new(1e-30, -1e-30, 1.0)),
-            tr,
-            Query::Closest,
+            &TraceOptions::closest(tr),
         );
         assert_eq!(h.prim, 0);
     }
@@ -289,12 +284,12 @@ fn hits_scale_with_the_scene() {
             )
         })
         .collect();
-    let base = trace_batch(
+    let base = trace_rays(
         &FlatBvh::build(&tris, &BuildOptions::default()).unwrap(),
         &rays,
-        Traversal::Stackless,
-        Query::Closest,
-    );
+        &TraceOptions::closest(Traversal::Stackless),
+    )
+    .hits;
     for s in [2f32.powi(-30), 2f32.powi(-10), 2f32.powi(13), 2f32.powi(30)] {
         let st: Vec<Triangle> = tris.iter().map(|t| t.map(|p| p * s)).collect();
         let sr: Vec<Ray> = rays
@@ -302,7 +297,7 @@ fn hits_scale_with_the_scene() {
             .map(|r| Ray::new(Vec3::from(r.origin) * s, Vec3::from(r.dir)))
             .collect();
         let bvh = FlatBvh::build(&st, &BuildOptions::default()).unwrap();
-        let h = trace_batch(&bvh, &sr, Traversal::Stackless, Query::Closest);
+        let h = trace_rays(&bvh, &sr, &TraceOptions::closest(Traversal::Stackless)).hits;
         for (a, b) in base.iter().zip(&h) {
             assert_eq!(a.prim, b.prim, "scale {s}");
             assert_eq!(a.t * s, b.t, "scale {s}");
@@ -343,9 +338,9 @@ fn hits_behind_the_origin_on_flat_boxes_are_found() {
         let org = Vec3::new(0.75, 0.25, 2.0 * dir.z);
         let ray = Ray::with_interval(org, dir, -2.0, 0.0);
         for traversal in TRAVERSALS {
-            let (hit, _) = trace_ray(&bvh, &ray, traversal, Query::Closest);
+            let (hit, _) = trace_ray(&bvh, &ray, &TraceOptions::closest(traversal));
             assert_eq!((hit.prim, hit.t), (0, -2.0), "{traversal:?} dir {dir}");
-            let (hit, _) = trace_ray(&bvh, &ray, traversal, Query::Any);
+            let (hit, _) = trace_ray(&bvh, &ray, &TraceOptions::new(traversal, Query::Any));
             assert_ne!(hit.prim, MISS, "{traversal:?} any-hit dir {dir}");
         }
     }

@@ -3,7 +3,6 @@
 mod common;
 
 use bvhtrace_core::oracle;
-use bvhtrace_core::traverse::brute_force;
 use bvhtrace_core::*;
 use glam::Vec3;
 use proptest::prelude::*;
@@ -91,14 +90,14 @@ proptest! {
         let bvh = FlatBvh::build(&tris, &opts).unwrap();
         let rays = common::rays_for(&tris, seed, 48);
         for ray in &rays {
-            let expect = brute_force(&bvh, ray);
+            let expect = brute_force(&bvh, ray, Precision::WatertightF32);
             prop_assert!(!expect.t.is_nan() && !expect.u.is_nan() && !expect.v.is_nan());
             if let Err(e) = agrees_with_oracle(&tris, ray, &expect) {
                 return Err(TestCaseError::fail(format!("{e}\nray {ray:?}")));
             }
-            let (full, _) = trace_ray(&bvh, ray, Traversal::FullStack, Query::Closest);
+            let (full, _) = trace_ray(&bvh, ray, &TraceOptions::closest(Traversal::FullStack));
             for tr in TRAVERSALS {
-                let (h, _) = trace_ray(&bvh, ray, tr, Query::Closest);
+                let (h, _) = trace_ray(&bvh, ray, &TraceOptions::closest(tr));
                 // Equal to brute force, except where the f32 test is indeterminate or its t
                 // ill-conditioned for a triangle involved (both answers then agree with the
                 // oracle within f32's error): the box test may rightly cull an f32 hit whose
@@ -113,7 +112,7 @@ proptest! {
                 let same = h.prim == full.prim && h.t.to_bits() == full.t.to_bits();
                 prop_assert!(same || f32_departure(&tris, ray, &h, &full),
                     "{} on {:?}: {:?} vs full stack {:?}", tr, ray, h, full);
-                let (a, _) = trace_ray(&bvh, ray, tr, Query::Any);
+                let (a, _) = trace_ray(&bvh, ray, &TraceOptions::new(tr, Query::Any));
                 prop_assert_eq!(a.is_hit(), h.is_hit(), "any-hit {} on {:?}", tr, ray);
                 if a.is_hit() {
                     prop_assert!(a.t >= ray.t_min && a.t < ray.t_max);
@@ -164,16 +163,14 @@ fn exact_ties_go_to_the_lower_primitive() {
             let (h, _) = trace_ray(
                 &bvh,
                 &Ray::new(Vec3::new(0.0, 0.0, -5.0), Vec3::Z),
-                tr,
-                Query::Closest,
+                &TraceOptions::closest(tr),
             );
             assert_eq!((h.prim, h.t), (1, 5.0), "{tr}");
             // Along the shared edge y = 0 at z = 5, from behind: both hit at t = 5; 4 wins.
             let (h, _) = trace_ray(
                 &bvh,
                 &Ray::new(Vec3::new(0.0, 0.0, 10.0), -Vec3::Z),
-                tr,
-                Query::Closest,
+                &TraceOptions::closest(tr),
             );
             assert_eq!((h.prim, h.t), (4, 5.0), "{tr}");
         }
@@ -268,11 +265,11 @@ fn closest_hit_does_not_depend_on_visit_order_near_the_origin() {
         "t_W {tw:e} is only a few ulps before its box's entry {entry_w:e}"
     );
 
-    let expect = brute_force(&bvh, &ray);
+    let expect = brute_force(&bvh, &ray, Precision::WatertightF32);
     assert_eq!((expect.prim, expect.t), (0, tw));
     let wrong: Vec<String> = TRAVERSALS
         .iter()
-        .map(|&tr| (tr, trace_ray(&bvh, &ray, tr, Query::Closest).0))
+        .map(|&tr| (tr, trace_ray(&bvh, &ray, &TraceOptions::closest(tr)).0))
         .filter(|(_, h)| *h != expect || h.t.to_bits() != tw.to_bits())
         .map(|(tr, h)| format!("{tr}: prim {} t {:e}", h.prim, h.t))
         .collect();
@@ -287,6 +284,23 @@ fn closest_hit_does_not_depend_on_visit_order_near_the_origin() {
     assert!(intersect_box(&r, wb.min, wb.max, tl).is_some());
     let short = PreparedRay::new(&Ray::with_interval(origin, dir, 0.0, tl));
     assert!(intersect_box(&short, wb.min, wb.max, short.t_max).is_none());
+}
+
+/// A batch's hits and each ray's counters.
+fn trace_counted(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    traversal: Traversal,
+    query: Query,
+) -> (Vec<Hit>, Vec<Counters>) {
+    let out = trace_rays(
+        bvh,
+        rays,
+        &TraceOptions::new(traversal, query).with_counters(true),
+    );
+    let counters = out.counters.expect("counters were asked for");
+    assert_eq!(counters.len(), rays.len());
+    (out.hits, counters)
 }
 
 /// Triangles at exponentially spaced positions make the midpoint split peel one at a time.
@@ -343,14 +357,16 @@ fn deep_trees_are_traversed_correctly_without_a_deep_stack() {
         }
     }
     for ray in &rays {
-        let expect = brute_force(&bvh, ray);
+        let expect = brute_force(&bvh, ray, Precision::WatertightF32);
         for tr in TRAVERSALS {
-            let (h, c) = trace_ray(&bvh, ray, tr, Query::Closest);
+            let (h, c) = trace_ray(&bvh, ray, &TraceOptions::closest(tr));
             assert_eq!(h, expect, "{tr} {ray:?}");
             // No leaf is visited twice.
             assert!(c.tris as usize <= tris.len(), "{tr} {ray:?}: {c:?}");
             assert_eq!(
-                trace_ray(&bvh, ray, tr, Query::Any).0.is_hit(),
+                trace_ray(&bvh, ray, &TraceOptions::new(tr, Query::Any))
+                    .0
+                    .is_hit(),
                 expect.is_hit()
             );
         }
@@ -382,7 +398,7 @@ fn stackless_and_short_stack_visit_no_more_nodes_than_the_full_stack_allows() {
         })
         .collect();
     let nodes = |tr| {
-        let (_, c) = trace_batch_counted(&bvh, &rays, tr, Query::Closest);
+        let (_, c) = trace_counted(&bvh, &rays, tr, Query::Closest);
         c.iter().map(|c| c.nodes as u64).sum::<u64>() as f64
     };
     let full = nodes(Traversal::FullStack);
@@ -398,9 +414,34 @@ fn batch_equals_single_rays() {
     let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
     let rays = common::rays_for(&tris, 99, 500);
     for tr in TRAVERSALS {
-        let batch = trace_batch(&bvh, &rays, tr, Query::Closest);
+        let out = trace_rays(&bvh, &rays, &TraceOptions::closest(tr));
+        // Counters only when asked for; no device time, nothing finished elsewhere.
+        assert_eq!(out.counters, None, "{tr}");
+        assert_eq!((out.gpu_ms, out.incomplete), (None, 0), "{tr}");
+        assert!(out.wall_ms >= 0.0, "{tr}: {}", out.wall_ms);
+        let batch = out.hits;
+        assert_eq!(batch.len(), rays.len());
         for (r, h) in rays.iter().zip(&batch) {
-            assert_eq!(*h, trace_ray(&bvh, r, tr, Query::Closest).0);
+            assert_eq!(*h, trace_ray(&bvh, r, &TraceOptions::closest(tr)).0);
+        }
+        // With counters, for both queries and every precision: the same as one ray at a
+        // time, with a stack reused across rays or not.
+        for q in [Query::Closest, Query::Any] {
+            for p in Precision::ALL {
+                let opts = TraceOptions::new(tr, q).with_precision(p);
+                let (hits, counters) = {
+                    let out = trace_rays(&bvh, &rays, &opts.with_counters(true));
+                    (out.hits, out.counters.expect("counters were asked for"))
+                };
+                assert_eq!(hits.len(), rays.len());
+                assert_eq!(counters.len(), rays.len());
+                let mut stack = Vec::new();
+                for (i, r) in rays.iter().enumerate() {
+                    let one = trace_ray(&bvh, r, &opts);
+                    assert_eq!((hits[i], counters[i]), one, "{tr} {q:?} {p} ray {i}");
+                    assert_eq!(trace_ray_with(&bvh, r, &opts, &mut stack), one);
+                }
+            }
         }
     }
 }
@@ -416,9 +457,9 @@ fn short_stacks_walk_exactly_the_stackless_order() {
     assert!(bvh.depth > 64, "depth {}", bvh.depth);
     let rays = common::rays_for(&tris, 7, 2000);
     for q in [Query::Closest, Query::Any] {
-        let (hits, counters) = trace_batch_counted(&bvh, &rays, Traversal::Stackless, q);
+        let (hits, counters) = trace_counted(&bvh, &rays, Traversal::Stackless, q);
         for k in [1, 2, 3, 6, traverse::MAX_SHORT_STACK] {
-            let (h, c) = trace_batch_counted(&bvh, &rays, Traversal::ShortStack(k), q);
+            let (h, c) = trace_counted(&bvh, &rays, Traversal::ShortStack(k), q);
             assert_eq!(h, hits, "short-stack({k}) {q:?}: hits");
             assert_eq!(c, counters, "short-stack({k}) {q:?}: counters");
         }
@@ -484,15 +525,16 @@ fn walks_name_missing_escape_links() {
     let tris = deep_soup(10);
     let mut bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
     let rays = common::rays_for(&tris, 3, 16);
-    let full = trace_batch(&bvh, &rays, Traversal::FullStack, Query::Closest);
+    let full = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::FullStack)).hits;
     bvh.escapes.clear();
     assert_eq!(
-        trace_batch(&bvh, &rays, Traversal::FullStack, Query::Closest),
+        trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::FullStack)).hits,
         full
     );
     for tr in [Traversal::Stackless, Traversal::ShortStack(4)] {
-        let err = std::panic::catch_unwind(|| trace_ray(&bvh, &rays[0], tr, Query::Closest))
-            .expect_err("a walk read escape links the tree does not have");
+        let err =
+            std::panic::catch_unwind(|| trace_ray(&bvh, &rays[0], &TraceOptions::closest(tr)))
+                .expect_err("a walk read escape links the tree does not have");
         let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
         assert!(
             msg.contains("escape links for") && msg.contains("flat::escape_links"),

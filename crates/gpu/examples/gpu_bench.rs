@@ -8,14 +8,14 @@
 //! shared scenes. For each scene: a camera framing the mesh, W x H primary rays (default
 //! 1024x768), closest hit, each traversal traced `N` times (default 5) on the GPU with the
 //! BVH in textures and in buffers (`--storage textures|buffers|both`; median Mrays/s of the
-//! timestamp-query times and of the wall times) and on the CPU (`trace_batch`, all cores),
+//! timestamp-query times and of the wall times) and on the CPU (`trace_rays`, all cores),
 //! interleaved; nodes and triangles tested per ray, and whether every GPU hit and counter
 //! equals the CPU twin's. `--traversals full-stack,stackless,short-stack:6` picks them;
 //! `--best` reports the best run instead of the median (steadier on a shared machine).
 
 use std::time::Instant;
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, Traversal, trace_batch, trace_batch_counted};
+use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
 use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 
@@ -129,14 +129,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mrays = |ms: f64| n / ms / 1e3;
         for &traversal in &traversals {
             let q = Query::Closest;
-            let (cpu_hits, cpu_counters) = trace_batch_counted(&bvh, &rays, traversal, q);
+            let opts = TraceOptions::new(traversal, q);
+            let counted_opts = opts.with_counters(true);
+            let cpu = trace_rays(&bvh, &rays, &counted_opts);
+            let (cpu_hits, cpu_counters) = (cpu.hits, cpu.counters.unwrap_or_default());
             let mut same = true;
             for gpu in &gpus {
                 // Warm-up (pipeline creation, lavapipe's first-dispatch cost) and checks.
-                let counted = gpu.trace_counted(&rays, traversal, q)?;
+                let counted = gpu.trace(&rays, &counted_opts)?;
                 same &= counted.hits == cpu_hits
                     && counted.counters.as_deref() == Some(&cpu_counters[..]);
-                gpu.trace(&rays, traversal, q)?;
+                gpu.trace(&rays, &opts)?;
             }
             let nodes = cpu_counters.iter().map(|c| u64::from(c.nodes)).sum::<u64>() as f64 / n;
             let tris_per = cpu_counters.iter().map(|c| u64::from(c.tris)).sum::<u64>() as f64 / n;
@@ -146,12 +149,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             // Interleaved, so that a noisy neighbour hurts every column alike.
             for _ in 0..runs {
                 for (i, gpu) in gpus.iter().enumerate() {
-                    let out = gpu.trace(&rays, traversal, q)?;
+                    let out = gpu.trace(&rays, &opts)?;
                     g[i].push(out.gpu_ms.unwrap_or(f64::NAN));
                     wall[i].push(out.wall_ms);
                 }
                 let t = Instant::now();
-                std::hint::black_box(trace_batch(&bvh, &rays, traversal, q));
+                std::hint::black_box(trace_rays(&bvh, &rays, &opts));
                 cpu.push(t.elapsed().as_secs_f64() * 1e3);
             }
             print!("{:<16}", traversal.to_string());

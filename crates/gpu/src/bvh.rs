@@ -1,14 +1,16 @@
 //! Uploading a [`FlatBvh`] to the device.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use bvhtrace_core::{FlatBvh, FlatNode, Traversal};
+use bvhtrace_kernels::{
+    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, UploadStats, check_buffer_size, texel_rows,
+};
 use wgpu::util::DeviceExt;
 
+use crate::GpuError;
 use crate::context::GpuContext;
-use crate::error::GpuError;
-use crate::shaders::{BvhStorage, FULL_STACK_SIZE, TEXEL_ROW};
 use crate::trace::Scratch;
 
 /// What to upload for.
@@ -18,7 +20,8 @@ pub struct UploadOptions {
     /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
     /// [`FULL_STACK_SIZE`] is refused when [`Traversal::FullStack`] is listed.
     pub traversals: Vec<Traversal>,
-    /// Buffers or textures; `None` picks [`GpuContext::default_storage`] (textures on CPU
+    /// Buffers or textures; `None` picks the context's
+    /// [`DriverTuning::storage`](bvhtrace_kernels::DriverTuning::storage) (textures on CPU
     /// drivers such as lavapipe, buffers elsewhere).
     pub storage: Option<BvhStorage>,
 }
@@ -59,27 +62,6 @@ impl Default for UploadOptions {
     }
 }
 
-/// What an upload cost.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct UploadStats {
-    /// Bytes of the nodes as uploaded (texture row padding included).
-    pub nodes_bytes: u64,
-    /// Bytes of the triangles as uploaded.
-    pub triangles_bytes: u64,
-    /// Bytes of the escape links as uploaded (0 when not uploaded).
-    pub escapes_bytes: u64,
-    /// Wall time to create and fill the buffers or textures and wait for the device,
-    /// milliseconds.
-    pub upload_ms: f64,
-}
-
-impl UploadStats {
-    /// All bytes uploaded.
-    pub fn total_bytes(&self) -> u64 {
-        self.nodes_bytes + self.triangles_bytes + self.escapes_bytes
-    }
-}
-
 /// The device resources of one upload.
 enum Resources {
     Buffers {
@@ -94,7 +76,29 @@ enum Resources {
     },
 }
 
+/// The BVH bind group of one upload, for group 0 of the kernels or any group of your own
+/// shader ([`bvhtrace_kernels::wgsl_library`]), with the layout
+/// [`BvhBindGroup::layout`] names.
+#[derive(Clone, Copy, Debug)]
+pub struct BvhBindGroup<'a> {
+    group: &'a wgpu::BindGroup,
+    layout: &'a wgpu::BindGroupLayout,
+}
+
+impl<'a> BvhBindGroup<'a> {
+    /// The bind group.
+    pub fn group(&self) -> &'a wgpu::BindGroup {
+        self.group
+    }
+
+    /// Its layout, for your pipeline layout.
+    pub fn layout(&self) -> &'a wgpu::BindGroupLayout {
+        self.layout
+    }
+}
+
 /// A BVH on the device, ready to trace (see [`GpuBvh::trace`] and [`GpuBvh::record`]).
+/// `Send + Sync`: trace it from several threads at once.
 pub struct GpuBvh {
     pub(crate) ctx: GpuContext,
     storage: BvhStorage,
@@ -107,11 +111,13 @@ pub struct GpuBvh {
     node_count: usize,
     triangle_count: usize,
     stats: UploadStats,
-    /// A host copy of the tree when the adapter bounds the kernels' loop trips
-    /// ([`GpuContext::trip_limit`]): [`GpuBvh::trace`] finishes the rays that spend the
-    /// budget on it (the CPU twin gives the answer the kernel would have given).
-    pub(crate) twin: Option<std::sync::Arc<FlatBvh>>,
+    /// A host copy of the tree when the context's tuning bounds the kernels' loop trips
+    /// ([`DriverTuning::finishes_on_cpu`](bvhtrace_kernels::DriverTuning::finishes_on_cpu)):
+    /// [`GpuBvh::trace`] finishes the rays that spend the budget on it with the CPU walk,
+    /// which gives the answer the kernel would have given.
+    pub(crate) host_copy: Option<Arc<FlatBvh>>,
     pub(crate) scratch: Mutex<Option<Scratch>>,
+    pub(crate) batch_groups: Mutex<crate::trace::BatchGroups>,
 }
 
 impl std::fmt::Debug for GpuBvh {
@@ -125,32 +131,6 @@ impl std::fmt::Debug for GpuBvh {
             .field("stats", &self.stats)
             .finish()
     }
-}
-
-/// Checks one buffer against the device's limits.
-pub(crate) fn check_size(
-    ctx: &GpuContext,
-    buffer: &'static str,
-    bytes: u64,
-) -> Result<(), GpuError> {
-    let l = ctx.limits();
-    if bytes > l.max_storage_buffer_binding_size {
-        return Err(GpuError::TooLarge {
-            buffer,
-            bytes,
-            limit: l.max_storage_buffer_binding_size,
-            limit_name: "max_storage_buffer_binding_size",
-        });
-    }
-    if bytes > l.max_buffer_size {
-        return Err(GpuError::TooLarge {
-            buffer,
-            bytes,
-            limit: l.max_buffer_size,
-            limit_name: "max_buffer_size",
-        });
-    }
-    Ok(())
 }
 
 /// A `width` x `rows` storage texture, filled by copies and copied from: the BVH's texel
@@ -179,11 +159,6 @@ pub(crate) fn storage_texture(
             | wgpu::TextureUsages::COPY_SRC,
         view_formats: &[],
     })
-}
-
-/// Rows of a texel texture holding `texels` texels.
-pub(crate) fn texel_rows(texels: u64) -> u64 {
-    texels.div_ceil(u64::from(TEXEL_ROW)).max(1)
 }
 
 /// Checks one texel texture against the device's limits.
@@ -295,7 +270,7 @@ impl GpuBvh {
                 max: FULL_STACK_SIZE,
             });
         }
-        let storage = opts.storage.unwrap_or_else(|| ctx.default_storage());
+        let storage = opts.storage.unwrap_or(ctx.tuning().storage);
         let with_escapes = opts.traversals.iter().any(|t| t.needs_escapes());
         if with_escapes {
             bvh.check_escape_links()?;
@@ -304,10 +279,11 @@ impl GpuBvh {
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
         match storage {
             BvhStorage::Buffers => {
-                check_size(ctx, "nodes", nb as u64)?;
-                check_size(ctx, "triangles", tb as u64)?;
+                let l = ctx.limits();
+                check_buffer_size(l, "nodes", nb as u64)?;
+                check_buffer_size(l, "triangles", tb as u64)?;
                 if with_escapes {
-                    check_size(ctx, "escapes", eb as u64)?;
+                    check_buffer_size(l, "escapes", eb as u64)?;
                 }
             }
             BvhStorage::Textures => {
@@ -362,6 +338,7 @@ impl GpuBvh {
                         )
                     });
                     let stats = UploadStats {
+                        storage,
                         nodes_bytes: nb as u64,
                         triangles_bytes: tb as u64,
                         escapes_bytes: if with_escapes { eb as u64 } else { 0 },
@@ -419,6 +396,7 @@ impl GpuBvh {
                         )
                     });
                     let stats = UploadStats {
+                        storage,
                         nodes_bytes,
                         triangles_bytes,
                         escapes_bytes: escapes.as_ref().map_or(0, |p| p.1),
@@ -438,7 +416,9 @@ impl GpuBvh {
             })?;
         // Make the upload complete before timing stops.
         ctx.queue().submit([]);
-        device.poll(wgpu::PollType::wait_indefinitely())?;
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::device("uploading the BVH", e))?;
         let stats = UploadStats {
             upload_ms: start.elapsed().as_secs_f64() * 1e3,
             ..stats
@@ -453,13 +433,17 @@ impl GpuBvh {
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
             stats,
-            twin: (ctx.trip_limit() != u32::MAX).then(|| std::sync::Arc::new(bvh.clone())),
+            host_copy: ctx
+                .tuning()
+                .finishes_on_cpu()
+                .then(|| Arc::new(bvh.clone())),
             scratch: Mutex::new(None),
+            batch_groups: Mutex::new(Default::default()),
         })
     }
 
     /// Checks that this upload can run `traversal`.
-    pub fn supports(&self, traversal: Traversal) -> Result<(), GpuError> {
+    pub(crate) fn supports_traversal(&self, traversal: Traversal) -> Result<(), GpuError> {
         if traversal.needs_escapes() && self.group_escapes.is_none() {
             return Err(GpuError::EscapesNotUploaded { traversal });
         }
@@ -507,14 +491,21 @@ impl GpuBvh {
         self.group_escapes.is_some()
     }
 
-    /// The BVH bind group for [`GpuContext::bvh_layout`]`(self.storage(), with_escapes)`;
-    /// `None` when `with_escapes` is asked for but the escape links were not uploaded.
-    pub fn bind_group(&self, with_escapes: bool) -> Option<&wgpu::BindGroup> {
-        if with_escapes {
-            self.group_escapes.as_ref()
+    /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
+    /// links for the walks that follow them), with its layout.
+    pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
+        let with_escapes = traversal.needs_escapes();
+        let group = if with_escapes {
+            self.group_escapes
+                .as_ref()
+                .ok_or(GpuError::EscapesNotUploaded { traversal })?
         } else {
-            Some(&self.group_plain)
-        }
+            &self.group_plain
+        };
+        Ok(BvhBindGroup {
+            group,
+            layout: self.ctx.bvh_layout(self.storage, with_escapes),
+        })
     }
 
     /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads.

@@ -2,14 +2,17 @@
 //! module, the bind group layouts and the pipeline cache.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::Precision;
+use bvhtrace_kernels::key::ModuleSet;
+use bvhtrace_kernels::{
+    AdapterChoice, BvhStorage, Composition, DeviceKind, DeviceLimits, DriverTuning,
+    FULL_STACK_SIZE, KernelKey, RayInput, STACK_LANES, WORKGROUP_SIZE,
+};
 
-use crate::error::GpuError;
-use crate::features::{Composition, ModuleSet, PipelineFeatures};
-use crate::shaders::{BvhStorage, KernelVariant, RayInput};
+use crate::GpuError;
 
 fn storage_index(storage: BvhStorage) -> usize {
     match storage {
@@ -18,50 +21,41 @@ fn storage_index(storage: BvhStorage) -> usize {
     }
 }
 
-/// Environment variable naming the adapter to use: any substring of its name,
-/// case-insensitive (for example `llvmpipe` or `nvidia`).
-pub const ADAPTER_ENV: &str = "BVHTRACE_ADAPTER";
-
-/// Which Vulkan adapter [`GpuContext::new`] opens.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub enum AdapterChoice {
-    /// `$BVHTRACE_ADAPTER` when it is set and not empty; otherwise the best adapter:
-    /// a discrete GPU, else an integrated one, else a virtual one, else a CPU driver
-    /// (lavapipe), ties broken by enumeration order.
-    #[default]
-    Auto,
-    /// The first adapter whose name contains this substring (case-insensitive); for a
-    /// command-line flag. Takes precedence over `$BVHTRACE_ADAPTER`.
-    Named(String),
-}
-
-/// The adapter limits the tracer works within (a copy of the device's `wgpu::Limits`
-/// fields that matter here).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct GpuLimits {
-    /// Largest storage buffer binding, bytes.
-    pub max_storage_buffer_binding_size: u64,
-    /// Largest buffer, bytes.
-    pub max_buffer_size: u64,
-    /// Most workgroups in one dispatch dimension.
-    pub max_compute_workgroups_per_dimension: u32,
-    /// Alignment of storage buffer binding offsets, bytes.
-    pub min_storage_buffer_offset_alignment: u32,
-    /// Largest 2D texture side, texels (bounds [`crate::BvhStorage::Textures`] uploads).
-    pub max_texture_dimension_2d: u32,
-}
-
-impl GpuLimits {
-    /// The fields of `limits`.
-    pub fn from_wgpu(limits: &wgpu::Limits) -> Self {
-        GpuLimits {
-            max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
-            max_buffer_size: limits.max_buffer_size,
-            max_compute_workgroups_per_dimension: limits.max_compute_workgroups_per_dimension,
-            min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
-            max_texture_dimension_2d: limits.max_texture_dimension_2d,
-        }
+/// The device limits of `limits` that planning reads.
+pub(crate) fn device_limits(limits: &wgpu::Limits) -> DeviceLimits {
+    DeviceLimits {
+        max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
+        max_buffer_size: limits.max_buffer_size,
+        max_compute_workgroups_per_dimension: limits.max_compute_workgroups_per_dimension,
+        min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
+        max_texture_dimension_2d: limits.max_texture_dimension_2d,
     }
+}
+
+/// wgpu's adapter type as a [`DeviceKind`].
+pub fn device_kind(t: wgpu::DeviceType) -> DeviceKind {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => DeviceKind::DiscreteGpu,
+        wgpu::DeviceType::IntegratedGpu => DeviceKind::IntegratedGpu,
+        wgpu::DeviceType::VirtualGpu => DeviceKind::VirtualGpu,
+        wgpu::DeviceType::Cpu => DeviceKind::Cpu,
+        wgpu::DeviceType::Other => DeviceKind::Other,
+    }
+}
+
+/// Storage textures the texture storage binds in one stage: three for the BVH, two for
+/// the rays and hits.
+const STORAGE_TEXTURES_USED: u32 = 5;
+
+/// How a [`GpuContext`] runs its kernels. The defaults suit every device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ContextOptions {
+    /// The CPU-driver measures; `None` picks [`DriverTuning::for_device`] for the adapter
+    /// (falling back to buffer storage on a device with too few storage-texture bindings).
+    pub tuning: Option<DriverTuning>,
+    /// Compose only what each kernel needs (the default), or everything (a benchmark's
+    /// baseline).
+    pub composition: Composition,
 }
 
 /// A device and queue with the tracer's shared state. Cheap to clone (reference counted);
@@ -75,22 +69,19 @@ struct Inner {
     device: wgpu::Device,
     queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
-    limits: GpuLimits,
+    limits: DeviceLimits,
     timestamps: bool,
-    /// The `TRIP_LIMIT` override ([`crate::shaders::trip_limit_for`]).
-    trip_limit: u32,
-    /// The `DISPATCH_THREADS` override ([`crate::shaders::dispatch_threads_for`]).
-    dispatch_threads: AtomicU32,
+    /// The CPU-driver measures in force.
+    tuning: DriverTuning,
+    composition: Composition,
     /// Shader modules, by the files composed.
     modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
     /// BVH group layouts: `[buffers, textures][without escapes, with escapes]`.
     bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [[wgpu::BindGroupLayout; 2]; 2],
-    /// Pipelines, by their full feature set.
-    pipelines: Mutex<HashMap<PipelineFeatures, wgpu::ComputePipeline>>,
-    /// [`GpuContext::pipeline`] composes everything ([`Composition::EverythingOn`]).
-    everything_on: AtomicBool,
+    /// Pipelines, by their key.
+    pipelines: Mutex<HashMap<KernelKey, wgpu::ComputePipeline>>,
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
@@ -103,63 +94,8 @@ impl std::fmt::Debug for GpuContext {
             .field("backend", &self.inner.info.backend)
             .field("limits", &self.inner.limits)
             .field("timestamps", &self.inner.timestamps)
+            .field("tuning", &self.inner.tuning)
             .finish()
-    }
-}
-
-fn type_rank(t: wgpu::DeviceType) -> u32 {
-    match t {
-        wgpu::DeviceType::DiscreteGpu => 0,
-        wgpu::DeviceType::IntegratedGpu => 1,
-        wgpu::DeviceType::VirtualGpu => 2,
-        wgpu::DeviceType::Cpu => 3,
-        wgpu::DeviceType::Other => 4,
-    }
-}
-
-/// Picks an adapter among `infos` for `choice` (the environment already applied): the
-/// index of the chosen one. Pure, for the tests.
-pub fn pick_adapter(infos: &[wgpu::AdapterInfo], wanted: Option<&str>) -> Result<usize, GpuError> {
-    if infos.is_empty() {
-        return Err(GpuError::NoAdapter {
-            details: String::new(),
-        });
-    }
-    match wanted {
-        Some(w) => {
-            let lw = w.to_lowercase();
-            infos
-                .iter()
-                .position(|i| i.name.to_lowercase().contains(&lw))
-                .ok_or_else(|| GpuError::AdapterNotFound {
-                    wanted: w.to_string(),
-                    available: infos
-                        .iter()
-                        .map(|i| format!("{} ({:?})", i.name, i.device_type))
-                        .collect::<Vec<_>>()
-                        .join(", "),
-                })
-        }
-        None => Ok(infos
-            .iter()
-            .enumerate()
-            .min_by_key(|(i, info)| (type_rank(info.device_type), *i))
-            .map(|(i, _)| i)
-            .unwrap_or(0)),
-    }
-}
-
-impl AdapterChoice {
-    /// The name substring to look for, the environment applied: `Named` wins, then a
-    /// non-empty `$BVHTRACE_ADAPTER`, else `None` (the best adapter).
-    pub fn wanted_name(&self) -> Option<String> {
-        match self {
-            AdapterChoice::Named(n) => Some(n.clone()),
-            AdapterChoice::Auto => std::env::var(ADAPTER_ENV)
-                .ok()
-                .map(|s| s.trim().to_string())
-                .filter(|s| !s.is_empty()),
-        }
     }
 }
 
@@ -177,18 +113,58 @@ fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
 }
 
 impl GpuContext {
-    /// Opens a Vulkan device headlessly on the adapter `choice` selects (see
-    /// [`AdapterChoice`]). Enables `TIMESTAMP_QUERY` when the adapter has it and takes the
-    /// adapter's own limits (storage binding and buffer sizes, workgroup counts).
-    ///
-    /// Fails with [`GpuError::NoAdapter`] (which tells the user to install
-    /// `mesa-vulkan-drivers`) when there is no Vulkan adapter; never panics.
-    pub fn new(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
-        pollster::block_on(Self::new_async(choice))
+    /// The features a device must have for the tracer: none.
+    pub fn required_features() -> wgpu::Features {
+        wgpu::Features::empty()
     }
 
-    /// [`GpuContext::new`], as a future.
-    pub async fn new_async(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
+    /// The features the tracer uses when a device has them: `TIMESTAMP_QUERY` (GPU times
+    /// in [`TraceOutput::gpu_ms`](bvhtrace_kernels::TraceOutput::gpu_ms)) and `SHADER_F64`
+    /// (the f64 triangle test, [`bvhtrace_core::Precision::WatertightF64`]).
+    pub fn optional_features() -> wgpu::Features {
+        wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::SHADER_F64
+    }
+
+    /// The least limits a device must have for the tracer: WebGPU's downlevel defaults,
+    /// with the 16 KiB of workgroup memory the traversal stacks take, 64 invocations per
+    /// workgroup, two bind groups and six storage buffers per stage. Request at least
+    /// these (or `wgpu::Limits::default()`, which has them) when you create a device for
+    /// [`GpuContext::from_device`]; larger storage-binding and buffer sizes allow larger
+    /// scenes, and each upload is checked against the device's own.
+    pub fn required_limits() -> wgpu::Limits {
+        wgpu::Limits {
+            max_bind_groups: 2,
+            max_storage_buffers_per_shader_stage: 6,
+            max_compute_workgroup_storage_size: STACK_LANES * FULL_STACK_SIZE * 4,
+            max_compute_invocations_per_workgroup: WORKGROUP_SIZE,
+            max_compute_workgroup_size_x: WORKGROUP_SIZE,
+            ..wgpu::Limits::downlevel_defaults()
+        }
+    }
+
+    /// Opens a Vulkan device headlessly on the adapter `choice` selects (see
+    /// [`AdapterChoice`]), with the adapter's own limits and the
+    /// [optional features](GpuContext::optional_features) it has.
+    ///
+    /// Fails with [`TraceError::NoAdapter`] (which tells the user to install
+    /// `mesa-vulkan-drivers`) when there is no Vulkan adapter; never panics.
+    pub fn new(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
+        Self::new_with(choice, &ContextOptions::default())
+    }
+
+    /// [`GpuContext::new`] with `options`.
+    pub fn new_with(
+        choice: AdapterChoice,
+        options: &ContextOptions,
+    ) -> Result<GpuContext, GpuError> {
+        pollster::block_on(Self::new_async(choice, options))
+    }
+
+    /// [`GpuContext::new_with`], as a future.
+    pub async fn new_async(
+        choice: AdapterChoice,
+        options: &ContextOptions,
+    ) -> Result<GpuContext, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN;
         // Validation layers are rarely installed; wgpu's own validation stays on.
@@ -196,43 +172,103 @@ impl GpuContext {
         let instance = wgpu::Instance::new(desc);
         let adapters = instance.enumerate_adapters(wgpu::Backends::VULKAN).await;
         let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
-        let index = pick_adapter(&infos, choice.wanted_name().as_deref())?;
+        let named: Vec<(String, DeviceKind)> = infos
+            .iter()
+            .map(|i| (i.name.clone(), device_kind(i.device_type)))
+            .collect();
+        let index = choice.pick(&named)?;
         let adapter = &adapters[index];
         let info = infos[index].clone();
-
-        let mut features = wgpu::Features::empty();
-        if adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
-            features |= wgpu::Features::TIMESTAMP_QUERY;
-        }
-        // For the f64 triangle test (`Precision::WatertightF64`), where the adapter has it.
-        if adapter.features().contains(wgpu::Features::SHADER_F64) {
-            features |= wgpu::Features::SHADER_F64;
-        }
-
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("bvhtrace"),
-                required_features: features,
+                required_features: adapter.features() & Self::optional_features(),
                 required_limits: adapter.limits(),
                 ..Default::default()
             })
             .await
-            .map_err(|source| GpuError::RequestDevice {
-                adapter: info.name.clone(),
-                source,
+            .map_err(|e| GpuError::Device {
+                during: "creating a device",
+                message: format!("{}: {e}", info.name),
             })?;
-        Ok(Self::from_device(device, queue, info))
+        Self::from_device_with(device, queue, info, options)
     }
 
-    /// Wraps a device someone else created (an application, the egui viewer). The tracer
-    /// uses that device's limits and, when it was created with `TIMESTAMP_QUERY`, reports
-    /// GPU times.
+    /// Wraps a device someone else created (an application, the egui viewer), with the
+    /// [`DriverTuning`] for its adapter type. The device needs the
+    /// [required features](GpuContext::required_features) and
+    /// [limits](GpuContext::required_limits), and the tracer uses the
+    /// [optional features](GpuContext::optional_features) it was created with; anything
+    /// missing is a [`TraceError::LimitTooLow`], not a failure later.
     pub fn from_device(
         device: wgpu::Device,
         queue: wgpu::Queue,
         adapter_info: wgpu::AdapterInfo,
-    ) -> GpuContext {
-        let limits = GpuLimits::from_wgpu(&device.limits());
+    ) -> Result<GpuContext, GpuError> {
+        Self::from_device_with(device, queue, adapter_info, &ContextOptions::default())
+    }
+
+    /// [`GpuContext::from_device`] with `options`.
+    pub fn from_device_with(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        adapter_info: wgpu::AdapterInfo,
+        options: &ContextOptions,
+    ) -> Result<GpuContext, GpuError> {
+        let wl = device.limits();
+        let need = Self::required_limits();
+        for (limit, has, needs) in [
+            ("max_bind_groups", wl.max_bind_groups, need.max_bind_groups),
+            (
+                "max_storage_buffers_per_shader_stage",
+                wl.max_storage_buffers_per_shader_stage,
+                need.max_storage_buffers_per_shader_stage,
+            ),
+            (
+                "max_compute_workgroup_storage_size",
+                wl.max_compute_workgroup_storage_size,
+                need.max_compute_workgroup_storage_size,
+            ),
+            (
+                "max_compute_invocations_per_workgroup",
+                wl.max_compute_invocations_per_workgroup,
+                need.max_compute_invocations_per_workgroup,
+            ),
+            (
+                "max_compute_workgroup_size_x",
+                wl.max_compute_workgroup_size_x,
+                need.max_compute_workgroup_size_x,
+            ),
+        ] {
+            if has < needs {
+                return Err(GpuError::LimitTooLow {
+                    limit,
+                    has: u64::from(has),
+                    needs: u64::from(needs),
+                    needed_for: "the traversal kernels",
+                });
+            }
+        }
+        let textures_ok = wl.max_storage_textures_per_shader_stage >= STORAGE_TEXTURES_USED;
+        let tuning = match options.tuning {
+            Some(t) if t.storage == BvhStorage::Textures && !textures_ok => {
+                return Err(GpuError::LimitTooLow {
+                    limit: "max_storage_textures_per_shader_stage",
+                    has: u64::from(wl.max_storage_textures_per_shader_stage),
+                    needs: u64::from(STORAGE_TEXTURES_USED),
+                    needed_for: "texture storage (DriverTuning::storage)",
+                });
+            }
+            Some(t) => t,
+            None => {
+                let mut t = DriverTuning::for_device(device_kind(adapter_info.device_type));
+                if !textures_ok {
+                    t.storage = BvhStorage::Buffers;
+                }
+                t
+            }
+        };
+        let limits = device_limits(&wl);
         let timestamps = device.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let layout = |label: &str, entries: &[wgpu::BindGroupLayoutEntry]| {
             device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -309,32 +345,28 @@ impl GpuContext {
         };
         let batch_layouts = [RayInput::Buffer, RayInput::Texture]
             .map(|rays| [false, true].map(|counters| batch_layout(rays, counters)));
-        let trip_limit = crate::shaders::trip_limit_for(&adapter_info);
-        let dispatch_threads = AtomicU32::new(crate::shaders::dispatch_threads_for(&adapter_info));
-        GpuContext {
+        Ok(GpuContext {
             inner: Arc::new(Inner {
                 device,
                 queue,
                 info: adapter_info,
                 limits,
-                trip_limit,
-                dispatch_threads,
+                tuning,
+                composition: options.composition,
                 timestamps,
                 modules: Default::default(),
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
-                everything_on: AtomicBool::new(false),
                 modules_compiled: AtomicU64::new(0),
                 pipelines_compiled: AtomicU64::new(0),
             }),
-        }
+        })
     }
 
-    /// The kernels' loop-trip budget per ray on this adapter
-    /// ([`crate::shaders::trip_limit_for`]); `u32::MAX` is unbounded.
-    pub fn trip_limit(&self) -> u32 {
-        self.inner.trip_limit
+    /// The CPU-driver measures in force ([`ContextOptions::tuning`]).
+    pub fn tuning(&self) -> &DriverTuning {
+        &self.inner.tuning
     }
 
     /// The device.
@@ -353,7 +385,7 @@ impl GpuContext {
     }
 
     /// The limits the tracer works within.
-    pub fn limits(&self) -> &GpuLimits {
+    pub fn limits(&self) -> &DeviceLimits {
         &self.inner.limits
     }
 
@@ -369,19 +401,13 @@ impl GpuContext {
         &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_escapes)]
     }
 
-    /// The storage an upload uses when [`crate::UploadOptions::storage`] is `None`.
-    pub fn default_storage(&self) -> BvhStorage {
-        BvhStorage::default_for(self.inner.info.device_type)
-    }
-
-    /// The layout of the batch bind group (group 1) with the rays in a buffer: bindings 0
-    /// (rays) and 1 (hits), plus 2 (counters) when `with_counters`.
-    pub fn batch_layout(&self, with_counters: bool) -> &wgpu::BindGroupLayout {
-        self.batch_layout_for(with_counters, RayInput::Buffer)
-    }
-
-    /// [`GpuContext::batch_layout`] with the rays read from `rays`.
-    pub fn batch_layout_for(&self, with_counters: bool, rays: RayInput) -> &wgpu::BindGroupLayout {
+    /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits) read
+    /// from `rays`, plus 2 (counters) when `with_counters`.
+    pub(crate) fn batch_layout(
+        &self,
+        with_counters: bool,
+        rays: RayInput,
+    ) -> &wgpu::BindGroupLayout {
         let r = usize::from(rays == RayInput::Texture);
         &self.inner.batch_layouts[r][usize::from(with_counters)]
     }
@@ -401,10 +427,11 @@ impl GpuContext {
         let o = pollster::block_on(oom.pop());
         match v.or(o) {
             None => Ok(value),
-            Some(e) => Err(GpuError::Wgpu {
+            Some(e @ wgpu::Error::OutOfMemory { .. }) => Err(GpuError::OutOfMemory {
                 during,
                 message: e.to_string(),
             }),
+            Some(e) => Err(GpuError::device(during, e)),
         }
     }
 
@@ -419,22 +446,9 @@ impl GpuContext {
                 .contains(wgpu::Features::SHADER_F64)
     }
 
-    /// How [`GpuContext::pipeline`] composes modules: only what each pipeline needs (the
-    /// default), or everything (the baseline of `bvhtrace bench-trace --everything-on`).
-    /// Both kinds stay cached side by side, so switching back does not recompile.
-    pub fn set_composition(&self, composition: Composition) {
-        self.inner
-            .everything_on
-            .store(composition == Composition::EverythingOn, Ordering::Relaxed);
-    }
-
-    /// See [`GpuContext::set_composition`].
+    /// How the pipelines are composed ([`ContextOptions::composition`]).
     pub fn composition(&self) -> Composition {
-        if self.inner.everything_on.load(Ordering::Relaxed) {
-            Composition::EverythingOn
-        } else {
-            Composition::Specialised
-        }
+        self.inner.composition
     }
 
     /// `(shader modules, pipelines)` created by this context so far: cache hits do not
@@ -444,29 +458,6 @@ impl GpuContext {
             self.inner.modules_compiled.load(Ordering::Relaxed),
             self.inner.pipelines_compiled.load(Ordering::Relaxed),
         )
-    }
-
-    /// The `DISPATCH_THREADS` override the pipelines get: the worker threads a CPU driver
-    /// splits each dispatch among ([`crate::shaders::dispatch_threads_for`]), 1 on GPUs.
-    pub fn dispatch_threads(&self) -> u32 {
-        self.inner.dispatch_threads.load(Ordering::Relaxed)
-    }
-
-    /// Sets the `DISPATCH_THREADS` override for the pipelines created from now on (and
-    /// forgets the cached ones): for a driver whose thread count the context cannot see.
-    /// Any value gives the same hits; clamped to `1..=MAX_DISPATCH_THREADS`.
-    pub fn set_dispatch_threads(&self, threads: u32) -> Result<(), GpuError> {
-        let t = threads.clamp(1, crate::shaders::MAX_DISPATCH_THREADS);
-        self.inner.dispatch_threads.store(t, Ordering::Relaxed);
-        self.inner.pipelines.lock().map_err(|_| poisoned())?.clear();
-        Ok(())
-    }
-
-    /// Forgets every cached module and pipeline (for timing pipeline creation).
-    pub fn clear_pipeline_cache(&self) -> Result<(), GpuError> {
-        self.inner.pipelines.lock().map_err(|_| poisoned())?.clear();
-        self.inner.modules.lock().map_err(|_| poisoned())?.clear();
-        Ok(())
     }
 
     fn module(&self, set: &ModuleSet) -> Result<wgpu::ShaderModule, GpuError> {
@@ -479,7 +470,7 @@ impl GpuContext {
         if let Some(m) = self.inner.modules.lock().map_err(|_| poisoned())?.get(set) {
             return Ok(m.clone());
         }
-        let source = set.compose(crate::shaders::BVH_GROUP);
+        let source = set.compose(bvhtrace_kernels::BVH_GROUP);
         let module = self.scoped("compiling the WGSL kernels", || {
             self.inner
                 .device
@@ -500,49 +491,38 @@ impl GpuContext {
             .clone())
     }
 
-    /// The compute pipeline for one kernel variant, composed as
-    /// [`GpuContext::composition`] says (by default only what the variant needs, see
-    /// [`PipelineFeatures`]); created on first use and cached by its full feature set.
-    pub fn pipeline(&self, variant: KernelVariant) -> Result<wgpu::ComputePipeline, GpuError> {
-        self.pipeline_for(&PipelineFeatures::new(variant).with_composition(self.composition()))
-    }
-
-    /// The compute pipeline for `features`, created on first use and cached by the whole
-    /// feature set (variant, attributes, composition). Its layout binds what the entry point
+    /// The compute pipeline for `key` (composed as [`GpuContext::composition`] says),
+    /// created on first use and cached by its key. Its layout binds what the entry point
     /// reads: the escape links only for the walks that read them, counters only when on.
-    pub fn pipeline_for(
-        &self,
-        features: &PipelineFeatures,
-    ) -> Result<wgpu::ComputePipeline, GpuError> {
+    pub(crate) fn pipeline(&self, key: KernelKey) -> Result<wgpu::ComputePipeline, GpuError> {
+        let key = key.with_composition(self.composition());
         if let Some(p) = self
             .inner
             .pipelines
             .lock()
             .map_err(|_| poisoned())?
-            .get(features)
+            .get(&key)
         {
             return Ok(p.clone());
         }
-        let variant = features.variant;
-        let module = self.module(&features.module_set())?;
+        let module = self.module(&key.module_set())?;
         let device = &self.inner.device;
-        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("bvhtrace trace"),
-            bind_group_layouts: &[
-                Some(self.bvh_layout(variant.storage, variant.needs_escapes())),
-                Some(self.batch_layout_for(variant.counters, variant.rays)),
-            ],
-            immediate_size: 0,
-        });
-        let mut constants = variant.constants();
-        constants.push(("TRIP_LIMIT", f64::from(self.inner.trip_limit)));
-        constants.push(("DISPATCH_THREADS", f64::from(self.dispatch_threads())));
+        let mut constants = key.constants();
+        constants.extend(self.inner.tuning.constants());
         let pipeline = self.scoped("creating a trace pipeline", || {
+            let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("bvhtrace trace"),
+                bind_group_layouts: &[
+                    Some(self.bvh_layout(key.storage, key.needs_escapes())),
+                    Some(self.batch_layout(key.counters, key.rays)),
+                ],
+                immediate_size: 0,
+            });
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(variant.entry_point()),
+                label: Some(key.entry_point()),
                 layout: Some(&layout),
                 module: &module,
-                entry_point: Some(variant.entry_point()),
+                entry_point: Some(key.entry_point()),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: false,
@@ -557,54 +537,11 @@ impl GpuContext {
             .pipelines
             .lock()
             .map_err(|_| poisoned())?
-            .insert(*features, pipeline.clone());
+            .insert(key, pipeline.clone());
         Ok(pipeline)
     }
 }
 
 fn poisoned() -> GpuError {
-    GpuError::Wgpu {
-        during: "locking the pipeline cache",
-        message: "a thread panicked while holding it".into(),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn info(name: &str, device_type: wgpu::DeviceType) -> wgpu::AdapterInfo {
-        wgpu::AdapterInfo {
-            name: name.into(),
-            device_type,
-            ..wgpu::AdapterInfo::new(wgpu::DeviceType::Other, wgpu::Backend::Vulkan)
-        }
-    }
-
-    #[test]
-    fn adapters_are_ranked_and_named() {
-        let list = [
-            info("llvmpipe (LLVM 15.0.6, 256 bits)", wgpu::DeviceType::Cpu),
-            info("Intel(R) UHD Graphics", wgpu::DeviceType::IntegratedGpu),
-            info("NVIDIA GeForce RTX 4090", wgpu::DeviceType::DiscreteGpu),
-        ];
-        assert_eq!(pick_adapter(&list, None).ok(), Some(2));
-        assert_eq!(pick_adapter(&list[..2], None).ok(), Some(1));
-        assert_eq!(pick_adapter(&list[..1], None).ok(), Some(0));
-        assert_eq!(pick_adapter(&list, Some("LLVMPIPE")).ok(), Some(0));
-        assert_eq!(pick_adapter(&list, Some("uhd")).ok(), Some(1));
-        match pick_adapter(&list, Some("radeon")) {
-            Err(GpuError::AdapterNotFound { wanted, available }) => {
-                assert_eq!(wanted, "radeon");
-                assert!(available.contains("llvmpipe") && available.contains("RTX 4090"));
-            }
-            other => panic!("{other:?}"),
-        }
-        let err = pick_adapter(&[], None).expect_err("no adapter");
-        assert!(err.to_string().contains("mesa-vulkan-drivers"), "{err}");
-        assert_eq!(
-            AdapterChoice::Named("x".into()).wanted_name().as_deref(),
-            Some("x")
-        );
-    }
+    GpuError::Poisoned("pipeline cache")
 }

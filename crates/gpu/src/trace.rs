@@ -1,83 +1,20 @@
 //! Tracing ray batches: the convenience [`GpuBvh::trace`] (slices in, hits out, timed) and
 //! [`GpuBvh::record`] (into the caller's encoder, with the caller's buffers).
 
+use std::collections::HashMap;
 use std::num::NonZeroU64;
 use std::sync::mpsc;
 use std::time::Instant;
 
-use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Precision, Query, Ray, Traversal};
+use bvhtrace_core::{Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_kernels::{
+    COUNTERS_BYTES, DeviceLimits, HIT_BYTES, KernelKey, RAY_BYTES, RayInput, TEXEL_ROW, Tracer,
+    finish_incomplete, plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
+};
 
+use crate::GpuError;
 use crate::bvh::GpuBvh;
-use crate::context::{GpuContext, GpuLimits};
-use crate::error::GpuError;
-use crate::shaders::{KernelVariant, RayInput, TEXEL_ROW, WORKGROUP_SIZE};
-
-/// Bytes of one [`Ray`] on the device.
-pub const RAY_BYTES: u64 = std::mem::size_of::<Ray>() as u64;
-/// Bytes of one [`Hit`] on the device.
-pub const HIT_BYTES: u64 = std::mem::size_of::<Hit>() as u64;
-/// Bytes of one [`Counters`] on the device.
-pub const COUNTERS_BYTES: u64 = std::mem::size_of::<Counters>() as u64;
-
-/// The most rays one dispatch handles (about 4M: 128 MiB of rays). Larger batches are split
-/// into several dispatches in one compute pass.
-pub const MAX_RAYS_PER_DISPATCH: u64 = 1 << 22;
-
-/// What to trace.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct TraceOptions {
-    /// How to walk the tree.
-    pub traversal: Traversal,
-    /// Closest or any hit.
-    pub query: Query,
-    /// Also write each ray's [`Counters`].
-    pub counters: bool,
-}
-
-/// The result of [`GpuBvh::trace`].
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct TraceOutput {
-    /// One hit per ray, in ray order.
-    pub hits: Vec<Hit>,
-    /// One entry per ray when counters were asked for.
-    pub counters: Option<Vec<Counters>>,
-    /// Time the traversal kernels took on the GPU (timestamp queries around the compute
-    /// pass), milliseconds; `None` when the device has no timestamp queries.
-    pub gpu_ms: Option<f64>,
-    /// Wall time of the whole call: uploading the rays, the dispatches and reading the
-    /// results back, milliseconds (pipeline creation excluded).
-    pub wall_ms: f64,
-    /// Rays the kernel gave up on when they spent the adapter's loop-trip budget
-    /// ([`GpuContext::trip_limit`](crate::GpuContext::trip_limit)), finished on the CPU
-    /// twin (hits and counters as the kernel would have given them). 0 on ordinary scenes.
-    pub incomplete: u64,
-}
-
-/// Replaces every [`INCOMPLETE`] hit in `out` by the CPU twin's answer for that ray on
-/// `twin` (same traversal, query and precision; counters too when `out` has them) and
-/// counts them in `out.incomplete`: what [`GpuBvh::trace`] does after the kernel, and any
-/// other backend running these kernels should do too.
-pub fn finish_incomplete(
-    twin: &FlatBvh,
-    rays: &[Ray],
-    traversal: Traversal,
-    query: Query,
-    precision: Precision,
-    out: &mut TraceOutput,
-) {
-    for (i, h) in out.hits.iter_mut().enumerate() {
-        if h.prim != INCOMPLETE {
-            continue;
-        }
-        let (hit, c) =
-            bvhtrace_core::trace_ray_precision(twin, &rays[i], traversal, query, precision);
-        *h = hit;
-        if let Some(cs) = out.counters.as_mut() {
-            cs[i] = c;
-        }
-        out.incomplete += 1;
-    }
-}
+use crate::context::GpuContext;
 
 /// The caller's buffers for [`GpuBvh::record`]. Rays are read from offset 0 of `rays`
 /// (32 bytes each, the layout of [`Ray`]); hits are written from offset 0 of `hits`
@@ -90,69 +27,10 @@ pub struct RayBatch<'a> {
     pub rays: &'a wgpu::Buffer,
     /// Hits out.
     pub hits: &'a wgpu::Buffer,
-    /// Counters out: required when [`TraceOptions::counters`] is set, ignored otherwise.
+    /// Counters out: required when `TraceOptions::counters` is set, ignored otherwise.
     pub counters: Option<&'a wgpu::Buffer>,
     /// Number of rays.
     pub ray_count: u64,
-}
-
-/// One dispatch of a batch: rays `first_ray .. first_ray + ray_count` on a
-/// `groups_x` x `groups_y` grid of [`WORKGROUP_SIZE`]-invocation workgroups.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Dispatch {
-    /// First ray of the chunk.
-    pub first_ray: u64,
-    /// Rays in the chunk.
-    pub ray_count: u32,
-    /// Workgroups along x.
-    pub groups_x: u32,
-    /// Workgroups along y (1 unless x would exceed the per-dimension limit).
-    pub groups_y: u32,
-}
-
-/// Rays per dispatch on a device with these limits: at most [`MAX_RAYS_PER_DISPATCH`], at
-/// most what one storage binding holds, a multiple of the workgroup size and of the
-/// binding-offset alignment (so every chunk's buffer ranges are aligned).
-pub fn rays_per_dispatch(limits: &GpuLimits) -> u64 {
-    let align = u64::from(limits.min_storage_buffer_offset_alignment).max(1);
-    let step = u64::from(WORKGROUP_SIZE).max(align);
-    let by_binding = limits.max_storage_buffer_binding_size / RAY_BYTES;
-    let dim = u64::from(limits.max_compute_workgroups_per_dimension.max(1));
-    let by_groups = dim * dim * u64::from(WORKGROUP_SIZE);
-    let max = MAX_RAYS_PER_DISPATCH.min(by_binding).min(by_groups);
-    (max / step * step).max(step)
-}
-
-/// How a batch of `ray_count` rays is submitted: `(rays per submission, scratch capacity
-/// in rays)`. A submission holds as many whole dispatches as one device buffer allows (at
-/// least one); the scratch buffers hold one submission, and at least a workgroup.
-pub fn plan_submissions(ray_count: u64, limits: &GpuLimits) -> (u64, u64) {
-    let chunk = rays_per_dispatch(limits);
-    let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
-    let per_submit = by_buffer.max(chunk);
-    let capacity = ray_count.min(per_submit).max(u64::from(WORKGROUP_SIZE));
-    (per_submit, capacity)
-}
-
-/// Splits a batch of `ray_count` rays into dispatches (see [`rays_per_dispatch`]).
-pub fn plan_dispatches(ray_count: u64, limits: &GpuLimits) -> Vec<Dispatch> {
-    let chunk = rays_per_dispatch(limits);
-    let dim = limits.max_compute_workgroups_per_dimension.max(1);
-    let mut out = Vec::new();
-    let mut first = 0;
-    while first < ray_count {
-        let n = (ray_count - first).min(chunk);
-        let groups = n.div_ceil(u64::from(WORKGROUP_SIZE)) as u32;
-        let groups_x = groups.min(dim);
-        out.push(Dispatch {
-            first_ray: first,
-            ray_count: n as u32,
-            groups_x,
-            groups_y: groups.div_ceil(groups_x),
-        });
-        first += n;
-    }
-    out
 }
 
 /// Device buffers reused by [`GpuBvh::trace`] across calls.
@@ -311,12 +189,12 @@ const HIT_ROW_BYTES: u64 = TEXEL_ROW as u64 * HIT_BYTES;
 
 /// Rows of the hit texture holding `hits` hits.
 fn hit_rows(hits: u64) -> u64 {
-    crate::bvh::texel_rows(hits)
+    texel_rows(hits)
 }
 
 /// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
 /// the device allows.
-fn ray_texture_capacity(limits: &GpuLimits) -> u64 {
+fn ray_texture_capacity(limits: &DeviceLimits) -> u64 {
     let by_rows = u64::from(TEXEL_ROW / 2) * u64::from(limits.max_texture_dimension_2d);
     rays_per_dispatch(limits).min(by_rows)
 }
@@ -380,7 +258,7 @@ impl Scratch {
                             label,
                             wgpu::TextureFormat::Rgba32Uint,
                             TEXEL_ROW,
-                            crate::bvh::texel_rows(per_ray * capacity) as u32,
+                            texel_rows(per_ray * capacity) as u32,
                         );
                         let v = t.create_view(&Default::default());
                         (t, v)
@@ -467,10 +345,7 @@ fn read_mapped<T: bytemuck::Pod>(
     let view = buffer
         .slice(..bytes)
         .get_mapped_range()
-        .map_err(|e| GpuError::Wgpu {
-            during: "reading results back",
-            message: e.to_string(),
-        })?;
+        .map_err(|e| GpuError::device("reading results back", e))?;
     match bytemuck::try_cast_slice::<u8, T>(&view) {
         Ok(s) => out.extend_from_slice(s),
         Err(_) => out.extend(bytemuck::pod_collect_to_vec::<u8, T>(&view)),
@@ -479,42 +354,37 @@ fn read_mapped<T: bytemuck::Pod>(
 }
 
 impl GpuBvh {
-    /// Compiles (and caches) the pipeline for these options ahead of the first trace, so
-    /// that the first trace's timing is not the compiler's.
-    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.prepare_precision(opts, Precision::WatertightF32)
-    }
-
-    /// The kernel variant tracing `opts` with `precision`, its rays read from `input`, with
-    /// the box test's parallel path when `parallel_rays` ([`KernelVariant::for_rays`]).
-    fn variant(
-        &self,
-        opts: &TraceOptions,
-        precision: Precision,
-        input: RayInput,
-        parallel_rays: bool,
-    ) -> KernelVariant {
-        KernelVariant {
+    /// The kernel tracing `opts` with this upload's storage, reading its rays from
+    /// `input`, with the box test's parallel path when `parallel_rays`
+    /// ([`KernelKey::for_rays`]).
+    fn key(&self, opts: &TraceOptions, input: RayInput, parallel_rays: bool) -> KernelKey {
+        KernelKey {
             parallel_rays,
-            ..KernelVariant::new(self.storage(), opts.traversal, opts.query, opts.counters)
-                .with_precision(precision)
-                .with_rays(input)
+            ..KernelKey::new(self.storage(), opts).with_rays(input)
         }
     }
 
-    /// [`GpuBvh::prepare`] for the kernels with the triangle test of `precision` (the ones
-    /// [`GpuBvh::trace`] runs: rays read as [`RayInput::for_storage`] says, with the box
-    /// test's parallel path and without it, see [`KernelVariant::for_rays`]).
-    pub fn prepare_precision(
-        &self,
-        opts: &TraceOptions,
-        precision: Precision,
-    ) -> Result<(), GpuError> {
-        self.supports(opts.traversal)?;
+    /// Checks that `opts` can run on this upload and device: the walk's data was uploaded
+    /// and fits its stack, the precision's feature is there.
+    pub fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        self.supports_traversal(opts.traversal)?;
+        if !self.ctx.supports_precision(opts.precision) {
+            return Err(GpuError::PrecisionUnsupported {
+                precision: opts.precision,
+                adapter: self.ctx.adapter_info().name.clone(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Compiles (and caches) the pipelines [`GpuBvh::trace`] runs for `opts` (with the box
+    /// test's parallel path and without it, see [`KernelKey::for_rays`]) ahead of the
+    /// first trace, so that the first trace's time is not the compiler's.
+    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        self.supports(opts)?;
         let input = RayInput::for_storage(self.storage());
         for parallel_rays in [true, false] {
-            self.ctx
-                .pipeline(self.variant(opts, precision, input, parallel_rays))?;
+            self.ctx.pipeline(self.key(opts, input, parallel_rays))?;
         }
         Ok(())
     }
@@ -537,65 +407,19 @@ impl GpuBvh {
             .unwrap_or(0)
     }
 
-    /// Traces `rays` and returns one hit per ray, with GPU and wall times.
-    pub fn trace(
-        &self,
-        rays: &[Ray],
-        traversal: Traversal,
-        query: Query,
-    ) -> Result<TraceOutput, GpuError> {
-        self.trace_with(
-            rays,
-            &TraceOptions {
-                traversal,
-                query,
-                counters: false,
-            },
-        )
-    }
-
-    /// [`GpuBvh::trace`], also returning each ray's counters (boxes and triangles tested).
-    pub fn trace_counted(
-        &self,
-        rays: &[Ray],
-        traversal: Traversal,
-        query: Query,
-    ) -> Result<TraceOutput, GpuError> {
-        self.trace_with(
-            rays,
-            &TraceOptions {
-                traversal,
-                query,
-                counters: true,
-            },
-        )
-    }
-
-    /// Traces `rays` as `opts` says: uploads them, dispatches the kernel (split as needed),
-    /// reads the hits (and counters) back. Batches larger than one device buffer allows are
-    /// traced in several submissions; times are summed.
-    pub fn trace_with(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        self.trace_with_precision(rays, opts, Precision::WatertightF32)
-    }
-
-    /// [`GpuBvh::trace_with`] with the triangle test of `precision`
-    /// ([`bvhtrace_core::Precision`]; the results equal
-    /// [`bvhtrace_core::trace_batch_precision`]'s bit for bit). f64 needs a device with
-    /// `SHADER_F64` ([`GpuContext::supports_precision`]); otherwise this returns
-    /// [`GpuError::PrecisionUnsupported`].
-    pub fn trace_with_precision(
-        &self,
-        rays: &[Ray],
-        opts: &TraceOptions,
-        precision: Precision,
-    ) -> Result<TraceOutput, GpuError> {
+    /// Traces `rays` as `opts` says: uploads them, dispatches the kernel (split as
+    /// needed), reads the hits (and counters) back. The results equal
+    /// [`bvhtrace_core::trace_rays`]'s bit for bit. Batches larger than one device buffer
+    /// allows are traced in several submissions; times are summed. f64 needs a device
+    /// with `SHADER_F64` ([`GpuContext::supports_precision`]).
+    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
         // The pipeline first: an unsupported traversal or precision fails before any
-        // upload. The rays are looked at once, and every chunk uses this variant.
-        self.supports(opts.traversal)?;
+        // upload. The rays are looked at once, and every chunk uses this kernel.
+        self.supports(opts)?;
         let input = RayInput::for_storage(self.storage());
-        let variant = self.variant(opts, precision, input, true).for_rays(rays);
-        self.ctx.pipeline(variant)?;
-        let parallel_rays = variant.parallel_rays;
+        let key = self.key(opts, input, true).for_rays(rays);
+        self.ctx.pipeline(key)?;
+        let parallel_rays = key.parallel_rays;
         let start = Instant::now();
         let n = rays.len() as u64;
         let mut out = TraceOutput {
@@ -616,10 +440,10 @@ impl GpuBvh {
             capacity = capacity.min(per_submit);
         }
 
-        let mut guard = self.scratch.lock().map_err(|_| GpuError::Wgpu {
-            during: "locking the scratch buffers",
-            message: "a thread panicked while holding them".into(),
-        })?;
+        let mut guard = self
+            .scratch
+            .lock()
+            .map_err(|_| GpuError::Poisoned("scratch buffers"))?;
         // Counter buffers only once counters are asked for; kept from then on.
         let had_counters = guard.as_ref().is_some_and(|s| s.counters.is_some());
         if guard.as_ref().is_none_or(|s| {
@@ -669,7 +493,6 @@ impl GpuBvh {
                         counter_buffers.map(|c| &c.out),
                         count,
                         opts,
-                        precision,
                         parallel_rays,
                         tw,
                     )?;
@@ -700,37 +523,40 @@ impl GpuBvh {
                 });
             }
             drop(tx);
-            device.poll(wgpu::PollType::wait_indefinitely())?;
+            device
+                .poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| GpuError::device("waiting for the GPU", e))?;
             let mut results = Vec::with_capacity(maps.len());
             for _ in 0..maps.len() {
-                results.push(rx.recv().map_err(|_| GpuError::Wgpu {
-                    during: "reading results back",
-                    message: "a buffer mapping never completed".into(),
+                results.push(rx.recv().map_err(|_| {
+                    GpuError::device("reading results back", "a buffer mapping never completed")
                 })?);
             }
             let mapped = results.into_iter().collect::<Result<Vec<()>, _>>();
-            let read = mapped.map_err(GpuError::from).and_then(|_| {
-                read_mapped(&s.hits_read, hit_bytes, &mut out.hits)?;
-                if let (Some(c), Some(b)) = (out.counters.as_mut(), counter_buffers) {
-                    read_mapped(&b.read, counter_bytes, c)?;
-                }
-                if let Some(q) = &s.queries {
-                    let mut ts: Vec<u64> = Vec::with_capacity(2);
-                    read_mapped(&q.read, 16, &mut ts)?;
-                    let ticks = ts[1].saturating_sub(ts[0]) as f64;
-                    if let Some(g) = out.gpu_ms.as_mut() {
-                        *g += ticks * period_ns * 1e-6;
+            let read = mapped
+                .map_err(|e| GpuError::device("reading results back", e))
+                .and_then(|_| {
+                    read_mapped(&s.hits_read, hit_bytes, &mut out.hits)?;
+                    if let (Some(c), Some(b)) = (out.counters.as_mut(), counter_buffers) {
+                        read_mapped(&b.read, counter_bytes, c)?;
                     }
-                }
-                Ok(())
-            });
+                    if let Some(q) = &s.queries {
+                        let mut ts: Vec<u64> = Vec::with_capacity(2);
+                        read_mapped(&q.read, 16, &mut ts)?;
+                        let ticks = ts[1].saturating_sub(ts[0]) as f64;
+                        if let Some(g) = out.gpu_ms.as_mut() {
+                            *g += ticks * period_ns * 1e-6;
+                        }
+                    }
+                    Ok(())
+                });
             for (b, _) in &maps {
                 b.unmap();
             }
             read?;
         }
-        if let Some(twin) = self.twin.as_deref() {
-            finish_incomplete(twin, rays, opts.traversal, opts.query, precision, &mut out);
+        if let Some(bvh) = self.host_copy.as_deref() {
+            finish_incomplete(bvh, rays, opts, &mut out);
         }
         out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(out)
@@ -738,33 +564,19 @@ impl GpuBvh {
 
     /// Records the traversal of `batch` into `encoder`, as one compute pass with one
     /// dispatch per chunk of at most [`rays_per_dispatch`] rays. `timestamp_writes`, when
-    /// given, is attached to that pass (the device needs `TIMESTAMP_QUERY`).
+    /// given, is attached to that pass (the device needs `TIMESTAMP_QUERY`). The bind
+    /// groups for the caller's buffers are made once and reused while the same buffers come
+    /// back.
     ///
     /// The buffers are checked (usage and size) before anything is recorded; the caller
-    /// submits the encoder.
+    /// submits the encoder. Rays are never [`bvhtrace_core::INCOMPLETE`] here unless the
+    /// context's tuning sets a trip budget (CPU drivers): finish those with
+    /// [`bvhtrace_kernels::finish_incomplete`].
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         batch: &RayBatch<'_>,
         opts: &TraceOptions,
-        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
-    ) -> Result<(), GpuError> {
-        self.record_precision(
-            encoder,
-            batch,
-            opts,
-            Precision::WatertightF32,
-            timestamp_writes,
-        )
-    }
-
-    /// [`GpuBvh::record`] with the triangle test of `precision`.
-    pub fn record_precision(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: &RayBatch<'_>,
-        opts: &TraceOptions,
-        precision: Precision,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
         self.record_rays(
@@ -776,7 +588,6 @@ impl GpuBvh {
             batch.counters,
             batch.ray_count,
             opts,
-            precision,
             true,
             timestamp_writes,
         )
@@ -785,7 +596,7 @@ impl GpuBvh {
     /// Records the traversal of `n` rays read from `rays`, hits (and counters) to the
     /// given buffers. A texture holds the whole batch in one dispatch. `parallel_rays` false
     /// leaves the box test's parallel path out: only when the host has seen that no ray
-    /// needs it ([`KernelVariant::for_rays`]).
+    /// needs it ([`KernelKey::for_rays`]).
     #[allow(clippy::too_many_arguments)]
     fn record_rays(
         &self,
@@ -794,11 +605,10 @@ impl GpuBvh {
         counters: Option<&wgpu::Buffer>,
         n: u64,
         opts: &TraceOptions,
-        precision: Precision,
         parallel_rays: bool,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
-        self.supports(opts.traversal)?;
+        self.supports(opts)?;
         if let RaysBinding::Buffer { rays, hits } = rays {
             check_buffer("rays", rays, n, RAY_BYTES)?;
             check_buffer("hits", hits, n, HIT_BYTES)?;
@@ -814,14 +624,9 @@ impl GpuBvh {
             None
         };
         let input = rays.input();
-        let variant = self.variant(opts, precision, input, parallel_rays);
-        let pipeline = self.ctx.pipeline(variant)?;
-        let group0 =
-            self.bind_group(variant.needs_escapes())
-                .ok_or(GpuError::EscapesNotUploaded {
-                    traversal: opts.traversal,
-                })?;
-        let device = self.ctx.device();
+        let key = self.key(opts, input, parallel_rays);
+        let pipeline = self.ctx.pipeline(key)?;
+        let group0 = self.bind_group(opts.traversal)?;
         let dispatches = plan_dispatches(n, self.ctx.limits());
         if matches!(rays, RaysBinding::Texture { .. }) && dispatches.len() > 1 {
             return Err(GpuError::BadBuffer {
@@ -829,7 +634,55 @@ impl GpuBvh {
                 problem: format!("{n} rays in a ray texture are more than one dispatch"),
             });
         }
-        let groups: Vec<wgpu::BindGroup> = dispatches
+        let groups = self.batch_groups(rays, counters, n, opts.counters)?;
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("bvhtrace trace"),
+            timestamp_writes,
+        });
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, group0.group(), &[]);
+        for (d, g) in dispatches.iter().zip(groups.iter()) {
+            pass.set_bind_group(1, g, &[]);
+            pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+        }
+        Ok(())
+    }
+
+    /// The batch bind groups (one per dispatch) for these resources: made on first use and
+    /// kept while the same resources come back, so a caller recording every frame into the
+    /// same buffers makes none. At most [`BATCH_GROUPS_KEPT`] sets are kept; they hold
+    /// references to the buffers.
+    fn batch_groups(
+        &self,
+        rays: RaysBinding<'_>,
+        counters: Option<&wgpu::Buffer>,
+        n: u64,
+        with_counters: bool,
+    ) -> Result<std::sync::Arc<Vec<wgpu::BindGroup>>, GpuError> {
+        let key = BatchKey {
+            rays: match rays {
+                RaysBinding::Buffer { rays, hits } => (
+                    BatchResource::Buffer(rays.clone()),
+                    BatchResource::Buffer(hits.clone()),
+                ),
+                RaysBinding::Texture { rays, hits } => (
+                    BatchResource::View(rays.clone()),
+                    BatchResource::View(hits.clone()),
+                ),
+            },
+            counters: counters.cloned(),
+            ray_count: n,
+        };
+        let mut cache = self
+            .batch_groups
+            .lock()
+            .map_err(|_| GpuError::Poisoned("batch bind groups"))?;
+        if let Some(g) = cache.get(&key) {
+            return Ok(g.clone());
+        }
+        let device = self.ctx.device();
+        let layout = self.ctx.batch_layout(with_counters, rays.input());
+        let groups: Vec<wgpu::BindGroup> = plan_dispatches(n, self.ctx.limits())
             .iter()
             .map(|d| {
                 let (first, count) = (d.first_ray, u64::from(d.ray_count));
@@ -861,94 +714,68 @@ impl GpuBvh {
                 }
                 device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("bvhtrace batch"),
-                    layout: self.ctx.batch_layout_for(opts.counters, input),
+                    layout,
                     entries: &entries,
                 })
             })
             .collect();
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("bvhtrace trace"),
-            timestamp_writes,
-        });
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, group0, &[]);
-        for (d, g) in dispatches.iter().zip(&groups) {
-            pass.set_bind_group(1, g, &[]);
-            pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+        if cache.len() >= BATCH_GROUPS_KEPT {
+            cache.clear();
         }
-        Ok(())
+        let groups = std::sync::Arc::new(groups);
+        cache.insert(key, groups.clone());
+        Ok(groups)
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
+/// How many sets of batch bind groups one [`GpuBvh`] keeps.
+pub(crate) const BATCH_GROUPS_KEPT: usize = 16;
 
-    fn limits(binding: u64, dim: u32, align: u32) -> GpuLimits {
-        GpuLimits {
-            max_storage_buffer_binding_size: binding,
-            max_buffer_size: 1 << 40,
-            max_compute_workgroups_per_dimension: dim,
-            min_storage_buffer_offset_alignment: align,
-            max_texture_dimension_2d: 8192,
-        }
+/// One resource of a batch bind group.
+#[derive(Clone, PartialEq, Eq, Hash)]
+enum BatchResource {
+    Buffer(wgpu::Buffer),
+    View(wgpu::TextureView),
+}
+
+/// What a set of batch bind groups was made for.
+#[derive(Clone, PartialEq, Eq, Hash)]
+pub(crate) struct BatchKey {
+    rays: (BatchResource, BatchResource),
+    counters: Option<wgpu::Buffer>,
+    ray_count: u64,
+}
+
+/// The batch bind groups a [`GpuBvh`] keeps.
+pub(crate) type BatchGroups = HashMap<BatchKey, std::sync::Arc<Vec<wgpu::BindGroup>>>;
+
+impl Tracer for GpuBvh {
+    fn backend(&self) -> &'static str {
+        "wgpu"
     }
 
-    fn check(ray_count: u64, l: &GpuLimits) {
-        let plan = plan_dispatches(ray_count, l);
-        let chunk = rays_per_dispatch(l);
-        let mut next = 0;
-        for d in &plan {
-            assert_eq!(d.first_ray, next, "{plan:?}");
-            assert!(u64::from(d.ray_count) <= chunk);
-            // Every chunk starts at an aligned offset in all three buffers.
-            for stride in [RAY_BYTES, HIT_BYTES, COUNTERS_BYTES] {
-                assert_eq!(
-                    d.first_ray * stride % u64::from(l.min_storage_buffer_offset_alignment),
-                    0
-                );
-            }
-            assert!(u64::from(d.ray_count) * RAY_BYTES <= l.max_storage_buffer_binding_size);
-            assert!(d.groups_x <= l.max_compute_workgroups_per_dimension);
-            assert!(d.groups_y <= l.max_compute_workgroups_per_dimension);
-            let threads = u64::from(d.groups_x) * u64::from(d.groups_y) * u64::from(WORKGROUP_SIZE);
-            assert!(threads >= u64::from(d.ray_count));
-            // No whole spare row of workgroups.
-            assert!(
-                threads - u64::from(d.ray_count)
-                    < u64::from(d.groups_x) * u64::from(WORKGROUP_SIZE)
-            );
-            next += u64::from(d.ray_count);
-        }
-        assert_eq!(next, ray_count);
+    fn device_name(&self) -> String {
+        let i = self.ctx.adapter_info();
+        format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
     }
 
-    #[test]
-    fn dispatch_plans_cover_the_batch_within_limits() {
-        let lavapipe = limits(128 << 20, 65_535, 64);
-        assert_eq!(rays_per_dispatch(&lavapipe), MAX_RAYS_PER_DISPATCH);
-        for n in [
-            0,
-            1,
-            63,
-            64,
-            65,
-            1000,
-            MAX_RAYS_PER_DISPATCH,
-            MAX_RAYS_PER_DISPATCH + 1,
-            3 * MAX_RAYS_PER_DISPATCH + 17,
-        ] {
-            check(n, &lavapipe);
-        }
-        // The 4M-ray chunk needs 65,536 workgroups: a 2D grid on this device.
-        let plan = plan_dispatches(MAX_RAYS_PER_DISPATCH, &lavapipe);
-        assert_eq!((plan[0].groups_x, plan[0].groups_y), (65_535, 2));
-        // Small bindings, few workgroups per dimension, large alignment.
-        let tight = limits(1 << 16, 7, 256);
-        assert_eq!(rays_per_dispatch(&tight), 2048 / 256 * 256);
-        for n in [1, 255, 256, 2047, 2048, 2049, 100_000] {
-            check(n, &tight);
-        }
-        assert!(plan_dispatches(0, &tight).is_empty());
+    fn default_traversal(&self) -> Traversal {
+        Traversal::GPU_DEFAULT
+    }
+
+    fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        GpuBvh::supports(self, opts)
+    }
+
+    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
+        GpuBvh::trace(self, rays, opts)
+    }
+
+    fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
+        GpuBvh::prepare(self, opts)
+    }
+
+    fn upload_stats(&self) -> Option<bvhtrace_kernels::UploadStats> {
+        Some(*self.stats())
     }
 }

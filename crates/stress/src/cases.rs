@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, MISS, Query, Ray, Traversal, Triangle, trace_batch,
+    BuildOptions, BuilderKind, FlatBvh, MISS, Ray, TraceOptions, Traversal, Triangle, trace_rays,
 };
 use glam::{DVec3, Vec3};
 
@@ -1085,7 +1085,7 @@ fn self_hits(size: Size) -> Case {
     for (_, center) in &objects {
         let eye = *center + DVec3::new(0.7, 0.9, 3.2);
         let prim = camera_rays(eye, *center, 45.0, w, h);
-        let hits = trace_batch(&bvh, &prim, Traversal::FullStack, Query::Closest);
+        let hits = trace_rays(&bvh, &prim, &TraceOptions::closest(Traversal::FullStack)).hits;
         for (r, hit) in prim.iter().zip(&hits) {
             if !hit.is_hit() {
                 continue;

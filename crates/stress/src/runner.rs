@@ -6,13 +6,12 @@ use std::time::{Duration, Instant};
 
 use bvhtrace_core::intersect::flush_subnormal;
 use bvhtrace_core::oracle::{self, OracleHit, PreparedRay64};
-use bvhtrace_core::traverse::brute_force;
 use bvhtrace_core::{
-    FlatBvh, Hit, INVALID_RAY, MISS, Query, Ray, Traversal, Triangle, trace_batch,
+    FlatBvh, Hit, INVALID_RAY, MISS, Precision, Query, Ray, TraceOptions, TraceOutput, Traversal,
+    Triangle, brute_force,
 };
-use bvhtrace_gpu::{
-    AdapterChoice, FULL_STACK_SIZE, GpuBvh, GpuContext, GpuError, TraceOptions, UploadOptions,
-};
+use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
+use bvhtrace_kernels::{CpuTracer, FULL_STACK_SIZE, TraceError, Tracer};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -793,6 +792,87 @@ fn ms(since: Instant) -> f64 {
     since.elapsed().as_secs_f64() * 1e3
 }
 
+/// A run's report before it is judged: status `ok`, nothing counted.
+fn run_report(backend: &str, tr: Traversal, q: Query) -> RunReport {
+    RunReport {
+        backend: backend.into(),
+        traversal: tr.to_string(),
+        query: query_name(q).into(),
+        status: "ok".into(),
+        ..Default::default()
+    }
+}
+
+/// Each traversal and query's hits on one backend.
+type Hits = HashMap<(Traversal, Query), Vec<Hit>>;
+
+/// Traces `rays` as `opts` says on `tracer`, timed: refused (status `refused: ...`) when
+/// the tree is deeper than the backend's full stack; otherwise prepared and run once on a
+/// few rays first, so that the time is the trace's, not the driver's first-use work (on
+/// the CPU, there is none). `Err` is the run's status.
+fn trace_timed(
+    tracer: &dyn Tracer,
+    rays: &[Ray],
+    opts: &TraceOptions,
+) -> Result<TraceOutput, String> {
+    if let Err(TraceError::TooDeep { depth, max }) = tracer.supports(opts) {
+        return Err(format!(
+            "refused: depth {depth} > the kernel's {max}-entry stack"
+        ));
+    }
+    let warm = &rays[..rays.len().min(64)];
+    tracer
+        .prepare(opts)
+        .and_then(|_| tracer.trace(warm, opts))
+        .map_err(|e| format!("pipeline failed: {e}"))?;
+    tracer
+        .trace(rays, opts)
+        .map_err(|e| format!("trace failed: {e}"))
+}
+
+/// One backend's runs of `case`: every traversal and query traced on `tracer` and, when
+/// `report`, judged (a device's hits against `twin`'s, the CPU twins', bit for bit) into
+/// one [`RunReport`] each, labelled `backend`, in table order. Also returns the hits of
+/// the runs that completed.
+fn trace_all(
+    tracer: &dyn Tracer,
+    backend: &str,
+    case: &Case,
+    queries: &[Query],
+    judge: &Judge<'_>,
+    twin: Option<&Hits>,
+    report: bool,
+) -> (Vec<RunReport>, Hits) {
+    let mut runs = Vec::new();
+    let mut hits = Hits::new();
+    let device = tracer.backend() != "cpu";
+    for tr in TRAVERSALS {
+        for &q in queries {
+            let mut r = run_report(backend, tr, q);
+            match trace_timed(tracer, &case.rays, &TraceOptions::new(tr, q)) {
+                Ok(out) => {
+                    r.trace_ms = out.wall_ms;
+                    if device {
+                        r.gpu_incomplete = Some(out.incomplete);
+                    }
+                    if report {
+                        let cpu = twin.and_then(|t| t.get(&(tr, q))).map(Vec::as_slice);
+                        runs.push(judge.evaluate(r, q, &out.hits, cpu));
+                    }
+                    hits.insert((tr, q), out.hits);
+                }
+                Err(status) => {
+                    r.status = status;
+                    if report {
+                        runs.push(r);
+                    }
+                }
+            }
+        }
+    }
+    (runs, hits)
+}
+
 /// Builds the case's BVH, traces its rays with every traversal and query on every backend
 /// (the CPU twins always, to compare the GPU with; reported when `backends.cpu`), and
 /// judges every answer (see [`RunReport`]).
@@ -840,7 +920,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         .collect();
     let brute: Vec<Hit> = sample
         .par_iter()
-        .map(|&i| brute_force(&bvh, &case.rays[i]))
+        .map(|&i| brute_force(&bvh, &case.rays[i], Precision::WatertightF32))
         .collect();
     rep.oracle_ms = ms(t);
     rep.oracle_sample = sample.len();
@@ -862,27 +942,12 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     } else {
         &[Query::Closest]
     };
-    let base = |backend: &str, tr: Traversal, q: Query| RunReport {
-        backend: backend.into(),
-        traversal: tr.to_string(),
-        query: query_name(q).into(),
-        status: "ok".into(),
-        ..Default::default()
-    };
 
-    let mut cpu_hits: HashMap<(Traversal, Query), Vec<Hit>> = HashMap::new();
-    for tr in TRAVERSALS {
-        for &q in queries {
-            let t = Instant::now();
-            let hits = trace_batch(&bvh, &case.rays, tr, q);
-            let mut r = base("cpu", tr, q);
-            r.trace_ms = ms(t);
-            if backends.cpu {
-                rep.runs.push(judge.evaluate(r, q, &hits, None));
-            }
-            cpu_hits.insert((tr, q), hits);
-        }
-    }
+    // The CPU twins first (always: the GPU is compared with them), then the GPU kernels,
+    // both through the one `Tracer` interface.
+    let cpu = CpuTracer::new(&bvh);
+    let (runs, cpu_hits) = trace_all(&cpu, "cpu", case, queries, &judge, None, backends.cpu);
+    rep.runs.extend(runs);
 
     if let Some(ctx) = &backends.gpu {
         let deep = bvh.depth > FULL_STACK_SIZE;
@@ -917,52 +982,16 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             Err(e) => {
                 for tr in TRAVERSALS {
                     for &q in queries {
-                        let mut r = base("gpu", tr, q);
+                        let mut r = run_report("gpu", tr, q);
                         r.status = format!("upload failed: {e}");
                         rep.runs.push(r);
                     }
                 }
             }
             Ok(gpu) => {
-                for tr in TRAVERSALS {
-                    for &q in queries {
-                        let mut r = base("gpu", tr, q);
-                        if tr == Traversal::FullStack && deep {
-                            r.status = format!(
-                                "refused: depth {} > the kernel's {FULL_STACK_SIZE}-entry stack",
-                                bvh.depth
-                            );
-                            rep.runs.push(r);
-                            continue;
-                        }
-                        let opts = TraceOptions {
-                            traversal: tr,
-                            query: q,
-                            counters: false,
-                        };
-                        // Compile the pipeline and run it once on a few rays, so that the
-                        // timing is the trace's, not the driver's first-use work.
-                        let warm = &case.rays[..case.rays.len().min(64)];
-                        if let Err(e) = gpu.prepare(&opts).and_then(|_| gpu.trace_with(warm, &opts))
-                        {
-                            r.status = format!("pipeline failed: {e}");
-                            rep.runs.push(r);
-                            continue;
-                        }
-                        match gpu.trace_with(&case.rays, &opts) {
-                            Ok(out) => {
-                                r.trace_ms = out.wall_ms;
-                                r.gpu_incomplete = Some(out.incomplete);
-                                let cpu = cpu_hits.get(&(tr, q)).map(Vec::as_slice);
-                                rep.runs.push(judge.evaluate(r, q, &out.hits, cpu));
-                            }
-                            Err(e) => {
-                                r.status = format!("trace failed: {e}");
-                                rep.runs.push(r);
-                            }
-                        }
-                    }
-                }
+                let (runs, _) =
+                    trace_all(&gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
+                rep.runs.extend(runs);
             }
         }
     }

@@ -377,7 +377,7 @@ fn only_the_long_walks_spend_the_trip_budget() {
     let bounded = Backends::new(false, true)
         .gpu
         .as_ref()
-        .is_some_and(|ctx| ctx.trip_limit() != u32::MAX);
+        .is_some_and(|ctx| ctx.tuning().trip_limit != u32::MAX);
     let mut bad = Vec::new();
     let mut long_walks = 0;
     for (c, r) in all_runs().filter(|(_, r)| r.backend == "gpu") {

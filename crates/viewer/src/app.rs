@@ -4,8 +4,11 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use bvhtrace_core::{BuildOptions, BuilderKind, Query, Traversal, traverse::DEFAULT_SHORT_STACK};
-use bvhtrace_gpu::GpuContext;
+use bvhtrace_core::{
+    BuildOptions, BuilderKind, Query, TraceOptions, TraceOutput, Traversal,
+    traverse::DEFAULT_SHORT_STACK,
+};
+use bvhtrace_gpu::{GpuContext, Tracer};
 use bvhtrace_scene::Camera;
 use eframe::egui::{self, Color32, RichText};
 use eframe::egui_wgpu::RenderState;
@@ -16,7 +19,6 @@ use crate::cli::Args;
 use crate::display::Display;
 use crate::jobs::{BuiltBvh, Job, JobOutput, JobRequest, SceneData, Source};
 use crate::shade::{self, Accumulation, Comparison, Shade, View};
-use crate::tracer::{Tracer, cpu_trace};
 
 /// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
 /// when the window was closed before it finished).
@@ -113,14 +115,14 @@ struct Shot {
 
 /// The viewer.
 pub struct ViewerApp {
-    gpu: Option<GpuContext>,
+    /// eframe's device wrapped for the tracer, or why it cannot trace.
+    gpu: Result<GpuContext, String>,
     render_state: Option<RenderState>,
     adapter_line: String,
     /// The device is a CPU driver (lavapipe): its timestamps do not time the kernels.
     cpu_adapter: bool,
     scene: Option<Arc<SceneData>>,
     built: Option<BuiltBvh>,
-    tracer: Option<Tracer>,
     generation: u64,
     job: Option<Job>,
     error: Option<String>,
@@ -156,7 +158,9 @@ pub struct ViewerApp {
 impl ViewerApp {
     /// Creates the app from eframe's creation context: wraps eframe's wgpu device (the one
     /// that draws the window) in a [`GpuContext`] for the traversal, and starts loading the
-    /// scene named on the command line.
+    /// scene named on the command line. A device the tracer cannot use (see
+    /// [`GpuContext::from_device`]) is reported on stderr and in the side panel, and the
+    /// CPU traces instead.
     pub fn new(cc: &eframe::CreationContext<'_>, args: &Args, outcome: Outcome) -> ViewerApp {
         let render_state = cc.wgpu_render_state.clone();
         let (gpu, adapter_line, cpu_adapter) = match &render_state {
@@ -164,10 +168,15 @@ impl ViewerApp {
                 let info = rs.adapter.get_info();
                 let line = format!("{} ({:?}, {:?})", info.name, info.device_type, info.backend);
                 let cpu = info.device_type == wgpu::DeviceType::Cpu;
-                let ctx = GpuContext::from_device(rs.device.clone(), rs.queue.clone(), info);
-                (Some(ctx), line, cpu)
+                let ctx = GpuContext::from_device(rs.device.clone(), rs.queue.clone(), info)
+                    .map_err(|e| {
+                        let e = format!("the GPU cannot trace: {e}");
+                        eprintln!("error: {e} (tracing on the CPU instead)");
+                        e
+                    });
+                (ctx, line, cpu)
             }
-            None => (None, "no wgpu device".to_string(), true),
+            None => (Err("no wgpu device".to_string()), "none".to_string(), true),
         };
         let traversal = args.traversal;
         let (kind, k) = match traversal {
@@ -206,7 +215,6 @@ impl ViewerApp {
             cpu_adapter,
             scene: None,
             built: None,
-            tracer: None,
             generation: 0,
             job: None,
             error: None,
@@ -305,9 +313,6 @@ impl ViewerApp {
             self.compare = None;
             self.error = None;
         }
-        let mut tracer = Tracer::new(built.bvh.clone(), built.gpu.clone());
-        tracer.prefer_cpu = self.settings.prefer_cpu;
-        self.tracer = Some(tracer);
         self.built = Some(built);
         self.scene = Some(scene);
         self.generation += 1;
@@ -331,7 +336,7 @@ impl ViewerApp {
     /// then one batch of secondary samples while the view accumulates. Returns true when
     /// the image changed.
     fn step(&mut self, size: [u32; 2]) -> bool {
-        let (Some(scene), Some(tracer)) = (&self.scene, &mut self.tracer) else {
+        let (Some(scene), Some(built)) = (&self.scene, &mut self.built) else {
             return false;
         };
         let s = &self.settings;
@@ -351,10 +356,10 @@ impl ViewerApp {
             frame_ms: self.stats.frame_ms,
             ..Default::default()
         };
-        let add = |stats: &mut FrameStats, n: usize, t: &crate::tracer::Traced| {
+        let add = |stats: &mut FrameStats, n: usize, t: &TraceOutput, on_gpu: bool| {
             stats.rays += n as u64;
             stats.trace_ms += t.wall_ms;
-            stats.on_gpu &= t.on_gpu;
+            stats.on_gpu &= on_gpu;
             stats.gpu_ms = match (stats.gpu_ms, t.gpu_ms) {
                 (Some(a), Some(b)) => Some(a + b),
                 _ => None,
@@ -370,14 +375,20 @@ impl ViewerApp {
                 self.secondary_rate = None;
             }
             if self.key.as_ref().is_some_and(|k| k.traversal != traversal) {
-                tracer.retry_gpu();
-                tracer.prepare(traversal);
+                built.retry_gpu();
+                built.prepare(traversal);
             }
-            tracer.prefer_cpu = s.prefer_cpu;
             let rays = self.cam.rays(size[0], size[1]);
-            let t = tracer.trace(&rays, traversal, Query::Closest, s.heatmap);
-            add(&mut stats, rays.len(), &t);
-            self.primary_on_gpu = t.on_gpu;
+            let opts = TraceOptions::closest(traversal).with_counters(s.heatmap);
+            let (t, on_gpu) = match built.trace(&rays, &opts, s.prefer_cpu) {
+                Ok(r) => r,
+                Err(e) => {
+                    self.error = Some(format!("tracing failed: {e}"));
+                    return false;
+                }
+            };
+            add(&mut stats, rays.len(), &t, on_gpu);
+            self.primary_on_gpu = on_gpu;
             self.accum = Some(Accumulation::new(
                 size[0],
                 size[1],
@@ -408,8 +419,15 @@ impl ViewerApp {
             };
             let k = wanted.clamp(1, 64).min(s.max_samples - acc.samples);
             let sec = acc.secondary_rays(view, k);
-            let t = tracer.trace(&sec, traversal, Query::Any, false);
-            add(&mut stats, sec.len(), &t);
+            let opts = TraceOptions::new(traversal, Query::Any);
+            let (t, on_gpu) = match built.trace(&sec, &opts, s.prefer_cpu) {
+                Ok(r) => r,
+                Err(e) => {
+                    self.error = Some(format!("tracing failed: {e}"));
+                    return changed;
+                }
+            };
+            add(&mut stats, sec.len(), &t, on_gpu);
             let rate = sec.len() as f64 / t.wall_ms.max(1e-3);
             self.secondary_rate = Some(match self.secondary_rate {
                 Some(r) => 0.5 * r + 0.5 * rate,
@@ -438,10 +456,19 @@ impl ViewerApp {
 
     /// Traces the displayed image's primary rays with the CPU twin and compares hits.
     fn compare_with_cpu(&mut self, ctx: &egui::Context) {
-        let (Some(acc), Some(tracer), Some(key)) = (&self.accum, &self.tracer, &self.key) else {
+        let (Some(acc), Some(built), Some(key)) = (&self.accum, &self.built, &self.key) else {
             return;
         };
-        let t = cpu_trace(&tracer.bvh, &acc.rays, key.traversal, Query::Closest, false);
+        let t = match built
+            .cpu
+            .trace(&acc.rays, &TraceOptions::closest(key.traversal))
+        {
+            Ok(t) => t,
+            Err(e) => {
+                self.error = Some(format!("the CPU comparison failed: {e}"));
+                return;
+            }
+        };
         let (result, img) = shade::compare_hits(&acc.hits, &t.hits, &self.image);
         let mut display = Display::default();
         display.set(
@@ -744,29 +771,31 @@ impl ViewerApp {
             ui.radio_value(&mut self.settings.prefer_cpu, true, "CPU twin");
         });
         ui.label(RichText::new(format!("device: {}", self.adapter_line)).small());
-        if let Some(t) = &self.tracer {
-            if let Some(g) = &t.gpu {
+        if let Some(b) = &self.built {
+            if let Ok(g) = &b.gpu {
                 ui.label(
                     RichText::new(format!(
                         "BVH on the GPU as {:?}, {:.1} MiB",
-                        g.storage(),
-                        g.stats().total_bytes() as f64 / (1024.0 * 1024.0)
+                        g.storage,
+                        g.tracer.uploaded_bytes() as f64 / (1024.0 * 1024.0)
                     ))
                     .small(),
                 );
             }
-            if let Some(p) = &t.gpu_problem {
+            if let Some(p) = b.gpu_problem() {
                 ui.label(
                     RichText::new(format!("{p}: tracing on the CPU instead"))
                         .color(Color32::from_rgb(255, 170, 60)),
                 );
-                if t.gpu.is_some() && ui.button("Retry the GPU").clicked() {
-                    if let Some(t) = &mut self.tracer {
-                        t.retry_gpu();
+                if b.gpu.is_ok() && ui.button("Retry the GPU").clicked() {
+                    if let Some(b) = &mut self.built {
+                        b.retry_gpu();
                     }
                     self.key = None;
                 }
             }
+        } else if let Err(e) = &self.gpu {
+            ui.label(RichText::new(e).color(Color32::from_rgb(255, 170, 60)));
         }
         ui.separator();
         let can_compare = self.accum.is_some() && self.job.is_none();
@@ -1049,9 +1078,9 @@ impl ViewerApp {
                 caption.push_str("  ·  ");
             }
             let gpu_failed = self
-                .tracer
+                .built
                 .as_ref()
-                .is_some_and(|t| t.gpu_problem.is_some() && !t.prefer_cpu);
+                .is_some_and(|b| b.gpu_problem().is_some() && !self.settings.prefer_cpu);
             caption.push_str(&format!(
                 "{}  ·  {}  ·  {}",
                 scene.name,

@@ -1,13 +1,16 @@
 //! Loading a scene, building its BVH and uploading it, on a worker thread: the window keeps
 //! drawing (with a progress line) while it runs, and a failure leaves the current scene as
-//! it is.
+//! it is. The finished [`BuiltBvh`] holds the two tracers the viewer picks between.
 
 use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use std::time::Instant;
 
-use bvhtrace_core::{BuildOptions, BvhStats, FlatBvh, Traversal, Triangle};
-use bvhtrace_gpu::{FULL_STACK_SIZE, GpuBvh, GpuContext, TraceOptions, UploadOptions};
+use bvhtrace_core::{
+    BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal, Triangle,
+};
+use bvhtrace_gpu::kernels::FULL_STACK_SIZE;
+use bvhtrace_gpu::{BvhStorage, CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, UploadOptions};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
 
@@ -46,20 +49,94 @@ impl SceneData {
     }
 }
 
-/// A built (and, when a device is there, uploaded) BVH.
+/// The BVH on the GPU.
+pub struct UploadedBvh {
+    /// Traces through the upload.
+    pub tracer: Box<dyn Tracer>,
+    /// Where the upload keeps the tree.
+    pub storage: BvhStorage,
+}
+
+/// A built (and, when a device is there, uploaded) BVH, with the two tracers over it.
 pub struct BuiltBvh {
-    /// The tree.
-    pub bvh: Arc<FlatBvh>,
     /// Its quality figures.
     pub stats: BvhStats,
     /// The options it was built with.
     pub options: BuildOptions,
     /// Build time, milliseconds.
     pub build_ms: f64,
+    /// The CPU walks over the tree: the fallback, and the reference of "Compare with CPU".
+    pub cpu: CpuTracer,
     /// The upload, or why there is none.
-    pub gpu: Result<Arc<GpuBvh>, String>,
+    pub gpu: Result<UploadedBvh, String>,
+    /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
+    /// [`BuiltBvh::retry_gpu`].
+    pub gpu_failure: Option<String>,
     /// Upload time (buffers and pipelines), milliseconds.
     pub upload_ms: f64,
+}
+
+/// The batches the viewer traces with `traversal`: primary rays, primary rays with
+/// counters (the heatmap), shadow and occlusion rays.
+pub fn batch_options(traversal: Traversal) -> [TraceOptions; 3] {
+    [
+        TraceOptions::closest(traversal),
+        TraceOptions::closest(traversal).with_counters(true),
+        TraceOptions::new(traversal, Query::Any),
+    ]
+}
+
+impl BuiltBvh {
+    /// Why the GPU is not used: the missing upload, else the failed trace.
+    pub fn gpu_problem(&self) -> Option<&str> {
+        match &self.gpu {
+            Err(e) => Some(e),
+            Ok(_) => self.gpu_failure.as_deref(),
+        }
+    }
+
+    /// The GPU's tracer, when it is uploaded, has not failed, and `prefer_cpu` is off.
+    pub fn gpu_tracer(&self, prefer_cpu: bool) -> Option<&dyn Tracer> {
+        match &self.gpu {
+            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g.tracer.as_ref()),
+            _ => None,
+        }
+    }
+
+    /// Forgets a failed trace so that the next batch tries the GPU again (after the user
+    /// changed the traversal, for instance). A missing upload stays missing.
+    pub fn retry_gpu(&mut self) {
+        self.gpu_failure = None;
+    }
+
+    /// Compiles the GPU pipelines of [`batch_options`] ahead of the first frame. A failure
+    /// (a traversal the upload cannot run, say) is kept as [`BuiltBvh::gpu_failure`].
+    pub fn prepare(&mut self, traversal: Traversal) {
+        let Ok(g) = &self.gpu else { return };
+        if let Some(e) = batch_options(traversal)
+            .iter()
+            .find_map(|o| g.tracer.prepare(o).err())
+        {
+            self.gpu_failure = Some(e.to_string());
+        }
+    }
+
+    /// Traces one batch on the GPU when [`BuiltBvh::gpu_tracer`] gives one, falling back
+    /// to the CPU (and remembering why) when it fails. The flag is true when the GPU traced.
+    pub fn trace(
+        &mut self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+        prefer_cpu: bool,
+    ) -> Result<(TraceOutput, bool), TraceError> {
+        if let Some(g) = self.gpu_tracer(prefer_cpu) {
+            match g.trace(rays, opts) {
+                Ok(out) => return Ok((out, true)),
+                Err(e) => self.gpu_failure = Some(format!("GPU trace failed: {e}")),
+            }
+        }
+        Ok((self.cpu.trace(rays, opts)?, false))
+    }
 }
 
 /// Where a job's scene comes from.
@@ -78,8 +155,8 @@ pub struct JobRequest {
     pub build: BuildOptions,
     /// The traversal whose pipelines to compile ahead of the first frame.
     pub traversal: Traversal,
-    /// The shared device, if there is one.
-    pub gpu: Option<GpuContext>,
+    /// The shared device, or why there is none.
+    pub gpu: Result<GpuContext, String>,
 }
 
 /// A finished job.
@@ -164,26 +241,24 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
     let stats = BvhStats::of(&bvh);
     let t2 = Instant::now();
     let gpu = match &req.gpu {
-        None => Err("no GPU device".to_string()),
-        Some(ctx) => {
+        Err(e) => Err(e.clone()),
+        Ok(ctx) => {
             stage(format!("uploading {} nodes to the GPU", bvh.nodes.len()));
             GpuBvh::upload(ctx, &bvh, &upload_options(bvh.depth))
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());
-                    for (query, counters) in [
-                        (bvhtrace_core::Query::Closest, false),
-                        (bvhtrace_core::Query::Any, false),
-                    ] {
-                        // A traversal this upload cannot run is reported at trace time.
-                        if g.supports(req.traversal).is_ok() {
-                            g.prepare(&TraceOptions {
-                                traversal: req.traversal,
-                                query,
-                                counters,
-                            })?;
+                    // Primary and shadow rays; a traversal this upload cannot run is
+                    // reported at trace time.
+                    let [closest, _, any] = batch_options(req.traversal);
+                    for o in [closest, any] {
+                        if g.supports(&o).is_ok() {
+                            g.prepare(&o)?;
                         }
                     }
-                    Ok(Arc::new(g))
+                    Ok(UploadedBvh {
+                        storage: g.storage(),
+                        tracer: Box::new(g),
+                    })
                 })
                 .map_err(|e| format!("GPU upload failed: {e}"))
         }
@@ -193,11 +268,12 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         scene,
         new_scene,
         built: BuiltBvh {
-            bvh: Arc::new(bvh),
             stats,
             options: req.build,
             build_ms,
+            cpu: CpuTracer::new(Arc::new(bvh)),
             gpu,
+            gpu_failure: None,
             upload_ms,
         },
     })
@@ -243,5 +319,39 @@ impl Job {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn without_a_gpu_the_cpu_traces_and_says_why() {
+        let tris = vec![[
+            Vec3::new(-1.0, -1.0, 0.0),
+            Vec3::new(1.0, -1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ]];
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("builds");
+        let mut b = BuiltBvh {
+            stats: BvhStats::of(&bvh),
+            options: BuildOptions::default(),
+            build_ms: 0.0,
+            cpu: CpuTracer::new(Arc::new(bvh)),
+            gpu: Err("no Vulkan adapter".into()),
+            gpu_failure: None,
+            upload_ms: 0.0,
+        };
+        assert!(b.gpu_tracer(false).is_none());
+        let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
+        let [_, counted, _] = batch_options(Traversal::Stackless);
+        let (out, on_gpu) = b.trace(&rays, &counted, false).expect("the CPU traces");
+        assert!(!on_gpu);
+        assert_eq!(out.hits[0].prim, 0);
+        assert_eq!(out.counters.map(|c| c.len()), Some(1));
+        // Retrying cannot conjure an upload: the reason stays.
+        b.retry_gpu();
+        assert_eq!(b.gpu_problem(), Some("no Vulkan adapter"));
     }
 }

@@ -7,10 +7,12 @@
 //!
 //! * [`camera`]: orbit, pan, zoom and fly moves, and `bvhtrace render` flags.
 //! * [`shade`]: hits to pixels (the CLI's shading modes) and progressive accumulation.
-//! * [`tracer`]: GPU tracing with a CPU fallback.
-//! * [`jobs`]: scene loading, BVH building and upload off the UI thread.
+//! * [`jobs`]: scene loading, BVH building and upload off the UI thread; the resulting
+//!   [`jobs::BuiltBvh`] holds the GPU's [`bvhtrace_gpu::Tracer`] and the CPU twin's
+//!   ([`bvhtrace_gpu::CpuTracer`]), and falls back from the first to the second.
 //! * [`app`]: the eframe application; [`cli`]: the command line; [`setup`]: eframe's wgpu
-//!   configuration (the adapter choice and the device features the tracer wants).
+//!   configuration (the adapter choice, and the features and limits
+//!   [`bvhtrace_gpu::GpuContext`] asks for).
 #![warn(missing_docs)]
 
 pub mod app;
@@ -21,4 +23,3 @@ pub mod jobs;
 pub mod png;
 pub mod setup;
 pub mod shade;
-pub mod tracer;

@@ -310,7 +310,7 @@ pub fn compare_hits(a: &[Hit], b: &[Hit], base: &[u8]) -> (Comparison, Vec<u8>) 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bvhtrace_core::{BuildOptions, FlatBvh, Query, Traversal, trace_batch};
+    use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
 
     fn quad() -> Vec<Triangle> {
         let (a, b, c, d) = (
@@ -333,14 +333,15 @@ mod tests {
         };
         let (w, h) = (8, 6);
         let rays = cam.rays(w, h);
-        let hits = trace_batch(&bvh, &rays, Traversal::Stackless, Query::Closest);
+        let hits = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless)).hits;
         let mut acc = Accumulation::new(w, h, rays, hits, Vec::new(), &tris);
         assert!(acc.hit_count() > 0);
         let view = View::for_camera(Shade::Ao, false, &cam, 2.0);
         for _ in 0..3 {
             let sec = acc.secondary_rays(&view, 4);
             assert_eq!(sec.len(), acc.hit_count() * 4);
-            let sh = trace_batch(&bvh, &sec, Traversal::Stackless, Query::Any);
+            let any = TraceOptions::new(Traversal::Stackless, Query::Any);
+            let sh = trace_rays(&bvh, &sec, &any).hits;
             acc.accumulate(&view, &sec, &sh, 4);
         }
         assert_eq!(acc.samples, 12);

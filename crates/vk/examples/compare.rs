@@ -10,12 +10,16 @@
 //! rays from `bvhtrace render`'s default camera (the scene's camera, else the framing one).
 //! Both backends use the BVH in storage buffers (the same kernel); wgpu with textures (its
 //! default on CPU adapters) is listed too. The hits of all three are checked to be equal.
+//! Both contexts use their device's [`bvhtrace_vk::DriverTuning`]: on lavapipe,
+//! `DISPATCH_THREADS` is the CPU count (lavapipe's own default thread count; no
+//! environment variable is read). With `LP_NUM_THREADS` set to another count the hits are
+//! the same; only the sharing of ray blocks among lavapipe's threads is less even.
 
 use std::error::Error;
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, Traversal};
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions};
-use bvhtrace_vk::{VkBvh, VkContext};
+use bvhtrace_core::{BuildOptions, FlatBvh, Traversal};
+use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, UploadOptions};
+use bvhtrace_vk::{AdapterChoice, TraceOptions, VkBvh, VkContext};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -56,14 +60,16 @@ fn main() -> Result<(), Box<dyn Error>> {
     }
     let runs = runs.max(1);
 
-    let vk = VkContext::new(None)?;
+    let vk = VkContext::new(AdapterChoice::Auto)?;
     let wg = GpuContext::new(AdapterChoice::Auto)?;
     eprintln!(
-        "ash: {} (timestamps {}); wgpu: {} (timestamps {}); LP_NUM_THREADS={}",
+        "ash: {} (timestamps {}, {:?}); wgpu: {} (timestamps {}, {:?}); LP_NUM_THREADS={}",
         vk.device_info().name,
         vk.has_timestamps(),
+        vk.tuning(),
         wg.adapter_info().name,
         wg.has_timestamps(),
+        wg.tuning(),
         std::env::var("LP_NUM_THREADS").unwrap_or_else(|_| "unset".into())
     );
     println!(
@@ -93,11 +99,7 @@ fn main() -> Result<(), Box<dyn Error>> {
             &UploadOptions::all().with_storage(BvhStorage::Textures),
         )?;
         for &traversal in &traversals {
-            let opts = TraceOptions {
-                traversal,
-                query: Query::Closest,
-                counters: false,
-            };
+            let opts = TraceOptions::closest(traversal);
             // Runs interleaved (ash, wgpu buffers, wgpu textures, ash, ...) so that load
             // from other processes falls on all backends alike.
             let labels = ["ash (buffers)", "wgpu (buffers)", "wgpu (textures)"];
@@ -105,11 +107,11 @@ fn main() -> Result<(), Box<dyn Error>> {
             let mut wall = vec![Vec::new(); 3];
             let mut hits = vec![Vec::new(); 3];
             for i in 0..=runs {
-                let a = ash_bvh.trace(&rays, traversal, Query::Closest, false)?;
+                let a = ash_bvh.trace(&rays, &opts)?;
                 let (g, t, hh) = (a.gpu_ms.unwrap_or(f64::NAN), a.wall_ms, a.hits);
                 let mut results = vec![(g, t, hh)];
                 for g in [&wgpu_buffers, &wgpu_textures] {
-                    let out = g.trace_with(&rays, &opts)?;
+                    let out = g.trace(&rays, &opts)?;
                     results.push((out.gpu_ms.unwrap_or(f64::NAN), out.wall_ms, out.hits));
                 }
                 for (b, (g, t, hh)) in results.into_iter().enumerate() {

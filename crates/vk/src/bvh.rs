@@ -4,15 +4,14 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use ash::vk;
-use bvhtrace_core::{FlatBvh, Query, Ray, Traversal};
-use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant};
-use bvhtrace_gpu::{
-    COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, RAY_BYTES, TraceOutput, UploadStats,
-    finish_incomplete, plan_dispatches, plan_submissions,
+use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_kernels::{
+    BvhStorage, COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, KernelKey, RAY_BYTES, TraceError,
+    Tracer, UploadStats, check_buffer_size, finish_incomplete, plan_dispatches, plan_submissions,
 };
 
 use crate::context::{Buffer, VkContext};
-use crate::error::{VkError, vkerr};
+use crate::error::vkerr;
 
 /// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
 struct Scratch {
@@ -23,7 +22,9 @@ struct Scratch {
 }
 
 /// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as three storage buffers (nodes,
-/// triangles, escapes: the layout of [`bvhtrace_core::flat`], byte for byte).
+/// triangles, escapes: the layout of [`bvhtrace_core::flat`], byte for byte), ready for
+/// every traversal. Implements [`Tracer`], the interface shared with the CPU and wgpu
+/// backends.
 pub struct VkBvh {
     ctx: VkContext,
     nodes: Buffer,
@@ -32,9 +33,11 @@ pub struct VkBvh {
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
     depth: u32,
-    /// The CPU twin answering rays that run out of the trip budget (only kept when the
-    /// budget is bounded).
-    twin: Option<Arc<FlatBvh>>,
+    node_count: usize,
+    triangle_count: usize,
+    /// The host copy that finishes rays which spend the trip budget (only kept when
+    /// [`bvhtrace_kernels::DriverTuning::finishes_on_cpu`]).
+    host_copy: Option<Arc<FlatBvh>>,
     stats: UploadStats,
     scratch: Mutex<Option<Scratch>>,
 }
@@ -43,6 +46,9 @@ impl std::fmt::Debug for VkBvh {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("VkBvh")
             .field("depth", &self.depth)
+            .field("nodes", &self.node_count)
+            .field("triangles", &self.triangle_count)
+            .field("host_copy", &self.host_copy.is_some())
             .field("stats", &self.stats)
             .finish()
     }
@@ -70,13 +76,13 @@ impl Drop for VkBvh {
 }
 
 impl Scratch {
-    fn new(ctx: &VkContext, capacity: u64) -> Result<Scratch, VkError> {
+    fn new(ctx: &VkContext, capacity: u64) -> Result<Scratch, TraceError> {
         use vk::MemoryPropertyFlags as M;
         let host = M::HOST_VISIBLE | M::HOST_COHERENT;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let rays = ctx.buffer("rays", capacity * RAY_BYTES, storage, host, M::DEVICE_LOCAL)?;
         let mut keep = vec![rays];
-        let mut more = |label, bytes, preferred| -> Result<(), VkError> {
+        let mut more = |label, bytes, preferred| -> Result<(), TraceError> {
             let b = ctx.buffer(label, capacity * bytes, storage, host, preferred)?;
             keep.push(b);
             Ok(())
@@ -139,7 +145,7 @@ fn write_set(d: &ash::Device, set: vk::DescriptorSet, entries: &[(u32, vk::Buffe
 }
 
 /// A descriptor pool for `sets` sets of three storage buffers.
-fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, VkError> {
+fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, TraceError> {
     let sizes = [vk::DescriptorPoolSize {
         ty: vk::DescriptorType::STORAGE_BUFFER,
         descriptor_count: 3 * sets,
@@ -158,26 +164,27 @@ fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, VkE
 
 impl VkBvh {
     /// Uploads `bvh`'s nodes, triangles and escape links to device-local storage buffers
-    /// (through one host-visible staging buffer). Each array is checked against the
-    /// device's `maxStorageBufferRange` first; the error names the array, its size and the
-    /// limit.
-    pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, VkError> {
+    /// (through one host-visible staging buffer), so that every traversal can run on it.
+    /// An empty tree is [`TraceError::EmptyBvh`], escape links that do not fit the nodes
+    /// [`TraceError::BadEscapeLinks`]; each array is checked against the device's limits
+    /// (`maxStorageBufferRange`, `maxMemoryAllocationSize`) first, and
+    /// [`TraceError::TooLarge`] names the array, its size and the limit. A tree deeper than
+    /// [`FULL_STACK_SIZE`] uploads; only the full-stack walk refuses it
+    /// ([`VkBvh::supports`]). When [`VkContext::tuning`] finishes rays on the CPU, the
+    /// upload keeps a host copy of the tree for that.
+    pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, TraceError> {
         let start = Instant::now();
+        if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
+            return Err(TraceError::EmptyBvh);
+        }
         bvh.check_escape_links()?;
-        let limit = ctx.limits().max_storage_buffer_binding_size;
         let arrays: [(&'static str, &[u8]); 3] = [
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),
             ("triangles", bytemuck::cast_slice(&bvh.triangles)),
             ("escapes", bytemuck::cast_slice(&bvh.escapes)),
         ];
         for (name, bytes) in arrays {
-            if bytes.len() as u64 > limit {
-                return Err(VkError::TooLarge {
-                    buffer: name,
-                    bytes: bytes.len() as u64,
-                    limit,
-                });
-            }
+            check_buffer_size(ctx.limits(), name, bytes.len() as u64)?;
         }
         use vk::BufferUsageFlags as U;
         use vk::MemoryPropertyFlags as M;
@@ -193,7 +200,7 @@ impl VkBvh {
         )?;
         // Device buffers, destroyed again if a later step fails.
         let mut made: Vec<Buffer> = Vec::with_capacity(3);
-        let result = (|| -> Result<(), VkError> {
+        let result = (|| -> Result<(), TraceError> {
             let mut offset = 0u64;
             let mut data = vec![0u8; total as usize];
             let mut regions = Vec::new();
@@ -261,8 +268,14 @@ impl VkBvh {
             pool: vk::DescriptorPool::null(),
             set: vk::DescriptorSet::null(),
             depth: bvh.depth,
-            twin: (ctx.trip_limit() != u32::MAX).then(|| Arc::new(bvh.clone())),
+            node_count: bvh.nodes.len(),
+            triangle_count: bvh.triangles.len(),
+            host_copy: ctx
+                .tuning()
+                .finishes_on_cpu()
+                .then(|| Arc::new(bvh.clone())),
             stats: UploadStats {
+                storage: BvhStorage::Buffers,
                 nodes_bytes: arrays[0].1.len() as u64,
                 triangles_bytes: arrays[1].1.len() as u64,
                 escapes_bytes: arrays[2].1.len() as u64,
@@ -300,65 +313,73 @@ impl VkBvh {
     }
 
     /// Sizes and time of the upload.
-    pub fn stats(&self) -> UploadStats {
-        self.stats
+    pub fn stats(&self) -> &UploadStats {
+        &self.stats
     }
 
-    /// Creates the pipeline for these options ahead of the first trace, so that the first
-    /// trace's timing is not the compiler's.
-    pub fn prepare(
-        &self,
-        traversal: Traversal,
-        query: Query,
-        counters: bool,
-    ) -> Result<(), VkError> {
-        self.prepare_variant(KernelVariant::new(
-            BvhStorage::Buffers,
-            traversal,
-            query,
-            counters,
-        ))
+    /// The tree's depth (the full-stack walk takes trees up to [`FULL_STACK_SIZE`] deep).
+    pub fn depth(&self) -> u32 {
+        self.depth
     }
 
-    /// [`VkBvh::prepare`] for any [`KernelVariant`] with [`BvhStorage::Buffers`] (for
-    /// example another triangle-test precision, `KernelVariant::with_precision`).
-    pub fn prepare_variant(&self, variant: KernelVariant) -> Result<(), VkError> {
-        if !variant.short_stack && self.depth > FULL_STACK_SIZE {
-            return Err(VkError::TooDeep {
+    /// Nodes uploaded.
+    pub fn node_count(&self) -> usize {
+        self.node_count
+    }
+
+    /// Triangles uploaded.
+    pub fn triangle_count(&self) -> usize {
+        self.triangle_count
+    }
+
+    /// The kernel tracing `opts` on this upload, with the box test's parallel path when
+    /// `parallel_rays` ([`KernelKey::for_rays`]).
+    fn key(&self, opts: &TraceOptions, parallel_rays: bool) -> KernelKey {
+        KernelKey {
+            parallel_rays,
+            ..KernelKey::new(BvhStorage::Buffers, opts)
+        }
+    }
+
+    /// Checks that `opts` can run on this upload and device: the full-stack walk needs a
+    /// tree at most [`FULL_STACK_SIZE`] deep ([`TraceError::TooDeep`]), the f64 triangle
+    /// test needs `shaderFloat64` ([`TraceError::PrecisionUnsupported`]). The escape links
+    /// are always uploaded.
+    pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        if opts.traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
+            return Err(TraceError::TooDeep {
                 depth: self.depth,
                 max: FULL_STACK_SIZE,
             });
         }
-        self.ctx.pipeline(variant).map(|_| ())
+        self.ctx.supports_key(&self.key(opts, true))
     }
 
-    /// Traces `rays` and returns one hit per ray (and each ray's counters when `counters`),
-    /// the time between the dispatches' timestamps and the call's wall time. Batches are
-    /// split into dispatches within the device's limits (`plan_dispatches`, as the wgpu
-    /// path does), and into several submissions when one buffer cannot hold them.
-    pub fn trace(
-        &self,
-        rays: &[Ray],
-        traversal: Traversal,
-        query: Query,
-        counters: bool,
-    ) -> Result<TraceOutput, VkError> {
-        self.trace_variant(
-            rays,
-            KernelVariant::new(BvhStorage::Buffers, traversal, query, counters),
-        )
+    /// Creates (and caches) the pipelines [`VkBvh::trace`] runs for `opts` (with the box
+    /// test's parallel path and without it, see [`KernelKey::for_rays`]) ahead of the
+    /// first trace, so that the first trace's time is not the compiler's.
+    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.supports(opts)?;
+        for parallel_rays in [true, false] {
+            self.ctx.pipeline(self.key(opts, parallel_rays))?;
+        }
+        Ok(())
     }
 
-    /// [`VkBvh::trace`] with the kernel variant given in full (storage must be
-    /// [`BvhStorage::Buffers`]; counters are returned when `variant.counters`).
-    pub fn trace_variant(
-        &self,
-        rays: &[Ray],
-        variant: KernelVariant,
-    ) -> Result<TraceOutput, VkError> {
-        self.prepare_variant(variant)?;
-        let pipeline = self.ctx.pipeline(variant)?;
-        let counters = variant.counters;
+    /// Traces `rays` as `opts` says (walk, query, triangle test, counters) and returns one
+    /// hit per ray (and each ray's counters when `opts.counters`), the time between the
+    /// dispatches' timestamps and the call's wall time. The results equal
+    /// [`bvhtrace_core::trace_rays`]'s and the wgpu backend's bit for bit. Batches are
+    /// split into dispatches within the device's limits ([`plan_dispatches`], as the wgpu
+    /// path does), and into several submissions when one buffer cannot hold them
+    /// ([`plan_submissions`]). Rays that spend the trip budget of a CPU driver are
+    /// finished on the CPU ([`finish_incomplete`]; counted in `incomplete`).
+    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        // Checked before anything is uploaded; the rays are looked at once, and every
+        // submission uses this kernel.
+        self.supports(opts)?;
+        let pipeline = self.ctx.pipeline(self.key(opts, true).for_rays(rays))?;
+        let counters = opts.counters;
         let start = Instant::now();
         let inner = &self.ctx.inner;
         let d = &inner.device;
@@ -379,7 +400,7 @@ impl VkBvh {
         let mut guard = self
             .scratch
             .lock()
-            .map_err(|_| VkError::Poisoned("scratch buffers"))?;
+            .map_err(|_| TraceError::Poisoned("scratch buffers"))?;
         if guard.as_ref().is_none_or(|s| s.capacity < capacity) {
             if let Some(mut old) = guard.take() {
                 old.destroy(d);
@@ -395,7 +416,7 @@ impl VkBvh {
             s.rays.write(bytemuck::cast_slice(batch));
             let dispatches = plan_dispatches(count, limits);
             let pool = descriptor_pool(d, dispatches.len() as u32)?;
-            let traced = (|| -> Result<(), VkError> {
+            let traced = (|| -> Result<(), TraceError> {
                 let layouts = vec![inner.set_layouts[1]; dispatches.len()];
                 // SAFETY: allocating from the pool just made, sized for these sets.
                 let sets = unsafe {
@@ -514,17 +535,42 @@ impl VkBvh {
         }
         drop(sub);
         drop(guard);
-        if let Some(twin) = self.twin.as_deref() {
-            finish_incomplete(
-                twin,
-                rays,
-                variant.traversal(),
-                variant.query(),
-                variant.precision,
-                &mut out,
-            );
+        if let Some(bvh) = self.host_copy.as_deref() {
+            finish_incomplete(bvh, rays, opts, &mut out);
         }
         out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(out)
+    }
+}
+
+impl Tracer for VkBvh {
+    fn backend(&self) -> &'static str {
+        "vulkan"
+    }
+
+    fn device_name(&self) -> String {
+        let i = self.ctx.device_info();
+        let (major, minor, _) = i.api_version;
+        format!("{} ({:?}, Vulkan {major}.{minor})", i.name, i.kind)
+    }
+
+    fn default_traversal(&self) -> Traversal {
+        Traversal::GPU_DEFAULT
+    }
+
+    fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        VkBvh::supports(self, opts)
+    }
+
+    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        VkBvh::trace(self, rays, opts)
+    }
+
+    fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        VkBvh::prepare(self, opts)
+    }
+
+    fn upload_stats(&self) -> Option<UploadStats> {
+        Some(self.stats)
     }
 }

@@ -8,11 +8,12 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
-use bvhtrace_core::Precision;
-use bvhtrace_gpu::shaders::{BvhStorage, KernelVariant, dispatch_threads_for, trip_limit_for};
-use bvhtrace_gpu::{AdapterChoice, GpuError, GpuLimits, pick_adapter};
+use bvhtrace_kernels::{
+    AdapterChoice, BvhStorage, DeviceKind, DeviceLimits, DriverTuning, KernelKey, RayInput,
+    TraceError,
+};
 
-use crate::error::{VkError, vkerr};
+use crate::error::{from_vk, shader_error, vkerr};
 
 /// Environment variable that turns on `VK_LAYER_KHRONOS_validation` (when installed) for
 /// [`VkContext::new`]: `BVHTRACE_VK_VALIDATION=1`.
@@ -37,12 +38,19 @@ const FENCE_TIMEOUT_NS: u64 = 600_000_000_000;
 /// Options of [`VkContext::with_options`].
 #[derive(Clone, Debug, Default)]
 pub struct VkOptions {
-    /// Case-insensitive substring of the device name; `None`: the `BVHTRACE_ADAPTER`
-    /// environment variable, else the best device (discrete > integrated > virtual > CPU).
-    pub adapter: Option<String>,
+    /// Which device to open: [`AdapterChoice::Auto`] (the `BVHTRACE_ADAPTER` environment
+    /// variable, else the best device: discrete > integrated > virtual > CPU) or
+    /// [`AdapterChoice::Named`] (a case-insensitive substring of the device name). The
+    /// same choice as the wgpu backend's for the same list of devices.
+    pub adapter: AdapterChoice,
     /// Enable `VK_LAYER_KHRONOS_validation` when it is installed (ignored otherwise; see
     /// [`VkContext::validation_enabled`]).
     pub validation: bool,
+    /// The CPU-driver measures (`TRIP_LIMIT`, `DISPATCH_THREADS`, finishing rays on the
+    /// CPU); `None` picks [`DriverTuning::for_device`] for the device's kind. This backend
+    /// reads the BVH and the rays from storage buffers only, so
+    /// [`DriverTuning::storage`] is always [`BvhStorage::Buffers`] here, whatever is given.
+    pub tuning: Option<DriverTuning>,
 }
 
 /// The chosen device's description.
@@ -52,6 +60,8 @@ pub struct VkDeviceInfo {
     pub name: String,
     /// `deviceType`.
     pub device_type: vk::PhysicalDeviceType,
+    /// `deviceType` as the backend-neutral kind ([`device_kind`]).
+    pub kind: DeviceKind,
     /// `apiVersion`, as `(major, minor, patch)`.
     pub api_version: (u32, u32, u32),
     /// `driverVersion` (vendor-specific encoding).
@@ -70,6 +80,7 @@ impl std::fmt::Debug for VkContext {
         f.debug_struct("VkContext")
             .field("device", &self.inner.info.name)
             .field("limits", &self.inner.limits)
+            .field("tuning", &self.inner.tuning)
             .field("timestamps", &self.inner.timestamp_period_ns.is_some())
             .field("validation", &self.inner.instance.debug.is_some())
             .finish()
@@ -111,7 +122,7 @@ pub(crate) struct Inner {
     pub(crate) device: ash::Device,
     pub(crate) queue: vk::Queue,
     pub(crate) info: VkDeviceInfo,
-    pub(crate) limits: GpuLimits,
+    pub(crate) limits: DeviceLimits,
     /// Nanoseconds per timestamp tick, when the compute queue has timestamps.
     pub(crate) timestamp_period_ns: Option<f64>,
     pub(crate) timestamp_mask: u64,
@@ -119,15 +130,14 @@ pub(crate) struct Inner {
     spirv_version: (u8, u8),
     /// Naga may skip its own buffer bounds checks (robustBufferAccess2 is on), as wgpu does.
     robust2: bool,
-    /// The `TRIP_LIMIT` override (`bvhtrace_gpu::shaders::trip_limit_for`).
-    trip_limit: u32,
-    /// The `DISPATCH_THREADS` override (`bvhtrace_gpu::shaders::dispatch_threads_for`).
-    dispatch_threads: u32,
+    /// `TRIP_LIMIT`, `DISPATCH_THREADS` and whether rays are finished on the CPU (storage
+    /// is always buffers).
+    tuning: DriverTuning,
     /// `shaderFloat64` is enabled (the f64 triangle test can run).
     float64: bool,
     pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
     pub(crate) pipeline_layout: vk::PipelineLayout,
-    pipelines: Mutex<HashMap<KernelVariant, vk::Pipeline>>,
+    pipelines: Mutex<HashMap<KernelKey, vk::Pipeline>>,
     pub(crate) submitter: Mutex<Submitter>,
     // Dropped last (after `Drop::drop` above destroyed the device).
     pub(crate) instance: InstanceHolder,
@@ -189,42 +199,51 @@ unsafe extern "system" fn debug_callback(
     vk::FALSE
 }
 
-/// Vulkan's device type as the `DeviceType` that `bvhtrace_gpu::pick_adapter` ranks, so
-/// both backends choose the same device for the same name or environment.
-fn rank(t: vk::PhysicalDeviceType) -> bvhtrace_gpu::wgpu::DeviceType {
-    use bvhtrace_gpu::wgpu::DeviceType;
+/// Vulkan's device type as the backend-neutral [`DeviceKind`] that
+/// [`AdapterChoice::pick`] ranks and [`DriverTuning::for_device`] tunes for, so both
+/// backends choose (and tune for) the same device for the same name or environment.
+pub fn device_kind(t: vk::PhysicalDeviceType) -> DeviceKind {
     match t {
-        vk::PhysicalDeviceType::DISCRETE_GPU => DeviceType::DiscreteGpu,
-        vk::PhysicalDeviceType::INTEGRATED_GPU => DeviceType::IntegratedGpu,
-        vk::PhysicalDeviceType::VIRTUAL_GPU => DeviceType::VirtualGpu,
-        vk::PhysicalDeviceType::CPU => DeviceType::Cpu,
-        _ => DeviceType::Other,
+        vk::PhysicalDeviceType::DISCRETE_GPU => DeviceKind::DiscreteGpu,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => DeviceKind::IntegratedGpu,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => DeviceKind::VirtualGpu,
+        vk::PhysicalDeviceType::CPU => DeviceKind::Cpu,
+        _ => DeviceKind::Other,
     }
 }
 
 impl VkContext {
-    /// Opens the device named like `adapter` (case-insensitive substring), or, when `None`,
-    /// the one `BVHTRACE_ADAPTER` names, else the best one (discrete > integrated > CPU):
-    /// the same choice as `bvhtrace_gpu::GpuContext::new`. Validation is on when
-    /// `BVHTRACE_VK_VALIDATION=1` and the layer is installed.
-    pub fn new(adapter: Option<&str>) -> Result<VkContext, VkError> {
+    /// Opens the device `choice` selects ([`AdapterChoice::Auto`]: the one
+    /// `BVHTRACE_ADAPTER` names, else the best one, discrete > integrated > virtual > CPU;
+    /// [`AdapterChoice::Named`]: the first whose name contains the substring, any case):
+    /// the same choice as `bvhtrace_gpu::GpuContext::new`, with the [`DriverTuning`] for
+    /// its kind. Validation is on when `BVHTRACE_VK_VALIDATION=1` and the layer is
+    /// installed.
+    ///
+    /// Fails with [`TraceError::NoAdapter`] when there is no Vulkan loader, driver or
+    /// device with a compute queue, and [`TraceError::AdapterNotFound`] when no device
+    /// has the name asked for; never panics.
+    pub fn new(choice: AdapterChoice) -> Result<VkContext, TraceError> {
         let validation = std::env::var(VALIDATION_ENV).is_ok_and(|v| v == "1");
         Self::with_options(&VkOptions {
-            adapter: adapter.map(str::to_string),
+            adapter: choice,
             validation,
+            tuning: None,
         })
     }
 
     /// [`VkContext::new`] with explicit options.
-    pub fn with_options(opts: &VkOptions) -> Result<VkContext, VkError> {
+    pub fn with_options(opts: &VkOptions) -> Result<VkContext, TraceError> {
         // SAFETY: loading libvulkan runs its initialisers; that is what a Vulkan
         // application does. All later calls use handles created here, on this instance.
         unsafe { Self::create(opts) }
     }
 
-    unsafe fn create(opts: &VkOptions) -> Result<VkContext, VkError> {
+    unsafe fn create(opts: &VkOptions) -> Result<VkContext, TraceError> {
         unsafe {
-            let entry = ash::Entry::load().map_err(|e| VkError::LoaderMissing(e.to_string()))?;
+            let entry = ash::Entry::load().map_err(|e| TraceError::NoAdapter {
+                details: format!(": cannot load libvulkan: {e}"),
+            })?;
             let layers = entry
                 .enumerate_instance_layer_properties()
                 .map_err(vkerr("listing instance layers"))?;
@@ -252,11 +271,11 @@ impl VkContext {
             let instance = match entry.create_instance(&ci, None) {
                 Ok(i) => i,
                 Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => {
-                    return Err(VkError::NoDevice {
+                    return Err(TraceError::NoAdapter {
                         details: " (the loader found no compatible driver)".into(),
                     });
                 }
-                Err(e) => return Err(VkError::from_vk("creating the Vulkan instance", e)),
+                Err(e) => return Err(from_vk("creating the Vulkan instance", e)),
             };
             let mut holder = InstanceHolder {
                 _entry: entry.clone(),
@@ -285,12 +304,12 @@ impl VkContext {
             }
             let instance = &holder.instance;
 
-            // Devices with a compute queue, described for `pick_adapter`.
+            // Devices with a compute queue, described for `AdapterChoice::pick`.
             let mut candidates = Vec::new();
-            for pd in instance
+            let devices = instance
                 .enumerate_physical_devices()
-                .map_err(vkerr("listing Vulkan devices"))?
-            {
+                .map_err(vkerr("listing Vulkan devices"))?;
+            for &pd in &devices {
                 let props = instance.get_physical_device_properties(pd);
                 let families = instance.get_physical_device_queue_family_properties(pd);
                 let Some(family) = families
@@ -301,39 +320,41 @@ impl VkContext {
                 };
                 candidates.push((pd, props, family as u32, families[family]));
             }
-            let infos: Vec<bvhtrace_gpu::wgpu::AdapterInfo> = candidates
+            if candidates.is_empty() {
+                return Err(TraceError::NoAdapter {
+                    details: if devices.is_empty() {
+                        String::new()
+                    } else {
+                        format!(
+                            " ({} Vulkan device(s), none with a compute queue)",
+                            devices.len()
+                        )
+                    },
+                });
+            }
+            let named: Vec<(String, DeviceKind)> = candidates
                 .iter()
-                .map(|(_, p, _, _)| bvhtrace_gpu::wgpu::AdapterInfo {
-                    name: p
+                .map(|(_, p, _, _)| {
+                    let name = p
                         .device_name_as_c_str()
                         .map(|n| n.to_string_lossy().into_owned())
-                        .unwrap_or_default(),
-                    device_type: rank(p.device_type),
-                    ..bvhtrace_gpu::wgpu::AdapterInfo::new(
-                        rank(p.device_type),
-                        bvhtrace_gpu::wgpu::Backend::Vulkan,
-                    )
+                        .unwrap_or_default();
+                    (name, device_kind(p.device_type))
                 })
                 .collect();
-            let choice = match &opts.adapter {
-                Some(n) => AdapterChoice::Named(n.clone()),
-                None => AdapterChoice::Auto,
-            };
-            let index =
-                pick_adapter(&infos, choice.wanted_name().as_deref()).map_err(|e| match e {
-                    GpuError::AdapterNotFound { wanted, available } => {
-                        VkError::AdapterNotFound { wanted, available }
-                    }
-                    other => VkError::NoDevice {
-                        details: format!(" ({other})"),
-                    },
-                })?;
+            let index = opts.adapter.pick(&named)?;
             let (pd, props, family, family_props) = candidates[index];
-            let trip_limit = trip_limit_for(&infos[index]);
-            let dispatch_threads = dispatch_threads_for(&infos[index]);
+            let (name, kind) = named[index].clone();
+            let tuning = DriverTuning {
+                storage: BvhStorage::Buffers,
+                ..opts
+                    .tuning
+                    .unwrap_or_else(|| DriverTuning::for_device(kind))
+            };
             let info = VkDeviceInfo {
-                name: infos[index].name.clone(),
+                name,
                 device_type: props.device_type,
+                kind,
                 api_version: (
                     vk::api_version_major(props.api_version),
                     vk::api_version_minor(props.api_version),
@@ -394,7 +415,7 @@ impl VkContext {
             } else {
                 u64::from(u32::MAX)
             };
-            let limits = GpuLimits {
+            let limits = DeviceLimits {
                 max_storage_buffer_binding_size: u64::from(l.max_storage_buffer_range),
                 max_buffer_size: max_allocation,
                 max_compute_workgroups_per_dimension: l.max_compute_work_group_count[0]
@@ -428,8 +449,7 @@ impl VkContext {
                 memory,
                 spirv_version,
                 robust2,
-                trip_limit,
-                dispatch_threads,
+                tuning,
                 float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
                 pipeline_layout: vk::PipelineLayout::null(),
@@ -472,7 +492,7 @@ impl VkContext {
             let s = inner
                 .submitter
                 .get_mut()
-                .map_err(|_| VkError::Poisoned("submitter"))?;
+                .map_err(|_| TraceError::Poisoned("submitter"))?;
             s.pool = d
                 .create_command_pool(
                     &vk::CommandPoolCreateInfo::default()
@@ -514,9 +534,9 @@ impl VkContext {
         &self.inner.info
     }
 
-    /// The limits the tracer works within (the same struct the wgpu path uses, filled from
-    /// `VkPhysicalDeviceLimits`).
-    pub fn limits(&self) -> &GpuLimits {
+    /// The limits the tracer works within (the backend-neutral [`DeviceLimits`] the wgpu
+    /// path uses too, filled from `VkPhysicalDeviceLimits`).
+    pub fn limits(&self) -> &DeviceLimits {
         &self.inner.limits
     }
 
@@ -535,10 +555,13 @@ impl VkContext {
         self.inner.instance.errors.load(Ordering::Relaxed)
     }
 
-    /// The `TRIP_LIMIT` override the pipelines get: the same per-adapter budget as the
-    /// wgpu path (`bvhtrace_gpu::shaders::trip_limit_for`; `u32::MAX` is unbounded).
-    pub fn trip_limit(&self) -> u32 {
-        self.inner.trip_limit
+    /// The CPU-driver measures the pipelines get ([`DriverTuning::constants`]:
+    /// `TRIP_LIMIT`, `DISPATCH_THREADS`) and whether uploads keep a host copy to finish
+    /// rays that spend the trip budget ([`DriverTuning::finishes_on_cpu`]): what
+    /// [`VkOptions::tuning`] gave, else [`DriverTuning::for_device`] for the device's kind,
+    /// always with [`BvhStorage::Buffers`].
+    pub fn tuning(&self) -> &DriverTuning {
+        &self.inner.tuning
     }
 
     /// True when the device runs the f64 triangle test (`shaderFloat64`).
@@ -546,58 +569,75 @@ impl VkContext {
         self.inner.float64
     }
 
-    /// The SPIR-V words of one kernel variant: the variant's WGSL module
-    /// ([`KernelVariant::source`], the one the wgpu path compiles), its override constants
-    /// ([`KernelVariant::constants`], `TRIP_LIMIT` and `DISPATCH_THREADS`) resolved by
-    /// naga, written for this device's SPIR-V version. Only [`BvhStorage::Buffers`]
-    /// variants are supported.
-    pub fn spirv(&self, variant: KernelVariant) -> Result<Vec<u32>, VkError> {
-        if variant.storage != BvhStorage::Buffers {
-            return Err(VkError::Unsupported(
-                "the ash backend reads the BVH from storage buffers only".into(),
-            ));
+    /// True when kernels with this triangle test can run on this device (f64 needs
+    /// `shaderFloat64`, which [`VkContext::new`] enables whenever the device has it).
+    pub fn supports_precision(&self, precision: bvhtrace_core::Precision) -> bool {
+        !precision.needs_f64() || self.inner.float64
+    }
+
+    /// Checks that this backend and device can build `key`'s kernel: the BVH, rays and
+    /// hits in storage buffers, no per-vertex attributes (the ash pipeline layout binds
+    /// nodes, triangles and escapes; rays, hits and counters), and a precision the
+    /// device runs.
+    pub fn supports_key(&self, key: &KernelKey) -> Result<(), TraceError> {
+        let unsupported = |what: &str| {
+            Err(TraceError::Device {
+                during: "translating the kernels to SPIR-V",
+                message: format!(
+                    "the ash backend reads the BVH, rays and hits from storage buffers and \
+                     binds no vertex attributes; the kernel key asks for {what}"
+                ),
+            })
+        };
+        if key.storage != BvhStorage::Buffers {
+            return unsupported("the BVH in textures");
         }
-        if variant.precision == Precision::WatertightF64 && !self.inner.float64 {
-            return Err(VkError::Unsupported(format!(
-                "{} has no shaderFloat64, which the f64 triangle test needs",
-                self.inner.info.name
-            )));
+        if key.rays != RayInput::Buffer {
+            return unsupported("the rays in textures");
         }
+        if key.attributes.normals {
+            return unsupported("vertex normals");
+        }
+        if !self.supports_precision(key.precision) {
+            return Err(TraceError::PrecisionUnsupported {
+                precision: key.precision,
+                adapter: self.inner.info.name.clone(),
+            });
+        }
+        Ok(())
+    }
+
+    /// The SPIR-V words of one kernel: the key's WGSL module ([`KernelKey::source`], the
+    /// one the wgpu path compiles for the same key), its override constants
+    /// ([`KernelKey::constants`], and [`DriverTuning::constants`] of
+    /// [`VkContext::tuning`]: `TRIP_LIMIT`, `DISPATCH_THREADS`) resolved by naga, written
+    /// for this device's SPIR-V version with one entry point
+    /// ([`KernelKey::entry_point`]). Only keys [`VkContext::supports_key`] accepts:
+    /// storage buffers for the BVH and the rays, no vertex attributes.
+    pub fn spirv(&self, key: KernelKey) -> Result<Vec<u32>, TraceError> {
+        self.supports_key(&key)?;
         let inner = &self.inner;
-        let source = variant.source();
-        let module = naga::front::wgsl::parse_str(&source).map_err(|e| VkError::Shader {
-            during: "parsing the WGSL kernels",
-            message: e.emit_to_string(&source),
-        })?;
+        let source = key.source();
+        let module = naga::front::wgsl::parse_str(&source)
+            .map_err(|e| shader_error("parsing the WGSL", e.emit_to_string(&source)))?;
         let module_info = naga::valid::Validator::new(
             naga::valid::ValidationFlags::all(),
             naga::valid::Capabilities::all(),
         )
         .validate(&module)
-        .map_err(|e| VkError::Shader {
-            during: "validating the WGSL kernels",
-            message: e.emit_to_string(&source),
-        })?;
+        .map_err(|e| shader_error("validating the WGSL", e.emit_to_string(&source)))?;
         let stage = naga::ShaderStage::Compute;
         let mut constants = naga::back::PipelineConstants::default();
-        for (name, value) in variant.constants() {
+        for (name, value) in key.constants().into_iter().chain(inner.tuning.constants()) {
             constants.insert(name.to_string(), value);
         }
-        constants.insert("TRIP_LIMIT".to_string(), f64::from(inner.trip_limit));
-        constants.insert(
-            "DISPATCH_THREADS".to_string(),
-            f64::from(inner.dispatch_threads),
-        );
         let (module, info) = naga::back::pipeline_constants::process_overrides(
             &module,
             &module_info,
-            Some((stage, variant.entry_point())),
+            Some((stage, key.entry_point())),
             &constants,
         )
-        .map_err(|e| VkError::Shader {
-            during: "resolving override constants",
-            message: e.to_string(),
-        })?;
+        .map_err(|e| shader_error("resolving override constants", e))?;
         use naga::proc::BoundsCheckPolicy as P;
         // The pipeline layout's sets and bindings are the WGSL's groups and bindings.
         let binding_map = (0..2u32)
@@ -635,33 +675,27 @@ impl VkContext {
         };
         let pipeline_options = naga::back::spv::PipelineOptions {
             shader_stage: stage,
-            entry_point: variant.entry_point().to_string(),
+            entry_point: key.entry_point().to_string(),
         };
-        naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline_options)).map_err(|e| {
-            VkError::Shader {
-                during: "writing SPIR-V",
-                message: e.to_string(),
-            }
-        })
+        naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline_options))
+            .map_err(|e| shader_error("writing SPIR-V", e))
     }
 
-    /// The compute pipeline of one kernel variant (storage buffers only), created on first
-    /// use and cached.
-    pub(crate) fn pipeline(&self, variant: KernelVariant) -> Result<vk::Pipeline, VkError> {
+    /// The compute pipeline of one kernel key ([`VkContext::supports_key`]), created on
+    /// first use and cached.
+    pub(crate) fn pipeline(&self, key: KernelKey) -> Result<vk::Pipeline, TraceError> {
         let mut cache = self
             .inner
             .pipelines
             .lock()
-            .map_err(|_| VkError::Poisoned("pipeline cache"))?;
-        if let Some(p) = cache.get(&variant) {
+            .map_err(|_| TraceError::Poisoned("pipeline cache"))?;
+        if let Some(p) = cache.get(&key) {
             return Ok(*p);
         }
-        let words = self.spirv(variant)?;
+        let words = self.spirv(key)?;
         let d = &self.inner.device;
-        let name = CString::new(variant.entry_point()).map_err(|e| VkError::Shader {
-            during: "naming the entry point",
-            message: e.to_string(),
-        })?;
+        let name = CString::new(key.entry_point())
+            .map_err(|e| shader_error("naming the entry point", e))?;
         // SAFETY: `words` is SPIR-V from naga's validated module; the module is destroyed
         // right after the pipeline is made from it.
         let pipeline = unsafe {
@@ -683,20 +717,20 @@ impl VkContext {
                     for p in partial {
                         d.destroy_pipeline(p, None);
                     }
-                    return Err(VkError::from_vk("creating a compute pipeline", e));
+                    return Err(from_vk("creating a compute pipeline", e));
                 }
             }
         };
-        cache.insert(variant, pipeline);
+        cache.insert(key, pipeline);
         Ok(pipeline)
     }
 
     /// Locks the command buffer for one submission.
-    pub(crate) fn submitter(&self) -> Result<MutexGuard<'_, Submitter>, VkError> {
+    pub(crate) fn submitter(&self) -> Result<MutexGuard<'_, Submitter>, TraceError> {
         self.inner
             .submitter
             .lock()
-            .map_err(|_| VkError::Poisoned("command buffer"))
+            .map_err(|_| TraceError::Poisoned("command buffer"))
     }
 
     /// Records with `record` into the command buffer, submits, and waits for completion.
@@ -705,7 +739,7 @@ impl VkContext {
         s: &Submitter,
         during: &'static str,
         record: impl FnOnce(&ash::Device, vk::CommandBuffer),
-    ) -> Result<(), VkError> {
+    ) -> Result<(), TraceError> {
         let d = &self.inner.device;
         // SAFETY: the command buffer and fence belong to this device and are not in use
         // (the previous submission was waited for; the submitter lock is held).
@@ -732,12 +766,16 @@ impl VkContext {
                     // The fence may still signal: wait for the queue before reusing it.
                     let _ = d.queue_wait_idle(self.inner.queue);
                     let _ = d.reset_fences(&[s.fence]);
-                    return Err(VkError::Vulkan {
+                    return Err(TraceError::Device {
                         during,
-                        result: vk::Result::TIMEOUT,
+                        message: format!(
+                            "the submission did not finish within {} s (vkWaitForFences \
+                             returned VK_TIMEOUT)",
+                            FENCE_TIMEOUT_NS / 1_000_000_000
+                        ),
                     });
                 }
-                Err(e) => return Err(VkError::from_vk(during, e)),
+                Err(e) => return Err(from_vk(during, e)),
                 Ok(()) => {}
             }
             reset.map_err(vkerr(during))?;
@@ -754,7 +792,7 @@ impl VkContext {
         usage: vk::BufferUsageFlags,
         required: vk::MemoryPropertyFlags,
         preferred: vk::MemoryPropertyFlags,
-    ) -> Result<Buffer, VkError> {
+    ) -> Result<Buffer, TraceError> {
         let d = &self.inner.device;
         let size = size.max(16);
         // SAFETY: plain object creation on this device; on failure what was created is
@@ -780,9 +818,11 @@ impl VkContext {
                 .or_else(|| (0..types.len()).find(|&i| fits(i, required)));
             let Some(index) = index else {
                 d.destroy_buffer(raw, None);
-                return Err(VkError::NoMemoryType {
-                    buffer: label,
-                    needs: required,
+                return Err(TraceError::Device {
+                    during: "allocating buffer memory",
+                    message: format!(
+                        "no Vulkan memory type for the {label} buffer has {required:?}"
+                    ),
                 });
             };
             let memory = match d.allocate_memory(
@@ -794,7 +834,7 @@ impl VkContext {
                 Ok(m) => m,
                 Err(e) => {
                     d.destroy_buffer(raw, None);
-                    return Err(VkError::from_vk("allocating buffer memory", e));
+                    return Err(from_vk("allocating buffer memory", e));
                 }
             };
             let mut b = Buffer {
@@ -805,14 +845,14 @@ impl VkContext {
             };
             if let Err(e) = d.bind_buffer_memory(raw, memory, 0) {
                 b.destroy(d);
-                return Err(VkError::from_vk("binding buffer memory", e));
+                return Err(from_vk("binding buffer memory", e));
             }
             if required.contains(vk::MemoryPropertyFlags::HOST_VISIBLE) {
                 match d.map_memory(memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) {
                     Ok(p) => b.mapped = NonNull::new(p.cast::<u8>()),
                     Err(e) => {
                         b.destroy(d);
-                        return Err(VkError::from_vk("mapping buffer memory", e));
+                        return Err(from_vk("mapping buffer memory", e));
                     }
                 }
             }
@@ -879,8 +919,8 @@ mod tests {
     #[test]
     fn validation_errors_are_counted() {
         let ctx = match VkContext::with_options(&VkOptions {
-            adapter: None,
             validation: true,
+            ..VkOptions::default()
         }) {
             Ok(c) => c,
             Err(e) => {
@@ -909,24 +949,5 @@ mod tests {
             "the layer's error was not counted"
         );
         assert!(process_validation_errors() >= 1);
-    }
-
-    #[test]
-    fn vulkan_results_map_to_errors() {
-        assert!(matches!(
-            VkError::from_vk("x", vk::Result::ERROR_OUT_OF_DEVICE_MEMORY),
-            VkError::OutOfMemory { .. }
-        ));
-        assert!(matches!(
-            VkError::from_vk("x", vk::Result::ERROR_OUT_OF_HOST_MEMORY),
-            VkError::OutOfMemory { .. }
-        ));
-        let lost = VkError::from_vk("tracing", vk::Result::ERROR_DEVICE_LOST);
-        assert!(matches!(lost, VkError::DeviceLost { .. }));
-        assert!(lost.to_string().contains("lost while tracing"), "{lost}");
-        assert!(matches!(
-            VkError::from_vk("x", vk::Result::ERROR_INITIALIZATION_FAILED),
-            VkError::Vulkan { .. }
-        ));
     }
 }

@@ -1,122 +1,85 @@
-//! The one error type of the crate: every Vulkan, loader and shader-translation failure
-//! comes back as a [`VkError`], never as a panic.
+//! Vulkan results as [`TraceError`]s, the one error type of every backend: every Vulkan,
+//! loader and shader-translation failure comes back as one of those, never as a panic.
 
 use ash::vk;
+use bvhtrace_kernels::TraceError;
 
-/// What went wrong.
-#[derive(Debug, thiserror::Error)]
-pub enum VkError {
-    /// `libvulkan` could not be opened (no Vulkan loader installed).
-    #[error(
-        "cannot load the Vulkan loader (libvulkan): {0}; install a Vulkan driver \
-         (for a CPU one: apt-get install mesa-vulkan-drivers)"
-    )]
-    LoaderMissing(String),
-    /// The loader works but lists no device with a compute queue.
-    #[error(
-        "no Vulkan device with a compute queue{details}; install a Vulkan driver \
-         (for a CPU one: apt-get install mesa-vulkan-drivers)"
-    )]
-    NoDevice {
-        /// Extra context (may be empty).
-        details: String,
-    },
-    /// The adapter asked for (argument or `BVHTRACE_ADAPTER`) is not among the devices.
-    #[error("no Vulkan device named like '{wanted}'; available: {available}")]
-    AdapterNotFound {
-        /// The requested name (case-insensitive substring).
-        wanted: String,
-        /// The devices present, with their types.
-        available: String,
-    },
-    /// `VK_ERROR_OUT_OF_DEVICE_MEMORY` or `VK_ERROR_OUT_OF_HOST_MEMORY`.
-    #[error("Vulkan ran out of memory while {during} ({result})")]
-    OutOfMemory {
-        /// What the tracer was doing.
-        during: &'static str,
-        /// The Vulkan result.
-        result: vk::Result,
-    },
-    /// `VK_ERROR_DEVICE_LOST`: the device is unusable; make a new [`crate::VkContext`].
-    #[error("the Vulkan device was lost while {during}")]
-    DeviceLost {
-        /// What the tracer was doing.
-        during: &'static str,
-    },
-    /// Any other failing Vulkan call.
-    #[error("Vulkan error while {during}: {result}")]
-    Vulkan {
-        /// What the tracer was doing.
-        during: &'static str,
-        /// The Vulkan result.
-        result: vk::Result,
-    },
-    /// No memory type with the properties a buffer needs.
-    #[error("no Vulkan memory type for the {buffer} buffer (needs {needs:?})")]
-    NoMemoryType {
-        /// Which buffer.
-        buffer: &'static str,
-        /// The property flags required.
-        needs: vk::MemoryPropertyFlags,
-    },
-    /// A BVH array is larger than one storage binding may be on this device.
-    #[error(
-        "the BVH's {buffer} array is {bytes} bytes, more than this device's \
-         maxStorageBufferRange ({limit} bytes)"
-    )]
-    TooLarge {
-        /// Which array.
-        buffer: &'static str,
-        /// Its size.
-        bytes: u64,
-        /// The device's limit.
-        limit: u64,
-    },
-    /// The BVH's escape links do not fit its nodes; the stackless and short-stack walks
-    /// would follow them out of the tree.
-    #[error(transparent)]
-    BadEscapeLinks(#[from] bvhtrace_core::flat::EscapeLinksMismatch),
-    /// The full-stack kernel's stack cannot hold this tree.
-    #[error(
-        "the tree is {depth} levels deep, more than the full-stack kernel's stack \
-         ({max}); use the stackless or short-stack traversal"
-    )]
-    TooDeep {
-        /// The tree's depth.
-        depth: u32,
-        /// `FULL_STACK_SIZE`.
-        max: u32,
-    },
-    /// The WGSL could not be parsed, validated, specialised or written as SPIR-V.
-    #[error("shader translation failed while {during}: {message}")]
-    Shader {
-        /// The naga stage.
-        during: &'static str,
-        /// naga's message.
-        message: String,
-    },
-    /// The device or this backend cannot run what was asked for.
-    #[error("not supported: {0}")]
-    Unsupported(String),
-    /// A lock was poisoned by a panicking thread.
-    #[error("a thread panicked while holding the {0}")]
-    Poisoned(&'static str),
-}
-
-impl VkError {
-    /// Maps a failing Vulkan result, naming what was being done.
-    pub(crate) fn from_vk(during: &'static str, result: vk::Result) -> VkError {
-        match result {
-            vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
-                VkError::OutOfMemory { during, result }
+/// Maps a failing Vulkan result, naming what was being done: out of (device or host)
+/// memory is [`TraceError::OutOfMemory`], a lost device [`TraceError::DeviceLost`], any
+/// other result [`TraceError::Device`] with the result's name.
+pub(crate) fn from_vk(during: &'static str, result: vk::Result) -> TraceError {
+    match result {
+        vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
+            TraceError::OutOfMemory {
+                during,
+                message: format!("{result} ({})", result.as_raw()),
             }
-            vk::Result::ERROR_DEVICE_LOST => VkError::DeviceLost { during },
-            _ => VkError::Vulkan { during, result },
         }
+        vk::Result::ERROR_DEVICE_LOST => TraceError::DeviceLost { during },
+        _ => TraceError::Device {
+            during,
+            message: format!("Vulkan returned {result} ({})", result.as_raw()),
+        },
     }
 }
 
 /// `result.map_err(vkerr("doing x"))`.
-pub(crate) fn vkerr(during: &'static str) -> impl Fn(vk::Result) -> VkError {
-    move |r| VkError::from_vk(during, r)
+pub(crate) fn vkerr(during: &'static str) -> impl Fn(vk::Result) -> TraceError {
+    move |r| from_vk(during, r)
+}
+
+/// A shader-translation failure (naga parsing, validating, specialising or writing
+/// SPIR-V): a [`TraceError::Device`] saying which stage failed.
+pub(crate) fn shader_error(stage: &str, message: impl std::fmt::Display) -> TraceError {
+    TraceError::Device {
+        during: "translating the kernels to SPIR-V",
+        message: format!("{stage}: {message}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vulkan_results_map_to_errors() {
+        let oom = from_vk("uploading", vk::Result::ERROR_OUT_OF_DEVICE_MEMORY);
+        assert!(
+            matches!(
+                oom,
+                TraceError::OutOfMemory {
+                    during: "uploading",
+                    ..
+                }
+            ),
+            "{oom:?}"
+        );
+        assert!(
+            oom.to_string().contains("out of memory while uploading"),
+            "{oom}"
+        );
+        assert!(matches!(
+            from_vk("x", vk::Result::ERROR_OUT_OF_HOST_MEMORY),
+            TraceError::OutOfMemory { .. }
+        ));
+        let lost = from_vk("tracing", vk::Result::ERROR_DEVICE_LOST);
+        assert!(matches!(lost, TraceError::DeviceLost { .. }));
+        assert!(lost.to_string().contains("lost while tracing"), "{lost}");
+        let other = vkerr("creating a buffer")(vk::Result::ERROR_INITIALIZATION_FAILED);
+        match &other {
+            TraceError::Device { during, message } => {
+                assert_eq!(*during, "creating a buffer");
+                // The raw result code is named, whatever ash's wording of it.
+                assert!(
+                    message.contains(&vk::Result::ERROR_INITIALIZATION_FAILED.as_raw().to_string())
+                );
+            }
+            e => panic!("expected Device, got {e:?}"),
+        }
+        let shader = shader_error("writing SPIR-V", "bad");
+        assert!(
+            shader.to_string().contains("SPIR-V") && shader.to_string().contains("bad"),
+            "{shader}"
+        );
+    }
 }

@@ -1,35 +1,51 @@
 //! bvhtrace's traversal kernels on raw Vulkan through [`ash`], for engines written on ash
-//! rather than wgpu, and to measure what wgpu's layer costs.
+//! rather than wgpu, and to measure what wgpu's layer costs. This crate does not depend on
+//! wgpu: what it shares with the wgpu backend (`bvhtrace-gpu`) comes from the
+//! backend-neutral [`bvhtrace_kernels`] (re-exported as [`kernels`]).
 //!
-//! The WGSL is the wgpu path's: each [`KernelVariant`]'s module (`KernelVariant::source`,
-//! composed by `bvhtrace_gpu` with the BVH in storage buffers); naga resolves its override
-//! constants (and the same `TRIP_LIMIT` as the wgpu path) and writes SPIR-V for one entry
-//! point. The BVH is uploaded in the flat layout of
-//! [`bvhtrace_core::flat`], byte for byte, and the answers equal the wgpu path's and the
-//! CPU twin's bit for bit.
+//! The WGSL is the wgpu path's: each [`KernelKey`](kernels::KernelKey)'s module
+//! ([`KernelKey::source`](kernels::KernelKey::source), with the BVH in storage buffers);
+//! naga resolves its override constants (and the same [`DriverTuning`] constants,
+//! `TRIP_LIMIT` and `DISPATCH_THREADS`, as the wgpu path) and writes SPIR-V for one entry
+//! point. The BVH is uploaded in the flat layout of [`bvhtrace_core::flat`], byte for byte,
+//! and the answers equal the wgpu path's and the CPU twin's ([`bvhtrace_core::trace_rays`])
+//! bit for bit.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
-//! use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, Traversal};
-//! use bvhtrace_vk::{VkBvh, VkContext};
+//! use bvhtrace_vk::core::{BuildOptions, FlatBvh, Ray};
+//! use bvhtrace_vk::{AdapterChoice, TraceOptions, Tracer, VkBvh, VkContext};
+//! use bvhtrace_vk::kernels::Traversal;
 //! use glam::Vec3;
 //!
 //! let tris = vec![[Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)]];
 //! let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
-//! let ctx = VkContext::new(None)?; // BVHTRACE_ADAPTER, else the best device
+//! let ctx = VkContext::new(AdapterChoice::Auto)?; // BVHTRACE_ADAPTER, else the best device
 //! let gpu = VkBvh::upload(&ctx, &bvh)?;
 //! let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
-//! let out = gpu.trace(&rays, Traversal::Stackless, Query::Closest, false)?;
+//! let out = gpu.trace(&rays, &TraceOptions::closest(Traversal::Stackless))?;
 //! println!("{:?}: {:?} ms on the device, {} ms wall", out.hits[0], out.gpu_ms, out.wall_ms);
+//! // The same through the interface every backend implements.
+//! let tracer: &dyn Tracer = &gpu;
+//! let opts = TraceOptions::closest(tracer.default_traversal()).with_counters(true);
+//! let again = tracer.trace(&rays, &opts)?;
+//! assert_eq!(again.hits, out.hits);
+//! println!("{} on {}", tracer.backend(), tracer.device_name());
 //! # Ok(()) }
 //! ```
 //!
 //! * [`VkContext`]: instance (with `VK_LAYER_KHRONOS_validation` when asked for and
-//!   installed), device, SPIR-V translation, pipelines, the command buffer and timestamp
-//!   queries.
-//! * [`VkBvh::upload`] / [`VkBvh::trace`]: the flat BVH in, hits (and counters) out.
+//!   installed), the device [`AdapterChoice`] picks, its [`DriverTuning`], SPIR-V
+//!   translation, the pipeline cache keyed by [`KernelKey`](kernels::KernelKey), the
+//!   command buffer and timestamp queries.
+//! * [`VkBvh::upload`] / [`VkBvh::trace`]: the flat BVH in, hits (and counters) out as a
+//!   [`TraceOutput`], for the [`TraceOptions`] asked for. [`VkBvh`] implements
+//!   [`Tracer`], the interface shared with the CPU and wgpu backends.
 //!
-//! Every Vulkan object is destroyed when its owner drops; every failure is a [`VkError`].
+//! Every Vulkan object is destroyed when its owner drops; every failure is a
+//! [`TraceError`], the error type of every backend (a Vulkan result becomes
+//! [`TraceError::OutOfMemory`], [`TraceError::DeviceLost`] or [`TraceError::Device`]; no
+//! loader or device [`TraceError::NoAdapter`]).
 #![warn(missing_docs)]
 
 mod bvh;
@@ -38,13 +54,17 @@ mod error;
 
 pub use ash;
 pub use bvh::VkBvh;
-/// What [`VkBvh::trace`] returns: the wgpu path's type, so both backends report alike.
-pub use bvhtrace_gpu::TraceOutput;
-/// What an upload cost: the wgpu path's type, the same arrays and bytes.
-pub use bvhtrace_gpu::UploadStats;
-pub use bvhtrace_gpu::shaders::KernelVariant;
-pub use context::{VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, process_validation_errors};
-pub use error::VkError;
+pub use context::{
+    VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, device_kind, process_validation_errors,
+};
+
+/// Re-exported so users need not depend on the same versions by hand.
+pub use bvhtrace_core as core;
+pub use bvhtrace_kernels as kernels;
+pub use bvhtrace_kernels::{
+    AdapterChoice, DeviceKind, DeviceLimits, DriverTuning, TraceError, TraceOptions, TraceOutput,
+    Tracer, UploadStats,
+};
 
 /// The context and uploaded BVHs can be shared between threads (submissions are
 /// serialised by the context).

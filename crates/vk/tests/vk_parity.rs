@@ -3,12 +3,13 @@
 //! behaviour. Runs on lavapipe in CI; prints SKIP and passes only when there is no Vulkan
 //! loader or device at all.
 
-use bvhtrace_core::traverse::trace_batch_counted_precision;
-use bvhtrace_core::{FlatBvh, Precision, Query, Ray, Traversal, trace_batch_counted};
-use bvhtrace_gpu::shaders::KernelVariant;
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, TraceOptions, UploadOptions};
+use bvhtrace_core::{Counters, FlatBvh, Hit, Precision, Query, Ray, Traversal, trace_rays};
+use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, UploadOptions};
 use bvhtrace_scene::Camera;
-use bvhtrace_vk::{VkBvh, VkContext, VkError, VkOptions};
+use bvhtrace_vk::kernels::{CpuTracer, FULL_STACK_SIZE, plan_dispatches, rays_per_dispatch};
+use bvhtrace_vk::{
+    AdapterChoice, DriverTuning, TraceError, TraceOptions, Tracer, VkBvh, VkContext, VkOptions,
+};
 use glam::Vec3;
 
 #[path = "../../../tests/support/mod.rs"]
@@ -18,9 +19,15 @@ use support::{Rng, SceneCase, deep_tree, load_scene, one_triangle, parity_scenes
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
 /// machine has no Vulkan at all.
 fn context(test: &str) -> Option<VkContext> {
+    context_with(test, None)
+}
+
+/// [`context`] with the given driver tuning (`None`: the device's own).
+fn context_with(test: &str, tuning: Option<DriverTuning>) -> Option<VkContext> {
     match VkContext::with_options(&VkOptions {
-        adapter: None,
+        adapter: AdapterChoice::Auto,
         validation: true,
+        tuning,
     }) {
         Ok(ctx) => {
             eprintln!(
@@ -30,7 +37,7 @@ fn context(test: &str) -> Option<VkContext> {
             );
             Some(ctx)
         }
-        Err(e @ (VkError::LoaderMissing(_) | VkError::NoDevice { .. })) => {
+        Err(e @ TraceError::NoAdapter { .. }) => {
             eprintln!("SKIP {test}: {e}");
             None
         }
@@ -100,6 +107,12 @@ fn differ<T: bytemuck::Pod>(a: &[T], b: &[T]) -> Vec<usize> {
         .collect()
 }
 
+/// The CPU twin's hits and counters for `opts`, counted.
+fn cpu_counted(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> (Vec<Hit>, Vec<Counters>) {
+    let out = trace_rays(bvh, rays, &opts.with_counters(true));
+    (out.hits, out.counters.expect("counters asked for"))
+}
+
 #[test]
 fn ash_equals_wgpu_and_cpu_bit_for_bit() {
     let Some(ctx) = context("ash parity") else {
@@ -135,11 +148,14 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
         for traversal in traversals {
             for query in [Query::Closest, Query::Any] {
                 let label = format!("{name} {traversal} {query:?}");
-                let (cpu_hits, cpu_counters) = trace_batch_counted(&bvh, &rays, traversal, query);
-                let counted = vk.trace(&rays, traversal, query, true).expect("ash trace");
-                let plain = vk.trace(&rays, traversal, query, false).expect("ash trace");
+                let opts = TraceOptions::new(traversal, query);
+                let (cpu_hits, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
+                let counted = vk
+                    .trace(&rays, &opts.with_counters(true))
+                    .expect("ash trace");
+                let plain = vk.trace(&rays, &opts).expect("ash trace");
                 let w = wg
-                    .trace_counted(&rays, traversal, query)
+                    .trace(&rays, &opts.with_counters(true))
                     .expect("wgpu trace");
                 let vc = counted.counters.as_deref().expect("counters asked for");
                 let wc = w.counters.as_deref().expect("counters asked for");
@@ -198,13 +214,14 @@ fn create_and_drop_in_a_loop() {
     drop(first);
     for i in 0..20 {
         let ctx = VkContext::with_options(&VkOptions {
-            adapter: None,
             validation: true,
+            ..VkOptions::default()
         })
         .unwrap_or_else(|e| panic!("iteration {i}: {e}"));
         let gpu = VkBvh::upload(&ctx, &bvh).unwrap_or_else(|e| panic!("iteration {i}: {e}"));
+        let opts = TraceOptions::closest(Traversal::ShortStack(4)).with_counters(i % 2 == 0);
         let out = gpu
-            .trace(&rays, Traversal::ShortStack(4), Query::Closest, i % 2 == 0)
+            .trace(&rays, &opts)
             .unwrap_or_else(|e| panic!("iteration {i}: {e}"));
         assert_eq!(out.hits[0].prim, 0, "iteration {i}");
         assert_eq!(out.hits[0].t, 5.0, "iteration {i}");
@@ -231,8 +248,8 @@ fn create_and_drop_in_a_loop() {
 fn errors_are_errors_not_panics() {
     let Some(ctx) = context("errors") else { return };
     // An unknown adapter names itself and lists what there is.
-    match VkContext::new(Some("no-such-gpu-xyz")) {
-        Err(e @ VkError::AdapterNotFound { .. }) => {
+    match VkContext::new(AdapterChoice::Named("no-such-gpu-xyz".into())) {
+        Err(e @ TraceError::AdapterNotFound { .. }) => {
             let msg = e.to_string();
             assert!(msg.contains("no-such-gpu-xyz"), "{msg}");
             assert!(msg.contains(&ctx.device_info().name), "{msg}");
@@ -241,23 +258,35 @@ fn errors_are_errors_not_panics() {
     }
     // The device's own name (any case) finds it.
     let name = ctx.device_info().name.to_uppercase();
-    let again = VkContext::new(Some(&name)).expect("found by name");
+    let again = VkContext::new(AdapterChoice::from_name(Some(&name))).expect("found by name");
     assert_eq!(again.device_info().name, ctx.device_info().name);
 
     // A tree deeper than the full-stack kernel's stack is refused for that traversal only.
     let deep = deep_tree();
-    assert!(deep.depth > bvhtrace_gpu::FULL_STACK_SIZE);
+    assert!(deep.depth > FULL_STACK_SIZE);
     let gpu = VkBvh::upload(&ctx, &deep).expect("upload");
     let rays = [Ray::new(Vec3::new(-1.0, 0.1, 0.0), Vec3::X)];
-    match gpu.trace(&rays, Traversal::FullStack, Query::Closest, false) {
-        Err(e @ VkError::TooDeep { .. }) => assert!(e.to_string().contains("stackless")),
+    let full = TraceOptions::closest(Traversal::FullStack);
+    match gpu.trace(&rays, &full) {
+        Err(e @ TraceError::TooDeep { .. }) => assert!(e.to_string().contains("stackless")),
         other => panic!("expected TooDeep, got {other:?}"),
     }
-    let out = gpu
-        .trace(&rays, Traversal::Stackless, Query::Closest, true)
+    // `supports` and `prepare` say so without tracing.
+    assert!(matches!(
+        gpu.supports(&full),
+        Err(TraceError::TooDeep { .. })
+    ));
+    assert!(matches!(
+        Tracer::prepare(&gpu, &full),
+        Err(TraceError::TooDeep { .. })
+    ));
+    let stackless = TraceOptions::closest(Traversal::Stackless).with_counters(true);
+    gpu.supports(&stackless)
         .expect("stackless works on deep trees");
-    let (cpu, cpu_counters) =
-        trace_batch_counted(&deep, &rays, Traversal::Stackless, Query::Closest);
+    let out = gpu
+        .trace(&rays, &stackless)
+        .expect("stackless works on deep trees");
+    let (cpu, cpu_counters) = cpu_counted(&deep, &rays, &stackless);
     assert_eq!(out.hits, cpu);
     assert_eq!(out.counters.as_deref(), Some(&cpu_counters[..]));
     // An array larger than one storage binding is refused before anything is allocated,
@@ -272,7 +301,7 @@ fn errors_are_errors_not_panics() {
             depth: deep.depth,
         };
         match VkBvh::upload(&ctx, &huge) {
-            Err(e @ VkError::TooLarge { .. }) => {
+            Err(e @ TraceError::TooLarge { .. }) => {
                 let msg = e.to_string();
                 assert!(msg.contains("triangles"), "{msg}");
                 assert!(msg.contains(&limit.to_string()), "{msg}");
@@ -288,17 +317,40 @@ fn errors_are_errors_not_panics() {
     unlinked.escapes.truncate(8);
     match VkBvh::upload(&ctx, &unlinked) {
         Err(
-            e @ VkError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
-                found: 8, ..
+            e @ TraceError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
+                found: 8,
+                ..
             }),
         ) => {
             assert!(e.to_string().contains("escape_links"), "{e}")
         }
         other => panic!("expected BadEscapeLinks, got {other:?}"),
     }
+    // An empty tree is refused.
+    let nothing = FlatBvh {
+        nodes: Vec::new(),
+        escapes: Vec::new(),
+        triangles: Vec::new(),
+        depth: 0,
+    };
+    match VkBvh::upload(&ctx, &nothing) {
+        Err(TraceError::EmptyBvh) => {}
+        other => panic!("expected EmptyBvh, got {other:?}"),
+    }
+    // The f64 test on a device without shaderFloat64 is refused, naming the device.
+    if !ctx.has_f64() {
+        let f64_opts =
+            TraceOptions::closest(Traversal::Stackless).with_precision(Precision::WatertightF64);
+        match gpu.trace(&rays, &f64_opts) {
+            Err(e @ TraceError::PrecisionUnsupported { .. }) => {
+                assert!(e.to_string().contains(&ctx.device_info().name), "{e}")
+            }
+            other => panic!("expected PrecisionUnsupported, got {other:?}"),
+        }
+    }
     // An empty batch is fine.
     let empty = gpu
-        .trace(&[], Traversal::Stackless, Query::Any, false)
+        .trace(&[], &TraceOptions::new(Traversal::Stackless, Query::Any))
         .expect("empty batch");
     assert!(empty.hits.is_empty());
     assert_eq!(ctx.validation_errors(), 0);
@@ -338,19 +390,12 @@ fn precisions_match_wgpu_and_cpu() {
             for traversal in [Traversal::FullStack, Traversal::ShortStack(4)] {
                 for query in [Query::Closest, Query::Any] {
                     let label = format!("{name} {traversal} {query:?} {precision:?}");
-                    let variant = KernelVariant::new(BvhStorage::Buffers, traversal, query, true)
-                        .with_precision(precision);
-                    let a = vk.trace_variant(&rays, variant).expect("ash trace");
-                    let opts = TraceOptions {
-                        traversal,
-                        query,
-                        counters: true,
-                    };
-                    let w = wg
-                        .trace_with_precision(&rays, &opts, precision)
-                        .expect("wgpu trace");
-                    let (cpu, cpu_counters) =
-                        trace_batch_counted_precision(&bvh, &rays, traversal, query, precision);
+                    let opts = TraceOptions::new(traversal, query)
+                        .with_precision(precision)
+                        .with_counters(true);
+                    let a = vk.trace(&rays, &opts).expect("ash trace");
+                    let w = wg.trace(&rays, &opts).expect("wgpu trace");
+                    let (cpu, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
                     let ac = a.counters.as_deref().expect("counters");
                     let wc = w.counters.as_deref().expect("counters");
                     for (what, n) in [
@@ -378,8 +423,8 @@ fn precisions_match_wgpu_and_cpu() {
 fn no_driver_is_an_error() {
     const CHILD: &str = "BVHTRACE_VK_TEST_CHILD";
     if std::env::var_os(CHILD).is_some() {
-        match VkContext::new(None) {
-            Err(e @ (VkError::NoDevice { .. } | VkError::LoaderMissing(_))) => {
+        match VkContext::new(AdapterChoice::Auto) {
+            Err(e @ TraceError::NoAdapter { .. }) => {
                 let msg = e.to_string();
                 assert!(msg.contains("mesa-vulkan-drivers"), "{msg}");
                 println!("CHILD OK: {msg}");
@@ -414,8 +459,8 @@ fn batches_larger_than_a_dispatch_are_split() {
         return;
     };
     let bvh = one_triangle();
-    let n = bvhtrace_gpu::rays_per_dispatch(ctx.limits()) as usize + 1000;
-    let plan = bvhtrace_gpu::plan_dispatches(n as u64, ctx.limits());
+    let n = rays_per_dispatch(ctx.limits()) as usize + 1000;
+    let plan = plan_dispatches(n as u64, ctx.limits());
     assert!(plan.len() >= 2, "{plan:?}");
     let rays: Vec<Ray> = (0..n)
         .map(|i| {
@@ -424,11 +469,12 @@ fn batches_larger_than_a_dispatch_are_split() {
             Ray::new(Vec3::new(x, y, 5.0), Vec3::NEG_Z)
         })
         .collect();
+    let opts = TraceOptions::closest(Traversal::Stackless);
     let out = VkBvh::upload(&ctx, &bvh)
         .expect("upload")
-        .trace(&rays, Traversal::Stackless, Query::Closest, false)
+        .trace(&rays, &opts)
         .expect("trace");
-    let cpu = bvhtrace_core::trace_batch(&bvh, &rays, Traversal::Stackless, Query::Closest);
+    let cpu = trace_rays(&bvh, &rays, &opts).hits;
     let bad = differ(&out.hits, &cpu);
     assert!(
         bad.is_empty(),
@@ -438,4 +484,113 @@ fn batches_larger_than_a_dispatch_are_split() {
     );
     assert!(cpu.iter().any(|h| h.prim == 0) && cpu.iter().any(|h| h.prim != 0));
     assert_eq!(ctx.validation_errors(), 0);
+}
+
+/// The context's driver tuning: the device's own by default, always with buffers; an
+/// explicit one is used as given (storage aside). A tiny trip budget leaves rays
+/// incomplete, and they are finished on the CPU with the same answers and counters.
+#[test]
+fn driver_tuning_and_incomplete_rays() {
+    let Some(ctx) = context("driver tuning") else {
+        return;
+    };
+    let own = DriverTuning {
+        storage: BvhStorage::Buffers,
+        ..DriverTuning::for_device(ctx.device_info().kind)
+    };
+    assert_eq!(*ctx.tuning(), own);
+    let Some(textures) = context_with(
+        "driver tuning",
+        Some(DriverTuning {
+            storage: BvhStorage::Textures,
+            ..DriverTuning::cpu_driver(3)
+        }),
+    ) else {
+        return;
+    };
+    assert_eq!(
+        *textures.tuning(),
+        DriverTuning {
+            storage: BvhStorage::Buffers,
+            ..DriverTuning::cpu_driver(3)
+        },
+        "the ash backend reads buffers only"
+    );
+    drop(textures);
+
+    let Some(SceneCase { name, bvh, .. }) = load_scene("builtin:cornell", "builtin:cornell") else {
+        panic!("the built-in Cornell box always loads");
+    };
+    let rays = rays(&bvh);
+    let tight = DriverTuning {
+        trip_limit: 4,
+        ..DriverTuning::cpu_driver(2)
+    };
+    for tuning in [DriverTuning::GPU, tight] {
+        let Some(ctx) = context_with("driver tuning", Some(tuning)) else {
+            return;
+        };
+        let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
+        for traversal in [Traversal::FullStack, Traversal::ShortStack(4)] {
+            let opts = TraceOptions::closest(traversal).with_counters(true);
+            let out = vk.trace(&rays, &opts).expect("trace");
+            let (cpu, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
+            let label = format!("{name} {traversal} {tuning:?}");
+            assert!(differ(&out.hits, &cpu).is_empty(), "{label}: hits differ");
+            assert!(
+                differ(out.counters.as_deref().expect("counters"), &cpu_counters).is_empty(),
+                "{label}: counters differ"
+            );
+            if tuning.finishes_on_cpu() {
+                assert!(
+                    out.incomplete > 0,
+                    "{label}: a 4-trip budget finishes no ray"
+                );
+            } else {
+                assert_eq!(out.incomplete, 0, "{label}");
+            }
+        }
+        assert_eq!(ctx.validation_errors(), 0, "validation errors");
+    }
+}
+
+/// `VkBvh` through the `Tracer` interface gives what the CPU tracer gives, and describes
+/// itself.
+#[test]
+fn tracer_interface_matches_the_cpu() {
+    let Some(ctx) = context("tracer interface") else {
+        return;
+    };
+    let Some(SceneCase { bvh, .. }) = load_scene("builtin:degenerate", "builtin:degenerate") else {
+        panic!("the built-in degenerate scene always loads");
+    };
+    let rays = rays(&bvh);
+    let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
+    let cpu = CpuTracer::new(&bvh);
+    let tracers: [&dyn Tracer; 2] = [&vk, &cpu];
+    assert_eq!(tracers[0].backend(), "vulkan");
+    assert!(
+        tracers[0].device_name().contains(&ctx.device_info().name),
+        "{}",
+        tracers[0].device_name()
+    );
+    assert_eq!(tracers[0].default_traversal(), Traversal::GPU_DEFAULT);
+    assert_eq!(tracers[0].uploaded_bytes(), vk.stats().total_bytes());
+    assert_eq!(
+        vk.stats().total_bytes(),
+        (std::mem::size_of_val(&bvh.nodes[..])
+            + std::mem::size_of_val(&bvh.triangles[..])
+            + std::mem::size_of_val(&bvh.escapes[..])) as u64
+    );
+    for query in [Query::Closest, Query::Any] {
+        let opts = TraceOptions::new(tracers[0].default_traversal(), query).with_counters(true);
+        tracers[0].prepare(&opts).expect("prepare");
+        let [a, c] = tracers.map(|t| t.trace(&rays, &opts).expect("trace"));
+        assert!(
+            differ(&a.hits, &c.hits).is_empty(),
+            "{query:?}: hits differ"
+        );
+        assert_eq!(a.counters, c.counters, "{query:?}: counters differ");
+    }
+    assert_eq!(ctx.validation_errors(), 0, "validation errors");
 }

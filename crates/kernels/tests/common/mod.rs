@@ -1,8 +1,8 @@
-//! naga helpers the GPU crate's tests share: parse WGSL, validate it, and compile one
+//! naga helpers the kernels crate's tests share: parse WGSL, validate it, and compile one
 //! kernel variant's entry point to SPIR-V with its override constants resolved.
 #![allow(dead_code)]
 
-use bvhtrace_gpu::shaders::KernelVariant;
+use bvhtrace_kernels::KernelKey;
 use naga::Module;
 use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
 
@@ -25,7 +25,7 @@ pub fn validate(module: &Module) -> ModuleInfo {
 
 /// Compiles `variant`'s entry point in `module` to SPIR-V with its override constants, and
 /// checks that something came out.
-pub fn compile_variant(module: &Module, info: &ModuleInfo, variant: &KernelVariant) {
+pub fn compile_variant(module: &Module, info: &ModuleInfo, variant: &KernelKey) {
     let mut constants = naga::back::PipelineConstants::default();
     for (name, value) in variant.constants() {
         constants.insert(name.to_string(), value);

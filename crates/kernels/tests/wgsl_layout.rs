@@ -6,10 +6,12 @@ use std::mem::{offset_of, size_of};
 
 use bvhtrace_core::flat::{ESCAPE_BLOCK, NO_ESCAPE, OCTANTS};
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
+use bvhtrace_core::surface::{OFFSET_FLOAT_SCALE, OFFSET_INT_SCALE, OFFSET_ORIGIN};
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
-use bvhtrace_gpu::shaders::{KernelVariant, SHADER_FILES};
-use bvhtrace_gpu::{
+use bvhtrace_kernels::KernelKey;
+use bvhtrace_kernels::wgsl::SHADER_FILES;
+use bvhtrace_kernels::{
     BvhStorage, FULL_STACK_SIZE, STACK_LANES, TEXEL_ROW, WORKGROUP_SIZE, kernel_source,
     wgsl_library,
 };
@@ -60,7 +62,7 @@ fn shared_structs_match_rust_layout() {
 fn check_structs(module: &Module) {
     check_struct(
         module,
-        "Node",
+        "BvhNode",
         size_of::<FlatNode>(),
         &[
             ("min", offset_of!(FlatNode, min)),
@@ -72,7 +74,7 @@ fn check_structs(module: &Module) {
     );
     check_struct(
         module,
-        "Triangle",
+        "BvhTriangle",
         size_of::<FlatTriangle>(),
         &[
             ("v0", offset_of!(FlatTriangle, v0)),
@@ -85,7 +87,7 @@ fn check_structs(module: &Module) {
     );
     check_struct(
         module,
-        "Ray",
+        "BvhRay",
         size_of::<Ray>(),
         &[
             ("origin", offset_of!(Ray, origin)),
@@ -96,7 +98,7 @@ fn check_structs(module: &Module) {
     );
     check_struct(
         module,
-        "Hit",
+        "BvhHit",
         size_of::<Hit>(),
         &[
             ("t", offset_of!(Hit, t)),
@@ -107,7 +109,7 @@ fn check_structs(module: &Module) {
     );
     check_struct(
         module,
-        "Counters",
+        "BvhCounters",
         size_of::<Counters>(),
         &[
             ("nodes", offset_of!(Counters, nodes)),
@@ -140,11 +142,11 @@ fn constants_match_rust() {
         Literal::U32(TEXEL_ROW.trailing_zeros())
     );
     assert!(TEXEL_ROW.is_power_of_two());
-    match constant(&module, "BOX_TFAR_SCALE") {
+    match constant(&module, "BVH_BOX_TFAR_SCALE") {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_TFAR_SCALE.to_bits(), "BOX_TFAR_SCALE"),
         l => panic!("BOX_TFAR_SCALE: {l:?}"),
     }
-    match constant(&module, "BOX_TFAR_SCALE_NEG") {
+    match constant(&module, "BVH_BOX_TFAR_SCALE_NEG") {
         Literal::F32(v) => assert_eq!(
             v.to_bits(),
             BOX_TFAR_SCALE_NEG.to_bits(),
@@ -152,39 +154,59 @@ fn constants_match_rust() {
         ),
         l => panic!("BOX_TFAR_SCALE_NEG: {l:?}"),
     }
-    match constant(&module, "BOX_CULL_SLACK") {
+    match constant(&module, "BVH_BOX_CULL_SLACK") {
         Literal::F32(v) => assert_eq!(v.to_bits(), BOX_CULL_SLACK.to_bits(), "BOX_CULL_SLACK"),
         l => panic!("BOX_CULL_SLACK: {l:?}"),
     }
     // The escape links' layout (`flat::escape_index`), which the walks index themselves.
     assert_eq!(
-        constant(&module, "ESCAPE_BLOCK_LOG2"),
+        constant(&module, "BVH_ESCAPE_BLOCK_LOG2"),
         Literal::U32(ESCAPE_BLOCK.trailing_zeros())
     );
     assert!(ESCAPE_BLOCK.is_power_of_two());
     assert_eq!(
-        constant(&module, "ESCAPE_BLOCK"),
+        constant(&module, "BVH_ESCAPE_BLOCK"),
         Literal::U32(ESCAPE_BLOCK as u32)
     );
-    assert_eq!(constant(&module, "OCTANTS"), Literal::U32(OCTANTS as u32));
-    assert_eq!(constant(&module, "NO_ESCAPE"), Literal::U32(NO_ESCAPE));
-    assert_eq!(constant(&module, "MISS"), Literal::U32(MISS));
-    assert_eq!(constant(&module, "INVALID_RAY"), Literal::U32(INVALID_RAY));
     assert_eq!(
-        constant(&module, "MAX_SHORT_STACK"),
+        constant(&module, "BVH_OCTANTS"),
+        Literal::U32(OCTANTS as u32)
+    );
+    assert_eq!(constant(&module, "BVH_NO_ESCAPE"), Literal::U32(NO_ESCAPE));
+    assert_eq!(constant(&module, "BVH_MISS"), Literal::U32(MISS));
+    // The secondary-ray origin offset (`surface::offset_ray_origin`).
+    for (name, value) in [
+        ("BVH_OFFSET_ORIGIN", OFFSET_ORIGIN),
+        ("BVH_OFFSET_FLOAT_SCALE", OFFSET_FLOAT_SCALE),
+        ("BVH_OFFSET_INT_SCALE", OFFSET_INT_SCALE),
+    ] {
+        match constant(&module, name) {
+            Literal::F32(v) => assert_eq!(v.to_bits(), value.to_bits(), "{name}"),
+            l => panic!("{name}: {l:?}"),
+        }
+    }
+    assert_eq!(
+        constant(&module, "BVH_INVALID_RAY"),
+        Literal::U32(INVALID_RAY)
+    );
+    assert_eq!(
+        constant(&module, "BVH_MAX_SHORT_STACK"),
         Literal::U32(MAX_SHORT_STACK)
     );
     assert_eq!(
-        constant(&module, "FULL_STACK_SIZE"),
+        constant(&module, "BVH_FULL_STACK_SIZE"),
         Literal::U32(FULL_STACK_SIZE)
     );
     assert_eq!(
-        constant(&module, "WORKGROUP_SIZE"),
+        constant(&module, "BVH_WORKGROUP_SIZE"),
         Literal::U32(WORKGROUP_SIZE)
     );
     // The per-lane stacks: one per invocation of an entry point's workgroup, deep enough
     // for the full stack and the short stack's largest ring.
-    assert_eq!(constant(&module, "STACK_LANES"), Literal::U32(STACK_LANES));
+    assert_eq!(
+        constant(&module, "BVH_STACK_LANES"),
+        Literal::U32(STACK_LANES)
+    );
     const { assert!(WORKGROUP_SIZE <= STACK_LANES) };
     const { assert!(FULL_STACK_SIZE >= MAX_SHORT_STACK) };
     for ep in &module.entry_points {
@@ -205,11 +227,11 @@ fn every_variant_validates_and_compiles() {
     assert_eq!(seen.len(), 2 * 5 * 2 * 2);
 }
 
-fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelVariant>) {
+fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelKey>) {
     let module = parse(&kernel_source(storage));
     let info = validate(&module);
     for k in [1, 6, MAX_SHORT_STACK] {
-        for v in KernelVariant::all_for_k(storage, k) {
+        for v in KernelKey::all_for_k(storage, k) {
             if !seen.insert(v) {
                 continue;
             }
@@ -235,8 +257,8 @@ fn check_library(storage: BvhStorage) {
     let module = parse(&format!(
         "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
          @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
-             let ray = Ray(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
-             out[0] = trace_short_stack(ray, false, 0u, lane).hit.prim + trace_full_stack(ray, true, lane).hit.prim;\n\
+             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+             out[0] = bvh_trace_short_stack(ray, false, 0u, lane).hit.prim + bvh_trace_full_stack(ray, true, lane).hit.prim;\n\
          }}"
     ));
     validate(&module);

@@ -1,16 +1,17 @@
 //! What one trace job needs, and the pipeline built from exactly that.
 //!
-//! A [`PipelineFeatures`] says what the job uses (the traversal, hence whether the escape
-//! links are read; closest or any hit; counters; per-vertex attributes the scene has and the
-//! job shades with) and is the key of [`crate::GpuContext`]'s pipeline cache. From it come
+//! A [`KernelKey`] says what the job uses (the traversal, hence whether the escape
+//! links are read; closest or any hit; the triangle test; counters; per-vertex attributes
+//! the scene has and the job shades with) and is the key of each backend's pipeline
+//! cache. From it come
 //!
-//! * the WGSL module ([`PipelineFeatures::source`]): composed of only the files the job
+//! * the WGSL module ([`KernelKey::source`]): composed of only the files the job
 //!   needs ([`ModuleSet`]): no escape-link binding or escape-link walk for the full stack, no
 //!   `counters` binding unless counters are on, no attribute module for a positions-only
 //!   scene, one entry point;
-//! * the bindings that module declares ([`PipelineFeatures::bindings`], checked against a
-//!   naga reflection of the composed source by `crates/gpu/tests/features.rs`);
-//! * the upload ([`PipelineFeatures::upload_options`]): the escape links only when read.
+//! * the bindings that module declares ([`KernelKey::bindings`], checked against a
+//!   naga reflection of the composed source by the tests);
+//! * the upload ([`KernelKey::upload_bytes`]): the escape links only when read.
 //!
 //! Closest/any hit and the short-stack size stay override constants (folded when the
 //! pipeline is created). [`Composition::EverythingOn`] composes every module instead (the
@@ -19,8 +20,10 @@
 use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{Precision, Query, Traversal};
 
-use crate::bvh::{UploadOptions, UploadStats};
-use crate::shaders::{self, BvhStorage, KernelVariant};
+use crate::UploadStats;
+use crate::wgsl::{self as shaders, BvhStorage, RayInput};
+use bvhtrace_core::TraceOptions;
+use bvhtrace_core::traverse::MAX_SHORT_STACK;
 
 /// Bytes of one block of escape links ([`PerElement::NodeBlock`]).
 const ESCAPE_BLOCK_BYTES: u64 = (ESCAPE_BLOCK * OCTANTS * 4) as u64;
@@ -31,39 +34,37 @@ fn escape_blocks(nodes: u64) -> u64 {
 }
 
 /// `bvh_buffers_escapes.wgsl`.
-pub const BVH_BUFFERS_ESCAPES_WGSL: &str =
-    include_str!("../../../shaders/bvh_buffers_escapes.wgsl");
+pub const BVH_BUFFERS_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_buffers_escapes.wgsl");
 /// `bvh_textures_escapes.wgsl`.
-pub const BVH_TEXTURES_ESCAPES_WGSL: &str =
-    include_str!("../../../shaders/bvh_textures_escapes.wgsl");
+pub const BVH_TEXTURES_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_textures_escapes.wgsl");
 /// `entry_counters.wgsl`: the `counters` binding, composed only when counters are on.
-pub const ENTRY_COUNTERS_WGSL: &str = include_str!("../../../shaders/entry_counters.wgsl");
+pub const ENTRY_COUNTERS_WGSL: &str = include_str!("../shaders/entry_counters.wgsl");
 /// `attribute_normals.wgsl`: per-vertex normals, composed only when the scene has them and
 /// the job shades with them.
-pub const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../../../shaders/attribute_normals.wgsl");
+pub const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../shaders/attribute_normals.wgsl");
 
 /// The entry-point files: `(file, source)` for `[full stack, short stack]` x
-/// `[hits only, counted]`, each holding the entry point [`KernelVariant::entry_point`]
+/// `[hits only, counted]`, each holding the entry point [`KernelKey::entry_point`]
 /// names.
-pub const ENTRY_POINT_FILES: [[(&str, &str); 2]; 2] = [
+pub(crate) const ENTRY_POINT_FILES: [[(&str, &str); 2]; 2] = [
     [
         (
             "entry_full_stack.wgsl",
-            include_str!("../../../shaders/entry_full_stack.wgsl"),
+            include_str!("../shaders/entry_full_stack.wgsl"),
         ),
         (
             "entry_full_stack_counted.wgsl",
-            include_str!("../../../shaders/entry_full_stack_counted.wgsl"),
+            include_str!("../shaders/entry_full_stack_counted.wgsl"),
         ),
     ],
     [
         (
             "entry_short_stack.wgsl",
-            include_str!("../../../shaders/entry_short_stack.wgsl"),
+            include_str!("../shaders/entry_short_stack.wgsl"),
         ),
         (
             "entry_short_stack_counted.wgsl",
-            include_str!("../../../shaders/entry_short_stack_counted.wgsl"),
+            include_str!("../shaders/entry_short_stack_counted.wgsl"),
         ),
     ],
 ];
@@ -258,74 +259,183 @@ pub struct BindingInfo {
     pub uploaded: bool,
 }
 
-/// Everything that decides one trace pipeline, and the key of the pipeline cache.
+/// Everything that decides one trace kernel: which files are composed, which entry point
+/// runs and which override constants it gets. The key of a backend's pipeline cache.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct PipelineFeatures {
-    /// Storage, traversal, query, counters (and whatever else selects the kernel).
-    pub variant: KernelVariant,
+pub struct KernelKey {
+    /// Where the BVH is read from.
+    pub storage: BvhStorage,
+    /// The walk; a short stack's size is clamped to `1..=MAX_SHORT_STACK` by
+    /// [`KernelKey::new`], as the CPU walk clamps it.
+    pub traversal: Traversal,
+    /// Closest or any hit (`ANY_HIT`).
+    pub query: Query,
+    /// The triangle test composed into the module ([`shaders::triangle_wgsl`]).
+    pub precision: Precision,
+    /// The counted entry point and the `counters` binding.
+    pub counters: bool,
+    /// Where the entry point reads the rays and writes the hits.
+    pub rays: RayInput,
+    /// `PARALLEL_RAYS` (`box.wgsl`): some ray of the batch may have a zero direction
+    /// component ([`bvhtrace_core::intersect::is_parallel_to_a_slab`]). True unless the
+    /// batch is known to have none ([`KernelKey::for_rays`]).
+    pub parallel_rays: bool,
     /// Per-vertex attributes composed in ([`VertexAttributes::needed`]).
     pub attributes: VertexAttributes,
     /// Only what is needed, or everything.
     pub composition: Composition,
 }
 
-impl PipelineFeatures {
-    /// The specialised pipeline for `variant`, positions only.
-    pub fn new(variant: KernelVariant) -> PipelineFeatures {
-        PipelineFeatures {
-            variant,
+impl KernelKey {
+    /// The specialised kernel tracing as `opts` says with the BVH in `storage`: rays in
+    /// buffers, the parallel path kept, positions only.
+    pub fn new(storage: BvhStorage, opts: &TraceOptions) -> KernelKey {
+        let traversal = match opts.traversal {
+            Traversal::ShortStack(k) => Traversal::ShortStack(k.clamp(1, MAX_SHORT_STACK)),
+            t => t,
+        };
+        KernelKey {
+            storage,
+            traversal,
+            query: opts.query,
+            precision: opts.precision,
+            counters: opts.counters,
+            rays: RayInput::Buffer,
+            parallel_rays: true,
             attributes: VertexAttributes::NONE,
             composition: Composition::Specialised,
         }
     }
 
-    /// The pipeline for a job: `traversal` and `query` on `storage`, counters when asked
-    /// for, and the attributes the scene has and the job uses; the rays read as
-    /// [`crate::GpuBvh::trace`] uploads them ([`shaders::RayInput::for_storage`]).
+    /// The kernel for a job: as [`KernelKey::new`], with the rays read as the convenience
+    /// trace of that storage uploads them ([`RayInput::for_storage`]) and the attributes
+    /// the scene has and the job uses.
     pub fn for_job(
         storage: BvhStorage,
-        traversal: Traversal,
-        query: Query,
-        counters: bool,
+        opts: &TraceOptions,
         scene_has: VertexAttributes,
         job_uses: VertexAttributes,
-    ) -> PipelineFeatures {
-        PipelineFeatures {
+    ) -> KernelKey {
+        KernelKey {
+            rays: RayInput::for_storage(storage),
             attributes: VertexAttributes::needed(scene_has, job_uses),
-            ..Self::new(
-                KernelVariant::new(storage, traversal, query, counters)
-                    .with_rays(shaders::RayInput::for_storage(storage)),
-            )
+            ..Self::new(storage, opts)
         }
     }
 
-    /// The same features, composed as `composition` says.
-    pub fn with_composition(mut self, composition: Composition) -> PipelineFeatures {
-        self.composition = composition;
-        self
+    /// The options this kernel traces with.
+    pub fn options(&self) -> TraceOptions {
+        TraceOptions {
+            traversal: self.traversal,
+            query: self.query,
+            precision: self.precision,
+            counters: self.counters,
+        }
+    }
+
+    /// The same key reading its rays from `rays`.
+    pub fn with_rays(self, rays: RayInput) -> KernelKey {
+        KernelKey { rays, ..self }
+    }
+
+    /// The same key, composed as `composition` says.
+    pub fn with_composition(self, composition: Composition) -> KernelKey {
+        KernelKey {
+            composition,
+            ..self
+        }
+    }
+
+    /// The same key specialised for `rays`: the box test's parallel path is compiled out
+    /// when none of them has a zero direction component.
+    pub fn for_rays(self, rays: &[bvhtrace_core::Ray]) -> KernelKey {
+        let parallel_rays = rays
+            .iter()
+            .any(|r| bvhtrace_core::intersect::is_parallel_to_a_slab(glam::Vec3::from(r.dir)));
+        KernelKey {
+            parallel_rays,
+            ..self
+        }
+    }
+
+    /// True when the kernel walks a short stack (or none) and so reads the escape links.
+    pub fn needs_escapes(&self) -> bool {
+        self.traversal.needs_escapes()
+    }
+
+    /// The short stack's size (`SHORT_STACK_SIZE`): 0 for the stackless walk, `None` for
+    /// the full stack.
+    fn short_stack_size(&self) -> Option<u32> {
+        match self.traversal {
+            Traversal::FullStack => None,
+            Traversal::Stackless => Some(0),
+            Traversal::ShortStack(k) => Some(k.clamp(1, MAX_SHORT_STACK)),
+        }
+    }
+
+    /// The entry point's name.
+    pub fn entry_point(&self) -> &'static str {
+        match (self.needs_escapes(), self.counters) {
+            (false, false) => "bvh_trace_full_stack_main",
+            (false, true) => "bvh_trace_full_stack_counted",
+            (true, false) => "bvh_trace_short_stack_main",
+            (true, true) => "bvh_trace_short_stack_counted",
+        }
+    }
+
+    /// The override constants the key sets, as wgpu and naga take them. A backend adds
+    /// `BVH_TRIP_LIMIT` and `BVH_DISPATCH_THREADS` from its [`crate::DriverTuning`].
+    pub fn constants(&self) -> Vec<(&'static str, f64)> {
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        let mut c = vec![
+            ("BVH_ANY_HIT", flag(self.query == Query::Any)),
+            ("BVH_PARALLEL_RAYS", flag(self.parallel_rays)),
+        ];
+        if let Some(k) = self.short_stack_size() {
+            c.push(("BVH_SHORT_STACK_SIZE", f64::from(k)));
+        }
+        c
+    }
+
+    /// Every key the tests validate for `storage`: each walk (full stack, stackless,
+    /// short stack of size `k`) x query x counters.
+    pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelKey> {
+        let mut v = Vec::new();
+        for traversal in [
+            Traversal::FullStack,
+            Traversal::Stackless,
+            Traversal::ShortStack(k),
+        ] {
+            for query in [Query::Closest, Query::Any] {
+                for counters in [false, true] {
+                    let opts = TraceOptions::new(traversal, query).with_counters(counters);
+                    v.push(KernelKey::new(storage, &opts));
+                }
+            }
+        }
+        v
     }
 
     /// The files the module is composed of.
     pub fn module_set(&self) -> ModuleSet {
-        let v = &self.variant;
         match self.composition {
             Composition::EverythingOn => ModuleSet {
-                rays: v.rays,
-                ..ModuleSet::everything(v.storage, v.precision, Entries::All)
+                rays: self.rays,
+                ..ModuleSet::everything(self.storage, self.precision, Entries::All)
             },
             Composition::Specialised => ModuleSet {
-                storage: v.storage,
-                precision: v.precision,
-                escapes: v.needs_escapes(),
-                full_stack: !v.short_stack,
-                short_stack: v.short_stack,
+                storage: self.storage,
+                precision: self.precision,
+                escapes: self.needs_escapes(),
+                full_stack: !self.needs_escapes(),
+                short_stack: self.needs_escapes(),
                 attributes: self.attributes,
-                entries: if v.counters {
+                entries: if self.counters {
                     Entries::Counted
                 } else {
                     Entries::Plain
                 },
-                rays: v.rays,
+                rays: self.rays,
             },
         }
     }
@@ -376,20 +486,20 @@ impl PipelineFeatures {
         }
         if set.entries != Entries::None {
             let (rays, hits) = match set.rays {
-                shaders::RayInput::Buffer => ("rays", "hits"),
-                shaders::RayInput::Texture => ("ray_texels", "hit_texels"),
+                RayInput::Buffer => ("rays", "hits"),
+                RayInput::Texture => ("ray_texels", "hit_texels"),
             };
-            b.push(batch(0, rays, crate::trace::RAY_BYTES));
-            b.push(batch(1, hits, crate::trace::HIT_BYTES));
+            b.push(batch(0, rays, crate::plan::RAY_BYTES));
+            b.push(batch(1, hits, crate::plan::HIT_BYTES));
             if set.has_counters() {
-                b.push(batch(2, "counters", crate::trace::COUNTERS_BYTES));
+                b.push(batch(2, "counters", crate::plan::COUNTERS_BYTES));
             }
         }
         b
     }
 
     /// Bytes the BVH bindings declare for a tree of `nodes` nodes and `triangles`
-    /// triangles: what a [`BvhStorage::Buffers`] upload for these features holds (texture
+    /// triangles: what a [`BvhStorage::Buffers`] upload for this key holds (texture
     /// uploads add row padding).
     pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64) -> u64 {
         self.bindings()
@@ -407,10 +517,10 @@ impl PipelineFeatures {
             .sum()
     }
 
-    /// What [`crate::GpuBvh::upload`] with [`PipelineFeatures::upload_options`] uploads for
-    /// a tree of `nodes` nodes and `triangles` triangles (`upload_ms` 0): the bindings'
-    /// bytes ([`PipelineFeatures::declared_bvh_bytes`]), plus, for textures taller than one
-    /// row, the padding of their last row of [`crate::TEXEL_ROW`] texels.
+    /// What an upload for this key holds for a tree of `nodes` nodes and `triangles`
+    /// triangles (`upload_ms` 0): the bindings' bytes
+    /// ([`KernelKey::declared_bvh_bytes`]), plus, for textures taller than one row, the
+    /// padding of their last row of [`shaders::TEXEL_ROW`] texels.
     pub fn upload_bytes(&self, nodes: u64, triangles: u64) -> UploadStats {
         let set = self.module_set();
         let sized = |elements: u64, element_bytes: u64, texels_per: u64, texel_bytes: u64| match set
@@ -427,6 +537,7 @@ impl PipelineFeatures {
             }
         };
         UploadStats {
+            storage: set.storage,
             nodes_bytes: sized(nodes, 32, 2, 16),
             triangles_bytes: sized(triangles, 48, 3, 16),
             escapes_bytes: if set.escapes {
@@ -443,31 +554,19 @@ impl PipelineFeatures {
         }
     }
 
-    /// The traversal the variant walks.
-    pub fn traversal(&self) -> Traversal {
-        self.variant.traversal()
-    }
-
-    /// The upload these features read: the escape links only when the traversal reads them.
-    pub fn upload_options(&self) -> UploadOptions {
-        UploadOptions::for_traversal(self.traversal()).with_storage(self.variant.storage)
-    }
-
     /// What was included, in words, for listings: the query, the walk, and each optional
     /// part present (`escape-links`, `counters`, `vertex-normals`, `everything-on`).
     pub fn names(&self) -> Vec<&'static str> {
-        let v = &self.variant;
         let set = self.module_set();
-        let mut n = vec![if v.any_hit { "any-hit" } else { "closest-hit" }];
-        n.push(match self.traversal() {
-            Traversal::FullStack => "full-stack",
-            Traversal::Stackless => "stackless",
-            Traversal::ShortStack(_) => "short-stack",
-        });
+        let mut n = vec![match self.query {
+            Query::Any => "any-hit",
+            Query::Closest => "closest-hit",
+        }];
+        n.push(self.traversal.name());
         if set.escapes {
             n.push("escape-links");
         }
-        if v.counters {
+        if self.counters {
             n.push("counters");
         }
         if set.attributes.normals {
@@ -477,13 +576,5 @@ impl PipelineFeatures {
             n.push("everything-on");
         }
         n
-    }
-}
-
-impl KernelVariant {
-    /// The specialised module for this variant: only the files it needs (see
-    /// [`PipelineFeatures`]); [`crate::kernel_source`] is the everything-on module.
-    pub fn source(&self) -> String {
-        PipelineFeatures::new(*self).source()
     }
 }

@@ -3,11 +3,9 @@
 //! with naga's `FLOAT64` capability, which `SHADER_F64` grants) and compiles to SPIR-V for
 //! every entry point.
 
-use bvhtrace_core::{Precision, Query, Traversal};
-use bvhtrace_gpu::BvhStorage;
-use bvhtrace_gpu::shaders::{
-    KernelVariant, SHADER_FILES, kernel_source, kernel_source_for, triangle_wgsl,
-};
+use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
+use bvhtrace_kernels::wgsl::{SHADER_FILES, kernel_source, kernel_source_for, triangle_wgsl};
+use bvhtrace_kernels::{BvhStorage, KernelKey};
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 
 mod common;
@@ -54,7 +52,7 @@ fn each_precision_composes_its_own_triangle_module() {
                     "{p}: {name}"
                 );
             }
-            assert_eq!(src.matches("fn intersect_triangle(").count(), 1, "{p}");
+            assert_eq!(src.matches("fn bvh_intersect_triangle(").count(), 1, "{p}");
         }
     }
 }
@@ -83,7 +81,10 @@ fn every_precision_variant_validates_and_compiles() {
             ] {
                 for q in [Query::Closest, Query::Any] {
                     for counters in [false, true] {
-                        let v = KernelVariant::new(storage, tr, q, counters).with_precision(p);
+                        let opts = TraceOptions::new(tr, q)
+                            .with_precision(p)
+                            .with_counters(counters);
+                        let v = KernelKey::new(storage, &opts);
                         assert_eq!(v.precision, p);
                         compile_variant(&module, &info, &v);
                         n += 1;

@@ -1,12 +1,13 @@
-//! The crate's error type.
+//! The one error type of every backend.
 
-use bvhtrace_core::Traversal;
+use bvhtrace_core::{Precision, Traversal};
 
-/// Everything that can go wrong on the GPU side. Nothing in this crate panics on bad input
-/// or a missing device: it returns one of these.
+/// Everything that can go wrong while choosing a device, uploading a BVH or tracing, on
+/// any backend. Nothing in bvhtrace panics on bad input or a missing device: it returns
+/// one of these.
 #[derive(Debug, thiserror::Error)]
-pub enum GpuError {
-    /// No Vulkan adapter at all (no driver, or no Vulkan loader).
+pub enum TraceError {
+    /// No usable device: no Vulkan loader, no driver, or no adapter with a compute queue.
     #[error(
         "no Vulkan adapter found{details}. Install a Vulkan driver; without a GPU, Mesa's \
          CPU driver lavapipe works: `sudo apt-get install mesa-vulkan-drivers` (Debian/Ubuntu) \
@@ -17,7 +18,7 @@ pub enum GpuError {
         /// Extra context (empty, or starting with a separator).
         details: String,
     },
-    /// `BVHTRACE_ADAPTER` (or the explicit choice) names no adapter.
+    /// The adapter asked for by name (or by `BVHTRACE_ADAPTER`) does not exist.
     #[error("no Vulkan adapter name contains {wanted:?} (available: {available})")]
     AdapterNotFound {
         /// The requested substring.
@@ -25,13 +26,30 @@ pub enum GpuError {
         /// The adapters that exist, comma-separated.
         available: String,
     },
-    /// The adapter refused to create a device.
-    #[error("could not create a device on {adapter}: {source}")]
-    RequestDevice {
+    /// The device lacks a feature the tracer needs for this job.
+    #[error("the device {adapter} lacks the {feature} feature, which {needed_for} needs")]
+    MissingFeature {
+        /// The feature's name (`SHADER_F64`, ...).
+        feature: &'static str,
+        /// What needs it.
+        needed_for: &'static str,
         /// The adapter's name.
         adapter: String,
-        /// wgpu's reason.
-        source: wgpu::RequestDeviceError,
+    },
+    /// One of the device's limits is below what the tracer needs.
+    #[error(
+        "the device's {limit} is {has}, below the {needs} that {needed_for} needs; create the \
+         device with at least the tracer's required limits"
+    )]
+    LimitTooLow {
+        /// The limit's name, as in `wgpu::Limits`.
+        limit: &'static str,
+        /// The device's value.
+        has: u64,
+        /// The value needed.
+        needs: u64,
+        /// What needs it.
+        needed_for: &'static str,
     },
     /// A buffer would be larger than the device allows.
     #[error(
@@ -45,7 +63,7 @@ pub enum GpuError {
         bytes: u64,
         /// The limit it exceeds.
         limit: u64,
-        /// The limit's name in `wgpu::Limits`.
+        /// The limit's name.
         limit_name: &'static str,
     },
     /// The tree is deeper than the full-stack kernel's stack.
@@ -82,11 +100,11 @@ pub enum GpuError {
     )]
     PrecisionUnsupported {
         /// The precision asked for.
-        precision: bvhtrace_core::Precision,
+        precision: Precision,
         /// The adapter's name.
         adapter: String,
     },
-    /// A user buffer given to [`crate::GpuBvh::record`] does not fit the batch.
+    /// A caller's buffer given to a recording call does not fit the batch.
     #[error("the {buffer} buffer: {problem}")]
     BadBuffer {
         /// Which buffer (`rays`, `hits`, `counters`).
@@ -94,18 +112,40 @@ pub enum GpuError {
         /// What is wrong with it.
         problem: String,
     },
-    /// wgpu reported a validation, out-of-memory or internal error.
-    #[error("wgpu error while {during}: {message}")]
-    Wgpu {
-        /// What the crate was doing.
+    /// The device ran out of memory.
+    #[error("the device ran out of memory while {during}: {message}")]
+    OutOfMemory {
+        /// What the tracer was doing.
         during: &'static str,
-        /// wgpu's message.
+        /// The driver's or wgpu's message.
         message: String,
     },
-    /// Mapping a read-back buffer failed.
-    #[error("reading results back failed: {0}")]
-    Map(#[from] wgpu::BufferAsyncError),
-    /// Waiting for the device failed (device lost, timeout).
-    #[error("waiting for the GPU failed: {0}")]
-    Poll(#[from] wgpu::PollError),
+    /// The device was lost (driver reset, hang, removal).
+    #[error("the device was lost while {during}")]
+    DeviceLost {
+        /// What the tracer was doing.
+        during: &'static str,
+    },
+    /// Any other error the device API reported (a wgpu validation error, a Vulkan result,
+    /// a failed mapping or wait, shader translation).
+    #[error("device error while {during}: {message}")]
+    Device {
+        /// What the tracer was doing.
+        during: &'static str,
+        /// The API's message.
+        message: String,
+    },
+    /// A lock was poisoned by a thread that panicked while holding it.
+    #[error("a thread panicked while holding the {0}")]
+    Poisoned(&'static str),
+}
+
+impl TraceError {
+    /// A [`TraceError::Device`] error from any displayable cause.
+    pub fn device(during: &'static str, cause: impl std::fmt::Display) -> TraceError {
+        TraceError::Device {
+            during,
+            message: cause.to_string(),
+        }
+    }
 }

@@ -1,0 +1,41 @@
+//! What every bvhtrace backend shares, with no device API in it: the WGSL kernels and
+//! their composition, the kernel key, the binding table, dispatch planning, device limits,
+//! the CPU-driver measures, the [`Tracer`] interface and the one error type.
+//!
+//! The wgpu backend (`bvhtrace-gpu`) and the ash backend (`bvhtrace-vk`) both build on
+//! this crate, so an engine written on ash does not pull in wgpu.
+//!
+//! * [`Tracer`]: one interface over the CPU walks ([`CpuTracer`]) and the device backends.
+//! * [`KernelKey`]: what one kernel is (storage, traversal, query, precision, counters,
+//!   where the rays come from, attributes): its WGSL source, bindings and constants.
+//! * [`wgsl_library`]: the traversal functions for your own WGSL.
+//! * [`DriverTuning`]: the measures that only help CPU drivers such as lavapipe.
+//! * [`plan_dispatches`], [`DeviceLimits`]: how a batch fits a device.
+//! * [`TraceError`]: everything that can go wrong, on every backend.
+#![warn(missing_docs)]
+
+mod device;
+mod error;
+pub mod key;
+mod plan;
+mod tracer;
+pub mod wgsl;
+
+pub use bvhtrace_core;
+pub use bvhtrace_core::{Query, TraceOptions, TraceOutput, Traversal};
+pub use device::{
+    ADAPTER_ENV, AdapterChoice, CPU_DRIVER_TRIP_LIMIT, DeviceKind, DriverTuning,
+    MAX_DISPATCH_THREADS,
+};
+pub use error::TraceError;
+pub use key::{BindingInfo, Composition, KernelKey, PerElement, VertexAttributes};
+pub use plan::{
+    COUNTERS_BYTES, DeviceLimits, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES,
+    UploadStats, check_buffer_size, finish_incomplete, plan_dispatches, plan_submissions,
+    rays_per_dispatch, texel_rows,
+};
+pub use tracer::{CpuTracer, Tracer};
+pub use wgsl::{
+    BATCH_GROUP, BVH_GROUP, BvhStorage, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
+    WORKGROUP_SIZE, kernel_source, wgsl_library,
+};

@@ -1,0 +1,290 @@
+//! The WGSL kernels: composed at load time from the files in the repository's `shaders/`
+//! folder, one file per concern, and specialised per pipeline with override constants.
+//!
+//! | file | concern | CPU twin |
+//! |---|---|---|
+//! | `types.wgsl` | `BvhNode`, `BvhTriangle`, `BvhRay`, `BvhHit`, `BvhCounters`, `BvhTraceResult` | `bvhtrace_core::{FlatNode, FlatTriangle, Ray, Hit, Counters}` |
+//! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the BVH's bindings (group 0 by default) and fetch functions ([`BvhStorage`]) | `FlatBvh` |
+//! | `ray.wgsl` | validity, `bvh_safe_inverse`, `bvh_prepare_ray` | `Ray::is_valid`, `PreparedRay::new` |
+//! | `surface.wgsl` | `bvh_offset_ray_origin`, for secondary rays | `surface::offset_ray_origin` |
+//! | `box.wgsl` | conservative slab test | `intersect::intersect_box` |
+//! | `triangle_hit.wgsl` | `BvhTriHit`, what every triangle test returns | `intersect::TriHit` |
+//! | `triangle.wgsl` (or a [`Precision`] variant, [`triangle_wgsl`]) | watertight triangle test | `intersect::intersect_triangle` |
+//! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
+//! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full and short stack | `Vec` / the ring of `traverse::short_stack` |
+//! | `traverse_full_stack.wgsl` | `bvh_trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
+//! | `traverse_short_stack.wgsl` | `bvh_trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
+//! | `bvh_buffers_escapes.wgsl` or `bvh_textures_escapes.wgsl` | the escape links (binding 2), only for the walks that read them | `FlatBvh::escapes` |
+//! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
+//! | `entry.wgsl` | what the entry points share: the overrides, `bvh_ray_index` | `traverse::trace_rays` |
+//! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from and the hits go (`bvh_load_ray`, `bvh_store_hit`, `bvh_batch_len`; [`RayInput`]) | - |
+//! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_rays` with counters |
+//! | `entry_{full,short}_stack[_counted].wgsl` | one entry point each | |
+//!
+//! [`wgsl_library`] concatenates the traversal library (every traversal, no entry point)
+//! for use from your own shaders; [`kernel_source`] adds every entry point (the
+//! everything-on module); [`crate::KernelKey::source`] composes
+//! only what one pipeline needs. Every name the WGSL declares starts with `bvh_`, `Bvh`
+//! or `BVH_`, so the library can be composed with a user's shader. The BVH storage is chosen by which bindings file is
+//! composed in. Nothing is copied between variants: the stackless walk is the short-stack
+//! function with `k = 0`, the query and `k` are pipeline-overridable constants (`BVH_ANY_HIT`,
+//! `BVH_SHORT_STACK_SIZE`), and counters are written only by the `*_counted` entry points.
+
+use bvhtrace_core::Precision;
+
+/// Where the kernels read the BVH from. Both give bit-identical results.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum BvhStorage {
+    /// Storage buffers in the exact layout of [`bvhtrace_core::flat`]
+    /// (`bvh_buffers.wgsl`): the portable choice, and the one to bind from your own
+    /// shaders when you already hold the buffers.
+    #[default]
+    Buffers,
+    /// `Rgba32Uint`/`R32Uint` textures of [`TEXEL_ROW`] texels per row
+    /// (`bvh_textures.wgsl`). On lavapipe a texel fetch is a vector gather while a
+    /// storage-buffer load is a per-lane scalar loop: traversal is about 2.5x faster.
+    Textures,
+}
+
+impl BvhStorage {
+    /// The WGSL file declaring this storage's bindings and fetch functions.
+    pub fn wgsl(&self) -> (&'static str, &'static str) {
+        match self {
+            BvhStorage::Buffers => ("bvh_buffers.wgsl", BVH_BUFFERS_WGSL),
+            BvhStorage::Textures => ("bvh_textures.wgsl", BVH_TEXTURES_WGSL),
+        }
+    }
+}
+
+/// Texels per row of the [`BvhStorage::Textures`] textures (`BVH_TEXEL_ROW_MASK + 1` in
+/// `bvh_textures.wgsl`; 8192 is WebGPU's guaranteed `max_texture_dimension_2d`).
+pub const TEXEL_ROW: u32 = 8192;
+
+/// `bvh_buffers.wgsl`.
+pub const BVH_BUFFERS_WGSL: &str = include_str!("../shaders/bvh_buffers.wgsl");
+/// `bvh_textures.wgsl`.
+pub const BVH_TEXTURES_WGSL: &str = include_str!("../shaders/bvh_textures.wgsl");
+
+/// The storage-independent WGSL files, in composition order, as `(file name, source)`.
+/// The BVH bindings ([`BvhStorage::wgsl`]) go after `types.wgsl`.
+pub const SHADER_FILES: &[(&str, &str)] = &[
+    ("types.wgsl", include_str!("../shaders/types.wgsl")),
+    ("ray.wgsl", include_str!("../shaders/ray.wgsl")),
+    ("surface.wgsl", include_str!("../shaders/surface.wgsl")),
+    ("box.wgsl", include_str!("../shaders/box.wgsl")),
+    (
+        "triangle_hit.wgsl",
+        include_str!("../shaders/triangle_hit.wgsl"),
+    ),
+    ("triangle.wgsl", TRIANGLE_WGSL),
+    (
+        "traverse_common.wgsl",
+        include_str!("../shaders/traverse_common.wgsl"),
+    ),
+    (
+        "traverse_stack.wgsl",
+        include_str!("../shaders/traverse_stack.wgsl"),
+    ),
+    (
+        "traverse_full_stack.wgsl",
+        include_str!("../shaders/traverse_full_stack.wgsl"),
+    ),
+    (
+        "traverse_short_stack.wgsl",
+        include_str!("../shaders/traverse_short_stack.wgsl"),
+    ),
+];
+
+/// What every entry point shares (`entry.wgsl`: the override constants, `ray_index`); the
+/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves
+/// [`crate::key::ENTRY_POINT_FILES`].
+pub const ENTRY_WGSL: &str = include_str!("../shaders/entry.wgsl");
+
+/// Entries of the full-stack kernel's stack (`FULL_STACK_SIZE` in
+/// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
+pub const FULL_STACK_SIZE: u32 = 64;
+
+/// Lanes per workgroup the traversal stacks are laid out for (`STACK_LANES` in
+/// `traverse_stack.wgsl`): a shader that calls `trace_full_stack` or `trace_short_stack`
+/// runs workgroups of at most this many invocations and passes `local_invocation_index`
+/// as `lane`.
+pub const STACK_LANES: u32 = 64;
+
+/// Invocations per workgroup of the entry points (`WORKGROUP_SIZE` in `entry.wgsl`).
+pub const WORKGROUP_SIZE: u32 = 64;
+
+/// Group of the BVH bindings in [`kernel_source`].
+pub const BVH_GROUP: u32 = 0;
+/// Group of the ray batch bindings (`rays`, `hits`, `counters`) in [`kernel_source`].
+pub const BATCH_GROUP: u32 = 1;
+
+/// `triangle.wgsl`: the watertight f32 test, [`Precision::WatertightF32`] (the default).
+pub const TRIANGLE_WGSL: &str = include_str!("../shaders/triangle.wgsl");
+/// `triangle_moller_trumbore.wgsl`.
+pub const TRIANGLE_MOLLER_TRUMBORE_WGSL: &str =
+    include_str!("../shaders/triangle_moller_trumbore.wgsl");
+/// `triangle_f64.wgsl` (needs `wgpu::Features::SHADER_F64`).
+pub const TRIANGLE_F64_WGSL: &str = include_str!("../shaders/triangle_f64.wgsl");
+
+/// The triangle module composed for `precision`, as `(file name, source)`: it takes
+/// `triangle.wgsl`'s place in [`SHADER_FILES`] and defines the same
+/// `intersect_triangle(r: PreparedRay, v0, v1, v2) -> TriHit`, so the traversal code is
+/// shared by every precision.
+pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
+    match precision {
+        Precision::WatertightF32 => ("triangle.wgsl", TRIANGLE_WGSL),
+        Precision::MollerTrumboreF32 => (
+            "triangle_moller_trumbore.wgsl",
+            TRIANGLE_MOLLER_TRUMBORE_WGSL,
+        ),
+        Precision::WatertightF64 => ("triangle_f64.wgsl", TRIANGLE_F64_WGSL),
+    }
+}
+
+/// The traversal library without entry points, for your own compute shader: the BVH read
+/// from `storage` bound at `@group(bvh_group)`, bindings 0 (nodes), 1 (triangles) and 2
+/// (escape links, read only by `bvh_trace_short_stack`). With bvhtrace-gpu, bind
+/// `GpuBvh::bind_group(traversal)` there and put its `layout()` in your pipeline layout.
+///
+/// Every name it declares starts with `bvh_`, `Bvh` or `BVH_`; leave those to it. It
+/// declares the structs (field by field the Rust types of `bvhtrace_core`)
+///
+/// * `BvhRay { origin: vec3<f32>, t_min: f32, dir: vec3<f32>, t_max: f32 }` (a
+///   [`bvhtrace_core::Ray`]),
+/// * `BvhHit { t: f32, prim: u32, u: f32, v: f32 }` (a [`bvhtrace_core::Hit`]: `prim` is
+///   the triangle's index in the builder's input, or `BVH_MISS`, `BVH_INVALID_RAY` or
+///   `BVH_INCOMPLETE`; `u`, `v` the barycentrics of corners 1 and 2),
+/// * `BvhCounters { nodes: u32, tris: u32 }` (box and triangle tests of the ray),
+/// * `BvhTraceResult { hit: BvhHit, counters: BvhCounters }`,
+///
+/// and the walks
+///
+/// * `bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult`
+///   (trees of depth up to [`FULL_STACK_SIZE`]),
+/// * `bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) ->
+///   BvhTraceResult`, where `k` is the ring size (`1..=32`) or `0` for the stackless walk,
+///   which is correct at any depth,
+///
+/// where `lane` is the invocation's `local_invocation_index`: the stacks live in workgroup
+/// memory (`bvh_lane_stacks`, 16 KiB), one per lane, for workgroups of at most
+/// [`STACK_LANES`] invocations. Create the pipeline with
+/// `zero_initialize_workgroup_memory: false`: the walks write every entry before they read
+/// it, and zeroing 16 KiB per workgroup is wasted time. Pass constants for `any_hit` and
+/// `k` and the driver folds them away.
+///
+/// Its pipeline-overridable constants, all optional:
+///
+/// * `BVH_TRIP_LIMIT: u32` (default unbounded): the most box and triangle tests one ray
+///   may take. A ray that spends it returns `prim == BVH_INCOMPLETE`; trace it again on the
+///   CPU with the same options (`bvhtrace_kernels::finish_incomplete`). Set it only for a
+///   CPU driver, which ends invocations that loop too long
+///   ([`crate::CPU_DRIVER_TRIP_LIMIT`]); on GPUs no ray is ever incomplete.
+/// * `BVH_PARALLEL_RAYS: bool` (default true): false compiles out the box test's path for
+///   rays with a zero direction component; only when you know no ray has one.
+///
+/// For secondary rays, `bvh_offset_ray_origin(p: vec3<f32>, n: vec3<f32>) -> vec3<f32>`
+/// moves a hit point off its surface along the geometric normal `n` by the same rule as
+/// `bvhtrace_core::surface::offset_ray_origin`, so a shadow or bounce ray does not hit its
+/// own triangle.
+///
+/// # Example
+///
+/// A shader that traces one ray per invocation with its own bindings in group 1:
+///
+/// ```
+/// use bvhtrace_kernels::BvhStorage;
+///
+/// let my_shader = r#"
+/// @group(1) @binding(0) var<storage, read_write> ids: array<u32>;
+///
+/// @compute @workgroup_size(64) // at most STACK_LANES
+/// fn main(
+///     @builtin(global_invocation_id) gid: vec3<u32>,
+///     @builtin(local_invocation_index) lane: u32,
+/// ) {
+///     let x = f32(gid.x) * 0.01;
+///     let ray = BvhRay(vec3<f32>(x, 0.0, 5.0), 0.0, vec3<f32>(0.0, 0.0, -1.0), 1e30);
+///     let res = bvh_trace_short_stack(ray, false, 6u, lane); // closest hit, ring of 6
+///     ids[gid.x] = res.hit.prim;
+/// }
+/// "#;
+/// let source = format!("{}\n{}", bvhtrace_kernels::wgsl_library(BvhStorage::Buffers, 0), my_shader);
+/// # let module = naga::front::wgsl::parse_str(&source).expect("parses");
+/// # naga::valid::Validator::new(Default::default(), naga::valid::Capabilities::all())
+/// #     .validate(&module)
+/// #     .expect("validates");
+/// // With bvhtrace-gpu:
+/// // let group = bvh.bind_group(Traversal::ShortStack(6))?;
+/// // pipeline layout: [Some(group.layout()), Some(&my_group_1_layout)];
+/// // pass.set_bind_group(0, group.group(), &[]);
+/// ```
+pub fn wgsl_library(storage: BvhStorage, bvh_group: u32) -> String {
+    wgsl_library_for(storage, Precision::WatertightF32, bvh_group)
+}
+
+/// [`wgsl_library`] with the triangle test of `precision` ([`triangle_wgsl`]) in place of
+/// `triangle.wgsl`. [`Precision::WatertightF64`] needs a device with
+/// `wgpu::Features::SHADER_F64` (naga: `Capabilities::FLOAT64`).
+pub fn wgsl_library_for(storage: BvhStorage, precision: Precision, bvh_group: u32) -> String {
+    crate::key::ModuleSet::everything(storage, precision, crate::key::Entries::None)
+        .compose(bvh_group)
+}
+
+/// The everything-on kernel module for `storage`: [`wgsl_library`] with the BVH in group
+/// [`BVH_GROUP`], and every entry point (`entry.wgsl`, `entry_counters.wgsl` and the four
+/// `entry_*.wgsl` files; group [`BATCH_GROUP`]: `rays`, `hits`, `counters`), so any
+/// [`crate::KernelKey::entry_point`] is in it. The pipelines `GpuContext` (bvhtrace-gpu) builds use
+/// the specialised module of their key instead ([`crate::KernelKey::source`]) unless it
+/// asks for [`crate::Composition::EverythingOn`].
+pub fn kernel_source(storage: BvhStorage) -> String {
+    kernel_source_for(storage, Precision::WatertightF32)
+}
+
+/// [`kernel_source`] with the triangle test of `precision` ([`wgsl_library_for`]).
+pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
+    crate::key::ModuleSet::everything(storage, precision, crate::key::Entries::All)
+        .compose(BVH_GROUP)
+}
+
+/// `entry_rays_buffer.wgsl`: the rays and hits in storage buffers.
+pub const ENTRY_RAYS_BUFFER_WGSL: &str = include_str!("../shaders/entry_rays_buffer.wgsl");
+/// `entry_rays_texture.wgsl`: the rays and hits in storage textures.
+pub const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../shaders/entry_rays_texture.wgsl");
+
+/// Where an entry point reads the batch's rays and writes its hits (bindings 0 and 1 of
+/// group [`BATCH_GROUP`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum RayInput {
+    /// Storage buffers of [`bvhtrace_core::Ray`]s (`rays`) and [`bvhtrace_core::Hit`]s
+    /// (`hits`): what `GpuBvh::record` (bvhtrace-gpu) traces, and `GpuBvh::trace` (bvhtrace-gpu) with
+    /// [`BvhStorage::Buffers`].
+    #[default]
+    Buffer,
+    /// `Rgba32Uint` storage textures, [`TEXEL_ROW`] texels wide: the rays read-only, two
+    /// texels per ray (`ray_texels`), the hits write-only, one texel per hit
+    /// (`hit_texels`; `entry_rays_texture.wgsl`). What `GpuBvh::trace` (bvhtrace-gpu) uses with
+    /// [`BvhStorage::Textures`], the layout for CPU drivers, where a texel access is one
+    /// vector gather or one loop over the lanes and a buffer access a loop over the lanes
+    /// per 32-bit word.
+    Texture,
+}
+
+impl RayInput {
+    /// What `GpuBvh::trace` (bvhtrace-gpu) uses with the BVH in `storage`: a texture with
+    /// textures (CPU drivers), a buffer with buffers.
+    pub fn for_storage(storage: BvhStorage) -> RayInput {
+        match storage {
+            BvhStorage::Textures => RayInput::Texture,
+            BvhStorage::Buffers => RayInput::Buffer,
+        }
+    }
+
+    /// The WGSL file declaring this input's two bindings, `load_ray`, `store_hit` and
+    /// `batch_len`.
+    pub fn wgsl(&self) -> (&'static str, &'static str) {
+        match self {
+            RayInput::Buffer => ("entry_rays_buffer.wgsl", ENTRY_RAYS_BUFFER_WGSL),
+            RayInput::Texture => ("entry_rays_texture.wgsl", ENTRY_RAYS_TEXTURE_WGSL),
+        }
+    }
+}

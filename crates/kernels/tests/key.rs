@@ -1,0 +1,177 @@
+//! Leaving out what a job does not need, without a GPU: the specialised modules are
+//! reflected with naga and must declare exactly the bindings [`KernelKey::bindings`]
+//! lists: no attribute binding for a positions-only scene, no `counters` unless counters
+//! are on, no escape links for the full stack, one entry point.
+
+use std::collections::BTreeSet;
+
+use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
+use bvhtrace_kernels::key::{Entries, ModuleSet};
+use bvhtrace_kernels::{
+    BVH_GROUP, BvhStorage, Composition, KernelKey, RayInput, VertexAttributes, kernel_source,
+};
+use naga::Module;
+
+mod common;
+use common::{compile_variant, parse, validate};
+
+const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
+const TRAVERSALS: [Traversal; 3] = [
+    Traversal::FullStack,
+    Traversal::Stackless,
+    Traversal::ShortStack(6),
+];
+const NORMALS: VertexAttributes = VertexAttributes { normals: true };
+
+/// `(group, binding, name)` of every resource the module declares.
+fn declared(module: &Module) -> BTreeSet<(u32, u32, String)> {
+    module
+        .global_variables
+        .iter()
+        .filter_map(|(_, g)| {
+            let b = g.binding.as_ref()?;
+            Some((b.group, b.binding, g.name.clone().unwrap_or_default()))
+        })
+        .collect()
+}
+
+fn has_function(module: &Module, name: &str) -> bool {
+    module
+        .functions
+        .iter()
+        .any(|(_, f)| f.name.as_deref() == Some(name))
+}
+
+/// Every job a positions-only scene can be traced with.
+fn every_job(storage: BvhStorage) -> Vec<KernelKey> {
+    let mut v = Vec::new();
+    for traversal in TRAVERSALS {
+        for query in [Query::Closest, Query::Any] {
+            for counters in [false, true] {
+                // The job would shade with normals; the scene has none.
+                let opts = TraceOptions::new(traversal, query).with_counters(counters);
+                let f = KernelKey::for_job(storage, &opts, VertexAttributes::NONE, NORMALS);
+                v.push(f);
+                // `GpuBvh::trace` reads the rays from a texture with the BVH in textures;
+                // `GpuBvh::record` from the caller's buffer.
+                if storage == BvhStorage::Textures {
+                    assert_eq!(f.rays, RayInput::Texture);
+                    v.push(f.with_rays(RayInput::Buffer));
+                }
+            }
+        }
+    }
+    v
+}
+
+/// Validates `module` and compiles its one entry point to SPIR-V with `f`'s overrides.
+fn compile(module: &Module, f: &KernelKey) {
+    compile_variant(module, &validate(module), f);
+}
+
+#[test]
+fn positions_only_pipelines_declare_only_what_the_job_reads() {
+    for storage in STORAGES {
+        for f in every_job(storage) {
+            let module = parse(&f.source());
+            let got = declared(&module);
+            let listed: BTreeSet<(u32, u32, String)> = f
+                .bindings()
+                .iter()
+                .map(|b| (b.group, b.binding, b.name.to_string()))
+                .collect();
+            assert_eq!(got, listed, "{f:?}: declared vs KernelKey::bindings");
+
+            let names: Vec<&str> = got.iter().map(|(_, _, n)| n.as_str()).collect();
+            // No attribute binding: the scene has positions only.
+            assert!(!names.contains(&"vertex_normals"), "{f:?}: {names:?}");
+            assert!(!got.iter().any(|(g, b, _)| *g == 0 && *b >= 3), "{f:?}");
+            // Counters only when asked for.
+            assert_eq!(names.contains(&"counters"), f.counters, "{f:?}: {names:?}");
+            // Escape links only for the walks that read them; and the other walk's code is
+            // not in the module at all.
+            let escapes = names.iter().any(|n| n.contains("escape"));
+            let full = f.traversal == Traversal::FullStack;
+            assert_eq!(escapes, !full, "{f:?}: {names:?}");
+            assert_eq!(
+                has_function(&module, "bvh_trace_short_stack"),
+                !full,
+                "{f:?}"
+            );
+            assert_eq!(has_function(&module, "bvh_trace_full_stack"), full, "{f:?}");
+            assert_eq!(has_function(&module, "bvh_load_escape"), !full, "{f:?}");
+            // One entry point, the variant's.
+            let eps: Vec<&str> = module
+                .entry_points
+                .iter()
+                .map(|e| e.name.as_str())
+                .collect();
+            assert_eq!(eps, [f.entry_point()], "{f:?}");
+            assert_eq!(
+                has_function(&module, "bvh_store_counted"),
+                f.counters,
+                "{f:?}"
+            );
+            compile(&module, &f);
+        }
+    }
+}
+
+#[test]
+fn attributes_are_composed_only_when_the_scene_has_them_and_the_job_uses_them() {
+    for storage in STORAGES {
+        for (scene, job, expected) in [
+            (VertexAttributes::NONE, VertexAttributes::NONE, false),
+            (VertexAttributes::NONE, NORMALS, false),
+            (NORMALS, VertexAttributes::NONE, false),
+            (NORMALS, NORMALS, true),
+        ] {
+            let opts = TraceOptions::closest(Traversal::Stackless);
+            let f = KernelKey::for_job(storage, &opts, scene, job);
+            let module = parse(&f.source());
+            let normals = declared(&module).contains(&(0, 3, "vertex_normals".to_string()));
+            assert_eq!(normals, expected, "{storage:?} scene {scene:?} job {job:?}");
+            assert_eq!(has_function(&module, "bvh_shading_normal"), expected);
+            assert_eq!(f.names().contains(&"vertex-normals"), expected);
+            assert_eq!(
+                f.bindings().iter().any(|b| b.name == "vertex_normals"),
+                expected
+            );
+            compile(&module, &f);
+        }
+    }
+}
+
+#[test]
+fn everything_on_declares_everything_and_is_kernel_source() {
+    for storage in STORAGES {
+        for f in every_job(storage) {
+            let all = f.with_composition(Composition::EverythingOn);
+            // `kernel_source` reads the rays from a buffer; a ray texture swaps that file.
+            let expected = match f.rays {
+                RayInput::Buffer => kernel_source(storage),
+                RayInput::Texture => ModuleSet {
+                    rays: RayInput::Texture,
+                    ..ModuleSet::everything(storage, Precision::WatertightF32, Entries::All)
+                }
+                .compose(BVH_GROUP),
+            };
+            assert_eq!(all.source(), expected, "{f:?}");
+            let module = parse(&all.source());
+            let names: BTreeSet<String> =
+                declared(&module).into_iter().map(|(_, _, n)| n).collect();
+            assert!(names.contains("counters"), "{names:?}");
+            assert!(names.iter().any(|n| n.contains("escape")), "{names:?}");
+            assert_eq!(module.entry_points.len(), 4);
+            // The specialised module is strictly smaller.
+            assert!(f.source().len() < all.source().len());
+            assert!(declared(&parse(&f.source())).len() <= names.len());
+        }
+    }
+    // Precision is part of the module: a variant's triangle test is the one composed.
+    let opts =
+        TraceOptions::closest(Traversal::FullStack).with_precision(Precision::MollerTrumboreF32);
+    let f = KernelKey::new(BvhStorage::Buffers, &opts);
+    let name = bvhtrace_kernels::wgsl::triangle_wgsl(Precision::MollerTrumboreF32).0;
+    assert!(f.source().contains(&format!("// ---- {name} ----")));
+}
