@@ -185,10 +185,9 @@ fn ray_sets(
     let mut diffuse = Vec::new();
     for (i, (r, h)) in primary.iter().zip(&hits).enumerate() {
         if h.is_hit() {
-            let tri = &tris[h.prim as usize];
-            let n = shade::facing_normal(tri, Vec3::from(r.dir));
-            let o = shade::offset_origin(shade::hit_point(tri, h), n);
-            diffuse.push(Ray::new(o, shade::cosine_dir(n, i as u32, 0)));
+            let p = h.surface(&tris[h.prim as usize], Vec3::from(r.dir));
+            let dir = shade::cosine_dir(p.normal, i as u32, 0);
+            diffuse.push(p.spawn_ray(dir, f32::INFINITY));
         }
     }
     RaySets {

@@ -24,11 +24,9 @@ pub enum Shade {
     Heatmap,
 }
 
-// Leaving a surface (hit point, facing normal, robust origin offset) and the repeatable
-// sampling are shared with the viewer and the stress cases.
-pub use bvhtrace_core::surface::{
-    cosine_dir, facing_normal, hit_point, offset_ray_origin as offset_origin,
-};
+// The repeatable sampling and the hit point are shared with the viewer and the stress
+// cases; secondary rays leave a surface by `Hit::surface`.
+pub use bvhtrace_core::surface::{cosine_dir, facing_normal, hit_point};
 
 /// Secondary rays for the diffuse (one shadow ray) and AO (`samples` rays) modes: for each
 /// primary hit, rays and the index of the pixel they belong to.
@@ -48,22 +46,15 @@ pub fn secondary_rays(
         if !h.is_hit() {
             continue;
         }
-        let tri = &tris[h.prim as usize];
-        let n = facing_normal(tri, Vec3::from(r.dir));
-        let o = offset_origin(hit_point(tri, h), n);
+        let p = h.surface(&tris[h.prim as usize], Vec3::from(r.dir));
         match mode {
             Shade::Diffuse => {
-                rays.push(Ray::with_interval(o, light - o, 0.0, 1.0));
+                rays.push(p.ray_toward(light));
                 owner.push(i as u32);
             }
             Shade::Ao => {
                 for s in 0..samples {
-                    rays.push(Ray::with_interval(
-                        o,
-                        cosine_dir(n, i as u32, s),
-                        0.0,
-                        ao_radius,
-                    ));
+                    rays.push(p.spawn_ray(cosine_dir(p.normal, i as u32, s), ao_radius));
                     owner.push(i as u32);
                 }
             }

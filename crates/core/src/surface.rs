@@ -6,7 +6,7 @@
 use glam::Vec3;
 
 use crate::mesh::Triangle;
-use crate::ray::Hit;
+use crate::ray::{Hit, Ray};
 
 /// Below this magnitude a coordinate is offset by a fixed amount instead of in ulps
 /// (`origin()` in the chapter).
@@ -66,6 +66,45 @@ pub fn facing_normal(tri: &Triangle, dir: Vec3) -> Vec3 {
         -dir.normalize()
     };
     if n.dot(dir) > 0.0 { -n } else { n }
+}
+
+/// Where secondary rays leave a hit: the hit point moved off the surface (by
+/// [`offset_ray_origin`]) to the side the incoming ray came from, and the unit normal facing
+/// that side. Made by [`Hit::surface`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    /// The ray origin: off the surface, on the incoming ray's side.
+    pub origin: Vec3,
+    /// The geometric normal facing the incoming ray ([`facing_normal`]).
+    pub normal: Vec3,
+}
+
+impl SurfacePoint {
+    /// A ray from here in direction `dir` over `[0, t_max)`: a bounce or an
+    /// ambient-occlusion ray. It cannot hit the triangle it leaves when `dir` points to the
+    /// normal's side.
+    pub fn spawn_ray(&self, dir: Vec3, t_max: f32) -> Ray {
+        Ray::with_interval(self.origin, dir, 0.0, t_max)
+    }
+
+    /// A shadow ray from here to `target`: direction `target - origin`, interval `[0, 1)`,
+    /// so any hit (`Query::Any`) means something lies between the surface and the target.
+    pub fn ray_toward(&self, target: Vec3) -> Ray {
+        Ray::with_interval(self.origin, target - self.origin, 0.0, 1.0)
+    }
+}
+
+impl Hit {
+    /// Where secondary rays leave this hit, found on `tri` (the triangle of index
+    /// `self.prim` in the builder's input) by a ray going along `incoming`: the hit point
+    /// from the barycentrics ([`hit_point`]) moved off the surface to the incoming ray's side.
+    pub fn surface(&self, tri: &Triangle, incoming: Vec3) -> SurfacePoint {
+        let normal = facing_normal(tri, incoming);
+        SurfacePoint {
+            origin: offset_ray_origin(hit_point(tri, self), normal),
+            normal,
+        }
+    }
 }
 
 /// A small integer hash (PCG) for repeatable sampling.

@@ -146,8 +146,8 @@ impl GpuContext {
     /// [`AdapterChoice`]), with the adapter's own limits and the
     /// [optional features](GpuContext::optional_features) it has.
     ///
-    /// Fails with [`TraceError::NoAdapter`] (which tells the user to install
-    /// `mesa-vulkan-drivers`) when there is no Vulkan adapter; never panics.
+    /// Fails with [`TraceError::NoAdapter`](crate::TraceError::NoAdapter) (which tells the
+    /// user to install `mesa-vulkan-drivers`) when there is no Vulkan adapter; never panics.
     pub fn new(choice: AdapterChoice) -> Result<GpuContext, GpuError> {
         Self::new_with(choice, &ContextOptions::default())
     }
@@ -199,7 +199,8 @@ impl GpuContext {
     /// [required features](GpuContext::required_features) and
     /// [limits](GpuContext::required_limits), and the tracer uses the
     /// [optional features](GpuContext::optional_features) it was created with; anything
-    /// missing is a [`TraceError::LimitTooLow`], not a failure later.
+    /// missing is a [`TraceError::LimitTooLow`](crate::TraceError::LimitTooLow), not a
+    /// failure later.
     pub fn from_device(
         device: wgpu::Device,
         queue: wgpu::Queue,
@@ -413,7 +414,8 @@ impl GpuContext {
     }
 
     /// Runs `f` inside validation and out-of-memory error scopes; an error either reported
-    /// becomes a [`GpuError::Wgpu`].
+    /// becomes a [`GpuError`]. wgpu's error scopes are per thread (its `std` feature, which
+    /// this crate enables), so threads tracing one upload at once do not see each other's.
     pub(crate) fn scoped<T>(
         &self,
         during: &'static str,

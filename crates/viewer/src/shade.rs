@@ -85,11 +85,10 @@ impl View {
     }
 }
 
-// Leaving a surface and the repeatable sampling are the renderer's own
+// Leaving a surface (`Hit::surface`) and the repeatable sampling are the renderer's own
 // (`bvhtrace_core::surface`), so the viewer's images match `bvhtrace render`.
-pub use bvhtrace_core::surface::{
-    cosine_dir, facing_normal, hit_point, offset_ray_origin as offset_origin, uniform2,
-};
+use bvhtrace_core::surface::SurfacePoint;
+pub use bvhtrace_core::surface::{cosine_dir, uniform2};
 
 /// A uniformly distributed point on the unit sphere for sample `s` of pixel `p`.
 pub fn sphere_point(p: u32, s: u32) -> Vec3 {
@@ -117,8 +116,8 @@ pub struct Accumulation {
     pub samples: u32,
     /// Pixels with a hit, in order: the owners of the secondary rays.
     hit_pixels: Vec<u32>,
-    /// Facing normal and offset origin of each hit pixel.
-    surfaces: Vec<(Vec3, Vec3)>,
+    /// Where each hit pixel's secondary rays leave its surface.
+    surfaces: Vec<SurfacePoint>,
     /// Per hit pixel: the sum of the samples' values.
     sums: Vec<f32>,
 }
@@ -139,9 +138,8 @@ impl Accumulation {
             let Some(tri) = h.is_hit().then(|| tris.get(h.prim as usize)).flatten() else {
                 continue;
             };
-            let n = facing_normal(tri, Vec3::from(r.dir));
             hit_pixels.push(i as u32);
-            surfaces.push((n, offset_origin(hit_point(tri, h), n)));
+            surfaces.push(h.surface(tri, Vec3::from(r.dir)));
         }
         let sums = vec![0.0; hit_pixels.len()];
         Accumulation {
@@ -170,15 +168,14 @@ impl Accumulation {
             return Vec::new();
         }
         let mut out = Vec::with_capacity(self.hit_pixels.len() * count as usize);
-        for (&p, &(n, o)) in self.hit_pixels.iter().zip(&self.surfaces) {
+        for (&p, surface) in self.hit_pixels.iter().zip(&self.surfaces) {
             for k in 0..count {
                 let s = self.samples.wrapping_add(k);
                 out.push(match view.shade {
-                    Shade::Ao => Ray::with_interval(o, cosine_dir(n, p, s), 0.0, view.ao_radius),
-                    _ => {
-                        let l = view.light + sphere_point(p, s) * view.light_radius;
-                        Ray::with_interval(o, l - o, 0.0, 1.0)
+                    Shade::Ao => {
+                        surface.spawn_ray(cosine_dir(surface.normal, p, s), view.ao_radius)
                     }
+                    _ => surface.ray_toward(view.light + sphere_point(p, s) * view.light_radius),
                 });
             }
         }
@@ -191,7 +188,7 @@ impl Accumulation {
             return;
         }
         for (i, sum) in self.sums.iter_mut().enumerate() {
-            let n = self.surfaces[i].0;
+            let n = self.surfaces[i].normal;
             let range = i * count as usize..(i + 1) * count as usize;
             for (r, h) in rays[range.clone()].iter().zip(&hits[range]) {
                 if h.is_hit() {
@@ -235,7 +232,10 @@ impl Accumulation {
         let range = palette::depth_range(&self.hits);
         for (k, &p) in self.hit_pixels.iter().enumerate() {
             let p = p as usize;
-            let (n, o) = self.surfaces[k];
+            let SurfacePoint {
+                normal: n,
+                origin: o,
+            } = self.surfaces[k];
             let h = &self.hits[p];
             let c = match view.shade {
                 Shade::Normal => palette::normal_colour(n),

@@ -1,0 +1,294 @@
+//! Calling the traversal from your own WGSL compute shader.
+//!
+//! ```text
+//! cargo run --release -p bvhtrace-gpu --example own_shader -- [SCENE] [-o out.png]
+//! ```
+//!
+//! The shader below ([`SHADER`]) is composed after bvhtrace's traversal library
+//! (`wgsl_library`): it makes each pixel's camera ray itself, traces it with
+//! `bvh_trace_short_stack` (the stackless walk), and writes a colour per triangle, shaded
+//! by how squarely the ray meets it, into a buffer of RGBA8 pixels. The host loads SCENE
+//! (`builtin:cornell` by default, or any `.gltf`/`.glb` path), uploads the BVH, binds it in
+//! group 0 and its own resources in group 1, dispatches once and writes the PNG
+//! (`own_shader.png` by default).
+//!
+//! `tests/examples.rs` runs it and compares the image with one made on the CPU from
+//! `bvhtrace_core::trace_rays` (pixel colours within a small tolerance, a few triangle
+//! edges where the shader's rays differ from the CPU's in the last bit).
+
+use std::error::Error;
+use std::path::PathBuf;
+
+use bvhtrace_gpu::core::surface::geometric_normal;
+use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Traversal};
+use bvhtrace_gpu::wgpu::util::DeviceExt;
+use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions, wgpu};
+
+/// The image size: small, so that CI renders it in a moment on lavapipe.
+pub const WIDTH: u32 = 320;
+/// See [`WIDTH`].
+pub const HEIGHT: u32 = 240;
+
+/// The user's shader. Everything it declares is its own; every name starting with `bvh_`,
+/// `Bvh` or `BVH_` comes from the library composed before it.
+const SHADER: &str = r#"
+// The camera: what `bvhtrace_scene::Camera::ray` computes per pixel, with the basis and
+// the field of view's tangent worked out on the host.
+struct Camera {
+    eye: vec3<f32>,
+    tan_half_fov: f32,
+    forward: vec3<f32>,
+    aspect: f32,
+    right: vec3<f32>,
+    width: u32,
+    up: vec3<f32>,
+    height: u32,
+}
+
+@group(1) @binding(0) var<uniform> camera: Camera;
+// One unit normal per triangle, in the order the BVH builder was given the triangles:
+// `hit.prim` is that index, so it indexes your own per-triangle data directly.
+@group(1) @binding(1) var<storage, read> normals: array<vec4<f32>>;
+// RGBA8 pixels, row-major, top row first.
+@group(1) @binding(2) var<storage, read_write> pixels: array<u32>;
+// Pixels whose ray spent the trip budget (see `BVH_TRIP_LIMIT` on the host).
+@group(1) @binding(3) var<storage, read_write> incomplete: atomic<u32>;
+
+const BACKGROUND = vec3<f32>(24.0, 26.0, 32.0) / 255.0;
+const FLAGGED = vec3<f32>(1.0, 0.0, 1.0);
+
+// `bvhtrace_core::surface::hash` (PCG): a repeatable colour for each triangle.
+fn hash(x0: u32) -> u32 {
+    let x = x0 * 747796405u + 2891336453u;
+    let w = ((x >> ((x >> 28u) + 4u)) ^ x) * 277803737u;
+    return (w >> 22u) ^ w;
+}
+
+fn triangle_colour(prim: u32) -> vec3<f32> {
+    let h = hash(prim);
+    let bytes = vec3<f32>(vec3<u32>(h, h >> 8u, h >> 16u) & vec3<u32>(255u));
+    return 0.35 + 0.65 * bytes / 255.0;
+}
+
+// 8 x 8 = 64 invocations: the traversal's stacks are laid out for at most STACK_LANES (64)
+// lanes per workgroup, and each invocation passes its `local_invocation_index` as `lane`.
+@compute @workgroup_size(8, 8)
+fn main(
+    @builtin(global_invocation_id) id: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    if (id.x >= camera.width || id.y >= camera.height) {
+        return;
+    }
+    let size = vec2<f32>(f32(camera.width), f32(camera.height));
+    let px = (2.0 * (f32(id.x) + 0.5) / size.x - 1.0) * camera.tan_half_fov * camera.aspect;
+    let py = (1.0 - 2.0 * (f32(id.y) + 0.5) / size.y) * camera.tan_half_fov;
+    let dir = normalize(camera.forward + camera.right * px + camera.up * py);
+    let ray = BvhRay(camera.eye, 0.0, dir, 1e30);
+
+    // Closest hit (`any_hit` false), stackless walk (`k` = 0). Constant arguments: the
+    // driver folds the other cases away.
+    let hit = bvh_trace_short_stack(ray, false, 0u, lane).hit;
+
+    var colour = BACKGROUND;
+    if (hit.prim == BVH_INCOMPLETE) {
+        // Only under a trip budget (CPU drivers): finish such rays on the CPU, or re-trace
+        // them; here they are counted and flagged.
+        atomicAdd(&incomplete, 1u);
+        colour = FLAGGED;
+    } else if (hit.prim < BVH_INVALID_RAY) {
+        // A hit: `BVH_MISS` and `BVH_INVALID_RAY` are above every triangle index.
+        let facing = abs(dot(normals[hit.prim].xyz, dir));
+        colour = triangle_colour(hit.prim) * (0.3 + 0.7 * facing);
+    }
+    pixels[id.y * camera.width + id.x] = pack4x8unorm(vec4<f32>(colour, 1.0));
+}
+"#;
+
+fn main() -> Result<(), Box<dyn Error>> {
+    // `main` would print an error with `Debug`; its message says more.
+    run().map_err(|e| e.to_string().into())
+}
+
+fn run() -> Result<(), Box<dyn Error>> {
+    let mut spec = bvhtrace_scene::DEFAULT_SCENE.to_string();
+    let mut out = PathBuf::from("own_shader.png");
+    let mut args = std::env::args().skip(1);
+    while let Some(arg) = args.next() {
+        match arg.as_str() {
+            "-o" => out = args.next().ok_or("-o needs a file name")?.into(),
+            "-h" | "--help" => {
+                println!("usage: own_shader [SCENE] [-o out.png]");
+                return Ok(());
+            }
+            _ => spec = arg,
+        }
+    }
+
+    let scene = bvhtrace_scene::load(&spec)?;
+    let tris = scene.flatten().triangles()?;
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+
+    // The library's own device setup (the best adapter, or `$BVHTRACE_ADAPTER`); see the
+    // `user_device` example for bringing your own.
+    let ctx = GpuContext::new(AdapterChoice::Auto)?;
+    // Buffers, not the texture layout a CPU driver would get by default: the shader is
+    // composed with the buffer bindings (`wgsl_library(BvhStorage::Buffers, ..)`), and the
+    // bind group must match them. Escape links are uploaded: the stackless walk reads them.
+    let upload =
+        UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+    let gpu = GpuBvh::upload(&ctx, &bvh, &upload)?;
+    let bvh_group = gpu.bind_group(Traversal::Stackless)?;
+    let device = ctx.device();
+    println!(
+        "adapter: {}; {} triangles, BVH of {} nodes",
+        ctx.adapter_info().name,
+        tris.len(),
+        bvh.nodes.len()
+    );
+
+    // The shader: the traversal library with the BVH in group 0, then ours.
+    let source = format!(
+        "{}\n{}",
+        bvhtrace_gpu::wgsl_library(BvhStorage::Buffers, 0),
+        SHADER
+    );
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("own_shader"),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+
+    // Group 1: our resources.
+    let camera = scene.camera_or_frame(WIDTH as f32 / HEIGHT as f32);
+    let (forward, right, up) = camera.basis();
+    let tan_half_fov = (camera.fov_y_deg.to_radians() * 0.5).tan();
+    let aspect = WIDTH as f32 / HEIGHT as f32;
+    let mut words: Vec<u32> = Vec::with_capacity(16);
+    for (v, w) in [
+        (camera.eye, tan_half_fov.to_bits()),
+        (forward, aspect.to_bits()),
+        (right, WIDTH),
+        (up, HEIGHT),
+    ] {
+        words.extend(v.to_array().map(f32::to_bits));
+        words.push(w);
+    }
+    let normals: Vec<[f32; 4]> = tris
+        .iter()
+        .map(|t| geometric_normal(t).extend(0.0).to_array())
+        .collect();
+    let pixel_bytes = u64::from(WIDTH * HEIGHT) * 4;
+    use wgpu::BufferUsages as U;
+    let init = |label, contents: &[u8], usage| {
+        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage,
+        })
+    };
+    let camera_buffer = init("camera", bytemuck::cast_slice(&words), U::UNIFORM);
+    let normals_buffer = init("normals", bytemuck::cast_slice(&normals), U::STORAGE);
+    let counter = init("incomplete", &[0; 4], U::STORAGE | U::COPY_SRC);
+    let buffer = |label, size, usage| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    let pixels = buffer("pixels", pixel_bytes, U::STORAGE | U::COPY_SRC);
+    // Pixels, then the counter.
+    let readback = buffer("readback", pixel_bytes + 4, U::MAP_READ | U::COPY_DST);
+
+    let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    let storage = |read_only| wgpu::BufferBindingType::Storage { read_only };
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("own_shader group 1"),
+        entries: &[
+            entry(0, wgpu::BufferBindingType::Uniform),
+            entry(1, storage(true)),
+            entry(2, storage(false)),
+            entry(3, storage(false)),
+        ],
+    });
+    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("own_shader group 1"),
+        layout: &layout,
+        entries: &[
+            bind(0, &camera_buffer),
+            bind(1, &normals_buffer),
+            bind(2, &pixels),
+            bind(3, &counter),
+        ],
+    });
+
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("own_shader"),
+        bind_group_layouts: &[Some(bvh_group.layout()), Some(&layout)],
+        immediate_size: 0,
+    });
+    // The trip budget of this device (unbounded on GPUs; on a CPU driver, which ends any
+    // invocation that loops too long, a ray that spends it answers `BVH_INCOMPLETE`
+    // instead of a wrong hit). Workgroup memory is not zeroed: the walks write every stack
+    // entry before reading it.
+    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("own_shader"),
+        layout: Some(&pipeline_layout),
+        module: &module,
+        entry_point: Some("main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    });
+
+    let mut encoder = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, bvh_group.group(), &[]);
+        pass.set_bind_group(1, &group, &[]);
+        pass.dispatch_workgroups(WIDTH.div_ceil(8), HEIGHT.div_ceil(8), 1);
+    }
+    encoder.copy_buffer_to_buffer(&pixels, 0, &readback, 0, pixel_bytes);
+    encoder.copy_buffer_to_buffer(&counter, 0, &readback, pixel_bytes, 4);
+    ctx.queue().submit([encoder.finish()]);
+
+    let (tx, rx) = std::sync::mpsc::channel();
+    readback.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device.poll(wgpu::PollType::wait_indefinitely())?;
+    rx.recv()??;
+    let bytes = readback.get_mapped_range(..)?.to_vec();
+    readback.unmap();
+
+    let (rgba, count) = bytes.split_at(pixel_bytes as usize);
+    let incomplete = u32::from_le_bytes([count[0], count[1], count[2], count[3]]);
+    let image = image::RgbaImage::from_raw(WIDTH, HEIGHT, rgba.to_vec())
+        .ok_or("the pixel buffer does not match the image size")?;
+    image.save(&out)?;
+    println!("incomplete: {incomplete} pixels (flagged magenta)");
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+/// The whole of `buffer` at `binding`.
+fn bind(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}

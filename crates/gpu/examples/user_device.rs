@@ -1,0 +1,303 @@
+//! Tracing on your own wgpu device, inside your own command encoders.
+//!
+//! ```text
+//! cargo run --release -p bvhtrace-gpu --example user_device -- [SCENE] [-o out.png]
+//! ```
+//!
+//! An application that already has a wgpu device (a renderer, a game, a viewer) hands it
+//! to bvhtrace and records the traversal next to its own passes. This example creates the
+//! device itself, loads SCENE (`builtin:cornell` by default, or any `.gltf`/`.glb` path),
+//! traces one camera ray per pixel (closest hit), then one shadow ray per lit hit toward a
+//! point light (any hit), and writes a Lambert-shaded PNG (`user_device.png` by default).
+//!
+//! `tests/examples.rs` runs it and recomputes the image on the CPU with the `pub`
+//! functions below and `bvhtrace_core::trace_rays`: the two must agree byte for byte, since
+//! the kernels give the CPU walk's hits bit for bit.
+//!
+//! `Ray` and `Hit` are `bytemuck::Pod` (GPU layout, 32 and 16 bytes): in your own crate add
+//! `bytemuck` and `pollster` next to `bvhtrace-gpu`, as this example uses them.
+
+use std::error::Error;
+use std::path::PathBuf;
+
+use bvhtrace_gpu::core::surface::{facing_normal, hit_point};
+use bvhtrace_gpu::core::{
+    BuildOptions, FlatBvh, Hit, INCOMPLETE, Query, Ray, TraceOptions, TraceOutput, Traversal,
+    Triangle, palette,
+};
+use bvhtrace_gpu::glam::Vec3;
+use bvhtrace_gpu::kernels::{HIT_BYTES, RAY_BYTES, finish_incomplete};
+use bvhtrace_gpu::{GpuBvh, GpuContext, GpuError, RayBatch, UploadOptions, wgpu};
+use bvhtrace_scene::{Camera, Scene};
+
+/// The image size: small, so that CI renders it in a moment on lavapipe.
+pub const WIDTH: u32 = 320;
+/// See [`WIDTH`].
+pub const HEIGHT: u32 = 240;
+/// The colour of pixels whose camera ray hits nothing.
+pub const BACKGROUND: [u8; 3] = [24, 26, 32];
+/// Light every lit surface gets even in shadow, so that shadows are dark, not black.
+const AMBIENT: f32 = 0.1;
+
+fn main() -> Result<(), Box<dyn Error>> {
+    // `main` would print an error with `Debug`; its message says more (how to install a
+    // Vulkan driver, which limit is too low...).
+    run().map_err(|e| e.to_string().into())
+}
+
+fn run() -> Result<(), Box<dyn Error>> {
+    let mut spec = bvhtrace_scene::DEFAULT_SCENE.to_string();
+    let mut out = PathBuf::from("user_device.png");
+    let mut args = std::env::args().skip(1);
+    while let Some(arg) = args.next() {
+        match arg.as_str() {
+            "-o" => out = args.next().ok_or("-o needs a file name")?.into(),
+            "-h" | "--help" => {
+                println!("usage: user_device [SCENE] [-o out.png]");
+                return Ok(());
+            }
+            _ => spec = arg,
+        }
+    }
+
+    // The scene: world-space triangles, in the order the BVH builder gets them. Hits name
+    // triangles by that index (`Hit::prim`), so it also indexes the per-triangle colours.
+    let scene = bvhtrace_scene::load(&spec)?;
+    let tris = scene.flatten().triangles()?;
+    let albedo = albedos(&scene);
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+
+    // Your device. bvhtrace needs no feature and modest limits: asking for exactly
+    // `required_limits` shows the minimum is enough (a real application asks for what it
+    // needs itself, at least these; larger storage-buffer limits allow larger scenes). It
+    // uses timestamps and f64 only when the device has them, so offer what the adapter has.
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    let instance = wgpu::Instance::new(desc);
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        ..Default::default()
+    }))
+    .map_err(|e| GpuError::NoAdapter {
+        details: format!(" ({e})"),
+    })?;
+    let info = adapter.get_info();
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("user_device"),
+        required_features: GpuContext::required_features()
+            | (adapter.features() & GpuContext::optional_features()),
+        required_limits: GpuContext::required_limits(),
+        ..Default::default()
+    }))?;
+    // bvhtrace keeps clones of the handles (they are reference counted): the application
+    // goes on using its own. Anything missing would be an error here, not a failure later.
+    // With these limits a CPU driver such as lavapipe gets the BVH in storage buffers (too
+    // few storage-texture bindings for its faster texture layout); that is automatic.
+    let ctx = GpuContext::from_device(device.clone(), queue.clone(), info.clone())?;
+    let gpu = GpuBvh::upload(
+        &ctx,
+        &bvh,
+        &UploadOptions::for_traversal(Traversal::Stackless),
+    )?;
+    println!(
+        "adapter: {} ({:?}); {} triangles, BVH of {} nodes (depth {}) in {:?}",
+        info.name,
+        info.device_type,
+        tris.len(),
+        bvh.nodes.len(),
+        bvh.depth,
+        gpu.storage()
+    );
+
+    // Your buffers: rays in, hits out, and a copy to read the hits back. One set serves
+    // both batches (there are never more shadow rays than pixels).
+    let capacity = u64::from(WIDTH * HEIGHT);
+    let buffer = |label, size, usage| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    use wgpu::BufferUsages as U;
+    let buffers = Buffers {
+        rays: buffer("rays", capacity * RAY_BYTES, U::STORAGE | U::COPY_DST),
+        hits: buffer("hits", capacity * HIT_BYTES, U::STORAGE | U::COPY_SRC),
+        readback: buffer(
+            "hits readback",
+            capacity * HIT_BYTES,
+            U::MAP_READ | U::COPY_DST,
+        ),
+    };
+
+    // Camera rays: the scene's camera (or one framing it), one ray through each pixel.
+    let camera = scene.camera_or_frame(WIDTH as f32 / HEIGHT as f32);
+    let rays = camera.rays(WIDTH, HEIGHT);
+    let closest = TraceOptions::closest(Traversal::Stackless);
+    let (hits, finished) = trace(&ctx, &gpu, &bvh, &buffers, &rays, &closest)?;
+
+    // Shadow rays toward the light, traced for any hit: one blocker is enough.
+    let light = light_position(&camera);
+    let (shadow, owners) = shadow_rays(&tris, &rays, &hits, light);
+    let any = TraceOptions::new(Traversal::Stackless, Query::Any);
+    let (blocked, finished_shadow) = trace(&ctx, &gpu, &bvh, &buffers, &shadow, &any)?;
+    let mut in_shadow = vec![false; rays.len()];
+    for (&pixel, b) in owners.iter().zip(&blocked) {
+        in_shadow[pixel] = b.is_hit();
+    }
+
+    let image = shade(&tris, &albedo, &rays, &hits, light, &in_shadow);
+    image.save(&out)?;
+    println!(
+        "{} camera rays, {} hits; {} shadow rays, {} in shadow; {} rays finished on the CPU",
+        rays.len(),
+        hits.iter().filter(|h| h.is_hit()).count(),
+        shadow.len(),
+        in_shadow.iter().filter(|&&s| s).count(),
+        finished + finished_shadow,
+    );
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+/// The application's buffers for one batch.
+struct Buffers {
+    rays: wgpu::Buffer,
+    hits: wgpu::Buffer,
+    readback: wgpu::Buffer,
+}
+
+/// Traces `rays` in an encoder of our own: upload, [`GpuBvh::record`], copy, submit, read
+/// back. Returns the hits and how many rays were finished on the CPU.
+fn trace(
+    ctx: &GpuContext,
+    gpu: &GpuBvh,
+    bvh: &FlatBvh,
+    buffers: &Buffers,
+    rays: &[Ray],
+    opts: &TraceOptions,
+) -> Result<(Vec<Hit>, u64), Box<dyn Error>> {
+    if rays.is_empty() {
+        return Ok((Vec::new(), 0));
+    }
+    let (device, queue) = (ctx.device(), ctx.queue());
+    queue.write_buffer(&buffers.rays, 0, bytemuck::cast_slice(rays));
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("user_device trace"),
+    });
+    // Your own passes can go before and after: `record` adds one compute pass, and checks
+    // the buffers' usage and size first.
+    let batch = RayBatch {
+        rays: &buffers.rays,
+        hits: &buffers.hits,
+        counters: None,
+        ray_count: rays.len() as u64,
+    };
+    gpu.record(&mut encoder, &batch, opts, None)?;
+    let bytes = batch.ray_count * HIT_BYTES;
+    encoder.copy_buffer_to_buffer(&buffers.hits, 0, &buffers.readback, 0, bytes);
+    queue.submit([encoder.finish()]);
+
+    let slice = buffers.readback.slice(..bytes);
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    device.poll(wgpu::PollType::wait_indefinitely())?;
+    rx.recv()??;
+    let hits: Vec<Hit> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range()?);
+    buffers.readback.unmap();
+
+    // A CPU driver (lavapipe) silently ends any invocation that loops too long, so on one
+    // the context's tuning gives each ray a budget of loop trips; a ray that spends it
+    // comes back `INCOMPLETE` rather than wrong. The CPU twin of the walk, on the same
+    // tree, gives the answer the kernel would have given. `GpuBvh::trace` does this itself;
+    // with `record` the hits are in your buffer, so it is yours to do. On GPUs
+    // (`ctx.tuning().finishes_on_cpu()` is false) no ray is ever incomplete.
+    let mut out = TraceOutput {
+        hits,
+        ..Default::default()
+    };
+    if out.hits.iter().any(|h| h.prim == INCOMPLETE) {
+        finish_incomplete(bvh, rays, opts, &mut out);
+    }
+    Ok((out.hits, out.incomplete))
+}
+
+/// The base colour of each triangle (the glTF material's, white without one).
+pub fn albedos(scene: &Scene) -> Vec<Vec3> {
+    let (mesh, attributes) = scene.flatten_with_attributes();
+    (0..mesh.len())
+        .map(|i| {
+            let material = attributes.materials.get(i);
+            material
+                .and_then(|&m| scene.materials.get(m as usize))
+                .map_or(Vec3::ONE, |m| m.base_color.truncate())
+        })
+        .collect()
+}
+
+/// A point light up and to the right of the camera (the rule of `bvhtrace render`): it
+/// sees what the camera sees, so it lights closed rooms and open scenes alike, and casts
+/// shadows the camera can see.
+pub fn light_position(camera: &Camera) -> Vec3 {
+    let (_, right, up) = camera.basis();
+    camera.eye + (right * 0.25 + up * 0.2) * (camera.target - camera.eye).length()
+}
+
+/// One shadow ray from each hit that faces the light, with the pixel it belongs to.
+///
+/// `Hit::surface` gives the hit point moved off its triangle to the camera's side (so the
+/// ray cannot hit its own triangle) and the normal on that side; `ray_toward` aims at the
+/// light over `[0, 1)` of the way there, so a blocker behind the light does not count.
+/// Surfaces facing away from the light are dark anyway and get no ray.
+pub fn shadow_rays(
+    tris: &[Triangle],
+    rays: &[Ray],
+    hits: &[Hit],
+    light: Vec3,
+) -> (Vec<Ray>, Vec<usize>) {
+    let mut shadow = Vec::new();
+    let mut owners = Vec::new();
+    for (pixel, (ray, hit)) in rays.iter().zip(hits).enumerate() {
+        if !hit.is_hit() {
+            continue;
+        }
+        let surface = hit.surface(&tris[hit.prim as usize], Vec3::from(ray.dir));
+        if surface.normal.dot(light - surface.origin) <= 0.0 {
+            continue;
+        }
+        shadow.push(surface.ray_toward(light));
+        owners.push(pixel);
+    }
+    (shadow, owners)
+}
+
+/// Lambert shading: `albedo * (ambient + (1 - ambient) * cos * visible)`, the background
+/// colour where the camera ray hit nothing.
+pub fn shade(
+    tris: &[Triangle],
+    albedo: &[Vec3],
+    rays: &[Ray],
+    hits: &[Hit],
+    light: Vec3,
+    in_shadow: &[bool],
+) -> image::RgbImage {
+    let mut image = image::RgbImage::new(WIDTH, HEIGHT);
+    for (i, pixel) in image.pixels_mut().enumerate() {
+        let hit = &hits[i];
+        if !hit.is_hit() {
+            pixel.0 = BACKGROUND;
+            continue;
+        }
+        let tri = &tris[hit.prim as usize];
+        let n = facing_normal(tri, Vec3::from(rays[i].dir));
+        let l = (light - hit_point(tri, hit)).normalize_or_zero();
+        let visible = if in_shadow[i] { 0.0 } else { 1.0 };
+        let c =
+            albedo[hit.prim as usize] * (AMBIENT + (1.0 - AMBIENT) * n.dot(l).max(0.0) * visible);
+        pixel.0 = c.to_array().map(palette::to8);
+    }
+    image
+}
