@@ -6,17 +6,21 @@
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! // The same code as the workspace README's "Use it as a library".
 //! use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal};
-//! use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, UploadOptions};
+//! use bvhtrace_gpu::{AdapterChoice, CpuTracer, GpuBvh, GpuContext, Tracer, UploadOptions};
 //! use bvhtrace_gpu::glam::Vec3;
 //!
 //! let tris = vec![[Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)]];
 //! let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
-//! let ctx = GpuContext::new(AdapterChoice::Auto)?; // lavapipe in CI, the best GPU otherwise
-//! let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::for_traversal(Traversal::Stackless))?;
+//! let ctx = GpuContext::new(AdapterChoice::Auto)?; // or GpuContext::from_device(yours...)
+//! let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all())?;
 //! let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
-//! let out = gpu.trace(&rays, &TraceOptions::closest(Traversal::Stackless))?;
-//! println!("{:?} in {:?} ms on the GPU, {} ms wall", out.hits[0], out.gpu_ms, out.wall_ms);
+//! let opts = TraceOptions::closest(Traversal::Stackless);
+//! for tracer in [&gpu as &dyn Tracer, &CpuTracer::new(&bvh)] {
+//!     let out = tracer.trace(&rays, &opts)?;
+//!     println!("{}: {:?} in {:.3} ms", tracer.backend(), out.hits[0], out.wall_ms);
+//! }
 //! # Ok(()) }
 //! ```
 //!
