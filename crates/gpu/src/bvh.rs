@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use bvhtrace_core::{FlatBvh, FlatNode, Traversal};
 use bvhtrace_kernels::{
-    BvhStorage, FULL_STACK_SIZE, TEXEL_ROW, UploadStats, check_buffer_size, texel_rows,
+    BvhStorage, TEXEL_ROW, UploadStats, check_buffer_size, check_depth, texel_rows,
 };
 use wgpu::util::DeviceExt;
 
@@ -18,7 +18,7 @@ use crate::trace::Scratch;
 pub struct UploadOptions {
     /// The traversals the BVH will be traced with. The escape links are uploaded only when
     /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
-    /// [`FULL_STACK_SIZE`] is refused when [`Traversal::FullStack`] is listed.
+    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is refused when [`Traversal::FullStack`] is listed.
     pub traversals: Vec<Traversal>,
     /// Buffers or textures; `None` picks the context's
     /// [`DriverTuning::storage`](bvhtrace_kernels::DriverTuning::storage) (textures on CPU
@@ -254,7 +254,7 @@ impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
     /// `opts.traversals` needs them, as buffers or textures (`opts.storage`). Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
-    /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`] is
+    /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is
     /// refused ([`GpuError::TooDeep`]) when the full-stack traversal is listed.
     pub fn upload(
         ctx: &GpuContext,
@@ -264,11 +264,8 @@ impl GpuBvh {
         if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
             return Err(GpuError::EmptyBvh);
         }
-        if opts.traversals.contains(&Traversal::FullStack) && bvh.depth > FULL_STACK_SIZE {
-            return Err(GpuError::TooDeep {
-                depth: bvh.depth,
-                max: FULL_STACK_SIZE,
-            });
+        for &traversal in &opts.traversals {
+            check_depth(traversal, bvh.depth)?;
         }
         let storage = opts.storage.unwrap_or(ctx.tuning().storage);
         let with_escapes = opts.traversals.iter().any(|t| t.needs_escapes());
@@ -447,13 +444,7 @@ impl GpuBvh {
         if traversal.needs_escapes() && self.group_escapes.is_none() {
             return Err(GpuError::EscapesNotUploaded { traversal });
         }
-        if traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
-            return Err(GpuError::TooDeep {
-                depth: self.depth,
-                max: FULL_STACK_SIZE,
-            });
-        }
-        Ok(())
+        check_depth(traversal, self.depth)
     }
 
     /// The context this BVH lives in.

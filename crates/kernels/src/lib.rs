@@ -31,8 +31,8 @@ pub use error::TraceError;
 pub use key::{BindingInfo, Composition, KernelKey, PerElement, VertexAttributes};
 pub use plan::{
     COUNTERS_BYTES, DeviceLimits, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES,
-    UploadStats, check_buffer_size, finish_incomplete, plan_dispatches, plan_submissions,
-    rays_per_dispatch, texel_rows,
+    UploadStats, check_buffer_size, check_depth, finish_incomplete, plan_dispatches,
+    plan_submissions, rays_per_dispatch, texel_rows,
 };
 pub use tracer::{CpuTracer, Tracer};
 pub use wgsl::{

@@ -1,10 +1,12 @@
 //! Planning a batch on a device: how many rays per dispatch and per submission the
 //! device's limits allow, and how big each resource is. The same plan serves every backend.
 
-use bvhtrace_core::{Counters, FlatBvh, Hit, INCOMPLETE, Ray, TraceOptions, TraceOutput};
+use bvhtrace_core::{
+    Counters, FlatBvh, Hit, INCOMPLETE, Ray, TraceOptions, TraceOutput, Traversal,
+};
 
 use crate::error::TraceError;
-use crate::wgsl::{TEXEL_ROW, WORKGROUP_SIZE};
+use crate::wgsl::{FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE};
 
 /// The device limits a backend works within: the fields of `wgpu::Limits` or Vulkan's
 /// `VkPhysicalDeviceLimits` that matter here.
@@ -78,6 +80,18 @@ pub fn check_buffer_size(
                 limit_name,
             });
         }
+    }
+    Ok(())
+}
+
+/// Checks that a tree `depth` levels deep can be walked with `traversal` by the kernels:
+/// the full stack holds [`FULL_STACK_SIZE`] entries; the other walks take any depth.
+pub fn check_depth(traversal: Traversal, depth: u32) -> Result<(), TraceError> {
+    if traversal == Traversal::FullStack && depth > FULL_STACK_SIZE {
+        return Err(TraceError::TooDeep {
+            depth,
+            max: FULL_STACK_SIZE,
+        });
     }
     Ok(())
 }

@@ -9,7 +9,7 @@ use std::time::Instant;
 use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal, Triangle,
 };
-use bvhtrace_gpu::kernels::FULL_STACK_SIZE;
+use bvhtrace_gpu::kernels::check_depth;
 use bvhtrace_gpu::{BvhStorage, CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, UploadOptions};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
@@ -192,7 +192,7 @@ pub fn upload_options(depth: u32) -> UploadOptions {
         Traversal::Stackless,
         Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
     ];
-    if depth <= FULL_STACK_SIZE {
+    if check_depth(Traversal::FullStack, depth).is_ok() {
         traversals.push(Traversal::FullStack);
     }
     UploadOptions {

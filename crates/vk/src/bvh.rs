@@ -6,8 +6,8 @@ use std::time::Instant;
 use ash::vk;
 use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
 use bvhtrace_kernels::{
-    BvhStorage, COUNTERS_BYTES, FULL_STACK_SIZE, HIT_BYTES, KernelKey, RAY_BYTES, TraceError,
-    Tracer, UploadStats, check_buffer_size, finish_incomplete, plan_dispatches, plan_submissions,
+    BvhStorage, COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, TraceError, Tracer, UploadStats,
+    check_buffer_size, check_depth, finish_incomplete, plan_dispatches, plan_submissions,
 };
 
 use crate::context::{Buffer, VkContext};
@@ -169,7 +169,7 @@ impl VkBvh {
     /// [`TraceError::BadEscapeLinks`]; each array is checked against the device's limits
     /// (`maxStorageBufferRange`, `maxMemoryAllocationSize`) first, and
     /// [`TraceError::TooLarge`] names the array, its size and the limit. A tree deeper than
-    /// [`FULL_STACK_SIZE`] uploads; only the full-stack walk refuses it
+    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) uploads; only the full-stack walk refuses it
     /// ([`VkBvh::supports`]). When [`VkContext::tuning`] finishes rays on the CPU, the
     /// upload keeps a host copy of the tree for that.
     pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, TraceError> {
@@ -317,7 +317,7 @@ impl VkBvh {
         &self.stats
     }
 
-    /// The tree's depth (the full-stack walk takes trees up to [`FULL_STACK_SIZE`] deep).
+    /// The tree's depth (the full-stack walk takes trees up to [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) deep).
     pub fn depth(&self) -> u32 {
         self.depth
     }
@@ -342,16 +342,11 @@ impl VkBvh {
     }
 
     /// Checks that `opts` can run on this upload and device: the full-stack walk needs a
-    /// tree at most [`FULL_STACK_SIZE`] deep ([`TraceError::TooDeep`]), the f64 triangle
+    /// tree at most [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) deep ([`TraceError::TooDeep`]), the f64 triangle
     /// test needs `shaderFloat64` ([`TraceError::PrecisionUnsupported`]). The escape links
     /// are always uploaded.
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        if opts.traversal == Traversal::FullStack && self.depth > FULL_STACK_SIZE {
-            return Err(TraceError::TooDeep {
-                depth: self.depth,
-                max: FULL_STACK_SIZE,
-            });
-        }
+        check_depth(opts.traversal, self.depth)?;
         self.ctx.supports_key(&self.key(opts, true))
     }
 
