@@ -34,14 +34,14 @@ fn escape_blocks(nodes: u64) -> u64 {
 }
 
 /// `bvh_buffers_escapes.wgsl`.
-pub const BVH_BUFFERS_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_buffers_escapes.wgsl");
+const BVH_BUFFERS_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_buffers_escapes.wgsl");
 /// `bvh_textures_escapes.wgsl`.
-pub const BVH_TEXTURES_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_textures_escapes.wgsl");
+const BVH_TEXTURES_ESCAPES_WGSL: &str = include_str!("../shaders/bvh_textures_escapes.wgsl");
 /// `entry_counters.wgsl`: the `counters` binding, composed only when counters are on.
-pub const ENTRY_COUNTERS_WGSL: &str = include_str!("../shaders/entry_counters.wgsl");
+const ENTRY_COUNTERS_WGSL: &str = include_str!("../shaders/entry_counters.wgsl");
 /// `attribute_normals.wgsl`: per-vertex normals, composed only when the scene has them and
 /// the job shades with them.
-pub const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../shaders/attribute_normals.wgsl");
+const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../shaders/attribute_normals.wgsl");
 
 /// The entry-point files: `(file, source)` for `[full stack, short stack]` x
 /// `[hits only, counted]`, each holding the entry point [`KernelKey::entry_point`]

@@ -61,9 +61,9 @@ impl BvhStorage {
 pub const TEXEL_ROW: u32 = 8192;
 
 /// `bvh_buffers.wgsl`.
-pub const BVH_BUFFERS_WGSL: &str = include_str!("../shaders/bvh_buffers.wgsl");
+const BVH_BUFFERS_WGSL: &str = include_str!("../shaders/bvh_buffers.wgsl");
 /// `bvh_textures.wgsl`.
-pub const BVH_TEXTURES_WGSL: &str = include_str!("../shaders/bvh_textures.wgsl");
+const BVH_TEXTURES_WGSL: &str = include_str!("../shaders/bvh_textures.wgsl");
 
 /// The storage-independent WGSL files, in composition order, as `(file name, source)`.
 /// The BVH bindings ([`BvhStorage::wgsl`]) go after `types.wgsl`.
@@ -96,9 +96,9 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
 ];
 
 /// What every entry point shares (`entry.wgsl`: the override constants, `ray_index`); the
-/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves
-/// [`crate::key::ENTRY_POINT_FILES`].
-pub const ENTRY_WGSL: &str = include_str!("../shaders/entry.wgsl");
+/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves in the
+/// `entry_{full,short}_stack[_counted].wgsl` files ([`ModuleSet::files`](crate::key::ModuleSet::files)).
+pub(crate) const ENTRY_WGSL: &str = include_str!("../shaders/entry.wgsl");
 
 /// Entries of the full-stack kernel's stack (`FULL_STACK_SIZE` in
 /// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
@@ -119,12 +119,12 @@ pub const BVH_GROUP: u32 = 0;
 pub const BATCH_GROUP: u32 = 1;
 
 /// `triangle.wgsl`: the watertight f32 test, [`Precision::WatertightF32`] (the default).
-pub const TRIANGLE_WGSL: &str = include_str!("../shaders/triangle.wgsl");
+const TRIANGLE_WGSL: &str = include_str!("../shaders/triangle.wgsl");
 /// `triangle_moller_trumbore.wgsl`.
-pub const TRIANGLE_MOLLER_TRUMBORE_WGSL: &str =
+const TRIANGLE_MOLLER_TRUMBORE_WGSL: &str =
     include_str!("../shaders/triangle_moller_trumbore.wgsl");
 /// `triangle_f64.wgsl` (needs `wgpu::Features::SHADER_F64`).
-pub const TRIANGLE_F64_WGSL: &str = include_str!("../shaders/triangle_f64.wgsl");
+const TRIANGLE_F64_WGSL: &str = include_str!("../shaders/triangle_f64.wgsl");
 
 /// The triangle module composed for `precision`, as `(file name, source)`: it takes
 /// `triangle.wgsl`'s place in [`SHADER_FILES`] and defines the same
@@ -247,9 +247,9 @@ pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
 }
 
 /// `entry_rays_buffer.wgsl`: the rays and hits in storage buffers.
-pub const ENTRY_RAYS_BUFFER_WGSL: &str = include_str!("../shaders/entry_rays_buffer.wgsl");
+const ENTRY_RAYS_BUFFER_WGSL: &str = include_str!("../shaders/entry_rays_buffer.wgsl");
 /// `entry_rays_texture.wgsl`: the rays and hits in storage textures.
-pub const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../shaders/entry_rays_texture.wgsl");
+const ENTRY_RAYS_TEXTURE_WGSL: &str = include_str!("../shaders/entry_rays_texture.wgsl");
 
 /// Where an entry point reads the batch's rays and writes its hits (bindings 0 and 1 of
 /// group [`BATCH_GROUP`]).
