@@ -116,9 +116,13 @@ pub fn escape_links(nodes: &[FlatNode]) -> Vec<u32> {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct FlatNode {
+    /// The box's lower corner.
     pub min: [f32; 3],
+    /// Interior: index of the second child; leaf: index of its first triangle.
     pub right_or_first: u32,
+    /// The box's upper corner.
     pub max: [f32; 3],
+    /// `count << 2 | axis`: a leaf's triangle count, or 0 and an interior node's split axis.
     pub meta: u32,
 }
 
@@ -151,12 +155,17 @@ impl FlatNode {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct FlatTriangle {
+    /// The first corner.
     pub v0: [f32; 3],
     /// Index of this triangle in the builder's input.
     pub prim: u32,
+    /// The second corner.
     pub v1: [f32; 3],
+    /// Padding to 16 bytes (zero).
     pub _pad1: u32,
+    /// The third corner.
     pub v2: [f32; 3],
+    /// Padding to 16 bytes (zero).
     pub _pad2: u32,
 }
 
@@ -175,9 +184,11 @@ impl FlatTriangle {
 /// A BVH ready to traverse or upload.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FlatBvh {
+    /// The nodes, depth-first; the root is node 0.
     pub nodes: Vec<FlatNode>,
     /// [`escape_links`] of `nodes`, eight per node.
     pub escapes: Vec<u32>,
+    /// The triangles in leaf order.
     pub triangles: Vec<FlatTriangle>,
     /// Longest root-to-leaf path, in edges (a single leaf has depth 0).
     pub depth: u32,

@@ -72,6 +72,7 @@ pub const BOX_CULL_SLACK: f32 = 1.907_348_6e-6; // 2^-19
 /// A ray with everything the tests need precomputed once per ray.
 #[derive(Clone, Copy, Debug)]
 pub struct PreparedRay {
+    /// Origin.
     pub org: Vec3,
     /// Direction, with subnormal components flushed to (signed) zero as GPUs do.
     pub dir: Vec3,
@@ -81,17 +82,23 @@ pub struct PreparedRay {
     /// True when some direction component is zero: the ray is parallel to those slabs,
     /// and [`intersect_box`] takes its general path.
     pub parallel: bool,
+    /// The interval start: hits closer than this are ignored.
     pub t_min: f32,
     /// The ray's own `t_max` (the user's interval end): what [`intersect_box`] culls
     /// against before any hit, and the cap of the widened best after one.
     pub t_max: f32,
-    /// Watertight test: the dominant axis and the two others (Woop et al. 2013).
+    /// Watertight test (Woop et al. 2013): the axis after the dominant one `kz`
+    /// (swapped with `ky` when `dir[kz] < 0`, keeping the winding).
     pub kx: usize,
+    /// The remaining axis (see `kx`).
     pub ky: usize,
+    /// The dominant axis: the direction's largest component in magnitude.
     pub kz: usize,
-    /// Shear constants.
+    /// Shear constant `dir[kx] / dir[kz]`.
     pub sx: f32,
+    /// Shear constant `dir[ky] / dir[kz]`.
     pub sy: f32,
+    /// Scale `1 / dir[kz]`.
     pub sz: f32,
 }
 
@@ -235,8 +242,11 @@ pub fn intersect_box(r: &PreparedRay, bmin: Vec3, bmax: Vec3, t_best: f32) -> Op
 /// A triangle hit: distance and the barycentric weights of corners 1 and 2.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TriHit {
+    /// Distance along the ray.
     pub t: f32,
+    /// Barycentric weight of corner 1.
     pub u: f32,
+    /// Barycentric weight of corner 2.
     pub v: f32,
 }
 

@@ -7,6 +7,7 @@
 
 // `!(a <= b)` is how the tests reject NaN along with the false case: keep it readable as is.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
+#![warn(missing_docs)]
 
 pub mod build;
 pub mod flat;

@@ -22,15 +22,21 @@ pub enum MeshError {
         "triangle {triangle}: vertex index {index} is out of range (the mesh has {vertices} vertices)"
     )]
     IndexOutOfRange {
+        /// The triangle at fault.
         triangle: usize,
+        /// The out-of-range index.
         index: u32,
+        /// The number of positions the mesh has.
         vertices: usize,
     },
     /// A corner has a NaN or infinite coordinate.
     #[error("triangle {triangle}: corner {corner} has a non-finite coordinate {value:?}")]
     NonFinite {
+        /// The triangle at fault.
         triangle: usize,
+        /// Which corner (0, 1, 2).
         corner: usize,
+        /// The corner's coordinates.
         value: [f32; 3],
     },
     /// The builder was given more triangles than a 32-bit index can name.

@@ -16,7 +16,9 @@ pub struct OracleHit {
     pub t: f64,
     /// Primitive, [`MISS`] or [`INVALID_RAY`].
     pub prim: u32,
+    /// Barycentric weight of corner 1 (0 on a miss).
     pub u: f64,
+    /// Barycentric weight of corner 2 (0 on a miss).
     pub v: f64,
 }
 

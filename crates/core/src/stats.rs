@@ -5,9 +5,13 @@ use crate::flat::FlatBvh;
 /// Quality figures of a flat BVH.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BvhStats {
+    /// Number of triangles.
     pub triangles: usize,
+    /// Number of nodes, interior and leaves.
     pub nodes: usize,
+    /// Number of leaves.
     pub leaves: usize,
+    /// Longest root-to-leaf path, in edges ([`FlatBvh::depth`]).
     pub depth: u32,
     /// SAH cost with traversal 1 and intersection 1, summed over nodes (interior: area;
     /// leaf: area x triangles) and divided by the root's area: tinybvh's `SAHCost`

@@ -1,8 +1,8 @@
 //! Builders: from triangles to a [`BuildTree`] (a plain binary tree over a primitive
 //! permutation). [`crate::flat`] then lays that tree out for traversal.
 //!
-//! All builders share one recursion ([`recurse`]) and differ only in how they choose a
-//! split ([`SplitMethod`]). The recursion forks with `rayon::join` above a size threshold;
+//! All builders share one recursion and differ only in how they choose a split
+//! ([`BuilderKind`]). The recursion forks with `rayon::join` above a size threshold;
 //! every choice depends only on the primitives of the node, so the tree is the same
 //! whatever the thread count.
 
@@ -118,14 +118,20 @@ impl BuildOptions {
 pub enum BuildNode {
     /// A leaf: `count` primitives starting at `first` in [`BuildTree::prim_order`].
     Leaf {
+        /// The box around the leaf's primitives.
         bounds: Aabb,
+        /// Index of the leaf's first primitive in [`BuildTree::prim_order`].
         first: u32,
+        /// Number of primitives in the leaf.
         count: u32,
     },
     /// An interior node split along `axis` (0, 1, 2).
     Interior {
+        /// The box around both children.
         bounds: Aabb,
+        /// The split axis: 0 = x, 1 = y, 2 = z.
         axis: u8,
+        /// The two children.
         children: Box<[BuildNode; 2]>,
     },
 }
@@ -143,7 +149,9 @@ impl BuildNode {
 /// input primitives in which every leaf is a contiguous range.
 #[derive(Clone, Debug)]
 pub struct BuildTree {
+    /// The root node.
     pub root: BuildNode,
+    /// The permutation of the input primitives the leaves index into.
     pub prim_order: Vec<u32>,
     /// Number of nodes (at most `2 n - 1`).
     pub node_count: usize,
