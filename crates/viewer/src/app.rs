@@ -772,12 +772,12 @@ impl ViewerApp {
         });
         ui.label(RichText::new(format!("device: {}", self.adapter_line)).small());
         if let Some(b) = &self.built {
-            if let Ok(g) = &b.gpu {
+            if let Some(u) = b.gpu.as_ref().ok().and_then(|g| g.upload_stats()) {
                 ui.label(
                     RichText::new(format!(
                         "BVH on the GPU as {:?}, {:.1} MiB",
-                        g.storage,
-                        g.tracer.uploaded_bytes() as f64 / (1024.0 * 1024.0)
+                        u.storage,
+                        u.total_bytes() as f64 / (1024.0 * 1024.0)
                     ))
                     .small(),
                 );

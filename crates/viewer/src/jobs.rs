@@ -10,7 +10,7 @@ use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal, Triangle,
 };
 use bvhtrace_gpu::kernels::check_depth;
-use bvhtrace_gpu::{BvhStorage, CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, UploadOptions};
+use bvhtrace_gpu::{CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, UploadOptions};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
 
@@ -49,14 +49,6 @@ impl SceneData {
     }
 }
 
-/// The BVH on the GPU.
-pub struct UploadedBvh {
-    /// Traces through the upload.
-    pub tracer: Box<dyn Tracer>,
-    /// Where the upload keeps the tree.
-    pub storage: BvhStorage,
-}
-
 /// A built (and, when a device is there, uploaded) BVH, with the two tracers over it.
 pub struct BuiltBvh {
     /// Its quality figures.
@@ -68,7 +60,7 @@ pub struct BuiltBvh {
     /// The CPU walks over the tree: the fallback, and the reference of "Compare with CPU".
     pub cpu: CpuTracer,
     /// The upload, or why there is none.
-    pub gpu: Result<UploadedBvh, String>,
+    pub gpu: Result<Box<dyn Tracer>, String>,
     /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
     /// [`BuiltBvh::retry_gpu`].
     pub gpu_failure: Option<String>,
@@ -98,7 +90,7 @@ impl BuiltBvh {
     /// The GPU's tracer, when it is uploaded, has not failed, and `prefer_cpu` is off.
     pub fn gpu_tracer(&self, prefer_cpu: bool) -> Option<&dyn Tracer> {
         match &self.gpu {
-            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g.tracer.as_ref()),
+            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g.as_ref()),
             _ => None,
         }
     }
@@ -115,7 +107,7 @@ impl BuiltBvh {
         let Ok(g) = &self.gpu else { return };
         if let Some(e) = batch_options(traversal)
             .iter()
-            .find_map(|o| g.tracer.prepare(o).err())
+            .find_map(|o| g.prepare(o).err())
         {
             self.gpu_failure = Some(e.to_string());
         }
@@ -255,10 +247,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
                             g.prepare(&o)?;
                         }
                     }
-                    Ok(UploadedBvh {
-                        storage: g.storage(),
-                        tracer: Box::new(g),
-                    })
+                    Ok(Box::new(g) as Box<dyn Tracer>)
                 })
                 .map_err(|e| format!("GPU upload failed: {e}"))
         }
