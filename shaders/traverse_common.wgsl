@@ -60,8 +60,9 @@ fn bvh_visit_leaf(
         (*c).tris += 1u;
         let tri = bvh_load_triangle(i);
         let h = bvh_intersect_triangle(r, tri.v0, tri.v1, tri.v2);
-        if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && tri.prim < (*best).prim))) {
-            *best = BvhBest(h.t, tri.prim, h.u, h.v, true);
+        let prim = bvh_hit_prim(tri.prim);
+        if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && prim < (*best).prim))) {
+            *best = BvhBest(h.t, prim, h.u, h.v, true);
             if (any_hit) {
                 return true;
             }

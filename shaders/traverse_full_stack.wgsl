@@ -13,7 +13,8 @@ fn bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult
     if (!bvh_ray_is_traced(ray)) {
         return bvh_untraced_result(ray);
     }
-    let r = bvh_prepare_ray(ray);
+    var r = bvh_prepare_ray(ray);
+    bvh_start_space(ray, r, 0u);
     var best = bvh_start_best(ray);
     var c = BvhCounters(0u, 0u);
     var sp = 0u;
@@ -43,6 +44,16 @@ fn bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult
             }
             count = links.y >> 2u;
             if (count != 0u) {
+                if (bvh_is_instance_leaf(links.y)) {
+                    // The mesh's root is walked as the leaf was: its box is not tested again.
+                    let root = bvh_enter_instance(node, links.x, &r);
+                    if (root == BVH_NOT_ENTERED) {
+                        break;
+                    }
+                    node = root;
+                    links = bvh_load_node_links(root);
+                    continue;
+                }
                 first = links.x;
                 on_leaf = true;
                 break;
@@ -99,6 +110,7 @@ fn bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult
         }
         sp -= 1u;
         node = bvh_lane_stacks[bvh_stack_slot(lane, sp)];
+        bvh_leave_if_top(node, &r);
         links = bvh_load_node_links(node);
     }
     if (spent) {

@@ -65,10 +65,11 @@ fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTr
     if (!bvh_ray_is_traced(ray)) {
         return bvh_untraced_result(ray);
     }
-    let r = bvh_prepare_ray(ray);
+    var r = bvh_prepare_ray(ray);
     var best = bvh_start_best(ray);
     var c = BvhCounters(0u, 0u);
-    let oct = bvh_octant(r.dir);
+    var oct = bvh_octant(r.dir);
+    bvh_start_space(ray, r, oct);
     // The ring: in two registers when it fits (`k <= REGISTER_RING`), else in `lane_stacks`.
     var newer = vec4<u32>(BVH_NO_ESCAPE); // entries 0..3, `newer.x` the top; `NO_ESCAPE`: empty
     var older = vec4<u32>(BVH_NO_ESCAPE); // entries 4..7
@@ -104,12 +105,19 @@ fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTr
                 }
                 let hit = bvh_box_hit(bvh_intersect_box(r, n.min, n.max, best.t));
                 let count_here = n.meta_bits >> 2u;
-                if (hit && count_here != 0u) {
+                if (hit && count_here != 0u && bvh_is_instance_leaf(n.meta_bits)) {
+                    let root = bvh_enter_instance(node, n.right_or_first, &r);
+                    if (root != BVH_NOT_ENTERED) {
+                        oct = bvh_octant(r.dir);
+                        node = root;
+                        continue;
+                    }
+                    // Passed through: the leaf is done (below, as a missed box).
+                } else if (hit && count_here != 0u) {
                     leaf_first = n.right_or_first;
                     leaf_count = count_here;
                     break;
-                }
-                if (hit) {
+                } else if (hit) {
                     let second_first = ((oct >> (n.meta_bits & 3u)) & 1u) != 0u;
                     if (k > 0u) {
                         let far = select(n.right_or_first, node + 1u, second_first);
@@ -139,7 +147,7 @@ fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTr
                     continue;
                 }
                 // Missed: the subtree at `node` is done.
-                let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
+                let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane, &r, &oct);
                 if (next == BVH_NEXT_ON) {
                     continue;
                 }
@@ -157,7 +165,7 @@ fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTr
                 break;
             }
             // The leaf's subtree is done (`escape_link` is still the leaf's, loaded on its trip).
-            let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane);
+            let next = bvh_next_node(&node, escape_link, &newer, &older, &top, &count, overflow, k, lane, &r, &oct);
             if (next == BVH_NEXT_ON) {
                 continue;
             }
@@ -170,7 +178,7 @@ fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTr
         // The ring ran dry after dropping entries: the most recent dropped one is where
         // `node`'s escape link leads.
         node = bvh_load_escape(node, oct);
-        if (node == BVH_NO_ESCAPE) {
+        if (node == BVH_NO_ESCAPE && bvh_escape_instance(&node, &r, &oct) == BVH_NEXT_DONE) {
             break;
         }
     }
@@ -198,10 +206,15 @@ fn bvh_next_node(
     overflow: bool,
     k: u32,
     lane: u32,
+    r: ptr<function, BvhPreparedRay>,
+    oct: ptr<function, u32>,
 ) -> u32 {
     if (k == 0u) {
         *node = escape_link;
-        return select(BVH_NEXT_ON, BVH_NEXT_DONE, *node == BVH_NO_ESCAPE);
+        if (*node == BVH_NO_ESCAPE) {
+            return bvh_escape_instance(node, r, oct);
+        }
+        return BVH_NEXT_ON;
     }
     if (k <= BVH_REGISTER_RING) {
         // Shifting a dry ring leaves it dry.
@@ -212,6 +225,7 @@ fn bvh_next_node(
             return select(BVH_NEXT_DONE, BVH_NEXT_ESCAPE, overflow);
         }
         *node = popped;
+        bvh_leave_popped(*node, r, oct);
         return BVH_NEXT_ON;
     }
     if (*count == 0u) {
@@ -220,5 +234,25 @@ fn bvh_next_node(
     *count -= 1u;
     *top = select(*top - 1u, k - 1u, *top == 0u);
     *node = bvh_lane_stacks[bvh_stack_slot(lane, *top)];
+    bvh_leave_popped(*node, r, oct);
     return BVH_NEXT_ON;
+}
+
+// A popped top-level node: back in world space and its octant.
+fn bvh_leave_popped(node: u32, r: ptr<function, BvhPreparedRay>, oct: ptr<function, u32>) {
+    if (bvh_leave_if_top(node, r)) {
+        *oct = bvh_world_oct;
+    }
+}
+
+// The walk escaped to `NO_ESCAPE`: done, or (inside an instance) back in world space at
+// the instance leaf's escape link.
+fn bvh_escape_instance(node: ptr<function, u32>, r: ptr<function, BvhPreparedRay>, oct: ptr<function, u32>) -> u32 {
+    if (!(BVH_INSTANCED && bvh_inside)) {
+        return BVH_NEXT_DONE;
+    }
+    bvh_leave_instance(r);
+    *oct = bvh_world_oct;
+    *node = bvh_load_escape(bvh_instance_leaf, *oct);
+    return select(BVH_NEXT_ON, BVH_NEXT_DONE, *node == BVH_NO_ESCAPE);
 }

@@ -72,3 +72,14 @@ fn bvh_node_count(n: BvhNode) -> u32 {
 fn bvh_component(v: vec3<f32>, k: u32) -> f32 {
     return select(select(v.z, v.y, k == 1u), v.x, k == 0u);
 }
+
+// `FlatInstance` (64 bytes): one instance of a two-level BVH. `world_to_object` holds the
+// three rows of a 3x4 matrix (`bvh_ray_to_object`); `root` is the mesh's root node,
+// `prim_base` the instance's first primitive id, `mask` its visibility mask (8 bits).
+struct BvhInstance {
+    world_to_object: array<vec4<f32>, 3>,
+    root: u32,
+    prim_base: u32,
+    mask: u32,
+    user_id: u32,
+}

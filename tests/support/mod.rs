@@ -99,6 +99,33 @@ pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
     })
 }
 
+/// Loads `spec` and builds it as a two-level BVH (one BVH per mesh, a top level over its
+/// instances), `tris` its flattened triangles by primitive id; `None` (SKIP printed) when
+/// it cannot be read.
+pub fn load_instanced_scene(spec: &str, name: &str) -> Option<SceneCase> {
+    let scene = match bvhtrace_scene::load(spec) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("SKIP scene {name}: {e}");
+            return None;
+        }
+    };
+    let tris = scene
+        .flatten()
+        .triangles()
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let bvh = scene
+        .instanced_bvh(&BuildOptions::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .bvh()
+        .clone();
+    Some(SceneCase {
+        name: format!("{name} (two levels)"),
+        bvh,
+        tris,
+    })
+}
+
 /// The parity scenes: shared meshes when present (a small one, `bunny_69k`, the bunny at
 /// 1e-3 scale), the degenerate-heavy builtin and the Cornell box.
 pub fn parity_scenes() -> Vec<SceneCase> {
@@ -117,5 +144,12 @@ pub fn parity_scenes() -> Vec<SceneCase> {
     }
     out.extend(load_scene("builtin:degenerate", "builtin:degenerate"));
     out.extend(load_scene("builtin:cornell", "builtin:cornell"));
+    // Two levels: five meshes instanced on a ground grid, and a grid of rotated, scaled
+    // copies of one mesh, mirrored by the scene suffix.
+    out.extend(load_instanced_scene("builtin:spheres", "builtin:spheres"));
+    out.extend(load_instanced_scene(
+        "builtin:grid:icosphere:4x3#scale=-1#offset=3,0,0",
+        "builtin:grid:icosphere:4x3 mirrored",
+    ));
     out
 }

@@ -180,8 +180,15 @@ fn ray_sets(
     let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
     let b = bvh.bounds();
     let diag = (b.max - b.min).length();
-    let (shadow, _) =
-        shade::secondary_rays(shade::Shade::Diffuse, tris, &primary, &hits, light, 1, diag);
+    let (shadow, _) = shade::secondary_rays(
+        shade::Shade::Diffuse,
+        &|p| tris[p as usize],
+        &primary,
+        &hits,
+        light,
+        1,
+        diag,
+    );
     let mut diffuse = Vec::new();
     for (i, (r, h)) in primary.iter().zip(&hits).enumerate() {
         if h.is_hit() {

@@ -4,6 +4,7 @@ mod accuracy;
 mod backend;
 mod bench;
 mod bench_matrix;
+mod geometry;
 mod output;
 mod plot;
 mod render;

@@ -5,13 +5,12 @@
 //! Each step is one function below.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::palette;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, Query, Ray, TraceOptions,
-    TraceOutput, Traversal, Triangle,
+    TraceOutput, Traversal,
 };
 use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats, VertexAttributes};
 use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, camera};
@@ -20,6 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
 use crate::backend::{self, Backend};
+use crate::geometry::{self, Built, Geometry};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, BACKGROUND, Shade};
 
@@ -47,6 +47,15 @@ pub struct SceneArgs {
     /// SAH traversal cost (intersection cost is 1); PBRT's 1/8 by default.
     #[arg(long, default_value_t = 0.125)]
     pub cost_traversal: f32,
+    /// Trace one BVH over the world-space triangles, even for a scene that places meshes
+    /// more than once (traced in two levels by default: a BVH per mesh, a top level over
+    /// the instances).
+    #[arg(long)]
+    pub flatten: bool,
+    /// Scene time in seconds: the glTF node animations are evaluated there (default: the
+    /// scene as loaded, time 0).
+    #[arg(long, allow_hyphen_values = true)]
+    pub time: Option<f32>,
 }
 
 impl SceneArgs {
@@ -63,23 +72,10 @@ impl SceneArgs {
     }
 }
 
-/// Loads, flattens and builds; prints scene warnings. Returns timings in ms.
-pub fn load_and_build(args: &SceneArgs) -> Result<(Scene, Vec<Triangle>, FlatBvh, f64, f64)> {
-    let t0 = Instant::now();
-    let scene = bvhtrace_scene::load(args.spec())?;
-    for w in &scene.warnings {
-        eprintln!("warning: {w}");
-    }
-    let tris = scene
-        .flatten()
-        .triangles()
-        .with_context(|| format!("{}: bad geometry", args.spec()))?;
-    let load_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let t1 = Instant::now();
-    let bvh = FlatBvh::build(&tris, &args.build_options())
-        .with_context(|| format!("{}: BVH build failed", args.spec()))?;
-    let build_ms = t1.elapsed().as_secs_f64() * 1e3;
-    Ok((scene, tris, bvh, load_ms, build_ms))
+/// Loads and builds the scene as the flags say (two levels or flattened, at `--time`);
+/// prints scene warnings.
+pub fn load_and_build(args: &SceneArgs) -> Result<Built> {
+    geometry::load_and_build(args.spec(), &args.build_options(), args.flatten, args.time)
 }
 
 /// Image size and camera.
@@ -221,19 +217,25 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
     }
-    let (scene, tris, bvh, load_ms, build_ms) = load_and_build(&args.scene)?;
+    let Built {
+        scene,
+        geometry: geo,
+        load_ms,
+        build_ms,
+    } = load_and_build(&args.scene)?;
+    let bvh = geo.bvh();
     let cam = camera_for(&args.view, &scene)?;
-    let tracer = open_tracer(&args, &bvh)?;
-    let job = Job::new(&args, &*tracer, &cam, &bvh);
+    let tracer = open_tracer(&args, bvh)?;
+    let job = Job::new(&args, &*tracer, &cam, bvh);
     let rays = cam.rays(args.view.size.0, args.view.size.1);
-    let (frame, runs) = trace_runs(&job, &*tracer, &tris, &rays)?;
-    let img = compose(&job, &tris, &rays, &frame);
+    let (frame, runs) = trace_runs(&job, &*tracer, &geo, &rays)?;
+    let img = compose(&job, &geo, &rays, &frame);
     write_png(png, args.view.size.0, args.view.size.1, img)?;
     let report = Report {
         job: &job,
         scene: &scene,
-        tris: &tris,
-        bvh: &bvh,
+        geo: &geo,
+        bvh,
         cam: &cam,
         tracer: &*tracer,
         frame: &frame,
@@ -293,7 +295,7 @@ impl<'a> Job<'a> {
 fn trace_runs(
     job: &Job,
     tracer: &dyn Tracer,
-    tris: &[Triangle],
+    geo: &Geometry,
     rays: &[Ray],
 ) -> Result<(Frame, Vec<Timing>)> {
     let per_run = rays.len() as u64 * (1 + job.secondary_per_pixel());
@@ -309,10 +311,10 @@ fn trace_runs(
         tracer.backend()
     ));
     let mut runs = Vec::new();
-    let mut frame = trace_frame(job, tracer, tris, rays, &pb)?;
+    let mut frame = trace_frame(job, tracer, geo, rays, &pb)?;
     runs.push(frame.timing);
     for _ in 1..job.args.runs {
-        frame = trace_frame(job, tracer, tris, rays, &pb)?;
+        frame = trace_frame(job, tracer, geo, rays, &pb)?;
         runs.push(frame.timing);
     }
     pb.finish_and_clear();
@@ -323,7 +325,7 @@ fn trace_runs(
 fn trace_frame(
     job: &Job,
     tracer: &dyn Tracer,
-    tris: &[Triangle],
+    geo: &Geometry,
     rays: &[Ray],
     pb: &ProgressBar,
 ) -> Result<Frame> {
@@ -332,7 +334,7 @@ fn trace_frame(
     let primary = trace_chunked(tracer, rays, chunk, &job.primary(), pb, &mut timing)?;
     let (sec_rays, owner) = shade::secondary_rays(
         job.args.shade,
-        tris,
+        &|p| geo.triangle(p),
         rays,
         &primary.hits,
         job.light,
@@ -392,7 +394,7 @@ fn median(runs: &[Timing]) -> Timing {
 struct Report<'a> {
     job: &'a Job<'a>,
     scene: &'a Scene,
-    tris: &'a [Triangle],
+    geo: &'a Geometry,
     bvh: &'a FlatBvh,
     cam: &'a Camera,
     tracer: &'a dyn Tracer,
@@ -412,6 +414,7 @@ impl Report<'_> {
                 !self.frame.owner.is_empty(),
                 self.job.counters,
                 &self.scene.attributes,
+                self.bvh.is_instanced(),
             ),
             None => Vec::new(),
         }
@@ -430,7 +433,7 @@ impl Report<'_> {
             self.job.args.output.display(),
             w,
             h,
-            self.tris.len(),
+            self.geo.triangle_count(),
             self.job.traversal,
             self.tracer.device_name(),
             t.rays,
@@ -460,10 +463,10 @@ impl Report<'_> {
         let pipelines = self.pipelines();
         let t = median(self.runs);
         let upload = self.tracer.upload_stats();
-        json!({
+        let mut v = json!({
             "scene": args.scene.spec(),
             "width": args.view.size.0, "height": args.view.size.1,
-            "triangles": self.tris.len(),
+            "triangles": self.geo.triangle_count(),
             "nodes": stats.nodes,
             "depth": stats.depth,
             "sah_cost": stats.sah_cost,
@@ -490,10 +493,13 @@ impl Report<'_> {
             "uploaded_bytes": self.tracer.uploaded_bytes(),
             "features": features,
             "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-            "upload": upload.map(|s| upload_json(&s, self.tris.len())),
-            "left_out": left_out(&pipelines, self.scene, self.job.traversal),
+            "upload": upload.map(|s| upload_json(&s, self.geo.triangle_count())),
+            "left_out": left_out(&pipelines, self.scene, self.geo, self.job.traversal),
             "camera": { "eye": self.cam.eye.to_array(), "target": self.cam.target.to_array(), "fov": self.cam.fov_y_deg },
-        })
+            "time": args.scene.time,
+        });
+        merge(&mut v, self.geo.json(self.scene));
+        v
     }
 }
 
@@ -510,7 +516,7 @@ impl RenderArgs {
 }
 
 /// Shades the frame into RGB8 pixels.
-fn compose(job: &Job, tris: &[Triangle], rays: &[Ray], frame: &Frame) -> Vec<u8> {
+fn compose(job: &Job, geo: &Geometry, rays: &[Ray], frame: &Frame) -> Vec<u8> {
     let (args, light) = (job.args, job.light);
     let (hits, counters) = (&frame.hits, &frame.counters);
     let (owner, sec_hits) = (&frame.owner, &frame.secondary);
@@ -543,7 +549,7 @@ fn compose(job: &Job, tris: &[Triangle], rays: &[Ray], frame: &Frame) -> Vec<u8>
             px(&mut img, i, BACKGROUND);
             continue;
         }
-        let tri = &tris[hit.prim as usize];
+        let tri = &geo.triangle(hit.prim);
         let d = Vec3::from(r.dir);
         let n = shade::facing_normal(tri, d);
         let c = match args.shade {
@@ -583,13 +589,14 @@ fn render_pipelines(
     secondary: bool,
     counters: bool,
     scene_has: &Attributes,
+    instanced: bool,
 ) -> Vec<KernelKey> {
     let has = VertexAttributes {
         normals: scene_has.normals,
     };
     let job = |query, counters| {
         let opts = TraceOptions::new(traversal, query).with_counters(counters);
-        KernelKey::for_job(storage, &opts, has, JOB_ATTRIBUTES)
+        KernelKey::for_job(storage, &opts, has, JOB_ATTRIBUTES).with_instances(instanced)
     };
     let mut v = vec![job(Query::Closest, counters)];
     if secondary {
@@ -615,19 +622,25 @@ fn pipeline_json(f: &KernelKey) -> Value {
 }
 
 /// Bytes uploaded, per buffer, in all and per triangle.
-fn upload_json(s: &UploadStats, triangles: usize) -> Value {
+fn upload_json(s: &UploadStats, triangles: u64) -> Value {
     json!({
         "storage": format!("{:?}", s.storage).to_lowercase(),
         "nodes": s.nodes_bytes,
         "triangles": s.triangles_bytes,
         "escapes": s.escapes_bytes,
+        "instances": s.instances_bytes,
         "total": s.total_bytes(),
         "bytes_per_triangle": s.total_bytes() as f64 / triangles.max(1) as f64,
     })
 }
 
 /// What the pipelines leave out, and why.
-fn left_out(pipelines: &[KernelKey], scene: &Scene, traversal: Traversal) -> Vec<String> {
+fn left_out(
+    pipelines: &[KernelKey],
+    scene: &Scene,
+    geo: &Geometry,
+    traversal: Traversal,
+) -> Vec<String> {
     let mut v = Vec::new();
     if pipelines.is_empty() {
         return vec!["everything: traced on the CPU, nothing uploaded".into()];
@@ -659,13 +672,25 @@ fn left_out(pipelines: &[KernelKey], scene: &Scene, traversal: Traversal) -> Vec
             format!("{what} (the scene has none)")
         });
     }
-    if scene.instance_count() > scene.meshes.len() {
-        v.push(format!(
-            "instances ({} placements, flattened to world-space triangles on the host)",
+    match geo {
+        Geometry::Flat { .. } if scene.instance_count() > 1 => v.push(format!(
+            "the top level ({} placements flattened to world-space triangles on the host, \
+             --flatten)",
             scene.instance_count()
-        ));
+        )),
+        Geometry::Flat { .. } => {
+            v.push("the top level (one placement, flattened: no instance to walk)".into())
+        }
+        Geometry::Instanced(_) => {}
     }
     v
+}
+
+/// Adds `extra`'s fields to the JSON object `v`.
+fn merge(v: &mut Value, extra: Value) {
+    if let (Some(o), Value::Object(e)) = (v.as_object_mut(), extra) {
+        o.extend(e);
+    }
 }
 
 fn parse_storage(s: &str) -> Result<BvhStorage, String> {
@@ -709,8 +734,14 @@ pub fn info(args: InfoArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let (scene, tris, bvh, load_ms, build_ms) = load_and_build(&args.scene)?;
-    let s = BvhStats::of(&bvh);
+    let Built {
+        scene,
+        geometry: geo,
+        load_ms,
+        build_ms,
+    } = load_and_build(&args.scene)?;
+    let bvh = geo.bvh();
+    let s = BvhStats::of(bvh);
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
     let (nb, eb, tb) = bvh.byte_sizes();
@@ -721,17 +752,22 @@ pub fn info(args: InfoArgs) -> Result<()> {
         matches!(args.shade, Shade::Diffuse | Shade::Ao),
         args.shade == Shade::Heatmap,
         &scene.attributes,
+        bvh.is_instanced(),
     );
     // What `GpuBvh::upload` uploads for these pipelines (the same for each of them).
-    let upload = pipelines[0].upload_bytes(bvh.nodes.len() as u64, bvh.triangles.len() as u64);
-    let v = json!({
+    let upload = pipelines[0].upload_bytes(
+        bvh.nodes.len() as u64,
+        bvh.triangles.len() as u64,
+        bvh.instances.len() as u64,
+    );
+    let mut v = json!({
         "scene": args.scene.spec(),
         "name": scene.name,
         "description": scene.description,
         "synthetic": scene.synthetic,
         "meshes": scene.meshes.len(),
         "instances": scene.instance_count(),
-        "triangles": tris.len(),
+        "triangles": geo.triangle_count(),
         "bounds": { "min": lo.to_array(), "max": hi.to_array() },
         "attributes": { "normals": a.normals, "texcoords": a.texcoords, "colors": a.colors, "materials": a.materials },
         "camera": scene.camera.map(|c| json!({"eye": c.eye.to_array(), "target": c.target.to_array(), "fov": c.fov_y_deg})),
@@ -741,13 +777,15 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-        "upload": upload_json(&upload, tris.len()),
-        "left_out": left_out(&pipelines, &scene, traversal),
+        "upload": upload_json(&upload, geo.triangle_count()),
+        "left_out": left_out(&pipelines, &scene, &geo, traversal),
         "traversal": traversal.to_string(),
         "default_traversal": { "cpu": Traversal::CPU_DEFAULT.to_string(), "gpu": Traversal::GPU_DEFAULT.to_string() },
         "load_ms": load_ms, "build_ms": build_ms,
         "warnings": scene.warnings,
+        "time": args.scene.time,
     });
+    merge(&mut v, geo.json(&scene));
     if args.json {
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -755,7 +793,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
     println!("scene       {} ({})", args.scene.spec(), scene.description);
     println!(
         "triangles   {} in {} meshes, {} instances{}",
-        tris.len(),
+        geo.triangle_count(),
         scene.meshes.len(),
         scene.instance_count(),
         if scene.synthetic { " (synthetic)" } else { "" }
@@ -802,14 +840,22 @@ pub fn info(args: InfoArgs) -> Result<()> {
         upload.nodes_bytes,
         upload.triangles_bytes,
         upload.escapes_bytes,
-        upload.total_bytes() as f64 / tris.len().max(1) as f64
+        upload.total_bytes() as f64 / geo.triangle_count().max(1) as f64
     );
     println!(
         "traversals  default {} on the CPU, {} on a GPU (the fastest on each)",
         Traversal::CPU_DEFAULT,
         Traversal::GPU_DEFAULT
     );
-    for l in left_out(&pipelines, &scene, traversal) {
+    if let Geometry::Instanced(i) = &geo {
+        let (top, meshes) = i.level_bytes();
+        println!(
+            "two levels  {} instances of {} meshes: top level {top} bytes, meshes {meshes} bytes",
+            i.instances().len(),
+            i.meshes().len()
+        );
+    }
+    for l in left_out(&pipelines, &scene, &geo, traversal) {
         println!("left out    {l}");
     }
     println!("timing      load {load_ms:.1} ms, build {build_ms:.1} ms");

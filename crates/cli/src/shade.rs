@@ -33,7 +33,7 @@ pub use bvhtrace_core::surface::{cosine_dir, facing_normal, hit_point};
 #[allow(clippy::too_many_arguments)]
 pub fn secondary_rays(
     mode: Shade,
-    tris: &[Triangle],
+    tri: &dyn Fn(u32) -> Triangle,
     primary: &[Ray],
     hits: &[Hit],
     light: Vec3,
@@ -46,7 +46,7 @@ pub fn secondary_rays(
         if !h.is_hit() {
             continue;
         }
-        let p = h.surface(&tris[h.prim as usize], Vec3::from(r.dir));
+        let p = h.surface(&tri(h.prim), Vec3::from(r.dir));
         match mode {
             Shade::Diffuse => {
                 rays.push(p.ray_toward(light));

@@ -22,6 +22,27 @@
 //! * `triangles: [FlatTriangle]`, 48 bytes each, in leaf order (every leaf is a contiguous
 //!   range); each carries its corners and its index in the builder's input (`prim`), so no
 //!   indirection is needed to report hits. WGSL twin: `Triangle`.
+//!
+//! # Two levels (instances over meshes)
+//! A BVH over instances ([`crate::instance::InstancedBvh`]) is the same arrays, concatenated:
+//! * `nodes`: the top level first (`0 .. top_nodes`, built over the instances' world boxes,
+//!   one instance per leaf), then each mesh's tree as above, its child and triangle
+//!   indices offset to where it lands. A top-level leaf is marked by axis bits
+//!   [`INSTANCE_LEAF`] (`meta = 1 << 2 | 3`) and its `right_or_first` is an index into
+//!   `instances`;
+//! * `escapes`: [`escape_links`] of the whole array (no node links one level to the
+//!   other: an instance leaf has no children, and a mesh's root escapes to [`NO_ESCAPE`]);
+//! * `triangles`: each mesh's triangles once, `prim` the index within its mesh;
+//! * `instances: [FlatInstance]`, 64 bytes each: the world-to-object transform, the mesh's
+//!   root node, and `prim_base`, the instance's first primitive id. WGSL twin: `BvhInstance`.
+//!
+//! A walk standing on an instance leaf whose box it hits transforms the ray into the mesh's
+//! space (the same `t` parametrisation: the direction is transformed, not normalised),
+//! goes on at the mesh's root, and transforms back when it reaches a top-level node again
+//! (popped, or the top-level leaf's escape link once the mesh's walk escapes to
+//! `NO_ESCAPE`). A hit reports `prim_base + prim`: primitive ids are numbered instance by
+//! instance, as the flattened scene numbers its triangles, and
+//! [`crate::instance::InstancedBvh::locate`] splits one into (instance, primitive).
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -62,6 +83,10 @@ pub fn near_far(oct: usize, index: u32, n: &FlatNode) -> (u32, u32) {
     }
 }
 
+/// The axis bits of a top-level leaf holding one instance (`right_or_first` is its index
+/// in `FlatBvh::instances`).
+pub const INSTANCE_LEAF: u32 = 3;
+
 /// Nodes per block of `FlatBvh::escapes`.
 pub const ESCAPE_BLOCK: usize = 16;
 
@@ -99,17 +124,29 @@ pub struct EscapeLinksMismatch {
 /// children in the layout, so one pass in index order sets every link.
 pub fn escape_links(nodes: &[FlatNode]) -> Vec<u32> {
     let mut e = vec![NO_ESCAPE; escape_links_len(nodes.len())];
-    for (i, n) in nodes.iter().enumerate() {
+    set_escape_links(nodes, &mut e, 0..nodes.len());
+    e
+}
+
+/// Sets the escape links of `nodes[range]`, a whole tree (its first node the root) or a
+/// run of whole trees, in `escapes`: what rebuilding one tree of a two-level BVH rewrites.
+pub fn set_escape_links(nodes: &[FlatNode], escapes: &mut [u32], range: std::ops::Range<usize>) {
+    for i in range.clone() {
+        for o in 0..OCTANTS {
+            escapes[escape_index(i as u32, o)] = NO_ESCAPE;
+        }
+    }
+    for i in range {
+        let n = &nodes[i];
         if n.is_leaf() {
             continue;
         }
         for o in 0..OCTANTS {
             let (near, far) = near_far(o, i as u32, n);
-            e[escape_index(near, o)] = far;
-            e[escape_index(far, o)] = e[escape_index(i as u32, o)];
+            escapes[escape_index(near, o)] = far;
+            escapes[escape_index(far, o)] = escapes[escape_index(i as u32, o)];
         }
     }
-    e
 }
 
 /// One BVH node (see the module docs for the encoding).
@@ -141,6 +178,11 @@ impl FlatNode {
     #[inline(always)]
     pub fn axis(&self) -> usize {
         (self.meta & 3) as usize
+    }
+    /// True for a top-level leaf holding an instance ([`INSTANCE_LEAF`]).
+    #[inline(always)]
+    pub fn is_instance_leaf(&self) -> bool {
+        self.meta & 3 == INSTANCE_LEAF && self.is_leaf()
     }
     /// The node's box.
     pub fn aabb(&self) -> Aabb {
@@ -181,8 +223,47 @@ impl FlatTriangle {
     }
 }
 
+/// One instance as the walks read it (see the module docs).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct FlatInstance {
+    /// The world-to-object transform, three rows of a 3x4 matrix: an object-space point is
+    /// `row[k] . (x, y, z, 1)`, a direction `row[k] . (x, y, z, 0)`
+    /// ([`FlatInstance::ray_to_object`]).
+    pub world_to_object: [[f32; 4]; 3],
+    /// The mesh's root in `FlatBvh::nodes`.
+    pub root: u32,
+    /// The instance's first primitive id: a hit on the mesh's primitive `p` reports
+    /// `prim_base + p`.
+    pub prim_base: u32,
+    /// Visibility mask (8 bits): a ray whose mask ([`crate::TraceOptions::mask`]) shares no
+    /// bit with it passes through the instance.
+    pub mask: u32,
+    /// The caller's id for the instance.
+    pub user_id: u32,
+}
+
+impl FlatInstance {
+    /// The ray in the mesh's space: origin and direction transformed, the interval kept
+    /// (so `t` is comparable across instances). The arithmetic of the kernels'
+    /// `bvh_ray_to_object`, product by product, left to right.
+    #[inline(always)]
+    pub fn ray_to_object(&self, ray: &crate::Ray) -> crate::Ray {
+        let m = &self.world_to_object;
+        let (o, d) = (ray.origin, ray.dir);
+        let point = |r: &[f32; 4]| r[0] * o[0] + r[1] * o[1] + r[2] * o[2] + r[3];
+        let vector = |r: &[f32; 4]| r[0] * d[0] + r[1] * d[1] + r[2] * d[2];
+        crate::Ray {
+            origin: [point(&m[0]), point(&m[1]), point(&m[2])],
+            t_min: ray.t_min,
+            dir: [vector(&m[0]), vector(&m[1]), vector(&m[2])],
+            t_max: ray.t_max,
+        }
+    }
+}
+
 /// A BVH ready to traverse or upload.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct FlatBvh {
     /// The nodes, depth-first; the root is node 0.
     pub nodes: Vec<FlatNode>,
@@ -190,8 +271,13 @@ pub struct FlatBvh {
     pub escapes: Vec<u32>,
     /// The triangles in leaf order.
     pub triangles: Vec<FlatTriangle>,
-    /// Longest root-to-leaf path, in edges (a single leaf has depth 0).
+    /// Longest root-to-leaf path, in edges (a single leaf has depth 0); for two levels,
+    /// through an instance leaf into its mesh (what a full stack holds at most).
     pub depth: u32,
+    /// The instances of a two-level BVH; empty for one mesh.
+    pub instances: Vec<FlatInstance>,
+    /// Nodes of the top level (`nodes[..top_nodes]`); 0 for one mesh.
+    pub top_nodes: u32,
 }
 
 impl FlatBvh {
@@ -215,7 +301,7 @@ impl FlatBvh {
                     }
                 })
                 .collect(),
-            depth: 0,
+            ..FlatBvh::default()
         };
         bvh.emit(&tree.root, 0);
         bvh.escapes = escape_links(&bvh.nodes);
@@ -268,7 +354,13 @@ impl FlatBvh {
         self.nodes[0].aabb()
     }
 
-    /// Bytes of the nodes, escape links and triangles as uploaded.
+    /// True for a two-level BVH (instances over meshes).
+    pub fn is_instanced(&self) -> bool {
+        !self.instances.is_empty()
+    }
+
+    /// Bytes of the nodes, escape links and triangles as uploaded (the instances,
+    /// when there are any, are `size_of_val(instances)` more).
     pub fn byte_sizes(&self) -> (usize, usize, usize) {
         (
             std::mem::size_of_val(self.nodes.as_slice()),
@@ -296,6 +388,9 @@ impl FlatBvh {
     /// Checks every structural invariant; returns a description of the first violation.
     /// Used by the tests; cheap enough to run on any tree.
     pub fn check_invariants(&self) -> Result<(), String> {
+        if self.is_instanced() {
+            return crate::instance::check_two_level(self);
+        }
         let n_nodes = self.nodes.len();
         let n_tris = self.triangles.len();
         if n_nodes == 0 || n_nodes > 2 * n_tris.max(1) - 1 {

@@ -12,6 +12,7 @@
 pub mod build;
 pub mod flat;
 pub mod geometry;
+pub mod instance;
 pub mod intersect;
 pub mod mesh;
 pub mod oracle;
@@ -23,7 +24,8 @@ pub mod surface;
 pub mod traverse;
 
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
-pub use flat::{FlatBvh, FlatNode, FlatTriangle};
+pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle};
+pub use instance::{Instance, InstanceError, InstancedBvh};
 pub use geometry::Aabb;
 pub use mesh::{MeshError, Triangle, TriangleMesh};
 pub use precision::Precision;

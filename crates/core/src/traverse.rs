@@ -27,7 +27,7 @@ use std::str::FromStr;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::flat::{FlatBvh, FlatNode, NO_ESCAPE, escape_index, near_far, octant};
+use crate::flat::{FlatBvh, FlatInstance, FlatNode, NO_ESCAPE, escape_index, near_far, octant};
 use crate::intersect::{PreparedRay, intersect_box};
 use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
@@ -169,17 +169,19 @@ fn visit_leaf<T: TriangleTest>(
     best: &mut Best,
     c: &mut Counters,
     any: bool,
+    prim_base: u32,
 ) -> bool {
     let first = n.right_or_first as usize;
     for tri in &bvh.triangles[first..first + n.count() as usize] {
         c.tris += 1;
         let [v0, v1, v2] = tri.corners();
+        let prim = prim_base + tri.prim;
         if let Some(h) = T::intersect(r, v0, v1, v2)
-            && (h.t < best.t || (h.t == best.t && best.found && tri.prim < best.prim))
+            && (h.t < best.t || (h.t == best.t && best.found && prim < best.prim))
         {
             *best = Best {
                 t: h.t,
-                prim: tri.prim,
+                prim,
                 u: h.u,
                 v: h.v,
                 found: true,
@@ -197,25 +199,94 @@ fn node_box(n: &FlatNode) -> (Vec3, Vec3) {
     (Vec3::from(n.min), Vec3::from(n.max))
 }
 
+/// Where a walk is: the ray it tests boxes and triangles with, and, inside an instance,
+/// the instance's primitive base (the kernels' `traverse_instances.wgsl`). A one-mesh
+/// BVH never leaves the world.
+struct Space<'a> {
+    bvh: &'a FlatBvh,
+    world_ray: &'a Ray,
+    world: PreparedRay,
+    /// The ray in the current space (the world's until an instance is entered).
+    r: PreparedRay,
+    inside: bool,
+    prim_base: u32,
+    mask: u32,
+}
+
+impl<'a> Space<'a> {
+    fn new(bvh: &'a FlatBvh, ray: &'a Ray, world: PreparedRay, mask: u8) -> Self {
+        Space {
+            bvh,
+            world_ray: ray,
+            world,
+            r: world,
+            inside: false,
+            prim_base: 0,
+            mask: u32::from(mask),
+        }
+    }
+
+    /// Enters the instance of top-level leaf `n`: the ray in its mesh's space, and its
+    /// root. `None` (the leaf is done) when the instance's mask shares no bit with the
+    /// ray's, or the transformed ray is not valid (a direction scaled to zero or
+    /// overflowing).
+    #[inline(never)]
+    fn enter(&mut self, n: &FlatNode) -> Option<u32> {
+        let inst: &FlatInstance = &self.bvh.instances[n.right_or_first as usize];
+        if inst.mask & self.mask == 0 {
+            return None;
+        }
+        let object = inst.ray_to_object(self.world_ray);
+        if !object.is_valid() {
+            return None;
+        }
+        self.r = PreparedRay::new(&object);
+        self.inside = true;
+        self.prim_base = inst.prim_base;
+        Some(inst.root)
+    }
+
+    /// Back in the world when the walk's next node is a top-level one.
+    #[inline(always)]
+    fn leave_if_top(&mut self, node: u32) {
+        if self.inside && node < self.bvh.top_nodes {
+            self.leave();
+        }
+    }
+
+    fn leave(&mut self) {
+        self.r = self.world;
+        self.inside = false;
+        self.prim_base = 0;
+    }
+}
+
 fn full_stack<T: TriangleTest>(
-    bvh: &FlatBvh,
-    r: &PreparedRay,
+    s: &mut Space,
     best: &mut Best,
     c: &mut Counters,
     any: bool,
     stack: &mut Vec<u32>,
 ) {
+    let bvh = s.bvh;
     stack.clear();
     c.nodes += 1;
     let (lo, hi) = node_box(&bvh.nodes[0]);
-    if intersect_box(r, lo, hi, best.t).is_none() {
+    if intersect_box(&s.r, lo, hi, best.t).is_none() {
         return;
     }
     let mut node = 0u32;
     loop {
         let n = &bvh.nodes[node as usize];
+        let r = &s.r;
         if n.is_leaf() {
-            if visit_leaf::<T>(bvh, r, n, best, c, any) {
+            if n.is_instance_leaf() {
+                // The mesh's root is walked as the leaf was: its box is not tested again.
+                if let Some(root) = s.enter(n) {
+                    node = root;
+                    continue;
+                }
+            } else if visit_leaf::<T>(bvh, r, n, best, c, any, s.prim_base) {
                 return;
             }
         } else {
@@ -244,7 +315,10 @@ fn full_stack<T: TriangleTest>(
             }
         }
         match stack.pop() {
-            Some(s) => node = s,
+            Some(next) => {
+                node = next;
+                s.leave_if_top(node);
+            }
             None => return,
         }
     }
@@ -267,14 +341,18 @@ fn full_stack<T: TriangleTest>(
 ///
 /// The two visit the same nodes in the same order.
 fn short_stack<T: TriangleTest>(
-    bvh: &FlatBvh,
-    r: &PreparedRay,
+    s: &mut Space,
     best: &mut Best,
     c: &mut Counters,
     any: bool,
     k: u32,
 ) {
-    let oct = octant(r.dir);
+    let bvh = s.bvh;
+    let world_oct = octant(s.r.dir);
+    let mut oct = world_oct;
+    // The top-level leaf of the instance the walk is in: where it goes on once the mesh's
+    // walk escapes to `NO_ESCAPE`.
+    let mut instance_leaf = 0u32;
     let mut ring = [0u32; MAX_SHORT_STACK as usize];
     let (mut top, mut count) = (0u32, 0u32); // next write slot, live entries
     let mut overflow = false;
@@ -283,7 +361,7 @@ fn short_stack<T: TriangleTest>(
         c.nodes += 1;
         let n = &bvh.nodes[node as usize];
         let (lo, hi) = node_box(n);
-        if intersect_box(r, lo, hi, best.t).is_some() {
+        if intersect_box(&s.r, lo, hi, best.t).is_some() {
             if !n.is_leaf() {
                 let (near, far) = near_far(oct, node, n);
                 if k > 0 {
@@ -298,7 +376,14 @@ fn short_stack<T: TriangleTest>(
                 node = near;
                 continue;
             }
-            if visit_leaf::<T>(bvh, r, n, best, c, any) {
+            if n.is_instance_leaf() {
+                if let Some(root) = s.enter(n) {
+                    instance_leaf = node;
+                    oct = octant(s.r.dir);
+                    node = root;
+                    continue;
+                }
+            } else if visit_leaf::<T>(bvh, &s.r, n, best, c, any, s.prim_base) {
                 return;
             }
         }
@@ -308,14 +393,28 @@ fn short_stack<T: TriangleTest>(
             top = if top == 0 { k - 1 } else { top - 1 };
             count -= 1;
             node = ring[top as usize];
+            if s.inside && node < bvh.top_nodes {
+                s.leave();
+                oct = world_oct;
+            }
             continue;
         }
         if k > 0 && !overflow {
             return;
         }
-        node = bvh.escapes[escape_index(node, oct)];
-        if node == NO_ESCAPE {
-            return;
+        // A mesh's walk that escapes to `NO_ESCAPE` goes on at its instance leaf's link.
+        loop {
+            let next = bvh.escapes[escape_index(node, oct)];
+            if next != NO_ESCAPE {
+                node = next;
+                break;
+            }
+            if !s.inside {
+                return;
+            }
+            s.leave();
+            oct = world_oct;
+            node = instance_leaf;
         }
     }
 }
@@ -333,6 +432,9 @@ pub struct TraceOptions {
     pub precision: Precision,
     /// Also report each ray's [`Counters`].
     pub counters: bool,
+    /// The rays' visibility mask: an instance whose mask ([`crate::instance::Instance`])
+    /// shares no bit with it is passed through. All bits by default.
+    pub mask: u8,
 }
 
 impl TraceOptions {
@@ -343,6 +445,7 @@ impl TraceOptions {
             query,
             precision: Precision::WatertightF32,
             counters: false,
+            mask: 0xff,
         }
     }
 
@@ -359,6 +462,11 @@ impl TraceOptions {
     /// The same options, counting each ray's work or not.
     pub fn with_counters(self, counters: bool) -> Self {
         TraceOptions { counters, ..self }
+    }
+
+    /// The same options with the rays' visibility mask `mask`.
+    pub fn with_mask(self, mask: u8) -> Self {
+        TraceOptions { mask, ..self }
     }
 }
 
@@ -396,13 +504,12 @@ pub fn trace_ray_with(
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
 ) -> (Hit, Counters) {
-    let (t, q) = (opts.traversal, opts.query);
     match opts.precision {
-        Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, t, q, stack),
+        Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, opts, stack),
         Precision::MollerTrumboreF32 => {
-            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, t, q, stack)
+            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, opts, stack)
         }
-        Precision::WatertightF64 => trace_ray_generic::<WatertightF64>(bvh, ray, t, q, stack),
+        Precision::WatertightF64 => trace_ray_generic::<WatertightF64>(bvh, ray, opts, stack),
     }
 }
 
@@ -411,10 +518,10 @@ pub fn trace_ray_with(
 fn trace_ray_generic<T: TriangleTest>(
     bvh: &FlatBvh,
     ray: &Ray,
-    traversal: Traversal,
-    query: Query,
+    opts: &TraceOptions,
     stack: &mut Vec<u32>,
 ) -> (Hit, Counters) {
+    let (traversal, query, mask) = (opts.traversal, opts.query, opts.mask);
     let mut c = Counters::default();
     if !ray.is_valid() {
         return (
@@ -430,6 +537,8 @@ fn trace_ray_generic<T: TriangleTest>(
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return (best.into_hit(), c);
     }
+    let mut space = Space::new(bvh, ray, r, mask);
+    let s = &mut space;
     if traversal.needs_escapes()
         && let Err(e) = bvh.check_escape_links()
     {
@@ -437,10 +546,10 @@ fn trace_ray_generic<T: TriangleTest>(
     }
     let any = query == Query::Any;
     match traversal {
-        Traversal::FullStack => full_stack::<T>(bvh, &r, &mut best, &mut c, any, stack),
-        Traversal::Stackless => short_stack::<T>(bvh, &r, &mut best, &mut c, any, 0),
+        Traversal::FullStack => full_stack::<T>(s, &mut best, &mut c, any, stack),
+        Traversal::Stackless => short_stack::<T>(s, &mut best, &mut c, any, 0),
         Traversal::ShortStack(k) => {
-            short_stack::<T>(bvh, &r, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
+            short_stack::<T>(s, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
         }
     }
     (best.into_hit(), c)
@@ -498,6 +607,12 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
     }
     let r = PreparedRay::new(ray);
     let mut best = Best::start(ray);
+    if bvh.is_instanced() {
+        if ray.t_min <= ray.t_max {
+            brute_force_instances::<T>(bvh, ray, &mut best);
+        }
+        return best.into_hit();
+    }
     if ray.t_min <= ray.t_max {
         let leaf = FlatNode {
             min: [0.0; 3],
@@ -505,7 +620,38 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
             max: [0.0; 3],
             meta: (bvh.triangles.len() as u32) << 2,
         };
-        visit_leaf::<T>(bvh, &r, &leaf, &mut best, &mut Counters::default(), false);
+        visit_leaf::<T>(
+            bvh,
+            &r,
+            &leaf,
+            &mut best,
+            &mut Counters::default(),
+            false,
+            0,
+        );
     }
     best.into_hit()
+}
+
+/// Every triangle of every instance (each leaf of each mesh reached from an instance,
+/// whatever its box), with the walks' ray transform.
+fn brute_force_instances<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray, best: &mut Best) {
+    let mut stack = Vec::new();
+    for inst in &bvh.instances {
+        let object = inst.ray_to_object(ray);
+        if !object.is_valid() {
+            continue;
+        }
+        let r = PreparedRay::new(&object);
+        stack.push(inst.root);
+        while let Some(i) = stack.pop() {
+            let n = &bvh.nodes[i as usize];
+            if n.is_leaf() {
+                let mut c = Counters::default();
+                visit_leaf::<T>(bvh, &r, n, best, &mut c, false, inst.prim_base);
+            } else {
+                stack.extend([i + 1, n.right_or_first]);
+            }
+        }
+    }
 }

@@ -3,6 +3,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{FlatBvh, FlatNode, Traversal};
 use bvhtrace_kernels::{
     BvhStorage, TEXEL_ROW, UploadStats, check_buffer_size, check_depth, texel_rows,
@@ -70,10 +71,19 @@ enum Resources {
         escapes: Option<wgpu::Buffer>,
     },
     Textures {
-        _nodes: wgpu::Texture,
-        _triangles: wgpu::Texture,
-        _escapes: Option<wgpu::Texture>,
+        nodes: wgpu::Texture,
+        triangles: wgpu::Texture,
+        escapes: Option<wgpu::Texture>,
     },
+}
+
+/// What [`GpuBvh::update`] writes again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Update {
+    /// Every node, triangle and instance (after a refit: boxes and corners moved).
+    Everything,
+    /// The top level of a two-level BVH and its instances (after new transforms).
+    TopLevel,
 }
 
 /// The BVH bind group of one upload, for group 0 of the kernels or any group of your own
@@ -103,6 +113,10 @@ pub struct GpuBvh {
     pub(crate) ctx: GpuContext,
     storage: BvhStorage,
     resources: Resources,
+    /// The instances of a two-level BVH.
+    instances: Option<wgpu::Buffer>,
+    top_nodes: u32,
+    instance_count: usize,
     /// The BVH group for the full-stack kernels (nodes, triangles).
     group_plain: wgpu::BindGroup,
     /// The BVH group for the escape-link kernels, when the escape links were uploaded.
@@ -187,7 +201,7 @@ fn texel_texture(
     label: &str,
     format: wgpu::TextureFormat,
     channels: usize,
-    mut data: Vec<u32>,
+    data: Vec<u32>,
 ) -> (wgpu::Texture, u64) {
     let texels = (data.len() / channels) as u64;
     let rows = texel_rows(texels) as u32;
@@ -198,8 +212,21 @@ fn texel_texture(
     } else {
         TEXEL_ROW
     };
-    data.resize(width as usize * rows as usize * channels, 0);
     let texture = storage_texture(ctx, label, format, width, rows);
+    let bytes = write_texels(ctx, &texture, channels, data);
+    (texture, bytes)
+}
+
+/// Writes `data` over the whole of `texture` (as [`texel_texture`] laid it out). Returns
+/// the bytes written.
+fn write_texels(
+    ctx: &GpuContext,
+    texture: &wgpu::Texture,
+    channels: usize,
+    mut data: Vec<u32>,
+) -> u64 {
+    let (width, rows) = (texture.width(), texture.height());
+    data.resize(width as usize * rows as usize * channels, 0);
     ctx.queue().write_texture(
         wgpu::TexelCopyTextureInfo {
             texture: &texture,
@@ -215,7 +242,7 @@ fn texel_texture(
         },
         texture.size(),
     );
-    (texture, (data.len() * 4) as u64)
+    (data.len() * 4) as u64
 }
 
 /// The node texels of `bvh_textures.wgsl`: `(min.xyz, max.x)`, `(max.yz, right, meta)`.
@@ -292,10 +319,26 @@ impl GpuBvh {
             }
         }
 
+        let instanced = bvh.is_instanced();
+        if instanced {
+            check_buffer_size(
+                ctx.limits(),
+                "instances",
+                std::mem::size_of_val(bvh.instances.as_slice()) as u64,
+            )?;
+        }
         let start = Instant::now();
         let device = ctx.device();
-        let layout_plain = ctx.bvh_layout(storage, false);
-        let layout_escapes = ctx.bvh_layout(storage, true);
+        let layout_plain = ctx.bvh_layout(storage, false, instanced);
+        let layout_escapes = ctx.bvh_layout(storage, true, instanced);
+        let instances = instanced.then(|| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("bvhtrace instances"),
+                contents: bytemuck::cast_slice(&bvh.instances),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
+        });
+        let instances_bytes = std::mem::size_of_val(bvh.instances.as_slice()) as u64;
         let group = |label: &str, layout, entries: &[wgpu::BindGroupEntry<'_>]| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
@@ -318,27 +361,21 @@ impl GpuBvh {
                         make("bvhtrace triangles", bytemuck::cast_slice(&bvh.triangles));
                     let escapes = with_escapes
                         .then(|| make("bvhtrace escapes", bytemuck::cast_slice(&bvh.escapes)));
-                    let plain = group(
-                        "bvhtrace bvh",
-                        layout_plain,
-                        &[buffer_entry(0, &nodes), buffer_entry(1, &triangles)],
-                    );
+                    let mut plain_entries =
+                        vec![buffer_entry(0, &nodes), buffer_entry(1, &triangles)];
+                    plain_entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
+                    let plain = group("bvhtrace bvh", layout_plain, &plain_entries);
                     let with = escapes.as_ref().map(|p| {
-                        group(
-                            "bvhtrace bvh+escapes",
-                            layout_escapes,
-                            &[
-                                buffer_entry(0, &nodes),
-                                buffer_entry(1, &triangles),
-                                buffer_entry(2, p),
-                            ],
-                        )
+                        let mut entries = plain_entries.clone();
+                        entries.push(buffer_entry(2, p));
+                        group("bvhtrace bvh+escapes", layout_escapes, &entries)
                     });
                     let stats = UploadStats {
                         storage,
                         nodes_bytes: nb as u64,
                         triangles_bytes: tb as u64,
                         escapes_bytes: if with_escapes { eb as u64 } else { 0 },
+                        instances_bytes,
                         upload_ms: 0.0,
                     };
                     (
@@ -379,31 +416,28 @@ impl GpuBvh {
                     });
                     let nv = nodes.create_view(&Default::default());
                     let tv = triangles.create_view(&Default::default());
-                    let plain = group(
-                        "bvhtrace bvh",
-                        layout_plain,
-                        &[view_entry(0, &nv), view_entry(1, &tv)],
-                    );
+                    let mut plain_entries = vec![view_entry(0, &nv), view_entry(1, &tv)];
+                    plain_entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
+                    let plain = group("bvhtrace bvh", layout_plain, &plain_entries);
                     let with = escapes.as_ref().map(|(p, _)| {
                         let pv = p.create_view(&Default::default());
-                        group(
-                            "bvhtrace bvh+escapes",
-                            layout_escapes,
-                            &[view_entry(0, &nv), view_entry(1, &tv), view_entry(2, &pv)],
-                        )
+                        let mut entries = plain_entries.clone();
+                        entries.push(view_entry(2, &pv));
+                        group("bvhtrace bvh+escapes", layout_escapes, &entries)
                     });
                     let stats = UploadStats {
                         storage,
                         nodes_bytes,
                         triangles_bytes,
                         escapes_bytes: escapes.as_ref().map_or(0, |p| p.1),
+                        instances_bytes,
                         upload_ms: 0.0,
                     };
                     (
                         Resources::Textures {
-                            _nodes: nodes,
-                            _triangles: triangles,
-                            _escapes: escapes.map(|p| p.0),
+                            nodes,
+                            triangles,
+                            escapes: escapes.map(|p| p.0),
                         },
                         plain,
                         with,
@@ -424,6 +458,9 @@ impl GpuBvh {
             ctx: ctx.clone(),
             storage,
             resources,
+            instances,
+            top_nodes: bvh.top_nodes,
+            instance_count: bvh.instances.len(),
             group_plain,
             group_escapes,
             depth: bvh.depth,
@@ -495,8 +532,92 @@ impl GpuBvh {
         };
         Ok(BvhBindGroup {
             group,
-            layout: self.ctx.bvh_layout(self.storage, with_escapes),
+            layout: self
+                .ctx
+                .bvh_layout(self.storage, with_escapes, self.is_instanced()),
         })
+    }
+
+    /// True for a two-level BVH (its bind group has the instances, binding 4).
+    pub fn is_instanced(&self) -> bool {
+        self.instances.is_some()
+    }
+
+    /// Writes `bvh` over this upload in place, without creating anything: `bvh` is the
+    /// uploaded BVH after [`bvhtrace_core::InstancedBvh::refit_mesh`] ([`Update::Everything`])
+    /// or [`bvhtrace_core::InstancedBvh::set_transforms`] ([`Update::TopLevel`]: only the
+    /// top level's nodes and links and the instances are written). Its sizes must be the
+    /// upload's; a BVH of another shape is a new upload.
+    pub fn update(&mut self, bvh: &FlatBvh, what: Update) -> Result<(), GpuError> {
+        let shape = (
+            bvh.nodes.len(),
+            bvh.triangles.len(),
+            bvh.instances.len(),
+            bvh.top_nodes,
+        );
+        let uploaded = (
+            self.node_count,
+            self.triangle_count,
+            self.instance_count,
+            self.top_nodes,
+        );
+        if shape != uploaded || (what == Update::TopLevel && !bvh.is_instanced()) {
+            return Err(GpuError::BadBuffer {
+                buffer: "nodes",
+                problem: format!(
+                    "an update needs the uploaded shape (nodes, triangles, instances, top-level \
+                     nodes) {uploaded:?} with a top level for Update::TopLevel; got {shape:?}"
+                ),
+            });
+        }
+        let queue = self.ctx.queue();
+        let top = self.top_nodes as usize;
+        // Whole blocks of escape links hold the top level's (the last one may hold a
+        // mesh's too: they are written with their current, unchanged values).
+        let top_links = top.div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS;
+        let (nodes, links) = match what {
+            Update::Everything => (bvh.nodes.as_slice(), bvh.escapes.as_slice()),
+            Update::TopLevel => (&bvh.nodes[..top], &bvh.escapes[..top_links]),
+        };
+        self.ctx.scoped("updating the BVH", || {
+            match &self.resources {
+                Resources::Buffers {
+                    nodes: nb,
+                    triangles,
+                    escapes,
+                } => {
+                    queue.write_buffer(nb, 0, bytemuck::cast_slice(nodes));
+                    if let Some(e) = escapes {
+                        queue.write_buffer(e, 0, bytemuck::cast_slice(links));
+                    }
+                    if what == Update::Everything {
+                        queue.write_buffer(triangles, 0, bytemuck::cast_slice(&bvh.triangles));
+                    }
+                }
+                Resources::Textures {
+                    nodes: nt,
+                    triangles,
+                    escapes,
+                } => {
+                    write_texels(&self.ctx, nt, 4, node_texels(&bvh.nodes));
+                    if let Some(e) = escapes {
+                        write_texels(&self.ctx, e, 1, bvh.escapes.clone());
+                    }
+                    if what == Update::Everything {
+                        let tris: &[u32] = bytemuck::cast_slice(&bvh.triangles);
+                        write_texels(&self.ctx, triangles, 4, tris.to_vec());
+                    }
+                }
+            }
+            if let Some(b) = &self.instances {
+                queue.write_buffer(b, 0, bytemuck::cast_slice(&bvh.instances));
+            }
+        })?;
+        if let Some(h) = &mut self.host_copy {
+            *h = Arc::new(bvh.clone());
+        }
+        self.depth = bvh.depth;
+        Ok(())
     }
 
     /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads.

@@ -77,7 +77,7 @@ struct Inner {
     /// Shader modules, by the files composed.
     modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
     /// BVH group layouts: `[buffers, textures][without escapes, with escapes]`.
-    bvh_layouts: [[wgpu::BindGroupLayout; 2]; 2],
+    bvh_layouts: [[[wgpu::BindGroupLayout; 2]; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Pipelines, by their key.
@@ -297,36 +297,29 @@ impl GpuContext {
             wgpu::TextureFormat::Rgba32Uint,
             wgpu::TextureFormat::R32Uint,
         );
-        let bvh_layouts = [
-            [
-                layout(
-                    "bvhtrace bvh buffers",
-                    &[storage_entry(0, true), storage_entry(1, true)],
-                ),
-                layout(
-                    "bvhtrace bvh buffers+escapes",
-                    &[
-                        storage_entry(0, true),
-                        storage_entry(1, true),
-                        storage_entry(2, true),
-                    ],
-                ),
-            ],
-            [
-                layout(
-                    "bvhtrace bvh textures",
-                    &[texture_entry(0, rgba), texture_entry(1, rgba)],
-                ),
-                layout(
-                    "bvhtrace bvh textures+escapes",
-                    &[
-                        texture_entry(0, rgba),
-                        texture_entry(1, rgba),
-                        texture_entry(2, r),
-                    ],
-                ),
-            ],
-        ];
+        // [buffers, textures] x [escapes or not] x [instances or not].
+        let bvh_layout = |storage: BvhStorage, escapes: bool, instances: bool| {
+            let mut entries = match storage {
+                BvhStorage::Buffers => vec![storage_entry(0, true), storage_entry(1, true)],
+                BvhStorage::Textures => vec![texture_entry(0, rgba), texture_entry(1, rgba)],
+            };
+            if escapes {
+                entries.push(match storage {
+                    BvhStorage::Buffers => storage_entry(2, true),
+                    BvhStorage::Textures => texture_entry(2, r),
+                });
+            }
+            // The instances are a buffer with either storage (few, and read once a visit).
+            if instances {
+                entries.push(storage_entry(4, true));
+            }
+            layout(
+                &format!("bvhtrace bvh ({storage:?}, escapes {escapes}, instances {instances})"),
+                &entries,
+            )
+        };
+        let bvh_layouts = [BvhStorage::Buffers, BvhStorage::Textures]
+            .map(|s| [false, true].map(|e| [false, true].map(|i| bvh_layout(s, e, i))));
         // [buffer rays, texture rays] x [hits, hits + counters].
         let batch_layout = |rays: RayInput, counters: bool| {
             let mut entries = match rays {
@@ -397,9 +390,16 @@ impl GpuContext {
 
     /// The layout of the BVH bind group (group 0 of the kernels; any group of yours, see
     /// [`crate::wgsl_library`]): bindings 0 (nodes) and 1 (triangles), plus 2 (escapes)
-    /// when `with_escapes`, as buffers or textures.
-    pub fn bvh_layout(&self, storage: BvhStorage, with_escapes: bool) -> &wgpu::BindGroupLayout {
+    /// when `with_escapes`, as buffers or textures, plus 4 (the instances buffer) when
+    /// `with_instances` (a two-level BVH).
+    pub fn bvh_layout(
+        &self,
+        storage: BvhStorage,
+        with_escapes: bool,
+        with_instances: bool,
+    ) -> &wgpu::BindGroupLayout {
         &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_escapes)]
+            [usize::from(with_instances)]
     }
 
     /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits) read
@@ -515,7 +515,7 @@ impl GpuContext {
             let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("bvhtrace trace"),
                 bind_group_layouts: &[
-                    Some(self.bvh_layout(key.storage, key.needs_escapes())),
+                    Some(self.bvh_layout(key.storage, key.needs_escapes(), key.instances)),
                     Some(self.batch_layout(key.counters, key.rays)),
                 ],
                 immediate_size: 0,

@@ -45,7 +45,7 @@ mod bvh;
 mod context;
 mod trace;
 
-pub use bvh::{BvhBindGroup, GpuBvh, UploadOptions};
+pub use bvh::{BvhBindGroup, GpuBvh, Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use trace::RayBatch;
 

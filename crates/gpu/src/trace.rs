@@ -360,7 +360,9 @@ impl GpuBvh {
     fn key(&self, opts: &TraceOptions, input: RayInput, parallel_rays: bool) -> KernelKey {
         KernelKey {
             parallel_rays,
-            ..KernelKey::new(self.storage(), opts).with_rays(input)
+            ..KernelKey::new(self.storage(), opts)
+                .with_rays(input)
+                .with_instances(self.is_instanced())
         }
     }
 

@@ -152,8 +152,8 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
             };
             let stats = *gpu.stats();
             let module = parse(&f.source());
-            let declared = f.declared_bvh_bytes(nodes, tris);
-            let planned = f.upload_bytes(nodes, tris);
+            let declared = f.declared_bvh_bytes(nodes, tris, 0);
+            let planned = f.upload_bytes(nodes, tris, 0);
             assert_eq!(
                 (
                     stats.nodes_bytes,
@@ -206,10 +206,11 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                     } else {
                         assert_eq!(pad, 0, "{f:?}: {stats:?}");
                     }
-                    let tall = f.upload_bytes(100 * row, 100 * row);
-                    assert!(tall.total_bytes() >= f.declared_bvh_bytes(100 * row, 100 * row));
+                    let tall = f.upload_bytes(100 * row, 100 * row, 0);
+                    assert!(tall.total_bytes() >= f.declared_bvh_bytes(100 * row, 100 * row, 0));
                     assert!(
-                        tall.total_bytes() < f.declared_bvh_bytes(100 * row, 100 * row) + 36 * row
+                        tall.total_bytes()
+                            < f.declared_bvh_bytes(100 * row, 100 * row, 0) + 36 * row
                     );
                 }
             }

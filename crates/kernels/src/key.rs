@@ -42,6 +42,16 @@ const ENTRY_COUNTERS_WGSL: &str = include_str!("../shaders/entry_counters.wgsl")
 /// `attribute_normals.wgsl`: per-vertex normals, composed only when the scene has them and
 /// the job shades with them.
 const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../shaders/attribute_normals.wgsl");
+/// `bvh_instances.wgsl` / `bvh_no_instances.wgsl`: the instances binding of a two-level
+/// BVH, or the same names for one mesh.
+const BVH_INSTANCES_WGSL: (&str, &str) = (
+    "bvh_instances.wgsl",
+    include_str!("../shaders/bvh_instances.wgsl"),
+);
+const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
+    "bvh_no_instances.wgsl",
+    include_str!("../shaders/bvh_no_instances.wgsl"),
+);
 
 /// The entry-point files: `(file, source)` for `[full stack, short stack]` x
 /// `[hits only, counted]`, each holding the entry point [`KernelKey::entry_point`]
@@ -138,6 +148,8 @@ pub struct ModuleSet {
     pub short_stack: bool,
     /// Attribute modules.
     pub attributes: VertexAttributes,
+    /// The instances binding (`bvh_instances.wgsl`), for a two-level BVH.
+    pub instances: bool,
     /// Entry points (with `entry.wgsl`, and `entry_counters.wgsl` when counted).
     pub entries: Entries,
     /// Where the entry points read the rays (`entry_rays_*.wgsl`).
@@ -154,6 +166,7 @@ impl ModuleSet {
             full_stack: true,
             short_stack: true,
             attributes: VertexAttributes::NONE,
+            instances: false,
             entries,
             rays: shaders::RayInput::Buffer,
         }
@@ -180,6 +193,11 @@ impl ModuleSet {
                 if self.escapes {
                     out.push(self.storage.escapes_wgsl());
                 }
+                out.push(if self.instances {
+                    BVH_INSTANCES_WGSL
+                } else {
+                    BVH_NO_INSTANCES_WGSL
+                });
             }
         }
         if self.attributes.normals {
@@ -237,6 +255,8 @@ pub enum PerElement {
     NodeBlock,
     /// One element per triangle.
     Triangle,
+    /// One element per instance of a two-level BVH.
+    Instance,
     /// One element per ray of the batch.
     Ray,
 }
@@ -282,6 +302,10 @@ pub struct KernelKey {
     pub parallel_rays: bool,
     /// Per-vertex attributes composed in ([`VertexAttributes::needed`]).
     pub attributes: VertexAttributes,
+    /// The BVH has two levels: the instances binding and the walks' instance code.
+    pub instances: bool,
+    /// The rays' visibility mask (`BVH_RAY_MASK`, read only with `instances`).
+    pub mask: u8,
     /// Only what is needed, or everything.
     pub composition: Composition,
 }
@@ -303,6 +327,8 @@ impl KernelKey {
             rays: RayInput::Buffer,
             parallel_rays: true,
             attributes: VertexAttributes::NONE,
+            instances: false,
+            mask: opts.mask,
             composition: Composition::Specialised,
         }
     }
@@ -330,7 +356,13 @@ impl KernelKey {
             query: self.query,
             precision: self.precision,
             counters: self.counters,
+            mask: self.mask,
         }
+    }
+
+    /// The same key for a BVH with instances (`FlatBvh::is_instanced`) or without.
+    pub fn with_instances(self, instances: bool) -> KernelKey {
+        KernelKey { instances, ..self }
     }
 
     /// The same key reading its rays from `rays`.
@@ -391,6 +423,9 @@ impl KernelKey {
             ("BVH_ANY_HIT", flag(self.query == Query::Any)),
             ("BVH_PARALLEL_RAYS", flag(self.parallel_rays)),
         ];
+        if self.instances {
+            c.push(("BVH_RAY_MASK", f64::from(self.mask)));
+        }
         if let Some(k) = self.short_stack_size() {
             c.push(("BVH_SHORT_STACK_SIZE", f64::from(k)));
         }
@@ -398,7 +433,7 @@ impl KernelKey {
     }
 
     /// Every key the tests validate for `storage`: each walk (full stack, stackless,
-    /// short stack of size `k`) x query x counters.
+    /// short stack of size `k`) x query x counters x one mesh or two levels.
     pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelKey> {
         let mut v = Vec::new();
         for traversal in [
@@ -408,8 +443,10 @@ impl KernelKey {
         ] {
             for query in [Query::Closest, Query::Any] {
                 for counters in [false, true] {
-                    let opts = TraceOptions::new(traversal, query).with_counters(counters);
-                    v.push(KernelKey::new(storage, &opts));
+                    for instances in [false, true] {
+                        let opts = TraceOptions::new(traversal, query).with_counters(counters);
+                        v.push(KernelKey::new(storage, &opts).with_instances(instances));
+                    }
                 }
             }
         }
@@ -421,6 +458,7 @@ impl KernelKey {
         match self.composition {
             Composition::EverythingOn => ModuleSet {
                 rays: self.rays,
+                instances: self.instances,
                 ..ModuleSet::everything(self.storage, self.precision, Entries::All)
             },
             Composition::Specialised => ModuleSet {
@@ -430,6 +468,7 @@ impl KernelKey {
                 full_stack: !self.needs_escapes(),
                 short_stack: self.needs_escapes(),
                 attributes: self.attributes,
+                instances: self.instances,
                 entries: if self.counters {
                     Entries::Counted
                 } else {
@@ -484,6 +523,9 @@ impl KernelKey {
         if set.attributes.normals {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
         }
+        if set.instances {
+            b.push(bvh(4, "bvh_instances", 64, PerElement::Instance));
+        }
         if set.entries != Entries::None {
             let (rays, hits) = match set.rays {
                 RayInput::Buffer => ("rays", "hits"),
@@ -498,10 +540,10 @@ impl KernelKey {
         b
     }
 
-    /// Bytes the BVH bindings declare for a tree of `nodes` nodes and `triangles`
-    /// triangles: what a [`BvhStorage::Buffers`] upload for this key holds (texture
+    /// Bytes the BVH bindings declare for a tree of `nodes` nodes, `triangles`
+    /// triangles and `instances` instances (0 for one mesh): what a [`BvhStorage::Buffers`] upload for this key holds (texture
     /// uploads add row padding).
-    pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64) -> u64 {
+    pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> u64 {
         self.bindings()
             .iter()
             .filter(|b| b.uploaded)
@@ -511,17 +553,18 @@ impl KernelKey {
                         PerElement::Node => nodes,
                         PerElement::NodeBlock => escape_blocks(nodes),
                         PerElement::Triangle => triangles,
+                        PerElement::Instance => instances,
                         PerElement::Ray => 0,
                     }
             })
             .sum()
     }
 
-    /// What an upload for this key holds for a tree of `nodes` nodes and `triangles`
-    /// triangles (`upload_ms` 0): the bindings' bytes
+    /// What an upload for this key holds for a tree of `nodes` nodes, `triangles`
+    /// triangles and `instances` instances (`upload_ms` 0): the bindings' bytes
     /// ([`KernelKey::declared_bvh_bytes`]), plus, for textures taller than one row, the
     /// padding of their last row of [`shaders::TEXEL_ROW`] texels.
-    pub fn upload_bytes(&self, nodes: u64, triangles: u64) -> UploadStats {
+    pub fn upload_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> UploadStats {
         let set = self.module_set();
         let sized = |elements: u64, element_bytes: u64, texels_per: u64, texel_bytes: u64| match set
             .storage
@@ -550,6 +593,7 @@ impl KernelKey {
             } else {
                 0
             },
+            instances_bytes: if set.instances { instances * 64 } else { 0 },
             upload_ms: 0.0,
         }
     }
@@ -571,6 +615,9 @@ impl KernelKey {
         }
         if set.attributes.normals {
             n.push("vertex-normals");
+        }
+        if set.instances {
+            n.push("instances");
         }
         if self.composition == Composition::EverythingOn {
             n.push("everything-on");

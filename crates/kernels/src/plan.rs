@@ -47,6 +47,8 @@ pub struct UploadStats {
     pub triangles_bytes: u64,
     /// Bytes of the escape links as uploaded (0 when not uploaded).
     pub escapes_bytes: u64,
+    /// Bytes of the instances of a two-level BVH (0 for one mesh).
+    pub instances_bytes: u64,
     /// Wall time to create and fill the device's copies and wait for the device,
     /// milliseconds.
     pub upload_ms: f64,
@@ -55,7 +57,7 @@ pub struct UploadStats {
 impl UploadStats {
     /// All bytes uploaded.
     pub fn total_bytes(&self) -> u64 {
-        self.nodes_bytes + self.triangles_bytes + self.escapes_bytes
+        self.nodes_bytes + self.triangles_bytes + self.escapes_bytes + self.instances_bytes
     }
 }
 

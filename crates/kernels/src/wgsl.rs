@@ -11,6 +11,8 @@
 //! | `triangle_hit.wgsl` | `BvhTriHit`, what every triangle test returns | `intersect::TriHit` |
 //! | `triangle.wgsl` (or a [`Precision`] variant, [`triangle_wgsl`]) | watertight triangle test | `intersect::intersect_triangle` |
 //! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
+//! | `traverse_instances.wgsl` | entering and leaving instances of a two-level BVH (folded away for one mesh) | `traverse::Space` |
+//! | `bvh_instances.wgsl` or `bvh_no_instances.wgsl` | the instances (binding 4) of a two-level BVH, or the same names for one mesh | `FlatBvh::instances` |
 //! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full and short stack | `Vec` / the ring of `traverse::short_stack` |
 //! | `traverse_full_stack.wgsl` | `bvh_trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
 //! | `traverse_short_stack.wgsl` | `bvh_trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
@@ -80,6 +82,10 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     (
         "traverse_common.wgsl",
         include_str!("../shaders/traverse_common.wgsl"),
+    ),
+    (
+        "traverse_instances.wgsl",
+        include_str!("../shaders/traverse_instances.wgsl"),
     ),
     (
         "traverse_stack.wgsl",

@@ -175,3 +175,35 @@ fn everything_on_declares_everything_and_is_kernel_source() {
     let name = bvhtrace_kernels::wgsl::triangle_wgsl(Precision::MollerTrumboreF32).0;
     assert!(f.source().contains(&format!("// ---- {name} ----")));
 }
+
+#[test]
+fn the_instances_binding_is_declared_only_for_two_levels() {
+    for storage in STORAGES {
+        for traversal in TRAVERSALS {
+            let opts = TraceOptions::closest(traversal).with_mask(5);
+            for instances in [false, true] {
+                let f = KernelKey::new(storage, &opts).with_instances(instances);
+                let module = parse(&f.source());
+                let got = declared(&module);
+                let listed: BTreeSet<(u32, u32, String)> = f
+                    .bindings()
+                    .iter()
+                    .map(|b| (b.group, b.binding, b.name.to_string()))
+                    .collect();
+                assert_eq!(got, listed, "{f:?}: declared vs KernelKey::bindings");
+                let has = got
+                    .iter()
+                    .any(|(g, b, n)| (*g, *b) == (0, 4) && n == "bvh_instances");
+                assert_eq!(has, instances, "{f:?}");
+                let mask = f
+                    .constants()
+                    .iter()
+                    .find(|(n, _)| *n == "BVH_RAY_MASK")
+                    .map(|c| c.1);
+                assert_eq!(mask, instances.then_some(5.0), "{f:?}");
+                assert_eq!(f.names().contains(&"instances"), instances, "{f:?}");
+                compile(&module, &f);
+            }
+        }
+    }
+}

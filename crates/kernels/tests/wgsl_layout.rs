@@ -8,7 +8,7 @@ use bvhtrace_core::flat::{ESCAPE_BLOCK, NO_ESCAPE, OCTANTS};
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 use bvhtrace_core::surface::{OFFSET_FLOAT_SCALE, OFFSET_INT_SCALE, OFFSET_ORIGIN};
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
-use bvhtrace_core::{Counters, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
+use bvhtrace_core::{Counters, FlatInstance, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
 use bvhtrace_kernels::KernelKey;
 use bvhtrace_kernels::wgsl::SHADER_FILES;
 use bvhtrace_kernels::{
@@ -83,6 +83,18 @@ fn check_structs(module: &Module) {
             ("pad1", offset_of!(FlatTriangle, _pad1)),
             ("v2", offset_of!(FlatTriangle, v2)),
             ("pad2", offset_of!(FlatTriangle, _pad2)),
+        ],
+    );
+    check_struct(
+        module,
+        "BvhInstance",
+        size_of::<FlatInstance>(),
+        &[
+            ("world_to_object", offset_of!(FlatInstance, world_to_object)),
+            ("root", offset_of!(FlatInstance, root)),
+            ("prim_base", offset_of!(FlatInstance, prim_base)),
+            ("mask", offset_of!(FlatInstance, mask)),
+            ("user_id", offset_of!(FlatInstance, user_id)),
         ],
     );
     check_struct(
@@ -223,19 +235,36 @@ fn every_variant_validates_and_compiles() {
     for storage in STORAGES {
         compile_variants(storage, &mut seen);
     }
-    // 2 storages; full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter settings.
-    assert_eq!(seen.len(), 2 * 5 * 2 * 2);
+    // 2 storages; full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter
+    // settings; one mesh or two levels.
+    assert_eq!(seen.len(), 2 * 5 * 2 * 2 * 2);
 }
 
 fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelKey>) {
-    let module = parse(&kernel_source(storage));
-    let info = validate(&module);
+    // The everything-on module of one mesh (`kernel_source`) and of two levels.
+    let modules = [false, true].map(|instances| {
+        let m = parse(
+            &KernelKey::new(storage, &Default::default())
+                .with_instances(instances)
+                .with_composition(bvhtrace_kernels::Composition::EverythingOn)
+                .source(),
+        );
+        let info = validate(&m);
+        (m, info)
+    });
+    assert_eq!(
+        KernelKey::new(storage, &Default::default())
+            .with_composition(bvhtrace_kernels::Composition::EverythingOn)
+            .source(),
+        kernel_source(storage)
+    );
     for k in [1, 6, MAX_SHORT_STACK] {
         for v in KernelKey::all_for_k(storage, k) {
             if !seen.insert(v) {
                 continue;
             }
-            compile_variant(&module, &info, &v);
+            let (module, info) = &modules[usize::from(v.instances)];
+            compile_variant(module, info, &v);
         }
     }
 }

@@ -1,5 +1,6 @@
 //! The BVH in storage buffers and the ray-batch API.
 
+use bytemuck::Zeroable;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -30,6 +31,10 @@ pub struct VkBvh {
     nodes: Buffer,
     triangles: Buffer,
     escapes: Buffer,
+    /// The instances of a two-level BVH; for one mesh, one zeroed instance the kernels
+    /// never read (every binding of the set is bound).
+    instances: Buffer,
+    instanced: bool,
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
     depth: u32,
@@ -62,7 +67,12 @@ impl Drop for VkBvh {
         unsafe {
             d.destroy_descriptor_pool(self.pool, None);
         }
-        for b in [&mut self.nodes, &mut self.triangles, &mut self.escapes] {
+        for b in [
+            &mut self.nodes,
+            &mut self.triangles,
+            &mut self.escapes,
+            &mut self.instances,
+        ] {
             b.destroy(d);
         }
         let scratch = match self.scratch.get_mut() {
@@ -144,11 +154,11 @@ fn write_set(d: &ash::Device, set: vk::DescriptorSet, entries: &[(u32, vk::Buffe
     unsafe { d.update_descriptor_sets(&writes, &[]) };
 }
 
-/// A descriptor pool for `sets` sets of three storage buffers.
+/// A descriptor pool for `sets` sets of at most four storage buffers.
 fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, TraceError> {
     let sizes = [vk::DescriptorPoolSize {
         ty: vk::DescriptorType::STORAGE_BUFFER,
-        descriptor_count: 3 * sets,
+        descriptor_count: 4 * sets,
     }];
     // SAFETY: plain object creation.
     unsafe {
@@ -178,10 +188,17 @@ impl VkBvh {
             return Err(TraceError::EmptyBvh);
         }
         bvh.check_escape_links()?;
-        let arrays: [(&'static str, &[u8]); 3] = [
+        let no_instances = [bvhtrace_core::FlatInstance::zeroed()];
+        let instances = if bvh.is_instanced() {
+            bvh.instances.as_slice()
+        } else {
+            &no_instances
+        };
+        let arrays: [(&'static str, &[u8]); 4] = [
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),
             ("triangles", bytemuck::cast_slice(&bvh.triangles)),
             ("escapes", bytemuck::cast_slice(&bvh.escapes)),
+            ("instances", bytemuck::cast_slice(instances)),
         ];
         for (name, bytes) in arrays {
             check_buffer_size(ctx.limits(), name, bytes.len() as u64)?;
@@ -199,7 +216,7 @@ impl VkBvh {
             M::empty(),
         )?;
         // Device buffers, destroyed again if a later step fails.
-        let mut made: Vec<Buffer> = Vec::with_capacity(3);
+        let mut made: Vec<Buffer> = Vec::with_capacity(arrays.len());
         let result = (|| -> Result<(), TraceError> {
             let mut offset = 0u64;
             let mut data = vec![0u8; total as usize];
@@ -256,15 +273,18 @@ impl VkBvh {
             }
             return Err(e);
         }
-        let (Some(escapes), Some(triangles), Some(nodes)) = (made.pop(), made.pop(), made.pop())
+        let (Some(instances), Some(escapes), Some(triangles), Some(nodes)) =
+            (made.pop(), made.pop(), made.pop(), made.pop())
         else {
-            unreachable!("three buffers were made")
+            unreachable!("four buffers were made")
         };
         let mut bvh_gpu = VkBvh {
             ctx: ctx.clone(),
             nodes,
             triangles,
             escapes,
+            instances,
+            instanced: bvh.is_instanced(),
             pool: vk::DescriptorPool::null(),
             set: vk::DescriptorSet::null(),
             depth: bvh.depth,
@@ -279,6 +299,7 @@ impl VkBvh {
                 nodes_bytes: arrays[0].1.len() as u64,
                 triangles_bytes: arrays[1].1.len() as u64,
                 escapes_bytes: arrays[2].1.len() as u64,
+                instances_bytes: std::mem::size_of_val(bvh.instances.as_slice()) as u64,
                 upload_ms: 0.0,
             },
             scratch: Mutex::new(None),
@@ -300,6 +321,7 @@ impl VkBvh {
             (0, whole(&bvh_gpu.nodes)),
             (1, whole(&bvh_gpu.triangles)),
             (2, whole(&bvh_gpu.escapes)),
+            (4, whole(&bvh_gpu.instances)),
         ]
         .map(|(i, (b, o, r))| (i, b, o, r));
         write_set(d, bvh_gpu.set, &entries);
@@ -337,7 +359,7 @@ impl VkBvh {
     fn key(&self, opts: &TraceOptions, parallel_rays: bool) -> KernelKey {
         KernelKey {
             parallel_rays,
-            ..KernelKey::new(BvhStorage::Buffers, opts)
+            ..KernelKey::new(BvhStorage::Buffers, opts).with_instances(self.instanced)
         }
     }
 

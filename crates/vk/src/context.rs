@@ -463,12 +463,15 @@ impl VkContext {
                 instance: holder,
             };
             let d = &inner.device;
-            // Set 0: nodes, triangles, escapes. Set 1: rays, hits, counters. The kernels'
-            // binding numbers; every binding is always bound (unused ones are not declared
-            // in the SPIR-V of an entry point that does not use them).
+            // Set 0: nodes, triangles, escapes, instances (4). Set 1: rays, hits,
+            // counters. The kernels' binding numbers; every binding is always bound
+            // (unused ones are not declared in the SPIR-V of an entry point that does not
+            // use them).
             for set in 0..2 {
-                let bindings: Vec<vk::DescriptorSetLayoutBinding> = (0..3)
-                    .map(|b| {
+                let numbers: &[u32] = if set == 0 { &[0, 1, 2, 4] } else { &[0, 1, 2] };
+                let bindings: Vec<vk::DescriptorSetLayoutBinding> = numbers
+                    .iter()
+                    .map(|&b| {
                         vk::DescriptorSetLayoutBinding::default()
                             .binding(b)
                             .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)

@@ -333,7 +333,41 @@ pub(crate) fn partition(refs: &mut [PrimRef], pred: impl Fn(&PrimRef) -> bool) -
 /// naming the triangle).
 pub fn build(tris: &[Triangle], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
     validate_triangles(tris)?;
-    if tris.is_empty() {
+    build_refs(
+        tris.iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let b = Aabb::from_triangle(t);
+                PrimRef {
+                    min: b.min,
+                    index: i as u32,
+                    max: b.max,
+                }
+            })
+            .collect(),
+        opts,
+    )
+}
+
+/// Builds a BVH over boxes, as [`build`] does over triangles' boxes: the top level over
+/// instances. The boxes must be finite (an instance's box is).
+pub fn build_boxes(boxes: &[Aabb], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
+    build_refs(
+        boxes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| PrimRef {
+                min: b.min,
+                index: i as u32,
+                max: b.max,
+            })
+            .collect(),
+        opts,
+    )
+}
+
+fn build_refs(mut refs: Vec<PrimRef>, opts: &BuildOptions) -> Result<BuildTree, BuildError> {
+    if refs.is_empty() {
         return Err(BuildError::Empty);
     }
     if !(2..=256).contains(&opts.bins) {
@@ -352,18 +386,6 @@ pub fn build(tris: &[Triangle], opts: &BuildOptions) -> Result<BuildTree, BuildE
             "costs must be finite, traversal >= 0, intersection > 0".into(),
         ));
     }
-    let mut refs: Vec<PrimRef> = tris
-        .iter()
-        .enumerate()
-        .map(|(i, t)| {
-            let b = Aabb::from_triangle(t);
-            PrimRef {
-                min: b.min,
-                index: i as u32,
-                max: b.max,
-            }
-        })
-        .collect();
     let (bounds, cb) = bounds_of(&refs, true);
     let (root, node_count) = recurse(&mut refs, 0, 0, opts, bounds, cb);
     let prim_order = refs.iter().map(|r| r.index).collect();

@@ -1,0 +1,17 @@
+// bvh_instances.wgsl: the instances of a two-level BVH (`FlatBvh::instances`, binding 4),
+// composed after the BVH bindings only for a BVH that has them. `bvh_no_instances.wgsl`
+// defines the same names for one mesh, where the walks' instance code folds away.
+
+const BVH_INSTANCED: bool = true;
+
+@group(0) @binding(4) var<storage, read> bvh_instances: array<BvhInstance>;
+
+fn bvh_load_instance(i: u32) -> BvhInstance {
+    return bvh_instances[i];
+}
+
+// The top level has `2n - 1` nodes for `n` instances (one instance per leaf): the nodes
+// before that index are the top level's.
+fn bvh_top_nodes() -> u32 {
+    return 2u * arrayLength(&bvh_instances) - 1u;
+}
