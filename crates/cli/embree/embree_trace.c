@@ -1,11 +1,14 @@
 /* Traces the rays of a `bvhtrace dump` file with Embree 3 (robust mode), so our hit counts
  * and speed can be compared with an independent tracer on exactly the same rays.
  *
- *   cc -O2 embree_trace.c -lembree3 -lpthread -o embree_trace
+ *   cc -O2 embree_trace.c -lembree3 -lpthread -lm -o embree_trace
  *   embree_trace DUMP [THREADS] [RUNS] [HITS_OUT]
  *
  * Prints one JSON object: triangles, rays, hits, t_sum, build_ms and trace_ms (medians of
- * RUNS), mrays_per_s. HITS_OUT, if given, receives one u32 primitive index per ray
+ * RUNS), mrays_per_s. With BVHTRACE_REFIT=A in the environment it also times a refit
+ * (RTC_BUILD_QUALITY_REFIT) after moving every vertex by `bvhtrace bench-refit`'s field of
+ * amplitude A (`deform` in crates/cli/src/bench_refit.rs): refit_ms, the median of RUNS.
+ * HITS_OUT, if given, receives one u32 primitive index per ray
  * (0xFFFFFFFF for a miss). Dump format (little endian): "BVHD", u32 version = 1, u32 n_tris,
  * u32 n_rays, n_tris * 9 f32 corners, n_rays * 8 f32 rays (origin, t_min, dir, t_max). */
 #include <embree3/rtcore.h>
@@ -129,11 +132,62 @@ int main(int argc, char **argv) {
     if (!o || fwrite(hit_prim, 4, n_rays, o) != n_rays) { perror(argv[4]); return 1; }
     fclose(o);
   }
+  double refit_ms = -1;
+  const char *refit_env = getenv("BVHTRACE_REFIT");
+  if (refit_env) {
+    /* The deformation of bench_refit.rs: p + a*e*(sin(k y), sin(k z), sin(k x)), k = 6/e. */
+    float a = (float)atof(refit_env), lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (size_t i = 0; i < 3 * (size_t)n_tris; i++)
+      for (int c = 0; c < 3; c++) {
+        float x = tris[3 * i + c];
+        lo[c] = x < lo[c] ? x : lo[c];
+        hi[c] = x > hi[c] ? x : hi[c];
+      }
+    float e = hi[0] - lo[0];
+    if (hi[1] - lo[1] > e) e = hi[1] - lo[1];
+    if (hi[2] - lo[2] > e) e = hi[2] - lo[2];
+    float k = 6.0f / e;
+    float *moved = malloc(36 * (size_t)n_tris);
+    for (size_t i = 0; i < 3 * (size_t)n_tris; i++) {
+      const float *p = &tris[3 * i];
+      moved[3 * i] = p[0] + sinf(k * p[1]) * (a * e);
+      moved[3 * i + 1] = p[1] + sinf(k * p[2]) * (a * e);
+      moved[3 * i + 2] = p[2] + sinf(k * p[0]) * (a * e);
+    }
+    double *refit = malloc(sizeof(double) * runs);
+    for (int run = 0; run < runs; run++) {
+      RTCScene rs = rtcNewScene(dev);
+      rtcSetSceneFlags(rs, RTC_SCENE_FLAG_ROBUST | RTC_SCENE_FLAG_DYNAMIC);
+      RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+      rtcSetGeometryBuildQuality(g, RTC_BUILD_QUALITY_REFIT);
+      float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n_tris);
+      unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, n_tris);
+      memcpy(v, tris, 36 * (size_t)n_tris);
+      for (uint32_t i = 0; i < 3 * n_tris; i++) ix[i] = i;
+      rtcCommitGeometry(g);
+      rtcAttachGeometry(rs, g);
+      rtcCommitScene(rs);
+      /* Timed: the vertices move, the geometry and the scene are committed again. */
+      double t0 = now_ms();
+      memcpy(v, moved, 36 * (size_t)n_tris);
+      rtcUpdateGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0);
+      rtcCommitGeometry(g);
+      rtcCommitScene(rs);
+      refit[run] = now_ms() - t0;
+      rtcReleaseGeometry(g);
+      rtcReleaseScene(rs);
+    }
+    qsort(refit, runs, sizeof(double), cmp);
+    refit_ms = refit[runs / 2];
+    free(moved);
+    free(refit);
+  }
   double tm = trace[runs / 2];
   printf("{\"tracer\": \"embree %d.%d.%d robust, medium build\", \"threads\": %u, \"triangles\": %u, \"rays\": %u, "
-         "\"hits\": %llu, \"t_sum\": %.6f, \"build_ms\": %.3f, \"trace_ms\": %.3f, \"mrays_per_s\": %.3f}\n",
+         "\"hits\": %llu, \"t_sum\": %.6f, \"build_ms\": %.3f, \"trace_ms\": %.3f, \"mrays_per_s\": %.3f, "
+         "\"refit_ms\": %.3f}\n",
          RTC_VERSION_MAJOR, RTC_VERSION_MINOR, RTC_VERSION_PATCH, n_threads, n_tris, n_rays,
-         (unsigned long long)hits, t_sum, build[runs / 2], tm, n_rays / tm / 1e3);
+         (unsigned long long)hits, t_sum, build[runs / 2], tm, n_rays / tm / 1e3, refit_ms);
   rtcReleaseScene(scene);
   rtcReleaseDevice(dev);
   return 0;

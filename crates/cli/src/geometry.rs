@@ -103,6 +103,13 @@ pub fn load_and_build(
     let two_level = !flatten && scene.instances.len() > 1;
     let tris = if two_level {
         None
+    } else if scene.triangle_count() > bvhtrace_scene::MAX_TRIANGLES {
+        anyhow::bail!(
+            "{spec}: {} triangles do not fit one BVH (at most {}): trace it in two levels \
+             (without --flatten)",
+            scene.triangle_count(),
+            bvhtrace_scene::MAX_TRIANGLES
+        );
     } else {
         let t = scene.flatten().triangles();
         Some(t.with_context(|| format!("{spec}: bad geometry"))?)

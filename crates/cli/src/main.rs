@@ -4,6 +4,7 @@ mod accuracy;
 mod backend;
 mod bench;
 mod bench_matrix;
+mod bench_refit;
 mod geometry;
 mod output;
 mod plot;
@@ -44,6 +45,10 @@ enum Command {
     /// the first traversal's CPU twin, the CPU reference when that is full-stack
     /// (`GPU/CPU`). The ratios are medians of per-round ratios.
     BenchTrace(bench::BenchTraceArgs),
+    /// What moving things costs: a refit after every vertex of a mesh moved, beside a full
+    /// rebuild (SAH cost and box tests per ray of both), and a top-level rebuild of many
+    /// instances beside building both levels.
+    BenchRefit(bench_refit::BenchRefitArgs),
     /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
     /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
@@ -59,6 +64,7 @@ fn main() {
         Command::Bench(a) => bench_matrix::bench(a),
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
+        Command::BenchRefit(a) => bench_refit::bench_refit(a),
         Command::Stress(a) => bvhtrace_stress::run(a),
     };
     if let Err(e) = result {

@@ -22,7 +22,7 @@ fn bunny_hits_match_embree() {
     let exe = dir.join("embree_trace");
     let src = concat!(env!("CARGO_MANIFEST_DIR"), "/embree/embree_trace.c");
     let cc = Command::new("cc")
-        .args(["-O2", src, "-lembree3", "-lpthread", "-o"])
+        .args(["-O2", src, "-lembree3", "-lpthread", "-lm", "-o"])
         .arg(&exe)
         .status();
     if !matches!(cc, Ok(s) if s.success()) {

@@ -652,6 +652,7 @@ pub(crate) fn grid_of(src: Scene, mesh_name: &str, a: u32, b: u32) -> Scene {
         attributes: src.attributes,
         camera: None,
         warnings: src.warnings,
+        animation: None,
     }
 }
 

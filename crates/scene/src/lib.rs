@@ -27,22 +27,33 @@
 //! colours) and per-triangle materials the scene has: when a flag is set, *every* mesh has
 //! that array, filled with defaults where the source had none.
 //!
+//! # Animation
+//!
+//! A glTF file's node animations (translation, rotation and scale channels; LINEAR,
+//! STEP and CUBICSPLINE) are kept in [`Scene::animation`]: [`Scene::instances`] holds the
+//! nodes' static transforms as loaded, [`Scene::set_time`] moves them to any time and
+//! [`Scene::instance_transforms_at`] computes them without changing the scene (see the
+//! [`animation`] module).
+//!
 //! The library prints nothing: anything worth telling the user that is not an error
 //! lands in [`Scene::warnings`].
 #![warn(missing_docs)]
 
+pub mod animation;
 mod builtin;
 pub mod camera;
 mod error;
 mod export;
 mod glb;
 mod loader;
+mod two_level;
 
 use std::path::{Path, PathBuf};
 
 use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
+pub use animation::{Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property};
 pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
@@ -54,6 +65,11 @@ pub const DEFAULT_SCENE: &str = "builtin:cornell";
 
 /// The most triangles a scene may have over all its instances (the BVH's limit).
 pub const MAX_TRIANGLES: usize = (1 << 30) - 1;
+
+/// The most triangles over all instances a scene may place: a two-level BVH numbers them
+/// with 32-bit primitive ids below the miss codes. Scenes past [`MAX_TRIANGLES`] can only
+/// be traced in two levels ([`Scene::instanced_bvh`]), not flattened.
+pub const MAX_INSTANCED_TRIANGLES: usize = bvhtrace_core::INCOMPLETE as usize - 1;
 
 /// Which optional arrays the scene has. When a flag is set, every [`Mesh`] of the scene
 /// has that array (filled with defaults where its source had none); when it is clear,
@@ -204,6 +220,13 @@ pub struct Scene {
     pub camera: Option<Camera>,
     /// Non-fatal problems met while loading (missing images, skipped primitives...).
     pub warnings: Vec<String>,
+    /// The file's node animations, with what is needed to recompute [`Scene::instances`]
+    /// at any time ([`Scene::set_time`]); `None` for scenes without animation (builtins,
+    /// files without `animations`, or whose channels drive nothing that is loaded).
+    ///
+    /// It matches the instances as loaded: a scene whose instances are added or removed
+    /// afterwards is no longer animated by [`Scene::set_time`].
+    pub animation: Option<Animation>,
 }
 
 impl Scene {
@@ -314,13 +337,60 @@ impl Scene {
     }
 
     /// Applies an affine transform to the whole scene: every instance (`m * transform`)
-    /// and the camera. Meshes are untouched, so instancing is kept.
+    /// and the camera. Meshes are untouched, so instancing is kept. The animation keeps
+    /// it too: [`Scene::set_time`] places the instances with `m` applied.
     pub fn transform(&mut self, m: Mat4) {
         for inst in &mut self.instances {
             inst.transform = m * inst.transform;
         }
+        if let Some(a) = &mut self.animation {
+            a.globals.push(m);
+        }
         if let Some(c) = &mut self.camera {
             *c = c.transformed(m);
+        }
+    }
+
+    /// The length of the scene's animation in seconds ([`Animation::duration`]); 0 without
+    /// animation.
+    pub fn duration(&self) -> f32 {
+        self.animation.as_ref().map_or(0.0, Animation::duration)
+    }
+
+    /// The animation when it still matches the instances (one node per instance).
+    fn live_animation(&self) -> Option<&Animation> {
+        self.animation
+            .as_ref()
+            .filter(|a| a.instance_nodes.len() == self.instances.len())
+    }
+
+    /// Every instance's object-to-world transform at time `t` (seconds), in
+    /// [`Scene::instances`] order, with the transforms applied by [`Scene::transform`]:
+    /// the animated pose (before a channel's first key its first value holds, after its
+    /// last key the last value; a NaN time is the start). Without animation
+    /// (or when the instances no longer match it, see [`Scene::animation`]) these are
+    /// the current transforms.
+    ///
+    /// The loaded [`Scene::instances`] hold the nodes' static transforms, which is the
+    /// pose at time 0 when the animation starts there (as exporters write it).
+    pub fn instance_transforms_at(&self, t: f32) -> Vec<Mat4> {
+        match self.live_animation() {
+            Some(a) => a.instance_transforms_at(t),
+            None => self.instances.iter().map(|i| i.transform).collect(),
+        }
+    }
+
+    /// Moves every instance to its pose at time `t` (seconds): rewrites each
+    /// [`Instance::transform`] with [`Scene::instance_transforms_at`]. Meshes, camera and
+    /// materials are unchanged (the camera is not animated). Extreme keys may place an
+    /// instance out of `f32` range: [`Scene::check_invariants`] says so.
+    pub fn set_time(&mut self, t: f32) {
+        if self.live_animation().is_none() {
+            return;
+        }
+        let transforms = self.instance_transforms_at(t);
+        for (inst, m) in self.instances.iter_mut().zip(transforms) {
+            inst.transform = m;
         }
     }
 
@@ -418,15 +488,29 @@ impl Scene {
         let err = |kind| SceneError::new(label, kind);
         // Drop instances of empty meshes: they add nothing.
         let meshes = &self.meshes;
+        let keep: Vec<bool> = self
+            .instances
+            .iter()
+            .map(|i| meshes.get(i.mesh).is_some_and(|m| !m.is_empty()))
+            .collect();
+        if let Some(a) = &mut self.animation
+            && a.instance_nodes.len() == keep.len()
+        {
+            let mut k = keep.iter();
+            a.instance_nodes
+                .retain(|_| k.next().copied().unwrap_or(false));
+        }
+        let mut k = keep.iter();
         self.instances
-            .retain(|i| meshes.get(i.mesh).is_some_and(|m| !m.is_empty()));
+            .retain(|_| k.next().copied().unwrap_or(false));
         let tris = self.triangle_count();
         if tris == 0 {
             return Err(err(ErrorKind::NoTriangles(String::new())));
         }
-        if tris > MAX_TRIANGLES {
+        if tris > MAX_INSTANCED_TRIANGLES {
             return Err(err(ErrorKind::TooLarge(format!(
-                "{tris} triangles over all instances (at most {MAX_TRIANGLES})"
+                "{tris} triangles over all instances (at most {MAX_INSTANCED_TRIANGLES}, the \
+                 32-bit primitive ids of a two-level BVH)"
             ))));
         }
         let verts = self.vertex_count();

@@ -19,6 +19,7 @@ use gltf::json::{
     mesh::Semantic, validation::Checked,
 };
 
+use crate::animation::{self, Animation, AnimationNode, Channel, NodeTransform};
 use crate::error::{ErrorKind, SceneError};
 use crate::{Camera, Instance, Material, Mesh, Scene, glb};
 
@@ -271,6 +272,48 @@ struct Vertices {
     normals: Option<Vec<Vec3>>,
     texcoords: Option<Vec<Vec2>>,
     colors: Option<Vec<Vec4>>,
+}
+
+/// The scene graph as the loader walked it (kept only when the file has animations).
+#[derive(Default)]
+struct Graph {
+    /// The visited nodes, parents before children.
+    nodes: Vec<AnimationNode>,
+    /// glTF node index to index in `nodes`.
+    record_of: HashMap<usize, usize>,
+    /// For each instance, in order, its node (index in `nodes`).
+    instance_nodes: Vec<usize>,
+}
+
+impl Graph {
+    /// Records glTF node `ni` under `parent`; returns its index in `nodes`.
+    fn record(&mut self, ni: usize, node: &json::Node, parent: Option<usize>) -> usize {
+        let local = match node.matrix {
+            Some(m) => NodeTransform::Matrix(Mat4::from_cols_array(&m)),
+            None => NodeTransform::Trs {
+                translation: Vec3::from(node.translation.unwrap_or([0.0; 3])),
+                rotation: Quat::from_array(node.rotation.map_or([0.0, 0.0, 0.0, 1.0], |q| q.0)),
+                scale: Vec3::from(node.scale.unwrap_or([1.0; 3])),
+            },
+        };
+        self.nodes.push(AnimationNode {
+            gltf_node: ni,
+            parent,
+            local,
+        });
+        let id = self.nodes.len() - 1;
+        self.record_of.insert(ni, id);
+        id
+    }
+}
+
+/// An accessor error met while reading an animation, with the animation named first.
+fn in_animation(ctx: &str, what: &str, e: ErrorKind) -> ErrorKind {
+    let cause = match e {
+        ErrorKind::Invalid(s) => s,
+        other => other.to_string(),
+    };
+    invalid(format!("{ctx}: {what}: {cause}"))
 }
 
 struct Loader<'a, 'b> {
@@ -951,8 +994,8 @@ impl<'a, 'b> Loader<'a, 'b> {
         if !(len.is_finite() && len > 1e-6) {
             return Err(format!("its rotation {r:?} is not a unit quaternion"));
         }
-        let q = Quat::from_vec4(q / len);
-        Ok(Mat4::from_scale_rotation_translation(s, q, t))
+        // The same arithmetic as animated nodes use, so that both agree bit for bit.
+        Ok(animation::compose_trs(t, q, s))
     }
 
     fn load(&mut self, base_dir: Option<&Path>) -> Result<Scene, ErrorKind> {
@@ -1006,10 +1049,17 @@ impl<'a, 'b> Loader<'a, 'b> {
             }
         };
 
+        // With animations, the walk is recorded: each visited node (parent links and
+        // static transform) and the node of each instance.
+        let track = !root.animations.is_empty();
+        let mut graph = Graph::default();
         let mut visited = vec![false; root.nodes.len()];
-        let mut stack: Vec<(usize, Mat4)> =
-            roots.iter().rev().map(|&n| (n, Mat4::IDENTITY)).collect();
-        while let Some((ni, parent)) = stack.pop() {
+        let mut stack: Vec<(usize, Mat4, Option<usize>)> = roots
+            .iter()
+            .rev()
+            .map(|&n| (n, Mat4::IDENTITY, None))
+            .collect();
+        while let Some((ni, parent, parent_rec)) = stack.pop() {
             let node = root
                 .nodes
                 .get(ni)
@@ -1029,6 +1079,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                         .into(),
                 });
             }
+            let rec = track.then(|| graph.record(ni, node, parent_rec));
             if let Some(m) = node.mesh {
                 let m = m.value();
                 let slot = mesh_map.get_mut(m).ok_or_else(|| {
@@ -1050,6 +1101,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                     mesh: id,
                     transform: world,
                 });
+                graph.instance_nodes.extend(rec);
                 if node.skin.is_some() {
                     skinned += 1;
                 }
@@ -1072,7 +1124,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                 }
             }
             for ch in node.children.iter().flatten().rev() {
-                stack.push((ch.value(), world));
+                stack.push((ch.value(), world, rec));
             }
         }
         if root.nodes.is_empty() && !root.meshes.is_empty() {
@@ -1103,12 +1155,20 @@ impl<'a, 'b> Loader<'a, 'b> {
             ));
         }
         self.warn_missing_images(base_dir);
+        let animation = if track {
+            let n = instances.len();
+            self.load_animations(graph)?
+                .filter(|a| a.instance_nodes.len() == n)
+        } else {
+            None
+        };
 
         let mut scene = Scene {
             meshes,
             instances,
             materials,
             warnings: std::mem::take(&mut self.warnings),
+            animation,
             ..Scene::default()
         };
         if scene.triangle_count() == 0 {
@@ -1140,6 +1200,127 @@ impl<'a, 'b> Loader<'a, 'b> {
             }
         }
         Ok(scene)
+    }
+
+    /// Reads the file's animations: the channels that drive the translation, rotation or
+    /// scale of a node in `graph`. Channels on other nodes are dropped silently; morph
+    /// target weights, unknown paths and nodes with a `matrix` with a warning. `None`
+    /// when no channel is left.
+    fn load_animations(&mut self, graph: Graph) -> Result<Option<Animation>, ErrorKind> {
+        use json::animation::{Interpolation as I, Property as P};
+        let root = self.root;
+        let mut channels = Vec::new();
+        let (mut weights, mut unknown, mut on_matrix) = (0usize, 0usize, 0usize);
+        for (ai, anim) in root.animations.iter().enumerate() {
+            let label = match anim.name.as_deref() {
+                Some(n) if !n.is_empty() => format!("animation {ai} ({n:?})"),
+                _ => format!("animation {ai}"),
+            };
+            for (ci, ch) in anim.channels.iter().enumerate() {
+                let si = ch.sampler.value();
+                let ni = ch.target.node.value();
+                let sampler = anim.samplers.get(si).ok_or_else(|| {
+                    invalid(format!(
+                        "{label} channel {ci}: sampler {si} does not exist (the animation has {} sampler(s))",
+                        anim.samplers.len()
+                    ))
+                })?;
+                if ni >= root.nodes.len() {
+                    return Err(invalid(format!(
+                        "{label} channel {ci}: target node {ni} does not exist"
+                    )));
+                }
+                let property = match ch.target.path {
+                    Checked::Valid(P::Translation) => animation::Property::Translation,
+                    Checked::Valid(P::Rotation) => animation::Property::Rotation,
+                    Checked::Valid(P::Scale) => animation::Property::Scale,
+                    Checked::Valid(P::MorphTargetWeights) => {
+                        weights += 1;
+                        continue;
+                    }
+                    Checked::Invalid => {
+                        unknown += 1;
+                        continue;
+                    }
+                };
+                // Channels on nodes outside the loaded scene graph change nothing.
+                let Some(&rec) = graph.record_of.get(&ni) else {
+                    continue;
+                };
+                if matches!(graph.nodes[rec].local, NodeTransform::Matrix(_)) {
+                    on_matrix += 1;
+                    continue;
+                }
+                let interpolation = match sampler.interpolation {
+                    Checked::Valid(I::Linear) => animation::Interpolation::Linear,
+                    Checked::Valid(I::Step) => animation::Interpolation::Step,
+                    Checked::Valid(I::CubicSpline) => animation::Interpolation::CubicSpline,
+                    Checked::Invalid => {
+                        return Err(invalid(format!(
+                            "{label} channel {ci} (sampler {si}): unknown interpolation (expected LINEAR, STEP or CUBICSPLINE)"
+                        )));
+                    }
+                };
+                let ctx = format!(
+                    "{label} channel {ci} (sampler {si}: {} {} of node {ni})",
+                    interpolation.name(),
+                    property.name()
+                );
+                let input = sampler.input.value();
+                let output = sampler.output.value();
+                let times: Vec<f32> = self
+                    .read_floats::<1>(input, "an animation input (key times)")
+                    .map_err(|e| in_animation(&ctx, "input", e))?
+                    .into_iter()
+                    .map(|[t]| t)
+                    .collect();
+                let values: Vec<Vec4> = match property {
+                    animation::Property::Rotation => self
+                        .read_floats::<4>(output, "a rotation output")
+                        .map_err(|e| in_animation(&ctx, "output", e))?
+                        .into_iter()
+                        .map(Vec4::from)
+                        .collect(),
+                    _ => self
+                        .read_floats::<3>(output, "a translation or scale output")
+                        .map_err(|e| in_animation(&ctx, "output", e))?
+                        .into_iter()
+                        .map(|v| Vec3::from(v).extend(0.0))
+                        .collect(),
+                };
+                let channel =
+                    Channel::new(rec, property, interpolation, times, values).map_err(|e| {
+                        invalid(format!(
+                            "{ctx}: input accessor {input}, output accessor {output}: {e}"
+                        ))
+                    })?;
+                channels.push(channel);
+            }
+        }
+        if weights > 0 {
+            self.warnings.push(format!(
+                "{weights} animation channel(s) on morph target weights ignored (morph targets are not applied)"
+            ));
+        }
+        if unknown > 0 {
+            self.warnings.push(format!(
+                "{unknown} animation channel(s) with an unknown target path ignored"
+            ));
+        }
+        if on_matrix > 0 {
+            self.warnings.push(format!(
+                "{on_matrix} animation channel(s) ignored: they target nodes with a matrix, which glTF 2.0 does not allow to animate"
+            ));
+        }
+        if channels.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some(Animation {
+            nodes: graph.nodes,
+            instance_nodes: graph.instance_nodes,
+            channels,
+            globals: Vec::new(),
+        }))
     }
 
     /// One warning listing image files that are missing (textures are never loaded).

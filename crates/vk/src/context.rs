@@ -645,7 +645,7 @@ impl VkContext {
         // The pipeline layout's sets and bindings are the WGSL's groups and bindings.
         let binding_map = (0..2u32)
             .flat_map(|group| {
-                (0..3u32).map(move |binding| {
+                [0u32, 1, 2, 4].into_iter().map(move |binding| {
                     (
                         naga::ResourceBinding { group, binding },
                         naga::back::spv::BindingInfo {

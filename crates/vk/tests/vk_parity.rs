@@ -299,6 +299,7 @@ fn errors_are_errors_not_panics() {
             escapes: deep.escapes.clone(),
             triangles: vec![bytemuck::Zeroable::zeroed(); n],
             depth: deep.depth,
+            ..Default::default()
         };
         match VkBvh::upload(&ctx, &huge) {
             Err(e @ TraceError::TooLarge { .. }) => {
@@ -331,7 +332,7 @@ fn errors_are_errors_not_panics() {
         nodes: Vec::new(),
         escapes: Vec::new(),
         triangles: Vec::new(),
-        depth: 0,
+        ..Default::default()
     };
     match VkBvh::upload(&ctx, &nothing) {
         Err(TraceError::EmptyBvh) => {}

@@ -1,0 +1,189 @@
+//! `bvhtrace bench-refit`: what moving things costs. A mesh whose every vertex moved is
+//! refitted (its tree kept, its boxes recomputed) beside a full rebuild, with how much the
+//! SAH cost and the rays' box tests grow; a top level of many instances is rebuilt after
+//! every instance moved, beside building both levels anew.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use bvhtrace_core::instance::REFIT_REBUILD_ADVISED;
+use bvhtrace_core::{
+    BuildOptions, FlatBvh, Instance, InstancedBvh, Ray, TraceOptions, Triangle, trace_rays,
+};
+use glam::{Affine3A, Quat, Vec3};
+use serde_json::json;
+
+use crate::bench::median;
+use crate::output::JsonOut;
+
+/// `bvhtrace bench-refit`.
+#[derive(clap::Args)]
+pub struct BenchRefitArgs {
+    /// The mesh to deform (all of a scene's triangles, flattened; default: igea from the
+    /// shared scenes folder).
+    pub scene: Option<String>,
+    /// The many-instance scene whose top level is rebuilt (default: a 100x100 grid of
+    /// the same mesh when it comes from the shared folder, `builtin:grid:icosphere:100x100`
+    /// otherwise).
+    #[arg(long)]
+    pub instances: Option<String>,
+    /// Timed repetitions (the median is printed).
+    #[arg(long, default_value_t = 5)]
+    pub runs: usize,
+    /// Write the figures as JSON to this file (`-` for stdout).
+    #[arg(long)]
+    pub json: Option<String>,
+}
+
+/// Every vertex moved by a smooth field of amplitude `a` (a fraction of the extent): the
+/// same function `crates/cli/embree/embree_trace.c` applies for Embree's refit.
+pub fn deform(tris: &[Triangle], a: f32) -> Vec<Triangle> {
+    let (lo, hi) = tris.iter().flatten().fold(
+        (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
+        |(l, h), p| (l.min(*p), h.max(*p)),
+    );
+    let e = (hi - lo).max_element().max(f32::MIN_POSITIVE);
+    let k = 6.0 / e;
+    tris.iter()
+        .map(|t| {
+            t.map(|p| p + Vec3::new((k * p.y).sin(), (k * p.z).sin(), (k * p.x).sin()) * (a * e))
+        })
+        .collect()
+}
+
+fn time<T>(f: impl FnOnce() -> T) -> (T, f64) {
+    let t = Instant::now();
+    let out = f();
+    (out, t.elapsed().as_secs_f64() * 1e3)
+}
+
+/// Mean box tests per ray of `rays` through `bvh`.
+fn boxes_per_ray(bvh: &FlatBvh, rays: &[Ray]) -> f64 {
+    let out = trace_rays(bvh, rays, &TraceOptions::default().with_counters(true));
+    let c = out.counters.unwrap_or_default();
+    c.iter().map(|c| f64::from(c.nodes)).sum::<f64>() / c.len().max(1) as f64
+}
+
+/// `bvhtrace bench-refit`.
+pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
+    if args.runs == 0 {
+        bail!("--runs must be at least 1");
+    }
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let spec = match &args.scene {
+        Some(s) => s.clone(),
+        None => crate::bench::scene_specs(&[])?
+            .into_iter()
+            .find(|s| s.contains("igea"))
+            .context("igea.glb is not in the shared scenes folder: name a scene")?,
+    };
+    let scene = bvhtrace_scene::load(&spec)?;
+    let tris = scene
+        .flatten()
+        .triangles()
+        .with_context(|| format!("{spec}: bad geometry"))?;
+    let opts = BuildOptions::default();
+    let one = vec![Instance::new(0, Affine3A::IDENTITY)];
+    let (lo, hi) = scene.bounds();
+    let rays = bvhtrace_scene::Camera::frame(lo, hi, 4.0 / 3.0).rays(256, 192);
+
+    // Refit against rebuild, amplitude by amplitude (each refit starts from the build of
+    // the undeformed mesh, as an animation's frames refit one tree).
+    let built = InstancedBvh::build(std::slice::from_ref(&tris), one.clone(), &opts)?;
+    println!(
+        "{spec}: {} triangles; refit after every vertex moved, against a full rebuild (median of {})",
+        tris.len(),
+        args.runs
+    );
+    println!(
+        "{:>9} {:>10} {:>11} {:>9} {:>12} {:>12}",
+        "amplitude", "refit ms", "rebuild ms", "SAH x", "boxes/ray", "rebuilt"
+    );
+    let mut rows = Vec::new();
+    for a in [0.001f32, 0.01, 0.03, 0.1, 0.3] {
+        let moved = deform(&tris, a);
+        let mut refits = Vec::new();
+        let mut refitted = built.clone();
+        for _ in 0..args.runs {
+            refitted = built.clone();
+            let (r, ms) = time(|| refitted.refit_mesh(0, &moved));
+            r?;
+            refits.push(ms);
+        }
+        let mut rebuilds = Vec::new();
+        let mut rebuilt = None;
+        for _ in 0..args.runs {
+            let (b, ms) = time(|| FlatBvh::build(&moved, &opts));
+            rebuilt = Some(b?);
+            rebuilds.push(ms);
+        }
+        let rebuilt = rebuilt.context("no rebuild ran")?;
+        let (q, br, bb) = (
+            refitted.refit_quality(0),
+            boxes_per_ray(refitted.bvh(), &rays),
+            boxes_per_ray(&rebuilt, &rays),
+        );
+        let (rm, bm) = (median(refits), median(rebuilds));
+        println!("{a:>9} {rm:>10.2} {bm:>11.2} {q:>9.3} {br:>12.1} {bb:>12.1}");
+        rows.push(json!({
+            "amplitude": a, "refit_ms": rm, "rebuild_ms": bm, "sah_ratio": q,
+            "boxes_per_ray_refitted": br, "boxes_per_ray_rebuilt": bb,
+        }));
+    }
+    println!("a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}");
+
+    // The top level of many instances, rebuilt after every instance moved.
+    let inst_spec = match &args.instances {
+        Some(s) => s.clone(),
+        None => match std::path::Path::new(&spec).file_stem() {
+            Some(stem)
+                if bvhtrace_scene::shared_scenes_dir().is_some() && spec.ends_with(".glb") =>
+            {
+                format!("builtin:grid:{}:100x100", stem.to_string_lossy())
+            }
+            _ => "builtin:grid:icosphere:100x100".into(),
+        },
+    };
+    let many = bvhtrace_scene::load(&inst_spec)?;
+    let (two, full_ms) = time(|| many.instanced_bvh(&opts));
+    let mut two = two?;
+    let moved: Vec<Affine3A> = two
+        .instances()
+        .iter()
+        .enumerate()
+        .map(|(k, i)| {
+            Affine3A::from_rotation_translation(
+                Quat::from_rotation_z(0.01 * (k % 7) as f32),
+                Vec3::new(0.0, 0.0, 0.05 * (k % 3) as f32),
+            ) * i.transform
+        })
+        .collect();
+    let original: Vec<Affine3A> = two.instances().iter().map(|i| i.transform).collect();
+    let mut tops = Vec::new();
+    for run in 0..args.runs {
+        let t = if run % 2 == 0 { &moved } else { &original };
+        let (r, ms) = time(|| two.set_transforms(t));
+        r?;
+        tops.push(ms);
+    }
+    let top_ms = median(tops);
+    let (top_bytes, mesh_bytes) = two.level_bytes();
+    println!(
+        "{inst_spec}: {} instances of {} meshes ({} triangles instanced): top-level rebuild \
+         {top_ms:.2} ms, both levels built {full_ms:.1} ms; top level {top_bytes} bytes, meshes \
+         {mesh_bytes} bytes",
+        two.instances().len(),
+        two.meshes().len(),
+        two.instanced_primitives()
+    );
+    if let Some(j) = json_out {
+        j.write(&json!({
+            "scene": spec, "triangles": tris.len(), "runs": args.runs,
+            "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED,
+            "instances_scene": inst_spec, "instances": two.instances().len(),
+            "meshes": two.meshes().len(), "top_rebuild_ms": top_ms, "two_level_build_ms": full_ms,
+            "top_level_bytes": top_bytes, "mesh_bytes": mesh_bytes,
+        }))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,445 @@
+//! Node animations: glTF 2.0 `translation`, `rotation` and `scale` channels, played
+//! back as the glTF 2.0 specification (and its interpolation appendix) defines them.
+//!
+//! The loader keeps what it needs to place the scene's instances at any time: the node
+//! hierarchy it walked (each node's parent and static transform), which node each
+//! [`crate::Instance`] comes from, and the channels. [`crate::Scene::set_time`] and
+//! [`crate::Scene::instance_transforms_at`] use it.
+//!
+//! Interpolation, between keys `k` and `k + 1` with `td = t[k+1] - t[k]` and
+//! `s = (T - t[k]) / td`:
+//!
+//! - [`Interpolation::Step`]: the value of key `k`;
+//! - [`Interpolation::Linear`]: `v[k] + s (v[k+1] - v[k])`; rotations use spherical
+//!   linear interpolation (slerp) along the shortest path;
+//! - [`Interpolation::CubicSpline`]: the cubic Hermite spline
+//!   `(2s³ - 3s² + 1) v[k] + td (s³ - 2s² + s) b[k] + (-2s³ + 3s²) v[k+1] + td (s³ - s²) a[k+1]`,
+//!   where `a` are the in-tangents and `b` the out-tangents; rotations are normalised
+//!   afterwards.
+//!
+//! Before the first key the first value holds; after the last key the last value holds.
+
+use glam::{DVec4, Mat4, Quat, Vec3, Vec4};
+
+/// How a channel interpolates between its keys (glTF `sampler.interpolation`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Interpolation {
+    /// `LINEAR`: linear interpolation; spherical linear interpolation for rotations.
+    Linear,
+    /// `STEP`: each key's value holds until the next key.
+    Step,
+    /// `CUBICSPLINE`: cubic Hermite spline; each key has an in-tangent, a value and an
+    /// out-tangent (in that order in [`Channel::values`]).
+    CubicSpline,
+}
+
+impl Interpolation {
+    /// The glTF name: `"LINEAR"`, `"STEP"` or `"CUBICSPLINE"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Interpolation::Linear => "LINEAR",
+            Interpolation::Step => "STEP",
+            Interpolation::CubicSpline => "CUBICSPLINE",
+        }
+    }
+}
+
+/// The node property a channel drives (glTF `channel.target.path`; `weights` is not
+/// supported).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Property {
+    /// The node's translation (`x, y, z`; `w` unused, zero).
+    Translation,
+    /// The node's rotation, a unit quaternion (`x, y, z, w`).
+    Rotation,
+    /// The node's scale (`x, y, z`; `w` unused, zero).
+    Scale,
+}
+
+impl Property {
+    /// The glTF name: `"translation"`, `"rotation"` or `"scale"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Property::Translation => "translation",
+            Property::Rotation => "rotation",
+            Property::Scale => "scale",
+        }
+    }
+}
+
+/// One animated property of one node: key times, values and how to interpolate them.
+///
+/// Built (and checked) by [`Channel::new`]; the checks make [`Channel::value_at`] total.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Channel {
+    node: usize,
+    property: Property,
+    interpolation: Interpolation,
+    times: Vec<f32>,
+    values: Vec<Vec4>,
+}
+
+impl Channel {
+    /// A channel driving `property` of node `node` (an index into [`Animation::nodes`]).
+    ///
+    /// `times` are the key times in seconds: at least one, finite, strictly increasing.
+    /// `values` are finite, one per key (three per key for [`Interpolation::CubicSpline`]:
+    /// in-tangent, value, out-tangent); translations and scales use `x, y, z` and ignore
+    /// `w`. Rotation keys of [`Interpolation::Linear`] and [`Interpolation::Step`] must
+    /// not be zero; they are normalised (keys already of unit length within `1e-5` are
+    /// kept as they are, bit for bit).
+    ///
+    /// The error says what is wrong, e.g. `"key time 2 (0.5) is not greater than key
+    /// time 1 (0.5)"`.
+    pub fn new(
+        node: usize,
+        property: Property,
+        interpolation: Interpolation,
+        times: Vec<f32>,
+        mut values: Vec<Vec4>,
+    ) -> Result<Channel, String> {
+        if times.is_empty() {
+            return Err("it has no keys (the input accessor is empty)".into());
+        }
+        if let Some(k) = times.iter().position(|t| !t.is_finite()) {
+            return Err(format!("key time {k} is not finite ({})", times[k]));
+        }
+        if let Some(k) = (1..times.len()).find(|&k| times[k] <= times[k - 1]) {
+            return Err(format!(
+                "key time {k} ({}) is not greater than key time {} ({}): key times must be strictly increasing",
+                times[k],
+                k - 1,
+                times[k - 1]
+            ));
+        }
+        let per_key = if interpolation == Interpolation::CubicSpline {
+            3
+        } else {
+            1
+        };
+        let want = times.len().saturating_mul(per_key);
+        if values.len() != want {
+            return Err(format!(
+                "the output has {} values but the input has {} keys ({} needs {})",
+                values.len(),
+                times.len(),
+                interpolation.name(),
+                if per_key == 3 {
+                    format!("3 per key: in-tangent, value, out-tangent, so {want}")
+                } else {
+                    format!("one per key, so {want}")
+                }
+            ));
+        }
+        if property != Property::Rotation {
+            for v in &mut values {
+                v.w = 0.0;
+            }
+        }
+        if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+            return Err(format!("output value {k} is not finite ({})", values[k]));
+        }
+        if property == Property::Rotation && interpolation != Interpolation::CubicSpline {
+            for (k, q) in values.iter_mut().enumerate() {
+                let l2 = q.length_squared();
+                if (l2 - 1.0).abs() <= 1e-5 {
+                    continue;
+                }
+                let len = l2.sqrt();
+                if !(len.is_finite() && len > 1e-6) {
+                    return Err(format!(
+                        "rotation key {k} ({q}) is not a unit quaternion and cannot be normalised"
+                    ));
+                }
+                *q /= len;
+            }
+        }
+        Ok(Channel {
+            node,
+            property,
+            interpolation,
+            times,
+            values,
+        })
+    }
+
+    /// The node it drives: an index into [`Animation::nodes`].
+    pub fn node(&self) -> usize {
+        self.node
+    }
+
+    /// The property it drives.
+    pub fn property(&self) -> Property {
+        self.property
+    }
+
+    /// How it interpolates.
+    pub fn interpolation(&self) -> Interpolation {
+        self.interpolation
+    }
+
+    /// The key times, in seconds (finite, strictly increasing, at least one).
+    pub fn times(&self) -> &[f32] {
+        &self.times
+    }
+
+    /// The output values: one per key, or in-tangent, value, out-tangent per key for
+    /// [`Interpolation::CubicSpline`]. Translations and scales have `w = 0`.
+    pub fn values(&self) -> &[Vec4] {
+        &self.values
+    }
+
+    /// The time of the last key.
+    pub fn end_time(&self) -> f32 {
+        self.times.last().copied().unwrap_or(0.0)
+    }
+
+    /// The value of key `k` (not a tangent).
+    fn key(&self, k: usize) -> Vec4 {
+        match self.interpolation {
+            Interpolation::CubicSpline => self.values[3 * k + 1],
+            _ => self.values[k],
+        }
+    }
+
+    /// The property's value at time `t` (seconds): a translation or scale in `x, y, z`
+    /// (`w = 0`), or a rotation quaternion `x, y, z, w`. Before the first key the first
+    /// value holds, after the last key the last one; at a key time the key's value is
+    /// returned exactly (a [`Interpolation::CubicSpline`] rotation is normalised). A NaN
+    /// time is taken as the start.
+    pub fn value_at(&self, t: f32) -> Vec4 {
+        let n = self.times.len();
+        let is_rot = self.property == Property::Rotation;
+        let cubic_rot = is_rot && self.interpolation == Interpolation::CubicSpline;
+        let finish = |v: Vec4| if cubic_rot { unit_quat(v) } else { v };
+        if t.is_nan() || t <= self.times[0] {
+            return finish(self.key(0));
+        }
+        if t >= self.times[n - 1] {
+            return finish(self.key(n - 1));
+        }
+        // times[k] <= t < times[k + 1], k + 1 < n.
+        let k = self.times.partition_point(|&x| x <= t) - 1;
+        let (t0, t1) = (self.times[k], self.times[k + 1]);
+        if t == t0 {
+            return finish(self.key(k));
+        }
+        let td = t1 - t0;
+        let s = ((t - t0) / td).clamp(0.0, 1.0);
+        match self.interpolation {
+            Interpolation::Step => self.key(k),
+            Interpolation::Linear if is_rot => slerp(self.key(k), self.key(k + 1), s),
+            Interpolation::Linear => self.key(k).lerp(self.key(k + 1), s),
+            Interpolation::CubicSpline => {
+                let v0 = self.values[3 * k + 1];
+                let b0 = self.values[3 * k + 2];
+                let a1 = self.values[3 * (k + 1)];
+                let v1 = self.values[3 * (k + 1) + 1];
+                let (s2, s3) = (s * s, s * s * s);
+                let p = v0 * (2.0 * s3 - 3.0 * s2 + 1.0)
+                    + b0 * (td * (s3 - 2.0 * s2 + s))
+                    + v1 * (-2.0 * s3 + 3.0 * s2)
+                    + a1 * (td * (s3 - s2));
+                finish(p)
+            }
+        }
+    }
+}
+
+/// `q` normalised; the identity when `q` has no direction (a degenerate spline).
+fn unit_quat(q: Vec4) -> Vec4 {
+    let len = q.length();
+    if len.is_finite() && len > 1e-12 {
+        q / len
+    } else {
+        Vec4::W
+    }
+}
+
+/// Spherical linear interpolation of unit quaternions along the shortest path (the glTF
+/// specification's appendix), with the weights computed in `f64`.
+fn slerp(a: Vec4, b: Vec4, s: f32) -> Vec4 {
+    let (a64, mut b64) = (a.as_dvec4(), b.as_dvec4());
+    let mut d = a64.dot(b64);
+    if d < 0.0 {
+        b64 = -b64;
+        d = -d;
+    }
+    let s = f64::from(s);
+    let q: DVec4 = if d > 0.9995 {
+        (a64 + (b64 - a64) * s).normalize_or_zero()
+    } else {
+        let theta0 = d.min(1.0).acos();
+        let theta = theta0 * s;
+        let (sin_theta, sin_theta0) = (theta.sin(), theta0.sin());
+        let s0 = theta.cos() - d * sin_theta / sin_theta0;
+        let s1 = sin_theta / sin_theta0;
+        a64 * s0 + b64 * s1
+    };
+    unit_quat(q.as_vec4())
+}
+
+/// A node's own transform, relative to its parent.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum NodeTransform {
+    /// A `matrix`: such a node cannot be animated (channels on it are dropped with a
+    /// warning).
+    Matrix(Mat4),
+    /// Translation, rotation and scale, as in the file (missing ones are the identity);
+    /// the rotation is normalised when composed. Animated properties replace these.
+    Trs {
+        /// The static translation.
+        translation: Vec3,
+        /// The static rotation, as in the file (normalised when composed).
+        rotation: Quat,
+        /// The static scale.
+        scale: Vec3,
+    },
+}
+
+/// `T * R * S` with the rotation normalised: how the loader composes a node's TRS.
+pub(crate) fn compose_trs(translation: Vec3, rotation: Vec4, scale: Vec3) -> Mat4 {
+    let len = rotation.length();
+    let q = if len.is_finite() && len > 1e-12 {
+        Quat::from_vec4(rotation / len)
+    } else {
+        Quat::IDENTITY
+    };
+    Mat4::from_scale_rotation_translation(scale, q, translation)
+}
+
+/// One node of the loaded scene graph.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AnimationNode {
+    pub(crate) gltf_node: usize,
+    pub(crate) parent: Option<usize>,
+    pub(crate) local: NodeTransform,
+}
+
+impl AnimationNode {
+    /// The node's index in the glTF file.
+    pub fn gltf_node(&self) -> usize {
+        self.gltf_node
+    }
+
+    /// Its parent: an index into [`Animation::nodes`], always smaller than its own;
+    /// `None` for a root.
+    pub fn parent(&self) -> Option<usize> {
+        self.parent
+    }
+
+    /// Its static transform, relative to its parent.
+    pub fn local(&self) -> NodeTransform {
+        self.local
+    }
+}
+
+/// What a scene needs to place its instances at any time: the loaded node hierarchy,
+/// the node each instance comes from, the channels, and the global transforms applied
+/// after loading ([`crate::Scene::transform`]).
+///
+/// Every animation of the file plays at once, from time 0; where two channels drive the
+/// same property of the same node, the later one (in file order) wins.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Animation {
+    pub(crate) nodes: Vec<AnimationNode>,
+    pub(crate) instance_nodes: Vec<usize>,
+    pub(crate) channels: Vec<Channel>,
+    pub(crate) globals: Vec<Mat4>,
+}
+
+impl Animation {
+    /// The length of the animation in seconds: the latest key time of any channel (at
+    /// least 0).
+    pub fn duration(&self) -> f32 {
+        self.channels
+            .iter()
+            .map(Channel::end_time)
+            .fold(0.0, f32::max)
+    }
+
+    /// The nodes of the loaded scene graph, parents before their children.
+    pub fn nodes(&self) -> &[AnimationNode] {
+        &self.nodes
+    }
+
+    /// For each instance of the scene (in [`crate::Scene::instances`] order), its node:
+    /// an index into [`Animation::nodes`].
+    pub fn instance_nodes(&self) -> &[usize] {
+        &self.instance_nodes
+    }
+
+    /// The channels, in file order.
+    pub fn channels(&self) -> &[Channel] {
+        &self.channels
+    }
+
+    /// The product of the global transforms applied to the scene after loading (the
+    /// identity when none was): world transforms are premultiplied by it.
+    pub fn global_transform(&self) -> Mat4 {
+        self.globals.iter().fold(Mat4::IDENTITY, |acc, &m| m * acc)
+    }
+
+    /// Each node's transform relative to its parent at time `t`.
+    fn local_transforms_at(&self, t: f32) -> Vec<Mat4> {
+        // Static TRS first, then the channels (later channels win).
+        let mut trs: Vec<Option<(Vec3, Vec4, Vec3)>> = self
+            .nodes
+            .iter()
+            .map(|n| match n.local {
+                NodeTransform::Matrix(_) => None,
+                NodeTransform::Trs {
+                    translation,
+                    rotation,
+                    scale,
+                } => Some((translation, Vec4::from(rotation), scale)),
+            })
+            .collect();
+        for c in &self.channels {
+            let Some(Some((tr, rot, sc))) = trs.get_mut(c.node) else {
+                continue;
+            };
+            let v = c.value_at(t);
+            match c.property {
+                Property::Translation => *tr = v.truncate(),
+                Property::Rotation => *rot = v,
+                Property::Scale => *sc = v.truncate(),
+            }
+        }
+        self.nodes
+            .iter()
+            .zip(trs)
+            .map(|(n, trs)| match (n.local, trs) {
+                (_, Some((tr, rot, sc))) => compose_trs(tr, rot, sc),
+                (NodeTransform::Matrix(m), None) => m,
+                (NodeTransform::Trs { .. }, None) => Mat4::IDENTITY,
+            })
+            .collect()
+    }
+
+    /// Each node's world transform at time `t` (before the global transform).
+    pub fn node_transforms_at(&self, t: f32) -> Vec<Mat4> {
+        let mut world = self.local_transforms_at(t);
+        for i in 0..world.len() {
+            if let Some(p) = self.nodes[i].parent.filter(|&p| p < i) {
+                world[i] = world[p] * world[i];
+            } else {
+                world[i] = Mat4::IDENTITY * world[i];
+            }
+        }
+        world
+    }
+
+    /// Each instance's object-to-world transform at time `t`, global transform included,
+    /// in [`Animation::instance_nodes`] order.
+    pub fn instance_transforms_at(&self, t: f32) -> Vec<Mat4> {
+        let world = self.node_transforms_at(t);
+        self.instance_nodes
+            .iter()
+            .map(|&n| {
+                let w = world.get(n).copied().unwrap_or(Mat4::IDENTITY);
+                self.globals.iter().fold(w, |acc, &m| m * acc)
+            })
+            .collect()
+    }
+}
