@@ -853,3 +853,79 @@ fn interleaved_workgroups_trace_every_ray() {
         }
     }
 }
+
+/// A two-level upload updated in place (`GpuBvh::update`) after the instances moved (the
+/// top level rebuilt) and after a mesh's vertices moved (refitted) traces as the CPU twin
+/// of the changed BVH does, bit for bit, in both storages; an update of another shape is
+/// refused.
+#[test]
+fn two_level_updates_in_place_match_cpu_twins() {
+    use bvhtrace_gpu::Update;
+    let Some(ctx) = context() else { return };
+    let scene = bvhtrace_scene::load("builtin:spheres").expect("builtin scene");
+    for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
+        let mut ib = scene
+            .instanced_bvh(&BuildOptions::default())
+            .expect("two levels");
+        let opts = UploadOptions::all().with_storage(storage);
+        let mut gpu = GpuBvh::upload(&ctx, ib.bvh(), &opts).expect("upload");
+        let rays = ray_set(ib.bvh(), 0x70b);
+        let check = |gpu: &GpuBvh, bvh: &FlatBvh, what: &str| {
+            for traversal in [
+                Traversal::Stackless,
+                Traversal::ShortStack(4),
+                Traversal::FullStack,
+            ] {
+                for query in [Query::Closest, Query::Any] {
+                    let opts = TraceOptions::new(traversal, query);
+                    let cpu = trace_rays(bvh, &rays, &opts).hits;
+                    let got = gpu.trace(&rays, &opts).expect("trace").hits;
+                    let bad = cpu
+                        .iter()
+                        .zip(&got)
+                        .filter(|(a, b)| {
+                            (a.t.to_bits(), a.prim, a.u.to_bits(), a.v.to_bits())
+                                != (b.t.to_bits(), b.prim, b.u.to_bits(), b.v.to_bits())
+                        })
+                        .count();
+                    assert_eq!(bad, 0, "{storage:?} {what} {traversal} {query:?}");
+                }
+            }
+        };
+        check(&gpu, ib.bvh(), "as uploaded");
+        let before = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
+        let moved: Vec<glam::Affine3A> = ib
+            .instances()
+            .iter()
+            .enumerate()
+            .map(|(k, i)| {
+                glam::Affine3A::from_rotation_y(0.3 * k as f32)
+                    * glam::Affine3A::from_translation(Vec3::new(0.2, 0.1 * k as f32, 0.0))
+                    * i.transform
+            })
+            .collect();
+        ib.set_transforms(&moved).expect("new transforms");
+        gpu.update(ib.bvh(), Update::TopLevel)
+            .expect("top-level update");
+        check(&gpu, ib.bvh(), "after new transforms");
+        let after = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
+        assert_ne!(before, after, "moving the instances changed no hit");
+
+        let mut tris: Vec<_> = ib.mesh_bvh(0).triangles;
+        tris.sort_by_key(|t| t.prim);
+        let swollen: Vec<Triangle> = tris
+            .iter()
+            .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
+            .collect();
+        ib.refit_mesh(0, &swollen).expect("refit");
+        gpu.update(ib.bvh(), Update::Everything)
+            .expect("update after refit");
+        check(&gpu, ib.bvh(), "after a refit");
+
+        let other = one_triangle();
+        assert!(matches!(
+            gpu.update(&other, Update::Everything),
+            Err(GpuError::BadBuffer { .. })
+        ));
+    }
+}

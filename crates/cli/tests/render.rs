@@ -180,7 +180,7 @@ fn bad_flags_and_scenes_get_clear_errors() {
 
 #[test]
 fn every_subcommand_has_help() {
-    for sub in ["render", "info", "dump", "bench-build", "bench-trace"] {
+    for sub in ["render", "info", "dump", "bench-build", "bench-trace", "bench-refit"] {
         let out = run(&[sub, "--help"]);
         assert!(out.status.success(), "{sub} --help");
         assert!(
@@ -198,4 +198,81 @@ fn info_reports_the_scene() {
     assert_eq!(v["triangles"], 36);
     assert!(v["sah_cost"].as_f64().unwrap() > 1.0);
     assert!(v["nodes"].as_u64().unwrap() <= 71);
+}
+
+/// Renders `args` on the CPU at 96x72 with JSON on stdout; returns the JSON and the PNG.
+fn render_json(name: &str, args: &[&str]) -> (serde_json::Value, Vec<u8>) {
+    let dir = scratch(name);
+    let png = dir.join("o.png");
+    let mut all = vec!["render", "--size", "96x72", "--backend", "cpu", "-o"];
+    all.push(png.to_str().unwrap());
+    all.extend_from_slice(&["--json", "-"]);
+    all.extend_from_slice(args);
+    let out = run(&all);
+    assert!(out.status.success(), "{args:?}");
+    (json(&out), std::fs::read(&png).expect("png written"))
+}
+
+#[test]
+fn scenes_with_several_placements_trace_in_two_levels_and_flattened_alike() {
+    let (two, img_two) = render_json("two-level", &["builtin:spheres"]);
+    let (flat, img_flat) = render_json("flattened", &["builtin:spheres", "--flatten"]);
+    assert_eq!(two["form"], "two-level");
+    assert_eq!(flat["form"], "flattened");
+    for v in [&two, &flat] {
+        assert_eq!(v["instances"], 9);
+        assert_eq!(v["meshes"], 5);
+        assert_eq!(v["triangles"], 35_328);
+    }
+    assert!(two["top_level_bytes"].as_u64().unwrap() > 0);
+    assert!(two["mesh_bytes"].as_u64().unwrap() > 0);
+    // The same primitives are hit (same ids in both forms); `t` agrees to f32 rounding.
+    assert_eq!(two["hits"], flat["hits"]);
+    let (a, b) = (
+        two["t_sum"].as_f64().unwrap(),
+        flat["t_sum"].as_f64().unwrap(),
+    );
+    assert!((a - b).abs() <= 1e-5 * a.abs(), "t_sum {a} vs {b}");
+    // The same image but where rounding moved a normal's colour by one step.
+    let decode = |b: &[u8]| image::load_from_memory(b).expect("a PNG").to_rgb8();
+    let (x, y) = (decode(&img_two), decode(&img_flat));
+    let far = x
+        .pixels()
+        .zip(y.pixels())
+        .filter(|(p, q)| p.0.iter().zip(q.0).any(|(a, b)| a.abs_diff(b) > 1))
+        .count();
+    assert!(
+        far * 200 <= 96 * 72,
+        "{far} pixels differ by more than one step"
+    );
+    // One placement traces flattened: no top level to walk.
+    let (one, _) = render_json("one-placement", &["builtin:cornell"]);
+    assert_eq!(one["form"], "flattened");
+}
+
+#[test]
+fn animated_scenes_render_at_the_time_asked_for() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/animated.gltf");
+    let (a, img_a) = render_json("time-0", &[scene, "--time", "0"]);
+    let (b, img_b) = render_json("time-1", &[scene, "--time", "1.3"]);
+    let (c, img_c) = render_json("time-0-again", &[scene, "--time", "0"]);
+    assert_eq!(a["time"], 0.0);
+    assert_eq!(b["time"], 1.3f32 as f64);
+    assert_ne!(
+        img_a, img_b,
+        "the scene did not move between t = 0 and t = 1.3"
+    );
+    assert_eq!(img_a, img_c, "the same time gave another image");
+    let out = run(&[
+        "render",
+        scene,
+        "--backend",
+        "cpu",
+        "--time",
+        "nan",
+        "-o",
+        "/tmp/x.png",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--time"));
 }

@@ -154,6 +154,66 @@ fn write_set(d: &ash::Device, set: vk::DescriptorSet, entries: &[(u32, vk::Buffe
     unsafe { d.update_descriptor_sets(&writes, &[]) };
 }
 
+/// Writes each `(buffer, bytes)` at the start of its device-local buffer through one
+/// host-visible staging buffer, and waits until the kernels can read them.
+fn copy_to_device(
+    ctx: &VkContext,
+    during: &'static str,
+    copies: &[(vk::Buffer, &[u8])],
+) -> Result<(), TraceError> {
+    let align = |x: u64| x.div_ceil(16) * 16;
+    let total: u64 = copies.iter().map(|(_, b)| align(b.len() as u64)).sum();
+    let mut staging = ctx.buffer(
+        "staging",
+        total,
+        vk::BufferUsageFlags::TRANSFER_SRC,
+        vk::MemoryPropertyFlags::HOST_VISIBLE | vk::MemoryPropertyFlags::HOST_COHERENT,
+        vk::MemoryPropertyFlags::empty(),
+    )?;
+    let mut data = vec![0u8; total as usize];
+    let mut regions = Vec::with_capacity(copies.len());
+    let mut offset = 0u64;
+    for &(dst, bytes) in copies {
+        data[offset as usize..offset as usize + bytes.len()].copy_from_slice(bytes);
+        regions.push((dst, offset, bytes.len() as u64));
+        offset += align(bytes.len() as u64);
+    }
+    staging.write(&data);
+    let result = ctx.submitter().and_then(|s| {
+        ctx.submit_and_wait(&s, during, |d, cmd| {
+            for &(dst, src_offset, size) in &regions {
+                if size == 0 {
+                    continue;
+                }
+                let region = [vk::BufferCopy {
+                    src_offset,
+                    dst_offset: 0,
+                    size,
+                }];
+                // SAFETY: recording into the locked command buffer.
+                unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
+            }
+            let barrier = [vk::MemoryBarrier::default()
+                .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                .dst_access_mask(vk::AccessFlags::SHADER_READ)];
+            // SAFETY: as above.
+            unsafe {
+                d.cmd_pipeline_barrier(
+                    cmd,
+                    vk::PipelineStageFlags::TRANSFER,
+                    vk::PipelineStageFlags::COMPUTE_SHADER,
+                    vk::DependencyFlags::empty(),
+                    &barrier,
+                    &[],
+                    &[],
+                )
+            };
+        })
+    });
+    staging.destroy(&ctx.inner.device);
+    result
+}
+
 /// A descriptor pool for `sets` sets of at most four storage buffers.
 fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, TraceError> {
     let sizes = [vk::DescriptorPoolSize {
@@ -206,67 +266,25 @@ impl VkBvh {
         use vk::BufferUsageFlags as U;
         use vk::MemoryPropertyFlags as M;
         let d = &ctx.inner.device;
-        let align = |x: u64| x.div_ceil(16) * 16;
-        let total: u64 = arrays.iter().map(|(_, b)| align(b.len() as u64)).sum();
-        let mut staging = ctx.buffer(
-            "staging",
-            total,
-            U::TRANSFER_SRC,
-            M::HOST_VISIBLE | M::HOST_COHERENT,
-            M::empty(),
-        )?;
         // Device buffers, destroyed again if a later step fails.
         let mut made: Vec<Buffer> = Vec::with_capacity(arrays.len());
         let result = (|| -> Result<(), TraceError> {
-            let mut offset = 0u64;
-            let mut data = vec![0u8; total as usize];
-            let mut regions = Vec::new();
             for (name, bytes) in arrays {
-                data[offset as usize..offset as usize + bytes.len()].copy_from_slice(bytes);
-                let b = ctx.buffer(
+                made.push(ctx.buffer(
                     name,
                     bytes.len() as u64,
                     U::STORAGE_BUFFER | U::TRANSFER_DST,
                     M::DEVICE_LOCAL,
                     M::empty(),
-                )?;
-                regions.push((b.raw, offset, bytes.len() as u64));
-                made.push(b);
-                offset += align(bytes.len() as u64);
+                )?);
             }
-            staging.write(&data);
-            let s = ctx.submitter()?;
-            ctx.submit_and_wait(&s, "uploading the BVH", |d, cmd| {
-                for &(dst, src_offset, size) in &regions {
-                    if size == 0 {
-                        continue;
-                    }
-                    let region = [vk::BufferCopy {
-                        src_offset,
-                        dst_offset: 0,
-                        size,
-                    }];
-                    // SAFETY: recording into the locked command buffer.
-                    unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
-                }
-                let barrier = [vk::MemoryBarrier::default()
-                    .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-                    .dst_access_mask(vk::AccessFlags::SHADER_READ)];
-                // SAFETY: as above.
-                unsafe {
-                    d.cmd_pipeline_barrier(
-                        cmd,
-                        vk::PipelineStageFlags::TRANSFER,
-                        vk::PipelineStageFlags::COMPUTE_SHADER,
-                        vk::DependencyFlags::empty(),
-                        &barrier,
-                        &[],
-                        &[],
-                    )
-                };
-            })
+            let copies: Vec<(vk::Buffer, &[u8])> = made
+                .iter()
+                .zip(arrays)
+                .map(|(b, (_, bytes))| (b.raw, bytes))
+                .collect();
+            copy_to_device(ctx, "uploading the BVH", &copies)
         })();
-        staging.destroy(d);
         if let Err(e) = result {
             for mut b in made {
                 b.destroy(d);
@@ -352,6 +370,56 @@ impl VkBvh {
     /// Triangles uploaded.
     pub fn triangle_count(&self) -> usize {
         self.triangle_count
+    }
+
+    /// Writes `bvh` over this upload in place, its buffers kept (the `wgpu` backend's
+    /// `GpuBvh::update`): the whole BVH after
+    /// [`bvhtrace_core::InstancedBvh::refit_mesh`], or with `top_level_only` the top level's
+    /// nodes, their escape links and the instances after
+    /// [`bvhtrace_core::InstancedBvh::set_transforms`]. `bvh` must have the uploaded
+    /// shape (nodes, triangles, instances); another shape is a new upload.
+    pub fn update(&mut self, bvh: &FlatBvh, top_level_only: bool) -> Result<(), TraceError> {
+        let shape = (bvh.nodes.len(), bvh.triangles.len(), bvh.is_instanced());
+        let uploaded = (self.node_count, self.triangle_count, self.instanced);
+        let instances_fit =
+            !bvh.is_instanced() || bvh.instances.len() as u64 * 64 == self.instances.size;
+        if shape != uploaded || !instances_fit || (top_level_only && !bvh.is_instanced()) {
+            return Err(TraceError::BadBuffer {
+                buffer: "nodes",
+                problem: format!(
+                    "an update needs the uploaded shape (nodes, triangles, instanced) {uploaded:?} \
+                     and, for the top level only, a two-level BVH; got {shape:?}"
+                ),
+            });
+        }
+        let top = bvh.top_nodes as usize;
+        let links = top.div_ceil(bvhtrace_core::flat::ESCAPE_BLOCK)
+            * bvhtrace_core::flat::ESCAPE_BLOCK
+            * bvhtrace_core::flat::OCTANTS;
+        let mut copies: Vec<(vk::Buffer, &[u8])> = if top_level_only {
+            vec![
+                (self.nodes.raw, bytemuck::cast_slice(&bvh.nodes[..top])),
+                (
+                    self.escapes.raw,
+                    bytemuck::cast_slice(&bvh.escapes[..links]),
+                ),
+            ]
+        } else {
+            vec![
+                (self.nodes.raw, bytemuck::cast_slice(&bvh.nodes)),
+                (self.escapes.raw, bytemuck::cast_slice(&bvh.escapes)),
+                (self.triangles.raw, bytemuck::cast_slice(&bvh.triangles)),
+            ]
+        };
+        if bvh.is_instanced() {
+            copies.push((self.instances.raw, bytemuck::cast_slice(&bvh.instances)));
+        }
+        copy_to_device(&self.ctx, "updating the BVH", &copies)?;
+        if let Some(h) = &mut self.host_copy {
+            *h = Arc::new(bvh.clone());
+        }
+        self.depth = bvh.depth;
+        Ok(())
     }
 
     /// The kernel tracing `opts` on this upload, with the box test's parallel path when

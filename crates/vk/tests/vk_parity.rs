@@ -595,3 +595,46 @@ fn tracer_interface_matches_the_cpu() {
     }
     assert_eq!(ctx.validation_errors(), 0, "validation errors");
 }
+
+/// A two-level upload updated in place after the instances moved and after a refit traces
+/// as the CPU twin of the changed BVH does, bit for bit; another shape is refused.
+#[test]
+fn two_level_updates_in_place_match_the_cpu() {
+    let Some(ctx) = context("two-level updates") else {
+        return;
+    };
+    let scene = bvhtrace_scene::load("builtin:spheres").expect("builtin scene");
+    let mut ib = scene
+        .instanced_bvh(&bvhtrace_core::BuildOptions::default())
+        .expect("two levels");
+    let mut vk = VkBvh::upload(&ctx, ib.bvh()).expect("upload");
+    let rays = rays(ib.bvh());
+    let check = |vk: &VkBvh, bvh: &FlatBvh, what: &str| {
+        for traversal in [Traversal::Stackless, Traversal::FullStack] {
+            let opts = TraceOptions::closest(traversal);
+            let cpu = trace_rays(bvh, &rays, &opts).hits;
+            let got = vk.trace(&rays, &opts).expect("trace").hits;
+            assert!(differ(&cpu, &got).is_empty(), "{what} {traversal}");
+        }
+    };
+    let moved: Vec<glam::Affine3A> = ib
+        .instances()
+        .iter()
+        .enumerate()
+        .map(|(k, i)| glam::Affine3A::from_rotation_x(0.2 * k as f32) * i.transform)
+        .collect();
+    ib.set_transforms(&moved).expect("new transforms");
+    vk.update(ib.bvh(), true).expect("top-level update");
+    check(&vk, ib.bvh(), "after new transforms");
+    let mut tris = ib.mesh_bvh(1).triangles;
+    tris.sort_by_key(|t| t.prim);
+    let bent: Vec<_> = tris
+        .iter()
+        .map(|t| t.corners().map(|p| p * glam::Vec3::new(1.2, 0.7, 1.0)))
+        .collect();
+    ib.refit_mesh(1, &bent).expect("refit");
+    vk.update(ib.bvh(), false).expect("update after refit");
+    check(&vk, ib.bvh(), "after a refit");
+    assert!(vk.update(&one_triangle(), false).is_err());
+    assert_eq!(ctx.validation_errors(), 0, "validation errors");
+}
