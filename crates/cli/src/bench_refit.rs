@@ -33,6 +33,58 @@ pub struct BenchRefitArgs {
     /// Write the figures as JSON to this file (`-` for stdout).
     #[arg(long)]
     pub json: Option<String>,
+    /// An `embree_trace` binary (`crates/cli/embree/embree_trace.c`): Embree 3's medium
+    /// build and its refit (`RTC_BUILD_QUALITY_REFIT`) of the same deformation are timed
+    /// in the same run, 2 threads.
+    #[arg(long)]
+    pub embree: Option<std::path::PathBuf>,
+}
+
+/// Embree's build and refit of `tris` deformed by amplitude `a` (median of `runs`), through
+/// `exe`: `(build_ms, refit_ms)`.
+fn embree_refit(
+    exe: &std::path::Path,
+    tris: &[Triangle],
+    a: f32,
+    runs: usize,
+) -> Result<(f64, f64)> {
+    let dump = std::env::temp_dir().join(format!("bvhtrace-refit-{}.bin", std::process::id()));
+    let mut bytes = Vec::with_capacity(16 + tris.len() * 36 + 32);
+    bytes.extend_from_slice(b"BVHD");
+    for v in [1u32, tris.len() as u32, 1] {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    for p in tris.iter().flatten() {
+        for c in p.to_array() {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for c in [0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, f32::INFINITY] {
+        bytes.extend_from_slice(&c.to_le_bytes());
+    }
+    std::fs::write(&dump, &bytes).with_context(|| format!("writing {}", dump.display()))?;
+    let out = std::process::Command::new(exe)
+        .arg(&dump)
+        .args(["2", &runs.to_string()])
+        .env("BVHTRACE_REFIT", a.to_string())
+        .output()
+        .with_context(|| format!("running {}", exe.display()));
+    let _ = std::fs::remove_file(&dump);
+    let out = out?;
+    if !out.status.success() {
+        bail!(
+            "{} failed: {}",
+            exe.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .with_context(|| format!("{} printed no JSON", exe.display()))?;
+    let field = |k: &str| {
+        v[k].as_f64()
+            .with_context(|| format!("no {k} from {}", exe.display()))
+    };
+    Ok((field("build_ms")?, field("refit_ms")?))
 }
 
 /// Every vertex moved by a smooth field of amplitude `a` (a fraction of the extent): the
@@ -131,6 +183,16 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         }));
     }
     println!("a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}");
+    let embree = match &args.embree {
+        Some(exe) => {
+            let (b, r) = embree_refit(exe, &tris, 0.1, args.runs)?;
+            println!(
+                "Embree 3 (2 threads), amplitude 0.1: medium build {b:.2} ms, refit {r:.2} ms"
+            );
+            Some(json!({ "amplitude": 0.1, "build_ms": b, "refit_ms": r }))
+        }
+        None => None,
+    };
 
     // The top level of many instances, rebuilt after every instance moved.
     let inst_spec = match &args.instances {
@@ -179,7 +241,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
     if let Some(j) = json_out {
         j.write(&json!({
             "scene": spec, "triangles": tris.len(), "runs": args.runs,
-            "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED,
+            "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED, "embree": embree,
             "instances_scene": inst_spec, "instances": two.instances().len(),
             "meshes": two.meshes().len(), "top_rebuild_ms": top_ms, "two_level_build_ms": full_ms,
             "top_level_bytes": top_bytes, "mesh_bytes": mesh_bytes,

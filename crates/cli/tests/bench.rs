@@ -77,3 +77,35 @@ fn bench_rejects_an_unknown_precision() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("unknown precision 'f16'"), "{err}");
 }
+
+#[test]
+fn bench_refit_reports_refit_rebuild_and_top_level_times() {
+    let out = run(&[
+        "bench-refit",
+        "builtin:icosphere:4",
+        "--instances",
+        "builtin:grid:icosphere:4x3",
+        "--runs",
+        "1",
+        "--json",
+        "-",
+    ]);
+    assert!(out.status.success());
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let v: serde_json::Value =
+        serde_json::from_str(&stdout[stdout.find('{').expect("JSON")..]).expect("JSON");
+    let rows = v["refit"].as_array().expect("refit rows");
+    assert_eq!(rows.len(), 5);
+    for r in rows {
+        assert!(r["refit_ms"].as_f64().unwrap() > 0.0);
+        assert!(r["rebuild_ms"].as_f64().unwrap() > 0.0);
+        // A refitted tree is never better than the tree built for the same vertices by
+        // much, and the largest deformation makes it worse.
+        assert!(r["sah_ratio"].as_f64().unwrap() > 0.9, "{r}");
+    }
+    let last = rows.last().unwrap();
+    assert!(last["sah_ratio"].as_f64().unwrap() > rows[0]["sah_ratio"].as_f64().unwrap());
+    assert_eq!(v["instances"], 12);
+    assert_eq!(v["meshes"], 1);
+    assert!(v["top_rebuild_ms"].as_f64().unwrap() > 0.0);
+}
