@@ -39,10 +39,7 @@ pub(crate) fn scene_specs(given: &[String]) -> Result<Vec<String>> {
 fn load(spec: &str) -> Result<(Vec<Triangle>, bvhtrace_scene::Scene, f64)> {
     let t = Instant::now();
     let scene = bvhtrace_scene::load(spec)?;
-    let tris = scene
-        .flatten()
-        .triangles()
-        .with_context(|| format!("{spec}: bad geometry"))?;
+    let tris = scene.flattened_triangles()?;
     Ok((tris, scene, t.elapsed().as_secs_f64() * 1e3))
 }
 

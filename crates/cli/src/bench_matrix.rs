@@ -327,10 +327,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     for spec in specs {
         let t0 = Instant::now();
         let scene = bvhtrace_scene::load(&spec)?;
-        let tris = scene
-            .flatten()
-            .triangles()
-            .with_context(|| format!("{spec}: bad geometry"))?;
+        let tris = scene.flattened_triangles()?;
         let cam = scene.camera_or_frame(w as f32 / h as f32);
         let reference = FlatBvh::build(&tris, &BuildOptions::default())?;
         let sets = ray_sets(&tris, &reference, &cam, w, h);

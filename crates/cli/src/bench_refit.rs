@@ -130,10 +130,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
             .context("igea.glb is not in the shared scenes folder: name a scene")?,
     };
     let scene = bvhtrace_scene::load(&spec)?;
-    let tris = scene
-        .flatten()
-        .triangles()
-        .with_context(|| format!("{spec}: bad geometry"))?;
+    let tris = scene.flattened_triangles()?;
     let opts = BuildOptions::default();
     let one = vec![Instance::new(0, Affine3A::IDENTITY)];
     let (lo, hi) = scene.bounds();

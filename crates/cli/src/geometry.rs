@@ -103,16 +103,9 @@ pub fn load_and_build(
     let two_level = !flatten && scene.instances.len() > 1;
     let tris = if two_level {
         None
-    } else if scene.triangle_count() > bvhtrace_scene::MAX_TRIANGLES {
-        anyhow::bail!(
-            "{spec}: {} triangles do not fit one BVH (at most {}): trace it in two levels \
-             (without --flatten)",
-            scene.triangle_count(),
-            bvhtrace_scene::MAX_TRIANGLES
-        );
     } else {
-        let t = scene.flatten().triangles();
-        Some(t.with_context(|| format!("{spec}: bad geometry"))?)
+        let t = scene.flattened_triangles();
+        Some(t.with_context(|| format!("{spec}: cannot be flattened (drop --flatten?)"))?)
     };
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();

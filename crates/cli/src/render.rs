@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use bvhtrace_core::palette;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, Query, Ray, TraceOptions,
@@ -882,10 +882,7 @@ pub fn dump(args: DumpArgs) -> Result<()> {
     let out = AtomicFile::create(&args.output)?;
     let spec = args.scene.as_deref().unwrap_or(DEFAULT_SCENE);
     let scene = bvhtrace_scene::load(spec)?;
-    let tris = scene
-        .flatten()
-        .triangles()
-        .with_context(|| format!("{spec}: bad geometry"))?;
+    let tris = scene.flattened_triangles()?;
     let cam = camera_for(&args.view, &scene)?;
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);

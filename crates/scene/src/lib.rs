@@ -307,6 +307,28 @@ impl Scene {
         TriangleMesh { positions, indices }
     }
 
+    /// [`Scene::flatten`]'s triangles, refused (an error naming the scene and its size)
+    /// when the scene places more than [`MAX_TRIANGLES`]: such a scene can only be traced
+    /// in two levels ([`Scene::instanced_bvh`]).
+    pub fn flattened_triangles(&self) -> Result<Vec<bvhtrace_core::Triangle>, SceneError> {
+        let n = self.triangle_count();
+        if n > MAX_TRIANGLES {
+            return Err(SceneError::new(
+                self.name.clone(),
+                ErrorKind::TooLarge(format!(
+                    "{n} triangles over all instances do not fit one flattened BVH (at most \
+                     {MAX_TRIANGLES}); trace the scene in two levels"
+                )),
+            ));
+        }
+        self.flatten().triangles().map_err(|e| {
+            SceneError::new(
+                self.name.clone(),
+                ErrorKind::Invalid(format!("bad geometry: {e}")),
+            )
+        })
+    }
+
     /// [`Scene::flatten`] plus the matching world-space attributes.
     pub fn flatten_with_attributes(&self) -> (TriangleMesh, FlatAttributes) {
         let mesh = self.flatten();
