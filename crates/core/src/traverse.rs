@@ -199,15 +199,13 @@ fn node_box(n: &FlatNode) -> (Vec3, Vec3) {
     (Vec3::from(n.min), Vec3::from(n.max))
 }
 
-/// Where a walk is: the ray it tests boxes and triangles with, and, inside an instance,
-/// the instance's primitive base (the kernels' `traverse_instances.wgsl`). A one-mesh
-/// BVH never leaves the world.
+/// The two-level state of a walk (the kernels' `traverse_instances.wgsl`): the world ray,
+/// and, inside an instance, its primitive base. The walks are specialised on whether the
+/// BVH has instances (`I`), so a one-mesh walk carries none of this.
 struct Space<'a> {
     bvh: &'a FlatBvh,
     world_ray: &'a Ray,
     world: PreparedRay,
-    /// The ray in the current space (the world's until an instance is entered).
-    r: PreparedRay,
     inside: bool,
     prim_base: u32,
     mask: u32,
@@ -219,7 +217,6 @@ impl<'a> Space<'a> {
             bvh,
             world_ray: ray,
             world,
-            r: world,
             inside: false,
             prim_base: 0,
             mask: u32::from(mask),
@@ -231,7 +228,7 @@ impl<'a> Space<'a> {
     /// ray's, or the transformed ray is not valid (a direction scaled to zero or
     /// overflowing).
     #[inline(never)]
-    fn enter(&mut self, n: &FlatNode) -> Option<u32> {
+    fn enter(&mut self, n: &FlatNode) -> Option<(PreparedRay, u32)> {
         let inst: &FlatInstance = &self.bvh.instances[n.right_or_first as usize];
         if inst.mask & self.mask == 0 {
             return None;
@@ -240,28 +237,29 @@ impl<'a> Space<'a> {
         if !object.is_valid() {
             return None;
         }
-        self.r = PreparedRay::new(&object);
         self.inside = true;
         self.prim_base = inst.prim_base;
-        Some(inst.root)
+        Some((PreparedRay::new(&object), inst.root))
     }
 
-    /// Back in the world when the walk's next node is a top-level one.
+    /// True (and back in the world) when the walk, inside an instance, goes on at a
+    /// top-level node.
     #[inline(always)]
-    fn leave_if_top(&mut self, node: u32) {
-        if self.inside && node < self.bvh.top_nodes {
+    fn leaves_at(&mut self, node: u32) -> bool {
+        let leaves = self.inside && node < self.bvh.top_nodes;
+        if leaves {
             self.leave();
         }
+        leaves
     }
 
     fn leave(&mut self) {
-        self.r = self.world;
         self.inside = false;
         self.prim_base = 0;
     }
 }
 
-fn full_stack<T: TriangleTest>(
+fn full_stack<T: TriangleTest, const I: bool>(
     s: &mut Space,
     best: &mut Best,
     c: &mut Counters,
@@ -269,24 +267,25 @@ fn full_stack<T: TriangleTest>(
     stack: &mut Vec<u32>,
 ) {
     let bvh = s.bvh;
+    let mut r = s.world;
     stack.clear();
     c.nodes += 1;
     let (lo, hi) = node_box(&bvh.nodes[0]);
-    if intersect_box(&s.r, lo, hi, best.t).is_none() {
+    if intersect_box(&r, lo, hi, best.t).is_none() {
         return;
     }
     let mut node = 0u32;
     loop {
         let n = &bvh.nodes[node as usize];
-        let r = &s.r;
         if n.is_leaf() {
-            if n.is_instance_leaf() {
+            if I && n.is_instance_leaf() {
                 // The mesh's root is walked as the leaf was: its box is not tested again.
-                if let Some(root) = s.enter(n) {
+                if let Some((object, root)) = s.enter(n) {
+                    r = object;
                     node = root;
                     continue;
                 }
-            } else if visit_leaf::<T>(bvh, r, n, best, c, any, s.prim_base) {
+            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, if I { s.prim_base } else { 0 }) {
                 return;
             }
         } else {
@@ -294,8 +293,8 @@ fn full_stack<T: TriangleTest>(
             c.nodes += 2;
             let (llo, lhi) = node_box(&bvh.nodes[l as usize]);
             let (rlo, rhi) = node_box(&bvh.nodes[rt as usize]);
-            let hl = intersect_box(r, llo, lhi, best.t);
-            let hr = intersect_box(r, rlo, rhi, best.t);
+            let hl = intersect_box(&r, llo, lhi, best.t);
+            let hr = intersect_box(&r, rlo, rhi, best.t);
             match (hl, hr) {
                 (Some(tl), Some(tr)) => {
                     let (near, far) = if tr < tl { (rt, l) } else { (l, rt) };
@@ -317,7 +316,9 @@ fn full_stack<T: TriangleTest>(
         match stack.pop() {
             Some(next) => {
                 node = next;
-                s.leave_if_top(node);
+                if I && s.leaves_at(node) {
+                    r = s.world;
+                }
             }
             None => return,
         }
@@ -340,7 +341,7 @@ fn full_stack<T: TriangleTest>(
 ///   escape links only on walks deeper than its ring.
 ///
 /// The two visit the same nodes in the same order.
-fn short_stack<T: TriangleTest>(
+fn short_stack<T: TriangleTest, const I: bool>(
     s: &mut Space,
     best: &mut Best,
     c: &mut Counters,
@@ -348,7 +349,8 @@ fn short_stack<T: TriangleTest>(
     k: u32,
 ) {
     let bvh = s.bvh;
-    let world_oct = octant(s.r.dir);
+    let mut r = s.world;
+    let world_oct = octant(r.dir);
     let mut oct = world_oct;
     // The top-level leaf of the instance the walk is in: where it goes on once the mesh's
     // walk escapes to `NO_ESCAPE`.
@@ -361,7 +363,7 @@ fn short_stack<T: TriangleTest>(
         c.nodes += 1;
         let n = &bvh.nodes[node as usize];
         let (lo, hi) = node_box(n);
-        if intersect_box(&s.r, lo, hi, best.t).is_some() {
+        if intersect_box(&r, lo, hi, best.t).is_some() {
             if !n.is_leaf() {
                 let (near, far) = near_far(oct, node, n);
                 if k > 0 {
@@ -376,14 +378,15 @@ fn short_stack<T: TriangleTest>(
                 node = near;
                 continue;
             }
-            if n.is_instance_leaf() {
-                if let Some(root) = s.enter(n) {
+            if I && n.is_instance_leaf() {
+                if let Some((object, root)) = s.enter(n) {
+                    r = object;
                     instance_leaf = node;
-                    oct = octant(s.r.dir);
+                    oct = octant(r.dir);
                     node = root;
                     continue;
                 }
-            } else if visit_leaf::<T>(bvh, &s.r, n, best, c, any, s.prim_base) {
+            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, if I { s.prim_base } else { 0 }) {
                 return;
             }
         }
@@ -393,8 +396,8 @@ fn short_stack<T: TriangleTest>(
             top = if top == 0 { k - 1 } else { top - 1 };
             count -= 1;
             node = ring[top as usize];
-            if s.inside && node < bvh.top_nodes {
-                s.leave();
+            if I && s.leaves_at(node) {
+                r = s.world;
                 oct = world_oct;
             }
             continue;
@@ -409,10 +412,11 @@ fn short_stack<T: TriangleTest>(
                 node = next;
                 break;
             }
-            if !s.inside {
+            if !(I && s.inside) {
                 return;
             }
             s.leave();
+            r = s.world;
             oct = world_oct;
             node = instance_leaf;
         }
@@ -545,12 +549,16 @@ fn trace_ray_generic<T: TriangleTest>(
         panic!("{traversal}: {e}");
     }
     let any = query == Query::Any;
-    match traversal {
-        Traversal::FullStack => full_stack::<T>(s, &mut best, &mut c, any, stack),
-        Traversal::Stackless => short_stack::<T>(s, &mut best, &mut c, any, 0),
-        Traversal::ShortStack(k) => {
-            short_stack::<T>(s, &mut best, &mut c, any, k.clamp(1, MAX_SHORT_STACK))
-        }
+    let k = match traversal {
+        Traversal::FullStack => None,
+        Traversal::Stackless => Some(0),
+        Traversal::ShortStack(k) => Some(k.clamp(1, MAX_SHORT_STACK)),
+    };
+    match (k, bvh.is_instanced()) {
+        (None, false) => full_stack::<T, false>(s, &mut best, &mut c, any, stack),
+        (None, true) => full_stack::<T, true>(s, &mut best, &mut c, any, stack),
+        (Some(k), false) => short_stack::<T, false>(s, &mut best, &mut c, any, k),
+        (Some(k), true) => short_stack::<T, true>(s, &mut best, &mut c, any, k),
     }
     (best.into_hit(), c)
 }
