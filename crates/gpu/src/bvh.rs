@@ -229,7 +229,7 @@ fn write_texels(
     data.resize(width as usize * rows as usize * channels, 0);
     ctx.queue().write_texture(
         wgpu::TexelCopyTextureInfo {
-            texture: &texture,
+            texture,
             mip_level: 0,
             origin: wgpu::Origin3d::ZERO,
             aspect: wgpu::TextureAspect::All,

@@ -3,13 +3,15 @@
 use std::path::PathBuf;
 
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, FlatBvh, MISS, Ray, TraceOptions, Traversal, Triangle, trace_rays,
+    BuildOptions, BuilderKind, FlatBvh, Instance, MISS, Ray, TraceOptions, Traversal, Triangle,
+    trace_rays,
 };
-use glam::{DVec3, Vec3};
+use glam::{DQuat, DVec3, Vec3};
 
 use crate::geom::{
-    IndexedMesh, Rng, aim_at_vertices_and_edges, box_mesh, camera_rays, count_zero_area, icosphere,
-    inside_points, is_inside, unit_icosphere,
+    IndexedMesh, Rng, affine_from_f64, aim_at_placed_vertices_and_edges, aim_at_vertices_and_edges,
+    box_mesh, camera_rays, count_zero_area, icosphere, inside_points, is_inside, to_f64,
+    unit_icosphere,
 };
 use crate::offset::{geometric_normal, hit_point, offset_ray_origin};
 use crate::{Case, Expect, InputInfo, PrecisionSetup, Size, SurfacePair, SurfaceProbe};
@@ -64,6 +66,10 @@ pub const CASE_GROUPS: &[(&str, &str)] = &[
     (
         "precision-limit",
         "two parallel squares gap 1e-2, 1e-3, 1e-4 apart, translated by 1e0 .. 1e8 (4 per decade), rays from 1 unit away and from `offset` away: where f32 stops separating them",
+    ),
+    (
+        "instances",
+        "two levels: a closed icosphere instanced rotated, scaled by 1e-6 and 1e6, non-uniformly (axis ratios to 1e6), mirrored, translated by 1e5, and all of these at once; rays from inside each instance aimed exactly at its world-space vertices and edge points (targets placed in f64); a miss is an escape",
     ),
 ];
 
@@ -163,6 +169,7 @@ fn generate(group: &str, size: Size) -> Vec<Case> {
         "self-hits" => vec![self_hits(size)],
         "deep" => vec![deep(size)],
         "precision-limit" => vec![precision_limit(size)],
+        "instances" => instance_cases(size),
         _ => Vec::new(),
     }
 }
@@ -1187,6 +1194,197 @@ fn deep(size: Size) -> Case {
     c
 }
 
+/// One placement of an instance, in f64 (rounded once to the f32 transform).
+#[derive(Clone, Copy, Debug)]
+struct Place {
+    scale: DVec3,
+    rotation: DQuat,
+    translation: DVec3,
+}
+
+fn rot(axis: [f64; 3], degrees: f64) -> DQuat {
+    DQuat::from_axis_angle(DVec3::from_array(axis).normalize(), degrees.to_radians())
+}
+
+/// Three rotations about unrelated axes (one by 90 degrees, whose f32 matrix has
+/// near-zero entries instead of zeros).
+fn rotations() -> [DQuat; 3] {
+    [
+        rot([1.0, 2.0, 3.0], 37.0),
+        rot([-0.3, 1.0, 0.2], 123.0),
+        rot([0.0, 0.0, 1.0], 90.0),
+    ]
+}
+
+/// The placements of each single-transform instance case: `(name, what, placements)`.
+fn instance_placements() -> Vec<(&'static str, &'static str, Vec<Place>)> {
+    let [r1, r2, r3] = rotations();
+    let p = |s: DVec3, r: DQuat, t: DVec3| Place {
+        scale: s,
+        rotation: r,
+        translation: t,
+    };
+    let near = [
+        DVec3::ZERO,
+        DVec3::new(3.0, 0.5, -1.0),
+        DVec3::new(-2.5, 2.0, 1.5),
+    ];
+    let uniform = |s: f64| {
+        vec![
+            p(DVec3::splat(s), r1, near[0] * s),
+            p(DVec3::splat(s), r2, near[1] * s),
+            p(DVec3::splat(s), r3, near[2] * s),
+        ]
+    };
+    let far = DVec3::new(1e5, -0.5e5, 0.25e5);
+    vec![
+        (
+            "rotated",
+            "rotated about three unrelated axes (37, 123 and 90 degrees), radius 1, a few units apart",
+            uniform(1.0),
+        ),
+        (
+            "scale-1e-6",
+            "rotated and scaled by 1e-6, a few radii apart near the origin",
+            uniform(1e-6),
+        ),
+        (
+            "scale-1e6",
+            "rotated and scaled by 1e6, a few radii apart",
+            uniform(1e6),
+        ),
+        (
+            "nonuniform",
+            "rotated and scaled non-uniformly: (1e-3, 1, 1e3) at the origin, (1e3, 1e-2, 1) at (3e3, 0, 0), (1e-2, 1e2, 1) at (0, -3e3, 500)",
+            vec![
+                p(DVec3::new(1e-3, 1.0, 1e3), r1, DVec3::ZERO),
+                p(DVec3::new(1e3, 1e-2, 1.0), r2, DVec3::new(3e3, 0.0, 0.0)),
+                p(DVec3::new(1e-2, 1e2, 1.0), r3, DVec3::new(0.0, -3e3, 500.0)),
+            ],
+        ),
+        (
+            "mirrored",
+            "mirrored (determinant < 0: the flattened scene swaps corners 1 and 2): scales (-1, 1, 1), (1, -2, 0.5) and (-1, -1, -1), rotated",
+            vec![
+                p(DVec3::new(-1.0, 1.0, 1.0), r1, near[0]),
+                p(DVec3::new(1.0, -2.0, 0.5), r2, near[1]),
+                p(DVec3::splat(-1.0), r3, near[2]),
+            ],
+        ),
+        (
+            "offset-1e5",
+            "rotated, radius 1 and 2, translated by 1e5 * (1, -0.5, 0.25) (two, 3 units apart) and 1e5 * (-0.3, 1, 0.7)",
+            vec![
+                p(DVec3::ONE, r1, far),
+                p(DVec3::ONE, r2, far + near[1]),
+                p(DVec3::splat(2.0), r3, DVec3::new(-0.3e5, 1e5, 0.7e5)),
+            ],
+        ),
+    ]
+}
+
+/// A closed unit icosphere instanced at each placement, as one two-level case: from
+/// `inside` points of each instance (object space, placed in f64 and rounded once), rays
+/// aimed exactly at the instance's world-space vertices and at points of its edges (the
+/// targets placed in f64 from the object-space corners and the f32 transform). `MustHit`
+/// where the origin is inside the instance's flattened world triangles (checked), at most
+/// `cap` rays per origin (evenly thinned); at most `quick_sample` rays compared with the
+/// oracle at quick size (every ray's escape is checked whatever the sample).
+fn instanced_sphere_case(
+    name: String,
+    description: String,
+    places: &[Place],
+    inside: &[DVec3],
+    (cap, quick_sample): (usize, usize),
+    size: Size,
+) -> Case {
+    let mesh = unit_icosphere(if quick(size) { 2 } else { 3 });
+    let tris = mesh.triangles();
+    let n = tris.len();
+    let instances: Vec<Instance> = places
+        .iter()
+        .map(|p| Instance::new(0, affine_from_f64(p.scale, p.rotation, p.translation)))
+        .collect();
+    let mut c = Case::instanced(name, description, vec![tris], instances.clone());
+    for (k, inst) in instances.iter().enumerate() {
+        let m = to_f64(&inst.transform);
+        let world = c.tris[k * n..(k + 1) * n].to_vec();
+        for rel in inside {
+            let from = m.transform_point3(*rel).as_vec3();
+            let rays = aim_at_placed_vertices_and_edges(
+                &mesh,
+                |p| m.transform_point3(p),
+                from,
+                fractions(size),
+            );
+            let all = rays.len();
+            let rays = thin(rays, cap);
+            if rays.len() < all {
+                c.notes.push(format!(
+                    "instance {k}, from {from}: {} of {all} vertex/edge rays (evenly thinned)",
+                    rays.len()
+                ));
+            }
+            if is_inside(&world, from, 0.0) {
+                c.push_rays(rays, Expect::MustHit);
+            } else {
+                c.notes.push(format!(
+                    "instance {k}: the point {from} is not verified inside (rounding to f32 moved it out); its {} rays are compared with the oracle instead",
+                    rays.len()
+                ));
+                c.push_rays(rays, Expect::Oracle);
+            }
+        }
+    }
+    c.notes.push(format!(
+        "two levels: {} instances of one closed icosphere ({n} triangles)",
+        instances.len()
+    ));
+    set_budget(&mut c, size);
+    if quick(size) {
+        c.oracle_budget = c.oracle_budget.min(quick_sample);
+    }
+    finish_input(&mut c);
+    c
+}
+
+fn instance_cases(size: Size) -> Vec<Case> {
+    let inside: &[DVec3] = if quick(size) {
+        &[DVec3::ZERO, DVec3::new(0.3, -0.2, 0.1)]
+    } else {
+        &[
+            DVec3::ZERO,
+            DVec3::new(0.3, -0.2, 0.1),
+            DVec3::new(0.52, 0.61, -0.4),
+        ]
+    };
+    let mut out = Vec::new();
+    let mut every = Vec::new();
+    for (name, what, places) in instance_placements() {
+        out.push(instanced_sphere_case(
+            format!("instances-{name}"),
+            format!("a closed icosphere instanced {} times, {what}; rays from inside each instance aimed exactly at its world-space vertices and edge points", places.len()),
+            &places,
+            inside,
+            (usize::MAX, 2048),
+            size,
+        ));
+        every.extend(places);
+    }
+    out.push(instanced_sphere_case(
+        "instances-mixed".into(),
+        format!(
+            "every placement of the other instances-* cases at once: {} instances of one closed icosphere in one two-level BVH, scales 1e-6 .. 1e6, some overlapping or nested; rays from inside each instance aimed at its world-space vertices and edge points",
+            every.len()
+        ),
+        &every,
+        &inside[1..2],
+        (if quick(size) { 400 } else { 4000 }, 1024),
+        size,
+    ));
+    out
+}
+
 /// Closest hit of a ray over triangles given in f64 (Moller-Trumbore in f64): the
 /// intended answer for geometry that f32 cannot hold exactly.
 fn closest_f64(tris: &[[DVec3; 3]], ray: &Ray) -> u32 {
@@ -1317,6 +1515,44 @@ mod tests {
                 assert_eq!(p.probes.len(), c.rays.len());
                 assert_eq!(p.prim_surface.len(), c.tris.len());
             }
+        }
+    }
+
+    #[test]
+    fn instance_cases_are_two_levels_with_every_ray_from_inside() {
+        let cases = select_cases(&["instances".into()], Size::Quick).expect("known");
+        assert_eq!(cases.len(), 7);
+        for c in &cases {
+            let inst = c.instancing.as_ref().expect("two levels");
+            let per: usize = inst
+                .instances
+                .iter()
+                .map(|i| inst.meshes[i.mesh as usize].len())
+                .sum();
+            assert_eq!(c.tris.len(), per, "{}", c.name);
+            assert!(
+                c.expect.iter().all(|e| *e == Expect::MustHit),
+                "{}: {:?}",
+                c.name,
+                c.notes
+            );
+        }
+        // The mirrored instances keep their winding in the flattened scene: the signed
+        // volume of each flattened sphere is positive.
+        let m = cases
+            .iter()
+            .find(|c| c.name == "instances-mirrored")
+            .expect("mirrored");
+        let n = m.tris.len() / 3;
+        for k in 0..3 {
+            let vol: f64 = m.tris[k * n..(k + 1) * n]
+                .iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|p| p.as_dvec3());
+                    a.dot(b.cross(c))
+                })
+                .sum();
+            assert!(vol > 0.0, "instance {k}: {vol}");
         }
     }
 

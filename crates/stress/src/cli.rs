@@ -21,8 +21,9 @@ pub struct StressArgs {
     /// goes to standard error).
     #[arg(long, value_name = "FILE")]
     pub json: Option<String>,
-    /// Backends, comma-separated: `gpu` (the WGSL kernels, when a Vulkan adapter exists),
-    /// `cpu` (their CPU twins). The CPU twins are always traced to check the GPU against.
+    /// Backends, comma-separated: `gpu` (the WGSL kernels through wgpu, when a Vulkan
+    /// adapter exists), `vk` (the same kernels on raw Vulkan through ash), `cpu` (their CPU
+    /// twins). The CPU twins are always traced to check the GPU against.
     #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
     pub backends: Vec<String>,
     /// Small sizes (what the test suite runs): seconds instead of minutes.
@@ -39,6 +40,8 @@ struct JsonReport<'a> {
     backends: Vec<String>,
     gpu: Option<String>,
     gpu_note: Option<String>,
+    vk: Option<String>,
+    vk_note: Option<String>,
     clean: bool,
     cases: &'a [CaseReport],
 }
@@ -53,17 +56,18 @@ pub fn run(args: StressArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let (mut cpu, mut gpu) = (false, false);
+    let (mut cpu, mut gpu, mut vk) = (false, false, false);
     for b in &args.backends {
         match b.trim() {
             "cpu" => cpu = true,
             "gpu" => gpu = true,
+            "vk" | "vulkan" | "ash" => vk = true,
             "" => {}
-            other => bail!("unknown backend '{other}' (expected gpu, cpu)"),
+            other => bail!("unknown backend '{other}' (expected gpu, vk, cpu)"),
         }
     }
-    if !cpu && !gpu {
-        bail!("--backends lists no backend (expected gpu, cpu)");
+    if !cpu && !gpu && !vk {
+        bail!("--backends lists no backend (expected gpu, vk, cpu)");
     }
     // An unwritable JSON path fails now, not after minutes of work.
     if let Some(path) = args.json.as_deref().filter(|p| *p != "-") {
@@ -80,24 +84,37 @@ pub fn run(args: StressArgs) -> Result<()> {
         Box::new(std::io::stdout())
     };
 
-    let backends = Backends::new(cpu, gpu);
+    let mut backends = Backends::new(cpu, gpu);
+    if vk {
+        backends = backends.with_vulkan();
+    }
     if gpu && backends.gpu.is_none() {
         let note = backends.gpu_note.clone().unwrap_or_default();
-        if !cpu {
+        if !cpu && backends.vk.is_none() {
             bail!("no GPU: {note}");
         }
         writeln!(out, "SKIP gpu: {note}")?;
     }
+    if vk && backends.vk.is_none() {
+        let note = backends.vk_note.clone().unwrap_or_default();
+        if !cpu && backends.gpu.is_none() {
+            bail!("no Vulkan device for ash: {note}");
+        }
+        writeln!(out, "SKIP vk: {note}")?;
+    }
     let cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
     writeln!(
         out,
-        "bvhtrace stress: {} cases ({:?} size), backends: {}{}",
+        "bvhtrace stress: {} cases ({:?} size), backends: {}{}{}",
         cases.len(),
         size,
         if cpu { "cpu " } else { "" },
         backends
             .gpu_name()
-            .map_or(String::new(), |n| format!("gpu ({n})"))
+            .map_or(String::new(), |n| format!("gpu ({n}) ")),
+        backends
+            .vk_name()
+            .map_or(String::new(), |n| format!("vk ({n})"))
     )?;
     writeln!(
         out,
@@ -135,6 +152,8 @@ pub fn run(args: StressArgs) -> Result<()> {
             backends: args.backends.clone(),
             gpu: backends.gpu_name(),
             gpu_note: backends.gpu_note.clone(),
+            vk: backends.vk_name(),
+            vk_note: backends.vk_note.clone(),
             clean: failed.is_empty(),
             cases: &reports,
         };

@@ -5,8 +5,8 @@
 use std::collections::HashMap;
 
 use bvhtrace_core::oracle;
-use bvhtrace_core::{Ray, Triangle};
-use glam::{DVec3, Vec3};
+use bvhtrace_core::{Instance, Ray, Triangle};
+use glam::{Affine3A, DAffine3, DVec3, Mat4, Vec3};
 
 /// A triangle mesh with shared vertices (the shape watertightness is defined on).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -264,6 +264,69 @@ pub fn aim_at_vertices_and_edges(mesh: &IndexedMesh, from: Vec3, fractions: &[f6
     }
     rays.retain(|r| Vec3::from(r.dir) != Vec3::ZERO);
     rays
+}
+
+/// Rays from `from` aimed exactly at every vertex of `mesh` and at the points
+/// `a + s (b - a)` of every edge, each target placed by `place` (in f64: an instance's
+/// transform, [`to_f64`]) and the direction computed in f64 and rounded once, as
+/// [`aim_at_vertices_and_edges`] does for an untransformed mesh.
+pub fn aim_at_placed_vertices_and_edges(
+    mesh: &IndexedMesh,
+    place: impl Fn(DVec3) -> DVec3,
+    from: Vec3,
+    fractions: &[f64],
+) -> Vec<Ray> {
+    let o = from.as_dvec3();
+    let mut rays: Vec<Ray> = mesh
+        .positions
+        .iter()
+        .map(|v| Ray::new(from, (place(v.as_dvec3()) - o).as_vec3()))
+        .collect();
+    for (a, b) in mesh.edges() {
+        let (a, b) = (
+            mesh.positions[a as usize].as_dvec3(),
+            mesh.positions[b as usize].as_dvec3(),
+        );
+        for &s in fractions {
+            rays.push(Ray::new(from, (place(a + (b - a) * s) - o).as_vec3()));
+        }
+    }
+    rays.retain(|r| Vec3::from(r.dir) != Vec3::ZERO);
+    rays
+}
+
+/// The f32 transform converted to f64 exactly (every entry).
+pub fn to_f64(m: &Affine3A) -> DAffine3 {
+    DAffine3::from_mat4(Mat4::from(*m).as_dmat4())
+}
+
+/// A transform made in f64 (`scale`, then `rotation`, then `translation`), each entry
+/// rounded once to f32: the f32 transform is the input, exactly as [`to_f64`] reads it.
+pub fn affine_from_f64(scale: DVec3, rotation: glam::DQuat, translation: DVec3) -> Affine3A {
+    let d = DAffine3::from_scale_rotation_translation(scale, rotation, translation);
+    Affine3A::from_mat4(glam::DMat4::from(d).as_mat4())
+}
+
+/// The flattened scene of two levels: each instance's mesh in world space
+/// (`Affine3A::transform_point3` in f32, as `InstancedBvh::world_triangle` and the scene
+/// crate's `Scene::flatten` place it), instance after instance, so that triangle `i` is
+/// the two-level BVH's primitive `i`. A mirroring transform (determinant < 0) swaps
+/// corners 1 and 2 to keep the winding. Instances naming no mesh are left out (the
+/// two-level build refuses them).
+pub fn flatten_instances(meshes: &[Vec<Triangle>], instances: &[Instance]) -> Vec<Triangle> {
+    let mut out = Vec::new();
+    for inst in instances {
+        let Some(mesh) = meshes.get(inst.mesh as usize) else {
+            continue;
+        };
+        let m = inst.transform;
+        let mirror = m.matrix3.determinant() < 0.0;
+        out.extend(mesh.iter().map(|t| {
+            let w = t.map(|p| m.transform_point3(p));
+            if mirror { [w[0], w[2], w[1]] } else { w }
+        }));
+    }
+    out
 }
 
 /// Directions for the inside test: irrational-looking, so no ray runs exactly through an

@@ -4,8 +4,11 @@
 //! * [`cases`] generates every [`Case`]: a scene (triangles), rays, and what each ray's
 //!   answer should be ([`Expect`]): known exactly, or whatever the f64 oracle
 //!   ([`bvhtrace_core::oracle`]) says for the f32 input.
-//! * [`run_case`] builds the BVH and traces the rays on every [`Backends`] entry (the CPU
-//!   twins, and the GPU kernels when an adapter exists) with every traversal and query,
+//! * [`run_case`] builds the BVH (two levels, an [`bvhtrace_core::InstancedBvh`], when
+//!   the case has [`Case::instancing`]) and traces the rays on every [`Backends`] entry
+//!   (the CPU twins, and the GPU kernels through wgpu and, with
+//!   [`Backends::with_vulkan`], through ash, when a device exists) with every traversal
+//!   and query,
 //!   and compares: against the known answers, against the f64 oracle (differences
 //!   classified as *f32-indeterminate* or *wrong* with
 //!   [`bvhtrace_core::oracle::f32_indeterminate`] and
@@ -27,11 +30,12 @@ pub mod offset;
 mod report;
 mod runner;
 
-use bvhtrace_core::{BuildOptions, Ray, Triangle};
+use bvhtrace_core::{BuildOptions, Instance, Ray, Triangle};
 use serde::Serialize;
 
 pub use cases::{CASE_GROUPS, cases, cases_sized, select_cases};
 pub use cli::{StressArgs, run};
+pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
@@ -156,6 +160,21 @@ pub struct Case {
     /// unconditional guarantees (no crash, no NaN, the hit contract, GPU = CPU) are held
     /// against them; their accuracy is reported, not required.
     pub guaranteed: bool,
+    /// Two levels: when set, the runner builds an [`bvhtrace_core::InstancedBvh`] over
+    /// these meshes and instances instead of one BVH over `tris`, and `tris` holds the
+    /// flattened scene ([`flatten_instances`]: every instance's triangles in world space,
+    /// in primitive order), for the table and the inside tests. The oracle traces each
+    /// instance's mesh with the ray as the walks transform it (see `GUARANTEES.md`).
+    pub instancing: Option<Instancing>,
+}
+
+/// The two levels of an instanced case (see [`Case::instancing`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Instancing {
+    /// Each mesh's triangles, in object space.
+    pub meshes: Vec<Vec<Triangle>>,
+    /// The placements; primitive ids are numbered instance by instance in this order.
+    pub instances: Vec<Instance>,
 }
 
 impl Case {
@@ -177,7 +196,22 @@ impl Case {
             notes: Vec::new(),
             precision: None,
             guaranteed: true,
+            instancing: None,
         }
+    }
+
+    /// A two-level case: `tris` is the flattened scene ([`flatten_instances`]), no rays
+    /// yet.
+    pub fn instanced(
+        name: impl Into<String>,
+        description: impl Into<String>,
+        meshes: Vec<Vec<Triangle>>,
+        instances: Vec<Instance>,
+    ) -> Case {
+        let mut c = Case::new(name, description);
+        c.tris = flatten_instances(&meshes, &instances);
+        c.instancing = Some(Instancing { meshes, instances });
+        c
     }
 
     /// Adds rays with one expectation.

@@ -7,11 +7,12 @@ use std::time::{Duration, Instant};
 use bvhtrace_core::intersect::flush_subnormal;
 use bvhtrace_core::oracle::{self, OracleHit, PreparedRay64};
 use bvhtrace_core::{
-    FlatBvh, Hit, INVALID_RAY, MISS, Precision, Query, Ray, TraceOptions, TraceOutput, Traversal,
-    Triangle, brute_force,
+    FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, Precision, Query, Ray,
+    TraceOptions, TraceOutput, Traversal, Triangle, brute_force,
 };
 use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
 use bvhtrace_kernels::{CpuTracer, FULL_STACK_SIZE, TraceError, Tracer};
+use bvhtrace_vk::{VkBvh, VkContext};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -27,7 +28,8 @@ pub const TRAVERSALS: [Traversal; 4] = [
     Traversal::FullStack,
 ];
 
-/// Where to trace: the CPU twins, and the GPU kernels when a device was opened.
+/// Where to trace: the CPU twins, and the GPU kernels when a device was opened (through
+/// wgpu, rows `gpu`; through ash, rows `vk`).
 #[derive(Clone)]
 pub struct Backends {
     /// Report the CPU twins' rows (they are always traced: the GPU is compared with them).
@@ -36,6 +38,10 @@ pub struct Backends {
     pub gpu: Option<GpuContext>,
     /// Why there is no GPU (no adapter, or not asked for).
     pub gpu_note: Option<String>,
+    /// The same kernels on raw Vulkan through ash ([`Backends::with_vulkan`]).
+    pub vk: Option<VkContext>,
+    /// Why there is no ash device (no Vulkan loader or device, or not asked for).
+    pub vk_note: Option<String>,
 }
 
 impl std::fmt::Debug for Backends {
@@ -44,6 +50,8 @@ impl std::fmt::Debug for Backends {
             .field("cpu", &self.cpu)
             .field("gpu", &self.gpu_name())
             .field("gpu_note", &self.gpu_note)
+            .field("vk", &self.vk_name())
+            .field("vk_note", &self.vk_note)
             .finish()
     }
 }
@@ -55,6 +63,8 @@ impl Backends {
             cpu: true,
             gpu: None,
             gpu_note: Some("not asked for".into()),
+            vk: None,
+            vk_note: Some("not asked for".into()),
         }
     }
 
@@ -72,11 +82,31 @@ impl Backends {
                 cpu,
                 gpu: Some(ctx),
                 gpu_note: None,
+                ..Backends::cpu_only()
             },
             Err(e) => Backends {
                 cpu,
                 gpu: None,
                 gpu_note: Some(e.to_string()),
+                ..Backends::cpu_only()
+            },
+        }
+    }
+
+    /// These backends plus the kernels on raw Vulkan through ash (`$BVHTRACE_ADAPTER` or
+    /// the best device), traced and compared with the CPU twins like the wgpu rows. Without
+    /// a Vulkan loader or device, `vk_note` says why.
+    pub fn with_vulkan(self) -> Backends {
+        match VkContext::new(AdapterChoice::Auto) {
+            Ok(ctx) => Backends {
+                vk: Some(ctx),
+                vk_note: None,
+                ..self
+            },
+            Err(e) => Backends {
+                vk: None,
+                vk_note: Some(e.to_string()),
+                ..self
             },
         }
     }
@@ -84,6 +114,11 @@ impl Backends {
     /// The GPU adapter's name.
     pub fn gpu_name(&self) -> Option<String> {
         self.gpu.as_ref().map(|g| g.adapter_info().name.clone())
+    }
+
+    /// The ash device's name.
+    pub fn vk_name(&self) -> Option<String> {
+        self.vk.as_ref().map(|v| v.device_info().name.clone())
     }
 }
 
@@ -137,7 +172,7 @@ pub struct PrecisionRow {
 /// One backend x traversal x query over all of a case's rays.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct RunReport {
-    /// `cpu` or `gpu`.
+    /// `cpu`, `gpu` (the kernels through wgpu) or `vk` (through ash).
     pub backend: String,
     /// The traversal (`stackless`, `short-stack(6)`, ...).
     pub traversal: String,
@@ -262,6 +297,8 @@ pub struct CaseReport {
     pub notes: Vec<String>,
     /// The GPU adapter, or why there was none.
     pub gpu: String,
+    /// The ash device (`vk` rows), or why there was none.
+    pub vk: String,
     /// What uploading a tree deeper than the full-stack kernel's stack did (deep trees).
     pub gpu_full_stack: Option<String>,
     /// One entry per backend x traversal x query.
@@ -297,9 +334,116 @@ impl CaseReport {
     }
 }
 
+/// The scene as the judging sees it. One mesh: its triangles, tested against the ray as
+/// given. Two levels: primitive `prim_base + p` of an instance is its mesh's triangle `p`,
+/// tested in the mesh's space against the ray as the walks transform it
+/// ([`FlatInstance::ray_to_object`], the kernels' f32 arithmetic), so that the oracle, the
+/// f32-indeterminacy tests and the `t` error bounds are those of the test the walk makes.
+/// `t` is the world ray's parameter either way (the direction is transformed, not
+/// normalised), so it is compared with the oracle's as it is.
+enum Geometry<'a> {
+    Flat(&'a [Triangle]),
+    Instanced(Vec<Placed<'a>>),
+}
+
+/// One instance of a two-level case: how the walks enter it, and its mesh's triangles.
+struct Placed<'a> {
+    flat: FlatInstance,
+    tris: &'a [Triangle],
+}
+
+impl<'a> Geometry<'a> {
+    /// The judging view of `case`, built as `bvh` (its instances, when two levels).
+    fn new(case: &'a Case, bvh: &FlatBvh) -> Geometry<'a> {
+        match &case.instancing {
+            None => Geometry::Flat(&case.tris),
+            Some(inst) => Geometry::Instanced(
+                bvh.instances
+                    .iter()
+                    .zip(&inst.instances)
+                    .map(|(flat, i)| Placed {
+                        flat: *flat,
+                        tris: inst.meshes[i.mesh as usize].as_slice(),
+                    })
+                    .collect(),
+            ),
+        }
+    }
+
+    /// The ray in an instance's space, as traced there (subnormal direction components
+    /// flushed); `None` when the walks cannot enter it with this ray.
+    fn object_ray(p: &Placed<'_>, ray: &Ray) -> Option<Ray> {
+        as_traced(&p.flat.ray_to_object(ray))
+    }
+
+    /// Primitive `prim`'s triangle and the ray it is tested against.
+    fn local(&self, prim: u32, ray: &Ray) -> Option<(Triangle, Ray)> {
+        match self {
+            Geometry::Flat(tris) => tris.get(prim as usize).map(|t| (*t, *ray)),
+            Geometry::Instanced(placed) => {
+                let k = placed
+                    .partition_point(|p| p.flat.prim_base <= prim)
+                    .checked_sub(1)?;
+                let p = &placed[k];
+                let tri = *p.tris.get((prim - p.flat.prim_base) as usize)?;
+                Some((tri, Geometry::object_ray(p, ray)?))
+            }
+        }
+    }
+
+    /// The f64 oracle's closest hit (ties to the lower primitive id).
+    fn closest(&self, ray: &Ray) -> OracleHit {
+        match self {
+            Geometry::Flat(tris) => oracle::closest_hit(tris, ray),
+            Geometry::Instanced(placed) => {
+                // The miss (or the invalid-ray answer) for this ray.
+                let mut best = oracle::closest_hit(&[], ray);
+                if !best.is_hit() && best.prim != MISS {
+                    return best;
+                }
+                for p in placed {
+                    let Some(r) = Geometry::object_ray(p, ray) else {
+                        continue;
+                    };
+                    let h = oracle::closest_hit(p.tris, &r);
+                    if !h.is_hit() {
+                        continue;
+                    }
+                    let prim = p.flat.prim_base + h.prim;
+                    if h.t < best.t || (h.t == best.t && best.is_hit() && prim < best.prim) {
+                        best = OracleHit { prim, ..h };
+                    }
+                }
+                best
+            }
+        }
+    }
+
+    /// Every primitive the f64 test accepts in the ray's interval, nearest first.
+    fn all_hits(&self, ray: &Ray) -> Vec<(f64, u32)> {
+        match self {
+            Geometry::Flat(tris) => oracle::all_hits(tris, ray),
+            Geometry::Instanced(placed) => {
+                let mut hits: Vec<(f64, u32)> = placed
+                    .iter()
+                    .filter_map(|p| Some((p, Geometry::object_ray(p, ray)?)))
+                    .flat_map(|(p, r)| {
+                        oracle::all_hits(p.tris, &r)
+                            .into_iter()
+                            .map(|(t, q)| (t, p.flat.prim_base + q))
+                    })
+                    .collect();
+                hits.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                hits
+            }
+        }
+    }
+}
+
 /// Per-case data every run is judged with.
 struct Judge<'a> {
     case: &'a Case,
+    geo: Geometry<'a>,
     sample: Vec<usize>,
     /// `sample` position of each ray, or `usize::MAX`.
     position: Vec<usize>,
@@ -380,7 +524,7 @@ enum Diff {
 /// of difference and whether it is f32-indeterminate; `None` when they agree (any-hit
 /// queries compare hit or miss only).
 fn judge(
-    tris: &[Triangle],
+    geo: &Geometry<'_>,
     ray: &Ray,
     h: &Hit,
     ref_prim: u32,
@@ -392,36 +536,43 @@ fn judge(
         (false, false) => None,
         (false, true) => {
             // Every triangle f64 accepts must be one f32 may reject.
-            let all = oracle::all_hits(tris, ray);
+            let all = geo.all_hits(ray);
             let indet = all.is_empty()
-                || all
-                    .iter()
-                    .all(|&(t, p)| acceptance_indeterminate(&tris[p as usize], ray, Some(t)));
+                || all.iter().all(|&(t, p)| {
+                    geo.local(p, ray)
+                        .is_none_or(|(tri, r)| acceptance_indeterminate(&tri, &r, Some(t)))
+                });
             Some(Diff::FalseMiss(indet))
         }
         (true, false) => {
-            let tri = &tris[h.prim as usize];
+            let Some((tri, r)) = geo.local(h.prim, ray) else {
+                return Some(Diff::FalseHit(false));
+            };
             Some(Diff::FalseHit(acceptance_indeterminate(
-                tri,
-                ray,
-                t64(tri, ray),
+                &tri,
+                &r,
+                t64(&tri, &r),
             )))
         }
         (true, true) if query == Query::Closest && h.prim != ref_prim => {
-            let (tr, th) = (&tris[ref_prim as usize], &tris[h.prim as usize]);
+            let (Some((tr, rr)), Some((th, rh))) =
+                (geo.local(ref_prim, ray), geo.local(h.prim, ray))
+            else {
+                return Some(Diff::WrongPrim(false));
+            };
             let (br, bh) = (
-                oracle::f32_t_error_bound(tr, ray),
-                oracle::f32_t_error_bound(th, ray),
+                oracle::f32_t_error_bound(&tr, &rr),
+                oracle::f32_t_error_bound(&th, &rh),
             );
-            let tie = match t64(th, ray) {
+            let tie = match t64(&th, &rh) {
                 Some(t) => (t - ref_t).abs() <= br + bh || near_interval_end(ray, t, bh),
                 None => false,
             };
             let indet = tie
                 || !br.is_finite()
                 || !bh.is_finite()
-                || oracle::f32_indeterminate(tr, ray)
-                || oracle::f32_indeterminate(th, ray)
+                || oracle::f32_indeterminate(&tr, &rr)
+                || oracle::f32_indeterminate(&th, &rh)
                 || near_interval_end(ray, ref_t, br);
             Some(Diff::WrongPrim(indet))
         }
@@ -504,7 +655,10 @@ impl Judge<'_> {
             if h.is_hit()
                 && (h.prim as usize) < tris.len()
                 && h.t.is_finite()
-                && phantom(&tris[h.prim as usize], ray, h.t)
+                && self
+                    .geo
+                    .local(h.prim, ray)
+                    .is_some_and(|(tri, r)| phantom(&tri, &r, h.t))
             {
                 r.phantom_hits += 1;
             }
@@ -514,7 +668,7 @@ impl Judge<'_> {
                     if !h.is_hit() {
                         let indet = match &self.traced[i] {
                             Some(tr) => matches!(
-                                judge(tris, tr, h, 0, 0.0, Query::Any),
+                                judge(&self.geo, tr, h, 0, 0.0, Query::Any),
                                 Some(Diff::FalseMiss(true))
                             ),
                             None => true,
@@ -593,43 +747,46 @@ impl Judge<'_> {
                 };
                 let o = &self.oracle[k];
                 let b = &self.brute[k];
-                let oracle_diff = judge(tris, ray, h, o.prim, o.t, query);
+                let geo = &self.geo;
+                let oracle_diff = judge(geo, ray, h, o.prim, o.t, query);
+                // The brute force's f64 distance, for judging a difference from it.
+                let brute_t = || {
+                    if b.is_hit() {
+                        geo.local(b.prim, ray)
+                            .and_then(|(tri, r)| t64(&tri, &r))
+                            .unwrap_or(b.t as f64)
+                    } else {
+                        0.0
+                    }
+                };
                 let brute_diff = if closest {
                     if hit_bits(h) == hit_bits(b) {
                         None
                     } else if h.is_hit()
                         && b.is_hit()
                         && h.t.to_bits() == b.t.to_bits()
-                        && tris[h.prim as usize] == tris[b.prim as usize]
+                        && geo.local(h.prim, ray).is_some()
+                        && geo.local(h.prim, ray) == geo.local(b.prim, ray)
                     {
                         // Exact duplicates tie exactly: the lower index must win, f32 or
                         // not (the traversal skipped it or broke the tie rule).
                         Some(Diff::WrongPrim(false))
                     } else {
-                        let bt = if b.is_hit() {
-                            t64(&tris[b.prim as usize], ray).unwrap_or(b.t as f64)
-                        } else {
-                            0.0
-                        };
                         Some(
-                            judge(tris, ray, h, b.prim, bt, query)
+                            judge(geo, ray, h, b.prim, brute_t(), query)
                                 .unwrap_or(Diff::WrongPrim(false)),
                         )
                     }
                 } else {
-                    let bt = if b.is_hit() {
-                        t64(&tris[b.prim as usize], ray).unwrap_or(b.t as f64)
-                    } else {
-                        0.0
-                    };
-                    judge(tris, ray, h, b.prim, bt, query)
+                    judge(geo, ray, h, b.prim, brute_t(), query)
                 };
                 let (mut t_rel, mut beyond) = (None, false);
                 if closest && h.is_hit() && h.prim == o.prim {
                     let err = (h.t as f64 - o.t).abs();
                     t_rel = Some(if o.t != 0.0 { err / o.t.abs() } else { err });
-                    let bound = oracle::f32_t_error_bound(&tris[h.prim as usize], ray);
-                    beyond = err > bound;
+                    if let Some((tri, r)) = geo.local(h.prim, ray) {
+                        beyond = err > oracle::f32_t_error_bound(&tri, &r);
+                    }
                 }
                 One {
                     oracle: oracle_diff,
@@ -763,7 +920,7 @@ impl Judge<'_> {
                 row.traced_wrong_surface += 1;
             }
             let Some(ray) = &self.traced[i] else { continue };
-            if let Some(d) = judge(&self.case.tris, ray, h, o.prim, o.t, Query::Closest) {
+            if let Some(d) = judge(&self.geo, ray, h, o.prim, o.t, Query::Closest) {
                 let x = match d {
                     Diff::FalseMiss(x) | Diff::FalseHit(x) | Diff::WrongPrim(x) => x,
                 };
@@ -873,8 +1030,10 @@ fn trace_all(
     (runs, hits)
 }
 
-/// Builds the case's BVH, traces its rays with every traversal and query on every backend
-/// (the CPU twins always, to compare the GPU with; reported when `backends.cpu`), and
+/// Builds the case's BVH (two levels when it has [`Case::instancing`]; an unusable
+/// instance is the report's `error`, naming it), traces its rays with every traversal and
+/// query on every backend (the CPU twins always, to compare the GPU with; reported when
+/// `backends.cpu`; then wgpu and ash, each compared with the CPU twins bit for bit), and
 /// judges every answer (see [`RunReport`]).
 pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     let start = Instant::now();
@@ -890,6 +1049,10 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             .gpu_name()
             .or_else(|| backends.gpu_note.clone().map(|n| format!("none: {n}")))
             .unwrap_or_default(),
+        vk: backends
+            .vk_name()
+            .or_else(|| backends.vk_note.clone().map(|n| format!("none: {n}")))
+            .unwrap_or_default(),
         ..Default::default()
     };
     if case.tris.is_empty() {
@@ -897,7 +1060,15 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         return rep;
     }
     let t = Instant::now();
-    let bvh = match FlatBvh::build(&case.tris, &case.build) {
+    // Two levels when the case has instances (an unusable transform is an error naming
+    // the instance, reported as the case's error), else one BVH over the triangles.
+    let built = match &case.instancing {
+        None => FlatBvh::build(&case.tris, &case.build).map_err(|e| e.to_string()),
+        Some(inst) => InstancedBvh::build(&inst.meshes, inst.instances.clone(), &case.build)
+            .map(|ib| ib.bvh().clone())
+            .map_err(|e| format!("two levels: {e}")),
+    };
+    let bvh = match built {
         Ok(b) => b,
         Err(e) => {
             rep.error = Some(format!("build failed: {e}"));
@@ -909,13 +1080,14 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     rep.depth = bvh.depth;
 
     let t = Instant::now();
+    let geo = Geometry::new(case, &bvh);
     let sample = sample_indices(case.rays.len(), case.oracle_budget.max(1));
     let traced: Vec<Option<Ray>> = case.rays.iter().map(as_traced).collect();
     let oracle: Vec<OracleHit> = sample
         .par_iter()
         .map(|&i| match &traced[i] {
-            Some(r) => oracle::closest_hit(&case.tris, r),
-            None => oracle::closest_hit(&case.tris, &case.rays[i]),
+            Some(r) => geo.closest(r),
+            None => geo.closest(&case.rays[i]),
         })
         .collect();
     let brute: Vec<Hit> = sample
@@ -930,6 +1102,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     }
     let judge = Judge {
         case,
+        geo,
         sample,
         position,
         oracle,
@@ -991,6 +1164,26 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             Ok(gpu) => {
                 let (runs, _) =
                     trace_all(&gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
+                rep.runs.extend(runs);
+            }
+        }
+    }
+
+    // The same kernels through ash: the upload takes any depth, the full-stack walk then
+    // refuses a tree deeper than its stack (`trace_timed`).
+    if let Some(ctx) = &backends.vk {
+        match VkBvh::upload(ctx, &bvh) {
+            Err(e) => {
+                for tr in TRAVERSALS {
+                    for &q in queries {
+                        let mut r = run_report("vk", tr, q);
+                        r.status = format!("upload failed: {e}");
+                        rep.runs.push(r);
+                    }
+                }
+            }
+            Ok(vk) => {
+                let (runs, _) = trace_all(&vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
             }
         }

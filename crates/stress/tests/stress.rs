@@ -1,5 +1,7 @@
 //! The stress cases at quick size, on the CPU twins and (when a Vulkan adapter exists) the
-//! GPU kernels: the guarantees `GUARANTEES.md` states.
+//! GPU kernels through wgpu (rows `gpu`), and the `instances-*` cases also through ash
+//! (rows `vk`; `bvhtrace stress --backends cpu,gpu,vk` runs every case there): the
+//! guarantees `GUARANTEES.md` states.
 //!
 //! Every case runs once (shared by the tests below), each on its own thread with a time
 //! limit, so a hang fails the run instead of stalling it.
@@ -7,9 +9,13 @@
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+use bvhtrace_core::{BuildOptions, Instance, InstanceError, InstancedBvh, Ray};
+use bvhtrace_stress::geom::{IndexedMesh, unit_icosphere};
 use bvhtrace_stress::{
-    Backends, CaseReport, RunReport, Size, cases_sized, format_table, run_case_with_timeout,
+    Backends, Case, CaseReport, Expect, RunReport, Size, cases_sized, format_table, run_case,
+    run_case_with_timeout, select_cases,
 };
+use glam::{Affine3A, Vec3};
 
 /// Generous: the slowest quick case takes a few seconds on two cores.
 const CASE_LIMIT: Duration = Duration::from_secs(120);
@@ -19,6 +25,7 @@ struct Suite {
     /// Cases that hung or panicked.
     failures: Vec<String>,
     gpu: bool,
+    vk: bool,
 }
 
 fn suite() -> &'static Suite {
@@ -26,6 +33,9 @@ fn suite() -> &'static Suite {
     SUITE.get_or_init(|| {
         let start = Instant::now();
         let backends = Backends::new(true, true);
+        // ash on the two-level cases (the kernels' instanced variants); the one-mesh
+        // kernels' ash = wgpu parity is `bvhtrace-vk`'s own test.
+        let with_vk = backends.clone().with_vulkan();
         match backends.gpu_name() {
             Some(n) => println!("GPU: {n}"),
             None => println!(
@@ -33,20 +43,42 @@ fn suite() -> &'static Suite {
                 backends.gpu_note.clone().unwrap_or_default()
             ),
         }
+        match with_vk.vk_name() {
+            Some(n) => println!("ash (instances-*): {n}"),
+            None => println!(
+                "SKIP the ash rows: {}",
+                with_vk.vk_note.clone().unwrap_or_default()
+            ),
+        }
         let mut reports = Vec::new();
         let mut failures = Vec::new();
         for case in cases_sized(Size::Quick) {
-            match run_case_with_timeout(&case, &backends, CASE_LIMIT) {
+            let b = if case.instancing.is_some() {
+                &with_vk
+            } else {
+                &backends
+            };
+            match run_case_with_timeout(&case, b, CASE_LIMIT) {
                 Ok(r) => reports.push(r),
                 Err(e) => failures.push(e),
             }
         }
         println!("{}", format_table(&reports));
-        println!("suite: {:.1} s", start.elapsed().as_secs_f64());
+        let two_levels: f64 = reports
+            .iter()
+            .filter(|r| r.name.starts_with("instances-"))
+            .map(|r| r.elapsed_ms)
+            .sum();
+        println!(
+            "suite: {:.1} s ({:.1} s of it the instances-* cases)",
+            start.elapsed().as_secs_f64(),
+            two_levels / 1e3
+        );
         Suite {
             reports,
             failures,
             gpu: backends.gpu.is_some(),
+            vk: with_vk.vk.is_some(),
         }
     })
 }
@@ -107,7 +139,7 @@ fn every_case_runs_without_crash_or_hang() {
             Some(e) => bad.push(format!("{}: {e}", c.name)),
             None => {
                 for r in &c.runs {
-                    let refused_deep = r.backend == "gpu"
+                    let refused_deep = r.backend != "cpu"
                         && r.traversal == "full-stack"
                         && r.status.starts_with("refused");
                     if r.status != "ok" && !refused_deep {
@@ -146,7 +178,8 @@ fn no_ray_escapes_a_closed_mesh() {
                 ),
             ));
         }
-        if c.name.starts_with("watertight") && r.must_hit == 0 {
+        if (c.name.starts_with("watertight") || c.name.starts_with("instances-")) && r.must_hit == 0
+        {
             bad.push(format!("{}: no ray from inside", label(c, r)));
         }
     }
@@ -174,14 +207,16 @@ fn no_output_is_nan_and_every_hit_keeps_the_contract() {
 #[test]
 fn gpu_kernels_equal_their_cpu_twins_bit_for_bit() {
     let s = suite();
-    if !s.gpu {
+    if !s.gpu && !s.vk {
         println!("SKIP: no Vulkan adapter, the GPU kernels were not run");
         return;
     }
     let mut bad = Vec::new();
     let mut compared = 0;
-    for (c, r) in all_runs().filter(|(_, r)| r.backend == "gpu") {
+    let mut by_backend = [0, 0];
+    for (c, r) in all_runs().filter(|(_, r)| r.backend != "cpu") {
         compared += 1;
+        by_backend[usize::from(r.backend == "vk")] += 1;
         match r.parity_mismatches {
             Some(0) => {}
             Some(n) => bad.push(with_examples(
@@ -194,6 +229,12 @@ fn gpu_kernels_equal_their_cpu_twins_bit_for_bit() {
     }
     check("GPU/CPU parity", bad);
     assert!(compared >= 100, "only {compared} GPU runs");
+    if s.gpu {
+        assert!(by_backend[0] >= 100, "only {} wgpu runs", by_backend[0]);
+    }
+    if s.vk {
+        assert!(by_backend[1] >= 50, "only {} ash runs", by_backend[1]);
+    }
 }
 
 #[test]
@@ -380,7 +421,7 @@ fn only_the_long_walks_spend_the_trip_budget() {
         .is_some_and(|ctx| ctx.tuning().trip_limit != u32::MAX);
     let mut bad = Vec::new();
     let mut long_walks = 0;
-    for (c, r) in all_runs().filter(|(_, r)| r.backend == "gpu") {
+    for (c, r) in all_runs().filter(|(_, r)| r.backend != "cpu") {
         let n = r.gpu_incomplete.unwrap_or(0);
         if c.name == "coincident" {
             long_walks += n;
@@ -397,4 +438,196 @@ fn only_the_long_walks_spend_the_trip_budget() {
     } else {
         println!("SKIP the trip-budget check: no GPU, or its loops are unbounded");
     }
+}
+
+/// The `instances` group: a closed icosphere instanced rotated, scaled by 1e-6 and 1e6,
+/// non-uniformly, mirrored, translated by 1e5, and all at once. Every ray starts inside an
+/// instance and is aimed at one of its world-space vertices or edge points: none may
+/// escape, on any backend, traversal or query, and every run is clean (oracle, brute
+/// force, GPU = CPU bit for bit).
+#[test]
+fn instanced_closed_meshes_let_no_ray_escape_on_any_backend() {
+    let s = suite();
+    let cases: Vec<&CaseReport> = s
+        .reports
+        .iter()
+        .filter(|c| c.name.starts_with("instances-"))
+        .collect();
+    let names: Vec<&str> = cases.iter().map(|c| c.name.as_str()).collect();
+    for want in [
+        "instances-rotated",
+        "instances-scale-1e-6",
+        "instances-scale-1e6",
+        "instances-nonuniform",
+        "instances-mirrored",
+        "instances-offset-1e5",
+        "instances-mixed",
+    ] {
+        assert!(names.contains(&want), "{want} did not run: {names:?}");
+    }
+    let mut backends = vec!["cpu"];
+    if s.gpu {
+        backends.push("gpu");
+    } else {
+        println!("SKIP the wgpu rows: no Vulkan adapter");
+    }
+    if s.vk {
+        backends.push("vk");
+    } else {
+        println!("SKIP the ash rows: no Vulkan device");
+    }
+    let mut bad = Vec::new();
+    for c in &cases {
+        assert!(c.guaranteed, "{}", c.name);
+        if let Some(e) = &c.error {
+            bad.push(format!("{}: {e}", c.name));
+            continue;
+        }
+        for b in &backends {
+            let runs: Vec<&RunReport> = c.runs.iter().filter(|r| r.backend == *b).collect();
+            // Four traversals, closest and any-hit: the trees are shallow, nothing refused.
+            if runs.len() != 8 || runs.iter().any(|r| r.status != "ok") {
+                bad.push(format!(
+                    "{} {b}: runs {:?}",
+                    c.name,
+                    runs.iter()
+                        .map(|r| format!("{} {} {}", r.traversal, r.query, r.status))
+                        .collect::<Vec<_>>()
+                ));
+                continue;
+            }
+            let escapes: usize = runs.iter().map(|r| r.escapes.total()).sum();
+            let must_hit = runs[0].must_hit;
+            println!(
+                "{} {b}: {escapes} escapes of {must_hit} rays from inside x {} runs",
+                c.name,
+                runs.len()
+            );
+            for r in runs {
+                // Every ray of these cases starts verified inside its instance.
+                if r.must_hit == 0 || r.must_hit != r.rays {
+                    bad.push(format!(
+                        "{}: {} of {} rays from inside (notes: {:?})",
+                        label(c, r),
+                        r.must_hit,
+                        r.rays,
+                        c.notes
+                    ));
+                }
+                if r.escapes.total() > 0 || !r.clean() {
+                    bad.push(with_examples(
+                        c,
+                        r,
+                        format!(
+                            "{} escapes, {}/{} wrong primitives, {}/{} vs brute force, parity {:?}",
+                            r.escapes.total(),
+                            r.wrong_prim.wrong,
+                            r.wrong_prim.indeterminate,
+                            r.brute_mismatch.wrong,
+                            r.brute_mismatch.indeterminate,
+                            r.parity_mismatches
+                        ),
+                    ));
+                }
+                if *b != "cpu" && r.parity_mismatches != Some(0) {
+                    bad.push(format!("{}: parity {:?}", label(c, r), r.parity_mismatches));
+                }
+            }
+        }
+    }
+    check("instanced closed meshes", bad);
+}
+
+/// A case with three instances of a closed icosphere, instance `bad` placed by `m`, and a
+/// few rays from inside the first.
+fn case_with_transform(bad: usize, m: Affine3A) -> Case {
+    let mesh: IndexedMesh = unit_icosphere(1);
+    let mut instances: Vec<Instance> = [0.0, 4.0, 8.0]
+        .iter()
+        .map(|&x| Instance::new(0, Affine3A::from_translation(Vec3::new(x, 0.0, 0.0))))
+        .collect();
+    instances[bad].transform = m;
+    let mut c = Case::instanced(
+        "instances-unusable",
+        "an unusable transform",
+        vec![mesh.triangles()],
+        instances,
+    );
+    c.push_rays(
+        [Vec3::X, Vec3::Y, Vec3::NEG_Z].map(|d| Ray::new(Vec3::new(0.1, 0.0, 0.0), d)),
+        Expect::MustHit,
+    );
+    c
+}
+
+/// Singular (a zero scale), NaN and infinite transforms, and one whose inverse overflows
+/// f32, are `InstanceError::BadInstance` naming the instance, and the stress runner
+/// reports that as the case's error (no panic, no runs, not clean).
+#[test]
+fn unusable_transforms_are_errors_naming_the_instance() {
+    let mut nan = Affine3A::IDENTITY;
+    nan.matrix3.y_axis.z = f32::NAN;
+    let transforms = [
+        ("singular", Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0))),
+        ("singular", Affine3A::from_scale(Vec3::ZERO)),
+        ("NaN", nan),
+        (
+            "NaN",
+            Affine3A::from_translation(Vec3::new(0.0, f32::NAN, 0.0)),
+        ),
+        (
+            "infinite",
+            Affine3A::from_translation(Vec3::new(f32::INFINITY, 0.0, 0.0)),
+        ),
+        (
+            "infinite",
+            Affine3A::from_scale(Vec3::new(1.0, f32::NEG_INFINITY, 1.0)),
+        ),
+        // Finite and invertible in f64, but its inverse (1e40) is not an f32.
+        ("overflows", Affine3A::from_scale(Vec3::splat(1e-40))),
+    ];
+    let backends = Backends::cpu_only();
+    for bad in [1, 2] {
+        for (what, m) in transforms {
+            let case = case_with_transform(bad, m);
+            let inst = case.instancing.as_ref().expect("two levels");
+            match InstancedBvh::build(
+                &inst.meshes,
+                inst.instances.clone(),
+                &BuildOptions::default(),
+            ) {
+                Err(InstanceError::BadInstance { index, problem }) => {
+                    assert_eq!(index, bad, "{what}: {problem}");
+                    let word = match what {
+                        "NaN" | "infinite" => "NaN or infinite",
+                        w => w,
+                    };
+                    assert!(problem.contains(word), "{what}: {problem}");
+                }
+                other => panic!("{what} transform at instance {bad}: {other:?}"),
+            }
+            let rep = run_case(&case, &backends);
+            let err = rep.error.clone().unwrap_or_default();
+            assert!(
+                err.contains(&format!("instance {bad}:")),
+                "{what}: the runner said {:?}",
+                rep.error
+            );
+            assert!(rep.runs.is_empty() && !rep.clean(), "{what}: {rep:?}");
+        }
+    }
+    // The same case with a usable transform runs clean.
+    let ok = run_case(
+        &case_with_transform(1, Affine3A::from_scale(Vec3::new(-1.0, 2.0, 1e-3))),
+        &backends,
+    );
+    assert!(ok.error.is_none() && ok.clean(), "{ok:?}");
+    assert!(
+        ok.runs
+            .iter()
+            .all(|r| r.must_hit == 3 && r.escapes.total() == 0)
+    );
+    // And a group selection names every instance case.
+    let sel = select_cases(&["instances".into()], Size::Quick).expect("the group exists");
+    assert!(sel.len() >= 7 && sel.iter().all(|c| c.instancing.is_some()));
 }

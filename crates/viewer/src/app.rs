@@ -1,5 +1,6 @@
 //! The eframe application: the traced image in the central panel, the controls in the side
-//! panel, scene jobs, progressive accumulation, the CPU comparison and screenshot runs.
+//! panel, scene jobs, progressive accumulation, animation playback, the CPU comparison and
+//! screenshot runs.
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -17,7 +18,7 @@ use eframe::wgpu;
 use crate::camera;
 use crate::cli::Args;
 use crate::display::Display;
-use crate::jobs::{BuiltBvh, Job, JobOutput, JobRequest, SceneData, Source};
+use crate::jobs::{BuiltBvh, Job, JobOutput, JobRequest, PoseTimes, SceneData, Source};
 use crate::shade::{self, Accumulation, Comparison, Shade, View};
 
 /// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
@@ -29,6 +30,28 @@ const MAX_SIDE: u32 = 4096;
 
 /// The tracing time per frame that automatic samples per frame aim at, milliseconds.
 pub const FRAME_BUDGET_MS: f64 = 80.0;
+
+/// How far a `--screenshot` run's animation advances per frame, seconds.
+pub const SCREENSHOT_STEP_S: f32 = 1.0 / 30.0;
+
+/// Animation playback: the time shown, whether it advances, and what the last new pose
+/// cost.
+#[derive(Clone, Debug, Default)]
+struct Playback {
+    /// The time shown, seconds (wrapped into the scene's animation).
+    time: f32,
+    /// The time advances every frame.
+    playing: bool,
+    /// Advance this much per frame instead of the frame's wall-clock time (screenshot
+    /// runs, so that their image does not depend on the machine's speed).
+    fixed_step: Option<f32>,
+    /// The time the next scene opened starts at (`--time` for the first one, then 0).
+    start_time: f32,
+    /// What the last new pose cost.
+    last: Option<PoseTimes>,
+    /// New poses since the scene was opened.
+    poses: u64,
+}
 
 /// The three traversal families the UI offers (the short stack's size is separate).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -153,6 +176,7 @@ pub struct ViewerApp {
     compare_pending: bool,
     image_rect: egui::Rect,
     outcome: Outcome,
+    playback: Playback,
 }
 
 impl ViewerApp {
@@ -248,6 +272,14 @@ impl ViewerApp {
             compare_pending: args.compare,
             image_rect: egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(800.0, 600.0)),
             outcome,
+            playback: Playback {
+                time: args.time,
+                playing: args.play,
+                fixed_step: args.screenshot.is_some().then_some(SCREENSHOT_STEP_S),
+                start_time: args.time,
+                last: None,
+                poses: 0,
+            },
         };
         app.start_job(&cc.egui_ctx, Source::Load(spec));
         app
@@ -262,9 +294,12 @@ impl ViewerApp {
     /// Starts loading a scene or rebuilding the current one's BVH on a worker thread. A job
     /// already running is abandoned (its result is dropped).
     fn start_job(&mut self, ctx: &egui::Context, source: Source) {
-        let what = match &source {
-            Source::Load(s) => format!("opening {s}"),
-            Source::Reuse(s) => format!("rebuilding the BVH of {}", s.name),
+        let (what, time) = match &source {
+            Source::Load(s) => (format!("opening {s}"), self.playback.start_time),
+            Source::Reuse(s) => (
+                format!("rebuilding the BVH of {}", s.name),
+                self.playback.time,
+            ),
         };
         let wake = ctx.clone();
         self.job = Some(Job::spawn(
@@ -272,6 +307,7 @@ impl ViewerApp {
                 source,
                 build: self.settings.build_options(),
                 traversal: self.settings.traversal(),
+                time,
                 gpu: self.gpu.clone(),
             },
             what,
@@ -312,10 +348,55 @@ impl ViewerApp {
             self.open_text = scene.spec.clone();
             self.compare = None;
             self.error = None;
+            self.playback.time = built.time;
+            self.playback.start_time = 0.0;
+            self.playback.last = None;
+            self.playback.poses = 0;
         }
         self.built = Some(built);
         self.scene = Some(scene);
         self.generation += 1;
+    }
+
+    /// Advances the animation's time by one frame while it plays (a no-op for a scene
+    /// without animation), and asks for the next frame.
+    fn advance_time(&mut self, ctx: &egui::Context) {
+        let Some(scene) = &self.scene else { return };
+        if !scene.animated() || !self.playback.playing {
+            return;
+        }
+        let dt = self
+            .playback
+            .fixed_step
+            .unwrap_or_else(|| ctx.input(|i| i.stable_dt.clamp(0.0, 0.1)));
+        self.playback.time = scene.wrap_time(self.playback.time + dt);
+        ctx.request_repaint();
+    }
+
+    /// Moves the BVH to the shown time when it is posed at another (after the time
+    /// advanced, the slider moved, or a rebuild finished): the top level rebuilt and
+    /// updated in place on the device for two levels, the whole BVH for a flattened scene.
+    /// The next [`ViewerApp::step`] re-traces.
+    fn pose(&mut self) {
+        let (Some(scene), Some(built)) = (&self.scene, &mut self.built) else {
+            return;
+        };
+        if !scene.animated() || built.time == self.playback.time {
+            return;
+        }
+        match built.pose(&scene.scene, self.playback.time) {
+            Ok(times) => {
+                self.playback.last = Some(times);
+                self.playback.poses += 1;
+                self.generation += 1;
+            }
+            Err(e) => {
+                self.error = Some(e);
+                self.playback.playing = false;
+                // Do not retry this time every frame.
+                self.playback.time = built.time;
+            }
+        }
     }
 
     /// Frames the whole scene (the `F` key).
@@ -395,7 +476,7 @@ impl ViewerApp {
                 rays,
                 t.hits,
                 t.counters.unwrap_or_default(),
-                &scene.tris,
+                |p| built.geometry.triangle(p),
             ));
             self.view = Some(View::for_camera(
                 s.shade,
@@ -460,7 +541,7 @@ impl ViewerApp {
             return;
         };
         let t = match built
-            .cpu
+            .cpu()
             .trace(&acc.rays, &TraceOptions::closest(key.traversal))
         {
             Ok(t) => t,
@@ -536,10 +617,28 @@ impl ViewerApp {
                     let [w, h] = img.size;
                     let backend = if self.stats.on_gpu { "GPU" } else { "CPU" };
                     let samples = self.accum.as_ref().map_or(0, |a| a.samples);
+                    let animation = match (&self.scene, &self.built) {
+                        (Some(s), Some(b)) if s.animated() => format!(
+                            "; animation at t = {:.4} s, {} new poses ({}){}",
+                            b.time,
+                            self.playback.poses,
+                            if b.geometry.is_two_level() {
+                                "top level rebuilt and updated in place"
+                            } else {
+                                "flattened BVH rebuilt"
+                            },
+                            if self.playback.playing {
+                                ", playing"
+                            } else {
+                                ""
+                            }
+                        ),
+                        _ => String::new(),
+                    };
                     let r = crate::png::write_png_atomic(&path, &img).map(|()| {
                         format!(
                             "wrote {} ({w}x{h}; {} frames, traced on the {backend}, {samples} \
-                             accumulated samples per pixel)",
+                             accumulated samples per pixel{animation})",
                             path.display(),
                             shot.frames
                         )
@@ -635,6 +734,11 @@ impl ViewerApp {
         egui::CollapsingHeader::new("Scene")
             .default_open(true)
             .show(ui, |ui| self.scene_section(ui, &ctx));
+        if self.scene.as_ref().is_some_and(|s| s.animated()) {
+            egui::CollapsingHeader::new("Animation")
+                .default_open(true)
+                .show(ui, |ui| self.animation_section(ui));
+        }
         egui::CollapsingHeader::new("BVH and tracing")
             .default_open(true)
             .show(ui, |ui| self.tracing_section(ui, &ctx));
@@ -697,7 +801,15 @@ impl ViewerApp {
             let st = &b.stats;
             egui::Grid::new("stats").num_columns(2).show(ui, |ui| {
                 ui.label("triangles");
-                ui.label(fmt_count(st.triangles));
+                if b.geometry.is_two_level() {
+                    ui.label(format!(
+                        "{} in meshes, {} placed",
+                        fmt_count(st.triangles),
+                        fmt_count(scene.triangles)
+                    ));
+                } else {
+                    ui.label(fmt_count(st.triangles));
+                }
                 ui.end_row();
                 ui.label("nodes");
                 ui.label(format!(
@@ -731,6 +843,67 @@ impl ViewerApp {
                     .color(Color32::YELLOW),
             )
             .on_hover_text(scene.warnings.join("\n"));
+        }
+    }
+
+    fn animation_section(&mut self, ui: &mut egui::Ui) {
+        let Some(scene) = &self.scene else { return };
+        let duration = scene.duration;
+        let pb = &mut self.playback;
+        ui.horizontal(|ui| {
+            let label = if pb.playing { "Pause" } else { "Play" };
+            if ui
+                .button(label)
+                .on_hover_text("play or pause the glTF node animation (Space)")
+                .clicked()
+            {
+                pb.playing = !pb.playing;
+            }
+            let slider = egui::Slider::new(&mut pb.time, 0.0..=duration)
+                .text("time")
+                .suffix(" s")
+                .fixed_decimals(2);
+            if ui.add(slider).changed() {
+                pb.time = scene.wrap_time(pb.time);
+                ui.ctx().request_repaint();
+            }
+        });
+        let Some(b) = &self.built else { return };
+        match &b.geometry {
+            crate::jobs::Geometry::Instanced(ib) => {
+                ui.label(format!(
+                    "two levels: {} instances over {} meshes",
+                    ib.instances().len(),
+                    ib.meshes().len()
+                ))
+                .on_hover_text(
+                    "each new time rebuilds the top level and updates it on the GPU in place",
+                );
+            }
+            crate::jobs::Geometry::Flat { .. } => {
+                ui.label("one instance, flattened").on_hover_text(
+                    "each new time rebuilds the whole BVH (written in place when its size is \
+                     unchanged, else uploaded anew)",
+                );
+            }
+        }
+        if let Some(t) = &self.playback.last {
+            let what = if t.top_level {
+                "top-level rebuild"
+            } else {
+                "BVH rebuild"
+            };
+            let upload = if b.gpu.is_err() {
+                "no GPU copy".to_string()
+            } else if t.reuploaded {
+                format!("new upload {:.2} ms", t.upload_ms)
+            } else {
+                format!("GPU update {:.2} ms", t.upload_ms)
+            };
+            ui.label(format!("{what} {:.2} ms · {upload}", t.rebuild_ms));
+            ui.label(
+                RichText::new(format!("{} new poses since opening", self.playback.poses)).small(),
+            );
         }
     }
 
@@ -1028,7 +1201,7 @@ impl ViewerApp {
                 }
             }
             if !ctx.egui_wants_keyboard_input() {
-                let (f, r, u, fast, frame, dt) = ctx.input(|i| {
+                let (f, r, u, fast, frame, dt, play) = ctx.input(|i| {
                     use egui::Key;
                     (
                         axis(i, Key::W, Key::S),
@@ -1037,8 +1210,13 @@ impl ViewerApp {
                         i.modifiers.shift,
                         i.key_pressed(Key::F),
                         i.stable_dt.clamp(0.0, 0.1),
+                        i.key_pressed(Key::Space),
                     )
                 });
+                if play && scene.animated() {
+                    self.playback.playing = !self.playback.playing;
+                    ctx.request_repaint();
+                }
                 if f != 0.0 || r != 0.0 || u != 0.0 {
                     let step = self.fly_speed * dt * if fast { 4.0 } else { 1.0 };
                     camera::fly(&mut self.cam, f * step, r * step, u * step);
@@ -1052,6 +1230,7 @@ impl ViewerApp {
         let scale = self.settings.render_scale.clamp(0.1, 2.0);
         let px = |v: f32| ((v * ppp * scale).round() as u32).clamp(1, MAX_SIDE);
         let size = [px(rect.width()), px(rect.height())];
+        self.pose();
         if self.step(size) {
             self.display.set(
                 &ctx,
@@ -1095,6 +1274,17 @@ impl ViewerApp {
                 && v.accumulates()
             {
                 caption.push_str(&format!("  ·  {} samples", a.samples));
+            }
+            if scene.animated() {
+                caption.push_str(&format!(
+                    "  ·  t = {:.2} s{}",
+                    self.playback.time,
+                    if self.playback.playing {
+                        ""
+                    } else {
+                        " (paused)"
+                    }
+                ));
             }
         }
         let galley = painter.layout_no_wrap(
@@ -1209,6 +1399,7 @@ impl eframe::App for ViewerApp {
         let ctx = ui.ctx().clone();
         self.poll_job();
         self.handle_drops(&ctx);
+        self.advance_time(&ctx);
         egui::Panel::left("controls")
             .resizable(true)
             .default_size(330.0)

@@ -39,6 +39,17 @@ fn parse_fov(s: &str) -> Result<f32, String> {
     }
 }
 
+fn parse_time(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(format!(
+            "--time must be a finite number of seconds, got {s}"
+        ))
+    }
+}
+
 /// `bvhtrace-viewer [SCENE]`: the interactive viewer. The GPU-traced image fills the
 /// window; the side panel has the scene's statistics, the builder, traversal and shading
 /// choices, the camera and a comparison with the CPU traversal.
@@ -93,6 +104,15 @@ pub struct Args {
     /// (as the "Compare with CPU" button does).
     #[arg(long)]
     pub compare: bool,
+    /// Start an animated glTF scene at this time, seconds (wrapped into the animation;
+    /// ignored by scenes without one).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_time, allow_hyphen_values = true)]
+    pub time: f32,
+    /// Start playing the scene's animation (the side panel's Play button, or Space). In a
+    /// --screenshot run time advances 1/30 s per frame, so that the image does not depend
+    /// on the machine's speed.
+    #[arg(long)]
+    pub play: bool,
 }
 
 #[cfg(test)]
@@ -119,6 +139,9 @@ mod tests {
             "short-stack:4",
             "--shade",
             "ao",
+            "--time",
+            "1.5",
+            "--play",
         ])
         .expect("parses");
         assert_eq!(a.frames, 3);
@@ -126,6 +149,11 @@ mod tests {
         assert_eq!(a.traversal, Traversal::ShortStack(4));
         assert_eq!(a.shade, Shade::Ao);
         assert_eq!(a.size, (1280, 800));
+        assert_eq!(a.time, 1.5);
+        assert!(a.play);
+        let d = Args::try_parse_from(["v"]).expect("parses");
+        assert_eq!(d.time, 0.0);
+        assert!(!d.play);
         for bad in [
             &["v", "--frames", "0"][..],
             &["v", "--eye", "1,2,3"],
@@ -133,6 +161,8 @@ mod tests {
             &["v", "--fov", "200"],
             &["v", "--scale", "9"],
             &["v", "--traversal", "zigzag"],
+            &["v", "--time", "inf"],
+            &["v", "--time", "soon"],
         ] {
             assert!(Args::try_parse_from(bad).is_err(), "{bad:?}");
         }

@@ -1,18 +1,20 @@
 //! Loading a scene, building its BVH and uploading it, on a worker thread: the window keeps
 //! drawing (with a progress line) while it runs, and a failure leaves the current scene as
-//! it is. The finished [`BuiltBvh`] holds the two tracers the viewer picks between.
+//! it is. The finished [`BuiltBvh`] holds the two tracers the viewer picks between, and
+//! moves an animated scene to another time ([`BuiltBvh::pose`]).
 
 use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use std::time::Instant;
 
 use bvhtrace_core::{
-    BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal, Triangle,
+    BuildOptions, BvhStats, FlatBvh, InstancedBvh, Query, Ray, TraceOptions, TraceOutput,
+    Traversal, Triangle,
 };
 use bvhtrace_gpu::kernels::check_depth;
-use bvhtrace_gpu::{CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, UploadOptions};
-use bvhtrace_scene::Camera;
-use glam::Vec3;
+use bvhtrace_gpu::{CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, Update, UploadOptions};
+use bvhtrace_scene::{Camera, Scene};
+use glam::{Affine3A, Vec3};
 
 /// A loaded scene's triangles and what the UI shows about it.
 #[derive(Debug)]
@@ -23,8 +25,13 @@ pub struct SceneData {
     pub name: String,
     /// What it is, in words.
     pub description: String,
-    /// World-space triangles, in the order the BVH's `prim` indices refer to.
-    pub tris: Arc<Vec<Triangle>>,
+    /// The scene as loaded (its instances posed at the time it was loaded at): what a
+    /// rebuild starts from and what [`BuiltBvh::pose`] takes an animation's poses from.
+    pub scene: Scene,
+    /// Its animation's length, seconds (0 without animation).
+    pub duration: f32,
+    /// Triangles over all instances.
+    pub triangles: usize,
     /// World-space bounds `(min, max)`.
     pub bounds: (Vec3, Vec3),
     /// The file's own camera, if it has one.
@@ -42,11 +49,88 @@ impl SceneData {
         if d.is_finite() && d > 0.0 { d } else { 1e-6 }
     }
 
+    /// True when the scene has an animation to play.
+    pub fn animated(&self) -> bool {
+        self.duration > 0.0
+    }
+
+    /// True when the scene is traced in two levels: it has more than one instance, as in
+    /// `bvhtrace render` (a scene of one instance is flattened, and rebuilt at each new
+    /// time when animated).
+    pub fn two_level(&self) -> bool {
+        self.scene.instances.len() > 1
+    }
+
+    /// `t` wrapped into the animation, `[0, duration)` (0 without animation; 0 for a time
+    /// that is not finite).
+    pub fn wrap_time(&self, t: f32) -> f32 {
+        if self.animated() && t.is_finite() {
+            let w = t.rem_euclid(self.duration);
+            if w < self.duration { w } else { 0.0 }
+        } else {
+            0.0
+        }
+    }
+
     /// The scene's camera, or one that frames its bounds for this aspect ratio.
     pub fn initial_camera(&self, aspect: f32) -> Camera {
         self.camera
             .unwrap_or_else(|| Camera::frame(self.bounds.0, self.bounds.1, aspect))
     }
+}
+
+/// What the BVH is built over, and where a hit's `prim` finds its world-space triangle.
+pub enum Geometry {
+    /// One BVH over every instance's triangles in world space; `tris[prim]`.
+    Flat {
+        /// The triangles by primitive id.
+        tris: Vec<Triangle>,
+        /// Their BVH.
+        bvh: FlatBvh,
+    },
+    /// A BVH per mesh and a top level over the instances (an animated scene of several
+    /// instances): moving them rebuilds only the top level.
+    Instanced(InstancedBvh),
+}
+
+impl Geometry {
+    /// The BVH every backend traces.
+    pub fn bvh(&self) -> &FlatBvh {
+        match self {
+            Geometry::Flat { bvh, .. } => bvh,
+            Geometry::Instanced(i) => i.bvh(),
+        }
+    }
+
+    /// The world-space corners of the primitive a hit names; `None` for a miss code or an
+    /// id out of range.
+    pub fn triangle(&self, prim: u32) -> Option<Triangle> {
+        match self {
+            Geometry::Flat { tris, .. } => tris.get(prim as usize).copied(),
+            Geometry::Instanced(i) => i.world_triangle(prim),
+        }
+    }
+
+    /// True for two levels.
+    pub fn is_two_level(&self) -> bool {
+        matches!(self, Geometry::Instanced(_))
+    }
+}
+
+/// What moving an animated scene to a new time cost ([`BuiltBvh::pose`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PoseTimes {
+    /// True when only the top level was rebuilt (two levels); false when the whole
+    /// flattened BVH was.
+    pub top_level: bool,
+    /// Computing the poses and rebuilding the BVH (the top level, or all of a flattened
+    /// one), milliseconds.
+    pub rebuild_ms: f64,
+    /// Writing it to the device (in place when the sizes allow, else a new upload),
+    /// milliseconds; 0 without an upload.
+    pub upload_ms: f64,
+    /// True when the device copy was replaced by a new upload rather than updated in place.
+    pub reuploaded: bool,
 }
 
 /// A built (and, when a device is there, uploaded) BVH, with the two tracers over it.
@@ -57,10 +141,14 @@ pub struct BuiltBvh {
     pub options: BuildOptions,
     /// Build time, milliseconds.
     pub build_ms: f64,
-    /// The CPU walks over the tree: the fallback, and the reference of "Compare with CPU".
-    pub cpu: CpuTracer,
-    /// The upload, or why there is none.
-    pub gpu: Result<Box<dyn Tracer>, String>,
+    /// The traced form: its BVH (what [`BuiltBvh::cpu`] walks, the reference of "Compare
+    /// with CPU") and the hits' triangles.
+    pub geometry: Geometry,
+    /// The animation time the geometry is posed at, seconds (0 without animation).
+    pub time: f32,
+    /// The upload, or why there is none. The concrete wgpu type, so that a new pose can be
+    /// written into it in place ([`GpuBvh::update`]).
+    pub gpu: Result<GpuBvh, String>,
     /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
     /// [`BuiltBvh::retry_gpu`].
     pub gpu_failure: Option<String>,
@@ -90,9 +178,82 @@ impl BuiltBvh {
     /// The GPU's tracer, when it is uploaded, has not failed, and `prefer_cpu` is off.
     pub fn gpu_tracer(&self, prefer_cpu: bool) -> Option<&dyn Tracer> {
         match &self.gpu {
-            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g.as_ref()),
+            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g),
             _ => None,
         }
+    }
+
+    /// The CPU walks over the tree: the fallback, and the reference of "Compare with CPU".
+    pub fn cpu(&self) -> CpuTracer<&FlatBvh> {
+        CpuTracer::new(self.geometry.bvh())
+    }
+
+    /// Moves the geometry to `scene`'s pose at time `t` (seconds, as given: wrap it
+    /// first). Two levels: the instances get their new transforms, the top level is
+    /// rebuilt ([`InstancedBvh::set_transforms`]) and written into the upload in place
+    /// ([`Update::TopLevel`]). Flattened: the triangles at `t` get a new BVH, written in
+    /// place ([`Update::Everything`]) when it has the uploaded sizes, else uploaded anew.
+    /// A failure leaves the BVH as it was (an upload that fails is kept as
+    /// [`BuiltBvh::gpu_failure`]: the CPU traces the new pose).
+    pub fn pose(&mut self, scene: &Scene, t: f32) -> Result<PoseTimes, String> {
+        let t0 = Instant::now();
+        let mut times = PoseTimes::default();
+        match &mut self.geometry {
+            Geometry::Instanced(ib) => {
+                let all = scene.instance_transforms_at(t);
+                let transforms: Vec<Affine3A> = ib
+                    .instances()
+                    .iter()
+                    .map(|i| {
+                        let m = all.get(i.user_id as usize).copied();
+                        m.map_or(i.transform, Affine3A::from_mat4)
+                    })
+                    .collect();
+                ib.set_transforms(&transforms)
+                    .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
+                times.top_level = true;
+                times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
+                let t1 = Instant::now();
+                if let Ok(g) = &mut self.gpu
+                    && let Err(e) = g.update(ib.bvh(), Update::TopLevel)
+                {
+                    self.gpu_failure = Some(format!("updating the top level failed: {e}"));
+                }
+                times.upload_ms = t1.elapsed().as_secs_f64() * 1e3;
+            }
+            Geometry::Flat { tris, bvh } => {
+                let mut posed = scene.clone();
+                posed.set_time(t);
+                let new_tris = posed
+                    .flattened_triangles()
+                    .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
+                let new_bvh = FlatBvh::build(&new_tris, &self.options)
+                    .map_err(|e| format!("the BVH at t = {t} s: {e}"))?;
+                times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
+                let t1 = Instant::now();
+                if let Ok(g) = &mut self.gpu {
+                    let same = g.node_count() == new_bvh.nodes.len()
+                        && g.triangle_count() == new_bvh.triangles.len()
+                        && g.depth() == new_bvh.depth;
+                    let written = if same {
+                        g.update(&new_bvh, Update::Everything)
+                    } else {
+                        times.reuploaded = true;
+                        GpuBvh::upload(g.context(), &new_bvh, &upload_options(new_bvh.depth))
+                            .map(|fresh| *g = fresh)
+                    };
+                    if let Err(e) = written {
+                        self.gpu_failure = Some(format!("uploading the new BVH failed: {e}"));
+                    }
+                }
+                times.upload_ms = t1.elapsed().as_secs_f64() * 1e3;
+                *tris = new_tris;
+                *bvh = new_bvh;
+            }
+        }
+        self.stats = BvhStats::of(self.geometry.bvh());
+        self.time = t;
+        Ok(times)
     }
 
     /// Forgets a failed trace so that the next batch tries the GPU again (after the user
@@ -127,7 +288,7 @@ impl BuiltBvh {
                 Err(e) => self.gpu_failure = Some(format!("GPU trace failed: {e}")),
             }
         }
-        Ok((self.cpu.trace(rays, opts)?, false))
+        Ok((self.cpu().trace(rays, opts)?, false))
     }
 }
 
@@ -147,6 +308,9 @@ pub struct JobRequest {
     pub build: BuildOptions,
     /// The traversal whose pipelines to compile ahead of the first frame.
     pub traversal: Traversal,
+    /// The animation time to build the scene at, seconds (wrapped into the animation;
+    /// ignored without one).
+    pub time: f32,
     /// The shared device, or why there is none.
     pub gpu: Result<GpuContext, String>,
 }
@@ -203,40 +367,64 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             stage(format!("loading {spec}"));
             let t0 = Instant::now();
             let scene = bvhtrace_scene::load(&spec).map_err(|e| e.to_string())?;
-            stage(format!("flattening {} triangles", scene.triangle_count()));
-            let tris = scene
-                .flatten()
-                .triangles()
-                .map_err(|e| format!("{spec}: bad geometry: {e}"))?;
             let data = SceneData {
                 name: scene.name.clone(),
                 description: scene.description.clone(),
                 bounds: scene.bounds(),
                 camera: scene.camera,
                 warnings: scene.warnings.clone(),
-                tris: Arc::new(tris),
+                duration: scene.duration(),
+                triangles: scene.triangle_count(),
+                scene,
                 load_ms: t0.elapsed().as_secs_f64() * 1e3,
                 spec,
             };
             (Arc::new(data), true)
         }
     };
-    stage(format!(
-        "building the BVH ({}, {} triangles)",
-        req.build.builder,
-        scene.tris.len()
-    ));
+    let time = scene.wrap_time(req.time);
     let t1 = Instant::now();
-    let bvh = FlatBvh::build(&scene.tris, &req.build)
-        .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
+    let geometry = if scene.two_level() {
+        stage(format!(
+            "building two levels ({}, {} instances, {} triangles)",
+            req.build.builder,
+            scene.scene.instances.len(),
+            scene.triangles
+        ));
+        let mut posed = scene.scene.clone();
+        posed.set_time(time);
+        let ib = posed
+            .instanced_bvh(&req.build)
+            .map_err(|e| format!("{}: two-level build failed: {e}", scene.spec))?;
+        Geometry::Instanced(ib)
+    } else {
+        stage(format!("flattening {} triangles", scene.triangles));
+        let tris = if scene.animated() {
+            let mut posed = scene.scene.clone();
+            posed.set_time(time);
+            posed.flattened_triangles()
+        } else {
+            scene.scene.flattened_triangles()
+        }
+        .map_err(|e| format!("{}: bad geometry: {e}", scene.spec))?;
+        stage(format!(
+            "building the BVH ({}, {} triangles)",
+            req.build.builder,
+            tris.len()
+        ));
+        let bvh = FlatBvh::build(&tris, &req.build)
+            .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
+        Geometry::Flat { tris, bvh }
+    };
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
-    let stats = BvhStats::of(&bvh);
+    let bvh = geometry.bvh();
+    let stats = BvhStats::of(bvh);
     let t2 = Instant::now();
     let gpu = match &req.gpu {
         Err(e) => Err(e.clone()),
         Ok(ctx) => {
             stage(format!("uploading {} nodes to the GPU", bvh.nodes.len()));
-            GpuBvh::upload(ctx, &bvh, &upload_options(bvh.depth))
+            GpuBvh::upload(ctx, bvh, &upload_options(bvh.depth))
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());
                     // Primary and shadow rays; a traversal this upload cannot run is
@@ -247,7 +435,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
                             g.prepare(&o)?;
                         }
                     }
-                    Ok(Box::new(g) as Box<dyn Tracer>)
+                    Ok(g)
                 })
                 .map_err(|e| format!("GPU upload failed: {e}"))
         }
@@ -260,7 +448,8 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             stats,
             options: req.build,
             build_ms,
-            cpu: CpuTracer::new(Arc::new(bvh)),
+            geometry,
+            time,
             gpu,
             gpu_failure: None,
             upload_ms,
@@ -327,7 +516,8 @@ mod tests {
             stats: BvhStats::of(&bvh),
             options: BuildOptions::default(),
             build_ms: 0.0,
-            cpu: CpuTracer::new(Arc::new(bvh)),
+            geometry: Geometry::Flat { tris, bvh },
+            time: 0.0,
             gpu: Err("no Vulkan adapter".into()),
             gpu_failure: None,
             upload_ms: 0.0,
@@ -342,5 +532,130 @@ mod tests {
         // Retrying cannot conjure an upload: the reason stays.
         b.retry_gpu();
         assert_eq!(b.gpu_problem(), Some("no Vulkan adapter"));
+    }
+}
+
+#[cfg(test)]
+mod animation_tests {
+    use super::*;
+
+    fn animated_spec() -> String {
+        format!("{}/../../scenes/animated.gltf", env!("CARGO_MANIFEST_DIR"))
+    }
+
+    fn built(spec: &str, time: f32) -> JobOutput {
+        let (tx, _rx) = mpsc::channel();
+        let req = JobRequest {
+            source: Source::Load(spec.to_string()),
+            build: BuildOptions::default(),
+            traversal: Traversal::Stackless,
+            time,
+            gpu: Err("no device in this test".into()),
+        };
+        run(req, &tx).expect("loads and builds")
+    }
+
+    /// The primary hits of the scene's camera on `b`, as (prim, world triangle) pairs.
+    fn hits(scene: &SceneData, b: &mut BuiltBvh) -> Vec<(u32, Option<Triangle>)> {
+        let cam = scene.initial_camera(1.5);
+        let rays = cam.rays(48, 32);
+        let (out, on_gpu) = b
+            .trace(&rays, &TraceOptions::closest(Traversal::Stackless), false)
+            .expect("traces");
+        assert!(!on_gpu);
+        out.hits
+            .iter()
+            .map(|h| {
+                (
+                    h.prim,
+                    h.is_hit().then(|| b.geometry.triangle(h.prim)).flatten(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_pose_rebuilds_the_top_level_and_matches_a_fresh_build_at_that_time() {
+        let JobOutput {
+            scene, mut built, ..
+        } = built(&animated_spec(), 0.0);
+        assert!(scene.animated() && scene.two_level());
+        assert!(built.geometry.is_two_level());
+        let at0 = hits(&scene, &mut built);
+        assert!(
+            at0.iter().any(|(_, t)| t.is_some()),
+            "the camera sees the scene"
+        );
+
+        let times = built.pose(&scene.scene, 1.0).expect("poses");
+        assert!(times.top_level && !times.reuploaded);
+        assert_eq!(built.time, 1.0);
+        let at1 = hits(&scene, &mut built);
+        assert_ne!(at0, at1, "the animation moved nothing the camera sees");
+
+        // The same hits as the scene built from scratch at t = 1, in two levels and
+        // flattened (the prims number the same triangles in both forms).
+        let JobOutput {
+            built: mut fresh, ..
+        } = built_at(1.0);
+        assert_eq!(hits(&scene, &mut fresh), at1);
+        let mut posed = scene.scene.clone();
+        posed.set_time(1.0);
+        let tris = posed.flattened_triangles().expect("flattens");
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("builds");
+        let flat = bvhtrace_core::trace_rays(
+            &bvh,
+            &scene.initial_camera(1.5).rays(48, 32),
+            &TraceOptions::closest(Traversal::Stackless),
+        );
+        // Rays are walked in object space in two levels: a ray grazing an edge may pick
+        // the neighbour; anything more than a few such pixels is a wrong pose.
+        let hit_count = flat.hits.iter().filter(|h| h.is_hit()).count();
+        let differ = at1
+            .iter()
+            .zip(&flat.hits)
+            .filter(|((p, _), h)| *p != h.prim)
+            .count();
+        assert!(hit_count > 50, "{hit_count} hits");
+        assert!(
+            differ * 50 <= hit_count,
+            "{differ} of {hit_count} hits differ from the flattened scene at t = 1"
+        );
+        for ((p, t), h) in at1.iter().zip(&flat.hits) {
+            if h.is_hit() && *p == h.prim {
+                let want = tris[*p as usize];
+                let got = t.expect("a hit has a triangle");
+                for (a, b) in got.iter().zip(want) {
+                    assert!((*a - b).length() < 1e-4, "{a} vs {b}");
+                }
+            }
+        }
+
+        // Back to 0: the first image again.
+        built.pose(&scene.scene, 0.0).expect("poses");
+        assert_eq!(hits(&scene, &mut built), at0);
+    }
+
+    fn built_at(t: f32) -> JobOutput {
+        built(&animated_spec(), t)
+    }
+
+    #[test]
+    fn times_wrap_into_the_animation() {
+        let out = built_at(5.0);
+        let s = &out.scene;
+        assert!((s.duration - 2.0).abs() < 1e-6);
+        assert!((out.built.time - 1.0).abs() < 1e-6, "5 s wraps to 1 s");
+        assert_eq!(s.wrap_time(-0.5), 1.5);
+        assert_eq!(s.wrap_time(f32::NAN), 0.0);
+        assert!(s.wrap_time(2.0) < 2.0);
+    }
+
+    #[test]
+    fn a_scene_without_animation_stays_flattened() {
+        let out = built("builtin:cornell", 3.0);
+        assert!(!out.scene.animated());
+        assert!(!out.built.geometry.is_two_level());
+        assert_eq!(out.built.time, 0.0);
     }
 }

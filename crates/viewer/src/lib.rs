@@ -8,8 +8,10 @@
 //! * [`camera`]: orbit, pan, zoom and fly moves, and `bvhtrace render` flags.
 //! * [`shade`]: hits to pixels (the CLI's shading modes) and progressive accumulation.
 //! * [`jobs`]: scene loading, BVH building and upload off the UI thread; the resulting
-//!   [`jobs::BuiltBvh`] holds the GPU's [`bvhtrace_gpu::Tracer`] and the CPU twin's
-//!   ([`bvhtrace_gpu::CpuTracer`]), and falls back from the first to the second.
+//!   [`jobs::BuiltBvh`] holds the upload ([`bvhtrace_gpu::GpuBvh`]) and the CPU twin
+//!   ([`bvhtrace_gpu::CpuTracer`]), falls back from the first to the second, and moves an
+//!   animated scene to a new time ([`jobs::BuiltBvh::pose`]: two levels rebuild only their
+//!   top level, updated on the device in place).
 //! * [`app`]: the eframe application; [`cli`]: the command line; [`setup`]: eframe's wgpu
 //!   configuration (the adapter choice, and the features and limits
 //!   [`bvhtrace_gpu::GpuContext`] asks for).

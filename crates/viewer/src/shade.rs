@@ -123,23 +123,25 @@ pub struct Accumulation {
 }
 
 impl Accumulation {
-    /// A fresh accumulation over a primary pass.
+    /// A fresh accumulation over a primary pass; `triangle` gives the world-space corners
+    /// of the primitive a hit names (`None` for an id it does not know: the pixel then
+    /// counts as a miss).
     pub fn new(
         width: u32,
         height: u32,
         rays: Vec<Ray>,
         hits: Vec<Hit>,
         counters: Vec<Counters>,
-        tris: &[Triangle],
+        triangle: impl Fn(u32) -> Option<Triangle>,
     ) -> Accumulation {
         let mut hit_pixels = Vec::new();
         let mut surfaces = Vec::new();
         for (i, (r, h)) in rays.iter().zip(&hits).enumerate() {
-            let Some(tri) = h.is_hit().then(|| tris.get(h.prim as usize)).flatten() else {
+            let Some(tri) = h.is_hit().then(|| triangle(h.prim)).flatten() else {
                 continue;
             };
             hit_pixels.push(i as u32);
-            surfaces.push(h.surface(tri, Vec3::from(r.dir)));
+            surfaces.push(h.surface(&tri, Vec3::from(r.dir)));
         }
         let sums = vec![0.0; hit_pixels.len()];
         Accumulation {
@@ -334,7 +336,9 @@ mod tests {
         let (w, h) = (8, 6);
         let rays = cam.rays(w, h);
         let hits = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless)).hits;
-        let mut acc = Accumulation::new(w, h, rays, hits, Vec::new(), &tris);
+        let mut acc = Accumulation::new(w, h, rays, hits, Vec::new(), |p| {
+            tris.get(p as usize).copied()
+        });
         assert!(acc.hit_count() > 0);
         let view = View::for_camera(Shade::Ao, false, &cam, 2.0);
         for _ in 0..3 {
