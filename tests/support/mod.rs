@@ -77,8 +77,9 @@ pub struct SceneCase {
     pub tris: Vec<Triangle>,
 }
 
-/// Loads and builds `spec`, or prints SKIP and returns `None` when it cannot be read.
-pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
+/// Loads `spec` and flattens its triangles (by primitive id), or prints SKIP and returns
+/// `None` when it cannot be read.
+fn load_or_skip(spec: &str, name: &str) -> Option<(bvhtrace_scene::Scene, Vec<Triangle>)> {
     let scene = match bvhtrace_scene::load(spec) {
         Ok(s) => s,
         Err(e) => {
@@ -87,9 +88,14 @@ pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
         }
     };
     let tris = scene
-        .flatten()
-        .triangles()
+        .flattened_triangles()
         .unwrap_or_else(|e| panic!("{name}: {e}"));
+    Some((scene, tris))
+}
+
+/// Loads and builds `spec`, or prints SKIP and returns `None` when it cannot be read.
+pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
+    let (_, tris) = load_or_skip(spec, name)?;
     let bvh =
         FlatBvh::build(&tris, &BuildOptions::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
     Some(SceneCase {
@@ -103,17 +109,7 @@ pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
 /// instances), `tris` its flattened triangles by primitive id; `None` (SKIP printed) when
 /// it cannot be read.
 pub fn load_instanced_scene(spec: &str, name: &str) -> Option<SceneCase> {
-    let scene = match bvhtrace_scene::load(spec) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("SKIP scene {name}: {e}");
-            return None;
-        }
-    };
-    let tris = scene
-        .flatten()
-        .triangles()
-        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let (scene, tris) = load_or_skip(spec, name)?;
     let bvh = scene
         .instanced_bvh(&BuildOptions::default())
         .unwrap_or_else(|e| panic!("{name}: {e}"))

@@ -255,7 +255,7 @@ fn animated_scenes_render_at_the_time_asked_for() {
     let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/animated.gltf");
     let (a, img_a) = render_json("time-0", &[scene, "--time", "0"]);
     let (b, img_b) = render_json("time-1", &[scene, "--time", "1.3"]);
-    let (c, img_c) = render_json("time-0-again", &[scene, "--time", "0"]);
+    let (_, img_c) = render_json("time-0-again", &[scene, "--time", "0"]);
     assert_eq!(a["time"], 0.0);
     assert_eq!(b["time"], 1.3f32 as f64);
     assert_ne!(

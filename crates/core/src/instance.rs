@@ -24,6 +24,7 @@
 //!   [`InstancedBvh::refit_quality`] says how much the SAH cost has grown since the build;
 //!   past [`REFIT_REBUILD_ADVISED`] a rebuild ([`InstancedBvh::rebuild_mesh`]) pays.
 
+use bytemuck::Zeroable;
 use glam::{Affine3A, DAffine3, DVec3, Vec3};
 use rayon::prelude::*;
 
@@ -142,7 +143,8 @@ fn top_options() -> BuildOptions {
     }
 }
 
-fn check_transform(index: usize, m: &Affine3A) -> Result<DAffine3, InstanceError> {
+/// `m` in f64 and its world-to-object rows, or why `m` cannot place an instance.
+fn check_transform(index: usize, m: &Affine3A) -> Result<(DAffine3, [[f32; 4]; 3]), InstanceError> {
     let bad = |problem: &str| InstanceError::BadInstance {
         index,
         problem: problem.into(),
@@ -163,17 +165,13 @@ fn check_transform(index: usize, m: &Affine3A) -> Result<DAffine3, InstanceError
     if !ok || !f32_ok {
         return Err(bad("the transform's inverse overflows f32"));
     }
-    Ok(d)
-}
-
-/// The world-to-object rows of `d`'s inverse, rounded to f32.
-fn world_to_object(d: &DAffine3) -> [[f32; 4]; 3] {
-    let inv = d.inverse();
-    let (m, t) = (inv.matrix3, inv.translation);
-    std::array::from_fn(|r| {
-        let row = m.row(r);
-        [row.x as f32, row.y as f32, row.z as f32, t[r] as f32]
-    })
+    // The inverse's rows, rounded to f32 once.
+    let rows = std::array::from_fn(|r| {
+        let row = inv.matrix3.row(r);
+        let t = inv.translation[r];
+        [row.x as f32, row.y as f32, row.z as f32, t as f32]
+    });
+    Ok((d, rows))
 }
 
 /// The world box of object box `b` under `d`, conservative (see [`WORLD_BOX_PAD`]).
@@ -315,13 +313,13 @@ impl InstancedBvh {
                     ),
                 });
             };
-            let d = check_transform(i, &inst.transform)?;
+            let (d, world_to_object) = check_transform(i, &inst.transform)?;
             boxes.push(world_box(
                 &d,
                 &self.bvh.nodes[mesh.node_base as usize].aabb(),
             ));
             flat.push(FlatInstance {
-                world_to_object: world_to_object(&d),
+                world_to_object,
                 root: mesh.node_base,
                 prim_base: prim_base as u32,
                 mask: u32::from(inst.mask),
@@ -524,9 +522,9 @@ impl InstancedBvh {
         }
     }
 
-    /// Rebuilds every mesh whose tree changed shape, as a new layout: mesh `mesh` gets a
-    /// tree built anew over `tris` with `opts` (its node count may change, so the whole
-    /// layout is made again; an upload of it is a new upload).
+    /// A new layout in which mesh `mesh`'s tree is built anew over `tris` with `opts` (what
+    /// [`REFIT_REBUILD_ADVISED`] advises; the node count may change, so the whole layout is
+    /// made again and an upload of it is a new upload, not an update).
     pub fn rebuild_mesh(
         &self,
         mesh: usize,
@@ -567,8 +565,6 @@ impl InstancedBvh {
         }
     }
 }
-
-use bytemuck::Zeroable;
 
 /// [`FlatBvh::check_invariants`] for a two-level layout: the top level has `2n - 1` nodes
 /// over `n` instances, each instance in one leaf whose box contains its mesh's root box

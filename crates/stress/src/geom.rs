@@ -247,23 +247,7 @@ pub fn box_mesh(lo: DVec3, hi: DVec3) -> IndexedMesh {
 /// Rays from `from` aimed exactly (directions computed in f64, rounded once) at every
 /// vertex, and at the points `a + s (b - a)` of every edge for each `s` in `fractions`.
 pub fn aim_at_vertices_and_edges(mesh: &IndexedMesh, from: Vec3, fractions: &[f64]) -> Vec<Ray> {
-    let o = from.as_dvec3();
-    let mut rays: Vec<Ray> = mesh
-        .positions
-        .iter()
-        .map(|v| Ray::new(from, (v.as_dvec3() - o).as_vec3()))
-        .collect();
-    for (a, b) in mesh.edges() {
-        let (a, b) = (
-            mesh.positions[a as usize].as_dvec3(),
-            mesh.positions[b as usize].as_dvec3(),
-        );
-        for &s in fractions {
-            rays.push(Ray::new(from, (a + (b - a) * s - o).as_vec3()));
-        }
-    }
-    rays.retain(|r| Vec3::from(r.dir) != Vec3::ZERO);
-    rays
+    aim_at_placed_vertices_and_edges(mesh, |p| p, from, fractions)
 }
 
 /// Rays from `from` aimed exactly at every vertex of `mesh` and at the points
