@@ -180,7 +180,14 @@ fn bad_flags_and_scenes_get_clear_errors() {
 
 #[test]
 fn every_subcommand_has_help() {
-    for sub in ["render", "info", "dump", "bench-build", "bench-trace", "bench-refit"] {
+    for sub in [
+        "render",
+        "info",
+        "dump",
+        "bench-build",
+        "bench-trace",
+        "bench-refit",
+    ] {
         let out = run(&[sub, "--help"]);
         assert!(out.status.success(), "{sub} --help");
         assert!(

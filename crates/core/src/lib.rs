@@ -25,8 +25,8 @@ pub mod traverse;
 
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
 pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle};
-pub use instance::{Instance, InstanceError, InstancedBvh};
 pub use geometry::Aabb;
+pub use instance::{Instance, InstanceError, InstancedBvh};
 pub use mesh::{MeshError, Triangle, TriangleMesh};
 pub use precision::Precision;
 pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
