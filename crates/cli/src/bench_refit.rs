@@ -118,6 +118,13 @@ fn boxes_per_ray(bvh: &FlatBvh, rays: &[Ray]) -> f64 {
 
 /// `bvhtrace bench-refit`.
 pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
+    // The table goes to standard error when the JSON takes standard output.
+    let to_stderr = args.json.as_deref() == Some("-");
+    macro_rules! say {
+        ($($t:tt)*) => {
+            if to_stderr { eprintln!($($t)*) } else { println!($($t)*) }
+        };
+    }
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
@@ -139,14 +146,19 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
     // Refit against rebuild, amplitude by amplitude (each refit starts from the build of
     // the undeformed mesh, as an animation's frames refit one tree).
     let built = InstancedBvh::build(std::slice::from_ref(&tris), one.clone(), &opts)?;
-    println!(
+    say!(
         "{spec}: {} triangles; refit after every vertex moved, against a full rebuild (median of {})",
         tris.len(),
         args.runs
     );
-    println!(
+    say!(
         "{:>9} {:>10} {:>11} {:>9} {:>12} {:>12}",
-        "amplitude", "refit ms", "rebuild ms", "SAH x", "boxes/ray", "rebuilt"
+        "amplitude",
+        "refit ms",
+        "rebuild ms",
+        "SAH x",
+        "boxes/ray",
+        "rebuilt"
     );
     let mut rows = Vec::new();
     for a in [0.001f32, 0.01, 0.03, 0.1, 0.3] {
@@ -173,19 +185,17 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
             boxes_per_ray(&rebuilt, &rays),
         );
         let (rm, bm) = (median(refits), median(rebuilds));
-        println!("{a:>9} {rm:>10.2} {bm:>11.2} {q:>9.3} {br:>12.1} {bb:>12.1}");
+        say!("{a:>9} {rm:>10.2} {bm:>11.2} {q:>9.3} {br:>12.1} {bb:>12.1}");
         rows.push(json!({
             "amplitude": a, "refit_ms": rm, "rebuild_ms": bm, "sah_ratio": q,
             "boxes_per_ray_refitted": br, "boxes_per_ray_rebuilt": bb,
         }));
     }
-    println!("a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}");
+    say!("a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}");
     let embree = match &args.embree {
         Some(exe) => {
             let (b, r) = embree_refit(exe, &tris, 0.1, args.runs)?;
-            println!(
-                "Embree 3 (2 threads), amplitude 0.1: medium build {b:.2} ms, refit {r:.2} ms"
-            );
+            say!("Embree 3 (2 threads), amplitude 0.1: medium build {b:.2} ms, refit {r:.2} ms");
             Some(json!({ "amplitude": 0.1, "build_ms": b, "refit_ms": r }))
         }
         None => None,
@@ -227,7 +237,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
     }
     let top_ms = median(tops);
     let (top_bytes, mesh_bytes) = two.level_bytes();
-    println!(
+    say!(
         "{inst_spec}: {} instances of {} meshes ({} triangles instanced): top-level rebuild \
          {top_ms:.2} ms, both levels built {full_ms:.1} ms; top level {top_bytes} bytes, meshes \
          {mesh_bytes} bytes",

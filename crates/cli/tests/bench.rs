@@ -91,9 +91,9 @@ fn bench_refit_reports_refit_rebuild_and_top_level_times() {
         "-",
     ]);
     assert!(out.status.success());
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let v: serde_json::Value =
-        serde_json::from_str(&stdout[stdout.find('{').expect("JSON")..]).expect("JSON");
+    // Only the JSON on standard output (the table goes to standard error).
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON alone");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("refit ms"));
     let rows = v["refit"].as_array().expect("refit rows");
     assert_eq!(rows.len(), 5);
     for r in rows {
