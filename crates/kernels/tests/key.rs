@@ -42,6 +42,14 @@ fn has_function(module: &Module, name: &str) -> bool {
         .any(|(_, f)| f.name.as_deref() == Some(name))
 }
 
+/// The bindings `f` lists, as [`declared`] gives a module's.
+fn listed(f: &KernelKey) -> BTreeSet<(u32, u32, String)> {
+    f.bindings()
+        .iter()
+        .map(|b| (b.group, b.binding, b.name.to_string()))
+        .collect()
+}
+
 /// Every job a positions-only scene can be traced with.
 fn every_job(storage: BvhStorage) -> Vec<KernelKey> {
     let mut v = Vec::new();
@@ -75,12 +83,7 @@ fn positions_only_pipelines_declare_only_what_the_job_reads() {
         for f in every_job(storage) {
             let module = parse(&f.source());
             let got = declared(&module);
-            let listed: BTreeSet<(u32, u32, String)> = f
-                .bindings()
-                .iter()
-                .map(|b| (b.group, b.binding, b.name.to_string()))
-                .collect();
-            assert_eq!(got, listed, "{f:?}: declared vs KernelKey::bindings");
+            assert_eq!(got, listed(&f), "{f:?}: declared vs KernelKey::bindings");
 
             let names: Vec<&str> = got.iter().map(|(_, _, n)| n.as_str()).collect();
             // No attribute binding: the scene has positions only.
@@ -185,12 +188,7 @@ fn the_instances_binding_is_declared_only_for_two_levels() {
                 let f = KernelKey::new(storage, &opts).with_instances(instances);
                 let module = parse(&f.source());
                 let got = declared(&module);
-                let listed: BTreeSet<(u32, u32, String)> = f
-                    .bindings()
-                    .iter()
-                    .map(|b| (b.group, b.binding, b.name.to_string()))
-                    .collect();
-                assert_eq!(got, listed, "{f:?}: declared vs KernelKey::bindings");
+                assert_eq!(got, listed(&f), "{f:?}: declared vs KernelKey::bindings");
                 let has = got
                     .iter()
                     .any(|(g, b, n)| (*g, *b) == (0, 4) && n == "bvh_instances");
