@@ -1,81 +1,42 @@
-//! What a command traces: one BVH over the scene's world-space triangles (flattened), or
-//! two levels (a BVH per mesh, a top level over the instances).
+//! Loading and building what a command traces ([`SceneBvh`]: flattened, or two levels),
+//! and how it is reported.
 
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use bvhtrace_core::{BuildOptions, FlatBvh, InstancedBvh, Triangle};
-use bvhtrace_scene::Scene;
+use bvhtrace_core::{BuildOptions, FlatBvh};
+use bvhtrace_scene::{Scene, SceneBvh};
 use serde_json::{Value, json};
-
-/// The traced form of a scene.
-pub enum Geometry {
-    /// Every instance's triangles in world space, in one BVH; `tris[prim]`.
-    Flat {
-        /// The triangles by primitive id.
-        tris: Vec<Triangle>,
-        /// Their BVH.
-        bvh: FlatBvh,
-    },
-    /// A BVH per mesh and a top level over the instances.
-    Instanced(InstancedBvh),
-}
 
 /// A loaded and built scene, with the times each step took.
 pub struct Built {
     /// The scene as loaded (at `--time`, when given).
     pub scene: Scene,
     /// Its traced form.
-    pub geometry: Geometry,
+    pub geometry: SceneBvh,
     /// Loading (and flattening) the scene, milliseconds.
     pub load_ms: f64,
     /// Building the BVH (both levels for two), milliseconds.
     pub build_ms: f64,
 }
 
-impl Geometry {
-    /// The BVH every backend traces.
-    pub fn bvh(&self) -> &FlatBvh {
-        match self {
-            Geometry::Flat { bvh, .. } => bvh,
-            Geometry::Instanced(i) => i.bvh(),
-        }
-    }
-
-    /// The world-space corners of the primitive a hit names (`prim` is a hit's: in range).
-    pub fn triangle(&self, prim: u32) -> Triangle {
-        match self {
-            Geometry::Flat { tris, .. } => tris[prim as usize],
-            Geometry::Instanced(i) => i.world_triangle(prim).unwrap_or_default(),
-        }
-    }
-
-    /// Triangles traced: over all instances for two levels.
-    pub fn triangle_count(&self) -> u64 {
-        match self {
-            Geometry::Flat { tris, .. } => tris.len() as u64,
-            Geometry::Instanced(i) => i.instanced_primitives(),
-        }
-    }
-
-    /// `instances`, `meshes` and, for two levels, the bytes of each level, as JSON fields.
-    pub fn json(&self, scene: &Scene) -> Value {
-        match self {
-            Geometry::Flat { .. } => json!({
-                "form": "flattened",
-                "instances": scene.instance_count(),
-                "meshes": scene.meshes.len(),
-            }),
-            Geometry::Instanced(i) => {
-                let (top, meshes) = i.level_bytes();
-                json!({
-                    "form": "two-level",
-                    "instances": i.instances().len(),
-                    "meshes": i.meshes().len(),
-                    "top_level_bytes": top,
-                    "mesh_bytes": meshes,
-                })
-            }
+/// `instances`, `meshes` and, for two levels, the bytes of each level, as JSON fields.
+pub fn json(geo: &SceneBvh, scene: &Scene) -> Value {
+    match geo {
+        SceneBvh::Flat { .. } => json!({
+            "form": "flattened",
+            "instances": scene.instance_count(),
+            "meshes": scene.meshes.len(),
+        }),
+        SceneBvh::Instanced(i) => {
+            let (top, meshes) = i.level_bytes();
+            json!({
+                "form": "two-level",
+                "instances": i.instances().len(),
+                "meshes": i.meshes().len(),
+                "top_level_bytes": top,
+                "mesh_bytes": meshes,
+            })
         }
     }
 }
@@ -113,9 +74,9 @@ pub fn load_and_build(
         Some(tris) => {
             let bvh =
                 FlatBvh::build(&tris, opts).with_context(|| format!("{spec}: BVH build failed"))?;
-            Geometry::Flat { tris, bvh }
+            SceneBvh::Flat { tris, bvh }
         }
-        None => Geometry::Instanced(
+        None => SceneBvh::Instanced(
             scene
                 .instanced_bvh(opts)
                 .with_context(|| format!("{spec}: two-level BVH build failed"))?,

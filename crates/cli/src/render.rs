@@ -13,13 +13,13 @@ use bvhtrace_core::{
     TraceOutput, Traversal,
 };
 use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats, VertexAttributes};
-use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, camera};
+use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, SceneBvh, camera};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
 use crate::backend::{self, Backend};
-use crate::geometry::{self, Built, Geometry};
+use crate::geometry::{self, Built};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, BACKGROUND, Shade};
 
@@ -295,7 +295,7 @@ impl<'a> Job<'a> {
 fn trace_runs(
     job: &Job,
     tracer: &dyn Tracer,
-    geo: &Geometry,
+    geo: &SceneBvh,
     rays: &[Ray],
 ) -> Result<(Frame, Vec<Timing>)> {
     let per_run = rays.len() as u64 * (1 + job.secondary_per_pixel());
@@ -325,7 +325,7 @@ fn trace_runs(
 fn trace_frame(
     job: &Job,
     tracer: &dyn Tracer,
-    geo: &Geometry,
+    geo: &SceneBvh,
     rays: &[Ray],
     pb: &ProgressBar,
 ) -> Result<Frame> {
@@ -334,7 +334,7 @@ fn trace_frame(
     let primary = trace_chunked(tracer, rays, chunk, &job.primary(), pb, &mut timing)?;
     let (sec_rays, owner) = shade::secondary_rays(
         job.args.shade,
-        &|p| geo.triangle(p),
+        &|p| geo.triangle(p).unwrap_or_default(),
         rays,
         &primary.hits,
         job.light,
@@ -394,7 +394,7 @@ fn median(runs: &[Timing]) -> Timing {
 struct Report<'a> {
     job: &'a Job<'a>,
     scene: &'a Scene,
-    geo: &'a Geometry,
+    geo: &'a SceneBvh,
     bvh: &'a FlatBvh,
     cam: &'a Camera,
     tracer: &'a dyn Tracer,
@@ -498,7 +498,7 @@ impl Report<'_> {
             "camera": { "eye": self.cam.eye.to_array(), "target": self.cam.target.to_array(), "fov": self.cam.fov_y_deg },
             "time": args.scene.time,
         });
-        merge(&mut v, self.geo.json(self.scene));
+        merge(&mut v, geometry::json(self.geo, self.scene));
         v
     }
 }
@@ -516,7 +516,7 @@ impl RenderArgs {
 }
 
 /// Shades the frame into RGB8 pixels.
-fn compose(job: &Job, geo: &Geometry, rays: &[Ray], frame: &Frame) -> Vec<u8> {
+fn compose(job: &Job, geo: &SceneBvh, rays: &[Ray], frame: &Frame) -> Vec<u8> {
     let (args, light) = (job.args, job.light);
     let (hits, counters) = (&frame.hits, &frame.counters);
     let (owner, sec_hits) = (&frame.owner, &frame.secondary);
@@ -549,7 +549,7 @@ fn compose(job: &Job, geo: &Geometry, rays: &[Ray], frame: &Frame) -> Vec<u8> {
             px(&mut img, i, BACKGROUND);
             continue;
         }
-        let tri = &geo.triangle(hit.prim);
+        let tri = &geo.triangle(hit.prim).unwrap_or_default();
         let d = Vec3::from(r.dir);
         let n = shade::facing_normal(tri, d);
         let c = match args.shade {
@@ -638,7 +638,7 @@ fn upload_json(s: &UploadStats, triangles: u64) -> Value {
 fn left_out(
     pipelines: &[KernelKey],
     scene: &Scene,
-    geo: &Geometry,
+    geo: &SceneBvh,
     traversal: Traversal,
 ) -> Vec<String> {
     let mut v = Vec::new();
@@ -673,15 +673,15 @@ fn left_out(
         });
     }
     match geo {
-        Geometry::Flat { .. } if scene.instance_count() > 1 => v.push(format!(
+        SceneBvh::Flat { .. } if scene.instance_count() > 1 => v.push(format!(
             "the top level ({} placements flattened to world-space triangles on the host, \
              --flatten)",
             scene.instance_count()
         )),
-        Geometry::Flat { .. } => {
+        SceneBvh::Flat { .. } => {
             v.push("the top level (one placement, flattened: no instance to walk)".into())
         }
-        Geometry::Instanced(_) => {}
+        SceneBvh::Instanced(_) => {}
     }
     v
 }
@@ -785,7 +785,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "warnings": scene.warnings,
         "time": args.scene.time,
     });
-    merge(&mut v, geo.json(&scene));
+    merge(&mut v, geometry::json(&geo, &scene));
     if args.json {
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -847,7 +847,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         Traversal::CPU_DEFAULT,
         Traversal::GPU_DEFAULT
     );
-    if let Geometry::Instanced(i) = &geo {
+    if let SceneBvh::Instanced(i) = &geo {
         let (top, meshes) = i.level_bytes();
         println!(
             "two levels  {} instances of {} meshes: top level {top} bytes, meshes {meshes} bytes",

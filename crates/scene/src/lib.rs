@@ -59,6 +59,7 @@ pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
 pub use loader::{load_gltf_file, load_gltf_slice};
+pub use two_level::SceneBvh;
 
 /// The scene tools load when given none: the Cornell box.
 pub const DEFAULT_SCENE: &str = "builtin:cornell";

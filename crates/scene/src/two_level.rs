@@ -1,10 +1,55 @@
 //! A scene as a two-level BVH: one bottom-level BVH per mesh however many instances use
 //! it, a top level over the instances ([`bvhtrace_core::InstancedBvh`]).
 
-use bvhtrace_core::{BuildOptions, Instance, InstanceError, InstancedBvh, Triangle};
+use bvhtrace_core::{BuildOptions, FlatBvh, Instance, InstanceError, InstancedBvh, Triangle};
 use glam::Affine3A;
 
 use crate::Scene;
+
+/// A scene as traced: one BVH over its world-space triangles (flattened), or two levels.
+pub enum SceneBvh {
+    /// Every instance's triangles in world space, in one BVH; `tris[prim]`.
+    Flat {
+        /// The triangles by primitive id ([`Scene::flattened_triangles`]).
+        tris: Vec<Triangle>,
+        /// Their BVH.
+        bvh: FlatBvh,
+    },
+    /// A BVH per mesh and a top level over the instances ([`Scene::instanced_bvh`]).
+    Instanced(InstancedBvh),
+}
+
+impl SceneBvh {
+    /// The BVH every backend traces.
+    pub fn bvh(&self) -> &FlatBvh {
+        match self {
+            SceneBvh::Flat { bvh, .. } => bvh,
+            SceneBvh::Instanced(i) => i.bvh(),
+        }
+    }
+
+    /// The world-space corners of the primitive a hit names; `None` for a miss code or an
+    /// id out of range.
+    pub fn triangle(&self, prim: u32) -> Option<Triangle> {
+        match self {
+            SceneBvh::Flat { tris, .. } => tris.get(prim as usize).copied(),
+            SceneBvh::Instanced(i) => i.world_triangle(prim),
+        }
+    }
+
+    /// Triangles traced: over all instances for two levels.
+    pub fn triangle_count(&self) -> u64 {
+        match self {
+            SceneBvh::Flat { tris, .. } => tris.len() as u64,
+            SceneBvh::Instanced(i) => i.instanced_primitives(),
+        }
+    }
+
+    /// True for two levels.
+    pub fn is_two_level(&self) -> bool {
+        matches!(self, SceneBvh::Instanced(_))
+    }
+}
 
 impl Scene {
     /// The scene's meshes and instances as a two-level BVH, each mesh built with `opts`.

@@ -870,7 +870,7 @@ impl ViewerApp {
         });
         let Some(b) = &self.built else { return };
         match &b.geometry {
-            crate::jobs::Geometry::Instanced(ib) => {
+            bvhtrace_scene::SceneBvh::Instanced(ib) => {
                 ui.label(format!(
                     "two levels: {} instances over {} meshes",
                     ib.instances().len(),
@@ -880,7 +880,7 @@ impl ViewerApp {
                     "each new time rebuilds the top level and updates it on the GPU in place",
                 );
             }
-            crate::jobs::Geometry::Flat { .. } => {
+            bvhtrace_scene::SceneBvh::Flat { .. } => {
                 ui.label("one instance, flattened").on_hover_text(
                     "each new time rebuilds the whole BVH (written in place when its size is \
                      unchanged, else uploaded anew)",

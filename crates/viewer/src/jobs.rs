@@ -8,12 +8,11 @@ use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use std::time::Instant;
 
 use bvhtrace_core::{
-    BuildOptions, BvhStats, FlatBvh, InstancedBvh, Query, Ray, TraceOptions, TraceOutput,
-    Traversal, Triangle,
+    BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
 use bvhtrace_gpu::kernels::check_depth;
 use bvhtrace_gpu::{CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, Update, UploadOptions};
-use bvhtrace_scene::{Camera, Scene};
+use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::{Affine3A, Vec3};
 
 /// A loaded scene's triangles and what the UI shows about it.
@@ -79,44 +78,6 @@ impl SceneData {
     }
 }
 
-/// What the BVH is built over, and where a hit's `prim` finds its world-space triangle.
-pub enum Geometry {
-    /// One BVH over every instance's triangles in world space; `tris[prim]`.
-    Flat {
-        /// The triangles by primitive id.
-        tris: Vec<Triangle>,
-        /// Their BVH.
-        bvh: FlatBvh,
-    },
-    /// A BVH per mesh and a top level over the instances (an animated scene of several
-    /// instances): moving them rebuilds only the top level.
-    Instanced(InstancedBvh),
-}
-
-impl Geometry {
-    /// The BVH every backend traces.
-    pub fn bvh(&self) -> &FlatBvh {
-        match self {
-            Geometry::Flat { bvh, .. } => bvh,
-            Geometry::Instanced(i) => i.bvh(),
-        }
-    }
-
-    /// The world-space corners of the primitive a hit names; `None` for a miss code or an
-    /// id out of range.
-    pub fn triangle(&self, prim: u32) -> Option<Triangle> {
-        match self {
-            Geometry::Flat { tris, .. } => tris.get(prim as usize).copied(),
-            Geometry::Instanced(i) => i.world_triangle(prim),
-        }
-    }
-
-    /// True for two levels.
-    pub fn is_two_level(&self) -> bool {
-        matches!(self, Geometry::Instanced(_))
-    }
-}
-
 /// What moving an animated scene to a new time cost ([`BuiltBvh::pose`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseTimes {
@@ -143,7 +104,7 @@ pub struct BuiltBvh {
     pub build_ms: f64,
     /// The traced form: its BVH (what [`BuiltBvh::cpu`] walks, the reference of "Compare
     /// with CPU") and the hits' triangles.
-    pub geometry: Geometry,
+    pub geometry: SceneBvh,
     /// The animation time the geometry is posed at, seconds (0 without animation).
     pub time: f32,
     /// The upload, or why there is none. The concrete wgpu type, so that a new pose can be
@@ -199,7 +160,7 @@ impl BuiltBvh {
         let t0 = Instant::now();
         let mut times = PoseTimes::default();
         match &mut self.geometry {
-            Geometry::Instanced(ib) => {
+            SceneBvh::Instanced(ib) => {
                 let all = scene.instance_transforms_at(t);
                 let transforms: Vec<Affine3A> = ib
                     .instances()
@@ -221,7 +182,7 @@ impl BuiltBvh {
                 }
                 times.upload_ms = t1.elapsed().as_secs_f64() * 1e3;
             }
-            Geometry::Flat { tris, bvh } => {
+            SceneBvh::Flat { tris, bvh } => {
                 let mut posed = scene.clone();
                 posed.set_time(t);
                 let new_tris = posed
@@ -396,7 +357,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         let ib = posed
             .instanced_bvh(&req.build)
             .map_err(|e| format!("{}: two-level build failed: {e}", scene.spec))?;
-        Geometry::Instanced(ib)
+        SceneBvh::Instanced(ib)
     } else {
         stage(format!("flattening {} triangles", scene.triangles));
         let tris = if scene.animated() {
@@ -414,7 +375,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         ));
         let bvh = FlatBvh::build(&tris, &req.build)
             .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
-        Geometry::Flat { tris, bvh }
+        SceneBvh::Flat { tris, bvh }
     };
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
     let bvh = geometry.bvh();
@@ -516,7 +477,7 @@ mod tests {
             stats: BvhStats::of(&bvh),
             options: BuildOptions::default(),
             build_ms: 0.0,
-            geometry: Geometry::Flat { tris, bvh },
+            geometry: SceneBvh::Flat { tris, bvh },
             time: 0.0,
             gpu: Err("no Vulkan adapter".into()),
             gpu_failure: None,
@@ -538,6 +499,7 @@ mod tests {
 #[cfg(test)]
 mod animation_tests {
     use super::*;
+    use bvhtrace_core::Triangle;
 
     fn animated_spec() -> String {
         format!("{}/../../scenes/animated.gltf", env!("CARGO_MANIFEST_DIR"))
