@@ -57,6 +57,20 @@ static void *worker(void *arg) {
   return NULL;
 }
 
+/* A committed triangle-soup geometry of `n` triangles (9 floats each), built with
+ * `quality`; `*vertices` (when not NULL) receives its vertex buffer. */
+static RTCGeometry soup(RTCDevice dev, const float *tris, uint32_t n, enum RTCBuildQuality quality, float **vertices) {
+  RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+  rtcSetGeometryBuildQuality(g, quality);
+  float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n);
+  unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, n);
+  memcpy(v, tris, 36 * (size_t)n);
+  for (uint32_t i = 0; i < 3 * n; i++) ix[i] = i;
+  rtcCommitGeometry(g);
+  if (vertices) *vertices = v;
+  return g;
+}
+
 static int cmp(const void *a, const void *b) {
   double x = *(const double *)a, y = *(const double *)b;
   return (x > y) - (x < y);
@@ -101,12 +115,7 @@ int main(int argc, char **argv) {
     scene = rtcNewScene(dev);
     rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST);
     rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
-    RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
-    float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n_tris);
-    unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, n_tris);
-    memcpy(v, tris, 36 * (size_t)n_tris);
-    for (uint32_t i = 0; i < 3 * n_tris; i++) ix[i] = i;
-    rtcCommitGeometry(g);
+    RTCGeometry g = soup(dev, tris, n_tris, RTC_BUILD_QUALITY_MEDIUM, NULL);
     rtcAttachGeometry(scene, g);
     rtcReleaseGeometry(g);
     rtcCommitScene(scene);
@@ -158,13 +167,8 @@ int main(int argc, char **argv) {
     for (int run = 0; run < runs; run++) {
       RTCScene rs = rtcNewScene(dev);
       rtcSetSceneFlags(rs, RTC_SCENE_FLAG_ROBUST | RTC_SCENE_FLAG_DYNAMIC);
-      RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
-      rtcSetGeometryBuildQuality(g, RTC_BUILD_QUALITY_REFIT);
-      float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n_tris);
-      unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, n_tris);
-      memcpy(v, tris, 36 * (size_t)n_tris);
-      for (uint32_t i = 0; i < 3 * n_tris; i++) ix[i] = i;
-      rtcCommitGeometry(g);
+      float *v;
+      RTCGeometry g = soup(dev, tris, n_tris, RTC_BUILD_QUALITY_REFIT, &v);
       rtcAttachGeometry(rs, g);
       rtcCommitScene(rs);
       /* Timed: the vertices move, the geometry and the scene are committed again. */
