@@ -950,6 +950,19 @@ fn ms(since: Instant) -> f64 {
 }
 
 /// A run's report before it is judged: status `ok`, nothing counted.
+/// One row per walk and query of `backend`, saying its upload failed with `e`.
+fn upload_failed(backend: &str, queries: &[Query], e: &dyn std::fmt::Display) -> Vec<RunReport> {
+    let mut rows = Vec::new();
+    for tr in TRAVERSALS {
+        for &q in queries {
+            let mut r = run_report(backend, tr, q);
+            r.status = format!("upload failed: {e}");
+            rows.push(r);
+        }
+    }
+    rows
+}
+
 fn run_report(backend: &str, tr: Traversal, q: Query) -> RunReport {
     RunReport {
         backend: backend.into(),
@@ -1152,15 +1165,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             GpuBvh::upload(ctx, &bvh, &UploadOptions::all())
         };
         match upload {
-            Err(e) => {
-                for tr in TRAVERSALS {
-                    for &q in queries {
-                        let mut r = run_report("gpu", tr, q);
-                        r.status = format!("upload failed: {e}");
-                        rep.runs.push(r);
-                    }
-                }
-            }
+            Err(e) => rep.runs.extend(upload_failed("gpu", queries, &e)),
             Ok(gpu) => {
                 let (runs, _) =
                     trace_all(&gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
@@ -1173,15 +1178,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     // refuses a tree deeper than its stack (`trace_timed`).
     if let Some(ctx) = &backends.vk {
         match VkBvh::upload(ctx, &bvh) {
-            Err(e) => {
-                for tr in TRAVERSALS {
-                    for &q in queries {
-                        let mut r = run_report("vk", tr, q);
-                        r.status = format!("upload failed: {e}");
-                        rep.runs.push(r);
-                    }
-                }
-            }
+            Err(e) => rep.runs.extend(upload_failed("vk", queries, &e)),
             Ok(vk) => {
                 let (runs, _) = trace_all(&vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
