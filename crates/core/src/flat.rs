@@ -278,6 +278,9 @@ pub struct FlatBvh {
     pub instances: Vec<FlatInstance>,
     /// Nodes of the top level (`nodes[..top_nodes]`); 0 for one mesh.
     pub top_nodes: u32,
+    /// The same tree in the wide layout, for [`crate::Traversal::Wide`]: `None` until
+    /// [`FlatBvh::build_wide`] (the GPU uploads convert it themselves when it is missing).
+    pub wide: Option<std::sync::Arc<crate::wide::WideBvh>>,
 }
 
 impl FlatBvh {
@@ -342,6 +345,20 @@ impl FlatBvh {
     ) -> Result<FlatBvh, crate::build::BuildError> {
         let tree = crate::build::build(tris, opts)?;
         Ok(FlatBvh::flatten(&tree, tris))
+    }
+
+    /// Converts the tree into the wide layout as well ([`crate::wide::WideBvh::collapse`]),
+    /// so that [`crate::Traversal::Wide`] can walk it. Call it again after changing the
+    /// nodes or triangles (a refit): the wide tree is not updated with them.
+    pub fn build_wide(&mut self) {
+        self.wide = None;
+        self.wide = Some(std::sync::Arc::new(crate::wide::WideBvh::collapse(self)));
+    }
+
+    /// The same tree with its wide layout built ([`FlatBvh::build_wide`]).
+    pub fn with_wide(mut self) -> FlatBvh {
+        self.build_wide();
+        self
     }
 
     /// Number of triangles.

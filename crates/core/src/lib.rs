@@ -22,6 +22,7 @@ pub mod ray;
 pub mod stats;
 pub mod surface;
 pub mod traverse;
+pub mod wide;
 
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
 pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle};
@@ -34,3 +35,4 @@ pub use stats::BvhStats;
 pub use traverse::{
     Query, TraceOptions, TraceOutput, Traversal, brute_force, trace_ray, trace_ray_with, trace_rays,
 };
+pub use wide::{WideBvh, WideNode};

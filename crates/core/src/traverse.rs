@@ -27,10 +27,13 @@ use std::str::FromStr;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::flat::{FlatBvh, FlatInstance, FlatNode, NO_ESCAPE, escape_index, near_far, octant};
+use crate::flat::{
+    FlatBvh, FlatInstance, FlatNode, FlatTriangle, NO_ESCAPE, escape_index, near_far, octant,
+};
 use crate::intersect::{PreparedRay, intersect_box};
 use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
+use crate::wide::{WideBvh, hit_children};
 
 /// The most short-stack entries a kernel may be specialised for.
 pub const MAX_SHORT_STACK: u32 = 32;
@@ -49,6 +52,10 @@ pub enum Traversal {
     /// goes on at the escape link of the node it is done with: exactly the most recent
     /// dropped entry.
     ShortStack(u32),
+    /// The wide layout ([`crate::wide`], `FlatBvh::wide`): eight child boxes tested
+    /// together per node, hit children visited in the ray octant's slot order, and a
+    /// stack of node groups (a node and the hit children it has left).
+    Wide,
 }
 
 impl Traversal {
@@ -63,12 +70,18 @@ impl Traversal {
             Traversal::FullStack => "full-stack",
             Traversal::Stackless => "stackless",
             Traversal::ShortStack(_) => "short-stack",
+            Traversal::Wide => "wide",
         }
     }
 
     /// True when the traversal reads `FlatBvh::escapes`.
     pub fn needs_escapes(&self) -> bool {
-        !matches!(self, Traversal::FullStack)
+        matches!(self, Traversal::Stackless | Traversal::ShortStack(_))
+    }
+
+    /// True when the traversal walks the wide layout (`FlatBvh::wide`).
+    pub fn is_wide(&self) -> bool {
+        matches!(self, Traversal::Wide)
     }
 }
 
@@ -89,6 +102,7 @@ impl FromStr for Traversal {
         match s {
             "full-stack" => Ok(Traversal::FullStack),
             "stackless" => Ok(Traversal::Stackless),
+            "wide" => Ok(Traversal::Wide),
             "short-stack" => Ok(Traversal::ShortStack(DEFAULT_SHORT_STACK)),
             _ => {
                 if let Some(k) = s.strip_prefix("short-stack:") {
@@ -103,7 +117,7 @@ impl FromStr for Traversal {
                     ));
                 }
                 Err(format!(
-                    "unknown traversal '{s}' (expected stackless, short-stack, short-stack:K or full-stack)"
+                    "unknown traversal '{s}' (expected stackless, short-stack, short-stack:K, full-stack or wide)"
                 ))
             }
         }
@@ -172,7 +186,21 @@ fn visit_leaf<T: TriangleTest>(
     prim_base: u32,
 ) -> bool {
     let first = n.right_or_first as usize;
-    for tri in &bvh.triangles[first..first + n.count() as usize] {
+    let tris = &bvh.triangles[first..first + n.count() as usize];
+    visit_triangles::<T>(tris, r, best, c, any, prim_base)
+}
+
+/// Tests a run of triangles. Returns true when an any-hit query can stop.
+#[inline(always)]
+fn visit_triangles<T: TriangleTest>(
+    tris: &[FlatTriangle],
+    r: &PreparedRay,
+    best: &mut Best,
+    c: &mut Counters,
+    any: bool,
+    prim_base: u32,
+) -> bool {
+    for tri in tris {
         c.tris += 1;
         let [v0, v1, v2] = tri.corners();
         let prim = prim_base + tri.prim;
@@ -209,6 +237,8 @@ struct Space<'a> {
     inside: bool,
     prim_base: u32,
     mask: u32,
+    /// Nodes of the top level in the layout walked.
+    top_nodes: u32,
 }
 
 impl<'a> Space<'a> {
@@ -220,6 +250,7 @@ impl<'a> Space<'a> {
             inside: false,
             prim_base: 0,
             mask: u32::from(mask),
+            top_nodes: bvh.top_nodes,
         }
     }
 
@@ -227,9 +258,14 @@ impl<'a> Space<'a> {
     /// root. `None` (the leaf is done) when the instance's mask shares no bit with the
     /// ray's, or the transformed ray is not valid (a direction scaled to zero or
     /// overflowing).
-    #[inline(never)]
+    #[inline(always)]
     fn enter(&mut self, n: &FlatNode) -> Option<(PreparedRay, u32)> {
-        let inst: &FlatInstance = &self.bvh.instances[n.right_or_first as usize];
+        self.enter_instance(&self.bvh.instances[n.right_or_first as usize])
+    }
+
+    /// Enters `inst` (see [`Space::enter`]).
+    #[inline(never)]
+    fn enter_instance(&mut self, inst: &FlatInstance) -> Option<(PreparedRay, u32)> {
         if inst.mask & self.mask == 0 {
             return None;
         }
@@ -246,7 +282,7 @@ impl<'a> Space<'a> {
     /// top-level node.
     #[inline(always)]
     fn leaves_at(&mut self, node: u32) -> bool {
-        let leaves = self.inside && node < self.bvh.top_nodes;
+        let leaves = self.inside && node < self.top_nodes;
         if leaves {
             self.leave();
         }
@@ -423,6 +459,85 @@ fn short_stack<T: TriangleTest, const I: bool>(
     }
 }
 
+/// The wide walk (`Traversal::Wide`): at each node, the eight child boxes are tested
+/// together ([`hit_children`]); the hit children are visited in the ray octant's slot
+/// order, leaves' triangles at once, interior children by descending into them. What is
+/// left of a node's hit children (a *node group*: the node and a mask) is pushed when the
+/// walk descends, and popped when the current group runs out. A group holds at most the
+/// hit children of one node, so the stack holds at most one group per level.
+fn wide<T: TriangleTest, const I: bool>(
+    s: &mut Space,
+    w: &WideBvh,
+    best: &mut Best,
+    c: &mut Counters,
+    any: bool,
+    stack: &mut Vec<u32>,
+) {
+    let mut r = s.world;
+    let world_oct = octant(r.dir);
+    let mut oct = world_oct;
+    stack.clear();
+    let mut node = 0u32;
+    let mut mask = group(w, node, &r, best.t, oct, c);
+    loop {
+        if mask == 0 {
+            let (Some(m), Some(n)) = (stack.pop(), stack.pop()) else {
+                return;
+            };
+            (node, mask) = (n, m);
+            if I && s.leaves_at(node) {
+                r = s.world;
+                oct = world_oct;
+            }
+            continue;
+        }
+        let slot = (mask.trailing_zeros() as usize) ^ oct;
+        mask &= mask - 1;
+        let n = &w.nodes[node as usize];
+        if (n.imask() >> slot) & 1 != 0 {
+            if mask != 0 {
+                stack.extend([node, mask]);
+            }
+            node = n.child(slot);
+            mask = group(w, node, &r, best.t, oct, c);
+            continue;
+        }
+        let (first, count) = n.leaf_range(slot);
+        if I && node < s.top_nodes {
+            if let Some((object, root)) = s.enter_instance(&w.instances[first as usize]) {
+                if mask != 0 {
+                    stack.extend([node, mask]);
+                }
+                r = object;
+                oct = octant(r.dir);
+                node = root;
+                mask = group(w, node, &r, best.t, oct, c);
+            }
+            continue;
+        }
+        let tris = &w.triangles[first as usize..(first + count) as usize];
+        if visit_triangles::<T>(tris, &r, best, c, any, if I { s.prim_base } else { 0 }) {
+            return;
+        }
+    }
+}
+
+/// Tests node `node`'s children: the group's mask in visit order, and the box tests
+/// counted.
+#[inline(always)]
+fn group(
+    w: &WideBvh,
+    node: u32,
+    r: &PreparedRay,
+    t_best: f32,
+    oct: usize,
+    c: &mut Counters,
+) -> u32 {
+    let n = &w.nodes[node as usize];
+    c.nodes += n.used_mask().count_ones();
+    hit_children(n, r, t_best, oct)
+}
+
 /// What one trace job asks for: the walk, the query, the triangle test, and whether to
 /// count each ray's work. Every backend (this crate's CPU walks, the wgpu and ash kernels)
 /// takes the same options and gives the same answers for them.
@@ -553,6 +668,20 @@ fn trace_ray_generic<T: TriangleTest>(
         Traversal::FullStack => None,
         Traversal::Stackless => Some(0),
         Traversal::ShortStack(k) => Some(k.clamp(1, MAX_SHORT_STACK)),
+        Traversal::Wide => {
+            let Some(w) = bvh.wide.as_deref() else {
+                panic!("{traversal}: the BVH has no wide layout (call FlatBvh::build_wide)");
+            };
+            if w.nodes.is_empty() {
+                return (best.into_hit(), c);
+            }
+            s.top_nodes = w.top_nodes;
+            match bvh.is_instanced() {
+                false => wide::<T, false>(s, w, &mut best, &mut c, any, stack),
+                true => wide::<T, true>(s, w, &mut best, &mut c, any, stack),
+            }
+            return (best.into_hit(), c);
+        }
     };
     match (k, bvh.is_instanced()) {
         (None, false) => full_stack::<T, false>(s, &mut best, &mut c, any, stack),

@@ -122,11 +122,12 @@ fn rays(world: &[Triangle], n: usize) -> Vec<Ray> {
         .collect()
 }
 
-const WALKS: [Traversal; 4] = [
+const WALKS: [Traversal; 5] = [
     Traversal::FullStack,
     Traversal::Stackless,
     Traversal::ShortStack(1),
     Traversal::ShortStack(8),
+    Traversal::Wide,
 ];
 
 fn same(a: &Hit, b: &Hit) -> bool {
@@ -135,6 +136,9 @@ fn same(a: &Hit, b: &Hit) -> bool {
 
 /// Every walk's closest hit equals brute force bit for bit; any-hit agrees on hit or miss.
 fn check_walks(bvh: &FlatBvh, rays: &[Ray]) -> usize {
+    let bvh = &bvh.clone().with_wide();
+    let wide = bvh.wide.as_ref().unwrap();
+    wide.check_invariants(bvh).unwrap();
     let mut hits = 0;
     for ray in rays {
         let want = brute_force(bvh, ray, Default::default());
@@ -251,9 +255,10 @@ fn masks_hide_instances() {
     let ib = InstancedBvh::build(&m, inst.clone(), &BuildOptions::default()).unwrap();
     let world = flatten(&m, &inst);
     let rays = rays(&world, 1000);
+    let bvh = ib.bvh().clone().with_wide();
     for w in WALKS {
-        let only_even = trace_rays(ib.bvh(), &rays, &TraceOptions::closest(w).with_mask(1)).hits;
-        let none = trace_rays(ib.bvh(), &rays, &TraceOptions::closest(w).with_mask(4)).hits;
+        let only_even = trace_rays(&bvh, &rays, &TraceOptions::closest(w).with_mask(1)).hits;
+        let none = trace_rays(&bvh, &rays, &TraceOptions::closest(w).with_mask(4)).hits;
         assert!(
             none.iter().all(|h| !h.is_hit()),
             "{w}: mask 4 hit something"

@@ -7,12 +7,13 @@ use bvhtrace_core::*;
 use glam::Vec3;
 use proptest::prelude::*;
 
-const TRAVERSALS: [Traversal; 5] = [
+const TRAVERSALS: [Traversal; 6] = [
     Traversal::FullStack,
     Traversal::Stackless,
     Traversal::ShortStack(1),
     Traversal::ShortStack(2),
     Traversal::ShortStack(6),
+    Traversal::Wide,
 ];
 
 /// Largest coordinate magnitude involved: f32 rounding errors scale with it.
@@ -87,7 +88,10 @@ proptest! {
     #[test]
     fn traversals_match_brute_force_and_the_oracle(tris in common::soup(), seed in any::<u64>(), b in 0usize..4) {
         let opts = BuildOptions { max_leaf_size: 3, ..BuildOptions::with_builder(BuilderKind::ALL[b]) };
-        let bvh = FlatBvh::build(&tris, &opts).unwrap();
+        let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
+        if let Some(w) = &bvh.wide {
+            prop_assert!(w.check_invariants(&bvh).is_ok(), "{:?}", w.check_invariants(&bvh));
+        }
         let rays = common::rays_for(&tris, seed, 48);
         for ray in &rays {
             let expect = brute_force(&bvh, ray, Precision::WatertightF32);
@@ -158,7 +162,8 @@ fn exact_ties_go_to_the_lower_primitive() {
                 ..BuildOptions::with_builder(b)
             },
         )
-        .unwrap();
+        .unwrap()
+        .with_wide();
         for tr in TRAVERSALS {
             let (h, _) = trace_ray(
                 &bvh,
@@ -245,7 +250,7 @@ fn closest_hit_does_not_depend_on_visit_order_near_the_origin() {
         prim_order: vec![1, 0, 2],
         node_count: 5,
     };
-    let bvh = FlatBvh::flatten(&tree, &tris);
+    let bvh = FlatBvh::flatten(&tree, &tris).with_wide();
     bvh.check_invariants().unwrap();
 
     // The situation: t_W < t_L, and t_L is before W's box (and X's) by more than the
@@ -327,7 +332,7 @@ fn deep_trees_are_traversed_correctly_without_a_deep_stack() {
         max_leaf_size: 1,
         ..Default::default()
     };
-    let bvh = FlatBvh::build(&tris, &opts).unwrap();
+    let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
     bvh.check_invariants().unwrap();
     // Deeper than any fixed 64-entry stack.
     assert!(bvh.depth > 64, "depth {}", bvh.depth);
@@ -389,7 +394,9 @@ fn stackless_and_short_stack_visit_no_more_nodes_than_the_full_stack_allows() {
             ]
         })
         .collect();
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
     let eye = Vec3::new(70.0, -60.0, 80.0);
     let rays: Vec<Ray> = (0..64 * 64)
         .map(|i| {
@@ -411,7 +418,9 @@ fn stackless_and_short_stack_visit_no_more_nodes_than_the_full_stack_allows() {
 #[test]
 fn batch_equals_single_rays() {
     let tris = deep_soup(40);
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
     let rays = common::rays_for(&tris, 99, 500);
     for tr in TRAVERSALS {
         let out = trace_rays(&bvh, &rays, &TraceOptions::closest(tr));
@@ -526,6 +535,12 @@ fn walks_name_missing_escape_links() {
     let mut bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
     let rays = common::rays_for(&tris, 3, 16);
     let full = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::FullStack)).hits;
+    let err = std::panic::catch_unwind(|| {
+        trace_ray(&bvh, &rays[0], &TraceOptions::closest(Traversal::Wide))
+    })
+    .expect_err("the wide walk ran without a wide layout");
+    let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+    assert!(msg.contains("FlatBvh::build_wide"), "{msg}");
     bvh.escapes.clear();
     assert_eq!(
         trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::FullStack)).hits,

@@ -399,7 +399,7 @@ impl KernelKey {
     /// the full stack.
     fn short_stack_size(&self) -> Option<u32> {
         match self.traversal {
-            Traversal::FullStack => None,
+            Traversal::FullStack | Traversal::Wide => None,
             Traversal::Stackless => Some(0),
             Traversal::ShortStack(k) => Some(k.clamp(1, MAX_SHORT_STACK)),
         }

@@ -59,6 +59,7 @@ enum TraversalKind {
     Stackless,
     ShortStack,
     FullStack,
+    Wide,
 }
 
 /// What the user chose in the side panel.
@@ -84,6 +85,7 @@ impl Settings {
             TraversalKind::Stackless => Traversal::Stackless,
             TraversalKind::ShortStack => Traversal::ShortStack(self.short_stack.clamp(1, 32)),
             TraversalKind::FullStack => Traversal::FullStack,
+            TraversalKind::Wide => Traversal::Wide,
         }
     }
 
@@ -207,6 +209,7 @@ impl ViewerApp {
             Traversal::Stackless => (TraversalKind::Stackless, DEFAULT_SHORT_STACK),
             Traversal::ShortStack(k) => (TraversalKind::ShortStack, k),
             Traversal::FullStack => (TraversalKind::FullStack, DEFAULT_SHORT_STACK),
+            Traversal::Wide => (TraversalKind::Wide, DEFAULT_SHORT_STACK),
         };
         let settings = Settings {
             builder: args.builder,
@@ -931,6 +934,7 @@ impl ViewerApp {
                 ui.selectable_value(t, TraversalKind::Stackless, "stackless");
                 ui.selectable_value(t, TraversalKind::ShortStack, "short-stack");
                 ui.selectable_value(t, TraversalKind::FullStack, "full-stack");
+                ui.selectable_value(t, TraversalKind::Wide, "wide");
             });
         if self.settings.traversal == TraversalKind::ShortStack {
             ui.add(
