@@ -134,7 +134,9 @@ pub fn safe_inverse(d: f32) -> f32 {
 }
 
 impl PreparedRay {
-    /// Precomputes a valid ray (see [`Ray::is_valid`]).
+    /// Precomputes a valid ray (see [`Ray::is_valid`]). Inlined, so that the walks build
+    /// it in registers instead of copying it through memory.
+    #[inline(always)]
     pub fn new(ray: &Ray) -> Self {
         let org = Vec3::from(ray.origin);
         let d = Vec3::from(ray.dir);

@@ -33,7 +33,7 @@ use crate::flat::{
 use crate::intersect::{PreparedRay, intersect_box};
 use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
-use crate::wide::{WideBvh, hit_children};
+use crate::wide::{WideBvh, WideNode, hit_children};
 
 /// The most short-stack entries a kernel may be specialised for.
 pub const MAX_SHORT_STACK: u32 = 32;
@@ -242,6 +242,7 @@ struct Space<'a> {
 }
 
 impl<'a> Space<'a> {
+    #[inline(always)]
     fn new(bvh: &'a FlatBvh, ray: &'a Ray, world: PreparedRay, mask: u8) -> Self {
         Space {
             bvh,
@@ -465,7 +466,8 @@ fn short_stack<T: TriangleTest, const I: bool>(
 /// left of a node's hit children (a *node group*: the node and a mask) is pushed when the
 /// walk descends, and popped when the current group runs out. A group holds at most the
 /// hit children of one node, so the stack holds at most one group per level.
-fn wide<T: TriangleTest, const I: bool>(
+#[inline(always)]
+fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
     s: &mut Space,
     w: &WideBvh,
     best: &mut Best,
@@ -478,44 +480,51 @@ fn wide<T: TriangleTest, const I: bool>(
     let mut oct = world_oct;
     stack.clear();
     let mut node = 0u32;
-    let mut mask = group(w, node, &r, best.t, oct, c);
+    // `first`: the child to visit next when it is in `mask` (a fresh group's nearest).
+    let (mut mask, mut first) = group::<C>(w, node, &r, best.t, oct, c);
     loop {
         if mask == 0 {
             let (Some(m), Some(n)) = (stack.pop(), stack.pop()) else {
                 return;
             };
-            (node, mask) = (n, m);
+            (node, mask, first) = (n, m, u32::BITS);
             if I && s.leaves_at(node) {
                 r = s.world;
                 oct = world_oct;
             }
             continue;
         }
-        let slot = (mask.trailing_zeros() as usize) ^ oct;
-        mask &= mask - 1;
+        let j = if first < u32::BITS {
+            first
+        } else {
+            mask.trailing_zeros()
+        };
+        first = u32::BITS;
+        mask &= !(1 << j);
+        let slot = j as usize ^ oct;
         let n = &w.nodes[node as usize];
         if (n.imask() >> slot) & 1 != 0 {
             if mask != 0 {
                 stack.extend([node, mask]);
             }
             node = n.child(slot);
-            mask = group(w, node, &r, best.t, oct, c);
+            (mask, first) = group::<C>(w, node, &r, best.t, oct, c);
             continue;
         }
-        let (first, count) = n.leaf_range(slot);
+        let (start, count) = n.leaf_range(slot);
         if I && node < s.top_nodes {
-            if let Some((object, root)) = s.enter_instance(&w.instances[first as usize]) {
+            if let Some((object, root)) = s.enter_instance(&w.instances[start as usize]) {
                 if mask != 0 {
                     stack.extend([node, mask]);
                 }
                 r = object;
                 oct = octant(r.dir);
                 node = root;
-                mask = group(w, node, &r, best.t, oct, c);
+                (mask, first) = group::<C>(w, node, &r, best.t, oct, c);
             }
             continue;
         }
-        let tris = &w.triangles[first as usize..(first + count) as usize];
+        let tris = &w.triangles[start as usize..(start + count) as usize];
         if visit_triangles::<T>(tris, &r, best, c, any, if I { s.prim_base } else { 0 }) {
             return;
         }
@@ -525,17 +534,159 @@ fn wide<T: TriangleTest, const I: bool>(
 /// Tests node `node`'s children: the group's mask in visit order, and the box tests
 /// counted.
 #[inline(always)]
-fn group(
+fn group<C: ChildTest>(
     w: &WideBvh,
     node: u32,
     r: &PreparedRay,
     t_best: f32,
     oct: usize,
     c: &mut Counters,
-) -> u32 {
-    let n = &w.nodes[node as usize];
-    c.nodes += n.used_mask().count_ones();
-    hit_children(n, r, t_best, oct)
+) -> (u32, u32) {
+    let (hits, first, used) = C::hits(&w.nodes[node as usize], r, t_best, oct);
+    c.nodes += used.count_ones();
+    (hits, first)
+}
+
+/// How the wide walk tests a node's eight boxes: the same bits either way. Returns the
+/// hit children in visit order and the used slots.
+trait ChildTest {
+    fn hits(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32, u32);
+}
+
+/// [`hit_children`], portable.
+struct Portable;
+
+impl ChildTest for Portable {
+    #[inline(always)]
+    fn hits(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32, u32) {
+        let (hits, first) = hit_children(n, r, t_best, oct);
+        (hits, first, n.used_mask())
+    }
+}
+
+/// [`crate::wide::hit_children_avx2`]: only inside [`wide_avx2`].
+#[cfg(target_arch = "x86_64")]
+struct Avx2;
+
+#[cfg(target_arch = "x86_64")]
+impl ChildTest for Avx2 {
+    #[inline(always)]
+    fn hits(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32, u32) {
+        // SAFETY: `Avx2` is only used by `wide_avx2`, which runs only where AVX2 was
+        // detected.
+        unsafe { crate::wide::hit_children_avx2(n, r, t_best, oct) }
+    }
+}
+
+/// One ray of the wide walk, from its checks to its hit.
+#[inline(always)]
+fn wide_ray<T: TriangleTest, const I: bool, C: ChildTest>(
+    bvh: &FlatBvh,
+    w: &WideBvh,
+    ray: &Ray,
+    opts: &TraceOptions,
+    stack: &mut Vec<u32>,
+) -> (Hit, Counters) {
+    let mut c = Counters::default();
+    if !ray.is_valid() {
+        return (untraced(ray), c);
+    }
+    let mut best = Best::start(ray);
+    if w.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
+        return (best.into_hit(), c);
+    }
+    let mut s = Space::new(bvh, ray, PreparedRay::new(ray), opts.mask);
+    s.top_nodes = w.top_nodes;
+    let any = opts.query == Query::Any;
+    wide::<T, I, C>(&mut s, w, &mut best, &mut c, any, stack);
+    (best.into_hit(), c)
+}
+
+/// A run of rays through the wide walk, appended to `out`: the per-ray setup is inlined
+/// into one loop, compiled once per box test.
+#[inline(always)]
+fn wide_rays<T: TriangleTest, const I: bool, C: ChildTest>(
+    bvh: &FlatBvh,
+    w: &WideBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    out: &mut Vec<(Hit, Counters)>,
+) {
+    let mut stack = Vec::with_capacity(2 * w.depth as usize + 2);
+    // A plain loop: an iterator adaptor's `fold` would be compiled apart from the AVX2
+    // caller, without its features.
+    for ray in rays {
+        out.push(wide_ray::<T, I, C>(bvh, w, ray, opts, &mut stack));
+    }
+}
+
+/// [`wide_rays`] compiled for AVX2 and POPCNT (the caller checks the CPU has them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,popcnt")]
+fn wide_rays_avx2<T: TriangleTest, const I: bool>(
+    bvh: &FlatBvh,
+    w: &WideBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    out: &mut Vec<(Hit, Counters)>,
+) {
+    wide_rays::<T, I, Avx2>(bvh, w, rays, opts, out)
+}
+
+/// [`wide_rays`] with the fastest box test this CPU has.
+fn wide_rays_dispatch<T: TriangleTest, const I: bool>(
+    bvh: &FlatBvh,
+    w: &WideBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    out: &mut Vec<(Hit, Counters)>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("popcnt")
+    {
+        // SAFETY: AVX2 and POPCNT were just detected.
+        return unsafe { wide_rays_avx2::<T, I>(bvh, w, rays, opts, out) };
+    }
+    wide_rays::<T, I, Portable>(bvh, w, rays, opts, out)
+}
+
+/// The wide walk over `rays`, appended to `out` (one monomorphised loop per precision and
+/// level count). Panics, naming the fix, when the BVH has no wide layout.
+fn trace_wide(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut Vec<(Hit, Counters)>) {
+    let Some(w) = bvh.wide.as_deref() else {
+        panic!(
+            "{}: the BVH has no wide layout (call FlatBvh::build_wide)",
+            opts.traversal
+        );
+    };
+    match (opts.precision, bvh.is_instanced()) {
+        (Precision::WatertightF32, false) => {
+            wide_rays_dispatch::<WatertightF32, false>(bvh, w, rays, opts, out)
+        }
+        (Precision::WatertightF32, true) => {
+            wide_rays_dispatch::<WatertightF32, true>(bvh, w, rays, opts, out)
+        }
+        (Precision::MollerTrumboreF32, false) => {
+            wide_rays_dispatch::<MollerTrumboreF32, false>(bvh, w, rays, opts, out)
+        }
+        (Precision::MollerTrumboreF32, true) => {
+            wide_rays_dispatch::<MollerTrumboreF32, true>(bvh, w, rays, opts, out)
+        }
+        (Precision::WatertightF64, false) => {
+            wide_rays_dispatch::<WatertightF64, false>(bvh, w, rays, opts, out)
+        }
+        (Precision::WatertightF64, true) => {
+            wide_rays_dispatch::<WatertightF64, true>(bvh, w, rays, opts, out)
+        }
+    }
+}
+
+/// The hit of a ray that is not traced ([`Ray::is_valid`] is false).
+fn untraced(ray: &Ray) -> Hit {
+    Hit {
+        prim: INVALID_RAY,
+        ..Hit::miss(if ray.t_max.is_nan() { 0.0 } else { ray.t_max })
+    }
 }
 
 /// What one trace job asks for: the walk, the query, the triangle test, and whether to
@@ -623,6 +774,11 @@ pub fn trace_ray_with(
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
 ) -> (Hit, Counters) {
+    if opts.traversal.is_wide() {
+        let mut out = Vec::with_capacity(1);
+        trace_wide(bvh, std::slice::from_ref(ray), opts, &mut out);
+        return out[0];
+    }
     match opts.precision {
         Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, opts, stack),
         Precision::MollerTrumboreF32 => {
@@ -643,13 +799,7 @@ fn trace_ray_generic<T: TriangleTest>(
     let (traversal, query, mask) = (opts.traversal, opts.query, opts.mask);
     let mut c = Counters::default();
     if !ray.is_valid() {
-        return (
-            Hit {
-                prim: INVALID_RAY,
-                ..Hit::miss(if ray.t_max.is_nan() { 0.0 } else { ray.t_max })
-            },
-            c,
-        );
+        return (untraced(ray), c);
     }
     let r = PreparedRay::new(ray);
     let mut best = Best::start(ray);
@@ -668,20 +818,7 @@ fn trace_ray_generic<T: TriangleTest>(
         Traversal::FullStack => None,
         Traversal::Stackless => Some(0),
         Traversal::ShortStack(k) => Some(k.clamp(1, MAX_SHORT_STACK)),
-        Traversal::Wide => {
-            let Some(w) = bvh.wide.as_deref() else {
-                panic!("{traversal}: the BVH has no wide layout (call FlatBvh::build_wide)");
-            };
-            if w.nodes.is_empty() {
-                return (best.into_hit(), c);
-            }
-            s.top_nodes = w.top_nodes;
-            match bvh.is_instanced() {
-                false => wide::<T, false>(s, w, &mut best, &mut c, any, stack),
-                true => wide::<T, true>(s, w, &mut best, &mut c, any, stack),
-            }
-            return (best.into_hit(), c);
-        }
+        Traversal::Wide => unreachable!("the wide walk is dispatched in trace_ray_with"),
     };
     match (k, bvh.is_instanced()) {
         (None, false) => full_stack::<T, false>(s, &mut best, &mut c, any, stack),
@@ -703,7 +840,22 @@ pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, opts: &TraceOptions) -> (Hit, Counter
 pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutput {
     let start = std::time::Instant::now();
     let stack = || Vec::with_capacity(bvh.depth as usize + 1);
-    let (hits, counters) = if opts.counters {
+    let (hits, counters) = if opts.traversal.is_wide() {
+        let out: Vec<(Hit, Counters)> = rays
+            .par_chunks(256)
+            .flat_map_iter(|chunk| {
+                let mut out = Vec::with_capacity(chunk.len());
+                trace_wide(bvh, chunk, opts, &mut out);
+                out
+            })
+            .collect();
+        if opts.counters {
+            let (h, c) = out.into_iter().unzip();
+            (h, Some(c))
+        } else {
+            (out.into_iter().map(|(h, _)| h).collect(), None)
+        }
+    } else if opts.counters {
         let (h, c): (Vec<Hit>, Vec<Counters>) = rays
             .par_iter()
             .with_min_len(256)

@@ -724,14 +724,32 @@ fn bytes8(w: &[u32; 2]) -> [u8; 8] {
     (u64::from(w[0]) | u64::from(w[1]) << 32).to_le_bytes()
 }
 
+/// Bit `s ^ oct` of the result is bit `s` of `mask`: a node's hits in slot order turned
+/// into the visit order of a ray in octant `oct` (three conditional swaps).
+#[inline(always)]
+pub fn visit_order(mut m: u32, oct: usize) -> u32 {
+    if oct & 1 != 0 {
+        m = ((m & 0x55) << 1) | ((m >> 1) & 0x55);
+    }
+    if oct & 2 != 0 {
+        m = ((m & 0x33) << 2) | ((m >> 2) & 0x33);
+    }
+    if oct & 4 != 0 {
+        m = ((m & 0x0f) << 4) | ((m >> 4) & 0x0f);
+    }
+    m
+}
+
 /// Tests the ray against node `n`'s used child boxes together, lane `s` for slot `s`:
 /// each lane does exactly what [`crate::intersect::intersect_box`] does for the decoded
 /// box ([`WideNode::child_box`]), so the answers are the binary walks' and the kernel's.
-/// Bit `s ^ oct` of the result is set when child `s` is hit: the visit order of a ray in
-/// octant `oct`. Written lane-wise over arrays so the compiler can keep the eight lanes in
-/// one SIMD register.
+/// Bit `s ^ oct` of the result's mask is set when child `s` is hit: the visit order of a
+/// ray in octant `oct`. The second value is where in that order the nearest hit child is
+/// (the least entry distance, the first in visit order among equal ones; 32 when none is
+/// hit): the walk visits it first. Written lane-wise over arrays so that the compiler can keep the eight
+/// lanes in SIMD registers; [`hit_children_avx2`] is the same with explicit AVX.
 #[inline(always)]
-pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> u32 {
+pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32) {
     use crate::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
     #[inline(always)]
     fn fmin(a: f32, b: f32) -> f32 {
@@ -770,9 +788,8 @@ pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> u
             }
         }
     }
-    let used = bytes8(&n.counts);
-    let imask = n.imask();
     let mut hits = 0u32;
+    let mut near = [0f32; WIDTH];
     for s in 0..WIDTH {
         let tnear = fmax(
             fmax(fmin(t0[0][s], t1[0][s]), fmin(t0[1][s], t1[1][s])),
@@ -790,8 +807,120 @@ pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> u
             } else {
                 BOX_TFAR_SCALE
             };
-        let is_used = used[s] != 0 || (imask >> s) & 1 != 0;
-        hits |= u32::from(is_used && tnear <= tfar) << (s ^ oct);
+        hits |= u32::from(tnear <= tfar) << s;
+        near[s] = tnear;
     }
-    hits
+    let hits = hits & n.used_mask();
+    let mut nearest = f32::INFINITY;
+    for (s, &t) in near.iter().enumerate() {
+        if (hits >> s) & 1 != 0 {
+            nearest = fmin(t, nearest);
+        }
+    }
+    let ties = (0..WIDTH).fold(0, |m, s| {
+        m | u32::from((hits >> s) & 1 != 0 && near[s] == nearest) << s
+    });
+    (
+        visit_order(hits, oct),
+        visit_order(ties, oct).trailing_zeros(),
+    )
+}
+
+/// [`hit_children`] with AVX: the same operations lane by lane (`vminps`/`vmaxps` are the
+/// walks' `a < b ? a : b` and `a > b ? a : b`, no fused multiply-add), so the same bits.
+/// Rays parallel to a slab take the portable path. Also returns the used slots' mask.
+/// The nearest lane's minimum is taken in a different order than the portable loop's,
+/// but a minimum of the same values is the same value.
+///
+/// # Safety
+/// The CPU must support AVX2 (`is_x86_feature_detected!("avx2")`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+pub unsafe fn hit_children_avx2(
+    n: &WideNode,
+    r: &PreparedRay,
+    t_best: f32,
+    oct: usize,
+) -> (u32, u32, u32) {
+    use crate::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
+    use std::arch::x86_64::*;
+    // SAFETY: `counts` is eight readable bytes.
+    let counts = unsafe { _mm_loadl_epi64(n.counts.as_ptr().cast()) };
+    let leaves = _mm256_cmpgt_epi32(_mm256_cvtepu8_epi32(counts), _mm256_setzero_si256());
+    let used = _mm256_movemask_ps(_mm256_castsi256_ps(leaves)) as u32 | n.imask();
+    if r.parallel {
+        let (hits, first) = hit_children(n, r, t_best, oct);
+        return (hits, first, used);
+    }
+    let e = n.scale();
+    let planes = |q: &[u32; 2], a: usize| {
+        // Eight bytes widened to eight f32 lanes, decoded and turned into distances.
+        // SAFETY: `q` is eight readable bytes.
+        let bytes = unsafe { _mm_loadl_epi64(q.as_ptr().cast()) };
+        let qf = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(bytes));
+        let plane = _mm256_add_ps(
+            _mm256_set1_ps(n.origin[a]),
+            _mm256_mul_ps(qf, _mm256_set1_ps(e[a])),
+        );
+        _mm256_mul_ps(
+            _mm256_sub_ps(plane, _mm256_set1_ps(r.org[a])),
+            _mm256_set1_ps(r.inv_dir[a]),
+        )
+    };
+    let t0 = [
+        planes(&n.q_lo[0], 0),
+        planes(&n.q_lo[1], 1),
+        planes(&n.q_lo[2], 2),
+    ];
+    let t1 = [
+        planes(&n.q_hi[0], 0),
+        planes(&n.q_hi[1], 1),
+        planes(&n.q_hi[2], 2),
+    ];
+    // `_mm256_min_ps(a, b)` is `a < b ? a : b`, `_mm256_max_ps(a, b)` is `a > b ? a : b`.
+    let (min, max) = (|a, b| _mm256_min_ps(a, b), |a, b| _mm256_max_ps(a, b));
+    let tnear = max(
+        max(min(t0[0], t1[0]), min(t0[1], t1[1])),
+        max(min(t0[2], t1[2]), _mm256_set1_ps(r.t_min)),
+    );
+    let abs = |x| _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff)));
+    let m = max(abs(t0[r.kz]), abs(t1[r.kz]));
+    let widened = _mm256_add_ps(
+        _mm256_set1_ps(t_best),
+        _mm256_mul_ps(_mm256_set1_ps(BOX_CULL_SLACK), m),
+    );
+    let limit = min(widened, _mm256_set1_ps(r.t_max));
+    let tfar = min(
+        min(max(t0[0], t1[0]), max(t0[1], t1[1])),
+        min(max(t0[2], t1[2]), limit),
+    );
+    let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(tfar, _mm256_setzero_ps());
+    let scale = _mm256_blendv_ps(
+        _mm256_set1_ps(BOX_TFAR_SCALE),
+        _mm256_set1_ps(BOX_TFAR_SCALE_NEG),
+        negative,
+    );
+    let tfar = _mm256_mul_ps(tfar, scale);
+    let hit = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tnear, tfar)) as u32 & used;
+    // The nearest hit lane: the least `tnear` over the hit lanes (`vminps` as `fmin`).
+    let lanes = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let is_hit = _mm256_cmpeq_epi32(
+        _mm256_and_si256(_mm256_set1_epi32(hit as i32), lanes),
+        lanes,
+    );
+    let near = _mm256_blendv_ps(
+        _mm256_set1_ps(f32::INFINITY),
+        tnear,
+        _mm256_castsi256_ps(is_hit),
+    );
+    let m1 = min(near, _mm256_permute2f128_ps::<1>(near, near));
+    let m2 = min(m1, _mm256_permute_ps::<0b01_00_11_10>(m1));
+    let m3 = min(m2, _mm256_permute_ps::<0b10_11_00_01>(m2));
+    let ties = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(near, m3)) as u32 & hit;
+    (
+        visit_order(hit, oct),
+        visit_order(ties, oct).trailing_zeros(),
+        used,
+    )
 }
