@@ -348,6 +348,10 @@ impl InstancedBvh {
         self.bvh.depth = self.top_depth + deepest_mesh;
         self.bvh.instances = flat;
         self.instances = instances;
+        // New transforms or refitted meshes: the wide layout, when there is one, follows.
+        if self.bvh.wide.is_some() {
+            self.bvh.build_wide();
+        }
         Ok(())
     }
 
@@ -540,7 +544,19 @@ impl InstancedBvh {
             mesh,
             problem: e.to_string(),
         })?;
-        InstancedBvh::new(trees, self.instances.clone())
+        let mut out = InstancedBvh::new(trees, self.instances.clone())?;
+        if self.bvh.wide.is_some() {
+            out.build_wide();
+        }
+        Ok(out)
+    }
+
+    /// Converts the layout into the wide one as well ([`FlatBvh::build_wide`]), so that
+    /// [`crate::Traversal::Wide`] can walk it; kept up to date by
+    /// [`InstancedBvh::set_transforms`], [`InstancedBvh::refit_mesh`] and
+    /// [`InstancedBvh::rebuild_mesh`] from then on.
+    pub fn build_wide(&mut self) {
+        self.bvh.build_wide();
     }
 
     /// Mesh `mesh`'s tree as a one-mesh BVH.

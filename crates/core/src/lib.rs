@@ -10,6 +10,7 @@
 #![warn(missing_docs)]
 
 pub mod build;
+pub mod cost;
 pub mod flat;
 pub mod geometry;
 pub mod instance;
@@ -33,6 +34,7 @@ pub use precision::Precision;
 pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
 pub use stats::BvhStats;
 pub use traverse::{
-    Query, TraceOptions, TraceOutput, Traversal, brute_force, trace_ray, trace_ray_with, trace_rays,
+    Query, TraceOptions, TraceOutput, Traversal, WalkCost, brute_force, trace_ray, trace_ray_cost,
+    trace_ray_with, trace_rays,
 };
 pub use wide::{WideBvh, WideNode};

@@ -139,6 +139,40 @@ pub enum Query {
     Any,
 }
 
+/// Bytes of one binary node as the kernels load it.
+const NODE_BYTES: u32 = std::mem::size_of::<FlatNode>() as u32;
+
+/// One ray's walk, counted for the GPU cost model: its [`Counters`], its loop trips (one
+/// per node visited, or child taken or group popped in the wide walk: what a kernel's
+/// loop spends), and the bytes of nodes and escape links it loaded.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WalkCost {
+    /// Box tests (as [`Counters::nodes`]).
+    pub nodes: u32,
+    /// Triangle tests (as [`Counters::tris`]).
+    pub tris: u32,
+    /// Trips through the walk's loop.
+    pub trips: u32,
+    /// Bytes of nodes (32 per binary box tested, 80 per wide node) and escape links
+    /// (4 per link followed) loaded.
+    pub node_bytes: u32,
+}
+
+impl WalkCost {
+    /// The counters the backends report.
+    pub fn counters(&self) -> Counters {
+        Counters {
+            nodes: self.nodes,
+            tris: self.tris,
+        }
+    }
+
+    /// Bytes of triangles loaded (48 per triangle tested).
+    pub fn triangle_bytes(&self) -> u32 {
+        self.tris * std::mem::size_of::<FlatTriangle>() as u32
+    }
+}
+
 /// The best hit so far.
 struct Best {
     t: f32,
@@ -181,7 +215,7 @@ fn visit_leaf<T: TriangleTest>(
     r: &PreparedRay,
     n: &FlatNode,
     best: &mut Best,
-    c: &mut Counters,
+    c: &mut WalkCost,
     any: bool,
     prim_base: u32,
 ) -> bool {
@@ -196,7 +230,7 @@ fn visit_triangles<T: TriangleTest>(
     tris: &[FlatTriangle],
     r: &PreparedRay,
     best: &mut Best,
-    c: &mut Counters,
+    c: &mut WalkCost,
     any: bool,
     prim_base: u32,
 ) -> bool {
@@ -299,7 +333,7 @@ impl<'a> Space<'a> {
 fn full_stack<T: TriangleTest, const I: bool>(
     s: &mut Space,
     best: &mut Best,
-    c: &mut Counters,
+    c: &mut WalkCost,
     any: bool,
     stack: &mut Vec<u32>,
 ) {
@@ -307,12 +341,14 @@ fn full_stack<T: TriangleTest, const I: bool>(
     let mut r = s.world;
     stack.clear();
     c.nodes += 1;
+    c.node_bytes += NODE_BYTES;
     let (lo, hi) = node_box(&bvh.nodes[0]);
     if intersect_box(&r, lo, hi, best.t).is_none() {
         return;
     }
     let mut node = 0u32;
     loop {
+        c.trips += 1;
         let n = &bvh.nodes[node as usize];
         if n.is_leaf() {
             if I && n.is_instance_leaf() {
@@ -328,6 +364,7 @@ fn full_stack<T: TriangleTest, const I: bool>(
         } else {
             let (l, rt) = (node + 1, n.right_or_first);
             c.nodes += 2;
+            c.node_bytes += 2 * NODE_BYTES;
             let (llo, lhi) = node_box(&bvh.nodes[l as usize]);
             let (rlo, rhi) = node_box(&bvh.nodes[rt as usize]);
             let hl = intersect_box(&r, llo, lhi, best.t);
@@ -381,7 +418,7 @@ fn full_stack<T: TriangleTest, const I: bool>(
 fn short_stack<T: TriangleTest, const I: bool>(
     s: &mut Space,
     best: &mut Best,
-    c: &mut Counters,
+    c: &mut WalkCost,
     any: bool,
     k: u32,
 ) {
@@ -397,7 +434,9 @@ fn short_stack<T: TriangleTest, const I: bool>(
     let mut overflow = false;
     let mut node = 0u32;
     loop {
+        c.trips += 1;
         c.nodes += 1;
+        c.node_bytes += NODE_BYTES;
         let n = &bvh.nodes[node as usize];
         let (lo, hi) = node_box(n);
         if intersect_box(&r, lo, hi, best.t).is_some() {
@@ -444,6 +483,7 @@ fn short_stack<T: TriangleTest, const I: bool>(
         }
         // A mesh's walk that escapes to `NO_ESCAPE` goes on at its instance leaf's link.
         loop {
+            c.node_bytes += 4;
             let next = bvh.escapes[escape_index(node, oct)];
             if next != NO_ESCAPE {
                 node = next;
@@ -471,7 +511,7 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
     s: &mut Space,
     w: &WideBvh,
     best: &mut Best,
-    c: &mut Counters,
+    c: &mut WalkCost,
     any: bool,
     stack: &mut Vec<u32>,
 ) {
@@ -483,6 +523,7 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
     // `first`: the child to visit next when it is in `mask` (a fresh group's nearest).
     let (mut mask, mut first) = group::<C>(w, node, &r, best.t, oct, c);
     loop {
+        c.trips += 1;
         if mask == 0 {
             let (Some(m), Some(n)) = (stack.pop(), stack.pop()) else {
                 return;
@@ -540,10 +581,11 @@ fn group<C: ChildTest>(
     r: &PreparedRay,
     t_best: f32,
     oct: usize,
-    c: &mut Counters,
+    c: &mut WalkCost,
 ) -> (u32, u32) {
     let (hits, first, used) = C::hits(&w.nodes[node as usize], r, t_best, oct);
     c.nodes += used.count_ones();
+    c.node_bytes += std::mem::size_of::<WideNode>() as u32;
     (hits, first)
 }
 
@@ -586,8 +628,8 @@ fn wide_ray<T: TriangleTest, const I: bool, C: ChildTest>(
     ray: &Ray,
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
-) -> (Hit, Counters) {
-    let mut c = Counters::default();
+) -> (Hit, WalkCost) {
+    let mut c = WalkCost::default();
     if !ray.is_valid() {
         return (untraced(ray), c);
     }
@@ -610,13 +652,18 @@ fn wide_rays<T: TriangleTest, const I: bool, C: ChildTest>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
-    out: &mut Vec<(Hit, Counters)>,
+    hits: &mut [Hit],
+    costs: &mut [WalkCost],
 ) {
     let mut stack = Vec::with_capacity(2 * w.depth as usize + 2);
     // A plain loop: an iterator adaptor's `fold` would be compiled apart from the AVX2
     // caller, without its features.
-    for ray in rays {
-        out.push(wide_ray::<T, I, C>(bvh, w, ray, opts, &mut stack));
+    for i in 0..rays.len() {
+        let (h, c) = wide_ray::<T, I, C>(bvh, w, &rays[i], opts, &mut stack);
+        hits[i] = h;
+        if let Some(slot) = costs.get_mut(i) {
+            *slot = c;
+        }
     }
 }
 
@@ -628,9 +675,10 @@ fn wide_rays_avx2<T: TriangleTest, const I: bool>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
-    out: &mut Vec<(Hit, Counters)>,
+    hits: &mut [Hit],
+    costs: &mut [WalkCost],
 ) {
-    wide_rays::<T, I, Avx2>(bvh, w, rays, opts, out)
+    wide_rays::<T, I, Avx2>(bvh, w, rays, opts, hits, costs)
 }
 
 /// [`wide_rays`] with the fastest box test this CPU has.
@@ -639,20 +687,28 @@ fn wide_rays_dispatch<T: TriangleTest, const I: bool>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
-    out: &mut Vec<(Hit, Counters)>,
+    hits: &mut [Hit],
+    costs: &mut [WalkCost],
 ) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("popcnt")
     {
         // SAFETY: AVX2 and POPCNT were just detected.
-        return unsafe { wide_rays_avx2::<T, I>(bvh, w, rays, opts, out) };
+        return unsafe { wide_rays_avx2::<T, I>(bvh, w, rays, opts, hits, costs) };
     }
-    wide_rays::<T, I, Portable>(bvh, w, rays, opts, out)
+    wide_rays::<T, I, Portable>(bvh, w, rays, opts, hits, costs)
 }
 
-/// The wide walk over `rays`, appended to `out` (one monomorphised loop per precision and
-/// level count). Panics, naming the fix, when the BVH has no wide layout.
-fn trace_wide(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut Vec<(Hit, Counters)>) {
+/// The wide walk over `rays`, into `hits` and (unless it is empty) `costs`, one per ray (one
+/// monomorphised loop per precision and level count). Panics, naming the fix, when the BVH
+/// has no wide layout.
+fn trace_wide(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    hits: &mut [Hit],
+    costs: &mut [WalkCost],
+) {
     let Some(w) = bvh.wide.as_deref() else {
         panic!(
             "{}: the BVH has no wide layout (call FlatBvh::build_wide)",
@@ -661,22 +717,22 @@ fn trace_wide(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut Vec<(H
     };
     match (opts.precision, bvh.is_instanced()) {
         (Precision::WatertightF32, false) => {
-            wide_rays_dispatch::<WatertightF32, false>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<WatertightF32, false>(bvh, w, rays, opts, hits, costs)
         }
         (Precision::WatertightF32, true) => {
-            wide_rays_dispatch::<WatertightF32, true>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<WatertightF32, true>(bvh, w, rays, opts, hits, costs)
         }
         (Precision::MollerTrumboreF32, false) => {
-            wide_rays_dispatch::<MollerTrumboreF32, false>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<MollerTrumboreF32, false>(bvh, w, rays, opts, hits, costs)
         }
         (Precision::MollerTrumboreF32, true) => {
-            wide_rays_dispatch::<MollerTrumboreF32, true>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<MollerTrumboreF32, true>(bvh, w, rays, opts, hits, costs)
         }
         (Precision::WatertightF64, false) => {
-            wide_rays_dispatch::<WatertightF64, false>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<WatertightF64, false>(bvh, w, rays, opts, hits, costs)
         }
         (Precision::WatertightF64, true) => {
-            wide_rays_dispatch::<WatertightF64, true>(bvh, w, rays, opts, out)
+            wide_rays_dispatch::<WatertightF64, true>(bvh, w, rays, opts, hits, costs)
         }
     }
 }
@@ -774,10 +830,22 @@ pub fn trace_ray_with(
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
 ) -> (Hit, Counters) {
+    let (hit, cost) = trace_ray_cost(bvh, ray, opts, stack);
+    (hit, cost.counters())
+}
+
+/// Traces one ray as [`trace_ray_with`] does, with the walk's whole cost: what the GPU
+/// cost model ([`crate::cost`]) reads.
+pub fn trace_ray_cost(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    opts: &TraceOptions,
+    stack: &mut Vec<u32>,
+) -> (Hit, WalkCost) {
     if opts.traversal.is_wide() {
-        let mut out = Vec::with_capacity(1);
-        trace_wide(bvh, std::slice::from_ref(ray), opts, &mut out);
-        return out[0];
+        let (mut hit, mut cost) = ([Hit::miss(0.0)], [WalkCost::default()]);
+        trace_wide(bvh, std::slice::from_ref(ray), opts, &mut hit, &mut cost);
+        return (hit[0], cost[0]);
     }
     match opts.precision {
         Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, opts, stack),
@@ -795,9 +863,9 @@ fn trace_ray_generic<T: TriangleTest>(
     ray: &Ray,
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
-) -> (Hit, Counters) {
+) -> (Hit, WalkCost) {
     let (traversal, query, mask) = (opts.traversal, opts.query, opts.mask);
-    let mut c = Counters::default();
+    let mut c = WalkCost::default();
     if !ray.is_valid() {
         return (untraced(ray), c);
     }
@@ -841,20 +909,20 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
     let start = std::time::Instant::now();
     let stack = || Vec::with_capacity(bvh.depth as usize + 1);
     let (hits, counters) = if opts.traversal.is_wide() {
-        let out: Vec<(Hit, Counters)> = rays
-            .par_chunks(256)
-            .flat_map_iter(|chunk| {
-                let mut out = Vec::with_capacity(chunk.len());
-                trace_wide(bvh, chunk, opts, &mut out);
-                out
-            })
-            .collect();
+        const RUN: usize = 256;
+        let mut hits = vec![Hit::miss(0.0); rays.len()];
+        let mut costs = vec![WalkCost::default(); if opts.counters { rays.len() } else { 0 }];
+        let runs = hits.par_chunks_mut(RUN).zip(rays.par_chunks(RUN));
         if opts.counters {
-            let (h, c) = out.into_iter().unzip();
-            (h, Some(c))
+            runs.zip(costs.par_chunks_mut(RUN))
+                .for_each(|((h, r), c)| trace_wide(bvh, r, opts, h, c));
         } else {
-            (out.into_iter().map(|(h, _)| h).collect(), None)
+            runs.for_each(|(h, r)| trace_wide(bvh, r, opts, h, &mut []));
         }
+        let counters = opts
+            .counters
+            .then(|| costs.iter().map(WalkCost::counters).collect());
+        (hits, counters)
     } else if opts.counters {
         let (h, c): (Vec<Hit>, Vec<Counters>) = rays
             .par_iter()
@@ -914,7 +982,7 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
             &r,
             &leaf,
             &mut best,
-            &mut Counters::default(),
+            &mut WalkCost::default(),
             false,
             0,
         );
@@ -936,7 +1004,7 @@ fn brute_force_instances<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray, best: &mut B
         while let Some(i) = stack.pop() {
             let n = &bvh.nodes[i as usize];
             if n.is_leaf() {
-                let mut c = Counters::default();
+                let mut c = WalkCost::default();
                 visit_leaf::<T>(bvh, &r, n, best, &mut c, false, inst.prim_base);
             } else {
                 stack.extend([i + 1, n.right_or_first]);

@@ -45,6 +45,15 @@ impl SceneBvh {
         }
     }
 
+    /// Converts the BVH into the wide layout as well, for [`bvhtrace_core::Traversal::Wide`]
+    /// ([`FlatBvh::build_wide`]).
+    pub fn build_wide(&mut self) {
+        match self {
+            SceneBvh::Flat { bvh, .. } => bvh.build_wide(),
+            SceneBvh::Instanced(i) => i.build_wide(),
+        }
+    }
+
     /// True for two levels.
     pub fn is_two_level(&self) -> bool {
         matches!(self, SceneBvh::Instanced(_))
