@@ -520,15 +520,24 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
     let mut oct = world_oct;
     stack.clear();
     let mut node = 0u32;
+    // Groups live in a local array, spilling into `stack` beyond it (any depth).
+    let mut local = [[0u32; 2]; LOCAL_GROUPS];
+    let mut sp = 0usize;
     // `first`: the child to visit next when it is in `mask` (a fresh group's nearest).
     let (mut mask, mut first) = group::<C>(w, node, &r, best.t, oct, c);
     loop {
         c.trips += 1;
         if mask == 0 {
-            let (Some(m), Some(n)) = (stack.pop(), stack.pop()) else {
+            // The newest groups are in the spill once the local stack has filled.
+            if let (Some(m), Some(n)) = (stack.pop(), stack.pop()) {
+                (node, mask) = (n, m);
+            } else if sp > 0 {
+                sp -= 1;
+                [node, mask] = local[sp];
+            } else {
                 return;
-            };
-            (node, mask, first) = (n, m, u32::BITS);
+            }
+            first = u32::BITS;
             if I && s.leaves_at(node) {
                 r = s.world;
                 oct = world_oct;
@@ -546,7 +555,7 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
         let n = &w.nodes[node as usize];
         if (n.imask() >> slot) & 1 != 0 {
             if mask != 0 {
-                stack.extend([node, mask]);
+                push(&mut local, &mut sp, stack, [node, mask]);
             }
             node = n.child(slot);
             (mask, first) = group::<C>(w, node, &r, best.t, oct, c);
@@ -556,7 +565,7 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
         if I && node < s.top_nodes {
             if let Some((object, root)) = s.enter_instance(&w.instances[start as usize]) {
                 if mask != 0 {
-                    stack.extend([node, mask]);
+                    push(&mut local, &mut sp, stack, [node, mask]);
                 }
                 r = object;
                 oct = octant(r.dir);
@@ -569,6 +578,20 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
         if visit_triangles::<T>(tris, &r, best, c, any, if I { s.prim_base } else { 0 }) {
             return;
         }
+    }
+}
+
+/// Node groups the wide walk keeps on its own stack frame before it spills to the heap.
+const LOCAL_GROUPS: usize = 32;
+
+/// Pushes a node group: on the local array while it has room, else on the spill.
+#[inline(always)]
+fn push(local: &mut [[u32; 2]; LOCAL_GROUPS], sp: &mut usize, spill: &mut Vec<u32>, g: [u32; 2]) {
+    if *sp < LOCAL_GROUPS && spill.is_empty() {
+        local[*sp] = g;
+        *sp += 1;
+    } else {
+        spill.extend(g);
     }
 }
 

@@ -1,0 +1,226 @@
+//! The wide layout: its quantised boxes are conservative at any offset and scale (closed
+//! meshes leak no ray), its lanes are the scalar box test's, it is smaller than the binary
+//! upload, and the cost model tallies walks as documented.
+
+use bvhtrace_core::cost::{WARP, warp_cost};
+use bvhtrace_core::intersect::{PreparedRay, intersect_box};
+use bvhtrace_core::wide::{WIDTH, hit_children};
+use bvhtrace_core::{
+    BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal, Triangle, trace_ray, trace_rays,
+};
+use glam::Vec3;
+
+/// A closed UV sphere of `n` x `2n` quads (two triangles each), radius `r`, centre `c`.
+fn sphere(n: usize, r: f32, c: Vec3) -> Vec<Triangle> {
+    let p = |i: usize, j: usize| {
+        let (th, ph) = (
+            std::f32::consts::PI * i as f32 / n as f32,
+            std::f32::consts::PI * j as f32 / n as f32,
+        );
+        c + Vec3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()) * r
+    };
+    let mut t = Vec::new();
+    for i in 0..n {
+        for j in 0..2 * n {
+            let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
+            t.push([a, b, c]);
+            t.push([a, c, d]);
+        }
+    }
+    t
+}
+
+fn rnd(seed: &mut u64) -> f32 {
+    *seed ^= *seed << 13;
+    *seed ^= *seed >> 7;
+    *seed ^= *seed << 17;
+    (*seed >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// Rays from outside the sphere's box towards points inside it: every one must hit.
+fn rays_into(c: Vec3, r: f32, n: usize) -> Vec<Ray> {
+    let mut s = 0x9e37_79b9_7f4a_7c15;
+    (0..n)
+        .map(|_| {
+            let d = Vec3::new(rnd(&mut s) - 0.5, rnd(&mut s) - 0.5, rnd(&mut s) - 0.5);
+            let d = if d.length() < 1e-3 {
+                Vec3::X
+            } else {
+                d.normalize()
+            };
+            let aim = c + Vec3::new(rnd(&mut s) - 0.5, rnd(&mut s) - 0.5, rnd(&mut s) - 0.5) * r;
+            Ray::new(aim - d * (3.0 * r), d)
+        })
+        .collect()
+}
+
+/// No crack at offsets up to 1e7 and scales 1e-9..1e9: every ray aimed inside a closed
+/// sphere hits it through the wide walk, and it hits what the binary full stack hits.
+#[test]
+fn closed_meshes_leak_no_ray_at_any_offset_and_scale() {
+    let mut checked = 0;
+    for scale in [1e-9f32, 1e-4, 1.0, 1e4, 1e9] {
+        for offset in [0.0f32, 1.0, 1e4, 1e7] {
+            // f32 cannot place a sphere far smaller than the spacing of its coordinates.
+            if scale < offset * 1e-4 {
+                continue;
+            }
+            let c = Vec3::new(offset, -0.5 * offset, 0.25 * offset);
+            let tris = sphere(10, scale, c);
+            let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+                .unwrap()
+                .with_wide();
+            let wide = bvh.wide.as_ref().unwrap();
+            wide.check_invariants(&bvh).unwrap();
+            let rays = rays_into(c, scale, 400);
+            for q in [Query::Closest, Query::Any] {
+                let got = trace_rays(&bvh, &rays, &TraceOptions::new(Traversal::Wide, q)).hits;
+                let binary =
+                    trace_rays(&bvh, &rays, &TraceOptions::new(Traversal::FullStack, q)).hits;
+                for (i, (g, b)) in got.iter().zip(&binary).enumerate() {
+                    assert!(
+                        g.is_hit(),
+                        "scale {scale}, offset {offset}: ray {i} escaped {:?}",
+                        rays[i]
+                    );
+                    if q == Query::Closest {
+                        assert_eq!(
+                            (g.prim, g.t.to_bits()),
+                            (b.prim, b.t.to_bits()),
+                            "scale {scale}, offset {offset}, ray {i}"
+                        );
+                    }
+                }
+                checked += got.len();
+            }
+        }
+    }
+    assert_eq!(checked, 14 * 2 * 400);
+}
+
+/// Each lane of the eight-box test is exactly the scalar box test of the decoded box, on
+/// rays of every octant and axis-parallel ones; the AVX2 version gives the same bits.
+#[test]
+fn lanes_are_the_scalar_box_test() {
+    let tris = sphere(16, 1.0, Vec3::ZERO);
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
+    let wide = bvh.wide.as_ref().unwrap();
+    let mut s = 7u64;
+    let mut rays = rays_into(Vec3::ZERO, 1.0, 300);
+    rays.push(Ray::new(Vec3::new(-3.0, 0.1, 0.2), Vec3::X));
+    rays.push(Ray::new(Vec3::new(0.1, 3.0, -0.0), -Vec3::Y));
+    let mut hits = 0;
+    for ray in &rays {
+        let r = PreparedRay::new(ray);
+        for node in &wide.nodes {
+            let t_best = if rnd(&mut s) < 0.5 {
+                f32::INFINITY
+            } else {
+                2.0 * rnd(&mut s) + 1.0
+            };
+            let oct = bvhtrace_core::flat::octant(r.dir);
+            let (mask, first) = hit_children(node, &r, t_best, oct);
+            let mut want = 0u32;
+            let mut nearest: Option<(f32, u32)> = None;
+            for slot in 0..WIDTH {
+                if !node.is_used(slot) {
+                    continue;
+                }
+                let (lo, hi) = node.child_box(slot);
+                if let Some(t) = intersect_box(&r, lo, hi, t_best) {
+                    let j = (slot ^ oct) as u32;
+                    want |= 1 << j;
+                    if nearest.is_none_or(|(tn, jn)| t < tn || (t == tn && j < jn)) {
+                        nearest = Some((t, j));
+                    }
+                }
+            }
+            assert_eq!(mask, want, "{ray:?}");
+            assert_eq!(first, nearest.map_or(32, |n| n.1), "{ray:?}");
+            hits += mask.count_ones();
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 was just detected.
+                let (m, f, used) =
+                    unsafe { bvhtrace_core::wide::hit_children_avx2(node, &r, t_best, oct) };
+                assert_eq!((m, f, used), (mask, first, node.used_mask()), "{ray:?}");
+            }
+        }
+    }
+    assert!(hits > 1000, "only {hits} child hits");
+}
+
+/// The wide upload is at most 0.6 times the binary full-stack one (nodes and triangles).
+#[test]
+fn wide_layout_is_smaller_than_the_binary_one() {
+    let tris = sphere(60, 1.0, Vec3::ZERO);
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
+    let (wn, wt) = bvh.wide.as_ref().unwrap().byte_sizes();
+    let (bn, _, bt) = bvh.byte_sizes();
+    let ratio = (wn + wt) as f64 / (bn + bt) as f64;
+    assert!(ratio <= 0.6, "wide/binary bytes {ratio:.3}");
+}
+
+/// Leaves bigger than a wide leaf can hold are split, and every triangle is still found.
+#[test]
+fn big_binary_leaves_are_split_into_wide_leaves() {
+    let tris = sphere(8, 1.0, Vec3::ZERO);
+    let opts = BuildOptions {
+        max_leaf_size: 200,
+        cost_intersection: 1e-6,
+        ..BuildOptions::default()
+    };
+    let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
+    assert!(
+        bvh.nodes.len() < 4,
+        "expected one big leaf, got {} nodes",
+        bvh.nodes.len()
+    );
+    bvh.wide.as_ref().unwrap().check_invariants(&bvh).unwrap();
+    for ray in rays_into(Vec3::ZERO, 1.0, 200) {
+        let w = trace_ray(&bvh, &ray, &TraceOptions::closest(Traversal::Wide)).0;
+        let b = trace_ray(&bvh, &ray, &TraceOptions::closest(Traversal::FullStack)).0;
+        assert_eq!((w.prim, w.t.to_bits()), (b.prim, b.t.to_bits()));
+    }
+}
+
+/// The cost model: a warp of identical rays is fully used; mixing hits and misses in one
+/// warp lowers the utilisation; bytes follow the documented sizes.
+#[test]
+fn warp_cost_counts_lock_step_and_bytes() {
+    let tris = sphere(12, 1.0, Vec3::ZERO);
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
+    let hit = Ray::new(Vec3::new(0.1, 0.2, -5.0), Vec3::Z);
+    let miss = Ray::new(Vec3::new(5.0, 5.0, -5.0), Vec3::Z);
+    for walk in [Traversal::FullStack, Traversal::Stackless, Traversal::Wide] {
+        let opts = TraceOptions::closest(walk);
+        let same = warp_cost(&bvh, &vec![hit; WARP], &opts);
+        assert_eq!(same.warps, 1);
+        assert!(
+            (same.lane_utilisation - 1.0).abs() < 1e-12,
+            "{walk}: {same:?}"
+        );
+        assert_eq!(same.trips_per_warp, same.trips_per_ray);
+        let mixed: Vec<Ray> = (0..WARP)
+            .map(|i| if i % 2 == 0 { hit } else { miss })
+            .collect();
+        let m = warp_cost(&bvh, &mixed, &opts);
+        assert!(m.lane_utilisation < 0.9, "{walk}: {m:?}");
+        assert!(m.trips_per_warp >= m.trips_per_ray);
+        assert_eq!(m.triangle_bytes_per_ray, 48.0 * m.tris_per_ray);
+        if walk == Traversal::FullStack {
+            assert_eq!(m.node_bytes_per_ray, 32.0 * m.nodes_per_ray);
+        }
+        if walk == Traversal::Wide {
+            // One 80-byte node per group of up to eight box tests.
+            assert!(m.node_bytes_per_ray >= 80.0 * m.nodes_per_ray / 8.0);
+            assert!(m.node_bytes_per_ray < 80.0 * m.nodes_per_ray);
+        }
+    }
+}
