@@ -224,3 +224,76 @@ fn warp_cost_counts_lock_step_and_bytes() {
         }
     }
 }
+
+/// A chain 400 nodes deep (each node a wall and the rest of the chain) hit end to end: the
+/// wide walk holds more groups than its local stack and spills, and stays exact.
+#[test]
+fn deep_chains_spill_the_group_stack_and_stay_exact() {
+    use bvhtrace_core::Aabb;
+    use bvhtrace_core::build::{BuildNode, BuildTree};
+    let n = 400u32;
+    let tris: Vec<Triangle> = (0..n)
+        .map(|i| {
+            let x = i as f32;
+            [
+                Vec3::new(x, -1.0, -1.0),
+                Vec3::new(x, 1.0, -1.0),
+                Vec3::new(x, 0.0, 1.0),
+            ]
+        })
+        .collect();
+    let bounds = |range: std::ops::Range<u32>| {
+        range
+            .map(|i| Aabb::from_triangle(&tris[i as usize]))
+            .fold(Aabb::EMPTY, |a, b| a.union(&b))
+    };
+    let mut node = BuildNode::Leaf {
+        bounds: bounds(n - 1..n),
+        first: n - 1,
+        count: 1,
+    };
+    for k in (0..n - 1).rev() {
+        node = BuildNode::Interior {
+            bounds: bounds(k..n),
+            axis: 0,
+            children: Box::new([
+                BuildNode::Leaf {
+                    bounds: bounds(k..k + 1),
+                    first: k,
+                    count: 1,
+                },
+                node,
+            ]),
+        };
+    }
+    let tree = BuildTree {
+        root: node,
+        prim_order: (0..n).collect(),
+        node_count: 2 * n as usize - 1,
+    };
+    let bvh = FlatBvh::flatten(&tree, &tris).with_wide();
+    let wide = bvh.wide.as_ref().unwrap();
+    wide.check_invariants(&bvh).unwrap();
+    assert!(wide.depth > 40, "wide depth {}", wide.depth);
+    // From beyond the far end, towards the start: the nearest child of every node is the
+    // rest of the chain, so each level pushes its walls.
+    let rays = [
+        Ray::new(Vec3::new(1000.0, 0.1, 0.0), -Vec3::X),
+        Ray::new(Vec3::new(-5.0, 0.1, 0.0), Vec3::X),
+        Ray::with_interval(Vec3::new(1000.0, 0.1, 0.0), -Vec3::X, 0.0, 700.5),
+    ];
+    for ray in rays {
+        for q in [Query::Closest, Query::Any] {
+            let (w, c) = trace_ray(&bvh, &ray, &TraceOptions::new(Traversal::Wide, q));
+            let (b, _) = trace_ray(&bvh, &ray, &TraceOptions::new(Traversal::FullStack, q));
+            assert_eq!(w.is_hit(), b.is_hit(), "{q:?} {ray:?}");
+            if q == Query::Closest {
+                assert_eq!((w.prim, w.t.to_bits()), (b.prim, b.t.to_bits()), "{ray:?}");
+            }
+            assert!(c.nodes > 0);
+        }
+    }
+    // Tested: the closest walk from the far end visits every wall.
+    let (_, c) = trace_ray(&bvh, &rays[0], &TraceOptions::closest(Traversal::Wide));
+    assert_eq!(c.tris, n, "every wall is tested once");
+}
