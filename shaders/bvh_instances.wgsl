@@ -10,8 +10,13 @@ fn bvh_load_instance(i: u32) -> BvhInstance {
     return bvh_instances[i];
 }
 
-// The top level has `2n - 1` nodes for `n` instances (one instance per leaf): the nodes
-// before that index are the top level's.
+// The nodes before this index are the top level's. The binary top level has `2n - 1`
+// nodes for `n` instances (one instance per leaf). The wide one has no fixed count, but
+// `WideBvh::collapse` lays the meshes out right after it, the first instance's mesh first,
+// so its root is the first node past the top level (the uploads check it).
 fn bvh_top_nodes() -> u32 {
+    if (BVH_WIDE_LAYOUT) {
+        return bvh_instances[0].root;
+    }
     return 2u * arrayLength(&bvh_instances) - 1u;
 }

@@ -16,6 +16,9 @@
 // * `bvh_escape_texels` (`R32Uint`, eight texels per node) is `bvh_textures_escapes.wgsl`,
 //   composed in only when the traversal reads the escape links.
 
+// The binary layout (`bvh_instances.wgsl` counts its top-level nodes by it).
+const BVH_WIDE_LAYOUT: bool = false;
+
 const BVH_TEXEL_ROW_LOG2: u32 = 13u;
 const BVH_TEXEL_ROW_MASK: u32 = 8191u;
 

@@ -4,12 +4,14 @@
 // The host binds one chunk of at most a few million rays at a time (`batch_len()`); the
 // grid is 2D when a chunk needs more than `max_compute_workgroups_per_dimension` groups.
 //
-// The entry points themselves are one file each, and a specialised module composes exactly
-// one of them (`bvhtrace_gpu::PipelineFeatures`):
-// - `entry_full_stack.wgsl` / `entry_short_stack.wgsl`: hits only;
-// - `entry_full_stack_counted.wgsl` / `entry_short_stack_counted.wgsl`: hits and counters,
-//   composed with `entry_counters.wgsl` (the `counters` binding) only when counters are on.
-// `bvhtrace_gpu::kernel_source` composes all four (the everything-on module).
+// The entry points are `entry_walk.wgsl`, specialised per walk (full stack, short stack,
+// wide) and per output, and a specialised module composes exactly one of them
+// (`bvhtrace_kernels::KernelKey`):
+// - `bvh_trace_{full_stack,short_stack,wide}_main`: hits only (`bvh_store_hits_only`);
+// - `bvh_trace_{full_stack,short_stack,wide}_counted`: hits and counters, composed with
+//   `entry_counters.wgsl` (the `counters` binding) only when counters are on.
+// `bvhtrace_kernels::kernel_source` composes the four of the binary walks (the
+// everything-on module); the wide walk's module holds its own two.
 //
 // Specialisation (pipeline-overridable constants, folded by the driver's compiler):
 // - `ANY_HIT`: any-hit (occlusion) query instead of closest hit;
@@ -51,4 +53,9 @@ fn bvh_interleave(w: u32, n: u32) -> u32 {
         return w;
     }
     return (w % q) * t + w / q;
+}
+
+// What a hits-only entry point stores of its walk's answer.
+fn bvh_store_hits_only(i: u32, res: BvhTraceResult) {
+    bvh_store_hit(i, res.hit);
 }

@@ -109,3 +109,11 @@ fn bvh_prepare_ray(ray: BvhRay) -> BvhPreparedRay {
     p.sz = 1.0 / dz;
     return p;
 }
+
+// The ray's octant (`bvhtrace_core::flat::octant`): bit `a` set when direction component
+// `a` is not `>= 0`. It orders the walks: an interior node split along `a` is entered on
+// its second child first when bit `a` is set (`traverse_short_stack.wgsl`), and a wide
+// node's children are visited in the order of `slot ^ octant` (`traverse_wide.wgsl`).
+fn bvh_octant(d: vec3<f32>) -> u32 {
+    return select(0u, 1u, !(d.x >= 0.0)) | select(0u, 2u, !(d.y >= 0.0)) | select(0u, 4u, !(d.z >= 0.0));
+}

@@ -54,13 +54,6 @@ fn bvh_escape_index(i: u32, oct: u32) -> u32 {
 // `k` is an override constant, so the driver keeps one of the two.
 const BVH_REGISTER_RING: u32 = 8u;
 
-// The ray's octant (`bvhtrace_core::flat::octant`): bit `a` set when direction component
-// `a` is not `>= 0`. An interior node split along `a` is entered on its second child first
-// when bit `a` is set.
-fn bvh_octant(d: vec3<f32>) -> u32 {
-    return select(0u, 1u, !(d.x >= 0.0)) | select(0u, 2u, !(d.y >= 0.0)) | select(0u, 4u, !(d.z >= 0.0));
-}
-
 fn bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) -> BvhTraceResult {
     if (!bvh_ray_is_traced(ray)) {
         return bvh_untraced_result(ray);

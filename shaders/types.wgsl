@@ -1,7 +1,7 @@
 // types.wgsl: the data shared between the CPU and the GPU, field for field.
 //
 // Each struct is the WGSL twin of a `#[repr(C)]` Rust type of `bvhtrace_core`; the test
-// `crates/gpu/tests/wgsl_layout.rs` parses the composed source with naga and checks every
+// `crates/kernels/tests/wgsl_layout.rs` parses the composed source with naga and checks every
 // size and field offset against `std::mem::offset_of!`, so the layout has one source of
 // truth (`crates/core/src/flat.rs` and `ray.rs`).
 
@@ -23,6 +23,23 @@ struct BvhTriangle {
     pad1: u32,
     v2: vec3<f32>,
     pad2: u32,
+}
+
+// `WideNode` (80 bytes), a node of the wide layout (`bvhtrace_core::wide`, where the encoding
+// is described): up to eight children in slots `0..8`. Child `s`'s box on axis `a` is
+// `origin[a] + q * 2^(e[a] - 127)`, `q` byte `s % 4` of word `s / 4` of `q_lo[a]` (lower
+// plane) or `q_hi[a]` (upper); `e[a]` is byte `a` of `exponents`, whose byte 3 is `imask`
+// (bit `s`: slot `s` holds an interior child). Interior children are nodes
+// `child_base + popcount(imask & ((1 << s) - 1))`; byte `s` of `counts` is leaf child `s`'s
+// triangle count, its triangles start at `triangle_base` plus the counts before it.
+struct BvhWideNode {
+    origin: vec3<f32>,
+    exponents: u32,
+    child_base: u32,
+    triangle_base: u32,
+    counts: vec2<u32>,
+    q_lo: array<vec2<u32>, 3>,
+    q_hi: array<vec2<u32>, 3>,
 }
 
 // `Ray` (32 bytes). Hits are accepted for `t_min <= t < t_max`.

@@ -2,12 +2,12 @@
 //!
 //! For each scene (a small shared mesh, `bunny_69k`, the degenerate-heavy builtin, and the
 //! bunny scaled by 1e-3) and each traversal (stackless, short stack k = 6, k = 1 and k = 2
-//! to force overflows, full stack) x {closest, any}: the GPU's hits equal the CPU twin's
-//! (`bvhtrace_core::trace_rays` with counters and the same traversal): same primitive, `t`
-//! within 2 ulps (in practice bit-identical), `u`/`v` likewise, never NaN, and the same
-//! counters. Closest hits also equal the CPU full-stack reference (same primitive, same `t`
-//! bits), except where f32 cannot decide between two triangles (see [`f32_departure`]);
-//! any-hit queries agree with it on hit/miss.
+//! to force overflows, full stack, and the wide layout's walk) x {closest, any}: the GPU's
+//! hits equal the CPU twin's (`bvhtrace_core::trace_rays` with counters and the same
+//! traversal): same primitive, `t` within 2 ulps (in practice bit-identical), `u`/`v`
+//! likewise, never NaN, and the same counters. Closest hits also equal the CPU full-stack
+//! reference (same primitive, same `t` bits), except where f32 cannot decide between two
+//! triangles (see [`f32_departure`]); any-hit queries agree with it on hit/miss.
 //!
 //! A failing ray is printed in full (origin, direction, interval as hex bits and decimals,
 //! both answers) so it can be replayed. Without any Vulkan adapter the test prints SKIP.
@@ -17,14 +17,16 @@ use bvhtrace_core::{
     Traversal, Triangle, oracle, trace_rays,
 };
 use bvhtrace_gpu::{
-    AdapterChoice, BvhStorage, ContextOptions, DriverTuning, GpuBvh, GpuContext, GpuError,
-    UploadOptions,
+    AdapterChoice, BvhStorage, ContextOptions, CpuTracer, DriverTuning, GpuBvh, GpuContext,
+    GpuError, Tracer, UploadOptions,
 };
 use bvhtrace_scene::Camera;
 use glam::Vec3;
 
 mod support;
-use support::{Rng, deep_tree, one_triangle, parity_scenes};
+use support::{
+    Rng, deep_tree, deep_tree_rays, deep_wide_rays, deep_wide_tree, one_triangle, parity_scenes,
+};
 
 /// Largest `t`, `u`, `v` difference accepted, in ulps.
 const MAX_ULPS: u32 = 2;
@@ -170,6 +172,28 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
     ] {
         rays.push(r);
     }
+    // With a wide layout: axis-parallel rays lying exactly in the faces of its decoded
+    // child boxes (which are not the binary nodes' boxes), as above.
+    if let Some(w) = bvh.wide.as_deref() {
+        for k in 0..1024 {
+            let n = &w.nodes[(rng.next_u64() % w.nodes.len() as u64) as usize];
+            let Some(slot) = (0..8).map(|i| (i + k) % 8).find(|&s| n.is_used(s)) else {
+                continue;
+            };
+            let (bmin, bmax) = n.child_box(slot);
+            let axis = k % 3;
+            let mut o = if k % 2 == 0 { bmin } else { bmax };
+            let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
+            o[axis] = if sign > 0.0 {
+                lo[axis] - 1.0
+            } else {
+                hi[axis] + 1.0
+            };
+            let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
+            d[axis] = sign;
+            rays.push(Ray::new(o, d));
+        }
+    }
     rays
 }
 
@@ -274,15 +298,22 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
         Traversal::ShortStack(1),
         Traversal::ShortStack(2),
         Traversal::FullStack,
+        Traversal::Wide,
     ];
     let mut failures = Vec::new();
     let mut total_exceptions = 0;
+    let mut wide_checked = 0;
     for (s, case) in parity_scenes().iter().enumerate() {
-        let bvh = &case.bvh;
+        // With its wide layout, for the CPU twin of the wide walk.
+        let bvh = &case.bvh.clone().with_wide();
         let tris = &case.tris;
         let rays = ray_set(bvh, 0x5eed + s as u64);
+        // The wide layout is uploaded too (in buffers either way; the rays follow the
+        // storage, so both ray inputs run the wide kernel).
         let gpus = [BvhStorage::Buffers, BvhStorage::Textures].map(|storage| {
-            let opts = UploadOptions::all().with_storage(storage);
+            let opts = UploadOptions::all()
+                .with_storage(storage)
+                .with_traversal(Traversal::Wide);
             GpuBvh::upload(&ctx, bvh, &opts).expect("upload")
         });
         eprintln!(
@@ -308,6 +339,7 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
                     let out = gpu.trace(&rays, &counted(traversal, query)).expect("trace");
                     // Parity must be the kernel's own: no ray finished on the CPU twin.
                     assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
+                    wide_checked += usize::from(traversal == Traversal::Wide);
                     let gc = out.counters.as_deref().expect("counters");
                     let (bad_hits, bad_counters, worst) =
                         compare(&label, &rays, &cpu, &out.hits, gc);
@@ -393,6 +425,9 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
     eprintln!(
         "documented f32 departures from the full-stack reference (the CPU twin's too): {total_exceptions}"
     );
+    // Every scene (at least the builtins, one and two levels) ran the wide kernel, both
+    // queries, both ray inputs.
+    assert!(wide_checked >= 4 * 4, "{wide_checked} wide configurations");
     assert!(
         failures.is_empty(),
         "GPU/CPU mismatches:\n{}",
@@ -410,24 +445,7 @@ fn deep_trees_match_cpu_twins() {
     let Some(ctx) = context() else { return };
     let bvh = deep_tree();
     assert!(bvh.depth > 64, "depth {}", bvh.depth);
-    let mut rays = Vec::new();
-    for i in 0..120 {
-        let x = 2f32.powi(i - 60);
-        rays.push(Ray::new(Vec3::new(x - 1e-30, 0.1, 0.0), Vec3::X));
-        rays.push(Ray::with_interval(
-            Vec3::new(-1.0, 0.0, 0.0),
-            Vec3::X,
-            0.0,
-            1.0 + x,
-        ));
-    }
-    for (y, z) in [(0.9f32, 0.9f32), (-0.9, 0.8), (0.95, -0.0), (0.1, 0.0)] {
-        for dir in [Vec3::X, -Vec3::X, Vec3::new(1.0, 1e-9, -1e-9)] {
-            let o = Vec3::new(if dir.x > 0.0 { -1.0 } else { 2.0 }, y, z);
-            rays.push(Ray::new(o, dir));
-            rays.push(Ray::with_interval(o, dir, 0.5, 1.0 + 2f32.powi(-20)));
-        }
-    }
+    let rays = deep_tree_rays(120);
     let mut failures = Vec::new();
     for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
         let gpu = GpuBvh::upload(
@@ -476,6 +494,122 @@ fn deep_trees_match_cpu_twins() {
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// A wide tree deeper than the wide walk's stack: rays whose stack of node groups would
+/// overflow come back incomplete from the kernel and are finished on the CPU with the same
+/// walk, so the hits and counters equal the CPU twin's (and, for closest hits, the brute
+/// force's). On any device: with the lavapipe tuning (a trip budget, so a host copy
+/// anyway) and with the GPU tuning (no budget: the host copy is kept for the depth alone).
+#[test]
+fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
+    let Some(ctx) = context() else { return };
+    let bvh = deep_wide_tree();
+    let w = bvh.wide.as_deref().expect("built with its wide layout");
+    assert!(
+        bvhtrace_gpu::kernels::wide_stack_may_overflow(w.depth),
+        "wide depth {} fits the stack of {} groups",
+        w.depth,
+        bvhtrace_gpu::kernels::WIDE_STACK_GROUPS
+    );
+    let rays = deep_wide_rays();
+    let gpu_tuned = GpuContext::from_device_with(
+        ctx.device().clone(),
+        ctx.queue().clone(),
+        ctx.adapter_info().clone(),
+        &ContextOptions {
+            tuning: Some(DriverTuning::GPU),
+            ..ContextOptions::default()
+        },
+    )
+    .expect("context");
+    let mut failures = Vec::new();
+    for (name, ctx) in [("default tuning", &ctx), ("GPU tuning", &gpu_tuned)] {
+        let opts = UploadOptions::for_traversal(Traversal::Wide);
+        let gpu = GpuBvh::upload(ctx, &bvh, &opts).expect("upload");
+        assert!(gpu.has_wide());
+        for query in [Query::Closest, Query::Any] {
+            let label = format!("deep wide {query:?} {name}");
+            let cpu = cpu_counted(&bvh, &rays, Traversal::Wide, query);
+            let out = gpu
+                .trace(&rays, &counted(Traversal::Wide, query))
+                .expect("trace");
+            assert!(out.incomplete > 0, "{label}: no ray overflowed the stack");
+            assert!(out.hits.iter().all(|h| h.prim != bvhtrace_core::INCOMPLETE));
+            let gc = out.counters.as_deref().expect("counters");
+            let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
+            let bad_ref = match query {
+                Query::Closest => rays
+                    .iter()
+                    .zip(&out.hits)
+                    .filter(|(r, h)| {
+                        bvhtrace_core::brute_force(&bvh, r, Precision::WatertightF32) != **h
+                    })
+                    .count(),
+                Query::Any => 0,
+            };
+            eprintln!(
+                "{label}: wide depth {}, {} of {} rays finished on the CPU",
+                w.depth,
+                out.incomplete,
+                rays.len()
+            );
+            if bad_hits + bad_counters + bad_ref > 0 {
+                failures.push(format!(
+                    "{label}: {bad_hits} hit, {bad_counters} counter, {bad_ref} brute-force mismatches"
+                ));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The wide kernel with each triangle test the device runs (Möller–Trumbore f32, and
+/// watertight f64 where the adapter has `SHADER_F64`) equals its CPU twin bit for bit,
+/// hits and counters, for one mesh and two levels.
+#[test]
+fn wide_kernel_equals_cpu_twin_for_every_precision() {
+    let Some(ctx) = context() else { return };
+    let mut checked = 0;
+    for case in [
+        support::load_scene("builtin:degenerate", "builtin:degenerate"),
+        support::load_instanced_scene("builtin:spheres", "builtin:spheres"),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        let bvh = case.bvh.with_wide();
+        // A sample of every kind of ray of the set.
+        let rays: Vec<Ray> = ray_set(&bvh, 0x9ec).into_iter().step_by(8).collect();
+        let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::for_traversal(Traversal::Wide))
+            .expect("upload");
+        for p in Precision::ALL {
+            if !ctx.supports_precision(p) {
+                eprintln!("SKIP {p}: not supported by {}", ctx.adapter_info().name);
+                continue;
+            }
+            for query in [Query::Closest, Query::Any] {
+                let label = format!("{} wide {p} {query:?}", case.name);
+                let opts = counted(Traversal::Wide, query).with_precision(p);
+                let cpu = trace_rays(&bvh, &rays, &opts);
+                let out = gpu.trace(&rays, &opts).expect("trace");
+                assert_eq!(out.incomplete, 0, "{label}");
+                let (hits, counters) = (out.hits, out.counters.expect("counters"));
+                let bad = (0..rays.len())
+                    .filter(|&i| {
+                        let (a, b) = (&hits[i], &cpu.hits[i]);
+                        (a.prim, a.t.to_bits(), a.u.to_bits(), a.v.to_bits())
+                            != (b.prim, b.t.to_bits(), b.u.to_bits(), b.v.to_bits())
+                            || Some(&counters[i]) != cpu.counters.as_ref().map(|c| &c[i])
+                    })
+                    .count();
+                assert_eq!(bad, 0, "{label}: rays differ from the CPU twin");
+                assert!(hits.iter().any(|h| h.is_hit()), "{label}: nothing hit");
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked >= 8, "{checked} configurations");
 }
 
 #[test]
@@ -559,6 +693,93 @@ fn upload_checks_and_errors() {
         )
         .is_ok()
     );
+    // The wide walk needs the wide layout: refused, naming the fix, by an upload without
+    // it, and by the CPU tracer of a BVH without it.
+    let wide = TraceOptions::closest(Traversal::Wide);
+    let err = gpu
+        .trace(&rays, &wide)
+        .expect_err("no wide layout uploaded");
+    assert!(
+        matches!(err, GpuError::WideLayoutMissing { .. })
+            && err.to_string().contains("UploadOptions::traversals"),
+        "{err}"
+    );
+    assert!(matches!(
+        gpu.bind_group(Traversal::Wide),
+        Err(GpuError::WideLayoutMissing { .. })
+    ));
+    let err = CpuTracer::new(&bvh)
+        .trace(&rays, &wide)
+        .expect_err("no wide layout built");
+    assert!(err.to_string().contains("build_wide"), "{err}");
+    assert!(
+        CpuTracer::new(bvh.clone().with_wide())
+            .supports(&wide)
+            .is_ok()
+    );
+    // A wide-only upload (converted from the binary tree, since it has no wide layout):
+    // the wide layout alone, in buffers whatever the storage; the binary walks refused.
+    for storage in [BvhStorage::Textures, BvhStorage::Buffers] {
+        let only = UploadOptions::for_traversal(Traversal::Wide).with_storage(storage);
+        let gpu = GpuBvh::upload(&ctx, &bvh, &only).expect("wide-only upload");
+        let w = bvhtrace_core::WideBvh::collapse(&bvh);
+        let (nodes, tris) = w.byte_sizes();
+        let stats = gpu.stats();
+        assert_eq!(
+            (
+                stats.nodes_bytes,
+                stats.triangles_bytes,
+                stats.escapes_bytes
+            ),
+            (nodes as u64, tris as u64, 0),
+            "{storage:?}: {stats:?}"
+        );
+        assert!(gpu.nodes_buffer().is_none() && gpu.wide_buffers().is_some());
+        let out = gpu.trace(&rays, &wide).expect("wide trace");
+        assert_eq!((out.hits[0].prim, out.hits[0].t), (0, 5.0));
+        for traversal in [Traversal::FullStack, Traversal::Stackless] {
+            let err = gpu
+                .trace(&rays, &TraceOptions::closest(traversal))
+                .expect_err("binary layout left out");
+            assert!(
+                matches!(err, GpuError::TraversalNotUploaded { .. })
+                    && err.to_string().contains("UploadOptions::traversals"),
+                "{err}"
+            );
+        }
+        // Both layouts: the stats add up, each walk binds its own group.
+        let both = UploadOptions::for_traversal(Traversal::FullStack)
+            .with_storage(storage)
+            .with_traversal(Traversal::Wide);
+        let gpu = GpuBvh::upload(&ctx, &bvh, &both).expect("upload");
+        let binary = GpuBvh::upload(
+            &ctx,
+            &bvh,
+            &UploadOptions::for_traversal(Traversal::FullStack).with_storage(storage),
+        )
+        .expect("upload");
+        assert_eq!(
+            gpu.stats().total_bytes(),
+            binary.stats().total_bytes() + (nodes + tris) as u64
+        );
+        let a = gpu
+            .bind_group(Traversal::Wide)
+            .expect("wide group")
+            .group()
+            .clone();
+        let b = gpu
+            .bind_group(Traversal::FullStack)
+            .expect("binary group")
+            .group()
+            .clone();
+        assert_ne!(a, b);
+        for traversal in [Traversal::FullStack, Traversal::Wide] {
+            let out = gpu
+                .trace(&rays, &TraceOptions::closest(traversal))
+                .expect("trace");
+            assert_eq!((out.hits[0].prim, out.hits[0].t), (0, 5.0), "{traversal}");
+        }
+    }
 }
 
 /// `record` into the caller's encoder with the caller's buffers (and its buffer checks).
@@ -856,8 +1077,8 @@ fn interleaved_workgroups_trace_every_ray() {
 
 /// A two-level upload updated in place (`GpuBvh::update`) after the instances moved (the
 /// top level rebuilt) and after a mesh's vertices moved (refitted) traces as the CPU twin
-/// of the changed BVH does, bit for bit, in both storages; an update of another shape is
-/// refused.
+/// of the changed BVH does, bit for bit, in both storages, the wide layout (collapsed
+/// again by the update) too; an update of another shape is refused.
 #[test]
 fn two_level_updates_in_place_match_cpu_twins() {
     use bvhtrace_gpu::Update;
@@ -867,14 +1088,19 @@ fn two_level_updates_in_place_match_cpu_twins() {
         let mut ib = scene
             .instanced_bvh(&BuildOptions::default())
             .expect("two levels");
-        let opts = UploadOptions::all().with_storage(storage);
+        let opts = UploadOptions::all()
+            .with_storage(storage)
+            .with_traversal(Traversal::Wide);
         let mut gpu = GpuBvh::upload(&ctx, ib.bvh(), &opts).expect("upload");
         let rays = ray_set(ib.bvh(), 0x70b);
         let check = |gpu: &GpuBvh, bvh: &FlatBvh, what: &str| {
+            // The CPU twin of the wide walk on the changed BVH's own wide layout.
+            let bvh = &bvh.clone().with_wide();
             for traversal in [
                 Traversal::Stackless,
                 Traversal::ShortStack(4),
                 Traversal::FullStack,
+                Traversal::Wide,
             ] {
                 for query in [Query::Closest, Query::Any] {
                     let opts = TraceOptions::new(traversal, query);
@@ -921,6 +1147,33 @@ fn two_level_updates_in_place_match_cpu_twins() {
         gpu.update(ib.bvh(), Update::Everything)
             .expect("update after refit");
         check(&gpu, ib.bvh(), "after a refit");
+
+        // A mesh flattened to a twentieth of its height: the boxes' areas change enough for
+        // the wide collapse to come out with another number of nodes, and the update makes
+        // new wide buffers.
+        let old_wide = gpu.wide_buffers().map(|(n, _)| n.size());
+        let mut tris: Vec<_> = ib.mesh_bvh(1).triangles;
+        tris.sort_by_key(|t| t.prim);
+        let flat: Vec<Triangle> = tris
+            .iter()
+            .map(|t| t.corners().map(|p| p * Vec3::new(1.0, 0.05, 1.0)))
+            .collect();
+        ib.refit_mesh(1, &flat).expect("refit");
+        gpu.update(ib.bvh(), Update::Everything)
+            .expect("update after flattening");
+        let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
+        let new_wide = gpu.wide_buffers().map(|(n, _)| n.size());
+        assert_ne!(new_wide, old_wide, "the wide layout kept its size");
+        assert_eq!(new_wide, Some(wide.byte_sizes().0 as u64));
+        let binary = GpuBvh::upload(&ctx, ib.bvh(), &UploadOptions::all().with_storage(storage))
+            .expect("upload");
+        assert_eq!(
+            gpu.stats().total_bytes(),
+            binary.stats().total_bytes()
+                + (wide.byte_sizes().0 + wide.byte_sizes().1) as u64
+                + std::mem::size_of_val(wide.instances.as_slice()) as u64
+        );
+        check(&gpu, ib.bvh(), "after flattening");
 
         let other = one_triangle();
         assert!(matches!(

@@ -3,7 +3,7 @@
 //! so both backends are checked on the same scenes.
 #![allow(dead_code)]
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Triangle};
+use bvhtrace_core::{BuildOptions, FlatBvh, Ray, Triangle};
 use bvhtrace_scene::shared_scenes_dir;
 use glam::Vec3;
 
@@ -67,6 +67,92 @@ pub fn deep_tree() -> FlatBvh {
         ..Default::default()
     };
     FlatBvh::build(&tris, &opts).expect("build")
+}
+
+/// A tree whose wide layout is deeper than the wide walk's stack
+/// (`bvhtrace_kernels::WIDE_STACK_GROUPS` groups): [`DEEP_WIDE_TRIANGLES`] triangles along
+/// x ([`deep_wide_x`]), midpoint splits, one triangle per leaf. Each binary level splits
+/// off one triangle, so a wide node takes seven leaves and one interior child, and the wide
+/// tree is about a seventh as deep as the binary one. Built with its wide layout.
+pub fn deep_wide_tree() -> FlatBvh {
+    let tris: Vec<Triangle> = (0..DEEP_WIDE_TRIANGLES)
+        .map(|i| {
+            let p = Vec3::new(deep_wide_x(i), 0.0, 0.0);
+            [
+                p + Vec3::new(0.0, -1.0, -1.0),
+                p + Vec3::new(0.0, 1.0, -1.0),
+                p + Vec3::new(0.0, 0.0, 1.0),
+            ]
+        })
+        .collect();
+    let opts = BuildOptions {
+        builder: bvhtrace_core::BuilderKind::Midpoint,
+        max_depth: 1000,
+        max_leaf_size: 1,
+        ..Default::default()
+    };
+    FlatBvh::build(&tris, &opts).expect("build").with_wide()
+}
+
+/// Triangles of [`deep_wide_tree`]: as many as f32's exponents hold from 2^-120.
+pub const DEEP_WIDE_TRIANGLES: i32 = 247;
+
+/// The x of [`deep_wide_tree`]'s triangle `i`: `2^(i - 120)`, a little less by a factor
+/// that grows towards 1 with `i`, so that every triangle lies strictly below the midpoint
+/// of those up to the next one (plain powers of two fall on it, and the midpoint split
+/// would then take two at a time).
+pub fn deep_wide_x(i: i32) -> f32 {
+    2f32.powi(i - 120) * (1.0 - (DEEP_WIDE_TRIANGLES - i) as f32 * 2f32.powi(-24))
+}
+
+/// Rays through [`deep_wide_tree`]: along +x from before each triangle (through all those
+/// after it), with intervals ending just past one, from the far end back along -x, and
+/// past the triangles' corners.
+pub fn deep_wide_rays() -> Vec<Ray> {
+    let mut rays = Vec::new();
+    for i in 0..DEEP_WIDE_TRIANGLES {
+        let x = deep_wide_x(i);
+        rays.push(Ray::new(Vec3::new(x * 0.5, 0.1, 0.0), Vec3::X));
+        rays.push(Ray::with_interval(
+            Vec3::new(-1.0, 0.0, 0.0),
+            Vec3::X,
+            0.0,
+            1.0 + x,
+        ));
+    }
+    let far = 2f32.powi(127);
+    for (y, z) in [(0.9f32, 0.9f32), (-0.9, 0.8), (0.95, -0.0), (0.1, 0.0)] {
+        for dir in [Vec3::X, -Vec3::X, Vec3::new(1.0, 1e-9, -1e-9)] {
+            let o = Vec3::new(if dir.x > 0.0 { -1.0 } else { far }, y, z);
+            rays.push(Ray::new(o, dir));
+            rays.push(Ray::with_interval(o, dir, 0.5, 1.0 + 2f32.powi(-20)));
+        }
+    }
+    rays
+}
+
+/// Rays along the x axis of [`deep_tree`] (`n` triangles at `2^(i - n / 2)`): from just before each triangle, up to just past it, and rays in both
+/// directions past the triangles' corners and edges.
+pub fn deep_tree_rays(n: i32) -> Vec<Ray> {
+    let mut rays = Vec::new();
+    for i in 0..n {
+        let x = 2f32.powi(i - n / 2);
+        rays.push(Ray::new(Vec3::new(x - 1e-30, 0.1, 0.0), Vec3::X));
+        rays.push(Ray::with_interval(
+            Vec3::new(-1.0, 0.0, 0.0),
+            Vec3::X,
+            0.0,
+            1.0 + x,
+        ));
+    }
+    for (y, z) in [(0.9f32, 0.9f32), (-0.9, 0.8), (0.95, -0.0), (0.1, 0.0)] {
+        for dir in [Vec3::X, -Vec3::X, Vec3::new(1.0, 1e-9, -1e-9)] {
+            let o = Vec3::new(if dir.x > 0.0 { -1.0 } else { 2.0 }, y, z);
+            rays.push(Ray::new(o, dir));
+            rays.push(Ray::with_interval(o, dir, 0.5, 1.0 + 2f32.powi(-20)));
+        }
+    }
+    rays
 }
 
 /// One scene of the parity tests.

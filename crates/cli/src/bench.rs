@@ -2,6 +2,7 @@
 
 use std::time::Instant;
 
+use crate::embree::{self, Dump};
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, FlatBvh, Query, Ray, TraceOptions, Traversal, Triangle,
@@ -191,11 +192,17 @@ pub struct BenchTraceArgs {
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
-    /// Traversals to compare, comma-separated (`full-stack`, `stackless`, `short-stack:K`);
-    /// the first is the one the `n/full` and `GPU/full` columns divide by. Default:
-    /// full-stack, stackless and short-stack 2, 4, 6 and 8.
+    /// Traversals to compare, comma-separated (`full-stack`, `stackless`, `short-stack:K`,
+    /// `wide`); the first is the one the `n/full` and `GPU/full` columns divide by.
+    /// Default: full-stack, stackless, short-stack 2, 4, 6 and 8, and wide.
     #[arg(long, value_delimiter = ',')]
     pub traversals: Vec<Traversal>,
+    /// An `embree_trace` binary (`crates/cli/embree/embree_trace.c`): Embree 3 traces the
+    /// same rays in every round, after ours (medium build, robust mode, 2 threads), and
+    /// its build time and Mrays/s are printed beside ours, with each CPU walk's speed as a
+    /// ratio of Embree's (`CPU/Embree`, medians of per-round ratios).
+    #[arg(long)]
+    pub embree: Option<std::path::PathBuf>,
     /// Also trace any-hit (occlusion) queries on the same rays.
     #[arg(long)]
     pub any_hit: bool,
@@ -232,6 +239,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             Traversal::ShortStack(4),
             Traversal::ShortStack(6),
             Traversal::ShortStack(8),
+            Traversal::Wide,
         ]
     } else {
         args.traversals.clone()
@@ -243,17 +251,33 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     };
     for spec in scene_specs(&args.scenes)? {
         let (tris, scene, _) = load(&spec)?;
-        let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let t = Instant::now();
+        let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let build_ms = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        if traversals.iter().any(|t| t.is_wide()) {
+            bvh.build_wide();
+        }
+        let wide_ms = t.elapsed().as_secs_f64() * 1e3;
         let rays = primary_rays(&scene, w, h);
-        let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all())?;
+        let upload = UploadOptions {
+            traversals: traversals.clone(),
+            storage: None,
+        };
+        let gpu = GpuBvh::upload(&ctx, &bvh, &upload)?;
+        let dump = match &args.embree {
+            Some(_) => Some(Dump::write("trace", &tris, &rays)?),
+            None => None,
+        };
         println!(
-            "\n{spec}: {} triangles, depth {}, {} rays ({w}x{h})",
+            "\n{spec}: {} triangles, depth {}, {} rays ({w}x{h}); our build {build_ms:.1} ms \
+             (+{wide_ms:.1} ms to the wide layout)",
             tris.len(),
             bvh.depth,
             rays.len()
         );
         println!(
-            "{:16} {:8} {:>9} {:>9} {:>9} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8}",
+            "{:16} {:8} {:>9} {:>9} {:>9} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
             "traversal",
             "query",
             "GPU Mr/s",
@@ -264,7 +288,8 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             "n/full",
             "GPU/full",
             "GPU/twin",
-            "GPU/CPU"
+            "GPU/CPU",
+            "CPU/Embree"
         );
         let n = rays.len() as f64;
         for &q in queries {
@@ -289,6 +314,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             let mut gpu_ms = vec![Vec::new(); traversals.len()];
             let mut wall_ms = vec![Vec::new(); traversals.len()];
             let mut cpu_ms = vec![Vec::new(); traversals.len()];
+            let (mut embree_ms, mut embree_build_ms) = (Vec::new(), Vec::new());
             for _ in 0..args.runs {
                 for (i, &tr) in traversals.iter().enumerate() {
                     let opts = TraceOptions::new(tr, q);
@@ -299,14 +325,24 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     std::hint::black_box(trace_rays(&bvh, &rays, &opts));
                     cpu_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
                 }
+                if let (Some(exe), Some(dump), Query::Closest) = (&args.embree, &dump, q) {
+                    let v = dump.run(exe, 1, &[])?;
+                    embree_ms.push(embree::field(&v, "trace_ms", exe)?);
+                    embree_build_ms.push(embree::field(&v, "build_ms", exe)?);
+                }
             }
             let ratio = |num: &[f64], den: &[f64]| {
                 median(num.iter().zip(den).map(|(a, b)| a / b).collect())
             };
             let mrays = |ms: &[f64]| n / median(ms.to_vec()) / 1e3;
             for (i, tr) in traversals.iter().enumerate() {
+                let vs_embree = if embree_ms.is_empty() {
+                    "-".to_string()
+                } else {
+                    format!("{:.2}x", ratio(&embree_ms, &cpu_ms[i]))
+                };
                 println!(
-                    "{:16} {:8} {:>9.2} {:>9.2} {:>9.2} {:>7.1} {:>6.2} {:>6.2}x {:>7.2}x {:>7.2}x {:>7.2}x",
+                    "{:16} {:8} {:>9.2} {:>9.2} {:>9.2} {:>7.1} {:>6.2} {:>6.2}x {:>7.2}x {:>7.2}x {:>7.2}x {:>10}",
                     tr.to_string(),
                     format!("{q:?}").to_lowercase(),
                     mrays(&gpu_ms[i]),
@@ -318,6 +354,18 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     ratio(&gpu_ms[0], &gpu_ms[i]),
                     ratio(&cpu_ms[i], &gpu_ms[i]),
                     ratio(&cpu_ms[0], &gpu_ms[i]),
+                    vs_embree,
+                );
+            }
+            if !embree_ms.is_empty() {
+                println!(
+                    "{:16} {:8} {:>9} {:>9} {:>9.2}   (Embree 3 rtcIntersect1, 2 threads; build {:.1} ms)",
+                    "embree",
+                    "closest",
+                    "-",
+                    "-",
+                    mrays(&embree_ms),
+                    median(embree_build_ms.clone()),
                 );
             }
         }

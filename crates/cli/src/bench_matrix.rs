@@ -151,23 +151,24 @@ fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
     v
 }
 
-const TRAVERSALS: [Traversal; 5] = [
+const TRAVERSALS: [Traversal; 6] = [
     Traversal::Stackless,
     Traversal::ShortStack(2),
     Traversal::ShortStack(4),
     Traversal::ShortStack(8),
     Traversal::FullStack,
+    Traversal::Wide,
 ];
 
 /// Rays of every kind, generated once per scene from the reference hits so that every
 /// configuration traces exactly the same rays.
-struct RaySets {
-    primary: Vec<Ray>,
-    shadow: Vec<Ray>,
-    diffuse: Vec<Ray>,
+pub(crate) struct RaySets {
+    pub(crate) primary: Vec<Ray>,
+    pub(crate) shadow: Vec<Ray>,
+    pub(crate) diffuse: Vec<Ray>,
 }
 
-fn ray_sets(
+pub(crate) fn ray_sets(
     tris: &[Triangle],
     bvh: &FlatBvh,
     cam: &bvhtrace_scene::Camera,
@@ -435,13 +436,14 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     bvh = Some(FlatBvh::build(&tris, bopts)?);
                     times.push(t.elapsed().as_secs_f64() * 1e3);
                 }
-                let bvh = bvh.context("no build")?;
+                // The wide layout is converted from the same tree, untimed here.
+                let bvh = bvh.context("no build")?.with_wide();
+                let every = bvhtrace_gpu::UploadOptions {
+                    traversals: TRAVERSALS.to_vec(),
+                    storage: None,
+                };
                 let gpu = match &gpu_ctx {
-                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(
-                        c,
-                        &bvh,
-                        &bvhtrace_gpu::UploadOptions::all(),
-                    )?),
+                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(c, &bvh, &every)?),
                     None => None,
                 };
                 built[bi] = Some((bvh, median(times), gpu));

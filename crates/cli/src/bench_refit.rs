@@ -14,6 +14,7 @@ use glam::{Affine3A, Quat, Vec3};
 use serde_json::json;
 
 use crate::bench::median;
+use crate::embree::{self, Dump};
 use crate::output::JsonOut;
 
 /// `bvhtrace bench-refit`.
@@ -48,42 +49,11 @@ fn embree_refit(
     a: f32,
     runs: usize,
 ) -> Result<(f64, f64)> {
-    let dump = std::env::temp_dir().join(format!("bvhtrace-refit-{}.bin", std::process::id()));
-    let mut bytes = Vec::with_capacity(16 + tris.len() * 36 + 32);
-    bytes.extend_from_slice(b"BVHD");
-    for v in [1u32, tris.len() as u32, 1] {
-        bytes.extend_from_slice(&v.to_le_bytes());
-    }
-    for p in tris.iter().flatten() {
-        for c in p.to_array() {
-            bytes.extend_from_slice(&c.to_le_bytes());
-        }
-    }
-    for c in [0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, f32::INFINITY] {
-        bytes.extend_from_slice(&c.to_le_bytes());
-    }
-    std::fs::write(&dump, &bytes).with_context(|| format!("writing {}", dump.display()))?;
-    let out = std::process::Command::new(exe)
-        .arg(&dump)
-        .args(["2", &runs.to_string()])
-        .env("BVHTRACE_REFIT", a.to_string())
-        .output()
-        .with_context(|| format!("running {}", exe.display()));
-    let _ = std::fs::remove_file(&dump);
-    let out = out?;
-    if !out.status.success() {
-        bail!(
-            "{} failed: {}",
-            exe.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout)
-        .with_context(|| format!("{} printed no JSON", exe.display()))?;
-    let field = |k: &str| {
-        v[k].as_f64()
-            .with_context(|| format!("no {k} from {}", exe.display()))
-    };
+    // One dummy ray: the program times the build and the refit.
+    let ray = Ray::with_interval(Vec3::ZERO, Vec3::Z, 0.0, f32::INFINITY);
+    let dump = Dump::write("refit", tris, &[ray])?;
+    let v = dump.run(exe, runs, &[("BVHTRACE_REFIT", a.to_string())])?;
+    let field = |k: &str| embree::field(&v, k, exe);
     Ok((field("build_ms")?, field("refit_ms")?))
 }
 

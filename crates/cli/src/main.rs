@@ -5,6 +5,8 @@ mod backend;
 mod bench;
 mod bench_matrix;
 mod bench_refit;
+mod cost;
+mod embree;
 mod geometry;
 mod output;
 mod plot;
@@ -53,6 +55,10 @@ enum Command {
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
     /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
     Stress(bvhtrace_stress::StressArgs),
+    /// A GPU cost model that needs no GPU: loop trips per warp, lane utilisation and bytes
+    /// per ray of each walk, from the CPU walks over rays grouped in warps.
+    #[command(long_about = cost::long_about())]
+    Cost(cost::CostArgs),
 }
 
 fn main() {
@@ -66,6 +72,7 @@ fn main() {
         Command::BenchTrace(a) => bench::bench_trace(a),
         Command::BenchRefit(a) => bench_refit::bench_refit(a),
         Command::Stress(a) => bvhtrace_stress::run(a),
+        Command::Cost(a) => cost::cost(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

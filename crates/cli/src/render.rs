@@ -111,10 +111,15 @@ pub struct RenderArgs {
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
-    /// stackless, short-stack, short-stack:K or full-stack [default: the backend's
-    /// fastest: full-stack on the CPU, stackless on a GPU].
+    /// stackless, short-stack, short-stack:K, full-stack or wide [default: the backend's
+    /// fastest: full-stack on the CPU, stackless on a GPU; wide with `--layout wide`].
     #[arg(long)]
     pub traversal: Option<Traversal>,
+    /// The BVH layout: `binary` (two children per node, the walks above but `wide`) or
+    /// `wide` (eight children per node, compressed to 80 bytes, its one walk: the same as
+    /// `--traversal wide`) [default: binary, or wide with `--traversal wide`].
+    #[arg(long, value_enum)]
+    pub layout: Option<Layout>,
     /// What to show.
     #[arg(long, value_enum, default_value_t = Shade::Normal)]
     pub shade: Shade,
@@ -200,6 +205,33 @@ struct Frame {
     timing: Timing,
 }
 
+/// How the BVH is laid out for tracing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Layout {
+    /// Two children per node (`FlatBvh`): the full-stack, stackless and short-stack walks.
+    Binary,
+    /// Eight children per node, compressed (`WideBvh`): the wide walk.
+    Wide,
+}
+
+impl RenderArgs {
+    /// The walk asked for, `--layout` and `--traversal` together (`None`: the backend's
+    /// default).
+    fn walk(&self) -> Result<Option<Traversal>> {
+        match (self.layout, self.traversal) {
+            (Some(Layout::Wide), Some(t)) if !t.is_wide() => {
+                bail!("--layout wide has one walk, wide; --traversal {t} walks the binary layout")
+            }
+            (Some(Layout::Binary), Some(t)) if t.is_wide() => {
+                bail!("--traversal wide walks the wide layout, not --layout binary")
+            }
+            (Some(Layout::Wide), _) => Ok(Some(Traversal::Wide)),
+            (_, t) => Ok(t),
+        }
+    }
+}
+
 /// What the render traces and shades with.
 struct Job<'a> {
     args: &'a RenderArgs,
@@ -217,16 +249,22 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
     }
+    let walk = args.walk()?;
     let Built {
         scene,
-        geometry: geo,
+        geometry: mut geo,
         load_ms,
-        build_ms,
+        mut build_ms,
     } = load_and_build(&args.scene)?;
+    if walk.is_some_and(|w| w.is_wide()) {
+        let t = std::time::Instant::now();
+        geo.build_wide();
+        build_ms += t.elapsed().as_secs_f64() * 1e3;
+    }
     let bvh = geo.bvh();
     let cam = camera_for(&args.view, &scene)?;
-    let tracer = open_tracer(&args, bvh)?;
-    let job = Job::new(&args, &*tracer, &cam, bvh);
+    let tracer = open_tracer(&args, walk, bvh)?;
+    let job = Job::new(&args, walk, &*tracer, &cam, bvh);
     let rays = cam.rays(args.view.size.0, args.view.size.1);
     let (frame, runs) = trace_runs(&job, &*tracer, &geo, &rays)?;
     let img = compose(&job, &geo, &rays, &frame);
@@ -251,13 +289,23 @@ pub fn render(args: RenderArgs) -> Result<()> {
 }
 
 /// Opens the backend and uploads the tree for the walk asked for (or the device's default).
-fn open_tracer<'a>(args: &RenderArgs, bvh: &'a FlatBvh) -> Result<Box<dyn Tracer + 'a>> {
-    let walk = args.traversal.unwrap_or(Traversal::GPU_DEFAULT);
+fn open_tracer<'a>(
+    args: &RenderArgs,
+    walk: Option<Traversal>,
+    bvh: &'a FlatBvh,
+) -> Result<Box<dyn Tracer + 'a>> {
+    let walk = walk.unwrap_or(Traversal::GPU_DEFAULT);
     backend::open(args.backend, args.adapter.as_deref(), bvh, &[walk])
 }
 
 impl<'a> Job<'a> {
-    fn new(args: &'a RenderArgs, tracer: &dyn Tracer, cam: &Camera, bvh: &FlatBvh) -> Job<'a> {
+    fn new(
+        args: &'a RenderArgs,
+        walk: Option<Traversal>,
+        tracer: &dyn Tracer,
+        cam: &Camera,
+        bvh: &FlatBvh,
+    ) -> Job<'a> {
         let b = bvh.bounds();
         let diag = (b.max - b.min).length().max(f32::MIN_POSITIVE);
         // A point light up and to the right of the camera: it sees what the camera sees, so
@@ -266,7 +314,7 @@ impl<'a> Job<'a> {
         let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
         Job {
             args,
-            traversal: args.traversal.unwrap_or_else(|| tracer.default_traversal()),
+            traversal: walk.unwrap_or_else(|| tracer.default_traversal()),
             counters: args.counters || args.shade == Shade::Heatmap,
             light,
             ao_radius: 0.15 * diag,
@@ -487,6 +535,7 @@ impl Report<'_> {
             "backend": self.tracer.backend(),
             "adapter": self.tracer.device_name(),
             "traversal": self.job.traversal.to_string(),
+            "layout": if self.job.traversal.is_wide() { Layout::Wide } else { Layout::Binary },
             "default_traversal": self.tracer.default_traversal().to_string(),
             "builder": args.scene.builder.name(),
             "shade": args.shade,
@@ -754,12 +803,16 @@ pub fn info(args: InfoArgs) -> Result<()> {
         &scene.attributes,
         bvh.is_instanced(),
     );
-    // What `GpuBvh::upload` uploads for these pipelines (the same for each of them).
-    let upload = pipelines[0].upload_bytes(
-        bvh.nodes.len() as u64,
-        bvh.triangles.len() as u64,
-        bvh.instances.len() as u64,
-    );
+    // What `GpuBvh::upload` uploads for these pipelines (the same for each of them): the
+    // wide layout's own node count for the wide walk.
+    let (nodes, triangles) = if traversal.is_wide() {
+        let w = bvhtrace_core::WideBvh::collapse(bvh);
+        (w.nodes.len(), w.triangles.len())
+    } else {
+        (bvh.nodes.len(), bvh.triangles.len())
+    };
+    let upload =
+        pipelines[0].upload_bytes(nodes as u64, triangles as u64, bvh.instances.len() as u64);
     let mut v = json!({
         "scene": args.scene.spec(),
         "name": scene.name,
@@ -886,27 +939,7 @@ pub fn dump(args: DumpArgs) -> Result<()> {
     let cam = camera_for(&args.view, &scene)?;
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);
-    let mut bytes = Vec::with_capacity(16 + tris.len() * 36 + rays.len() * 32);
-    bytes.extend_from_slice(b"BVHD");
-    for v in [1u32, tris.len() as u32, rays.len() as u32] {
-        bytes.extend_from_slice(&v.to_le_bytes());
-    }
-    for p in tris.iter().flatten() {
-        for c in p.to_array() {
-            bytes.extend_from_slice(&c.to_le_bytes());
-        }
-    }
-    for r in &rays {
-        for c in r
-            .origin
-            .iter()
-            .chain([&r.t_min])
-            .chain(&r.dir)
-            .chain([&r.t_max])
-        {
-            bytes.extend_from_slice(&c.to_le_bytes());
-        }
-    }
+    let bytes = crate::embree::dump_bytes(&tris, &rays);
     out.finish_with_bytes(&bytes)?;
     eprintln!(
         "wrote {}: {} triangles, {} rays ({w}x{h})",

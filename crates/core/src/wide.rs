@@ -29,7 +29,9 @@
 //! * `triangles: [FlatTriangle]`: the binary tree's triangles, reordered into the wide
 //!   leaf order (`prim` unchanged).
 //! * `instances: [FlatInstance]`: the binary tree's instances in the wide top level's leaf
-//!   order, `root` the mesh's wide root.
+//!   order, `root` the mesh's wide root. The meshes' nodes follow the top level's, the
+//!   first instance's mesh first, so `instances[0].root == top_nodes`: the kernels find
+//!   the end of the top level there (the uploads check it).
 //!
 //! # Collapse
 //! Greedy, top down (documented instead of Ylitie's SAH-optimal dynamic programme): a wide

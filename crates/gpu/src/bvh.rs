@@ -4,9 +4,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
-use bvhtrace_core::{FlatBvh, FlatNode, Traversal};
+use bvhtrace_core::{FlatBvh, FlatNode, Traversal, WideBvh};
 use bvhtrace_kernels::{
     BvhStorage, TEXEL_ROW, UploadStats, check_buffer_size, check_depth, texel_rows,
+    wide_stack_may_overflow,
 };
 use wgpu::util::DeviceExt;
 
@@ -20,10 +21,15 @@ pub struct UploadOptions {
     /// The traversals the BVH will be traced with. The escape links are uploaded only when
     /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
     /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is refused when [`Traversal::FullStack`] is listed.
+    /// [`Traversal::Wide`] uploads the wide layout (`FlatBvh::wide`, or the tree collapsed
+    /// into it when the BVH has none), in buffers of its own; the binary layout is uploaded
+    /// when a binary traversal is listed (or none at all).
     pub traversals: Vec<Traversal>,
-    /// Buffers or textures; `None` picks the context's
+    /// Buffers or textures for the binary layout; `None` picks the context's
     /// [`DriverTuning::storage`](bvhtrace_kernels::DriverTuning::storage) (textures on CPU
-    /// drivers such as lavapipe, buffers elsewhere).
+    /// drivers such as lavapipe, buffers elsewhere). The wide layout is always in buffers
+    /// (its one byte layout is the Rust one); the rays of [`GpuBvh::trace`] follow this
+    /// storage for every traversal.
     pub storage: Option<BvhStorage>,
 }
 
@@ -36,8 +42,9 @@ impl UploadOptions {
         }
     }
 
-    /// Upload for every traversal (escape links included; the depth check applies), default
-    /// storage.
+    /// Upload for every traversal of the binary layout (escape links included; the depth
+    /// check applies), default storage. The wide layout is a second copy of the tree: add
+    /// [`Traversal::Wide`] ([`UploadOptions::with_traversal`]) to upload it too.
     pub fn all() -> Self {
         UploadOptions {
             traversals: vec![
@@ -52,6 +59,14 @@ impl UploadOptions {
     /// The same options with this storage.
     pub fn with_storage(mut self, storage: BvhStorage) -> Self {
         self.storage = Some(storage);
+        self
+    }
+
+    /// The same options with `traversal` listed too.
+    pub fn with_traversal(mut self, traversal: Traversal) -> Self {
+        if !self.traversals.contains(&traversal) {
+            self.traversals.push(traversal);
+        }
         self
     }
 }
@@ -77,12 +92,163 @@ enum Resources {
     },
 }
 
+/// Where the wide layout is missing, and the fix ([`GpuError::WideLayoutMissing`]).
+const WIDE_NOT_UPLOADED: &str =
+    "this upload left out: list Traversal::Wide in UploadOptions::traversals";
+
+/// The wide layout on the device ([`Traversal::Wide`]): buffers whatever the storage of
+/// the binary layout, and its own bind group.
+struct WideUpload {
+    nodes: wgpu::Buffer,
+    triangles: wgpu::Buffer,
+    /// The instances in the wide top level's order, for a two-level BVH.
+    instances: Option<wgpu::Buffer>,
+    group: wgpu::BindGroup,
+    /// Bytes of the nodes, triangles and instances.
+    bytes: (u64, u64, u64),
+}
+
+impl WideUpload {
+    /// Checks `w` against the device's limits, and the one property of the layout the
+    /// kernel relies on beyond the Rust walk's: the first instance's mesh starts right
+    /// after the top level (`bvh_instances.wgsl` finds the top level's end there).
+    fn check(ctx: &GpuContext, w: &WideBvh) -> Result<(), GpuError> {
+        let l = ctx.limits();
+        check_buffer_size(
+            l,
+            "wide nodes",
+            std::mem::size_of_val(w.nodes.as_slice()) as u64,
+        )?;
+        check_buffer_size(
+            l,
+            "wide triangles",
+            std::mem::size_of_val(w.triangles.as_slice()) as u64,
+        )?;
+        check_buffer_size(
+            l,
+            "wide instances",
+            std::mem::size_of_val(w.instances.as_slice()) as u64,
+        )?;
+        check_wide_top_level(w)
+    }
+
+    /// Creates and fills the buffers and the bind group.
+    fn new(ctx: &GpuContext, w: &WideBvh) -> WideUpload {
+        let device = ctx.device();
+        let make = |label: &str, contents: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
+        };
+        let nodes = make("bvhtrace wide nodes", bytemuck::cast_slice(&w.nodes));
+        let triangles = make(
+            "bvhtrace wide triangles",
+            bytemuck::cast_slice(&w.triangles),
+        );
+        let instances = w.is_instanced().then(|| {
+            make(
+                "bvhtrace wide instances",
+                bytemuck::cast_slice(&w.instances),
+            )
+        });
+        let mut entries = vec![buffer_entry(0, &nodes), buffer_entry(1, &triangles)];
+        entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
+        // The wide nodes read as storage buffers, as the binary ones do with buffers: the
+        // same layout (binding types say nothing of the element type).
+        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("bvhtrace bvh (wide)"),
+            layout: ctx.bvh_layout(BvhStorage::Buffers, false, w.is_instanced()),
+            entries: &entries,
+        });
+        let size = |b: &wgpu::Buffer| b.size();
+        let bytes = (
+            size(&nodes),
+            size(&triangles),
+            instances.as_ref().map_or(0, size),
+        );
+        WideUpload {
+            nodes,
+            triangles,
+            instances,
+            group,
+            bytes,
+        }
+    }
+
+    /// Writes `w` over the buffers when it has their sizes; false (nothing written) when
+    /// not.
+    fn write(&self, queue: &wgpu::Queue, w: &WideBvh) -> bool {
+        let fits = |b: &wgpu::Buffer, bytes: &[u8]| b.size() == bytes.len() as u64;
+        let (nodes, tris, insts): (&[u8], &[u8], &[u8]) = (
+            bytemuck::cast_slice(&w.nodes),
+            bytemuck::cast_slice(&w.triangles),
+            bytemuck::cast_slice(&w.instances),
+        );
+        let instances_fit = match &self.instances {
+            Some(b) => fits(b, insts),
+            None => insts.is_empty(),
+        };
+        if !(fits(&self.nodes, nodes) && fits(&self.triangles, tris) && instances_fit) {
+            return false;
+        }
+        queue.write_buffer(&self.nodes, 0, nodes);
+        queue.write_buffer(&self.triangles, 0, tris);
+        if let Some(b) = &self.instances {
+            queue.write_buffer(b, 0, insts);
+        }
+        true
+    }
+}
+
+/// Checks that the first instance of a two-level wide tree starts its mesh right after
+/// the top level: the kernels take `instances[0].root` for the top level's node count
+/// (`bvh_instances.wgsl`), which is what `WideBvh::collapse` lays out.
+pub(crate) fn check_wide_top_level(w: &WideBvh) -> Result<(), GpuError> {
+    match w.instances.first() {
+        Some(first) if first.root != w.top_nodes => Err(GpuError::BadBuffer {
+            buffer: "wide instances",
+            problem: format!(
+                "the first instance's mesh starts at node {}, not right after the {} top-level \
+                 nodes: collapse the tree with WideBvh::collapse",
+                first.root, w.top_nodes
+            ),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// The tree [`GpuBvh::trace`] finishes incomplete rays on, with the wide layout uploaded
+/// (`wide`): kept when the context's tuning sets a trip budget, or when the wide tree is
+/// deep enough for a ray to overflow the wide walk's stack (on any device).
+fn host_copy(ctx: &GpuContext, bvh: &FlatBvh, wide: Option<Arc<WideBvh>>) -> Option<Arc<FlatBvh>> {
+    let deep = wide
+        .as_ref()
+        .is_some_and(|w| wide_stack_may_overflow(w.depth));
+    (ctx.tuning().finishes_on_cpu() || deep).then(|| {
+        Arc::new(FlatBvh {
+            wide: wide.or_else(|| bvh.wide.clone()),
+            ..bvh.clone()
+        })
+    })
+}
+
+/// The wide layout of `bvh`: its own when it has one, else `bvh` collapsed.
+fn wide_of(bvh: &FlatBvh) -> Arc<WideBvh> {
+    bvh.wide
+        .clone()
+        .unwrap_or_else(|| Arc::new(WideBvh::collapse(bvh)))
+}
+
 /// What [`GpuBvh::update`] writes again.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Update {
     /// Every node, triangle and instance (after a refit: boxes and corners moved).
     Everything,
-    /// The top level of a two-level BVH and its instances (after new transforms).
+    /// The top level of a two-level BVH and its instances (after new transforms). An
+    /// uploaded wide layout is collapsed again and written whole either way: its meshes'
+    /// places follow the top level's order.
     TopLevel,
 }
 
@@ -112,15 +278,20 @@ impl<'a> BvhBindGroup<'a> {
 pub struct GpuBvh {
     pub(crate) ctx: GpuContext,
     storage: BvhStorage,
-    resources: Resources,
-    /// The instances of a two-level BVH.
+    /// The binary layout, unless only [`Traversal::Wide`] was listed.
+    resources: Option<Resources>,
+    /// The instances of a two-level BVH (binary layout).
     instances: Option<wgpu::Buffer>,
+    /// A two-level BVH.
+    instanced: bool,
     top_nodes: u32,
     instance_count: usize,
     /// The BVH group for the full-stack kernels (nodes, triangles).
-    group_plain: wgpu::BindGroup,
+    group_plain: Option<wgpu::BindGroup>,
     /// The BVH group for the escape-link kernels, when the escape links were uploaded.
     group_escapes: Option<wgpu::BindGroup>,
+    /// The wide layout, when [`Traversal::Wide`] was listed.
+    wide: Option<WideUpload>,
     depth: u32,
     node_count: usize,
     triangle_count: usize,
@@ -142,6 +313,8 @@ impl std::fmt::Debug for GpuBvh {
             .field("triangles", &self.triangle_count)
             .field("depth", &self.depth)
             .field("escapes", &self.group_escapes.is_some())
+            .field("binary", &self.resources.is_some())
+            .field("wide", &self.wide.is_some())
             .field("stats", &self.stats)
             .finish()
     }
@@ -279,10 +452,13 @@ fn view_entry(binding: u32, view: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_
 
 impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
-    /// `opts.traversals` needs them, as buffers or textures (`opts.storage`). Everything is
+    /// `opts.traversals` needs them, as buffers or textures (`opts.storage`); with
+    /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide`, or `bvh` collapsed into
+    /// it), in buffers, and without a binary traversal listed only that. Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
     /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is
-    /// refused ([`GpuError::TooDeep`]) when the full-stack traversal is listed.
+    /// refused ([`GpuError::TooDeep`]) when the full-stack traversal is listed. The
+    /// [`UploadStats`] are those of both layouts together.
     pub fn upload(
         ctx: &GpuContext,
         bvh: &FlatBvh,
@@ -295,13 +471,20 @@ impl GpuBvh {
             check_depth(traversal, bvh.depth)?;
         }
         let storage = opts.storage.unwrap_or(ctx.tuning().storage);
+        let with_wide = opts.traversals.iter().any(|t| t.is_wide());
+        let binary = !with_wide || opts.traversals.iter().any(|t| !t.is_wide());
         let with_escapes = opts.traversals.iter().any(|t| t.needs_escapes());
         if with_escapes {
             bvh.check_escape_links()?;
         }
+        let wide = with_wide.then(|| wide_of(bvh));
+        if let Some(w) = &wide {
+            WideUpload::check(ctx, w)?;
+        }
         let (nb, eb, tb) = bvh.byte_sizes();
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
         match storage {
+            _ if !binary => {}
             BvhStorage::Buffers => {
                 let l = ctx.limits();
                 check_buffer_size(l, "nodes", nb as u64)?;
@@ -320,7 +503,7 @@ impl GpuBvh {
         }
 
         let instanced = bvh.is_instanced();
-        if instanced {
+        if instanced && binary {
             check_buffer_size(
                 ctx.limits(),
                 "instances",
@@ -331,14 +514,18 @@ impl GpuBvh {
         let device = ctx.device();
         let layout_plain = ctx.bvh_layout(storage, false, instanced);
         let layout_escapes = ctx.bvh_layout(storage, true, instanced);
-        let instances = instanced.then(|| {
+        let instances = (instanced && binary).then(|| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("bvhtrace instances"),
                 contents: bytemuck::cast_slice(&bvh.instances),
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             })
         });
-        let instances_bytes = std::mem::size_of_val(bvh.instances.as_slice()) as u64;
+        let instances_bytes = if binary {
+            std::mem::size_of_val(bvh.instances.as_slice()) as u64
+        } else {
+            0
+        };
         let group = |label: &str, layout, entries: &[wgpu::BindGroupEntry<'_>]| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
@@ -346,8 +533,9 @@ impl GpuBvh {
                 entries,
             })
         };
-        let (resources, group_plain, group_escapes, stats) =
-            ctx.scoped("uploading the BVH", || match storage {
+        let (binary_upload, wide_upload) = ctx.scoped("uploading the BVH", || {
+            let wide_upload = wide.as_deref().map(|w| WideUpload::new(ctx, w));
+            let binary_upload = binary.then(|| match storage {
                 BvhStorage::Buffers => {
                     let make = |label: &str, contents: &[u8]| {
                         device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -444,13 +632,31 @@ impl GpuBvh {
                         stats,
                     )
                 }
-            })?;
+            });
+            (binary_upload, wide_upload)
+        })?;
         // Make the upload complete before timing stops.
         ctx.queue().submit([]);
         device
             .poll(wgpu::PollType::wait_indefinitely())
             .map_err(|e| GpuError::device("uploading the BVH", e))?;
+        let (resources, group_plain, group_escapes, stats) = match binary_upload {
+            Some((r, plain, escapes, stats)) => (Some(r), Some(plain), escapes, stats),
+            None => (
+                None,
+                None,
+                None,
+                UploadStats {
+                    storage,
+                    ..UploadStats::default()
+                },
+            ),
+        };
+        let (wn, wt, wi) = wide_upload.as_ref().map_or((0, 0, 0), |w| w.bytes);
         let stats = UploadStats {
+            nodes_bytes: stats.nodes_bytes + wn,
+            triangles_bytes: stats.triangles_bytes + wt,
+            instances_bytes: stats.instances_bytes + wi,
             upload_ms: start.elapsed().as_secs_f64() * 1e3,
             ..stats
         };
@@ -459,18 +665,17 @@ impl GpuBvh {
             storage,
             resources,
             instances,
+            instanced,
             top_nodes: bvh.top_nodes,
             instance_count: bvh.instances.len(),
             group_plain,
             group_escapes,
+            wide: wide_upload,
             depth: bvh.depth,
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
             stats,
-            host_copy: ctx
-                .tuning()
-                .finishes_on_cpu()
-                .then(|| Arc::new(bvh.clone())),
+            host_copy: host_copy(ctx, bvh, wide),
             scratch: Mutex::new(None),
             batch_groups: Mutex::new(Default::default()),
         })
@@ -478,10 +683,26 @@ impl GpuBvh {
 
     /// Checks that this upload can run `traversal`.
     pub(crate) fn supports_traversal(&self, traversal: Traversal) -> Result<(), GpuError> {
+        if traversal.is_wide() {
+            return match self.wide {
+                Some(_) => Ok(()),
+                None => Err(GpuError::WideLayoutMissing {
+                    missing: WIDE_NOT_UPLOADED,
+                }),
+            };
+        }
+        if self.resources.is_none() {
+            return Err(GpuError::TraversalNotUploaded { traversal });
+        }
         if traversal.needs_escapes() && self.group_escapes.is_none() {
             return Err(GpuError::EscapesNotUploaded { traversal });
         }
         check_depth(traversal, self.depth)
+    }
+
+    /// True when the wide layout was uploaded ([`Traversal::Wide`] listed).
+    pub fn has_wide(&self) -> bool {
+        self.wide.is_some()
     }
 
     /// The context this BVH lives in.
@@ -489,7 +710,8 @@ impl GpuBvh {
         &self.ctx
     }
 
-    /// Where the BVH lives: buffers or textures.
+    /// Where the binary layout lives, buffers or textures (the wide layout is in buffers);
+    /// [`GpuBvh::trace`] puts the rays in textures when this is textures.
     pub fn storage(&self) -> BvhStorage {
         self.storage
     }
@@ -499,7 +721,7 @@ impl GpuBvh {
         &self.stats
     }
 
-    /// The tree's depth (edges on its longest root-to-leaf path).
+    /// The binary tree's depth (edges on its longest root-to-leaf path).
     pub fn depth(&self) -> u32 {
         self.depth
     }
@@ -520,34 +742,45 @@ impl GpuBvh {
     }
 
     /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
-    /// links for the walks that follow them), with its layout.
+    /// links for the walks that follow them; for [`Traversal::Wide`] the wide layout's
+    /// nodes, triangles and instances, always buffers), with its layout.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
+        let instanced = self.is_instanced();
+        if traversal.is_wide() {
+            let w = self.wide.as_ref().ok_or(GpuError::WideLayoutMissing {
+                missing: WIDE_NOT_UPLOADED,
+            })?;
+            return Ok(BvhBindGroup {
+                group: &w.group,
+                layout: self.ctx.bvh_layout(BvhStorage::Buffers, false, instanced),
+            });
+        }
         let with_escapes = traversal.needs_escapes();
-        let group = if with_escapes {
-            self.group_escapes
-                .as_ref()
-                .ok_or(GpuError::EscapesNotUploaded { traversal })?
-        } else {
-            &self.group_plain
+        let group = match (&self.group_plain, &self.group_escapes, with_escapes) {
+            (None, _, _) => return Err(GpuError::TraversalNotUploaded { traversal }),
+            (_, Some(g), true) => g,
+            (_, None, true) => return Err(GpuError::EscapesNotUploaded { traversal }),
+            (Some(g), _, false) => g,
         };
         Ok(BvhBindGroup {
             group,
-            layout: self
-                .ctx
-                .bvh_layout(self.storage, with_escapes, self.is_instanced()),
+            layout: self.ctx.bvh_layout(self.storage, with_escapes, instanced),
         })
     }
 
     /// True for a two-level BVH (its bind group has the instances, binding 4).
     pub fn is_instanced(&self) -> bool {
-        self.instances.is_some()
+        self.instanced
     }
 
-    /// Writes `bvh` over this upload in place, without creating anything: `bvh` is the
-    /// uploaded BVH after [`bvhtrace_core::InstancedBvh::refit_mesh`] ([`Update::Everything`])
-    /// or [`bvhtrace_core::InstancedBvh::set_transforms`] ([`Update::TopLevel`]: only the
-    /// top level's nodes and links and the instances are written). Its sizes must be the
-    /// upload's; a BVH of another shape is a new upload.
+    /// Writes `bvh` over this upload in place: `bvh` is the uploaded BVH after
+    /// [`bvhtrace_core::InstancedBvh::refit_mesh`] ([`Update::Everything`]) or
+    /// [`bvhtrace_core::InstancedBvh::set_transforms`] ([`Update::TopLevel`]: only the top
+    /// level's nodes and links and the instances are written). Its sizes must be the
+    /// upload's; a BVH of another shape is a new upload. An uploaded wide layout is
+    /// collapsed again from `bvh` (its `wide`, which a refit leaves stale, is not read) and
+    /// written whole, into new buffers only when the collapse came out with another number
+    /// of nodes (the collapse follows the boxes' areas); nothing else is created.
     pub fn update(&mut self, bvh: &FlatBvh, what: Update) -> Result<(), GpuError> {
         let shape = (
             bvh.nodes.len(),
@@ -579,13 +812,21 @@ impl GpuBvh {
             Update::Everything => (bvh.nodes.as_slice(), bvh.escapes.as_slice()),
             Update::TopLevel => (&bvh.nodes[..top], &bvh.escapes[..top_links]),
         };
-        self.ctx.scoped("updating the BVH", || {
+        let wide = self
+            .wide
+            .is_some()
+            .then(|| Arc::new(WideBvh::collapse(bvh)));
+        if let Some(w) = &wide {
+            WideUpload::check(&self.ctx, w)?;
+        }
+        let remade = self.ctx.scoped("updating the BVH", || {
             match &self.resources {
-                Resources::Buffers {
+                None => {}
+                Some(Resources::Buffers {
                     nodes: nb,
                     triangles,
                     escapes,
-                } => {
+                }) => {
                     queue.write_buffer(nb, 0, bytemuck::cast_slice(nodes));
                     if let Some(e) = escapes {
                         queue.write_buffer(e, 0, bytemuck::cast_slice(links));
@@ -594,11 +835,11 @@ impl GpuBvh {
                         queue.write_buffer(triangles, 0, bytemuck::cast_slice(&bvh.triangles));
                     }
                 }
-                Resources::Textures {
+                Some(Resources::Textures {
                     nodes: nt,
                     triangles,
                     escapes,
-                } => {
+                }) => {
                     write_texels(&self.ctx, nt, 4, node_texels(&bvh.nodes));
                     if let Some(e) = escapes {
                         write_texels(&self.ctx, e, 1, bvh.escapes.clone());
@@ -612,27 +853,48 @@ impl GpuBvh {
             if let Some(b) = &self.instances {
                 queue.write_buffer(b, 0, bytemuck::cast_slice(&bvh.instances));
             }
+            match (&self.wide, &wide) {
+                (Some(up), Some(w)) if !up.write(queue, w) => Some(WideUpload::new(&self.ctx, w)),
+                _ => None,
+            }
         })?;
-        if let Some(h) = &mut self.host_copy {
-            *h = Arc::new(bvh.clone());
+        if let Some(new) = remade {
+            let (old_n, old_t, old_i) = self.wide.as_ref().map_or((0, 0, 0), |w| w.bytes);
+            let (n, t, i) = new.bytes;
+            self.stats.nodes_bytes = self.stats.nodes_bytes - old_n + n;
+            self.stats.triangles_bytes = self.stats.triangles_bytes - old_t + t;
+            self.stats.instances_bytes = self.stats.instances_bytes - old_i + i;
+            self.wide = Some(new);
         }
+        let keep = self.host_copy.is_some()
+            || wide
+                .as_ref()
+                .is_some_and(|w| wide_stack_may_overflow(w.depth));
+        self.host_copy = keep.then(|| {
+            Arc::new(FlatBvh {
+                wide,
+                ..bvh.clone()
+            })
+        });
         self.depth = bvh.depth;
         Ok(())
     }
 
-    /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads.
+    /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads of the binary
+    /// layout.
     pub fn nodes_buffer(&self) -> Option<&wgpu::Buffer> {
         match &self.resources {
-            Resources::Buffers { nodes, .. } => Some(nodes),
-            Resources::Textures { .. } => None,
+            Some(Resources::Buffers { nodes, .. }) => Some(nodes),
+            _ => None,
         }
     }
 
-    /// The triangle buffer (`array<Triangle>`), for [`BvhStorage::Buffers`] uploads.
+    /// The triangle buffer (`array<Triangle>`), for [`BvhStorage::Buffers`] uploads of the
+    /// binary layout.
     pub fn triangles_buffer(&self) -> Option<&wgpu::Buffer> {
         match &self.resources {
-            Resources::Buffers { triangles, .. } => Some(triangles),
-            Resources::Textures { .. } => None,
+            Some(Resources::Buffers { triangles, .. }) => Some(triangles),
+            _ => None,
         }
     }
 
@@ -640,8 +902,14 @@ impl GpuBvh {
     /// [`BvhStorage::Buffers`] uploads with the escape links.
     pub fn escapes_buffer(&self) -> Option<&wgpu::Buffer> {
         match &self.resources {
-            Resources::Buffers { escapes, .. } => escapes.as_ref(),
-            Resources::Textures { .. } => None,
+            Some(Resources::Buffers { escapes, .. }) => escapes.as_ref(),
+            _ => None,
         }
+    }
+
+    /// The wide layout's buffers (`array<BvhWideNode>`, its triangles), when it was
+    /// uploaded.
+    pub fn wide_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer)> {
+        self.wide.as_ref().map(|w| (&w.nodes, &w.triangles))
     }
 }

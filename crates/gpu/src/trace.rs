@@ -572,8 +572,9 @@ impl GpuBvh {
     ///
     /// The buffers are checked (usage and size) before anything is recorded; the caller
     /// submits the encoder. Rays are never [`bvhtrace_core::INCOMPLETE`] here unless the
-    /// context's tuning sets a trip budget (CPU drivers): finish those with
-    /// [`bvhtrace_kernels::finish_incomplete`].
+    /// context's tuning sets a trip budget (CPU drivers), or the wide walk meets a wide
+    /// tree deeper than its stack ([`bvhtrace_kernels::wide_stack_may_overflow`]): finish
+    /// those with [`bvhtrace_kernels::finish_incomplete`].
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,

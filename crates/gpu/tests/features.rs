@@ -1,7 +1,7 @@
 //! Leaving out what a job does not need, on a GPU (lavapipe in CI): the pipeline cache does
 //! not recompile when a job switches back to a kernel, the specialised and everything-on
 //! pipelines give the same hits, and the bytes uploaded are exactly the bytes the kernel's
-//! bindings declare.
+//! bindings declare (for the wide layout too).
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
 use bvhtrace_gpu::kernels::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, RayInput, TEXEL_ROW};
@@ -13,10 +13,11 @@ use glam::Vec3;
 use naga::{Module, TypeInner};
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
-const TRAVERSALS: [Traversal; 3] = [
+const TRAVERSALS: [Traversal; 4] = [
     Traversal::FullStack,
     Traversal::Stackless,
     Traversal::ShortStack(6),
+    Traversal::Wide,
 ];
 
 fn parse(source: &str) -> Module {
@@ -136,8 +137,14 @@ fn group0_strides(module: &Module) -> Vec<(String, u64)> {
 fn the_upload_is_exactly_what_the_kernel_reads() {
     let Some(ctx) = context() else { return };
     let (bvh, rays) = scene();
-    let (nodes, tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
+    let wide = bvhtrace_core::WideBvh::collapse(&bvh);
     for traversal in TRAVERSALS {
+        // The wide walk's key counts the wide tree's nodes.
+        let (nodes, tris) = if traversal.is_wide() {
+            (wide.nodes.len() as u64, wide.triangles.len() as u64)
+        } else {
+            (bvh.nodes.len() as u64, bvh.triangles.len() as u64)
+        };
         for storage in STORAGES {
             let opts = TraceOptions::closest(traversal);
             let f = KernelKey::for_job(
@@ -172,7 +179,17 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                 traversal.needs_escapes(),
                 "{f:?}: {stats:?}"
             );
-            match storage {
+            // The wide layout is in buffers whatever the storage asked for.
+            assert_eq!(
+                f.storage,
+                if traversal.is_wide() {
+                    BvhStorage::Buffers
+                } else {
+                    storage
+                },
+                "{f:?}"
+            );
+            match f.storage {
                 BvhStorage::Buffers => {
                     // Bytes the bindings declare (array stride x element count), from the
                     // reflected module, against the bytes uploaded.
@@ -181,7 +198,7 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                         .map(|(name, stride)| {
                             stride
                                 * match name.as_str() {
-                                    "bvh_nodes" => nodes,
+                                    "bvh_nodes" | "bvh_wide_nodes" => nodes,
                                     // `array<u32>`: eight links per node, whole blocks.
                                     "bvh_escapes" => {
                                         bvhtrace_core::flat::escape_links_len(nodes as usize) as u64

@@ -93,6 +93,23 @@ pub enum TraceError {
         /// The traversal asked for.
         traversal: Traversal,
     },
+    /// The traversal reads a layout the upload left out (the binary one, when only
+    /// [`Traversal::Wide`] was listed).
+    #[error(
+        "the {traversal} traversal reads the binary layout, which this upload left out \
+         (list it in UploadOptions::traversals)"
+    )]
+    TraversalNotUploaded {
+        /// The traversal asked for.
+        traversal: Traversal,
+    },
+    /// The wide traversal needs the wide layout (`FlatBvh::wide`), which the BVH or its
+    /// upload does not have.
+    #[error("the wide traversal needs the BVH's wide layout (FlatBvh::wide), which {missing}")]
+    WideLayoutMissing {
+        /// Where it is missing, and the fix.
+        missing: &'static str,
+    },
     /// The kernel's triangle test needs a device feature this one lacks.
     #[error(
         "the {precision} triangle test needs the SHADER_F64 feature, which the adapter \

@@ -17,6 +17,8 @@
 //! pipeline is created). [`Composition::EverythingOn`] composes every module instead (the
 //! module [`crate::kernel_source`] returns), for comparison.
 
+use std::borrow::Cow;
+
 use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{Precision, Query, Traversal};
 
@@ -27,6 +29,15 @@ use bvhtrace_core::traverse::MAX_SHORT_STACK;
 
 /// Bytes of one block of escape links ([`PerElement::NodeBlock`]).
 const ESCAPE_BLOCK_BYTES: u64 = (ESCAPE_BLOCK * OCTANTS * 4) as u64;
+
+/// Bytes of one node of the binary layout (`FlatNode`) or of the wide one (`WideNode`).
+fn node_bytes(wide: bool) -> u64 {
+    if wide {
+        std::mem::size_of::<bvhtrace_core::WideNode>() as u64
+    } else {
+        std::mem::size_of::<bvhtrace_core::FlatNode>() as u64
+    }
+}
 
 /// Blocks of escape links for `nodes` nodes.
 fn escape_blocks(nodes: u64) -> u64 {
@@ -53,31 +64,104 @@ const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
     include_str!("../shaders/bvh_no_instances.wgsl"),
 );
 
-/// The entry-point files: `(file, source)` for `[full stack, short stack]` x
-/// `[hits only, counted]`, each holding the entry point [`KernelKey::entry_point`]
-/// names.
-pub(crate) const ENTRY_POINT_FILES: [[(&str, &str); 2]; 2] = [
-    [
-        (
-            "entry_full_stack.wgsl",
-            include_str!("../shaders/entry_full_stack.wgsl"),
-        ),
-        (
-            "entry_full_stack_counted.wgsl",
-            include_str!("../shaders/entry_full_stack_counted.wgsl"),
-        ),
-    ],
-    [
-        (
-            "entry_short_stack.wgsl",
-            include_str!("../shaders/entry_short_stack.wgsl"),
-        ),
-        (
-            "entry_short_stack_counted.wgsl",
-            include_str!("../shaders/entry_short_stack_counted.wgsl"),
-        ),
-    ],
-];
+/// `bvh_buffers_wide.wgsl`: the wide layout's nodes (binding 0), in buffers whatever the
+/// storage of the binary layout.
+const BVH_BUFFERS_WIDE_WGSL: (&str, &str) = (
+    "bvh_buffers_wide.wgsl",
+    include_str!("../shaders/bvh_buffers_wide.wgsl"),
+);
+/// `traverse_wide.wgsl`: the wide walk.
+const TRAVERSE_WIDE_WGSL: (&str, &str) = (
+    "traverse_wide.wgsl",
+    include_str!("../shaders/traverse_wide.wgsl"),
+);
+/// `entry_walk.wgsl`: every entry point, specialised by [`EntryPoint::source`].
+const ENTRY_WALK_WGSL: &str = include_str!("../shaders/entry_walk.wgsl");
+
+/// One entry point: `entry_walk.wgsl` specialised with its name, its walk's call and
+/// what it stores, so the entry points share one file and differ only in their walk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct EntryPoint {
+    /// The name [`KernelKey::entry_point`] gives.
+    name: &'static str,
+    /// How [`ModuleSet::files`] lists it.
+    label: &'static str,
+    /// The walk's call on ray `i` of the batch, with invocation `lid`'s stack.
+    walk: &'static str,
+    /// Writes the counters as well (needs `entry_counters.wgsl`).
+    counted: bool,
+}
+
+impl EntryPoint {
+    /// The entry point's WGSL.
+    fn source(&self) -> String {
+        let store = if self.counted {
+            "bvh_store_counted"
+        } else {
+            "bvh_store_hits_only"
+        };
+        ENTRY_WALK_WGSL
+            .replace("BVH_ENTRY_POINT", self.name)
+            .replace("BVH_STORE", store)
+            .replace("BVH_WALK", self.walk)
+    }
+}
+
+/// The walks that have entry points, in composition order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Walk {
+    FullStack,
+    ShortStack,
+    Wide,
+}
+
+/// Declares the two entry points (hits only, counted) of a walk.
+macro_rules! entry_points {
+    ($stem:literal, $walk:literal) => {
+        [
+            EntryPoint {
+                name: concat!("bvh_trace_", $stem, "_main"),
+                label: concat!("entry_walk.wgsl: bvh_trace_", $stem, "_main"),
+                walk: $walk,
+                counted: false,
+            },
+            EntryPoint {
+                name: concat!("bvh_trace_", $stem, "_counted"),
+                label: concat!("entry_walk.wgsl: bvh_trace_", $stem, "_counted"),
+                walk: $walk,
+                counted: true,
+            },
+        ]
+    };
+}
+
+impl Walk {
+    /// The walk's entry points: `[hits only, counted]`.
+    fn entry_points(self) -> [EntryPoint; 2] {
+        match self {
+            Walk::FullStack => entry_points!(
+                "full_stack",
+                "bvh_trace_full_stack(bvh_load_ray(i), BVH_ANY_HIT, lid)"
+            ),
+            Walk::ShortStack => entry_points!(
+                "short_stack",
+                "bvh_trace_short_stack(bvh_load_ray(i), BVH_ANY_HIT, BVH_SHORT_STACK_SIZE, lid)"
+            ),
+            Walk::Wide => {
+                entry_points!("wide", "bvh_trace_wide(bvh_load_ray(i), BVH_ANY_HIT, lid)")
+            }
+        }
+    }
+
+    /// The walk of `traversal`.
+    fn of(traversal: Traversal) -> Walk {
+        match traversal {
+            Traversal::FullStack => Walk::FullStack,
+            Traversal::Stackless | Traversal::ShortStack(_) => Walk::ShortStack,
+            Traversal::Wide => Walk::Wide,
+        }
+    }
+}
 
 impl BvhStorage {
     /// The WGSL file declaring this storage's escape-link binding and `load_escape`.
@@ -136,7 +220,8 @@ pub enum Entries {
 /// The WGSL files one module is composed of.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct ModuleSet {
-    /// The BVH bindings file.
+    /// The BVH bindings file of the binary layout (the wide layout's nodes are in buffers
+    /// whatever this says).
     pub storage: BvhStorage,
     /// The triangle test ([`shaders::triangle_wgsl`]).
     pub precision: Precision,
@@ -146,6 +231,11 @@ pub struct ModuleSet {
     pub full_stack: bool,
     /// `traverse_short_stack.wgsl` (needs `escapes`).
     pub short_stack: bool,
+    /// The wide layout (`bvh_buffers_wide.wgsl`) and its walk (`traverse_wide.wgsl`), in
+    /// place of the binary layout's bindings and walks: binding 0 holds wide nodes, so a
+    /// module has one layout or the other (`escapes`, `full_stack` and `short_stack` are
+    /// then ignored).
+    pub wide: bool,
     /// Attribute modules.
     pub attributes: VertexAttributes,
     /// The instances binding (`bvh_instances.wgsl`), for a two-level BVH.
@@ -157,7 +247,8 @@ pub struct ModuleSet {
 }
 
 impl ModuleSet {
-    /// Everything but attributes: the library and, with `entries`, the kernels.
+    /// Everything of the binary layout but attributes: the library and, with `entries`,
+    /// the kernels.
     pub fn everything(storage: BvhStorage, precision: Precision, entries: Entries) -> ModuleSet {
         ModuleSet {
             storage,
@@ -165,10 +256,24 @@ impl ModuleSet {
             escapes: true,
             full_stack: true,
             short_stack: true,
+            wide: false,
             attributes: VertexAttributes::NONE,
             instances: false,
             entries,
             rays: shaders::RayInput::Buffer,
+        }
+    }
+
+    /// Everything of the wide layout but attributes: its bindings, its walk and, with
+    /// `entries`, its kernels.
+    pub fn wide(precision: Precision, entries: Entries) -> ModuleSet {
+        ModuleSet {
+            storage: BvhStorage::Buffers,
+            escapes: false,
+            full_stack: false,
+            short_stack: false,
+            wide: true,
+            ..ModuleSet::everything(BvhStorage::Buffers, precision, entries)
         }
     }
 
@@ -177,23 +282,55 @@ impl ModuleSet {
         matches!(self.entries, Entries::Counted | Entries::All)
     }
 
-    /// The files, in composition order, as `(file name, source)`.
-    pub fn files(&self) -> Vec<(&'static str, &'static str)> {
-        let mut out = Vec::with_capacity(16);
+    /// The walks composed in, in composition order.
+    fn walks(&self) -> Vec<Walk> {
+        if self.wide {
+            return vec![Walk::Wide];
+        }
+        [
+            (self.full_stack, Walk::FullStack),
+            (self.short_stack, Walk::ShortStack),
+        ]
+        .into_iter()
+        .filter_map(|(on, w)| on.then_some(w))
+        .collect()
+    }
+
+    /// The files, in composition order, as `(file name, source)`; an entry point is
+    /// `entry_walk.wgsl` specialised for its walk, named after it.
+    pub fn files(&self) -> Vec<(&'static str, Cow<'static, str>)> {
+        let wide = self.wide;
+        let (full, short) = (self.full_stack && !wide, self.short_stack && !wide);
+        let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(20);
+        let mut push = |(name, src): (&'static str, &'static str)| out.push((name, src.into()));
         for (i, &(name, src)) in shaders::SHADER_FILES.iter().enumerate() {
             match name {
-                "traverse_stack.wgsl" if !(self.full_stack || self.short_stack) => {}
-                "traverse_full_stack.wgsl" if !self.full_stack => {}
-                "traverse_short_stack.wgsl" if !self.short_stack => {}
-                "triangle.wgsl" => out.push(shaders::triangle_wgsl(self.precision)),
-                _ => out.push((name, src)),
+                "traverse_stack.wgsl" if !(full || short || wide) => {}
+                "traverse_full_stack.wgsl" if !full => {}
+                "traverse_short_stack.wgsl" => {
+                    if short {
+                        push((name, src));
+                    }
+                    if wide {
+                        push(TRAVERSE_WIDE_WGSL);
+                    }
+                }
+                "triangle.wgsl" => push(shaders::triangle_wgsl(self.precision)),
+                _ => push((name, src)),
             }
             if i == 0 {
-                out.push(self.storage.wgsl());
-                if self.escapes {
-                    out.push(self.storage.escapes_wgsl());
+                if wide {
+                    push(BVH_BUFFERS_WIDE_WGSL);
+                } else {
+                    push(self.storage.wgsl());
                 }
-                out.push(if self.instances {
+                if wide || self.storage == BvhStorage::Buffers {
+                    push(shaders::BVH_BUFFERS_TRIANGLES_WGSL);
+                }
+                if self.escapes && !wide {
+                    push(self.storage.escapes_wgsl());
+                }
+                push(if self.instances {
                     BVH_INSTANCES_WGSL
                 } else {
                     BVH_NO_INSTANCES_WGSL
@@ -201,24 +338,23 @@ impl ModuleSet {
             }
         }
         if self.attributes.normals {
-            out.push(("attribute_normals.wgsl", ATTRIBUTE_NORMALS_WGSL));
+            push(("attribute_normals.wgsl", ATTRIBUTE_NORMALS_WGSL));
         }
         if self.entries == Entries::None {
             return out;
         }
-        out.push(("entry.wgsl", shaders::ENTRY_WGSL));
-        out.push(self.rays.wgsl());
+        push(("entry.wgsl", shaders::ENTRY_WGSL));
+        push(self.rays.wgsl());
         if self.has_counters() {
-            out.push(("entry_counters.wgsl", ENTRY_COUNTERS_WGSL));
+            push(("entry_counters.wgsl", ENTRY_COUNTERS_WGSL));
         }
         let plain = matches!(self.entries, Entries::Plain | Entries::All);
         let counted = self.has_counters();
-        for (walk, present) in [self.full_stack, self.short_stack].into_iter().enumerate() {
-            if present && plain {
-                out.push(ENTRY_POINT_FILES[walk][0]);
-            }
-            if present && counted {
-                out.push(ENTRY_POINT_FILES[walk][1]);
+        for walk in self.walks() {
+            for ep in walk.entry_points() {
+                if (ep.counted && counted) || (!ep.counted && plain) {
+                    out.push((ep.label, ep.source().into()));
+                }
             }
         }
         out
@@ -226,7 +362,7 @@ impl ModuleSet {
 
     /// The composed WGSL, the BVH bindings (and attribute bindings) in `@group(bvh_group)`.
     pub fn compose(&self, bvh_group: u32) -> String {
-        let mut s = String::with_capacity(24 * 1024);
+        let mut s = String::with_capacity(32 * 1024);
         let group = format!("@group({bvh_group})");
         for (name, src) in self.files() {
             s.push_str("// ---- ");
@@ -237,7 +373,7 @@ impl ModuleSet {
             if rebind {
                 s.push_str(&src.replace("@group(0)", &group));
             } else {
-                s.push_str(src);
+                s.push_str(&src);
             }
             s.push('\n');
         }
@@ -283,7 +419,9 @@ pub struct BindingInfo {
 /// runs and which override constants it gets. The key of a backend's pipeline cache.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct KernelKey {
-    /// Where the BVH is read from.
+    /// Where the BVH is read from: always [`BvhStorage::Buffers`] for
+    /// [`Traversal::Wide`] ([`KernelKey::new`] sees to it), whose nodes are read from
+    /// buffers only.
     pub storage: BvhStorage,
     /// The walk; a short stack's size is clamped to `1..=MAX_SHORT_STACK` by
     /// [`KernelKey::new`], as the CPU walk clamps it.
@@ -312,14 +450,21 @@ pub struct KernelKey {
 
 impl KernelKey {
     /// The specialised kernel tracing as `opts` says with the BVH in `storage`: rays in
-    /// buffers, the parallel path kept, positions only.
+    /// buffers, the parallel path kept, positions only. The wide layout is read from
+    /// buffers whatever `storage` says (one byte layout of its nodes, the Rust one; see
+    /// `bvh_buffers_wide.wgsl`), so a [`Traversal::Wide`] key has
+    /// [`BvhStorage::Buffers`].
     pub fn new(storage: BvhStorage, opts: &TraceOptions) -> KernelKey {
         let traversal = match opts.traversal {
             Traversal::ShortStack(k) => Traversal::ShortStack(k.clamp(1, MAX_SHORT_STACK)),
             t => t,
         };
         KernelKey {
-            storage,
+            storage: if traversal.is_wide() {
+                BvhStorage::Buffers
+            } else {
+                storage
+            },
             traversal,
             query: opts.query,
             precision: opts.precision,
@@ -405,14 +550,9 @@ impl KernelKey {
         }
     }
 
-    /// The entry point's name.
+    /// The entry point's name: `bvh_trace_{full_stack,short_stack,wide}_{main,counted}`.
     pub fn entry_point(&self) -> &'static str {
-        match (self.needs_escapes(), self.counters) {
-            (false, false) => "bvh_trace_full_stack_main",
-            (false, true) => "bvh_trace_full_stack_counted",
-            (true, false) => "bvh_trace_short_stack_main",
-            (true, true) => "bvh_trace_short_stack_counted",
-        }
+        Walk::of(self.traversal).entry_points()[usize::from(self.counters)].name
     }
 
     /// The override constants the key sets, as wgpu and naga take them. A backend adds
@@ -433,13 +573,15 @@ impl KernelKey {
     }
 
     /// Every key the tests validate for `storage`: each walk (full stack, stackless,
-    /// short stack of size `k`) x query x counters x one mesh or two levels.
+    /// short stack of size `k`, wide) x query x counters x one mesh or two levels. The
+    /// wide keys are the same for every `storage` and `k` (buffers, no ring).
     pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelKey> {
         let mut v = Vec::new();
         for traversal in [
             Traversal::FullStack,
             Traversal::Stackless,
             Traversal::ShortStack(k),
+            Traversal::Wide,
         ] {
             for query in [Query::Closest, Query::Any] {
                 for counters in [false, true] {
@@ -456,17 +598,23 @@ impl KernelKey {
     /// The files the module is composed of.
     pub fn module_set(&self) -> ModuleSet {
         match self.composition {
+            // A module holds one layout: everything of the wide one for a wide key.
             Composition::EverythingOn => ModuleSet {
                 rays: self.rays,
                 instances: self.instances,
-                ..ModuleSet::everything(self.storage, self.precision, Entries::All)
+                ..if self.traversal.is_wide() {
+                    ModuleSet::wide(self.precision, Entries::All)
+                } else {
+                    ModuleSet::everything(self.storage, self.precision, Entries::All)
+                }
             },
             Composition::Specialised => ModuleSet {
                 storage: self.storage,
                 precision: self.precision,
                 escapes: self.needs_escapes(),
-                full_stack: !self.needs_escapes(),
+                full_stack: self.traversal == Traversal::FullStack,
                 short_stack: self.needs_escapes(),
+                wide: self.traversal.is_wide(),
                 attributes: self.attributes,
                 instances: self.instances,
                 entries: if self.counters {
@@ -506,7 +654,9 @@ impl KernelKey {
             per: PerElement::Ray,
             uploaded: false,
         };
-        let (nodes, tris, escapes) = if textures {
+        let (nodes, tris, escapes) = if set.wide {
+            ("bvh_wide_nodes", "bvh_triangles", "")
+        } else if textures {
             (
                 "bvh_node_texels",
                 "bvh_triangle_texels",
@@ -515,9 +665,9 @@ impl KernelKey {
         } else {
             ("bvh_nodes", "bvh_triangles", "bvh_escapes")
         };
-        b.push(bvh(0, nodes, 32, PerElement::Node));
+        b.push(bvh(0, nodes, node_bytes(set.wide), PerElement::Node));
         b.push(bvh(1, tris, 48, PerElement::Triangle));
-        if set.escapes {
+        if set.escapes && !set.wide {
             b.push(bvh(2, escapes, ESCAPE_BLOCK_BYTES, PerElement::NodeBlock));
         }
         if set.attributes.normals {
@@ -541,8 +691,10 @@ impl KernelKey {
     }
 
     /// Bytes the BVH bindings declare for a tree of `nodes` nodes, `triangles`
-    /// triangles and `instances` instances (0 for one mesh): what a [`BvhStorage::Buffers`] upload for this key holds (texture
-    /// uploads add row padding).
+    /// triangles and `instances` instances (0 for one mesh): what a [`BvhStorage::Buffers`]
+    /// upload for this key holds (texture uploads add row padding). For a
+    /// [`Traversal::Wide`] key, `nodes` counts the wide tree's 80-byte nodes
+    /// (`WideBvh::nodes`).
     pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> u64 {
         self.bindings()
             .iter()
@@ -563,7 +715,9 @@ impl KernelKey {
     /// What an upload for this key holds for a tree of `nodes` nodes, `triangles`
     /// triangles and `instances` instances (`upload_ms` 0): the bindings' bytes
     /// ([`KernelKey::declared_bvh_bytes`]), plus, for textures taller than one row, the
-    /// padding of their last row of [`shaders::TEXEL_ROW`] texels.
+    /// padding of their last row of [`shaders::TEXEL_ROW`] texels. For a
+    /// [`Traversal::Wide`] key, `nodes` counts the wide tree's nodes: 80 bytes each, in
+    /// buffers.
     pub fn upload_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> UploadStats {
         let set = self.module_set();
         let sized = |elements: u64, element_bytes: u64, texels_per: u64, texel_bytes: u64| match set
@@ -581,9 +735,9 @@ impl KernelKey {
         };
         UploadStats {
             storage: set.storage,
-            nodes_bytes: sized(nodes, 32, 2, 16),
+            nodes_bytes: sized(nodes, node_bytes(set.wide), 2, 16),
             triangles_bytes: sized(triangles, 48, 3, 16),
-            escapes_bytes: if set.escapes {
+            escapes_bytes: if set.escapes && !set.wide {
                 sized(
                     escape_blocks(nodes),
                     ESCAPE_BLOCK_BYTES,

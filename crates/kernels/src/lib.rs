@@ -8,7 +8,8 @@
 //! * [`Tracer`]: one interface over the CPU walks ([`CpuTracer`]) and the device backends.
 //! * [`KernelKey`]: what one kernel is (storage, traversal, query, precision, counters,
 //!   where the rays come from, attributes): its WGSL source, bindings and constants.
-//! * [`wgsl_library`]: the traversal functions for your own WGSL.
+//! * [`wgsl_library`] (and [`wgsl_wide_library`]): the traversal functions for your own
+//!   WGSL.
 //! * [`DriverTuning`]: the measures that only help CPU drivers such as lavapipe.
 //! * [`plan_dispatches`], [`DeviceLimits`]: how a batch fits a device.
 //! * [`TraceError`]: everything that can go wrong, on every backend.
@@ -37,5 +38,6 @@ pub use plan::{
 pub use tracer::{CpuTracer, Tracer};
 pub use wgsl::{
     BATCH_GROUP, BVH_GROUP, BvhStorage, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
-    WORKGROUP_SIZE, kernel_source, wgsl_library,
+    WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,
+    wide_stack_may_overflow,
 };

@@ -87,7 +87,9 @@ pub fn check_buffer_size(
 }
 
 /// Checks that a tree `depth` levels deep can be walked with `traversal` by the kernels:
-/// the full stack holds [`FULL_STACK_SIZE`] entries; the other walks take any depth.
+/// the full stack holds [`FULL_STACK_SIZE`] entries; the other walks take any depth (the
+/// wide walk gives a ray that would overflow its stack up for the host to finish,
+/// [`finish_incomplete`]).
 pub fn check_depth(traversal: Traversal, depth: u32) -> Result<(), TraceError> {
     if traversal == Traversal::FullStack && depth > FULL_STACK_SIZE {
         return Err(TraceError::TooDeep {
@@ -106,8 +108,21 @@ pub fn texel_rows(texels: u64) -> u64 {
 /// Replaces every [`INCOMPLETE`] hit in `out` by the CPU walk's answer for that ray on
 /// `bvh` (same options; counters too when `out` has them) and counts them in
 /// `out.incomplete`: what a device backend does after a kernel that ran under a trip
-/// budget ([`crate::DriverTuning::trip_limit`]).
+/// budget ([`crate::DriverTuning::trip_limit`]), or a wide walk whose stack would have
+/// overflowed ([`crate::WIDE_STACK_GROUPS`]). For [`Traversal::Wide`], pass the tree with
+/// the wide layout that was uploaded (`FlatBvh::wide`); one without it is collapsed here
+/// first, the same conversion the uploads make.
 pub fn finish_incomplete(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut TraceOutput) {
+    if !out.hits.iter().any(|h| h.prim == INCOMPLETE) {
+        return;
+    }
+    let collapsed;
+    let bvh = if opts.traversal.is_wide() && bvh.wide.is_none() {
+        collapsed = bvh.clone().with_wide();
+        &collapsed
+    } else {
+        bvh
+    };
     let mut stack = Vec::new();
     for (i, h) in out.hits.iter_mut().enumerate() {
         if h.prim != INCOMPLETE {

@@ -24,8 +24,8 @@ pub trait Tracer: Send + Sync {
     fn default_traversal(&self) -> Traversal;
 
     /// `Ok` when [`Tracer::trace`] can run `opts` here; otherwise the error it would
-    /// return (escape links not uploaded, a tree too deep for the full stack, a precision
-    /// the device lacks).
+    /// return (escape links not uploaded, no wide layout for the wide walk, a tree too
+    /// deep for the full stack, a precision the device lacks).
     fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError>;
 
     /// Traces `rays` as `opts` says: one hit per ray, in order, with counters when asked
@@ -84,6 +84,11 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
     fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         if opts.traversal.needs_escapes() {
             self.bvh().check_escape_links()?;
+        }
+        if opts.traversal.is_wide() && self.bvh().wide.is_none() {
+            return Err(TraceError::WideLayoutMissing {
+                missing: "this BVH does not have: call FlatBvh::build_wide (or with_wide) first",
+            });
         }
         Ok(())
     }

@@ -3,9 +3,10 @@
 //!
 //! | file | concern | CPU twin |
 //! |---|---|---|
-//! | `types.wgsl` | `BvhNode`, `BvhTriangle`, `BvhRay`, `BvhHit`, `BvhCounters`, `BvhTraceResult` | `bvhtrace_core::{FlatNode, FlatTriangle, Ray, Hit, Counters}` |
-//! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the BVH's bindings (group 0 by default) and fetch functions ([`BvhStorage`]) | `FlatBvh` |
-//! | `ray.wgsl` | validity, `bvh_safe_inverse`, `bvh_prepare_ray` | `Ray::is_valid`, `PreparedRay::new` |
+//! | `types.wgsl` | `BvhNode`, `BvhWideNode`, `BvhTriangle`, `BvhRay`, `BvhHit`, `BvhCounters`, `BvhTraceResult` | `bvhtrace_core::{FlatNode, WideNode, FlatTriangle, Ray, Hit, Counters}` |
+//! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the BVH's bindings (group 0 by default) and fetch functions ([`BvhStorage`]); with buffers, the triangles are `bvh_buffers_triangles.wgsl` | `FlatBvh` |
+//! | `bvh_buffers_wide.wgsl` | the wide layout's nodes (binding 0, buffers only), with `bvh_buffers_triangles.wgsl`, for the wide walk | `WideBvh` |
+//! | `ray.wgsl` | validity, `bvh_safe_inverse`, `bvh_prepare_ray`, `bvh_octant` | `Ray::is_valid`, `PreparedRay::new`, `flat::octant` |
 //! | `surface.wgsl` | `bvh_offset_ray_origin`, for secondary rays | `surface::offset_ray_origin` |
 //! | `box.wgsl` | conservative slab test | `intersect::intersect_box` |
 //! | `triangle_hit.wgsl` | `BvhTriHit`, what every triangle test returns | `intersect::TriHit` |
@@ -13,15 +14,16 @@
 //! | `traverse_common.wgsl` | hit rule, leaf visit | `traverse::visit_leaf` |
 //! | `traverse_instances.wgsl` | entering and leaving instances of a two-level BVH (folded away for one mesh) | `traverse::Space` |
 //! | `bvh_instances.wgsl` or `bvh_no_instances.wgsl` | the instances (binding 4) of a two-level BVH, or the same names for one mesh | `FlatBvh::instances` |
-//! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full and short stack | `Vec` / the ring of `traverse::short_stack` |
+//! | `traverse_stack.wgsl` | the per-lane stacks in workgroup memory, only for the full stack, the short stack and the wide walk | `Vec` / the ring of `traverse::short_stack` |
 //! | `traverse_full_stack.wgsl` | `bvh_trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
 //! | `traverse_short_stack.wgsl` | `bvh_trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
+//! | `traverse_wide.wgsl` | `bvh_trace_wide(ray, any_hit, lane)`, only with the wide layout | `traverse::wide` |
 //! | `bvh_buffers_escapes.wgsl` or `bvh_textures_escapes.wgsl` | the escape links (binding 2), only for the walks that read them | `FlatBvh::escapes` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
 //! | `entry.wgsl` | what the entry points share: the overrides, `bvh_ray_index` | `traverse::trace_rays` |
 //! | `entry_rays_buffer.wgsl` or `entry_rays_texture.wgsl` | where the rays come from and the hits go (`bvh_load_ray`, `bvh_store_hit`, `bvh_batch_len`; [`RayInput`]) | - |
 //! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_rays` with counters |
-//! | `entry_{full,short}_stack[_counted].wgsl` | one entry point each | |
+//! | `entry_walk.wgsl` | every entry point, specialised per walk and output (`bvh_trace_{full_stack,short_stack,wide}_{main,counted}`) | |
 //!
 //! [`wgsl_library`] concatenates the traversal library (every traversal, no entry point)
 //! for use from your own shaders; [`kernel_source`] adds every entry point (the
@@ -30,7 +32,10 @@
 //! or `BVH_`, so the library can be composed with a user's shader. The BVH storage is chosen by which bindings file is
 //! composed in. Nothing is copied between variants: the stackless walk is the short-stack
 //! function with `k = 0`, the query and `k` are pipeline-overridable constants (`BVH_ANY_HIT`,
-//! `BVH_SHORT_STACK_SIZE`), and counters are written only by the `*_counted` entry points.
+//! `BVH_SHORT_STACK_SIZE`), counters are written only by the `*_counted` entry points, and
+//! every entry point is one file specialised with its walk. The wide layout
+//! ([`wgsl_wide_library`]) binds its own nodes at binding 0, so its walk is composed in
+//! modules of its own, from the same ray, box, triangle, hit-rule, instance and stack files.
 
 use bvhtrace_core::Precision;
 
@@ -49,7 +54,8 @@ pub enum BvhStorage {
 }
 
 impl BvhStorage {
-    /// The WGSL file declaring this storage's bindings and fetch functions.
+    /// The WGSL file declaring this storage's node bindings and fetch functions (and, for
+    /// textures, the triangles'; buffers compose `bvh_buffers_triangles.wgsl` after it).
     pub fn wgsl(&self) -> (&'static str, &'static str) {
         match self {
             BvhStorage::Buffers => ("bvh_buffers.wgsl", BVH_BUFFERS_WGSL),
@@ -66,6 +72,12 @@ pub const TEXEL_ROW: u32 = 8192;
 const BVH_BUFFERS_WGSL: &str = include_str!("../shaders/bvh_buffers.wgsl");
 /// `bvh_textures.wgsl`.
 const BVH_TEXTURES_WGSL: &str = include_str!("../shaders/bvh_textures.wgsl");
+/// `bvh_buffers_triangles.wgsl`: the triangles' buffer, read by the binary layout in
+/// buffers and by the wide layout.
+pub(crate) const BVH_BUFFERS_TRIANGLES_WGSL: (&str, &str) = (
+    "bvh_buffers_triangles.wgsl",
+    include_str!("../shaders/bvh_buffers_triangles.wgsl"),
+);
 
 /// The storage-independent WGSL files, in composition order, as `(file name, source)`.
 /// The BVH bindings ([`BvhStorage::wgsl`]) go after `types.wgsl`.
@@ -102,13 +114,25 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
 ];
 
 /// What every entry point shares (`entry.wgsl`: the override constants, `ray_index`); the
-/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves in the
-/// `entry_{full,short}_stack[_counted].wgsl` files ([`ModuleSet::files`](crate::key::ModuleSet::files)).
+/// rays and hits bindings are [`RayInput::wgsl`]'s, the entry points themselves
+/// `entry_walk.wgsl` specialised per walk ([`ModuleSet::files`](crate::key::ModuleSet::files)).
 pub(crate) const ENTRY_WGSL: &str = include_str!("../shaders/entry.wgsl");
 
 /// Entries of the full-stack kernel's stack (`FULL_STACK_SIZE` in
 /// `traverse_full_stack.wgsl`): the deepest tree the full-stack traversal accepts.
 pub const FULL_STACK_SIZE: u32 = 64;
+
+/// Node groups (a node and its mask: two stack entries) the wide walk's stack holds per
+/// lane (`WIDE_STACK_GROUPS` in `traverse_wide.wgsl`): a wide tree of at most this many
+/// plus one levels never fills it; on a deeper one a ray that would overflow it comes back
+/// incomplete and is finished on the CPU ([`crate::finish_incomplete`]).
+pub const WIDE_STACK_GROUPS: u32 = FULL_STACK_SIZE / 2;
+
+/// True when the wide walk's stack can overflow on a wide tree `depth` levels deep
+/// (`WideBvh::depth`): the backends then keep a host copy to finish such rays.
+pub fn wide_stack_may_overflow(depth: u32) -> bool {
+    depth > WIDE_STACK_GROUPS + 1
+}
 
 /// Lanes per workgroup the traversal stacks are laid out for (`STACK_LANES` in
 /// `traverse_stack.wgsl`): a shader that calls `trace_full_stack` or `trace_short_stack`
@@ -236,10 +260,27 @@ pub fn wgsl_library_for(storage: BvhStorage, precision: Precision, bvh_group: u3
         .compose(bvh_group)
 }
 
+/// The wide walk as WGSL functions for your own compute shader, as [`wgsl_library`] gives
+/// the binary walks: the wide layout (`bvhtrace_core::WideBvh`) bound at
+/// `@group(bvh_group)`, bindings 0 (its nodes, `array<BvhWideNode>`), 1 (its triangles)
+/// and, for a two-level BVH, 4 (its instances; then compose it yourself with
+/// `ModuleSet { instances: true, ..ModuleSet::wide(..) }`), always storage buffers. With
+/// bvhtrace-gpu, bind `GpuBvh::bind_group(Traversal::Wide)`. It declares what
+/// [`wgsl_library`] declares but the binary walks, and
+/// `bvh_trace_wide(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult`, whose stack
+/// is `lane`'s in `bvh_lane_stacks` as for the full stack. On a wide tree deeper than
+/// [`WIDE_STACK_GROUPS`]` + 1` levels a ray may come back `BVH_INCOMPLETE`: finish it on the
+/// CPU ([`crate::finish_incomplete`]).
+pub fn wgsl_wide_library(bvh_group: u32) -> String {
+    crate::key::ModuleSet::wide(Precision::WatertightF32, crate::key::Entries::None)
+        .compose(bvh_group)
+}
+
 /// The everything-on kernel module for `storage`: [`wgsl_library`] with the BVH in group
-/// [`BVH_GROUP`], and every entry point (`entry.wgsl`, `entry_counters.wgsl` and the four
-/// `entry_*.wgsl` files; group [`BATCH_GROUP`]: `rays`, `hits`, `counters`), so any
-/// [`crate::KernelKey::entry_point`] is in it. The pipelines `GpuContext` (bvhtrace-gpu) builds use
+/// [`BVH_GROUP`], and every entry point of the binary walks (`entry.wgsl`,
+/// `entry_counters.wgsl` and `entry_walk.wgsl` four times; group [`BATCH_GROUP`]: `rays`,
+/// `hits`, `counters`), so any [`crate::KernelKey::entry_point`] of a binary walk is in it
+/// (the wide walk's are in its own module, [`crate::KernelKey::source`]). The pipelines `GpuContext` (bvhtrace-gpu) builds use
 /// the specialised module of their key instead ([`crate::KernelKey::source`]) unless it
 /// asks for [`crate::Composition::EverythingOn`].
 pub fn kernel_source(storage: BvhStorage) -> String {

@@ -16,10 +16,11 @@ mod common;
 use common::{compile_variant, parse, validate};
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
-const TRAVERSALS: [Traversal; 3] = [
+const TRAVERSALS: [Traversal; 4] = [
     Traversal::FullStack,
     Traversal::Stackless,
     Traversal::ShortStack(6),
+    Traversal::Wide,
 ];
 const NORMALS: VertexAttributes = VertexAttributes { normals: true };
 
@@ -91,18 +92,32 @@ fn positions_only_pipelines_declare_only_what_the_job_reads() {
             assert!(!got.iter().any(|(g, b, _)| *g == 0 && *b >= 3), "{f:?}");
             // Counters only when asked for.
             assert_eq!(names.contains(&"counters"), f.counters, "{f:?}: {names:?}");
-            // Escape links only for the walks that read them; and the other walk's code is
+            // Escape links only for the walks that read them; and the other walks' code is
             // not in the module at all.
             let escapes = names.iter().any(|n| n.contains("escape"));
             let full = f.traversal == Traversal::FullStack;
-            assert_eq!(escapes, !full, "{f:?}: {names:?}");
+            let wide = f.traversal == Traversal::Wide;
+            let short = !full && !wide;
+            assert_eq!(escapes, short, "{f:?}: {names:?}");
             assert_eq!(
                 has_function(&module, "bvh_trace_short_stack"),
-                !full,
+                short,
                 "{f:?}"
             );
             assert_eq!(has_function(&module, "bvh_trace_full_stack"), full, "{f:?}");
-            assert_eq!(has_function(&module, "bvh_load_escape"), !full, "{f:?}");
+            assert_eq!(has_function(&module, "bvh_trace_wide"), wide, "{f:?}");
+            assert_eq!(has_function(&module, "bvh_load_escape"), short, "{f:?}");
+            // The wide layout's nodes, in a buffer whatever the storage asked for.
+            assert_eq!(names.contains(&"bvh_wide_nodes"), wide, "{f:?}: {names:?}");
+            if wide {
+                assert_eq!(f.storage, BvhStorage::Buffers, "{f:?}");
+                assert!(names.contains(&"bvh_triangles"), "{f:?}: {names:?}");
+                assert!(
+                    !names
+                        .iter()
+                        .any(|n| n.contains("texels") && n.starts_with("bvh_"))
+                );
+            }
             // One entry point, the variant's.
             let eps: Vec<&str> = module
                 .entry_points
@@ -150,12 +165,19 @@ fn everything_on_declares_everything_and_is_kernel_source() {
     for storage in STORAGES {
         for f in every_job(storage) {
             let all = f.with_composition(Composition::EverythingOn);
+            let wide = f.traversal == Traversal::Wide;
             // `kernel_source` reads the rays from a buffer; a ray texture swaps that file.
-            let expected = match f.rays {
-                RayInput::Buffer => kernel_source(storage),
-                RayInput::Texture => ModuleSet {
+            // The wide walk's everything is its own module (its nodes are binding 0).
+            let expected = match (wide, f.rays) {
+                (false, RayInput::Buffer) => kernel_source(storage),
+                (false, RayInput::Texture) => ModuleSet {
                     rays: RayInput::Texture,
                     ..ModuleSet::everything(storage, Precision::WatertightF32, Entries::All)
+                }
+                .compose(BVH_GROUP),
+                (true, rays) => ModuleSet {
+                    rays,
+                    ..ModuleSet::wide(Precision::WatertightF32, Entries::All)
                 }
                 .compose(BVH_GROUP),
             };
@@ -164,8 +186,29 @@ fn everything_on_declares_everything_and_is_kernel_source() {
             let names: BTreeSet<String> =
                 declared(&module).into_iter().map(|(_, _, n)| n).collect();
             assert!(names.contains("counters"), "{names:?}");
-            assert!(names.iter().any(|n| n.contains("escape")), "{names:?}");
-            assert_eq!(module.entry_points.len(), 4);
+            assert_eq!(
+                names.iter().any(|n| n.contains("escape")),
+                !wide,
+                "{names:?}"
+            );
+            let eps: BTreeSet<&str> = module
+                .entry_points
+                .iter()
+                .map(|e| e.name.as_str())
+                .collect();
+            let expected_eps: BTreeSet<&str> = if wide {
+                ["bvh_trace_wide_main", "bvh_trace_wide_counted"].into()
+            } else {
+                [
+                    "bvh_trace_full_stack_main",
+                    "bvh_trace_full_stack_counted",
+                    "bvh_trace_short_stack_main",
+                    "bvh_trace_short_stack_counted",
+                ]
+                .into()
+            };
+            assert_eq!(eps, expected_eps, "{f:?}");
+            assert!(eps.contains(f.entry_point()), "{f:?}");
             // The specialised module is strictly smaller.
             assert!(f.source().len() < all.source().len());
             assert!(declared(&parse(&f.source())).len() <= names.len());

@@ -8,12 +8,14 @@ use bvhtrace_core::flat::{ESCAPE_BLOCK, NO_ESCAPE, OCTANTS};
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 use bvhtrace_core::surface::{OFFSET_FLOAT_SCALE, OFFSET_INT_SCALE, OFFSET_ORIGIN};
 use bvhtrace_core::traverse::MAX_SHORT_STACK;
-use bvhtrace_core::{Counters, FlatInstance, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray};
-use bvhtrace_kernels::KernelKey;
+use bvhtrace_core::{
+    Counters, FlatInstance, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray, WideNode,
+};
+use bvhtrace_kernels::key::{Entries, ModuleSet};
 use bvhtrace_kernels::wgsl::SHADER_FILES;
 use bvhtrace_kernels::{
-    BvhStorage, FULL_STACK_SIZE, STACK_LANES, TEXEL_ROW, WORKGROUP_SIZE, kernel_source,
-    wgsl_library,
+    BvhStorage, FULL_STACK_SIZE, KernelKey, STACK_LANES, TEXEL_ROW, WIDE_STACK_GROUPS,
+    WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,
 };
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
@@ -56,6 +58,50 @@ fn check_struct(module: &Module, name: &str, size: usize, fields: &[(&str, usize
 fn shared_structs_match_rust_layout() {
     for storage in STORAGES {
         check_structs(&parse(&kernel_source(storage)));
+    }
+    let wide = parse(&wide_source(false));
+    check_structs(&wide);
+    check_struct(
+        &wide,
+        "BvhWideNode",
+        size_of::<WideNode>(),
+        &[
+            ("origin", offset_of!(WideNode, origin)),
+            ("exponents", offset_of!(WideNode, exponents)),
+            ("child_base", offset_of!(WideNode, child_base)),
+            ("triangle_base", offset_of!(WideNode, triangle_base)),
+            ("counts", offset_of!(WideNode, counts)),
+            ("q_lo", offset_of!(WideNode, q_lo)),
+            ("q_hi", offset_of!(WideNode, q_hi)),
+        ],
+    );
+    // The node array's stride is the Rust size too (no padding between nodes).
+    let (_, stride) = group0_array(&wide, "bvh_wide_nodes");
+    assert_eq!(stride as usize, size_of::<WideNode>());
+}
+
+/// The everything-on module of the wide layout (its two entry points), one mesh or two
+/// levels.
+fn wide_source(instances: bool) -> String {
+    ModuleSet {
+        instances,
+        ..ModuleSet::wide(bvhtrace_core::Precision::WatertightF32, Entries::All)
+    }
+    .compose(0)
+}
+
+/// The element type's name and the stride of the storage array `name`.
+fn group0_array(module: &Module, name: &str) -> (String, u32) {
+    let (_, g) = module
+        .global_variables
+        .iter()
+        .find(|(_, g)| g.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("no {name}"));
+    match module.types[g.ty].inner {
+        TypeInner::Array { base, stride, .. } => {
+            (module.types[base].name.clone().unwrap_or_default(), stride)
+        }
+        ref other => panic!("{name} is not an array: {other:?}"),
     }
 }
 
@@ -213,6 +259,13 @@ fn constants_match_rust() {
         constant(&module, "BVH_WORKGROUP_SIZE"),
         Literal::U32(WORKGROUP_SIZE)
     );
+    // The wide walk's stack: node groups of two entries in the same per-lane stacks.
+    let wide = parse(&wide_source(true));
+    assert_eq!(
+        constant(&wide, "BVH_WIDE_STACK_GROUPS"),
+        Literal::U32(WIDE_STACK_GROUPS)
+    );
+    assert_eq!(2 * WIDE_STACK_GROUPS, FULL_STACK_SIZE);
     // The per-lane stacks: one per invocation of an entry point's workgroup, deep enough
     // for the full stack and the short stack's largest ring.
     assert_eq!(
@@ -226,7 +279,7 @@ fn constants_match_rust() {
     }
 }
 
-/// Every traversal (full stack, stackless, short stack with k = 1, 6, 32) x query x
+/// Every traversal (full stack, stackless, short stack with k = 1, 6, 32, wide) x query x
 /// counters: overrides resolved as the pipelines resolve them, validated, and compiled to
 /// SPIR-V (what wgpu hands the Vulkan driver).
 #[test]
@@ -236,21 +289,35 @@ fn every_variant_validates_and_compiles() {
         compile_variants(storage, &mut seen);
     }
     // 2 storages; full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter
-    // settings; one mesh or two levels.
-    assert_eq!(seen.len(), 2 * 5 * 2 * 2 * 2);
+    // settings; one mesh or two levels. The wide walk's keys are one set whatever the
+    // storage (buffers) and `k` (no ring): 2 queries, 2 counter settings, 2 levels.
+    assert_eq!(seen.len(), 2 * 5 * 2 * 2 * 2 + 2 * 2 * 2);
+    assert_eq!(
+        seen.iter()
+            .filter(|k| k.traversal == bvhtrace_core::Traversal::Wide)
+            .count(),
+        8
+    );
 }
 
 fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelKey>) {
-    // The everything-on module of one mesh (`kernel_source`) and of two levels.
-    let modules = [false, true].map(|instances| {
-        let m = parse(
-            &KernelKey::new(storage, &Default::default())
-                .with_instances(instances)
-                .with_composition(bvhtrace_kernels::Composition::EverythingOn)
-                .source(),
-        );
-        let info = validate(&m);
-        (m, info)
+    // The everything-on modules of one mesh (`kernel_source`) and of two levels, for the
+    // binary walks and for the wide one (a module of its own: its nodes are binding 0).
+    let modules = [false, true].map(|wide| {
+        [false, true].map(|instances| {
+            let mut opts = bvhtrace_core::TraceOptions::default();
+            if wide {
+                opts.traversal = bvhtrace_core::Traversal::Wide;
+            }
+            let m = parse(
+                &KernelKey::new(storage, &opts)
+                    .with_instances(instances)
+                    .with_composition(bvhtrace_kernels::Composition::EverythingOn)
+                    .source(),
+            );
+            let info = validate(&m);
+            (m, info)
+        })
     });
     assert_eq!(
         KernelKey::new(storage, &Default::default())
@@ -263,7 +330,8 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
             if !seen.insert(v) {
                 continue;
             }
-            let (module, info) = &modules[usize::from(v.instances)];
+            let wide = v.traversal == bvhtrace_core::Traversal::Wide;
+            let (module, info) = &modules[usize::from(wide)][usize::from(v.instances)];
             compile_variant(module, info, &v);
         }
     }
@@ -274,6 +342,40 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
     for storage in STORAGES {
         check_library(storage);
     }
+    // The wide library: the shared files and its own, no binary walk, its bindings
+    // rebound too.
+    let lib = wgsl_wide_library(3);
+    for (name, _) in SHADER_FILES
+        .iter()
+        .filter(|(n, _)| !["traverse_full_stack.wgsl", "traverse_short_stack.wgsl"].contains(n))
+    {
+        assert!(lib.contains(&format!("// ---- {name} ----")), "{name}");
+    }
+    for name in [
+        "bvh_buffers_wide.wgsl",
+        "bvh_buffers_triangles.wgsl",
+        "traverse_wide.wgsl",
+    ] {
+        assert!(lib.contains(&format!("// ---- {name} ----")), "{name}");
+    }
+    assert!(!lib.contains("@compute"), "the library has no entry points");
+    assert!(!lib.contains("fn bvh_trace_full_stack") && !lib.contains("fn bvh_trace_short_stack"));
+    let module = parse(&format!(
+        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
+         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
+             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+             out[0] = bvh_trace_wide(ray, false, lane).hit.prim;\n\
+         }}"
+    ));
+    validate(&module);
+    for (binding, name) in [(0, "bvh_wide_nodes"), (1, "bvh_triangles")] {
+        let found = module.global_variables.iter().any(|(_, g)| {
+            g.name.as_deref() == Some(name)
+                && g.binding == Some(naga::ResourceBinding { group: 3, binding })
+        });
+        assert!(found, "{name} at group 3 binding {binding}");
+    }
+    assert_eq!(group0_array(&module, "bvh_wide_nodes").0, "BvhWideNode");
 }
 
 fn check_library(storage: BvhStorage) {

@@ -4,6 +4,7 @@
 //! every entry point.
 
 use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
+use bvhtrace_kernels::key::{Entries, ModuleSet};
 use bvhtrace_kernels::wgsl::{SHADER_FILES, kernel_source, kernel_source_for, triangle_wgsl};
 use bvhtrace_kernels::{BvhStorage, KernelKey};
 use naga::valid::{Capabilities, ValidationFlags, Validator};
@@ -74,10 +75,19 @@ fn every_precision_variant_validates_and_compiles() {
         for p in Precision::ALL {
             let module = parse(&kernel_source_for(storage, p));
             let info = validate_with(&module, capabilities(p));
+            // The wide walk's module (buffers, whatever the storage).
+            let wide_src = ModuleSet::wide(p, Entries::All).compose(0);
+            for q in Precision::ALL {
+                let marker = format!("// ---- {} ----", triangle_wgsl(q).0);
+                assert_eq!(wide_src.contains(&marker), p == q, "wide {p}: {marker}");
+            }
+            let wide = parse(&wide_src);
+            let wide_info = validate_with(&wide, capabilities(p));
             for tr in [
                 Traversal::FullStack,
                 Traversal::Stackless,
                 Traversal::ShortStack(6),
+                Traversal::Wide,
             ] {
                 for q in [Query::Closest, Query::Any] {
                     for counters in [false, true] {
@@ -86,12 +96,16 @@ fn every_precision_variant_validates_and_compiles() {
                             .with_counters(counters);
                         let v = KernelKey::new(storage, &opts);
                         assert_eq!(v.precision, p);
-                        compile_variant(&module, &info, &v);
+                        if tr == Traversal::Wide {
+                            compile_variant(&wide, &wide_info, &v);
+                        } else {
+                            compile_variant(&module, &info, &v);
+                        }
                         n += 1;
                     }
                 }
             }
         }
     }
-    assert_eq!(n, 2 * 3 * 3 * 2 * 2);
+    assert_eq!(n, 2 * 3 * 4 * 2 * 2);
 }

@@ -20,12 +20,14 @@ use crate::geom::is_zero_area;
 use crate::{Case, Expect, InputInfo};
 
 /// The traversals every case runs, in table order. The CPU full stack has no depth limit;
-/// the GPU full-stack kernel (64 entries) runs only where the tree allows.
-pub const TRAVERSALS: [Traversal; 4] = [
+/// the GPU full-stack kernel (64 entries) runs only where the tree allows. The wide walk
+/// runs on the wide layout converted from the same tree.
+pub const TRAVERSALS: [Traversal; 5] = [
     Traversal::Stackless,
     Traversal::ShortStack(6),
     Traversal::ShortStack(1),
     Traversal::FullStack,
+    Traversal::Wide,
 ];
 
 /// Where to trace: the CPU twins, and the GPU kernels when a device was opened (through
@@ -1082,7 +1084,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             .map_err(|e| format!("two levels: {e}")),
     };
     let bvh = match built {
-        Ok(b) => b,
+        Ok(b) => b.with_wide(),
         Err(e) => {
             rep.error = Some(format!("build failed: {e}"));
             return rep;
@@ -1162,7 +1164,11 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             };
             GpuBvh::upload(ctx, &bvh, &opts)
         } else {
-            GpuBvh::upload(ctx, &bvh, &UploadOptions::all())
+            let every = UploadOptions {
+                traversals: TRAVERSALS.to_vec(),
+                storage: None,
+            };
+            GpuBvh::upload(ctx, &bvh, &every)
         };
         match upload {
             Err(e) => rep.runs.extend(upload_failed("gpu", queries, &e)),

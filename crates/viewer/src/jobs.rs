@@ -189,7 +189,8 @@ impl BuiltBvh {
                     .flattened_triangles()
                     .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
                 let new_bvh = FlatBvh::build(&new_tris, &self.options)
-                    .map_err(|e| format!("the BVH at t = {t} s: {e}"))?;
+                    .map_err(|e| format!("the BVH at t = {t} s: {e}"))?
+                    .with_wide();
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(g) = &mut self.gpu {
@@ -302,12 +303,13 @@ pub struct Job {
     pub what: String,
 }
 
-/// The traversals an upload of a tree this deep supports: the escape-link ones always,
-/// the full stack when the tree fits its stack.
+/// The traversals an upload of a tree this deep supports: the escape-link ones and the
+/// wide walk always, the full stack when the tree fits its stack.
 pub fn upload_options(depth: u32) -> UploadOptions {
     let mut traversals = vec![
         Traversal::Stackless,
         Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
+        Traversal::Wide,
     ];
     if check_depth(Traversal::FullStack, depth).is_ok() {
         traversals.push(Traversal::FullStack);
@@ -377,6 +379,9 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
         SceneBvh::Flat { tris, bvh }
     };
+    // The wide layout too, so that every walk the side panel offers can run.
+    let mut geometry = geometry;
+    geometry.build_wide();
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
     let bvh = geometry.bvh();
     let stats = BvhStats::of(bvh);

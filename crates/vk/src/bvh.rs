@@ -5,10 +5,11 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use ash::vk;
-use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal, WideBvh};
 use bvhtrace_kernels::{
     BvhStorage, COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, TraceError, Tracer, UploadStats,
     check_buffer_size, check_depth, finish_incomplete, plan_dispatches, plan_submissions,
+    wide_stack_may_overflow,
 };
 
 use crate::context::{Buffer, VkContext};
@@ -22,10 +23,64 @@ struct Scratch {
     counters: Buffer,
 }
 
+/// The wide layout on the device ([`Traversal::Wide`]) and its descriptor set.
+struct WideBuffers {
+    nodes: Buffer,
+    triangles: Buffer,
+    /// The instances in the wide top level's order; for one mesh, one zeroed instance.
+    instances: Buffer,
+    set: vk::DescriptorSet,
+}
+
+impl WideBuffers {
+    fn destroy(&mut self, d: &ash::Device) {
+        for b in [&mut self.nodes, &mut self.triangles, &mut self.instances] {
+            b.destroy(d);
+        }
+    }
+}
+
+/// The arrays of a wide tree as uploaded: nodes, triangles, instances (one zeroed
+/// instance for one mesh: every binding of the set is bound).
+fn wide_arrays<'a>(
+    w: &'a WideBvh,
+    no_instances: &'a [bvhtrace_core::FlatInstance],
+) -> [(&'static str, &'a [u8]); 3] {
+    let instances = if w.is_instanced() {
+        w.instances.as_slice()
+    } else {
+        no_instances
+    };
+    [
+        ("wide nodes", bytemuck::cast_slice(&w.nodes)),
+        ("wide triangles", bytemuck::cast_slice(&w.triangles)),
+        ("wide instances", bytemuck::cast_slice(instances)),
+    ]
+}
+
+/// Checks a wide tree for the kernels: the one property they rely on beyond the CPU
+/// walk's, that the first instance's mesh starts right after the top level
+/// (`bvh_instances.wgsl` finds the top level's end there), as `WideBvh::collapse` lays it
+/// out.
+fn check_wide_top_level(w: &WideBvh) -> Result<(), TraceError> {
+    match w.instances.first() {
+        Some(first) if first.root != w.top_nodes => Err(TraceError::BadBuffer {
+            buffer: "wide instances",
+            problem: format!(
+                "the first instance's mesh starts at node {}, not right after the {} top-level \
+                 nodes: collapse the tree with WideBvh::collapse",
+                first.root, w.top_nodes
+            ),
+        }),
+        _ => Ok(()),
+    }
+}
+
 /// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as three storage buffers (nodes,
 /// triangles, escapes: the layout of [`bvhtrace_core::flat`], byte for byte), ready for
-/// every traversal. Implements [`Tracer`], the interface shared with the CPU and wgpu
-/// backends.
+/// every traversal; and, when the BVH has its wide layout (`FlatBvh::wide`), that too
+/// for [`Traversal::Wide`]. Implements [`Tracer`], the interface shared with the CPU and
+/// wgpu backends.
 pub struct VkBvh {
     ctx: VkContext,
     nodes: Buffer,
@@ -37,6 +92,8 @@ pub struct VkBvh {
     instanced: bool,
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
+    /// The wide layout, when the BVH had one at the upload.
+    wide: Option<WideBuffers>,
     depth: u32,
     node_count: usize,
     triangle_count: usize,
@@ -74,6 +131,9 @@ impl Drop for VkBvh {
             &mut self.instances,
         ] {
             b.destroy(d);
+        }
+        if let Some(w) = &mut self.wide {
+            w.destroy(d);
         }
         let scratch = match self.scratch.get_mut() {
             Ok(s) => s,
@@ -214,6 +274,59 @@ fn copy_to_device(
     result
 }
 
+/// Device-local storage buffers holding `arrays` (name, bytes), filled through one staging
+/// buffer and ready for the kernels; when a step fails, none is left behind.
+fn device_buffers(
+    ctx: &VkContext,
+    during: &'static str,
+    arrays: &[(&'static str, &[u8])],
+) -> Result<Vec<Buffer>, TraceError> {
+    use vk::BufferUsageFlags as U;
+    use vk::MemoryPropertyFlags as M;
+    let mut made: Vec<Buffer> = Vec::with_capacity(arrays.len());
+    let result = (|| -> Result<(), TraceError> {
+        for &(name, bytes) in arrays {
+            made.push(ctx.buffer(
+                name,
+                bytes.len() as u64,
+                U::STORAGE_BUFFER | U::TRANSFER_DST,
+                M::DEVICE_LOCAL,
+                M::empty(),
+            )?);
+        }
+        let copies: Vec<(vk::Buffer, &[u8])> = made
+            .iter()
+            .zip(arrays)
+            .map(|(b, (_, bytes))| (b.raw, *bytes))
+            .collect();
+        copy_to_device(ctx, during, &copies)
+    })();
+    if let Err(e) = result {
+        for mut b in made {
+            b.destroy(&ctx.inner.device);
+        }
+        return Err(e);
+    }
+    Ok(made)
+}
+
+/// Bytes of a wide tree's nodes, triangles and instances (as [`UploadStats`] counts them).
+fn wide_bytes(w: &WideBvh) -> (u64, u64, u64) {
+    (
+        std::mem::size_of_val(w.nodes.as_slice()) as u64,
+        std::mem::size_of_val(w.triangles.as_slice()) as u64,
+        std::mem::size_of_val(w.instances.as_slice()) as u64,
+    )
+}
+
+/// True when [`VkBvh::trace`] may have incomplete rays to finish on a host copy of the tree
+/// (with the wide layout uploaded): when the context's tuning sets a trip budget, or when
+/// the wide tree is deep enough for a ray to overflow the wide walk's stack (on any
+/// device).
+fn keeps_host_copy(ctx: &VkContext, wide: Option<&WideBvh>) -> bool {
+    ctx.tuning().finishes_on_cpu() || wide.is_some_and(|w| wide_stack_may_overflow(w.depth))
+}
+
 /// A descriptor pool for `sets` sets of at most four storage buffers.
 fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, TraceError> {
     let sizes = [vk::DescriptorPoolSize {
@@ -234,68 +347,60 @@ fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, Tra
 
 impl VkBvh {
     /// Uploads `bvh`'s nodes, triangles and escape links to device-local storage buffers
-    /// (through one host-visible staging buffer), so that every traversal can run on it.
-    /// An empty tree is [`TraceError::EmptyBvh`], escape links that do not fit the nodes
-    /// [`TraceError::BadEscapeLinks`]; each array is checked against the device's limits
-    /// (`maxStorageBufferRange`, `maxMemoryAllocationSize`) first, and
-    /// [`TraceError::TooLarge`] names the array, its size and the limit. A tree deeper than
-    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) uploads; only the full-stack walk refuses it
-    /// ([`VkBvh::supports`]). When [`VkContext::tuning`] finishes rays on the CPU, the
-    /// upload keeps a host copy of the tree for that.
+    /// (through one host-visible staging buffer), so that every traversal can run on it;
+    /// and its wide layout when it has one (`bvh.wide`: [`FlatBvh::build_wide`] before the
+    /// upload), for [`Traversal::Wide`]. An empty tree is [`TraceError::EmptyBvh`], escape
+    /// links that do not fit the nodes [`TraceError::BadEscapeLinks`]; each array is
+    /// checked against the device's limits (`maxStorageBufferRange`,
+    /// `maxMemoryAllocationSize`) first, and [`TraceError::TooLarge`] names the array, its
+    /// size and the limit. A tree deeper than
+    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) uploads; only the full-stack
+    /// walk refuses it ([`VkBvh::supports`]). When [`VkContext::tuning`] finishes rays on
+    /// the CPU, or the wide tree is deep enough for the wide walk's stack to overflow
+    /// ([`bvhtrace_kernels::wide_stack_may_overflow`]), the upload keeps a host copy of the
+    /// tree for that.
     pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, TraceError> {
         let start = Instant::now();
         if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
             return Err(TraceError::EmptyBvh);
         }
         bvh.check_escape_links()?;
+        let wide = bvh.wide.clone();
+        if let Some(w) = &wide {
+            check_wide_top_level(w)?;
+        }
         let no_instances = [bvhtrace_core::FlatInstance::zeroed()];
         let instances = if bvh.is_instanced() {
             bvh.instances.as_slice()
         } else {
             &no_instances
         };
-        let arrays: [(&'static str, &[u8]); 4] = [
+        let mut arrays: Vec<(&'static str, &[u8])> = vec![
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),
             ("triangles", bytemuck::cast_slice(&bvh.triangles)),
             ("escapes", bytemuck::cast_slice(&bvh.escapes)),
             ("instances", bytemuck::cast_slice(instances)),
         ];
-        for (name, bytes) in arrays {
+        if let Some(w) = &wide {
+            arrays.extend(wide_arrays(w, &no_instances));
+        }
+        for &(name, bytes) in &arrays {
             check_buffer_size(ctx.limits(), name, bytes.len() as u64)?;
         }
-        use vk::BufferUsageFlags as U;
-        use vk::MemoryPropertyFlags as M;
         let d = &ctx.inner.device;
-        // Device buffers, destroyed again if a later step fails.
-        let mut made: Vec<Buffer> = Vec::with_capacity(arrays.len());
-        let result = (|| -> Result<(), TraceError> {
-            for (name, bytes) in arrays {
-                made.push(ctx.buffer(
-                    name,
-                    bytes.len() as u64,
-                    U::STORAGE_BUFFER | U::TRANSFER_DST,
-                    M::DEVICE_LOCAL,
-                    M::empty(),
-                )?);
-            }
-            let copies: Vec<(vk::Buffer, &[u8])> = made
-                .iter()
-                .zip(arrays)
-                .map(|(b, (_, bytes))| (b.raw, bytes))
-                .collect();
-            copy_to_device(ctx, "uploading the BVH", &copies)
-        })();
-        if let Err(e) = result {
-            for mut b in made {
-                b.destroy(d);
-            }
-            return Err(e);
-        }
-        let (Some(instances), Some(escapes), Some(triangles), Some(nodes)) =
-            (made.pop(), made.pop(), made.pop(), made.pop())
-        else {
-            unreachable!("four buffers were made")
+        let mut made = device_buffers(ctx, "uploading the BVH", &arrays)?.into_iter();
+        let mut next = || {
+            made.next()
+                .unwrap_or_else(|| unreachable!("a buffer per array"))
         };
+        let (nodes, triangles, escapes, instances) = (next(), next(), next(), next());
+        let wide_buffers = wide.as_ref().map(|_| WideBuffers {
+            nodes: next(),
+            triangles: next(),
+            instances: next(),
+            set: vk::DescriptorSet::null(),
+        });
+        let wide_bytes = wide.as_ref().map_or((0, 0, 0), |w| wide_bytes(w));
         let mut bvh_gpu = VkBvh {
             ctx: ctx.clone(),
             nodes,
@@ -305,35 +410,36 @@ impl VkBvh {
             instanced: bvh.is_instanced(),
             pool: vk::DescriptorPool::null(),
             set: vk::DescriptorSet::null(),
+            wide: wide_buffers,
             depth: bvh.depth,
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
-            host_copy: ctx
-                .tuning()
-                .finishes_on_cpu()
-                .then(|| Arc::new(bvh.clone())),
+            host_copy: keeps_host_copy(ctx, wide.as_deref()).then(|| Arc::new(bvh.clone())),
             stats: UploadStats {
                 storage: BvhStorage::Buffers,
-                nodes_bytes: arrays[0].1.len() as u64,
-                triangles_bytes: arrays[1].1.len() as u64,
+                nodes_bytes: arrays[0].1.len() as u64 + wide_bytes.0,
+                triangles_bytes: arrays[1].1.len() as u64 + wide_bytes.1,
                 escapes_bytes: arrays[2].1.len() as u64,
-                instances_bytes: std::mem::size_of_val(bvh.instances.as_slice()) as u64,
+                instances_bytes: std::mem::size_of_val(bvh.instances.as_slice()) as u64
+                    + wide_bytes.2,
                 upload_ms: 0.0,
             },
             scratch: Mutex::new(None),
         };
         // From here on, dropping `bvh_gpu` frees everything.
-        bvh_gpu.pool = descriptor_pool(d, 1)?;
-        let layouts = [ctx.inner.set_layouts[0]];
-        // SAFETY: allocating from the pool just made.
-        bvh_gpu.set = unsafe {
+        let sets = 1 + u32::from(bvh_gpu.wide.is_some());
+        bvh_gpu.pool = descriptor_pool(d, sets)?;
+        let layouts = vec![ctx.inner.set_layouts[0]; sets as usize];
+        // SAFETY: allocating from the pool just made, sized for these sets.
+        let allocated = unsafe {
             d.allocate_descriptor_sets(
                 &vk::DescriptorSetAllocateInfo::default()
                     .descriptor_pool(bvh_gpu.pool)
                     .set_layouts(&layouts),
             )
         }
-        .map_err(vkerr("allocating the BVH descriptor set"))?[0];
+        .map_err(vkerr("allocating the BVH descriptor sets"))?;
+        bvh_gpu.set = allocated[0];
         let whole = |b: &Buffer| (b.raw, 0, vk::WHOLE_SIZE);
         let entries = [
             (0, whole(&bvh_gpu.nodes)),
@@ -343,8 +449,33 @@ impl VkBvh {
         ]
         .map(|(i, (b, o, r))| (i, b, o, r));
         write_set(d, bvh_gpu.set, &entries);
+        if let Some(w) = &mut bvh_gpu.wide {
+            w.set = allocated[1];
+        }
+        bvh_gpu.write_wide_set();
         bvh_gpu.stats.upload_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(bvh_gpu)
+    }
+
+    /// Points the wide layout's descriptor set at its buffers: nodes, triangles and
+    /// instances where the binary set has its own; the escape links' binding (read by no
+    /// wide kernel, but bound as every binding is) at the binary escape links.
+    fn write_wide_set(&self) {
+        let Some(w) = &self.wide else { return };
+        let whole = |b: &Buffer| (b.raw, 0, vk::WHOLE_SIZE);
+        let entries = [
+            (0, whole(&w.nodes)),
+            (1, whole(&w.triangles)),
+            (2, whole(&self.escapes)),
+            (4, whole(&w.instances)),
+        ]
+        .map(|(i, (b, o, r))| (i, b, o, r));
+        write_set(&self.ctx.inner.device, w.set, &entries);
+    }
+
+    /// True when the wide layout was uploaded (the BVH had it).
+    pub fn has_wide(&self) -> bool {
+        self.wide.is_some()
     }
 
     /// The context this BVH lives on.
@@ -377,7 +508,10 @@ impl VkBvh {
     /// [`bvhtrace_core::InstancedBvh::refit_mesh`], or with `top_level_only` the top level's
     /// nodes, their escape links and the instances after
     /// [`bvhtrace_core::InstancedBvh::set_transforms`]. `bvh` must have the uploaded
-    /// shape (nodes, triangles, instances); another shape is a new upload.
+    /// shape (nodes, triangles, instances); another shape is a new upload. An uploaded wide
+    /// layout is collapsed again from `bvh` (its `wide`, which a refit leaves stale, is not
+    /// read) and written whole, into new buffers only when the collapse came out with
+    /// other sizes.
     pub fn update(&mut self, bvh: &FlatBvh, top_level_only: bool) -> Result<(), TraceError> {
         let shape = (bvh.nodes.len(), bvh.triangles.len(), bvh.is_instanced());
         let uploaded = (self.node_count, self.triangle_count, self.instanced);
@@ -414,10 +548,66 @@ impl VkBvh {
         if bvh.is_instanced() {
             copies.push((self.instances.raw, bytemuck::cast_slice(&bvh.instances)));
         }
-        copy_to_device(&self.ctx, "updating the BVH", &copies)?;
-        if let Some(h) = &mut self.host_copy {
-            *h = Arc::new(bvh.clone());
+        // The wide layout is collapsed again and written whole (its meshes' places follow
+        // the top level's order); into new buffers when its sizes changed (the collapse
+        // follows the boxes' areas).
+        let wide = self
+            .wide
+            .is_some()
+            .then(|| Arc::new(WideBvh::collapse(bvh)));
+        let no_instances = [bvhtrace_core::FlatInstance::zeroed()];
+        let mut remake = Vec::new();
+        if let (Some(w), Some(up)) = (&wide, &self.wide) {
+            check_wide_top_level(w)?;
+            let arrays = wide_arrays(w, &no_instances);
+            for &(name, bytes) in &arrays {
+                check_buffer_size(self.ctx.limits(), name, bytes.len() as u64)?;
+            }
+            let bufs = [&up.nodes, &up.triangles, &up.instances];
+            if bufs
+                .iter()
+                .zip(&arrays)
+                .all(|(b, a)| b.size == a.1.len() as u64)
+            {
+                copies.extend(bufs.iter().zip(&arrays).map(|(b, a)| (b.raw, a.1)));
+            } else {
+                remake.extend(arrays);
+            }
         }
+        copy_to_device(&self.ctx, "updating the BVH", &copies)?;
+        if !remake.is_empty() {
+            let d = &self.ctx.inner.device;
+            let mut made = device_buffers(&self.ctx, "updating the BVH", &remake)?.into_iter();
+            if let (Some(up), Some(nodes), Some(triangles), Some(instances)) =
+                (&mut self.wide, made.next(), made.next(), made.next())
+            {
+                // Every submission that read the old buffers has completed.
+                let mut old = std::mem::replace(
+                    up,
+                    WideBuffers {
+                        nodes,
+                        triangles,
+                        instances,
+                        set: up.set,
+                    },
+                );
+                old.destroy(d);
+            }
+            self.write_wide_set();
+        }
+        if let Some(w) = &wide {
+            let (n, t, i) = wide_bytes(w);
+            let binary = |b: &[u8]| b.len() as u64;
+            self.stats.nodes_bytes = binary(bytemuck::cast_slice(&bvh.nodes)) + n;
+            self.stats.triangles_bytes = binary(bytemuck::cast_slice(&bvh.triangles)) + t;
+            self.stats.instances_bytes = binary(bytemuck::cast_slice(&bvh.instances)) + i;
+        }
+        self.host_copy = keeps_host_copy(&self.ctx, wide.as_deref()).then(|| {
+            Arc::new(FlatBvh {
+                wide: wide.clone().or_else(|| bvh.wide.clone()),
+                ..bvh.clone()
+            })
+        });
         self.depth = bvh.depth;
         Ok(())
     }
@@ -433,10 +623,17 @@ impl VkBvh {
 
     /// Checks that `opts` can run on this upload and device: the full-stack walk needs a
     /// tree at most [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) deep ([`TraceError::TooDeep`]), the f64 triangle
-    /// test needs `shaderFloat64` ([`TraceError::PrecisionUnsupported`]). The escape links
-    /// are always uploaded.
+    /// test needs `shaderFloat64` ([`TraceError::PrecisionUnsupported`]), the wide walk
+    /// the wide layout ([`TraceError::WideLayoutMissing`]: the BVH had none at the
+    /// upload). The escape links are always uploaded.
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         check_depth(opts.traversal, self.depth)?;
+        if opts.traversal.is_wide() && self.wide.is_none() {
+            return Err(TraceError::WideLayoutMissing {
+                missing: "it did not have when it was uploaded: call FlatBvh::build_wide \
+                          before VkBvh::upload",
+            });
+        }
         self.ctx.supports_key(&self.key(opts, true))
     }
 
@@ -465,6 +662,11 @@ impl VkBvh {
         self.supports(opts)?;
         let pipeline = self.ctx.pipeline(self.key(opts, true).for_rays(rays))?;
         let counters = opts.counters;
+        // `supports` saw the wide layout uploaded for the wide walk.
+        let bvh_set = match (&self.wide, opts.traversal.is_wide()) {
+            (Some(w), true) => w.set,
+            _ => self.set,
+        };
         let start = Instant::now();
         let inner = &self.ctx.inner;
         let d = &inner.device;
@@ -552,7 +754,7 @@ impl VkBvh {
                                 bind,
                                 inner.pipeline_layout,
                                 0,
-                                &[self.set],
+                                &[bvh_set],
                                 &[],
                             );
                             for (set, dp) in sets.iter().zip(&dispatches) {

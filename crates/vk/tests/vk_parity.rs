@@ -1,6 +1,6 @@
 //! The ash backend against the wgpu backend and the CPU twin, ray by ray and bit for bit
-//! (hits and counters), on the scenes of `tests/gpu_parity.rs`; object lifetime and error
-//! behaviour. Runs on lavapipe in CI; prints SKIP and passes only when there is no Vulkan
+//! (hits and counters), on the scenes of `tests/gpu_parity.rs`, with every walk (the wide
+//! layout's too); object lifetime and error behaviour. Runs on lavapipe in CI; prints SKIP and passes only when there is no Vulkan
 //! loader or device at all.
 
 use bvhtrace_core::{Counters, FlatBvh, Hit, Precision, Query, Ray, Traversal, trace_rays};
@@ -14,7 +14,10 @@ use glam::Vec3;
 
 #[path = "../../../tests/support/mod.rs"]
 mod support;
-use support::{Rng, SceneCase, deep_tree, load_scene, one_triangle, parity_scenes};
+use support::{
+    Rng, SceneCase, deep_tree, deep_wide_rays, deep_wide_tree, load_scene, one_triangle,
+    parity_scenes,
+};
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
 /// machine has no Vulkan at all.
@@ -123,6 +126,7 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
         Traversal::FullStack,
         Traversal::Stackless,
         Traversal::ShortStack(4),
+        Traversal::Wide,
     ];
     let mut failures = Vec::new();
     let mut checked = 0;
@@ -131,12 +135,17 @@ fn ash_equals_wgpu_and_cpu_bit_for_bit() {
     assert!(scenes.len() >= 3, "only {} scenes loaded", scenes.len());
     let expected = scenes.len() * traversals.len() * 2;
     for SceneCase { name, bvh, .. } in scenes {
+        // With its wide layout: the ash upload takes it, the CPU twin walks it.
+        let bvh = bvh.with_wide();
         let rays = rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
+        assert!(vk.has_wide());
         let wg = GpuBvh::upload(
             &wgpu,
             &bvh,
-            &UploadOptions::all().with_storage(BvhStorage::Buffers),
+            &UploadOptions::all()
+                .with_storage(BvhStorage::Buffers)
+                .with_traversal(Traversal::Wide),
         )
         .expect("wgpu upload");
         eprintln!(
@@ -354,7 +363,58 @@ fn errors_are_errors_not_panics() {
         .trace(&[], &TraceOptions::new(Traversal::Stackless, Query::Any))
         .expect("empty batch");
     assert!(empty.hits.is_empty());
+    // The wide walk on a BVH uploaded without its wide layout: refused, naming the fix.
+    assert!(!gpu.has_wide());
+    let wide = TraceOptions::closest(Traversal::Wide);
+    for err in [
+        gpu.trace(&rays, &wide).expect_err("no wide layout"),
+        gpu.supports(&wide).expect_err("no wide layout"),
+    ] {
+        assert!(
+            matches!(err, TraceError::WideLayoutMissing { .. })
+                && err.to_string().contains("build_wide"),
+            "{err}"
+        );
+    }
     assert_eq!(ctx.validation_errors(), 0);
+}
+
+/// A wide tree deeper than the wide walk's stack: the rays that would overflow it come back
+/// incomplete and are finished on the CPU, with the device's tuning and with the GPU
+/// tuning (no trip budget: the host copy is kept for the depth alone); hits and counters
+/// equal the CPU twin's and wgpu's.
+#[test]
+fn deep_wide_trees_finish_on_the_cpu() {
+    if context("deep wide trees").is_none() {
+        return;
+    }
+    let bvh = deep_wide_tree();
+    let rays = deep_wide_rays();
+    let wgpu = GpuContext::new(AdapterChoice::Auto).expect("wgpu opens the same Vulkan device");
+    let wg = GpuBvh::upload(&wgpu, &bvh, &UploadOptions::for_traversal(Traversal::Wide))
+        .expect("wgpu upload");
+    for tuning in [None, Some(DriverTuning::GPU)] {
+        let Some(ctx) = context_with("deep wide trees", tuning) else {
+            return;
+        };
+        let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
+        for query in [Query::Closest, Query::Any] {
+            let label = format!("deep wide {query:?} {tuning:?}");
+            let opts = TraceOptions::new(Traversal::Wide, query).with_counters(true);
+            let out = vk.trace(&rays, &opts).expect("trace");
+            let w = wg.trace(&rays, &opts).expect("wgpu trace");
+            let (cpu, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
+            assert!(out.incomplete > 0, "{label}: no ray overflowed the stack");
+            assert_eq!(out.incomplete, w.incomplete, "{label}");
+            assert!(differ(&out.hits, &cpu).is_empty(), "{label}: hits differ");
+            assert!(differ(&out.hits, &w.hits).is_empty(), "{label}: vs wgpu");
+            assert!(
+                differ(out.counters.as_deref().expect("counters"), &cpu_counters).is_empty(),
+                "{label}: counters differ"
+            );
+        }
+        assert_eq!(ctx.validation_errors(), 0, "validation errors");
+    }
 }
 
 /// The other triangle tests (Möller–Trumbore f32, watertight f64 where the device has
@@ -379,16 +439,23 @@ fn precisions_match_wgpu_and_cpu() {
         .into_iter()
         .filter_map(|spec| load_scene(spec, spec))
     {
+        let bvh = bvh.with_wide();
         let rays = rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
         let wg = GpuBvh::upload(
             &wgpu,
             &bvh,
-            &UploadOptions::all().with_storage(BvhStorage::Buffers),
+            &UploadOptions::all()
+                .with_storage(BvhStorage::Buffers)
+                .with_traversal(Traversal::Wide),
         )
         .expect("wgpu upload");
         for &precision in &precisions {
-            for traversal in [Traversal::FullStack, Traversal::ShortStack(4)] {
+            for traversal in [
+                Traversal::FullStack,
+                Traversal::ShortStack(4),
+                Traversal::Wide,
+            ] {
                 for query in [Query::Closest, Query::Any] {
                     let label = format!("{name} {traversal} {query:?} {precision:?}");
                     let opts = TraceOptions::new(traversal, query)
@@ -597,7 +664,8 @@ fn tracer_interface_matches_the_cpu() {
 }
 
 /// A two-level upload updated in place after the instances moved and after a refit traces
-/// as the CPU twin of the changed BVH does, bit for bit; another shape is refused.
+/// as the CPU twin of the changed BVH does, bit for bit, the wide layout (collapsed again
+/// by the update) too; another shape is refused.
 #[test]
 fn two_level_updates_in_place_match_the_cpu() {
     let Some(ctx) = context("two-level updates") else {
@@ -607,10 +675,11 @@ fn two_level_updates_in_place_match_the_cpu() {
     let mut ib = scene
         .instanced_bvh(&bvhtrace_core::BuildOptions::default())
         .expect("two levels");
-    let mut vk = VkBvh::upload(&ctx, ib.bvh()).expect("upload");
+    let mut vk = VkBvh::upload(&ctx, &ib.bvh().clone().with_wide()).expect("upload");
     let rays = rays(ib.bvh());
     let check = |vk: &VkBvh, bvh: &FlatBvh, what: &str| {
-        for traversal in [Traversal::Stackless, Traversal::FullStack] {
+        let bvh = &bvh.clone().with_wide();
+        for traversal in [Traversal::Stackless, Traversal::FullStack, Traversal::Wide] {
             let opts = TraceOptions::closest(traversal);
             let cpu = trace_rays(bvh, &rays, &opts).hits;
             let got = vk.trace(&rays, &opts).expect("trace").hits;
@@ -635,6 +704,28 @@ fn two_level_updates_in_place_match_the_cpu() {
     ib.refit_mesh(1, &bent).expect("refit");
     vk.update(ib.bvh(), false).expect("update after refit");
     check(&vk, ib.bvh(), "after a refit");
+    // A mesh flattened to a twentieth of its height: the wide collapse comes out with
+    // another number of nodes, and the update makes new wide buffers.
+    let old_bytes = vk.stats().nodes_bytes;
+    let mut tris = ib.mesh_bvh(2).triangles;
+    tris.sort_by_key(|t| t.prim);
+    let flat: Vec<_> = tris
+        .iter()
+        .map(|t| t.corners().map(|p| p * glam::Vec3::new(1.0, 0.05, 1.0)))
+        .collect();
+    ib.refit_mesh(2, &flat).expect("refit");
+    vk.update(ib.bvh(), false).expect("update after flattening");
+    let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
+    assert_ne!(
+        vk.stats().nodes_bytes,
+        old_bytes,
+        "the wide layout kept its size"
+    );
+    assert_eq!(
+        vk.stats().nodes_bytes,
+        (std::mem::size_of_val(ib.bvh().nodes.as_slice()) + wide.byte_sizes().0) as u64
+    );
+    check(&vk, ib.bvh(), "after flattening");
     assert!(vk.update(&one_triangle(), false).is_err());
     assert_eq!(ctx.validation_errors(), 0, "validation errors");
 }

@@ -1,0 +1,84 @@
+//! Embree 3 beside us on the same triangles and rays: the `BVHD` dump that
+//! `crates/cli/embree/embree_trace.c` reads, and running that program.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use bvhtrace_core::{Ray, Triangle};
+
+/// The dump format: "BVHD", u32 version 1, u32 triangle count, u32 ray count, 9 f32 per
+/// triangle, 8 f32 per ray (origin, t_min, dir, t_max), little endian.
+pub fn dump_bytes(tris: &[Triangle], rays: &[Ray]) -> Vec<u8> {
+    let mut bytes = Vec::with_capacity(16 + tris.len() * 36 + rays.len() * 32);
+    bytes.extend_from_slice(b"BVHD");
+    for v in [1u32, tris.len() as u32, rays.len() as u32] {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    for p in tris.iter().flatten() {
+        for c in p.to_array() {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for r in rays {
+        for c in r
+            .origin
+            .iter()
+            .chain([&r.t_min])
+            .chain(&r.dir)
+            .chain([&r.t_max])
+        {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    bytes
+}
+
+/// A dump written to a temporary file, removed when dropped.
+pub struct Dump(std::path::PathBuf);
+
+impl Dump {
+    /// Writes `tris` and `rays` to a temporary file named after `tag`.
+    pub fn write(tag: &str, tris: &[Triangle], rays: &[Ray]) -> Result<Dump> {
+        let path = std::env::temp_dir().join(format!("bvhtrace-{tag}-{}.bin", std::process::id()));
+        std::fs::write(&path, dump_bytes(tris, rays))
+            .with_context(|| format!("writing {}", path.display()))?;
+        Ok(Dump(path))
+    }
+
+    /// Runs `exe` (an `embree_trace` binary) on the dump with 2 threads and `runs` runs,
+    /// with `env` set; returns the JSON object it prints.
+    pub fn run(
+        &self,
+        exe: &Path,
+        runs: usize,
+        env: &[(&str, String)],
+    ) -> Result<serde_json::Value> {
+        let out = std::process::Command::new(exe)
+            .arg(&self.0)
+            .args(["2", &runs.to_string()])
+            .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
+            .output()
+            .with_context(|| format!("running {}", exe.display()))?;
+        if !out.status.success() {
+            bail!(
+                "{} failed: {}",
+                exe.display(),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        serde_json::from_slice(&out.stdout)
+            .with_context(|| format!("{} printed no JSON", exe.display()))
+    }
+}
+
+impl Drop for Dump {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Field `k` of `embree_trace`'s JSON as a number.
+pub fn field(v: &serde_json::Value, k: &str, exe: &Path) -> Result<f64> {
+    v[k].as_f64()
+        .with_context(|| format!("no {k} from {}", exe.display()))
+}
