@@ -828,11 +828,22 @@ pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (
     )
 }
 
-/// [`hit_children`] with AVX: the same operations lane by lane (`vminps`/`vmaxps` are the
-/// walks' `a < b ? a : b` and `a > b ? a : b`, no fused multiply-add), so the same bits.
-/// Rays parallel to a slab take the portable path. Also returns the used slots' mask.
-/// The nearest lane's minimum is taken in a different order than the portable loop's,
-/// but a minimum of the same values is the same value.
+/// [`hit_children`] out of line: keeps the AVX version's frame small for the rare rays
+/// parallel to a slab.
+#[cfg(target_arch = "x86_64")]
+#[inline(never)]
+fn hit_children_apart(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32) {
+    hit_children(n, r, t_best, oct)
+}
+
+/// [`hit_children`] with AVX: the same values lane by lane, so the same bits. Each axis's
+/// entry and exit distances come from its near and far planes, picked by the sign of the
+/// ray's direction (what `fmin`/`fmax` of the two distances give: the planes decode in
+/// order, `lo <= hi`, and rounding keeps that order through the subtraction and the
+/// product, with no NaN for a ray not parallel to a slab); the rest is the scalar test's
+/// operations in its order (`vminps`/`vmaxps` are the walks' `a < b ? a : b` and
+/// `a > b ? a : b`, no fused multiply-add). Rays parallel to a slab take the portable
+/// path. Also returns the used slots' mask.
 ///
 /// # Safety
 /// The CPU must support AVX2 (`is_x86_feature_detected!("avx2")`).
@@ -847,78 +858,82 @@ pub unsafe fn hit_children_avx2(
 ) -> (u32, u32, u32) {
     use crate::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
     use std::arch::x86_64::*;
-    // SAFETY: `counts` is eight readable bytes.
-    let counts = unsafe { _mm_loadl_epi64(n.counts.as_ptr().cast()) };
-    let leaves = _mm256_cmpgt_epi32(_mm256_cvtepu8_epi32(counts), _mm256_setzero_si256());
-    let used = _mm256_movemask_ps(_mm256_castsi256_ps(leaves)) as u32 | n.imask();
+    // Bytes of eight slots widened to eight i32 lanes.
+    // SAFETY: `q` is eight readable bytes.
+    let widen = |q: &[u32; 2]| unsafe { _mm256_cvtepu8_epi32(_mm_loadl_epi64(q.as_ptr().cast())) };
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let interior = _mm256_and_si256(_mm256_set1_epi32(n.imask() as i32), lane_bits);
+    let usedv = _mm256_or_si256(
+        _mm256_cmpgt_epi32(widen(&n.counts), _mm256_setzero_si256()),
+        _mm256_cmpeq_epi32(interior, lane_bits),
+    );
+    let used = _mm256_movemask_ps(_mm256_castsi256_ps(usedv)) as u32;
     if r.parallel {
-        let (hits, first) = hit_children(n, r, t_best, oct);
+        let (hits, first) = hit_children_apart(n, r, t_best, oct);
         return (hits, first, used);
     }
     let e = n.scale();
-    let planes = |q: &[u32; 2], a: usize| {
-        // Eight bytes widened to eight f32 lanes, decoded and turned into distances.
-        // SAFETY: `q` is eight readable bytes.
-        let bytes = unsafe { _mm_loadl_epi64(q.as_ptr().cast()) };
-        let qf = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(bytes));
+    // Distances to axis `a`'s planes `q`: decoded (`origin + q * scale`), then
+    // `(plane - org) * inv_dir`.
+    let dist = |q: &[u32; 2], a: usize| {
         let plane = _mm256_add_ps(
             _mm256_set1_ps(n.origin[a]),
-            _mm256_mul_ps(qf, _mm256_set1_ps(e[a])),
+            _mm256_mul_ps(_mm256_cvtepi32_ps(widen(q)), _mm256_set1_ps(e[a])),
         );
         _mm256_mul_ps(
             _mm256_sub_ps(plane, _mm256_set1_ps(r.org[a])),
             _mm256_set1_ps(r.inv_dir[a]),
         )
     };
-    let t0 = [
-        planes(&n.q_lo[0], 0),
-        planes(&n.q_lo[1], 1),
-        planes(&n.q_lo[2], 2),
-    ];
-    let t1 = [
-        planes(&n.q_hi[0], 0),
-        planes(&n.q_hi[1], 1),
-        planes(&n.q_hi[2], 2),
-    ];
-    // `_mm256_min_ps(a, b)` is `a < b ? a : b`, `_mm256_max_ps(a, b)` is `a > b ? a : b`.
-    let (min, max) = (|a, b| _mm256_min_ps(a, b), |a, b| _mm256_max_ps(a, b));
-    let tnear = max(
-        max(min(t0[0], t1[0]), min(t0[1], t1[1])),
-        max(min(t0[2], t1[2]), _mm256_set1_ps(r.t_min)),
+    let near_far = |a: usize| {
+        if r.inv_dir[a] >= 0.0 {
+            (dist(&n.q_lo[a], a), dist(&n.q_hi[a], a))
+        } else {
+            (dist(&n.q_hi[a], a), dist(&n.q_lo[a], a))
+        }
+    };
+    let (n0, f0) = near_far(0);
+    let (n1, f1) = near_far(1);
+    let (n2, f2) = near_far(2);
+    let tnear = _mm256_max_ps(
+        _mm256_max_ps(n0, n1),
+        _mm256_max_ps(n2, _mm256_set1_ps(r.t_min)),
     );
-    let abs = |x| _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff)));
-    let m = max(abs(t0[r.kz]), abs(t1[r.kz]));
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    // A branch the ray always takes the same way, where indexing would spill to memory.
+    let (nk, fk) = match r.kz {
+        0 => (n0, f0),
+        1 => (n1, f1),
+        _ => (n2, f2),
+    };
+    let m = _mm256_max_ps(_mm256_and_ps(nk, abs_mask), _mm256_and_ps(fk, abs_mask));
     let widened = _mm256_add_ps(
         _mm256_set1_ps(t_best),
         _mm256_mul_ps(_mm256_set1_ps(BOX_CULL_SLACK), m),
     );
-    let limit = min(widened, _mm256_set1_ps(r.t_max));
-    let tfar = min(
-        min(max(t0[0], t1[0]), max(t0[1], t1[1])),
-        min(max(t0[2], t1[2]), limit),
-    );
+    let limit = _mm256_min_ps(widened, _mm256_set1_ps(r.t_max));
+    let tfar = _mm256_min_ps(_mm256_min_ps(f0, f1), _mm256_min_ps(f2, limit));
     let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(tfar, _mm256_setzero_ps());
     let scale = _mm256_blendv_ps(
         _mm256_set1_ps(BOX_TFAR_SCALE),
         _mm256_set1_ps(BOX_TFAR_SCALE_NEG),
         negative,
     );
-    let tfar = _mm256_mul_ps(tfar, scale);
-    let hit = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tnear, tfar)) as u32 & used;
+    let hitv = _mm256_and_ps(
+        _mm256_cmp_ps::<_CMP_LE_OQ>(tnear, _mm256_mul_ps(tfar, scale)),
+        _mm256_castsi256_ps(usedv),
+    );
+    let hit = _mm256_movemask_ps(hitv) as u32;
+    if hit & (hit.wrapping_sub(1)) == 0 {
+        // No hit, or one: nothing to choose between.
+        let order = visit_order(hit, oct);
+        return (order, order.trailing_zeros(), used);
+    }
     // The nearest hit lane: the least `tnear` over the hit lanes (`vminps` as `fmin`).
-    let lanes = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-    let is_hit = _mm256_cmpeq_epi32(
-        _mm256_and_si256(_mm256_set1_epi32(hit as i32), lanes),
-        lanes,
-    );
-    let near = _mm256_blendv_ps(
-        _mm256_set1_ps(f32::INFINITY),
-        tnear,
-        _mm256_castsi256_ps(is_hit),
-    );
-    let m1 = min(near, _mm256_permute2f128_ps::<1>(near, near));
-    let m2 = min(m1, _mm256_permute_ps::<0b01_00_11_10>(m1));
-    let m3 = min(m2, _mm256_permute_ps::<0b10_11_00_01>(m2));
+    let near = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), tnear, hitv);
+    let m1 = _mm256_min_ps(near, _mm256_permute2f128_ps::<1>(near, near));
+    let m2 = _mm256_min_ps(m1, _mm256_permute_ps::<0b01_00_11_10>(m1));
+    let m3 = _mm256_min_ps(m2, _mm256_permute_ps::<0b10_11_00_01>(m2));
     let ties = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(near, m3)) as u32 & hit;
     (
         visit_order(hit, oct),
