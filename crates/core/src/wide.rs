@@ -720,12 +720,6 @@ fn bvh_subtree(bvh: &FlatBvh, root: u32) -> FlatBvh {
     }
 }
 
-/// The bytes of an 8-byte field, slot by slot.
-#[inline(always)]
-fn bytes8(w: &[u32; 2]) -> [u8; 8] {
-    (u64::from(w[0]) | u64::from(w[1]) << 32).to_le_bytes()
-}
-
 /// Bit `s ^ oct` of the result is bit `s` of `mask`: a node's hits in slot order turned
 /// into the visit order of a ray in octant `oct` (three conditional swaps).
 #[inline(always)]
@@ -742,90 +736,30 @@ pub fn visit_order(mut m: u32, oct: usize) -> u32 {
     m
 }
 
-/// Tests the ray against node `n`'s used child boxes together, lane `s` for slot `s`:
-/// each lane does exactly what [`crate::intersect::intersect_box`] does for the decoded
-/// box ([`WideNode::child_box`]), so the answers are the binary walks' and the kernel's.
-/// Bit `s ^ oct` of the result's mask is set when child `s` is hit: the visit order of a
-/// ray in octant `oct`. The second value is where in that order the nearest hit child is
-/// (the least entry distance, the first in visit order among equal ones; 32 when none is
-/// hit): the walk visits it first. Written lane-wise over arrays so that the compiler can keep the eight
-/// lanes in SIMD registers; [`hit_children_avx2`] is the same with explicit AVX.
+/// Tests the ray against node `n`'s used child boxes: each with
+/// [`crate::intersect::intersect_box`] on its decoded box ([`WideNode::child_box`]), so the
+/// answers are the binary walks' and the kernel's. Bit `s ^ oct` of the result's mask is
+/// set when child `s` is hit: the visit order of a ray in octant `oct`. The second value is
+/// where in that order the nearest hit child is (the least entry distance, the first in
+/// visit order among equal ones; 32 when none is hit): the walk visits it first. The
+/// portable path; [`hit_children_avx2`] tests the eight boxes at once.
 #[inline(always)]
 pub fn hit_children(n: &WideNode, r: &PreparedRay, t_best: f32, oct: usize) -> (u32, u32) {
-    use crate::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
-    #[inline(always)]
-    fn fmin(a: f32, b: f32) -> f32 {
-        if a < b { a } else { b }
-    }
-    #[inline(always)]
-    fn fmax(a: f32, b: f32) -> f32 {
-        if a > b { a } else { b }
-    }
-    let e = n.scale();
-    let mut t0 = [[0f32; WIDTH]; 3];
-    let mut t1 = [[0f32; WIDTH]; 3];
-    for a in 0..3 {
-        let (lo, hi) = (bytes8(&n.q_lo[a]), bytes8(&n.q_hi[a]));
-        let (o, ro, inv) = (n.origin[a], r.org[a], r.inv_dir[a]);
-        for s in 0..WIDTH {
-            t0[a][s] = (o + f32::from(lo[s]) * e[a] - ro) * inv;
-            t1[a][s] = (o + f32::from(hi[s]) * e[a] - ro) * inv;
+    let (mut hits, mut nearest) = (0u32, None::<(f32, u32)>);
+    for s in 0..WIDTH {
+        if !n.is_used(s) {
+            continue;
         }
-    }
-    if r.parallel {
-        for a in 0..3 {
-            if r.dir[a] == 0.0 {
-                let (lo, hi) = (bytes8(&n.q_lo[a]), bytes8(&n.q_hi[a]));
-                for s in 0..WIDTH {
-                    let bmin = n.origin[a] + f32::from(lo[s]) * e[a];
-                    let bmax = n.origin[a] + f32::from(hi[s]) * e[a];
-                    let inside = bmin <= r.org[a] && r.org[a] <= bmax;
-                    t0[a][s] = if inside {
-                        f32::NEG_INFINITY
-                    } else {
-                        f32::INFINITY
-                    };
-                    t1[a][s] = f32::INFINITY;
-                }
+        let (lo, hi) = n.child_box(s);
+        if let Some(t) = crate::intersect::intersect_box(r, lo, hi, t_best) {
+            let j = (s ^ oct) as u32;
+            hits |= 1 << j;
+            if nearest.is_none_or(|(tn, jn)| t < tn || (t == tn && j < jn)) {
+                nearest = Some((t, j));
             }
         }
     }
-    let mut hits = 0u32;
-    let mut near = [0f32; WIDTH];
-    for s in 0..WIDTH {
-        let tnear = fmax(
-            fmax(fmin(t0[0][s], t1[0][s]), fmin(t0[1][s], t1[1][s])),
-            fmax(fmin(t0[2][s], t1[2][s]), r.t_min),
-        );
-        let m = fmax(t0[r.kz][s].abs(), t1[r.kz][s].abs());
-        let limit = fmin(t_best + BOX_CULL_SLACK * m, r.t_max);
-        let tfar = fmin(
-            fmin(fmax(t0[0][s], t1[0][s]), fmax(t0[1][s], t1[1][s])),
-            fmin(fmax(t0[2][s], t1[2][s]), limit),
-        );
-        let tfar = tfar
-            * if tfar < 0.0 {
-                BOX_TFAR_SCALE_NEG
-            } else {
-                BOX_TFAR_SCALE
-            };
-        hits |= u32::from(tnear <= tfar) << s;
-        near[s] = tnear;
-    }
-    let hits = hits & n.used_mask();
-    let mut nearest = f32::INFINITY;
-    for (s, &t) in near.iter().enumerate() {
-        if (hits >> s) & 1 != 0 {
-            nearest = fmin(t, nearest);
-        }
-    }
-    let ties = (0..WIDTH).fold(0, |m, s| {
-        m | u32::from((hits >> s) & 1 != 0 && near[s] == nearest) << s
-    });
-    (
-        visit_order(hits, oct),
-        visit_order(ties, oct).trailing_zeros(),
-    )
+    (hits, nearest.map_or(u32::BITS, |n| n.1))
 }
 
 /// [`hit_children`] out of line: keeps the AVX version's frame small for the rare rays

@@ -83,3 +83,23 @@ pub fn rays_for(tris: &[Triangle], seed: u64, n: usize) -> Vec<Ray> {
     }
     out
 }
+
+/// A closed UV sphere of `n` x `2n` quads (two triangles each), radius `r`, centre `c`.
+pub fn uv_sphere(n: usize, r: f32, c: Vec3) -> Vec<Triangle> {
+    let p = |i: usize, j: usize| {
+        let (th, ph) = (
+            std::f32::consts::PI * i as f32 / n as f32,
+            std::f32::consts::PI * j as f32 / n as f32,
+        );
+        c + Vec3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()) * r
+    };
+    let mut t = Vec::new();
+    for i in 0..n {
+        for j in 0..2 * n {
+            let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
+            t.push([a, b, c]);
+            t.push([a, c, d]);
+        }
+    }
+    t
+}

@@ -9,25 +9,7 @@ use bvhtrace_core::{
 };
 use glam::{Affine3A, Quat, Vec3};
 
-/// A closed UV sphere of `n` x `2n` quads (two triangles each), radius `r`.
-fn sphere(n: usize, r: f32) -> Vec<Triangle> {
-    let p = |i: usize, j: usize| {
-        let (th, ph) = (
-            std::f32::consts::PI * i as f32 / n as f32,
-            std::f32::consts::PI * j as f32 / n as f32,
-        );
-        Vec3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()) * r
-    };
-    let mut t = Vec::new();
-    for i in 0..n {
-        for j in 0..2 * n {
-            let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
-            t.push([a, b, c]);
-            t.push([a, c, d]);
-        }
-    }
-    t
-}
+mod common;
 
 /// A bumpy open sheet: a second mesh with other triangle counts.
 fn sheet(n: usize) -> Vec<Triangle> {
@@ -43,7 +25,7 @@ fn sheet(n: usize) -> Vec<Triangle> {
 }
 
 fn meshes() -> Vec<Vec<Triangle>> {
-    vec![sphere(12, 1.0), sheet(6)]
+    vec![common::uv_sphere(12, 1.0, Vec3::ZERO), sheet(6)]
 }
 
 fn instances() -> Vec<Instance> {

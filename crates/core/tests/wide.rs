@@ -10,25 +10,7 @@ use bvhtrace_core::{
 };
 use glam::Vec3;
 
-/// A closed UV sphere of `n` x `2n` quads (two triangles each), radius `r`, centre `c`.
-fn sphere(n: usize, r: f32, c: Vec3) -> Vec<Triangle> {
-    let p = |i: usize, j: usize| {
-        let (th, ph) = (
-            std::f32::consts::PI * i as f32 / n as f32,
-            std::f32::consts::PI * j as f32 / n as f32,
-        );
-        c + Vec3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()) * r
-    };
-    let mut t = Vec::new();
-    for i in 0..n {
-        for j in 0..2 * n {
-            let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
-            t.push([a, b, c]);
-            t.push([a, c, d]);
-        }
-    }
-    t
-}
+mod common;
 
 fn rnd(seed: &mut u64) -> f32 {
     *seed ^= *seed << 13;
@@ -66,7 +48,7 @@ fn closed_meshes_leak_no_ray_at_any_offset_and_scale() {
                 continue;
             }
             let c = Vec3::new(offset, -0.5 * offset, 0.25 * offset);
-            let tris = sphere(10, scale, c);
+            let tris = common::uv_sphere(10, scale, c);
             let bvh = FlatBvh::build(&tris, &BuildOptions::default())
                 .unwrap()
                 .with_wide();
@@ -102,7 +84,7 @@ fn closed_meshes_leak_no_ray_at_any_offset_and_scale() {
 /// rays of every octant and axis-parallel ones; the AVX2 version gives the same bits.
 #[test]
 fn lanes_are_the_scalar_box_test() {
-    let tris = sphere(16, 1.0, Vec3::ZERO);
+    let tris = common::uv_sphere(16, 1.0, Vec3::ZERO);
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())
         .unwrap()
         .with_wide();
@@ -155,7 +137,7 @@ fn lanes_are_the_scalar_box_test() {
 /// The wide upload is at most 0.6 times the binary full-stack one (nodes and triangles).
 #[test]
 fn wide_layout_is_smaller_than_the_binary_one() {
-    let tris = sphere(60, 1.0, Vec3::ZERO);
+    let tris = common::uv_sphere(60, 1.0, Vec3::ZERO);
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())
         .unwrap()
         .with_wide();
@@ -168,7 +150,7 @@ fn wide_layout_is_smaller_than_the_binary_one() {
 /// Leaves bigger than a wide leaf can hold are split, and every triangle is still found.
 #[test]
 fn big_binary_leaves_are_split_into_wide_leaves() {
-    let tris = sphere(8, 1.0, Vec3::ZERO);
+    let tris = common::uv_sphere(8, 1.0, Vec3::ZERO);
     let opts = BuildOptions {
         max_leaf_size: 200,
         cost_intersection: 1e-6,
@@ -192,7 +174,7 @@ fn big_binary_leaves_are_split_into_wide_leaves() {
 /// warp lowers the utilisation; bytes follow the documented sizes.
 #[test]
 fn warp_cost_counts_lock_step_and_bytes() {
-    let tris = sphere(12, 1.0, Vec3::ZERO);
+    let tris = common::uv_sphere(12, 1.0, Vec3::ZERO);
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())
         .unwrap()
         .with_wide();
