@@ -1,14 +1,10 @@
 // bvh_buffers_wide.wgsl: the wide layout's nodes (`bvhtrace_core::wide`, `WideBvh::nodes`,
 // 80-byte `BvhWideNode`s) as a storage buffer at binding 0, where the binary layouts keep
-// theirs, and their fetch functions. Composed for `Traversal::Wide` in place of
-// `bvh_buffers.wgsl` / `bvh_textures.wgsl`, followed by `bvh_buffers_triangles.wgsl` (the
-// wide tree's triangles, in its leaf order) and the instances file (its instances, in its
-// top level's order).
-//
-// Buffers whatever `BvhStorage` the binary layout of the same upload uses: the walk reads
-// a node once per group of eight child boxes, so texels would save less than they do for
-// the binary walks, and one byte layout of `WideNode` (checked against the Rust type) is
-// all there is to keep in step.
+// theirs, and their fetch functions. Composed for `Traversal::Wide` with
+// `BvhStorage::Buffers` in place of `bvh_buffers.wgsl`, followed by
+// `bvh_buffers_triangles.wgsl` (the wide tree's triangles, in its leaf order) and the
+// instances file (its instances, in its top level's order). `bvh_textures_wide.wgsl`
+// defines the same functions over textures.
 
 // The wide layout (`bvh_instances.wgsl` counts its top-level nodes by it).
 const BVH_WIDE_LAYOUT: bool = true;

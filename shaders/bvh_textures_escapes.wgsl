@@ -1,7 +1,8 @@
 // bvh_textures_escapes.wgsl: the escape links of a `BvhStorage::Textures` upload
 // (`FlatBvh::escapes`), one `R32Uint` texel per node and octant: link `e = escape_index(i,
-// oct)` (`traverse_short_stack.wgsl`) at `texel_coord(e)` of `bvh_textures.wgsl`. Composed
-// in only when the traversal reads them (stackless, short stack).
+// oct)` (`traverse_short_stack.wgsl`) at `bvh_texel_coord(e)`
+// (`bvh_textures_triangles.wgsl`). Composed in only when the traversal reads them
+// (stackless, short stack).
 
 @group(0) @binding(2) var bvh_escape_texels: texture_storage_2d<r32uint, read>;
 

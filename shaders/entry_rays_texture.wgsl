@@ -1,8 +1,8 @@
 // entry_rays_texture.wgsl: the batch's rays in a read-only `Rgba32Uint` storage texture
 // and its hits in a write-only one (`RayInput::Texture`). Two texels per ray:
 // `(origin, t_min)` and `(dir, t_max)`, the bytes of `Ray`; ray `i` is texels `2i` and
-// `2i + 1`, at `(t % 8192, t / 8192)` as in `bvh_textures.wgsl` (`bvhtrace_gpu::TEXEL_ROW`),
-// both on one row. One texel per hit, the bytes of `Hit`: hit `i` at `(i % 8192, i / 8192)`.
+// `2i + 1`, at `(t % 8192, t / 8192)` as in `bvh_textures_triangles.wgsl`
+// (`bvhtrace_gpu::TEXEL_ROW`), both on one row. One texel per hit, the bytes of `Hit`: hit `i` at `(i % 8192, i / 8192)`.
 //
 // Why: on lavapipe a storage-buffer access with a per-lane index is a loop over the 8
 // lanes, one 32-bit word at a time, each word moved through memory; loading the 8 words of

@@ -1,5 +1,5 @@
 // traverse_wide.wgsl: twin of `bvhtrace_core::traverse::wide`, the walk of the wide layout
-// (`bvhtrace_core::wide`, nodes from `bvh_buffers_wide.wgsl`).
+// (`bvhtrace_core::wide`, nodes from `bvh_buffers_wide.wgsl` or `bvh_textures_wide.wgsl`).
 //
 // At each node the eight child boxes are tested together (`bvh_wide_group`: each one is
 // `bvh_intersect_box` of `box.wgsl` on the decoded box, as `wide::hit_children` does on the

@@ -302,19 +302,27 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
     ];
     let mut failures = Vec::new();
     let mut total_exceptions = 0;
-    let mut wide_checked = 0;
+    // Wide configurations run per storage: [buffers, textures].
+    let mut wide_checked = [0; 2];
     for (s, case) in parity_scenes().iter().enumerate() {
         // With its wide layout, for the CPU twin of the wide walk.
         let bvh = &case.bvh.clone().with_wide();
         let tris = &case.tris;
         let rays = ray_set(bvh, 0x5eed + s as u64);
-        // The wide layout is uploaded too (in buffers either way; the rays follow the
-        // storage, so both ray inputs run the wide kernel).
+        // The wide layout is uploaded too, in the same storage (and the rays with it).
         let gpus = [BvhStorage::Buffers, BvhStorage::Textures].map(|storage| {
             let opts = UploadOptions::all()
                 .with_storage(storage)
                 .with_traversal(Traversal::Wide);
-            GpuBvh::upload(&ctx, bvh, &opts).expect("upload")
+            let gpu = GpuBvh::upload(&ctx, bvh, &opts).expect("upload");
+            let textures = storage == BvhStorage::Textures;
+            assert_eq!(
+                (gpu.wide_buffers().is_some(), gpu.wide_textures().is_some()),
+                (!textures, textures),
+                "{}: the wide layout is not in {storage:?}",
+                case.name
+            );
+            gpu
         });
         eprintln!(
             "{}: {} triangles, {} nodes, depth {}, {} rays; uploaded {} bytes in {:.2} ms \
@@ -339,7 +347,9 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
                     let out = gpu.trace(&rays, &counted(traversal, query)).expect("trace");
                     // Parity must be the kernel's own: no ray finished on the CPU twin.
                     assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
-                    wide_checked += usize::from(traversal == Traversal::Wide);
+                    let textures = gpu.storage() == BvhStorage::Textures;
+                    wide_checked[usize::from(textures)] +=
+                        usize::from(traversal == Traversal::Wide);
                     let gc = out.counters.as_deref().expect("counters");
                     let (bad_hits, bad_counters, worst) =
                         compare(&label, &rays, &cpu, &out.hits, gc);
@@ -426,8 +436,11 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
         "documented f32 departures from the full-stack reference (the CPU twin's too): {total_exceptions}"
     );
     // Every scene (at least the builtins, one and two levels) ran the wide kernel, both
-    // queries, both ray inputs.
-    assert!(wide_checked >= 4 * 4, "{wide_checked} wide configurations");
+    // queries, in each storage.
+    assert!(
+        wide_checked.iter().all(|&n| n >= 4 * 2),
+        "{wide_checked:?} wide configurations (buffers, textures)"
+    );
     assert!(
         failures.is_empty(),
         "GPU/CPU mismatches:\n{}",
@@ -500,7 +513,8 @@ fn deep_trees_match_cpu_twins() {
 /// overflow come back incomplete from the kernel and are finished on the CPU with the same
 /// walk, so the hits and counters equal the CPU twin's (and, for closest hits, the brute
 /// force's). On any device: with the lavapipe tuning (a trip budget, so a host copy
-/// anyway) and with the GPU tuning (no budget: the host copy is kept for the depth alone).
+/// anyway) and the wide layout in textures, and with the GPU tuning (no budget: the host
+/// copy is kept for the depth alone) and the wide layout in buffers.
 #[test]
 fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
     let Some(ctx) = context() else { return };
@@ -524,10 +538,13 @@ fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
     )
     .expect("context");
     let mut failures = Vec::new();
-    for (name, ctx) in [("default tuning", &ctx), ("GPU tuning", &gpu_tuned)] {
-        let opts = UploadOptions::for_traversal(Traversal::Wide);
+    for (name, ctx, storage) in [
+        ("default tuning, textures", &ctx, BvhStorage::Textures),
+        ("GPU tuning, buffers", &gpu_tuned, BvhStorage::Buffers),
+    ] {
+        let opts = UploadOptions::for_traversal(Traversal::Wide).with_storage(storage);
         let gpu = GpuBvh::upload(ctx, &bvh, &opts).expect("upload");
-        assert!(gpu.has_wide());
+        assert!(gpu.has_wide() && gpu.storage() == storage);
         for query in [Query::Closest, Query::Any] {
             let label = format!("deep wide {query:?} {name}");
             let cpu = cpu_counted(&bvh, &rays, Traversal::Wide, query);
@@ -566,11 +583,12 @@ fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
 
 /// The wide kernel with each triangle test the device runs (Möller–Trumbore f32, and
 /// watertight f64 where the adapter has `SHADER_F64`) equals its CPU twin bit for bit,
-/// hits and counters, for one mesh and two levels.
+/// hits and counters, for one mesh and two levels, with the wide layout in buffers and in
+/// textures (the two-level node texture spans several rows).
 #[test]
 fn wide_kernel_equals_cpu_twin_for_every_precision() {
     let Some(ctx) = context() else { return };
-    let mut checked = 0;
+    let mut checked = [0; 2];
     for case in [
         support::load_scene("builtin:degenerate", "builtin:degenerate"),
         support::load_instanced_scene("builtin:spheres", "builtin:spheres"),
@@ -581,35 +599,95 @@ fn wide_kernel_equals_cpu_twin_for_every_precision() {
         let bvh = case.bvh.with_wide();
         // A sample of every kind of ray of the set.
         let rays: Vec<Ray> = ray_set(&bvh, 0x9ec).into_iter().step_by(8).collect();
-        let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::for_traversal(Traversal::Wide))
-            .expect("upload");
-        for p in Precision::ALL {
-            if !ctx.supports_precision(p) {
-                eprintln!("SKIP {p}: not supported by {}", ctx.adapter_info().name);
-                continue;
+        for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
+            let upload = UploadOptions::for_traversal(Traversal::Wide).with_storage(storage);
+            let gpu = GpuBvh::upload(&ctx, &bvh, &upload).expect("upload");
+            if let Some((nodes, _)) = gpu.wide_textures() {
+                let rows = nodes.height();
+                assert!(!bvh.is_instanced() || rows > 1, "{}: {rows} row", case.name);
             }
-            for query in [Query::Closest, Query::Any] {
-                let label = format!("{} wide {p} {query:?}", case.name);
-                let opts = counted(Traversal::Wide, query).with_precision(p);
-                let cpu = trace_rays(&bvh, &rays, &opts);
-                let out = gpu.trace(&rays, &opts).expect("trace");
-                assert_eq!(out.incomplete, 0, "{label}");
-                let (hits, counters) = (out.hits, out.counters.expect("counters"));
-                let bad = (0..rays.len())
-                    .filter(|&i| {
-                        let (a, b) = (&hits[i], &cpu.hits[i]);
-                        (a.prim, a.t.to_bits(), a.u.to_bits(), a.v.to_bits())
-                            != (b.prim, b.t.to_bits(), b.u.to_bits(), b.v.to_bits())
-                            || Some(&counters[i]) != cpu.counters.as_ref().map(|c| &c[i])
-                    })
-                    .count();
-                assert_eq!(bad, 0, "{label}: rays differ from the CPU twin");
-                assert!(hits.iter().any(|h| h.is_hit()), "{label}: nothing hit");
-                checked += 1;
+            for p in Precision::ALL {
+                if !ctx.supports_precision(p) {
+                    eprintln!("SKIP {p}: not supported by {}", ctx.adapter_info().name);
+                    continue;
+                }
+                for query in [Query::Closest, Query::Any] {
+                    let label = format!("{} wide {p} {query:?} {storage:?}", case.name);
+                    let opts = counted(Traversal::Wide, query).with_precision(p);
+                    let cpu = trace_rays(&bvh, &rays, &opts);
+                    let out = gpu.trace(&rays, &opts).expect("trace");
+                    assert_eq!(out.incomplete, 0, "{label}");
+                    let (hits, counters) = (out.hits, out.counters.expect("counters"));
+                    let bad = (0..rays.len())
+                        .filter(|&i| {
+                            let (a, b) = (&hits[i], &cpu.hits[i]);
+                            (a.prim, a.t.to_bits(), a.u.to_bits(), a.v.to_bits())
+                                != (b.prim, b.t.to_bits(), b.u.to_bits(), b.v.to_bits())
+                                || Some(&counters[i]) != cpu.counters.as_ref().map(|c| &c[i])
+                        })
+                        .count();
+                    assert_eq!(bad, 0, "{label}: rays differ from the CPU twin");
+                    assert!(hits.iter().any(|h| h.is_hit()), "{label}: nothing hit");
+                    checked[usize::from(storage == BvhStorage::Textures)] += 1;
+                }
             }
         }
     }
-    assert!(checked >= 8, "{checked} configurations");
+    assert!(
+        checked.iter().all(|&n| n >= 8),
+        "{checked:?} configurations (buffers, textures)"
+    );
+}
+
+/// The wide nodes whose five texels straddle two rows of the node texture (node `i` with
+/// `5i % TEXEL_ROW > TEXEL_ROW - 5`): rays from inside each of their children, which every
+/// closest-hit walk enters (the box's entry distance is 0), equal the CPU twin's in
+/// textures and in buffers, hits and counters.
+#[test]
+fn wide_nodes_across_texture_rows_match_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let case =
+        support::load_scene("builtin:icosphere:5", "builtin:icosphere:5").expect("builtin scene");
+    let bvh = case.bvh.with_wide();
+    let w = bvh.wide.as_deref().expect("wide layout");
+    let row = u64::from(bvhtrace_gpu::kernels::TEXEL_ROW);
+    let texels = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
+    let straddling: Vec<usize> = (0..w.nodes.len())
+        .filter(|&i| texels * i as u64 % row > row - texels)
+        .collect();
+    assert!(straddling.len() >= 2, "{} wide nodes", w.nodes.len());
+    let mut dirs: Vec<Vec3> = [Vec3::X, Vec3::Y, Vec3::Z]
+        .iter()
+        .flat_map(|&d| [d, -d])
+        .collect();
+    for k in 0..8 {
+        let s = |b: usize| if k >> b & 1 == 0 { 1.0 } else { -1.0 };
+        dirs.push(Vec3::new(s(0), s(1), s(2) * 0.7));
+    }
+    let mut rays = Vec::new();
+    for &i in &straddling {
+        let n = &w.nodes[i];
+        for s in (0..8).filter(|&s| n.is_used(s)) {
+            let (lo, hi) = n.child_box(s);
+            rays.extend(dirs.iter().map(|&d| Ray::new((lo + hi) * 0.5, d)));
+        }
+    }
+    for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
+        let upload = UploadOptions::for_traversal(Traversal::Wide).with_storage(storage);
+        let gpu = GpuBvh::upload(&ctx, &bvh, &upload).expect("upload");
+        for query in [Query::Closest, Query::Any] {
+            let label = format!("straddling wide nodes {query:?} {storage:?}");
+            let cpu = cpu_counted(&bvh, &rays, Traversal::Wide, query);
+            let out = gpu
+                .trace(&rays, &counted(Traversal::Wide, query))
+                .expect("trace");
+            assert_eq!(out.incomplete, 0, "{label}");
+            let gc = out.counters.as_deref().expect("counters");
+            let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
+            assert_eq!((bad_hits, bad_counters), (0, 0), "{label}");
+            assert!(out.hits.iter().any(|h| h.is_hit()), "{label}: nothing hit");
+        }
+    }
 }
 
 #[test]
@@ -718,7 +796,8 @@ fn upload_checks_and_errors() {
             .is_ok()
     );
     // A wide-only upload (converted from the binary tree, since it has no wide layout):
-    // the wide layout alone, in buffers whatever the storage; the binary walks refused.
+    // the wide layout alone, in the storage asked for (one node of five texels, one
+    // triangle of three: no padding); the binary walks refused.
     for storage in [BvhStorage::Textures, BvhStorage::Buffers] {
         let only = UploadOptions::for_traversal(Traversal::Wide).with_storage(storage);
         let gpu = GpuBvh::upload(&ctx, &bvh, &only).expect("wide-only upload");
@@ -734,7 +813,13 @@ fn upload_checks_and_errors() {
             (nodes as u64, tris as u64, 0),
             "{storage:?}: {stats:?}"
         );
-        assert!(gpu.nodes_buffer().is_none() && gpu.wide_buffers().is_some());
+        let textures = storage == BvhStorage::Textures;
+        assert!(gpu.nodes_buffer().is_none());
+        assert_eq!(
+            (gpu.wide_buffers().is_some(), gpu.wide_textures().is_some()),
+            (!textures, textures),
+            "{storage:?}"
+        );
         let out = gpu.trace(&rays, &wide).expect("wide trace");
         assert_eq!((out.hits[0].prim, out.hits[0].t), (0, 5.0));
         for traversal in [Traversal::FullStack, Traversal::Stackless] {
@@ -1150,8 +1235,8 @@ fn two_level_updates_in_place_match_cpu_twins() {
 
         // A mesh flattened to a twentieth of its height: the boxes' areas change enough for
         // the wide collapse to come out with another number of nodes, and the update makes
-        // new wide buffers.
-        let old_wide = gpu.wide_buffers().map(|(n, _)| n.size());
+        // new wide buffers (textures: new ones when their rows do not hold the new texels).
+        let old_wide_nodes = bvhtrace_core::WideBvh::collapse(ib.bvh()).nodes.len();
         let mut tris: Vec<_> = ib.mesh_bvh(1).triangles;
         tris.sort_by_key(|t| t.prim);
         let flat: Vec<Triangle> = tris
@@ -1162,16 +1247,33 @@ fn two_level_updates_in_place_match_cpu_twins() {
         gpu.update(ib.bvh(), Update::Everything)
             .expect("update after flattening");
         let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
-        let new_wide = gpu.wide_buffers().map(|(n, _)| n.size());
-        assert_ne!(new_wide, old_wide, "the wide layout kept its size");
-        assert_eq!(new_wide, Some(wide.byte_sizes().0 as u64));
+        assert_ne!(
+            wide.nodes.len(),
+            old_wide_nodes,
+            "the wide layout kept its size"
+        );
+        // What the wide kernel's bindings hold for the new tree (textures: whole rows).
+        let wide_bytes =
+            bvhtrace_gpu::KernelKey::new(storage, &TraceOptions::closest(Traversal::Wide))
+                .with_instances(true)
+                .upload_bytes(
+                    wide.nodes.len() as u64,
+                    wide.triangles.len() as u64,
+                    wide.instances.len() as u64,
+                );
+        let node_bytes = match storage {
+            BvhStorage::Buffers => gpu.wide_buffers().map(|(n, _)| n.size()),
+            BvhStorage::Textures => gpu
+                .wide_textures()
+                .map(|(n, _)| u64::from(n.width()) * u64::from(n.height()) * 16),
+        };
+        assert_eq!(node_bytes, Some(wide_bytes.nodes_bytes), "{storage:?}");
         let binary = GpuBvh::upload(&ctx, ib.bvh(), &UploadOptions::all().with_storage(storage))
             .expect("upload");
         assert_eq!(
             gpu.stats().total_bytes(),
-            binary.stats().total_bytes()
-                + (wide.byte_sizes().0 + wide.byte_sizes().1) as u64
-                + std::mem::size_of_val(wide.instances.as_slice()) as u64
+            binary.stats().total_bytes() + wide_bytes.total_bytes(),
+            "{storage:?}"
         );
         check(&gpu, ib.bvh(), "after flattening");
 

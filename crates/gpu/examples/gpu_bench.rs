@@ -10,8 +10,9 @@
 //! BVH in textures and in buffers (`--storage textures|buffers|both`; median Mrays/s of the
 //! timestamp-query times and of the wall times) and on the CPU (`trace_rays`, all cores),
 //! interleaved; nodes and triangles tested per ray, and whether every GPU hit and counter
-//! equals the CPU twin's. `--traversals full-stack,stackless,short-stack:6` picks them;
-//! `--best` reports the best run instead of the median (steadier on a shared machine).
+//! equals the CPU twin's. `--traversals full-stack,stackless,short-stack:6,wide` picks them
+//! (`wide` uploads the wide layout too, in the same storage); `--best` reports the best run
+//! instead of the median (steadier on a shared machine).
 
 use std::time::Instant;
 
@@ -90,12 +91,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for spec in &specs {
         let scene = bvhtrace_scene::load(spec)?;
         let tris = scene.flatten().triangles()?;
-        let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let wide = traversals.iter().any(|t| t.is_wide());
+        if wide {
+            bvh.build_wide();
+        }
         let b = bvh.bounds();
         let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
+        let upload = |st| {
+            let opts = UploadOptions::all().with_storage(st);
+            if wide {
+                opts.with_traversal(Traversal::Wide)
+            } else {
+                opts
+            }
+        };
         let gpus = storages
             .iter()
-            .map(|&st| GpuBvh::upload(&ctx, &bvh, &UploadOptions::all().with_storage(st)))
+            .map(|&st| GpuBvh::upload(&ctx, &bvh, &upload(st)))
             .collect::<Result<Vec<_>, _>>()?;
         let name = std::path::Path::new(spec)
             .file_stem()

@@ -6,8 +6,8 @@ use std::time::Instant;
 use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{FlatBvh, FlatNode, Traversal, WideBvh};
 use bvhtrace_kernels::{
-    BvhStorage, TEXEL_ROW, UploadStats, check_buffer_size, check_depth, texel_rows,
-    wide_stack_may_overflow,
+    BvhStorage, DeviceLimits, TEXEL_ROW, UploadStats, check_buffer_size, check_depth,
+    check_wide_top_level, texel_rows, wide_stack_may_overflow,
 };
 use wgpu::util::DeviceExt;
 
@@ -22,14 +22,13 @@ pub struct UploadOptions {
     /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
     /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is refused when [`Traversal::FullStack`] is listed.
     /// [`Traversal::Wide`] uploads the wide layout (`FlatBvh::wide`, or the tree collapsed
-    /// into it when the BVH has none), in buffers of its own; the binary layout is uploaded
-    /// when a binary traversal is listed (or none at all).
+    /// into it when the BVH has none), in buffers or textures of its own; the binary layout
+    /// is uploaded when a binary traversal is listed (or none at all).
     pub traversals: Vec<Traversal>,
-    /// Buffers or textures for the binary layout; `None` picks the context's
+    /// Buffers or textures for both layouts; `None` picks the context's
     /// [`DriverTuning::storage`](bvhtrace_kernels::DriverTuning::storage) (textures on CPU
-    /// drivers such as lavapipe, buffers elsewhere). The wide layout is always in buffers
-    /// (its one byte layout is the Rust one); the rays of [`GpuBvh::trace`] follow this
-    /// storage for every traversal.
+    /// drivers such as lavapipe, buffers elsewhere). The rays of [`GpuBvh::trace`] follow
+    /// this storage for every traversal.
     pub storage: Option<BvhStorage>,
 }
 
@@ -96,34 +95,60 @@ enum Resources {
 const WIDE_NOT_UPLOADED: &str =
     "this upload left out: list Traversal::Wide in UploadOptions::traversals";
 
-/// The wide layout on the device ([`Traversal::Wide`]): buffers whatever the storage of
-/// the binary layout, and its own bind group.
+/// The wide layout's nodes and triangles on the device, in the upload's storage.
+enum WideResources {
+    /// `array<BvhWideNode>` and `array<BvhTriangle>` (`bvh_buffers_wide.wgsl`).
+    Buffers {
+        nodes: wgpu::Buffer,
+        triangles: wgpu::Buffer,
+    },
+    /// Five texels per node, three per triangle (`bvh_textures_wide.wgsl`).
+    Textures {
+        nodes: wgpu::Texture,
+        triangles: wgpu::Texture,
+    },
+}
+
+/// Texels of one wide node in `bvh_textures_wide.wgsl` (`BVH_WIDE_NODE_TEXELS`).
+const WIDE_NODE_TEXELS: u64 = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
+
+/// The wide layout on the device ([`Traversal::Wide`]): in the upload's storage, with its
+/// own bind group.
 struct WideUpload {
-    nodes: wgpu::Buffer,
-    triangles: wgpu::Buffer,
-    /// The instances in the wide top level's order, for a two-level BVH.
+    resources: WideResources,
+    /// The instances in the wide top level's order, for a two-level BVH (a buffer with
+    /// either storage, as the binary layout's).
     instances: Option<wgpu::Buffer>,
     group: wgpu::BindGroup,
-    /// Bytes of the nodes, triangles and instances.
+    /// Bytes of the nodes, triangles and instances (texture row padding included).
     bytes: (u64, u64, u64),
 }
 
 impl WideUpload {
-    /// Checks `w` against the device's limits, and the one property of the layout the
-    /// kernel relies on beyond the Rust walk's: the first instance's mesh starts right
-    /// after the top level (`bvh_instances.wgsl` finds the top level's end there).
-    fn check(ctx: &GpuContext, w: &WideBvh) -> Result<(), GpuError> {
+    /// Checks `w` in `storage` against the device's limits, and the one property of the
+    /// layout the kernel relies on beyond the Rust walk's: the first instance's mesh starts
+    /// right after the top level (`bvh_instances.wgsl` finds the top level's end there).
+    fn check(ctx: &GpuContext, w: &WideBvh, storage: BvhStorage) -> Result<(), GpuError> {
         let l = ctx.limits();
-        check_buffer_size(
-            l,
-            "wide nodes",
-            std::mem::size_of_val(w.nodes.as_slice()) as u64,
-        )?;
-        check_buffer_size(
-            l,
-            "wide triangles",
-            std::mem::size_of_val(w.triangles.as_slice()) as u64,
-        )?;
+        match storage {
+            BvhStorage::Buffers => {
+                check_buffer_size(
+                    l,
+                    "wide nodes",
+                    std::mem::size_of_val(w.nodes.as_slice()) as u64,
+                )?;
+                check_buffer_size(
+                    l,
+                    "wide triangles",
+                    std::mem::size_of_val(w.triangles.as_slice()) as u64,
+                )?;
+            }
+            BvhStorage::Textures => {
+                let nodes = WIDE_NODE_TEXELS * w.nodes.len() as u64;
+                check_texels(l, "wide node texels", nodes, 16)?;
+                check_texels(l, "wide triangle texels", 3 * w.triangles.len() as u64, 16)?;
+            }
+        }
         check_buffer_size(
             l,
             "wide instances",
@@ -132,8 +157,8 @@ impl WideUpload {
         check_wide_top_level(w)
     }
 
-    /// Creates and fills the buffers and the bind group.
-    fn new(ctx: &GpuContext, w: &WideBvh) -> WideUpload {
+    /// Creates and fills the buffers or textures and the bind group.
+    fn new(ctx: &GpuContext, w: &WideBvh, storage: BvhStorage) -> WideUpload {
         let device = ctx.device();
         let make = |label: &str, contents: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -142,44 +167,74 @@ impl WideUpload {
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             })
         };
-        let nodes = make("bvhtrace wide nodes", bytemuck::cast_slice(&w.nodes));
-        let triangles = make(
-            "bvhtrace wide triangles",
-            bytemuck::cast_slice(&w.triangles),
-        );
         let instances = w.is_instanced().then(|| {
             make(
                 "bvhtrace wide instances",
                 bytemuck::cast_slice(&w.instances),
             )
         });
-        let mut entries = vec![buffer_entry(0, &nodes), buffer_entry(1, &triangles)];
-        entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
-        // The wide nodes read as storage buffers, as the binary ones do with buffers: the
-        // same layout (binding types say nothing of the element type).
-        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("bvhtrace bvh (wide)"),
-            layout: ctx.bvh_layout(BvhStorage::Buffers, false, w.is_instanced()),
-            entries: &entries,
-        });
         let size = |b: &wgpu::Buffer| b.size();
-        let bytes = (
-            size(&nodes),
-            size(&triangles),
-            instances.as_ref().map_or(0, size),
-        );
+        let instances_bytes = instances.as_ref().map_or(0, size);
+        // The layouts are the binary layout's: binding types say nothing of what the
+        // elements or texels hold.
+        let layout = ctx.bvh_layout(storage, false, w.is_instanced());
+        let group = |entries: &[wgpu::BindGroupEntry<'_>]| {
+            let mut entries = entries.to_vec();
+            entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("bvhtrace bvh (wide)"),
+                layout,
+                entries: &entries,
+            })
+        };
+        let (resources, group, bytes) = match storage {
+            BvhStorage::Buffers => {
+                let nodes = make("bvhtrace wide nodes", bytemuck::cast_slice(&w.nodes));
+                let triangles = make(
+                    "bvhtrace wide triangles",
+                    bytemuck::cast_slice(&w.triangles),
+                );
+                let group = group(&[buffer_entry(0, &nodes), buffer_entry(1, &triangles)]);
+                let bytes = (size(&nodes), size(&triangles), instances_bytes);
+                (WideResources::Buffers { nodes, triangles }, group, bytes)
+            }
+            BvhStorage::Textures => {
+                let rgba = wgpu::TextureFormat::Rgba32Uint;
+                // `WideNode`'s bytes as they are: texel `k` of a node is its bytes
+                // `16k .. 16k + 16`.
+                let (nodes, nodes_bytes) = texel_texture(
+                    ctx,
+                    "bvhtrace wide node texels",
+                    rgba,
+                    4,
+                    bytemuck::cast_slice(&w.nodes).to_vec(),
+                );
+                let (triangles, triangles_bytes) = texel_texture(
+                    ctx,
+                    "bvhtrace wide triangle texels",
+                    rgba,
+                    4,
+                    bytemuck::cast_slice(&w.triangles).to_vec(),
+                );
+                let nv = nodes.create_view(&Default::default());
+                let tv = triangles.create_view(&Default::default());
+                let group = group(&[view_entry(0, &nv), view_entry(1, &tv)]);
+                let bytes = (nodes_bytes, triangles_bytes, instances_bytes);
+                (WideResources::Textures { nodes, triangles }, group, bytes)
+            }
+        };
         WideUpload {
-            nodes,
-            triangles,
+            resources,
             instances,
             group,
             bytes,
         }
     }
 
-    /// Writes `w` over the buffers when it has their sizes; false (nothing written) when
-    /// not.
-    fn write(&self, queue: &wgpu::Queue, w: &WideBvh) -> bool {
+    /// Writes `w` over the buffers or textures when it has their sizes; false (nothing
+    /// written) when not.
+    fn write(&self, ctx: &GpuContext, w: &WideBvh) -> bool {
+        let queue = ctx.queue();
         let fits = |b: &wgpu::Buffer, bytes: &[u8]| b.size() == bytes.len() as u64;
         let (nodes, tris, insts): (&[u8], &[u8], &[u8]) = (
             bytemuck::cast_slice(&w.nodes),
@@ -190,32 +245,48 @@ impl WideUpload {
             Some(b) => fits(b, insts),
             None => insts.is_empty(),
         };
-        if !(fits(&self.nodes, nodes) && fits(&self.triangles, tris) && instances_fit) {
+        // A texture fits when it has the extent `texel_texture` gives the new texels.
+        let texels_fit = |t: &wgpu::Texture, bytes: &[u8]| {
+            texel_extent(bytes.len() as u64 / 16) == (t.width(), t.height())
+        };
+        let layout_fits = match &self.resources {
+            WideResources::Buffers {
+                nodes: n,
+                triangles,
+            } => fits(n, nodes) && fits(triangles, tris),
+            WideResources::Textures {
+                nodes: n,
+                triangles,
+            } => texels_fit(n, nodes) && texels_fit(triangles, tris),
+        };
+        if !(layout_fits && instances_fit) {
             return false;
         }
-        queue.write_buffer(&self.nodes, 0, nodes);
-        queue.write_buffer(&self.triangles, 0, tris);
+        match &self.resources {
+            WideResources::Buffers {
+                nodes: n,
+                triangles,
+            } => {
+                queue.write_buffer(n, 0, nodes);
+                queue.write_buffer(triangles, 0, tris);
+            }
+            WideResources::Textures {
+                nodes: n,
+                triangles,
+            } => {
+                write_texels(ctx, n, 4, bytemuck::cast_slice(&w.nodes).to_vec());
+                write_texels(
+                    ctx,
+                    triangles,
+                    4,
+                    bytemuck::cast_slice(&w.triangles).to_vec(),
+                );
+            }
+        }
         if let Some(b) = &self.instances {
             queue.write_buffer(b, 0, insts);
         }
         true
-    }
-}
-
-/// Checks that the first instance of a two-level wide tree starts its mesh right after
-/// the top level: the kernels take `instances[0].root` for the top level's node count
-/// (`bvh_instances.wgsl`), which is what `WideBvh::collapse` lays out.
-pub(crate) fn check_wide_top_level(w: &WideBvh) -> Result<(), GpuError> {
-    match w.instances.first() {
-        Some(first) if first.root != w.top_nodes => Err(GpuError::BadBuffer {
-            buffer: "wide instances",
-            problem: format!(
-                "the first instance's mesh starts at node {}, not right after the {} top-level \
-                 nodes: collapse the tree with WideBvh::collapse",
-                first.root, w.top_nodes
-            ),
-        }),
-        _ => Ok(()),
     }
 }
 
@@ -348,14 +419,15 @@ pub(crate) fn storage_texture(
     })
 }
 
-/// Checks one texel texture against the device's limits.
+/// Checks one texel texture of `texels` texels against the device's limits: its rows are
+/// [`TEXEL_ROW`] wide, and it has [`texel_rows`] of them.
 fn check_texels(
-    ctx: &GpuContext,
+    limits: &DeviceLimits,
     what: &'static str,
     texels: u64,
     texel_bytes: u64,
 ) -> Result<(), GpuError> {
-    let max = u64::from(ctx.limits().max_texture_dimension_2d);
+    let max = u64::from(limits.max_texture_dimension_2d);
     if u64::from(TEXEL_ROW) > max || texel_rows(texels) > max {
         return Err(GpuError::TooLarge {
             buffer: what,
@@ -376,18 +448,22 @@ fn texel_texture(
     channels: usize,
     data: Vec<u32>,
 ) -> (wgpu::Texture, u64) {
-    let texels = (data.len() / channels) as u64;
-    let rows = texel_rows(texels) as u32;
-    // One row is only as wide as its texels (texel `t` is still at `(t, 0)`): no padding
-    // the kernel never reads. Taller textures pad their last row.
-    let width = if rows == 1 {
-        (texels as u32).max(1)
-    } else {
-        TEXEL_ROW
-    };
+    let (width, rows) = texel_extent((data.len() / channels) as u64);
     let texture = storage_texture(ctx, label, format, width, rows);
     let bytes = write_texels(ctx, &texture, channels, data);
     (texture, bytes)
+}
+
+/// The `(width, rows)` of [`texel_texture`]'s texture for `texels` texels. One row is only
+/// as wide as its texels (texel `t` is still at `(t, 0)`): no padding the kernel never
+/// reads. Taller textures are [`TEXEL_ROW`] wide and pad their last row.
+fn texel_extent(texels: u64) -> (u32, u32) {
+    let rows = texel_rows(texels) as u32;
+    if rows == 1 {
+        ((texels as u32).max(1), 1)
+    } else {
+        (TEXEL_ROW, rows)
+    }
 }
 
 /// Writes `data` over the whole of `texture` (as [`texel_texture`] laid it out). Returns
@@ -454,7 +530,7 @@ impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
     /// `opts.traversals` needs them, as buffers or textures (`opts.storage`); with
     /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide`, or `bvh` collapsed into
-    /// it), in buffers, and without a binary traversal listed only that. Everything is
+    /// it), in the same storage, and without a binary traversal listed only that. Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
     /// resource, its size and the limit), and a tree deeper than [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is
     /// refused ([`GpuError::TooDeep`]) when the full-stack traversal is listed. The
@@ -479,7 +555,7 @@ impl GpuBvh {
         }
         let wide = with_wide.then(|| wide_of(bvh));
         if let Some(w) = &wide {
-            WideUpload::check(ctx, w)?;
+            WideUpload::check(ctx, w, storage)?;
         }
         let (nb, eb, tb) = bvh.byte_sizes();
         let (n_nodes, n_tris) = (bvh.nodes.len() as u64, bvh.triangles.len() as u64);
@@ -494,10 +570,11 @@ impl GpuBvh {
                 }
             }
             BvhStorage::Textures => {
-                check_texels(ctx, "node texels", 2 * n_nodes, 16)?;
-                check_texels(ctx, "triangle texels", 3 * n_tris, 16)?;
+                let l = ctx.limits();
+                check_texels(l, "node texels", 2 * n_nodes, 16)?;
+                check_texels(l, "triangle texels", 3 * n_tris, 16)?;
                 if with_escapes {
-                    check_texels(ctx, "escape texels", bvh.escapes.len() as u64, 4)?;
+                    check_texels(l, "escape texels", bvh.escapes.len() as u64, 4)?;
                 }
             }
         }
@@ -534,7 +611,7 @@ impl GpuBvh {
             })
         };
         let (binary_upload, wide_upload) = ctx.scoped("uploading the BVH", || {
-            let wide_upload = wide.as_deref().map(|w| WideUpload::new(ctx, w));
+            let wide_upload = wide.as_deref().map(|w| WideUpload::new(ctx, w, storage));
             let binary_upload = binary.then(|| match storage {
                 BvhStorage::Buffers => {
                     let make = |label: &str, contents: &[u8]| {
@@ -710,8 +787,8 @@ impl GpuBvh {
         &self.ctx
     }
 
-    /// Where the binary layout lives, buffers or textures (the wide layout is in buffers);
-    /// [`GpuBvh::trace`] puts the rays in textures when this is textures.
+    /// Where both layouts live, buffers or textures; [`GpuBvh::trace`] puts the rays in
+    /// textures when this is textures.
     pub fn storage(&self) -> BvhStorage {
         self.storage
     }
@@ -743,7 +820,9 @@ impl GpuBvh {
 
     /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
     /// links for the walks that follow them; for [`Traversal::Wide`] the wide layout's
-    /// nodes, triangles and instances, always buffers), with its layout.
+    /// nodes, triangles and instances, composed with
+    /// [`wgsl_wide_library_in`](bvhtrace_kernels::wgsl_wide_library_in) of
+    /// [`GpuBvh::storage`]), with its layout.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
         let instanced = self.is_instanced();
         if traversal.is_wide() {
@@ -752,7 +831,7 @@ impl GpuBvh {
             })?;
             return Ok(BvhBindGroup {
                 group: &w.group,
-                layout: self.ctx.bvh_layout(BvhStorage::Buffers, false, instanced),
+                layout: self.ctx.bvh_layout(self.storage, false, instanced),
             });
         }
         let with_escapes = traversal.needs_escapes();
@@ -817,7 +896,7 @@ impl GpuBvh {
             .is_some()
             .then(|| Arc::new(WideBvh::collapse(bvh)));
         if let Some(w) = &wide {
-            WideUpload::check(&self.ctx, w)?;
+            WideUpload::check(&self.ctx, w, self.storage)?;
         }
         let remade = self.ctx.scoped("updating the BVH", || {
             match &self.resources {
@@ -854,7 +933,9 @@ impl GpuBvh {
                 queue.write_buffer(b, 0, bytemuck::cast_slice(&bvh.instances));
             }
             match (&self.wide, &wide) {
-                (Some(up), Some(w)) if !up.write(queue, w) => Some(WideUpload::new(&self.ctx, w)),
+                (Some(up), Some(w)) if !up.write(&self.ctx, w) => {
+                    Some(WideUpload::new(&self.ctx, w, self.storage))
+                }
                 _ => None,
             }
         })?;
@@ -908,8 +989,70 @@ impl GpuBvh {
     }
 
     /// The wide layout's buffers (`array<BvhWideNode>`, its triangles), when it was
-    /// uploaded.
+    /// uploaded in [`BvhStorage::Buffers`].
     pub fn wide_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer)> {
-        self.wide.as_ref().map(|w| (&w.nodes, &w.triangles))
+        match self.wide.as_ref().map(|w| &w.resources) {
+            Some(WideResources::Buffers { nodes, triangles }) => Some((nodes, triangles)),
+            _ => None,
+        }
+    }
+
+    /// The wide layout's textures (five `Rgba32Uint` texels per node, three per triangle,
+    /// [`TEXEL_ROW`] texels a row: `bvh_textures_wide.wgsl`), when it was uploaded in
+    /// [`BvhStorage::Textures`].
+    pub fn wide_textures(&self) -> Option<(&wgpu::Texture, &wgpu::Texture)> {
+        match self.wide.as_ref().map(|w| &w.resources) {
+            Some(WideResources::Textures { nodes, triangles }) => Some((nodes, triangles)),
+            _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A texel texture fits while its rows do: the wide layout's five texels a node reach
+    /// the limit at a fifth of the nodes the texels allow, and the error names the texture
+    /// and the way out.
+    #[test]
+    fn texel_textures_are_checked_row_by_row() {
+        let limits = |max| DeviceLimits {
+            max_storage_buffer_binding_size: 1 << 30,
+            max_buffer_size: 1 << 30,
+            max_compute_workgroups_per_dimension: 65_535,
+            min_storage_buffer_offset_alignment: 256,
+            max_texture_dimension_2d: max,
+        };
+        let row = u64::from(TEXEL_ROW);
+        let l = limits(TEXEL_ROW);
+        let most = row * row;
+        assert!(check_texels(&l, "wide node texels", most, 16).is_ok());
+        let nodes = most / WIDE_NODE_TEXELS + 1;
+        match check_texels(&l, "wide node texels", WIDE_NODE_TEXELS * nodes, 16) {
+            Err(
+                e @ GpuError::TooLarge {
+                    buffer,
+                    bytes,
+                    limit,
+                    ..
+                },
+            ) => {
+                assert_eq!(buffer, "wide node texels");
+                assert_eq!(bytes, nodes * 80);
+                assert_eq!(limit, most * 16);
+                let msg = e.to_string();
+                assert!(
+                    msg.contains("max_texture_dimension_2d") && msg.contains("BvhStorage::Buffers"),
+                    "{msg}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        // Rows narrower than `TEXEL_ROW`: no texture fits, however small.
+        assert!(matches!(
+            check_texels(&limits(TEXEL_ROW / 2), "wide node texels", 5, 16),
+            Err(GpuError::TooLarge { .. })
+        ));
     }
 }

@@ -133,6 +133,53 @@ fn a_device_below_the_required_limits_is_refused_by_name() {
     );
 }
 
+/// A device whose textures are narrower than a row of texels (`TEXEL_ROW`): the texture
+/// storage of either layout is refused before anything is created, naming the texture, the
+/// limit and the way out; the same uploads in buffers trace.
+#[test]
+fn texture_storage_beyond_the_texture_limit_is_refused_by_name() {
+    let limits = wgpu::Limits {
+        max_texture_dimension_2d: bvhtrace_gpu::kernels::TEXEL_ROW / 2,
+        max_storage_textures_per_shader_stage: 8,
+        ..GpuContext::required_limits()
+    };
+    let Some((device, queue, info)) = user_device(limits) else {
+        return;
+    };
+    let options = ContextOptions {
+        tuning: Some(DriverTuning::cpu_driver(2)),
+        ..ContextOptions::default()
+    };
+    let ctx = GpuContext::from_device_with(device, queue, info, &options).expect("context");
+    let (bvh, rays) = scene();
+    for (traversal, texture) in [
+        (Traversal::Stackless, "node texels"),
+        (Traversal::Wide, "wide node texels"),
+    ] {
+        let upload = UploadOptions::for_traversal(traversal);
+        match GpuBvh::upload(&ctx, &bvh, &upload) {
+            Err(e @ TraceError::TooLarge { buffer, .. }) => {
+                assert_eq!(buffer, texture);
+                let msg = e.to_string();
+                assert!(
+                    msg.contains("max_texture_dimension_2d") && msg.contains("BvhStorage::Buffers"),
+                    "{msg}"
+                );
+            }
+            other => panic!("{traversal}: {other:?}"),
+        }
+        let gpu =
+            GpuBvh::upload(&ctx, &bvh, &upload.with_storage(BvhStorage::Buffers)).expect("buffers");
+        let opts = TraceOptions::closest(traversal);
+        let cpu = trace_rays(&bvh.clone().with_wide(), &rays, &opts).hits;
+        assert_eq!(
+            gpu.trace(&rays, &opts).expect("trace").hits,
+            cpu,
+            "{traversal}"
+        );
+    }
+}
+
 /// `GpuBvh` is `Send + Sync`: four threads trace their own rays through one upload at the
 /// same time, each getting the CPU's answers.
 #[test]

@@ -179,14 +179,14 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                 traversal.needs_escapes(),
                 "{f:?}: {stats:?}"
             );
-            // The wide layout is in buffers whatever the storage asked for.
+            // Both layouts are in the storage asked for.
+            assert_eq!((f.storage, gpu.storage()), (storage, storage), "{f:?}");
             assert_eq!(
-                f.storage,
-                if traversal.is_wide() {
-                    BvhStorage::Buffers
-                } else {
-                    storage
-                },
+                (gpu.wide_buffers().is_some(), gpu.wide_textures().is_some()),
+                (
+                    traversal.is_wide() && storage == BvhStorage::Buffers,
+                    traversal.is_wide() && storage == BvhStorage::Textures
+                ),
                 "{f:?}"
             );
             match f.storage {
@@ -213,10 +213,14 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                 }
                 BvhStorage::Textures => {
                     // The same texels: exactly, when each texture is one row (the nodes and
-                    // triangles here); taller ones (the eight escape links per node) pad at
-                    // most their last row.
+                    // triangles here: two texels per binary node, five per wide one); taller
+                    // ones (the eight escape links per node) pad at most their last row.
                     let row = u64::from(TEXEL_ROW);
-                    assert!(2 * nodes <= row && 3 * tris <= row, "scene too large");
+                    let node_texels = if traversal.is_wide() { 5 } else { 2 };
+                    assert!(
+                        node_texels * nodes <= row && 3 * tris <= row,
+                        "scene too large"
+                    );
                     let pad = stats.total_bytes() - declared;
                     if traversal.needs_escapes() {
                         assert!(8 * nodes > row && pad < 4 * row, "{f:?}: {stats:?}");

@@ -64,12 +64,6 @@ const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
     include_str!("../shaders/bvh_no_instances.wgsl"),
 );
 
-/// `bvh_buffers_wide.wgsl`: the wide layout's nodes (binding 0), in buffers whatever the
-/// storage of the binary layout.
-const BVH_BUFFERS_WIDE_WGSL: (&str, &str) = (
-    "bvh_buffers_wide.wgsl",
-    include_str!("../shaders/bvh_buffers_wide.wgsl"),
-);
 /// `traverse_wide.wgsl`: the wide walk.
 const TRAVERSE_WIDE_WGSL: (&str, &str) = (
     "traverse_wide.wgsl",
@@ -220,8 +214,9 @@ pub enum Entries {
 /// The WGSL files one module is composed of.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct ModuleSet {
-    /// The BVH bindings file of the binary layout (the wide layout's nodes are in buffers
-    /// whatever this says).
+    /// Where both layouts' bindings are read from: the nodes file
+    /// ([`BvhStorage::wgsl`], or [`BvhStorage::wide_wgsl`] with `wide`) and the triangles'
+    /// ([`BvhStorage::triangles_wgsl`]).
     pub storage: BvhStorage,
     /// The triangle test ([`shaders::triangle_wgsl`]).
     pub precision: Precision,
@@ -231,8 +226,8 @@ pub struct ModuleSet {
     pub full_stack: bool,
     /// `traverse_short_stack.wgsl` (needs `escapes`).
     pub short_stack: bool,
-    /// The wide layout (`bvh_buffers_wide.wgsl`) and its walk (`traverse_wide.wgsl`), in
-    /// place of the binary layout's bindings and walks: binding 0 holds wide nodes, so a
+    /// The wide layout ([`BvhStorage::wide_wgsl`]) and its walk (`traverse_wide.wgsl`), in
+    /// place of the binary layout's nodes and walks: binding 0 holds wide nodes, so a
     /// module has one layout or the other (`escapes`, `full_stack` and `short_stack` are
     /// then ignored).
     pub wide: bool,
@@ -264,16 +259,21 @@ impl ModuleSet {
         }
     }
 
-    /// Everything of the wide layout but attributes: its bindings, its walk and, with
-    /// `entries`, its kernels.
+    /// Everything of the wide layout but attributes, in buffers: its bindings, its walk
+    /// and, with `entries`, its kernels. Set `storage` for textures
+    /// ([`ModuleSet::wide_in`]).
     pub fn wide(precision: Precision, entries: Entries) -> ModuleSet {
+        ModuleSet::wide_in(BvhStorage::Buffers, precision, entries)
+    }
+
+    /// [`ModuleSet::wide`] with the wide layout read from `storage`.
+    pub fn wide_in(storage: BvhStorage, precision: Precision, entries: Entries) -> ModuleSet {
         ModuleSet {
-            storage: BvhStorage::Buffers,
             escapes: false,
             full_stack: false,
             short_stack: false,
             wide: true,
-            ..ModuleSet::everything(BvhStorage::Buffers, precision, entries)
+            ..ModuleSet::everything(storage, precision, entries)
         }
     }
 
@@ -319,14 +319,12 @@ impl ModuleSet {
                 _ => push((name, src)),
             }
             if i == 0 {
-                if wide {
-                    push(BVH_BUFFERS_WIDE_WGSL);
+                push(if wide {
+                    self.storage.wide_wgsl()
                 } else {
-                    push(self.storage.wgsl());
-                }
-                if wide || self.storage == BvhStorage::Buffers {
-                    push(shaders::BVH_BUFFERS_TRIANGLES_WGSL);
-                }
+                    self.storage.wgsl()
+                });
+                push(self.storage.triangles_wgsl());
                 if self.escapes && !wide {
                     push(self.storage.escapes_wgsl());
                 }
@@ -419,9 +417,8 @@ pub struct BindingInfo {
 /// runs and which override constants it gets. The key of a backend's pipeline cache.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct KernelKey {
-    /// Where the BVH is read from: always [`BvhStorage::Buffers`] for
-    /// [`Traversal::Wide`] ([`KernelKey::new`] sees to it), whose nodes are read from
-    /// buffers only.
+    /// Where the BVH (either layout: the wide walk's nodes and triangles too) is read
+    /// from.
     pub storage: BvhStorage,
     /// The walk; a short stack's size is clamped to `1..=MAX_SHORT_STACK` by
     /// [`KernelKey::new`], as the CPU walk clamps it.
@@ -449,22 +446,15 @@ pub struct KernelKey {
 }
 
 impl KernelKey {
-    /// The specialised kernel tracing as `opts` says with the BVH in `storage`: rays in
-    /// buffers, the parallel path kept, positions only. The wide layout is read from
-    /// buffers whatever `storage` says (one byte layout of its nodes, the Rust one; see
-    /// `bvh_buffers_wide.wgsl`), so a [`Traversal::Wide`] key has
-    /// [`BvhStorage::Buffers`].
+    /// The specialised kernel tracing as `opts` says with the BVH (either layout) in
+    /// `storage`: rays in buffers, the parallel path kept, positions only.
     pub fn new(storage: BvhStorage, opts: &TraceOptions) -> KernelKey {
         let traversal = match opts.traversal {
             Traversal::ShortStack(k) => Traversal::ShortStack(k.clamp(1, MAX_SHORT_STACK)),
             t => t,
         };
         KernelKey {
-            storage: if traversal.is_wide() {
-                BvhStorage::Buffers
-            } else {
-                storage
-            },
+            storage,
             traversal,
             query: opts.query,
             precision: opts.precision,
@@ -574,7 +564,7 @@ impl KernelKey {
 
     /// Every key the tests validate for `storage`: each walk (full stack, stackless,
     /// short stack of size `k`, wide) x query x counters x one mesh or two levels. The
-    /// wide keys are the same for every `storage` and `k` (buffers, no ring).
+    /// wide keys are the same for every `k` (no ring).
     pub fn all_for_k(storage: BvhStorage, k: u32) -> Vec<KernelKey> {
         let mut v = Vec::new();
         for traversal in [
@@ -603,7 +593,7 @@ impl KernelKey {
                 rays: self.rays,
                 instances: self.instances,
                 ..if self.traversal.is_wide() {
-                    ModuleSet::wide(self.precision, Entries::All)
+                    ModuleSet::wide_in(self.storage, self.precision, Entries::All)
                 } else {
                     ModuleSet::everything(self.storage, self.precision, Entries::All)
                 }
@@ -654,7 +644,9 @@ impl KernelKey {
             per: PerElement::Ray,
             uploaded: false,
         };
-        let (nodes, tris, escapes) = if set.wide {
+        let (nodes, tris, escapes) = if set.wide && textures {
+            ("bvh_wide_node_texels", "bvh_triangle_texels", "")
+        } else if set.wide {
             ("bvh_wide_nodes", "bvh_triangles", "")
         } else if textures {
             (
@@ -692,9 +684,9 @@ impl KernelKey {
 
     /// Bytes the BVH bindings declare for a tree of `nodes` nodes, `triangles`
     /// triangles and `instances` instances (0 for one mesh): what a [`BvhStorage::Buffers`]
-    /// upload for this key holds (texture uploads add row padding). For a
-    /// [`Traversal::Wide`] key, `nodes` counts the wide tree's 80-byte nodes
-    /// (`WideBvh::nodes`).
+    /// upload for this key holds (texture uploads add row padding,
+    /// [`KernelKey::upload_bytes`]). For a [`Traversal::Wide`] key, `nodes` counts the
+    /// wide tree's 80-byte nodes (`WideBvh::nodes`).
     pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> u64 {
         self.bindings()
             .iter()
@@ -716,8 +708,8 @@ impl KernelKey {
     /// triangles and `instances` instances (`upload_ms` 0): the bindings' bytes
     /// ([`KernelKey::declared_bvh_bytes`]), plus, for textures taller than one row, the
     /// padding of their last row of [`shaders::TEXEL_ROW`] texels. For a
-    /// [`Traversal::Wide`] key, `nodes` counts the wide tree's nodes: 80 bytes each, in
-    /// buffers.
+    /// [`Traversal::Wide`] key, `nodes` counts the wide tree's nodes: 80 bytes each, five
+    /// texels in textures.
     pub fn upload_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> UploadStats {
         let set = self.module_set();
         let sized = |elements: u64, element_bytes: u64, texels_per: u64, texel_bytes: u64| match set
@@ -735,7 +727,7 @@ impl KernelKey {
         };
         UploadStats {
             storage: set.storage,
-            nodes_bytes: sized(nodes, node_bytes(set.wide), 2, 16),
+            nodes_bytes: sized(nodes, node_bytes(set.wide), node_bytes(set.wide) / 16, 16),
             triangles_bytes: sized(triangles, 48, 3, 16),
             escapes_bytes: if set.escapes && !set.wide {
                 sized(

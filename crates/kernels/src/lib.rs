@@ -32,12 +32,12 @@ pub use error::TraceError;
 pub use key::{BindingInfo, Composition, KernelKey, PerElement, VertexAttributes};
 pub use plan::{
     COUNTERS_BYTES, DeviceLimits, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES,
-    UploadStats, check_buffer_size, check_depth, finish_incomplete, plan_dispatches,
-    plan_submissions, rays_per_dispatch, texel_rows,
+    UploadStats, check_buffer_size, check_depth, check_wide_top_level, finish_incomplete,
+    plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
 };
 pub use tracer::{CpuTracer, Tracer};
 pub use wgsl::{
     BATCH_GROUP, BVH_GROUP, BvhStorage, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
     WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,
-    wide_stack_may_overflow,
+    wgsl_wide_library_in, wide_stack_may_overflow,
 };

@@ -2,7 +2,7 @@
 //! device's limits allow, and how big each resource is. The same plan serves every backend.
 
 use bvhtrace_core::{
-    Counters, FlatBvh, Hit, INCOMPLETE, Ray, TraceOptions, TraceOutput, Traversal,
+    Counters, FlatBvh, Hit, INCOMPLETE, Ray, TraceOptions, TraceOutput, Traversal, WideBvh,
 };
 
 use crate::error::TraceError;
@@ -98,6 +98,24 @@ pub fn check_depth(traversal: Traversal, depth: u32) -> Result<(), TraceError> {
         });
     }
     Ok(())
+}
+
+/// Checks a wide tree for the kernels: the one property they rely on beyond the CPU
+/// walk's, that the first instance's mesh starts right after the top level
+/// (`bvh_instances.wgsl` takes `instances[0].root` for the top level's node count), as
+/// `WideBvh::collapse` lays it out.
+pub fn check_wide_top_level(w: &WideBvh) -> Result<(), TraceError> {
+    match w.instances.first() {
+        Some(first) if first.root != w.top_nodes => Err(TraceError::BadBuffer {
+            buffer: "wide instances",
+            problem: format!(
+                "the first instance's mesh starts at node {}, not right after the {} top-level \
+                 nodes: collapse the tree with WideBvh::collapse",
+                first.root, w.top_nodes
+            ),
+        }),
+        _ => Ok(()),
+    }
 }
 
 /// Rows of a [`TEXEL_ROW`]-wide texture holding `texels` texels (at least one).

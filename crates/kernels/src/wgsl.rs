@@ -4,8 +4,9 @@
 //! | file | concern | CPU twin |
 //! |---|---|---|
 //! | `types.wgsl` | `BvhNode`, `BvhWideNode`, `BvhTriangle`, `BvhRay`, `BvhHit`, `BvhCounters`, `BvhTraceResult` | `bvhtrace_core::{FlatNode, WideNode, FlatTriangle, Ray, Hit, Counters}` |
-//! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the BVH's bindings (group 0 by default) and fetch functions ([`BvhStorage`]); with buffers, the triangles are `bvh_buffers_triangles.wgsl` | `FlatBvh` |
-//! | `bvh_buffers_wide.wgsl` | the wide layout's nodes (binding 0, buffers only), with `bvh_buffers_triangles.wgsl`, for the wide walk | `WideBvh` |
+//! | `bvh_buffers.wgsl` or `bvh_textures.wgsl` | the binary layout's node binding (group 0 by default) and fetch functions ([`BvhStorage`]) | `FlatBvh` |
+//! | `bvh_buffers_wide.wgsl` or `bvh_textures_wide.wgsl` | the wide layout's nodes (binding 0), in their place for the wide walk | `WideBvh` |
+//! | `bvh_buffers_triangles.wgsl` or `bvh_textures_triangles.wgsl` | the triangles (binding 1) of either layout; for textures, the texel addressing too | `FlatBvh::triangles`, `WideBvh::triangles` |
 //! | `ray.wgsl` | validity, `bvh_safe_inverse`, `bvh_prepare_ray`, `bvh_octant` | `Ray::is_valid`, `PreparedRay::new`, `flat::octant` |
 //! | `surface.wgsl` | `bvh_offset_ray_origin`, for secondary rays | `surface::offset_ray_origin` |
 //! | `box.wgsl` | conservative slab test | `intersect::intersect_box` |
@@ -48,36 +49,61 @@ pub enum BvhStorage {
     #[default]
     Buffers,
     /// `Rgba32Uint`/`R32Uint` textures of [`TEXEL_ROW`] texels per row
-    /// (`bvh_textures.wgsl`). On lavapipe a texel fetch is a vector gather while a
-    /// storage-buffer load is a per-lane scalar loop: traversal is about 2.5x faster.
+    /// (`bvh_textures.wgsl`, `bvh_textures_wide.wgsl`). On lavapipe a texel fetch is a
+    /// vector gather while a storage-buffer load is a per-lane scalar loop: traversal is
+    /// about 2.5x faster.
     Textures,
 }
 
 impl BvhStorage {
-    /// The WGSL file declaring this storage's node bindings and fetch functions (and, for
-    /// textures, the triangles'; buffers compose `bvh_buffers_triangles.wgsl` after it).
+    /// The WGSL file declaring this storage's binding of the binary layout's nodes and
+    /// their fetch functions; [`BvhStorage::triangles_wgsl`] is composed after it.
     pub fn wgsl(&self) -> (&'static str, &'static str) {
         match self {
             BvhStorage::Buffers => ("bvh_buffers.wgsl", BVH_BUFFERS_WGSL),
             BvhStorage::Textures => ("bvh_textures.wgsl", BVH_TEXTURES_WGSL),
         }
     }
+
+    /// The WGSL file declaring this storage's binding of the wide layout's nodes
+    /// (`WideBvh::nodes`, binding 0) and `bvh_load_wide_node`/`bvh_load_wide_links`, in
+    /// place of [`BvhStorage::wgsl`] for the wide walk; [`BvhStorage::triangles_wgsl`] is
+    /// composed after it.
+    pub fn wide_wgsl(&self) -> (&'static str, &'static str) {
+        match self {
+            BvhStorage::Buffers => ("bvh_buffers_wide.wgsl", BVH_BUFFERS_WIDE_WGSL),
+            BvhStorage::Textures => ("bvh_textures_wide.wgsl", BVH_TEXTURES_WIDE_WGSL),
+        }
+    }
+
+    /// The WGSL file declaring this storage's triangle binding (binding 1) and
+    /// `bvh_load_triangle`, shared by both layouts (for textures, with the texel addressing
+    /// every BVH texture uses).
+    pub fn triangles_wgsl(&self) -> (&'static str, &'static str) {
+        match self {
+            BvhStorage::Buffers => ("bvh_buffers_triangles.wgsl", BVH_BUFFERS_TRIANGLES_WGSL),
+            BvhStorage::Textures => ("bvh_textures_triangles.wgsl", BVH_TEXTURES_TRIANGLES_WGSL),
+        }
+    }
 }
 
 /// Texels per row of the [`BvhStorage::Textures`] textures (`BVH_TEXEL_ROW_MASK + 1` in
-/// `bvh_textures.wgsl`; 8192 is WebGPU's guaranteed `max_texture_dimension_2d`).
+/// `bvh_textures_triangles.wgsl`; 8192 is WebGPU's guaranteed `max_texture_dimension_2d`).
 pub const TEXEL_ROW: u32 = 8192;
 
 /// `bvh_buffers.wgsl`.
 const BVH_BUFFERS_WGSL: &str = include_str!("../shaders/bvh_buffers.wgsl");
 /// `bvh_textures.wgsl`.
 const BVH_TEXTURES_WGSL: &str = include_str!("../shaders/bvh_textures.wgsl");
-/// `bvh_buffers_triangles.wgsl`: the triangles' buffer, read by the binary layout in
-/// buffers and by the wide layout.
-pub(crate) const BVH_BUFFERS_TRIANGLES_WGSL: (&str, &str) = (
-    "bvh_buffers_triangles.wgsl",
-    include_str!("../shaders/bvh_buffers_triangles.wgsl"),
-);
+/// `bvh_buffers_triangles.wgsl`: the triangles' buffer, read by both layouts in buffers.
+const BVH_BUFFERS_TRIANGLES_WGSL: &str = include_str!("../shaders/bvh_buffers_triangles.wgsl");
+/// `bvh_textures_triangles.wgsl`: the triangles' texture and the texel addressing, read by
+/// both layouts in textures.
+const BVH_TEXTURES_TRIANGLES_WGSL: &str = include_str!("../shaders/bvh_textures_triangles.wgsl");
+/// `bvh_buffers_wide.wgsl`: the wide layout's nodes in a buffer.
+const BVH_BUFFERS_WIDE_WGSL: &str = include_str!("../shaders/bvh_buffers_wide.wgsl");
+/// `bvh_textures_wide.wgsl`: the wide layout's nodes in a texture, five texels each.
+const BVH_TEXTURES_WIDE_WGSL: &str = include_str!("../shaders/bvh_textures_wide.wgsl");
 
 /// The storage-independent WGSL files, in composition order, as `(file name, source)`.
 /// The BVH bindings ([`BvhStorage::wgsl`]) go after `types.wgsl`.
@@ -264,15 +290,23 @@ pub fn wgsl_library_for(storage: BvhStorage, precision: Precision, bvh_group: u3
 /// the binary walks: the wide layout (`bvhtrace_core::WideBvh`) bound at
 /// `@group(bvh_group)`, bindings 0 (its nodes, `array<BvhWideNode>`), 1 (its triangles)
 /// and, for a two-level BVH, 4 (its instances; then compose it yourself with
-/// `ModuleSet { instances: true, ..ModuleSet::wide(..) }`), always storage buffers. With
-/// bvhtrace-gpu, bind `GpuBvh::bind_group(Traversal::Wide)`. It declares what
+/// `ModuleSet { instances: true, ..ModuleSet::wide(..) }`), in storage buffers
+/// ([`wgsl_wide_library_in`] reads them from textures). With bvhtrace-gpu, bind
+/// `GpuBvh::bind_group(Traversal::Wide)` of an upload with that storage. It declares what
 /// [`wgsl_library`] declares but the binary walks, and
 /// `bvh_trace_wide(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult`, whose stack
 /// is `lane`'s in `bvh_lane_stacks` as for the full stack. On a wide tree deeper than
 /// [`WIDE_STACK_GROUPS`]` + 1` levels a ray may come back `BVH_INCOMPLETE`: finish it on the
 /// CPU ([`crate::finish_incomplete`]).
 pub fn wgsl_wide_library(bvh_group: u32) -> String {
-    crate::key::ModuleSet::wide(Precision::WatertightF32, crate::key::Entries::None)
+    wgsl_wide_library_in(BvhStorage::Buffers, bvh_group)
+}
+
+/// [`wgsl_wide_library`] with the wide layout read from `storage`: for
+/// [`BvhStorage::Textures`], bindings 0 and 1 are `Rgba32Uint` storage textures
+/// (`bvh_textures_wide.wgsl`, five texels per node, and `bvh_textures_triangles.wgsl`).
+pub fn wgsl_wide_library_in(storage: BvhStorage, bvh_group: u32) -> String {
+    crate::key::ModuleSet::wide_in(storage, Precision::WatertightF32, crate::key::Entries::None)
         .compose(bvh_group)
 }
 

@@ -107,17 +107,40 @@ fn positions_only_pipelines_declare_only_what_the_job_reads() {
             assert_eq!(has_function(&module, "bvh_trace_full_stack"), full, "{f:?}");
             assert_eq!(has_function(&module, "bvh_trace_wide"), wide, "{f:?}");
             assert_eq!(has_function(&module, "bvh_load_escape"), short, "{f:?}");
-            // The wide layout's nodes, in a buffer whatever the storage asked for.
-            assert_eq!(names.contains(&"bvh_wide_nodes"), wide, "{f:?}: {names:?}");
-            if wide {
-                assert_eq!(f.storage, BvhStorage::Buffers, "{f:?}");
-                assert!(names.contains(&"bvh_triangles"), "{f:?}: {names:?}");
-                assert!(
-                    !names
-                        .iter()
-                        .any(|n| n.contains("texels") && n.starts_with("bvh_"))
-                );
-            }
+            // Either layout in the storage the key asked for: the wide layout's nodes and
+            // triangles in buffers or textures, never both kinds.
+            assert_eq!(f.storage, storage, "{f:?}");
+            let textures = storage == BvhStorage::Textures;
+            let (wide_nodes, tris) = if textures {
+                ("bvh_wide_node_texels", "bvh_triangle_texels")
+            } else {
+                ("bvh_wide_nodes", "bvh_triangles")
+            };
+            assert_eq!(names.contains(&wide_nodes), wide, "{f:?}: {names:?}");
+            assert!(names.contains(&tris), "{f:?}: {names:?}");
+            let bvh_texels = names
+                .iter()
+                .filter(|n| n.starts_with("bvh_") && n.ends_with("_texels"))
+                .count();
+            let bvh_arrays = names
+                .iter()
+                .filter(|n| {
+                    [
+                        "bvh_nodes",
+                        "bvh_wide_nodes",
+                        "bvh_triangles",
+                        "bvh_escapes",
+                    ]
+                    .contains(n)
+                })
+                .count();
+            assert_eq!(
+                (bvh_texels > 0, bvh_arrays > 0),
+                (textures, !textures),
+                "{f:?}: {names:?}"
+            );
+            assert_eq!(has_function(&module, "bvh_load_wide_links"), wide, "{f:?}");
+            assert_eq!(has_function(&module, "bvh_load_node"), !wide, "{f:?}");
             // One entry point, the variant's.
             let eps: Vec<&str> = module
                 .entry_points
@@ -177,7 +200,7 @@ fn everything_on_declares_everything_and_is_kernel_source() {
                 .compose(BVH_GROUP),
                 (true, rays) => ModuleSet {
                     rays,
-                    ..ModuleSet::wide(Precision::WatertightF32, Entries::All)
+                    ..ModuleSet::wide_in(storage, Precision::WatertightF32, Entries::All)
                 }
                 .compose(BVH_GROUP),
             };
@@ -245,6 +268,37 @@ fn the_instances_binding_is_declared_only_for_two_levels() {
                 assert_eq!(f.names().contains(&"instances"), instances, "{f:?}");
                 compile(&module, &f);
             }
+        }
+    }
+}
+
+/// An upload in textures holds whole texels per element (two per binary node, five per
+/// wide one, three per triangle) and, past one row, whole rows of `TEXEL_ROW`: the bytes
+/// of buffers while one row holds them, whole rows from the element that starts a second.
+#[test]
+fn texture_uploads_count_whole_rows_for_either_layout() {
+    let row = u64::from(bvhtrace_kernels::TEXEL_ROW);
+    for (traversal, node_texels) in [(Traversal::FullStack, 2), (Traversal::Wide, 5)] {
+        let opts = TraceOptions::closest(traversal);
+        let [buffers, textures] = STORAGES.map(|s| KernelKey::new(s, &opts));
+        let fit = row / node_texels;
+        for (nodes, tris, texel_rows) in [(fit, row / 3, (1, 1)), (fit + 1, row / 3 + 1, (2, 2))] {
+            let b = buffers.upload_bytes(nodes, tris, 0);
+            let t = textures.upload_bytes(nodes, tris, 0);
+            assert_eq!(b.nodes_bytes, nodes * node_texels * 16, "{traversal}");
+            assert_eq!(b.triangles_bytes, tris * 48, "{traversal}");
+            assert_eq!(b.total_bytes(), buffers.declared_bvh_bytes(nodes, tris, 0));
+            let (node_rows, tri_rows) = texel_rows;
+            let expected = |rows: u64, bytes: u64| if rows == 1 { bytes } else { rows * row * 16 };
+            assert_eq!(
+                (t.nodes_bytes, t.triangles_bytes),
+                (
+                    expected(node_rows, b.nodes_bytes),
+                    expected(tri_rows, b.triangles_bytes)
+                ),
+                "{traversal}: {nodes} nodes, {tris} triangles"
+            );
+            assert_eq!(t.storage, BvhStorage::Textures);
         }
     }
 }

@@ -15,7 +15,7 @@ use bvhtrace_kernels::key::{Entries, ModuleSet};
 use bvhtrace_kernels::wgsl::SHADER_FILES;
 use bvhtrace_kernels::{
     BvhStorage, FULL_STACK_SIZE, KernelKey, STACK_LANES, TEXEL_ROW, WIDE_STACK_GROUPS,
-    WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,
+    WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library, wgsl_wide_library_in,
 };
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
@@ -266,6 +266,17 @@ fn constants_match_rust() {
         Literal::U32(WIDE_STACK_GROUPS)
     );
     assert_eq!(2 * WIDE_STACK_GROUPS, FULL_STACK_SIZE);
+    // The wide layout in textures: whole texels per node, the binary layout's rows.
+    let wide_texels = parse(&wgsl_wide_library_in(BvhStorage::Textures, 0));
+    assert_eq!(size_of::<WideNode>() % 16, 0);
+    assert_eq!(
+        constant(&wide_texels, "BVH_WIDE_NODE_TEXELS"),
+        Literal::U32((size_of::<WideNode>() / 16) as u32)
+    );
+    assert_eq!(
+        constant(&wide_texels, "BVH_TEXEL_ROW_MASK"),
+        Literal::U32(TEXEL_ROW - 1)
+    );
     // The per-lane stacks: one per invocation of an entry point's workgroup, deep enough
     // for the full stack and the short stack's largest ring.
     assert_eq!(
@@ -289,15 +300,18 @@ fn every_variant_validates_and_compiles() {
         compile_variants(storage, &mut seen);
     }
     // 2 storages; full stack, stackless, 3 short-stack sizes; 2 queries; 2 counter
-    // settings; one mesh or two levels. The wide walk's keys are one set whatever the
-    // storage (buffers) and `k` (no ring): 2 queries, 2 counter settings, 2 levels.
-    assert_eq!(seen.len(), 2 * 5 * 2 * 2 * 2 + 2 * 2 * 2);
-    assert_eq!(
-        seen.iter()
-            .filter(|k| k.traversal == bvhtrace_core::Traversal::Wide)
-            .count(),
-        8
-    );
+    // settings; one mesh or two levels. The wide walk's keys are one set per storage
+    // whatever `k` (no ring): 2 queries, 2 counter settings, 2 levels.
+    assert_eq!(seen.len(), 2 * 5 * 2 * 2 * 2 + 2 * 2 * 2 * 2);
+    for storage in STORAGES {
+        assert_eq!(
+            seen.iter()
+                .filter(|k| k.traversal == bvhtrace_core::Traversal::Wide && k.storage == storage)
+                .count(),
+            8,
+            "{storage:?}"
+        );
+    }
 }
 
 fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<KernelKey>) {
@@ -376,6 +390,34 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
         assert!(found, "{name} at group 3 binding {binding}");
     }
     assert_eq!(group0_array(&module, "bvh_wide_nodes").0, "BvhWideNode");
+    // In textures: the texel files in place of the buffer ones, the same walk.
+    let lib = wgsl_wide_library_in(BvhStorage::Textures, 3);
+    for (name, composed) in [
+        ("bvh_textures_wide.wgsl", true),
+        ("bvh_textures_triangles.wgsl", true),
+        ("traverse_wide.wgsl", true),
+        ("bvh_buffers_wide.wgsl", false),
+        ("bvh_buffers_triangles.wgsl", false),
+        ("bvh_textures.wgsl", false),
+    ] {
+        let found = lib.contains(&format!("// ---- {name} ----"));
+        assert_eq!(found, composed, "{name}");
+    }
+    let module = parse(&format!(
+        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
+         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
+             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+             out[0] = bvh_trace_wide(ray, false, lane).hit.prim;\n\
+         }}"
+    ));
+    validate(&module);
+    for (binding, name) in [(0, "bvh_wide_node_texels"), (1, "bvh_triangle_texels")] {
+        let found = module.global_variables.iter().any(|(_, g)| {
+            g.name.as_deref() == Some(name)
+                && g.binding == Some(naga::ResourceBinding { group: 3, binding })
+        });
+        assert!(found, "{name} at group 3 binding {binding}");
+    }
 }
 
 fn check_library(storage: BvhStorage) {

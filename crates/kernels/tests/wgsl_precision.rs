@@ -75,12 +75,14 @@ fn every_precision_variant_validates_and_compiles() {
         for p in Precision::ALL {
             let module = parse(&kernel_source_for(storage, p));
             let info = validate_with(&module, capabilities(p));
-            // The wide walk's module (buffers, whatever the storage).
-            let wide_src = ModuleSet::wide(p, Entries::All).compose(0);
+            // The wide walk's module, its layout in the same storage.
+            let wide_src = ModuleSet::wide_in(storage, p, Entries::All).compose(0);
             for q in Precision::ALL {
                 let marker = format!("// ---- {} ----", triangle_wgsl(q).0);
                 assert_eq!(wide_src.contains(&marker), p == q, "wide {p}: {marker}");
             }
+            let nodes = format!("// ---- {} ----", storage.wide_wgsl().0);
+            assert!(wide_src.contains(&nodes), "wide {p} {storage:?}");
             let wide = parse(&wide_src);
             let wide_info = validate_with(&wide, capabilities(p));
             for tr in [
@@ -95,7 +97,7 @@ fn every_precision_variant_validates_and_compiles() {
                             .with_precision(p)
                             .with_counters(counters);
                         let v = KernelKey::new(storage, &opts);
-                        assert_eq!(v.precision, p);
+                        assert_eq!((v.precision, v.storage), (p, storage));
                         if tr == Traversal::Wide {
                             compile_variant(&wide, &wide_info, &v);
                         } else {

@@ -8,8 +8,8 @@ use ash::vk;
 use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal, WideBvh};
 use bvhtrace_kernels::{
     BvhStorage, COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, TraceError, Tracer, UploadStats,
-    check_buffer_size, check_depth, finish_incomplete, plan_dispatches, plan_submissions,
-    wide_stack_may_overflow,
+    check_buffer_size, check_depth, check_wide_top_level, finish_incomplete, plan_dispatches,
+    plan_submissions, wide_stack_may_overflow,
 };
 
 use crate::context::{Buffer, VkContext};
@@ -56,24 +56,6 @@ fn wide_arrays<'a>(
         ("wide triangles", bytemuck::cast_slice(&w.triangles)),
         ("wide instances", bytemuck::cast_slice(instances)),
     ]
-}
-
-/// Checks a wide tree for the kernels: the one property they rely on beyond the CPU
-/// walk's, that the first instance's mesh starts right after the top level
-/// (`bvh_instances.wgsl` finds the top level's end there), as `WideBvh::collapse` lays it
-/// out.
-fn check_wide_top_level(w: &WideBvh) -> Result<(), TraceError> {
-    match w.instances.first() {
-        Some(first) if first.root != w.top_nodes => Err(TraceError::BadBuffer {
-            buffer: "wide instances",
-            problem: format!(
-                "the first instance's mesh starts at node {}, not right after the {} top-level \
-                 nodes: collapse the tree with WideBvh::collapse",
-                first.root, w.top_nodes
-            ),
-        }),
-        _ => Ok(()),
-    }
 }
 
 /// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as three storage buffers (nodes,
