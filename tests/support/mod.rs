@@ -47,12 +47,13 @@ pub fn one_triangle() -> FlatBvh {
     FlatBvh::build(&tris, &BuildOptions::default()).expect("build")
 }
 
-/// A tree deeper than the full stack's 64 entries: 120 triangles at exponentially spaced
-/// positions along x, midpoint splits, one triangle per leaf.
-pub fn deep_tree() -> FlatBvh {
-    let tris: Vec<Triangle> = (0..120)
-        .map(|i| {
-            let p = Vec3::new(2f32.powi(i - 60), 0.0, 0.0);
+/// Walls across the x axis at `xs`, one triangle each, built with midpoint splits and one
+/// triangle per leaf: each split takes off few triangles, so the tree is as deep as there
+/// are walls.
+fn walls_along_x(xs: impl Iterator<Item = f32>) -> FlatBvh {
+    let tris: Vec<Triangle> = xs
+        .map(|x| {
+            let p = Vec3::new(x, 0.0, 0.0);
             [
                 p + Vec3::new(0.0, -1.0, -1.0),
                 p + Vec3::new(0.0, 1.0, -1.0),
@@ -69,29 +70,19 @@ pub fn deep_tree() -> FlatBvh {
     FlatBvh::build(&tris, &opts).expect("build")
 }
 
+/// A tree deeper than the full stack's 64 entries: 120 triangles at exponentially spaced
+/// positions along x, midpoint splits, one triangle per leaf.
+pub fn deep_tree() -> FlatBvh {
+    walls_along_x((0..120).map(|i| 2f32.powi(i - 60)))
+}
+
 /// A tree whose wide layout is deeper than the wide walk's stack
 /// (`bvhtrace_kernels::WIDE_STACK_GROUPS` groups): [`DEEP_WIDE_TRIANGLES`] triangles along
 /// x ([`deep_wide_x`]), midpoint splits, one triangle per leaf. Each binary level splits
 /// off one triangle, so a wide node takes seven leaves and one interior child, and the wide
 /// tree is about a seventh as deep as the binary one. Built with its wide layout.
 pub fn deep_wide_tree() -> FlatBvh {
-    let tris: Vec<Triangle> = (0..DEEP_WIDE_TRIANGLES)
-        .map(|i| {
-            let p = Vec3::new(deep_wide_x(i), 0.0, 0.0);
-            [
-                p + Vec3::new(0.0, -1.0, -1.0),
-                p + Vec3::new(0.0, 1.0, -1.0),
-                p + Vec3::new(0.0, 0.0, 1.0),
-            ]
-        })
-        .collect();
-    let opts = BuildOptions {
-        builder: bvhtrace_core::BuilderKind::Midpoint,
-        max_depth: 1000,
-        max_leaf_size: 1,
-        ..Default::default()
-    };
-    FlatBvh::build(&tris, &opts).expect("build").with_wide()
+    walls_along_x((0..DEEP_WIDE_TRIANGLES).map(deep_wide_x)).with_wide()
 }
 
 /// Triangles of [`deep_wide_tree`]: as many as f32's exponents hold from 2^-120.

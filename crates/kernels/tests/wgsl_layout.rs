@@ -351,6 +351,27 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
     }
 }
 
+/// The wide library `lib` (bound at group 3) called from a compute shader of ours: it
+/// validates, and declares `bindings` in group 3.
+fn wide_library_module(lib: &str, bindings: [(u32, &str); 2]) -> naga::Module {
+    let module = parse(&format!(
+        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
+         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
+             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+             out[0] = bvh_trace_wide(ray, false, lane).hit.prim;\n\
+         }}"
+    ));
+    validate(&module);
+    for (binding, name) in bindings {
+        let found = module.global_variables.iter().any(|(_, g)| {
+            g.name.as_deref() == Some(name)
+                && g.binding == Some(naga::ResourceBinding { group: 3, binding })
+        });
+        assert!(found, "{name} at group 3 binding {binding}");
+    }
+    module
+}
+
 #[test]
 fn every_file_is_composed_and_the_library_rebinds_its_group() {
     for storage in STORAGES {
@@ -374,21 +395,7 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
     }
     assert!(!lib.contains("@compute"), "the library has no entry points");
     assert!(!lib.contains("fn bvh_trace_full_stack") && !lib.contains("fn bvh_trace_short_stack"));
-    let module = parse(&format!(
-        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
-         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
-             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
-             out[0] = bvh_trace_wide(ray, false, lane).hit.prim;\n\
-         }}"
-    ));
-    validate(&module);
-    for (binding, name) in [(0, "bvh_wide_nodes"), (1, "bvh_triangles")] {
-        let found = module.global_variables.iter().any(|(_, g)| {
-            g.name.as_deref() == Some(name)
-                && g.binding == Some(naga::ResourceBinding { group: 3, binding })
-        });
-        assert!(found, "{name} at group 3 binding {binding}");
-    }
+    let module = wide_library_module(&lib, [(0, "bvh_wide_nodes"), (1, "bvh_triangles")]);
     assert_eq!(group0_array(&module, "bvh_wide_nodes").0, "BvhWideNode");
     // In textures: the texel files in place of the buffer ones, the same walk.
     let lib = wgsl_wide_library_in(BvhStorage::Textures, 3);
@@ -403,21 +410,10 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
         let found = lib.contains(&format!("// ---- {name} ----"));
         assert_eq!(found, composed, "{name}");
     }
-    let module = parse(&format!(
-        "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
-         @compute @workgroup_size(1) fn main(@builtin(local_invocation_index) lane: u32) {{\n\
-             let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
-             out[0] = bvh_trace_wide(ray, false, lane).hit.prim;\n\
-         }}"
-    ));
-    validate(&module);
-    for (binding, name) in [(0, "bvh_wide_node_texels"), (1, "bvh_triangle_texels")] {
-        let found = module.global_variables.iter().any(|(_, g)| {
-            g.name.as_deref() == Some(name)
-                && g.binding == Some(naga::ResourceBinding { group: 3, binding })
-        });
-        assert!(found, "{name} at group 3 binding {binding}");
-    }
+    wide_library_module(
+        &lib,
+        [(0, "bvh_wide_node_texels"), (1, "bvh_triangle_texels")],
+    );
 }
 
 fn check_library(storage: BvhStorage) {
