@@ -795,13 +795,7 @@ pub unsafe fn hit_children_avx2(
     // Bytes of eight slots widened to eight i32 lanes.
     // SAFETY: `q` is eight readable bytes.
     let widen = |q: &[u32; 2]| unsafe { _mm256_cvtepu8_epi32(_mm_loadl_epi64(q.as_ptr().cast())) };
-    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-    let interior = _mm256_and_si256(_mm256_set1_epi32(n.imask() as i32), lane_bits);
-    let usedv = _mm256_or_si256(
-        _mm256_cmpgt_epi32(widen(&n.counts), _mm256_setzero_si256()),
-        _mm256_cmpeq_epi32(interior, lane_bits),
-    );
-    let used = _mm256_movemask_ps(_mm256_castsi256_ps(usedv)) as u32;
+    let used = n.used_mask();
     if r.parallel {
         let (hits, first) = hit_children_apart(n, r, t_best, oct);
         return (hits, first, used);
@@ -833,19 +827,24 @@ pub unsafe fn hit_children_avx2(
         _mm256_max_ps(n0, n1),
         _mm256_max_ps(n2, _mm256_set1_ps(r.t_min)),
     );
-    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-    // A branch the ray always takes the same way, where indexing would spill to memory.
-    let (nk, fk) = match r.kz {
-        0 => (n0, f0),
-        1 => (n1, f1),
-        _ => (n2, f2),
+    let limit = if t_best == f32::INFINITY {
+        // `inf + slack * m` is `inf` (`m` is never NaN), and `fmin(inf, t_max)` is `t_max`.
+        _mm256_set1_ps(r.t_max)
+    } else {
+        let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+        // A branch the ray always takes the same way, where indexing would spill to memory.
+        let (nk, fk) = match r.kz {
+            0 => (n0, f0),
+            1 => (n1, f1),
+            _ => (n2, f2),
+        };
+        let m = _mm256_max_ps(_mm256_and_ps(nk, abs_mask), _mm256_and_ps(fk, abs_mask));
+        let widened = _mm256_add_ps(
+            _mm256_set1_ps(t_best),
+            _mm256_mul_ps(_mm256_set1_ps(BOX_CULL_SLACK), m),
+        );
+        _mm256_min_ps(widened, _mm256_set1_ps(r.t_max))
     };
-    let m = _mm256_max_ps(_mm256_and_ps(nk, abs_mask), _mm256_and_ps(fk, abs_mask));
-    let widened = _mm256_add_ps(
-        _mm256_set1_ps(t_best),
-        _mm256_mul_ps(_mm256_set1_ps(BOX_CULL_SLACK), m),
-    );
-    let limit = _mm256_min_ps(widened, _mm256_set1_ps(r.t_max));
     let tfar = _mm256_min_ps(_mm256_min_ps(f0, f1), _mm256_min_ps(f2, limit));
     let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(tfar, _mm256_setzero_ps());
     let scale = _mm256_blendv_ps(
@@ -853,18 +852,24 @@ pub unsafe fn hit_children_avx2(
         _mm256_set1_ps(BOX_TFAR_SCALE_NEG),
         negative,
     );
-    let hitv = _mm256_and_ps(
-        _mm256_cmp_ps::<_CMP_LE_OQ>(tnear, _mm256_mul_ps(tfar, scale)),
-        _mm256_castsi256_ps(usedv),
-    );
-    let hit = _mm256_movemask_ps(hitv) as u32;
+    let boxes = _mm256_cmp_ps::<_CMP_LE_OQ>(tnear, _mm256_mul_ps(tfar, scale));
+    let hit = _mm256_movemask_ps(boxes) as u32 & used;
     if hit & (hit.wrapping_sub(1)) == 0 {
         // No hit, or one: nothing to choose between.
         let order = visit_order(hit, oct);
         return (order, order.trailing_zeros(), used);
     }
     // The nearest hit lane: the least `tnear` over the hit lanes (`vminps` as `fmin`).
-    let near = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), tnear, hitv);
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let hitv = _mm256_cmpeq_epi32(
+        _mm256_and_si256(_mm256_set1_epi32(hit as i32), lane_bits),
+        lane_bits,
+    );
+    let near = _mm256_blendv_ps(
+        _mm256_set1_ps(f32::INFINITY),
+        tnear,
+        _mm256_castsi256_ps(hitv),
+    );
     let m1 = _mm256_min_ps(near, _mm256_permute2f128_ps::<1>(near, near));
     let m2 = _mm256_min_ps(m1, _mm256_permute_ps::<0b01_00_11_10>(m1));
     let m3 = _mm256_min_ps(m2, _mm256_permute_ps::<0b10_11_00_01>(m2));
