@@ -250,6 +250,31 @@ fn describe(
     )
 }
 
+/// A deep tree's answers: the GPU's equal the CPU twin's (hits and counters) and, for
+/// closest hits, the f32 brute force's. `None` when they do, else what differs.
+fn deep_tree_failure(
+    label: &str,
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    cpu: &(Vec<Hit>, Vec<Counters>),
+    query: Query,
+    hits: &[Hit],
+    counters: &[Counters],
+) -> Option<String> {
+    let (bad_hits, bad_counters, _) = compare(label, rays, cpu, hits, counters);
+    let bad_ref = match query {
+        Query::Closest => rays
+            .iter()
+            .zip(hits)
+            .filter(|(r, h)| bvhtrace_core::brute_force(bvh, r, Precision::WatertightF32) != **h)
+            .count(),
+        Query::Any => 0,
+    };
+    (bad_hits + bad_counters + bad_ref > 0).then(|| {
+        format!("{label}: {bad_hits} hit, {bad_counters} counter, {bad_ref} brute-force mismatches")
+    })
+}
+
 /// Compares GPU answers with the CPU twin's. Returns (hit mismatches, counter mismatches,
 /// largest ulp difference), printing the first few failures in full.
 fn compare(
@@ -487,22 +512,9 @@ fn deep_trees_match_cpu_twins() {
                 let out = gpu.trace(&rays, &counted(traversal, query)).expect("trace");
                 assert_eq!(out.incomplete, 0, "{label}: rays over the trip budget");
                 let gc = out.counters.as_deref().expect("counters");
-                let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
-                let bad_ref = match query {
-                    Query::Closest => rays
-                        .iter()
-                        .zip(&out.hits)
-                        .filter(|(r, h)| {
-                            bvhtrace_core::brute_force(&bvh, r, Precision::WatertightF32) != **h
-                        })
-                        .count(),
-                    Query::Any => 0,
-                };
-                if bad_hits + bad_counters + bad_ref > 0 {
-                    failures.push(format!(
-                        "{label}: {bad_hits} hit, {bad_counters} counter, {bad_ref} brute-force mismatches"
-                    ));
-                }
+                failures.extend(deep_tree_failure(
+                    &label, &bvh, &rays, &cpu, query, &out.hits, gc,
+                ));
             }
         }
     }
@@ -554,28 +566,15 @@ fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
             assert!(out.incomplete > 0, "{label}: no ray overflowed the stack");
             assert!(out.hits.iter().all(|h| h.prim != bvhtrace_core::INCOMPLETE));
             let gc = out.counters.as_deref().expect("counters");
-            let (bad_hits, bad_counters, _) = compare(&label, &rays, &cpu, &out.hits, gc);
-            let bad_ref = match query {
-                Query::Closest => rays
-                    .iter()
-                    .zip(&out.hits)
-                    .filter(|(r, h)| {
-                        bvhtrace_core::brute_force(&bvh, r, Precision::WatertightF32) != **h
-                    })
-                    .count(),
-                Query::Any => 0,
-            };
+            failures.extend(deep_tree_failure(
+                &label, &bvh, &rays, &cpu, query, &out.hits, gc,
+            ));
             eprintln!(
                 "{label}: wide depth {}, {} of {} rays finished on the CPU",
                 w.depth,
                 out.incomplete,
                 rays.len()
             );
-            if bad_hits + bad_counters + bad_ref > 0 {
-                failures.push(format!(
-                    "{label}: {bad_hits} hit, {bad_counters} counter, {bad_ref} brute-force mismatches"
-                ));
-            }
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
