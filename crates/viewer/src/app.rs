@@ -936,6 +936,17 @@ impl ViewerApp {
                 ui.selectable_value(t, TraversalKind::FullStack, "full-stack");
                 ui.selectable_value(t, TraversalKind::Wide, "wide");
             });
+        // The wide walk needs the wide layout, built only when it is chosen.
+        if self.settings.traversal == TraversalKind::Wide
+            && !busy
+            && self
+                .built
+                .as_ref()
+                .is_some_and(|b| b.geometry.bvh().wide.is_none())
+            && let Some(scene) = self.scene.clone()
+        {
+            self.start_job(ctx, Source::Reuse(scene));
+        }
         if self.settings.traversal == TraversalKind::ShortStack {
             ui.add(
                 egui::Slider::new(&mut self.settings.short_stack, 1..=32)

@@ -188,9 +188,11 @@ impl BuiltBvh {
                 let new_tris = posed
                     .flattened_triangles()
                     .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
-                let new_bvh = FlatBvh::build(&new_tris, &self.options)
-                    .map_err(|e| format!("the BVH at t = {t} s: {e}"))?
-                    .with_wide();
+                let mut new_bvh = FlatBvh::build(&new_tris, &self.options)
+                    .map_err(|e| format!("the BVH at t = {t} s: {e}"))?;
+                if bvh.wide.is_some() {
+                    new_bvh.build_wide();
+                }
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(g) = &mut self.gpu {
@@ -201,7 +203,7 @@ impl BuiltBvh {
                         g.update(&new_bvh, Update::Everything)
                     } else {
                         times.reuploaded = true;
-                        GpuBvh::upload(g.context(), &new_bvh, &upload_options(new_bvh.depth))
+                        GpuBvh::upload(g.context(), &new_bvh, &upload_options(&new_bvh))
                             .map(|fresh| *g = fresh)
                     };
                     if let Err(e) = written {
@@ -303,16 +305,19 @@ pub struct Job {
     pub what: String,
 }
 
-/// The traversals an upload of a tree this deep supports: the escape-link ones and the
-/// wide walk always, the full stack when the tree fits its stack.
-pub fn upload_options(depth: u32) -> UploadOptions {
+/// The traversals an upload of `bvh` supports: the escape-link ones always, the full
+/// stack when the tree fits its stack, the wide walk when the tree has its wide layout
+/// (built when the wide walk is chosen).
+pub fn upload_options(bvh: &FlatBvh) -> UploadOptions {
     let mut traversals = vec![
         Traversal::Stackless,
         Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
-        Traversal::Wide,
     ];
-    if check_depth(Traversal::FullStack, depth).is_ok() {
+    if check_depth(Traversal::FullStack, bvh.depth).is_ok() {
         traversals.push(Traversal::FullStack);
+    }
+    if bvh.wide.is_some() {
+        traversals.push(Traversal::Wide);
     }
     UploadOptions {
         traversals,
@@ -379,9 +384,12 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
         SceneBvh::Flat { tris, bvh }
     };
-    // The wide layout too, so that every walk the side panel offers can run.
+    // The wide layout only for the wide walk: the side panel asks for a rebuild when it is
+    // chosen later.
     let mut geometry = geometry;
-    geometry.build_wide();
+    if req.traversal.is_wide() {
+        geometry.build_wide();
+    }
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
     let bvh = geometry.bvh();
     let stats = BvhStats::of(bvh);
@@ -390,7 +398,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         Err(e) => Err(e.clone()),
         Ok(ctx) => {
             stage(format!("uploading {} nodes to the GPU", bvh.nodes.len()));
-            GpuBvh::upload(ctx, bvh, &upload_options(bvh.depth))
+            GpuBvh::upload(ctx, bvh, &upload_options(bvh))
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());
                     // Primary and shadow rays; a traversal this upload cannot run is
