@@ -58,6 +58,53 @@ fn sah_cost_is_no_higher_than_tinybvh() {
     }
 }
 
+/// The spatial-split builder on real meshes: within its budget, every triangle in a leaf,
+/// and a SAH cost no higher than binned SAH's in either convention; lower where big
+/// triangles overlap (the flight helmet's straps and lenses, the drone's panels).
+#[test]
+fn sbvh_is_no_worse_than_binned_sah() {
+    for name in ["bunny_69k", "flight_helmet", "drone"] {
+        let Some(tris) = mesh(name) else { return };
+        for ct in [0.125, 1.0] {
+            let build = |b| {
+                let opts = BuildOptions {
+                    cost_traversal: ct,
+                    ..BuildOptions::with_builder(b)
+                };
+                FlatBvh::build(&tris, &opts).unwrap()
+            };
+            let (sah, sbvh) = (build(BuilderKind::Sah), build(BuilderKind::Sbvh));
+            sbvh.check_invariants().unwrap();
+            let (a, b) = (BvhStats::of(&sah), BvhStats::of(&sbvh));
+            let cost = |s: &BvhStats| {
+                if ct == 1.0 {
+                    s.sah_cost
+                } else {
+                    s.sah_cost_pbrt
+                }
+            };
+            eprintln!(
+                "{name} traversal {ct}: SAH {:.3}, SBVH {:.3} ({} references for {})",
+                cost(&a),
+                cost(&b),
+                b.triangles,
+                b.primitives
+            );
+            assert_eq!(b.primitives, tris.len());
+            assert!(b.triangles as f64 <= 1.3 * tris.len() as f64);
+            assert!(
+                cost(&b) <= cost(&a),
+                "{name}: SBVH {} > SAH {}",
+                cost(&b),
+                cost(&a)
+            );
+            if name != "bunny_69k" {
+                assert!(cost(&b) < 0.97 * cost(&a), "{name}: SBVH {}", cost(&b));
+            }
+        }
+    }
+}
+
 fn camera_rays(tris: &[Triangle], w: u32, h: u32) -> Vec<Ray> {
     let (lo, hi) = tris
         .iter()

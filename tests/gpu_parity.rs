@@ -743,7 +743,7 @@ fn upload_checks_and_errors() {
     );
     // Escape links that do not match the nodes: refused for the walks that follow them.
     let mut unlinked = bvh.clone();
-    unlinked.escapes.clear();
+    unlinked.set_escapes(Vec::new());
     let err = GpuBvh::upload(
         &ctx,
         &unlinked,

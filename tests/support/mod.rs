@@ -3,7 +3,7 @@
 //! so both backends are checked on the same scenes.
 #![allow(dead_code)]
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Ray, Triangle};
+use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Ray, Triangle};
 use bvhtrace_scene::shared_scenes_dir;
 use glam::Vec3;
 
@@ -172,9 +172,13 @@ fn load_or_skip(spec: &str, name: &str) -> Option<(bvhtrace_scene::Scene, Vec<Tr
 
 /// Loads and builds `spec`, or prints SKIP and returns `None` when it cannot be read.
 pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
+    load_scene_with(spec, name, &BuildOptions::default())
+}
+
+/// [`load_scene`] with other build options.
+pub fn load_scene_with(spec: &str, name: &str, opts: &BuildOptions) -> Option<SceneCase> {
     let (_, tris) = load_or_skip(spec, name)?;
-    let bvh =
-        FlatBvh::build(&tris, &BuildOptions::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let bvh = FlatBvh::build(&tris, opts).unwrap_or_else(|e| panic!("{name}: {e}"));
     Some(SceneCase {
         name: name.to_string(),
         bvh,
@@ -186,9 +190,14 @@ pub fn load_scene(spec: &str, name: &str) -> Option<SceneCase> {
 /// instances), `tris` its flattened triangles by primitive id; `None` (SKIP printed) when
 /// it cannot be read.
 pub fn load_instanced_scene(spec: &str, name: &str) -> Option<SceneCase> {
+    load_instanced_scene_with(spec, name, &BuildOptions::default())
+}
+
+/// [`load_instanced_scene`] with other build options (for the meshes' trees).
+pub fn load_instanced_scene_with(spec: &str, name: &str, opts: &BuildOptions) -> Option<SceneCase> {
     let (scene, tris) = load_or_skip(spec, name)?;
     let bvh = scene
-        .instanced_bvh(&BuildOptions::default())
+        .instanced_bvh(opts)
         .unwrap_or_else(|e| panic!("{name}: {e}"))
         .bvh()
         .clone();
@@ -200,7 +209,8 @@ pub fn load_instanced_scene(spec: &str, name: &str) -> Option<SceneCase> {
 }
 
 /// The parity scenes: shared meshes when present (a small one, `bunny_69k`, the bunny at
-/// 1e-3 scale), the degenerate-heavy builtin and the Cornell box.
+/// 1e-3 scale), the degenerate-heavy builtin and the Cornell box, the builtins in two
+/// levels, and SBVH trees (one level and two).
 pub fn parity_scenes() -> Vec<SceneCase> {
     let mut out = Vec::new();
     match shared_scenes_dir().map(|d| d.join("glb")) {
@@ -217,12 +227,25 @@ pub fn parity_scenes() -> Vec<SceneCase> {
     }
     out.extend(load_scene("builtin:degenerate", "builtin:degenerate"));
     out.extend(load_scene("builtin:cornell", "builtin:cornell"));
+    // Spatial splits: leaves that share triangles, boxes clipped to split planes (a
+    // quarter more references than triangles here), in one level and two.
+    let sbvh = BuildOptions::with_builder(BuilderKind::Sbvh);
+    out.extend(load_scene_with(
+        "builtin:degenerate",
+        "builtin:degenerate (sbvh)",
+        &sbvh,
+    ));
     // Two levels: five meshes instanced on a ground grid, and a grid of rotated, scaled
     // copies of one mesh, mirrored by the scene suffix.
     out.extend(load_instanced_scene("builtin:spheres", "builtin:spheres"));
     out.extend(load_instanced_scene(
         "builtin:grid:icosphere:4x3#scale=-1#offset=3,0,0",
         "builtin:grid:icosphere:4x3 mirrored",
+    ));
+    out.extend(load_instanced_scene_with(
+        "builtin:spheres",
+        "builtin:spheres (sbvh)",
+        &sbvh,
     ));
     out
 }

@@ -18,7 +18,9 @@
 //!   of the octant's depth-first order ([`NO_ESCAPE`] after the last). In blocks of
 //!   [`ESCAPE_BLOCK`] consecutive nodes, octant by octant, so that the links one walk reads
 //!   (its octant's, of neighbouring nodes) share cache lines; the last block is padded.
-//!   Only the stackless and short-stack traversals read them, so only they upload them.
+//!   Only the stackless and short-stack traversals read them, so they are built from the
+//!   nodes on first use ([`FlatBvh::escapes`]) and only those walks' uploads carry them: a
+//!   BVH only walked otherwise never pays their bytes (as many as the nodes') or time.
 //! * `triangles: [FlatTriangle]`, 48 bytes each, in leaf order (every leaf is a contiguous
 //!   range); each carries its corners and its index in the builder's input (`prim`), so no
 //!   indirection is needed to report hits. WGSL twin: `Triangle`.
@@ -30,8 +32,9 @@
 //!   indices offset to where it lands. A top-level leaf is marked by axis bits
 //!   [`INSTANCE_LEAF`] (`meta = 1 << 2 | 3`) and its `right_or_first` is an index into
 //!   `instances`;
-//! * `escapes`: [`escape_links`] of the whole array (no node links one level to the
-//!   other: an instance leaf has no children, and a mesh's root escapes to [`NO_ESCAPE`]);
+//! * `escapes`: [`escape_links`] of the whole array, built on first use as well (no node
+//!   links one level to the other: an instance leaf has no children, and a mesh's root
+//!   escapes to [`NO_ESCAPE`]);
 //! * `triangles`: each mesh's triangles once, `prim` the index within its mesh;
 //! * `instances: [FlatInstance]`, 64 bytes each: the world-to-object transform, the mesh's
 //!   root node, and `prim_base`, the instance's first primitive id. WGSL twin: `BvhInstance`.
@@ -43,6 +46,9 @@
 //! `NO_ESCAPE`). A hit reports `prim_base + prim`: primitive ids are numbered instance by
 //! instance, as the flattened scene numbers its triangles, and
 //! [`crate::instance::InstancedBvh::locate`] splits one into (instance, primitive).
+
+use std::ops::Range;
+use std::sync::OnceLock;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -103,12 +109,14 @@ pub fn escape_links_len(nodes: usize) -> usize {
     nodes.div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS
 }
 
-/// `FlatBvh::escapes` does not fit `FlatBvh::nodes` (a `FlatBvh` assembled by hand, or
-/// edited after [`FlatBvh::flatten`]): a walk reading the links could leave the tree.
+/// The escape links set by hand ([`FlatBvh::set_escapes`]) do not fit `FlatBvh::nodes`, or
+/// the nodes were edited after the links were built: a walk reading them could leave the
+/// tree. (Links built on first use always fit.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 #[error(
     "the BVH has {found} escape links for {nodes} nodes, where the stackless and short-stack \
-     walks need {expected} (set FlatBvh::escapes = bvhtrace_core::flat::escape_links(&nodes))"
+     walks need {expected} (FlatBvh::build_escapes sets them to \
+     bvhtrace_core::flat::escape_links(&nodes))"
 )]
 pub struct EscapeLinksMismatch {
     /// Nodes in the BVH.
@@ -124,28 +132,56 @@ pub struct EscapeLinksMismatch {
 /// children in the layout, so one pass in index order sets every link.
 pub fn escape_links(nodes: &[FlatNode]) -> Vec<u32> {
     let mut e = vec![NO_ESCAPE; escape_links_len(nodes.len())];
-    set_escape_links(nodes, &mut e, 0..nodes.len());
+    link_children(nodes, &mut e, 0..nodes.len());
     e
 }
 
 /// Sets the escape links of `nodes[range]`, a whole tree (its first node the root) or a
 /// run of whole trees, in `escapes`: what rebuilding one tree of a two-level BVH rewrites.
-pub fn set_escape_links(nodes: &[FlatNode], escapes: &mut [u32], range: std::ops::Range<usize>) {
+pub fn set_escape_links(nodes: &[FlatNode], escapes: &mut [u32], range: Range<usize>) {
     for i in range.clone() {
         for o in 0..OCTANTS {
             escapes[escape_index(i as u32, o)] = NO_ESCAPE;
         }
     }
+    link_children(nodes, escapes, range);
+}
+
+/// Sets the links of every child of an interior node in `range`, parents first; a root's
+/// links stay as they are ([`NO_ESCAPE`]).
+fn link_children(nodes: &[FlatNode], escapes: &mut [u32], range: Range<usize>) {
+    // Node `i`'s link for octant `o` is at `block(i) + o * ESCAPE_BLOCK`.
+    let block = |i: u32| escape_index(i, 0);
     for i in range {
         let n = &nodes[i];
         if n.is_leaf() {
             continue;
         }
+        let (l, r) = (i as u32 + 1, n.right_or_first);
+        let (bi, bl, br) = (block(i as u32), block(l), block(r));
         for o in 0..OCTANTS {
-            let (near, far) = near_far(o, i as u32, n);
-            escapes[escape_index(near, o)] = far;
-            escapes[escape_index(far, o)] = escapes[escape_index(i as u32, o)];
+            let up = escapes[bi + o * ESCAPE_BLOCK];
+            // The near child escapes to the far one, the far one to where the node does.
+            if (o >> n.axis()) & 1 == 0 {
+                escapes[bl + o * ESCAPE_BLOCK] = r;
+                escapes[br + o * ESCAPE_BLOCK] = up;
+            } else {
+                escapes[br + o * ESCAPE_BLOCK] = l;
+                escapes[bl + o * ESCAPE_BLOCK] = up;
+            }
         }
+    }
+}
+
+/// Triangle `t`, the builder's input number `prim`, as the flat layout stores it.
+fn flat_triangle(t: &Triangle, prim: u32) -> FlatTriangle {
+    FlatTriangle {
+        v0: t[0].to_array(),
+        prim,
+        v1: t[1].to_array(),
+        _pad1: 0,
+        v2: t[2].to_array(),
+        _pad2: 0,
     }
 }
 
@@ -263,12 +299,21 @@ impl FlatInstance {
 }
 
 /// A BVH ready to traverse or upload.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// Equality compares the escape links as [`FlatBvh::escapes`] returns them: links not built
+/// yet stand for `escape_links(&nodes)`, what they will be, so building them changes no
+/// comparison (links built on one side only are compared with the other's computed for
+/// the occasion, not kept).
+#[derive(Clone, Debug, Default)]
 pub struct FlatBvh {
     /// The nodes, depth-first; the root is node 0.
     pub nodes: Vec<FlatNode>,
-    /// [`escape_links`] of `nodes`, eight per node.
-    pub escapes: Vec<u32>,
+    /// [`escape_links`] of `nodes`, eight per node, built on first use
+    /// ([`FlatBvh::escapes`]) or set by hand ([`FlatBvh::set_escapes`]): only two walks
+    /// read them, and they weigh as much as the nodes. Crate-visible only so that the
+    /// crate's `FlatBvh { .., ..FlatBvh::default() }` literals compile; other crates assign
+    /// fields to a `FlatBvh::default()` or a clone.
+    pub(crate) escapes: OnceLock<Vec<u32>>,
     /// The triangles in leaf order.
     pub triangles: Vec<FlatTriangle>,
     /// Longest root-to-leaf path, in edges (a single leaf has depth 0); for two levels,
@@ -283,31 +328,46 @@ pub struct FlatBvh {
     pub wide: Option<std::sync::Arc<crate::wide::WideBvh>>,
 }
 
+impl PartialEq for FlatBvh {
+    fn eq(&self, other: &FlatBvh) -> bool {
+        // Destructured so that a new field cannot be left out of the comparison.
+        let FlatBvh {
+            nodes,
+            escapes: _,
+            triangles,
+            depth,
+            instances,
+            top_nodes,
+            wide,
+        } = self;
+        *nodes == other.nodes
+            && *triangles == other.triangles
+            && *depth == other.depth
+            && *instances == other.instances
+            && *top_nodes == other.top_nodes
+            && *wide == other.wide
+            && match (self.escapes.get(), other.escapes.get()) {
+                // Same nodes: the same links once built.
+                (None, None) => true,
+                (Some(a), Some(b)) => a == b,
+                (Some(a), None) | (None, Some(a)) => *a == escape_links(nodes),
+            }
+    }
+}
+
 impl FlatBvh {
     /// Lays out a build tree depth-first over the given triangles (the builder's input).
     pub fn flatten(tree: &BuildTree, tris: &[Triangle]) -> FlatBvh {
         let mut bvh = FlatBvh {
             nodes: Vec::with_capacity(tree.node_count),
-            escapes: Vec::new(),
             triangles: tree
                 .prim_order
                 .iter()
-                .map(|&p| {
-                    let t = &tris[p as usize];
-                    FlatTriangle {
-                        v0: t[0].to_array(),
-                        prim: p,
-                        v1: t[1].to_array(),
-                        _pad1: 0,
-                        v2: t[2].to_array(),
-                        _pad2: 0,
-                    }
-                })
+                .map(|&p| flat_triangle(&tris[p as usize], p))
                 .collect(),
             ..FlatBvh::default()
         };
         bvh.emit(&tree.root, 0);
-        bvh.escapes = escape_links(&bvh.nodes);
         bvh
     }
 
@@ -343,8 +403,28 @@ impl FlatBvh {
         tris: &[Triangle],
         opts: &crate::build::BuildOptions,
     ) -> Result<FlatBvh, crate::build::BuildError> {
-        let tree = crate::build::build(tris, opts)?;
-        Ok(FlatBvh::flatten(&tree, tris))
+        crate::build::build_flat(tris, opts)
+    }
+
+    /// A BVH of `nodes` (already in the flat layout) over `tris` taken in `prim_order`.
+    pub(crate) fn from_nodes(
+        nodes: Vec<FlatNode>,
+        depth: u32,
+        prim_order: &[u32],
+        tris: &[Triangle],
+    ) -> FlatBvh {
+        use rayon::prelude::*;
+        let triangles = prim_order
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&p| flat_triangle(&tris[p as usize], p))
+            .collect();
+        FlatBvh {
+            nodes,
+            triangles,
+            depth,
+            ..FlatBvh::default()
+        }
     }
 
     /// Converts the tree into the wide layout as well ([`crate::wide::WideBvh::collapse`]),
@@ -359,6 +439,80 @@ impl FlatBvh {
     pub fn with_wide(mut self) -> FlatBvh {
         self.build_wide();
         self
+    }
+
+    /// The escape links (see the module docs), eight per node: built from `nodes`
+    /// ([`escape_links`]) on the first call, by whichever thread makes it (the others
+    /// wait), and kept; or as set by hand ([`FlatBvh::set_escapes`]). Only the stackless
+    /// and short-stack walks read them, so a BVH walked only otherwise never builds them.
+    /// Kept links do not follow edits of the tree's shape (children, axes): call
+    /// [`FlatBvh::build_escapes`] or [`FlatBvh::clear_escapes`] after one.
+    pub fn escapes(&self) -> &[u32] {
+        self.escapes.get_or_init(|| escape_links(&self.nodes))
+    }
+
+    /// True when the escape links are there (built, or set by hand); false while they
+    /// are still to be built on first use.
+    pub fn has_escapes(&self) -> bool {
+        self.escapes.get().is_some()
+    }
+
+    /// Builds the escape links now, replacing any there were: ahead of the walks that
+    /// read them (so that no trace or upload pays for it), or after editing the tree's
+    /// shape. A refit (boxes moved) leaves them valid.
+    pub fn build_escapes(&mut self) {
+        self.escapes = OnceLock::from(escape_links(&self.nodes));
+    }
+
+    /// The same tree with its escape links built ([`FlatBvh::build_escapes`]).
+    pub fn with_escapes(mut self) -> FlatBvh {
+        self.build_escapes();
+        self
+    }
+
+    /// The escape links to edit in place, built first when they are not there: for
+    /// partial updates ([`set_escape_links`] over the trees that changed) and for tests.
+    pub fn escapes_mut(&mut self) -> &mut Vec<u32> {
+        if self.escapes.get().is_none() {
+            self.build_escapes();
+        }
+        match self.escapes.get_mut() {
+            Some(e) => e,
+            None => unreachable!("the escape links were just built"),
+        }
+    }
+
+    /// Sets the escape links by hand (a BVH assembled by hand, or a test of links that
+    /// do not fit: [`FlatBvh::check_escape_links`] is what catches those).
+    pub fn set_escapes(&mut self, links: Vec<u32>) {
+        self.escapes = OnceLock::from(links);
+    }
+
+    /// Drops the escape links (their memory goes back); the next [`FlatBvh::escapes`]
+    /// builds them again from the nodes as they are then.
+    pub fn clear_escapes(&mut self) {
+        self.escapes = OnceLock::new();
+    }
+
+    /// After `nodes[range]` (whole trees, as [`set_escape_links`] takes) changed shape:
+    /// rewrites their escape links when the links are there, and leaves links not built
+    /// yet to be built on first use. Links that do not fit the nodes are built anew.
+    pub fn relink_escapes(&mut self, range: Range<usize>) {
+        let expected = escape_links_len(self.nodes.len());
+        match self.escapes.get_mut() {
+            None => {}
+            Some(e) if e.len() == expected => set_escape_links(&self.nodes, e, range),
+            Some(_) => self.build_escapes(),
+        }
+    }
+
+    /// The escape links, built for the occasion (and not kept) when they are not there:
+    /// for checks, which should not leave a BVH heavier than they found it.
+    pub(crate) fn escapes_or_computed(&self) -> std::borrow::Cow<'_, [u32]> {
+        match self.escapes.get() {
+            Some(e) => std::borrow::Cow::Borrowed(e),
+            None => std::borrow::Cow::Owned(escape_links(&self.nodes)),
+        }
     }
 
     /// Number of triangles.
@@ -377,33 +531,37 @@ impl FlatBvh {
     }
 
     /// Bytes of the nodes, escape links and triangles as uploaded (the instances,
-    /// when there are any, are `size_of_val(instances)` more).
+    /// when there are any, are `size_of_val(instances)` more). The escape links count
+    /// whether built yet or not ([`escape_links_len`]), as the uploads that carry them do.
     pub fn byte_sizes(&self) -> (usize, usize, usize) {
         (
             std::mem::size_of_val(self.nodes.as_slice()),
-            std::mem::size_of_val(self.escapes.as_slice()),
+            escape_links_len(self.nodes.len()) * std::mem::size_of::<u32>(),
             std::mem::size_of_val(self.triangles.as_slice()),
         )
     }
 
     /// Checks that there are as many escape links as the nodes need (what a GPU upload
     /// checks before the stackless and short-stack kernels may follow them;
-    /// [`FlatBvh::check_invariants`] checks where they lead).
+    /// [`FlatBvh::check_invariants`] checks where they lead). Links not built yet pass
+    /// (they will be built to fit) and stay unbuilt.
     pub fn check_escape_links(&self) -> Result<(), EscapeLinksMismatch> {
         let expected = escape_links_len(self.nodes.len());
-        if self.escapes.len() == expected {
-            Ok(())
-        } else {
-            Err(EscapeLinksMismatch {
+        match self.escapes.get() {
+            Some(e) if e.len() != expected => Err(EscapeLinksMismatch {
                 nodes: self.nodes.len(),
-                found: self.escapes.len(),
+                found: e.len(),
                 expected,
-            })
+            }),
+            _ => Ok(()),
         }
     }
 
     /// Checks every structural invariant; returns a description of the first violation.
-    /// Used by the tests; cheap enough to run on any tree.
+    /// Used by the tests; cheap enough to run on any tree. Every primitive id from 0 to
+    /// the largest is in a leaf, and the leaf boxes holding a triangle cover its box: one
+    /// box contains it, or (an SBVH's references, [`crate::BuilderKind::Sbvh`]) several
+    /// leaves hold it, each box meeting it.
     pub fn check_invariants(&self) -> Result<(), String> {
         if self.is_instanced() {
             return crate::instance::check_two_level(self);
@@ -415,8 +573,10 @@ impl FlatBvh {
         }
         let mut seen = vec![false; n_tris];
         let mut covered = vec![false; n_tris];
+        let mut coverage = Coverage::default();
         self.check_escape_links().map_err(|e| e.to_string())?;
-        if (0..OCTANTS).any(|o| self.escapes[escape_index(0, o)] != NO_ESCAPE) {
+        let escapes = self.escapes_or_computed();
+        if (0..OCTANTS).any(|o| escapes[escape_index(0, o)] != NO_ESCAPE) {
             return Err("the root escapes somewhere".into());
         }
         for (i, n) in self.nodes.iter().enumerate() {
@@ -432,14 +592,11 @@ impl FlatBvh {
                     }
                     covered[f + k] = true;
                     let p = t.prim as usize;
-                    if p >= n_tris || seen[p] {
-                        return Err(format!("primitive {p} repeated or out of range"));
+                    if p >= n_tris {
+                        return Err(format!("primitive {p} out of range"));
                     }
                     seen[p] = true;
-                    let tb = Aabb::from_triangle(&t.corners());
-                    if !b.contains(&tb) {
-                        return Err(format!("leaf {i} box does not contain triangle {p}"));
-                    }
+                    coverage.add(&b, t).map_err(|e| format!("leaf {i}: {e}"))?;
                 }
             } else {
                 let l = i + 1;
@@ -450,10 +607,10 @@ impl FlatBvh {
                 for o in 0..OCTANTS {
                     let (near, far) = near_far(o, i as u32, n);
                     let (en, ef) = (
-                        self.escapes[escape_index(near, o)],
-                        self.escapes[escape_index(far, o)],
+                        escapes[escape_index(near, o)],
+                        escapes[escape_index(far, o)],
                     );
-                    if en != far || ef != self.escapes[escape_index(i as u32, o)] {
+                    if en != far || ef != escapes[escape_index(i as u32, o)] {
                         return Err(format!(
                             "node {i}, octant {o}: children escape to {en} and {ef}"
                         ));
@@ -466,8 +623,54 @@ impl FlatBvh {
                 }
             }
         }
-        if let Some(p) = seen.iter().position(|s| !s) {
+        // Primitive ids run from 0 to the largest present (with no repeat, that is every
+        // slot's; an SBVH's references may repeat one).
+        let n_prims = seen.iter().rposition(|s| *s).map_or(0, |p| p + 1);
+        if let Some(p) = seen[..n_prims].iter().position(|s| !s) {
             return Err(format!("primitive {p} is in no leaf"));
+        }
+        coverage.finish()
+    }
+}
+
+/// Checks that the leaf boxes holding a triangle cover it: each one meets the
+/// triangle's box, and together they cover that box. With one reference per triangle
+/// that is "the leaf's box contains the triangle's"; an SBVH leaf may hold only the part
+/// of a triangle on its side of a split plane ([`crate::BuilderKind::Sbvh`]). A triangle
+/// is known by its stored bytes (corners and primitive id), so the meshes of a two-level
+/// layout need no separating.
+#[derive(Default)]
+pub(crate) struct Coverage {
+    parts: std::collections::HashMap<[u32; 12], Aabb>,
+}
+
+impl Coverage {
+    /// Records that a leaf (or wide child) with box `b` holds `t`.
+    pub(crate) fn add(&mut self, b: &Aabb, t: &FlatTriangle) -> Result<(), String> {
+        let tb = Aabb::from_triangle(&t.corners());
+        let part = Aabb {
+            min: b.min.max(tb.min),
+            max: b.max.min(tb.max),
+        };
+        if part.is_empty() {
+            return Err(format!("box misses triangle {}", t.prim));
+        }
+        let key: [u32; 12] = bytemuck::cast(*t);
+        let e = self.parts.entry(key).or_insert(Aabb::EMPTY);
+        *e = e.union(&part);
+        Ok(())
+    }
+
+    /// Checks that every triangle's parts cover its box.
+    pub(crate) fn finish(&self) -> Result<(), String> {
+        for (key, part) in &self.parts {
+            let t: FlatTriangle = bytemuck::cast(*key);
+            if !part.contains(&Aabb::from_triangle(&t.corners())) {
+                return Err(format!(
+                    "the leaves holding primitive {} do not cover its box",
+                    t.prim
+                ));
+            }
         }
         Ok(())
     }

@@ -30,8 +30,7 @@ use rayon::prelude::*;
 
 use crate::build::{BuildError, BuildNode, BuildOptions, build_boxes};
 use crate::flat::{
-    FlatBvh, FlatInstance, FlatNode, INSTANCE_LEAF, OCTANTS, escape_index, escape_links_len,
-    set_escape_links,
+    FlatBvh, FlatInstance, FlatNode, INSTANCE_LEAF, OCTANTS, escape_index, set_escape_links,
 };
 use crate::geometry::Aabb;
 use crate::mesh::Triangle;
@@ -116,8 +115,11 @@ pub struct MeshSlot {
     pub nodes: u32,
     /// Its first triangle in `FlatBvh::triangles`.
     pub tri_base: u32,
-    /// Its triangle count.
+    /// Its triangle slots in `FlatBvh::triangles` (more than `primitives` when its tree
+    /// is an SBVH, whose leaves may share a triangle).
     pub triangles: u32,
+    /// Its primitives: the mesh's triangle count, ids `0..primitives`.
+    pub primitives: u32,
     /// Its depth.
     pub depth: u32,
     /// SAH cost (traversal 1, intersection 1, root-normalised) when it was built.
@@ -276,6 +278,8 @@ impl InstancedBvh {
                 nodes: m.nodes.len() as u32,
                 tri_base,
                 triangles: m.triangles.len() as u32,
+                // Every primitive is in some leaf: the largest id names the count.
+                primitives: m.triangles.iter().map(|t| t.prim + 1).max().unwrap_or(0),
                 depth: m.depth,
                 built_sah: sah_cost(&m.nodes),
             });
@@ -283,8 +287,7 @@ impl InstancedBvh {
         if bvh.nodes.len() > u32::MAX as usize / 2 || bvh.triangles.len() > u32::MAX as usize / 2 {
             return Err(InstanceError::TooManyPrimitives(bvh.triangles.len() as u64));
         }
-        bvh.escapes = vec![0; escape_links_len(bvh.nodes.len())];
-        set_escape_links(&bvh.nodes, &mut bvh.escapes, top_nodes..bvh.nodes.len());
+        // The escape links are left to be built on first use, over both levels at once.
         let mut out = InstancedBvh {
             bvh,
             meshes: slot_list,
@@ -325,7 +328,7 @@ impl InstancedBvh {
                 mask: u32::from(inst.mask),
                 user_id: inst.user_id,
             });
-            prim_base += u64::from(mesh.triangles);
+            prim_base += u64::from(mesh.primitives);
         }
         if prim_base >= u64::from(INCOMPLETE) {
             return Err(InstanceError::TooManyPrimitives(prim_base));
@@ -339,7 +342,8 @@ impl InstancedBvh {
         self.emit_top(&tree.root, &tree.prim_order, &mut next, 0);
         debug_assert_eq!(next, self.bvh.top_nodes);
         let top = self.bvh.top_nodes as usize;
-        set_escape_links(&self.bvh.nodes, &mut self.bvh.escapes, 0..top);
+        // Built links: the top level's rewritten (the meshes' stay); unbuilt: left so.
+        self.bvh.relink_escapes(0..top);
         let deepest_mesh = instances
             .iter()
             .map(|i| self.meshes[i.mesh as usize].depth)
@@ -396,7 +400,7 @@ impl InstancedBvh {
     pub fn instanced_primitives(&self) -> u64 {
         match (self.bvh.instances.last(), self.instances.last()) {
             (Some(f), Some(i)) => {
-                u64::from(f.prim_base) + u64::from(self.meshes[i.mesh as usize].triangles)
+                u64::from(f.prim_base) + u64::from(self.meshes[i.mesh as usize].primitives)
             }
             _ => 0,
         }
@@ -411,7 +415,7 @@ impl InstancedBvh {
             .checked_sub(1)?;
         let mesh = &self.meshes[self.instances[i].mesh as usize];
         let local = prim - inst[i].prim_base;
-        (local < mesh.triangles).then_some((i as u32, local))
+        (local < mesh.primitives).then_some((i as u32, local))
     }
 
     /// The world-space corners of the primitive a hit reports (the instance's transform
@@ -474,11 +478,11 @@ impl InstancedBvh {
             .meshes
             .get(mesh)
             .ok_or_else(|| bad(format!("no such mesh ({} meshes)", self.meshes.len())))?;
-        if tris.len() != slot.triangles as usize {
+        if tris.len() != slot.primitives as usize {
             return Err(bad(format!(
                 "{} triangles given for a mesh of {} (a refit keeps the triangles; rebuild instead)",
                 tris.len(),
-                slot.triangles
+                slot.primitives
             )));
         }
         crate::mesh::validate_triangles(tris).map_err(|e| bad(e.to_string()))?;
@@ -573,7 +577,6 @@ impl InstancedBvh {
             })
             .collect();
         FlatBvh {
-            escapes: crate::flat::escape_links(&nodes),
             nodes,
             triangles: self.bvh.triangles[t0..t0 + nt].to_vec(),
             depth: s.depth,
@@ -585,7 +588,8 @@ impl InstancedBvh {
 /// [`FlatBvh::check_invariants`] for a two-level layout: the top level has `2n - 1` nodes
 /// over `n` instances, each instance in one leaf whose box contains its mesh's root box
 /// transformed; each mesh's tree holds within its own node and triangle ranges; boxes
-/// contain their children and triangles; every escape link is its tree's.
+/// contain their children, and the leaves holding a triangle cover it (as in one mesh);
+/// every escape link is its tree's.
 pub(crate) fn check_two_level(bvh: &FlatBvh) -> Result<(), String> {
     let top = bvh.top_nodes as usize;
     let (n_nodes, n_tris) = (bvh.nodes.len(), bvh.triangles.len());
@@ -597,6 +601,7 @@ pub(crate) fn check_two_level(bvh: &FlatBvh) -> Result<(), String> {
     }
     bvh.check_escape_links().map_err(|e| e.to_string())?;
     let mut seen = vec![false; bvh.instances.len()];
+    let mut coverage = crate::flat::Coverage::default();
     for inst in &bvh.instances {
         if (inst.root as usize) < top || inst.root as usize >= n_nodes {
             return Err(format!(
@@ -620,12 +625,7 @@ pub(crate) fn check_two_level(bvh: &FlatBvh) -> Result<(), String> {
                 return Err(format!("node {i}: triangle leaf {f}+{c} misplaced"));
             }
             for t in &bvh.triangles[f..f + c] {
-                if !b.contains(&Aabb::from_triangle(&t.corners())) {
-                    return Err(format!(
-                        "leaf {i} box does not contain primitive {}",
-                        t.prim
-                    ));
-                }
+                coverage.add(&b, t).map_err(|e| format!("leaf {i}: {e}"))?;
             }
         } else {
             let (l, r) = (i + 1, n.right_or_first as usize);
@@ -643,11 +643,13 @@ pub(crate) fn check_two_level(bvh: &FlatBvh) -> Result<(), String> {
     if let Some(k) = seen.iter().position(|s| !s) {
         return Err(format!("instance {k} is in no top-level leaf"));
     }
-    let mut expected = bvh.escapes.clone();
+    coverage.finish()?;
+    let escapes = bvh.escapes_or_computed();
+    let mut expected = escapes.to_vec();
     set_escape_links(&bvh.nodes, &mut expected, 0..n_nodes);
     if let Some(i) = (0..n_nodes).find(|&i| {
         (0..OCTANTS)
-            .any(|o| expected[escape_index(i as u32, o)] != bvh.escapes[escape_index(i as u32, o)])
+            .any(|o| expected[escape_index(i as u32, o)] != escapes[escape_index(i as u32, o)])
     }) {
         return Err(format!("node {i}: an escape link is not its tree's"));
     }

@@ -25,6 +25,7 @@ pub mod surface;
 pub mod traverse;
 pub mod wide;
 
+pub use build::reinsert::{ReinsertOptions, optimize, optimize_with};
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
 pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle};
 pub use geometry::Aabb;

@@ -17,9 +17,9 @@
 //!
 //! # Panics
 //! The traversals expect a [`FlatBvh`] as [`FlatBvh::flatten`] makes it (one that passes
-//! [`FlatBvh::check_invariants`]). The stackless and short-stack walks panic, naming the
-//! fix, on one whose escape links do not fit its nodes (assembled by hand without
-//! `flat::escape_links`); the GPU uploads refuse such a tree with an error instead.
+//! [`FlatBvh::check_invariants`]). The stackless and short-stack walks build the escape
+//! links on first use ([`FlatBvh::escapes`]), and panic, naming the fix, on links set by
+//! hand that do not fit the nodes; the GPU uploads refuse such a tree with an error instead.
 
 use std::fmt;
 use std::str::FromStr;
@@ -414,9 +414,11 @@ fn full_stack<T: TriangleTest, const I: bool>(
 ///   done with, which leads exactly to the most recent dropped entry, so it reads the
 ///   escape links only on walks deeper than its ring.
 ///
-/// The two visit the same nodes in the same order.
+/// The two visit the same nodes in the same order. `escapes` is `FlatBvh::escapes`, fetched
+/// once per ray rather than per node.
 fn short_stack<T: TriangleTest, const I: bool>(
     s: &mut Space,
+    escapes: &[u32],
     best: &mut Best,
     c: &mut WalkCost,
     any: bool,
@@ -484,7 +486,7 @@ fn short_stack<T: TriangleTest, const I: bool>(
         // A mesh's walk that escapes to `NO_ESCAPE` goes on at its instance leaf's link.
         loop {
             c.node_bytes += 4;
-            let next = bvh.escapes[escape_index(node, oct)];
+            let next = escapes[escape_index(node, oct)];
             if next != NO_ESCAPE {
                 node = next;
                 break;
@@ -914,8 +916,8 @@ fn trace_ray_generic<T: TriangleTest>(
     match (k, bvh.is_instanced()) {
         (None, false) => full_stack::<T, false>(s, &mut best, &mut c, any, stack),
         (None, true) => full_stack::<T, true>(s, &mut best, &mut c, any, stack),
-        (Some(k), false) => short_stack::<T, false>(s, &mut best, &mut c, any, k),
-        (Some(k), true) => short_stack::<T, true>(s, &mut best, &mut c, any, k),
+        (Some(k), false) => short_stack::<T, false>(s, bvh.escapes(), &mut best, &mut c, any, k),
+        (Some(k), true) => short_stack::<T, true>(s, bvh.escapes(), &mut best, &mut c, any, k),
     }
     (best.into_hit(), c)
 }
@@ -926,9 +928,13 @@ pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, opts: &TraceOptions) -> (Hit, Counter
 }
 
 /// Traces a batch of rays as `opts` says on all threads of the current rayon pool; the
-/// counters are kept only when `opts.counters` is set. `wall_ms` is timed; `gpu_ms` is
-/// `None`.
+/// counters are kept only when `opts.counters` is set. `wall_ms` is timed (without the
+/// escape links' build, when this is their first use); `gpu_ms` is `None`.
 pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutput {
+    // The escape links' one-off build on first use is not the walks' time.
+    if opts.traversal.needs_escapes() && !rays.is_empty() {
+        bvh.escapes();
+    }
     let start = std::time::Instant::now();
     let stack = || Vec::with_capacity(bvh.depth as usize + 1);
     let (hits, counters) = if opts.traversal.is_wide() {

@@ -562,8 +562,10 @@ impl WideBvh {
     }
 
     /// Checks the structure against the binary tree it came from: every child box
-    /// contains its subtree's triangles (or instance leaf boxes), every triangle is in
-    /// exactly one leaf, the indices are in range. Returns the first violation.
+    /// contains its subtree's triangles (or instance leaf boxes; for an SBVH, whose leaves
+    /// may hold part of a triangle, the boxes holding a triangle cover it together), every
+    /// triangle slot is in exactly one leaf, the indices are in range. Returns the first
+    /// violation.
     pub fn check_invariants(&self, binary: &FlatBvh) -> Result<(), String> {
         if self.nodes.is_empty() {
             return if binary.nodes.is_empty() {
@@ -573,6 +575,7 @@ impl WideBvh {
             };
         }
         let mut seen_tri = vec![false; self.triangles.len()];
+        let mut coverage = crate::flat::Coverage::default();
         let mut seen_node = vec![false; self.nodes.len()];
         // Each node with the decoded boxes of the children on its path: every one of them
         // must contain what is below it (a child's box need not lie in its parent's:
@@ -643,15 +646,24 @@ impl WideBvh {
                     if std::mem::replace(&mut seen_tri[t as usize], true) {
                         return Err(format!("triangle slot {t} in two leaves"));
                     }
-                    if !covers(&Aabb::from_triangle(&tri.corners())) {
-                        return Err(format!("a box above node {i} slot {s} misses triangle {t}"));
-                    }
+                    // What of the triangle the boxes above it hold (all of it, but for an
+                    // SBVH's clipped references).
+                    let held = path
+                        .iter()
+                        .fold(Aabb::from_triangle(&tri.corners()), |h, p| Aabb {
+                            min: h.min.max(p.min),
+                            max: h.max.min(p.max),
+                        });
+                    coverage
+                        .add(&held, tri)
+                        .map_err(|e| format!("a box above node {i} slot {s}: {e} (slot {t})"))?;
                 }
             }
         }
         if let Some(t) = seen_tri.iter().position(|s| !s) {
             return Err(format!("triangle slot {t} is in no leaf"));
         }
+        coverage.finish()?;
         if !binary.is_instanced() && self.triangles.len() != binary.triangles.len() {
             return Err("triangle count differs from the binary tree's".into());
         }

@@ -19,8 +19,15 @@ proptest! {
             let opts = BuildOptions { builder: b, bins, max_leaf_size: leaf, ..Default::default() };
             let bvh = FlatBvh::build(&tris, &opts).unwrap();
             prop_assert_eq!(bvh.check_invariants(), Ok(()), "builder {}", b);
-            prop_assert!(bvh.nodes.len() < 2 * tris.len());
-            prop_assert!(bvh.depth <= depth_bound(tris.len(), &opts));
+            // One slot per triangle, but for the SBVH's references (within its budget).
+            let refs = bvh.triangles.len();
+            if b == BuilderKind::Sbvh {
+                prop_assert!(refs >= tris.len() && refs as f64 <= tris.len() as f64 * (1.0 + f64::from(opts.split_budget)));
+            } else {
+                prop_assert_eq!(refs, tris.len());
+            }
+            prop_assert!(bvh.nodes.len() < 2 * refs);
+            prop_assert!(bvh.depth <= depth_bound(refs, &opts));
             for n in &bvh.nodes {
                 prop_assert!((n.count() as usize) <= leaf);
             }
@@ -170,6 +177,40 @@ fn the_tree_does_not_depend_on_the_thread_count() {
             one == build_with(3),
             "{b}: trees differ between 1 and 3 threads"
         );
+    }
+}
+
+/// `FlatBvh::build` writes the flat layout straight from the recursion; laying out the
+/// boxed tree `build` returns must give the same nodes and triangles, including trees
+/// whose leaves hold several triangles (the slots they leave unused are compacted away).
+#[test]
+fn the_direct_flat_build_is_the_flattened_tree() {
+    let tris = random_soup(30_000, 11);
+    for b in BuilderKind::ALL {
+        for cost_traversal in [0.125, 1.0, 4.0] {
+            let opts = BuildOptions {
+                cost_traversal,
+                parallel_threshold: 1024,
+                ..BuildOptions::with_builder(b)
+            };
+            let direct = FlatBvh::build(&tris, &opts).unwrap();
+            let tree = bvhtrace_core::build(&tris, &opts).unwrap();
+            let laid_out = FlatBvh::flatten(&tree, &tris);
+            assert_eq!(
+                direct.nodes, laid_out.nodes,
+                "{b}, traversal cost {cost_traversal}"
+            );
+            assert_eq!(direct.triangles, laid_out.triangles, "{b}");
+            assert_eq!(direct.depth, laid_out.depth, "{b}");
+            assert_eq!(tree.node_count, direct.nodes.len(), "{b}");
+            direct.check_invariants().unwrap();
+            if cost_traversal > 1.0 {
+                assert!(
+                    direct.nodes.iter().any(|n| n.count() > 1),
+                    "{b}: no multi-triangle leaf"
+                );
+            }
+        }
     }
 }
 

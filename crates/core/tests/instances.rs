@@ -260,6 +260,8 @@ fn new_transforms_rebuild_the_top_level_in_place() {
     let (m, inst) = (meshes(), instances());
     let mut ib = InstancedBvh::build(&m, inst.clone(), &BuildOptions::default()).unwrap();
     let nodes_before = ib.bvh().nodes.len();
+    // Built escape links: the rebuild rewrites the top level's in place.
+    ib.bvh().escapes();
     let moved: Vec<Affine3A> = inst
         .iter()
         .enumerate()
@@ -267,6 +269,11 @@ fn new_transforms_rebuild_the_top_level_in_place() {
         .collect();
     ib.set_transforms(&moved).unwrap();
     assert_eq!(ib.bvh().nodes.len(), nodes_before);
+    assert!(ib.bvh().has_escapes());
+    assert_eq!(
+        ib.bvh().escapes(),
+        bvhtrace_core::flat::escape_links(&ib.bvh().nodes)
+    );
     ib.bvh().check_invariants().unwrap();
     let inst2: Vec<Instance> = inst
         .iter()

@@ -298,10 +298,9 @@ fn host_copy(ctx: &GpuContext, bvh: &FlatBvh, wide: Option<Arc<WideBvh>>) -> Opt
         .as_ref()
         .is_some_and(|w| wide_stack_may_overflow(w.depth));
     (ctx.tuning().finishes_on_cpu() || deep).then(|| {
-        Arc::new(FlatBvh {
-            wide: wide.or_else(|| bvh.wide.clone()),
-            ..bvh.clone()
-        })
+        let mut copy = bvh.clone();
+        copy.wide = wide.or_else(|| bvh.wide.clone());
+        Arc::new(copy)
     })
 }
 
@@ -528,7 +527,8 @@ fn view_entry(binding: u32, view: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_
 
 impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
-    /// `opts.traversals` needs them, as buffers or textures (`opts.storage`); with
+    /// `opts.traversals` needs them (built then if they are not yet, before the upload's
+    /// clock starts: [`FlatBvh::escapes`]), as buffers or textures (`opts.storage`); with
     /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide`, or `bvh` collapsed into
     /// it), in the same storage, and without a binary traversal listed only that. Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
@@ -574,7 +574,7 @@ impl GpuBvh {
                 check_texels(l, "node texels", 2 * n_nodes, 16)?;
                 check_texels(l, "triangle texels", 3 * n_tris, 16)?;
                 if with_escapes {
-                    check_texels(l, "escape texels", bvh.escapes.len() as u64, 4)?;
+                    check_texels(l, "escape texels", eb as u64 / 4, 4)?;
                 }
             }
         }
@@ -587,6 +587,12 @@ impl GpuBvh {
                 std::mem::size_of_val(bvh.instances.as_slice()) as u64,
             )?;
         }
+        // Only the walks that read the links build them (once, kept in `bvh`).
+        let escapes: &[u32] = if with_escapes && binary {
+            bvh.escapes()
+        } else {
+            &[]
+        };
         let start = Instant::now();
         let device = ctx.device();
         let layout_plain = ctx.bvh_layout(storage, false, instanced);
@@ -625,7 +631,7 @@ impl GpuBvh {
                     let triangles =
                         make("bvhtrace triangles", bytemuck::cast_slice(&bvh.triangles));
                     let escapes = with_escapes
-                        .then(|| make("bvhtrace escapes", bytemuck::cast_slice(&bvh.escapes)));
+                        .then(|| make("bvhtrace escapes", bytemuck::cast_slice(escapes)));
                     let mut plain_entries =
                         vec![buffer_entry(0, &nodes), buffer_entry(1, &triangles)];
                     plain_entries.extend(instances.as_ref().map(|b| buffer_entry(4, b)));
@@ -676,7 +682,7 @@ impl GpuBvh {
                             "bvhtrace escape texels",
                             wgpu::TextureFormat::R32Uint,
                             1,
-                            bvh.escapes.clone(),
+                            escapes.to_vec(),
                         )
                     });
                     let nv = nodes.create_view(&Default::default());
@@ -887,9 +893,14 @@ impl GpuBvh {
         // Whole blocks of escape links hold the top level's (the last one may hold a
         // mesh's too: they are written with their current, unchanged values).
         let top_links = top.div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS;
-        let (nodes, links) = match what {
-            Update::Everything => (bvh.nodes.as_slice(), bvh.escapes.as_slice()),
-            Update::TopLevel => (&bvh.nodes[..top], &bvh.escapes[..top_links]),
+        let nodes = match what {
+            Update::Everything => bvh.nodes.as_slice(),
+            Update::TopLevel => &bvh.nodes[..top],
+        };
+        // Read (and built, if they are not yet) only when the upload carries them.
+        let links = || match what {
+            Update::Everything => bvh.escapes(),
+            Update::TopLevel => &bvh.escapes()[..top_links],
         };
         let wide = self
             .wide
@@ -908,7 +919,7 @@ impl GpuBvh {
                 }) => {
                     queue.write_buffer(nb, 0, bytemuck::cast_slice(nodes));
                     if let Some(e) = escapes {
-                        queue.write_buffer(e, 0, bytemuck::cast_slice(links));
+                        queue.write_buffer(e, 0, bytemuck::cast_slice(links()));
                     }
                     if what == Update::Everything {
                         queue.write_buffer(triangles, 0, bytemuck::cast_slice(&bvh.triangles));
@@ -921,7 +932,7 @@ impl GpuBvh {
                 }) => {
                     write_texels(&self.ctx, nt, 4, node_texels(&bvh.nodes));
                     if let Some(e) = escapes {
-                        write_texels(&self.ctx, e, 1, bvh.escapes.clone());
+                        write_texels(&self.ctx, e, 1, bvh.escapes().to_vec());
                     }
                     if what == Update::Everything {
                         let tris: &[u32] = bytemuck::cast_slice(&bvh.triangles);
@@ -952,10 +963,9 @@ impl GpuBvh {
                 .as_ref()
                 .is_some_and(|w| wide_stack_may_overflow(w.depth));
         self.host_copy = keep.then(|| {
-            Arc::new(FlatBvh {
-                wide,
-                ..bvh.clone()
-            })
+            let mut copy = bvh.clone();
+            copy.wide = wide;
+            Arc::new(copy)
         });
         self.depth = bvh.depth;
         Ok(())

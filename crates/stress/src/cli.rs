@@ -3,6 +3,7 @@
 use std::io::Write;
 
 use anyhow::{Context, Result, bail};
+use bvhtrace_core::BuilderKind;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -32,11 +33,22 @@ pub struct StressArgs {
     /// List the case groups and exit.
     #[arg(long)]
     pub list: bool,
+    /// Optimise every case's trees by reinsertion (`BuildOptions::optimize`) before
+    /// tracing.
+    #[arg(long)]
+    pub optimize: bool,
+    /// Build every case's BVH with this builder (`sah`, `sweep-sah`, `median`, `midpoint`,
+    /// `sbvh`); a case that picks its own (the deep midpoint chain) keeps it. Default:
+    /// each case's own (binned SAH).
+    #[arg(long, value_name = "NAME")]
+    pub builder: Option<BuilderKind>,
 }
 
 #[derive(Serialize)]
 struct JsonReport<'a> {
     size: Size,
+    optimize: bool,
+    builder: Option<String>,
     backends: Vec<String>,
     gpu: Option<String>,
     gpu_note: Option<String>,
@@ -102,12 +114,28 @@ pub fn run(args: StressArgs) -> Result<()> {
         }
         writeln!(out, "SKIP vk: {note}")?;
     }
-    let cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
+    let mut cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
+    for c in &mut cases {
+        c.build.optimize |= args.optimize;
+        // Only the cases built with the default builder: a deliberate choice stays.
+        if let Some(b) = args.builder
+            && c.build.builder == BuilderKind::default()
+        {
+            c.build.builder = b;
+        }
+    }
     writeln!(
         out,
-        "bvhtrace stress: {} cases ({:?} size), backends: {}{}{}",
+        "bvhtrace stress: {} cases ({:?} size{}{}), backends: {}{}{}",
         cases.len(),
         size,
+        if args.optimize {
+            ", optimised trees"
+        } else {
+            ""
+        },
+        args.builder
+            .map_or(String::new(), |b| format!(", builder {b}")),
         if cpu { "cpu " } else { "" },
         backends
             .gpu_name()
@@ -149,6 +177,8 @@ pub fn run(args: StressArgs) -> Result<()> {
     if let Some(path) = &args.json {
         let j = JsonReport {
             size,
+            optimize: args.optimize,
+            builder: args.builder.map(|b| b.name().to_string()),
             backends: args.backends.clone(),
             gpu: backends.gpu_name(),
             gpu_note: backends.gpu_note.clone(),

@@ -328,8 +328,9 @@ fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, Tra
 }
 
 impl VkBvh {
-    /// Uploads `bvh`'s nodes, triangles and escape links to device-local storage buffers
-    /// (through one host-visible staging buffer), so that every traversal can run on it;
+    /// Uploads `bvh`'s nodes, triangles and escape links (built first when they are not
+    /// yet: [`FlatBvh::escapes`]) to device-local storage buffers (through one host-visible
+    /// staging buffer), so that every traversal can run on it;
     /// and its wide layout when it has one (`bvh.wide`: [`FlatBvh::build_wide`] before the
     /// upload), for [`Traversal::Wide`]. An empty tree is [`TraceError::EmptyBvh`], escape
     /// links that do not fit the nodes [`TraceError::BadEscapeLinks`]; each array is
@@ -342,6 +343,8 @@ impl VkBvh {
     /// ([`bvhtrace_kernels::wide_stack_may_overflow`]), the upload keeps a host copy of the
     /// tree for that.
     pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, TraceError> {
+        // Built (when not yet) before the clock starts, as the wgpu upload does.
+        let escapes = bvh.escapes();
         let start = Instant::now();
         if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
             return Err(TraceError::EmptyBvh);
@@ -360,7 +363,7 @@ impl VkBvh {
         let mut arrays: Vec<(&'static str, &[u8])> = vec![
             ("nodes", bytemuck::cast_slice(&bvh.nodes)),
             ("triangles", bytemuck::cast_slice(&bvh.triangles)),
-            ("escapes", bytemuck::cast_slice(&bvh.escapes)),
+            ("escapes", bytemuck::cast_slice(escapes)),
             ("instances", bytemuck::cast_slice(instances)),
         ];
         if let Some(w) = &wide {
@@ -517,13 +520,13 @@ impl VkBvh {
                 (self.nodes.raw, bytemuck::cast_slice(&bvh.nodes[..top])),
                 (
                     self.escapes.raw,
-                    bytemuck::cast_slice(&bvh.escapes[..links]),
+                    bytemuck::cast_slice(&bvh.escapes()[..links]),
                 ),
             ]
         } else {
             vec![
                 (self.nodes.raw, bytemuck::cast_slice(&bvh.nodes)),
-                (self.escapes.raw, bytemuck::cast_slice(&bvh.escapes)),
+                (self.escapes.raw, bytemuck::cast_slice(bvh.escapes())),
                 (self.triangles.raw, bytemuck::cast_slice(&bvh.triangles)),
             ]
         };
@@ -585,10 +588,9 @@ impl VkBvh {
             self.stats.instances_bytes = binary(bytemuck::cast_slice(&bvh.instances)) + i;
         }
         self.host_copy = keeps_host_copy(&self.ctx, wide.as_deref()).then(|| {
-            Arc::new(FlatBvh {
-                wide: wide.clone().or_else(|| bvh.wide.clone()),
-                ..bvh.clone()
-            })
+            let mut copy = bvh.clone();
+            copy.wide = wide.clone().or_else(|| bvh.wide.clone());
+            Arc::new(copy)
         });
         self.depth = bvh.depth;
         Ok(())

@@ -303,13 +303,8 @@ fn errors_are_errors_not_panics() {
     let limit = ctx.limits().max_storage_buffer_binding_size;
     if limit <= 256 << 20 {
         let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
-        let huge = FlatBvh {
-            nodes: deep.nodes.clone(),
-            escapes: deep.escapes.clone(),
-            triangles: vec![bytemuck::Zeroable::zeroed(); n],
-            depth: deep.depth,
-            ..Default::default()
-        };
+        let mut huge = deep.clone();
+        huge.triangles = vec![bytemuck::Zeroable::zeroed(); n];
         match VkBvh::upload(&ctx, &huge) {
             Err(e @ TraceError::TooLarge { .. }) => {
                 let msg = e.to_string();
@@ -324,7 +319,7 @@ fn errors_are_errors_not_panics() {
     }
     // Escape links that do not match the nodes are refused, saying how to make them.
     let mut unlinked = deep.clone();
-    unlinked.escapes.truncate(8);
+    unlinked.escapes_mut().truncate(8);
     match VkBvh::upload(&ctx, &unlinked) {
         Err(
             e @ TraceError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
@@ -337,12 +332,7 @@ fn errors_are_errors_not_panics() {
         other => panic!("expected BadEscapeLinks, got {other:?}"),
     }
     // An empty tree is refused.
-    let nothing = FlatBvh {
-        nodes: Vec::new(),
-        escapes: Vec::new(),
-        triangles: Vec::new(),
-        ..Default::default()
-    };
+    let nothing = FlatBvh::default();
     match VkBvh::upload(&ctx, &nothing) {
         Err(TraceError::EmptyBvh) => {}
         other => panic!("expected EmptyBvh, got {other:?}"),
@@ -648,7 +638,7 @@ fn tracer_interface_matches_the_cpu() {
         vk.stats().total_bytes(),
         (std::mem::size_of_val(&bvh.nodes[..])
             + std::mem::size_of_val(&bvh.triangles[..])
-            + std::mem::size_of_val(&bvh.escapes[..])) as u64
+            + std::mem::size_of_val(bvh.escapes())) as u64
     );
     for query in [Query::Closest, Query::Any] {
         let opts = TraceOptions::new(tracers[0].default_traversal(), query).with_counters(true);

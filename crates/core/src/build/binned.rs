@@ -1,10 +1,10 @@
 //! Binned SAH (Wald 2007; PBRT-v4's `BVHAggregate`): bin centroids along each axis,
-//! sweep the bin boundaries, partition at the cheapest. The bins also carry centroid
-//! bounds, so the children's boxes come out of the sweep without another pass.
+//! sweep the bin boundaries, partition at the cheapest. The children's boxes come out of
+//! the bins and their centroid bounds out of the partition, so no other pass is needed.
 
 use glam::Vec3A;
 
-use super::{BuildOptions, PrimRef, Split, partition, split_cost};
+use super::{BuildOptions, PrimRef, Split, split_weight};
 use crate::geometry::Aabb;
 
 const MAX_BINS: usize = 256;
@@ -44,53 +44,113 @@ impl BoxA {
     }
 }
 
+/// One bin: the box around its refs, and how many there are.
 #[derive(Clone, Copy)]
 struct Bin {
-    bounds: BoxA,
-    centroids: BoxA,
+    min: Vec3A,
+    max: Vec3A,
     count: u32,
 }
 
-const EMPTY_BIN: Bin = Bin {
-    bounds: BoxA::EMPTY,
-    centroids: BoxA::EMPTY,
-    count: 0,
-};
+/// The bins of all three axes, `bins[axis * count + k]`. Only boxes and counts are
+/// binned; the children's centroid bounds come out of the partition pass.
+#[derive(Clone)]
+struct Bins(Vec<Bin>);
 
-/// Bin index of a centroid coordinate. Used for binning and for partitioning, so both
-/// agree exactly.
-#[inline(always)]
-fn bin_of(c: f32, lo: f32, scale: f32, bins: usize) -> usize {
-    (((c - lo) * scale) as usize).min(bins - 1)
-}
-
-/// Bins of all three axes in one pass (`out[axis * bins + k]`).
-fn bin_refs(refs: &[PrimRef], cb: &Aabb, scale: [f32; 3], bins: usize) -> Vec<Bin> {
-    let mut out = vec![EMPTY_BIN; 3 * bins];
-    for r in refs {
-        let b = BoxA {
-            min: r.min.into(),
-            max: r.max.into(),
+impl Bins {
+    fn new(bins: usize) -> Bins {
+        let empty = Bin {
+            min: Vec3A::INFINITY,
+            max: Vec3A::NEG_INFINITY,
+            count: 0,
         };
-        let c = (b.min + b.max) * 0.5;
-        let cbox = BoxA { min: c, max: c };
-        for a in 0..3 {
-            if scale[a] > 0.0 {
-                let k = bin_of(c[a], cb.min[a], scale[a], bins);
-                let bin = &mut out[a * bins + k];
-                bin.bounds = bin.bounds.union(b);
-                bin.centroids = bin.centroids.union(cbox);
-                bin.count += 1;
-            }
-        }
+        Bins(vec![empty; 3 * bins])
     }
-    out
+    fn box_of(&self, range: std::ops::Range<usize>) -> BoxA {
+        let mut b = BoxA::EMPTY;
+        for x in &self.0[range] {
+            b = b.union(BoxA {
+                min: x.min,
+                max: x.max,
+            });
+        }
+        b
+    }
 }
 
-fn merge(mut a: Vec<Bin>, b: Vec<Bin>) -> Vec<Bin> {
-    for (x, y) in a.iter_mut().zip(b) {
-        x.bounds = x.bounds.union(y.bounds);
-        x.centroids = x.centroids.union(y.centroids);
+/// Where centroids fall: bin `k` along an axis holds `(c - lo) * scale` in `[k, k + 1)`,
+/// the last bin also everything beyond.
+#[derive(Clone, Copy)]
+struct Binning {
+    lo: Vec3A,
+    scale: Vec3A,
+    last: Vec3A,
+}
+
+impl Binning {
+    /// The bin of a ref along every axis. Binning and partitioning both call this, so
+    /// they agree exactly.
+    #[inline(always)]
+    fn of(&self, min: Vec3A, max: Vec3A) -> [usize; 3] {
+        let c = (min + max) * 0.5;
+        // `max` then `min` put every lane in [0, bins - 1] and turn a NaN (a subnormal
+        // extent's 0 * inf) into 0: SSE's max returns its second operand for a NaN.
+        let k = ((c - self.lo) * self.scale).max(Vec3A::ZERO).min(self.last);
+        [truncate(k.x), truncate(k.y), truncate(k.z)]
+    }
+
+    /// [`Binning::of`] along one axis only, with the same arithmetic lane by lane.
+    #[inline(always)]
+    fn of_axis(&self, min: f32, max: f32, axis: usize) -> usize {
+        let c = (min + max) * 0.5;
+        let k = Vec3A::splat((c - self.lo[axis]) * self.scale[axis]);
+        truncate(k.max(Vec3A::ZERO).min(self.last).x)
+    }
+}
+
+/// `k as usize` for a `k` known to be in `[0, 255]`, without the saturating cast's checks.
+#[inline(always)]
+fn truncate(k: f32) -> usize {
+    debug_assert!((0.0..256.0).contains(&k));
+    // SAFETY: `Binning` clamps every value to [0, bins - 1] (bins <= 256) and maps NaN to
+    // 0, so the value is finite and fits an i32.
+    unsafe { k.to_int_unchecked::<i32>() as usize }
+}
+
+/// Bins the refs of all three axes in one pass. Alternate refs go to two sets of bins,
+/// merged at the end: neighbouring refs often fall in the same bin, and one set would
+/// make each update wait for the previous one.
+fn bin_refs(refs: &[PrimRef], at: &Binning, bins: usize) -> Bins {
+    let mut out = [Bins::new(bins), Bins::new(bins)];
+    let add = |out: &mut Bins, r: &PrimRef| {
+        let (min, max) = (Vec3A::from(r.min), Vec3A::from(r.max));
+        let k = at.of(min, max);
+        for (a, k) in k.into_iter().enumerate() {
+            debug_assert!(k < bins);
+            // SAFETY: `Binning::of` gives k <= bins - 1, so the index is below 3 * bins,
+            // the length. This loop is the builder's hottest: no bounds checks here.
+            let b = unsafe { out.0.get_unchecked_mut(a * bins + k) };
+            b.min = b.min.min(min);
+            b.max = b.max.max(max);
+            b.count += 1;
+        }
+    };
+    let mut pairs = refs.chunks_exact(2);
+    for p in &mut pairs {
+        add(&mut out[0], &p[0]);
+        add(&mut out[1], &p[1]);
+    }
+    for r in pairs.remainder() {
+        add(&mut out[0], r);
+    }
+    let [a, b] = out;
+    merge(a, b)
+}
+
+fn merge(mut a: Bins, b: Bins) -> Bins {
+    for (x, y) in a.0.iter_mut().zip(b.0) {
+        x.min = x.min.min(y.min);
+        x.max = x.max.max(y.max);
         x.count += y.count;
     }
     a
@@ -114,14 +174,19 @@ pub(super) fn split(
             0.0
         }
     });
+    let at = Binning {
+        lo: cb.min.into(),
+        scale: Vec3A::from_array(scale),
+        last: Vec3A::splat((bins - 1) as f32),
+    };
     // Integer counts and min/max are exact under any reduction order: deterministic.
     let binned = if parallel && n >= 32 * 1024 {
         use rayon::prelude::*;
         refs.par_chunks(8 * 1024)
-            .map(|ch| bin_refs(ch, cb, scale, bins))
-            .reduce(|| vec![EMPTY_BIN; 3 * bins], merge)
+            .map(|ch| bin_refs(ch, &at, bins))
+            .reduce(|| Bins::new(bins), merge)
     } else {
-        bin_refs(refs, cb, scale, bins)
+        bin_refs(refs, &at, bins)
     };
 
     let area = bounds.surface_area();
@@ -131,50 +196,91 @@ pub(super) fn split(
         if scale[a] == 0.0 {
             continue;
         }
-        let bin = &binned[a * bins..(a + 1) * bins];
+        let o = a * bins;
         // Suffix areas, then a prefix sweep.
         let mut acc = BoxA::EMPTY;
         for k in (1..bins).rev() {
-            acc = acc.union(bin[k].bounds);
+            let b = &binned.0[o + k];
+            acc = acc.union(BoxA {
+                min: b.min,
+                max: b.max,
+            });
             right_area[k] = acc.area();
         }
         let mut left = BoxA::EMPTY;
         let mut n_l = 0usize;
         for k in 0..bins - 1 {
-            left = left.union(bin[k].bounds);
-            n_l += bin[k].count as usize;
+            let b = &binned.0[o + k];
+            left = left.union(BoxA {
+                min: b.min,
+                max: b.max,
+            });
+            n_l += b.count as usize;
             let n_r = n - n_l;
             if n_l == 0 || n_r == 0 {
                 continue;
             }
-            let cost = split_cost(opts, area, n_l, left.area(), n_r, right_area[k + 1]);
-            if cost < best.0 {
-                best = (cost, a, k);
+            let w = split_weight(n_l, left.area(), n_r, right_area[k + 1]);
+            if w < best.0 {
+                best = (w, a, k);
             }
         }
     }
-    let (cost, axis, k) = best;
+    let (w, axis, k) = best;
+    let cost = opts.cost_traversal + opts.cost_intersection * w / area;
     if !cost.is_finite() {
         return Split::Leaf;
     }
     if n <= opts.max_leaf_size && cost >= opts.cost_intersection * n as f32 {
         return Split::Leaf;
     }
-    let (lo, s) = (cb.min[axis], scale[axis]);
-    let mid = partition(refs, |r| bin_of(r.centroid()[axis], lo, s, bins) <= k);
+    let (mid, centroids) = partition(refs, |r| at.of_axis(r.min[axis], r.max[axis], axis) <= k);
     if mid == 0 || mid == n {
         return super::median_split(refs, axis);
     }
-    let bin = &binned[axis * bins..(axis + 1) * bins];
-    let side = |range: &[Bin]| {
-        let (b, c) = range.iter().fold((BoxA::EMPTY, BoxA::EMPTY), |(b, c), x| {
-            (b.union(x.bounds), c.union(x.centroids))
-        });
-        (b.aabb(), c.aabb())
-    };
+    let o = axis * bins;
     Split::Known {
         axis,
         mid,
-        children: [side(&bin[..=k]), side(&bin[k + 1..])],
+        children: [
+            (binned.box_of(o..o + k + 1).aabb(), centroids[0]),
+            (binned.box_of(o + k + 1..o + bins).aabb(), centroids[1]),
+        ],
     }
+}
+
+/// In-place partition (Hoare's: each misplaced pair swapped once): refs satisfying `left`
+/// first. Returns their count and both sides' centroid bounds, gathered on the way.
+fn partition(refs: &mut [PrimRef], left: impl Fn(&PrimRef) -> bool) -> (usize, [Aabb; 2]) {
+    let mut c = [BoxA::EMPTY; 2];
+    let centre = |r: &PrimRef| {
+        let (min, max) = (Vec3A::from(r.min), Vec3A::from(r.max));
+        ((min + max) * 0.5, left(r))
+    };
+    let (mut i, mut j) = (0, refs.len());
+    loop {
+        // Skip what is already on its side.
+        while i < j {
+            let (p, l) = centre(&refs[i]);
+            if !l {
+                break;
+            }
+            c[0] = c[0].union(BoxA { min: p, max: p });
+            i += 1;
+        }
+        while i < j {
+            let (p, l) = centre(&refs[j - 1]);
+            if l {
+                break;
+            }
+            c[1] = c[1].union(BoxA { min: p, max: p });
+            j -= 1;
+        }
+        if i + 1 >= j {
+            break;
+        }
+        // refs[i] belongs right and refs[j - 1] left.
+        refs.swap(i, j - 1);
+    }
+    (i, c.map(BoxA::aabb))
 }

@@ -7,6 +7,10 @@
 //! whatever the thread count.
 
 mod binned;
+mod recursion;
+pub mod reinsert;
+mod sbvh;
+mod small;
 mod sweep;
 
 use std::fmt;
@@ -14,6 +18,7 @@ use std::str::FromStr;
 
 use glam::Vec3;
 
+use crate::flat::{FlatBvh, FlatNode};
 use crate::geometry::Aabb;
 use crate::mesh::{MeshError, Triangle, validate_triangles};
 
@@ -29,15 +34,21 @@ pub enum BuilderKind {
     Median,
     /// Split at the middle of the widest centroid range.
     Midpoint,
+    /// Spatial-split BVH (Stich et al. 2009): binned SAH over references that may be
+    /// clipped at a split plane, so that a triangle can sit in several leaves (at most
+    /// `split_budget` more references than triangles). The lowest SAH on scenes with large
+    /// or long triangles; slower to build. Over boxes ([`build_boxes`]) it is binned SAH.
+    Sbvh,
 }
 
 impl BuilderKind {
     /// Every builder, in the order reports list them.
-    pub const ALL: [BuilderKind; 4] = [
+    pub const ALL: [BuilderKind; 5] = [
         BuilderKind::Sah,
         BuilderKind::SweepSah,
         BuilderKind::Median,
         BuilderKind::Midpoint,
+        BuilderKind::Sbvh,
     ];
 
     /// The name used on the command line.
@@ -47,6 +58,7 @@ impl BuilderKind {
             BuilderKind::SweepSah => "sweep-sah",
             BuilderKind::Median => "median",
             BuilderKind::Midpoint => "midpoint",
+            BuilderKind::Sbvh => "sbvh",
         }
     }
 }
@@ -64,7 +76,7 @@ impl FromStr for BuilderKind {
             .into_iter()
             .find(|b| b.name() == s)
             .ok_or_else(|| {
-                format!("unknown builder '{s}' (expected sah, sweep-sah, median or midpoint)")
+                format!("unknown builder '{s}' (expected sah, sweep-sah, median, midpoint or sbvh)")
             })
     }
 }
@@ -87,6 +99,14 @@ pub struct BuildOptions {
     pub max_depth: usize,
     /// Nodes with at least this many primitives build their two children in parallel.
     pub parallel_threshold: usize,
+    /// Optimise the built tree by reinsertion ([`reinsert`]: Bittner et al. 2013), which
+    /// lowers its SAH cost at some build time; off by default.
+    pub optimize: bool,
+    /// [`BuilderKind::Sbvh`] only: how many references beyond one per triangle spatial
+    /// splits may add, as a fraction of the triangle count (0..=16; 0.3 by default, as
+    /// Embree and tinybvh allow about). The reference array is allocated once at
+    /// `(1 + split_budget) n` and never grows.
+    pub split_budget: f32,
 }
 
 impl Default for BuildOptions {
@@ -99,11 +119,40 @@ impl Default for BuildOptions {
             max_leaf_size: 8,
             max_depth: 64,
             parallel_threshold: 4096,
+            optimize: false,
+            split_budget: 0.3,
         }
     }
 }
 
 impl BuildOptions {
+    /// Checks that every option is in range (what [`build`] checks first).
+    pub fn validate(&self) -> Result<(), BuildError> {
+        if !(2..=256).contains(&self.bins) {
+            return Err(BuildError::Options(format!(
+                "bins must be in 2..=256, got {}",
+                self.bins
+            )));
+        }
+        if self.max_leaf_size == 0 {
+            return Err(BuildError::Options(
+                "max_leaf_size must be at least 1".into(),
+            ));
+        }
+        if !(self.cost_traversal >= 0.0 && self.cost_intersection > 0.0) {
+            return Err(BuildError::Options(
+                "costs must be finite, traversal >= 0, intersection > 0".into(),
+            ));
+        }
+        if !(0.0..=16.0).contains(&self.split_budget) {
+            return Err(BuildError::Options(format!(
+                "split_budget must be in 0..=16, got {}",
+                self.split_budget
+            )));
+        }
+        Ok(())
+    }
+
     /// Default options with another builder.
     pub fn with_builder(builder: BuilderKind) -> Self {
         BuildOptions {
@@ -145,15 +194,17 @@ impl BuildNode {
     }
 }
 
-/// The builder's output: a tree whose leaves index `prim_order`, a permutation of the
-/// input primitives in which every leaf is a contiguous range.
+/// The builder's output: a tree whose leaves index `prim_order`, the input primitives in
+/// leaf order, every leaf a contiguous range.
 #[derive(Clone, Debug)]
 pub struct BuildTree {
     /// The root node.
     pub root: BuildNode,
-    /// The permutation of the input primitives the leaves index into.
+    /// The input primitives' indices the leaves index into: a permutation, except for
+    /// [`BuilderKind::Sbvh`], whose references may name a primitive several times (each
+    /// at least once; a leaf's box then holds the part of the triangle in that leaf).
     pub prim_order: Vec<u32>,
-    /// Number of nodes (at most `2 n - 1`).
+    /// Number of nodes (at most `2 r - 1` for `r` references).
     pub node_count: usize,
 }
 
@@ -170,9 +221,6 @@ pub enum BuildError {
     #[error("invalid build options: {0}")]
     Options(String),
 }
-
-/// Nodes up to this size use the exact sweep in the binned builder.
-const SMALL_NODE: usize = 24;
 
 /// What the recursion keeps per primitive: its box and its original index.
 #[derive(Clone, Copy, Debug)]
@@ -240,7 +288,14 @@ pub(crate) fn split_cost(
     n_r: usize,
     a_r: f32,
 ) -> f32 {
-    opts.cost_traversal + opts.cost_intersection * (n_l as f32 * a_l + n_r as f32 * a_r) / node_area
+    opts.cost_traversal + opts.cost_intersection * split_weight(n_l, a_l, n_r, a_r) / node_area
+}
+
+/// The part of [`split_cost`] that differs between a node's candidate splits: the sweeps
+/// compare it, which orders them as the cost does without a division per candidate.
+#[inline(always)]
+pub(crate) fn split_weight(n_l: usize, a_l: f32, n_r: usize, a_r: f32) -> f32 {
+    n_l as f32 * a_l + n_r as f32 * a_r
 }
 
 /// Splits at the object median along `axis` (ties broken by primitive index, so the
@@ -332,151 +387,123 @@ pub(crate) fn partition(refs: &mut [PrimRef], pred: impl Fn(&PrimRef) -> bool) -
 /// Builds a BVH over triangles (validated first: a NaN or infinite corner is an error
 /// naming the triangle).
 pub fn build(tris: &[Triangle], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
-    validate_triangles(tris)?;
-    build_refs(
-        tris.iter()
-            .enumerate()
-            .map(|(i, t)| {
-                let b = Aabb::from_triangle(t);
-                PrimRef {
-                    min: b.min,
-                    index: i as u32,
-                    max: b.max,
-                }
-            })
-            .collect(),
-        opts,
-    )
+    validate(tris)?;
+    if opts.builder == BuilderKind::Sbvh {
+        // References change during an SBVH build: it has its own recursion.
+        return Ok(reinsert::finish(sbvh::build(tris, opts)?, opts));
+    }
+    let (nodes, prim_order) = build_refs(triangle_refs(tris), opts)?;
+    Ok(reinsert::finish(tree_of(&nodes.nodes, prim_order), opts))
 }
 
-/// Builds a BVH over boxes, as [`build`] does over triangles' boxes: the top level over
-/// instances. The boxes must be finite (an instance's box is).
-pub fn build_boxes(boxes: &[Aabb], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
-    build_refs(
-        boxes
-            .iter()
-            .enumerate()
-            .map(|(i, b)| PrimRef {
+/// Builds a BVH over triangles straight into the flat layout: the tree [`build`] gives,
+/// laid out as [`FlatBvh::flatten`] would, without the boxed tree in between.
+pub(crate) fn build_flat(tris: &[Triangle], opts: &BuildOptions) -> Result<FlatBvh, BuildError> {
+    if opts.optimize || opts.builder == BuilderKind::Sbvh {
+        // The optimiser works on the boxed tree, and so does the SBVH.
+        return Ok(FlatBvh::flatten(&build(tris, opts)?, tris));
+    }
+    validate(tris)?;
+    let (slots, prim_order) = build_refs(triangle_refs(tris), opts)?;
+    Ok(FlatBvh::from_nodes(
+        slots.nodes,
+        slots.depth,
+        &prim_order,
+        tris,
+    ))
+}
+
+/// [`validate_triangles`], with the common case (every corner finite) checked in
+/// parallel; the sequential pass then only names the first bad triangle.
+fn validate(tris: &[Triangle]) -> Result<(), MeshError> {
+    use rayon::prelude::*;
+    let finite = tris
+        .par_iter()
+        .with_min_len(4096)
+        .all(|t| t.iter().all(|p| p.is_finite()));
+    if finite && tris.len() <= crate::flat::MAX_PRIMITIVES {
+        Ok(())
+    } else {
+        validate_triangles(tris)
+    }
+}
+
+fn triangle_refs(tris: &[Triangle]) -> Vec<PrimRef> {
+    use rayon::prelude::*;
+    tris.par_iter()
+        .with_min_len(4096)
+        .enumerate()
+        .map(|(i, t)| {
+            let b = Aabb::from_triangle(t);
+            PrimRef {
                 min: b.min,
                 index: i as u32,
                 max: b.max,
-            })
-            .collect(),
-        opts,
-    )
+            }
+        })
+        .collect()
 }
 
-fn build_refs(mut refs: Vec<PrimRef>, opts: &BuildOptions) -> Result<BuildTree, BuildError> {
+/// Builds a BVH over boxes, as [`build`] does over triangles' boxes: the top level over
+/// instances. The boxes must be finite (an instance's box is). [`BuilderKind::Sbvh`]
+/// builds binned SAH here: there is no triangle to clip a box's reference to.
+pub fn build_boxes(boxes: &[Aabb], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
+    let refs = boxes
+        .iter()
+        .enumerate()
+        .map(|(i, b)| PrimRef {
+            min: b.min,
+            index: i as u32,
+            max: b.max,
+        })
+        .collect();
+    let (nodes, prim_order) = build_refs(refs, opts)?;
+    Ok(reinsert::finish(tree_of(&nodes.nodes, prim_order), opts))
+}
+
+/// Checks the options, then builds the flat nodes over `refs`; returns them with the
+/// primitive order their leaves index.
+fn build_refs(
+    mut refs: Vec<PrimRef>,
+    opts: &BuildOptions,
+) -> Result<(recursion::Slots, Vec<u32>), BuildError> {
     if refs.is_empty() {
         return Err(BuildError::Empty);
     }
-    if !(2..=256).contains(&opts.bins) {
-        return Err(BuildError::Options(format!(
-            "bins must be in 2..=256, got {}",
-            opts.bins
-        )));
-    }
-    if opts.max_leaf_size == 0 {
-        return Err(BuildError::Options(
-            "max_leaf_size must be at least 1".into(),
-        ));
-    }
-    if !(opts.cost_traversal >= 0.0 && opts.cost_intersection > 0.0) {
-        return Err(BuildError::Options(
-            "costs must be finite, traversal >= 0, intersection > 0".into(),
-        ));
-    }
+    opts.validate()?;
     let (bounds, cb) = bounds_of(&refs, true);
-    let (root, node_count) = recurse(&mut refs, 0, 0, opts, bounds, cb);
-    let prim_order = refs.iter().map(|r| r.index).collect();
-    Ok(BuildTree {
-        root,
-        prim_order,
-        node_count,
-    })
+    let slots = recursion::build_nodes(&mut refs, opts, bounds, cb);
+    let prim_order = {
+        use rayon::prelude::*;
+        refs.par_iter()
+            .with_min_len(4096)
+            .map(|r| r.index)
+            .collect()
+    };
+    Ok((slots, prim_order))
 }
 
-/// Builds the subtree over `refs`, whose first element sits at `offset` in the final
-/// primitive order. Returns the subtree and its node count.
-fn recurse(
-    refs: &mut [PrimRef],
-    offset: usize,
-    depth: usize,
-    opts: &BuildOptions,
-    bounds: Aabb,
-    cb: Aabb,
-) -> (BuildNode, usize) {
-    let n = refs.len();
-    let parallel = n >= opts.parallel_threshold;
-    let leaf = BuildNode::Leaf {
-        bounds,
-        first: offset as u32,
-        count: n as u32,
-    };
-    if n == 1 {
-        return (leaf, 1);
-    }
-    let degenerate = cb.extent().max_element() <= 0.0;
-    let split = if degenerate || depth >= opts.max_depth {
-        // Every centroid is the same point, or we are deep enough that only a balanced
-        // split keeps the depth bounded.
-        if n <= opts.max_leaf_size {
-            Split::Leaf
+/// The boxed tree of flat nodes (depth-first, first child next).
+fn tree_of(nodes: &[FlatNode], prim_order: Vec<u32>) -> BuildTree {
+    fn node(nodes: &[FlatNode], i: usize) -> BuildNode {
+        let n = &nodes[i];
+        if n.is_leaf() {
+            BuildNode::Leaf {
+                bounds: n.aabb(),
+                first: n.right_or_first,
+                count: n.count(),
+            }
         } else {
-            median_split(refs, cb.longest_axis())
+            BuildNode::Interior {
+                bounds: n.aabb(),
+                axis: n.axis() as u8,
+                children: Box::new([node(nodes, i + 1), node(nodes, n.right_or_first as usize)]),
+            }
         }
-    } else {
-        match opts.builder {
-            // Small nodes: the exact sweep costs less than initialising and sweeping the
-            // bins, and is at least as good.
-            BuilderKind::Sah if n <= SMALL_NODE => sweep::split(refs, &bounds, &cb, opts),
-            BuilderKind::Sah => binned::split(refs, &bounds, &cb, opts, parallel),
-            BuilderKind::SweepSah => sweep::split(refs, &bounds, &cb, opts),
-            BuilderKind::Median => median_builder_split(refs, &cb, opts, &bounds),
-            BuilderKind::Midpoint => midpoint_split(refs, &cb, opts, &bounds),
-        }
-    };
-    let split = match split {
-        Split::Leaf if n <= opts.max_leaf_size => return (leaf, 1),
-        // The strategy found nothing that pays but the node is too big for a leaf.
-        Split::Leaf => median_split(refs, cb.longest_axis()),
-        s => s,
-    };
-    let (axis, mid, [lb, rb]) = match split {
-        Split::Known {
-            axis,
-            mid,
-            children,
-        } => (axis, mid, children),
-        Split::At { axis, mid } => (
-            axis,
-            mid,
-            [
-                bounds_of(&refs[..mid], parallel),
-                bounds_of(&refs[mid..], parallel),
-            ],
-        ),
-        Split::Leaf => unreachable!("median_split always splits"),
-    };
-    debug_assert!(mid > 0 && mid < n);
-    let (left, right) = refs.split_at_mut(mid);
-    let ((l, nl), (r, nr)) = if parallel {
-        rayon::join(
-            || recurse(left, offset, depth + 1, opts, lb.0, lb.1),
-            || recurse(right, offset + mid, depth + 1, opts, rb.0, rb.1),
-        )
-    } else {
-        (
-            recurse(left, offset, depth + 1, opts, lb.0, lb.1),
-            recurse(right, offset + mid, depth + 1, opts, rb.0, rb.1),
-        )
-    };
-    (
-        BuildNode::Interior {
-            bounds,
-            axis: axis as u8,
-            children: Box::new([l, r]),
-        },
-        1 + nl + nr,
-    )
+    }
+    BuildTree {
+        root: node(nodes, 0),
+        prim_order,
+        node_count: nodes.len(),
+    }
 }

@@ -1,65 +1,135 @@
 //! Full-sweep SAH: sort the centroids along each axis and evaluate every split between
-//! consecutive primitives. O(n log n) per node; the reference for SAH quality.
+//! consecutive primitives. O(n log n) per node; the reference for SAH quality, and what the
+//! binned builder uses for small nodes.
+//!
+//! The sort orders `(centroid, primitive index)` packed into one integer key, so it
+//! compares integers instead of recomputing centroids, and all three axes' orders are kept
+//! so the chosen one is applied without sorting again.
 
-use super::{BuildOptions, PrimRef, Split, split_cost};
+use glam::Vec3A;
+
+use super::{BuildOptions, PrimRef, Split, split_weight};
 use crate::geometry::Aabb;
 
-fn key_cmp(a: &PrimRef, b: &PrimRef, axis: usize) -> std::cmp::Ordering {
-    a.centroid()[axis]
-        .total_cmp(&b.centroid()[axis])
-        .then(a.index.cmp(&b.index))
+/// Nodes up to this size sort on the stack.
+const STACK: usize = 32;
+
+/// A key ordered as `(c.total_cmp, index)`, then the ref's position (for duplicated
+/// primitives), so every order is total and deterministic.
+type Key = (u64, u32);
+
+#[inline(always)]
+fn key(c: f32, index: u32, pos: usize) -> Key {
+    let b = c.to_bits();
+    // Flip as `f32::total_cmp` does, so integer order is float order.
+    let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
+    (((ord as u64) << 32) | index as u64, pos as u32)
+}
+
+#[inline(always)]
+fn area(min: Vec3A, max: Vec3A) -> f32 {
+    let e = max - min;
+    if e.x < 0.0 {
+        return 0.0;
+    }
+    2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)
 }
 
 /// Chooses and applies the cheapest split over all sorted positions.
 pub(super) fn split(refs: &mut [PrimRef], bounds: &Aabb, cb: &Aabb, opts: &BuildOptions) -> Split {
     let n = refs.len();
-    let area = bounds.surface_area();
-    let mut small = [0f32; 32];
-    let mut big = Vec::new();
-    let right_area: &mut [f32] = if n <= small.len() {
-        &mut small[..n]
+    if n <= STACK {
+        let mut keys = [[(0u64, 0u32); STACK]; 3];
+        let mut right = [0f32; STACK];
+        let mut tmp = [refs[0]; STACK];
+        let [k0, k1, k2] = &mut keys;
+        sweep(
+            refs,
+            bounds,
+            cb,
+            opts,
+            [&mut k0[..n], &mut k1[..n], &mut k2[..n]],
+            &mut right[..n],
+            &mut tmp[..n],
+        )
     } else {
-        big.resize(n, 0f32);
-        &mut big
+        let mut keys = vec![(0u64, 0u32); 3 * n];
+        let mut right = vec![0f32; n];
+        let mut tmp = refs.to_vec();
+        let (k0, rest) = keys.split_at_mut(n);
+        let (k1, k2) = rest.split_at_mut(n);
+        sweep(refs, bounds, cb, opts, [k0, k1, k2], &mut right, &mut tmp)
+    }
+}
+
+fn sweep(
+    refs: &mut [PrimRef],
+    bounds: &Aabb,
+    cb: &Aabb,
+    opts: &BuildOptions,
+    keys: [&mut [Key]; 3],
+    right_area: &mut [f32],
+    tmp: &mut [PrimRef],
+) -> Split {
+    let n = refs.len();
+    let area_node = bounds.surface_area();
+    let boxes = |i: u32| {
+        let r = &refs[i as usize];
+        (Vec3A::from(r.min), Vec3A::from(r.max))
     };
     let mut best = (f32::INFINITY, 0usize, 0usize);
-    let mut sorted_on = usize::MAX;
-    for axis in 0..3 {
-        if cb.extent()[axis] <= 0.0 {
+    let ext = cb.extent();
+    let [k0, k1, k2] = keys;
+    let mut keys = [k0, k1, k2];
+    for (axis, ks) in keys.iter_mut().enumerate() {
+        if ext[axis] <= 0.0 {
             continue;
         }
-        refs.sort_unstable_by(|a, b| key_cmp(a, b, axis));
-        sorted_on = axis;
-        let mut acc = Aabb::EMPTY;
-        for i in (1..n).rev() {
-            acc = acc.union(&refs[i].bounds());
-            right_area[i] = acc.surface_area();
+        for (i, (k, r)) in ks.iter_mut().zip(refs.iter()).enumerate() {
+            *k = key(r.centroid()[axis], r.index, i);
         }
-        let mut left = Aabb::EMPTY;
+        ks.sort_unstable();
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        for i in (1..n).rev() {
+            let (a, b) = boxes(ks[i].1);
+            lo = lo.min(a);
+            hi = hi.max(b);
+            right_area[i] = area(lo, hi);
+        }
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in 0..n - 1 {
-            left = left.union(&refs[i].bounds());
-            let cost = split_cost(
-                opts,
-                area,
-                i + 1,
-                left.surface_area(),
-                n - i - 1,
-                right_area[i + 1],
-            );
-            if cost < best.0 {
-                best = (cost, axis, i + 1);
+            let (a, b) = boxes(ks[i].1);
+            lo = lo.min(a);
+            hi = hi.max(b);
+            let w = split_weight(i + 1, area(lo, hi), n - i - 1, right_area[i + 1]);
+            if w < best.0 {
+                best = (w, axis, i + 1);
             }
         }
     }
-    let (cost, axis, mid) = best;
+    let (w, axis, mid) = best;
+    let cost = opts.cost_traversal + opts.cost_intersection * w / area_node;
     if !cost.is_finite() {
         return Split::Leaf;
     }
     if n <= opts.max_leaf_size && cost >= opts.cost_intersection * n as f32 {
         return Split::Leaf;
     }
-    if sorted_on != axis {
-        refs.sort_unstable_by(|a, b| key_cmp(a, b, axis));
+    for (t, k) in tmp.iter_mut().zip(keys[axis].iter()) {
+        *t = refs[k.1 as usize];
     }
-    Split::At { axis, mid }
+    refs.copy_from_slice(tmp);
+    let side = |s: &[PrimRef]| {
+        let (mut b, mut c) = (Aabb::EMPTY, Aabb::EMPTY);
+        for r in s {
+            b = b.union(&r.bounds());
+            c.grow(r.centroid());
+        }
+        (b, c)
+    };
+    Split::Known {
+        axis,
+        mid,
+        children: [side(&refs[..mid]), side(&refs[mid..])],
+    }
 }

@@ -1,0 +1,257 @@
+//! Small subtrees, built with the exact sweep ([`super::sweep`]) but sorted only once.
+//!
+//! Below [`SMALL_NODE`] primitives the binned builder switches to the full sweep, which
+//! needs each node's primitives sorted along the three axes. Sorting them once for the
+//! whole subtree and handing each child its part of the three sorted lists (a stable
+//! filter keeps them sorted) makes every level linear, and all of it stays on the stack.
+//! The decisions are the sweep's: the same keys, the same areas, the same costs.
+
+use glam::{Mat3A, Vec3A};
+
+use super::{BuildOptions, PrimRef};
+use crate::flat::FlatNode;
+use crate::geometry::Aabb;
+
+/// Subtrees of at most this many primitives are built here.
+pub(super) const SMALL_NODE: usize = 48;
+
+/// One subtree's primitives, copied out of the shared array.
+struct Subtree<'a> {
+    opts: &'a BuildOptions,
+    min: [Vec3A; SMALL_NODE],
+    max: [Vec3A; SMALL_NODE],
+    centre: [Vec3A; SMALL_NODE],
+    refs: [PrimRef; SMALL_NODE],
+    /// Where the subtree's first primitive sits in the final order.
+    offset: usize,
+}
+
+/// A key ordered as `(centroid, primitive index)`, as the sweep orders them, then the
+/// position, so the order is total even for a primitive referenced twice.
+#[inline(always)]
+fn key(c: f32, index: u32, pos: usize) -> (u64, u8) {
+    let b = c.to_bits();
+    let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
+    (((ord as u64) << 32) | index as u64, pos as u8)
+}
+
+/// Builds the subtree over `refs` (at most [`SMALL_NODE`]; the first at `offset` in the
+/// final order) into `slots` (first slot index `base`), rearranging `refs` into leaf
+/// order. Returns the subtree's depth.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn subtree(
+    refs: &mut [PrimRef],
+    offset: usize,
+    depth: usize,
+    opts: &BuildOptions,
+    bounds: Aabb,
+    cb: Aabb,
+    slots: &mut [FlatNode],
+    base: usize,
+) -> u32 {
+    let n = refs.len();
+    debug_assert!((1..=SMALL_NODE).contains(&n));
+    let mut s = Subtree {
+        opts,
+        min: [Vec3A::ZERO; SMALL_NODE],
+        max: [Vec3A::ZERO; SMALL_NODE],
+        centre: [Vec3A::ZERO; SMALL_NODE],
+        refs: [refs[0]; SMALL_NODE],
+        offset,
+    };
+    let mut keys = [[(0u64, 0u8); SMALL_NODE]; 3];
+    for (i, r) in refs.iter().enumerate() {
+        s.refs[i] = *r;
+        s.min[i] = r.min.into();
+        s.max[i] = r.max.into();
+        let c = r.centroid();
+        s.centre[i] = c.into();
+        for (a, k) in keys.iter_mut().enumerate() {
+            k[i] = key(c[a], r.index, i);
+        }
+    }
+    let mut lists = [[0u8; SMALL_NODE]; 3];
+    for (k, l) in keys.iter_mut().zip(lists.iter_mut()) {
+        let k = &mut k[..n];
+        k.sort_unstable();
+        for (l, k) in l.iter_mut().zip(k.iter()) {
+            *l = k.1;
+        }
+    }
+    let [l0, l1, l2] = &mut lists;
+    s.node(
+        [&mut l0[..n], &mut l1[..n], &mut l2[..n]],
+        refs,
+        offset,
+        depth,
+        bounds,
+        cb,
+        slots,
+        base,
+    )
+}
+
+impl Subtree<'_> {
+    fn bounds_of(&self, ids: &[u8]) -> (Aabb, Aabb) {
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        for &i in ids {
+            let i = i as usize;
+            lo = lo.min(self.min[i]);
+            hi = hi.max(self.max[i]);
+            clo = clo.min(self.centre[i]);
+            chi = chi.max(self.centre[i]);
+        }
+        let aabb = |min: Vec3A, max: Vec3A| Aabb {
+            min: min.into(),
+            max: max.into(),
+        };
+        (aabb(lo, hi), aabb(clo, chi))
+    }
+
+    /// The cheapest split over the three sorted lists: (cost, axis, left count).
+    ///
+    /// The three axes are swept in lock step, one SIMD lane each: the three boxes'
+    /// extents are transposed so that one multiply gives all three areas.
+    fn sweep(&self, lists: &[&mut [u8]; 3], bounds: &Aabb, cb: &Aabb) -> (f32, usize, usize) {
+        let n = lists[0].len();
+        let [l0, l1, l2] = lists;
+        let grow = |lo: &mut [Vec3A; 3], hi: &mut [Vec3A; 3], i: usize| {
+            let ids = [l0[i] as usize, l1[i] as usize, l2[i] as usize];
+            lo[0] = lo[0].min(self.min[ids[0]]);
+            lo[1] = lo[1].min(self.min[ids[1]]);
+            lo[2] = lo[2].min(self.min[ids[2]]);
+            hi[0] = hi[0].max(self.max[ids[0]]);
+            hi[1] = hi[1].max(self.max[ids[1]]);
+            hi[2] = hi[2].max(self.max[ids[2]]);
+            // Half areas: the factor 2 cancels in every comparison and in the cost.
+            let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
+            let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
+            x * y + y * z + z * x
+        };
+        let empty = || ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
+        let mut right_area = [Vec3A::ZERO; SMALL_NODE];
+        let (mut lo, mut hi) = empty();
+        for i in (1..n).rev() {
+            right_area[i] = grow(&mut lo, &mut hi, i);
+        }
+        let (mut lo, mut hi) = empty();
+        let (mut best, mut at) = (Vec3A::INFINITY, Vec3A::ZERO);
+        for i in 0..n - 1 {
+            let left = grow(&mut lo, &mut hi, i);
+            let (nl, nr) = ((i + 1) as f32, (n - i - 1) as f32);
+            let w = Vec3A::splat(nl) * left + Vec3A::splat(nr) * right_area[i + 1];
+            let better = w.cmplt(best);
+            best = Vec3A::select(better, w, best);
+            at = Vec3A::select(better, Vec3A::splat(nl), at);
+        }
+        // Axes along which every centroid is the same cannot be split; ties go to the
+        // lower axis, then (strict `<` above) to the first position.
+        let ext = cb.extent();
+        let (mut w, mut axis) = (f32::INFINITY, 0);
+        for a in 0..3 {
+            if ext[a] > 0.0 && best[a] < w {
+                (w, axis) = (best[a], a);
+            }
+        }
+        let half_area = bounds.surface_area() * 0.5;
+        let cost = self.opts.cost_traversal + self.opts.cost_intersection * w / half_area;
+        (cost, axis, at[axis] as usize)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn node(
+        &self,
+        lists: [&mut [u8]; 3],
+        out: &mut [PrimRef],
+        offset: usize,
+        depth: usize,
+        bounds: Aabb,
+        cb: Aabb,
+        slots: &mut [FlatNode],
+        base: usize,
+    ) -> u32 {
+        let n = lists[0].len();
+        let opts = self.opts;
+        let leaf = |lists: &[&mut [u8]; 3], out: &mut [PrimRef], slots: &mut [FlatNode]| {
+            let at = offset - self.offset;
+            for (o, &id) in out[at..at + n].iter_mut().zip(lists[0].iter()) {
+                *o = self.refs[id as usize];
+            }
+            super::recursion::write_leaf(slots, &bounds, offset, n);
+            0
+        };
+        if n == 1 {
+            return leaf(&lists, out, slots);
+        }
+        let degenerate = cb.extent().max_element() <= 0.0;
+        let (axis, mid) = if degenerate || depth >= opts.max_depth {
+            if n <= opts.max_leaf_size {
+                return leaf(&lists, out, slots);
+            }
+            // The object median, as `median_split` takes it.
+            (cb.longest_axis(), n / 2)
+        } else {
+            let (cost, axis, mid) = self.sweep(&lists, &bounds, &cb);
+            if n <= opts.max_leaf_size && !(cost < opts.cost_intersection * n as f32) {
+                return leaf(&lists, out, slots);
+            }
+            if cost.is_finite() {
+                (axis, mid)
+            } else {
+                (cb.longest_axis(), n / 2)
+            }
+        };
+        // Hand each child its part of every list, still sorted.
+        let mut left = [false; SMALL_NODE];
+        for &id in &lists[axis][..mid] {
+            left[id as usize] = true;
+        }
+        let [mut a0, mut a1, mut a2] = lists;
+        for (a, l) in [&mut a0, &mut a1, &mut a2].into_iter().enumerate() {
+            if a != axis {
+                let mut tmp = [0u8; SMALL_NODE];
+                let (mut i, mut j) = (0, mid);
+                for &id in l.iter() {
+                    if left[id as usize] {
+                        tmp[i] = id;
+                        i += 1;
+                    } else {
+                        tmp[j] = id;
+                        j += 1;
+                    }
+                }
+                l.copy_from_slice(&tmp[..n]);
+            }
+        }
+        let (l0, r0) = a0.split_at_mut(mid);
+        let (l1, r1) = a1.split_at_mut(mid);
+        let (l2, r2) = a2.split_at_mut(mid);
+        let (lb, lc) = self.bounds_of(l0);
+        let (rb, rc) = self.bounds_of(r0);
+        let right = base + 2 * mid;
+        super::recursion::write_interior(slots, &bounds, axis, right);
+        let (left_slots, right_slots) = slots[1..].split_at_mut(2 * mid - 1);
+        let dl = self.node(
+            [l0, l1, l2],
+            out,
+            offset,
+            depth + 1,
+            lb,
+            lc,
+            left_slots,
+            base + 1,
+        );
+        let dr = self.node(
+            [r0, r1, r2],
+            out,
+            offset + mid,
+            depth + 1,
+            rb,
+            rc,
+            right_slots,
+            right,
+        );
+        1 + dl.max(dr)
+    }
+}
