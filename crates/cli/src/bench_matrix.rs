@@ -98,6 +98,9 @@ pub struct BenchArgs {
     /// PREFIX-SCENE.png when there are several).
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    // `--converge` and its flags: image error against wall time (crate::converge).
+    #[command(flatten)]
+    pub converge: Box<crate::converge::ConvergeArgs>,
 }
 
 /// One configuration.
@@ -236,6 +239,9 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
 
 /// `bvhtrace bench`.
 pub fn bench(args: BenchArgs) -> Result<()> {
+    if args.converge.converge {
+        return crate::converge::run(&args);
+    }
     let quick = args.quick;
     let (w, h) = args
         .size

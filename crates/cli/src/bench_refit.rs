@@ -52,7 +52,7 @@ fn embree_refit(
     // One dummy ray: the program times the build and the refit.
     let ray = Ray::with_interval(Vec3::ZERO, Vec3::Z, 0.0, f32::INFINITY);
     let dump = Dump::write("refit", tris, &[ray])?;
-    let v = dump.run(exe, runs, &[("BVHTRACE_REFIT", a.to_string())])?;
+    let v = dump.run(exe, 2, runs, &[("BVHTRACE_REFIT", a.to_string())])?;
     let field = |k: &str| embree::field(&v, k, exe);
     Ok((field("build_ms")?, field("refit_ms")?))
 }

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::cost::{WARP, WarpCost, warp_cost};
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
+use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Query, Ray, TraceOptions, Traversal};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -67,6 +67,19 @@ pub struct CostArgs {
     /// Write the figures as JSON (`-` for stdout; the table then goes to stderr).
     #[arg(long, value_name = "FILE|-")]
     pub json: Option<String>,
+    /// BVH builder.
+    #[arg(long, default_value = "sah")]
+    pub builder: BuilderKind,
+    /// SAH traversal cost (intersection cost is 1); PBRT's 1/8 by default.
+    #[arg(long, default_value_t = 0.125)]
+    pub cost_traversal: f32,
+    /// Optimise the tree by reinsertion (Bittner et al. 2013) before measuring.
+    #[arg(long)]
+    pub optimize: bool,
+    /// `sbvh` only: how many references spatial splits may add, as a fraction of the
+    /// triangle count (0..=16).
+    #[arg(long, value_name = "F", default_value_t = BuildOptions::default().split_budget)]
+    pub split_budget: f32,
 }
 
 /// The whole JSON document.
@@ -169,7 +182,14 @@ pub fn cost(args: CostArgs) -> Result<()> {
         scenes: Vec::new(),
     };
     for spec in &specs {
-        let (scene_report, text) = cost_scene(spec, w, h, &args.walks)?;
+        let opts = BuildOptions {
+            builder: args.builder,
+            cost_traversal: args.cost_traversal,
+            optimize: args.optimize,
+            split_budget: args.split_budget,
+            ..Default::default()
+        };
+        let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &opts)?;
         // Each scene's table as soon as it is done: the big scenes take a while.
         if to_stderr {
             eprint!("{text}");
@@ -184,9 +204,15 @@ pub fn cost(args: CostArgs) -> Result<()> {
     Ok(())
 }
 
-/// Loads one scene, builds its BVH (and wide layout), makes the rays and runs every walk
-/// on every ray kind; returns the figures and the printed table.
-fn cost_scene(spec: &str, w: u32, h: u32, walks: &[Traversal]) -> Result<(SceneReport, String)> {
+/// Loads one scene, builds its BVH as `opts` say (and its wide layout), makes the rays and
+/// runs every walk on every ray kind; returns the figures and the printed table.
+fn cost_scene(
+    spec: &str,
+    w: u32,
+    h: u32,
+    walks: &[Traversal],
+    opts: &BuildOptions,
+) -> Result<(SceneReport, String)> {
     let pb = ProgressBar::new((3 * walks.len()) as u64);
     pb.set_style(
         ProgressStyle::with_template("{msg:48} [{bar:30}] {pos}/{len} ({elapsed})")
@@ -201,8 +227,8 @@ fn cost_scene(spec: &str, w: u32, h: u32, walks: &[Traversal]) -> Result<(SceneR
         .flattened_triangles()
         .with_context(|| format!("{spec}: cannot flatten the scene's triangles"))?;
     pb.set_message(format!("{spec}: building the BVH"));
-    let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())
-        .with_context(|| format!("{spec}: cannot build a BVH"))?;
+    let mut bvh =
+        FlatBvh::build(&tris, opts).with_context(|| format!("{spec}: cannot build a BVH"))?;
     // Always built: the header prints the wide upload size whichever walks run.
     bvh.build_wide();
     pb.set_message(format!("{spec}: making rays"));

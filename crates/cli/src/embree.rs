@@ -45,17 +45,18 @@ impl Dump {
         Ok(Dump(path))
     }
 
-    /// Runs `exe` (an `embree_trace` binary) on the dump with 2 threads and `runs` runs,
-    /// with `env` set; returns the JSON object it prints.
+    /// Runs `exe` (an `embree_trace` binary) on the dump with `threads` threads and `runs`
+    /// runs, with `env` set; returns the JSON object it prints.
     pub fn run(
         &self,
         exe: &Path,
+        threads: usize,
         runs: usize,
         env: &[(&str, String)],
     ) -> Result<serde_json::Value> {
         let out = std::process::Command::new(exe)
             .arg(&self.0)
-            .args(["2", &runs.to_string()])
+            .args([threads.to_string(), runs.to_string()])
             .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
             .output()
             .with_context(|| format!("running {}", exe.display()))?;

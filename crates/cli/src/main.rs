@@ -5,6 +5,7 @@ mod backend;
 mod bench;
 mod bench_matrix;
 mod bench_refit;
+mod converge;
 mod cost;
 mod embree;
 mod geometry;
@@ -36,7 +37,9 @@ enum Command {
     /// Error against run time for every configuration (builder, traversal, backend, ray
     /// kind, precision), with a table, JSON/CSV and an error-vs-time plot.
     Bench(bench_matrix::BenchArgs),
-    /// Benchmark the builders: build time, SAH cost, CPU traversal speed.
+    /// Benchmark the builders: build time, SAH cost in both conventions, box and triangle
+    /// tests per ray (primary, shadow, diffuse), CPU traversal speed.
+    #[command(long_about = bench::build_long_about())]
     BenchBuild(bench::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
     ///

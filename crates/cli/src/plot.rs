@@ -11,7 +11,7 @@ const FLOOR: f64 = 1e-9;
 
 /// Registers DejaVu Sans (from the system, `fonts-dejavu-core`) for the PNG's text.
 /// Returns false when no font is found: the PNG is then drawn without text.
-fn register_font() -> bool {
+pub(crate) fn register_font() -> bool {
     const PATHS: [&str; 2] = [
         "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
         "/usr/share/fonts/TTF/DejaVuSans.ttf",
@@ -209,7 +209,7 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
 /// The 1-2-5 values of each decade within `lo..=hi`: the time axis's marks. plotters' own
 /// marks for a log axis start at the first power of ten in the range (none left of it),
 /// with nine a decade that run into each other ("900.0" on "1000.0").
-fn one_two_five(lo: f64, hi: f64) -> Vec<f64> {
+pub(crate) fn one_two_five(lo: f64, hi: f64) -> Vec<f64> {
     let mut marks = Vec::new();
     if !(lo > 0.0 && hi.is_finite()) {
         return marks;

@@ -2,7 +2,8 @@
 //! on the CPU for both backends, so the GPU and CPU images differ only where hits do.
 
 use bvhtrace_core::palette;
-use bvhtrace_core::{Hit, Ray, Triangle};
+use bvhtrace_core::{FlatBvh, Hit, Ray, Triangle};
+use bvhtrace_scene::Camera;
 use glam::Vec3;
 
 /// Background colour.
@@ -40,6 +41,21 @@ pub fn secondary_rays(
     samples: u32,
     ao_radius: f32,
 ) -> (Vec<Ray>, Vec<u32>) {
+    secondary_rays_from(mode, tri, primary, hits, light, 0..samples, ao_radius)
+}
+
+/// [`secondary_rays`] with the AO samples numbered `samples` instead of `0..samples`:
+/// images made from disjoint ranges have independent samples (`bench --converge`).
+#[allow(clippy::too_many_arguments)]
+pub fn secondary_rays_from(
+    mode: Shade,
+    tri: &dyn Fn(u32) -> Triangle,
+    primary: &[Ray],
+    hits: &[Hit],
+    light: Vec3,
+    samples: std::ops::Range<u32>,
+    ao_radius: f32,
+) -> (Vec<Ray>, Vec<u32>) {
     let mut rays = Vec::new();
     let mut owner = Vec::new();
     for (i, (r, h)) in primary.iter().zip(hits).enumerate() {
@@ -53,7 +69,7 @@ pub fn secondary_rays(
                 owner.push(i as u32);
             }
             Shade::Ao => {
-                for s in 0..samples {
+                for s in samples.clone() {
                     rays.push(p.spawn_ray(cosine_dir(p.normal, i as u32, s), ao_radius));
                     owner.push(i as u32);
                 }
@@ -62,6 +78,27 @@ pub fn secondary_rays(
         }
     }
     (rays, owner)
+}
+
+/// The point light of the diffuse modes: up and to the right of the camera, so that it sees
+/// what the camera sees (closed rooms as well as open scenes) and casts visible shadows.
+pub fn point_light(cam: &Camera) -> Vec3 {
+    let (_, right, up) = cam.basis();
+    cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length()
+}
+
+/// The length of ambient-occlusion rays: 15% of the diagonal of the scene's box.
+pub fn ao_radius(bvh: &FlatBvh) -> f32 {
+    let b = bvh.bounds();
+    0.15 * (b.max - b.min).length().max(f32::MIN_POSITIVE)
+}
+
+/// Direct light at a hit from the point light `light`, before visibility: the cosine
+/// between the facing normal and the direction to the light (0 facing away).
+pub fn lambert(tri: &Triangle, hit: &Hit, ray_dir: Vec3, light: Vec3) -> f32 {
+    let n = facing_normal(tri, ray_dir);
+    let l = (light - hit_point(tri, hit)).normalize_or_zero();
+    n.dot(l).max(0.0)
 }
 
 /// 3x5 digits for the legend.

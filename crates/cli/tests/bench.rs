@@ -109,3 +109,49 @@ fn bench_refit_reports_refit_rebuild_and_top_level_times() {
     assert_eq!(v["meshes"], 1);
     assert!(v["top_rebuild_ms"].as_f64().unwrap() > 0.0);
 }
+
+#[test]
+fn bench_converge_quick_errors_fall_as_samples_grow() {
+    let dir = scratch("converge");
+    let csv = dir.join("c.csv");
+    let out = run(&[
+        "bench",
+        "builtin:cornell",
+        "--converge",
+        "--quick",
+        "--backends",
+        "cpu",
+        "--size",
+        "48x36",
+        "--spp",
+        "1,4,16",
+        "--reference-spp",
+        "64",
+        "--json",
+        "-",
+        "--csv",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let points: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON");
+    // 2 builders x 2 walks x 1 backend x 2 shading kinds x 3 levels.
+    assert_eq!(points.len(), 24);
+    for curve in points.chunks(3) {
+        let spp: Vec<u64> = curve.iter().map(|p| p["spp"].as_u64().unwrap()).collect();
+        assert_eq!(spp, [1, 4, 16]);
+        for metric in ["flip", "rmse"] {
+            let e: Vec<f64> = curve.iter().map(|p| p[metric].as_f64().unwrap()).collect();
+            assert!(e[0] > e[1] && e[1] > e[2], "{metric} {e:?}: {}", curve[0]);
+        }
+        for p in curve {
+            let (build, image) = (
+                p["build_ms"].as_f64().unwrap(),
+                p["image_ms"].as_f64().unwrap(),
+            );
+            assert!(image > 0.0 && (p["wall_ms"].as_f64().unwrap() - build - image).abs() < 1e-9);
+        }
+    }
+    let text = std::fs::read_to_string(&csv).unwrap();
+    assert_eq!(text.lines().count(), points.len() + 1);
+    assert!(text.starts_with("scene,shade,builder,traversal,backend"));
+}

@@ -207,6 +207,40 @@ fn info_reports_the_scene() {
     assert!(v["nodes"].as_u64().unwrap() <= 71);
 }
 
+#[test]
+fn optimize_lowers_the_sah_cost_and_keeps_the_image() {
+    let info = |extra: &[&str]| {
+        let mut a = vec![
+            "info",
+            "builtin:spheres",
+            "--flatten",
+            "--builder",
+            "median",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        let out = run(&a);
+        assert!(out.status.success(), "{a:?}");
+        json(&out)
+    };
+    let (plain, opt) = (info(&[]), info(&["--optimize"]));
+    assert_eq!(opt["optimize"], true);
+    assert_eq!(plain["nodes"], opt["nodes"]);
+    assert!(opt["sah_cost"].as_f64().unwrap() < plain["sah_cost"].as_f64().unwrap());
+    // Hits do not depend on the tree's shape: the same image, shadows included.
+    let args = [
+        "builtin:spheres",
+        "--builder",
+        "median",
+        "--shade",
+        "diffuse",
+    ];
+    let (_, img) = render_json("unoptimised", &args);
+    let (v, img_opt) = render_json("optimised", &[&args[..], &["--optimize"]].concat());
+    assert_eq!(v["optimize"], true);
+    assert!(img == img_opt, "--optimize changed the image");
+}
+
 /// Renders `args` on the CPU at 96x72 with JSON on stdout; returns the JSON and the PNG.
 fn render_json(name: &str, args: &[&str]) -> (serde_json::Value, Vec<u8>) {
     let dir = scratch(name);

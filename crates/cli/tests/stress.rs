@@ -35,6 +35,30 @@ fn stress_runs_a_case_and_writes_json() {
 }
 
 #[test]
+fn stress_runs_with_optimised_trees() {
+    let dir = scratch("stress-optimize");
+    let json = dir.join("stress.json");
+    let out = run(&[
+        "stress",
+        "--quick",
+        "--backends",
+        "cpu",
+        "--case",
+        "watertight",
+        "--optimize",
+        "--json",
+        json.to_str().expect("utf-8 path"),
+    ]);
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{table}");
+    assert!(table.contains("optimised trees"), "{table}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json written")).expect("json");
+    assert_eq!(v["optimize"], true);
+    assert_eq!(v["clean"], true);
+}
+
+#[test]
 fn stress_errors_name_the_cause() {
     let out = run(&["stress", "--case", "no-such-case"]);
     assert!(!out.status.success());

@@ -1,0 +1,1261 @@
+//! `bvhtrace bench --converge`: image error against wall time, as a renderer sees it.
+//!
+//! For each scene, shading kind (ambient occlusion, one-bounce diffuse) and configuration
+//! (builder x walk x backend), images are rendered at increasing samples per pixel, and
+//! each image gets a wall time (the configuration's BVH build, plus everything the image
+//! takes: camera rays, traces, secondary rays, shading) and an error (mean FLIP and RMSE)
+//! against a reference rendered once per scene and shading kind with many more samples, on
+//! the CPU full-stack walk over the default builder's tree. The question answered: which
+//! configuration reaches a given image error first, build included.
+//!
+//! Samples: pixel `p`'s sample `s` is `shade::cosine_dir(normal, p, s)`, a hash of `(p, s)`.
+//! The levels take consecutive, disjoint ranges of `s` from 0 (1 spp: sample 0; 2 spp:
+//! samples 1..3; 4 spp: 3..7, ...) and the reference takes `REFERENCE_FIRST_SAMPLE..`,
+//! so no two images share a sample and each level's error is that of an independent
+//! estimate. Every configuration renders the same samples: the walks answer the same
+//! hits, so at a given spp every configuration's image is the same and only time differs.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, anyhow, bail};
+use bvhtrace_core::palette;
+use bvhtrace_core::traverse::DEFAULT_SHORT_STACK;
+use bvhtrace_core::{
+    BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
+};
+use bvhtrace_gpu::{AdapterChoice, CpuTracer, Tracer};
+use bvhtrace_scene::Camera;
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use plotters::prelude::*;
+use serde::Serialize;
+
+use crate::accuracy;
+use crate::bench::median;
+use crate::bench_matrix::BenchArgs;
+use crate::output::{AtomicFile, JsonOut};
+use crate::shade::{self, Shade};
+
+/// The flags `bench` takes for `--converge` (flattened into [`BenchArgs`]).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ConvergeArgs {
+    /// Image error against wall time instead of hit error: for each shading kind (ao,
+    /// diffuse with one bounce) and configuration (builder x walk x backend), images at
+    /// increasing samples per pixel, each timed from the BVH build to the last pixel and
+    /// compared (mean FLIP, RMSE) with a reference of --reference-spp samples (CPU
+    /// full-stack walk, default builder). Uses the scenes, --quick, --size (image size,
+    /// default 256x192; 96x72 with --quick), --backends, --adapter, --runs (median image
+    /// time; default 1), --json, --csv and --plot (PREFIX-SCENE-SHADE.png/.svg).
+    #[arg(long)]
+    pub converge: bool,
+    /// Builders for --converge (default every builder; with --quick sah and median).
+    #[arg(long, value_delimiter = ',', requires = "converge")]
+    pub builders: Vec<BuilderKind>,
+    /// Walks for --converge (default full-stack, stackless, short-stack, wide; with
+    /// --quick full-stack and stackless).
+    #[arg(long, value_delimiter = ',', requires = "converge")]
+    pub traversals: Vec<Traversal>,
+    /// Shading kinds for --converge (default both).
+    #[arg(long, value_delimiter = ',', value_enum, requires = "converge")]
+    pub shades: Vec<ShadeKind>,
+    /// Samples per pixel of the measured images, increasing (default 1,2,4,...,64; with
+    /// --quick 1,2,4,8,16); they may add up to at most 4096.
+    #[arg(long, value_delimiter = ',', requires = "converge")]
+    pub spp: Vec<u32>,
+    /// Samples per pixel of the reference images (default 1024; 128 with --quick; at
+    /// most 4096).
+    #[arg(long, requires = "converge")]
+    pub reference_spp: Option<u32>,
+    /// Camera position X,Y,Z for --converge (with --target; default: the scene's camera or
+    /// a framing one).
+    #[arg(long, value_parser = bvhtrace_scene::camera::parse_vec3, requires_all = ["converge", "target"], allow_hyphen_values = true)]
+    pub eye: Option<Vec3>,
+    /// The point the --converge camera looks at (with --eye).
+    #[arg(long, value_parser = bvhtrace_scene::camera::parse_vec3, requires_all = ["converge", "eye"], allow_hyphen_values = true)]
+    pub target: Option<Vec3>,
+    /// Vertical field of view of the --converge camera, in degrees.
+    #[arg(long, requires = "converge")]
+    pub fov: Option<f32>,
+    /// Mean FLIP levels of the --converge table, every shading kind (default: ao 0.05,
+    /// 0.03, 0.02; diffuse 0.01, 0.007, 0.005).
+    #[arg(long, value_delimiter = ',', requires = "converge")]
+    pub flip_levels: Vec<f64>,
+    /// RMSE levels of the --converge table, every shading kind (default: ao 0.1, 0.05,
+    /// 0.025; diffuse 0.01, 0.005, 0.0025).
+    #[arg(long, value_delimiter = ',', requires = "converge")]
+    pub rmse_levels: Vec<f64>,
+}
+
+/// What an image shows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ShadeKind {
+    /// Ambient occlusion: `spp` any-hit rays per pixel, as `render --shade ao`.
+    Ao,
+    /// The point light of `render --shade diffuse` (one shadow ray), plus one bounce:
+    /// `spp` cosine-weighted closest-hit rays per pixel that see the sky or a surface lit
+    /// by the same light (a shadow ray from there).
+    Diffuse,
+}
+
+impl ShadeKind {
+    fn name(self) -> &'static str {
+        match self {
+            ShadeKind::Ao => "ao",
+            ShadeKind::Diffuse => "diffuse",
+        }
+    }
+
+    /// The table's default error levels, (FLIP, RMSE): where a 69k-triangle mesh filling
+    /// a 256x192 image crosses them between 1 and 32 spp. The diffuse images are far less
+    /// noisy (the point light's direct term has no noise), so their levels are lower.
+    fn default_levels(self) -> (Vec<f64>, Vec<f64>) {
+        match self {
+            ShadeKind::Ao => (vec![0.05, 0.03, 0.02], vec![0.1, 0.05, 0.025]),
+            ShadeKind::Diffuse => (vec![0.01, 0.007, 0.005], vec![0.01, 0.005, 0.0025]),
+        }
+    }
+}
+
+/// The first sample index of the reference images; the levels use `0..` and may add up to
+/// this many samples, so they never share one with the reference. `cosine_dir` hashes
+/// `9781 p + 6271 s`: indices below 9781 never collide.
+const REFERENCE_FIRST_SAMPLE: u32 = 4096;
+/// The most samples the reference may take (`REFERENCE_FIRST_SAMPLE + this < 9781`).
+const MAX_REFERENCE_SPP: u32 = 4096;
+/// Radiance of the sky a bounce ray that escapes sees (diffuse).
+const SKY: f32 = 0.4;
+/// The fraction of light surfaces reflect (diffuse).
+const ALBEDO: f32 = 0.5;
+/// Rays per trace call: bounds the ray and hit buffers of one call.
+const CHUNK: usize = 1 << 18;
+
+/// One measured image.
+#[derive(Clone, Debug, Serialize)]
+pub struct Point {
+    /// The scene as given.
+    pub scene: String,
+    /// Ambient occlusion or one-bounce diffuse.
+    pub shade: ShadeKind,
+    /// The builder's name.
+    pub builder: String,
+    /// The walk, as `--traversals` names it.
+    pub traversal: String,
+    /// `gpu` (wgpu), `vulkan` (ash) or `cpu`.
+    pub backend: String,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Samples per pixel of this image.
+    pub spp: u32,
+    /// The image's first sample index (its samples are `first_sample..first_sample + spp`).
+    pub first_sample: u32,
+    /// Samples per pixel of the reference.
+    pub reference_spp: u32,
+    /// The BVH build (median of `--runs`), with the wide conversion for the wide walk.
+    pub build_ms: f64,
+    /// The upload to the device (0 on the CPU); not in `wall_ms`.
+    pub upload_ms: f64,
+    /// The image: camera rays, every trace, secondary rays, shading (median of `--runs`).
+    pub image_ms: f64,
+    /// `build_ms + image_ms`.
+    pub wall_ms: f64,
+    /// Rays traced for the image.
+    pub rays: u64,
+    /// Mean FLIP against the reference.
+    pub flip: f64,
+    /// RMSE against the reference (channels in [0, 1]).
+    pub rmse: f64,
+}
+
+/// The error of an image against the reference.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageError {
+    /// Mean FLIP (NVIDIA's perceptual difference, 0 = identical).
+    pub flip: f64,
+    /// Root-mean-square difference of the RGB8 channels, in [0, 1].
+    pub rmse: f64,
+}
+
+/// Mean FLIP and RMSE of the RGB8 image `test` against `reference` (both `w` x `h`).
+pub fn image_error(reference: &[u8], test: &[u8], w: u32, h: u32) -> ImageError {
+    ImageError {
+        flip: accuracy::flip(reference, test, w, h),
+        rmse: accuracy::rmse(reference, test),
+    }
+}
+
+/// The wall time at which a curve of `(time, error)` points (in the order measured, spp
+/// increasing) first reaches `level`: interpolated in log-log between the last point above
+/// the level and the first at or below it; the first point's time when that one is already
+/// at or below; `None` when no point reaches it.
+pub fn time_to_reach(points: &[(f64, f64)], level: f64) -> Option<f64> {
+    let i = points.iter().position(|p| p.1 <= level)?;
+    let (t1, e1) = points[i];
+    if i == 0 {
+        return Some(t1);
+    }
+    let (t0, e0) = points[i - 1];
+    // A zero error or time has no logarithm: the measured point is all we know.
+    if !(e1 > 0.0 && level > 0.0 && t0 > 0.0 && t1 > 0.0) {
+        return Some(t1);
+    }
+    let f = (level.ln() - e0.ln()) / (e1.ln() - e0.ln());
+    Some((t0.ln() + f * (t1.ln() - t0.ln())).exp())
+}
+
+/// The configurations and sizes a run measures.
+struct Plan {
+    size: (u32, u32),
+    flip_levels: Vec<f64>,
+    rmse_levels: Vec<f64>,
+    levels: Vec<u32>,
+    reference_spp: u32,
+    builders: Vec<BuilderKind>,
+    walks: Vec<Traversal>,
+    shades: Vec<ShadeKind>,
+    runs: usize,
+}
+
+impl Plan {
+    fn new(args: &BenchArgs) -> Result<Plan> {
+        let c = &args.converge;
+        let quick = args.quick;
+        if args.full || args.sample.is_some() || !args.precisions.is_empty() {
+            bail!("--full, --sample and --precisions do not apply to --converge");
+        }
+        let levels = if c.spp.is_empty() {
+            let top = if quick { 16 } else { 64 };
+            std::iter::successors(Some(1u32), |s| Some(s * 2))
+                .take_while(|&s| s <= top)
+                .collect()
+        } else {
+            c.spp.clone()
+        };
+        if levels.first() == Some(&0) || levels.windows(2).any(|w| w[1] <= w[0]) {
+            bail!("--spp must be increasing and at least 1, got {levels:?}");
+        }
+        if levels.iter().map(|&s| u64::from(s)).sum::<u64>() > u64::from(REFERENCE_FIRST_SAMPLE) {
+            bail!("--spp levels add up to more than {REFERENCE_FIRST_SAMPLE} samples");
+        }
+        let reference_spp = c.reference_spp.unwrap_or(if quick { 128 } else { 1024 });
+        if !(1..=MAX_REFERENCE_SPP).contains(&reference_spp) {
+            bail!("--reference-spp must be 1..={MAX_REFERENCE_SPP}, got {reference_spp}");
+        }
+        let runs = args.runs.unwrap_or(1);
+        if runs == 0 {
+            bail!("--runs must be at least 1");
+        }
+        for b in &args.backends {
+            if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu") {
+                bail!("unknown backend '{b}' (expected gpu, vulkan or cpu)");
+            }
+        }
+        let builders = match (c.builders.is_empty(), quick) {
+            (false, _) => c.builders.clone(),
+            // The default and the quickest to build: the two ends of build time.
+            (true, true) => vec![BuilderKind::default(), BuilderKind::Median],
+            (true, false) => BuilderKind::ALL.to_vec(),
+        };
+        let walks = match (c.traversals.is_empty(), quick) {
+            (false, _) => c.traversals.clone(),
+            (true, true) => vec![Traversal::FullStack, Traversal::Stackless],
+            (true, false) => vec![
+                Traversal::FullStack,
+                Traversal::Stackless,
+                Traversal::ShortStack(DEFAULT_SHORT_STACK),
+                Traversal::Wide,
+            ],
+        };
+        let shades = if c.shades.is_empty() {
+            vec![ShadeKind::Ao, ShadeKind::Diffuse]
+        } else {
+            c.shades.clone()
+        };
+        for l in c.flip_levels.iter().chain(&c.rmse_levels) {
+            if !(*l > 0.0 && l.is_finite()) {
+                bail!("error levels must be positive, got {l}");
+            }
+        }
+        Ok(Plan {
+            flip_levels: c.flip_levels.clone(),
+            rmse_levels: c.rmse_levels.clone(),
+            size: args
+                .size
+                .unwrap_or(if quick { (96, 72) } else { (256, 192) }),
+            levels,
+            reference_spp,
+            builders,
+            walks,
+            shades,
+            runs,
+        })
+    }
+
+    /// The table's error levels for `kind`, (FLIP, RMSE): the flags', else the defaults.
+    fn error_levels(&self, kind: ShadeKind) -> (Vec<f64>, Vec<f64>) {
+        let (f, r) = kind.default_levels();
+        (
+            if self.flip_levels.is_empty() {
+                f
+            } else {
+                self.flip_levels.clone()
+            },
+            if self.rmse_levels.is_empty() {
+                r
+            } else {
+                self.rmse_levels.clone()
+            },
+        )
+    }
+
+    /// Each level's samples: consecutive disjoint ranges from 0.
+    fn sample_ranges(&self) -> Vec<Range<u32>> {
+        let mut first = 0;
+        self.levels
+            .iter()
+            .map(|&n| {
+                let r = first..first + n;
+                first += n;
+                r
+            })
+            .collect()
+    }
+}
+
+/// The walk's name as `--traversals` takes it.
+fn walk_name(t: Traversal) -> String {
+    match t {
+        Traversal::ShortStack(k) if k == DEFAULT_SHORT_STACK => "short-stack".into(),
+        Traversal::ShortStack(k) => format!("short-stack:{k}"),
+        t => t.name().into(),
+    }
+}
+
+/// What every image of a scene shares.
+struct View<'a> {
+    tris: &'a [Triangle],
+    cam: Camera,
+    w: u32,
+    h: u32,
+    light: Vec3,
+    ao_radius: f32,
+}
+
+/// Traces `rays` in chunks of [`CHUNK`].
+fn trace(tracer: &dyn Tracer, rays: &[Ray], opts: &TraceOptions) -> Result<Vec<Hit>> {
+    let mut hits = Vec::with_capacity(rays.len());
+    for c in rays.chunks(CHUNK) {
+        hits.extend(tracer.trace(c, opts)?.hits);
+    }
+    Ok(hits)
+}
+
+/// One-time work a renderer does once, not per image, done untimed: the ray buffers
+/// grown to their largest ([`CHUNK`] rays) with rays that miss the scene, for both
+/// queries (the pipelines are compiled by `Tracer::prepare`).
+fn warm_up(tracer: &dyn Tracer, walk: Traversal, bvh: &FlatBvh) -> Result<()> {
+    let b = bvh.bounds();
+    let away = b.max + (b.max - b.min).max(Vec3::ONE);
+    let rays = vec![Ray::new(away, Vec3::ONE); CHUNK];
+    for opts in [
+        TraceOptions::closest(walk),
+        TraceOptions::new(walk, Query::Any),
+    ] {
+        tracer.trace(&rays, &opts)?;
+    }
+    Ok(())
+}
+
+/// Renders one image with the samples `samples`: RGB8 pixels and the rays traced.
+fn render(
+    view: &View,
+    tracer: &dyn Tracer,
+    walk: Traversal,
+    kind: ShadeKind,
+    samples: Range<u32>,
+) -> Result<(Vec<u8>, u64)> {
+    let tri = |p: u32| view.tris.get(p as usize).copied().unwrap_or_default();
+    let closest = TraceOptions::closest(walk);
+    let any = TraceOptions::new(walk, Query::Any);
+    let spp = samples.len().max(1) as f32;
+    let rays = view.cam.rays(view.w, view.h);
+    let hits = trace(tracer, &rays, &closest)?;
+    let mut traced = rays.len() as u64;
+    let mut img = Vec::with_capacity(rays.len() * 3);
+    match kind {
+        ShadeKind::Ao => {
+            let (ao, owner) = shade::secondary_rays_from(
+                Shade::Ao,
+                &tri,
+                &rays,
+                &hits,
+                view.light,
+                samples,
+                view.ao_radius,
+            );
+            let occl = trace(tracer, &ao, &any)?;
+            traced += ao.len() as u64;
+            let mut blocked = vec![0u32; rays.len()];
+            for (o, h) in owner.iter().zip(&occl) {
+                blocked[*o as usize] += u32::from(h.is_hit());
+            }
+            for (h, b) in hits.iter().zip(&blocked) {
+                img.extend(if h.is_hit() {
+                    palette::ao_grey(1.0 - *b as f32 / spp)
+                } else {
+                    shade::BACKGROUND
+                });
+            }
+        }
+        ShadeKind::Diffuse => {
+            let light = view.light;
+            // Shadow rays from the primary hits, and the bounces (AO rays of unbounded
+            // length are exactly cosine-weighted bounce rays).
+            let (shadow, s_owner) =
+                shade::secondary_rays_from(Shade::Diffuse, &tri, &rays, &hits, light, 0..1, 0.0);
+            let (bounce, b_owner) = shade::secondary_rays_from(
+                Shade::Ao,
+                &tri,
+                &rays,
+                &hits,
+                light,
+                samples,
+                f32::INFINITY,
+            );
+            let b_hits = trace(tracer, &bounce, &closest)?;
+            let (b_shadow, bs_owner) = shade::secondary_rays_from(
+                Shade::Diffuse,
+                &tri,
+                &bounce,
+                &b_hits,
+                light,
+                0..1,
+                0.0,
+            );
+            // Both kinds of shadow ray in one any-hit trace.
+            let all_shadow: Vec<Ray> = shadow.iter().chain(&b_shadow).copied().collect();
+            let occl = trace(tracer, &all_shadow, &any)?;
+            traced += (bounce.len() + all_shadow.len()) as u64;
+            let (occl_primary, occl_bounce) = occl.split_at(shadow.len());
+            // What each bounce ray brings back: the sky, or the light a surface reflects.
+            let mut incoming: Vec<f32> = b_hits
+                .iter()
+                .map(|h| if h.is_hit() { 0.0 } else { SKY })
+                .collect();
+            for (b, o) in bs_owner.iter().zip(occl_bounce) {
+                let (b, bh) = (*b as usize, &b_hits[*b as usize]);
+                if !o.is_hit() {
+                    let dir = Vec3::from(bounce[b].dir);
+                    incoming[b] = ALBEDO * shade::lambert(&tri(bh.prim), bh, dir, light);
+                }
+            }
+            let mut lit = vec![0f32; rays.len()];
+            for (p, o) in s_owner.iter().zip(occl_primary) {
+                let p = *p as usize;
+                if !o.is_hit() {
+                    lit[p] =
+                        shade::lambert(&tri(hits[p].prim), &hits[p], rays[p].dir.into(), light);
+                }
+            }
+            for (p, l) in b_owner.iter().zip(&incoming) {
+                lit[*p as usize] += ALBEDO * l / spp;
+            }
+            for (h, l) in hits.iter().zip(&lit) {
+                img.extend(if h.is_hit() {
+                    palette::diffuse_colour(*l)
+                } else {
+                    shade::BACKGROUND
+                });
+            }
+        }
+    }
+    Ok((img, traced))
+}
+
+/// A backend opened once per run.
+enum Device {
+    Cpu,
+    Gpu(bvhtrace_gpu::GpuContext),
+    Vulkan(bvhtrace_vk::VkContext),
+}
+
+impl Device {
+    fn name(&self) -> &'static str {
+        match self {
+            Device::Cpu => "cpu",
+            Device::Gpu(_) => "gpu",
+            Device::Vulkan(_) => "vulkan",
+        }
+    }
+
+    /// Uploads `bvh` for `walk`; the tracer and the upload's time.
+    fn upload<'a>(&self, bvh: &'a FlatBvh, walk: Traversal) -> Result<(Box<dyn Tracer + 'a>, f64)> {
+        let t = Instant::now();
+        let tracer: Box<dyn Tracer + 'a> = match self {
+            Device::Cpu => Box::new(CpuTracer::new(bvh)),
+            Device::Gpu(c) => {
+                let opts = bvhtrace_gpu::UploadOptions {
+                    traversals: vec![walk],
+                    storage: None,
+                };
+                Box::new(bvhtrace_gpu::GpuBvh::upload(c, bvh, &opts)?)
+            }
+            Device::Vulkan(c) => Box::new(bvhtrace_vk::VkBvh::upload(c, bvh)?),
+        };
+        Ok((tracer, t.elapsed().as_secs_f64() * 1e3))
+    }
+}
+
+/// Opens the backends `--backends` names, in its order; a device backend that cannot open
+/// is left out with a note.
+fn open_devices(args: &BenchArgs) -> Vec<Device> {
+    let choice = || AdapterChoice::from_name(args.adapter.as_deref());
+    let mut v = Vec::new();
+    for b in &args.backends {
+        match b.as_str() {
+            "gpu" => match bvhtrace_gpu::GpuContext::new(choice()) {
+                Ok(c) => {
+                    let i = c.adapter_info();
+                    eprintln!("GPU: {} ({:?})", i.name, i.device_type);
+                    v.push(Device::Gpu(c));
+                }
+                Err(e) => eprintln!("note: no GPU ({e}); leaving out 'gpu'"),
+            },
+            "vulkan" => match bvhtrace_vk::VkContext::new(choice()) {
+                Ok(c) => v.push(Device::Vulkan(c)),
+                Err(e) => {
+                    eprintln!("note: no Vulkan device through ash ({e}); leaving out 'vulkan'")
+                }
+            },
+            _ => v.push(Device::Cpu),
+        }
+    }
+    v
+}
+
+/// The files name stem of a scene: its file stem, `:` made `_`.
+fn scene_stem(spec: &str) -> String {
+    Path::new(spec.split('#').next().unwrap_or(spec))
+        .file_stem()
+        .map_or("scene".into(), |n| n.to_string_lossy().replace(':', "_"))
+}
+
+/// The camera: `--eye`/`--target`/`--fov`, else the scene's, else a framing one.
+fn camera(args: &ConvergeArgs, scene: &bvhtrace_scene::Scene, size: (u32, u32)) -> Result<Camera> {
+    let view = crate::render::CameraArgs {
+        size,
+        eye: args.eye,
+        target: args.target,
+        fov: args.fov,
+    };
+    crate::render::camera_for(&view, scene)
+}
+
+/// `bvhtrace bench --converge`.
+pub fn run(args: &BenchArgs) -> Result<()> {
+    let plan = Plan::new(args)?;
+    let specs = crate::bench::scene_specs(&args.scenes)?;
+    // Reserve every output before any work, so a bad path fails at once.
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
+    let mut plot_files = Vec::new();
+    if let Some(prefix) = &args.plot {
+        for spec in &specs {
+            for kind in &plan.shades {
+                let stem = format!("{}-{}-{}", prefix.display(), scene_stem(spec), kind.name());
+                let (png, svg) = (
+                    PathBuf::from(format!("{stem}.png")),
+                    PathBuf::from(format!("{stem}.svg")),
+                );
+                plot_files.push((
+                    AtomicFile::create(&png)?,
+                    AtomicFile::create(&svg)?,
+                    png,
+                    svg,
+                ));
+            }
+        }
+    }
+    let devices = open_devices(args);
+    if devices.is_empty() {
+        bail!("no backend left to measure");
+    }
+    eprintln!("CPU: {} threads", rayon::current_num_threads());
+    let to_stderr = args.json.as_deref() == Some("-");
+    let (w, h) = plan.size;
+    let ranges = plan.sample_ranges();
+    let mut points = Vec::new();
+    let mut plots = plot_files.into_iter();
+    let mut written = Vec::new();
+    for spec in &specs {
+        let scene =
+            bvhtrace_scene::load(spec).with_context(|| format!("{spec}: cannot load the scene"))?;
+        let tris = scene
+            .flattened_triangles()
+            .with_context(|| format!("{spec}: cannot flatten the scene"))?;
+        let cam = camera(&args.converge, &scene, (w, h))?;
+        let reference_bvh = FlatBvh::build(&tris, &BuildOptions::default())
+            .with_context(|| format!("{spec}: the reference build failed"))?;
+        let view = View {
+            tris: &tris,
+            light: shade::point_light(&cam),
+            ao_radius: shade::ao_radius(&reference_bvh),
+            cam,
+            w,
+            h,
+        };
+        // The references: once per shading kind, CPU full stack, default builder.
+        let cpu = CpuTracer::new(&reference_bvh);
+        let mut references = Vec::new();
+        for &kind in &plan.shades {
+            let sp = ProgressBar::new_spinner();
+            sp.set_message(format!(
+                "{spec}: {} reference, {w}x{h} at {} spp on the CPU",
+                kind.name(),
+                plan.reference_spp
+            ));
+            sp.enable_steady_tick(std::time::Duration::from_millis(200));
+            let t = Instant::now();
+            let samples = REFERENCE_FIRST_SAMPLE..REFERENCE_FIRST_SAMPLE + plan.reference_spp;
+            let (img, _) = render(&view, &cpu, Traversal::FullStack, kind, samples)?;
+            sp.finish_and_clear();
+            eprintln!(
+                "{spec}: {} triangles; {} reference ({w}x{h}, {} spp) in {:.1} s",
+                tris.len(),
+                kind.name(),
+                plan.reference_spp,
+                t.elapsed().as_secs_f64()
+            );
+            references.push(img);
+        }
+
+        let configs = plan.builders.len() * plan.walks.len() * devices.len();
+        let pb = ProgressBar::new((configs * plan.shades.len() * plan.levels.len()) as u64);
+        pb.set_style(
+            ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        let mut scene_points = Vec::new();
+        for &builder in &plan.builders {
+            pb.set_message(format!("building {builder}"));
+            let opts = BuildOptions::with_builder(builder);
+            let mut times = Vec::new();
+            let mut built = None;
+            for _ in 0..plan.runs {
+                let t = Instant::now();
+                built = Some(
+                    FlatBvh::build(&tris, &opts)
+                        .with_context(|| format!("{spec}: the {builder} build failed"))?,
+                );
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let binary = built.context("no build")?;
+            let binary_ms = median(times);
+            for &walk in &plan.walks {
+                // The wide walk's tree is the binary one converted: its build time adds
+                // the conversion.
+                let (bvh, build_ms) = if walk.is_wide() {
+                    let mut times = Vec::new();
+                    let mut wide = None;
+                    for _ in 0..plan.runs {
+                        let mut b = binary.clone();
+                        let t = Instant::now();
+                        b.build_wide();
+                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                        wide = Some(b);
+                    }
+                    let wide = wide.context("no wide conversion")?;
+                    (std::borrow::Cow::Owned(wide), binary_ms + median(times))
+                } else {
+                    (std::borrow::Cow::Borrowed(&binary), binary_ms)
+                };
+                for device in &devices {
+                    let label = format!("{builder}/{}/{}", walk_name(walk), device.name());
+                    pb.set_message(label.clone());
+                    let (tracer, upload_ms) = device
+                        .upload(&bvh, walk)
+                        .with_context(|| format!("{spec}: {label}: upload failed"))?;
+                    let checks = [
+                        TraceOptions::closest(walk),
+                        TraceOptions::new(walk, Query::Any),
+                    ];
+                    if let Some(e) = checks.iter().find_map(|o| tracer.prepare(o).err()) {
+                        pb.suspend(|| eprintln!("note: {label} left out: {e}"));
+                        pb.inc((plan.shades.len() * plan.levels.len()) as u64);
+                        continue;
+                    }
+                    warm_up(&*tracer, walk, &bvh)?;
+                    for (ki, &kind) in plan.shades.iter().enumerate() {
+                        // First use of the shading's code paths and caches, untimed.
+                        render(&view, &*tracer, walk, kind, ranges[0].clone())?;
+                        for (spp, samples) in plan.levels.iter().zip(&ranges) {
+                            let mut times = Vec::new();
+                            let mut image = None;
+                            for _ in 0..plan.runs {
+                                let t = Instant::now();
+                                let out = render(&view, &*tracer, walk, kind, samples.clone())?;
+                                times.push(t.elapsed().as_secs_f64() * 1e3);
+                                image = Some(out);
+                            }
+                            let (img, rays) = image.context("no image")?;
+                            let image_ms = median(times);
+                            let err = image_error(&references[ki], &img, w, h);
+                            scene_points.push(Point {
+                                scene: spec.clone(),
+                                shade: kind,
+                                builder: builder.name().into(),
+                                traversal: walk_name(walk),
+                                backend: device.name().into(),
+                                width: w,
+                                height: h,
+                                spp: *spp,
+                                first_sample: samples.start,
+                                reference_spp: plan.reference_spp,
+                                build_ms,
+                                upload_ms,
+                                image_ms,
+                                wall_ms: build_ms + image_ms,
+                                rays,
+                                flip: err.flip,
+                                rmse: err.rmse,
+                            });
+                            pb.inc(1);
+                        }
+                    }
+                }
+            }
+        }
+        pb.finish_and_clear();
+        for &kind in &plan.shades {
+            let these: Vec<&Point> = scene_points.iter().filter(|p| p.shade == kind).collect();
+            let curves = curves(&these);
+            let levels = plan.error_levels(kind);
+            print_table(spec, kind, &plan, &levels, &curves, to_stderr);
+            if let Some((png, svg, png_path, svg_path)) = plots.next() {
+                let title = format!(
+                    "{} - {} ({w}x{h}; reference {} spp, CPU full stack)",
+                    Path::new(spec)
+                        .file_name()
+                        .map_or(spec.clone(), |n| n.to_string_lossy().into_owned()),
+                    match kind {
+                        ShadeKind::Ao => "ambient occlusion",
+                        ShadeKind::Diffuse => "one-bounce diffuse",
+                    },
+                    plan.reference_spp
+                );
+                plot(&title, &curves, &levels, png, svg)?;
+                written.push((png_path, svg_path));
+            }
+        }
+        points.extend(scene_points);
+    }
+    if let Some(j) = json_out {
+        j.write(&serde_json::to_value(&points)?)?;
+    }
+    if let Some(f) = csv_out {
+        f.finish_with_bytes(to_csv(&points).as_bytes())?;
+    }
+    for (p, s) in &written {
+        eprintln!("wrote {} and {}", p.display(), s.display());
+    }
+    Ok(())
+}
+
+/// One configuration's points, in the order measured.
+struct Curve<'a> {
+    label: String,
+    builder: String,
+    traversal: String,
+    backend: String,
+    build_ms: f64,
+    points: Vec<&'a Point>,
+}
+
+impl Curve<'_> {
+    fn flip(&self) -> Vec<(f64, f64)> {
+        self.points.iter().map(|p| (p.wall_ms, p.flip)).collect()
+    }
+    fn rmse(&self) -> Vec<(f64, f64)> {
+        self.points.iter().map(|p| (p.wall_ms, p.rmse)).collect()
+    }
+}
+
+/// Groups one scene and shading kind's points by configuration, in the order measured.
+fn curves<'a>(points: &[&'a Point]) -> Vec<Curve<'a>> {
+    let mut out: Vec<Curve<'a>> = Vec::new();
+    for p in points {
+        let label = format!("{}/{}/{}", p.builder, p.traversal, p.backend);
+        match out.iter_mut().find(|c| c.label == label) {
+            Some(c) => c.points.push(p),
+            None => out.push(Curve {
+                label,
+                builder: p.builder.clone(),
+                traversal: p.traversal.clone(),
+                backend: p.backend.clone(),
+                build_ms: p.build_ms,
+                points: vec![p],
+            }),
+        }
+    }
+    out
+}
+
+fn fmt_ms(t: Option<f64>) -> String {
+    t.map_or("-".into(), |t| format!("{t:.1}"))
+}
+
+fn print_table(
+    spec: &str,
+    kind: ShadeKind,
+    plan: &Plan,
+    (flip_levels, rmse_levels): &(Vec<f64>, Vec<f64>),
+    curves: &[Curve],
+    to_stderr: bool,
+) {
+    let mut out = format!(
+        "\n{spec}: {}, {}x{}, spp {:?}, reference {} spp; wall ms to reach each error (build + image, log-log interpolated)\n",
+        kind.name(),
+        plan.size.0,
+        plan.size.1,
+        plan.levels,
+        plan.reference_spp
+    );
+    let heads: Vec<String> = flip_levels
+        .iter()
+        .map(|l| format!("FLIP {l}"))
+        .chain(rmse_levels.iter().map(|l| format!("RMSE {l}")))
+        .collect();
+    out += &format!("{:32} {:>9}", "builder/traversal/backend", "build ms");
+    for hd in &heads {
+        out += &format!(" {hd:>11}");
+    }
+    out.push('\n');
+    let mut best: Vec<Option<(f64, &str)>> = vec![None; heads.len()];
+    for c in curves {
+        out += &format!("{:32} {:>9.1}", c.label, c.build_ms);
+        let (flip, rmse) = (c.flip(), c.rmse());
+        let times = flip_levels
+            .iter()
+            .map(|&l| time_to_reach(&flip, l))
+            .chain(rmse_levels.iter().map(|&l| time_to_reach(&rmse, l)));
+        for (k, t) in times.enumerate() {
+            out += &format!(" {:>11}", fmt_ms(t));
+            if let Some(t) = t
+                && best[k].is_none_or(|b| t < b.0)
+            {
+                best[k] = Some((t, &c.label));
+            }
+        }
+        out.push('\n');
+    }
+    for (hd, b) in heads.iter().zip(&best) {
+        if let Some((t, label)) = b {
+            out += &format!("first to {hd}: {label} ({t:.1} ms)\n");
+        }
+    }
+    if to_stderr {
+        eprint!("{out}");
+    } else {
+        print!("{out}");
+    }
+}
+
+fn to_csv(points: &[Point]) -> String {
+    let mut s = String::from(
+        "scene,shade,builder,traversal,backend,width,height,spp,first_sample,reference_spp,build_ms,upload_ms,image_ms,wall_ms,rays,flip,rmse\n",
+    );
+    for p in points {
+        s += &format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            p.scene,
+            p.shade.name(),
+            p.builder,
+            p.traversal,
+            p.backend,
+            p.width,
+            p.height,
+            p.spp,
+            p.first_sample,
+            p.reference_spp,
+            p.build_ms,
+            p.upload_ms,
+            p.image_ms,
+            p.wall_ms,
+            p.rays,
+            p.flip,
+            p.rmse
+        );
+    }
+    s
+}
+
+/// Writes the plot of one scene and shading kind: FLIP (left) and RMSE (right) against
+/// wall time, log-log, one curve per configuration.
+fn plot(
+    title: &str,
+    curves: &[Curve],
+    levels: &(Vec<f64>, Vec<f64>),
+    png: AtomicFile,
+    svg: AtomicFile,
+) -> Result<()> {
+    if curves.is_empty() {
+        return Ok(());
+    }
+    let (w, h) = (1400u32, 700u32);
+    {
+        let text = crate::plot::register_font();
+        if !text {
+            eprintln!(
+                "note: no DejaVu Sans font found (apt-get install fonts-dejavu-core): the PNG plot has no text; the SVG has"
+            );
+        }
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        draw(
+            BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area(),
+            title,
+            curves,
+            levels,
+            text,
+        )?;
+        crate::output::write_png(png, w, h, buf)?;
+    }
+    let mut s = String::new();
+    draw(
+        SVGBackend::with_string(&mut s, (w, h)).into_drawing_area(),
+        title,
+        curves,
+        levels,
+        true,
+    )?;
+    svg.finish_with_bytes(s.as_bytes())
+}
+
+/// The distinct values, in the order first seen.
+fn distinct<'a>(values: impl Iterator<Item = &'a str>) -> Vec<String> {
+    let mut v: Vec<String> = Vec::new();
+    for x in values {
+        if !v.iter().any(|y| y == x) {
+            v.push(x.to_string());
+        }
+    }
+    v
+}
+
+/// The `i`th builder's colour: matplotlib's "tab10", readable on white (then again).
+fn builder_colour(i: usize) -> RGBColor {
+    const TAB10: [(u8, u8, u8); 10] = [
+        (31, 119, 180),
+        (255, 127, 14),
+        (44, 160, 44),
+        (214, 39, 40),
+        (148, 103, 189),
+        (140, 86, 75),
+        (227, 119, 194),
+        (127, 127, 127),
+        (188, 189, 34),
+        (23, 190, 207),
+    ];
+    let (r, g, b) = TAB10[i % TAB10.len()];
+    RGBColor(r, g, b)
+}
+
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    curves: &[Curve],
+    (flip_levels, rmse_levels): &(Vec<f64>, Vec<f64>),
+    text: bool,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| anyhow!("plotting failed: {e}");
+    root.fill(&WHITE).map_err(err)?;
+    let root = if text {
+        root.titled(title, ("sans-serif", 20)).map_err(err)?
+    } else {
+        root
+    };
+    let panels = root.split_evenly((1, 2));
+    // Colour by builder, marker by walk, line by backend (solid cpu, dashed gpu, dotted
+    // vulkan): 40 curves stay readable with a legend of a dozen entries.
+    let builders = distinct(curves.iter().map(|c| c.builder.as_str()));
+    let walks = distinct(curves.iter().map(|c| c.traversal.as_str()));
+    let backends = distinct(curves.iter().map(|c| c.backend.as_str()));
+    let index = |v: &[String], x: &str| v.iter().position(|y| y == x).unwrap_or(0);
+    let colour = |c: &Curve| builder_colour(index(&builders, &c.builder));
+    let dash = |backend: &str| match backend {
+        "cpu" => None,
+        "gpu" => Some((8, 5)),
+        _ => Some((2, 4)),
+    };
+    let all = || curves.iter().flat_map(|c| c.points.iter());
+    let (tmin, tmax) = all().fold((f64::MAX, f64::MIN), |(a, b), p| {
+        (a.min(p.wall_ms), b.max(p.wall_ms))
+    });
+    let (tmin, tmax) = (tmin.max(1e-3) * 0.8, tmax.max(1e-3) * 1.25);
+    type Pick = fn(&Point) -> f64;
+    let metrics: [(&str, Pick, &[f64]); 2] = [
+        ("mean FLIP against the reference", |p| p.flip, flip_levels),
+        ("RMSE against the reference", |p| p.rmse, rmse_levels),
+    ];
+    for (pi, (area, (name, pick, levels))) in panels.iter().zip(metrics).enumerate() {
+        // Identical images (error 0) would have no place on a log axis.
+        let positive = all().map(|p| pick(p)).filter(|e| *e > 0.0);
+        let (emin, emax) = positive.fold((f64::MAX, f64::MIN), |(a, b), e| (a.min(e), b.max(e)));
+        let (emin, emax) = if emin <= emax {
+            (emin * 0.7, emax * 1.4)
+        } else {
+            (1e-4, 1.0)
+        };
+        let mut chart = ChartBuilder::on(area);
+        chart.margin(15);
+        if text {
+            chart.x_label_area_size(40).y_label_area_size(60);
+        }
+        let mut chart = chart
+            .build_cartesian_2d(
+                (tmin..tmax)
+                    .log_scale()
+                    .with_key_points(crate::plot::one_two_five(tmin, tmax)),
+                (emin..emax).log_scale().with_key_points({
+                    // The 1-2-5 marks and the table's levels.
+                    let mut k = crate::plot::one_two_five(emin, emax);
+                    k.extend(levels.iter().filter(|l| (emin..emax).contains(*l)));
+                    k.sort_by(f64::total_cmp);
+                    k.dedup();
+                    k
+                }),
+            )
+            .map_err(err)?;
+        if text {
+            chart
+                .configure_mesh()
+                .x_desc("wall time: build + image (ms)")
+                .x_label_formatter(&|x| format!("{x:.0}"))
+                .y_desc(name.to_string())
+                .y_label_formatter(&|y| format!("{y}"))
+                .draw()
+                .map_err(err)?;
+        }
+        // The table's levels, as thin grey lines.
+        for &l in levels.iter().filter(|l| (emin..emax).contains(*l)) {
+            chart
+                .draw_series(LineSeries::new(
+                    [(tmin, l), (tmax, l)],
+                    RGBColor(170, 170, 170).stroke_width(1),
+                ))
+                .map_err(err)?;
+        }
+        for c in curves {
+            let col = colour(c);
+            let pts: Vec<(f64, f64)> = c
+                .points
+                .iter()
+                .map(|p| (p.wall_ms, pick(p).max(emin)))
+                .collect();
+            let style = col.stroke_width(if c.backend == "cpu" { 2 } else { 1 });
+            match dash(&c.backend) {
+                None => chart
+                    .draw_series(LineSeries::new(pts.clone(), style))
+                    .map(|_| ()),
+                Some((on, off)) => chart
+                    .draw_series(DashedLineSeries::new(pts.clone(), on, off, style))
+                    .map(|_| ()),
+            }
+            .map_err(err)?;
+            // A walk's marker: filled circle, triangle, cross, hollow circle (then again).
+            let (fill, line) = (col.filled(), col.stroke_width(1));
+            let at = pts.iter().copied();
+            match index(&walks, &c.traversal) % 4 {
+                0 => chart.draw_series(at.map(|p| Circle::new(p, 3, fill))),
+                1 => chart.draw_series(at.map(|p| TriangleMarker::new(p, 4, fill))),
+                2 => chart.draw_series(at.map(|p| Cross::new(p, 4, line))),
+                _ => chart.draw_series(at.map(|p| Circle::new(p, 4, line))),
+            }
+            .map_err(err)?;
+        }
+        if pi == 0 && text {
+            // Legend entries of their own: builders (colour), walks (marker), backends
+            // (line).
+            for (i, b) in builders.iter().enumerate() {
+                let col = builder_colour(i);
+                chart
+                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+                    .map_err(err)?
+                    .label(format!("builder {b}"))
+                    .legend(move |(x, y)| {
+                        PathElement::new([(x, y), (x + 18, y)], col.stroke_width(3))
+                    });
+            }
+            for (i, wk) in walks.iter().enumerate() {
+                let entry = chart
+                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+                    .map_err(err)?
+                    .label(format!("walk {wk}"));
+                let (fill, line) = (BLACK.filled(), BLACK.stroke_width(1));
+                match i % 4 {
+                    0 => entry.legend(move |(x, y)| Circle::new((x + 9, y), 3, fill)),
+                    1 => entry.legend(move |(x, y)| TriangleMarker::new((x + 9, y), 4, fill)),
+                    2 => entry.legend(move |(x, y)| Cross::new((x + 9, y), 4, line)),
+                    _ => entry.legend(move |(x, y)| Circle::new((x + 9, y), 4, line)),
+                };
+            }
+            for be in &backends {
+                let entry = chart
+                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+                    .map_err(err)?
+                    .label(format!("backend {be}"));
+                match dash(be) {
+                    None => entry.legend(|(x, y)| {
+                        PathElement::new([(x, y), (x + 18, y)], BLACK.stroke_width(2))
+                    }),
+                    Some((on, off)) => entry.legend(move |(x, y)| {
+                        plotters::element::DashedPathElement::new(
+                            [(x, y), (x + 18, y)],
+                            on,
+                            off,
+                            BLACK.stroke_width(1),
+                        )
+                    }),
+                };
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerLeft)
+                .label_font(("sans-serif", 12))
+                .background_style(WHITE.mix(0.9))
+                .border_style(BLACK)
+                .draw()
+                .map_err(err)?;
+        }
+    }
+    root.present().map_err(err)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grey(w: u32, h: u32, v: u8) -> Vec<u8> {
+        vec![v; (w * h * 3) as usize]
+    }
+
+    #[test]
+    fn identical_images_have_no_error() {
+        let (w, h) = (16, 12);
+        let mut a = grey(w, h, 40);
+        // Some structure, so that FLIP's edge and point detectors see something.
+        for (i, x) in a.iter_mut().enumerate() {
+            *x = (i * 37 % 251) as u8;
+        }
+        let e = image_error(&a, &a, w, h);
+        assert_eq!(e.rmse, 0.0);
+        assert!(e.flip.abs() < 1e-6, "{}", e.flip);
+    }
+
+    #[test]
+    fn a_constant_difference_gives_that_rmse() {
+        let (w, h) = (8, 8);
+        let e = image_error(&grey(w, h, 100), &grey(w, h, 151), w, h);
+        assert!((e.rmse - 51.0 / 255.0).abs() < 1e-12, "{}", e.rmse);
+        let mut half = grey(w, h, 0);
+        let n = half.len();
+        half[n / 2..].fill(255);
+        // Half the channels off by 1: sqrt(1/2).
+        let e = image_error(&grey(w, h, 0), &half, w, h);
+        assert!((e.rmse - 0.5f64.sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn flip_of_black_against_white_is_its_documented_value_and_grows_with_the_difference() {
+        let (w, h) = (8, 8);
+        // FLIP's colour pipeline on flat images (no edges, no points): HyAB(black, white)
+        // = 100, compressed to 100^0.7 = 25.12; the largest difference (green against
+        // blue, Hunt-adjusted) to 203.1^0.7 = 41.1; 25.12 is above 0.4 of that, so it maps
+        // to 0.95 + (25.12 - 0.4 * 41.1) / (0.6 * 41.1) * 0.05 = 0.9676.
+        let e = image_error(&grey(w, h, 0), &grey(w, h, 255), w, h);
+        assert!((e.flip - 0.9676).abs() < 0.01, "{}", e.flip);
+        let mut last = 0.0;
+        for d in [8u8, 16, 32, 64, 127] {
+            let f = image_error(&grey(w, h, 128), &grey(w, h, 128 + d), w, h).flip;
+            assert!(
+                f > last,
+                "FLIP {f} for a difference of {d}, {last} for less"
+            );
+            last = f;
+        }
+    }
+
+    #[test]
+    fn time_to_reach_interpolates_in_log_log() {
+        // Error halves as time doubles: e = 1 / t.
+        let curve = [(1.0, 1.0), (2.0, 0.5), (4.0, 0.25), (8.0, 0.125)];
+        // Exactly on a point.
+        assert_eq!(time_to_reach(&curve, 0.5), Some(2.0));
+        // Between points, on the line through them: e = 1/t gives t = 1/e.
+        let t = time_to_reach(&curve, 0.3).unwrap();
+        assert!((t - 1.0 / 0.3).abs() < 1e-9, "{t}");
+        // Already there at the first point: its time.
+        assert_eq!(time_to_reach(&curve, 2.0), Some(1.0));
+        // Never reached.
+        assert_eq!(time_to_reach(&curve, 0.1), None);
+        // The first crossing counts, even when noise lifts a later point again.
+        let noisy = [(10.0, 0.4), (20.0, 0.1), (40.0, 0.2), (80.0, 0.05)];
+        let t = time_to_reach(&noisy, 0.2).unwrap();
+        assert!((t - 10.0 * 2f64.powf(0.5)).abs() < 1e-9, "{t}");
+        // An identical image (error 0) is reached at its own time.
+        assert_eq!(time_to_reach(&[(1.0, 0.3), (2.0, 0.0)], 0.1), Some(2.0));
+        assert_eq!(time_to_reach(&[], 0.1), None);
+    }
+
+    #[test]
+    fn levels_take_disjoint_sample_ranges_below_the_reference() {
+        let plan = Plan {
+            size: (4, 4),
+            flip_levels: vec![],
+            rmse_levels: vec![],
+            levels: vec![1, 2, 4, 8],
+            reference_spp: 16,
+            builders: vec![],
+            walks: vec![],
+            shades: vec![],
+            runs: 1,
+        };
+        assert_eq!(plan.sample_ranges(), vec![0..1, 1..3, 3..7, 7..15]);
+    }
+
+    #[test]
+    fn more_samples_give_less_error_on_a_scene_with_occlusion() {
+        let scene = bvhtrace_scene::load("builtin:cornell").unwrap();
+        let tris = scene.flattened_triangles().unwrap();
+        let (w, h) = (32, 24);
+        let cam = scene.camera_or_frame(w as f32 / h as f32);
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+        let view = View {
+            tris: &tris,
+            light: shade::point_light(&cam),
+            ao_radius: shade::ao_radius(&bvh),
+            cam,
+            w,
+            h,
+        };
+        let cpu = CpuTracer::new(&bvh);
+        for kind in [ShadeKind::Ao, ShadeKind::Diffuse] {
+            let r = REFERENCE_FIRST_SAMPLE..REFERENCE_FIRST_SAMPLE + 256;
+            let (reference, _) = render(&view, &cpu, Traversal::FullStack, kind, r).unwrap();
+            let e = |s: Range<u32>| {
+                let (img, _) = render(&view, &cpu, Traversal::Stackless, kind, s).unwrap();
+                image_error(&reference, &img, w, h).rmse
+            };
+            let (e1, e16) = (e(0..1), e(1..17));
+            assert!(e16 < 0.6 * e1, "{kind:?}: rmse {e1} at 1 spp, {e16} at 16");
+        }
+    }
+}
