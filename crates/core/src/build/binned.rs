@@ -192,8 +192,8 @@ pub(super) fn split(
     let area = bounds.surface_area();
     let mut best = (f32::INFINITY, 0usize, 0usize); // cost, axis, last bin on the left
     let mut right_area = [0f32; MAX_BINS];
-    for a in 0..3 {
-        if scale[a] == 0.0 {
+    for (a, &s) in scale.iter().enumerate() {
+        if s == 0.0 {
             continue;
         }
         let o = a * bins;
