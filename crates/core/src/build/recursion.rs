@@ -141,56 +141,36 @@ fn recurse(
     write_interior(slots, &bounds, axis, right);
     let (left_refs, right_refs) = refs.split_at_mut(mid);
     let (left_slots, right_slots) = slots[1..].split_at_mut(2 * mid - 1);
+    let mut first = move || {
+        let (b, c) = lb;
+        recurse(
+            left_refs,
+            offset,
+            depth + 1,
+            opts,
+            b,
+            c,
+            left_slots,
+            base + 1,
+        )
+    };
+    let mut second = move || {
+        let (b, c) = rb;
+        recurse(
+            right_refs,
+            offset + mid,
+            depth + 1,
+            opts,
+            b,
+            c,
+            right_slots,
+            right,
+        )
+    };
     let (dl, dr) = if parallel {
-        rayon::join(
-            || {
-                recurse(
-                    left_refs,
-                    offset,
-                    depth + 1,
-                    opts,
-                    lb.0,
-                    lb.1,
-                    left_slots,
-                    base + 1,
-                )
-            },
-            || {
-                recurse(
-                    right_refs,
-                    offset + mid,
-                    depth + 1,
-                    opts,
-                    rb.0,
-                    rb.1,
-                    right_slots,
-                    right,
-                )
-            },
-        )
+        rayon::join(first, second)
     } else {
-        (
-            recurse(
-                left_refs,
-                offset,
-                depth + 1,
-                opts,
-                lb.0,
-                lb.1,
-                left_slots,
-                base + 1,
-            ),
-            recurse(
-                right_refs,
-                offset + mid,
-                depth + 1,
-                opts,
-                rb.0,
-                rb.1,
-                right_slots,
-                right,
-            ),
-        )
+        (first(), second())
     };
     1 + dl.max(dr)
 }
