@@ -241,6 +241,36 @@ fn optimize_lowers_the_sah_cost_and_keeps_the_image() {
     assert!(img == img_opt, "--optimize changed the image");
 }
 
+#[test]
+fn sbvh_builds_within_its_budget_and_keeps_the_image() {
+    let info = |extra: &[&str]| {
+        let mut a = vec!["info", "builtin:degenerate", "--builder", "sbvh", "--json"];
+        a.extend_from_slice(extra);
+        let out = run(&a);
+        assert!(out.status.success(), "{a:?}");
+        json(&out)
+    };
+    let (plain, none) = (info(&[]), info(&["--split-budget", "0"]));
+    let (tris, refs) = (
+        plain["triangles"].as_u64().unwrap(),
+        plain["references"].as_u64().unwrap(),
+    );
+    assert_eq!(plain["builder"], "sbvh");
+    assert!(
+        refs > tris && refs as f64 <= 1.3 * tris as f64,
+        "{refs} references, {tris} triangles"
+    );
+    assert_eq!(none["references"], none["triangles"]);
+    let bad = run(&["info", "--builder", "sbvh", "--split-budget=-1"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("split_budget"));
+    // Leaves sharing triangles hit what one reference per triangle hits: the same image.
+    let args = ["builtin:spheres", "--flatten", "--shade", "normal"];
+    let (_, img) = render_json("sah", &args);
+    let (_, img_sbvh) = render_json("sbvh", &[&args[..], &["--builder", "sbvh"]].concat());
+    assert!(img == img_sbvh, "--builder sbvh changed the image");
+}
+
 /// Renders `args` on the CPU at 96x72 with JSON on stdout; returns the JSON and the PNG.
 fn render_json(name: &str, args: &[&str]) -> (serde_json::Value, Vec<u8>) {
     let dir = scratch(name);

@@ -521,20 +521,23 @@ const EMPTY_SPATIAL_BIN: SpatialBin = SpatialBin {
 /// planes themselves, so the result is exact whatever the guess's rounding.
 #[inline]
 fn span(planes: &[f32], guess: impl Fn(f32) -> usize, min: f32, max: f32) -> (usize, usize) {
-    // The number of planes `p` with `below(p)`, for a predicate true on a prefix.
-    let count = |x: f32, below: &dyn Fn(f32) -> bool| {
-        let mut c = guess(x).min(planes.len());
-        while c > 0 && !below(planes[c - 1]) {
-            c -= 1;
-        }
-        while c < planes.len() && below(planes[c]) {
-            c += 1;
-        }
-        c
-    };
-    let last = count(max, &|p| p < max);
-    let first = count(min, &|p| p <= min).min(last);
-    (first, last)
+    let n = planes.len();
+    // The number of planes below `max`, then of planes at or below `min`.
+    let mut last = guess(max).min(n);
+    while last > 0 && !(planes[last - 1] < max) {
+        last -= 1;
+    }
+    while last < n && planes[last] < max {
+        last += 1;
+    }
+    let mut first = guess(min).min(n);
+    while first > 0 && !(planes[first - 1] <= min) {
+        first -= 1;
+    }
+    while first < n && planes[first] <= min {
+        first += 1;
+    }
+    (first.min(last), last)
 }
 
 /// Stich et al.'s chopped binning along all three axes, then the sweep; only planes whose
