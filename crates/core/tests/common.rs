@@ -1,7 +1,7 @@
 //! Shared generators for the core tests.
 #![allow(dead_code)]
 
-use bvhtrace_core::{Ray, Triangle};
+use bvhtrace_core::{Hit, Ray, Triangle, oracle};
 use glam::Vec3;
 use proptest::prelude::*;
 
@@ -102,4 +102,19 @@ pub fn uv_sphere(n: usize, r: f32, c: Vec3) -> Vec<Triangle> {
         }
     }
     t
+}
+
+/// The documented f32 exception to "every traversal and every tree returns the same
+/// closest hit": two
+/// answers `a` and `b` may differ only where the f32 test is indeterminate for a triangle
+/// involved, or where their `t` lie within the f32 `t` error bounds of their triangles
+/// (see `intersect::BOX_CULL_SLACK`: the box test's slack covers the rounding of the
+/// watertight test's `T` and `det`, not the error of its edge functions).
+pub fn f32_departure(tris: &[Triangle], ray: &Ray, a: &Hit, b: &Hit) -> bool {
+    let tri = |p: u32| tris.get(p as usize);
+    let terr = |p: u32| tri(p).map_or(0.0, |t| oracle::f32_t_error_bound(t, ray));
+    [a.prim, b.prim]
+        .iter()
+        .any(|&p| tri(p).is_some_and(|t| oracle::f32_indeterminate(t, ray)))
+        || (a.t as f64 - b.t as f64).abs() <= terr(a.prim) + terr(b.prim)
 }

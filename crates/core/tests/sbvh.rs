@@ -238,18 +238,6 @@ fn rays(tris: &[Triangle], seed: u64) -> Vec<Ray> {
     out
 }
 
-/// The documented f32 exception to "every tree and walk returns the same closest hit"
-/// (see `traversal.rs`): the f32 test is indeterminate for a triangle involved, or the two
-/// `t` lie within the f32 error bounds of their triangles.
-fn f32_departure(tris: &[Triangle], ray: &Ray, a: &Hit, b: &Hit) -> bool {
-    let tri = |p: u32| tris.get(p as usize);
-    let terr = |p: u32| tri(p).map_or(0.0, |t| oracle::f32_t_error_bound(t, ray));
-    [a.prim, b.prim]
-        .iter()
-        .any(|&p| tri(p).is_some_and(|t| oracle::f32_indeterminate(t, ray)))
-        || (a.t as f64 - b.t as f64).abs() <= terr(a.prim) + terr(b.prim)
-}
-
 /// An f32 closest hit against the f64 oracle: the same primitive at about the same `t`,
 /// or a difference f32 cannot decide.
 fn agrees_with_oracle(tris: &[Triangle], ray: &Ray, hit: &Hit) -> bool {
@@ -323,14 +311,17 @@ fn closest_and_any_hits_equal_the_oracle_and_binned_sah() {
                     if !same(&h, &want) {
                         // Only where f32 cannot decide, as between walks of one tree.
                         assert!(
-                            f32_departure(&tris, &ray, &h, &want)
+                            common::f32_departure(&tris, &ray, &h, &want)
                                 && agrees_with_oracle(&tris, &ray, &h),
                             "{name} budget {budget} {walk}: {h:?} vs {want:?} for {ray:?}"
                         );
                         departures += 1;
                     }
                     if !same(&s, &want) {
-                        assert!(f32_departure(&tris, &ray, &s, &want), "{name}: SAH {walk}");
+                        assert!(
+                            common::f32_departure(&tris, &ray, &s, &want),
+                            "{name}: SAH {walk}"
+                        );
                         sah_departures += 1;
                     }
                     // Any-hit finds a hit exactly when the same walk's closest hit does.
@@ -591,7 +582,7 @@ fn two_levels_over_sbvh_meshes_answer_as_the_flattened_scene() {
                 let (h, _) = trace_ray(&bvh, ray, &TraceOptions::closest(walk));
                 assert!(
                     (h.prim == want.prim && h.t.to_bits() == want.t.to_bits())
-                        || f32_departure(&world, ray, &h, &want),
+                        || common::f32_departure(&world, ray, &h, &want),
                     "{walk}: {h:?} vs brute force {want:?}"
                 );
             }

@@ -68,20 +68,6 @@ fn agrees_with_oracle(tris: &[Triangle], ray: &Ray, hit: &Hit) -> Result<(), Str
     ))
 }
 
-/// The documented f32 exception to "every traversal returns the same closest hit": two
-/// answers `a` and `b` may differ only where the f32 test is indeterminate for a triangle
-/// involved, or where their `t` lie within the f32 `t` error bounds of their triangles
-/// (see `intersect::BOX_CULL_SLACK`: the box test's slack covers the rounding of the
-/// watertight test's `T` and `det`, not the error of its edge functions).
-fn f32_departure(tris: &[Triangle], ray: &Ray, a: &Hit, b: &Hit) -> bool {
-    let tri = |p: u32| tris.get(p as usize);
-    let terr = |p: u32| tri(p).map_or(0.0, |t| oracle::f32_t_error_bound(t, ray));
-    [a.prim, b.prim]
-        .iter()
-        .any(|&p| tri(p).is_some_and(|t| oracle::f32_indeterminate(t, ray)))
-        || (a.t as f64 - b.t as f64).abs() <= terr(a.prim) + terr(b.prim)
-}
-
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(128))]
 
@@ -109,12 +95,12 @@ proptest! {
                 let excused = h != expect
                     && agrees_with_oracle(&tris, ray, &h).is_ok()
                     && agrees_with_oracle(&tris, ray, &expect).is_ok()
-                    && f32_departure(&tris, ray, &h, &expect);
+                    && common::f32_departure(&tris, ray, &h, &expect);
                 prop_assert!(h == expect || excused, "{} on {:?}: {:?} vs brute force {:?}", tr, ray, h, expect);
                 // The visit order does not matter: the same hit as the full stack's, to the
                 // bit, under the same documented exception.
                 let same = h.prim == full.prim && h.t.to_bits() == full.t.to_bits();
-                prop_assert!(same || f32_departure(&tris, ray, &h, &full),
+                prop_assert!(same || common::f32_departure(&tris, ray, &h, &full),
                     "{} on {:?}: {:?} vs full stack {:?}", tr, ray, h, full);
                 let (a, _) = trace_ray(&bvh, ray, &TraceOptions::new(tr, Query::Any));
                 prop_assert_eq!(a.is_hit(), h.is_hit(), "any-hit {} on {:?}", tr, ray);

@@ -156,6 +156,19 @@ fn merge(mut a: Bins, b: Bins) -> Bins {
     a
 }
 
+/// Bins per unit of centroid extent along each axis; 0 along an axis where every
+/// centroid is the same (it is not split there).
+pub(super) fn bin_scale(cb: &Aabb, bins: usize) -> [f32; 3] {
+    let ext = cb.extent();
+    [0, 1, 2].map(|a| {
+        if ext[a] > 0.0 {
+            bins as f32 / ext[a]
+        } else {
+            0.0
+        }
+    })
+}
+
 /// Chooses and applies the cheapest binned split, or says the node should be a leaf.
 pub(super) fn split(
     refs: &mut [PrimRef],
@@ -166,14 +179,7 @@ pub(super) fn split(
 ) -> Split {
     let bins = opts.bins.min(MAX_BINS);
     let n = refs.len();
-    let ext = cb.extent();
-    let scale = [0, 1, 2].map(|a| {
-        if ext[a] > 0.0 {
-            bins as f32 / ext[a]
-        } else {
-            0.0
-        }
-    });
+    let scale = bin_scale(cb, bins);
     let at = Binning {
         lo: cb.min.into(),
         scale: Vec3A::from_array(scale),

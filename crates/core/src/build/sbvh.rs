@@ -50,8 +50,8 @@ use glam::{BVec3A, DVec3, Vec3, Vec3A};
 use rayon::prelude::*;
 
 use super::{
-    BuildError, BuildNode, BuildOptions, BuildTree, PrimRef, Split, median_split, partition,
-    split_cost,
+    BuildError, BuildNode, BuildOptions, BuildTree, PrimRef, Split, bounds_of, median_split,
+    partition, split_cost,
 };
 // Nodes up to this size choose their object split by the exact sweep, as the binned SAH
 // builder does.
@@ -136,26 +136,6 @@ fn gather(node: &mut BuildNode, buf: &[PrimRef], out: &mut Vec<u32>) {
             gather(l, buf, out);
             gather(r, buf, out);
         }
-    }
-}
-
-/// Node bounds and centroid bounds (parallel for big sets: min and max only, so the
-/// result does not depend on the split into chunks).
-fn bounds_of(refs: &[PrimRef], parallel: bool) -> (Aabb, Aabb) {
-    let fold = |(mut b, mut c): (Aabb, Aabb), r: &PrimRef| {
-        b = b.union(&r.bounds());
-        c.grow(r.centroid());
-        (b, c)
-    };
-    if parallel && refs.len() >= PAR_MIN {
-        refs.par_chunks(PAR_CHUNK)
-            .map(|ch| ch.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold))
-            .reduce(
-                || (Aabb::EMPTY, Aabb::EMPTY),
-                |a, b| (a.0.union(&b.0), a.1.union(&b.1)),
-            )
-    } else {
-        refs.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold)
     }
 }
 
@@ -340,14 +320,7 @@ fn binned_object(
     parallel: bool,
 ) -> Option<ObjectSplit> {
     let bins = opts.bins;
-    let ext = cb.extent();
-    let scale = [0, 1, 2].map(|a| {
-        if ext[a] > 0.0 {
-            bins as f32 / ext[a]
-        } else {
-            0.0
-        }
-    });
+    let scale = super::binned::bin_scale(cb, bins);
     let fill = |chunk: &[PrimRef]| {
         let mut out = vec![(Aabb::EMPTY, 0u32); 3 * bins];
         for r in chunk {
