@@ -906,33 +906,13 @@ fn plot(
     if curves.is_empty() {
         return Ok(());
     }
-    let (w, h) = (1400u32, 700u32);
-    {
-        let text = crate::plot::register_font();
-        if !text {
-            eprintln!(
-                "note: no DejaVu Sans font found (apt-get install fonts-dejavu-core): the PNG plot has no text; the SVG has"
-            );
-        }
-        let mut buf = vec![0u8; (w * h * 3) as usize];
-        draw(
-            BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area(),
-            title,
-            curves,
-            levels,
-            text,
-        )?;
-        crate::output::write_png(png, w, h, buf)?;
-    }
-    let mut s = String::new();
-    draw(
-        SVGBackend::with_string(&mut s, (w, h)).into_drawing_area(),
-        title,
-        curves,
-        levels,
-        true,
-    )?;
-    svg.finish_with_bytes(s.as_bytes())
+    crate::plot::write_png_and_svg(
+        (1400, 700),
+        png,
+        svg,
+        |area, text| draw(area, title, curves, levels, text),
+        |area| draw(area, title, curves, levels, true),
+    )
 }
 
 /// The distinct values, in the order first seen.

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::cost::{WARP, WarpCost, warp_cost};
-use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Query, Ray, TraceOptions, Traversal};
+use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -67,19 +67,8 @@ pub struct CostArgs {
     /// Write the figures as JSON (`-` for stdout; the table then goes to stderr).
     #[arg(long, value_name = "FILE|-")]
     pub json: Option<String>,
-    /// BVH builder.
-    #[arg(long, default_value = "sah")]
-    pub builder: BuilderKind,
-    /// SAH traversal cost (intersection cost is 1); PBRT's 1/8 by default.
-    #[arg(long, default_value_t = 0.125)]
-    pub cost_traversal: f32,
-    /// Optimise the tree by reinsertion (Bittner et al. 2013) before measuring.
-    #[arg(long)]
-    pub optimize: bool,
-    /// `sbvh` only: how many references spatial splits may add, as a fraction of the
-    /// triangle count (0..=16).
-    #[arg(long, value_name = "F", default_value_t = BuildOptions::default().split_budget)]
-    pub split_budget: f32,
+    #[command(flatten)]
+    pub build: crate::render::BuildArgs,
 }
 
 /// The whole JSON document.
@@ -181,14 +170,8 @@ pub fn cost(args: CostArgs) -> Result<()> {
         assumptions: ASSUMPTIONS,
         scenes: Vec::new(),
     };
+    let opts = args.build.options();
     for spec in &specs {
-        let opts = BuildOptions {
-            builder: args.builder,
-            cost_traversal: args.cost_traversal,
-            optimize: args.optimize,
-            split_budget: args.split_budget,
-            ..Default::default()
-        };
         let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &opts)?;
         // Each scene's table as soon as it is done: the big scenes take a while.
         if to_stderr {

@@ -11,7 +11,7 @@ const FLOOR: f64 = 1e-9;
 
 /// Registers DejaVu Sans (from the system, `fonts-dejavu-core`) for the PNG's text.
 /// Returns false when no font is found: the PNG is then drawn without text.
-pub(crate) fn register_font() -> bool {
+fn register_font() -> bool {
     const PATHS: [&str; 2] = [
         "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
         "/usr/share/fonts/TTF/DejaVuSans.ttf",
@@ -179,7 +179,25 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
     if rows.is_empty() {
         return Ok(());
     }
-    let (w, h) = (1100u32, 750u32);
+    write_png_and_svg(
+        (1100, 750),
+        png,
+        svg,
+        |area, text| draw(area, title, rows, text),
+        |area| draw(area, title, rows, true),
+    )
+}
+
+/// Writes one figure as a `w` x `h` PNG (with text where a font is found; a note says
+/// so when none is) and as an SVG, drawn by `png_draw` and `svg_draw` (the same drawing
+/// on the two backends).
+pub(crate) fn write_png_and_svg(
+    (w, h): (u32, u32),
+    png: AtomicFile,
+    svg: AtomicFile,
+    png_draw: impl FnOnce(DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>, bool) -> Result<()>,
+    svg_draw: impl FnOnce(DrawingArea<SVGBackend<'_>, plotters::coord::Shift>) -> Result<()>,
+) -> Result<()> {
     {
         let text = register_font();
         if !text {
@@ -188,21 +206,14 @@ pub fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile
             );
         }
         let mut buf = vec![0u8; (w * h * 3) as usize];
-        draw(
+        png_draw(
             BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area(),
-            title,
-            rows,
             text,
         )?;
         crate::output::write_png(png, w, h, buf)?;
     }
     let mut s = String::new();
-    draw(
-        SVGBackend::with_string(&mut s, (w, h)).into_drawing_area(),
-        title,
-        rows,
-        true,
-    )?;
+    svg_draw(SVGBackend::with_string(&mut s, (w, h)).into_drawing_area())?;
     svg.finish_with_bytes(s.as_bytes())
 }
 

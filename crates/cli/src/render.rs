@@ -32,12 +32,9 @@ pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
-/// Scene and BVH choices shared by the commands.
+/// The BVH build flags, shared by every command that builds one.
 #[derive(clap::Args, Clone)]
-pub struct SceneArgs {
-    /// A .gltf/.glb file or a `builtin:` name (see `bvhtrace info --list`); default: the
-    /// Cornell box.
-    pub scene: Option<String>,
+pub struct BuildArgs {
     /// BVH builder.
     #[arg(long, default_value = "sah")]
     pub builder: BuilderKind,
@@ -55,6 +52,30 @@ pub struct SceneArgs {
     /// triangle count (0..=16; references at most (1 + F) x triangles).
     #[arg(long, value_name = "F", default_value_t = BuildOptions::default().split_budget)]
     pub split_budget: f32,
+}
+
+impl BuildArgs {
+    /// The options the flags say.
+    pub fn options(&self) -> BuildOptions {
+        BuildOptions {
+            builder: self.builder,
+            bins: self.bins,
+            cost_traversal: self.cost_traversal,
+            optimize: self.optimize,
+            split_budget: self.split_budget,
+            ..Default::default()
+        }
+    }
+}
+
+/// Scene and BVH choices shared by the commands.
+#[derive(clap::Args, Clone)]
+pub struct SceneArgs {
+    /// A .gltf/.glb file or a `builtin:` name (see `bvhtrace info --list`); default: the
+    /// Cornell box.
+    pub scene: Option<String>,
+    #[command(flatten)]
+    pub build: BuildArgs,
     /// Trace one BVH over the world-space triangles, even for a scene that places meshes
     /// more than once (traced in two levels by default: a BVH per mesh, a top level over
     /// the instances).
@@ -71,14 +92,7 @@ impl SceneArgs {
         self.scene.as_deref().unwrap_or(DEFAULT_SCENE)
     }
     fn build_options(&self) -> BuildOptions {
-        BuildOptions {
-            builder: self.builder,
-            bins: self.bins,
-            cost_traversal: self.cost_traversal,
-            optimize: self.optimize,
-            split_budget: self.split_budget,
-            ..Default::default()
-        }
+        self.build.options()
     }
 }
 
@@ -541,8 +555,8 @@ impl Report<'_> {
             "traversal": self.job.traversal.to_string(),
             "layout": if self.job.traversal.is_wide() { Layout::Wide } else { Layout::Binary },
             "default_traversal": self.tracer.default_traversal().to_string(),
-            "builder": args.scene.builder.name(),
-            "optimize": args.scene.optimize,
+            "builder": args.scene.build.builder.name(),
+            "optimize": args.scene.build.optimize,
             "shade": args.shade,
             "uploaded_bytes": self.tracer.uploaded_bytes(),
             "features": features,
@@ -827,10 +841,10 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "bounds": { "min": lo.to_array(), "max": hi.to_array() },
         "attributes": { "normals": a.normals, "texcoords": a.texcoords, "colors": a.colors, "materials": a.materials },
         "camera": scene.camera.map(|c| json!({"eye": c.eye.to_array(), "target": c.target.to_array(), "fov": c.fov_y_deg})),
-        "builder": args.scene.builder.name(),
-        "optimize": args.scene.optimize,
+        "builder": args.scene.build.builder.name(),
+        "optimize": args.scene.build.optimize,
         "nodes": s.nodes, "leaves": s.leaves, "depth": s.depth,
-        "references": s.triangles, "split_budget": args.scene.split_budget,
+        "references": s.triangles, "split_budget": args.scene.build.split_budget,
         "sah_cost": s.sah_cost, "sah_cost_pbrt": s.sah_cost_pbrt,
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
@@ -863,9 +877,9 @@ pub fn info(args: InfoArgs) -> Result<()> {
     );
     println!(
         "bvh         {} ({} bins{}): {} nodes, {} leaves, depth {}",
-        args.scene.builder,
-        args.scene.bins,
-        if args.scene.optimize {
+        args.scene.build.builder,
+        args.scene.build.bins,
+        if args.scene.build.optimize {
             ", optimised by reinsertion"
         } else {
             ""
@@ -874,14 +888,14 @@ pub fn info(args: InfoArgs) -> Result<()> {
         s.leaves,
         s.depth
     );
-    if args.scene.builder == BuilderKind::Sbvh {
+    if args.scene.build.builder == BuilderKind::Sbvh {
         // The leaves may share triangles: how many slots the tree has for how many.
         println!(
             "references  {} for {} triangles ({:.3}x; split budget {})",
             s.triangles,
             s.primitives,
             s.triangles as f64 / s.primitives.max(1) as f64,
-            args.scene.split_budget
+            args.scene.build.split_budget
         );
     }
     println!(
