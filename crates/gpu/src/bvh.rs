@@ -373,6 +373,10 @@ pub struct GpuBvh {
     pub(crate) host_copy: Option<Arc<FlatBvh>>,
     pub(crate) scratch: Mutex<Option<Scratch>>,
     pub(crate) batch_groups: Mutex<crate::trace::BatchGroups>,
+    /// [`bvhtrace_kernels::mesh_fingerprint`] of the uploaded tree.
+    pub(crate) mesh_fingerprint: u64,
+    /// The kernels traced so far, each once ([`Tracer::kernels_used`]).
+    pub(crate) used: Mutex<Vec<bvhtrace_kernels::KernelKey>>,
 }
 
 impl std::fmt::Debug for GpuBvh {
@@ -761,6 +765,8 @@ impl GpuBvh {
             host_copy: host_copy(ctx, bvh, wide),
             scratch: Mutex::new(None),
             batch_groups: Mutex::new(Default::default()),
+            mesh_fingerprint: bvhtrace_kernels::mesh_fingerprint(bvh),
+            used: Mutex::new(Vec::new()),
         })
     }
 
@@ -968,6 +974,9 @@ impl GpuBvh {
             Arc::new(copy)
         });
         self.depth = bvh.depth;
+        if what == Update::Everything {
+            self.mesh_fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
+        }
         Ok(())
     }
 

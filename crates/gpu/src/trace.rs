@@ -629,6 +629,15 @@ impl GpuBvh {
         let input = rays.input();
         let key = self.key(opts, input, parallel_rays);
         let pipeline = self.ctx.pipeline(key)?;
+        {
+            let mut used = self
+                .used
+                .lock()
+                .map_err(|_| GpuError::Poisoned("kernels used"))?;
+            if !used.contains(&key) {
+                used.push(key);
+            }
+        }
         let group0 = self.bind_group(opts.traversal)?;
         let dispatches = plan_dispatches(n, self.ctx.limits());
         if matches!(rays, RaysBinding::Texture { .. }) && dispatches.len() > 1 {
@@ -780,5 +789,19 @@ impl Tracer for GpuBvh {
 
     fn upload_stats(&self) -> Option<bvhtrace_kernels::UploadStats> {
         Some(*self.stats())
+    }
+
+    fn update(&mut self, bvh: &bvhtrace_core::FlatBvh) -> Result<(), GpuError> {
+        let fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
+        let what = if bvh.is_instanced() && fingerprint == self.mesh_fingerprint {
+            crate::Update::TopLevel
+        } else {
+            crate::Update::Everything
+        };
+        GpuBvh::update(self, bvh, what)
+    }
+
+    fn kernels_used(&self) -> Vec<KernelKey> {
+        self.used.lock().map(|u| u.clone()).unwrap_or_default()
     }
 }

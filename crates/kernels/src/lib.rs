@@ -35,7 +35,7 @@ pub use plan::{
     UploadStats, check_buffer_size, check_depth, check_wide_top_level, finish_incomplete,
     plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
 };
-pub use tracer::{CpuTracer, Tracer};
+pub use tracer::{CpuTracer, Tracer, check_update_shape, mesh_fingerprint, tree_shape};
 pub use wgsl::{
     BATCH_GROUP, BVH_GROUP, BvhStorage, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
     WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,

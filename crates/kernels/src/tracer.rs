@@ -2,9 +2,12 @@
 
 use std::borrow::Borrow;
 
+use std::sync::Arc;
+
 use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
 
 use crate::error::TraceError;
+use crate::key::KernelKey;
 use crate::plan::UploadStats;
 
 /// Something that traces rays through one BVH: the CPU walks ([`CpuTracer`]), the wgpu
@@ -47,6 +50,78 @@ pub trait Tracer: Send + Sync {
     fn uploaded_bytes(&self) -> u64 {
         self.upload_stats().map_or(0, |s| s.total_bytes())
     }
+
+    /// Makes `bvh` the tree this tracer traces, in place: `bvh` is the traced tree after a
+    /// change of the same shape (instances moved with
+    /// `InstancedBvh::set_transforms`, meshes refitted with `InstancedBvh::refit_mesh`).
+    /// The tracer works out what changed: when only the top level of a two-level tree did,
+    /// only it and the instances are written. A tree of another shape (node, triangle or
+    /// instance count) is a [`TraceError::BadBuffer`]: open a new tracer for it.
+    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError>;
+
+    /// The kernels this tracer has run, each once, in the order of their first use; empty
+    /// on the CPU. What a front end reports as the pipelines that ran.
+    fn kernels_used(&self) -> Vec<KernelKey> {
+        Vec::new()
+    }
+}
+
+/// The shape an update must keep: node, triangle and instance counts and the top level's
+/// node count.
+pub fn tree_shape(bvh: &FlatBvh) -> (usize, usize, usize, u32) {
+    (
+        bvh.nodes.len(),
+        bvh.triangles.len(),
+        bvh.instances.len(),
+        bvh.top_nodes,
+    )
+}
+
+/// A 64-bit fingerprint of the mesh part of a two-level tree (the nodes below the top
+/// level and every triangle): what an update compares to learn whether only the top level
+/// moved. 0 for one mesh.
+pub fn mesh_fingerprint(bvh: &FlatBvh) -> u64 {
+    if !bvh.is_instanced() {
+        return 0;
+    }
+    let nodes: &[u8] = bytemuck::cast_slice(&bvh.nodes[bvh.top_nodes as usize..]);
+    let tris: &[u8] = bytemuck::cast_slice(&bvh.triangles);
+    let mut h = [0xcbf2_9ce4_8422_2325u64; 4];
+    for part in [nodes, tris] {
+        // Four independent lanes so the multiplies overlap; every word counts.
+        let mut words = part.chunks_exact(32);
+        for w in &mut words {
+            for (lane, c) in h.iter_mut().zip(w.chunks_exact(8)) {
+                let x = u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
+                *lane = (*lane ^ x).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        }
+        for (i, &b) in words.remainder().iter().enumerate() {
+            h[i % 4] = (h[i % 4] ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        h[0] ^= part.len() as u64;
+    }
+    h.iter().fold(0u64, |a, &x| {
+        a.rotate_left(17) ^ x.wrapping_mul(0x9e37_79b9_7f4a_7c15)
+    })
+}
+
+/// [`TraceError::BadBuffer`] unless `bvh` has the `uploaded` shape ([`tree_shape`]).
+pub fn check_update_shape(
+    uploaded: (usize, usize, usize, u32),
+    bvh: &FlatBvh,
+) -> Result<(), TraceError> {
+    let shape = tree_shape(bvh);
+    if shape != uploaded {
+        return Err(TraceError::BadBuffer {
+            buffer: "nodes",
+            problem: format!(
+                "an update needs the traced tree's shape (nodes, triangles, instances, \
+                 top-level nodes) {uploaded:?}; got {shape:?}: open a new tracer for it"
+            ),
+        });
+    }
+    Ok(())
 }
 
 /// The CPU walks of [`bvhtrace_core::traverse`] over a borrowed or owned tree (`&FlatBvh`,
@@ -54,17 +129,19 @@ pub trait Tracer: Send + Sync {
 #[derive(Clone, Debug)]
 pub struct CpuTracer<B = std::sync::Arc<FlatBvh>> {
     bvh: B,
+    /// The tree given to [`Tracer::update`], which replaces `bvh` from then on.
+    updated: Option<Arc<FlatBvh>>,
 }
 
 impl<B: Borrow<FlatBvh>> CpuTracer<B> {
     /// Traces through `bvh`.
     pub fn new(bvh: B) -> Self {
-        CpuTracer { bvh }
+        CpuTracer { bvh, updated: None }
     }
 
     /// The tree.
     pub fn bvh(&self) -> &FlatBvh {
-        self.bvh.borrow()
+        self.updated.as_deref().unwrap_or_else(|| self.bvh.borrow())
     }
 }
 
@@ -96,5 +173,11 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
         self.supports(opts)?;
         Ok(bvhtrace_core::trace_rays(self.bvh(), rays, opts))
+    }
+
+    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        check_update_shape(tree_shape(self.bvh()), bvh)?;
+        self.updated = Some(Arc::new(bvh.clone()));
+        Ok(())
     }
 }

@@ -84,6 +84,10 @@ pub struct VkBvh {
     host_copy: Option<Arc<FlatBvh>>,
     stats: UploadStats,
     scratch: Mutex<Option<Scratch>>,
+    /// [`bvhtrace_kernels::mesh_fingerprint`] of the uploaded tree.
+    mesh_fingerprint: u64,
+    /// The kernels traced so far, each once ([`Tracer::kernels_used`]).
+    used: Mutex<Vec<KernelKey>>,
 }
 
 impl std::fmt::Debug for VkBvh {
@@ -400,6 +404,8 @@ impl VkBvh {
             node_count: bvh.nodes.len(),
             triangle_count: bvh.triangles.len(),
             host_copy: keeps_host_copy(ctx, wide.as_deref()).then(|| Arc::new(bvh.clone())),
+            mesh_fingerprint: bvhtrace_kernels::mesh_fingerprint(bvh),
+            used: Mutex::new(Vec::new()),
             stats: UploadStats {
                 storage: BvhStorage::Buffers,
                 nodes_bytes: arrays[0].1.len() as u64 + wide_bytes.0,
@@ -593,6 +599,9 @@ impl VkBvh {
             Arc::new(copy)
         });
         self.depth = bvh.depth;
+        if !top_level_only {
+            self.mesh_fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
+        }
         Ok(())
     }
 
@@ -644,7 +653,17 @@ impl VkBvh {
         // Checked before anything is uploaded; the rays are looked at once, and every
         // submission uses this kernel.
         self.supports(opts)?;
-        let pipeline = self.ctx.pipeline(self.key(opts, true).for_rays(rays))?;
+        let key = self.key(opts, true).for_rays(rays);
+        let pipeline = self.ctx.pipeline(key)?;
+        {
+            let mut used = self
+                .used
+                .lock()
+                .map_err(|_| TraceError::Poisoned("kernels used"))?;
+            if !used.contains(&key) {
+                used.push(key);
+            }
+        }
         let counters = opts.counters;
         // `supports` saw the wide layout uploaded for the wide walk.
         let bvh_set = match (&self.wide, opts.traversal.is_wide()) {
@@ -843,5 +862,15 @@ impl Tracer for VkBvh {
 
     fn upload_stats(&self) -> Option<UploadStats> {
         Some(self.stats)
+    }
+
+    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        let fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
+        let top_level_only = bvh.is_instanced() && fingerprint == self.mesh_fingerprint;
+        VkBvh::update(self, bvh, top_level_only)
+    }
+
+    fn kernels_used(&self) -> Vec<KernelKey> {
+        self.used.lock().map(|u| u.clone()).unwrap_or_default()
     }
 }
