@@ -150,21 +150,7 @@ impl PreparedRay {
             safe_inverse(dir.y),
             safe_inverse(dir.z),
         );
-        let a = dir.abs();
-        // Dominant axis; ties go to the lower axis (the WGSL does the same).
-        let kz = if a.x >= a.y && a.x >= a.z {
-            0
-        } else if a.y >= a.z {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        // Keep the winding: swap when the dominant component is negative.
-        if dir[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let (kx, ky, kz) = shear_axes(dir.abs().to_array(), |k| dir[k] < 0.0);
         PreparedRay {
             org,
             dir,
@@ -179,6 +165,86 @@ impl PreparedRay {
             sy: dir[ky] / dir[kz],
             sz: 1.0 / dir[kz],
         }
+    }
+}
+
+/// The watertight test's axes `(kx, ky, kz)` for a direction with these magnitudes: `kz`
+/// the dominant axis (ties to the lower axis, as the WGSL does), `kx` and `ky` swapped when
+/// `negative(kz)` to keep the winding. Shared by the f32 test and the f64 oracle.
+#[inline(always)]
+pub(crate) fn shear_axes<T: PartialOrd>(
+    a: [T; 3],
+    negative: impl FnOnce(usize) -> bool,
+) -> (usize, usize, usize) {
+    let kz = if a[0] >= a[1] && a[0] >= a[2] {
+        0
+    } else if a[1] >= a[2] {
+        1
+    } else {
+        2
+    };
+    let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+    if negative(kz) {
+        (ky, kx, kz)
+    } else {
+        (kx, ky, kz)
+    }
+}
+
+/// The arithmetic the watertight tests share (f32, f64 and the f64 oracle).
+pub(crate) trait Real:
+    Copy
+    + PartialOrd
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+{
+    /// Zero.
+    const ZERO: Self;
+}
+impl Real for f32 {
+    const ZERO: f32 = 0.0;
+}
+impl Real for f64 {
+    const ZERO: f64 = 0.0;
+}
+
+/// A ray's shear for the watertight test: its axes and `(sx, sy, sz)`.
+pub(crate) struct Shear<T> {
+    /// `(kx, ky, kz)` from [`shear_axes`].
+    pub k: (usize, usize, usize),
+    /// `d[kx] / d[kz]`, `d[ky] / d[kz]`, `1 / d[kz]`.
+    pub s: [T; 3],
+}
+
+impl<T: Real> Shear<T> {
+    /// The edge functions `v` and `w` (the barycentric numerators of corners 1 and 2), the
+    /// sum `det = u + v + w` and the scaled distance `T`, for the corners relative to the
+    /// ray's origin; `None` outside (mixed signs) or for `det == 0`. A zero edge function
+    /// counts as inside.
+    #[inline(always)]
+    pub fn edges(&self, [a, b, c]: [[T; 3]; 3]) -> Option<(T, T, T, T)> {
+        let (kx, ky, kz) = self.k;
+        let [sx, sy, sz] = self.s;
+        let ax = a[kx] - sx * a[kz];
+        let ay = a[ky] - sy * a[kz];
+        let bx = b[kx] - sx * b[kz];
+        let by = b[ky] - sy * b[kz];
+        let cx = c[kx] - sx * c[kz];
+        let cy = c[ky] - sy * c[kz];
+        let u = cx * by - cy * bx;
+        let v = ax * cy - ay * cx;
+        let w = bx * ay - by * ax;
+        let zero = T::ZERO;
+        if (u < zero || v < zero || w < zero) && (u > zero || v > zero || w > zero) {
+            return None;
+        }
+        let det = u + v + w;
+        if det == zero {
+            return None;
+        }
+        let t_scaled = u * (sz * a[kz]) + v * (sz * b[kz]) + w * (sz * c[kz]);
+        Some((v, w, det, t_scaled))
     }
 }
 
@@ -258,30 +324,12 @@ pub struct TriHit {
 /// distance along the ray; the caller applies the interval.
 #[inline(always)]
 pub fn intersect_triangle(r: &PreparedRay, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<TriHit> {
-    let a = v0 - r.org;
-    let b = v1 - r.org;
-    let c = v2 - r.org;
-    let (kx, ky, kz) = (r.kx, r.ky, r.kz);
-    let ax = a[kx] - r.sx * a[kz];
-    let ay = a[ky] - r.sy * a[kz];
-    let bx = b[kx] - r.sx * b[kz];
-    let by = b[ky] - r.sy * b[kz];
-    let cx = c[kx] - r.sx * c[kz];
-    let cy = c[ky] - r.sy * c[kz];
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
-    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
-        return None;
-    }
-    let det = u + v + w;
-    if det == 0.0 {
-        return None;
-    }
-    let az = r.sz * a[kz];
-    let bz = r.sz * b[kz];
-    let cz = r.sz * c[kz];
-    let t_scaled = u * az + v * bz + w * cz;
+    let corners = [v0 - r.org, v1 - r.org, v2 - r.org].map(|c| c.to_array());
+    let shear = Shear {
+        k: (r.kx, r.ky, r.kz),
+        s: [r.sx, r.sy, r.sz],
+    };
+    let (v, w, det, t_scaled) = shear.edges(corners)?;
     let inv_det = 1.0 / det;
     let t = t_scaled * inv_det;
     // NaN (from overflowing products) fails this comparison and is rejected.

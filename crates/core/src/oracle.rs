@@ -6,6 +6,7 @@
 
 use glam::DVec3;
 
+use crate::intersect::{Shear, shear_axes};
 use crate::mesh::Triangle;
 use crate::ray::{INVALID_RAY, MISS, Ray};
 
@@ -45,19 +46,7 @@ impl PreparedRay64 {
     pub fn new(ray: &Ray) -> Self {
         let org: DVec3 = glam::Vec3::from(ray.origin).as_dvec3();
         let dir = glam::Vec3::from(ray.dir).as_dvec3();
-        let a = dir.abs();
-        let kz = if a.x >= a.y && a.x >= a.z {
-            0
-        } else if a.y >= a.z {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        if dir[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let (kx, ky, kz) = shear_axes(dir.abs().to_array(), |k| dir[k] < 0.0);
         PreparedRay64 {
             org,
             kx,
@@ -71,27 +60,13 @@ impl PreparedRay64 {
 
     /// Watertight test in f64: `(t, u, v)` or `None`.
     pub fn intersect(&self, tri: &Triangle) -> Option<(f64, f64, f64)> {
-        let a = tri[0].as_dvec3() - self.org;
-        let b = tri[1].as_dvec3() - self.org;
-        let c = tri[2].as_dvec3() - self.org;
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let ax = a[kx] - self.sx * a[kz];
-        let ay = a[ky] - self.sy * a[kz];
-        let bx = b[kx] - self.sx * b[kz];
-        let by = b[ky] - self.sy * b[kz];
-        let cx = c[kx] - self.sx * c[kz];
-        let cy = c[ky] - self.sy * c[kz];
-        let u = cx * by - cy * bx;
-        let v = ax * cy - ay * cx;
-        let w = bx * ay - by * ax;
-        if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
-            return None;
-        }
-        let det = u + v + w;
-        if det == 0.0 {
-            return None;
-        }
-        let t = (u * self.sz * a[kz] + v * self.sz * b[kz] + w * self.sz * c[kz]) / det;
+        let corners = tri.map(|c| (c.as_dvec3() - self.org).to_array());
+        let shear = Shear {
+            k: (self.kx, self.ky, self.kz),
+            s: [self.sx, self.sy, self.sz],
+        };
+        let (v, w, det, t_scaled) = shear.edges(corners)?;
+        let t = t_scaled / det;
         if !t.is_finite() {
             return None;
         }

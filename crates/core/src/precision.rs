@@ -28,7 +28,7 @@ use std::str::FromStr;
 
 use glam::{DVec3, Vec3};
 
-use crate::intersect::{PreparedRay, TriHit, intersect_triangle};
+use crate::intersect::{PreparedRay, Shear, TriHit, intersect_triangle};
 
 /// Which ray/triangle test a traversal uses.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -203,29 +203,12 @@ pub fn intersect_triangle_f64(r: &PreparedRay, v0: Vec3, v1: Vec3, v2: Vec3) -> 
     let sx = d[kx] / dz;
     let sy = d[ky] / dz;
     let sz = 1.0 / dz;
-    let a = v0.as_dvec3() - org;
-    let b = v1.as_dvec3() - org;
-    let c = v2.as_dvec3() - org;
-    let ax = a[kx] - sx * a[kz];
-    let ay = a[ky] - sy * a[kz];
-    let bx = b[kx] - sx * b[kz];
-    let by = b[ky] - sy * b[kz];
-    let cx = c[kx] - sx * c[kz];
-    let cy = c[ky] - sy * c[kz];
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
-    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
-        return None;
-    }
-    let det = u + v + w;
-    if det == 0.0 {
-        return None;
-    }
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
-    let t_scaled = u * az + v * bz + w * cz;
+    let corners = [v0, v1, v2].map(|c| (c.as_dvec3() - org).to_array());
+    let shear = Shear {
+        k: (kx, ky, kz),
+        s: [sx, sy, sz],
+    };
+    let (v, w, det, t_scaled) = shear.edges(corners)?;
     let t = (t_scaled / det) as f32;
     // NaN fails this comparison and is rejected.
     if !(t >= r.t_min) {
