@@ -25,12 +25,23 @@ struct BvhSurface {
 }
 
 // The instance (its index in `FlatBvh::instances`) of the hit the invocation's last
-// `bvh_trace_*` call returned; 0 for one mesh. Read it before the next trace.
+// `bvh_trace_*` call returned; 0 for one mesh. Read it before the next trace. The wide
+// layout holds the instances in its top level's leaf order, so there the index is found
+// by counting the instances numbered before it (primitive ids are numbered instance by
+// instance, and every instance has primitives): a loop over the instances.
 fn bvh_hit_instance_index() -> u32 {
-    if (BVH_INSTANCED) {
+    if (!BVH_INSTANCED) {
+        return 0u;
+    }
+    if (!BVH_WIDE_LAYOUT) {
         return bvh_hit_instance;
     }
-    return 0u;
+    let base = bvh_load_instance(bvh_hit_instance).prim_base;
+    var before = 0u;
+    for (var j = 0u; j < bvh_instance_count(); j += 1u) {
+        before += select(0u, 1u, bvh_load_instance(j).prim_base < base);
+    }
+    return before;
 }
 
 // That instance's user id (`Instance::user_id`); 0 for one mesh.
