@@ -162,18 +162,35 @@ mod tests {
     #[test]
     fn identity_instance_faces_as_the_one_mesh_normal() {
         let inst = FlatInstance {
-            world_to_object: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]],
+            world_to_object: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+            ],
             root: 0,
             prim_base: 0,
             mask: 0xff,
             user_id: 0,
         };
-        let tri: Triangle = [Vec3::ZERO, Vec3::new(2.0, 0.0, 0.0), Vec3::new(0.0, 3.0, 0.0)];
+        let tri: Triangle = [
+            Vec3::ZERO,
+            Vec3::new(2.0, 0.0, 0.0),
+            Vec3::new(0.0, 3.0, 0.0),
+        ];
         let ray = Ray::new(Vec3::new(0.5, 0.5, 4.0), Vec3::new(0.1, 0.0, -1.0));
-        let hit = Hit { t: 4.0, prim: 0, u: 0.25, v: 0.125 };
+        let hit = Hit {
+            t: 4.0,
+            prim: 0,
+            u: 0.25,
+            v: 0.125,
+        };
         let s = instance_surface(&hit, &tri, &inst, &ray);
         assert_eq!(s.normal, facing_normal(&tri, Vec3::from(ray.dir)));
         assert_eq!(s.normal, Vec3::Z);
-        assert!(s.origin.z > 0.0, "the origin is on the incoming side: {}", s.origin);
+        assert!(
+            s.origin.z > 0.0,
+            "the origin is on the incoming side: {}",
+            s.origin
+        );
     }
 }

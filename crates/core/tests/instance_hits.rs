@@ -34,7 +34,11 @@ fn scene() -> InstancedBvh {
             ),
             55,
         ),
-        place(1, Affine3A::from_translation(Vec3::new(0.0, -3.0, 0.5)), 100),
+        place(
+            1,
+            Affine3A::from_translation(Vec3::new(0.0, -3.0, 0.5)),
+            100,
+        ),
     ];
     InstancedBvh::build(&meshes, instances, &BuildOptions::default()).expect("builds")
 }
@@ -72,7 +76,10 @@ fn every_hit_names_the_instance_and_primitive_locate_names() {
             assert_eq!(got.user_id, ib.instances()[inst as usize].user_id);
             seen[inst as usize] += 1;
         }
-        assert!(seen.iter().all(|&n| n > 20), "{walk}: every instance is hit: {seen:?}");
+        assert!(
+            seen.iter().all(|&n| n > 20),
+            "{walk}: every instance is hit: {seen:?}"
+        );
         assert_eq!(out.instance_hits().count(), rays.len());
     }
 }
@@ -112,9 +119,15 @@ fn instance_surface_faces_the_ray_with_the_world_normal() {
             "ray {i}: normal {} against the world triangle's {want}",
             s.normal
         );
-        assert!(s.normal.dot(dir) <= 0.0, "ray {i}: the normal faces the ray");
+        assert!(
+            s.normal.dot(dir) <= 0.0,
+            "ray {i}: the normal faces the ray"
+        );
         let p = Vec3::from(rays[i].origin) + dir * hit.t;
-        assert!((s.origin - p).dot(s.normal) > 0.0, "ray {i}: the origin is above the surface");
+        assert!(
+            (s.origin - p).dot(s.normal) > 0.0,
+            "ray {i}: the origin is above the surface"
+        );
         checked += 1;
     }
     assert!(checked > 500, "{checked} hits checked");

@@ -226,11 +226,7 @@ fn run() -> Result<(), Box<dyn Error>> {
     let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("own_shader group 1"),
         layout: &layout,
-        entries: &[
-            bind(0, &camera_buffer),
-            bind(1, &pixels),
-            bind(2, &counter),
-        ],
+        entries: &[bind(0, &camera_buffer), bind(1, &pixels), bind(2, &counter)],
     });
 
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

@@ -53,11 +53,11 @@ pub use bvh::{BvhBindGroup, GpuBvh, Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use trace::RayBatch;
 
+pub use bvhtrace_core::{InstanceHit, InstanceTable};
 pub use bvhtrace_kernels::{
     AdapterChoice, BvhLibrary, BvhStorage, Composition, CpuTracer, DeviceLimits, DriverTuning,
     KernelKey, LibraryShape, TraceError, Tracer, UploadStats, VertexAttributes, wgsl_library,
 };
-pub use bvhtrace_core::{InstanceHit, InstanceTable};
 pub use bvhtrace_kernels::{Query, TraceOptions, TraceOutput, Traversal};
 
 /// The error type of this crate: [`TraceError`], shared by every backend.

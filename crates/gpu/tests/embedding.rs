@@ -274,7 +274,9 @@ fn run_own_shader(
     use wgpu::util::DeviceExt;
     let ctx = gpu.context();
     let device = ctx.device();
-    let bvh_group = gpu.bind_group_for(library).expect("the library's bind group");
+    let bvh_group = gpu
+        .bind_group_for(library)
+        .expect("the library's bind group");
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("own wgsl"),
         source: wgpu::ShaderSource::Wgsl(format!("{library}\n{OWN_SHADER}").into()),
@@ -439,7 +441,8 @@ fn two_level_scene() -> bvhtrace_core::InstancedBvh {
 /// The corners, in its mesh's space, of mesh primitive `prim` of instance `instance`.
 fn object_triangle(ib: &bvhtrace_core::InstancedBvh, instance: u32, prim: u32) -> [Vec3; 3] {
     let mesh = &ib.meshes()[ib.instances()[instance as usize].mesh as usize];
-    let tris = &ib.bvh().triangles[mesh.tri_base as usize..(mesh.tri_base + mesh.triangles) as usize];
+    let tris =
+        &ib.bvh().triangles[mesh.tri_base as usize..(mesh.tri_base + mesh.triangles) as usize];
     tris.iter()
         .find(|t| t.prim == prim)
         .expect("the mesh holds the primitive")
@@ -474,11 +477,21 @@ fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
             let library = gpu.wgsl_library(walk, 0).expect("library");
             assert!(library.shape().instanced, "{what}");
             let own = run_own_shader(&gpu, &library, &rays);
-            let traced = gpu.trace(&rays, &TraceOptions::closest(walk)).expect("trace");
+            let traced = gpu
+                .trace(&rays, &TraceOptions::closest(walk))
+                .expect("trace");
             let mut hits = 0;
             for (i, (o, t)) in own.iter().zip(&traced.hits).enumerate() {
-                assert!(same_hit(&o.hit, t), "{what}: ray {i}: own {:?}, trace {t:?}", o.hit);
-                assert_eq!(o.any_prim < bvhtrace_core::INCOMPLETE, t.is_hit(), "{what}: ray {i} any-hit");
+                assert!(
+                    same_hit(&o.hit, t),
+                    "{what}: ray {i}: own {:?}, trace {t:?}",
+                    o.hit
+                );
+                assert_eq!(
+                    o.any_prim < bvhtrace_core::INCOMPLETE,
+                    t.is_hit(),
+                    "{what}: ray {i} any-hit"
+                );
                 if !t.is_hit() {
                     assert_eq!(traced.instance_hit(i), None);
                     continue;
@@ -505,8 +518,14 @@ fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
                     &rays[i],
                 );
                 assert_eq!(
-                    (o.surface.origin.to_array().map(f32::to_bits), o.surface.normal.to_array().map(f32::to_bits)),
-                    (cpu.origin.to_array().map(f32::to_bits), cpu.normal.to_array().map(f32::to_bits)),
+                    (
+                        o.surface.origin.to_array().map(f32::to_bits),
+                        o.surface.normal.to_array().map(f32::to_bits)
+                    ),
+                    (
+                        cpu.origin.to_array().map(f32::to_bits),
+                        cpu.normal.to_array().map(f32::to_bits)
+                    ),
                     "{what}: ray {i}: bvh_hit_surface {:?} against the CPU's {cpu:?}",
                     o.surface
                 );
@@ -532,7 +551,9 @@ fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
     let library = gpu.wgsl_library(Traversal::Stackless, 0).expect("library");
     let own = run_own_shader(&gpu, &library, &rays);
-    let traced = gpu.trace(&rays, &TraceOptions::closest(Traversal::Stackless)).expect("trace");
+    let traced = gpu
+        .trace(&rays, &TraceOptions::closest(Traversal::Stackless))
+        .expect("trace");
     assert!(traced.instances.is_none());
     let mut hits = 0;
     for (i, (o, t)) in own.iter().zip(&traced.hits).enumerate() {
@@ -541,11 +562,21 @@ fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
             continue;
         }
         hits += 1;
-        assert_eq!((o.instance, o.user_id, o.mesh_prim), (0, 0, t.prim), "ray {i}");
+        assert_eq!(
+            (o.instance, o.user_id, o.mesh_prim),
+            (0, 0, t.prim),
+            "ray {i}"
+        );
         let cpu = t.surface(&tris[t.prim as usize], Vec3::from(rays[i].dir));
         assert_eq!(
-            (o.surface.origin.to_array().map(f32::to_bits), o.surface.normal.to_array().map(f32::to_bits)),
-            (cpu.origin.to_array().map(f32::to_bits), cpu.normal.to_array().map(f32::to_bits)),
+            (
+                o.surface.origin.to_array().map(f32::to_bits),
+                o.surface.normal.to_array().map(f32::to_bits)
+            ),
+            (
+                cpu.origin.to_array().map(f32::to_bits),
+                cpu.normal.to_array().map(f32::to_bits)
+            ),
             "ray {i}: bvh_hit_surface {:?} against Hit::surface {cpu:?}",
             o.surface
         );
@@ -562,11 +593,17 @@ fn a_mismatched_library_is_a_clear_error() {
         return;
     };
     let ib = two_level_scene();
-    let upload = UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+    let upload =
+        UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
     let gpu = GpuBvh::upload(&ctx, ib.bvh(), &upload).expect("upload");
-    let one_mesh = bvhtrace_gpu::LibraryShape::new(BvhStorage::Buffers, false, Traversal::Stackless);
-    let textures = bvhtrace_gpu::LibraryShape::new(BvhStorage::Textures, true, Traversal::Stackless);
-    for (shape, names) in [(one_mesh, ["one mesh", "two levels"]), (textures, ["Textures", "Buffers"])] {
+    let one_mesh =
+        bvhtrace_gpu::LibraryShape::new(BvhStorage::Buffers, false, Traversal::Stackless);
+    let textures =
+        bvhtrace_gpu::LibraryShape::new(BvhStorage::Textures, true, Traversal::Stackless);
+    for (shape, names) in [
+        (one_mesh, ["one mesh", "two levels"]),
+        (textures, ["Textures", "Buffers"]),
+    ] {
         let library = bvhtrace_gpu::wgsl_library(shape, 0);
         match gpu.bind_group_for(&library) {
             Err(e @ TraceError::LibraryMismatch { .. }) => {

@@ -519,10 +519,14 @@ fn every_library_shape_has_the_same_calls_and_its_upload_bindings() {
                 assert_eq!((lib.shape(), lib.group()), (shape, 2));
                 let src = lib.source();
                 assert!(!src.contains("@compute"), "{shape}: no entry point");
-                let walks_in = ["fn bvh_trace_full_stack", "fn bvh_trace_short_stack", "fn bvh_trace_wide"]
-                    .iter()
-                    .filter(|w| src.contains(*w))
-                    .count();
+                let walks_in = [
+                    "fn bvh_trace_full_stack",
+                    "fn bvh_trace_short_stack",
+                    "fn bvh_trace_wide",
+                ]
+                .iter()
+                .filter(|w| src.contains(*w))
+                .count();
                 assert_eq!(walks_in, 1, "{shape}: one walk composed");
                 let module = parse(&format!("{src}{user}"));
                 let bindings: Vec<u32> = module
