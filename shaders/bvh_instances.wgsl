@@ -10,6 +10,10 @@ fn bvh_load_instance(i: u32) -> BvhInstance {
     return bvh_instances[i];
 }
 
+fn bvh_instance_count() -> u32 {
+    return arrayLength(&bvh_instances);
+}
+
 // The nodes before this index are the top level's. The binary top level has `2n - 1`
 // nodes for `n` instances (one instance per leaf). The wide one has no fixed count, but
 // `WideBvh::collapse` lays the meshes out right after it, the first instance's mesh first,

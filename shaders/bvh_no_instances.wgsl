@@ -8,6 +8,10 @@ fn bvh_load_instance(i: u32) -> BvhInstance {
     return BvhInstance();
 }
 
+fn bvh_instance_count() -> u32 {
+    return 0u;
+}
+
 fn bvh_top_nodes() -> u32 {
     return 0u;
 }

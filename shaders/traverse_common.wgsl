@@ -17,6 +17,12 @@ override BVH_TRIP_LIMIT: u32 = 0xffffffffu;
 // Trips left to the current ray (set by `start_best`).
 var<private> bvh_trips_left: u32;
 
+// The triangle slot and the instance of the last hit a walk accepted, for the library's
+// `bvh_hit_surface` (`library.wgsl`). The kernels never read them, so their compiler
+// drops the stores.
+var<private> bvh_hit_slot: u32;
+var<private> bvh_hit_instance: u32;
+
 // Takes one trip; false when the budget is spent. The walks then break out of their
 // loops and answer `incomplete` after them. Why no `return` from inside the loops, no
 // branch here and no check in the triangle loop's condition (`visit_leaf`): on lavapipe,
@@ -63,6 +69,8 @@ fn bvh_visit_leaf(
         let prim = bvh_hit_prim(tri.prim);
         if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && prim < (*best).prim))) {
             *best = BvhBest(h.t, prim, h.u, h.v, true);
+            bvh_hit_slot = i;
+            bvh_hit_instance = bvh_instance_index;
             if (any_hit) {
                 return true;
             }

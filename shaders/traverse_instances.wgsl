@@ -23,6 +23,8 @@ var<private> bvh_inside: bool;
 var<private> bvh_prim_base: u32;
 // The top-level leaf of the instance the walk is in.
 var<private> bvh_instance_leaf: u32;
+// The index (in `bvh_instances`) of the instance the walk is in.
+var<private> bvh_instance_index: u32;
 
 // Called once per ray, before the walk, with the ray and its preparation.
 fn bvh_start_space(ray: BvhRay, r: BvhPreparedRay, oct: u32) {
@@ -71,6 +73,7 @@ fn bvh_enter_instance(leaf: u32, index: u32, r: ptr<function, BvhPreparedRay>) -
     bvh_inside = true;
     bvh_prim_base = inst.prim_base;
     bvh_instance_leaf = leaf;
+    bvh_instance_index = index;
     return inst.root;
 }
 

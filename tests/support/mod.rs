@@ -1,10 +1,13 @@
-//! What the parity tests share: the scenes they run on and a small deterministic generator.
-//! Used by `tests/gpu_parity.rs` and, through `#[path]`, by `crates/vk/tests/vk_parity.rs`,
-//! so both backends are checked on the same scenes.
+//! What the parity tests share: the scenes they run on, their rays, the bytewise
+//! comparison and a small deterministic generator. Used by `tests/gpu_parity.rs`,
+//! `tests/conformance.rs` and, through `#[path]`, by `crates/vk/tests/vk_parity.rs`, so
+//! every backend is checked on the same scenes.
 #![allow(dead_code)]
 
-use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Ray, Triangle};
-use bvhtrace_scene::shared_scenes_dir;
+use bvhtrace_core::{
+    BuildOptions, BuilderKind, Counters, FlatBvh, Hit, Ray, TraceOptions, Triangle, trace_rays,
+};
+use bvhtrace_scene::{Camera, shared_scenes_dir};
 use glam::Vec3;
 
 /// A small deterministic generator (SplitMix64).
@@ -248,4 +251,61 @@ pub fn parity_scenes() -> Vec<SceneCase> {
         &sbvh,
     ));
     out
+}
+
+/// 128x96 primary rays, random rays from inside the bounds (full and finite intervals),
+/// axis-parallel rays with signed zeros, and invalid rays.
+pub fn parity_rays(bvh: &FlatBvh) -> Vec<Ray> {
+    let b = bvh.bounds();
+    let (lo, hi) = (b.min, b.max);
+    let size = hi - lo;
+    let mut rays = Camera::frame(lo, hi, 128.0 / 96.0).rays(128, 96);
+    let mut rng = Rng(7);
+    for i in 0..3072 {
+        let o = lo + size * Vec3::new(rng.f32(), rng.f32(), rng.f32());
+        let d = rng.unit_vector();
+        rays.push(if i % 3 == 0 {
+            Ray::with_interval(o, d, 1e-4 * size.length(), size.length() * rng.f32())
+        } else {
+            Ray::new(o, d)
+        });
+    }
+    for axis in 0..3 {
+        for zero in [0.0f32, -0.0] {
+            for i in 0..8 {
+                let mut d = Vec3::splat(zero);
+                d[axis] = if i % 2 == 0 { 1.0 } else { -1.0 };
+                let mut o = lo + size * ((i as f32 + 0.5) / 8.0);
+                o[axis] = if d[axis] > 0.0 {
+                    lo[axis] - size[axis]
+                } else {
+                    hi[axis] + size[axis]
+                };
+                rays.push(Ray::new(o, d));
+            }
+        }
+    }
+    let eye = hi + size;
+    let d = ((lo + hi) * 0.5 - eye).normalize();
+    rays.extend([
+        Ray::new(Vec3::new(f32::NAN, 0.0, 0.0), d),
+        Ray::new(eye, Vec3::ZERO),
+        Ray::with_interval(eye, d, 1.0, 0.5),
+        Ray::with_interval(eye, d, f32::NEG_INFINITY, f32::INFINITY),
+    ]);
+    rays
+}
+
+/// Indices where two Pod slices differ bytewise.
+pub fn differ<T: bytemuck::Pod>(a: &[T], b: &[T]) -> Vec<usize> {
+    assert_eq!(a.len(), b.len());
+    (0..a.len())
+        .filter(|&i| bytemuck::bytes_of(&a[i]) != bytemuck::bytes_of(&b[i]))
+        .collect()
+}
+
+/// The CPU twin's hits and counters for `opts`, counted.
+pub fn cpu_counted(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> (Vec<Hit>, Vec<Counters>) {
+    let out = trace_rays(bvh, rays, &opts.with_counters(true));
+    (out.hits, out.counters.expect("counters asked for"))
 }

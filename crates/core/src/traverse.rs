@@ -845,6 +845,9 @@ pub struct TraceOutput {
     /// finished on the CPU with the same walk (so the hits and counters are the kernel's
     /// answer). 0 on the CPU and on ordinary scenes.
     pub incomplete: u64,
+    /// The traced BVH's instances, for a two-level BVH (`None` for one mesh): what
+    /// [`TraceOutput::instance_hit`] splits a hit's primitive id with.
+    pub instances: Option<std::sync::Arc<crate::hits::InstanceTable>>,
 }
 
 /// Traces one ray as `opts` says, returning its hit and its counters (counted whatever
@@ -973,6 +976,7 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
         gpu_ms: None,
         wall_ms: start.elapsed().as_secs_f64() * 1e3,
         incomplete: 0,
+        instances: crate::hits::InstanceTable::of(bvh),
     }
 }
 

@@ -1,16 +1,18 @@
 //! Calling the traversal from your own WGSL compute shader.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-gpu --example own_shader -- [SCENE] [-o out.png]
+//! cargo run --release -p bvhtrace-gpu --example own_shader -- [SCENE] [--two-level] [-o out.png]
 //! ```
 //!
-//! The shader below ([`SHADER`]) is composed after bvhtrace's traversal library
-//! (`wgsl_library`): it makes each pixel's camera ray itself, traces it with
-//! `bvh_trace_short_stack` (the stackless walk), and writes a colour per triangle, shaded
-//! by how squarely the ray meets it, into a buffer of RGBA8 pixels. The host loads SCENE
-//! (`builtin:cornell` by default, or any `.gltf`/`.glb` path), uploads the BVH, binds it in
-//! group 0 and its own resources in group 1, dispatches once and writes the PNG
-//! (`own_shader.png` by default).
+//! The shader below ([`SHADER`]) is composed after bvhtrace's traversal library, composed
+//! for the upload (`GpuBvh::wgsl_library`): it makes each pixel's camera ray itself, traces
+//! it with `bvh_trace_closest` (here the stackless walk), and writes a colour per triangle,
+//! shaded by how squarely the ray meets it (`bvh_hit_surface`'s normal), into a buffer of
+//! RGBA8 pixels. The host loads SCENE (`builtin:cornell` by default, or any `.gltf`/`.glb`
+//! path), builds one BVH over its triangles or, with `--two-level`, one per mesh under a
+//! top level over its instances (the same shader: the library carries the instance walk),
+//! uploads it, binds it in group 0 (`GpuBvh::bind_group_for`) and its own resources in
+//! group 1, dispatches once and writes the PNG (`own_shader.png` by default).
 //!
 //! `tests/examples.rs` runs it and compares the image with one made on the CPU from
 //! `bvhtrace_core::trace_rays` (pixel colours within a small tolerance, a few triangle
@@ -19,10 +21,9 @@
 use std::error::Error;
 use std::path::PathBuf;
 
-use bvhtrace_gpu::core::surface::geometric_normal;
 use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Traversal};
 use bvhtrace_gpu::wgpu::util::DeviceExt;
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions, wgpu};
+use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, UploadOptions, wgpu};
 
 /// The image size: small, so that CI renders it in a moment on lavapipe.
 pub const WIDTH: u32 = 320;
@@ -46,13 +47,10 @@ struct Camera {
 }
 
 @group(1) @binding(0) var<uniform> camera: Camera;
-// One unit normal per triangle, in the order the BVH builder was given the triangles:
-// `hit.prim` is that index, so it indexes your own per-triangle data directly.
-@group(1) @binding(1) var<storage, read> normals: array<vec4<f32>>;
 // RGBA8 pixels, row-major, top row first.
-@group(1) @binding(2) var<storage, read_write> pixels: array<u32>;
+@group(1) @binding(1) var<storage, read_write> pixels: array<u32>;
 // Pixels whose ray spent the trip budget (see `BVH_TRIP_LIMIT` on the host).
-@group(1) @binding(3) var<storage, read_write> incomplete: atomic<u32>;
+@group(1) @binding(2) var<storage, read_write> incomplete: atomic<u32>;
 
 const BACKGROUND = vec3<f32>(24.0, 26.0, 32.0) / 255.0;
 const FLAGGED = vec3<f32>(1.0, 0.0, 1.0);
@@ -86,9 +84,9 @@ fn main(
     let dir = normalize(camera.forward + camera.right * px + camera.up * py);
     let ray = BvhRay(camera.eye, 0.0, dir, 1e30);
 
-    // Closest hit (`any_hit` false), stackless walk (`k` = 0). Constant arguments: the
-    // driver folds the other cases away.
-    let hit = bvh_trace_short_stack(ray, false, 0u, lane).hit;
+    // The closest hit, by the walk the library was composed for, in one mesh or through
+    // the instances.
+    let hit = bvh_trace_closest(ray, lane).hit;
 
     var colour = BACKGROUND;
     if (hit.prim == BVH_INCOMPLETE) {
@@ -98,7 +96,12 @@ fn main(
         colour = FLAGGED;
     } else if (hit.prim < BVH_INVALID_RAY) {
         // A hit: `BVH_MISS` and `BVH_INVALID_RAY` are above every triangle index.
-        let facing = abs(dot(normals[hit.prim].xyz, dir));
+        // `hit.prim` numbers the scene's triangles (instance by instance for two levels:
+        // `bvh_hit_user_id()` and `bvh_hit_mesh_prim(hit)` split it), so it can index your
+        // own per-triangle data. The world-space normal facing the ray, and the origin for
+        // a secondary ray off the surface:
+        let surface = bvh_hit_surface(ray, hit);
+        let facing = abs(dot(surface.normal, dir));
         colour = triangle_colour(hit.prim) * (0.3 + 0.7 * facing);
     }
     pixels[id.y * camera.width + id.x] = pack4x8unorm(vec4<f32>(colour, 1.0));
@@ -113,12 +116,14 @@ fn main() -> Result<(), Box<dyn Error>> {
 fn run() -> Result<(), Box<dyn Error>> {
     let mut spec = bvhtrace_scene::DEFAULT_SCENE.to_string();
     let mut out = PathBuf::from("own_shader.png");
+    let mut two_level = false;
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         match arg.as_str() {
             "-o" => out = args.next().ok_or("-o needs a file name")?.into(),
+            "--two-level" => two_level = true,
             "-h" | "--help" => {
-                println!("usage: own_shader [SCENE] [-o out.png]");
+                println!("usage: own_shader [SCENE] [--two-level] [-o out.png]");
                 return Ok(());
             }
             _ => spec = arg,
@@ -127,32 +132,35 @@ fn run() -> Result<(), Box<dyn Error>> {
 
     let scene = bvhtrace_scene::load(&spec)?;
     let tris = scene.flatten().triangles()?;
-    let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+    let bvh = if two_level {
+        scene.instanced_bvh(&BuildOptions::default())?.bvh().clone()
+    } else {
+        FlatBvh::build(&tris, &BuildOptions::default())?
+    };
 
     // The library's own device setup (the best adapter, or `$BVHTRACE_ADAPTER`); see the
     // `user_device` example for bringing your own.
     let ctx = GpuContext::new(AdapterChoice::Auto)?;
-    // Buffers, not the texture layout a CPU driver would get by default: the shader is
-    // composed with the buffer bindings (`wgsl_library(BvhStorage::Buffers, ..)`), and the
-    // bind group must match them. Escape links are uploaded: the stackless walk reads them.
-    let upload =
-        UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+    // The context's storage (textures on a CPU driver, buffers on GPUs): the library is
+    // composed for whatever the upload holds. Escape links are uploaded: the stackless
+    // walk reads them.
+    let upload = UploadOptions::for_traversal(Traversal::Stackless);
     let gpu = GpuBvh::upload(&ctx, &bvh, &upload)?;
-    let bvh_group = gpu.bind_group(Traversal::Stackless)?;
+    // The library for this upload and walk, the BVH in group 0, and its bind group: a
+    // library composed for another upload would be an error here, not a black image.
+    let library = gpu.wgsl_library(Traversal::Stackless, 0)?;
+    let bvh_group = gpu.bind_group_for(&library)?;
     let device = ctx.device();
     println!(
-        "adapter: {}; {} triangles, BVH of {} nodes",
+        "adapter: {}; {} triangles, BVH of {} nodes; library: {}",
         ctx.adapter_info().name,
         tris.len(),
-        bvh.nodes.len()
+        bvh.nodes.len(),
+        library.shape()
     );
 
-    // The shader: the traversal library with the BVH in group 0, then ours.
-    let source = format!(
-        "{}\n{}",
-        bvhtrace_gpu::wgsl_library(BvhStorage::Buffers, 0),
-        SHADER
-    );
+    // The shader: the traversal library, then ours.
+    let source = format!("{library}\n{SHADER}");
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("own_shader"),
         source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -173,10 +181,6 @@ fn run() -> Result<(), Box<dyn Error>> {
         words.extend(v.to_array().map(f32::to_bits));
         words.push(w);
     }
-    let normals: Vec<[f32; 4]> = tris
-        .iter()
-        .map(|t| geometric_normal(t).extend(0.0).to_array())
-        .collect();
     let pixel_bytes = u64::from(WIDTH * HEIGHT) * 4;
     use wgpu::BufferUsages as U;
     let init = |label, contents: &[u8], usage| {
@@ -187,7 +191,6 @@ fn run() -> Result<(), Box<dyn Error>> {
         })
     };
     let camera_buffer = init("camera", bytemuck::cast_slice(&words), U::UNIFORM);
-    let normals_buffer = init("normals", bytemuck::cast_slice(&normals), U::STORAGE);
     let counter = init("incomplete", &[0; 4], U::STORAGE | U::COPY_SRC);
     let buffer = |label, size, usage| {
         device.create_buffer(&wgpu::BufferDescriptor {
@@ -216,20 +219,14 @@ fn run() -> Result<(), Box<dyn Error>> {
         label: Some("own_shader group 1"),
         entries: &[
             entry(0, wgpu::BufferBindingType::Uniform),
-            entry(1, storage(true)),
+            entry(1, storage(false)),
             entry(2, storage(false)),
-            entry(3, storage(false)),
         ],
     });
     let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("own_shader group 1"),
         layout: &layout,
-        entries: &[
-            bind(0, &camera_buffer),
-            bind(1, &normals_buffer),
-            bind(2, &pixels),
-            bind(3, &counter),
-        ],
+        entries: &[bind(0, &camera_buffer), bind(1, &pixels), bind(2, &counter)],
     });
 
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

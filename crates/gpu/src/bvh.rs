@@ -323,7 +323,7 @@ pub enum Update {
 }
 
 /// The BVH bind group of one upload, for group 0 of the kernels or any group of your own
-/// shader ([`bvhtrace_kernels::wgsl_library`]), with the layout
+/// shader ([`GpuBvh::bind_group_for`] of a [`GpuBvh::wgsl_library`]), with the layout
 /// [`BvhBindGroup::layout`] names.
 #[derive(Clone, Copy, Debug)]
 pub struct BvhBindGroup<'a> {
@@ -377,6 +377,8 @@ pub struct GpuBvh {
     pub(crate) mesh_fingerprint: u64,
     /// The kernels traced so far, each once ([`Tracer::kernels_used`]).
     pub(crate) used: Mutex<Vec<bvhtrace_kernels::KernelKey>>,
+    /// The instances' table every output carries, for a two-level BVH.
+    pub(crate) instance_table: Option<Arc<bvhtrace_core::InstanceTable>>,
 }
 
 impl std::fmt::Debug for GpuBvh {
@@ -767,6 +769,7 @@ impl GpuBvh {
             batch_groups: Mutex::new(Default::default()),
             mesh_fingerprint: bvhtrace_kernels::mesh_fingerprint(bvh),
             used: Mutex::new(Vec::new()),
+            instance_table: bvhtrace_core::InstanceTable::of(bvh),
         })
     }
 
@@ -830,11 +833,10 @@ impl GpuBvh {
         self.group_escapes.is_some()
     }
 
-    /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
-    /// links for the walks that follow them; for [`Traversal::Wide`] the wide layout's
-    /// nodes, triangles and instances, composed with
-    /// [`wgsl_wide_library_in`](bvhtrace_kernels::wgsl_wide_library_in) of
-    /// [`GpuBvh::storage`]), with its layout.
+    /// The BVH bind group that `traversal`'s kernels read (nodes and triangles, the
+    /// escape links for the walks that follow them, the instances for two levels; for
+    /// [`Traversal::Wide`] the wide layout's), with its layout. For your own shader use
+    /// [`GpuBvh::bind_group_for`], which checks the library against the upload.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
         let instanced = self.is_instanced();
         if traversal.is_wide() {
@@ -974,6 +976,7 @@ impl GpuBvh {
             Arc::new(copy)
         });
         self.depth = bvh.depth;
+        self.instance_table = bvhtrace_core::InstanceTable::of(bvh);
         if what == Update::Everything {
             self.mesh_fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
         }

@@ -37,21 +37,26 @@
 //! * [`GpuBvh::trace`]: ray slices in, [`TraceOutput`] out (hits, counters, GPU and wall
 //!   milliseconds); [`GpuBvh::record`]: the same into your own encoder and buffers.
 //!   [`GpuBvh`] implements [`Tracer`], the interface shared with the CPU and ash backends.
-//! * [`wgsl_library`] and [`GpuBvh::bind_group`]: the traversal functions in your own
-//!   WGSL, reading the uploaded BVH.
+//! * [`GpuBvh::wgsl_library`] and [`GpuBvh::bind_group_for`]: the traversal functions in
+//!   your own WGSL (`bvh_trace_closest`, `bvh_trace_any`, `bvh_hit_surface`), composed for
+//!   what the upload holds, one mesh or two levels; a library of another shape is an error.
+//! * [`TraceOutput::instance_hit`]: a hit's instance (index, user id) and primitive in its
+//!   mesh, for a two-level BVH.
 #![warn(missing_docs)]
 
 mod bvh;
 mod context;
+mod library;
 mod trace;
 
 pub use bvh::{BvhBindGroup, GpuBvh, Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use trace::RayBatch;
 
+pub use bvhtrace_core::{InstanceHit, InstanceTable};
 pub use bvhtrace_kernels::{
-    AdapterChoice, BvhStorage, Composition, CpuTracer, DeviceLimits, DriverTuning, KernelKey,
-    TraceError, Tracer, UploadStats, VertexAttributes, wgsl_library,
+    AdapterChoice, BvhLibrary, BvhStorage, Composition, CpuTracer, DeviceLimits, DriverTuning,
+    KernelKey, LibraryShape, TraceError, Tracer, UploadStats, VertexAttributes, wgsl_library,
 };
 pub use bvhtrace_kernels::{Query, TraceOptions, TraceOutput, Traversal};
 

@@ -430,6 +430,7 @@ impl GpuBvh {
             gpu_ms: self.ctx.has_timestamps().then_some(0.0),
             wall_ms: 0.0,
             incomplete: 0,
+            instances: self.instance_table.clone(),
         };
         if n == 0 {
             return Ok(out);

@@ -216,3 +216,409 @@ fn one_upload_is_traced_from_several_threads_at_once() {
         }
     });
 }
+
+/// A user's shader over the library: per ray, an any-hit trace, then the closest hit with
+/// `bvh_hit_surface` and the hit's instance, 16 words per ray.
+const OWN_SHADER: &str = r#"
+@group(1) @binding(0) var<storage, read> rays: array<BvhRay>;
+@group(1) @binding(1) var<storage, read_write> out: array<u32>;
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
+    let i = gid.x;
+    if (i >= arrayLength(&rays)) {
+        return;
+    }
+    let ray = rays[i];
+    // Any-hit first: the closest trace after it must set the hit's triangle and instance.
+    let any = bvh_trace_any(ray, lane).hit;
+    let hit = bvh_trace_closest(ray, lane).hit;
+    let b = i * 16u;
+    out[b] = bitcast<u32>(hit.t);
+    out[b + 1u] = hit.prim;
+    out[b + 2u] = bitcast<u32>(hit.u);
+    out[b + 3u] = bitcast<u32>(hit.v);
+    out[b + 13u] = any.prim;
+    if (hit.prim < BVH_INCOMPLETE) {
+        let s = bvh_hit_surface(ray, hit);
+        out[b + 4u] = bitcast<u32>(s.origin.x);
+        out[b + 5u] = bitcast<u32>(s.origin.y);
+        out[b + 6u] = bitcast<u32>(s.origin.z);
+        out[b + 7u] = bitcast<u32>(s.normal.x);
+        out[b + 8u] = bitcast<u32>(s.normal.y);
+        out[b + 9u] = bitcast<u32>(s.normal.z);
+        out[b + 10u] = bvh_hit_user_id();
+        out[b + 11u] = bvh_hit_mesh_prim(hit);
+        out[b + 12u] = bvh_hit_instance_index();
+    }
+}
+"#;
+
+/// What [`OWN_SHADER`] wrote for one ray.
+#[derive(Debug)]
+struct OwnAnswer {
+    hit: bvhtrace_core::Hit,
+    surface: bvhtrace_core::surface::SurfacePoint,
+    user_id: u32,
+    mesh_prim: u32,
+    instance: u32,
+    any_prim: u32,
+}
+
+/// Runs [`OWN_SHADER`] composed with `library` over `gpu` (bound with `bind_group_for`).
+fn run_own_shader(
+    gpu: &GpuBvh,
+    library: &bvhtrace_gpu::BvhLibrary,
+    rays: &[Ray],
+) -> Vec<OwnAnswer> {
+    use wgpu::util::DeviceExt;
+    let ctx = gpu.context();
+    let device = ctx.device();
+    let bvh_group = gpu
+        .bind_group_for(library)
+        .expect("the library's bind group");
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("own wgsl"),
+        source: wgpu::ShaderSource::Wgsl(format!("{library}\n{OWN_SHADER}").into()),
+    });
+    let words = rays.len() * 16;
+    let ray_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("rays"),
+        contents: bytemuck::cast_slice(rays),
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    let buffer = |usage| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("out"),
+            size: (words * 4) as u64,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    let out = buffer(wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC);
+    let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+    let entry = |binding, read_only| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("own wgsl group 1"),
+        entries: &[entry(0, true), entry(1, false)],
+    });
+    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("own wgsl group 1"),
+        layout: &layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: ray_buffer.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: out.as_entire_binding(),
+            },
+        ],
+    });
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("own wgsl"),
+        bind_group_layouts: &[Some(bvh_group.layout()), Some(&layout)],
+        immediate_size: 0,
+    });
+    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("own wgsl"),
+        layout: Some(&pipeline_layout),
+        module: &module,
+        entry_point: Some("main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    });
+    let mut encoder = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, bvh_group.group(), &[]);
+        pass.set_bind_group(1, &group, &[]);
+        pass.dispatch_workgroups((rays.len() as u32).div_ceil(64), 1, 1);
+    }
+    encoder.copy_buffer_to_buffer(&out, 0, &readback, 0, (words * 4) as u64);
+    ctx.queue().submit([encoder.finish()]);
+    let (tx, rx) = std::sync::mpsc::channel();
+    readback.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("poll");
+    rx.recv().expect("mapped").expect("map");
+    let w: Vec<u32> = bytemuck::cast_slice(&readback.get_mapped_range(..).expect("range")).to_vec();
+    let f = |k: usize| f32::from_bits(w[k]);
+    (0..rays.len())
+        .map(|i| {
+            let b = i * 16;
+            OwnAnswer {
+                hit: bvhtrace_core::Hit {
+                    t: f(b),
+                    prim: w[b + 1],
+                    u: f(b + 2),
+                    v: f(b + 3),
+                },
+                surface: bvhtrace_core::surface::SurfacePoint {
+                    origin: Vec3::new(f(b + 4), f(b + 5), f(b + 6)),
+                    normal: Vec3::new(f(b + 7), f(b + 8), f(b + 9)),
+                },
+                user_id: w[b + 10],
+                mesh_prim: w[b + 11],
+                instance: w[b + 12],
+                any_prim: w[b + 13],
+            }
+        })
+        .collect()
+}
+
+/// A context, or `None` (after SKIP) without an adapter.
+fn context() -> Option<GpuContext> {
+    match GpuContext::new(AdapterChoice::Auto) {
+        Ok(ctx) => Some(ctx),
+        Err(e @ TraceError::NoAdapter { .. }) => {
+            eprintln!("SKIP embedding: {e}");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+/// Four placements of two meshes (one mirrored, one scaled unevenly), with user ids.
+fn two_level_scene() -> bvhtrace_core::InstancedBvh {
+    use bvhtrace_core::{Instance, InstancedBvh};
+    use glam::{Affine3A, Quat};
+    let mesh = |spec| {
+        bvhtrace_scene::load(spec)
+            .expect("scene")
+            .flatten()
+            .triangles()
+            .expect("triangles")
+    };
+    let meshes = vec![mesh("builtin:icosphere:2"), mesh("builtin:icosphere:1")];
+    let place = |mesh, transform, user_id| Instance {
+        user_id,
+        ..Instance::new(mesh, transform)
+    };
+    let instances = vec![
+        place(0, Affine3A::from_translation(Vec3::new(-1.2, 0.0, 0.0)), 11),
+        place(
+            1,
+            Affine3A::from_scale_rotation_translation(
+                Vec3::new(0.6, 1.2, 0.8),
+                Quat::from_rotation_z(0.5),
+                Vec3::new(1.2, 0.3, 0.0),
+            ),
+            22,
+        ),
+        place(
+            0,
+            Affine3A::from_scale_rotation_translation(
+                Vec3::new(-0.5, 0.5, 0.5),
+                Quat::IDENTITY,
+                Vec3::new(0.0, -1.0, 1.0),
+            ),
+            33,
+        ),
+        place(1, Affine3A::from_translation(Vec3::new(0.3, 1.1, -0.5)), 44),
+    ];
+    InstancedBvh::build(&meshes, instances, &BuildOptions::default()).expect("two levels")
+}
+
+/// The corners, in its mesh's space, of mesh primitive `prim` of instance `instance`.
+fn object_triangle(ib: &bvhtrace_core::InstancedBvh, instance: u32, prim: u32) -> [Vec3; 3] {
+    let mesh = &ib.meshes()[ib.instances()[instance as usize].mesh as usize];
+    let tris =
+        &ib.bvh().triangles[mesh.tri_base as usize..(mesh.tri_base + mesh.triangles) as usize];
+    tris.iter()
+        .find(|t| t.prim == prim)
+        .expect("the mesh holds the primitive")
+        .corners()
+}
+
+fn same_hit(a: &bvhtrace_core::Hit, b: &bvhtrace_core::Hit) -> bool {
+    a.prim == b.prim
+        && a.t.to_bits() == b.t.to_bits()
+        && a.u.to_bits() == b.u.to_bits()
+        && a.v.to_bits() == b.v.to_bits()
+}
+
+/// Own WGSL on a two-level upload, in both storages and with each walk, returns
+/// `trace()`'s hits bit for bit; the hit's instance, user id and mesh primitive (in WGSL,
+/// and `TraceOutput::instance_hit` of `trace()`) are `InstancedBvh::locate`'s; and
+/// `bvh_hit_surface` equals its CPU twin `instance_surface` bit for bit.
+#[test]
+fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
+    let Some(ctx) = context() else {
+        return;
+    };
+    let ib = two_level_scene();
+    let (_, rays) = scene();
+    for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
+        let upload = UploadOptions::all()
+            .with_traversal(Traversal::Wide)
+            .with_storage(storage);
+        let gpu = GpuBvh::upload(&ctx, ib.bvh(), &upload).expect("upload");
+        for walk in [Traversal::Stackless, Traversal::FullStack, Traversal::Wide] {
+            let what = format!("{storage:?}, {walk}");
+            let library = gpu.wgsl_library(walk, 0).expect("library");
+            assert!(library.shape().instanced, "{what}");
+            let own = run_own_shader(&gpu, &library, &rays);
+            let traced = gpu
+                .trace(&rays, &TraceOptions::closest(walk))
+                .expect("trace");
+            let mut hits = 0;
+            for (i, (o, t)) in own.iter().zip(&traced.hits).enumerate() {
+                assert!(
+                    same_hit(&o.hit, t),
+                    "{what}: ray {i}: own {:?}, trace {t:?}",
+                    o.hit
+                );
+                assert_eq!(
+                    o.any_prim < bvhtrace_core::INCOMPLETE,
+                    t.is_hit(),
+                    "{what}: ray {i} any-hit"
+                );
+                if !t.is_hit() {
+                    assert_eq!(traced.instance_hit(i), None);
+                    continue;
+                }
+                hits += 1;
+                let (inst, prim) = ib.locate(t.prim).expect("locate");
+                let user_id = ib.instances()[inst as usize].user_id;
+                let located = traced.instance_hit(i).expect("trace locates the hit");
+                assert_eq!(
+                    (located.instance, located.user_id, located.prim),
+                    (inst, user_id, prim),
+                    "{what}: ray {i}: TraceOutput::instance_hit"
+                );
+                assert_eq!(
+                    (o.instance, o.user_id, o.mesh_prim),
+                    (inst, user_id, prim),
+                    "{what}: ray {i}: the WGSL hit's instance"
+                );
+                let tri = object_triangle(&ib, inst, prim);
+                let cpu = bvhtrace_core::hits::instance_surface(
+                    t,
+                    &tri,
+                    &ib.bvh().instances[inst as usize],
+                    &rays[i],
+                );
+                assert_eq!(
+                    (
+                        o.surface.origin.to_array().map(f32::to_bits),
+                        o.surface.normal.to_array().map(f32::to_bits)
+                    ),
+                    (
+                        cpu.origin.to_array().map(f32::to_bits),
+                        cpu.normal.to_array().map(f32::to_bits)
+                    ),
+                    "{what}: ray {i}: bvh_hit_surface {:?} against the CPU's {cpu:?}",
+                    o.surface
+                );
+            }
+            assert!(hits > 500, "{what}: {hits} hits");
+        }
+    }
+}
+
+/// On one mesh, `bvh_hit_surface` is `Hit::surface` bit for bit, and the hit's instance
+/// is 0 with its own primitive.
+#[test]
+fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
+    let Some(ctx) = context() else {
+        return;
+    };
+    let tris = bvhtrace_scene::load("builtin:icosphere:3")
+        .expect("scene")
+        .flatten()
+        .triangles()
+        .expect("triangles");
+    let (bvh, rays) = scene();
+    let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
+    let library = gpu.wgsl_library(Traversal::Stackless, 0).expect("library");
+    let own = run_own_shader(&gpu, &library, &rays);
+    let traced = gpu
+        .trace(&rays, &TraceOptions::closest(Traversal::Stackless))
+        .expect("trace");
+    assert!(traced.instances.is_none());
+    let mut hits = 0;
+    for (i, (o, t)) in own.iter().zip(&traced.hits).enumerate() {
+        assert!(same_hit(&o.hit, t), "ray {i}: own {:?}, trace {t:?}", o.hit);
+        if !t.is_hit() {
+            continue;
+        }
+        hits += 1;
+        assert_eq!(
+            (o.instance, o.user_id, o.mesh_prim),
+            (0, 0, t.prim),
+            "ray {i}"
+        );
+        let cpu = t.surface(&tris[t.prim as usize], Vec3::from(rays[i].dir));
+        assert_eq!(
+            (
+                o.surface.origin.to_array().map(f32::to_bits),
+                o.surface.normal.to_array().map(f32::to_bits)
+            ),
+            (
+                cpu.origin.to_array().map(f32::to_bits),
+                cpu.normal.to_array().map(f32::to_bits)
+            ),
+            "ray {i}: bvh_hit_surface {:?} against Hit::surface {cpu:?}",
+            o.surface
+        );
+    }
+    assert!(hits > 500, "{hits} hits");
+}
+
+/// A library composed for another upload is refused by `bind_group_for` with an error
+/// naming both shapes, never bound to find nothing: one mesh against two levels, and
+/// buffers against textures; and a walk the upload lacks is refused when composing.
+#[test]
+fn a_mismatched_library_is_a_clear_error() {
+    let Some(ctx) = context() else {
+        return;
+    };
+    let ib = two_level_scene();
+    let upload =
+        UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+    let gpu = GpuBvh::upload(&ctx, ib.bvh(), &upload).expect("upload");
+    let one_mesh =
+        bvhtrace_gpu::LibraryShape::new(BvhStorage::Buffers, false, Traversal::Stackless);
+    let textures =
+        bvhtrace_gpu::LibraryShape::new(BvhStorage::Textures, true, Traversal::Stackless);
+    for (shape, names) in [
+        (one_mesh, ["one mesh", "two levels"]),
+        (textures, ["Textures", "Buffers"]),
+    ] {
+        let library = bvhtrace_gpu::wgsl_library(shape, 0);
+        match gpu.bind_group_for(&library) {
+            Err(e @ TraceError::LibraryMismatch { .. }) => {
+                let msg = e.to_string();
+                assert!(names.iter().all(|n| msg.contains(n)), "{msg}");
+            }
+            Err(e) => panic!("another error for {shape}: {e}"),
+            Ok(_) => panic!("a library for {shape} was bound to a two-level upload in buffers"),
+        }
+    }
+    // The right library binds; the wide walk was not uploaded.
+    let library = gpu.wgsl_library(Traversal::Stackless, 0).expect("library");
+    assert!(gpu.bind_group_for(&library).is_ok());
+    assert!(matches!(
+        gpu.wgsl_library(Traversal::Wide, 0),
+        Err(TraceError::WideLayoutMissing { .. })
+    ));
+}

@@ -90,12 +90,18 @@ fn example(name: &str) -> PathBuf {
 /// folder. Returns the image path and the example's output, or `None` (after printing
 /// SKIP) when there is no Vulkan adapter.
 fn run_example(name: &str) -> Option<(PathBuf, String)> {
+    run_example_with(name, &[])
+}
+
+/// [`run_example`] with `extra` arguments (named in the image's file name).
+fn run_example_with(name: &str, extra: &[&str]) -> Option<(PathBuf, String)> {
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("examples");
     std::fs::create_dir_all(&dir).expect("temporary folder");
-    let png = dir.join(format!("{name}.png"));
+    let png = dir.join(format!("{name}{}.png", extra.concat()));
     let _ = std::fs::remove_file(&png);
     let out = Command::new(example(name))
         .arg(SCENE)
+        .args(extra)
         .arg("-o")
         .arg(&png)
         .output()
@@ -192,9 +198,24 @@ fn own_shader_colour(prim: u32, n: Vec3, dir: Vec3) -> [u8; 3] {
 
 #[test]
 fn own_shader_draws_the_cpu_hits() {
-    let Some((png, stdout)) = run_example("own_shader") else {
+    check_own_shader(&[]);
+}
+
+/// The same shader over a two-level upload: the library composed for it walks the
+/// instances, and the image is the one-mesh CPU image (the primitive ids number the
+/// triangles alike).
+#[test]
+fn own_shader_draws_the_cpu_hits_on_two_levels() {
+    check_own_shader(&["--two-level"]);
+}
+
+/// Runs `own_shader` with `extra` and compares its image with the CPU's.
+fn check_own_shader(extra: &[&str]) {
+    let Some((png, stdout)) = run_example_with("own_shader", extra) else {
         return;
     };
+    let two_level = !extra.is_empty();
+    assert_eq!(stdout.contains("two levels"), two_level, "{stdout}");
     let (w, h) = (own_shader::WIDTH, own_shader::HEIGHT);
     let img = load(&png, w, h);
     assert!(stdout.contains("incomplete: 0 pixels"), "{stdout}");

@@ -155,6 +155,19 @@ pub enum TraceError {
     /// A lock was poisoned by a thread that panicked while holding it.
     #[error("a thread panicked while holding the {0}")]
     Poisoned(&'static str),
+    /// An own shader's traversal library was composed for another upload than the one it
+    /// is bound to (storage, one mesh or two levels, layout, or a walk not uploaded): its
+    /// walk would read bindings the upload does not have, or miss ones it has.
+    #[error(
+        "the WGSL library was composed for {library}, but the upload holds {upload}; compose \
+         it with GpuBvh::wgsl_library of this upload"
+    )]
+    LibraryMismatch {
+        /// What the library was composed for (`LibraryShape`'s `Display`).
+        library: String,
+        /// What the upload holds.
+        upload: String,
+    },
 }
 
 impl TraceError {

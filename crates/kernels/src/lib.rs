@@ -8,8 +8,8 @@
 //! * [`Tracer`]: one interface over the CPU walks ([`CpuTracer`]) and the device backends.
 //! * [`KernelKey`]: what one kernel is (storage, traversal, query, precision, counters,
 //!   where the rays come from, attributes): its WGSL source, bindings and constants.
-//! * [`wgsl_library`] (and [`wgsl_wide_library`]): the traversal functions for your own
-//!   WGSL.
+//! * [`wgsl_library`]: the traversal functions for your own WGSL, composed for what the
+//!   upload holds ([`LibraryShape`], [`BvhLibrary`]).
 //! * [`DriverTuning`]: the measures that only help CPU drivers such as lavapipe.
 //! * [`plan_dispatches`], [`DeviceLimits`]: how a batch fits a device.
 //! * [`TraceError`]: everything that can go wrong, on every backend.
@@ -37,7 +37,7 @@ pub use plan::{
 };
 pub use tracer::{CpuTracer, Tracer, check_update_shape, mesh_fingerprint, tree_shape};
 pub use wgsl::{
-    BATCH_GROUP, BVH_GROUP, BvhStorage, FULL_STACK_SIZE, RayInput, STACK_LANES, TEXEL_ROW,
-    WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library,
-    wgsl_wide_library_in, wide_stack_may_overflow,
+    BATCH_GROUP, BVH_GROUP, BvhLibrary, BvhStorage, FULL_STACK_SIZE, LibraryShape, RayInput,
+    STACK_LANES, TEXEL_ROW, WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library,
+    wide_stack_may_overflow,
 };

@@ -19,6 +19,7 @@
 //! | `traverse_full_stack.wgsl` | `bvh_trace_full_stack(ray, any_hit, lane)` | `traverse::full_stack` |
 //! | `traverse_short_stack.wgsl` | `bvh_trace_short_stack(ray, any_hit, k, lane)` (k = 0: stackless) | `traverse::short_stack` |
 //! | `traverse_wide.wgsl` | `bvh_trace_wide(ray, any_hit, lane)`, only with the wide layout | `traverse::wide` |
+//! | `library.wgsl` | only in [`wgsl_library`]: `bvh_trace_closest`, `bvh_trace_any` (the shape's walk), `bvh_hit_surface`, the hit's instance | `Hit::surface`, `hits::instance_surface`, `TraceOutput::instance_hit` |
 //! | `bvh_buffers_escapes.wgsl` or `bvh_textures_escapes.wgsl` | the escape links (binding 2), only for the walks that read them | `FlatBvh::escapes` |
 //! | `attribute_normals.wgsl` | per-vertex normals, only when the scene has them and the job uses them | - |
 //! | `entry.wgsl` | what the entry points share: the overrides, `bvh_ray_index` | `traverse::trace_rays` |
@@ -26,19 +27,20 @@
 //! | `entry_counters.wgsl` | the `counters` binding, only when counters are on | `trace_rays` with counters |
 //! | `entry_walk.wgsl` | every entry point, specialised per walk and output (`bvh_trace_{full_stack,short_stack,wide}_{main,counted}`) | |
 //!
-//! [`wgsl_library`] concatenates the traversal library (every traversal, no entry point)
-//! for use from your own shaders; [`kernel_source`] adds every entry point (the
-//! everything-on module); [`crate::KernelKey::source`] composes
+//! [`wgsl_library`] composes the traversal library of one walk for what an upload holds
+//! ([`LibraryShape`]: storage, one mesh or two levels, binary or wide layout), no entry
+//! point, with `library.wgsl`'s calls (`bvh_trace_closest`, `bvh_trace_any`,
+//! `bvh_hit_surface`), for use from your own shaders; [`kernel_source`] composes both binary
+//! walks and every entry point (the everything-on module); [`crate::KernelKey::source`] composes
 //! only what one pipeline needs. Every name the WGSL declares starts with `bvh_`, `Bvh`
 //! or `BVH_`, so the library can be composed with a user's shader. The BVH storage is chosen by which bindings file is
 //! composed in. Nothing is copied between variants: the stackless walk is the short-stack
 //! function with `k = 0`, the query and `k` are pipeline-overridable constants (`BVH_ANY_HIT`,
 //! `BVH_SHORT_STACK_SIZE`), counters are written only by the `*_counted` entry points, and
-//! every entry point is one file specialised with its walk. The wide layout
-//! ([`wgsl_wide_library`]) binds its own nodes at binding 0, so its walk is composed in
+//! every entry point is one file specialised with its walk. The wide layout binds its own nodes at binding 0, so its walk is composed in
 //! modules of its own, from the same ray, box, triangle, hit-rule, instance and stack files.
 
-use bvhtrace_core::Precision;
+use bvhtrace_core::{Precision, Traversal};
 
 /// Where the kernels read the BVH from. Both give bit-identical results.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -197,10 +199,133 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
     }
 }
 
-/// The traversal library without entry points, for your own compute shader: the BVH read
-/// from `storage` bound at `@group(bvh_group)`, bindings 0 (nodes), 1 (triangles) and 2
-/// (escape links, read only by `bvh_trace_short_stack`). With bvhtrace-gpu, bind
-/// `GpuBvh::bind_group(traversal)` there and put its `layout()` in your pipeline layout.
+/// What a traversal library ([`wgsl_library`]) is composed for: what the upload it reads
+/// holds, and the walk its calls take. With bvhtrace-gpu, `GpuBvh::wgsl_library` fills it
+/// in from the upload, and `GpuBvh::bind_group_for` refuses a library of another shape.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct LibraryShape {
+    /// Where the BVH is read from (`GpuBvh::storage`).
+    pub storage: BvhStorage,
+    /// A two-level BVH (`FlatBvh::is_instanced`): the instances' binding (4) and the
+    /// instance walk are composed in.
+    pub instanced: bool,
+    /// The walk `bvh_trace_closest` and `bvh_trace_any` take: [`Traversal::Wide`] reads
+    /// the wide layout, the others the binary one (the stackless and short-stack walks its
+    /// escape links too). A short stack's size is clamped to `1..=32`.
+    pub traversal: Traversal,
+    /// The triangle test ([`triangle_wgsl`]).
+    pub precision: Precision,
+}
+
+impl LibraryShape {
+    /// The library of `traversal` for a BVH in `storage`, one mesh or two levels
+    /// (`instanced`), with the default triangle test.
+    pub fn new(storage: BvhStorage, instanced: bool, traversal: Traversal) -> LibraryShape {
+        LibraryShape {
+            storage,
+            instanced,
+            traversal,
+            precision: Precision::WatertightF32,
+        }
+    }
+
+    /// The files it is composed of: the walk's, its layout's and storage's bindings, and
+    /// the instances' when `instanced`.
+    pub fn module_set(&self) -> crate::key::ModuleSet {
+        use crate::key::{Entries, ModuleSet};
+        let base = match self.traversal {
+            Traversal::Wide => ModuleSet::wide_in(self.storage, self.precision, Entries::None),
+            t => ModuleSet {
+                escapes: t.needs_escapes(),
+                full_stack: !t.needs_escapes(),
+                short_stack: t.needs_escapes(),
+                ..ModuleSet::everything(self.storage, self.precision, Entries::None)
+            },
+        };
+        ModuleSet {
+            instances: self.instanced,
+            ..base
+        }
+    }
+
+    /// The call of its walk on `ray` and `lane`, any hit or closest.
+    fn walk_call(&self, any_hit: bool) -> String {
+        match self.traversal {
+            Traversal::FullStack => format!("bvh_trace_full_stack(ray, {any_hit}, lane)"),
+            Traversal::Stackless => format!("bvh_trace_short_stack(ray, {any_hit}, 0u, lane)"),
+            Traversal::ShortStack(k) => {
+                let k = k.clamp(1, bvhtrace_core::traverse::MAX_SHORT_STACK);
+                format!("bvh_trace_short_stack(ray, {any_hit}, {k}u, lane)")
+            }
+            Traversal::Wide => format!("bvh_trace_wide(ray, {any_hit}, lane)"),
+        }
+    }
+}
+
+impl std::fmt::Display for LibraryShape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let levels = if self.instanced {
+            "two levels"
+        } else {
+            "one mesh"
+        };
+        let layout = if self.traversal.is_wide() {
+            "wide"
+        } else {
+            "binary"
+        };
+        write!(
+            f,
+            "{levels}, {layout} layout in {:?}, {} walk",
+            self.storage,
+            self.traversal.name()
+        )
+    }
+}
+
+/// `library.wgsl`: `bvh_trace_closest`, `bvh_trace_any` and the hit helpers.
+const LIBRARY_WGSL: &str = include_str!("../shaders/library.wgsl");
+
+/// The traversal library composed for one [`LibraryShape`], with the BVH bindings in one
+/// group: its WGSL ([`BvhLibrary::source`], also its `Display`) and what it was composed
+/// for, which the bind group is checked against.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BvhLibrary {
+    shape: LibraryShape,
+    group: u32,
+    source: String,
+}
+
+impl BvhLibrary {
+    /// The WGSL: prepend it to your shader.
+    pub fn source(&self) -> &str {
+        &self.source
+    }
+
+    /// What it was composed for.
+    pub fn shape(&self) -> LibraryShape {
+        self.shape
+    }
+
+    /// The group of its BVH bindings.
+    pub fn group(&self) -> u32 {
+        self.group
+    }
+}
+
+impl std::fmt::Display for BvhLibrary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.source)
+    }
+}
+
+/// The traversal library without entry points, for your own compute shader, composed for
+/// what the upload holds (`shape`: with bvhtrace-gpu, `GpuBvh::wgsl_library` fills it in)
+/// with the BVH bindings in `@group(bvh_group)`: 0 (nodes; the wide layout's for
+/// [`Traversal::Wide`]), 1 (triangles), 2 (escape links, for the stackless and short-stack
+/// walks) and 4 (instances, for two levels). With bvhtrace-gpu, bind
+/// `GpuBvh::bind_group_for(&library)`, which refuses a library of another shape, and put its
+/// `layout()` in your pipeline layout.
 ///
 /// Every name it declares starts with `bvh_`, `Bvh` or `BVH_`; leave those to it. It
 /// declares the structs (field by field the Rust types of `bvhtrace_core`)
@@ -208,25 +333,33 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 /// * `BvhRay { origin: vec3<f32>, t_min: f32, dir: vec3<f32>, t_max: f32 }` (a
 ///   [`bvhtrace_core::Ray`]),
 /// * `BvhHit { t: f32, prim: u32, u: f32, v: f32 }` (a [`bvhtrace_core::Hit`]: `prim` is
-///   the triangle's index in the builder's input, or `BVH_MISS`, `BVH_INVALID_RAY` or
-///   `BVH_INCOMPLETE`; `u`, `v` the barycentrics of corners 1 and 2),
+///   the triangle's index in the builder's input, numbered instance by instance for two
+///   levels, or `BVH_MISS`, `BVH_INVALID_RAY` or `BVH_INCOMPLETE`; `u`, `v` the
+///   barycentrics of corners 1 and 2),
 /// * `BvhCounters { nodes: u32, tris: u32 }` (box and triangle tests of the ray),
 /// * `BvhTraceResult { hit: BvhHit, counters: BvhCounters }`,
+/// * `BvhSurface { origin: vec3<f32>, normal: vec3<f32> }`,
 ///
-/// and the walks
+/// the same calls for every shape
 ///
-/// * `bvh_trace_full_stack(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult`
-///   (trees of depth up to [`FULL_STACK_SIZE`]),
-/// * `bvh_trace_short_stack(ray: BvhRay, any_hit: bool, k: u32, lane: u32) ->
-///   BvhTraceResult`, where `k` is the ring size (`1..=32`) or `0` for the stackless walk,
-///   which is correct at any depth,
+/// * `bvh_trace_closest(ray: BvhRay, lane: u32) -> BvhTraceResult` and
+///   `bvh_trace_any(ray: BvhRay, lane: u32) -> BvhTraceResult`: the shape's walk, where
+///   `lane` is the invocation's `local_invocation_index` (the stacks live in workgroup
+///   memory, `bvh_lane_stacks`, one per lane, for workgroups of at most [`STACK_LANES`]
+///   invocations; create the pipeline with `zero_initialize_workgroup_memory: false`: the
+///   walks write every entry before they read it),
+/// * after a hit, until the invocation's next trace: `bvh_hit_surface(ray, hit) ->
+///   BvhSurface` (where secondary rays leave it, in world space: the twin of
+///   `Hit::surface` for one mesh and of `bvhtrace_core::hits::instance_surface` for two
+///   levels), `bvh_hit_instance_index()`, `bvh_hit_user_id()` and
+///   `bvh_hit_mesh_prim(hit)` (the instance, as `TraceOutput::instance_hit` gives it; 0,
+///   0 and `hit.prim` for one mesh),
+/// * `bvh_offset_ray_origin(p: vec3<f32>, n: vec3<f32>) -> vec3<f32>`, the rule of
+///   `bvhtrace_core::surface::offset_ray_origin`,
 ///
-/// where `lane` is the invocation's `local_invocation_index`: the stacks live in workgroup
-/// memory (`bvh_lane_stacks`, 16 KiB), one per lane, for workgroups of at most
-/// [`STACK_LANES`] invocations. Create the pipeline with
-/// `zero_initialize_workgroup_memory: false`: the walks write every entry before they read
-/// it, and zeroing 16 KiB per workgroup is wasted time. Pass constants for `any_hit` and
-/// `k` and the driver folds them away.
+/// and the walks themselves (`bvh_trace_full_stack(ray, any_hit, lane)`,
+/// `bvh_trace_short_stack(ray, any_hit, k, lane)` or `bvh_trace_wide(ray, any_hit, lane)`,
+/// whichever the shape's walk is).
 ///
 /// Its pipeline-overridable constants, all optional:
 ///
@@ -234,21 +367,19 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 ///   may take. A ray that spends it returns `prim == BVH_INCOMPLETE`; trace it again on the
 ///   CPU with the same options (`bvhtrace_kernels::finish_incomplete`). Set it only for a
 ///   CPU driver, which ends invocations that loop too long
-///   ([`crate::CPU_DRIVER_TRIP_LIMIT`]); on GPUs no ray is ever incomplete.
+///   ([`crate::CPU_DRIVER_TRIP_LIMIT`]); on GPUs no ray is ever incomplete. The wide walk
+///   returns it too on a wide tree deeper than [`WIDE_STACK_GROUPS`]` + 1` levels.
 /// * `BVH_PARALLEL_RAYS: bool` (default true): false compiles out the box test's path for
 ///   rays with a zero direction component; only when you know no ray has one.
-///
-/// For secondary rays, `bvh_offset_ray_origin(p: vec3<f32>, n: vec3<f32>) -> vec3<f32>`
-/// moves a hit point off its surface along the geometric normal `n` by the same rule as
-/// `bvhtrace_core::surface::offset_ray_origin`, so a shadow or bounce ray does not hit its
-/// own triangle.
+/// * `BVH_RAY_MASK: u32` (default `0xff`, two levels only): instances whose mask shares no
+///   bit with it are passed through.
 ///
 /// # Example
 ///
 /// A shader that traces one ray per invocation with its own bindings in group 1:
 ///
 /// ```
-/// use bvhtrace_kernels::BvhStorage;
+/// use bvhtrace_kernels::{BvhStorage, LibraryShape, Traversal};
 ///
 /// let my_shader = r#"
 /// @group(1) @binding(0) var<storage, read_write> ids: array<u32>;
@@ -260,57 +391,40 @@ pub fn triangle_wgsl(precision: Precision) -> (&'static str, &'static str) {
 /// ) {
 ///     let x = f32(gid.x) * 0.01;
 ///     let ray = BvhRay(vec3<f32>(x, 0.0, 5.0), 0.0, vec3<f32>(0.0, 0.0, -1.0), 1e30);
-///     let res = bvh_trace_short_stack(ray, false, 6u, lane); // closest hit, ring of 6
-///     ids[gid.x] = res.hit.prim;
+///     let res = bvh_trace_closest(ray, lane);
+///     ids[gid.x] = bvh_hit_user_id();
 /// }
 /// "#;
-/// let source = format!("{}\n{}", bvhtrace_kernels::wgsl_library(BvhStorage::Buffers, 0), my_shader);
+/// // Two levels in buffers, the stackless walk (with bvhtrace-gpu:
+/// // `let library = gpu.wgsl_library(Traversal::Stackless, 0)?;`).
+/// let shape = LibraryShape::new(BvhStorage::Buffers, true, Traversal::Stackless);
+/// let library = bvhtrace_kernels::wgsl_library(shape, 0);
+/// let source = format!("{library}\n{my_shader}");
 /// # let module = naga::front::wgsl::parse_str(&source).expect("parses");
 /// # naga::valid::Validator::new(Default::default(), naga::valid::Capabilities::all())
 /// #     .validate(&module)
 /// #     .expect("validates");
 /// // With bvhtrace-gpu:
-/// // let group = bvh.bind_group(Traversal::ShortStack(6))?;
+/// // let group = gpu.bind_group_for(&library)?; // an error for another shape
 /// // pipeline layout: [Some(group.layout()), Some(&my_group_1_layout)];
 /// // pass.set_bind_group(0, group.group(), &[]);
 /// ```
-pub fn wgsl_library(storage: BvhStorage, bvh_group: u32) -> String {
-    wgsl_library_for(storage, Precision::WatertightF32, bvh_group)
+pub fn wgsl_library(shape: LibraryShape, bvh_group: u32) -> BvhLibrary {
+    let mut source = shape.module_set().compose(bvh_group);
+    source.push_str("// ---- library.wgsl ----\n");
+    source.push_str(
+        &LIBRARY_WGSL
+            .replace("BVH_LIBRARY_CLOSEST", &shape.walk_call(false))
+            .replace("BVH_LIBRARY_ANY", &shape.walk_call(true)),
+    );
+    BvhLibrary {
+        shape,
+        group: bvh_group,
+        source,
+    }
 }
 
-/// [`wgsl_library`] with the triangle test of `precision` ([`triangle_wgsl`]) in place of
-/// `triangle.wgsl`. [`Precision::WatertightF64`] needs a device with
-/// `wgpu::Features::SHADER_F64` (naga: `Capabilities::FLOAT64`).
-pub fn wgsl_library_for(storage: BvhStorage, precision: Precision, bvh_group: u32) -> String {
-    crate::key::ModuleSet::everything(storage, precision, crate::key::Entries::None)
-        .compose(bvh_group)
-}
-
-/// The wide walk as WGSL functions for your own compute shader, as [`wgsl_library`] gives
-/// the binary walks: the wide layout (`bvhtrace_core::WideBvh`) bound at
-/// `@group(bvh_group)`, bindings 0 (its nodes, `array<BvhWideNode>`), 1 (its triangles)
-/// and, for a two-level BVH, 4 (its instances; then compose it yourself with
-/// `ModuleSet { instances: true, ..ModuleSet::wide(..) }`), in storage buffers
-/// ([`wgsl_wide_library_in`] reads them from textures). With bvhtrace-gpu, bind
-/// `GpuBvh::bind_group(Traversal::Wide)` of an upload with that storage. It declares what
-/// [`wgsl_library`] declares but the binary walks, and
-/// `bvh_trace_wide(ray: BvhRay, any_hit: bool, lane: u32) -> BvhTraceResult`, whose stack
-/// is `lane`'s in `bvh_lane_stacks` as for the full stack. On a wide tree deeper than
-/// [`WIDE_STACK_GROUPS`]` + 1` levels a ray may come back `BVH_INCOMPLETE`: finish it on the
-/// CPU ([`crate::finish_incomplete`]).
-pub fn wgsl_wide_library(bvh_group: u32) -> String {
-    wgsl_wide_library_in(BvhStorage::Buffers, bvh_group)
-}
-
-/// [`wgsl_wide_library`] with the wide layout read from `storage`: for
-/// [`BvhStorage::Textures`], bindings 0 and 1 are `Rgba32Uint` storage textures
-/// (`bvh_textures_wide.wgsl`, five texels per node, and `bvh_textures_triangles.wgsl`).
-pub fn wgsl_wide_library_in(storage: BvhStorage, bvh_group: u32) -> String {
-    crate::key::ModuleSet::wide_in(storage, Precision::WatertightF32, crate::key::Entries::None)
-        .compose(bvh_group)
-}
-
-/// The everything-on kernel module for `storage`: [`wgsl_library`] with the BVH in group
+/// The everything-on kernel module for `storage`: both binary walks with the BVH in group
 /// [`BVH_GROUP`], and every entry point of the binary walks (`entry.wgsl`,
 /// `entry_counters.wgsl` and `entry_walk.wgsl` four times; group [`BATCH_GROUP`]: `rays`,
 /// `hits`, `counters`), so any [`crate::KernelKey::entry_point`] of a binary walk is in it
@@ -321,7 +435,7 @@ pub fn kernel_source(storage: BvhStorage) -> String {
     kernel_source_for(storage, Precision::WatertightF32)
 }
 
-/// [`kernel_source`] with the triangle test of `precision` ([`wgsl_library_for`]).
+/// [`kernel_source`] with the triangle test of `precision` ([`triangle_wgsl`]).
 pub fn kernel_source_for(storage: BvhStorage, precision: Precision) -> String {
     crate::key::ModuleSet::everything(storage, precision, crate::key::Entries::All)
         .compose(BVH_GROUP)

@@ -14,8 +14,8 @@ use bvhtrace_core::{
 use bvhtrace_kernels::key::{Entries, ModuleSet};
 use bvhtrace_kernels::wgsl::SHADER_FILES;
 use bvhtrace_kernels::{
-    BvhStorage, FULL_STACK_SIZE, KernelKey, STACK_LANES, TEXEL_ROW, WIDE_STACK_GROUPS,
-    WORKGROUP_SIZE, kernel_source, wgsl_library, wgsl_wide_library, wgsl_wide_library_in,
+    BvhStorage, FULL_STACK_SIZE, KernelKey, LibraryShape, STACK_LANES, TEXEL_ROW, Traversal,
+    WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library,
 };
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
@@ -267,7 +267,13 @@ fn constants_match_rust() {
     );
     assert_eq!(2 * WIDE_STACK_GROUPS, FULL_STACK_SIZE);
     // The wide layout in textures: whole texels per node, the binary layout's rows.
-    let wide_texels = parse(&wgsl_wide_library_in(BvhStorage::Textures, 0));
+    let wide_texels = parse(
+        wgsl_library(
+            LibraryShape::new(BvhStorage::Textures, false, Traversal::Wide),
+            0,
+        )
+        .source(),
+    );
     assert_eq!(size_of::<WideNode>() % 16, 0);
     assert_eq!(
         constant(&wide_texels, "BVH_WIDE_NODE_TEXELS"),
@@ -351,6 +357,11 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
     }
 }
 
+/// The one-mesh wide library in `storage`, bound at group 3.
+fn wide_library(storage: BvhStorage) -> String {
+    wgsl_library(LibraryShape::new(storage, false, Traversal::Wide), 3).to_string()
+}
+
 /// The wide library `lib` (bound at group 3) called from a compute shader of ours: it
 /// validates, and declares `bindings` in group 3.
 fn wide_library_module(lib: &str, bindings: [(u32, &str); 2]) -> naga::Module {
@@ -379,7 +390,7 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
     }
     // The wide library: the shared files and its own, no binary walk, its bindings
     // rebound too.
-    let lib = wgsl_wide_library(3);
+    let lib = wide_library(BvhStorage::Buffers);
     for (name, _) in SHADER_FILES
         .iter()
         .filter(|(n, _)| !["traverse_full_stack.wgsl", "traverse_short_stack.wgsl"].contains(n))
@@ -398,7 +409,7 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
     let module = wide_library_module(&lib, [(0, "bvh_wide_nodes"), (1, "bvh_triangles")]);
     assert_eq!(group0_array(&module, "bvh_wide_nodes").0, "BvhWideNode");
     // In textures: the texel files in place of the buffer ones, the same walk.
-    let lib = wgsl_wide_library_in(BvhStorage::Textures, 3);
+    let lib = wide_library(BvhStorage::Textures);
     for (name, composed) in [
         ("bvh_textures_wide.wgsl", true),
         ("bvh_textures_triangles.wgsl", true),
@@ -421,7 +432,7 @@ fn check_library(storage: BvhStorage) {
     for (name, _) in SHADER_FILES.iter().chain([&storage.wgsl()]) {
         assert!(src.contains(&format!("// ---- {name} ----")), "{name}");
     }
-    let lib = wgsl_library(storage, 3);
+    let lib = ModuleSet::everything(storage, Default::default(), Entries::None).compose(3);
     assert!(!lib.contains("@compute"), "the library has no entry points");
     let module = parse(&format!(
         "{lib}\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
@@ -454,5 +465,89 @@ fn check_library(storage: BvhStorage) {
                     })
         });
         assert!(found, "{name} at group 3 binding {binding}: {groups:?}");
+    }
+}
+
+/// Compiles entry point `main` of `module` to SPIR-V (its overrides at their defaults).
+fn compile_main(module: &Module, what: &str) {
+    let info = validate(module);
+    let (m, i) = naga::back::pipeline_constants::process_overrides(
+        module,
+        &info,
+        Some((naga::ShaderStage::Compute, "main")),
+        &Default::default(),
+    )
+    .unwrap_or_else(|e| panic!("{what}: {e}"));
+    let words = naga::back::spv::write_vec(
+        &m,
+        &i,
+        &naga::back::spv::Options::default(),
+        Some(&naga::back::spv::PipelineOptions {
+            shader_stage: naga::ShaderStage::Compute,
+            entry_point: "main".into(),
+        }),
+    )
+    .unwrap_or_else(|e| panic!("{what}: {e}"));
+    assert!(words.len() > 100, "{what}: SPIR-V too short");
+}
+
+/// Every library shape (storage, one mesh or two levels, each walk) gives the same calls:
+/// one user shader validates and compiles with each, and each declares exactly the
+/// bindings its upload's bind group has (the instances only for two levels, the escape
+/// links only for the walks that read them) and composes one walk.
+#[test]
+fn every_library_shape_has_the_same_calls_and_its_upload_bindings() {
+    let user = "\n@group(0) @binding(0) var<storage, read_write> out: array<u32>;\n\
+        @compute @workgroup_size(64) fn main(@builtin(local_invocation_index) lane: u32) {\n\
+            let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1.0);\n\
+            let c = bvh_trace_closest(ray, lane);\n\
+            let s = bvh_hit_surface(ray, c.hit);\n\
+            let a = bvh_trace_any(BvhRay(s.origin, 0.0, s.normal, 1.0), lane);\n\
+            out[lane] = bvh_hit_user_id() + bvh_hit_instance_index() + bvh_hit_mesh_prim(c.hit) + a.hit.prim;\n\
+        }";
+    let walks = [
+        Traversal::FullStack,
+        Traversal::Stackless,
+        Traversal::ShortStack(6),
+        Traversal::Wide,
+    ];
+    for storage in STORAGES {
+        for instanced in [false, true] {
+            for traversal in walks {
+                let shape = LibraryShape::new(storage, instanced, traversal);
+                let lib = wgsl_library(shape, 2);
+                assert_eq!((lib.shape(), lib.group()), (shape, 2));
+                let src = lib.source();
+                assert!(!src.contains("@compute"), "{shape}: no entry point");
+                let walks_in = [
+                    "fn bvh_trace_full_stack",
+                    "fn bvh_trace_short_stack",
+                    "fn bvh_trace_wide",
+                ]
+                .iter()
+                .filter(|w| src.contains(*w))
+                .count();
+                assert_eq!(walks_in, 1, "{shape}: one walk composed");
+                let module = parse(&format!("{src}{user}"));
+                let bindings: Vec<u32> = module
+                    .global_variables
+                    .iter()
+                    .filter_map(|(_, g)| g.binding.as_ref())
+                    .filter(|b| b.group == 2)
+                    .map(|b| b.binding)
+                    .collect();
+                let mut want = vec![0, 1];
+                if traversal.needs_escapes() {
+                    want.push(2);
+                }
+                if instanced {
+                    want.push(4);
+                }
+                let mut got = bindings.clone();
+                got.sort();
+                assert_eq!(got, want, "{shape}: bindings of group 2");
+                compile_main(&module, &shape.to_string());
+            }
+        }
     }
 }

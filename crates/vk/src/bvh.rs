@@ -88,6 +88,8 @@ pub struct VkBvh {
     mesh_fingerprint: u64,
     /// The kernels traced so far, each once ([`Tracer::kernels_used`]).
     used: Mutex<Vec<KernelKey>>,
+    /// The instances' table every output carries, for a two-level BVH.
+    instance_table: Option<Arc<bvhtrace_core::InstanceTable>>,
 }
 
 impl std::fmt::Debug for VkBvh {
@@ -406,6 +408,7 @@ impl VkBvh {
             host_copy: keeps_host_copy(ctx, wide.as_deref()).then(|| Arc::new(bvh.clone())),
             mesh_fingerprint: bvhtrace_kernels::mesh_fingerprint(bvh),
             used: Mutex::new(Vec::new()),
+            instance_table: bvhtrace_core::InstanceTable::of(bvh),
             stats: UploadStats {
                 storage: BvhStorage::Buffers,
                 nodes_bytes: arrays[0].1.len() as u64 + wide_bytes.0,
@@ -599,6 +602,7 @@ impl VkBvh {
             Arc::new(copy)
         });
         self.depth = bvh.depth;
+        self.instance_table = bvhtrace_core::InstanceTable::of(bvh);
         if !top_level_only {
             self.mesh_fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
         }
@@ -679,6 +683,7 @@ impl VkBvh {
             gpu_ms: inner.timestamp_period_ns.map(|_| 0.0),
             wall_ms: 0.0,
             incomplete: 0,
+            instances: self.instance_table.clone(),
         };
         let n = rays.len() as u64;
         if n == 0 {

@@ -1,12 +1,14 @@
-//! The ash backend against the wgpu backend and the CPU twin, ray by ray and bit for bit
-//! (hits and counters), on the scenes of `tests/gpu_parity.rs`, with every walk (the wide
-//! layout's too); object lifetime and error behaviour. Runs on lavapipe in CI; prints SKIP and passes only when there is no Vulkan
-//! loader or device at all.
+//! The ash backend alone against the CPU twin, ray by ray and bit for bit (hits and
+//! counters), on the built-in scenes with every walk; object lifetime and error behaviour.
+//! The comparisons with the other backends on every parity scene are the workspace's
+//! conformance suite (`tests/conformance.rs`): this crate's tests need no wgpu. Runs on
+//! lavapipe in CI; prints SKIP and passes only when there is no Vulkan loader or device at
+//! all.
 
-use bvhtrace_core::{Counters, FlatBvh, Hit, Precision, Query, Ray, Traversal, trace_rays};
-use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, UploadOptions};
-use bvhtrace_scene::Camera;
-use bvhtrace_vk::kernels::{CpuTracer, FULL_STACK_SIZE, plan_dispatches, rays_per_dispatch};
+use bvhtrace_core::{FlatBvh, Precision, Query, Ray, Traversal, trace_rays};
+use bvhtrace_vk::kernels::{
+    BvhStorage, CpuTracer, FULL_STACK_SIZE, plan_dispatches, rays_per_dispatch,
+};
 use bvhtrace_vk::{
     AdapterChoice, DriverTuning, TraceError, TraceOptions, Tracer, VkBvh, VkContext, VkOptions,
 };
@@ -15,8 +17,8 @@ use glam::Vec3;
 #[path = "../../../tests/support/mod.rs"]
 mod support;
 use support::{
-    Rng, SceneCase, deep_tree, deep_wide_rays, deep_wide_tree, load_scene, one_triangle,
-    parity_scenes,
+    SceneCase, cpu_counted, deep_tree, differ, load_instanced_scene, load_scene, one_triangle,
+    parity_rays,
 };
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
@@ -48,161 +50,64 @@ fn context_with(test: &str, tuning: Option<DriverTuning>) -> Option<VkContext> {
     }
 }
 
-/// The scenes of `tests/gpu_parity.rs`, and the Cornell box at 1e-4 scale (a tiny-scale
-/// scene that is always there).
+/// The built-in scenes: degenerate triangles, the Cornell box (also at 1e-4 scale), and
+/// spheres in two levels.
 fn scenes() -> Vec<SceneCase> {
-    let mut out = parity_scenes();
-    out.extend(load_scene(
-        "builtin:cornell#scale=1e-4",
-        "builtin:cornell#scale=1e-4",
-    ));
-    out
-}
-
-/// 128x96 primary rays, random rays from inside the bounds (full and finite intervals),
-/// axis-parallel rays with signed zeros, and invalid rays.
-fn rays(bvh: &FlatBvh) -> Vec<Ray> {
-    let b = bvh.bounds();
-    let (lo, hi) = (b.min, b.max);
-    let size = hi - lo;
-    let mut rays = Camera::frame(lo, hi, 128.0 / 96.0).rays(128, 96);
-    let mut rng = Rng(7);
-    for i in 0..3072 {
-        let o = lo + size * Vec3::new(rng.f32(), rng.f32(), rng.f32());
-        let d = rng.unit_vector();
-        rays.push(if i % 3 == 0 {
-            Ray::with_interval(o, d, 1e-4 * size.length(), size.length() * rng.f32())
-        } else {
-            Ray::new(o, d)
-        });
-    }
-    for axis in 0..3 {
-        for zero in [0.0f32, -0.0] {
-            for i in 0..8 {
-                let mut d = Vec3::splat(zero);
-                d[axis] = if i % 2 == 0 { 1.0 } else { -1.0 };
-                let mut o = lo + size * ((i as f32 + 0.5) / 8.0);
-                o[axis] = if d[axis] > 0.0 {
-                    lo[axis] - size[axis]
-                } else {
-                    hi[axis] + size[axis]
-                };
-                rays.push(Ray::new(o, d));
-            }
-        }
-    }
-    let eye = hi + size;
-    let d = ((lo + hi) * 0.5 - eye).normalize();
-    rays.extend([
-        Ray::new(Vec3::new(f32::NAN, 0.0, 0.0), d),
-        Ray::new(eye, Vec3::ZERO),
-        Ray::with_interval(eye, d, 1.0, 0.5),
-        Ray::with_interval(eye, d, f32::NEG_INFINITY, f32::INFINITY),
-    ]);
-    rays
-}
-
-/// Indices where two Pod slices differ bytewise.
-fn differ<T: bytemuck::Pod>(a: &[T], b: &[T]) -> Vec<usize> {
-    assert_eq!(a.len(), b.len());
-    (0..a.len())
-        .filter(|&i| bytemuck::bytes_of(&a[i]) != bytemuck::bytes_of(&b[i]))
-        .collect()
-}
-
-/// The CPU twin's hits and counters for `opts`, counted.
-fn cpu_counted(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> (Vec<Hit>, Vec<Counters>) {
-    let out = trace_rays(bvh, rays, &opts.with_counters(true));
-    (out.hits, out.counters.expect("counters asked for"))
+    [
+        load_scene("builtin:degenerate", "builtin:degenerate"),
+        load_scene("builtin:cornell", "builtin:cornell"),
+        load_scene("builtin:cornell#scale=1e-4", "builtin:cornell#scale=1e-4"),
+        load_instanced_scene("builtin:spheres", "builtin:spheres"),
+    ]
+    .into_iter()
+    .map(|s| s.expect("the built-in scenes always load"))
+    .collect()
 }
 
 #[test]
-fn ash_equals_wgpu_and_cpu_bit_for_bit() {
+fn ash_equals_the_cpu_bit_for_bit() {
     let Some(ctx) = context("ash parity") else {
         return;
     };
-    let wgpu = GpuContext::new(AdapterChoice::Auto).expect("wgpu opens the same Vulkan device");
-    let traversals = [
-        Traversal::FullStack,
-        Traversal::Stackless,
-        Traversal::ShortStack(4),
-        Traversal::Wide,
-    ];
     let mut failures = Vec::new();
-    let mut checked = 0;
-    // The built-in scenes always; the shared meshes when `../shared/scenes` is there.
-    let scenes = scenes();
-    assert!(scenes.len() >= 3, "only {} scenes loaded", scenes.len());
-    let expected = scenes.len() * traversals.len() * 2;
-    for SceneCase { name, bvh, .. } in scenes {
+    for SceneCase { name, bvh, .. } in scenes() {
         // With its wide layout: the ash upload takes it, the CPU twin walks it.
         let bvh = bvh.with_wide();
-        let rays = rays(&bvh);
+        let rays = parity_rays(&bvh);
         let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
-        assert!(vk.has_wide());
-        let wg = GpuBvh::upload(
-            &wgpu,
-            &bvh,
-            &UploadOptions::all()
-                .with_storage(BvhStorage::Buffers)
-                .with_traversal(Traversal::Wide),
-        )
-        .expect("wgpu upload");
-        eprintln!(
-            "{name}: {} nodes, depth {}, {} rays",
-            bvh.nodes.len(),
-            bvh.depth,
-            rays.len()
-        );
-        for traversal in traversals {
+        for traversal in [
+            Traversal::FullStack,
+            Traversal::Stackless,
+            Traversal::ShortStack(4),
+            Traversal::Wide,
+        ] {
             for query in [Query::Closest, Query::Any] {
                 let label = format!("{name} {traversal} {query:?}");
                 let opts = TraceOptions::new(traversal, query);
                 let (cpu_hits, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
-                let counted = vk
-                    .trace(&rays, &opts.with_counters(true))
-                    .expect("ash trace");
-                let plain = vk.trace(&rays, &opts).expect("ash trace");
-                let w = wg
-                    .trace(&rays, &opts.with_counters(true))
-                    .expect("wgpu trace");
-                let vc = counted.counters.as_deref().expect("counters asked for");
-                let wc = w.counters.as_deref().expect("counters asked for");
+                let counted = vk.trace(&rays, &opts.with_counters(true)).expect("trace");
+                let plain = vk.trace(&rays, &opts).expect("trace");
                 assert!(plain.counters.is_none());
                 assert_eq!(counted.gpu_ms.is_some(), ctx.has_timestamps());
-                // Rays past the trip budget are finished on the CPU by both backends.
-                assert_eq!(counted.incomplete, w.incomplete, "{label}: incomplete rays");
-                let checks = [
-                    ("hits vs cpu", differ(&counted.hits, &cpu_hits)),
-                    ("uncounted hits vs cpu", differ(&plain.hits, &cpu_hits)),
-                    ("hits vs wgpu", differ(&counted.hits, &w.hits)),
-                    ("counters vs cpu", differ(vc, &cpu_counters)),
-                    ("counters vs wgpu", differ(vc, wc)),
-                ];
-                for (what, bad) in checks {
+                let counters = counted.counters.as_deref().expect("counters asked for");
+                for (what, bad) in [
+                    ("hits", differ(&counted.hits, &cpu_hits)),
+                    ("uncounted hits", differ(&plain.hits, &cpu_hits)),
+                    ("counters", differ(counters, &cpu_counters)),
+                ] {
                     if let Some(&i) = bad.first() {
                         failures.push(format!(
-                            "{label}: {what}: {} rays differ; first {i}: ray {:?}, ash {:?} {:?}, \
-                             wgpu {:?} {:?}, cpu {:?} {:?}",
+                            "{label}: {what}: {} rays differ; first {i}: ray {:?}, ash {:?}, cpu {:?}",
                             bad.len(),
                             rays[i],
                             counted.hits[i],
-                            vc[i],
-                            w.hits[i],
-                            wc[i],
-                            cpu_hits[i],
-                            cpu_counters[i]
+                            cpu_hits[i]
                         ));
                     }
                 }
-                checked += 1;
             }
         }
     }
-    assert!(
-        checked == expected,
-        "{checked} of {expected} configurations checked"
-    );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert_eq!(ctx.validation_errors(), 0, "validation errors");
 }
@@ -369,111 +274,6 @@ fn errors_are_errors_not_panics() {
     assert_eq!(ctx.validation_errors(), 0);
 }
 
-/// A wide tree deeper than the wide walk's stack: the rays that would overflow it come back
-/// incomplete and are finished on the CPU, with the device's tuning and with the GPU
-/// tuning (no trip budget: the host copy is kept for the depth alone); hits and counters
-/// equal the CPU twin's and wgpu's.
-#[test]
-fn deep_wide_trees_finish_on_the_cpu() {
-    if context("deep wide trees").is_none() {
-        return;
-    }
-    let bvh = deep_wide_tree();
-    let rays = deep_wide_rays();
-    let wgpu = GpuContext::new(AdapterChoice::Auto).expect("wgpu opens the same Vulkan device");
-    let wg = GpuBvh::upload(&wgpu, &bvh, &UploadOptions::for_traversal(Traversal::Wide))
-        .expect("wgpu upload");
-    for tuning in [None, Some(DriverTuning::GPU)] {
-        let Some(ctx) = context_with("deep wide trees", tuning) else {
-            return;
-        };
-        let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
-        for query in [Query::Closest, Query::Any] {
-            let label = format!("deep wide {query:?} {tuning:?}");
-            let opts = TraceOptions::new(Traversal::Wide, query).with_counters(true);
-            let out = vk.trace(&rays, &opts).expect("trace");
-            let w = wg.trace(&rays, &opts).expect("wgpu trace");
-            let (cpu, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
-            assert!(out.incomplete > 0, "{label}: no ray overflowed the stack");
-            assert_eq!(out.incomplete, w.incomplete, "{label}");
-            assert!(differ(&out.hits, &cpu).is_empty(), "{label}: hits differ");
-            assert!(differ(&out.hits, &w.hits).is_empty(), "{label}: vs wgpu");
-            assert!(
-                differ(out.counters.as_deref().expect("counters"), &cpu_counters).is_empty(),
-                "{label}: counters differ"
-            );
-        }
-        assert_eq!(ctx.validation_errors(), 0, "validation errors");
-    }
-}
-
-/// The other triangle tests (Möller–Trumbore f32, watertight f64 where the device has
-/// `shaderFloat64`) compose into the same kernels: ash equals wgpu and the CPU twin too.
-#[test]
-fn precisions_match_wgpu_and_cpu() {
-    let Some(ctx) = context("precisions") else {
-        return;
-    };
-    let wgpu = GpuContext::new(AdapterChoice::Auto).expect("wgpu opens the same Vulkan device");
-    let mut precisions = vec![Precision::MollerTrumboreF32];
-    if ctx.has_f64() {
-        precisions.push(Precision::WatertightF64);
-    } else {
-        eprintln!(
-            "SKIP f64 precision: no shaderFloat64 on {}",
-            ctx.device_info().name
-        );
-    }
-    let mut failures = Vec::new();
-    for SceneCase { name, bvh, .. } in ["builtin:degenerate", "builtin:cornell"]
-        .into_iter()
-        .filter_map(|spec| load_scene(spec, spec))
-    {
-        let bvh = bvh.with_wide();
-        let rays = rays(&bvh);
-        let vk = VkBvh::upload(&ctx, &bvh).expect("ash upload");
-        let wg = GpuBvh::upload(
-            &wgpu,
-            &bvh,
-            &UploadOptions::all()
-                .with_storage(BvhStorage::Buffers)
-                .with_traversal(Traversal::Wide),
-        )
-        .expect("wgpu upload");
-        for &precision in &precisions {
-            for traversal in [
-                Traversal::FullStack,
-                Traversal::ShortStack(4),
-                Traversal::Wide,
-            ] {
-                for query in [Query::Closest, Query::Any] {
-                    let label = format!("{name} {traversal} {query:?} {precision:?}");
-                    let opts = TraceOptions::new(traversal, query)
-                        .with_precision(precision)
-                        .with_counters(true);
-                    let a = vk.trace(&rays, &opts).expect("ash trace");
-                    let w = wg.trace(&rays, &opts).expect("wgpu trace");
-                    let (cpu, cpu_counters) = cpu_counted(&bvh, &rays, &opts);
-                    let ac = a.counters.as_deref().expect("counters");
-                    let wc = w.counters.as_deref().expect("counters");
-                    for (what, n) in [
-                        ("hits vs cpu", differ(&a.hits, &cpu).len()),
-                        ("hits vs wgpu", differ(&a.hits, &w.hits).len()),
-                        ("counters vs cpu", differ(ac, &cpu_counters).len()),
-                        ("counters vs wgpu", differ(ac, wc).len()),
-                    ] {
-                        if n > 0 {
-                            failures.push(format!("{label}: {what}: {n} rays differ"));
-                        }
-                    }
-                }
-            }
-        }
-    }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
-    assert_eq!(ctx.validation_errors(), 0, "validation errors");
-}
-
 /// A machine whose loader finds no driver: `VkContext::new` returns an error naming the
 /// cause (never panics). Runs itself in a child process with the driver list pointed at
 /// nothing (`VK_ICD_FILENAMES` / `VK_DRIVER_FILES`).
@@ -579,7 +379,7 @@ fn driver_tuning_and_incomplete_rays() {
     let Some(SceneCase { name, bvh, .. }) = load_scene("builtin:cornell", "builtin:cornell") else {
         panic!("the built-in Cornell box always loads");
     };
-    let rays = rays(&bvh);
+    let rays = parity_rays(&bvh);
     let tight = DriverTuning {
         trip_limit: 4,
         ..DriverTuning::cpu_driver(2)
@@ -622,7 +422,7 @@ fn tracer_interface_matches_the_cpu() {
     let Some(SceneCase { bvh, .. }) = load_scene("builtin:degenerate", "builtin:degenerate") else {
         panic!("the built-in degenerate scene always loads");
     };
-    let rays = rays(&bvh);
+    let rays = parity_rays(&bvh);
     let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
     let cpu = CpuTracer::new(&bvh);
     let tracers: [&dyn Tracer; 2] = [&vk, &cpu];
@@ -666,7 +466,7 @@ fn two_level_updates_in_place_match_the_cpu() {
         .instanced_bvh(&bvhtrace_core::BuildOptions::default())
         .expect("two levels");
     let mut vk = VkBvh::upload(&ctx, &ib.bvh().clone().with_wide()).expect("upload");
-    let rays = rays(ib.bvh());
+    let rays = parity_rays(ib.bvh());
     let check = |vk: &VkBvh, bvh: &FlatBvh, what: &str| {
         let bvh = &bvh.clone().with_wide();
         for traversal in [Traversal::Stackless, Traversal::FullStack, Traversal::Wide] {

@@ -2,7 +2,7 @@
 //! queries and wall time per batch, medians of `--runs` runs after one warm-up.
 //!
 //! ```sh
-//! LP_NUM_THREADS=2 cargo run --release -p bvhtrace-vk --example compare -- \
+//! LP_NUM_THREADS=2 cargo run --release -p bvhtrace-integration --example compare -- \
 //!     [SCENE ...] [--runs 5] [--size 1024x768] [--traversal full-stack]...
 //! ```
 //!
