@@ -41,11 +41,13 @@
 //!   WGSL, reading the uploaded BVH.
 #![warn(missing_docs)]
 
+mod backend;
 mod bvh;
 mod context;
 mod trace;
 
-pub use bvh::{BvhBindGroup, GpuBvh, Update, UploadOptions};
+pub use bvh::{BvhBindGroup, GpuBvh};
+pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use trace::RayBatch;
 
