@@ -15,8 +15,9 @@ use bvhtrace_kernels::{
 
 use crate::error::{from_vk, shader_error, vkerr};
 
-/// Environment variable that turns on `VK_LAYER_KHRONOS_validation` (when installed) for
-/// [`VkContext::new`]: `BVHTRACE_VK_VALIDATION=1`.
+/// Environment variable front ends and tests read to turn on `VK_LAYER_KHRONOS_validation`
+/// (`BVHTRACE_VK_VALIDATION=1`, passed on as [`VkOptions::validation`]); the library reads
+/// no environment variable.
 pub const VALIDATION_ENV: &str = "BVHTRACE_VK_VALIDATION";
 
 /// Validation errors reported to any context of this process, including those reported
@@ -38,8 +39,8 @@ const FENCE_TIMEOUT_NS: u64 = 600_000_000_000;
 /// Options of [`VkContext::with_options`].
 #[derive(Clone, Debug, Default)]
 pub struct VkOptions {
-    /// Which device to open: [`AdapterChoice::Auto`] (the `BVHTRACE_ADAPTER` environment
-    /// variable, else the best device: discrete > integrated > virtual > CPU) or
+    /// Which device to open: [`AdapterChoice::Auto`] (the best device: discrete >
+    /// integrated > virtual > CPU) or
     /// [`AdapterChoice::Named`] (a case-insensitive substring of the device name). The
     /// same choice as the wgpu backend's for the same list of devices.
     pub adapter: AdapterChoice,
@@ -213,21 +214,20 @@ pub fn device_kind(t: vk::PhysicalDeviceType) -> DeviceKind {
 }
 
 impl VkContext {
-    /// Opens the device `choice` selects ([`AdapterChoice::Auto`]: the one
-    /// `BVHTRACE_ADAPTER` names, else the best one, discrete > integrated > virtual > CPU;
+    /// Opens the device `choice` selects ([`AdapterChoice::Auto`]: the best one,
+    /// discrete > integrated > virtual > CPU;
     /// [`AdapterChoice::Named`]: the first whose name contains the substring, any case):
     /// the same choice as `bvhtrace_gpu::GpuContext::new`, with the [`DriverTuning`] for
-    /// its kind. Validation is on when `BVHTRACE_VK_VALIDATION=1` and the layer is
-    /// installed.
+    /// its kind. Validation is off: turn it on with [`VkOptions::validation`] (front ends and
+    /// tests may read [`VALIDATION_ENV`] for it; the library reads no environment variable).
     ///
     /// Fails with [`TraceError::NoAdapter`] when there is no Vulkan loader, driver or
     /// device with a compute queue, and [`TraceError::AdapterNotFound`] when no device
     /// has the name asked for; never panics.
     pub fn new(choice: AdapterChoice) -> Result<VkContext, TraceError> {
-        let validation = std::env::var(VALIDATION_ENV).is_ok_and(|v| v == "1");
         Self::with_options(&VkOptions {
             adapter: choice,
-            validation,
+            validation: false,
             tuning: None,
         })
     }
