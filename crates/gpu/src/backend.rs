@@ -12,8 +12,8 @@ use wgpu::util::DeviceExt;
 use crate::context::GpuContext;
 use crate::trace::{BatchGroups, Scratch};
 
-/// The wgpu device behind a [`crate::GpuBvh`].
-pub(crate) struct Wgpu {
+/// The wgpu device behind a [`crate::GpuBvh`]: the engine's backend on wgpu.
+pub struct Wgpu {
     pub(crate) ctx: GpuContext,
 }
 
@@ -36,7 +36,7 @@ impl Resource {
 }
 
 /// The uploaded arrays and their bind groups.
-pub(crate) struct WgpuArrays {
+pub struct WgpuArrays {
     resources: Vec<(ArrayRole, Resource)>,
     /// The BVH group for the full-stack kernels (nodes, triangles).
     plain: Option<wgpu::BindGroup>,

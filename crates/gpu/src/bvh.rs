@@ -2,10 +2,12 @@
 //! ([`bvhtrace_kernels::Engine`]) over the wgpu backend, and its wgpu-only surfaces (bind
 //! groups, buffers and textures for your own shaders, recording into your encoder).
 
-use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_kernels::engine::WIDE_NOT_UPLOADED;
 use bvhtrace_kernels::upload::ArrayRole;
-use bvhtrace_kernels::{BvhStorage, Engine, KernelKey, Tracer, Update, UploadOptions, UploadStats};
+use bvhtrace_kernels::{Engine, HasEngine, Update, UploadOptions};
+#[cfg(doc)]
+use bvhtrace_kernels::{Tracer, UploadStats};
 
 use crate::GpuError;
 use crate::backend::Wgpu;
@@ -34,8 +36,29 @@ impl<'a> BvhBindGroup<'a> {
 
 /// A BVH on the device, ready to trace (see [`GpuBvh::trace`] and [`GpuBvh::record`]).
 /// `Send + Sync`: trace it from several threads at once.
+///
+/// The engine's methods ([`Engine::trace`], [`Engine::supports`], [`Engine::stats`],
+/// [`Engine::finish_incomplete`], ...) are this type's through `Deref`; [`Tracer`] is
+/// implemented by the engine ([`HasEngine`]).
 pub struct GpuBvh {
     pub(crate) engine: Engine<Wgpu>,
+}
+
+impl std::ops::Deref for GpuBvh {
+    type Target = Engine<Wgpu>;
+    fn deref(&self) -> &Engine<Wgpu> {
+        &self.engine
+    }
+}
+
+impl HasEngine for GpuBvh {
+    type Device = Wgpu;
+    fn engine(&self) -> &Engine<Wgpu> {
+        &self.engine
+    }
+    fn engine_mut(&mut self) -> &mut Engine<Wgpu> {
+        &mut self.engine
+    }
 }
 
 impl std::fmt::Debug for GpuBvh {
@@ -70,28 +93,6 @@ impl GpuBvh {
         })
     }
 
-    /// Checks that `opts` can run on this upload and device: the walk's data was uploaded
-    /// and fits its stack, the precision's feature is there.
-    pub fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.engine.supports(opts)
-    }
-
-    /// Compiles (and caches) the pipelines [`GpuBvh::trace`] runs for `opts` (with the box
-    /// test's parallel path and without it, see [`KernelKey::for_rays`]) ahead of the
-    /// first trace, so that the first trace's time is not the compiler's.
-    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.engine.prepare(opts)
-    }
-
-    /// Traces `rays` as `opts` says: uploads them, dispatches the kernel (split as
-    /// needed), reads the hits (and counters) back, waiting for its own submissions only.
-    /// The results equal [`bvhtrace_core::trace_rays`]'s bit for bit. Batches larger than
-    /// one device buffer allows are traced in several submissions; times are summed. f64
-    /// needs a device with `SHADER_F64` ([`GpuContext::supports_precision`]).
-    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        self.engine.trace(rays, opts)
-    }
-
     /// Device bytes of the buffers [`GpuBvh::trace`] keeps between calls: rays, hits and
     /// their readback copy, and the counters (with theirs) only once a trace asked for them.
     pub fn scratch_bytes(&self) -> u64 {
@@ -107,45 +108,9 @@ impl GpuBvh {
         self.engine.update_with(bvh, what)
     }
 
-    /// True when the wide layout was uploaded ([`Traversal::Wide`] listed).
-    pub fn has_wide(&self) -> bool {
-        self.engine.tree().wide
-    }
-
     /// The context this BVH lives in.
     pub fn context(&self) -> &GpuContext {
         &self.engine.device().ctx
-    }
-
-    /// Where both layouts live, buffers or textures; [`GpuBvh::trace`] puts the rays in
-    /// textures when this is textures.
-    pub fn storage(&self) -> BvhStorage {
-        self.engine.tree().storage
-    }
-
-    /// What the upload cost.
-    pub fn stats(&self) -> &UploadStats {
-        self.engine.stats()
-    }
-
-    /// The binary tree's depth (edges on its longest root-to-leaf path).
-    pub fn depth(&self) -> u32 {
-        self.engine.tree().depth
-    }
-
-    /// Number of nodes.
-    pub fn node_count(&self) -> usize {
-        self.engine.tree().shape.0
-    }
-
-    /// Number of triangles.
-    pub fn triangle_count(&self) -> usize {
-        self.engine.tree().shape.1
-    }
-
-    /// True when the escape links were uploaded.
-    pub fn has_escapes(&self) -> bool {
-        self.engine.tree().escapes
     }
 
     /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
@@ -177,11 +142,6 @@ impl GpuBvh {
             group,
             layout: self.context().bvh_layout(storage, with_escapes, instanced),
         })
-    }
-
-    /// True for a two-level BVH (its bind group has the instances, binding 4).
-    pub fn is_instanced(&self) -> bool {
-        self.engine.tree().instanced
     }
 
     /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads of the binary
@@ -217,43 +177,5 @@ impl GpuBvh {
         let a = self.engine.arrays();
         a.texture(ArrayRole::WideNodes)
             .zip(a.texture(ArrayRole::WideTriangles))
-    }
-}
-
-impl Tracer for GpuBvh {
-    fn backend(&self) -> &'static str {
-        Tracer::backend(&self.engine)
-    }
-
-    fn device_name(&self) -> String {
-        self.engine.device_name()
-    }
-
-    fn default_traversal(&self) -> Traversal {
-        self.engine.default_traversal()
-    }
-
-    fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.engine.supports(opts)
-    }
-
-    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        self.engine.trace(rays, opts)
-    }
-
-    fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.engine.prepare(opts)
-    }
-
-    fn upload_stats(&self) -> Option<UploadStats> {
-        self.engine.upload_stats()
-    }
-
-    fn update(&mut self, bvh: &FlatBvh) -> Result<(), GpuError> {
-        self.engine.update(bvh)
-    }
-
-    fn kernels_used(&self) -> Vec<KernelKey> {
-        self.engine.kernels_used()
     }
 }

@@ -41,7 +41,7 @@
 //!   WGSL, reading the uploaded BVH.
 #![warn(missing_docs)]
 
-mod backend;
+pub mod backend;
 mod bvh;
 mod context;
 mod trace;

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::num::NonZeroU64;
 use std::sync::mpsc;
 
-use bvhtrace_core::{Counters, Hit, Ray, TraceOptions};
+use bvhtrace_core::{Counters, Ray, TraceOptions};
 use bvhtrace_kernels::engine::{Batch, ScratchPlan};
 use bvhtrace_kernels::{
     COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, RayInput, TEXEL_ROW, plan_dispatches,
@@ -35,7 +35,7 @@ pub struct RayBatch<'a> {
 }
 
 /// Device buffers reused by [`GpuBvh::trace`] across calls.
-pub(crate) struct Scratch {
+pub struct Scratch {
     rays: RayStore,
     /// The hits' readback copy: `capacity` hits, or whole rows of the hit texture.
     hits_read: wgpu::Buffer,
@@ -474,7 +474,7 @@ impl GpuBvh {
     /// submits the encoder. Rays are never [`bvhtrace_core::INCOMPLETE`] here unless the
     /// context's tuning sets a trip budget (CPU drivers), or the wide walk meets a wide
     /// tree deeper than its stack ([`bvhtrace_kernels::wide_stack_may_overflow`]): once the
-    /// hits (and counters) are read back, [`GpuBvh::finish_incomplete`] finishes those.
+    /// hits (and counters) are read back, [`Engine::finish_incomplete`](bvhtrace_kernels::Engine::finish_incomplete) finishes those.
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -495,21 +495,6 @@ impl GpuBvh {
         };
         record_pass(self.context(), self.engine.arrays(), key, encoder, pass)?;
         self.engine.note_used(key)
-    }
-
-    /// Finishes the rays a recorded trace ([`GpuBvh::record`]) left
-    /// [`bvhtrace_core::INCOMPLETE`]: each such hit (and its counters, when given) is
-    /// replaced by the CPU walk's answer for `rays[i]` under `opts`, the answer the kernel
-    /// would have given. Returns how many were finished (0 when this upload can leave
-    /// none, and then nothing is looked at but the hits).
-    pub fn finish_incomplete(
-        &self,
-        rays: &[Ray],
-        opts: &TraceOptions,
-        hits: &mut [Hit],
-        counters: Option<&mut [Counters]>,
-    ) -> u64 {
-        self.engine.finish_incomplete(rays, opts, hits, counters)
     }
 }
 

@@ -335,6 +335,41 @@ impl<B: Backend> Engine<B> {
         &self.stats
     }
 
+    /// Where both layouts live, buffers or textures; the rays of a trace follow it.
+    pub fn storage(&self) -> BvhStorage {
+        self.tree.storage
+    }
+
+    /// True when the wide layout was uploaded.
+    pub fn has_wide(&self) -> bool {
+        self.tree.wide
+    }
+
+    /// True when the escape links were uploaded.
+    pub fn has_escapes(&self) -> bool {
+        self.tree.escapes
+    }
+
+    /// True for a two-level BVH (its bind groups have the instances, binding 4).
+    pub fn is_instanced(&self) -> bool {
+        self.tree.instanced
+    }
+
+    /// The binary tree's depth (edges on its longest root-to-leaf path).
+    pub fn depth(&self) -> u32 {
+        self.tree.depth
+    }
+
+    /// Number of nodes uploaded.
+    pub fn node_count(&self) -> usize {
+        self.tree.shape.0
+    }
+
+    /// Number of triangles uploaded.
+    pub fn triangle_count(&self) -> usize {
+        self.tree.shape.1
+    }
+
     /// Where the kernels read their rays from: textures with the BVH in textures.
     pub fn ray_input(&self) -> RayInput {
         RayInput::for_storage(self.tree.storage)
@@ -599,13 +634,34 @@ impl<B: Backend> Engine<B> {
     }
 }
 
-impl<B: Backend> Tracer for Engine<B> {
+/// A type that traces through an [`Engine`] (the device backends' BVH types): it is a
+/// [`Tracer`] by that engine, with nothing to write again.
+pub trait HasEngine: Send + Sync {
+    /// The backend of the engine.
+    type Device: Backend;
+    /// The engine.
+    fn engine(&self) -> &Engine<Self::Device>;
+    /// The engine, to update.
+    fn engine_mut(&mut self) -> &mut Engine<Self::Device>;
+}
+
+impl<B: Backend> HasEngine for Engine<B> {
+    type Device = B;
+    fn engine(&self) -> &Engine<B> {
+        self
+    }
+    fn engine_mut(&mut self) -> &mut Engine<B> {
+        self
+    }
+}
+
+impl<T: HasEngine> Tracer for T {
     fn backend(&self) -> &'static str {
-        self.backend.name()
+        self.engine().backend.name()
     }
 
     fn device_name(&self) -> String {
-        self.backend.device_name()
+        self.engine().backend.device_name()
     }
 
     fn default_traversal(&self) -> Traversal {
@@ -613,26 +669,27 @@ impl<B: Backend> Tracer for Engine<B> {
     }
 
     fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        Engine::supports(self, opts)
+        self.engine().supports(opts)
     }
 
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
-        Engine::trace(self, rays, opts)
+        self.engine().trace(rays, opts)
     }
 
     fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        Engine::prepare(self, opts)
+        self.engine().prepare(opts)
     }
 
     fn upload_stats(&self) -> Option<UploadStats> {
-        Some(self.stats)
+        Some(self.engine().stats)
     }
 
     fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
-        Engine::update(self, bvh)
+        self.engine_mut().update(bvh)
     }
 
     fn kernels_used(&self) -> Vec<KernelKey> {
-        self.used.lock().map(|u| u.clone()).unwrap_or_default()
+        let used = self.engine().used.lock();
+        used.map(|u| u.clone()).unwrap_or_default()
     }
 }

@@ -338,5 +338,8 @@ fn the_driver_splits_orders_finishes_and_counts_kernels() {
     assert_eq!(e.tree().storage, BvhStorage::Textures);
     e.trace(&rays[..600], &opts).expect("trace");
     assert_eq!(*e.device().batches.lock().unwrap(), vec![256, 256, 88]);
-    assert_eq!(e.kernels_used()[0].rays, bvhtrace_kernels::RayInput::Texture);
+    assert_eq!(
+        e.kernels_used()[0].rays,
+        bvhtrace_kernels::RayInput::Texture
+    );
 }

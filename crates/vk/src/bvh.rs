@@ -4,24 +4,26 @@
 use bytemuck::Zeroable;
 
 use ash::vk;
-use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::FlatBvh;
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
 use bvhtrace_kernels::{
-    Backend, BvhStorage, COUNTERS_BYTES, DeviceLimits, DriverTuning, Engine, HIT_BYTES, KernelKey,
-    RAY_BYTES, TraceError, Tracer, Update, UploadOptions, UploadStats, plan_dispatches,
+    Backend, BvhStorage, COUNTERS_BYTES, DeviceLimits, DriverTuning, Engine, HIT_BYTES, HasEngine,
+    KernelKey, RAY_BYTES, TraceError, Update, UploadOptions, plan_dispatches,
 };
+#[cfg(doc)]
+use bvhtrace_kernels::{Tracer, Traversal};
 
 use crate::context::{Buffer, VkContext};
 use crate::error::vkerr;
 
-/// The Vulkan device behind a [`VkBvh`].
-struct Ash {
+/// The Vulkan device behind a [`VkBvh`]: the engine's backend on ash.
+pub struct Ash {
     ctx: VkContext,
 }
 
-/// Host-visible ray, hit and counter buffers reused across [`VkBvh::trace`] calls.
-struct Scratch {
+/// Host-visible ray, hit and counter buffers reused across traces.
+pub struct Scratch {
     ctx: VkContext,
     rays: Buffer,
     hits: Buffer,
@@ -38,7 +40,7 @@ impl Drop for Scratch {
 }
 
 /// The uploaded arrays, each in a device-local storage buffer, and their descriptor sets.
-struct Arrays {
+pub struct Arrays {
     ctx: VkContext,
     buffers: Vec<(ArrayRole, Buffer)>,
     /// One zeroed instance, bound where the upload has no array: every binding of a set is
@@ -543,8 +545,29 @@ impl Backend for Ash {
 /// escapes, instances: the layout of [`bvhtrace_core::flat`], byte for byte), and the wide
 /// layout for [`Traversal::Wide`]. Implements [`Tracer`], the interface shared with the CPU
 /// and wgpu backends: the engine ([`Engine`]) both device backends share.
+///
+/// The engine's methods ([`Engine::trace`], [`Engine::supports`], [`Engine::stats`],
+/// [`Engine::depth`], ...) are this type's through `Deref`; [`Tracer`] is implemented by
+/// the engine ([`HasEngine`]).
 pub struct VkBvh {
     engine: Engine<Ash>,
+}
+
+impl std::ops::Deref for VkBvh {
+    type Target = Engine<Ash>;
+    fn deref(&self) -> &Engine<Ash> {
+        &self.engine
+    }
+}
+
+impl HasEngine for VkBvh {
+    type Device = Ash;
+    fn engine(&self) -> &Engine<Ash> {
+        &self.engine
+    }
+    fn engine_mut(&mut self) -> &mut Engine<Ash> {
+        &mut self.engine
+    }
 }
 
 impl std::fmt::Debug for VkBvh {
@@ -585,35 +608,9 @@ impl VkBvh {
         })
     }
 
-    /// True when the wide layout was uploaded.
-    pub fn has_wide(&self) -> bool {
-        self.engine.tree().wide
-    }
-
     /// The context this BVH lives on.
     pub fn context(&self) -> &VkContext {
         &self.engine.device().ctx
-    }
-
-    /// Sizes and time of the upload.
-    pub fn stats(&self) -> &UploadStats {
-        self.engine.stats()
-    }
-
-    /// The tree's depth (the full-stack walk takes trees up to
-    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) deep).
-    pub fn depth(&self) -> u32 {
-        self.engine.tree().depth
-    }
-
-    /// Nodes uploaded.
-    pub fn node_count(&self) -> usize {
-        self.engine.tree().shape.0
-    }
-
-    /// Triangles uploaded.
-    pub fn triangle_count(&self) -> usize {
-        self.engine.tree().shape.1
     }
 
     /// Writes `bvh` over this upload in place ([`Engine::update_with`]): the whole BVH
@@ -627,66 +624,5 @@ impl VkBvh {
             false => Update::Everything,
         };
         self.engine.update_with(bvh, what)
-    }
-
-    /// Checks that `opts` can run on this upload and device: the full-stack walk needs a
-    /// tree at most [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) deep
-    /// ([`TraceError::TooDeep`]), the f64 triangle test needs `shaderFloat64`
-    /// ([`TraceError::PrecisionUnsupported`]), the wide walk the wide layout
-    /// ([`TraceError::WideLayoutMissing`]).
-    pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        self.engine.supports(opts)
-    }
-
-    /// Creates (and caches) the pipelines [`VkBvh::trace`] runs for `opts` ahead of the
-    /// first trace, so that the first trace's time is not the compiler's.
-    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        self.engine.prepare(opts)
-    }
-
-    /// Traces `rays` as `opts` says and returns one hit per ray (and each ray's counters
-    /// when `opts.counters`), the time between the dispatches' timestamps and the call's
-    /// wall time ([`Engine::trace`]). The results equal [`bvhtrace_core::trace_rays`]'s and
-    /// the wgpu backend's bit for bit.
-    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
-        self.engine.trace(rays, opts)
-    }
-}
-
-impl Tracer for VkBvh {
-    fn backend(&self) -> &'static str {
-        Tracer::backend(&self.engine)
-    }
-
-    fn device_name(&self) -> String {
-        self.engine.device_name()
-    }
-
-    fn default_traversal(&self) -> Traversal {
-        self.engine.default_traversal()
-    }
-
-    fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        self.engine.supports(opts)
-    }
-
-    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
-        self.engine.trace(rays, opts)
-    }
-
-    fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
-        self.engine.prepare(opts)
-    }
-
-    fn upload_stats(&self) -> Option<UploadStats> {
-        self.engine.upload_stats()
-    }
-
-    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
-        self.engine.update(bvh)
-    }
-
-    fn kernels_used(&self) -> Vec<KernelKey> {
-        self.engine.kernels_used()
     }
 }

@@ -111,6 +111,16 @@ impl Drop for InstanceHolder {
     }
 }
 
+/// The device [`VkContext::choose`] picked: its properties and compute queue family.
+struct Chosen {
+    pd: vk::PhysicalDevice,
+    props: vk::PhysicalDeviceProperties,
+    family: u32,
+    family_props: vk::QueueFamilyProperties,
+    name: String,
+    kind: DeviceKind,
+}
+
 /// The command buffer, its fence and the timestamp pool, used one submission at a time.
 pub(crate) struct Submitter {
     pub(crate) pool: vk::CommandPool,
@@ -240,6 +250,22 @@ impl VkContext {
     }
 
     unsafe fn create(opts: &VkOptions) -> Result<VkContext, TraceError> {
+        // SAFETY: each step uses only the handles the one before made.
+        unsafe {
+            let holder = Self::instance(opts)?;
+            let chosen = Self::choose(&holder.instance, &opts.adapter)?;
+            let family = chosen.family;
+            let mut inner = Self::open(holder, chosen, opts)?;
+            Self::objects(&mut inner, family)?;
+            Ok(VkContext {
+                inner: Arc::new(inner),
+            })
+        }
+    }
+
+    /// The instance, with the validation layer and its messenger when asked for and
+    /// installed.
+    unsafe fn instance(opts: &VkOptions) -> Result<InstanceHolder, TraceError> {
         unsafe {
             let entry = ash::Entry::load().map_err(|e| TraceError::NoAdapter {
                 details: format!(": cannot load libvulkan: {e}"),
@@ -302,8 +328,16 @@ impl VkContext {
                     .map_err(vkerr("creating the validation messenger"))?;
                 holder.debug = Some((loader, messenger));
             }
-            let instance = &holder.instance;
+            Ok(holder)
+        }
+    }
 
+    /// The device `adapter` picks among those with a compute queue.
+    unsafe fn choose(
+        instance: &ash::Instance,
+        adapter: &AdapterChoice,
+    ) -> Result<Chosen, TraceError> {
+        unsafe {
             // Devices with a compute queue, described for `AdapterChoice::pick`.
             let mut candidates = Vec::new();
             let devices = instance
@@ -342,9 +376,37 @@ impl VkContext {
                     (name, device_kind(p.device_type))
                 })
                 .collect();
-            let index = opts.adapter.pick(&named)?;
+            let index = adapter.pick(&named)?;
             let (pd, props, family, family_props) = candidates[index];
             let (name, kind) = named[index].clone();
+            Ok(Chosen {
+                pd,
+                props,
+                family,
+                family_props,
+                name,
+                kind,
+            })
+        }
+    }
+
+    /// The logical device on `c` with the features the kernels use, its limits and
+    /// tuning; no objects yet.
+    unsafe fn open(
+        holder: InstanceHolder,
+        c: Chosen,
+        opts: &VkOptions,
+    ) -> Result<Inner, TraceError> {
+        unsafe {
+            let Chosen {
+                pd,
+                props,
+                family,
+                family_props,
+                name,
+                kind,
+            } = c;
+            let instance = &holder.instance;
             let tuning = DriverTuning {
                 storage: BvhStorage::Buffers,
                 ..opts
@@ -439,7 +501,7 @@ impl VkContext {
             let memory = instance.get_physical_device_memory_properties(pd);
 
             // From here on, dropping `inner` destroys whatever was created.
-            let mut inner = Inner {
+            let inner = Inner {
                 device,
                 queue,
                 info,
@@ -462,6 +524,15 @@ impl VkContext {
                 }),
                 instance: holder,
             };
+            Ok(inner)
+        }
+    }
+
+    /// The descriptor set layouts, pipeline layout, command buffer, fence and timestamp
+    /// queries of `inner` (dropping `inner` destroys whatever was made).
+    unsafe fn objects(inner: &mut Inner, family: u32) -> Result<(), TraceError> {
+        let timestamps = inner.timestamp_period_ns.is_some();
+        unsafe {
             let d = &inner.device;
             // Set 0: nodes, triangles, escapes, instances (4). Set 1: rays, hits,
             // counters. The kernels' binding numbers; every binding is always bound
@@ -526,9 +597,7 @@ impl VkContext {
                     .map_err(vkerr("creating the timestamp query pool"))?;
             }
 
-            Ok(VkContext {
-                inner: Arc::new(inner),
-            })
+            Ok(())
         }
     }
 

@@ -53,7 +53,7 @@ mod context;
 mod error;
 
 pub use ash;
-pub use bvh::VkBvh;
+pub use bvh::{Ash, VkBvh};
 pub use context::{
     VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, device_kind, process_validation_errors,
 };
