@@ -22,11 +22,10 @@ use std::path::PathBuf;
 
 use bvhtrace_gpu::core::surface::{facing_normal, hit_point};
 use bvhtrace_gpu::core::{
-    BuildOptions, FlatBvh, Hit, INCOMPLETE, Query, Ray, TraceOptions, TraceOutput, Traversal,
-    Triangle, palette,
+    BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle, palette,
 };
 use bvhtrace_gpu::glam::Vec3;
-use bvhtrace_gpu::kernels::{HIT_BYTES, RAY_BYTES, finish_incomplete};
+use bvhtrace_gpu::kernels::{HIT_BYTES, RAY_BYTES};
 use bvhtrace_gpu::{GpuBvh, GpuContext, GpuError, RayBatch, UploadOptions, wgpu};
 use bvhtrace_scene::{Camera, Scene};
 
@@ -135,13 +134,13 @@ fn run() -> Result<(), Box<dyn Error>> {
     let camera = scene.camera_or_frame(WIDTH as f32 / HEIGHT as f32);
     let rays = camera.rays(WIDTH, HEIGHT);
     let closest = TraceOptions::closest(Traversal::Stackless);
-    let (hits, finished) = trace(&ctx, &gpu, &bvh, &buffers, &rays, &closest)?;
+    let (hits, finished) = trace(&ctx, &gpu, &buffers, &rays, &closest)?;
 
     // Shadow rays toward the light, traced for any hit: one blocker is enough.
     let light = light_position(&camera);
     let (shadow, owners) = shadow_rays(&tris, &rays, &hits, light);
     let any = TraceOptions::new(Traversal::Stackless, Query::Any);
-    let (blocked, finished_shadow) = trace(&ctx, &gpu, &bvh, &buffers, &shadow, &any)?;
+    let (blocked, finished_shadow) = trace(&ctx, &gpu, &buffers, &shadow, &any)?;
     let mut in_shadow = vec![false; rays.len()];
     for (&pixel, b) in owners.iter().zip(&blocked) {
         in_shadow[pixel] = b.is_hit();
@@ -173,7 +172,6 @@ struct Buffers {
 fn trace(
     ctx: &GpuContext,
     gpu: &GpuBvh,
-    bvh: &FlatBvh,
     buffers: &Buffers,
     rays: &[Ray],
     opts: &TraceOptions,
@@ -211,18 +209,13 @@ fn trace(
 
     // A CPU driver (lavapipe) silently ends any invocation that loops too long, so on one
     // the context's tuning gives each ray a budget of loop trips; a ray that spends it
-    // comes back `INCOMPLETE` rather than wrong. The CPU twin of the walk, on the same
-    // tree, gives the answer the kernel would have given. `GpuBvh::trace` does this itself;
-    // with `record` the hits are in your buffer, so it is yours to do. On GPUs
+    // comes back `INCOMPLETE` rather than wrong. `GpuBvh::trace` finishes those itself;
+    // with `record` the hits are in your buffer, so hand them to `finish_incomplete`,
+    // which gives each the answer the kernel would have given. On GPUs
     // (`ctx.tuning().finishes_on_cpu()` is false) no ray is ever incomplete.
-    let mut out = TraceOutput {
-        hits,
-        ..Default::default()
-    };
-    if out.hits.iter().any(|h| h.prim == INCOMPLETE) {
-        finish_incomplete(bvh, rays, opts, &mut out);
-    }
-    Ok((out.hits, out.incomplete))
+    let mut hits = hits;
+    let finished = gpu.finish_incomplete(rays, opts, &mut hits, None);
+    Ok((hits, finished))
 }
 
 /// The base colour of each triangle (the glTF material's, white without one).

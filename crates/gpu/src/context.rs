@@ -167,8 +167,9 @@ impl GpuContext {
     ) -> Result<GpuContext, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN;
-        // Validation layers are rarely installed; wgpu's own validation stays on.
-        desc.flags = wgpu::InstanceFlags::empty().with_env();
+        // Validation layers are rarely installed; wgpu's own validation stays on. No
+        // `with_env`: the library reads no environment variable.
+        desc.flags = wgpu::InstanceFlags::empty();
         let instance = wgpu::Instance::new(desc);
         let adapters = instance.enumerate_adapters(wgpu::Backends::VULKAN).await;
         let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
@@ -455,6 +456,8 @@ impl GpuContext {
 
     /// `(shader modules, pipelines)` created by this context so far: cache hits do not
     /// count, so a test can check that switching back to a feature set does not recompile.
+    /// A benchmark hook: only with the `bench-hooks` feature (off by default).
+    #[cfg(feature = "bench-hooks")]
     pub fn compile_counts(&self) -> (u64, u64) {
         (
             self.inner.modules_compiled.load(Ordering::Relaxed),

@@ -44,12 +44,14 @@
 //!   mesh, for a two-level BVH.
 #![warn(missing_docs)]
 
+pub mod backend;
 mod bvh;
 mod context;
 mod library;
 mod trace;
 
-pub use bvh::{BvhBindGroup, GpuBvh, Update, UploadOptions};
+pub use bvh::{BvhBindGroup, GpuBvh};
+pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use trace::RayBatch;
 

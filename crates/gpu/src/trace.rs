@@ -4,15 +4,16 @@
 use std::collections::HashMap;
 use std::num::NonZeroU64;
 use std::sync::mpsc;
-use std::time::Instant;
 
-use bvhtrace_core::{Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{Counters, Ray, TraceOptions};
+use bvhtrace_kernels::engine::{Batch, ScratchPlan};
 use bvhtrace_kernels::{
-    COUNTERS_BYTES, DeviceLimits, HIT_BYTES, KernelKey, RAY_BYTES, RayInput, TEXEL_ROW, Tracer,
-    finish_incomplete, plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
+    COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, RayInput, TEXEL_ROW, plan_dispatches,
+    texel_rows,
 };
 
 use crate::GpuError;
+use crate::backend::WgpuArrays;
 use crate::bvh::GpuBvh;
 use crate::context::GpuContext;
 
@@ -34,8 +35,7 @@ pub struct RayBatch<'a> {
 }
 
 /// Device buffers reused by [`GpuBvh::trace`] across calls.
-pub(crate) struct Scratch {
-    capacity: u64,
+pub struct Scratch {
     rays: RayStore,
     /// The hits' readback copy: `capacity` hits, or whole rows of the hit texture.
     hits_read: wgpu::Buffer,
@@ -192,13 +192,6 @@ fn hit_rows(hits: u64) -> u64 {
     texel_rows(hits)
 }
 
-/// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
-/// the device allows.
-fn ray_texture_capacity(limits: &DeviceLimits) -> u64 {
-    let by_rows = u64::from(TEXEL_ROW / 2) * u64::from(limits.max_texture_dimension_2d);
-    rays_per_dispatch(limits).min(by_rows)
-}
-
 /// The counters out, and their readback copy.
 struct CounterBuffers {
     out: wgpu::Buffer,
@@ -212,7 +205,19 @@ struct Queries {
 }
 
 impl Scratch {
-    fn new(ctx: &GpuContext, capacity: u64, with_counters: bool, input: RayInput) -> Scratch {
+    /// Device bytes of the scratch: rays, hits and their readback copy, and the counters
+    /// (with theirs) once a trace asked for them.
+    pub(crate) fn bytes(&self) -> u64 {
+        self.rays.bytes()
+            + self.hits_read.size()
+            + self
+                .counters
+                .as_ref()
+                .map_or(0, |c| c.out.size() + c.read.size())
+    }
+
+    pub(crate) fn new(ctx: &GpuContext, plan: &ScratchPlan) -> Scratch {
+        let (capacity, with_counters, input) = (plan.capacity, plan.counters, plan.input);
         let device = ctx.device();
         let buf = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -237,7 +242,6 @@ impl Scratch {
             read: buf("bvhtrace timestamps read", 16, U::MAP_READ | U::COPY_DST),
         });
         Scratch {
-            capacity,
             rays: match input {
                 RayInput::Buffer => RayStore::Buffer(
                     buf(
@@ -253,7 +257,7 @@ impl Scratch {
                 ),
                 RayInput::Texture => {
                     let texels = |label, per_ray| {
-                        let t = crate::bvh::storage_texture(
+                        let t = crate::backend::storage_texture(
                             ctx,
                             label,
                             wgpu::TextureFormat::Rgba32Uint,
@@ -353,229 +357,124 @@ fn read_mapped<T: bytemuck::Pod>(
     Ok(())
 }
 
-impl GpuBvh {
-    /// The kernel tracing `opts` with this upload's storage, reading its rays from
-    /// `input`, with the box test's parallel path when `parallel_rays`
-    /// ([`KernelKey::for_rays`]).
-    fn key(&self, opts: &TraceOptions, input: RayInput, parallel_rays: bool) -> KernelKey {
-        KernelKey {
-            parallel_rays,
-            ..KernelKey::new(self.storage(), opts)
-                .with_rays(input)
-                .with_instances(self.is_instanced())
-        }
-    }
-
-    /// Checks that `opts` can run on this upload and device: the walk's data was uploaded
-    /// and fits its stack, the precision's feature is there.
-    pub fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.supports_traversal(opts.traversal)?;
-        if !self.ctx.supports_precision(opts.precision) {
-            return Err(GpuError::PrecisionUnsupported {
-                precision: opts.precision,
-                adapter: self.ctx.adapter_info().name.clone(),
+/// Uploads `batch`'s rays to the scratch, records its kernel and the readback copies,
+/// submits, waits for that submission only, and appends the hits (and counters); the
+/// GPU time in milliseconds when the device measures it.
+pub(crate) fn run_batch(
+    ctx: &GpuContext,
+    arrays: &WgpuArrays,
+    s: &Scratch,
+    batch: Batch<'_>,
+) -> Result<Option<f64>, GpuError> {
+    let count = batch.rays.len() as u64;
+    let counter_buffers = if batch.key.counters {
+        s.counters.as_ref()
+    } else {
+        None
+    };
+    let (queue, device) = (ctx.queue(), ctx.device());
+    let index = ctx.scoped("tracing a ray batch", || -> Result<_, GpuError> {
+        s.rays.write(queue, batch.rays);
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("bvhtrace trace"),
+        });
+        let tw = s
+            .queries
+            .as_ref()
+            .map(|q| wgpu::ComputePassTimestampWrites {
+                query_set: &q.set,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
             });
-        }
-        Ok(())
-    }
-
-    /// Compiles (and caches) the pipelines [`GpuBvh::trace`] runs for `opts` (with the box
-    /// test's parallel path and without it, see [`KernelKey::for_rays`]) ahead of the
-    /// first trace, so that the first trace's time is not the compiler's.
-    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        self.supports(opts)?;
-        let input = RayInput::for_storage(self.storage());
-        for parallel_rays in [true, false] {
-            self.ctx.pipeline(self.key(opts, input, parallel_rays))?;
-        }
-        Ok(())
-    }
-
-    /// Device bytes of the buffers [`GpuBvh::trace`] keeps between calls: rays, hits and
-    /// their readback copy, and the counters (with theirs) only once a trace asked for them.
-    pub fn scratch_bytes(&self) -> u64 {
-        self.scratch
-            .lock()
-            .ok()
-            .and_then(|g| {
-                g.as_ref().map(|s| {
-                    s.rays.bytes()
-                        + s.hits_read.size()
-                        + s.counters
-                            .as_ref()
-                            .map_or(0, |c| c.out.size() + c.read.size())
-                })
-            })
-            .unwrap_or(0)
-    }
-
-    /// Traces `rays` as `opts` says: uploads them, dispatches the kernel (split as
-    /// needed), reads the hits (and counters) back. The results equal
-    /// [`bvhtrace_core::trace_rays`]'s bit for bit. Batches larger than one device buffer
-    /// allows are traced in several submissions; times are summed. f64 needs a device
-    /// with `SHADER_F64` ([`GpuContext::supports_precision`]).
-    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        // The pipeline first: an unsupported traversal or precision fails before any
-        // upload. The rays are looked at once, and every chunk uses this kernel.
-        self.supports(opts)?;
-        let input = RayInput::for_storage(self.storage());
-        let key = self.key(opts, input, true).for_rays(rays);
-        self.ctx.pipeline(key)?;
-        let parallel_rays = key.parallel_rays;
-        let start = Instant::now();
-        let n = rays.len() as u64;
-        let mut out = TraceOutput {
-            hits: Vec::with_capacity(rays.len()),
-            counters: opts.counters.then(|| Vec::with_capacity(rays.len())),
-            gpu_ms: self.ctx.has_timestamps().then_some(0.0),
-            wall_ms: 0.0,
-            incomplete: 0,
-            instances: self.instance_table.clone(),
+        let pass = Pass {
+            rays: s.rays.binding(),
+            counters: counter_buffers.map(|c| &c.out),
+            count,
+            timestamp_writes: tw,
         };
-        if n == 0 {
-            return Ok(out);
+        record_pass(ctx, arrays, batch.key, &mut enc, pass)?;
+        s.rays.copy_hits(&mut enc, &s.hits_read, count);
+        if let Some(c) = counter_buffers {
+            enc.copy_buffer_to_buffer(&c.out, 0, &c.read, 0, count * COUNTERS_BYTES);
         }
-        // With the BVH in textures (CPU drivers), the rays go in a texture too, one
-        // dispatch per submission (`RayInput::Texture`).
-        let (mut per_submit, mut capacity) = plan_submissions(n, self.ctx.limits());
-        if input == RayInput::Texture {
-            per_submit = per_submit.min(ray_texture_capacity(self.ctx.limits()));
-            capacity = capacity.min(per_submit);
+        if let Some(q) = &s.queries {
+            enc.resolve_query_set(&q.set, 0..2, &q.resolve, 0);
+            enc.copy_buffer_to_buffer(&q.resolve, 0, &q.read, 0, 16);
         }
-
-        let mut guard = self
-            .scratch
-            .lock()
-            .map_err(|_| GpuError::Poisoned("scratch buffers"))?;
-        // Counter buffers only once counters are asked for; kept from then on.
-        let had_counters = guard.as_ref().is_some_and(|s| s.counters.is_some());
-        if guard.as_ref().is_none_or(|s| {
-            s.capacity < capacity
-                || (opts.counters && s.counters.is_none())
-                || s.rays.binding().input() != input
-        }) {
-            let capacity = capacity.max(guard.as_ref().map_or(0, |s| s.capacity));
-            *guard = None; // free the old buffers first
-            *guard = Some(self.ctx.scoped("allocating ray buffers", || {
-                Scratch::new(&self.ctx, capacity, opts.counters || had_counters, input)
-            })?);
+        Ok(queue.submit([enc.finish()]))
+    })??;
+    let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
+    maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
+    maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
+    map_all(device, index, &maps)?;
+    let read = (|| -> Result<Option<f64>, GpuError> {
+        read_mapped(&s.hits_read, count * HIT_BYTES, batch.hits)?;
+        if let (Some(c), Some(b)) = (batch.counters, counter_buffers) {
+            read_mapped::<Counters>(&b.read, count * COUNTERS_BYTES, c)?;
         }
-        let Some(s) = guard.as_ref() else {
-            unreachable!("scratch was just created")
-        };
-        let counter_buffers = if opts.counters {
-            s.counters.as_ref()
-        } else {
-            None
-        };
-        let device = self.ctx.device();
-        let queue = self.ctx.queue();
-        let period_ns = f64::from(queue.get_timestamp_period());
-
-        for batch in rays.chunks(per_submit as usize) {
-            let count = batch.len() as u64;
-            let hit_bytes = count * HIT_BYTES;
-            let counter_bytes = count * COUNTERS_BYTES;
-            self.ctx
-                .scoped("tracing a ray batch", || -> Result<(), GpuError> {
-                    s.rays.write(queue, batch);
-                    let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                        label: Some("bvhtrace trace"),
-                    });
-                    let tw = s
-                        .queries
-                        .as_ref()
-                        .map(|q| wgpu::ComputePassTimestampWrites {
-                            query_set: &q.set,
-                            beginning_of_pass_write_index: Some(0),
-                            end_of_pass_write_index: Some(1),
-                        });
-                    self.record_rays(
-                        &mut enc,
-                        s.rays.binding(),
-                        counter_buffers.map(|c| &c.out),
-                        count,
-                        opts,
-                        parallel_rays,
-                        tw,
-                    )?;
-                    s.rays.copy_hits(&mut enc, &s.hits_read, count);
-                    if let Some(c) = counter_buffers {
-                        enc.copy_buffer_to_buffer(&c.out, 0, &c.read, 0, counter_bytes);
-                    }
-                    if let Some(q) = &s.queries {
-                        enc.resolve_query_set(&q.set, 0..2, &q.resolve, 0);
-                        enc.copy_buffer_to_buffer(&q.resolve, 0, &q.read, 0, 16);
-                    }
-                    queue.submit([enc.finish()]);
-                    Ok(())
-                })??;
-
-            let (tx, rx) = mpsc::channel();
-            let mut maps = vec![(&s.hits_read, hit_bytes)];
-            if let Some(c) = counter_buffers {
-                maps.push((&c.read, counter_bytes));
-            }
-            if let Some(q) = &s.queries {
-                maps.push((&q.read, 16));
-            }
-            for (b, bytes) in &maps {
-                let tx = tx.clone();
-                b.slice(..*bytes).map_async(wgpu::MapMode::Read, move |r| {
-                    let _ = tx.send(r);
-                });
-            }
-            drop(tx);
-            device
-                .poll(wgpu::PollType::wait_indefinitely())
-                .map_err(|e| GpuError::device("waiting for the GPU", e))?;
-            let mut results = Vec::with_capacity(maps.len());
-            for _ in 0..maps.len() {
-                results.push(rx.recv().map_err(|_| {
-                    GpuError::device("reading results back", "a buffer mapping never completed")
-                })?);
-            }
-            let mapped = results.into_iter().collect::<Result<Vec<()>, _>>();
-            let read = mapped
-                .map_err(|e| GpuError::device("reading results back", e))
-                .and_then(|_| {
-                    read_mapped(&s.hits_read, hit_bytes, &mut out.hits)?;
-                    if let (Some(c), Some(b)) = (out.counters.as_mut(), counter_buffers) {
-                        read_mapped(&b.read, counter_bytes, c)?;
-                    }
-                    if let Some(q) = &s.queries {
-                        let mut ts: Vec<u64> = Vec::with_capacity(2);
-                        read_mapped(&q.read, 16, &mut ts)?;
-                        let ticks = ts[1].saturating_sub(ts[0]) as f64;
-                        if let Some(g) = out.gpu_ms.as_mut() {
-                            *g += ticks * period_ns * 1e-6;
-                        }
-                    }
-                    Ok(())
-                });
-            for (b, _) in &maps {
-                b.unmap();
-            }
-            read?;
-        }
-        if let Some(bvh) = self.host_copy.as_deref() {
-            finish_incomplete(bvh, rays, opts, &mut out);
-        }
-        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
-        Ok(out)
+        let Some(q) = &s.queries else { return Ok(None) };
+        let mut ts: Vec<u64> = Vec::with_capacity(2);
+        read_mapped(&q.read, 16, &mut ts)?;
+        let ticks = ts[1].saturating_sub(ts[0]) as f64;
+        Ok(Some(ticks * f64::from(queue.get_timestamp_period()) * 1e-6))
+    })();
+    for (b, _) in &maps {
+        b.unmap();
     }
+    read
+}
 
+/// Maps the first bytes of each buffer for reading, after the submission `index` (and
+/// only it, with what came before it on the queue) has completed.
+fn map_all(
+    device: &wgpu::Device,
+    index: wgpu::SubmissionIndex,
+    maps: &[(&wgpu::Buffer, u64)],
+) -> Result<(), GpuError> {
+    let (tx, rx) = mpsc::channel();
+    for (b, bytes) in maps {
+        let tx = tx.clone();
+        b.slice(..*bytes).map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+    }
+    drop(tx);
+    device
+        .poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        })
+        .map_err(|e| GpuError::device("waiting for the GPU", e))?;
+    for _ in 0..maps.len() {
+        rx.recv()
+            .map_err(|_| {
+                GpuError::device("reading results back", "a buffer mapping never completed")
+            })?
+            .map_err(|e| GpuError::device("reading results back", e))?;
+    }
+    Ok(())
+}
+
+/// One compute pass of [`record_pass`]: `count` rays from `rays`, counters to `counters`.
+struct Pass<'a> {
+    rays: RaysBinding<'a>,
+    counters: Option<&'a wgpu::Buffer>,
+    count: u64,
+    timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'a>>,
+}
+
+impl GpuBvh {
     /// Records the traversal of `batch` into `encoder`, as one compute pass with one
-    /// dispatch per chunk of at most [`rays_per_dispatch`] rays. `timestamp_writes`, when
-    /// given, is attached to that pass (the device needs `TIMESTAMP_QUERY`). The bind
-    /// groups for the caller's buffers are made once and reused while the same buffers come
-    /// back.
+    /// dispatch per chunk of at most [`rays_per_dispatch`](bvhtrace_kernels::rays_per_dispatch)
+    /// rays. `timestamp_writes`, when given, is attached to that pass (the device needs
+    /// `TIMESTAMP_QUERY`). The bind groups for the caller's buffers are made once and
+    /// reused while the same buffers come back.
     ///
     /// The buffers are checked (usage and size) before anything is recorded; the caller
     /// submits the encoder. Rays are never [`bvhtrace_core::INCOMPLETE`] here unless the
     /// context's tuning sets a trip budget (CPU drivers), or the wide walk meets a wide
-    /// tree deeper than its stack ([`bvhtrace_kernels::wide_stack_may_overflow`]): finish
-    /// those with [`bvhtrace_kernels::finish_incomplete`].
+    /// tree deeper than its stack ([`bvhtrace_kernels::wide_stack_may_overflow`]): once the
+    /// hits (and counters) are read back, [`Engine::finish_incomplete`](bvhtrace_kernels::Engine::finish_incomplete) finishes those.
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -583,162 +482,150 @@ impl GpuBvh {
         opts: &TraceOptions,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) -> Result<(), GpuError> {
-        self.record_rays(
-            encoder,
-            RaysBinding::Buffer {
+        self.engine.supports(opts)?;
+        let key = self.engine.key(opts, RayInput::Buffer, true);
+        let pass = Pass {
+            rays: RaysBinding::Buffer {
                 rays: batch.rays,
                 hits: batch.hits,
             },
-            batch.counters,
-            batch.ray_count,
-            opts,
-            true,
+            counters: batch.counters,
+            count: batch.ray_count,
             timestamp_writes,
-        )
-    }
-
-    /// Records the traversal of `n` rays read from `rays`, hits (and counters) to the
-    /// given buffers. A texture holds the whole batch in one dispatch. `parallel_rays` false
-    /// leaves the box test's parallel path out: only when the host has seen that no ray
-    /// needs it ([`KernelKey::for_rays`]).
-    #[allow(clippy::too_many_arguments)]
-    fn record_rays(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        rays: RaysBinding<'_>,
-        counters: Option<&wgpu::Buffer>,
-        n: u64,
-        opts: &TraceOptions,
-        parallel_rays: bool,
-        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
-    ) -> Result<(), GpuError> {
-        self.supports(opts)?;
-        if let RaysBinding::Buffer { rays, hits } = rays {
-            check_buffer("rays", rays, n, RAY_BYTES)?;
-            check_buffer("hits", hits, n, HIT_BYTES)?;
-        }
-        let counters = if opts.counters {
-            let c = counters.ok_or(GpuError::BadBuffer {
-                buffer: "counters",
-                problem: "counters were asked for but no counters buffer was given".into(),
-            })?;
-            check_buffer("counters", c, n, COUNTERS_BYTES)?;
-            Some(c)
-        } else {
-            None
         };
-        let input = rays.input();
-        let key = self.key(opts, input, parallel_rays);
-        let pipeline = self.ctx.pipeline(key)?;
-        {
-            let mut used = self
-                .used
-                .lock()
-                .map_err(|_| GpuError::Poisoned("kernels used"))?;
-            if !used.contains(&key) {
-                used.push(key);
-            }
-        }
-        let group0 = self.bind_group(opts.traversal)?;
-        let dispatches = plan_dispatches(n, self.ctx.limits());
-        if matches!(rays, RaysBinding::Texture { .. }) && dispatches.len() > 1 {
-            return Err(GpuError::BadBuffer {
-                buffer: "rays",
-                problem: format!("{n} rays in a ray texture are more than one dispatch"),
-            });
-        }
-        let groups = self.batch_groups(rays, counters, n, opts.counters)?;
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("bvhtrace trace"),
-            timestamp_writes,
-        });
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, group0.group(), &[]);
-        for (d, g) in dispatches.iter().zip(groups.iter()) {
-            pass.set_bind_group(1, g, &[]);
-            pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
-        }
-        Ok(())
+        record_pass(self.context(), self.engine.arrays(), key, encoder, pass)?;
+        self.engine.note_used(key)
     }
+}
 
-    /// The batch bind groups (one per dispatch) for these resources: made on first use and
-    /// kept while the same resources come back, so a caller recording every frame into the
-    /// same buffers makes none. At most [`BATCH_GROUPS_KEPT`] sets are kept; they hold
-    /// references to the buffers.
-    fn batch_groups(
-        &self,
-        rays: RaysBinding<'_>,
-        counters: Option<&wgpu::Buffer>,
-        n: u64,
-        with_counters: bool,
-    ) -> Result<std::sync::Arc<Vec<wgpu::BindGroup>>, GpuError> {
-        let key = BatchKey {
-            rays: match rays {
+/// Records the traversal of `pass.count` rays through `key`'s kernel, hits (and counters)
+/// to the given buffers. A texture holds the whole batch in one dispatch.
+fn record_pass(
+    ctx: &GpuContext,
+    arrays: &WgpuArrays,
+    key: KernelKey,
+    encoder: &mut wgpu::CommandEncoder,
+    pass: Pass<'_>,
+) -> Result<(), GpuError> {
+    let n = pass.count;
+    if let RaysBinding::Buffer { rays, hits } = pass.rays {
+        check_buffer("rays", rays, n, RAY_BYTES)?;
+        check_buffer("hits", hits, n, HIT_BYTES)?;
+    }
+    let counters = if key.counters {
+        let c = pass.counters.ok_or(GpuError::BadBuffer {
+            buffer: "counters",
+            problem: "counters were asked for but no counters buffer was given".into(),
+        })?;
+        check_buffer("counters", c, n, COUNTERS_BYTES)?;
+        Some(c)
+    } else {
+        None
+    };
+    let pipeline = ctx.pipeline(key)?;
+    // The engine checked that the upload holds what the traversal reads.
+    let group0 = arrays
+        .group(key.traversal)
+        .ok_or(GpuError::TraversalNotUploaded {
+            traversal: key.traversal,
+        })?;
+    let dispatches = plan_dispatches(n, ctx.limits());
+    if matches!(pass.rays, RaysBinding::Texture { .. }) && dispatches.len() > 1 {
+        return Err(GpuError::BadBuffer {
+            buffer: "rays",
+            problem: format!("{n} rays in a ray texture are more than one dispatch"),
+        });
+    }
+    let groups = batch_groups(ctx, arrays, pass.rays, counters, n)?;
+    let mut cpass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some("bvhtrace trace"),
+        timestamp_writes: pass.timestamp_writes,
+    });
+    cpass.set_pipeline(&pipeline);
+    cpass.set_bind_group(0, group0, &[]);
+    for (d, g) in dispatches.iter().zip(groups.iter()) {
+        cpass.set_bind_group(1, g, &[]);
+        cpass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+    }
+    Ok(())
+}
+
+/// The batch bind groups (one per dispatch) for these resources: made on first use and
+/// kept while the same resources come back, so a caller recording every frame into the
+/// same buffers makes none. At most [`BATCH_GROUPS_KEPT`] sets are kept; they hold
+/// references to the buffers.
+fn batch_groups(
+    ctx: &GpuContext,
+    arrays: &WgpuArrays,
+    rays: RaysBinding<'_>,
+    counters: Option<&wgpu::Buffer>,
+    n: u64,
+) -> Result<std::sync::Arc<Vec<wgpu::BindGroup>>, GpuError> {
+    let key = BatchKey {
+        rays: match rays {
+            RaysBinding::Buffer { rays, hits } => (
+                BatchResource::Buffer(rays.clone()),
+                BatchResource::Buffer(hits.clone()),
+            ),
+            RaysBinding::Texture { rays, hits } => (
+                BatchResource::View(rays.clone()),
+                BatchResource::View(hits.clone()),
+            ),
+        },
+        counters: counters.cloned(),
+        ray_count: n,
+    };
+    let mut cache = arrays
+        .batch_groups
+        .lock()
+        .map_err(|_| GpuError::Poisoned("batch bind groups"))?;
+    if let Some(g) = cache.get(&key) {
+        return Ok(g.clone());
+    }
+    let layout = ctx.batch_layout(counters.is_some(), rays.input());
+    let groups: Vec<wgpu::BindGroup> = plan_dispatches(n, ctx.limits())
+        .iter()
+        .map(|d| {
+            let (first, count) = (d.first_ray, u64::from(d.ray_count));
+            let (r, h) = match rays {
                 RaysBinding::Buffer { rays, hits } => (
-                    BatchResource::Buffer(rays.clone()),
-                    BatchResource::Buffer(hits.clone()),
+                    binding(rays, first, count, RAY_BYTES),
+                    binding(hits, first, count, HIT_BYTES),
                 ),
                 RaysBinding::Texture { rays, hits } => (
-                    BatchResource::View(rays.clone()),
-                    BatchResource::View(hits.clone()),
+                    wgpu::BindingResource::TextureView(rays),
+                    wgpu::BindingResource::TextureView(hits),
                 ),
-            },
-            counters: counters.cloned(),
-            ray_count: n,
-        };
-        let mut cache = self
-            .batch_groups
-            .lock()
-            .map_err(|_| GpuError::Poisoned("batch bind groups"))?;
-        if let Some(g) = cache.get(&key) {
-            return Ok(g.clone());
-        }
-        let device = self.ctx.device();
-        let layout = self.ctx.batch_layout(with_counters, rays.input());
-        let groups: Vec<wgpu::BindGroup> = plan_dispatches(n, self.ctx.limits())
-            .iter()
-            .map(|d| {
-                let (first, count) = (d.first_ray, u64::from(d.ray_count));
-                let (r, h) = match rays {
-                    RaysBinding::Buffer { rays, hits } => (
-                        binding(rays, first, count, RAY_BYTES),
-                        binding(hits, first, count, HIT_BYTES),
-                    ),
-                    RaysBinding::Texture { rays, hits } => (
-                        wgpu::BindingResource::TextureView(rays),
-                        wgpu::BindingResource::TextureView(hits),
-                    ),
-                };
-                let mut entries = vec![
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: r,
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: h,
-                    },
-                ];
-                if let Some(c) = counters {
-                    entries.push(wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: binding(c, first, count, COUNTERS_BYTES),
-                    });
-                }
-                device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("bvhtrace batch"),
-                    layout,
-                    entries: &entries,
-                })
+            };
+            let mut entries = vec![
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: r,
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: h,
+                },
+            ];
+            if let Some(c) = counters {
+                entries.push(wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: binding(c, first, count, COUNTERS_BYTES),
+                });
+            }
+            ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("bvhtrace batch"),
+                layout,
+                entries: &entries,
             })
-            .collect();
-        if cache.len() >= BATCH_GROUPS_KEPT {
-            cache.clear();
-        }
-        let groups = std::sync::Arc::new(groups);
-        cache.insert(key, groups.clone());
-        Ok(groups)
+        })
+        .collect();
+    if cache.len() >= BATCH_GROUPS_KEPT {
+        cache.clear();
     }
+    let groups = std::sync::Arc::new(groups);
+    cache.insert(key, groups.clone());
+    Ok(groups)
 }
 
 /// How many sets of batch bind groups one [`GpuBvh`] keeps.
@@ -761,48 +648,3 @@ pub(crate) struct BatchKey {
 
 /// The batch bind groups a [`GpuBvh`] keeps.
 pub(crate) type BatchGroups = HashMap<BatchKey, std::sync::Arc<Vec<wgpu::BindGroup>>>;
-
-impl Tracer for GpuBvh {
-    fn backend(&self) -> &'static str {
-        "wgpu"
-    }
-
-    fn device_name(&self) -> String {
-        let i = self.ctx.adapter_info();
-        format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
-    }
-
-    fn default_traversal(&self) -> Traversal {
-        Traversal::GPU_DEFAULT
-    }
-
-    fn supports(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        GpuBvh::supports(self, opts)
-    }
-
-    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, GpuError> {
-        GpuBvh::trace(self, rays, opts)
-    }
-
-    fn prepare(&self, opts: &TraceOptions) -> Result<(), GpuError> {
-        GpuBvh::prepare(self, opts)
-    }
-
-    fn upload_stats(&self) -> Option<bvhtrace_kernels::UploadStats> {
-        Some(*self.stats())
-    }
-
-    fn update(&mut self, bvh: &bvhtrace_core::FlatBvh) -> Result<(), GpuError> {
-        let fingerprint = bvhtrace_kernels::mesh_fingerprint(bvh);
-        let what = if bvh.is_instanced() && fingerprint == self.mesh_fingerprint {
-            crate::Update::TopLevel
-        } else {
-            crate::Update::Everything
-        };
-        GpuBvh::update(self, bvh, what)
-    }
-
-    fn kernels_used(&self) -> Vec<KernelKey> {
-        self.used.lock().map(|u| u.clone()).unwrap_or_default()
-    }
-}

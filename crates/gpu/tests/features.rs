@@ -241,3 +241,62 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
         }
     }
 }
+
+/// `Tracer::update` works out what changed: after new transforms (top level only) and
+/// after a refit (everything) the tracer answers as a fresh upload of the new tree does,
+/// for the binary and the wide walk; `kernels_used` lists each kernel that ran once.
+#[test]
+fn tracer_update_answers_as_a_fresh_upload() {
+    use bvhtrace_gpu::Tracer;
+    let Some(ctx) = context() else { return };
+    let scene = bvhtrace_scene::load("builtin:spheres").expect("builtin scene");
+    let mut ib = scene
+        .instanced_bvh(&BuildOptions::default())
+        .expect("two levels");
+    let opts = UploadOptions::all().with_traversal(Traversal::Wide);
+    let mut gpu = GpuBvh::upload(&ctx, ib.bvh(), &opts).expect("upload");
+    let root = ib.bvh().nodes[0];
+    let (lo, hi) = (Vec3::from(root.min), Vec3::from(root.max));
+    let rays: Vec<Ray> = (0..32 * 32)
+        .map(|i| {
+            let f = Vec3::new((i % 32) as f32 / 31.0, (i / 32) as f32 / 31.0, 0.0);
+            let o = lo + (hi - lo) * f + Vec3::Z * (hi.z - lo.z + 1.0);
+            Ray::new(o, Vec3::new(0.05, 0.02, -1.0))
+        })
+        .collect();
+    let walks = [Traversal::Stackless, Traversal::Wide].map(TraceOptions::closest);
+    let check = |gpu: &GpuBvh, bvh: &FlatBvh, what: &str| {
+        let fresh = GpuBvh::upload(&ctx, bvh, &opts).expect("fresh upload");
+        for o in &walks {
+            let got = Tracer::trace(gpu, &rays, o).expect("trace").hits;
+            let want = fresh.trace(&rays, o).expect("trace").hits;
+            assert!(got.iter().filter(|h| h.is_hit()).count() > 50, "{what}");
+            assert!(got == want, "{what}, {}", o.traversal);
+        }
+    };
+    let moved: Vec<glam::Affine3A> = ib
+        .instances()
+        .iter()
+        .enumerate()
+        .map(|(k, i)| glam::Affine3A::from_rotation_z(0.3 * k as f32) * i.transform)
+        .collect();
+    ib.set_transforms(&moved).expect("new transforms");
+    Tracer::update(&mut gpu, ib.bvh()).expect("top-level update");
+    check(&gpu, ib.bvh(), "after new transforms");
+    let mut tris = ib.mesh_bvh(0).triangles;
+    tris.sort_by_key(|t| t.prim);
+    let bent: Vec<_> = tris
+        .iter()
+        .map(|t| t.corners().map(|p| p * Vec3::new(1.3, 0.6, 1.0)))
+        .collect();
+    ib.refit_mesh(0, &bent).expect("refit");
+    Tracer::update(&mut gpu, ib.bvh()).expect("update after a refit");
+    check(&gpu, ib.bvh(), "after a refit");
+    let used = gpu.kernels_used();
+    assert_eq!(used.len(), 2, "{used:?}");
+    assert!(used[0].traversal == Traversal::Stackless && used[1].traversal.is_wide());
+    assert!(
+        used.iter()
+            .all(|k| k.instances && k.storage == gpu.storage())
+    );
+}

@@ -3,9 +3,9 @@
 use crate::error::TraceError;
 use crate::wgsl::BvhStorage;
 
-/// Environment variable naming the adapter to use: any substring of its name,
-/// case-insensitive (for example `llvmpipe` or `nvidia`). The only variable the library
-/// reads.
+/// Environment variable front ends read to name the adapter to use: any substring of its
+/// name, case-insensitive (for example `llvmpipe` or `nvidia`), passed on as
+/// [`AdapterChoice::Named`]. The library itself reads no environment variable.
 pub const ADAPTER_ENV: &str = "BVHTRACE_ADAPTER";
 
 /// What kind of device an adapter is, as wgpu and Vulkan both report it.
@@ -39,13 +39,12 @@ impl DeviceKind {
 /// Which adapter a backend opens.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub enum AdapterChoice {
-    /// `$BVHTRACE_ADAPTER` when it is set and not empty; otherwise the best adapter:
-    /// a discrete GPU, else an integrated one, else a virtual one, else a CPU driver
-    /// (lavapipe), ties broken by enumeration order.
+    /// The best adapter: a discrete GPU, else an integrated one, else a virtual one, else
+    /// a CPU driver (lavapipe), ties broken by enumeration order.
     #[default]
     Auto,
     /// The first adapter whose name contains this substring (case-insensitive); for a
-    /// command-line flag. Takes precedence over `$BVHTRACE_ADAPTER`.
+    /// command-line flag or [`ADAPTER_ENV`], which front ends read.
     Named(String),
 }
 
@@ -55,15 +54,11 @@ impl AdapterChoice {
         name.map_or(AdapterChoice::Auto, |n| AdapterChoice::Named(n.to_string()))
     }
 
-    /// The name substring to look for, the environment applied: `Named` wins, then a
-    /// non-empty `$BVHTRACE_ADAPTER`, else `None` (the best adapter).
+    /// The name substring to look for: `Named`'s, else `None` (the best adapter).
     pub fn wanted_name(&self) -> Option<String> {
         match self {
             AdapterChoice::Named(n) => Some(n.clone()),
-            AdapterChoice::Auto => std::env::var(ADAPTER_ENV)
-                .ok()
-                .map(|s| s.trim().to_string())
-                .filter(|s| !s.is_empty()),
+            AdapterChoice::Auto => None,
         }
     }
 
@@ -216,11 +211,10 @@ mod tests {
         }
         let err = named("x").pick(&[]).expect_err("no adapter");
         assert!(err.to_string().contains("mesa-vulkan-drivers"), "{err}");
-        if std::env::var(ADAPTER_ENV).is_err() {
-            assert_eq!(AdapterChoice::Auto.pick(&list).ok(), Some(2));
-            assert_eq!(AdapterChoice::Auto.pick(&list[..2]).ok(), Some(1));
-            assert_eq!(AdapterChoice::Auto.pick(&list[..1]).ok(), Some(0));
-        }
+        // The environment plays no part: `Auto` is the best adapter.
+        assert_eq!(AdapterChoice::Auto.pick(&list).ok(), Some(2));
+        assert_eq!(AdapterChoice::Auto.pick(&list[..2]).ok(), Some(1));
+        assert_eq!(AdapterChoice::Auto.pick(&list[..1]).ok(), Some(0));
     }
 
     #[test]

@@ -14,7 +14,7 @@
 //! * the upload ([`KernelKey::upload_bytes`]): the escape links only when read.
 //!
 //! Closest/any hit and the short-stack size stay override constants (folded when the
-//! pipeline is created). [`Composition::EverythingOn`] composes every module instead (the
+//! pipeline is created). `Composition::EverythingOn` (with the `bench-hooks` feature) composes every module instead (the
 //! module [`crate::kernel_source`] returns), for comparison.
 
 use std::borrow::Cow;
@@ -194,7 +194,9 @@ pub enum Composition {
     #[default]
     Specialised,
     /// Every traversal, the escape links and every entry point, counted or not
-    /// ([`crate::kernel_source`]): the baseline the benchmark compares against.
+    /// ([`crate::kernel_source`]): the baseline the benchmark compares against. A
+    /// benchmark hook: only with the `bench-hooks` feature (off by default).
+    #[cfg(feature = "bench-hooks")]
     EverythingOn,
 }
 
@@ -589,6 +591,7 @@ impl KernelKey {
     pub fn module_set(&self) -> ModuleSet {
         match self.composition {
             // A module holds one layout: everything of the wide one for a wide key.
+            #[cfg(feature = "bench-hooks")]
             Composition::EverythingOn => ModuleSet {
                 rays: self.rays,
                 instances: self.instances,
@@ -765,6 +768,7 @@ impl KernelKey {
         if set.instances {
             n.push("instances");
         }
+        #[cfg(feature = "bench-hooks")]
         if self.composition == Composition::EverythingOn {
             n.push("everything-on");
         }

@@ -12,14 +12,18 @@
 //!   upload holds ([`LibraryShape`], [`BvhLibrary`]).
 //! * [`DriverTuning`]: the measures that only help CPU drivers such as lavapipe.
 //! * [`plan_dispatches`], [`DeviceLimits`]: how a batch fits a device.
+//! * [`Engine`] over a [`Backend`]: the upload and the trace driver every device backend
+//!   shares ([`engine`], [`upload`]).
 //! * [`TraceError`]: everything that can go wrong, on every backend.
 #![warn(missing_docs)]
 
 mod device;
+pub mod engine;
 mod error;
 pub mod key;
 mod plan;
 mod tracer;
+pub mod upload;
 pub mod wgsl;
 
 pub use bvhtrace_core;
@@ -28,14 +32,16 @@ pub use device::{
     ADAPTER_ENV, AdapterChoice, CPU_DRIVER_TRIP_LIMIT, DeviceKind, DriverTuning,
     MAX_DISPATCH_THREADS,
 };
+pub use engine::{Backend, Engine, HasEngine, Update, new_output};
 pub use error::TraceError;
 pub use key::{BindingInfo, Composition, KernelKey, PerElement, VertexAttributes};
 pub use plan::{
     COUNTERS_BYTES, DeviceLimits, Dispatch, HIT_BYTES, MAX_RAYS_PER_DISPATCH, RAY_BYTES,
     UploadStats, check_buffer_size, check_depth, check_wide_top_level, finish_incomplete,
-    plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
+    finish_incomplete_hits, plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
 };
 pub use tracer::{CpuTracer, Tracer, check_update_shape, mesh_fingerprint, tree_shape};
+pub use upload::{UploadOptions, check_texels, texel_extent};
 pub use wgsl::{
     BATCH_GROUP, BVH_GROUP, BvhLibrary, BvhStorage, FULL_STACK_SIZE, LibraryShape, RayInput,
     STACK_LANES, TEXEL_ROW, WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library,

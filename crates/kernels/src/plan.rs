@@ -131,8 +131,21 @@ pub fn texel_rows(texels: u64) -> u64 {
 /// the wide layout that was uploaded (`FlatBvh::wide`); one without it is collapsed here
 /// first, the same conversion the uploads make.
 pub fn finish_incomplete(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut TraceOutput) {
-    if !out.hits.iter().any(|h| h.prim == INCOMPLETE) {
-        return;
+    out.incomplete +=
+        finish_incomplete_hits(bvh, rays, opts, &mut out.hits, out.counters.as_deref_mut());
+}
+
+/// [`finish_incomplete`] over the hits (and counters) themselves, as a recording caller
+/// holds them: returns how many rays were finished.
+pub fn finish_incomplete_hits(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    hits: &mut [Hit],
+    mut counters: Option<&mut [Counters]>,
+) -> u64 {
+    if !hits.iter().any(|h| h.prim == INCOMPLETE) {
+        return 0;
     }
     let collapsed;
     let bvh = if opts.traversal.is_wide() && bvh.wide.is_none() {
@@ -142,17 +155,19 @@ pub fn finish_incomplete(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: 
         bvh
     };
     let mut stack = Vec::new();
-    for (i, h) in out.hits.iter_mut().enumerate() {
+    let mut finished = 0;
+    for (i, h) in hits.iter_mut().enumerate() {
         if h.prim != INCOMPLETE {
             continue;
         }
         let (hit, c) = bvhtrace_core::trace_ray_with(bvh, &rays[i], opts, &mut stack);
         *h = hit;
-        if let Some(cs) = out.counters.as_mut() {
+        if let Some(cs) = counters.as_deref_mut() {
             cs[i] = c;
         }
-        out.incomplete += 1;
+        finished += 1;
     }
+    finished
 }
 
 /// One dispatch of a batch: rays `first_ray .. first_ray + ray_count` on a

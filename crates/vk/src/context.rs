@@ -15,8 +15,9 @@ use bvhtrace_kernels::{
 
 use crate::error::{from_vk, shader_error, vkerr};
 
-/// Environment variable that turns on `VK_LAYER_KHRONOS_validation` (when installed) for
-/// [`VkContext::new`]: `BVHTRACE_VK_VALIDATION=1`.
+/// Environment variable front ends and tests read to turn on `VK_LAYER_KHRONOS_validation`
+/// (`BVHTRACE_VK_VALIDATION=1`, passed on as [`VkOptions::validation`]); the library reads
+/// no environment variable.
 pub const VALIDATION_ENV: &str = "BVHTRACE_VK_VALIDATION";
 
 /// Validation errors reported to any context of this process, including those reported
@@ -38,8 +39,8 @@ const FENCE_TIMEOUT_NS: u64 = 600_000_000_000;
 /// Options of [`VkContext::with_options`].
 #[derive(Clone, Debug, Default)]
 pub struct VkOptions {
-    /// Which device to open: [`AdapterChoice::Auto`] (the `BVHTRACE_ADAPTER` environment
-    /// variable, else the best device: discrete > integrated > virtual > CPU) or
+    /// Which device to open: [`AdapterChoice::Auto`] (the best device: discrete >
+    /// integrated > virtual > CPU) or
     /// [`AdapterChoice::Named`] (a case-insensitive substring of the device name). The
     /// same choice as the wgpu backend's for the same list of devices.
     pub adapter: AdapterChoice,
@@ -108,6 +109,16 @@ impl Drop for InstanceHolder {
             self.instance.destroy_instance(None);
         }
     }
+}
+
+/// The device [`VkContext::choose`] picked: its properties and compute queue family.
+struct Chosen {
+    pd: vk::PhysicalDevice,
+    props: vk::PhysicalDeviceProperties,
+    family: u32,
+    family_props: vk::QueueFamilyProperties,
+    name: String,
+    kind: DeviceKind,
 }
 
 /// The command buffer, its fence and the timestamp pool, used one submission at a time.
@@ -213,21 +224,20 @@ pub fn device_kind(t: vk::PhysicalDeviceType) -> DeviceKind {
 }
 
 impl VkContext {
-    /// Opens the device `choice` selects ([`AdapterChoice::Auto`]: the one
-    /// `BVHTRACE_ADAPTER` names, else the best one, discrete > integrated > virtual > CPU;
+    /// Opens the device `choice` selects ([`AdapterChoice::Auto`]: the best one,
+    /// discrete > integrated > virtual > CPU;
     /// [`AdapterChoice::Named`]: the first whose name contains the substring, any case):
     /// the same choice as `bvhtrace_gpu::GpuContext::new`, with the [`DriverTuning`] for
-    /// its kind. Validation is on when `BVHTRACE_VK_VALIDATION=1` and the layer is
-    /// installed.
+    /// its kind. Validation is off: turn it on with [`VkOptions::validation`] (front ends and
+    /// tests may read [`VALIDATION_ENV`] for it; the library reads no environment variable).
     ///
     /// Fails with [`TraceError::NoAdapter`] when there is no Vulkan loader, driver or
     /// device with a compute queue, and [`TraceError::AdapterNotFound`] when no device
     /// has the name asked for; never panics.
     pub fn new(choice: AdapterChoice) -> Result<VkContext, TraceError> {
-        let validation = std::env::var(VALIDATION_ENV).is_ok_and(|v| v == "1");
         Self::with_options(&VkOptions {
             adapter: choice,
-            validation,
+            validation: false,
             tuning: None,
         })
     }
@@ -240,6 +250,22 @@ impl VkContext {
     }
 
     unsafe fn create(opts: &VkOptions) -> Result<VkContext, TraceError> {
+        // SAFETY: each step uses only the handles the one before made.
+        unsafe {
+            let holder = Self::instance(opts)?;
+            let chosen = Self::choose(&holder.instance, &opts.adapter)?;
+            let family = chosen.family;
+            let mut inner = Self::open(holder, chosen, opts)?;
+            Self::objects(&mut inner, family)?;
+            Ok(VkContext {
+                inner: Arc::new(inner),
+            })
+        }
+    }
+
+    /// The instance, with the validation layer and its messenger when asked for and
+    /// installed.
+    unsafe fn instance(opts: &VkOptions) -> Result<InstanceHolder, TraceError> {
         unsafe {
             let entry = ash::Entry::load().map_err(|e| TraceError::NoAdapter {
                 details: format!(": cannot load libvulkan: {e}"),
@@ -302,8 +328,16 @@ impl VkContext {
                     .map_err(vkerr("creating the validation messenger"))?;
                 holder.debug = Some((loader, messenger));
             }
-            let instance = &holder.instance;
+            Ok(holder)
+        }
+    }
 
+    /// The device `adapter` picks among those with a compute queue.
+    unsafe fn choose(
+        instance: &ash::Instance,
+        adapter: &AdapterChoice,
+    ) -> Result<Chosen, TraceError> {
+        unsafe {
             // Devices with a compute queue, described for `AdapterChoice::pick`.
             let mut candidates = Vec::new();
             let devices = instance
@@ -342,9 +376,37 @@ impl VkContext {
                     (name, device_kind(p.device_type))
                 })
                 .collect();
-            let index = opts.adapter.pick(&named)?;
+            let index = adapter.pick(&named)?;
             let (pd, props, family, family_props) = candidates[index];
             let (name, kind) = named[index].clone();
+            Ok(Chosen {
+                pd,
+                props,
+                family,
+                family_props,
+                name,
+                kind,
+            })
+        }
+    }
+
+    /// The logical device on `c` with the features the kernels use, its limits and
+    /// tuning; no objects yet.
+    unsafe fn open(
+        holder: InstanceHolder,
+        c: Chosen,
+        opts: &VkOptions,
+    ) -> Result<Inner, TraceError> {
+        unsafe {
+            let Chosen {
+                pd,
+                props,
+                family,
+                family_props,
+                name,
+                kind,
+            } = c;
+            let instance = &holder.instance;
             let tuning = DriverTuning {
                 storage: BvhStorage::Buffers,
                 ..opts
@@ -439,7 +501,7 @@ impl VkContext {
             let memory = instance.get_physical_device_memory_properties(pd);
 
             // From here on, dropping `inner` destroys whatever was created.
-            let mut inner = Inner {
+            let inner = Inner {
                 device,
                 queue,
                 info,
@@ -462,6 +524,15 @@ impl VkContext {
                 }),
                 instance: holder,
             };
+            Ok(inner)
+        }
+    }
+
+    /// The descriptor set layouts, pipeline layout, command buffer, fence and timestamp
+    /// queries of `inner` (dropping `inner` destroys whatever was made).
+    unsafe fn objects(inner: &mut Inner, family: u32) -> Result<(), TraceError> {
+        let timestamps = inner.timestamp_period_ns.is_some();
+        unsafe {
             let d = &inner.device;
             // Set 0: nodes, triangles, escapes, instances (4). Set 1: rays, hits,
             // counters. The kernels' binding numbers; every binding is always bound
@@ -526,9 +597,7 @@ impl VkContext {
                     .map_err(vkerr("creating the timestamp query pool"))?;
             }
 
-            Ok(VkContext {
-                inner: Arc::new(inner),
-            })
+            Ok(())
         }
     }
 

@@ -20,7 +20,7 @@
 //!
 //! let tris = vec![[Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)]];
 //! let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
-//! let ctx = VkContext::new(AdapterChoice::Auto)?; // BVHTRACE_ADAPTER, else the best device
+//! let ctx = VkContext::new(AdapterChoice::Auto)?; // the best device
 //! let gpu = VkBvh::upload(&ctx, &bvh)?;
 //! let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
 //! let out = gpu.trace(&rays, &TraceOptions::closest(Traversal::Stackless))?;
@@ -53,7 +53,7 @@ mod context;
 mod error;
 
 pub use ash;
-pub use bvh::VkBvh;
+pub use bvh::{Ash, VkBvh};
 pub use context::{
     VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, device_kind, process_validation_errors,
 };

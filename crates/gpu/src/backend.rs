@@ -1,0 +1,328 @@
+//! The wgpu implementation of the engine's [`Backend`]: the BVH's arrays in buffers or
+//! texel textures with their bind groups, the ray scratch, one batch per submission.
+
+use std::sync::Mutex;
+
+use bvhtrace_core::Traversal;
+use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
+use bvhtrace_kernels::upload::{ArrayRole, DeviceArray, texel_extent};
+use bvhtrace_kernels::{Backend, DeviceLimits, DriverTuning, KernelKey, TraceError};
+use wgpu::util::DeviceExt;
+
+use crate::context::GpuContext;
+use crate::trace::{BatchGroups, Scratch};
+
+/// The wgpu device behind a [`crate::GpuBvh`]: the engine's backend on wgpu.
+pub struct Wgpu {
+    pub(crate) ctx: GpuContext,
+}
+
+/// One uploaded array.
+pub(crate) enum Resource {
+    Buffer(wgpu::Buffer),
+    Texture(wgpu::Texture, wgpu::TextureView),
+}
+
+impl Resource {
+    fn entry(&self, binding: u32) -> wgpu::BindGroupEntry<'_> {
+        wgpu::BindGroupEntry {
+            binding,
+            resource: match self {
+                Resource::Buffer(b) => b.as_entire_binding(),
+                Resource::Texture(_, v) => wgpu::BindingResource::TextureView(v),
+            },
+        }
+    }
+}
+
+/// The uploaded arrays and their bind groups.
+pub struct WgpuArrays {
+    resources: Vec<(ArrayRole, Resource)>,
+    /// The BVH group for the full-stack kernels (nodes, triangles).
+    plain: Option<wgpu::BindGroup>,
+    /// The BVH group for the escape-link kernels.
+    escapes: Option<wgpu::BindGroup>,
+    /// The wide layout's group.
+    wide: Option<wgpu::BindGroup>,
+    /// The batch bind groups made so far ([`crate::trace`]).
+    pub(crate) batch_groups: Mutex<BatchGroups>,
+}
+
+impl WgpuArrays {
+    /// The array in `role`, when uploaded.
+    pub(crate) fn get(&self, role: ArrayRole) -> Option<&Resource> {
+        self.resources
+            .iter()
+            .find(|(r, _)| *r == role)
+            .map(|(_, res)| res)
+    }
+
+    /// The buffer in `role`, when uploaded as one.
+    pub(crate) fn buffer(&self, role: ArrayRole) -> Option<&wgpu::Buffer> {
+        match self.get(role) {
+            Some(Resource::Buffer(b)) => Some(b),
+            _ => None,
+        }
+    }
+
+    /// The texture in `role`, when uploaded as one.
+    pub(crate) fn texture(&self, role: ArrayRole) -> Option<&wgpu::Texture> {
+        match self.get(role) {
+            Some(Resource::Texture(t, _)) => Some(t),
+            _ => None,
+        }
+    }
+
+    /// The BVH bind group `traversal` reads, when uploaded.
+    pub(crate) fn group(&self, traversal: Traversal) -> Option<&wgpu::BindGroup> {
+        if traversal.is_wide() {
+            self.wide.as_ref()
+        } else if traversal.needs_escapes() {
+            self.escapes.as_ref()
+        } else {
+            self.plain.as_ref()
+        }
+    }
+
+    /// (Re)makes the bind groups of the arrays there are.
+    fn bind(&mut self, ctx: &GpuContext, layout: ArraysLayout) {
+        let device = ctx.device();
+        let group = |label: &str, escapes: bool, roles: &[ArrayRole]| {
+            let entries: Vec<_> = roles
+                .iter()
+                .filter_map(|&r| self.get(r).map(|res| res.entry(r.binding())))
+                .collect();
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout: ctx.bvh_layout(layout.storage, escapes, layout.instanced),
+                entries: &entries,
+            })
+        };
+        use ArrayRole as R;
+        let binary = self.get(R::Nodes).is_some();
+        // The wide group uses the binary layout's: binding types say nothing of what the
+        // elements or texels hold.
+        let plain = binary.then(|| {
+            group(
+                "bvhtrace bvh",
+                false,
+                &[R::Nodes, R::Triangles, R::Instances],
+            )
+        });
+        let escapes = self.get(R::Escapes).is_some().then(|| {
+            group(
+                "bvhtrace bvh+escapes",
+                true,
+                &[R::Nodes, R::Triangles, R::Escapes, R::Instances],
+            )
+        });
+        let wide = self.get(R::WideNodes).is_some().then(|| {
+            group(
+                "bvhtrace bvh (wide)",
+                false,
+                &[R::WideNodes, R::WideTriangles, R::WideInstances],
+            )
+        });
+        (self.plain, self.escapes, self.wide) = (plain, escapes, wide);
+    }
+}
+
+/// A `width` x `rows` storage texture, filled by copies and copied from: the BVH's texel
+/// textures and the trace's ray texture (read-only in the kernels), and its hit texture
+/// (write-only).
+pub(crate) fn storage_texture(
+    ctx: &GpuContext,
+    label: &str,
+    format: wgpu::TextureFormat,
+    width: u32,
+    rows: u32,
+) -> wgpu::Texture {
+    ctx.device().create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height: rows,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::COPY_DST
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
+/// Writes `a`'s texels over the whole of `texture` (its last row zero-padded).
+fn write_texels(ctx: &GpuContext, texture: &wgpu::Texture, a: &DeviceArray<'_>, texel: u64) {
+    let (width, rows) = (texture.width(), texture.height());
+    let mut data = a.bytes.to_vec();
+    data.resize((u64::from(width) * u64::from(rows) * texel) as usize, 0);
+    ctx.queue().write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        &data,
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(width * texel as u32),
+            rows_per_image: Some(rows),
+        },
+        texture.size(),
+    );
+}
+
+impl Wgpu {
+    /// Creates and fills the device copy of `a`.
+    fn make(&self, a: &DeviceArray<'_>) -> Resource {
+        let label = format!("bvhtrace {}", a.name());
+        match a.texel_bytes {
+            None => Resource::Buffer(self.ctx.device().create_buffer_init(
+                &wgpu::util::BufferInitDescriptor {
+                    label: Some(&label),
+                    contents: &a.bytes,
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                },
+            )),
+            Some(texel) => {
+                let format = match texel {
+                    4 => wgpu::TextureFormat::R32Uint,
+                    _ => wgpu::TextureFormat::Rgba32Uint,
+                };
+                let (w, h) = texel_extent(a.texels());
+                let t = storage_texture(&self.ctx, &label, format, w, h);
+                write_texels(&self.ctx, &t, a, texel);
+                let v = t.create_view(&Default::default());
+                Resource::Texture(t, v)
+            }
+        }
+    }
+
+    /// Waits until every write so far has reached the device.
+    fn settle(&self, during: &'static str) -> Result<(), TraceError> {
+        let index = self.ctx.queue().submit([]);
+        self.ctx
+            .device()
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map(|_| ())
+            .map_err(|e| TraceError::device(during, e))
+    }
+}
+
+impl Backend for Wgpu {
+    type Arrays = WgpuArrays;
+    type Scratch = Scratch;
+
+    fn name(&self) -> &'static str {
+        "wgpu"
+    }
+
+    fn device_name(&self) -> String {
+        let i = self.ctx.adapter_info();
+        format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
+    }
+
+    fn limits(&self) -> &DeviceLimits {
+        self.ctx.limits()
+    }
+
+    fn tuning(&self) -> &DriverTuning {
+        self.ctx.tuning()
+    }
+
+    fn has_timestamps(&self) -> bool {
+        self.ctx.has_timestamps()
+    }
+
+    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError> {
+        if !self.ctx.supports_precision(key.precision) {
+            return Err(TraceError::PrecisionUnsupported {
+                precision: key.precision,
+                adapter: self.ctx.adapter_info().name.clone(),
+            });
+        }
+        Ok(())
+    }
+
+    fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError> {
+        self.ctx.pipeline(key).map(|_| ())
+    }
+
+    fn create_arrays(
+        &self,
+        layout: ArraysLayout,
+        arrays: &[DeviceArray<'_>],
+    ) -> Result<WgpuArrays, TraceError> {
+        let mut made = self.ctx.scoped("uploading the BVH", || WgpuArrays {
+            resources: arrays.iter().map(|a| (a.role, self.make(a))).collect(),
+            plain: None,
+            escapes: None,
+            wide: None,
+            batch_groups: Mutex::new(Default::default()),
+        })?;
+        self.ctx
+            .scoped("binding the BVH", || made.bind(&self.ctx, layout))?;
+        self.settle("uploading the BVH")?;
+        Ok(made)
+    }
+
+    fn write_arrays(
+        &self,
+        arrays: &mut WgpuArrays,
+        layout: ArraysLayout,
+        writes: &[ArrayWrite<'_>],
+    ) -> Result<(), TraceError> {
+        let rebind = self.ctx.scoped("updating the BVH", || {
+            let mut rebind = false;
+            for w in writes {
+                let a = &w.array;
+                let at = arrays.resources.iter().position(|(r, _)| *r == a.role);
+                match (at, w.replace) {
+                    (Some(i), false) => match (&arrays.resources[i].1, a.texel_bytes) {
+                        (Resource::Buffer(b), _) => self.ctx.queue().write_buffer(b, 0, &a.bytes),
+                        (Resource::Texture(t, _), Some(texel)) => {
+                            write_texels(&self.ctx, t, a, texel)
+                        }
+                        (Resource::Texture(..), None) => {}
+                    },
+                    (Some(i), true) => {
+                        arrays.resources[i].1 = self.make(a);
+                        rebind = true;
+                    }
+                    (None, _) => {
+                        arrays.resources.push((a.role, self.make(a)));
+                        rebind = true;
+                    }
+                }
+            }
+            rebind
+        })?;
+        if rebind {
+            self.ctx
+                .scoped("binding the BVH", || arrays.bind(&self.ctx, layout))?;
+        }
+        Ok(())
+    }
+
+    fn create_scratch(&self, plan: &ScratchPlan) -> Result<Scratch, TraceError> {
+        self.ctx
+            .scoped("allocating ray buffers", || Scratch::new(&self.ctx, plan))
+    }
+
+    fn run_batch(
+        &self,
+        arrays: &WgpuArrays,
+        scratch: &Scratch,
+        batch: Batch<'_>,
+    ) -> Result<Option<f64>, TraceError> {
+        crate::trace::run_batch(&self.ctx, arrays, scratch, batch)
+    }
+}

@@ -1,0 +1,711 @@
+//! One engine under every device backend. What wgpu, ash and the backends to come share
+//! is written here once, over the small [`Backend`] trait: the upload (arrays, limit
+//! checks, stats, the host copy, the depth and wide-layout rules) and the trace driver
+//! (the kernel key, submissions, scratch growth, readback, timing, finishing incomplete
+//! rays, the kernels used, updates). A backend only creates, writes and binds its arrays
+//! and scratch, and runs one batch.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use bvhtrace_core::{
+    Counters, FlatBvh, Hit, INCOMPLETE, InstanceTable, Ray, TraceOptions, TraceOutput, Traversal,
+    WideBvh,
+};
+
+use crate::device::DriverTuning;
+use crate::error::TraceError;
+use crate::key::KernelKey;
+use crate::plan::{
+    DeviceLimits, UploadStats, check_depth, check_wide_top_level, plan_submissions,
+    rays_per_dispatch,
+};
+use crate::tracer::{Tracer, check_update_shape, mesh_fingerprint, tree_shape};
+use crate::upload::{ArrayRole, DeviceArray, UploadOptions, binary_arrays, stats_of, wide_arrays};
+use crate::wgsl::{BvhStorage, RayInput, TEXEL_ROW, wide_stack_may_overflow};
+
+/// Where the wide layout is missing, and the fix ([`TraceError::WideLayoutMissing`]).
+pub const WIDE_NOT_UPLOADED: &str = "this upload left out: list Traversal::Wide in \
+     UploadOptions::traversals (an upload without options takes it when the tree has one: \
+     FlatBvh::build_wide)";
+
+/// What an update writes again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Update {
+    /// Every node, triangle and instance (after a refit: boxes and corners moved).
+    Everything,
+    /// The top level of a two-level BVH and its instances (after new transforms). An
+    /// uploaded wide layout is collapsed again and written whole either way: its meshes'
+    /// places follow the top level's order.
+    TopLevel,
+}
+
+/// How the uploaded arrays are laid out, for a backend binding them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ArraysLayout {
+    /// Buffers or texel textures.
+    pub storage: BvhStorage,
+    /// A two-level tree: the bind groups have the instances (binding 4).
+    pub instanced: bool,
+}
+
+/// One write of an update: the array's bytes from its start (`replace` false: the device
+/// array keeps its size), or a new array in its place (`replace`: its size changed).
+#[derive(Clone, Debug)]
+pub struct ArrayWrite<'a> {
+    /// What to write.
+    pub array: DeviceArray<'a>,
+    /// True when the array is made anew (and rebound).
+    pub replace: bool,
+}
+
+/// The scratch a trace needs: rays, hits and their readback copy for `capacity` rays,
+/// counters too when `counters`, the rays read from `input`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ScratchPlan {
+    /// Rays it holds.
+    pub capacity: u64,
+    /// With counters (and their readback copy).
+    pub counters: bool,
+    /// Where the kernels read the rays from.
+    pub input: RayInput,
+}
+
+/// One submission of a trace: `rays` through the kernel `key` (the BVH group of
+/// `key.traversal`), hits and counters appended to `hits` and `counters`.
+pub struct Batch<'a> {
+    /// The kernel.
+    pub key: KernelKey,
+    /// The rays, at most the scratch's capacity.
+    pub rays: &'a [Ray],
+    /// Where the hits go, in order.
+    pub hits: &'a mut Vec<Hit>,
+    /// Where the counters go, when asked for.
+    pub counters: Option<&'a mut Vec<Counters>>,
+}
+
+/// What a device backend does for the [`Engine`]; everything else is the engine's. A new
+/// backend (WebGPU in a browser, hardware ray queries) is one more implementation.
+///
+/// Methods that make device objects wait until they are ready for the kernels; a batch
+/// waits for its own submission only.
+pub trait Backend: Send + Sync {
+    /// The uploaded arrays, and whatever binds them (bind groups, descriptor sets).
+    type Arrays: Send + Sync;
+    /// The per-tracer scratch of [`Backend::run_batch`] (rays, hits, counters, readback).
+    type Scratch: Send;
+
+    /// The backend's name ([`Tracer::backend`]).
+    fn name(&self) -> &'static str;
+    /// The device's name ([`Tracer::device_name`]).
+    fn device_name(&self) -> String;
+    /// The limits the engine plans within.
+    fn limits(&self) -> &DeviceLimits;
+    /// The CPU-driver measures in force (trip budget, default storage).
+    fn tuning(&self) -> &DriverTuning;
+    /// True when batches report GPU time.
+    fn has_timestamps(&self) -> bool;
+    /// `Ok` when this backend and device can run `key`'s kernel (its storage, its
+    /// precision's feature).
+    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError>;
+    /// Builds (and caches) `key`'s pipeline.
+    fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError>;
+    /// Creates and fills `arrays` and binds them (the binary layout's arrays and the wide
+    /// layout's in groups of their own).
+    fn create_arrays(
+        &self,
+        layout: ArraysLayout,
+        arrays: &[DeviceArray<'_>],
+    ) -> Result<Self::Arrays, TraceError>;
+    /// Writes `writes` over `arrays` (rebinding replaced ones).
+    fn write_arrays(
+        &self,
+        arrays: &mut Self::Arrays,
+        layout: ArraysLayout,
+        writes: &[ArrayWrite<'_>],
+    ) -> Result<(), TraceError>;
+    /// Creates the scratch `plan` asks for.
+    fn create_scratch(&self, plan: &ScratchPlan) -> Result<Self::Scratch, TraceError>;
+    /// Uploads the batch's rays, dispatches its kernel (within [`crate::plan_dispatches`]),
+    /// waits for that submission and reads the hits (and counters) back; the GPU time of
+    /// the batch in milliseconds when the device measures it.
+    fn run_batch(
+        &self,
+        arrays: &Self::Arrays,
+        scratch: &Self::Scratch,
+        batch: Batch<'_>,
+    ) -> Result<Option<f64>, TraceError>;
+}
+
+/// What an upload holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UploadedTree {
+    /// Buffers or textures.
+    pub storage: BvhStorage,
+    /// A two-level tree.
+    pub instanced: bool,
+    /// The binary layout was uploaded.
+    pub binary: bool,
+    /// The escape links were uploaded.
+    pub escapes: bool,
+    /// The wide layout was uploaded.
+    pub wide: bool,
+    /// The binary tree's depth.
+    pub depth: u32,
+    /// [`tree_shape`] of the uploaded tree.
+    pub shape: (usize, usize, usize, u32),
+}
+
+/// The scratch kept between traces, with the plan it was made for.
+struct Kept<S> {
+    plan: ScratchPlan,
+    scratch: S,
+}
+
+/// A BVH on a device through backend `B`, ready to trace: the upload, the trace driver
+/// and the update, written once for every backend. Implements [`Tracer`].
+pub struct Engine<B: Backend> {
+    backend: B,
+    arrays: B::Arrays,
+    tree: UploadedTree,
+    /// Bytes of each uploaded array's data, to learn whether an update keeps its size.
+    sizes: Vec<(ArrayRole, usize)>,
+    stats: UploadStats,
+    /// The binary layout's part of `stats`, which an update leaves as it is.
+    binary_stats: UploadStats,
+    /// The tree incomplete rays are finished on ([`Engine::keeps_host_copy`]).
+    host_copy: Option<Arc<FlatBvh>>,
+    scratch: Mutex<Option<Kept<B::Scratch>>>,
+    mesh_fingerprint: u64,
+    used: Mutex<Vec<KernelKey>>,
+    /// The instances' table every output carries, for a two-level tree.
+    instances: Option<Arc<InstanceTable>>,
+}
+
+impl<B: Backend> std::fmt::Debug for Engine<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Engine")
+            .field("backend", &self.backend.name())
+            .field("tree", &self.tree)
+            .field("host_copy", &self.host_copy.is_some())
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+/// The wide layout of `bvh`: its own when it has one, else `bvh` collapsed.
+fn wide_of(bvh: &FlatBvh) -> Arc<WideBvh> {
+    bvh.wide
+        .clone()
+        .unwrap_or_else(|| Arc::new(WideBvh::collapse(bvh)))
+}
+
+/// Escape links of the top level's blocks: whole blocks hold its links (the last one may
+/// hold a mesh's too, written with their current, unchanged values).
+fn top_links(top_nodes: u32) -> usize {
+    use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
+    (top_nodes as usize).div_ceil(ESCAPE_BLOCK) * ESCAPE_BLOCK * OCTANTS
+}
+
+/// The most rays one upload to a ray texture holds: one dispatch, and no more rows than
+/// the device allows.
+fn ray_texture_capacity(limits: &DeviceLimits) -> u64 {
+    let by_rows = u64::from(TEXEL_ROW / 2) * u64::from(limits.max_texture_dimension_2d);
+    rays_per_dispatch(limits).min(by_rows)
+}
+
+/// The output of a trace of `rays` rays before any batch: the one place outputs are made.
+pub fn new_output(
+    rays: usize,
+    opts: &TraceOptions,
+    timed: bool,
+    instances: Option<Arc<InstanceTable>>,
+) -> TraceOutput {
+    TraceOutput {
+        hits: Vec::with_capacity(rays),
+        counters: opts.counters.then(|| Vec::with_capacity(rays)),
+        gpu_ms: timed.then_some(0.0),
+        wall_ms: 0.0,
+        incomplete: 0,
+        instances,
+    }
+}
+
+impl<B: Backend> Engine<B> {
+    /// Uploads `bvh` through `backend` as `opts` says. The rules every backend follows:
+    /// an empty tree is [`TraceError::EmptyBvh`]; a tree deeper than the full stack is
+    /// [`TraceError::TooDeep`] when [`Traversal::FullStack`] is listed (and at trace time
+    /// for that walk); escape links that do not fit the nodes are
+    /// [`TraceError::BadEscapeLinks`] when a listed walk follows them; the wide layout is
+    /// the tree's own or, without one, the tree collapsed; every array is checked against
+    /// the device's limits before anything is made ([`TraceError::TooLarge`] names it).
+    /// The upload keeps a host copy of the tree when incomplete rays may come back.
+    pub fn upload(backend: B, bvh: &FlatBvh, opts: &UploadOptions) -> Result<Self, TraceError> {
+        if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
+            return Err(TraceError::EmptyBvh);
+        }
+        for &traversal in &opts.traversals {
+            check_depth(traversal, bvh.depth)?;
+        }
+        let storage = opts.storage.unwrap_or(backend.tuning().storage);
+        let (binary, with_escapes) = (opts.binary(), opts.escapes() && opts.binary());
+        if with_escapes {
+            bvh.check_escape_links()?;
+            // Built (when not yet) before the clock starts.
+            bvh.escapes();
+        }
+        let wide = opts.wide().then(|| wide_of(bvh));
+        if let Some(w) = &wide {
+            check_wide_top_level(w)?;
+        }
+        let mut arrays = Vec::new();
+        if binary {
+            let links = with_escapes.then(|| bvh.escapes().len());
+            arrays = binary_arrays(bvh, storage, bvh.nodes.len(), true, links);
+        }
+        if let Some(w) = &wide {
+            arrays.extend(wide_arrays(w, storage));
+        }
+        for a in &arrays {
+            a.check(backend.limits())?;
+        }
+        let layout = ArraysLayout {
+            storage,
+            instanced: bvh.is_instanced(),
+        };
+        let start = Instant::now();
+        let made = backend.create_arrays(layout, &arrays)?;
+        let stats = UploadStats {
+            upload_ms: start.elapsed().as_secs_f64() * 1e3,
+            ..stats_of(storage, &arrays)
+        };
+        let binary_stats = stats_of(
+            storage,
+            &arrays[..arrays.iter().filter(|a| !a.role.is_wide()).count()],
+        );
+        let host_copy = Self::host_copy_of(&backend, bvh, wide.clone());
+        Ok(Engine {
+            tree: UploadedTree {
+                storage,
+                instanced: bvh.is_instanced(),
+                binary,
+                escapes: with_escapes,
+                wide: opts.wide(),
+                depth: bvh.depth,
+                shape: tree_shape(bvh),
+            },
+            sizes: arrays.iter().map(|a| (a.role, a.bytes.len())).collect(),
+            stats,
+            binary_stats,
+            host_copy,
+            scratch: Mutex::new(None),
+            mesh_fingerprint: mesh_fingerprint(bvh),
+            used: Mutex::new(Vec::new()),
+            instances: InstanceTable::of(bvh),
+            arrays: made,
+            backend,
+        })
+    }
+
+    /// The tree incomplete rays are finished on, with the wide layout uploaded (`wide`):
+    /// kept when the backend's tuning sets a trip budget, or when the wide tree is deep
+    /// enough for a ray to overflow the wide walk's stack (on any device).
+    fn host_copy_of(
+        backend: &B,
+        bvh: &FlatBvh,
+        wide: Option<Arc<WideBvh>>,
+    ) -> Option<Arc<FlatBvh>> {
+        let deep = wide
+            .as_ref()
+            .is_some_and(|w| wide_stack_may_overflow(w.depth));
+        (backend.tuning().finishes_on_cpu() || deep).then(|| {
+            let mut copy = bvh.clone();
+            copy.wide = wide.or_else(|| bvh.wide.clone());
+            Arc::new(copy)
+        })
+    }
+
+    /// The backend the arrays live on.
+    pub fn device(&self) -> &B {
+        &self.backend
+    }
+
+    /// The backend's arrays.
+    pub fn arrays(&self) -> &B::Arrays {
+        &self.arrays
+    }
+
+    /// What the upload holds.
+    pub fn tree(&self) -> &UploadedTree {
+        &self.tree
+    }
+
+    /// What the upload holds and cost (both layouts together).
+    pub fn stats(&self) -> &UploadStats {
+        &self.stats
+    }
+
+    /// Where both layouts live, buffers or textures; the rays of a trace follow it.
+    pub fn storage(&self) -> BvhStorage {
+        self.tree.storage
+    }
+
+    /// True when the wide layout was uploaded.
+    pub fn has_wide(&self) -> bool {
+        self.tree.wide
+    }
+
+    /// True when the escape links were uploaded.
+    pub fn has_escapes(&self) -> bool {
+        self.tree.escapes
+    }
+
+    /// True for a two-level BVH (its bind groups have the instances, binding 4).
+    pub fn is_instanced(&self) -> bool {
+        self.tree.instanced
+    }
+
+    /// The binary tree's depth (edges on its longest root-to-leaf path).
+    pub fn depth(&self) -> u32 {
+        self.tree.depth
+    }
+
+    /// Number of nodes uploaded.
+    pub fn node_count(&self) -> usize {
+        self.tree.shape.0
+    }
+
+    /// Number of triangles uploaded.
+    pub fn triangle_count(&self) -> usize {
+        self.tree.shape.1
+    }
+
+    /// Where the kernels read their rays from: textures with the BVH in textures.
+    pub fn ray_input(&self) -> RayInput {
+        RayInput::for_storage(self.tree.storage)
+    }
+
+    /// The kernel tracing `opts` on this upload, with rays from `input`, with the box
+    /// test's parallel path when `parallel_rays` ([`KernelKey::for_rays`]).
+    pub fn key(&self, opts: &TraceOptions, input: RayInput, parallel_rays: bool) -> KernelKey {
+        KernelKey {
+            parallel_rays,
+            ..KernelKey::new(self.tree.storage, opts)
+                .with_rays(input)
+                .with_instances(self.tree.instanced)
+        }
+    }
+
+    /// Checks that this upload holds what `traversal` reads, and that the tree fits its
+    /// stack.
+    pub fn supports_traversal(&self, traversal: Traversal) -> Result<(), TraceError> {
+        if traversal.is_wide() {
+            return match self.tree.wide {
+                true => Ok(()),
+                false => Err(TraceError::WideLayoutMissing {
+                    missing: WIDE_NOT_UPLOADED,
+                }),
+            };
+        }
+        if !self.tree.binary {
+            return Err(TraceError::TraversalNotUploaded { traversal });
+        }
+        if traversal.needs_escapes() && !self.tree.escapes {
+            return Err(TraceError::EscapesNotUploaded { traversal });
+        }
+        check_depth(traversal, self.tree.depth)
+    }
+
+    /// Checks that `opts` can run on this upload and device ([`Tracer::supports`]).
+    pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.supports_traversal(opts.traversal)?;
+        self.backend
+            .check_kernel(&self.key(opts, self.ray_input(), true))
+    }
+
+    /// Builds the pipelines [`Engine::trace`] runs for `opts` (with the box test's
+    /// parallel path and without it) ahead of the first trace.
+    pub fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.supports(opts)?;
+        for parallel_rays in [true, false] {
+            self.backend
+                .prepare_kernel(self.key(opts, self.ray_input(), parallel_rays))?;
+        }
+        Ok(())
+    }
+
+    /// Counts `key` among the kernels that ran ([`Tracer::kernels_used`]).
+    pub fn note_used(&self, key: KernelKey) -> Result<(), TraceError> {
+        let mut used = self
+            .used
+            .lock()
+            .map_err(|_| TraceError::Poisoned("kernels used"))?;
+        if !used.contains(&key) {
+            used.push(key);
+        }
+        Ok(())
+    }
+
+    /// `(rays per submission, scratch capacity)` for a batch of `n` rays from `input`: a
+    /// ray texture holds one dispatch.
+    fn submissions(&self, n: u64, input: RayInput) -> (u64, u64) {
+        let limits = self.backend.limits();
+        let (mut per_submit, mut capacity) = plan_submissions(n, limits);
+        if input == RayInput::Texture {
+            per_submit = per_submit.min(ray_texture_capacity(limits));
+            capacity = capacity.min(per_submit);
+        }
+        (per_submit, capacity)
+    }
+
+    /// Traces `rays` as `opts` says: the kernel built first (an unsupported option fails
+    /// before any upload), the batch split into submissions the scratch holds, each waited
+    /// for and read back, GPU times summed, incomplete rays finished on the host copy.
+    pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        self.supports(opts)?;
+        let input = self.ray_input();
+        let key = self.key(opts, input, true).for_rays(rays);
+        self.backend.prepare_kernel(key)?;
+        self.note_used(key)?;
+        let start = Instant::now();
+        let mut out = new_output(
+            rays.len(),
+            opts,
+            self.backend.has_timestamps(),
+            self.instances.clone(),
+        );
+        if rays.is_empty() {
+            return Ok(out);
+        }
+        let (per_submit, capacity) = self.submissions(rays.len() as u64, input);
+        let mut guard = self
+            .scratch
+            .lock()
+            .map_err(|_| TraceError::Poisoned("scratch buffers"))?;
+        // Counters only once asked for, kept from then on; the scratch only grows.
+        let grown = match guard.as_ref() {
+            None => Some(ScratchPlan {
+                capacity,
+                counters: opts.counters,
+                input,
+            }),
+            Some(k) if k.plan.capacity < capacity || (opts.counters && !k.plan.counters) => {
+                Some(ScratchPlan {
+                    capacity: capacity.max(k.plan.capacity),
+                    counters: opts.counters || k.plan.counters,
+                    input,
+                })
+            }
+            Some(_) => None,
+        };
+        if let Some(plan) = grown {
+            *guard = None; // free the old scratch first
+            *guard = Some(Kept {
+                plan,
+                scratch: self.backend.create_scratch(&plan)?,
+            });
+        }
+        let Some(kept) = guard.as_ref() else {
+            unreachable!("the scratch was just made")
+        };
+        for batch in rays.chunks(per_submit as usize) {
+            let ms = self.backend.run_batch(
+                &self.arrays,
+                &kept.scratch,
+                Batch {
+                    key,
+                    rays: batch,
+                    hits: &mut out.hits,
+                    counters: out.counters.as_mut(),
+                },
+            )?;
+            if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), ms) {
+                *total += ms;
+            }
+        }
+        drop(guard);
+        out.incomplete =
+            self.finish_incomplete(rays, opts, &mut out.hits, out.counters.as_deref_mut());
+        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(out)
+    }
+
+    /// Replaces every [`INCOMPLETE`] hit by the CPU walk's answer on the host copy (and
+    /// its counters, when given): what the kernels leave under a CPU driver's trip budget
+    /// or when the wide stack would overflow. Returns how many were finished; 0 when this
+    /// upload keeps no host copy (no ray can come back incomplete).
+    pub fn finish_incomplete(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+        hits: &mut [Hit],
+        counters: Option<&mut [Counters]>,
+    ) -> u64 {
+        match self.host_copy.as_deref() {
+            Some(bvh) => crate::plan::finish_incomplete_hits(bvh, rays, opts, hits, counters),
+            None => {
+                debug_assert!(!hits.iter().any(|h| h.prim == INCOMPLETE));
+                0
+            }
+        }
+    }
+
+    /// Makes `bvh` the traced tree ([`Tracer::update`]): only the top level and the
+    /// instances are written when the meshes of a two-level tree did not change.
+    pub fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        let what = if bvh.is_instanced() && mesh_fingerprint(bvh) == self.mesh_fingerprint {
+            Update::TopLevel
+        } else {
+            Update::Everything
+        };
+        self.update_with(bvh, what)
+    }
+
+    /// Writes `bvh` over this upload in place, as `what` says: its shape must be the
+    /// upload's, and [`Update::TopLevel`] needs a two-level tree. An uploaded wide layout
+    /// is collapsed again from `bvh` (its `wide`, which a refit leaves stale, is not read)
+    /// and written whole, into new arrays only when the collapse came out with other sizes.
+    pub fn update_with(&mut self, bvh: &FlatBvh, what: Update) -> Result<(), TraceError> {
+        check_update_shape(self.tree.shape, bvh)?;
+        let top_only = what == Update::TopLevel;
+        if top_only && !bvh.is_instanced() {
+            return Err(TraceError::BadBuffer {
+                buffer: "nodes",
+                problem: "Update::TopLevel needs a two-level tree; this one is one mesh".into(),
+            });
+        }
+        let storage = self.tree.storage;
+        let wide = self.tree.wide.then(|| Arc::new(WideBvh::collapse(bvh)));
+        let mut arrays = Vec::new();
+        if self.tree.binary {
+            // Textures are written whole; buffers only as far as the change goes.
+            let part = top_only && storage == BvhStorage::Buffers;
+            let nodes = if part {
+                bvh.top_nodes as usize
+            } else {
+                bvh.nodes.len()
+            };
+            let links = self.tree.escapes.then(|| match part {
+                true => top_links(bvh.top_nodes),
+                false => bvh.escapes().len(),
+            });
+            arrays = binary_arrays(bvh, storage, nodes, !top_only, links);
+        }
+        if let Some(w) = &wide {
+            check_wide_top_level(w)?;
+            arrays.extend(wide_arrays(w, storage));
+        }
+        for a in &arrays {
+            a.check(self.backend.limits())?;
+        }
+        let mut writes = Vec::with_capacity(arrays.len());
+        for array in arrays {
+            let old = self.sizes.iter_mut().find(|(r, _)| *r == array.role);
+            // Only the wide layout's sizes may change (the collapse follows the boxes).
+            let replace = match old {
+                Some((_, size)) if array.role.is_wide() && *size != array.bytes.len() => {
+                    *size = array.bytes.len();
+                    true
+                }
+                Some(_) => false,
+                None => {
+                    self.sizes.push((array.role, array.bytes.len()));
+                    true
+                }
+            };
+            writes.push(ArrayWrite { array, replace });
+        }
+        let layout = ArraysLayout {
+            storage,
+            instanced: self.tree.instanced,
+        };
+        self.backend
+            .write_arrays(&mut self.arrays, layout, &writes)?;
+        if let Some(w) = &wide {
+            let w = stats_of(storage, &wide_arrays(w, storage));
+            let b = self.binary_stats;
+            self.stats = UploadStats {
+                nodes_bytes: b.nodes_bytes + w.nodes_bytes,
+                triangles_bytes: b.triangles_bytes + w.triangles_bytes,
+                instances_bytes: b.instances_bytes + w.instances_bytes,
+                ..self.stats
+            };
+        }
+        self.host_copy = Self::host_copy_of(&self.backend, bvh, wide.clone());
+        self.tree.depth = bvh.depth;
+        if !top_only {
+            self.mesh_fingerprint = mesh_fingerprint(bvh);
+        }
+        self.instances = InstanceTable::of(bvh);
+        Ok(())
+    }
+
+    /// Runs `f` on the scratch kept between traces (`None` before the first trace).
+    pub fn with_scratch<T>(&self, f: impl FnOnce(Option<&B::Scratch>) -> T) -> T {
+        let guard = self.scratch.lock();
+        match guard {
+            Ok(g) => f(g.as_ref().map(|k| &k.scratch)),
+            Err(_) => f(None),
+        }
+    }
+}
+
+/// A type that traces through an [`Engine`] (the device backends' BVH types): it is a
+/// [`Tracer`] by that engine, with nothing to write again.
+pub trait HasEngine: Send + Sync {
+    /// The backend of the engine.
+    type Device: Backend;
+    /// The engine.
+    fn engine(&self) -> &Engine<Self::Device>;
+    /// The engine, to update.
+    fn engine_mut(&mut self) -> &mut Engine<Self::Device>;
+}
+
+impl<B: Backend> HasEngine for Engine<B> {
+    type Device = B;
+    fn engine(&self) -> &Engine<B> {
+        self
+    }
+    fn engine_mut(&mut self) -> &mut Engine<B> {
+        self
+    }
+}
+
+impl<T: HasEngine> Tracer for T {
+    fn backend(&self) -> &'static str {
+        self.engine().backend.name()
+    }
+
+    fn device_name(&self) -> String {
+        self.engine().backend.device_name()
+    }
+
+    fn default_traversal(&self) -> Traversal {
+        Traversal::GPU_DEFAULT
+    }
+
+    fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.engine().supports(opts)
+    }
+
+    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        self.engine().trace(rays, opts)
+    }
+
+    fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.engine().prepare(opts)
+    }
+
+    fn upload_stats(&self) -> Option<UploadStats> {
+        Some(self.engine().stats)
+    }
+
+    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        self.engine_mut().update(bvh)
+    }
+
+    fn kernels_used(&self) -> Vec<KernelKey> {
+        let used = self.engine().used.lock();
+        used.map(|u| u.clone()).unwrap_or_default()
+    }
+}

@@ -1,0 +1,420 @@
+//! The upload plan every device backend follows: which arrays of a [`FlatBvh`] go to the
+//! device, laid out as the kernels read them (buffers or texel textures), checked against
+//! the device's limits, and what they cost ([`UploadStats`]).
+
+use std::borrow::Cow;
+
+use bvhtrace_core::{FlatBvh, FlatNode, Traversal, WideBvh};
+
+use crate::error::TraceError;
+use crate::plan::{DeviceLimits, UploadStats, check_buffer_size, texel_rows};
+use crate::wgsl::{BvhStorage, TEXEL_ROW};
+
+/// What to upload for.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UploadOptions {
+    /// The traversals the BVH will be traced with. The escape links are uploaded only when
+    /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
+    /// [`FULL_STACK_SIZE`](crate::FULL_STACK_SIZE) is refused when [`Traversal::FullStack`]
+    /// is listed. [`Traversal::Wide`] uploads the wide layout (`FlatBvh::wide`, or the tree
+    /// collapsed into it when the BVH has none), in buffers or textures of its own; the
+    /// binary layout is uploaded when a binary traversal is listed (or none at all).
+    pub traversals: Vec<Traversal>,
+    /// Buffers or textures for both layouts; `None` picks the context's
+    /// [`DriverTuning::storage`](crate::DriverTuning::storage) (textures on CPU drivers
+    /// such as lavapipe, buffers elsewhere) where the backend has textures. The rays of a
+    /// trace follow this storage for every traversal.
+    pub storage: Option<BvhStorage>,
+}
+
+impl UploadOptions {
+    /// Upload for one traversal, default storage.
+    pub fn for_traversal(traversal: Traversal) -> Self {
+        UploadOptions {
+            traversals: vec![traversal],
+            storage: None,
+        }
+    }
+
+    /// Upload for every traversal of the binary layout (escape links included; the depth
+    /// check applies), default storage. The wide layout is a second copy of the tree: add
+    /// [`Traversal::Wide`] ([`UploadOptions::with_traversal`]) to upload it too.
+    pub fn all() -> Self {
+        UploadOptions {
+            traversals: vec![
+                Traversal::FullStack,
+                Traversal::Stackless,
+                Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
+            ],
+            storage: None,
+        }
+    }
+
+    /// Every traversal `bvh` can take: [`UploadOptions::all`] without the full stack for a
+    /// tree deeper than it, with [`Traversal::Wide`] when the tree has its wide layout.
+    /// What an upload given no options takes.
+    pub fn fitting(bvh: &FlatBvh) -> Self {
+        let mut opts = UploadOptions::all();
+        if crate::plan::check_depth(Traversal::FullStack, bvh.depth).is_err() {
+            opts.traversals.retain(|t| *t != Traversal::FullStack);
+        }
+        if bvh.wide.is_some() {
+            opts = opts.with_traversal(Traversal::Wide);
+        }
+        opts
+    }
+
+    /// The same options with this storage.
+    pub fn with_storage(mut self, storage: BvhStorage) -> Self {
+        self.storage = Some(storage);
+        self
+    }
+
+    /// The same options with `traversal` listed too.
+    pub fn with_traversal(mut self, traversal: Traversal) -> Self {
+        if !self.traversals.contains(&traversal) {
+            self.traversals.push(traversal);
+        }
+        self
+    }
+
+    /// True when the wide layout is uploaded.
+    pub fn wide(&self) -> bool {
+        self.traversals.iter().any(|t| t.is_wide())
+    }
+
+    /// True when the binary layout is uploaded (a binary walk listed, or none at all).
+    pub fn binary(&self) -> bool {
+        !self.wide() || self.traversals.iter().any(|t| !t.is_wide())
+    }
+
+    /// True when the escape links are uploaded.
+    pub fn escapes(&self) -> bool {
+        self.traversals.iter().any(|t| t.needs_escapes())
+    }
+}
+
+impl Default for UploadOptions {
+    /// [`UploadOptions::all`].
+    fn default() -> Self {
+        Self::all()
+    }
+}
+
+/// One array of an upload: which binding of which layout it fills.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ArrayRole {
+    /// The binary nodes (binding 0).
+    Nodes,
+    /// The binary layout's triangles (binding 1).
+    Triangles,
+    /// The escape links (binding 2).
+    Escapes,
+    /// The instances of a two-level tree (binding 4).
+    Instances,
+    /// The wide nodes (binding 0 of the wide layout).
+    WideNodes,
+    /// The wide layout's triangles (binding 1).
+    WideTriangles,
+    /// The instances in the wide top level's order (binding 4).
+    WideInstances,
+}
+
+impl ArrayRole {
+    /// True for the arrays of the wide layout.
+    pub fn is_wide(self) -> bool {
+        matches!(
+            self,
+            ArrayRole::WideNodes | ArrayRole::WideTriangles | ArrayRole::WideInstances
+        )
+    }
+
+    /// The binding the array fills in its layout's bind group.
+    pub fn binding(self) -> u32 {
+        match self {
+            ArrayRole::Nodes | ArrayRole::WideNodes => 0,
+            ArrayRole::Triangles | ArrayRole::WideTriangles => 1,
+            ArrayRole::Escapes => 2,
+            ArrayRole::Instances | ArrayRole::WideInstances => 4,
+        }
+    }
+
+    /// The name errors and labels give the array: as a buffer, or as a texel texture.
+    pub fn name(self, texels: bool) -> &'static str {
+        match (self, texels) {
+            (ArrayRole::Nodes, false) => "nodes",
+            (ArrayRole::Nodes, true) => "node texels",
+            (ArrayRole::Triangles, false) => "triangles",
+            (ArrayRole::Triangles, true) => "triangle texels",
+            (ArrayRole::Escapes, false) => "escapes",
+            (ArrayRole::Escapes, true) => "escape texels",
+            (ArrayRole::Instances, _) => "instances",
+            (ArrayRole::WideNodes, false) => "wide nodes",
+            (ArrayRole::WideNodes, true) => "wide node texels",
+            (ArrayRole::WideTriangles, false) => "wide triangles",
+            (ArrayRole::WideTriangles, true) => "wide triangle texels",
+            (ArrayRole::WideInstances, _) => "wide instances",
+        }
+    }
+}
+
+/// One array as the device holds it: its bytes, laid out as the kernels read them, in a
+/// storage buffer or (`texel_bytes` set) a texel texture of [`texel_extent`].
+#[derive(Clone, Debug)]
+pub struct DeviceArray<'a> {
+    /// Which array.
+    pub role: ArrayRole,
+    /// Its bytes (texels, row-major, for a texture; the last row not yet padded).
+    pub bytes: Cow<'a, [u8]>,
+    /// Bytes of one texel (16: four `u32`; 4: one) when the array is a texture; `None` for
+    /// a storage buffer.
+    pub texel_bytes: Option<u64>,
+}
+
+impl DeviceArray<'_> {
+    /// The name errors and labels give it.
+    pub fn name(&self) -> &'static str {
+        self.role.name(self.texel_bytes.is_some())
+    }
+
+    /// Texels of a texture's data (0 for a buffer).
+    pub fn texels(&self) -> u64 {
+        self.texel_bytes
+            .map_or(0, |b| self.bytes.len() as u64 / b.max(1))
+    }
+
+    /// Bytes the device holds: the data, or the whole texture with its last row padded.
+    pub fn device_bytes(&self) -> u64 {
+        match self.texel_bytes {
+            None => self.bytes.len() as u64,
+            Some(b) => {
+                let (w, h) = texel_extent(self.texels());
+                u64::from(w) * u64::from(h) * b
+            }
+        }
+    }
+
+    /// Checks the array against the device's limits ([`TraceError::TooLarge`] names it).
+    pub fn check(&self, limits: &DeviceLimits) -> Result<(), TraceError> {
+        match self.texel_bytes {
+            None => check_buffer_size(limits, self.name(), self.bytes.len() as u64),
+            Some(b) => check_texels(limits, self.name(), self.texels(), b),
+        }
+    }
+}
+
+/// Checks one texel texture of `texels` texels against the device's limits: its rows are
+/// [`TEXEL_ROW`] wide, and it has [`texel_rows`] of them.
+pub fn check_texels(
+    limits: &DeviceLimits,
+    what: &'static str,
+    texels: u64,
+    texel_bytes: u64,
+) -> Result<(), TraceError> {
+    let max = u64::from(limits.max_texture_dimension_2d);
+    if u64::from(TEXEL_ROW) > max || texel_rows(texels) > max {
+        return Err(TraceError::TooLarge {
+            buffer: what,
+            bytes: texels * texel_bytes,
+            limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
+            limit_name: "max_texture_dimension_2d (squared, in bytes; use BvhStorage::Buffers)",
+        });
+    }
+    Ok(())
+}
+
+/// The `(width, rows)` of the texture holding `texels` texels. One row is only as wide as
+/// its texels (texel `t` is still at `(t, 0)`): no padding the kernel never reads. Taller
+/// textures are [`TEXEL_ROW`] wide and pad their last row.
+pub fn texel_extent(texels: u64) -> (u32, u32) {
+    let rows = texel_rows(texels) as u32;
+    if rows == 1 {
+        ((texels as u32).max(1), 1)
+    } else {
+        (TEXEL_ROW, rows)
+    }
+}
+
+/// Texels of one wide node in `bvh_textures_wide.wgsl` (`BVH_WIDE_NODE_TEXELS`).
+pub const WIDE_NODE_TEXELS: u64 = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
+
+/// The node texels of `bvh_textures.wgsl`: `(min.xyz, max.x)`, `(max.yz, right, meta)`.
+fn node_texels(nodes: &[FlatNode]) -> Vec<u8> {
+    let mut v: Vec<u32> = Vec::with_capacity(nodes.len() * 8);
+    for n in nodes {
+        v.extend_from_slice(&[
+            n.min[0].to_bits(),
+            n.min[1].to_bits(),
+            n.min[2].to_bits(),
+            n.max[0].to_bits(),
+            n.max[1].to_bits(),
+            n.max[2].to_bits(),
+            n.right_or_first,
+            n.meta,
+        ]);
+    }
+    bytemuck::cast_slice(&v).to_vec()
+}
+
+fn array<'a>(role: ArrayRole, bytes: Cow<'a, [u8]>, texel_bytes: Option<u64>) -> DeviceArray<'a> {
+    DeviceArray {
+        role,
+        bytes,
+        texel_bytes,
+    }
+}
+
+/// The binary layout's arrays of `bvh` in `storage`: nodes (`nodes` of them: all, or the
+/// top level's for an update), triangles when `triangles`, escape links (`links` of them)
+/// when `links` is set, instances of a two-level tree.
+pub(crate) fn binary_arrays<'a>(
+    bvh: &'a FlatBvh,
+    storage: BvhStorage,
+    nodes: usize,
+    triangles: bool,
+    links: Option<usize>,
+) -> Vec<DeviceArray<'a>> {
+    let textures = storage == BvhStorage::Textures;
+    let texel = |b: u64| textures.then_some(b);
+    let mut out = vec![array(
+        ArrayRole::Nodes,
+        if textures {
+            Cow::Owned(node_texels(&bvh.nodes[..nodes]))
+        } else {
+            Cow::Borrowed(bytemuck::cast_slice(&bvh.nodes[..nodes]))
+        },
+        texel(16),
+    )];
+    if triangles {
+        out.push(array(
+            ArrayRole::Triangles,
+            Cow::Borrowed(bytemuck::cast_slice(&bvh.triangles)),
+            texel(16),
+        ));
+    }
+    if let Some(n) = links {
+        out.push(array(
+            ArrayRole::Escapes,
+            Cow::Borrowed(bytemuck::cast_slice(&bvh.escapes()[..n])),
+            texel(4),
+        ));
+    }
+    if bvh.is_instanced() {
+        out.push(array(
+            ArrayRole::Instances,
+            Cow::Borrowed(bytemuck::cast_slice(&bvh.instances)),
+            None,
+        ));
+    }
+    out
+}
+
+/// The wide layout's arrays in `storage`: nodes, triangles, and the instances of a
+/// two-level tree (always a buffer).
+pub(crate) fn wide_arrays(w: &WideBvh, storage: BvhStorage) -> Vec<DeviceArray<'_>> {
+    let texel = (storage == BvhStorage::Textures).then_some(16);
+    let mut out = vec![
+        array(
+            ArrayRole::WideNodes,
+            Cow::Borrowed(bytemuck::cast_slice(&w.nodes)),
+            texel,
+        ),
+        array(
+            ArrayRole::WideTriangles,
+            Cow::Borrowed(bytemuck::cast_slice(&w.triangles)),
+            texel,
+        ),
+    ];
+    if w.is_instanced() {
+        out.push(array(
+            ArrayRole::WideInstances,
+            Cow::Borrowed(bytemuck::cast_slice(&w.instances)),
+            None,
+        ));
+    }
+    out
+}
+
+/// [`UploadStats`] of these arrays (without the time).
+pub(crate) fn stats_of(storage: BvhStorage, arrays: &[DeviceArray<'_>]) -> UploadStats {
+    let mut s = UploadStats {
+        storage,
+        ..UploadStats::default()
+    };
+    for a in arrays {
+        let b = a.device_bytes();
+        match a.role {
+            ArrayRole::Nodes | ArrayRole::WideNodes => s.nodes_bytes += b,
+            ArrayRole::Triangles | ArrayRole::WideTriangles => s.triangles_bytes += b,
+            ArrayRole::Escapes => s.escapes_bytes += b,
+            ArrayRole::Instances | ArrayRole::WideInstances => s.instances_bytes += b,
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A texel texture fits while its rows do: the wide layout's five texels a node reach
+    /// the limit at a fifth of the nodes the texels allow, and the error names the texture
+    /// and the way out.
+    #[test]
+    fn texel_textures_are_checked_row_by_row() {
+        let limits = |max| DeviceLimits {
+            max_storage_buffer_binding_size: 1 << 30,
+            max_buffer_size: 1 << 30,
+            max_compute_workgroups_per_dimension: 65_535,
+            min_storage_buffer_offset_alignment: 256,
+            max_texture_dimension_2d: max,
+        };
+        let row = u64::from(TEXEL_ROW);
+        let l = limits(TEXEL_ROW);
+        let most = row * row;
+        assert!(check_texels(&l, "wide node texels", most, 16).is_ok());
+        let nodes = most / WIDE_NODE_TEXELS + 1;
+        match check_texels(&l, "wide node texels", WIDE_NODE_TEXELS * nodes, 16) {
+            Err(
+                e @ TraceError::TooLarge {
+                    buffer,
+                    bytes,
+                    limit,
+                    ..
+                },
+            ) => {
+                assert_eq!(buffer, "wide node texels");
+                assert_eq!(bytes, nodes * 80);
+                assert_eq!(limit, most * 16);
+                let msg = e.to_string();
+                assert!(
+                    msg.contains("max_texture_dimension_2d") && msg.contains("BvhStorage::Buffers"),
+                    "{msg}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        // Rows narrower than `TEXEL_ROW`: no texture fits, however small.
+        assert!(matches!(
+            check_texels(&limits(TEXEL_ROW / 2), "wide node texels", 5, 16),
+            Err(TraceError::TooLarge { .. })
+        ));
+    }
+
+    /// A one-row texture is as wide as its texels; a taller one pads its last row, and
+    /// the stats count the padding.
+    #[test]
+    fn texel_extents_pad_only_tall_textures() {
+        assert_eq!(texel_extent(5), (5, 1));
+        assert_eq!(texel_extent(0), (1, 1));
+        let row = u64::from(TEXEL_ROW);
+        assert_eq!(texel_extent(row + 1), (TEXEL_ROW, 2));
+        let a = array(
+            ArrayRole::Escapes,
+            Cow::Owned(vec![0u8; 4 * (row as usize + 1)]),
+            Some(4),
+        );
+        assert_eq!(a.device_bytes(), 2 * row * 4);
+        assert_eq!(a.name(), "escape texels");
+    }
+}
