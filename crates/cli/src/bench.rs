@@ -28,7 +28,7 @@ pub(crate) fn scene_specs(given: &[String]) -> Result<Vec<String>> {
     if !given.is_empty() {
         return Ok(given.to_vec());
     }
-    let dir = bvhtrace_scene::shared_scenes_dir()
+    let dir = crate::geometry::shared_scenes_dir()
         .context("no scenes given and no shared scenes folder found (set BVHTRACE_SCENES)")?;
     Ok(["bunny_69k", "igea"]
         .iter()
@@ -396,7 +396,7 @@ impl Lines<'_> {
 /// The default scenes that exist, with a note for each one missing; none (and a note)
 /// without the shared folder.
 fn default_build_scenes() -> Vec<String> {
-    let Some(dir) = bvhtrace_scene::shared_scenes_dir() else {
+    let Some(dir) = crate::geometry::shared_scenes_dir() else {
         eprintln!(
             "bench-build: no scenes given and no shared scenes folder (../shared/scenes; \
              set BVHTRACE_SCENES) found: nothing to benchmark"

@@ -180,8 +180,7 @@ pub(crate) fn ray_sets(
 ) -> RaySets {
     let primary = cam.rays(w, h);
     let hits = trace_rays(bvh, &primary, &TraceOptions::closest(Traversal::FullStack)).hits;
-    let (_, right, up) = cam.basis();
-    let light = cam.eye + (right * 0.25 + up * 0.2) * (cam.target - cam.eye).length();
+    let light = shade::point_light(cam);
     let b = bvh.bounds();
     let diag = (b.max - b.min).length();
     let (shadow, _) = shade::secondary_rays(
@@ -225,11 +224,8 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
     let mut img = Vec::with_capacity(rays.len() * 3);
     for (r, p) in rays.iter().zip(prims) {
         if let Some(t) = tris.get(p as usize) {
-            let n = shade::facing_normal(t, Vec3::from(r.dir)) * 0.5 + Vec3::splat(0.5);
-            img.extend(
-                n.to_array()
-                    .map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8),
-            );
+            let n = shade::facing_normal(t, Vec3::from(r.dir));
+            img.extend(shade::palette::normal_colour(n));
         } else {
             img.extend(shade::BACKGROUND);
         }

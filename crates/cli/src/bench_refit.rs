@@ -176,7 +176,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         Some(s) => s.clone(),
         None => match std::path::Path::new(&spec).file_stem() {
             Some(stem)
-                if bvhtrace_scene::shared_scenes_dir().is_some() && spec.ends_with(".glb") =>
+                if crate::geometry::shared_scenes_dir().is_some() && spec.ends_with(".glb") =>
             {
                 format!("builtin:grid:{}:100x100", stem.to_string_lossy())
             }

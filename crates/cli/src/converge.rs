@@ -20,7 +20,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
-use bvhtrace_core::palette;
 use bvhtrace_core::traverse::DEFAULT_SHORT_STACK;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
@@ -36,7 +35,7 @@ use crate::accuracy;
 use crate::bench::median;
 use crate::bench_matrix::BenchArgs;
 use crate::output::{AtomicFile, JsonOut};
-use crate::shade::{self, Shade};
+use crate::shade::{self, Shade, palette};
 
 /// The flags `bench` takes for `--converge` (flattened into [`BenchArgs`]).
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -70,10 +69,10 @@ pub struct ConvergeArgs {
     pub reference_spp: Option<u32>,
     /// Camera position X,Y,Z for --converge (with --target; default: the scene's camera or
     /// a framing one).
-    #[arg(long, value_parser = bvhtrace_scene::camera::parse_vec3, requires_all = ["converge", "target"], allow_hyphen_values = true)]
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires_all = ["converge", "target"], allow_hyphen_values = true)]
     pub eye: Option<Vec3>,
     /// The point the --converge camera looks at (with --eye).
-    #[arg(long, value_parser = bvhtrace_scene::camera::parse_vec3, requires_all = ["converge", "eye"], allow_hyphen_values = true)]
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires_all = ["converge", "eye"], allow_hyphen_values = true)]
     pub target: Option<Vec3>,
     /// Vertical field of view of the --converge camera, in degrees.
     #[arg(long, requires = "converge")]

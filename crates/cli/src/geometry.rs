@@ -3,9 +3,9 @@
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
-use bvhtrace_core::{BuildOptions, FlatBvh};
-use bvhtrace_scene::{Scene, SceneBvh};
+use anyhow::{Result, anyhow};
+use bvhtrace_core::BuildOptions;
+use bvhtrace_scene::{Scene, SceneBvh, TracingBvhError};
 use serde_json::{Value, json};
 
 /// A loaded and built scene, with the times each step took.
@@ -14,9 +14,10 @@ pub struct Built {
     pub scene: Scene,
     /// Its traced form.
     pub geometry: SceneBvh,
-    /// Loading (and flattening) the scene, milliseconds.
+    /// Loading the scene, milliseconds.
     pub load_ms: f64,
-    /// Building the BVH (both levels for two), milliseconds.
+    /// Flattening it (for one level) and building the BVH (both levels for two),
+    /// milliseconds.
     pub build_ms: f64,
 }
 
@@ -41,6 +42,15 @@ pub fn json(geo: &SceneBvh, scene: &Scene) -> Value {
     }
 }
 
+/// The shared scenes folder: `$BVHTRACE_SCENES` when set and not empty, else the one the
+/// scene library finds walking up from here.
+pub fn shared_scenes_dir() -> Option<std::path::PathBuf> {
+    match std::env::var_os("BVHTRACE_SCENES") {
+        Some(v) if !v.is_empty() => Some(v.into()),
+        _ => bvhtrace_scene::shared_scenes_dir(),
+    }
+}
+
 /// Loads `spec` (at time `time` when given), prints its warnings, and builds it.
 pub fn load_and_build(
     spec: &str,
@@ -59,29 +69,12 @@ pub fn load_and_build(
         }
         scene.set_time(t);
     }
-    // Two levels when the scene places meshes more than once and `flatten` is not asked
-    // for; a scene of one instance traces as fast flattened (no top level to walk).
-    let two_level = !flatten && scene.instances.len() > 1;
-    let tris = if two_level {
-        None
-    } else {
-        let t = scene.flattened_triangles();
-        Some(t.with_context(|| format!("{spec}: cannot be flattened (drop --flatten?)"))?)
-    };
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
-    let geometry = match tris {
-        Some(tris) => {
-            let bvh =
-                FlatBvh::build(&tris, opts).with_context(|| format!("{spec}: BVH build failed"))?;
-            SceneBvh::Flat { tris, bvh }
-        }
-        None => SceneBvh::Instanced(
-            scene
-                .instanced_bvh(opts)
-                .with_context(|| format!("{spec}: two-level BVH build failed"))?,
-        ),
-    };
+    let geometry = scene.tracing_bvh(opts, flatten).map_err(|e| match e {
+        TracingBvhError::Flatten(_) if flatten => anyhow!("{spec}: {e} (drop --flatten?)"),
+        e => anyhow!("{spec}: {e}"),
+    })?;
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
     Ok(Built {
         scene,

@@ -7,13 +7,13 @@
 use std::path::PathBuf;
 
 use anyhow::{Result, bail};
-use bvhtrace_core::palette;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, Query, Ray, TraceOptions,
     TraceOutput, Traversal,
 };
 use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats, VertexAttributes};
-use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, SceneBvh, camera};
+use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, SceneBvh};
+use bvhtrace_shade::args as flags;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
@@ -21,11 +21,11 @@ use serde_json::{Value, json};
 use crate::backend::{self, Backend};
 use crate::geometry::{self, Built};
 use crate::output::{AtomicFile, JsonOut, write_png};
-use crate::shade::{self, BACKGROUND, Shade};
+use crate::shade::{self, Shade, View};
 
-/// An image size flag (`--size WxH`): [`camera::parse_size`], at most 16384 a side.
+/// An image size flag (`--size WxH`): [`flags::parse_size`], at most 16384 a side.
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = camera::parse_size(s)?;
+    let (w, h) = flags::parse_size(s)?;
     if w > 16384 || h > 16384 {
         return Err(format!("size must be between 1x1 and 16384x16384, got {s}"));
     }
@@ -109,10 +109,10 @@ pub struct CameraArgs {
     #[arg(long, default_value = "1024x768", value_parser = parse_size)]
     pub size: (u32, u32),
     /// Camera position X,Y,Z (with --target; default: the scene's camera or a framing one).
-    #[arg(long, value_parser = camera::parse_vec3, requires = "target", allow_hyphen_values = true)]
+    #[arg(long, value_parser = flags::parse_vec3, requires = "target", allow_hyphen_values = true)]
     pub eye: Option<Vec3>,
     /// Point the camera looks at.
-    #[arg(long, value_parser = camera::parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    #[arg(long, value_parser = flags::parse_vec3, requires = "eye", allow_hyphen_values = true)]
     pub target: Option<Vec3>,
     /// Vertical field of view in degrees.
     #[arg(long)]
@@ -261,8 +261,8 @@ struct Job<'a> {
     args: &'a RenderArgs,
     traversal: Traversal,
     counters: bool,
-    light: Vec3,
-    ao_radius: f32,
+    /// The mode, the point light and the AO rays' length.
+    view: View,
 }
 
 /// `bvhtrace render`: scene, tree, rays, trace, shading, image.
@@ -334,8 +334,7 @@ impl<'a> Job<'a> {
             args,
             traversal: walk.unwrap_or_else(|| tracer.default_traversal()),
             counters: args.counters || args.shade == Shade::Heatmap,
-            light: shade::point_light(cam),
-            ao_radius: shade::ao_radius(bvh),
+            view: View::hard_shadows(args.shade, cam, bvh),
         }
     }
 
@@ -403,9 +402,9 @@ fn trace_frame(
         &|p| geo.triangle(p).unwrap_or_default(),
         rays,
         &primary.hits,
-        job.light,
+        job.view.light,
         job.args.ao_samples,
-        job.ao_radius,
+        job.view.ao_radius,
     );
     let secondary = trace_chunked(
         tracer,
@@ -585,61 +584,16 @@ impl RenderArgs {
 
 /// Shades the frame into RGB8 pixels.
 fn compose(job: &Job, geo: &SceneBvh, rays: &[Ray], frame: &Frame) -> Vec<u8> {
-    let (args, light) = (job.args, job.light);
-    let (hits, counters) = (&frame.hits, &frame.counters);
-    let (owner, sec_hits) = (&frame.owner, &frame.secondary);
-    let (w, h) = args.view.size;
-    let mut img = vec![0u8; (w * h * 3) as usize];
-    let px = |img: &mut Vec<u8>, i: usize, c: [u8; 3]| img[i * 3..i * 3 + 3].copy_from_slice(&c);
-    // Per-pixel secondary results: occluded counts.
-    let mut occluded = vec![0u32; rays.len()];
-    for (o, sh) in owner.iter().zip(sec_hits) {
-        if sh.is_hit() {
-            occluded[*o as usize] += 1;
-        }
-    }
-    let range = palette::depth_range(hits);
-    let max_nodes = {
-        let mut v: Vec<u32> = counters.iter().map(|c| c.nodes).collect();
-        v.sort_unstable();
-        v.get(v.len().saturating_sub(1))
-            .copied()
-            .unwrap_or(1)
-            .max(1)
+    let pixels = shade::Pixels {
+        size: job.args.view.size,
+        rays,
+        hits: &frame.hits,
+        counters: &frame.counters,
+        owner: &frame.owner,
+        secondary: &frame.secondary,
+        ao_samples: job.args.ao_samples,
     };
-    for (i, (r, hit)) in rays.iter().zip(hits).enumerate() {
-        if args.shade == Shade::Heatmap {
-            let n = counters.get(i).map_or(0, |c| c.nodes);
-            px(&mut img, i, palette::heat_ramp(n as f32 / max_nodes as f32));
-            continue;
-        }
-        if !hit.is_hit() {
-            px(&mut img, i, BACKGROUND);
-            continue;
-        }
-        let tri = &geo.triangle(hit.prim).unwrap_or_default();
-        let d = Vec3::from(r.dir);
-        let n = shade::facing_normal(tri, d);
-        let c = match args.shade {
-            Shade::Normal => palette::normal_colour(n),
-            Shade::Depth => palette::depth_grey(hit.t, range),
-            Shade::Diffuse => {
-                let lit = if occluded[i] == 0 {
-                    shade::lambert(tri, hit, d, light)
-                } else {
-                    0.0
-                };
-                palette::diffuse_colour(lit)
-            }
-            Shade::Ao => palette::ao_grey(1.0 - occluded[i] as f32 / args.ao_samples as f32),
-            Shade::Heatmap => unreachable!(),
-        };
-        px(&mut img, i, c);
-    }
-    if args.shade == Shade::Heatmap {
-        shade::draw_legend(&mut img, w, h, max_nodes);
-    }
-    img
+    shade::compose_rgb(&job.view, &pixels, &|p| geo.triangle(p).unwrap_or_default())
 }
 
 /// Per-vertex data the shading modes read on the GPU: none (shading runs on the host, from

@@ -18,7 +18,6 @@ pub mod instance;
 pub mod intersect;
 pub mod mesh;
 pub mod oracle;
-pub mod palette;
 pub mod precision;
 pub mod ray;
 pub mod stats;

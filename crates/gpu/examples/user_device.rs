@@ -22,12 +22,14 @@ use std::path::PathBuf;
 
 use bvhtrace_gpu::core::surface::{facing_normal, hit_point};
 use bvhtrace_gpu::core::{
-    BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle, palette,
+    BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
 };
 use bvhtrace_gpu::glam::Vec3;
 use bvhtrace_gpu::kernels::{HIT_BYTES, RAY_BYTES};
 use bvhtrace_gpu::{GpuBvh, GpuContext, GpuError, RayBatch, UploadOptions, wgpu};
-use bvhtrace_scene::{Camera, Scene};
+use bvhtrace_scene::Scene;
+// The light and the colour rounding of `bvhtrace render` and the viewer.
+use bvhtrace_shade::{palette, point_light};
 
 /// The image size: small, so that CI renders it in a moment on lavapipe.
 pub const WIDTH: u32 = 320;
@@ -137,7 +139,7 @@ fn run() -> Result<(), Box<dyn Error>> {
     let (hits, finished) = trace(&ctx, &gpu, &buffers, &rays, &closest)?;
 
     // Shadow rays toward the light, traced for any hit: one blocker is enough.
-    let light = light_position(&camera);
+    let light = point_light(&camera);
     let (shadow, owners) = shadow_rays(&tris, &rays, &hits, light);
     let any = TraceOptions::new(Traversal::Stackless, Query::Any);
     let (blocked, finished_shadow) = trace(&ctx, &gpu, &buffers, &shadow, &any)?;
@@ -229,14 +231,6 @@ pub fn albedos(scene: &Scene) -> Vec<Vec3> {
                 .map_or(Vec3::ONE, |m| m.base_color.truncate())
         })
         .collect()
-}
-
-/// A point light up and to the right of the camera (the rule of `bvhtrace render`): it
-/// sees what the camera sees, so it lights closed rooms and open scenes alike, and casts
-/// shadows the camera can see.
-pub fn light_position(camera: &Camera) -> Vec3 {
-    let (_, right, up) = camera.basis();
-    camera.eye + (right * 0.25 + up * 0.2) * (camera.target - camera.eye).length()
 }
 
 /// One shadow ray from each hit that faces the light, with the pixel it belongs to.

@@ -21,7 +21,8 @@ use std::process::Command;
 use std::sync::Mutex;
 
 use bvhtrace_core::surface::{geometric_normal, hash};
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, palette, trace_rays};
+use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
+use bvhtrace_shade::palette;
 use glam::Vec3;
 
 #[path = "../examples/user_device.rs"]
@@ -148,7 +149,7 @@ fn user_device_draws_the_cpu_image_with_shadows() {
     let camera = scene.camera_or_frame(w as f32 / h as f32);
     let rays = camera.rays(w, h);
     let hits = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless)).hits;
-    let light = user_device::light_position(&camera);
+    let light = bvhtrace_shade::point_light(&camera);
     let (shadow, owners) = user_device::shadow_rays(&tris, &rays, &hits, light);
     let any = TraceOptions::new(Traversal::Stackless, Query::Any);
     let blocked = trace_rays(&bvh, &shadow, &any).hits;

@@ -561,7 +561,7 @@ fn degenerate() -> Scene {
 fn grid_mesh_candidates(mesh: &str) -> Vec<PathBuf> {
     let file = format!("{mesh}.glb");
     let mut out = Vec::new();
-    if let Some(d) = crate::shared_scenes_dir() {
+    if let Some(d) = crate::find_shared_scenes_dir() {
         out.push(d.join("glb").join(&file));
     }
     if let Some(d) = crate::repo_scenes_dir() {

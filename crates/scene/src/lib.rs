@@ -59,7 +59,7 @@ pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
 pub use loader::{load_gltf_file, load_gltf_slice};
-pub use two_level::SceneBvh;
+pub use two_level::{SceneBvh, TracingBvhError};
 
 /// The scene tools load when given none: the Cornell box.
 pub const DEFAULT_SCENE: &str = "builtin:cornell";
@@ -621,15 +621,17 @@ fn split_suffixes(spec: &str) -> Result<(&str, Vec<Mat4>), SceneError> {
 }
 
 /// The shared scenes folder (`shared/scenes`, holding `glb/`, `gltf/` and `SOURCES.md`):
-/// `$BVHTRACE_SCENES` if set and non-empty, else the first `shared/scenes` folder found
-/// walking up from the current directory, then from this crate's source directory.
-/// `None` when there is none (tests then skip with a message).
+/// the first `shared/scenes` folder found walking up from the current directory, then from
+/// this crate's source directory; `None` when there is none (tests then skip with a
+/// message). A hook for benchmarks and tests; a front end that lets its user name another
+/// folder (the CLI's `$BVHTRACE_SCENES`) checks that first.
+#[cfg(feature = "test-hooks")]
 pub fn shared_scenes_dir() -> Option<PathBuf> {
-    if let Some(v) = std::env::var_os("BVHTRACE_SCENES")
-        && !v.is_empty()
-    {
-        return Some(PathBuf::from(v));
-    }
+    find_shared_scenes_dir()
+}
+
+/// [`shared_scenes_dir`], for `builtin:grid`'s meshes whatever the features.
+pub(crate) fn find_shared_scenes_dir() -> Option<PathBuf> {
     let starts = [
         std::env::current_dir().ok(),
         Some(PathBuf::from(env!("CARGO_MANIFEST_DIR"))),

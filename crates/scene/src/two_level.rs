@@ -1,10 +1,27 @@
 //! A scene as a two-level BVH: one bottom-level BVH per mesh however many instances use
 //! it, a top level over the instances ([`bvhtrace_core::InstancedBvh`]).
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Instance, InstanceError, InstancedBvh, Triangle};
+use bvhtrace_core::{
+    BuildError, BuildOptions, FlatBvh, Instance, InstanceError, InstancedBvh, Triangle,
+};
 use glam::Affine3A;
 
-use crate::Scene;
+use crate::{Scene, SceneError};
+
+/// Why [`Scene::tracing_bvh`] could not make the BVH to trace.
+#[derive(Debug, thiserror::Error)]
+pub enum TracingBvhError {
+    /// The scene could not be flattened into world-space triangles (too many over all
+    /// instances, or bad geometry).
+    #[error("cannot be flattened: {0}")]
+    Flatten(SceneError),
+    /// The flattened triangles' BVH could not be built.
+    #[error("BVH build failed: {0}")]
+    Build(BuildError),
+    /// The two-level BVH could not be built (a bad mesh or instance transform).
+    #[error("two-level BVH build failed: {0}")]
+    TwoLevel(InstanceError),
+}
 
 /// A scene as traced: one BVH over its world-space triangles (flattened), or two levels.
 pub enum SceneBvh {
@@ -61,6 +78,34 @@ impl SceneBvh {
 }
 
 impl Scene {
+    /// True when [`Scene::tracing_bvh`] builds two levels: the scene places meshes more
+    /// than once and `flatten` is not asked for. A scene of one instance traces as fast
+    /// flattened (no top level to walk).
+    pub fn traces_in_two_levels(&self, flatten: bool) -> bool {
+        !flatten && self.instances.len() > 1
+    }
+
+    /// The BVH to trace this scene with: two levels when [`Scene::traces_in_two_levels`],
+    /// else one BVH over the world-space triangles ([`Scene::flattened_triangles`]), each
+    /// built with `opts`. The one rule the CLI and the viewer share.
+    pub fn tracing_bvh(
+        &self,
+        opts: &BuildOptions,
+        flatten: bool,
+    ) -> Result<SceneBvh, TracingBvhError> {
+        if self.traces_in_two_levels(flatten) {
+            let i = self
+                .instanced_bvh(opts)
+                .map_err(TracingBvhError::TwoLevel)?;
+            return Ok(SceneBvh::Instanced(i));
+        }
+        let tris = self
+            .flattened_triangles()
+            .map_err(TracingBvhError::Flatten)?;
+        let bvh = FlatBvh::build(&tris, opts).map_err(TracingBvhError::Build)?;
+        Ok(SceneBvh::Flat { tris, bvh })
+    }
+
     /// The scene's meshes and instances as a two-level BVH, each mesh built with `opts`.
     /// Primitive ids number the instances' triangles in instance order, as
     /// [`Scene::flatten`] does (so the two forms name the same triangles); meshes without
@@ -114,5 +159,50 @@ impl Scene {
             })
             .collect();
         Ok((meshes, instances))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Mat4;
+
+    #[test]
+    fn several_placements_trace_in_two_levels_unless_flattened() {
+        let opts = BuildOptions::default();
+        let spheres = crate::load("builtin:spheres").expect("loads");
+        assert!(spheres.instances.len() > 1);
+        assert!(spheres.traces_in_two_levels(false) && !spheres.traces_in_two_levels(true));
+        let two = spheres.tracing_bvh(&opts, false).expect("builds");
+        let flat = spheres.tracing_bvh(&opts, true).expect("builds");
+        assert!(two.is_two_level() && !flat.is_two_level());
+        assert_eq!(two.triangle_count(), flat.triangle_count());
+        // Both forms name the same world-space triangles.
+        let (a, b) = (
+            two.triangle(7).expect("in range"),
+            flat.triangle(7).expect("in range"),
+        );
+        for (p, q) in a.iter().zip(&b) {
+            assert!((*p - *q).abs().max_element() < 1e-4, "{p} against {q}");
+        }
+        let cornell = crate::load("builtin:cornell").expect("loads");
+        assert_eq!(cornell.instances.len(), 1);
+        let one = cornell.tracing_bvh(&opts, false).expect("builds");
+        assert!(!one.is_two_level());
+        assert_eq!(one.triangle_count(), cornell.triangle_count() as u64);
+    }
+
+    #[test]
+    fn a_bad_placement_is_an_error_naming_the_level() {
+        let mut s = crate::load("builtin:spheres").expect("loads");
+        s.instances[1].transform = Mat4::from_scale(glam::Vec3::ZERO);
+        let Err(e) = s.tracing_bvh(&BuildOptions::default(), false) else {
+            panic!("a singular transform cannot be inverted");
+        };
+        assert!(matches!(e, TracingBvhError::TwoLevel(_)), "{e}");
+        assert!(
+            e.to_string().starts_with("two-level BVH build failed"),
+            "{e}"
+        );
     }
 }

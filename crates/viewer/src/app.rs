@@ -215,8 +215,13 @@ impl ViewerApp {
             builder: args.builder,
             traversal: kind,
             short_stack: k,
-            shade: args.shade,
-            heatmap: args.heatmap,
+            // `--shade heatmap` is the heatmap switch over the default surface mode.
+            shade: if args.shade == Shade::Heatmap {
+                Shade::default()
+            } else {
+                args.shade
+            },
+            heatmap: args.heatmap || args.shade == Shade::Heatmap,
             samples_per_frame: if cpu_adapter { 2 } else { 8 },
             auto_samples: true,
             max_samples: 256,
@@ -481,12 +486,8 @@ impl ViewerApp {
                 t.counters.unwrap_or_default(),
                 |p| built.geometry.triangle(p),
             ));
-            self.view = Some(View::for_camera(
-                s.shade,
-                s.heatmap,
-                &self.cam,
-                scene.diagonal(),
-            ));
+            let mode = if s.heatmap { Shade::Heatmap } else { s.shade };
+            self.view = Some(View::for_camera(mode, &self.cam, scene.diagonal()));
             self.key = Some(key);
             changed = true;
         }
@@ -698,7 +699,7 @@ fn heatmap_legend(ui: &mut egui::Ui, max: u32) {
     for k in 0..steps {
         let x0 = rect.left() + rect.width() * k as f32 / steps as f32;
         let x1 = rect.left() + rect.width() * (k + 1) as f32 / steps as f32;
-        let [r, g, b] = bvhtrace_core::palette::heat_ramp((k as f32 + 0.5) / steps as f32);
+        let [r, g, b] = bvhtrace_shade::palette::heat_ramp((k as f32 + 0.5) / steps as f32);
         ui.painter().rect_filled(
             egui::Rect::from_min_max(
                 egui::pos2(x0, rect.top()),
@@ -1023,7 +1024,7 @@ impl ViewerApp {
         egui::ComboBox::from_label("shading")
             .selected_text(self.settings.shade.label())
             .show_ui(ui, |ui| {
-                for s in Shade::ALL {
+                for s in Shade::SURFACE {
                     ui.selectable_value(&mut self.settings.shade, s, s.label());
                 }
             });

@@ -6,7 +6,7 @@
 //! together, the flags round-trip exactly).
 
 use bvhtrace_scene::Camera;
-use bvhtrace_scene::camera::parse_vec3;
+use bvhtrace_shade::args::parse_vec3;
 use glam::Vec3;
 
 /// The largest pitch (angle above or below the target's horizontal plane) orbiting reaches,

@@ -3,14 +3,14 @@
 use std::path::PathBuf;
 
 use bvhtrace_core::{BuilderKind, Traversal};
-use bvhtrace_scene::camera;
+use bvhtrace_shade::args;
 use glam::Vec3;
 
 use crate::shade::Shade;
 
-/// The window size flag: [`camera::parse_size`], between 200x150 and 8192x8192.
+/// The window size flag: [`args::parse_size`], between 200x150 and 8192x8192.
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = camera::parse_size(s)?;
+    let (w, h) = args::parse_size(s)?;
     if !(200..=8192).contains(&w) || !(150..=8192).contains(&h) {
         return Err(format!(
             "the window must be between 200x150 and 8192x8192, got {s}"
@@ -69,7 +69,7 @@ pub struct Args {
     /// Window size in points, WxH.
     #[arg(long, default_value = "1280x800", value_parser = parse_size)]
     pub size: (u32, u32),
-    /// Initial shading.
+    /// Initial shading (`heatmap` is the same as `--heatmap`).
     #[arg(long, value_enum, default_value_t = Shade::Normal)]
     pub shade: Shade,
     /// Start with the node-visit heatmap on.
@@ -92,10 +92,10 @@ pub struct Args {
     #[arg(long, value_parser = parse_scale)]
     pub scale: Option<f32>,
     /// Camera position X,Y,Z (with --target); the same flags as `bvhtrace render`.
-    #[arg(long, value_parser = camera::parse_vec3, requires = "target", allow_hyphen_values = true)]
+    #[arg(long, value_parser = args::parse_vec3, requires = "target", allow_hyphen_values = true)]
     pub eye: Option<Vec3>,
     /// Point the camera looks at.
-    #[arg(long, value_parser = camera::parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    #[arg(long, value_parser = args::parse_vec3, requires = "eye", allow_hyphen_values = true)]
     pub target: Option<Vec3>,
     /// Vertical field of view in degrees.
     #[arg(long, value_parser = parse_fov)]

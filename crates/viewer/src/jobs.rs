@@ -57,7 +57,7 @@ impl SceneData {
     /// `bvhtrace render` (a scene of one instance is flattened, and rebuilt at each new
     /// time when animated).
     pub fn two_level(&self) -> bool {
-        self.scene.instances.len() > 1
+        self.scene.traces_in_two_levels(false)
     }
 
     /// `t` wrapped into the animation, `[0, duration)` (0 without animation; 0 for a time
@@ -352,38 +352,30 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
     };
     let time = scene.wrap_time(req.time);
     let t1 = Instant::now();
-    let geometry = if scene.two_level() {
-        stage(format!(
+    stage(if scene.two_level() {
+        format!(
             "building two levels ({}, {} instances, {} triangles)",
             req.build.builder,
             scene.scene.instances.len(),
             scene.triangles
-        ));
-        let mut posed = scene.scene.clone();
-        posed.set_time(time);
-        let ib = posed
-            .instanced_bvh(&req.build)
-            .map_err(|e| format!("{}: two-level build failed: {e}", scene.spec))?;
-        SceneBvh::Instanced(ib)
+        )
     } else {
-        stage(format!("flattening {} triangles", scene.triangles));
-        let tris = if scene.animated() {
-            let mut posed = scene.scene.clone();
-            posed.set_time(time);
-            posed.flattened_triangles()
-        } else {
-            scene.scene.flattened_triangles()
-        }
-        .map_err(|e| format!("{}: bad geometry: {e}", scene.spec))?;
-        stage(format!(
-            "building the BVH ({}, {} triangles)",
-            req.build.builder,
-            tris.len()
-        ));
-        let bvh = FlatBvh::build(&tris, &req.build)
-            .map_err(|e| format!("{}: BVH build failed: {e}", scene.spec))?;
-        SceneBvh::Flat { tris, bvh }
-    };
+        format!(
+            "flattening and building the BVH ({}, {} triangles)",
+            req.build.builder, scene.triangles
+        )
+    });
+    // The scene at this time: two levels are posed always, as the CLI's `--time` does.
+    let posed = (scene.animated() || scene.two_level()).then(|| {
+        let mut p = scene.scene.clone();
+        p.set_time(time);
+        p
+    });
+    let geometry = posed
+        .as_ref()
+        .unwrap_or(&scene.scene)
+        .tracing_bvh(&req.build, false)
+        .map_err(|e| format!("{}: {e}", scene.spec))?;
     // The wide layout only for the wide walk: the side panel asks for a rebuild when it is
     // chosen later.
     let mut geometry = geometry;

@@ -1,103 +1,19 @@
-//! Turning hits into pixels, the same way `bvhtrace render` does (normals, depth, diffuse
-//! with a shadow ray, ambient occlusion, the node-visit heatmap), plus progressive
-//! accumulation: the diffuse and AO modes add more secondary samples every frame while the
-//! camera is still and show their running average.
+//! Progressive accumulation over the shared shading (`bvhtrace_shade`: the modes, the
+//! light, the secondary rays and the colours of `bvhtrace render`): the diffuse and AO
+//! modes add more secondary samples every frame while the camera is still and show their
+//! running average. Also the comparison of two backends' hits.
 //!
 //! Everything here runs on the CPU from the traced hits, for both backends, so the GPU and
 //! CPU images differ only where the hits do.
 
-use bvhtrace_core::palette;
+use bvhtrace_core::surface::SurfacePoint;
 use bvhtrace_core::{Counters, Hit, Ray, Triangle};
-use bvhtrace_scene::Camera;
+use bvhtrace_shade::{hit_colour, palette};
 use glam::Vec3;
 
-/// Background colour (the CLI's).
-pub const BACKGROUND: [u8; 3] = [24, 26, 32];
-
-/// What the image shows (besides the heatmap, which overrides it; see [`View::heatmap`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum Shade {
-    /// Geometric normal, facing the camera, as colour.
-    #[default]
-    Normal,
-    /// Distance: near bright, far dark.
-    Depth,
-    /// Diffuse light from a small spherical light near the camera, with shadow rays
-    /// (any-hit) to random points on it: soft shadows that converge as samples accumulate.
-    Diffuse,
-    /// Ambient occlusion: cosine-weighted any-hit rays of a limited length.
-    Ao,
-}
-
-impl Shade {
-    /// Every mode, in the order the UI lists them.
-    pub const ALL: [Shade; 4] = [Shade::Normal, Shade::Depth, Shade::Diffuse, Shade::Ao];
-
-    /// A short name for the UI.
-    pub fn label(self) -> &'static str {
-        match self {
-            Shade::Normal => "normals",
-            Shade::Depth => "depth",
-            Shade::Diffuse => "diffuse (soft shadows)",
-            Shade::Ao => "ambient occlusion",
-        }
-    }
-
-    /// True when the mode traces secondary rays and accumulates them over frames.
-    pub fn accumulates(self) -> bool {
-        matches!(self, Shade::Diffuse | Shade::Ao)
-    }
-}
-
-/// How to shade: the mode, the heatmap switch and the secondary rays' sizes.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct View {
-    /// The shading mode.
-    pub shade: Shade,
-    /// Show nodes visited per primary ray instead (with a legend).
-    pub heatmap: bool,
-    /// Length of the AO rays, world units.
-    pub ao_radius: f32,
-    /// Where the diffuse light is, world space.
-    pub light: Vec3,
-    /// Radius of the diffuse light, world units.
-    pub light_radius: f32,
-}
-
-impl View {
-    /// The CLI's light placement (up and to the right of the camera, so it lights what the
-    /// camera sees in closed rooms too), AO rays 15% of the scene's diagonal long.
-    pub fn for_camera(shade: Shade, heatmap: bool, cam: &Camera, scene_diag: f32) -> View {
-        let (_, right, up) = cam.basis();
-        let dist = (cam.target - cam.eye).length();
-        View {
-            shade,
-            heatmap,
-            ao_radius: 0.15 * scene_diag,
-            light: cam.eye + (right * 0.25 + up * 0.2) * dist,
-            light_radius: 0.04 * scene_diag,
-        }
-    }
-
-    /// True when more frames add samples to this view.
-    pub fn accumulates(&self) -> bool {
-        !self.heatmap && self.shade.accumulates()
-    }
-}
-
-// Leaving a surface (`Hit::surface`) and the repeatable sampling are the renderer's own
-// (`bvhtrace_core::surface`), so the viewer's images match `bvhtrace render`.
-use bvhtrace_core::surface::SurfacePoint;
-pub use bvhtrace_core::surface::{cosine_dir, uniform2};
-
-/// A uniformly distributed point on the unit sphere for sample `s` of pixel `p`.
-pub fn sphere_point(p: u32, s: u32) -> Vec3 {
-    let (u1, u2) = uniform2(p ^ 0x5bd1_e995, s);
-    let z = 1.0 - 2.0 * u1;
-    let r = (1.0 - z * z).max(0.0).sqrt();
-    let phi = std::f32::consts::TAU * u2;
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
-}
+// The modes, the light, the AO radius, the secondary rays and the colours are the shared
+// shading crate's, so the viewer's images match `bvhtrace render`.
+pub use bvhtrace_shade::{BACKGROUND, Shade, View};
 
 /// One primary pass and the secondary samples accumulated on top of it.
 #[derive(Clone, Debug, Default)]
@@ -173,12 +89,7 @@ impl Accumulation {
         for (&p, surface) in self.hit_pixels.iter().zip(&self.surfaces) {
             for k in 0..count {
                 let s = self.samples.wrapping_add(k);
-                out.push(match view.shade {
-                    Shade::Ao => {
-                        surface.spawn_ray(cosine_dir(surface.normal, p, s), view.ao_radius)
-                    }
-                    _ => surface.ray_toward(view.light + sphere_point(p, s) * view.light_radius),
-                });
+                out.extend(view.secondary_ray(surface, p, s));
             }
         }
         out
@@ -207,12 +118,7 @@ impl Accumulation {
 
     /// The most nodes any primary ray visited (the heatmap's scale), at least 1.
     pub fn max_nodes(&self) -> u32 {
-        self.counters
-            .iter()
-            .map(|c| c.nodes)
-            .max()
-            .unwrap_or(1)
-            .max(1)
+        bvhtrace_shade::max_nodes(&self.counters)
     }
 
     /// The image as RGBA8, row-major, top row first.
@@ -220,7 +126,7 @@ impl Accumulation {
         let n_px = self.width as usize * self.height as usize;
         let mut img = vec![255u8; n_px * 4];
         let mut put = |i: usize, c: [u8; 3]| img[i * 4..i * 4 + 3].copy_from_slice(&c);
-        if view.heatmap {
+        if view.heatmap() {
             let max = self.max_nodes() as f32;
             for i in 0..n_px {
                 let n = self.counters.get(i).map_or(0, |c| c.nodes);
@@ -238,29 +144,17 @@ impl Accumulation {
                 normal: n,
                 origin: o,
             } = self.surfaces[k];
-            let h = &self.hits[p];
-            let c = match view.shade {
-                Shade::Normal => palette::normal_colour(n),
-                Shade::Depth => palette::depth_grey(h.t, range),
-                Shade::Diffuse => {
-                    let lit = if self.samples == 0 {
-                        // No shadow samples yet: unshadowed light as a preview.
-                        n.dot((view.light - o).normalize_or_zero()).max(0.0)
-                    } else {
-                        self.sums[k] / self.samples as f32
-                    };
-                    palette::diffuse_colour(lit)
+            let mean = |sum: f32| sum / self.samples as f32;
+            let value = match view.shade {
+                // No shadow samples yet: unshadowed light as a preview.
+                Shade::Diffuse if self.samples == 0 => {
+                    n.dot((view.light - o).normalize_or_zero()).max(0.0)
                 }
-                Shade::Ao => {
-                    let v = if self.samples == 0 {
-                        1.0
-                    } else {
-                        self.sums[k] / self.samples as f32
-                    };
-                    palette::ao_grey(v)
-                }
+                Shade::Ao if self.samples == 0 => 1.0,
+                Shade::Diffuse | Shade::Ao => mean(self.sums[k]),
+                _ => 0.0,
             };
-            put(p, c);
+            put(p, hit_colour(view.shade, n, self.hits[p].t, range, value));
         }
         img
     }
@@ -313,6 +207,7 @@ pub fn compare_hits(a: &[Hit], b: &[Hit], base: &[u8]) -> (Comparison, Vec<u8>) 
 mod tests {
     use super::*;
     use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
+    use bvhtrace_scene::Camera;
 
     fn quad() -> Vec<Triangle> {
         let (a, b, c, d) = (
@@ -340,7 +235,7 @@ mod tests {
             tris.get(p as usize).copied()
         });
         assert!(acc.hit_count() > 0);
-        let view = View::for_camera(Shade::Ao, false, &cam, 2.0);
+        let view = View::for_camera(Shade::Ao, &cam, 2.0);
         for _ in 0..3 {
             let sec = acc.secondary_rays(&view, 4);
             assert_eq!(sec.len(), acc.hit_count() * 4);
@@ -355,7 +250,7 @@ mod tests {
         let centre = ((h / 2 * w + w / 2) * 4) as usize;
         assert_eq!(img[centre..centre + 3], [255, 255, 255]);
         // Non-accumulating views trace no secondary rays.
-        let normal = View::for_camera(Shade::Normal, false, &cam, 2.0);
+        let normal = View::for_camera(Shade::Normal, &cam, 2.0);
         assert!(acc.secondary_rays(&normal, 4).is_empty());
     }
 
@@ -384,12 +279,5 @@ mod tests {
         assert_eq!(&img[4..7], &[255, 40, 40]);
         assert_eq!(&img[12..15], &[255, 220, 40]);
         assert!((c.max_rel_t - 1.0 / 3.0).abs() < 1e-6);
-    }
-
-    #[test]
-    fn ramp_ends() {
-        assert_eq!(palette::heat_ramp(0.0), [12, 12, 114]);
-        assert_eq!(palette::heat_ramp(1.0), [216, 25, 12]);
-        assert_eq!(palette::heat_ramp(f32::NAN), palette::heat_ramp(0.0));
     }
 }

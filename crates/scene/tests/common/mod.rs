@@ -12,7 +12,7 @@ pub fn shared(test: &str) -> Option<PathBuf> {
     match bvhtrace_scene::shared_scenes_dir() {
         Some(d) if d.join("glb").is_dir() => Some(d),
         _ => {
-            println!("{test}: skipped, no shared/scenes folder (set BVHTRACE_SCENES)");
+            println!("{test}: skipped, no shared/scenes folder");
             None
         }
     }

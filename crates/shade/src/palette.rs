@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use crate::ray::Hit;
+use bvhtrace_core::Hit;
 
 /// `v` in [0, 1] as an 8-bit channel, rounded.
 pub fn to8(v: f32) -> u8 {
