@@ -22,7 +22,8 @@
 //! * [`Backend`]: every way to trace, by name (`auto`, `cpu`, `wgpu` or `gpu`, `vulkan`).
 //! * [`open`]: the tracer [`OpenOptions`] asks for, as an [`Opened`] that says what was
 //!   chosen (backend, device, storage, walk) and any fallback, as a sentence.
-//! * [`open_on_wgpu`], [`open_on_vulkan`]: the same on a device the caller owns.
+//! * [`Device`]: a backend opened once, to open tracers on for many trees;
+//!   [`open_on_wgpu`], [`open_on_vulkan`]: the same on a device the caller owns.
 //! * [`Tracer`]: what every opened tracer is; [`Tracer::update`] after the scene moved,
 //!   [`Tracer::kernels_used`] and [`Tracer::upload_stats`] for what ran and what was
 //!   uploaded.
@@ -35,7 +36,7 @@ mod backend;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
-pub use open::{OpenOptions, Opened, open, open_on_vulkan, open_on_wgpu};
+pub use open::{Device, OpenOptions, Opened, open, open_on_vulkan, open_on_wgpu};
 
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,

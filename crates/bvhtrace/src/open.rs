@@ -127,32 +127,214 @@ fn storage_name(s: BvhStorage) -> &'static str {
 /// was asked for) the full-stack walk, then the wide layout; when nothing fits, the error
 /// is the preferred choice's, which names the limit ([`TraceError::TooLarge`],
 /// [`TraceError::TooDeep`]). [`Opened::fallback`] says what was tried instead.
+///
+/// To open many trees on one device, open the [`Device`] once and call [`Device::open`].
 pub fn open<'a, B>(bvh: B, opts: &OpenOptions) -> Result<Opened<'a>, TraceError>
 where
     B: Borrow<FlatBvh> + Send + Sync + 'a,
 {
-    match opts.backend {
-        Backend::Cpu => open_cpu(bvh, opts, None),
-        Backend::Wgpu => open_on_wgpu(&wgpu_context(opts)?, bvh.borrow(), opts),
-        Backend::Vulkan => open_on_vulkan(&vulkan_context(opts)?, bvh.borrow(), opts),
-        Backend::Auto => {
-            let opened = match wgpu_context(opts) {
-                Ok(ctx) => open_on_wgpu(&ctx, bvh.borrow(), opts),
+    Device::new(opts)?.open(bvh, opts)
+}
+
+/// A backend opened once (the device and its pipeline cache), to open tracers on for many
+/// trees. Cheap to clone: the device is shared.
+#[derive(Clone)]
+pub struct Device {
+    inner: Inner,
+    /// Opened as [`Backend::Auto`]: a tree over the device's limits goes to the CPU.
+    auto: bool,
+    /// Why this is not the backend asked for.
+    fallback: Option<String>,
+}
+
+#[derive(Clone)]
+enum Inner {
+    Cpu,
+    Wgpu(GpuContext),
+    Vulkan(VkContext),
+}
+
+impl fmt::Debug for Device {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Device")
+            .field("backend", &self.backend())
+            .field("name", &self.name())
+            .field("fallback", &self.fallback)
+            .finish()
+    }
+}
+
+impl Device {
+    /// Opens the backend and adapter `opts` asks for ([`Backend::Auto`]: wgpu on the best
+    /// Vulkan adapter, else the CPU, saying why in [`Device::fallback`]).
+    pub fn new(opts: &OpenOptions) -> Result<Device, TraceError> {
+        let inner = match opts.backend {
+            Backend::Cpu => Inner::Cpu,
+            Backend::Wgpu => Inner::Wgpu(wgpu_context(opts)?),
+            Backend::Vulkan => Inner::Vulkan(vulkan_context(opts)?),
+            Backend::Auto => match wgpu_context(opts) {
+                Ok(ctx) => Inner::Wgpu(ctx),
                 Err(e @ TraceError::NoAdapter { .. }) => {
-                    let why = format!("there is no Vulkan adapter ({e}); tracing on the CPU");
-                    return open_cpu(bvh, opts, Some(why));
+                    return Ok(Device {
+                        inner: Inner::Cpu,
+                        auto: true,
+                        fallback: Some(format!(
+                            "there is no Vulkan adapter ({e}); tracing on the CPU"
+                        )),
+                    });
                 }
                 Err(e) => return Err(e),
-            };
-            match opened {
-                Ok(o) => Ok(o),
-                Err(e) if exceeds_a_limit(&e) => {
-                    let why =
-                        format!("the scene does not fit the device ({e}); tracing on the CPU");
-                    open_cpu(bvh, opts, Some(why))
-                }
-                Err(e) => Err(e),
+            },
+        };
+        Ok(Device {
+            inner,
+            auto: opts.backend == Backend::Auto,
+            fallback: None,
+        })
+    }
+
+    /// The CPU walks.
+    pub fn cpu() -> Device {
+        Device {
+            inner: Inner::Cpu,
+            auto: false,
+            fallback: None,
+        }
+    }
+
+    /// A wgpu device the caller opened (an application's, eframe's).
+    pub fn wgpu(ctx: GpuContext) -> Device {
+        Device {
+            inner: Inner::Wgpu(ctx),
+            auto: false,
+            fallback: None,
+        }
+    }
+
+    /// A Vulkan context the caller opened.
+    pub fn vulkan(ctx: VkContext) -> Device {
+        Device {
+            inner: Inner::Vulkan(ctx),
+            auto: false,
+            fallback: None,
+        }
+    }
+
+    /// The backend (never [`Backend::Auto`]).
+    pub fn backend(&self) -> Backend {
+        match self.inner {
+            Inner::Cpu => Backend::Cpu,
+            Inner::Wgpu(_) => Backend::Wgpu,
+            Inner::Vulkan(_) => Backend::Vulkan,
+        }
+    }
+
+    /// The adapter's name and type, or `cpu`.
+    pub fn name(&self) -> String {
+        match &self.inner {
+            Inner::Cpu => "cpu".to_string(),
+            Inner::Wgpu(c) => {
+                let i = c.adapter_info();
+                format!("{} ({:?})", i.name, i.device_type)
             }
+            Inner::Vulkan(c) => {
+                let i = c.device_info();
+                format!("{} ({:?})", i.name, i.kind)
+            }
+        }
+    }
+
+    /// Why this is not the backend asked for (`None` when it is).
+    pub fn fallback(&self) -> Option<&str> {
+        self.fallback.as_deref()
+    }
+
+    /// The wgpu context, on wgpu.
+    pub fn wgpu_context(&self) -> Option<&GpuContext> {
+        match &self.inner {
+            Inner::Wgpu(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// The Vulkan context, on Vulkan.
+    pub fn vulkan_context(&self) -> Option<&VkContext> {
+        match &self.inner {
+            Inner::Vulkan(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// The CPU-driver measures in force on a device backend (`None` on the CPU).
+    pub fn tuning(&self) -> Option<DriverTuning> {
+        match &self.inner {
+            Inner::Cpu => None,
+            Inner::Wgpu(c) => Some(*c.tuning()),
+            Inner::Vulkan(c) => Some(*c.tuning()),
+        }
+    }
+
+    /// [`Device::open`] for a tracer that keeps no borrow of `bvh` (a device upload, or
+    /// the CPU walks on a shared copy): what a tracer factory hands out.
+    pub fn open_owned(
+        &self,
+        bvh: &FlatBvh,
+        opts: &OpenOptions,
+    ) -> Result<Opened<'static>, TraceError> {
+        let opened = match &self.inner {
+            Inner::Cpu => return open_cpu(Arc::new(bvh.clone()), opts, self.fallback.clone()),
+            Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh, opts),
+            Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh, opts),
+        };
+        match opened {
+            Err(e) if self.auto && exceeds_a_limit(&e) => {
+                let why = format!(
+                    "the scene does not fit {} ({e}); tracing on the CPU",
+                    self.name()
+                );
+                open_cpu(Arc::new(bvh.clone()), opts, Some(why))
+            }
+            other => other,
+        }
+    }
+
+    /// A tracer factory on this device: each call opens a tracer for the tree, uploaded
+    /// for the walks listed ([`Device::open_owned`]). For a test suite or a stress run that
+    /// takes tracers from its caller.
+    pub fn tracer_factory(
+        &self,
+    ) -> impl Fn(&FlatBvh, &[Traversal]) -> Result<Box<dyn Tracer>, TraceError> + Send + Sync + 'static
+    {
+        let device = self.clone();
+        move |bvh, walks| {
+            let opts = OpenOptions {
+                traversals: walks.to_vec(),
+                ..OpenOptions::default()
+            };
+            Ok(device.open_owned(bvh, &opts)?.tracer)
+        }
+    }
+
+    /// Opens a tracer for `bvh` on this device, as [`open`] does (`opts.backend`,
+    /// `opts.adapter` and `opts.tuning` were the device's business and are not read).
+    pub fn open<'a, B>(&self, bvh: B, opts: &OpenOptions) -> Result<Opened<'a>, TraceError>
+    where
+        B: Borrow<FlatBvh> + Send + Sync + 'a,
+    {
+        let opened = match &self.inner {
+            Inner::Cpu => return open_cpu(bvh, opts, self.fallback.clone()),
+            Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh.borrow(), opts),
+            Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh.borrow(), opts),
+        };
+        match opened {
+            Err(e) if self.auto && exceeds_a_limit(&e) => {
+                let why = format!(
+                    "the scene does not fit {} ({e}); tracing on the CPU",
+                    self.name()
+                );
+                open_cpu(bvh, opts, Some(why))
+            }
+            other => other,
         }
     }
 }

@@ -65,6 +65,7 @@ enum Command {
 }
 
 fn main() {
+    backend::private_runtime_dir();
     let cli = Cli::parse();
     let result: Result<()> = match cli.command {
         Command::Render(a) => render::render(a),
