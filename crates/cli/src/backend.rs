@@ -2,9 +2,13 @@
 //! with what the library does not read: the environment.
 
 use std::path::PathBuf;
+use std::sync::Arc;
 
 use anyhow::Result;
-use bvhtrace::{ADAPTER_ENV, AdapterChoice, Device, FlatBvh, OpenOptions, Opened, Traversal};
+use bvhtrace::{
+    ADAPTER_ENV, AdapterChoice, Device, DriverTuning, FlatBvh, OpenOptions, Opened, Traversal,
+};
+use bvhtrace_stress::{DeviceTracers, StressDevice};
 
 pub use bvhtrace::Backend;
 
@@ -71,6 +75,26 @@ pub fn open<'a>(
         eprintln!("note: {why}");
     }
     Ok(opened)
+}
+
+/// A device backend for `bvhtrace stress`, opened through the front door (with the
+/// environment): its adapter's name, its measures, and a factory of tracers on it.
+pub fn stress_device(which: StressDevice) -> std::result::Result<DeviceTracers, String> {
+    let backend = match which {
+        StressDevice::Gpu => Backend::Wgpu,
+        StressDevice::Vk => Backend::Vulkan,
+    };
+    let device = Device::new(&options(backend, None, &[])).map_err(|e| e.to_string())?;
+    let name = match (device.wgpu_context(), device.vulkan_context()) {
+        (Some(c), _) => c.adapter_info().name.clone(),
+        (_, Some(c)) => c.device_info().name.clone(),
+        _ => device.name(),
+    };
+    Ok(DeviceTracers {
+        name,
+        tuning: device.tuning().unwrap_or(DriverTuning::GPU),
+        open: Arc::new(device.tracer_factory()),
+    })
 }
 
 /// Gives the process a private `XDG_RUNTIME_DIR` (under the temp dir, mode 0700) when it
