@@ -12,8 +12,7 @@ use bvhtrace_core::{
     Triangle, trace_rays,
 };
 use bvhtrace_gpu::{
-    AdapterChoice, Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions,
-    VertexAttributes,
+    Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions, VertexAttributes,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -746,7 +745,14 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
-    let ctx = GpuContext::new(AdapterChoice::from_name(args.adapter.as_deref()))?;
+    let device = crate::backend::device(&crate::backend::options(
+        crate::backend::Backend::Wgpu,
+        args.adapter.as_deref(),
+        &[],
+    ))?;
+    let ctx = device
+        .wgpu_context()
+        .context("bench-trace measures the wgpu backend")?;
     let info = ctx.adapter_info();
     println!(
         "adapter: {} ({:?}); CPU: {} threads",
@@ -755,7 +761,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
         rayon::current_num_threads()
     );
     if args.everything_on {
-        return compare_everything_on(&ctx, &args, w, h);
+        return compare_everything_on(ctx, &args, w, h);
     }
     let traversals = if args.traversals.is_empty() {
         vec![
@@ -786,11 +792,11 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
         }
         let wide_ms = t.elapsed().as_secs_f64() * 1e3;
         let rays = primary_rays(&scene, w, h);
-        let upload = UploadOptions {
+        let upload = bvhtrace::OpenOptions {
             traversals: traversals.clone(),
-            storage: None,
+            ..Default::default()
         };
-        let gpu = GpuBvh::upload(&ctx, &bvh, &upload)?;
+        let gpu = bvhtrace::open_on_wgpu(ctx, &bvh, &upload)?.tracer;
         let dump = match &args.embree {
             Some(_) => Some(Dump::write("trace", &tris, &rays)?),
             None => None,

@@ -25,7 +25,7 @@ use crate::accuracy::{self, ErrorStats};
 use crate::bench::median;
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade;
-use bvhtrace_gpu::{AdapterChoice, CpuTracer, Tracer};
+use bvhtrace::{Backend, CpuTracer, Tracer};
 
 /// Which rays a configuration traces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -290,29 +290,25 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         .map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?)))
         .collect::<Result<_>>()?;
 
-    let gpu_ctx = if args.backends.iter().any(|b| b == "gpu") {
-        match bvhtrace_gpu::GpuContext::new(AdapterChoice::from_name(args.adapter.as_deref())) {
-            Ok(c) => Some(c),
+    // Each device opened once, through the front door; `vulkan` runs the same kernels
+    // through ash (bvhtrace-vk), BVH in storage buffers.
+    let open_device = |name: &str, backend: Backend| {
+        if !args.backends.iter().any(|b| b == name) {
+            return None;
+        }
+        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
+        match crate::backend::device(&opts) {
+            Ok(d) => Some(d),
             Err(e) => {
-                eprintln!("note: no GPU ({e}); benchmarking the CPU only");
+                eprintln!("note: no {backend} device ({e}); leaving out '{name}'");
                 None
             }
         }
-    } else {
-        None
     };
-    // `vulkan`: the same kernels through ash (bvhtrace-vk), BVH in storage buffers.
-    let vk_ctx = if args.backends.iter().any(|b| b == "vulkan") {
-        match bvhtrace_vk::VkContext::new(AdapterChoice::from_name(args.adapter.as_deref())) {
-            Ok(c) => Some(c),
-            Err(e) => {
-                eprintln!("note: no Vulkan device through ash ({e}); leaving out 'vulkan'");
-                None
-            }
-        }
-    } else {
-        None
-    };
+    let gpu_device = open_device("gpu", Backend::Wgpu);
+    let gpu_ctx = gpu_device.as_ref().and_then(|d| d.wgpu_context());
+    let vk_device = open_device("vulkan", Backend::Vulkan);
+    let vk_ctx = vk_device.as_ref().and_then(|d| d.vulkan_context());
     if let Some(c) = &gpu_ctx {
         eprintln!(
             "GPU: {} ({:?})",
@@ -424,7 +420,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
         );
-        let mut built: Vec<Option<(FlatBvh, f64, Option<bvhtrace_gpu::GpuBvh>)>> =
+        let mut built: Vec<Option<(FlatBvh, f64, Option<Box<dyn Tracer>>)>> =
             (0..builders.len()).map(|_| None).collect();
         let mut scene_rows = Vec::new();
         for (bi, tr, be, kind, prec) in plan {
@@ -440,12 +436,12 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 }
                 // The wide layout is converted from the same tree, untimed here.
                 let bvh = bvh.context("no build")?.with_wide();
-                let every = bvhtrace_gpu::UploadOptions {
+                let every = bvhtrace::OpenOptions {
                     traversals: TRAVERSALS.to_vec(),
-                    storage: None,
+                    ..Default::default()
                 };
-                let gpu = match &gpu_ctx {
-                    Some(c) => Some(bvhtrace_gpu::GpuBvh::upload(c, &bvh, &every)?),
+                let gpu = match gpu_ctx {
+                    Some(c) => Some(bvhtrace::open_on_wgpu(c, &bvh, &every)?.tracer),
                     None => None,
                 };
                 built[bi] = Some((bvh, median(times), gpu));
@@ -455,12 +451,18 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             };
             let cpu = CpuTracer::new(bvh);
             let vk = match (be, &vk_ctx) {
-                ("vulkan", Some(c)) => Some(bvhtrace_vk::VkBvh::upload(c, bvh)?),
+                ("vulkan", Some(c)) => {
+                    let every = bvhtrace::OpenOptions {
+                        traversals: TRAVERSALS.to_vec(),
+                        ..Default::default()
+                    };
+                    Some(bvhtrace::open_on_vulkan(c, bvh, &every)?.tracer)
+                }
                 _ => None,
             };
             let tracer: &dyn Tracer = match (be, gpu, &vk) {
-                ("gpu", Some(g), _) => g,
-                ("vulkan", _, Some(v)) => v,
+                ("gpu", Some(g), _) => &**g,
+                ("vulkan", _, Some(v)) => &**v,
                 _ => &cpu,
             };
             let (kind_idx, rays) = kinds

@@ -20,11 +20,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
+use bvhtrace::{Backend, CpuTracer, Tracer};
 use bvhtrace_core::traverse::DEFAULT_SHORT_STACK;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
 };
-use bvhtrace_gpu::{AdapterChoice, CpuTracer, Tracer};
 use bvhtrace_scene::Camera;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -475,36 +475,23 @@ fn render(
     Ok((img, traced))
 }
 
-/// A backend opened once per run.
-enum Device {
-    Cpu,
-    Gpu(bvhtrace_gpu::GpuContext),
-    Vulkan(bvhtrace_vk::VkContext),
+/// A backend opened once per run, with the name `--backends` gave it.
+struct Device {
+    label: &'static str,
+    device: bvhtrace::Device,
 }
 
 impl Device {
     fn name(&self) -> &'static str {
-        match self {
-            Device::Cpu => "cpu",
-            Device::Gpu(_) => "gpu",
-            Device::Vulkan(_) => "vulkan",
-        }
+        self.label
     }
 
-    /// Uploads `bvh` for `walk`; the tracer and the upload's time.
+    /// Opens a tracer for `bvh` and `walk` through the front door; the tracer and the
+    /// upload's time.
     fn upload<'a>(&self, bvh: &'a FlatBvh, walk: Traversal) -> Result<(Box<dyn Tracer + 'a>, f64)> {
         let t = Instant::now();
-        let tracer: Box<dyn Tracer + 'a> = match self {
-            Device::Cpu => Box::new(CpuTracer::new(bvh)),
-            Device::Gpu(c) => {
-                let opts = bvhtrace_gpu::UploadOptions {
-                    traversals: vec![walk],
-                    storage: None,
-                };
-                Box::new(bvhtrace_gpu::GpuBvh::upload(c, bvh, &opts)?)
-            }
-            Device::Vulkan(c) => Box::new(bvhtrace_vk::VkBvh::upload(c, bvh)?),
-        };
+        let opts = bvhtrace::OpenOptions::default().with_traversal(walk);
+        let tracer = crate::backend::open_on(&self.device, bvh, &opts)?.tracer;
         Ok((tracer, t.elapsed().as_secs_f64() * 1e3))
     }
 }
@@ -512,25 +499,22 @@ impl Device {
 /// Opens the backends `--backends` names, in its order; a device backend that cannot open
 /// is left out with a note.
 fn open_devices(args: &BenchArgs) -> Vec<Device> {
-    let choice = || AdapterChoice::from_name(args.adapter.as_deref());
     let mut v = Vec::new();
     for b in &args.backends {
-        match b.as_str() {
-            "gpu" => match bvhtrace_gpu::GpuContext::new(choice()) {
-                Ok(c) => {
-                    let i = c.adapter_info();
-                    eprintln!("GPU: {} ({:?})", i.name, i.device_type);
-                    v.push(Device::Gpu(c));
+        let (label, backend) = match b.as_str() {
+            "gpu" => ("gpu", Backend::Wgpu),
+            "vulkan" => ("vulkan", Backend::Vulkan),
+            _ => ("cpu", Backend::Cpu),
+        };
+        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
+        match crate::backend::device(&opts) {
+            Ok(device) => {
+                if backend == Backend::Wgpu {
+                    eprintln!("GPU: {}", device.name());
                 }
-                Err(e) => eprintln!("note: no GPU ({e}); leaving out 'gpu'"),
-            },
-            "vulkan" => match bvhtrace_vk::VkContext::new(choice()) {
-                Ok(c) => v.push(Device::Vulkan(c)),
-                Err(e) => {
-                    eprintln!("note: no Vulkan device through ash ({e}); leaving out 'vulkan'")
-                }
-            },
-            _ => v.push(Device::Cpu),
+                v.push(Device { label, device });
+            }
+            Err(e) => eprintln!("note: no {backend} device ({e}); leaving out '{b}'"),
         }
     }
     v

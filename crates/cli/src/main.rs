@@ -65,6 +65,7 @@ enum Command {
 }
 
 fn main() {
+    backend::private_runtime_dir();
     let cli = Cli::parse();
     let result: Result<()> = match cli.command {
         Command::Render(a) => render::render(a),
@@ -74,7 +75,7 @@ fn main() {
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
         Command::BenchRefit(a) => bench_refit::bench_refit(a),
-        Command::Stress(a) => bvhtrace_stress::run(a),
+        Command::Stress(a) => bvhtrace_stress::run(a, &backend::stress_device),
         Command::Cost(a) => cost::cost(a),
     };
     if let Err(e) = result {

@@ -11,8 +11,8 @@ use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, Query, Ray, TraceOptions,
     TraceOutput, Traversal,
 };
-use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats, VertexAttributes};
-use bvhtrace_scene::{Attributes, Camera, DEFAULT_SCENE, Scene, SceneBvh};
+use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats};
+use bvhtrace_scene::{Camera, DEFAULT_SCENE, Scene, SceneBvh};
 use bvhtrace_shade::args as flags;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -129,8 +129,9 @@ pub struct RenderArgs {
     pub output: PathBuf,
     #[command(flatten)]
     pub view: CameraArgs,
-    /// Where to trace.
-    #[arg(long, value_enum, default_value_t = Backend::Gpu)]
+    /// Where to trace: auto (wgpu on the best Vulkan adapter, else the CPU), gpu (wgpu),
+    /// vulkan (the same kernels through ash) or cpu.
+    #[arg(long, default_value = "auto")]
     pub backend: Backend,
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
@@ -287,10 +288,16 @@ pub fn render(args: RenderArgs) -> Result<()> {
     }
     let bvh = geo.bvh();
     let cam = camera_for(&args.view, &scene)?;
-    let tracer = open_tracer(&args, walk, bvh)?;
-    let job = Job::new(&args, walk, &*tracer, &cam, bvh);
+    let opened = backend::open(
+        args.backend,
+        args.adapter.as_deref(),
+        bvh,
+        &walk.into_iter().collect::<Vec<_>>(),
+    )?;
+    let tracer: &dyn Tracer = &*opened.tracer;
+    let job = Job::new(&args, opened.traversal, &cam, bvh);
     let rays = cam.rays(args.view.size.0, args.view.size.1);
-    let (frame, runs) = trace_runs(&job, &*tracer, &geo, &rays)?;
+    let (frame, runs) = trace_runs(&job, tracer, &geo, &rays)?;
     let img = compose(&job, &geo, &rays, &frame);
     write_png(png, args.view.size.0, args.view.size.1, img)?;
     let report = Report {
@@ -299,7 +306,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         geo: &geo,
         bvh,
         cam: &cam,
-        tracer: &*tracer,
+        tracer,
+        fallback: opened.fallback.as_deref(),
         frame: &frame,
         runs: &runs,
         load_ms,
@@ -312,27 +320,12 @@ pub fn render(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// Opens the backend and uploads the tree for the walk asked for (or the device's default).
-fn open_tracer<'a>(
-    args: &RenderArgs,
-    walk: Option<Traversal>,
-    bvh: &'a FlatBvh,
-) -> Result<Box<dyn Tracer + 'a>> {
-    let walk = walk.unwrap_or(Traversal::GPU_DEFAULT);
-    backend::open(args.backend, args.adapter.as_deref(), bvh, &[walk])
-}
-
 impl<'a> Job<'a> {
-    fn new(
-        args: &'a RenderArgs,
-        walk: Option<Traversal>,
-        tracer: &dyn Tracer,
-        cam: &Camera,
-        bvh: &FlatBvh,
-    ) -> Job<'a> {
+    /// The job of `args`, tracing with `traversal` (the walk the front door settled on).
+    fn new(args: &'a RenderArgs, traversal: Traversal, cam: &Camera, bvh: &FlatBvh) -> Job<'a> {
         Job {
             args,
-            traversal: walk.unwrap_or_else(|| tracer.default_traversal()),
+            traversal,
             counters: args.counters || args.shade == Shade::Heatmap,
             view: View::hard_shadows(args.shade, cam, bvh),
         }
@@ -463,6 +456,8 @@ struct Report<'a> {
     bvh: &'a FlatBvh,
     cam: &'a Camera,
     tracer: &'a dyn Tracer,
+    /// What the front door chose instead of what was asked or preferred, and why.
+    fallback: Option<&'a str>,
     frame: &'a Frame,
     runs: &'a [Timing],
     load_ms: f64,
@@ -470,19 +465,9 @@ struct Report<'a> {
 }
 
 impl Report<'_> {
-    /// The device pipelines the job ran, each composed of only what it needs.
+    /// The device pipelines the job ran, as the tracer reports them.
     fn pipelines(&self) -> Vec<KernelKey> {
-        match self.tracer.upload_stats() {
-            Some(u) => render_pipelines(
-                u.storage,
-                self.job.traversal,
-                !self.frame.owner.is_empty(),
-                self.job.counters,
-                &self.scene.attributes,
-                self.bvh.is_instanced(),
-            ),
-            None => Vec::new(),
-        }
+        self.tracer.kernels_used()
     }
 
     fn print(&self) {
@@ -558,6 +543,7 @@ impl Report<'_> {
             "optimize": args.scene.build.optimize,
             "shade": args.shade,
             "uploaded_bytes": self.tracer.uploaded_bytes(),
+            "fallback": self.fallback,
             "features": features,
             "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
             "upload": upload.map(|s| upload_json(&s, self.geo.triangle_count())),
@@ -596,33 +582,31 @@ fn compose(job: &Job, geo: &SceneBvh, rays: &[Ray], frame: &Frame) -> Vec<u8> {
     shade::compose_rgb(&job.view, &pixels, &|p| geo.triangle(p).unwrap_or_default())
 }
 
-/// Per-vertex data the shading modes read on the GPU: none (shading runs on the host, from
-/// the geometric normal), so a scene's normals, texture coordinates and colours are never
-/// uploaded.
-const JOB_ATTRIBUTES: VertexAttributes = VertexAttributes::NONE;
-
-/// The GPU pipelines a render job runs: closest hit for the primary rays (with counters
-/// when asked for), and any hit for the shadow or AO rays when there are any.
-fn render_pipelines(
-    storage: BvhStorage,
-    traversal: Traversal,
-    secondary: bool,
-    counters: bool,
-    scene_has: &Attributes,
-    instanced: bool,
-) -> Vec<KernelKey> {
-    let has = VertexAttributes {
-        normals: scene_has.normals,
-    };
-    let job = |query, counters| {
-        let opts = TraceOptions::new(traversal, query).with_counters(counters);
-        KernelKey::for_job(storage, &opts, has, JOB_ATTRIBUTES).with_instances(instanced)
-    };
-    let mut v = vec![job(Query::Closest, counters)];
-    if secondary {
-        v.push(job(Query::Any, false));
+/// The walk, pipelines and upload of the job `info` describes, as the tracer reports
+/// them: the tree opened through the front door in the storage asked for, and one probe
+/// ray traced per query the job runs (closest hit, with counters for the heatmap; any
+/// hit for diffuse and ambient occlusion). No pipeline and no upload without a device.
+fn info_job(
+    args: &InfoArgs,
+    bvh: &FlatBvh,
+) -> Result<(Traversal, Vec<KernelKey>, Option<UploadStats>)> {
+    let walks: Vec<Traversal> = args.traversal.into_iter().collect();
+    let opts = backend::options(Backend::Auto, args.adapter.as_deref(), &walks);
+    let opened = bvhtrace::open(bvh, &opts.with_storage(args.storage))?;
+    if let Some(why) = &opened.fallback {
+        eprintln!("note: {why}");
     }
-    v
+    let (tracer, traversal) = (&opened.tracer, opened.traversal);
+    let probe = [Ray::new(Vec3::ZERO, Vec3::Z)];
+    let counters = args.shade == Shade::Heatmap;
+    tracer.trace(
+        &probe,
+        &TraceOptions::closest(traversal).with_counters(counters),
+    )?;
+    if matches!(args.shade, Shade::Diffuse | Shade::Ao) {
+        tracer.trace(&probe, &TraceOptions::new(traversal, Query::Any))?;
+    }
+    Ok((traversal, tracer.kernels_used(), tracer.upload_stats()))
 }
 
 /// One pipeline as JSON: entry point, what it includes, its WGSL files and bindings.
@@ -738,6 +722,9 @@ pub struct InfoArgs {
     /// adapters such as lavapipe get).
     #[arg(long, default_value = "buffers", value_parser = parse_storage)]
     pub storage: BvhStorage,
+    /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
+    #[arg(long)]
+    pub adapter: Option<String>,
     /// List the built-in scenes and exit.
     #[arg(long)]
     pub list: bool,
@@ -765,25 +752,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
     let (nb, eb, tb) = bvh.byte_sizes();
-    let traversal = args.traversal.unwrap_or(Traversal::GPU_DEFAULT);
-    let pipelines = render_pipelines(
-        args.storage,
-        traversal,
-        matches!(args.shade, Shade::Diffuse | Shade::Ao),
-        args.shade == Shade::Heatmap,
-        &scene.attributes,
-        bvh.is_instanced(),
-    );
-    // What `GpuBvh::upload` uploads for these pipelines (the same for each of them): the
-    // wide layout's own node count for the wide walk.
-    let (nodes, triangles) = if traversal.is_wide() {
-        let w = bvhtrace_core::WideBvh::collapse(bvh);
-        (w.nodes.len(), w.triangles.len())
-    } else {
-        (bvh.nodes.len(), bvh.triangles.len())
-    };
-    let upload =
-        pipelines[0].upload_bytes(nodes as u64, triangles as u64, bvh.instances.len() as u64);
+    let (traversal, pipelines, upload) = info_job(&args, bvh)?;
     let mut v = json!({
         "scene": args.scene.spec(),
         "name": scene.name,
@@ -803,7 +772,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-        "upload": upload_json(&upload, geo.triangle_count()),
+        "upload": upload.map(|u| upload_json(&u, geo.triangle_count())),
         "left_out": left_out(&pipelines, &scene, &geo, traversal),
         "traversal": traversal.to_string(),
         "default_traversal": { "cpu": Traversal::CPU_DEFAULT.to_string(), "gpu": Traversal::GPU_DEFAULT.to_string() },
@@ -878,15 +847,17 @@ pub fn info(args: InfoArgs) -> Result<()> {
             bindings.join(", ")
         );
     }
-    println!(
-        "upload      {} bytes ({:?}: nodes {}, triangles {}, escapes {}) = {:.1} bytes/triangle",
-        upload.total_bytes(),
-        args.storage,
-        upload.nodes_bytes,
-        upload.triangles_bytes,
-        upload.escapes_bytes,
-        upload.total_bytes() as f64 / geo.triangle_count().max(1) as f64
-    );
+    if let Some(upload) = upload {
+        println!(
+            "upload      {} bytes ({:?}: nodes {}, triangles {}, escapes {}) = {:.1} bytes/triangle",
+            upload.total_bytes(),
+            upload.storage,
+            upload.nodes_bytes,
+            upload.triangles_bytes,
+            upload.escapes_bytes,
+            upload.total_bytes() as f64 / geo.triangle_count().max(1) as f64
+        );
+    }
     println!(
         "traversals  default {} on the CPU, {} on a GPU (the fastest on each)",
         Traversal::CPU_DEFAULT,

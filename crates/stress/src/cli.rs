@@ -8,7 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use crate::report::{table_header, table_rows};
-use crate::runner::{Backends, CaseReport, run_case};
+use crate::runner::{Backends, CaseReport, DeviceTracers, run_case};
 use crate::{CASE_GROUPS, Size, select_cases};
 
 /// Arguments of `bvhtrace stress`.
@@ -58,10 +58,24 @@ struct JsonReport<'a> {
     cases: &'a [CaseReport],
 }
 
+/// A device backend `bvhtrace stress` asks its caller for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StressDevice {
+    /// The WGSL kernels through wgpu (rows `gpu`).
+    Gpu,
+    /// The same kernels on raw Vulkan through ash (rows `vk`).
+    Vk,
+}
+
 /// Runs the selected cases, prints the table (one row per case x backend x traversal,
 /// closest-hit with the any-hit false misses/hits beside it, then notes per case), writes
-/// the JSON, and fails when any run broke a guarantee (see `CaseReport::clean`).
-pub fn run(args: StressArgs) -> Result<()> {
+/// the JSON, and fails when any run broke a guarantee (see `CaseReport::clean`). `devices`
+/// opens each device backend `--backends` asks for (or says why it cannot): this crate
+/// opens none itself.
+pub fn run(
+    args: StressArgs,
+    devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
+) -> Result<()> {
     if args.list {
         for (g, d) in CASE_GROUPS {
             println!("{g:<16} {d}");
@@ -96,9 +110,12 @@ pub fn run(args: StressArgs) -> Result<()> {
         Box::new(std::io::stdout())
     };
 
-    let mut backends = Backends::new(cpu, gpu);
+    let mut backends = Backends::new(cpu);
+    if gpu {
+        backends = backends.with_gpu(devices(StressDevice::Gpu));
+    }
     if vk {
-        backends = backends.with_vulkan();
+        backends = backends.with_vulkan(devices(StressDevice::Vk));
     }
     if gpu && backends.gpu.is_none() {
         let note = backends.gpu_note.clone().unwrap_or_default();

@@ -7,7 +7,8 @@
 //! * [`run_case`] builds the BVH (two levels, an [`bvhtrace_core::InstancedBvh`], when
 //!   the case has [`Case::instancing`]) and traces the rays on every [`Backends`] entry
 //!   (the CPU twins, and the GPU kernels through wgpu and, with
-//!   [`Backends::with_vulkan`], through ash, when a device exists) with every traversal
+//!   [`Backends::with_vulkan`], through ash, on the tracers the caller's
+//!   [`DeviceTracers`] factories open: this crate opens no backend) with every traversal
 //!   and query,
 //!   and compares: against the known answers, against the f64 oracle (differences
 //!   classified as *f32-indeterminate* or *wrong* with
@@ -34,13 +35,13 @@ use bvhtrace_core::{BuildOptions, Instance, Ray, Triangle};
 use serde::Serialize;
 
 pub use cases::{CASE_GROUPS, cases, cases_sized, select_cases};
-pub use cli::{StressArgs, run};
+pub use cli::{StressArgs, StressDevice, run};
 pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
-    Backends, CaseReport, Differences, PrecisionRow, RunReport, TRAVERSALS, run_case,
-    run_case_with_timeout,
+    Backends, CaseReport, DeviceTracers, Differences, OpenTracer, PrecisionRow, RunReport,
+    TRAVERSALS, run_case, run_case_with_timeout,
 };
 
 /// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.

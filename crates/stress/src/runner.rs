@@ -1,7 +1,7 @@
 //! Running a case on every backend, traversal and query, and judging the answers.
 
 use std::collections::HashMap;
-use std::sync::mpsc;
+use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
 
 use bvhtrace_core::intersect::flush_subnormal;
@@ -10,9 +10,7 @@ use bvhtrace_core::{
     FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, Precision, Query, Ray,
     TraceOptions, TraceOutput, Traversal, Triangle, brute_force,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
-use bvhtrace_kernels::{CpuTracer, FULL_STACK_SIZE, TraceError, Tracer};
-use bvhtrace_vk::{VkBvh, VkContext};
+use bvhtrace_kernels::{CpuTracer, DriverTuning, FULL_STACK_SIZE, TraceError, Tracer};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -30,18 +28,36 @@ pub const TRAVERSALS: [Traversal; 5] = [
     Traversal::Wide,
 ];
 
-/// Where to trace: the CPU twins, and the GPU kernels when a device was opened (through
-/// wgpu, rows `gpu`; through ash, rows `vk`).
+/// Opens a tracer for a case's tree, uploaded for the walks listed: what the caller gives
+/// the runner for each device (the CLI builds it with the front door, `bvhtrace::Device`),
+/// so that this crate opens no backend itself.
+pub type OpenTracer =
+    Arc<dyn Fn(&FlatBvh, &[Traversal]) -> Result<Box<dyn Tracer>, TraceError> + Send + Sync>;
+
+/// A device backend the caller opened: its name, its CPU-driver measures, and how to open
+/// tracers on it.
+#[derive(Clone)]
+pub struct DeviceTracers {
+    /// The adapter's name.
+    pub name: String,
+    /// The measures in force (a bounded loop-trip budget on CPU drivers such as lavapipe).
+    pub tuning: DriverTuning,
+    /// The tracer factory.
+    pub open: OpenTracer,
+}
+
+/// Where to trace: the CPU twins, and the GPU kernels on each device the caller opened
+/// (through wgpu, rows `gpu`; through ash, rows `vk`).
 #[derive(Clone)]
 pub struct Backends {
     /// Report the CPU twins' rows (they are always traced: the GPU is compared with them).
     pub cpu: bool,
-    /// The GPU device, when there is one and it was asked for.
-    pub gpu: Option<GpuContext>,
+    /// The wgpu device, when there is one and it was asked for.
+    pub gpu: Option<DeviceTracers>,
     /// Why there is no GPU (no adapter, or not asked for).
     pub gpu_note: Option<String>,
     /// The same kernels on raw Vulkan through ash ([`Backends::with_vulkan`]).
-    pub vk: Option<VkContext>,
+    pub vk: Option<DeviceTracers>,
     /// Why there is no ash device (no Vulkan loader or device, or not asked for).
     pub vk_note: Option<String>,
 }
@@ -70,44 +86,43 @@ impl Backends {
         }
     }
 
-    /// The CPU (when `cpu`) and the GPU (when `gpu` and an adapter opens: `$BVHTRACE_ADAPTER`
-    /// or the best one). Without an adapter, `gpu_note` says why.
-    pub fn new(cpu: bool, gpu: bool) -> Backends {
-        if !gpu {
-            return Backends {
-                cpu,
-                ..Backends::cpu_only()
-            };
+    /// The CPU twins, their rows reported when `cpu`.
+    pub fn new(cpu: bool) -> Backends {
+        Backends {
+            cpu,
+            ..Backends::cpu_only()
         }
-        match GpuContext::new(AdapterChoice::Auto) {
-            Ok(ctx) => Backends {
-                cpu,
-                gpu: Some(ctx),
+    }
+
+    /// These backends plus the wgpu device `gpu` (or, without one, why not).
+    pub fn with_gpu(self, gpu: Result<DeviceTracers, String>) -> Backends {
+        match gpu {
+            Ok(d) => Backends {
+                gpu: Some(d),
                 gpu_note: None,
-                ..Backends::cpu_only()
+                ..self
             },
-            Err(e) => Backends {
-                cpu,
+            Err(note) => Backends {
                 gpu: None,
-                gpu_note: Some(e.to_string()),
-                ..Backends::cpu_only()
+                gpu_note: Some(note),
+                ..self
             },
         }
     }
 
-    /// These backends plus the kernels on raw Vulkan through ash (`$BVHTRACE_ADAPTER` or
-    /// the best device), traced and compared with the CPU twins like the wgpu rows. Without
-    /// a Vulkan loader or device, `vk_note` says why.
-    pub fn with_vulkan(self) -> Backends {
-        match VkContext::new(AdapterChoice::Auto) {
-            Ok(ctx) => Backends {
-                vk: Some(ctx),
+    /// These backends plus the kernels on raw Vulkan through ash (or, without a Vulkan
+    /// loader or device, why not), traced and compared with the CPU twins like the wgpu
+    /// rows.
+    pub fn with_vulkan(self, vk: Result<DeviceTracers, String>) -> Backends {
+        match vk {
+            Ok(d) => Backends {
+                vk: Some(d),
                 vk_note: None,
                 ..self
             },
-            Err(e) => Backends {
+            Err(note) => Backends {
                 vk: None,
-                vk_note: Some(e.to_string()),
+                vk_note: Some(note),
                 ..self
             },
         }
@@ -115,12 +130,12 @@ impl Backends {
 
     /// The GPU adapter's name.
     pub fn gpu_name(&self) -> Option<String> {
-        self.gpu.as_ref().map(|g| g.adapter_info().name.clone())
+        self.gpu.as_ref().map(|g| g.name.clone())
     }
 
     /// The ash device's name.
     pub fn vk_name(&self) -> Option<String> {
-        self.vk.as_ref().map(|v| v.device_info().name.clone())
+        self.vk.as_ref().map(|v| v.name.clone())
     }
 }
 
@@ -1137,56 +1152,42 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     let (runs, cpu_hits) = trace_all(&cpu, "cpu", case, queries, &judge, None, backends.cpu);
     rep.runs.extend(runs);
 
-    if let Some(ctx) = &backends.gpu {
-        let deep = bvh.depth > FULL_STACK_SIZE;
-        let upload = if deep {
-            match GpuBvh::upload(ctx, &bvh, &UploadOptions::all()) {
-                Err(e @ GpuError::TooDeep { .. }) => {
-                    rep.gpu_full_stack = Some(format!("refused (as it must be): {e}"));
-                }
-                Err(e) => {
-                    rep.gpu_full_stack = Some(format!("ERROR: the upload failed otherwise: {e}"));
-                }
-                Ok(_) => {
-                    rep.gpu_full_stack = Some(format!(
-                        "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
-                        bvh.depth
-                    ));
-                }
-            }
-            let opts = UploadOptions {
-                traversals: TRAVERSALS
-                    .iter()
-                    .copied()
-                    .filter(|t| *t != Traversal::FullStack)
-                    .collect(),
-                storage: None,
-            };
-            GpuBvh::upload(ctx, &bvh, &opts)
-        } else {
-            let every = UploadOptions {
-                traversals: TRAVERSALS.to_vec(),
-                storage: None,
-            };
-            GpuBvh::upload(ctx, &bvh, &every)
-        };
-        match upload {
+    // Every walk, less the full stack on a tree deeper than its kernel's stack: the
+    // full-stack rows then say it refused.
+    let deep = bvh.depth > FULL_STACK_SIZE;
+    let walks: Vec<Traversal> = TRAVERSALS
+        .iter()
+        .copied()
+        .filter(|t| !deep || *t != Traversal::FullStack)
+        .collect();
+    if let Some(device) = &backends.gpu {
+        if deep {
+            rep.gpu_full_stack = Some(match (device.open)(&bvh, &TRAVERSALS) {
+                Err(e @ TraceError::TooDeep { .. }) => format!("refused (as it must be): {e}"),
+                Err(e) => format!("ERROR: the upload failed otherwise: {e}"),
+                Ok(_) => format!(
+                    "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
+                    bvh.depth
+                ),
+            });
+        }
+        match (device.open)(&bvh, &walks) {
             Err(e) => rep.runs.extend(upload_failed("gpu", queries, &e)),
             Ok(gpu) => {
                 let (runs, _) =
-                    trace_all(&gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
+                    trace_all(&*gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
             }
         }
     }
 
-    // The same kernels through ash: the upload takes any depth, the full-stack walk then
-    // refuses a tree deeper than its stack (`trace_timed`).
-    if let Some(ctx) = &backends.vk {
-        match VkBvh::upload(ctx, &bvh) {
+    // The same kernels through ash.
+    if let Some(device) = &backends.vk {
+        match (device.open)(&bvh, &walks) {
             Err(e) => rep.runs.extend(upload_failed("vk", queries, &e)),
             Ok(vk) => {
-                let (runs, _) = trace_all(&vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
+                let (runs, _) =
+                    trace_all(&*vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
             }
         }

@@ -1,0 +1,56 @@
+//! bvhtrace's front door: open the best tracer for a BVH, or the one named, with a
+//! storage, layout and walk that fit the device.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use bvhtrace::core::{BuildOptions, FlatBvh, Ray};
+//! use bvhtrace::glam::Vec3;
+//! use bvhtrace::{Backend, OpenOptions, TraceOptions};
+//!
+//! let tris = vec![[Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)]];
+//! let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+//! let opened = bvhtrace::open(&bvh, &OpenOptions::new(Backend::Auto))?;
+//! if let Some(why) = &opened.fallback {
+//!     eprintln!("note: {why}");
+//! }
+//! let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
+//! let out = opened.tracer.trace(&rays, &TraceOptions::closest(opened.traversal))?;
+//! println!("{}: {:?}", opened.summary(), out.hits[0]);
+//! # Ok(()) }
+//! ```
+//!
+//! * [`Backend`]: every way to trace, by name (`auto`, `cpu`, `wgpu` or `gpu`, `vulkan`).
+//! * [`open`]: the tracer [`OpenOptions`] asks for, as an [`Opened`] that says what was
+//!   chosen (backend, device, storage, walk) and any fallback, as a sentence.
+//! * [`Device`]: a backend opened once, to open tracers on for many trees;
+//!   [`open_on_wgpu`], [`open_on_vulkan`]: the same on a device the caller owns.
+//! * [`Tracer`]: what every opened tracer is; [`Tracer::update`] after the scene moved,
+//!   [`Tracer::kernels_used`] and [`Tracer::upload_stats`] for what ran and what was
+//!   uploaded.
+//!
+//! The library reads no environment variable: a front end that honours
+//! [`ADAPTER_ENV`] or [`VALIDATION_ENV`] passes them on in [`OpenOptions`].
+#![warn(missing_docs)]
+
+mod backend;
+mod open;
+
+pub use backend::{Backend, UnknownBackend};
+pub use open::{Device, OpenOptions, Opened, open, open_on_vulkan, open_on_wgpu};
+
+pub use bvhtrace_core::{
+    BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,
+};
+pub use bvhtrace_gpu::GpuContext;
+pub use bvhtrace_kernels::{
+    ADAPTER_ENV, AdapterChoice, BvhStorage, CpuTracer, DriverTuning, KernelKey, TraceError, Tracer,
+    UploadStats,
+};
+pub use bvhtrace_vk::{VALIDATION_ENV, VkContext};
+
+/// Re-exported so users need not depend on the same versions by hand.
+pub use bvhtrace_core as core;
+pub use bvhtrace_gpu as gpu;
+pub use bvhtrace_gpu::glam;
+pub use bvhtrace_kernels as kernels;
+pub use bvhtrace_vk as vk;

@@ -1,0 +1,210 @@
+//! The front door opens every backend, with the same answers, and falls back honestly
+//! when the tree exceeds a device limit. Without any Vulkan adapter the device cases print
+//! SKIP.
+
+use bvhtrace::core::{BuildOptions, FlatBvh, Ray, Traversal};
+use bvhtrace::glam::Vec3;
+use bvhtrace::gpu::{ContextOptions, wgpu};
+use bvhtrace::{
+    AdapterChoice, Backend, BvhStorage, DriverTuning, GpuContext, OpenOptions, TraceError,
+    TraceOptions,
+};
+
+/// A 16 x 16 grid of quads (512 triangles) in the z = 0 plane, from -1 to 1.
+fn grid() -> FlatBvh {
+    let n = 16;
+    let at = |i: usize, j: usize| {
+        Vec3::new(
+            -1.0 + 2.0 * i as f32 / n as f32,
+            -1.0 + 2.0 * j as f32 / n as f32,
+            0.05 * ((i * 7 + j * 3) % 5) as f32,
+        )
+    };
+    let mut tris = Vec::new();
+    for i in 0..n {
+        for j in 0..n {
+            tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+            tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+        }
+    }
+    FlatBvh::build(&tris, &BuildOptions::default()).expect("the grid builds")
+}
+
+/// 32 x 32 rays down the z axis, some outside the grid.
+fn rays() -> Vec<Ray> {
+    (0..32 * 32)
+        .map(|k| {
+            let (x, y) = ((k % 32) as f32 / 13.0 - 1.2, (k / 32) as f32 / 13.0 - 1.2);
+            Ray::new(Vec3::new(x, y, 3.0), Vec3::NEG_Z)
+        })
+        .collect()
+}
+
+fn no_device(e: &TraceError) -> bool {
+    matches!(e, TraceError::NoAdapter { .. })
+}
+
+#[test]
+fn every_backend_opens_and_answers_alike() {
+    let bvh = grid();
+    let rays = rays();
+    let cpu = bvhtrace::open(&bvh, &OpenOptions::new(Backend::Cpu)).expect("the CPU opens");
+    assert_eq!(cpu.backend, Backend::Cpu);
+    assert_eq!(cpu.traversal, Traversal::CPU_DEFAULT);
+    assert_eq!(cpu.storage, None);
+    assert!(cpu.fallback.is_none() && cpu.tracer.upload_stats().is_none());
+    let reference = cpu
+        .tracer
+        .trace(&rays, &TraceOptions::closest(Traversal::FullStack))
+        .expect("the CPU traces");
+    let hits = reference.hits.iter().filter(|h| h.is_hit()).count();
+    assert!(hits > 100 && hits < rays.len(), "{hits} hits");
+
+    for backend in [Backend::Auto, Backend::Wgpu, Backend::Vulkan] {
+        let opened = match bvhtrace::open(&bvh, &OpenOptions::new(backend)) {
+            Ok(o) => o,
+            Err(e) if no_device(&e) => {
+                eprintln!("SKIP {backend}: {e}");
+                continue;
+            }
+            Err(e) => panic!("{backend}: {e}"),
+        };
+        eprintln!("{backend}: {} ({:?})", opened.summary(), opened.fallback);
+        // Auto picks wgpu when there is an adapter; a named backend is what it says.
+        let expected = if backend == Backend::Auto {
+            Backend::Wgpu
+        } else {
+            backend
+        };
+        assert_eq!(opened.backend, expected);
+        assert_eq!(Backend::of(&*opened.tracer), Some(expected));
+        assert_eq!(opened.traversal, opened.tracer.default_traversal());
+        assert!(opened.fallback.is_none(), "{:?}", opened.fallback);
+        let stats = opened.tracer.upload_stats().expect("a device upload");
+        assert_eq!(opened.storage, Some(stats.storage));
+        // Only what the default walk reads went up: its escape links, no wide layout.
+        assert_eq!(
+            stats.escapes_bytes > 0,
+            opened.traversal.needs_escapes(),
+            "{stats:?}"
+        );
+        let out = opened
+            .tracer
+            .trace(&rays, &TraceOptions::closest(opened.traversal))
+            .expect("the device traces");
+        assert_eq!(out.hits, reference.hits, "{backend}");
+        let ran = opened.tracer.kernels_used();
+        assert_eq!(ran.len(), 1, "{backend}: {ran:?}");
+    }
+}
+
+#[test]
+fn a_walk_asked_for_is_uploaded_and_the_wide_layout_is_built_when_missing() {
+    let bvh = grid();
+    assert!(bvh.wide.is_none());
+    let rays = rays();
+    let reference = bvhtrace_core_trace(&bvh, &rays);
+    for backend in [Backend::Cpu, Backend::Wgpu, Backend::Vulkan] {
+        let opts = OpenOptions::new(backend)
+            .with_traversal(Traversal::Wide)
+            .with_traversal(Traversal::FullStack);
+        let opened = match bvhtrace::open(&bvh, &opts) {
+            Ok(o) => o,
+            Err(e) if no_device(&e) => {
+                eprintln!("SKIP {backend}: {e}");
+                continue;
+            }
+            Err(e) => panic!("{backend}: {e}"),
+        };
+        assert_eq!(opened.traversal, Traversal::Wide, "{backend}");
+        for walk in [Traversal::Wide, Traversal::FullStack] {
+            let out = opened
+                .tracer
+                .trace(&rays, &TraceOptions::closest(walk))
+                .unwrap_or_else(|e| panic!("{backend} {walk}: {e}"));
+            assert_eq!(out.hits, reference, "{backend} {walk}");
+        }
+    }
+}
+
+fn bvhtrace_core_trace(bvh: &FlatBvh, rays: &[Ray]) -> Vec<bvhtrace::Hit> {
+    bvhtrace::core::trace_rays(bvh, rays, &TraceOptions::closest(Traversal::FullStack)).hits
+}
+
+/// A wgpu device whose 2D textures are narrower than a texel row, so that the texture
+/// storage fits no tree, with the CPU-driver tuning (which prefers textures) on any
+/// adapter.
+fn narrow_texture_context() -> Option<GpuContext> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    let instance = wgpu::Instance::new(desc);
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
+    let Some(adapter) = adapters.first() else {
+        eprintln!("SKIP: no Vulkan adapter");
+        return None;
+    };
+    let limits = wgpu::Limits {
+        max_texture_dimension_2d: 4096,
+        ..adapter.limits()
+    };
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("narrow textures"),
+        required_limits: limits,
+        ..Default::default()
+    }))
+    .expect("a device with lower limits than the adapter's");
+    let options = ContextOptions {
+        tuning: Some(DriverTuning::cpu_driver(2)),
+        ..ContextOptions::default()
+    };
+    Some(
+        GpuContext::from_device_with(device, queue, adapter.get_info(), &options)
+            .expect("the tracer's limits are met"),
+    )
+}
+
+#[test]
+fn a_tree_over_the_texture_limit_goes_to_buffers_or_the_error_names_the_limit() {
+    let Some(ctx) = narrow_texture_context() else {
+        return;
+    };
+    assert_eq!(ctx.tuning().storage, BvhStorage::Textures);
+    let bvh = grid();
+    let rays = rays();
+    let opened = bvhtrace::open_on_wgpu(&ctx, &bvh, &OpenOptions::default()).expect("buffers fit");
+    assert_eq!(opened.storage, Some(BvhStorage::Buffers));
+    assert_eq!(opened.traversal, Traversal::GPU_DEFAULT);
+    let why = opened.fallback.as_deref().expect("the fallback is said");
+    assert!(
+        why.contains("texture storage")
+            && why.contains("max_texture_dimension_2d")
+            && why.contains("buffer storage instead"),
+        "{why}"
+    );
+    let out = opened
+        .tracer
+        .trace(&rays, &TraceOptions::closest(opened.traversal))
+        .expect("traces");
+    assert_eq!(out.hits, bvhtrace_core_trace(&bvh, &rays));
+
+    // Textures asked for: every walk is tried in them, and the error names the limit.
+    let textures = OpenOptions::default().with_storage(BvhStorage::Textures);
+    let err = bvhtrace::open_on_wgpu(&ctx, &bvh, &textures).expect_err("no texture fits");
+    assert!(
+        matches!(err, TraceError::TooLarge { .. })
+            && err.to_string().contains("max_texture_dimension_2d"),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_named_adapter_that_is_not_there_is_an_error_not_the_cpu() {
+    let opts = OpenOptions::new(Backend::Auto)
+        .with_adapter(AdapterChoice::Named("no such adapter 0xdead".into()));
+    match bvhtrace::open(&grid(), &opts) {
+        Err(TraceError::AdapterNotFound { wanted, .. }) => assert!(wanted.contains("0xdead")),
+        Err(e) if no_device(&e) => eprintln!("SKIP: {e}"),
+        Err(e) => panic!("{e}"),
+        Ok(o) => panic!("opened {}", o.summary()),
+    }
+}
