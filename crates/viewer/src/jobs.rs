@@ -7,10 +7,10 @@ use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use std::time::Instant;
 
+use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
 use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
-use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
 use bvhtrace_gpu::kernels::check_depth;
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::{Affine3A, Vec3};
