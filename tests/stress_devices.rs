@@ -17,9 +17,11 @@ fn device(backend: Backend) -> Result<DeviceTracers, String> {
     let adapter = std::env::var(ADAPTER_ENV)
         .ok()
         .filter(|s| !s.trim().is_empty())
-        .map_or(AdapterChoice::Auto, |s| AdapterChoice::Named(s.trim().into()));
-    let device = Device::new(&OpenOptions::new(backend).with_adapter(adapter))
-        .map_err(|e| e.to_string())?;
+        .map_or(AdapterChoice::Auto, |s| {
+            AdapterChoice::Named(s.trim().into())
+        });
+    let device =
+        Device::new(&OpenOptions::new(backend).with_adapter(adapter)).map_err(|e| e.to_string())?;
     Ok(DeviceTracers {
         name: device.name(),
         tuning: device.tuning().unwrap_or(DriverTuning::GPU),

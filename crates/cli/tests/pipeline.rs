@@ -15,18 +15,28 @@ fn names(pipeline: &Value) -> Vec<String> {
         .collect()
 }
 
-fn info(args: &[&str]) -> Value {
+/// `info --json` on the Cornell box; `None` (SKIP) without a device, where the job's
+/// pipelines and upload are not known: nothing was uploaded.
+fn info(args: &[&str]) -> Option<Value> {
     let mut a = vec!["info", "builtin:cornell", "--json"];
     a.extend_from_slice(args);
     let out = run(&a);
     assert!(out.status.success());
-    json(&out)
+    let v = json(&out);
+    if v["upload"].is_null() {
+        assert!(v["pipelines"].as_array().unwrap().is_empty(), "{v}");
+        eprintln!("SKIP: no Vulkan adapter, so no upload or pipeline to list");
+        return None;
+    }
+    Some(v)
 }
 
 #[test]
 fn info_lists_the_pipeline_and_exact_upload() {
     // Full stack, normal shading: no escapes, no counters, no attributes, one pipeline.
-    let v = info(&["--traversal", "full-stack"]);
+    let Some(v) = info(&["--traversal", "full-stack"]) else {
+        return;
+    };
     let (nodes, tris) = (
         v["nodes"].as_u64().unwrap(),
         v["triangles"].as_u64().unwrap(),
@@ -57,7 +67,9 @@ fn info_lists_the_pipeline_and_exact_upload() {
     assert!(left.iter().any(|l| l.starts_with("counters")), "{left:?}");
 
     // Stackless heatmap: escapes and counters come in.
-    let v = info(&["--traversal", "stackless", "--shade", "heatmap"]);
+    let Some(v) = info(&["--traversal", "stackless", "--shade", "heatmap"]) else {
+        return;
+    };
     let p = &v["pipelines"][0];
     assert_eq!(p["entry_point"], "bvh_trace_short_stack_counted");
     let n = names(p);
@@ -68,7 +80,9 @@ fn info_lists_the_pipeline_and_exact_upload() {
     );
 
     // AO: a second, any-hit pipeline without counters.
-    let v = info(&["--shade", "ao", "--storage", "textures"]);
+    let Some(v) = info(&["--shade", "ao", "--storage", "textures"]) else {
+        return;
+    };
     let p = v["pipelines"].as_array().unwrap();
     assert_eq!(p.len(), 2);
     assert!(
@@ -91,6 +105,10 @@ fn attributes_a_scene_has_but_no_job_reads_are_left_out() {
         v["attributes"]["normals"], true,
         "the committed Cornell box has NORMAL"
     );
+    if v["upload"].is_null() {
+        eprintln!("SKIP: no Vulkan adapter, so no pipeline to leave anything out of");
+        return;
+    }
     for p in v["pipelines"].as_array().unwrap() {
         assert!(!names(p).iter().any(|n| n.contains("normal")), "{p}");
     }
@@ -175,7 +193,7 @@ fn render_json_counts_only_when_asked() {
             .iter()
             .any(|f| f == "counters")
     };
-    for backend in ["cpu", "gpu"] {
+    for backend in ["cpu", "auto"] {
         let plain = render(&["--backend", backend, "--shade", "normal", "--runs", "3"]);
         assert!(!counted(&plain), "{backend}: {}", plain["features"]);
         assert!(plain["nodes_per_ray"].is_null());

@@ -1186,8 +1186,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         match (device.open)(&bvh, &walks) {
             Err(e) => rep.runs.extend(upload_failed("vk", queries, &e)),
             Ok(vk) => {
-                let (runs, _) =
-                    trace_all(&*vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
+                let (runs, _) = trace_all(&*vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
             }
         }

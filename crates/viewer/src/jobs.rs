@@ -7,11 +7,11 @@ use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use std::time::Instant;
 
+use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
 use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
 use bvhtrace_gpu::kernels::check_depth;
-use bvhtrace_gpu::{CpuTracer, GpuBvh, GpuContext, TraceError, Tracer, Update, UploadOptions};
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::{Affine3A, Vec3};
 
@@ -107,9 +107,11 @@ pub struct BuiltBvh {
     pub geometry: SceneBvh,
     /// The animation time the geometry is posed at, seconds (0 without animation).
     pub time: f32,
-    /// The upload, or why there is none. The concrete wgpu type, so that a new pose can be
-    /// written into it in place ([`GpuBvh::update`]).
-    pub gpu: Result<GpuBvh, String>,
+    /// The upload (opened through the front door on eframe's device), or why there is
+    /// none. A new pose is written into it in place ([`Tracer::update`]).
+    pub gpu: Result<Box<dyn Tracer>, String>,
+    /// The device it is on, for a new upload when a new pose changes the tree's shape.
+    pub context: Option<GpuContext>,
     /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
     /// [`BuiltBvh::retry_gpu`].
     pub gpu_failure: Option<String>,
@@ -139,7 +141,7 @@ impl BuiltBvh {
     /// The GPU's tracer, when it is uploaded, has not failed, and `prefer_cpu` is off.
     pub fn gpu_tracer(&self, prefer_cpu: bool) -> Option<&dyn Tracer> {
         match &self.gpu {
-            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(g),
+            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => Some(&**g),
             _ => None,
         }
     }
@@ -152,8 +154,9 @@ impl BuiltBvh {
     /// Moves the geometry to `scene`'s pose at time `t` (seconds, as given: wrap it
     /// first). Two levels: the instances get their new transforms, the top level is
     /// rebuilt ([`InstancedBvh::set_transforms`]) and written into the upload in place
-    /// ([`Update::TopLevel`]). Flattened: the triangles at `t` get a new BVH, written in
-    /// place ([`Update::Everything`]) when it has the uploaded sizes, else uploaded anew.
+    /// ([`Tracer::update`] finds that only the top level moved). Flattened: the triangles
+    /// at `t` get a new BVH, written in place when it has the uploaded shape, else
+    /// uploaded anew.
     /// A failure leaves the BVH as it was (an upload that fails is kept as
     /// [`BuiltBvh::gpu_failure`]: the CPU traces the new pose).
     pub fn pose(&mut self, scene: &Scene, t: f32) -> Result<PoseTimes, String> {
@@ -176,7 +179,7 @@ impl BuiltBvh {
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(g) = &mut self.gpu
-                    && let Err(e) = g.update(ib.bvh(), Update::TopLevel)
+                    && let Err(e) = g.update(ib.bvh())
                 {
                     self.gpu_failure = Some(format!("updating the top level failed: {e}"));
                 }
@@ -196,15 +199,17 @@ impl BuiltBvh {
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(g) = &mut self.gpu {
-                    let same = g.node_count() == new_bvh.nodes.len()
-                        && g.triangle_count() == new_bvh.triangles.len()
-                        && g.depth() == new_bvh.depth;
-                    let written = if same {
-                        g.update(&new_bvh, Update::Everything)
-                    } else {
-                        times.reuploaded = true;
-                        GpuBvh::upload(g.context(), &new_bvh, &upload_options(&new_bvh))
-                            .map(|fresh| *g = fresh)
+                    // The full stack's depth limit is the upload's: a deeper tree is
+                    // uploaded anew, for the walks it allows.
+                    let same_walks = walks(bvh) == walks(&new_bvh);
+                    let written = match g.update(&new_bvh) {
+                        Ok(()) if same_walks => Ok(()),
+                        // Another shape (node or triangle count), or other walks.
+                        Ok(()) | Err(TraceError::BadBuffer { .. }) => {
+                            times.reuploaded = true;
+                            upload(self.context.as_ref(), &new_bvh).map(|fresh| *g = fresh)
+                        }
+                        Err(e) => Err(e),
                     };
                     if let Err(e) = written {
                         self.gpu_failure = Some(format!("uploading the new BVH failed: {e}"));
@@ -305,10 +310,22 @@ pub struct Job {
     pub what: String,
 }
 
+/// Opens `bvh` on `ctx` through the front door, for [`walks`]`(bvh)`.
+fn upload(ctx: Option<&GpuContext>, bvh: &FlatBvh) -> Result<Box<dyn Tracer>, TraceError> {
+    let ctx = ctx.ok_or_else(|| TraceError::NoAdapter {
+        details: ": the viewer has no wgpu device".into(),
+    })?;
+    let opts = OpenOptions {
+        traversals: walks(bvh),
+        ..OpenOptions::default()
+    };
+    Ok(bvhtrace::open_on_wgpu(ctx, bvh, &opts)?.tracer)
+}
+
 /// The traversals an upload of `bvh` supports: the escape-link ones always, the full
 /// stack when the tree fits its stack, the wide walk when the tree has its wide layout
 /// (built when the wide walk is chosen).
-pub fn upload_options(bvh: &FlatBvh) -> UploadOptions {
+pub fn walks(bvh: &FlatBvh) -> Vec<Traversal> {
     let mut traversals = vec![
         Traversal::Stackless,
         Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
@@ -319,10 +336,7 @@ pub fn upload_options(bvh: &FlatBvh) -> UploadOptions {
     if bvh.wide.is_some() {
         traversals.push(Traversal::Wide);
     }
-    UploadOptions {
-        traversals,
-        storage: None,
-    }
+    traversals
 }
 
 fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
@@ -390,7 +404,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         Err(e) => Err(e.clone()),
         Ok(ctx) => {
             stage(format!("uploading {} nodes to the GPU", bvh.nodes.len()));
-            GpuBvh::upload(ctx, bvh, &upload_options(bvh))
+            upload(Some(ctx), bvh)
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());
                     // Primary and shadow rays; a traversal this upload cannot run is
@@ -417,6 +431,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             geometry,
             time,
             gpu,
+            context: req.gpu.ok(),
             gpu_failure: None,
             upload_ms,
         },
@@ -485,6 +500,7 @@ mod tests {
             geometry: SceneBvh::Flat { tris, bvh },
             time: 0.0,
             gpu: Err("no Vulkan adapter".into()),
+            context: None,
             gpu_failure: None,
             upload_ms: 0.0,
         };

@@ -8,7 +8,28 @@ use bvhtrace_viewer::cli::Args;
 use clap::Parser;
 use eframe::egui;
 
+/// Gives the process a private `XDG_RUNTIME_DIR` (`$TMPDIR/bvhtrace-runtime-UID`, mode
+/// 0700, ours) when it has none, so that Mesa's Vulkan drivers print no error for it.
+fn private_runtime_dir() {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+    if std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|v| !v.is_empty()) {
+        return;
+    }
+    let Ok(uid) = std::fs::metadata("/proc/self").map(|m| m.uid()) else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("bvhtrace-runtime-{uid}"));
+    let _ = std::fs::DirBuilder::new().mode(0o700).create(&dir);
+    if std::fs::symlink_metadata(&dir)
+        .is_ok_and(|m| m.is_dir() && m.uid() == uid && m.permissions().mode() & 0o077 == 0)
+    {
+        // SAFETY: first thing in `main`, before any other thread exists.
+        unsafe { std::env::set_var("XDG_RUNTIME_DIR", dir) };
+    }
+}
+
 fn main() -> ExitCode {
+    private_runtime_dir();
     let args = Args::parse();
     if let Some(path) = &args.screenshot
         && let Err(e) = bvhtrace_viewer::png::check_writable(path)

@@ -32,7 +32,14 @@ pub fn device_limits(adapter: &wgpu::Limits) -> wgpu::Limits {
 /// `--adapter`); `None` honours `$BVHTRACE_ADAPTER`, else picks the best adapter that can
 /// present to the window (a discrete GPU first, lavapipe last).
 pub fn wgpu_configuration(adapter: Option<String>) -> WgpuConfiguration {
-    let choice = AdapterChoice::from_name(adapter.as_deref());
+    // The library reads no environment variable: the flag, else $BVHTRACE_ADAPTER.
+    let from_env = || {
+        std::env::var(bvhtrace::ADAPTER_ENV)
+            .ok()
+            .map(|s| s.trim().to_string())
+            .filter(|s| !s.is_empty())
+    };
+    let choice = AdapterChoice::from_name(adapter.or_else(from_env).as_deref());
     let mut create = WgpuSetupCreateNew::without_display_handle();
     create.instance_descriptor.backends =
         wgpu::Backends::from_env().unwrap_or(wgpu::Backends::VULKAN);
