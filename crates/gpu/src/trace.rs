@@ -107,7 +107,7 @@ impl RayStore {
                 },
                 wgpu::Extent3d {
                     width: TEXEL_ROW,
-                    height: hit_rows(count) as u32,
+                    height: texel_rows(count) as u32,
                     depth_or_array_layers: 1,
                 },
             ),
@@ -186,11 +186,6 @@ impl RaysBinding<'_> {
 /// Bytes of one row of the hit texture: [`TEXEL_ROW`] hits (a multiple of 256, as texture
 /// copies want).
 const HIT_ROW_BYTES: u64 = TEXEL_ROW as u64 * HIT_BYTES;
-
-/// Rows of the hit texture holding `hits` hits.
-fn hit_rows(hits: u64) -> u64 {
-    texel_rows(hits)
-}
 
 /// The counters out, and their readback copy.
 struct CounterBuffers {
@@ -281,7 +276,7 @@ impl Scratch {
                 "bvhtrace hits read",
                 match input {
                     RayInput::Buffer => capacity * HIT_BYTES,
-                    RayInput::Texture => hit_rows(capacity) * HIT_ROW_BYTES,
+                    RayInput::Texture => texel_rows(capacity) * HIT_ROW_BYTES,
                 },
                 U::MAP_READ | U::COPY_DST,
             ),

@@ -106,35 +106,32 @@ impl Arrays {
 impl Scratch {
     fn new(ctx: &VkContext, capacity: u64) -> Result<Scratch, TraceError> {
         use vk::MemoryPropertyFlags as M;
-        let host = M::HOST_VISIBLE | M::HOST_COHERENT;
-        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let rays = ctx.buffer("rays", capacity * RAY_BYTES, storage, host, M::DEVICE_LOCAL)?;
-        let mut keep = vec![rays];
-        let mut more = |label, bytes, preferred| -> Result<(), TraceError> {
-            let b = ctx.buffer(label, capacity * bytes, storage, host, preferred)?;
-            keep.push(b);
-            Ok(())
-        };
-        let made = more("hits", HIT_BYTES, M::HOST_CACHED)
-            .and_then(|_| more("counters", COUNTERS_BYTES, M::HOST_CACHED));
-        if let Err(e) = made {
-            for mut b in keep {
-                b.destroy(&ctx.inner.device);
+        let mut made = Vec::with_capacity(3);
+        for (label, bytes, preferred) in [
+            ("rays", RAY_BYTES, M::DEVICE_LOCAL),
+            ("hits", HIT_BYTES, M::HOST_CACHED),
+            ("counters", COUNTERS_BYTES, M::HOST_CACHED),
+        ] {
+            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+            let host = M::HOST_VISIBLE | M::HOST_COHERENT;
+            match ctx.buffer(label, capacity * bytes, usage, host, preferred) {
+                Ok(b) => made.push(b),
+                Err(e) => {
+                    made.iter_mut().for_each(|b| b.destroy(&ctx.inner.device));
+                    return Err(e);
+                }
             }
-            return Err(e);
         }
-        let counters = keep.pop();
-        let hits = keep.pop();
-        let rays = keep.pop();
-        match (rays, hits, counters) {
-            (Some(rays), Some(hits), Some(counters)) => Ok(Scratch {
-                ctx: ctx.clone(),
-                rays,
-                hits,
-                counters,
-            }),
-            _ => unreachable!("three buffers were made"),
-        }
+        let [rays, hits, counters]: [Buffer; 3] = made
+            .try_into()
+            .unwrap_or_else(|_| unreachable!("three buffers were made"));
+        let ctx = ctx.clone();
+        Ok(Scratch {
+            ctx,
+            rays,
+            hits,
+            counters,
+        })
     }
 }
 
