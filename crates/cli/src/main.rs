@@ -75,7 +75,10 @@ fn main() {
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
         Command::BenchRefit(a) => bench_refit::bench_refit(a),
-        Command::Stress(a) => bvhtrace_stress::run(a, &backend::stress_device),
+        Command::Stress(a) => {
+            bvhtrace_stress::set_scenes_dir(geometry::shared_scenes_dir());
+            bvhtrace_stress::run(a, &backend::stress_device)
+        }
         Command::Cost(a) => cost::cost(a),
     };
     if let Err(e) = result {

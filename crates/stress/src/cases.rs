@@ -260,7 +260,7 @@ fn watertight(size: Size) -> Vec<Case> {
     out.push(c);
 
     // Real closed meshes.
-    let dir = bvhtrace_scene::shared_scenes_dir().map(|d| d.join("glb"));
+    let dir = crate::scenes_dir().map(|d| d.join("glb"));
     let Some(dir) = dir.filter(|d| d.is_dir()) else {
         let mut skip = Case::new("watertight-real", "real closed meshes");
         skip.notes.push(
@@ -1053,7 +1053,7 @@ fn self_hits(size: Size) -> Case {
     for center in [DVec3::new(0.3, -0.2, 0.1), DVec3::new(100.0, 200.0, -150.0)] {
         objects.push((icosphere(sub, center, 1.0), center));
     }
-    if let Some(dir) = bvhtrace_scene::shared_scenes_dir() {
+    if let Some(dir) = crate::scenes_dir() {
         let path = dir.join("glb").join("bunny_npm_3k.glb");
         if let Some(scene) = path.to_str().and_then(|p| bvhtrace_scene::load(p).ok()) {
             let tm = scene.flatten();

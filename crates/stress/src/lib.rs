@@ -35,6 +35,27 @@ use bvhtrace_core::{BuildOptions, Instance, Ray, Triangle};
 use serde::Serialize;
 
 pub use cases::{CASE_GROUPS, cases, cases_sized, select_cases};
+
+/// The shared scenes folder set by [`set_scenes_dir`].
+static SCENES_DIR: std::sync::RwLock<Option<std::path::PathBuf>> = std::sync::RwLock::new(None);
+
+/// Where the cases that read real meshes find the shared scenes folder (holding `glb/`):
+/// a front end passes the folder its user named; without one, the cases look for
+/// `shared/scenes` above the working directory. This crate reads no environment variable.
+pub fn set_scenes_dir(dir: Option<std::path::PathBuf>) {
+    if let Ok(mut d) = SCENES_DIR.write() {
+        *d = dir;
+    }
+}
+
+/// The folder [`set_scenes_dir`] named, else the one found above the working directory.
+fn scenes_dir() -> Option<std::path::PathBuf> {
+    SCENES_DIR
+        .read()
+        .ok()
+        .and_then(|d| d.clone())
+        .or_else(bvhtrace_scene::shared_scenes_dir)
+}
 pub use cli::{StressArgs, StressDevice, run};
 pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
