@@ -68,10 +68,10 @@ fn run() -> Result<(), Box<dyn Error>> {
     let albedo = albedos(&scene);
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
 
-    // Your device. bvhtrace needs no feature and modest limits: asking for exactly
-    // `required_limits` shows the minimum is enough (a real application asks for what it
-    // needs itself, at least these; larger storage-buffer limits allow larger scenes). It
-    // uses timestamps and f64 only when the device has them, so offer what the adapter has.
+    // Your device. bvhtrace needs no feature and modest limits (`required_limits`);
+    // `recommended_limits` adds what buys the fast path on this adapter (texture storage on
+    // a CPU driver, larger scenes anywhere). It uses timestamps and f64 only when the
+    // device has them, so offer what the adapter has.
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::VULKAN;
     let instance = wgpu::Instance::new(desc);
@@ -87,13 +87,13 @@ fn run() -> Result<(), Box<dyn Error>> {
         label: Some("user_device"),
         required_features: GpuContext::required_features()
             | (adapter.features() & GpuContext::optional_features()),
-        required_limits: GpuContext::required_limits(),
+        required_limits: GpuContext::recommended_limits(&adapter),
         ..Default::default()
     }))?;
     // bvhtrace keeps clones of the handles (they are reference counted): the application
     // goes on using its own. Anything missing would be an error here, not a failure later.
-    // With these limits a CPU driver such as lavapipe gets the BVH in storage buffers (too
-    // few storage-texture bindings for its faster texture layout); that is automatic.
+    // The storage follows the device: textures on a CPU driver such as lavapipe, buffers
+    // on a GPU or with only the required limits; that is automatic.
     let ctx = GpuContext::from_device(device.clone(), queue.clone(), info.clone())?;
     let gpu = GpuBvh::upload(
         &ctx,

@@ -129,8 +129,8 @@ impl GpuContext {
     /// with the 16 KiB of workgroup memory the traversal stacks take, 64 invocations per
     /// workgroup, two bind groups and six storage buffers per stage. Request at least
     /// these (or `wgpu::Limits::default()`, which has them) when you create a device for
-    /// [`GpuContext::from_device`]; larger storage-binding and buffer sizes allow larger
-    /// scenes, and each upload is checked against the device's own.
+    /// [`GpuContext::from_device`]; [`GpuContext::recommended_limits`] says what buys the
+    /// fast path on an adapter. Each upload is checked against the device's own limits.
     pub fn required_limits() -> wgpu::Limits {
         wgpu::Limits {
             max_bind_groups: 2,
@@ -139,6 +139,34 @@ impl GpuContext {
             max_compute_invocations_per_workgroup: WORKGROUP_SIZE,
             max_compute_workgroup_size_x: WORKGROUP_SIZE,
             ..wgpu::Limits::downlevel_defaults()
+        }
+    }
+
+    /// The limits to request from `adapter` for the tracer's fast path there:
+    /// [`GpuContext::required_limits`] raised to the adapter's own buffer, texture and
+    /// dispatch sizes and storage textures per stage. Which limits buy which path:
+    /// * [`GpuContext::required_limits`] (or `wgpu::Limits::default()`) buys every walk with
+    ///   the BVH in storage buffers, the layout GPUs trace fastest;
+    /// * on a CPU driver (lavapipe), the texture storage that is several times faster there
+    ///   also needs 5 storage textures per stage and texture sides beyond WebGPU's defaults,
+    ///   which these limits include when the adapter has them;
+    /// * larger buffer and binding sizes allow larger scenes on any device.
+    pub fn recommended_limits(adapter: &wgpu::Adapter) -> wgpu::Limits {
+        let a = adapter.limits();
+        let r = Self::required_limits();
+        wgpu::Limits {
+            max_storage_textures_per_shader_stage: a
+                .max_storage_textures_per_shader_stage
+                .max(r.max_storage_textures_per_shader_stage),
+            max_texture_dimension_2d: a.max_texture_dimension_2d.max(r.max_texture_dimension_2d),
+            max_storage_buffer_binding_size: a
+                .max_storage_buffer_binding_size
+                .max(r.max_storage_buffer_binding_size),
+            max_buffer_size: a.max_buffer_size.max(r.max_buffer_size),
+            max_compute_workgroups_per_dimension: a
+                .max_compute_workgroups_per_dimension
+                .max(r.max_compute_workgroups_per_dimension),
+            ..r
         }
     }
 

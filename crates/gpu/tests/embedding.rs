@@ -12,6 +12,13 @@ use glam::Vec3;
 /// A device of the adapter `BVHTRACE_ADAPTER` or the best one names, created with `limits`
 /// and no features, as a user following the wgpu examples would; `None` without Vulkan.
 fn user_device(limits: wgpu::Limits) -> Option<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
+    user_device_with(|_| limits)
+}
+
+/// [`user_device`] with the limits chosen from the adapter.
+fn user_device_with(
+    limits: impl FnOnce(&wgpu::Adapter) -> wgpu::Limits,
+) -> Option<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::VULKAN;
     let instance = wgpu::Instance::new(desc);
@@ -30,7 +37,7 @@ fn user_device(limits: wgpu::Limits) -> Option<(wgpu::Device, wgpu::Queue, wgpu:
     let adapter = &adapters[index];
     let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
         label: Some("a user's device"),
-        required_limits: limits,
+        required_limits: limits(adapter),
         ..Default::default()
     }))
     .expect("device");
@@ -131,6 +138,37 @@ fn a_device_below_the_required_limits_is_refused_by_name() {
         gpu.trace(&rays, &opts).expect("trace").hits,
         trace_rays(&bvh, &rays, &opts).hits
     );
+}
+
+/// The limits the docs recommend buy the fast path: on a CPU driver the texture storage
+/// (what `GpuContext::new` picks there), where the required limits alone give buffers; on a
+/// GPU, buffers either way. The answers are the same.
+#[test]
+fn recommended_limits_buy_the_fast_path() {
+    let Some((device, queue, info)) = user_device_with(GpuContext::recommended_limits) else {
+        return;
+    };
+    let cpu_driver = bvhtrace_gpu::device_kind(info.device_type) == bvhtrace_gpu::kernels::DeviceKind::Cpu;
+    let fast = GpuContext::from_device(device, queue, info).expect("recommended limits suffice");
+    let expected = if cpu_driver {
+        BvhStorage::Textures
+    } else {
+        BvhStorage::Buffers
+    };
+    assert_eq!(fast.tuning().storage, expected);
+    let Some((device, queue, info)) = user_device(GpuContext::required_limits()) else {
+        return;
+    };
+    let least = GpuContext::from_device(device, queue, info).expect("required limits suffice");
+    assert_eq!(least.tuning().storage, BvhStorage::Buffers);
+    let (bvh, rays) = scene();
+    let opts = TraceOptions::closest(Traversal::Stackless);
+    let hits = |ctx: &GpuContext| {
+        let gpu = GpuBvh::upload(ctx, &bvh, &UploadOptions::all()).expect("upload");
+        assert_eq!(gpu.storage(), ctx.tuning().storage);
+        gpu.trace(&rays, &opts).expect("trace").hits
+    };
+    assert_eq!(hits(&fast), hits(&least));
 }
 
 /// A device whose textures are narrower than a row of texels (`TEXEL_ROW`): the texture
