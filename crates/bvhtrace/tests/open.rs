@@ -201,7 +201,7 @@ fn a_tree_over_the_texture_limit_goes_to_buffers_or_the_error_names_the_limit() 
 fn a_named_adapter_that_is_not_there_is_an_error_not_the_cpu() {
     let opts = OpenOptions::new(Backend::Auto)
         .with_adapter(AdapterChoice::Named("no such adapter 0xdead".into()));
-    match bvhtrace::open(&grid(), &opts) {
+    match bvhtrace::open(grid(), &opts) {
         Err(TraceError::AdapterNotFound { wanted, .. }) => assert!(wanted.contains("0xdead")),
         Err(e) if no_device(&e) => eprintln!("SKIP: {e}"),
         Err(e) => panic!("{e}"),

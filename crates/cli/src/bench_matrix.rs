@@ -154,6 +154,9 @@ fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
     v
 }
 
+/// A built tree, its median build time, and its upload to wgpu (when there is a device).
+type BuiltTree = (FlatBvh, f64, Option<Box<dyn Tracer>>);
+
 const TRAVERSALS: [Traversal; 6] = [
     Traversal::Stackless,
     Traversal::ShortStack(2),
@@ -420,8 +423,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
         );
-        let mut built: Vec<Option<(FlatBvh, f64, Option<Box<dyn Tracer>>)>> =
-            (0..builders.len()).map(|_| None).collect();
+        let mut built: Vec<Option<BuiltTree>> = (0..builders.len()).map(|_| None).collect();
         let mut scene_rows = Vec::new();
         for (bi, tr, be, kind, prec) in plan {
             let (bname, bopts) = &builders[bi];
