@@ -113,11 +113,10 @@ impl GpuBvh {
         &self.engine.device().ctx
     }
 
-    /// The BVH bind group that `traversal` reads (nodes and triangles, and the escape
-    /// links for the walks that follow them; for [`Traversal::Wide`] the wide layout's
-    /// nodes, triangles and instances, composed with
-    /// [`wgsl_wide_library_in`](bvhtrace_kernels::wgsl_wide_library_in) of
-    /// [`GpuBvh::storage`]), with its layout.
+    /// The BVH bind group that `traversal`'s kernels read (nodes and triangles, the escape
+    /// links for the walks that follow them, the instances for two levels; for
+    /// [`Traversal::Wide`] the wide layout's), with its layout. For your own shader use
+    /// [`GpuBvh::bind_group_for`], which checks the library against the upload.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
         let instanced = self.is_instanced();
         let (storage, arrays) = (self.storage(), self.engine.arrays());

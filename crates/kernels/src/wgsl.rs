@@ -428,9 +428,10 @@ pub fn wgsl_library(shape: LibraryShape, bvh_group: u32) -> BvhLibrary {
 /// [`BVH_GROUP`], and every entry point of the binary walks (`entry.wgsl`,
 /// `entry_counters.wgsl` and `entry_walk.wgsl` four times; group [`BATCH_GROUP`]: `rays`,
 /// `hits`, `counters`), so any [`crate::KernelKey::entry_point`] of a binary walk is in it
-/// (the wide walk's are in its own module, [`crate::KernelKey::source`]). The pipelines `GpuContext` (bvhtrace-gpu) builds use
-/// the specialised module of their key instead ([`crate::KernelKey::source`]) unless it
-/// asks for [`crate::Composition::EverythingOn`].
+/// (the wide walk's are in its own module, [`crate::KernelKey::source`]). The pipelines
+/// `GpuContext` (bvhtrace-gpu) builds use the specialised module of their key instead
+/// ([`crate::KernelKey::source`]) unless it asks for every module (the `bench-hooks`
+/// feature's `Composition::EverythingOn`).
 pub fn kernel_source(storage: BvhStorage) -> String {
     kernel_source_for(storage, Precision::WatertightF32)
 }
