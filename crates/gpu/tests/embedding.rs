@@ -148,7 +148,8 @@ fn recommended_limits_buy_the_fast_path() {
     let Some((device, queue, info)) = user_device_with(GpuContext::recommended_limits) else {
         return;
     };
-    let cpu_driver = bvhtrace_gpu::device_kind(info.device_type) == bvhtrace_gpu::kernels::DeviceKind::Cpu;
+    let cpu_driver =
+        bvhtrace_gpu::device_kind(info.device_type) == bvhtrace_gpu::kernels::DeviceKind::Cpu;
     let fast = GpuContext::from_device(device, queue, info).expect("recommended limits suffice");
     let expected = if cpu_driver {
         BvhStorage::Textures
