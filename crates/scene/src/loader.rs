@@ -316,6 +316,45 @@ fn in_animation(ctx: &str, what: &str, e: ErrorKind) -> ErrorKind {
     invalid(format!("{ctx}: {what}: {cause}"))
 }
 
+/// What the loader's walk over the node hierarchy gathers.
+#[derive(Default)]
+struct Walk {
+    meshes: Vec<Mesh>,
+    /// glTF mesh index to index in `meshes`, once loaded.
+    mesh_map: Vec<Option<usize>>,
+    instances: Vec<Instance>,
+    materials: Vec<Material>,
+    /// The material added for primitives without one, once needed.
+    default_material: Option<u32>,
+    /// The first usable camera's world transform and vertical field of view in degrees.
+    camera_at: Option<(Mat4, f32)>,
+    skipped_cameras: usize,
+    revisited: usize,
+    skinned: usize,
+    graph: Graph,
+}
+
+/// Puts a camera at `world` looking down its -Z, aimed as far as the scene's centre; warns
+/// instead when the transform is degenerate.
+fn place_camera(scene: &mut Scene, world: Mat4, fov: f32) {
+    let eye = world.transform_point3(Vec3::ZERO);
+    let fwd = world.transform_vector3(Vec3::NEG_Z).normalize_or_zero();
+    if eye.is_finite() && fwd != Vec3::ZERO {
+        let (lo, hi) = scene.bounds();
+        let d = ((lo + hi) * 0.5 - eye).length();
+        let d = if d.is_finite() && d > 0.0 { d } else { 1.0 };
+        scene.camera = Some(Camera {
+            eye,
+            target: eye + fwd * d,
+            fov_y_deg: fov,
+        });
+    } else {
+        scene
+            .warnings
+            .push("the camera's node transform is degenerate; camera skipped".into());
+    }
+}
+
 struct Loader<'a, 'b> {
     root: &'a Root,
     buffers: Vec<Result<Cow<'b, [u8]>, String>>,
@@ -1000,7 +1039,57 @@ impl<'a, 'b> Loader<'a, 'b> {
 
     fn load(&mut self, base_dir: Option<&Path>) -> Result<Scene, ErrorKind> {
         let root = self.root;
-        let mut materials: Vec<Material> = root
+        let mut walk = Walk {
+            materials: self.materials(),
+            mesh_map: vec![None; root.meshes.len()],
+            ..Walk::default()
+        };
+        let roots = self.root_nodes()?;
+        // With animations, the walk is recorded: each visited node (parent links and
+        // static transform) and the node of each instance.
+        let track = !root.animations.is_empty();
+        self.walk_nodes(&mut walk, &roots, track)?;
+        if root.nodes.is_empty() && !root.meshes.is_empty() {
+            self.place_meshes_once(&mut walk)?;
+        }
+        self.warn_walk(&walk);
+        self.warn_missing_images(base_dir);
+        let animation = if track {
+            let n = walk.instances.len();
+            self.load_animations(walk.graph)?
+                .filter(|a| a.instance_nodes.len() == n)
+        } else {
+            None
+        };
+
+        let mut scene = Scene {
+            meshes: walk.meshes,
+            instances: walk.instances,
+            materials: walk.materials,
+            warnings: std::mem::take(&mut self.warnings),
+            animation,
+            ..Scene::default()
+        };
+        if scene.triangle_count() == 0 {
+            let prims: usize = root.meshes.iter().map(|m| m.primitives.len()).sum();
+            return Err(ErrorKind::NoTriangles(format!(
+                " ({} instance(s) of {} mesh(es) with {} primitive(s) in the file)",
+                scene.instances.len(),
+                root.meshes.len(),
+                prims
+            )));
+        }
+        scene.unify_attributes();
+        if let Some((world, fov)) = walk.camera_at {
+            place_camera(&mut scene, world, fov);
+        }
+        Ok(scene)
+    }
+
+    /// The file's materials, named by index when they have no name; a base colour that
+    /// is not finite becomes white.
+    fn materials(&self) -> Vec<Material> {
+        self.root
             .materials
             .iter()
             .enumerate()
@@ -1011,23 +1100,19 @@ impl<'a, 'b> Loader<'a, 'b> {
                     base_color: if c.is_finite() { c } else { Vec4::ONE },
                 }
             })
-            .collect();
-        let mut default_material = None;
-        let mut meshes: Vec<Mesh> = Vec::new();
-        let mut mesh_map: Vec<Option<usize>> = vec![None; root.meshes.len()];
-        let mut instances = Vec::new();
-        let mut camera_at: Option<(Mat4, f32)> = None;
-        let mut skipped_cameras = 0usize;
-        let mut revisited = 0usize;
-        let mut skinned = 0usize;
+            .collect()
+    }
 
-        // The nodes to start from: the default scene's, else the first scene's, else
-        // every node that is nobody's child.
-        let roots: Vec<usize> = match root.scene.map(|s| s.value()).or(if root.scenes.is_empty() {
+    /// The nodes to start from: the default scene's, else the first scene's, else
+    /// every node that is nobody's child.
+    fn root_nodes(&self) -> Result<Vec<usize>, ErrorKind> {
+        let root = self.root;
+        let first = if root.scenes.is_empty() {
             None
         } else {
             Some(0)
-        }) {
+        };
+        Ok(match root.scene.map(|s| s.value()).or(first) {
             Some(si) => root
                 .scenes
                 .get(si)
@@ -1047,12 +1132,18 @@ impl<'a, 'b> Loader<'a, 'b> {
                 }
                 (0..root.nodes.len()).filter(|&i| !is_child[i]).collect()
             }
-        };
+        })
+    }
 
-        // With animations, the walk is recorded: each visited node (parent links and
-        // static transform) and the node of each instance.
-        let track = !root.animations.is_empty();
-        let mut graph = Graph::default();
+    /// Walks the hierarchy depth first from `roots`, visiting each node once: places an
+    /// instance for each mesh node and takes the first usable camera.
+    fn walk_nodes(
+        &mut self,
+        walk: &mut Walk,
+        roots: &[usize],
+        track: bool,
+    ) -> Result<(), ErrorKind> {
+        let root = self.root;
         let mut visited = vec![false; root.nodes.len()];
         let mut stack: Vec<(usize, Mat4, Option<usize>)> = roots
             .iter()
@@ -1065,80 +1156,121 @@ impl<'a, 'b> Loader<'a, 'b> {
                 .get(ni)
                 .ok_or_else(|| invalid(format!("node {ni} does not exist")))?;
             if visited[ni] {
-                revisited += 1;
+                walk.revisited += 1;
                 continue;
             }
             visited[ni] = true;
-            let local =
-                Self::node_matrix(node).map_err(|reason| ErrorKind::Node { node: ni, reason })?;
-            let world = parent * local;
-            if !world.is_finite() {
-                return Err(ErrorKind::Node {
-                    node: ni,
-                    reason: "its world transform is not finite (the transforms overflow f32)"
-                        .into(),
-                });
-            }
-            let rec = track.then(|| graph.record(ni, node, parent_rec));
+            let world = Self::world_matrix(ni, node, parent)?;
+            let rec = track.then(|| walk.graph.record(ni, node, parent_rec));
             if let Some(m) = node.mesh {
-                let m = m.value();
-                let slot = mesh_map.get_mut(m).ok_or_else(|| {
-                    invalid(format!(
-                        "node {ni} refers to mesh {m}, which does not exist"
-                    ))
-                })?;
-                let id = match *slot {
-                    Some(id) => id,
-                    None => {
-                        let mesh = self.load_mesh(m, &mut default_material, &mut materials)?;
-                        meshes.push(mesh);
-                        let id = meshes.len() - 1;
-                        mesh_map[m] = Some(id);
-                        id
-                    }
-                };
-                instances.push(Instance {
-                    mesh: id,
-                    transform: world,
-                });
-                graph.instance_nodes.extend(rec);
-                if node.skin.is_some() {
-                    skinned += 1;
-                }
+                self.place_instance(walk, ni, node, m.value(), world, rec)?;
             }
             if let Some(c) = node.camera {
-                let c = c.value();
-                let cam = root.cameras.get(c).ok_or_else(|| {
-                    invalid(format!(
-                        "node {ni} refers to camera {c}, which does not exist"
-                    ))
-                })?;
-                match (&cam.perspective, camera_at) {
-                    (Some(p), None)
-                        if p.yfov.is_finite() && p.yfov > 0.0 && p.yfov < std::f32::consts::PI =>
-                    {
-                        camera_at = Some((world, p.yfov.to_degrees()));
-                    }
-                    (_, None) => skipped_cameras += 1,
-                    _ => {}
-                }
+                self.note_camera(walk, ni, c.value(), world)?;
             }
             for ch in node.children.iter().flatten().rev() {
                 stack.push((ch.value(), world, rec));
             }
         }
-        if root.nodes.is_empty() && !root.meshes.is_empty() {
-            self.warnings
-                .push("the file has no nodes: each mesh is placed once, untransformed".into());
-            for m in 0..root.meshes.len() {
-                let mesh = self.load_mesh(m, &mut default_material, &mut materials)?;
-                meshes.push(mesh);
-                instances.push(Instance {
-                    mesh: meshes.len() - 1,
-                    transform: Mat4::IDENTITY,
-                });
-            }
+        Ok(())
+    }
+
+    /// Node `ni`'s world transform under `parent`; an error when it is not finite.
+    fn world_matrix(ni: usize, node: &json::Node, parent: Mat4) -> Result<Mat4, ErrorKind> {
+        let local =
+            Self::node_matrix(node).map_err(|reason| ErrorKind::Node { node: ni, reason })?;
+        let world = parent * local;
+        if !world.is_finite() {
+            return Err(ErrorKind::Node {
+                node: ni,
+                reason: "its world transform is not finite (the transforms overflow f32)".into(),
+            });
         }
+        Ok(world)
+    }
+
+    /// Places an instance of mesh `m` (of node `ni`, recorded as `rec`) at `world`,
+    /// loading the mesh on its first use.
+    fn place_instance(
+        &mut self,
+        walk: &mut Walk,
+        ni: usize,
+        node: &json::Node,
+        m: usize,
+        world: Mat4,
+        rec: Option<usize>,
+    ) -> Result<(), ErrorKind> {
+        let slot = walk.mesh_map.get_mut(m).ok_or_else(|| {
+            invalid(format!(
+                "node {ni} refers to mesh {m}, which does not exist"
+            ))
+        })?;
+        let id = match *slot {
+            Some(id) => id,
+            None => {
+                let mesh = self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
+                walk.meshes.push(mesh);
+                let id = walk.meshes.len() - 1;
+                walk.mesh_map[m] = Some(id);
+                id
+            }
+        };
+        walk.instances.push(Instance {
+            mesh: id,
+            transform: world,
+        });
+        walk.graph.instance_nodes.extend(rec);
+        if node.skin.is_some() {
+            walk.skinned += 1;
+        }
+        Ok(())
+    }
+
+    /// Takes camera `c` of node `ni` at `world` when it is the first and a perspective
+    /// camera with a usable field of view; counts it as skipped when not.
+    fn note_camera(
+        &self,
+        walk: &mut Walk,
+        ni: usize,
+        c: usize,
+        world: Mat4,
+    ) -> Result<(), ErrorKind> {
+        let cam = self.root.cameras.get(c).ok_or_else(|| {
+            invalid(format!(
+                "node {ni} refers to camera {c}, which does not exist"
+            ))
+        })?;
+        match (&cam.perspective, walk.camera_at) {
+            (Some(p), None)
+                if p.yfov.is_finite() && p.yfov > 0.0 && p.yfov < std::f32::consts::PI =>
+            {
+                walk.camera_at = Some((world, p.yfov.to_degrees()));
+            }
+            (_, None) => walk.skipped_cameras += 1,
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// For a file without nodes: places each mesh once, untransformed.
+    fn place_meshes_once(&mut self, walk: &mut Walk) -> Result<(), ErrorKind> {
+        self.warnings
+            .push("the file has no nodes: each mesh is placed once, untransformed".into());
+        for m in 0..self.root.meshes.len() {
+            let mesh = self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
+            walk.meshes.push(mesh);
+            walk.instances.push(Instance {
+                mesh: walk.meshes.len() - 1,
+                transform: Mat4::IDENTITY,
+            });
+        }
+        Ok(())
+    }
+
+    /// Warns of what the walk skipped: revisited nodes, skins and cameras.
+    fn warn_walk(&mut self, walk: &Walk) {
+        let (revisited, skinned, skipped_cameras) =
+            (walk.revisited, walk.skinned, walk.skipped_cameras);
         if revisited > 0 {
             self.warnings.push(format!(
                 "{revisited} node visit(s) skipped: a node has several parents or the hierarchy has a cycle"
@@ -1154,52 +1286,6 @@ impl<'a, 'b> Loader<'a, 'b> {
                 "{skipped_cameras} camera(s) skipped (orthographic, or an invalid field of view)"
             ));
         }
-        self.warn_missing_images(base_dir);
-        let animation = if track {
-            let n = instances.len();
-            self.load_animations(graph)?
-                .filter(|a| a.instance_nodes.len() == n)
-        } else {
-            None
-        };
-
-        let mut scene = Scene {
-            meshes,
-            instances,
-            materials,
-            warnings: std::mem::take(&mut self.warnings),
-            animation,
-            ..Scene::default()
-        };
-        if scene.triangle_count() == 0 {
-            let prims: usize = root.meshes.iter().map(|m| m.primitives.len()).sum();
-            return Err(ErrorKind::NoTriangles(format!(
-                " ({} instance(s) of {} mesh(es) with {} primitive(s) in the file)",
-                scene.instances.len(),
-                root.meshes.len(),
-                prims
-            )));
-        }
-        scene.unify_attributes();
-        if let Some((world, fov)) = camera_at {
-            let eye = world.transform_point3(Vec3::ZERO);
-            let fwd = world.transform_vector3(Vec3::NEG_Z).normalize_or_zero();
-            if eye.is_finite() && fwd != Vec3::ZERO {
-                let (lo, hi) = scene.bounds();
-                let d = ((lo + hi) * 0.5 - eye).length();
-                let d = if d.is_finite() && d > 0.0 { d } else { 1.0 };
-                scene.camera = Some(Camera {
-                    eye,
-                    target: eye + fwd * d,
-                    fov_y_deg: fov,
-                });
-            } else {
-                scene
-                    .warnings
-                    .push("the camera's node transform is degenerate; camera skipped".into());
-            }
-        }
-        Ok(scene)
     }
 
     /// Reads the file's animations: the channels that drive the translation, rotation or

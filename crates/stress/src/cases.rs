@@ -798,6 +798,23 @@ fn extreme_rays() -> Case {
         "extreme-rays",
         "a unit square in z = 0 (prims 0, 1), a closed box [2,3]^3 (prims 2..13), an icosphere at (-3, 0.5, 0.5): rays with signed-zero, 1e-30, subnormal and huge/tiny direction components, empty/infinite/negative intervals, invalid rays, grazing rays",
     );
+    let (cube, ball, ball_c) = extreme_scene(&mut c);
+    signed_zero_rays(&mut c);
+    inside_box_rays(&mut c, &cube);
+    tiny_component_rays(&mut c, ball_c);
+    magnitude_rays(&mut c, ball_c);
+    interval_rays(&mut c);
+    invalid_rays(&mut c);
+    grazing_rays(&mut c, &ball);
+    ball_grid_rays(&mut c, ball_c);
+    c.oracle_budget = c.rays.len();
+    finish_input(&mut c);
+    c
+}
+
+/// Puts the scene into `c`: a unit square in z = 0, a closed box [2,3]^3 and an
+/// icosphere; returns the box, the icosphere and its centre.
+fn extreme_scene(c: &mut Case) -> (IndexedMesh, IndexedMesh, DVec3) {
     let square = IndexedMesh {
         positions: vec![
             Vec3::new(0.0, 0.0, 0.0),
@@ -814,9 +831,13 @@ fn extreme_rays() -> Case {
     scene.append(&cube);
     scene.append(&ball);
     c.tris = scene.triangles();
+    (cube, ball, ball_c)
+}
+
+/// Axis-parallel rays at the square with every signed-zero combination.
+fn signed_zero_rays(c: &mut Case) {
     let v = Vec3::new;
     let z = [0.0f32, -0.0];
-    // A. Axis-parallel rays at the square with every signed-zero combination.
     for &(x, y, e) in &[
         (0.75f32, 0.25f32, Expect::Prim(0)),
         (0.25, 0.75, Expect::Prim(1)),
@@ -842,6 +863,13 @@ fn extreme_rays() -> Case {
             }
         }
     }
+}
+
+/// Rays from inside the box (signed-zero axis directions, at corners and edges), and
+/// rays moving inside its face plane x = 2.
+fn inside_box_rays(c: &mut Case, cube: &IndexedMesh) {
+    let v = Vec3::new;
+    let z = [0.0f32, -0.0];
     // B. The box from inside: axis directions with signed zeros, corners and edges.
     for from in [v(2.5, 2.5, 2.5), v(2.25, 2.625, 2.375)] {
         for axis in 0..3 {
@@ -857,7 +885,7 @@ fn extreme_rays() -> Case {
             }
         }
         c.push_rays(
-            aim_at_vertices_and_edges(&cube, from, &[0.5, 0.25, 1e-3]),
+            aim_at_vertices_and_edges(cube, from, &[0.5, 0.25, 1e-3]),
             Expect::MustHit,
         );
     }
@@ -871,6 +899,11 @@ fn extreme_rays() -> Case {
         c.push_rays([Ray::new(v(2.0, 2.5, 2.5), d)], Expect::Oracle);
         c.push_rays([Ray::new(v(2.0, 1.0, 2.5), d)], Expect::Oracle);
     }
+}
+
+/// Rays with tiny direction components: 1e-30 (normal) and 1e-40 (subnormal).
+fn tiny_component_rays(c: &mut Case, ball_c: DVec3) {
+    let v = Vec3::new;
     // C. Tiny components: 1e-30 (normal) and 1e-40 (subnormal, flushed to zero).
     for t in [1e-30f32, 1e-40] {
         c.push_rays(
@@ -888,6 +921,11 @@ fn extreme_rays() -> Case {
             Expect::MustHit,
         );
     }
+}
+
+/// Rays with direction magnitudes from 1e-30 to 1e38, and one whose t would be subnormal.
+fn magnitude_rays(c: &mut Case, ball_c: DVec3) {
+    let v = Vec3::new;
     // D. Direction magnitudes from 1e-30 to 1e38.
     for m in [1e38f32, 1e30, 1e10, 1e-10, 1e-30] {
         c.push_rays(
@@ -904,6 +942,11 @@ fn extreme_rays() -> Case {
         [Ray::new(v(0.75, 0.25, -2.0), v(0.0, 0.0, 3e38))],
         Expect::Unspecified,
     );
+}
+
+/// Rays at the square with empty, infinite, negative and boundary intervals.
+fn interval_rays(c: &mut Case) {
+    let v = Vec3::new;
     // E. Intervals.
     let o = v(0.75, 0.25, -2.0);
     let iv = |t0: f32, t1: f32| Ray::with_interval(o, Vec3::Z, t0, t1);
@@ -953,6 +996,12 @@ fn extreme_rays() -> Case {
         )],
         Expect::Miss,
     );
+}
+
+/// Invalid rays, rays with all-subnormal directions and rays from huge finite origins.
+fn invalid_rays(c: &mut Case) {
+    let v = Vec3::new;
+    let o = v(0.75, 0.25, -2.0);
     // F. Invalid rays.
     let (nan, inf) = (f32::NAN, f32::INFINITY);
     for r in [
@@ -984,6 +1033,12 @@ fn extreme_rays() -> Case {
     // Huge finite origins.
     c.push_rays([Ray::new(v(0.75, 0.25, -3e38), Vec3::Z)], Expect::Oracle);
     c.push_rays([Ray::new(v(3e38, 0.5, 0.5), Vec3::NEG_X)], Expect::Oracle);
+}
+
+/// Grazing rays: in the square's plane, along the box's edge and face, and along
+/// icosphere faces' edges in their planes.
+fn grazing_rays(c: &mut Case, ball: &IndexedMesh) {
+    let v = Vec3::new;
     // G. Grazing: in the square's plane, along its edge and diagonal, and in icosphere
     // faces' planes along their edges.
     for (org, d) in [
@@ -1013,6 +1068,12 @@ fn extreme_rays() -> Case {
             Expect::Oracle,
         );
     }
+}
+
+/// Axis-parallel rays at the icosphere from a grid, with signed zeros.
+fn ball_grid_rays(c: &mut Case, ball_c: DVec3) {
+    let v = Vec3::new;
+    let z = [0.0f32, -0.0];
     // H. Axis-parallel rays at the icosphere from a grid, signed zeros.
     for i in 0..16 {
         for j in 0..16 {
@@ -1037,9 +1098,6 @@ fn extreme_rays() -> Case {
             );
         }
     }
-    c.oracle_budget = c.rays.len();
-    finish_input(&mut c);
-    c
 }
 
 fn self_hits(size: Size) -> Case {

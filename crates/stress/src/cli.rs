@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use crate::report::{table_header, table_rows};
 use crate::runner::{Backends, CaseReport, DeviceTracers, run_case};
-use crate::{CASE_GROUPS, Size, select_cases};
+use crate::{CASE_GROUPS, Case, Size, select_cases};
 
 /// Arguments of `bvhtrace stress`.
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -77,31 +77,11 @@ pub fn run(
     devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
 ) -> Result<()> {
     if args.list {
-        for (g, d) in CASE_GROUPS {
-            println!("{g:<16} {d}");
-        }
+        list_groups();
         return Ok(());
     }
-    let (mut cpu, mut gpu, mut vk) = (false, false, false);
-    for b in &args.backends {
-        match b.trim() {
-            "cpu" => cpu = true,
-            "gpu" => gpu = true,
-            "vk" | "vulkan" | "ash" => vk = true,
-            "" => {}
-            other => bail!("unknown backend '{other}' (expected gpu, vk, cpu)"),
-        }
-    }
-    if !cpu && !gpu && !vk {
-        bail!("--backends lists no backend (expected gpu, vk, cpu)");
-    }
-    // An unwritable JSON path fails now, not after minutes of work.
-    if let Some(path) = args.json.as_deref().filter(|p| *p != "-") {
-        let tmp = format!("{path}.tmp");
-        std::fs::write(&tmp, b"")
-            .with_context(|| format!("cannot write the JSON report {path}"))?;
-        let _ = std::fs::remove_file(&tmp);
-    }
+    let wanted = Wanted::parse(&args.backends)?;
+    check_json_path(args.json.as_deref())?;
     let size = if args.quick { Size::Quick } else { Size::Full };
     let to_stdout = args.json.as_deref() == Some("-");
     let mut out: Box<dyn Write> = if to_stdout {
@@ -109,7 +89,88 @@ pub fn run(
     } else {
         Box::new(std::io::stdout())
     };
+    let backends = open_backends(wanted, devices, &mut *out)?;
+    let cases = prepare_cases(&args, size)?;
+    write_preamble(&mut *out, &args, size, cases.len(), wanted.cpu, &backends)?;
+    let reports = run_cases(&mut *out, &cases, &backends)?;
+    let failed: Vec<&str> = reports
+        .iter()
+        .filter(|r| !r.clean())
+        .map(|r| r.name.as_str())
+        .collect();
+    write_json(
+        &mut *out,
+        &args,
+        size,
+        &backends,
+        &reports,
+        failed.is_empty(),
+    )?;
+    if !failed.is_empty() {
+        bail!(
+            "{} case(s) broke a guarantee: {} (see the examples under their rows)",
+            failed.len(),
+            failed.join(", ")
+        );
+    }
+    write_summary(&mut *out, &reports)
+}
 
+/// Prints the case groups, one a line with what it holds.
+fn list_groups() {
+    for (g, d) in CASE_GROUPS {
+        println!("{g:<16} {d}");
+    }
+}
+
+/// The backends `--backends` asks for.
+#[derive(Clone, Copy)]
+struct Wanted {
+    cpu: bool,
+    gpu: bool,
+    vk: bool,
+}
+
+impl Wanted {
+    /// Reads `--backends`; an error for an unknown name or when none is named.
+    fn parse(names: &[String]) -> Result<Wanted> {
+        let (mut cpu, mut gpu, mut vk) = (false, false, false);
+        for b in names {
+            match b.trim() {
+                "cpu" => cpu = true,
+                "gpu" => gpu = true,
+                "vk" | "vulkan" | "ash" => vk = true,
+                "" => {}
+                other => bail!("unknown backend '{other}' (expected gpu, vk, cpu)"),
+            }
+        }
+        if !cpu && !gpu && !vk {
+            bail!("--backends lists no backend (expected gpu, vk, cpu)");
+        }
+        Ok(Wanted { cpu, gpu, vk })
+    }
+}
+
+/// Fails when the JSON report's file (other than `-`) cannot be written.
+fn check_json_path(json: Option<&str>) -> Result<()> {
+    // An unwritable JSON path fails now, not after minutes of work.
+    if let Some(path) = json.filter(|p| *p != "-") {
+        let tmp = format!("{path}.tmp");
+        std::fs::write(&tmp, b"")
+            .with_context(|| format!("cannot write the JSON report {path}"))?;
+        let _ = std::fs::remove_file(&tmp);
+    }
+    Ok(())
+}
+
+/// Opens the wanted device backends through `devices`; one that cannot open is skipped
+/// with a line on `out`, or fails the run when nothing else is left to trace on.
+fn open_backends(
+    wanted: Wanted,
+    devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
+    out: &mut dyn Write,
+) -> Result<Backends> {
+    let Wanted { cpu, gpu, vk } = wanted;
     let mut backends = Backends::new(cpu);
     if gpu {
         backends = backends.with_gpu(devices(StressDevice::Gpu));
@@ -131,6 +192,11 @@ pub fn run(
         }
         writeln!(out, "SKIP vk: {note}")?;
     }
+    Ok(backends)
+}
+
+/// The selected cases at `size`, with `--optimize` and `--builder` applied.
+fn prepare_cases(args: &StressArgs, size: Size) -> Result<Vec<Case>> {
     let mut cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
     for c in &mut cases {
         c.build.optimize |= args.optimize;
@@ -141,10 +207,22 @@ pub fn run(
             c.build.builder = b;
         }
     }
+    Ok(cases)
+}
+
+/// Writes what runs on what, the legend and the table's header.
+fn write_preamble(
+    out: &mut dyn Write,
+    args: &StressArgs,
+    size: Size,
+    cases: usize,
+    cpu: bool,
+    backends: &Backends,
+) -> Result<()> {
     writeln!(
         out,
         "bvhtrace stress: {} cases ({:?} size{}{}), backends: {}{}{}",
-        cases.len(),
+        cases,
         size,
         if args.optimize {
             ", optimised trees"
@@ -166,15 +244,20 @@ pub fn run(
         "a/b = wrong / f32-indeterminate (vs the f64 oracle; brute = vs the f32 brute force); escape = misses from inside a closed mesh (closest + any); self-hit 0/off = self-hits/rays without / with the origin offset"
     )?;
     writeln!(out, "{}", table_header())?;
+    Ok(())
+}
+
+/// Runs each case on `backends` under a progress bar, writing its rows as it finishes.
+fn run_cases(out: &mut dyn Write, cases: &[Case], backends: &Backends) -> Result<Vec<CaseReport>> {
     let pb = ProgressBar::new(cases.len() as u64);
     pb.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} ({elapsed})")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let mut reports = Vec::with_capacity(cases.len());
-    for case in &cases {
+    for case in cases {
         pb.set_message(case.name.clone());
-        let rep = run_case(case, &backends);
+        let rep = run_case(case, backends);
         pb.suspend(|| -> Result<()> {
             for line in table_rows(&rep) {
                 writeln!(out, "{line}")?;
@@ -186,42 +269,49 @@ pub fn run(
         pb.inc(1);
     }
     pb.finish_and_clear();
-    let failed: Vec<&str> = reports
-        .iter()
-        .filter(|r| !r.clean())
-        .map(|r| r.name.as_str())
-        .collect();
-    if let Some(path) = &args.json {
-        let j = JsonReport {
-            size,
-            optimize: args.optimize,
-            builder: args.builder.map(|b| b.name().to_string()),
-            backends: args.backends.clone(),
-            gpu: backends.gpu_name(),
-            gpu_note: backends.gpu_note.clone(),
-            vk: backends.vk_name(),
-            vk_note: backends.vk_note.clone(),
-            clean: failed.is_empty(),
-            cases: &reports,
-        };
-        let text = serde_json::to_string_pretty(&j)?;
-        if to_stdout {
-            println!("{text}");
-        } else {
-            // Through a temporary file beside it, so a failed write leaves no half file.
-            let tmp = format!("{path}.tmp");
-            std::fs::write(&tmp, text).with_context(|| format!("writing {tmp}"))?;
-            std::fs::rename(&tmp, path).with_context(|| format!("renaming {tmp} to {path}"))?;
-            writeln!(out, "wrote {path}")?;
-        }
+    Ok(reports)
+}
+
+/// Writes the JSON report when `--json` asks for one: to standard output for `-`, else
+/// to its file.
+fn write_json(
+    out: &mut dyn Write,
+    args: &StressArgs,
+    size: Size,
+    backends: &Backends,
+    reports: &[CaseReport],
+    clean: bool,
+) -> Result<()> {
+    let Some(path) = &args.json else {
+        return Ok(());
+    };
+    let j = JsonReport {
+        size,
+        optimize: args.optimize,
+        builder: args.builder.map(|b| b.name().to_string()),
+        backends: args.backends.clone(),
+        gpu: backends.gpu_name(),
+        gpu_note: backends.gpu_note.clone(),
+        vk: backends.vk_name(),
+        vk_note: backends.vk_note.clone(),
+        clean,
+        cases: reports,
+    };
+    let text = serde_json::to_string_pretty(&j)?;
+    if path == "-" {
+        println!("{text}");
+    } else {
+        // Through a temporary file beside it, so a failed write leaves no half file.
+        let tmp = format!("{path}.tmp");
+        std::fs::write(&tmp, text).with_context(|| format!("writing {tmp}"))?;
+        std::fs::rename(&tmp, path).with_context(|| format!("renaming {tmp} to {path}"))?;
+        writeln!(out, "wrote {path}")?;
     }
-    if !failed.is_empty() {
-        bail!(
-            "{} case(s) broke a guarantee: {} (see the examples under their rows)",
-            failed.len(),
-            failed.join(", ")
-        );
-    }
+    Ok(())
+}
+
+/// Writes the closing line for a clean run, naming the skipped cases.
+fn write_summary(out: &mut dyn Write, reports: &[CaseReport]) -> Result<()> {
     let skipped: Vec<&str> = reports
         .iter()
         .filter(|r| r.skipped.is_some())

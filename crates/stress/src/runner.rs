@@ -621,6 +621,49 @@ fn prim_name(p: u32) -> String {
 
 const MAX_EXAMPLES: usize = 6;
 
+/// The first [`MAX_EXAMPLES`] descriptions of failures, in the order they were found.
+#[derive(Default)]
+struct Examples(Vec<String>);
+
+impl Examples {
+    /// Keeps `s` while there is room for it.
+    fn push(&mut self, s: String) {
+        if self.0.len() < MAX_EXAMPLES {
+            self.0.push(s);
+        }
+    }
+}
+
+/// The verdicts on one sampled ray: against the f64 oracle and the f32 brute force.
+struct SampleVerdict {
+    oracle: Option<Diff>,
+    brute: Option<Diff>,
+    t_rel: Option<f64>,
+    beyond: bool,
+}
+
+/// Whether `h` keeps the output contract for `ray`: an invalid ray's flag, a miss's
+/// `t_max`, or a hit on a real prim within `[t_min, t_max)`.
+fn keeps_contract(ray: &Ray, h: &Hit, prims: usize) -> bool {
+    if !ray.is_valid() {
+        let t = if ray.t_max.is_nan() { 0.0 } else { ray.t_max };
+        h.prim == INVALID_RAY && h.t.to_bits() == t.to_bits() && h.u == 0.0 && h.v == 0.0
+    } else if h.prim == MISS {
+        h.t.to_bits() == ray.t_max.to_bits() && h.u == 0.0 && h.v == 0.0
+    } else {
+        (h.prim as usize) < prims && h.t >= ray.t_min && h.t < ray.t_max
+    }
+}
+
+/// Which way a difference went, and whether f32 could not decide it.
+fn diff_name(d: &Diff) -> (&'static str, bool) {
+    match *d {
+        Diff::FalseMiss(x) => ("false miss", x),
+        Diff::FalseHit(x) => ("false hit", x),
+        Diff::WrongPrim(x) => ("wrong prim", x),
+    }
+}
+
 impl Judge<'_> {
     fn evaluate(
         &self,
@@ -629,239 +672,218 @@ impl Judge<'_> {
         hits: &[Hit],
         cpu: Option<&[Hit]>,
     ) -> RunReport {
-        let case = self.case;
-        let tris = &case.tris;
         let closest = query == Query::Closest;
         r.rays = hits.len();
         r.sample = self.sample.len();
-        let mut examples: Vec<String> = Vec::new();
-        let mut example = |s: String| {
-            if examples.len() < MAX_EXAMPLES {
-                examples.push(s);
+        let mut examples = Examples::default();
+        for (i, h) in hits.iter().enumerate().take(self.case.rays.len()) {
+            self.check_output(&mut r, &mut examples, i, h);
+            self.check_expectation(&mut r, &mut examples, i, h, closest);
+        }
+        let verdicts = self.sample_verdicts(query, hits);
+        self.tally_sample(&mut r, &mut examples, &verdicts, hits);
+        if let Some(c) = cpu {
+            r.parity_mismatches = Some(self.parity(&mut examples, hits, c));
+        }
+        if closest {
+            r.precision = self.precision_rows(hits);
+        }
+        r.examples = examples.0;
+        r
+    }
+
+    /// Counts ray `i`'s output faults: NaNs, flags, contract breaks, hits on
+    /// zero-area triangles and phantom hits off the triangle.
+    fn check_output(&self, r: &mut RunReport, examples: &mut Examples, i: usize, h: &Hit) {
+        let tris = &self.case.tris;
+        let ray = &self.case.rays[i];
+        if h.t.is_nan() || h.u.is_nan() || h.v.is_nan() {
+            r.nan_outputs += 1;
+            examples.push(describe(ray, &format!("ray {i}: NaN output"), h));
+        }
+        if h.prim == INVALID_RAY {
+            r.invalid_flagged += 1;
+        }
+        if !keeps_contract(ray, h, tris.len()) {
+            r.contract_violations += 1;
+            examples.push(describe(ray, &format!("ray {i}: contract"), h));
+        }
+        if h.is_hit()
+            && self
+                .zero_area
+                .get(h.prim as usize)
+                .copied()
+                .unwrap_or(false)
+        {
+            r.zero_area_hits += 1;
+        }
+        if h.is_hit()
+            && (h.prim as usize) < tris.len()
+            && h.t.is_finite()
+            && self
+                .geo
+                .local(h.prim, ray)
+                .is_some_and(|(tri, r)| phantom(&tri, &r, h.t))
+        {
+            r.phantom_hits += 1;
+        }
+    }
+
+    /// Judges ray `i`'s output against what its case expects of it.
+    fn check_expectation(
+        &self,
+        r: &mut RunReport,
+        examples: &mut Examples,
+        i: usize,
+        h: &Hit,
+        closest: bool,
+    ) {
+        let ray = &self.case.rays[i];
+        let mut known = |r: &mut RunReport, ok: bool, what: &str| {
+            r.known += 1;
+            if !ok {
+                r.known_wrong += 1;
+                examples.push(describe(ray, &format!("ray {i}: {what}"), h));
             }
         };
-        for (i, (ray, h)) in case.rays.iter().zip(hits).enumerate() {
-            if h.t.is_nan() || h.u.is_nan() || h.v.is_nan() {
-                r.nan_outputs += 1;
-                example(describe(ray, &format!("ray {i}: NaN output"), h));
-            }
-            if h.prim == INVALID_RAY {
-                r.invalid_flagged += 1;
-            }
-            let contract_ok = if !ray.is_valid() {
-                let t = if ray.t_max.is_nan() { 0.0 } else { ray.t_max };
-                h.prim == INVALID_RAY && h.t.to_bits() == t.to_bits() && h.u == 0.0 && h.v == 0.0
-            } else if h.prim == MISS {
-                h.t.to_bits() == ray.t_max.to_bits() && h.u == 0.0 && h.v == 0.0
-            } else {
-                (h.prim as usize) < tris.len() && h.t >= ray.t_min && h.t < ray.t_max
-            };
-            if !contract_ok {
-                r.contract_violations += 1;
-                example(describe(ray, &format!("ray {i}: contract"), h));
-            }
-            if h.is_hit()
-                && self
-                    .zero_area
-                    .get(h.prim as usize)
-                    .copied()
-                    .unwrap_or(false)
-            {
-                r.zero_area_hits += 1;
-            }
-            if h.is_hit()
-                && (h.prim as usize) < tris.len()
-                && h.t.is_finite()
-                && self
-                    .geo
-                    .local(h.prim, ray)
-                    .is_some_and(|(tri, r)| phantom(&tri, &r, h.t))
-            {
-                r.phantom_hits += 1;
-            }
-            match case.expect[i] {
-                Expect::MustHit => {
-                    r.must_hit += 1;
-                    if !h.is_hit() {
-                        let indet = match &self.traced[i] {
-                            Some(tr) => matches!(
-                                judge(&self.geo, tr, h, 0, 0.0, Query::Any),
-                                Some(Diff::FalseMiss(true))
-                            ),
-                            None => true,
-                        };
-                        r.escapes.add(indet);
-                        example(describe(
-                            ray,
-                            &format!(
-                                "ray {i}: escape ({})",
-                                if indet {
-                                    "f32-indeterminate"
-                                } else {
-                                    "a crack"
-                                }
-                            ),
-                            h,
-                        ));
-                    }
+        match self.case.expect[i] {
+            Expect::MustHit => {
+                r.must_hit += 1;
+                if !h.is_hit() {
+                    self.escape(r, examples, i, h);
                 }
-                Expect::Prim(p) => {
-                    r.known += 1;
-                    let ok = if closest { h.prim == p } else { h.is_hit() };
-                    if !ok {
-                        r.known_wrong += 1;
-                        example(describe(ray, &format!("ray {i}: expected prim {p}"), h));
-                    }
-                }
-                Expect::Miss => {
-                    r.known += 1;
-                    if h.prim != MISS {
-                        r.known_wrong += 1;
-                        example(describe(ray, &format!("ray {i}: expected MISS"), h));
-                    }
-                }
-                Expect::Invalid => {
-                    r.known += 1;
-                    if h.prim != INVALID_RAY {
-                        r.known_wrong += 1;
-                        example(describe(ray, &format!("ray {i}: expected INVALID_RAY"), h));
-                    }
-                }
-                Expect::Secondary { origin, offset } if closest => {
-                    let self_hit = h.prim == origin;
-                    if offset {
-                        r.secondary_offset += 1;
-                        r.self_hits_offset += self_hit as usize;
-                    } else {
-                        r.secondary_plain += 1;
-                        r.self_hits_plain += self_hit as usize;
-                    }
-                }
-                _ => {}
             }
+            Expect::Prim(p) => {
+                let ok = if closest { h.prim == p } else { h.is_hit() };
+                known(r, ok, &format!("expected prim {p}"));
+            }
+            Expect::Miss => known(r, h.prim == MISS, "expected MISS"),
+            Expect::Invalid => known(r, h.prim == INVALID_RAY, "expected INVALID_RAY"),
+            Expect::Secondary { origin, offset } if closest => {
+                let self_hit = h.prim == origin;
+                if offset {
+                    r.secondary_offset += 1;
+                    r.self_hits_offset += self_hit as usize;
+                } else {
+                    r.secondary_plain += 1;
+                    r.self_hits_plain += self_hit as usize;
+                }
+            }
+            _ => {}
         }
+    }
 
-        // The sample: oracle and brute force.
-        struct One {
-            oracle: Option<Diff>,
-            brute: Option<Diff>,
-            t_rel: Option<f64>,
-            beyond: bool,
-        }
-        let ones: Vec<One> = self
-            .sample
+    /// Counts a must-hit ray `i` that missed, as a crack or as f32-indeterminate.
+    fn escape(&self, r: &mut RunReport, examples: &mut Examples, i: usize, h: &Hit) {
+        let indet = match &self.traced[i] {
+            Some(tr) => matches!(
+                judge(&self.geo, tr, h, 0, 0.0, Query::Any),
+                Some(Diff::FalseMiss(true))
+            ),
+            None => true,
+        };
+        r.escapes.add(indet);
+        let why = if indet {
+            "f32-indeterminate"
+        } else {
+            "a crack"
+        };
+        examples.push(describe(
+            &self.case.rays[i],
+            &format!("ray {i}: escape ({why})"),
+            h,
+        ));
+    }
+
+    /// The sample's verdicts, one per sampled ray, in sample order.
+    fn sample_verdicts(&self, query: Query, hits: &[Hit]) -> Vec<SampleVerdict> {
+        self.sample
             .par_iter()
             .enumerate()
-            .map(|(k, &i)| {
-                let h = &hits[i];
-                let Some(ray) = &self.traced[i] else {
-                    return One {
-                        oracle: None,
-                        brute: None,
-                        t_rel: None,
-                        beyond: false,
-                    };
-                };
-                let o = &self.oracle[k];
-                let b = &self.brute[k];
-                let geo = &self.geo;
-                let oracle_diff = judge(geo, ray, h, o.prim, o.t, query);
-                // The brute force's f64 distance, for judging a difference from it.
-                let brute_t = || {
-                    if b.is_hit() {
-                        geo.local(b.prim, ray)
-                            .and_then(|(tri, r)| t64(&tri, &r))
-                            .unwrap_or(b.t as f64)
-                    } else {
-                        0.0
-                    }
-                };
-                let brute_diff = if closest {
-                    if hit_bits(h) == hit_bits(b) {
-                        None
-                    } else if h.is_hit()
-                        && b.is_hit()
-                        && h.t.to_bits() == b.t.to_bits()
-                        && geo.local(h.prim, ray).is_some()
-                        && geo.local(h.prim, ray) == geo.local(b.prim, ray)
-                    {
-                        // Exact duplicates tie exactly: the lower index must win, f32 or
-                        // not (the traversal skipped it or broke the tie rule).
-                        Some(Diff::WrongPrim(false))
-                    } else {
-                        Some(
-                            judge(geo, ray, h, b.prim, brute_t(), query)
-                                .unwrap_or(Diff::WrongPrim(false)),
-                        )
-                    }
-                } else {
-                    judge(geo, ray, h, b.prim, brute_t(), query)
-                };
-                let (mut t_rel, mut beyond) = (None, false);
-                if closest && h.is_hit() && h.prim == o.prim {
-                    let err = (h.t as f64 - o.t).abs();
-                    t_rel = Some(if o.t != 0.0 { err / o.t.abs() } else { err });
-                    if let Some((tri, r)) = geo.local(h.prim, ray) {
-                        beyond = err > oracle::f32_t_error_bound(&tri, &r);
-                    }
-                }
-                One {
-                    oracle: oracle_diff,
-                    brute: brute_diff,
-                    t_rel,
-                    beyond,
-                }
-            })
-            .collect();
+            .map(|(k, &i)| self.sample_verdict(query, k, &hits[i], i))
+            .collect()
+    }
+
+    /// Judges hit `h` of ray `i` (sample position `k`) against the oracle and the
+    /// brute force, with its distance's relative error when both found the same prim.
+    fn sample_verdict(&self, query: Query, k: usize, h: &Hit, i: usize) -> SampleVerdict {
+        let Some(ray) = &self.traced[i] else {
+            return SampleVerdict {
+                oracle: None,
+                brute: None,
+                t_rel: None,
+                beyond: false,
+            };
+        };
+        let o = &self.oracle[k];
+        let geo = &self.geo;
+        let oracle_diff = judge(geo, ray, h, o.prim, o.t, query);
+        let brute_diff = self.brute_diff(query, ray, h, &self.brute[k]);
+        let (mut t_rel, mut beyond) = (None, false);
+        if query == Query::Closest && h.is_hit() && h.prim == o.prim {
+            let err = (h.t as f64 - o.t).abs();
+            t_rel = Some(if o.t != 0.0 { err / o.t.abs() } else { err });
+            if let Some((tri, r)) = geo.local(h.prim, ray) {
+                beyond = err > oracle::f32_t_error_bound(&tri, &r);
+            }
+        }
+        SampleVerdict {
+            oracle: oracle_diff,
+            brute: brute_diff,
+            t_rel,
+            beyond,
+        }
+    }
+
+    /// How `h` differs from the brute force's hit `b` on the traced `ray`, if it does.
+    fn brute_diff(&self, query: Query, ray: &Ray, h: &Hit, b: &Hit) -> Option<Diff> {
+        let geo = &self.geo;
+        // The brute force's f64 distance, for judging a difference from it.
+        let brute_t = || {
+            if b.is_hit() {
+                geo.local(b.prim, ray)
+                    .and_then(|(tri, r)| t64(&tri, &r))
+                    .unwrap_or(b.t as f64)
+            } else {
+                0.0
+            }
+        };
+        if query != Query::Closest {
+            return judge(geo, ray, h, b.prim, brute_t(), query);
+        }
+        if hit_bits(h) == hit_bits(b) {
+            None
+        } else if h.is_hit()
+            && b.is_hit()
+            && h.t.to_bits() == b.t.to_bits()
+            && geo.local(h.prim, ray).is_some()
+            && geo.local(h.prim, ray) == geo.local(b.prim, ray)
+        {
+            // Exact duplicates tie exactly: the lower index must win, f32 or
+            // not (the traversal skipped it or broke the tie rule).
+            Some(Diff::WrongPrim(false))
+        } else {
+            Some(judge(geo, ray, h, b.prim, brute_t(), query).unwrap_or(Diff::WrongPrim(false)))
+        }
+    }
+
+    /// Adds the sample's verdicts to the report: differences from the oracle and the
+    /// brute force, distances beyond the f32 bound, and the relative error's spread.
+    fn tally_sample(
+        &self,
+        r: &mut RunReport,
+        examples: &mut Examples,
+        verdicts: &[SampleVerdict],
+        hits: &[Hit],
+    ) {
         let mut rel = Vec::new();
-        for (k, one) in ones.iter().enumerate() {
+        for (k, one) in verdicts.iter().enumerate() {
             let i = self.sample[k];
-            let (ray, h) = (&case.rays[i], &hits[i]);
             if let Some(d) = &one.oracle {
-                let o = &self.oracle[k];
-                let (what, indet) = match *d {
-                    Diff::FalseMiss(x) => {
-                        r.false_misses.add(x);
-                        ("false miss", x)
-                    }
-                    Diff::FalseHit(x) => {
-                        r.false_hits.add(x);
-                        ("false hit", x)
-                    }
-                    Diff::WrongPrim(x) => {
-                        r.wrong_prim.add(x);
-                        ("wrong prim", x)
-                    }
-                };
-                if !indet {
-                    example(describe(
-                        ray,
-                        &format!(
-                            "ray {i}: {what} (oracle prim {} t {:e})",
-                            prim_name(o.prim),
-                            o.t
-                        ),
-                        h,
-                    ));
-                }
+                self.tally_oracle(r, examples, k, d, &hits[i]);
             }
             if let Some(d) = &one.brute {
-                let indet = match *d {
-                    Diff::FalseMiss(x) | Diff::FalseHit(x) | Diff::WrongPrim(x) => x,
-                };
-                r.brute_mismatch.add(indet);
-                if !indet {
-                    let b = &self.brute[k];
-                    example(describe(
-                        ray,
-                        &format!(
-                            "ray {i}: differs from the f32 brute force (prim {} t {:e})",
-                            prim_name(b.prim),
-                            b.t
-                        ),
-                        h,
-                    ));
-                }
+                self.tally_brute(r, examples, k, d, &hits[i]);
             }
             if let Some(t) = one.t_rel {
                 rel.push(t);
@@ -873,32 +895,77 @@ impl Judge<'_> {
         rel.sort_by(f64::total_cmp);
         r.t_rel_median = rel.get(rel.len() / 2).copied().unwrap_or(0.0);
         r.t_rel_max = rel.last().copied().unwrap_or(0.0);
+    }
 
-        if let Some(c) = cpu {
-            let mut n = 0;
-            for (i, (g, c)) in hits.iter().zip(c).enumerate() {
-                if hit_bits(g) != hit_bits(c) {
-                    n += 1;
-                    example(describe(
-                        &case.rays[i],
-                        &format!(
-                            "ray {i}: GPU differs from the CPU twin (cpu prim {} t {:e} u {:e} v {:e})",
-                            prim_name(c.prim),
-                            c.t,
-                            c.u,
-                            c.v
-                        ),
-                        g,
-                    ));
-                }
+    /// Counts sampled hit `h` (sample position `k`) differing from the oracle by `d`.
+    fn tally_oracle(
+        &self,
+        r: &mut RunReport,
+        examples: &mut Examples,
+        k: usize,
+        d: &Diff,
+        h: &Hit,
+    ) {
+        let i = self.sample[k];
+        let (what, indet) = diff_name(d);
+        match d {
+            Diff::FalseMiss(_) => r.false_misses.add(indet),
+            Diff::FalseHit(_) => r.false_hits.add(indet),
+            Diff::WrongPrim(_) => r.wrong_prim.add(indet),
+        }
+        if !indet {
+            let o = &self.oracle[k];
+            examples.push(describe(
+                &self.case.rays[i],
+                &format!(
+                    "ray {i}: {what} (oracle prim {} t {:e})",
+                    prim_name(o.prim),
+                    o.t
+                ),
+                h,
+            ));
+        }
+    }
+
+    /// Counts sampled hit `h` (sample position `k`) differing from the brute force by `d`.
+    fn tally_brute(&self, r: &mut RunReport, examples: &mut Examples, k: usize, d: &Diff, h: &Hit) {
+        let i = self.sample[k];
+        let (_, indet) = diff_name(d);
+        r.brute_mismatch.add(indet);
+        if !indet {
+            let b = &self.brute[k];
+            examples.push(describe(
+                &self.case.rays[i],
+                &format!(
+                    "ray {i}: differs from the f32 brute force (prim {} t {:e})",
+                    prim_name(b.prim),
+                    b.t
+                ),
+                h,
+            ));
+        }
+    }
+
+    /// The number of GPU hits that differ bit for bit from the CPU twin's.
+    fn parity(&self, examples: &mut Examples, hits: &[Hit], cpu: &[Hit]) -> usize {
+        let mut n = 0;
+        for (i, (g, c)) in hits.iter().zip(cpu).enumerate() {
+            if hit_bits(g) != hit_bits(c) {
+                n += 1;
+                examples.push(describe(
+                    &self.case.rays[i],
+                    &format!(
+                        "ray {i}: GPU differs from the CPU twin (cpu prim {} t {:e} u {:e} v {:e})",
+                        prim_name(c.prim),
+                        c.t,
+                        c.u,
+                        c.v
+                    ),
+                    g,
+                ));
             }
-            r.parity_mismatches = Some(n);
         }
-        if closest {
-            r.precision = self.precision_rows(hits);
-        }
-        r.examples = examples;
-        r
+        n
     }
 
     fn precision_rows(&self, hits: &[Hit]) -> Vec<PrecisionRow> {
