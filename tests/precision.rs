@@ -13,8 +13,8 @@
 //!   (hits and counters) on two small scenes; f64 where the adapter has `SHADER_F64`.
 
 use bvhtrace_core::{
-    BuildOptions, FlatBvh, Hit, Precision, Query, Ray, TraceOptions, Traversal, Triangle,
-    brute_force, trace_rays,
+    BuildOptions, FlatBvh, Hit, Precision, Query, TraceOptions, Traversal, Triangle, brute_force,
+    trace_rays,
 };
 use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
 use glam::Vec3;
