@@ -87,7 +87,7 @@ fn context() -> Option<GpuContext> {
 /// one axis, with +0 or -0 in the other components. Its origin, direction and axis.
 fn in_box_face(k: usize, bmin: Vec3, bmax: Vec3, lo: Vec3, hi: Vec3) -> (Vec3, Vec3, usize) {
     let axis = k % 3;
-    let mut o = if k % 2 == 0 { bmin } else { bmax };
+    let mut o = if k.is_multiple_of(2) { bmin } else { bmax };
     let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
     o[axis] = if sign > 0.0 {
         lo[axis] - 1.0

@@ -187,7 +187,7 @@ fn run() -> Result<(), Box<dyn Error>> {
     };
     let camera_buffer = init("camera", bytemuck::cast_slice(&words), U::UNIFORM);
     let counter = init("incomplete", &[0; 4], U::STORAGE | U::COPY_SRC);
-    let buffer = |label, size, usage| common::buffer(&device, label, size, usage);
+    let buffer = |label, size, usage| common::buffer(device, label, size, usage);
     let pixels = buffer("pixels", pixel_bytes, U::STORAGE | U::COPY_SRC);
     // Pixels, then the counter.
     let readback = buffer("readback", pixel_bytes + 4, U::MAP_READ | U::COPY_DST);
