@@ -13,7 +13,7 @@ mod common;
 mod support;
 use common::{Devices, tracers};
 use support::{
-    SceneCase, cpu_counted, deep_wide_rays, deep_wide_tree, differ, load_scene, parity_rays,
+    SceneCase, cpu_counted, deep_wide_rays, deep_wide_tree, differences, load_scene, parity_rays,
     parity_scenes,
 };
 
@@ -49,23 +49,13 @@ fn compare(
             assert_eq!(counted.incomplete, n, "{who}: rays finished on the CPU");
         }
         let counters = counted.counters.as_deref().expect("counters asked for");
-        for (what, bad) in [
-            ("hits", differ(&counted.hits, &cpu_hits)),
-            ("uncounted hits", differ(&plain.hits, &cpu_hits)),
-            ("counters", differ(counters, &cpu_counters)),
-        ] {
-            if let Some(&i) = bad.first() {
-                failures.push(format!(
-                    "{who}: {what}: {} rays differ; first {i}: ray {:?}, got {:?} {:?}, cpu {:?} {:?}",
-                    bad.len(),
-                    rays[i],
-                    counted.hits[i],
-                    counters[i],
-                    cpu_hits[i],
-                    cpu_counters[i]
-                ));
-            }
-        }
+        failures.extend(differences(
+            &who,
+            rays,
+            (&counted.hits, counters),
+            &plain.hits,
+            (&cpu_hits, &cpu_counters),
+        ));
     }
     failures
 }

@@ -5,6 +5,9 @@ use bvhtrace_core::oracle::{f32_indeterminate, f32_t_error_bound};
 use bvhtrace_core::*;
 use glam::Vec3;
 
+#[path = "support/rays.rs"]
+mod support_rays;
+
 fn mesh(name: &str) -> Option<Vec<Triangle>> {
     let Some(dir) = bvhtrace_scene::shared_scenes_dir() else {
         eprintln!("SKIP: no shared scenes folder (../shared/scenes or $BVHTRACE_SCENES)");
@@ -143,11 +146,7 @@ fn hits_do_not_depend_on_the_scene_scale() {
             "{name}: the camera sees the mesh ({hits} hits)"
         );
         for s in [1e-3f32, 1e4] {
-            let st: Vec<Triangle> = tris.iter().map(|t| t.map(|p| p * s)).collect();
-            let sr: Vec<Ray> = rays
-                .iter()
-                .map(|r| Ray::new(Vec3::from(r.origin) * s, Vec3::from(r.dir)))
-                .collect();
+            let (st, sr) = support_rays::scaled(&tris, &rays, s);
             let bvh = FlatBvh::build(&st, &BuildOptions::default()).unwrap();
             let mut differ = 0;
             for (tr, ((a, b), r)) in [

@@ -82,6 +82,23 @@ fn context() -> Option<GpuContext> {
     }
 }
 
+/// The `k`th axis-parallel ray lying in a face of the box `bmin`..`bmax`: from outside
+/// the scene's bounds `lo`..`hi`, from the box's min or max corner, along either sign of
+/// one axis, with +0 or -0 in the other components. Its origin, direction and axis.
+fn in_box_face(k: usize, bmin: Vec3, bmax: Vec3, lo: Vec3, hi: Vec3) -> (Vec3, Vec3, usize) {
+    let axis = k % 3;
+    let mut o = if k.is_multiple_of(2) { bmin } else { bmax };
+    let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
+    o[axis] = if sign > 0.0 {
+        lo[axis] - 1.0
+    } else {
+        hi[axis] + 1.0
+    };
+    let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
+    d[axis] = sign;
+    (o, d, axis)
+}
+
 /// Primary rays, random rays from inside the bounds, axis-parallel rays with +0/-0
 /// components, rays with finite intervals, and invalid rays.
 fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
@@ -130,16 +147,7 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
     // parallel path), both signs, both zero signs.
     for k in 0..2048 {
         let n = &bvh.nodes[(rng.next_u64() % bvh.nodes.len() as u64) as usize];
-        let axis = k % 3;
-        let mut o = Vec3::from(if k % 2 == 0 { n.min } else { n.max });
-        let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
-        o[axis] = if sign > 0.0 {
-            lo[axis] - 1.0
-        } else {
-            hi[axis] + 1.0
-        };
-        let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
-        d[axis] = sign;
+        let (o, mut d, axis) = in_box_face(k, Vec3::from(n.min), Vec3::from(n.max), lo, hi);
         rays.push(Ray::new(o, d));
         // Also nearly parallel: a subnormal component (flushed to zero by both sides).
         d[(axis + 1) % 3] = if k % 16 < 8 { 1e-40 } else { -1e-40 };
@@ -181,16 +189,7 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
                 continue;
             };
             let (bmin, bmax) = n.child_box(slot);
-            let axis = k % 3;
-            let mut o = if k % 2 == 0 { bmin } else { bmax };
-            let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
-            o[axis] = if sign > 0.0 {
-                lo[axis] - 1.0
-            } else {
-                hi[axis] + 1.0
-            };
-            let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
-            d[axis] = sign;
+            let (o, d, _) = in_box_face(k, bmin, bmax, lo, hi);
             rays.push(Ray::new(o, d));
         }
     }

@@ -13,11 +13,15 @@
 //!   (hits and counters) on two small scenes; f64 where the adapter has `SHADER_F64`.
 
 use bvhtrace_core::{
-    BuildOptions, FlatBvh, Hit, Precision, Query, Ray, TraceOptions, Traversal, Triangle,
-    brute_force, trace_rays,
+    BuildOptions, FlatBvh, Hit, Precision, Query, TraceOptions, Traversal, Triangle, brute_force,
+    trace_rays,
 };
 use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
 use glam::Vec3;
+
+#[path = "support/rays.rs"]
+mod support_rays;
+use support_rays::edge_rays;
 
 const TRAVERSALS: [Traversal; 4] = [
     Traversal::FullStack,
@@ -40,21 +44,6 @@ fn centre(tris: &[Triangle]) -> Vec3 {
         |(l, h), p| (l.min(*p), h.max(*p)),
     );
     (lo + hi) * 0.5
-}
-
-/// Rays from `from` (inside the closed mesh) aimed exactly at every vertex and at points
-/// on every edge.
-fn edge_rays(tris: &[Triangle], from: Vec3) -> Vec<Ray> {
-    let mut rays = Vec::new();
-    for t in tris {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            for s in [0.0f32, 0.5, 0.25, 1.0 / 3.0, 0.9] {
-                rays.push(Ray::new(from, a + (b - a) * s - from));
-            }
-        }
-    }
-    rays
 }
 
 /// Escapes (misses) of edge/vertex rays from two inside points, per traversal.

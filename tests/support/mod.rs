@@ -309,3 +309,33 @@ pub fn cpu_counted(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> (Vec<Hit
     let out = trace_rays(bvh, rays, &opts.with_counters(true));
     (out.hits, out.counters.expect("counters asked for"))
 }
+
+/// How a tracer's hits (traced with counters and without) and counters differ bytewise
+/// from the CPU twin's: a line for each that differs, naming `who` and the first ray.
+pub fn differences(
+    who: &str,
+    rays: &[Ray],
+    (hits, counters): (&[Hit], &[Counters]),
+    plain_hits: &[Hit],
+    (cpu_hits, cpu_counters): (&[Hit], &[Counters]),
+) -> Vec<String> {
+    let mut out = Vec::new();
+    for (what, bad) in [
+        ("hits", differ(hits, cpu_hits)),
+        ("uncounted hits", differ(plain_hits, cpu_hits)),
+        ("counters", differ(counters, cpu_counters)),
+    ] {
+        if let Some(&i) = bad.first() {
+            out.push(format!(
+                "{who}: {what}: {} rays differ; first {i}: ray {:?}, got {:?} {:?}, cpu {:?} {:?}",
+                bad.len(),
+                rays[i],
+                hits[i],
+                counters[i],
+                cpu_hits[i],
+                cpu_counters[i]
+            ));
+        }
+    }
+    out
+}

@@ -223,14 +223,8 @@ pub struct BenchBuildArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Primary rays, WxH (the shadow and diffuse rays start at their hits).
-    #[arg(
-        long,
-        value_name = "WxH",
-        default_value = "1024x768",
-        value_parser = crate::render::parse_size
-    )]
-    pub size: (u32, u32),
+    #[command(flatten)]
+    pub primary: crate::render::PrimarySize,
     /// Configurations, comma-separated: BUILDER[+optimize][:KEY=VALUE]..., BUILDER one of
     /// sah, sweep-sah, median, midpoint, sbvh; keys ctrav (traversal cost, PBRT's 0.125 by
     /// default), bins, budget (SBVH split budget), leaf (max leaf size); e.g.
@@ -435,7 +429,7 @@ pub fn bench_build(args: BenchBuildArgs) -> Result<()> {
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
-    let (w, h) = args.size;
+    let (w, h) = args.primary.size;
     // Reserve the JSON destination before any work, so a bad path fails at once.
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     let to_stderr = matches!(json_out, Some(JsonOut::Stdout));

@@ -19,7 +19,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Context, Result, bail};
 use bvhtrace::{Backend, CpuTracer, Tracer};
 use bvhtrace_core::traverse::DEFAULT_SHORT_STACK;
 use bvhtrace_core::{
@@ -35,6 +35,7 @@ use crate::accuracy;
 use crate::bench::median;
 use crate::bench_matrix::BenchArgs;
 use crate::output::{AtomicFile, JsonOut};
+use crate::plot::plot_error;
 use crate::shade::{self, Shade, palette};
 
 /// The flags `bench` takes for `--converge` (flattened into [`BenchArgs`]).
@@ -937,10 +938,9 @@ fn draw<DB: DrawingBackend>(
 where
     DB::ErrorType: 'static,
 {
-    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| anyhow!("plotting failed: {e}");
-    root.fill(&WHITE).map_err(err)?;
+    root.fill(&WHITE).map_err(plot_error)?;
     let root = if text {
-        root.titled(title, ("sans-serif", 20)).map_err(err)?
+        root.titled(title, ("sans-serif", 20)).map_err(plot_error)?
     } else {
         root
     };
@@ -995,7 +995,7 @@ where
                     k
                 }),
             )
-            .map_err(err)?;
+            .map_err(plot_error)?;
         if text {
             chart
                 .configure_mesh()
@@ -1004,7 +1004,7 @@ where
                 .y_desc(name.to_string())
                 .y_label_formatter(&|y| format!("{y}"))
                 .draw()
-                .map_err(err)?;
+                .map_err(plot_error)?;
         }
         // The table's levels, as thin grey lines.
         for &l in levels.iter().filter(|l| (emin..emax).contains(*l)) {
@@ -1013,7 +1013,7 @@ where
                     [(tmin, l), (tmax, l)],
                     RGBColor(170, 170, 170).stroke_width(1),
                 ))
-                .map_err(err)?;
+                .map_err(plot_error)?;
         }
         for c in curves {
             let col = colour(c);
@@ -1031,7 +1031,7 @@ where
                     .draw_series(DashedLineSeries::new(pts.clone(), on, off, style))
                     .map(|_| ()),
             }
-            .map_err(err)?;
+            .map_err(plot_error)?;
             // A walk's marker: filled circle, triangle, cross, hollow circle (then again).
             let (fill, line) = (col.filled(), col.stroke_width(1));
             let at = pts.iter().copied();
@@ -1041,7 +1041,7 @@ where
                 2 => chart.draw_series(at.map(|p| Cross::new(p, 4, line))),
                 _ => chart.draw_series(at.map(|p| Circle::new(p, 4, line))),
             }
-            .map_err(err)?;
+            .map_err(plot_error)?;
         }
         if pi == 0 && text {
             // Legend entries of their own: builders (colour), walks (marker), backends
@@ -1050,7 +1050,7 @@ where
                 let col = builder_colour(i);
                 chart
                     .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(err)?
+                    .map_err(plot_error)?
                     .label(format!("builder {b}"))
                     .legend(move |(x, y)| {
                         PathElement::new([(x, y), (x + 18, y)], col.stroke_width(3))
@@ -1059,7 +1059,7 @@ where
             for (i, wk) in walks.iter().enumerate() {
                 let entry = chart
                     .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(err)?
+                    .map_err(plot_error)?
                     .label(format!("walk {wk}"));
                 let (fill, line) = (BLACK.filled(), BLACK.stroke_width(1));
                 match i % 4 {
@@ -1072,7 +1072,7 @@ where
             for be in &backends {
                 let entry = chart
                     .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(err)?
+                    .map_err(plot_error)?
                     .label(format!("backend {be}"));
                 match dash(be) {
                     None => entry.legend(|(x, y)| {
@@ -1095,10 +1095,10 @@ where
                 .background_style(WHITE.mix(0.9))
                 .border_style(BLACK)
                 .draw()
-                .map_err(err)?;
+                .map_err(plot_error)?;
         }
     }
-    root.present().map_err(err)?;
+    root.present().map_err(plot_error)?;
     Ok(())
 }
 

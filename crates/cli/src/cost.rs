@@ -47,14 +47,8 @@ pub struct CostArgs {
     /// Scenes: .gltf/.glb files or `builtin:` names (default: bunny_69k and igea from
     /// ../shared/scenes).
     pub scenes: Vec<String>,
-    /// Primary rays, WxH (the shadow and diffuse rays start at their hits).
-    #[arg(
-        long,
-        value_name = "WxH",
-        default_value = "1024x768",
-        value_parser = crate::render::parse_size
-    )]
-    pub size: (u32, u32),
+    #[command(flatten)]
+    pub primary: crate::render::PrimarySize,
     /// Walks to compare, comma-separated (`full-stack`, `stackless`, `short-stack:K`,
     /// `wide`); the ratio columns divide by the first.
     #[arg(
@@ -157,7 +151,7 @@ impl CostRow {
 
 /// `bvhtrace cost`.
 pub fn cost(args: CostArgs) -> Result<()> {
-    let (w, h) = args.size;
+    let (w, h) = args.primary.size;
     if args.walks.is_empty() {
         bail!("--walks: give at least one walk");
     }

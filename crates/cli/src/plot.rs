@@ -61,6 +61,13 @@ fn label(r: &Row) -> String {
     )
 }
 
+/// A plotting failure as this crate reports it.
+pub(crate) fn plot_error<E: std::error::Error + Send + Sync>(
+    e: DrawingAreaErrorKind<E>,
+) -> anyhow::Error {
+    anyhow!("plotting failed: {e}")
+}
+
 fn draw<DB: DrawingBackend>(
     root: DrawingArea<DB, plotters::coord::Shift>,
     title: &str,
@@ -70,8 +77,7 @@ fn draw<DB: DrawingBackend>(
 where
     DB::ErrorType: 'static,
 {
-    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| anyhow!("plotting failed: {e}");
-    root.fill(&WHITE).map_err(err)?;
+    root.fill(&WHITE).map_err(plot_error)?;
     // x: nanoseconds per ray; y: the headline error.
     let pts: Vec<(f64, f64)> = rows
         .iter()
@@ -101,7 +107,7 @@ where
                 .with_key_points(one_two_five(xmin * 0.8, xmax * 1.25)),
             (FLOOR * 0.5..ymax * 2.0).log_scale(),
         )
-        .map_err(err)?;
+        .map_err(plot_error)?;
     if text {
         chart
             .configure_mesh()
@@ -109,7 +115,7 @@ where
             .x_label_formatter(&|x| format!("{x:.0}"))
             .y_desc("error vs f64 oracle (wrong-answer rate; else max rel. t error; floor = exact)")
             .draw()
-            .map_err(err)?;
+            .map_err(plot_error)?;
     }
     let colour = |k: RayKind| match k {
         RayKind::Primary => BLUE,
@@ -121,11 +127,11 @@ where
         if r.config.backend != "cpu" {
             chart
                 .draw_series(std::iter::once(TriangleMarker::new(*p, 6, c.filled())))
-                .map_err(err)?;
+                .map_err(plot_error)?;
         } else {
             chart
                 .draw_series(std::iter::once(Circle::new(*p, 4, c.filled())))
-                .map_err(err)?;
+                .map_err(plot_error)?;
         }
     }
     // One Pareto front per ray kind: the kinds are different workloads.
@@ -141,7 +147,7 @@ where
                 front.iter().map(|&i| pts[i]),
                 colour(kind).stroke_width(2),
             ))
-            .map_err(err)?;
+            .map_err(plot_error)?;
         if text {
             for &i in &front {
                 chart
@@ -150,7 +156,7 @@ where
                         pts[i],
                         ("sans-serif", 12).into_font(),
                     )))
-                    .map_err(err)?;
+                    .map_err(plot_error)?;
             }
         }
     }
@@ -161,16 +167,16 @@ where
                 (xmin * 0.85, FLOOR * 0.75),
                 ("sans-serif", 12).into_font(),
             )))
-            .map_err(err)?;
+            .map_err(plot_error)?;
         chart
             .draw_series(std::iter::once(Text::new(
                 "blue primary, green shadow, red diffuse; triangles GPU, circles CPU; lines = Pareto fronts, labelled".to_string(),
                 (xmin * 0.85, ymax * 1.6),
                 ("sans-serif", 12).into_font(),
             )))
-            .map_err(err)?;
+            .map_err(plot_error)?;
     }
-    root.present().map_err(err)?;
+    root.present().map_err(plot_error)?;
     Ok(())
 }
 

@@ -32,6 +32,19 @@ pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
+/// The primary rays' size flag of the commands that also trace secondary rays from them.
+#[derive(clap::Args, Clone, Copy)]
+pub struct PrimarySize {
+    /// Primary rays, WxH (the shadow and diffuse rays start at their hits).
+    #[arg(
+        long,
+        value_name = "WxH",
+        default_value = "1024x768",
+        value_parser = parse_size
+    )]
+    pub size: (u32, u32),
+}
+
 /// The BVH build flags, shared by every command that builds one.
 #[derive(clap::Args, Clone)]
 pub struct BuildArgs {

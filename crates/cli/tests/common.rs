@@ -49,3 +49,21 @@ pub fn shared() -> Option<PathBuf> {
 pub fn json(out: &Output) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("JSON on stdout")
 }
+
+/// Runs `bvhtrace render SCENE ARGS... -o PNG --json -` (see [`run`]).
+pub fn render(scene: &str, png: &Path, args: &[&str]) -> Output {
+    let mut a = vec!["render", scene];
+    a.extend_from_slice(args);
+    a.extend(["-o", png.to_str().unwrap(), "--json", "-"]);
+    run(&a)
+}
+
+/// Asserts the command succeeded, showing its stderr when it did not.
+#[track_caller]
+pub fn assert_ok(out: &Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

@@ -52,29 +52,16 @@ fn bunny_hits_match_embree() {
         .args(["2", "1"])
         .output()
         .expect("embree_trace runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_ok(&out);
     let embree: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     eprintln!("embree: {embree}");
     assert_eq!(embree["rays"], 1024 * 768);
     let theirs = embree["hits"].as_f64().unwrap();
     for backend in ["cpu", "gpu"] {
         let png = dir.join(format!("{backend}.png"));
-        let mut args = vec![
-            "render",
-            bunny.to_str().unwrap(),
-            "--backend",
-            backend,
-            "-o",
-            png.to_str().unwrap(),
-            "--json",
-            "-",
-        ];
+        let mut args = vec!["--backend", backend];
         args.extend(cam);
-        let r = run(&args);
+        let r = render(bunny.to_str().unwrap(), &png, &args);
         assert!(r.status.success());
         let ours = json(&r);
         let hits = ours["hits"].as_f64().unwrap();

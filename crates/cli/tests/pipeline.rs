@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{json, run, scratch};
+use common::{json, render, run, scratch};
 use serde_json::Value;
 
 fn names(pipeline: &Value) -> Vec<String> {
@@ -124,20 +124,18 @@ fn attributes_a_scene_has_but_no_job_reads_are_left_out() {
 fn render_json_lists_the_pipelines_and_bytes_uploaded() {
     let dir = scratch("pipeline-json");
     let png = dir.join("o.png");
-    let out = run(&[
-        "render",
+    let out = render(
         "builtin:cornell",
-        "--size",
-        "48x32",
-        "--traversal",
-        "full-stack",
-        "--shade",
-        "diffuse",
-        "-o",
-        png.to_str().unwrap(),
-        "--json",
-        "-",
-    ]);
+        &png,
+        &[
+            "--size",
+            "48x32",
+            "--traversal",
+            "full-stack",
+            "--shade",
+            "diffuse",
+        ],
+    );
     assert!(out.status.success());
     let v = json(&out);
     if v["backend"] != "wgpu" {
@@ -171,18 +169,11 @@ fn render_json_counts_only_when_asked() {
     let dir = scratch("pipeline-counters");
     let png = dir.join("o.png");
     let render = |extra: &[&str]| {
-        let mut a = vec![
-            "render",
+        let out = render(
             "builtin:icosphere:2",
-            "--size",
-            "40x30",
-            "-o",
-            png.to_str().unwrap(),
-            "--json",
-            "-",
-        ];
-        a.extend_from_slice(extra);
-        let out = run(&a);
+            &png,
+            &[&["--size", "40x30"], extra].concat(),
+        );
         assert!(out.status.success());
         json(&out)
     };

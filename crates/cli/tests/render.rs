@@ -12,25 +12,23 @@ fn every_shading_mode_gives_the_same_image_on_gpu_and_cpu() {
         let mut images = Vec::new();
         for backend in ["auto", "cpu"] {
             let png = dir.join(format!("{mode}-{backend}.png"));
-            let out = run(&[
-                "render",
+            let out = render(
                 "builtin:cornell",
-                "--size",
-                "160x120",
-                "--shade",
-                mode,
-                "--ao-samples",
-                "4",
-                // One walk on both: the heatmap's counts depend on it.
-                "--traversal",
-                "stackless",
-                "--backend",
-                backend,
-                "-o",
-                png.to_str().unwrap(),
-                "--json",
-                "-",
-            ]);
+                &png,
+                &[
+                    "--size",
+                    "160x120",
+                    "--shade",
+                    mode,
+                    "--ao-samples",
+                    "4",
+                    // One walk on both: the heatmap's counts depend on it.
+                    "--traversal",
+                    "stackless",
+                    "--backend",
+                    backend,
+                ],
+            );
             assert!(out.status.success(), "{mode} on {backend}");
             let stats = json(&out);
             if backend == "auto" && stats["backend"] != "wgpu" {
@@ -358,20 +356,11 @@ fn the_wide_layout_renders_the_same_image() {
             "{}-{backend}-{layout}.png",
             scene.replace(':', "_")
         ));
-        let out = run(&[
-            "render",
+        let out = common::render(
             scene,
-            "--size",
-            "96x72",
-            "--backend",
-            backend,
-            "--layout",
-            layout,
-            "-o",
-            png.to_str().unwrap(),
-            "--json",
-            "-",
-        ]);
+            &png,
+            &["--size", "96x72", "--backend", backend, "--layout", layout],
+        );
         assert!(out.status.success(), "{scene} {backend} {layout}");
         (json(&out), std::fs::read(&png).expect("png written"))
     };

@@ -22,10 +22,10 @@ fn render_vulkan_gives_the_cpu_image() {
         let mut images = Vec::new();
         for backend in ["vulkan", "cpu"] {
             let png = dir.join(format!("{mode}-{backend}.png"));
-            let out = bvhtrace()
-                .args([
-                    "render",
-                    "builtin:cornell",
+            let out = render(
+                "builtin:cornell",
+                &png,
+                &[
                     "--size",
                     "96x72",
                     "--shade",
@@ -36,13 +36,8 @@ fn render_vulkan_gives_the_cpu_image() {
                     "short-stack:4",
                     "--backend",
                     backend,
-                    "-o",
-                    png.to_str().unwrap(),
-                    "--json",
-                    "-",
-                ])
-                .output()
-                .expect("bvhtrace runs");
+                ],
+            );
             if backend == "vulkan" && no_vulkan(&out) {
                 return;
             }
@@ -79,11 +74,7 @@ fn bench_vulkan_measures_what_the_cpu_measures() {
         ])
         .output()
         .expect("bvhtrace runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_ok(&out);
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON rows");
     let vk: Vec<_> = rows.iter().filter(|r| r["backend"] == "vulkan").collect();
     if vk.is_empty() {

@@ -1,7 +1,7 @@
 //! Shared generators for the core tests.
 #![allow(dead_code)]
 
-use bvhtrace_core::{Hit, Ray, Triangle, oracle};
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Ray, Triangle, oracle};
 use glam::Vec3;
 use proptest::prelude::*;
 
@@ -44,15 +44,30 @@ pub fn soup() -> impl Strategy<Value = Vec<Triangle>> {
     })
 }
 
-/// Rays aimed at random points of the soup, plus axis-parallel ones with signed zeros.
-pub fn rays_for(tris: &[Triangle], seed: u64, n: usize) -> Vec<Ray> {
-    let mut s = seed | 1;
-    let mut rnd = move || {
+/// A small deterministic generator (xorshift64 from `seed`, which must not be 0): each
+/// call gives the next value, uniform in [0, 1).
+pub fn xorshift(seed: u64) -> impl FnMut() -> f32 {
+    let mut s = seed;
+    move || {
         s ^= s << 13;
         s ^= s >> 7;
         s ^= s << 17;
         (s >> 40) as f32 / (1u64 << 24) as f32
-    };
+    }
+}
+
+/// `FlatBvh::build` on a thread pool of `threads` threads.
+pub fn build_on_threads(tris: &[Triangle], opts: &BuildOptions, threads: usize) -> FlatBvh {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(|| FlatBvh::build(tris, opts).unwrap())
+}
+
+/// Rays aimed at random points of the soup, plus axis-parallel ones with signed zeros.
+pub fn rays_for(tris: &[Triangle], seed: u64, n: usize) -> Vec<Ray> {
+    let mut rnd = xorshift(seed | 1);
     let (lo, hi) = tris.iter().flatten().fold(
         (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
         |(l, h), p| (l.min(*p), h.max(*p)),

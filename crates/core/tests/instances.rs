@@ -81,13 +81,7 @@ fn flatten(meshes: &[Vec<Triangle>], instances: &[Instance]) -> Vec<Triangle> {
 
 /// Rays from around the scene aimed at points of random world triangles.
 fn rays(world: &[Triangle], n: usize) -> Vec<Ray> {
-    let mut s = 0x9e37_79b9_7f4a_7c15u64;
-    let mut rnd = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        (s >> 40) as f32 / (1u64 << 24) as f32
-    };
+    let mut rnd = common::xorshift(0x9e37_79b9_7f4a_7c15u64);
     (0..n)
         .map(|k| {
             let t = &world[(rnd() * world.len() as f32) as usize % world.len()];

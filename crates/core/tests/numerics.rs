@@ -4,6 +4,10 @@ use bvhtrace_core::intersect::{PreparedRay, intersect_box};
 use bvhtrace_core::*;
 use glam::Vec3;
 
+#[path = "../../../tests/support/rays.rs"]
+mod support_rays;
+use support_rays::{edge_rays, scaled};
+
 const TRAVERSALS: [Traversal; 4] = [
     Traversal::FullStack,
     Traversal::Stackless,
@@ -72,20 +76,6 @@ fn icosphere(subdiv: u32, c: Vec3, r: f32) -> Vec<Triangle> {
     f.iter().map(|t| t.map(|i| c + v[i] * r)).collect()
 }
 
-/// Rays from a point inside, aimed exactly at every vertex and at points on every edge.
-fn inside_rays(tris: &[Triangle], from: Vec3) -> Vec<Ray> {
-    let mut rays = Vec::new();
-    for t in tris {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            for s in [0.0f32, 0.5, 0.25, 1.0 / 3.0, 0.9] {
-                rays.push(Ray::new(from, a + (b - a) * s - from));
-            }
-        }
-    }
-    rays
-}
-
 #[test]
 fn no_ray_escapes_a_closed_mesh_at_any_scale_or_offset() {
     for (scale, offset) in [
@@ -103,7 +93,7 @@ fn no_ray_escapes_a_closed_mesh_at_any_scale_or_offset() {
         let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
         // Inside points: the centre and an off-centre point.
         for from in [c, c + Vec3::new(0.3, -0.2, 0.1) * scale] {
-            let rays = inside_rays(&tris, from);
+            let rays = edge_rays(&tris, from);
             for tr in TRAVERSALS {
                 let hits = trace_rays(&bvh, &rays, &TraceOptions::closest(tr)).hits;
                 let escapes = hits.iter().filter(|h| !h.is_hit()).count();
@@ -122,10 +112,9 @@ fn no_ray_escapes_a_closed_mesh_at_any_scale_or_offset() {
     }
 }
 
-#[test]
-fn axis_parallel_rays_with_signed_zeros_give_no_nan() {
-    // A unit square in z = 0 split into two triangles, hit straight on, on its edges and corners.
-    let tris = vec![
+/// A unit square in z = 0 split into two triangles.
+fn unit_square() -> [Triangle; 2] {
+    [
         [
             Vec3::new(0.0, 0.0, 0.0),
             Vec3::new(1.0, 0.0, 0.0),
@@ -136,7 +125,13 @@ fn axis_parallel_rays_with_signed_zeros_give_no_nan() {
             Vec3::new(1.0, 1.0, 0.0),
             Vec3::new(0.0, 1.0, 0.0),
         ],
-    ];
+    ]
+}
+
+#[test]
+fn axis_parallel_rays_with_signed_zeros_give_no_nan() {
+    // A unit square in z = 0 split into two triangles, hit straight on, on its edges and corners.
+    let tris = unit_square().to_vec();
     let bvh = FlatBvh::build(
         &tris,
         &BuildOptions {
@@ -291,11 +286,7 @@ fn hits_scale_with_the_scene() {
     )
     .hits;
     for s in [2f32.powi(-30), 2f32.powi(-10), 2f32.powi(13), 2f32.powi(30)] {
-        let st: Vec<Triangle> = tris.iter().map(|t| t.map(|p| p * s)).collect();
-        let sr: Vec<Ray> = rays
-            .iter()
-            .map(|r| Ray::new(Vec3::from(r.origin) * s, Vec3::from(r.dir)))
-            .collect();
+        let (st, sr) = scaled(&tris, &rays, s);
         let bvh = FlatBvh::build(&st, &BuildOptions::default()).unwrap();
         let h = trace_rays(&bvh, &sr, &TraceOptions::closest(Traversal::Stackless)).hits;
         for (a, b) in base.iter().zip(&h) {
@@ -310,18 +301,7 @@ fn hits_scale_with_the_scene() {
 /// `tnear > tfar` and the quad was culled on every traversal.
 #[test]
 fn hits_behind_the_origin_on_flat_boxes_are_found() {
-    let quad: [Triangle; 2] = [
-        [
-            Vec3::new(0.0, 0.0, 0.0),
-            Vec3::new(1.0, 0.0, 0.0),
-            Vec3::new(1.0, 1.0, 0.0),
-        ],
-        [
-            Vec3::new(0.0, 0.0, 0.0),
-            Vec3::new(1.0, 1.0, 0.0),
-            Vec3::new(0.0, 1.0, 0.0),
-        ],
-    ];
+    let quad = unit_square();
     let bvh = FlatBvh::build(&quad, &BuildOptions::default()).unwrap();
     // The flat box alone, behind the origin.
     let r = PreparedRay::new(&Ray::with_interval(

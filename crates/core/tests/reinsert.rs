@@ -17,13 +17,7 @@ fn scene() -> Vec<Triangle> {
     let mut tris = common::uv_sphere(24, 1.0, Vec3::ZERO);
     tris.extend(common::uv_sphere(16, 0.4, Vec3::new(1.2, 0.3, 0.0)));
     tris.extend(common::uv_sphere(12, 2.5, Vec3::new(-4.0, 1.0, 3.0)));
-    let mut s = 0x9E37_79B9_7F4A_7C15u64;
-    let mut rnd = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        (s >> 40) as f32 / (1u64 << 24) as f32
-    };
+    let mut rnd = common::xorshift(0x9E37_79B9_7F4A_7C15u64);
     for _ in 0..1500 {
         let p = Vec3::new(rnd(), rnd(), rnd()) * 12.0 - Vec3::splat(6.0);
         let e = |r: &mut dyn FnMut() -> f32| Vec3::new(r(), r(), r()) * 0.3;

@@ -479,13 +479,7 @@ fn the_tree_does_not_depend_on_the_thread_count() {
         parallel_threshold: 256,
         ..sbvh(0.3)
     };
-    let build_with = |threads| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| FlatBvh::build(&tris, &opts).unwrap())
-    };
+    let build_with = |threads| common::build_on_threads(&tris, &opts, threads);
     let one = build_with(1);
     assert!(one.triangles.len() > tris.len());
     assert!(one == build_with(2), "trees differ between 1 and 2 threads");

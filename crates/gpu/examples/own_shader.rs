@@ -18,8 +18,9 @@
 //! `bvhtrace_core::trace_rays` (pixel colours within a small tolerance, a few triangle
 //! edges where the shader's rays differ from the CPU's in the last bit).
 
+mod common;
+
 use std::error::Error;
-use std::path::PathBuf;
 
 use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Traversal};
 use bvhtrace_gpu::wgpu::util::DeviceExt;
@@ -114,21 +115,15 @@ fn main() -> Result<(), Box<dyn Error>> {
 }
 
 fn run() -> Result<(), Box<dyn Error>> {
-    let mut spec = bvhtrace_scene::DEFAULT_SCENE.to_string();
-    let mut out = PathBuf::from("own_shader.png");
-    let mut two_level = false;
-    let mut args = std::env::args().skip(1);
-    while let Some(arg) = args.next() {
-        match arg.as_str() {
-            "-o" => out = args.next().ok_or("-o needs a file name")?.into(),
-            "--two-level" => two_level = true,
-            "-h" | "--help" => {
-                println!("usage: own_shader [SCENE] [--two-level] [-o out.png]");
-                return Ok(());
-            }
-            _ => spec = arg,
-        }
-    }
+    let Some(common::Args { spec, out, flags }) = common::parse_args(
+        "own_shader [SCENE] [--two-level] [-o out.png]",
+        "own_shader.png",
+        &["--two-level"],
+    )?
+    else {
+        return Ok(());
+    };
+    let two_level = flags.iter().any(|f| f == "--two-level");
 
     let scene = bvhtrace_scene::load(&spec)?;
     let tris = scene.flatten().triangles()?;
@@ -192,28 +187,12 @@ fn run() -> Result<(), Box<dyn Error>> {
     };
     let camera_buffer = init("camera", bytemuck::cast_slice(&words), U::UNIFORM);
     let counter = init("incomplete", &[0; 4], U::STORAGE | U::COPY_SRC);
-    let buffer = |label, size, usage| {
-        device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size,
-            usage,
-            mapped_at_creation: false,
-        })
-    };
+    let buffer = |label, size, usage| common::buffer(device, label, size, usage);
     let pixels = buffer("pixels", pixel_bytes, U::STORAGE | U::COPY_SRC);
     // Pixels, then the counter.
     let readback = buffer("readback", pixel_bytes + 4, U::MAP_READ | U::COPY_DST);
 
-    let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty,
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    };
+    let entry = layout_entry;
     let storage = |read_only| wgpu::BufferBindingType::Storage { read_only };
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("own_shader group 1"),
@@ -229,36 +208,14 @@ fn run() -> Result<(), Box<dyn Error>> {
         entries: &[bind(0, &camera_buffer), bind(1, &pixels), bind(2, &counter)],
     });
 
-    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-        label: Some("own_shader"),
-        bind_group_layouts: &[Some(bvh_group.layout()), Some(&layout)],
-        immediate_size: 0,
-    });
-    // The trip budget of this device (unbounded on GPUs; on a CPU driver, which ends any
-    // invocation that loops too long, a ray that spends it answers `BVH_INCOMPLETE`
-    // instead of a wrong hit). Workgroup memory is not zeroed: the walks write every stack
-    // entry before reading it.
-    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("own_shader"),
-        layout: Some(&pipeline_layout),
-        module: &module,
-        entry_point: Some("main"),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &constants,
-            zero_initialize_workgroup_memory: false,
-        },
-        cache: None,
-    });
-
-    let mut encoder = device.create_command_encoder(&Default::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, bvh_group.group(), &[]);
-        pass.set_bind_group(1, &group, &[]);
-        pass.dispatch_workgroups(WIDTH.div_ceil(8), HEIGHT.div_ceil(8), 1);
-    }
+    let pipeline = pipeline(&ctx, "own_shader", &module, bvh_group.layout(), &layout);
+    let mut encoder = encode_pass(
+        device,
+        &pipeline,
+        bvh_group.group(),
+        &group,
+        [WIDTH.div_ceil(8), HEIGHT.div_ceil(8), 1],
+    );
     encoder.copy_buffer_to_buffer(&pixels, 0, &readback, 0, pixel_bytes);
     encoder.copy_buffer_to_buffer(&counter, 0, &readback, pixel_bytes, 4);
     ctx.queue().submit([encoder.finish()]);
@@ -282,8 +239,75 @@ fn run() -> Result<(), Box<dyn Error>> {
     Ok(())
 }
 
+/// A compute-stage buffer binding of type `ty` at `binding` (group 1 is ours).
+pub fn layout_entry(binding: u32, ty: wgpu::BufferBindingType) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// The pipeline of `module`'s entry point `main`: the BVH's bind group (`bvh_layout`) at
+/// group 0, ours (`layout`) at group 1.
+pub fn pipeline(
+    ctx: &GpuContext,
+    label: &str,
+    module: &wgpu::ShaderModule,
+    bvh_layout: &wgpu::BindGroupLayout,
+    layout: &wgpu::BindGroupLayout,
+) -> wgpu::ComputePipeline {
+    let device = ctx.device();
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(bvh_layout), Some(layout)],
+        immediate_size: 0,
+    });
+    // The trip budget of this device (unbounded on GPUs; on a CPU driver, which ends any
+    // invocation that loops too long, a ray that spends it answers `BVH_INCOMPLETE`
+    // instead of a wrong hit). Workgroup memory is not zeroed: the walks write every stack
+    // entry before reading it.
+    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(label),
+        layout: Some(&pipeline_layout),
+        module,
+        entry_point: Some("main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    })
+}
+
+/// A command encoder holding one pass of `pipeline` over `workgroups`, with the BVH's
+/// bind group at group 0 and ours (`group`) at group 1.
+pub fn encode_pass(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    bvh_group: &wgpu::BindGroup,
+    group: &wgpu::BindGroup,
+    [x, y, z]: [u32; 3],
+) -> wgpu::CommandEncoder {
+    let mut encoder = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, bvh_group, &[]);
+        pass.set_bind_group(1, group, &[]);
+        pass.dispatch_workgroups(x, y, z);
+    }
+    encoder
+}
+
 /// The whole of `buffer` at `binding`.
-fn bind(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+pub fn bind(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry {
         binding,
         resource: buffer.as_entire_binding(),

@@ -17,8 +17,9 @@
 //! `Ray` and `Hit` are `bytemuck::Pod` (GPU layout, 32 and 16 bytes): in your own crate add
 //! `bytemuck` and `pollster` next to `bvhtrace-gpu`, as this example uses them.
 
+mod common;
+
 use std::error::Error;
-use std::path::PathBuf;
 
 use bvhtrace_gpu::core::surface::{facing_normal, hit_point};
 use bvhtrace_gpu::core::{
@@ -47,19 +48,11 @@ fn main() -> Result<(), Box<dyn Error>> {
 }
 
 fn run() -> Result<(), Box<dyn Error>> {
-    let mut spec = bvhtrace_scene::DEFAULT_SCENE.to_string();
-    let mut out = PathBuf::from("user_device.png");
-    let mut args = std::env::args().skip(1);
-    while let Some(arg) = args.next() {
-        match arg.as_str() {
-            "-o" => out = args.next().ok_or("-o needs a file name")?.into(),
-            "-h" | "--help" => {
-                println!("usage: user_device [SCENE] [-o out.png]");
-                return Ok(());
-            }
-            _ => spec = arg,
-        }
-    }
+    let Some(common::Args { spec, out, .. }) =
+        common::parse_args("user_device [SCENE] [-o out.png]", "user_device.png", &[])?
+    else {
+        return Ok(());
+    };
 
     // The scene: world-space triangles, in the order the BVH builder gets them. Hits name
     // triangles by that index (`Hit::prim`), so it also indexes the per-triangle colours.
@@ -113,14 +106,7 @@ fn run() -> Result<(), Box<dyn Error>> {
     // Your buffers: rays in, hits out, and a copy to read the hits back. One set serves
     // both batches (there are never more shadow rays than pixels).
     let capacity = u64::from(WIDTH * HEIGHT);
-    let buffer = |label, size, usage| {
-        device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size,
-            usage,
-            mapped_at_creation: false,
-        })
-    };
+    let buffer = |label, size, usage| common::buffer(&device, label, size, usage);
     use wgpu::BufferUsages as U;
     let buffers = Buffers {
         rays: buffer("rays", capacity * RAY_BYTES, U::STORAGE | U::COPY_DST),

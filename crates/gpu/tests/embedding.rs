@@ -9,6 +9,11 @@ use bvhtrace_gpu::{
 };
 use glam::Vec3;
 
+// The example's pipeline and pass, which this file's own shader shares.
+#[path = "../examples/own_shader.rs"]
+#[allow(dead_code)]
+mod own_shader;
+
 /// A device of the adapter `BVHTRACE_ADAPTER` or the best one names, created with `limits`
 /// and no features, as a user following the wgpu examples would; `None` without Vulkan.
 fn user_device(limits: wgpu::Limits) -> Option<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
@@ -336,15 +341,8 @@ fn run_own_shader(
     };
     let out = buffer(wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC);
     let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
-    let entry = |binding, read_only| wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
+    let entry = |binding, read_only| {
+        own_shader::layout_entry(binding, wgpu::BufferBindingType::Storage { read_only })
     };
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("own wgsl group 1"),
@@ -353,42 +351,16 @@ fn run_own_shader(
     let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("own wgsl group 1"),
         layout: &layout,
-        entries: &[
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: ray_buffer.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: out.as_entire_binding(),
-            },
-        ],
+        entries: &[own_shader::bind(0, &ray_buffer), own_shader::bind(1, &out)],
     });
-    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-        label: Some("own wgsl"),
-        bind_group_layouts: &[Some(bvh_group.layout()), Some(&layout)],
-        immediate_size: 0,
-    });
-    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("own wgsl"),
-        layout: Some(&pipeline_layout),
-        module: &module,
-        entry_point: Some("main"),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &constants,
-            zero_initialize_workgroup_memory: false,
-        },
-        cache: None,
-    });
-    let mut encoder = device.create_command_encoder(&Default::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, bvh_group.group(), &[]);
-        pass.set_bind_group(1, &group, &[]);
-        pass.dispatch_workgroups((rays.len() as u32).div_ceil(64), 1, 1);
-    }
+    let pipeline = own_shader::pipeline(ctx, "own wgsl", &module, bvh_group.layout(), &layout);
+    let mut encoder = own_shader::encode_pass(
+        device,
+        &pipeline,
+        bvh_group.group(),
+        &group,
+        [(rays.len() as u32).div_ceil(64), 1, 1],
+    );
     encoder.copy_buffer_to_buffer(&out, 0, &readback, 0, (words * 4) as u64);
     ctx.queue().submit([encoder.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();

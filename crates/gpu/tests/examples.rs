@@ -16,6 +16,9 @@
 //! binaries are built by `cargo test` (examples are built with the tests); when they are
 //! missing (a filtered run such as `cargo test --test examples`), the test builds them.
 
+// Both examples are compiled in below, each with its own copy of `examples/common`.
+#![allow(clippy::duplicate_mod)]
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Mutex;

@@ -12,13 +12,9 @@ use bvhtrace_gpu::{
 use glam::Vec3;
 use naga::{Module, TypeInner};
 
-const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
-const TRAVERSALS: [Traversal; 4] = [
-    Traversal::FullStack,
-    Traversal::Stackless,
-    Traversal::ShortStack(6),
-    Traversal::Wide,
-];
+#[path = "../../kernels/tests/common/mod.rs"]
+mod kernels_common;
+use kernels_common::{STORAGES, TRAVERSALS};
 
 fn parse(source: &str) -> Module {
     naga::front::wgsl::parse_str(source).unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)))

@@ -13,15 +13,8 @@ use bvhtrace_kernels::{
 use naga::Module;
 
 mod common;
-use common::{compile_variant, parse, validate};
+use common::{STORAGES, TRAVERSALS, compile_variant, parse, validate};
 
-const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
-const TRAVERSALS: [Traversal; 4] = [
-    Traversal::FullStack,
-    Traversal::Stackless,
-    Traversal::ShortStack(6),
-    Traversal::Wide,
-];
 const NORMALS: VertexAttributes = VertexAttributes { normals: true };
 
 /// `(group, binding, name)` of every resource the module declares.

@@ -22,7 +22,7 @@ const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 use naga::{Expression, Literal, Module, TypeInner};
 
 mod common;
-use common::{compile_variant, parse, validate};
+use common::{compile_entry, compile_variant, parse, validate};
 
 /// `(name, offset)` of each member of the struct type called `name`, and its size.
 fn struct_layout(module: &Module, name: &str) -> (Vec<(String, u32)>, u32) {
@@ -471,24 +471,7 @@ fn check_library(storage: BvhStorage) {
 /// Compiles entry point `main` of `module` to SPIR-V (its overrides at their defaults).
 fn compile_main(module: &Module, what: &str) {
     let info = validate(module);
-    let (m, i) = naga::back::pipeline_constants::process_overrides(
-        module,
-        &info,
-        Some((naga::ShaderStage::Compute, "main")),
-        &Default::default(),
-    )
-    .unwrap_or_else(|e| panic!("{what}: {e}"));
-    let words = naga::back::spv::write_vec(
-        &m,
-        &i,
-        &naga::back::spv::Options::default(),
-        Some(&naga::back::spv::PipelineOptions {
-            shader_stage: naga::ShaderStage::Compute,
-            entry_point: "main".into(),
-        }),
-    )
-    .unwrap_or_else(|e| panic!("{what}: {e}"));
-    assert!(words.len() > 100, "{what}: SPIR-V too short");
+    compile_entry(module, &info, "main", &Default::default(), what);
 }
 
 /// Every library shape (storage, one mesh or two levels, each walk) gives the same calls:

@@ -97,6 +97,53 @@ fn ok(r: Result<Scene, SceneError>) -> Scene {
     r.unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// The committed `scenes/animated.gltf`, or `None` (saying so for `test`) without the
+/// repository's scenes folder.
+fn animated_gltf(test: &str) -> Option<std::path::PathBuf> {
+    let Some(dir) = bvhtrace_scene::repo_scenes_dir() else {
+        println!("{test}: skipped, no scenes/ folder");
+        return None;
+    };
+    Some(dir.join("animated.gltf"))
+}
+
+/// A scene of one mesh node animated along `path` by one channel.
+fn node0(path: &str, interp: &str, times: &[f32], out: Out) -> Scene {
+    ok(one_channel(
+        json!([{"mesh": 0}]),
+        &[0],
+        0,
+        path,
+        interp,
+        times,
+        out,
+    ))
+}
+
+/// A scene whose node 0 is animated along `path` by one CUBICSPLINE vec3 channel: `keys`
+/// are (in-tangent, value, out-tangent) at `times`.
+fn cubic_v3(path: &str, times: &[f32], keys: &[[[f32; 3]; 3]]) -> Scene {
+    let out: Vec<[f32; 3]> = keys.iter().flatten().copied().collect();
+    node0(path, "CUBICSPLINE", times, Out::V3(&out))
+}
+
+/// The cubic spline through `keys` (as [`cubic_v3`] takes them) at `t`, between the first
+/// and the last of `times`, in f64 ([`hermite`]).
+fn cubic_v3_at(times: &[f32], keys: &[[[f32; 3]; 3]], t: f32) -> Vec3 {
+    let k = (0..times.len() - 1).rfind(|&k| times[k] <= t).unwrap_or(0);
+    let d = |a: [f32; 3]| Vec3::from(a).as_dvec3();
+    hermite(
+        f64::from(t),
+        f64::from(times[k]),
+        f64::from(times[k + 1]),
+        d(keys[k][1]),
+        d(keys[k][2]),
+        d(keys[k + 1][0]),
+        d(keys[k + 1][1]),
+    )
+    .as_vec3()
+}
+
 fn translation(m: Mat4) -> Vec3 {
     m.w_axis.truncate()
 }
@@ -140,15 +187,7 @@ fn expect_error(text: &str, causes: &[&str]) -> SceneError {
 #[test]
 fn linear_translation_hits_keys_exactly_and_averages_midpoints() {
     let keys = [[0.0, 0.0, 0.0], [2.0, 4.0, -6.0], [1.0, 1.0, 1.0]];
-    let s = ok(one_channel(
-        json!([{"mesh": 0}]),
-        &[0],
-        0,
-        "translation",
-        "LINEAR",
-        &[0.0, 1.0, 3.0],
-        Out::V3(&keys),
-    ));
+    let s = node0("translation", "LINEAR", &[0.0, 1.0, 3.0], Out::V3(&keys));
     assert_eq!(s.duration(), 3.0);
     for (t, k) in [(0.0, keys[0]), (1.0, keys[1]), (3.0, keys[2])] {
         assert_eq!(translation(at(&s, t)), Vec3::from(k), "key at {t}");
@@ -221,17 +260,7 @@ fn clamps_before_the_first_and_after_the_last_key() {
 fn slerp_midpoint_of_a_90_degree_turn_is_45_degrees() {
     let q0 = Quat::IDENTITY.to_array();
     let q1 = Quat::from_rotation_y(FRAC_PI_2).to_array();
-    let run = |q1: [f32; 4]| {
-        ok(one_channel(
-            json!([{"mesh": 0}]),
-            &[0],
-            0,
-            "rotation",
-            "LINEAR",
-            &[0.0, 2.0],
-            Out::V4(&[q0, q1]),
-        ))
-    };
+    let run = |q1: [f32; 4]| node0("rotation", "LINEAR", &[0.0, 2.0], Out::V4(&[q0, q1]));
     let s = run(q1);
     // Where +X goes at time t: rotated about +Y by `angle`.
     let x_at = |s: &Scene, t: f32| at(s, t).transform_vector3(Vec3::X);
@@ -265,15 +294,7 @@ fn slerp_midpoint_of_a_90_degree_turn_is_45_degrees() {
 #[test]
 fn step_holds_the_previous_value() {
     let keys = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 5.0, 0.0]];
-    let s = ok(one_channel(
-        json!([{"mesh": 0}]),
-        &[0],
-        0,
-        "translation",
-        "STEP",
-        &[0.0, 1.0, 2.0],
-        Out::V3(&keys),
-    ));
+    let s = node0("translation", "STEP", &[0.0, 1.0, 2.0], Out::V3(&keys));
     for (t, k) in [
         (0.0, 0),
         (0.5, 0),
@@ -294,29 +315,10 @@ fn cubic_spline_with_zero_tangents_matches_hermite() {
     let times = [0.0f32, 0.5, 2.0];
     let v = [[1.0f32, 1.0, 1.0], [2.0, 3.0, 0.5], [1.0, 1.0, 1.0]];
     let z = [0.0f32; 3];
-    let out: Vec<[f32; 3]> = v.iter().flat_map(|&x| [z, x, z]).collect();
-    let s = ok(one_channel(
-        json!([{"mesh": 0}]),
-        &[0],
-        0,
-        "scale",
-        "CUBICSPLINE",
-        &times,
-        Out::V3(&out),
-    ));
-    let d = |a: [f32; 3]| Vec3::from(a).as_dvec3();
+    let keys = v.map(|x| [z, x, z]);
+    let s = cubic_v3("scale", &times, &keys);
     for t in [0.1f32, 0.25, 0.4, 0.5, 0.6, 1.0, 1.25, 1.9] {
-        let k = if t < 0.5 { 0 } else { 1 };
-        let want = hermite(
-            f64::from(t),
-            f64::from(times[k]),
-            f64::from(times[k + 1]),
-            d(v[k]),
-            DVec3::ZERO,
-            DVec3::ZERO,
-            d(v[k + 1]),
-        )
-        .as_vec3();
+        let want = cubic_v3_at(&times, &keys, t);
         let m = at(&s, t);
         let scale = Vec3::new(m.x_axis.x, m.y_axis.y, m.z_axis.z);
         assert!(close(scale, want, 1e-5), "at {t}: {scale} != {want}");
@@ -333,29 +335,9 @@ fn cubic_spline_with_tangents_matches_hermite() {
         [[4.0, 0.5, -1.0], [1.0, 2.0, 3.0], [-2.0, 1.0, 0.25]],
         [[3.0, 3.0, -3.0], [0.0, 1.0, 0.0], [7.0, 7.0, 7.0]],
     ];
-    let out: Vec<[f32; 3]> = keys.iter().flatten().copied().collect();
-    let s = ok(one_channel(
-        json!([{"mesh": 0}]),
-        &[0],
-        0,
-        "translation",
-        "CUBICSPLINE",
-        &times,
-        Out::V3(&out),
-    ));
-    let d = |a: [f32; 3]| Vec3::from(a).as_dvec3();
+    let s = cubic_v3("translation", &times, &keys);
     for t in [0.05f32, 0.25, 0.45, 0.75, 1.0, 1.5, 1.99] {
-        let k = if t < 0.5 { 0 } else { 1 };
-        let want = hermite(
-            f64::from(t),
-            f64::from(times[k]),
-            f64::from(times[k + 1]),
-            d(keys[k][1]),
-            d(keys[k][2]),
-            d(keys[k + 1][0]),
-            d(keys[k + 1][1]),
-        )
-        .as_vec3();
+        let want = cubic_v3_at(&times, &keys, t);
         let got = translation(at(&s, t));
         assert!(close(got, want, 1e-5), "at {t}: {got} != {want}");
     }
@@ -370,15 +352,12 @@ fn cubic_spline_rotations_are_normalised() {
     let z = [0.0f32; 4];
     let q0 = Quat::IDENTITY.to_array();
     let q1 = Quat::from_rotation_z(FRAC_PI_2).to_array();
-    let s = ok(one_channel(
-        json!([{"mesh": 0}]),
-        &[0],
-        0,
+    let s = node0(
         "rotation",
         "CUBICSPLINE",
         &[0.0, 1.0],
         Out::V4(&[z, q0, z, z, q1, z]),
-    ));
+    );
     for t in [0.1, 0.3, 0.5, 0.8] {
         let m = at(&s, t);
         // Unnormalised, the midpoint quaternion has length cos(22.5°) and the matrix
@@ -499,11 +478,9 @@ fn later_channels_win_and_unanimated_properties_keep_their_static_values() {
 
 #[test]
 fn global_transforms_are_applied_to_the_animated_pose() {
-    let Some(dir) = bvhtrace_scene::repo_scenes_dir() else {
-        println!("global_transforms_are_applied_to_the_animated_pose: skipped, no scenes/");
+    let Some(path) = animated_gltf("global_transforms_are_applied_to_the_animated_pose") else {
         return;
     };
-    let path = dir.join("animated.gltf");
     let plain = load_gltf_file(&path).unwrap_or_else(|e| panic!("{e}"));
     let spec = format!("{}#scale=2#offset=1,2,3", path.display());
     let mut moved = load(&spec).unwrap_or_else(|e| panic!("{e}"));
@@ -794,11 +771,9 @@ fn animated_asset() -> String {
 
 #[test]
 fn committed_asset_matches_its_generator() {
-    let Some(dir) = bvhtrace_scene::repo_scenes_dir() else {
-        println!("committed_asset_matches_its_generator: skipped, no scenes/ folder");
+    let Some(path) = animated_gltf("committed_asset_matches_its_generator") else {
         return;
     };
-    let path = dir.join("animated.gltf");
     let generated = animated_asset();
     if std::env::var_os("BVHTRACE_WRITE_ANIMATED").is_some_and(|v| v == "1") {
         std::fs::write(&path, &generated).expect("write scenes/animated.gltf");
@@ -820,11 +795,10 @@ fn committed_asset_matches_its_generator() {
 
 #[test]
 fn the_asset_moves_and_set_time_zero_restores_the_loaded_pose() {
-    let Some(dir) = bvhtrace_scene::repo_scenes_dir() else {
-        println!("the_asset_moves...: skipped, no scenes/ folder");
+    let Some(path) = animated_gltf("the_asset_moves...") else {
         return;
     };
-    let mut s = load_gltf_file(&dir.join("animated.gltf")).unwrap_or_else(|e| panic!("{e}"));
+    let mut s = load_gltf_file(&path).unwrap_or_else(|e| panic!("{e}"));
     s.check_invariants().expect("invariants");
     assert!(s.warnings.is_empty(), "{:?}", s.warnings);
     assert!(s.camera.is_some());

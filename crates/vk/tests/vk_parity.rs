@@ -17,8 +17,8 @@ use glam::Vec3;
 #[path = "../../../tests/support/mod.rs"]
 mod support;
 use support::{
-    SceneCase, cpu_counted, deep_tree, differ, load_instanced_scene, load_scene, one_triangle,
-    parity_rays,
+    SceneCase, cpu_counted, deep_tree, differ, differences, load_instanced_scene, load_scene,
+    one_triangle, parity_rays,
 };
 
 /// A context with validation on (when the layer is installed), or `None` (SKIP) when this
@@ -90,21 +90,13 @@ fn ash_equals_the_cpu_bit_for_bit() {
                 assert!(plain.counters.is_none());
                 assert_eq!(counted.gpu_ms.is_some(), ctx.has_timestamps());
                 let counters = counted.counters.as_deref().expect("counters asked for");
-                for (what, bad) in [
-                    ("hits", differ(&counted.hits, &cpu_hits)),
-                    ("uncounted hits", differ(&plain.hits, &cpu_hits)),
-                    ("counters", differ(counters, &cpu_counters)),
-                ] {
-                    if let Some(&i) = bad.first() {
-                        failures.push(format!(
-                            "{label}: {what}: {} rays differ; first {i}: ray {:?}, ash {:?}, cpu {:?}",
-                            bad.len(),
-                            rays[i],
-                            counted.hits[i],
-                            cpu_hits[i]
-                        ));
-                    }
-                }
+                failures.extend(differences(
+                    &format!("{label} on ash"),
+                    &rays,
+                    (&counted.hits, counters),
+                    &plain.hits,
+                    (&cpu_hits, &cpu_counters),
+                ));
             }
         }
     }

@@ -1,10 +1,23 @@
 //! naga helpers the kernels crate's tests share: parse WGSL, validate it, and compile one
-//! kernel variant's entry point to SPIR-V with its override constants resolved.
+//! kernel variant's entry point to SPIR-V with its override constants resolved; the
+//! storages and walks the variant tests go through. `crates/gpu/tests/features.rs`
+//! includes it through `#[path]`.
 #![allow(dead_code)]
 
-use bvhtrace_kernels::KernelKey;
+use bvhtrace_kernels::{BvhStorage, KernelKey, Traversal};
 use naga::Module;
 use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
+
+/// Both BVH storages.
+pub const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
+
+/// A walk of each kind (the short stack at one size).
+pub const TRAVERSALS: [Traversal; 4] = [
+    Traversal::FullStack,
+    Traversal::Stackless,
+    Traversal::ShortStack(6),
+    Traversal::Wide,
+];
 
 /// Parses WGSL, panicking with naga's report.
 pub fn parse(source: &str) -> Module {
@@ -30,14 +43,31 @@ pub fn compile_variant(module: &Module, info: &ModuleInfo, variant: &KernelKey) 
     for (name, value) in variant.constants() {
         constants.insert(name.to_string(), value);
     }
-    let entry = variant.entry_point();
+    compile_entry(
+        module,
+        info,
+        variant.entry_point(),
+        &constants,
+        &format!("{variant:?}"),
+    );
+}
+
+/// Compiles the compute entry point `entry` of `module` to SPIR-V with the override
+/// `constants`, and checks that something came out; `what` names it in a failure.
+pub fn compile_entry(
+    module: &Module,
+    info: &ModuleInfo,
+    entry: &str,
+    constants: &naga::back::PipelineConstants,
+    what: &str,
+) {
     let (m, i) = naga::back::pipeline_constants::process_overrides(
         module,
         info,
         Some((naga::ShaderStage::Compute, entry)),
-        &constants,
+        constants,
     )
-    .unwrap_or_else(|e| panic!("{variant:?}: {e}"));
+    .unwrap_or_else(|e| panic!("{what}: {e}"));
     let words = naga::back::spv::write_vec(
         &m,
         &i,
@@ -47,6 +77,6 @@ pub fn compile_variant(module: &Module, info: &ModuleInfo, variant: &KernelKey) 
             entry_point: entry.to_string(),
         }),
     )
-    .unwrap_or_else(|e| panic!("{variant:?}: {e}"));
-    assert!(words.len() > 100, "{variant:?}: SPIR-V too short");
+    .unwrap_or_else(|e| panic!("{what}: {e}"));
+    assert!(words.len() > 100, "{what}: SPIR-V too short");
 }
