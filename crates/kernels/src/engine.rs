@@ -553,12 +553,13 @@ impl<B: Backend> Engine<B> {
     /// Makes `bvh` the traced tree ([`Tracer::update`]): only the top level and the
     /// instances are written when the meshes of a two-level tree did not change.
     pub fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
-        let what = if bvh.is_instanced() && mesh_fingerprint(bvh) == self.mesh_fingerprint {
+        let fingerprint = mesh_fingerprint(bvh);
+        let what = if bvh.is_instanced() && fingerprint == self.mesh_fingerprint {
             Update::TopLevel
         } else {
             Update::Everything
         };
-        self.update_with(bvh, what)
+        self.write_update(bvh, what, fingerprint)
     }
 
     /// Writes `bvh` over this upload in place, as `what` says: its shape must be the
@@ -566,6 +567,22 @@ impl<B: Backend> Engine<B> {
     /// is collapsed again from `bvh` (its `wide`, which a refit leaves stale, is not read)
     /// and written whole, into new arrays only when the collapse came out with other sizes.
     pub fn update_with(&mut self, bvh: &FlatBvh, what: Update) -> Result<(), TraceError> {
+        // A top-level update leaves the meshes, and so their fingerprint, as they were.
+        let fingerprint = match what {
+            Update::TopLevel => self.mesh_fingerprint,
+            Update::Everything => mesh_fingerprint(bvh),
+        };
+        self.write_update(bvh, what, fingerprint)
+    }
+
+    /// [`Engine::update_with`] with the fingerprint of `bvh`'s meshes already known, so the
+    /// meshes are hashed once per update.
+    fn write_update(
+        &mut self,
+        bvh: &FlatBvh,
+        what: Update,
+        fingerprint: u64,
+    ) -> Result<(), TraceError> {
         check_update_shape(self.tree.shape, bvh)?;
         let top_only = what == Update::TopLevel;
         if top_only && !bvh.is_instanced() {
@@ -633,9 +650,7 @@ impl<B: Backend> Engine<B> {
         }
         self.host_copy = Self::host_copy_of(&self.backend, bvh, wide.clone());
         self.tree.depth = bvh.depth;
-        if !top_only {
-            self.mesh_fingerprint = mesh_fingerprint(bvh);
-        }
+        self.mesh_fingerprint = fingerprint;
         self.instances = InstanceTable::of(bvh);
         Ok(())
     }
