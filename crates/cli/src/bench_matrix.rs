@@ -389,7 +389,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                         }
                         if be == "vulkan"
                             && p == Precision::WatertightF64
-                            && vk_ctx.as_ref().is_some_and(|c| !c.has_f64())
+                            && vk_ctx.as_ref().is_some_and(|c| !c.features().f64)
                         {
                             continue;
                         }

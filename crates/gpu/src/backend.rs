@@ -6,7 +6,7 @@ use std::sync::Mutex;
 use bvhtrace_core::Traversal;
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray, texel_extent};
-use bvhtrace_kernels::{Backend, DeviceLimits, DriverTuning, KernelKey, TraceError};
+use bvhtrace_kernels::{Backend, BackendFeatures, DeviceLimits, DriverTuning, KernelKey, TraceError};
 use wgpu::util::DeviceExt;
 
 use crate::context::GpuContext;
@@ -242,14 +242,8 @@ impl Backend for Wgpu {
         self.ctx.has_timestamps()
     }
 
-    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError> {
-        if !self.ctx.supports_precision(key.precision) {
-            return Err(TraceError::PrecisionUnsupported {
-                precision: key.precision,
-                adapter: self.ctx.adapter_info().name.clone(),
-            });
-        }
-        Ok(())
+    fn features(&self) -> BackendFeatures {
+        self.ctx.features()
     }
 
     fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError> {

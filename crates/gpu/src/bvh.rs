@@ -5,7 +5,7 @@
 use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_kernels::engine::WIDE_NOT_UPLOADED;
 use bvhtrace_kernels::upload::ArrayRole;
-use bvhtrace_kernels::{Engine, HasEngine, Update, UploadOptions};
+use bvhtrace_kernels::{Engine, HasEngine, UploadOptions};
 #[cfg(doc)]
 use bvhtrace_kernels::{Tracer, UploadStats};
 
@@ -71,17 +71,11 @@ impl std::fmt::Debug for GpuBvh {
 }
 
 impl GpuBvh {
-    /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
-    /// `opts.traversals` needs them (built then if they are not yet, before the upload's
-    /// clock starts: [`FlatBvh::escapes`]), as buffers or textures (`opts.storage`); with
-    /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide`, or `bvh` collapsed into
-    /// it), in the same storage, and without a binary traversal listed only that. Everything is
-    /// checked against the device's limits first ([`GpuError::TooLarge`] names the
-    /// resource, its size and the limit), and a tree deeper than
-    /// [`FULL_STACK_SIZE`](bvhtrace_kernels::FULL_STACK_SIZE) is refused
-    /// ([`GpuError::TooDeep`]) when the full-stack traversal is listed: the rules of
-    /// [`Engine::upload`], the same on every backend. The [`UploadStats`] are those of
-    /// both layouts together.
+    /// Uploads `bvh` as `opts` says, as buffers or textures (`opts.storage`), by the rules
+    /// every backend follows ([`Engine::upload`]): the escape links only when a listed walk
+    /// follows them, the wide layout when [`Traversal::Wide`] is listed, every array
+    /// checked against the device's limits first. The [`UploadStats`] are those of both
+    /// layouts together.
     pub fn upload(
         ctx: &GpuContext,
         bvh: &FlatBvh,
@@ -97,15 +91,6 @@ impl GpuBvh {
     /// their readback copy, and the counters (with theirs) only once a trace asked for them.
     pub fn scratch_bytes(&self) -> u64 {
         self.engine.with_scratch(|s| s.map_or(0, |s| s.bytes()))
-    }
-
-    /// Writes `bvh` over this upload in place ([`Engine::update_with`]): `bvh` is the
-    /// uploaded BVH after [`bvhtrace_core::InstancedBvh::refit_mesh`]
-    /// ([`Update::Everything`]) or [`bvhtrace_core::InstancedBvh::set_transforms`]
-    /// ([`Update::TopLevel`]: only the top level's nodes and links and the instances are
-    /// written). [`Tracer::update`] works out which itself: use that.
-    pub fn update(&mut self, bvh: &FlatBvh, what: Update) -> Result<(), GpuError> {
-        self.engine.update_with(bvh, what)
     }
 
     /// The context this BVH lives in.

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use bvhtrace_core::Precision;
 use bvhtrace_kernels::key::ModuleSet;
 use bvhtrace_kernels::{
-    AdapterChoice, BvhStorage, Composition, DeviceKind, DeviceLimits, DriverTuning,
+    AdapterChoice, BackendFeatures, BvhStorage, Composition, DeviceKind, DeviceLimits, DriverTuning,
     FULL_STACK_SIZE, KernelKey, RayInput, STACK_LANES, WORKGROUP_SIZE,
 };
 
@@ -469,12 +469,19 @@ impl GpuContext {
     /// True when kernels with this triangle test can run on this device (f64 needs
     /// `SHADER_F64`, which [`GpuContext::new`] requests whenever the adapter has it).
     pub fn supports_precision(&self, precision: Precision) -> bool {
-        !precision.needs_f64()
-            || self
-                .inner
-                .device
-                .features()
-                .contains(wgpu::Features::SHADER_F64)
+        !precision.needs_f64() || self.features().f64
+    }
+
+    /// What the kernels can read on this device: textures with enough storage-texture
+    /// bindings, vertex attributes, f64 with `SHADER_F64`.
+    pub fn features(&self) -> BackendFeatures {
+        let device = &self.inner.device;
+        BackendFeatures {
+            textures: device.limits().max_storage_textures_per_shader_stage
+                >= STORAGE_TEXTURES_USED,
+            vertex_attributes: true,
+            f64: device.features().contains(wgpu::Features::SHADER_F64),
+        }
     }
 
     /// How the pipelines are composed ([`ContextOptions::composition`]).
@@ -494,12 +501,6 @@ impl GpuContext {
     }
 
     fn module(&self, set: &ModuleSet) -> Result<wgpu::ShaderModule, GpuError> {
-        if !self.supports_precision(set.precision) {
-            return Err(GpuError::PrecisionUnsupported {
-                precision: set.precision,
-                adapter: self.inner.info.name.clone(),
-            });
-        }
         if let Some(m) = self.inner.modules.lock().map_err(|_| poisoned())?.get(set) {
             return Ok(m.clone());
         }

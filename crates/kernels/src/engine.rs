@@ -84,6 +84,47 @@ pub struct Batch<'a> {
     pub counters: Option<&'a mut Vec<Counters>>,
 }
 
+/// What a backend's kernels can read beyond what every backend's read (the BVH, rays and
+/// hits in storage buffers, the f32 triangle tests): the engine refuses, with one error
+/// for every backend, an upload or a kernel that needs more.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BackendFeatures {
+    /// The BVH and the rays in texel textures ([`BvhStorage::Textures`]).
+    pub textures: bool,
+    /// Per-vertex attributes bound beside the triangles.
+    pub vertex_attributes: bool,
+    /// The f64 triangle test (`SHADER_F64`, `shaderFloat64`).
+    pub f64: bool,
+}
+
+impl BackendFeatures {
+    /// `Ok` when `key`'s kernel reads nothing beyond these features; `device` names the
+    /// device in the error.
+    pub fn check(&self, key: &KernelKey, device: &str) -> Result<(), TraceError> {
+        let missing = |feature: &'static str, needed_for: &'static str| {
+            Err(TraceError::MissingFeature {
+                adapter: device.to_string(),
+                feature,
+                needed_for,
+            })
+        };
+        if key.precision.needs_f64() && !self.f64 {
+            return Err(TraceError::PrecisionUnsupported {
+                precision: key.precision,
+                adapter: device.to_string(),
+            });
+        }
+        if !self.textures && (key.storage == BvhStorage::Textures || key.rays == RayInput::Texture)
+        {
+            return missing("texture storage", "the BVH or the rays in textures");
+        }
+        if !self.vertex_attributes && key.attributes.normals {
+            return missing("vertex attributes", "vertex normals");
+        }
+        Ok(())
+    }
+}
+
 /// What a device backend does for the [`Engine`]; everything else is the engine's. A new
 /// backend (WebGPU in a browser, hardware ray queries) is one more implementation.
 ///
@@ -105,9 +146,8 @@ pub trait Backend: Send + Sync {
     fn tuning(&self) -> &DriverTuning;
     /// True when batches report GPU time.
     fn has_timestamps(&self) -> bool;
-    /// `Ok` when this backend and device can run `key`'s kernel (its storage, its
-    /// precision's feature).
-    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError>;
+    /// What this backend and device can read beyond every backend's kernels.
+    fn features(&self) -> BackendFeatures;
     /// Builds (and caches) `key`'s pipeline.
     fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError>;
     /// Creates and fills `arrays` and binds them (the binary layout's arrays and the wide
@@ -248,6 +288,13 @@ impl<B: Backend> Engine<B> {
             check_depth(traversal, bvh.depth)?;
         }
         let storage = opts.storage.unwrap_or(backend.tuning().storage);
+        if storage == BvhStorage::Textures && !backend.features().textures {
+            return Err(TraceError::MissingFeature {
+                adapter: backend.device_name(),
+                feature: "texture storage",
+                needed_for: "the BVH in textures (BvhStorage::Textures)",
+            });
+        }
         let (binary, with_escapes) = (opts.binary(), opts.escapes() && opts.binary());
         if with_escapes {
             bvh.check_escape_links()?;
@@ -419,8 +466,8 @@ impl<B: Backend> Engine<B> {
     /// Checks that `opts` can run on this upload and device ([`Tracer::supports`]).
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.supports_traversal(opts.traversal)?;
-        self.backend
-            .check_kernel(&self.key(opts, self.ray_input(), true))
+        let key = self.key(opts, self.ray_input(), true);
+        self.backend.features().check(&key, &self.backend.device_name())
     }
 
     /// Builds the pipelines [`Engine::trace`] runs for `opts` (with the box test's

@@ -12,7 +12,7 @@ use bvhtrace_core::{
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
 use bvhtrace_kernels::{
-    Backend, BvhStorage, DeviceLimits, DriverTuning, Engine, FULL_STACK_SIZE, KernelKey,
+    Backend, BackendFeatures, BvhStorage, DeviceLimits, DriverTuning, Engine, FULL_STACK_SIZE, KernelKey,
     TraceError, Tracer, UploadOptions,
 };
 use glam::{Affine3A, Vec3};
@@ -67,17 +67,15 @@ impl Backend for Mock {
     fn has_timestamps(&self) -> bool {
         true
     }
-    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError> {
-        match key.precision.needs_f64() {
-            true => Err(TraceError::PrecisionUnsupported {
-                precision: key.precision,
-                adapter: "bytes".into(),
-            }),
-            false => Ok(()),
+    fn features(&self) -> BackendFeatures {
+        BackendFeatures {
+            textures: true,
+            vertex_attributes: true,
+            f64: false,
         }
     }
     fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError> {
-        self.check_kernel(&key)
+        self.features().check(&key, "bytes")
     }
     fn create_arrays(
         &self,

@@ -8,11 +8,11 @@ use bvhtrace_core::FlatBvh;
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
 use bvhtrace_kernels::{
-    Backend, BvhStorage, COUNTERS_BYTES, DeviceLimits, DriverTuning, Engine, HIT_BYTES, HasEngine,
-    KernelKey, RAY_BYTES, TraceError, Update, UploadOptions, plan_dispatches,
+    Backend, BackendFeatures, COUNTERS_BYTES, DeviceLimits, DriverTuning, Engine, HIT_BYTES,
+    HasEngine, KernelKey, RAY_BYTES, TraceError, UploadOptions, plan_dispatches,
 };
 #[cfg(doc)]
-use bvhtrace_kernels::{Tracer, Traversal};
+use bvhtrace_kernels::{BvhStorage, Tracer, Traversal};
 
 use crate::context::{Buffer, VkContext};
 use crate::error::vkerr;
@@ -24,43 +24,66 @@ pub struct Ash {
 
 /// Host-visible ray, hit and counter buffers reused across traces.
 pub struct Scratch {
-    ctx: VkContext,
     rays: Buffer,
     hits: Buffer,
     counters: Buffer,
 }
 
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let d = &self.ctx.inner.device;
-        for b in [&mut self.rays, &mut self.hits, &mut self.counters] {
-            b.destroy(d);
-        }
-    }
-}
-
 /// The uploaded arrays, each in a device-local storage buffer, and their descriptor sets.
 pub struct Arrays {
-    ctx: VkContext,
     buffers: Vec<(ArrayRole, Buffer)>,
     /// One zeroed instance, bound where the upload has no array: every binding of a set is
     /// bound (the instances of one mesh, escape links the wide walk never reads).
     filler: Buffer,
-    pool: vk::DescriptorPool,
     /// The binary layout's set and the wide layout's.
-    sets: [vk::DescriptorSet; 2],
+    sets: Sets,
 }
 
-impl Drop for Arrays {
+/// A descriptor pool and the sets allocated from it, destroyed when dropped.
+struct Sets {
+    ctx: VkContext,
+    pool: vk::DescriptorPool,
+    sets: Vec<vk::DescriptorSet>,
+}
+
+impl Sets {
+    /// `count` sets of the kernels' set layout `layout` (0: the BVH, 1: the batch).
+    fn new(ctx: &VkContext, layout: usize, count: u32) -> Result<Sets, TraceError> {
+        let d = &ctx.inner.device;
+        let sizes = [vk::DescriptorPoolSize {
+            ty: vk::DescriptorType::STORAGE_BUFFER,
+            descriptor_count: 4 * count,
+        }];
+        let info = vk::DescriptorPoolCreateInfo::default()
+            .max_sets(count)
+            .pool_sizes(&sizes);
+        // SAFETY: plain object creation; dropping `out` destroys the pool and its sets.
+        let mut out = Sets {
+            ctx: ctx.clone(),
+            pool: unsafe { d.create_descriptor_pool(&info, None) }
+                .map_err(vkerr("creating a descriptor pool"))?,
+            sets: Vec::new(),
+        };
+        let layouts = vec![ctx.inner.set_layouts[layout]; count as usize];
+        let info = vk::DescriptorSetAllocateInfo::default()
+            .descriptor_pool(out.pool)
+            .set_layouts(&layouts);
+        // SAFETY: allocating from the pool just made, sized for these sets.
+        out.sets = unsafe { d.allocate_descriptor_sets(&info) }
+            .map_err(vkerr("allocating descriptor sets"))?;
+        Ok(out)
+    }
+}
+
+impl Drop for Sets {
     fn drop(&mut self) {
-        let d = &self.ctx.inner.device;
-        // SAFETY: every submission using these objects was waited for before its call
-        // returned; the device outlives this value through `ctx`.
-        unsafe { d.destroy_descriptor_pool(self.pool, None) };
-        for (_, b) in &mut self.buffers {
-            b.destroy(d);
-        }
-        self.filler.destroy(d);
+        // SAFETY: every submission using the sets was waited for before its call returned.
+        unsafe {
+            self.ctx
+                .inner
+                .device
+                .destroy_descriptor_pool(self.pool, None)
+        };
     }
 }
 
@@ -81,7 +104,7 @@ impl Arrays {
     fn bind(&self) {
         use ArrayRole as R;
         let whole = |binding, role| (binding, self.raw(role), 0, vk::WHOLE_SIZE);
-        let d = &self.ctx.inner.device;
+        let d = &self.sets.ctx.inner.device;
         if self.has(R::Nodes) {
             let e = [
                 whole(0, R::Nodes),
@@ -89,7 +112,7 @@ impl Arrays {
                 whole(2, R::Escapes),
                 whole(4, R::Instances),
             ];
-            write_set(d, self.sets[0], &e);
+            write_set(d, self.sets.sets[0], &e);
         }
         if self.has(R::WideNodes) {
             let e = [
@@ -98,7 +121,7 @@ impl Arrays {
                 whole(2, R::Escapes),
                 whole(4, R::WideInstances),
             ];
-            write_set(d, self.sets[1], &e);
+            write_set(d, self.sets.sets[1], &e);
         }
     }
 }
@@ -106,31 +129,15 @@ impl Arrays {
 impl Scratch {
     fn new(ctx: &VkContext, capacity: u64) -> Result<Scratch, TraceError> {
         use vk::MemoryPropertyFlags as M;
-        let mut made = Vec::with_capacity(3);
-        for (label, bytes, preferred) in [
-            ("rays", RAY_BYTES, M::DEVICE_LOCAL),
-            ("hits", HIT_BYTES, M::HOST_CACHED),
-            ("counters", COUNTERS_BYTES, M::HOST_CACHED),
-        ] {
-            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let buffer = |label, bytes, preferred| {
             let host = M::HOST_VISIBLE | M::HOST_COHERENT;
-            match ctx.buffer(label, capacity * bytes, usage, host, preferred) {
-                Ok(b) => made.push(b),
-                Err(e) => {
-                    made.iter_mut().for_each(|b| b.destroy(&ctx.inner.device));
-                    return Err(e);
-                }
-            }
-        }
-        let [rays, hits, counters]: [Buffer; 3] = made
-            .try_into()
-            .unwrap_or_else(|_| unreachable!("three buffers were made"));
-        let ctx = ctx.clone();
+            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+            ctx.buffer(label, capacity * bytes, usage, host, preferred)
+        };
         Ok(Scratch {
-            ctx,
-            rays,
-            hits,
-            counters,
+            rays: buffer("rays", RAY_BYTES, M::DEVICE_LOCAL)?,
+            hits: buffer("hits", HIT_BYTES, M::HOST_CACHED)?,
+            counters: buffer("counters", COUNTERS_BYTES, M::HOST_CACHED)?,
         })
     }
 }
@@ -172,7 +179,7 @@ fn copy_to_device(
 ) -> Result<(), TraceError> {
     let align = |x: u64| x.div_ceil(16) * 16;
     let total: u64 = copies.iter().map(|(_, b)| align(b.len() as u64)).sum();
-    let mut staging = ctx.buffer(
+    let staging = ctx.buffer(
         "staging",
         total,
         vk::BufferUsageFlags::TRANSFER_SRC,
@@ -188,39 +195,36 @@ fn copy_to_device(
         offset += align(bytes.len() as u64);
     }
     staging.write(&data);
-    let result = ctx.submitter().and_then(|s| {
-        ctx.submit_and_wait(&s, during, |d, cmd| {
-            for &(dst, src_offset, size) in &regions {
-                if size == 0 {
-                    continue;
-                }
-                let region = [vk::BufferCopy {
-                    src_offset,
-                    dst_offset: 0,
-                    size,
-                }];
-                // SAFETY: recording into the locked command buffer.
-                unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
+    let s = ctx.submitter()?;
+    ctx.submit_and_wait(&s, during, |d, cmd| {
+        for &(dst, src_offset, size) in &regions {
+            if size == 0 {
+                continue;
             }
-            let barrier = [vk::MemoryBarrier::default()
-                .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-                .dst_access_mask(vk::AccessFlags::SHADER_READ)];
-            // SAFETY: as above.
-            unsafe {
-                d.cmd_pipeline_barrier(
-                    cmd,
-                    vk::PipelineStageFlags::TRANSFER,
-                    vk::PipelineStageFlags::COMPUTE_SHADER,
-                    vk::DependencyFlags::empty(),
-                    &barrier,
-                    &[],
-                    &[],
-                )
-            };
-        })
-    });
-    staging.destroy(&ctx.inner.device);
-    result
+            let region = [vk::BufferCopy {
+                src_offset,
+                dst_offset: 0,
+                size,
+            }];
+            // SAFETY: recording into the locked command buffer.
+            unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
+        }
+        let barrier = [vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(vk::AccessFlags::SHADER_READ)];
+        // SAFETY: as above.
+        unsafe {
+            d.cmd_pipeline_barrier(
+                cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::COMPUTE_SHADER,
+                vk::DependencyFlags::empty(),
+                &barrier,
+                &[],
+                &[],
+            )
+        };
+    })
 }
 
 /// Device-local storage buffers holding `arrays` (name, bytes), filled through one staging
@@ -232,98 +236,37 @@ fn device_buffers(
 ) -> Result<Vec<Buffer>, TraceError> {
     use vk::BufferUsageFlags as U;
     use vk::MemoryPropertyFlags as M;
-    let mut made: Vec<Buffer> = Vec::with_capacity(arrays.len());
-    let result = (|| -> Result<(), TraceError> {
-        for &(name, bytes) in arrays {
-            made.push(ctx.buffer(
-                name,
-                bytes.len() as u64,
-                U::STORAGE_BUFFER | U::TRANSFER_DST,
-                M::DEVICE_LOCAL,
-                M::empty(),
-            )?);
-        }
-        let copies: Vec<(vk::Buffer, &[u8])> = made
-            .iter()
-            .zip(arrays)
-            .map(|(b, (_, bytes))| (b.raw, *bytes))
-            .collect();
-        copy_to_device(ctx, during, &copies)
-    })();
-    if let Err(e) = result {
-        for mut b in made {
-            b.destroy(&ctx.inner.device);
-        }
-        return Err(e);
-    }
+    let made = arrays
+        .iter()
+        .map(|&(name, bytes)| {
+            let usage = U::STORAGE_BUFFER | U::TRANSFER_DST;
+            ctx.buffer(name, bytes.len() as u64, usage, M::DEVICE_LOCAL, M::empty())
+        })
+        .collect::<Result<Vec<Buffer>, TraceError>>()?;
+    let copies: Vec<(vk::Buffer, &[u8])> = made
+        .iter()
+        .zip(arrays)
+        .map(|(b, (_, bytes))| (b.raw, *bytes))
+        .collect();
+    copy_to_device(ctx, during, &copies)?;
     Ok(made)
 }
 
-/// A descriptor pool for `sets` sets of at most four storage buffers.
-fn descriptor_pool(d: &ash::Device, sets: u32) -> Result<vk::DescriptorPool, TraceError> {
-    let sizes = [vk::DescriptorPoolSize {
-        ty: vk::DescriptorType::STORAGE_BUFFER,
-        descriptor_count: 4 * sets,
-    }];
-    // SAFETY: plain object creation.
-    unsafe {
-        d.create_descriptor_pool(
-            &vk::DescriptorPoolCreateInfo::default()
-                .max_sets(sets)
-                .pool_sizes(&sizes),
-            None,
-        )
-    }
-    .map_err(vkerr("creating a descriptor pool"))
-}
-
 impl Ash {
-    /// A descriptor pool with the binary and the wide set.
-    fn sets(&self) -> Result<(vk::DescriptorPool, [vk::DescriptorSet; 2]), TraceError> {
-        let d = &self.ctx.inner.device;
-        let pool = descriptor_pool(d, 2)?;
-        let layouts = [self.ctx.inner.set_layouts[0]; 2];
-        // SAFETY: allocating from the pool just made, sized for these sets.
-        let allocated = unsafe {
-            d.allocate_descriptor_sets(
-                &vk::DescriptorSetAllocateInfo::default()
-                    .descriptor_pool(pool)
-                    .set_layouts(&layouts),
-            )
-        };
-        match allocated {
-            Ok(s) => Ok((pool, [s[0], s[1]])),
-            Err(e) => {
-                // SAFETY: the pool was just made and holds nothing in use.
-                unsafe { d.destroy_descriptor_pool(pool, None) };
-                Err(vkerr("allocating the BVH descriptor sets")(e))
-            }
-        }
-    }
-
-    /// Records the batch's dispatches (one descriptor set each, from `pool`) into `cmd`.
+    /// Records the batch's dispatches (one of `sets` each) into `cmd`.
     fn dispatch(
         &self,
         arrays: &Arrays,
         s: &Scratch,
         key: KernelKey,
         count: u64,
-        pool: vk::DescriptorPool,
+        sets: &Sets,
     ) -> Result<impl FnOnce(&ash::Device, vk::CommandBuffer, vk::QueryPool), TraceError> {
         let inner = &self.ctx.inner;
         let d = &inner.device;
         let pipeline = self.ctx.pipeline(key)?;
         let dispatches = plan_dispatches(count, self.ctx.limits());
-        let layouts = vec![inner.set_layouts[1]; dispatches.len()];
-        // SAFETY: allocating from the pool just made, sized for these sets.
-        let sets = unsafe {
-            d.allocate_descriptor_sets(
-                &vk::DescriptorSetAllocateInfo::default()
-                    .descriptor_pool(pool)
-                    .set_layouts(&layouts),
-            )
-        }
-        .map_err(vkerr("allocating ray-batch descriptor sets"))?;
+        let sets = sets.sets.clone();
         for (set, dp) in sets.iter().zip(&dispatches) {
             let (first, c) = (dp.first_ray, u64::from(dp.ray_count));
             let range = |b: &Buffer, stride| (b.raw, first * stride, c * stride);
@@ -334,7 +277,7 @@ impl Ash {
             ];
             write_set(d, *set, &[(0, r, ro, rl), (1, h, ho, hl), (2, k, ko, kl)]);
         }
-        let bvh_set = arrays.sets[usize::from(key.traversal.is_wide())];
+        let bvh_set = arrays.sets.sets[usize::from(key.traversal.is_wide())];
         let (timed, layout) = (inner.timestamp_period_ns.is_some(), inner.pipeline_layout);
         Ok(move |d: &ash::Device, cmd, queries| {
             let bind = vk::PipelineBindPoint::COMPUTE;
@@ -423,8 +366,8 @@ impl Backend for Ash {
         self.ctx.inner.timestamp_period_ns.is_some()
     }
 
-    fn check_kernel(&self, key: &KernelKey) -> Result<(), TraceError> {
-        self.ctx.supports_key(key)
+    fn features(&self) -> BackendFeatures {
+        self.ctx.features()
     }
 
     fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError> {
@@ -433,17 +376,9 @@ impl Backend for Ash {
 
     fn create_arrays(
         &self,
-        layout: ArraysLayout,
+        _layout: ArraysLayout,
         arrays: &[DeviceArray<'_>],
     ) -> Result<Arrays, TraceError> {
-        if layout.storage != BvhStorage::Buffers {
-            return Err(TraceError::Device {
-                during: "uploading the BVH",
-                message: "the ash backend keeps the BVH in storage buffers: BvhStorage::Textures \
-                          is for wgpu"
-                    .into(),
-            });
-        }
         let zero = [bvhtrace_core::FlatInstance::zeroed()];
         let mut named: Vec<(&'static str, &[u8])> = vec![("filler", bytemuck::cast_slice(&zero))];
         named.extend(arrays.iter().map(|a| (a.name(), &*a.bytes)));
@@ -452,16 +387,11 @@ impl Backend for Ash {
             .next()
             .unwrap_or_else(|| unreachable!("a buffer per array"));
         let buffers = arrays.iter().map(|a| a.role).zip(made).collect();
-        let (pool, sets) = (vk::DescriptorPool::null(), [vk::DescriptorSet::null(); 2]);
-        // From here on, dropping `out` frees everything.
-        let mut out = Arrays {
-            ctx: self.ctx.clone(),
+        let out = Arrays {
             buffers,
             filler,
-            pool,
-            sets,
+            sets: Sets::new(&self.ctx, 0, 2)?,
         };
-        (out.pool, out.sets) = self.sets()?;
         out.bind();
         Ok(out)
     }
@@ -488,13 +418,11 @@ impl Backend for Ash {
             .map(|w| (w.array.name(), &*w.array.bytes))
             .collect();
         let made = device_buffers(&self.ctx, "updating the BVH", &named)?;
-        let d = &self.ctx.inner.device;
         for (w, b) in remake.iter().zip(made) {
             let role = w.array.role;
-            // Every submission that read the old buffer has completed.
+            // Every submission that read the old buffer has completed: it may drop.
             if let Some(i) = arrays.buffers.iter().position(|(r, _)| *r == role) {
-                let (_, mut old) = std::mem::replace(&mut arrays.buffers[i], (role, b));
-                old.destroy(d);
+                arrays.buffers[i] = (role, b);
             } else {
                 arrays.buffers.push((role, b));
             }
@@ -514,27 +442,22 @@ impl Backend for Ash {
         batch: Batch<'_>,
     ) -> Result<Option<f64>, TraceError> {
         let count = batch.rays.len() as u64;
-        let d = &self.ctx.inner.device;
         let sub = self.ctx.submitter()?;
         s.rays.write(bytemuck::cast_slice(batch.rays));
         let dispatches = plan_dispatches(count, self.ctx.limits()).len() as u32;
-        let pool = descriptor_pool(d, dispatches)?;
-        let traced = (|| -> Result<Option<f64>, TraceError> {
-            let record = self.dispatch(arrays, s, batch.key, count, pool)?;
-            let queries = sub.queries;
-            self.ctx
-                .submit_and_wait(&sub, "tracing a ray batch", |d, cmd| {
-                    record(d, cmd, queries)
-                })?;
-            s.hits.read_into((count * HIT_BYTES) as usize, batch.hits);
-            if let Some(c) = batch.counters {
-                s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
-            }
-            self.gpu_ms(queries)
-        })();
-        // SAFETY: the submission using the sets has completed (or never started).
-        unsafe { d.destroy_descriptor_pool(pool, None) };
-        traced
+        // Dropped after the submission reading them was waited for.
+        let sets = Sets::new(&self.ctx, 1, dispatches)?;
+        let record = self.dispatch(arrays, s, batch.key, count, &sets)?;
+        let queries = sub.queries;
+        self.ctx
+            .submit_and_wait(&sub, "tracing a ray batch", |d, cmd| {
+                record(d, cmd, queries)
+            })?;
+        s.hits.read_into((count * HIT_BYTES) as usize, batch.hits);
+        if let Some(c) = batch.counters {
+            s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
+        }
+        self.gpu_ms(queries)
     }
 }
 
@@ -588,12 +511,9 @@ impl VkBvh {
 
     /// Uploads `bvh` as `opts` says, to device-local storage buffers (through one
     /// host-visible staging buffer), by the rules every backend follows
-    /// ([`Engine::upload`]): an empty tree is [`TraceError::EmptyBvh`], escape links that
-    /// do not fit the nodes [`TraceError::BadEscapeLinks`]; each array is checked against
-    /// the device's limits (`maxStorageBufferRange`, `maxMemoryAllocationSize`) first, and
-    /// [`TraceError::TooLarge`] names the array, its size and the limit;
-    /// [`Traversal::Wide`] listed uploads the wide layout (the tree's own, or the tree
-    /// collapsed). [`BvhStorage::Textures`] is refused: this backend has buffers only.
+    /// ([`Engine::upload`]; the limits are `maxStorageBufferRange` and
+    /// `maxMemoryAllocationSize`). [`BvhStorage::Textures`] is a
+    /// [`TraceError::MissingFeature`]: this backend has buffers only.
     pub fn upload_with(
         ctx: &VkContext,
         bvh: &FlatBvh,
@@ -608,18 +528,5 @@ impl VkBvh {
     /// The context this BVH lives on.
     pub fn context(&self) -> &VkContext {
         &self.engine.device().ctx
-    }
-
-    /// Writes `bvh` over this upload in place ([`Engine::update_with`]): the whole BVH
-    /// after [`bvhtrace_core::InstancedBvh::refit_mesh`], or with `top_level_only` the top
-    /// level's nodes, their escape links and the instances after
-    /// [`bvhtrace_core::InstancedBvh::set_transforms`]. [`Tracer::update`] works out which
-    /// itself: use that.
-    pub fn update(&mut self, bvh: &FlatBvh, top_level_only: bool) -> Result<(), TraceError> {
-        let what = match top_level_only {
-            true => Update::TopLevel,
-            false => Update::Everything,
-        };
-        self.engine.update_with(bvh, what)
     }
 }

@@ -8,12 +8,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
+use bvhtrace_kernels::spirv::{self, SpirvTarget};
 use bvhtrace_kernels::{
-    AdapterChoice, BvhStorage, DeviceKind, DeviceLimits, DriverTuning, KernelKey, RayInput,
+    AdapterChoice, BackendFeatures, BvhStorage, DeviceKind, DeviceLimits, DriverTuning, KernelKey,
     TraceError,
 };
 
-use crate::error::{from_vk, shader_error, vkerr};
+use crate::error::{from_vk, vkerr};
 
 /// Environment variable front ends and tests read to turn on `VK_LAYER_KHRONOS_validation`
 /// (`BVHTRACE_VK_VALIDATION=1`, passed on as [`VkOptions::validation`]); the library reads
@@ -138,9 +139,9 @@ pub(crate) struct Inner {
     pub(crate) timestamp_period_ns: Option<f64>,
     pub(crate) timestamp_mask: u64,
     memory: vk::PhysicalDeviceMemoryProperties,
-    spirv_version: (u8, u8),
-    /// Naga may skip its own buffer bounds checks (robustBufferAccess2 is on), as wgpu does.
-    robust2: bool,
+    /// The SPIR-V version, and whether naga may skip its buffer bounds checks
+    /// (robustBufferAccess2 is on), as wgpu does.
+    spirv: SpirvTarget,
     /// `TRIP_LIMIT`, `DISPATCH_THREADS` and whether rays are finished on the CPU (storage
     /// is always buffers).
     tuning: DriverTuning,
@@ -493,11 +494,7 @@ impl VkContext {
                 64.. => u64::MAX,
                 b => (1u64 << b) - 1,
             };
-            let spirv_version = match (info.api_version.0, info.api_version.1) {
-                (1, 0) => (1, 0),
-                (1, 1) => (1, 3),
-                _ => (1, 5), // the instance asks for Vulkan 1.2
-            };
+            let spirv = SpirvTarget::for_vulkan(info.api_version.0, info.api_version.1, robust2);
             let memory = instance.get_physical_device_memory_properties(pd);
 
             // From here on, dropping `inner` destroys whatever was created.
@@ -509,8 +506,7 @@ impl VkContext {
                 timestamp_period_ns: timestamps.then_some(f64::from(l.timestamp_period)),
                 timestamp_mask,
                 memory,
-                spirv_version,
-                robust2,
+                spirv,
                 tuning,
                 float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
@@ -636,125 +632,25 @@ impl VkContext {
         &self.inner.tuning
     }
 
-    /// True when the device runs the f64 triangle test (`shaderFloat64`).
-    pub fn has_f64(&self) -> bool {
-        self.inner.float64
+    /// What the kernels can read on this device: storage buffers only, no vertex
+    /// attributes; f64 with `shaderFloat64` (which [`VkContext::new`] enables whenever the
+    /// device has it).
+    pub fn features(&self) -> BackendFeatures {
+        BackendFeatures {
+            textures: false,
+            vertex_attributes: false,
+            f64: self.inner.float64,
+        }
     }
 
-    /// True when kernels with this triangle test can run on this device (f64 needs
-    /// `shaderFloat64`, which [`VkContext::new`] enables whenever the device has it).
-    pub fn supports_precision(&self, precision: bvhtrace_core::Precision) -> bool {
-        !precision.needs_f64() || self.inner.float64
-    }
-
-    /// Checks that this backend and device can build `key`'s kernel: the BVH, rays and
-    /// hits in storage buffers, no per-vertex attributes (the ash pipeline layout binds
-    /// nodes, triangles and escapes; rays, hits and counters), and a precision the
-    /// device runs.
-    pub fn supports_key(&self, key: &KernelKey) -> Result<(), TraceError> {
-        let unsupported = |what: &str| {
-            Err(TraceError::Device {
-                during: "translating the kernels to SPIR-V",
-                message: format!(
-                    "the ash backend reads the BVH, rays and hits from storage buffers and \
-                     binds no vertex attributes; the kernel key asks for {what}"
-                ),
-            })
-        };
-        if key.storage != BvhStorage::Buffers {
-            return unsupported("the BVH in textures");
-        }
-        if key.rays != RayInput::Buffer {
-            return unsupported("the rays in textures");
-        }
-        if key.attributes.normals {
-            return unsupported("vertex normals");
-        }
-        if !self.supports_precision(key.precision) {
-            return Err(TraceError::PrecisionUnsupported {
-                precision: key.precision,
-                adapter: self.inner.info.name.clone(),
-            });
-        }
-        Ok(())
-    }
-
-    /// The SPIR-V words of one kernel: the key's WGSL module ([`KernelKey::source`], the
-    /// one the wgpu path compiles for the same key), its override constants
-    /// ([`KernelKey::constants`], and [`DriverTuning::constants`] of
-    /// [`VkContext::tuning`]: `TRIP_LIMIT`, `DISPATCH_THREADS`) resolved by naga, written
-    /// for this device's SPIR-V version with one entry point
-    /// ([`KernelKey::entry_point`]). Only keys [`VkContext::supports_key`] accepts:
-    /// storage buffers for the BVH and the rays, no vertex attributes.
+    /// The SPIR-V words of `key`'s kernel for this device, with this context's tuning
+    /// ([`bvhtrace_kernels::spirv::kernel`]), when [`VkContext::features`] allow it.
     pub fn spirv(&self, key: KernelKey) -> Result<Vec<u32>, TraceError> {
-        self.supports_key(&key)?;
-        let inner = &self.inner;
-        let source = key.source();
-        let module = naga::front::wgsl::parse_str(&source)
-            .map_err(|e| shader_error("parsing the WGSL", e.emit_to_string(&source)))?;
-        let module_info = naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::all(),
-        )
-        .validate(&module)
-        .map_err(|e| shader_error("validating the WGSL", e.emit_to_string(&source)))?;
-        let stage = naga::ShaderStage::Compute;
-        let mut constants = naga::back::PipelineConstants::default();
-        for (name, value) in key.constants().into_iter().chain(inner.tuning.constants()) {
-            constants.insert(name.to_string(), value);
-        }
-        let (module, info) = naga::back::pipeline_constants::process_overrides(
-            &module,
-            &module_info,
-            Some((stage, key.entry_point())),
-            &constants,
-        )
-        .map_err(|e| shader_error("resolving override constants", e))?;
-        use naga::proc::BoundsCheckPolicy as P;
-        // The pipeline layout's sets and bindings are the WGSL's groups and bindings.
-        let binding_map = (0..2u32)
-            .flat_map(|group| {
-                [0u32, 1, 2, 4].into_iter().map(move |binding| {
-                    (
-                        naga::ResourceBinding { group, binding },
-                        naga::back::spv::BindingInfo {
-                            descriptor_set: group,
-                            binding,
-                            binding_array_size: None,
-                        },
-                    )
-                })
-            })
-            .collect();
-        let options = naga::back::spv::Options {
-            lang_version: inner.spirv_version,
-            flags: naga::back::spv::WriterFlags::empty(),
-            fake_missing_bindings: false,
-            binding_map,
-            bounds_check_policies: naga::proc::BoundsCheckPolicies {
-                index: P::Restrict,
-                buffer: if inner.robust2 {
-                    P::Unchecked
-                } else {
-                    P::Restrict
-                },
-                image_load: P::Restrict,
-                binding_array: P::Unchecked,
-            },
-            zero_initialize_workgroup_memory:
-                naga::back::spv::ZeroInitializeWorkgroupMemoryMode::None,
-            ..Default::default()
-        };
-        let pipeline_options = naga::back::spv::PipelineOptions {
-            shader_stage: stage,
-            entry_point: key.entry_point().to_string(),
-        };
-        naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline_options))
-            .map_err(|e| shader_error("writing SPIR-V", e))
+        self.features().check(&key, &self.inner.info.name)?;
+        spirv::kernel(&key, &self.inner.tuning, &self.inner.spirv)
     }
 
-    /// The compute pipeline of one kernel key ([`VkContext::supports_key`]), created on
-    /// first use and cached.
+    /// The compute pipeline of one kernel key, created on first use and cached.
     pub(crate) fn pipeline(&self, key: KernelKey) -> Result<vk::Pipeline, TraceError> {
         let mut cache = self
             .inner
@@ -766,8 +662,10 @@ impl VkContext {
         }
         let words = self.spirv(key)?;
         let d = &self.inner.device;
-        let name = CString::new(key.entry_point())
-            .map_err(|e| shader_error("naming the entry point", e))?;
+        let name = CString::new(key.entry_point()).map_err(|e| TraceError::Device {
+            during: "creating a compute pipeline",
+            message: format!("the entry point's name: {e}"),
+        })?;
         // SAFETY: `words` is SPIR-V from naga's validated module; the module is destroyed
         // right after the pipeline is made from it.
         let pipeline = unsafe {
@@ -867,19 +765,23 @@ impl VkContext {
     ) -> Result<Buffer, TraceError> {
         let d = &self.inner.device;
         let size = size.max(16);
-        // SAFETY: plain object creation on this device; on failure what was created is
-        // destroyed before returning.
+        let info = vk::BufferCreateInfo::default()
+            .size(size)
+            .usage(usage)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        // SAFETY: plain object creation on this device; on failure, dropping `b` destroys
+        // what was made (freeing null memory is a no-op).
         unsafe {
-            let raw = d
-                .create_buffer(
-                    &vk::BufferCreateInfo::default()
-                        .size(size)
-                        .usage(usage)
-                        .sharing_mode(vk::SharingMode::EXCLUSIVE),
-                    None,
-                )
-                .map_err(vkerr("creating a buffer"))?;
-            let req = d.get_buffer_memory_requirements(raw);
+            let mut b = Buffer {
+                ctx: self.clone(),
+                raw: d
+                    .create_buffer(&info, None)
+                    .map_err(vkerr("creating a buffer"))?,
+                memory: vk::DeviceMemory::null(),
+                size,
+                mapped: None,
+            };
+            let req = d.get_buffer_memory_requirements(b.raw);
             let mem = &self.inner.memory;
             let types = &mem.memory_types[..mem.memory_type_count as usize];
             let fits = |i: usize, flags: vk::MemoryPropertyFlags| {
@@ -887,54 +789,36 @@ impl VkContext {
             };
             let index = (0..types.len())
                 .find(|&i| fits(i, required | preferred))
-                .or_else(|| (0..types.len()).find(|&i| fits(i, required)));
-            let Some(index) = index else {
-                d.destroy_buffer(raw, None);
-                return Err(TraceError::Device {
+                .or_else(|| (0..types.len()).find(|&i| fits(i, required)))
+                .ok_or_else(|| TraceError::Device {
                     during: "allocating buffer memory",
                     message: format!(
                         "no Vulkan memory type for the {label} buffer has {required:?}"
                     ),
-                });
-            };
-            let memory = match d.allocate_memory(
-                &vk::MemoryAllocateInfo::default()
-                    .allocation_size(req.size)
-                    .memory_type_index(index as u32),
-                None,
-            ) {
-                Ok(m) => m,
-                Err(e) => {
-                    d.destroy_buffer(raw, None);
-                    return Err(from_vk("allocating buffer memory", e));
-                }
-            };
-            let mut b = Buffer {
-                raw,
-                memory,
-                size,
-                mapped: None,
-            };
-            if let Err(e) = d.bind_buffer_memory(raw, memory, 0) {
-                b.destroy(d);
-                return Err(from_vk("binding buffer memory", e));
-            }
+                })?;
+            let alloc = vk::MemoryAllocateInfo::default()
+                .allocation_size(req.size)
+                .memory_type_index(index as u32);
+            b.memory = d
+                .allocate_memory(&alloc, None)
+                .map_err(vkerr("allocating buffer memory"))?;
+            d.bind_buffer_memory(b.raw, b.memory, 0)
+                .map_err(vkerr("binding buffer memory"))?;
             if required.contains(vk::MemoryPropertyFlags::HOST_VISIBLE) {
-                match d.map_memory(memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) {
-                    Ok(p) => b.mapped = NonNull::new(p.cast::<u8>()),
-                    Err(e) => {
-                        b.destroy(d);
-                        return Err(from_vk("mapping buffer memory", e));
-                    }
-                }
+                let p = d
+                    .map_memory(b.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty())
+                    .map_err(vkerr("mapping buffer memory"))?;
+                b.mapped = NonNull::new(p.cast::<u8>());
             }
             Ok(b)
         }
     }
 }
 
-/// A buffer and its memory (mapped when host-visible).
+/// A buffer and its memory (mapped when host-visible), destroyed when dropped.
 pub(crate) struct Buffer {
+    /// Keeps the device alive until the buffer is destroyed.
+    ctx: VkContext,
     pub(crate) raw: vk::Buffer,
     memory: vk::DeviceMemory,
     pub(crate) size: u64,
@@ -966,10 +850,13 @@ impl Buffer {
         // SAFETY: the mapping covers `size` bytes; the GPU finished writing (fence waited).
         unsafe { std::ptr::copy_nonoverlapping(p.as_ptr(), dst.as_mut_ptr(), dst.len()) };
     }
+}
 
-    /// Frees the buffer and its memory.
-    pub(crate) fn destroy(&mut self, d: &ash::Device) {
-        // SAFETY: created on `d`; no submission using it is pending (callers wait first).
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        let d = &self.ctx.inner.device;
+        // SAFETY: created on `d`; no submission using it is pending (every submission is
+        // waited for before its call returns).
         unsafe {
             if self.mapped.take().is_some() {
                 d.unmap_memory(self.memory);
@@ -977,8 +864,6 @@ impl Buffer {
             d.destroy_buffer(self.raw, None);
             d.free_memory(self.memory, None);
         }
-        self.raw = vk::Buffer::null();
-        self.memory = vk::DeviceMemory::null();
     }
 }
 

@@ -1,5 +1,5 @@
-//! Vulkan results as [`TraceError`]s, the one error type of every backend: every Vulkan,
-//! loader and shader-translation failure comes back as one of those, never as a panic.
+//! Vulkan results as [`TraceError`]s, the one error type of every backend: every Vulkan
+//! and loader failure comes back as one of those, never as a panic.
 
 use ash::vk;
 use bvhtrace_kernels::TraceError;
@@ -26,15 +26,6 @@ pub(crate) fn from_vk(during: &'static str, result: vk::Result) -> TraceError {
 /// `result.map_err(vkerr("doing x"))`.
 pub(crate) fn vkerr(during: &'static str) -> impl Fn(vk::Result) -> TraceError {
     move |r| from_vk(during, r)
-}
-
-/// A shader-translation failure (naga parsing, validating, specialising or writing
-/// SPIR-V): a [`TraceError::Device`] saying which stage failed.
-pub(crate) fn shader_error(stage: &str, message: impl std::fmt::Display) -> TraceError {
-    TraceError::Device {
-        during: "translating the kernels to SPIR-V",
-        message: format!("{stage}: {message}"),
-    }
 }
 
 #[cfg(test)]
@@ -76,10 +67,5 @@ mod tests {
             }
             e => panic!("expected Device, got {e:?}"),
         }
-        let shader = shader_error("writing SPIR-V", "bad");
-        assert!(
-            shader.to_string().contains("SPIR-V") && shader.to_string().contains("bad"),
-            "{shader}"
-        );
     }
 }

@@ -235,7 +235,7 @@ fn errors_are_errors_not_panics() {
         other => panic!("expected EmptyBvh, got {other:?}"),
     }
     // The f64 test on a device without shaderFloat64 is refused, naming the device.
-    if !ctx.has_f64() {
+    if !ctx.features().f64 {
         let f64_opts =
             TraceOptions::closest(Traversal::Stackless).with_precision(Precision::WatertightF64);
         match gpu.trace(&rays, &f64_opts) {
@@ -475,7 +475,7 @@ fn two_level_updates_in_place_match_the_cpu() {
         .map(|(k, i)| glam::Affine3A::from_rotation_x(0.2 * k as f32) * i.transform)
         .collect();
     ib.set_transforms(&moved).expect("new transforms");
-    vk.update(ib.bvh(), true).expect("top-level update");
+    vk.update(ib.bvh()).expect("top-level update");
     check(&vk, ib.bvh(), "after new transforms");
     let mut tris = ib.mesh_bvh(1).triangles;
     tris.sort_by_key(|t| t.prim);
@@ -484,7 +484,7 @@ fn two_level_updates_in_place_match_the_cpu() {
         .map(|t| t.corners().map(|p| p * glam::Vec3::new(1.2, 0.7, 1.0)))
         .collect();
     ib.refit_mesh(1, &bent).expect("refit");
-    vk.update(ib.bvh(), false).expect("update after refit");
+    vk.update(ib.bvh()).expect("update after refit");
     check(&vk, ib.bvh(), "after a refit");
     // A mesh flattened to a twentieth of its height: the wide collapse comes out with
     // another number of nodes, and the update makes new wide buffers.
@@ -496,7 +496,7 @@ fn two_level_updates_in_place_match_the_cpu() {
         .map(|t| t.corners().map(|p| p * glam::Vec3::new(1.0, 0.05, 1.0)))
         .collect();
     ib.refit_mesh(2, &flat).expect("refit");
-    vk.update(ib.bvh(), false).expect("update after flattening");
+    vk.update(ib.bvh()).expect("update after flattening");
     let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
     assert_ne!(
         vk.stats().nodes_bytes,
@@ -508,6 +508,6 @@ fn two_level_updates_in_place_match_the_cpu() {
         (std::mem::size_of_val(ib.bvh().nodes.as_slice()) + wide.byte_sizes().0) as u64
     );
     check(&vk, ib.bvh(), "after flattening");
-    assert!(vk.update(&one_triangle(), false).is_err());
+    assert!(vk.update(&one_triangle()).is_err());
     assert_eq!(ctx.validation_errors(), 0, "validation errors");
 }
