@@ -16,6 +16,7 @@ use bvhtrace_core::{
     BuildOptions, Counters, FlatBvh, Hit, INVALID_RAY, Precision, Query, Ray, TraceOptions,
     Traversal, Triangle, oracle, trace_rays,
 };
+use bvhtrace_gpu::kernels::HasEngine;
 use bvhtrace_gpu::{
     AdapterChoice, BvhStorage, ContextOptions, CpuTracer, DriverTuning, GpuBvh, GpuContext,
     GpuError, Tracer, UploadOptions,
@@ -1214,7 +1215,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
             })
             .collect();
         ib.set_transforms(&moved).expect("new transforms");
-        gpu.update(ib.bvh(), Update::TopLevel)
+        gpu.engine_mut().update_with(ib.bvh(), Update::TopLevel)
             .expect("top-level update");
         check(&gpu, ib.bvh(), "after new transforms");
         let after = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
@@ -1227,7 +1228,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
             .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
             .collect();
         ib.refit_mesh(0, &swollen).expect("refit");
-        gpu.update(ib.bvh(), Update::Everything)
+        gpu.engine_mut().update_with(ib.bvh(), Update::Everything)
             .expect("update after refit");
         check(&gpu, ib.bvh(), "after a refit");
 
@@ -1242,7 +1243,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
             .map(|t| t.corners().map(|p| p * Vec3::new(1.0, 0.05, 1.0)))
             .collect();
         ib.refit_mesh(1, &flat).expect("refit");
-        gpu.update(ib.bvh(), Update::Everything)
+        gpu.engine_mut().update_with(ib.bvh(), Update::Everything)
             .expect("update after flattening");
         let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
         assert_ne!(
@@ -1277,7 +1278,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
 
         let other = one_triangle();
         assert!(matches!(
-            gpu.update(&other, Update::Everything),
+            gpu.engine_mut().update_with(&other, Update::Everything),
             Err(GpuError::BadBuffer { .. })
         ));
     }

@@ -6,7 +6,9 @@ use std::sync::Mutex;
 use bvhtrace_core::Traversal;
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray, texel_extent};
-use bvhtrace_kernels::{Backend, BackendFeatures, DeviceLimits, DriverTuning, KernelKey, TraceError};
+use bvhtrace_kernels::{
+    Backend, BackendFeatures, DeviceLimits, DriverTuning, KernelKey, TraceError,
+};
 use wgpu::util::DeviceExt;
 
 use crate::context::GpuContext;
@@ -155,26 +157,38 @@ pub(crate) fn storage_texture(
     })
 }
 
-/// Writes `a`'s texels over the whole of `texture` (its last row zero-padded).
-fn write_texels(ctx: &GpuContext, texture: &wgpu::Texture, a: &DeviceArray<'_>, texel: u64) {
-    let (width, rows) = (texture.width(), texture.height());
-    let mut data = a.bytes.to_vec();
-    data.resize((u64::from(width) * u64::from(rows) * texel) as usize, 0);
-    ctx.queue().write_texture(
-        wgpu::TexelCopyTextureInfo {
-            texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        &data,
-        wgpu::TexelCopyBufferLayout {
-            offset: 0,
-            bytes_per_row: Some(width * texel as u32),
-            rows_per_image: Some(rows),
-        },
-        texture.size(),
-    );
+/// Writes `bytes`, texels of `texel` bytes, over `texture` from its first texel on, row by
+/// row: the whole rows as they are, the rest in one zero-padded row.
+pub(crate) fn write_texels(queue: &wgpu::Queue, texture: &wgpu::Texture, bytes: &[u8], texel: u64) {
+    let width = texture.width();
+    let row = (u64::from(width) * texel) as usize;
+    let full = bytes.len() / row;
+    let mut last = bytes[full * row..].to_vec();
+    last.resize(if last.is_empty() { 0 } else { row }, 0);
+    for (y, part) in [(0, &bytes[..full * row]), (full as u32, &last[..])] {
+        if part.is_empty() {
+            continue;
+        }
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d { x: 0, y, z: 0 },
+                aspect: wgpu::TextureAspect::All,
+            },
+            part,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row as u32),
+                rows_per_image: None,
+            },
+            wgpu::Extent3d {
+                width,
+                height: (part.len() / row) as u32,
+                depth_or_array_layers: 1,
+            },
+        );
+    }
 }
 
 impl Wgpu {
@@ -196,7 +210,7 @@ impl Wgpu {
                 };
                 let (w, h) = texel_extent(a.texels());
                 let t = storage_texture(&self.ctx, &label, format, w, h);
-                write_texels(&self.ctx, &t, a, texel);
+                write_texels(self.ctx.queue(), &t, &a.bytes, texel);
                 let v = t.create_view(&Default::default());
                 Resource::Texture(t, v)
             }
@@ -283,7 +297,7 @@ impl Backend for Wgpu {
                     (Some(i), false) => match (&arrays.resources[i].1, a.texel_bytes) {
                         (Resource::Buffer(b), _) => self.ctx.queue().write_buffer(b, 0, &a.bytes),
                         (Resource::Texture(t, _), Some(texel)) => {
-                            write_texels(&self.ctx, t, a, texel)
+                            write_texels(self.ctx.queue(), t, &a.bytes, texel)
                         }
                         (Resource::Texture(..), None) => {}
                     },

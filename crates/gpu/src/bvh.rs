@@ -3,7 +3,6 @@
 //! groups, buffers and textures for your own shaders, recording into your encoder).
 
 use bvhtrace_core::{FlatBvh, Traversal};
-use bvhtrace_kernels::engine::WIDE_NOT_UPLOADED;
 use bvhtrace_kernels::upload::ArrayRole;
 use bvhtrace_kernels::{Engine, HasEngine, UploadOptions};
 #[cfg(doc)]
@@ -103,29 +102,12 @@ impl GpuBvh {
     /// [`Traversal::Wide`] the wide layout's), with its layout. For your own shader use
     /// [`GpuBvh::bind_group_for`], which checks the library against the upload.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
-        let instanced = self.is_instanced();
-        let (storage, arrays) = (self.storage(), self.engine.arrays());
-        if traversal.is_wide() {
-            let group = arrays.group(traversal).ok_or(GpuError::WideLayoutMissing {
-                missing: WIDE_NOT_UPLOADED,
-            })?;
-            return Ok(BvhBindGroup {
-                group,
-                layout: self.context().bvh_layout(storage, false, instanced),
-            });
-        }
-        let with_escapes = traversal.needs_escapes();
-        let group = match (self.engine.tree().binary, self.has_escapes(), with_escapes) {
-            (false, _, _) => return Err(GpuError::TraversalNotUploaded { traversal }),
-            (_, false, true) => return Err(GpuError::EscapesNotUploaded { traversal }),
-            _ => arrays
-                .group(traversal)
-                .ok_or(GpuError::TraversalNotUploaded { traversal })?,
-        };
-        Ok(BvhBindGroup {
-            group,
-            layout: self.context().bvh_layout(storage, with_escapes, instanced),
-        })
+        self.supports_traversal(traversal)?;
+        let group = (self.engine.arrays().group(traversal))
+            .ok_or(GpuError::TraversalNotUploaded { traversal })?;
+        let escapes = !traversal.is_wide() && traversal.needs_escapes();
+        let layout = (self.context()).bvh_layout(self.storage(), escapes, self.is_instanced());
+        Ok(BvhBindGroup { group, layout })
     }
 
     /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads of the binary

@@ -8,29 +8,11 @@ use std::sync::{Arc, Mutex};
 use bvhtrace_core::Precision;
 use bvhtrace_kernels::key::ModuleSet;
 use bvhtrace_kernels::{
-    AdapterChoice, BackendFeatures, BvhStorage, Composition, DeviceKind, DeviceLimits, DriverTuning,
-    FULL_STACK_SIZE, KernelKey, RayInput, STACK_LANES, WORKGROUP_SIZE,
+    AdapterChoice, BackendFeatures, BvhStorage, Composition, DeviceKind, DeviceLimits,
+    DriverTuning, FULL_STACK_SIZE, KernelKey, RayInput, STACK_LANES, WORKGROUP_SIZE,
 };
 
 use crate::GpuError;
-
-fn storage_index(storage: BvhStorage) -> usize {
-    match storage {
-        BvhStorage::Buffers => 0,
-        BvhStorage::Textures => 1,
-    }
-}
-
-/// The device limits of `limits` that planning reads.
-pub(crate) fn device_limits(limits: &wgpu::Limits) -> DeviceLimits {
-    DeviceLimits {
-        max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
-        max_buffer_size: limits.max_buffer_size,
-        max_compute_workgroups_per_dimension: limits.max_compute_workgroups_per_dimension,
-        min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
-        max_texture_dimension_2d: limits.max_texture_dimension_2d,
-    }
-}
 
 /// wgpu's adapter type as a [`DeviceKind`].
 pub fn device_kind(t: wgpu::DeviceType) -> DeviceKind {
@@ -247,37 +229,18 @@ impl GpuContext {
     ) -> Result<GpuContext, GpuError> {
         let wl = device.limits();
         let need = Self::required_limits();
-        for (limit, has, needs) in [
-            ("max_bind_groups", wl.max_bind_groups, need.max_bind_groups),
-            (
-                "max_storage_buffers_per_shader_stage",
-                wl.max_storage_buffers_per_shader_stage,
-                need.max_storage_buffers_per_shader_stage,
-            ),
-            (
-                "max_compute_workgroup_storage_size",
-                wl.max_compute_workgroup_storage_size,
-                need.max_compute_workgroup_storage_size,
-            ),
-            (
-                "max_compute_invocations_per_workgroup",
-                wl.max_compute_invocations_per_workgroup,
-                need.max_compute_invocations_per_workgroup,
-            ),
-            (
-                "max_compute_workgroup_size_x",
-                wl.max_compute_workgroup_size_x,
-                need.max_compute_workgroup_size_x,
-            ),
-        ] {
-            if has < needs {
-                return Err(GpuError::LimitTooLow {
-                    limit,
-                    has: u64::from(has),
-                    needs: u64::from(needs),
-                    needed_for: "the traversal kernels",
-                });
-            }
+        // Every limit of `required_limits`, each named as wgpu names it.
+        let mut failed = None;
+        need.check_limits_with_fail_fn(&wl, false, |limit, needs, has| {
+            failed.get_or_insert((limit, has, needs));
+        });
+        if let Some((limit, has, needs)) = failed {
+            return Err(GpuError::LimitTooLow {
+                limit,
+                has,
+                needs,
+                needed_for: "the traversal kernels",
+            });
         }
         let textures_ok = wl.max_storage_textures_per_shader_stage >= STORAGE_TEXTURES_USED;
         let tuning = match options.tuning {
@@ -298,7 +261,13 @@ impl GpuContext {
                 t
             }
         };
-        let limits = device_limits(&wl);
+        let limits = DeviceLimits {
+            max_storage_buffer_binding_size: wl.max_storage_buffer_binding_size,
+            max_buffer_size: wl.max_buffer_size,
+            max_compute_workgroups_per_dimension: wl.max_compute_workgroups_per_dimension,
+            min_storage_buffer_offset_alignment: wl.min_storage_buffer_offset_alignment,
+            max_texture_dimension_2d: wl.max_texture_dimension_2d,
+        };
         let timestamps = device.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let layout = |label: &str, entries: &[wgpu::BindGroupLayoutEntry]| {
             device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -427,8 +396,8 @@ impl GpuContext {
         with_escapes: bool,
         with_instances: bool,
     ) -> &wgpu::BindGroupLayout {
-        &self.inner.bvh_layouts[storage_index(storage)][usize::from(with_escapes)]
-            [usize::from(with_instances)]
+        &self.inner.bvh_layouts[usize::from(storage == BvhStorage::Textures)]
+            [usize::from(with_escapes)][usize::from(with_instances)]
     }
 
     /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits) read

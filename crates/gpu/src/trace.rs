@@ -118,43 +118,8 @@ impl RayStore {
     fn write(&self, queue: &wgpu::Queue, rays: &[Ray]) {
         match self {
             RayStore::Buffer(b, _) => queue.write_buffer(b, 0, bytemuck::cast_slice(rays)),
-            RayStore::Texture(textures) => {
-                let t = &textures.rays;
-                // Whole rows, then the rest of the last row.
-                let per_row = (TEXEL_ROW / 2) as usize;
-                let full = rays.len() / per_row;
-                for (row, part, width, height) in [
-                    (0, &rays[..full * per_row], TEXEL_ROW, full as u32),
-                    (
-                        full as u32,
-                        &rays[full * per_row..],
-                        2 * (rays.len() % per_row) as u32,
-                        1,
-                    ),
-                ] {
-                    if part.is_empty() {
-                        continue;
-                    }
-                    queue.write_texture(
-                        wgpu::TexelCopyTextureInfo {
-                            texture: t,
-                            mip_level: 0,
-                            origin: wgpu::Origin3d { x: 0, y: row, z: 0 },
-                            aspect: wgpu::TextureAspect::All,
-                        },
-                        bytemuck::cast_slice(part),
-                        wgpu::TexelCopyBufferLayout {
-                            offset: 0,
-                            bytes_per_row: Some(width * 16),
-                            rows_per_image: None,
-                        },
-                        wgpu::Extent3d {
-                            width,
-                            height,
-                            depth_or_array_layers: 1,
-                        },
-                    );
-                }
+            RayStore::Texture(t) => {
+                crate::backend::write_texels(queue, &t.rays, bytemuck::cast_slice(rays), 16)
             }
         }
     }
@@ -172,15 +137,6 @@ enum RaysBinding<'a> {
         rays: &'a wgpu::TextureView,
         hits: &'a wgpu::TextureView,
     },
-}
-
-impl RaysBinding<'_> {
-    fn input(self) -> RayInput {
-        match self {
-            RaysBinding::Buffer { .. } => RayInput::Buffer,
-            RaysBinding::Texture { .. } => RayInput::Texture,
-        }
-    }
 }
 
 /// Bytes of one row of the hit texture: [`TEXEL_ROW`] hits (a multiple of 256, as texture
@@ -212,87 +168,70 @@ impl Scratch {
     }
 
     pub(crate) fn new(ctx: &GpuContext, plan: &ScratchPlan) -> Scratch {
-        let (capacity, with_counters, input) = (plan.capacity, plan.counters, plan.input);
+        use wgpu::BufferUsages as U;
+        let (written, read_back, mapped) = (
+            U::STORAGE | U::COPY_DST,
+            U::STORAGE | U::COPY_SRC,
+            U::MAP_READ | U::COPY_DST,
+        );
         let device = ctx.device();
         let buf = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
+                label: Some(&format!("bvhtrace {label}")),
                 size,
                 usage,
                 mapped_at_creation: false,
             })
         };
-        use wgpu::BufferUsages as U;
-        let queries = ctx.has_timestamps().then(|| Queries {
-            set: device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("bvhtrace timestamps"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 2,
-            }),
-            resolve: buf(
-                "bvhtrace timestamps resolve",
-                16,
-                U::QUERY_RESOLVE | U::COPY_SRC,
+        let n = plan.capacity;
+        let texels = |label, per_ray| {
+            let format = wgpu::TextureFormat::Rgba32Uint;
+            let rows = texel_rows(per_ray * n) as u32;
+            let t = crate::backend::storage_texture(ctx, label, format, TEXEL_ROW, rows);
+            let v = t.create_view(&Default::default());
+            (t, v)
+        };
+        let (rays, hits_read) = match plan.input {
+            RayInput::Buffer => (
+                RayStore::Buffer(
+                    buf("rays", n * RAY_BYTES, written),
+                    buf("hits", n * HIT_BYTES, read_back),
+                ),
+                n * HIT_BYTES,
             ),
-            read: buf("bvhtrace timestamps read", 16, U::MAP_READ | U::COPY_DST),
-        });
+            RayInput::Texture => {
+                let ((rays, rays_view), (hits, hits_view)) = (
+                    texels("bvhtrace ray texels", 2),
+                    texels("bvhtrace hit texels", 1),
+                );
+                let textures = RayTextures {
+                    rays,
+                    rays_view,
+                    hits,
+                    hits_view,
+                };
+                (
+                    RayStore::Texture(Box::new(textures)),
+                    texel_rows(n) * HIT_ROW_BYTES,
+                )
+            }
+        };
         Scratch {
-            rays: match input {
-                RayInput::Buffer => RayStore::Buffer(
-                    buf(
-                        "bvhtrace rays",
-                        capacity * RAY_BYTES,
-                        U::STORAGE | U::COPY_DST,
-                    ),
-                    buf(
-                        "bvhtrace hits",
-                        capacity * HIT_BYTES,
-                        U::STORAGE | U::COPY_SRC,
-                    ),
-                ),
-                RayInput::Texture => {
-                    let texels = |label, per_ray| {
-                        let t = crate::backend::storage_texture(
-                            ctx,
-                            label,
-                            wgpu::TextureFormat::Rgba32Uint,
-                            TEXEL_ROW,
-                            texel_rows(per_ray * capacity) as u32,
-                        );
-                        let v = t.create_view(&Default::default());
-                        (t, v)
-                    };
-                    let (rays, rays_view) = texels("bvhtrace ray texels", 2);
-                    let (hits, hits_view) = texels("bvhtrace hit texels", 1);
-                    RayStore::Texture(Box::new(RayTextures {
-                        rays,
-                        rays_view,
-                        hits,
-                        hits_view,
-                    }))
-                }
-            },
-            hits_read: buf(
-                "bvhtrace hits read",
-                match input {
-                    RayInput::Buffer => capacity * HIT_BYTES,
-                    RayInput::Texture => texel_rows(capacity) * HIT_ROW_BYTES,
-                },
-                U::MAP_READ | U::COPY_DST,
-            ),
-            counters: with_counters.then(|| CounterBuffers {
-                out: buf(
-                    "bvhtrace counters",
-                    capacity * COUNTERS_BYTES,
-                    U::STORAGE | U::COPY_SRC,
-                ),
-                read: buf(
-                    "bvhtrace counters read",
-                    capacity * COUNTERS_BYTES,
-                    U::MAP_READ | U::COPY_DST,
-                ),
+            rays,
+            hits_read: buf("hits read", hits_read, mapped),
+            counters: plan.counters.then(|| CounterBuffers {
+                out: buf("counters", n * COUNTERS_BYTES, read_back),
+                read: buf("counters read", n * COUNTERS_BYTES, mapped),
             }),
-            queries,
+            queries: ctx.has_timestamps().then(|| Queries {
+                set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("bvhtrace timestamps"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: 2,
+                }),
+                resolve: buf("timestamps resolve", 16, U::QUERY_RESOLVE | U::COPY_SRC),
+                read: buf("timestamps read", 16, mapped),
+            }),
         }
     }
 }
@@ -577,7 +516,11 @@ fn batch_groups(
     if let Some(g) = cache.get(&key) {
         return Ok(g.clone());
     }
-    let layout = ctx.batch_layout(counters.is_some(), rays.input());
+    let input = match rays {
+        RaysBinding::Buffer { .. } => RayInput::Buffer,
+        RaysBinding::Texture { .. } => RayInput::Texture,
+    };
+    let layout = ctx.batch_layout(counters.is_some(), input);
     let groups: Vec<wgpu::BindGroup> = plan_dispatches(n, ctx.limits())
         .iter()
         .map(|d| {

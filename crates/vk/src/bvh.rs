@@ -14,7 +14,7 @@ use bvhtrace_kernels::{
 #[cfg(doc)]
 use bvhtrace_kernels::{BvhStorage, Tracer, Traversal};
 
-use crate::context::{Buffer, VkContext};
+use crate::context::{Buffer, VkContext, barrier};
 use crate::error::vkerr;
 
 /// The Vulkan device behind a [`VkBvh`]: the engine's backend on ash.
@@ -209,19 +209,14 @@ fn copy_to_device(
             // SAFETY: recording into the locked command buffer.
             unsafe { d.cmd_copy_buffer(cmd, staging.raw, dst, &region) };
         }
-        let barrier = [vk::MemoryBarrier::default()
-            .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-            .dst_access_mask(vk::AccessFlags::SHADER_READ)];
+        use vk::{AccessFlags as A, PipelineStageFlags as S};
         // SAFETY: as above.
         unsafe {
-            d.cmd_pipeline_barrier(
+            barrier(
+                d,
                 cmd,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::PipelineStageFlags::COMPUTE_SHADER,
-                vk::DependencyFlags::empty(),
-                &barrier,
-                &[],
-                &[],
+                (S::TRANSFER, A::TRANSFER_WRITE),
+                (S::COMPUTE_SHADER, A::SHADER_READ),
             )
         };
     })
@@ -301,18 +296,12 @@ impl Ash {
                 if timed {
                     stamp(vk::PipelineStageFlags::BOTTOM_OF_PIPE, 1);
                 }
-                let barrier = [vk::MemoryBarrier::default()
-                    .src_access_mask(vk::AccessFlags::SHADER_WRITE)
-                    .dst_access_mask(vk::AccessFlags::HOST_READ)];
-                d.cmd_pipeline_barrier(
-                    cmd,
-                    vk::PipelineStageFlags::COMPUTE_SHADER,
-                    vk::PipelineStageFlags::HOST,
-                    vk::DependencyFlags::empty(),
-                    &barrier,
-                    &[],
-                    &[],
+                use vk::{AccessFlags as A, PipelineStageFlags as S};
+                let (from, to) = (
+                    (S::COMPUTE_SHADER, A::SHADER_WRITE),
+                    (S::HOST, A::HOST_READ),
                 );
+                barrier(d, cmd, from, to);
             }
         })
     }

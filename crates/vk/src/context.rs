@@ -347,47 +347,36 @@ impl VkContext {
             for &pd in &devices {
                 let props = instance.get_physical_device_properties(pd);
                 let families = instance.get_physical_device_queue_family_properties(pd);
-                let Some(family) = families
-                    .iter()
-                    .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
-                else {
+                let compute =
+                    |f: &vk::QueueFamilyProperties| f.queue_flags.contains(vk::QueueFlags::COMPUTE);
+                let Some(family) = families.iter().position(compute) else {
                     continue;
                 };
-                candidates.push((pd, props, family as u32, families[family]));
+                let name = props.device_name_as_c_str().map(|n| n.to_string_lossy());
+                candidates.push(Chosen {
+                    pd,
+                    props,
+                    family: family as u32,
+                    family_props: families[family],
+                    name: name.unwrap_or_default().into_owned(),
+                    kind: device_kind(props.device_type),
+                });
             }
             if candidates.is_empty() {
+                let n = devices.len();
                 return Err(TraceError::NoAdapter {
-                    details: if devices.is_empty() {
-                        String::new()
-                    } else {
-                        format!(
-                            " ({} Vulkan device(s), none with a compute queue)",
-                            devices.len()
-                        )
+                    details: match n {
+                        0 => String::new(),
+                        _ => format!(" ({n} Vulkan device(s), none with a compute queue)"),
                     },
                 });
             }
             let named: Vec<(String, DeviceKind)> = candidates
                 .iter()
-                .map(|(_, p, _, _)| {
-                    let name = p
-                        .device_name_as_c_str()
-                        .map(|n| n.to_string_lossy().into_owned())
-                        .unwrap_or_default();
-                    (name, device_kind(p.device_type))
-                })
+                .map(|c| (c.name.clone(), c.kind))
                 .collect();
             let index = adapter.pick(&named)?;
-            let (pd, props, family, family_props) = candidates[index];
-            let (name, kind) = named[index].clone();
-            Ok(Chosen {
-                pd,
-                props,
-                family,
-                family_props,
-                name,
-                kind,
-            })
+            Ok(candidates.swap_remove(index))
         }
     }
 
@@ -399,14 +388,7 @@ impl VkContext {
         opts: &VkOptions,
     ) -> Result<Inner, TraceError> {
         unsafe {
-            let Chosen {
-                pd,
-                props,
-                family,
-                family_props,
-                name,
-                kind,
-            } = c;
+            let (pd, props, family, kind) = (c.pd, c.props, c.family, c.kind);
             let instance = &holder.instance;
             let tuning = DriverTuning {
                 storage: BvhStorage::Buffers,
@@ -415,7 +397,7 @@ impl VkContext {
                     .unwrap_or_else(|| DriverTuning::for_device(kind))
             };
             let info = VkDeviceInfo {
-                name,
+                name: c.name,
                 device_type: props.device_type,
                 kind,
                 api_version: (
@@ -488,8 +470,8 @@ impl VkContext {
             };
             // `timestampValidBits` is 0 on queues without timestamps (whatever
             // `timestampComputeAndGraphics` says for the device as a whole).
-            let timestamps = family_props.timestamp_valid_bits > 0 && l.timestamp_period > 0.0;
-            let timestamp_mask = match family_props.timestamp_valid_bits {
+            let timestamps = c.family_props.timestamp_valid_bits > 0 && l.timestamp_period > 0.0;
+            let timestamp_mask = match c.family_props.timestamp_valid_bits {
                 0 => 0,
                 64.. => u64::MAX,
                 b => (1u64 << b) - 1,
@@ -813,6 +795,25 @@ impl VkContext {
             Ok(b)
         }
     }
+}
+
+/// Records a global memory barrier: `src` access in `from` stages before `dst` access in
+/// `to` stages.
+///
+/// # Safety
+/// `cmd` is recording, on `d`.
+pub(crate) unsafe fn barrier(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    (from, src): (vk::PipelineStageFlags, vk::AccessFlags),
+    (to, dst): (vk::PipelineStageFlags, vk::AccessFlags),
+) {
+    let barrier = [vk::MemoryBarrier::default()
+        .src_access_mask(src)
+        .dst_access_mask(dst)];
+    let none = vk::DependencyFlags::empty();
+    // SAFETY: the caller's.
+    unsafe { d.cmd_pipeline_barrier(cmd, from, to, none, &barrier, &[], &[]) };
 }
 
 /// A buffer and its memory (mapped when host-visible), destroyed when dropped.
