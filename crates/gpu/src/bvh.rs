@@ -74,7 +74,7 @@ impl GpuBvh {
     /// Uploads `bvh`'s nodes and triangles, and its escape links when one of
     /// `opts.traversals` needs them (built then if they are not yet, before the upload's
     /// clock starts: [`FlatBvh::escapes`]), as buffers or textures (`opts.storage`); with
-    /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide`, or `bvh` collapsed into
+    /// [`Traversal::Wide`] listed, its wide layout too (`bvh.wide()`, or `bvh` collapsed into
     /// it), in the same storage, and without a binary traversal listed only that. Everything is
     /// checked against the device's limits first ([`GpuError::TooLarge`] names the
     /// resource, its size and the limit), and a tree deeper than
