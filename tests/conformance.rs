@@ -85,8 +85,8 @@ fn every_tracer_equals_the_cpu_bit_for_bit() {
         let all = tracers(&devices, &bvh);
         eprintln!(
             "{name}: {} nodes, depth {}, {} rays, {} tracers",
-            bvh.nodes.len(),
-            bvh.depth,
+            bvh.nodes().len(),
+            bvh.depth(),
             rays.len(),
             all.len()
         );

@@ -147,7 +147,7 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
     // Axis-parallel rays lying exactly in the faces of node boxes (the box test's
     // parallel path), both signs, both zero signs.
     for k in 0..2048 {
-        let n = &bvh.nodes[(rng.next_u64() % bvh.nodes.len() as u64) as usize];
+        let n = &bvh.nodes()[(rng.next_u64() % bvh.nodes().len() as u64) as usize];
         let (o, mut d, axis) = in_box_face(k, Vec3::from(n.min), Vec3::from(n.max), lo, hi);
         rays.push(Ray::new(o, d));
         // Also nearly parallel: a subnormal component (flushed to zero by both sides).
@@ -183,7 +183,7 @@ fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
     }
     // With a wide layout: axis-parallel rays lying exactly in the faces of its decoded
     // child boxes (which are not the binary nodes' boxes), as above.
-    if let Some(w) = bvh.wide.as_deref() {
+    if let Some(w) = bvh.wide() {
         for k in 0..1024 {
             let n = &w.nodes[(rng.next_u64() % w.nodes.len() as u64) as usize];
             let Some(slot) = (0..8).map(|i| (i + k) % 8).find(|&s| n.is_used(s)) else {
@@ -353,9 +353,9 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
             "{}: {} triangles, {} nodes, depth {}, {} rays; uploaded {} bytes in {:.2} ms \
              (buffers), {} bytes in {:.2} ms (textures)",
             case.name,
-            bvh.triangles.len(),
-            bvh.nodes.len(),
-            bvh.depth,
+            bvh.triangles().len(),
+            bvh.nodes().len(),
+            bvh.depth(),
             rays.len(),
             gpus[0].stats().total_bytes(),
             gpus[0].stats().upload_ms,
@@ -482,7 +482,7 @@ fn gpu_matches_cpu_twins_ray_by_ray() {
 fn deep_trees_match_cpu_twins() {
     let Some(ctx) = context() else { return };
     let bvh = deep_tree();
-    assert!(bvh.depth > 64, "depth {}", bvh.depth);
+    assert!(bvh.depth() > 64, "depth {}", bvh.depth());
     let rays = deep_tree_rays(120);
     let mut failures = Vec::new();
     for storage in [BvhStorage::Buffers, BvhStorage::Textures] {
@@ -531,7 +531,7 @@ fn deep_trees_match_cpu_twins() {
 fn wide_trees_deeper_than_the_stack_finish_on_the_cpu() {
     let Some(ctx) = context() else { return };
     let bvh = deep_wide_tree();
-    let w = bvh.wide.as_deref().expect("built with its wide layout");
+    let w = bvh.wide().expect("built with its wide layout");
     assert!(
         bvhtrace_gpu::kernels::wide_stack_may_overflow(w.depth),
         "wide depth {} fits the stack of {} groups",
@@ -648,7 +648,7 @@ fn wide_nodes_across_texture_rows_match_cpu_twin() {
     let case =
         support::load_scene("builtin:icosphere:5", "builtin:icosphere:5").expect("builtin scene");
     let bvh = case.bvh.with_wide();
-    let w = bvh.wide.as_deref().expect("wide layout");
+    let w = bvh.wide().expect("wide layout");
     let row = u64::from(bvhtrace_gpu::kernels::TEXEL_ROW);
     let texels = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
     let straddling: Vec<usize> = (0..w.nodes.len())
@@ -728,7 +728,7 @@ fn upload_checks_and_errors() {
     assert!(out.hits.is_empty());
     // A chain-like tree deeper than the full stack: refused for the full stack only.
     let mut deep = bvh.clone();
-    deep.depth = bvhtrace_gpu::kernels::FULL_STACK_SIZE + 1;
+    *deep.parts_mut().depth = bvhtrace_gpu::kernels::FULL_STACK_SIZE + 1;
     assert!(matches!(
         GpuBvh::upload(&ctx, &deep, &UploadOptions::all()),
         Err(GpuError::TooDeep { .. })
@@ -1221,7 +1221,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
         let after = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
         assert_ne!(before, after, "moving the instances changed no hit");
 
-        let mut tris: Vec<_> = ib.mesh_bvh(0).triangles;
+        let mut tris: Vec<_> = ib.mesh_bvh(0).triangles().to_vec();
         tris.sort_by_key(|t| t.prim);
         let swollen: Vec<Triangle> = tris
             .iter()
@@ -1236,7 +1236,7 @@ fn two_level_updates_in_place_match_cpu_twins() {
         // the wide collapse to come out with another number of nodes, and the update makes
         // new wide buffers (textures: new ones when their rows do not hold the new texels).
         let old_wide_nodes = bvhtrace_core::WideBvh::collapse(ib.bvh()).nodes.len();
-        let mut tris: Vec<_> = ib.mesh_bvh(1).triangles;
+        let mut tris: Vec<_> = ib.mesh_bvh(1).triangles().to_vec();
         tris.sort_by_key(|t| t.prim);
         let flat: Vec<Triangle> = tris
             .iter()

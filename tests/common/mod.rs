@@ -72,7 +72,7 @@ pub fn tracers<'a>(devices: &Devices, bvh: &'a FlatBvh) -> Vec<Box<dyn Tracer + 
         let opts = UploadOptions::all()
             .with_storage(BvhStorage::Buffers)
             .with_traversal(Traversal::Wide);
-        let opts = if bvh.depth > bvhtrace_gpu::kernels::FULL_STACK_SIZE {
+        let opts = if bvh.depth() > bvhtrace_gpu::kernels::FULL_STACK_SIZE {
             UploadOptions::for_traversal(Traversal::Stackless)
                 .with_storage(BvhStorage::Buffers)
                 .with_traversal(Traversal::Wide)

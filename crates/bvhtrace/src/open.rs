@@ -509,7 +509,7 @@ pub fn open_on_vulkan(
     };
     let list = choices(&plain, BvhStorage::Buffers);
     let (vk, choice, fallback) = first_that_fits(&list, |c| {
-        let vk = if c.walks.iter().any(|w| w.is_wide()) && bvh.wide.is_none() {
+        let vk = if c.walks.iter().any(|w| w.is_wide()) && bvh.wide().is_none() {
             VkBvh::upload(ctx, &bvh.clone().with_wide())?
         } else {
             VkBvh::upload(ctx, bvh)?
@@ -545,7 +545,7 @@ where
     };
     let mut notes: Vec<String> = why.into_iter().collect();
     let tracer: Box<dyn Tracer + 'a> = if walks.iter().any(|w| w.is_wide())
-        && bvh.borrow().wide.is_none()
+        && bvh.borrow().wide().is_none()
     {
         notes.push("the wide walk traces a copy of the tree collapsed into the wide layout".into());
         Box::new(CpuTracer::new(Arc::new(bvh.borrow().clone().with_wide())))

@@ -101,7 +101,7 @@ fn every_backend_opens_and_answers_alike() {
 #[test]
 fn a_walk_asked_for_is_uploaded_and_the_wide_layout_is_built_when_missing() {
     let bvh = grid();
-    assert!(bvh.wide.is_none());
+    assert!(bvh.wide().is_none());
     let rays = rays();
     let reference = bvhtrace_core_trace(&bvh, &rays);
     for backend in [Backend::Cpu, Backend::Wgpu, Backend::Vulkan] {

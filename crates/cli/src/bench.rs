@@ -799,7 +799,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             "\n{spec}: {} triangles, depth {}, {} rays ({w}x{h}); our build {build_ms:.1} ms \
              (+{wide_ms:.1} ms to the wide layout)",
             tris.len(),
-            bvh.depth,
+            bvh.depth(),
             rays.len()
         );
         println!(
@@ -937,7 +937,7 @@ fn compare_everything_on(ctx: &GpuContext, args: &BenchTraceArgs, w: u32, h: u32
         println!(
             "\n{spec}: {} triangles, {} nodes, {} rays ({w}x{h})",
             tris.len(),
-            bvh.nodes.len(),
+            bvh.nodes().len(),
             rays.len()
         );
         println!(

@@ -233,8 +233,7 @@ fn cost_scene(
     let n = tris.len().max(1) as f64;
     let (nodes, _, triangles) = bvh.byte_sizes();
     let (wide_nodes, wide_tris) = bvh
-        .wide
-        .as_deref()
+        .wide()
         .map(|wb| wb.byte_sizes())
         .context("the wide layout was not built")?;
     let report = SceneReport {

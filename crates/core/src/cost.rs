@@ -59,7 +59,7 @@ impl WarpCost {
 }
 
 /// Runs `opts`' walk over `rays` on the CPU and tallies it in warps of [`WARP`]
-/// consecutive rays. The wide walk needs `bvh.wide` ([`FlatBvh::build_wide`]).
+/// consecutive rays. The wide walk needs `bvh.wide()` ([`FlatBvh::build_wide`]).
 pub fn warp_cost(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> WarpCost {
     let per_warp: Vec<(u64, u64, usize, WalkTotals)> = rays
         .par_chunks(WARP)

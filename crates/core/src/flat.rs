@@ -48,7 +48,7 @@
 //! [`crate::instance::InstancedBvh::locate`] splits one into (instance, primitive).
 
 use std::ops::Range;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -56,6 +56,7 @@ use glam::Vec3;
 use crate::build::{BuildNode, BuildTree};
 use crate::geometry::Aabb;
 use crate::mesh::Triangle;
+use crate::wide::WideBvh;
 
 /// The most primitives one BVH may hold (30 bits of leaf offsets and counts, with room for
 /// the miss codes in `Hit::prim`).
@@ -304,28 +305,50 @@ impl FlatInstance {
 /// yet stand for `escape_links(&nodes)`, what they will be, so building them changes no
 /// comparison (links built on one side only are compared with the other's computed for
 /// the occasion, not kept).
+///
+/// The fields are read through accessors named after them ([`FlatBvh::nodes`],
+/// [`FlatBvh::triangles`], ...): the escape links and the wide layout are kept with the
+/// tree and follow from it, so the tree is changed only through methods that keep them
+/// (or drop them) with it. The fields are crate-visible for the builders, refits and
+/// instancing code that fill them in.
 #[derive(Clone, Debug, Default)]
 pub struct FlatBvh {
     /// The nodes, depth-first; the root is node 0.
-    pub nodes: Vec<FlatNode>,
+    pub(crate) nodes: Vec<FlatNode>,
     /// [`escape_links`] of `nodes`, eight per node, built on first use
     /// ([`FlatBvh::escapes`]) or set by hand ([`FlatBvh::set_escapes`]): only two walks
-    /// read them, and they weigh as much as the nodes. Crate-visible only so that the
-    /// crate's `FlatBvh { .., ..FlatBvh::default() }` literals compile; other crates assign
-    /// fields to a `FlatBvh::default()` or a clone.
+    /// read them, and they weigh as much as the nodes.
     pub(crate) escapes: OnceLock<Vec<u32>>,
     /// The triangles in leaf order.
-    pub triangles: Vec<FlatTriangle>,
+    pub(crate) triangles: Vec<FlatTriangle>,
     /// Longest root-to-leaf path, in edges (a single leaf has depth 0); for two levels,
     /// through an instance leaf into its mesh (what a full stack holds at most).
-    pub depth: u32,
+    pub(crate) depth: u32,
     /// The instances of a two-level BVH; empty for one mesh.
-    pub instances: Vec<FlatInstance>,
+    pub(crate) instances: Vec<FlatInstance>,
     /// Nodes of the top level (`nodes[..top_nodes]`); 0 for one mesh.
-    pub top_nodes: u32,
+    pub(crate) top_nodes: u32,
     /// The same tree in the wide layout, for [`crate::Traversal::Wide`]: `None` until
     /// [`FlatBvh::build_wide`] (the GPU uploads convert it themselves when it is missing).
-    pub wide: Option<std::sync::Arc<crate::wide::WideBvh>>,
+    pub(crate) wide: Option<Arc<WideBvh>>,
+}
+
+/// The editable fields of a [`FlatBvh`] ([`FlatBvh::parts_mut`]), for tests and tools that
+/// build or corrupt trees by hand. The cached escape links and wide layout are cleared
+/// when this is taken; each field is documented on its accessor.
+#[doc(hidden)]
+#[derive(Debug)]
+pub struct FlatParts<'a> {
+    /// [`FlatBvh::nodes`].
+    pub nodes: &'a mut Vec<FlatNode>,
+    /// [`FlatBvh::triangles`].
+    pub triangles: &'a mut Vec<FlatTriangle>,
+    /// [`FlatBvh::depth`].
+    pub depth: &'a mut u32,
+    /// [`FlatBvh::instances`].
+    pub instances: &'a mut Vec<FlatInstance>,
+    /// [`FlatBvh::top_nodes`].
+    pub top_nodes: &'a mut u32,
 }
 
 impl PartialEq for FlatBvh {
@@ -427,12 +450,71 @@ impl FlatBvh {
         }
     }
 
+    /// The nodes, depth-first; the root is node 0.
+    pub fn nodes(&self) -> &[FlatNode] {
+        &self.nodes
+    }
+
+    /// The triangles in leaf order.
+    pub fn triangles(&self) -> &[FlatTriangle] {
+        &self.triangles
+    }
+
+    /// Longest root-to-leaf path, in edges (a single leaf has depth 0); for two levels,
+    /// through an instance leaf into its mesh (what a full stack holds at most).
+    pub fn depth(&self) -> u32 {
+        self.depth
+    }
+
+    /// The instances of a two-level BVH; empty for one mesh.
+    pub fn instances(&self) -> &[FlatInstance] {
+        &self.instances
+    }
+
+    /// Nodes of the top level (`nodes()[..top_nodes]`); 0 for one mesh.
+    pub fn top_nodes(&self) -> u32 {
+        self.top_nodes
+    }
+
+    /// The same tree in the wide layout, for [`crate::Traversal::Wide`]: `None` until
+    /// [`FlatBvh::build_wide`] (the GPU uploads convert it themselves when it is missing).
+    pub fn wide(&self) -> Option<&Arc<WideBvh>> {
+        self.wide.as_ref()
+    }
+
+    /// Sets the wide layout to one already collapsed from this same tree
+    /// ([`WideBvh::collapse`] of it, as it is now), sparing a second collapse; `None` drops
+    /// it. A layout collapsed from another tree would be walked as this one's: pass only
+    /// this tree's.
+    pub fn set_wide(&mut self, wide: Option<Arc<WideBvh>>) {
+        self.wide = wide;
+    }
+
+    /// The fields to edit by hand, for tests and tools that build or corrupt trees by hand
+    /// (a depth that is not the tree's, triangles past a device's limits, children out of
+    /// range). Clears the cached escape links and wide layout first, so that neither
+    /// outlives the edit: build them again ([`FlatBvh::build_escapes`],
+    /// [`FlatBvh::build_wide`]) or set them ([`FlatBvh::set_escapes`]) afterwards when
+    /// needed. Nothing checks the edited tree; [`FlatBvh::check_invariants`] can.
+    #[doc(hidden)]
+    pub fn parts_mut(&mut self) -> FlatParts<'_> {
+        self.clear_escapes();
+        self.wide = None;
+        FlatParts {
+            nodes: &mut self.nodes,
+            triangles: &mut self.triangles,
+            depth: &mut self.depth,
+            instances: &mut self.instances,
+            top_nodes: &mut self.top_nodes,
+        }
+    }
+
     /// Converts the tree into the wide layout as well ([`crate::wide::WideBvh::collapse`]),
-    /// so that [`crate::Traversal::Wide`] can walk it. Call it again after changing the
-    /// nodes or triangles (a refit): the wide tree is not updated with them.
+    /// so that [`crate::Traversal::Wide`] can walk it. Editing the tree by hand
+    /// ([`FlatBvh::parts_mut`]) drops it: call this again afterwards to have it back.
     pub fn build_wide(&mut self) {
         self.wide = None;
-        self.wide = Some(std::sync::Arc::new(crate::wide::WideBvh::collapse(self)));
+        self.wide = Some(Arc::new(WideBvh::collapse(self)));
     }
 
     /// The same tree with its wide layout built ([`FlatBvh::build_wide`]).

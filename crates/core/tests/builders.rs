@@ -20,15 +20,15 @@ proptest! {
             let bvh = FlatBvh::build(&tris, &opts).unwrap();
             prop_assert_eq!(bvh.check_invariants(), Ok(()), "builder {}", b);
             // One slot per triangle, but for the SBVH's references (within its budget).
-            let refs = bvh.triangles.len();
+            let refs = bvh.triangles().len();
             if b == BuilderKind::Sbvh {
                 prop_assert!(refs >= tris.len() && refs as f64 <= tris.len() as f64 * (1.0 + f64::from(opts.split_budget)));
             } else {
                 prop_assert_eq!(refs, tris.len());
             }
-            prop_assert!(bvh.nodes.len() < 2 * refs);
-            prop_assert!(bvh.depth <= depth_bound(refs, &opts));
-            for n in &bvh.nodes {
+            prop_assert!(bvh.nodes().len() < 2 * refs);
+            prop_assert!(bvh.depth() <= depth_bound(refs, &opts));
+            for n in bvh.nodes() {
                 prop_assert!((n.count() as usize) <= leaf);
             }
         }
@@ -48,7 +48,7 @@ fn leaves_respect_the_maximum_size() {
         let bvh = FlatBvh::build(&tris, &opts).unwrap();
         bvh.check_invariants().unwrap();
         assert!(
-            bvh.nodes
+            bvh.nodes()
                 .iter()
                 .all(|n| n.count() as usize <= opts.max_leaf_size),
             "{b}"
@@ -69,7 +69,7 @@ fn identical_primitives_terminate_with_bounded_depth() {
         let bvh = FlatBvh::build(&tris, &opts).unwrap();
         bvh.check_invariants().unwrap();
         // All centroids equal: only balanced splits are possible.
-        assert!(bvh.depth <= 17, "{b}: depth {}", bvh.depth);
+        assert!(bvh.depth() <= 17, "{b}: depth {}", bvh.depth());
     }
 }
 
@@ -191,16 +191,17 @@ fn the_direct_flat_build_is_the_flattened_tree() {
             let tree = bvhtrace_core::build(&tris, &opts).unwrap();
             let laid_out = FlatBvh::flatten(&tree, &tris);
             assert_eq!(
-                direct.nodes, laid_out.nodes,
+                direct.nodes(),
+                laid_out.nodes(),
                 "{b}, traversal cost {cost_traversal}"
             );
-            assert_eq!(direct.triangles, laid_out.triangles, "{b}");
-            assert_eq!(direct.depth, laid_out.depth, "{b}");
-            assert_eq!(tree.node_count, direct.nodes.len(), "{b}");
+            assert_eq!(direct.triangles(), laid_out.triangles(), "{b}");
+            assert_eq!(direct.depth(), laid_out.depth(), "{b}");
+            assert_eq!(tree.node_count, direct.nodes().len(), "{b}");
             direct.check_invariants().unwrap();
             if cost_traversal > 1.0 {
                 assert!(
-                    direct.nodes.iter().any(|n| n.count() > 1),
+                    direct.nodes().iter().any(|n| n.count() > 1),
                     "{b}: no multi-triangle leaf"
                 );
             }

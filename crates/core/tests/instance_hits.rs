@@ -103,10 +103,10 @@ fn instance_surface_faces_the_ray_with_the_world_normal() {
     let mut checked = 0;
     for (i, hit) in out.hits.iter().enumerate().filter(|(_, h)| h.is_hit()) {
         let located = out.instance_hit(i).expect("a hit has an instance");
-        let inst = &bvh.instances[located.instance as usize];
+        let inst = &bvh.instances()[located.instance as usize];
         let mesh = &ib.meshes()[ib.instances()[located.instance as usize].mesh as usize];
         let tri = (mesh.tri_base..mesh.tri_base + mesh.triangles)
-            .map(|s| &bvh.triangles[s as usize])
+            .map(|s| &bvh.triangles()[s as usize])
             .find(|t| t.prim == located.prim)
             .expect("the mesh holds the primitive")
             .corners();

@@ -113,7 +113,7 @@ fn same(a: &Hit, b: &Hit) -> bool {
 /// Every walk's closest hit equals brute force bit for bit; any-hit agrees on hit or miss.
 fn check_walks(bvh: &FlatBvh, rays: &[Ray]) -> usize {
     let bvh = &bvh.clone().with_wide();
-    let wide = bvh.wide.as_ref().unwrap();
+    let wide = bvh.wide().unwrap();
     wide.check_invariants(bvh).unwrap();
     let mut hits = 0;
     for ray in rays {
@@ -137,7 +137,7 @@ fn every_walk_equals_brute_force_over_instances() {
     let (m, inst) = (meshes(), instances());
     let ib = InstancedBvh::build(&m, inst.clone(), &BuildOptions::default()).unwrap();
     ib.bvh().check_invariants().unwrap();
-    assert_eq!(ib.bvh().top_nodes as usize, 2 * inst.len() - 1);
+    assert_eq!(ib.bvh().top_nodes() as usize, 2 * inst.len() - 1);
     let world = flatten(&m, &inst);
     let rays = rays(&world, 3000);
     let hits = check_walks(ib.bvh(), &rays);
@@ -253,7 +253,7 @@ fn masks_hide_instances() {
 fn new_transforms_rebuild_the_top_level_in_place() {
     let (m, inst) = (meshes(), instances());
     let mut ib = InstancedBvh::build(&m, inst.clone(), &BuildOptions::default()).unwrap();
-    let nodes_before = ib.bvh().nodes.len();
+    let nodes_before = ib.bvh().nodes().len();
     // Built escape links: the rebuild rewrites the top level's in place.
     ib.bvh().escapes();
     let moved: Vec<Affine3A> = inst
@@ -262,11 +262,11 @@ fn new_transforms_rebuild_the_top_level_in_place() {
         .map(|(k, i)| Affine3A::from_rotation_z(0.2 * k as f32) * i.transform)
         .collect();
     ib.set_transforms(&moved).unwrap();
-    assert_eq!(ib.bvh().nodes.len(), nodes_before);
+    assert_eq!(ib.bvh().nodes().len(), nodes_before);
     assert!(ib.bvh().has_escapes());
     assert_eq!(
         ib.bvh().escapes(),
-        bvhtrace_core::flat::escape_links(&ib.bvh().nodes)
+        bvhtrace_core::flat::escape_links(ib.bvh().nodes())
     );
     ib.bvh().check_invariants().unwrap();
     let inst2: Vec<Instance> = inst

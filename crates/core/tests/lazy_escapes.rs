@@ -21,7 +21,7 @@ fn a_build_leaves_the_links_out_and_the_walks_that_read_them_build_them() {
     let bvh = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
     assert!(!bvh.has_escapes(), "FlatBvh::build built the escape links");
     let sizes = bvh.byte_sizes();
-    assert_eq!(sizes.1, escape_links_len(bvh.nodes.len()) * 4);
+    assert_eq!(sizes.1, escape_links_len(bvh.nodes().len()) * 4);
     let unbuilt = bvh.clone();
     // Checks neither need nor keep them.
     bvh.check_invariants().unwrap();
@@ -44,7 +44,7 @@ fn a_build_leaves_the_links_out_and_the_walks_that_read_them_build_them() {
         assert_eq!(hits, full, "{tr}");
         assert!(bvh.has_escapes(), "{tr}");
     }
-    assert_eq!(bvh.escapes(), escape_links(&bvh.nodes));
+    assert_eq!(bvh.escapes(), escape_links(bvh.nodes()));
     assert_eq!(bvh.byte_sizes(), sizes);
     bvh.check_invariants().unwrap();
 
@@ -69,14 +69,17 @@ fn a_build_leaves_the_links_out_and_the_walks_that_read_them_build_them() {
     let e = short.check_escape_links().unwrap_err();
     assert_eq!(
         (e.found, e.expected),
-        (8, escape_links_len(bvh.nodes.len()))
+        (8, escape_links_len(bvh.nodes().len()))
     );
     short.clear_escapes();
     assert!(!short.has_escapes());
     short.check_escape_links().unwrap();
     assert_eq!(short, built);
     let mut made = unbuilt.clone();
-    assert_eq!(made.escapes_mut().len(), escape_links_len(bvh.nodes.len()));
+    assert_eq!(
+        made.escapes_mut().len(),
+        escape_links_len(bvh.nodes().len())
+    );
     assert!(made.has_escapes());
     assert!(unbuilt.clone().with_escapes().has_escapes());
 }
@@ -103,11 +106,11 @@ fn new_transforms_leave_unbuilt_links_unbuilt_and_right_once_built() {
     assert!(!ib.bvh().has_escapes(), "set_transforms built the links");
     ib.bvh().check_invariants().unwrap();
     // Built now, over both levels; another move rewrites the top level's in place.
-    assert_eq!(ib.bvh().escapes(), escape_links(&ib.bvh().nodes));
+    assert_eq!(ib.bvh().escapes(), escape_links(ib.bvh().nodes()));
     let back: Vec<Affine3A> = instances.iter().map(|i| i.transform).collect();
     ib.set_transforms(&back).unwrap();
     assert!(ib.bvh().has_escapes());
-    assert_eq!(ib.bvh().escapes(), escape_links(&ib.bvh().nodes));
+    assert_eq!(ib.bvh().escapes(), escape_links(ib.bvh().nodes()));
     ib.bvh().check_invariants().unwrap();
     let world: Vec<Triangle> = back
         .iter()

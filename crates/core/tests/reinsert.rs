@@ -110,8 +110,8 @@ fn check_optimised(
     if !no_higher {
         return Err(format!("{label}: report {report:?}"));
     }
-    if flat.depth > (FlatBvh::flatten(before, tris).depth).max(40) {
-        return Err(format!("{label}: depth {}", flat.depth));
+    if flat.depth() > (FlatBvh::flatten(before, tris).depth()).max(40) {
+        return Err(format!("{label}: depth {}", flat.depth()));
     }
     Ok(())
 }
@@ -352,14 +352,14 @@ fn the_depth_stays_within_the_limit() {
     for b in [BuilderKind::Median, BuilderKind::Midpoint] {
         let opts = BuildOptions::with_builder(b);
         let tree = build(&tris, &opts).unwrap();
-        let depth = FlatBvh::flatten(&tree, &tris).depth;
+        let depth = FlatBvh::flatten(&tree, &tris).depth();
         // A limit below the depth: the depth may not grow at all.
         let s = ReinsertOptions {
             depth_limit: 0,
             ..Default::default()
         };
         let (t, r) = optimize_with(&tree, &opts, &s);
-        assert!(FlatBvh::flatten(&t, &tris).depth <= depth, "{b}");
+        assert!(FlatBvh::flatten(&t, &tris).depth() <= depth, "{b}");
         assert!(
             r.cost_after < r.cost_before,
             "{b}: nothing to gain within the depth?"

@@ -278,7 +278,7 @@ fn closest_and_any_hits_equal_the_oracle_and_binned_sah() {
             };
             let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
             bvh.check_invariants().unwrap();
-            let w = bvh.wide.as_ref().unwrap();
+            let w = bvh.wide().unwrap();
             w.check_invariants(&bvh).unwrap();
             let (mut hits, mut departures, mut sah_departures) = (0, 0, 0);
             for ray in rays(&tris, 0x5b1 + leaf as u64) {
@@ -353,13 +353,13 @@ fn every_triangle_is_referenced_within_the_budget() {
         for budget in [0.0, 0.05, 0.3, 1.0, 16.0] {
             let bvh = FlatBvh::build(&tris, &sbvh(budget)).unwrap();
             bvh.check_invariants().unwrap();
-            let refs = bvh.triangles.len();
+            let refs = bvh.triangles().len();
             assert!(
                 refs <= n + (budget as f64 * n as f64).floor() as usize,
                 "{name} budget {budget}: {refs} references for {n} triangles"
             );
             let mut seen = vec![0; n];
-            for t in &bvh.triangles {
+            for t in bvh.triangles() {
                 seen[t.prim as usize] += 1;
                 assert_eq!(t.corners(), tris[t.prim as usize], "{name}: corners");
             }
@@ -373,16 +373,16 @@ fn every_triangle_is_referenced_within_the_budget() {
     }
     // Splits do happen where they pay.
     let t = big_over_small();
-    assert!(FlatBvh::build(&t, &sbvh(0.3)).unwrap().triangles.len() > t.len());
+    assert!(FlatBvh::build(&t, &sbvh(0.3)).unwrap().triangles().len() > t.len());
 }
 
 /// The leaves that hold each triangle, with their boxes.
 fn leaf_boxes(bvh: &FlatBvh, n: usize) -> Vec<Vec<Aabb>> {
     let mut out = vec![Vec::new(); n];
-    for node in &bvh.nodes {
+    for node in bvh.nodes() {
         if node.is_leaf() {
             let f = node.right_or_first as usize;
-            for t in &bvh.triangles[f..f + node.count() as usize] {
+            for t in &bvh.triangles()[f..f + node.count() as usize] {
                 out[t.prim as usize].push(node.aabb());
             }
         }
@@ -481,7 +481,7 @@ fn the_tree_does_not_depend_on_the_thread_count() {
     };
     let build_with = |threads| common::build_on_threads(&tris, &opts, threads);
     let one = build_with(1);
-    assert!(one.triangles.len() > tris.len());
+    assert!(one.triangles().len() > tris.len());
     assert!(one == build_with(2), "trees differ between 1 and 2 threads");
     assert!(one == build_with(3), "trees differ between 1 and 3 threads");
 }
@@ -497,16 +497,20 @@ fn depth_and_leaf_size_bounds_hold() {
         };
         let bvh = FlatBvh::build(&tris, &opts).unwrap();
         bvh.check_invariants().unwrap();
-        let refs = bvh.triangles.len();
+        let refs = bvh.triangles().len();
         let bound = max_depth + (refs as f64).log2().ceil() as usize + 1;
-        assert!(bvh.depth as usize <= bound, "depth {} > {bound}", bvh.depth);
-        assert!(bvh.nodes.iter().all(|n| n.count() as usize <= leaf));
+        assert!(
+            bvh.depth() as usize <= bound,
+            "depth {} > {bound}",
+            bvh.depth()
+        );
+        assert!(bvh.nodes().iter().all(|n| n.count() as usize <= leaf));
     }
     // Identical triangles: no spatial split separates them, only balanced object splits.
     let t = [Vec3::ZERO, Vec3::X, Vec3::Y];
     let bvh = FlatBvh::build(&vec![t; 20_000], &sbvh(0.3)).unwrap();
     bvh.check_invariants().unwrap();
-    assert!(bvh.depth <= 16, "depth {}", bvh.depth);
+    assert!(bvh.depth() <= 16, "depth {}", bvh.depth());
 }
 
 #[test]
@@ -559,7 +563,7 @@ fn two_levels_over_sbvh_meshes_answer_as_the_flattened_scene() {
     let rays = rays(&world, 77);
     let check = |ib: &InstancedBvh| {
         let bvh = ib.bvh().clone().with_wide();
-        bvh.wide.as_ref().unwrap().check_invariants(&bvh).unwrap();
+        bvh.wide().unwrap().check_invariants(&bvh).unwrap();
         let mut hits = 0;
         for ray in &rays {
             let want = brute_force(&bvh, ray, Precision::WatertightF32);

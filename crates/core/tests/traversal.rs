@@ -75,7 +75,7 @@ proptest! {
     fn traversals_match_brute_force_and_the_oracle(tris in common::soup(), seed in any::<u64>(), b in 0usize..BuilderKind::ALL.len()) {
         let opts = BuildOptions { max_leaf_size: 3, ..BuildOptions::with_builder(BuilderKind::ALL[b]) };
         let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
-        if let Some(w) = &bvh.wide {
+        if let Some(w) = &bvh.wide() {
             prop_assert!(w.check_invariants(&bvh).is_ok(), "{:?}", w.check_invariants(&bvh));
         }
         let rays = common::rays_for(&tris, seed, 48);
@@ -321,7 +321,7 @@ fn deep_trees_are_traversed_correctly_without_a_deep_stack() {
     let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
     bvh.check_invariants().unwrap();
     // Deeper than any fixed 64-entry stack.
-    assert!(bvh.depth > 64, "depth {}", bvh.depth);
+    assert!(bvh.depth() > 64, "depth {}", bvh.depth());
     let mut rays = Vec::new();
     for i in 0..120 {
         let x = 2f32.powi(i - 60);
@@ -449,7 +449,7 @@ fn short_stacks_walk_exactly_the_stackless_order() {
     // small rings overflow and run dry, so the escape links are followed from mid-walk.
     let tris = deep_soup(120);
     let bvh = FlatBvh::build(&tris, &peeling()).unwrap();
-    assert!(bvh.depth > 64, "depth {}", bvh.depth);
+    assert!(bvh.depth() > 64, "depth {}", bvh.depth());
     let rays = common::rays_for(&tris, 7, 2000);
     for q in [Query::Closest, Query::Any] {
         let (hits, counters) = trace_counted(&bvh, &rays, Traversal::Stackless, q);
@@ -470,15 +470,15 @@ fn escape_links_lead_to_the_next_node_of_each_octant_order() {
         let mut stack = vec![0u32];
         while let Some(i) = stack.pop() {
             order.push(i);
-            let n = &bvh.nodes[i as usize];
+            let n = &bvh.nodes()[i as usize];
             if !n.is_leaf() {
                 let (near, far) = flat::near_far(oct, i, n);
                 stack.extend([far, near]);
             }
         }
-        assert_eq!(order.len(), bvh.nodes.len());
+        assert_eq!(order.len(), bvh.nodes().len());
         // A subtree is a contiguous run of the order: its escape is the node after the run.
-        let mut pos = vec![0usize; bvh.nodes.len()];
+        let mut pos = vec![0usize; bvh.nodes().len()];
         for (p, &i) in order.iter().enumerate() {
             pos[i as usize] = p;
         }
@@ -493,7 +493,7 @@ fn escape_links_lead_to_the_next_node_of_each_octant_order() {
 }
 
 fn subtree_size(bvh: &FlatBvh, i: u32) -> usize {
-    let n = &bvh.nodes[i as usize];
+    let n = &bvh.nodes()[i as usize];
     if n.is_leaf() {
         1
     } else {

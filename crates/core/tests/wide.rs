@@ -52,7 +52,7 @@ fn closed_meshes_leak_no_ray_at_any_offset_and_scale() {
             let bvh = FlatBvh::build(&tris, &BuildOptions::default())
                 .unwrap()
                 .with_wide();
-            let wide = bvh.wide.as_ref().unwrap();
+            let wide = bvh.wide().unwrap();
             wide.check_invariants(&bvh).unwrap();
             let rays = rays_into(c, scale, 400);
             for q in [Query::Closest, Query::Any] {
@@ -88,7 +88,7 @@ fn lanes_are_the_scalar_box_test() {
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())
         .unwrap()
         .with_wide();
-    let wide = bvh.wide.as_ref().unwrap();
+    let wide = bvh.wide().unwrap();
     let mut s = 7u64;
     let mut rays = rays_into(Vec3::ZERO, 1.0, 300);
     rays.push(Ray::new(Vec3::new(-3.0, 0.1, 0.2), Vec3::X));
@@ -141,7 +141,7 @@ fn wide_layout_is_smaller_than_the_binary_one() {
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())
         .unwrap()
         .with_wide();
-    let (wn, wt) = bvh.wide.as_ref().unwrap().byte_sizes();
+    let (wn, wt) = bvh.wide().unwrap().byte_sizes();
     let (bn, _, bt) = bvh.byte_sizes();
     let ratio = (wn + wt) as f64 / (bn + bt) as f64;
     assert!(ratio <= 0.6, "wide/binary bytes {ratio:.3}");
@@ -158,11 +158,11 @@ fn big_binary_leaves_are_split_into_wide_leaves() {
     };
     let bvh = FlatBvh::build(&tris, &opts).unwrap().with_wide();
     assert!(
-        bvh.nodes.len() < 4,
+        bvh.nodes().len() < 4,
         "expected one big leaf, got {} nodes",
-        bvh.nodes.len()
+        bvh.nodes().len()
     );
-    bvh.wide.as_ref().unwrap().check_invariants(&bvh).unwrap();
+    bvh.wide().unwrap().check_invariants(&bvh).unwrap();
     for ray in rays_into(Vec3::ZERO, 1.0, 200) {
         let w = trace_ray(&bvh, &ray, &TraceOptions::closest(Traversal::Wide)).0;
         let b = trace_ray(&bvh, &ray, &TraceOptions::closest(Traversal::FullStack)).0;
@@ -254,7 +254,7 @@ fn deep_chains_spill_the_group_stack_and_stay_exact() {
         node_count: 2 * n as usize - 1,
     };
     let bvh = FlatBvh::flatten(&tree, &tris).with_wide();
-    let wide = bvh.wide.as_ref().unwrap();
+    let wide = bvh.wide().unwrap();
     wide.check_invariants(&bvh).unwrap();
     assert!(wide.depth > 40, "wide depth {}", wide.depth);
     // From beyond the far end, towards the start: the nearest child of every node is the

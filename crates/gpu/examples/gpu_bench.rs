@@ -115,9 +115,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map_or(spec.clone(), |s| s.to_string_lossy().into_owned());
         println!(
             "\n{name}: {} triangles, {} nodes, depth {}; {}x{} primary rays",
-            bvh.triangles.len(),
-            bvh.nodes.len(),
-            bvh.depth,
+            bvh.triangles().len(),
+            bvh.nodes().len(),
+            bvh.depth(),
             w,
             h,
         );

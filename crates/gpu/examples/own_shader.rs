@@ -150,7 +150,7 @@ fn run() -> Result<(), Box<dyn Error>> {
         "adapter: {}; {} triangles, BVH of {} nodes; library: {}",
         ctx.adapter_info().name,
         tris.len(),
-        bvh.nodes.len(),
+        bvh.nodes().len(),
         library.shape()
     );
 

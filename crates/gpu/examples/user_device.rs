@@ -98,8 +98,8 @@ fn run() -> Result<(), Box<dyn Error>> {
         info.name,
         info.device_type,
         tris.len(),
-        bvh.nodes.len(),
-        bvh.depth,
+        bvh.nodes().len(),
+        bvh.depth(),
         gpu.storage()
     );
 

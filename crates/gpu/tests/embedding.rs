@@ -453,7 +453,7 @@ fn two_level_scene() -> bvhtrace_core::InstancedBvh {
 fn object_triangle(ib: &bvhtrace_core::InstancedBvh, instance: u32, prim: u32) -> [Vec3; 3] {
     let mesh = &ib.meshes()[ib.instances()[instance as usize].mesh as usize];
     let tris =
-        &ib.bvh().triangles[mesh.tri_base as usize..(mesh.tri_base + mesh.triangles) as usize];
+        &ib.bvh().triangles()[mesh.tri_base as usize..(mesh.tri_base + mesh.triangles) as usize];
     tris.iter()
         .find(|t| t.prim == prim)
         .expect("the mesh holds the primitive")
@@ -525,7 +525,7 @@ fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
                 let cpu = bvhtrace_core::hits::instance_surface(
                     t,
                     &tri,
-                    &ib.bvh().instances[inst as usize],
+                    &ib.bvh().instances()[inst as usize],
                     &rays[i],
                 );
                 assert_eq!(

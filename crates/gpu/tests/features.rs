@@ -139,7 +139,7 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
         let (nodes, tris) = if traversal.is_wide() {
             (wide.nodes.len() as u64, wide.triangles.len() as u64)
         } else {
-            (bvh.nodes.len() as u64, bvh.triangles.len() as u64)
+            (bvh.nodes().len() as u64, bvh.triangles().len() as u64)
         };
         for storage in STORAGES {
             let opts = TraceOptions::closest(traversal);
@@ -251,7 +251,7 @@ fn tracer_update_answers_as_a_fresh_upload() {
         .expect("two levels");
     let opts = UploadOptions::all().with_traversal(Traversal::Wide);
     let mut gpu = GpuBvh::upload(&ctx, ib.bvh(), &opts).expect("upload");
-    let root = ib.bvh().nodes[0];
+    let root = ib.bvh().nodes()[0];
     let (lo, hi) = (Vec3::from(root.min), Vec3::from(root.max));
     let rays: Vec<Ray> = (0..32 * 32)
         .map(|i| {
@@ -279,7 +279,7 @@ fn tracer_update_answers_as_a_fresh_upload() {
     ib.set_transforms(&moved).expect("new transforms");
     Tracer::update(&mut gpu, ib.bvh()).expect("top-level update");
     check(&gpu, ib.bvh(), "after new transforms");
-    let mut tris = ib.mesh_bvh(0).triangles;
+    let mut tris = ib.mesh_bvh(0).triangles().to_vec();
     tris.sort_by_key(|t| t.prim);
     let bent: Vec<_> = tris
         .iter()

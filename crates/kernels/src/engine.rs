@@ -235,8 +235,8 @@ impl<B: Backend> std::fmt::Debug for Engine<B> {
 
 /// The wide layout of `bvh`: its own when it has one, else `bvh` collapsed.
 fn wide_of(bvh: &FlatBvh) -> Arc<WideBvh> {
-    bvh.wide
-        .clone()
+    bvh.wide()
+        .cloned()
         .unwrap_or_else(|| Arc::new(WideBvh::collapse(bvh)))
 }
 
@@ -281,11 +281,11 @@ impl<B: Backend> Engine<B> {
     /// the device's limits before anything is made ([`TraceError::TooLarge`] names it).
     /// The upload keeps a host copy of the tree when incomplete rays may come back.
     pub fn upload(backend: B, bvh: &FlatBvh, opts: &UploadOptions) -> Result<Self, TraceError> {
-        if bvh.nodes.is_empty() || bvh.triangles.is_empty() {
+        if bvh.nodes().is_empty() || bvh.triangles().is_empty() {
             return Err(TraceError::EmptyBvh);
         }
         for &traversal in &opts.traversals {
-            check_depth(traversal, bvh.depth)?;
+            check_depth(traversal, bvh.depth())?;
         }
         let storage = opts.storage.unwrap_or(backend.tuning().storage);
         if storage == BvhStorage::Textures && !backend.features().textures {
@@ -308,7 +308,7 @@ impl<B: Backend> Engine<B> {
         let mut arrays = Vec::new();
         if binary {
             let links = with_escapes.then(|| bvh.escapes().len());
-            arrays = binary_arrays(bvh, storage, bvh.nodes.len(), true, links);
+            arrays = binary_arrays(bvh, storage, bvh.nodes().len(), true, links);
         }
         if let Some(w) = &wide {
             arrays.extend(wide_arrays(w, storage));
@@ -338,7 +338,7 @@ impl<B: Backend> Engine<B> {
                 binary,
                 escapes: with_escapes,
                 wide: opts.wide(),
-                depth: bvh.depth,
+                depth: bvh.depth(),
                 shape: tree_shape(bvh),
             },
             sizes: arrays.iter().map(|a| (a.role, a.bytes.len())).collect(),
@@ -367,7 +367,7 @@ impl<B: Backend> Engine<B> {
             .is_some_and(|w| wide_stack_may_overflow(w.depth));
         (backend.tuning().finishes_on_cpu() || deep).then(|| {
             let mut copy = bvh.clone();
-            copy.wide = wide.or_else(|| bvh.wide.clone());
+            copy.set_wide(wide.or_else(|| bvh.wide().cloned()));
             Arc::new(copy)
         })
     }
@@ -645,12 +645,12 @@ impl<B: Backend> Engine<B> {
             // Textures are written whole; buffers only as far as the change goes.
             let part = top_only && storage == BvhStorage::Buffers;
             let nodes = if part {
-                bvh.top_nodes as usize
+                bvh.top_nodes() as usize
             } else {
-                bvh.nodes.len()
+                bvh.nodes().len()
             };
             let links = self.tree.escapes.then(|| match part {
-                true => top_links(bvh.top_nodes),
+                true => top_links(bvh.top_nodes()),
                 false => bvh.escapes().len(),
             });
             arrays = binary_arrays(bvh, storage, nodes, !top_only, links);
@@ -696,7 +696,7 @@ impl<B: Backend> Engine<B> {
             };
         }
         self.host_copy = Self::host_copy_of(&self.backend, bvh, wide.clone());
-        self.tree.depth = bvh.depth;
+        self.tree.depth = bvh.depth();
         self.mesh_fingerprint = fingerprint;
         self.instances = InstanceTable::of(bvh);
         Ok(())

@@ -148,7 +148,7 @@ pub fn finish_incomplete_hits(
         return 0;
     }
     let collapsed;
-    let bvh = if opts.traversal.is_wide() && bvh.wide.is_none() {
+    let bvh = if opts.traversal.is_wide() && bvh.wide().is_none() {
         collapsed = bvh.clone().with_wide();
         &collapsed
     } else {

@@ -70,10 +70,10 @@ pub trait Tracer: Send + Sync {
 /// node count.
 pub fn tree_shape(bvh: &FlatBvh) -> (usize, usize, usize, u32) {
     (
-        bvh.nodes.len(),
-        bvh.triangles.len(),
-        bvh.instances.len(),
-        bvh.top_nodes,
+        bvh.nodes().len(),
+        bvh.triangles().len(),
+        bvh.instances().len(),
+        bvh.top_nodes(),
     )
 }
 
@@ -84,8 +84,8 @@ pub fn mesh_fingerprint(bvh: &FlatBvh) -> u64 {
     if !bvh.is_instanced() {
         return 0;
     }
-    let nodes: &[u8] = bytemuck::cast_slice(&bvh.nodes[bvh.top_nodes as usize..]);
-    let tris: &[u8] = bytemuck::cast_slice(&bvh.triangles);
+    let nodes: &[u8] = bytemuck::cast_slice(&bvh.nodes()[bvh.top_nodes() as usize..]);
+    let tris: &[u8] = bytemuck::cast_slice(bvh.triangles());
     let mut h = [0xcbf2_9ce4_8422_2325u64; 4];
     for part in [nodes, tris] {
         // Four independent lanes so the multiplies overlap; every word counts.
@@ -162,7 +162,7 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
         if opts.traversal.needs_escapes() {
             self.bvh().check_escape_links()?;
         }
-        if opts.traversal.is_wide() && self.bvh().wide.is_none() {
+        if opts.traversal.is_wide() && self.bvh().wide().is_none() {
             return Err(TraceError::WideLayoutMissing {
                 missing: "this BVH does not have: call FlatBvh::build_wide (or with_wide) first",
             });

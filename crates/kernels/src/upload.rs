@@ -55,10 +55,10 @@ impl UploadOptions {
     /// What an upload given no options takes.
     pub fn fitting(bvh: &FlatBvh) -> Self {
         let mut opts = UploadOptions::all();
-        if crate::plan::check_depth(Traversal::FullStack, bvh.depth).is_err() {
+        if crate::plan::check_depth(Traversal::FullStack, bvh.depth()).is_err() {
             opts.traversals.retain(|t| *t != Traversal::FullStack);
         }
-        if bvh.wide.is_some() {
+        if bvh.wide().is_some() {
             opts = opts.with_traversal(Traversal::Wide);
         }
         opts
@@ -279,16 +279,16 @@ pub(crate) fn binary_arrays<'a>(
     let mut out = vec![array(
         ArrayRole::Nodes,
         if textures {
-            Cow::Owned(node_texels(&bvh.nodes[..nodes]))
+            Cow::Owned(node_texels(&bvh.nodes()[..nodes]))
         } else {
-            Cow::Borrowed(bytemuck::cast_slice(&bvh.nodes[..nodes]))
+            Cow::Borrowed(bytemuck::cast_slice(&bvh.nodes()[..nodes]))
         },
         texel(16),
     )];
     if triangles {
         out.push(array(
             ArrayRole::Triangles,
-            Cow::Borrowed(bytemuck::cast_slice(&bvh.triangles)),
+            Cow::Borrowed(bytemuck::cast_slice(bvh.triangles())),
             texel(16),
         ));
     }
@@ -302,7 +302,7 @@ pub(crate) fn binary_arrays<'a>(
     if bvh.is_instanced() {
         out.push(array(
             ArrayRole::Instances,
-            Cow::Borrowed(bytemuck::cast_slice(&bvh.instances)),
+            Cow::Borrowed(bytemuck::cast_slice(bvh.instances())),
             None,
         ));
     }

@@ -171,7 +171,7 @@ fn arrays_of(e: &Engine<Mock>) -> Arrays {
 #[test]
 fn misuse_gets_the_same_error_at_the_same_point() {
     let mut deep = one_mesh();
-    deep.depth = FULL_STACK_SIZE + 1;
+    *deep.parts_mut().depth = FULL_STACK_SIZE + 1;
     let gpu = mock(DriverTuning::GPU);
     assert!(matches!(
         Engine::upload(gpu, &deep, &UploadOptions::all()),
@@ -204,7 +204,7 @@ fn misuse_gets_the_same_error_at_the_same_point() {
     // Wide only: the binary walks are refused; the tree had no wide layout, so it was
     // collapsed for the upload (the wide layout is built on demand).
     let bvh = one_mesh();
-    assert!(bvh.wide.is_none());
+    assert!(bvh.wide().is_none());
     let e = Engine::upload(
         mock(DriverTuning::GPU),
         &bvh,
@@ -251,7 +251,7 @@ fn update_writes_what_changed_and_matches_a_fresh_upload() {
     Tracer::update(&mut e, ib.bvh()).expect("top-level update");
     let writes = std::mem::take(&mut *e.device().writes.lock().unwrap());
     let written = |role| writes.iter().find(|w| w.0 == role).map(|w| w.1);
-    let top = ib.bvh().top_nodes as usize;
+    let top = ib.bvh().top_nodes() as usize;
     assert_eq!(written(ArrayRole::Nodes), Some(top * 32), "{writes:?}");
     assert_eq!(written(ArrayRole::Triangles), None, "{writes:?}");
     assert!(written(ArrayRole::Instances).is_some());
@@ -267,7 +267,7 @@ fn update_writes_what_changed_and_matches_a_fresh_upload() {
     Tracer::update(&mut e, ib.bvh()).expect("update after a refit");
     let writes = std::mem::take(&mut *e.device().writes.lock().unwrap());
     let written = |role| writes.iter().find(|w| w.0 == role).map(|w| w.1);
-    assert_eq!(written(ArrayRole::Nodes), Some(ib.bvh().nodes.len() * 32));
+    assert_eq!(written(ArrayRole::Nodes), Some(ib.bvh().nodes().len() * 32));
     assert!(written(ArrayRole::Triangles).is_some(), "{writes:?}");
     let fresh = Engine::upload(mock(DriverTuning::GPU), ib.bvh(), &opts).expect("fresh");
     assert_eq!(arrays_of(&e), arrays_of(&fresh));

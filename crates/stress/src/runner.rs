@@ -375,7 +375,7 @@ impl<'a> Geometry<'a> {
         match &case.instancing {
             None => Geometry::Flat(&case.tris),
             Some(inst) => Geometry::Instanced(
-                bvh.instances
+                bvh.instances()
                     .iter()
                     .zip(&inst.instances)
                     .map(|(flat, i)| Placed {
@@ -1173,8 +1173,8 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         }
     };
     rep.build_ms = ms(t);
-    rep.nodes = bvh.nodes.len();
-    rep.depth = bvh.depth;
+    rep.nodes = bvh.nodes().len();
+    rep.depth = bvh.depth();
 
     let t = Instant::now();
     let geo = Geometry::new(case, &bvh);
@@ -1221,7 +1221,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
 
     // Every walk, less the full stack on a tree deeper than its kernel's stack: the
     // full-stack rows then say it refused.
-    let deep = bvh.depth > FULL_STACK_SIZE;
+    let deep = bvh.depth() > FULL_STACK_SIZE;
     let walks: Vec<Traversal> = TRAVERSALS
         .iter()
         .copied()
@@ -1234,7 +1234,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
                 Err(e) => format!("ERROR: the upload failed otherwise: {e}"),
                 Ok(_) => format!(
                     "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
-                    bvh.depth
+                    bvh.depth()
                 ),
             });
         }

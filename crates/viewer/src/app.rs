@@ -943,7 +943,7 @@ impl ViewerApp {
             && self
                 .built
                 .as_ref()
-                .is_some_and(|b| b.geometry.bvh().wide.is_none())
+                .is_some_and(|b| b.geometry.bvh().wide().is_none())
             && let Some(scene) = self.scene.clone()
         {
             self.start_job(ctx, Source::Reuse(scene));

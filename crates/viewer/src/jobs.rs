@@ -193,7 +193,7 @@ impl BuiltBvh {
                     .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
                 let mut new_bvh = FlatBvh::build(&new_tris, &self.options)
                     .map_err(|e| format!("the BVH at t = {t} s: {e}"))?;
-                if bvh.wide.is_some() {
+                if bvh.wide().is_some() {
                     new_bvh.build_wide();
                 }
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -330,10 +330,10 @@ pub fn walks(bvh: &FlatBvh) -> Vec<Traversal> {
         Traversal::Stackless,
         Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
     ];
-    if check_depth(Traversal::FullStack, bvh.depth).is_ok() {
+    if check_depth(Traversal::FullStack, bvh.depth()).is_ok() {
         traversals.push(Traversal::FullStack);
     }
-    if bvh.wide.is_some() {
+    if bvh.wide().is_some() {
         traversals.push(Traversal::Wide);
     }
     traversals
@@ -403,7 +403,7 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
     let gpu = match &req.gpu {
         Err(e) => Err(e.clone()),
         Ok(ctx) => {
-            stage(format!("uploading {} nodes to the GPU", bvh.nodes.len()));
+            stage(format!("uploading {} nodes to the GPU", bvh.nodes().len()));
             upload(Some(ctx), bvh)
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());

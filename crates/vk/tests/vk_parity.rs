@@ -169,7 +169,7 @@ fn errors_are_errors_not_panics() {
 
     // A tree deeper than the full-stack kernel's stack is refused for that traversal only.
     let deep = deep_tree();
-    assert!(deep.depth > FULL_STACK_SIZE);
+    assert!(deep.depth() > FULL_STACK_SIZE);
     let gpu = VkBvh::upload(&ctx, &deep).expect("upload");
     let rays = [Ray::new(Vec3::new(-1.0, 0.1, 0.0), Vec3::X)];
     let full = TraceOptions::closest(Traversal::FullStack);
@@ -201,7 +201,7 @@ fn errors_are_errors_not_panics() {
     if limit <= 256 << 20 {
         let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
         let mut huge = deep.clone();
-        huge.triangles = vec![bytemuck::Zeroable::zeroed(); n];
+        *huge.parts_mut().triangles = vec![bytemuck::Zeroable::zeroed(); n];
         match VkBvh::upload(&ctx, &huge) {
             Err(e @ TraceError::TooLarge { .. }) => {
                 let msg = e.to_string();
@@ -428,8 +428,8 @@ fn tracer_interface_matches_the_cpu() {
     assert_eq!(tracers[0].uploaded_bytes(), vk.stats().total_bytes());
     assert_eq!(
         vk.stats().total_bytes(),
-        (std::mem::size_of_val(&bvh.nodes[..])
-            + std::mem::size_of_val(&bvh.triangles[..])
+        (std::mem::size_of_val(bvh.nodes())
+            + std::mem::size_of_val(bvh.triangles())
             + std::mem::size_of_val(bvh.escapes())) as u64
     );
     for query in [Query::Closest, Query::Any] {
@@ -477,7 +477,7 @@ fn two_level_updates_in_place_match_the_cpu() {
     ib.set_transforms(&moved).expect("new transforms");
     vk.update(ib.bvh()).expect("top-level update");
     check(&vk, ib.bvh(), "after new transforms");
-    let mut tris = ib.mesh_bvh(1).triangles;
+    let mut tris = ib.mesh_bvh(1).triangles().to_vec();
     tris.sort_by_key(|t| t.prim);
     let bent: Vec<_> = tris
         .iter()
@@ -489,7 +489,7 @@ fn two_level_updates_in_place_match_the_cpu() {
     // A mesh flattened to a twentieth of its height: the wide collapse comes out with
     // another number of nodes, and the update makes new wide buffers.
     let old_bytes = vk.stats().nodes_bytes;
-    let mut tris = ib.mesh_bvh(2).triangles;
+    let mut tris = ib.mesh_bvh(2).triangles().to_vec();
     tris.sort_by_key(|t| t.prim);
     let flat: Vec<_> = tris
         .iter()
@@ -505,7 +505,7 @@ fn two_level_updates_in_place_match_the_cpu() {
     );
     assert_eq!(
         vk.stats().nodes_bytes,
-        (std::mem::size_of_val(ib.bvh().nodes.as_slice()) + wide.byte_sizes().0) as u64
+        (std::mem::size_of_val(ib.bvh().nodes()) + wide.byte_sizes().0) as u64
     );
     check(&vk, ib.bvh(), "after flattening");
     assert!(vk.update(&one_triangle()).is_err());
