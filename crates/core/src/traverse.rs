@@ -805,6 +805,11 @@ impl TraceOptions {
         Self::new(traversal, Query::Closest)
     }
 
+    /// Any hit with `traversal` (occlusion: shadow and ambient-occlusion rays).
+    pub fn any(traversal: Traversal) -> Self {
+        Self::new(traversal, Query::Any)
+    }
+
     /// The same options with the triangle test of `precision`.
     pub fn with_precision(self, precision: Precision) -> Self {
         TraceOptions { precision, ..self }
