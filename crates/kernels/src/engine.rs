@@ -467,7 +467,9 @@ impl<B: Backend> Engine<B> {
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.supports_traversal(opts.traversal)?;
         let key = self.key(opts, self.ray_input(), true);
-        self.backend.features().check(&key, &self.backend.device_name())
+        self.backend
+            .features()
+            .check(&key, &self.backend.device_name())
     }
 
     /// Builds the pipelines [`Engine::trace`] runs for `opts` (with the box test's

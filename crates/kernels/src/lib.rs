@@ -21,9 +21,9 @@ mod device;
 pub mod engine;
 mod error;
 pub mod key;
+mod plan;
 #[cfg(feature = "spirv")]
 pub mod spirv;
-mod plan;
 mod tracer;
 pub mod upload;
 pub mod wgsl;

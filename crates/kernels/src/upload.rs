@@ -217,7 +217,8 @@ pub fn check_texels(
             buffer: what,
             bytes: texels * texel_bytes,
             limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
-            limit_name: "max_texture_dimension_2d (squared, in bytes; use BvhStorage::Buffers)",
+            limit_name: "texture capacity (max_texture_dimension_2d rows of TEXEL_ROW texels; \
+                         buffers hold more)",
         });
     }
     Ok(())

@@ -12,8 +12,8 @@ use bvhtrace_core::{
 use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
 use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
 use bvhtrace_kernels::{
-    Backend, BackendFeatures, BvhStorage, DeviceLimits, DriverTuning, Engine, FULL_STACK_SIZE, KernelKey,
-    TraceError, Tracer, UploadOptions,
+    Backend, BackendFeatures, BvhStorage, DeviceLimits, DriverTuning, Engine, FULL_STACK_SIZE,
+    KernelKey, TraceError, Tracer, UploadOptions,
 };
 use glam::{Affine3A, Vec3};
 
