@@ -36,7 +36,7 @@ fn bvh_intersect_box(r: BvhPreparedRay, bmin: vec3<f32>, bmax: vec3<f32>, t_best
     if (BVH_PARALLEL_RAYS && r.parallel) {
         // Along an axis the ray does not move, it is inside the slab for every t (its
         // boundary included) or for none.
-        let inf = vec3<f32>(bitcast<f32>(0x7f800000u));
+        let inf = vec3<f32>(bvh_infinity());
         let zero = r.dir == vec3<f32>(0.0);
         let inside = (bmin <= r.org) & (r.org <= bmax);
         t0 = select(t0, select(inf, -inf, inside), zero);

@@ -22,6 +22,14 @@ struct BvhPreparedRay {
     sz: f32,
 }
 
+// +infinity, made from a `let` so that it is computed at run time: a constant expression
+// that evaluates to infinity is an error in WGSL (Chrome's compiler refuses the module;
+// naga lets it through).
+fn bvh_infinity() -> f32 {
+    let bits = 0x7f800000u;
+    return bitcast<f32>(bits);
+}
+
 fn bvh_is_finite_f32(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
 }

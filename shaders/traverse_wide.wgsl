@@ -115,7 +115,7 @@ fn bvh_wide_group(n: BvhWideNode, r: BvhPreparedRay, t_best: f32, oct: u32, c: p
     // `2^(e - 127)` per axis: the biased exponent moved into place.
     let e = (vec3<u32>(n.exponents) >> vec3<u32>(0u, 8u, 16u)) & vec3<u32>(0xffu);
     let scale = bitcast<vec3<f32>>(e << vec3<u32>(23u));
-    var g = BvhWideGroup(0u, bitcast<f32>(0x7f800000u), BVH_WIDE_NONE);
+    var g = BvhWideGroup(0u, bvh_infinity(), BVH_WIDE_NONE);
     bvh_wide_slot(&g, n, scale, used, 0u, oct, r, t_best);
     bvh_wide_slot(&g, n, scale, used, 1u, oct, r, t_best);
     bvh_wide_slot(&g, n, scale, used, 2u, oct, r, t_best);

@@ -218,7 +218,7 @@ pub fn check_texels(
             bytes: texels * texel_bytes,
             limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
             limit_name: "texture capacity (max_texture_dimension_2d rows of TEXEL_ROW texels; \
-                         buffers hold more)",
+                         BvhStorage::Buffers holds more)",
         });
     }
     Ok(())
