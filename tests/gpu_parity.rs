@@ -1215,7 +1215,8 @@ fn two_level_updates_in_place_match_cpu_twins() {
             })
             .collect();
         ib.set_transforms(&moved).expect("new transforms");
-        gpu.engine_mut().update_with(ib.bvh(), Update::TopLevel)
+        gpu.engine_mut()
+            .update_with(ib.bvh(), Update::TopLevel)
             .expect("top-level update");
         check(&gpu, ib.bvh(), "after new transforms");
         let after = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
@@ -1228,7 +1229,8 @@ fn two_level_updates_in_place_match_cpu_twins() {
             .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
             .collect();
         ib.refit_mesh(0, &swollen).expect("refit");
-        gpu.engine_mut().update_with(ib.bvh(), Update::Everything)
+        gpu.engine_mut()
+            .update_with(ib.bvh(), Update::Everything)
             .expect("update after refit");
         check(&gpu, ib.bvh(), "after a refit");
 
@@ -1243,7 +1245,8 @@ fn two_level_updates_in_place_match_cpu_twins() {
             .map(|t| t.corners().map(|p| p * Vec3::new(1.0, 0.05, 1.0)))
             .collect();
         ib.refit_mesh(1, &flat).expect("refit");
-        gpu.engine_mut().update_with(ib.bvh(), Update::Everything)
+        gpu.engine_mut()
+            .update_with(ib.bvh(), Update::Everything)
             .expect("update after flattening");
         let wide = bvhtrace_core::WideBvh::collapse(ib.bvh());
         assert_ne!(
