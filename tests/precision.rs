@@ -8,7 +8,7 @@
 //! * Every traversal returns the same closest hit as the brute-force loop with the same
 //!   test, for every precision, and the default precision is exactly what options
 //!   without one (`TraceOptions::new`) trace with (on well-conditioned scenes: where f32
-//!   is indeterminate, see `tests/gpu_parity.rs`).
+//!   is indeterminate, see `f32_departure` in `tests/conformance.rs`).
 //! * On the GPU (lavapipe in CI), each precision's kernels equal their CPU twin bit for bit
 //!   (hits and counters) on two small scenes; f64 where the adapter has `SHADER_F64`.
 

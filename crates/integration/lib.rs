@@ -1,2 +1,2 @@
 //! Holder for the workspace-level tests in the repository's `tests/` folder (for example
-//! `tests/gpu_parity.rs`); this library itself is empty.
+//! `tests/conformance.rs`); this library itself is empty.

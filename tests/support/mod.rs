@@ -1,7 +1,7 @@
 //! What the parity tests share: the scenes they run on, their rays, the bytewise
-//! comparison and a small deterministic generator. Used by `tests/gpu_parity.rs`,
-//! `tests/conformance.rs` and, through `#[path]`, by `crates/vk/tests/vk_parity.rs`, so
-//! every backend is checked on the same scenes.
+//! comparison and a small deterministic generator. Used by `tests/conformance.rs`,
+//! `tests/wgpu_api.rs` and, through `#[path]`, by `crates/vk/tests/vk_api.rs`, so every
+//! backend is checked on the same scenes.
 #![allow(dead_code)]
 
 use bvhtrace_core::{
@@ -338,4 +338,120 @@ pub fn differences(
         }
     }
     out
+}
+
+/// The `k`th axis-parallel ray lying in a face of the box `bmin`..`bmax`: from outside
+/// the scene's bounds `lo`..`hi`, from the box's min or max corner, along either sign of
+/// one axis, with +0 or -0 in the other components. Its origin, direction and axis.
+pub fn in_box_face(k: usize, bmin: Vec3, bmax: Vec3, lo: Vec3, hi: Vec3) -> (Vec3, Vec3, usize) {
+    let axis = k % 3;
+    let mut o = if k.is_multiple_of(2) { bmin } else { bmax };
+    let sign = if k % 4 < 2 { 1.0 } else { -1.0 };
+    o[axis] = if sign > 0.0 {
+        lo[axis] - 1.0
+    } else {
+        hi[axis] + 1.0
+    };
+    let mut d = Vec3::splat(if k % 8 < 4 { 0.0 } else { -0.0 });
+    d[axis] = sign;
+    (o, d, axis)
+}
+
+/// The conformance suite's large ray set: 128x96 primary rays, random rays from inside
+/// the bounds, axis-parallel rays with +0/-0 components, rays lying in the faces of node
+/// boxes (and of the wide layout's child boxes), rays with finite and awkward intervals,
+/// and invalid rays.
+pub fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
+    let b = bvh.bounds();
+    let (lo, hi) = (b.min, b.max);
+    let size = hi - lo;
+    let center = (lo + hi) * 0.5;
+    let mut rays = Camera::frame(lo, hi, 128.0 / 96.0).rays(128, 96);
+    let mut rng = Rng(seed);
+    let inside = |rng: &mut Rng| lo + size * Vec3::new(rng.f32(), rng.f32(), rng.f32());
+    for _ in 0..4096 {
+        rays.push(Ray::new(inside(&mut rng), rng.unit_vector()));
+    }
+    // Finite intervals (shadow-ray like): t_min > 0, t_max a fraction of the scene.
+    for _ in 0..2048 {
+        let o = inside(&mut rng);
+        let d = rng.unit_vector();
+        let t_max = size.length() * rng.f32();
+        rays.push(Ray::with_interval(o, d, 1e-4 * size.length(), t_max));
+    }
+    // Axis-parallel rays with signed zeros, through a grid over the bounds.
+    for axis in 0..3 {
+        for sign in [1.0f32, -1.0] {
+            for zero in [0.0f32, -0.0] {
+                for i in 0..16 {
+                    for j in 0..16 {
+                        let mut d = Vec3::splat(zero);
+                        d[axis] = sign;
+                        let mut o = lo + size * Vec3::splat((i as f32 + 0.5) / 16.0);
+                        o[(axis + 1) % 3] =
+                            lo[(axis + 1) % 3] + size[(axis + 1) % 3] * (i as f32 + 0.5) / 16.0;
+                        o[(axis + 2) % 3] =
+                            lo[(axis + 2) % 3] + size[(axis + 2) % 3] * (j as f32 + 0.5) / 16.0;
+                        o[axis] = if sign > 0.0 {
+                            lo[axis] - size[axis]
+                        } else {
+                            hi[axis] + size[axis]
+                        };
+                        rays.push(Ray::new(o, d));
+                    }
+                }
+            }
+        }
+    }
+    // Axis-parallel rays lying exactly in the faces of node boxes (the box test's
+    // parallel path), both signs, both zero signs.
+    for k in 0..2048 {
+        let n = &bvh.nodes()[(rng.next_u64() % bvh.nodes().len() as u64) as usize];
+        let (o, mut d, axis) = in_box_face(k, Vec3::from(n.min), Vec3::from(n.max), lo, hi);
+        rays.push(Ray::new(o, d));
+        // Also nearly parallel: a subnormal component (flushed to zero by both sides).
+        d[(axis + 1) % 3] = if k % 16 < 8 { 1e-40 } else { -1e-40 };
+        rays.push(Ray::new(o, d));
+    }
+    // Rays through the centre with awkward intervals.
+    let towards = |from: Vec3| (center - from).normalize();
+    let eye = center + size;
+    for (t_min, t_max) in [
+        (0.0, 0.0),
+        (1.0, 0.5),
+        (f32::NEG_INFINITY, f32::INFINITY),
+        (-1.0, f32::INFINITY),
+        (0.0, f32::MAX),
+        (f32::INFINITY, f32::INFINITY),
+    ] {
+        rays.push(Ray::with_interval(eye, towards(eye), t_min, t_max));
+    }
+    // Invalid rays.
+    let d = towards(eye);
+    for r in [
+        Ray::new(Vec3::new(f32::NAN, 0.0, 0.0), d),
+        Ray::new(eye, Vec3::new(f32::INFINITY, 0.0, 0.0)),
+        Ray::new(Vec3::new(0.0, f32::NEG_INFINITY, 0.0), d),
+        Ray::new(eye, Vec3::ZERO),
+        Ray::new(eye, Vec3::new(-0.0, 0.0, -0.0)),
+        Ray::with_interval(eye, d, f32::NAN, 1.0),
+        Ray::with_interval(eye, d, 0.0, f32::NAN),
+        Ray::new(eye, Vec3::new(0.0, f32::NAN, 1.0)),
+    ] {
+        rays.push(r);
+    }
+    // With a wide layout: axis-parallel rays lying exactly in the faces of its decoded
+    // child boxes (which are not the binary nodes' boxes), as above.
+    if let Some(w) = bvh.wide().map(|w| &**w) {
+        for k in 0..1024 {
+            let n = &w.nodes[(rng.next_u64() % w.nodes.len() as u64) as usize];
+            let Some(slot) = (0..8).map(|i| (i + k) % 8).find(|&s| n.is_used(s)) else {
+                continue;
+            };
+            let (bmin, bmax) = n.child_box(slot);
+            let (o, d, _) = in_box_face(k, bmin, bmax, lo, hi);
+            rays.push(Ray::new(o, d));
+        }
+    }
+    rays
 }
