@@ -943,7 +943,7 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
     if opts.traversal.needs_escapes() && !rays.is_empty() {
         bvh.escapes();
     }
-    let start = std::time::Instant::now();
+    let start = web_time::Instant::now();
     let stack = || Vec::with_capacity(bvh.depth as usize + 1);
     let (hits, counters) = if opts.traversal.is_wide() {
         const RUN: usize = 256;

@@ -325,12 +325,12 @@ impl Backend for Wgpu {
             .scoped("allocating ray buffers", || Scratch::new(&self.ctx, plan))
     }
 
-    fn run_batch(
-        &self,
-        arrays: &WgpuArrays,
-        scratch: &Scratch,
-        batch: Batch<'_>,
-    ) -> Result<Option<f64>, TraceError> {
+    fn run_batch<'a>(
+        &'a self,
+        arrays: &'a WgpuArrays,
+        scratch: &'a Scratch,
+        batch: Batch<'a>,
+    ) -> impl Future<Output = Result<Option<f64>, TraceError>> + 'a {
         crate::trace::run_batch(&self.ctx, arrays, scratch, batch)
     }
 }

@@ -25,6 +25,28 @@ pub fn device_kind(t: wgpu::DeviceType) -> DeviceKind {
     }
 }
 
+/// Where [`GpuContext::new_async`] looks for adapters: Vulkan natively, the browser's
+/// WebGPU in a browser.
+const BACKENDS: wgpu::Backends = if cfg!(target_arch = "wasm32") {
+    wgpu::Backends::BROWSER_WEBGPU
+} else {
+    wgpu::Backends::VULKAN
+};
+
+/// The adapters to choose from: every Vulkan adapter, or the one a browser offers.
+async fn adapters(instance: &wgpu::Instance) -> Vec<wgpu::Adapter> {
+    if cfg!(target_arch = "wasm32") {
+        let options = wgpu::RequestAdapterOptions::default();
+        instance
+            .request_adapter(&options)
+            .await
+            .into_iter()
+            .collect()
+    } else {
+        instance.enumerate_adapters(BACKENDS).await
+    }
+}
+
 /// Storage textures the texture storage binds in one stage: three for the BVH, two for
 /// the rays and hits.
 const STORAGE_TEXTURES_USED: u32 = 5;
@@ -176,12 +198,12 @@ impl GpuContext {
         options: &ContextOptions,
     ) -> Result<GpuContext, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = wgpu::Backends::VULKAN;
+        desc.backends = BACKENDS;
         // Validation layers are rarely installed; wgpu's own validation stays on. No
         // `with_env`: the library reads no environment variable.
         desc.flags = wgpu::InstanceFlags::empty();
         let instance = wgpu::Instance::new(desc);
-        let adapters = instance.enumerate_adapters(wgpu::Backends::VULKAN).await;
+        let adapters = adapters(&instance).await;
         let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
         let named: Vec<(String, DeviceKind)> = infos
             .iter()
@@ -419,6 +441,11 @@ impl GpuContext {
         during: &'static str,
         f: impl FnOnce() -> T,
     ) -> Result<T, GpuError> {
+        if cfg!(target_arch = "wasm32") {
+            // A browser answers error scopes on its event loop, which must not be blocked:
+            // its errors reach the device's uncaptured-error handler instead.
+            return Ok(f());
+        }
         let device = &self.inner.device;
         let oom = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);

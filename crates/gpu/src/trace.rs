@@ -3,7 +3,8 @@
 
 use std::collections::HashMap;
 use std::num::NonZeroU64;
-use std::sync::mpsc;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::task::{Poll, Waker};
 
 use bvhtrace_core::{Counters, Ray, TraceOptions};
 use bvhtrace_kernels::engine::{Batch, ScratchPlan};
@@ -294,7 +295,7 @@ fn read_mapped<T: bytemuck::Pod>(
 /// Uploads `batch`'s rays to the scratch, records its kernel and the readback copies,
 /// submits, waits for that submission only, and appends the hits (and counters); the
 /// GPU time in milliseconds when the device measures it.
-pub(crate) fn run_batch(
+pub(crate) async fn run_batch(
     ctx: &GpuContext,
     arrays: &WgpuArrays,
     s: &Scratch,
@@ -340,7 +341,7 @@ pub(crate) fn run_batch(
     let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
     maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
     maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
-    map_all(device, index, &maps)?;
+    map_all(device, index, &maps).await?;
     let read = (|| -> Result<Option<f64>, GpuError> {
         read_mapped(&s.hits_read, count * HIT_BYTES, batch.hits)?;
         if let (Some(c), Some(b)) = (batch.counters, counter_buffers) {
@@ -358,35 +359,63 @@ pub(crate) fn run_batch(
     read
 }
 
+/// Buffer mappings not yet completed: their callbacks count down and wake the waiting
+/// task (a browser calls them from its event loop; natively `poll` calls them).
+struct Mappings {
+    left: usize,
+    failed: Option<wgpu::BufferAsyncError>,
+    waker: Option<Waker>,
+}
+
+/// The mappings' state, even after a panicking callback.
+fn lock(m: &Mutex<Mappings>) -> MutexGuard<'_, Mappings> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 /// Maps the first bytes of each buffer for reading, after the submission `index` (and
 /// only it, with what came before it on the queue) has completed.
-fn map_all(
+async fn map_all(
     device: &wgpu::Device,
     index: wgpu::SubmissionIndex,
     maps: &[(&wgpu::Buffer, u64)],
 ) -> Result<(), GpuError> {
-    let (tx, rx) = mpsc::channel();
+    let state = Arc::new(Mutex::new(Mappings {
+        left: maps.len(),
+        failed: None,
+        waker: None,
+    }));
     for (b, bytes) in maps {
-        let tx = tx.clone();
+        let state = state.clone();
         b.slice(..*bytes).map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
+            let mut m = lock(&state);
+            m.left -= 1;
+            if let Err(e) = r {
+                m.failed.get_or_insert(e);
+            }
+            if let Some(w) = m.waker.take() {
+                w.wake();
+            }
         });
     }
-    drop(tx);
+    // Waits natively; returns at once in a browser, where the event loop maps them.
     device
         .poll(wgpu::PollType::Wait {
             submission_index: Some(index),
             timeout: None,
         })
         .map_err(|e| GpuError::device("waiting for the GPU", e))?;
-    for _ in 0..maps.len() {
-        rx.recv()
-            .map_err(|_| {
-                GpuError::device("reading results back", "a buffer mapping never completed")
-            })?
-            .map_err(|e| GpuError::device("reading results back", e))?;
-    }
-    Ok(())
+    std::future::poll_fn(|cx| {
+        let mut m = lock(&state);
+        if m.left > 0 {
+            m.waker = Some(cx.waker().clone());
+            return Poll::Pending;
+        }
+        Poll::Ready(match m.failed.take() {
+            Some(e) => Err(GpuError::device("reading results back", e)),
+            None => Ok(()),
+        })
+    })
+    .await
 }
 
 /// One compute pass of [`record_pass`]: `count` rays from `rays`, counters to `counters`.

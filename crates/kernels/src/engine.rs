@@ -5,8 +5,10 @@
 //! rays, the kernels used, updates). A backend only creates, writes and binds its arrays
 //! and scratch, and runs one batch.
 
+use std::future::Future;
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+
+use web_time::Instant;
 
 use bvhtrace_core::{
     Counters, FlatBvh, Hit, INCOMPLETE, InstanceTable, Ray, TraceOptions, TraceOutput, Traversal,
@@ -84,6 +86,19 @@ pub struct Batch<'a> {
     pub counters: Option<&'a mut Vec<Counters>>,
 }
 
+/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
+/// runs everything.
+#[cfg(not(target_arch = "wasm32"))]
+pub trait SendSync: Send + Sync {}
+#[cfg(not(target_arch = "wasm32"))]
+impl<T: Send + Sync> SendSync for T {}
+/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
+/// runs everything.
+#[cfg(target_arch = "wasm32")]
+pub trait SendSync {}
+#[cfg(target_arch = "wasm32")]
+impl<T> SendSync for T {}
+
 /// What a backend's kernels can read beyond what every backend's read (the BVH, rays and
 /// hits in storage buffers, the f32 triangle tests): the engine refuses, with one error
 /// for every backend, an upload or a kernel that needs more.
@@ -130,11 +145,11 @@ impl BackendFeatures {
 ///
 /// Methods that make device objects wait until they are ready for the kernels; a batch
 /// waits for its own submission only.
-pub trait Backend: Send + Sync {
+pub trait Backend: SendSync {
     /// The uploaded arrays, and whatever binds them (bind groups, descriptor sets).
-    type Arrays: Send + Sync;
+    type Arrays: SendSync;
     /// The per-tracer scratch of [`Backend::run_batch`] (rays, hits, counters, readback).
-    type Scratch: Send;
+    type Scratch: SendSync;
 
     /// The backend's name ([`Tracer::backend`]).
     fn name(&self) -> &'static str;
@@ -168,13 +183,14 @@ pub trait Backend: Send + Sync {
     fn create_scratch(&self, plan: &ScratchPlan) -> Result<Self::Scratch, TraceError>;
     /// Uploads the batch's rays, dispatches its kernel (within [`crate::plan_dispatches`]),
     /// waits for that submission and reads the hits (and counters) back; the GPU time of
-    /// the batch in milliseconds when the device measures it.
-    fn run_batch(
-        &self,
-        arrays: &Self::Arrays,
-        scratch: &Self::Scratch,
-        batch: Batch<'_>,
-    ) -> Result<Option<f64>, TraceError>;
+    /// the batch in milliseconds when the device measures it. A future, so that a backend
+    /// whose readback completes on an event loop (WebGPU in a browser) need not block.
+    fn run_batch<'a>(
+        &'a self,
+        arrays: &'a Self::Arrays,
+        scratch: &'a Self::Scratch,
+        batch: Batch<'a>,
+    ) -> impl Future<Output = Result<Option<f64>, TraceError>> + 'a;
 }
 
 /// What an upload holds.
@@ -511,6 +527,25 @@ impl<B: Backend> Engine<B> {
     /// before any upload), the batch split into submissions the scratch holds, each waited
     /// for and read back, GPU times summed, incomplete rays finished on the host copy.
     pub fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        if cfg!(target_arch = "wasm32") {
+            // Blocking would stop the browser's event loop, which completes the readback.
+            return Err(TraceError::Device {
+                during: "tracing",
+                message: "a browser cannot wait for its GPU: use trace_async".into(),
+            });
+        }
+        pollster::block_on(self.trace_async(rays, opts))
+    }
+
+    /// [`Engine::trace`] as a future: what a program in a browser awaits.
+    // The scratch stays locked while a batch is read back: traces of one upload take turns
+    // on it, as the blocking trace does (and a browser runs one thread).
+    #[allow(clippy::await_holding_lock)]
+    pub async fn trace_async(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+    ) -> Result<TraceOutput, TraceError> {
         self.supports(opts)?;
         let input = self.ray_input();
         let key = self.key(opts, input, true).for_rays(rays);
@@ -558,16 +593,19 @@ impl<B: Backend> Engine<B> {
             unreachable!("the scratch was just made")
         };
         for batch in rays.chunks(per_submit as usize) {
-            let ms = self.backend.run_batch(
-                &self.arrays,
-                &kept.scratch,
-                Batch {
-                    key,
-                    rays: batch,
-                    hits: &mut out.hits,
-                    counters: out.counters.as_mut(),
-                },
-            )?;
+            let ms = self
+                .backend
+                .run_batch(
+                    &self.arrays,
+                    &kept.scratch,
+                    Batch {
+                        key,
+                        rays: batch,
+                        hits: &mut out.hits,
+                        counters: out.counters.as_mut(),
+                    },
+                )
+                .await?;
             if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), ms) {
                 *total += ms;
             }
@@ -716,7 +754,7 @@ impl<B: Backend> Engine<B> {
 
 /// A type that traces through an [`Engine`] (the device backends' BVH types): it is a
 /// [`Tracer`] by that engine, with nothing to write again.
-pub trait HasEngine: Send + Sync {
+pub trait HasEngine: SendSync {
     /// The backend of the engine.
     type Device: Backend;
     /// The engine.

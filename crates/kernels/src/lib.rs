@@ -34,7 +34,7 @@ pub use device::{
     ADAPTER_ENV, AdapterChoice, CPU_DRIVER_TRIP_LIMIT, DeviceKind, DriverTuning,
     MAX_DISPATCH_THREADS,
 };
-pub use engine::{Backend, BackendFeatures, Engine, HasEngine, Update, new_output};
+pub use engine::{Backend, BackendFeatures, Engine, HasEngine, SendSync, Update, new_output};
 pub use error::TraceError;
 pub use key::{BindingInfo, Composition, KernelKey, PerElement, VertexAttributes};
 pub use plan::{

@@ -14,9 +14,9 @@ use crate::plan::UploadStats;
 /// backend (`bvhtrace_gpu::GpuBvh`) or the ash backend (`bvhtrace_vk::VkBvh`). Given the
 /// same rays and options, every implementation returns the same hits bit for bit.
 ///
-/// Implementations are `Send + Sync`: one uploaded BVH can be traced from several threads
-/// at once.
-pub trait Tracer: Send + Sync {
+/// Implementations are `Send + Sync` (except in a browser, which runs one thread): one
+/// uploaded BVH can be traced from several threads at once.
+pub trait Tracer: crate::engine::SendSync {
     /// The backend's name: `cpu`, `wgpu` or `vulkan`.
     fn backend(&self) -> &'static str;
 

@@ -109,7 +109,12 @@ impl Backend for Mock {
         self.scratch.lock().unwrap().push(*plan);
         Ok(())
     }
-    fn run_batch(&self, _: &Arrays, _: &(), batch: Batch<'_>) -> Result<Option<f64>, TraceError> {
+    async fn run_batch<'a>(
+        &'a self,
+        _: &'a Arrays,
+        _: &'a (),
+        batch: Batch<'a>,
+    ) -> Result<Option<f64>, TraceError> {
         self.batches.lock().unwrap().push(batch.rays.len());
         for r in batch.rays {
             let prim = if r.origin[1] > 0.0 {

@@ -424,11 +424,12 @@ impl Backend for Ash {
         Scratch::new(&self.ctx, plan.capacity)
     }
 
-    fn run_batch(
-        &self,
-        arrays: &Arrays,
-        s: &Scratch,
-        batch: Batch<'_>,
+    // The submission is waited for on its fence: ready when first polled.
+    async fn run_batch<'a>(
+        &'a self,
+        arrays: &'a Arrays,
+        s: &'a Scratch,
+        batch: Batch<'a>,
     ) -> Result<Option<f64>, TraceError> {
         let count = batch.rays.len() as u64;
         let sub = self.ctx.submitter()?;
