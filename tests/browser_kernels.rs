@@ -8,11 +8,9 @@
 //! Needs Debian's `chromium` (installed by `.ci/run`); without it the test prints SKIP.
 //! `BVHTRACE_CHROMIUM` names another binary.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::TcpListener;
-use std::process::{Command, Stdio};
-use std::sync::mpsc;
 use std::time::Duration;
+
+use bvhtrace_integration::browser::{self, Report};
 
 use bvhtrace_gpu::kernels::{BvhStorage, DriverTuning, KernelKey};
 
@@ -90,75 +88,19 @@ const variants = {};
     )
 }
 
-/// Serves `page` on 127.0.0.1 (a secure context, as WebGPU wants) and sends the body of
-/// each `POST /result` to the returned channel.
-fn serve(page: String) -> (u16, mpsc::Receiver<String>) {
-    let listener = TcpListener::bind("127.0.0.1:0").expect("a local port");
-    let port = listener.local_addr().expect("its address").port();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for stream in listener.incoming().flatten() {
-            let mut reader = BufReader::new(&stream);
-            let (mut request, mut line, mut length) = (String::new(), String::new(), 0);
-            let _ = reader.read_line(&mut request);
-            while reader.read_line(&mut line).is_ok_and(|n| n > 2) {
-                if let Some(v) = line.to_ascii_lowercase().strip_prefix("content-length:") {
-                    length = v.trim().parse().unwrap_or(0);
-                }
-                line.clear();
-            }
-            let mut body = vec![0; length];
-            let _ = reader.read_exact(&mut body);
-            let reply = match request.starts_with("POST") {
-                true => {
-                    let _ = tx.send(String::from_utf8_lossy(&body).into_owned());
-                    String::new()
-                }
-                false => page.clone(),
-            };
-            let mut s = &stream;
-            let head = format!(
-                "HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-                reply.len()
-            );
-            let _ = s
-                .write_all(head.as_bytes())
-                .and_then(|_| s.write_all(reply.as_bytes()));
-        }
-    });
-    (port, rx)
-}
-
 #[test]
 fn every_kernel_variant_compiles_in_chromium() {
-    let chromium = std::env::var("BVHTRACE_CHROMIUM").unwrap_or_else(|_| "chromium".into());
-    if Command::new(&chromium).arg("--version").output().is_err() {
-        eprintln!("SKIP every_kernel_variant_compiles_in_chromium: no {chromium} installed");
+    let Some(chromium) = browser::chromium() else {
+        eprintln!("SKIP every_kernel_variant_compiles_in_chromium: no chromium installed");
         return;
-    }
+    };
     let keys = variants();
-    let (port, results) = serve(page(&keys));
-    let profile = std::env::temp_dir().join(format!("bvhtrace-chromium-{}", std::process::id()));
-    let mut child = Command::new(&chromium)
-        .args([
-            "--headless=new",
-            "--no-sandbox",
-            "--enable-unsafe-webgpu",
-            "--use-webgpu-adapter=swiftshader",
-            "--enable-unsafe-swiftshader",
-        ])
-        .arg(format!("--user-data-dir={}", profile.display()))
-        .arg(format!("http://127.0.0.1:{port}/"))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("chromium starts");
-    // A hung page fails the test instead of hanging it.
-    let report = results.recv_timeout(Duration::from_secs(600));
-    let _ = child.kill();
-    let _ = child.wait();
-    let _ = std::fs::remove_dir_all(&profile);
-    let dom = report.expect("the page reported within 10 minutes");
+    let page = page(&keys).into_bytes();
+    let served = move |path: &str| (path == "/").then(|| page.clone());
+    let dom = match browser::run_page(&chromium, served, Duration::from_secs(600)) {
+        Ok(Report::Result(bytes)) => String::from_utf8_lossy(&bytes).into_owned(),
+        other => panic!("the page failed: {other:?}"),
+    };
     let lines: Vec<&str> = dom.lines().collect();
     let first = lines.iter().position(|l| l.contains("adapter "));
     eprintln!("{}", first.map_or("no adapter line", |i| lines[i]));
