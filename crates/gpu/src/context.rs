@@ -243,6 +243,8 @@ impl GpuContext {
     }
 
     /// [`GpuContext::from_device`] with `options`.
+    // In a browser wgpu's objects are neither Send nor Sync, and one thread uses them.
+    #[cfg_attr(target_arch = "wasm32", allow(clippy::arc_with_non_send_sync))]
     pub fn from_device_with(
         device: wgpu::Device,
         queue: wgpu::Queue,
