@@ -125,7 +125,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         .filter(|&i| bytemuck::bytes_of(&gpu[i]) != bytemuck::bytes_of(&cpu[i]))
         .collect();
     println!(
-        "browser: {adapter}; trace {trace_ms:.1} ms ({:.2} Mrays/s), page load to hits {page_ms:.0} ms",
+        "browser: {adapter}; trace {trace_ms:.1} ms ({:.2} Mrays/s), page load to hits {page_ms:.0} ms (build, upload, two traces)",
         cpu.len() as f64 / trace_ms / 1e3
     );
     println!(

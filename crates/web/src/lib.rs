@@ -19,9 +19,10 @@ mod web {
     /// Builds a BVH over `triangles` (nine floats each), uploads it to the browser's
     /// WebGPU with the BVH in buffers, and traces `rays` (eight floats each: origin,
     /// `t_min`, direction, `t_max`, the layout of [`Ray`]) with the stackless walk,
-    /// closest hit. Returns the hits (16 bytes each, the layout of
-    /// [`bvhtrace_core::Hit`]) followed by the wall time in milliseconds (8 bytes, f64),
-    /// and the adapter's name as the promise's second value through `name`.
+    /// closest hit, twice: the first trace builds the pipeline, the second is timed and
+    /// returned. Resolves to `[bytes, adapter]`: the hits (16 bytes each, the layout of
+    /// [`bvhtrace_core::Hit`]) followed by the second trace's wall time in milliseconds (an
+    /// f64), and a description of the adapter.
     #[wasm_bindgen]
     pub async fn trace_closest(
         triangles: Vec<f32>,
@@ -42,10 +43,10 @@ mod web {
         let opts =
             UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
         let gpu = GpuBvh::upload(&ctx, &bvh, &opts).map_err(js)?;
-        let out = gpu
-            .trace_async(&rays, &TraceOptions::closest(Traversal::Stackless))
-            .await
-            .map_err(js)?;
+        let opts = TraceOptions::closest(Traversal::Stackless);
+        // The first trace builds the pipeline; the second is the one timed and returned.
+        gpu.trace_async(&rays, &opts).await.map_err(js)?;
+        let out = gpu.trace_async(&rays, &opts).await.map_err(js)?;
         let mut bytes: Vec<u8> = bytemuck::cast_slice(&out.hits).to_vec();
         bytes.extend_from_slice(&out.wall_ms.to_le_bytes());
         let result = js_sys::Array::new();
