@@ -114,29 +114,44 @@ pub struct BackendFeatures {
 
 impl BackendFeatures {
     /// `Ok` when `key`'s kernel reads nothing beyond these features; `device` names the
-    /// device in the error.
-    pub fn check(&self, key: &KernelKey, device: &str) -> Result<(), TraceError> {
-        let missing = |feature: &'static str, needed_for: &'static str| {
-            Err(TraceError::MissingFeature {
-                adapter: device.to_string(),
-                feature,
-                needed_for,
-            })
-        };
+    /// device in the error (asked only then).
+    pub fn check(&self, key: &KernelKey, device: impl Fn() -> String) -> Result<(), TraceError> {
         if key.precision.needs_f64() && !self.f64 {
             return Err(TraceError::PrecisionUnsupported {
                 precision: key.precision,
-                adapter: device.to_string(),
+                adapter: device(),
             });
         }
-        if !self.textures && (key.storage == BvhStorage::Textures || key.rays == RayInput::Texture)
-        {
-            return missing("texture storage", "the BVH or the rays in textures");
+        self.check_storage(key.storage, &device)?;
+        let missing = |feature, needed_for| TraceError::MissingFeature {
+            adapter: device(),
+            feature,
+            needed_for,
+        };
+        if !self.textures && key.rays == RayInput::Texture {
+            return Err(missing("texture storage", "the rays in textures"));
         }
         if !self.vertex_attributes && key.attributes.normals {
-            return missing("vertex attributes", "vertex normals");
+            return Err(missing("vertex attributes", "vertex normals"));
         }
         Ok(())
+    }
+
+    /// `Ok` when the BVH can be kept in `storage`: what an upload checks before anything
+    /// is made, and every kernel key again.
+    pub fn check_storage(
+        &self,
+        storage: BvhStorage,
+        device: impl Fn() -> String,
+    ) -> Result<(), TraceError> {
+        match storage == BvhStorage::Textures && !self.textures {
+            true => Err(TraceError::MissingFeature {
+                adapter: device(),
+                feature: "texture storage",
+                needed_for: "the BVH in textures (BvhStorage::Textures)",
+            }),
+            false => Ok(()),
+        }
     }
 }
 
@@ -304,13 +319,7 @@ impl<B: Backend> Engine<B> {
             check_depth(traversal, bvh.depth())?;
         }
         let storage = opts.storage.unwrap_or(backend.tuning().storage);
-        if storage == BvhStorage::Textures && !backend.features().textures {
-            return Err(TraceError::MissingFeature {
-                adapter: backend.device_name(),
-                feature: "texture storage",
-                needed_for: "the BVH in textures (BvhStorage::Textures)",
-            });
-        }
+        (backend.features()).check_storage(storage, || backend.device_name())?;
         let (binary, with_escapes) = (opts.binary(), opts.escapes() && opts.binary());
         if with_escapes {
             bvh.check_escape_links()?;
@@ -483,9 +492,7 @@ impl<B: Backend> Engine<B> {
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.supports_traversal(opts.traversal)?;
         let key = self.key(opts, self.ray_input(), true);
-        self.backend
-            .features()
-            .check(&key, &self.backend.device_name())
+        (self.backend.features()).check(&key, || self.backend.device_name())
     }
 
     /// Builds the pipelines [`Engine::trace`] runs for `opts` (with the box test's

@@ -75,7 +75,7 @@ impl Backend for Mock {
         }
     }
     fn prepare_kernel(&self, key: KernelKey) -> Result<(), TraceError> {
-        self.features().check(&key, "bytes")
+        self.features().check(&key, || "bytes".into())
     }
     fn create_arrays(
         &self,

@@ -628,7 +628,8 @@ impl VkContext {
     /// The SPIR-V words of `key`'s kernel for this device, with this context's tuning
     /// ([`bvhtrace_kernels::spirv::kernel`]), when [`VkContext::features`] allow it.
     pub fn spirv(&self, key: KernelKey) -> Result<Vec<u32>, TraceError> {
-        self.features().check(&key, &self.inner.info.name)?;
+        self.features()
+            .check(&key, || self.inner.info.name.clone())?;
         spirv::kernel(&key, &self.inner.tuning, &self.inner.spirv)
     }
 
