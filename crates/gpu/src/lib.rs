@@ -6,7 +6,7 @@
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
-//! // The same code as the workspace README's "Use it as a library".
+//! // The same code as docs/design.md's "One engine, one front door".
 //! use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal};
 //! use bvhtrace_gpu::{AdapterChoice, CpuTracer, GpuBvh, GpuContext, Tracer, UploadOptions};
 //! use bvhtrace_gpu::glam::Vec3;
