@@ -1,9 +1,15 @@
 #!/usr/bin/env bash
 # The browser test: builds the wasm (web/build.sh), serves it on 127.0.0.1 to headless
-# Chromium (WebGPU on SwiftShader), traces a fixed camera's rays there and checks every hit
-# against the CPU twin's, bit for bit. Prints `browser parity: N hits, 0 differ`; exits
-# non-zero on any difference or page error.
+# Chromium, and checks two pages:
+#  - the library: a fixed camera's rays traced on WebGPU (SwiftShader), every hit against
+#    the CPU twin's, bit for bit: prints `browser parity: N hits, 0 differ`;
+#  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
+#    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
+#    prints `browser viewer: N pixels, 0 differ`.
+# Exits non-zero on any difference or page error. Flags go to the library check
+# (`--size WxH`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 web/build.sh
 cargo run --release -q -p bvhtrace-integration --example browser_parity -- web/dist "$@"
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist

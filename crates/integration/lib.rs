@@ -4,7 +4,8 @@
 
 pub mod browser {
     //! A page served on 127.0.0.1 (a secure context, as WebGPU wants) to headless Chromium
-    //! on SwiftShader's WebGPU; the page reports by `POST /result` (or `POST /error`).
+    //! ([`WebGpu`]: on SwiftShader, or on the system's Vulkan driver); the page reports by
+    //! `POST /result` (or `POST /error`).
 
     use std::io::{BufRead, BufReader, Read, Write};
     use std::net::TcpListener;
@@ -19,6 +20,34 @@ pub mod browser {
         Result(Vec<u8>),
         /// The body of `POST /error`: a message from the page.
         Error(String),
+    }
+
+    /// Which WebGPU implementation Chromium's Dawn runs on.
+    #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+    pub enum WebGpu {
+        /// SwiftShader, Chromium's own CPU Vulkan: compute only here, since headless
+        /// Chromium loses the device when a page presents a WebGPU canvas on it.
+        SwiftShader,
+        /// The system's Vulkan driver (lavapipe on a machine without a GPU), with ANGLE on
+        /// Vulkan for the compositor: canvases present, so the viewer's page runs.
+        Vulkan,
+    }
+
+    impl WebGpu {
+        /// Chromium's flags for it.
+        pub fn flags(self) -> &'static [&'static str] {
+            match self {
+                WebGpu::SwiftShader => &[
+                    "--use-webgpu-adapter=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                ],
+                WebGpu::Vulkan => &[
+                    "--enable-features=Vulkan,DefaultANGLEVulkan,VulkanFromANGLE",
+                    "--use-angle=vulkan",
+                    "--use-vulkan=native",
+                ],
+            }
+        }
     }
 
     /// The Chromium binary: `$BVHTRACE_CHROMIUM`, else `chromium`; `None` when it does not
@@ -39,15 +68,21 @@ pub mod browser {
             Some("wasm") => "application/wasm",
             Some("js") => "text/javascript",
             Some("html") | None => "text/html",
+            Some("png") => "image/png",
+            Some("glb") => "model/gltf-binary",
+            Some("gltf") => "model/gltf+json",
             _ => "application/octet-stream",
         }
     }
 
-    /// Serves `files(path)` for each GET and sends each POST to the returned channel.
-    fn serve(
+    /// Serves `files(path)` (the path without its query) for each GET on 127.0.0.1:`port`
+    /// (0: any free port), and sends each POST to the returned channel.
+    pub fn serve(
+        port: u16,
+
         files: impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static,
     ) -> std::io::Result<(u16, mpsc::Receiver<Report>)> {
-        let listener = TcpListener::bind("127.0.0.1:0")?;
+        let listener = TcpListener::bind(("127.0.0.1", port))?;
         let port = listener.local_addr()?.port();
         let (tx, rx) = mpsc::channel();
         let files = std::sync::Arc::new(files);
@@ -67,7 +102,8 @@ pub mod browser {
                     }
                     let mut body = vec![0; length];
                     let _ = reader.read_exact(&mut body);
-                    let path = request.split(' ').nth(1).unwrap_or("/").to_string();
+                    let target = request.split(' ').nth(1).unwrap_or("/");
+                    let path = target.split('?').next().unwrap_or("/").to_string();
                     let (status, kind, reply) = if request.starts_with("POST /log") {
                         // Progress from the page, to the terminal.
                         eprintln!("page: {}", String::from_utf8_lossy(&body));
@@ -99,6 +135,18 @@ pub mod browser {
         Ok((port, rx))
     }
 
+    /// The files of folder `dir` by URL path (`/` is `index.html`); nothing outside it.
+    pub fn folder(dir: std::path::PathBuf) -> impl Fn(&str) -> Option<Vec<u8>> + Send + Sync {
+        move |path: &str| {
+            let rel = path.trim_start_matches('/');
+            let rel = if rel.is_empty() { "index.html" } else { rel };
+            if rel.split('/').any(|part| part == ".." || part.is_empty()) {
+                return None;
+            }
+            std::fs::read(dir.join(rel)).ok()
+        }
+    }
+
     /// Opens `/` of a server for `files` in headless `chromium` with WebGPU on SwiftShader
     /// and returns the page's first report, or an error after `timeout` (the browser is
     /// closed either way).
@@ -107,21 +155,37 @@ pub mod browser {
         files: impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static,
         timeout: Duration,
     ) -> Result<Report, String> {
-        let (port, reports) = serve(files).map_err(|e| format!("serving the page: {e}"))?;
+        open_page(
+            chromium,
+            WebGpu::SwiftShader,
+            files,
+            "/",
+            (800, 600),
+            timeout,
+        )
+    }
+
+    /// [`run_page`] for the page at `path` (with its query), in a window of `size` pixels,
+    /// with WebGPU on `webgpu`.
+    pub fn open_page(
+        chromium: &str,
+        webgpu: WebGpu,
+        files: impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static,
+        path: &str,
+        size: (u32, u32),
+        timeout: Duration,
+    ) -> Result<Report, String> {
+        let (port, reports) = serve(0, files).map_err(|e| format!("serving the page: {e}"))?;
         let profile = std::env::temp_dir().join(format!("bvhtrace-chromium-{port}"));
         // The browser's console, for a page that fails: `BVHTRACE_CHROMIUM_LOG=FILE`.
         let log =
             std::env::var_os("BVHTRACE_CHROMIUM_LOG").and_then(|f| std::fs::File::create(f).ok());
         let mut child = Command::new(chromium)
-            .args([
-                "--headless=new",
-                "--no-sandbox",
-                "--enable-unsafe-webgpu",
-                "--use-webgpu-adapter=swiftshader",
-                "--enable-unsafe-swiftshader",
-            ])
+            .args(["--headless=new", "--no-sandbox", "--enable-unsafe-webgpu"])
+            .args(webgpu.flags())
             .arg(format!("--user-data-dir={}", profile.display()))
-            .arg(format!("http://127.0.0.1:{port}/"))
+            .arg(format!("--window-size={},{}", size.0, size.1))
+            .arg(format!("http://127.0.0.1:{port}{path}"))
             .args(
                 log.iter()
                     .flat_map(|_| ["--enable-logging=stderr", "--v=1"]),

@@ -36,7 +36,9 @@ mod backend;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
-pub use open::{Device, OpenOptions, Opened, open, open_on_vulkan, open_on_wgpu};
+#[cfg(not(target_arch = "wasm32"))]
+pub use open::open_on_vulkan;
+pub use open::{Device, OpenOptions, Opened, open, open_on_wgpu};
 
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,
@@ -46,6 +48,7 @@ pub use bvhtrace_kernels::{
     ADAPTER_ENV, AdapterChoice, BvhStorage, CpuTracer, DriverTuning, KernelKey, TraceError, Tracer,
     UploadStats,
 };
+#[cfg(not(target_arch = "wasm32"))]
 pub use bvhtrace_vk::{VALIDATION_ENV, VkContext};
 
 /// Re-exported so users need not depend on the same versions by hand.
@@ -53,4 +56,5 @@ pub use bvhtrace_core as core;
 pub use bvhtrace_gpu as gpu;
 pub use bvhtrace_gpu::glam;
 pub use bvhtrace_kernels as kernels;
+#[cfg(not(target_arch = "wasm32"))]
 pub use bvhtrace_vk as vk;

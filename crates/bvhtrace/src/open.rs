@@ -6,7 +6,10 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, TraceOptions, Traversal};
 use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext, UploadOptions};
-use bvhtrace_kernels::{AdapterChoice, BvhStorage, CpuTracer, DriverTuning, TraceError, Tracer};
+use bvhtrace_kernels::{
+    AdapterChoice, BvhStorage, CpuTracer, DriverTuning, SendSync, TraceError, Tracer,
+};
+#[cfg(not(target_arch = "wasm32"))]
 use bvhtrace_vk::{VkBvh, VkContext, VkOptions};
 
 use crate::Backend;
@@ -151,6 +154,7 @@ pub struct Device {
 enum Inner {
     Cpu,
     Wgpu(GpuContext),
+    #[cfg(not(target_arch = "wasm32"))]
     Vulkan(VkContext),
 }
 
@@ -171,7 +175,14 @@ impl Device {
         let inner = match opts.backend {
             Backend::Cpu => Inner::Cpu,
             Backend::Wgpu => Inner::Wgpu(wgpu_context(opts)?),
+            #[cfg(not(target_arch = "wasm32"))]
             Backend::Vulkan => Inner::Vulkan(vulkan_context(opts)?),
+            #[cfg(target_arch = "wasm32")]
+            Backend::Vulkan => {
+                return Err(TraceError::NoAdapter {
+                    details: ": Vulkan through ash does not run in a browser (use wgpu)".into(),
+                });
+            }
             Backend::Auto => match wgpu_context(opts) {
                 Ok(ctx) => Inner::Wgpu(ctx),
                 Err(e @ TraceError::NoAdapter { .. }) => {
@@ -211,7 +222,8 @@ impl Device {
         }
     }
 
-    /// A Vulkan context the caller opened.
+    /// A Vulkan context the caller opened (not on wasm32).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn vulkan(ctx: VkContext) -> Device {
         Device {
             inner: Inner::Vulkan(ctx),
@@ -225,6 +237,7 @@ impl Device {
         match self.inner {
             Inner::Cpu => Backend::Cpu,
             Inner::Wgpu(_) => Backend::Wgpu,
+            #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(_) => Backend::Vulkan,
         }
     }
@@ -237,6 +250,7 @@ impl Device {
                 let i = c.adapter_info();
                 format!("{} ({:?})", i.name, i.device_type)
             }
+            #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(c) => {
                 let i = c.device_info();
                 format!("{} ({:?})", i.name, i.kind)
@@ -257,7 +271,8 @@ impl Device {
         }
     }
 
-    /// The Vulkan context, on Vulkan.
+    /// The Vulkan context, on Vulkan (not on wasm32).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn vulkan_context(&self) -> Option<&VkContext> {
         match &self.inner {
             Inner::Vulkan(c) => Some(c),
@@ -270,6 +285,7 @@ impl Device {
         match &self.inner {
             Inner::Cpu => None,
             Inner::Wgpu(c) => Some(*c.tuning()),
+            #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(c) => Some(*c.tuning()),
         }
     }
@@ -284,6 +300,7 @@ impl Device {
         let opened = match &self.inner {
             Inner::Cpu => return open_cpu(Arc::new(bvh.clone()), opts, self.fallback.clone()),
             Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh, opts),
+            #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh, opts),
         };
         match opened {
@@ -303,7 +320,7 @@ impl Device {
     /// takes tracers from its caller.
     pub fn tracer_factory(
         &self,
-    ) -> impl Fn(&FlatBvh, &[Traversal]) -> Result<Box<dyn Tracer>, TraceError> + Send + Sync + 'static
+    ) -> impl Fn(&FlatBvh, &[Traversal]) -> Result<Box<dyn Tracer>, TraceError> + SendSync + 'static
     {
         let device = self.clone();
         move |bvh, walks| {
@@ -324,6 +341,7 @@ impl Device {
         let opened = match &self.inner {
             Inner::Cpu => return open_cpu(bvh, opts, self.fallback.clone()),
             Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh.borrow(), opts),
+            #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh.borrow(), opts),
         };
         match opened {
@@ -349,6 +367,7 @@ fn wgpu_context(opts: &OpenOptions) -> Result<GpuContext, TraceError> {
 }
 
 /// The Vulkan context `opts` asks for.
+#[cfg(not(target_arch = "wasm32"))]
 fn vulkan_context(opts: &OpenOptions) -> Result<VkContext, TraceError> {
     VkContext::with_options(&VkOptions {
         adapter: opts.adapter.clone(),
@@ -494,6 +513,7 @@ pub fn open_on_wgpu(
 /// `opts.traversals` and `opts.storage` are read. The tree goes to storage buffers, and
 /// its wide layout too when a wide walk is listed (collapsed for the upload when `bvh`
 /// has none).
+#[cfg(not(target_arch = "wasm32"))]
 pub fn open_on_vulkan(
     ctx: &VkContext,
     bvh: &FlatBvh,

@@ -801,6 +801,14 @@ impl<T: HasEngine> Tracer for T {
         self.engine().trace(rays, opts)
     }
 
+    fn trace_async<'a>(
+        &'a self,
+        rays: &'a [Ray],
+        opts: &'a TraceOptions,
+    ) -> crate::tracer::TraceFuture<'a> {
+        Box::pin(self.engine().trace_async(rays, opts))
+    }
+
     fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.engine().prepare(opts)
     }

@@ -42,7 +42,9 @@ pub use plan::{
     UploadStats, check_buffer_size, check_depth, check_wide_top_level, finish_incomplete,
     finish_incomplete_hits, plan_dispatches, plan_submissions, rays_per_dispatch, texel_rows,
 };
-pub use tracer::{CpuTracer, Tracer, check_update_shape, mesh_fingerprint, tree_shape};
+pub use tracer::{
+    CpuTracer, TraceFuture, Tracer, check_update_shape, mesh_fingerprint, tree_shape,
+};
 pub use upload::{UploadOptions, check_texels, texel_extent};
 pub use wgsl::{
     BATCH_GROUP, BVH_GROUP, BvhLibrary, BvhStorage, FULL_STACK_SIZE, LibraryShape, RayInput,

@@ -10,6 +10,10 @@ use crate::error::TraceError;
 use crate::key::KernelKey;
 use crate::plan::UploadStats;
 
+/// What [`Tracer::trace_async`] returns.
+pub type TraceFuture<'a> =
+    std::pin::Pin<Box<dyn std::future::Future<Output = Result<TraceOutput, TraceError>> + 'a>>;
+
 /// Something that traces rays through one BVH: the CPU walks ([`CpuTracer`]), the wgpu
 /// backend (`bvhtrace_gpu::GpuBvh`) or the ash backend (`bvhtrace_vk::VkBvh`). Given the
 /// same rays and options, every implementation returns the same hits bit for bit.
@@ -34,6 +38,13 @@ pub trait Tracer: crate::engine::SendSync {
     /// Traces `rays` as `opts` says: one hit per ray, in order, with counters when asked
     /// for, and the times.
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError>;
+
+    /// [`Tracer::trace`] as a future, for a program that must not block: in a browser, the
+    /// GPU's answer arrives on the event loop, so a page awaits this (`trace` refuses
+    /// there). The CPU walks finish before the future is returned.
+    fn trace_async<'a>(&'a self, rays: &'a [Ray], opts: &'a TraceOptions) -> TraceFuture<'a> {
+        Box::pin(std::future::ready(self.trace(rays, opts)))
+    }
 
     /// Does the one-time work for `opts` ahead of the first trace (compiling pipelines),
     /// so that the first trace's time is not the compiler's. Nothing to do on the CPU.

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, Query, TraceOptions, TraceOutput, Traversal,
+    BuildOptions, BuilderKind, Query, Ray, TraceOptions, TraceOutput, Traversal,
     traverse::DEFAULT_SHORT_STACK,
 };
 use bvhtrace_gpu::{GpuContext, Tracer};
@@ -18,12 +18,45 @@ use eframe::wgpu;
 use crate::camera;
 use crate::cli::Args;
 use crate::display::Display;
-use crate::jobs::{BuiltBvh, Job, JobOutput, JobRequest, PoseTimes, SceneData, Source};
+use crate::jobs::{
+    Batch, BuiltBvh, Job, JobOutput, JobRequest, PoseTimes, SceneData, Source, Traced,
+};
 use crate::shade::{self, Accumulation, Comparison, Shade, View};
 
 /// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
 /// when the window was closed before it finished).
 pub type Outcome = Arc<Mutex<Option<Result<String, String>>>>;
+
+/// Files to open, oldest first: a name, and the bytes or why they could not be read.
+pub type Inbox = Arc<Mutex<Vec<(String, Result<Vec<u8>, String>)>>>;
+
+/// What a front end shares with the app ([`ViewerApp::new`]).
+#[derive(Clone, Default)]
+pub struct Shared {
+    /// How a screenshot run ended.
+    pub outcome: Outcome,
+    /// glTF files read by the page (a drop, its file picker, a URL) for the app to open; a
+    /// file here when the app starts is opened instead of the command line's scene.
+    pub inbox: Inbox,
+    /// A screenshot run's images where there is no file system to write them to (in a
+    /// browser): set when the run ends well.
+    pub shot: Arc<Mutex<Option<ShotImages>>>,
+}
+
+/// A screenshot run's images, in memory.
+#[derive(Clone, Debug)]
+pub struct ShotImages {
+    /// The window, as a PNG file's bytes.
+    pub window_png: Vec<u8>,
+    /// The traced image alone, RGBA8, `size[0]` by `size[1]`.
+    pub traced_rgba: Vec<u8>,
+    /// The traced image's size, pixels.
+    pub size: [u32; 2],
+    /// The camera it was traced with.
+    pub camera: Camera,
+    /// True when the GPU traced every ray of the last frame.
+    pub on_gpu: bool,
+}
 
 /// The largest traced image side, pixels.
 const MAX_SIDE: u32 = 4096;
@@ -119,6 +152,33 @@ struct FrameStats {
     frame_ms: f32,
 }
 
+impl FrameStats {
+    /// Counts a traced batch of `n` rays.
+    fn add(&mut self, n: usize, t: &TraceOutput, on_gpu: bool) {
+        self.rays += n as u64;
+        self.trace_ms += t.wall_ms;
+        self.on_gpu &= on_gpu;
+        self.gpu_ms = match (self.gpu_ms, t.gpu_ms) {
+            (Some(a), Some(b)) => Some(a + b),
+            _ => None,
+        };
+    }
+}
+
+/// What a batch in flight traces.
+enum Work {
+    /// The primary pass for this key.
+    Primary(PassKey),
+    /// This many secondary samples per pixel.
+    Samples(u32),
+}
+
+/// A batch being traced, and what it is for.
+struct InFlight {
+    work: Work,
+    batch: Batch,
+}
+
 /// The last comparison with the CPU twin.
 struct CompareView {
     result: Comparison,
@@ -148,6 +208,8 @@ pub struct ViewerApp {
     cpu_adapter: bool,
     scene: Option<Arc<SceneData>>,
     built: Option<BuiltBvh>,
+    /// The batch being traced (in a browser it may finish on a later frame).
+    in_flight: Option<InFlight>,
     generation: u64,
     job: Option<Job>,
     error: Option<String>,
@@ -177,7 +239,7 @@ pub struct ViewerApp {
     shot: Option<Shot>,
     compare_pending: bool,
     image_rect: egui::Rect,
-    outcome: Outcome,
+    shared: Shared,
     playback: Playback,
 }
 
@@ -187,7 +249,7 @@ impl ViewerApp {
     /// scene named on the command line. A device the tracer cannot use (see
     /// [`GpuContext::from_device`]) is reported on stderr and in the side panel, and the
     /// CPU traces instead.
-    pub fn new(cc: &eframe::CreationContext<'_>, args: &Args, outcome: Outcome) -> ViewerApp {
+    pub fn new(cc: &eframe::CreationContext<'_>, args: &Args, shared: Shared) -> ViewerApp {
         let render_state = cc.wgpu_render_state.clone();
         let (gpu, adapter_line, cpu_adapter) = match &render_state {
             Some(rs) => {
@@ -247,6 +309,7 @@ impl ViewerApp {
             cpu_adapter,
             scene: None,
             built: None,
+            in_flight: None,
             generation: 0,
             job: None,
             error: None,
@@ -279,7 +342,7 @@ impl ViewerApp {
             }),
             compare_pending: args.compare,
             image_rect: egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(800.0, 600.0)),
-            outcome,
+            shared,
             playback: Playback {
                 time: args.time,
                 playing: args.play,
@@ -289,7 +352,12 @@ impl ViewerApp {
                 poses: 0,
             },
         };
-        app.start_job(&cc.egui_ctx, Source::Load(spec));
+        let first = take_first(&app.shared.inbox);
+        match first {
+            Some((name, Ok(bytes))) => app.start_job(&cc.egui_ctx, Source::Bytes { name, bytes }),
+            Some((name, Err(e))) => app.error = Some(format!("{name}: {e}")),
+            None => app.start_job(&cc.egui_ctx, Source::Load(spec)),
+        }
         app
     }
 }
@@ -304,6 +372,7 @@ impl ViewerApp {
     fn start_job(&mut self, ctx: &egui::Context, source: Source) {
         let (what, time) = match &source {
             Source::Load(s) => (format!("opening {s}"), self.playback.start_time),
+            Source::Bytes { name, .. } => (format!("opening {name}"), self.playback.start_time),
             Source::Reuse(s) => (
                 format!("rebuilding the BVH of {}", s.name),
                 self.playback.time,
@@ -362,6 +431,7 @@ impl ViewerApp {
             self.playback.poses = 0;
         }
         self.built = Some(built);
+        self.in_flight = None;
         self.scene = Some(scene);
         self.generation += 1;
     }
@@ -389,7 +459,8 @@ impl ViewerApp {
         let (Some(scene), Some(built)) = (&self.scene, &mut self.built) else {
             return;
         };
-        if !scene.animated() || built.time == self.playback.time {
+        // A batch still on the GPU (in a browser) holds the upload: pose after it.
+        if !scene.animated() || built.time == self.playback.time || self.in_flight.is_some() {
             return;
         }
         match built.pose(&scene.scene, self.playback.time) {
@@ -422,21 +493,17 @@ impl ViewerApp {
     }
 
     /// Traces what this frame needs: the primary pass when anything it depends on changed,
-    /// then one batch of secondary samples while the view accumulates. Returns true when
-    /// the image changed.
-    fn step(&mut self, size: [u32; 2]) -> bool {
-        let (Some(scene), Some(built)) = (&self.scene, &mut self.built) else {
-            return false;
-        };
-        let s = &self.settings;
-        let traversal = s.traversal();
+    /// then one batch of secondary samples while the view accumulates. Natively each batch
+    /// finishes when started; in a browser a batch on the GPU finishes on a later frame,
+    /// which takes its result and starts the next. Returns true when the image changed.
+    fn step(&mut self, ctx: &egui::Context, size: [u32; 2]) -> bool {
         let key = PassKey {
             camera: self.cam,
             size,
-            shade: s.shade,
-            heatmap: s.heatmap,
-            traversal,
-            prefer_cpu: s.prefer_cpu,
+            shade: self.settings.shade,
+            heatmap: self.settings.heatmap,
+            traversal: self.settings.traversal(),
+            prefer_cpu: self.settings.prefer_cpu,
             generation: self.generation,
         };
         let mut stats = FrameStats {
@@ -445,88 +512,147 @@ impl ViewerApp {
             frame_ms: self.stats.frame_ms,
             ..Default::default()
         };
-        let add = |stats: &mut FrameStats, n: usize, t: &TraceOutput, on_gpu: bool| {
-            stats.rays += n as u64;
-            stats.trace_ms += t.wall_ms;
-            stats.on_gpu &= on_gpu;
-            stats.gpu_ms = match (stats.gpu_ms, t.gpu_ms) {
-                (Some(a), Some(b)) => Some(a + b),
-                _ => None,
-            };
-        };
-        let mut changed = false;
-        if self.key.as_ref() != Some(&key) {
-            if self
-                .key
-                .as_ref()
-                .is_some_and(|k| k.traversal != traversal || k.prefer_cpu != s.prefer_cpu)
-            {
-                self.secondary_rate = None;
+        let (mut changed, mut sampled) = (false, false);
+        loop {
+            if let Some(flight) = self.in_flight.take() {
+                let Some(built) = &mut self.built else { break };
+                let Some(result) = built.finish(&flight.batch) else {
+                    // Still on the GPU: its answer asks for the frame that takes it.
+                    self.in_flight = Some(flight);
+                    break;
+                };
+                let Traced { rays, out, on_gpu } = match result {
+                    Ok(r) => r,
+                    Err(e) => {
+                        self.error = Some(format!("tracing failed: {e}"));
+                        break;
+                    }
+                };
+                stats.add(rays.len(), &out, on_gpu);
+                changed |= match flight.work {
+                    Work::Primary(done) => self.primary_done(done, rays, out, on_gpu),
+                    Work::Samples(k) if self.key.as_ref() == Some(&key) => {
+                        self.samples_done(&rays, &out, k)
+                    }
+                    Work::Samples(_) => false,
+                };
             }
-            if self.key.as_ref().is_some_and(|k| k.traversal != traversal) {
-                built.retry_gpu();
-                built.prepare(traversal);
-            }
-            let rays = self.cam.rays(size[0], size[1]);
-            let opts = TraceOptions::closest(traversal).with_counters(s.heatmap);
-            let (t, on_gpu) = match built.trace(&rays, &opts, s.prefer_cpu) {
-                Ok(r) => r,
-                Err(e) => {
-                    self.error = Some(format!("tracing failed: {e}"));
-                    return false;
-                }
+            let Some(work) = self.next_work(&key, sampled) else {
+                break;
             };
-            add(&mut stats, rays.len(), &t, on_gpu);
-            self.primary_on_gpu = on_gpu;
-            self.accum = Some(Accumulation::new(
-                size[0],
-                size[1],
-                rays,
-                t.hits,
-                t.counters.unwrap_or_default(),
-                |p| built.geometry.triangle(p),
-            ));
-            let mode = if s.heatmap { Shade::Heatmap } else { s.shade };
-            self.view = Some(View::for_camera(mode, &self.cam, scene.diagonal()));
-            self.key = Some(key);
-            changed = true;
+            sampled |= matches!(work, Work::Samples(_));
+            self.start(ctx, work, &key);
         }
-        let (Some(acc), Some(view)) = (&mut self.accum, &self.view) else {
-            return changed;
-        };
-        if view.accumulates() && acc.samples < s.max_samples && acc.hit_count() > 0 {
-            let wanted = match (s.auto_samples, self.secondary_rate) {
-                (true, Some(rays_per_ms)) => {
-                    (FRAME_BUDGET_MS * rays_per_ms / acc.hit_count() as f64).floor() as u32
-                }
-                (true, None) => 1,
-                (false, _) => s.samples_per_frame,
-            };
-            let k = wanted.clamp(1, 64).min(s.max_samples - acc.samples);
-            let sec = acc.secondary_rays(view, k);
-            let opts = TraceOptions::new(traversal, Query::Any);
-            let (t, on_gpu) = match built.trace(&sec, &opts, s.prefer_cpu) {
-                Ok(r) => r,
-                Err(e) => {
-                    self.error = Some(format!("tracing failed: {e}"));
-                    return changed;
-                }
-            };
-            add(&mut stats, sec.len(), &t, on_gpu);
-            let rate = sec.len() as f64 / t.wall_ms.max(1e-3);
-            self.secondary_rate = Some(match self.secondary_rate {
-                Some(r) => 0.5 * r + 0.5 * rate,
-                None => rate,
-            });
-            self.last_k = k;
-            acc.accumulate(view, &sec, &t.hits, k);
-            changed = true;
-        }
-        if changed {
+        if changed && let (Some(acc), Some(view)) = (&self.accum, &self.view) {
             self.image = acc.compose(view);
             self.stats = stats;
         }
         changed
+    }
+
+    /// What to trace next, if anything: the primary pass when `key` is not the shown
+    /// one, else a batch of samples (one per frame) while the view accumulates.
+    fn next_work(&mut self, key: &PassKey, sampled: bool) -> Option<Work> {
+        let s = &self.settings;
+        self.built.as_ref()?;
+        if self.key.as_ref() != Some(key) {
+            return Some(Work::Primary(key.clone()));
+        }
+        let (acc, view) = (self.accum.as_ref()?, self.view.as_ref()?);
+        if sampled || !view.accumulates() || acc.samples >= s.max_samples || acc.hit_count() == 0 {
+            return None;
+        }
+        let wanted = match (s.auto_samples, self.secondary_rate) {
+            (true, Some(rays_per_ms)) => {
+                (FRAME_BUDGET_MS * rays_per_ms / acc.hit_count() as f64).floor() as u32
+            }
+            (true, None) => 1,
+            (false, _) => s.samples_per_frame,
+        };
+        Some(Work::Samples(
+            wanted.clamp(1, 64).min(s.max_samples - acc.samples),
+        ))
+    }
+
+    /// Starts tracing `work`'s rays.
+    fn start(&mut self, ctx: &egui::Context, work: Work, key: &PassKey) {
+        let s = &self.settings;
+        let Some(built) = &mut self.built else { return };
+        let (rays, opts) =
+            match &work {
+                Work::Primary(_) => {
+                    if self.key.as_ref().is_some_and(|k| {
+                        k.traversal != key.traversal || k.prefer_cpu != key.prefer_cpu
+                    }) {
+                        self.secondary_rate = None;
+                    }
+                    if self
+                        .key
+                        .as_ref()
+                        .is_some_and(|k| k.traversal != key.traversal)
+                    {
+                        built.retry_gpu();
+                        built.prepare(key.traversal);
+                    }
+                    let rays = self.cam.rays(key.size[0], key.size[1]);
+                    let opts = TraceOptions::closest(key.traversal).with_counters(s.heatmap);
+                    (rays, opts)
+                }
+                Work::Samples(k) => {
+                    let (Some(acc), Some(view)) = (&mut self.accum, &self.view) else {
+                        return;
+                    };
+                    let rays = acc.secondary_rays(view, *k);
+                    (rays, TraceOptions::new(key.traversal, Query::Any))
+                }
+            };
+        let wake = ctx.clone();
+        let batch = built.start_trace(rays, opts, s.prefer_cpu, move || wake.request_repaint());
+        self.in_flight = Some(InFlight { work, batch });
+    }
+
+    /// Shows a finished primary pass: a new accumulation over its hits. A pass for a view
+    /// that changed while it was traced is dropped.
+    fn primary_done(&mut self, key: PassKey, rays: Vec<Ray>, t: TraceOutput, on_gpu: bool) -> bool {
+        let Some(built) = &self.built else {
+            return false;
+        };
+        if key.generation != self.generation {
+            return false;
+        }
+        self.primary_on_gpu = on_gpu;
+        self.accum = Some(Accumulation::new(
+            key.size[0],
+            key.size[1],
+            rays,
+            t.hits,
+            t.counters.unwrap_or_default(),
+            |p| built.geometry.triangle(p),
+        ));
+        let mode = if key.heatmap {
+            Shade::Heatmap
+        } else {
+            key.shade
+        };
+        let diagonal = self.scene.as_ref().map_or(1.0, |s| s.diagonal());
+        self.view = Some(View::for_camera(mode, &key.camera, diagonal));
+        self.key = Some(key);
+        true
+    }
+
+    /// Adds a finished batch of `k` samples per pixel to the accumulation.
+    fn samples_done(&mut self, rays: &[Ray], t: &TraceOutput, k: u32) -> bool {
+        let (Some(acc), Some(view)) = (&mut self.accum, &self.view) else {
+            return false;
+        };
+        let rate = rays.len() as f64 / t.wall_ms.max(1e-3);
+        self.secondary_rate = Some(match self.secondary_rate {
+            Some(r) => 0.5 * r + 0.5 * rate,
+            None => rate,
+        });
+        self.last_k = k;
+        acc.accumulate(view, rays, &t.hits, k);
+        true
     }
 
     /// True while more frames would add samples.
@@ -573,8 +699,28 @@ impl ViewerApp {
         });
     }
 
+    /// Writes the screenshot to `path`; in a browser, keeps it and the traced image in
+    /// [`Shared::shot`] instead.
+    fn save_shot(&self, path: &std::path::Path, img: &egui::ColorImage) -> Result<(), String> {
+        if cfg!(not(target_arch = "wasm32")) {
+            return crate::png::write_png_atomic(path, img);
+        }
+        let size = self.accum.as_ref().map_or([0, 0], |a| [a.width, a.height]);
+        let images = ShotImages {
+            window_png: crate::png::encode_png(img)?,
+            traced_rgba: self.image.clone(),
+            size,
+            camera: self.key.as_ref().map_or(self.cam, |k| k.camera),
+            on_gpu: self.stats.on_gpu,
+        };
+        if let Ok(mut s) = self.shared.shot.lock() {
+            *s = Some(images);
+        }
+        Ok(())
+    }
+
     fn finish_shot(&mut self, ctx: &egui::Context, result: Result<String, String>) {
-        if let Ok(mut o) = self.outcome.lock() {
+        if let Ok(mut o) = self.shared.outcome.lock() {
             *o = Some(result);
         }
         self.shot = None;
@@ -619,7 +765,12 @@ impl ViewerApp {
                 if let Some(img) = taken {
                     let path = shot.path.clone();
                     let [w, h] = img.size;
-                    let backend = if self.stats.on_gpu { "GPU" } else { "CPU" };
+                    let why = self.built.as_ref().and_then(|b| b.gpu_problem());
+                    let backend = match (self.stats.on_gpu, why) {
+                        (true, _) => "GPU".to_string(),
+                        (false, Some(why)) => format!("CPU ({why})"),
+                        (false, None) => "CPU".to_string(),
+                    };
                     let samples = self.accum.as_ref().map_or(0, |a| a.samples);
                     let animation = match (&self.scene, &self.built) {
                         (Some(s), Some(b)) if s.animated() => format!(
@@ -639,12 +790,12 @@ impl ViewerApp {
                         ),
                         _ => String::new(),
                     };
-                    let r = crate::png::write_png_atomic(&path, &img).map(|()| {
+                    let frames = shot.frames;
+                    let r = self.save_shot(&path, &img).map(|()| {
                         format!(
-                            "wrote {} ({w}x{h}; {} frames, traced on the {backend}, {samples} \
-                             accumulated samples per pixel{animation})",
+                            "wrote {} ({w}x{h}; {frames} frames, traced on the {backend}, \
+                             {samples} accumulated samples per pixel{animation})",
                             path.display(),
-                            shot.frames
                         )
                     });
                     self.finish_shot(ctx, r);
@@ -660,6 +811,12 @@ impl ViewerApp {
             }
         }
     }
+}
+
+/// The oldest file in `inbox`.
+fn take_first(inbox: &Inbox) -> Option<(String, Result<Vec<u8>, String>)> {
+    let mut q = inbox.lock().ok()?;
+    (!q.is_empty()).then(|| q.remove(0))
 }
 
 fn camera_half_tan(fov_deg: f32) -> f32 {
@@ -1247,7 +1404,7 @@ impl ViewerApp {
         let px = |v: f32| ((v * ppp * scale).round() as u32).clamp(1, MAX_SIDE);
         let size = [px(rect.width()), px(rect.height())];
         self.pose();
-        if self.step(size) {
+        if self.step(&ctx, size) {
             self.display.set(
                 &ctx,
                 self.render_state.as_ref(),
@@ -1394,18 +1551,38 @@ impl ViewerApp {
         }
     }
 
+    /// Opens a dropped file (natively by its path; in a browser its bytes are read on the
+    /// event loop, then go through [`Shared::inbox`]) and whatever the inbox holds.
     fn handle_drops(&mut self, ctx: &egui::Context) {
-        let dropped: Vec<PathBuf> = ctx.input(|i| {
-            i.raw
-                .dropped_files
-                .iter()
-                .map(|f| f.path().to_path_buf())
-                .collect()
-        });
-        if let Some(p) = dropped.first() {
-            let spec = p.to_string_lossy().into_owned();
-            self.open_text = spec.clone();
-            self.open(ctx, &spec);
+        let dropped = ctx.input(|i| i.raw.dropped_files.first().cloned());
+        if let Some(file) = dropped {
+            #[cfg(not(target_arch = "wasm32"))]
+            {
+                let spec = file.path().to_string_lossy().into_owned();
+                self.open_text = spec.clone();
+                self.open(ctx, &spec);
+            }
+            #[cfg(target_arch = "wasm32")]
+            {
+                let (inbox, wake) = (self.shared.inbox.clone(), ctx.clone());
+                wasm_bindgen_futures::spawn_local(async move {
+                    let name = file.path().display().to_string();
+                    let bytes = file.bytes_async().await;
+                    if let Ok(mut q) = inbox.lock() {
+                        q.push((name, bytes));
+                    }
+                    wake.request_repaint();
+                });
+            }
+        }
+        let next = take_first(&self.shared.inbox);
+        match next {
+            Some((name, Ok(bytes))) => {
+                self.open_text = name.clone();
+                self.start_job(ctx, Source::Bytes { name, bytes });
+            }
+            Some((name, Err(e))) => self.error = Some(format!("{name}: {e}")),
+            None => {}
         }
     }
 }

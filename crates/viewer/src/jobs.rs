@@ -1,11 +1,16 @@
-//! Loading a scene, building its BVH and uploading it, on a worker thread: the window keeps
-//! drawing (with a progress line) while it runs, and a failure leaves the current scene as
-//! it is. The finished [`BuiltBvh`] holds the two tracers the viewer picks between, and
-//! moves an animated scene to another time ([`BuiltBvh::pose`]).
+//! Loading a scene, building its BVH and uploading it, on a worker thread (in a browser, on
+//! the page's thread between two frames): the window keeps drawing (with a progress line)
+//! while it runs, and a failure leaves the current scene as it is. The finished
+//! [`BuiltBvh`] holds the two tracers the viewer picks between, traces batches that may
+//! finish on a later frame ([`BuiltBvh::start_trace`]), and moves an animated scene to
+//! another time ([`BuiltBvh::pose`]).
 
+use std::cell::RefCell;
+use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
-use std::time::Instant;
+
+use web_time::Instant;
 
 use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
 use bvhtrace_core::{
@@ -42,6 +47,22 @@ pub struct SceneData {
 }
 
 impl SceneData {
+    /// What the UI shows about `scene`, loaded from `spec` since `started`.
+    fn new(spec: String, scene: Scene, started: Instant) -> SceneData {
+        SceneData {
+            name: scene.name.clone(),
+            description: scene.description.clone(),
+            bounds: scene.bounds(),
+            camera: scene.camera,
+            warnings: scene.warnings.clone(),
+            duration: scene.duration(),
+            triangles: scene.triangle_count(),
+            scene,
+            load_ms: started.elapsed().as_secs_f64() * 1e3,
+            spec,
+        }
+    }
+
     /// The length of the bounds' diagonal (at least a tiny positive number).
     pub fn diagonal(&self) -> f32 {
         let d = (self.bounds.1 - self.bounds.0).length();
@@ -109,7 +130,7 @@ pub struct BuiltBvh {
     pub time: f32,
     /// The upload (opened through the front door on eframe's device), or why there is
     /// none. A new pose is written into it in place ([`Tracer::update`]).
-    pub gpu: Result<Box<dyn Tracer>, String>,
+    pub gpu: Result<Arc<dyn Tracer>, String>,
     /// The device it is on, for a new upload when a new pose changes the tree's shape.
     pub context: Option<GpuContext>,
     /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
@@ -179,7 +200,7 @@ impl BuiltBvh {
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(g) = &mut self.gpu
-                    && let Err(e) = g.update(ib.bvh())
+                    && let Err(e) = Arc::get_mut(g).ok_or_else(busy)?.update(ib.bvh())
                 {
                     self.gpu_failure = Some(format!("updating the top level failed: {e}"));
                 }
@@ -198,7 +219,8 @@ impl BuiltBvh {
                 }
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
-                if let Ok(g) = &mut self.gpu {
+                if let Ok(shared) = &mut self.gpu {
+                    let g = Arc::get_mut(shared).ok_or_else(busy)?;
                     // The full stack's depth limit is the upload's: a deeper tree is
                     // uploaded anew, for the walks it allows.
                     let same_walks = walks(bvh) == walks(&new_bvh);
@@ -207,7 +229,7 @@ impl BuiltBvh {
                         // Another shape (node or triangle count), or other walks.
                         Ok(()) | Err(TraceError::BadBuffer { .. }) => {
                             times.reuploaded = true;
-                            upload(self.context.as_ref(), &new_bvh).map(|fresh| *g = fresh)
+                            upload(self.context.as_ref(), &new_bvh).map(|fresh| *shared = fresh)
                         }
                         Err(e) => Err(e),
                     };
@@ -245,20 +267,111 @@ impl BuiltBvh {
 
     /// Traces one batch on the GPU when [`BuiltBvh::gpu_tracer`] gives one, falling back
     /// to the CPU (and remembering why) when it fails. The flag is true when the GPU traced.
+    /// Not in a browser, whose GPU answers on a later frame: see
+    /// [`BuiltBvh::start_trace`].
     pub fn trace(
         &mut self,
         rays: &[Ray],
         opts: &TraceOptions,
         prefer_cpu: bool,
     ) -> Result<(TraceOutput, bool), TraceError> {
-        if let Some(g) = self.gpu_tracer(prefer_cpu) {
-            match g.trace(rays, opts) {
-                Ok(out) => return Ok((out, true)),
-                Err(e) => self.gpu_failure = Some(format!("GPU trace failed: {e}")),
-            }
+        let batch = self.start_trace(rays.to_vec(), *opts, prefer_cpu, || {});
+        match self.finish(&batch) {
+            Some(r) => r.map(|t| (t.out, t.on_gpu)),
+            None => Err(TraceError::Device {
+                during: "tracing",
+                message: "the batch is still on the GPU: use start_trace".into(),
+            }),
         }
-        Ok((self.cpu().trace(rays, opts)?, false))
     }
+
+    /// Starts tracing one batch: on the GPU when [`BuiltBvh::gpu_tracer`] gives one, else
+    /// on the CPU. Natively the batch is done when this returns; in a browser the GPU's
+    /// answer arrives on the event loop, which calls `wake` (to ask for a frame). Take the
+    /// result with [`BuiltBvh::finish`].
+    pub fn start_trace(
+        &mut self,
+        rays: Vec<Ray>,
+        opts: TraceOptions,
+        prefer_cpu: bool,
+        wake: impl Fn() + 'static,
+    ) -> Batch {
+        let done = Rc::new(RefCell::new(None));
+        let on_gpu = match &self.gpu {
+            Ok(g) if !prefer_cpu && self.gpu_failure.is_none() => {
+                let (g, slot) = (g.clone(), done.clone());
+                let traced = async move {
+                    let result = g.trace_async(&rays, &opts).await;
+                    *slot.borrow_mut() = Some((rays, result));
+                    wake();
+                };
+                #[cfg(target_arch = "wasm32")]
+                wasm_bindgen_futures::spawn_local(traced);
+                #[cfg(not(target_arch = "wasm32"))]
+                pollster::block_on(traced);
+                true
+            }
+            _ => {
+                let result = self.cpu().trace(&rays, &opts);
+                *done.borrow_mut() = Some((rays, result));
+                false
+            }
+        };
+        Batch { opts, on_gpu, done }
+    }
+
+    /// The rays, hits and whether the GPU traced them, once `batch` is done (`None` while
+    /// it is on the GPU). A failed GPU trace is traced again on the CPU, and the failure
+    /// kept in [`BuiltBvh::gpu_failure`].
+    pub fn finish(&mut self, batch: &Batch) -> Option<Result<Traced, TraceError>> {
+        let (rays, result) = batch.done.borrow_mut().take()?;
+        Some(match result {
+            Ok(out) => Ok(Traced {
+                rays,
+                out,
+                on_gpu: batch.on_gpu,
+            }),
+            Err(e) if batch.on_gpu => {
+                self.gpu_failure = Some(format!("GPU trace failed: {e}"));
+                let out = self.cpu().trace(&rays, &batch.opts);
+                out.map(|out| Traced {
+                    rays,
+                    out,
+                    on_gpu: false,
+                })
+            }
+            Err(e) => Err(e),
+        })
+    }
+
+    /// True while a batch started on the GPU holds the upload (in a browser, until its
+    /// answer arrives): a new pose waits for it.
+    pub fn busy(&self) -> bool {
+        self.gpu.as_ref().is_ok_and(|g| Arc::strong_count(g) > 1)
+    }
+}
+
+/// A finished batch ([`BuiltBvh::finish`]).
+pub struct Traced {
+    /// Its rays.
+    pub rays: Vec<Ray>,
+    /// Their hits and times.
+    pub out: TraceOutput,
+    /// True when the GPU traced them.
+    pub on_gpu: bool,
+}
+
+/// A batch of rays being traced ([`BuiltBvh::start_trace`]).
+pub struct Batch {
+    opts: TraceOptions,
+    on_gpu: bool,
+    done: Rc<RefCell<BatchResult>>,
+}
+
+type BatchResult = Option<(Vec<Ray>, Result<TraceOutput, TraceError>)>;
+
+fn busy() -> String {
+    "a trace is still running on the upload".to_string()
 }
 
 /// Where a job's scene comes from.
@@ -267,6 +380,13 @@ pub enum Source {
     Load(String),
     /// Rebuild the BVH of an already loaded scene.
     Reuse(Arc<SceneData>),
+    /// Load glTF from bytes (a file opened or dropped in a browser), named `name`.
+    Bytes {
+        /// The file's name, for errors and the title.
+        name: String,
+        /// Its contents.
+        bytes: Vec<u8>,
+    },
 }
 
 /// What a job does.
@@ -299,9 +419,12 @@ enum Msg {
     Done(Box<Result<JobOutput, String>>),
 }
 
-/// A job running on a worker thread.
+/// A job running on a worker thread (in a browser, waiting for its turn on the page).
 pub struct Job {
     rx: Receiver<Msg>,
+    /// In a browser: the request, its sender, and whether a frame has shown the job.
+    #[cfg(target_arch = "wasm32")]
+    deferred: Option<(JobRequest, Sender<Msg>, bool)>,
     /// When it started.
     pub started: Instant,
     /// What it is doing now, for the progress line.
@@ -311,7 +434,7 @@ pub struct Job {
 }
 
 /// Opens `bvh` on `ctx` through the front door, for [`walks`]`(bvh)`.
-fn upload(ctx: Option<&GpuContext>, bvh: &FlatBvh) -> Result<Box<dyn Tracer>, TraceError> {
+fn upload(ctx: Option<&GpuContext>, bvh: &FlatBvh) -> Result<Arc<dyn Tracer>, TraceError> {
     let ctx = ctx.ok_or_else(|| TraceError::NoAdapter {
         details: ": the viewer has no wgpu device".into(),
     })?;
@@ -319,7 +442,7 @@ fn upload(ctx: Option<&GpuContext>, bvh: &FlatBvh) -> Result<Box<dyn Tracer>, Tr
         traversals: walks(bvh),
         ..OpenOptions::default()
     };
-    Ok(bvhtrace::open_on_wgpu(ctx, bvh, &opts)?.tracer)
+    Ok(Arc::from(bvhtrace::open_on_wgpu(ctx, bvh, &opts)?.tracer))
 }
 
 /// The traversals an upload of `bvh` supports: the escape-link ones always, the full
@@ -349,19 +472,14 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             stage(format!("loading {spec}"));
             let t0 = Instant::now();
             let scene = bvhtrace_scene::load(&spec).map_err(|e| e.to_string())?;
-            let data = SceneData {
-                name: scene.name.clone(),
-                description: scene.description.clone(),
-                bounds: scene.bounds(),
-                camera: scene.camera,
-                warnings: scene.warnings.clone(),
-                duration: scene.duration(),
-                triangles: scene.triangle_count(),
-                scene,
-                load_ms: t0.elapsed().as_secs_f64() * 1e3,
-                spec,
-            };
-            (Arc::new(data), true)
+            (Arc::new(SceneData::new(spec, scene, t0)), true)
+        }
+        Source::Bytes { name, bytes } => {
+            stage(format!("loading {name}"));
+            let t0 = Instant::now();
+            let scene =
+                bvhtrace_scene::load_gltf_slice(&bytes, &name, None).map_err(|e| e.to_string())?;
+            (Arc::new(SceneData::new(name, scene, t0)), true)
         }
     };
     let time = scene.wrap_time(req.time);
@@ -440,23 +558,35 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
 
 impl Job {
     /// Starts `req` on a new thread; `wake` is called whenever there is news (to repaint).
+    /// In a browser, which has no threads here, the job runs on the page's thread at the
+    /// second [`Job::poll`], after a frame has shown that it started.
     pub fn spawn(req: JobRequest, what: String, wake: impl Fn() + Send + 'static) -> Job {
         let (tx, rx) = mpsc::channel();
-        let fallback = tx.clone();
-        let started = std::thread::Builder::new()
-            .name("bvhtrace-viewer job".into())
-            .spawn(move || {
-                let out = run(req, &tx);
-                let _ = tx.send(Msg::Done(Box::new(out)));
-                wake();
-            });
-        if let Err(e) = started {
-            let _ = fallback.send(Msg::Done(Box::new(Err(format!(
-                "could not start a worker thread: {e}"
-            )))));
+        #[cfg(target_arch = "wasm32")]
+        let deferred = {
+            wake();
+            Some((req, tx, false))
+        };
+        #[cfg(not(target_arch = "wasm32"))]
+        {
+            let fallback = tx.clone();
+            let started = std::thread::Builder::new()
+                .name("bvhtrace-viewer job".into())
+                .spawn(move || {
+                    let out = run(req, &tx);
+                    let _ = tx.send(Msg::Done(Box::new(out)));
+                    wake();
+                });
+            if let Err(e) = started {
+                let _ = fallback.send(Msg::Done(Box::new(Err(format!(
+                    "could not start a worker thread: {e}"
+                )))));
+            }
         }
         Job {
             rx,
+            #[cfg(target_arch = "wasm32")]
+            deferred,
             started: Instant::now(),
             stage: "starting".into(),
             what,
@@ -465,6 +595,15 @@ impl Job {
 
     /// Takes the news: `Some(result)` once the job is over.
     pub fn poll(&mut self) -> Option<Result<JobOutput, String>> {
+        #[cfg(target_arch = "wasm32")]
+        if let Some((req, tx, shown)) = self.deferred.take() {
+            if !shown {
+                self.deferred = Some((req, tx, true));
+                return None;
+            }
+            let out = run(req, &tx);
+            let _ = tx.send(Msg::Done(Box::new(out)));
+        }
         loop {
             match self.rx.try_recv() {
                 Ok(Msg::Stage(s)) => self.stage = s,

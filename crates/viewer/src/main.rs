@@ -1,9 +1,8 @@
 //! `bvhtrace-viewer [SCENE]`: see `bvhtrace_viewer::cli::Args` (or `--help`).
 
 use std::process::ExitCode;
-use std::sync::{Arc, Mutex};
 
-use bvhtrace_viewer::app::{Outcome, ViewerApp};
+use bvhtrace_viewer::app::{Shared, ViewerApp};
 use bvhtrace_viewer::cli::Args;
 use clap::Parser;
 use eframe::egui;
@@ -37,7 +36,7 @@ fn main() -> ExitCode {
         eprintln!("error: {e}");
         return ExitCode::FAILURE;
     }
-    let outcome: Outcome = Arc::new(Mutex::new(None));
+    let shared = Shared::default();
     let (w, h) = args.size;
     let options = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default()
@@ -49,11 +48,11 @@ fn main() -> ExitCode {
         ..Default::default()
     };
     let app_args = args.clone();
-    let app_outcome = outcome.clone();
+    let app_shared = shared.clone();
     let run = eframe::run_native(
         "bvhtrace viewer",
         options,
-        Box::new(move |cc| Ok(Box::new(ViewerApp::new(cc, &app_args, app_outcome)))),
+        Box::new(move |cc| Ok(Box::new(ViewerApp::new(cc, &app_args, app_shared)))),
     );
     if let Err(e) = run {
         eprintln!(
@@ -67,7 +66,7 @@ fn main() -> ExitCode {
     if args.screenshot.is_none() {
         return ExitCode::SUCCESS;
     }
-    let result = outcome.lock().ok().and_then(|mut o| o.take());
+    let result = shared.outcome.lock().ok().and_then(|mut o| o.take());
     match result {
         Some(Ok(msg)) => {
             eprintln!("{msg}");

@@ -20,10 +20,8 @@ pub fn check_writable(path: &Path) -> Result<(), String> {
     }
 }
 
-/// Writes `img` as an RGB PNG to `path` atomically: into a temporary file in the same
-/// folder, then renamed over `path`, so a reader never sees a partial file. The temporary
-/// file is removed on failure.
-pub fn write_png_atomic(path: &Path, img: &egui::ColorImage) -> Result<(), String> {
+/// `img` as RGB8 bytes, with its width and height.
+fn rgb_of(img: &egui::ColorImage) -> Result<(Vec<u8>, u32, u32), String> {
     let [w, h] = img.size;
     let (w32, h32) = (
         u32::try_from(w).map_err(|_| "the image is too wide".to_string())?,
@@ -37,6 +35,25 @@ pub fn write_png_atomic(path: &Path, img: &egui::ColorImage) -> Result<(), Strin
         let [r, g, b, _] = c.to_srgba_unmultiplied();
         rgb.extend_from_slice(&[r, g, b]);
     }
+    Ok((rgb, w32, h32))
+}
+
+/// `img` as the bytes of an RGB PNG file (what a page sends where a program writes a file).
+pub fn encode_png(img: &egui::ColorImage) -> Result<Vec<u8>, String> {
+    use image::ImageEncoder;
+    let (rgb, w, h) = rgb_of(img)?;
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(&rgb, w, h, image::ExtendedColorType::Rgb8)
+        .map_err(|e| format!("encoding the screenshot: {e}"))?;
+    Ok(out)
+}
+
+/// Writes `img` as an RGB PNG to `path` atomically: into a temporary file in the same
+/// folder, then renamed over `path`, so a reader never sees a partial file. The temporary
+/// file is removed on failure.
+pub fn write_png_atomic(path: &Path, img: &egui::ColorImage) -> Result<(), String> {
+    let (rgb, w32, h32) = rgb_of(img)?;
     let name = path
         .file_name()
         .ok_or_else(|| format!("{}: not a file path", path.display()))?;

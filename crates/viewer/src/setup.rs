@@ -1,4 +1,4 @@
-//! eframe's wgpu configuration: Vulkan, the adapter the tracer would pick, and a device
+//! eframe's wgpu configuration: Vulkan (WebGPU in a browser), the adapter the tracer would pick, and a device
 //! with what [`GpuContext`] says the tracer needs and uses, so that the one device serves
 //! both egui and the traversal kernels.
 
@@ -41,8 +41,11 @@ pub fn wgpu_configuration(adapter: Option<String>) -> WgpuConfiguration {
     };
     let choice = AdapterChoice::from_name(adapter.or_else(from_env).as_deref());
     let mut create = WgpuSetupCreateNew::without_display_handle();
-    create.instance_descriptor.backends =
-        wgpu::Backends::from_env().unwrap_or(wgpu::Backends::VULKAN);
+    create.instance_descriptor.backends = if cfg!(target_arch = "wasm32") {
+        wgpu::Backends::BROWSER_WEBGPU
+    } else {
+        wgpu::Backends::from_env().unwrap_or(wgpu::Backends::VULKAN)
+    };
     create.native_adapter_selector = Some(Arc::new(
         move |adapters: &[wgpu::Adapter], surface: Option<&wgpu::Surface<'_>>| {
             let usable: Vec<&wgpu::Adapter> = adapters
