@@ -369,3 +369,22 @@ fn named_updates_and_their_bytes() {
         ));
     }
 }
+
+/// `left_out` names exactly what the device lacks, one line each.
+#[test]
+fn left_out_names_what_the_device_lacks() {
+    let Some(ctx) = context() else { return };
+    let lines = ctx.left_out();
+    let says = |what: &str| lines.iter().any(|l| l.starts_with(what));
+    let features = ctx.features();
+    assert_eq!(says("texture storage"), !features.textures, "{lines:?}");
+    assert_eq!(says("the f64 triangle test"), !features.f64, "{lines:?}");
+    assert_eq!(says("GPU timings"), !ctx.has_timestamps(), "{lines:?}");
+    assert_eq!(
+        lines.len(),
+        usize::from(!features.textures)
+            + usize::from(!features.f64)
+            + usize::from(!ctx.has_timestamps()),
+        "{lines:?}"
+    );
+}

@@ -2,8 +2,9 @@
 # Builds bvhtrace for the browser into web/dist: the library (bvhtrace_web.js and its
 # wasm, used by index.html) and the viewer (bvhtrace_viewer_web.js and its wasm, used by
 # viewer.html), both release builds bound to JavaScript by wasm-bindgen (the CLI's version
-# must equal the wasm-bindgen crate's in Cargo.lock), and the two pages. When wasm-opt is
-# on the PATH and can read the output (`WASM_OPT=0` skips it), the wasm is shrunk with -Oz.
+# must equal the wasm-bindgen crate's in Cargo.lock), and the two pages. `WASM_OPT=1` also
+# shrinks the wasm with wasm-opt -Oz: it needs binaryen 116 or later (Debian 12's 108
+# breaks wasm-bindgen's externref table; the page then fails to instantiate).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # One crate per build: the viewer's eframe turns on wgpu features (WebGL) the library leaves out.
@@ -14,13 +15,9 @@ for crate in bvhtrace_web bvhtrace_viewer_web; do
   wasm-bindgen --target web --no-typescript --out-dir web/dist \
     "target/wasm32-unknown-unknown/release/$crate.wasm"
   wasm="web/dist/${crate}_bg.wasm"
-  if [ "${WASM_OPT:-1}" != 0 ] && command -v wasm-opt > /dev/null; then
-    if wasm-opt -Oz --all-features "$wasm" -o "$wasm.opt" 2> /dev/null; then
-      mv "$wasm.opt" "$wasm"
-    else
-      rm -f "$wasm.opt"
-      echo "wasm-opt could not read $wasm: left as it is"
-    fi
+  if [ "${WASM_OPT:-0}" = 1 ]; then
+    wasm-opt -Oz --all-features "$wasm" -o "$wasm.opt"
+    mv "$wasm.opt" "$wasm"
   fi
   echo "$wasm: $(wc -c < "$wasm") bytes"
 done

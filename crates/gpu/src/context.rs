@@ -89,7 +89,15 @@ struct Inner {
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
+    /// In a browser, the error scopes of the work done since the last trace, popped and
+    /// awaited by that trace ([`GpuContext::deferred_errors`]).
+    #[cfg(target_arch = "wasm32")]
+    deferred: Mutex<Vec<(&'static str, DeferredScope)>>,
 }
+
+/// A popped error scope whose answer a browser gives on its event loop.
+#[cfg(target_arch = "wasm32")]
+type DeferredScope = std::pin::Pin<Box<dyn std::future::Future<Output = Option<wgpu::Error>>>>;
 
 impl std::fmt::Debug for GpuContext {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -100,6 +108,17 @@ impl std::fmt::Debug for GpuContext {
             .field("timestamps", &self.inner.timestamps)
             .field("tuning", &self.inner.tuning)
             .finish()
+    }
+}
+
+/// An error scope's error as ours.
+fn scope_error(during: &'static str, e: wgpu::Error) -> GpuError {
+    match e {
+        wgpu::Error::OutOfMemory { .. } => GpuError::OutOfMemory {
+            during,
+            message: e.to_string(),
+        },
+        e => GpuError::device(during, e),
     }
 }
 
@@ -371,6 +390,8 @@ impl GpuContext {
                 composition: options.composition,
                 timestamps,
                 modules: Default::default(),
+                #[cfg(target_arch = "wasm32")]
+                deferred: Default::default(),
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
@@ -436,32 +457,80 @@ impl GpuContext {
     }
 
     /// Runs `f` inside validation and out-of-memory error scopes; an error either reported
-    /// becomes a [`GpuError`]. wgpu's error scopes are per thread (its `std` feature, which
-    /// this crate enables), so threads tracing one upload at once do not see each other's.
+    /// becomes a [`GpuError`] (in a browser, returned by the next trace). wgpu's error
+    /// scopes are per thread (its `std` feature, which this crate enables), so threads
+    /// tracing one upload at once do not see each other's.
     pub(crate) fn scoped<T>(
         &self,
         during: &'static str,
         f: impl FnOnce() -> T,
     ) -> Result<T, GpuError> {
-        if cfg!(target_arch = "wasm32") {
-            // A browser answers error scopes on its event loop, which must not be blocked:
-            // its errors reach the device's uncaptured-error handler instead.
-            return Ok(f());
-        }
         let device = &self.inner.device;
         let oom = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let value = f();
-        let v = pollster::block_on(validation.pop());
-        let o = pollster::block_on(oom.pop());
-        match v.or(o) {
-            None => Ok(value),
-            Some(e @ wgpu::Error::OutOfMemory { .. }) => Err(GpuError::OutOfMemory {
-                during,
-                message: e.to_string(),
-            }),
-            Some(e) => Err(GpuError::device(during, e)),
+        let (v, o) = (validation.pop(), oom.pop());
+        #[cfg(target_arch = "wasm32")]
+        {
+            // A browser answers on its event loop, which must not be blocked: the next
+            // trace awaits the answer.
+            let answer = Box::pin(async move { v.await.or(o.await) });
+            if let Ok(mut d) = self.inner.deferred.lock() {
+                d.push((during, answer));
+            }
+            Ok(value)
         }
+        #[cfg(not(target_arch = "wasm32"))]
+        match pollster::block_on(v).or(pollster::block_on(o)) {
+            None => Ok(value),
+            Some(e) => Err(scope_error(during, e)),
+        }
+    }
+
+    /// The first error of the work done since the last call, in a browser, where error
+    /// scopes answer on the event loop (shader compilation by the browser's compiler,
+    /// uploads, submissions); natively [`GpuContext::scoped`] has reported them already.
+    pub(crate) async fn deferred_errors(&self) -> Result<(), GpuError> {
+        #[cfg(target_arch = "wasm32")]
+        {
+            let scopes = match self.inner.deferred.lock() {
+                Ok(mut d) => std::mem::take(&mut *d),
+                Err(_) => Vec::new(),
+            };
+            let mut first = None;
+            for (during, answer) in scopes {
+                if let Some(e) = answer.await {
+                    first.get_or_insert(scope_error(during, e));
+                }
+            }
+            if let Some(e) = first {
+                return Err(e);
+            }
+        }
+        Ok(())
+    }
+
+    /// What this device leaves out, one line each: texture storage without enough
+    /// storage-texture bindings (the BVH then goes to buffers), the f64 triangle test
+    /// without `SHADER_F64`, GPU timings without `TIMESTAMP_QUERY` (traces report wall
+    /// time only). Empty when nothing is left out; what a front end or page shows.
+    pub fn left_out(&self) -> Vec<String> {
+        let device = &self.inner.device;
+        let mut out = Vec::new();
+        let has = device.limits().max_storage_textures_per_shader_stage;
+        if has < STORAGE_TEXTURES_USED {
+            out.push(format!(
+                "texture storage: {has} storage textures per shader stage, {STORAGE_TEXTURES_USED} \
+                 needed (the BVH goes to storage buffers)"
+            ));
+        }
+        if !self.features().f64 {
+            out.push("the f64 triangle test: no SHADER_F64".to_string());
+        }
+        if !self.inner.timestamps {
+            out.push("GPU timings: no TIMESTAMP_QUERY (traces report wall time only)".into());
+        }
+        out
     }
 
     /// True when kernels with this triangle test can run on this device (f64 needs

@@ -341,7 +341,11 @@ pub(crate) async fn run_batch(
     let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
     maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
     maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
-    map_all(device, index, &maps).await?;
+    let mapped = map_all(device, index, &maps).await;
+    // In a browser, a kernel the browser's compiler rejected (or any failed step before)
+    // is only known now: its error comes first.
+    ctx.deferred_errors().await?;
+    mapped?;
     let read = (|| -> Result<Option<f64>, GpuError> {
         read_mapped(&s.hits_read, count * HIT_BYTES, batch.hits)?;
         if let (Some(c), Some(b)) = (batch.counters, counter_buffers) {

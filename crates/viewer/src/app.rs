@@ -1117,6 +1117,11 @@ impl ViewerApp {
             ui.radio_value(&mut self.settings.prefer_cpu, true, "CPU twin");
         });
         ui.label(RichText::new(format!("device: {}", self.adapter_line)).small());
+        if let Ok(ctx) = &self.gpu {
+            for line in ctx.left_out() {
+                ui.label(RichText::new(format!("left out: {line}")).small().weak());
+            }
+        }
         if let Some(b) = &self.built {
             if let Some(u) = b.gpu.as_ref().ok().and_then(|g| g.upload_stats()) {
                 ui.label(

@@ -22,7 +22,8 @@ mod web {
     /// closest hit, twice: the first trace builds the pipeline, the second is timed and
     /// returned. Resolves to `[bytes, adapter]`: the hits (16 bytes each, the layout of
     /// [`bvhtrace_core::Hit`]) followed by the second trace's wall time in milliseconds (an
-    /// f64), and a description of the adapter.
+    /// f64), and a description of the adapter with what it leaves out
+    /// ([`GpuContext::left_out`]).
     #[wasm_bindgen]
     pub async fn trace_closest(
         triangles: Vec<f32>,
@@ -52,7 +53,10 @@ mod web {
         let result = js_sys::Array::new();
         result.push(&js_sys::Uint8Array::from(&bytes[..]));
         let info = ctx.adapter_info();
-        let adapter = format!("{:?} adapter, {:?}", info.device_type, info.backend);
+        let mut adapter = format!("{:?} adapter, {:?}", info.device_type, info.backend);
+        for line in ctx.left_out() {
+            adapter.push_str(&format!("; left out: {line}"));
+        }
         result.push(&JsValue::from_str(&adapter));
         Ok(result)
     }
