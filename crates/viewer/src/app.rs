@@ -240,6 +240,9 @@ pub struct ViewerApp {
     compare_pending: bool,
     image_rect: egui::Rect,
     shared: Shared,
+    /// When the app started, and how long after it the first traced image was shown.
+    started: web_time::Instant,
+    first_image_ms: Option<f64>,
     playback: Playback,
 }
 
@@ -343,6 +346,8 @@ impl ViewerApp {
             compare_pending: args.compare,
             image_rect: egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(800.0, 600.0)),
             shared,
+            started: web_time::Instant::now(),
+            first_image_ms: None,
             playback: Playback {
                 time: args.time,
                 playing: args.play,
@@ -546,6 +551,8 @@ impl ViewerApp {
         if changed && let (Some(acc), Some(view)) = (&self.accum, &self.view) {
             self.image = acc.compose(view);
             self.stats = stats;
+            self.first_image_ms
+                .get_or_insert_with(|| self.started.elapsed().as_secs_f64() * 1e3);
         }
         changed
     }
@@ -791,10 +798,12 @@ impl ViewerApp {
                         _ => String::new(),
                     };
                     let frames = shot.frames;
+                    let first = self.first_image_ms.unwrap_or(f64::NAN);
                     let r = self.save_shot(&path, &img).map(|()| {
                         format!(
                             "wrote {} ({w}x{h}; {frames} frames, traced on the {backend}, \
-                             {samples} accumulated samples per pixel{animation})",
+                             {samples} accumulated samples per pixel{animation}; first image \
+                             {first:.0} ms after the start)",
                             path.display(),
                         )
                     });
