@@ -5,7 +5,8 @@
 #    the CPU twin's, bit for bit: prints `browser parity: N hits, 0 differ`;
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
-#    prints `browser viewer: N pixels, 0 differ`.
+#    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
+#    levels, playing.
 # Exits non-zero on any difference or page error. Flags go to the library check
 # (`--size WxH`).
 set -euo pipefail
@@ -13,3 +14,7 @@ cd "$(dirname "$0")/.."
 web/build.sh
 cargo run --release -q -p bvhtrace-integration --example browser_parity -- web/dist "$@"
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist
+# Two levels and animation: the viewer plays scenes/animated.gltf from t = 1 s, each pose
+# written into the upload in place; the image it shows against the native render at its time.
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
+  --scene scenes/animated.gltf --time 1 --play --out web/dist/animated

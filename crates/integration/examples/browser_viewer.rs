@@ -9,11 +9,15 @@
 //! `web/test.sh` runs it.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR]
+//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR] [--scene FILE.glb|.gltf] [--time T] [--play] [--cpu]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
-//! builtin icosphere (said in the output).
+//! builtin icosphere (said in the output). `--scene` opens another file (a `.gltf` with
+//! embedded buffers, or a `.glb`), `--time` poses an animated one at T seconds (in two
+//! levels when it places meshes more than once, as the viewer does), and `--play` plays it
+//! from there (each frame a new pose, written into the upload in place). `--cpu` has the
+//! viewer trace with the CPU walks in WebAssembly instead of the GPU.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -33,9 +37,11 @@ fn main() {
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
-    let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR]";
+    let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu]";
     let dist = PathBuf::from(args.next().ok_or(usage)?);
     let (mut window, mut out) = ((960u32, 640u32), dist.clone());
+    let (mut file, mut time, mut play) = (None::<PathBuf>, 0.0f32, false);
+    let mut cpu = false;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => {
@@ -44,11 +50,15 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
                 window = (a.parse()?, b.parse()?);
             }
             "--out" => out = PathBuf::from(args.next().ok_or("--out needs a folder")?),
+            "--scene" => file = Some(PathBuf::from(args.next().ok_or("--scene needs a file")?)),
+            "--time" => time = args.next().ok_or("--time needs seconds")?.parse()?,
+            "--play" => play = true,
+            "--cpu" => cpu = true,
             other => return Err(format!("unknown argument {other}; {usage}").into()),
         }
     }
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
-    let glb = shared_scenes_dir().map(|d| d.join("glb/bunny_69k.glb"));
+    let glb = file.or_else(|| shared_scenes_dir().map(|d| d.join("glb/bunny_69k.glb")));
     let (spec, scene_bytes) = match &glb {
         Some(path) => (
             path.to_string_lossy().into_owned(),
@@ -64,13 +74,23 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let cam = Camera::frame(lo, hi, 1.0);
     let v = |p: Vec3| format!("{},{},{}", p.x, p.y, p.z);
     let mut flags = format!(
-        "--screenshot viewer.png --frames 5 --scale 1 --eye {} --target {} --fov {}",
+        "--screenshot viewer.png --frames 5 --scale 1 --eye {} --target {} --fov {} --time {time}",
         v(cam.eye),
         v(cam.target),
         cam.fov_y_deg
     );
+    if play {
+        flags.push_str(" --play");
+    }
+    if cpu {
+        flags.push_str(" --cpu");
+    }
+    let name = match spec.rsplit_once('.') {
+        Some((_, ext)) if ext.eq_ignore_ascii_case("gltf") => "scene.gltf",
+        _ => "scene.glb",
+    };
     let query = match scene_bytes {
-        Some(_) => "scene=/scene.glb&".to_string(),
+        Some(_) => format!("scene=/{name}&"),
         None => {
             flags = format!("{spec} {flags}");
             String::new()
@@ -82,8 +102,8 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     );
     let files = {
         let serve = browser::folder(dist.clone());
-        move |p: &str| match (p, &scene_bytes) {
-            ("/scene.glb", Some(b)) => Some(b.clone()),
+        move |p: &str| match &scene_bytes {
+            Some(b) if p.strip_prefix('/') == Some(name) => Some(b.clone()),
             _ => serve(p),
         }
     };
@@ -136,16 +156,20 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&out)?;
     let shot = out.join("viewer-screenshot.png");
     std::fs::write(&shot, png)?;
-    if head["on_gpu"].as_bool() != Some(true) {
+    if head["on_gpu"].as_bool() != Some(true) && !cpu {
         return Err("the viewer traced on the CPU, not the browser's GPU".into());
     }
     if traced.len() != (w * h * 4) as usize || w == 0 {
         return Err(format!("the traced image has {} bytes for {w}x{h}", traced.len()).into());
     }
 
-    // The native render of the same camera: the CPU twin's hits, shaded as `bvhtrace
-    // render` shades them (the viewer's default mode, normals).
-    let geometry = scene.tracing_bvh(&BuildOptions::default(), false)?;
+    // The native render of the same camera and time: the CPU twin's hits, shaded as
+    // `bvhtrace render` shades them (the viewer's default mode, normals).
+    // The time the viewer shows (it moves on from `--time` when `--play` is given).
+    let shown_time = head["time"].as_f64().ok_or("no time")? as f32;
+    let mut posed = scene.clone();
+    posed.set_time(shown_time);
+    let geometry = posed.tracing_bvh(&BuildOptions::default(), false)?;
     let rays = shown.rays(w, h);
     let hits = trace_rays(
         geometry.bvh(),

@@ -102,7 +102,7 @@ mod web {
         /// How a `--screenshot` run ended: `undefined` while it runs, else an object with
         /// `message` (or `error`), and when it ended well `window_png` (the window as a
         /// PNG file), `traced` (the traced image, RGBA8), `width`, `height`, `eye`,
-        /// `target`, `fov` (its camera) and `on_gpu`.
+        /// `target`, `fov` (its camera), `time` (the animation time it shows) and `on_gpu`.
         pub fn screenshot(&self) -> Result<JsValue, JsValue> {
             let outcome = self.shared.outcome.lock().ok().and_then(|o| o.clone());
             let Some(outcome) = outcome else {
@@ -131,6 +131,7 @@ mod web {
                 set("target", v3(s.camera.target))?;
                 set("fov", s.camera.fov_y_deg.into())?;
                 set("on_gpu", s.on_gpu.into())?;
+                set("time", s.time.into())?;
             }
             Ok(o.into())
         }

@@ -56,6 +56,9 @@ pub struct ShotImages {
     pub camera: Camera,
     /// True when the GPU traced every ray of the last frame.
     pub on_gpu: bool,
+    /// The animation time of the traced image, seconds (in a browser, a frame behind the
+    /// latest pose while an animation plays).
+    pub time: f32,
 }
 
 /// The largest traced image side, pixels.
@@ -139,7 +142,9 @@ struct PassKey {
     heatmap: bool,
     traversal: Traversal,
     prefer_cpu: bool,
+    /// The BVH: a new build or pose is a new generation, posed at `time` seconds.
     generation: u64,
+    time: f32,
 }
 
 /// Timing of the last frame that traced something.
@@ -510,6 +515,7 @@ impl ViewerApp {
             traversal: self.settings.traversal(),
             prefer_cpu: self.settings.prefer_cpu,
             generation: self.generation,
+            time: self.built.as_ref().map_or(0.0, |b| b.time),
         };
         let mut stats = FrameStats {
             on_gpu: true,
@@ -719,6 +725,7 @@ impl ViewerApp {
             size,
             camera: self.key.as_ref().map_or(self.cam, |k| k.camera),
             on_gpu: self.stats.on_gpu,
+            time: self.key.as_ref().map_or(0.0, |k| k.time),
         };
         if let Ok(mut s) = self.shared.shot.lock() {
             *s = Some(images);

@@ -758,6 +758,52 @@ mod animation_tests {
         assert_eq!(hits(&scene, &mut built), at0);
     }
 
+    /// A pose written into the upload in place traces as a fresh build at that time, on
+    /// the device.
+    #[test]
+    fn a_pose_on_the_device_matches_the_cpu_at_that_time() {
+        for storage in [
+            bvhtrace::BvhStorage::Buffers,
+            bvhtrace::BvhStorage::Textures,
+        ] {
+            let options = bvhtrace_gpu::ContextOptions {
+                tuning: Some(bvhtrace::DriverTuning {
+                    storage,
+                    ..bvhtrace::DriverTuning::cpu_driver(2)
+                }),
+                ..Default::default()
+            };
+            match GpuContext::new_with(bvhtrace::AdapterChoice::Auto, &options) {
+                Ok(ctx) => poses_on(ctx),
+                Err(e) => return eprintln!("SKIP: no device ({e})"),
+            }
+        }
+    }
+
+    fn poses_on(ctx: GpuContext) {
+        let (tx, _rx) = mpsc::channel();
+        let req = JobRequest {
+            source: Source::Load(animated_spec()),
+            build: BuildOptions::default(),
+            traversal: Traversal::Stackless,
+            time: 0.0,
+            gpu: Ok(ctx),
+        };
+        let JobOutput {
+            scene, mut built, ..
+        } = run(req, &tx).expect("loads, builds and uploads");
+        for t in [0.5, 1.0, 1.5] {
+            built.pose(&scene.scene, t).expect("poses");
+            let rays = scene.initial_camera(1.5).rays(48, 32);
+            let opts = TraceOptions::closest(Traversal::Stackless);
+            let (gpu, on_gpu) = built.trace(&rays, &opts, false).expect("traces");
+            assert!(on_gpu, "{:?}", built.gpu_problem());
+            let JobOutput { built: fresh, .. } = built_at(t);
+            let cpu = fresh.cpu().trace(&rays, &opts).expect("traces");
+            assert_eq!(gpu.hits, cpu.hits, "t = {t}");
+        }
+    }
+
     fn built_at(t: f32) -> JobOutput {
         built(&animated_spec(), t)
     }
