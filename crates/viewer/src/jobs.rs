@@ -181,6 +181,10 @@ impl BuiltBvh {
     /// A failure leaves the BVH as it was (an upload that fails is kept as
     /// [`BuiltBvh::gpu_failure`]: the CPU traces the new pose).
     pub fn pose(&mut self, scene: &Scene, t: f32) -> Result<PoseTimes, String> {
+        // Checked first, so that a refusal leaves the geometry as it was.
+        if self.busy() {
+            return Err(busy());
+        }
         let t0 = Instant::now();
         let mut times = PoseTimes::default();
         match &mut self.geometry {

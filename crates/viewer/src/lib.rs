@@ -7,7 +7,9 @@
 //!
 //! * [`camera`]: orbit, pan, zoom and fly moves, and `bvhtrace render` flags.
 //! * [`shade`]: hits to pixels (the CLI's shading modes) and progressive accumulation.
-//! * [`jobs`]: scene loading, BVH building and upload off the UI thread; the resulting
+//! * [`jobs`]: scene loading, BVH building and upload off the UI thread (in a browser,
+//!   between frames); batches traced on the GPU that may finish on a later frame (in a
+//!   browser); the resulting
 //!   [`jobs::BuiltBvh`] holds the upload ([`bvhtrace_gpu::GpuBvh`]) and the CPU twin
 //!   ([`bvhtrace_gpu::CpuTracer`]), falls back from the first to the second, and moves an
 //!   animated scene to a new time ([`jobs::BuiltBvh::pose`]: two levels rebuild only their
