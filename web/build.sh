@@ -7,7 +7,7 @@
 # breaks wasm-bindgen's externref table; the page then fails to instantiate).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-# One crate per build: the viewer's eframe turns on wgpu features (WebGL) the library leaves out.
+# One crate per build, so that neither gets the other's dependencies' features.
 cargo build --release --target wasm32-unknown-unknown -p bvhtrace-web
 cargo build --release --target wasm32-unknown-unknown -p bvhtrace-viewer-web
 mkdir -p web/dist
