@@ -6,7 +6,8 @@
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
-#    levels, playing.
+#    levels, playing; then that a bad flag and a broken file show their errors on the page.
+# The library check also opens the example page (index.html) and checks the hits it prints.
 # Exits non-zero on any difference or page error. Flags go to the library check
 # (`--size WxH`).
 set -euo pipefail
@@ -18,3 +19,8 @@ cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/d
 # written into the upload in place; the image it shows against the native render at its time.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --scene scenes/animated.gltf --time 1 --play --out web/dist/animated
+# Errors reach the page (and the test), never a blank canvas: a bad flag, a broken file.
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
+  --flags "--shade sepia" --expect-error "invalid value 'sepia'"
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
+  --scene web/viewer.html --expect-error "scene.glb"

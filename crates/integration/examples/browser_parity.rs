@@ -3,7 +3,8 @@
 //! SwiftShader), has it build the BVH in WebAssembly and trace a fixed camera's rays on
 //! the browser's WebGPU, and checks every hit against the CPU twin's (`trace_rays`, same
 //! triangles, same rays, same walk) bit for bit. Prints `browser parity: N hits, 0 differ`
-//! and exits non-zero on any difference, page error or timeout. `web/test.sh` runs it.
+//! and exits non-zero on any difference, page error or timeout. Then opens the library's
+//! example page (`index.html`) and checks the hits it prints. `web/test.sh` runs it.
 //!
 //! ```text
 //! cargo run --release -p bvhtrace-integration --example browser_parity -- DIST [--size WxH]
@@ -139,13 +140,46 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             rays[i], gpu[i], cpu[i]
         );
     }
-    match differ.is_empty() {
-        true => Ok(()),
-        false => Err(format!(
+    if !differ.is_empty() {
+        return Err(format!(
             "{} of {} hits differ from the CPU twin's",
             differ.len(),
             cpu.len()
         )
-        .into()),
+        .into());
+    }
+    example_page(&chromium, &dist)
+}
+
+/// The library's example page (`index.html`): four rays over a unit quad of two triangles,
+/// the hits printed on the page. Three hit at t = 5 (the ray on the shared diagonal hits
+/// exactly one of the two triangles: the test is watertight), the fourth misses.
+fn example_page(chromium: &str, dist: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+    let text = match browser::open_page(
+        chromium,
+        browser::WebGpu::SwiftShader,
+        browser::folder(dist.to_path_buf()),
+        "/index.html?report=1",
+        (800, 600),
+        Duration::from_secs(300),
+    )? {
+        Report::Result(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
+        Report::Error(e) => return Err(format!("the example page failed: {e}").into()),
+    };
+    let lines: Vec<&str> = text.lines().collect();
+    let hit = |i: usize, tri: &str| {
+        lines
+            .get(i)
+            .is_some_and(|l| l.contains(&format!("triangle {tri}")) && l.contains("t = 5"))
+    };
+    let ok = lines.len() == 6
+        && hit(1, "0")
+        && hit(2, "1")
+        && (hit(3, "0") || hit(3, "1"))
+        && lines[4].ends_with(": miss");
+    println!("example page: {}", lines[1..].join(" | "));
+    match ok {
+        true => Ok(()),
+        false => Err(format!("the example page printed:\n{text}").into()),
     }
 }

@@ -9,7 +9,7 @@
 //! `web/test.sh` runs it.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR] [--scene FILE.glb|.gltf] [--time T] [--play] [--cpu]
+//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR] [--scene FILE.glb|.gltf] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
@@ -17,7 +17,9 @@
 //! embedded buffers, or a `.glb`), `--time` poses an animated one at T seconds (in two
 //! levels when it places meshes more than once, as the viewer does), and `--play` plays it
 //! from there (each frame a new pose, written into the upload in place). `--cpu` has the
-//! viewer trace with the CPU walks in WebAssembly instead of the GPU.
+//! viewer trace with the CPU walks in WebAssembly instead of the GPU. `--flags` adds the
+//! viewer's own flags; with `--expect-error TEXT` the page must fail and show an error
+//! containing TEXT (a bad flag, a file that does not load) instead of an image.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -37,11 +39,12 @@ fn main() {
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
-    let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu]";
+    let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]";
     let dist = PathBuf::from(args.next().ok_or(usage)?);
     let (mut window, mut out) = ((960u32, 640u32), dist.clone());
     let (mut file, mut time, mut play) = (None::<PathBuf>, 0.0f32, false);
     let mut cpu = false;
+    let (mut extra, mut expect_error) = (String::new(), None::<String>);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => {
@@ -54,6 +57,10 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             "--time" => time = args.next().ok_or("--time needs seconds")?.parse()?,
             "--play" => play = true,
             "--cpu" => cpu = true,
+            "--flags" => extra = args.next().ok_or("--flags needs the viewer's flags")?,
+            "--expect-error" => {
+                expect_error = Some(args.next().ok_or("--expect-error needs a text")?);
+            }
             other => return Err(format!("unknown argument {other}; {usage}").into()),
         }
     }
@@ -69,8 +76,14 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             ("builtin:icosphere:6".to_string(), None)
         }
     };
-    let scene = bvhtrace_scene::load(&spec)?;
-    let (lo, hi) = scene.bounds();
+    // A page expected to fail gets a file that need not load here either.
+    let scene = match &expect_error {
+        None => Some(bvhtrace_scene::load(&spec)?),
+        Some(_) => None,
+    };
+    let (lo, hi) = scene
+        .as_ref()
+        .map_or((Vec3::splat(-1.0), Vec3::ONE), |s| s.bounds());
     let cam = Camera::frame(lo, hi, 1.0);
     let v = |p: Vec3| format!("{},{},{}", p.x, p.y, p.z);
     let mut flags = format!(
@@ -84,6 +97,9 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     }
     if cpu {
         flags.push_str(" --cpu");
+    }
+    if !extra.is_empty() {
+        flags = format!("{flags} {extra}");
     }
     let name = match spec.rsplit_once('.') {
         Some((_, ext)) if ext.eq_ignore_ascii_case("gltf") => "scene.gltf",
@@ -107,18 +123,30 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             _ => serve(p),
         }
     };
-    println!("{spec}: {} triangles; page {path}", scene.triangle_count());
+    let triangles = scene.as_ref().map_or(0, |s| s.triangle_count());
+    println!("{spec}: {triangles} triangles; page {path}");
     let start = Instant::now();
-    let body = match browser::open_page(
+    let report = browser::open_page(
         &chromium,
         WebGpu::Vulkan,
         files,
         &path,
         window,
         Duration::from_secs(600),
-    )? {
-        Report::Result(bytes) => bytes,
-        Report::Error(e) => return Err(format!("the page failed: {e}").into()),
+    )?;
+    let body = match (report, expect_error) {
+        (Report::Result(bytes), None) => bytes,
+        (Report::Error(e), None) => return Err(format!("the page failed: {e}").into()),
+        (Report::Error(e), Some(want)) if e.contains(&want) => {
+            println!("browser viewer: the page shows the error, as expected: {e}");
+            return Ok(());
+        }
+        (Report::Error(e), Some(want)) => {
+            return Err(format!("the page failed without saying {want:?}: {e}").into());
+        }
+        (Report::Result(_), Some(want)) => {
+            return Err(format!("the page ran, where it should have said {want:?}").into());
+        }
     };
     let page_s = start.elapsed().as_secs_f64();
     let line = body
@@ -167,7 +195,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     // `bvhtrace render` shades them (the viewer's default mode, normals).
     // The time the viewer shows (it moves on from `--time` when `--play` is given).
     let shown_time = head["time"].as_f64().ok_or("no time")? as f32;
-    let mut posed = scene.clone();
+    let mut posed = scene.ok_or("no scene")?;
     posed.set_time(shown_time);
     let geometry = posed.tracing_bvh(&BuildOptions::default(), false)?;
     let rays = shown.rays(w, h);
