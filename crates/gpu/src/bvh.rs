@@ -33,7 +33,8 @@ impl<'a> BvhBindGroup<'a> {
     }
 }
 
-/// A BVH on the device, ready to trace (see [`GpuBvh::trace`] and [`GpuBvh::record`]).
+/// A BVH on the device, ready to trace (see [`trace`](crate::Tracer::trace) and
+/// [`GpuBvh::record`]).
 /// `Send + Sync`: trace it from several threads at once.
 ///
 /// The engine's methods ([`Engine::trace`], [`Engine::supports`], [`Engine::stats`],
@@ -86,8 +87,9 @@ impl GpuBvh {
         })
     }
 
-    /// Device bytes of the buffers [`GpuBvh::trace`] keeps between calls: rays, hits and
-    /// their readback copy, and the counters (with theirs) only once a trace asked for them.
+    /// Device bytes of the buffers [`trace`](crate::Tracer::trace) keeps between calls:
+    /// rays, hits and their readback copy, and the counters (with theirs) only once a trace
+    /// asked for them.
     pub fn scratch_bytes(&self) -> u64 {
         self.engine.with_scratch(|s| s.map_or(0, |s| s.bytes()))
     }
@@ -110,26 +112,26 @@ impl GpuBvh {
         Ok(BvhBindGroup { group, layout })
     }
 
-    /// The node buffer (`array<Node>`), for [`BvhStorage::Buffers`] uploads of the binary
+    /// The node buffer (`array<Node>`), for [`crate::BvhStorage::Buffers`] uploads of the binary
     /// layout.
     pub fn nodes_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Nodes)
     }
 
-    /// The triangle buffer (`array<Triangle>`), for [`BvhStorage::Buffers`] uploads of the
+    /// The triangle buffer (`array<Triangle>`), for [`crate::BvhStorage::Buffers`] uploads of the
     /// binary layout.
     pub fn triangles_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Triangles)
     }
 
     /// The escape-link buffer (`array<u32>`, eight links per node), for
-    /// [`BvhStorage::Buffers`] uploads with the escape links.
+    /// [`crate::BvhStorage::Buffers`] uploads with the escape links.
     pub fn escapes_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Escapes)
     }
 
     /// The wide layout's buffers (`array<BvhWideNode>`, its triangles), when it was
-    /// uploaded in [`BvhStorage::Buffers`].
+    /// uploaded in [`crate::BvhStorage::Buffers`].
     pub fn wide_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer)> {
         let a = self.engine.arrays();
         a.buffer(ArrayRole::WideNodes)
@@ -138,7 +140,7 @@ impl GpuBvh {
 
     /// The wide layout's textures (five `Rgba32Uint` texels per node, three per triangle,
     /// [`TEXEL_ROW`](bvhtrace_kernels::TEXEL_ROW) texels a row: `bvh_textures_wide.wgsl`),
-    /// when it was uploaded in [`BvhStorage::Textures`].
+    /// when it was uploaded in [`crate::BvhStorage::Textures`].
     pub fn wide_textures(&self) -> Option<(&wgpu::Texture, &wgpu::Texture)> {
         let a = self.engine.arrays();
         a.texture(ArrayRole::WideNodes)

@@ -34,7 +34,7 @@
 //!   the [`DriverTuning`] (measures that only help CPU drivers such as lavapipe).
 //! * [`GpuBvh::upload`]: nodes, triangles, and the escape links only when a traversal needs
 //!   them, each checked against the device's limits.
-//! * [`GpuBvh::trace`]: ray slices in, [`TraceOutput`] out (hits, counters, GPU and wall
+//! * [`Tracer::trace`]: ray slices in, [`TraceOutput`] out (hits, counters, GPU and wall
 //!   milliseconds); [`GpuBvh::record`]: the same into your own encoder and buffers.
 //!   [`GpuBvh`] implements [`Tracer`], the interface shared with the CPU and ash backends.
 //! * [`GpuBvh::wgsl_library`] and [`GpuBvh::bind_group_for`]: the traversal functions in

@@ -174,8 +174,8 @@ impl BuiltBvh {
 
     /// Moves the geometry to `scene`'s pose at time `t` (seconds, as given: wrap it
     /// first). Two levels: the instances get their new transforms, the top level is
-    /// rebuilt ([`InstancedBvh::set_transforms`]) and written into the upload in place
-    /// ([`Tracer::update`] finds that only the top level moved). Flattened: the triangles
+    /// rebuilt ([`bvhtrace_core::InstancedBvh::set_transforms`]) and written into the
+    /// upload in place ([`Tracer::update`] finds that only the top level moved). Flattened: the triangles
     /// at `t` get a new BVH, written in place when it has the uploaded shape, else
     /// uploaded anew.
     /// A failure leaves the BVH as it was (an upload that fails is kept as

@@ -1,6 +1,6 @@
 //! bvhtrace in a browser: the BVH built in WebAssembly and traced by the kernels on the
 //! browser's WebGPU, through the same engine as every other backend
-//! ([`bvhtrace_gpu::GpuBvh::trace_async`]). Built for `wasm32-unknown-unknown` and bound to
+//! (`Tracer::trace_async`). Built for `wasm32-unknown-unknown` and bound to
 //! JavaScript with `wasm-bindgen` (`web/build.sh`); on other targets this crate is empty.
 #![warn(missing_docs)]
 
