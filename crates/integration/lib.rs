@@ -79,7 +79,6 @@ pub mod browser {
     /// (0: any free port), and sends each POST to the returned channel.
     pub fn serve(
         port: u16,
-
         files: impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static,
     ) -> std::io::Result<(u16, mpsc::Receiver<Report>)> {
         let listener = TcpListener::bind(("127.0.0.1", port))?;

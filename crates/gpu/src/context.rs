@@ -515,16 +515,20 @@ impl GpuContext {
     /// without `SHADER_F64`, GPU timings without `TIMESTAMP_QUERY` (traces report wall
     /// time only). Empty when nothing is left out; what a front end or page shows.
     pub fn left_out(&self) -> Vec<String> {
-        let device = &self.inner.device;
+        let features = self.features();
         let mut out = Vec::new();
-        let has = device.limits().max_storage_textures_per_shader_stage;
-        if has < STORAGE_TEXTURES_USED {
+        if !features.textures {
+            let has = self
+                .inner
+                .device
+                .limits()
+                .max_storage_textures_per_shader_stage;
             out.push(format!(
                 "texture storage: {has} storage textures per shader stage, {STORAGE_TEXTURES_USED} \
                  needed (the BVH goes to storage buffers)"
             ));
         }
-        if !self.features().f64 {
+        if !features.f64 {
             out.push("the f64 triangle test: no SHADER_F64".to_string());
         }
         if !self.inner.timestamps {

@@ -19,6 +19,7 @@ use std::time::Duration;
 use bvhtrace_core::{BuildOptions, FlatBvh, Hit, TraceOptions, Traversal, trace_rays};
 use bvhtrace_integration::browser::{self, Report};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_shade::args::parse_size;
 
 /// The page: fetches the triangles and rays, traces them with the wasm, posts the hits.
 const PAGE: &str = r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre>
@@ -58,11 +59,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let (mut w, mut h) = (256u32, 192u32);
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--size" => {
-                let s = args.next().ok_or("--size needs WxH")?;
-                let (a, b) = s.split_once('x').ok_or("--size needs WxH")?;
-                (w, h) = (a.parse()?, b.parse()?);
-            }
+            "--size" => (w, h) = parse_size(&args.next().ok_or("--size needs WxH")?)?,
             other => return Err(format!("unknown argument {other}").into()),
         }
     }

@@ -27,6 +27,7 @@ use std::time::{Duration, Instant};
 use bvhtrace_core::{BuildOptions, TraceOptions, Traversal, trace_rays};
 use bvhtrace_integration::browser::{self, Report, WebGpu};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_shade::args::parse_size;
 use bvhtrace_shade::{Pixels, Shade, View, compose_rgb};
 use glam::Vec3;
 
@@ -47,11 +48,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let (mut extra, mut expect_error) = (String::new(), None::<String>);
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--window" => {
-                let s = args.next().ok_or("--window needs WxH")?;
-                let (a, b) = s.split_once('x').ok_or("--window needs WxH")?;
-                window = (a.parse()?, b.parse()?);
-            }
+            "--window" => window = parse_size(&args.next().ok_or("--window needs WxH")?)?,
             "--out" => out = PathBuf::from(args.next().ok_or("--out needs a folder")?),
             "--scene" => file = Some(PathBuf::from(args.next().ok_or("--scene needs a file")?)),
             "--time" => time = args.next().ok_or("--time needs seconds")?.parse()?,

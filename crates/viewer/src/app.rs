@@ -362,11 +362,8 @@ impl ViewerApp {
                 poses: 0,
             },
         };
-        let first = take_first(&app.shared.inbox);
-        match first {
-            Some((name, Ok(bytes))) => app.start_job(&cc.egui_ctx, Source::Bytes { name, bytes }),
-            Some((name, Err(e))) => app.error = Some(format!("{name}: {e}")),
-            None => app.start_job(&cc.egui_ctx, Source::Load(spec)),
+        if !app.open_from_inbox(&cc.egui_ctx) {
+            app.start_job(&cc.egui_ctx, Source::Load(spec));
         }
         app
     }
@@ -589,7 +586,6 @@ impl ViewerApp {
 
     /// Starts tracing `work`'s rays.
     fn start(&mut self, ctx: &egui::Context, work: Work, key: &PassKey) {
-        let s = &self.settings;
         let Some(built) = &mut self.built else { return };
         let (rays, opts) =
             match &work {
@@ -607,8 +603,8 @@ impl ViewerApp {
                         built.retry_gpu();
                         built.prepare(key.traversal);
                     }
-                    let rays = self.cam.rays(key.size[0], key.size[1]);
-                    let opts = TraceOptions::closest(key.traversal).with_counters(s.heatmap);
+                    let rays = key.camera.rays(key.size[0], key.size[1]);
+                    let opts = TraceOptions::closest(key.traversal).with_counters(key.heatmap);
                     (rays, opts)
                 }
                 Work::Samples(k) => {
@@ -620,7 +616,7 @@ impl ViewerApp {
                 }
             };
         let wake = ctx.clone();
-        let batch = built.start_trace(rays, opts, s.prefer_cpu, move || wake.request_repaint());
+        let batch = built.start_trace(rays, opts, key.prefer_cpu, move || wake.request_repaint());
         self.in_flight = Some(InFlight { work, batch });
     }
 
@@ -827,12 +823,6 @@ impl ViewerApp {
             }
         }
     }
-}
-
-/// The oldest file in `inbox`.
-fn take_first(inbox: &Inbox) -> Option<(String, Result<Vec<u8>, String>)> {
-    let mut q = inbox.lock().ok()?;
-    (!q.is_empty()).then(|| q.remove(0))
 }
 
 fn camera_half_tan(fov_deg: f32) -> f32 {
@@ -1596,15 +1586,25 @@ impl ViewerApp {
                 });
             }
         }
-        let next = take_first(&self.shared.inbox);
-        match next {
+        self.open_from_inbox(ctx);
+    }
+
+    /// Opens the oldest file in [`Shared::inbox`] (or shows why it could not be read);
+    /// false when the inbox is empty.
+    fn open_from_inbox(&mut self, ctx: &egui::Context) -> bool {
+        let first = self.shared.inbox.lock().ok().and_then(|mut q| {
+            let any = !q.is_empty();
+            any.then(|| q.remove(0))
+        });
+        match first {
             Some((name, Ok(bytes))) => {
                 self.open_text = name.clone();
                 self.start_job(ctx, Source::Bytes { name, bytes });
             }
             Some((name, Err(e))) => self.error = Some(format!("{name}: {e}")),
-            None => {}
+            None => return false,
         }
+        true
     }
 }
 
