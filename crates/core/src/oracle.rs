@@ -197,3 +197,95 @@ pub fn f32_t_error_bound(tri: &Triangle, ray: &Ray) -> f64 {
     let t = t_num / det;
     (t_err + t.abs() * det_err) / (det.abs() - det_err) + u * t.abs()
 }
+
+/// Barycentric distance, below which a ray is said to pass along a triangle's edge in
+/// [`agreement`]'s rule: 2^-16 of the triangle, about 500 f32 ulps of a barycentric.
+pub const EDGE_TOLERANCE: f64 = 1.0 / 65536.0;
+
+/// How close `ray` passes to an edge of `tri`: the smallest of its three barycentric
+/// coordinates' magnitudes in f64 (edge function over their sum), 0 for a triangle seen
+/// edge-on; for a ray that misses, the distance to the nearest edge line.
+pub fn edge_distance(tri: &Triangle, ray: &Ray) -> f64 {
+    if !ray.is_valid() {
+        return f64::INFINITY;
+    }
+    let (e, _) = PreparedRay64::new(ray).edge_functions(tri);
+    let det: f64 = e.iter().sum();
+    if det == 0.0 {
+        return 0.0;
+    }
+    e.iter()
+        .map(|x| (x / det).abs())
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// How a hit from a tracer that is not watertight by contract (a device's ray queries)
+/// stands against the CPU walks' hit for the same ray ([`agreement`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Agreement {
+    /// The same bits.
+    Same,
+    /// The same primitive (or the same miss code), another `t` or barycentrics.
+    SamePrimitive,
+    /// Two primitives whose distances f32 cannot tell apart: `t`s within the sum of their
+    /// f32 error bounds ([`f32_t_error_bound`]), or either indeterminate in f32.
+    WithinF32,
+    /// A hit against a miss (or, for any hit, a miss against a hit) where the ray passes
+    /// along an edge of the triangle hit ([`edge_distance`] at most [`EDGE_TOLERANCE`], or
+    /// [`f32_indeterminate`]): a silhouette, where a test that is not watertight may
+    /// answer either way.
+    Silhouette,
+    /// Anything else: a wrong answer.
+    Differs,
+}
+
+impl Agreement {
+    /// True unless [`Agreement::Differs`].
+    pub fn agrees(self) -> bool {
+        self != Agreement::Differs
+    }
+}
+
+/// The rule a tracer that is not watertight by contract is held to against the CPU
+/// walks (`reference`), for one ray; `tris` by primitive id in world space. Closest hits
+/// agree on the primitive, or on a distance f32 cannot resolve, or differ only at a
+/// silhouette edge; any-hit answers (`any_hit`) agree on hit or miss, or differ only at
+/// a silhouette edge.
+pub fn agreement(
+    tris: &[Triangle],
+    ray: &Ray,
+    reference: &crate::Hit,
+    other: &crate::Hit,
+    any_hit: bool,
+) -> Agreement {
+    if bytemuck::bytes_of(reference) == bytemuck::bytes_of(other) {
+        return Agreement::Same;
+    }
+    let tri = |p: u32| tris.get(p as usize);
+    let silhouette = |p: u32| {
+        tri(p).is_some_and(|t| f32_indeterminate(t, ray) || edge_distance(t, ray) <= EDGE_TOLERANCE)
+    };
+    match (reference.is_hit(), other.is_hit()) {
+        (true, true) if any_hit || reference.prim == other.prim => Agreement::SamePrimitive,
+        (true, true) => {
+            let terr = |p: u32| tri(p).map_or(f64::INFINITY, |t| f32_t_error_bound(t, ray));
+            let close = (f64::from(reference.t) - f64::from(other.t)).abs()
+                <= terr(reference.prim) + terr(other.prim);
+            let undecided = [reference.prim, other.prim]
+                .iter()
+                .any(|&p| tri(p).is_some_and(|t| f32_indeterminate(t, ray)));
+            if close || undecided {
+                Agreement::WithinF32
+            } else if silhouette(reference.prim) || silhouette(other.prim) {
+                // The nearer triangle's edge: one side saw it, the other saw past it.
+                Agreement::Silhouette
+            } else {
+                Agreement::Differs
+            }
+        }
+        (true, false) if silhouette(reference.prim) => Agreement::Silhouette,
+        (false, true) if silhouette(other.prim) => Agreement::Silhouette,
+        (false, false) if reference.prim == other.prim => Agreement::SamePrimitive,
+        _ => Agreement::Differs,
+    }
+}

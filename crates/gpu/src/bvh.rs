@@ -22,6 +22,10 @@ pub struct BvhBindGroup<'a> {
 }
 
 impl<'a> BvhBindGroup<'a> {
+    pub(crate) fn new(group: &'a wgpu::BindGroup, layout: &'a wgpu::BindGroupLayout) -> Self {
+        BvhBindGroup { group, layout }
+    }
+
     /// The bind group.
     pub fn group(&self) -> &'a wgpu::BindGroup {
         self.group

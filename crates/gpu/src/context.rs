@@ -60,6 +60,10 @@ pub struct ContextOptions {
     /// Compose only what each kernel needs (the default), or everything (a benchmark's
     /// baseline).
     pub composition: Composition,
+    /// Ask for wgpu's `EXPERIMENTAL_RAY_QUERY` when the adapter offers it, for the
+    /// ray-query tracer ([`crate::RayQueryBvh`]). Off by default: wgpu's experimental
+    /// features are opted into one by one.
+    pub ray_queries: bool,
 }
 
 /// A device and queue with the tracer's shared state. Cheap to clone (reference counted);
@@ -231,11 +235,27 @@ impl GpuContext {
         let index = choice.pick(&named)?;
         let adapter = &adapters[index];
         let info = infos[index].clone();
+        let mut features = adapter.features() & Self::optional_features();
+        let ray_queries = options.ray_queries
+            && adapter
+                .features()
+                .contains(wgpu::Features::EXPERIMENTAL_RAY_QUERY);
+        if ray_queries {
+            features |= wgpu::Features::EXPERIMENTAL_RAY_QUERY;
+        }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("bvhtrace"),
-                required_features: adapter.features() & Self::optional_features(),
+                required_features: features,
                 required_limits: adapter.limits(),
+                experimental_features: if ray_queries {
+                    // SAFETY: wgpu asks callers to acknowledge that its experimental
+                    // features may hold bugs; only the ray-query tracer uses this one,
+                    // and its answers are checked against the CPU walks in the tests.
+                    unsafe { wgpu::ExperimentalFeatures::enabled() }
+                } else {
+                    wgpu::ExperimentalFeatures::disabled()
+                },
                 ..Default::default()
             })
             .await
@@ -429,6 +449,15 @@ impl GpuContext {
     /// True when GPU times are measured (the device has `TIMESTAMP_QUERY`).
     pub fn has_timestamps(&self) -> bool {
         self.inner.timestamps
+    }
+
+    /// True when the device was created with wgpu's `EXPERIMENTAL_RAY_QUERY`, so a
+    /// [`crate::RayQueryBvh`] can be uploaded to it ([`ContextOptions::ray_queries`]).
+    pub fn has_ray_queries(&self) -> bool {
+        self.inner
+            .device
+            .features()
+            .contains(wgpu::Features::EXPERIMENTAL_RAY_QUERY)
     }
 
     /// The layout of the BVH bind group (group 0 of the kernels; any group of yours, see

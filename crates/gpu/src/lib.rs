@@ -48,11 +48,15 @@ pub mod backend;
 mod bvh;
 mod context;
 mod library;
+#[cfg(not(target_arch = "wasm32"))]
+mod ray_query;
 mod trace;
 
 pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
+#[cfg(not(target_arch = "wasm32"))]
+pub use ray_query::{RAY_QUERY_BACKEND, RayQueryBvh};
 pub use trace::RayBatch;
 
 pub use bvhtrace_core::{InstanceHit, InstanceTable};

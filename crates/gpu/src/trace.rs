@@ -276,7 +276,7 @@ fn binding(
 }
 
 /// Reads a mapped range as a vector of `T` (copying; alignment-safe).
-fn read_mapped<T: bytemuck::Pod>(
+pub(crate) fn read_mapped<T: bytemuck::Pod>(
     buffer: &wgpu::Buffer,
     bytes: u64,
     out: &mut Vec<T>,
@@ -378,7 +378,7 @@ fn lock(m: &Mutex<Mappings>) -> MutexGuard<'_, Mappings> {
 
 /// Maps the first bytes of each buffer for reading, after the submission `index` (and
 /// only it, with what came before it on the queue) has completed.
-async fn map_all(
+pub(crate) async fn map_all(
     device: &wgpu::Device,
     index: wgpu::SubmissionIndex,
     maps: &[(&wgpu::Buffer, u64)],

@@ -152,6 +152,16 @@ pub enum TraceError {
         /// The API's message.
         message: String,
     },
+    /// The tracer cannot answer what was asked in the way asked: the ray-query tracer has
+    /// no counters and no choice of triangle test (the device's acceleration structure
+    /// answers the queries).
+    #[error("the {backend} tracer does not offer {what}")]
+    Unsupported {
+        /// The tracer's backend name.
+        backend: &'static str,
+        /// What it does not offer, and what to do instead.
+        what: String,
+    },
     /// A lock was poisoned by a thread that panicked while holding it.
     #[error("a thread panicked while holding the {0}")]
     Poisoned(&'static str),

@@ -55,11 +55,11 @@ const ENTRY_COUNTERS_WGSL: &str = include_str!("../shaders/entry_counters.wgsl")
 const ATTRIBUTE_NORMALS_WGSL: &str = include_str!("../shaders/attribute_normals.wgsl");
 /// `bvh_instances.wgsl` / `bvh_no_instances.wgsl`: the instances binding of a two-level
 /// BVH, or the same names for one mesh.
-const BVH_INSTANCES_WGSL: (&str, &str) = (
+pub(crate) const BVH_INSTANCES_WGSL: (&str, &str) = (
     "bvh_instances.wgsl",
     include_str!("../shaders/bvh_instances.wgsl"),
 );
-const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
+pub(crate) const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
     "bvh_no_instances.wgsl",
     include_str!("../shaders/bvh_no_instances.wgsl"),
 );
@@ -70,7 +70,7 @@ const TRAVERSE_WIDE_WGSL: (&str, &str) = (
     include_str!("../shaders/traverse_wide.wgsl"),
 );
 /// `entry_walk.wgsl`: every entry point, specialised by [`EntryPoint::source`].
-const ENTRY_WALK_WGSL: &str = include_str!("../shaders/entry_walk.wgsl");
+pub(crate) const ENTRY_WALK_WGSL: &str = include_str!("../shaders/entry_walk.wgsl");
 
 /// One entry point: `entry_walk.wgsl` specialised with its name, its walk's call and
 /// what it stores, so the entry points share one file and differ only in their walk.

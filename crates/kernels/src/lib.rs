@@ -22,6 +22,7 @@ pub mod engine;
 mod error;
 pub mod key;
 mod plan;
+pub mod ray_query;
 #[cfg(feature = "spirv")]
 pub mod spirv;
 mod tracer;

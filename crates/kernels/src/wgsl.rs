@@ -215,6 +215,10 @@ pub struct LibraryShape {
     pub traversal: Traversal,
     /// The triangle test ([`triangle_wgsl`]).
     pub precision: Precision,
+    /// The device's ray queries walk its own acceleration structure instead
+    /// ([`LibraryShape::ray_queries`], [`crate::ray_query`]): the TLAS at binding 0, the
+    /// triangles in buffers; `traversal` and `precision` are not read.
+    pub ray_queries: bool,
 }
 
 impl LibraryShape {
@@ -226,6 +230,17 @@ impl LibraryShape {
             instanced,
             traversal,
             precision: Precision::WatertightF32,
+            ray_queries: false,
+        }
+    }
+
+    /// The library that calls the device's ray queries (`enable wgpu_ray_query;`, needs
+    /// wgpu's `EXPERIMENTAL_RAY_QUERY`) for one mesh or two levels: the same calls and
+    /// result struct as the walks' libraries, bound to a `RayQueryBvh` (bvhtrace-gpu).
+    pub fn ray_queries(instanced: bool) -> LibraryShape {
+        LibraryShape {
+            ray_queries: true,
+            ..LibraryShape::new(BvhStorage::Buffers, instanced, Traversal::FullStack)
         }
     }
 
@@ -269,6 +284,9 @@ impl std::fmt::Display for LibraryShape {
         } else {
             "one mesh"
         };
+        if self.ray_queries {
+            return write!(f, "{levels}, the device's ray queries");
+        }
         let layout = if self.traversal.is_wide() {
             "wide"
         } else {
@@ -410,12 +428,24 @@ impl std::fmt::Display for BvhLibrary {
 /// // pass.set_bind_group(0, group.group(), &[]);
 /// ```
 pub fn wgsl_library(shape: LibraryShape, bvh_group: u32) -> BvhLibrary {
-    let mut source = shape.module_set().compose(bvh_group);
+    let (mut source, closest, any) = if shape.ray_queries {
+        (
+            crate::ray_query::compose(&crate::ray_query::files(shape.instanced), bvh_group),
+            "bvh_trace_ray_query(ray, false)".to_string(),
+            "bvh_trace_ray_query(ray, true)".to_string(),
+        )
+    } else {
+        (
+            shape.module_set().compose(bvh_group),
+            shape.walk_call(false),
+            shape.walk_call(true),
+        )
+    };
     source.push_str("// ---- library.wgsl ----\n");
     source.push_str(
         &LIBRARY_WGSL
-            .replace("BVH_LIBRARY_CLOSEST", &shape.walk_call(false))
-            .replace("BVH_LIBRARY_ANY", &shape.walk_call(true)),
+            .replace("BVH_LIBRARY_CLOSEST", &closest)
+            .replace("BVH_LIBRARY_ANY", &any),
     );
     BvhLibrary {
         shape,

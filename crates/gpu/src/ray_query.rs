@@ -1,0 +1,759 @@
+//! The ray-query tracer: the tree's triangles handed to the device's own acceleration
+//! structure builder (a BLAS per mesh, a TLAS over the instances) and traced by `rayQuery`
+//! in a compute kernel ([`bvhtrace_kernels::ray_query`]), behind the same [`Tracer`]
+//! interface, ray and hit layout and ids as our walks.
+//!
+//! Where a device has ray-tracing hardware this is the fast path; on a CPU driver such as
+//! Mesa 25's lavapipe our walks are faster (`docs/benchmarks.md`), and the front door's
+//! automatic choice says so. The answers are not bit for bit our walks': the driver's
+//! triangle test is its own. `tests/ray_query.rs` states and checks the rule.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use bvhtrace_core::flat::{FlatInstance, FlatNode};
+use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput};
+use bvhtrace_kernels::{
+    BvhLibrary, HIT_BYTES, LibraryShape, RAY_BYTES, RayInput, TraceError, Tracer, UploadStats,
+    check_buffer_size, check_update_shape, mesh_fingerprint, plan_dispatches, rays_per_dispatch,
+    tree_shape, wgsl_library,
+};
+use std::time::Instant;
+use wgpu::util::DeviceExt;
+
+use crate::trace::{map_all, read_mapped};
+use crate::{BvhBindGroup, GpuContext, GpuError};
+
+/// The backend name of the ray-query tracer ([`Tracer::backend`]).
+pub const RAY_QUERY_BACKEND: &str = "ray-query";
+
+/// One mesh's triangles: a run of slots in the triangle buffer, and its BLAS.
+struct Mesh {
+    /// Its root in `FlatBvh::nodes` (0 for one mesh).
+    root: u32,
+    /// First triangle slot and count.
+    first: u32,
+    count: u32,
+}
+
+/// A tree handed to the device's acceleration structures, ready to trace with ray queries.
+/// Needs a [`GpuContext`] created with [`crate::ContextOptions::ray_queries`] on an
+/// adapter with wgpu's `EXPERIMENTAL_RAY_QUERY`.
+pub struct RayQueryBvh {
+    ctx: GpuContext,
+    /// `FlatBvh::triangles`: the BLAS vertices (16-byte stride) and binding 1.
+    triangles: wgpu::Buffer,
+    /// Binding 2 (two levels): each mesh's first triangle slot.
+    mesh_firsts: Option<wgpu::Buffer>,
+    /// Binding 4 (two levels): `FlatBvh::instances`.
+    instances: Option<wgpu::Buffer>,
+    meshes: Vec<Mesh>,
+    /// Each instance's mesh (index into `meshes`); one entry for one mesh.
+    instance_mesh: Vec<u32>,
+    blases: Vec<wgpu::Blas>,
+    tlas: wgpu::Tlas,
+    layout: wgpu::BindGroupLayout,
+    /// The BVH group, made once the acceleration structures are built.
+    group: Option<wgpu::BindGroup>,
+    /// Pipelines by (any hit, ray mask).
+    pipelines: Mutex<HashMap<(bool, u8), wgpu::ComputePipeline>>,
+    shape: (usize, usize, usize, u32),
+    fingerprint: u64,
+    table: Option<Arc<InstanceTable>>,
+    stats: UploadStats,
+    /// Wall time of the last acceleration-structure build (or update), milliseconds.
+    build_ms: f64,
+}
+
+impl std::fmt::Debug for RayQueryBvh {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RayQueryBvh")
+            .field("meshes", &self.meshes.len())
+            .field("instances", &self.instance_mesh.len())
+            .field("build_ms", &self.build_ms)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The triangle slots under `root`: a subtree's leaves hold one contiguous run.
+fn mesh_range(nodes: &[FlatNode], root: u32) -> Result<(u32, u32), TraceError> {
+    let bad = |problem: String| TraceError::BadBuffer {
+        buffer: "nodes",
+        problem,
+    };
+    let (mut lo, mut hi, mut leaves) = (u32::MAX, 0u32, 0u64);
+    let mut stack = vec![root];
+    while let Some(i) = stack.pop() {
+        let n = nodes
+            .get(i as usize)
+            .ok_or_else(|| bad(format!("node {i} is past the {} nodes", nodes.len())))?;
+        if n.is_leaf() {
+            lo = lo.min(n.right_or_first);
+            hi = hi.max(n.right_or_first + n.count());
+            leaves += u64::from(n.count());
+        } else {
+            stack.push(i + 1);
+            stack.push(n.right_or_first);
+        }
+    }
+    if leaves != u64::from(hi.saturating_sub(lo)) {
+        return Err(bad(format!(
+            "the mesh at node {root} does not hold one run of triangles"
+        )));
+    }
+    Ok((lo, hi - lo))
+}
+
+/// The object-to-world transform (three rows of a 3x4 matrix, as a TLAS instance takes
+/// it) of an instance whose `world_to_object` is given, inverted in f64.
+fn object_to_world(inst: &FlatInstance, index: usize) -> Result<[f32; 12], TraceError> {
+    let m = inst.world_to_object.map(|r| r.map(f64::from));
+    let a = |r: usize, c: usize| m[r][c];
+    let det = a(0, 0) * (a(1, 1) * a(2, 2) - a(1, 2) * a(2, 1))
+        - a(0, 1) * (a(1, 0) * a(2, 2) - a(1, 2) * a(2, 0))
+        + a(0, 2) * (a(1, 0) * a(2, 1) - a(1, 1) * a(2, 0));
+    if !(det.is_finite() && det != 0.0) {
+        return Err(TraceError::BadBuffer {
+            buffer: "instances",
+            problem: format!("instance {index}'s transform cannot be inverted (determinant {det})"),
+        });
+    }
+    // The inverse of the 3x3 part by cofactors, then the translation moved across.
+    let cof = |r: usize, c: usize| {
+        let (r0, r1) = ((r + 1) % 3, (r + 2) % 3);
+        let (c0, c1) = ((c + 1) % 3, (c + 2) % 3);
+        a(r0, c0) * a(r1, c1) - a(r0, c1) * a(r1, c0)
+    };
+    let mut inv = [[0.0f64; 3]; 3];
+    for (r, row) in inv.iter_mut().enumerate() {
+        for (c, x) in row.iter_mut().enumerate() {
+            *x = cof(c, r) / det;
+        }
+    }
+    let t = [a(0, 3), a(1, 3), a(2, 3)];
+    let mut out = [0.0f32; 12];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[r * 4 + c] = inv[r][c] as f32;
+        }
+        out[r * 4 + 3] = -(inv[r][0] * t[0] + inv[r][1] * t[1] + inv[r][2] * t[2]) as f32;
+    }
+    Ok(out)
+}
+
+fn storage_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: true },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+impl RayQueryBvh {
+    /// Hands `bvh` (one mesh or two levels) to the device's acceleration structures: its
+    /// triangles uploaded once, in leaf order (a spatial order, which the drivers' builders
+    /// are fastest on), a BLAS per mesh over them, a TLAS over the instances (their
+    /// transforms inverted, masks and mesh as custom data). The build is waited for, and
+    /// timed ([`RayQueryBvh::build_ms`]).
+    ///
+    /// [`TraceError::MissingFeature`] when the device lacks `EXPERIMENTAL_RAY_QUERY`.
+    pub fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> Result<RayQueryBvh, GpuError> {
+        if !ctx.has_ray_queries() {
+            return Err(TraceError::MissingFeature {
+                feature: "EXPERIMENTAL_RAY_QUERY",
+                needed_for: "the ray-query tracer",
+                adapter: ctx.adapter_info().name.clone(),
+            });
+        }
+        if bvh.triangles().is_empty() {
+            return Err(TraceError::EmptyBvh);
+        }
+        let start = Instant::now();
+        let tri_bytes: &[u8] = bytemuck::cast_slice(bvh.triangles());
+        check_buffer_size(ctx.limits(), "triangles", tri_bytes.len() as u64)?;
+        let instanced = bvh.is_instanced();
+        let (meshes, instance_mesh) = if instanced {
+            let mut meshes: Vec<Mesh> = Vec::new();
+            let mut instance_mesh = Vec::with_capacity(bvh.instances().len());
+            for inst in bvh.instances() {
+                let index = match meshes.iter().position(|m| m.root == inst.root) {
+                    Some(i) => i,
+                    None => {
+                        let (first, count) = mesh_range(bvh.nodes(), inst.root)?;
+                        meshes.push(Mesh {
+                            root: inst.root,
+                            first,
+                            count,
+                        });
+                        meshes.len() - 1
+                    }
+                };
+                instance_mesh.push(index as u32);
+            }
+            (meshes, instance_mesh)
+        } else {
+            let count = bvh.triangles().len() as u32;
+            (
+                vec![Mesh {
+                    root: 0,
+                    first: 0,
+                    count,
+                }],
+                vec![0],
+            )
+        };
+        let device = ctx.device();
+        let made = ctx.scoped("building the acceleration structures", || {
+            let triangles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("bvhtrace ray-query triangles"),
+                contents: tri_bytes,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::BLAS_INPUT
+                    | wgpu::BufferUsages::COPY_DST,
+            });
+            let blases: Vec<wgpu::Blas> = meshes
+                .iter()
+                .map(|m| {
+                    device.create_blas(
+                        &wgpu::CreateBlasDescriptor {
+                            label: Some("bvhtrace mesh"),
+                            flags: wgpu::AccelerationStructureFlags::PREFER_FAST_TRACE
+                                | wgpu::AccelerationStructureFlags::ALLOW_UPDATE,
+                            update_mode: wgpu::AccelerationStructureUpdateMode::PreferUpdate,
+                        },
+                        wgpu::BlasGeometrySizeDescriptors::Triangles {
+                            descriptors: vec![blas_size(m)],
+                        },
+                    )
+                })
+                .collect();
+            let tlas = device.create_tlas(&wgpu::CreateTlasDescriptor {
+                label: Some("bvhtrace instances"),
+                max_instances: instance_mesh.len() as u32,
+                flags: wgpu::AccelerationStructureFlags::PREFER_FAST_TRACE,
+                update_mode: wgpu::AccelerationStructureUpdateMode::Build,
+            });
+            let mesh_firsts = instanced.then(|| {
+                let firsts: Vec<u32> = meshes.iter().map(|m| m.first).collect();
+                device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("bvhtrace ray-query mesh firsts"),
+                    contents: bytemuck::cast_slice(&firsts),
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+            });
+            let instances = instanced.then(|| {
+                device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("bvhtrace ray-query instances"),
+                    contents: bytemuck::cast_slice(bvh.instances()),
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                })
+            });
+            (triangles, blases, tlas, mesh_firsts, instances)
+        })?;
+        let (triangles, blases, tlas, mesh_firsts, instances) = made;
+        let mut entries = vec![
+            wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::AccelerationStructure {
+                    vertex_return: false,
+                },
+                count: None,
+            },
+            storage_entry(1),
+        ];
+        if instanced {
+            entries.extend([storage_entry(2), storage_entry(4)]);
+        }
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("bvhtrace ray-query bvh"),
+            entries: &entries,
+        });
+        let mut rq = RayQueryBvh {
+            ctx: ctx.clone(),
+            group: None,
+            triangles,
+            mesh_firsts,
+            instances,
+            meshes,
+            instance_mesh,
+            blases,
+            tlas,
+            layout,
+            pipelines: Mutex::new(HashMap::new()),
+            shape: tree_shape(bvh),
+            fingerprint: mesh_fingerprint(bvh),
+            table: InstanceTable::of(bvh),
+            stats: UploadStats {
+                storage: bvhtrace_kernels::BvhStorage::Buffers,
+                nodes_bytes: 0,
+                triangles_bytes: tri_bytes.len() as u64,
+                escapes_bytes: 0,
+                instances_bytes: std::mem::size_of_val(bvh.instances()) as u64,
+                upload_ms: 0.0,
+            },
+            build_ms: 0.0,
+        };
+        rq.set_instances(bvh)?;
+        rq.build(true)?;
+        rq.group = Some(rq.make_group()?);
+        rq.stats.upload_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(rq)
+    }
+
+    /// The bind group of binding 0 (the TLAS), 1, and for two levels 2 and 4.
+    fn make_group(&self) -> Result<wgpu::BindGroup, GpuError> {
+        let mut entries = vec![
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: self.tlas.as_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: self.triangles.as_entire_binding(),
+            },
+        ];
+        if let (Some(f), Some(i)) = (&self.mesh_firsts, &self.instances) {
+            entries.push(wgpu::BindGroupEntry {
+                binding: 2,
+                resource: f.as_entire_binding(),
+            });
+            entries.push(wgpu::BindGroupEntry {
+                binding: 4,
+                resource: i.as_entire_binding(),
+            });
+        }
+        self.ctx.scoped("binding the acceleration structure", || {
+            self.ctx
+                .device()
+                .create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("bvhtrace ray-query bvh"),
+                    layout: &self.layout,
+                    entries: &entries,
+                })
+        })
+    }
+
+    /// Fills the TLAS's instances from `bvh`'s (one identity instance for one mesh).
+    fn set_instances(&mut self, bvh: &FlatBvh) -> Result<(), GpuError> {
+        const IDENTITY: [f32; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+        if !bvh.is_instanced() {
+            self.tlas[0] = Some(wgpu::TlasInstance::new(&self.blases[0], IDENTITY, 0, 0xff));
+            return Ok(());
+        }
+        for (i, inst) in bvh.instances().iter().enumerate() {
+            let mesh = self.instance_mesh[i];
+            self.tlas[i] = Some(wgpu::TlasInstance::new(
+                &self.blases[mesh as usize],
+                object_to_world(inst, i)?,
+                mesh,
+                (inst.mask & 0xff) as u8,
+            ));
+        }
+        Ok(())
+    }
+
+    /// Builds (or updates) the TLAS, and the BLASes too when `meshes`, and waits.
+    fn build(&mut self, meshes: bool) -> Result<(), GpuError> {
+        let start = Instant::now();
+        let device = self.ctx.device();
+        let sizes: Vec<wgpu::BlasTriangleGeometrySizeDescriptor> =
+            self.meshes.iter().map(blas_size).collect();
+        let index = self
+            .ctx
+            .scoped("building the acceleration structures", || {
+                let entries: Vec<wgpu::BlasBuildEntry<'_>> = if meshes {
+                    self.meshes
+                        .iter()
+                        .zip(&self.blases)
+                        .zip(&sizes)
+                        .map(|((m, blas), size)| wgpu::BlasBuildEntry {
+                            blas,
+                            geometry: wgpu::BlasGeometries::TriangleGeometries(vec![
+                                wgpu::BlasTriangleGeometry {
+                                    size,
+                                    vertex_buffer: &self.triangles,
+                                    first_vertex: 3 * m.first,
+                                    vertex_stride: 16,
+                                    index_buffer: None,
+                                    first_index: None,
+                                    transform_buffer: None,
+                                    transform_buffer_offset: None,
+                                },
+                            ]),
+                        })
+                        .collect()
+                } else {
+                    Vec::new()
+                };
+                let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("bvhtrace acceleration structures"),
+                });
+                enc.build_acceleration_structures(entries.iter(), std::iter::once(&self.tlas));
+                self.ctx.queue().submit([enc.finish()])
+            })?;
+        device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|e| GpuError::device("building the acceleration structures", e))?;
+        self.build_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(())
+    }
+
+    /// Wall time of the last acceleration-structure build, milliseconds: the BLASes and
+    /// the TLAS at upload, the TLAS (and after a refit the BLASes, updated in place) at
+    /// [`Tracer::update`].
+    pub fn build_ms(&self) -> f64 {
+        self.build_ms
+    }
+
+    /// The context.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    /// True for a two-level BVH.
+    pub fn is_instanced(&self) -> bool {
+        self.instances.is_some()
+    }
+
+    /// Meshes (BLASes) and instances (TLAS entries).
+    pub fn counts(&self) -> (usize, usize) {
+        (self.meshes.len(), self.instance_mesh.len())
+    }
+
+    /// The traversal library over ray queries for your own shader
+    /// ([`LibraryShape::ray_queries`]), the BVH bindings in `@group(group)`: the same
+    /// `bvh_trace_closest` and `bvh_trace_any` as the walks' libraries. Bind it with
+    /// [`RayQueryBvh::bind_group_for`].
+    pub fn wgsl_library(&self, group: u32) -> BvhLibrary {
+        wgsl_library(LibraryShape::ray_queries(self.is_instanced()), group)
+    }
+
+    /// The bind group `library` reads, with its layout; [`TraceError::LibraryMismatch`]
+    /// for a library composed for anything but this upload's ray queries.
+    pub fn bind_group_for(&self, library: &BvhLibrary) -> Result<BvhBindGroup<'_>, GpuError> {
+        let holds = LibraryShape::ray_queries(self.is_instanced());
+        let wanted = library.shape();
+        if !wanted.ray_queries || wanted.instanced != holds.instanced {
+            return Err(TraceError::LibraryMismatch {
+                library: wanted.to_string(),
+                upload: holds.to_string(),
+            });
+        }
+        Ok(BvhBindGroup::new(self.group()?, &self.layout))
+    }
+
+    /// The BVH bind group (made at upload).
+    fn group(&self) -> Result<&wgpu::BindGroup, GpuError> {
+        self.group.as_ref().ok_or(GpuError::BadBuffer {
+            buffer: "acceleration structure",
+            problem: "not built".into(),
+        })
+    }
+
+    /// The kernel for `any` hit or closest with the ray mask `mask`.
+    fn pipeline(&self, any: bool, mask: u8) -> Result<wgpu::ComputePipeline, GpuError> {
+        let poisoned = || GpuError::Poisoned("ray-query pipelines");
+        if let Some(p) = self
+            .pipelines
+            .lock()
+            .map_err(|_| poisoned())?
+            .get(&(any, mask))
+        {
+            return Ok(p.clone());
+        }
+        let device = self.ctx.device();
+        let source = bvhtrace_kernels::ray_query::kernel_source(self.is_instanced());
+        let constants = [
+            ("BVH_ANY_HIT", if any { 1.0 } else { 0.0 }),
+            ("BVH_RAY_MASK", f64::from(mask)),
+        ];
+        let pipeline = self.ctx.scoped("creating the ray-query pipeline", || {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("bvhtrace ray queries"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+            let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("bvhtrace ray queries"),
+                bind_group_layouts: &[
+                    Some(&self.layout),
+                    Some(self.ctx.batch_layout(false, RayInput::Buffer)),
+                ],
+                immediate_size: 0,
+            });
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(bvhtrace_kernels::ray_query::ENTRY_POINT),
+                layout: Some(&layout),
+                module: &module,
+                entry_point: Some(bvhtrace_kernels::ray_query::ENTRY_POINT),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            })
+        })?;
+        self.pipelines
+            .lock()
+            .map_err(|_| poisoned())?
+            .insert((any, mask), pipeline.clone());
+        Ok(pipeline)
+    }
+
+    /// Traces `rays` in chunks of one dispatch each: upload, dispatch, read back.
+    async fn trace_chunks(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+    ) -> Result<TraceOutput, GpuError> {
+        self.supports(opts)?;
+        let start = Instant::now();
+        let pipeline = self.pipeline(opts.query == Query::Any, opts.mask)?;
+        let group = self.group()?;
+        let device = self.ctx.device();
+        let chunk = rays_per_dispatch(self.ctx.limits()).min(rays.len().max(1) as u64);
+        let buffer = |label, bytes, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        let (ray_buf, hit_buf, read) = self.ctx.scoped("allocating the ray batch", || {
+            (
+                buffer(
+                    "bvhtrace ray-query rays",
+                    chunk * RAY_BYTES,
+                    U::STORAGE | U::COPY_DST,
+                ),
+                buffer(
+                    "bvhtrace ray-query hits",
+                    chunk * HIT_BYTES,
+                    U::STORAGE | U::COPY_SRC,
+                ),
+                buffer(
+                    "bvhtrace ray-query readback",
+                    chunk * HIT_BYTES,
+                    U::MAP_READ | U::COPY_DST,
+                ),
+            )
+        })?;
+        let mut hits = Vec::with_capacity(rays.len());
+        for part in rays.chunks(chunk as usize) {
+            let n = part.len() as u64;
+            let index = self.ctx.scoped("tracing a ray batch", || {
+                self.ctx
+                    .queue()
+                    .write_buffer(&ray_buf, 0, bytemuck::cast_slice(part));
+                let batch = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("bvhtrace ray-query batch"),
+                    layout: self.ctx.batch_layout(false, RayInput::Buffer),
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: first_bytes(&ray_buf, n * RAY_BYTES),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 1,
+                            resource: first_bytes(&hit_buf, n * HIT_BYTES),
+                        },
+                    ],
+                });
+                let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("bvhtrace ray queries"),
+                });
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("bvhtrace ray queries"),
+                        timestamp_writes: None,
+                    });
+                    pass.set_pipeline(&pipeline);
+                    pass.set_bind_group(0, group, &[]);
+                    pass.set_bind_group(1, &batch, &[]);
+                    for d in plan_dispatches(n, self.ctx.limits()) {
+                        pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+                    }
+                }
+                enc.copy_buffer_to_buffer(&hit_buf, 0, &read, 0, n * HIT_BYTES);
+                self.ctx.queue().submit([enc.finish()])
+            })?;
+            let mapped = map_all(device, index, &[(&read, n * HIT_BYTES)]).await;
+            self.ctx.deferred_errors().await?;
+            mapped?;
+            let got = read_mapped(&read, n * HIT_BYTES, &mut hits);
+            read.unmap();
+            got?;
+        }
+        Ok(TraceOutput {
+            hits,
+            counters: None,
+            gpu_ms: None,
+            wall_ms: start.elapsed().as_secs_f64() * 1e3,
+            incomplete: 0,
+            instances: self.table.clone(),
+        })
+    }
+}
+
+/// The first `bytes` of `buffer`, bound.
+fn first_bytes(buffer: &wgpu::Buffer, bytes: u64) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: 0,
+        size: std::num::NonZeroU64::new(bytes),
+    })
+}
+
+/// The size of a mesh's BLAS geometry: its triangles, unindexed, opaque.
+fn blas_size(m: &Mesh) -> wgpu::BlasTriangleGeometrySizeDescriptor {
+    wgpu::BlasTriangleGeometrySizeDescriptor {
+        vertex_format: wgpu::VertexFormat::Float32x3,
+        vertex_count: 3 * m.count,
+        index_format: None,
+        index_count: None,
+        flags: wgpu::AccelerationStructureGeometryFlags::OPAQUE,
+    }
+}
+
+impl Tracer for RayQueryBvh {
+    fn backend(&self) -> &'static str {
+        RAY_QUERY_BACKEND
+    }
+
+    fn device_name(&self) -> String {
+        let i = self.ctx.adapter_info();
+        format!("{} ({:?}, Vulkan ray queries)", i.name, i.device_type)
+    }
+
+    /// The walk is the driver's; the traversal field of the options is not read.
+    fn default_traversal(&self) -> bvhtrace_core::Traversal {
+        bvhtrace_core::Traversal::GPU_DEFAULT
+    }
+
+    fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        if opts.counters {
+            return Err(TraceError::Unsupported {
+                backend: RAY_QUERY_BACKEND,
+                what: "counters (the driver's walk is not counted): trace with our walks".into(),
+            });
+        }
+        if opts.precision != Precision::WatertightF32 {
+            return Err(TraceError::Unsupported {
+                backend: RAY_QUERY_BACKEND,
+                what: format!(
+                    "the {} triangle test (the driver's test answers): trace with our walks",
+                    opts.precision
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
+        pollster::block_on(self.trace_chunks(rays, opts))
+    }
+
+    fn trace_async<'a>(
+        &'a self,
+        rays: &'a [Ray],
+        opts: &'a TraceOptions,
+    ) -> bvhtrace_kernels::TraceFuture<'a> {
+        Box::pin(self.trace_chunks(rays, opts))
+    }
+
+    fn prepare(&self, opts: &TraceOptions) -> Result<(), TraceError> {
+        self.supports(opts)?;
+        self.pipeline(opts.query == Query::Any, opts.mask)
+            .map(|_| ())
+    }
+
+    fn upload_stats(&self) -> Option<UploadStats> {
+        Some(self.stats)
+    }
+
+    /// Instances moved: the TLAS is rebuilt with their new transforms and masks. Meshes
+    /// refitted (the triangles changed): the triangles are written again and every BLAS
+    /// updated in place, then the TLAS rebuilt.
+    fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        check_update_shape(self.shape, bvh)?;
+        let fingerprint = mesh_fingerprint(bvh);
+        let meshes = !bvh.is_instanced() || fingerprint != self.fingerprint;
+        let queue = self.ctx.queue().clone();
+        self.ctx
+            .scoped("updating the acceleration structures", || {
+                if meshes {
+                    queue.write_buffer(&self.triangles, 0, bytemuck::cast_slice(bvh.triangles()));
+                }
+                if let Some(i) = &self.instances {
+                    queue.write_buffer(i, 0, bytemuck::cast_slice(bvh.instances()));
+                }
+            })?;
+        self.set_instances(bvh)?;
+        self.build(meshes)?;
+        self.fingerprint = fingerprint;
+        self.table = InstanceTable::of(bvh);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_inverted_transform_takes_object_points_back_to_world() {
+        // world_to_object of "scale by 2, then translate by (1, 2, 3)".
+        let inst = FlatInstance {
+            world_to_object: [
+                [0.5, 0.0, 0.0, -0.5],
+                [0.0, 0.5, 0.0, -1.0],
+                [0.0, 0.0, 0.5, -1.5],
+            ],
+            root: 0,
+            prim_base: 0,
+            mask: 0xff,
+            user_id: 0,
+        };
+        let m = object_to_world(&inst, 0).expect("invertible");
+        assert_eq!(
+            m,
+            [2.0, 0.0, 0.0, 1.0, 0.0, 2.0, 0.0, 2.0, 0.0, 0.0, 2.0, 3.0]
+        );
+        let singular = FlatInstance {
+            world_to_object: [[0.0; 4]; 3],
+            ..inst
+        };
+        let err = object_to_world(&singular, 7).expect_err("singular");
+        assert!(err.to_string().contains("instance 7"), "{err}");
+    }
+
+    #[test]
+    fn a_mesh_is_the_run_of_triangles_under_its_root() {
+        let tris: Vec<[glam::Vec3; 3]> = (0..40)
+            .map(|i| {
+                let x = i as f32;
+                [
+                    glam::Vec3::new(x, 0.0, 0.0),
+                    glam::Vec3::new(x + 1.0, 0.0, 0.0),
+                    glam::Vec3::new(x, 1.0, 0.0),
+                ]
+            })
+            .collect();
+        let bvh = FlatBvh::build(&tris, &bvhtrace_core::BuildOptions::default()).expect("builds");
+        assert_eq!(mesh_range(bvh.nodes(), 0).expect("one run"), (0, 40));
+        let second = bvh.nodes()[0].right_or_first;
+        let (first, count) = mesh_range(bvh.nodes(), second).expect("one run");
+        assert_eq!(first + count, 40);
+        assert!(count > 0 && count < 40);
+    }
+}

@@ -1,0 +1,321 @@
+//! The ray-query tracer (the device's own acceleration structures, walked by `rayQuery`)
+//! against the CPU walks, ray by ray, under the rule of `bvhtrace_core::oracle::agreement`:
+//! the same primitive, or distances f32 cannot tell apart, or a silhouette edge. Ray
+//! queries cannot start behind the origin, so the reference traces each ray with `t_min`
+//! raised to 0 (the tracer's stated rule). Every test prints how many rays fell in each
+//! class, and fails on any ray outside the rule.
+//!
+//! Needs a device with wgpu's `EXPERIMENTAL_RAY_QUERY` (Mesa 25's lavapipe does; Mesa 22's
+//! does not). Without one the tests print SKIP, unless `BVHTRACE_REQUIRE_RAY_QUERIES=1`
+//! (set by `.ci/run` when it installed Mesa 25), which makes that a failure.
+
+use bvhtrace_core::oracle::{Agreement, agreement};
+use bvhtrace_core::{
+    BuildOptions, FlatBvh, Hit, Instance, InstancedBvh, Precision, Query, Ray, TraceOptions,
+    Traversal, Triangle, trace_rays,
+};
+use bvhtrace_gpu::{
+    AdapterChoice, ContextOptions, GpuContext, GpuError, RayQueryBvh, TraceError, Tracer,
+};
+use glam::{Affine3A, Vec3};
+
+mod support;
+use support::{parity_rays, parity_scenes, ray_set};
+
+/// Set to 1 when a device with ray queries must be there.
+const REQUIRE_ENV: &str = "BVHTRACE_REQUIRE_RAY_QUERIES";
+
+/// A device with ray queries, or `None` after SKIP.
+fn context(test: &str) -> Option<GpuContext> {
+    let required = std::env::var(REQUIRE_ENV).is_ok_and(|v| v == "1");
+    let options = ContextOptions {
+        ray_queries: true,
+        ..ContextOptions::default()
+    };
+    let why = match GpuContext::new_with(AdapterChoice::Auto, &options) {
+        Ok(ctx) if ctx.has_ray_queries() => {
+            let i = ctx.adapter_info();
+            eprintln!("ray queries on {} ({})", i.name, i.driver_info);
+            return Some(ctx);
+        }
+        Ok(ctx) => format!(
+            "{} ({}) has no EXPERIMENTAL_RAY_QUERY",
+            ctx.adapter_info().name,
+            ctx.adapter_info().driver_info
+        ),
+        Err(e) => e.to_string(),
+    };
+    assert!(!required, "{REQUIRE_ENV}=1 but {why}");
+    eprintln!("SKIP {test}: {why}");
+    None
+}
+
+/// Rays in each [`Agreement`] class.
+#[derive(Default, Debug)]
+struct Tally {
+    same: usize,
+    same_primitive: usize,
+    within_f32: usize,
+    silhouette: usize,
+    differs: Vec<String>,
+}
+
+impl Tally {
+    fn report(&self, label: &str, rays: usize) -> String {
+        format!(
+            "{label}: {rays} rays, {} identical, {} same primitive, {} within f32, {} silhouette, \
+             {} outside the rule",
+            self.same,
+            self.same_primitive,
+            self.within_f32,
+            self.silhouette,
+            self.differs.len()
+        )
+    }
+}
+
+/// The ray as the reference traces it: `t_min` raised to 0.
+fn from_origin(r: &Ray) -> Ray {
+    Ray {
+        // Only a negative start is raised: a NaN stays, for the ray to stay invalid.
+        t_min: if r.t_min < 0.0 { 0.0 } else { r.t_min },
+        ..*r
+    }
+}
+
+/// Compares `got` with the CPU walks over `bvh` for `rays` under the rule.
+fn tally(
+    tris: &[Triangle],
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    got: &[Hit],
+) -> Tally {
+    let clamped: Vec<Ray> = rays.iter().map(from_origin).collect();
+    let want = trace_rays(bvh, &clamped, opts).hits;
+    assert_eq!(want.len(), got.len());
+    let mut t = Tally::default();
+    for (i, ((r, a), b)) in clamped.iter().zip(&want).zip(got).enumerate() {
+        match agreement(tris, r, a, b, opts.query == Query::Any) {
+            Agreement::Same => t.same += 1,
+            Agreement::SamePrimitive => t.same_primitive += 1,
+            Agreement::WithinF32 => t.within_f32 += 1,
+            Agreement::Silhouette => t.silhouette += 1,
+            Agreement::Differs => t
+                .differs
+                .push(format!("ray {i}: {r:?}\n  cpu {a:?}\n  ray query {b:?}")),
+        }
+    }
+    t
+}
+
+/// Traces `rays` both ways on a fresh upload and on `rq` when given; panics (listing the
+/// first rays) on any ray outside the rule.
+fn check(label: &str, tris: &[Triangle], bvh: &FlatBvh, rays: &[Ray], rq: &RayQueryBvh) {
+    for opts in [
+        TraceOptions::closest(Traversal::FullStack),
+        TraceOptions::any(Traversal::FullStack),
+    ] {
+        let got = rq.trace(rays, &opts).expect("ray-query trace");
+        let t = tally(tris, bvh, rays, &opts, &got.hits);
+        let label = format!("{label}, {:?}", opts.query);
+        eprintln!("{}", t.report(&label, rays.len()));
+        assert!(
+            t.differs.is_empty(),
+            "{}\n{}",
+            t.report(&label, rays.len()),
+            t.differs[..t.differs.len().min(4)].join("\n")
+        );
+    }
+}
+
+#[test]
+fn the_parity_scenes_agree_with_the_cpu_walks_under_the_rule() {
+    let Some(ctx) = context("ray-query parity") else {
+        return;
+    };
+    for scene in parity_scenes() {
+        let rq = RayQueryBvh::upload(&ctx, &scene.bvh)
+            .unwrap_or_else(|e| panic!("{}: upload: {e}", scene.name));
+        let rays = parity_rays(&scene.bvh);
+        check(&scene.name, &scene.tris, &scene.bvh, &rays, &rq);
+    }
+}
+
+/// Every triangle of a two-level BVH in world space, by primitive id.
+fn world_triangles(ib: &InstancedBvh) -> Vec<Triangle> {
+    let mut out = Vec::new();
+    for inst in ib.instances() {
+        let mut tris = ib.mesh_bvh(inst.mesh as usize).triangles().to_vec();
+        tris.sort_by_key(|t| t.prim);
+        out.extend(
+            tris.iter()
+                .map(|t| t.corners().map(|p| inst.transform.transform_point3(p))),
+        );
+    }
+    out
+}
+
+#[test]
+fn two_levels_agree_after_moving_instances_and_after_a_refit() {
+    let Some(ctx) = context("ray-query updates") else {
+        return;
+    };
+    let scene = bvhtrace_scene::load("builtin:spheres").expect("builtin scene");
+    let mut ib = scene
+        .instanced_bvh(&BuildOptions::default())
+        .expect("two levels");
+    let rays: Vec<Ray> = ray_set(ib.bvh(), 0x70b).into_iter().step_by(3).collect();
+    let mut rq = RayQueryBvh::upload(&ctx, ib.bvh()).expect("upload");
+    let (meshes, instances) = rq.counts();
+    assert_eq!(instances, ib.instances().len());
+    assert!(meshes >= 2 && meshes <= instances, "{meshes} BLASes");
+    check(
+        "spheres as uploaded",
+        &world_triangles(&ib),
+        ib.bvh(),
+        &rays,
+        &rq,
+    );
+    let before = rq
+        .trace(&rays, &TraceOptions::default())
+        .expect("trace")
+        .hits;
+
+    let moved: Vec<Affine3A> = ib
+        .instances()
+        .iter()
+        .enumerate()
+        .map(|(k, i)| {
+            Affine3A::from_rotation_y(0.3 * k as f32)
+                * Affine3A::from_translation(Vec3::new(0.2, 0.1 * k as f32, 0.0))
+                * i.transform
+        })
+        .collect();
+    ib.set_transforms(&moved).expect("new transforms");
+    rq.update(ib.bvh()).expect("TLAS rebuilt");
+    check("spheres moved", &world_triangles(&ib), ib.bvh(), &rays, &rq);
+    let after = rq
+        .trace(&rays, &TraceOptions::default())
+        .expect("trace")
+        .hits;
+    assert_ne!(
+        before, after,
+        "moving the instances changed no ray-query hit"
+    );
+
+    let mut tris: Vec<_> = ib.mesh_bvh(0).triangles().to_vec();
+    tris.sort_by_key(|t| t.prim);
+    let swollen: Vec<Triangle> = tris
+        .iter()
+        .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
+        .collect();
+    ib.refit_mesh(0, &swollen).expect("refit");
+    rq.update(ib.bvh()).expect("BLASes updated");
+    check(
+        "spheres refitted",
+        &world_triangles(&ib),
+        ib.bvh(),
+        &rays,
+        &rq,
+    );
+
+    let other = bvhtrace_scene::load("builtin:cornell")
+        .expect("builtin")
+        .instanced_bvh(&BuildOptions::default())
+        .expect("two levels");
+    let err = rq.update(other.bvh()).expect_err("another shape");
+    assert!(matches!(err, TraceError::BadBuffer { .. }), "{err}");
+}
+
+#[test]
+fn ids_masks_and_user_ids_are_the_walks() {
+    let Some(ctx) = context("ray-query ids") else {
+        return;
+    };
+    let scene = bvhtrace_scene::load("builtin:grid:icosphere:4x3").expect("builtin scene");
+    let meshes: Vec<Vec<Triangle>> = scene
+        .meshes
+        .iter()
+        .map(|m| m.triangle_mesh().triangles().expect("triangles"))
+        .collect();
+    // Masks 1, 2, 4 by instance; user ids 100 + k.
+    let instances: Vec<Instance> = scene
+        .instances
+        .iter()
+        .enumerate()
+        .map(|(k, i)| Instance {
+            mask: 1 << (k % 3),
+            user_id: 100 + k as u32,
+            ..Instance::new(i.mesh as u32, Affine3A::from_mat4(i.transform))
+        })
+        .collect();
+    let ib = InstancedBvh::build(&meshes, instances, &BuildOptions::default()).expect("two levels");
+    let bvh = ib.bvh();
+    let rays = parity_rays(bvh);
+    let rq = RayQueryBvh::upload(&ctx, bvh).expect("upload");
+    let tris = world_triangles(&ib);
+    for mask in [0xffu8, 1, 2, 6, 0] {
+        let opts = TraceOptions {
+            mask,
+            ..TraceOptions::closest(Traversal::FullStack)
+        };
+        let got = rq.trace(&rays, &opts).expect("trace");
+        let want = trace_rays(
+            bvh,
+            &rays.iter().map(from_origin).collect::<Vec<_>>(),
+            &opts,
+        );
+        let t = tally(&tris, bvh, &rays, &opts, &got.hits);
+        eprintln!("{}", t.report(&format!("mask {mask:#x}"), rays.len()));
+        assert!(
+            t.differs.is_empty(),
+            "mask {mask:#x}: {}",
+            t.differs.join("\n")
+        );
+        let mut same_place = 0;
+        for (i, (a, b)) in want.hits.iter().zip(&got.hits).enumerate() {
+            if a.prim == b.prim {
+                assert_eq!(want.instance_hit(i), got.instance_hit(i), "ray {i}");
+                same_place += usize::from(a.is_hit());
+            }
+        }
+        if mask == 0 {
+            assert!(got.hits.iter().all(|h| !h.is_hit()), "mask 0 hits nothing");
+        } else {
+            assert!(same_place > 0, "mask {mask:#x}: no hit to compare");
+        }
+    }
+}
+
+#[test]
+fn what_ray_queries_do_not_offer_is_an_error() {
+    let Some(ctx) = context("ray-query errors") else {
+        return;
+    };
+    let bvh = support::one_triangle();
+    let rq = RayQueryBvh::upload(&ctx, &bvh).expect("upload");
+    assert_eq!(rq.backend(), "ray-query");
+    let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
+    let counted = TraceOptions::closest(Traversal::FullStack).with_counters(true);
+    let err = rq.trace(&rays, &counted).expect_err("no counters");
+    assert!(err.to_string().contains("counters"), "{err}");
+    let f64_test =
+        TraceOptions::closest(Traversal::FullStack).with_precision(Precision::WatertightF64);
+    assert!(matches!(
+        rq.trace(&rays, &f64_test),
+        Err(GpuError::Unsupported { .. })
+    ));
+    let out = rq
+        .trace(&rays, &TraceOptions::closest(Traversal::Stackless))
+        .expect("any walk name traces: the driver walks");
+    assert!(out.hits[0].is_hit(), "{:?}", out.hits[0]);
+    assert!(matches!(
+        RayQueryBvh::upload(&ctx, &FlatBvh::default()),
+        Err(GpuError::EmptyBvh)
+    ));
+    // A device opened without ray queries refuses the upload, naming the feature.
+    let plain = GpuContext::new(AdapterChoice::Auto).expect("device");
+    let err = RayQueryBvh::upload(&plain, &bvh).expect_err("no ray queries asked for");
+    assert!(err.to_string().contains("EXPERIMENTAL_RAY_QUERY"), "{err}");
+}
