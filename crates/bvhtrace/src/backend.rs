@@ -20,11 +20,22 @@ pub enum Backend {
     Wgpu,
     /// The same kernels on raw Vulkan through ash (`bvhtrace-vk`), BVH in storage buffers.
     Vulkan,
+    /// The device's own acceleration structures walked by its ray queries, through wgpu
+    /// (`bvhtrace_gpu::RayQueryBvh`; wgpu's `EXPERIMENTAL_RAY_QUERY`): ray-tracing
+    /// hardware where there is some, the driver's software walk on lavapipe. The same
+    /// answers as our walks under a stated rule, not bit for bit.
+    RayQuery,
 }
 
 impl Backend {
     /// Every backend, [`Backend::Auto`] first.
-    pub const ALL: [Backend; 4] = [Backend::Auto, Backend::Cpu, Backend::Wgpu, Backend::Vulkan];
+    pub const ALL: [Backend; 5] = [
+        Backend::Auto,
+        Backend::Cpu,
+        Backend::Wgpu,
+        Backend::Vulkan,
+        Backend::RayQuery,
+    ];
 
     /// The name [`FromStr`] reads and [`fmt::Display`] writes; for the device backends,
     /// what their [`Tracer::backend`] returns.
@@ -34,15 +45,17 @@ impl Backend {
             Backend::Cpu => "cpu",
             Backend::Wgpu => "wgpu",
             Backend::Vulkan => "vulkan",
+            Backend::RayQuery => bvhtrace_gpu::RAY_QUERY_BACKEND,
         }
     }
 
-    /// The other names [`FromStr`] accepts: `gpu` (the command line's name for wgpu) and
-    /// `vk`.
+    /// The other names [`FromStr`] accepts: `gpu` (the command line's name for wgpu),
+    /// `vk`, and `rq` or `ray-queries`.
     pub fn aliases(self) -> &'static [&'static str] {
         match self {
             Backend::Wgpu => &["gpu"],
             Backend::Vulkan => &["vk"],
+            Backend::RayQuery => &["rq", "ray-queries"],
             Backend::Auto | Backend::Cpu => &[],
         }
     }

@@ -19,7 +19,8 @@
 //! # Ok(()) }
 //! ```
 //!
-//! * [`Backend`]: every way to trace, by name (`auto`, `cpu`, `wgpu` or `gpu`, `vulkan`).
+//! * [`Backend`]: every way to trace, by name (`auto`, `cpu`, `wgpu` or `gpu`, `vulkan`,
+//!   `ray-query`).
 //! * [`open`]: the tracer [`OpenOptions`] asks for, as an [`Opened`] that says what was
 //!   chosen (backend, device, storage, walk) and any fallback, as a sentence.
 //! * [`Device`]: a backend opened once, to open tracers on for many trees;
@@ -36,9 +37,9 @@ mod backend;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
-#[cfg(not(target_arch = "wasm32"))]
-pub use open::open_on_vulkan;
 pub use open::{Device, OpenOptions, Opened, open, open_on_wgpu};
+#[cfg(not(target_arch = "wasm32"))]
+pub use open::{open_on_ray_query, open_on_vulkan};
 
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,

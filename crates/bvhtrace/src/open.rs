@@ -85,11 +85,17 @@ pub struct Opened<'a> {
     /// What was not as asked or as preferred, and why, as a sentence a front end prints
     /// (`None` when everything was).
     pub fallback: Option<String>,
+    /// Why [`Backend::Auto`] chose ray queries or our walks on a device that offers ray
+    /// queries, as a sentence ([`Device::choice`]); `None` otherwise.
+    pub choice: Option<String>,
 }
 
 impl Opened<'_> {
     /// One line: backend, device, storage and walk.
     pub fn summary(&self) -> String {
+        if self.backend == Backend::RayQuery {
+            return format!("{} on {}, the driver's walk", self.backend, self.device);
+        }
         let storage = self
             .storage
             .map_or(String::new(), |s| format!(", {} storage", storage_name(s)));
@@ -108,6 +114,7 @@ impl fmt::Debug for Opened<'_> {
             .field("storage", &self.storage)
             .field("traversal", &self.traversal)
             .field("fallback", &self.fallback)
+            .field("choice", &self.choice)
             .finish_non_exhaustive()
     }
 }
@@ -148,6 +155,8 @@ pub struct Device {
     auto: bool,
     /// Why this is not the backend asked for.
     fallback: Option<String>,
+    /// Why [`Backend::Auto`] chose what it did on a device with ray queries.
+    choice: Option<String>,
 }
 
 #[derive(Clone)]
@@ -156,6 +165,9 @@ enum Inner {
     Wgpu(GpuContext),
     #[cfg(not(target_arch = "wasm32"))]
     Vulkan(VkContext),
+    /// A wgpu device with ray queries, tracing with them.
+    #[cfg(not(target_arch = "wasm32"))]
+    RayQuery(GpuContext),
 }
 
 impl fmt::Debug for Device {
@@ -170,21 +182,44 @@ impl fmt::Debug for Device {
 
 impl Device {
     /// Opens the backend and adapter `opts` asks for ([`Backend::Auto`]: wgpu on the best
-    /// Vulkan adapter, else the CPU, saying why in [`Device::fallback`]).
+    /// Vulkan adapter, with its ray queries where it has them in hardware, else the CPU,
+    /// saying why in [`Device::fallback`] and [`Device::choice`]).
     pub fn new(opts: &OpenOptions) -> Result<Device, TraceError> {
+        let mut choice = None;
         let inner = match opts.backend {
             Backend::Cpu => Inner::Cpu,
-            Backend::Wgpu => Inner::Wgpu(wgpu_context(opts)?),
+            Backend::Wgpu => Inner::Wgpu(wgpu_context(opts, false)?),
             #[cfg(not(target_arch = "wasm32"))]
             Backend::Vulkan => Inner::Vulkan(vulkan_context(opts)?),
+            #[cfg(not(target_arch = "wasm32"))]
+            Backend::RayQuery => {
+                let ctx = wgpu_context(opts, true)?;
+                if !ctx.has_ray_queries() {
+                    return Err(TraceError::MissingFeature {
+                        feature: "EXPERIMENTAL_RAY_QUERY",
+                        needed_for: "the ray-query backend (Mesa 25's lavapipe has it; see \
+                                     the README)",
+                        adapter: ctx.adapter_info().name.clone(),
+                    });
+                }
+                Inner::RayQuery(ctx)
+            }
             #[cfg(target_arch = "wasm32")]
-            Backend::Vulkan => {
+            Backend::Vulkan | Backend::RayQuery => {
                 return Err(TraceError::NoAdapter {
-                    details: ": Vulkan through ash does not run in a browser (use wgpu)".into(),
+                    details: format!(
+                        ": the {} backend does not run in a browser (WebGPU has no ray \
+                         queries, and ash no browser; use wgpu)",
+                        opts.backend
+                    ),
                 });
             }
-            Backend::Auto => match wgpu_context(opts) {
-                Ok(ctx) => Inner::Wgpu(ctx),
+            Backend::Auto => match wgpu_context(opts, true) {
+                Ok(ctx) => {
+                    let (inner, why) = auto_choice(ctx);
+                    choice = why;
+                    inner
+                }
                 Err(e @ TraceError::NoAdapter { .. }) => {
                     return Ok(Device {
                         inner: Inner::Cpu,
@@ -192,6 +227,7 @@ impl Device {
                         fallback: Some(format!(
                             "there is no Vulkan adapter ({e}); tracing on the CPU"
                         )),
+                        choice: None,
                     });
                 }
                 Err(e) => return Err(e),
@@ -201,7 +237,15 @@ impl Device {
             inner,
             auto: opts.backend == Backend::Auto,
             fallback: None,
+            choice,
         })
+    }
+
+    /// Why [`Backend::Auto`] chose ray queries or our walks, on a device that offers ray
+    /// queries: hardware ray tracing is the faster path, a CPU driver's software ray
+    /// queries are not (`None` on a device without them, and for a named backend).
+    pub fn choice(&self) -> Option<&str> {
+        self.choice.as_deref()
     }
 
     /// The CPU walks.
@@ -210,6 +254,7 @@ impl Device {
             inner: Inner::Cpu,
             auto: false,
             fallback: None,
+            choice: None,
         }
     }
 
@@ -219,6 +264,7 @@ impl Device {
             inner: Inner::Wgpu(ctx),
             auto: false,
             fallback: None,
+            choice: None,
         }
     }
 
@@ -229,7 +275,27 @@ impl Device {
             inner: Inner::Vulkan(ctx),
             auto: false,
             fallback: None,
+            choice: None,
         }
+    }
+
+    /// A wgpu device the caller opened with ray queries
+    /// ([`GpuContext::has_ray_queries`]), tracing with them (not on wasm32).
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn ray_query(ctx: GpuContext) -> Result<Device, TraceError> {
+        if !ctx.has_ray_queries() {
+            return Err(TraceError::MissingFeature {
+                feature: "EXPERIMENTAL_RAY_QUERY",
+                needed_for: "the ray-query backend",
+                adapter: ctx.adapter_info().name.clone(),
+            });
+        }
+        Ok(Device {
+            inner: Inner::RayQuery(ctx),
+            auto: false,
+            fallback: None,
+            choice: None,
+        })
     }
 
     /// The backend (never [`Backend::Auto`]).
@@ -239,6 +305,8 @@ impl Device {
             Inner::Wgpu(_) => Backend::Wgpu,
             #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(_) => Backend::Vulkan,
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(_) => Backend::RayQuery,
         }
     }
 
@@ -246,6 +314,11 @@ impl Device {
     pub fn name(&self) -> String {
         match &self.inner {
             Inner::Cpu => "cpu".to_string(),
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(c) => {
+                let i = c.adapter_info();
+                format!("{} ({:?})", i.name, i.device_type)
+            }
             Inner::Wgpu(c) => {
                 let i = c.adapter_info();
                 format!("{} ({:?})", i.name, i.device_type)
@@ -263,10 +336,12 @@ impl Device {
         self.fallback.as_deref()
     }
 
-    /// The wgpu context, on wgpu.
+    /// The wgpu context, on wgpu (our walks or its ray queries).
     pub fn wgpu_context(&self) -> Option<&GpuContext> {
         match &self.inner {
             Inner::Wgpu(c) => Some(c),
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(c) => Some(c),
             _ => None,
         }
     }
@@ -287,6 +362,8 @@ impl Device {
             Inner::Wgpu(c) => Some(*c.tuning()),
             #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(c) => Some(*c.tuning()),
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(c) => Some(*c.tuning()),
         }
     }
 
@@ -302,6 +379,8 @@ impl Device {
             Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh, opts),
             #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh, opts),
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(ctx) => self.ray_query_or_walks(ctx, bvh, opts),
         };
         match opened {
             Err(e) if self.auto && exceeds_a_limit(&e) => {
@@ -310,6 +389,33 @@ impl Device {
                     self.name()
                 );
                 open_cpu(Arc::new(bvh.clone()), opts, Some(why))
+            }
+            other => other.map(|o| self.with_choice(o)),
+        }
+    }
+
+    /// [`Opened::choice`] from the device's.
+    fn with_choice<'a>(&self, mut opened: Opened<'a>) -> Opened<'a> {
+        opened.choice = self.choice.clone();
+        opened
+    }
+
+    /// Ray queries on `ctx`; for [`Backend::Auto`], our walks on the same device when
+    /// the tree exceeds a limit of the ray-query upload.
+    #[cfg(not(target_arch = "wasm32"))]
+    fn ray_query_or_walks(
+        &self,
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        opts: &OpenOptions,
+    ) -> Result<Opened<'static>, TraceError> {
+        match open_on_ray_query(ctx, bvh, opts) {
+            Err(e) if self.auto && exceeds_a_limit(&e) => {
+                let mut o = open_on_wgpu(ctx, bvh, opts)?;
+                o.fallback = Some(format!(
+                    "the scene does not fit the ray-query upload ({e}); tracing with our walks"
+                ));
+                Ok(o)
             }
             other => other,
         }
@@ -343,6 +449,8 @@ impl Device {
             Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh.borrow(), opts),
             #[cfg(not(target_arch = "wasm32"))]
             Inner::Vulkan(ctx) => open_on_vulkan(ctx, bvh.borrow(), opts),
+            #[cfg(not(target_arch = "wasm32"))]
+            Inner::RayQuery(ctx) => self.ray_query_or_walks(ctx, bvh.borrow(), opts),
         };
         match opened {
             Err(e) if self.auto && exceeds_a_limit(&e) => {
@@ -352,18 +460,44 @@ impl Device {
                 );
                 open_cpu(bvh, opts, Some(why))
             }
-            other => other,
+            other => other.map(|o| self.with_choice(o)),
         }
     }
 }
 
-/// The wgpu context `opts` asks for.
-fn wgpu_context(opts: &OpenOptions) -> Result<GpuContext, TraceError> {
+/// The wgpu context `opts` asks for, with ray queries when `ray_queries` and the adapter
+/// has them.
+fn wgpu_context(opts: &OpenOptions, ray_queries: bool) -> Result<GpuContext, TraceError> {
     let options = ContextOptions {
         tuning: opts.tuning,
+        ray_queries,
         ..ContextOptions::default()
     };
     GpuContext::new_with(opts.adapter.clone(), &options)
+}
+
+/// [`Backend::Auto`]'s choice on a wgpu device: its ray queries where they run on
+/// ray-tracing hardware (any adapter but a CPU driver), our walks elsewhere; and why, when
+/// the device offers ray queries.
+fn auto_choice(ctx: GpuContext) -> (Inner, Option<String>) {
+    if !ctx.has_ray_queries() {
+        return (Inner::Wgpu(ctx), None);
+    }
+    let name = ctx.adapter_info().name.clone();
+    if ctx.adapter_info().device_type == bvhtrace_gpu::wgpu::DeviceType::Cpu {
+        let why = format!(
+            "{name} offers ray queries, but it is a CPU driver, where they run in software and \
+             our walks trace several times faster; tracing with our walks"
+        );
+        return (Inner::Wgpu(ctx), Some(why));
+    }
+    #[cfg(not(target_arch = "wasm32"))]
+    {
+        let why = format!("{name} has ray queries in hardware; tracing with them");
+        (Inner::RayQuery(ctx), Some(why))
+    }
+    #[cfg(target_arch = "wasm32")]
+    (Inner::Wgpu(ctx), None)
 }
 
 /// The Vulkan context `opts` asks for.
@@ -506,6 +640,7 @@ pub fn open_on_wgpu(
         storage: Some(choice.storage),
         traversal: choice.walks[0],
         fallback,
+        choice: None,
     })
 }
 
@@ -545,6 +680,32 @@ pub fn open_on_vulkan(
         storage: Some(BvhStorage::Buffers),
         traversal: choice.walks[0],
         fallback: (!notes.is_empty()).then(|| notes.join("; ")),
+        choice: None,
+    })
+}
+
+/// [`open`] with ray queries on a wgpu device the caller opened with them
+/// ([`bvhtrace_gpu::ContextOptions::ray_queries`]): only `opts.traversals` is read, for
+/// [`Opened::traversal`] (the driver walks whatever it says).
+#[cfg(not(target_arch = "wasm32"))]
+pub fn open_on_ray_query(
+    ctx: &GpuContext,
+    bvh: &FlatBvh,
+    opts: &OpenOptions,
+) -> Result<Opened<'static>, TraceError> {
+    let rq = bvhtrace_gpu::RayQueryBvh::upload(ctx, bvh)?;
+    Ok(Opened {
+        device: rq.device_name(),
+        tracer: Box::new(rq),
+        backend: Backend::RayQuery,
+        storage: None,
+        traversal: opts
+            .traversals
+            .first()
+            .copied()
+            .unwrap_or(Traversal::GPU_DEFAULT),
+        fallback: None,
+        choice: None,
     })
 }
 
@@ -580,6 +741,7 @@ where
         storage: None,
         traversal: walks[0],
         fallback: (!notes.is_empty()).then(|| notes.join("; ")),
+        choice: None,
     })
 }
 

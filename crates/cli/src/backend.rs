@@ -42,7 +42,7 @@ pub fn options(backend: Backend, adapter: Option<&str>, traversals: &[Traversal]
 /// Opens `opts`'s backend once, for many trees; a fallback is said on stderr.
 pub fn device(opts: &OpenOptions) -> Result<Device> {
     let device = Device::new(opts)?;
-    if let Some(why) = device.fallback() {
+    for why in device.fallback().into_iter().chain(device.choice()) {
         eprintln!("note: {why}");
     }
     Ok(device)
@@ -71,7 +71,7 @@ pub fn open<'a>(
 ) -> Result<Opened<'a>> {
     let opts = options(backend, adapter, traversals);
     let opened = bvhtrace::open(bvh, &opts)?;
-    if let Some(why) = &opened.fallback {
+    for why in opened.fallback.iter().chain(&opened.choice) {
         eprintln!("note: {why}");
     }
     Ok(opened)

@@ -321,6 +321,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         cam: &cam,
         tracer,
         fallback: opened.fallback.as_deref(),
+        choice: opened.choice.as_deref(),
         frame: &frame,
         runs: &runs,
         load_ms,
@@ -471,6 +472,8 @@ struct Report<'a> {
     tracer: &'a dyn Tracer,
     /// What the front door chose instead of what was asked or preferred, and why.
     fallback: Option<&'a str>,
+    /// Why the automatic choice took ray queries or our walks, on a device with both.
+    choice: Option<&'a str>,
     frame: &'a Frame,
     runs: &'a [Timing],
     load_ms: f64,
@@ -497,12 +500,21 @@ impl Report<'_> {
             w,
             h,
             self.geo.triangle_count(),
-            self.job.traversal,
+            self.walk_name(),
             self.tracer.device_name(),
             t.rays,
             t.wall_ms,
             t.mrays_per_s(),
         );
+    }
+
+    /// The walk, or the driver's for ray queries.
+    fn walk_name(&self) -> String {
+        if self.tracer.device_build_ms().is_some() {
+            "the driver's walk".to_string()
+        } else {
+            self.job.traversal.to_string()
+        }
     }
 
     fn json(&self) -> Value {
@@ -549,7 +561,8 @@ impl Report<'_> {
             "tris_per_ray": per_ray(|c| c.tris),
             "backend": self.tracer.backend(),
             "adapter": self.tracer.device_name(),
-            "traversal": self.job.traversal.to_string(),
+            "traversal": self.walk_name(),
+            "device_build_ms": self.tracer.device_build_ms(),
             "layout": if self.job.traversal.is_wide() { Layout::Wide } else { Layout::Binary },
             "default_traversal": self.tracer.default_traversal().to_string(),
             "builder": args.scene.build.builder.name(),
@@ -557,6 +570,7 @@ impl Report<'_> {
             "shade": args.shade,
             "uploaded_bytes": self.tracer.uploaded_bytes(),
             "fallback": self.fallback,
+            "choice": self.choice,
             "features": features,
             "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
             "upload": upload.map(|s| upload_json(&s, self.geo.triangle_count())),

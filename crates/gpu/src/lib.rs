@@ -56,7 +56,10 @@ pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};
 #[cfg(not(target_arch = "wasm32"))]
-pub use ray_query::{RAY_QUERY_BACKEND, RayQueryBvh};
+pub use ray_query::RayQueryBvh;
+
+/// The backend name of the ray-query tracer (`RayQueryBvh`'s [`Tracer::backend`]).
+pub const RAY_QUERY_BACKEND: &str = "ray-query";
 pub use trace::RayBatch;
 
 pub use bvhtrace_core::{InstanceHit, InstanceTable};

@@ -22,10 +22,7 @@ use std::time::Instant;
 use wgpu::util::DeviceExt;
 
 use crate::trace::{map_all, read_mapped};
-use crate::{BvhBindGroup, GpuContext, GpuError};
-
-/// The backend name of the ray-query tracer ([`Tracer::backend`]).
-pub const RAY_QUERY_BACKEND: &str = "ray-query";
+use crate::{BvhBindGroup, GpuContext, GpuError, RAY_QUERY_BACKEND};
 
 /// One mesh's triangles: a run of slots in the triangle buffer, and its BLAS.
 struct Mesh {
@@ -679,6 +676,10 @@ impl Tracer for RayQueryBvh {
 
     fn upload_stats(&self) -> Option<UploadStats> {
         Some(self.stats)
+    }
+
+    fn device_build_ms(&self) -> Option<f64> {
+        Some(self.build_ms)
     }
 
     /// Instances moved: the TLAS is rebuilt with their new transforms and masks. Meshes

@@ -57,6 +57,13 @@ pub trait Tracer: crate::engine::SendSync {
         None
     }
 
+    /// Milliseconds the device's driver spent building its own acceleration structures
+    /// at the last upload or update (the ray-query tracer); `None` for our walks, whose
+    /// tree is built on the CPU.
+    fn device_build_ms(&self) -> Option<f64> {
+        None
+    }
+
     /// Bytes of the BVH held on the device (0 on the CPU).
     fn uploaded_bytes(&self) -> u64 {
         self.upload_stats().map_or(0, |s| s.total_bytes())
