@@ -18,6 +18,10 @@ const BVH_WIDE_LAYOUT: bool = false;
 // The visibility mask of two-level rays (`TraceOptions::mask`); one mesh ignores it, as
 // our walks do.
 override BVH_RAY_MASK: u32 = 0xffu;
+// The walks' other overrides, declared so that a host sets the same constants for either
+// library; the driver's walk has no trip budget and no parallel-ray path to leave out.
+override BVH_TRIP_LIMIT: u32 = 0xffffffffu;
+override BVH_PARALLEL_RAYS: bool = true;
 
 // The triangle slot and the instance of the last hit, for the library's `bvh_hit_surface`.
 var<private> bvh_hit_slot: u32;

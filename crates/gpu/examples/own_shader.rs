@@ -1,8 +1,13 @@
 //! Calling the traversal from your own WGSL compute shader.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-gpu --example own_shader -- [SCENE] [--two-level] [-o out.png]
+//! cargo run --release -p bvhtrace-gpu --example own_shader -- [SCENE] [--two-level] [--ray-queries] [-o out.png]
 //! ```
+//!
+//! With `--ray-queries`, the same shader runs on the device's ray queries where it has them
+//! (wgpu's `EXPERIMENTAL_RAY_QUERY`; Mesa 25's lavapipe has them): the library is then
+//! composed over the device's acceleration structures (`RayQueryBvh::wgsl_library`) with
+//! the same calls, and our walk is the fallback where the device has none.
 //!
 //! The shader below ([`SHADER`]) is composed after bvhtrace's traversal library, composed
 //! for the upload (`GpuBvh::wgsl_library`): it makes each pixel's camera ray itself, traces
@@ -24,7 +29,9 @@ use std::error::Error;
 
 use bvhtrace_gpu::core::{BuildOptions, FlatBvh, Traversal};
 use bvhtrace_gpu::wgpu::util::DeviceExt;
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, UploadOptions, wgpu};
+use bvhtrace_gpu::{
+    AdapterChoice, ContextOptions, GpuBvh, GpuContext, RayQueryBvh, UploadOptions, wgpu,
+};
 
 /// The image size: small, so that CI renders it in a moment on lavapipe.
 pub const WIDTH: u32 = 320;
@@ -116,14 +123,15 @@ fn main() -> Result<(), Box<dyn Error>> {
 
 fn run() -> Result<(), Box<dyn Error>> {
     let Some(common::Args { spec, out, flags }) = common::parse_args(
-        "own_shader [SCENE] [--two-level] [-o out.png]",
+        "own_shader [SCENE] [--two-level] [--ray-queries] [-o out.png]",
         "own_shader.png",
-        &["--two-level"],
+        &["--two-level", "--ray-queries"],
     )?
     else {
         return Ok(());
     };
     let two_level = flags.iter().any(|f| f == "--two-level");
+    let ray_queries = flags.iter().any(|f| f == "--ray-queries");
 
     let scene = bvhtrace_scene::load(&spec)?;
     let tris = scene.flatten().triangles()?;
@@ -135,16 +143,28 @@ fn run() -> Result<(), Box<dyn Error>> {
 
     // The library's own device setup (the best adapter, or `$BVHTRACE_ADAPTER`); see the
     // `user_device` example for bringing your own.
-    let ctx = GpuContext::new(AdapterChoice::Auto)?;
-    // The context's storage (textures on a CPU driver, buffers on GPUs): the library is
-    // composed for whatever the upload holds. Escape links are uploaded: the stackless
-    // walk reads them.
-    let upload = UploadOptions::for_traversal(Traversal::Stackless);
-    let gpu = GpuBvh::upload(&ctx, &bvh, &upload)?;
-    // The library for this upload and walk, the BVH in group 0, and its bind group: a
-    // library composed for another upload would be an error here, not a black image.
-    let library = gpu.wgsl_library(Traversal::Stackless, 0)?;
-    let bvh_group = gpu.bind_group_for(&library)?;
+    let options = ContextOptions {
+        ray_queries,
+        ..ContextOptions::default()
+    };
+    let ctx = GpuContext::new_with(AdapterChoice::Auto, &options)?;
+    // Either upload holds the tree and composes the library for it, the BVH in group 0;
+    // the shader below is the same for both.
+    let (walk, rq);
+    let (library, bvh_group) = if ctx.has_ray_queries() {
+        // The device's acceleration structures, walked by its ray queries.
+        rq = RayQueryBvh::upload(&ctx, &bvh)?;
+        let library = rq.wgsl_library(0);
+        (library.clone(), rq.bind_group_for(&library)?)
+    } else {
+        // Our stackless walk, in the context's storage (textures on a CPU driver, buffers
+        // on GPUs), with the escape links it reads. A library composed for another upload
+        // would be an error here, not a black image.
+        let upload = UploadOptions::for_traversal(Traversal::Stackless);
+        walk = GpuBvh::upload(&ctx, &bvh, &upload)?;
+        let library = walk.wgsl_library(Traversal::Stackless, 0)?;
+        (library.clone(), walk.bind_group_for(&library)?)
+    };
     let device = ctx.device();
     println!(
         "adapter: {}; {} triangles, BVH of {} nodes; library: {}",

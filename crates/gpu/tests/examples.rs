@@ -218,7 +218,84 @@ fn check_own_shader(extra: &[&str]) {
     let Some((png, stdout)) = run_example_with("own_shader", extra) else {
         return;
     };
-    let two_level = !extra.is_empty();
+    check_own_shader_image(&png, &stdout, extra.contains(&"--two-level"));
+}
+
+/// The Mesa 22 lavapipe ICD, which has no ray queries: `$BVHTRACE_MESA22_ICD`, else the
+/// system's when the tests run on another driver through `VK_ICD_FILENAMES`.
+fn mesa22_icd() -> Option<PathBuf> {
+    let named = std::env::var_os("BVHTRACE_MESA22_ICD").map(PathBuf::from);
+    let system = std::env::var_os("VK_ICD_FILENAMES")
+        .map(|_| PathBuf::from("/usr/share/vulkan/icd.d/lvp_icd.x86_64.json"));
+    named.or(system).filter(|p| p.exists())
+}
+
+/// Write your shader once: `own_shader --ray-queries` on a device with ray queries (Mesa
+/// 25's lavapipe) composes its library over them, on one without (Mesa 22's, through
+/// [`mesa22_icd`]) over our walk; both images are the CPU's under the same tolerance, and
+/// each other's.
+#[test]
+fn own_shader_draws_the_same_image_with_ray_queries_and_with_our_walk() {
+    let required = std::env::var("BVHTRACE_REQUIRE_RAY_QUERIES").is_ok_and(|v| v == "1");
+    for level in [&[][..], &["--two-level"][..]] {
+        let args: Vec<&str> = [&["--ray-queries"][..], level].concat();
+        let Some((rq_png, rq_out)) = run_example_with("own_shader", &args) else {
+            return;
+        };
+        if !rq_out.contains("the device's ray queries") {
+            assert!(
+                !required,
+                "no ray queries with BVHTRACE_REQUIRE_RAY_QUERIES=1:\n{rq_out}"
+            );
+            eprintln!("SKIP own_shader on ray queries: the device has none:\n{rq_out}");
+            return;
+        }
+        check_own_shader_image(&rq_png, &rq_out, !level.is_empty());
+        let Some(icd) = mesa22_icd() else {
+            assert!(
+                !required,
+                "no Mesa 22 ICD to compare with (BVHTRACE_MESA22_ICD)"
+            );
+            eprintln!("SKIP own_shader on Mesa 22: no ICD found (BVHTRACE_MESA22_ICD)");
+            return;
+        };
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("examples");
+        let walk_png = dir.join(format!("own_shader-mesa22{}.png", level.concat()));
+        let out = Command::new(example("own_shader"))
+            .arg(SCENE)
+            .args(&args)
+            .arg("-o")
+            .arg(&walk_png)
+            .env("VK_ICD_FILENAMES", &icd)
+            .output()
+            .expect("running the example");
+        let walk_out = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "own_shader on {}: {walk_out}\n{}",
+            icd.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(walk_out.contains("stackless walk"), "{walk_out}");
+        check_own_shader_image(&walk_png, &walk_out, !level.is_empty());
+        let (w, h) = (own_shader::WIDTH, own_shader::HEIGHT);
+        let (a, b) = (load(&rq_png, w, h), load(&walk_png, w, h));
+        let differing = a
+            .pixels()
+            .zip(b.pixels())
+            .filter(|(p, q)| p.0.iter().zip(q.0).any(|(&x, y)| x.abs_diff(y) > 2))
+            .count();
+        let allowed = (w * h) as usize / 200;
+        println!("own_shader {args:?}: ray queries and our walk differ in {differing} pixels");
+        assert!(
+            differing <= allowed,
+            "{differing} pixels differ between ray queries and our walk (allowed {allowed})"
+        );
+    }
+}
+
+/// Compares `own_shader`'s image at `png` with the CPU's.
+fn check_own_shader_image(png: &Path, stdout: &str, two_level: bool) {
     assert_eq!(stdout.contains("two levels"), two_level, "{stdout}");
     let (w, h) = (own_shader::WIDTH, own_shader::HEIGHT);
     let img = load(&png, w, h);
