@@ -179,7 +179,15 @@ pub mod browser {
         // The browser's console, for a page that fails: `BVHTRACE_CHROMIUM_LOG=FILE`.
         let log =
             std::env::var_os("BVHTRACE_CHROMIUM_LOG").and_then(|f| std::fs::File::create(f).ok());
-        let mut child = Command::new(chromium)
+        let mut command = Command::new(chromium);
+        if webgpu == WebGpu::SwiftShader {
+            // SwiftShader is a Vulkan driver of Chromium's own, which the loader finds only
+            // when it is not told to load others alone (CI points it at Mesa 25).
+            command
+                .env_remove("VK_ICD_FILENAMES")
+                .env_remove("VK_DRIVER_FILES");
+        }
+        let mut child = command
             .args(["--headless=new", "--no-sandbox", "--enable-unsafe-webgpu"])
             .args(webgpu.flags())
             .arg(format!("--user-data-dir={}", profile.display()))

@@ -83,6 +83,7 @@ pub fn stress_device(which: StressDevice) -> std::result::Result<DeviceTracers, 
     let backend = match which {
         StressDevice::Gpu => Backend::Wgpu,
         StressDevice::Vk => Backend::Vulkan,
+        StressDevice::RayQuery => Backend::RayQuery,
     };
     let device = Device::new(&options(backend, None, &[])).map_err(|e| e.to_string())?;
     let name = match (device.wgpu_context(), device.vulkan_context()) {

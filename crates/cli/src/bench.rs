@@ -739,14 +739,16 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
+    // The automatic choice's device: wgpu, with its ray queries when it has them (they are
+    // measured beside our walks whichever the choice would trace with).
     let device = crate::backend::device(&crate::backend::options(
-        crate::backend::Backend::Wgpu,
+        crate::backend::Backend::Auto,
         args.adapter.as_deref(),
         &[],
     ))?;
     let ctx = device
         .wgpu_context()
-        .context("bench-trace measures the wgpu backend")?;
+        .context("bench-trace measures the wgpu backend, and there is no Vulkan adapter")?;
     let info = ctx.adapter_info();
     println!(
         "adapter: {} ({:?}); CPU: {} threads",
@@ -791,6 +793,12 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             ..Default::default()
         };
         let gpu = bvhtrace::open_on_wgpu(ctx, &bvh, &upload)?.tracer;
+        // The device's ray queries on the same rays, when it has them.
+        let rq = if ctx.has_ray_queries() {
+            Some(bvhtrace::open_on_ray_query(ctx, &bvh, &upload)?.tracer)
+        } else {
+            None
+        };
         let dump = match &args.embree {
             Some(_) => Some(Dump::write("trace", &tris, &rays)?),
             None => None,
@@ -802,6 +810,12 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             bvh.depth(),
             rays.len()
         );
+        if let Some(build) = rq.as_ref().and_then(|t| t.device_build_ms()) {
+            println!(
+                "ray queries: the driver's build {build:.1} ms (a BLAS over the triangles in \
+                 our leaf order, a TLAS), beside our build {build_ms:.1} ms"
+            );
+        }
         println!(
             "{:16} {:8} {:>9} {:>9} {:>9} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
             "traversal",
@@ -841,7 +855,17 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             let mut wall_ms = vec![Vec::new(); traversals.len()];
             let mut cpu_ms = vec![Vec::new(); traversals.len()];
             let (mut embree_ms, mut embree_build_ms) = (Vec::new(), Vec::new());
+            let mut rq_ms = Vec::new();
+            if let Some(rq) = &rq {
+                rq.trace(&rays, &TraceOptions::new(traversals[0], q))?;
+            }
             for _ in 0..args.runs {
+                if let Some(rq) = &rq {
+                    rq_ms.push(
+                        rq.trace(&rays, &TraceOptions::new(traversals[0], q))?
+                            .wall_ms,
+                    );
+                }
                 for (i, &tr) in traversals.iter().enumerate() {
                     let opts = TraceOptions::new(tr, q);
                     let o = gpu.trace(&rays, &opts)?;
@@ -881,6 +905,25 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     ratio(&cpu_ms[i], &gpu_ms[i]),
                     ratio(&cpu_ms[0], &gpu_ms[i]),
                     vs_embree,
+                );
+            }
+            if !rq_ms.is_empty() {
+                // Wall time only (the driver's walk has no timestamps of ours); ratios
+                // against the first walk's wall time and its CPU twin's.
+                println!(
+                    "{:16} {:8} {:>9} {:>9.2} {:>9} {:>7} {:>6} {:>7} {:>7.2}x {:>8} {:>7.2}x {:>10}",
+                    "ray-query",
+                    format!("{q:?}").to_lowercase(),
+                    "-",
+                    mrays(&rq_ms),
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                    ratio(&wall_ms[0], &rq_ms),
+                    "-",
+                    ratio(&cpu_ms[0], &rq_ms),
+                    "-",
                 );
             }
             if !embree_ms.is_empty() {

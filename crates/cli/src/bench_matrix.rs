@@ -76,7 +76,8 @@ pub struct BenchArgs {
     /// Timed runs per configuration; the median is reported (default 3; 1 with --quick).
     #[arg(long)]
     pub runs: Option<usize>,
-    /// Backends to include: gpu (wgpu), vulkan (the same kernels through ash), cpu.
+    /// Backends to include: gpu (wgpu), vulkan (the same kernels through ash), ray-query
+    /// (the device's own ray queries, where it has them), cpu.
     #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
     pub backends: Vec<String>,
     /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
@@ -252,8 +253,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         bail!("--runs and --sample must be at least 1");
     }
     for b in &args.backends {
-        if b != "gpu" && b != "cpu" && b != "vulkan" {
-            bail!("unknown backend '{b}' (expected gpu, vulkan or cpu)");
+        if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu" | "ray-query") {
+            bail!("unknown backend '{b}' (expected gpu, vulkan, ray-query or cpu)");
         }
     }
     let precisions: Vec<Precision> = if args.precisions.is_empty() {
@@ -312,6 +313,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let gpu_ctx = gpu_device.as_ref().and_then(|d| d.wgpu_context());
     let vk_device = open_device("vulkan", Backend::Vulkan);
     let vk_ctx = vk_device.as_ref().and_then(|d| d.vulkan_context());
+    let rq_device = open_device("ray-query", Backend::RayQuery);
+    let rq_ctx = rq_device.as_ref().and_then(|d| d.wgpu_context());
     if let Some(c) = &gpu_ctx {
         eprintln!(
             "GPU: {} ({:?})",
@@ -376,6 +379,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             .filter(|b| match *b {
                 "gpu" => gpu_ctx.is_some(),
                 "vulkan" => vk_ctx.is_some(),
+                "ray-query" => rq_ctx.is_some(),
                 _ => true,
             })
             .collect();
@@ -384,6 +388,13 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 for &tr in &TRAVERSALS {
                     for &be in &backends {
                         if be == "gpu" && gpu_ctx.as_ref().is_some_and(|c| !c.supports_precision(p))
+                        {
+                            continue;
+                        }
+                        // The driver's own walk and triangle test: one row per ray kind,
+                        // over the default builder's leaf order.
+                        if be == "ray-query"
+                            && (bi != 0 || tr != TRAVERSALS[0] || p != Precision::WatertightF32)
                         {
                             continue;
                         }
@@ -462,11 +473,22 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 }
                 _ => None,
             };
-            let tracer: &dyn Tracer = match (be, gpu, &vk) {
-                ("gpu", Some(g), _) => &**g,
-                ("vulkan", _, Some(v)) => &**v,
+            let rq = match (be, rq_ctx) {
+                ("ray-query", Some(c)) => {
+                    Some(bvhtrace::open_on_ray_query(c, bvh, &Default::default())?.tracer)
+                }
+                _ => None,
+            };
+            let tracer: &dyn Tracer = match (be, gpu, &vk, &rq) {
+                ("gpu", Some(g), _, _) => &**g,
+                ("vulkan", _, Some(v), _) => &**v,
+                ("ray-query", _, _, Some(r)) => &**r,
                 _ => &cpu,
             };
+            // The driver's build adds to ours (its input is our leaf order); it counts no
+            // box or triangle tests.
+            let build_ms = build_ms + tracer.device_build_ms().unwrap_or(0.0);
+            let counts = tracer.device_build_ms().is_none();
             let (kind_idx, rays) = kinds
                 .iter()
                 .enumerate()
@@ -478,9 +500,15 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             // one on a few rays, so that no compilation lands in the timings), then timed
             // runs.
             let opts = TraceOptions::new(tr, q).with_precision(prec);
-            let counted = tracer.trace(rays, &opts.with_counters(true))?;
+            let c = if counts {
+                tracer
+                    .trace(rays, &opts.with_counters(true))?
+                    .counters
+                    .unwrap_or_default()
+            } else {
+                Vec::new()
+            };
             tracer.trace(&rays[..rays.len().min(256)], &opts)?;
-            let c = counted.counters.unwrap_or_default();
             let n = rays.len().max(1) as f64;
             let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / n;
             let tris_per = c.iter().map(|c| c.tris as f64).sum::<f64>() / n;
@@ -517,13 +545,17 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 config: Config {
                     builder: bname.clone(),
                     bins: bopts.bins,
-                    traversal: tr.to_string(),
+                    traversal: if counts {
+                        tr.to_string()
+                    } else {
+                        "driver".into()
+                    },
                     backend: be.to_string(),
                     rays: kind,
                     precision: prec.name().into(),
                 },
                 ray_count: rays.len(),
-                build_ms: *build_ms,
+                build_ms,
                 trace_ms,
                 mrays_per_s: rays.len() as f64 / trace_ms / 1e3,
                 nodes_per_ray: nodes,

@@ -250,8 +250,8 @@ impl Plan {
             bail!("--runs must be at least 1");
         }
         for b in &args.backends {
-            if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu") {
-                bail!("unknown backend '{b}' (expected gpu, vulkan or cpu)");
+            if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu" | "ray-query") {
+                bail!("unknown backend '{b}' (expected gpu, vulkan, ray-query or cpu)");
             }
         }
         let builders = match (c.builders.is_empty(), quick) {
@@ -505,6 +505,7 @@ fn open_devices(args: &BenchArgs) -> Vec<Device> {
         let (label, backend) = match b.as_str() {
             "gpu" => ("gpu", Backend::Wgpu),
             "vulkan" => ("vulkan", Backend::Vulkan),
+            "ray-query" => ("ray-query", Backend::RayQuery),
             _ => ("cpu", Backend::Cpu),
         };
         let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
@@ -659,7 +660,19 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                     (std::borrow::Cow::Borrowed(&binary), binary_ms)
                 };
                 for device in &devices {
-                    let label = format!("{builder}/{}/{}", walk_name(walk), device.name());
+                    // The driver walks its own structure: one curve per builder (the
+                    // triangles in that builder's leaf order), under the first walk.
+                    let ray_query = device.device.backend() == Backend::RayQuery;
+                    if ray_query && walk != plan.walks[0] {
+                        pb.inc((plan.shades.len() * plan.levels.len()) as u64);
+                        continue;
+                    }
+                    let walk_label = if ray_query {
+                        "driver".to_string()
+                    } else {
+                        walk_name(walk)
+                    };
+                    let label = format!("{builder}/{walk_label}/{}", device.name());
                     pb.set_message(label.clone());
                     let (tracer, upload_ms) = device
                         .upload(&bvh, walk)
@@ -693,7 +706,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                                 scene: spec.clone(),
                                 shade: kind,
                                 builder: builder.name().into(),
-                                traversal: walk_name(walk),
+                                traversal: walk_label.clone(),
                                 backend: device.name().into(),
                                 width: w,
                                 height: h,

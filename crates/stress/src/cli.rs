@@ -24,7 +24,9 @@ pub struct StressArgs {
     pub json: Option<String>,
     /// Backends, comma-separated: `gpu` (the WGSL kernels through wgpu, when a Vulkan
     /// adapter exists), `vk` (the same kernels on raw Vulkan through ash), `cpu` (their CPU
-    /// twins). The CPU twins are always traced to check the GPU against.
+    /// twins), `ray-query` (the device's own ray queries, when it has them: reported
+    /// beside ours, never failing the run). The CPU twins are always traced to check the
+    /// GPU against.
     #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
     pub backends: Vec<String>,
     /// Small sizes (what the test suite runs): seconds instead of minutes.
@@ -54,6 +56,8 @@ struct JsonReport<'a> {
     gpu_note: Option<String>,
     vk: Option<String>,
     vk_note: Option<String>,
+    ray_query: Option<String>,
+    ray_query_note: Option<String>,
     clean: bool,
     cases: &'a [CaseReport],
 }
@@ -65,6 +69,8 @@ pub enum StressDevice {
     Gpu,
     /// The same kernels on raw Vulkan through ash (rows `vk`).
     Vk,
+    /// The device's own ray queries through wgpu (rows `ray-query`).
+    RayQuery,
 }
 
 /// Runs the selected cases, prints the table (one row per case x backend x traversal,
@@ -129,25 +135,27 @@ struct Wanted {
     cpu: bool,
     gpu: bool,
     vk: bool,
+    rq: bool,
 }
 
 impl Wanted {
     /// Reads `--backends`; an error for an unknown name or when none is named.
     fn parse(names: &[String]) -> Result<Wanted> {
-        let (mut cpu, mut gpu, mut vk) = (false, false, false);
+        let (mut cpu, mut gpu, mut vk, mut rq) = (false, false, false, false);
         for b in names {
             match b.trim() {
                 "cpu" => cpu = true,
                 "gpu" => gpu = true,
                 "vk" | "vulkan" | "ash" => vk = true,
+                "ray-query" | "rq" => rq = true,
                 "" => {}
-                other => bail!("unknown backend '{other}' (expected gpu, vk, cpu)"),
+                other => bail!("unknown backend '{other}' (expected gpu, vk, cpu, ray-query)"),
             }
         }
-        if !cpu && !gpu && !vk {
-            bail!("--backends lists no backend (expected gpu, vk, cpu)");
+        if !cpu && !gpu && !vk && !rq {
+            bail!("--backends lists no backend (expected gpu, vk, cpu, ray-query)");
         }
-        Ok(Wanted { cpu, gpu, vk })
+        Ok(Wanted { cpu, gpu, vk, rq })
     }
 }
 
@@ -170,13 +178,19 @@ fn open_backends(
     devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
     out: &mut dyn Write,
 ) -> Result<Backends> {
-    let Wanted { cpu, gpu, vk } = wanted;
+    let Wanted { cpu, gpu, vk, rq } = wanted;
     let mut backends = Backends::new(cpu);
     if gpu {
         backends = backends.with_gpu(devices(StressDevice::Gpu));
     }
     if vk {
         backends = backends.with_vulkan(devices(StressDevice::Vk));
+    }
+    if rq {
+        backends = backends.with_ray_queries(devices(StressDevice::RayQuery));
+        if let Some(note) = &backends.rq_note {
+            writeln!(out, "SKIP ray-query: {note}")?;
+        }
     }
     if gpu && backends.gpu.is_none() {
         let note = backends.gpu_note.clone().unwrap_or_default();
@@ -294,6 +308,8 @@ fn write_json(
         gpu_note: backends.gpu_note.clone(),
         vk: backends.vk_name(),
         vk_note: backends.vk_note.clone(),
+        ray_query: backends.rq_name(),
+        ray_query_note: backends.rq_note.clone(),
         clean,
         cases: reports,
     };

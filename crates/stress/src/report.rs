@@ -19,9 +19,9 @@ fn sci(x: f64) -> String {
 /// The column headings (and a rule under them). `a/b` columns are `wrong/f32-indeterminate`.
 pub fn table_header() -> String {
     let h = format!(
-        "{:<24} {:<4} {:<15} {:>7} {:>6} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>5} {:>5} {:>4} {:>6} {:>13} {:>9} {:>8} {:>9}",
+        "{:<24} {:<9} {:<15} {:>7} {:>6} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>5} {:>5} {:>4} {:>6} {:>13} {:>9} {:>8} {:>9}",
         "case",
-        "back",
+        "backend",
         "traversal",
         "rays",
         "sample",
@@ -48,7 +48,7 @@ pub fn table_header() -> String {
 fn row(case: &CaseReport, c: &RunReport, any: Option<&RunReport>) -> String {
     if c.status != "ok" {
         return format!(
-            "{:<24} {:<4} {:<15} {}",
+            "{:<24} {:<9} {:<15} {}",
             case.name, c.backend, c.traversal, c.status
         );
     }
@@ -75,7 +75,7 @@ fn row(case: &CaseReport, c: &RunReport, any: Option<&RunReport>) -> String {
         "-".into()
     };
     format!(
-        "{:<24} {:<4} {:<15} {:>7} {:>6} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>5} {:>5} {:>4} {:>6} {:>13} {:>9} {:>8.1} {:>9.1}",
+        "{:<24} {:<9} {:<15} {:>7} {:>6} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>5} {:>5} {:>4} {:>6} {:>13} {:>9} {:>8.1} {:>9.1}",
         case.name,
         c.backend,
         c.traversal,

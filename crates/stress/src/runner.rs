@@ -60,7 +60,16 @@ pub struct Backends {
     pub vk: Option<DeviceTracers>,
     /// Why there is no ash device (no Vulkan loader or device, or not asked for).
     pub vk_note: Option<String>,
+    /// The device's own ray queries ([`Backends::with_ray_queries`]): rows `ray-query`,
+    /// judged by the oracle and reported, never failing the run (ray queries are not
+    /// watertight by contract).
+    pub rq: Option<DeviceTracers>,
+    /// Why there are no ray queries (a device without them, or not asked for).
+    pub rq_note: Option<String>,
 }
+
+/// The row name of the device's ray queries.
+pub const RAY_QUERY_ROWS: &str = "ray-query";
 
 impl std::fmt::Debug for Backends {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -70,6 +79,8 @@ impl std::fmt::Debug for Backends {
             .field("gpu_note", &self.gpu_note)
             .field("vk", &self.vk_name())
             .field("vk_note", &self.vk_note)
+            .field("rq", &self.rq.as_ref().map(|d| d.name.clone()))
+            .field("rq_note", &self.rq_note)
             .finish()
     }
 }
@@ -83,6 +94,8 @@ impl Backends {
             gpu_note: Some("not asked for".into()),
             vk: None,
             vk_note: Some("not asked for".into()),
+            rq: None,
+            rq_note: Some("not asked for".into()),
         }
     }
 
@@ -126,6 +139,29 @@ impl Backends {
                 ..self
             },
         }
+    }
+
+    /// These backends plus the device's ray queries (or why not): traced once per query
+    /// (the driver walks), judged by the oracle like every row, reported beside ours, and
+    /// left out of [`CaseReport::clean`].
+    pub fn with_ray_queries(self, rq: Result<DeviceTracers, String>) -> Backends {
+        match rq {
+            Ok(d) => Backends {
+                rq: Some(d),
+                rq_note: None,
+                ..self
+            },
+            Err(note) => Backends {
+                rq: None,
+                rq_note: Some(note),
+                ..self
+            },
+        }
+    }
+
+    /// The ray-query device's name.
+    pub fn rq_name(&self) -> Option<String> {
+        self.rq.as_ref().map(|d| d.name.clone())
     }
 
     /// The GPU adapter's name.
@@ -189,7 +225,8 @@ pub struct PrecisionRow {
 /// One backend x traversal x query over all of a case's rays.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct RunReport {
-    /// `cpu`, `gpu` (the kernels through wgpu) or `vk` (through ash).
+    /// `cpu`, `gpu` (the kernels through wgpu), `vk` (through ash) or `ray-query` (the
+    /// device's own ray queries).
     pub backend: String,
     /// The traversal (`stackless`, `short-stack(6)`, ...).
     pub traversal: String,
@@ -316,6 +353,8 @@ pub struct CaseReport {
     pub gpu: String,
     /// The ash device (`vk` rows), or why there was none.
     pub vk: String,
+    /// The ray-query device (`ray-query` rows), or why there was none.
+    pub rq: String,
     /// What uploading a tree deeper than the full-stack kernel's stack did (deep trees).
     pub gpu_full_stack: Option<String>,
     /// One entry per backend x traversal x query.
@@ -338,7 +377,10 @@ impl CaseReport {
     pub fn clean(&self) -> bool {
         self.error.is_none()
             && self.runs.iter().all(|r| {
-                if self.guaranteed {
+                if r.backend == RAY_QUERY_ROWS {
+                    // Reported, not guaranteed: the driver's test is its own.
+                    true
+                } else if self.guaranteed {
                     r.clean()
                 } else {
                     r.sound()
@@ -1047,6 +1089,14 @@ fn upload_failed(backend: &str, queries: &[Query], e: &dyn std::fmt::Display) ->
     rows
 }
 
+/// A `ray-query` row: the driver's walk.
+fn ray_query_report(q: Query) -> RunReport {
+    RunReport {
+        traversal: "driver".into(),
+        ..run_report(RAY_QUERY_ROWS, Traversal::FullStack, q)
+    }
+}
+
 fn run_report(backend: &str, tr: Traversal, q: Query) -> RunReport {
     RunReport {
         backend: backend.into(),
@@ -1149,6 +1199,10 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         vk: backends
             .vk_name()
             .or_else(|| backends.vk_note.clone().map(|n| format!("none: {n}")))
+            .unwrap_or_default(),
+        rq: backends
+            .rq_name()
+            .or_else(|| backends.rq_note.clone().map(|n| format!("none: {n}")))
             .unwrap_or_default(),
         ..Default::default()
     };
@@ -1255,6 +1309,31 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             Ok(vk) => {
                 let (runs, _) = trace_all(&*vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
                 rep.runs.extend(runs);
+            }
+        }
+    }
+
+    // The device's ray queries: one walk (the driver's), no twin to equal.
+    if let Some(device) = &backends.rq {
+        match (device.open)(&bvh, &[Traversal::FullStack]) {
+            Err(e) => {
+                rep.runs.extend(queries.iter().map(|&q| RunReport {
+                    status: format!("upload failed: {e}"),
+                    ..ray_query_report(q)
+                }));
+            }
+            Ok(rq) => {
+                for &q in queries {
+                    let mut r = ray_query_report(q);
+                    let opts = TraceOptions::new(Traversal::FullStack, q);
+                    match trace_timed(&*rq, &case.rays, &opts) {
+                        Ok(out) => {
+                            r.trace_ms = out.wall_ms;
+                            rep.runs.push(judge.evaluate(r, q, &out.hits, None));
+                        }
+                        Err(status) => rep.runs.push(RunReport { status, ..r }),
+                    }
+                }
             }
         }
     }
