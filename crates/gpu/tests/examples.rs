@@ -298,7 +298,7 @@ fn own_shader_draws_the_same_image_with_ray_queries_and_with_our_walk() {
 fn check_own_shader_image(png: &Path, stdout: &str, two_level: bool) {
     assert_eq!(stdout.contains("two levels"), two_level, "{stdout}");
     let (w, h) = (own_shader::WIDTH, own_shader::HEIGHT);
-    let img = load(&png, w, h);
+    let img = load(png, w, h);
     assert!(stdout.contains("incomplete: 0 pixels"), "{stdout}");
 
     let scene = bvhtrace_scene::load(SCENE).expect("scene");

@@ -117,8 +117,9 @@ pub const MAX_DISPATCH_THREADS: u32 = 64;
 pub struct DriverTuning {
     /// Where the convenience trace keeps the BVH (both layouts) and the rays: textures on
     /// CPU drivers (a texel fetch is one vector gather there, a buffer load one loop over
-    /// the lanes per 32-bit word: the wide walk 2.5-2.8x faster on lavapipe, the binary
-    /// ones about 5x), buffers elsewhere. A device without enough storage-texture bindings falls
+    /// the lanes per 32-bit word: the binary walks about 5x faster on Mesa 22's lavapipe,
+    /// 1.7-1.8x on Mesa 25's, whose buffer loads are three times faster), buffers
+    /// elsewhere. A device without enough storage-texture bindings falls
     /// back to buffers.
     pub storage: BvhStorage,
     /// The worker threads a CPU driver splits each dispatch among (`DISPATCH_THREADS`): the
