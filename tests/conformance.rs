@@ -842,17 +842,8 @@ fn two_level_updates_in_place_equal_the_cpu() {
     let mut all = tracers(devices, &first);
     check_updated(&all, ib.bvh(), &rays, "as uploaded");
     let before = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
-    let moved: Vec<glam::Affine3A> = ib
-        .instances()
-        .iter()
-        .enumerate()
-        .map(|(k, i)| {
-            glam::Affine3A::from_rotation_y(0.3 * k as f32)
-                * glam::Affine3A::from_translation(Vec3::new(0.2, 0.1 * k as f32, 0.0))
-                * i.transform
-        })
-        .collect();
-    ib.set_transforms(&moved).expect("new transforms");
+    ib.set_transforms(&support::moved_transforms(&ib))
+        .expect("new transforms");
     let updated = ib.bvh().clone().with_wide();
     for t in &mut all {
         t.update(&updated).expect("top-level update");
@@ -861,13 +852,8 @@ fn two_level_updates_in_place_equal_the_cpu() {
     let after = trace_rays(ib.bvh(), &rays, &TraceOptions::default()).hits;
     assert_ne!(before, after, "moving the instances changed no hit");
 
-    let mut tris: Vec<_> = ib.mesh_bvh(0).triangles().to_vec();
-    tris.sort_by_key(|t| t.prim);
-    let swollen: Vec<Triangle> = tris
-        .iter()
-        .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
-        .collect();
-    ib.refit_mesh(0, &swollen).expect("refit");
+    ib.refit_mesh(0, &support::swollen_mesh(&ib, 0))
+        .expect("refit");
     let updated = ib.bvh().clone().with_wide();
     for t in &mut all {
         t.update(&updated).expect("update after refit");

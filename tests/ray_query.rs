@@ -182,17 +182,8 @@ fn two_levels_agree_after_moving_instances_and_after_a_refit() {
         .expect("trace")
         .hits;
 
-    let moved: Vec<Affine3A> = ib
-        .instances()
-        .iter()
-        .enumerate()
-        .map(|(k, i)| {
-            Affine3A::from_rotation_y(0.3 * k as f32)
-                * Affine3A::from_translation(Vec3::new(0.2, 0.1 * k as f32, 0.0))
-                * i.transform
-        })
-        .collect();
-    ib.set_transforms(&moved).expect("new transforms");
+    ib.set_transforms(&support::moved_transforms(&ib))
+        .expect("new transforms");
     rq.update(ib.bvh()).expect("TLAS rebuilt");
     check("spheres moved", &world_triangles(&ib), ib.bvh(), &rays, &rq);
     let after = rq
@@ -204,13 +195,8 @@ fn two_levels_agree_after_moving_instances_and_after_a_refit() {
         "moving the instances changed no ray-query hit"
     );
 
-    let mut tris: Vec<_> = ib.mesh_bvh(0).triangles().to_vec();
-    tris.sort_by_key(|t| t.prim);
-    let swollen: Vec<Triangle> = tris
-        .iter()
-        .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
-        .collect();
-    ib.refit_mesh(0, &swollen).expect("refit");
+    ib.refit_mesh(0, &support::swollen_mesh(&ib, 0))
+        .expect("refit");
     rq.update(ib.bvh()).expect("BLASes updated");
     check(
         "spheres refitted",

@@ -5,7 +5,8 @@
 #![allow(dead_code)]
 
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, Counters, FlatBvh, Hit, Ray, TraceOptions, Triangle, trace_rays,
+    BuildOptions, BuilderKind, Counters, FlatBvh, Hit, InstancedBvh, Ray, TraceOptions, Triangle,
+    trace_rays,
 };
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 use glam::Vec3;
@@ -454,4 +455,27 @@ pub fn ray_set(bvh: &FlatBvh, seed: u64) -> Vec<Ray> {
         }
     }
     rays
+}
+
+/// The instances of `ib` moved for an update test: instance `k` turned by `0.3 k` about y
+/// and lifted by `0.1 k`, after its own transform.
+pub fn moved_transforms(ib: &InstancedBvh) -> Vec<glam::Affine3A> {
+    ib.instances()
+        .iter()
+        .enumerate()
+        .map(|(k, i)| {
+            glam::Affine3A::from_rotation_y(0.3 * k as f32)
+                * glam::Affine3A::from_translation(Vec3::new(0.2, 0.1 * k as f32, 0.0))
+                * i.transform
+        })
+        .collect()
+}
+
+/// Mesh `mesh` of `ib` swollen by 1.3 and lifted, by primitive id: a refit's new vertices.
+pub fn swollen_mesh(ib: &InstancedBvh, mesh: usize) -> Vec<Triangle> {
+    let mut tris: Vec<_> = ib.mesh_bvh(mesh).triangles().to_vec();
+    tris.sort_by_key(|t| t.prim);
+    tris.iter()
+        .map(|t| t.corners().map(|p| p * 1.3 + Vec3::new(0.0, 0.05, 0.0)))
+        .collect()
 }

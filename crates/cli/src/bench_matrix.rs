@@ -77,8 +77,9 @@ pub struct BenchArgs {
     #[arg(long)]
     pub runs: Option<usize>,
     /// Backends to include: gpu (wgpu), vulkan (the same kernels through ash), ray-query
-    /// (the device's own ray queries, where it has them), cpu.
-    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
+    /// (the device's own ray queries, where it has them: one row per ray kind, the driver's
+    /// walk over the default builder's tree), cpu.
+    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu,ray-query")]
     pub backends: Vec<String>,
     /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
     /// all three (on the GPU, f64 only where the adapter has SHADER_F64). The non-default
@@ -510,8 +511,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             };
             tracer.trace(&rays[..rays.len().min(256)], &opts)?;
             let n = rays.len().max(1) as f64;
-            let nodes = c.iter().map(|c| c.nodes as f64).sum::<f64>() / n;
-            let tris_per = c.iter().map(|c| c.tris as f64).sum::<f64>() / n;
+            // 0 (not -0: an empty sum) where the driver counted nothing.
+            let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
+                c.iter().map(|c| f64::from(f(c))).fold(0.0, |a, b| a + b) / n
+            };
+            let (nodes, tris_per) = (per_ray(|c| c.nodes), per_ray(|c| c.tris));
             let mut times = Vec::new();
             let mut hits: Vec<Hit> = Vec::new();
             for _ in 0..runs {

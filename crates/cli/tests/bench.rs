@@ -155,3 +155,77 @@ fn bench_converge_quick_errors_fall_as_samples_grow() {
     assert_eq!(text.lines().count(), points.len() + 1);
     assert!(text.starts_with("scene,shade,builder,traversal,backend"));
 }
+
+/// `bench` and `bench --converge` measure the device's ray queries beside our walks where
+/// it has them (Mesa 25's lavapipe; `.ci/run` sets BVHTRACE_REQUIRE_RAY_QUERIES=1 there).
+#[test]
+fn bench_and_converge_measure_ray_queries() {
+    let required = std::env::var("BVHTRACE_REQUIRE_RAY_QUERIES").is_ok_and(|v| v == "1");
+    let out = run(&[
+        "bench",
+        "builtin:icosphere:3",
+        "--quick",
+        "--backends",
+        "ray-query,cpu",
+        "--precisions",
+        "watertight-f32",
+        "--json",
+        "-",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    if err.contains("leaving out 'ray-query'") {
+        assert!(
+            !required,
+            "no ray queries with BVHTRACE_REQUIRE_RAY_QUERIES=1: {err}"
+        );
+        eprintln!("SKIP ray-query rows: {err}");
+        return;
+    }
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON rows");
+    let rq: Vec<&serde_json::Value> = rows
+        .iter()
+        .filter(|r| r["backend"] == "ray-query")
+        .collect();
+    // One row per ray kind: the driver's walk, over the default builder's tree.
+    assert_eq!(rq.len(), 3, "{rq:?}");
+    for r in &rq {
+        assert_eq!(r["traversal"], "driver", "{r}");
+        assert!(r["trace_ms"].as_f64().unwrap() > 0.0 && r["sample"].as_u64().unwrap() > 0);
+        assert!(r["wrong_prim"].is_u64(), "{r}");
+    }
+
+    let out = run(&[
+        "bench",
+        "builtin:cornell",
+        "--converge",
+        "--quick",
+        "--backends",
+        "ray-query,cpu",
+        "--size",
+        "48x36",
+        "--spp",
+        "1,4,16",
+        "--reference-spp",
+        "64",
+        "--json",
+        "-",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let points: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON");
+    let rq: Vec<&serde_json::Value> = points
+        .iter()
+        .filter(|p| p["backend"] == "ray-query")
+        .collect();
+    // 2 builders x the driver's walk x 2 shading kinds x 3 levels.
+    assert_eq!(rq.len(), 12, "{} ray-query points", rq.len());
+    for curve in rq.chunks(3) {
+        assert_eq!(curve[0]["traversal"], "driver");
+        let flip: Vec<f64> = curve.iter().map(|p| p["flip"].as_f64().unwrap()).collect();
+        assert!(flip[0] > flip[2], "{flip:?}");
+    }
+}
