@@ -509,6 +509,18 @@ impl FlatBvh {
         }
     }
 
+    /// A one-mesh tree from its arrays, as a device builder reads them back (depth-first
+    /// nodes with the left child next, triangles in leaf order, the longest root-to-leaf
+    /// path in edges). Nothing is checked here: [`FlatBvh::check_invariants`] does.
+    pub fn from_parts(nodes: Vec<FlatNode>, triangles: Vec<FlatTriangle>, depth: u32) -> FlatBvh {
+        FlatBvh {
+            nodes,
+            triangles,
+            depth,
+            ..FlatBvh::default()
+        }
+    }
+
     /// Converts the tree into the wide layout as well ([`crate::wide::WideBvh::collapse`]),
     /// so that [`crate::Traversal::Wide`] can walk it. Editing the tree by hand
     /// ([`FlatBvh::parts_mut`]) drops it: call this again afterwards to have it back.

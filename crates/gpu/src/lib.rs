@@ -45,6 +45,7 @@
 #![warn(missing_docs)]
 
 pub mod backend;
+mod build;
 mod bvh;
 mod context;
 mod library;
@@ -52,6 +53,7 @@ mod library;
 mod ray_query;
 mod trace;
 
+pub use build::GpuBuildTimes;
 pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};

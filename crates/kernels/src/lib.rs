@@ -17,6 +17,7 @@
 //! * [`TraceError`]: everything that can go wrong, on every backend.
 #![warn(missing_docs)]
 
+pub mod build;
 mod device;
 pub mod engine;
 mod error;
