@@ -18,8 +18,6 @@ use wgpu::util::DeviceExt;
 use crate::trace::{map_all, read_mapped};
 use crate::{GpuContext, GpuError};
 
-use bvhtrace_kernels::build::lbvh_source;
-
 /// Invocations per workgroup (`LBVH_WG`) and keys per radix block (`LBVH_BLOCK`).
 const WG: u32 = 256;
 const BLOCK: u32 = 1024;
@@ -79,6 +77,9 @@ const PARAMS_STRIDE: u64 = 256;
 /// One dispatch of a step: the entry point's index, its radix pass, its grid.
 type Dispatch = (usize, u32, (u32, u32, u32));
 
+/// The bindings that hold the build's output: nodes, triangles, depth.
+const OUTPUT: [u32; 3] = [13, 14, 15];
+
 /// A dispatch of `count` invocations as a grid within the device's per-dimension limit:
 /// `(x, y, invocations per row)`.
 fn grid(count: u64, max_dim: u32) -> (u32, u32, u32) {
@@ -88,42 +89,74 @@ fn grid(count: u64, max_dim: u32) -> (u32, u32, u32) {
     (x, y, x * WG)
 }
 
-impl GpuContext {
-    /// Builds a linear BVH over `tris` on the device and reads it back (one triangle per
-    /// leaf, `prim` the triangle's index in `tris`), with the time of each step. The
-    /// tree passes [`FlatBvh::check_invariants`]; build its escape links or wide layout
-    /// on the CPU as for any tree. One triangle is built on the CPU (there is nothing to
-    /// sort); no triangle is [`TraceError::EmptyBvh`]; a non-finite corner, or more
-    /// triangles than the device's buffers hold, an error naming it.
-    pub fn build_lbvh(&self, tris: &[Triangle]) -> Result<(FlatBvh, GpuBuildTimes), GpuError> {
-        let n = tris.len();
-        if n == 0 {
-            return Err(TraceError::EmptyBvh);
+/// One build's buffers, by binding (`build_lbvh.wgsl`'s group 0), and its sizes.
+struct Lbvh {
+    buffers: Vec<wgpu::Buffer>,
+    /// Triangles, nodes, radix blocks.
+    n: u64,
+    nodes: u64,
+    blocks: u32,
+}
+
+/// The timestamp queries around each step, and the buffers they are read through.
+struct StepQueries {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+}
+
+impl StepQueries {
+    const BYTES: u64 = 2 * 8 * GpuBuildTimes::STAGES.len() as u64;
+
+    fn new(device: &wgpu::Device) -> StepQueries {
+        let buffer = |usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("lbvh timestamps"),
+                size: Self::BYTES,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        StepQueries {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("lbvh steps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2 * GpuBuildTimes::STAGES.len() as u32,
+            }),
+            resolve: buffer(U::QUERY_RESOLVE | U::COPY_SRC),
+            read: buffer(U::MAP_READ | U::COPY_DST),
         }
-        bvhtrace_core::mesh::validate_triangles(tris).map_err(|e| TraceError::BadBuffer {
-            buffer: "triangles",
-            problem: e.to_string(),
-        })?;
-        if n == 1 {
-            let bvh =
-                FlatBvh::build(tris, &Default::default()).map_err(|e| TraceError::BadBuffer {
-                    buffer: "triangles",
-                    problem: e.to_string(),
-                })?;
-            return Ok((bvh, GpuBuildTimes::default()));
-        }
-        let n32 = n as u32;
-        let nodes = 2 * n as u64 - 1;
-        let limits = self.limits();
+    }
+
+    /// Each step's milliseconds, from the mapped read buffer (unmapped after).
+    fn stages_ms(&self, queue: &wgpu::Queue) -> Result<[f64; 5], GpuError> {
+        let mut ticks: Vec<u64> = Vec::with_capacity(10);
+        let got = read_mapped(&self.read, Self::BYTES, &mut ticks);
+        self.read.unmap();
+        got?;
+        let period = f64::from(queue.get_timestamp_period()) * 1e-6;
+        Ok(std::array::from_fn(|k| {
+            ticks[2 * k + 1].saturating_sub(ticks[2 * k]) as f64 * period
+        }))
+    }
+}
+
+impl Lbvh {
+    /// Uploads `tris` (as `FlatTriangle`s numbered in input order) and makes every other
+    /// buffer of the build (zeroed by wgpu, the bounds set to an empty range).
+    fn upload(ctx: &GpuContext, tris: &[Triangle]) -> Result<Lbvh, GpuError> {
+        let n = tris.len() as u64;
+        let nodes = 2 * n - 1;
+        let blocks = (n as u32).div_ceil(BLOCK);
+        let limits = ctx.limits();
         for (buffer, bytes) in [
-            ("triangles", n as u64 * 48),
+            ("triangles", n * 48),
             ("nodes", nodes * 32),
             ("node boxes", nodes * 32),
         ] {
             bvhtrace_kernels::check_buffer_size(limits, buffer, bytes)?;
         }
-        let device = self.device();
-        let t0 = Instant::now();
         let input: Vec<FlatTriangle> = tris
             .iter()
             .enumerate()
@@ -136,14 +169,12 @@ impl GpuContext {
                 _pad2: 0,
             })
             .collect();
-        let blocks = n32.div_ceil(BLOCK);
-        let max_dim = limits.max_compute_workgroups_per_dimension;
-        let (_, _, row) = grid(nodes, max_dim);
+        let (_, _, row) = grid(nodes, limits.max_compute_workgroups_per_dimension);
         let params: Vec<u8> = (0..4u32)
             .flat_map(|pass| {
                 let mut bytes = vec![0u8; PARAMS_STRIDE as usize];
                 bytes[..16].copy_from_slice(bytemuck::bytes_of(&Params {
-                    n: n32,
+                    n: n as u32,
                     shift: 8 * pass,
                     blocks,
                     row,
@@ -151,8 +182,9 @@ impl GpuContext {
                 bytes
             })
             .collect();
+        let device = ctx.device();
         use wgpu::BufferUsages as U;
-        let (made, pipelines) = self.scoped("building a BVH on the device", || {
+        let buffers = ctx.scoped("uploading a build", || {
             let init = |label: &str, contents: &[u8], usage| {
                 device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                     label: Some(label),
@@ -168,214 +200,218 @@ impl GpuContext {
                     mapped_at_creation: false,
                 })
             };
-            let storage = U::STORAGE;
+            let (storage, out) = (U::STORAGE, U::STORAGE | U::COPY_SRC);
             let bounds_init: [u32; 6] = [u32::MAX, u32::MAX, u32::MAX, 0, 0, 0];
-            let made = [
+            vec![
                 init("lbvh params", &params, U::UNIFORM),
                 init("lbvh input", bytemuck::cast_slice(&input), storage),
                 init("lbvh bounds", bytemuck::cast_slice(&bounds_init), storage),
-                empty("lbvh keys", n as u64 * 4, storage),
-                empty("lbvh values", n as u64 * 4, storage),
-                empty("lbvh keys (other)", n as u64 * 4, storage),
-                empty("lbvh values (other)", n as u64 * 4, storage),
+                empty("lbvh keys", n * 4, storage),
+                empty("lbvh values", n * 4, storage),
+                empty("lbvh keys (other)", n * 4, storage),
+                empty("lbvh values (other)", n * 4, storage),
                 empty("lbvh histograms", u64::from(blocks) * 256 * 4, storage),
-                empty("lbvh children", (n as u64 - 1) * 8, storage),
-                empty("lbvh first leaves", (n as u64 - 1) * 4, storage),
+                empty("lbvh children", (n - 1) * 8, storage),
+                empty("lbvh first leaves", (n - 1) * 4, storage),
                 empty("lbvh parents", nodes * 4, storage),
                 empty("lbvh boxes", nodes * 32, storage),
-                init(
-                    "lbvh arrivals",
-                    bytemuck::cast_slice(&vec![0u32; n - 1]),
-                    storage,
-                ),
-                empty("lbvh nodes", nodes * 32, storage | U::COPY_SRC),
-                empty("lbvh triangles", n as u64 * 48, storage | U::COPY_SRC),
-                init("lbvh depth", &[0; 4], storage | U::COPY_SRC),
-            ];
-            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("bvhtrace lbvh"),
-                source: wgpu::ShaderSource::Wgsl(lbvh_source().into()),
-            });
-            let pipelines: Vec<wgpu::ComputePipeline> = ENTRIES
-                .iter()
-                .map(|entry| {
-                    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                        label: Some(entry),
-                        layout: None,
-                        module: &module,
-                        entry_point: Some(entry),
-                        compilation_options: Default::default(),
-                        cache: None,
+                empty("lbvh arrivals", (n - 1) * 4, storage),
+                empty("lbvh nodes", nodes * 32, out),
+                empty("lbvh triangles", n * 48, out),
+                empty("lbvh depth", 4, out),
+            ]
+        })?;
+        Ok(Lbvh {
+            buffers,
+            n,
+            nodes,
+            blocks,
+        })
+    }
+
+    /// The bind group of entry `e` in radix pass `pass`: that pass's params, and the key
+    /// and value buffers swapped on odd passes.
+    fn group(
+        &self,
+        device: &wgpu::Device,
+        pipeline: &wgpu::ComputePipeline,
+        e: usize,
+        pass: u32,
+    ) -> wgpu::BindGroup {
+        let swap = pass % 2 == 1;
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = BINDINGS[e]
+            .iter()
+            .map(|&b| {
+                let slot = match b {
+                    3 | 4 if swap => b + 2,
+                    5 | 6 if swap => b - 2,
+                    b => b,
+                };
+                let buffer = &self.buffers[slot as usize];
+                let resource = if b == 0 {
+                    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer,
+                        offset: u64::from(pass) * PARAMS_STRIDE,
+                        size: std::num::NonZeroU64::new(16),
                     })
-                })
-                .collect();
-            (made, pipelines)
-        })?;
-        let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let t1 = Instant::now();
-        // The bind group of entry `e`, radix pass `pass` (its params, and which of the two
-        // key and value buffers it reads).
-        let group = |e: usize, pass: u32| {
-            let swap = pass % 2 == 1;
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = BINDINGS[e]
-                .iter()
-                .map(|&b| {
-                    let buffer = match b {
-                        3 if swap => &made[5],
-                        4 if swap => &made[6],
-                        5 if swap => &made[3],
-                        6 if swap => &made[4],
-                        b => &made[b as usize],
-                    };
-                    let resource = if b == 0 {
-                        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer,
-                            offset: u64::from(pass) * PARAMS_STRIDE,
-                            size: std::num::NonZeroU64::new(16),
-                        })
-                    } else {
-                        buffer.as_entire_binding()
-                    };
-                    wgpu::BindGroupEntry {
-                        binding: b,
-                        resource,
-                    }
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(ENTRIES[e]),
-                layout: &pipelines[e].get_bind_group_layout(0),
-                entries: &entries,
-            })
-        };
-        let queries = self.has_timestamps().then(|| {
-            let set = device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("lbvh steps"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 10,
-            });
-            let buffer = |usage| {
-                device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("lbvh timestamps"),
-                    size: 80,
-                    usage,
-                    mapped_at_creation: false,
-                })
-            };
-            (
-                set,
-                buffer(U::QUERY_RESOLVE | U::COPY_SRC),
-                buffer(U::MAP_READ | U::COPY_DST),
-            )
-        });
-        let per_item = grid(n as u64, max_dim);
-        let per_block = grid(u64::from(blocks) * u64::from(WG), max_dim);
-        let per_node = grid(nodes, max_dim);
-        let index = self.scoped("building a BVH on the device", || {
-            let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("bvhtrace lbvh"),
-            });
-            // One compute pass per step, each timed when the device has timestamps.
-            let steps: [&[Dispatch]; 5] = [
-                &[(0, 0, per_item), (1, 0, per_item)],
-                // Four passes: the sorted keys and values end in the first buffers.
-                &[
-                    (2, 0, per_block),
-                    (3, 0, (1, 1, WG)),
-                    (4, 0, per_block),
-                    (2, 1, per_block),
-                    (3, 1, (1, 1, WG)),
-                    (4, 1, per_block),
-                    (2, 2, per_block),
-                    (3, 2, (1, 1, WG)),
-                    (4, 2, per_block),
-                    (2, 3, per_block),
-                    (3, 3, (1, 1, WG)),
-                    (4, 3, per_block),
-                ],
-                &[(5, 0, per_item)],
-                &[(6, 0, per_item)],
-                &[(7, 0, per_node)],
-            ];
-            for (k, step) in steps.iter().enumerate() {
-                let timestamp_writes =
-                    queries
-                        .as_ref()
-                        .map(|(set, _, _)| wgpu::ComputePassTimestampWrites {
-                            query_set: set,
-                            beginning_of_pass_write_index: Some(2 * k as u32),
-                            end_of_pass_write_index: Some(2 * k as u32 + 1),
-                        });
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some(GpuBuildTimes::STAGES[k]),
-                    timestamp_writes,
-                });
-                for &(e, radix, (x, y, _)) in step.iter() {
-                    let g = group(e, radix);
-                    pass.set_pipeline(&pipelines[e]);
-                    pass.set_bind_group(0, &g, &[]);
-                    pass.dispatch_workgroups(x, y, 1);
+                } else {
+                    buffer.as_entire_binding()
+                };
+                wgpu::BindGroupEntry {
+                    binding: b,
+                    resource,
                 }
+            })
+            .collect();
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(ENTRIES[e]),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    }
+
+    /// Every step's dispatches, one compute pass per step ([`GpuBuildTimes::STAGES`]), each
+    /// timed when `queries` are given.
+    fn record(
+        &self,
+        ctx: &GpuContext,
+        pipelines: &[wgpu::ComputePipeline],
+        enc: &mut wgpu::CommandEncoder,
+        queries: Option<&StepQueries>,
+    ) {
+        let max_dim = ctx.limits().max_compute_workgroups_per_dimension;
+        let per_item = grid(self.n, max_dim);
+        let per_block = grid(u64::from(self.blocks) * u64::from(WG), max_dim);
+        let per_node = grid(self.nodes, max_dim);
+        // Four radix passes of count, scan and scatter: the sorted keys and values end in
+        // the first buffers.
+        let sort: Vec<Dispatch> = (0..4)
+            .flat_map(|pass| {
+                [
+                    (2, pass, per_block),
+                    (3, pass, (1, 1, WG)),
+                    (4, pass, per_block),
+                ]
+            })
+            .collect();
+        let steps: [&[Dispatch]; 5] = [
+            &[(0, 0, per_item), (1, 0, per_item)],
+            &sort,
+            &[(5, 0, per_item)],
+            &[(6, 0, per_item)],
+            &[(7, 0, per_node)],
+        ];
+        for (k, step) in steps.iter().enumerate() {
+            let timestamp_writes = queries.map(|q| wgpu::ComputePassTimestampWrites {
+                query_set: &q.set,
+                beginning_of_pass_write_index: Some(2 * k as u32),
+                end_of_pass_write_index: Some(2 * k as u32 + 1),
+            });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(GpuBuildTimes::STAGES[k]),
+                timestamp_writes,
+            });
+            for &(e, radix, (x, y, _)) in step.iter() {
+                let g = self.group(ctx.device(), &pipelines[e], e, radix);
+                pass.set_pipeline(&pipelines[e]);
+                pass.set_bind_group(0, &g, &[]);
+                pass.dispatch_workgroups(x, y, 1);
             }
-            if let Some((set, resolve, read)) = &queries {
-                enc.resolve_query_set(set, 0..10, resolve, 0);
-                enc.copy_buffer_to_buffer(resolve, 0, read, 0, 80);
-            }
-            let read = |label: &str, bytes: u64| {
-                device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size: bytes,
-                    usage: U::MAP_READ | U::COPY_DST,
+        }
+        if let Some(q) = queries {
+            enc.resolve_query_set(
+                &q.set,
+                0..2 * GpuBuildTimes::STAGES.len() as u32,
+                &q.resolve,
+                0,
+            );
+            enc.copy_buffer_to_buffer(&q.resolve, 0, &q.read, 0, StepQueries::BYTES);
+        }
+    }
+
+    /// Copies of the output (nodes, triangles, depth) into buffers to map.
+    fn copy_out(&self, device: &wgpu::Device, enc: &mut wgpu::CommandEncoder) -> Vec<wgpu::Buffer> {
+        OUTPUT
+            .iter()
+            .map(|&b| {
+                let src = &self.buffers[b as usize];
+                let dst = device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("lbvh readback"),
+                    size: src.size(),
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                     mapped_at_creation: false,
-                })
-            };
-            let reads = [
-                read("lbvh nodes readback", nodes * 32),
-                read("lbvh triangles readback", n as u64 * 48),
-                read("lbvh depth readback", 4),
-            ];
-            for (src, dst) in [13usize, 14, 15].iter().zip(&reads) {
-                enc.copy_buffer_to_buffer(&made[*src], 0, dst, 0, dst.size());
-            }
-            (self.queue().submit([enc.finish()]), reads)
-        })?;
-        let (index, reads) = index;
-        let mut maps: Vec<(&wgpu::Buffer, u64)> = reads.iter().map(|b| (b, b.size())).collect();
-        maps.extend(queries.as_ref().map(|(_, _, read)| (read, 80)));
-        pollster::block_on(map_all(device, index, &maps))?;
-        let stages_ms = match &queries {
-            Some((_, _, read)) => {
-                let mut ticks: Vec<u64> = Vec::with_capacity(10);
-                let got = read_mapped(read, 80, &mut ticks);
-                read.unmap();
-                got?;
-                let period = f64::from(self.queue().get_timestamp_period()) * 1e-6;
-                Some(std::array::from_fn(|k| {
-                    ticks[2 * k + 1].saturating_sub(ticks[2 * k]) as f64 * period
-                }))
-            }
-            None => None,
-        };
-        let build_ms = t1.elapsed().as_secs_f64() * 1e3;
-        let t2 = Instant::now();
-        let mut flat_nodes: Vec<FlatNode> = Vec::with_capacity(nodes as usize);
-        let mut flat_tris: Vec<FlatTriangle> = Vec::with_capacity(n);
+                });
+                enc.copy_buffer_to_buffer(src, 0, &dst, 0, src.size());
+                dst
+            })
+            .collect()
+    }
+
+    /// The mapped copies as a tree (the copies unmapped after).
+    fn read(&self, reads: &[wgpu::Buffer]) -> Result<FlatBvh, GpuError> {
+        let mut nodes: Vec<FlatNode> = Vec::with_capacity(self.nodes as usize);
+        let mut tris: Vec<FlatTriangle> = Vec::with_capacity(self.n as usize);
         let mut depth: Vec<u32> = Vec::with_capacity(1);
-        let got = read_mapped(&reads[0], nodes * 32, &mut flat_nodes)
-            .and_then(|_| read_mapped(&reads[1], n as u64 * 48, &mut flat_tris))
+        let got = read_mapped(&reads[0], self.nodes * 32, &mut nodes)
+            .and_then(|_| read_mapped(&reads[1], self.n * 48, &mut tris))
             .and_then(|_| read_mapped(&reads[2], 4, &mut depth));
-        for r in &reads {
+        for r in reads {
             r.unmap();
         }
         got?;
-        let bvh = FlatBvh::from_parts(flat_nodes, flat_tris, depth[0]);
-        let readback_ms = t2.elapsed().as_secs_f64() * 1e3;
+        Ok(FlatBvh::from_parts(nodes, tris, depth[0]))
+    }
+}
+
+impl GpuContext {
+    /// Builds a linear BVH over `tris` on the device and reads it back (one triangle per
+    /// leaf, `prim` the triangle's index in `tris`), with the time of each step. The
+    /// tree passes [`FlatBvh::check_invariants`]; build its escape links or wide layout
+    /// on the CPU as for any tree. One triangle is built on the CPU (there is nothing to
+    /// sort); no triangle is [`TraceError::EmptyBvh`]; a non-finite corner, or more
+    /// triangles than the device's buffers hold, an error naming it. The pipelines are
+    /// compiled on the first build and kept.
+    pub fn build_lbvh(&self, tris: &[Triangle]) -> Result<(FlatBvh, GpuBuildTimes), GpuError> {
+        let bad_input = |e: &dyn std::fmt::Display| TraceError::BadBuffer {
+            buffer: "triangles",
+            problem: e.to_string(),
+        };
+        match tris.len() {
+            0 => return Err(TraceError::EmptyBvh),
+            1 => {
+                let bvh = FlatBvh::build(tris, &Default::default()).map_err(|e| bad_input(&e))?;
+                return Ok((bvh, GpuBuildTimes::default()));
+            }
+            _ => bvhtrace_core::mesh::validate_triangles(tris).map_err(|e| bad_input(&e))?,
+        }
+        let pipelines = self.lbvh_pipelines()?;
+        let t0 = Instant::now();
+        let lbvh = Lbvh::upload(self, tris)?;
+        let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = Instant::now();
+        let device = self.device();
+        let queries = self.has_timestamps().then(|| StepQueries::new(device));
+        let (index, reads) = self.scoped("building a BVH on the device", || {
+            let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("bvhtrace lbvh"),
+            });
+            lbvh.record(self, &pipelines, &mut enc, queries.as_ref());
+            let reads = lbvh.copy_out(device, &mut enc);
+            (self.queue().submit([enc.finish()]), reads)
+        })?;
+        let mut maps: Vec<(&wgpu::Buffer, u64)> = reads.iter().map(|b| (b, b.size())).collect();
+        maps.extend(queries.as_ref().map(|q| (&q.read, StepQueries::BYTES)));
+        pollster::block_on(map_all(device, index, &maps))?;
+        let stages_ms = queries.map(|q| q.stages_ms(self.queue())).transpose()?;
+        let build_ms = t1.elapsed().as_secs_f64() * 1e3;
+        let t2 = Instant::now();
+        let bvh = lbvh.read(&reads)?;
         Ok((
             bvh,
             GpuBuildTimes {
                 upload_ms,
                 build_ms,
-                readback_ms,
+                readback_ms: t2.elapsed().as_secs_f64() * 1e3,
                 stages_ms,
             },
         ))

@@ -93,6 +93,8 @@ struct Inner {
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
+    /// The device builder's pipelines (`GpuContext::build_lbvh`), made on first use.
+    pub(crate) lbvh_pipelines: Mutex<Option<Vec<wgpu::ComputePipeline>>>,
     /// In a browser, the error scopes of the work done since the last trace, popped and
     /// awaited by that trace ([`GpuContext::deferred_errors`]).
     #[cfg(target_arch = "wasm32")]
@@ -126,7 +128,8 @@ fn scope_error(during: &'static str, e: wgpu::Error) -> GpuError {
     }
 }
 
-fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+/// A compute-stage storage-buffer binding.
+pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
@@ -415,6 +418,7 @@ impl GpuContext {
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
+                lbvh_pipelines: Mutex::new(None),
                 modules_compiled: AtomicU64::new(0),
                 pipelines_compiled: AtomicU64::new(0),
             }),
@@ -598,6 +602,41 @@ impl GpuContext {
             self.inner.modules_compiled.load(Ordering::Relaxed),
             self.inner.pipelines_compiled.load(Ordering::Relaxed),
         )
+    }
+
+    /// The device builder's pipelines, in `bvhtrace_kernels::build::LBVH_ENTRIES` order,
+    /// compiled on first use.
+    pub(crate) fn lbvh_pipelines(&self) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
+        let mut cached = self
+            .inner
+            .lbvh_pipelines
+            .lock()
+            .map_err(|_| GpuError::Poisoned("builder pipelines"))?;
+        if let Some(p) = cached.as_ref() {
+            return Ok(p.clone());
+        }
+        let device = &self.inner.device;
+        let made = self.scoped("compiling the device builder", || {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("bvhtrace lbvh"),
+                source: wgpu::ShaderSource::Wgsl(bvhtrace_kernels::build::lbvh_source().into()),
+            });
+            bvhtrace_kernels::build::LBVH_ENTRIES
+                .iter()
+                .map(|entry| {
+                    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                        label: Some(entry),
+                        layout: None,
+                        module: &module,
+                        entry_point: Some(entry),
+                        compilation_options: Default::default(),
+                        cache: None,
+                    })
+                })
+                .collect::<Vec<_>>()
+        })?;
+        *cached = Some(made.clone());
+        Ok(made)
     }
 
     fn module(&self, set: &ModuleSet) -> Result<wgpu::ShaderModule, GpuError> {

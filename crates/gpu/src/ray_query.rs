@@ -21,7 +21,8 @@ use bvhtrace_kernels::{
 use std::time::Instant;
 use wgpu::util::DeviceExt;
 
-use crate::trace::{map_all, read_mapped};
+use crate::context::storage_entry;
+use crate::trace::{binding, map_all, read_mapped};
 use crate::{BvhBindGroup, GpuContext, GpuError, RAY_QUERY_BACKEND};
 
 /// One mesh's triangles: a run of slots in the triangle buffer, and its BLAS.
@@ -138,19 +139,6 @@ fn object_to_world(inst: &FlatInstance, index: usize) -> Result<[f32; 12], Trace
     Ok(out)
 }
 
-fn storage_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only: true },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
 impl RayQueryBvh {
     /// Hands `bvh` (one mesh or two levels) to the device's acceleration structures: its
     /// triangles uploaded once, in leaf order (a spatial order, which the drivers' builders
@@ -262,10 +250,10 @@ impl RayQueryBvh {
                 },
                 count: None,
             },
-            storage_entry(1),
+            storage_entry(1, true),
         ];
         if instanced {
-            entries.extend([storage_entry(2), storage_entry(4)]);
+            entries.extend([storage_entry(2, true), storage_entry(4, true)]);
         }
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("bvhtrace ray-query bvh"),
@@ -558,11 +546,11 @@ impl RayQueryBvh {
                     entries: &[
                         wgpu::BindGroupEntry {
                             binding: 0,
-                            resource: first_bytes(&ray_buf, n * RAY_BYTES),
+                            resource: binding(&ray_buf, 0, n, RAY_BYTES),
                         },
                         wgpu::BindGroupEntry {
                             binding: 1,
-                            resource: first_bytes(&hit_buf, n * HIT_BYTES),
+                            resource: binding(&hit_buf, 0, n, HIT_BYTES),
                         },
                     ],
                 });
@@ -600,15 +588,6 @@ impl RayQueryBvh {
             instances: self.table.clone(),
         })
     }
-}
-
-/// The first `bytes` of `buffer`, bound.
-fn first_bytes(buffer: &wgpu::Buffer, bytes: u64) -> wgpu::BindingResource<'_> {
-    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-        buffer,
-        offset: 0,
-        size: std::num::NonZeroU64::new(bytes),
-    })
 }
 
 /// The size of a mesh's BLAS geometry: its triangles, unindexed, opaque.

@@ -262,7 +262,8 @@ fn check_buffer(
     Ok(())
 }
 
-fn binding(
+/// `count` elements of `stride` bytes of `buffer` from element `first`, bound.
+pub(crate) fn binding(
     buffer: &wgpu::Buffer,
     first: u64,
     count: u64,

@@ -1089,6 +1089,48 @@ fn upload_failed(backend: &str, queries: &[Query], e: &dyn std::fmt::Display) ->
     rows
 }
 
+/// The device's ray queries' rows: one walk (the driver's) per query, judged like every
+/// row, with no twin to equal.
+fn trace_ray_queries(
+    device: &DeviceTracers,
+    bvh: &FlatBvh,
+    case: &Case,
+    queries: &[Query],
+    judge: &Judge<'_>,
+) -> Vec<RunReport> {
+    let rq = match (device.open)(bvh, &[Traversal::FullStack]) {
+        Ok(rq) => rq,
+        Err(e) => {
+            return queries
+                .iter()
+                .map(|&q| RunReport {
+                    status: format!("upload failed: {e}"),
+                    ..ray_query_report(q)
+                })
+                .collect();
+        }
+    };
+    queries
+        .iter()
+        .map(|&q| {
+            let r = ray_query_report(q);
+            let opts = TraceOptions::new(Traversal::FullStack, q);
+            match trace_timed(&*rq, &case.rays, &opts) {
+                Ok(out) => judge.evaluate(
+                    RunReport {
+                        trace_ms: out.wall_ms,
+                        ..r
+                    },
+                    q,
+                    &out.hits,
+                    None,
+                ),
+                Err(status) => RunReport { status, ..r },
+            }
+        })
+        .collect()
+}
+
 /// A `ray-query` row: the driver's walk.
 fn ray_query_report(q: Query) -> RunReport {
     RunReport {
@@ -1313,29 +1355,9 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         }
     }
 
-    // The device's ray queries: one walk (the driver's), no twin to equal.
     if let Some(device) = &backends.rq {
-        match (device.open)(&bvh, &[Traversal::FullStack]) {
-            Err(e) => {
-                rep.runs.extend(queries.iter().map(|&q| RunReport {
-                    status: format!("upload failed: {e}"),
-                    ..ray_query_report(q)
-                }));
-            }
-            Ok(rq) => {
-                for &q in queries {
-                    let mut r = ray_query_report(q);
-                    let opts = TraceOptions::new(Traversal::FullStack, q);
-                    match trace_timed(&*rq, &case.rays, &opts) {
-                        Ok(out) => {
-                            r.trace_ms = out.wall_ms;
-                            rep.runs.push(judge.evaluate(r, q, &out.hits, None));
-                        }
-                        Err(status) => rep.runs.push(RunReport { status, ..r }),
-                    }
-                }
-            }
-        }
+        rep.runs
+            .extend(trace_ray_queries(device, &bvh, case, queries, &judge));
     }
     rep.elapsed_ms = ms(start);
     rep
