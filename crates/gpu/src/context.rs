@@ -93,8 +93,8 @@ struct Inner {
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
-    /// The device builder's pipelines (`GpuContext::build_lbvh`), made on first use.
-    pub(crate) lbvh_pipelines: Mutex<Option<Vec<wgpu::ComputePipeline>>>,
+    /// The device builders' pipelines (`GpuContext::build_bvh`), made on first use.
+    build_pipelines: Mutex<HashMap<crate::GpuBuilderKind, Vec<wgpu::ComputePipeline>>>,
     /// In a browser, the error scopes of the work done since the last trace, popped and
     /// awaited by that trace ([`GpuContext::deferred_errors`]).
     #[cfg(target_arch = "wasm32")]
@@ -418,7 +418,7 @@ impl GpuContext {
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
-                lbvh_pipelines: Mutex::new(None),
+                build_pipelines: Mutex::new(HashMap::new()),
                 modules_compiled: AtomicU64::new(0),
                 pipelines_compiled: AtomicU64::new(0),
             }),
@@ -604,25 +604,27 @@ impl GpuContext {
         )
     }
 
-    /// The device builder's pipelines, in `bvhtrace_kernels::build::LBVH_ENTRIES` order,
-    /// compiled on first use.
-    pub(crate) fn lbvh_pipelines(&self) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
+    /// A device builder's pipelines, in [`crate::GpuBuilderKind::entries`] order, compiled
+    /// on first use.
+    pub(crate) fn build_pipelines(
+        &self,
+        kind: crate::GpuBuilderKind,
+    ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
         let mut cached = self
             .inner
-            .lbvh_pipelines
+            .build_pipelines
             .lock()
             .map_err(|_| GpuError::Poisoned("builder pipelines"))?;
-        if let Some(p) = cached.as_ref() {
+        if let Some(p) = cached.get(&kind) {
             return Ok(p.clone());
         }
         let device = &self.inner.device;
         let made = self.scoped("compiling the device builder", || {
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("bvhtrace lbvh"),
-                source: wgpu::ShaderSource::Wgsl(bvhtrace_kernels::build::lbvh_source().into()),
+                label: Some(kind.name()),
+                source: wgpu::ShaderSource::Wgsl(kind.source().into()),
             });
-            bvhtrace_kernels::build::LBVH_ENTRIES
-                .iter()
+            kind.entries()
                 .map(|entry| {
                     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                         label: Some(entry),
@@ -635,7 +637,7 @@ impl GpuContext {
                 })
                 .collect::<Vec<_>>()
         })?;
-        *cached = Some(made.clone());
+        cached.insert(kind, made.clone());
         Ok(made)
     }
 

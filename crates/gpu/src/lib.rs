@@ -53,7 +53,7 @@ mod library;
 mod ray_query;
 mod trace;
 
-pub use build::GpuBuildTimes;
+pub use build::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
 pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};

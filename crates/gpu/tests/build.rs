@@ -1,11 +1,14 @@
-//! The linear BVH built on the device (`GpuContext::build_lbvh`), read back: every
+//! The BVHs built on the device (`GpuContext::build_bvh`, both builders), read back: every
 //! structural invariant of the flat layout (every triangle once, boxes holding their
 //! children and triangles), the same tree for the same input, degenerate inputs, and the
 //! same closest hits as the CPU's SAH tree, traced by the CPU walks and by the GPU. Without
 //! a Vulkan adapter the tests print SKIP.
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, Tracer, UploadOptions};
+use bvhtrace_gpu::{
+    AdapterChoice, GpuBuildOptions, GpuBuilderKind, GpuBvh, GpuContext, GpuError, Tracer,
+    UploadOptions,
+};
 use glam::Vec3;
 
 fn context() -> Option<GpuContext> {
@@ -46,18 +49,31 @@ fn rays(bvh: &FlatBvh) -> Vec<Ray> {
     out
 }
 
-/// Builds `tris` on the device and checks the tree, its determinism and its hits.
-fn check(ctx: &GpuContext, name: &str, tris: &[Triangle]) -> FlatBvh {
-    let (bvh, times) = ctx.build_lbvh(tris).expect("device build");
+/// Builds `tris` on the device with each builder and checks the tree, its determinism and
+/// its hits; returns the trees.
+fn check(ctx: &GpuContext, name: &str, tris: &[Triangle]) -> Vec<FlatBvh> {
+    GpuBuilderKind::ALL
+        .iter()
+        .map(|&kind| check_one(ctx, &format!("{name} ({kind})"), tris, kind))
+        .collect()
+}
+
+fn check_one(ctx: &GpuContext, name: &str, tris: &[Triangle], kind: GpuBuilderKind) -> FlatBvh {
+    let opts = GpuBuildOptions::with_builder(kind);
+    let (bvh, times) = ctx.build_bvh(tris, &opts).expect("device build");
     bvh.check_invariants()
         .unwrap_or_else(|e| panic!("{name}: {e}"));
     assert_eq!(
         bvh.triangles().len(),
         tris.len(),
-        "{name}: one triangle a leaf"
+        "{name}: every triangle once"
     );
-    assert_eq!(bvh.nodes().len(), 2 * tris.len() - 1, "{name}");
-    let (again, _) = ctx.build_lbvh(tris).expect("device build");
+    let leaves = bvh.nodes().iter().filter(|n| n.count() > 0).count();
+    assert_eq!(bvh.nodes().len(), 2 * leaves - 1, "{name}: a binary tree");
+    if kind == GpuBuilderKind::Lbvh {
+        assert_eq!(leaves, tris.len(), "{name}: one triangle a leaf");
+    }
+    let (again, _) = ctx.build_bvh(tris, &opts).expect("device build");
     assert!(
         bytemuck::cast_slice::<_, u8>(bvh.nodes()) == bytemuck::cast_slice::<_, u8>(again.nodes())
             && bytemuck::cast_slice::<_, u8>(bvh.triangles())
@@ -76,10 +92,11 @@ fn check(ctx: &GpuContext, name: &str, tris: &[Triangle]) -> FlatBvh {
         "{name}: the CPU walks on the device-built tree answer otherwise"
     );
     eprintln!(
-        "{name}: {} triangles, depth {}, {:.1} ms upload, {:.1} ms build, {:.1} ms read back; \
-         {} hits",
+        "{name}: {} triangles, {leaves} leaves, depth {}, {} iterations, {:.1} ms upload, \
+         {:.1} ms build, {:.1} ms read back; {} hits",
         tris.len(),
         bvh.depth(),
+        times.iterations,
         times.upload_ms,
         times.build_ms,
         times.readback_ms,
@@ -98,16 +115,22 @@ fn device_built_trees_hold_every_invariant_and_the_sah_trees_hits() {
         "builtin:grid:icosphere:5x4",
     ] {
         let tris = scene(spec);
-        let bvh = check(&ctx, spec, &tris);
+        let trees = check(&ctx, spec, &tris);
         if spec == "builtin:icosphere:4" {
-            // Every walk on the GPU over it, as over any tree.
-            let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
-            let rays = rays(&bvh);
-            for walk in [Traversal::Stackless, Traversal::FullStack] {
-                let opts = TraceOptions::closest(walk);
-                let g = gpu.trace(&rays, &opts).expect("trace").hits;
-                let c = trace_rays(&bvh, &rays, &opts).hits;
-                assert_eq!(g, c, "{walk}: GPU and CPU walks on the device-built tree");
+            // Every walk on the GPU over them, as over any tree.
+            for bvh in &trees {
+                // The wide layout by the CPU collapse, as for any tree.
+                let mut bvh = bvh.clone();
+                bvh.build_wide();
+                let bvh = &bvh;
+                let gpu = GpuBvh::upload(&ctx, bvh, &UploadOptions::fitting(bvh)).expect("upload");
+                let rays = rays(bvh);
+                for walk in [Traversal::Stackless, Traversal::FullStack, Traversal::Wide] {
+                    let opts = TraceOptions::closest(walk);
+                    let g = gpu.trace(&rays, &opts).expect("trace").hits;
+                    let c = trace_rays(bvh, &rays, &opts).hits;
+                    assert_eq!(g, c, "{walk}: GPU and CPU walks on the device-built tree");
+                }
             }
         }
     }
@@ -119,6 +142,17 @@ fn degenerate_inputs_build() {
     let t = [Vec3::ZERO, Vec3::X, Vec3::Y];
     // Every centroid equal: the index breaks every tie.
     check(&ctx, "1000 copies of one triangle", &vec![t; 1000]);
+    // Nested boxes chain one merge an iteration unless places are paired: the
+    // iterations stay logarithmic.
+    let nested: Vec<Triangle> = (1..=2000)
+        .map(|i| [Vec3::ZERO, Vec3::X * i as f32, Vec3::Y * i as f32])
+        .collect();
+    check(&ctx, "2000 nested triangles", &nested);
+    for tris in [vec![t; 1000], nested] {
+        let opts = GpuBuildOptions::with_builder(GpuBuilderKind::Ploc);
+        let (_, times) = ctx.build_bvh(&tris, &opts).expect("device build");
+        assert!(times.iterations <= 200, "{} iterations", times.iterations);
+    }
     check(&ctx, "two triangles", &[t, t.map(|p| p + Vec3::Z)]);
     let huge: Vec<Triangle> = (0..300)
         .map(|i| t.map(|p| p * 1e30 + Vec3::new(i as f32 * 1e33, -1e35, 3e36)))
@@ -136,11 +170,38 @@ fn degenerate_inputs_build() {
         })
         .collect();
     check(&ctx, "slivers on a line", &line);
-    let (one, _) = ctx.build_lbvh(&[t]).expect("one triangle");
-    one.check_invariants().expect("one triangle's tree");
-    assert!(matches!(ctx.build_lbvh(&[]), Err(GpuError::EmptyBvh)));
-    let err = ctx
-        .build_lbvh(&[t, [Vec3::ZERO, Vec3::NAN, Vec3::Y]])
-        .expect_err("a NaN corner");
-    assert!(err.to_string().contains("triangle 1"), "{err}");
+    for kind in GpuBuilderKind::ALL {
+        let opts = GpuBuildOptions::with_builder(kind);
+        let (one, _) = ctx.build_bvh(&[t], &opts).expect("one triangle");
+        one.check_invariants().expect("one triangle's tree");
+        assert!(matches!(ctx.build_bvh(&[], &opts), Err(GpuError::EmptyBvh)));
+        let err = ctx
+            .build_bvh(&[t, [Vec3::ZERO, Vec3::NAN, Vec3::Y]], &opts)
+            .expect_err("a NaN corner");
+        assert!(err.to_string().contains("triangle 1"), "{err}");
+    }
+}
+
+#[test]
+fn the_clustering_tree_is_within_the_sah_trees_cost() {
+    let Some(ctx) = context() else { return };
+    for spec in [
+        "builtin:icosphere:4",
+        "builtin:grid:icosphere:5x4",
+        "builtin:cornell",
+    ] {
+        let tris = scene(spec);
+        let cpu = bvhtrace_core::BvhStats::of(
+            &FlatBvh::build(&tris, &BuildOptions::default()).expect("CPU build"),
+        );
+        let opts = GpuBuildOptions::with_builder(GpuBuilderKind::Ploc);
+        let (ploc, _) = ctx.build_bvh(&tris, &opts).expect("device build");
+        let got = bvhtrace_core::BvhStats::of(&ploc);
+        eprintln!(
+            "{spec}: SAH {:.2} against the CPU's {:.2} (PBRT costs {:.3} against {:.3})",
+            got.sah_cost, cpu.sah_cost, got.sah_cost_pbrt, cpu.sah_cost_pbrt
+        );
+        assert!(got.sah_cost <= 1.15 * cpu.sah_cost, "{spec}");
+        assert!(got.sah_cost_pbrt <= 1.15 * cpu.sah_cost_pbrt, "{spec}");
+    }
 }

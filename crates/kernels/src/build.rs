@@ -1,50 +1,135 @@
-//! The WGSL of the builders that run on the device: `build_lbvh.wgsl` (a linear BVH,
-//! Karras 2012) after the shared types. The wgpu backend runs it
-//! (`GpuContext::build_lbvh` in bvhtrace-gpu).
+//! The WGSL of the builders that run on the device, each composed after the shared types
+//! and `build_morton.wgsl` (bounds, Morton codes and a radix sort):
+//! `build_lbvh.wgsl` (a linear BVH, Karras 2012) and `build_ploc.wgsl` (locally-ordered
+//! clustering, Meister and Bittner 2018). The wgpu backend runs them
+//! (`GpuContext::build` in bvhtrace-gpu). Each entry point's bindings are listed here and
+//! checked against the WGSL by naga, so a host binds exactly what each step reads.
 
+/// `build_morton.wgsl`.
+const BUILD_MORTON_WGSL: &str = include_str!("../shaders/build_morton.wgsl");
 /// `build_lbvh.wgsl`.
 const BUILD_LBVH_WGSL: &str = include_str!("../shaders/build_lbvh.wgsl");
+/// `build_ploc.wgsl`.
+const BUILD_PLOC_WGSL: &str = include_str!("../shaders/build_ploc.wgsl");
 
-/// The entry points of [`lbvh_source`], in the order they run (the radix passes'
-/// three four times).
-pub const LBVH_ENTRIES: [&str; 8] = [
-    "lbvh_bounds",
-    "lbvh_morton",
-    "lbvh_radix_count",
-    "lbvh_radix_scan",
-    "lbvh_radix_scatter",
-    "lbvh_hierarchy",
-    "lbvh_boxes",
-    "lbvh_flatten",
+/// A builder step: its entry point and the bindings of group 0 it uses.
+pub type Step = (&'static str, &'static [u32]);
+
+/// The Morton-order steps every device builder starts with, in the order they run (the
+/// radix sort's three four times, one 8-bit digit a pass).
+pub const MORTON_STEPS: [Step; 5] = [
+    ("morton_bounds", &[0, 1, 2]),
+    ("morton_codes", &[0, 1, 2, 3, 4]),
+    ("morton_radix_count", &[0, 3, 7]),
+    ("morton_radix_scan", &[0, 7]),
+    ("morton_radix_scatter", &[0, 3, 4, 5, 6, 7]),
 ];
 
-/// The LBVH builder's module: `types.wgsl` (`BvhNode`, `BvhTriangle`), then
-/// `build_lbvh.wgsl`.
-pub fn lbvh_source() -> String {
+/// The linear BVH's steps after the sort, in the order they run.
+pub const LBVH_STEPS: [Step; 3] = [
+    ("lbvh_hierarchy", &[0, 3, 8]),
+    ("lbvh_boxes", &[0, 1, 4, 8, 9, 10]),
+    ("lbvh_flatten", &[0, 1, 4, 8, 9, 11, 12, 13]),
+];
+
+/// The clustering builder's steps after the sort: `ploc_leaves`, then one iteration
+/// (prepare to compact, repeated until one cluster is left), then `ploc_flatten`.
+pub const PLOC_STEPS: [Step; 8] = [
+    ("ploc_leaves", &[0, 1, 4, 8, 11, 15, 16, 17]),
+    ("ploc_prepare", &[9, 10]),
+    ("ploc_neighbours", &[8, 9, 11, 13, 15]),
+    ("ploc_merge", &[8, 9, 11, 12, 13, 15, 16, 17]),
+    ("ploc_block_sums", &[9, 12, 14]),
+    ("ploc_scan", &[9, 14]),
+    ("ploc_compact", &[9, 11, 12, 14]),
+    ("ploc_flatten", &[0, 1, 4, 9, 15, 16, 17, 18, 19]),
+];
+
+/// The most storage buffers any builder step binds: a device needs this many per stage.
+pub const BUILD_STORAGE_BUFFERS: u32 = 8;
+
+fn compose(builder: &str, source: &str) -> String {
     let types = crate::wgsl::SHADER_FILES
         .iter()
         .find(|(name, _)| *name == "types.wgsl")
         .map_or("", |(_, src)| src);
-    format!("{types}\n// ---- build_lbvh.wgsl ----\n{BUILD_LBVH_WGSL}")
+    format!(
+        "{types}\n// ---- build_morton.wgsl ----\n{BUILD_MORTON_WGSL}\n// ---- {builder} ----\n{source}"
+    )
+}
+
+/// The linear BVH builder's module: `types.wgsl` (`BvhNode`, `BvhTriangle`),
+/// `build_morton.wgsl`, then `build_lbvh.wgsl`.
+pub fn lbvh_source() -> String {
+    compose("build_lbvh.wgsl", BUILD_LBVH_WGSL)
+}
+
+/// The clustering builder's module: `types.wgsl`, `build_morton.wgsl`, then
+/// `build_ploc.wgsl`.
+pub fn ploc_source() -> String {
+    compose("build_ploc.wgsl", BUILD_PLOC_WGSL)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::BTreeSet;
 
-    #[test]
-    fn the_lbvh_module_validates_with_every_entry_point() {
-        let source = lbvh_source();
-        let module = naga::front::wgsl::parse_str(&source)
-            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(&source)));
-        naga::valid::Validator::new(
+    fn validated(source: &str) -> (naga::Module, naga::valid::ModuleInfo) {
+        let module = naga::front::wgsl::parse_str(source)
+            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)));
+        let info = naga::valid::Validator::new(
             naga::valid::ValidationFlags::all(),
             naga::valid::Capabilities::all(),
         )
         .validate(&module)
-        .unwrap_or_else(|e| panic!("{}", e.emit_to_string(&source)));
-        for e in LBVH_ENTRIES {
-            assert!(module.entry_points.iter().any(|p| p.name == e), "{e}");
+        .unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)));
+        (module, info)
+    }
+
+    /// Each step's listed bindings are exactly those its entry point uses, and no step
+    /// binds more storage buffers than [`BUILD_STORAGE_BUFFERS`].
+    fn check_steps(source: &str, steps: &[Step]) {
+        let (module, info) = validated(source);
+        for (entry, bindings) in steps {
+            let (index, _) = module
+                .entry_points
+                .iter()
+                .enumerate()
+                .find(|(_, p)| p.name == *entry)
+                .unwrap_or_else(|| panic!("no entry point {entry}"));
+            let used = info.get_entry_point(index);
+            let mut got = BTreeSet::new();
+            let mut storage = 0;
+            for (handle, var) in module.global_variables.iter() {
+                if used[handle].is_empty() {
+                    continue;
+                }
+                if let Some(b) = &var.binding {
+                    got.insert(b.binding);
+                    storage += u32::from(matches!(var.space, naga::AddressSpace::Storage { .. }));
+                }
+            }
+            let want: BTreeSet<u32> = bindings.iter().copied().collect();
+            assert_eq!(got, want, "{entry}'s bindings");
+            assert!(
+                storage <= BUILD_STORAGE_BUFFERS,
+                "{entry}: {storage} storage buffers"
+            );
         }
+    }
+
+    #[test]
+    fn the_lbvh_module_validates_and_lists_each_steps_bindings() {
+        let source = lbvh_source();
+        check_steps(&source, &MORTON_STEPS);
+        check_steps(&source, &LBVH_STEPS);
+    }
+
+    #[test]
+    fn the_ploc_module_validates_and_lists_each_steps_bindings() {
+        let source = ploc_source();
+        check_steps(&source, &MORTON_STEPS);
+        check_steps(&source, &PLOC_STEPS);
     }
 }
