@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::cost::{WARP, WarpCost, warp_cost};
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
+use bvhtrace_core::{Query, Ray, TraceOptions, Traversal};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -164,9 +164,9 @@ pub fn cost(args: CostArgs) -> Result<()> {
         assumptions: ASSUMPTIONS,
         scenes: Vec::new(),
     };
-    let opts = args.build.options();
+    let builder = args.build.tree_builder(None)?;
     for spec in &specs {
-        let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &opts)?;
+        let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &builder)?;
         // Each scene's table as soon as it is done: the big scenes take a while.
         if to_stderr {
             eprint!("{text}");
@@ -188,7 +188,7 @@ fn cost_scene(
     w: u32,
     h: u32,
     walks: &[Traversal],
-    opts: &BuildOptions,
+    builder: &crate::geometry::TreeBuilder,
 ) -> Result<(SceneReport, String)> {
     let pb = ProgressBar::new((3 * walks.len()) as u64);
     pb.set_style(
@@ -204,8 +204,9 @@ fn cost_scene(
         .flattened_triangles()
         .with_context(|| format!("{spec}: cannot flatten the scene's triangles"))?;
     pb.set_message(format!("{spec}: building the BVH"));
-    let mut bvh =
-        FlatBvh::build(&tris, opts).with_context(|| format!("{spec}: cannot build a BVH"))?;
+    let mut bvh = builder
+        .build(&tris)
+        .map_err(|e| anyhow::anyhow!("{spec}: cannot build a BVH: {e}"))?;
     // Always built: the header prints the wide upload size whichever walks run.
     bvh.build_wide();
     pb.set_message(format!("{spec}: making rays"));

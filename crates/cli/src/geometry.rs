@@ -3,10 +3,91 @@
 
 use std::time::Instant;
 
-use anyhow::{Result, anyhow};
-use bvhtrace_core::BuildOptions;
+use anyhow::{Context, Result, anyhow};
+use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Triangle};
+use bvhtrace_gpu::{GpuBuildOptions, GpuBuilderKind, GpuContext};
 use bvhtrace_scene::{Scene, SceneBvh, TracingBvhError};
 use serde_json::{Value, json};
+
+/// A builder the commands offer: one of the CPU's, or one that builds on the device
+/// (`gpu-ploc`, `gpu-lbvh`) and reads the tree back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Builder {
+    /// A CPU builder.
+    Cpu(BuilderKind),
+    /// A device builder.
+    Device(GpuBuilderKind),
+}
+
+impl std::str::FromStr for Builder {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if let Some(k) = GpuBuilderKind::ALL.into_iter().find(|k| k.name() == s) {
+            return Ok(Builder::Device(k));
+        }
+        s.parse::<BuilderKind>().map(Builder::Cpu).map_err(|_| {
+            format!(
+                "unknown builder '{s}' (expected sah, sweep-sah, median, midpoint, sbvh, \
+                 gpu-ploc or gpu-lbvh)"
+            )
+        })
+    }
+}
+
+impl Builder {
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Builder::Cpu(k) => k.name(),
+            Builder::Device(k) => k.name(),
+        }
+    }
+}
+
+impl std::fmt::Display for Builder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Builds one-mesh BVHs the way the flags say: on the CPU with its options, or on a
+/// device opened once for every build.
+pub struct TreeBuilder {
+    cpu: BuildOptions,
+    device: Option<(GpuContext, GpuBuildOptions)>,
+}
+
+impl TreeBuilder {
+    /// `builder` with the CPU's `cpu` options (their costs also rule a device build's
+    /// leaves); a device builder opens `adapter` (see `backend::adapter_choice`).
+    pub fn new(builder: Builder, cpu: BuildOptions, adapter: Option<&str>) -> Result<Self> {
+        let device = match builder {
+            Builder::Cpu(_) => None,
+            Builder::Device(kind) => {
+                let ctx = GpuContext::new(crate::backend::adapter_choice(adapter))
+                    .with_context(|| format!("--builder {kind} builds on a GPU"))?;
+                let opts = GpuBuildOptions {
+                    cost_traversal: cpu.cost_traversal,
+                    cost_intersection: cpu.cost_intersection,
+                    ..GpuBuildOptions::with_builder(kind)
+                };
+                Some((ctx, opts))
+            }
+        };
+        Ok(TreeBuilder { cpu, device })
+    }
+
+    /// The BVH over `tris`, or the builder's error in words.
+    pub fn build(&self, tris: &[Triangle]) -> Result<FlatBvh, String> {
+        match &self.device {
+            None => FlatBvh::build(tris, &self.cpu).map_err(|e| e.to_string()),
+            Some((ctx, opts)) => ctx
+                .build_bvh(tris, opts)
+                .map(|(bvh, _)| bvh)
+                .map_err(|e| e.to_string()),
+        }
+    }
+}
 
 /// A loaded and built scene, with the times each step took.
 pub struct Built {
@@ -51,10 +132,11 @@ pub fn shared_scenes_dir() -> Option<std::path::PathBuf> {
     }
 }
 
-/// Loads `spec` (at time `time` when given), prints its warnings, and builds it.
+/// Loads `spec` (at time `time` when given), prints its warnings, and builds it with
+/// `builder`.
 pub fn load_and_build(
     spec: &str,
-    opts: &BuildOptions,
+    builder: &TreeBuilder,
     flatten: bool,
     time: Option<f32>,
 ) -> Result<Built> {
@@ -71,7 +153,11 @@ pub fn load_and_build(
     }
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
-    let geometry = scene.tracing_bvh(opts, flatten).map_err(|e| match e {
+    let geometry = match builder.device {
+        None => scene.tracing_bvh(&builder.cpu, flatten),
+        Some(_) => scene.tracing_bvh_with(flatten, |tris| builder.build(tris)),
+    };
+    let geometry = geometry.map_err(|e| match e {
         TracingBvhError::Flatten(_) if flatten => anyhow!("{spec}: {e} (drop --flatten?)"),
         e => anyhow!("{spec}: {e}"),
     })?;

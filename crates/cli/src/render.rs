@@ -19,7 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
 use crate::backend::{self, Backend};
-use crate::geometry::{self, Built};
+use crate::geometry::{self, Builder, Built, TreeBuilder};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, Shade, View};
 
@@ -48,9 +48,11 @@ pub struct PrimarySize {
 /// The BVH build flags, shared by every command that builds one.
 #[derive(clap::Args, Clone)]
 pub struct BuildArgs {
-    /// BVH builder.
+    /// BVH builder: sah, sweep-sah, median, midpoint or sbvh on the CPU; gpu-ploc
+    /// (clustering) or gpu-lbvh (linear BVH) built on the GPU and read back, so every
+    /// backend traces it.
     #[arg(long, default_value = "sah")]
-    pub builder: BuilderKind,
+    pub builder: Builder,
     /// Bins per axis for the `sah` builder.
     #[arg(long, default_value_t = 32)]
     pub bins: usize,
@@ -70,14 +72,23 @@ pub struct BuildArgs {
 impl BuildArgs {
     /// The options the flags say.
     pub fn options(&self) -> BuildOptions {
+        let builder = match self.builder {
+            Builder::Cpu(k) => k,
+            Builder::Device(_) => BuilderKind::default(),
+        };
         BuildOptions {
-            builder: self.builder,
+            builder,
             bins: self.bins,
             cost_traversal: self.cost_traversal,
             optimize: self.optimize,
             split_budget: self.split_budget,
             ..Default::default()
         }
+    }
+
+    /// The builder the flags say, a device one opened on `adapter`.
+    pub fn tree_builder(&self, adapter: Option<&str>) -> Result<TreeBuilder> {
+        TreeBuilder::new(self.builder, self.options(), adapter)
     }
 }
 
@@ -104,15 +115,13 @@ impl SceneArgs {
     fn spec(&self) -> &str {
         self.scene.as_deref().unwrap_or(DEFAULT_SCENE)
     }
-    fn build_options(&self) -> BuildOptions {
-        self.build.options()
-    }
 }
 
-/// Loads and builds the scene as the flags say (two levels or flattened, at `--time`);
-/// prints scene warnings.
-pub fn load_and_build(args: &SceneArgs) -> Result<Built> {
-    geometry::load_and_build(args.spec(), &args.build_options(), args.flatten, args.time)
+/// Loads and builds the scene as the flags say (two levels or flattened, at `--time`; a
+/// device builder on `adapter`); prints scene warnings.
+pub fn load_and_build(args: &SceneArgs, adapter: Option<&str>) -> Result<Built> {
+    let builder = args.build.tree_builder(adapter)?;
+    geometry::load_and_build(args.spec(), &builder, args.flatten, args.time)
 }
 
 /// Image size and camera.
@@ -293,7 +302,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         geometry: mut geo,
         load_ms,
         mut build_ms,
-    } = load_and_build(&args.scene)?;
+    } = load_and_build(&args.scene, args.adapter.as_deref())?;
     if walk.is_some_and(|w| w.is_wide()) {
         let t = std::time::Instant::now();
         geo.build_wide();
@@ -773,7 +782,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         geometry: geo,
         load_ms,
         build_ms,
-    } = load_and_build(&args.scene)?;
+    } = load_and_build(&args.scene, args.adapter.as_deref())?;
     let bvh = geo.bvh();
     let s = BvhStats::of(bvh);
     let (lo, hi) = scene.bounds();
@@ -838,7 +847,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         s.leaves,
         s.depth
     );
-    if args.scene.build.builder == BuilderKind::Sbvh {
+    if args.scene.build.builder == Builder::Cpu(BuilderKind::Sbvh) {
         // The leaves may share triangles: how many slots the tree has for how many.
         println!(
             "references  {} for {} triangles ({:.3}x; split budget {})",

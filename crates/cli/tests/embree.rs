@@ -61,9 +61,16 @@ fn bunny_hits_match_embree() {
     // The device's ray queries too, where it has them (Mesa 25's lavapipe); `.ci/run`
     // sets BVHTRACE_REQUIRE_RAY_QUERIES=1 when it installed such a driver.
     let require_rq = std::env::var("BVHTRACE_REQUIRE_RAY_QUERIES").is_ok_and(|v| v == "1");
-    for backend in ["cpu", "gpu", "ray-query"] {
-        let png = dir.join(format!("{backend}.png"));
-        let mut args = vec!["--backend", backend];
+    // The tree built on the device too, traced by the CPU (read back) and the GPU.
+    for (backend, builder) in [
+        ("cpu", "sah"),
+        ("gpu", "sah"),
+        ("ray-query", "sah"),
+        ("cpu", "gpu-ploc"),
+        ("gpu", "gpu-ploc"),
+    ] {
+        let png = dir.join(format!("{backend}-{builder}.png"));
+        let mut args = vec!["--backend", backend, "--builder", builder];
         args.extend(cam);
         let r = render(bunny.to_str().unwrap(), &png, &args);
         let stderr = String::from_utf8_lossy(&r.stderr);
@@ -71,16 +78,17 @@ fn bunny_hits_match_embree() {
             eprintln!("SKIP ray-query: {}", stderr.trim());
             continue;
         }
-        assert!(r.status.success(), "{backend}: {stderr}");
+        assert!(r.status.success(), "{backend} {builder}: {stderr}");
         let ours = json(&r);
+        assert_eq!(ours["builder"], builder);
         let hits = ours["hits"].as_f64().unwrap();
         eprintln!(
-            "{backend} ({}): {hits} hits, embree {theirs}",
+            "{backend} {builder} ({}): {hits} hits, embree {theirs}",
             ours["adapter"]
         );
         assert!(
             (hits - theirs).abs() <= 1e-4 * theirs,
-            "{backend}: {hits} hits vs Embree's {theirs}"
+            "{backend} {builder}: {hits} hits vs Embree's {theirs}"
         );
         let (ts, tt) = (
             ours["t_sum"].as_f64().unwrap(),
@@ -88,7 +96,7 @@ fn bunny_hits_match_embree() {
         );
         assert!(
             (ts - tt).abs() <= 1e-4 * tt,
-            "{backend}: t_sum {ts} vs {tt}"
+            "{backend} {builder}: t_sum {ts} vs {tt}"
         );
     }
 }

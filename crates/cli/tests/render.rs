@@ -159,10 +159,7 @@ fn bad_flags_and_scenes_get_clear_errors() {
             vec!["render", "--traversal", "sideways", "-o", p],
             "unknown traversal",
         ),
-        (
-            vec!["render", "--builder", "magic", "-o", p],
-            "unknown builder",
-        ),
+        (vec!["render", "--builder", "magic", "-o", p], "gpu-ploc"),
         (vec!["render", "builtin:nope", "-o", p], "builtin:nope"),
         (
             vec!["render", "--fov", "200", "--backend", "cpu", "-o", p],
@@ -237,6 +234,28 @@ fn optimize_lowers_the_sah_cost_and_keeps_the_image() {
     let (v, img_opt) = render_json("optimised", &[&args[..], &["--optimize"]].concat());
     assert_eq!(v["optimize"], true);
     assert!(img == img_opt, "--optimize changed the image");
+}
+
+#[test]
+fn device_builders_keep_the_image_in_one_and_two_levels() {
+    for scene in [&["builtin:spheres"][..], &["builtin:spheres", "--flatten"]] {
+        let args = [scene, &["--shade", "diffuse"]].concat();
+        let (sah, img) = render_json("device builds sah", &args);
+        for builder in ["gpu-ploc", "gpu-lbvh"] {
+            let (v, got) = render_json(
+                &format!("device builds {builder}"),
+                &[&args[..], &["--builder", builder]].concat(),
+            );
+            assert_eq!(v["builder"], builder);
+            assert_eq!(v["form"], sah["form"]);
+            assert_eq!(v["triangles"], sah["triangles"]);
+            assert_ne!(
+                v["sah_cost"], sah["sah_cost"],
+                "{builder}: a tree of its own"
+            );
+            assert!(img == got, "{builder} {scene:?}: another image");
+        }
+    }
 }
 
 #[test]

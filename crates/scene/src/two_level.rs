@@ -21,6 +21,9 @@ pub enum TracingBvhError {
     /// The two-level BVH could not be built (a bad mesh or instance transform).
     #[error("two-level BVH build failed: {0}")]
     TwoLevel(InstanceError),
+    /// The caller's builder ([`Scene::tracing_bvh_with`]) failed, in its words.
+    #[error("BVH build failed: {0}")]
+    Builder(String),
 }
 
 /// A scene as traced: one BVH over its world-space triangles (flattened), or two levels.
@@ -106,6 +109,34 @@ impl Scene {
         Ok(SceneBvh::Flat { tris, bvh })
     }
 
+    /// [`Scene::tracing_bvh`] with each tree (the flattened triangles', or each mesh's
+    /// under a top level the CPU builds) built by `build`, for example on the device
+    /// (`GpuContext::build_bvh`). `build` sees a triangle list and returns a one-mesh
+    /// BVH whose `prim` numbers that list, or its error in words.
+    pub fn tracing_bvh_with(
+        &self,
+        flatten: bool,
+        build: impl Fn(&[Triangle]) -> Result<FlatBvh, String>,
+    ) -> Result<SceneBvh, TracingBvhError> {
+        if self.traces_in_two_levels(flatten) {
+            let (meshes, instances) = self.two_level_parts().map_err(TracingBvhError::TwoLevel)?;
+            let trees = meshes
+                .iter()
+                .enumerate()
+                .map(|(i, tris)| {
+                    build(tris).map_err(|e| TracingBvhError::Builder(format!("mesh {i}: {e}")))
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            let i = InstancedBvh::new(trees, instances).map_err(TracingBvhError::TwoLevel)?;
+            return Ok(SceneBvh::Instanced(i));
+        }
+        let tris = self
+            .flattened_triangles()
+            .map_err(TracingBvhError::Flatten)?;
+        let bvh = build(&tris).map_err(TracingBvhError::Builder)?;
+        Ok(SceneBvh::Flat { tris, bvh })
+    }
+
     /// The scene's meshes and instances as a two-level BVH, each mesh built with `opts`.
     /// Primitive ids number the instances' triangles in instance order, as
     /// [`Scene::flatten`] does (so the two forms name the same triangles); meshes without
@@ -166,6 +197,37 @@ impl Scene {
 mod tests {
     use super::*;
     use glam::Mat4;
+
+    #[test]
+    fn a_callers_builder_makes_the_same_trees_and_its_errors_name_the_mesh() {
+        let opts = BuildOptions::default();
+        for (spec, flatten) in [("builtin:spheres", false), ("builtin:spheres", true)] {
+            let scene = crate::load(spec).expect("loads");
+            let want = scene.tracing_bvh(&opts, flatten).expect("builds");
+            let got = scene
+                .tracing_bvh_with(flatten, |t| {
+                    FlatBvh::build(t, &opts).map_err(|e| e.to_string())
+                })
+                .expect("builds");
+            assert_eq!(got.bvh().nodes(), want.bvh().nodes(), "{spec} {flatten}");
+            assert_eq!(
+                got.bvh().triangles(),
+                want.bvh().triangles(),
+                "{spec} {flatten}"
+            );
+            let err = scene
+                .tracing_bvh_with(flatten, |_| Err("no device".into()))
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default();
+            let named = if flatten {
+                "no device"
+            } else {
+                "mesh 0: no device"
+            };
+            assert!(err.contains(named), "{err}");
+        }
+    }
 
     #[test]
     fn several_placements_trace_in_two_levels_unless_flattened() {
