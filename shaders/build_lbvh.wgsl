@@ -160,23 +160,10 @@ fn lbvh_flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (k >= leaf0) {
         atomicMax(&lbvh_depth, place.y);
         let j = k - leaf0;
-        let src = morton_values[j];
-        var t = morton_input[src];
-        t.prim = src;
-        t.pad1 = 0u;
-        t.pad2 = 0u;
-        lbvh_triangles[j] = t;
+        lbvh_triangles[j] = morton_sorted_triangle(j);
         lbvh_nodes[at] = BvhNode(lo, j, hi, 1u << 2u);
         return;
     }
-    // The split axis: the box's longest (the walks read it for their near-far order).
-    let e = hi - lo;
-    var axis = 0u;
-    if (e.y > e.x && e.y >= e.z) {
-        axis = 1u;
-    } else if (e.z > e.x && e.z > e.y) {
-        axis = 2u;
-    }
     let right = lbvh_preorder(lbvh_links[k].y).x;
-    lbvh_nodes[at] = BvhNode(lo, right, hi, axis);
+    lbvh_nodes[at] = BvhNode(lo, right, hi, morton_longest_axis(lo, hi));
 }

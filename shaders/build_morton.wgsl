@@ -238,3 +238,26 @@ fn morton_radix_scatter(
 fn morton_triangle_box(t: BvhTriangle) -> array<vec3<f32>, 2> {
     return array<vec3<f32>, 2>(min(min(t.v0, t.v1), t.v2), max(max(t.v0, t.v1), t.v2));
 }
+
+// Sorted triangle `j` as the flat layout stores it: its input index as `prim`.
+fn morton_sorted_triangle(j: u32) -> BvhTriangle {
+    let src = morton_values[j];
+    var t = morton_input[src];
+    t.prim = src;
+    t.pad1 = 0u;
+    t.pad2 = 0u;
+    return t;
+}
+
+// A flat interior node's split axis: its box's longest (the walks read it for their
+// near-far order).
+fn morton_longest_axis(lo: vec3<f32>, hi: vec3<f32>) -> u32 {
+    let e = hi - lo;
+    if (e.y > e.x && e.y >= e.z) {
+        return 1u;
+    }
+    if (e.z > e.x && e.z > e.y) {
+        return 2u;
+    }
+    return 0u;
+}

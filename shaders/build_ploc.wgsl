@@ -118,7 +118,7 @@ fn ploc_item(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 }
 
 // Each cluster's nearest neighbour within `radius` places: the smallest box around both,
-// the lower place on a tie.
+// ties broken as the file's header says.
 @compute @workgroup_size(MORTON_WG)
 fn ploc_neighbours(
     @builtin(global_invocation_id) gid: vec3<u32>,
@@ -308,16 +308,6 @@ fn ploc_compact(
     }
 }
 
-// Triangle `j` in Morton order as the flat layout stores it, its input index as `prim`.
-fn ploc_triangle(j: u32) -> BvhTriangle {
-    let src = morton_values[j];
-    var t = morton_input[src];
-    t.prim = src;
-    t.pad1 = 0u;
-    t.pad2 = 0u;
-    return t;
-}
-
 // One invocation per node: unless an ancestor became a leaf, its flat node at its
 // depth-first index (a left child follows its parent; a right child follows its left
 // sibling's `2 * leaves - 1` flat nodes), and for a leaf its triangles, left to right.
@@ -365,7 +355,7 @@ fn ploc_flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
             top -= 1u;
             let node = stack[top];
             if (node < morton.n) {
-                ploc_triangles[slot] = ploc_triangle(node);
+                ploc_triangles[slot] = morton_sorted_triangle(node);
                 slot += 1u;
             } else if (top + 2u <= 32u) {
                 stack[top] = ploc_links[node].y;
@@ -375,13 +365,6 @@ fn ploc_flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         return;
     }
-    let e = hi - lo;
-    var axis = 0u;
-    if (e.y > e.x && e.y >= e.z) {
-        axis = 1u;
-    } else if (e.z > e.x && e.z > e.y) {
-        axis = 2u;
-    }
     let right = at + 2u * ploc_info[ploc_links[k].x].leaves;
-    ploc_nodes[at] = BvhNode(lo, right, hi, axis);
+    ploc_nodes[at] = BvhNode(lo, right, hi, morton_longest_axis(lo, hi));
 }

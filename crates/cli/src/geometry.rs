@@ -64,6 +64,9 @@ impl TreeBuilder {
         let device = match builder {
             Builder::Cpu(_) => None,
             Builder::Device(kind) => {
+                if cpu.optimize {
+                    anyhow::bail!("--optimize reinserts in the CPU builders' trees, not {kind}'s");
+                }
                 let ctx = GpuContext::new(crate::backend::adapter_choice(adapter))
                     .with_context(|| format!("--builder {kind} builds on a GPU"))?;
                 let opts = GpuBuildOptions {

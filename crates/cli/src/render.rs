@@ -834,18 +834,21 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "attributes  normals {} texcoords {} colors {} materials {}",
         a.normals, a.texcoords, a.colors, a.materials
     );
+    let how = match args.scene.build.builder {
+        Builder::Device(_) => "built on the device".to_string(),
+        Builder::Cpu(_) => format!(
+            "{} bins{}",
+            args.scene.build.bins,
+            if args.scene.build.optimize {
+                ", optimised by reinsertion"
+            } else {
+                ""
+            }
+        ),
+    };
     println!(
-        "bvh         {} ({} bins{}): {} nodes, {} leaves, depth {}",
-        args.scene.build.builder,
-        args.scene.build.bins,
-        if args.scene.build.optimize {
-            ", optimised by reinsertion"
-        } else {
-            ""
-        },
-        s.nodes,
-        s.leaves,
-        s.depth
+        "bvh         {} ({how}): {} nodes, {} leaves, depth {}",
+        args.scene.build.builder, s.nodes, s.leaves, s.depth
     );
     if args.scene.build.builder == Builder::Cpu(BuilderKind::Sbvh) {
         // The leaves may share triangles: how many slots the tree has for how many.

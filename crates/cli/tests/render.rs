@@ -160,6 +160,10 @@ fn bad_flags_and_scenes_get_clear_errors() {
             "unknown traversal",
         ),
         (vec!["render", "--builder", "magic", "-o", p], "gpu-ploc"),
+        (
+            vec!["render", "--builder", "gpu-ploc", "--optimize", "-o", p],
+            "--optimize",
+        ),
         (vec!["render", "builtin:nope", "-o", p], "builtin:nope"),
         (
             vec!["render", "--fov", "200", "--backend", "cpu", "-o", p],
