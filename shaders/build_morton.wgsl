@@ -42,6 +42,11 @@ fn morton_index(gid: vec3<u32>) -> u32 {
     return gid.x + gid.y * morton.row;
 }
 
+// The workgroup's index in a 2D grid of workgroups.
+fn morton_block(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wid.x + wid.y * groups.x;
+}
+
 // f32 to u32 in the same order (negative values flipped, positive ones signed).
 fn morton_order_bits(x: f32) -> u32 {
     let b = bitcast<u32>(x);
@@ -134,7 +139,7 @@ fn morton_radix_count(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = wid3.x + wid3.y * groups.x;
+    let block = morton_block(wid3, groups);
     atomicStore(&morton_wg_counts[lid], 0u);
     workgroupBarrier();
     if (block < morton.blocks) {
@@ -153,6 +158,22 @@ fn morton_radix_count(
 
 var<workgroup> morton_wg_sums: array<u32, 256>;
 
+// The inclusive prefix sum of `morton_wg_sums` over the workgroup (Hillis-Steele). Every
+// invocation calls it after writing its own entry; the first barrier makes those writes
+// visible before any is read.
+fn morton_wg_scan(lid: u32) {
+    workgroupBarrier();
+    for (var d = 1u; d < MORTON_WG; d <<= 1u) {
+        var add = 0u;
+        if (lid >= d) {
+            add = morton_wg_sums[lid - d];
+        }
+        workgroupBarrier();
+        morton_wg_sums[lid] += add;
+        workgroupBarrier();
+    }
+}
+
 // The exclusive prefix sum of the histograms, in one workgroup: each invocation sums a
 // contiguous run, the runs' sums are scanned, then each run is written.
 @compute @workgroup_size(MORTON_WG)
@@ -166,17 +187,7 @@ fn morton_radix_scan(@builtin(local_invocation_index) lid: u32) {
         sum += morton_hist[i];
     }
     morton_wg_sums[lid] = sum;
-    workgroupBarrier();
-    // Hillis-Steele over the 256 run sums.
-    for (var d = 1u; d < MORTON_WG; d <<= 1u) {
-        var add = 0u;
-        if (lid >= d) {
-            add = morton_wg_sums[lid - d];
-        }
-        workgroupBarrier();
-        morton_wg_sums[lid] += add;
-        workgroupBarrier();
-    }
+    morton_wg_scan(lid);
     var running = morton_wg_sums[lid] - sum;
     for (var i = start; i < end; i += 1u) {
         let c = morton_hist[i];
@@ -194,7 +205,7 @@ fn morton_radix_scatter(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = wid3.x + wid3.y * groups.x;
+    let block = morton_block(wid3, groups);
     if (block < morton.blocks) {
         morton_wg_offsets[lid] = morton_hist[lid * morton.blocks + block];
     }

@@ -209,12 +209,6 @@ fn ploc_merge(
     ploc_merged[i] = p;
 }
 
-fn ploc_block(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wid.x + wid.y * groups.x;
-}
-
-var<workgroup> ploc_wg_sums: array<u32, 256>;
-
 // The clusters kept among invocation `lid`'s four places of block `block`.
 fn ploc_kept(block: u32, lid: u32, count: u32) -> u32 {
     var kept = 0u;
@@ -227,19 +221,6 @@ fn ploc_kept(block: u32, lid: u32, count: u32) -> u32 {
     return kept;
 }
 
-// The inclusive prefix sum of `ploc_wg_sums` (Hillis-Steele; every invocation calls it).
-fn ploc_wg_scan(lid: u32) {
-    for (var d = 1u; d < MORTON_WG; d <<= 1u) {
-        var add = 0u;
-        if (lid >= d) {
-            add = ploc_wg_sums[lid - d];
-        }
-        workgroupBarrier();
-        ploc_wg_sums[lid] += add;
-        workgroupBarrier();
-    }
-}
-
 // Each block's count of kept clusters.
 @compute @workgroup_size(MORTON_WG)
 fn ploc_block_sums(
@@ -247,12 +228,12 @@ fn ploc_block_sums(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = ploc_block(wid, groups);
+    let block = morton_block(wid, groups);
     let count = atomicLoad(&ploc_state[0]);
-    ploc_wg_sums[lid] = ploc_kept(block, lid, count);
-    ploc_wg_scan(lid);
+    morton_wg_sums[lid] = ploc_kept(block, lid, count);
+    morton_wg_scan(lid);
     if (lid == 0u && block < atomicLoad(&ploc_state[4])) {
-        ploc_block_sum[block] = ploc_wg_sums[MORTON_WG - 1u];
+        ploc_block_sum[block] = morton_wg_sums[MORTON_WG - 1u];
     }
 }
 
@@ -267,16 +248,16 @@ fn ploc_scan(@builtin(local_invocation_index) lid: u32) {
     for (var i = start; i < end; i += 1u) {
         sum += ploc_block_sum[i];
     }
-    ploc_wg_sums[lid] = sum;
-    ploc_wg_scan(lid);
-    var running = ploc_wg_sums[lid] - sum;
+    morton_wg_sums[lid] = sum;
+    morton_wg_scan(lid);
+    var running = morton_wg_sums[lid] - sum;
     for (var i = start; i < end; i += 1u) {
         let c = ploc_block_sum[i];
         ploc_block_sum[i] = running;
         running += c;
     }
     if (lid == MORTON_WG - 1u && total > 0u) {
-        atomicStore(&ploc_state[2], ploc_wg_sums[lid]);
+        atomicStore(&ploc_state[2], morton_wg_sums[lid]);
     }
 }
 
@@ -287,15 +268,15 @@ fn ploc_compact(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = ploc_block(wid, groups);
+    let block = morton_block(wid, groups);
     let count = atomicLoad(&ploc_state[0]);
     let kept = ploc_kept(block, lid, count);
-    ploc_wg_sums[lid] = kept;
-    ploc_wg_scan(lid);
+    morton_wg_sums[lid] = kept;
+    morton_wg_scan(lid);
     if (block >= atomicLoad(&ploc_state[4])) {
         return;
     }
-    var to = ploc_block_sum[block] + ploc_wg_sums[lid] - kept;
+    var to = ploc_block_sum[block] + morton_wg_sums[lid] - kept;
     for (var k = 0u; k < 4u; k += 1u) {
         let i = block * PLOC_BLOCK + 4u * lid + k;
         if (i < count) {

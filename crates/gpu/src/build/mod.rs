@@ -548,20 +548,34 @@ impl Build {
         pollster::block_on(map_all(ctx.device(), index, &maps))
     }
 
-    /// The mapped copies of the nodes, the triangles and a buffer of `u32` holding the
-    /// depth at `depth_at`, as a tree and those words (the copies unmapped after).
-    fn read(
+    /// The end of every build: copies of `outputs` (the flat nodes, the triangles and a
+    /// buffer of `u32` holding the depth at `depth_at`) and the timestamps recorded into
+    /// `enc`, which is submitted and waited for; then the tree read back.
+    fn read_back(
         &self,
-        reads: &[wgpu::Buffer],
+        ctx: &GpuContext,
+        mut enc: wgpu::CommandEncoder,
+        outputs: [u32; 3],
         depth_at: usize,
-    ) -> Result<(FlatBvh, Vec<u32>), GpuError> {
+        queries: Option<StepQueries>,
+    ) -> Result<ReadBack, GpuError> {
+        let reads = self.copy_out(ctx.device(), &mut enc, &outputs);
+        if let Some(q) = &queries {
+            q.resolve(&mut enc);
+        }
+        self.finish(ctx, enc, &reads, queries.as_ref())?;
+        let stages_ms = match queries {
+            Some(q) => q.stages_ms(ctx.queue())?,
+            None => Vec::new(),
+        };
+        let t = Instant::now();
         let mut nodes: Vec<FlatNode> = Vec::with_capacity(self.nodes as usize);
         let mut tris: Vec<FlatTriangle> = Vec::with_capacity(self.n as usize);
-        let mut depth: Vec<u32> = Vec::new();
+        let mut words: Vec<u32> = Vec::new();
         let got = read_mapped(&reads[0], reads[0].size(), &mut nodes)
             .and_then(|_| read_mapped(&reads[1], self.n * 48, &mut tris))
-            .and_then(|_| read_mapped(&reads[2], reads[2].size(), &mut depth));
-        for r in reads {
+            .and_then(|_| read_mapped(&reads[2], reads[2].size(), &mut words));
+        for r in &reads {
             r.unmap();
         }
         got?;
@@ -569,9 +583,23 @@ impl Build {
         // how many triangles it holds, and the nodes are in depth-first order.
         let used = flat_nodes_used(&nodes);
         nodes.truncate(used);
-        let bvh = FlatBvh::from_parts(nodes, tris, depth[depth_at]);
-        Ok((bvh, depth))
+        let bvh = FlatBvh::from_parts(nodes, tris, words[depth_at]);
+        Ok(ReadBack {
+            bvh,
+            words,
+            stages_ms,
+            readback_ms: t.elapsed().as_secs_f64() * 1e3,
+        })
     }
+}
+
+/// A build's tree as read back, with the words of its depth buffer, each step's device
+/// time and the read back's milliseconds.
+struct ReadBack {
+    bvh: FlatBvh,
+    words: Vec<u32>,
+    stages_ms: Vec<(&'static str, f64)>,
+    readback_ms: f64,
 }
 
 /// How many nodes of a depth-first flat layout the root's tree covers.
@@ -586,6 +614,9 @@ fn flat_nodes_used(nodes: &[FlatNode]) -> usize {
     }
     nodes.len()
 }
+
+/// The linear BVH's flat nodes, triangles and depth (bindings of `build_lbvh.wgsl`).
+const LBVH_OUTPUTS: [u32; 3] = [11, 12, 13];
 
 /// The linear BVH's buffers, bindings 8 to 13 of `build_lbvh.wgsl`.
 fn lbvh_buffers(device: &wgpu::Device, n: u64) -> Vec<wgpu::Buffer> {
@@ -678,32 +709,24 @@ impl GpuContext {
         let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = Instant::now();
         let device = self.device();
-        let (bvh, iterations, stages_ms, readback_ms) = match opts.builder {
+        let (done, iterations) = match opts.builder {
             GpuBuilderKind::Lbvh => {
                 let queries = self.has_timestamps().then(|| StepQueries::new(device, 5));
                 let mut enc = device.create_command_encoder(&Default::default());
                 build.record_sort(self, &pipelines, &mut enc, queries.as_ref());
                 build.record_lbvh(self, &pipelines, &mut enc, queries.as_ref());
-                let reads = build.copy_out(device, &mut enc, &[11, 12, 13]);
-                if let Some(q) = &queries {
-                    q.resolve(&mut enc);
-                }
-                build.finish(self, enc, &reads, queries.as_ref())?;
-                let stages = queries.map(|q| q.stages_ms(self.queue())).transpose()?;
-                let t2 = Instant::now();
-                let (bvh, _) = build.read(&reads, 0)?;
-                (bvh, 0, stages, t2.elapsed().as_secs_f64() * 1e3)
+                (build.read_back(self, enc, LBVH_OUTPUTS, 0, queries)?, 0)
             }
             GpuBuilderKind::Ploc => ploc::run(self, &build, &pipelines)?,
         };
-        let build_ms = t1.elapsed().as_secs_f64() * 1e3 - readback_ms;
+        let build_ms = t1.elapsed().as_secs_f64() * 1e3 - done.readback_ms;
         Ok((
-            bvh,
+            done.bvh,
             GpuBuildTimes {
                 upload_ms,
                 build_ms,
-                readback_ms,
-                stages_ms: stages_ms.unwrap_or_default(),
+                readback_ms: done.readback_ms,
+                stages_ms: done.stages_ms,
                 iterations,
             },
         ))

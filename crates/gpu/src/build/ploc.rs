@@ -2,10 +2,9 @@
 //! whose sizes the device sets itself (indirect dispatch), with the cluster count read
 //! back after each batch until one cluster is left.
 
-use bvhtrace_core::FlatBvh;
 use bvhtrace_kernels::TraceError;
 
-use super::{Build, GpuBuildOptions, StepQueries, empty, grid, init};
+use super::{Build, GpuBuildOptions, ReadBack, StepQueries, empty, grid, init};
 use crate::trace::read_mapped;
 use crate::{GpuContext, GpuError};
 
@@ -137,14 +136,12 @@ impl Build {
 
 /// Runs the clustering build whose buffers `build` holds: the sort, the leaves and a
 /// first batch in one submission, more batches while clusters are left, then the flat
-/// layout. Returns the tree, the iterations, the steps' device times and the read-back
-/// milliseconds.
-#[allow(clippy::type_complexity)]
+/// layout. Returns the tree read back and the iterations that ran.
 pub(super) fn run(
     ctx: &GpuContext,
     build: &Build,
     pipelines: &[wgpu::ComputePipeline],
-) -> Result<(FlatBvh, u32, Option<Vec<(&'static str, f64)>>, f64), GpuError> {
+) -> Result<(ReadBack, u32), GpuError> {
     let device = ctx.device();
     let max_dim = ctx.limits().max_compute_workgroups_per_dimension;
     let queries = ctx
@@ -180,8 +177,9 @@ pub(super) fn run(
         build.finish(ctx, enc, std::slice::from_ref(&read), None)?;
         let now = clusters_left(&read)?;
         batches += 1;
-        // Every iteration merges at least once; a batch that does not is a fault.
-        if now >= left || batches > build.n as u32 {
+        // Every iteration merges at least once, so the count falls every batch; a batch
+        // in which it does not is a fault, reported rather than looped on.
+        if now >= left {
             return Err(TraceError::Unsupported {
                 backend: "device builder",
                 what: format!(
@@ -202,18 +200,13 @@ pub(super) fn run(
         "flat layout",
         &[(FLATTEN, 0, per_node)],
     );
-    let reads = build.copy_out(device, &mut enc, &[OUT_NODES, OUT_TRIANGLES, STATE as u32]);
-    if let Some(q) = &queries {
-        q.resolve(&mut enc);
-    }
-    build.finish(ctx, enc, &reads, queries.as_ref())?;
-    let stages = queries.map(|q| q.stages_ms(ctx.queue())).transpose()?;
-    let t = std::time::Instant::now();
-    let (bvh, state) = build.read(&reads, DEPTH)?;
-    Ok((
-        bvh,
-        state[ITERATIONS],
-        stages,
-        t.elapsed().as_secs_f64() * 1e3,
-    ))
+    let done = build.read_back(
+        ctx,
+        enc,
+        [OUT_NODES, OUT_TRIANGLES, STATE as u32],
+        DEPTH,
+        queries,
+    )?;
+    let iterations = done.words[ITERATIONS];
+    Ok((done, iterations))
 }
