@@ -1,15 +1,17 @@
 // box.wgsl: the conservative slab test, twin of `bvhtrace_core::intersect::intersect_box`.
 
-// `intersect::BOX_TFAR_SCALE` = 1 + 2 gamma(3) (the f32 nearest 1.0000004, bits 0x3f800003).
-const BVH_BOX_TFAR_SCALE: f32 = 1.0000004f;
-// `intersect::BOX_TFAR_SCALE_NEG` = 1 - 7u (bits 0x3f7ffff9): scales a negative exit
+// `intersect::BOX_TFAR_SCALE` = 1 + 16u (bits 0x3f800008), above 1 + 2 gamma(7): the
+// reciprocal in each slab distance is counted at Vulkan's 2.5 ulp, since GPUs divide
+// approximately.
+const BVH_BOX_TFAR_SCALE: f32 = 1.00000095f;
+// `intersect::BOX_TFAR_SCALE_NEG` = 1 - 17u (bits 0x3f7fffef): scales a negative exit
 // distance (hits behind the origin) towards +inf, as BOX_TFAR_SCALE does a positive one.
-const BVH_BOX_TFAR_SCALE_NEG: f32 = 0.99999958f;
+const BVH_BOX_TFAR_SCALE_NEG: f32 = 0.999998987f;
 
-// `intersect::BOX_CULL_SLACK` = 32 u = 2^-19: the running best `t` is widened by this
+// `intersect::BOX_CULL_SLACK` = 64 u = 2^-18: the running best `t` is widened by this
 // times the larger magnitude of the box's slab distances along the dominant axis `kz`
 // (the error analysis is on the Rust constant). The ray's own `t_max` is never widened.
-const BVH_BOX_CULL_SLACK: f32 = 1.9073486328125e-6f;
+const BVH_BOX_CULL_SLACK: f32 = 3.814697265625e-6f;
 
 // False when no ray of the batch has a zero (or subnormal) direction component
 // (`bvhtrace_core::intersect::is_parallel_to_a_slab`): the parallel path below is then

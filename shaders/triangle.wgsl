@@ -3,6 +3,15 @@
 // (`Precision::WatertightF32`); `triangle_moller_trumbore.wgsl` and `triangle_f64.wgsl`
 // define the same function for the other precisions (`TriHit` is in `triangle_hit.wgsl`).
 
+// `intersect::edge`: `p.x q.y - p.y q.x` with the two corners in one fixed order and the
+// sign restored, so that triangles sharing an edge compute it from the same operands, and
+// stay watertight, even where the device fuses a product into the subtraction (an FMA).
+fn bvh_edge(px: f32, py: f32, qx: f32, qy: f32) -> f32 {
+    let swap = px > qx || (px == qx && py > qy);
+    let e = select(px, qx, swap) * select(qy, py, swap) - select(py, qy, swap) * select(qx, px, swap);
+    return select(e, -e, swap);
+}
+
 fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> BvhTriHit {
     let a = v0 - r.org;
     let b = v1 - r.org;
@@ -16,9 +25,9 @@ fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: v
     let by = bvh_component(b, r.ky) - r.sy * bz_;
     let cx = bvh_component(c, r.kx) - r.sx * cz_;
     let cy = bvh_component(c, r.ky) - r.sy * cz_;
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
+    let u = bvh_edge(cx, cy, bx, by);
+    let v = bvh_edge(ax, ay, cx, cy);
+    let w = bvh_edge(bx, by, ax, ay);
     let az = r.sz * az_;
     let bz = r.sz * bz_;
     let cz = r.sz * cz_;

@@ -15,6 +15,13 @@ fn bvh_component_f64(v: vec3<f64>, i: u32) -> f64 {
     return v.z;
 }
 
+// `intersect::edge` in f64 (see `bvh_edge` in `triangle.wgsl`).
+fn bvh_edge_f64(px: f64, py: f64, qx: f64, qy: f64) -> f64 {
+    let swap = px > qx || (px == qx && py > qy);
+    let e = select(px, qx, swap) * select(qy, py, swap) - select(py, qy, swap) * select(qx, px, swap);
+    return select(e, -e, swap);
+}
+
 fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>) -> BvhTriHit {
     var out = BvhTriHit(0.0, 0.0, 0.0, false);
     let org = vec3<f64>(r.org);
@@ -35,9 +42,9 @@ fn bvh_intersect_triangle(r: BvhPreparedRay, v0: vec3<f32>, v1: vec3<f32>, v2: v
     let by = bvh_component_f64(b, r.ky) - sy * bz_;
     let cx = bvh_component_f64(c, r.kx) - sx * cz_;
     let cy = bvh_component_f64(c, r.ky) - sy * cz_;
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
+    let u = bvh_edge_f64(cx, cy, bx, by);
+    let v = bvh_edge_f64(ax, ay, cx, cy);
+    let w = bvh_edge_f64(bx, by, ax, ay);
     let zero = f64(0.0);
     if ((u < zero || v < zero || w < zero) && (u > zero || v > zero || w > zero)) {
         return out;

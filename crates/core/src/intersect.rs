@@ -8,20 +8,23 @@ use glam::Vec3;
 
 use crate::ray::Ray;
 
-/// `1 + 2 * gamma(3)` with `gamma(n) = n u / (1 - n u)`, `u = 2^-24` (PBRT-v4, Ize 2013):
-/// scaling a box's exit distance by this makes the slab test conservative under f32
-/// rounding, whatever the scene's scale.
-pub const BOX_TFAR_SCALE: f32 = 1.000_000_4;
+/// `1 + 16 u` (bits `0x3f800008`), `u = 2^-24`, above `1 + 2 gamma(7)` with
+/// `gamma(n) = n u / (1 - n u)` (PBRT-v4, Ize 2013): scaling a box's exit distance by this
+/// makes the slab test conservative under f32 rounding, whatever the scene's scale. Each
+/// slab distance is a subtraction, a reciprocal and a product; the reciprocal is counted
+/// at Vulkan's bound for a division (2.5 ulp, `5 u`), not as correctly rounded, because
+/// GPUs (NVIDIA's among them) divide approximately: `7 u` at each end.
+pub const BOX_TFAR_SCALE: f32 = 1.000_000_95;
 
 /// The scale for a negative exit distance (hits behind the origin, with a negative
-/// `t_min`): `1 - 7 u` (bits `0x3f7ffff9`), below `1 / BOX_TFAR_SCALE`, so that the exit
+/// `t_min`): `1 - 17 u` (bits `0x3f7fffef`), below `1 / BOX_TFAR_SCALE`, so that the exit
 /// moves away from zero, towards `+inf`, as [`BOX_TFAR_SCALE`] moves a positive one.
 /// Multiplying a negative exit by [`BOX_TFAR_SCALE`] would move it the wrong way and cull
 /// a box that is flat along the ray (a quad facing the ray) when it lies behind the
 /// origin. A constant multiply, not a division, so the GPU rounds it the same way.
-pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_999_6;
+pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_998_987;
 
-/// `C u` with `C = 32`, `u = 2^-24` (exactly `2^-19`): when a box is culled against the
+/// `C u` with `C = 64`, `u = 2^-24` (exactly `2^-18`): when a box is culled against the
 /// running best hit, the best `t` is widened by `BOX_CULL_SLACK * m`, where `m` is the
 /// larger magnitude of the box's two slab distances along the ray's dominant axis `kz`.
 /// The user's `t_max` is never widened.
@@ -36,29 +39,32 @@ pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_999_6;
 ///
 /// # Error analysis (`γ_n = n u / (1 - n u)`, first order in `u`)
 ///
+/// Each rounding counts `u`, except a division or reciprocal, counted `5 u` (Vulkan's
+/// 2.5 ulp: GPUs divide approximately); a fused multiply-add only drops roundings.
 /// Let the f32 edge functions `u_i` (all of one sign, `det != 0`) define the exact weights
 /// `β_i = u_i / (u_0 + u_1 + u_2)`: `β_i >= 0`, `Σ β_i = 1`. Let `Z_i = A_i[kz] / d[kz]`
 /// (exact) be the corners' distances along the dominant axis. Then:
 ///
-/// * `az = sz * a[kz]`: `a[kz]` (one rounding), `sz = 1/d[kz]` (one), the product (one):
-///   `az = Z_0 (1 + θ_3)`, and likewise `bz`, `cz`;
-/// * `T = u az + v bz + w cz`: three products and two sums, `T = Σ u_i Z_i (1 + θ_6)`;
+/// * `az = sz * a[kz]`: `a[kz]` (`u`), `sz = 1/d[kz]` (`5 u`), the product (`u`):
+///   `az = Z_0 (1 + θ_7)`, and likewise `bz`, `cz`;
+/// * `T = u az + v bz + w cz`: three products and two sums, `T = Σ u_i Z_i (1 + θ_10)`;
 /// * `det = u + v + w` has no cancellation (one sign): `(Σ u_i)(1 + θ_2)`, so
-///   `1/det = (1 + θ_3) / Σ u_i`, and `t = T * (1/det)` adds one rounding:
-///   `t = Σ β_i Z_i (1 + θ_10)`, i.e. `|t - Σ β_i Z_i| <= γ_10 max |Z_i|`.
+///   `1/det = (1 + θ_7) / Σ u_i`, and `t = T * (1/det)` adds one rounding:
+///   `t = Σ β_i Z_i (1 + θ_18)`, i.e. `|t - Σ β_i Z_i| <= γ_18 max |Z_i|`.
 ///
 /// `Σ β_i Z_i` is a convex combination of the corners' `kz` distances, which lie in the
 /// box's `kz` slab `[t0[kz], t1[kz]]`: so `max |Z_i| <= m` and, in exact arithmetic, the
-/// `t` reported by a triangle inside the box is at most `γ_10 m` before the box's `kz`
-/// slab. The box's own f32 entry distance is within `γ_3 |t_near| <= γ_3 m` of the exact
+/// `t` reported by a triangle inside the box is at most `γ_18 m` before the box's `kz`
+/// slab. The box's own f32 entry distance is within `γ_7 |t_near| <= γ_7 m` of the exact
 /// one (a hit box's entry lies in its `kz` slab, so `|t_near| <= m`). So a box holding
-/// such a triangle is entered at most `(10 + 3) u m` after the triangle's `t`. Then the
+/// such a triangle is entered at most `(18 + 7) u m` after the triangle's `t`. Then the
 /// slack itself: `m` and the product round (relative `θ_4`: second order), and the sum
 /// `t_best + slack` rounds once (relative `u`). When the sum is non-negative,
 /// [`BOX_TFAR_SCALE`] absorbs that; when it is negative (hits behind the origin with a
 /// negative `t_min`; then `|t_best| <= m`), [`BOX_TFAR_SCALE_NEG`] moves it towards
-/// `+inf` by `7 u |t|`, which absorbs it as well; count `7 u m` anyway. Worst case `(13 + 7) u m = 20 u m`: `C = 32`, the next power
-/// of two (an exact f32), whose remaining `12 u m` also absorbs moderate errors of the
+/// `+inf` by `17 u |t|`, which absorbs it as well; count `17 u m` anyway. Worst case
+/// `(25 + 17) u m = 42 u m`: `C = 64`, the next power of two (an exact f32), whose
+/// remaining `22 u m` also absorbs moderate errors of the
 /// weights (below). The box's other slabs agree with `Σ β_i Z_i` only up to the error of
 /// the weights `β_i` themselves (the edge functions' rounding, amplified by `1/det`):
 /// that part has no bound in terms of `m` (edge-on slivers), and it is exactly what
@@ -66,8 +72,8 @@ pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_999_6;
 /// for. So two traversals can return different closest hits only when the f32 test is
 /// indeterminate for one of them, or their `t` are within those bounds of each other.
 ///
-/// Culling a box a little later costs nothing measurable (`32 u m` is below `2e-6 m`).
-pub const BOX_CULL_SLACK: f32 = 1.907_348_6e-6; // 2^-19
+/// Culling a box a little later costs nothing measurable (`64 u m` is below `4e-6 m`).
+pub const BOX_CULL_SLACK: f32 = 3.814_697_3e-6; // 2^-18
 
 /// A ray with everything the tests need precomputed once per ray.
 #[derive(Clone, Copy, Debug)]
@@ -198,15 +204,39 @@ pub(crate) trait Real:
     + std::ops::Add<Output = Self>
     + std::ops::Sub<Output = Self>
     + std::ops::Mul<Output = Self>
+    + std::ops::Neg<Output = Self>
 {
     /// Zero.
     const ZERO: Self;
+    /// `a * b - c * d` as the device computes it: two products and a difference here; a
+    /// device may fuse one product into the difference (the tests model that).
+    #[inline(always)]
+    fn product_difference(a: Self, b: Self, c: Self, d: Self) -> Self {
+        a * b - c * d
+    }
 }
 impl Real for f32 {
     const ZERO: f32 = 0.0;
 }
 impl Real for f64 {
     const ZERO: f64 = 0.0;
+}
+
+/// The edge function `p.x q.y - p.y q.x` of two sheared corners, with the corners taken
+/// in one fixed order (the lexicographically smaller first) and the sign restored.
+///
+/// Two triangles sharing an edge then evaluate it with the same operations on the same
+/// operands, so their functions are exact negatives even where the device fuses a product
+/// into the subtraction (an FMA, which SPIR-V allows and NVIDIA's compiler does): the
+/// test stays watertight. Without fusion the value is the plain formula's, bit for bit
+/// (up to the sign of a zero).
+#[inline(always)]
+pub(crate) fn edge<T: Real>(px: T, py: T, qx: T, qy: T) -> T {
+    if px > qx || (px == qx && py > qy) {
+        -T::product_difference(qx, py, qy, px)
+    } else {
+        T::product_difference(px, qy, py, qx)
+    }
 }
 
 /// A ray's shear for the watertight test: its axes and `(sx, sy, sz)`.
@@ -232,9 +262,9 @@ impl<T: Real> Shear<T> {
         let by = b[ky] - sy * b[kz];
         let cx = c[kx] - sx * c[kz];
         let cy = c[ky] - sy * c[kz];
-        let u = cx * by - cy * bx;
-        let v = ax * cy - ay * cx;
-        let w = bx * ay - by * ax;
+        let u = edge(cx, cy, bx, by);
+        let v = edge(ax, ay, cx, cy);
+        let w = edge(bx, by, ax, ay);
         let zero = T::ZERO;
         if (u < zero || v < zero || w < zero) && (u > zero || v > zero || w > zero) {
             return None;
@@ -341,4 +371,75 @@ pub fn intersect_triangle(r: &PreparedRay, v0: Vec3, v1: Vec3, v2: Vec3) -> Opti
         u: v * inv_det,
         v: w * inv_det,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Real, edge};
+
+    /// f32 as a device that fuses the first product into the difference computes it.
+    #[derive(Clone, Copy, Debug, PartialEq, PartialOrd)]
+    struct Fused(f32);
+
+    impl std::ops::Add for Fused {
+        type Output = Fused;
+        fn add(self, o: Fused) -> Fused {
+            Fused(self.0 + o.0)
+        }
+    }
+    impl std::ops::Sub for Fused {
+        type Output = Fused;
+        fn sub(self, o: Fused) -> Fused {
+            Fused(self.0 - o.0)
+        }
+    }
+    impl std::ops::Mul for Fused {
+        type Output = Fused;
+        fn mul(self, o: Fused) -> Fused {
+            Fused(self.0 * o.0)
+        }
+    }
+    impl std::ops::Neg for Fused {
+        type Output = Fused;
+        fn neg(self) -> Fused {
+            Fused(-self.0)
+        }
+    }
+    impl Real for Fused {
+        const ZERO: Fused = Fused(0.0);
+        fn product_difference(a: Fused, b: Fused, c: Fused, d: Fused) -> Fused {
+            Fused(a.0.mul_add(b.0, -(c.0 * d.0)))
+        }
+    }
+
+    /// A shared edge seen from its two triangles (its corners in opposite orders) gives
+    /// exact negatives even when the device fuses a product, which the plain formula
+    /// does not: the fused `p.x q.y - p.y q.x` and `q.x p.y - q.y p.x` round differently.
+    #[test]
+    fn shared_edges_are_exact_negatives_under_fusion() {
+        let mut state = 0x2545_f491_u32;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            Fused(state as f32 / u32::MAX as f32 * 2.0 - 1.0)
+        };
+        let mut plain_asymmetric = 0;
+        for _ in 0..10_000 {
+            let (px, py, qx, qy) = (next(), next(), next(), next());
+            let forward = edge(px, py, qx, qy);
+            let backward = edge(qx, qy, px, py);
+            assert_eq!(
+                forward.0, -backward.0,
+                "edge ({px:?}, {py:?}) ({qx:?}, {qy:?})"
+            );
+            let plain =
+                |a: Fused, b: Fused, c: Fused, d: Fused| Fused::product_difference(a, b, c, d);
+            if plain(px, qy, py, qx).0 != -plain(qx, py, qy, px).0 {
+                plain_asymmetric += 1;
+            }
+        }
+        // The model is real: the plain formula breaks under fusion on most inputs.
+        assert!(plain_asymmetric > 1000, "{plain_asymmetric}");
+    }
 }

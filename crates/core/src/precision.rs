@@ -9,13 +9,13 @@
 //! # Box culling
 //!
 //! Every precision culls boxes with the same f32 slab test and the same slack
-//! ([`crate::intersect::BOX_CULL_SLACK`], `32 u m`), which keeps closest hits independent
+//! ([`crate::intersect::BOX_CULL_SLACK`], `64 u m`), which keeps closest hits independent
 //! of the visit order:
 //!
 //! * watertight f32: the slack's own error analysis;
 //! * watertight f64: `t` is computed in f64 (error about `1e-15 m`) and rounded to f32
 //!   once (at most `u |t| <= u m`), and the f32 box's entry is within `γ_3 m` of the exact
-//!   one: about `4 u m`, well inside `32 u m`. The f32 boxes are conservative for the f32
+//!   one: about `4 u m`, well inside `64 u m`. The f32 boxes are conservative for the f32
 //!   corners, which f64 represents exactly;
 //! * Möller–Trumbore f32: its `t = (e2 · q) / det` has an error proportional to
 //!   `|e1| |e2| |s| / |det|`, not to `m`: bounded by the slack for well-conditioned hits
