@@ -3,10 +3,10 @@
 // `intersect::BOX_TFAR_SCALE` = 1 + 16u (bits 0x3f800008), above 1 + 2 gamma(7): the
 // reciprocal in each slab distance is counted at Vulkan's 2.5 ulp, since GPUs divide
 // approximately.
-const BVH_BOX_TFAR_SCALE: f32 = 1.00000095f;
+const BVH_BOX_TFAR_SCALE: f32 = 1.000001f;
 // `intersect::BOX_TFAR_SCALE_NEG` = 1 - 17u (bits 0x3f7fffef): scales a negative exit
 // distance (hits behind the origin) towards +inf, as BOX_TFAR_SCALE does a positive one.
-const BVH_BOX_TFAR_SCALE_NEG: f32 = 0.999998987f;
+const BVH_BOX_TFAR_SCALE_NEG: f32 = 0.999999f;
 
 // `intersect::BOX_CULL_SLACK` = 64 u = 2^-18: the running best `t` is widened by this
 // times the larger magnitude of the box's slab distances along the dominant axis `kz`

@@ -14,7 +14,7 @@ use crate::ray::Ray;
 /// slab distance is a subtraction, a reciprocal and a product; the reciprocal is counted
 /// at Vulkan's bound for a division (2.5 ulp, `5 u`), not as correctly rounded, because
 /// GPUs (NVIDIA's among them) divide approximately: `7 u` at each end.
-pub const BOX_TFAR_SCALE: f32 = 1.000_000_95;
+pub const BOX_TFAR_SCALE: f32 = 1.000_001;
 
 /// The scale for a negative exit distance (hits behind the origin, with a negative
 /// `t_min`): `1 - 17 u` (bits `0x3f7fffef`), below `1 / BOX_TFAR_SCALE`, so that the exit
@@ -22,7 +22,7 @@ pub const BOX_TFAR_SCALE: f32 = 1.000_000_95;
 /// Multiplying a negative exit by [`BOX_TFAR_SCALE`] would move it the wrong way and cull
 /// a box that is flat along the ray (a quad facing the ray) when it lies behind the
 /// origin. A constant multiply, not a division, so the GPU rounds it the same way.
-pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_998_987;
+pub const BOX_TFAR_SCALE_NEG: f32 = 0.999_999;
 
 /// `C u` with `C = 64`, `u = 2^-24` (exactly `2^-18`): when a box is culled against the
 /// running best hit, the best `t` is widened by `BOX_CULL_SLACK * m`, where `m` is the
@@ -375,7 +375,17 @@ pub fn intersect_triangle(r: &PreparedRay, v0: Vec3, v1: Vec3, v2: Vec3) -> Opti
 
 #[cfg(test)]
 mod tests {
-    use super::{Real, edge};
+    use super::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG, Real, edge};
+
+    /// The box test's constants are the f32 values their docs derive.
+    #[test]
+    fn box_constants_are_the_documented_f32s() {
+        let u = f32::EPSILON / 2.0;
+        assert_eq!(BOX_TFAR_SCALE, 1.0 + 16.0 * u);
+        assert_eq!(BOX_TFAR_SCALE_NEG, 1.0 - 17.0 * u);
+        assert_eq!(BOX_CULL_SLACK, 64.0 * u);
+        assert!(BOX_TFAR_SCALE_NEG < 1.0 / BOX_TFAR_SCALE);
+    }
 
     /// f32 as a device that fuses the first product into the difference computes it.
     #[derive(Clone, Copy, Debug, PartialEq, PartialOrd)]
