@@ -39,6 +39,13 @@ pub struct BenchRefitArgs {
     /// in the same run, 2 threads.
     #[arg(long)]
     pub embree: Option<std::path::PathBuf>,
+    /// Also refit on the GPU (`GpuRefit`, the BVH in buffers) after the same deformation,
+    /// from the moved vertices uploaded there: the refit alone and with the upload.
+    #[arg(long)]
+    pub gpu: bool,
+    /// Vulkan adapter for `--gpu` (a name substring, or `cpu`/`gpu`).
+    #[arg(long)]
+    pub adapter: Option<String>,
 }
 
 /// Embree's build and refit of `tris` deformed by amplitude `a` (median of `runs`), through
@@ -55,6 +62,77 @@ fn embree_refit(
     let v = dump.run(exe, 2, runs, &[("BVHTRACE_REFIT", a.to_string())])?;
     let field = |k: &str| embree::field(&v, k, exe);
     Ok((field("build_ms")?, field("refit_ms")?))
+}
+
+/// A GPU refit's figures (medians).
+struct GpuRefitFigures {
+    adapter: String,
+    refit_ms: f64,
+    gpu_ms: Option<f64>,
+    with_upload_ms: f64,
+    host_copy_ms: f64,
+    dispatches: usize,
+}
+
+/// The SAH tree of `tris` uploaded in buffers, and refitted on the device after every
+/// vertex moved by amplitude `a` (the vertices uploaded once, unindexed), `runs` times;
+/// then the upload and the refit together, alternating with the undeformed vertices.
+fn gpu_refit(
+    tris: &[Triangle],
+    a: f32,
+    runs: usize,
+    adapter: Option<&str>,
+) -> Result<GpuRefitFigures> {
+    use bvhtrace_gpu::wgpu::{self, util::DeviceExt};
+    use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, GpuRefit, RefitVertices, UploadOptions};
+    let ctx = GpuContext::new(crate::backend::adapter_choice(adapter))
+        .context("--gpu refits on a GPU")?;
+    let tree = FlatBvh::build(tris, &BuildOptions::default())?;
+    let opts = UploadOptions::all().with_storage(BvhStorage::Buffers);
+    let mut bvh = GpuBvh::upload(&ctx, &tree, &opts)?;
+    let soup =
+        |t: &[Triangle]| -> Vec<f32> { t.iter().flatten().flat_map(|p| p.to_array()).collect() };
+    let (still, moved) = (soup(tris), soup(&deform(tris, a)));
+    let positions = ctx
+        .device()
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("bench-refit positions"),
+            contents: bytemuck::cast_slice(&moved),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        });
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 3,
+        vertices: (moved.len() / 3) as u32,
+        indices: None,
+    };
+    let refit = GpuRefit::new(&bvh, &tree, v)?;
+    refit.refit(&mut bvh)?; // compiles nothing more, but warms the first submission
+    let (mut walls, mut gpus, mut uploads, mut host_copies) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..runs {
+        let t = refit.refit(&mut bvh)?;
+        walls.push(t.wall_ms);
+        gpus.extend(t.gpu_ms);
+    }
+    for run in 0..runs {
+        let verts = if run % 2 == 0 { &still } else { &moved };
+        let t = Instant::now();
+        ctx.queue()
+            .write_buffer(&positions, 0, bytemuck::cast_slice(verts));
+        let r = refit.refit(&mut bvh)?;
+        // The host copy's read back is a CPU driver's cost, reported apart.
+        uploads.push(t.elapsed().as_secs_f64() * 1e3 - r.host_copy_ms);
+        host_copies.push(r.host_copy_ms);
+    }
+    Ok(GpuRefitFigures {
+        adapter: ctx.adapter_info().name.clone(),
+        refit_ms: median(walls),
+        gpu_ms: (!gpus.is_empty()).then(|| median(gpus)),
+        with_upload_ms: median(uploads),
+        host_copy_ms: median(host_copies),
+        dispatches: refit.dispatches(),
+    })
 }
 
 /// Every vertex moved by a smooth field of amplitude `a` (a fraction of the extent): the
@@ -171,6 +249,28 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         None => None,
     };
 
+    let gpu = if args.gpu {
+        let g = gpu_refit(&tris, 0.1, args.runs, args.adapter.as_deref())?;
+        say!(
+            "GPU refit ({}), amplitude 0.1: {:.2} ms ({} of dispatches, {} dispatches), {:.2} ms \
+             with the vertices' upload; the host copy read back {:.2} ms (CPU drivers only)",
+            g.adapter,
+            g.refit_ms,
+            g.gpu_ms
+                .map_or("no timestamps".into(), |ms| format!("{ms:.2} ms")),
+            g.dispatches,
+            g.with_upload_ms,
+            g.host_copy_ms
+        );
+        Some(json!({
+            "amplitude": 0.1, "adapter": g.adapter, "refit_ms": g.refit_ms, "gpu_ms": g.gpu_ms,
+            "with_upload_ms": g.with_upload_ms, "host_copy_ms": g.host_copy_ms,
+            "dispatches": g.dispatches,
+        }))
+    } else {
+        None
+    };
+
     // The top level of many instances, rebuilt after every instance moved.
     let inst_spec = match &args.instances {
         Some(s) => s.clone(),
@@ -219,6 +319,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         j.write(&json!({
             "scene": spec, "triangles": tris.len(), "runs": args.runs,
             "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED, "embree": embree,
+            "gpu_refit": gpu,
             "instances_scene": inst_spec, "instances": two.instances().len(),
             "meshes": two.meshes().len(), "top_rebuild_ms": top_ms, "two_level_build_ms": full_ms,
             "top_level_bytes": top_bytes, "mesh_bytes": mesh_bytes,

@@ -108,6 +108,35 @@ fn bench_refit_reports_refit_rebuild_and_top_level_times() {
     assert_eq!(v["instances"], 12);
     assert_eq!(v["meshes"], 1);
     assert!(v["top_rebuild_ms"].as_f64().unwrap() > 0.0);
+    assert!(v["gpu_refit"].is_null(), "the GPU refit only with --gpu");
+}
+
+#[test]
+fn bench_refit_gpu_reports_the_device_refit() {
+    let out = run(&[
+        "bench-refit",
+        "builtin:icosphere:4",
+        "--instances",
+        "builtin:grid:icosphere:2x2",
+        "--runs",
+        "1",
+        "--gpu",
+        "--json",
+        "-",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    if err.contains("no Vulkan adapter") {
+        eprintln!("SKIP bench-refit --gpu: {err}");
+        return;
+    }
+    assert!(out.status.success(), "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON alone");
+    let g = &v["gpu_refit"];
+    assert!(g["refit_ms"].as_f64().unwrap() > 0.0, "{g}");
+    assert!(g["with_upload_ms"].as_f64().unwrap() > 0.0, "{g}");
+    // The check, the corners, the leaves and at least one level of interior nodes.
+    assert!(g["dispatches"].as_u64().unwrap() >= 4, "{g}");
+    assert!(err.contains("GPU refit ("), "{err}");
 }
 
 #[test]

@@ -186,6 +186,50 @@ fn flat_triangle(t: &Triangle, prim: u32) -> FlatTriangle {
     }
 }
 
+/// Why [`FlatBvh::refit`] refused (the BVH is left as it was).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum RefitError {
+    /// Not as many triangles as the tree was built over.
+    #[error(
+        "{given} triangles given for a tree over {built} (a refit keeps the triangles; rebuild instead)"
+    )]
+    Count {
+        /// Triangles given.
+        given: usize,
+        /// Triangles in the tree.
+        built: usize,
+    },
+    /// A two-level tree, refitted a mesh at a time.
+    #[error("a two-level BVH is refitted a mesh at a time (InstancedBvh::refit_mesh)")]
+    TwoLevels,
+    /// A corner is NaN or infinite (the error names it).
+    #[error(transparent)]
+    Mesh(#[from] crate::mesh::MeshError),
+}
+
+/// Refits the boxes of `nodes[range]` (whole trees, with absolute child and triangle
+/// indices) bottom up from `triangles`: children come after their parents, so one pass
+/// backwards refits every box.
+pub(crate) fn refit_boxes(nodes: &mut [FlatNode], triangles: &[FlatTriangle], range: Range<usize>) {
+    for i in range.rev() {
+        let n = nodes[i];
+        let b = if n.is_leaf() {
+            let f = n.right_or_first as usize;
+            triangles[f..f + n.count() as usize]
+                .iter()
+                .fold(Aabb::EMPTY, |b, t| {
+                    b.union(&Aabb::from_triangle(&t.corners()))
+                })
+        } else {
+            nodes[i + 1]
+                .aabb()
+                .union(&nodes[n.right_or_first as usize].aabb())
+        };
+        let n = &mut nodes[i];
+        (n.min, n.max) = (b.min.to_array(), b.max.to_array());
+    }
+}
+
 /// One BVH node (see the module docs for the encoding).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
@@ -607,6 +651,34 @@ impl FlatBvh {
             Some(e) => std::borrow::Cow::Borrowed(e),
             None => std::borrow::Cow::Owned(escape_links(&self.nodes)),
         }
+    }
+
+    /// The vertices moved (same triangles, `tris` in the builder's input order): the
+    /// corners are replaced and every box refitted bottom up, the tree kept; the wide
+    /// layout, when there is one, is collapsed again. A one-level tree only (a two-level
+    /// one is refitted a mesh at a time, [`crate::InstancedBvh::refit_mesh`]). An error
+    /// leaves the BVH as it was. `GpuRefit` in bvhtrace-gpu is its twin on the device.
+    pub fn refit(&mut self, tris: &[Triangle]) -> Result<(), RefitError> {
+        if self.is_instanced() {
+            return Err(RefitError::TwoLevels);
+        }
+        if tris.len() != self.triangles.len() {
+            return Err(RefitError::Count {
+                given: tris.len(),
+                built: self.triangles.len(),
+            });
+        }
+        crate::mesh::validate_triangles(tris)?;
+        for t in &mut self.triangles {
+            let [a, b, c] = tris[t.prim as usize];
+            (t.v0, t.v1, t.v2) = (a.to_array(), b.to_array(), c.to_array());
+        }
+        let n = self.nodes.len();
+        refit_boxes(&mut self.nodes, &self.triangles, 0..n);
+        if self.wide.is_some() {
+            self.build_wide();
+        }
+        Ok(())
     }
 
     /// Number of triangles.

@@ -492,26 +492,7 @@ impl InstancedBvh {
             (t.v0, t.v1, t.v2) = (a.to_array(), b.to_array(), c.to_array());
         }
         let (n0, nn) = (slot.node_base as usize, slot.nodes as usize);
-        // Children come after their parents: one pass backwards refits every box.
-        for i in (n0..n0 + nn).rev() {
-            let n = self.bvh.nodes[i];
-            let b = if n.is_leaf() {
-                let f = n.right_or_first as usize;
-                self.bvh.triangles[f..f + n.count() as usize]
-                    .iter()
-                    .fold(Aabb::EMPTY, |b, t| {
-                        b.union(&Aabb::from_triangle(&t.corners()))
-                    })
-            } else {
-                let (l, r) = (
-                    &self.bvh.nodes[i + 1],
-                    &self.bvh.nodes[n.right_or_first as usize],
-                );
-                l.aabb().union(&r.aabb())
-            };
-            let n = &mut self.bvh.nodes[i];
-            (n.min, n.max) = (b.min.to_array(), b.max.to_array());
-        }
+        crate::flat::refit_boxes(&mut self.bvh.nodes, &self.bvh.triangles, n0..n0 + nn);
         self.set_instances(self.instances.clone())
     }
 

@@ -384,7 +384,7 @@ mod tests {
         assert_eq!(BOX_TFAR_SCALE, 1.0 + 16.0 * u);
         assert_eq!(BOX_TFAR_SCALE_NEG, 1.0 - 17.0 * u);
         assert_eq!(BOX_CULL_SLACK, 64.0 * u);
-        assert!(BOX_TFAR_SCALE_NEG < 1.0 / BOX_TFAR_SCALE);
+        const { assert!(BOX_TFAR_SCALE_NEG < 1.0 / BOX_TFAR_SCALE) };
     }
 
     /// f32 as a device that fuses the first product into the difference computes it.

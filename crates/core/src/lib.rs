@@ -27,7 +27,7 @@ pub mod wide;
 
 pub use build::reinsert::{ReinsertOptions, optimize, optimize_with};
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
-pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle};
+pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle, RefitError};
 pub use geometry::Aabb;
 pub use hits::{InstanceHit, InstanceTable};
 pub use instance::{Instance, InstanceError, InstancedBvh};

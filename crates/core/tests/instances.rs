@@ -306,6 +306,69 @@ fn refit_keeps_every_walk_exact_and_reports_quality() {
     assert_eq!(rebuilt.refit_quality(0), 1.0);
 }
 
+/// `FlatBvh::refit` on one mesh: the boxes those of the two-level refit's mesh, every walk
+/// exact on the moved mesh, the wide layout collapsed again, and refusals that leave the
+/// tree as it was.
+#[test]
+fn a_one_mesh_refit_keeps_every_walk_exact() {
+    let mut m = meshes().swap_remove(0);
+    let mut bvh = FlatBvh::build(&m, &BuildOptions::default())
+        .unwrap()
+        .with_wide();
+    let built = bvh.clone();
+    for t in &mut m {
+        for p in t.iter_mut() {
+            *p = Vec3::new(p.x * 1.5, p.y + 0.3 * (p.x * 5.0).sin(), p.z * 0.8);
+        }
+    }
+    bvh.refit(&m).unwrap();
+    bvh.check_invariants().unwrap();
+    assert_ne!(bvh.nodes(), built.nodes(), "the boxes moved");
+    assert_eq!(bvh.wide().unwrap().check_invariants(&bvh), Ok(()));
+    let mut two = InstancedBvh::build(
+        std::slice::from_ref(&built_triangles(&built)),
+        vec![Instance::new(0, Affine3A::IDENTITY)],
+        &BuildOptions::default(),
+    )
+    .unwrap();
+    two.refit_mesh(0, &m).unwrap();
+    let top = two.bvh().top_nodes() as usize;
+    let boxes =
+        |n: &[bvhtrace_core::FlatNode]| n.iter().map(|n| (n.min, n.max)).collect::<Vec<_>>();
+    assert_eq!(boxes(bvh.nodes()), boxes(&two.bvh().nodes()[top..]));
+    check_walks(&bvh, &rays(&m, 1500));
+
+    let before = bvh.clone();
+    let mut bad = m.clone();
+    bad[5][2].z = f32::INFINITY;
+    assert!(
+        bvh.refit(&bad)
+            .unwrap_err()
+            .to_string()
+            .contains("triangle 5")
+    );
+    assert!(
+        bvh.refit(&m[1..])
+            .unwrap_err()
+            .to_string()
+            .contains("rebuild")
+    );
+    assert!(
+        two.bvh().clone().refit(&m).is_err(),
+        "two levels refit a mesh at a time"
+    );
+    assert_eq!(bvh, before, "a refused refit left the BVH changed");
+}
+
+/// The triangles of a one-mesh tree in the builder's input order.
+fn built_triangles(bvh: &FlatBvh) -> Vec<Triangle> {
+    let mut out = vec![[Vec3::ZERO; 3]; bvh.triangle_count()];
+    for t in bvh.triangles() {
+        out[t.prim as usize] = t.corners();
+    }
+    out
+}
+
 #[test]
 fn unusable_instances_and_vertices_are_errors_naming_them() {
     let (m, mut inst) = (meshes(), instances());

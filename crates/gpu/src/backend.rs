@@ -200,7 +200,10 @@ impl Wgpu {
                 &wgpu::util::BufferInitDescriptor {
                     label: Some(&label),
                     contents: &a.bytes,
-                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    // COPY_SRC: a refit on the device reads its tree back for the host copy.
+                    usage: wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_DST
+                        | wgpu::BufferUsages::COPY_SRC,
                 },
             )),
             Some(texel) => {

@@ -93,8 +93,9 @@ struct Inner {
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
-    /// The device builders' pipelines (`GpuContext::build_bvh`), made on first use.
-    build_pipelines: Mutex<HashMap<crate::GpuBuilderKind, Vec<wgpu::ComputePipeline>>>,
+    /// The pipelines of the device builders (`GpuContext::build_bvh`) and the refit
+    /// (`GpuRefit`), by program name, made on first use.
+    device_programs: Mutex<HashMap<&'static str, Vec<wgpu::ComputePipeline>>>,
     /// In a browser, the error scopes of the work done since the last trace, popped and
     /// awaited by that trace ([`GpuContext::deferred_errors`]).
     #[cfg(target_arch = "wasm32")]
@@ -418,7 +419,7 @@ impl GpuContext {
                 bvh_layouts,
                 batch_layouts,
                 pipelines: Mutex::new(HashMap::new()),
-                build_pipelines: Mutex::new(HashMap::new()),
+                device_programs: Mutex::new(HashMap::new()),
                 modules_compiled: AtomicU64::new(0),
                 pipelines_compiled: AtomicU64::new(0),
             }),
@@ -610,22 +611,36 @@ impl GpuContext {
         &self,
         kind: crate::GpuBuilderKind,
     ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
+        let entries: Vec<&'static str> = kind.entries().collect();
+        self.device_program(kind.name(), || kind.source(), &entries)
+    }
+
+    /// The pipelines of one of the device's own programs (a builder, the refit) called
+    /// `name`: module `source`, one pipeline per entry point in `entries`' order, compiled
+    /// on first use and kept.
+    pub(crate) fn device_program(
+        &self,
+        name: &'static str,
+        source: impl FnOnce() -> String,
+        entries: &[&'static str],
+    ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
         let mut cached = self
             .inner
-            .build_pipelines
+            .device_programs
             .lock()
-            .map_err(|_| GpuError::Poisoned("builder pipelines"))?;
-        if let Some(p) = cached.get(&kind) {
+            .map_err(|_| GpuError::Poisoned("device programs"))?;
+        if let Some(p) = cached.get(name) {
             return Ok(p.clone());
         }
         let device = &self.inner.device;
-        let made = self.scoped("compiling the device builder", || {
+        let made = self.scoped("compiling a device program", || {
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(kind.name()),
-                source: wgpu::ShaderSource::Wgsl(kind.source().into()),
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(source().into()),
             });
-            kind.entries()
-                .map(|entry| {
+            entries
+                .iter()
+                .map(|&entry| {
                     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                         label: Some(entry),
                         layout: None,
@@ -637,7 +652,7 @@ impl GpuContext {
                 })
                 .collect::<Vec<_>>()
         })?;
-        cached.insert(kind, made.clone());
+        cached.insert(name, made.clone());
         Ok(made)
     }
 

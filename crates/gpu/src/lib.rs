@@ -53,7 +53,9 @@ mod library;
 mod ray_query;
 mod trace;
 
-pub use build::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
+pub use build::{
+    GpuBuildOptions, GpuBuildTimes, GpuBuilderKind, GpuRefit, RefitTimes, RefitVertices,
+};
 pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};
 pub use context::{ContextOptions, GpuContext, device_kind};

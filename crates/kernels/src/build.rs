@@ -11,6 +11,8 @@ const BUILD_MORTON_WGSL: &str = include_str!("../shaders/build_morton.wgsl");
 const BUILD_LBVH_WGSL: &str = include_str!("../shaders/build_lbvh.wgsl");
 /// `build_ploc.wgsl`.
 const BUILD_PLOC_WGSL: &str = include_str!("../shaders/build_ploc.wgsl");
+/// `refit.wgsl`.
+const REFIT_WGSL: &str = include_str!("../shaders/refit.wgsl");
 
 /// A builder step: its entry point and the bindings of group 0 it uses.
 pub type Step = (&'static str, &'static [u32]);
@@ -45,14 +47,49 @@ pub const PLOC_STEPS: [Step; 8] = [
     ("ploc_flatten", &[0, 1, 4, 9, 15, 16, 17, 18, 19]),
 ];
 
+/// The uniform block of the device refit's dispatches (`RefitParams` in `refit.wgsl`), one
+/// per dispatch at 256-byte offsets.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RefitParams {
+    /// `refit_boxes`: this dispatch's nodes are `order[first .. first + count]`.
+    pub first: u32,
+    /// Nodes (or triangles) this dispatch covers.
+    pub count: u32,
+    /// Invocations per row of the dispatch grid.
+    pub row: u32,
+    /// Floats from one vertex to the next in the positions (3 or more).
+    pub stride: u32,
+    /// Vertices in the positions.
+    pub vertices: u32,
+    /// Input triangles (and leaf slots).
+    pub triangles: u32,
+    /// 1 when corners are read through the index buffer.
+    pub indexed: u32,
+    /// Padding to 32 bytes.
+    pub pad: u32,
+}
+
+/// The device refit's steps (`refit.wgsl`), in the order they run: the check, the
+/// corners, then the boxes once per level.
+pub const REFIT_STEPS: [Step; 3] = [
+    ("refit_check", &[0, 4, 5, 6]),
+    ("refit_corners", &[0, 2, 4, 5, 6]),
+    ("refit_boxes", &[0, 1, 2, 3, 6]),
+];
+
 /// The most storage buffers any builder step binds: a device needs this many per stage.
 pub const BUILD_STORAGE_BUFFERS: u32 = 8;
 
-fn compose(builder: &str, source: &str) -> String {
-    let types = crate::wgsl::SHADER_FILES
+fn types_wgsl() -> &'static str {
+    crate::wgsl::SHADER_FILES
         .iter()
         .find(|(name, _)| *name == "types.wgsl")
-        .map_or("", |(_, src)| src);
+        .map_or("", |(_, src)| src)
+}
+
+fn compose(builder: &str, source: &str) -> String {
+    let types = types_wgsl();
     format!(
         "{types}\n// ---- build_morton.wgsl ----\n{BUILD_MORTON_WGSL}\n// ---- {builder} ----\n{source}"
     )
@@ -68,6 +105,12 @@ pub fn lbvh_source() -> String {
 /// `build_ploc.wgsl`.
 pub fn ploc_source() -> String {
     compose("build_ploc.wgsl", BUILD_PLOC_WGSL)
+}
+
+/// The device refit's module: `types.wgsl` (`BvhNode`, `BvhTriangle`), then
+/// `refit.wgsl`.
+pub fn refit_source() -> String {
+    format!("{}\n// ---- refit.wgsl ----\n{REFIT_WGSL}", types_wgsl())
 }
 
 #[cfg(test)]
@@ -131,5 +174,10 @@ mod tests {
         let source = ploc_source();
         check_steps(&source, &MORTON_STEPS);
         check_steps(&source, &PLOC_STEPS);
+    }
+
+    #[test]
+    fn the_refit_module_validates_and_lists_each_steps_bindings() {
+        check_steps(&refit_source(), &REFIT_STEPS);
     }
 }

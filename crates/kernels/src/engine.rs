@@ -397,6 +397,21 @@ impl<B: Backend> Engine<B> {
         })
     }
 
+    /// True when this upload keeps a copy of the tree on the host, to finish the rays a
+    /// CPU driver's trip budget or the wide walk's stack leaves incomplete.
+    pub fn keeps_host_copy(&self) -> bool {
+        self.host_copy.is_some()
+    }
+
+    /// After the device changed this upload's one-mesh tree in place (a refit there):
+    /// `bvh`, read back, becomes the host copy. Nothing is written to the device. `bvh`
+    /// must have the upload's shape.
+    pub fn refitted_on_device(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
+        check_update_shape(self.tree.shape, bvh)?;
+        self.host_copy = Self::host_copy_of(&self.backend, bvh, None);
+        Ok(())
+    }
+
     /// The backend the arrays live on.
     pub fn device(&self) -> &B {
         &self.backend

@@ -384,6 +384,27 @@ fn wide_library_module(lib: &str, bindings: [(u32, &str); 2]) -> naga::Module {
 }
 
 #[test]
+fn the_refit_params_match_rust_layout() {
+    use bvhtrace_kernels::build::{RefitParams, refit_source};
+    let module = parse(&refit_source());
+    check_struct(
+        &module,
+        "RefitParams",
+        size_of::<RefitParams>(),
+        &[
+            ("first", offset_of!(RefitParams, first)),
+            ("count", offset_of!(RefitParams, count)),
+            ("row", offset_of!(RefitParams, row)),
+            ("stride", offset_of!(RefitParams, stride)),
+            ("vertices", offset_of!(RefitParams, vertices)),
+            ("triangles", offset_of!(RefitParams, triangles)),
+            ("indexed", offset_of!(RefitParams, indexed)),
+            ("pad", offset_of!(RefitParams, pad)),
+        ],
+    );
+}
+
+#[test]
 fn every_file_is_composed_and_the_library_rebinds_its_group() {
     for storage in STORAGES {
         check_library(storage);

@@ -17,6 +17,9 @@
 //! clustering's ties break by place.
 
 mod ploc;
+mod refit;
+
+pub use refit::{GpuRefit, RefitTimes, RefitVertices};
 
 use std::time::Instant;
 

@@ -1,0 +1,434 @@
+//! The BVH refitted on the device: after a one-mesh tree's vertices moved there (your
+//! compute pass, a skinning pass, or a vertex upload), its corners and boxes are rewritten
+//! in place, bottom up, and the tree kept (`shaders/refit.wgsl`, the twin of
+//! [`FlatBvh::refit`], box for box).
+//!
+//! [`GpuRefit::new`] prepares one refit of one upload from one set of vertex buffers (the
+//! nodes' order by level, one bind group per dispatch); [`GpuRefit::refit`] runs it and
+//! waits, [`GpuRefit::record`] records it into your encoder.
+
+use std::time::Instant;
+
+use bvhtrace_core::{FlatBvh, FlatNode, FlatTriangle};
+use bvhtrace_kernels::build::{REFIT_STEPS, RefitParams, refit_source};
+use bvhtrace_kernels::upload::ArrayRole;
+use bvhtrace_kernels::{BvhStorage, HasEngine, check_update_shape};
+
+use super::{PARAMS_STRIDE, StepQueries, empty, grid, init};
+use crate::trace::{map_all, read_mapped};
+use crate::{GpuBvh, GpuContext, GpuError};
+
+/// Where a refit reads the moved vertices: your buffers, bound as storage (created with
+/// `BufferUsages::STORAGE`).
+#[derive(Clone, Copy, Debug)]
+pub struct RefitVertices<'a> {
+    /// Vertex positions as `f32`s: vertex `v` is `positions[v * stride ..][..3]`.
+    pub positions: &'a wgpu::Buffer,
+    /// Floats from one vertex to the next: 3 for packed `xyz`, 4 for `vec4`s.
+    pub stride: u32,
+    /// Vertices in `positions`.
+    pub vertices: u32,
+    /// `u32` indices, three per triangle in the builder's input order; `None`: triangle
+    /// `t`'s corners are vertices `3t`, `3t + 1`, `3t + 2`.
+    pub indices: Option<&'a wgpu::Buffer>,
+}
+
+/// What one [`GpuRefit::refit`] cost.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RefitTimes {
+    /// From submission to the status read back, host wall time, milliseconds.
+    pub wall_ms: f64,
+    /// The dispatches by timestamp queries, when the device has them.
+    pub gpu_ms: Option<f64>,
+    /// Dispatches: the check, the corners, and one per level of boxes.
+    pub dispatches: usize,
+    /// Reading the refitted tree back for the host copy (a CPU driver finishes the rays
+    /// its trip budget leaves incomplete on it), milliseconds; 0 when none is kept.
+    pub host_copy_ms: f64,
+}
+
+/// A refit of one uploaded one-mesh BVH from one set of vertex buffers, prepared once and
+/// run each time the vertices move. The BVH must be uploaded in
+/// [`BvhStorage::Buffers`] without the wide layout (whose compressed boxes are collapsed
+/// on the CPU: refit there, [`FlatBvh::refit`], and update).
+#[derive(Debug)]
+pub struct GpuRefit {
+    ctx: GpuContext,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    /// One per dispatch: its step, bind group and grid.
+    dispatches: Vec<(usize, wgpu::BindGroup, (u32, u32))>,
+    status: wgpu::Buffer,
+    status_read: wgpu::Buffer,
+    /// The uploaded nodes and triangles, and the tree's depth, for the host copy.
+    nodes: wgpu::Buffer,
+    triangles: wgpu::Buffer,
+    counts: (u64, u64),
+    depth: u32,
+}
+
+/// The node indices by level: every leaf, then the interior nodes deepest first; and the
+/// length of each run.
+fn levels(nodes: &[FlatNode]) -> (Vec<u32>, Vec<u32>) {
+    let mut depth = vec![0u32; nodes.len()];
+    let mut leaves = Vec::new();
+    let mut interior: Vec<Vec<u32>> = Vec::new();
+    for (i, n) in nodes.iter().enumerate() {
+        let d = depth[i];
+        if n.is_leaf() {
+            leaves.push(i as u32);
+            continue;
+        }
+        depth[i + 1] = d + 1;
+        depth[n.right_or_first as usize] = d + 1;
+        if interior.len() <= d as usize {
+            interior.resize_with(d as usize + 1, Vec::new);
+        }
+        interior[d as usize].push(i as u32);
+    }
+    let mut runs = vec![leaves.len() as u32];
+    let mut order = leaves;
+    for level in interior.into_iter().rev() {
+        runs.push(level.len() as u32);
+        order.extend(level);
+    }
+    (order, runs)
+}
+
+fn unsupported(what: &str) -> GpuError {
+    GpuError::Unsupported {
+        backend: "wgpu",
+        what: format!("a refit on the device of {what}"),
+    }
+}
+
+/// Checks that `bvh` (uploaded from `tree`) and `v` can be refitted together.
+fn check(bvh: &GpuBvh, tree: &FlatBvh, v: &RefitVertices<'_>) -> Result<(), GpuError> {
+    let engine = bvh.engine();
+    if tree.is_instanced() || engine.is_instanced() {
+        return Err(unsupported(
+            "a two-level BVH (refit a mesh on the CPU: InstancedBvh::refit_mesh)",
+        ));
+    }
+    if engine.has_wide() {
+        return Err(unsupported(
+            "the wide layout (upload without Traversal::Wide, or refit on the CPU: FlatBvh::refit)",
+        ));
+    }
+    if engine.storage() != BvhStorage::Buffers {
+        return Err(unsupported(
+            "a BVH in textures (upload with BvhStorage::Buffers)",
+        ));
+    }
+    check_update_shape(engine.tree().shape, tree)?;
+    let bad = |buffer, problem: String| Err(GpuError::BadBuffer { buffer, problem });
+    if v.stride < 3 {
+        return bad(
+            "positions",
+            format!("a stride of {} floats (at least 3)", v.stride),
+        );
+    }
+    let need = (u64::from(v.vertices.max(1)) - 1) * u64::from(v.stride) * 4 + 12;
+    if v.vertices == 0 || v.positions.size() < need {
+        return bad(
+            "positions",
+            format!(
+                "{} bytes for {} vertices of stride {} (needs {need})",
+                v.positions.size(),
+                v.vertices,
+                v.stride
+            ),
+        );
+    }
+    let tris = tree.triangle_count() as u64;
+    if let Some(i) = v.indices.filter(|i| i.size() < tris * 12) {
+        return bad(
+            "indices",
+            format!(
+                "{} bytes for {tris} triangles (needs {})",
+                i.size(),
+                tris * 12
+            ),
+        );
+    }
+    Ok(())
+}
+
+impl GpuRefit {
+    /// Prepares refits of `bvh`, uploaded from `tree` (the same tree: its shape is
+    /// checked), from the vertices `v` says. Errors name what does not fit: a two-level
+    /// tree, the wide layout, textures, buffers too small.
+    pub fn new(bvh: &GpuBvh, tree: &FlatBvh, v: RefitVertices<'_>) -> Result<GpuRefit, GpuError> {
+        check(bvh, tree, &v)?;
+        let ctx = bvh.context().clone();
+        let arrays = bvh.engine().arrays();
+        let (Some(nodes), Some(triangles)) = (
+            arrays.buffer(ArrayRole::Nodes),
+            arrays.buffer(ArrayRole::Triangles),
+        ) else {
+            return Err(unsupported("an upload without its binary layout"));
+        };
+        let entries: Vec<&'static str> = REFIT_STEPS.iter().map(|(e, _)| *e).collect();
+        let pipelines = ctx.device_program("refit", refit_source, &entries)?;
+        let device = ctx.device();
+        let (order, runs) = levels(tree.nodes());
+        let n_tris = tree.triangle_count() as u32;
+        let max_dim = ctx.limits().max_compute_workgroups_per_dimension;
+        // (step, first, count) of each dispatch.
+        let mut plan = vec![(0, 0, n_tris), (1, 0, n_tris)];
+        let mut first = 0;
+        for r in runs.iter().filter(|&&r| r > 0) {
+            plan.push((2, first, *r));
+            first += r;
+        }
+        let mut params = vec![0u8; plan.len() * PARAMS_STRIDE as usize];
+        let mut grids = Vec::with_capacity(plan.len());
+        for (k, &(_, first, count)) in plan.iter().enumerate() {
+            let (x, y, row) = grid(u64::from(count), max_dim);
+            grids.push((x, y));
+            let p = RefitParams {
+                first,
+                count,
+                row,
+                stride: v.stride,
+                vertices: v.vertices,
+                triangles: n_tris,
+                indexed: u32::from(v.indices.is_some()),
+                pad: 0,
+            };
+            let at = k * PARAMS_STRIDE as usize;
+            params[at..at + 32].copy_from_slice(bytemuck::bytes_of(&p));
+        }
+        use wgpu::BufferUsages as U;
+        let params = init(device, "refit params", &params, U::UNIFORM);
+        let order = init(
+            device,
+            "refit order",
+            bytemuck::cast_slice(&order),
+            U::STORAGE,
+        );
+        let no_indices = empty(device, "refit no indices", 16, U::STORAGE);
+        let status = empty(
+            device,
+            "refit status",
+            16,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
+        let status_read = empty(device, "refit status read", 16, U::MAP_READ | U::COPY_DST);
+        let resource = |b: u32, k: usize| match b {
+            0 => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: &params,
+                offset: k as u64 * PARAMS_STRIDE,
+                size: std::num::NonZeroU64::new(32),
+            }),
+            1 => nodes.as_entire_binding(),
+            2 => triangles.as_entire_binding(),
+            3 => order.as_entire_binding(),
+            4 => v.positions.as_entire_binding(),
+            5 => v.indices.unwrap_or(&no_indices).as_entire_binding(),
+            _ => status.as_entire_binding(),
+        };
+        let dispatches = ctx.scoped("preparing a refit on the device", || {
+            plan.iter()
+                .zip(&grids)
+                .enumerate()
+                .map(|(k, (&(step, _, _), &g))| {
+                    let (entry, bindings) = REFIT_STEPS[step];
+                    let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+                        .iter()
+                        .map(|&b| wgpu::BindGroupEntry {
+                            binding: b,
+                            resource: resource(b, k),
+                        })
+                        .collect();
+                    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some(entry),
+                        layout: &pipelines[step].get_bind_group_layout(0),
+                        entries: &entries,
+                    });
+                    (step, group, g)
+                })
+                .collect::<Vec<_>>()
+        })?;
+        Ok(GpuRefit {
+            pipelines,
+            dispatches,
+            status,
+            status_read,
+            nodes: nodes.clone(),
+            triangles: triangles.clone(),
+            counts: (tree.nodes().len() as u64, u64::from(n_tris)),
+            depth: tree.depth(),
+            ctx,
+        })
+    }
+
+    /// Dispatches a refit runs: the check, the corners, one per level of boxes.
+    pub fn dispatches(&self) -> usize {
+        self.dispatches.len()
+    }
+
+    /// Records the refit into `enc`, after whatever moved the vertices: one compute pass,
+    /// then the status copied for [`GpuRefit::status`]. A bad vertex (not finite, or an
+    /// index out of range) makes the whole refit write nothing.
+    pub fn record(&self, enc: &mut wgpu::CommandEncoder) {
+        self.record_timed(enc, None);
+    }
+
+    fn record_timed(&self, enc: &mut wgpu::CommandEncoder, queries: Option<&StepQueries>) {
+        enc.clear_buffer(&self.status, 0, None);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("refit"),
+                timestamp_writes: queries.and_then(|q| q.writes("refit")),
+            });
+            for (step, group, (x, y)) in &self.dispatches {
+                pass.set_pipeline(&self.pipelines[*step]);
+                pass.set_bind_group(0, group, &[]);
+                pass.dispatch_workgroups(*x, *y, 1);
+            }
+        }
+        enc.copy_buffer_to_buffer(&self.status, 0, &self.status_read, 0, 16);
+    }
+
+    /// Runs the refit on `bvh` (the upload it was prepared for) and waits: `Ok` with its
+    /// times, or the first bad triangle, named, with the tree left as it was. When the
+    /// upload keeps a host copy (a CPU driver), the refitted tree is read back into it.
+    pub fn refit(&self, bvh: &mut GpuBvh) -> Result<RefitTimes, GpuError> {
+        let (device, queue) = (self.ctx.device(), self.ctx.queue());
+        let queries = self
+            .ctx
+            .has_timestamps()
+            .then(|| StepQueries::new(device, 1));
+        let mut enc = device.create_command_encoder(&Default::default());
+        self.record_timed(&mut enc, queries.as_ref());
+        if let Some(q) = &queries {
+            q.resolve(&mut enc);
+        }
+        let start = Instant::now();
+        let index = self
+            .ctx
+            .scoped("refitting on the device", || queue.submit([enc.finish()]))?;
+        let mut maps = vec![(&self.status_read, 16)];
+        maps.extend(queries.as_ref().map(|q| (&q.read, q.bytes())));
+        pollster::block_on(map_all(device, index, &maps))?;
+        let status = self.read_status();
+        let wall_ms = start.elapsed().as_secs_f64() * 1e3;
+        let gpu_ms = match &queries {
+            Some(q) => q.stages_ms(queue)?.first().map(|(_, ms)| *ms),
+            None => None,
+        };
+        status?;
+        let t = Instant::now();
+        let kept = bvh.engine().keeps_host_copy();
+        if kept {
+            let tree = self.read_back()?;
+            bvh.engine_mut().refitted_on_device(&tree)?;
+        }
+        Ok(RefitTimes {
+            wall_ms,
+            gpu_ms,
+            dispatches: self.dispatches.len(),
+            host_copy_ms: if kept {
+                t.elapsed().as_secs_f64() * 1e3
+            } else {
+                0.0
+            },
+        })
+    }
+
+    /// The outcome of the last refit submitted (after it completed and its status buffer
+    /// was mapped by [`GpuRefit::refit`]): `Ok`, or the first bad triangle, named.
+    fn read_status(&self) -> Result<(), GpuError> {
+        let mut words: Vec<u32> = Vec::new();
+        let got = read_mapped(&self.status_read, 16, &mut words);
+        self.status_read.unmap();
+        got?;
+        match words.first().copied().unwrap_or(0) {
+            0 => Ok(()),
+            s => {
+                let code = u32::MAX - s;
+                let (t, why) = (code / 4, code % 4);
+                let problem = match why {
+                    1 => format!("triangle {t}: a corner is NaN or infinite; nothing was refitted"),
+                    _ => format!(
+                        "triangle {t}: a vertex index is out of range; nothing was refitted"
+                    ),
+                };
+                Err(GpuError::BadBuffer {
+                    buffer: "positions",
+                    problem,
+                })
+            }
+        }
+    }
+
+    /// The tree as the device holds it now (after a refit: refitted), read back, so the
+    /// CPU walks can trace it too.
+    pub fn read_back(&self) -> Result<FlatBvh, GpuError> {
+        let device = self.ctx.device();
+        let (nodes_bytes, tris_bytes) = (self.counts.0 * 32, self.counts.1 * 48);
+        use wgpu::BufferUsages as U;
+        let read = empty(
+            device,
+            "refit read back",
+            nodes_bytes + tris_bytes,
+            U::MAP_READ | U::COPY_DST,
+        );
+        let mut enc = device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(&self.nodes, 0, &read, 0, nodes_bytes);
+        enc.copy_buffer_to_buffer(&self.triangles, 0, &read, nodes_bytes, tris_bytes);
+        let index = self.ctx.scoped("reading a refitted tree back", || {
+            self.ctx.queue().submit([enc.finish()])
+        })?;
+        pollster::block_on(map_all(device, index, &[(&read, nodes_bytes + tris_bytes)]))?;
+        let mut bytes: Vec<u8> = Vec::new();
+        let got = read_mapped(&read, nodes_bytes + tris_bytes, &mut bytes);
+        read.unmap();
+        got?;
+        let (n, t) = bytes.split_at(nodes_bytes as usize);
+        let nodes: Vec<FlatNode> = bytemuck::pod_collect_to_vec(n);
+        let tris: Vec<FlatTriangle> = bytemuck::pod_collect_to_vec(t);
+        Ok(FlatBvh::from_parts(nodes, tris, self.depth))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::levels;
+    use bvhtrace_core::{BuildOptions, FlatBvh, Triangle};
+    use glam::Vec3;
+
+    /// Every node appears once, leaves first, and every interior node after both children.
+    #[test]
+    fn levels_order_children_before_parents() {
+        let tris: Vec<Triangle> = (0..200)
+            .map(|i| {
+                let p = Vec3::new((i % 13) as f32, (i / 13) as f32, (i % 7) as f32 * 0.5);
+                [p, p + Vec3::X, p + Vec3::Y]
+            })
+            .collect();
+        let bvh = FlatBvh::build(&tris, &BuildOptions::default()).expect("builds");
+        let (order, runs) = levels(bvh.nodes());
+        assert_eq!(order.len(), bvh.nodes().len());
+        assert_eq!(runs.iter().sum::<u32>() as usize, order.len());
+        let mut run_of = vec![usize::MAX; order.len()];
+        let mut at = 0;
+        for (r, &len) in runs.iter().enumerate() {
+            for &i in &order[at..at + len as usize] {
+                assert_eq!(run_of[i as usize], usize::MAX, "node {i} twice");
+                run_of[i as usize] = r;
+            }
+            at += len as usize;
+        }
+        assert!(
+            order[..runs[0] as usize]
+                .iter()
+                .all(|&i| bvh.nodes()[i as usize].is_leaf())
+        );
+        for (i, n) in bvh.nodes().iter().enumerate().filter(|(_, n)| !n.is_leaf()) {
+            for c in [i + 1, n.right_or_first as usize] {
+                assert!(run_of[c] < run_of[i], "node {i} runs before its child {c}");
+            }
+        }
+    }
+}

@@ -1,0 +1,283 @@
+//! The refit on the device (`GpuRefit`): after the vertices move on the device, the boxes
+//! and corners read back equal the CPU refit's (`FlatBvh::refit`), and the GPU walks
+//! answer as the CPU walks do on the CPU-refitted tree; indexed and packed vertices, a bad
+//! vertex refused with the tree left as it was, and the uploads it cannot refit refused by
+//! name. Without a Vulkan adapter the tests print SKIP.
+
+use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
+use bvhtrace_gpu::wgpu::{self, util::DeviceExt};
+use bvhtrace_gpu::{
+    AdapterChoice, BvhStorage, GpuBvh, GpuContext, GpuError, GpuRefit, RefitVertices, Tracer,
+    UploadOptions,
+};
+use glam::Vec3;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::new(AdapterChoice::Auto) {
+        Ok(c) => Some(c),
+        Err(e @ GpuError::NoAdapter { .. }) => {
+            eprintln!("SKIP device refit: {e}");
+            None
+        }
+        Err(e) => panic!("cannot open a GPU: {e}"),
+    }
+}
+
+/// A wavy indexed grid of `n` x `n` quads: positions and three indices per triangle.
+fn grid(n: u32) -> (Vec<Vec3>, Vec<u32>) {
+    let mut pos = Vec::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            let (x, y) = (i as f32 / n as f32, j as f32 / n as f32);
+            pos.push(Vec3::new(x, y, 0.1 * (7.0 * x).sin() * (5.0 * y).cos()));
+        }
+    }
+    let mut idx = Vec::new();
+    let at = |i: u32, j: u32| j * (n + 1) + i;
+    for j in 0..n {
+        for i in 0..n {
+            idx.extend([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+            idx.extend([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+        }
+    }
+    (pos, idx)
+}
+
+fn triangles(pos: &[Vec3], idx: &[u32]) -> Vec<Triangle> {
+    idx.chunks(3)
+        .map(|c| [pos[c[0] as usize], pos[c[1] as usize], pos[c[2] as usize]])
+        .collect()
+}
+
+/// Every vertex moved by a smooth field, far enough that the boxes change a lot.
+fn moved(pos: &[Vec3]) -> Vec<Vec3> {
+    pos.iter()
+        .map(|p| {
+            *p + Vec3::new(
+                (3.0 * p.y).sin(),
+                (2.0 * p.x).cos(),
+                0.5 * (4.0 * p.x).sin(),
+            ) * 0.2
+        })
+        .collect()
+}
+
+fn rays() -> Vec<Ray> {
+    let mut out = Vec::new();
+    for i in 0..48 {
+        for j in 0..48 {
+            let target = Vec3::new(
+                i as f32 / 47.0 * 1.4 - 0.2,
+                j as f32 / 47.0 * 1.4 - 0.2,
+                0.0,
+            );
+            let eye = Vec3::new(0.5, 0.4, 3.0);
+            out.push(Ray::new(eye, target - eye));
+        }
+    }
+    out
+}
+
+fn storage_buffer(ctx: &GpuContext, label: &str, bytes: &[u8]) -> wgpu::Buffer {
+    ctx.device()
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytes,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        })
+}
+
+fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> GpuBvh {
+    let opts = UploadOptions::all().with_storage(BvhStorage::Buffers);
+    GpuBvh::upload(ctx, bvh, &opts).expect("upload")
+}
+
+/// The device's tree equals `want` box for box and corner for corner, and every GPU walk
+/// answers on it as the CPU walk does on `want`.
+fn assert_same(refit: &GpuRefit, gpu: &GpuBvh, want: &FlatBvh, what: &str) {
+    let got = refit.read_back().expect("read back");
+    for (i, (g, w)) in got.nodes().iter().zip(want.nodes()).enumerate() {
+        // `==` on the floats: a box's zero may come back with either sign.
+        assert!(
+            g.min == w.min && g.max == w.max,
+            "{what}: node {i}: {g:?} != {w:?}"
+        );
+    }
+    assert_eq!(got.triangles(), want.triangles(), "{what}: corners");
+    let rays = rays();
+    for walk in [Traversal::FullStack, Traversal::Stackless] {
+        let opts = TraceOptions::closest(walk);
+        let g = gpu.trace(&rays, &opts).expect("trace").hits;
+        let c = trace_rays(want, &rays, &opts).hits;
+        assert_eq!(g, c, "{what}: {walk}");
+        assert!(
+            c.iter().filter(|h| h.is_hit()).count() > 500,
+            "{what}: the rays hit"
+        );
+    }
+}
+
+#[test]
+fn a_device_refit_equals_the_cpu_refit() {
+    let Some(ctx) = context() else { return };
+    let (pos, idx) = grid(40);
+    let tree = FlatBvh::build(&triangles(&pos, &idx), &BuildOptions::default()).expect("build");
+    let after = moved(&pos);
+    let mut want = tree.clone();
+    want.refit(&triangles(&after, &idx)).expect("CPU refit");
+    assert_ne!(want.nodes(), tree.nodes(), "the boxes moved");
+
+    // Indexed, packed xyz.
+    let mut gpu = upload(&ctx, &tree);
+    let packed: Vec<f32> = after.iter().flat_map(|p| p.to_array()).collect();
+    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
+    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 3,
+        vertices: after.len() as u32,
+        indices: Some(&indices),
+    };
+    let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
+    let times = refit.refit(&mut gpu).expect("refit");
+    assert_eq!(times.dispatches, refit.dispatches());
+    assert_same(&refit, &gpu, &want, "indexed");
+
+    // Unindexed (three vertices per triangle), vec4 positions, a fresh upload.
+    let mut gpu = upload(&ctx, &tree);
+    let soup: Vec<f32> = triangles(&after, &idx)
+        .iter()
+        .flatten()
+        .flat_map(|p| [p.x, p.y, p.z, 1.0])
+        .collect();
+    let positions = storage_buffer(&ctx, "soup", bytemuck::cast_slice(&soup));
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 4,
+        vertices: (soup.len() / 4) as u32,
+        indices: None,
+    };
+    let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
+    refit.refit(&mut gpu).expect("refit");
+    assert_same(&refit, &gpu, &want, "unindexed");
+
+    // Back to the start: the vertices written again and refitted anew.
+    let start: Vec<f32> = triangles(&pos, &idx)
+        .iter()
+        .flatten()
+        .flat_map(|p| [p.x, p.y, p.z, 1.0])
+        .collect();
+    ctx.queue()
+        .write_buffer(&positions, 0, bytemuck::cast_slice(&start));
+    refit.refit(&mut gpu).expect("refit");
+    assert_same(&refit, &gpu, &tree, "moved back");
+}
+
+#[test]
+fn a_bad_vertex_is_refused_and_the_tree_kept() {
+    let Some(ctx) = context() else { return };
+    let (pos, idx) = grid(12);
+    let tree = FlatBvh::build(&triangles(&pos, &idx), &BuildOptions::default()).expect("build");
+    let mut gpu = upload(&ctx, &tree);
+    let mut after = moved(&pos);
+    let bad_vertex = idx[3 * 57 + 1] as usize;
+    after[bad_vertex].y = f32::NAN;
+    let packed: Vec<f32> = after.iter().flat_map(|p| p.to_array()).collect();
+    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
+    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 3,
+        vertices: pos.len() as u32,
+        indices: Some(&indices),
+    };
+    let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
+    let first_bad = idx
+        .chunks(3)
+        .position(|c| c.contains(&(bad_vertex as u32)))
+        .expect("used");
+    match refit.refit(&mut gpu) {
+        Err(GpuError::BadBuffer { problem, .. }) => {
+            assert!(
+                problem.contains(&format!("triangle {first_bad}:")),
+                "{problem}"
+            );
+            assert!(problem.contains("NaN"), "{problem}");
+        }
+        other => panic!("a NaN vertex was refitted: {other:?}"),
+    }
+    assert_same(&refit, &gpu, &tree, "after the refused refit");
+
+    // An index past the vertices.
+    let mut wrong = idx.clone();
+    wrong[3 * 30 + 2] = pos.len() as u32 + 5;
+    let indices = storage_buffer(&ctx, "wrong indices", bytemuck::cast_slice(&wrong));
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 3,
+        vertices: pos.len() as u32,
+        indices: Some(&indices),
+    };
+    match GpuRefit::new(&gpu, &tree, v)
+        .expect("prepare")
+        .refit(&mut gpu)
+    {
+        Err(GpuError::BadBuffer { problem, .. }) => {
+            assert!(problem.contains("out of range"), "{problem}")
+        }
+        other => panic!("an index out of range was refitted: {other:?}"),
+    }
+}
+
+#[test]
+fn uploads_it_cannot_refit_are_refused_by_name() {
+    let Some(ctx) = context() else { return };
+    let (pos, idx) = grid(6);
+    let tris = triangles(&pos, &idx);
+    let tree = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
+    let packed: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
+    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
+    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let v = RefitVertices {
+        positions: &positions,
+        stride: 3,
+        vertices: pos.len() as u32,
+        indices: Some(&indices),
+    };
+    let refused =
+        |gpu: &GpuBvh, tree: &FlatBvh, v: RefitVertices<'_>, what: &str| match GpuRefit::new(
+            gpu, tree, v,
+        ) {
+            Err(e) => assert!(e.to_string().contains(what), "{e}"),
+            Ok(_) => panic!("refit prepared; expected an error naming {what}"),
+        };
+    let textures = UploadOptions::all().with_storage(BvhStorage::Textures);
+    refused(
+        &GpuBvh::upload(&ctx, &tree, &textures).expect("upload"),
+        &tree,
+        v,
+        "textures",
+    );
+    let wide = UploadOptions::all()
+        .with_storage(BvhStorage::Buffers)
+        .with_traversal(Traversal::Wide);
+    refused(
+        &GpuBvh::upload(&ctx, &tree, &wide).expect("upload"),
+        &tree,
+        v,
+        "wide layout",
+    );
+    let gpu = upload(&ctx, &tree);
+    let other = FlatBvh::build(&tris[..20], &BuildOptions::default()).expect("build");
+    refused(&gpu, &other, v, "shape");
+    refused(&gpu, &tree, RefitVertices { stride: 2, ..v }, "stride");
+    refused(
+        &gpu,
+        &tree,
+        RefitVertices {
+            vertices: 1000,
+            ..v
+        },
+        "bytes for 1000 vertices",
+    );
+}
