@@ -346,6 +346,82 @@ pub struct Animation {
     pub(crate) instance_nodes: Vec<usize>,
     pub(crate) channels: Vec<Channel>,
     pub(crate) globals: Vec<Mat4>,
+    pub(crate) skins: Vec<Skin>,
+}
+
+/// A skinned instance (glTF skins, linear blend skinning): its own mesh's vertices are
+/// placed in the world by joints, `Σ weight * (joint_world * inverse_bind) * bind_position`,
+/// and its node's transform is ignored, as glTF 2.0 says.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Skin {
+    /// The instance it places (its mesh is its own).
+    pub(crate) instance: usize,
+    /// Each joint's node, an index into [`Animation::nodes`].
+    pub(crate) joints: Vec<usize>,
+    /// Each joint's inverse bind matrix.
+    pub(crate) inverse_bind: Vec<Mat4>,
+    /// Per vertex: four joints (indices into `joints`) and their weights.
+    pub(crate) vertex_joints: Vec<[u16; 4]>,
+    pub(crate) vertex_weights: Vec<[f32; 4]>,
+    /// The mesh's positions and normals (normals may be empty) as the file gives them.
+    pub(crate) bind_positions: Vec<Vec3>,
+    pub(crate) bind_normals: Vec<Vec3>,
+}
+
+impl Skin {
+    /// The instance it places.
+    pub fn instance(&self) -> usize {
+        self.instance
+    }
+
+    /// Number of joints.
+    pub fn joint_count(&self) -> usize {
+        self.joints.len()
+    }
+
+    /// Each joint's skinning matrix (`joint_world * inverse_bind`) for the nodes' world
+    /// transforms `world` ([`Animation::node_transforms_at`]), the global transform
+    /// `global` applied after.
+    pub fn joint_matrices(&self, world: &[Mat4], global: Mat4) -> Vec<Mat4> {
+        self.joints
+            .iter()
+            .zip(&self.inverse_bind)
+            .map(|(&j, ibm)| global * world.get(j).copied().unwrap_or(Mat4::IDENTITY) * *ibm)
+            .collect()
+    }
+
+    /// The skinned positions and normals for `matrices` ([`Skin::joint_matrices`]).
+    pub fn skinned(&self, matrices: &[Mat4]) -> (Vec<Vec3>, Vec<Vec3>) {
+        let blend = |v: usize| -> Mat4 {
+            let (js, ws) = (self.vertex_joints[v], self.vertex_weights[v]);
+            let mut m = Mat4::ZERO;
+            for k in 0..4 {
+                let j = js[k] as usize;
+                if ws[k] != 0.0 && j < matrices.len() {
+                    m += matrices[j] * ws[k];
+                }
+            }
+            m
+        };
+        let positions = (0..self.bind_positions.len())
+            .map(|v| blend(v).transform_point3(self.bind_positions[v]))
+            .collect();
+        let normals = (0..self.bind_normals.len())
+            .map(|v| {
+                let n = blend(v)
+                    .inverse()
+                    .transpose()
+                    .transform_vector3(self.bind_normals[v]);
+                let n = n.normalize_or_zero();
+                if n == Vec3::ZERO {
+                    self.bind_normals[v]
+                } else {
+                    n
+                }
+            })
+            .collect();
+        (positions, normals)
+    }
 }
 
 impl Animation {
@@ -372,6 +448,11 @@ impl Animation {
     /// The channels, in file order.
     pub fn channels(&self) -> &[Channel] {
         &self.channels
+    }
+
+    /// The skinned instances.
+    pub fn skins(&self) -> &[Skin] {
+        &self.skins
     }
 
     /// The product of the global transforms applied to the scene after loading (the
@@ -419,7 +500,29 @@ impl Animation {
 
     /// Each node's world transform at time `t` (before the global transform).
     pub fn node_transforms_at(&self, t: f32) -> Vec<Mat4> {
-        let mut world = self.local_transforms_at(t);
+        self.worlds(self.local_transforms_at(t))
+    }
+
+    /// Each node's world transform in the file's static pose (no channel applied).
+    pub fn static_node_transforms(&self) -> Vec<Mat4> {
+        let local = self
+            .nodes
+            .iter()
+            .map(|n| match n.local {
+                NodeTransform::Matrix(m) => m,
+                NodeTransform::Trs {
+                    translation,
+                    rotation,
+                    scale,
+                } => compose_trs(translation, Vec4::from(rotation), scale),
+            })
+            .collect();
+        self.worlds(local)
+    }
+
+    /// World transforms from local ones, parents before children.
+    fn worlds(&self, local: Vec<Mat4>) -> Vec<Mat4> {
+        let mut world = local;
         for i in 0..world.len() {
             if let Some(p) = self.nodes[i].parent.filter(|&p| p < i) {
                 world[i] = world[p] * world[i];
@@ -432,14 +535,36 @@ impl Animation {
 
     /// Each instance's object-to-world transform at time `t`, global transform included,
     /// in [`Animation::instance_nodes`] order.
+    /// A skinned instance's is the global transform alone: its joints place it.
     pub fn instance_transforms_at(&self, t: f32) -> Vec<Mat4> {
         let world = self.node_transforms_at(t);
-        self.instance_nodes
+        let mut out: Vec<Mat4> = self
+            .instance_nodes
             .iter()
             .map(|&n| {
                 let w = world.get(n).copied().unwrap_or(Mat4::IDENTITY);
                 self.globals.iter().fold(w, |acc, &m| m * acc)
             })
+            .collect();
+        for s in &self.skins {
+            if let Some(m) = out.get_mut(s.instance) {
+                *m = Mat4::IDENTITY;
+            }
+        }
+        out
+    }
+
+    /// Each skinned instance's positions and normals at time `t` ([`Skin::skinned`]),
+    /// in [`Animation::skins`] order; the global transform is in them.
+    pub fn skinned_at(&self, t: f32) -> Vec<(Vec<Vec3>, Vec<Vec3>)> {
+        if self.skins.is_empty() {
+            return Vec::new();
+        }
+        let world = self.node_transforms_at(t);
+        let global = self.global_transform();
+        self.skins
+            .iter()
+            .map(|s| s.skinned(&s.joint_matrices(&world, global)))
             .collect()
     }
 }

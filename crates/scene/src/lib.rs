@@ -53,7 +53,9 @@ use std::path::{Path, PathBuf};
 use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
-pub use animation::{Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property};
+pub use animation::{
+    Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property, Skin,
+};
 pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
@@ -414,6 +416,47 @@ impl Scene {
         let transforms = self.instance_transforms_at(t);
         for (inst, m) in self.instances.iter_mut().zip(transforms) {
             inst.transform = m;
+        }
+        self.apply_skins(t);
+    }
+
+    /// Writes each skinned instance's mesh at time `t` (its joints' pose; a NaN time is
+    /// the nodes' static pose, as loaded).
+    pub(crate) fn apply_skins(&mut self, t: f32) {
+        let Some(a) = self.live_animation() else {
+            return;
+        };
+        let skinned = if t.is_nan() {
+            let world = a.static_node_transforms();
+            let global = a.global_transform();
+            a.skins
+                .iter()
+                .map(|s| s.skinned(&s.joint_matrices(&world, global)))
+                .collect()
+        } else {
+            a.skinned_at(t)
+        };
+        let meshes: Vec<usize> = a
+            .skins
+            .iter()
+            .map(|s| {
+                self.instances
+                    .get(s.instance)
+                    .map_or(usize::MAX, |i| i.mesh)
+            })
+            .collect();
+        for (m, (positions, normals)) in meshes.into_iter().zip(skinned) {
+            if let Some(mesh) = self.meshes.get_mut(m) {
+                mesh.positions = positions;
+                if !mesh.normals.is_empty() {
+                    // The file's normals skinned, or (when it had none) made again.
+                    mesh.normals = if normals.len() == mesh.positions.len() {
+                        normals
+                    } else {
+                        vertex_normals(&mesh.positions, &mesh.indices)
+                    };
+                }
+            }
         }
     }
 

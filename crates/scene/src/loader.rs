@@ -19,7 +19,7 @@ use gltf::json::{
     mesh::Semantic, validation::Checked,
 };
 
-use crate::animation::{self, Animation, AnimationNode, Channel, NodeTransform};
+use crate::animation::{self, Animation, AnimationNode, Channel, NodeTransform, Skin};
 use crate::error::{ErrorKind, SceneError};
 use crate::{Camera, Instance, Material, Mesh, Scene, glb};
 
@@ -272,6 +272,20 @@ struct Vertices {
     normals: Option<Vec<Vec3>>,
     texcoords: Option<Vec<Vec2>>,
     colors: Option<Vec<Vec4>>,
+    /// JOINTS_0 and WEIGHTS_0, when the primitive has both.
+    skin: Option<SkinVertices>,
+}
+
+/// Per-vertex joints (indices into the skin's joints) and weights.
+type SkinVertices = (Vec<[u16; 4]>, Vec<[f32; 4]>);
+
+/// A skinned instance met in the walk: its skin (glTF index) and its mesh's skin data.
+struct PendingSkin {
+    instance: usize,
+    mesh: usize,
+    skin: usize,
+    node: usize,
+    vertices: SkinVertices,
 }
 
 /// The scene graph as the loader walked it (kept only when the file has animations).
@@ -331,6 +345,7 @@ struct Walk {
     skipped_cameras: usize,
     revisited: usize,
     skinned: usize,
+    skins: Vec<PendingSkin>,
     graph: Graph,
 }
 
@@ -879,11 +894,28 @@ impl<'a, 'b> Loader<'a, 'b> {
                 .map(|c| if c.is_finite() { c } else { Vec4::ONE })
                 .collect()
         });
+        let joints = self.optional::<4>(prim, Semantic::Joints(0), "JOINTS_0", nv, ctx)?;
+        let weights = self.optional::<4>(prim, Semantic::Weights(0), "WEIGHTS_0", nv, ctx)?;
+        let skin = joints.zip(weights).map(|(j, w)| {
+            let joints = j.into_iter().map(|q| q.map(|x| x as u16)).collect();
+            let weights = w
+                .into_iter()
+                .map(|w| {
+                    if w.iter().all(|x| x.is_finite()) {
+                        w
+                    } else {
+                        [0.0; 4]
+                    }
+                })
+                .collect();
+            (joints, weights)
+        });
         Ok(Vertices {
             positions,
             normals,
             texcoords,
             colors,
+            skin,
         })
     }
 
@@ -920,7 +952,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         mi: usize,
         default_material: &mut Option<u32>,
         materials: &mut Vec<Material>,
-    ) -> Result<Mesh, ErrorKind> {
+    ) -> Result<(Mesh, Option<SkinVertices>), ErrorKind> {
         let root = self.root;
         let mesh = root
             .meshes
@@ -955,6 +987,10 @@ impl<'a, 'b> Loader<'a, 'b> {
         let any_t = verts().any(|v| v.texcoords.is_some());
         let any_c = verts().any(|v| v.colors.is_some());
         let any_m = parts.iter().any(|p| p.material.is_some());
+        // Skin data only when every primitive's vertices have it.
+        let mut skin: Option<SkinVertices> = verts()
+            .all(|v| v.skin.is_some())
+            .then(|| (Vec::new(), Vec::new()));
         let mut out = Mesh {
             name: mesh.name.clone().unwrap_or_default(),
             positions: Vec::with_capacity(nv),
@@ -989,6 +1025,10 @@ impl<'a, 'b> Loader<'a, 'b> {
                             None => out.colors.extend(std::iter::repeat_n(Vec4::ONE, n)),
                         }
                     }
+                    if let (Some((js, ws)), Some((j, w))) = (skin.as_mut(), v.skin) {
+                        js.extend(j);
+                        ws.extend(w);
+                    }
                     if out.positions.is_empty() {
                         out.positions = v.positions;
                     } else {
@@ -1008,7 +1048,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                     .extend(p.tris.iter().map(|t| t.map(|i| i + base)));
             }
         }
-        Ok(out)
+        Ok((out, skin))
     }
 
     fn node_matrix(node: &json::Node) -> Result<Mat4, String> {
@@ -1047,7 +1087,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         let roots = self.root_nodes()?;
         // With animations, the walk is recorded: each visited node (parent links and
         // static transform) and the node of each instance.
-        let track = !root.animations.is_empty();
+        let track = !root.animations.is_empty() || !root.skins.is_empty();
         self.walk_nodes(&mut walk, &roots, track)?;
         if root.nodes.is_empty() && !root.meshes.is_empty() {
             self.place_meshes_once(&mut walk)?;
@@ -1056,7 +1096,9 @@ impl<'a, 'b> Loader<'a, 'b> {
         self.warn_missing_images(base_dir);
         let animation = if track {
             let n = walk.instances.len();
-            self.load_animations(walk.graph)?
+            let skins =
+                self.load_skins(&walk.graph, std::mem::take(&mut walk.skins), &walk.meshes)?;
+            self.load_animations(walk.graph, skins)?
                 .filter(|a| a.instance_nodes.len() == n)
         } else {
             None
@@ -1080,6 +1122,8 @@ impl<'a, 'b> Loader<'a, 'b> {
             )));
         }
         scene.unify_attributes();
+        // Skinned meshes in the joints' static pose.
+        scene.apply_skins(f32::NAN);
         if let Some((world, fov)) = walk.camera_at {
             place_camera(&mut scene, world, fov);
         }
@@ -1205,13 +1249,26 @@ impl<'a, 'b> Loader<'a, 'b> {
                 "node {ni} refers to mesh {m}, which does not exist"
             ))
         })?;
-        let id = match *slot {
-            Some(id) => id,
-            None => {
-                let mesh = self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
+        // A skinned instance gets a mesh of its own: its joints rewrite the positions.
+        let skinned = node.skin.map(|s| s.value());
+        let id = match (*slot, skinned) {
+            (Some(id), None) => id,
+            _ => {
+                let (mesh, skin) =
+                    self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
                 walk.meshes.push(mesh);
                 let id = walk.meshes.len() - 1;
-                walk.mesh_map[m] = Some(id);
+                match (skinned, skin) {
+                    (None, _) => walk.mesh_map[m] = Some(id),
+                    (Some(skin), Some(vertices)) if rec.is_some() => walk.skins.push(PendingSkin {
+                        instance: walk.instances.len(),
+                        mesh: id,
+                        skin,
+                        node: ni,
+                        vertices,
+                    }),
+                    (Some(_), _) => walk.skinned += 1,
+                }
                 id
             }
         };
@@ -1220,9 +1277,6 @@ impl<'a, 'b> Loader<'a, 'b> {
             transform: world,
         });
         walk.graph.instance_nodes.extend(rec);
-        if node.skin.is_some() {
-            walk.skinned += 1;
-        }
         Ok(())
     }
 
@@ -1257,7 +1311,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         self.warnings
             .push("the file has no nodes: each mesh is placed once, untransformed".into());
         for m in 0..self.root.meshes.len() {
-            let mesh = self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
+            let (mesh, _) = self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
             walk.meshes.push(mesh);
             walk.instances.push(Instance {
                 mesh: walk.meshes.len() - 1,
@@ -1278,7 +1332,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         }
         if skinned > 0 {
             self.warnings.push(format!(
-                "{skinned} skinned mesh instance(s) are placed by their node transform (skins are not applied)"
+                "{skinned} skinned mesh instance(s) without JOINTS_0 and WEIGHTS_0 on every primitive are placed by their node transform"
             ));
         }
         if skipped_cameras > 0 {
@@ -1288,11 +1342,89 @@ impl<'a, 'b> Loader<'a, 'b> {
         }
     }
 
+    /// The skins of the skinned instances met in the walk: joints as nodes of `graph`, the
+    /// inverse bind matrices (identity when the file has none). A skin whose joint is
+    /// outside the loaded scene graph, or a vertex naming a joint it lacks, is an error
+    /// naming the skin.
+    fn load_skins(
+        &mut self,
+        graph: &Graph,
+        pending: Vec<PendingSkin>,
+        meshes: &[Mesh],
+    ) -> Result<Vec<Skin>, ErrorKind> {
+        let root = self.root;
+        let mut out = Vec::new();
+        for p in pending {
+            let bad =
+                |reason: String| invalid(format!("skin {} (node {}): {reason}", p.skin, p.node));
+            let skin = root
+                .skins
+                .get(p.skin)
+                .ok_or_else(|| bad("does not exist".into()))?;
+            let joints =
+                skin.joints
+                    .iter()
+                    .map(|j| {
+                        graph.record_of.get(&j.value()).copied().ok_or_else(|| {
+                            bad(format!("joint node {} is not in the scene", j.value()))
+                        })
+                    })
+                    .collect::<Result<Vec<usize>, _>>()?;
+            let inverse_bind = match skin.inverse_bind_matrices {
+                None => vec![Mat4::IDENTITY; joints.len()],
+                Some(ai) => {
+                    let m = self
+                        .read_floats::<16>(ai.value(), "inverse bind matrices")
+                        .map_err(|e| bad(e.to_string()))?;
+                    if m.len() != joints.len() || m.iter().flatten().any(|x| !x.is_finite()) {
+                        return Err(bad(format!(
+                            "{} inverse bind matrices (finite) for {} joints",
+                            m.len(),
+                            joints.len()
+                        )));
+                    }
+                    m.iter().map(Mat4::from_cols_array).collect()
+                }
+            };
+            let (vertex_joints, vertex_weights) = p.vertices;
+            if let Some(v) = vertex_joints
+                .iter()
+                .zip(&vertex_weights)
+                .position(|(j, w)| {
+                    j.iter()
+                        .zip(w)
+                        .any(|(&j, &w)| w != 0.0 && j as usize >= joints.len())
+                })
+            {
+                return Err(bad(format!(
+                    "vertex {v} names joint {:?}, the skin has {}",
+                    vertex_joints[v],
+                    joints.len()
+                )));
+            }
+            let mesh = &meshes[p.mesh];
+            out.push(Skin {
+                instance: p.instance,
+                joints,
+                inverse_bind,
+                vertex_joints,
+                vertex_weights,
+                bind_positions: mesh.positions.clone(),
+                bind_normals: mesh.normals.clone(),
+            });
+        }
+        Ok(out)
+    }
+
     /// Reads the file's animations: the channels that drive the translation, rotation or
     /// scale of a node in `graph`. Channels on other nodes are dropped silently; morph
     /// target weights, unknown paths and nodes with a `matrix` with a warning. `None`
     /// when no channel is left.
-    fn load_animations(&mut self, graph: Graph) -> Result<Option<Animation>, ErrorKind> {
+    fn load_animations(
+        &mut self,
+        graph: Graph,
+        skins: Vec<Skin>,
+    ) -> Result<Option<Animation>, ErrorKind> {
         use json::animation::{Interpolation as I, Property as P};
         let root = self.root;
         let mut channels = Vec::new();
@@ -1398,7 +1530,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                 "{on_matrix} animation channel(s) ignored: they target nodes with a matrix, which glTF 2.0 does not allow to animate"
             ));
         }
-        if channels.is_empty() {
+        if channels.is_empty() && skins.is_empty() {
             return Ok(None);
         }
         Ok(Some(Animation {
@@ -1406,6 +1538,7 @@ impl<'a, 'b> Loader<'a, 'b> {
             instance_nodes: graph.instance_nodes,
             channels,
             globals: Vec::new(),
+            skins,
         }))
     }
 

@@ -1114,3 +1114,40 @@ fn channel_new_checks_its_input() {
     assert_eq!(c.values()[0], Vec4::from(q));
     assert_eq!(c.values()[1], Vec4::W);
 }
+
+/// `scenes/skinned.gltf`: the skin's static pose is the file's positions, the top of the
+/// tube follows its joint chain at `t = 1` as the glTF formula gives it, the skinned
+/// instance is not moved by its node, and the unskinned ground stays put.
+#[test]
+fn skins_place_vertices_by_their_joints() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/skinned.gltf");
+    let mut scene = bvhtrace_scene::load(path).expect("loads");
+    assert!(scene.warnings.is_empty(), "{:?}", scene.warnings);
+    let anim = scene.animation.clone().expect("animated");
+    assert_eq!(anim.skins().len(), 1);
+    let skin = &anim.skins()[0];
+    assert_eq!(skin.joint_count(), 2);
+    let tube = scene.instances[skin.instance()].mesh;
+    // The top cap's centre, weighted fully to the second joint, last of the 210 vertices.
+    let top = |s: &bvhtrace_scene::Scene| s.meshes[tube].positions[209];
+    assert!(
+        (top(&scene) - Vec3::new(0.0, 2.0, 0.0)).length() < 1e-6,
+        "{}",
+        top(&scene)
+    );
+    let ground_before = scene.meshes[1 - tube].positions.clone();
+    scene.set_time(1.0);
+    assert_eq!(scene.instances[skin.instance()].transform, Mat4::IDENTITY);
+    // root: 90 degrees about +Y; mid joint at (0, 1, 0) under it, 70 degrees about +Z.
+    let (s, c) = 70f32.to_radians().sin_cos();
+    let bent = Quat::from_rotation_y(FRAC_PI_2) * Vec3::new(-s, 1.0 + c, 0.0);
+    assert!(
+        (top(&scene) - bent).length() < 1e-5,
+        "{} vs {bent}",
+        top(&scene)
+    );
+    assert_eq!(scene.meshes[1 - tube].positions, ground_before);
+    // Back to the start: the bind pose again.
+    scene.set_time(0.0);
+    assert!((top(&scene) - Vec3::new(0.0, 2.0, 0.0)).length() < 1e-6);
+}
