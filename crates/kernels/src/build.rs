@@ -13,6 +13,30 @@ const BUILD_LBVH_WGSL: &str = include_str!("../shaders/build_lbvh.wgsl");
 const BUILD_PLOC_WGSL: &str = include_str!("../shaders/build_ploc.wgsl");
 /// `refit.wgsl`.
 const REFIT_WGSL: &str = include_str!("../shaders/refit.wgsl");
+/// `skin.wgsl`.
+const SKIN_WGSL: &str = include_str!("../shaders/skin.wgsl");
+
+/// The skinning step (`skin.wgsl`) and its bindings.
+pub const SKIN_STEP: Step = ("skin_vertices", &[0, 1, 2, 3, 4, 5]);
+
+/// The uniform block of the skinning dispatch (`SkinParams` in `skin.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct SkinParams {
+    /// Vertices.
+    pub vertices: u32,
+    /// Joints.
+    pub joints: u32,
+    /// Invocations per row of the dispatch grid.
+    pub row: u32,
+    /// Padding to 16 bytes.
+    pub pad: u32,
+}
+
+/// The skinning module: `skin.wgsl` alone.
+pub fn skin_source() -> String {
+    SKIN_WGSL.to_string()
+}
 
 /// A builder step: its entry point and the bindings of group 0 it uses.
 pub type Step = (&'static str, &'static [u32]);
@@ -174,6 +198,11 @@ mod tests {
         let source = ploc_source();
         check_steps(&source, &MORTON_STEPS);
         check_steps(&source, &PLOC_STEPS);
+    }
+
+    #[test]
+    fn the_skin_module_validates_and_lists_its_bindings() {
+        check_steps(&skin_source(), &[SKIN_STEP]);
     }
 
     #[test]

@@ -405,6 +405,23 @@ fn the_refit_params_match_rust_layout() {
 }
 
 #[test]
+fn the_skin_params_match_rust_layout() {
+    use bvhtrace_kernels::build::{SkinParams, skin_source};
+    let module = parse(&skin_source());
+    check_struct(
+        &module,
+        "SkinParams",
+        size_of::<SkinParams>(),
+        &[
+            ("vertices", offset_of!(SkinParams, vertices)),
+            ("joints", offset_of!(SkinParams, joints)),
+            ("row", offset_of!(SkinParams, row)),
+            ("pad", offset_of!(SkinParams, pad)),
+        ],
+    );
+}
+
+#[test]
 fn every_file_is_composed_and_the_library_rebinds_its_group() {
     for storage in STORAGES {
         check_library(storage);

@@ -368,7 +368,41 @@ pub struct Skin {
     pub(crate) bind_normals: Vec<Vec3>,
 }
 
+/// One vertex skinned, operation for operation as `shaders/skin.wgsl` does it on the
+/// device (`GpuSkin` in bvhtrace-gpu): the blended matrix `Σ w_k M_{j_k}`, element by
+/// element, weights in order (zero weights and joints out of range skipped), then each
+/// coordinate `((m0 x + m1 y) + m2 z) + m3` over the matrix's columns.
+pub fn skin_vertex(matrices: &[Mat4], joints: [u16; 4], weights: [f32; 4], p: Vec3) -> Vec3 {
+    let mut m = [0f32; 16];
+    for k in 0..4 {
+        let j = joints[k] as usize;
+        if weights[k] != 0.0 && j < matrices.len() {
+            let src = matrices[j].to_cols_array();
+            for (e, s) in m.iter_mut().zip(src) {
+                *e += s * weights[k];
+            }
+        }
+    }
+    let r = |c: usize| ((m[c] * p.x + m[4 + c] * p.y) + m[8 + c] * p.z) + m[12 + c];
+    Vec3::new(r(0), r(1), r(2))
+}
+
 impl Skin {
+    /// The mesh's positions as the file gives them (the bind pose).
+    pub fn bind_positions(&self) -> &[Vec3] {
+        &self.bind_positions
+    }
+
+    /// Per vertex, four joints (indices into the skin's joints).
+    pub fn vertex_joints(&self) -> &[[u16; 4]] {
+        &self.vertex_joints
+    }
+
+    /// Per vertex, the four joints' weights.
+    pub fn vertex_weights(&self) -> &[[f32; 4]] {
+        &self.vertex_weights
+    }
+
     /// The instance it places.
     pub fn instance(&self) -> usize {
         self.instance
@@ -404,7 +438,10 @@ impl Skin {
             m
         };
         let positions = (0..self.bind_positions.len())
-            .map(|v| blend(v).transform_point3(self.bind_positions[v]))
+            .map(|v| {
+                let (j, w) = (self.vertex_joints[v], self.vertex_weights[v]);
+                skin_vertex(matrices, j, w, self.bind_positions[v])
+            })
             .collect();
         let normals = (0..self.bind_normals.len())
             .map(|v| {

@@ -54,7 +54,7 @@ use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
 pub use animation::{
-    Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property, Skin,
+    Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property, Skin, skin_vertex,
 };
 pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;

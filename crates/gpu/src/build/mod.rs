@@ -18,8 +18,10 @@
 
 mod ploc;
 mod refit;
+mod skin;
 
 pub use refit::{GpuRefit, RefitTimes, RefitVertices};
+pub use skin::GpuSkin;
 
 use std::time::Instant;
 
