@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Writes scenes/skinned.gltf: a capped tube on two joints (linear blend skinning) that
-bends and turns over one second, over a ground quad, with a camera. Run from the
+bends and turns over one second, over a ground of two placements of one quad (so the
+scene is traced in two levels), with a camera. Run from the
 repository root: python3 scenes/skinned.py"""
 import base64, json, math, struct
 
@@ -28,7 +29,7 @@ for y, ring, w_mid, flip in ((0.0, 0, 0.0, True), (HEIGHT, R, 1.0, False)):
     for s in range(S):
         a, b = ring * S + s, ring * S + (s + 1) % S
         idx += [centre, a, b] if flip else [centre, b, a]
-ground = [(-2.0, -0.01, -2.0), (2.0, -0.01, -2.0), (2.0, -0.01, 2.0), (-2.0, -0.01, 2.0)]
+ground = [(-1.0, -0.01, -2.0), (1.0, -0.01, -2.0), (1.0, -0.01, 2.0), (-1.0, -0.01, 2.0)]
 ground_idx = [0, 2, 1, 0, 3, 2]
 
 def rot(axis, deg):
@@ -78,13 +79,14 @@ a_root = add(flat(root_rot), "f", 3, "VEC4", 5126)
 gltf = {
     "asset": {"version": "2.0", "generator": "bvhtrace scenes/skinned.py"},
     "scene": 0,
-    "scenes": [{"nodes": [0, 1, 3, 4]}],
+    "scenes": [{"nodes": [0, 1, 3, 4, 5]}],
     "nodes": [
         {"name": "tube", "mesh": 0, "skin": 0},
         {"name": "root joint", "children": [2]},
         {"name": "mid joint", "translation": [0.0, 1.0, 0.0]},
         {"name": "camera", "camera": 0, "translation": [0.0, 1.2, 5.0]},
-        {"name": "ground", "mesh": 1},
+        {"name": "ground left", "mesh": 1, "translation": [-1.0, 0.0, 0.0]},
+        {"name": "ground right", "mesh": 1, "translation": [1.0, 0.0, 0.0]},
     ],
     "meshes": [
         {"name": "tube", "primitives": [{"attributes": {"POSITION": a_pos, "JOINTS_0": a_joints, "WEIGHTS_0": a_weights}, "indices": a_idx}]},
@@ -106,4 +108,4 @@ gltf = {
 with open("scenes/skinned.gltf", "w") as f:
     json.dump(gltf, f, indent=1)
     f.write("\n")
-print(f"scenes/skinned.gltf: {len(idx) // 3} + 2 triangles, {len(pos)} skinned vertices")
+print(f"scenes/skinned.gltf: {len(idx) // 3} + 2 x 2 triangles, {len(pos)} skinned vertices")

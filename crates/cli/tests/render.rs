@@ -376,7 +376,8 @@ fn skinned_scenes_bend_with_time_alike_on_gpu_and_cpu() {
     let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/skinned.gltf");
     let (a, img_a) = render_json("skinned-0", &[scene, "--time", "0"]);
     let (b, img_b) = render_json("skinned-1", &[scene, "--time", "1"]);
-    assert_eq!(a["triangles"], 418);
+    assert_eq!(a["triangles"], 420);
+    assert_eq!(a["form"], "two-level");
     assert_ne!(
         img_a, img_b,
         "the skin did not move between t = 0 and t = 1"

@@ -13,8 +13,9 @@ use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 use web_time::Instant;
 
 use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
+use bvhtrace_core::instance::REFIT_REBUILD_ADVISED;
 use bvhtrace_core::{
-    BuildOptions, BvhStats, FlatBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
+    BuildOptions, BvhStats, FlatBvh, InstancedBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
 use bvhtrace_gpu::kernels::check_depth;
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
@@ -103,7 +104,7 @@ impl SceneData {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseTimes {
     /// True when only the top level was rebuilt (two levels); false when the whole
-    /// flattened BVH was.
+    /// flattened BVH was, or skinned meshes were refitted too.
     pub top_level: bool,
     /// Computing the poses and rebuilding the BVH (the top level, or all of a flattened
     /// one), milliseconds.
@@ -113,6 +114,47 @@ pub struct PoseTimes {
     pub upload_ms: f64,
     /// True when the device copy was replaced by a new upload rather than updated in place.
     pub reuploaded: bool,
+}
+
+/// Refits each skinned mesh of `ib` to `scene`'s pose at `t`, rebuilding it instead past
+/// [`REFIT_REBUILD_ADVISED`] (the refit's rule; a rebuild changes the layout's shape):
+/// `None` without skins, else whether a mesh was rebuilt.
+fn pose_skins(
+    ib: &mut InstancedBvh,
+    scene: &Scene,
+    t: f32,
+    opts: &BuildOptions,
+) -> Result<Option<bool>, String> {
+    let skinned: Vec<usize> = match &scene.animation {
+        Some(a) if !a.skins().is_empty() => a.skins().iter().map(|s| s.instance()).collect(),
+        _ => return Ok(None),
+    };
+    let mut posed = scene.clone();
+    posed.set_time(t);
+    let mut rebuilt = false;
+    for s in skinned {
+        let Some(m) = ib.instances().iter().find(|i| i.user_id as usize == s) else {
+            continue;
+        };
+        let m = m.mesh as usize;
+        let bad = |e: String| format!("the skin of instance {s} at t = {t} s: {e}");
+        let tris = posed
+            .instances
+            .get(s)
+            .and_then(|i| posed.meshes.get(i.mesh))
+            .ok_or_else(|| bad("its mesh is gone".into()))?
+            .triangle_mesh()
+            .triangles()
+            .map_err(|e| bad(e.to_string()))?;
+        ib.refit_mesh(m, &tris).map_err(|e| bad(e.to_string()))?;
+        if ib.refit_quality(m) > REFIT_REBUILD_ADVISED {
+            *ib = ib
+                .rebuild_mesh(m, &tris, opts)
+                .map_err(|e| bad(e.to_string()))?;
+            rebuilt = true;
+        }
+    }
+    Ok(Some(rebuilt))
 }
 
 /// A built (and, when a device is there, uploaded) BVH, with the two tracers over it.
@@ -198,15 +240,37 @@ impl BuiltBvh {
                         m.map_or(i.transform, Affine3A::from_mat4)
                     })
                     .collect();
-                ib.set_transforms(&transforms)
+                let has_skins = scene
+                    .animation
+                    .as_ref()
+                    .is_some_and(|a| !a.skins().is_empty());
+                // With skins, posed on a copy: a refused skin leaves the geometry as it was
+                // (`set_transforms` alone refuses before it changes anything).
+                let mut copy = has_skins.then(|| ib.clone());
+                let posed = copy.as_mut().unwrap_or(ib);
+                posed
+                    .set_transforms(&transforms)
                     .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
-                times.top_level = true;
+                let skinned = pose_skins(posed, scene, t, &self.options)?;
+                if let Some(c) = copy {
+                    *ib = c;
+                }
+                times.top_level = skinned.is_none();
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
-                if let Ok(g) = &mut self.gpu
-                    && let Err(e) = Arc::get_mut(g).ok_or_else(busy)?.update(ib.bvh())
-                {
-                    self.gpu_failure = Some(format!("updating the top level failed: {e}"));
+                if let Ok(shared) = &mut self.gpu {
+                    let g = Arc::get_mut(shared).ok_or_else(busy)?;
+                    let written = match g.update(ib.bvh()) {
+                        // A skinned mesh rebuilt: another shape, a new upload.
+                        Err(TraceError::BadBuffer { .. }) if skinned == Some(true) => {
+                            times.reuploaded = true;
+                            upload(self.context.as_ref(), ib.bvh()).map(|fresh| *shared = fresh)
+                        }
+                        other => other,
+                    };
+                    if let Err(e) = written {
+                        self.gpu_failure = Some(format!("updating the upload failed: {e}"));
+                    }
                 }
                 times.upload_ms = t1.elapsed().as_secs_f64() * 1e3;
             }
@@ -758,6 +822,29 @@ mod animation_tests {
         }
 
         // Back to 0: the first image again.
+        built.pose(&scene.scene, 0.0).expect("poses");
+        assert_eq!(hits(&scene, &mut built), at0);
+    }
+
+    /// A skinned mesh in two levels (`scenes/skinned.gltf`) follows its joints: posed at
+    /// t = 0.75 it is refitted (not only the top level) and traces as a fresh build at that
+    /// time, and back at 0 as the first build.
+    #[test]
+    fn a_pose_refits_skinned_meshes() {
+        let spec = format!("{}/../../scenes/skinned.gltf", env!("CARGO_MANIFEST_DIR"));
+        let JobOutput {
+            scene, mut built, ..
+        } = built(&spec, 0.0);
+        assert!(built.geometry.is_two_level());
+        let at0 = hits(&scene, &mut built);
+        let times = built.pose(&scene.scene, 0.75).expect("poses");
+        assert!(!times.top_level, "the skinned mesh was not refitted");
+        let at1 = hits(&scene, &mut built);
+        assert_ne!(at0, at1, "the skin moved nothing the camera sees");
+        let JobOutput {
+            built: mut fresh, ..
+        } = super::animation_tests::built(&spec, 0.75);
+        assert_eq!(hits(&scene, &mut fresh), at1);
         built.pose(&scene.scene, 0.0).expect("poses");
         assert_eq!(hits(&scene, &mut built), at0);
     }
