@@ -90,6 +90,15 @@ fn storage_buffer(ctx: &GpuContext, label: &str, bytes: &[u8]) -> wgpu::Buffer {
         })
 }
 
+/// `pos` packed `xyz` and `idx`, as storage buffers.
+fn indexed(ctx: &GpuContext, pos: &[Vec3], idx: &[u32]) -> (wgpu::Buffer, wgpu::Buffer) {
+    let packed: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
+    (
+        storage_buffer(ctx, "positions", bytemuck::cast_slice(&packed)),
+        storage_buffer(ctx, "indices", bytemuck::cast_slice(idx)),
+    )
+}
+
 fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> GpuBvh {
     let opts = UploadOptions::all().with_storage(BvhStorage::Buffers);
     GpuBvh::upload(ctx, bvh, &opts).expect("upload")
@@ -132,9 +141,7 @@ fn a_device_refit_equals_the_cpu_refit() {
 
     // Indexed, packed xyz.
     let mut gpu = upload(&ctx, &tree);
-    let packed: Vec<f32> = after.iter().flat_map(|p| p.to_array()).collect();
-    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
-    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let (positions, indices) = indexed(&ctx, &after, &idx);
     let v = RefitVertices {
         positions: &positions,
         stride: 3,
@@ -185,9 +192,7 @@ fn a_bad_vertex_is_refused_and_the_tree_kept() {
     let mut after = moved(&pos);
     let bad_vertex = idx[3 * 57 + 1] as usize;
     after[bad_vertex].y = f32::NAN;
-    let packed: Vec<f32> = after.iter().flat_map(|p| p.to_array()).collect();
-    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
-    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let (positions, indices) = indexed(&ctx, &after, &idx);
     let v = RefitVertices {
         positions: &positions,
         stride: 3,
@@ -238,9 +243,7 @@ fn uploads_it_cannot_refit_are_refused_by_name() {
     let (pos, idx) = grid(6);
     let tris = triangles(&pos, &idx);
     let tree = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
-    let packed: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
-    let positions = storage_buffer(&ctx, "positions", bytemuck::cast_slice(&packed));
-    let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+    let (positions, indices) = indexed(&ctx, &pos, &idx);
     let v = RefitVertices {
         positions: &positions,
         stride: 3,

@@ -62,30 +62,16 @@ impl GpuSkin {
         };
         use wgpu::BufferUsages as U;
         let wide: Vec<[u32; 4]> = vertex_joints.iter().map(|j| j.map(u32::from)).collect();
+        let storage = |label, bytes: &[u8]| init(device, label, bytes, U::STORAGE);
         let params = init(
             device,
             "skin params",
             bytemuck::bytes_of(&params),
             U::UNIFORM,
         );
-        let bind = init(
-            device,
-            "skin bind pose",
-            bytemuck::cast_slice(bind),
-            U::STORAGE,
-        );
-        let js = init(
-            device,
-            "skin joints",
-            bytemuck::cast_slice(&wide),
-            U::STORAGE,
-        );
-        let ws = init(
-            device,
-            "skin weights",
-            bytemuck::cast_slice(vertex_weights),
-            U::STORAGE,
-        );
+        let bind = storage("skin bind pose", bytemuck::cast_slice(bind));
+        let js = storage("skin joints", bytemuck::cast_slice(&wide));
+        let ws = storage("skin weights", bytemuck::cast_slice(vertex_weights));
         let matrices = empty(
             device,
             "skin matrices",
