@@ -4,7 +4,8 @@
 // `refit_check` (every input triangle's corners readable and finite, else the whole refit
 // writes nothing), `refit_corners` (each leaf slot's corners from its input triangle), then
 // `refit_boxes` once per level, leaves first, then the interior nodes deepest first: a
-// node's children are refitted by an earlier dispatch, so no atomics order the work.
+// node's children are refitted by an earlier dispatch, so no atomics order the work. A BVH
+// in textures adds `refit_node_texels_step` (below) before the host's copies.
 
 struct RefitParams {
     // This dispatch's nodes: `refit_order[first .. first + count]` (`refit_boxes`).
@@ -116,4 +117,23 @@ fn refit_boxes(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     refit_nodes[i].min = lo;
     refit_nodes[i].max = hi;
+}
+
+// A BVH in textures (`BvhStorage::Textures`) keeps each node as two texels,
+// `(min.xyz, max.x)` and `(max.yz, right_or_first, meta)` (`bvh_textures.wgsl`): this step
+// writes them from `refit_nodes` for the copy over the node texture. It runs whatever the
+// check found, so a refused refit copies the nodes as they were.
+@group(0) @binding(7) var<storage, read_write> refit_node_texels: array<vec4<u32>>;
+
+@compute @workgroup_size(256)
+fn refit_node_texels_step(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = refit_invocation(gid);
+    if (i >= refit_params.count) {
+        return;
+    }
+    let n = refit_nodes[i];
+    let lo = bitcast<vec3<u32>>(n.min);
+    let hi = bitcast<vec3<u32>>(n.max);
+    refit_node_texels[2u * i] = vec4<u32>(lo, hi.x);
+    refit_node_texels[2u * i + 1u] = vec4<u32>(hi.y, hi.z, n.right_or_first, n.meta_bits);
 }

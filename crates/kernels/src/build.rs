@@ -95,11 +95,12 @@ pub struct RefitParams {
 }
 
 /// The device refit's steps (`refit.wgsl`), in the order they run: the check, the
-/// corners, then the boxes once per level.
-pub const REFIT_STEPS: [Step; 3] = [
+/// corners, the boxes once per level, and for a BVH in textures the nodes as texels.
+pub const REFIT_STEPS: [Step; 4] = [
     ("refit_check", &[0, 4, 5, 6]),
     ("refit_corners", &[0, 2, 4, 5, 6]),
     ("refit_boxes", &[0, 1, 2, 3, 6]),
+    ("refit_node_texels_step", &[0, 1, 7]),
 ];
 
 /// The most storage buffers any builder step binds: a device needs this many per stage.

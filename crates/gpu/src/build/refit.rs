@@ -48,9 +48,10 @@ pub struct RefitTimes {
 }
 
 /// A refit of one uploaded one-mesh BVH from one set of vertex buffers, prepared once and
-/// run each time the vertices move. The BVH must be uploaded in
-/// [`BvhStorage::Buffers`] without the wide layout (whose compressed boxes are collapsed
-/// on the CPU: refit there, [`FlatBvh::refit`], and update).
+/// run each time the vertices move. The BVH may be in buffers (refitted in place) or in
+/// textures (refitted in buffers of the refit's own, then copied over them), without the
+/// wide layout (whose compressed boxes are collapsed on the CPU: refit there,
+/// [`FlatBvh::refit`], and update).
 #[derive(Debug)]
 pub struct GpuRefit {
     ctx: GpuContext,
@@ -59,9 +60,13 @@ pub struct GpuRefit {
     dispatches: Vec<(usize, wgpu::BindGroup, (u32, u32))>,
     status: wgpu::Buffer,
     status_read: wgpu::Buffer,
-    /// The uploaded nodes and triangles, and the tree's depth, for the host copy.
+    /// The nodes and triangles the refit writes (the upload's, or its own when the upload
+    /// is in textures), and the tree's depth, for the host copy.
     nodes: wgpu::Buffer,
     triangles: wgpu::Buffer,
+    /// For an upload in textures: the nodes as texels, and the node and triangle
+    /// textures they and `triangles` are copied over after each refit.
+    textures: Option<(wgpu::Buffer, (wgpu::Texture, wgpu::Texture))>,
     counts: (u64, u64),
     depth: u32,
 }
@@ -94,6 +99,97 @@ fn levels(nodes: &[FlatNode]) -> (Vec<u32>, Vec<u32>) {
     (order, runs)
 }
 
+/// The node and triangle buffers a refit of `bvh` (uploaded from `tree`) writes: the
+/// upload's own in buffers; in textures, buffers of the refit's own holding `tree`, with
+/// the textures they are copied over.
+#[allow(clippy::type_complexity)]
+fn target_arrays(
+    ctx: &GpuContext,
+    bvh: &GpuBvh,
+    tree: &FlatBvh,
+) -> Result<
+    (
+        wgpu::Buffer,
+        wgpu::Buffer,
+        Option<(wgpu::Texture, wgpu::Texture)>,
+    ),
+    GpuError,
+> {
+    let arrays = bvh.engine().arrays();
+    let missing = || unsupported("an upload without its binary layout");
+    match bvh.engine().storage() {
+        BvhStorage::Buffers => {
+            let n = arrays.buffer(ArrayRole::Nodes).ok_or_else(missing)?;
+            let t = arrays.buffer(ArrayRole::Triangles).ok_or_else(missing)?;
+            Ok((n.clone(), t.clone(), None))
+        }
+        BvhStorage::Textures => {
+            let n = arrays.texture(ArrayRole::Nodes).ok_or_else(missing)?;
+            let t = arrays.texture(ArrayRole::Triangles).ok_or_else(missing)?;
+            let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+            let device = ctx.device();
+            Ok((
+                init(
+                    device,
+                    "refit nodes",
+                    bytemuck::cast_slice(tree.nodes()),
+                    usage,
+                ),
+                init(
+                    device,
+                    "refit triangles",
+                    bytemuck::cast_slice(tree.triangles()),
+                    usage,
+                ),
+                Some((n.clone(), t.clone())),
+            ))
+        }
+    }
+}
+
+/// Copies `texels` 16-byte texels of `buffer` over `texture` from its first texel: the
+/// whole rows, then what is left in one row.
+fn copy_texels(
+    enc: &mut wgpu::CommandEncoder,
+    buffer: &wgpu::Buffer,
+    texture: &wgpu::Texture,
+    texels: u64,
+) {
+    let width = u64::from(texture.width());
+    let (full, rest) = (texels / width, texels % width);
+    for (y, rows, w) in [(0, full, width), (full, u64::from(rest > 0), rest)] {
+        if rows == 0 {
+            continue;
+        }
+        enc.copy_buffer_to_texture(
+            wgpu::TexelCopyBufferInfo {
+                buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: y * width * 16,
+                    // Needed (and then 256-aligned: rows are TEXEL_ROW wide) past one row.
+                    bytes_per_row: (rows > 1).then_some((width * 16) as u32),
+                    rows_per_image: None,
+                },
+            },
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d {
+                    x: 0,
+                    y: y as u32,
+                    z: 0,
+                },
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::Extent3d {
+                width: w as u32,
+                height: rows as u32,
+                depth_or_array_layers: 1,
+            },
+        );
+    }
+}
+
 fn unsupported(what: &str) -> GpuError {
     GpuError::Unsupported {
         backend: "wgpu",
@@ -112,11 +208,6 @@ fn check(bvh: &GpuBvh, tree: &FlatBvh, v: &RefitVertices<'_>) -> Result<(), GpuE
     if engine.has_wide() {
         return Err(unsupported(
             "the wide layout (upload without Traversal::Wide, or refit on the CPU: FlatBvh::refit)",
-        ));
-    }
-    if engine.storage() != BvhStorage::Buffers {
-        return Err(unsupported(
-            "a BVH in textures (upload with BvhStorage::Buffers)",
         ));
     }
     check_update_shape(engine.tree().shape, tree)?;
@@ -160,13 +251,7 @@ impl GpuRefit {
     pub fn new(bvh: &GpuBvh, tree: &FlatBvh, v: RefitVertices<'_>) -> Result<GpuRefit, GpuError> {
         check(bvh, tree, &v)?;
         let ctx = bvh.context().clone();
-        let arrays = bvh.engine().arrays();
-        let (Some(nodes), Some(triangles)) = (
-            arrays.buffer(ArrayRole::Nodes),
-            arrays.buffer(ArrayRole::Triangles),
-        ) else {
-            return Err(unsupported("an upload without its binary layout"));
-        };
+        let (nodes, triangles, textures) = target_arrays(&ctx, bvh, tree)?;
         let entries: Vec<&'static str> = REFIT_STEPS.iter().map(|(e, _)| *e).collect();
         let pipelines = ctx.device_program("refit", refit_source, &entries)?;
         let device = ctx.device();
@@ -179,6 +264,9 @@ impl GpuRefit {
         for r in runs.iter().filter(|&&r| r > 0) {
             plan.push((2, first, *r));
             first += r;
+        }
+        if textures.is_some() {
+            plan.push((3, 0, tree.nodes().len() as u32));
         }
         let mut params = vec![0u8; plan.len() * PARAMS_STRIDE as usize];
         let mut grids = Vec::with_capacity(plan.len());
@@ -214,6 +302,16 @@ impl GpuRefit {
             U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let status_read = empty(device, "refit status read", 16, U::MAP_READ | U::COPY_DST);
+        // The nodes as texels, for a BVH in textures (else never bound).
+        let texel_bytes = textures
+            .as_ref()
+            .map_or(16, |_| tree.nodes().len() as u64 * 32);
+        let node_texels = empty(
+            device,
+            "refit node texels",
+            texel_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
         let resource = |b: u32, k: usize| match b {
             0 => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                 buffer: &params,
@@ -225,7 +323,8 @@ impl GpuRefit {
             3 => order.as_entire_binding(),
             4 => v.positions.as_entire_binding(),
             5 => v.indices.unwrap_or(&no_indices).as_entire_binding(),
-            _ => status.as_entire_binding(),
+            6 => status.as_entire_binding(),
+            _ => node_texels.as_entire_binding(),
         };
         let dispatches = ctx.scoped("preparing a refit on the device", || {
             plan.iter()
@@ -254,8 +353,9 @@ impl GpuRefit {
             dispatches,
             status,
             status_read,
-            nodes: nodes.clone(),
-            triangles: triangles.clone(),
+            nodes,
+            triangles,
+            textures: textures.map(|t| (node_texels, t)),
             counts: (tree.nodes().len() as u64, u64::from(n_tris)),
             depth: tree.depth(),
             ctx,
@@ -286,6 +386,10 @@ impl GpuRefit {
                 pass.set_bind_group(0, group, &[]);
                 pass.dispatch_workgroups(*x, *y, 1);
             }
+        }
+        if let Some((node_texels, (nodes, triangles))) = &self.textures {
+            copy_texels(enc, node_texels, nodes, self.counts.0 * 2);
+            copy_texels(enc, &self.triangles, triangles, self.counts.1 * 3);
         }
         enc.copy_buffer_to_buffer(&self.status, 0, &self.status_read, 0, 16);
     }
