@@ -373,6 +373,14 @@ pub struct Skin {
 /// element, weights in order (zero weights and joints out of range skipped), then each
 /// coordinate `((m0 x + m1 y) + m2 z) + m3` over the matrix's columns.
 pub fn skin_vertex(matrices: &[Mat4], joints: [u16; 4], weights: [f32; 4], p: Vec3) -> Vec3 {
+    let m = blend(matrices, joints, weights);
+    let r = |c: usize| ((m[c] * p.x + m[4 + c] * p.y) + m[8 + c] * p.z) + m[12 + c];
+    Vec3::new(r(0), r(1), r(2))
+}
+
+/// A vertex's blended matrix `Σ w_k M_{j_k}` (columns), element by element, weights in
+/// order; zero weights and joints out of range are skipped.
+fn blend(matrices: &[Mat4], joints: [u16; 4], weights: [f32; 4]) -> [f32; 16] {
     let mut m = [0f32; 16];
     for k in 0..4 {
         let j = joints[k] as usize;
@@ -383,8 +391,7 @@ pub fn skin_vertex(matrices: &[Mat4], joints: [u16; 4], weights: [f32; 4], p: Ve
             }
         }
     }
-    let r = |c: usize| ((m[c] * p.x + m[4 + c] * p.y) + m[8 + c] * p.z) + m[12 + c];
-    Vec3::new(r(0), r(1), r(2))
+    m
 }
 
 impl Skin {
@@ -426,17 +433,6 @@ impl Skin {
 
     /// The skinned positions and normals for `matrices` ([`Skin::joint_matrices`]).
     pub fn skinned(&self, matrices: &[Mat4]) -> (Vec<Vec3>, Vec<Vec3>) {
-        let blend = |v: usize| -> Mat4 {
-            let (js, ws) = (self.vertex_joints[v], self.vertex_weights[v]);
-            let mut m = Mat4::ZERO;
-            for k in 0..4 {
-                let j = js[k] as usize;
-                if ws[k] != 0.0 && j < matrices.len() {
-                    m += matrices[j] * ws[k];
-                }
-            }
-            m
-        };
         let positions = (0..self.bind_positions.len())
             .map(|v| {
                 let (j, w) = (self.vertex_joints[v], self.vertex_weights[v]);
@@ -445,7 +441,8 @@ impl Skin {
             .collect();
         let normals = (0..self.bind_normals.len())
             .map(|v| {
-                let n = blend(v)
+                let m = blend(matrices, self.vertex_joints[v], self.vertex_weights[v]);
+                let n = Mat4::from_cols_array(&m)
                     .inverse()
                     .transpose()
                     .transform_vector3(self.bind_normals[v]);
@@ -592,12 +589,16 @@ impl Animation {
     }
 
     /// Each skinned instance's positions and normals at time `t` ([`Skin::skinned`]),
-    /// in [`Animation::skins`] order; the global transform is in them.
-    pub fn skinned_at(&self, t: f32) -> Vec<(Vec<Vec3>, Vec<Vec3>)> {
+    /// in [`Animation::skins`] order; the global transform is in them. `None` is the
+    /// nodes' static pose, as loaded.
+    pub fn skinned_at(&self, t: Option<f32>) -> Vec<(Vec<Vec3>, Vec<Vec3>)> {
         if self.skins.is_empty() {
             return Vec::new();
         }
-        let world = self.node_transforms_at(t);
+        let world = match t {
+            Some(t) => self.node_transforms_at(t),
+            None => self.static_node_transforms(),
+        };
         let global = self.global_transform();
         self.skins
             .iter()

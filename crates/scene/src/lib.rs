@@ -417,25 +417,16 @@ impl Scene {
         for (inst, m) in self.instances.iter_mut().zip(transforms) {
             inst.transform = m;
         }
-        self.apply_skins(t);
+        self.apply_skins(Some(t));
     }
 
-    /// Writes each skinned instance's mesh at time `t` (its joints' pose; a NaN time is
-    /// the nodes' static pose, as loaded).
-    pub(crate) fn apply_skins(&mut self, t: f32) {
+    /// Writes each skinned instance's mesh at time `t` (its joints' pose; `None`: the
+    /// nodes' static pose, as loaded).
+    pub(crate) fn apply_skins(&mut self, t: Option<f32>) {
         let Some(a) = self.live_animation() else {
             return;
         };
-        let skinned = if t.is_nan() {
-            let world = a.static_node_transforms();
-            let global = a.global_transform();
-            a.skins
-                .iter()
-                .map(|s| s.skinned(&s.joint_matrices(&world, global)))
-                .collect()
-        } else {
-            a.skinned_at(t)
-        };
+        let skinned = a.skinned_at(t);
         let meshes: Vec<usize> = a
             .skins
             .iter()

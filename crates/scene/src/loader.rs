@@ -1123,7 +1123,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         }
         scene.unify_attributes();
         // Skinned meshes in the joints' static pose.
-        scene.apply_skins(f32::NAN);
+        scene.apply_skins(None);
         if let Some((world, fov)) = walk.camera_at {
             place_camera(&mut scene, world, fov);
         }

@@ -318,6 +318,41 @@ fn init(
     })
 }
 
+/// Submits `enc` (a failure named `during`) and waits until each of `maps` (a buffer and
+/// its first bytes) is mapped for reading.
+fn submit_and_map(
+    ctx: &GpuContext,
+    during: &'static str,
+    enc: wgpu::CommandEncoder,
+    maps: &[(&wgpu::Buffer, u64)],
+) -> Result<(), GpuError> {
+    let index = ctx.scoped(during, || ctx.queue().submit([enc.finish()]))?;
+    pollster::block_on(map_all(ctx.device(), index, maps))
+}
+
+/// After the work recorded in `enc`: the first bytes of each of `sources`, one after the
+/// other, copied into one read-back buffer, submitted, waited for and returned.
+fn read_after(
+    ctx: &GpuContext,
+    during: &'static str,
+    mut enc: wgpu::CommandEncoder,
+    sources: &[(&wgpu::Buffer, u64)],
+) -> Result<Vec<u8>, GpuError> {
+    let total: u64 = sources.iter().map(|(_, n)| n).sum();
+    let usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+    let read = empty(ctx.device(), "read back", total, usage);
+    let mut at = 0;
+    for &(src, n) in sources {
+        enc.copy_buffer_to_buffer(src, 0, &read, at, n);
+        at += n;
+    }
+    submit_and_map(ctx, during, enc, &[(&read, total)])?;
+    let mut bytes: Vec<u8> = Vec::new();
+    let got = read_mapped(&read, total, &mut bytes);
+    read.unmap();
+    got.map(|_| bytes)
+}
+
 impl Build {
     /// Uploads `tris` (as `FlatTriangle`s numbered in input order) and makes the Morton
     /// steps' buffers (bindings 0 to 7) and the builder's.
@@ -537,22 +572,6 @@ impl Build {
             .collect()
     }
 
-    /// Submits `enc`, waits for it and maps `reads` and the timestamps.
-    fn finish(
-        &self,
-        ctx: &GpuContext,
-        enc: wgpu::CommandEncoder,
-        reads: &[wgpu::Buffer],
-        queries: Option<&StepQueries>,
-    ) -> Result<(), GpuError> {
-        let index = ctx.scoped("building a BVH on the device", || {
-            ctx.queue().submit([enc.finish()])
-        })?;
-        let mut maps: Vec<(&wgpu::Buffer, u64)> = reads.iter().map(|b| (b, b.size())).collect();
-        maps.extend(queries.map(|q| (&q.read, q.bytes())));
-        pollster::block_on(map_all(ctx.device(), index, &maps))
-    }
-
     /// The end of every build: copies of `outputs` (the flat nodes, the triangles and a
     /// buffer of `u32` holding the depth at `depth_at`) and the timestamps recorded into
     /// `enc`, which is submitted and waited for; then the tree read back.
@@ -568,7 +587,9 @@ impl Build {
         if let Some(q) = &queries {
             q.resolve(&mut enc);
         }
-        self.finish(ctx, enc, &reads, queries.as_ref())?;
+        let mut maps: Vec<(&wgpu::Buffer, u64)> = reads.iter().map(|b| (b, b.size())).collect();
+        maps.extend(queries.as_ref().map(|q| (&q.read, q.bytes())));
+        submit_and_map(ctx, "building a BVH on the device", enc, &maps)?;
         let stages_ms = match queries {
             Some(q) => q.stages_ms(ctx.queue())?,
             None => Vec::new(),

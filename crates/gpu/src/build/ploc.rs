@@ -174,7 +174,12 @@ pub(super) fn run(
             .unwrap_or_else(|| device.create_command_encoder(&Default::default()));
         build.record_batch(&groups, pipelines, &mut enc, queries.as_ref());
         let read = build.copy_state(device, &mut enc);
-        build.finish(ctx, enc, std::slice::from_ref(&read), None)?;
+        super::submit_and_map(
+            ctx,
+            "building a BVH on the device",
+            enc,
+            &[(&read, read.size())],
+        )?;
         let now = clusters_left(&read)?;
         batches += 1;
         // Every iteration merges at least once, so the count falls every batch; a batch

@@ -14,8 +14,8 @@ use bvhtrace_kernels::build::{REFIT_STEPS, RefitParams, refit_source};
 use bvhtrace_kernels::upload::ArrayRole;
 use bvhtrace_kernels::{BvhStorage, HasEngine, check_update_shape};
 
-use super::{PARAMS_STRIDE, StepQueries, empty, grid, init};
-use crate::trace::{map_all, read_mapped};
+use super::{PARAMS_STRIDE, StepQueries, empty, grid, init, read_after, submit_and_map};
+use crate::trace::read_mapped;
 use crate::{GpuBvh, GpuContext, GpuError};
 
 /// Where a refit reads the moved vertices: your buffers, bound as storage (created with
@@ -40,7 +40,8 @@ pub struct RefitTimes {
     pub wall_ms: f64,
     /// The dispatches by timestamp queries, when the device has them.
     pub gpu_ms: Option<f64>,
-    /// Dispatches: the check, the corners, and one per level of boxes.
+    /// Dispatches: the check, the corners, one per level of boxes, and the node texels
+    /// for an upload in textures.
     pub dispatches: usize,
     /// Reading the refitted tree back for the host copy (a CPU driver finishes the rays
     /// its trip budget leaves incomplete on it), milliseconds; 0 when none is kept.
@@ -247,7 +248,7 @@ fn check(bvh: &GpuBvh, tree: &FlatBvh, v: &RefitVertices<'_>) -> Result<(), GpuE
 impl GpuRefit {
     /// Prepares refits of `bvh`, uploaded from `tree` (the same tree: its shape is
     /// checked), from the vertices `v` says. Errors name what does not fit: a two-level
-    /// tree, the wide layout, textures, buffers too small.
+    /// tree, the wide layout, another tree's shape, buffers too small.
     pub fn new(bvh: &GpuBvh, tree: &FlatBvh, v: RefitVertices<'_>) -> Result<GpuRefit, GpuError> {
         check(bvh, tree, &v)?;
         let ctx = bvh.context().clone();
@@ -362,14 +363,16 @@ impl GpuRefit {
         })
     }
 
-    /// Dispatches a refit runs: the check, the corners, one per level of boxes.
+    /// Dispatches a refit runs: the check, the corners, one per level of boxes, and the
+    /// node texels for an upload in textures.
     pub fn dispatches(&self) -> usize {
         self.dispatches.len()
     }
 
-    /// Records the refit into `enc`, after whatever moved the vertices: one compute pass,
-    /// then the status copied for [`GpuRefit::status`]. A bad vertex (not finite, or an
-    /// index out of range) makes the whole refit write nothing.
+    /// Records the refit into `enc`, after whatever moved the vertices: one compute pass
+    /// (then, for an upload in textures, the copies over them). A bad vertex (not finite,
+    /// or an index out of range) makes the whole refit write nothing; only
+    /// [`GpuRefit::refit`] reads the outcome back and reports it.
     pub fn record(&self, enc: &mut wgpu::CommandEncoder) {
         self.record_timed(enc, None);
     }
@@ -409,12 +412,9 @@ impl GpuRefit {
             q.resolve(&mut enc);
         }
         let start = Instant::now();
-        let index = self
-            .ctx
-            .scoped("refitting on the device", || queue.submit([enc.finish()]))?;
         let mut maps = vec![(&self.status_read, 16)];
         maps.extend(queries.as_ref().map(|q| (&q.read, q.bytes())));
-        pollster::block_on(map_all(device, index, &maps))?;
+        submit_and_map(&self.ctx, "refitting on the device", enc, &maps)?;
         let status = self.read_status();
         let wall_ms = start.elapsed().as_secs_f64() * 1e3;
         let gpu_ms = match &queries {
@@ -469,26 +469,13 @@ impl GpuRefit {
     /// The tree as the device holds it now (after a refit: refitted), read back, so the
     /// CPU walks can trace it too.
     pub fn read_back(&self) -> Result<FlatBvh, GpuError> {
-        let device = self.ctx.device();
         let (nodes_bytes, tris_bytes) = (self.counts.0 * 32, self.counts.1 * 48);
-        use wgpu::BufferUsages as U;
-        let read = empty(
-            device,
-            "refit read back",
-            nodes_bytes + tris_bytes,
-            U::MAP_READ | U::COPY_DST,
-        );
-        let mut enc = device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(&self.nodes, 0, &read, 0, nodes_bytes);
-        enc.copy_buffer_to_buffer(&self.triangles, 0, &read, nodes_bytes, tris_bytes);
-        let index = self.ctx.scoped("reading a refitted tree back", || {
-            self.ctx.queue().submit([enc.finish()])
-        })?;
-        pollster::block_on(map_all(device, index, &[(&read, nodes_bytes + tris_bytes)]))?;
-        let mut bytes: Vec<u8> = Vec::new();
-        let got = read_mapped(&read, nodes_bytes + tris_bytes, &mut bytes);
-        read.unmap();
-        got?;
+        let enc = self
+            .ctx
+            .device()
+            .create_command_encoder(&Default::default());
+        let sources = [(&self.nodes, nodes_bytes), (&self.triangles, tris_bytes)];
+        let bytes = read_after(&self.ctx, "reading a refitted tree back", enc, &sources)?;
         let (n, t) = bytes.split_at(nodes_bytes as usize);
         let nodes: Vec<FlatNode> = bytemuck::pod_collect_to_vec(n);
         let tris: Vec<FlatTriangle> = bytemuck::pod_collect_to_vec(t);

@@ -7,8 +7,7 @@
 use bvhtrace_kernels::build::{SKIN_STEP, SkinParams, skin_source};
 use glam::{Mat4, Vec3};
 
-use super::{empty, grid, init};
-use crate::trace::{map_all, read_mapped};
+use super::{empty, grid, init, read_after};
 use crate::{GpuContext, GpuError, RefitVertices};
 
 /// One skinned mesh on the device: its bind pose, joints and weights, its joint
@@ -161,25 +160,13 @@ impl GpuSkin {
 
     /// Skins now (a submission of its own) and reads the positions back: for checks.
     pub fn skin_and_read(&self) -> Result<Vec<Vec3>, GpuError> {
-        let device = self.ctx.device();
-        let bytes = u64::from(self.vertices) * 12;
-        let read = empty(
-            device,
-            "skinned positions read",
-            bytes,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        );
-        let mut enc = device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .ctx
+            .device()
+            .create_command_encoder(&Default::default());
         self.record(&mut enc);
-        enc.copy_buffer_to_buffer(&self.positions, 0, &read, 0, bytes);
-        let index = self.ctx.scoped("skinning on the device", || {
-            self.ctx.queue().submit([enc.finish()])
-        })?;
-        pollster::block_on(map_all(device, index, &[(&read, bytes)]))?;
-        let mut out: Vec<Vec3> = Vec::new();
-        let got = read_mapped(&read, bytes, &mut out);
-        read.unmap();
-        got?;
-        Ok(out)
+        let source = [(&self.positions, u64::from(self.vertices) * 12)];
+        let bytes = read_after(&self.ctx, "skinning on the device", enc, &source)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
     }
 }
