@@ -125,27 +125,25 @@ fn pose_skins(
     t: f32,
     opts: &BuildOptions,
 ) -> Result<Option<bool>, String> {
-    let skinned: Vec<usize> = match &scene.animation {
-        Some(a) if !a.skins().is_empty() => a.skins().iter().map(|s| s.instance()).collect(),
-        _ => return Ok(None),
+    let Some(a) = scene.animation.as_ref().filter(|a| !a.skins().is_empty()) else {
+        return Ok(None);
     };
-    let mut posed = scene.clone();
-    posed.set_time(t);
     let mut rebuilt = false;
-    for s in skinned {
+    for (skin, (positions, _)) in a.skins().iter().zip(a.skinned_at(Some(t))) {
+        let s = skin.instance();
         let Some(m) = ib.instances().iter().find(|i| i.user_id as usize == s) else {
             continue;
         };
         let m = m.mesh as usize;
         let bad = |e: String| format!("the skin of instance {s} at t = {t} s: {e}");
-        let tris = posed
-            .instances
-            .get(s)
-            .and_then(|i| posed.meshes.get(i.mesh))
-            .ok_or_else(|| bad("its mesh is gone".into()))?
-            .triangle_mesh()
-            .triangles()
-            .map_err(|e| bad(e.to_string()))?;
+        let mesh = (scene.instances.get(s))
+            .and_then(|i| scene.meshes.get(i.mesh))
+            .ok_or_else(|| bad("its mesh is gone".into()))?;
+        let tris = (mesh.indices.iter())
+            .map(|t| t.map(|i| positions.get(i as usize).copied()))
+            .map(|[a, b, c]| Some([a?, b?, c?]))
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| bad("an index past the skinned vertices".into()))?;
         ib.refit_mesh(m, &tris).map_err(|e| bad(e.to_string()))?;
         if ib.refit_quality(m) > REFIT_REBUILD_ADVISED {
             *ib = ib
