@@ -1,9 +1,11 @@
 //! The WGSL of the builders that run on the device, each composed after the shared types
 //! and `build_morton.wgsl` (bounds, Morton codes and a radix sort):
 //! `build_lbvh.wgsl` (a linear BVH, Karras 2012) and `build_ploc.wgsl` (locally-ordered
-//! clustering, Meister and Bittner 2018). The wgpu backend runs them
-//! (`GpuContext::build` in bvhtrace-gpu). Each entry point's bindings are listed here and
-//! checked against the WGSL by naga, so a host binds exactly what each step reads.
+//! clustering, Meister and Bittner 2018); and the programs that move a built tree's
+//! vertices, `refit.wgsl` (corners and boxes refitted) and `skin.wgsl` (linear blend
+//! skinning). The wgpu backend runs them (`GpuContext::build_bvh`, `GpuRefit`, `GpuSkin` in
+//! bvhtrace-gpu). Each entry point's bindings are listed here and checked against the WGSL
+//! by naga, so a host binds exactly what each step reads.
 
 /// `build_morton.wgsl`.
 const BUILD_MORTON_WGSL: &str = include_str!("../shaders/build_morton.wgsl");
