@@ -99,6 +99,20 @@ fn indexed(ctx: &GpuContext, pos: &[Vec3], idx: &[u32]) -> (wgpu::Buffer, wgpu::
     )
 }
 
+/// `vertices` packed `xyz` positions, read through `indices`.
+fn packed<'a>(
+    positions: &'a wgpu::Buffer,
+    vertices: usize,
+    indices: &'a wgpu::Buffer,
+) -> RefitVertices<'a> {
+    RefitVertices {
+        positions,
+        stride: 3,
+        vertices: vertices as u32,
+        indices: Some(indices),
+    }
+}
+
 fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> GpuBvh {
     upload_in(ctx, bvh, BvhStorage::Buffers)
 }
@@ -146,12 +160,7 @@ fn a_device_refit_equals_the_cpu_refit() {
     // Indexed, packed xyz.
     let mut gpu = upload(&ctx, &tree);
     let (positions, indices) = indexed(&ctx, &after, &idx);
-    let v = RefitVertices {
-        positions: &positions,
-        stride: 3,
-        vertices: after.len() as u32,
-        indices: Some(&indices),
-    };
+    let v = packed(&positions, after.len(), &indices);
     let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
     let times = refit.refit(&mut gpu).expect("refit");
     assert_eq!(times.dispatches, refit.dispatches());
@@ -168,12 +177,7 @@ fn a_device_refit_equals_the_cpu_refit() {
         want.refit(&triangles(&after, &idx)).expect("CPU refit");
         let mut gpu = upload_in(&ctx, &tree, BvhStorage::Textures);
         let (positions, indices) = indexed(&ctx, &after, &idx);
-        let v = RefitVertices {
-            positions: &positions,
-            stride: 3,
-            vertices: after.len() as u32,
-            indices: Some(&indices),
-        };
+        let v = packed(&positions, after.len(), &indices);
         let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
         refit.refit(&mut gpu).expect("refit");
         let what = format!("textures, {} nodes", tree.nodes().len());
@@ -220,12 +224,7 @@ fn a_bad_vertex_is_refused_and_the_tree_kept() {
     let bad_vertex = idx[3 * 57 + 1] as usize;
     after[bad_vertex].y = f32::NAN;
     let (positions, indices) = indexed(&ctx, &after, &idx);
-    let v = RefitVertices {
-        positions: &positions,
-        stride: 3,
-        vertices: pos.len() as u32,
-        indices: Some(&indices),
-    };
+    let v = packed(&positions, pos.len(), &indices);
     let refit = GpuRefit::new(&gpu, &tree, v).expect("prepare");
     let first_bad = idx
         .chunks(3)
@@ -247,12 +246,7 @@ fn a_bad_vertex_is_refused_and_the_tree_kept() {
     let mut wrong = idx.clone();
     wrong[3 * 30 + 2] = pos.len() as u32 + 5;
     let indices = storage_buffer(&ctx, "wrong indices", bytemuck::cast_slice(&wrong));
-    let v = RefitVertices {
-        positions: &positions,
-        stride: 3,
-        vertices: pos.len() as u32,
-        indices: Some(&indices),
-    };
+    let v = packed(&positions, pos.len(), &indices);
     match GpuRefit::new(&gpu, &tree, v)
         .expect("prepare")
         .refit(&mut gpu)
@@ -271,12 +265,7 @@ fn uploads_it_cannot_refit_are_refused_by_name() {
     let tris = triangles(&pos, &idx);
     let tree = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
     let (positions, indices) = indexed(&ctx, &pos, &idx);
-    let v = RefitVertices {
-        positions: &positions,
-        stride: 3,
-        vertices: pos.len() as u32,
-        indices: Some(&indices),
-    };
+    let v = packed(&positions, pos.len(), &indices);
     let refused =
         |gpu: &GpuBvh, tree: &FlatBvh, v: RefitVertices<'_>, what: &str| match GpuRefit::new(
             gpu, tree, v,
