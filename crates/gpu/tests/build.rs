@@ -6,21 +6,11 @@
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
 use bvhtrace_gpu::{
-    AdapterChoice, GpuBuildOptions, GpuBuilderKind, GpuBvh, GpuContext, GpuError, Tracer,
-    UploadOptions,
+    GpuBuildOptions, GpuBuilderKind, GpuBvh, GpuContext, GpuError, Tracer, UploadOptions,
 };
 use glam::Vec3;
 
-fn context() -> Option<GpuContext> {
-    match GpuContext::new(AdapterChoice::Auto) {
-        Ok(c) => Some(c),
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP device builds: {e}");
-            None
-        }
-        Err(e) => panic!("cannot open a GPU: {e}"),
-    }
-}
+mod support;
 
 fn scene(spec: &str) -> Vec<Triangle> {
     bvhtrace_scene::load(spec)
@@ -107,7 +97,9 @@ fn check_one(ctx: &GpuContext, name: &str, tris: &[Triangle], kind: GpuBuilderKi
 
 #[test]
 fn device_built_trees_hold_every_invariant_and_the_sah_trees_hits() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device builds") else {
+        return;
+    };
     for spec in [
         "builtin:cornell",
         "builtin:icosphere:4",
@@ -138,7 +130,9 @@ fn device_built_trees_hold_every_invariant_and_the_sah_trees_hits() {
 
 #[test]
 fn degenerate_inputs_build() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device builds") else {
+        return;
+    };
     let t = [Vec3::ZERO, Vec3::X, Vec3::Y];
     // Every centroid equal: the index breaks every tie.
     check(&ctx, "1000 copies of one triangle", &vec![t; 1000]);
@@ -184,7 +178,9 @@ fn degenerate_inputs_build() {
 
 #[test]
 fn the_clustering_tree_is_within_the_sah_trees_cost() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device builds") else {
+        return;
+    };
     for spec in [
         "builtin:icosphere:4",
         "builtin:grid:icosphere:5x4",

@@ -14,6 +14,8 @@ use glam::Vec3;
 #[allow(dead_code)]
 mod own_shader;
 
+mod support;
+
 /// A device of the adapter `BVHTRACE_ADAPTER` or the best one names, created with `limits`
 /// and no features, as a user following the wgpu examples would; `None` without Vulkan.
 fn user_device(limits: wgpu::Limits) -> Option<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
@@ -396,18 +398,6 @@ fn run_own_shader(
         .collect()
 }
 
-/// A context, or `None` (after SKIP) without an adapter.
-fn context() -> Option<GpuContext> {
-    match GpuContext::new(AdapterChoice::Auto) {
-        Ok(ctx) => Some(ctx),
-        Err(e @ TraceError::NoAdapter { .. }) => {
-            eprintln!("SKIP embedding: {e}");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
-}
-
 /// Four placements of two meshes (one mirrored, one scaled unevenly), with user ids.
 fn two_level_scene() -> bvhtrace_core::InstancedBvh {
     use bvhtrace_core::{Instance, InstancedBvh};
@@ -473,7 +463,7 @@ fn same_hit(a: &bvhtrace_core::Hit, b: &bvhtrace_core::Hit) -> bool {
 /// `bvh_hit_surface` equals its CPU twin `instance_surface` bit for bit.
 #[test]
 fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
-    let Some(ctx) = context() else {
+    let Some(ctx) = support::context("embedding") else {
         return;
     };
     let ib = two_level_scene();
@@ -550,7 +540,7 @@ fn own_wgsl_on_two_levels_returns_the_traced_hits_and_instances() {
 /// is 0 with its own primitive.
 #[test]
 fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
-    let Some(ctx) = context() else {
+    let Some(ctx) = support::context("embedding") else {
         return;
     };
     let tris = bvhtrace_scene::load("builtin:icosphere:3")
@@ -600,7 +590,7 @@ fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
 /// buffers against textures; and a walk the upload lacks is refused when composing.
 #[test]
 fn a_mismatched_library_is_a_clear_error() {
-    let Some(ctx) = context() else {
+    let Some(ctx) = support::context("embedding") else {
         return;
     };
     let ib = two_level_scene();

@@ -6,8 +6,8 @@
 use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
 use bvhtrace_gpu::kernels::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, RayInput, TEXEL_ROW};
 use bvhtrace_gpu::{
-    AdapterChoice, BvhStorage, Composition, ContextOptions, GpuBvh, GpuContext, GpuError,
-    KernelKey, UploadOptions, VertexAttributes,
+    BvhStorage, Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions,
+    VertexAttributes,
 };
 use glam::Vec3;
 use naga::{Module, TypeInner};
@@ -16,23 +16,10 @@ use naga::{Module, TypeInner};
 mod kernels_common;
 use kernels_common::{STORAGES, TRAVERSALS};
 
+mod support;
+
 fn parse(source: &str) -> Module {
     naga::front::wgsl::parse_str(source).unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)))
-}
-
-fn context() -> Option<GpuContext> {
-    context_with(&ContextOptions::default())
-}
-
-fn context_with(options: &ContextOptions) -> Option<GpuContext> {
-    match GpuContext::new_with(AdapterChoice::Auto, options) {
-        Ok(ctx) => Some(ctx),
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP features (GPU part): {e}");
-            None
-        }
-        Err(e) => panic!("cannot open a GPU: {e}"),
-    }
 }
 
 fn scene() -> (FlatBvh, Vec<Ray>) {
@@ -51,7 +38,9 @@ fn scene() -> (FlatBvh, Vec<Ray>) {
 
 #[test]
 fn switching_back_to_a_feature_set_does_not_recompile() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("features (GPU part)") else {
+        return;
+    };
     let (bvh, rays) = scene();
     let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
     let opts =
@@ -131,7 +120,9 @@ fn group0_strides(module: &Module) -> Vec<(String, u64)> {
 
 #[test]
 fn the_upload_is_exactly_what_the_kernel_reads() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("features (GPU part)") else {
+        return;
+    };
     let (bvh, rays) = scene();
     let wide = bvhtrace_core::WideBvh::collapse(&bvh);
     for traversal in TRAVERSALS {
@@ -244,7 +235,9 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
 #[test]
 fn tracer_update_answers_as_a_fresh_upload() {
     use bvhtrace_gpu::Tracer;
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("features (GPU part)") else {
+        return;
+    };
     let scene = bvhtrace_scene::load("builtin:spheres").expect("builtin scene");
     let mut ib = scene
         .instanced_bvh(&BuildOptions::default())

@@ -7,21 +7,12 @@
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
 use bvhtrace_gpu::wgpu::{self, util::DeviceExt};
 use bvhtrace_gpu::{
-    AdapterChoice, BvhStorage, GpuBvh, GpuContext, GpuError, GpuRefit, GpuSkin, RefitVertices,
-    Tracer, UploadOptions,
+    BvhStorage, GpuBvh, GpuContext, GpuError, GpuRefit, GpuSkin, RefitVertices, Tracer,
+    UploadOptions,
 };
 use glam::Vec3;
 
-fn context() -> Option<GpuContext> {
-    match GpuContext::new(AdapterChoice::Auto) {
-        Ok(c) => Some(c),
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP device refit: {e}");
-            None
-        }
-        Err(e) => panic!("cannot open a GPU: {e}"),
-    }
-}
+mod support;
 
 /// A wavy indexed grid of `n` x `n` quads: positions and three indices per triangle.
 fn grid(n: u32) -> (Vec<Vec3>, Vec<u32>) {
@@ -149,7 +140,9 @@ fn assert_same(refit: &GpuRefit, gpu: &GpuBvh, want: &FlatBvh, what: &str) {
 
 #[test]
 fn a_device_refit_equals_the_cpu_refit() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device refit") else {
+        return;
+    };
     let (pos, idx) = grid(40);
     let tree = FlatBvh::build(&triangles(&pos, &idx), &BuildOptions::default()).expect("build");
     let after = moved(&pos);
@@ -216,7 +209,9 @@ fn a_device_refit_equals_the_cpu_refit() {
 
 #[test]
 fn a_bad_vertex_is_refused_and_the_tree_kept() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device refit") else {
+        return;
+    };
     let (pos, idx) = grid(12);
     let tree = FlatBvh::build(&triangles(&pos, &idx), &BuildOptions::default()).expect("build");
     let mut gpu = upload(&ctx, &tree);
@@ -260,7 +255,9 @@ fn a_bad_vertex_is_refused_and_the_tree_kept() {
 
 #[test]
 fn uploads_it_cannot_refit_are_refused_by_name() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device refit") else {
+        return;
+    };
     let (pos, idx) = grid(6);
     let tris = triangles(&pos, &idx);
     let tree = FlatBvh::build(&tris, &BuildOptions::default()).expect("build");
@@ -302,7 +299,9 @@ fn uploads_it_cannot_refit_are_refused_by_name() {
 /// equals the CPU refit over them, box for box, with the same hits; the two poses differ.
 #[test]
 fn a_skin_skinned_and_refitted_on_the_device_equals_the_cpu() {
-    let Some(ctx) = context() else { return };
+    let Some(ctx) = support::context("device refit") else {
+        return;
+    };
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/skinned.gltf");
     let mut scene = bvhtrace_scene::load(path).expect("loads");
     let anim = scene.animation.clone().expect("animated");

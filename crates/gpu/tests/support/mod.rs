@@ -1,0 +1,21 @@
+//! What the GPU test files share: opening the device, or saying why they skip.
+
+use bvhtrace_gpu::{AdapterChoice, ContextOptions, GpuContext, GpuError};
+
+/// The first adapter, or `None` (printing SKIP for `what`) when there is none; any other
+/// failure to open one fails the test.
+pub fn context(what: &str) -> Option<GpuContext> {
+    context_with(what, &ContextOptions::default())
+}
+
+/// [`context`] with `options`.
+pub fn context_with(what: &str, options: &ContextOptions) -> Option<GpuContext> {
+    match GpuContext::new_with(AdapterChoice::Auto, options) {
+        Ok(ctx) => Some(ctx),
+        Err(e @ GpuError::NoAdapter { .. }) => {
+            eprintln!("SKIP {what}: {e}");
+            None
+        }
+        Err(e) => panic!("cannot open a GPU: {e}"),
+    }
+}
