@@ -369,45 +369,48 @@ fn animated_scenes_render_at_the_time_asked_for() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--time"));
 }
 
-/// A skinned glTF (`scenes/skinned.gltf`: a tube on two joints) bends with `--time`, and
-/// the GPU renders each pose as the CPU does.
+/// Deforming glTF scenes change with `--time`, and the GPU renders each pose as the CPU
+/// does: `scenes/skinned.gltf` (a tube on two joints) and `scenes/morph.gltf` (the tube
+/// swelling by a morph target before it is skinned, and a sphere morphing beside it).
 #[test]
-fn skinned_scenes_bend_with_time_alike_on_gpu_and_cpu() {
-    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/skinned.gltf");
-    let (a, img_a) = render_json("skinned-0", &[scene, "--time", "0"]);
-    let (b, img_b) = render_json("skinned-1", &[scene, "--time", "1"]);
-    assert_eq!(a["triangles"], 420);
-    assert_eq!(a["form"], "two-level");
-    assert_ne!(
-        img_a, img_b,
-        "the skin did not move between t = 0 and t = 1"
-    );
-    assert_ne!(a["t_sum"], b["t_sum"]);
-    for (t, cpu) in [("0", &img_a), ("1", &img_b)] {
-        let dir = scratch(&format!("skinned-gpu-{t}"));
-        let png = dir.join("o.png");
-        let out = run(&[
-            "render",
-            scene,
-            "--time",
-            t,
-            "--size",
-            "96x72",
-            "--backend",
-            "gpu",
-            "-o",
-            png.to_str().unwrap(),
-        ]);
-        let err = String::from_utf8_lossy(&out.stderr);
-        if err.contains("no Vulkan adapter") {
-            eprintln!("SKIP skinned GPU render: {err}");
-            return;
-        }
-        assert!(out.status.success(), "{err}");
-        assert!(
-            std::fs::read(&png).expect("png") == *cpu,
-            "t = {t}: GPU != CPU"
+fn deforming_scenes_move_with_time_alike_on_gpu_and_cpu() {
+    for (file, triangles) in [("skinned", 420), ("morph", 612)] {
+        let scene = format!("{}/../../scenes/{file}.gltf", env!("CARGO_MANIFEST_DIR"));
+        let (a, img_a) = render_json(&format!("{file}-0"), &[&scene, "--time", "0"]);
+        let (b, img_b) = render_json(&format!("{file}-1"), &[&scene, "--time", "1"]);
+        assert_eq!(a["triangles"], triangles, "{file}");
+        assert_eq!(a["form"], "two-level", "{file}");
+        assert_ne!(
+            img_a, img_b,
+            "{file}: nothing moved between t = 0 and t = 1"
         );
+        assert_ne!(a["t_sum"], b["t_sum"], "{file}");
+        for (t, cpu) in [("0", &img_a), ("1", &img_b)] {
+            let dir = scratch(&format!("{file}-gpu-{t}"));
+            let png = dir.join("o.png");
+            let out = run(&[
+                "render",
+                &scene,
+                "--time",
+                t,
+                "--size",
+                "96x72",
+                "--backend",
+                "gpu",
+                "-o",
+                png.to_str().unwrap(),
+            ]);
+            let err = String::from_utf8_lossy(&out.stderr);
+            if err.contains("no Vulkan adapter") {
+                eprintln!("SKIP {file} GPU render: {err}");
+                return;
+            }
+            assert!(out.status.success(), "{err}");
+            assert!(
+                std::fs::read(&png).expect("png") == *cpu,
+                "{file} at t = {t}: GPU != CPU"
+            );
+        }
     }
 }
 

@@ -54,7 +54,8 @@ mod ray_query;
 mod trace;
 
 pub use build::{
-    GpuBuildOptions, GpuBuildTimes, GpuBuilderKind, GpuRefit, GpuSkin, RefitTimes, RefitVertices,
+    GpuBuildOptions, GpuBuildTimes, GpuBuilderKind, GpuMorph, GpuRefit, GpuSkin, RefitTimes,
+    RefitVertices,
 };
 pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_kernels::{Update, UploadOptions};

@@ -2,12 +2,13 @@
 //! and corners read back equal the CPU refit's (`FlatBvh::refit`), and the GPU walks
 //! answer as the CPU walks do on the CPU-refitted tree; indexed and packed vertices, a bad
 //! vertex refused with the tree left as it was, and the uploads it cannot refit refused by
-//! name. Without a Vulkan adapter the tests print SKIP.
+//! name; skins and morph targets applied on the device as the CPU applies them. Without a
+//! Vulkan adapter the tests print SKIP.
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
 use bvhtrace_gpu::wgpu::{self, util::DeviceExt};
 use bvhtrace_gpu::{
-    BvhStorage, GpuBvh, GpuContext, GpuError, GpuRefit, GpuSkin, RefitVertices, Tracer,
+    BvhStorage, GpuBvh, GpuContext, GpuError, GpuMorph, GpuRefit, GpuSkin, RefitVertices, Tracer,
     UploadOptions,
 };
 use glam::Vec3;
@@ -359,4 +360,86 @@ fn a_skin_skinned_and_refitted_on_the_device_equals_the_cpu() {
         on_device.set_matrices(&[glam::Mat4::IDENTITY]).is_err(),
         "one matrix for two joints"
     );
+}
+
+/// `scenes/morph.gltf` deformed where it is traced: the sphere's two morph targets, and the
+/// tube's target morphed then skinned, give at two times the CPU twin's positions
+/// (`Animation::deformed_at`) bit for bit, and the refit over them the CPU refit; the two
+/// poses differ. Bad weights are refused by name.
+#[test]
+fn morph_targets_applied_on_the_device_equal_the_cpu() {
+    let Some(ctx) = support::context("device morph") else {
+        return;
+    };
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/morph.gltf");
+    let scene = bvhtrace_scene::load(path).expect("loads");
+    let anim = scene.animation.clone().expect("animated");
+    assert_eq!(anim.morphs().len(), 2, "the tube and the sphere");
+    for morph in anim.morphs() {
+        let i = morph.instance();
+        let skin = anim.skins().iter().find(|s| s.instance() == i);
+        let mesh = &scene.meshes[scene.instances[i].mesh];
+        let on_device =
+            GpuMorph::new(&ctx, morph.base_positions(), morph.position_deltas()).expect("upload");
+        let skinned = skin.map(|s| {
+            let joints = s.joint_count() as u32;
+            GpuSkin::after_morph(&on_device, s.vertex_joints(), s.vertex_weights(), joints)
+                .expect("skin after the morph")
+        });
+        let tris = |p: &[Vec3]| -> Vec<Triangle> {
+            (mesh.indices.iter())
+                .map(|t| t.map(|k| p[k as usize]))
+                .collect()
+        };
+        let tree = FlatBvh::build(&tris(&mesh.positions), &BuildOptions::default()).expect("build");
+        let mut gpu = upload(&ctx, &tree);
+        let idx: Vec<u32> = mesh.indices.iter().flatten().copied().collect();
+        let indices = storage_buffer(&ctx, "indices", bytemuck::cast_slice(&idx));
+        let vertices = match &skinned {
+            Some(s) => s.vertices(Some(&indices)),
+            None => on_device.vertices(Some(&indices)),
+        };
+        let refit = GpuRefit::new(&gpu, &tree, vertices).expect("prepare");
+        let mut poses = Vec::new();
+        for t in [0.25f32, 1.0] {
+            on_device
+                .set_weights(&anim.morph_weights_at(morph, Some(t)))
+                .expect("weights");
+            let got = match (&skinned, skin) {
+                (Some(gs), Some(s)) => {
+                    let world = anim.node_transforms_at(t);
+                    let m = s.joint_matrices(&world, anim.global_transform());
+                    gs.set_matrices(&m).expect("matrices");
+                    let mut enc = ctx.device().create_command_encoder(&Default::default());
+                    on_device.record(&mut enc);
+                    gs.record(&mut enc);
+                    gs.read_after(enc).expect("morphed and skinned")
+                }
+                _ => on_device.morph_and_read().expect("morphed"),
+            };
+            let want = anim.deformed_at(Some(t));
+            let want = want.iter().find(|d| d.instance == i).expect("deformed");
+            assert_eq!(
+                got, want.positions,
+                "instance {i} at t = {t}: device != CPU"
+            );
+            let mut cpu = tree.clone();
+            cpu.refit(&tris(&want.positions)).expect("CPU refit");
+            refit.refit(&mut gpu).expect("device refit");
+            assert_same(&refit, &gpu, &cpu, &format!("instance {i} at t = {t}"));
+            poses.push(cpu);
+        }
+        assert_ne!(poses[0].nodes(), poses[1].nodes(), "instance {i}: one pose");
+        let n = morph.target_count();
+        assert!(
+            on_device.set_weights(&vec![0.0; n + 1]).is_err(),
+            "too many weights"
+        );
+        assert!(
+            on_device.set_weights(&vec![f32::NAN; n]).is_err(),
+            "a NaN weight"
+        );
+    }
+    let bad = GpuMorph::new(&ctx, &[Vec3::ZERO; 3], &[Vec3::ZERO; 4]);
+    assert!(bad.is_err(), "4 deltas for 3 vertices");
 }

@@ -2,9 +2,9 @@
 //! and `build_morton.wgsl` (bounds, Morton codes and a radix sort):
 //! `build_lbvh.wgsl` (a linear BVH, Karras 2012) and `build_ploc.wgsl` (locally-ordered
 //! clustering, Meister and Bittner 2018); and the programs that move a built tree's
-//! vertices, `refit.wgsl` (corners and boxes refitted) and `skin.wgsl` (linear blend
-//! skinning). The wgpu backend runs them (`GpuContext::build_bvh`, `GpuRefit`, `GpuSkin` in
-//! bvhtrace-gpu). Each entry point's bindings are listed here and checked against the WGSL
+//! vertices, `refit.wgsl` (corners and boxes refitted), `morph.wgsl` (morph targets) and
+//! `skin.wgsl` (linear blend skinning). The wgpu backend runs them
+//! (`GpuContext::build_bvh`, `GpuRefit`, `GpuMorph`, `GpuSkin` in bvhtrace-gpu). Each entry point's bindings are listed here and checked against the WGSL
 //! by naga, so a host binds exactly what each step reads.
 
 /// `build_morton.wgsl`.
@@ -38,6 +38,31 @@ pub struct SkinParams {
 /// The skinning module: `skin.wgsl` alone.
 pub fn skin_source() -> String {
     SKIN_WGSL.to_string()
+}
+
+/// `morph.wgsl`.
+const MORPH_WGSL: &str = include_str!("../shaders/morph.wgsl");
+
+/// The morph step (`morph.wgsl`) and its bindings.
+pub const MORPH_STEP: Step = ("morph_vertices", &[0, 1, 2, 3, 4]);
+
+/// The uniform block of the morph dispatch (`MorphParams` in `morph.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct MorphParams {
+    /// Vertices.
+    pub vertices: u32,
+    /// Morph targets.
+    pub targets: u32,
+    /// Invocations per row of the dispatch grid.
+    pub row: u32,
+    /// Padding to 16 bytes.
+    pub pad: u32,
+}
+
+/// The morph module: `morph.wgsl` alone.
+pub fn morph_source() -> String {
+    MORPH_WGSL.to_string()
 }
 
 /// A builder step: its entry point and the bindings of group 0 it uses.
@@ -206,6 +231,11 @@ mod tests {
     #[test]
     fn the_skin_module_validates_and_lists_its_bindings() {
         check_steps(&skin_source(), &[SKIN_STEP]);
+    }
+
+    #[test]
+    fn the_morph_module_validates_and_lists_its_bindings() {
+        check_steps(&morph_source(), &[MORPH_STEP]);
     }
 
     #[test]

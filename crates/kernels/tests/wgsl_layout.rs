@@ -422,6 +422,23 @@ fn the_skin_params_match_rust_layout() {
 }
 
 #[test]
+fn the_morph_params_match_rust_layout() {
+    use bvhtrace_kernels::build::{MorphParams, morph_source};
+    let module = parse(&morph_source());
+    check_struct(
+        &module,
+        "MorphParams",
+        size_of::<MorphParams>(),
+        &[
+            ("vertices", offset_of!(MorphParams, vertices)),
+            ("targets", offset_of!(MorphParams, targets)),
+            ("row", offset_of!(MorphParams, row)),
+            ("pad", offset_of!(MorphParams, pad)),
+        ],
+    );
+}
+
+#[test]
 fn every_file_is_composed_and_the_library_rebinds_its_group() {
     for storage in STORAGES {
         check_library(storage);

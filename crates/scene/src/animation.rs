@@ -1,5 +1,6 @@
-//! Node animations: glTF 2.0 `translation`, `rotation` and `scale` channels, played
-//! back as the glTF 2.0 specification (and its interpolation appendix) defines them.
+//! Node animations: glTF 2.0 `translation`, `rotation`, `scale` and morph target
+//! `weights` channels, played back as the glTF 2.0 specification (and its interpolation
+//! appendix) defines them, with skins and morph targets applied to the meshes they deform.
 //!
 //! The loader keeps what it needs to place the scene's instances at any time: the node
 //! hierarchy it walked (each node's parent and static transform), which node each
@@ -44,8 +45,7 @@ impl Interpolation {
     }
 }
 
-/// The node property a channel drives (glTF `channel.target.path`; `weights` is not
-/// supported).
+/// The node property a channel drives (glTF `channel.target.path`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Property {
     /// The node's translation (`x, y, z`; `w` unused, zero).
@@ -54,15 +54,20 @@ pub enum Property {
     Rotation,
     /// The node's scale (`x, y, z`; `w` unused, zero).
     Scale,
+    /// Four of the node's morph target weights: `Weights(c)` drives targets `4c..4c + 4`
+    /// (`x, y, z, w`; entries past the mesh's targets are zero). A glTF `weights` channel
+    /// becomes one such channel per four targets, each interpolated component by component.
+    Weights(u16),
 }
 
 impl Property {
-    /// The glTF name: `"translation"`, `"rotation"` or `"scale"`.
+    /// The glTF name: `"translation"`, `"rotation"`, `"scale"` or `"weights"`.
     pub fn name(self) -> &'static str {
         match self {
             Property::Translation => "translation",
             Property::Rotation => "rotation",
             Property::Scale => "scale",
+            Property::Weights(_) => "weights",
         }
     }
 }
@@ -131,7 +136,7 @@ impl Channel {
                 }
             ));
         }
-        if property != Property::Rotation {
+        if matches!(property, Property::Translation | Property::Scale) {
             for v in &mut values {
                 v.w = 0.0;
             }
@@ -203,7 +208,7 @@ impl Channel {
     }
 
     /// The property's value at time `t` (seconds): a translation or scale in `x, y, z`
-    /// (`w = 0`), or a rotation quaternion `x, y, z, w`. Before the first key the first
+    /// (`w = 0`), a rotation quaternion `x, y, z, w`, or four morph target weights. Before the first key the first
     /// value holds, after the last key the last one; at a key time the key's value is
     /// returned exactly (a [`Interpolation::CubicSpline`] rotation is normalised). A NaN
     /// time is taken as the start.
@@ -347,6 +352,108 @@ pub struct Animation {
     pub(crate) channels: Vec<Channel>,
     pub(crate) globals: Vec<Mat4>,
     pub(crate) skins: Vec<Skin>,
+    pub(crate) morphs: Vec<Morph>,
+}
+
+/// An instance whose mesh has morph targets (glTF `targets`): its own mesh's vertices are
+/// `base + Σ weight_i * delta_i` ([`morph_vertex`]), with the weights its node's `weights`
+/// channels give at each time (else the node's or the mesh's static `weights`). Morphing
+/// comes before skinning, as glTF 2.0 says.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Morph {
+    /// The instance it deforms (its mesh is its own).
+    pub(crate) instance: usize,
+    /// Its node, an index into [`Animation::nodes`]: the target of its weights channels.
+    pub(crate) node: usize,
+    /// The static weights, one per target.
+    pub(crate) weights: Vec<f32>,
+    /// The mesh's positions and normals (normals may be empty) as the file gives them.
+    pub(crate) base_positions: Vec<Vec3>,
+    pub(crate) base_normals: Vec<Vec3>,
+    /// Position deltas, target by target: target `i`'s delta for vertex `v` is at
+    /// `i * vertices + v`.
+    pub(crate) position_deltas: Vec<Vec3>,
+    /// Normal deltas in the same order; empty when no target has normals.
+    pub(crate) normal_deltas: Vec<Vec3>,
+}
+
+/// One vertex morphed, operation for operation as `shaders/morph.wgsl` does it on the
+/// device (`GpuMorph` in bvhtrace-gpu): starting from `base`, each target in order with a
+/// weight other than zero adds `delta * weight`, coordinate by coordinate.
+pub fn morph_vertex(base: Vec3, deltas: impl IntoIterator<Item = (f32, Vec3)>) -> Vec3 {
+    let mut p = base;
+    for (w, d) in deltas {
+        if w != 0.0 {
+            p = Vec3::new(p.x + d.x * w, p.y + d.y * w, p.z + d.z * w);
+        }
+    }
+    p
+}
+
+impl Morph {
+    /// The instance it deforms.
+    pub fn instance(&self) -> usize {
+        self.instance
+    }
+
+    /// Its number of morph targets.
+    pub fn target_count(&self) -> usize {
+        self.weights.len()
+    }
+
+    /// The static weights, one per target (the node's `weights`, else the mesh's, else 0).
+    pub fn static_weights(&self) -> &[f32] {
+        &self.weights
+    }
+
+    /// The mesh's positions as the file gives them, before any target is applied.
+    pub fn base_positions(&self) -> &[Vec3] {
+        &self.base_positions
+    }
+
+    /// The position deltas, target by target (`target * vertices + vertex`).
+    pub fn position_deltas(&self) -> &[Vec3] {
+        &self.position_deltas
+    }
+
+    /// The morphed positions and normals for `weights` (one per target; missing ones are
+    /// 0). Normals are the base normals plus their weighted deltas, normalised (a normal
+    /// that vanishes keeps its base).
+    pub fn morphed(&self, weights: &[f32]) -> (Vec<Vec3>, Vec<Vec3>) {
+        let n = self.base_positions.len();
+        let targets = self.target_count();
+        let w = |i: usize| weights.get(i).copied().unwrap_or(0.0);
+        let morph = |base: Vec3, deltas: &[Vec3], v: usize| {
+            morph_vertex(base, (0..targets).map(|i| (w(i), deltas[i * n + v])))
+        };
+        let positions = (0..n)
+            .map(|v| morph(self.base_positions[v], &self.position_deltas, v))
+            .collect();
+        let normals = if self.normal_deltas.is_empty() {
+            self.base_normals.clone()
+        } else {
+            (0..self.base_normals.len())
+                .map(|v| {
+                    let base = self.base_normals[v];
+                    let m = morph(base, &self.normal_deltas, v).normalize_or_zero();
+                    if m == Vec3::ZERO { base } else { m }
+                })
+                .collect()
+        };
+        (positions, normals)
+    }
+}
+
+/// A deformed instance's mesh at one time ([`Animation::deformed_at`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Deformed {
+    /// The instance (its mesh is its own).
+    pub instance: usize,
+    /// Its positions, in the world when it is skinned (the global transform in them),
+    /// else in its object space.
+    pub positions: Vec<Vec3>,
+    /// Its normals, in the same space; empty when the mesh has none.
+    pub normals: Vec<Vec3>,
 }
 
 /// A skinned instance (glTF skins, linear blend skinning): its own mesh's vertices are
@@ -431,27 +538,34 @@ impl Skin {
             .collect()
     }
 
-    /// The skinned positions and normals for `matrices` ([`Skin::joint_matrices`]).
+    /// The skinned positions and normals for `matrices` ([`Skin::joint_matrices`]), from
+    /// the bind pose.
     pub fn skinned(&self, matrices: &[Mat4]) -> (Vec<Vec3>, Vec<Vec3>) {
-        let positions = (0..self.bind_positions.len())
+        self.skin(matrices, &self.bind_positions, &self.bind_normals)
+    }
+
+    /// `positions` and `normals` (the bind pose, or a morphed one: one per vertex of the
+    /// mesh; normals may be empty) skinned with `matrices`.
+    pub fn skin(
+        &self,
+        matrices: &[Mat4],
+        positions: &[Vec3],
+        normals: &[Vec3],
+    ) -> (Vec<Vec3>, Vec<Vec3>) {
+        let vertex = |v: usize| (self.vertex_joints[v], self.vertex_weights[v]);
+        let positions = (0..positions.len().min(self.vertex_joints.len()))
             .map(|v| {
-                let (j, w) = (self.vertex_joints[v], self.vertex_weights[v]);
-                skin_vertex(matrices, j, w, self.bind_positions[v])
+                let (j, w) = vertex(v);
+                skin_vertex(matrices, j, w, positions[v])
             })
             .collect();
-        let normals = (0..self.bind_normals.len())
+        let normals = (0..normals.len().min(self.vertex_joints.len()))
             .map(|v| {
-                let m = blend(matrices, self.vertex_joints[v], self.vertex_weights[v]);
-                let n = Mat4::from_cols_array(&m)
-                    .inverse()
-                    .transpose()
-                    .transform_vector3(self.bind_normals[v]);
+                let (j, w) = vertex(v);
+                let m = Mat4::from_cols_array(&blend(matrices, j, w));
+                let n = m.inverse().transpose().transform_vector3(normals[v]);
                 let n = n.normalize_or_zero();
-                if n == Vec3::ZERO {
-                    self.bind_normals[v]
-                } else {
-                    n
-                }
+                if n == Vec3::ZERO { normals[v] } else { n }
             })
             .collect();
         (positions, normals)
@@ -514,11 +628,11 @@ impl Animation {
             let Some(Some((tr, rot, sc))) = trs.get_mut(c.node) else {
                 continue;
             };
-            let v = c.value_at(t);
             match c.property {
-                Property::Translation => *tr = v.truncate(),
-                Property::Rotation => *rot = v,
-                Property::Scale => *sc = v.truncate(),
+                Property::Translation => *tr = c.value_at(t).truncate(),
+                Property::Rotation => *rot = c.value_at(t),
+                Property::Scale => *sc = c.value_at(t).truncate(),
+                Property::Weights(_) => {}
             }
         }
         self.nodes
@@ -588,21 +702,70 @@ impl Animation {
         out
     }
 
-    /// Each skinned instance's positions and normals at time `t` ([`Skin::skinned`]),
-    /// in [`Animation::skins`] order; the global transform is in them. `None` is the
-    /// nodes' static pose, as loaded.
-    pub fn skinned_at(&self, t: Option<f32>) -> Vec<(Vec<Vec3>, Vec<Vec3>)> {
-        if self.skins.is_empty() {
+    /// The instances whose meshes morph targets deform.
+    pub fn morphs(&self) -> &[Morph] {
+        &self.morphs
+    }
+
+    /// `morph`'s weights at time `t` (seconds): its static weights, overwritten by its
+    /// node's `weights` channels (later channels win). `None` is the static weights.
+    pub fn morph_weights_at(&self, morph: &Morph, t: Option<f32>) -> Vec<f32> {
+        let mut w = morph.weights.clone();
+        let Some(t) = t else {
+            return w;
+        };
+        for c in self.channels.iter().filter(|c| c.node == morph.node) {
+            if let Property::Weights(chunk) = c.property {
+                let v = c.value_at(t).to_array();
+                for (k, x) in v.into_iter().enumerate() {
+                    if let Some(slot) = w.get_mut(4 * chunk as usize + k) {
+                        *slot = x;
+                    }
+                }
+            }
+        }
+        w
+    }
+
+    /// Each deformed instance's mesh at time `t` (`None`: the static pose, as loaded), in
+    /// instance order: morph targets first ([`Morph::morphed`]), then the skin
+    /// ([`Skin::skin`]); a skinned mesh's positions are in the world with the global
+    /// transform in them.
+    pub fn deformed_at(&self, t: Option<f32>) -> Vec<Deformed> {
+        let mut instances: Vec<usize> = (self.skins.iter().map(|s| s.instance))
+            .chain(self.morphs.iter().map(|m| m.instance))
+            .collect();
+        instances.sort_unstable();
+        instances.dedup();
+        if instances.is_empty() {
             return Vec::new();
         }
-        let world = match t {
-            Some(t) => self.node_transforms_at(t),
-            None => self.static_node_transforms(),
+        let world = match (t, self.skins.is_empty()) {
+            (_, true) => Vec::new(),
+            (Some(t), false) => self.node_transforms_at(t),
+            (None, false) => self.static_node_transforms(),
         };
         let global = self.global_transform();
-        self.skins
-            .iter()
-            .map(|s| s.skinned(&s.joint_matrices(&world, global)))
+        instances
+            .into_iter()
+            .map(|instance| {
+                let morph = self.morphs.iter().find(|m| m.instance == instance);
+                let skin = self.skins.iter().find(|s| s.instance == instance);
+                let (positions, normals) = match (morph, skin) {
+                    (Some(m), _) => m.morphed(&self.morph_weights_at(m, t)),
+                    (None, Some(s)) => (s.bind_positions.clone(), s.bind_normals.clone()),
+                    (None, None) => (Vec::new(), Vec::new()),
+                };
+                let (positions, normals) = match skin {
+                    Some(s) => s.skin(&s.joint_matrices(&world, global), &positions, &normals),
+                    None => (positions, normals),
+                };
+                Deformed {
+                    instance,
+                    positions,
+                    normals,
+                }
+            })
             .collect()
     }
 }

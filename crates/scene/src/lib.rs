@@ -29,11 +29,12 @@
 //!
 //! # Animation
 //!
-//! A glTF file's node animations (translation, rotation and scale channels; LINEAR,
-//! STEP and CUBICSPLINE) are kept in [`Scene::animation`]: [`Scene::instances`] holds the
-//! nodes' static transforms as loaded, [`Scene::set_time`] moves them to any time and
-//! [`Scene::instance_transforms_at`] computes them without changing the scene (see the
-//! [`animation`] module).
+//! A glTF file's node animations (translation, rotation, scale and morph target weights
+//! channels; LINEAR, STEP and CUBICSPLINE), skins and morph targets are kept in
+//! [`Scene::animation`]: [`Scene::instances`] holds the nodes' static transforms as
+//! loaded, and the skinned or morphed meshes their static pose; [`Scene::set_time`] moves
+//! them to any time and [`Scene::instance_transforms_at`] computes the transforms without
+//! changing the scene (see the [`animation`] module).
 //!
 //! The library prints nothing: anything worth telling the user that is not an error
 //! lands in [`Scene::warnings`].
@@ -54,7 +55,8 @@ use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
 pub use animation::{
-    Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property, Skin, skin_vertex,
+    Animation, AnimationNode, Channel, Deformed, Interpolation, Morph, NodeTransform, Property,
+    Skin, morph_vertex, skin_vertex,
 };
 pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;
@@ -406,8 +408,9 @@ impl Scene {
     }
 
     /// Moves every instance to its pose at time `t` (seconds): rewrites each
-    /// [`Instance::transform`] with [`Scene::instance_transforms_at`]. Meshes, camera and
-    /// materials are unchanged (the camera is not animated). Extreme keys may place an
+    /// [`Instance::transform`] with [`Scene::instance_transforms_at`], and the positions
+    /// and normals of skinned and morphed meshes with [`Animation::deformed_at`]. Other
+    /// meshes, the camera and materials are unchanged (the camera is not animated). Extreme keys may place an
     /// instance out of `f32` range: [`Scene::check_invariants`] says so.
     pub fn set_time(&mut self, t: f32) {
         if self.live_animation().is_none() {
@@ -417,32 +420,26 @@ impl Scene {
         for (inst, m) in self.instances.iter_mut().zip(transforms) {
             inst.transform = m;
         }
-        self.apply_skins(Some(t));
+        self.apply_deformations(Some(t));
     }
 
-    /// Writes each skinned instance's mesh at time `t` (its joints' pose; `None`: the
-    /// nodes' static pose, as loaded).
-    pub(crate) fn apply_skins(&mut self, t: Option<f32>) {
+    /// Writes each deformed instance's mesh (skins and morph targets,
+    /// [`Animation::deformed_at`]) at time `t` (`None`: the static pose, as loaded).
+    pub(crate) fn apply_deformations(&mut self, t: Option<f32>) {
         let Some(a) = self.live_animation() else {
             return;
         };
-        let skinned = a.skinned_at(t);
-        let meshes: Vec<usize> = a
-            .skins
-            .iter()
-            .map(|s| {
-                self.instances
-                    .get(s.instance)
-                    .map_or(usize::MAX, |i| i.mesh)
-            })
-            .collect();
-        for (m, (positions, normals)) in meshes.into_iter().zip(skinned) {
+        for d in a.deformed_at(t) {
+            let m = self
+                .instances
+                .get(d.instance)
+                .map_or(usize::MAX, |i| i.mesh);
             if let Some(mesh) = self.meshes.get_mut(m) {
-                mesh.positions = positions;
+                mesh.positions = d.positions;
                 if !mesh.normals.is_empty() {
-                    // The file's normals skinned, or (when it had none) made again.
-                    mesh.normals = if normals.len() == mesh.positions.len() {
-                        normals
+                    // The file's normals deformed, or (when it had none) made again.
+                    mesh.normals = if d.normals.len() == mesh.positions.len() {
+                        d.normals
                     } else {
                         vertex_normals(&mesh.positions, &mesh.indices)
                     };

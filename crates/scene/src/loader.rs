@@ -19,7 +19,7 @@ use gltf::json::{
     mesh::Semantic, validation::Checked,
 };
 
-use crate::animation::{self, Animation, AnimationNode, Channel, NodeTransform, Skin};
+use crate::animation::{self, Animation, AnimationNode, Channel, Morph, NodeTransform, Skin};
 use crate::error::{ErrorKind, SceneError};
 use crate::{Camera, Instance, Material, Mesh, Scene, glb};
 
@@ -265,7 +265,8 @@ struct Part {
     material: Option<u32>,
 }
 
-type VertexKey = [Option<usize>; 4];
+/// POSITION, NORMAL, TEXCOORD_0, COLOR_0 and the first morph target's POSITION.
+type VertexKey = [Option<usize>; 5];
 
 struct Vertices {
     positions: Vec<Vec3>,
@@ -274,6 +275,36 @@ struct Vertices {
     colors: Option<Vec<Vec4>>,
     /// JOINTS_0 and WEIGHTS_0, when the primitive has both.
     skin: Option<SkinVertices>,
+    /// Each morph target of the primitive.
+    targets: Vec<MorphTarget>,
+}
+
+/// One morph target of a primitive: its position deltas (zeros when it has none) and its
+/// normal deltas, one per vertex.
+type MorphTarget = (Vec<Vec3>, Option<Vec<Vec3>>);
+
+/// A mesh's morph targets, merged over its primitives: position deltas target by target
+/// (`target * vertices + vertex`), normal deltas likewise (empty when no target has
+/// them), and the number of targets.
+type MorphVertices = (Vec<Vec3>, Vec<Vec3>, usize);
+
+/// What deforms a mesh's vertices: its skin data and its morph targets, when it has them.
+#[derive(Default)]
+struct Deforms {
+    skin: Option<SkinVertices>,
+    morph: Option<MorphVertices>,
+}
+
+/// An instance of a mesh with morph targets met in the walk.
+struct PendingMorph {
+    instance: usize,
+    mesh: usize,
+    /// The glTF mesh and node, for the static weights.
+    gltf_mesh: usize,
+    node: usize,
+    /// The node's record in the graph.
+    rec: usize,
+    vertices: MorphVertices,
 }
 
 /// Per-vertex joints (indices into the skin's joints) and weights.
@@ -286,6 +317,66 @@ struct PendingSkin {
     skin: usize,
     node: usize,
     vertices: SkinVertices,
+}
+
+/// The morph targets of a mesh's vertex blocks (in the order their vertices are
+/// appended), merged target by target; blocks without a target get zero deltas. `None`
+/// when no block has a target.
+fn merge_targets<'a>(
+    blocks: impl Iterator<Item = &'a Vertices> + Clone,
+    nv: usize,
+) -> Option<MorphVertices> {
+    let targets = blocks.clone().map(|v| v.targets.len()).max().unwrap_or(0);
+    if targets == 0 {
+        return None;
+    }
+    let has_normals = (blocks.clone()).any(|v| v.targets.iter().any(|t| t.1.is_some()));
+    let (mut positions, mut normals) = (Vec::with_capacity(targets * nv), Vec::new());
+    let zeros = |n: usize| std::iter::repeat_n(Vec3::ZERO, n);
+    for i in 0..targets {
+        for v in blocks.clone() {
+            let n = v.positions.len();
+            let (p, d) = v
+                .targets
+                .get(i)
+                .map_or((None, None), |(p, d)| (Some(p), d.as_ref()));
+            match p {
+                Some(p) => positions.extend_from_slice(p),
+                None => positions.extend(zeros(n)),
+            }
+            if has_normals {
+                match d {
+                    Some(d) => normals.extend_from_slice(d),
+                    None => normals.extend(zeros(n)),
+                }
+            }
+        }
+    }
+    Some((positions, normals, targets))
+}
+
+/// A `weights` channel's output (`targets` weights per entry) as one list of values per
+/// four targets, for [`animation::Property::Weights`] channels; an output that is not a
+/// whole number of entries is an error.
+fn weight_chunks(flat: &[[f32; 1]], targets: usize) -> Result<Vec<Vec<Vec4>>, String> {
+    let chunks = targets.div_ceil(4);
+    if targets == 0 || !flat.len().is_multiple_of(targets) || chunks > usize::from(u16::MAX) {
+        return Err(format!(
+            "{} weights is not a whole number of entries of {targets} (the mesh's targets)",
+            flat.len()
+        ));
+    }
+    Ok((0..chunks)
+        .map(|c| {
+            (flat.chunks_exact(targets))
+                .map(|e| {
+                    Vec4::from_array(std::array::from_fn(|k| {
+                        e.get(4 * c + k).map_or(0.0, |w| w[0])
+                    }))
+                })
+                .collect()
+        })
+        .collect())
 }
 
 /// The scene graph as the loader walked it (kept only when the file has animations).
@@ -346,6 +437,7 @@ struct Walk {
     revisited: usize,
     skinned: usize,
     skins: Vec<PendingSkin>,
+    morphs: Vec<PendingMorph>,
     graph: Graph,
 }
 
@@ -757,6 +849,7 @@ impl<'a, 'b> Loader<'a, 'b> {
             attr(Semantic::Normals),
             attr(Semantic::TexCoords(0)),
             attr(Semantic::Colors(0)),
+            (prim.targets.iter().flatten().next()).and_then(|t| t.positions.map(|a| a.value())),
         ];
         let (vertices, nv) = match seen.get(&key) {
             Some(&nv) => (None, nv),
@@ -910,13 +1003,53 @@ impl<'a, 'b> Loader<'a, 'b> {
                 .collect();
             (joints, weights)
         });
+        let targets = self.read_targets(prim, nv, ctx)?;
         Ok(Vertices {
             positions,
             normals,
             texcoords,
             colors,
             skin,
+            targets,
         })
+    }
+
+    /// A primitive's morph targets: position deltas (zeros where a target has none) and
+    /// normal deltas, one per vertex; deltas that are not finite are an error naming the
+    /// target.
+    fn read_targets(
+        &mut self,
+        prim: &json::mesh::Primitive,
+        nv: usize,
+        ctx: &str,
+    ) -> Result<Vec<MorphTarget>, ErrorKind> {
+        let mut out = Vec::new();
+        for (i, t) in prim.targets.iter().flatten().enumerate() {
+            let read = |a: Option<json::Index<json::Accessor>>, what: &str| {
+                let Some(a) = a else {
+                    return Ok(None);
+                };
+                let name = format!("morph target {i} {what}");
+                let v: Vec<Vec3> = bytemuck::cast_vec(self.read_floats::<3>(a.value(), &name)?);
+                if v.len() != nv {
+                    return Err(invalid(format!(
+                        "{ctx}: {name} has {} elements but POSITION has {nv}",
+                        v.len()
+                    )));
+                }
+                if let Some(k) = v.iter().position(|d| !d.is_finite()) {
+                    return Err(invalid(format!(
+                        "{ctx}: {name}: delta {k} is not finite ({})",
+                        v[k]
+                    )));
+                }
+                Ok(Some(v))
+            };
+            let positions = read(t.positions, "POSITION")?;
+            let normals = read(t.normals, "NORMAL")?;
+            out.push((positions.unwrap_or_else(|| vec![Vec3::ZERO; nv]), normals));
+        }
+        Ok(out)
     }
 
     /// Triangles from a primitive's index list, by mode (glTF spec, section 3.7.2.1).
@@ -952,7 +1085,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         mi: usize,
         default_material: &mut Option<u32>,
         materials: &mut Vec<Material>,
-    ) -> Result<(Mesh, Option<SkinVertices>), ErrorKind> {
+    ) -> Result<(Mesh, Deforms), ErrorKind> {
         let root = self.root;
         let mesh = root
             .meshes
@@ -991,6 +1124,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         let mut skin: Option<SkinVertices> = verts()
             .all(|v| v.skin.is_some())
             .then(|| (Vec::new(), Vec::new()));
+        let morph = merge_targets(verts(), nv);
         let mut out = Mesh {
             name: mesh.name.clone().unwrap_or_default(),
             positions: Vec::with_capacity(nv),
@@ -1048,7 +1182,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                     .extend(p.tris.iter().map(|t| t.map(|i| i + base)));
             }
         }
-        Ok((out, skin))
+        Ok((out, Deforms { skin, morph }))
     }
 
     fn node_matrix(node: &json::Node) -> Result<Mat4, String> {
@@ -1087,7 +1221,8 @@ impl<'a, 'b> Loader<'a, 'b> {
         let roots = self.root_nodes()?;
         // With animations, the walk is recorded: each visited node (parent links and
         // static transform) and the node of each instance.
-        let track = !root.animations.is_empty() || !root.skins.is_empty();
+        let morphs = (root.meshes.iter().flat_map(|m| &m.primitives)).any(|p| p.targets.is_some());
+        let track = !root.animations.is_empty() || !root.skins.is_empty() || morphs;
         self.walk_nodes(&mut walk, &roots, track)?;
         if root.nodes.is_empty() && !root.meshes.is_empty() {
             self.place_meshes_once(&mut walk)?;
@@ -1098,7 +1233,8 @@ impl<'a, 'b> Loader<'a, 'b> {
             let n = walk.instances.len();
             let skins =
                 self.load_skins(&walk.graph, std::mem::take(&mut walk.skins), &walk.meshes)?;
-            self.load_animations(walk.graph, skins)?
+            let morphs = self.load_morphs(std::mem::take(&mut walk.morphs), &walk.meshes);
+            self.load_animations(walk.graph, skins, morphs)?
                 .filter(|a| a.instance_nodes.len() == n)
         } else {
             None
@@ -1122,8 +1258,8 @@ impl<'a, 'b> Loader<'a, 'b> {
             )));
         }
         scene.unify_attributes();
-        // Skinned meshes in the joints' static pose.
-        scene.apply_skins(None);
+        // Skinned and morphed meshes in their static pose.
+        scene.apply_deformations(None);
         if let Some((world, fov)) = walk.camera_at {
             place_camera(&mut scene, world, fov);
         }
@@ -1249,25 +1385,40 @@ impl<'a, 'b> Loader<'a, 'b> {
                 "node {ni} refers to mesh {m}, which does not exist"
             ))
         })?;
-        // A skinned instance gets a mesh of its own: its joints rewrite the positions.
+        // A skinned or morphed instance gets a mesh of its own: its joints and weights
+        // rewrite the positions.
         let skinned = node.skin.map(|s| s.value());
-        let id = match (*slot, skinned) {
-            (Some(id), None) => id,
+        let morphed = (self.root.meshes.get(m))
+            .is_some_and(|mesh| mesh.primitives.iter().any(|p| p.targets.is_some()));
+        let id = match (*slot, skinned.is_some() || morphed) {
+            (Some(id), false) => id,
             _ => {
-                let (mesh, skin) =
+                let (mesh, deforms) =
                     self.load_mesh(m, &mut walk.default_material, &mut walk.materials)?;
                 walk.meshes.push(mesh);
                 let id = walk.meshes.len() - 1;
-                match (skinned, skin) {
-                    (None, _) => walk.mesh_map[m] = Some(id),
+                let instance = walk.instances.len();
+                match (skinned, deforms.skin) {
+                    (None, _) if !morphed => walk.mesh_map[m] = Some(id),
+                    (None, _) => {}
                     (Some(skin), Some(vertices)) if rec.is_some() => walk.skins.push(PendingSkin {
-                        instance: walk.instances.len(),
+                        instance,
                         mesh: id,
                         skin,
                         node: ni,
                         vertices,
                     }),
                     (Some(_), _) => walk.skinned += 1,
+                }
+                if let (Some(vertices), Some(rec)) = (deforms.morph, rec) {
+                    walk.morphs.push(PendingMorph {
+                        instance,
+                        mesh: id,
+                        gltf_mesh: m,
+                        node: ni,
+                        rec,
+                        vertices,
+                    });
                 }
                 id
             }
@@ -1416,14 +1567,58 @@ impl<'a, 'b> Loader<'a, 'b> {
         Ok(out)
     }
 
-    /// Reads the file's animations: the channels that drive the translation, rotation or
-    /// scale of a node in `graph`. Channels on other nodes are dropped silently; morph
-    /// target weights, unknown paths and nodes with a `matrix` with a warning. `None`
-    /// when no channel is left.
+    /// The morphed instances met in the walk, with their static weights: the node's
+    /// `weights`, else the mesh's, else zeros (a list of the wrong length is padded with
+    /// zeros or cut, with a warning).
+    fn load_morphs(&mut self, pending: Vec<PendingMorph>, meshes: &[Mesh]) -> Vec<Morph> {
+        let root = self.root;
+        let mut out = Vec::new();
+        for p in pending {
+            let (position_deltas, normal_deltas, targets) = p.vertices;
+            let node = root.nodes.get(p.node).and_then(|n| n.weights.as_ref());
+            let mesh = root
+                .meshes
+                .get(p.gltf_mesh)
+                .and_then(|m| m.weights.as_ref());
+            let mut weights = node.or(mesh).cloned().unwrap_or_default();
+            if !weights.is_empty() && weights.len() != targets {
+                self.warnings.push(format!(
+                    "node {} (mesh {}): {} morph target weights for {targets} targets; the missing ones are 0, extra ones ignored",
+                    p.node,
+                    p.gltf_mesh,
+                    weights.len()
+                ));
+            }
+            weights.resize(targets, 0.0);
+            for w in &mut weights {
+                if !w.is_finite() {
+                    *w = 0.0;
+                }
+            }
+            let mesh = &meshes[p.mesh];
+            out.push(Morph {
+                instance: p.instance,
+                node: p.rec,
+                weights,
+                base_positions: mesh.positions.clone(),
+                base_normals: mesh.normals.clone(),
+                position_deltas,
+                normal_deltas,
+            });
+        }
+        out
+    }
+
+    /// Reads the file's animations: the channels that drive the translation, rotation,
+    /// scale or morph target weights of a node in `graph`. Channels on other nodes are
+    /// dropped silently; unknown paths, transforms of nodes with a `matrix`, and weights
+    /// of nodes without morph targets with a warning. `None` when no channel, skin or
+    /// morph target is left.
     fn load_animations(
         &mut self,
         graph: Graph,
         skins: Vec<Skin>,
+        morphs: Vec<Morph>,
     ) -> Result<Option<Animation>, ErrorKind> {
         use json::animation::{Interpolation as I, Property as P};
         let root = self.root;
@@ -1448,14 +1643,12 @@ impl<'a, 'b> Loader<'a, 'b> {
                         "{label} channel {ci}: target node {ni} does not exist"
                     )));
                 }
+                // `None`: morph target weights.
                 let property = match ch.target.path {
-                    Checked::Valid(P::Translation) => animation::Property::Translation,
-                    Checked::Valid(P::Rotation) => animation::Property::Rotation,
-                    Checked::Valid(P::Scale) => animation::Property::Scale,
-                    Checked::Valid(P::MorphTargetWeights) => {
-                        weights += 1;
-                        continue;
-                    }
+                    Checked::Valid(P::Translation) => Some(animation::Property::Translation),
+                    Checked::Valid(P::Rotation) => Some(animation::Property::Rotation),
+                    Checked::Valid(P::Scale) => Some(animation::Property::Scale),
+                    Checked::Valid(P::MorphTargetWeights) => None,
                     Checked::Invalid => {
                         unknown += 1;
                         continue;
@@ -1465,10 +1658,19 @@ impl<'a, 'b> Loader<'a, 'b> {
                 let Some(&rec) = graph.record_of.get(&ni) else {
                     continue;
                 };
-                if matches!(graph.nodes[rec].local, NodeTransform::Matrix(_)) {
+                if property.is_some() && matches!(graph.nodes[rec].local, NodeTransform::Matrix(_))
+                {
                     on_matrix += 1;
                     continue;
                 }
+                let targets = match (property, morphs.iter().find(|m| m.node == rec)) {
+                    (Some(_), _) => 0,
+                    (None, Some(m)) => m.target_count(),
+                    (None, None) => {
+                        weights += 1;
+                        continue;
+                    }
+                };
                 let interpolation = match sampler.interpolation {
                     Checked::Valid(I::Linear) => animation::Interpolation::Linear,
                     Checked::Valid(I::Step) => animation::Interpolation::Step,
@@ -1482,7 +1684,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                 let ctx = format!(
                     "{label} channel {ci} (sampler {si}: {} {} of node {ni})",
                     interpolation.name(),
-                    property.name()
+                    property.map_or("weights", animation::Property::name)
                 );
                 let input = sampler.input.value();
                 let output = sampler.output.value();
@@ -1492,32 +1694,52 @@ impl<'a, 'b> Loader<'a, 'b> {
                     .into_iter()
                     .map(|[t]| t)
                     .collect();
-                let values: Vec<Vec4> = match property {
-                    animation::Property::Rotation => self
-                        .read_floats::<4>(output, "a rotation output")
-                        .map_err(|e| in_animation(&ctx, "output", e))?
-                        .into_iter()
-                        .map(Vec4::from)
-                        .collect(),
-                    _ => self
-                        .read_floats::<3>(output, "a translation or scale output")
-                        .map_err(|e| in_animation(&ctx, "output", e))?
-                        .into_iter()
-                        .map(|v| Vec3::from(v).extend(0.0))
-                        .collect(),
-                };
-                let channel =
-                    Channel::new(rec, property, interpolation, times, values).map_err(|e| {
+                let read = |v: Vec<Vec4>, property| {
+                    Channel::new(rec, property, interpolation, times.clone(), v).map_err(|e| {
                         invalid(format!(
                             "{ctx}: input accessor {input}, output accessor {output}: {e}"
                         ))
-                    })?;
-                channels.push(channel);
+                    })
+                };
+                let output = |this: &mut Self, what: &str| -> Result<Vec<Vec4>, ErrorKind> {
+                    Ok(match what {
+                        "rotation" => (this.read_floats::<4>(output, "a rotation output"))
+                            .map_err(|e| in_animation(&ctx, "output", e))?
+                            .into_iter()
+                            .map(Vec4::from)
+                            .collect(),
+                        _ => (this.read_floats::<3>(output, "a translation or scale output"))
+                            .map_err(|e| in_animation(&ctx, "output", e))?
+                            .into_iter()
+                            .map(|v| Vec3::from(v).extend(0.0))
+                            .collect(),
+                    })
+                };
+                match property {
+                    Some(p) => channels.push(read(output(self, p.name())?, p)?),
+                    None => {
+                        let flat = (self
+                            .read_floats::<1>(sampler.output.value(), "a weights output"))
+                        .map_err(|e| in_animation(&ctx, "output", e))?;
+                        for (c, values) in weight_chunks(&flat, targets)
+                            .map_err(|e| {
+                                invalid(format!(
+                                    "{ctx}: output accessor {}: {e}",
+                                    sampler.output.value()
+                                ))
+                            })?
+                            .into_iter()
+                            .enumerate()
+                        {
+                            channels.push(read(values, animation::Property::Weights(c as u16))?);
+                        }
+                    }
+                }
             }
         }
         if weights > 0 {
             self.warnings.push(format!(
-                "{weights} animation channel(s) on morph target weights ignored (morph targets are not applied)"
+                "{weights} animation channel(s) on the weights of nodes without morph targets ignored"
             ));
         }
         if unknown > 0 {
@@ -1530,7 +1752,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                 "{on_matrix} animation channel(s) ignored: they target nodes with a matrix, which glTF 2.0 does not allow to animate"
             ));
         }
-        if channels.is_empty() && skins.is_empty() {
+        if channels.is_empty() && skins.is_empty() && morphs.is_empty() {
             return Ok(None);
         }
         Ok(Some(Animation {
@@ -1539,6 +1761,7 @@ impl<'a, 'b> Loader<'a, 'b> {
             channels,
             globals: Vec::new(),
             skins,
+            morphs,
         }))
     }
 

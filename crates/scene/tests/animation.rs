@@ -1,5 +1,6 @@
 //! glTF node animations: interpolation (LINEAR with slerp, STEP, CUBICSPLINE), clamping,
-//! hierarchies, the global transform, `scenes/animated.gltf`, and bad input.
+//! hierarchies, the global transform, skins and morph targets, `scenes/animated.gltf`,
+//! `scenes/skinned.gltf` and `scenes/morph.gltf`, and bad input.
 //!
 //! Set `BVHTRACE_WRITE_ANIMATED=1` to rewrite `scenes/animated.gltf` from
 //! [`animated_asset`] (the test `committed_asset_matches_its_generator` then passes).
@@ -540,7 +541,7 @@ fn scenes_without_animation_are_static() {
 }
 
 #[test]
-fn weights_channels_are_ignored_with_a_warning() {
+fn weights_channels_of_nodes_without_morph_targets_are_ignored_with_a_warning() {
     let mut g = base();
     let times = scalars(&mut g, &[0.0, 1.0]);
     let w = scalars(&mut g, &[0.0, 1.0]);
@@ -563,7 +564,7 @@ fn weights_channels_are_ignored_with_a_warning() {
     assert!(
         only.warnings
             .iter()
-            .any(|w| w.contains("morph target weights")),
+            .any(|w| w.contains("without morph targets")),
         "{:?}",
         only.warnings
     );
@@ -581,7 +582,7 @@ fn weights_channels_are_ignored_with_a_warning() {
     assert!(
         both.warnings
             .iter()
-            .any(|w| w.contains("morph target weights"))
+            .any(|w| w.contains("without morph targets"))
     );
 }
 
@@ -1150,4 +1151,161 @@ fn skins_place_vertices_by_their_joints() {
     // Back to the start: the bind pose again.
     scene.set_time(0.0);
     assert!((top(&scene) - Vec3::new(0.0, 2.0, 0.0)).length() < 1e-6);
+}
+
+/// The unit triangle with five morph targets (target `i` moves vertex `v` by
+/// `(i + 1, v, -1) / 8`, so weights past the first four are read too), mesh weights
+/// `[0.25, 0, 0, 0, 0]`, and a LINEAR weights channel on its node when `animated`.
+fn morph_document(targets: usize, animated: bool, weights_out: &[f32]) -> String {
+    let mut g = base();
+    let deltas: Vec<usize> = (0..targets)
+        .map(|i| {
+            let d: Vec<[f32; 3]> = (0..3)
+                .map(|v| [(i + 1) as f32 / 8.0, v as f32 / 8.0, -1.0 / 8.0])
+                .collect();
+            g.vec3(&d)
+        })
+        .collect();
+    let times = scalars(&mut g, &[0.0, 1.0]);
+    let out = scalars(&mut g, weights_out);
+    let targets: Vec<Value> = deltas.iter().map(|&a| json!({"POSITION": a})).collect();
+    let mut rest = json!({"meshes": [{
+        "primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "targets": targets}],
+        "weights": [0.25, 0.0, 0.0, 0.0, 0.0],
+    }]});
+    if animated {
+        rest["animations"] = json!([{
+            "samplers": [{"input": times, "output": out}],
+            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+        }]);
+    }
+    document(
+        &g,
+        json!([{"mesh": 0, "translation": [0.0, 0.0, 2.0]}]),
+        &[0],
+        rest,
+    )
+}
+
+/// Morph targets: the static pose is the mesh's weights, a weights channel over five
+/// targets drives them all (`Property::Weights(0)` and `(1)`), each vertex is
+/// `base + Σ w_i d_i` in target order, and the node still places the instance.
+#[test]
+fn morph_targets_move_vertices_by_their_weights() {
+    // Key 0: all 0; key 1: 1, 0.5, 0, 0, 2.
+    let out = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.0, 0.0, 2.0];
+    let mut s = ok(parse(&morph_document(5, true, &out)));
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+    let anim = s.animation.clone().expect("animated");
+    let props: Vec<Property> = anim.channels().iter().map(|c| c.property()).collect();
+    assert_eq!(props, [Property::Weights(0), Property::Weights(1)]);
+    let morph = &anim.morphs()[0];
+    assert_eq!(morph.target_count(), 5);
+    let expect = |w: [f32; 5]| -> Vec<Vec3> {
+        (0..3)
+            .map(|v| {
+                let mut p = Vec3::from(TRI[v]);
+                for (i, &w) in w.iter().enumerate() {
+                    if w != 0.0 {
+                        let d = Vec3::new((i + 1) as f32 / 8.0, v as f32 / 8.0, -1.0 / 8.0);
+                        p = Vec3::new(p.x + d.x * w, p.y + d.y * w, p.z + d.z * w);
+                    }
+                }
+                p
+            })
+            .collect()
+    };
+    // Loaded: the mesh's weights.
+    assert_eq!(s.meshes[0].positions, expect([0.25, 0.0, 0.0, 0.0, 0.0]));
+    assert_eq!(
+        anim.morph_weights_at(morph, Some(0.5)),
+        [0.5, 0.25, 0.0, 0.0, 1.0]
+    );
+    s.set_time(0.5);
+    assert_eq!(s.meshes[0].positions, expect([0.5, 0.25, 0.0, 0.0, 1.0]));
+    assert_eq!(
+        translation(s.instances[0].transform),
+        Vec3::new(0.0, 0.0, 2.0)
+    );
+    s.set_time(0.0);
+    assert_eq!(s.meshes[0].positions, expect([0.0; 5]));
+    assert_eq!(s.meshes[0].positions, TRI.map(Vec3::from));
+}
+
+/// Bad morph data is an error naming it: a target with the wrong count of deltas, a
+/// weights output that is not a whole number of entries.
+#[test]
+fn bad_morph_targets_are_errors_naming_them() {
+    let mut g = base();
+    let short = g.vec3(&[[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]]);
+    let text = document(
+        &g,
+        json!([{"mesh": 0}]),
+        &[0],
+        json!({"meshes": [{"primitives": [{
+            "attributes": {"POSITION": 0}, "indices": 1, "targets": [{"POSITION": short}],
+        }]}]}),
+    );
+    let e = parse(&text).expect_err("2 deltas for 3 vertices");
+    assert!(e.to_string().contains("morph target 0 POSITION"), "{e}");
+    // Two targets, three weights per... key: not a whole number of entries.
+    let e = parse(&morph_document(2, true, &[0.0, 0.0, 1.0])).expect_err("3 weights");
+    let msg = e.to_string();
+    assert!(msg.contains("weights") && msg.contains("2"), "{msg}");
+}
+
+/// `scenes/morph.gltf`: the sphere morphs alone (two LINEAR targets, placed by its node),
+/// the tube swells (one STEP target) before it is skinned; `deformed_at` is what
+/// `set_time` writes, and the two deformed meshes change over time.
+#[test]
+fn morph_scene_deforms_before_skinning() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/morph.gltf");
+    let mut scene = load(path).expect("loads");
+    assert!(scene.warnings.is_empty(), "{:?}", scene.warnings);
+    let anim = scene.animation.clone().expect("animated");
+    assert_eq!((anim.morphs().len(), anim.skins().len()), (2, 1));
+    let tube = anim.skins()[0].instance();
+    let sphere = anim
+        .morphs()
+        .iter()
+        .find(|m| m.instance() != tube)
+        .expect("sphere");
+    let tube_morph = anim
+        .morphs()
+        .iter()
+        .find(|m| m.instance() == tube)
+        .expect("tube");
+    // Static pose: the node's weights (0, 0) for the sphere, the mesh's (0.5) for the tube.
+    assert_eq!(sphere.static_weights(), [0.0, 0.0]);
+    assert_eq!(tube_morph.static_weights(), [0.5]);
+    assert_eq!(anim.morph_weights_at(sphere, Some(0.25)), [0.5, 0.0]);
+    assert_eq!(anim.morph_weights_at(sphere, Some(1.0)), [0.5, 1.0]);
+    assert_eq!(anim.morph_weights_at(tube_morph, Some(0.4)), [0.0]);
+    assert_eq!(anim.morph_weights_at(tube_morph, Some(0.6)), [1.0]);
+    let mesh_of = |s: &Scene, i: usize| s.meshes[s.instances[i].mesh].positions.clone();
+    let loaded = mesh_of(&scene, sphere.instance());
+    assert_eq!(loaded, sphere.base_positions());
+    for t in [0.6f32, 1.0] {
+        scene.set_time(t);
+        for d in anim.deformed_at(Some(t)) {
+            assert_eq!(mesh_of(&scene, d.instance), d.positions, "t = {t}");
+        }
+    }
+    // The sphere at t = 1: base + 0.5 stretch + 1.0 bulge, by the targets' deltas.
+    let n = sphere.base_positions().len();
+    let (stretch, bulge) = sphere.position_deltas().split_at(n);
+    let want: Vec<Vec3> = (sphere.base_positions().iter().zip(stretch).zip(bulge))
+        .map(|((&b, &s), &u)| bvhtrace_scene::morph_vertex(b, [(0.5, s), (1.0, u)]))
+        .collect();
+    assert_eq!(mesh_of(&scene, sphere.instance()), want);
+    assert_ne!(want, loaded, "the sphere did not morph");
+    assert_eq!(
+        translation(scene.instances[sphere.instance()].transform),
+        Vec3::new(-0.9, 0.6, 0.3)
+    );
+    // The tube swells, then bends: its middle ring is wider than the unmorphed skin's.
+    let unmorphed = anim.skins()[0].skinned(
+        &anim.skins()[0].joint_matrices(&anim.node_transforms_at(1.0), anim.global_transform()),
+    );
+    assert_ne!(mesh_of(&scene, tube), unmorphed.0, "the tube did not swell");
 }

@@ -104,7 +104,7 @@ impl SceneData {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseTimes {
     /// True when only the top level was rebuilt (two levels); false when the whole
-    /// flattened BVH was, or skinned meshes were refitted too.
+    /// flattened BVH was, or deformed (skinned or morphed) meshes were refitted too.
     pub top_level: bool,
     /// Computing the poses and rebuilding the BVH (the top level, or all of a flattened
     /// one), milliseconds.
@@ -116,26 +116,32 @@ pub struct PoseTimes {
     pub reuploaded: bool,
 }
 
-/// Refits each skinned mesh of `ib` to `scene`'s pose at `t`, rebuilding it instead past
-/// [`REFIT_REBUILD_ADVISED`] (the refit's rule; a rebuild changes the layout's shape):
-/// `None` without skins, else whether a mesh was rebuilt.
-fn pose_skins(
+/// Whether `scene` has meshes its animation deforms (skins or morph targets).
+fn deforms(scene: &Scene) -> bool {
+    (scene.animation.as_ref()).is_some_and(|a| !a.skins().is_empty() || !a.morphs().is_empty())
+}
+
+/// Refits each deformed mesh (skins and morph targets) of `ib` to `scene`'s pose at `t`,
+/// rebuilding it instead past [`REFIT_REBUILD_ADVISED`] (the refit's rule; a rebuild
+/// changes the layout's shape): `None` without deformed meshes, else whether a mesh was
+/// rebuilt.
+fn pose_deformed(
     ib: &mut InstancedBvh,
     scene: &Scene,
     t: f32,
     opts: &BuildOptions,
 ) -> Result<Option<bool>, String> {
-    let Some(a) = scene.animation.as_ref().filter(|a| !a.skins().is_empty()) else {
+    let Some(a) = scene.animation.as_ref().filter(|_| deforms(scene)) else {
         return Ok(None);
     };
     let mut rebuilt = false;
-    for (skin, (positions, _)) in a.skins().iter().zip(a.skinned_at(Some(t))) {
-        let s = skin.instance();
+    for d in a.deformed_at(Some(t)) {
+        let (s, positions) = (d.instance, d.positions);
         let Some(m) = ib.instances().iter().find(|i| i.user_id as usize == s) else {
             continue;
         };
         let m = m.mesh as usize;
-        let bad = |e: String| format!("the skin of instance {s} at t = {t} s: {e}");
+        let bad = |e: String| format!("the deformed mesh of instance {s} at t = {t} s: {e}");
         let mesh = (scene.instances.get(s))
             .and_then(|i| scene.meshes.get(i.mesh))
             .ok_or_else(|| bad("its mesh is gone".into()))?;
@@ -143,7 +149,7 @@ fn pose_skins(
             .map(|t| t.map(|i| positions.get(i as usize).copied()))
             .map(|[a, b, c]| Some([a?, b?, c?]))
             .collect::<Option<Vec<_>>>()
-            .ok_or_else(|| bad("an index past the skinned vertices".into()))?;
+            .ok_or_else(|| bad("an index past the deformed vertices".into()))?;
         ib.refit_mesh(m, &tris).map_err(|e| bad(e.to_string()))?;
         if ib.refit_quality(m) > REFIT_REBUILD_ADVISED {
             *ib = ib
@@ -238,29 +244,25 @@ impl BuiltBvh {
                         m.map_or(i.transform, Affine3A::from_mat4)
                     })
                     .collect();
-                let has_skins = scene
-                    .animation
-                    .as_ref()
-                    .is_some_and(|a| !a.skins().is_empty());
-                // With skins, posed on a copy: a refused skin leaves the geometry as it was
-                // (`set_transforms` alone refuses before it changes anything).
-                let mut copy = has_skins.then(|| ib.clone());
+                // With deformed meshes, posed on a copy: a refused mesh leaves the geometry
+                // as it was (`set_transforms` alone refuses before it changes anything).
+                let mut copy = deforms(scene).then(|| ib.clone());
                 let posed = copy.as_mut().unwrap_or(ib);
                 posed
                     .set_transforms(&transforms)
                     .map_err(|e| format!("the pose at t = {t} s: {e}"))?;
-                let skinned = pose_skins(posed, scene, t, &self.options)?;
+                let deformed = pose_deformed(posed, scene, t, &self.options)?;
                 if let Some(c) = copy {
                     *ib = c;
                 }
-                times.top_level = skinned.is_none();
+                times.top_level = deformed.is_none();
                 times.rebuild_ms = t0.elapsed().as_secs_f64() * 1e3;
                 let t1 = Instant::now();
                 if let Ok(shared) = &mut self.gpu {
                     let g = Arc::get_mut(shared).ok_or_else(busy)?;
                     let written = match g.update(ib.bvh()) {
-                        // A skinned mesh rebuilt: another shape, a new upload.
-                        Err(TraceError::BadBuffer { .. }) if skinned == Some(true) => {
+                        // A deformed mesh rebuilt: another shape, a new upload.
+                        Err(TraceError::BadBuffer { .. }) if deformed == Some(true) => {
                             times.reuploaded = true;
                             upload(self.context.as_ref(), ib.bvh()).map(|fresh| *shared = fresh)
                         }
@@ -824,27 +826,33 @@ mod animation_tests {
         assert_eq!(hits(&scene, &mut built), at0);
     }
 
-    /// A skinned mesh in two levels (`scenes/skinned.gltf`) follows its joints: posed at
-    /// t = 0.75 it is refitted (not only the top level) and traces as a fresh build at that
-    /// time, and back at 0 as the first build.
+    /// Deformed meshes in two levels follow their joints and weights (`scenes/skinned.gltf`:
+    /// a skin; `scenes/morph.gltf`: morph targets too): posed at t = 0.75 they are
+    /// refitted (not only the top level) and trace as a fresh build at that time, and back
+    /// at 0 as the first build.
     #[test]
-    fn a_pose_refits_skinned_meshes() {
-        let spec = format!("{}/../../scenes/skinned.gltf", env!("CARGO_MANIFEST_DIR"));
-        let JobOutput {
-            scene, mut built, ..
-        } = built(&spec, 0.0);
-        assert!(built.geometry.is_two_level());
-        let at0 = hits(&scene, &mut built);
-        let times = built.pose(&scene.scene, 0.75).expect("poses");
-        assert!(!times.top_level, "the skinned mesh was not refitted");
-        let at1 = hits(&scene, &mut built);
-        assert_ne!(at0, at1, "the skin moved nothing the camera sees");
-        let JobOutput {
-            built: mut fresh, ..
-        } = super::animation_tests::built(&spec, 0.75);
-        assert_eq!(hits(&scene, &mut fresh), at1);
-        built.pose(&scene.scene, 0.0).expect("poses");
-        assert_eq!(hits(&scene, &mut built), at0);
+    fn a_pose_refits_deformed_meshes() {
+        for file in ["skinned", "morph"] {
+            let spec = format!("{}/../../scenes/{file}.gltf", env!("CARGO_MANIFEST_DIR"));
+            let JobOutput {
+                scene, mut built, ..
+            } = built(&spec, 0.0);
+            assert!(built.geometry.is_two_level(), "{file}");
+            let at0 = hits(&scene, &mut built);
+            let times = built.pose(&scene.scene, 0.75).expect("poses");
+            assert!(
+                !times.top_level,
+                "{file}: the deformed meshes were not refitted"
+            );
+            let at1 = hits(&scene, &mut built);
+            assert_ne!(at0, at1, "{file}: the pose moved nothing the camera sees");
+            let JobOutput {
+                built: mut fresh, ..
+            } = super::animation_tests::built(&spec, 0.75);
+            assert_eq!(hits(&scene, &mut fresh), at1, "{file}");
+            built.pose(&scene.scene, 0.0).expect("poses");
+            assert_eq!(hits(&scene, &mut built), at0, "{file}");
+        }
     }
 
     /// A pose written into the upload in place traces as a fresh build at that time, on

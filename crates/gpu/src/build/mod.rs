@@ -18,9 +18,11 @@
 
 mod ploc;
 mod refit;
+mod morph;
 mod skin;
 
 pub use refit::{GpuRefit, RefitTimes, RefitVertices};
+pub use morph::GpuMorph;
 pub use skin::GpuSkin;
 
 use std::time::Instant;

@@ -2,26 +2,83 @@
 //! `bvhtrace_scene::skin_vertex`): a skinned mesh's bind pose, joints and weights are
 //! uploaded once; each frame its joint matrices are written and its positions skinned
 //! where they are traced, into a buffer a [`crate::GpuRefit`] reads
-//! ([`GpuSkin::vertices`]).
+//! ([`GpuSkin::vertices`]). The bind pose can be what a [`GpuMorph`] writes
+//! ([`GpuSkin::after_morph`]): morph targets first, then the skin, as glTF says.
 
-use bvhtrace_kernels::build::{SKIN_STEP, SkinParams, skin_source};
+use bvhtrace_kernels::build::{SKIN_STEP, SkinParams, Step, skin_source};
 use glam::{Mat4, Vec3};
 
 use super::{empty, grid, init, read_after};
-use crate::{GpuContext, GpuError, RefitVertices};
+use crate::{GpuContext, GpuError, GpuMorph, RefitVertices};
 
 /// One skinned mesh on the device: its bind pose, joints and weights, its joint
 /// matrices, and the positions [`GpuSkin::record`] writes.
 #[derive(Debug)]
 pub struct GpuSkin {
     ctx: GpuContext,
-    pipeline: wgpu::ComputePipeline,
-    group: wgpu::BindGroup,
+    dispatch: VertexDispatch,
     matrices: wgpu::Buffer,
     positions: wgpu::Buffer,
     vertices: u32,
     joints: u32,
+}
+
+/// One compute program over a mesh's vertices, bound once: the morph and the skin.
+#[derive(Debug)]
+pub(super) struct VertexDispatch {
+    pipeline: wgpu::ComputePipeline,
+    group: wgpu::BindGroup,
     grid: (u32, u32),
+}
+
+impl VertexDispatch {
+    /// Compiles (or takes from the cache) program `name` and binds `buffers` (indexed by
+    /// binding) to the bindings `step` lists, for `vertices` invocations.
+    pub(super) fn new(
+        ctx: &GpuContext,
+        name: &'static str,
+        source: fn() -> String,
+        step: Step,
+        buffers: &[&wgpu::Buffer],
+        vertices: u64,
+    ) -> Result<VertexDispatch, GpuError> {
+        let pipeline = ctx.device_program(name, source, &[step.0])?.swap_remove(0);
+        let (x, y, _) = grid(vertices, ctx.limits().max_compute_workgroups_per_dimension);
+        let group = ctx.scoped("binding a vertex program on the device", || {
+            let entries: Vec<wgpu::BindGroupEntry<'_>> = (step.1.iter())
+                .map(|&b| wgpu::BindGroupEntry {
+                    binding: b,
+                    resource: buffers[b as usize].as_entire_binding(),
+                })
+                .collect();
+            ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(name),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
+            })
+        })?;
+        Ok(VertexDispatch {
+            pipeline,
+            group,
+            grid: (x, y),
+        })
+    }
+
+    /// The invocations per row of the dispatch grid for `vertices` (the programs' `row`).
+    pub(super) fn row(ctx: &GpuContext, vertices: u64) -> u32 {
+        grid(vertices, ctx.limits().max_compute_workgroups_per_dimension).2
+    }
+
+    /// Records the dispatch into `enc`.
+    pub(super) fn record(&self, enc: &mut wgpu::CommandEncoder, label: &str) {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.group, &[]);
+        pass.dispatch_workgroups(self.grid.0, self.grid.1, 1);
+    }
 }
 
 impl GpuSkin {
@@ -36,7 +93,52 @@ impl GpuSkin {
         vertex_weights: &[[f32; 4]],
         joints: u32,
     ) -> Result<GpuSkin, GpuError> {
-        let n = bind.len();
+        let usage = wgpu::BufferUsages::STORAGE;
+        let buffer = init(
+            ctx.device(),
+            "skin bind pose",
+            bytemuck::cast_slice(bind),
+            usage,
+        );
+        Self::with_bind(
+            ctx,
+            buffer,
+            bind.len(),
+            vertex_joints,
+            vertex_weights,
+            joints,
+        )
+    }
+
+    /// A skin whose bind pose is what `morph` writes: record the morph before the skin
+    /// ([`GpuSkin::record`] after [`GpuMorph::record`]). The same arrays as
+    /// [`GpuSkin::new`], one entry per vertex of the morphed mesh.
+    pub fn after_morph(
+        morph: &GpuMorph,
+        vertex_joints: &[[u16; 4]],
+        vertex_weights: &[[f32; 4]],
+        joints: u32,
+    ) -> Result<GpuSkin, GpuError> {
+        let (ctx, buffer, n) = morph.output();
+        Self::with_bind(
+            ctx,
+            buffer.clone(),
+            n,
+            vertex_joints,
+            vertex_weights,
+            joints,
+        )
+    }
+
+    /// [`GpuSkin::new`] over a bind pose already on the device: `n` packed positions.
+    fn with_bind(
+        ctx: &GpuContext,
+        bind: wgpu::Buffer,
+        n: usize,
+        vertex_joints: &[[u16; 4]],
+        vertex_weights: &[[f32; 4]],
+        joints: u32,
+    ) -> Result<GpuSkin, GpuError> {
         if n == 0 || joints == 0 || vertex_joints.len() != n || vertex_weights.len() != n {
             return Err(GpuError::BadBuffer {
                 buffer: "skin",
@@ -48,15 +150,11 @@ impl GpuSkin {
                 ),
             });
         }
-        let pipeline = ctx
-            .device_program("skin", skin_source, &[SKIN_STEP.0])?
-            .swap_remove(0);
         let device = ctx.device();
-        let (x, y, row) = grid(n as u64, ctx.limits().max_compute_workgroups_per_dimension);
         let params = SkinParams {
             vertices: n as u32,
             joints,
-            row,
+            row: VertexDispatch::row(ctx, n as u64),
             pad: 0,
         };
         use wgpu::BufferUsages as U;
@@ -68,7 +166,6 @@ impl GpuSkin {
             bytemuck::bytes_of(&params),
             U::UNIFORM,
         );
-        let bind = storage("skin bind pose", bytemuck::cast_slice(bind));
         let js = storage("skin joints", bytemuck::cast_slice(&wide));
         let ws = storage("skin weights", bytemuck::cast_slice(vertex_weights));
         let matrices = empty(
@@ -84,30 +181,15 @@ impl GpuSkin {
             U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let buffers = [&params, &bind, &js, &ws, &matrices, &positions];
-        let group = ctx.scoped("preparing a skin on the device", || {
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = SKIN_STEP
-                .1
-                .iter()
-                .map(|&b| wgpu::BindGroupEntry {
-                    binding: b,
-                    resource: buffers[b as usize].as_entire_binding(),
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("skin"),
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            })
-        })?;
+        let dispatch =
+            VertexDispatch::new(ctx, "skin", skin_source, SKIN_STEP, &buffers, n as u64)?;
         Ok(GpuSkin {
             ctx: ctx.clone(),
-            pipeline,
-            group,
+            dispatch,
             matrices,
             positions,
             vertices: n as u32,
             joints,
-            grid: (x, y),
         })
     }
 
@@ -138,13 +220,7 @@ impl GpuSkin {
 
     /// Records the skinning into `enc`: the positions from the matrices last written.
     pub fn record(&self, enc: &mut wgpu::CommandEncoder) {
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("skin"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &self.group, &[]);
-        pass.dispatch_workgroups(self.grid.0, self.grid.1, 1);
+        self.dispatch.record(enc, "skin");
     }
 
     /// The skinned positions as a refit reads them: packed `xyz`, one per vertex, with the
@@ -165,6 +241,12 @@ impl GpuSkin {
             .device()
             .create_command_encoder(&Default::default());
         self.record(&mut enc);
+        self.read_after(enc)
+    }
+
+    /// Submits `enc` (with a morph and this skin recorded into it, say) and reads the
+    /// skinned positions back: for checks.
+    pub fn read_after(&self, enc: wgpu::CommandEncoder) -> Result<Vec<Vec3>, GpuError> {
         let source = [(&self.positions, u64::from(self.vertices) * 12)];
         let bytes = read_after(&self.ctx, "skinning on the device", enc, &source)?;
         Ok(bytemuck::pod_collect_to_vec(&bytes))
