@@ -40,7 +40,8 @@ pub struct BenchRefitArgs {
     #[arg(long)]
     pub embree: Option<std::path::PathBuf>,
     /// Also refit on the GPU (`GpuRefit`, the BVH in buffers) after the same deformation,
-    /// from the moved vertices uploaded there: the refit alone and with the upload.
+    /// from the moved vertices uploaded there: the refit alone and with the upload; and
+    /// rebuild the many instances' top level on the GPU (PLOC) beside the CPU's.
     #[arg(long)]
     pub gpu: bool,
     /// Vulkan adapter for `--gpu` (a name substring, or `cpu`/`gpu`).
@@ -133,6 +134,29 @@ fn gpu_refit(
         host_copy_ms: median(host_copies),
         dispatches: refit.dispatches(),
     })
+}
+
+/// The median wall time, milliseconds, of moving `two`'s instances with the top level
+/// rebuilt on the device (PLOC), alternating between `moves`, `runs` times after a first
+/// run that compiles the pipelines.
+fn gpu_top_level(
+    two: &bvhtrace_core::InstancedBvh,
+    moves: &[&Vec<Affine3A>; 2],
+    runs: usize,
+    adapter: Option<&str>,
+) -> Result<f64> {
+    use bvhtrace_gpu::{GpuBuildOptions, GpuContext};
+    let ctx = GpuContext::new(crate::backend::adapter_choice(adapter))
+        .context("--gpu builds the top level on a GPU")?;
+    let (mut two, opts) = (two.clone(), GpuBuildOptions::default());
+    ctx.set_transforms_on_device(&mut two, moves[1], &opts)?;
+    let mut walls = Vec::new();
+    for run in 0..runs {
+        let (r, ms) = time(|| ctx.set_transforms_on_device(&mut two, moves[run % 2], &opts));
+        r?;
+        walls.push(ms);
+    }
+    Ok(median(walls))
 }
 
 /// Every vertex moved by a smooth field of amplitude `a` (a fraction of the extent): the
@@ -306,6 +330,17 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         tops.push(ms);
     }
     let top_ms = median(tops);
+    let gpu_top_ms = if args.gpu {
+        let moves = [&moved, &original];
+        Some(gpu_top_level(
+            &two,
+            &moves,
+            args.runs,
+            args.adapter.as_deref(),
+        )?)
+    } else {
+        None
+    };
     let (top_bytes, mesh_bytes) = two.level_bytes();
     say!(
         "{inst_spec}: {} instances of {} meshes ({} triangles instanced): top-level rebuild \
@@ -315,6 +350,9 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         two.meshes().len(),
         two.instanced_primitives()
     );
+    if let Some(ms) = gpu_top_ms {
+        say!("  the top level rebuilt on the device (PLOC, with upload and read back): {ms:.2} ms");
+    }
     if let Some(j) = json_out {
         j.write(&json!({
             "scene": spec, "triangles": tris.len(), "runs": args.runs,
@@ -323,6 +361,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
             "instances_scene": inst_spec, "instances": two.instances().len(),
             "meshes": two.meshes().len(), "top_rebuild_ms": top_ms, "two_level_build_ms": full_ms,
             "top_level_bytes": top_bytes, "mesh_bytes": mesh_bytes,
+            "gpu_top_rebuild_ms": gpu_top_ms,
         }))?;
     }
     Ok(())

@@ -204,6 +204,74 @@ fn world_box(d: &DAffine3, b: &Aabb) -> Aabb {
     }
 }
 
+/// A triangle standing for box `b` in a builder over triangles: `[min, max, centre]`, whose
+/// bounding box is `b` exactly and whose centroid is `b`'s centre (halves first, so huge
+/// boxes do not overflow). What a top level built by such a builder takes
+/// ([`InstancedBvh::set_transforms_with`]).
+pub fn box_triangle(b: &Aabb) -> Triangle {
+    [b.min, b.max, b.min * 0.5 + b.max * 0.5]
+}
+
+/// Where the top level comes from: our CPU builder, or a caller's builder over the world
+/// boxes ([`InstancedBvh::set_transforms_with`]).
+enum TopLevel<'a> {
+    Cpu,
+    Given(&'a mut dyn FnMut(&[Aabb]) -> Result<FlatBvh, String>),
+}
+
+/// Checks a caller's top-level tree over `boxes`: `2n - 1` nodes, each reached once from
+/// the root (left child next, right child later), each leaf one box (every box once), each
+/// leaf's box containing its box and each interior node's its children's. Returns its
+/// depth.
+fn check_top_tree(tree: &FlatBvh, boxes: &[Aabb]) -> Result<u32, String> {
+    let n = boxes.len();
+    let nodes = &tree.nodes;
+    if nodes.len() != 2 * n - 1 || tree.triangles.len() != n {
+        return Err(format!(
+            "{} nodes and {} leaf slots for {n} instances (want {} and {n})",
+            nodes.len(),
+            tree.triangles.len(),
+            2 * n - 1
+        ));
+    }
+    let (mut reached, mut seen) = (vec![false; nodes.len()], vec![false; n]);
+    let contains = |a: &Aabb, b: &Aabb| a.min.cmple(b.min).all() && a.max.cmpge(b.max).all();
+    let (mut stack, mut depth) = (vec![(0usize, 0u32)], 0);
+    while let Some((i, d)) = stack.pop() {
+        depth = depth.max(d);
+        if std::mem::replace(&mut reached[i], true) {
+            return Err(format!("node {i} is reached twice"));
+        }
+        let (node, b) = (&nodes[i], nodes[i].aabb());
+        if node.is_leaf() {
+            let prim = (tree.triangles.get(node.right_or_first as usize)).map(|t| t.prim as usize);
+            match prim {
+                Some(p) if node.count() == 1 && p < n && !seen[p] && contains(&b, &boxes[p]) => {
+                    seen[p] = true;
+                }
+                _ => {
+                    return Err(format!(
+                        "leaf {i} is not one instance's box, once, contained"
+                    ));
+                }
+            }
+        } else {
+            let (l, r) = (i + 1, node.right_or_first as usize);
+            if r <= l || r >= nodes.len() {
+                return Err(format!("node {i}'s children {l} and {r} are out of order"));
+            }
+            if !contains(&b, &nodes[l].aabb()) || !contains(&b, &nodes[r].aabb()) {
+                return Err(format!("node {i} does not contain its children"));
+            }
+            stack.extend([(r, d + 1), (l, d + 1)]);
+        }
+    }
+    match reached.iter().position(|r| !r) {
+        Some(i) => Err(format!("node {i} is not reached from the root")),
+        None => Ok(depth),
+    }
+}
+
 /// SAH cost of `nodes` (one tree, its root first), traversal 1 and intersection 1,
 /// normalised by the root's area ([`crate::BvhStats::sah_cost`]'s convention).
 fn sah_cost(nodes: &[FlatNode]) -> f64 {
@@ -300,8 +368,16 @@ impl InstancedBvh {
     }
 
     /// Replaces the instances (same count: the layout keeps its size) and rebuilds the
-    /// top level.
+    /// top level with our binned SAH builder.
     fn set_instances(&mut self, instances: Vec<Instance>) -> Result<(), InstanceError> {
+        self.set_instances_with(instances, TopLevel::Cpu)
+    }
+
+    /// The instances' records and world boxes, or why one cannot be placed.
+    fn place(
+        &self,
+        instances: &[Instance],
+    ) -> Result<(Vec<FlatInstance>, Vec<Aabb>), InstanceError> {
         let mut flat = Vec::with_capacity(instances.len());
         let mut boxes = Vec::with_capacity(instances.len());
         let mut prim_base = 0u64;
@@ -333,13 +409,34 @@ impl InstancedBvh {
         if prim_base >= u64::from(INCOMPLETE) {
             return Err(InstanceError::TooManyPrimitives(prim_base));
         }
-        let tree = build_boxes(&boxes, &top_options()).map_err(|e| InstanceError::BadInstance {
-            index: 0,
-            problem: e.to_string(),
-        })?;
+        Ok((flat, boxes))
+    }
+
+    /// [`InstancedBvh::set_instances`] with the top level from `top`.
+    fn set_instances_with(
+        &mut self,
+        instances: Vec<Instance>,
+        top: TopLevel<'_>,
+    ) -> Result<(), InstanceError> {
+        let (flat, boxes) = self.place(&instances)?;
+        let bad = |problem: String| InstanceError::BadInstance { index: 0, problem };
         let mut next = 0u32;
         self.top_depth = 0;
-        self.emit_top(&tree.root, &tree.prim_order, &mut next, 0);
+        match top {
+            TopLevel::Cpu => {
+                let tree = build_boxes(&boxes, &top_options()).map_err(|e| bad(e.to_string()))?;
+                self.emit_top(&tree.root, &tree.prim_order, &mut next, 0);
+            }
+            TopLevel::Given(build) => {
+                let tree =
+                    build(&boxes).map_err(|e| bad(format!("the top level's builder: {e}")))?;
+                let depth = check_top_tree(&tree, &boxes)
+                    .map_err(|e| bad(format!("the top level given: {e}")))?;
+                self.copy_top(&tree);
+                self.top_depth = depth;
+                next = tree.nodes.len() as u32;
+            }
+        }
         debug_assert_eq!(next, self.bvh.top_nodes);
         let top = self.bvh.top_nodes as usize;
         // Built links: the top level's rewritten (the meshes' stay); unbuilt: left so.
@@ -357,6 +454,62 @@ impl InstancedBvh {
             self.bvh.build_wide();
         }
         Ok(())
+    }
+
+    /// Moves the instances as [`InstancedBvh::set_transforms`] does, with the top level
+    /// built by `build` instead of our CPU builder: given the instances' world boxes (in
+    /// instance order, conservative), it returns a BVH over them in the [`FlatBvh`]
+    /// layout with one box per leaf, the box's index as the leaf triangle's `prim` (as a
+    /// builder over triangles `[min, max, centre]` of each box gives it; the device builder
+    /// in bvhtrace-gpu does, `GpuContext::set_transforms_on_device`). A tree that is not
+    /// such a tree (a box missing or twice, a leaf of several, a box not contained) is an
+    /// error, and like any error leaves the BVH as it was.
+    pub fn set_transforms_with(
+        &mut self,
+        transforms: &[Affine3A],
+        build: &mut dyn FnMut(&[Aabb]) -> Result<FlatBvh, String>,
+    ) -> Result<(), InstanceError> {
+        let moved = self.moved(transforms)?;
+        let mut copy = self.clone();
+        copy.set_instances_with(moved, TopLevel::Given(build))?;
+        *self = copy;
+        Ok(())
+    }
+
+    /// The instances with `transforms`, one per instance.
+    fn moved(&self, transforms: &[Affine3A]) -> Result<Vec<Instance>, InstanceError> {
+        if transforms.len() != self.instances.len() {
+            return Err(InstanceError::BadInstance {
+                index: transforms.len().min(self.instances.len()),
+                problem: format!(
+                    "{} transforms for {} instances",
+                    transforms.len(),
+                    self.instances.len()
+                ),
+            });
+        }
+        Ok(self
+            .instances
+            .iter()
+            .zip(transforms)
+            .map(|(i, t)| Instance {
+                transform: *t,
+                ..*i
+            })
+            .collect())
+    }
+
+    /// Copies a checked top-level tree ([`check_top_tree`]) over the top nodes: leaves
+    /// name their instance.
+    fn copy_top(&mut self, tree: &FlatBvh) {
+        for (i, n) in tree.nodes.iter().enumerate() {
+            let mut n = *n;
+            if n.is_leaf() {
+                n.right_or_first = tree.triangles[n.right_or_first as usize].prim;
+                n.meta = 1 << 2 | INSTANCE_LEAF;
+            }
+            self.bvh.nodes[i] = n;
+        }
     }
 
     fn emit_top(&mut self, node: &BuildNode, order: &[u32], next: &mut u32, depth: u32) -> u32 {
@@ -446,25 +599,7 @@ impl InstancedBvh {
     /// level rebuilt. An unusable transform is an error naming the instance, and leaves
     /// the BVH as it was.
     pub fn set_transforms(&mut self, transforms: &[Affine3A]) -> Result<(), InstanceError> {
-        if transforms.len() != self.instances.len() {
-            return Err(InstanceError::BadInstance {
-                index: transforms.len().min(self.instances.len()),
-                problem: format!(
-                    "{} transforms for {} instances",
-                    transforms.len(),
-                    self.instances.len()
-                ),
-            });
-        }
-        let moved = self
-            .instances
-            .iter()
-            .zip(transforms)
-            .map(|(i, t)| Instance {
-                transform: *t,
-                ..*i
-            })
-            .collect();
+        let moved = self.moved(transforms)?;
         self.set_instances(moved)
     }
 

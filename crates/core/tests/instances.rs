@@ -282,6 +282,59 @@ fn new_transforms_rebuild_the_top_level_in_place() {
     check_walks(ib.bvh(), &rays(&flatten(&m, &inst2), 1000));
 }
 
+/// A top level from another builder over the instances' boxes (as the device's builder
+/// gives it) traces as the CPU's does, every walk; a tree that is not one box per leaf,
+/// every box once, or a builder's error, is refused with the BVH left as it was.
+#[test]
+fn a_top_level_built_elsewhere_is_checked_and_traced() {
+    use bvhtrace_core::{BuilderKind, instance::box_triangle};
+    let (m, inst) = (meshes(), instances());
+    let mut ib = InstancedBvh::build(&m, inst.clone(), &BuildOptions::default()).unwrap();
+    let moved: Vec<Affine3A> = (inst.iter().enumerate())
+        .map(|(k, i)| Affine3A::from_rotation_y(0.3 * k as f32) * i.transform)
+        .collect();
+    let over = |boxes: &[bvhtrace_core::Aabb], leaf: usize, skip: usize| {
+        let tris: Vec<Triangle> = boxes[skip..].iter().map(box_triangle).collect();
+        // Leaves of several boxes when allowed: traversal costs more than testing them.
+        let opts = BuildOptions {
+            builder: BuilderKind::Median,
+            max_leaf_size: leaf,
+            cost_traversal: if leaf > 1 { 100.0 } else { 1.0 },
+            ..BuildOptions::default()
+        };
+        FlatBvh::build(&tris, &opts).map_err(|e| e.to_string())
+    };
+    let before = ib.clone();
+    for (bad, want) in [((4, 0), "leaf"), ((1, 1), "nodes"), ((0, 0), "builder")] {
+        let mut build = |b: &[bvhtrace_core::Aabb]| match bad {
+            (0, _) => Err("the device is gone".to_string()),
+            (leaf, skip) => over(b, leaf, skip),
+        };
+        let e = ib
+            .set_transforms_with(&moved, &mut build)
+            .expect_err("a bad top level");
+        assert!(e.to_string().contains(want), "{e}");
+        assert_eq!(ib, before, "a refused top level changed the BVH");
+    }
+    ib.set_transforms_with(&moved, &mut |b| over(b, 1, 0))
+        .unwrap();
+    ib.bvh().check_invariants().unwrap();
+    let mut cpu = before.clone();
+    cpu.set_transforms(&moved).unwrap();
+    assert_ne!(
+        ib.bvh().nodes(),
+        cpu.bvh().nodes(),
+        "the median tree is another tree"
+    );
+    let placed: Vec<Instance> = (inst.iter().zip(&moved))
+        .map(|(i, t)| Instance {
+            transform: *t,
+            ..*i
+        })
+        .collect();
+    check_walks(ib.bvh(), &rays(&flatten(&m, &placed), 1000));
+}
+
 #[test]
 fn refit_keeps_every_walk_exact_and_reports_quality() {
     let (mut m, inst) = (meshes(), instances());

@@ -20,6 +20,7 @@ mod ploc;
 mod refit;
 mod morph;
 mod skin;
+mod top;
 
 pub use refit::{GpuRefit, RefitTimes, RefitVertices};
 pub use morph::GpuMorph;
