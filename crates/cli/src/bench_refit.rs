@@ -44,7 +44,7 @@ pub struct BenchRefitArgs {
     /// rebuild the many instances' top level on the GPU (PLOC) beside the CPU's.
     #[arg(long)]
     pub gpu: bool,
-    /// Vulkan adapter for `--gpu` (a name substring, or `cpu`/`gpu`).
+    /// Vulkan adapter for `--gpu` (a substring of its name, e.g. `llvmpipe` or `NVIDIA`).
     #[arg(long)]
     pub adapter: Option<String>,
 }
