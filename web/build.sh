@@ -13,7 +13,7 @@ cargo build --release --target wasm32-unknown-unknown -p bvhtrace-viewer-web
 mkdir -p web/dist
 for crate in bvhtrace_web bvhtrace_viewer_web; do
   wasm-bindgen --target web --no-typescript --out-dir web/dist \
-    "target/wasm32-unknown-unknown/release/$crate.wasm"
+    "${CARGO_TARGET_DIR:-target}/wasm32-unknown-unknown/release/$crate.wasm"
   wasm="web/dist/${crate}_bg.wasm"
   if [ "${WASM_OPT:-0}" = 1 ]; then
     wasm-opt -Oz --all-features "$wasm" -o "$wasm.opt"

@@ -2,14 +2,19 @@
 # The browser test: builds the wasm (web/build.sh), serves it on 127.0.0.1 to headless
 # Chromium, and checks two pages:
 #  - the library: a fixed camera's rays traced on WebGPU (SwiftShader), every hit against
-#    the CPU twin's, bit for bit: prints `browser parity: N hits, 0 differ`;
+#    the CPU twin's, bit for bit: prints `browser parity: N hits, 0 differ`; then the BVH
+#    built on WebGPU (gpu-ploc, gpu-lbvh) and read back: the tree checked, the rays traced
+#    over it in the browser (GPU and WebAssembly) against the CPU walk over the same tree,
+#    bit for bit, with the build's time: prints `browser device build (gpu-ploc): built in
+#    X ms ...; N hits, 0 differ from the CPU walks over the read-back tree`;
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
 #    levels, playing; then that a bad flag and a broken file show their errors on the page.
-# The library check also opens the example page (index.html) and checks the hits it prints.
-# Exits non-zero on any difference or page error. Flags go to the library check
-# (`--size WxH`).
+# The library check also opens the example page (index.html) and checks the hits it prints,
+# with the BVH built in WebAssembly and on the device. Exits non-zero on any difference or
+# page error. Flags go to the library check (`--size WxH`, `--device-builders LIST|none`).
+# Honours CARGO_TARGET_DIR.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 web/build.sh

@@ -22,6 +22,8 @@ pub struct BvhBindGroup<'a> {
 }
 
 impl<'a> BvhBindGroup<'a> {
+    // Only the ray-query tracer, which a browser build leaves out, makes one this way.
+    #[cfg_attr(target_arch = "wasm32", allow(dead_code))]
     pub(crate) fn new(group: &'a wgpu::BindGroup, layout: &'a wgpu::BindGroupLayout) -> Self {
         BvhBindGroup { group, layout }
     }

@@ -1,8 +1,9 @@
-//! The BVHs built on the device (`GpuContext::build_bvh`, both builders), read back: every
-//! structural invariant of the flat layout (every triangle once, boxes holding their
-//! children and triangles), the same tree for the same input, degenerate inputs, and the
-//! same closest hits as the CPU's SAH tree, traced by the CPU walks and by the GPU. Without
-//! a Vulkan adapter the tests print SKIP.
+//! The BVHs built on the device (`GpuContext::build_bvh` and `build_bvh_async`, both
+//! builders), read back: every structural invariant of the flat layout (every triangle
+//! once, boxes holding their children and triangles), the same tree for the same input
+//! (blocking and awaited), degenerate inputs, and the same closest hits as the CPU's SAH
+//! tree, traced by the CPU walks and by the GPU. Without a Vulkan adapter the tests print
+//! SKIP.
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle, trace_rays};
 use bvhtrace_gpu::{
@@ -63,7 +64,8 @@ fn check_one(ctx: &GpuContext, name: &str, tris: &[Triangle], kind: GpuBuilderKi
     if kind == GpuBuilderKind::Lbvh {
         assert_eq!(leaves, tris.len(), "{name}: one triangle a leaf");
     }
-    let (again, _) = ctx.build_bvh(tris, &opts).expect("device build");
+    // The second build through the future (what a browser awaits): the same tree.
+    let (again, _) = pollster::block_on(ctx.build_bvh_async(tris, &opts)).expect("device build");
     assert!(
         bytemuck::cast_slice::<_, u8>(bvh.nodes()) == bytemuck::cast_slice::<_, u8>(again.nodes())
             && bytemuck::cast_slice::<_, u8>(bvh.triangles())

@@ -3,23 +3,43 @@
 //! SwiftShader), has it build the BVH in WebAssembly and trace a fixed camera's rays on
 //! the browser's WebGPU, and checks every hit against the CPU twin's (`trace_rays`, same
 //! triangles, same rays, same walk) bit for bit. Prints `browser parity: N hits, 0 differ`
-//! and exits non-zero on any difference, page error or timeout. Then opens the library's
-//! example page (`index.html`) and checks the hits it prints. `web/test.sh` runs it.
+//! and exits non-zero on any difference, page error or timeout.
+//!
+//! Then the BVH built on the browser's WebGPU: for each device builder (`gpu-ploc` and
+//! `gpu-lbvh`; `--device-builders LIST` names others, `none` skips them) the page builds
+//! the tree with `trace_closest_built_on_device` (`GpuContext::build_bvh_async`), reads it
+//! back, traces the rays over it on WebGPU and walks them over it on the CPU in
+//! WebAssembly, and sends back the hits and the tree. The tree must pass
+//! `FlatBvh::check_invariants` here too, hold each input triangle once with its corners
+//! unchanged, and come out the same from both of the page's builds; the browser's GPU hits
+//! and its CPU walk's must equal, bit for bit, the CPU walk here over the same tree. Prints
+//! `browser device build (gpu-ploc): built in X ms ...; N hits, 0 differ from the CPU walks
+//! over the read-back tree`.
+//!
+//! Last, opens the library's example page (`index.html`) and checks the hits it prints,
+//! then the same page with the BVH built on the device (`?builder=gpu-ploc`).
+//! `web/test.sh` runs it.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_parity -- DIST [--size WxH]
+//! cargo run --release -p bvhtrace-integration --example browser_parity -- DIST [--size WxH] [--device-builders gpu-ploc,gpu-lbvh|none]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
 //! builtin icosphere (said in the output).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Hit, TraceOptions, Traversal, trace_rays};
+use bvhtrace_core::{
+    BuildOptions, BvhStats, FlatBvh, FlatNode, FlatTriangle, Hit, Ray, TraceOptions, Traversal,
+    Triangle, trace_rays,
+};
 use bvhtrace_integration::browser::{self, Report};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 use bvhtrace_shade::args::parse_size;
+
+type Error = Box<dyn std::error::Error>;
 
 /// The page: fetches the triangles and rays, traces them with the wasm, posts the hits.
 const PAGE: &str = r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre>
@@ -43,6 +63,59 @@ try {
 }
 </script>"#;
 
+/// The device-build page (`/device.html?builder=NAME`): builds the BVH on the browser's
+/// WebGPU, traces the rays over it there and on the CPU in WebAssembly, and posts a head
+/// of f64 figures ([`DeviceReport::parse`] reads them in this order), the GPU hits, the
+/// CPU walk's hits, the tree, then the invariant check's text.
+const DEVICE_PAGE: &str = r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre>
+<script type="module">
+const post = (path, body) => fetch(path, { method: "POST", body });
+addEventListener("error", (e) => post("/error", `${e.message} (${e.filename}:${e.lineno})`));
+addEventListener("unhandledrejection", (e) => post("/error", String(e.reason)));
+try {
+  const builder = new URLSearchParams(location.search).get("builder");
+  const { default: init, trace_closest_built_on_device } = await import("./bvhtrace_web.js");
+  await init();
+  await post("/log", `building with ${builder} on the device`);
+  const get = async (p) => new Float32Array(await (await fetch(p)).arrayBuffer());
+  const r = await trace_closest_built_on_device(
+    await get("/triangles.bin"), await get("/rays.bin"), builder);
+  document.getElementById("out").textContent = `${r.adapter}: ${r.nodes} nodes`;
+  const head = new Float64Array([r.uploadMs, r.buildMs, r.readbackMs, r.firstBuildMs,
+    r.iterations, r.sameTree ? 1 : 0, r.nodes, r.sah, r.hits.length, r.cpuHits.length,
+    r.tree.length]);
+  const text = new TextEncoder().encode(r.invariants);
+  await post("/result", new Blob([head, r.hits, r.cpuHits, r.tree, text]));
+} catch (e) {
+  await post("/error", String(e && e.stack || e));
+}
+</script>"#;
+
+/// What the pages are served: the wasm and its bindings, the triangles and the rays.
+#[derive(Clone)]
+struct Served {
+    js: Arc<Vec<u8>>,
+    wasm: Arc<Vec<u8>>,
+    triangles: Arc<Vec<u8>>,
+    rays: Arc<Vec<u8>>,
+}
+
+impl Served {
+    /// The files by URL path: `/` is [`PAGE`], `/device.html` [`DEVICE_PAGE`].
+    fn files(&self) -> impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static {
+        let s = self.clone();
+        move |path: &str| match path {
+            "/" => Some(PAGE.as_bytes().to_vec()),
+            "/device.html" => Some(DEVICE_PAGE.as_bytes().to_vec()),
+            "/bvhtrace_web.js" => Some(s.js.to_vec()),
+            "/bvhtrace_web_bg.wasm" => Some(s.wasm.to_vec()),
+            "/triangles.bin" => Some(s.triangles.to_vec()),
+            "/rays.bin" => Some(s.rays.to_vec()),
+            _ => None,
+        }
+    }
+}
+
 fn main() {
     if let Err(e) = run() {
         eprintln!("error: {e}");
@@ -50,19 +123,42 @@ fn main() {
     }
 }
 
-fn run() -> Result<(), Box<dyn std::error::Error>> {
+/// The command line: the folder, the image size, the device builders to check.
+struct Args {
+    dist: PathBuf,
+    size: (u32, u32),
+    builders: Vec<String>,
+}
+
+fn parse_args() -> Result<Args, Error> {
+    let usage = "usage: browser_parity DIST [--size WxH] [--device-builders LIST|none]";
     let mut args = std::env::args().skip(1);
-    let dist = PathBuf::from(
-        args.next()
-            .ok_or("usage: browser_parity DIST [--size WxH]")?,
-    );
-    let (mut w, mut h) = (256u32, 192u32);
+    let dist = PathBuf::from(args.next().ok_or(usage)?);
+    let mut size = (256u32, 192u32);
+    let mut builders = vec!["gpu-ploc".to_string(), "gpu-lbvh".to_string()];
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--size" => (w, h) = parse_size(&args.next().ok_or("--size needs WxH")?)?,
-            other => return Err(format!("unknown argument {other}").into()),
+            "--size" => size = parse_size(&args.next().ok_or("--size needs WxH")?)?,
+            "--device-builders" => {
+                let list = args.next().ok_or("--device-builders needs a list")?;
+                builders = match list.as_str() {
+                    "none" => Vec::new(),
+                    _ => list.split(',').map(str::to_string).collect(),
+                };
+            }
+            other => return Err(format!("unknown argument {other}\n{usage}").into()),
         }
     }
+    Ok(Args {
+        dist,
+        size,
+        builders,
+    })
+}
+
+fn run() -> Result<(), Error> {
+    let args = parse_args()?;
+    let (dist, (w, h)) = (&args.dist, args.size);
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
     let spec = match shared_scenes_dir() {
         Some(dir) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
@@ -82,32 +178,22 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         .iter()
         .flat_map(|t| t.iter().flat_map(|v| v.to_array()))
         .collect();
-    let files = {
-        let (tris, rays) = (
-            bytemuck::cast_slice::<f32, u8>(&flat).to_vec(),
-            bytemuck::cast_slice(&rays).to_vec(),
-        );
-        let read = |name: &str| {
-            std::fs::read(dist.join(name))
-                .map_err(|e| format!("{}: {e}", dist.join(name).display()))
-        };
-        let (js, wasm) = (read("bvhtrace_web.js")?, read("bvhtrace_web_bg.wasm")?);
-        println!(
-            "{spec}: {} triangles, {} rays; wasm {} bytes",
-            bvh.triangles().len(),
-            w * h,
-            wasm.len()
-        );
-        move |path: &str| match path {
-            "/" => Some(PAGE.as_bytes().to_vec()),
-            "/bvhtrace_web.js" => Some(js.clone()),
-            "/bvhtrace_web_bg.wasm" => Some(wasm.clone()),
-            "/triangles.bin" => Some(tris.clone()),
-            "/rays.bin" => Some(rays.clone()),
-            _ => None,
-        }
+    let read = |name: &str| {
+        std::fs::read(dist.join(name)).map_err(|e| format!("{}: {e}", dist.join(name).display()))
     };
-    let bytes = match browser::run_page(&chromium, files, Duration::from_secs(600))? {
+    let served = Served {
+        js: Arc::new(read("bvhtrace_web.js")?),
+        wasm: Arc::new(read("bvhtrace_web_bg.wasm")?),
+        triangles: Arc::new(bytemuck::cast_slice::<f32, u8>(&flat).to_vec()),
+        rays: Arc::new(bytemuck::cast_slice(&rays).to_vec()),
+    };
+    println!(
+        "{spec}: {} triangles, {} rays; wasm {} bytes",
+        bvh.triangles().len(),
+        w * h,
+        served.wasm.len()
+    );
+    let bytes = match browser::run_page(&chromium, served.files(), Duration::from_secs(600))? {
         Report::Result(bytes) => bytes,
         Report::Error(e) => return Err(format!("the page failed: {e}").into()),
     };
@@ -119,24 +205,17 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let ms = |at: usize| f64::from_le_bytes(bytes[at..at + 8].try_into().unwrap_or_default());
     let (trace_ms, page_ms) = (ms(n), ms(n + 8));
     let adapter = String::from_utf8_lossy(&bytes[n + 16..]);
-    let differ: Vec<usize> = (0..cpu.len())
-        .filter(|&i| bytemuck::bytes_of(&gpu[i]) != bytemuck::bytes_of(&cpu[i]))
-        .collect();
     println!(
         "browser: {adapter}; trace {trace_ms:.1} ms ({:.2} Mrays/s), page load to hits {page_ms:.0} ms (build, upload, two traces)",
         cpu.len() as f64 / trace_ms / 1e3
     );
+    let differ = differing(&gpu, &cpu);
     println!(
         "browser parity: {} hits, {} differ",
         cpu.len(),
         differ.len()
     );
-    for &i in differ.iter().take(5) {
-        println!(
-            "  ray {i}: {:?}\n    browser {:?}\n    cpu     {:?}",
-            rays[i], gpu[i], cpu[i]
-        );
-    }
+    show_differences(&differ, &rays, &gpu, &cpu, "browser");
     if !differ.is_empty() {
         return Err(format!(
             "{} of {} hits differ from the CPU twin's",
@@ -145,18 +224,272 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         )
         .into());
     }
-    example_page(&chromium, &dist)
+    let scene = Scene {
+        tris: &tris,
+        rays: &rays,
+        cpu_built: &bvh,
+        cpu_hits: &cpu,
+    };
+    for builder in &args.builders {
+        device_build(&chromium, &served, &scene, builder)?;
+    }
+    example_page(&chromium, dist, None)?;
+    match args.builders.first() {
+        Some(builder) => example_page(&chromium, dist, Some(builder)),
+        None => Ok(()),
+    }
+}
+
+/// The indices of the hits in `a` that differ from `b`'s, bit for bit (a length
+/// mismatch counts each missing hit).
+fn differing(a: &[Hit], b: &[Hit]) -> Vec<usize> {
+    (0..a.len().max(b.len()))
+        .filter(|&i| match (a.get(i), b.get(i)) {
+            (Some(x), Some(y)) => bytemuck::bytes_of(x) != bytemuck::bytes_of(y),
+            _ => true,
+        })
+        .collect()
+}
+
+/// Prints the first few differing hits, `name`'s beside the CPU's.
+fn show_differences(differ: &[usize], rays: &[Ray], got: &[Hit], cpu: &[Hit], name: &str) {
+    for &i in differ.iter().take(5) {
+        println!(
+            "  ray {i}: {:?}\n    {name:<8}{:?}\n    cpu     {:?}",
+            rays.get(i),
+            got.get(i),
+            cpu.get(i)
+        );
+    }
+}
+
+/// The scene of the checks: its triangles, the camera's rays, the CPU's binned-SAH tree
+/// over them and the CPU walk's hits over that tree.
+struct Scene<'a> {
+    tris: &'a [Triangle],
+    rays: &'a [Ray],
+    cpu_built: &'a FlatBvh,
+    cpu_hits: &'a [Hit],
+}
+
+/// What the device-build page sent.
+struct DeviceReport {
+    upload_ms: f64,
+    build_ms: f64,
+    readback_ms: f64,
+    first_build_ms: f64,
+    iterations: f64,
+    same_tree: bool,
+    nodes: f64,
+    sah: f64,
+    /// The browser's GPU hits and its CPU walk's, each followed by the trace's time.
+    gpu: Vec<Hit>,
+    cpu: Vec<Hit>,
+    tree: FlatBvh,
+    invariants: String,
+}
+
+/// `len` bytes at `*at` of `bytes` (advancing `at`), or an error naming `what`.
+fn take<'a>(bytes: &'a [u8], at: &mut usize, len: usize, what: &str) -> Result<&'a [u8], Error> {
+    let got = at
+        .checked_add(len)
+        .and_then(|end| bytes.get(*at..end))
+        .ok_or_else(|| format!("the page sent {} bytes: {what} is cut short", bytes.len()))?;
+    *at += len;
+    Ok(got)
+}
+
+/// Hits followed by an f64 of milliseconds, as the page's exports send them.
+fn hits_of(bytes: &[u8]) -> Result<Vec<Hit>, Error> {
+    let size = std::mem::size_of::<Hit>();
+    if bytes.len() < 8 || !(bytes.len() - 8).is_multiple_of(size) {
+        return Err(format!("{} bytes of hits and a time", bytes.len()).into());
+    }
+    Ok(bytemuck::pod_collect_to_vec(&bytes[..bytes.len() - 8]))
+}
+
+/// A read-back tree as `tree_bytes` (bvhtrace-web) lays it out.
+fn tree_of(bytes: &[u8]) -> Result<FlatBvh, Error> {
+    let mut at = 0;
+    let head: Vec<u32> = bytemuck::pod_collect_to_vec(take(bytes, &mut at, 16, "the tree's head")?);
+    let (depth, nodes, tris) = (head[0], head[1] as usize, head[2] as usize);
+    let nodes: Vec<FlatNode> =
+        bytemuck::pod_collect_to_vec(take(bytes, &mut at, nodes * 32, "nodes")?);
+    let tris: Vec<FlatTriangle> =
+        bytemuck::pod_collect_to_vec(take(bytes, &mut at, tris * 48, "triangles")?);
+    if at != bytes.len() {
+        return Err(format!("{} bytes after the tree", bytes.len() - at).into());
+    }
+    Ok(FlatBvh::from_parts(nodes, tris, depth))
+}
+
+impl DeviceReport {
+    fn parse(bytes: &[u8]) -> Result<DeviceReport, Error> {
+        let mut at = 0;
+        let head: Vec<f64> =
+            bytemuck::pod_collect_to_vec(take(bytes, &mut at, 11 * 8, "the head")?);
+        let gpu = hits_of(take(bytes, &mut at, head[8] as usize, "the GPU hits")?)?;
+        let cpu = hits_of(take(bytes, &mut at, head[9] as usize, "the CPU hits")?)?;
+        let tree = tree_of(take(bytes, &mut at, head[10] as usize, "the tree")?)?;
+        Ok(DeviceReport {
+            upload_ms: head[0],
+            build_ms: head[1],
+            readback_ms: head[2],
+            first_build_ms: head[3],
+            iterations: head[4],
+            same_tree: head[5] == 1.0,
+            nodes: head[6],
+            sah: head[7],
+            gpu,
+            cpu,
+            tree,
+            invariants: String::from_utf8_lossy(&bytes[at..]).into_owned(),
+        })
+    }
+}
+
+/// What is wrong with a read-back tree over `tris`, if anything: the invariants, each
+/// input triangle held exactly once with its corners bit for bit, the figures the page
+/// computed from it.
+fn tree_problems(r: &DeviceReport, tris: &[Triangle]) -> Vec<String> {
+    let mut problems = Vec::new();
+    if !r.invariants.is_empty() {
+        problems.push(format!("in the browser: {}", r.invariants));
+    }
+    if let Err(e) = r.tree.check_invariants() {
+        problems.push(format!("check_invariants: {e}"));
+    }
+    let mut seen = vec![false; tris.len()];
+    for t in r.tree.triangles() {
+        let prim = t.prim as usize;
+        let same = tris.get(prim).is_some_and(|src| {
+            [t.v0, t.v1, t.v2]
+                .iter()
+                .zip(src)
+                .all(|(a, b)| a.map(f32::to_bits) == b.to_array().map(f32::to_bits))
+        });
+        // `same` holds only for a prim within `tris`.
+        if !same || std::mem::replace(&mut seen[prim], true) {
+            problems.push(format!(
+                "triangle {prim} is not the input's, or is held twice"
+            ));
+            break;
+        }
+    }
+    if r.tree.triangles().len() != tris.len() {
+        problems.push(format!(
+            "{} triangles for {} input triangles",
+            r.tree.triangles().len(),
+            tris.len()
+        ));
+    }
+    let stats = BvhStats::of(&r.tree);
+    if r.nodes != stats.nodes as f64 || (r.sah - stats.sah_cost).abs() > 1e-9 * stats.sah_cost {
+        problems.push(format!(
+            "the page says {} nodes and SAH {}, the tree has {} and {}",
+            r.nodes, r.sah, stats.nodes, stats.sah_cost
+        ));
+    }
+    if !r.same_tree {
+        problems.push("the page's two builds gave different trees".into());
+    }
+    problems
+}
+
+/// The device-build check for `builder` (see the module docs).
+fn device_build(
+    chromium: &str,
+    served: &Served,
+    scene: &Scene<'_>,
+    builder: &str,
+) -> Result<(), Error> {
+    let bytes = match browser::open_page(
+        chromium,
+        browser::WebGpu::SwiftShader,
+        served.files(),
+        &format!("/device.html?builder={builder}"),
+        (800, 600),
+        Duration::from_secs(600),
+    )? {
+        Report::Result(bytes) => bytes,
+        Report::Error(e) => {
+            return Err(format!("the device-build page ({builder}) failed: {e}").into());
+        }
+    };
+    let r = DeviceReport::parse(&bytes)?;
+    let problems = tree_problems(&r, scene.tris);
+    let stats = BvhStats::of(&r.tree);
+    let cpu_stats = BvhStats::of(scene.cpu_built);
+    let iterations = match r.iterations > 0.0 {
+        true => format!(", {} clustering iterations", r.iterations),
+        false => String::new(),
+    };
+    println!(
+        "browser device build ({builder}): {} nodes, depth {}, SAH {:.2} (the CPU's binned SAH {:.2}){iterations}",
+        stats.nodes,
+        r.tree.depth(),
+        stats.sah_cost,
+        cpu_stats.sah_cost,
+    );
+    // The CPU walk here over the tree the browser read back: the reference both of the
+    // browser's answers must equal.
+    let here = trace_rays(
+        &r.tree,
+        scene.rays,
+        &TraceOptions::closest(Traversal::Stackless),
+    )
+    .hits;
+    let (gpu_differ, cpu_differ) = (differing(&r.gpu, &here), differing(&r.cpu, &here));
+    // The hit rule does not depend on the tree: the CPU-built tree's hits, bit for bit.
+    let other_tree = differing(&here, scene.cpu_hits);
+    println!(
+        "browser device build ({builder}): built in {:.1} ms (upload {:.1}, dispatches {:.1}, read back {:.1}; first build {:.0} ms with compilation); tree {}; {} hits, {} differ from the CPU walks over the read-back tree ({} in the browser's CPU walk; {} from the CPU-built tree's hits)",
+        r.upload_ms + r.build_ms + r.readback_ms,
+        r.upload_ms,
+        r.build_ms,
+        r.readback_ms,
+        r.first_build_ms,
+        if problems.is_empty() {
+            "passes check_invariants, holds every triangle once, same from both builds"
+        } else {
+            "FAILS"
+        },
+        here.len(),
+        gpu_differ.len(),
+        cpu_differ.len(),
+        other_tree.len()
+    );
+    show_differences(&gpu_differ, scene.rays, &r.gpu, &here, "browser");
+    show_differences(&cpu_differ, scene.rays, &r.cpu, &here, "wasm cpu");
+    show_differences(&other_tree, scene.rays, &here, scene.cpu_hits, "device");
+    for p in &problems {
+        println!("  {p}");
+    }
+    let differ = [&gpu_differ, &cpu_differ, &other_tree];
+    if !problems.is_empty() || differ.iter().any(|d| !d.is_empty()) {
+        return Err(format!(
+            "the device-built tree ({builder}): {} problems; {} GPU hits and {} WebAssembly CPU-walk hits differ from the CPU walk here, which differs from the CPU-built tree's in {}",
+            problems.len(),
+            gpu_differ.len(),
+            cpu_differ.len(),
+            other_tree.len()
+        )
+        .into());
+    }
+    Ok(())
 }
 
 /// The library's example page (`index.html`): four rays over a unit quad of two triangles,
 /// the hits printed on the page. Three hit at t = 5 (the ray on the shared diagonal hits
-/// exactly one of the two triangles: the test is watertight), the fourth misses.
-fn example_page(chromium: &str, dist: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+/// exactly one of the two triangles: the test is watertight), the fourth misses. With
+/// `builder`, the page builds the BVH on the device and says so on one more line.
+fn example_page(chromium: &str, dist: &Path, builder: Option<&String>) -> Result<(), Error> {
+    let query = builder.map(|b| format!("&builder={b}")).unwrap_or_default();
     let text = match browser::open_page(
         chromium,
         browser::WebGpu::SwiftShader,
         browser::folder(dist.to_path_buf()),
-        "/index.html?report=1",
+        &format!("/index.html?report=1{query}"),
         (800, 600),
         Duration::from_secs(300),
     )? {
@@ -164,17 +497,31 @@ fn example_page(chromium: &str, dist: &std::path::Path) -> Result<(), Box<dyn st
         Report::Error(e) => return Err(format!("the example page failed: {e}").into()),
     };
     let lines: Vec<&str> = text.lines().collect();
+    // With a device build, the line after the adapter's says so.
+    let built = builder.is_none_or(|b| {
+        lines
+            .get(1)
+            .is_some_and(|l| l.starts_with(&format!("BVH built on the device ({b})")))
+    });
+    let first = 1 + usize::from(builder.is_some());
     let hit = |i: usize, tri: &str| {
         lines
-            .get(i)
+            .get(first + i)
             .is_some_and(|l| l.contains(&format!("triangle {tri}")) && l.contains("t = 5"))
     };
-    let ok = lines.len() == 6
-        && hit(1, "0")
-        && hit(2, "1")
-        && (hit(3, "0") || hit(3, "1"))
-        && lines[4].ends_with(": miss");
-    println!("example page: {}", lines[1..].join(" | "));
+    let ok = built
+        && lines.len() == first + 5
+        && hit(0, "0")
+        && hit(1, "1")
+        && (hit(2, "0") || hit(2, "1"))
+        && lines[first + 3].ends_with(": miss");
+    let shown: Vec<&str> = lines.iter().skip(1).copied().collect();
+    let name = builder.map(|b| format!(" (built on the device, {b})"));
+    println!(
+        "example page{}: {}",
+        name.unwrap_or_default(),
+        shown.join(" | ")
+    );
     match ok {
         true => Ok(()),
         false => Err(format!("the example page printed:\n{text}").into()),

@@ -16,22 +16,21 @@
 //! Same input, same tree: the sort is stable, equal codes split by index, and the
 //! clustering's ties break by place.
 
+mod morph;
 mod ploc;
 mod refit;
-mod morph;
 mod skin;
 mod top;
 
-pub use refit::{GpuRefit, RefitTimes, RefitVertices};
 pub use morph::GpuMorph;
+pub use refit::{GpuRefit, RefitTimes, RefitVertices};
 pub use skin::GpuSkin;
-
-use std::time::Instant;
 
 use bvhtrace_core::flat::{FlatNode, FlatTriangle};
 use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_kernels::TraceError;
 use bvhtrace_kernels::build::Step;
+use web_time::Instant;
 use wgpu::util::DeviceExt;
 
 use crate::trace::{map_all, read_mapped};
@@ -321,16 +320,30 @@ fn init(
     })
 }
 
-/// Submits `enc` (a failure named `during`) and waits until each of `maps` (a buffer and
-/// its first bytes) is mapped for reading.
-fn submit_and_map(
+/// Submits `enc` (a failure named `during`) and resolves once each of `maps` (a buffer and
+/// its first bytes) is mapped for reading. In a browser the mappings complete on the event
+/// loop, and an error of the work before (a program the browser's compiler rejected, an
+/// upload) is reported here, ahead of a failed mapping.
+async fn submit_and_map_async(
     ctx: &GpuContext,
     during: &'static str,
     enc: wgpu::CommandEncoder,
     maps: &[(&wgpu::Buffer, u64)],
 ) -> Result<(), GpuError> {
     let index = ctx.scoped(during, || ctx.queue().submit([enc.finish()]))?;
-    pollster::block_on(map_all(ctx.device(), index, maps))
+    let mapped = map_all(ctx.device(), index, maps).await;
+    ctx.deferred_errors().await?;
+    mapped
+}
+
+/// [`submit_and_map_async`], waited for (blocks: not for a browser).
+fn submit_and_map(
+    ctx: &GpuContext,
+    during: &'static str,
+    enc: wgpu::CommandEncoder,
+    maps: &[(&wgpu::Buffer, u64)],
+) -> Result<(), GpuError> {
+    pollster::block_on(submit_and_map_async(ctx, during, enc, maps))
 }
 
 /// After the work recorded in `enc`: the first bytes of each of `sources`, one after the
@@ -578,7 +591,7 @@ impl Build {
     /// The end of every build: copies of `outputs` (the flat nodes, the triangles and a
     /// buffer of `u32` holding the depth at `depth_at`) and the timestamps recorded into
     /// `enc`, which is submitted and waited for; then the tree read back.
-    fn read_back(
+    async fn read_back(
         &self,
         ctx: &GpuContext,
         mut enc: wgpu::CommandEncoder,
@@ -592,7 +605,7 @@ impl Build {
         }
         let mut maps: Vec<(&wgpu::Buffer, u64)> = reads.iter().map(|b| (b, b.size())).collect();
         maps.extend(queries.as_ref().map(|q| (&q.read, q.bytes())));
-        submit_and_map(ctx, "building a BVH on the device", enc, &maps)?;
+        submit_and_map_async(ctx, "building a BVH on the device", enc, &maps).await?;
         let stages_ms = match queries {
             Some(q) => q.stages_ms(ctx.queue())?,
             None => Vec::new(),
@@ -703,12 +716,70 @@ impl GpuContext {
     /// more triangles than the device's buffers hold, or a device with fewer than
     /// [`bvhtrace_kernels::build::BUILD_STORAGE_BUFFERS`] storage buffers per stage, an
     /// error naming it. The pipelines are compiled on a builder's first build and kept.
+    ///
+    /// This waits for the device, so it is an error in a browser, where a page must not
+    /// block: await [`GpuContext::build_bvh_async`] there.
     pub fn build_bvh(
         &self,
         tris: &[Triangle],
         opts: &GpuBuildOptions,
     ) -> Result<(FlatBvh, GpuBuildTimes), GpuError> {
+        if cfg!(target_arch = "wasm32") {
+            // Blocking would stop the browser's event loop, which completes the read back.
+            return Err(TraceError::Device {
+                during: "building a BVH on the device",
+                message: "a browser cannot wait for its GPU: use build_bvh_async".into(),
+            });
+        }
+        pollster::block_on(self.build_bvh_async(tris, opts))
+    }
+
+    /// [`GpuContext::build_bvh`] as a future: the same build, the same tree and errors,
+    /// awaiting the device instead of waiting for it. What a program in a browser
+    /// awaits; natively the future waits for the device when polled.
+    pub async fn build_bvh_async(
+        &self,
+        tris: &[Triangle],
+        opts: &GpuBuildOptions,
+    ) -> Result<(FlatBvh, GpuBuildTimes), GpuError> {
         opts.check()?;
+        if let Some(one) = self.check_build_input(tris)? {
+            return Ok((one, GpuBuildTimes::default()));
+        }
+        let pipelines = self.build_pipelines(opts.builder)?;
+        let t0 = Instant::now();
+        let build = Build::upload(self, tris, opts)?;
+        let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = Instant::now();
+        let device = self.device();
+        let (done, iterations) = match opts.builder {
+            GpuBuilderKind::Lbvh => {
+                let queries = self.has_timestamps().then(|| StepQueries::new(device, 5));
+                let mut enc = device.create_command_encoder(&Default::default());
+                build.record_sort(self, &pipelines, &mut enc, queries.as_ref());
+                build.record_lbvh(self, &pipelines, &mut enc, queries.as_ref());
+                let done = build.read_back(self, enc, LBVH_OUTPUTS, 0, queries).await?;
+                (done, 0)
+            }
+            GpuBuilderKind::Ploc => ploc::run(self, &build, &pipelines).await?,
+        };
+        let build_ms = t1.elapsed().as_secs_f64() * 1e3 - done.readback_ms;
+        Ok((
+            done.bvh,
+            GpuBuildTimes {
+                upload_ms,
+                build_ms,
+                readback_ms: done.readback_ms,
+                stages_ms: done.stages_ms,
+                iterations,
+            },
+        ))
+    }
+
+    /// The checks before a device build: no triangle is an error, one triangle is built
+    /// on the CPU and returned, more are checked for non-finite corners, and the device
+    /// for enough storage buffers per stage.
+    fn check_build_input(&self, tris: &[Triangle]) -> Result<Option<FlatBvh>, GpuError> {
         let bad_input = |e: &dyn std::fmt::Display| TraceError::BadBuffer {
             buffer: "triangles",
             problem: e.to_string(),
@@ -717,7 +788,7 @@ impl GpuContext {
             0 => return Err(TraceError::EmptyBvh),
             1 => {
                 let bvh = FlatBvh::build(tris, &Default::default()).map_err(|e| bad_input(&e))?;
-                return Ok((bvh, GpuBuildTimes::default()));
+                return Ok(Some(bvh));
             }
             _ => bvhtrace_core::mesh::validate_triangles(tris).map_err(|e| bad_input(&e))?,
         }
@@ -732,33 +803,7 @@ impl GpuContext {
                 ),
             });
         }
-        let pipelines = self.build_pipelines(opts.builder)?;
-        let t0 = Instant::now();
-        let build = Build::upload(self, tris, opts)?;
-        let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let t1 = Instant::now();
-        let device = self.device();
-        let (done, iterations) = match opts.builder {
-            GpuBuilderKind::Lbvh => {
-                let queries = self.has_timestamps().then(|| StepQueries::new(device, 5));
-                let mut enc = device.create_command_encoder(&Default::default());
-                build.record_sort(self, &pipelines, &mut enc, queries.as_ref());
-                build.record_lbvh(self, &pipelines, &mut enc, queries.as_ref());
-                (build.read_back(self, enc, LBVH_OUTPUTS, 0, queries)?, 0)
-            }
-            GpuBuilderKind::Ploc => ploc::run(self, &build, &pipelines)?,
-        };
-        let build_ms = t1.elapsed().as_secs_f64() * 1e3 - done.readback_ms;
-        Ok((
-            done.bvh,
-            GpuBuildTimes {
-                upload_ms,
-                build_ms,
-                readback_ms: done.readback_ms,
-                stages_ms: done.stages_ms,
-                iterations,
-            },
-        ))
+        Ok(None)
     }
 
     /// [`GpuContext::build_bvh`] with the linear BVH ([`GpuBuilderKind::Lbvh`]).

@@ -136,8 +136,9 @@ impl Build {
 
 /// Runs the clustering build whose buffers `build` holds: the sort, the leaves and a
 /// first batch in one submission, more batches while clusters are left, then the flat
-/// layout. Returns the tree read back and the iterations that ran.
-pub(super) fn run(
+/// layout. Returns the tree read back and the iterations that ran. Each batch's count is
+/// awaited, so in a browser the event loop runs meanwhile.
+pub(super) async fn run(
     ctx: &GpuContext,
     build: &Build,
     pipelines: &[wgpu::ComputePipeline],
@@ -174,12 +175,13 @@ pub(super) fn run(
             .unwrap_or_else(|| device.create_command_encoder(&Default::default()));
         build.record_batch(&groups, pipelines, &mut enc, queries.as_ref());
         let read = build.copy_state(device, &mut enc);
-        super::submit_and_map(
+        super::submit_and_map_async(
             ctx,
             "building a BVH on the device",
             enc,
             &[(&read, read.size())],
-        )?;
+        )
+        .await?;
         let now = clusters_left(&read)?;
         batches += 1;
         // Every iteration merges at least once, so the count falls every batch; a batch
@@ -205,13 +207,15 @@ pub(super) fn run(
         "flat layout",
         &[(FLATTEN, 0, per_node)],
     );
-    let done = build.read_back(
-        ctx,
-        enc,
-        [OUT_NODES, OUT_TRIANGLES, STATE as u32],
-        DEPTH,
-        queries,
-    )?;
+    let done = build
+        .read_back(
+            ctx,
+            enc,
+            [OUT_NODES, OUT_TRIANGLES, STATE as u32],
+            DEPTH,
+            queries,
+        )
+        .await?;
     let iterations = done.words[ITERATIONS];
     Ok((done, iterations))
 }
