@@ -9,6 +9,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 #![warn(missing_docs)]
 
+pub mod alpha;
 pub mod build;
 pub mod cost;
 pub mod flat;

@@ -196,10 +196,7 @@ fn cube(m: &mut Mesh, xf: Mat4, material: u32) {
 }
 
 fn material(name: &str, rgb: [f32; 3]) -> Material {
-    Material {
-        name: name.into(),
-        base_color: Vec3::from(rgb).extend(1.0),
-    }
+    Material::opaque(name, Vec3::from(rgb).extend(1.0))
 }
 
 /// The Cornell box: the room is `[-1, 1] x [0, 2] x [-1, 1]`, open towards +z.
@@ -649,6 +646,7 @@ pub(crate) fn grid_of(src: Scene, mesh_name: &str, a: u32, b: u32) -> Scene {
         meshes: src.meshes,
         instances,
         materials: src.materials,
+        alpha_textures: src.alpha_textures,
         attributes: src.attributes,
         camera: None,
         warnings: src.warnings,

@@ -47,10 +47,13 @@ mod error;
 mod export;
 mod glb;
 mod loader;
+mod materials;
 mod two_level;
 
 use std::path::{Path, PathBuf};
 
+use bvhtrace_core::alpha::AlphaMask;
+pub use bvhtrace_core::alpha::Wrap;
 use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
@@ -92,13 +95,93 @@ pub struct Attributes {
     pub materials: bool,
 }
 
-/// A material: only what the tracer shades with.
+/// A material: only what the tracer shades with, and what cuts its surface.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {
     /// The material's name (may be empty).
     pub name: String,
     /// Linear RGBA base colour factor (glTF `pbrMetallicRoughness.baseColorFactor`).
     pub base_color: Vec4,
+    /// Whether its alpha cuts the surface (glTF `alphaMode`, `alphaCutoff`).
+    pub alpha_mode: AlphaMode,
+    /// The base colour texture's alpha, for a masked material that has one.
+    pub alpha_texture: Option<AlphaTextureRef>,
+}
+
+impl Material {
+    /// An opaque material of base colour `base_color`.
+    pub fn opaque(name: impl Into<String>, base_color: Vec4) -> Material {
+        Material {
+            name: name.into(),
+            base_color,
+            alpha_mode: AlphaMode::Opaque,
+            alpha_texture: None,
+        }
+    }
+
+    /// How a walk tests this material's candidates ([`bvhtrace_core::alpha`]): `None` for
+    /// an opaque material; without a texture the mask is one texel of alpha 255, so the
+    /// base colour factor's alpha alone decides.
+    pub fn alpha_mask<'a>(&self, textures: &'a [AlphaTexture]) -> Option<AlphaMask<'a>> {
+        let AlphaMode::Mask { cutoff } = self.alpha_mode else {
+            return None;
+        };
+        let min_texel = bvhtrace_core::alpha::min_passing_texel(self.base_color.w, cutoff);
+        let one: &'static [u8] = &[255];
+        let (alpha, width, height, wrap) = match self.alpha_texture {
+            Some(r) => match textures.get(r.texture) {
+                Some(t) => (&t.alpha[..], t.width, t.height, r.wrap),
+                None => (one, 1, 1, r.wrap),
+            },
+            None => (one, 1, 1, [Wrap::Repeat; 2]),
+        };
+        Some(AlphaMask {
+            alpha,
+            width,
+            height,
+            wrap,
+            min_texel,
+        })
+    }
+}
+
+/// How a material's alpha cuts its surface (glTF `alphaMode`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum AlphaMode {
+    /// `OPAQUE` (glTF's default): alpha is ignored.
+    #[default]
+    Opaque,
+    /// `MASK`: a candidate hit whose alpha is below `cutoff` is skipped (glTF
+    /// `alphaCutoff`, default 0.5). `BLEND` loads as a mask at 0.5: a tracer has no
+    /// blending, and half-transparent surfaces then cast the shadows they mostly would.
+    Mask {
+        /// The smallest alpha that is a hit.
+        cutoff: f32,
+    },
+}
+
+/// A masked material's base colour texture: which [`Scene::alpha_textures`] entry, and how
+/// coordinates outside `0..1` wrap along `u` and `v`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AlphaTextureRef {
+    /// Index into [`Scene::alpha_textures`].
+    pub texture: usize,
+    /// The sampler's `wrapS` and `wrapT`.
+    pub wrap: [Wrap; 2],
+}
+
+/// The alpha channel of a texture a masked material samples (the colour channels are not
+/// kept: the tracer needs only the cut).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct AlphaTexture {
+    /// The image's name or URI, for messages.
+    pub name: String,
+    /// Texels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Alpha, 8 bits per texel, row by row from the top (`v = 0`).
+    pub alpha: Vec<u8>,
 }
 
 /// A triangle mesh in its own (object) space, with optional attributes.
@@ -218,6 +301,9 @@ pub struct Scene {
     pub instances: Vec<Instance>,
     /// Materials that [`Mesh::materials`] index.
     pub materials: Vec<Material>,
+    /// The alpha channels of the textures masked materials sample
+    /// ([`Material::alpha_texture`]); empty when no material is masked with a texture.
+    pub alpha_textures: Vec<AlphaTexture>,
     /// Which optional arrays the meshes have.
     pub attributes: Attributes,
     /// The file's camera (the first perspective camera on a node, in world space), or a
@@ -524,10 +610,7 @@ impl Scene {
             }
             if a.materials && m.materials.len() != m.indices.len() {
                 let id = *default_material.get_or_insert_with(|| {
-                    self.materials.push(Material {
-                        name: "default".into(),
-                        base_color: Vec4::ONE,
-                    });
+                    self.materials.push(Material::opaque("default", Vec4::ONE));
                     (self.materials.len() - 1) as u32
                 });
                 m.materials = vec![id; m.indices.len()];

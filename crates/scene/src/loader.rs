@@ -41,8 +41,8 @@ const ACCEPTED_REQUIRED: &[&str] = &[
 const MAX_ZERO_ACCESSOR: usize = 1 << 24;
 
 /// Loads a `.gltf` or `.glb` file (binary if it starts with the GLB magic or is named
-/// `.glb`). External buffers are resolved relative to the file's folder; image files are
-/// never read, and missing ones only give a warning.
+/// `.glb`). External buffers and images are resolved relative to the file's folder; images
+/// are read only for masked materials' alpha, and missing ones only give a warning.
 pub fn load_gltf_file(path: &Path) -> Result<Scene, SceneError> {
     let label = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|e| {
@@ -124,7 +124,7 @@ fn check_required_extensions(root: &Root, warnings: &mut Vec<String>) -> Result<
 }
 
 /// Decodes `%XX` escapes in a relative URI (invalid escapes are kept as they are).
-fn percent_decode(uri: &str) -> String {
+pub(crate) fn percent_decode(uri: &str) -> String {
     let b = uri.as_bytes();
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
@@ -146,7 +146,7 @@ fn percent_decode(uri: &str) -> String {
 }
 
 /// The payload of a `data:` URI, if it is base64.
-fn decode_data_uri(uri: &str) -> Result<Vec<u8>, String> {
+pub(crate) fn decode_data_uri(uri: &str) -> Result<Vec<u8>, String> {
     let rest = &uri["data:".len()..];
     let Some(comma) = rest.find(',') else {
         return Err("the data: URI has no ','".into());
@@ -178,7 +178,7 @@ fn decode_data_uri(uri: &str) -> Result<Vec<u8>, String> {
 
 /// Reads at most `limit` bytes of a regular file (a URI naming a device or a folder is
 /// refused rather than read forever).
-fn read_buffer_file(p: &Path, limit: u64) -> Result<Vec<u8>, String> {
+pub(crate) fn read_buffer_file(p: &Path, limit: u64) -> Result<Vec<u8>, String> {
     use std::io::Read as _;
     let meta = std::fs::metadata(p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
     if !meta.is_file() {
@@ -192,7 +192,7 @@ fn read_buffer_file(p: &Path, limit: u64) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-fn is_remote(uri: &str) -> bool {
+pub(crate) fn is_remote(uri: &str) -> bool {
     uri.contains("://")
 }
 
@@ -890,10 +890,7 @@ impl<'a, 'b> Loader<'a, 'b> {
                         ));
                     }
                     Some(*default_material.get_or_insert_with(|| {
-                        materials.push(Material {
-                            name: "default".into(),
-                            base_color: Vec4::ONE,
-                        });
+                        materials.push(Material::opaque("default", Vec4::ONE));
                         (materials.len() - 1) as u32
                     }))
                 }
@@ -1213,8 +1210,9 @@ impl<'a, 'b> Loader<'a, 'b> {
 
     fn load(&mut self, base_dir: Option<&Path>) -> Result<Scene, ErrorKind> {
         let root = self.root;
+        let (materials, alpha_textures) = self.materials(base_dir);
         let mut walk = Walk {
-            materials: self.materials(),
+            materials,
             mesh_map: vec![None; root.meshes.len()],
             ..Walk::default()
         };
@@ -1244,6 +1242,7 @@ impl<'a, 'b> Loader<'a, 'b> {
             meshes: walk.meshes,
             instances: walk.instances,
             materials: walk.materials,
+            alpha_textures,
             warnings: std::mem::take(&mut self.warnings),
             animation,
             ..Scene::default()
@@ -1266,21 +1265,41 @@ impl<'a, 'b> Loader<'a, 'b> {
         Ok(scene)
     }
 
-    /// The file's materials, named by index when they have no name; a base colour that
-    /// is not finite becomes white.
-    fn materials(&self) -> Vec<Material> {
-        self.root
-            .materials
-            .iter()
-            .enumerate()
-            .map(|(i, m)| {
-                let c = Vec4::from(m.pbr_metallic_roughness.base_color_factor.0);
-                Material {
-                    name: m.name.clone().unwrap_or_else(|| format!("material {i}")),
-                    base_color: if c.is_finite() { c } else { Vec4::ONE },
-                }
+    /// The file's materials, named by index when they have no name (a base colour that
+    /// is not finite becomes white), and the alpha textures masked ones sample.
+    fn materials(&mut self, base_dir: Option<&Path>) -> (Vec<Material>, Vec<crate::AlphaTexture>) {
+        let view = |vi: usize| self.whole_view(vi);
+        let src = crate::materials::ImageSource {
+            root: self.root,
+            base_dir,
+            view: &view,
+        };
+        let mut warnings = Vec::new();
+        let out = crate::materials::load(&src, &mut warnings);
+        self.warnings.extend(warnings);
+        out
+    }
+
+    /// Buffer view `vi`'s bytes (an image's), or why they cannot be read.
+    fn whole_view(&self, vi: usize) -> Result<Vec<u8>, String> {
+        let view = (self.root.buffer_views.get(vi))
+            .ok_or_else(|| format!("buffer view {vi} does not exist"))?;
+        let bi = view.buffer.value();
+        let buf = match self.buffers.get(bi) {
+            None => return Err(format!("buffer view {vi}'s buffer {bi} does not exist")),
+            Some(Err(reason)) => return Err(format!("buffer {bi}: {reason}")),
+            Some(Ok(b)) => b,
+        };
+        let start = view.byte_offset.map_or(0, |o| o.0);
+        let end = start.saturating_add(view.byte_length.0);
+        (buf.get(start as usize..end as usize))
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| {
+                format!(
+                    "buffer view {vi} runs past buffer {bi} ({} bytes)",
+                    buf.len()
+                )
             })
-            .collect()
     }
 
     /// The nodes to start from: the default scene's, else the first scene's, else
@@ -1783,7 +1802,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         if !missing.is_empty() {
             let shown: Vec<&str> = missing.iter().copied().take(4).collect();
             self.warnings.push(format!(
-                "{} of {} image file(s) are missing ({}{}); textures are not loaded anyway",
+                "{} of {} image file(s) are missing ({}{}); only masked materials' alpha is read from images",
                 missing.len(),
                 files.len(),
                 shown.join(", "),

@@ -1,0 +1,139 @@
+//! Masked materials: `alphaMode`, `alphaCutoff`, the base colour texture's alpha and its
+//! sampler's wrap modes are loaded for MASK (and BLEND, taken as MASK at 0.5); opaque
+//! materials' textures are not read; an unusable texture leaves the mask to the base
+//! colour factor with a warning naming the material and the image.
+
+mod common;
+
+use std::io::Cursor;
+
+use base64::Engine as _;
+use bvhtrace_scene::{AlphaMode, AlphaTexture, Scene, Wrap, load_gltf_slice};
+use common::{Gltf, TRI};
+use serde_json::{Value, json};
+
+/// A 2x2 PNG whose texels' alpha are `alpha` (row by row from the top).
+fn png(alpha: [u8; 4]) -> Vec<u8> {
+    let rgba: Vec<u8> = alpha.iter().flat_map(|&a| [200, 120, 40, a]).collect();
+    let img = image::RgbaImage::from_raw(2, 2, rgba).expect("2x2");
+    let mut out = Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png)
+        .expect("encode");
+    out.into_inner()
+}
+
+fn data_uri(mime: &str, bytes: &[u8]) -> String {
+    let b64 = base64::engine::general_purpose::STANDARD.encode(bytes);
+    format!("data:{mime};base64,{b64}")
+}
+
+/// The unit triangle with `materials`, its primitive using material 0, and `rest`.
+fn scene(materials: Value, rest: Value) -> Scene {
+    let mut g = Gltf::default();
+    g.positions(&TRI);
+    g.indices_u8(&[0, 1, 2]);
+    let mut doc = json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+        "materials": materials,
+    });
+    if let Value::Object(m) = rest {
+        for (k, v) in m {
+            doc[k] = v;
+        }
+    }
+    load_gltf_slice(g.to_gltf(doc).as_bytes(), "masked.gltf", None)
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn textured(mode: &str, image: Value) -> Scene {
+    scene(
+        json!([{
+            "name": "leaf",
+            "alphaMode": mode,
+            "alphaCutoff": 0.3,
+            "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.8], "baseColorTexture": {"index": 0}},
+        }]),
+        json!({
+            "textures": [{"source": 0, "sampler": 0}],
+            "samplers": [{"wrapS": 33071, "wrapT": 33648}],
+            "images": [image],
+        }),
+    )
+}
+
+#[test]
+fn a_masked_materials_texture_alpha_and_wraps_are_loaded() {
+    let s = textured(
+        "MASK",
+        json!({"uri": data_uri("image/png", &png([0, 100, 200, 255]))}),
+    );
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+    let m = &s.materials[0];
+    assert_eq!(m.alpha_mode, AlphaMode::Mask { cutoff: 0.3 });
+    let r = m.alpha_texture.expect("a texture");
+    assert_eq!(r.wrap, [Wrap::ClampToEdge, Wrap::MirroredRepeat]);
+    assert_eq!(
+        s.alpha_textures[r.texture],
+        AlphaTexture {
+            name: "image 0".into(),
+            width: 2,
+            height: 2,
+            alpha: vec![0, 100, 200, 255],
+        }
+    );
+    // 0.8 * t / 255 >= 0.3 from t = 96: texels 100, 200 and 255 pass, 0 does not.
+    let mask = m.alpha_mask(&s.alpha_textures).expect("masked");
+    assert_eq!(mask.min_texel, 96);
+    assert_eq!((mask.width, mask.height), (2, 2));
+}
+
+#[test]
+fn blend_is_a_mask_at_one_half_and_opaque_textures_are_not_read() {
+    let s = textured(
+        "BLEND",
+        json!({"uri": data_uri("image/png", &png([0, 0, 0, 0]))}),
+    );
+    assert_eq!(s.materials[0].alpha_mode, AlphaMode::Mask { cutoff: 0.5 });
+    assert!(
+        s.warnings.iter().any(|w| w.contains("BLEND")),
+        "{:?}",
+        s.warnings
+    );
+    let s = textured("OPAQUE", json!({"uri": "not-even-read.png"}));
+    assert_eq!(s.materials[0].alpha_mode, AlphaMode::Opaque);
+    assert!(s.alpha_textures.is_empty() && s.materials[0].alpha_texture.is_none());
+    assert!(s.materials[0].alpha_mask(&s.alpha_textures).is_none());
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+}
+
+#[test]
+fn an_unusable_texture_leaves_the_factor_with_a_warning() {
+    for (image, cause) in [
+        (json!({"uri": "missing.png"}), "given as bytes"),
+        (
+            json!({"uri": data_uri("image/png", b"not a png")}),
+            "not a readable PNG",
+        ),
+        (
+            json!({"bufferView": 99, "mimeType": "image/png"}),
+            "buffer view 99",
+        ),
+    ] {
+        let s = textured("MASK", image);
+        let m = &s.materials[0];
+        assert_eq!(m.alpha_mode, AlphaMode::Mask { cutoff: 0.3 });
+        assert!(m.alpha_texture.is_none());
+        let w = s.warnings.join("\n");
+        assert!(w.contains("material 0 (leaf)") && w.contains(cause), "{w}");
+        // The factor alone: one texel of alpha 1, 0.8 >= 0.3 passes.
+        let mask = m.alpha_mask(&s.alpha_textures).expect("masked");
+        assert_eq!((mask.width, mask.alpha), (1, &[255u8][..]));
+    }
+    // A JPEG has no alpha: read as 1 everywhere, without a warning and without decoding.
+    let jpeg = [0xff, 0xd8, 0xff, 0xe0, 0, 0x10];
+    let s = textured("MASK", json!({"uri": data_uri("image/jpeg", &jpeg)}));
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+    assert!(s.materials[0].alpha_texture.is_none());
+}
