@@ -37,7 +37,8 @@ pub use precision::Precision;
 pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
 pub use stats::BvhStats;
 pub use traverse::{
-    Query, TraceOptions, TraceOutput, Traversal, WalkCost, brute_force, trace_ray, trace_ray_cost,
-    trace_ray_with, trace_rays,
+    Candidate, HitFilter, Query, TraceOptions, TraceOutput, Traversal, WalkCost, brute_force,
+    brute_force_filtered, trace_ray, trace_ray_cost, trace_ray_filtered, trace_ray_with,
+    trace_rays, trace_rays_filtered,
 };
 pub use wide::{WideBvh, WideNode};

@@ -208,6 +208,50 @@ impl Best {
     }
 }
 
+/// A candidate hit a walk found, nearer than the hit it holds (or as near with a lower
+/// primitive): what a [`HitFilter`] accepts or rejects.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Candidate {
+    /// The primitive id the hit would report (in two levels, the instance's first id plus
+    /// the mesh's primitive).
+    pub prim: u32,
+    /// In two levels, the instance (an index into [`FlatBvh::instances`]); `None` in one.
+    pub instance: Option<u32>,
+    /// The primitive in its mesh: `prim` in one level, the mesh's own id in two.
+    pub mesh_prim: u32,
+    /// Distance along the ray, and the barycentric weights of corners 1 and 2.
+    pub t: f32,
+    /// Weight of corner 1.
+    pub u: f32,
+    /// Weight of corner 2.
+    pub v: f32,
+}
+
+/// Accepts or rejects candidate hits during a walk (Embree's filter functions, an any-hit
+/// shader): a rejected candidate is as if the ray had missed that triangle, and the walk
+/// goes on. Called only for candidates that would become the hit, so a closest-hit walk
+/// calls it for fewer candidates than exist; it must answer the same for the same
+/// candidate. Any `Fn(&Candidate) -> bool + Sync` closure is one.
+pub trait HitFilter: Sync {
+    /// Whether `c` counts as a hit.
+    fn accept(&self, c: &Candidate) -> bool;
+}
+
+impl<F: Fn(&Candidate) -> bool + Sync> HitFilter for F {
+    fn accept(&self, c: &Candidate) -> bool {
+        self(c)
+    }
+}
+
+/// Where a leaf's triangles are tested: the instance's first primitive id and index (two
+/// levels), and the filter, if any.
+#[derive(Clone, Copy)]
+struct Site<'a> {
+    prim_base: u32,
+    instance: Option<u32>,
+    filter: Option<&'a dyn HitFilter>,
+}
+
 /// Tests a leaf's triangles. Returns true when an any-hit query can stop.
 #[inline(always)]
 fn visit_leaf<T: TriangleTest>(
@@ -217,11 +261,11 @@ fn visit_leaf<T: TriangleTest>(
     best: &mut Best,
     c: &mut WalkCost,
     any: bool,
-    prim_base: u32,
+    at: Site<'_>,
 ) -> bool {
     let first = n.right_or_first as usize;
     let tris = &bvh.triangles[first..first + n.count() as usize];
-    visit_triangles::<T>(tris, r, best, c, any, prim_base)
+    visit_triangles::<T>(tris, r, best, c, any, at)
 }
 
 /// Tests a run of triangles. Returns true when an any-hit query can stop.
@@ -232,15 +276,28 @@ fn visit_triangles<T: TriangleTest>(
     best: &mut Best,
     c: &mut WalkCost,
     any: bool,
-    prim_base: u32,
+    at: Site<'_>,
 ) -> bool {
     for tri in tris {
         c.tris += 1;
         let [v0, v1, v2] = tri.corners();
-        let prim = prim_base + tri.prim;
+        let prim = at.prim_base + tri.prim;
         if let Some(h) = T::intersect(r, v0, v1, v2)
             && (h.t < best.t || (h.t == best.t && best.found && prim < best.prim))
         {
+            if let Some(f) = at.filter {
+                let candidate = Candidate {
+                    prim,
+                    instance: at.instance,
+                    mesh_prim: tri.prim,
+                    t: h.t,
+                    u: h.u,
+                    v: h.v,
+                };
+                if !f.accept(&candidate) {
+                    continue;
+                }
+            }
             *best = Best {
                 t: h.t,
                 prim,
@@ -270,22 +327,43 @@ struct Space<'a> {
     world: PreparedRay,
     inside: bool,
     prim_base: u32,
+    /// Inside an instance, its index.
+    instance: u32,
     mask: u32,
     /// Nodes of the top level in the layout walked.
     top_nodes: u32,
+    filter: Option<&'a dyn HitFilter>,
 }
 
 impl<'a> Space<'a> {
     #[inline(always)]
-    fn new(bvh: &'a FlatBvh, ray: &'a Ray, world: PreparedRay, mask: u8) -> Self {
+    fn new(
+        bvh: &'a FlatBvh,
+        ray: &'a Ray,
+        world: PreparedRay,
+        mask: u8,
+        filter: Option<&'a dyn HitFilter>,
+    ) -> Self {
         Space {
             bvh,
             world_ray: ray,
             world,
             inside: false,
             prim_base: 0,
+            instance: 0,
             mask: u32::from(mask),
             top_nodes: bvh.top_nodes,
+            filter,
+        }
+    }
+
+    /// Where a leaf's triangles are tested now (`I`: the BVH has instances).
+    #[inline(always)]
+    fn site<const I: bool>(&self) -> Site<'a> {
+        Site {
+            prim_base: if I { self.prim_base } else { 0 },
+            instance: (I && self.inside).then_some(self.instance),
+            filter: self.filter,
         }
     }
 
@@ -295,12 +373,13 @@ impl<'a> Space<'a> {
     /// overflowing).
     #[inline(always)]
     fn enter(&mut self, n: &FlatNode) -> Option<(PreparedRay, u32)> {
-        self.enter_instance(&self.bvh.instances[n.right_or_first as usize])
+        let i = n.right_or_first;
+        self.enter_instance(&self.bvh.instances[i as usize], i)
     }
 
-    /// Enters `inst` (see [`Space::enter`]).
+    /// Enters `inst`, instance `index` of the binary BVH (see [`Space::enter`]).
     #[inline(never)]
-    fn enter_instance(&mut self, inst: &FlatInstance) -> Option<(PreparedRay, u32)> {
+    fn enter_instance(&mut self, inst: &FlatInstance, index: u32) -> Option<(PreparedRay, u32)> {
         if inst.mask & self.mask == 0 {
             return None;
         }
@@ -310,6 +389,7 @@ impl<'a> Space<'a> {
         }
         self.inside = true;
         self.prim_base = inst.prim_base;
+        self.instance = index;
         Some((PreparedRay::new(&object), inst.root))
     }
 
@@ -358,7 +438,7 @@ fn full_stack<T: TriangleTest, const I: bool>(
                     node = root;
                     continue;
                 }
-            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, if I { s.prim_base } else { 0 }) {
+            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, s.site::<I>()) {
                 return;
             }
         } else {
@@ -464,7 +544,7 @@ fn short_stack<T: TriangleTest, const I: bool>(
                     node = root;
                     continue;
                 }
-            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, if I { s.prim_base } else { 0 }) {
+            } else if visit_leaf::<T>(bvh, &r, n, best, c, any, s.site::<I>()) {
                 return;
             }
         }
@@ -565,7 +645,11 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
         }
         let (start, count) = n.leaf_range(slot);
         if I && node < s.top_nodes {
-            if let Some((object, root)) = s.enter_instance(&w.instances[start as usize]) {
+            let (inst, index) = (
+                &w.instances[start as usize],
+                w.instance_order[start as usize],
+            );
+            if let Some((object, root)) = s.enter_instance(inst, index) {
                 if mask != 0 {
                     push(&mut local, &mut sp, stack, [node, mask]);
                 }
@@ -577,7 +661,7 @@ fn wide<T: TriangleTest, const I: bool, C: ChildTest>(
             continue;
         }
         let tris = &w.triangles[start as usize..(start + count) as usize];
-        if visit_triangles::<T>(tris, &r, best, c, any, if I { s.prim_base } else { 0 }) {
+        if visit_triangles::<T>(tris, &r, best, c, any, s.site::<I>()) {
             return;
         }
     }
@@ -652,6 +736,7 @@ fn wide_ray<T: TriangleTest, const I: bool, C: ChildTest>(
     w: &WideBvh,
     ray: &Ray,
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     stack: &mut Vec<u32>,
 ) -> (Hit, WalkCost) {
     let mut c = WalkCost::default();
@@ -662,7 +747,7 @@ fn wide_ray<T: TriangleTest, const I: bool, C: ChildTest>(
     if w.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return (best.into_hit(), c);
     }
-    let mut s = Space::new(bvh, ray, PreparedRay::new(ray), opts.mask);
+    let mut s = Space::new(bvh, ray, PreparedRay::new(ray), opts.mask, filter);
     s.top_nodes = w.top_nodes;
     let any = opts.query == Query::Any;
     wide::<T, I, C>(&mut s, w, &mut best, &mut c, any, stack);
@@ -677,6 +762,7 @@ fn wide_rays<T: TriangleTest, const I: bool, C: ChildTest>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     hits: &mut [Hit],
     costs: &mut [WalkCost],
 ) {
@@ -684,7 +770,7 @@ fn wide_rays<T: TriangleTest, const I: bool, C: ChildTest>(
     // A plain loop: an iterator adaptor's `fold` would be compiled apart from the AVX2
     // caller, without its features.
     for i in 0..rays.len() {
-        let (h, c) = wide_ray::<T, I, C>(bvh, w, &rays[i], opts, &mut stack);
+        let (h, c) = wide_ray::<T, I, C>(bvh, w, &rays[i], opts, filter, &mut stack);
         hits[i] = h;
         if let Some(slot) = costs.get_mut(i) {
             *slot = c;
@@ -700,10 +786,11 @@ fn wide_rays_avx2<T: TriangleTest, const I: bool>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     hits: &mut [Hit],
     costs: &mut [WalkCost],
 ) {
-    wide_rays::<T, I, Avx2>(bvh, w, rays, opts, hits, costs)
+    wide_rays::<T, I, Avx2>(bvh, w, rays, opts, filter, hits, costs)
 }
 
 /// [`wide_rays`] with the fastest box test this CPU has.
@@ -712,6 +799,7 @@ fn wide_rays_dispatch<T: TriangleTest, const I: bool>(
     w: &WideBvh,
     rays: &[Ray],
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     hits: &mut [Hit],
     costs: &mut [WalkCost],
 ) {
@@ -719,9 +807,9 @@ fn wide_rays_dispatch<T: TriangleTest, const I: bool>(
     if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("popcnt")
     {
         // SAFETY: AVX2 and POPCNT were just detected.
-        return unsafe { wide_rays_avx2::<T, I>(bvh, w, rays, opts, hits, costs) };
+        return unsafe { wide_rays_avx2::<T, I>(bvh, w, rays, opts, filter, hits, costs) };
     }
-    wide_rays::<T, I, Portable>(bvh, w, rays, opts, hits, costs)
+    wide_rays::<T, I, Portable>(bvh, w, rays, opts, filter, hits, costs)
 }
 
 /// The wide walk over `rays`, into `hits` and (unless it is empty) `costs`, one per ray (one
@@ -731,6 +819,7 @@ fn trace_wide(
     bvh: &FlatBvh,
     rays: &[Ray],
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     hits: &mut [Hit],
     costs: &mut [WalkCost],
 ) {
@@ -742,22 +831,22 @@ fn trace_wide(
     };
     match (opts.precision, bvh.is_instanced()) {
         (Precision::WatertightF32, false) => {
-            wide_rays_dispatch::<WatertightF32, false>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<WatertightF32, false>(bvh, w, rays, opts, filter, hits, costs)
         }
         (Precision::WatertightF32, true) => {
-            wide_rays_dispatch::<WatertightF32, true>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<WatertightF32, true>(bvh, w, rays, opts, filter, hits, costs)
         }
         (Precision::MollerTrumboreF32, false) => {
-            wide_rays_dispatch::<MollerTrumboreF32, false>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<MollerTrumboreF32, false>(bvh, w, rays, opts, filter, hits, costs)
         }
         (Precision::MollerTrumboreF32, true) => {
-            wide_rays_dispatch::<MollerTrumboreF32, true>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<MollerTrumboreF32, true>(bvh, w, rays, opts, filter, hits, costs)
         }
         (Precision::WatertightF64, false) => {
-            wide_rays_dispatch::<WatertightF64, false>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<WatertightF64, false>(bvh, w, rays, opts, filter, hits, costs)
         }
         (Precision::WatertightF64, true) => {
-            wide_rays_dispatch::<WatertightF64, true>(bvh, w, rays, opts, hits, costs)
+            wide_rays_dispatch::<WatertightF64, true>(bvh, w, rays, opts, filter, hits, costs)
         }
     }
 }
@@ -875,17 +964,37 @@ pub fn trace_ray_cost(
     opts: &TraceOptions,
     stack: &mut Vec<u32>,
 ) -> (Hit, WalkCost) {
+    trace_ray_filtered(bvh, ray, opts, None, stack)
+}
+
+/// [`trace_ray_cost`] with candidates passed through `filter` (`None`: every candidate
+/// counts).
+pub fn trace_ray_filtered(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
+    stack: &mut Vec<u32>,
+) -> (Hit, WalkCost) {
     if opts.traversal.is_wide() {
         let (mut hit, mut cost) = ([Hit::miss(0.0)], [WalkCost::default()]);
-        trace_wide(bvh, std::slice::from_ref(ray), opts, &mut hit, &mut cost);
+        trace_wide(
+            bvh,
+            std::slice::from_ref(ray),
+            opts,
+            filter,
+            &mut hit,
+            &mut cost,
+        );
         return (hit[0], cost[0]);
     }
+    let f = filter;
     match opts.precision {
-        Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, opts, stack),
+        Precision::WatertightF32 => trace_ray_generic::<WatertightF32>(bvh, ray, opts, f, stack),
         Precision::MollerTrumboreF32 => {
-            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, opts, stack)
+            trace_ray_generic::<MollerTrumboreF32>(bvh, ray, opts, f, stack)
         }
-        Precision::WatertightF64 => trace_ray_generic::<WatertightF64>(bvh, ray, opts, stack),
+        Precision::WatertightF64 => trace_ray_generic::<WatertightF64>(bvh, ray, opts, f, stack),
     }
 }
 
@@ -895,6 +1004,7 @@ fn trace_ray_generic<T: TriangleTest>(
     bvh: &FlatBvh,
     ray: &Ray,
     opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
     stack: &mut Vec<u32>,
 ) -> (Hit, WalkCost) {
     let (traversal, query, mask) = (opts.traversal, opts.query, opts.mask);
@@ -907,7 +1017,7 @@ fn trace_ray_generic<T: TriangleTest>(
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return (best.into_hit(), c);
     }
-    let mut space = Space::new(bvh, ray, r, mask);
+    let mut space = Space::new(bvh, ray, r, mask, filter);
     let s = &mut space;
     if traversal.needs_escapes()
         && let Err(e) = bvh.check_escape_links()
@@ -939,6 +1049,18 @@ pub fn trace_ray(bvh: &FlatBvh, ray: &Ray, opts: &TraceOptions) -> (Hit, Counter
 /// counters are kept only when `opts.counters` is set. `wall_ms` is timed (without the
 /// escape links' build, when this is their first use); `gpu_ms` is `None`.
 pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutput {
+    trace_rays_filtered(bvh, rays, opts, None)
+}
+
+/// [`trace_rays`] with every walk's candidates passed through `filter` (`None`: every
+/// candidate counts): alpha-tested geometry, or your own rule (skip the triangle a ray
+/// leaves, say).
+pub fn trace_rays_filtered(
+    bvh: &FlatBvh,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
+) -> TraceOutput {
     // The escape links' one-off build on first use is not the walks' time.
     if opts.traversal.needs_escapes() && !rays.is_empty() {
         bvh.escapes();
@@ -952,9 +1074,9 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
         let runs = hits.par_chunks_mut(RUN).zip(rays.par_chunks(RUN));
         if opts.counters {
             runs.zip(costs.par_chunks_mut(RUN))
-                .for_each(|((h, r), c)| trace_wide(bvh, r, opts, h, c));
+                .for_each(|((h, r), c)| trace_wide(bvh, r, opts, filter, h, c));
         } else {
-            runs.for_each(|(h, r)| trace_wide(bvh, r, opts, h, &mut []));
+            runs.for_each(|(h, r)| trace_wide(bvh, r, opts, filter, h, &mut []));
         }
         let counters = opts
             .counters
@@ -964,14 +1086,19 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
         let (h, c): (Vec<Hit>, Vec<Counters>) = rays
             .par_iter()
             .with_min_len(256)
-            .map_init(stack, |s, ray| trace_ray_with(bvh, ray, opts, s))
+            .map_init(stack, |s, ray| {
+                let (hit, cost) = trace_ray_filtered(bvh, ray, opts, filter, s);
+                (hit, cost.counters())
+            })
             .unzip();
         (h, Some(c))
     } else {
         let h = rays
             .par_iter()
             .with_min_len(256)
-            .map_init(stack, |s, ray| trace_ray_with(bvh, ray, opts, s).0)
+            .map_init(stack, |s, ray| {
+                trace_ray_filtered(bvh, ray, opts, filter, s).0
+            })
             .collect();
         (h, None)
     };
@@ -989,14 +1116,30 @@ pub fn trace_rays(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> TraceOutp
 /// hit rule: what every traversal with that precision must return exactly, for
 /// closest-hit queries.
 pub fn brute_force(bvh: &FlatBvh, ray: &Ray, precision: Precision) -> Hit {
+    brute_force_filtered(bvh, ray, precision, None)
+}
+
+/// [`brute_force`] with candidates passed through `filter`, in the order of the triangles:
+/// what the filtered walks must return for closest-hit queries.
+pub fn brute_force_filtered(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    precision: Precision,
+    filter: Option<&dyn HitFilter>,
+) -> Hit {
+    let f = filter;
     match precision {
-        Precision::WatertightF32 => brute_force_generic::<WatertightF32>(bvh, ray),
-        Precision::MollerTrumboreF32 => brute_force_generic::<MollerTrumboreF32>(bvh, ray),
-        Precision::WatertightF64 => brute_force_generic::<WatertightF64>(bvh, ray),
+        Precision::WatertightF32 => brute_force_generic::<WatertightF32>(bvh, ray, f),
+        Precision::MollerTrumboreF32 => brute_force_generic::<MollerTrumboreF32>(bvh, ray, f),
+        Precision::WatertightF64 => brute_force_generic::<WatertightF64>(bvh, ray, f),
     }
 }
 
-fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
+fn brute_force_generic<T: TriangleTest>(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    filter: Option<&dyn HitFilter>,
+) -> Hit {
     if !ray.is_valid() {
         return trace_ray(bvh, ray, &TraceOptions::closest(Traversal::FullStack)).0;
     }
@@ -1004,7 +1147,7 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
     let mut best = Best::start(ray);
     if bvh.is_instanced() {
         if ray.t_min <= ray.t_max {
-            brute_force_instances::<T>(bvh, ray, &mut best);
+            brute_force_instances::<T>(bvh, ray, filter, &mut best);
         }
         return best.into_hit();
     }
@@ -1022,7 +1165,11 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
             &mut best,
             &mut WalkCost::default(),
             false,
-            0,
+            Site {
+                prim_base: 0,
+                instance: None,
+                filter,
+            },
         );
     }
     best.into_hit()
@@ -1030,9 +1177,14 @@ fn brute_force_generic<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray) -> Hit {
 
 /// Every triangle of every instance (each leaf of each mesh reached from an instance,
 /// whatever its box), with the walks' ray transform.
-fn brute_force_instances<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray, best: &mut Best) {
+fn brute_force_instances<T: TriangleTest>(
+    bvh: &FlatBvh,
+    ray: &Ray,
+    filter: Option<&dyn HitFilter>,
+    best: &mut Best,
+) {
     let mut stack = Vec::new();
-    for inst in &bvh.instances {
+    for (index, inst) in bvh.instances.iter().enumerate() {
         let object = inst.ray_to_object(ray);
         if !object.is_valid() {
             continue;
@@ -1043,7 +1195,12 @@ fn brute_force_instances<T: TriangleTest>(bvh: &FlatBvh, ray: &Ray, best: &mut B
             let n = &bvh.nodes[i as usize];
             if n.is_leaf() {
                 let mut c = WalkCost::default();
-                visit_leaf::<T>(bvh, &r, n, best, &mut c, false, inst.prim_base);
+                let at = Site {
+                    prim_base: inst.prim_base,
+                    instance: Some(index as u32),
+                    filter,
+                };
+                visit_leaf::<T>(bvh, &r, n, best, &mut c, false, at);
             } else {
                 stack.extend([i + 1, n.right_or_first]);
             }

@@ -196,6 +196,9 @@ pub struct WideBvh {
     pub triangles: Vec<FlatTriangle>,
     /// The instances of a two-level BVH in the top level's leaf order; empty for one mesh.
     pub instances: Vec<FlatInstance>,
+    /// For each of `instances`, its index in the binary BVH's ([`FlatBvh::instances`]): the
+    /// instance a hit filter is told of.
+    pub instance_order: Vec<u32>,
     /// Nodes of the top level (`nodes[..top_nodes]`); 0 for one mesh.
     pub top_nodes: u32,
     /// Longest root-to-leaf path in nodes, through an instance into its mesh for two
@@ -543,6 +546,7 @@ impl WideBvh {
                 inst
             })
             .collect();
+        out.instance_order = order;
         out.depth = top_depth + 1 + mesh_depth;
         out
     }
