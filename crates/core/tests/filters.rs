@@ -124,7 +124,7 @@ fn two_level_filters_see_the_instance_and_the_mesh_primitive() {
         let inst = c.instance.expect("two levels name the instance");
         let base = bvh.instances()[inst as usize].prim_base;
         assert_eq!(c.prim, base + c.mesh_prim);
-        inst != 2 || c.mesh_prim % 2 == 0
+        inst != 2 || c.mesh_prim.is_multiple_of(2)
     };
     let (hits, changed) = check(bvh, &rays, &rule);
     assert!(hits > 500 && changed > 20, "{hits} hits, {changed} changed");
