@@ -4,7 +4,7 @@ use std::borrow::Borrow;
 
 use std::sync::Arc;
 
-use bvhtrace_core::{FlatBvh, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{FlatBvh, HitFilter, Ray, TraceOptions, TraceOutput, Traversal};
 
 use crate::error::TraceError;
 use crate::key::KernelKey;
@@ -143,18 +143,41 @@ pub fn check_update_shape(
 }
 
 /// The CPU walks of [`bvhtrace_core::traverse`] over a borrowed or owned tree (`&FlatBvh`,
-/// `Arc<FlatBvh>` or `FlatBvh`), on the current rayon pool.
-#[derive(Clone, Debug)]
+/// `Arc<FlatBvh>` or `FlatBvh`), on the current rayon pool, with a hit filter when given
+/// one ([`CpuTracer::with_filter`]).
+#[derive(Clone)]
 pub struct CpuTracer<B = std::sync::Arc<FlatBvh>> {
     bvh: B,
     /// The tree given to [`Tracer::update`], which replaces `bvh` from then on.
     updated: Option<Arc<FlatBvh>>,
+    filter: Option<Arc<dyn HitFilter + Send>>,
+}
+
+impl<B: std::fmt::Debug> std::fmt::Debug for CpuTracer<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CpuTracer")
+            .field("bvh", &self.bvh)
+            .field("updated", &self.updated.is_some())
+            .field("filter", &self.filter.is_some())
+            .finish()
+    }
 }
 
 impl<B: Borrow<FlatBvh>> CpuTracer<B> {
     /// Traces through `bvh`.
     pub fn new(bvh: B) -> Self {
-        CpuTracer { bvh, updated: None }
+        CpuTracer {
+            bvh,
+            updated: None,
+            filter: None,
+        }
+    }
+
+    /// Passes every walk's candidate hits through `filter` (alpha-tested geometry:
+    /// `bvhtrace_scene::Scene::alpha_filter`; or your own rule).
+    pub fn with_filter(mut self, filter: Arc<dyn HitFilter + Send>) -> Self {
+        self.filter = Some(filter);
+        self
     }
 
     /// The tree.
@@ -190,7 +213,13 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
 
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
         self.supports(opts)?;
-        Ok(bvhtrace_core::trace_rays(self.bvh(), rays, opts))
+        let filter = self.filter.as_deref().map(|f| f as &dyn HitFilter);
+        Ok(bvhtrace_core::trace_rays_filtered(
+            self.bvh(),
+            rays,
+            opts,
+            filter,
+        ))
     }
 
     fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {

@@ -137,3 +137,94 @@ fn an_unusable_texture_leaves_the_factor_with_a_warning() {
     assert!(s.warnings.is_empty(), "{:?}", s.warnings);
     assert!(s.materials[0].alpha_texture.is_none());
 }
+
+/// A unit quad (two triangles, texture coordinates 0..1) masked by a 4x4 texture whose
+/// left half is opaque, placed as is and mirrored beside it, over an opaque backdrop.
+fn masked_quads() -> Scene {
+    let mut g = Gltf::default();
+    let quad = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    g.positions(&quad);
+    g.indices_u8(&[0, 1, 2, 0, 2, 3]);
+    // glTF's v runs down the image: the quad's y = 0 edge samples the top row.
+    let uv: [[f32; 2]; 4] = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+    g.raw(bytemuck::cast_slice(&uv), 4, "VEC2", common::F32, json!({}));
+    let back = [
+        [-1.0, -1.0, -1.0],
+        [5.0, -1.0, -1.0],
+        [5.0, 2.0, -1.0],
+        [-1.0, 2.0, -1.0],
+    ];
+    g.positions(&back);
+    let alpha: Vec<u8> = (0..16).map(|i| if i % 4 < 2 { 255 } else { 0 }).collect();
+    let rgba: Vec<u8> = alpha.iter().flat_map(|&a| [90, 160, 60, a]).collect();
+    let img = image::RgbaImage::from_raw(4, 4, rgba).expect("4x4");
+    let mut bytes = Cursor::new(Vec::new());
+    img.write_to(&mut bytes, image::ImageFormat::Png)
+        .expect("encode");
+    let doc = json!({
+        "meshes": [
+            {"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 2}, "indices": 1, "material": 0}]},
+            {"primitives": [{"attributes": {"POSITION": 3}, "indices": 1, "material": 1}]},
+        ],
+        "materials": [
+            {"alphaMode": "MASK", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}},
+            {"name": "backdrop"},
+        ],
+        "textures": [{"source": 0}],
+        "images": [{"uri": data_uri("image/png", &bytes.into_inner())}],
+        "nodes": [
+            {"mesh": 0},
+            {"mesh": 0, "translation": [3.0, 0.0, 0.0], "scale": [-1.0, 1.0, 1.0]},
+            {"mesh": 1},
+        ],
+        "scenes": [{"nodes": [0, 1, 2]}],
+    });
+    load_gltf_slice(g.to_gltf(doc).as_bytes(), "quads.gltf", None).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// Rays down -z at each texel's centre of both quads: through the cut half they reach the
+/// backdrop, on the kept half they stop at the quad, in one level and in two, every walk;
+/// the mirrored quad keeps the half its texture coordinates say.
+#[test]
+fn masked_quads_cut_where_their_texture_says() {
+    use bvhtrace_core::{Ray, TraceOptions, Traversal, trace_rays_filtered};
+    let s = masked_quads();
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+    let mut rays = Vec::new();
+    let mut want = Vec::new();
+    for (x0, mirrored) in [(0.0f32, false), (2.0, true)] {
+        for j in 0..4 {
+            for i in 0..4 {
+                let (x, y) = (x0 + (i as f32 + 0.5) / 4.0, (j as f32 + 0.5) / 4.0);
+                let u = if mirrored { 3.0 - x } else { x };
+                rays.push(Ray::new(glam::Vec3::new(x, y, 5.0), glam::Vec3::NEG_Z));
+                want.push(if u < 0.5 { 5.0 } else { 6.0 });
+            }
+        }
+    }
+    for flatten in [true, false] {
+        let mut traced = s.tracing_bvh(&Default::default(), flatten).expect("bvh");
+        assert_eq!(traced.is_two_level(), !flatten);
+        traced.build_wide();
+        let filter = s.alpha_filter(&traced).expect("masked");
+        for walk in [Traversal::FullStack, Traversal::Stackless, Traversal::Wide] {
+            let opts = TraceOptions::closest(walk);
+            let hits = trace_rays_filtered(traced.bvh(), &rays, &opts, Some(&filter)).hits;
+            let t: Vec<f32> = hits.iter().map(|h| h.t).collect();
+            assert_eq!(t, want, "flatten {flatten}, {walk}");
+        }
+        // The quads' triangles each straddle both halves: every candidate is sampled.
+        let (settled, sampled) = filter.counts();
+        assert!(sampled > 0, "{settled} settled, {sampled} sampled");
+    }
+    // Unmasked, the quads stop every ray.
+    let traced = s.tracing_bvh(&Default::default(), false).expect("bvh");
+    let opts = TraceOptions::closest(Traversal::FullStack);
+    let plain = bvhtrace_core::trace_rays(traced.bvh(), &rays, &opts).hits;
+    assert!(plain.iter().all(|h| h.t == 5.0));
+}
