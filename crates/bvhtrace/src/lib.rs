@@ -37,7 +37,7 @@ mod backend;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
-pub use open::{Device, OpenOptions, Opened, open, open_on_wgpu};
+pub use open::{Device, OpenOptions, Opened, SharedFilter, open, open_on_wgpu};
 #[cfg(not(target_arch = "wasm32"))]
 pub use open::{open_on_ray_query, open_on_vulkan};
 

@@ -4,7 +4,7 @@ use std::borrow::Borrow;
 use std::fmt;
 use std::sync::Arc;
 
-use bvhtrace_core::{FlatBvh, TraceOptions, Traversal};
+use bvhtrace_core::{FlatBvh, HitFilter, TraceOptions, Traversal};
 use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext, UploadOptions};
 use bvhtrace_kernels::{
     AdapterChoice, BvhStorage, CpuTracer, DriverTuning, SendSync, TraceError, Tracer,
@@ -37,6 +37,28 @@ pub struct OpenOptions {
     /// Enable `VK_LAYER_KHRONOS_validation` on the Vulkan backend when it is installed (a
     /// front end honouring `bvhtrace_vk::VALIDATION_ENV` passes it on here).
     pub validation: bool,
+    /// A filter every candidate hit passes through (alpha-tested materials:
+    /// `bvhtrace_scene::Scene::alpha_filter`; or your own rule). The CPU walks apply it;
+    /// the device backends do not yet, so [`Backend::Auto`] then traces on the CPU (and
+    /// says why), and a device backend asked for by name refuses.
+    pub filter: Option<SharedFilter>,
+}
+
+/// A [`HitFilter`] shared by the tracers that apply it ([`OpenOptions::filter`]).
+#[derive(Clone)]
+pub struct SharedFilter(pub Arc<dyn HitFilter + Send>);
+
+impl std::fmt::Debug for SharedFilter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SharedFilter")
+    }
+}
+
+impl PartialEq for SharedFilter {
+    /// The same filter object.
+    fn eq(&self, other: &SharedFilter) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
 }
 
 impl OpenOptions {
@@ -444,6 +466,27 @@ impl Device {
     where
         B: Borrow<FlatBvh> + Send + Sync + 'a,
     {
+        if opts.filter.is_some() && !matches!(self.inner, Inner::Cpu) {
+            if !self.auto {
+                let backend = match self.inner {
+                    Inner::Cpu => "cpu",
+                    Inner::Wgpu(_) => "wgpu",
+                    #[cfg(not(target_arch = "wasm32"))]
+                    Inner::Vulkan(_) => "vulkan",
+                    #[cfg(not(target_arch = "wasm32"))]
+                    Inner::RayQuery(_) => "ray-query",
+                };
+                return Err(TraceError::Unsupported {
+                    backend,
+                    what: "hit filters (alpha-tested materials) yet: the CPU backend applies \
+                           them"
+                        .into(),
+                });
+            }
+            let why = "only the CPU walks apply hit filters (alpha-tested materials) yet: \
+                       tracing on the CPU";
+            return open_cpu(bvh, opts, Some(why.into()));
+        }
         let opened = match &self.inner {
             Inner::Cpu => return open_cpu(bvh, opts, self.fallback.clone()),
             Inner::Wgpu(ctx) => open_on_wgpu(ctx, bvh.borrow(), opts),
@@ -711,6 +754,17 @@ pub fn open_on_ray_query(
 
 /// The CPU walks on `bvh`, in place unless a wide walk is asked for and the tree has no
 /// wide layout (then on a copy with one).
+/// `tracer` with `opts`' filter, boxed.
+fn with_filter<'a, B>(tracer: CpuTracer<B>, opts: &OpenOptions) -> Box<dyn Tracer + 'a>
+where
+    B: Borrow<FlatBvh> + Send + Sync + 'a,
+{
+    match &opts.filter {
+        Some(f) => Box::new(tracer.with_filter(f.0.clone())),
+        None => Box::new(tracer),
+    }
+}
+
 fn open_cpu<'a, B>(
     bvh: B,
     opts: &OpenOptions,
@@ -729,9 +783,12 @@ where
         && bvh.borrow().wide().is_none()
     {
         notes.push("the wide walk traces a copy of the tree collapsed into the wide layout".into());
-        Box::new(CpuTracer::new(Arc::new(bvh.borrow().clone().with_wide())))
+        with_filter(
+            CpuTracer::new(Arc::new(bvh.borrow().clone().with_wide())),
+            opts,
+        )
     } else {
-        Box::new(CpuTracer::new(bvh))
+        with_filter(CpuTracer::new(bvh), opts)
     };
     check_walks(&*tracer, &walks)?;
     Ok(Opened {

@@ -208,3 +208,43 @@ fn a_named_adapter_that_is_not_there_is_an_error_not_the_cpu() {
         Ok(o) => panic!("opened {}", o.summary()),
     }
 }
+
+/// A filter given to the front door: the CPU applies it (the filtered triangles are not
+/// hit), `auto` on a device goes to the CPU and says why, and a device backend asked for
+/// by name refuses rather than tracing without it.
+#[test]
+fn a_filter_is_applied_on_the_cpu_and_refused_by_the_devices() {
+    use bvhtrace::core::Candidate;
+    use std::sync::Arc;
+    let bvh = grid();
+    let rays = rays();
+    let even_only = |c: &Candidate| c.prim % 2 == 0;
+    let filter = bvhtrace::SharedFilter(Arc::new(even_only));
+    let opts = |backend| OpenOptions {
+        filter: Some(filter.clone()),
+        ..OpenOptions::new(backend)
+    };
+    let closest = TraceOptions::closest(Traversal::FullStack);
+    let cpu = bvhtrace::open(&bvh, &opts(Backend::Cpu)).expect("the CPU opens");
+    let hits = cpu.tracer.trace(&rays, &closest).expect("traces").hits;
+    let want = bvhtrace::core::trace_rays_filtered(&bvh, &rays, &closest, Some(&even_only)).hits;
+    assert_eq!(hits, want);
+    assert!(hits.iter().all(|h| !h.is_hit() || h.prim % 2 == 0));
+    assert!(hits.iter().filter(|h| h.is_hit()).count() > 100);
+    let auto = bvhtrace::open(&bvh, &opts(Backend::Auto)).expect("auto opens");
+    assert_eq!(auto.backend, Backend::Cpu);
+    assert_eq!(
+        auto.tracer.trace(&rays, &closest).expect("traces").hits,
+        want
+    );
+    match bvhtrace::open(&bvh, &opts(Backend::Wgpu)) {
+        Err(TraceError::Unsupported { what, .. }) => {
+            assert!(what.contains("hit filters"), "{what}")
+        }
+        Err(e) if no_device(&e) => eprintln!("SKIP the wgpu refusal: {e}"),
+        other => panic!(
+            "a device backend took a filter: {:?}",
+            other.map(|o| o.backend)
+        ),
+    }
+}
