@@ -218,7 +218,7 @@ fn a_filter_is_applied_on_the_cpu_and_refused_by_the_devices() {
     use std::sync::Arc;
     let bvh = grid();
     let rays = rays();
-    let even_only = |c: &Candidate| c.prim % 2 == 0;
+    let even_only = |c: &Candidate| c.prim.is_multiple_of(2);
     let filter = bvhtrace::SharedFilter(Arc::new(even_only));
     let opts = |backend| OpenOptions {
         filter: Some(filter.clone()),
@@ -229,7 +229,7 @@ fn a_filter_is_applied_on_the_cpu_and_refused_by_the_devices() {
     let hits = cpu.tracer.trace(&rays, &closest).expect("traces").hits;
     let want = bvhtrace::core::trace_rays_filtered(&bvh, &rays, &closest, Some(&even_only)).hits;
     assert_eq!(hits, want);
-    assert!(hits.iter().all(|h| !h.is_hit() || h.prim % 2 == 0));
+    assert!(hits.iter().all(|h| !h.is_hit() || h.prim.is_multiple_of(2)));
     assert!(hits.iter().filter(|h| h.is_hit()).count() > 100);
     let auto = bvhtrace::open(&bvh, &opts(Backend::Auto)).expect("auto opens");
     assert_eq!(auto.backend, Backend::Cpu);
