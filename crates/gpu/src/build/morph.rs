@@ -8,19 +8,16 @@
 use bvhtrace_kernels::build::{MORPH_STEP, MorphParams, morph_source};
 use glam::Vec3;
 
-use super::skin::VertexDispatch;
-use super::{empty, init, read_after};
+use super::skin::VertexProgram;
+use super::{empty, init};
 use crate::{GpuContext, GpuError, RefitVertices};
 
 /// One mesh with morph targets on the device: its base positions, its targets' deltas,
 /// their weights, and the positions [`GpuMorph::record`] writes.
 #[derive(Debug)]
 pub struct GpuMorph {
-    ctx: GpuContext,
-    dispatch: VertexDispatch,
+    program: VertexProgram,
     weights: wgpu::Buffer,
-    positions: wgpu::Buffer,
-    vertices: u32,
     targets: u32,
 }
 
@@ -51,7 +48,7 @@ impl GpuMorph {
         let params = MorphParams {
             vertices: n as u32,
             targets,
-            row: VertexDispatch::row(ctx, n as u64),
+            row: VertexProgram::row(ctx, n),
             pad: 0,
         };
         use wgpu::BufferUsages as U;
@@ -70,21 +67,11 @@ impl GpuMorph {
             u64::from(targets) * 4,
             U::STORAGE | U::COPY_DST,
         );
-        let positions = empty(
-            device,
-            "morphed positions",
-            n as u64 * 12,
-            U::STORAGE | U::COPY_SRC | U::COPY_DST,
-        );
-        let buffers = [&params, &base, &deltas, &weights, &positions];
-        let dispatch =
-            VertexDispatch::new(ctx, "morph", morph_source, MORPH_STEP, &buffers, n as u64)?;
+        let inputs = [&params, &base, &deltas, &weights];
+        let program = VertexProgram::new(ctx, "morph", (morph_source, MORPH_STEP), &inputs, n)?;
         Ok(GpuMorph {
-            ctx: ctx.clone(),
-            dispatch,
+            program,
             weights,
-            positions,
-            vertices: n as u32,
             targets,
         })
     }
@@ -106,41 +93,29 @@ impl GpuMorph {
         if let Some(i) = weights.iter().position(|w| !w.is_finite()) {
             return Err(bad(format!("weight {i} is not finite ({})", weights[i])));
         }
-        let queue = self.ctx.queue();
+        let queue = self.program.output().0.queue();
         queue.write_buffer(&self.weights, 0, bytemuck::cast_slice(weights));
         Ok(())
     }
 
     /// Records the morph into `enc`: the positions from the weights last written.
     pub fn record(&self, enc: &mut wgpu::CommandEncoder) {
-        self.dispatch.record(enc, "morph");
+        self.program.record(enc);
     }
 
     /// The morphed positions as a refit reads them: packed `xyz`, one per vertex, with
     /// the mesh's triangles as `indices` (three per triangle, the builder's input order).
     pub fn vertices<'a>(&'a self, indices: Option<&'a wgpu::Buffer>) -> RefitVertices<'a> {
-        RefitVertices {
-            positions: &self.positions,
-            stride: 3,
-            vertices: self.vertices,
-            indices,
-        }
+        self.program.vertices(indices)
     }
 
-    /// Its context, the buffer it writes and its vertex count: what a skin after it reads.
-    pub(super) fn output(&self) -> (&GpuContext, &wgpu::Buffer, usize) {
-        (&self.ctx, &self.positions, self.vertices as usize)
+    /// The program, whose output a skin after it reads.
+    pub(super) fn program(&self) -> &VertexProgram {
+        &self.program
     }
 
     /// Morphs now (a submission of its own) and reads the positions back: for checks.
     pub fn morph_and_read(&self) -> Result<Vec<Vec3>, GpuError> {
-        let mut enc = self
-            .ctx
-            .device()
-            .create_command_encoder(&Default::default());
-        self.record(&mut enc);
-        let source = [(&self.positions, u64::from(self.vertices) * 12)];
-        let bytes = read_after(&self.ctx, "morphing on the device", enc, &source)?;
-        Ok(bytemuck::pod_collect_to_vec(&bytes))
+        self.program.read_after(self.program.encoder(), true)
     }
 }

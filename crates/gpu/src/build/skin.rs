@@ -15,35 +15,42 @@ use crate::{GpuContext, GpuError, GpuMorph, RefitVertices};
 /// matrices, and the positions [`GpuSkin::record`] writes.
 #[derive(Debug)]
 pub struct GpuSkin {
-    ctx: GpuContext,
-    dispatch: VertexDispatch,
+    program: VertexProgram,
     matrices: wgpu::Buffer,
-    positions: wgpu::Buffer,
-    vertices: u32,
     joints: u32,
 }
 
-/// One compute program over a mesh's vertices, bound once: the morph and the skin.
+/// One compute program over a mesh's vertices, bound once, and the positions it writes
+/// (packed `xyz`, its last binding): the morph and the skin.
 #[derive(Debug)]
-pub(super) struct VertexDispatch {
+pub(super) struct VertexProgram {
+    ctx: GpuContext,
+    name: &'static str,
     pipeline: wgpu::ComputePipeline,
     group: wgpu::BindGroup,
     grid: (u32, u32),
+    positions: wgpu::Buffer,
+    vertices: u32,
 }
 
-impl VertexDispatch {
-    /// Compiles (or takes from the cache) program `name` and binds `buffers` (indexed by
-    /// binding) to the bindings `step` lists, for `vertices` invocations.
+impl VertexProgram {
+    /// Compiles (or takes from the cache) program `name`, makes its output positions and
+    /// binds `inputs` and them (indexed by binding, the output last) to the bindings
+    /// `step` lists, for `vertices` invocations.
     pub(super) fn new(
         ctx: &GpuContext,
         name: &'static str,
-        source: fn() -> String,
-        step: Step,
-        buffers: &[&wgpu::Buffer],
-        vertices: u64,
-    ) -> Result<VertexDispatch, GpuError> {
+        (source, step): (fn() -> String, Step),
+        inputs: &[&wgpu::Buffer],
+        vertices: usize,
+    ) -> Result<VertexProgram, GpuError> {
         let pipeline = ctx.device_program(name, source, &[step.0])?.swap_remove(0);
-        let (x, y, _) = grid(vertices, ctx.limits().max_compute_workgroups_per_dimension);
+        let max = ctx.limits().max_compute_workgroups_per_dimension;
+        let (x, y, _) = grid(vertices as u64, max);
+        use wgpu::BufferUsages as U;
+        let usage = U::STORAGE | U::COPY_SRC | U::COPY_DST;
+        let positions = empty(ctx.device(), name, vertices as u64 * 12, usage);
+        let buffers: Vec<&wgpu::Buffer> = inputs.iter().copied().chain([&positions]).collect();
         let group = ctx.scoped("binding a vertex program on the device", || {
             let entries: Vec<wgpu::BindGroupEntry<'_>> = (step.1.iter())
                 .map(|&b| wgpu::BindGroupEntry {
@@ -57,27 +64,72 @@ impl VertexDispatch {
                 entries: &entries,
             })
         })?;
-        Ok(VertexDispatch {
+        Ok(VertexProgram {
+            ctx: ctx.clone(),
+            name,
             pipeline,
             group,
             grid: (x, y),
+            positions,
+            vertices: vertices as u32,
         })
     }
 
     /// The invocations per row of the dispatch grid for `vertices` (the programs' `row`).
-    pub(super) fn row(ctx: &GpuContext, vertices: u64) -> u32 {
-        grid(vertices, ctx.limits().max_compute_workgroups_per_dimension).2
+    pub(super) fn row(ctx: &GpuContext, vertices: usize) -> u32 {
+        grid(
+            vertices as u64,
+            ctx.limits().max_compute_workgroups_per_dimension,
+        )
+        .2
+    }
+
+    /// Its context, the positions it writes and their count.
+    pub(super) fn output(&self) -> (&GpuContext, &wgpu::Buffer, usize) {
+        (&self.ctx, &self.positions, self.vertices as usize)
     }
 
     /// Records the dispatch into `enc`.
-    pub(super) fn record(&self, enc: &mut wgpu::CommandEncoder, label: &str) {
+    pub(super) fn record(&self, enc: &mut wgpu::CommandEncoder) {
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(label),
+            label: Some(self.name),
             timestamp_writes: None,
         });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.group, &[]);
         pass.dispatch_workgroups(self.grid.0, self.grid.1, 1);
+    }
+
+    /// The positions as a refit reads them, with the mesh's triangles as `indices`.
+    pub(super) fn vertices<'a>(&'a self, indices: Option<&'a wgpu::Buffer>) -> RefitVertices<'a> {
+        RefitVertices {
+            positions: &self.positions,
+            stride: 3,
+            vertices: self.vertices,
+            indices,
+        }
+    }
+
+    /// Submits `enc` and reads the positions back (`record_self`: this program recorded
+    /// into it first).
+    pub(super) fn read_after(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        record_self: bool,
+    ) -> Result<Vec<Vec3>, GpuError> {
+        if record_self {
+            self.record(&mut enc);
+        }
+        let source = [(&self.positions, u64::from(self.vertices) * 12)];
+        let bytes = read_after(&self.ctx, "moving vertices on the device", enc, &source)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+
+    /// A new encoder on its device.
+    pub(super) fn encoder(&self) -> wgpu::CommandEncoder {
+        self.ctx
+            .device()
+            .create_command_encoder(&Default::default())
     }
 }
 
@@ -119,7 +171,7 @@ impl GpuSkin {
         vertex_weights: &[[f32; 4]],
         joints: u32,
     ) -> Result<GpuSkin, GpuError> {
-        let (ctx, buffer, n) = morph.output();
+        let (ctx, buffer, n) = morph.program().output();
         Self::with_bind(
             ctx,
             buffer.clone(),
@@ -154,7 +206,7 @@ impl GpuSkin {
         let params = SkinParams {
             vertices: n as u32,
             joints,
-            row: VertexDispatch::row(ctx, n as u64),
+            row: VertexProgram::row(ctx, n),
             pad: 0,
         };
         use wgpu::BufferUsages as U;
@@ -174,21 +226,11 @@ impl GpuSkin {
             u64::from(joints) * 64,
             U::STORAGE | U::COPY_DST,
         );
-        let positions = empty(
-            device,
-            "skinned positions",
-            n as u64 * 12,
-            U::STORAGE | U::COPY_SRC | U::COPY_DST,
-        );
-        let buffers = [&params, &bind, &js, &ws, &matrices, &positions];
-        let dispatch =
-            VertexDispatch::new(ctx, "skin", skin_source, SKIN_STEP, &buffers, n as u64)?;
+        let inputs = [&params, &bind, &js, &ws, &matrices];
+        let program = VertexProgram::new(ctx, "skin", (skin_source, SKIN_STEP), &inputs, n)?;
         Ok(GpuSkin {
-            ctx: ctx.clone(),
-            dispatch,
+            program,
             matrices,
-            positions,
-            vertices: n as u32,
             joints,
         })
     }
@@ -212,43 +254,30 @@ impl GpuSkin {
             return Err(bad(format!("joint {j}'s matrix is not finite")));
         }
         let cols: Vec<[f32; 16]> = matrices.iter().map(Mat4::to_cols_array).collect();
-        self.ctx
-            .queue()
-            .write_buffer(&self.matrices, 0, bytemuck::cast_slice(&cols));
+        let queue = self.program.output().0.queue();
+        queue.write_buffer(&self.matrices, 0, bytemuck::cast_slice(&cols));
         Ok(())
     }
 
     /// Records the skinning into `enc`: the positions from the matrices last written.
     pub fn record(&self, enc: &mut wgpu::CommandEncoder) {
-        self.dispatch.record(enc, "skin");
+        self.program.record(enc);
     }
 
     /// The skinned positions as a refit reads them: packed `xyz`, one per vertex, with the
     /// mesh's triangles as `indices` (three per triangle, the builder's input order).
     pub fn vertices<'a>(&'a self, indices: Option<&'a wgpu::Buffer>) -> RefitVertices<'a> {
-        RefitVertices {
-            positions: &self.positions,
-            stride: 3,
-            vertices: self.vertices,
-            indices,
-        }
+        self.program.vertices(indices)
     }
 
     /// Skins now (a submission of its own) and reads the positions back: for checks.
     pub fn skin_and_read(&self) -> Result<Vec<Vec3>, GpuError> {
-        let mut enc = self
-            .ctx
-            .device()
-            .create_command_encoder(&Default::default());
-        self.record(&mut enc);
-        self.read_after(enc)
+        self.program.read_after(self.program.encoder(), true)
     }
 
     /// Submits `enc` (with a morph and this skin recorded into it, say) and reads the
     /// skinned positions back: for checks.
     pub fn read_after(&self, enc: wgpu::CommandEncoder) -> Result<Vec<Vec3>, GpuError> {
-        let source = [(&self.positions, u64::from(self.vertices) * 12)];
-        let bytes = read_after(&self.ctx, "skinning on the device", enc, &source)?;
-        Ok(bytemuck::pod_collect_to_vec(&bytes))
+        self.program.read_after(enc, false)
     }
 }
