@@ -164,7 +164,9 @@ pub fn cost(args: CostArgs) -> Result<()> {
         assumptions: ASSUMPTIONS,
         scenes: Vec::new(),
     };
-    let builder = args.build.tree_builder(None)?;
+    let builder = args
+        .build
+        .tree_builder(None, crate::backend::Backend::Auto)?;
     for spec in &specs {
         let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &builder)?;
         // Each scene's table as soon as it is done: the big scenes take a while.

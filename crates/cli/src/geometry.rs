@@ -7,6 +7,7 @@ use anyhow::{Context, Result, anyhow};
 use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Triangle};
 use bvhtrace_gpu::{GpuBuildOptions, GpuBuilderKind, GpuContext};
 use bvhtrace_scene::{Scene, SceneBvh, TracingBvhError};
+use bvhtrace_vk::VkContext;
 use serde_json::{Value, json};
 
 /// A builder the commands offer: one of the CPU's, or one that builds on the device
@@ -50,31 +51,50 @@ impl std::fmt::Display for Builder {
     }
 }
 
+/// The device a device builder runs on: wgpu's, or ash's (`--backend vulkan`).
+enum BuildDevice {
+    Wgpu(GpuContext),
+    Vulkan(VkContext),
+}
+
 /// Builds one-mesh BVHs the way the flags say: on the CPU with its options, or on a
 /// device opened once for every build.
 pub struct TreeBuilder {
     cpu: BuildOptions,
-    device: Option<(GpuContext, GpuBuildOptions)>,
+    device: Option<(BuildDevice, GpuBuildOptions)>,
 }
 
 impl TreeBuilder {
     /// `builder` with the CPU's `cpu` options (their costs also rule a device build's
-    /// leaves); a device builder opens `adapter` (see `backend::adapter_choice`).
-    pub fn new(builder: Builder, cpu: BuildOptions, adapter: Option<&str>) -> Result<Self> {
+    /// leaves); a device builder opens `adapter` (see `backend::adapter_choice`), through
+    /// ash when `vulkan`, else through wgpu.
+    pub fn new(
+        builder: Builder,
+        cpu: BuildOptions,
+        adapter: Option<&str>,
+        vulkan: bool,
+    ) -> Result<Self> {
         let device = match builder {
             Builder::Cpu(_) => None,
             Builder::Device(kind) => {
                 if cpu.optimize {
                     anyhow::bail!("--optimize reinserts in the CPU builders' trees, not {kind}'s");
                 }
-                let ctx = GpuContext::new(crate::backend::adapter_choice(adapter))
-                    .with_context(|| format!("--builder {kind} builds on a GPU"))?;
+                let choice = crate::backend::adapter_choice(adapter);
+                let device = match vulkan {
+                    true => VkContext::new(choice)
+                        .map(BuildDevice::Vulkan)
+                        .with_context(|| format!("--builder {kind} builds on a Vulkan device"))?,
+                    false => GpuContext::new(choice)
+                        .map(BuildDevice::Wgpu)
+                        .with_context(|| format!("--builder {kind} builds on a GPU"))?,
+                };
                 let opts = GpuBuildOptions {
                     cost_traversal: cpu.cost_traversal,
                     cost_intersection: cpu.cost_intersection,
                     ..GpuBuildOptions::with_builder(kind)
                 };
-                Some((ctx, opts))
+                Some((device, opts))
             }
         };
         Ok(TreeBuilder { cpu, device })
@@ -82,13 +102,12 @@ impl TreeBuilder {
 
     /// The BVH over `tris`, or the builder's error in words.
     pub fn build(&self, tris: &[Triangle]) -> Result<FlatBvh, String> {
-        match &self.device {
-            None => FlatBvh::build(tris, &self.cpu).map_err(|e| e.to_string()),
-            Some((ctx, opts)) => ctx
-                .build_bvh(tris, opts)
-                .map(|(bvh, _)| bvh)
-                .map_err(|e| e.to_string()),
-        }
+        let built = match &self.device {
+            None => return FlatBvh::build(tris, &self.cpu).map_err(|e| e.to_string()),
+            Some((BuildDevice::Wgpu(ctx), opts)) => ctx.build_bvh(tris, opts),
+            Some((BuildDevice::Vulkan(ctx), opts)) => ctx.build_bvh(tris, opts),
+        };
+        built.map(|(bvh, _)| bvh).map_err(|e| e.to_string())
     }
 }
 

@@ -86,9 +86,11 @@ impl BuildArgs {
         }
     }
 
-    /// The builder the flags say, a device one opened on `adapter`.
-    pub fn tree_builder(&self, adapter: Option<&str>) -> Result<TreeBuilder> {
-        TreeBuilder::new(self.builder, self.options(), adapter)
+    /// The builder the flags say, a device one opened on `adapter` (through ash when
+    /// `backend` is `vulkan`, else through wgpu).
+    pub fn tree_builder(&self, adapter: Option<&str>, backend: Backend) -> Result<TreeBuilder> {
+        let vulkan = backend == Backend::Vulkan;
+        TreeBuilder::new(self.builder, self.options(), adapter, vulkan)
     }
 }
 
@@ -118,9 +120,10 @@ impl SceneArgs {
 }
 
 /// Loads and builds the scene as the flags say (two levels or flattened, at `--time`; a
-/// device builder on `adapter`); prints scene warnings.
-pub fn load_and_build(args: &SceneArgs, adapter: Option<&str>) -> Result<Built> {
-    let builder = args.build.tree_builder(adapter)?;
+/// device builder on `adapter`, through ash for `Backend::Vulkan`); prints scene
+/// warnings.
+pub fn load_and_build(args: &SceneArgs, adapter: Option<&str>, backend: Backend) -> Result<Built> {
+    let builder = args.build.tree_builder(adapter, backend)?;
     geometry::load_and_build(args.spec(), &builder, args.flatten, args.time)
 }
 
@@ -302,7 +305,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         geometry: mut geo,
         load_ms,
         mut build_ms,
-    } = load_and_build(&args.scene, args.adapter.as_deref())?;
+    } = load_and_build(&args.scene, args.adapter.as_deref(), args.backend)?;
     if walk.is_some_and(|w| w.is_wide()) {
         let t = std::time::Instant::now();
         geo.build_wide();
@@ -782,7 +785,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         geometry: geo,
         load_ms,
         build_ms,
-    } = load_and_build(&args.scene, args.adapter.as_deref())?;
+    } = load_and_build(&args.scene, args.adapter.as_deref(), Backend::Auto)?;
     let bvh = geo.bvh();
     let s = BvhStats::of(bvh);
     let (lo, hi) = scene.bounds();

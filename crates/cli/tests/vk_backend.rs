@@ -104,3 +104,47 @@ fn bench_vulkan_measures_what_the_cpu_measures() {
         assert!(r["trace_ms"].as_f64().unwrap() > 0.0);
     }
 }
+
+/// `--backend vulkan` with a device builder builds through ash: the same tree as the wgpu
+/// build (`--backend cpu` builds on wgpu), the same image.
+#[test]
+fn device_builders_build_through_ash_on_vulkan() {
+    let dir = scratch("vk-device-build");
+    for builder in ["gpu-ploc", "gpu-lbvh"] {
+        let mut runs = Vec::new();
+        for backend in ["vulkan", "cpu"] {
+            let png = dir.join(format!("{builder}-{backend}.png"));
+            let out = render(
+                "builtin:spheres",
+                &png,
+                &[
+                    "--size",
+                    "96x72",
+                    "--flatten",
+                    "--builder",
+                    builder,
+                    "--backend",
+                    backend,
+                ],
+            );
+            if backend == "vulkan" && no_vulkan(&out) {
+                return;
+            }
+            assert!(
+                out.status.success(),
+                "{builder} on {backend}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let v = json(&out);
+            assert_eq!(v["builder"], builder);
+            let png = image::open(&png).expect("a PNG").to_rgb8();
+            runs.push((v["sah_cost"].clone(), v["nodes"].clone(), png));
+        }
+        assert_eq!(
+            runs[0].0, runs[1].0,
+            "{builder}: SAH cost, ash vs wgpu build"
+        );
+        assert_eq!(runs[0].1, runs[1].1, "{builder}: nodes, ash vs wgpu build");
+        assert!(runs[0].2 == runs[1].2, "{builder}: another image");
+    }
+}

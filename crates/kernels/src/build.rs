@@ -3,9 +3,11 @@
 //! `build_lbvh.wgsl` (a linear BVH, Karras 2012) and `build_ploc.wgsl` (locally-ordered
 //! clustering, Meister and Bittner 2018); and the programs that move a built tree's
 //! vertices, `refit.wgsl` (corners and boxes refitted), `morph.wgsl` (morph targets) and
-//! `skin.wgsl` (linear blend skinning). The wgpu backend runs them
-//! (`GpuContext::build_bvh`, `GpuRefit`, `GpuMorph`, `GpuSkin` in bvhtrace-gpu). Each entry point's bindings are listed here and checked against the WGSL
-//! by naga, so a host binds exactly what each step reads.
+//! `skin.wgsl` (linear blend skinning). The builders' host side is [`crate::builder`],
+//! which both device backends run (`GpuContext::build_bvh` in bvhtrace-gpu,
+//! `VkContext::build_bvh` in bvhtrace-vk); the wgpu backend also runs the others
+//! (`GpuRefit`, `GpuMorph`, `GpuSkin`). Each entry point's bindings are listed here and
+//! checked against the WGSL by naga, so a host binds exactly what each step reads.
 
 /// `build_morton.wgsl`.
 const BUILD_MORTON_WGSL: &str = include_str!("../shaders/build_morton.wgsl");

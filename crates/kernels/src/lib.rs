@@ -14,10 +14,13 @@
 //! * [`plan_dispatches`], [`DeviceLimits`]: how a batch fits a device.
 //! * [`Engine`] over a [`Backend`]: the upload and the trace driver every device backend
 //!   shares ([`engine`], [`upload`]).
+//! * [`builder::build_bvh`] over a [`builder::BuildDevice`]: the device BVH builders'
+//!   host side, shared by every device backend.
 //! * [`TraceError`]: everything that can go wrong, on every backend.
 #![warn(missing_docs)]
 
 pub mod build;
+pub mod builder;
 mod device;
 pub mod engine;
 mod error;

@@ -77,6 +77,93 @@ pub fn entry_point(
     constants: &naga::back::PipelineConstants,
     target: &SpirvTarget,
 ) -> Result<Vec<u32>, TraceError> {
+    let none = spv::ZeroInitializeWorkgroupMemoryMode::None;
+    write_entry(module, info, entry, constants, target, none)
+}
+
+/// How one entry point of a program binds a buffer in group 0.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EntryBinding {
+    /// The binding number.
+    pub binding: u32,
+    /// A uniform block (else a storage buffer).
+    pub uniform: bool,
+}
+
+/// One entry point of a program: its SPIR-V words and the group-0 buffers it reads.
+#[derive(Clone, Debug)]
+pub struct EntrySpirv {
+    /// The entry point's name.
+    pub name: &'static str,
+    /// Its SPIR-V.
+    pub words: Vec<u32>,
+    /// The buffers of group 0 it uses, by binding number.
+    pub bindings: Vec<EntryBinding>,
+}
+
+/// Each of `entries` of the WGSL module `source` (a device program: a builder) as SPIR-V,
+/// with the group-0 buffers it uses. Workgroup memory starts zeroed, as WGSL says (and
+/// wgpu does): by the device when `device_zeroes_workgroup` (Vulkan's
+/// `shaderZeroInitializeWorkgroupMemory` is enabled), else by the program itself.
+pub fn program(
+    source: &str,
+    entries: &[&'static str],
+    target: &SpirvTarget,
+    device_zeroes_workgroup: bool,
+) -> Result<Vec<EntrySpirv>, TraceError> {
+    let zero = match device_zeroes_workgroup {
+        true => spv::ZeroInitializeWorkgroupMemoryMode::Native,
+        false => spv::ZeroInitializeWorkgroupMemoryMode::Polyfill,
+    };
+    let module = naga::front::wgsl::parse_str(source)
+        .map_err(|e| failed("parsing the WGSL", e.emit_to_string(source)))?;
+    let info = naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::all(),
+    )
+    .validate(&module)
+    .map_err(|e| failed("validating the WGSL", e.emit_to_string(source)))?;
+    let constants = naga::back::PipelineConstants::default();
+    entries
+        .iter()
+        .map(|&name| {
+            let index = module
+                .entry_points
+                .iter()
+                .position(|p| p.name == name)
+                .ok_or_else(|| failed("finding the entry point", name))?;
+            let used = info.get_entry_point(index);
+            let bindings = module
+                .global_variables
+                .iter()
+                .filter(|(handle, _)| !used[*handle].is_empty())
+                .filter_map(|(_, var)| {
+                    let b = var.binding.as_ref().filter(|b| b.group == 0)?;
+                    Some(EntryBinding {
+                        binding: b.binding,
+                        uniform: var.space == naga::AddressSpace::Uniform,
+                    })
+                })
+                .collect();
+            let words = write_entry(&module, &info, name, &constants, target, zero)?;
+            Ok(EntrySpirv {
+                name,
+                words,
+                bindings,
+            })
+        })
+        .collect()
+}
+
+/// [`entry_point`], with workgroup memory zeroed as `zero_workgroup` says.
+fn write_entry(
+    module: &naga::Module,
+    info: &naga::valid::ModuleInfo,
+    entry: &str,
+    constants: &naga::back::PipelineConstants,
+    target: &SpirvTarget,
+    zero_workgroup: spv::ZeroInitializeWorkgroupMemoryMode,
+) -> Result<Vec<u32>, TraceError> {
     let stage = naga::ShaderStage::Compute;
     let (module, info) = naga::back::pipeline_constants::process_overrides(
         module,
@@ -98,7 +185,7 @@ pub fn entry_point(
             image_load: checked,
             binding_array: BoundsCheckPolicy::Unchecked,
         },
-        zero_initialize_workgroup_memory: spv::ZeroInitializeWorkgroupMemoryMode::None,
+        zero_initialize_workgroup_memory: zero_workgroup,
         ..Default::default()
     };
     let pipeline = spv::PipelineOptions {

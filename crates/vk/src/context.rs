@@ -14,6 +14,7 @@ use bvhtrace_kernels::{
     TraceError,
 };
 
+use crate::build::{BuildProgram, destroy_program};
 use crate::error::{from_vk, vkerr};
 
 /// Environment variable front ends and tests read to turn on `VK_LAYER_KHRONOS_validation`
@@ -141,7 +142,12 @@ pub(crate) struct Inner {
     memory: vk::PhysicalDeviceMemoryProperties,
     /// The SPIR-V version, and whether naga may skip its buffer bounds checks
     /// (robustBufferAccess2 is on), as wgpu does.
-    spirv: SpirvTarget,
+    pub(crate) spirv: SpirvTarget,
+    /// `maxPerStageDescriptorStorageBuffers`.
+    pub(crate) storage_buffers_per_stage: u32,
+    /// `shaderZeroInitializeWorkgroupMemory` is enabled: the device zeroes workgroup
+    /// memory (else the programs that need it zeroed do it themselves).
+    pub(crate) zero_workgroup: bool,
     /// `TRIP_LIMIT`, `DISPATCH_THREADS` and whether rays are finished on the CPU (storage
     /// is always buffers).
     tuning: DriverTuning,
@@ -150,6 +156,8 @@ pub(crate) struct Inner {
     pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
     pub(crate) pipeline_layout: vk::PipelineLayout,
     pipelines: Mutex<HashMap<KernelKey, vk::Pipeline>>,
+    /// The device builders' programs, by builder name.
+    pub(crate) build_programs: Mutex<HashMap<&'static str, Arc<BuildProgram>>>,
     pub(crate) submitter: Mutex<Submitter>,
     // Dropped last (after `Drop::drop` above destroyed the device).
     pub(crate) instance: InstanceHolder,
@@ -166,6 +174,11 @@ impl Drop for Inner {
             if let Ok(p) = self.pipelines.get_mut() {
                 for (_, pipeline) in p.drain() {
                     d.destroy_pipeline(pipeline, None);
+                }
+            }
+            if let Ok(p) = self.build_programs.get_mut() {
+                for (_, program) in p.drain() {
+                    destroy_program(d, &program);
                 }
             }
             let s = match self.submitter.get_mut() {
@@ -424,6 +437,15 @@ impl VkContext {
             } else {
                 false
             };
+            // The device zeroes workgroup memory itself (the builders' programs need it
+            // zeroed, as WGSL says): cheaper than naga's polyfill, as wgpu does.
+            let zero_ext = ash::khr::zero_initialize_workgroup_memory::NAME;
+            let mut zero_query = vk::PhysicalDeviceZeroInitializeWorkgroupMemoryFeatures::default();
+            let zero_workgroup = has_ext(zero_ext) && {
+                let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut zero_query);
+                instance.get_physical_device_features2(pd, &mut f2);
+                zero_query.shader_zero_initialize_workgroup_memory == vk::TRUE
+            };
             let supported = instance.get_physical_device_features(pd);
             let features = vk::PhysicalDeviceFeatures::default()
                 .robust_buffer_access(supported.robust_buffer_access == vk::TRUE)
@@ -431,7 +453,10 @@ impl VkContext {
                 .shader_int64(supported.shader_int64 == vk::TRUE);
             let mut robust2_enable =
                 vk::PhysicalDeviceRobustness2FeaturesEXT::default().robust_buffer_access2(true);
-            let dev_exts = [ash::ext::robustness2::NAME.as_ptr()];
+            let mut zero_enable =
+                vk::PhysicalDeviceZeroInitializeWorkgroupMemoryFeatures::default()
+                    .shader_zero_initialize_workgroup_memory(true);
+            let mut dev_exts = Vec::new();
             let priorities = [1.0f32];
             let queue_info = [vk::DeviceQueueCreateInfo::default()
                 .queue_family_index(family)
@@ -441,10 +466,14 @@ impl VkContext {
                 .enabled_features(&features);
             let robust2 = robust2 && supported.robust_buffer_access == vk::TRUE;
             if robust2 {
-                dci = dci
-                    .enabled_extension_names(&dev_exts)
-                    .push_next(&mut robust2_enable);
+                dev_exts.push(ash::ext::robustness2::NAME.as_ptr());
+                dci = dci.push_next(&mut robust2_enable);
             }
+            if zero_workgroup {
+                dev_exts.push(zero_ext.as_ptr());
+                dci = dci.push_next(&mut zero_enable);
+            }
+            dci = dci.enabled_extension_names(&dev_exts);
             let device = instance
                 .create_device(pd, &dci, None)
                 .map_err(vkerr("creating the Vulkan device"))?;
@@ -489,11 +518,14 @@ impl VkContext {
                 timestamp_mask,
                 memory,
                 spirv,
+                storage_buffers_per_stage: l.max_per_stage_descriptor_storage_buffers,
+                zero_workgroup,
                 tuning,
                 float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
                 pipeline_layout: vk::PipelineLayout::null(),
                 pipelines: Mutex::new(HashMap::new()),
+                build_programs: Mutex::new(HashMap::new()),
                 submitter: Mutex::new(Submitter {
                     pool: vk::CommandPool::null(),
                     cmd: vk::CommandBuffer::null(),

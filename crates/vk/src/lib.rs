@@ -38,9 +38,12 @@
 //!   installed), the device [`AdapterChoice`] picks, its [`DriverTuning`], SPIR-V
 //!   translation, the pipeline cache keyed by [`KernelKey`](kernels::KernelKey), the
 //!   command buffer and timestamp queries.
-//! * [`VkBvh::upload`] / [`VkBvh::trace`]: the flat BVH in, hits (and counters) out as a
+//! * [`VkBvh::upload`] / [`Tracer::trace`]: the flat BVH in, hits (and counters) out as a
 //!   [`TraceOutput`], for the [`TraceOptions`] asked for. [`VkBvh`] implements
 //!   [`Tracer`], the interface shared with the CPU and wgpu backends.
+//!
+//! * [`VkContext::build_bvh`]: the device BVH builders ([`GpuBuilderKind`]), the host side
+//!   and WGSL the wgpu backend runs, so the same tree on the same device.
 //!
 //! Every Vulkan object is destroyed when its owner drops; every failure is a
 //! [`TraceError`], the error type of every backend (a Vulkan result becomes
@@ -48,12 +51,14 @@
 //! loader or device [`TraceError::NoAdapter`]).
 #![warn(missing_docs)]
 
+mod build;
 mod bvh;
 mod context;
 mod error;
 
 pub use ash;
 pub use bvh::{Ash, VkBvh};
+pub use bvhtrace_kernels::builder::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
 pub use context::{
     VALIDATION_ENV, VkContext, VkDeviceInfo, VkOptions, device_kind, process_validation_errors,
 };
