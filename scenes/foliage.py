@@ -71,13 +71,38 @@ b = Blob()
 F, ARRAY, ELEMENT = 5126, 34962, 34963
 
 
-def quad_mesh(name, corners, uvs, material):
-    """A quad of two triangles (corners counter-clockwise) with texture coordinates."""
-    pos = b.add([c for p in corners for c in p], "f", 4, "VEC3", F, ARRAY, True)
-    tex = b.add([c for t in uvs for c in t], "f", 4, "VEC2", F, ARRAY)
-    idx = b.add([0, 1, 2, 0, 2, 3], "H", 6, "SCALAR", 5123, ELEMENT)
-    prim = {"attributes": {"POSITION": pos, "TEXCOORD_0": tex}, "indices": idx, "material": material}
+def grid_quad(corners, uvs, nu, nv, out):
+    """Appends a quad (corners counter-clockwise, with texture coordinates) cut into
+    nu x nv cells of two triangles each to `out` = (positions, uvs, indices): small
+    triangles, so that most fall wholly inside or outside a mask's cut."""
+    pos, tex, idx = out
+    lerp = lambda a, b, t: tuple(a[i] + (b[i] - a[i]) * t for i in range(len(a)))
+    base = len(pos)
+    for j in range(nv + 1):
+        for i in range(nu + 1):
+            s, t = i / nu, j / nv
+            pos.append(lerp(lerp(corners[0], corners[1], s), lerp(corners[3], corners[2], s), t))
+            tex.append(lerp(lerp(uvs[0], uvs[1], s), lerp(uvs[3], uvs[2], s), t))
+    for j in range(nv):
+        for i in range(nu):
+            a = base + j * (nu + 1) + i
+            idx += [a, a + 1, a + nu + 2, a, a + nu + 2, a + nu + 1]
+
+
+def mesh_of(name, out, material):
+    pos, tex, idx = out
+    p = b.add([c for q in pos for c in q], "f", len(pos), "VEC3", F, ARRAY, True)
+    t = b.add([c for q in tex for c in q], "f", len(tex), "VEC2", F, ARRAY)
+    i = b.add(idx, "H", len(idx), "SCALAR", 5123, ELEMENT)
+    prim = {"attributes": {"POSITION": p, "TEXCOORD_0": t}, "indices": i, "material": material}
     return {"name": name, "primitives": [prim]}
+
+
+def quad_mesh(name, corners, uvs, material, nu=1, nv=1):
+    """A quad (corners counter-clockwise) with texture coordinates, in nu x nv cells."""
+    out = ([], [], [])
+    grid_quad(corners, uvs, nu, nv, out)
+    return mesh_of(name, out, material)
 
 
 def box_mesh(name, lo, hi, material):
@@ -91,30 +116,35 @@ def box_mesh(name, lo, hi, material):
 
 
 def leaf_cards():
-    """Twelve leaf cards around a crown, tilted, each a quad with the whole leaf texture."""
-    corners, uvs, idx = [], [], []
+    """Twelve leaf cards around a crown, tilted, each the whole leaf texture in 4 x 6 cells."""
+    out = ([], [], [])
     for k in range(12):
         a = 2 * math.pi * k / 12 + 0.3 * (k % 3)
         r, y = 0.35 + 0.12 * (k % 4), 1.7 + 0.18 * (k % 5)
         c, s = math.cos(a), math.sin(a)
         # A 0.5 x 0.8 card pointing outward and up.
         base = (r * c, y, r * s)
-        out = (0.8 * c * 0.8, 0.8 * 0.55, 0.8 * s * 0.8)
+        reach = (0.64 * c, 0.44, 0.64 * s)
         side = (-s * 0.25, 0.0, c * 0.25)
         quad = [
             tuple(base[i] - side[i] for i in range(3)),
             tuple(base[i] + side[i] for i in range(3)),
-            tuple(base[i] + side[i] + out[i] for i in range(3)),
-            tuple(base[i] - side[i] + out[i] for i in range(3)),
+            tuple(base[i] + side[i] + reach[i] for i in range(3)),
+            tuple(base[i] - side[i] + reach[i] for i in range(3)),
         ]
-        n = len(corners)
-        corners += quad
-        uvs += [(0, 0), (1, 0), (1, 1), (0, 1)]
-        idx += [n, n + 1, n + 2, n, n + 2, n + 3]
-    pos = b.add([c for p in corners for c in p], "f", len(corners), "VEC3", F, ARRAY, True)
-    tex = b.add([c for t in uvs for c in t], "f", len(uvs), "VEC2", F, ARRAY)
-    ind = b.add(idx, "H", len(idx), "SCALAR", 5123, ELEMENT)
-    return {"name": "crown", "primitives": [{"attributes": {"POSITION": pos, "TEXCOORD_0": tex}, "indices": ind, "material": 0}]}
+        grid_quad(quad, [(0, 0), (1, 0), (1, 1), (0, 1)], 4, 6, out)
+    return mesh_of("crown", out, 0)
+
+
+def camera_rotation(pitch, yaw):
+    """The quaternion of a camera turned `yaw` degrees about +Y, then pitched `pitch`."""
+    p, y = math.radians(pitch) / 2, math.radians(yaw) / 2
+    qp = (math.sin(p), 0.0, 0.0, math.cos(p))
+    qy = (0.0, math.sin(y), 0.0, math.cos(y))
+    x1, y1, z1, w1 = qy
+    x2, y2, z2, w2 = qp
+    return [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
 
 
 images = [leaf_texture(), grille_texture()]
@@ -125,9 +155,9 @@ meshes = [
     leaf_cards(),
     box_mesh("trunk", (-0.08, 0.0, -0.08), (0.08, 1.9, 0.08), 3),
     # The fence: 6 long, 1 high, its texture repeated 6 times along it (u runs 0..6).
-    quad_mesh("fence", [(-3, 0, -1.2), (3, 0, -1.2), (3, 1, -1.2), (-3, 1, -1.2)], [(0, 1), (6, 1), (6, 0), (0, 0)], 1),
+    quad_mesh("fence", [(-3, 0, -1.2), (3, 0, -1.2), (3, 1, -1.2), (-3, 1, -1.2)], [(0, 1), (6, 1), (6, 0), (0, 0)], 1, 48, 8),
     # The gate: its coordinates run -1..2, mirrored across and clamped up.
-    quad_mesh("gate", [(1.6, 0, 0.6), (2.6, 0, 1.0), (2.6, 1.2, 1.0), (1.6, 1.2, 0.6)], [(-1, 1.5), (2, 1.5), (2, -0.5), (-1, -0.5)], 2),
+    quad_mesh("gate", [(1.6, 0, 0.6), (2.6, 0, 1.0), (2.6, 1.2, 1.0), (1.6, 1.2, 0.6)], [(-1, 1.5), (2, 1.5), (2, -0.5), (-1, -0.5)], 2, 12, 8),
     quad_mesh("ground", [(-4, 0, -4), (-4, 0, 4), (4, 0, 4), (4, 0, -4)], [(0, 0)] * 4, 4),
 ]
 materials = [
@@ -153,7 +183,8 @@ gltf = {
         {"name": "fence", "mesh": 2},
         {"name": "gate", "mesh": 3},
         {"name": "ground", "mesh": 4},
-        {"name": "camera", "camera": 0, "translation": [0.4, 1.6, 5.2], "rotation": [-0.12, 0, 0, 0.9928]},
+        # Above and in front, looking down at the crowns and the ground behind them.
+        {"name": "camera", "camera": 0, "translation": [0.3, 4.0, 5.2], "rotation": camera_rotation(-30.0, 3.0)},
     ],
     "meshes": meshes,
     "materials": materials,

@@ -62,14 +62,20 @@ pub fn open_on<'a>(device: &Device, bvh: &'a FlatBvh, opts: &OpenOptions) -> Res
 }
 
 /// Opens `backend` on the adapter named `adapter` (else `$BVHTRACE_ADAPTER`, else the
-/// best) and uploads `bvh` for `traversals`; a fallback is said on stderr.
+/// best) and uploads `bvh` for `traversals`, with every candidate hit passed through
+/// `filter` when there is one (a scene's masked materials: the CPU walks apply it, `auto`
+/// goes to the CPU for it, a device backend refuses it); a fallback is said on stderr.
 pub fn open<'a>(
     backend: Backend,
     adapter: Option<&str>,
     bvh: &'a FlatBvh,
     traversals: &[Traversal],
+    filter: Option<bvhtrace::SharedFilter>,
 ) -> Result<Opened<'a>> {
-    let opts = options(backend, adapter, traversals);
+    let opts = OpenOptions {
+        filter,
+        ..options(backend, adapter, traversals)
+    };
     let opened = bvhtrace::open(bvh, &opts)?;
     for why in opened.fallback.iter().chain(&opened.choice) {
         eprintln!("note: {why}");

@@ -463,3 +463,41 @@ fn the_wide_layout_renders_the_same_image() {
         "{err}"
     );
 }
+
+/// A masked scene (`scenes/foliage.gltf`): its leaves, fence and gate are cut by their
+/// textures on the CPU (the JSON counts the candidates settled and sampled); `--opaque`
+/// traces them whole (another image); a device backend asked for by name refuses, names
+/// `--opaque` and writes nothing.
+#[test]
+fn masked_materials_are_cut_on_the_cpu_and_refused_on_a_device() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
+    let (cut, img_cut) = render_json("foliage-cut", &[scene, "--shade", "diffuse"]);
+    let (whole, img_whole) =
+        render_json("foliage-whole", &[scene, "--shade", "diffuse", "--opaque"]);
+    assert_eq!(cut["backend"], "cpu");
+    let masks = &cut["alpha_masks"];
+    let (settled, sampled) = (masks["settled"].as_u64(), masks["sampled"].as_u64());
+    assert!(sampled.is_some_and(|s| s > 100), "{masks}");
+    assert!(settled.is_some_and(|s| s > 10), "{masks}");
+    assert!(whole["alpha_masks"].is_null());
+    assert_ne!(img_cut, img_whole, "the masks cut nothing");
+    let hits = |v: &serde_json::Value| v["hits"].as_u64().expect("hits");
+    assert!(hits(&cut) <= hits(&whole), "a cut scene stops more rays");
+    assert_ne!(cut["t_sum"], whole["t_sum"]);
+    let dir = scratch("foliage-gpu");
+    let png = dir.join("o.png");
+    let out = run(&[
+        "render",
+        scene,
+        "--backend",
+        "gpu",
+        "-o",
+        png.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    if err.contains("no Vulkan adapter") {
+        return eprintln!("SKIP the device refusal: {err}");
+    }
+    assert!(!out.status.success() && err.contains("--opaque"), "{err}");
+    assert!(!png.exists(), "a refused render wrote an image");
+}
