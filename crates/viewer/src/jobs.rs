@@ -50,12 +50,21 @@ pub struct SceneData {
 impl SceneData {
     /// What the UI shows about `scene`, loaded from `spec` since `started`.
     fn new(spec: String, scene: Scene, started: Instant) -> SceneData {
+        let mut warnings = scene.warnings.clone();
+        let masked = scene.materials.iter().filter(|m| m.alpha_mask(&[]).is_some()).count();
+        if masked > 0 {
+            // The viewer traces on the device, which does not apply masks yet.
+            warnings.push(format!(
+                "{masked} masked material(s) are shown opaque here; `bvhtrace render --backend \
+                 cpu` cuts them"
+            ));
+        }
         SceneData {
             name: scene.name.clone(),
             description: scene.description.clone(),
             bounds: scene.bounds(),
             camera: scene.camera,
-            warnings: scene.warnings.clone(),
+            warnings,
             duration: scene.duration(),
             triangles: scene.triangle_count(),
             scene,
