@@ -51,7 +51,11 @@ impl SceneData {
     /// What the UI shows about `scene`, loaded from `spec` since `started`.
     fn new(spec: String, scene: Scene, started: Instant) -> SceneData {
         let mut warnings = scene.warnings.clone();
-        let masked = scene.materials.iter().filter(|m| m.alpha_mask(&[]).is_some()).count();
+        let masked = scene
+            .materials
+            .iter()
+            .filter(|m| m.alpha_mask(&[]).is_some())
+            .count();
         if masked > 0 {
             // The viewer traces on the device, which does not apply masks yet.
             warnings.push(format!(
