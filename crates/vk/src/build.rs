@@ -3,7 +3,6 @@
 //! builders' WGSL (through naga, as the trace kernels) and one command buffer.
 
 use std::cell::RefCell;
-use std::ffi::CString;
 use std::future::Future;
 use std::sync::Arc;
 
@@ -17,8 +16,9 @@ use bvhtrace_kernels::spirv::{self, EntryBinding};
 use bvhtrace_kernels::{DeviceLimits, TraceError};
 
 use crate::VkContext;
+use crate::context::compute_pipeline;
 use crate::context::{Buffer, barrier};
-use crate::error::{from_vk, vkerr};
+use crate::error::vkerr;
 
 /// One entry point of a builder: its pipeline, layouts and the group-0 buffers it binds.
 pub(crate) struct BuildEntry {
@@ -122,10 +122,6 @@ impl VkContext {
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })
             .collect();
-        let name = CString::new(entry.name).map_err(|e| TraceError::Device {
-            during: "creating a compute pipeline",
-            message: format!("the entry point's name: {e}"),
-        })?;
         let mut out = BuildEntry {
             pipeline: vk::Pipeline::null(),
             layout: vk::PipelineLayout::null(),
@@ -150,30 +146,7 @@ impl VkContext {
                         None,
                     )
                     .map_err(vkerr("creating a builder's pipeline layout"))?;
-                let module = d
-                    .create_shader_module(
-                        &vk::ShaderModuleCreateInfo::default().code(&entry.words),
-                        None,
-                    )
-                    .map_err(vkerr("creating a shader module"))?;
-                let stage = vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::COMPUTE)
-                    .module(module)
-                    .name(&name);
-                let info = vk::ComputePipelineCreateInfo::default()
-                    .stage(stage)
-                    .layout(out.layout);
-                let made = d.create_compute_pipelines(vk::PipelineCache::null(), &[info], None);
-                d.destroy_shader_module(module, None);
-                out.pipeline = match made {
-                    Ok(p) => p[0],
-                    Err((partial, e)) => {
-                        for p in partial {
-                            d.destroy_pipeline(p, None);
-                        }
-                        return Err(from_vk("creating a compute pipeline", e));
-                    }
-                };
+                out.pipeline = compute_pipeline(d, &entry.words, entry.name, out.layout)?;
                 Ok(())
             })();
             if let Err(e) = made {

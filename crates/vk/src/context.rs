@@ -676,35 +676,14 @@ impl VkContext {
             return Ok(*p);
         }
         let words = self.spirv(key)?;
-        let d = &self.inner.device;
-        let name = CString::new(key.entry_point()).map_err(|e| TraceError::Device {
-            during: "creating a compute pipeline",
-            message: format!("the entry point's name: {e}"),
-        })?;
-        // SAFETY: `words` is SPIR-V from naga's validated module; the module is destroyed
-        // right after the pipeline is made from it.
+        // SAFETY: `words` is SPIR-V from naga's validated module, the layout this device's.
         let pipeline = unsafe {
-            let module = d
-                .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)
-                .map_err(vkerr("creating a shader module"))?;
-            let stage = vk::PipelineShaderStageCreateInfo::default()
-                .stage(vk::ShaderStageFlags::COMPUTE)
-                .module(module)
-                .name(&name);
-            let info = vk::ComputePipelineCreateInfo::default()
-                .stage(stage)
-                .layout(self.inner.pipeline_layout);
-            let made = d.create_compute_pipelines(vk::PipelineCache::null(), &[info], None);
-            d.destroy_shader_module(module, None);
-            match made {
-                Ok(p) => p[0],
-                Err((partial, e)) => {
-                    for p in partial {
-                        d.destroy_pipeline(p, None);
-                    }
-                    return Err(from_vk("creating a compute pipeline", e));
-                }
-            }
+            compute_pipeline(
+                &self.inner.device,
+                &words,
+                key.entry_point(),
+                self.inner.pipeline_layout,
+            )?
         };
         cache.insert(key, pipeline);
         Ok(pipeline)
@@ -826,6 +805,48 @@ impl VkContext {
                 b.mapped = NonNull::new(p.cast::<u8>());
             }
             Ok(b)
+        }
+    }
+}
+
+/// A compute pipeline of entry point `entry` in SPIR-V `words` with `layout`; the shader
+/// module is destroyed right after, and a failure destroys what was made.
+///
+/// # Safety
+/// `words` must be valid SPIR-V with that entry point, and `layout` a pipeline layout of
+/// `d` matching its bindings.
+pub(crate) unsafe fn compute_pipeline(
+    d: &ash::Device,
+    words: &[u32],
+    entry: &str,
+    layout: vk::PipelineLayout,
+) -> Result<vk::Pipeline, TraceError> {
+    let name = CString::new(entry).map_err(|e| TraceError::Device {
+        during: "creating a compute pipeline",
+        message: format!("the entry point's name: {e}"),
+    })?;
+    // SAFETY: the caller's contract; the module lives until the pipeline is made.
+    unsafe {
+        let module = d
+            .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(words), None)
+            .map_err(vkerr("creating a shader module"))?;
+        let stage = vk::PipelineShaderStageCreateInfo::default()
+            .stage(vk::ShaderStageFlags::COMPUTE)
+            .module(module)
+            .name(&name);
+        let info = vk::ComputePipelineCreateInfo::default()
+            .stage(stage)
+            .layout(layout);
+        let made = d.create_compute_pipelines(vk::PipelineCache::null(), &[info], None);
+        d.destroy_shader_module(module, None);
+        match made {
+            Ok(p) => Ok(p[0]),
+            Err((partial, e)) => {
+                for p in partial {
+                    d.destroy_pipeline(p, None);
+                }
+                Err(from_vk("creating a compute pipeline", e))
+            }
         }
     }
 }
