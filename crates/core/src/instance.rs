@@ -476,6 +476,13 @@ impl InstancedBvh {
         Ok(())
     }
 
+    /// The instances' world boxes (conservative, in instance order) were they moved to
+    /// `transforms`: what [`InstancedBvh::set_transforms_with`]'s builder is given. An
+    /// unusable transform is an error naming the instance.
+    pub fn world_boxes(&self, transforms: &[Affine3A]) -> Result<Vec<Aabb>, InstanceError> {
+        Ok(self.place(&self.moved(transforms)?)?.1)
+    }
+
     /// The instances with `transforms`, one per instance.
     fn moved(&self, transforms: &[Affine3A]) -> Result<Vec<Instance>, InstanceError> {
         if transforms.len() != self.instances.len() {
