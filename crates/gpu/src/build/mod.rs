@@ -183,26 +183,16 @@ fn submit_and_map(
 }
 
 /// After the work recorded in `enc`: the first bytes of each of `sources`, one after the
-/// other, copied into one read-back buffer, submitted, waited for and returned.
+/// other, copied into one read-back buffer, submitted, waited for and returned (the
+/// builder's read back, [`BuildDevice::submit_and_read`], waited for).
 fn read_after(
     ctx: &GpuContext,
     during: &'static str,
-    mut enc: wgpu::CommandEncoder,
+    enc: wgpu::CommandEncoder,
     sources: &[(&wgpu::Buffer, u64)],
 ) -> Result<Vec<u8>, GpuError> {
-    let total: u64 = sources.iter().map(|(_, n)| n).sum();
-    let usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-    let read = empty(ctx.device(), "read back", total, usage);
-    let mut at = 0;
-    for &(src, n) in sources {
-        enc.copy_buffer_to_buffer(src, 0, &read, at, n);
-        at += n;
-    }
-    submit_and_map(ctx, during, enc, &[(&read, total)])?;
-    let mut bytes: Vec<u8> = Vec::new();
-    let got = read_mapped(&read, total, &mut bytes);
-    read.unmap();
-    got.map(|_| bytes)
+    let (parts, _) = pollster::block_on(Wgpu(ctx).submit_and_read(enc, during, sources, None))?;
+    Ok(parts.concat())
 }
 
 /// The wgpu side of the device builder: buffers, bind groups, compute passes (with
@@ -330,7 +320,7 @@ impl BuildDevice for Wgpu<'_> {
         let ctx = self.0;
         let total: u64 = reads.iter().map(|(_, n)| n).sum();
         let usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        let read = empty(ctx.device(), "build read back", total, usage);
+        let read = empty(ctx.device(), "read back", total, usage);
         let mut at = 0;
         for &(src, n) in reads {
             enc.copy_buffer_to_buffer(src, 0, &read, at, n);
