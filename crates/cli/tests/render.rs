@@ -388,18 +388,11 @@ fn deforming_scenes_move_with_time_alike_on_gpu_and_cpu() {
         for (t, cpu) in [("0", &img_a), ("1", &img_b)] {
             let dir = scratch(&format!("{file}-gpu-{t}"));
             let png = dir.join("o.png");
-            let out = run(&[
-                "render",
+            let out = render(
                 &scene,
-                "--time",
-                t,
-                "--size",
-                "96x72",
-                "--backend",
-                "gpu",
-                "-o",
-                png.to_str().unwrap(),
-            ]);
+                &png,
+                &["--time", t, "--size", "96x72", "--backend", "gpu"],
+            );
             let err = String::from_utf8_lossy(&out.stderr);
             if err.contains("no Vulkan adapter") {
                 eprintln!("SKIP {file} GPU render: {err}");
@@ -486,14 +479,7 @@ fn masked_materials_are_cut_on_the_cpu_and_refused_on_a_device() {
     assert_ne!(cut["t_sum"], whole["t_sum"]);
     let dir = scratch("foliage-gpu");
     let png = dir.join("o.png");
-    let out = run(&[
-        "render",
-        scene,
-        "--backend",
-        "gpu",
-        "-o",
-        png.to_str().unwrap(),
-    ]);
+    let out = render(scene, &png, &["--backend", "gpu"]);
     let err = String::from_utf8_lossy(&out.stderr);
     if err.contains("no Vulkan adapter") {
         return eprintln!("SKIP the device refusal: {err}");

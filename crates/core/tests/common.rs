@@ -1,7 +1,7 @@
 //! Shared generators for the core tests.
 #![allow(dead_code)]
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Ray, Triangle, oracle};
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Ray, Traversal, Triangle, oracle};
 use glam::Vec3;
 use proptest::prelude::*;
 
@@ -132,4 +132,18 @@ pub fn f32_departure(tris: &[Triangle], ray: &Ray, a: &Hit, b: &Hit) -> bool {
         .iter()
         .any(|&p| tri(p).is_some_and(|t| oracle::f32_indeterminate(t, ray)))
         || (a.t as f64 - b.t as f64).abs() <= terr(a.prim) + terr(b.prim)
+}
+
+/// Every walk, short stacks of one and eight entries among them.
+pub const WALKS: [Traversal; 5] = [
+    Traversal::FullStack,
+    Traversal::Stackless,
+    Traversal::ShortStack(1),
+    Traversal::ShortStack(8),
+    Traversal::Wide,
+];
+
+/// The same hit bit for bit: primitive, `t`, `u` and `v`.
+pub fn same(a: &Hit, b: &Hit) -> bool {
+    a.prim == b.prim && a.t.to_bits() == b.t.to_bits() && a.u == b.u && a.v == b.v
 }

@@ -4,19 +4,13 @@
 
 use bvhtrace_core::{
     BuildOptions, Candidate, FlatBvh, Hit, Instance, InstancedBvh, Query, Ray, TraceOptions,
-    Traversal, Triangle, brute_force, brute_force_filtered, trace_rays, trace_rays_filtered,
+    Triangle, brute_force, brute_force_filtered, trace_rays, trace_rays_filtered,
 };
 use glam::{Affine3A, Quat, Vec3};
 
 mod common;
 
-const WALKS: [Traversal; 5] = [
-    Traversal::FullStack,
-    Traversal::Stackless,
-    Traversal::ShortStack(1),
-    Traversal::ShortStack(8),
-    Traversal::Wide,
-];
+use common::{WALKS, same};
 
 /// Random overlapping triangles in a 10-unit cube: most rays cross several.
 fn soup(n: usize, seed: u64) -> Vec<Triangle> {
@@ -39,10 +33,6 @@ fn rays(n: usize) -> Vec<Ray> {
             Ray::new(o, target - o)
         })
         .collect()
-}
-
-fn same(a: &Hit, b: &Hit) -> bool {
-    a.prim == b.prim && a.t.to_bits() == b.t.to_bits() && a.u == b.u && a.v == b.v
 }
 
 /// Every walk with `filter` against brute force with it; returns the filtered hits and how

@@ -4,12 +4,14 @@
 
 use bvhtrace_core::instance::REFIT_REBUILD_ADVISED;
 use bvhtrace_core::{
-    BuildOptions, FlatBvh, Hit, Instance, InstanceError, InstancedBvh, Query, Ray, TraceOptions,
-    Traversal, Triangle, brute_force, trace_ray, trace_rays,
+    BuildOptions, FlatBvh, Instance, InstanceError, InstancedBvh, Query, Ray, TraceOptions,
+    Triangle, brute_force, trace_ray, trace_rays,
 };
 use glam::{Affine3A, Quat, Vec3};
 
 mod common;
+
+use common::{WALKS, same};
 
 /// A bumpy open sheet: a second mesh with other triangle counts.
 fn sheet(n: usize) -> Vec<Triangle> {
@@ -96,18 +98,6 @@ fn rays(world: &[Triangle], n: usize) -> Vec<Ray> {
             Ray::new(origin, dir)
         })
         .collect()
-}
-
-const WALKS: [Traversal; 5] = [
-    Traversal::FullStack,
-    Traversal::Stackless,
-    Traversal::ShortStack(1),
-    Traversal::ShortStack(8),
-    Traversal::Wide,
-];
-
-fn same(a: &Hit, b: &Hit) -> bool {
-    a.prim == b.prim && a.t.to_bits() == b.t.to_bits() && a.u == b.u && a.v == b.v
 }
 
 /// Every walk's closest hit equals brute force bit for bit; any-hit agrees on hit or miss.
