@@ -732,12 +732,15 @@ impl Animation {
     /// ([`Skin::skin`]); a skinned mesh's positions are in the world with the global
     /// transform in them.
     pub fn deformed_at(&self, t: Option<f32>) -> Vec<Deformed> {
-        let mut instances: Vec<usize> = (self.skins.iter().map(|s| s.instance))
-            .chain(self.morphs.iter().map(|m| m.instance))
-            .collect();
-        instances.sort_unstable();
-        instances.dedup();
-        if instances.is_empty() {
+        type Deforms<'a> = (Option<&'a Morph>, Option<&'a Skin>);
+        let mut by_instance: std::collections::BTreeMap<usize, Deforms<'_>> = Default::default();
+        for m in &self.morphs {
+            by_instance.entry(m.instance).or_default().0 = Some(m);
+        }
+        for s in &self.skins {
+            by_instance.entry(s.instance).or_default().1 = Some(s);
+        }
+        if by_instance.is_empty() {
             return Vec::new();
         }
         let world = match (t, self.skins.is_empty()) {
@@ -746,19 +749,16 @@ impl Animation {
             (None, false) => self.static_node_transforms(),
         };
         let global = self.global_transform();
-        instances
+        by_instance
             .into_iter()
-            .map(|instance| {
-                let morph = self.morphs.iter().find(|m| m.instance == instance);
-                let skin = self.skins.iter().find(|s| s.instance == instance);
-                let (positions, normals) = match (morph, skin) {
-                    (Some(m), _) => m.morphed(&self.morph_weights_at(m, t)),
-                    (None, Some(s)) => (s.bind_positions.clone(), s.bind_normals.clone()),
+            .map(|(instance, (morph, skin))| {
+                let morphed = morph.map(|m| m.morphed(&self.morph_weights_at(m, t)));
+                let matrices = |s: &Skin| s.joint_matrices(&world, global);
+                let (positions, normals) = match (skin, morphed) {
+                    (Some(s), Some((p, n))) => s.skin(&matrices(s), &p, &n),
+                    (Some(s), None) => s.skinned(&matrices(s)),
+                    (None, Some(morphed)) => morphed,
                     (None, None) => (Vec::new(), Vec::new()),
-                };
-                let (positions, normals) = match skin {
-                    Some(s) => s.skin(&s.joint_matrices(&world, global), &positions, &normals),
-                    None => (positions, normals),
                 };
                 Deformed {
                     instance,
