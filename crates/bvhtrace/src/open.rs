@@ -466,7 +466,8 @@ impl Device {
     where
         B: Borrow<FlatBvh> + Send + Sync + 'a,
     {
-        if opts.filter.is_some() && !matches!(self.inner, Inner::Cpu) {
+        let masked = bvh.borrow().masks().is_some();
+        if (opts.filter.is_some() || masked) && !matches!(self.inner, Inner::Cpu) {
             if !self.auto {
                 let backend = match self.inner {
                     Inner::Cpu => "cpu",

@@ -5,16 +5,14 @@
 //! Each step is one function below.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use anyhow::{Result, bail};
-use bvhtrace::SharedFilter;
 use bvhtrace_core::{
-    BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, HitFilter, Query, Ray,
+    BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, MaskTables, Query, Ray,
     TraceOptions, TraceOutput, Traversal,
 };
 use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats};
-use bvhtrace_scene::{AlphaFilter, Camera, DEFAULT_SCENE, Scene, SceneBvh};
+use bvhtrace_scene::{Camera, DEFAULT_SCENE, Scene, SceneBvh};
 use bvhtrace_shade::args as flags;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -318,21 +316,19 @@ pub fn render(args: RenderArgs) -> Result<()> {
         geo.build_wide();
         build_ms += t.elapsed().as_secs_f64() * 1e3;
     }
+    if args.opaque {
+        // Masks the scene's tree was given: dropped, so no walk cuts a candidate.
+        geo.set_masks(None).map_err(anyhow::Error::msg)?;
+    }
     let bvh = geo.bvh();
+    let masks = bvh.masks().cloned();
     let cam = camera_for(&args.view, &scene)?;
-    let masks = (!args.opaque)
-        .then(|| scene.alpha_filter(&geo))
-        .flatten()
-        .map(Arc::new);
-    let shared = masks
-        .clone()
-        .map(|m| SharedFilter(m as Arc<dyn HitFilter + Send>));
     let opened = backend::open(
         args.backend,
         args.adapter.as_deref(),
         bvh,
         &walk.into_iter().collect::<Vec<_>>(),
-        shared,
+        None,
     )
     .map_err(|e| match &masks {
         Some(_) => e.context("the scene has masked materials (render --opaque traces them opaque)"),
@@ -511,7 +507,7 @@ struct Report<'a> {
     load_ms: f64,
     build_ms: f64,
     /// The masked materials' alpha test, when the scene has them (and not `--opaque`).
-    masks: Option<&'a AlphaFilter>,
+    masks: Option<&'a MaskTables>,
 }
 
 impl Report<'_> {

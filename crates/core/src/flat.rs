@@ -55,6 +55,7 @@ use glam::Vec3;
 
 use crate::build::{BuildNode, BuildTree};
 use crate::geometry::Aabb;
+use crate::masks::MaskTables;
 use crate::mesh::Triangle;
 use crate::wide::WideBvh;
 
@@ -375,6 +376,9 @@ pub struct FlatBvh {
     /// The same tree in the wide layout, for [`crate::Traversal::Wide`]: `None` until
     /// [`FlatBvh::build_wide`] (the GPU uploads convert it themselves when it is missing).
     pub(crate) wide: Option<Arc<WideBvh>>,
+    /// The alpha-tested triangles every walk cuts candidates by; `None` when no triangle
+    /// is masked ([`FlatBvh::set_masks`]).
+    pub(crate) masks: Option<Arc<MaskTables>>,
 }
 
 /// The editable fields of a [`FlatBvh`] ([`FlatBvh::parts_mut`]), for tests and tools that
@@ -406,6 +410,7 @@ impl PartialEq for FlatBvh {
             instances,
             top_nodes,
             wide,
+            masks,
         } = self;
         *nodes == other.nodes
             && *triangles == other.triangles
@@ -413,6 +418,7 @@ impl PartialEq for FlatBvh {
             && *instances == other.instances
             && *top_nodes == other.top_nodes
             && *wide == other.wide
+            && *masks == other.masks
             && match (self.escapes.get(), other.escapes.get()) {
                 // Same nodes: the same links once built.
                 (None, None) => true,
@@ -532,6 +538,43 @@ impl FlatBvh {
     /// this tree's.
     pub fn set_wide(&mut self, wide: Option<Arc<WideBvh>>) {
         self.wide = wide;
+    }
+
+    /// The alpha-tested triangles every walk (CPU and device) cuts candidates by
+    /// ([`crate::masks`]); `None` when no triangle is masked.
+    pub fn masks(&self) -> Option<&Arc<MaskTables>> {
+        self.masks.as_ref()
+    }
+
+    /// Attaches the masked triangles' tables (`bvhtrace_scene::Scene::alpha_masks` makes
+    /// them from a scene's materials), or drops them with `None` (every triangle opaque
+    /// again). They must cover this tree: one state per primitive id for one mesh, one
+    /// base per instance for two levels. They follow refits and moved instances (the
+    /// primitive ids and the instance list stay); new instances drop them.
+    pub fn set_masks(&mut self, masks: Option<Arc<MaskTables>>) -> Result<(), String> {
+        if let Some(m) = &masks {
+            if self.is_instanced() {
+                if m.instance_bases.len() != self.instances.len() {
+                    return Err(format!(
+                        "the masks have {} instance bases for {} instances",
+                        m.instance_bases.len(),
+                        self.instances.len()
+                    ));
+                }
+            } else if let Some(t) = self
+                .triangles
+                .iter()
+                .find(|t| t.prim as usize >= m.states.len())
+            {
+                return Err(format!(
+                    "the masks have {} states, but the tree has primitive {}",
+                    m.states.len(),
+                    t.prim
+                ));
+            }
+        }
+        self.masks = masks;
+        Ok(())
     }
 
     /// The fields to edit by hand, for tests and tools that build or corrupt trees by hand

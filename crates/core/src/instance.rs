@@ -448,12 +448,27 @@ impl InstancedBvh {
             .unwrap_or(0);
         self.bvh.depth = self.top_depth + deepest_mesh;
         self.bvh.instances = flat;
+        // Masks follow moved instances; other instances (other meshes) drop them.
+        let same_meshes = self.instances.len() == instances.len()
+            && (self.instances.iter().zip(&instances)).all(|(a, b)| a.mesh == b.mesh);
+        if !same_meshes {
+            self.bvh.masks = None;
+        }
         self.instances = instances;
         // New transforms or refitted meshes: the wide layout, when there is one, follows.
         if self.bvh.wide.is_some() {
             self.bvh.build_wide();
         }
         Ok(())
+    }
+
+    /// Attaches alpha masks to the two-level BVH ([`FlatBvh::set_masks`]: one instance
+    /// base per instance), or drops them with `None`.
+    pub fn set_masks(
+        &mut self,
+        masks: Option<std::sync::Arc<crate::MaskTables>>,
+    ) -> Result<(), String> {
+        self.bvh.set_masks(masks)
     }
 
     /// Moves the instances as [`InstancedBvh::set_transforms`] does, with the top level

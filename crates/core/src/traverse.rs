@@ -31,6 +31,7 @@ use crate::flat::{
     FlatBvh, FlatInstance, FlatNode, FlatTriangle, NO_ESCAPE, escape_index, near_far, octant,
 };
 use crate::intersect::{PreparedRay, intersect_box};
+use crate::masks::MaskTables;
 use crate::precision::{MollerTrumboreF32, Precision, TriangleTest, WatertightF32, WatertightF64};
 use crate::ray::{Counters, Hit, INVALID_RAY, MISS, Ray};
 use crate::wide::{WideBvh, WideNode, hit_children};
@@ -250,6 +251,29 @@ struct Site<'a> {
     prim_base: u32,
     instance: Option<u32>,
     filter: Option<&'a dyn HitFilter>,
+    /// The BVH's alpha masks, and where the instance's states start in them.
+    masks: Option<&'a MaskTables>,
+    mask_base: u32,
+}
+
+impl<'a> Site<'a> {
+    /// The site of a BVH's triangles, in instance `instance` when there is one.
+    #[inline(always)]
+    fn new(
+        bvh: &'a FlatBvh,
+        prim_base: u32,
+        instance: Option<u32>,
+        filter: Option<&'a dyn HitFilter>,
+    ) -> Self {
+        let masks = bvh.masks.as_deref();
+        Site {
+            prim_base,
+            instance,
+            filter,
+            masks,
+            mask_base: masks.map_or(0, |m| m.base(instance)),
+        }
+    }
 }
 
 /// Tests a leaf's triangles. Returns true when an any-hit query can stop.
@@ -285,6 +309,11 @@ fn visit_triangles<T: TriangleTest>(
         if let Some(h) = T::intersect(r, v0, v1, v2)
             && (h.t < best.t || (h.t == best.t && best.found && prim < best.prim))
         {
+            if let Some(m) = at.masks
+                && !m.accept(at.mask_base, tri.prim, h.u, h.v)
+            {
+                continue;
+            }
             if let Some(f) = at.filter {
                 let candidate = Candidate {
                     prim,
@@ -333,6 +362,9 @@ struct Space<'a> {
     /// Nodes of the top level in the layout walked.
     top_nodes: u32,
     filter: Option<&'a dyn HitFilter>,
+    masks: Option<&'a MaskTables>,
+    /// Inside an instance, where its states start in `masks`.
+    mask_base: u32,
 }
 
 impl<'a> Space<'a> {
@@ -354,6 +386,8 @@ impl<'a> Space<'a> {
             mask: u32::from(mask),
             top_nodes: bvh.top_nodes,
             filter,
+            masks: bvh.masks.as_deref(),
+            mask_base: 0,
         }
     }
 
@@ -364,6 +398,8 @@ impl<'a> Space<'a> {
             prim_base: if I { self.prim_base } else { 0 },
             instance: (I && self.inside).then_some(self.instance),
             filter: self.filter,
+            masks: self.masks,
+            mask_base: if I { self.mask_base } else { 0 },
         }
     }
 
@@ -390,6 +426,9 @@ impl<'a> Space<'a> {
         self.inside = true;
         self.prim_base = inst.prim_base;
         self.instance = index;
+        if let Some(m) = self.masks {
+            self.mask_base = m.base(Some(index));
+        }
         Some((PreparedRay::new(&object), inst.root))
     }
 
@@ -1165,11 +1204,7 @@ fn brute_force_generic<T: TriangleTest>(
             &mut best,
             &mut WalkCost::default(),
             false,
-            Site {
-                prim_base: 0,
-                instance: None,
-                filter,
-            },
+            Site::new(bvh, 0, None, filter),
         );
     }
     best.into_hit()
@@ -1195,11 +1230,7 @@ fn brute_force_instances<T: TriangleTest>(
             let n = &bvh.nodes[i as usize];
             if n.is_leaf() {
                 let mut c = WalkCost::default();
-                let at = Site {
-                    prim_base: inst.prim_base,
-                    instance: Some(index as u32),
-                    filter,
-                };
+                let at = Site::new(bvh, inst.prim_base, Some(index as u32), filter);
                 visit_leaf::<T>(bvh, &r, n, best, &mut c, false, at);
             } else {
                 stack.extend([i + 1, n.right_or_first]);

@@ -67,7 +67,6 @@ pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
 pub use loader::{load_gltf_file, load_gltf_slice};
-pub use masks::AlphaFilter;
 pub use two_level::{SceneBvh, TracingBvhError};
 
 /// The scene tools load when given none: the Cornell box.

@@ -1,202 +1,165 @@
-//! A scene's masked materials as a hit filter for the CPU walks
-//! ([`bvhtrace_core::HitFilter`]): each candidate on a masked triangle is kept or skipped
-//! by the rule in [`bvhtrace_core::alpha`], most of them settled by the triangle's state
-//! computed here once, without reading the texture.
+//! A scene's masked materials as the tables every walk cuts candidates by
+//! ([`bvhtrace_core::MaskTables`]): each masked triangle settled once as opaque,
+//! transparent, or one to test, and the coordinates and textures of those to test.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::collections::HashMap;
+use std::sync::Arc;
 
+use bvhtrace_core::MaskTables;
 use bvhtrace_core::alpha::{AlphaMask, TriangleState, triangle_state};
-use bvhtrace_core::{Candidate, HitFilter};
+use bvhtrace_core::masks::{MASK_OPAQUE, MASK_TRANSPARENT, MaskMaterial, MaskTriangle, NO_MASKS};
 use glam::Vec2;
 
-use crate::{AlphaTexture, Scene, SceneBvh, Wrap};
+use crate::{Mesh, Scene, SceneBvh};
 
-/// One masked material's mask, owned.
-#[derive(Clone, Debug)]
-struct OwnedMask {
-    texture: AlphaTexture,
-    wrap: [Wrap; 2],
-    min_texel: u32,
+/// The tables being filled: the masked materials' entries (by scene material) and the
+/// triangles that sample them.
+struct Tables<'a> {
+    masks: Vec<Option<AlphaMask<'a>>>,
+    materials: Vec<MaskMaterial>,
+    /// Scene material to its entry in `materials`, made on first use.
+    entries: HashMap<usize, u32>,
+    /// Where each texture's texels start, by the texels' address (materials can share one).
+    placed: HashMap<usize, u32>,
+    texels: Vec<u8>,
+    triangles: Vec<MaskTriangle>,
+    states: Vec<u32>,
 }
 
-impl OwnedMask {
-    fn mask(&self) -> AlphaMask<'_> {
-        AlphaMask {
-            alpha: &self.texture.alpha,
-            width: self.texture.width,
-            height: self.texture.height,
-            wrap: self.wrap,
-            min_texel: self.min_texel,
+impl<'a> Tables<'a> {
+    /// The entry of scene material `m`, adding it (and its texels) the first time.
+    fn material(&mut self, m: usize, mask: &AlphaMask<'a>) -> u32 {
+        if let Some(&e) = self.entries.get(&m) {
+            return e;
+        }
+        let key = mask.alpha.as_ptr() as usize;
+        let first_texel = *self.placed.entry(key).or_insert_with(|| {
+            let at = self.texels.len() as u32;
+            self.texels.extend_from_slice(mask.alpha);
+            at
+        });
+        let e = self.materials.len() as u32;
+        self.materials.push(MaskMaterial {
+            first_texel,
+            width: mask.width,
+            height: mask.height,
+            wrap: MaskMaterial::pack_wrap(mask.wrap),
+            min_texel: mask.min_texel,
+        });
+        self.entries.insert(m, e);
+        e
+    }
+
+    /// True when some triangle of `mesh` has a masked material.
+    fn is_masked(&self, mesh: &Mesh) -> bool {
+        (mesh.materials.iter()).any(|&m| matches!(self.masks.get(m as usize), Some(Some(_))))
+    }
+
+    /// Appends the states of `mesh`'s triangles, corners 1 and 2 swapped when `swap`.
+    fn push_mesh(&mut self, mesh: &Mesh, swap: bool) {
+        let uv = |i: u32| {
+            mesh.texcoords
+                .get(i as usize)
+                .copied()
+                .unwrap_or(Vec2::ZERO)
+        };
+        for (t, idx) in mesh.indices.iter().enumerate() {
+            let mat = mesh.materials.get(t).copied().unwrap_or(u32::MAX) as usize;
+            let Some(Some(mask)) = self.masks.get(mat).copied() else {
+                self.states.push(MASK_OPAQUE);
+                continue;
+            };
+            let mut corners = idx.map(uv);
+            if swap {
+                corners.swap(1, 2);
+            }
+            let state = match triangle_state(&corners, &mask) {
+                TriangleState::Opaque => MASK_OPAQUE,
+                TriangleState::Transparent => MASK_TRANSPARENT,
+                TriangleState::Test => {
+                    let material = self.material(mat, &mask);
+                    self.triangles.push(MaskTriangle {
+                        uv: bytemuck::cast(corners.map(|c| c.to_array())),
+                        material,
+                    });
+                    self.triangles.len() as u32 - 1
+                }
+            };
+            self.states.push(state);
         }
     }
 }
 
-/// A masked mesh's triangles: each one's state, and for those to test, its material's
-/// mask and its corners' texture coordinates.
-#[derive(Clone, Debug, Default)]
-struct MaskedMesh {
-    states: Vec<TriangleState>,
-    materials: Vec<u32>,
-    uvs: Vec<[Vec2; 3]>,
-}
-
-/// How a candidate names its scene instance and mesh triangle.
-#[derive(Clone, Debug)]
-enum Locate {
-    /// Flattened: each scene instance's first primitive id (and one past the last), and
-    /// whether it mirrors (its triangles' corners 1 and 2 are swapped).
-    Flat {
-        starts: Vec<u64>,
-        mirrors: Vec<bool>,
-    },
-    /// Two levels: each BVH instance's scene instance.
-    TwoLevel { scene_instance: Vec<u32> },
-}
-
-/// The alpha test of a scene's masked materials, for the CPU walks
-/// (`trace_rays_filtered`, `CpuTracer::with_filter`), built by [`Scene::alpha_filter`].
-/// Counts the candidates it settles from the triangles' states and those it samples.
-#[derive(Debug)]
-pub struct AlphaFilter {
-    meshes: Vec<Option<MaskedMesh>>,
-    masks: Vec<Option<OwnedMask>>,
-    instance_mesh: Vec<u32>,
-    locate: Locate,
-    settled: AtomicU64,
-    sampled: AtomicU64,
-}
-
 impl Scene {
-    /// The alpha test of this scene's masked materials for `traced` (its BVH, flattened or
-    /// two-level, as [`Scene::tracing_bvh`] made it); `None` when no triangle is masked,
-    /// so the walks run unfiltered.
-    pub fn alpha_filter(&self, traced: &SceneBvh) -> Option<AlphaFilter> {
-        let masks: Vec<Option<OwnedMask>> = (self.materials.iter())
-            .map(|m| {
-                let mask = m.alpha_mask(&self.alpha_textures)?;
-                Some(OwnedMask {
-                    texture: AlphaTexture {
-                        name: String::new(),
-                        width: mask.width,
-                        height: mask.height,
-                        alpha: mask.alpha.to_vec(),
-                    },
-                    wrap: mask.wrap,
-                    min_texel: mask.min_texel,
-                })
-            })
+    /// The alpha-tested triangles of `traced` (this scene's BVH, flattened or two-level,
+    /// as [`Scene::tracing_bvh`] made it), as every walk reads them; `None` when no
+    /// triangle's material is masked. [`Scene::tracing_bvh`] attaches them already.
+    pub fn alpha_masks(&self, traced: &SceneBvh) -> Option<MaskTables> {
+        let masks: Vec<Option<AlphaMask<'_>>> = (self.materials.iter())
+            .map(|m| m.alpha_mask(&self.alpha_textures))
             .collect();
         if masks.iter().all(Option::is_none) {
             return None;
         }
-        let meshes: Vec<Option<MaskedMesh>> =
-            self.meshes.iter().map(|m| masked_mesh(m, &masks)).collect();
-        if meshes.iter().all(Option::is_none) {
+        let mut t = Tables {
+            masks,
+            materials: Vec::new(),
+            entries: HashMap::new(),
+            placed: HashMap::new(),
+            texels: Vec::new(),
+            triangles: Vec::new(),
+            states: Vec::new(),
+        };
+        let mut instance_bases = Vec::new();
+        match traced {
+            SceneBvh::Flat { .. } => {
+                // Primitive ids number the instances' triangles in instance order.
+                for inst in &self.instances {
+                    let Some(mesh) = self.meshes.get(inst.mesh) else {
+                        continue;
+                    };
+                    if t.is_masked(mesh) {
+                        t.push_mesh(mesh, inst.flips_winding());
+                    } else {
+                        t.states
+                            .resize(t.states.len() + mesh.indices.len(), MASK_OPAQUE);
+                    }
+                }
+            }
+            SceneBvh::Instanced(ib) => {
+                let mut bases: HashMap<usize, u32> = HashMap::new();
+                for inst in ib.instances() {
+                    let mesh = (self.instances.get(inst.user_id as usize)).map(|i| i.mesh);
+                    let base = match mesh.and_then(|m| Some((m, self.meshes.get(m)?))) {
+                        Some((m, mesh)) if t.is_masked(mesh) => {
+                            *bases.entry(m).or_insert_with(|| {
+                                let base = t.states.len() as u32;
+                                t.push_mesh(mesh, false);
+                                base
+                            })
+                        }
+                        _ => NO_MASKS,
+                    };
+                    instance_bases.push(base);
+                }
+            }
+        }
+        if t.states.iter().all(|&s| s == MASK_OPAQUE)
+            && instance_bases.iter().all(|&b| b == NO_MASKS)
+        {
             return None;
         }
-        let locate = match traced {
-            SceneBvh::Flat { .. } => {
-                let mut starts = vec![0u64];
-                for inst in &self.instances {
-                    let n = self.meshes.get(inst.mesh).map_or(0, |m| m.indices.len());
-                    starts.push(starts.last().copied().unwrap_or(0) + n as u64);
-                }
-                let mirrors = self.instances.iter().map(|i| i.flips_winding()).collect();
-                Locate::Flat { starts, mirrors }
-            }
-            SceneBvh::Instanced(ib) => Locate::TwoLevel {
-                scene_instance: ib.instances().iter().map(|i| i.user_id).collect(),
-            },
-        };
-        Some(AlphaFilter {
-            meshes,
-            masks,
-            instance_mesh: self.instances.iter().map(|i| i.mesh as u32).collect(),
-            locate,
-            settled: AtomicU64::new(0),
-            sampled: AtomicU64::new(0),
-        })
+        MaskTables::new(t.states, t.triangles, t.materials, t.texels, instance_bases).ok()
     }
 }
 
-/// A mesh's masked triangles, or `None` when it has none.
-fn masked_mesh(m: &crate::Mesh, masks: &[Option<OwnedMask>]) -> Option<MaskedMesh> {
-    let masked = |t: usize| {
-        let mat = m.materials.get(t).copied()? as usize;
-        masks.get(mat)?.as_ref()
-    };
-    if !(0..m.indices.len()).any(|t| masked(t).is_some()) {
-        return None;
-    }
-    let uv = |i: u32| m.texcoords.get(i as usize).copied().unwrap_or(Vec2::ZERO);
-    let uvs: Vec<[Vec2; 3]> = m.indices.iter().map(|t| t.map(uv)).collect();
-    let states = (0..m.indices.len())
-        .map(|t| match masked(t) {
-            None => TriangleState::Opaque,
-            Some(mask) => triangle_state(&uvs[t], &mask.mask()),
-        })
-        .collect();
-    Some(MaskedMesh {
-        states,
-        materials: m.materials.clone(),
-        uvs,
-    })
-}
-
-impl AlphaFilter {
-    /// Candidates settled by their triangle's state (no texture read) and candidates that
-    /// sampled the texture, since it was made.
-    pub fn counts(&self) -> (u64, u64) {
-        (
-            self.settled.load(Ordering::Relaxed),
-            self.sampled.load(Ordering::Relaxed),
-        )
-    }
-
-    /// The candidate's scene instance, mesh triangle, and whether its corners 1 and 2 are
-    /// swapped in the traced triangle.
-    fn locate(&self, c: &Candidate) -> Option<(usize, usize, bool)> {
-        match &self.locate {
-            Locate::Flat { starts, mirrors } => {
-                let p = u64::from(c.prim);
-                let k = starts.partition_point(|&s| s <= p).checked_sub(1)?;
-                Some((k, (p - starts[k]) as usize, *mirrors.get(k)?))
-            }
-            Locate::TwoLevel { scene_instance } => {
-                let i = *scene_instance.get(c.instance? as usize)?;
-                Some((i as usize, c.mesh_prim as usize, false))
-            }
+impl SceneBvh {
+    /// Attaches alpha masks to the traced BVH ([`bvhtrace_core::FlatBvh::set_masks`]), or
+    /// drops them with `None` (every triangle opaque).
+    pub fn set_masks(&mut self, masks: Option<Arc<MaskTables>>) -> Result<(), String> {
+        match self {
+            SceneBvh::Flat { bvh, .. } => bvh.set_masks(masks),
+            SceneBvh::Instanced(ib) => ib.set_masks(masks),
         }
-    }
-}
-
-impl HitFilter for AlphaFilter {
-    fn accept(&self, c: &Candidate) -> bool {
-        let Some((instance, tri, swapped)) = self.locate(c) else {
-            return true;
-        };
-        let mesh = self
-            .instance_mesh
-            .get(instance)
-            .copied()
-            .unwrap_or(u32::MAX);
-        let Some(Some(m)) = self.meshes.get(mesh as usize) else {
-            return true;
-        };
-        let state = m.states.get(tri).copied().unwrap_or(TriangleState::Opaque);
-        if state != TriangleState::Test {
-            self.settled.fetch_add(1, Ordering::Relaxed);
-            return state == TriangleState::Opaque;
-        }
-        self.sampled.fetch_add(1, Ordering::Relaxed);
-        let mat = m.materials.get(tri).copied().unwrap_or(u32::MAX) as usize;
-        let Some(Some(mask)) = self.masks.get(mat) else {
-            return true;
-        };
-        let mut uv = m.uvs[tri];
-        if swapped {
-            uv.swap(1, 2);
-        }
-        mask.mask().passes(&uv, c.u, c.v)
     }
 }

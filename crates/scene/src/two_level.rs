@@ -100,13 +100,22 @@ impl Scene {
             let i = self
                 .instanced_bvh(opts)
                 .map_err(TracingBvhError::TwoLevel)?;
-            return Ok(SceneBvh::Instanced(i));
+            return Ok(self.with_masks(SceneBvh::Instanced(i)));
         }
         let tris = self
             .flattened_triangles()
             .map_err(TracingBvhError::Flatten)?;
         let bvh = FlatBvh::build(&tris, opts).map_err(TracingBvhError::Build)?;
-        Ok(SceneBvh::Flat { tris, bvh })
+        Ok(self.with_masks(SceneBvh::Flat { tris, bvh }))
+    }
+
+    /// `traced` with this scene's alpha masks attached ([`Scene::alpha_masks`]).
+    fn with_masks(&self, mut traced: SceneBvh) -> SceneBvh {
+        if let Some(m) = self.alpha_masks(&traced) {
+            // The tables were made for this very tree, so they fit it.
+            let _ = traced.set_masks(Some(std::sync::Arc::new(m)));
+        }
+        traced
     }
 
     /// [`Scene::tracing_bvh`] with each tree (the flattened triangles', or each mesh's
@@ -128,13 +137,13 @@ impl Scene {
                 })
                 .collect::<Result<Vec<_>, _>>()?;
             let i = InstancedBvh::new(trees, instances).map_err(TracingBvhError::TwoLevel)?;
-            return Ok(SceneBvh::Instanced(i));
+            return Ok(self.with_masks(SceneBvh::Instanced(i)));
         }
         let tris = self
             .flattened_triangles()
             .map_err(TracingBvhError::Flatten)?;
         let bvh = build(&tris).map_err(TracingBvhError::Builder)?;
-        Ok(SceneBvh::Flat { tris, bvh })
+        Ok(self.with_masks(SceneBvh::Flat { tris, bvh }))
     }
 
     /// The scene's meshes and instances as a two-level BVH, each mesh built with `opts`.

@@ -192,7 +192,7 @@ fn masked_quads() -> Scene {
 /// the mirrored quad keeps the half its texture coordinates say.
 #[test]
 fn masked_quads_cut_where_their_texture_says() {
-    use bvhtrace_core::{Ray, TraceOptions, Traversal, trace_rays_filtered};
+    use bvhtrace_core::{Ray, TraceOptions, Traversal, trace_rays};
     let s = masked_quads();
     assert!(s.warnings.is_empty(), "{:?}", s.warnings);
     let mut rays = Vec::new();
@@ -211,19 +211,21 @@ fn masked_quads_cut_where_their_texture_says() {
         let mut traced = s.tracing_bvh(&Default::default(), flatten).expect("bvh");
         assert_eq!(traced.is_two_level(), !flatten);
         traced.build_wide();
-        let filter = s.alpha_filter(&traced).expect("masked");
+        let masks = traced.bvh().masks().expect("the tree carries the masks").clone();
+        assert_eq!(Some(&*masks), s.alpha_masks(&traced).as_ref());
         for walk in [Traversal::FullStack, Traversal::Stackless, Traversal::Wide] {
             let opts = TraceOptions::closest(walk);
-            let hits = trace_rays_filtered(traced.bvh(), &rays, &opts, Some(&filter)).hits;
+            let hits = trace_rays(traced.bvh(), &rays, &opts).hits;
             let t: Vec<f32> = hits.iter().map(|h| h.t).collect();
             assert_eq!(t, want, "flatten {flatten}, {walk}");
         }
         // The quads' triangles each straddle both halves: every candidate is sampled.
-        let (settled, sampled) = filter.counts();
+        let (settled, sampled) = masks.counts();
         assert!(sampled > 0, "{settled} settled, {sampled} sampled");
     }
     // Unmasked, the quads stop every ray.
-    let traced = s.tracing_bvh(&Default::default(), false).expect("bvh");
+    let mut traced = s.tracing_bvh(&Default::default(), false).expect("bvh");
+    traced.set_masks(None).expect("dropped");
     let opts = TraceOptions::closest(Traversal::FullStack);
     let plain = bvhtrace_core::trace_rays(traced.bvh(), &rays, &opts).hits;
     assert!(plain.iter().all(|h| h.t == 5.0));
