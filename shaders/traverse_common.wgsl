@@ -67,7 +67,9 @@ fn bvh_visit_leaf(
         let tri = bvh_load_triangle(i);
         let h = bvh_intersect_triangle(r, tri.v0, tri.v1, tri.v2);
         let prim = bvh_hit_prim(tri.prim);
-        if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && prim < (*best).prim))) {
+        // A masked BVH's alpha test and a library's filter ask about the candidate here
+        // (`ModuleSet::files` puts them in at the mark).
+        if (h.hit && (h.t < (*best).t || (h.t == (*best).t && (*best).found && prim < (*best).prim))/*BVH_ACCEPT*/) {
             *best = BvhBest(h.t, prim, h.u, h.v, true);
             bvh_hit_slot = i;
             bvh_hit_instance = bvh_instance_index;

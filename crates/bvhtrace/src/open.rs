@@ -37,10 +37,13 @@ pub struct OpenOptions {
     /// Enable `VK_LAYER_KHRONOS_validation` on the Vulkan backend when it is installed (a
     /// front end honouring `bvhtrace_vk::VALIDATION_ENV` passes it on here).
     pub validation: bool,
-    /// A filter every candidate hit passes through (alpha-tested materials:
-    /// `bvhtrace_scene::Scene::alpha_filter`; or your own rule). The CPU walks apply it;
-    /// the device backends do not yet, so [`Backend::Auto`] then traces on the CPU (and
-    /// says why), and a device backend asked for by name refuses.
+    /// A filter every candidate hit passes through, your own rule as a closure. The CPU
+    /// walks apply it; the device backends cannot run Rust, so [`Backend::Auto`] then
+    /// traces on the CPU (and says why), and a device backend asked for by name refuses.
+    /// Alpha-tested materials need no filter: their masks travel with the BVH
+    /// (`FlatBvh::set_masks`, attached by `bvhtrace_scene::Scene::tracing_bvh`) and every
+    /// backend cuts them; on a device write your rule in WGSL
+    /// (`LibraryShape::with_filter`).
     pub filter: Option<SharedFilter>,
 }
 
@@ -432,11 +435,16 @@ impl Device {
         opts: &OpenOptions,
     ) -> Result<Opened<'static>, TraceError> {
         match open_on_ray_query(ctx, bvh, opts) {
-            Err(e) if self.auto && exceeds_a_limit(&e) => {
+            Err(e) if self.auto && (exceeds_a_limit(&e) || bvh.masks().is_some()) => {
                 let mut o = open_on_wgpu(ctx, bvh, opts)?;
-                o.fallback = Some(format!(
-                    "the scene does not fit the ray-query upload ({e}); tracing with our walks"
-                ));
+                o.fallback = Some(match bvh.masks() {
+                    Some(_) => "the ray-query tracer does not cut alpha-tested geometry yet; \
+                                tracing with our walks"
+                        .to_string(),
+                    None => format!(
+                        "the scene does not fit the ray-query upload ({e}); tracing with our walks"
+                    ),
+                });
                 Ok(o)
             }
             other => other,
@@ -466,8 +474,7 @@ impl Device {
     where
         B: Borrow<FlatBvh> + Send + Sync + 'a,
     {
-        let masked = bvh.borrow().masks().is_some();
-        if (opts.filter.is_some() || masked) && !matches!(self.inner, Inner::Cpu) {
+        if opts.filter.is_some() && !matches!(self.inner, Inner::Cpu) {
             if !self.auto {
                 let backend = match self.inner {
                     Inner::Cpu => "cpu",
@@ -479,13 +486,12 @@ impl Device {
                 };
                 return Err(TraceError::Unsupported {
                     backend,
-                    what: "hit filters (alpha-tested materials) yet: the CPU backend applies \
-                           them"
+                    what: "hit filters written in Rust: the CPU backend applies them (alpha \
+                           masks travel with the BVH instead, FlatBvh::set_masks)"
                         .into(),
                 });
             }
-            let why = "only the CPU walks apply hit filters (alpha-tested materials) yet: \
-                       tracing on the CPU";
+            let why = "only the CPU walks apply a hit filter written in Rust: tracing on the CPU";
             return open_cpu(bvh, opts, Some(why.into()));
         }
         let opened = match &self.inner {

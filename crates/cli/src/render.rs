@@ -190,9 +190,8 @@ pub struct RenderArgs {
     /// Rows per tile: each tile is one batch (keeps dispatches short).
     #[arg(long, default_value_t = 64)]
     pub tile_rows: u32,
-    /// Trace masked (alpha-tested) materials as opaque. Without it their alpha cuts them,
-    /// which only the CPU walks do yet: `auto` then traces on the CPU, and `gpu`,
-    /// `vulkan` and `ray-query` need this flag for such a scene.
+    /// Trace masked (alpha-tested) materials as opaque. Without it their alpha cuts them
+    /// on every backend but `ray-query` (which needs this flag for such a scene).
     #[arg(long)]
     pub opaque: bool,
 }
@@ -536,7 +535,12 @@ impl Report<'_> {
             t.wall_ms,
             t.mrays_per_s(),
         );
-        if let Some(m) = self.masks {
+        if let Some(up) = self.masks.and(self.tracer.upload_stats()) {
+            eprintln!(
+                "alpha masks: cut by the kernels ({} bytes uploaded)",
+                up.masks_bytes
+            );
+        } else if let Some(m) = self.masks {
             let (settled, sampled) = m.counts();
             let all = (settled + sampled).max(1);
             eprintln!(
@@ -619,8 +623,14 @@ impl Report<'_> {
             "time": args.scene.time,
         });
         if let Some(m) = self.masks {
-            let (settled, sampled) = m.counts();
-            v["alpha_masks"] = json!({ "settled": settled, "sampled": sampled });
+            v["alpha_masks"] = match self.tracer.upload_stats() {
+                // On a device the kernels cut them and count nothing.
+                Some(up) => json!({ "uploaded_bytes": up.masks_bytes }),
+                None => {
+                    let (settled, sampled) = m.counts();
+                    json!({ "settled": settled, "sampled": sampled })
+                }
+            };
         }
         merge(&mut v, geometry::json(self.geo, self.scene));
         v

@@ -96,7 +96,7 @@ impl WgpuArrays {
                 .collect();
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
-                layout: ctx.bvh_layout(layout.storage, escapes, layout.instanced),
+                layout: ctx.bvh_layout(layout.storage, escapes, layout.instanced, layout.masks),
                 entries: &entries,
             })
         };
@@ -108,21 +108,26 @@ impl WgpuArrays {
             group(
                 "bvhtrace bvh",
                 false,
-                &[R::Nodes, R::Triangles, R::Instances],
+                &[R::Nodes, R::Triangles, R::Instances, R::Masks],
             )
         });
         let escapes = self.get(R::Escapes).is_some().then(|| {
             group(
                 "bvhtrace bvh+escapes",
                 true,
-                &[R::Nodes, R::Triangles, R::Escapes, R::Instances],
+                &[R::Nodes, R::Triangles, R::Escapes, R::Instances, R::Masks],
             )
         });
         let wide = self.get(R::WideNodes).is_some().then(|| {
             group(
                 "bvhtrace bvh (wide)",
                 false,
-                &[R::WideNodes, R::WideTriangles, R::WideInstances],
+                &[
+                    R::WideNodes,
+                    R::WideTriangles,
+                    R::WideInstances,
+                    R::WideMasks,
+                ],
             )
         });
         (self.plain, self.escapes, self.wide) = (plain, escapes, wide);

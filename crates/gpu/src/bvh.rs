@@ -114,7 +114,12 @@ impl GpuBvh {
         let group = (self.engine.arrays().group(traversal))
             .ok_or(GpuError::TraversalNotUploaded { traversal })?;
         let escapes = !traversal.is_wide() && traversal.needs_escapes();
-        let layout = (self.context()).bvh_layout(self.storage(), escapes, self.is_instanced());
+        let layout = (self.context()).bvh_layout(
+            self.storage(),
+            escapes,
+            self.is_instanced(),
+            self.has_masks(),
+        );
         Ok(BvhBindGroup { group, layout })
     }
 

@@ -85,7 +85,7 @@ struct Inner {
     /// Shader modules, by the files composed.
     modules: Mutex<HashMap<ModuleSet, wgpu::ShaderModule>>,
     /// BVH group layouts: `[buffers, textures][without escapes, with escapes]`.
-    bvh_layouts: [[[wgpu::BindGroupLayout; 2]; 2]; 2],
+    bvh_layouts: [[[[wgpu::BindGroupLayout; 2]; 2]; 2]; 2],
     /// Batch group layouts: `[without counters, with counters]`.
     batch_layouts: [[wgpu::BindGroupLayout; 2]; 2],
     /// Pipelines, by their key.
@@ -362,8 +362,8 @@ impl GpuContext {
             wgpu::TextureFormat::Rgba32Uint,
             wgpu::TextureFormat::R32Uint,
         );
-        // [buffers, textures] x [escapes or not] x [instances or not].
-        let bvh_layout = |storage: BvhStorage, escapes: bool, instances: bool| {
+        // [buffers, textures] x [escapes or not] x [instances or not] x [masks or not].
+        let bvh_layout = |storage: BvhStorage, escapes: bool, instances: bool, masks: bool| {
             let mut entries = match storage {
                 BvhStorage::Buffers => vec![storage_entry(0, true), storage_entry(1, true)],
                 BvhStorage::Textures => vec![texture_entry(0, rgba), texture_entry(1, rgba)],
@@ -378,13 +378,21 @@ impl GpuContext {
             if instances {
                 entries.push(storage_entry(4, true));
             }
+            if masks {
+                entries.push(storage_entry(5, true));
+            }
             layout(
-                &format!("bvhtrace bvh ({storage:?}, escapes {escapes}, instances {instances})"),
+                &format!(
+                    "bvhtrace bvh ({storage:?}, escapes {escapes}, instances {instances}, \
+                     masks {masks})"
+                ),
                 &entries,
             )
         };
-        let bvh_layouts = [BvhStorage::Buffers, BvhStorage::Textures]
-            .map(|s| [false, true].map(|e| [false, true].map(|i| bvh_layout(s, e, i))));
+        let bvh_layouts = [BvhStorage::Buffers, BvhStorage::Textures].map(|s| {
+            [false, true]
+                .map(|e| [false, true].map(|i| [false, true].map(|m| bvh_layout(s, e, i, m))))
+        });
         // [buffer rays, texture rays] x [hits, hits + counters].
         let batch_layout = |rays: RayInput, counters: bool| {
             let mut entries = match rays {
@@ -468,15 +476,17 @@ impl GpuContext {
     /// The layout of the BVH bind group (group 0 of the kernels; any group of yours, see
     /// [`crate::wgsl_library`]): bindings 0 (nodes) and 1 (triangles), plus 2 (escapes)
     /// when `with_escapes`, as buffers or textures, plus 4 (the instances buffer) when
-    /// `with_instances` (a two-level BVH).
+    /// `with_instances` (a two-level BVH), plus 5 (the alpha masks buffer) when
+    /// `with_masks` (`FlatBvh::masks`).
     pub fn bvh_layout(
         &self,
         storage: BvhStorage,
         with_escapes: bool,
         with_instances: bool,
+        with_masks: bool,
     ) -> &wgpu::BindGroupLayout {
         &self.inner.bvh_layouts[usize::from(storage == BvhStorage::Textures)]
-            [usize::from(with_escapes)][usize::from(with_instances)]
+            [usize::from(with_escapes)][usize::from(with_instances)][usize::from(with_masks)]
     }
 
     /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits) read
@@ -703,7 +713,12 @@ impl GpuContext {
             let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("bvhtrace trace"),
                 bind_group_layouts: &[
-                    Some(self.bvh_layout(key.storage, key.needs_escapes(), key.instances)),
+                    Some(self.bvh_layout(
+                        key.storage,
+                        key.needs_escapes(),
+                        key.instances,
+                        key.masks,
+                    )),
                     Some(self.batch_layout(key.counters, key.rays)),
                 ],
                 immediate_size: 0,

@@ -10,7 +10,10 @@ use crate::{BvhBindGroup, GpuBvh, GpuError, Traversal};
 impl GpuBvh {
     /// What this upload holds, as a library for `traversal` would be composed for it.
     pub fn library_shape(&self, traversal: Traversal) -> LibraryShape {
-        LibraryShape::new(self.storage(), self.is_instanced(), traversal)
+        LibraryShape {
+            masks: self.has_masks(),
+            ..LibraryShape::new(self.storage(), self.is_instanced(), traversal)
+        }
     }
 
     /// The traversal library for your own shader ([`bvhtrace_kernels::wgsl_library`]),
@@ -31,7 +34,8 @@ impl GpuBvh {
     pub fn bind_group_for(&self, library: &BvhLibrary) -> Result<BvhBindGroup<'_>, GpuError> {
         let wanted = library.shape();
         let holds = self.library_shape(wanted.traversal);
-        if (wanted.storage, wanted.instanced) != (holds.storage, holds.instanced) {
+        let shape = |s: &LibraryShape| (s.storage, s.instanced, s.masks);
+        if shape(&wanted) != shape(&holds) {
             return Err(GpuError::LibraryMismatch {
                 library: wanted.to_string(),
                 upload: holds.to_string(),

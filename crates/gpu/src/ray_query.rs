@@ -158,6 +158,12 @@ impl RayQueryBvh {
         if bvh.triangles().is_empty() {
             return Err(TraceError::EmptyBvh);
         }
+        if bvh.masks().is_some() {
+            return Err(TraceError::Unsupported {
+                backend: "ray-query",
+                what: "alpha-tested geometry yet: our walks (wgpu, vulkan) cut it".into(),
+            });
+        }
         let start = Instant::now();
         let tri_bytes: &[u8] = bytemuck::cast_slice(bvh.triangles());
         check_buffer_size(ctx.limits(), "triangles", tri_bytes.len() as u64)?;
@@ -280,6 +286,7 @@ impl RayQueryBvh {
                 triangles_bytes: tri_bytes.len() as u64,
                 escapes_bytes: 0,
                 instances_bytes: std::mem::size_of_val(bvh.instances()) as u64,
+                masks_bytes: 0,
                 upload_ms: 0.0,
             },
             build_ms: 0.0,

@@ -49,6 +49,8 @@ pub struct ArraysLayout {
     pub storage: BvhStorage,
     /// A two-level tree: the bind groups have the instances (binding 4).
     pub instanced: bool,
+    /// Alpha masks: the bind groups have them (binding 5).
+    pub masks: bool,
 }
 
 /// One write of an update: the array's bytes from its start (`replace` false: the device
@@ -215,6 +217,8 @@ pub struct UploadedTree {
     pub storage: BvhStorage,
     /// A two-level tree.
     pub instanced: bool,
+    /// The tree's alpha masks were uploaded.
+    pub masks: bool,
     /// The binary layout was uploaded.
     pub binary: bool,
     /// The escape links were uploaded.
@@ -336,7 +340,7 @@ impl<B: Backend> Engine<B> {
             arrays = binary_arrays(bvh, storage, bvh.nodes().len(), true, links);
         }
         if let Some(w) = &wide {
-            arrays.extend(wide_arrays(w, storage));
+            arrays.extend(wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
         }
         for a in &arrays {
             a.check(backend.limits())?;
@@ -344,6 +348,7 @@ impl<B: Backend> Engine<B> {
         let layout = ArraysLayout {
             storage,
             instanced: bvh.is_instanced(),
+            masks: bvh.masks().is_some(),
         };
         let start = Instant::now();
         let made = backend.create_arrays(layout, &arrays)?;
@@ -360,6 +365,7 @@ impl<B: Backend> Engine<B> {
             tree: UploadedTree {
                 storage,
                 instanced: bvh.is_instanced(),
+                masks: bvh.masks().is_some(),
                 binary,
                 escapes: with_escapes,
                 wide: opts.wide(),
@@ -447,6 +453,12 @@ impl<B: Backend> Engine<B> {
         self.tree.escapes
     }
 
+    /// True when the tree's alpha masks were uploaded (its bind groups have them,
+    /// binding 5).
+    pub fn has_masks(&self) -> bool {
+        self.tree.masks
+    }
+
     /// True for a two-level BVH (its bind groups have the instances, binding 4).
     pub fn is_instanced(&self) -> bool {
         self.tree.instanced
@@ -480,6 +492,7 @@ impl<B: Backend> Engine<B> {
             ..KernelKey::new(self.tree.storage, opts)
                 .with_rays(input)
                 .with_instances(self.tree.instanced)
+                .with_masks(self.tree.masks)
         }
     }
 
@@ -693,6 +706,20 @@ impl<B: Backend> Engine<B> {
         fingerprint: u64,
     ) -> Result<(), TraceError> {
         check_update_shape(self.tree.shape, bvh)?;
+        if bvh.masks().is_some() != self.tree.masks {
+            return Err(TraceError::BadBuffer {
+                buffer: "alpha masks",
+                problem: format!(
+                    "the upload was made {} alpha masks and the update has {}: upload again",
+                    if self.tree.masks { "with" } else { "without" },
+                    if bvh.masks().is_some() {
+                        "some"
+                    } else {
+                        "none"
+                    }
+                ),
+            });
+        }
         let top_only = what == Update::TopLevel;
         if top_only && !bvh.is_instanced() {
             return Err(TraceError::BadBuffer {
@@ -719,7 +746,7 @@ impl<B: Backend> Engine<B> {
         }
         if let Some(w) = &wide {
             check_wide_top_level(w)?;
-            arrays.extend(wide_arrays(w, storage));
+            arrays.extend(wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
         }
         for a in &arrays {
             a.check(self.backend.limits())?;
@@ -729,7 +756,10 @@ impl<B: Backend> Engine<B> {
             let old = self.sizes.iter_mut().find(|(r, _)| *r == array.role);
             // Only the wide layout's sizes may change (the collapse follows the boxes).
             let replace = match old {
-                Some((_, size)) if array.role.is_wide() && *size != array.bytes.len() => {
+                Some((_, size))
+                    if (array.role.is_wide() || array.role == ArrayRole::Masks)
+                        && *size != array.bytes.len() =>
+                {
                     *size = array.bytes.len();
                     true
                 }
@@ -744,16 +774,18 @@ impl<B: Backend> Engine<B> {
         let layout = ArraysLayout {
             storage,
             instanced: self.tree.instanced,
+            masks: self.tree.masks,
         };
         self.backend
             .write_arrays(&mut self.arrays, layout, &writes)?;
         if let Some(w) = &wide {
-            let w = stats_of(storage, &wide_arrays(w, storage));
+            let w = stats_of(storage, &wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
             let b = self.binary_stats;
             self.stats = UploadStats {
                 nodes_bytes: b.nodes_bytes + w.nodes_bytes,
                 triangles_bytes: b.triangles_bytes + w.triangles_bytes,
                 instances_bytes: b.instances_bytes + w.instances_bytes,
+                masks_bytes: b.masks_bytes + w.masks_bytes,
                 ..self.stats
             };
         }

@@ -65,6 +65,17 @@ pub(crate) const BVH_NO_INSTANCES_WGSL: (&str, &str) = (
 );
 
 /// `traverse_wide.wgsl`: the wide walk.
+/// `bvh_alpha_masks.wgsl`: the masks binding (5) and `bvh_alpha_accept`.
+pub(crate) const BVH_ALPHA_MASKS_WGSL: (&str, &str) = (
+    "bvh_alpha_masks.wgsl",
+    include_str!("../shaders/bvh_alpha_masks.wgsl"),
+);
+/// `candidate.wgsl`: `BvhCandidate`, what a library's filter sees.
+const CANDIDATE_WGSL: (&str, &str) = ("candidate.wgsl", include_str!("../shaders/candidate.wgsl"));
+/// Where `traverse_common.wgsl`'s leaf visit takes the candidate tests of
+/// [`ModuleSet::masks`] and [`ModuleSet::filter`].
+const ACCEPT_MARK: &str = "/*BVH_ACCEPT*/";
+
 const TRAVERSE_WIDE_WGSL: (&str, &str) = (
     "traverse_wide.wgsl",
     include_str!("../shaders/traverse_wide.wgsl"),
@@ -241,6 +252,12 @@ pub struct ModuleSet {
     pub entries: Entries,
     /// Where the entry points read the rays (`entry_rays_*.wgsl`).
     pub rays: shaders::RayInput,
+    /// The alpha masks (`bvh_alpha_masks.wgsl`, binding 5), asked about every candidate
+    /// that would become the hit.
+    pub masks: bool,
+    /// The name of a WGSL function of yours, `fn(BvhCandidate) -> bool`, asked about every
+    /// candidate that would become the hit (after the masks), with `candidate.wgsl`.
+    pub filter: Option<&'static str>,
 }
 
 impl ModuleSet {
@@ -258,6 +275,8 @@ impl ModuleSet {
             instances: false,
             entries,
             rays: shaders::RayInput::Buffer,
+            masks: false,
+            filter: None,
         }
     }
 
@@ -299,8 +318,22 @@ impl ModuleSet {
     }
 
     /// The files, in composition order, as `(file name, source)`; an entry point is
-    /// `entry_walk.wgsl` specialised for its walk, named after it.
+    /// `entry_walk.wgsl` specialised for its walk, named after it, and the leaf visit
+    /// (`traverse_common.wgsl`) has the masks' and filter's tests when there are some.
     pub fn files(&self) -> Vec<(&'static str, Cow<'static, str>)> {
+        let mut out = self.unspecialised_files();
+        if self.masks || self.filter.is_some() {
+            for (name, src) in &mut out {
+                if *name == "traverse_common.wgsl" {
+                    *src = src.replace(ACCEPT_MARK, &self.accept_test()).into();
+                }
+            }
+        }
+        out
+    }
+
+    /// [`ModuleSet::files`] before the leaf visit takes the candidate tests.
+    fn unspecialised_files(&self) -> Vec<(&'static str, Cow<'static, str>)> {
         let wide = self.wide;
         let (full, short) = (self.full_stack && !wide, self.short_stack && !wide);
         let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(20);
@@ -335,6 +368,12 @@ impl ModuleSet {
                 } else {
                     BVH_NO_INSTANCES_WGSL
                 });
+                if self.masks {
+                    push(BVH_ALPHA_MASKS_WGSL);
+                }
+                if self.filter.is_some() {
+                    push(CANDIDATE_WGSL);
+                }
             }
         }
         if self.attributes.normals {
@@ -358,6 +397,18 @@ impl ModuleSet {
             }
         }
         out
+    }
+
+    /// What the leaf visit adds to its test of a candidate: the masks', then the filter's.
+    fn accept_test(&self) -> String {
+        let mut s = String::new();
+        if self.masks {
+            s.push_str(" && bvh_alpha_accept(tri.prim, h.u, h.v)");
+        }
+        if let Some(f) = self.filter {
+            s.push_str(&format!(" && {f}(bvh_candidate(prim, tri.prim, h))"));
+        }
+        s
     }
 
     /// The composed WGSL, the BVH bindings (and attribute bindings) in `@group(bvh_group)`.
@@ -395,6 +446,9 @@ pub enum PerElement {
     Instance,
     /// One element per ray of the batch.
     Ray,
+    /// One word of the alpha masks (`MaskTables::words`): as many as the tables have,
+    /// not counted by [`KernelKey::declared_bvh_bytes`].
+    MaskWord,
 }
 
 /// One binding a composed module declares.
@@ -443,6 +497,8 @@ pub struct KernelKey {
     pub instances: bool,
     /// The rays' visibility mask (`BVH_RAY_MASK`, read only with `instances`).
     pub mask: u8,
+    /// The BVH has alpha masks (`FlatBvh::masks`): their binding and test.
+    pub masks: bool,
     /// Only what is needed, or everything.
     pub composition: Composition,
 }
@@ -466,6 +522,7 @@ impl KernelKey {
             attributes: VertexAttributes::NONE,
             instances: false,
             mask: opts.mask,
+            masks: false,
             composition: Composition::Specialised,
         }
     }
@@ -500,6 +557,11 @@ impl KernelKey {
     /// The same key for a BVH with instances (`FlatBvh::is_instanced`) or without.
     pub fn with_instances(self, instances: bool) -> KernelKey {
         KernelKey { instances, ..self }
+    }
+
+    /// The same key for a BVH with alpha masks (`FlatBvh::masks`) or without.
+    pub fn with_masks(self, masks: bool) -> KernelKey {
+        KernelKey { masks, ..self }
     }
 
     /// The same key reading its rays from `rays`.
@@ -595,6 +657,7 @@ impl KernelKey {
             Composition::EverythingOn => ModuleSet {
                 rays: self.rays,
                 instances: self.instances,
+                masks: self.masks,
                 ..if self.traversal.is_wide() {
                     ModuleSet::wide_in(self.storage, self.precision, Entries::All)
                 } else {
@@ -616,6 +679,8 @@ impl KernelKey {
                     Entries::Plain
                 },
                 rays: self.rays,
+                masks: self.masks,
+                filter: None,
             },
         }
     }
@@ -671,6 +736,9 @@ impl KernelKey {
         if set.instances {
             b.push(bvh(4, "bvh_instances", 64, PerElement::Instance));
         }
+        if set.masks {
+            b.push(bvh(5, "bvh_masks", 4, PerElement::MaskWord));
+        }
         if set.entries != Entries::None {
             let (rays, hits) = match set.rays {
                 RayInput::Buffer => ("rays", "hits"),
@@ -687,7 +755,7 @@ impl KernelKey {
 
     /// Bytes the BVH bindings declare for a tree of `nodes` nodes, `triangles`
     /// triangles and `instances` instances (0 for one mesh): what a [`BvhStorage::Buffers`]
-    /// upload for this key holds (texture uploads add row padding,
+    /// upload for this key holds, the alpha masks' words aside (texture uploads add row padding,
     /// [`KernelKey::upload_bytes`]). For a [`Traversal::Wide`] key, `nodes` counts the
     /// wide tree's 80-byte nodes (`WideBvh::nodes`).
     pub fn declared_bvh_bytes(&self, nodes: u64, triangles: u64, instances: u64) -> u64 {
@@ -701,7 +769,7 @@ impl KernelKey {
                         PerElement::NodeBlock => escape_blocks(nodes),
                         PerElement::Triangle => triangles,
                         PerElement::Instance => instances,
-                        PerElement::Ray => 0,
+                        PerElement::Ray | PerElement::MaskWord => 0,
                     }
             })
             .sum()
@@ -743,6 +811,7 @@ impl KernelKey {
                 0
             },
             instances_bytes: if set.instances { instances * 64 } else { 0 },
+            masks_bytes: 0,
             upload_ms: 0.0,
         }
     }
@@ -767,6 +836,9 @@ impl KernelKey {
         }
         if set.instances {
             n.push("instances");
+        }
+        if set.masks {
+            n.push("alpha-masks");
         }
         #[cfg(feature = "bench-hooks")]
         if self.composition == Composition::EverythingOn {

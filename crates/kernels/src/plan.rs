@@ -49,6 +49,8 @@ pub struct UploadStats {
     pub escapes_bytes: u64,
     /// Bytes of the instances of a two-level BVH (0 for one mesh).
     pub instances_bytes: u64,
+    /// Bytes of the alpha masks (0 for a BVH without them).
+    pub masks_bytes: u64,
     /// Wall time to create and fill the device's copies and wait for the device,
     /// milliseconds.
     pub upload_ms: f64,
@@ -57,7 +59,11 @@ pub struct UploadStats {
 impl UploadStats {
     /// All bytes uploaded.
     pub fn total_bytes(&self) -> u64 {
-        self.nodes_bytes + self.triangles_bytes + self.escapes_bytes + self.instances_bytes
+        self.nodes_bytes
+            + self.triangles_bytes
+            + self.escapes_bytes
+            + self.instances_bytes
+            + self.masks_bytes
     }
 }
 

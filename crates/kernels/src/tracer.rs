@@ -173,8 +173,8 @@ impl<B: Borrow<FlatBvh>> CpuTracer<B> {
         }
     }
 
-    /// Passes every walk's candidate hits through `filter` (alpha-tested geometry:
-    /// `bvhtrace_scene::Scene::alpha_filter`; or your own rule).
+    /// Passes every walk's candidate hits through `filter`, your own rule (alpha masks need
+    /// none: the walks cut by the BVH's own, `FlatBvh::masks`).
     pub fn with_filter(mut self, filter: Arc<dyn HitFilter + Send>) -> Self {
         self.filter = Some(filter);
         self

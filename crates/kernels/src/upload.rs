@@ -4,7 +4,7 @@
 
 use std::borrow::Cow;
 
-use bvhtrace_core::{FlatBvh, FlatNode, Traversal, WideBvh};
+use bvhtrace_core::{FlatBvh, FlatNode, MaskTables, Traversal, WideBvh};
 
 use crate::error::TraceError;
 use crate::plan::{DeviceLimits, UploadStats, check_buffer_size, texel_rows};
@@ -118,6 +118,10 @@ pub enum ArrayRole {
     WideTriangles,
     /// The instances in the wide top level's order (binding 4).
     WideInstances,
+    /// The alpha masks with the binary layout's instance order (binding 5).
+    Masks,
+    /// The alpha masks with the wide layout's instance order (binding 5).
+    WideMasks,
 }
 
 impl ArrayRole {
@@ -125,7 +129,10 @@ impl ArrayRole {
     pub fn is_wide(self) -> bool {
         matches!(
             self,
-            ArrayRole::WideNodes | ArrayRole::WideTriangles | ArrayRole::WideInstances
+            ArrayRole::WideNodes
+                | ArrayRole::WideTriangles
+                | ArrayRole::WideInstances
+                | ArrayRole::WideMasks
         )
     }
 
@@ -136,6 +143,7 @@ impl ArrayRole {
             ArrayRole::Triangles | ArrayRole::WideTriangles => 1,
             ArrayRole::Escapes => 2,
             ArrayRole::Instances | ArrayRole::WideInstances => 4,
+            ArrayRole::Masks | ArrayRole::WideMasks => 5,
         }
     }
 
@@ -154,6 +162,8 @@ impl ArrayRole {
             (ArrayRole::WideTriangles, false) => "wide triangles",
             (ArrayRole::WideTriangles, true) => "wide triangle texels",
             (ArrayRole::WideInstances, _) => "wide instances",
+            (ArrayRole::Masks, _) => "alpha masks",
+            (ArrayRole::WideMasks, _) => "wide alpha masks",
         }
     }
 }
@@ -307,12 +317,28 @@ pub(crate) fn binary_arrays<'a>(
             None,
         ));
     }
+    if let Some(m) = bvh.masks() {
+        out.push(masks_array(ArrayRole::Masks, m.words(&m.instance_bases)));
+    }
     out
 }
 
-/// The wide layout's arrays in `storage`: nodes, triangles, and the instances of a
-/// two-level tree (always a buffer).
-pub(crate) fn wide_arrays(w: &WideBvh, storage: BvhStorage) -> Vec<DeviceArray<'_>> {
+/// The alpha masks' words ([`MaskTables::words`]) as a buffer in `role`.
+fn masks_array(role: ArrayRole, words: Vec<u32>) -> DeviceArray<'static> {
+    array(
+        role,
+        Cow::Owned(bytemuck::cast_slice(&words).to_vec()),
+        None,
+    )
+}
+
+/// The wide layout's arrays in `storage`: nodes, triangles, the instances of a two-level
+/// tree, and `masks` with the wide instance order (those two always buffers).
+pub(crate) fn wide_arrays<'a>(
+    w: &'a WideBvh,
+    storage: BvhStorage,
+    masks: Option<&MaskTables>,
+) -> Vec<DeviceArray<'a>> {
     let texel = (storage == BvhStorage::Textures).then_some(16);
     let mut out = vec![
         array(
@@ -333,6 +359,10 @@ pub(crate) fn wide_arrays(w: &WideBvh, storage: BvhStorage) -> Vec<DeviceArray<'
             None,
         ));
     }
+    if let Some(m) = masks {
+        let bases = m.bases_in_order(&w.instance_order);
+        out.push(masks_array(ArrayRole::WideMasks, m.words(&bases)));
+    }
     out
 }
 
@@ -349,6 +379,7 @@ pub(crate) fn stats_of(storage: BvhStorage, arrays: &[DeviceArray<'_>]) -> Uploa
             ArrayRole::Triangles | ArrayRole::WideTriangles => s.triangles_bytes += b,
             ArrayRole::Escapes => s.escapes_bytes += b,
             ArrayRole::Instances | ArrayRole::WideInstances => s.instances_bytes += b,
+            ArrayRole::Masks | ArrayRole::WideMasks => s.masks_bytes += b,
         }
     }
     s

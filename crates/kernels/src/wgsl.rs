@@ -219,6 +219,13 @@ pub struct LibraryShape {
     /// ([`LibraryShape::ray_queries`], [`crate::ray_query`]): the TLAS at binding 0, the
     /// triangles in buffers; `traversal` and `precision` are not read.
     pub ray_queries: bool,
+    /// The BVH has alpha masks (`FlatBvh::masks`): their binding (5) and test are
+    /// composed in, so your walks cut masked candidates as the kernels do.
+    pub masks: bool,
+    /// Your filter ([`LibraryShape::with_filter`]): the name of a WGSL function
+    /// `fn(BvhCandidate) -> bool` of your shader, asked about every candidate that would
+    /// become the hit.
+    pub filter: Option<&'static str>,
 }
 
 impl LibraryShape {
@@ -231,6 +238,21 @@ impl LibraryShape {
             traversal,
             precision: Precision::WatertightF32,
             ray_queries: false,
+            masks: false,
+            filter: None,
+        }
+    }
+
+    /// The same library with every candidate that would become the hit passed to your
+    /// WGSL function `name`, `fn(c: BvhCandidate) -> bool` (`candidate.wgsl`: the
+    /// primitive id, instance, mesh primitive, `t`, `u`, `v`): a candidate it rejects is
+    /// as if the ray had missed that triangle, and the walk goes on. The CPU walks take
+    /// the same rule as a closure (`bvhtrace_core::trace_rays_filtered`). Not for the
+    /// device's ray queries.
+    pub fn with_filter(self, name: &'static str) -> LibraryShape {
+        LibraryShape {
+            filter: Some(name),
+            ..self
         }
     }
 
@@ -259,6 +281,8 @@ impl LibraryShape {
         };
         ModuleSet {
             instances: self.instanced,
+            masks: self.masks,
+            filter: self.filter,
             ..base
         }
     }

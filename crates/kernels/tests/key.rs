@@ -265,6 +265,41 @@ fn the_instances_binding_is_declared_only_for_two_levels() {
     }
 }
 
+/// The alpha masks' binding (5) and test are composed only for a masked BVH, in every walk,
+/// one mesh and two levels, both queries; the module validates and compiles with them, and
+/// without them the source is what it was (no masks binding, the leaf visit untouched).
+#[test]
+fn the_masks_are_composed_only_for_masked_trees() {
+    for storage in STORAGES {
+        for traversal in TRAVERSALS {
+            for query in [Query::Closest, Query::Any] {
+                for instances in [false, true] {
+                    let plain = KernelKey::new(storage, &TraceOptions::new(traversal, query))
+                        .with_instances(instances);
+                    for masks in [false, true] {
+                        let f = plain.with_masks(masks);
+                        let module = parse(&f.source());
+                        let got = declared(&module);
+                        assert_eq!(got, listed(&f), "{f:?}: declared vs KernelKey::bindings");
+                        let has = got
+                            .iter()
+                            .any(|(g, b, n)| (*g, *b) == (0, 5) && n == "bvh_masks");
+                        assert_eq!(has, masks, "{f:?}");
+                        assert_eq!(has_function(&module, "bvh_alpha_accept"), masks, "{f:?}");
+                        assert_eq!(f.names().contains(&"alpha-masks"), masks, "{f:?}");
+                        compile(&module, &f);
+                    }
+                    assert!(
+                        plain
+                            .source()
+                            .contains("prim < (*best).prim))/*BVH_ACCEPT*/) {")
+                    );
+                }
+            }
+        }
+    }
+}
+
 /// An upload in textures holds whole texels per element (two per binary node, five per
 /// wide one, three per triangle) and, past one row, whole rows of `TEXEL_ROW`: the bytes
 /// of buffers while one row holds them, whole rows from the element that starts a second.

@@ -105,6 +105,75 @@ fn group0_array(module: &Module, name: &str) -> (String, u32) {
     }
 }
 
+/// The alpha masks' records, read word by word from `bvh_masks`, have the Rust layout
+/// (`MaskTables::words` writes them with bytemuck), and the loaders' strides are theirs.
+#[test]
+fn mask_structs_match_rust_layout() {
+    use bvhtrace_core::masks::{MaskHeader, MaskMaterial, MaskTriangle};
+    use bvhtrace_kernels::KernelKey;
+    let key = KernelKey::new(BvhStorage::Buffers, &Default::default()).with_masks(true);
+    let module = parse(&key.source());
+    check_struct(
+        &module,
+        "BvhMaskHeader",
+        size_of::<MaskHeader>(),
+        &[
+            ("instance_bases", offset_of!(MaskHeader, instance_bases)),
+            ("states", offset_of!(MaskHeader, states)),
+            ("triangles", offset_of!(MaskHeader, triangles)),
+            ("materials", offset_of!(MaskHeader, materials)),
+            ("texels", offset_of!(MaskHeader, texels)),
+        ],
+    );
+    let uv = offset_of!(MaskTriangle, uv);
+    check_struct(
+        &module,
+        "BvhMaskTriangle",
+        size_of::<MaskTriangle>(),
+        &[
+            ("u0", uv),
+            ("v0", uv + 4),
+            ("u1", uv + 8),
+            ("v1", uv + 12),
+            ("u2", uv + 16),
+            ("v2", uv + 20),
+            ("material", offset_of!(MaskTriangle, material)),
+        ],
+    );
+    check_struct(
+        &module,
+        "BvhMaskMaterial",
+        size_of::<MaskMaterial>(),
+        &[
+            ("first_texel", offset_of!(MaskMaterial, first_texel)),
+            ("width", offset_of!(MaskMaterial, width)),
+            ("height", offset_of!(MaskMaterial, height)),
+            ("wrap", offset_of!(MaskMaterial, wrap)),
+            ("min_texel", offset_of!(MaskMaterial, min_texel)),
+        ],
+    );
+    for (name, size) in [
+        ("BVH_MASK_TRIANGLE_WORDS", size_of::<MaskTriangle>()),
+        ("BVH_MASK_MATERIAL_WORDS", size_of::<MaskMaterial>()),
+    ] {
+        assert_eq!(
+            constant(&module, name),
+            Literal::U32((size / 4) as u32),
+            "{name}"
+        );
+    }
+    for (name, value) in [
+        ("BVH_MASK_OPAQUE", bvhtrace_core::masks::MASK_OPAQUE),
+        (
+            "BVH_MASK_TRANSPARENT",
+            bvhtrace_core::masks::MASK_TRANSPARENT,
+        ),
+        ("BVH_NO_MASKS", bvhtrace_core::masks::NO_MASKS),
+    ] {
+        assert_eq!(constant(&module, name), Literal::U32(value), "{name}");
+    }
+}
+
 fn check_structs(module: &Module) {
     check_struct(
         module,

@@ -33,7 +33,8 @@ pub struct Scratch {
 pub struct Arrays {
     buffers: Vec<(ArrayRole, Buffer)>,
     /// One zeroed instance, bound where the upload has no array: every binding of a set is
-    /// bound (the instances of one mesh, escape links the wide walk never reads).
+    /// bound (the instances of one mesh, escape links the wide walk never reads, the masks
+    /// of a BVH without them).
     filler: Buffer,
     /// The binary layout's set and the wide layout's.
     sets: Sets,
@@ -52,7 +53,7 @@ impl Sets {
         let d = &ctx.inner.device;
         let sizes = [vk::DescriptorPoolSize {
             ty: vk::DescriptorType::STORAGE_BUFFER,
-            descriptor_count: 4 * count,
+            descriptor_count: 5 * count,
         }];
         let info = vk::DescriptorPoolCreateInfo::default()
             .max_sets(count)
@@ -111,6 +112,7 @@ impl Arrays {
                 whole(1, R::Triangles),
                 whole(2, R::Escapes),
                 whole(4, R::Instances),
+                whole(5, R::Masks),
             ];
             write_set(d, self.sets.sets[0], &e);
         }
@@ -120,6 +122,7 @@ impl Arrays {
                 whole(1, R::WideTriangles),
                 whole(2, R::Escapes),
                 whole(4, R::WideInstances),
+                whole(5, R::WideMasks),
             ];
             write_set(d, self.sets.sets[1], &e);
         }

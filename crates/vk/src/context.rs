@@ -544,12 +544,16 @@ impl VkContext {
         let timestamps = inner.timestamp_period_ns.is_some();
         unsafe {
             let d = &inner.device;
-            // Set 0: nodes, triangles, escapes, instances (4). Set 1: rays, hits,
+            // Set 0: nodes, triangles, escapes, instances (4), alpha masks (5). Set 1: rays, hits,
             // counters. The kernels' binding numbers; every binding is always bound
             // (unused ones are not declared in the SPIR-V of an entry point that does not
             // use them).
             for set in 0..2 {
-                let numbers: &[u32] = if set == 0 { &[0, 1, 2, 4] } else { &[0, 1, 2] };
+                let numbers: &[u32] = if set == 0 {
+                    &[0, 1, 2, 4, 5]
+                } else {
+                    &[0, 1, 2]
+                };
                 let bindings: Vec<vk::DescriptorSetLayoutBinding> = numbers
                     .iter()
                     .map(|&b| {

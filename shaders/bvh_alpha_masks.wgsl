@@ -1,0 +1,103 @@
+// bvh_alpha_masks.wgsl: alpha-tested triangles, twin of `bvhtrace_core::masks`
+// (`MaskTables::accept`, and the rule in `bvhtrace_core::alpha`). Composed in only when the
+// uploaded BVH has masks; the leaf visit (`traverse_common.wgsl`) then asks
+// `bvh_alpha_accept` about every candidate that would become the hit.
+//
+// Binding 5 holds `MaskTables::words`: a `BvhMaskHeader` of word offsets, the instance
+// bases (in this layout's instance order), the states, the triangles, the materials and
+// the texels, four to a word, little end first.
+
+@group(0) @binding(5) var<storage, read> bvh_masks: array<u32>;
+
+// `masks::MaskHeader`.
+struct BvhMaskHeader {
+    instance_bases: u32,
+    states: u32,
+    triangles: u32,
+    materials: u32,
+    texels: u32,
+}
+
+// `masks::MaskTriangle`: the corners' texture coordinates and the material.
+struct BvhMaskTriangle {
+    u0: f32,
+    v0: f32,
+    u1: f32,
+    v1: f32,
+    u2: f32,
+    v2: f32,
+    material: u32,
+}
+
+// `masks::MaskMaterial`.
+struct BvhMaskMaterial {
+    first_texel: u32,
+    width: u32,
+    height: u32,
+    wrap: u32,
+    min_texel: u32,
+}
+
+const BVH_MASK_OPAQUE: u32 = 0xffffffffu;
+const BVH_MASK_TRANSPARENT: u32 = 0xfffffffeu;
+const BVH_NO_MASKS: u32 = 0xffffffffu;
+const BVH_MASK_TRIANGLE_WORDS: u32 = 7u;
+const BVH_MASK_MATERIAL_WORDS: u32 = 5u;
+
+fn bvh_load_mask_triangle(at: u32) -> BvhMaskTriangle {
+    return BvhMaskTriangle(
+        bitcast<f32>(bvh_masks[at]),
+        bitcast<f32>(bvh_masks[at + 1u]),
+        bitcast<f32>(bvh_masks[at + 2u]),
+        bitcast<f32>(bvh_masks[at + 3u]),
+        bitcast<f32>(bvh_masks[at + 4u]),
+        bitcast<f32>(bvh_masks[at + 5u]),
+        bvh_masks[at + 6u],
+    );
+}
+
+fn bvh_load_mask_material(at: u32) -> BvhMaskMaterial {
+    return BvhMaskMaterial(bvh_masks[at], bvh_masks[at + 1u], bvh_masks[at + 2u], bvh_masks[at + 3u], bvh_masks[at + 4u]);
+}
+
+// `alpha::texel_index`: the texel along an axis of `size` texels for coordinate `x`, wrapped
+// by mode `wrap` (0 repeat, 1 clamp to edge, 2 mirrored repeat).
+fn bvh_texel_index(x: f32, size: u32, wrap: u32) -> u32 {
+    if ((bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u) {
+        return 0u;
+    }
+    var f = x - floor(x);
+    if (wrap == 1u) {
+        f = clamp(x, 0.0, 1.0);
+    } else if (wrap == 2u) {
+        let g = x - 2.0 * floor(x * 0.5);
+        f = select(g, 2.0 - g, g > 1.0);
+    }
+    return min(u32(floor(f * f32(size))), size - 1u);
+}
+
+// Whether a candidate at barycentrics `(u, v)` on mesh primitive `prim` counts as a hit
+// (`MaskTables::accept`): settled by the triangle's state, or its texel's alpha.
+fn bvh_alpha_accept(prim: u32, u: f32, v: f32) -> bool {
+    var base = 0u;
+    if (BVH_INSTANCED) {
+        base = bvh_masks[bvh_masks[0] + bvh_instance_index];
+        if (base == BVH_NO_MASKS) {
+            return true;
+        }
+    }
+    let state = bvh_masks[bvh_masks[1] + base + prim];
+    if (state >= BVH_MASK_TRANSPARENT) {
+        return state == BVH_MASK_OPAQUE;
+    }
+    let t = bvh_load_mask_triangle(bvh_masks[2] + BVH_MASK_TRIANGLE_WORDS * state);
+    let m = bvh_load_mask_material(bvh_masks[3] + BVH_MASK_MATERIAL_WORDS * t.material);
+    // `alpha::interpolate_uv`, in its order of operations.
+    let su = (t.u0 + (t.u1 - t.u0) * u) + (t.u2 - t.u0) * v;
+    let sv = (t.v0 + (t.v1 - t.v0) * u) + (t.v2 - t.v0) * v;
+    let x = bvh_texel_index(su, m.width, m.wrap & 3u);
+    let y = bvh_texel_index(sv, m.height, (m.wrap >> 2u) & 3u);
+    let i = m.first_texel + y * m.width + x;
+    let texel = (bvh_masks[bvh_masks[4] + i / 4u] >> (8u * (i % 4u))) & 0xffu;
+    return texel >= m.min_texel;
+}
