@@ -317,6 +317,16 @@ fn run_own_shader(
     library: &bvhtrace_gpu::BvhLibrary,
     rays: &[Ray],
 ) -> Vec<OwnAnswer> {
+    run_own_shader_with(gpu, library, "", rays)
+}
+
+/// [`run_own_shader`] with more of the user's WGSL (a filter the library calls).
+fn run_own_shader_with(
+    gpu: &GpuBvh,
+    library: &bvhtrace_gpu::BvhLibrary,
+    more: &str,
+    rays: &[Ray],
+) -> Vec<OwnAnswer> {
     use wgpu::util::DeviceExt;
     let ctx = gpu.context();
     let device = ctx.device();
@@ -325,7 +335,7 @@ fn run_own_shader(
         .expect("the library's bind group");
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("own wgsl"),
-        source: wgpu::ShaderSource::Wgsl(format!("{library}\n{OWN_SHADER}").into()),
+        source: wgpu::ShaderSource::Wgsl(format!("{library}\n{OWN_SHADER}\n{more}").into()),
     });
     let words = rays.len() * 16;
     let ray_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -583,6 +593,93 @@ fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
         );
     }
     assert!(hits > 500, "{hits} hits");
+}
+
+/// A filter of the user's, in WGSL, composed into the library's walks
+/// (`LibraryShape::with_filter`), cuts the same candidates as the same rule given to the
+/// CPU walks as a closure: closest and any hit, bit for bit, one mesh (every third
+/// primitive skipped) and two levels (one instance skipped, and a mesh primitive in the
+/// others).
+#[test]
+fn own_wgsl_filters_equal_the_cpu_closure() {
+    use bvhtrace_core::{Candidate, HitFilter, Query, trace_rays_filtered};
+    let Some(ctx) = support::context("embedding") else {
+        return;
+    };
+    let (bvh, rays) = scene();
+    let ib = two_level_scene();
+    let cases: [(&FlatBvh, &str, &(dyn Fn(&Candidate) -> bool + Sync)); 2] = [
+        (
+            &bvh,
+            "fn skip_thirds(c: BvhCandidate) -> bool { return c.prim % 3u != 0u; }",
+            &|c: &Candidate| c.prim % 3 != 0,
+        ),
+        (
+            ib.bvh(),
+            "fn skip_thirds(c: BvhCandidate) -> bool { return c.instance != 1u && c.mesh_prim != 7u; }",
+            &|c: &Candidate| c.instance != Some(1) && c.mesh_prim != 7,
+        ),
+    ];
+    for (bvh, wgsl, rule) in cases {
+        let gpu = GpuBvh::upload(&ctx, bvh, &UploadOptions::all()).expect("upload");
+        for walk in [Traversal::FullStack, Traversal::Stackless] {
+            let shape = gpu.library_shape(walk).with_filter("skip_thirds");
+            let library = bvhtrace_gpu::wgsl_library(shape, 0);
+            let own = run_own_shader_with(&gpu, &library, wgsl, &rays);
+            let cpu = |query| {
+                let opts = TraceOptions::new(walk, query);
+                trace_rays_filtered(bvh, &rays, &opts, Some(&rule as &dyn HitFilter)).hits
+            };
+            let (closest, any) = (cpu(Query::Closest), cpu(Query::Any));
+            let plain = trace_rays(bvh, &rays, &TraceOptions::closest(walk)).hits;
+            let mut cut = 0;
+            for (i, o) in own.iter().enumerate() {
+                assert!(
+                    same_hit(&o.hit, &closest[i]),
+                    "{walk} ray {i}: own {:?}, cpu {:?}",
+                    o.hit,
+                    closest[i]
+                );
+                assert_eq!(o.any_prim, any[i].prim, "{walk} ray {i}: any hit");
+                cut += usize::from(plain[i].prim != closest[i].prim);
+            }
+            assert!(cut > 50, "{walk}: the filter changed {cut} hits");
+        }
+    }
+}
+
+/// Own WGSL over a masked upload (`scenes/foliage.gltf`, whose tree carries its alpha
+/// masks): the library composes the masks in and answers as `trace()` does, bit for bit,
+/// one level and two.
+#[test]
+fn own_wgsl_on_a_masked_scene_cuts_as_the_kernels_do() {
+    let Some(ctx) = support::context("embedding") else {
+        return;
+    };
+    let scene = bvhtrace_scene::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/foliage.gltf"
+    ))
+    .expect("foliage");
+    for flatten in [true, false] {
+        let traced = scene
+            .tracing_bvh(&BuildOptions::default(), flatten)
+            .expect("bvh");
+        let bvh = traced.bvh();
+        assert!(bvh.masks().is_some());
+        let b = bvh.bounds();
+        let rays = bvhtrace_scene::Camera::frame(b.min, b.max, 1.0).rays(64, 64);
+        let gpu = GpuBvh::upload(&ctx, bvh, &UploadOptions::all()).expect("upload");
+        let library = gpu.wgsl_library(Traversal::Stackless, 0).expect("library");
+        assert!(library.shape().masks && library.source().contains("bvh_masks"));
+        let own = run_own_shader(&gpu, &library, &rays);
+        let traced = gpu
+            .trace(&rays, &TraceOptions::closest(Traversal::Stackless))
+            .expect("trace");
+        for (i, (o, t)) in own.iter().zip(&traced.hits).enumerate() {
+            assert!(same_hit(&o.hit, t), "ray {i}: own {:?}, trace {t:?}", o.hit);
+        }
+    }
 }
 
 /// A library composed for another upload is refused by `bind_group_for` with an error
