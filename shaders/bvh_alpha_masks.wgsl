@@ -18,7 +18,8 @@ struct BvhMaskHeader {
     texels: u32,
 }
 
-// `masks::MaskTriangle`: the corners' texture coordinates and the material.
+// `masks::MaskTriangle`: the corners' texture coordinates, the material, and the
+// micromap (two bits per micro-triangle, read in place by `bvh_micro_state`).
 struct BvhMaskTriangle {
     u0: f32,
     v0: f32,
@@ -27,6 +28,7 @@ struct BvhMaskTriangle {
     u2: f32,
     v2: f32,
     material: u32,
+    micro: array<u32, 8>,
 }
 
 // `masks::MaskMaterial`.
@@ -41,9 +43,15 @@ struct BvhMaskMaterial {
 const BVH_MASK_OPAQUE: u32 = 0xffffffffu;
 const BVH_MASK_TRANSPARENT: u32 = 0xfffffffeu;
 const BVH_NO_MASKS: u32 = 0xffffffffu;
-const BVH_MASK_TRIANGLE_WORDS: u32 = 7u;
+const BVH_MASK_TRIANGLE_WORDS: u32 = 15u;
 const BVH_MASK_MATERIAL_WORDS: u32 = 5u;
+// `masks::MICRO_CELLS`, the micromap's first word in a triangle, and its states.
+const BVH_MICRO_CELLS: u32 = 8u;
+const BVH_MICRO_WORD: u32 = 7u;
+const BVH_MICRO_TEST: u32 = 0u;
+const BVH_MICRO_OPAQUE: u32 = 1u;
 
+// The coordinates and material of the triangle at word `at` (its micromap is read in place).
 fn bvh_load_mask_triangle(at: u32) -> BvhMaskTriangle {
     return BvhMaskTriangle(
         bitcast<f32>(bvh_masks[at]),
@@ -53,7 +61,22 @@ fn bvh_load_mask_triangle(at: u32) -> BvhMaskTriangle {
         bitcast<f32>(bvh_masks[at + 4u]),
         bitcast<f32>(bvh_masks[at + 5u]),
         bvh_masks[at + 6u],
+        array<u32, 8>(),
     );
+}
+
+// `masks::micro_slot` and `MaskTriangle::micro_state`: the state of the micro-triangle of
+// barycentrics `(u, v)` in the micromap of the triangle at word `at`.
+fn bvh_micro_state(at: u32, u: f32, v: f32) -> u32 {
+    let n = f32(BVH_MICRO_CELLS);
+    let last = BVH_MICRO_CELLS - 1u;
+    let fu = u * n;
+    let fv = v * n;
+    let i = min(u32(max(floor(fu), 0.0)), last);
+    let j = min(u32(max(floor(fv), 0.0)), last - i);
+    let upper = (fu - f32(i)) + (fv - f32(j)) >= 1.0 && i + j < last;
+    let slot = 2u * (j * BVH_MICRO_CELLS + i) + select(0u, 1u, upper);
+    return (bvh_masks[at + BVH_MICRO_WORD + slot / 16u] >> (2u * (slot % 16u))) & 3u;
 }
 
 fn bvh_load_mask_material(at: u32) -> BvhMaskMaterial {
@@ -90,7 +113,12 @@ fn bvh_alpha_accept(prim: u32, u: f32, v: f32) -> bool {
     if (state >= BVH_MASK_TRANSPARENT) {
         return state == BVH_MASK_OPAQUE;
     }
-    let t = bvh_load_mask_triangle(bvh_masks[2] + BVH_MASK_TRIANGLE_WORDS * state);
+    let at = bvh_masks[2] + BVH_MASK_TRIANGLE_WORDS * state;
+    let micro = bvh_micro_state(at, u, v);
+    if (micro != BVH_MICRO_TEST) {
+        return micro == BVH_MICRO_OPAQUE;
+    }
+    let t = bvh_load_mask_triangle(at);
     let m = bvh_load_mask_material(bvh_masks[3] + BVH_MASK_MATERIAL_WORDS * t.material);
     // `alpha::interpolate_uv`, in its order of operations.
     let su = (t.u0 + (t.u1 - t.u0) * u) + (t.u2 - t.u0) * v;

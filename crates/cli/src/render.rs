@@ -544,7 +544,7 @@ impl Report<'_> {
             let (settled, sampled) = m.counts();
             let all = (settled + sampled).max(1);
             eprintln!(
-                "alpha masks: {settled} candidates settled by their triangle's state, {sampled} \
+                "alpha masks: {settled} candidates settled by their triangle's state or micromap, {sampled} \
                  read the texture ({:.1}% settled, over {} runs)",
                 100.0 * settled as f64 / all as f64,
                 self.runs.len()

@@ -7,9 +7,17 @@
 //! where `base` is 0 for one mesh and the instance's entry of `instance_bases` for two
 //! levels (an instance of a mesh without masked triangles has [`NO_MASKS`] and is opaque
 //! without a look-up). A state is [`MASK_OPAQUE`], [`MASK_TRANSPARENT`], or the index of
-//! the triangle's [`MaskTriangle`]: its corners' texture coordinates and material, whose
-//! [`MaskMaterial`] places its texels in `texels`. Only triangles that need the texture
-//! have a record, and only masked materials' textures are stored.
+//! the triangle's [`MaskTriangle`]: its corners' texture coordinates, its material (whose
+//! [`MaskMaterial`] places its texels in `texels`) and its micromap. Only triangles that
+//! need the texture have a record, and only masked materials' textures are stored.
+//!
+//! The micromap (an opacity micromap, as DXR and Vulkan call theirs) settles most
+//! candidates on a tested triangle too: the triangle's barycentric domain is cut into
+//! [`MICRO_CELLS`] x [`MICRO_CELLS`] cells, each halved into a lower and an upper
+//! micro-triangle ([`micro_slot`]), and each micro-triangle holds two bits: opaque,
+//! transparent, or test (from the texels its coordinates can reach, with a texel of
+//! margin, as for whole triangles). Only a candidate in a micro-triangle to test reads
+//! the texture.
 //!
 //! On a device the tables are one `array<u32>` ([`MaskTables::words`]): a
 //! [`MaskHeader`] of word offsets, then the instance bases in the uploaded layout's
@@ -21,7 +29,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use bytemuck::{Pod, Zeroable};
 use glam::Vec2;
 
-use crate::alpha::{AlphaMask, Wrap, interpolate_uv};
+use crate::alpha::{AlphaMask, TriangleState, Wrap, interpolate_uv, triangle_state};
 
 /// The state of a triangle every candidate passes, without a texture read.
 pub const MASK_OPAQUE: u32 = u32::MAX;
@@ -29,6 +37,63 @@ pub const MASK_OPAQUE: u32 = u32::MAX;
 pub const MASK_TRANSPARENT: u32 = u32::MAX - 1;
 /// The instance base of an instance whose mesh has no masked triangle.
 pub const NO_MASKS: u32 = u32::MAX;
+
+/// Cells along each barycentric axis of a micromap: `MICRO_CELLS^2` cells, two
+/// micro-triangles each.
+pub const MICRO_CELLS: u32 = 8;
+/// A micro-triangle every candidate in which passes.
+pub const MICRO_OPAQUE: u32 = 1;
+/// A micro-triangle no candidate in which passes.
+pub const MICRO_TRANSPARENT: u32 = 2;
+/// A micro-triangle whose candidates read the texture (0, so that unset slots test).
+pub const MICRO_TEST: u32 = 0;
+/// Words of a micromap: two bits per slot, `2 MICRO_CELLS^2` slots.
+pub const MICRO_WORDS: usize = (2 * MICRO_CELLS * MICRO_CELLS * 2 / 32) as usize;
+
+/// The micromap slot of barycentrics `(u, v)` (the weights of corners 1 and 2): cell
+/// `(i, j) = (floor(8u), floor(8v))`, clamped into the triangle, and its upper half when
+/// the fractions sum to 1 or more; slot `2 (8j + i) + upper`. Exact in f32 (products by a
+/// power of two, differences of a number and its floor), so a device computes the same.
+#[inline]
+pub fn micro_slot(u: f32, v: f32) -> usize {
+    let n = MICRO_CELLS as f32;
+    let last = MICRO_CELLS - 1;
+    let (fu, fv) = (u * n, v * n);
+    let i = (fu.floor().max(0.0) as u32).min(last);
+    let j = (fv.floor().max(0.0) as u32).min(last - i);
+    let upper = (fu - i as f32) + (fv - j as f32) >= 1.0 && i + j < last;
+    (2 * (j * MICRO_CELLS + i) + u32::from(upper)) as usize
+}
+
+/// The barycentric corners `(u, v)` of micromap slot `slot`.
+pub fn micro_corners(slot: usize) -> [(f32, f32); 3] {
+    let cell = (slot / 2) as u32;
+    let (i, j) = (cell % MICRO_CELLS, cell / MICRO_CELLS);
+    let at = |a: u32, b: u32| (a as f32 / MICRO_CELLS as f32, b as f32 / MICRO_CELLS as f32);
+    if slot.is_multiple_of(2) {
+        [at(i, j), at(i + 1, j), at(i, j + 1)]
+    } else {
+        [at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)]
+    }
+}
+
+/// The micromap of a triangle with corner coordinates `uv` under `mask`: each
+/// micro-triangle settled as a whole triangle is ([`triangle_state`] of its corners'
+/// coordinates, interpolated by the rule's arithmetic), so that a settled slot answers as
+/// the texture would for every candidate in it.
+pub fn micromap(uv: &[Vec2; 3], mask: &AlphaMask<'_>) -> [u32; MICRO_WORDS] {
+    let mut t = MaskTriangle::default();
+    for slot in 0..(2 * MICRO_CELLS * MICRO_CELLS) as usize {
+        let corners = micro_corners(slot).map(|(u, v)| interpolate_uv(uv, u, v));
+        let state = match triangle_state(&corners, mask) {
+            TriangleState::Opaque => MICRO_OPAQUE,
+            TriangleState::Transparent => MICRO_TRANSPARENT,
+            TriangleState::Test => MICRO_TEST,
+        };
+        t.set_micro_state(slot, state);
+    }
+    t.micro
+}
 
 /// One triangle that samples its material's texture (`BvhMaskTriangle` in
 /// `alpha_masks.wgsl`).
@@ -40,9 +105,25 @@ pub struct MaskTriangle {
     pub uv: [f32; 6],
     /// Index into [`MaskTables::materials`].
     pub material: u32,
+    /// The micromap: slot `s`'s state ([`MICRO_OPAQUE`], [`MICRO_TRANSPARENT`] or
+    /// [`MICRO_TEST`]) in bits `2 (s % 16)` of word `s / 16`; all zero tests every
+    /// candidate.
+    pub micro: [u32; MICRO_WORDS],
 }
 
 impl MaskTriangle {
+    /// The state of micromap slot `slot`.
+    #[inline]
+    pub fn micro_state(&self, slot: usize) -> u32 {
+        (self.micro[slot / 16] >> (2 * (slot % 16))) & 3
+    }
+
+    /// Sets micromap slot `slot` to `state`.
+    pub fn set_micro_state(&mut self, slot: usize, state: u32) {
+        let shift = 2 * (slot % 16);
+        self.micro[slot / 16] = (self.micro[slot / 16] & !(3 << shift)) | ((state & 3) << shift);
+    }
+
     /// The corners' coordinates as three points.
     pub fn corners(&self) -> [Vec2; 3] {
         let c = |k: usize| Vec2::new(self.uv[2 * k], self.uv[2 * k + 1]);
@@ -245,10 +326,15 @@ impl MaskTables {
             self.settled.fetch_add(1, Ordering::Relaxed);
             return state == MASK_OPAQUE;
         }
-        self.sampled.fetch_add(1, Ordering::Relaxed);
         let Some(t) = self.triangles.get(state as usize) else {
             return true;
         };
+        let micro = t.micro_state(micro_slot(u, v));
+        if micro != MICRO_TEST {
+            self.settled.fetch_add(1, Ordering::Relaxed);
+            return micro == MICRO_OPAQUE;
+        }
+        self.sampled.fetch_add(1, Ordering::Relaxed);
         let Some(m) = self.materials.get(t.material as usize) else {
             return true;
         };
@@ -256,7 +342,7 @@ impl MaskTables {
         mask.texel(interpolate_uv(&t.corners(), u, v)) >= mask.min_texel
     }
 
-    /// Candidates settled by their triangle's state (no texture read) and candidates that
+    /// Candidates settled by their triangle's state or micromap (no texture read) and candidates that
     /// sampled a texture on the CPU walks, since the tables were made or last reset.
     pub fn counts(&self) -> (u64, u64) {
         (
@@ -328,6 +414,7 @@ mod tests {
             vec![MaskTriangle {
                 uv: [0.0, 0.0, 1.0, 0.0, 0.0, 1.0],
                 material: 0,
+                micro: [0; MICRO_WORDS],
             }],
             vec![MaskMaterial {
                 first_texel: 0,
@@ -351,7 +438,7 @@ mod tests {
             &tables.states[..]
         );
         assert_eq!(w[h.triangles as usize + 2], 1.0f32.to_bits());
-        assert_eq!(w[h.materials as usize - 1], 0, "the triangle's material");
+        assert_eq!(w[h.triangles as usize + 6], 0, "the triangle's material");
         assert_eq!(w[h.materials as usize + 3], 1 | (2 << 2));
         assert_eq!(
             &w[h.texels as usize..],
@@ -362,6 +449,36 @@ mod tests {
             tables.materials[0].wraps(),
             [Wrap::ClampToEdge, Wrap::MirroredRepeat]
         );
+    }
+
+    /// Every point of the triangle falls in the micro-triangle its slot names, and every
+    /// slot of the triangle is reached.
+    #[test]
+    fn micro_slots_tile_the_triangle() {
+        let n = 97;
+        let mut seen = std::collections::BTreeSet::new();
+        for a in 0..=n {
+            for b in 0..=(n - a) {
+                let (u, v) = (a as f32 / n as f32, b as f32 / n as f32);
+                let slot = micro_slot(u, v);
+                seen.insert(slot);
+                let [p, q, r] = micro_corners(slot);
+                // Barycentric coordinates of (u, v) in the micro-triangle, all >= 0.
+                let d = (q.0 - p.0) * (r.1 - p.1) - (r.0 - p.0) * (q.1 - p.1);
+                let l1 = ((u - p.0) * (r.1 - p.1) - (r.0 - p.0) * (v - p.1)) / d;
+                let l2 = ((q.0 - p.0) * (v - p.1) - (u - p.0) * (q.1 - p.1)) / d;
+                let eps = 1e-5;
+                assert!(
+                    l1 >= -eps && l2 >= -eps && l1 + l2 <= 1.0 + eps,
+                    "({u}, {v}) in slot {slot} {:?}",
+                    [p, q, r]
+                );
+            }
+        }
+        let cells = (MICRO_CELLS * MICRO_CELLS) as usize;
+        assert_eq!(seen.len(), cells, "{} micro-triangles", seen.len());
+        // Outside the triangle by rounding: still a slot of it.
+        assert_eq!(micro_slot(-1e-9, 1.0 + 1e-7), micro_slot(0.0, 0.999));
     }
 
     #[test]
@@ -389,6 +506,7 @@ mod tests {
             vec![MaskTriangle {
                 uv: [0.0, 0.0, 1.0, 0.0, 0.0, 1.0],
                 material: 0,
+                micro: [0; MICRO_WORDS],
             }],
             vec![MaskMaterial {
                 first_texel: 0,
@@ -407,5 +525,15 @@ mod tests {
         assert!(tables.accept(0, 2, 0.7, 0.1), "u = 0.7: the kept one");
         assert!(tables.accept(NO_MASKS, 1, 0.0, 0.0), "an unmasked instance");
         assert_eq!(tables.counts(), (2, 2));
+        // A micromap settles its slots without the texture, whatever the texel says.
+        let mut t = tables.clone();
+        t.triangles[0].set_micro_state(micro_slot(0.1, 0.1), MICRO_OPAQUE);
+        t.triangles[0].set_micro_state(micro_slot(0.7, 0.1), MICRO_TRANSPARENT);
+        assert!(t.accept(0, 2, 0.1, 0.1) && !t.accept(0, 2, 0.7, 0.1));
+        assert!(
+            !t.accept(0, 2, 0.2, 0.01),
+            "an unset slot tests: the cut texel"
+        );
+        assert_eq!(t.counts(), (2, 1));
     }
 }

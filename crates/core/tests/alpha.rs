@@ -69,3 +69,76 @@ fn settled_triangles_agree_with_every_sample() {
         "{settled} settled, {tested} tested"
     );
 }
+
+/// Micromaps are conservative too: in every micro-triangle settled opaque or transparent,
+/// every sampled candidate (the grid of the triangle, and random points) agrees with the
+/// texture, under every wrap mode, with textures up to 64 texels a side; and they settle
+/// most micro-triangles of a triangle that is tested as a whole.
+#[test]
+fn micromaps_agree_with_every_sample() {
+    use bvhtrace_core::masks::{MICRO_TEST, MaskTriangle, micro_slot, micromap};
+    let mut rnd = common::xorshift(0x0a11_ce11);
+    let (mut settled, mut all) = (0usize, 0usize);
+    for case in 0..400 {
+        let (w, h) = (1 + (rnd() * 64.0) as u32, 1 + (rnd() * 64.0) as u32);
+        // A disc of kept texels, as a leaf's texture has, with noise at its edge.
+        let alpha: Vec<u8> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (
+                    (i % w) as f32 / w as f32 - 0.5,
+                    (i / w) as f32 / h as f32 - 0.5,
+                );
+                let d = (x * x + y * y).sqrt() + (rnd() - 0.5) * 0.05;
+                if d < 0.35 { 255 } else { (rnd() * 127.0) as u8 }
+            })
+            .collect();
+        let wraps = [Wrap::Repeat, Wrap::ClampToEdge, Wrap::MirroredRepeat];
+        let mask = AlphaMask {
+            alpha: &alpha,
+            width: w,
+            height: h,
+            wrap: [wraps[case % 3], wraps[(case / 3) % 3]],
+            min_texel: 128,
+        };
+        let o = Vec2::new((rnd() * 4.0).floor() - 2.0, (rnd() * 4.0).floor() - 2.0);
+        let s = 0.5 + rnd() * 1.5;
+        let uv = [o, o + Vec2::new(s, 0.0), o + Vec2::new(rnd() * s, s)];
+        let t = MaskTriangle {
+            micro: micromap(&uv, &mask),
+            ..MaskTriangle::default()
+        };
+        let check = |u: f32, v: f32| {
+            let state = t.micro_state(micro_slot(u, v));
+            if state != MICRO_TEST {
+                assert_eq!(
+                    mask.passes(&uv, u, v),
+                    state == bvhtrace_core::masks::MICRO_OPAQUE,
+                    "case {case}: micro state {state} at ({u}, {v}); uv {uv:?}, {w}x{h}"
+                );
+            }
+        };
+        for a in 0..=64 {
+            for b in 0..=(64 - a) {
+                check(a as f32 / 64.0, b as f32 / 64.0);
+            }
+        }
+        for _ in 0..500 {
+            let (u, v) = (rnd(), rnd());
+            let (u, v) = if u + v > 1.0 {
+                (1.0 - u, 1.0 - v)
+            } else {
+                (u, v)
+            };
+            check(u, v);
+        }
+        let slots = 2 * 8 * 8;
+        all += slots;
+        settled += (0..slots)
+            .filter(|&k| t.micro_state(k) != MICRO_TEST)
+            .count();
+    }
+    assert!(
+        2 * settled > all,
+        "{settled} of {all} micro-triangles settled"
+    );
+}

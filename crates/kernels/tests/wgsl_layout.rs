@@ -138,6 +138,7 @@ fn mask_structs_match_rust_layout() {
             ("u2", uv + 16),
             ("v2", uv + 20),
             ("material", offset_of!(MaskTriangle, material)),
+            ("micro", offset_of!(MaskTriangle, micro)),
         ],
     );
     check_struct(
@@ -162,7 +163,12 @@ fn mask_structs_match_rust_layout() {
             "{name}"
         );
     }
+    use bvhtrace_core::masks as m;
     for (name, value) in [
+        ("BVH_MICRO_CELLS", m::MICRO_CELLS),
+        ("BVH_MICRO_WORD", (offset_of!(MaskTriangle, micro) / 4) as u32),
+        ("BVH_MICRO_TEST", m::MICRO_TEST),
+        ("BVH_MICRO_OPAQUE", m::MICRO_OPAQUE),
         ("BVH_MASK_OPAQUE", bvhtrace_core::masks::MASK_OPAQUE),
         (
             "BVH_MASK_TRANSPARENT",

@@ -7,7 +7,9 @@ use std::sync::Arc;
 
 use bvhtrace_core::MaskTables;
 use bvhtrace_core::alpha::{AlphaMask, TriangleState, triangle_state};
-use bvhtrace_core::masks::{MASK_OPAQUE, MASK_TRANSPARENT, MaskMaterial, MaskTriangle, NO_MASKS};
+use bvhtrace_core::masks::{
+    MASK_OPAQUE, MASK_TRANSPARENT, MaskMaterial, MaskTriangle, NO_MASKS, micromap,
+};
 use glam::Vec2;
 
 use crate::{Mesh, Scene, SceneBvh};
@@ -81,6 +83,7 @@ impl<'a> Tables<'a> {
                     self.triangles.push(MaskTriangle {
                         uv: bytemuck::cast(corners.map(|c| c.to_array())),
                         material,
+                        micro: micromap(&corners, &mask),
                     });
                     self.triangles.len() as u32 - 1
                 }
