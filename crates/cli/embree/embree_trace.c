@@ -8,7 +8,9 @@
  * RUNS), mrays_per_s. With BVHTRACE_REFIT=A in the environment it also times a refit
  * (RTC_BUILD_QUALITY_REFIT) after moving every vertex by `bvhtrace bench-refit`'s field of
  * amplitude A (`deform` in crates/cli/src/bench_refit.rs): refit_ms, the median of RUNS.
- * HITS_OUT, if given, receives one u32 primitive index per ray
+ * BVHTRACE_EMBREE_MODE=fast drops RTC_SCENE_FLAG_ROBUST (Embree's default, not watertight);
+ * BVHTRACE_EMBREE_QUERY=any traces occlusion (rtcOccluded1: hits counts occluded rays,
+ * t_sum is 0). HITS_OUT, if given, receives one u32 primitive index per ray
  * (0xFFFFFFFF for a miss). Dump format (little endian): "BVHD", u32 version = 1, u32 n_tris,
  * u32 n_rays, n_tris * 9 f32 corners, n_rays * 8 f32 rays (origin, t_min, dir, t_max). */
 #include <embree3/rtcore.h>
@@ -27,6 +29,7 @@ static const Ray *rays;
 static uint32_t n_rays, n_threads;
 static uint32_t *hit_prim;
 static float *hit_t;
+static int occlusion;
 
 static double now_ms(void) {
   struct timespec ts;
@@ -49,6 +52,13 @@ static void *worker(void *arg) {
     rh.ray.mask = 0xFFFFFFFF; rh.ray.flags = 0; rh.ray.time = 0;
     rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+    if (occlusion) {
+      /* An occluded ray comes back with tfar = -inf; the primitive is not reported. */
+      rtcOccluded1(scene, &ctx, &rh.ray);
+      hit_prim[i] = rh.ray.tfar < 0.0f ? 0u : 0xFFFFFFFFu;
+      hit_t[i] = 0.0f;
+      continue;
+    }
     rtcIntersect1(scene, &ctx, &rh);
     int hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
     hit_prim[i] = hit ? rh.hit.primID : 0xFFFFFFFFu;
@@ -82,6 +92,9 @@ int main(int argc, char **argv) {
     return 2;
   }
   n_threads = argc > 2 ? (uint32_t)atoi(argv[2]) : 2;
+  const char *mode = getenv("BVHTRACE_EMBREE_MODE"), *query = getenv("BVHTRACE_EMBREE_QUERY");
+  int robust = !(mode && strcmp(mode, "fast") == 0);
+  occlusion = query && strcmp(query, "any") == 0;
   int runs = argc > 3 ? atoi(argv[3]) : 5;
   if (n_threads < 1) n_threads = 1;
   if (runs < 1) runs = 1;
@@ -113,7 +126,7 @@ int main(int argc, char **argv) {
   for (int run = 0; run < runs; run++) {
     double t0 = now_ms();
     scene = rtcNewScene(dev);
-    rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST);
+    rtcSetSceneFlags(scene, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
     rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
     RTCGeometry g = soup(dev, tris, n_tris, RTC_BUILD_QUALITY_MEDIUM, NULL);
     rtcAttachGeometry(scene, g);
@@ -187,10 +200,11 @@ int main(int argc, char **argv) {
     free(refit);
   }
   double tm = trace[runs / 2];
-  printf("{\"tracer\": \"embree %d.%d.%d robust, medium build\", \"threads\": %u, \"triangles\": %u, \"rays\": %u, "
+  printf("{\"tracer\": \"embree %d.%d.%d %s, medium build%s\", \"threads\": %u, \"triangles\": %u, \"rays\": %u, "
          "\"hits\": %llu, \"t_sum\": %.6f, \"build_ms\": %.3f, \"trace_ms\": %.3f, \"mrays_per_s\": %.3f, "
          "\"refit_ms\": %.3f}\n",
-         RTC_VERSION_MAJOR, RTC_VERSION_MINOR, RTC_VERSION_PATCH, n_threads, n_tris, n_rays,
+         RTC_VERSION_MAJOR, RTC_VERSION_MINOR, RTC_VERSION_PATCH, robust ? "robust" : "fast",
+         occlusion ? ", occlusion" : "", n_threads, n_tris, n_rays,
          (unsigned long long)hits, t_sum, build[runs / 2], tm, n_rays / tm / 1e3, refit_ms);
   rtcReleaseScene(scene);
   rtcReleaseDevice(dev);

@@ -731,6 +731,13 @@ pub struct BenchTraceArgs {
     /// creation time, Mrays/s.
     #[arg(long)]
     pub everything_on: bool,
+    /// Only the CPU paths, without a device: the core walks (`--traversals`, default
+    /// full-stack and wide) and the CPU layout (`bvhtrace-cpu`, each instruction set the
+    /// CPU has) on primary (closest-hit) and shadow (any-hit) rays, beside Embree 3's
+    /// default and robust modes with `--embree`, and each path's differences from the
+    /// full stack's answers.
+    #[arg(long)]
+    pub cpu_only: bool,
 }
 
 /// `bvhtrace bench-trace`.
@@ -738,6 +745,9 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
     let (w, h) = args.size;
     if args.runs == 0 {
         bail!("--runs must be at least 1");
+    }
+    if args.cpu_only {
+        return crate::bench_cpu::bench_trace_cpu(&args);
     }
     // The automatic choice's device: wgpu, with its ray queries when it has them (they are
     // measured beside our walks whichever the choice would trace with).
@@ -787,6 +797,9 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             bvh.build_wide();
         }
         let wide_ms = t.elapsed().as_secs_f64() * 1e3;
+        // The CPU layout (`bvhtrace-cpu`), timed beside the walks on each instruction set.
+        let cpu4 = bvhtrace_cpu::CpuBvh::from_flat(&bvh)?;
+        let isas = bvhtrace_cpu::Isa::all_available();
         let rays = primary_rays(&scene, w, h);
         let upload = bvhtrace::OpenOptions {
             traversals: traversals.clone(),
@@ -854,6 +867,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             let mut gpu_ms = vec![Vec::new(); traversals.len()];
             let mut wall_ms = vec![Vec::new(); traversals.len()];
             let mut cpu_ms = vec![Vec::new(); traversals.len()];
+            let mut cpu4_ms = vec![Vec::new(); isas.len()];
             let (mut embree_ms, mut embree_build_ms) = (Vec::new(), Vec::new());
             let mut rq_ms = Vec::new();
             if let Some(rq) = &rq {
@@ -874,6 +888,11 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     let t = Instant::now();
                     std::hint::black_box(trace_rays(&bvh, &rays, &opts));
                     cpu_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
+                }
+                for (i, &isa) in isas.iter().enumerate() {
+                    let t = Instant::now();
+                    std::hint::black_box(bvhtrace_cpu::trace_rays_with(&cpu4, &rays, q, isa));
+                    cpu4_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
                 }
                 if let (Some(exe), Some(dump), Query::Closest) = (&args.embree, &dump, q) {
                     let v = dump.run(exe, 2, 1, &[])?;
@@ -904,6 +923,28 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     ratio(&gpu_ms[0], &gpu_ms[i]),
                     ratio(&cpu_ms[i], &gpu_ms[i]),
                     ratio(&cpu_ms[0], &gpu_ms[i]),
+                    vs_embree,
+                );
+            }
+            for (i, isa) in isas.iter().enumerate() {
+                let vs_embree = if embree_ms.is_empty() {
+                    "-".to_string()
+                } else {
+                    format!("{:.2}x", ratio(&embree_ms, &cpu4_ms[i]))
+                };
+                println!(
+                    "{:16} {:8} {:>9} {:>9} {:>9.2} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
+                    format!("cpu4 {isa}"),
+                    format!("{q:?}").to_lowercase(),
+                    "-",
+                    "-",
+                    mrays(&cpu4_ms[i]),
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                    "-",
                     vs_embree,
                 );
             }

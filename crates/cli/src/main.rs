@@ -3,6 +3,7 @@
 mod accuracy;
 mod backend;
 mod bench;
+mod bench_cpu;
 mod bench_matrix;
 mod bench_refit;
 mod converge;

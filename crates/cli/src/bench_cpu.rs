@@ -1,0 +1,198 @@
+//! `bvhtrace bench-trace --cpu-only`: every CPU path (the core walks, the CPU layout of
+//! `bvhtrace-cpu` on each instruction set) beside Embree 3 in its default and robust
+//! modes, on primary (closest-hit) and shadow (any-hit) rays, same rays, same run.
+
+use std::time::Instant;
+
+use anyhow::Result;
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, trace_rays};
+use bvhtrace_cpu::{CpuBvh, Isa};
+
+use crate::bench::{BenchTraceArgs, median, scene_specs};
+use crate::bench_matrix::ray_sets;
+use crate::embree::{self, Dump};
+
+/// A CPU path's batch trace.
+type TraceFn<'a> = Box<dyn Fn(&[Ray], Query) -> Vec<Hit> + 'a>;
+
+/// The paths timed: the core walks asked for, then the CPU layout on each instruction set
+/// this CPU has.
+fn paths<'a>(
+    flat: &'a FlatBvh,
+    cpu: &'a CpuBvh,
+    walks: &[Traversal],
+) -> Vec<(String, TraceFn<'a>)> {
+    let mut out: Vec<(String, TraceFn<'a>)> = Vec::new();
+    for &tr in walks {
+        let f = move |rays: &[Ray], q| trace_rays(flat, rays, &TraceOptions::new(tr, q)).hits;
+        out.push((format!("core {tr}"), Box::new(f)));
+    }
+    for isa in Isa::all_available() {
+        let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_rays_with(cpu, rays, q, isa);
+        out.push((format!("cpu4 {isa}"), Box::new(f)));
+    }
+    out
+}
+
+/// The two Embree modes timed: its default (not watertight) and `RTC_SCENE_FLAG_ROBUST`.
+const EMBREE_MODES: [(&str, &str); 2] = [("embree fast", "fast"), ("embree robust", "robust")];
+
+/// Rays whose answer differs from the reference's: closest hits to the bit (primitive
+/// and `t`), any hits on hit or miss.
+fn differences(got: &[Hit], want: &[Hit], q: Query) -> usize {
+    got.iter()
+        .zip(want)
+        .filter(|(g, w)| match q {
+            Query::Closest => g.prim != w.prim || g.t.to_bits() != w.t.to_bits(),
+            Query::Any => g.is_hit() != w.is_hit(),
+        })
+        .count()
+}
+
+/// `bvhtrace bench-trace --cpu-only`.
+pub fn bench_trace_cpu(args: &BenchTraceArgs) -> Result<()> {
+    let (w, h) = args.size;
+    let threads = rayon::current_num_threads();
+    println!(
+        "CPU only: {threads} threads; {} rounds, medians; ratios are medians of per-round ratios",
+        args.runs
+    );
+    let walks = if args.traversals.is_empty() {
+        vec![Traversal::FullStack, Traversal::Wide]
+    } else {
+        args.traversals.clone()
+    };
+    for spec in scene_specs(&args.scenes)? {
+        let scene = bvhtrace_scene::load(&spec)?;
+        let tris = scene.flattened_triangles()?;
+        let t = Instant::now();
+        let mut flat = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let build_ms = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        if walks.iter().any(|t| t.is_wide()) {
+            flat.build_wide();
+        }
+        let wide_ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut convert_ms = Vec::new();
+        let mut cpu = CpuBvh::default();
+        for _ in 0..args.runs {
+            let t = Instant::now();
+            cpu = CpuBvh::from_flat(&flat)?;
+            convert_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let n_tris = tris.len().max(1) as f64;
+        let (bn, _, bt) = flat.byte_sizes();
+        let wide_bytes = flat.wide().map(|wd| {
+            let (a, b) = wd.byte_sizes();
+            format!(", wide {:.1}", (a + b) as f64 / n_tris)
+        });
+        println!(
+            "\n{spec}: {} triangles; build {build_ms:.1} ms, +{wide_ms:.1} ms wide, +{:.1} ms CPU \
+             layout (median of {}); bytes/triangle: binary {:.1}{}, CPU layout {:.1} ({} nodes, {} blocks)",
+            tris.len(),
+            median(convert_ms.clone()),
+            args.runs,
+            (bn + bt) as f64 / n_tris,
+            wide_bytes.unwrap_or_default(),
+            cpu.bytes_per_triangle(),
+            cpu.nodes().len(),
+            cpu.blocks().len(),
+        );
+        let cam = scene.camera_or_frame(w as f32 / h as f32);
+        let sets = ray_sets(&tris, &flat, &cam, w, h);
+        let kinds = [
+            ("primary", sets.primary, Query::Closest),
+            ("shadow", sets.shadow, Query::Any),
+        ];
+        let paths = paths(&flat, &cpu, &walks);
+        for (kind, rays, q) in kinds {
+            bench_kind(args, &spec, kind, &tris, &flat, &paths, &rays, q)?;
+        }
+    }
+    Ok(())
+}
+
+/// One ray kind: rounds of every path and of Embree, then the table.
+#[allow(clippy::too_many_arguments)]
+fn bench_kind(
+    args: &BenchTraceArgs,
+    spec: &str,
+    kind: &str,
+    tris: &[bvhtrace_core::Triangle],
+    flat: &FlatBvh,
+    paths: &[(String, TraceFn<'_>)],
+    rays: &[Ray],
+    q: Query,
+) -> Result<()> {
+    let reference = trace_rays(flat, rays, &TraceOptions::new(Traversal::FullStack, q)).hits;
+    let dump = match &args.embree {
+        Some(_) => Some(Dump::write(kind, tris, rays)?),
+        None => None,
+    };
+    let query_env = if q == Query::Any { "any" } else { "closest" };
+    let mut ms = vec![Vec::new(); paths.len() + EMBREE_MODES.len()];
+    let mut diffs = vec![0; paths.len()];
+    // Untimed warm-up, which also checks the answers.
+    for (i, (_, f)) in paths.iter().enumerate() {
+        diffs[i] = differences(&f(rays, q), &reference, q);
+    }
+    for _ in 0..args.runs {
+        for (i, (_, f)) in paths.iter().enumerate() {
+            let t = Instant::now();
+            std::hint::black_box(f(rays, q));
+            ms[i].push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        if let (Some(exe), Some(dump)) = (&args.embree, &dump) {
+            for (k, (_, mode)) in EMBREE_MODES.iter().enumerate() {
+                let env = [
+                    ("BVHTRACE_EMBREE_MODE", mode.to_string()),
+                    ("BVHTRACE_EMBREE_QUERY", query_env.to_string()),
+                ];
+                let v = dump.run(exe, rayon::current_num_threads(), 1, &env)?;
+                ms[paths.len() + k].push(embree::field(&v, "trace_ms", exe)?);
+            }
+        }
+    }
+    let n = rays.len() as f64;
+    let mrays = |v: &[f64]| n / median(v.to_vec()) / 1e3;
+    let ratio = |num: &[f64], den: &[f64]| {
+        if num.is_empty() || den.is_empty() {
+            "-".to_string()
+        } else {
+            format!(
+                "{:.2}x",
+                median(num.iter().zip(den).map(|(a, b)| a / b).collect())
+            )
+        }
+    };
+    println!(
+        "{spec} {kind} ({} rays, {q:?}):\n{:22} {:>9} {:>9} {:>12} {:>13} {:>7}",
+        rays.len(),
+        "path",
+        "Mrays/s",
+        "/full",
+        "/embree fast",
+        "/embree robust",
+        "differ"
+    );
+    let (fast, robust) = (&ms[paths.len()], &ms[paths.len() + 1]);
+    let names = paths
+        .iter()
+        .map(|(s, _)| s.as_str())
+        .chain(EMBREE_MODES.iter().map(|m| m.0));
+    for (i, name) in names.enumerate() {
+        if ms[i].is_empty() {
+            continue;
+        }
+        println!(
+            "{:22} {:>9.2} {:>9} {:>12} {:>13} {:>7}",
+            name,
+            mrays(&ms[i]),
+            ratio(&ms[0], &ms[i]),
+            ratio(fast, &ms[i]),
+            ratio(robust, &ms[i]),
+            diffs.get(i).map_or("-".to_string(), |d| d.to_string()),
+        );
+    }
+    Ok(())
+}

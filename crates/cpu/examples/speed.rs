@@ -1,0 +1,125 @@
+//! Quick speed figures for the CPU layout against the core walks, on the shared scenes:
+//! `cargo run --release -p bvhtrace-cpu --example speed -- [W H RUNS]`.
+//! The CLI's `bench-trace --cpu-only` is the full comparison (with Embree).
+
+use std::time::Instant;
+
+use bvhtrace_core::{Query, Ray, TraceOptions, Traversal};
+use bvhtrace_cpu::{CpuBvh, Isa};
+
+#[path = "../tests/common.rs"]
+mod common;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn time(runs: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    median(
+        (0..runs)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    )
+}
+
+fn main() {
+    let args: Vec<usize> = std::env::args()
+        .skip(1)
+        .filter_map(|a| a.parse().ok())
+        .collect();
+    let (w, h, runs) = (
+        *args.first().unwrap_or(&1024) as u32,
+        *args.get(1).unwrap_or(&768) as u32,
+        *args.get(2).unwrap_or(&5),
+    );
+    let only = |var: &str, v: &str| std::env::var(var).is_ok_and(|s| s != v);
+    for name in ["bunny_69k", "igea"] {
+        if only("SPEED_SCENE", name) {
+            continue;
+        }
+        let Some((tris, mut flat, primary, shadow)) = common::scene_rays(name, w, h) else {
+            eprintln!("no shared scenes");
+            return;
+        };
+        flat.build_wide();
+        let t = Instant::now();
+        let bvh = CpuBvh::from_flat(&flat).unwrap();
+        let convert = t.elapsed().as_secs_f64() * 1e3;
+        let (bn, bb) = bvh.byte_sizes();
+        println!(
+            "{name}: {} tris, convert {convert:.1} ms, {} nodes, {} blocks, {:.1} bytes/tri, depth {}",
+            tris.len(),
+            bn / 128,
+            bb / 160,
+            bvh.bytes_per_triangle(),
+            bvh.depth()
+        );
+        for (kind, rays, q) in [
+            ("primary", &primary, Query::Closest),
+            ("shadow", &shadow, Query::Any),
+        ] {
+            if only("SPEED_KIND", kind) {
+                continue;
+            }
+            if let Ok(path) = std::env::var("SPEED_DUMP") {
+                // The `BVHD` dump `embree_trace` reads (crates/cli/src/embree.rs).
+                let mut b = b"BVHD".to_vec();
+                for v in [1u32, tris.len() as u32, rays.len() as u32] {
+                    b.extend_from_slice(&v.to_le_bytes());
+                }
+                let floats =
+                    tris.iter()
+                        .flatten()
+                        .flat_map(|p| p.to_array())
+                        .chain(rays.iter().flat_map(|r| {
+                            [
+                                r.origin[0],
+                                r.origin[1],
+                                r.origin[2],
+                                r.t_min,
+                                r.dir[0],
+                                r.dir[1],
+                                r.dir[2],
+                                r.t_max,
+                            ]
+                        }));
+                for f in floats {
+                    b.extend_from_slice(&f.to_le_bytes());
+                }
+                std::fs::write(&path, b).expect("dump written");
+            }
+            let n = rays.len() as f64;
+            let mr = |ms: f64| n / ms / 1e3;
+            let walks = if std::env::var_os("SPEED_CPU_ONLY").is_some() {
+                vec![]
+            } else {
+                vec![Traversal::FullStack, Traversal::Wide]
+            };
+            for tr in walks {
+                let o = TraceOptions::new(tr, q);
+                let ms = time(runs, || {
+                    std::hint::black_box(bvhtrace_core::trace_rays(&flat, rays, &o));
+                });
+                println!("  {kind:8} core {tr:12} {:7.2} Mrays/s", mr(ms));
+            }
+            for isa in Isa::all_available()
+                .into_iter()
+                .filter(|i| std::env::var_os("SPEED_CPU_ONLY").is_none() || *i == Isa::Avx2)
+            {
+                let ms = time(runs, || {
+                    std::hint::black_box(bvhtrace_cpu::trace_rays_with(&bvh, rays, q, isa));
+                });
+                let hits = bvhtrace_cpu::trace_rays_with(&bvh, rays, q, isa);
+                let n_hit = hits.iter().filter(|h| h.is_hit()).count();
+                println!("  {kind:8} cpu  {isa:12} {:7.2} Mrays/s ({n_hit} hits)", mr(ms));
+            }
+            let _: &Vec<Ray> = rays;
+        }
+    }
+}

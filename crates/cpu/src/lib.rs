@@ -1,0 +1,191 @@
+//! A CPU tracer for bvhtrace trees, made for the CPU: the binary [`FlatBvh`] converted
+//! into 4-wide nodes with uncompressed f32 child boxes in SoA and leaves of 4-triangle
+//! SoA blocks ([`layout`]), walked one ray at a time with SIMD box and triangle tests
+//! (SSE on every x86-64 CPU, compiled for AVX2 where the CPU has it, and a portable path
+//! elsewhere).
+//!
+//! # The same hits as the reference walk
+//! Each SIMD lane performs the f32 operations of `bvhtrace_core::intersect`'s scalar box
+//! and watertight triangle tests, in the same order (no fused operations, the same
+//! min/max semantics for NaN and signed zeros), and hits are taken with the core walks'
+//! rule (nearer, or as near with a lower primitive id). The closest hit is then the one
+//! `bvhtrace_core::trace_ray` with `Traversal::FullStack` returns, bit for bit (primitive,
+//! `t`, `u`, `v`), under the one exception every core walk documents: where f32 cannot
+//! order two triangles (`oracle::f32_indeterminate`, or `t` within
+//! `oracle::f32_t_error_bound`), a different visit order may rightly keep either. Any-hit
+//! queries agree on hit or miss; which triangle they stop at depends on the order.
+//!
+//! ```
+//! use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray};
+//! use bvhtrace_cpu::CpuBvh;
+//! use glam::Vec3;
+//!
+//! let tris = vec![[Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)]];
+//! let flat = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
+//! let bvh = CpuBvh::from_flat(&flat).unwrap();
+//! let hits = bvhtrace_cpu::trace_rays(&bvh, &[Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)], Query::Closest);
+//! assert_eq!((hits[0].prim, hits[0].t), (0, 5.0));
+//! ```
+//!
+//! Not here: two-level trees (instances), hit filters and counters; the core walks
+//! trace those.
+
+// `!(a <= b)` is how NaN is rejected along with the false case, as in the core walks.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+#![warn(missing_docs)]
+
+mod lanes;
+pub mod layout;
+
+mod single;
+mod tests4;
+
+use std::fmt;
+
+use bvhtrace_core::{Hit, Query, Ray};
+use rayon::prelude::*;
+
+pub use layout::{ConvertError, CpuBvh, Node4, Tri4};
+
+use lanes::Lanes;
+use single::Entry;
+
+/// Which instruction set the walks use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Isa {
+    /// Plain f32 code, on any CPU: the same answers, bit for bit.
+    Portable,
+    /// SSE2 lanes (every x86-64 CPU).
+    Sse2,
+    /// The SSE lanes compiled with AVX2 enabled (three-operand VEX code), where the CPU
+    /// has it.
+    Avx2,
+}
+
+impl Isa {
+    /// The fastest this CPU has.
+    pub fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return Isa::Avx2;
+            }
+            Isa::Sse2
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        Isa::Portable
+    }
+
+    /// True when this CPU can run it.
+    pub fn available(self) -> bool {
+        self <= Isa::detect()
+    }
+
+    /// Every instruction set this CPU can run, slowest first.
+    pub fn all_available() -> Vec<Isa> {
+        [Isa::Portable, Isa::Sse2, Isa::Avx2]
+            .into_iter()
+            .filter(|i| i.available())
+            .collect()
+    }
+
+    /// `isa`, or the fastest this CPU has when it has not that one.
+    fn or_available(self) -> Isa {
+        self.min(Isa::detect())
+    }
+}
+
+impl fmt::Display for Isa {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.pad(match self {
+            Isa::Portable => "portable",
+            Isa::Sse2 => "sse2",
+            Isa::Avx2 => "avx2",
+        })
+    }
+}
+
+/// Traces one ray with the fastest instruction set this CPU has.
+pub fn trace_ray(bvh: &CpuBvh, ray: &Ray, query: Query) -> Hit {
+    let mut hit = [Hit::miss(0.0)];
+    trace_rays_into(
+        bvh,
+        std::slice::from_ref(ray),
+        query,
+        Isa::detect(),
+        &mut hit,
+    );
+    hit[0]
+}
+
+/// Traces a batch of rays one at a time on all threads of the current rayon pool, with
+/// the fastest instruction set this CPU has.
+pub fn trace_rays(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
+    trace_rays_with(bvh, rays, query, Isa::detect())
+}
+
+/// [`trace_rays`] with the instruction set `isa` (or the fastest this CPU has, when it
+/// lacks `isa`): the answers are the same whichever runs.
+pub fn trace_rays_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
+    const RUN: usize = 256;
+    let mut hits = vec![Hit::miss(0.0); rays.len()];
+    hits.par_chunks_mut(RUN)
+        .zip(rays.par_chunks(RUN))
+        .for_each(|(h, r)| trace_rays_into(bvh, r, query, isa, h));
+    hits
+}
+
+/// One thread's run of rays into `hits`.
+fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa, hits: &mut [Hit]) {
+    let mut stack = Vec::with_capacity(3 * bvh.depth as usize + 4);
+    match isa.or_available() {
+        Isa::Portable => run::<lanes::Portable>(bvh, rays, query, hits, &mut stack),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Sse2 => run::<lanes::Sse>(bvh, rays, query, hits, &mut stack),
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
+        Isa::Avx2 => unsafe { run_avx2(bvh, rays, query, hits, &mut stack) },
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => unreachable!("or_available gives Portable off x86-64"),
+    }
+}
+
+/// The walk over `rays`, monomorphised for the lanes `L` and the query.
+#[inline(always)]
+fn run<L: Lanes>(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    stack: &mut Vec<Entry>,
+) {
+    // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
+    match query {
+        Query::Closest => {
+            for i in 0..rays.len() {
+                hits[i] = single::trace::<L, false>(bvh, &rays[i], stack);
+            }
+        }
+        Query::Any => {
+            for i in 0..rays.len() {
+                hits[i] = single::trace::<L, true>(bvh, &rays[i], stack);
+            }
+        }
+    }
+}
+
+/// [`run`] with SSE lanes, compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn run_avx2(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    stack: &mut Vec<Entry>,
+) {
+    run::<lanes::Sse>(bvh, rays, query, hits, stack)
+}
