@@ -10,6 +10,12 @@
 // test is its own, and its interval is closed, `[t_min, t_max]`. Rays our walks call invalid
 // are answered `BVH_INVALID_RAY` without a query, and `t_min` below 0 is taken as 0 (the
 // queries' interval cannot start behind the origin).
+//
+// Alpha masks: `bvh_ray_query_masks.wgsl` or `bvh_ray_query_no_masks.wgsl` (composed with
+// this file) says whether every candidate is opaque (`BVH_RAY_QUERY_OPAQUE`) and which
+// candidates count (`bvh_ray_query_accept`). A masked candidate is decided at the driver's
+// barycentrics, so it may be decided otherwise than on our walks where it lies on a texel
+// border.
 
 const BVH_WIDE_LAYOUT: bool = false;
 
@@ -42,14 +48,30 @@ fn bvh_trace_ray_query(ray: BvhRay, any_hit: bool) -> BvhTraceResult {
     if (!(t_min < t_max)) {
         return BvhTraceResult(BvhHit(ray.t_max, BVH_MISS, 0.0, 0.0), none);
     }
-    var flags = RAY_FLAG_FORCE_OPAQUE;
+    // Without masks every triangle is forced opaque: the driver commits its hits itself.
+    var flags = RAY_FLAG_NONE;
+    if (BVH_RAY_QUERY_OPAQUE) {
+        flags = RAY_FLAG_FORCE_OPAQUE;
+    }
+    // For any hit the first confirmed candidate ends the query, as the first opaque one does.
     if (any_hit) {
         flags |= RAY_FLAG_TERMINATE_ON_FIRST_HIT;
     }
     let mask = select(0xffu, BVH_RAY_MASK & 0xffu, BVH_INSTANCED);
     var rq: ray_query;
     rayQueryInitialize(&rq, bvh_tlas, RayDesc(flags, mask, t_min, t_max, ray.origin, ray.dir));
-    while (rayQueryProceed(&rq)) {}
+    // Only the masked meshes' triangles (not opaque) stop here as candidates; the driver
+    // hands over those within the interval left by the hits confirmed so far.
+    while (rayQueryProceed(&rq)) {
+        let c = rayQueryGetCandidateIntersection(&rq);
+        if (c.kind != RAY_QUERY_INTERSECTION_TRIANGLE) {
+            continue;
+        }
+        let at = bvh_mesh_first(c.instance_custom_data) + c.primitive_index;
+        if (bvh_ray_query_accept(c.instance_index, bvh_load_triangle(at).prim, c.barycentrics)) {
+            rayQueryConfirmIntersection(&rq);
+        }
+    }
     let x = rayQueryGetCommittedIntersection(&rq);
     if (x.kind == RAY_QUERY_INTERSECTION_NONE) {
         return BvhTraceResult(BvhHit(ray.t_max, BVH_MISS, 0.0, 0.0), none);

@@ -435,16 +435,11 @@ impl Device {
         opts: &OpenOptions,
     ) -> Result<Opened<'static>, TraceError> {
         match open_on_ray_query(ctx, bvh, opts) {
-            Err(e) if self.auto && (exceeds_a_limit(&e) || bvh.masks().is_some()) => {
+            Err(e) if self.auto && exceeds_a_limit(&e) => {
                 let mut o = open_on_wgpu(ctx, bvh, opts)?;
-                o.fallback = Some(match bvh.masks() {
-                    Some(_) => "the ray-query tracer does not cut alpha-tested geometry yet; \
-                                tracing with our walks"
-                        .to_string(),
-                    None => format!(
-                        "the scene does not fit the ray-query upload ({e}); tracing with our walks"
-                    ),
-                });
+                o.fallback = Some(format!(
+                    "the scene does not fit the ray-query upload ({e}); tracing with our walks"
+                ));
                 Ok(o)
             }
             other => other,

@@ -7,11 +7,23 @@
 //! Mesa 25's lavapipe our walks are faster (`docs/benchmarks.md`), and the front door's
 //! automatic choice says so. The answers are not bit for bit our walks': the driver's
 //! triangle test is its own. `tests/ray_query.rs` states and checks the rule.
+//!
+//! Alpha-tested geometry (`FlatBvh::masks`) is cut by our walks' own test
+//! (`bvh_alpha_masks.wgsl`, its tables at binding 5): the masked meshes' BLASes are built
+//! without the opaque flag, and the query loop confirms a candidate only when
+//! `MaskTables::accept` would, at the barycentrics the driver gives the candidate. Those
+//! are the driver's, not our triangle test's (they differ in the last bits: by at most
+//! 2e-5 on lavapipe over the tests' scenes), so a candidate on a texel border may be cut on
+//! one side and kept on the other. The rule adds one clause for a masked tree: where the
+//! answers differ otherwise, the nearer of the two hits lies on a masked triangle whose
+//! mask changes its verdict within 1e-3 (in barycentrics) of that hit's barycentrics, and
+//! such rays are a sliver (the tests allow 1 in 200).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::flat::{FlatInstance, FlatNode};
+use bvhtrace_core::masks::NO_MASKS;
 use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput};
 use bvhtrace_kernels::{
     BvhLibrary, HIT_BYTES, LibraryShape, RAY_BYTES, RayInput, TraceError, Tracer, UploadStats,
@@ -32,6 +44,9 @@ struct Mesh {
     /// First triangle slot and count.
     first: u32,
     count: u32,
+    /// No instance of it has alpha masks: its BLAS geometry is built opaque, so the driver
+    /// commits its hits without handing them to the query loop.
+    opaque: bool,
 }
 
 /// A tree handed to the device's acceleration structures, ready to trace with ray queries.
@@ -45,6 +60,9 @@ pub struct RayQueryBvh {
     mesh_firsts: Option<wgpu::Buffer>,
     /// Binding 4 (two levels): `FlatBvh::instances`.
     instances: Option<wgpu::Buffer>,
+    /// Binding 5 (a masked BVH): `MaskTables::words`, instances in `FlatBvh::instances`'
+    /// order (the TLAS's).
+    masks: Option<wgpu::Buffer>,
     meshes: Vec<Mesh>,
     /// Each instance's mesh (index into `meshes`); one entry for one mesh.
     instance_mesh: Vec<u32>,
@@ -144,9 +162,13 @@ impl RayQueryBvh {
     /// triangles uploaded once, in leaf order (a spatial order, which the drivers' builders
     /// are fastest on), a BLAS per mesh over them, a TLAS over the instances (their
     /// transforms inverted, masks and mesh as custom data). The build is waited for, and
-    /// timed ([`RayQueryBvh::build_ms`]).
+    /// timed ([`RayQueryBvh::build_ms`]). A masked BVH's tables go with it (binding 5,
+    /// `UploadStats::masks_bytes`), and the BLASes of its masked meshes are built without
+    /// the opaque flag, so that the kernel tests their candidates (see the [module
+    /// documentation](self) for the rule that holds there).
     ///
-    /// [`TraceError::MissingFeature`] when the device lacks `EXPERIMENTAL_RAY_QUERY`.
+    /// [`TraceError::MissingFeature`] when the device lacks `EXPERIMENTAL_RAY_QUERY`; a
+    /// limit error when the triangles or the masks exceed a storage binding.
     pub fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> Result<RayQueryBvh, GpuError> {
         if !ctx.has_ray_queries() {
             return Err(TraceError::MissingFeature {
@@ -158,46 +180,15 @@ impl RayQueryBvh {
         if bvh.triangles().is_empty() {
             return Err(TraceError::EmptyBvh);
         }
-        if bvh.masks().is_some() {
-            return Err(TraceError::Unsupported {
-                backend: "ray-query",
-                what: "alpha-tested geometry yet: our walks (wgpu, vulkan) cut it".into(),
-            });
-        }
         let start = Instant::now();
         let tri_bytes: &[u8] = bytemuck::cast_slice(bvh.triangles());
         check_buffer_size(ctx.limits(), "triangles", tri_bytes.len() as u64)?;
+        let mask_words = masks_words(bvh);
+        if let Some(w) = &mask_words {
+            check_buffer_size(ctx.limits(), "alpha masks", 4 * w.len() as u64)?;
+        }
         let instanced = bvh.is_instanced();
-        let (meshes, instance_mesh) = if instanced {
-            let mut meshes: Vec<Mesh> = Vec::new();
-            let mut instance_mesh = Vec::with_capacity(bvh.instances().len());
-            for inst in bvh.instances() {
-                let index = match meshes.iter().position(|m| m.root == inst.root) {
-                    Some(i) => i,
-                    None => {
-                        let (first, count) = mesh_range(bvh.nodes(), inst.root)?;
-                        meshes.push(Mesh {
-                            root: inst.root,
-                            first,
-                            count,
-                        });
-                        meshes.len() - 1
-                    }
-                };
-                instance_mesh.push(index as u32);
-            }
-            (meshes, instance_mesh)
-        } else {
-            let count = bvh.triangles().len() as u32;
-            (
-                vec![Mesh {
-                    root: 0,
-                    first: 0,
-                    count,
-                }],
-                vec![0],
-            )
-        };
+        let (meshes, instance_mesh) = meshes_of(bvh)?;
         let device = ctx.device();
         let made = ctx.scoped("building the acceleration structures", || {
             let triangles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -244,33 +235,24 @@ impl RayQueryBvh {
                     usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
                 })
             });
-            (triangles, blases, tlas, mesh_firsts, instances)
+            let masks = mask_words.as_ref().map(|w| {
+                device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("bvhtrace ray-query alpha masks"),
+                    contents: bytemuck::cast_slice(w),
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                })
+            });
+            (triangles, blases, tlas, mesh_firsts, instances, masks)
         })?;
-        let (triangles, blases, tlas, mesh_firsts, instances) = made;
-        let mut entries = vec![
-            wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::AccelerationStructure {
-                    vertex_return: false,
-                },
-                count: None,
-            },
-            storage_entry(1, true),
-        ];
-        if instanced {
-            entries.extend([storage_entry(2, true), storage_entry(4, true)]);
-        }
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("bvhtrace ray-query bvh"),
-            entries: &entries,
-        });
+        let (triangles, blases, tlas, mesh_firsts, instances, masks) = made;
+        let layout = group_layout(device, instanced, masks.is_some());
         let mut rq = RayQueryBvh {
             ctx: ctx.clone(),
             group: None,
             triangles,
             mesh_firsts,
             instances,
+            masks,
             meshes,
             instance_mesh,
             blases,
@@ -286,7 +268,7 @@ impl RayQueryBvh {
                 triangles_bytes: tri_bytes.len() as u64,
                 escapes_bytes: 0,
                 instances_bytes: std::mem::size_of_val(bvh.instances()) as u64,
-                masks_bytes: 0,
+                masks_bytes: mask_words.map_or(0, |w| 4 * w.len() as u64),
                 upload_ms: 0.0,
             },
             build_ms: 0.0,
@@ -298,7 +280,8 @@ impl RayQueryBvh {
         Ok(rq)
     }
 
-    /// The bind group of binding 0 (the TLAS), 1, and for two levels 2 and 4.
+    /// The bind group of binding 0 (the TLAS), 1, for two levels 2 and 4, and for a masked
+    /// BVH 5.
     fn make_group(&self) -> Result<wgpu::BindGroup, GpuError> {
         let mut entries = vec![
             wgpu::BindGroupEntry {
@@ -318,6 +301,12 @@ impl RayQueryBvh {
             entries.push(wgpu::BindGroupEntry {
                 binding: 4,
                 resource: i.as_entire_binding(),
+            });
+        }
+        if let Some(m) = &self.masks {
+            entries.push(wgpu::BindGroupEntry {
+                binding: 5,
+                resource: m.as_entire_binding(),
             });
         }
         self.ctx.scoped("binding the acceleration structure", || {
@@ -416,25 +405,41 @@ impl RayQueryBvh {
         self.instances.is_some()
     }
 
+    /// True when the tree's alpha masks were uploaded (binding 5), which the kernels and
+    /// libraries then cut candidates by.
+    pub fn has_masks(&self) -> bool {
+        self.masks.is_some()
+    }
+
+    /// The library shape this upload binds.
+    fn library_shape(&self) -> LibraryShape {
+        LibraryShape {
+            masks: self.has_masks(),
+            ..LibraryShape::ray_queries(self.is_instanced())
+        }
+    }
+
     /// Meshes (BLASes) and instances (TLAS entries).
     pub fn counts(&self) -> (usize, usize) {
         (self.meshes.len(), self.instance_mesh.len())
     }
 
     /// The traversal library over ray queries for your own shader
-    /// ([`LibraryShape::ray_queries`]), the BVH bindings in `@group(group)`: the same
-    /// `bvh_trace_closest` and `bvh_trace_any` as the walks' libraries. Bind it with
-    /// [`RayQueryBvh::bind_group_for`].
+    /// ([`LibraryShape::ray_queries`], with [`LibraryShape::masks`] for a masked BVH), the
+    /// BVH bindings in `@group(group)`: the same `bvh_trace_closest` and `bvh_trace_any` as
+    /// the walks' libraries. Bind it with [`RayQueryBvh::bind_group_for`].
     pub fn wgsl_library(&self, group: u32) -> BvhLibrary {
-        wgsl_library(LibraryShape::ray_queries(self.is_instanced()), group)
+        wgsl_library(self.library_shape(), group)
     }
 
     /// The bind group `library` reads, with its layout; [`TraceError::LibraryMismatch`]
-    /// for a library composed for anything but this upload's ray queries.
+    /// for a library composed for anything but this upload's ray queries (its levels and
+    /// whether it has masks).
     pub fn bind_group_for(&self, library: &BvhLibrary) -> Result<BvhBindGroup<'_>, GpuError> {
-        let holds = LibraryShape::ray_queries(self.is_instanced());
+        let holds = self.library_shape();
         let wanted = library.shape();
-        if !wanted.ray_queries || wanted.instanced != holds.instanced {
+        if !wanted.ray_queries || (wanted.instanced, wanted.masks) != (holds.instanced, holds.masks)
+        {
             return Err(TraceError::LibraryMismatch {
                 library: wanted.to_string(),
                 upload: holds.to_string(),
@@ -463,7 +468,8 @@ impl RayQueryBvh {
             return Ok(p.clone());
         }
         let device = self.ctx.device();
-        let source = bvhtrace_kernels::ray_query::kernel_source(self.is_instanced());
+        let source =
+            bvhtrace_kernels::ray_query::kernel_source(self.is_instanced(), self.has_masks());
         let constants = [
             ("BVH_ANY_HIT", if any { 1.0 } else { 0.0 }),
             ("BVH_RAY_MASK", f64::from(mask)),
@@ -498,6 +504,43 @@ impl RayQueryBvh {
             .map_err(|_| poisoned())?
             .insert((any, mask), pipeline.clone());
         Ok(pipeline)
+    }
+
+    /// The masks' words for [`Tracer::update`] to write, after checking that `bvh`'s masks
+    /// fit this upload: present as they were, the same size, on the same meshes (a BLAS's
+    /// opacity is fixed when it is created).
+    fn check_update_masks(&self, bvh: &FlatBvh) -> Result<Option<Vec<u32>>, TraceError> {
+        let bad = |problem: String| TraceError::BadBuffer {
+            buffer: "alpha masks",
+            problem,
+        };
+        let words = masks_words(bvh);
+        let had = self.masks.as_ref().map(|m| m.size());
+        match (had, &words) {
+            (None, None) => return Ok(None),
+            (Some(bytes), Some(w)) if bytes == 4 * w.len() as u64 => {}
+            (Some(bytes), Some(w)) => {
+                return Err(bad(format!(
+                    "the upload holds {bytes} bytes of masks and the update {}: upload again",
+                    4 * w.len()
+                )));
+            }
+            _ => {
+                return Err(bad(format!(
+                    "the upload was made {} alpha masks and the update has {}: upload again",
+                    if had.is_some() { "with" } else { "without" },
+                    if words.is_some() { "some" } else { "none" }
+                )));
+            }
+        }
+        let (meshes, _) = meshes_of(bvh)?;
+        let opacity = |m: &[Mesh]| m.iter().map(|m| m.opaque).collect::<Vec<bool>>();
+        if opacity(&meshes) != opacity(&self.meshes) {
+            return Err(bad(
+                "the masks now cover other meshes than at upload: upload again".into(),
+            ));
+        }
+        Ok(words)
     }
 
     /// Traces `rays` in chunks of one dispatch each: upload, dispatch, read back.
@@ -597,15 +640,93 @@ impl RayQueryBvh {
     }
 }
 
-/// The size of a mesh's BLAS geometry: its triangles, unindexed, opaque.
+/// The size of a mesh's BLAS geometry: its triangles, unindexed, opaque unless an instance
+/// of it has alpha masks (then its candidates reach the query loop, which tests them).
 fn blas_size(m: &Mesh) -> wgpu::BlasTriangleGeometrySizeDescriptor {
     wgpu::BlasTriangleGeometrySizeDescriptor {
         vertex_format: wgpu::VertexFormat::Float32x3,
         vertex_count: 3 * m.count,
         index_format: None,
         index_count: None,
-        flags: wgpu::AccelerationStructureGeometryFlags::OPAQUE,
+        flags: if m.opaque {
+            wgpu::AccelerationStructureGeometryFlags::OPAQUE
+        } else {
+            wgpu::AccelerationStructureGeometryFlags::empty()
+        },
     }
+}
+
+/// The alpha masks' words as the kernels read them (binding 5), the instance bases in
+/// `FlatBvh::instances`' order, which is the TLAS's (`set_instances`), so the candidate's
+/// instance index finds its base; `None` without masks.
+fn masks_words(bvh: &FlatBvh) -> Option<Vec<u32>> {
+    bvh.masks().map(|m| m.words(&m.instance_bases))
+}
+
+/// Each mesh (a BLAS: its root, triangle run and whether it is opaque) and each instance's
+/// mesh; one mesh and one entry for a one-level tree.
+fn meshes_of(bvh: &FlatBvh) -> Result<(Vec<Mesh>, Vec<u32>), TraceError> {
+    if !bvh.is_instanced() {
+        let mesh = Mesh {
+            root: 0,
+            first: 0,
+            count: bvh.triangles().len() as u32,
+            opaque: bvh.masks().is_none(),
+        };
+        return Ok((vec![mesh], vec![0]));
+    }
+    let mut meshes: Vec<Mesh> = Vec::new();
+    let mut instance_mesh = Vec::with_capacity(bvh.instances().len());
+    for (i, inst) in bvh.instances().iter().enumerate() {
+        let index = match meshes.iter().position(|m| m.root == inst.root) {
+            Some(k) => k,
+            None => {
+                let (first, count) = mesh_range(bvh.nodes(), inst.root)?;
+                meshes.push(Mesh {
+                    root: inst.root,
+                    first,
+                    count,
+                    opaque: true,
+                });
+                meshes.len() - 1
+            }
+        };
+        // An instance whose mesh has no masked triangle has no base: it stays opaque.
+        if bvh
+            .masks()
+            .is_some_and(|m| m.base(Some(i as u32)) != NO_MASKS)
+        {
+            meshes[index].opaque = false;
+        }
+        instance_mesh.push(index as u32);
+    }
+    Ok((meshes, instance_mesh))
+}
+
+/// The BVH group's layout: the TLAS (0), the triangles (1), for two levels the meshes'
+/// first slots (2) and the instances (4), for a masked BVH the masks (5).
+fn group_layout(device: &wgpu::Device, instanced: bool, masks: bool) -> wgpu::BindGroupLayout {
+    let mut entries = vec![
+        wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::AccelerationStructure {
+                vertex_return: false,
+            },
+            count: None,
+        },
+        storage_entry(1, true),
+    ];
+    if instanced {
+        entries.extend([storage_entry(2, true), storage_entry(4, true)]);
+    }
+    if masks {
+        entries.push(storage_entry(5, true));
+    }
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("bvhtrace ray-query bvh"),
+        entries: &entries,
+    })
 }
 
 impl Tracer for RayQueryBvh {
@@ -670,9 +791,12 @@ impl Tracer for RayQueryBvh {
 
     /// Instances moved: the TLAS is rebuilt with their new transforms and masks. Meshes
     /// refitted (the triangles changed): the triangles are written again and every BLAS
-    /// updated in place, then the TLAS rebuilt.
+    /// updated in place, then the TLAS rebuilt. The alpha masks are written again; a tree
+    /// that gains or loses masks, or whose masks change size or which meshes they touch,
+    /// is a [`TraceError::BadBuffer`]: upload it again.
     fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
         check_update_shape(self.shape, bvh)?;
+        let words = self.check_update_masks(bvh)?;
         let fingerprint = mesh_fingerprint(bvh);
         let meshes = !bvh.is_instanced() || fingerprint != self.fingerprint;
         let queue = self.ctx.queue().clone();
@@ -683,6 +807,9 @@ impl Tracer for RayQueryBvh {
                 }
                 if let Some(i) = &self.instances {
                     queue.write_buffer(i, 0, bytemuck::cast_slice(bvh.instances()));
+                }
+                if let (Some(m), Some(w)) = (&self.masks, &words) {
+                    queue.write_buffer(m, 0, bytemuck::cast_slice(w));
                 }
             })?;
         self.set_instances(bvh)?;

@@ -595,6 +595,9 @@ fn own_wgsl_hit_surface_equals_the_cpu_surface_on_one_mesh() {
     assert!(hits > 500, "{hits} hits");
 }
 
+/// A filter rule as the CPU walks take it.
+type Rule = dyn Fn(&bvhtrace_core::Candidate) -> bool + Sync;
+
 /// A filter of the user's, in WGSL, composed into the library's walks
 /// (`LibraryShape::with_filter`), cuts the same candidates as the same rule given to the
 /// CPU walks as a closure: closest and any hit, bit for bit, one mesh (every third
@@ -608,11 +611,11 @@ fn own_wgsl_filters_equal_the_cpu_closure() {
     };
     let (bvh, rays) = scene();
     let ib = two_level_scene();
-    let cases: [(&FlatBvh, &str, &(dyn Fn(&Candidate) -> bool + Sync)); 2] = [
+    let cases: [(&FlatBvh, &str, &Rule); 2] = [
         (
             &bvh,
             "fn skip_thirds(c: BvhCandidate) -> bool { return c.prim % 3u != 0u; }",
-            &|c: &Candidate| c.prim % 3 != 0,
+            &|c: &Candidate| !c.prim.is_multiple_of(3),
         ),
         (
             ib.bvh(),

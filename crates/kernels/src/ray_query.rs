@@ -9,12 +9,20 @@
 //! | 1 | the triangles, `FlatTriangle` in leaf order (the BLAS vertices too) | always |
 //! | 2 | each mesh's first triangle slot, `u32` | two levels |
 //! | 4 | the instances, `FlatInstance` | two levels |
+//! | 5 | the alpha masks, `MaskTables::words` (`bvh_alpha_masks.wgsl`) | masks |
 //!
 //! The batch group (rays, hits) is the walks' buffer one ([`crate::RayInput::Buffer`]).
+//!
+//! With masks, the masked meshes' BLASes are not opaque and the query loop puts each of
+//! their candidates to our walks' test (`bvh_alpha_accept`, `bvh_ray_query_masks.wgsl`),
+//! at the driver's barycentrics; without, every triangle is forced opaque
+//! (`bvh_ray_query_no_masks.wgsl`) and no candidate reaches the loop.
 
 use std::borrow::Cow;
 
-use crate::key::{BVH_INSTANCES_WGSL, BVH_NO_INSTANCES_WGSL, ENTRY_WALK_WGSL};
+use crate::key::{
+    BVH_ALPHA_MASKS_WGSL, BVH_INSTANCES_WGSL, BVH_NO_INSTANCES_WGSL, ENTRY_WALK_WGSL,
+};
 use crate::wgsl::{BvhStorage, SHADER_FILES};
 
 /// `enable wgpu_ray_query;`: WGSL wants enable directives before any declaration.
@@ -35,50 +43,66 @@ const BVH_RAY_QUERY_ONE_MESH_WGSL: (&str, &str) = (
     "bvh_ray_query_one_mesh.wgsl",
     include_str!("../shaders/bvh_ray_query_one_mesh.wgsl"),
 );
+/// `bvh_ray_query_masks.wgsl`: candidates put to `bvh_alpha_accept` (after
+/// `bvh_alpha_masks.wgsl`), for a masked BVH.
+const BVH_RAY_QUERY_MASKS_WGSL: (&str, &str) = (
+    "bvh_ray_query_masks.wgsl",
+    include_str!("../shaders/bvh_ray_query_masks.wgsl"),
+);
+/// `bvh_ray_query_no_masks.wgsl`: the same names for a BVH without masks (all opaque).
+const BVH_RAY_QUERY_NO_MASKS_WGSL: (&str, &str) = (
+    "bvh_ray_query_no_masks.wgsl",
+    include_str!("../shaders/bvh_ray_query_no_masks.wgsl"),
+);
 
 /// The entry point of the ray-query kernel (closest or any hit by the `BVH_ANY_HIT`
 /// override, as the walks' entry points).
 pub const ENTRY_POINT: &str = "bvh_trace_ray_query_main";
 
-/// The files of the ray-query walk for one mesh or two levels (`instanced`), without the
-/// `enable` line ([`ENABLE`]), without entry points: the types, the ray's validity, the
-/// offset of secondary rays, the triangle and instance bindings and the query itself.
-pub fn files(instanced: bool) -> Vec<(&'static str, Cow<'static, str>)> {
+/// The files of the ray-query walk for one mesh or two levels (`instanced`), with or
+/// without alpha masks (`masks`: `FlatBvh::masks`), without the `enable` line
+/// ([`ENABLE`]), without entry points: the types, the ray's validity, the offset of
+/// secondary rays, the triangle, instance and masks bindings and the query itself.
+pub fn files(instanced: bool, masks: bool) -> Vec<(&'static str, Cow<'static, str>)> {
     let shared = |wanted: &str| {
         SHADER_FILES
             .iter()
             .find(|(name, _)| *name == wanted)
             .map(|&(name, src)| (name, Cow::Borrowed(src)))
     };
-    let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(8);
+    let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(10);
     out.extend(shared("types.wgsl"));
     out.extend(shared("ray.wgsl"));
     out.extend(shared("surface.wgsl"));
     let (name, src) = BvhStorage::Buffers.triangles_wgsl();
     out.push((name, src.into()));
-    for (name, src) in [
-        if instanced {
-            BVH_INSTANCES_WGSL
-        } else {
-            BVH_NO_INSTANCES_WGSL
-        },
-        BVH_RAY_QUERY_WGSL,
-        if instanced {
-            BVH_RAY_QUERY_MESHES_WGSL
-        } else {
-            BVH_RAY_QUERY_ONE_MESH_WGSL
-        },
-    ] {
-        out.push((name, src.into()));
+    let mut push = |(name, src): (&'static str, &'static str)| out.push((name, src.into()));
+    push(if instanced {
+        BVH_INSTANCES_WGSL
+    } else {
+        BVH_NO_INSTANCES_WGSL
+    });
+    // The masks at binding 5, as our walks bind them: binding 5 is free in this group too.
+    if masks {
+        push(BVH_ALPHA_MASKS_WGSL);
+        push(BVH_RAY_QUERY_MASKS_WGSL);
+    } else {
+        push(BVH_RAY_QUERY_NO_MASKS_WGSL);
     }
+    push(BVH_RAY_QUERY_WGSL);
+    push(if instanced {
+        BVH_RAY_QUERY_MESHES_WGSL
+    } else {
+        BVH_RAY_QUERY_ONE_MESH_WGSL
+    });
     out
 }
 
 /// The kernel that traces a batch with ray queries: [`files`], then `entry.wgsl`, the
 /// buffer rays and hits, and one entry point ([`ENTRY_POINT`]). Group 0 is the BVH, group
 /// 1 the batch (rays at 0, hits at 1).
-pub fn kernel_source(instanced: bool) -> String {
-    let mut parts = files(instanced);
+pub fn kernel_source(instanced: bool, masks: bool) -> String {
+    let mut parts = files(instanced, masks);
     parts.push(("entry.wgsl", crate::wgsl::ENTRY_WGSL.into()));
     let (name, src) = crate::RayInput::Buffer.wgsl();
     parts.push((name, src.into()));

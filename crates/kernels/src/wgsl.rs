@@ -308,8 +308,9 @@ impl std::fmt::Display for LibraryShape {
         } else {
             "one mesh"
         };
+        let masks = if self.masks { ", alpha masks" } else { "" };
         if self.ray_queries {
-            return write!(f, "{levels}, the device's ray queries");
+            return write!(f, "{levels}{masks}, the device's ray queries");
         }
         let layout = if self.traversal.is_wide() {
             "wide"
@@ -318,7 +319,7 @@ impl std::fmt::Display for LibraryShape {
         };
         write!(
             f,
-            "{levels}, {layout} layout in {:?}, {} walk",
+            "{levels}{masks}, {layout} layout in {:?}, {} walk",
             self.storage,
             self.traversal.name()
         )
@@ -454,7 +455,10 @@ impl std::fmt::Display for BvhLibrary {
 pub fn wgsl_library(shape: LibraryShape, bvh_group: u32) -> BvhLibrary {
     let (mut source, closest, any) = if shape.ray_queries {
         (
-            crate::ray_query::compose(&crate::ray_query::files(shape.instanced), bvh_group),
+            crate::ray_query::compose(
+                &crate::ray_query::files(shape.instanced, shape.masks),
+                bvh_group,
+            ),
             "bvh_trace_ray_query(ray, false)".to_string(),
             "bvh_trace_ray_query(ray, true)".to_string(),
         )

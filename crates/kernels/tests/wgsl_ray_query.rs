@@ -33,7 +33,7 @@ fn bindings(module: &naga::Module) -> Vec<(u32, u32, String)> {
 #[test]
 fn the_kernel_binds_the_tlas_triangles_and_for_two_levels_meshes_and_instances() {
     for instanced in [false, true] {
-        let source = kernel_source(instanced);
+        let source = kernel_source(instanced, false);
         assert!(source.starts_with("enable wgpu_ray_query;"), "{source:.80}");
         let module = validate(&source);
         assert!(
@@ -94,6 +94,59 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation
             } else {
                 "one mesh, the device's ray queries"
             }
+        );
+    }
+}
+
+#[test]
+fn a_masked_kernel_binds_the_masks_at_5_and_confirms_candidates_by_the_walks_test() {
+    for instanced in [false, true] {
+        let source = kernel_source(instanced, true);
+        let module = validate(&source);
+        let names: Vec<(u32, u32)> = bindings(&module).iter().map(|b| (b.0, b.1)).collect();
+        let want: &[(u32, u32)] = if instanced {
+            &[(0, 0), (0, 1), (0, 2), (0, 4), (0, 5), (1, 0), (1, 1)]
+        } else {
+            &[(0, 0), (0, 1), (0, 5), (1, 0), (1, 1)]
+        };
+        assert_eq!(names, want, "instanced {instanced}");
+        // The walks' file, composed once, not a copy; the candidates go to its test.
+        assert_eq!(source.matches("fn bvh_alpha_accept(").count(), 1);
+        assert!(source.contains("// ---- bvh_alpha_masks.wgsl ----"));
+        assert!(source.contains("rayQueryConfirmIntersection(&rq)"));
+        assert!(source.contains("const BVH_RAY_QUERY_OPAQUE: bool = false;"));
+        let plain = kernel_source(instanced, false);
+        assert!(
+            !plain.contains("bvh_alpha") && !plain.contains("bvh_masks"),
+            "an unmasked kernel composes nothing of the masks"
+        );
+        assert!(plain.contains("const BVH_RAY_QUERY_OPAQUE: bool = true;"));
+    }
+}
+
+#[test]
+fn a_masked_library_over_ray_queries_moves_the_masks_binding_with_the_group() {
+    let user = r#"
+@group(0) @binding(0) var<storage, read_write> out: array<u32>;
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
+    let ray = BvhRay(vec3<f32>(f32(gid.x), 0.0, 5.0), 0.0, vec3<f32>(0.0, 0.0, -1.0), 1e30);
+    out[gid.x] = bvh_trace_closest(ray, lane).hit.prim + bvh_trace_any(ray, lane).hit.prim;
+}
+"#;
+    for instanced in [false, true] {
+        let shape = LibraryShape {
+            masks: true,
+            ..LibraryShape::ray_queries(instanced)
+        };
+        let library = wgsl_library(shape, 3);
+        let module = validate(&format!("{library}\n{user}"));
+        assert!(
+            bindings(&module)
+                .iter()
+                .any(|b| (b.0, b.1, b.2.as_str()) == (3, 5, "bvh_masks")),
+            "{:?}",
+            bindings(&module)
         );
     }
 }
