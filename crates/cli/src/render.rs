@@ -190,8 +190,8 @@ pub struct RenderArgs {
     /// Rows per tile: each tile is one batch (keeps dispatches short).
     #[arg(long, default_value_t = 64)]
     pub tile_rows: u32,
-    /// Trace masked (alpha-tested) materials as opaque. Without it their alpha cuts them
-    /// on every backend but `ray-query` (which needs this flag for such a scene).
+    /// Trace masked (alpha-tested) materials as opaque. Without it their alpha cuts them,
+    /// on every backend.
     #[arg(long)]
     pub opaque: bool,
 }
