@@ -183,8 +183,15 @@ fn check(label: &str, devices: &Devices, bvh: &FlatBvh, rays: &[Ray]) -> Vec<u32
                     })
                     .collect();
                 if let Some(&i) = bad.first() {
+                    // Where only the last bits differ (a device that fuses products into
+                    // sums), the primitives still say whether the masks decided alike.
+                    let prims = bad
+                        .iter()
+                        .filter(|&&i| cpu.hits[i].prim != got.hits[i].prim)
+                        .count();
                     failures.push(format!(
-                        "{who}: {} of {} rays differ; ray {i} {:?}: cpu {:?}, device {:?}",
+                        "{who}: {} of {} rays differ ({prims} in the primitive); ray {i} {:?}: \
+                         cpu {:?}, device {:?}",
                         bad.len(),
                         rays.len(),
                         rays[i],
