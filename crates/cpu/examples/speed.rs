@@ -117,7 +117,10 @@ fn main() {
                 });
                 let hits = bvhtrace_cpu::trace_rays_with(&bvh, rays, q, isa);
                 let n_hit = hits.iter().filter(|h| h.is_hit()).count();
-                println!("  {kind:8} cpu  {isa:12} {:7.2} Mrays/s ({n_hit} hits)", mr(ms));
+                println!(
+                    "  {kind:8} cpu  {isa:12} {:7.2} Mrays/s ({n_hit} hits)",
+                    mr(ms)
+                );
             }
             let _: &Vec<Ray> = rays;
         }
