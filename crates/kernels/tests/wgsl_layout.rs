@@ -166,7 +166,10 @@ fn mask_structs_match_rust_layout() {
     use bvhtrace_core::masks as m;
     for (name, value) in [
         ("BVH_MICRO_CELLS", m::MICRO_CELLS),
-        ("BVH_MICRO_WORD", (offset_of!(MaskTriangle, micro) / 4) as u32),
+        (
+            "BVH_MICRO_WORD",
+            (offset_of!(MaskTriangle, micro) / 4) as u32,
+        ),
         ("BVH_MICRO_TEST", m::MICRO_TEST),
         ("BVH_MICRO_OPAQUE", m::MICRO_OPAQUE),
         ("BVH_MASK_OPAQUE", bvhtrace_core::masks::MASK_OPAQUE),

@@ -211,7 +211,11 @@ fn masked_quads_cut_where_their_texture_says() {
         let mut traced = s.tracing_bvh(&Default::default(), flatten).expect("bvh");
         assert_eq!(traced.is_two_level(), !flatten);
         traced.build_wide();
-        let masks = traced.bvh().masks().expect("the tree carries the masks").clone();
+        let masks = traced
+            .bvh()
+            .masks()
+            .expect("the tree carries the masks")
+            .clone();
         assert_eq!(Some(&*masks), s.alpha_masks(&traced).as_ref());
         for walk in [Traversal::FullStack, Traversal::Stackless, Traversal::Wide] {
             let opts = TraceOptions::closest(walk);
