@@ -10,7 +10,8 @@
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
-#    levels, playing; then that a bad flag and a broken file show their errors on the page.
+#    levels, playing, and for an alpha-tested one; then that a bad flag and a broken file
+#    show their errors on the page.
 # The library check also opens the example page (index.html) and checks the hits it prints,
 # with the BVH built in WebAssembly and on the device. Exits non-zero on any difference or
 # page error. Flags go to the library check (`--size WxH`, `--device-builders LIST|none`).
@@ -24,6 +25,10 @@ cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/d
 # written into the upload in place; the image it shows against the native render at its time.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --scene scenes/animated.gltf --time 1 --play --out web/dist/animated
+# Alpha-tested geometry: the leaves and the fence of scenes/foliage.gltf cut by their masks
+# on the page's WebGPU as the native render cuts them.
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
+  --scene scenes/foliage.gltf --out web/dist/foliage
 # Errors reach the page (and the test), never a blank canvas: a bad flag, a broken file.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --flags "--shade sepia" --expect-error "invalid value 'sepia'"
