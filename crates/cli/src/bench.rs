@@ -798,7 +798,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
         }
         let wide_ms = t.elapsed().as_secs_f64() * 1e3;
         // The CPU layout (`bvhtrace-cpu`), timed beside the walks on each instruction set.
-        let cpu4 = bvhtrace_cpu::CpuBvh::from_flat(&bvh)?;
+        let cpu_layout = bvhtrace_cpu::CpuBvh::from_flat(&bvh)?;
         let isas = bvhtrace_cpu::Isa::all_available();
         let rays = primary_rays(&scene, w, h);
         let upload = bvhtrace::OpenOptions {
@@ -867,7 +867,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             let mut gpu_ms = vec![Vec::new(); traversals.len()];
             let mut wall_ms = vec![Vec::new(); traversals.len()];
             let mut cpu_ms = vec![Vec::new(); traversals.len()];
-            let mut cpu4_ms = vec![Vec::new(); isas.len()];
+            let mut cpu_layout_ms = vec![Vec::new(); isas.len()];
             let (mut embree_ms, mut embree_build_ms) = (Vec::new(), Vec::new());
             let mut rq_ms = Vec::new();
             if let Some(rq) = &rq {
@@ -891,8 +891,8 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                 }
                 for (i, &isa) in isas.iter().enumerate() {
                     let t = Instant::now();
-                    std::hint::black_box(bvhtrace_cpu::trace_rays_with(&cpu4, &rays, q, isa));
-                    cpu4_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
+                    std::hint::black_box(bvhtrace_cpu::trace_rays_with(&cpu_layout, &rays, q, isa));
+                    cpu_layout_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
                 }
                 if let (Some(exe), Some(dump), Query::Closest) = (&args.embree, &dump, q) {
                     let v = dump.run(exe, 2, 1, &[])?;
@@ -930,15 +930,15 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                 let vs_embree = if embree_ms.is_empty() {
                     "-".to_string()
                 } else {
-                    format!("{:.2}x", ratio(&embree_ms, &cpu4_ms[i]))
+                    format!("{:.2}x", ratio(&embree_ms, &cpu_layout_ms[i]))
                 };
                 println!(
                     "{:16} {:8} {:>9} {:>9} {:>9.2} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
-                    format!("cpu4 {isa}"),
+                    format!("cpu8 {isa}"),
                     format!("{q:?}").to_lowercase(),
                     "-",
                     "-",
-                    mrays(&cpu4_ms[i]),
+                    mrays(&cpu_layout_ms[i]),
                     "-",
                     "-",
                     "-",

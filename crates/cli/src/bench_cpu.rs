@@ -29,7 +29,7 @@ fn paths<'a>(
     }
     for isa in Isa::all_available() {
         let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_rays_with(cpu, rays, q, isa);
-        out.push((format!("cpu4 {isa}"), Box::new(f)));
+        out.push((format!("cpu8 {isa}"), Box::new(f)));
     }
     out
 }

@@ -55,7 +55,7 @@ fn main() {
         println!(
             "{name}: {} tris, convert {convert:.1} ms, {} nodes, {} blocks, {:.1} bytes/tri, depth {}",
             tris.len(),
-            bn / 128,
+            bn / 256,
             bb / 160,
             bvh.bytes_per_triangle(),
             bvh.depth()

@@ -1,8 +1,8 @@
-//! The CPU layout: 4-wide nodes with their children's f32 boxes in SoA, and leaves as
+//! The CPU layout: 8-wide nodes with their children's f32 boxes in SoA, and leaves as
 //! runs of 4-triangle blocks in SoA, converted from a binary [`FlatBvh`].
 //!
 //! # Layout
-//! * `nodes: [Node4]`, 128 bytes each (two cache lines, aligned); the root is node 0.
+//! * `nodes: [Node8]`, 256 bytes each (four cache lines, aligned); the root is node 0.
 //!   `planes[2a][i]`/`planes[2a + 1][i]` is child `i`'s box on axis `a` (lower, upper),
 //!   the binary node's own box to the bit, so each lane of the SIMD box test is the scalar test of the same box.
 //!   `child[i]` is a [`ChildRef`]: [`EMPTY`], a node index, or a leaf
@@ -14,7 +14,7 @@
 //!
 //! # Collapse
 //! Greedy, top down: a wide node starts from its binary node's two children, and while it
-//! has fewer than four, the interior child of largest surface area is replaced by its two
+//! has fewer than eight, the interior child of largest surface area is replaced by its two
 //! children. A binary leaf, or a binary subtree of at most
 //! [`MERGE_TRIANGLES`] triangles, becomes one leaf child. A leaf of more than
 //! [`MAX_LEAF_BLOCKS`]` * 4` triangles (only with a large `max_leaf_size`) is split into a
@@ -28,8 +28,11 @@ use bvhtrace_core::{Aabb, FlatBvh, FlatNode, FlatTriangle};
 use glam::Vec3;
 use rayon::prelude::*;
 
-/// Children per node.
-pub const WIDTH: usize = 4;
+/// Children per node: one AVX register per plane of a node's boxes.
+pub const WIDTH: usize = 8;
+
+/// Triangles per block: one SSE register per coordinate of a block's corners.
+pub const BLOCK: usize = 4;
 
 /// A node's child slot: [`EMPTY`], a node index (below [`LEAF`]), or a leaf.
 pub type ChildRef = u32;
@@ -61,10 +64,10 @@ pub fn leaf_range(r: ChildRef) -> (usize, usize) {
     (first, count)
 }
 
-/// One 4-wide node (see the module docs).
+/// One 8-wide node (see the module docs).
 #[repr(C, align(64))]
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Node4 {
+pub struct Node8 {
     /// The children's boxes, plane by plane: `planes[2 * axis][slot]` the lower corner's
     /// coordinate, `planes[2 * axis + 1][slot]` the upper one's.
     pub planes: [[f32; WIDTH]; 6],
@@ -72,17 +75,17 @@ pub struct Node4 {
     pub child: [ChildRef; WIDTH],
     /// Bit `i` set when slot `i` is used.
     pub used: u32,
-    /// Padding to 128 bytes (zero).
-    pub pad: [u32; 3],
+    /// Padding to 256 bytes (zero).
+    pub pad: [u32; 7],
 }
 
-impl Node4 {
+impl Node8 {
     /// A node with no children.
-    pub const EMPTY: Node4 = Node4 {
+    pub const EMPTY: Node8 = Node8 {
         planes: [[0.0; WIDTH]; 6],
         child: [EMPTY; WIDTH],
         used: 0,
-        pad: [0; 3],
+        pad: [0; 7],
     };
 
     /// Slot `i`'s box.
@@ -108,19 +111,19 @@ impl Node4 {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Tri4 {
     /// `v[corner][axis][lane]`.
-    pub v: [[[f32; WIDTH]; 3]; 3],
+    pub v: [[[f32; BLOCK]; 3]; 3],
     /// Each lane's primitive id.
-    pub prim: [u32; WIDTH],
+    pub prim: [u32; BLOCK],
 }
 
 impl Tri4 {
     /// The block of `tris` (one to four), its free lanes repeating the last triangle.
     fn of(tris: &[FlatTriangle]) -> Tri4 {
         let mut b = Tri4 {
-            v: [[[0.0; WIDTH]; 3]; 3],
-            prim: [0; WIDTH],
+            v: [[[0.0; BLOCK]; 3]; 3],
+            prim: [0; BLOCK],
         };
-        for lane in 0..WIDTH {
+        for lane in 0..BLOCK {
             let t = &tris[lane.min(tris.len() - 1)];
             for (c, corner) in [t.v0, t.v1, t.v2].iter().enumerate() {
                 for (a, &x) in corner.iter().enumerate() {
@@ -139,6 +142,12 @@ pub enum ConvertError {
     /// Two-level trees are traced by the core walks, not by this layout.
     #[error("the CPU layout holds one mesh; this BVH has instances (trace it with bvhtrace_core)")]
     Instanced,
+    /// Alpha-masked triangles (`FlatBvh::masks`): the layout's walks do not apply the masks,
+    /// so they would return hits the core walks cut.
+    #[error(
+        "the CPU layout does not apply alpha masks; this BVH has masked triangles (trace it with bvhtrace_core)"
+    )]
+    Masked,
     /// More blocks than a leaf reference can address.
     #[error("{0} triangle blocks exceed the CPU layout's 2^27")]
     TooLarge(usize),
@@ -147,7 +156,7 @@ pub enum ConvertError {
 /// A tree in the CPU layout (see the module docs), converted by [`CpuBvh::from_flat`].
 #[derive(Clone, Debug, Default)]
 pub struct CpuBvh {
-    pub(crate) nodes: Vec<Node4>,
+    pub(crate) nodes: Vec<Node8>,
     pub(crate) blocks: Vec<Tri4>,
     /// Levels of nodes on the longest path (0 for an empty tree).
     pub(crate) depth: u32,
@@ -172,18 +181,22 @@ struct PendingLeaf {
 }
 
 impl CpuBvh {
-    /// Converts a one-mesh [`FlatBvh`]. The blocks are written in parallel on the current
+    /// Converts a one-mesh [`FlatBvh`] without alpha masks ([`ConvertError::Instanced`],
+    /// [`ConvertError::Masked`] otherwise). The blocks are written in parallel on the current
     /// rayon pool; the node collapse is one pass over the binary nodes.
     pub fn from_flat(flat: &FlatBvh) -> Result<CpuBvh, ConvertError> {
         if flat.is_instanced() {
             return Err(ConvertError::Instanced);
+        }
+        if flat.masks().is_some() {
+            return Err(ConvertError::Masked);
         }
         let (fnodes, ftris) = (flat.nodes(), flat.triangles());
         if fnodes.is_empty() {
             return Ok(CpuBvh::default());
         }
         let spans = subtree_spans(fnodes);
-        let mut nodes = vec![Node4::EMPTY];
+        let mut nodes = vec![Node8::EMPTY];
         let mut leaves = Vec::new();
         let mut depth = 1;
         let root_src = if fnodes[0].is_leaf() {
@@ -201,9 +214,9 @@ impl CpuBvh {
                     Src::Node(i) if is_leaf_child(fnodes, &spans, i) => {
                         let n = &fnodes[i as usize];
                         let (first, count) = spans[i as usize];
-                        if count.div_ceil(WIDTH as u32) > MAX_LEAF_BLOCKS {
+                        if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
                             let next = nodes.len() as u32;
-                            nodes.push(Node4::EMPTY);
+                            nodes.push(Node8::EMPTY);
                             work.push((next, split_run(first, count), level + 1));
                             (n.aabb(), next)
                         } else {
@@ -218,15 +231,15 @@ impl CpuBvh {
                     }
                     Src::Node(i) => {
                         let next = nodes.len() as u32;
-                        nodes.push(Node4::EMPTY);
+                        nodes.push(Node8::EMPTY);
                         work.push((next, children_of(fnodes, i), level + 1));
                         (fnodes[i as usize].aabb(), next)
                     }
                     Src::Run(first, count) => {
                         let b = run_bounds(&ftris[first as usize..(first + count) as usize]);
-                        if count.div_ceil(WIDTH as u32) > MAX_LEAF_BLOCKS {
+                        if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
                             let next = nodes.len() as u32;
-                            nodes.push(Node4::EMPTY);
+                            nodes.push(Node8::EMPTY);
                             work.push((next, split_run(first, count), level + 1));
                             (b, next)
                         } else {
@@ -253,7 +266,7 @@ impl CpuBvh {
     }
 
     /// The nodes; the root is node 0.
-    pub fn nodes(&self) -> &[Node4] {
+    pub fn nodes(&self) -> &[Node8] {
         &self.nodes
     }
 
@@ -296,7 +309,7 @@ fn children_of(fnodes: &[FlatNode], i: u32) -> Vec<Src> {
     ]
 }
 
-/// Grows a slot list to four: the interior child of largest surface area is replaced by
+/// Grows a slot list to eight: the interior child of largest surface area is replaced by
 /// its two children while there is one (the first of equal areas, so the result is
 /// deterministic).
 fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], mut srcs: Vec<Src>) -> Vec<Src> {
@@ -321,7 +334,7 @@ fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], mut srcs: Vec<Src>) -> Vec<
 /// Binary subtrees of at most this many triangles become one leaf child (one block):
 /// fewer box tests and no half-empty blocks, at the price of testing a few triangles
 /// whose own boxes a ray misses.
-pub const MERGE_TRIANGLES: u32 = WIDTH as u32;
+pub const MERGE_TRIANGLES: u32 = BLOCK as u32;
 
 /// Each binary node's triangles as a run `(first, count)`, or `count == u32::MAX` when
 /// they are not one contiguous run (a tree flattened by hand).
@@ -350,7 +363,7 @@ fn is_leaf_child(fnodes: &[FlatNode], spans: &[(u32, u32)], i: u32) -> bool {
     fnodes[i as usize].is_leaf() || spans[i as usize].1 <= MERGE_TRIANGLES
 }
 
-/// A long run of triangles as up to four shorter runs.
+/// A long run of triangles as up to eight shorter runs.
 fn split_run(first: u32, count: u32) -> Vec<Src> {
     let per = count.div_ceil(WIDTH as u32);
     (0..WIDTH as u32)
@@ -370,7 +383,7 @@ fn run_bounds(tris: &[FlatTriangle]) -> Aabb {
 /// Allocates every leaf's blocks in leaf order, sets the leaf references, and fills the
 /// blocks in parallel.
 fn write_blocks(
-    nodes: &mut [Node4],
+    nodes: &mut [Node8],
     leaves: &[PendingLeaf],
     ftris: &[FlatTriangle],
 ) -> Result<Vec<Tri4>, ConvertError> {
@@ -378,19 +391,19 @@ fn write_blocks(
     let mut total = 0usize;
     for l in leaves {
         starts.push(total);
-        total += l.tris.div_ceil(WIDTH as u32) as usize;
+        total += l.tris.div_ceil(BLOCK as u32) as usize;
     }
     if total > 1 << FIRST_BITS {
         return Err(ConvertError::TooLarge(total));
     }
     for (l, &s) in leaves.iter().zip(&starts) {
-        let count = l.tris.div_ceil(WIDTH as u32);
+        let count = l.tris.div_ceil(BLOCK as u32);
         nodes[l.node as usize].child[l.slot as usize] = leaf_ref(s as u32, count);
     }
     let mut blocks = vec![
         Tri4 {
-            v: [[[0.0; WIDTH]; 3]; 3],
-            prim: [0; WIDTH],
+            v: [[[0.0; BLOCK]; 3]; 3],
+            prim: [0; BLOCK],
         };
         total
     ];
@@ -398,7 +411,7 @@ fn write_blocks(
     let mut runs = Vec::with_capacity(leaves.len());
     let mut rest = blocks.as_mut_slice();
     for l in leaves {
-        let (head, tail) = rest.split_at_mut(l.tris.div_ceil(WIDTH as u32) as usize);
+        let (head, tail) = rest.split_at_mut(l.tris.div_ceil(BLOCK as u32) as usize);
         runs.push((head, l));
         rest = tail;
     }
@@ -406,7 +419,7 @@ fn write_blocks(
         .with_min_len(1024)
         .for_each(|(out, l)| {
             let tris = &ftris[l.first_tri as usize..(l.first_tri + l.tris) as usize];
-            for (b, chunk) in out.iter_mut().zip(tris.chunks(WIDTH)) {
+            for (b, chunk) in out.iter_mut().zip(tris.chunks(BLOCK)) {
                 *b = Tri4::of(chunk);
             }
         });

@@ -1,8 +1,8 @@
-//! A CPU tracer for bvhtrace trees, made for the CPU: the binary [`FlatBvh`] converted
-//! into 4-wide nodes with uncompressed f32 child boxes in SoA and leaves of 4-triangle
+//! A CPU tracer for bvhtrace trees, made for the CPU: the binary `FlatBvh` converted
+//! into 8-wide nodes with uncompressed f32 child boxes in SoA and leaves of 4-triangle
 //! SoA blocks ([`layout`]), walked one ray at a time with SIMD box and triangle tests
-//! (SSE on every x86-64 CPU, compiled for AVX2 where the CPU has it, and a portable path
-//! elsewhere).
+//! (SSE on every x86-64 CPU; where the CPU has AVX2, AVX for the eight boxes and the rest
+//! compiled with AVX2 enabled; a portable path elsewhere).
 //!
 //! # The same hits as the reference walk
 //! Each SIMD lane performs the f32 operations of `bvhtrace_core::intersect`'s scalar box
@@ -27,8 +27,9 @@
 //! assert_eq!((hits[0].prim, hits[0].t), (0, 5.0));
 //! ```
 //!
-//! Not here: two-level trees (instances), hit filters and counters; the core walks
-//! trace those.
+//! Not here: two-level trees (instances), alpha masks (both refused by
+//! [`CpuBvh::from_flat`]), hit filters and counters, ray packets; the core walks trace
+//! those.
 
 // `!(a <= b)` is how NaN is rejected along with the false case, as in the core walks.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -45,9 +46,9 @@ use std::fmt;
 use bvhtrace_core::{Hit, Query, Ray};
 use rayon::prelude::*;
 
-pub use layout::{ConvertError, CpuBvh, Node4, Tri4};
+pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
 
-use lanes::Lanes;
+use lanes::{Lanes, Wide};
 use single::Entry;
 
 /// Which instruction set the walks use.
@@ -57,8 +58,8 @@ pub enum Isa {
     Portable,
     /// SSE2 lanes (every x86-64 CPU).
     Sse2,
-    /// The SSE lanes compiled with AVX2 enabled (three-operand VEX code), where the CPU
-    /// has it.
+    /// AVX lanes for a node's eight boxes, the SSE lanes for the triangles, all compiled
+    /// with AVX2 enabled (three-operand VEX code), where the CPU has it.
     Avx2,
 }
 
@@ -137,11 +138,13 @@ pub fn trace_rays_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Ve
 
 /// One thread's run of rays into `hits`.
 fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa, hits: &mut [Hit]) {
-    let mut stack = Vec::with_capacity(3 * bvh.depth as usize + 4);
+    let mut stack = vec![Entry::default(); single::stack_size(bvh)];
     match isa.or_available() {
-        Isa::Portable => run::<lanes::Portable>(bvh, rays, query, hits, &mut stack),
+        Isa::Portable => {
+            run::<lanes::Portable, lanes::Pair<lanes::Portable>>(bvh, rays, query, hits, &mut stack)
+        }
         #[cfg(target_arch = "x86_64")]
-        Isa::Sse2 => run::<lanes::Sse>(bvh, rays, query, hits, &mut stack),
+        Isa::Sse2 => run::<lanes::Sse, lanes::Pair<lanes::Sse>>(bvh, rays, query, hits, &mut stack),
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
         Isa::Avx2 => unsafe { run_avx2(bvh, rays, query, hits, &mut stack) },
@@ -150,31 +153,35 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa, hits: &mu
     }
 }
 
-/// The walk over `rays`, monomorphised for the lanes `L` and the query.
+/// The walk over `rays`, monomorphised for the triangle lanes `L`, the box lanes `W`
+/// and the query.
 #[inline(always)]
-fn run<L: Lanes>(
+fn run<L: Lanes, W: Wide>(
     bvh: &CpuBvh,
     rays: &[Ray],
     query: Query,
     hits: &mut [Hit],
-    stack: &mut Vec<Entry>,
+    stack: &mut [Entry],
 ) {
     // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
-    match query {
-        Query::Closest => {
-            for i in 0..rays.len() {
-                hits[i] = single::trace::<L, false>(bvh, &rays[i], stack);
-            }
+    // Rays are prepared four at a time, then walked one by one.
+    let mut start = 0;
+    while start < rays.len() {
+        let end = (start + 4).min(rays.len());
+        let group = &rays[start..end];
+        let p = tests4::Prepared4::new::<L>(group);
+        for i in 0..group.len() {
+            hits[start + i] = match query {
+                Query::Closest => single::trace::<L, W, false>(bvh, &group[i], &p, i, stack),
+                Query::Any => single::trace::<L, W, true>(bvh, &group[i], &p, i, stack),
+            };
         }
-        Query::Any => {
-            for i in 0..rays.len() {
-                hits[i] = single::trace::<L, true>(bvh, &rays[i], stack);
-            }
-        }
+        start = end;
     }
 }
 
-/// [`run`] with SSE lanes, compiled with AVX2 enabled.
+/// [`run`] with SSE lanes for the triangles and AVX lanes for the boxes, compiled with
+/// AVX2 enabled (the only place `Avx8` is used).
 ///
 /// # Safety
 /// The CPU must have AVX2.
@@ -185,7 +192,7 @@ unsafe fn run_avx2(
     rays: &[Ray],
     query: Query,
     hits: &mut [Hit],
-    stack: &mut Vec<Entry>,
+    stack: &mut [Entry],
 ) {
-    run::<lanes::Sse>(bvh, rays, query, hits, stack)
+    run::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, stack)
 }

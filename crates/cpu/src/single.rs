@@ -1,13 +1,12 @@
-//! One ray at a time through the 4-wide layout: the four child boxes tested together, hit
+//! One ray at a time through the 8-wide layout: the eight child boxes tested together, hit
 //! children visited nearest first, popped children re-tested against the best hit, and a
 //! leaf's triangles tested four at a time.
 
-use bvhtrace_core::intersect::PreparedRay;
 use bvhtrace_core::{Hit, INVALID_RAY, MISS, Ray};
 
-use crate::lanes::Lanes;
-use crate::layout::{CpuBvh, LEAF, Node4, leaf_range};
-use crate::tests4::{RayLanes, box4, still_hit, tri4};
+use crate::lanes::{Lanes, Wide};
+use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
+use crate::tests4::{BoxHits, Prepared4, RayLanes, ShearLanes, box8, still_hit, tri4};
 
 /// The best hit so far (the core walks' rule, see [`Best::offer`]).
 #[derive(Clone, Copy, Debug)]
@@ -85,15 +84,16 @@ pub(crate) struct Entry {
 
 /// Tests a leaf's blocks. Returns true when an any-hit query can stop.
 #[inline(always)]
-pub(crate) fn leaf<L: Lanes, const ANY: bool>(
+pub(crate) fn leaf<L: Lanes, W: Wide, const ANY: bool>(
     bvh: &CpuBvh,
-    q: &RayLanes<L>,
+    q: &RayLanes<L, W>,
+    s: &ShearLanes<L>,
     child: u32,
     best: &mut Best,
 ) -> bool {
     let (first, count) = leaf_range(child);
     for b in &bvh.blocks[first..first + count] {
-        let (mut ok, t, u, v) = tri4(b, q);
+        let (mut ok, t, u, v) = tri4(b, q, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.
         ok &= t.le(L::splat(best.t)).bits();
         if ok == 0 {
@@ -112,19 +112,50 @@ pub(crate) fn leaf<L: Lanes, const ANY: bool>(
 }
 
 /// Orders a node's hit children nearest first: pushes all but the nearest (farthest
-/// first, so the nearer pop sooner) and returns the nearest.
+/// first, so the nearer pop sooner) onto `stack` above `sp`, and returns the nearest. An
+/// any-hit walk re-tests nothing at a pop, so its entries carry no slack or exit.
 #[inline(always)]
-fn order<L: Lanes>(n: &Node4, mut hit: u32, lanes: (L, L, L), stack: &mut Vec<Entry>) -> u32 {
+fn order<W: Wide, const ANY: bool>(
+    n: &Node8,
+    b: &BoxHits<W>,
+    stack: &mut [Entry],
+    sp: &mut usize,
+) -> u32 {
+    let mut hit = b.hit;
     if hit & (hit - 1) == 0 {
         return n.child[hit.trailing_zeros() as usize];
     }
+    if ANY {
+        // An any-hit walk visits every hit child unless it stops, and most shadow rays
+        // find nothing to stop at: the order is not worth a sort.
+        let first = hit.trailing_zeros() as usize;
+        hit &= hit - 1;
+        while hit != 0 {
+            let i = hit.trailing_zeros() as usize;
+            hit &= hit - 1;
+            stack[*sp] = Entry {
+                child: n.child[i],
+                ..Entry::default()
+            };
+            *sp += 1;
+        }
+        return n.child[first];
+    }
     // Only a node with two or more hit children needs the distances.
-    let (tnear, m, far) = (lanes.0.store(), lanes.1.store(), lanes.2.store());
-    let entry = |i: usize| Entry {
-        child: n.child[i],
-        tnear: tnear[i],
-        m: m[i],
-        far: far[i],
+    let tnear = b.tnear.store();
+    let (m, far) = if ANY {
+        ([0.0; 8], [0.0; 8])
+    } else {
+        (b.m().store(), b.far.store())
+    };
+    let mut push = |i: usize| {
+        stack[*sp] = Entry {
+            child: n.child[i],
+            tnear: tnear[i],
+            m: m[i],
+            far: far[i],
+        };
+        *sp += 1;
     };
     let a = hit.trailing_zeros() as usize;
     hit &= hit - 1;
@@ -132,11 +163,11 @@ fn order<L: Lanes>(n: &Node4, mut hit: u32, lanes: (L, L, L), stack: &mut Vec<En
     hit &= hit - 1;
     if hit == 0 {
         let (near, far_one) = if tnear[b] < tnear[a] { (b, a) } else { (a, b) };
-        stack.push(entry(far_one));
+        push(far_one);
         return n.child[near];
     }
-    // Three or four: a small insertion sort by entry distance, farthest first.
-    let mut lanes = [a, b, 0, 0];
+    // Three to eight: an insertion sort by entry distance, farthest first.
+    let mut lanes = [a, b, 0, 0, 0, 0, 0, 0];
     let mut len = 2;
     while hit != 0 {
         lanes[len] = hit.trailing_zeros() as usize;
@@ -151,46 +182,97 @@ fn order<L: Lanes>(n: &Node4, mut hit: u32, lanes: (L, L, L), stack: &mut Vec<En
         }
     }
     for &l in &lanes[..len - 1] {
-        stack.push(entry(l));
+        push(l);
     }
     n.child[lanes[len - 1]]
 }
 
-/// One ray's walk (closest hit, or any hit with `ANY`), with a stack reused across rays.
+/// Stack entries a walk over `bvh` can hold at once: at most `WIDTH - 1` per level (a
+/// node pushes all its hit children but one), and a margin.
+pub(crate) fn stack_size(bvh: &CpuBvh) -> usize {
+    (WIDTH - 1) * bvh.depth as usize + 4
+}
+
+/// Ray `i` of a prepared group, `ray` itself: its walk (closest hit, or any hit with
+/// `ANY`), with a stack of [`stack_size`] entries reused across rays.
 #[inline(always)]
-pub(crate) fn trace<L: Lanes, const ANY: bool>(
+pub(crate) fn trace<L: Lanes, W: Wide, const ANY: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
-    stack: &mut Vec<Entry>,
+    p: &Prepared4,
+    i: usize,
+    stack: &mut [Entry],
 ) -> Hit {
-    if !ray.is_valid() {
+    if p.valid >> i & 1 == 0 {
         return untraced(ray);
     }
-    let mut best = Best::start(ray);
+    let best = Best::start(ray);
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return best.into_hit();
     }
-    let r = PreparedRay::new(ray);
-    let q = RayLanes::<L>::new(r);
-    stack.clear();
+    let q = RayLanes::<L, W>::from4(p, ray, i);
+    // One walk per dominant axis, for rays along a slab, and for rays that start behind
+    // their origin (see `box8`): most rays are none of the last two.
+    let signed = ray.t_min < 0.0 || q.parallel;
+    match (q.parallel, signed, q.kz) {
+        (false, false, 0) => walk::<L, W, ANY, false, false, 0>(bvh, p, i, &q, best, stack),
+        (false, false, 1) => walk::<L, W, ANY, false, false, 1>(bvh, p, i, &q, best, stack),
+        (false, false, _) => walk::<L, W, ANY, false, false, 2>(bvh, p, i, &q, best, stack),
+        (false, true, 0) => walk::<L, W, ANY, true, false, 0>(bvh, p, i, &q, best, stack),
+        (false, true, 1) => walk::<L, W, ANY, true, false, 1>(bvh, p, i, &q, best, stack),
+        (false, true, _) => walk::<L, W, ANY, true, false, 2>(bvh, p, i, &q, best, stack),
+        (true, _, 0) => walk::<L, W, ANY, true, true, 0>(bvh, p, i, &q, best, stack),
+        (true, _, 1) => walk::<L, W, ANY, true, true, 1>(bvh, p, i, &q, best, stack),
+        (true, _, _) => walk::<L, W, ANY, true, true, 2>(bvh, p, i, &q, best, stack),
+    }
+}
+
+/// The walk from the root (see [`trace`]); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`].
+#[inline(always)]
+fn walk<
+    L: Lanes,
+    W: Wide,
+    const ANY: bool,
+    const SIGNED: bool,
+    const PARALLEL: bool,
+    const KZ: usize,
+>(
+    bvh: &CpuBvh,
+    p: &Prepared4,
+    i: usize,
+    q: &RayLanes<L, W>,
+    mut best: Best,
+    stack: &mut [Entry],
+) -> Hit {
+    let mut sp = 0;
+    let mut shear = None;
     let mut child = 0u32;
     loop {
         if child & LEAF == 0 {
             let n = &bvh.nodes[child as usize];
-            let (hit, tnear, m, far) = box4(n, &q, best.t);
-            if hit != 0 {
-                child = order(n, hit, (tnear, m, far), stack);
+            // An any-hit walk stops at its first hit, so its best is always `t_max`.
+            let b = box8::<L, W, SIGNED, PARALLEL, KZ>(n, q, best.t, !ANY && best.found);
+            if b.hit != 0 {
+                child = order::<W, ANY>(n, &b, stack, &mut sp);
                 continue;
             }
-        } else if leaf::<L, ANY>(bvh, &q, child, &mut best) {
+        } else if leaf::<L, W, ANY>(
+            bvh,
+            q,
+            shear.get_or_insert_with(|| ShearLanes::from4(p, i, KZ)),
+            child,
+            &mut best,
+        ) {
             return best.into_hit();
         }
         // Pop the next child still hit against the best so far.
         loop {
-            let Some(e) = stack.pop() else {
+            if sp == 0 {
                 return best.into_hit();
-            };
-            if ANY || !best.found || still_hit(&r, e.tnear, e.m, e.far, best.t) {
+            }
+            sp -= 1;
+            let e = stack[sp];
+            if ANY || !best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, best.t) {
                 child = e.child;
                 break;
             }

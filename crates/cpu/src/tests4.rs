@@ -1,100 +1,309 @@
-//! The box and triangle tests over four lanes: lane for lane the f32 operations of
-//! `bvhtrace_core::intersect::{intersect_box, intersect_triangle}`, in the same order.
+//! The box tests over eight lanes (a node's children) and the triangle tests over four (a
+//! block's triangles), lane for lane the f32 operations of
+//! `bvhtrace_core::intersect::{intersect_box, intersect_triangle}` in the same order, and
+//! the ray preparation they share.
 
-use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG, PreparedRay};
+use bvhtrace_core::Ray;
+use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 
-use crate::lanes::Lanes;
-use crate::layout::{Node4, Tri4};
+use crate::lanes::{Lanes, Wide};
+use crate::layout::{Node8, Tri4};
 
-/// A prepared ray, splatted into lanes once per ray.
+/// A ray prepared for the tests: what `PreparedRay::new` computes, to the bit, built
+/// without its per-axis indexing, and splatted once per ray into the box test's eight
+/// lanes `W` (and the triangle test's four `L`). What only the
+/// triangle test needs is [`ShearLanes`], made at the ray's first leaf (most primary rays
+/// reach none).
 #[derive(Clone, Copy)]
-pub(crate) struct RayLanes<L> {
-    /// The scalar preparation (axes, flags, interval).
-    pub r: PreparedRay,
-    pub org: [L; 3],
-    pub inv: [L; 3],
-    pub t_min: L,
-    pub t_max: L,
-    /// `sx`, `sy`, `sz` of the watertight test.
-    pub shear: [L; 3],
-    /// Per axis, the index in [`Node4::planes`] of the plane the ray meets first (`lo`
-    /// for a positive component); the other is `near ^ 1`.
-    pub near: [usize; 3],
+pub(crate) struct RayLanes<L, W> {
+    pub org: [W; 3],
+    /// `-1 / dir` (with `safe_inverse`'s zero handling): `(o - p) * -inv` is
+    /// `(p - o) * inv` to the bit but for the sign of a zero, and lets the plane be a
+    /// memory operand of the subtraction.
+    pub ninv: [W; 3],
+    pub t_min: W,
+    pub t_max: W,
+    /// `t_min` for the triangle test.
+    pub t_min4: L,
+    /// The watertight test's dominant axis (`PreparedRay::kz`).
+    pub kz: usize,
+    /// Some direction component is zero (after the flush of subnormals).
+    pub parallel: bool,
+    /// The direction with subnormal components flushed (`PreparedRay::dir`).
+    pub dir: [f32; 3],
+    /// The interval's end (`Ray::t_max`).
+    pub t_max_s: f32,
 }
 
-impl<L: Lanes> RayLanes<L> {
+/// Four rays prepared together, ray `i` in lane `i`: `Ray::is_valid` and the values of
+/// `PreparedRay::new` the walks need, bit for bit, four rays per operation (the per-ray
+/// preparation was most of a primary ray's instructions, since most primary rays test
+/// one or two nodes).
+pub(crate) struct Prepared4 {
+    /// The origins, `org[axis][ray]`.
+    pub org: [[f32; 4]; 3],
+    /// `-1 / dir` with `safe_inverse`'s zero handling (see [`RayLanes::ninv`]).
+    pub ninv: [[f32; 4]; 3],
+    /// The directions with subnormal components flushed (`PreparedRay::dir`).
+    pub dir: [[f32; 4]; 3],
+    /// The dominant axes (`PreparedRay::kz`).
+    pub kz: [usize; 4],
+    /// Bit `i`: ray `i` is present and valid.
+    pub valid: u32,
+    /// Bit `i`: ray `i` has a zero component (`PreparedRay::parallel`).
+    pub parallel: u32,
+    /// The shear constants `sx`, `sy`, `sz`: `shear[k][ray]`.
+    pub shear: [[f32; 4]; 3],
+    /// Bit `i`: ray `i`'s `kx` and `ky` are swapped (`dir[kz] < 0`).
+    pub swap: u32,
+}
+
+/// One value of each of four rays, as lanes.
+#[inline(always)]
+fn gather<L: Lanes>(r: [&Ray; 4], f: impl Fn(&Ray) -> f32) -> L {
+    L::load(&[f(r[0]), f(r[1]), f(r[2]), f(r[3])])
+}
+
+impl Prepared4 {
+    /// Prepares one to four rays.
     #[inline(always)]
-    pub fn new(r: PreparedRay) -> Self {
-        RayLanes {
-            r,
-            org: [0, 1, 2].map(|a| L::splat(r.org[a])),
-            inv: [0, 1, 2].map(|a| L::splat(r.inv_dir[a])),
-            t_min: L::splat(r.t_min),
-            t_max: L::splat(r.t_max),
-            shear: [L::splat(r.sx), L::splat(r.sy), L::splat(r.sz)],
-            near: [0, 1, 2].map(|a| 2 * a + usize::from(r.inv_dir[a] < 0.0)),
+    pub fn new<L: Lanes>(rays: &[Ray]) -> Prepared4 {
+        debug_assert!((1..=4).contains(&rays.len()));
+        // Missing lanes repeat the last ray; they are not valid.
+        let r: [&Ray; 4] = std::array::from_fn(|i| &rays[i.min(rays.len() - 1)]);
+        let o = [0, 1, 2].map(|a| gather::<L>(r, |ray| ray.origin[a]));
+        let d = [0, 1, 2].map(|a| gather::<L>(r, |ray| ray.dir[a]));
+        let t_min = gather::<L>(r, |ray| ray.t_min);
+        let t_max = gather::<L>(r, |ray| ray.t_max);
+        let (inf, zero) = (L::splat(f32::INFINITY), L::splat(0.0));
+        // `|x| < inf` is false for an infinity and for NaN; `x == x` only for NaN.
+        let mut ok = t_min.eq(t_min).and(t_max.eq(t_max));
+        for a in 0..3 {
+            ok = ok.and(o[a].abs().lt(inf)).and(d[a].abs().lt(inf));
+        }
+        let zero_dir = d[0].eq(zero).and(d[1].eq(zero)).and(d[2].eq(zero)).bits();
+        let present = (1u32 << rays.len()) - 1;
+        let (mut dir, mut ninv, mut abs) = ([zero; 3], [zero; 3], [zero; 3]);
+        for a in 0..3 {
+            // `flush_subnormal` and `safe_inverse` as lane selects.
+            let sign = d[a].and(L::splat(-0.0));
+            let small = d[a].abs().lt(L::splat(f32::MIN_POSITIVE));
+            dir[a] = small.select(sign, d[a]);
+            let safe = small.select(sign.or(L::splat(f32::MIN_POSITIVE)), d[a]);
+            ninv[a] = L::splat(-1.0).div(safe);
+            abs[a] = dir[a].abs();
+        }
+        // `shear_axes`: the first of the largest magnitudes.
+        let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
+        let y_over_z = abs[1].ge(abs[2]);
+        // Per lane the component on axis `kz`, `(kz + 1) % 3` and `(kz + 2) % 3`.
+        let pick = |a: L, b: L, c: L| x_max.select(a, y_over_z.select(b, c));
+        let dkz = pick(dir[0], dir[1], dir[2]);
+        let (d1, d2) = (pick(dir[1], dir[2], dir[0]), pick(dir[2], dir[0], dir[1]));
+        let swap = dkz.lt(zero);
+        let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
+        let shear = [dkx.div(dkz), dky.div(dkz), L::splat(1.0).div(dkz)];
+        let (x_max, y_over_z) = (x_max.bits(), y_over_z.bits());
+        let kz = std::array::from_fn(|i| {
+            if x_max >> i & 1 != 0 {
+                0
+            } else if y_over_z >> i & 1 != 0 {
+                1
+            } else {
+                2
+            }
+        });
+        let parallel = dir[0].eq(zero).or(dir[1].eq(zero)).or(dir[2].eq(zero));
+        Prepared4 {
+            org: o.map(L::store),
+            ninv: ninv.map(L::store),
+            dir: dir.map(L::store),
+            kz,
+            valid: ok.bits() & !zero_dir & present,
+            parallel: parallel.bits(),
+            shear: shear.map(L::store),
+            swap: swap.bits(),
         }
     }
 }
 
-/// A node's four box tests: the hit slots (used ones only), and per lane the entry
-/// distance, the culling slack's magnitude `m` and the slabs' exit distance before the
-/// interval's end is applied (what [`still_hit`] re-tests a popped child with).
+impl<L: Lanes, W: Wide> RayLanes<L, W> {
+    /// Ray `i` of `p` (`ray` itself), splatted.
+    #[inline(always)]
+    pub fn from4(p: &Prepared4, ray: &Ray, i: usize) -> Self {
+        RayLanes {
+            // No closures over AVX lanes here or in the box test: a closure is compiled
+            // apart from the AVX2 caller, and its AVX operations would not be inlined.
+            org: [
+                W::splat(p.org[0][i]),
+                W::splat(p.org[1][i]),
+                W::splat(p.org[2][i]),
+            ],
+            ninv: [
+                W::splat(p.ninv[0][i]),
+                W::splat(p.ninv[1][i]),
+                W::splat(p.ninv[2][i]),
+            ],
+            t_min: W::splat(ray.t_min),
+            t_max: W::splat(ray.t_max),
+            t_min4: L::splat(ray.t_min),
+            kz: p.kz[i],
+            parallel: p.parallel >> i & 1 != 0,
+            dir: [p.dir[0][i], p.dir[1][i], p.dir[2][i]],
+            t_max_s: ray.t_max,
+        }
+    }
+
+    /// One valid ray, prepared alone.
+    #[cfg(test)]
+    pub fn prepare(ray: &Ray) -> Self {
+        let p = Prepared4::new::<L>(std::slice::from_ref(ray));
+        assert!(p.valid & 1 != 0, "{ray:?} is not valid");
+        Self::from4(&p, ray, 0)
+    }
+}
+
+/// The triangle test's shear (`PreparedRay::kx`, `ky`, `kz`, `sx`, `sy`, `sz`), bit for
+/// bit, and the origin in the sheared axes' order, so that the test reads the lanes it
+/// needs without indexing.
+#[derive(Clone, Copy)]
+pub(crate) struct ShearLanes<L> {
+    pub kx: usize,
+    pub ky: usize,
+    pub kz: usize,
+    /// `sx`, `sy`, `sz`.
+    pub s: [L; 3],
+    /// The origin's `kx`, `ky` and `kz` coordinates.
+    pub o: [L; 3],
+}
+
+impl<L: Lanes> ShearLanes<L> {
+    /// The shear of ray `i` of `p`, whose dominant axis is `kz` (`p.kz[i]`).
+    #[inline(always)]
+    pub fn from4(p: &Prepared4, i: usize, kz: usize) -> Self {
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        if p.swap >> i & 1 != 0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        ShearLanes {
+            kx,
+            ky,
+            kz,
+            s: [0, 1, 2].map(|k| L::splat(p.shear[k][i])),
+            o: [kx, ky, kz].map(|a| L::splat(p.org[a][i])),
+        }
+    }
+
+    /// One valid ray's shear, prepared alone.
+    #[cfg(test)]
+    pub fn prepare(ray: &Ray) -> Self {
+        let p = Prepared4::new::<L>(std::slice::from_ref(ray));
+        Self::from4(&p, 0, p.kz[0])
+    }
+}
+
+/// A node's eight box tests: the hit slots (used ones only), and per lane what the walk
+/// keeps of a hit child (see [`BoxHits`]). Per axis the scalar test's `fmin(t0, t1)` and
+/// `fmax(t0, t1)`, each `t` negated exactly (see [`RayLanes::ninv`]); no NaN arises off
+/// the parallel path, and the sign of a zero reaches no comparison.
 ///
-/// A ray along no slab takes each axis's entry from the plane its direction faces first
-/// (`lo` for a positive component): since `lo <= hi`, rounding keeps
-/// `(lo - o) * inv <= (hi - o) * inv` for a positive `inv` (the reverse for a negative
-/// one), so that plane's distance is the scalar test's `fmin(t0, t1)` and the other its
-/// `fmax` (to the bit, but for the sign of a zero that an underflow gives, which no
-/// comparison sees): two operations fewer per axis, and no lane select.
+/// `PARALLEL` and `KZ` are the ray's `parallel` and `kz`, fixed per walk so that the
+/// dominant axis's lanes stay in registers.
+///
+/// `culled` says the best hit `t_best` may lie before the ray's `t_max`; without it the
+/// culling slack is left out, since `fmin(t_max + slack, t_max)` is `t_max` (the slack
+/// is never negative). `SIGNED` is false for rays with `t_min >= 0`: every hit box's
+/// entry is then at or after 0, so a negative exit fails the test whichever scale it
+/// takes (neither scale takes it to zero: both are above one half), and the positive
+/// scale serves every lane.
 #[inline(always)]
-pub(crate) fn box4<L: Lanes>(n: &Node4, q: &RayLanes<L>, t_best: f32) -> (u32, L, L, L) {
-    let r = &q.r;
-    let (near, far) = if r.parallel {
+pub(crate) fn box8<L: Lanes, W: Wide, const SIGNED: bool, const PARALLEL: bool, const KZ: usize>(
+    n: &Node8,
+    q: &RayLanes<L, W>,
+    t_best: f32,
+    culled: bool,
+) -> BoxHits<W> {
+    debug_assert_eq!((PARALLEL, KZ), (q.parallel, q.kz));
+    let (near, far) = if PARALLEL {
         parallel_slabs(n, q)
     } else {
-        let plane = |a: usize, p: usize| L::load(&n.planes[p]).sub(q.org[a]).mul(q.inv[a]);
-        (
-            [0, 1, 2].map(|a| plane(a, q.near[a])),
-            [0, 1, 2].map(|a| plane(a, q.near[a] ^ 1)),
-        )
+        let (mut near, mut far) = ([W::splat(0.0); 3], [W::splat(0.0); 3]);
+        for a in 0..3 {
+            let t0 = q.org[a].sub(W::load(&n.planes[2 * a])).mul(q.ninv[a]);
+            let t1 = q.org[a].sub(W::load(&n.planes[2 * a + 1])).mul(q.ninv[a]);
+            near[a] = t0.min(t1);
+            far[a] = t0.max(t1);
+        }
+        (near, far)
     };
     let tnear = near[0].max(near[1]).max(near[2].max(q.t_min));
-    let m = match r.kz {
-        0 => near[0].abs().max(far[0].abs()),
-        1 => near[1].abs().max(far[1].abs()),
-        _ => near[2].abs().max(far[2].abs()),
-    };
-    let limit = L::splat(t_best)
-        .add(L::splat(BOX_CULL_SLACK).mul(m))
-        .min(q.t_max);
+    let (near_kz, far_kz) = (near[KZ], far[KZ]);
     let slabs = far[0].min(far[1]).min(far[2]);
-    let tfar = far[0].min(far[1]).min(far[2].min(limit));
-    let scale = tfar
-        .lt(L::splat(0.0))
-        .select(L::splat(BOX_TFAR_SCALE_NEG), L::splat(BOX_TFAR_SCALE));
-    let hit = tnear.le(tfar.mul(scale)).bits() & n.used;
-    (hit, tnear, m, slabs)
+    let tfar = if culled {
+        let m = near_kz.abs().max(far_kz.abs());
+        let limit = W::splat(t_best)
+            .add(W::splat(BOX_CULL_SLACK).mul(m))
+            .min(q.t_max);
+        far[0].min(far[1]).min(far[2].min(limit))
+    } else {
+        // The same minimum in another order: no NaN reaches it, and the sign of a zero
+        // is not seen by the comparison.
+        slabs.min(q.t_max)
+    };
+    let scale = if SIGNED {
+        tfar.lt(W::splat(0.0))
+            .select(W::splat(BOX_TFAR_SCALE_NEG), W::splat(BOX_TFAR_SCALE))
+    } else {
+        W::splat(BOX_TFAR_SCALE)
+    };
+    BoxHits {
+        hit: tnear.le(tfar.mul(scale)).bits() & n.used,
+        tnear,
+        far: slabs,
+        near_kz,
+        far_kz,
+    }
+}
+
+/// What [`box8`] found: the hit slots, and per lane the entry distance, the slabs' exit
+/// before the interval's end is applied, and the two distances on the dominant axis
+/// (whose magnitudes bound the culling slack): what [`still_hit`] re-tests with.
+#[derive(Clone, Copy)]
+pub(crate) struct BoxHits<W> {
+    pub hit: u32,
+    pub tnear: W,
+    pub far: W,
+    near_kz: W,
+    far_kz: W,
+}
+
+impl<W: Wide> BoxHits<W> {
+    /// The culling slack's magnitude `m` per lane (`intersect_box`'s `m`): only a node
+    /// with two hit children or more needs it, for the children it pushes.
+    #[inline(always)]
+    pub fn m(&self) -> W {
+        self.near_kz.abs().max(self.far_kz.abs())
+    }
 }
 
 /// The per-axis `fmin(t0, t1)` and `fmax(t0, t1)` of the scalar test's general path, for
-/// rays along some slab: inside the slab for every t, or for none.
-#[inline(never)]
-fn parallel_slabs<L: Lanes>(n: &Node4, q: &RayLanes<L>) -> ([L; 3], [L; 3]) {
-    let r = &q.r;
-    let mut near = [L::splat(0.0); 3];
+/// rays along some slab: inside the slab for every t, or for none. Inlined (into the
+/// walks for such rays only), so that the ray's lanes need not be kept in memory.
+#[inline(always)]
+fn parallel_slabs<L: Lanes, W: Wide>(n: &Node8, q: &RayLanes<L, W>) -> ([W; 3], [W; 3]) {
+    let mut near = [W::splat(0.0); 3];
     let mut far = near;
     for a in 0..3 {
-        let (lo, hi) = (L::load(&n.planes[2 * a]), L::load(&n.planes[2 * a + 1]));
+        let (lo, hi) = (W::load(&n.planes[2 * a]), W::load(&n.planes[2 * a + 1]));
         let (mut t0, mut t1) = (
-            lo.sub(q.org[a]).mul(q.inv[a]),
-            hi.sub(q.org[a]).mul(q.inv[a]),
+            q.org[a].sub(lo).mul(q.ninv[a]),
+            q.org[a].sub(hi).mul(q.ninv[a]),
         );
-        if r.dir[a] == 0.0 {
+        if q.dir[a] == 0.0 {
             let o = q.org[a];
             let inside = lo.le(o).and(o.le(hi));
-            t0 = inside.select(L::splat(f32::NEG_INFINITY), L::splat(f32::INFINITY));
-            t1 = L::splat(f32::INFINITY);
+            t0 = inside.select(W::splat(f32::NEG_INFINITY), W::splat(f32::INFINITY));
+            t1 = W::splat(f32::INFINITY);
         }
         near[a] = t0.min(t1);
         far[a] = t0.max(t1);
@@ -102,13 +311,13 @@ fn parallel_slabs<L: Lanes>(n: &Node4, q: &RayLanes<L>) -> ([L; 3], [L; 3]) {
     (near, far)
 }
 
-/// The box test of a child [`box4`] hit, repeated against a nearer best hit from its
+/// The box test of a child [`box8`] hit, repeated against a nearer best hit from its
 /// entry distance, slack magnitude and slab exit: the same answer as the full test
 /// (`min` over finite values is associative, and a signed zero compares as zero).
 #[inline(always)]
-pub(crate) fn still_hit(r: &PreparedRay, tnear: f32, m: f32, far: f32, t_best: f32) -> bool {
+pub(crate) fn still_hit(t_max: f32, tnear: f32, m: f32, far: f32, t_best: f32) -> bool {
     let fmin = |a: f32, b: f32| if a < b { a } else { b };
-    let limit = fmin(t_best + BOX_CULL_SLACK * m, r.t_max);
+    let limit = fmin(t_best + BOX_CULL_SLACK * m, t_max);
     let tfar = fmin(far, limit);
     let tfar = tfar
         * if tfar < 0.0 {
@@ -119,9 +328,9 @@ pub(crate) fn still_hit(r: &PreparedRay, tnear: f32, m: f32, far: f32, t_best: f
     tnear <= tfar
 }
 
-/// The scalar box test of slot `i` of `n` (what [`box4`]'s lane `i` must equal).
+/// The scalar box test of slot `i` of `n` (what [`box8`]'s lane `i` must equal).
 #[cfg(test)]
-fn box_lane(n: &Node4, r: &PreparedRay, i: usize, t_best: f32) -> bool {
+fn box_lane(n: &Node8, r: &bvhtrace_core::intersect::PreparedRay, i: usize, t_best: f32) -> bool {
     let b = n.child_box(i);
     let (lo, hi) = (b.min, b.max);
     bvhtrace_core::intersect::intersect_box(r, lo, hi, t_best).is_some()
@@ -139,18 +348,22 @@ fn edge<L: Lanes>(px: L, py: L, qx: L, qy: L) -> L {
 /// The watertight test on a block's four triangles: the lanes that hit at `t >= t_min`,
 /// and per lane `t` and the weights of corners 1 and 2.
 #[inline(always)]
-pub(crate) fn tri4<L: Lanes>(b: &Tri4, q: &RayLanes<L>) -> (u32, L, L, L) {
-    let r = &q.r;
-    let (kx, ky, kz) = (r.kx, r.ky, r.kz);
-    let [sx, sy, sz] = q.shear;
-    let rel = |c: usize, a: usize| L::load(&b.v[c][a]).sub(q.org[a]);
-    let (az, bz, cz) = (rel(0, kz), rel(1, kz), rel(2, kz));
-    let ax = rel(0, kx).sub(sx.mul(az));
-    let ay = rel(0, ky).sub(sy.mul(az));
-    let bx = rel(1, kx).sub(sx.mul(bz));
-    let by = rel(1, ky).sub(sy.mul(bz));
-    let cx = rel(2, kx).sub(sx.mul(cz));
-    let cy = rel(2, ky).sub(sy.mul(cz));
+pub(crate) fn tri4<L: Lanes, W: Wide>(
+    b: &Tri4,
+    q: &RayLanes<L, W>,
+    s: &ShearLanes<L>,
+) -> (u32, L, L, L) {
+    let (kx, ky, kz) = (s.kx, s.ky, s.kz);
+    let [sx, sy, sz] = s.s;
+    let [ox, oy, oz] = s.o;
+    let rel = |c: usize, a: usize, o: L| L::load(&b.v[c][a]).sub(o);
+    let (az, bz, cz) = (rel(0, kz, oz), rel(1, kz, oz), rel(2, kz, oz));
+    let ax = rel(0, kx, ox).sub(sx.mul(az));
+    let ay = rel(0, ky, oy).sub(sy.mul(az));
+    let bx = rel(1, kx, ox).sub(sx.mul(bz));
+    let by = rel(1, ky, oy).sub(sy.mul(bz));
+    let cx = rel(2, kx, ox).sub(sx.mul(cz));
+    let cy = rel(2, ky, oy).sub(sy.mul(cz));
     let u = edge(cx, cy, bx, by);
     let v = edge(ax, ay, cx, cy);
     let w = edge(bx, by, ax, ay);
@@ -158,14 +371,18 @@ pub(crate) fn tri4<L: Lanes>(b: &Tri4, q: &RayLanes<L>) -> (u32, L, L, L) {
     let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero));
     let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero));
     let det = u.add(v).add(w);
+    let inside = !(negative.and(positive).bits() | det.eq(zero).bits()) & 0b1111;
+    // Most blocks a ray reaches it misses: no distance to compute.
+    if inside == 0 {
+        return (0, zero, zero, zero);
+    }
     let t_scaled = u
         .mul(sz.mul(az))
         .add(v.mul(sz.mul(bz)))
         .add(w.mul(sz.mul(cz)));
     let inv_det = L::splat(1.0).div(det);
     let t = t_scaled.mul(inv_det);
-    let mixed = negative.and(positive).bits();
-    let ok = t.ge(q.t_min).bits() & !mixed & !det.eq(zero).bits();
+    let ok = t.ge(q.t_min4).bits() & inside;
     (ok, t, v.mul(inv_det), w.mul(inv_det))
 }
 
@@ -175,9 +392,23 @@ mod tests {
     use bvhtrace_core::{Aabb, Ray};
     use glam::Vec3;
 
-    use super::{RayLanes, box_lane, box4, still_hit, tri4};
-    use crate::lanes::{Lanes, Portable};
-    use crate::layout::{Node4, Tri4};
+    use super::{BoxHits, RayLanes, ShearLanes, box_lane, box8, still_hit, tri4};
+    use crate::lanes::{Lanes, Pair, Portable, Wide};
+    use crate::layout::{Node8, Tri4};
+
+    /// The portable lanes, four and eight.
+    type PortableRay = RayLanes<Portable, Pair<Portable>>;
+    /// The SSE lanes, four and eight.
+    #[cfg(target_arch = "x86_64")]
+    type SseRay = RayLanes<crate::lanes::Sse, Pair<crate::lanes::Sse>>;
+    /// The SSE lanes for triangles, AVX for boxes (run only where the CPU has AVX2).
+    #[cfg(target_arch = "x86_64")]
+    type AvxRay = RayLanes<crate::lanes::Sse, crate::lanes::Avx8>;
+
+    #[cfg(target_arch = "x86_64")]
+    fn has_avx2() -> bool {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
 
     fn next(s: &mut u64) -> f32 {
         *s ^= *s << 13;
@@ -222,15 +453,142 @@ mod tests {
         Ray::with_interval(point(s), d, t_min, t_max)
     }
 
-    /// Each lane of the four-box test is the scalar box test of its box, on both lane
-    /// types, including the parallel path and a finite running best.
+    /// [`box8`] for the ray's own `parallel` and `kz`.
+    fn box8_dyn<L: Lanes, W: Wide, const SIGNED: bool>(
+        n: &Node8,
+        q: &RayLanes<L, W>,
+        t_best: f32,
+        culled: bool,
+    ) -> BoxHits<W> {
+        match (q.parallel, q.kz) {
+            (false, 0) => box8::<L, W, SIGNED, false, 0>(n, q, t_best, culled),
+            (false, 1) => box8::<L, W, SIGNED, false, 1>(n, q, t_best, culled),
+            (false, _) => box8::<L, W, SIGNED, false, 2>(n, q, t_best, culled),
+            (true, 0) => box8::<L, W, SIGNED, true, 0>(n, q, t_best, culled),
+            (true, 1) => box8::<L, W, SIGNED, true, 1>(n, q, t_best, culled),
+            (true, _) => box8::<L, W, SIGNED, true, 2>(n, q, t_best, culled),
+        }
+    }
+
+    /// Every variant of [`box8`] the walks may run for this ray and best hit gives the
+    /// hit slots `want`; returns the full variant's result.
+    fn box8_cases<L: Lanes, W: Wide>(
+        n: &Node8,
+        q: &RayLanes<L, W>,
+        ray: &Ray,
+        t_best: f32,
+        want: u32,
+    ) -> BoxHits<W> {
+        let full = box8_dyn::<L, W, true>(n, q, t_best, true);
+        assert_eq!(full.hit, want, "{ray:?} {n:?} t_best {t_best}");
+        let unsigned = !(ray.t_min < 0.0);
+        if unsigned {
+            let b = box8_dyn::<L, W, false>(n, q, t_best, true);
+            assert_eq!(b.hit, want, "unsigned {ray:?} {n:?} t_best {t_best}");
+        }
+        if t_best == ray.t_max {
+            let b = box8_dyn::<L, W, true>(n, q, t_best, false);
+            assert_eq!(b.hit, want, "no hit yet {ray:?} {n:?}");
+            if unsigned {
+                let b = box8_dyn::<L, W, false>(n, q, t_best, false);
+                assert_eq!(b.hit, want, "unsigned, no hit yet {ray:?} {n:?}");
+            }
+        }
+        full
+    }
+
+    /// The ray preparation is `Ray::is_valid` and `PreparedRay::new`, bit for bit, on
+    /// every lane type, for groups of one to four rays: zero, signed-zero, subnormal,
+    /// huge and non-finite components.
+    #[test]
+    fn ray_preparation_is_the_core_one() {
+        let mut s = 0x5555_1234_aaaa_0001u64;
+        let special = [
+            0.0,
+            -0.0,
+            1e-40,
+            -1e-40,
+            1e30,
+            -3e38,
+            f32::INFINITY,
+            f32::NAN,
+        ];
+        let (mut prepared, mut group) = (0, Vec::new());
+        for _ in 0..20_000 {
+            let mut ray = ray(&mut s);
+            for a in 0..3 {
+                if next(&mut s) < 0.15 {
+                    ray.dir[a] = special[(next(&mut s) * 8.0) as usize];
+                }
+                if next(&mut s) < 0.02 {
+                    ray.origin[a] = special[(next(&mut s) * 8.0) as usize];
+                }
+            }
+            match (next(&mut s) * 50.0) as u32 {
+                0 => ray.t_max = f32::NAN,
+                1 => ray.t_min = f32::NAN,
+                2 => ray.dir = [0.0, -0.0, 0.0],
+                3 => ray.dir = [1e-40, -1e-39, 0.0],
+                _ => {}
+            }
+            group.push(ray);
+            if group.len() < 1 + (next(&mut s) * 4.0) as usize {
+                continue;
+            }
+            prepared += check_group::<Portable, Pair<Portable>>(&group);
+            #[cfg(target_arch = "x86_64")]
+            {
+                check_group::<crate::lanes::Sse, Pair<crate::lanes::Sse>>(&group);
+                if has_avx2() {
+                    check_group::<crate::lanes::Sse, crate::lanes::Avx8>(&group);
+                }
+            }
+            group.clear();
+        }
+        assert!(prepared > 10_000, "only {prepared} valid rays");
+    }
+
+    /// Prepares one to four rays together: each is valid as `Ray::is_valid` says, and a
+    /// valid one's lanes are `PreparedRay::new`'s values. Returns the valid rays.
+    fn check_group<L: Lanes, W: Wide>(group: &[Ray]) -> u32 {
+        let p = super::Prepared4::new::<L>(group);
+        assert_eq!(p.valid >> group.len(), 0);
+        for (i, ray) in group.iter().enumerate() {
+            assert_eq!(p.valid >> i & 1 != 0, ray.is_valid(), "{ray:?}");
+            if ray.is_valid() {
+                let q = RayLanes::<L, W>::from4(&p, ray, i);
+                check_prepared(&q, &PreparedRay::new(ray), ray);
+            }
+        }
+        p.valid.count_ones()
+    }
+
+    fn check_prepared<L: Lanes, W: Wide>(q: &RayLanes<L, W>, r: &PreparedRay, ray: &Ray) {
+        let bits = |v: [f32; 3]| v.map(f32::to_bits);
+        let lane7 = |l: &[W; 3]| [l[0].store()[7], l[1].store()[7], l[2].store()[7]];
+        let lane0 = |l: &[L; 3]| [l[0].store()[0], l[1].store()[0], l[2].store()[0]];
+        assert_eq!(bits(lane7(&q.org)), bits(r.org.to_array()), "{ray:?}");
+        let inv = lane7(&q.ninv).map(|x| -x);
+        assert_eq!(bits(inv), bits(r.inv_dir.to_array()), "{ray:?}");
+        assert_eq!(bits(q.dir), bits(r.dir.to_array()), "{ray:?}");
+        let s = ShearLanes::<L>::prepare(ray);
+        assert_eq!(bits(lane0(&s.s)), bits([r.sx, r.sy, r.sz]), "{ray:?}");
+        assert_eq!((s.kx, s.ky, q.kz), (r.kx, r.ky, r.kz), "{ray:?}");
+        assert_eq!(q.parallel, r.parallel, "{ray:?}");
+        let t = [q.t_min.store()[5], q.t_max.store()[1], q.t_max_s];
+        assert_eq!(bits(t), bits([r.t_min, r.t_max, r.t_max]), "{ray:?}");
+        assert_eq!(q.t_min4.store()[3].to_bits(), r.t_min.to_bits(), "{ray:?}");
+    }
+
+    /// Each lane of the eight-box test is the scalar box test of its box, on every lane
+    /// type, including the parallel path and a finite running best.
     #[test]
     fn box_lanes_are_the_scalar_test() {
         let mut s = 0x1234_5678_9abc_def1u64;
         let (mut hits, mut culled) = (0, 0);
         for _ in 0..20_000 {
-            let mut n = Node4::EMPTY;
-            for i in 0..4 {
+            let mut n = Node8::EMPTY;
+            for i in 0..8 {
                 let (a, b) = (point(&mut s), point(&mut s));
                 let bx = Aabb {
                     min: a.min(b),
@@ -241,7 +599,11 @@ mod tests {
                     n.planes[2 * ax + 1][i] = bx.max[ax];
                 }
             }
-            n.used = if next(&mut s) < 0.2 { 0b0111 } else { 0b1111 };
+            n.used = if next(&mut s) < 0.2 {
+                0b0111_0111
+            } else {
+                0b1111_1111
+            };
             let ray = ray(&mut s);
             if !ray.is_valid() {
                 continue;
@@ -252,21 +614,21 @@ mod tests {
             } else {
                 value(&mut s)
             };
-            let want = (0..4)
+            let want = (0..8)
                 .filter(|&i| n.used >> i & 1 != 0 && box_lane(&n, &r, i, t_best))
                 .fold(0, |m, i| m | 1 << i);
-            let (got, tnear, m, far) = box4(&n, &RayLanes::<Portable>::new(r), t_best);
-            assert_eq!(got, want, "{ray:?} {n:?} t_best {t_best}");
+            let q = PortableRay::prepare(&ray);
+            let b = box8_cases(&n, &q, &ray, t_best, want);
             // A popped child re-tested against a nearer best: the full test's answer, for
             // bests a few ulps around its entry, where the culling slack decides.
-            let (tnear, m, far) = (tnear.store(), m.store(), far.store());
-            for i in (0..4).filter(|i| want >> i & 1 != 0) {
+            let (tnear, m, far) = (b.tnear.store(), b.m().store(), b.far.store());
+            for i in (0..8).filter(|i| want >> i & 1 != 0) {
                 let ulps = (next(&mut s) * 400.0) as i32 - 300;
                 let nearer = f32::from_bits((tnear[i].to_bits() as i32 + ulps) as u32);
                 if nearer.is_finite() {
                     let full = box_lane(&n, &r, i, nearer);
                     assert_eq!(
-                        still_hit(&r, tnear[i], m[i], far[i], nearer),
+                        still_hit(ray.t_max, tnear[i], m[i], far[i], nearer),
                         full,
                         "{ray:?} lane {i} best {nearer}"
                     );
@@ -275,12 +637,14 @@ mod tests {
             }
             #[cfg(target_arch = "x86_64")]
             {
-                let (sse, ..) = box4(&n, &RayLanes::<crate::lanes::Sse>::new(r), t_best);
-                assert_eq!(sse, want, "{ray:?}");
+                box8_cases(&n, &SseRay::prepare(&ray), &ray, t_best, want);
+                if has_avx2() {
+                    box8_cases(&n, &AvxRay::prepare(&ray), &ray, t_best, want);
+                }
             }
             hits += want.count_ones();
         }
-        assert!(hits > 5_000, "only {hits} box hits");
+        assert!(hits > 10_000, "only {hits} box hits");
         assert!(culled > 300, "only {culled} re-tests culled");
     }
 
@@ -325,7 +689,10 @@ mod tests {
                 continue;
             }
             let r = PreparedRay::new(&ray);
-            let (mask, t, u, v) = tri4(&b, &RayLanes::<Portable>::new(r));
+            let (mask, t, u, v) = {
+                let q = PortableRay::prepare(&ray);
+                tri4(&b, &q, &ShearLanes::prepare(&ray))
+            };
             let (t, u, v) = (t.store(), u.store(), v.store());
             for (lane, tri) in tris.iter().enumerate() {
                 let want = intersect_triangle(&r, tri[0], tri[1], tri[2]);
@@ -338,7 +705,10 @@ mod tests {
             }
             #[cfg(target_arch = "x86_64")]
             {
-                let (m2, t2, u2, v2) = tri4(&b, &RayLanes::<crate::lanes::Sse>::new(r));
+                let (m2, t2, u2, v2) = {
+                    let q = SseRay::prepare(&ray);
+                    tri4(&b, &q, &ShearLanes::prepare(&ray))
+                };
                 assert_eq!(m2, mask);
                 for lane in 0..4 {
                     if mask >> lane & 1 != 0 {

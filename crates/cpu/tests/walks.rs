@@ -234,11 +234,34 @@ fn instanced_trees_are_refused() {
     assert!(err.to_string().contains("bvhtrace_core"));
 }
 
-/// The layout's sizes: 128-byte nodes, 160-byte blocks, and under the binary layout's
+/// A tree with alpha-masked triangles (the foliage scene, flattened) is refused, since
+/// the layout's walks do not cut candidates by the masks; the same tree without its
+/// masks converts.
+#[test]
+fn masked_trees_are_refused() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
+    let scene = bvhtrace_scene::load(path).unwrap();
+    let traced = scene.tracing_bvh(&BuildOptions::default(), true).unwrap();
+    let bvhtrace_scene::SceneBvh::Flat { bvh, .. } = traced else {
+        panic!("a flattened scene traces as one mesh");
+    };
+    assert!(
+        bvh.masks().is_some(),
+        "the foliage scene has masked triangles"
+    );
+    let err = CpuBvh::from_flat(&bvh).unwrap_err();
+    assert_eq!(err, ConvertError::Masked);
+    assert!(err.to_string().contains("alpha masks"));
+    let mut opaque = bvh.clone();
+    opaque.set_masks(None).unwrap();
+    assert!(CpuBvh::from_flat(&opaque).is_ok());
+}
+
+/// The layout's sizes: 256-byte nodes, 160-byte blocks, and under the binary layout's
 /// bytes per triangle on a closed mesh.
 #[test]
 fn layout_sizes() {
-    assert_eq!(std::mem::size_of::<bvhtrace_cpu::Node4>(), 128);
+    assert_eq!(std::mem::size_of::<bvhtrace_cpu::Node8>(), 256);
     assert_eq!(std::mem::size_of::<bvhtrace_cpu::Tri4>(), 160);
     let tris = common::uv_sphere(60, 1.0, Vec3::ZERO);
     let flat = FlatBvh::build(&tris, &BuildOptions::default()).unwrap();
