@@ -34,9 +34,11 @@
 #![warn(missing_docs)]
 
 mod backend;
+mod cpu;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
+pub use cpu::FastCpuTracer;
 pub use open::{Device, OpenOptions, Opened, SharedFilter, open, open_on_wgpu};
 #[cfg(not(target_arch = "wasm32"))]
 pub use open::{open_on_ray_query, open_on_vulkan};

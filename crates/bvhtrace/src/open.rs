@@ -13,6 +13,7 @@ use bvhtrace_kernels::{
 use bvhtrace_vk::{VkBvh, VkContext, VkOptions};
 
 use crate::Backend;
+use crate::cpu::FastCpuTracer;
 
 /// What [`open`] opens, and for what.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -754,19 +755,19 @@ pub fn open_on_ray_query(
     })
 }
 
-/// The CPU walks on `bvh`, in place unless a wide walk is asked for and the tree has no
-/// wide layout (then on a copy with one).
-/// `tracer` with `opts`' filter, boxed.
+/// `tracer` with `opts`' filter and the CPU layout beside it ([`FastCpuTracer`]), boxed.
 fn with_filter<'a, B>(tracer: CpuTracer<B>, opts: &OpenOptions) -> Box<dyn Tracer + 'a>
 where
     B: Borrow<FlatBvh> + Send + Sync + 'a,
 {
     match &opts.filter {
-        Some(f) => Box::new(tracer.with_filter(f.0.clone())),
-        None => Box::new(tracer),
+        Some(f) => Box::new(FastCpuTracer::new(tracer.with_filter(f.0.clone()), true)),
+        None => Box::new(FastCpuTracer::new(tracer, false)),
     }
 }
 
+/// The CPU walks on `bvh`, in place unless a wide walk is asked for and the tree has no
+/// wide layout (then on a copy with one), and the CPU layout for the closest hits it takes.
 fn open_cpu<'a, B>(
     bvh: B,
     opts: &OpenOptions,

@@ -248,3 +248,61 @@ fn a_filter_is_applied_on_the_cpu_and_refused_by_the_devices() {
         ),
     }
 }
+
+/// The CPU backend traces closest hits with the default walk in the CPU layout
+/// (`FastCpuTracer`), bit for bit the core full stack's, on a mesh and after an update; the
+/// rest (any hit, counters, other walks) on the core walks; a two-level tree has no layout.
+#[test]
+fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
+    use bvhtrace::{CpuTracer, FastCpuTracer, Query, Tracer};
+    let bvh = grid();
+    let rays = rays();
+    let fast = FastCpuTracer::new(CpuTracer::new(&bvh), false);
+    assert!(fast.has_layout());
+    let core = CpuTracer::new(&bvh);
+    let bits = |h: &[bvhtrace::Hit]| -> Vec<[u32; 4]> {
+        h.iter()
+            .map(|h| [h.prim, h.t.to_bits(), h.u.to_bits(), h.v.to_bits()])
+            .collect()
+    };
+    for (opts, layout) in [
+        (TraceOptions::closest(Traversal::FullStack), true),
+        (TraceOptions::new(Traversal::FullStack, Query::Any), false),
+        (
+            TraceOptions::closest(Traversal::FullStack).with_counters(true),
+            false,
+        ),
+        (TraceOptions::closest(Traversal::Stackless), false),
+    ] {
+        assert_eq!(fast.takes(&opts), layout, "{opts:?}");
+        let (a, b) = (
+            fast.trace(&rays, &opts).expect("trace"),
+            core.trace(&rays, &opts).expect("trace"),
+        );
+        assert_eq!(bits(&a.hits), bits(&b.hits), "{opts:?}");
+        assert_eq!(a.counters.is_some(), opts.counters);
+    }
+    let opened = bvhtrace::open(&bvh, &OpenOptions::new(Backend::Cpu)).expect("the CPU opens");
+    assert!(
+        opened.tracer.device_name().contains("CPU layout"),
+        "{}",
+        opened.tracer.device_name()
+    );
+    // A filter keeps every query on the core walks.
+    let filtered = FastCpuTracer::new(
+        CpuTracer::new(&bvh).with_filter(std::sync::Arc::new(|_: &bvhtrace::core::Candidate| true)),
+        true,
+    );
+    assert!(!filtered.takes(&TraceOptions::closest(Traversal::FullStack)));
+    // Two levels: the core walks only.
+    let ib = bvhtrace::core::InstancedBvh::build(
+        &[vec![[Vec3::ZERO, Vec3::X, Vec3::Y]]],
+        vec![bvhtrace::core::Instance::new(
+            0,
+            bvhtrace::glam::Affine3A::IDENTITY,
+        )],
+        &BuildOptions::default(),
+    )
+    .expect("two levels");
+    assert!(!FastCpuTracer::new(CpuTracer::new(ib.bvh()), false).has_layout());
+}
