@@ -23,10 +23,10 @@ use bvhtrace_core::{
 use bvhtrace_gpu::{
     AdapterChoice, ContextOptions, GpuContext, GpuError, RayQueryBvh, TraceError, Tracer,
 };
-use bvhtrace_scene::{AlphaMode, AlphaTexture, AlphaTextureRef, Material, Mesh, Scene, Wrap};
-use glam::{Affine3A, Mat4, Vec2, Vec3, Vec4};
+use glam::{Affine3A, Vec3};
 
 mod support;
+use support::masked::{edge_cases, masked_rays};
 use support::{parity_rays, parity_scenes, ray_set};
 
 /// Set to 1 when a device with ray queries must be there.
@@ -366,117 +366,6 @@ fn what_ray_queries_do_not_offer_is_an_error() {
     let plain = GpuContext::new(AdapterChoice::Auto).expect("device");
     let err = RayQueryBvh::upload(&plain, &bvh).expect_err("no ray queries asked for");
     assert!(err.to_string().contains("EXPERIMENTAL_RAY_QUERY"), "{err}");
-}
-
-/// A `n` x `n` grid of quads over `[0, size]^2` at height `z`, texture coordinates
-/// `scale * position + offset`, triangle `t`'s material `material(t)`.
-fn grid(n: u32, size: f32, z: f32, uv: (f32, f32), material: impl Fn(u32) -> u32) -> Mesh {
-    let mut m = Mesh::default();
-    for j in 0..=n {
-        for i in 0..=n {
-            let p = Vec2::new(i as f32, j as f32) * (size / n as f32);
-            m.positions.push(p.extend(z));
-            m.texcoords.push(p * uv.0 + Vec2::splat(uv.1));
-        }
-    }
-    for j in 0..n {
-        for i in 0..n {
-            let v = j * (n + 1) + i;
-            m.indices.push([v, v + 1, v + n + 2]);
-            m.indices.push([v, v + n + 2, v + n + 1]);
-        }
-    }
-    m.materials = (0..m.indices.len() as u32).map(material).collect();
-    m
-}
-
-/// A masked material: `texture` (an index into the scene's alpha textures, and its wraps),
-/// or none for the base colour's `alpha` alone.
-fn masked(cutoff: f32, alpha: f32, texture: Option<(usize, [Wrap; 2])>) -> Material {
-    Material {
-        alpha_mode: AlphaMode::Mask { cutoff },
-        alpha_texture: texture.map(|(texture, wrap)| AlphaTextureRef { texture, wrap }),
-        ..Material::opaque("masked", Vec4::new(0.8, 0.8, 0.8, alpha))
-    }
-}
-
-/// The alpha-mask edge cases (as `tests/alpha_masks.rs` has them): a grid under masked
-/// materials of each wrap mode with coordinates far outside `0..1` on a 5 x 3 texture of
-/// texels around the cutoff, a one-texel texture, a missing texture, a base colour alone;
-/// a second masked grid placed twice, once mirrored; an opaque floor behind (a mesh without
-/// masks, whose BLAS stays opaque).
-fn edge_cases() -> Scene {
-    let cutoff = 128.0f32 / 255.0;
-    let repeat = [Wrap::Repeat, Wrap::Repeat];
-    let mut s = Scene {
-        alpha_textures: vec![
-            AlphaTexture {
-                name: "edges".into(),
-                width: 5,
-                height: 3,
-                alpha: vec![
-                    0, 127, 128, 255, 129, 128, 127, 40, 250, 0, 255, 128, 127, 3, 200,
-                ],
-            },
-            AlphaTexture {
-                name: "one texel".into(),
-                width: 1,
-                height: 1,
-                alpha: vec![128],
-            },
-        ],
-        ..Scene::default()
-    };
-    s.materials = vec![
-        Material::opaque("floor", Vec4::ONE),
-        masked(cutoff, 1.0, Some((0, repeat))),
-        masked(
-            cutoff,
-            1.0,
-            Some((0, [Wrap::ClampToEdge, Wrap::MirroredRepeat])),
-        ),
-        masked(
-            cutoff,
-            1.0,
-            Some((0, [Wrap::MirroredRepeat, Wrap::ClampToEdge])),
-        ),
-        masked(cutoff, 1.0, Some((1, repeat))),
-        masked(0.3, 0.5, Some((7, repeat))),
-        masked(0.6, 0.5, None),
-    ];
-    s.meshes.push(grid(1, 8.0, -1.0, (0.0, 0.0), |_| 0));
-    s.meshes
-        .push(grid(9, 3.0, 0.0, (2.1, -2.3), |t| 1 + (t / 2) % 6));
-    s.meshes
-        .push(grid(5, 2.0, 0.5, (0.9, 0.05), |t| 1 + (t / 2) % 3));
-    let place = |mesh, transform| bvhtrace_scene::Instance { mesh, transform };
-    s.instances = vec![
-        place(0, Mat4::from_translation(Vec3::new(-2.0, -2.0, 0.0))),
-        place(1, Mat4::IDENTITY),
-        place(2, Mat4::from_translation(Vec3::new(-1.0, 0.5, 0.0))),
-        place(
-            2,
-            Mat4::from_translation(Vec3::new(5.5, 0.5, 0.0))
-                * Mat4::from_scale(Vec3::new(-1.0, 1.0, 1.0)),
-        ),
-    ];
-    s
-}
-
-/// Rays straight down over the scene on a fine grid (through the masks' texels), and the
-/// random ray set.
-fn masked_rays(bvh: &FlatBvh) -> Vec<Ray> {
-    let b = bvh.bounds();
-    let mut rays = Vec::new();
-    for j in 0..96 {
-        for i in 0..128 {
-            let x = b.min.x + (b.max.x - b.min.x) * (i as f32 + 0.5) / 128.0;
-            let y = b.min.y + (b.max.y - b.min.y) * (j as f32 + 0.5) / 96.0;
-            rays.push(Ray::new(Vec3::new(x, y, b.max.z + 1.0), Vec3::NEG_Z));
-        }
-    }
-    rays.extend(ray_set(bvh, 0xa1fa));
-    rays
 }
 
 /// The largest gap between the CPU's barycentrics and the driver's on rays that hit the

@@ -4,6 +4,8 @@
 //! backend is checked on the same scenes.
 #![allow(dead_code)]
 
+pub mod masked;
+
 use bvhtrace_core::{
     BuildOptions, BuilderKind, Counters, FlatBvh, Hit, InstancedBvh, Ray, TraceOptions, Triangle,
     trace_rays,
