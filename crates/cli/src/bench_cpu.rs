@@ -1,6 +1,7 @@
 //! `bvhtrace bench-trace --cpu-only`: every CPU path (the core walks, the CPU layout of
 //! `bvhtrace-cpu` on each instruction set) beside Embree 3 in its default and robust
-//! modes, on primary (closest-hit) and shadow (any-hit) rays, same rays, same run.
+//! modes, on primary (closest-hit) and shadow (any-hit) rays, same rays, same run; and
+//! the packet walk on the same rays put in 8x8 screen tiles (`tiles` rows).
 
 use std::time::Instant;
 
@@ -15,23 +16,65 @@ use crate::embree::{self, Dump};
 /// A CPU path's batch trace.
 type TraceFn<'a> = Box<dyn Fn(&[Ray], Query) -> Vec<Hit> + 'a>;
 
+/// A path timed: its name, its trace, and whether it takes the rays in 8x8 tiles.
+type Path<'a> = (String, TraceFn<'a>, bool);
+
 /// The paths timed: the core walks asked for, then the CPU layout on each instruction set
-/// this CPU has.
-fn paths<'a>(
-    flat: &'a FlatBvh,
-    cpu: &'a CpuBvh,
-    walks: &[Traversal],
-) -> Vec<(String, TraceFn<'a>)> {
-    let mut out: Vec<(String, TraceFn<'a>)> = Vec::new();
+/// this CPU has, one ray at a time and in packets (on the rays in tiles).
+fn paths<'a>(flat: &'a FlatBvh, cpu: &'a CpuBvh, walks: &[Traversal]) -> Vec<Path<'a>> {
+    let mut out: Vec<Path<'a>> = Vec::new();
     for &tr in walks {
         let f = move |rays: &[Ray], q| trace_rays(flat, rays, &TraceOptions::new(tr, q)).hits;
-        out.push((format!("core {tr}"), Box::new(f)));
+        out.push((format!("core {tr}"), Box::new(f), false));
     }
     for isa in Isa::all_available() {
         let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_rays_with(cpu, rays, q, isa);
-        out.push((format!("cpu8 {isa}"), Box::new(f)));
+        out.push((format!("cpu8 {isa}"), Box::new(f), false));
+    }
+    for isa in Isa::all_available() {
+        let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_packets_with(cpu, rays, q, isa);
+        out.push((format!("cpu8 {isa} packets"), Box::new(f), true));
     }
     out
+}
+
+/// The primary and shadow rays in 8x8 tiles of the `w` x `h` image: the same rays, the
+/// shadow rays ordered by their primary ray's pixel in [`bvhtrace_cpu::tile_order`].
+fn tiled_sets(
+    tris: &[bvhtrace_core::Triangle],
+    flat: &FlatBvh,
+    cam: &bvhtrace_scene::Camera,
+    primary: &[Ray],
+    shadow: &[Ray],
+    (w, h): (u32, u32),
+) -> Result<(Vec<Ray>, Vec<Ray>)> {
+    let order = bvhtrace_cpu::tile_order(w, h);
+    let tiled: Vec<Ray> = order.iter().map(|&p| primary[p as usize]).collect();
+    let hits = trace_rays(flat, primary, &TraceOptions::closest(Traversal::FullStack)).hits;
+    let b = flat.bounds();
+    let (again, owner) = crate::shade::secondary_rays(
+        crate::shade::Shade::Diffuse,
+        &|p| tris[p as usize],
+        primary,
+        &hits,
+        crate::shade::point_light(cam),
+        1,
+        (b.max - b.min).length(),
+    );
+    anyhow::ensure!(
+        again.len() == shadow.len(),
+        "the shadow rays could not be matched"
+    );
+    let mut of_pixel = vec![u32::MAX; primary.len()];
+    for (k, &p) in owner.iter().enumerate() {
+        of_pixel[p as usize] = k as u32;
+    }
+    let shadow_tiled = order
+        .iter()
+        .filter(|&&p| of_pixel[p as usize] != u32::MAX)
+        .map(|&p| shadow[of_pixel[p as usize] as usize])
+        .collect();
+    Ok((tiled, shadow_tiled))
 }
 
 /// The two Embree modes timed: its default (not watertight) and `RTC_SCENE_FLAG_ROBUST`.
@@ -100,9 +143,11 @@ pub fn bench_trace_cpu(args: &BenchTraceArgs) -> Result<()> {
         );
         let cam = scene.camera_or_frame(w as f32 / h as f32);
         let sets = ray_sets(&tris, &flat, &cam, w, h);
+        let (primary_tiled, shadow_tiled) =
+            tiled_sets(&tris, &flat, &cam, &sets.primary, &sets.shadow, (w, h))?;
         let kinds = [
-            ("primary", sets.primary, Query::Closest),
-            ("shadow", sets.shadow, Query::Any),
+            ("primary", [sets.primary, primary_tiled], Query::Closest),
+            ("shadow", [sets.shadow, shadow_tiled], Query::Any),
         ];
         let paths = paths(&flat, &cpu, &walks);
         for (kind, rays, q) in kinds {
@@ -112,7 +157,9 @@ pub fn bench_trace_cpu(args: &BenchTraceArgs) -> Result<()> {
     Ok(())
 }
 
-/// One ray kind: rounds of every path and of Embree, then the table.
+/// One ray kind: rounds of every path and of Embree, then the table. `sets` holds the
+/// rays as the image has them (Embree's) and the same rays in 8x8 tiles (the packet
+/// paths').
 #[allow(clippy::too_many_arguments)]
 fn bench_kind(
     args: &BenchTraceArgs,
@@ -120,11 +167,16 @@ fn bench_kind(
     kind: &str,
     tris: &[bvhtrace_core::Triangle],
     flat: &FlatBvh,
-    paths: &[(String, TraceFn<'_>)],
-    rays: &[Ray],
+    paths: &[Path<'_>],
+    sets: &[Vec<Ray>; 2],
     q: Query,
 ) -> Result<()> {
-    let reference = trace_rays(flat, rays, &TraceOptions::new(Traversal::FullStack, q)).hits;
+    let rays = &sets[0];
+    let opts = TraceOptions::new(Traversal::FullStack, q);
+    let refs = [
+        trace_rays(flat, rays, &opts).hits,
+        trace_rays(flat, &sets[1], &opts).hits,
+    ];
     let dump = match &args.embree {
         Some(_) => Some(Dump::write(kind, tris, rays)?),
         None => None,
@@ -133,11 +185,13 @@ fn bench_kind(
     let mut ms = vec![Vec::new(); paths.len() + EMBREE_MODES.len()];
     let mut diffs = vec![0; paths.len()];
     // Untimed warm-up, which also checks the answers.
-    for (i, (_, f)) in paths.iter().enumerate() {
-        diffs[i] = differences(&f(rays, q), &reference, q);
+    for (i, (_, f, tiled)) in paths.iter().enumerate() {
+        let k = usize::from(*tiled);
+        diffs[i] = differences(&f(&sets[k], q), &refs[k], q);
     }
     for _ in 0..args.runs {
-        for (i, (_, f)) in paths.iter().enumerate() {
+        for (i, (_, f, tiled)) in paths.iter().enumerate() {
+            let rays = &sets[usize::from(*tiled)];
             let t = Instant::now();
             std::hint::black_box(f(rays, q));
             ms[i].push(t.elapsed().as_secs_f64() * 1e3);
@@ -178,7 +232,7 @@ fn bench_kind(
     let (fast, robust) = (&ms[paths.len()], &ms[paths.len() + 1]);
     let names = paths
         .iter()
-        .map(|(s, _)| s.as_str())
+        .map(|(s, _, _)| s.as_str())
         .chain(EMBREE_MODES.iter().map(|m| m.0));
     for (i, name) in names.enumerate() {
         if ms[i].is_empty() {

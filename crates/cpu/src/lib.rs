@@ -28,8 +28,14 @@
 //! ```
 //!
 //! Not here: two-level trees (instances), alpha masks (both refused by
-//! [`CpuBvh::from_flat`]), hit filters and counters, ray packets; the core walks trace
-//! those.
+//! [`CpuBvh::from_flat`]), hit filters and counters; the core walks trace those.
+//!
+//! # Packets
+//! [`trace_packets`] walks [`PACKET`] consecutive rays at a time together (coherent rays:
+//! camera rays in 8x8 screen tiles, see [`tile_order`]), each ray's box tests the
+//! single-ray walk's and its leaves tested with the single-ray triangle test: the same
+//! answers as [`trace_rays`], bit for bit for closest hits (any-hit queries agree on hit
+//! or miss).
 
 // `!(a <= b)` is how NaN is rejected along with the false case, as in the core walks.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -38,6 +44,7 @@
 mod lanes;
 pub mod layout;
 
+mod packet;
 mod single;
 mod tests4;
 
@@ -47,6 +54,7 @@ use bvhtrace_core::{Hit, Query, Ray};
 use rayon::prelude::*;
 
 pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
+pub use packet::{PACKET, tile_order};
 
 use lanes::{Lanes, Wide};
 use single::Entry;
@@ -195,4 +203,71 @@ unsafe fn run_avx2(
     stack: &mut [Entry],
 ) {
     run::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, stack)
+}
+
+/// Traces `rays` in packets of [`PACKET`] consecutive rays (the rays of one packet walked
+/// together, see the crate docs), on all threads of the current rayon pool, with the
+/// fastest instruction set this CPU has. Closest hits are [`trace_rays`]' to the bit;
+/// any hits agree on hit or miss. Pays on coherent rays put next to each other (camera
+/// rays in [`tile_order`]).
+pub fn trace_packets(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
+    trace_packets_with(bvh, rays, query, Isa::detect())
+}
+
+/// [`trace_packets`] with the instruction set `isa` (or the fastest this CPU has, when it
+/// lacks `isa`): the answers are the same whichever runs.
+pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
+    const RUN: usize = 16 * PACKET;
+    let mut hits = vec![Hit::miss(0.0); rays.len()];
+    hits.par_chunks_mut(RUN)
+        .zip(rays.par_chunks(RUN))
+        .for_each(|(h, r)| {
+            let mut s = packet::Scratch::new(bvh);
+            match (isa.or_available(), query) {
+                (Isa::Portable, Query::Closest) => {
+                    packet::run::<lanes::Portable, lanes::Pair<lanes::Portable>, false>(
+                        bvh, r, h, &mut s,
+                    )
+                }
+                (Isa::Portable, Query::Any) => {
+                    packet::run::<lanes::Portable, lanes::Pair<lanes::Portable>, true>(
+                        bvh, r, h, &mut s,
+                    )
+                }
+                #[cfg(target_arch = "x86_64")]
+                (Isa::Sse2, Query::Closest) => {
+                    packet::run::<lanes::Sse, lanes::Pair<lanes::Sse>, false>(bvh, r, h, &mut s)
+                }
+                #[cfg(target_arch = "x86_64")]
+                (Isa::Sse2, Query::Any) => {
+                    packet::run::<lanes::Sse, lanes::Pair<lanes::Sse>, true>(bvh, r, h, &mut s)
+                }
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
+                (Isa::Avx2, q) => unsafe { packets_avx2(bvh, r, q, h, &mut s) },
+                #[cfg(not(target_arch = "x86_64"))]
+                _ => unreachable!("or_available gives Portable off x86-64"),
+            }
+        });
+    hits
+}
+
+/// The packet walk with SSE lanes for the triangles and AVX lanes for the boxes,
+/// compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn packets_avx2(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    s: &mut packet::Scratch,
+) {
+    match query {
+        Query::Closest => packet::run::<lanes::Sse, lanes::Avx8, false>(bvh, rays, hits, s),
+        Query::Any => packet::run::<lanes::Sse, lanes::Avx8, true>(bvh, rays, hits, s),
+    }
 }

@@ -82,18 +82,18 @@ pub(crate) struct Entry {
     pub far: f32,
 }
 
-/// Tests a leaf's blocks. Returns true when an any-hit query can stop.
+/// Tests a leaf's blocks (`t_min` the ray's, splatted). Returns true when an any-hit query can stop.
 #[inline(always)]
-pub(crate) fn leaf<L: Lanes, W: Wide, const ANY: bool>(
+pub(crate) fn leaf<L: Lanes, const ANY: bool>(
     bvh: &CpuBvh,
-    q: &RayLanes<L, W>,
+    t_min: L,
     s: &ShearLanes<L>,
     child: u32,
     best: &mut Best,
 ) -> bool {
     let (first, count) = leaf_range(child);
     for b in &bvh.blocks[first..first + count] {
-        let (mut ok, t, u, v) = tri4(b, q, s);
+        let (mut ok, t, u, v) = tri4(b, t_min, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.
         ok &= t.le(L::splat(best.t)).bits();
         if ok == 0 {
@@ -256,9 +256,9 @@ fn walk<
                 child = order::<W, ANY>(n, &b, stack, &mut sp);
                 continue;
             }
-        } else if leaf::<L, W, ANY>(
+        } else if leaf::<L, ANY>(
             bvh,
-            q,
+            q.t_min4,
             shear.get_or_insert_with(|| ShearLanes::from4(p, i, KZ)),
             child,
             &mut best,

@@ -330,7 +330,12 @@ pub(crate) fn still_hit(t_max: f32, tnear: f32, m: f32, far: f32, t_best: f32) -
 
 /// The scalar box test of slot `i` of `n` (what [`box8`]'s lane `i` must equal).
 #[cfg(test)]
-fn box_lane(n: &Node8, r: &bvhtrace_core::intersect::PreparedRay, i: usize, t_best: f32) -> bool {
+pub(crate) fn box_lane(
+    n: &Node8,
+    r: &bvhtrace_core::intersect::PreparedRay,
+    i: usize,
+    t_best: f32,
+) -> bool {
     let b = n.child_box(i);
     let (lo, hi) = (b.min, b.max);
     bvhtrace_core::intersect::intersect_box(r, lo, hi, t_best).is_some()
@@ -345,14 +350,11 @@ fn edge<L: Lanes>(px: L, py: L, qx: L, qy: L) -> L {
     swap.select(qp.sub(pq).neg(), pq.sub(qp))
 }
 
-/// The watertight test on a block's four triangles: the lanes that hit at `t >= t_min`,
+/// The watertight test on a block's four triangles (`t_min` the ray's, splatted): the
+/// lanes that hit at `t >= t_min`,
 /// and per lane `t` and the weights of corners 1 and 2.
 #[inline(always)]
-pub(crate) fn tri4<L: Lanes, W: Wide>(
-    b: &Tri4,
-    q: &RayLanes<L, W>,
-    s: &ShearLanes<L>,
-) -> (u32, L, L, L) {
+pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, L, L) {
     let (kx, ky, kz) = (s.kx, s.ky, s.kz);
     let [sx, sy, sz] = s.s;
     let [ox, oy, oz] = s.o;
@@ -382,12 +384,12 @@ pub(crate) fn tri4<L: Lanes, W: Wide>(
         .add(w.mul(sz.mul(cz)));
     let inv_det = L::splat(1.0).div(det);
     let t = t_scaled.mul(inv_det);
-    let ok = t.ge(q.t_min4).bits() & inside;
+    let ok = t.ge(t_min).bits() & inside;
     (ok, t, v.mul(inv_det), w.mul(inv_det))
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use bvhtrace_core::intersect::{PreparedRay, intersect_triangle};
     use bvhtrace_core::{Aabb, Ray};
     use glam::Vec3;
@@ -410,7 +412,7 @@ mod tests {
         std::arch::is_x86_feature_detected!("avx2")
     }
 
-    fn next(s: &mut u64) -> f32 {
+    pub(crate) fn next(s: &mut u64) -> f32 {
         *s ^= *s << 13;
         *s ^= *s >> 7;
         *s ^= *s << 17;
@@ -418,7 +420,7 @@ mod tests {
     }
 
     /// A value from several regimes: ordinary, tiny, huge, exact small ones and zeros.
-    fn value(s: &mut u64) -> f32 {
+    pub(crate) fn value(s: &mut u64) -> f32 {
         let x = next(s) * 2.0 - 1.0;
         match (next(s) * 6.0) as u32 {
             0 => x * 1e-3,
@@ -429,11 +431,11 @@ mod tests {
         }
     }
 
-    fn point(s: &mut u64) -> Vec3 {
+    pub(crate) fn point(s: &mut u64) -> Vec3 {
         Vec3::new(value(s), value(s), value(s))
     }
 
-    fn ray(s: &mut u64) -> Ray {
+    pub(crate) fn ray(s: &mut u64) -> Ray {
         let mut d = point(s);
         // Axis-parallel with signed zeros, and subnormal components, now and then.
         match (next(s) * 5.0) as u32 {
@@ -691,7 +693,7 @@ mod tests {
             let r = PreparedRay::new(&ray);
             let (mask, t, u, v) = {
                 let q = PortableRay::prepare(&ray);
-                tri4(&b, &q, &ShearLanes::prepare(&ray))
+                tri4(&b, q.t_min4, &ShearLanes::prepare(&ray))
             };
             let (t, u, v) = (t.store(), u.store(), v.store());
             for (lane, tri) in tris.iter().enumerate() {
@@ -707,7 +709,7 @@ mod tests {
             {
                 let (m2, t2, u2, v2) = {
                     let q = SseRay::prepare(&ray);
-                    tri4(&b, &q, &ShearLanes::prepare(&ray))
+                    tri4(&b, q.t_min4, &ShearLanes::prepare(&ray))
                 };
                 assert_eq!(m2, mask);
                 for lane in 0..4 {
