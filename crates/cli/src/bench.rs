@@ -696,6 +696,41 @@ pub fn bench_build(args: BenchBuildArgs) -> Result<()> {
     Ok(())
 }
 
+/// The CPU layout's rows of `bench-trace`'s table: one per instruction set, its Mrays/s
+/// over `n` rays (medians of `ms`) and its speed against Embree's (`embree_ms`, the same
+/// rounds), the GPU columns empty.
+fn print_cpu_layout_rows(
+    isas: &[bvhtrace_cpu::Isa],
+    q: Query,
+    ms: &[Vec<f64>],
+    embree_ms: &[f64],
+    n: f64,
+) {
+    for (isa, ms) in isas.iter().zip(ms) {
+        let vs_embree = if embree_ms.is_empty() {
+            "-".to_string()
+        } else {
+            let ratios = embree_ms.iter().zip(ms).map(|(a, b)| a / b).collect();
+            format!("{:.2}x", median(ratios))
+        };
+        println!(
+            "{:16} {:8} {:>9} {:>9} {:>9.2} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
+            format!("cpu8 {isa}"),
+            format!("{q:?}").to_lowercase(),
+            "-",
+            "-",
+            n / median(ms.clone()) / 1e3,
+            "-",
+            "-",
+            "-",
+            "-",
+            "-",
+            "-",
+            vs_embree,
+        );
+    }
+}
+
 /// `bvhtrace bench-trace`.
 #[derive(clap::Args)]
 pub struct BenchTraceArgs {
@@ -926,28 +961,7 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
                     vs_embree,
                 );
             }
-            for (i, isa) in isas.iter().enumerate() {
-                let vs_embree = if embree_ms.is_empty() {
-                    "-".to_string()
-                } else {
-                    format!("{:.2}x", ratio(&embree_ms, &cpu_layout_ms[i]))
-                };
-                println!(
-                    "{:16} {:8} {:>9} {:>9} {:>9.2} {:>7} {:>6} {:>7} {:>8} {:>8} {:>8} {:>10}",
-                    format!("cpu8 {isa}"),
-                    format!("{q:?}").to_lowercase(),
-                    "-",
-                    "-",
-                    mrays(&cpu_layout_ms[i]),
-                    "-",
-                    "-",
-                    "-",
-                    "-",
-                    "-",
-                    "-",
-                    vs_embree,
-                );
-            }
+            print_cpu_layout_rows(&isas, q, &cpu_layout_ms, &embree_ms, n);
             if !rq_ms.is_empty() {
                 // Wall time only (the driver's walk has no timestamps of ours); ratios
                 // against the first walk's wall time and its CPU twin's.
