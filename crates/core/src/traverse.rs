@@ -174,18 +174,26 @@ impl WalkCost {
     }
 }
 
-/// The best hit so far.
-struct Best {
-    t: f32,
-    prim: u32,
-    u: f32,
-    v: f32,
-    found: bool,
+/// The best hit so far, under the walks' one hit rule ([`Best::beats`]); public for walks
+/// over other layouts (bvhtrace-cpu), so that every walk takes hits alike.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Best {
+    /// Distance of the best hit, or the end of the interval while there is none.
+    pub t: f32,
+    /// Its primitive id ([`MISS`] while there is none).
+    pub prim: u32,
+    /// Weight of corner 1.
+    pub u: f32,
+    /// Weight of corner 2.
+    pub v: f32,
+    /// True once a hit was taken.
+    pub found: bool,
 }
 
 impl Best {
     /// No hit yet: the interval ends at the ray's `t_max`.
-    fn start(ray: &Ray) -> Best {
+    #[inline(always)]
+    pub fn start(ray: &Ray) -> Best {
         Best {
             t: ray.t_max,
             prim: MISS,
@@ -195,7 +203,33 @@ impl Best {
         }
     }
 
-    fn into_hit(self) -> Hit {
+    /// The hit rule: a candidate at `t` on `prim` replaces the best when it is nearer, or
+    /// as near with a lower primitive id, which makes the closest hit independent of the
+    /// order triangles are tested in.
+    #[inline(always)]
+    pub fn beats(&self, t: f32, prim: u32) -> bool {
+        t < self.t || (t == self.t && self.found && prim < self.prim)
+    }
+
+    /// Takes the candidate when it [beats](Best::beats) the best; true when it did.
+    #[inline(always)]
+    pub fn offer(&mut self, t: f32, prim: u32, u: f32, v: f32) -> bool {
+        let taken = self.beats(t, prim);
+        if taken {
+            *self = Best {
+                t,
+                prim,
+                u,
+                v,
+                found: true,
+            };
+        }
+        taken
+    }
+
+    /// The hit, or a miss at the interval's end.
+    #[inline(always)]
+    pub fn into_hit(self) -> Hit {
         if self.found {
             Hit {
                 t: self.t,
@@ -307,7 +341,7 @@ fn visit_triangles<T: TriangleTest>(
         let [v0, v1, v2] = tri.corners();
         let prim = at.prim_base + tri.prim;
         if let Some(h) = T::intersect(r, v0, v1, v2)
-            && (h.t < best.t || (h.t == best.t && best.found && prim < best.prim))
+            && best.beats(h.t, prim)
         {
             if let Some(m) = at.masks
                 && !m.accept(at.mask_base, tri.prim, h.u, h.v)
@@ -890,8 +924,9 @@ fn trace_wide(
     }
 }
 
-/// The hit of a ray that is not traced ([`Ray::is_valid`] is false).
-fn untraced(ray: &Ray) -> Hit {
+/// The hit of a ray that is not traced ([`Ray::is_valid`] is false): `INVALID_RAY` at
+/// `t_max` (0 when that is NaN).
+pub fn untraced(ray: &Ray) -> Hit {
     Hit {
         prim: INVALID_RAY,
         ..Hit::miss(if ray.t_max.is_nan() { 0.0 } else { ray.t_max })

@@ -2,76 +2,15 @@
 //! children visited nearest first, popped children re-tested against the best hit, and a
 //! leaf's triangles tested four at a time.
 
-use bvhtrace_core::{Hit, INVALID_RAY, MISS, Ray};
+use bvhtrace_core::{Hit, Ray};
 
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::tests4::{BoxHits, Prepared4, RayLanes, ShearLanes, box8, still_hit, tri4};
 
-/// The best hit so far (the core walks' rule, see [`Best::offer`]).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Best {
-    pub t: f32,
-    pub prim: u32,
-    pub u: f32,
-    pub v: f32,
-    pub found: bool,
-}
-
-impl Best {
-    /// No hit yet: the interval ends at the ray's `t_max`.
-    #[inline(always)]
-    pub fn start(ray: &Ray) -> Best {
-        Best {
-            t: ray.t_max,
-            prim: MISS,
-            u: 0.0,
-            v: 0.0,
-            found: false,
-        }
-    }
-
-    /// Takes the candidate when it is nearer, or as near with a lower primitive id: the
-    /// rule of `bvhtrace_core::traverse`, which makes the closest hit independent of the
-    /// order in which triangles are tested. True when it was taken.
-    #[inline(always)]
-    pub fn offer(&mut self, t: f32, prim: u32, u: f32, v: f32) -> bool {
-        if t < self.t || (t == self.t && self.found && prim < self.prim) {
-            *self = Best {
-                t,
-                prim,
-                u,
-                v,
-                found: true,
-            };
-            true
-        } else {
-            false
-        }
-    }
-
-    #[inline(always)]
-    pub fn into_hit(self) -> Hit {
-        if self.found {
-            Hit {
-                t: self.t,
-                prim: self.prim,
-                u: self.u,
-                v: self.v,
-            }
-        } else {
-            Hit::miss(self.t)
-        }
-    }
-}
-
-/// The hit of a ray that is not traced (as the core walks report it).
-pub(crate) fn untraced(ray: &Ray) -> Hit {
-    Hit {
-        prim: INVALID_RAY,
-        ..Hit::miss(if ray.t_max.is_nan() { 0.0 } else { ray.t_max })
-    }
-}
+// The core walks' best hit and hit rule, and their answer for a ray not traced: one rule
+// for every walk.
+pub(crate) use bvhtrace_core::traverse::{Best, untraced};
 
 /// A child waiting on the stack: its reference, and what [`still_hit`] needs.
 #[derive(Clone, Copy, Debug, Default)]
