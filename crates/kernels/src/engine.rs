@@ -751,6 +751,9 @@ impl<B: Backend> Engine<B> {
         for a in &arrays {
             a.check(self.backend.limits())?;
         }
+        // The wide arrays come last: their stats before the arrays go to the writes.
+        let wide_from = arrays.iter().take_while(|a| !a.role.is_wide()).count();
+        let wide_stats = stats_of(storage, &arrays[wide_from..]);
         let mut writes = Vec::with_capacity(arrays.len());
         for array in arrays {
             let old = self.sizes.iter_mut().find(|(r, _)| *r == array.role);
@@ -778,8 +781,8 @@ impl<B: Backend> Engine<B> {
         };
         self.backend
             .write_arrays(&mut self.arrays, layout, &writes)?;
-        if let Some(w) = &wide {
-            let w = stats_of(storage, &wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
+        if wide.is_some() {
+            let w = wide_stats;
             let b = self.binary_stats;
             self.stats = UploadStats {
                 nodes_bytes: b.nodes_bytes + w.nodes_bytes,
