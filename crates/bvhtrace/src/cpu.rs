@@ -3,7 +3,7 @@
 //! bit; the core walks for everything else.
 
 use std::borrow::Borrow;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use bvhtrace_core::{FlatBvh, Precision, Query, Ray, TraceOptions, TraceOutput, Traversal};
 use bvhtrace_cpu::CpuBvh;
@@ -14,51 +14,57 @@ use web_time::Instant;
 /// layout when it asks for what the layout answers identically: closest hits with the
 /// full stack (the CPU's default walk), the watertight f32 test, no counters, no filter.
 /// Any-hit queries stay on the core walks, whose choice of hit is the kernels' twin; so do
-/// two-level and alpha-masked trees, which the layout does not take.
-pub struct FastCpuTracer<'a> {
-    walks: Box<dyn Tracer + 'a>,
-    fast: Option<Arc<CpuBvh>>,
-    filtered: bool,
+/// two-level and alpha-masked trees, which the layout does not take. The tree is converted
+/// on the first trace the layout takes (or the first question about it), not before.
+pub struct FastCpuTracer<B> {
+    walks: CpuTracer<B>,
+    layout: OnceLock<Option<Arc<CpuBvh>>>,
 }
 
-impl<'a> FastCpuTracer<'a> {
-    /// `walks` over `bvh`, with the layout converted from `bvh` when it takes the tree;
-    /// `filtered` when `walks` passes candidates through a filter (the layout cannot).
-    pub fn new<B>(walks: CpuTracer<B>, filtered: bool) -> Self
-    where
-        B: Borrow<FlatBvh> + Send + Sync + 'a,
-    {
-        let fast = CpuBvh::from_flat(walks.bvh()).ok().map(Arc::new);
+impl<B: Borrow<FlatBvh>> FastCpuTracer<B> {
+    /// `walks`, with the CPU layout beside them for the traces it takes.
+    pub fn new(walks: CpuTracer<B>) -> Self {
         FastCpuTracer {
-            walks: Box::new(walks),
-            fast,
-            filtered,
+            walks,
+            layout: OnceLock::new(),
         }
+    }
+
+    /// The tree in the CPU layout; `None` when the layout does not take it (two levels,
+    /// masks) or a filter is on.
+    fn layout(&self) -> Option<&Arc<CpuBvh>> {
+        self.layout
+            .get_or_init(|| {
+                if self.walks.has_filter() {
+                    return None;
+                }
+                CpuBvh::from_flat(self.walks.bvh()).ok().map(Arc::new)
+            })
+            .as_ref()
     }
 
     /// True when the layout traces with `opts`.
     pub fn takes(&self, opts: &TraceOptions) -> bool {
-        self.fast.is_some()
-            && !self.filtered
-            && opts.traversal == Traversal::FullStack
+        opts.traversal == Traversal::FullStack
             && opts.query == Query::Closest
             && opts.precision == Precision::WatertightF32
             && !opts.counters
+            && self.layout().is_some()
     }
 
-    /// True when the tree is in the CPU layout too.
+    /// True when the tree is in the CPU layout too (converting it on the first call).
     pub fn has_layout(&self) -> bool {
-        self.fast.is_some()
+        self.layout().is_some()
     }
 }
 
-impl Tracer for FastCpuTracer<'_> {
+impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
     fn backend(&self) -> &'static str {
         self.walks.backend()
     }
 
     fn device_name(&self) -> String {
-        match self.fast {
+        match self.layout() {
             Some(_) => format!(
                 "{}, closest hits in the CPU layout ({})",
                 self.walks.device_name(),
@@ -77,7 +83,7 @@ impl Tracer for FastCpuTracer<'_> {
     }
 
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
-        match &self.fast {
+        match self.layout() {
             Some(fast) if self.takes(opts) => {
                 let start = Instant::now();
                 let hits = bvhtrace_cpu::trace_rays(fast, rays, opts.query);
@@ -96,7 +102,8 @@ impl Tracer for FastCpuTracer<'_> {
 
     fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
         self.walks.update(bvh)?;
-        self.fast = CpuBvh::from_flat(bvh).ok().map(Arc::new);
+        // Converted again when next asked for, from the updated tree.
+        self.layout = OnceLock::new();
         Ok(())
     }
 }

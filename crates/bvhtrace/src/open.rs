@@ -761,8 +761,8 @@ where
     B: Borrow<FlatBvh> + Send + Sync + 'a,
 {
     match &opts.filter {
-        Some(f) => Box::new(FastCpuTracer::new(tracer.with_filter(f.0.clone()), true)),
-        None => Box::new(FastCpuTracer::new(tracer, false)),
+        Some(f) => Box::new(FastCpuTracer::new(tracer.with_filter(f.0.clone()))),
+        None => Box::new(FastCpuTracer::new(tracer)),
     }
 }
 

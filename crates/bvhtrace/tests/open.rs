@@ -257,7 +257,7 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
     use bvhtrace::{CpuTracer, FastCpuTracer, Query, Tracer};
     let bvh = grid();
     let rays = rays();
-    let fast = FastCpuTracer::new(CpuTracer::new(&bvh), false);
+    let fast = FastCpuTracer::new(CpuTracer::new(&bvh));
     assert!(fast.has_layout());
     let core = CpuTracer::new(&bvh);
     let bits = |h: &[bvhtrace::Hit]| -> Vec<[u32; 4]> {
@@ -291,7 +291,6 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
     // A filter keeps every query on the core walks.
     let filtered = FastCpuTracer::new(
         CpuTracer::new(&bvh).with_filter(std::sync::Arc::new(|_: &bvhtrace::core::Candidate| true)),
-        true,
     );
     assert!(!filtered.takes(&TraceOptions::closest(Traversal::FullStack)));
     // Two levels: the core walks only.
@@ -304,5 +303,5 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
         &BuildOptions::default(),
     )
     .expect("two levels");
-    assert!(!FastCpuTracer::new(CpuTracer::new(ib.bvh()), false).has_layout());
+    assert!(!FastCpuTracer::new(CpuTracer::new(ib.bvh())).has_layout());
 }

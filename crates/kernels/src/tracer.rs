@@ -180,6 +180,11 @@ impl<B: Borrow<FlatBvh>> CpuTracer<B> {
         self
     }
 
+    /// True when candidates pass through a filter ([`CpuTracer::with_filter`]).
+    pub fn has_filter(&self) -> bool {
+        self.filter.is_some()
+    }
+
     /// The tree.
     pub fn bvh(&self) -> &FlatBvh {
         self.updated.as_deref().unwrap_or_else(|| self.bvh.borrow())
