@@ -1,24 +1,29 @@
 //! The CPU backend's tracer: the layout made for the CPU ([`bvhtrace_cpu`], SIMD walks
-//! over 8-wide nodes) for the closest hits it answers as the full-stack walk does, bit for
-//! bit; the core walks for everything else.
+//! over 8-wide nodes) for full-stack traces (closest hits bit for bit the full stack's,
+//! any hits with its verdicts); the core walks for everything else.
 
 use std::borrow::Borrow;
 use std::sync::{Arc, OnceLock};
 
-use bvhtrace_core::{FlatBvh, Precision, Query, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Ray, TraceOptions, TraceOutput, Traversal};
 use bvhtrace_cpu::CpuBvh;
 use bvhtrace_kernels::{CpuTracer, TraceError, Tracer};
 use web_time::Instant;
 
 /// The core walks ([`CpuTracer`]) with the CPU layout beside them. A trace goes to the
-/// layout when it asks for what the layout answers identically: closest hits with the
-/// full stack (the CPU's default walk), the watertight f32 test, no counters, no filter.
-/// Any-hit queries stay on the core walks, whose choice of hit is the kernels' twin; so do
-/// two-level and alpha-masked trees, which the layout does not take. The tree is converted
-/// on the first trace the layout takes (or the first question about it), not before.
+/// layout when it asks for what the layout answers as the core walks do: the full stack
+/// (the CPU's default walk), the watertight f32 test, no counters, no filter; one mesh or
+/// two levels (any visibility mask, `TraceOptions::mask`), with or without alpha masks.
+/// Closest hits are then the full stack's bit for bit; any hits agree with every backend
+/// on hit or miss, the triangle reported being the layout walk's first find (which
+/// triangle an any-hit query stops at depends on the walk on every backend). The tree is
+/// converted on the first trace the layout takes (or the first question about it), not
+/// before.
 pub struct FastCpuTracer<B> {
     walks: CpuTracer<B>,
     layout: OnceLock<Option<Arc<CpuBvh>>>,
+    /// The two-level tree's instance table every output shares (`None` for one mesh).
+    instances: OnceLock<Option<Arc<InstanceTable>>>,
 }
 
 impl<B: Borrow<FlatBvh>> FastCpuTracer<B> {
@@ -27,11 +32,12 @@ impl<B: Borrow<FlatBvh>> FastCpuTracer<B> {
         FastCpuTracer {
             walks,
             layout: OnceLock::new(),
+            instances: OnceLock::new(),
         }
     }
 
-    /// The tree in the CPU layout; `None` when the layout does not take it (two levels,
-    /// masks) or a filter is on.
+    /// The tree in the CPU layout; `None` when a filter is on or the layout refuses the
+    /// tree (one edited by hand past its arrays).
     fn layout(&self) -> Option<&Arc<CpuBvh>> {
         self.layout
             .get_or_init(|| {
@@ -46,7 +52,6 @@ impl<B: Borrow<FlatBvh>> FastCpuTracer<B> {
     /// True when the layout traces with `opts`.
     pub fn takes(&self, opts: &TraceOptions) -> bool {
         opts.traversal == Traversal::FullStack
-            && opts.query == Query::Closest
             && opts.precision == Precision::WatertightF32
             && !opts.counters
             && self.layout().is_some()
@@ -66,7 +71,7 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
     fn device_name(&self) -> String {
         match self.layout() {
             Some(_) => format!(
-                "{}, closest hits in the CPU layout ({})",
+                "{}, full-stack traces in the CPU layout ({})",
                 self.walks.device_name(),
                 bvhtrace_cpu::Isa::detect()
             ),
@@ -86,14 +91,19 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
         match self.layout() {
             Some(fast) if self.takes(opts) => {
                 let start = Instant::now();
-                let hits = bvhtrace_cpu::trace_rays(fast, rays, opts.query);
+                let isa = bvhtrace_cpu::Isa::detect();
+                let hits =
+                    bvhtrace_cpu::trace_rays_with_mask(fast, rays, opts.query, opts.mask, isa);
                 Ok(TraceOutput {
                     hits,
                     counters: None,
                     gpu_ms: None,
                     wall_ms: start.elapsed().as_secs_f64() * 1e3,
                     incomplete: 0,
-                    instances: None,
+                    instances: self
+                        .instances
+                        .get_or_init(|| InstanceTable::of(self.walks.bvh()))
+                        .clone(),
                 })
             }
             _ => self.walks.trace(rays, opts),
@@ -104,6 +114,7 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
         self.walks.update(bvh)?;
         // Converted again when next asked for, from the updated tree.
         self.layout = OnceLock::new();
+        self.instances = OnceLock::new();
         Ok(())
     }
 }

@@ -767,7 +767,8 @@ where
 }
 
 /// The CPU walks on `bvh`, in place unless a wide walk is asked for and the tree has no
-/// wide layout (then on a copy with one), and the CPU layout for the closest hits it takes.
+/// wide layout (then on a copy with one), and the CPU layout for the full-stack traces it
+/// takes.
 fn open_cpu<'a, B>(
     bvh: B,
     opts: &OpenOptions,

@@ -250,8 +250,10 @@ fn a_filter_is_applied_on_the_cpu_and_refused_by_the_devices() {
 }
 
 /// The CPU backend traces closest hits with the default walk in the CPU layout
-/// (`FastCpuTracer`), bit for bit the core full stack's, on a mesh and after an update; the
-/// rest (any hit, counters, other walks) on the core walks; a two-level tree has no layout.
+/// (`FastCpuTracer`), bit for bit the core full stack's, on a mesh and after an update, and
+/// any hits there too (the same verdicts); the rest (counters, other walks) on the core
+/// walks; two-level trees (with the
+/// rays' visibility mask) and alpha-masked trees in the layout too.
 #[test]
 fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
     use bvhtrace::{CpuTracer, FastCpuTracer, Query, Tracer};
@@ -267,7 +269,7 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
     };
     for (opts, layout) in [
         (TraceOptions::closest(Traversal::FullStack), true),
-        (TraceOptions::new(Traversal::FullStack, Query::Any), false),
+        (TraceOptions::new(Traversal::FullStack, Query::Any), true),
         (
             TraceOptions::closest(Traversal::FullStack).with_counters(true),
             false,
@@ -279,7 +281,14 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
             fast.trace(&rays, &opts).expect("trace"),
             core.trace(&rays, &opts).expect("trace"),
         );
-        assert_eq!(bits(&a.hits), bits(&b.hits), "{opts:?}");
+        if opts.query == Query::Closest {
+            assert_eq!(bits(&a.hits), bits(&b.hits), "{opts:?}");
+        } else {
+            // Any hit: the same verdict, each walk stopping at the hit it found first.
+            let hit = |h: &[bvhtrace::Hit]| h.iter().map(|h| h.is_hit()).collect::<Vec<_>>();
+            assert_eq!(hit(&a.hits), hit(&b.hits), "{opts:?}");
+            assert!(a.hits.iter().any(|h| h.is_hit()));
+        }
         assert_eq!(a.counters.is_some(), opts.counters);
     }
     let opened = bvhtrace::open(&bvh, &OpenOptions::new(Backend::Cpu)).expect("the CPU opens");
@@ -293,15 +302,73 @@ fn the_cpu_backend_takes_the_cpu_layout_for_closest_hits() {
         CpuTracer::new(&bvh).with_filter(std::sync::Arc::new(|_: &bvhtrace::core::Candidate| true)),
     );
     assert!(!filtered.takes(&TraceOptions::closest(Traversal::FullStack)));
-    // Two levels: the core walks only.
-    let ib = bvhtrace::core::InstancedBvh::build(
-        &[vec![[Vec3::ZERO, Vec3::X, Vec3::Y]]],
-        vec![bvhtrace::core::Instance::new(
-            0,
-            bvhtrace::glam::Affine3A::IDENTITY,
-        )],
-        &BuildOptions::default(),
-    )
-    .expect("two levels");
-    assert!(!FastCpuTracer::new(CpuTracer::new(ib.bvh())).has_layout());
+    // Two levels, the instances behind each other and seen by different rays' masks: in
+    // the layout, the outputs the core walks'.
+    let instances = (0..3)
+        .map(|k| bvhtrace::core::Instance {
+            mask: 1 << k,
+            user_id: 10 + k,
+            ..bvhtrace::core::Instance::new(
+                0,
+                bvhtrace::glam::Affine3A::from_translation(Vec3::new(0.1, 0.0, -(k as f32))),
+            )
+        })
+        .collect();
+    let mesh: Vec<_> = grid().triangles().iter().map(|t| t.corners()).collect();
+    let ib = bvhtrace::core::InstancedBvh::build(&[mesh], instances, &BuildOptions::default())
+        .expect("two levels");
+    let fast = FastCpuTracer::new(CpuTracer::new(ib.bvh()));
+    let core = CpuTracer::new(ib.bvh());
+    assert!(fast.has_layout());
+    for mask in [0xff, 0x02, 0x04, 0x00] {
+        let opts = TraceOptions::closest(Traversal::FullStack).with_mask(mask);
+        assert!(fast.takes(&opts));
+        let (a, b) = (
+            fast.trace(&rays, &opts).expect("trace"),
+            core.trace(&rays, &opts).expect("trace"),
+        );
+        assert_eq!(bits(&a.hits), bits(&b.hits), "{opts:?}");
+        assert_eq!(a.instances, b.instances);
+        assert!(a.instances.is_some());
+    }
+    // Alpha masks: every third triangle of the grid cut away.
+    use bvhtrace::core::masks::{MASK_OPAQUE, MASK_TRANSPARENT, MaskTables};
+    let mut masked = grid();
+    let states = (0..masked.triangle_count())
+        .map(|p| {
+            if p % 3 == 0 {
+                MASK_TRANSPARENT
+            } else {
+                MASK_OPAQUE
+            }
+        })
+        .collect();
+    let tables = MaskTables::new(states, vec![], vec![], vec![], vec![]).expect("tables");
+    masked
+        .set_masks(Some(std::sync::Arc::new(tables)))
+        .expect("masks");
+    let fast = FastCpuTracer::new(CpuTracer::new(&masked));
+    assert!(fast.has_layout());
+    let opts = TraceOptions::closest(Traversal::FullStack);
+    let core = CpuTracer::new(&masked);
+    let (a, b) = (
+        fast.trace(&rays, &opts).expect("trace"),
+        core.trace(&rays, &opts).expect("trace"),
+    );
+    assert_eq!(bits(&a.hits), bits(&b.hits));
+    assert_ne!(
+        bits(&a.hits),
+        bits(&fast_plain_hits(&rays)),
+        "the masks cut"
+    );
+}
+
+/// The unmasked grid's closest hits through the layout.
+fn fast_plain_hits(rays: &[Ray]) -> Vec<bvhtrace::Hit> {
+    use bvhtrace::{CpuTracer, FastCpuTracer, Tracer};
+    let bvh = grid();
+    let fast = FastCpuTracer::new(CpuTracer::new(&bvh));
+    fast.trace(rays, &TraceOptions::closest(Traversal::FullStack))
+        .expect("trace")
+        .hits
 }

@@ -51,12 +51,12 @@ fn main() {
         let t = Instant::now();
         let bvh = CpuBvh::from_flat(&flat).unwrap();
         let convert = t.elapsed().as_secs_f64() * 1e3;
-        let (bn, bb) = bvh.byte_sizes();
+        let (bn, _) = bvh.byte_sizes();
         println!(
             "{name}: {} tris, convert {convert:.1} ms, {} nodes, {} blocks, {:.1} bytes/tri, depth {}",
             tris.len(),
             bn / 256,
-            bb / 160,
+            bvh.blocks().len(),
             bvh.bytes_per_triangle(),
             bvh.depth()
         );

@@ -330,6 +330,24 @@ pub(crate) trait Wide: Copy {
     fn select(self, a: Self, b: Self) -> Self;
     /// Lane `i`'s sign bit in bit `i`.
     fn bits(self) -> u32;
+    /// `self / o` per lane (correctly rounded, not a reciprocal estimate).
+    fn div(self, o: Self) -> Self;
+    /// `-self` per lane (the sign bit flipped).
+    fn neg(self) -> Self;
+    /// Mask of `self > o`.
+    fn gt(self, o: Self) -> Self;
+    /// Mask of `self >= o`.
+    fn ge(self, o: Self) -> Self;
+    /// Mask of `self == o`.
+    fn eq(self, o: Self) -> Self;
+    /// Bitwise or.
+    fn or(self, o: Self) -> Self;
+    /// The eight columns of the 8x8 matrix whose rows are `rows`: column `c` has
+    /// `rows[j][c]` in lane `j`.
+    fn columns(rows: [&[f32; 8]; 8]) -> [Self; 8];
+    /// The eight rows of the 8x4 matrix whose columns are `cols`: row `j` is lane `j` of
+    /// each column.
+    fn rows4(cols: [Self; 4]) -> [[f32; 4]; 8];
 }
 
 /// Eight lanes as two of four: the portable and SSE paths' [`Wide`].
@@ -404,6 +422,49 @@ impl<L: Lanes> Wide for Pair<L> {
     #[inline(always)]
     fn bits(self) -> u32 {
         self.0.bits() | self.1.bits() << 4
+    }
+    #[inline(always)]
+    fn div(self, o: Self) -> Self {
+        self.both(o, L::div)
+    }
+    #[inline(always)]
+    fn neg(self) -> Self {
+        Pair(self.0.neg(), self.1.neg())
+    }
+    #[inline(always)]
+    fn gt(self, o: Self) -> Self {
+        self.both(o, L::gt)
+    }
+    #[inline(always)]
+    fn ge(self, o: Self) -> Self {
+        self.both(o, L::ge)
+    }
+    #[inline(always)]
+    fn eq(self, o: Self) -> Self {
+        self.both(o, L::eq)
+    }
+    #[inline(always)]
+    fn or(self, o: Self) -> Self {
+        self.both(o, L::or)
+    }
+    #[inline(always)]
+    fn rows4(cols: [Self; 4]) -> [[f32; 4]; 8] {
+        let c = [
+            cols[0].store(),
+            cols[1].store(),
+            cols[2].store(),
+            cols[3].store(),
+        ];
+        std::array::from_fn(|j| [c[0][j], c[1][j], c[2][j], c[3][j]])
+    }
+    #[inline(always)]
+    fn columns(rows: [&[f32; 8]; 8]) -> [Self; 8] {
+        std::array::from_fn(|c| {
+            Pair(
+                L::load(&[rows[0][c], rows[1][c], rows[2][c], rows[3][c]]),
+                L::load(&[rows[4][c], rows[5][c], rows[6][c], rows[7][c]]),
+            )
+        })
     }
 }
 
@@ -499,6 +560,102 @@ mod avx {
         #[inline(always)]
         fn bits(self) -> u32 {
             avx!(_mm256_movemask_ps(self.0) as u32)
+        }
+        #[inline(always)]
+        fn div(self, o: Self) -> Self {
+            // `vdivps` is correctly rounded (no reciprocal estimate).
+            avx!(Avx8(_mm256_div_ps(self.0, o.0)))
+        }
+        #[inline(always)]
+        fn neg(self) -> Self {
+            avx!(Avx8(_mm256_xor_ps(self.0, _mm256_set1_ps(-0.0))))
+        }
+        #[inline(always)]
+        fn gt(self, o: Self) -> Self {
+            avx!(Avx8(_mm256_cmp_ps::<_CMP_GT_OQ>(self.0, o.0)))
+        }
+        #[inline(always)]
+        fn ge(self, o: Self) -> Self {
+            avx!(Avx8(_mm256_cmp_ps::<_CMP_GE_OQ>(self.0, o.0)))
+        }
+        #[inline(always)]
+        fn eq(self, o: Self) -> Self {
+            avx!(Avx8(_mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0)))
+        }
+        #[inline(always)]
+        fn or(self, o: Self) -> Self {
+            avx!(Avx8(_mm256_or_ps(self.0, o.0)))
+        }
+        #[inline(always)]
+        fn rows4(cols: [Self; 4]) -> [[f32; 4]; 8] {
+            // Interleave the columns in pairs, then pairs of pairs: `q[i]` holds row `i`
+            // in its low half and row `i + 4` in its high half.
+            let mut out = [[0.0f32; 4]; 8];
+            avx!({
+                let [a, b, c, d] = [cols[0].0, cols[1].0, cols[2].0, cols[3].0];
+                let (ab0, ab1) = (_mm256_unpacklo_ps(a, b), _mm256_unpackhi_ps(a, b));
+                let (cd0, cd1) = (_mm256_unpacklo_ps(c, d), _mm256_unpackhi_ps(c, d));
+                let q = [
+                    _mm256_shuffle_ps::<0x44>(ab0, cd0),
+                    _mm256_shuffle_ps::<0xee>(ab0, cd0),
+                    _mm256_shuffle_ps::<0x44>(ab1, cd1),
+                    _mm256_shuffle_ps::<0xee>(ab1, cd1),
+                ];
+                // `out` is eight rows of four writable f32s; the stores are unaligned.
+                for i in 0..4 {
+                    _mm_storeu_ps(out[i].as_mut_ptr(), _mm256_castps256_ps128(q[i]));
+                    _mm_storeu_ps(out[i + 4].as_mut_ptr(), _mm256_extractf128_ps::<1>(q[i]));
+                }
+            });
+            out
+        }
+        #[inline(always)]
+        fn columns(rows: [&[f32; 8]; 8]) -> [Self; 8] {
+            // Each row is eight readable f32s; the loads are unaligned. The usual 8x8
+            // transpose: pairs of rows interleaved, then quads, then the 128-bit halves.
+            avx!({
+                // No closure: it would be compiled apart from the AVX2 caller.
+                let r = [
+                    _mm256_loadu_ps(rows[0].as_ptr()),
+                    _mm256_loadu_ps(rows[1].as_ptr()),
+                    _mm256_loadu_ps(rows[2].as_ptr()),
+                    _mm256_loadu_ps(rows[3].as_ptr()),
+                    _mm256_loadu_ps(rows[4].as_ptr()),
+                    _mm256_loadu_ps(rows[5].as_ptr()),
+                    _mm256_loadu_ps(rows[6].as_ptr()),
+                    _mm256_loadu_ps(rows[7].as_ptr()),
+                ];
+                let t = [
+                    _mm256_unpacklo_ps(r[0], r[1]),
+                    _mm256_unpackhi_ps(r[0], r[1]),
+                    _mm256_unpacklo_ps(r[2], r[3]),
+                    _mm256_unpackhi_ps(r[2], r[3]),
+                    _mm256_unpacklo_ps(r[4], r[5]),
+                    _mm256_unpackhi_ps(r[4], r[5]),
+                    _mm256_unpacklo_ps(r[6], r[7]),
+                    _mm256_unpackhi_ps(r[6], r[7]),
+                ];
+                let q = [
+                    _mm256_shuffle_ps::<0x44>(t[0], t[2]),
+                    _mm256_shuffle_ps::<0xee>(t[0], t[2]),
+                    _mm256_shuffle_ps::<0x44>(t[1], t[3]),
+                    _mm256_shuffle_ps::<0xee>(t[1], t[3]),
+                    _mm256_shuffle_ps::<0x44>(t[4], t[6]),
+                    _mm256_shuffle_ps::<0xee>(t[4], t[6]),
+                    _mm256_shuffle_ps::<0x44>(t[5], t[7]),
+                    _mm256_shuffle_ps::<0xee>(t[5], t[7]),
+                ];
+                [
+                    Avx8(_mm256_permute2f128_ps::<0x20>(q[0], q[4])),
+                    Avx8(_mm256_permute2f128_ps::<0x20>(q[1], q[5])),
+                    Avx8(_mm256_permute2f128_ps::<0x20>(q[2], q[6])),
+                    Avx8(_mm256_permute2f128_ps::<0x20>(q[3], q[7])),
+                    Avx8(_mm256_permute2f128_ps::<0x31>(q[0], q[4])),
+                    Avx8(_mm256_permute2f128_ps::<0x31>(q[1], q[5])),
+                    Avx8(_mm256_permute2f128_ps::<0x31>(q[2], q[6])),
+                    Avx8(_mm256_permute2f128_ps::<0x31>(q[3], q[7])),
+                ]
+            })
         }
     }
 }

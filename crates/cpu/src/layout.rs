@@ -20,11 +20,23 @@
 //! [`MAX_LEAF_BLOCKS`]` * 4` triangles (only with a large `max_leaf_size`) is split into a
 //! node over runs of the leaf's triangles, boxed by their corners.
 //!
+//! # Two levels
+//! A two-level tree (instances over meshes, `bvhtrace_core::flat`'s *Two levels*) is the
+//! same arrays: the top level's nodes first (node 0 its root), collapsed alike but with
+//! one instance per leaf child (`LEAF | instance index`, no blocks), then each mesh's
+//! nodes, converted once however many instances place it, and every mesh's blocks (their
+//! ids the mesh's own). Each instance keeps the core's `FlatInstance` (transform,
+//! primitive base, visibility mask) and where its mesh's walk starts: the mesh's root
+//! node, or its leaf when the mesh is one leaf.
+//!
 //! Skipping the binary boxes between a wide node and its children only removes culls:
 //! every walk over this layout visits a superset of what the binary walk would with the
 //! same running best hit, so the closest hit is the binary walk's (see the crate docs).
 
-use bvhtrace_core::{Aabb, FlatBvh, FlatNode, FlatTriangle};
+use std::sync::Arc;
+
+use bvhtrace_core::masks::MaskTables;
+use bvhtrace_core::{Aabb, FlatBvh, FlatInstance, FlatNode, FlatTriangle};
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -117,6 +129,12 @@ pub struct Tri4 {
 }
 
 impl Tri4 {
+    /// Lane `i`'s triangle's box.
+    pub fn corner_box(&self, i: usize) -> Aabb {
+        let c = |k: usize| Vec3::new(self.v[k][0][i], self.v[k][1][i], self.v[k][2][i]);
+        Aabb::from_triangle(&[c(0), c(1), c(2)])
+    }
+
     /// The block of `tris` (one to four), its free lanes repeating the last triangle.
     fn of(tris: &[FlatTriangle]) -> Tri4 {
         let mut b = Tri4 {
@@ -136,18 +154,60 @@ impl Tri4 {
     }
 }
 
+/// A block whose every lane's binary leaf box is its triangle's own box (a leaf of one
+/// triangle, boxed by its corners, as the builders box it): the walks make the box from
+/// the corners, and no [`LeafBoxes`] are kept for it.
+pub const CORNER_BOXES: u32 = u32::MAX;
+
+/// The boxes of the binary leaves a block's four triangles come from, lane by lane. The
+/// walks test a hit's own leaf box, as the binary walk does before it tests the triangle,
+/// where the hit lies within f32 error of an end of the ray's interval: only there can a
+/// triangle report a `t` inside the interval while the binary walk's box test rejects its
+/// leaf (a triangle at or behind the ray's origin, its `t` rounded into the interval), and
+/// the binary walk's answer is what the layout's must be.
+#[repr(C, align(32))]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LeafBoxes {
+    /// `planes[2 * axis][lane]` the lower corner, `planes[2 * axis + 1][lane]` the upper.
+    pub planes: [[f32; BLOCK]; 6],
+}
+
+impl LeafBoxes {
+    /// The boxes of one to four triangles, the free lanes repeating the last.
+    fn of(boxes: &[Aabb]) -> LeafBoxes {
+        let mut planes = [[0.0; BLOCK]; 6];
+        for lane in 0..BLOCK {
+            let b = &boxes[lane.min(boxes.len() - 1)];
+            for axis in 0..3 {
+                planes[2 * axis][lane] = b.min[axis];
+                planes[2 * axis + 1][lane] = b.max[axis];
+            }
+        }
+        LeafBoxes { planes }
+    }
+
+    /// True when each lane's box is its triangle's own (see [`CORNER_BOXES`]).
+    fn are_corner_boxes(&self, b: &Tri4) -> bool {
+        (0..BLOCK).all(|i| self.lane(i) == b.corner_box(i))
+    }
+
+    /// Lane `i`'s box.
+    pub fn lane(&self, i: usize) -> Aabb {
+        let p = &self.planes;
+        Aabb {
+            min: Vec3::new(p[0][i], p[2][i], p[4][i]),
+            max: Vec3::new(p[1][i], p[3][i], p[5][i]),
+        }
+    }
+}
+
 /// Why a tree cannot be converted.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum ConvertError {
-    /// Two-level trees are traced by the core walks, not by this layout.
-    #[error("the CPU layout holds one mesh; this BVH has instances (trace it with bvhtrace_core)")]
-    Instanced,
-    /// Alpha-masked triangles (`FlatBvh::masks`): the layout's walks do not apply the masks,
-    /// so they would return hits the core walks cut.
-    #[error(
-        "the CPU layout does not apply alpha masks; this BVH has masked triangles (trace it with bvhtrace_core)"
-    )]
-    Masked,
+    /// The tree's instances or instance leaves point outside its arrays (a tree edited
+    /// by hand): what is wrong.
+    #[error("the BVH cannot be converted: {0}")]
+    Malformed(String),
     /// More blocks than a leaf reference can address.
     #[error("{0} triangle blocks exceed the CPU layout's 2^27")]
     TooLarge(usize),
@@ -158,9 +218,40 @@ pub enum ConvertError {
 pub struct CpuBvh {
     pub(crate) nodes: Vec<Node8>,
     pub(crate) blocks: Vec<Tri4>,
-    /// Levels of nodes on the longest path (0 for an empty tree).
+    /// Per block, where its lanes' binary leaf boxes are (see [`LeafBoxes`]):
+    /// [`CORNER_BOXES`], or an index into `leaf_boxes`.
+    pub(crate) box_index: Vec<u32>,
+    /// The leaf boxes of the blocks whose boxes are not their triangles' own.
+    pub(crate) leaf_boxes: Vec<LeafBoxes>,
+    /// Levels of nodes on the longest path (0 for an empty tree); for two levels, the top
+    /// level's and the deepest mesh's together (what the shared stack holds at most).
     pub(crate) depth: u32,
     pub(crate) triangles: usize,
+    /// Two levels: the instances, in `FlatBvh::instances`' order (a top-level node's leaf
+    /// child is `LEAF | index`); empty for one mesh.
+    pub(crate) instances: Vec<CpuInstance>,
+    /// The alpha masks the walks cut candidates by (the tree's own tables, shared).
+    pub(crate) masks: Option<Arc<MaskTables>>,
+}
+
+/// One instance as the two-level walk reads it.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct CpuInstance {
+    /// The core's instance: the transform (applied by its own `ray_to_object`), the
+    /// primitive base and the visibility mask.
+    pub flat: FlatInstance,
+    /// Where the walk starts in the mesh: its root node, or its one leaf.
+    pub root: ChildRef,
+    /// `MaskTables::base` of the instance (0 without masks).
+    pub mask_base: u32,
+}
+
+/// Which level a collapse converts: a mesh (leaves of triangles), or the top level of a
+/// two-level tree (leaves of one instance each, of this many instances).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Level {
+    Mesh,
+    Top(u32),
 }
 
 /// What a wide node's slot is made from while converting.
@@ -181,87 +272,109 @@ struct PendingLeaf {
 }
 
 impl CpuBvh {
-    /// Converts a one-mesh [`FlatBvh`] without alpha masks ([`ConvertError::Instanced`],
-    /// [`ConvertError::Masked`] otherwise). The blocks are written in parallel on the current
-    /// rayon pool; the node collapse is one pass over the binary nodes.
+    /// Converts a [`FlatBvh`]: one mesh, or two levels (a top level over instances, each
+    /// mesh's tree converted once however many instances place it), with or without alpha
+    /// masks (the tables are shared with `flat`, the walks apply them as the core walks
+    /// do). The blocks are written in parallel on the current rayon pool; the node
+    /// collapse is one pass over the binary nodes. A tree whose instances or instance
+    /// leaves point outside its arrays is refused ([`ConvertError::Malformed`]).
     pub fn from_flat(flat: &FlatBvh) -> Result<CpuBvh, ConvertError> {
-        if flat.is_instanced() {
-            return Err(ConvertError::Instanced);
-        }
-        if flat.masks().is_some() {
-            return Err(ConvertError::Masked);
-        }
         let (fnodes, ftris) = (flat.nodes(), flat.triangles());
         if fnodes.is_empty() {
             return Ok(CpuBvh::default());
         }
+        let masks = flat.masks().cloned();
         let spans = subtree_spans(fnodes);
-        let mut nodes = vec![Node8::EMPTY];
+        let tri_box = leaf_box_of_triangles(flat);
+        let mut nodes = Vec::new();
         let mut leaves = Vec::new();
-        let mut depth = 1;
-        let root_src = if fnodes[0].is_leaf() {
-            vec![Src::Node(0)]
-        } else {
-            children_of(fnodes, 0)
-        };
-        // Depth first: each work item fills its node's slots, appending child nodes.
-        let mut work = vec![(0u32, root_src, 1u32)];
-        while let Some((at, srcs, level)) = work.pop() {
-            depth = depth.max(level);
-            let srcs = expand(fnodes, &spans, srcs);
-            for (slot, src) in srcs.into_iter().enumerate() {
-                let (bounds, child) = match src {
-                    Src::Node(i) if is_leaf_child(fnodes, &spans, i) => {
-                        let n = &fnodes[i as usize];
-                        let (first, count) = spans[i as usize];
-                        if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
-                            let next = nodes.len() as u32;
-                            nodes.push(Node8::EMPTY);
-                            work.push((next, split_run(first, count), level + 1));
-                            (n.aabb(), next)
-                        } else {
-                            leaves.push(PendingLeaf {
-                                node: at,
-                                slot: slot as u8,
-                                first_tri: first,
-                                tris: count,
-                            });
-                            (n.aabb(), LEAF)
-                        }
-                    }
-                    Src::Node(i) => {
-                        let next = nodes.len() as u32;
-                        nodes.push(Node8::EMPTY);
-                        work.push((next, children_of(fnodes, i), level + 1));
-                        (fnodes[i as usize].aabb(), next)
-                    }
-                    Src::Run(first, count) => {
-                        let b = run_bounds(&ftris[first as usize..(first + count) as usize]);
-                        if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
-                            let next = nodes.len() as u32;
-                            nodes.push(Node8::EMPTY);
-                            work.push((next, split_run(first, count), level + 1));
-                            (b, next)
-                        } else {
-                            leaves.push(PendingLeaf {
-                                node: at,
-                                slot: slot as u8,
-                                first_tri: first,
-                                tris: count,
-                            });
-                            (b, LEAF)
-                        }
-                    }
-                };
-                nodes[at as usize].set(slot, &bounds, child);
+        if !flat.is_instanced() {
+            let depth = collapse(
+                fnodes,
+                &spans,
+                &tri_box,
+                0,
+                Level::Mesh,
+                &mut nodes,
+                &mut leaves,
+            )?;
+            let (blocks, box_index, leaf_boxes) =
+                write_blocks(&mut nodes, &leaves, ftris, &tri_box)?;
+            return Ok(CpuBvh {
+                nodes,
+                blocks,
+                box_index,
+                leaf_boxes,
+                depth,
+                triangles: ftris.len(),
+                masks,
+                ..CpuBvh::default()
+            });
+        }
+        let finst = flat.instances();
+        if finst.len() >= LEAF as usize {
+            return Err(ConvertError::Malformed(format!(
+                "{} instances exceed the CPU layout's 2^31",
+                finst.len()
+            )));
+        }
+        let top = Level::Top(finst.len() as u32);
+        let top_depth = collapse(fnodes, &spans, &tri_box, 0, top, &mut nodes, &mut leaves)?;
+        // Each mesh once: its root's start reference, by binary root.
+        let mut meshes = std::collections::HashMap::new();
+        let mut mesh_depth = 0;
+        let mut instances = Vec::with_capacity(finst.len());
+        for (index, fi) in finst.iter().enumerate() {
+            if fi.root < flat.top_nodes() || fi.root as usize >= fnodes.len() {
+                return Err(ConvertError::Malformed(format!(
+                    "instance {index}'s mesh root {} is not a mesh node ({} top-level nodes of {})",
+                    fi.root,
+                    flat.top_nodes(),
+                    fnodes.len()
+                )));
+            }
+            let root = match meshes.get(&fi.root) {
+                Some(&r) => r,
+                None => {
+                    let at = nodes.len();
+                    let d = collapse(
+                        fnodes,
+                        &spans,
+                        &tri_box,
+                        fi.root,
+                        Level::Mesh,
+                        &mut nodes,
+                        &mut leaves,
+                    )?;
+                    mesh_depth = mesh_depth.max(d);
+                    meshes.insert(fi.root, at as u32);
+                    at as u32
+                }
+            };
+            instances.push(CpuInstance {
+                flat: *fi,
+                root,
+                mask_base: masks.as_ref().map_or(0, |m| m.base(Some(index as u32))),
+            });
+        }
+        let (blocks, box_index, leaf_boxes) = write_blocks(&mut nodes, &leaves, ftris, &tri_box)?;
+        // A mesh whose root is one leaf starts at the leaf: the core walks test no box of
+        // the mesh's root either (the instance leaf's box stood for it).
+        for inst in &mut instances {
+            let n = &nodes[inst.root as usize];
+            if n.used == 1 && n.child[0] & LEAF != 0 {
+                inst.root = n.child[0];
             }
         }
-        let blocks = write_blocks(&mut nodes, &leaves, ftris)?;
         Ok(CpuBvh {
             nodes,
             blocks,
-            depth,
+            box_index,
+            leaf_boxes,
+            depth: top_depth + mesh_depth,
             triangles: ftris.len(),
+            instances,
+            masks,
         })
     }
 
@@ -286,19 +399,140 @@ impl CpuBvh {
         self.triangles
     }
 
-    /// Bytes of nodes and of triangle blocks.
+    /// Bytes of nodes, and of triangle blocks with their leaf boxes.
     pub fn byte_sizes(&self) -> (usize, usize) {
         (
             std::mem::size_of_val(self.nodes.as_slice()),
-            std::mem::size_of_val(self.blocks.as_slice()),
+            std::mem::size_of_val(self.blocks.as_slice())
+                + std::mem::size_of_val(self.box_index.as_slice())
+                + std::mem::size_of_val(self.leaf_boxes.as_slice()),
         )
     }
 
-    /// Bytes of the whole layout per triangle.
+    /// Block `block`'s lane `i`'s binary leaf box (see [`LeafBoxes`]).
+    pub fn leaf_box(&self, block: usize, i: usize) -> Aabb {
+        match self.box_index[block] {
+            CORNER_BOXES => self.blocks[block].corner_box(i),
+            k => self.leaf_boxes[k as usize].lane(i),
+        }
+    }
+
+    /// Blocks whose leaf boxes are kept (the others' are their triangles' own).
+    pub fn kept_leaf_boxes(&self) -> usize {
+        self.leaf_boxes.len()
+    }
+
+    /// Bytes of the whole layout (nodes and blocks) per triangle; for two levels, per
+    /// triangle of the meshes (each mesh counted once), the instances left out
+    /// ([`CpuBvh::instance_bytes`]).
     pub fn bytes_per_triangle(&self) -> f64 {
         let (n, b) = self.byte_sizes();
         (n + b) as f64 / self.triangles.max(1) as f64
     }
+
+    /// True for a two-level tree (instances over meshes).
+    pub fn is_instanced(&self) -> bool {
+        !self.instances.is_empty()
+    }
+
+    /// Instances of a two-level tree (0 for one mesh).
+    pub fn instance_count(&self) -> usize {
+        self.instances.len()
+    }
+
+    /// Bytes of the instance table (0 for one mesh).
+    pub fn instance_bytes(&self) -> usize {
+        std::mem::size_of_val(self.instances.as_slice())
+    }
+
+    /// The alpha masks the walks apply (the converted tree's own tables), if any.
+    pub fn masks(&self) -> Option<&Arc<MaskTables>> {
+        self.masks.as_ref()
+    }
+}
+
+/// Collapses the binary tree at `root` (a whole mesh, or the top level) into wide nodes
+/// appended to `nodes`, the mesh's leaves appended to `leaves` (their blocks written
+/// later); its first node is the tree's root. Returns its levels of nodes.
+fn collapse(
+    fnodes: &[FlatNode],
+    spans: &[(u32, u32)],
+    tri_box: &[Aabb],
+    root: u32,
+    level: Level,
+    nodes: &mut Vec<Node8>,
+    leaves: &mut Vec<PendingLeaf>,
+) -> Result<u32, ConvertError> {
+    let at = nodes.len() as u32;
+    nodes.push(Node8::EMPTY);
+    let mut depth = 1;
+    let root_src = if fnodes[root as usize].is_leaf() {
+        vec![Src::Node(root)]
+    } else {
+        children_of(fnodes, root)
+    };
+    // Depth first: each work item fills its node's slots, appending child nodes.
+    let mut work = vec![(at, root_src, 1u32)];
+    while let Some((at, srcs, depth_here)) = work.pop() {
+        depth = depth.max(depth_here);
+        let srcs = expand(fnodes, spans, level, srcs);
+        for (slot, src) in srcs.into_iter().enumerate() {
+            let mut pending = |first: u32, count: u32| {
+                leaves.push(PendingLeaf {
+                    node: at,
+                    slot: slot as u8,
+                    first_tri: first,
+                    tris: count,
+                });
+            };
+            let (bounds, child) = match src {
+                Src::Node(i) if is_leaf_child(fnodes, spans, level, i) => {
+                    let n = &fnodes[i as usize];
+                    if let Level::Top(instances) = level {
+                        if !n.is_instance_leaf() || n.right_or_first >= instances {
+                            return Err(ConvertError::Malformed(format!(
+                                "top-level leaf {i} is not one of the {instances} instances"
+                            )));
+                        }
+                        (n.aabb(), LEAF | n.right_or_first)
+                    } else {
+                        let (first, count) = spans[i as usize];
+                        if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
+                            let next = nodes.len() as u32;
+                            nodes.push(Node8::EMPTY);
+                            work.push((next, split_run(first, count), depth_here + 1));
+                            (n.aabb(), next)
+                        } else {
+                            pending(first, count);
+                            (n.aabb(), LEAF)
+                        }
+                    }
+                }
+                Src::Node(i) => {
+                    let next = nodes.len() as u32;
+                    nodes.push(Node8::EMPTY);
+                    work.push((next, children_of(fnodes, i), depth_here + 1));
+                    (fnodes[i as usize].aabb(), next)
+                }
+                Src::Run(first, count) => {
+                    // The binary leaf's own box: a tighter one would cull triangles the
+                    // binary walk tests (see `LeafBoxes`).
+                    let b = tri_box[first as usize];
+                    if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
+                        let next = nodes.len() as u32;
+                        nodes.push(Node8::EMPTY);
+                        work.push((next, split_run(first, count), depth_here + 1));
+                        (b, next)
+                    } else {
+                        pending(first, count);
+                        (b, LEAF)
+                    }
+                }
+            };
+            nodes[at as usize].set(slot, &bounds, child);
+        }
+    }
+    Ok(depth)
 }
 
 /// A binary interior node's two children.
@@ -312,14 +546,14 @@ fn children_of(fnodes: &[FlatNode], i: u32) -> Vec<Src> {
 /// Grows a slot list to eight: the interior child of largest surface area is replaced by
 /// its two children while there is one (the first of equal areas, so the result is
 /// deterministic).
-fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], mut srcs: Vec<Src>) -> Vec<Src> {
+fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, mut srcs: Vec<Src>) -> Vec<Src> {
     while srcs.len() < WIDTH {
         let mut pick: Option<(usize, f32)> = None;
         for (k, s) in srcs.iter().enumerate() {
             if let Src::Node(i) = *s {
                 let n = &fnodes[i as usize];
                 let area = n.aabb().surface_area();
-                if !is_leaf_child(fnodes, spans, i) && pick.is_none_or(|(_, a)| area > a) {
+                if !is_leaf_child(fnodes, spans, level, i) && pick.is_none_or(|(_, a)| area > a) {
                     pick = Some((k, area));
                 }
             }
@@ -357,10 +591,11 @@ fn subtree_spans(fnodes: &[FlatNode]) -> Vec<(u32, u32)> {
     spans
 }
 
-/// True when binary node `i` becomes a leaf child: a leaf, or a subtree of at most
-/// [`MERGE_TRIANGLES`] contiguous triangles.
-fn is_leaf_child(fnodes: &[FlatNode], spans: &[(u32, u32)], i: u32) -> bool {
-    fnodes[i as usize].is_leaf() || spans[i as usize].1 <= MERGE_TRIANGLES
+/// True when binary node `i` becomes a leaf child: a leaf, or in a mesh a subtree of at
+/// most [`MERGE_TRIANGLES`] contiguous triangles (the top level keeps one instance per
+/// leaf).
+fn is_leaf_child(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, i: u32) -> bool {
+    fnodes[i as usize].is_leaf() || (level == Level::Mesh && spans[i as usize].1 <= MERGE_TRIANGLES)
 }
 
 /// A long run of triangles as up to eight shorter runs.
@@ -373,12 +608,38 @@ fn split_run(first: u32, count: u32) -> Vec<Src> {
         .collect()
 }
 
-/// The box of a run's corners.
-fn run_bounds(tris: &[FlatTriangle]) -> Aabb {
-    tris.iter()
-        .map(|t| Aabb::from_triangle(&t.corners()))
-        .fold(Aabb::EMPTY, |a, b| a.union(&b))
+/// Each triangle slot's binary leaf box: the box the binary walk tests before the
+/// triangle, or an infinite one for a mesh whose root is a leaf (inside an instance, the
+/// binary walk tests no box of the mesh's root: the instance leaf's box stood for it).
+fn leaf_box_of_triangles(flat: &FlatBvh) -> Vec<Aabb> {
+    let (fnodes, triangles) = (flat.nodes(), flat.triangles().len());
+    let mut boxes = vec![Aabb::EMPTY; triangles];
+    let mut fill = |n: &FlatNode, b: Aabb| {
+        let first = (n.right_or_first as usize).min(triangles);
+        let end = (first + n.count() as usize).min(triangles);
+        boxes[first..end].fill(b);
+    };
+    for n in fnodes
+        .iter()
+        .filter(|n| n.is_leaf() && !n.is_instance_leaf())
+    {
+        fill(n, n.aabb());
+    }
+    let everywhere = Aabb {
+        min: Vec3::splat(f32::NEG_INFINITY),
+        max: Vec3::splat(f32::INFINITY),
+    };
+    for fi in flat.instances() {
+        match fnodes.get(fi.root as usize) {
+            Some(n) if n.is_leaf() && !n.is_instance_leaf() => fill(n, everywhere),
+            _ => {}
+        }
+    }
+    boxes
 }
+
+/// The triangle blocks, each block's place in the kept leaf boxes, and those boxes.
+type Blocks = (Vec<Tri4>, Vec<u32>, Vec<LeafBoxes>);
 
 /// Allocates every leaf's blocks in leaf order, sets the leaf references, and fills the
 /// blocks in parallel.
@@ -386,7 +647,8 @@ fn write_blocks(
     nodes: &mut [Node8],
     leaves: &[PendingLeaf],
     ftris: &[FlatTriangle],
-) -> Result<Vec<Tri4>, ConvertError> {
+    tri_box: &[Aabb],
+) -> Result<Blocks, ConvertError> {
     let mut starts = Vec::with_capacity(leaves.len());
     let mut total = 0usize;
     for l in leaves {
@@ -407,21 +669,45 @@ fn write_blocks(
         };
         total
     ];
+    let mut boxes = vec![
+        LeafBoxes {
+            planes: [[0.0; BLOCK]; 6]
+        };
+        total
+    ];
     // Each leaf's blocks are a disjoint run: split the output by leaf and fill in parallel.
     let mut runs = Vec::with_capacity(leaves.len());
-    let mut rest = blocks.as_mut_slice();
+    let (mut rest, mut rest_boxes) = (blocks.as_mut_slice(), boxes.as_mut_slice());
     for l in leaves {
-        let (head, tail) = rest.split_at_mut(l.tris.div_ceil(BLOCK as u32) as usize);
-        runs.push((head, l));
-        rest = tail;
+        let n = l.tris.div_ceil(BLOCK as u32) as usize;
+        let (head, tail) = rest.split_at_mut(n);
+        let (head_boxes, tail_boxes) = rest_boxes.split_at_mut(n);
+        runs.push((head, head_boxes, l));
+        (rest, rest_boxes) = (tail, tail_boxes);
     }
     runs.into_par_iter()
         .with_min_len(1024)
-        .for_each(|(out, l)| {
-            let tris = &ftris[l.first_tri as usize..(l.first_tri + l.tris) as usize];
-            for (b, chunk) in out.iter_mut().zip(tris.chunks(BLOCK)) {
+        .for_each(|(out, out_boxes, l)| {
+            // Written in full here; only the blocks whose boxes are not their corners'
+            // are kept (below).
+            let range = l.first_tri as usize..(l.first_tri + l.tris) as usize;
+            let chunks = ftris[range.clone()]
+                .chunks(BLOCK)
+                .zip(tri_box[range].chunks(BLOCK));
+            for ((b, bx), (chunk, cb)) in out.iter_mut().zip(out_boxes.iter_mut()).zip(chunks) {
                 *b = Tri4::of(chunk);
+                *bx = LeafBoxes::of(cb);
             }
         });
-    Ok(blocks)
+    let mut box_index = Vec::with_capacity(total);
+    let mut kept = Vec::new();
+    for (b, bx) in blocks.iter().zip(boxes) {
+        if bx.are_corner_boxes(b) {
+            box_index.push(CORNER_BOXES);
+        } else {
+            box_index.push(kept.len() as u32);
+            kept.push(bx);
+        }
+    }
+    Ok((blocks, box_index, kept))
 }

@@ -27,8 +27,21 @@
 //! assert_eq!((hits[0].prim, hits[0].t), (0, 5.0));
 //! ```
 //!
-//! Not here: two-level trees (instances), alpha masks (both refused by
-//! [`CpuBvh::from_flat`]), hit filters and counters; the core walks trace those.
+//! # Two levels and alpha masks
+//! [`CpuBvh::from_flat`] takes two-level trees (instances over meshes, each mesh converted
+//! once) and trees with alpha masks (`FlatBvh::masks`). At an instance the walk does what
+//! the core walks do: the rays' visibility mask ([`trace_rays_with_mask`];
+//! [`ALL_VISIBLE`] elsewhere) against the instance's, the ray taken into the mesh's space
+//! by the core's own `FlatInstance::ray_to_object` and prepared as `PreparedRay::new`
+//! prepares it, the mesh walked from the best hit so far, hits reported as the instance's
+//! primitive base plus the mesh's id. A candidate that beats the best is taken only when
+//! `MaskTables::accept` accepts it (the same call with the same arguments as the core
+//! walks'), a function of the candidate alone, so the closest hit is still independent
+//! of the order. One mesh without masks runs walks compiled apart, which carry none of
+//! this. The packets ([`trace_packets`]) hold one mesh without masks: other trees are
+//! traced there ray by ray.
+//!
+//! Not here: hit filters and counters; the core walks trace those.
 //!
 //! # Packets
 //! [`trace_packets`] walks [`PACKET`] consecutive rays at a time together (coherent rays:
@@ -44,7 +57,9 @@
 mod lanes;
 pub mod layout;
 
+mod instanced;
 mod packet;
+mod packet_tri;
 mod single;
 mod tests4;
 
@@ -56,6 +71,7 @@ use rayon::prelude::*;
 pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
 pub use packet::{PACKET, tile_order};
 
+use instanced::MeshWalk;
 use lanes::{Lanes, Wide};
 use single::Entry;
 
@@ -114,21 +130,25 @@ impl fmt::Display for Isa {
     }
 }
 
-/// Traces one ray with the fastest instruction set this CPU has.
+/// Traces one ray with the fastest instruction set this CPU has (every instance visible).
 pub fn trace_ray(bvh: &CpuBvh, ray: &Ray, query: Query) -> Hit {
     let mut hit = [Hit::miss(0.0)];
     trace_rays_into(
         bvh,
         std::slice::from_ref(ray),
         query,
+        ALL_VISIBLE,
         Isa::detect(),
         &mut hit,
     );
     hit[0]
 }
 
+/// The rays' visibility mask that sees every instance (`TraceOptions`' default).
+pub const ALL_VISIBLE: u8 = 0xff;
+
 /// Traces a batch of rays one at a time on all threads of the current rayon pool, with
-/// the fastest instruction set this CPU has.
+/// the fastest instruction set this CPU has (every instance visible).
 pub fn trace_rays(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
     trace_rays_with(bvh, rays, query, Isa::detect())
 }
@@ -136,38 +156,109 @@ pub fn trace_rays(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
 /// [`trace_rays`] with the instruction set `isa` (or the fastest this CPU has, when it
 /// lacks `isa`): the answers are the same whichever runs.
 pub fn trace_rays_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
+    trace_rays_with_mask(bvh, rays, query, ALL_VISIBLE, isa)
+}
+
+/// [`trace_rays_with`] with the rays' visibility mask `mask` (`TraceOptions::mask`): in a
+/// two-level tree, an instance whose mask shares no bit with it is passed through, as the
+/// core walks do; one mesh ignores it.
+pub fn trace_rays_with_mask(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    mask: u8,
+    isa: Isa,
+) -> Vec<Hit> {
     const RUN: usize = 256;
     let mut hits = vec![Hit::miss(0.0); rays.len()];
     hits.par_chunks_mut(RUN)
         .zip(rays.par_chunks(RUN))
-        .for_each(|(h, r)| trace_rays_into(bvh, r, query, isa, h));
+        .for_each(|(h, r)| trace_rays_into(bvh, r, query, mask, isa, h));
     hits
 }
 
 /// One thread's run of rays into `hits`.
-fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa, hits: &mut [Hit]) {
+fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits: &mut [Hit]) {
     let mut stack = vec![Entry::default(); single::stack_size(bvh)];
+    let s = &mut stack;
+    let mask = u32::from(mask);
+    // One mesh without masks has walks of its own, compiled apart from the others, so
+    // that the others change nothing of its code.
+    let plain = !bvh.is_instanced() && bvh.masks.is_none();
+    type P = lanes::Portable;
+    type PP = lanes::Pair<P>;
     match isa.or_available() {
+        Isa::Portable if plain => run::<P, PP>(bvh, rays, query, hits, s),
         Isa::Portable => {
-            run::<lanes::Portable, lanes::Pair<lanes::Portable>>(bvh, rays, query, hits, &mut stack)
+            run_layered::<P, PP, instanced::Plain<P, PP>>(bvh, rays, query, mask, hits, s)
         }
         #[cfg(target_arch = "x86_64")]
-        Isa::Sse2 => run::<lanes::Sse, lanes::Pair<lanes::Sse>>(bvh, rays, query, hits, &mut stack),
+        Isa::Sse2 if plain => run::<lanes::Sse, lanes::Pair<lanes::Sse>>(bvh, rays, query, hits, s),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Sse2 => {
+            type S = lanes::Sse;
+            type SP = lanes::Pair<S>;
+            run_layered::<S, SP, instanced::Plain<S, SP>>(bvh, rays, query, mask, hits, s)
+        }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
-        Isa::Avx2 => unsafe { run_avx2(bvh, rays, query, hits, &mut stack) },
+        Isa::Avx2 if plain => unsafe { run_avx2(bvh, rays, query, hits, s) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
+        Isa::Avx2 => unsafe { run_layered_avx2(bvh, rays, query, mask, hits, s) },
         #[cfg(not(target_arch = "x86_64"))]
         _ => unreachable!("or_available gives Portable off x86-64"),
     }
 }
 
-/// The walk over `rays`, monomorphised for the triangle lanes `L`, the box lanes `W`
-/// and the query.
+/// The walks of one mesh without masks over `rays`, monomorphised for the triangle lanes
+/// `L`, the box lanes `W` and the query.
 #[inline(always)]
 fn run<L: Lanes, W: Wide>(
     bvh: &CpuBvh,
     rays: &[Ray],
     query: Query,
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    match query {
+        Query::Closest => {
+            run_as::<L, W, instanced::Plain<L, W>, false, false, false>(bvh, rays, 0, hits, stack)
+        }
+        Query::Any => {
+            run_as::<L, W, instanced::Plain<L, W>, true, false, false>(bvh, rays, 0, hits, stack)
+        }
+    }
+}
+
+/// The walks of two levels or masks over `rays`, monomorphised for the lanes, the mesh
+/// walks of two levels `M`, the query, the levels and the masks.
+#[inline(always)]
+fn run_layered<L: Lanes, W: Wide, M: MeshWalk>(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    mask: u32,
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    let any = query == Query::Any;
+    match (any, bvh.is_instanced(), bvh.masks.is_some()) {
+        (false, false, _) => run_as::<L, W, M, false, false, true>(bvh, rays, mask, hits, stack),
+        (true, false, _) => run_as::<L, W, M, true, false, true>(bvh, rays, mask, hits, stack),
+        (false, true, false) => run_as::<L, W, M, false, true, false>(bvh, rays, mask, hits, stack),
+        (true, true, false) => run_as::<L, W, M, true, true, false>(bvh, rays, mask, hits, stack),
+        (false, true, true) => run_as::<L, W, M, false, true, true>(bvh, rays, mask, hits, stack),
+        (true, true, true) => run_as::<L, W, M, true, true, true>(bvh, rays, mask, hits, stack),
+    }
+}
+
+/// [`run`] for one query (`ANY`), one or two levels (`TWO`), with or without masks.
+#[inline(always)]
+fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, const MASKED: bool>(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    mask: u32,
     hits: &mut [Hit],
     stack: &mut [Entry],
 ) {
@@ -179,9 +270,10 @@ fn run<L: Lanes, W: Wide>(
         let group = &rays[start..end];
         let p = tests4::Prepared4::new::<L>(group);
         for i in 0..group.len() {
-            hits[start + i] = match query {
-                Query::Closest => single::trace::<L, W, false>(bvh, &group[i], &p, i, stack),
-                Query::Any => single::trace::<L, W, true>(bvh, &group[i], &p, i, stack),
+            hits[start + i] = if TWO {
+                instanced::trace::<L, W, M, ANY, MASKED>(bvh, &group[i], &p, i, mask, stack)
+            } else {
+                single::trace_at::<L, W, ANY, MASKED>(bvh, &group[i], &p, i, stack)
             };
         }
         start = end;
@@ -189,7 +281,7 @@ fn run<L: Lanes, W: Wide>(
 }
 
 /// [`run`] with SSE lanes for the triangles and AVX lanes for the boxes, compiled with
-/// AVX2 enabled (the only place `Avx8` is used).
+/// AVX2 enabled (with [`run_layered_avx2`], the only places `Avx8` is used).
 ///
 /// # Safety
 /// The CPU must have AVX2.
@@ -205,6 +297,25 @@ unsafe fn run_avx2(
     run::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, stack)
 }
 
+/// [`run_layered`] with the lanes of [`run_avx2`] (and the mesh walks compiled likewise),
+/// compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline(never)]
+unsafe fn run_layered_avx2(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    mask: u32,
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    run_layered::<lanes::Sse, lanes::Avx8, instanced::Avx2>(bvh, rays, query, mask, hits, stack)
+}
+
 /// Traces `rays` in packets of [`PACKET`] consecutive rays (the rays of one packet walked
 /// together, see the crate docs), on all threads of the current rayon pool, with the
 /// fastest instruction set this CPU has. Closest hits are [`trace_rays`]' to the bit;
@@ -217,6 +328,10 @@ pub fn trace_packets(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
 /// [`trace_packets`] with the instruction set `isa` (or the fastest this CPU has, when it
 /// lacks `isa`): the answers are the same whichever runs.
 pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
+    // The packet walk holds one mesh without masks; the others go ray by ray.
+    if bvh.is_instanced() || bvh.masks.is_some() {
+        return trace_rays_with(bvh, rays, query, isa);
+    }
     const RUN: usize = 16 * PACKET;
     let mut hits = vec![Hit::miss(0.0); rays.len()];
     hits.par_chunks_mut(RUN)

@@ -1,29 +1,71 @@
 //! Rays in packets: up to [`PACKET`] rays (an 8x8 screen tile of camera rays, say) walked
-//! together through the 8-wide tree with one stack. A node's children are tested against
-//! the packet's rays eight rays at a time (rays in lanes, one child box splatted), each
-//! lane the single-ray walk's box test for that ray (its own origin, inverse, interval,
-//! best hit and culling slack); a child is entered with the mask of the rays that hit it,
-//! and a popped child is re-tested against the rays' bests. A leaf is tested ray by ray
-//! with the single-ray triangle test. Rays along a slab, invalid rays and empty intervals
-//! take the single-ray walk.
+//! together through the 8-wide tree with one stack. The rays are loaded eight at a time
+//! into lanes. At a node the eight children are first tested together against bounds over
+//! the packet's rays (a conservative cull, [`Frustum`]), then each kept child's box is
+//! tested against the packet's rays eight rays at a time (rays in lanes, the box
+//! splatted), each lane the single-ray walk's box test for that ray (its own origin,
+//! inverse, interval, best hit and culling slack); a child is entered with the mask of
+//! the rays that hit it, and a popped child is re-tested against the rays' bests. A leaf's
+//! triangles are tested one at a time against eight rays that share their shear axes
+//! (`packet_tri`), other rays ray by ray with the single-ray test. Rays along a slab,
+//! invalid rays and empty intervals take the single-ray walk.
 //!
 //! The answers are the single-ray walk's: each ray meets every node the single walk
 //! enters for it (the same test, at a best hit no nearer than the single walk's at that
-//! point, since the bests only fall as triangles are taken), tests its leaves with the
-//! same triangle test, and keeps its hits by the same order-independent rule.
+//! point, since the bests only fall as triangles are taken; the bounds only drop children
+//! no ray hits), tests its leaves with the same triangle test lane for lane, and keeps its
+//! hits by the same order-independent rule.
 
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
-use bvhtrace_core::{Hit, Ray};
+use bvhtrace_core::{Hit, MISS, Ray};
 
 use crate::lanes::{Lanes, Wide};
-use crate::layout::{CpuBvh, LEAF, Node8, WIDTH};
+use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
+use crate::packet_tri::{ShearRays, tri_rays};
 use crate::single::{self, Best, Entry};
-use crate::tests4::{Prepared4, ShearLanes};
+use crate::tests4::{Prepared4, RayAt, ShearLanes, near_end};
 
 /// Rays per packet: eight groups of eight lanes.
 pub const PACKET: usize = 64;
 /// Groups of eight rays per packet.
 const GROUPS: usize = PACKET / 8;
+
+/// Where a full packet's lane `8 g + j` takes its ray from: a full packet is taken to be
+/// an 8x8 tile (rays row by row, as [`tile_order`] lists them), and each group is a 4x2
+/// block of it, which a small box or triangle covers more fully than a row of eight.
+/// The answers do not depend on it; partial packets keep the rays' order.
+const TILE_LANES: [u8; PACKET] = {
+    let mut t = [0u8; PACKET];
+    let mut k = 0;
+    while k < PACKET {
+        let (g, j) = (k / 8, k % 8);
+        let (x, y) = ((g % 2) * 4 + j % 4, (g / 2) * 2 + j / 4);
+        t[k] = (y * 8 + x) as u8;
+        k += 1;
+    }
+    t
+};
+
+/// Lane `k`'s ray in a partial packet: its own.
+const SAME_LANES: [u8; PACKET] = {
+    let mut t = [0u8; PACKET];
+    let mut k = 0;
+    while k < PACKET {
+        t[k] = k as u8;
+        k += 1;
+    }
+    t
+};
+
+/// Where a packet of `len` rays takes lane `k`'s ray from (see [`TILE_LANES`]).
+#[inline(always)]
+fn lane_order(len: usize) -> &'static [u8; PACKET] {
+    if len == PACKET {
+        &TILE_LANES
+    } else {
+        &SAME_LANES
+    }
+}
 
 /// A packet's rays as lanes, ray `8 g + j` in lane `j` of group `g`.
 #[derive(Clone)]
@@ -36,15 +78,61 @@ struct Soa {
     t_max: [[f32; 8]; GROUPS],
     /// The best hit's `t` (the ray's `t_max` until it has one).
     best_t: [[f32; 8]; GROUPS],
+    /// The best hit's primitive ([`MISS`] until it has one) and weights, as bits.
+    best_prim: [[f32; 8]; GROUPS],
+    best_u: [[f32; 8]; GROUPS],
+    best_v: [[f32; 8]; GROUPS],
     /// The dominant axis (`PreparedRay::kz`) as 0.0, 1.0 or 2.0.
     kz: [[f32; 8]; GROUPS],
+    /// The shear constants `sx`, `sy`, `sz` (`PreparedRay`'s).
+    shear: [[[f32; 8]; 3]; GROUPS],
+    /// Each group's shear axes `kx`, `ky`, `kz` (those of its first walked ray).
+    axes: [[usize; 3]; GROUPS],
+    /// Bit `k`: ray `k`'s `kx` and `ky` are swapped (`dir[kz] < 0`).
+    swap: u64,
+    /// The walked rays whose shear axes are their group's: their leaves are tested with
+    /// rays in lanes, the others' ray by ray.
+    lanes: u64,
+}
+
+/// Bounds over a packet's walked rays for a conservative cull of a node's eight children
+/// at once (children in lanes): per axis the origins' range and the range of `-1 / dir`,
+/// the smallest `t_min` and the largest `t_max`.
+///
+/// Why it never culls a box a ray's own test hits: f32 subtraction and multiplication are
+/// monotone in each operand (rounding is), so over the rays' origins `o` and inverses `n`
+/// the ray's `(o - plane) * n` is at least the smallest of the products at the range's
+/// corners and at most the largest. Where every ray's `n` has one sign on an axis, the
+/// near plane is the same for all of them, and the bound needs the products at one end of
+/// the origins' range; where the signs differ the axis bounds nothing (`-inf`, `+inf`).
+/// So the entry (a max of per-axis entries and `t_min`) is at least the bound's entry,
+/// the exit (a min of per-axis exits and a limit never above `t_max`) at most the bound's
+/// exit, and the exit scaling is monotone: a box the bound misses, every ray misses.
+#[derive(Clone, Copy, Default)]
+struct Frustum {
+    /// The origin coordinate that gives the smallest distance to the near plane.
+    o_near: [f32; 3],
+    /// The origin coordinate that gives the largest distance to the far plane.
+    o_far: [f32; 3],
+    /// The smallest `-1 / dir`.
+    n_lo: [f32; 3],
+    /// The largest `-1 / dir`.
+    n_hi: [f32; 3],
+    /// The near plane's index in `Node8::planes` (`2 a` or `2 a + 1`).
+    near: [usize; 3],
+    /// `-inf` on an axis where the signs differ (the entry bound dropped), else `+inf`.
+    cap_near: [f32; 3],
+    /// `+inf` on an axis where the signs differ, else `-inf`.
+    cap_far: [f32; 3],
+    /// The smallest `t_min`.
+    t_min: f32,
+    /// The largest `t_max`.
+    t_max: f32,
 }
 
 /// What a thread keeps from packet to packet.
 pub(crate) struct Scratch {
     soa: Box<Soa>,
-    best: [Best; PACKET],
-    prep: Vec<Prepared4>,
     stack: Vec<PEntry>,
     single: Vec<Entry>,
 }
@@ -61,7 +149,6 @@ impl Scratch {
     /// Room for walks over `bvh`.
     pub fn new(bvh: &CpuBvh) -> Scratch {
         let zero = [[0.0f32; 8]; GROUPS];
-        let miss = Best::start(&Ray::new(glam::Vec3::ZERO, glam::Vec3::X));
         Scratch {
             soa: Box::new(Soa {
                 org: [[[0.0; 8]; 3]; GROUPS],
@@ -69,10 +156,15 @@ impl Scratch {
                 t_min: zero,
                 t_max: zero,
                 best_t: zero,
+                best_prim: zero,
+                best_u: zero,
+                best_v: zero,
                 kz: zero,
+                shear: [[[0.0; 8]; 3]; GROUPS],
+                axes: [[0, 1, 2]; GROUPS],
+                swap: 0,
+                lanes: 0,
             }),
-            best: [miss; PACKET],
-            prep: Vec::with_capacity(PACKET / 4),
             stack: vec![PEntry::default(); single::stack_size(bvh)],
             single: vec![Entry::default(); single::stack_size(bvh)],
         }
@@ -82,49 +174,195 @@ impl Scratch {
 /// The packet's state during a walk: its rays, their bests, and which are still walked.
 struct State<'a> {
     soa: &'a mut Soa,
-    best: &'a mut [Best; PACKET],
-    prep: &'a [Prepared4],
+    /// The packet's rays, in the caller's order (see [`lane_order`]).
+    rays: &'a [Ray],
     /// Rays walked together and not finished (an any-hit ray finishes at its first hit).
     active: u64,
     /// Rays that have a hit.
     found: u64,
     /// The sum of the walked rays' directions: children are visited in its order.
     dir: [f32; 3],
+    /// Bounds over the walked rays for culling a node's children at once.
+    frustum: Frustum,
 }
 
-/// Loads up to [`PACKET`] rays: prepares them four at a time, and returns the mask of
-/// those the packet walks (the others take the single-ray walk).
+/// Ray `r` as the eight f32 of its `repr(C)` layout: origin, `t_min`, direction, `t_max`.
 #[inline(always)]
-fn load<L: Lanes>(bvh: &CpuBvh, rays: &[Ray], s: &mut Scratch) -> (u64, [f32; 3]) {
-    s.prep.clear();
-    let mut start = 0;
-    while start < rays.len() {
-        let end = (start + 4).min(rays.len());
-        s.prep.push(Prepared4::new::<L>(&rays[start..end]));
-        start = end;
-    }
-    let (mut active, mut dir) = (0u64, [0.0f32; 3]);
-    for (k, ray) in rays.iter().enumerate() {
-        let (p, i) = (&s.prep[k / 4], k % 4);
-        s.best[k] = Best::start(ray);
-        let walked = p.valid >> i & 1 != 0 && p.parallel >> i & 1 == 0;
-        if !walked || bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
-            continue;
+fn row(r: &Ray) -> &[f32; 8] {
+    const { assert!(size_of::<Ray>() == size_of::<[f32; 8]>()) };
+    // SAFETY: `Ray` is `repr(C)` with eight f32 fields and no padding (size checked
+    // above), so it has the layout of `[f32; 8]` (whose alignment is f32's).
+    unsafe { &*(r as *const Ray).cast::<[f32; 8]>() }
+}
+
+/// Loads up to [`PACKET`] rays, eight at a time in lanes, into the packet's lanes; returns
+/// the mask of those the packet walks (the others take the single-ray walk: invalid rays,
+/// rays along a slab, empty intervals), the sum of their directions and their bounds.
+///
+/// The values are `PreparedRay::new`'s to the bit for the walked rays (the operations of
+/// `Prepared4::new`; a walked ray has no zero or subnormal direction component, so its
+/// flushed direction is its direction and `safe_inverse` is `1 / dir`).
+#[inline(always)]
+fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
+    let (inf, zero) = (W::splat(f32::INFINITY), W::splat(0.0));
+    let (mut o_lo, mut o_hi) = ([inf; 3], [inf.neg(); 3]);
+    let (mut n_lo, mut n_hi) = ([inf; 3], [inf.neg(); 3]);
+    let (mut t_lo, mut t_hi) = (inf, inf.neg());
+    let mut sum = [zero; 3];
+    let (mut active, mut swap_all, mut lanes_all) = (0u64, 0u64, 0u64);
+    let order = lane_order(rays.len());
+    let mut g = 0;
+    while 8 * g < rays.len() && !bvh.nodes.is_empty() {
+        let base = 8 * g;
+        let last = rays.len().min(base + 8) - base - 1;
+        // Missing lanes repeat the last ray; they are not walked.
+        // No `array::map` with AVX lanes here: its closure is compiled apart from the AVX2
+        // caller, and the AVX operations in it stay out-of-line calls.
+        let at = |j: usize| row(&rays[order[base + if j < last { j } else { last }] as usize]);
+        let r = [at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7)];
+        let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(r);
+        let (o, d) = ([ox, oy, oz], [dx, dy, dz]);
+        // Valid (`Ray::is_valid`: finite origin and direction, no NaN bound), no component
+        // zero or subnormal (not along a slab), and a non-empty interval.
+        let mut walk = t_min.le(t_max);
+        for a in 0..3 {
+            walk = walk
+                .and(o[a].abs().lt(inf))
+                .and(d[a].abs().lt(inf))
+                .and(d[a].abs().ge(W::splat(f32::MIN_POSITIVE)));
         }
-        active |= 1 << k;
-        let (g, j) = (k / 8, k % 8);
-        let soa = &mut *s.soa;
-        for (a, d) in dir.iter_mut().enumerate() {
-            soa.org[g][a][j] = p.org[a][i];
-            soa.ninv[g][a][j] = p.ninv[a][i];
-            *d += p.dir[a][i];
+        let walked = walk.bits() & ((2u32 << last) - 1);
+        let minus_one = W::splat(-1.0);
+        let ninv = [minus_one.div(dx), minus_one.div(dy), minus_one.div(dz)];
+        let abs = [dx.abs(), dy.abs(), dz.abs()];
+        // `shear_axes`: the first of the largest magnitudes.
+        let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
+        let y_over_z = abs[1].ge(abs[2]);
+        let pick = |a: W, b: W, c: W| x_max.select(a, y_over_z.select(b, c));
+        let dkz = pick(d[0], d[1], d[2]);
+        let (d1, d2) = (pick(d[1], d[2], d[0]), pick(d[2], d[0], d[1]));
+        let swap = dkz.lt(zero);
+        let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
+        let shear = [dkx.div(dkz), dky.div(dkz), W::splat(1.0).div(dkz)];
+        let kz = pick(zero, W::splat(1.0), W::splat(2.0));
+        for a in 0..3 {
+            soa.org[g][a] = o[a].store();
+            soa.ninv[g][a] = ninv[a].store();
+            soa.shear[g][a] = shear[a].store();
+            o_lo[a] = walk.select(o[a], inf).min(o_lo[a]);
+            o_hi[a] = walk.select(o[a], inf.neg()).max(o_hi[a]);
+            n_lo[a] = walk.select(ninv[a], inf).min(n_lo[a]);
+            n_hi[a] = walk.select(ninv[a], inf.neg()).max(n_hi[a]);
+            sum[a] = sum[a].add(walk.select(d[a], zero));
         }
-        soa.t_min[g][j] = ray.t_min;
-        soa.t_max[g][j] = ray.t_max;
-        soa.best_t[g][j] = ray.t_max;
-        soa.kz[g][j] = p.kz[i] as f32;
+        t_lo = walk.select(t_min, inf).min(t_lo);
+        t_hi = walk.select(t_max, inf.neg()).max(t_hi);
+        soa.t_min[g] = t_min.store();
+        soa.t_max[g] = t_max.store();
+        soa.best_t[g] = t_max.store();
+        soa.best_prim[g] = [f32::from_bits(MISS); 8];
+        soa.best_u[g] = [0.0; 8];
+        soa.best_v[g] = [0.0; 8];
+        soa.kz[g] = kz.store();
+        let swap = swap.bits();
+        if walked != 0 {
+            // The group's shear axes are its first walked ray's; the rays that share
+            // them are tested with rays in lanes.
+            let j = walked.trailing_zeros() as usize;
+            let (k, s) = (soa.kz[g][j], swap >> j & 1);
+            let kz = k as usize;
+            let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+            soa.axes[g] = if s != 0 { [ky, kx, kz] } else { [kx, ky, kz] };
+            let same = kz_lanes::<W>(&soa.kz[g], k) & !(swap ^ s.wrapping_neg()) & walked;
+            lanes_all |= (same as u64) << (8 * g);
+        }
+        active |= (walked as u64) << (8 * g);
+        swap_all |= (swap as u64) << (8 * g);
+        g += 1;
     }
-    (active, dir)
+    soa.swap = swap_all;
+    soa.lanes = lanes_all;
+    let mut f = Frustum {
+        t_min: low(t_lo),
+        t_max: high(t_hi),
+        ..Frustum::default()
+    };
+    let mut dir = [0.0f32; 3];
+    for a in 0..3 {
+        let d = sum[a].store();
+        dir[a] = ((d[0] + d[1]) + (d[2] + d[3])) + ((d[4] + d[5]) + (d[6] + d[7]));
+        let (lo, hi) = (low(n_lo[a]), high(n_hi[a]));
+        (f.n_lo[a], f.n_hi[a]) = (lo, hi);
+        // `n < 0` (the rays move up the axis): the lower plane is the near one, and the
+        // largest origin gives the smallest distance to it.
+        let up = hi < 0.0;
+        f.near[a] = 2 * a + usize::from(!up);
+        let (ol, oh) = (low(o_lo[a]), high(o_hi[a]));
+        (f.o_near[a], f.o_far[a]) = if up { (oh, ol) } else { (ol, oh) };
+        let mixed = !(hi < 0.0 || lo > 0.0);
+        f.cap_near[a] = if mixed {
+            f32::NEG_INFINITY
+        } else {
+            f32::INFINITY
+        };
+        f.cap_far[a] = if mixed {
+            f32::INFINITY
+        } else {
+            f32::NEG_INFINITY
+        };
+    }
+    (active, dir, f)
+}
+
+/// The smallest of eight lanes.
+#[inline(always)]
+fn low<W: Wide>(x: W) -> f32 {
+    let x = x.store();
+    let mut m = x[0];
+    for v in x {
+        m = if v < m { v } else { m };
+    }
+    m
+}
+
+/// The largest of eight lanes.
+#[inline(always)]
+fn high<W: Wide>(x: W) -> f32 {
+    let x = x.store();
+    let mut m = x[0];
+    for v in x {
+        m = if v > m { v } else { m };
+    }
+    m
+}
+
+/// The lanes of `kz` equal to `k`.
+#[inline(always)]
+fn kz_lanes<W: Wide>(kz: &[f32; 8], k: f32) -> u32 {
+    W::load(kz).eq(W::splat(k)).bits()
+}
+
+/// The children of `n` that some ray of the packet may hit, from the packet's bounds (see
+/// [`Frustum`]): a superset of the slots any walked ray's own test hits.
+#[inline(always)]
+fn frustum_hits<W: Wide>(n: &Node8, f: &Frustum) -> u32 {
+    let mut tnear = W::splat(f.t_min);
+    let mut tfar = W::splat(f.t_max);
+    for a in 0..3 {
+        let (lo, hi) = (W::splat(f.n_lo[a]), W::splat(f.n_hi[a]));
+        // The near plane's index is `2 a` or `2 a + 1`, the far one's the other.
+        let near = W::splat(f.o_near[a]).sub(W::load(&n.planes[f.near[a]]));
+        let far = W::splat(f.o_far[a]).sub(W::load(&n.planes[f.near[a] ^ 1]));
+        let near = near.mul(lo).min(near.mul(hi)).min(W::splat(f.cap_near[a]));
+        let far = far.mul(lo).max(far.mul(hi)).max(W::splat(f.cap_far[a]));
+        tnear = tnear.max(near);
+        tfar = tfar.min(far);
+    }
+    let scale = tfar
+        .lt(W::splat(0.0))
+        .select(W::splat(BOX_TFAR_SCALE_NEG), W::splat(BOX_TFAR_SCALE));
+    // Culled only where the entry bound is after the exit bound (NaN culls nothing).
+    !tnear.gt(tfar.mul(scale)).bits() & n.used
 }
 
 /// The box test of group `g`'s eight rays against one box (`lo`, `hi` splatted): lane
@@ -206,7 +444,7 @@ fn visit<W: Wide, const ANY: bool>(
     let mut rays = [0u64; WIDTH];
     let mut hit = [0usize; WIDTH];
     let mut len = 0;
-    let mut used = n.used;
+    let mut used = frustum_hits::<W>(n, &st.frustum);
     while used != 0 {
         let c = used.trailing_zeros() as usize;
         used &= used - 1;
@@ -250,25 +488,168 @@ fn visit<W: Wide, const ANY: bool>(
     Some((n.child[c], rays[c]))
 }
 
-/// Tests leaf `child` for each ray of `mask`, ray by ray with the single-ray test.
+/// Groups with fewer rays than this in a leaf test them ray by ray: one ray's test of a
+/// block (four triangles in lanes) costs about what one triangle against eight rays does.
+const LANE_MIN: u32 = 2;
+
+/// Tests leaf `child` for the rays of `mask`: eight rays at a time in lanes where a group
+/// has enough rays sharing its shear axes, the others ray by ray with the single-ray test.
 #[inline(always)]
-fn leaf_rays<L: Lanes, const ANY: bool>(bvh: &CpuBvh, child: u32, mask: u64, st: &mut State<'_>) {
-    let mut m = mask;
+fn leaf_rays<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    child: u32,
+    mask: u64,
+    st: &mut State<'_>,
+) {
+    let mut lanes = 0u64;
+    for g in 0..GROUPS {
+        let m = (mask & st.soa.lanes) >> (8 * g) & 0xff;
+        if m.count_ones() >= LANE_MIN {
+            lanes |= m << (8 * g);
+            group_leaf::<W, ANY>(bvh, child, g, m as u32, st);
+        }
+    }
+    let mut m = mask & !lanes;
     while m != 0 {
         let k = m.trailing_zeros() as usize;
         m &= m - 1;
-        let (p, i) = (&st.prep[k / 4], k % 4);
         let (g, j) = (k / 8, k % 8);
-        let shear = ShearLanes::<L>::from4(p, i, p.kz[i]);
-        let t_min = L::splat(st.soa.t_min[g][j]);
-        let best = &mut st.best[k];
-        let (t0, p0) = (best.t, best.prim);
-        if single::leaf::<L, ANY>(bvh, t_min, &shear, child, best) {
+        let soa = &mut *st.soa;
+        let kz = soa.kz[g][j] as usize;
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        if soa.swap >> k & 1 != 0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let shear = ShearLanes {
+            kx,
+            ky,
+            kz,
+            s: [
+                L::splat(soa.shear[g][0][j]),
+                L::splat(soa.shear[g][1][j]),
+                L::splat(soa.shear[g][2][j]),
+            ],
+            o: [
+                L::splat(soa.org[g][kx][j]),
+                L::splat(soa.org[g][ky][j]),
+                L::splat(soa.org[g][kz][j]),
+            ],
+        };
+        let t_min = L::splat(soa.t_min[g][j]);
+        let mut best = soa.best(g, j, st.found >> k & 1 != 0);
+        let ray = RayAt::Ray(&st.rays[lane_order(st.rays.len())[k] as usize]);
+        if single::leaf::<L, ANY>(bvh, t_min, &shear, ray, child, &mut best) {
             st.active &= !(1 << k);
         }
-        if best.t.to_bits() != t0.to_bits() || best.prim != p0 {
-            st.soa.best_t[g][j] = best.t;
+        if best.found {
+            soa.set_best(g, j, &best);
             st.found |= 1 << k;
+        }
+    }
+}
+
+impl Soa {
+    /// Lane `j` of group `g`'s best hit (`found`: it has one).
+    #[inline(always)]
+    fn best(&self, g: usize, j: usize, found: bool) -> Best {
+        Best {
+            t: self.best_t[g][j],
+            prim: self.best_prim[g][j].to_bits(),
+            u: self.best_u[g][j],
+            v: self.best_v[g][j],
+            found,
+        }
+    }
+
+    /// Sets lane `j` of group `g`'s best hit.
+    #[inline(always)]
+    fn set_best(&mut self, g: usize, j: usize, b: &Best) {
+        self.best_t[g][j] = b.t;
+        self.best_prim[g][j] = f32::from_bits(b.prim);
+        self.best_u[g][j] = b.u;
+        self.best_v[g][j] = b.v;
+    }
+}
+
+/// Tests leaf `child` for the rays `m` of group `g` (which share the group's shear axes),
+/// triangle by triangle with the rays in lanes ([`tri_rays`]), taking hits by the hit rule
+/// lane by lane.
+#[inline(always)]
+fn group_leaf<W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    child: u32,
+    g: usize,
+    mut m: u32,
+    st: &mut State<'_>,
+) {
+    let soa = &mut *st.soa;
+    let [kx, ky, kz] = soa.axes[g];
+    let r = ShearRays {
+        o: [
+            W::load(&soa.org[g][kx]),
+            W::load(&soa.org[g][ky]),
+            W::load(&soa.org[g][kz]),
+        ],
+        s: [
+            W::load(&soa.shear[g][0]),
+            W::load(&soa.shear[g][1]),
+            W::load(&soa.shear[g][2]),
+        ],
+        t_min: W::load(&soa.t_min[g]),
+    };
+    let (first, count) = leaf_range(child);
+    for (n, b) in bvh.blocks[first..first + count].iter().enumerate() {
+        for i in 0..4 {
+            // A short block's free lanes repeat its last triangle (and a split builder
+            // may put one triangle twice in a leaf): nothing new to find.
+            if i > 0 && b.prim[i] == b.prim[i - 1] {
+                continue;
+            }
+            let c = [
+                [b.v[0][kx][i], b.v[0][ky][i], b.v[0][kz][i]],
+                [b.v[1][kx][i], b.v[1][ky][i], b.v[1][kz][i]],
+                [b.v[2][kx][i], b.v[2][ky][i], b.v[2][kz][i]],
+            ];
+            let (ok, t, u, v) = tri_rays::<W>(&c, &r, m);
+            // Only lanes at or before the best can be taken; the rule settles the ties.
+            let mut ok = ok & t.le(W::load(&soa.best_t[g])).bits();
+            if ok == 0 {
+                continue;
+            }
+            let (t, u, v) = (t.store(), u.store(), v.store());
+            while ok != 0 {
+                let j = ok.trailing_zeros() as usize;
+                ok &= ok - 1;
+                let k = 8 * g + j;
+                let mut best = soa.best(g, j, st.found >> k & 1 != 0);
+                // A hit near an end of the interval is taken only where the binary walk
+                // would test the triangle (see `LeafBoxes`); an any-hit ray's one hit
+                // is always checked.
+                let zs = [c[0][2], c[1][2], c[2][2]];
+                let (oz, sz) = (soa.org[g][kz][j], soa.shear[g][2][j]);
+                if (ANY || near_end(t[j], soa.t_min[g][j], soa.t_max[g][j], zs, oz, sz))
+                    && !single::in_leaf_box(
+                        bvh,
+                        first + n,
+                        i,
+                        &RayAt::Ray(&st.rays[lane_order(st.rays.len())[k] as usize]),
+                        best.t,
+                    )
+                {
+                    continue;
+                }
+                if best.offer(t[j], b.prim[i], u[j], v[j]) {
+                    soa.set_best(g, j, &best);
+                    st.found |= 1 << k;
+                    if ANY {
+                        st.active &= !(1 << k);
+                        m &= !(1 << j);
+                    }
+                }
+            }
+            if ANY && m == 0 {
+                return;
+            }
         }
     }
 }
@@ -289,7 +670,7 @@ fn walk<L: Lanes, W: Wide, const ANY: bool>(
                 continue;
             }
         } else {
-            leaf_rays::<L, ANY>(bvh, child, mask, st);
+            leaf_rays::<L, W, ANY>(bvh, child, mask, st);
         }
         // Pop the next child that some ray still hits, against the rays' bests.
         loop {
@@ -323,26 +704,69 @@ pub(crate) fn run<L: Lanes, W: Wide, const ANY: bool>(
     while start < rays.len() {
         let end = (start + PACKET).min(rays.len());
         let group = &rays[start..end];
-        let (active, dir) = load::<L>(bvh, group, s);
+        let (active, dir, frustum) = load::<W>(bvh, group, &mut s.soa);
         let mut st = State {
             soa: &mut s.soa,
-            best: &mut s.best,
-            prep: &s.prep,
+            rays: group,
             active,
             found: 0,
             dir,
+            frustum,
         };
         if active != 0 {
             walk::<L, W, ANY>(bvh, &mut st, &mut s.stack);
         }
-        for (k, ray) in group.iter().enumerate() {
-            hits[start + k] = if active >> k & 1 != 0 {
-                s.best[k].into_hit()
-            } else {
-                single::trace::<L, W, ANY>(bvh, ray, &s.prep[k / 4], k % 4, &mut s.single)
+        store_hits::<L, W, ANY>(
+            bvh,
+            group,
+            active,
+            &s.soa,
+            &mut hits[start..end],
+            &mut s.single,
+        );
+        start = end;
+    }
+}
+
+/// Writes the packet's answers: the walked rays' bests (a miss at `t_max` is what the SoA
+/// holds for a ray without a hit), eight at a time, then the single-ray walk's for the
+/// others.
+#[inline(always)]
+fn store_hits<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    active: u64,
+    soa: &Soa,
+    out: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    let order = lane_order(rays.len());
+    let mut g = 0;
+    while 8 * g < rays.len() {
+        let h = W::rows4([
+            W::load(&soa.best_t[g]),
+            W::load(&soa.best_prim[g]),
+            W::load(&soa.best_u[g]),
+            W::load(&soa.best_v[g]),
+        ]);
+        let lanes = (rays.len() - 8 * g).min(8);
+        for (j, &[t, prim, u, v]) in h.iter().enumerate().take(lanes) {
+            out[order[8 * g + j] as usize] = Hit {
+                t,
+                prim: prim.to_bits(),
+                u,
+                v,
             };
         }
-        start = end;
+        g += 1;
+    }
+    let mut rest = !active & (u64::MAX >> (PACKET - rays.len()));
+    while rest != 0 {
+        let k = rest.trailing_zeros() as usize;
+        rest &= rest - 1;
+        let r = order[k] as usize;
+        let p = Prepared4::new::<L>(std::slice::from_ref(&rays[r]));
+        out[r] = single::trace::<L, W, ANY>(bvh, &rays[r], &p, 0, stack);
     }
 }
 
@@ -370,17 +794,29 @@ mod tests {
     use bvhtrace_core::{BuildOptions, FlatBvh, Ray};
     use glam::Vec3;
 
-    use super::{PACKET, Scratch, Soa, child_rays, load};
+    use super::{PACKET, Scratch, Soa, child_rays, frustum_hits, lane_order, load};
     use crate::CpuBvh;
     use crate::lanes::{Pair, Portable, Wide};
     use crate::layout::Node8;
     use crate::tests4::box_lane;
     use crate::tests4::tests::{next, point, ray, value};
 
-    /// `child_rays` over lanes `W` against the scalar test of every ray of `active`.
-    fn check_lanes<W: Wide>(n: &Node8, soa: &Soa, active: u64, found: u64, want: &[u64; 8]) {
+    /// `child_rays` over lanes `W` against the scalar test of every ray of `active`, and
+    /// the packet's bounds keeping every slot some ray hits.
+    fn check_lanes<W: Wide>(
+        n: &Node8,
+        soa: &Soa,
+        f: &super::Frustum,
+        (active, found): (u64, u64),
+        want: &[u64; 8],
+    ) {
+        let kept = frustum_hits::<W>(n, f);
         for (c, &w) in want.iter().enumerate() {
             assert_eq!(child_rays::<W>(n, c, soa, active, found), w, "slot {c}");
+            assert!(
+                w == 0 || kept >> c & 1 != 0,
+                "slot {c} culled by the bounds"
+            );
         }
     }
 
@@ -395,7 +831,7 @@ mod tests {
             CpuBvh::from_flat(&FlatBvh::build(&[tri], &BuildOptions::default()).unwrap()).unwrap();
         let mut scratch = Scratch::new(&bvh);
         let mut s = 0x5eed_1234_abcd_0077u64;
-        let (mut hits, mut near_best) = (0, 0);
+        let (mut hits, mut near_best, mut culled) = (0, 0, 0);
         for _ in 0..1500 {
             let mut n = Node8::EMPTY;
             for i in 0..8 {
@@ -406,12 +842,27 @@ mod tests {
                 }
             }
             n.used = 0xff;
-            let count = 1 + (next(&mut s) * PACKET as f32) as usize % PACKET;
-            let rays: Vec<Ray> = (0..count).map(|_| ray(&mut s)).collect();
-            let (active, _) = load::<Portable>(&bvh, &rays, &mut scratch);
+            // Full packets (lanes permuted) a third of the time, else 1 to 64 rays.
+            let count = if next(&mut s) < 0.33 {
+                PACKET
+            } else {
+                1 + (next(&mut s) * PACKET as f32) as usize % PACKET
+            };
+            let mut rays: Vec<Ray> = (0..count).map(|_| ray(&mut s)).collect();
+            if next(&mut s) < 0.5 {
+                // Coherent rays now and then: the bounds then cull some slots.
+                let (o, d) = (rays[0].origin, Vec3::from(rays[0].dir));
+                for r in &mut rays {
+                    r.origin = o;
+                    r.dir = (d + point(&mut s) * 0.01 * d.length()).to_array();
+                }
+            }
+            let (active, _, frustum) = load::<Pair<Portable>>(&bvh, &rays, &mut scratch.soa);
+            let order = lane_order(count);
             let mut found = 0u64;
             let mut best = [0.0f32; PACKET];
-            for (k, r) in rays.iter().enumerate() {
+            for k in 0..count {
+                let r = &rays[order[k] as usize];
                 best[k] = r.t_max;
                 if active >> k & 1 == 0 {
                     continue;
@@ -431,24 +882,28 @@ mod tests {
             }
             let mut want = [0u64; 8];
             for (c, w) in want.iter_mut().enumerate() {
-                for (k, r) in rays.iter().enumerate() {
+                for k in 0..count {
+                    let r = &rays[order[k] as usize];
                     if active >> k & 1 != 0 && box_lane(&n, &PreparedRay::new(r), c, best[k]) {
                         *w |= 1 << k;
                     }
                 }
                 hits += w.count_ones();
             }
-            check_lanes::<Pair<Portable>>(&n, &scratch.soa, active, found, &want);
+            let (soa, m) = (&scratch.soa, (active, found));
+            check_lanes::<Pair<Portable>>(&n, soa, &frustum, m, &want);
             #[cfg(target_arch = "x86_64")]
             {
-                check_lanes::<Pair<crate::lanes::Sse>>(&n, &scratch.soa, active, found, &want);
+                check_lanes::<Pair<crate::lanes::Sse>>(&n, soa, &frustum, m, &want);
                 if std::arch::is_x86_feature_detected!("avx2") {
-                    check_lanes::<crate::lanes::Avx8>(&n, &scratch.soa, active, found, &want);
+                    check_lanes::<crate::lanes::Avx8>(&n, soa, &frustum, m, &want);
                 }
             }
+            culled += (frustum_hits::<Pair<Portable>>(&n, &frustum) ^ 0xff).count_ones();
         }
         assert!(hits > 7_000, "only {hits} box hits");
-        println!("{hits} box hits, {near_best} bests near an entry");
+        println!("{hits} box hits, {near_best} bests near an entry, {culled} slots culled");
+        assert!(culled > 500, "only {culled} slots culled by the bounds");
         assert!(near_best > 300, "only {near_best} bests near an entry");
     }
 

@@ -2,11 +2,14 @@
 //! children visited nearest first, popped children re-tested against the best hit, and a
 //! leaf's triangles tested four at a time.
 
+use bvhtrace_core::masks::MaskTables;
 use bvhtrace_core::{Hit, Ray};
 
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
-use crate::tests4::{BoxHits, Prepared4, RayLanes, ShearLanes, box8, still_hit, tri4};
+use crate::tests4::{
+    BoxHits, Prepared4, RayAt, RayLanes, ShearLanes, box8, near_ends, still_hit, tri4,
+};
 
 // The core walks' best hit and hit rule, and their answer for a ray not traced: one rule
 // for every walk.
@@ -21,28 +24,98 @@ pub(crate) struct Entry {
     pub far: f32,
 }
 
-/// Tests a leaf's blocks (`t_min` the ray's, splatted). Returns true when an any-hit query can stop.
+/// Where a leaf's triangles are tested (the core walks' `Site`): the primitive base of
+/// the instance walked (0 in one level), and the alpha masks with the instance's base in
+/// them (`MaskTables::base`), read only by the masked walks.
+#[derive(Clone, Copy)]
+pub(crate) struct Site<'a> {
+    pub prim_base: u32,
+    pub masks: Option<&'a MaskTables>,
+    pub mask_base: u32,
+}
+
+impl Site<'_> {
+    /// One mesh without masks.
+    pub const PLAIN: Site<'static> = Site {
+        prim_base: 0,
+        masks: None,
+        mask_base: 0,
+    };
+}
+
+/// Tests a leaf's blocks (`t_min` the ray's, splatted) in one mesh without masks. Returns
+/// true when an any-hit query can stop.
 #[inline(always)]
 pub(crate) fn leaf<L: Lanes, const ANY: bool>(
     bvh: &CpuBvh,
     t_min: L,
     s: &ShearLanes<L>,
+    ray: RayAt<'_>,
     child: u32,
     best: &mut Best,
 ) -> bool {
+    leaf_at::<L, ANY, false>(bvh, t_min, s, ray, child, best, Site::PLAIN)
+}
+
+/// [`leaf`] at `at`: hits report `at.prim_base` plus the block's id, and with `MASKED` a
+/// candidate that beats the best is taken only when the masks accept it (the core walks'
+/// call, with the mesh's own id), which is a function of the candidate alone, so the hit
+/// rule stays independent of the order. With `ray`, a hit within f32 error of an end of
+/// the interval is taken only when the ray hits its binary leaf's box, as the binary walk
+/// requires (see [`crate::layout::LeafBoxes`]).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
+    bvh: &CpuBvh,
+    t_min: L,
+    s: &ShearLanes<L>,
+    ray: RayAt<'_>,
+    child: u32,
+    best: &mut Best,
+    at: Site<'_>,
+) -> bool {
     let (first, count) = leaf_range(child);
-    for b in &bvh.blocks[first..first + count] {
+    for (k, b) in bvh.blocks[first..first + count].iter().enumerate() {
         let (mut ok, t, u, v) = tri4(b, t_min, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.
         ok &= t.le(L::splat(best.t)).bits();
         if ok == 0 {
             continue;
         }
+        // An any-hit walk takes one hit and stops: its few hits are all re-tested, which
+        // costs less than finding those near an end.
+        let near = if ANY {
+            u32::MAX
+        } else {
+            near_ends(b, s, t, t_min, ray.t_max())
+        };
         let (t, u, v) = (t.store(), u.store(), v.store());
         while ok != 0 {
             let i = ok.trailing_zeros() as usize;
             ok &= ok - 1;
-            if best.offer(t[i], b.prim[i], u[i], v[i]) && ANY {
+            if near >> i & 1 != 0 && !in_leaf_box(bvh, first + k, i, &ray, best.t) {
+                continue;
+            }
+            let prim = at.prim_base.wrapping_add(b.prim[i]);
+            if MASKED {
+                if !best.beats(t[i], prim)
+                    || at
+                        .masks
+                        .is_some_and(|m| !m.accept(at.mask_base, b.prim[i], u[i], v[i]))
+                {
+                    continue;
+                }
+                *best = Best {
+                    t: t[i],
+                    prim,
+                    u: u[i],
+                    v: v[i],
+                    found: true,
+                };
+                if ANY {
+                    return true;
+                }
+            } else if best.offer(t[i], prim, u[i], v[i]) && ANY {
                 return true;
             }
         }
@@ -50,11 +123,26 @@ pub(crate) fn leaf<L: Lanes, const ANY: bool>(
     false
 }
 
+/// The binary walk's test of block `block`'s lane `i`'s own leaf box, at the best so far
+/// (see [`crate::layout::LeafBoxes`]).
+#[cold]
+#[inline(never)]
+pub(crate) fn in_leaf_box(
+    bvh: &CpuBvh,
+    block: usize,
+    i: usize,
+    ray: &RayAt<'_>,
+    t_best: f32,
+) -> bool {
+    let b = bvh.leaf_box(block, i);
+    bvhtrace_core::intersect::intersect_box(&ray.prepared(), b.min, b.max, t_best).is_some()
+}
+
 /// Orders a node's hit children nearest first: pushes all but the nearest (farthest
 /// first, so the nearer pop sooner) onto `stack` above `sp`, and returns the nearest. An
 /// any-hit walk re-tests nothing at a pop, so its entries carry no slack or exit.
 #[inline(always)]
-fn order<W: Wide, const ANY: bool>(
+pub(crate) fn order<W: Wide, const ANY: bool>(
     n: &Node8,
     b: &BoxHits<W>,
     stack: &mut [Entry],
@@ -133,9 +221,22 @@ pub(crate) fn stack_size(bvh: &CpuBvh) -> usize {
 }
 
 /// Ray `i` of a prepared group, `ray` itself: its walk (closest hit, or any hit with
-/// `ANY`), with a stack of [`stack_size`] entries reused across rays.
+/// `ANY`) in one mesh without masks, with a stack of [`stack_size`] entries reused across
+/// rays.
 #[inline(always)]
 pub(crate) fn trace<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    ray: &Ray,
+    p: &Prepared4,
+    i: usize,
+    stack: &mut [Entry],
+) -> Hit {
+    trace_at::<L, W, ANY, false>(bvh, ray, p, i, stack)
+}
+
+/// [`trace`] in one mesh, with the tree's alpha masks when `MASKED`.
+#[inline(always)]
+pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
     p: &Prepared4,
@@ -149,29 +250,73 @@ pub(crate) fn trace<L: Lanes, W: Wide, const ANY: bool>(
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return best.into_hit();
     }
+    let at = Site {
+        masks: if MASKED { bvh.masks.as_deref() } else { None },
+        ..Site::PLAIN
+    };
+    mesh::<L, W, ANY, MASKED>(bvh, ray, p, i, best, 0, at, stack)
+        .0
+        .into_hit()
+}
+
+/// The walk of ray `i` of `p` (`ray` itself, valid, with `t_min <= t_max`) through the
+/// mesh whose walk starts at `start` (a node, or a leaf), from the best hit `best`, at
+/// `at`. Returns the best hit, and true when an any-hit query stopped.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
+    bvh: &CpuBvh,
+    ray: &Ray,
+    p: &Prepared4,
+    i: usize,
+    best: Best,
+    start: u32,
+    at: Site<'_>,
+    stack: &mut [Entry],
+) -> (Best, bool) {
     let q = RayLanes::<L, W>::from4(p, ray, i);
     // One walk per dominant axis, for rays along a slab, and for rays that start behind
     // their origin (see `box8`): most rays are none of the last two.
     let signed = ray.t_min < 0.0 || q.parallel;
     match (q.parallel, signed, q.kz) {
-        (false, false, 0) => walk::<L, W, ANY, false, false, 0>(bvh, p, i, &q, best, stack),
-        (false, false, 1) => walk::<L, W, ANY, false, false, 1>(bvh, p, i, &q, best, stack),
-        (false, false, _) => walk::<L, W, ANY, false, false, 2>(bvh, p, i, &q, best, stack),
-        (false, true, 0) => walk::<L, W, ANY, true, false, 0>(bvh, p, i, &q, best, stack),
-        (false, true, 1) => walk::<L, W, ANY, true, false, 1>(bvh, p, i, &q, best, stack),
-        (false, true, _) => walk::<L, W, ANY, true, false, 2>(bvh, p, i, &q, best, stack),
-        (true, _, 0) => walk::<L, W, ANY, true, true, 0>(bvh, p, i, &q, best, stack),
-        (true, _, 1) => walk::<L, W, ANY, true, true, 1>(bvh, p, i, &q, best, stack),
-        (true, _, _) => walk::<L, W, ANY, true, true, 2>(bvh, p, i, &q, best, stack),
+        (false, false, 0) => {
+            walk::<L, W, ANY, MASKED, false, false, 0>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (false, false, 1) => {
+            walk::<L, W, ANY, MASKED, false, false, 1>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (false, false, _) => {
+            walk::<L, W, ANY, MASKED, false, false, 2>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (false, true, 0) => {
+            walk::<L, W, ANY, MASKED, true, false, 0>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (false, true, 1) => {
+            walk::<L, W, ANY, MASKED, true, false, 1>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (false, true, _) => {
+            walk::<L, W, ANY, MASKED, true, false, 2>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (true, _, 0) => {
+            walk::<L, W, ANY, MASKED, true, true, 0>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (true, _, 1) => {
+            walk::<L, W, ANY, MASKED, true, true, 1>(bvh, p, i, &q, best, start, at, stack)
+        }
+        (true, _, _) => {
+            walk::<L, W, ANY, MASKED, true, true, 2>(bvh, p, i, &q, best, start, at, stack)
+        }
     }
 }
 
-/// The walk from the root (see [`trace`]); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`].
+/// The walk from `start` (see [`mesh`]); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`].
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn walk<
     L: Lanes,
     W: Wide,
     const ANY: bool,
+    const MASKED: bool,
     const SIGNED: bool,
     const PARALLEL: bool,
     const KZ: usize,
@@ -181,11 +326,19 @@ fn walk<
     i: usize,
     q: &RayLanes<L, W>,
     mut best: Best,
+    start: u32,
+    at: Site<'_>,
     stack: &mut [Entry],
-) -> Hit {
+) -> (Best, bool) {
     let mut sp = 0;
     let mut shear = None;
-    let mut child = 0u32;
+    let mut child = start;
+    let ray = RayAt::Lanes {
+        p,
+        i,
+        t_min: q.t_min_s,
+        t_max: q.t_max_s,
+    };
     loop {
         if child & LEAF == 0 {
             let n = &bvh.nodes[child as usize];
@@ -195,19 +348,21 @@ fn walk<
                 child = order::<W, ANY>(n, &b, stack, &mut sp);
                 continue;
             }
-        } else if leaf::<L, ANY>(
+        } else if leaf_at::<L, ANY, MASKED>(
             bvh,
             q.t_min4,
             shear.get_or_insert_with(|| ShearLanes::from4(p, i, KZ)),
+            ray,
             child,
             &mut best,
+            at,
         ) {
-            return best.into_hit();
+            return (best, true);
         }
         // Pop the next child still hit against the best so far.
         loop {
             if sp == 0 {
-                return best.into_hit();
+                return (best, false);
             }
             sp -= 1;
             let e = stack[sp];

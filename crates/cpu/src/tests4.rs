@@ -33,6 +33,8 @@ pub(crate) struct RayLanes<L, W> {
     pub dir: [f32; 3],
     /// The interval's end (`Ray::t_max`).
     pub t_max_s: f32,
+    /// `t_min` as one value.
+    pub t_min_s: f32,
 }
 
 /// Four rays prepared together, ray `i` in lane `i`: `Ray::is_valid` and the values of
@@ -65,6 +67,37 @@ fn gather<L: Lanes>(r: [&Ray; 4], f: impl Fn(&Ray) -> f32) -> L {
 }
 
 impl Prepared4 {
+    /// Ray `i` (its interval `t_min..t_max`) as the core's `PreparedRay`, for its scalar box test: the
+    /// same origin, direction, inverse (`1 / d` is `-(-1 / d)` exactly), interval and axes.
+    #[inline(always)]
+    pub fn core_ray(
+        &self,
+        i: usize,
+        t_min: f32,
+        t_max: f32,
+    ) -> bvhtrace_core::intersect::PreparedRay {
+        let kz = self.kz[i];
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        if self.swap >> i & 1 != 0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let v = |a: [[f32; 4]; 3]| glam::Vec3::new(a[0][i], a[1][i], a[2][i]);
+        bvhtrace_core::intersect::PreparedRay {
+            org: v(self.org),
+            dir: v(self.dir),
+            inv_dir: -v(self.ninv),
+            parallel: self.parallel >> i & 1 != 0,
+            t_min,
+            t_max,
+            kx,
+            ky,
+            kz,
+            sx: self.shear[0][i],
+            sy: self.shear[1][i],
+            sz: self.shear[2][i],
+        }
+    }
+
     /// Prepares one to four rays.
     #[inline(always)]
     pub fn new<L: Lanes>(rays: &[Ray]) -> Prepared4 {
@@ -151,6 +184,7 @@ impl<L: Lanes, W: Wide> RayLanes<L, W> {
             parallel: p.parallel >> i & 1 != 0,
             dir: [p.dir[0][i], p.dir[1][i], p.dir[2][i]],
             t_max_s: ray.t_max,
+            t_min_s: ray.t_min,
         }
     }
 
@@ -387,6 +421,72 @@ pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, 
     let ok = t.ge(t_min).bits() & inside;
     (ok, t, v.mul(inv_det), w.mul(inv_det))
 }
+
+/// A ray as a leaf's hits near an end of its interval need it (see [`near_ends`]): for
+/// the binary walk's box test of their leaves, which is rare enough to prepare the ray
+/// again for it.
+#[derive(Clone, Copy)]
+pub(crate) enum RayAt<'a> {
+    /// Ray `i` of a prepared group, with its interval.
+    Lanes {
+        p: &'a Prepared4,
+        i: usize,
+        t_min: f32,
+        t_max: f32,
+    },
+    /// The ray itself.
+    Ray(&'a Ray),
+}
+
+impl RayAt<'_> {
+    /// The end of the interval.
+    #[inline(always)]
+    pub fn t_max(&self) -> f32 {
+        match self {
+            RayAt::Lanes { t_max, .. } => *t_max,
+            RayAt::Ray(r) => r.t_max,
+        }
+    }
+
+    /// The ray as the core's `PreparedRay`.
+    #[inline(always)]
+    pub fn prepared(&self) -> bvhtrace_core::intersect::PreparedRay {
+        match *self {
+            RayAt::Lanes { p, i, t_min, t_max } => p.core_ray(i, t_min, t_max),
+            RayAt::Ray(r) => bvhtrace_core::intersect::PreparedRay::new(r),
+        }
+    }
+}
+
+/// True when a hit at `t` on a triangle whose corners lie at `zs` along the ray's dominant
+/// axis (origin `oz`, scale `sz`) is within `NEAR_END` of an end of the interval: what
+/// [`near_ends`] computes per lane, for one ray.
+#[inline(always)]
+pub(crate) fn near_end(t: f32, t_min: f32, t_max: f32, zs: [f32; 3], oz: f32, sz: f32) -> bool {
+    let z = |c: usize| (zs[c] - oz).abs();
+    let e = z(0).max(z(1)).max(z(2)) * sz.abs() * NEAR_END;
+    t - t_min < e || t_max - t < e
+}
+
+/// The lanes of `t` (a block's hits) within `2^-16 m` of the interval's ends, `m` the
+/// largest distance of a triangle's corners along the dominant axis: where f32 puts a
+/// triangle's `t` at most `2^-18 m` from its exact distance (see `BOX_CULL_SLACK`), so
+/// only there can the triangle lie outside the interval while its `t` lies inside it. Only
+/// those hits need their leaf's box tested (see [`crate::layout::LeafBoxes`]).
+#[inline(always)]
+pub(crate) fn near_ends<L: Lanes>(b: &Tri4, s: &ShearLanes<L>, t: L, t_min: L, t_max: f32) -> u32 {
+    let oz = s.o[2];
+    let z = |c: usize| L::load(&b.v[c][s.kz]).sub(oz).abs();
+    let e = z(0)
+        .max(z(1))
+        .max(z(2))
+        .mul(s.s[2].abs())
+        .mul(L::splat(NEAR_END));
+    (t.sub(t_min).lt(e).or(L::splat(t_max).sub(t).lt(e))).bits()
+}
+
+/// `2^-16`: four times `BOX_CULL_SLACK`, a margin over the bound it stands for.
+const NEAR_END: f32 = 1.0 / 65536.0;
 
 #[cfg(test)]
 pub(crate) mod tests {

@@ -1,7 +1,9 @@
 //! Generators and comparisons shared by the tests (after the core tests' own).
 #![allow(dead_code)]
 
-use bvhtrace_core::{FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle, oracle};
+use bvhtrace_core::{
+    BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle, oracle,
+};
 use bvhtrace_cpu::{CpuBvh, Isa};
 use glam::Vec3;
 use proptest::prelude::*;
@@ -193,4 +195,54 @@ pub fn scene_rays(name: &str, w: u32, h: u32) -> Option<SceneRays> {
         })
         .collect();
     Some((tris, flat, primary, shadow))
+}
+
+/// Triangles in the planes `x = 3^(i - 40)`, one per leaf (a chain built by the midpoint
+/// builder), and rays from just beside the planes in all directions: hits at or behind
+/// the origin that f32 rounds to a small positive `t`.
+pub fn planes_at_origins() -> (FlatBvh, Vec<Ray>) {
+    let xs: Vec<f32> = (0..90).map(|i| 3f64.powi(i - 40) as f32).collect();
+    let tris: Vec<Triangle> = xs
+        .iter()
+        .map(|&x| {
+            [
+                Vec3::new(x, -1.0, -1.0),
+                Vec3::new(x, 1.0, -1.0),
+                Vec3::new(x, 0.0, 1.5),
+            ]
+        })
+        .collect();
+    let opts = BuildOptions {
+        builder: BuilderKind::Midpoint,
+        max_depth: 1000,
+        max_leaf_size: 1,
+        ..Default::default()
+    };
+    let flat = FlatBvh::build(&tris, &opts).expect("built");
+    let mut next = xorshift(19);
+    let rays = (0..3000)
+        .map(|_| {
+            let i = (next() * 89.0) as usize;
+            let o = Vec3::new(xs[i] * (1.1 + 0.8 * next()), next() - 0.5, next() - 0.6);
+            Ray::new(o, Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5))
+        })
+        .collect();
+    (flat, rays)
+}
+
+/// Fails naming the first ray whose hit differs from `want`'s to the bit.
+pub fn assert_same_hits(rays: &[Ray], got: &[Hit], want: &[Hit]) {
+    let differ: Vec<usize> = (0..rays.len())
+        .filter(|&i| !same(&got[i], &want[i]))
+        .collect();
+    if let Some(&i) = differ.first() {
+        panic!(
+            "{} of {} rays differ, e.g. ray {:?}: {:?} vs {:?}",
+            differ.len(),
+            rays.len(),
+            rays[i],
+            got[i],
+            want[i]
+        );
+    }
 }

@@ -119,6 +119,48 @@ fn coherent_and_scattered_packets_on_spheres() {
 }
 
 /// `tile_order` is a permutation of the pixels, one 8x8 tile per packet.
+/// Hits at or behind the rays' origins (`common::planes_at_origins`), where only the leaf
+/// boxes decide as the binary walk does: packets of those rays (64 at a time, both
+/// triangle tests: rays sharing their axes in lanes, the others one by one), closest hits
+/// the full stack's to the bit, any hits its verdicts.
+#[test]
+fn packets_judge_hits_at_the_origin_by_their_leaf_boxes() {
+    let (flat, mut rays) = common::planes_at_origins();
+    // Coherent groups too: runs of rays from one origin, so that lanes share their axes.
+    let extra: Vec<Ray> = rays
+        .iter()
+        .step_by(8)
+        .flat_map(|r| {
+            (0..8).map(move |k| {
+                Ray::new(
+                    Vec3::from(r.origin),
+                    Vec3::from(r.dir) + Vec3::splat(k as f32 * 1e-3),
+                )
+            })
+        })
+        .collect();
+    rays.extend(extra);
+    let bvh = CpuBvh::from_flat(&flat).unwrap();
+    for isa in bvhtrace_cpu::Isa::all_available() {
+        let got = bvhtrace_cpu::trace_packets_with(&bvh, &rays, Query::Closest, isa);
+        common::assert_same_hits(
+            &rays,
+            &got,
+            &common::reference(&flat, &rays, Query::Closest),
+        );
+        let any = bvhtrace_cpu::trace_packets_with(&bvh, &rays, Query::Any, isa);
+        let want = common::reference(&flat, &rays, Query::Any);
+        for i in 0..rays.len() {
+            assert_eq!(
+                any[i].is_hit(),
+                want[i].is_hit(),
+                "{isa} any-hit ray {:?}",
+                rays[i]
+            );
+        }
+    }
+}
+
 #[test]
 fn tile_order_is_a_permutation_in_tiles() {
     for (w, h) in [(16u32, 8u32), (20, 13), (1, 1), (64, 64)] {

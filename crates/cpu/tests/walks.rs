@@ -4,7 +4,7 @@
 //! instruction set.
 
 use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Hit, INVALID_RAY, MISS, Query, Ray};
-use bvhtrace_cpu::{ConvertError, CpuBvh};
+use bvhtrace_cpu::CpuBvh;
 use glam::Vec3;
 use proptest::prelude::*;
 
@@ -218,45 +218,6 @@ fn long_leaves_are_split() {
     }
 }
 
-/// Two-level trees are refused with an error naming what to do.
-#[test]
-fn instanced_trees_are_refused() {
-    use bvhtrace_core::{Instance, InstancedBvh};
-    let mesh = common::uv_sphere(4, 1.0, Vec3::ZERO);
-    let inst = InstancedBvh::build(
-        &[mesh],
-        vec![Instance::new(0, glam::Affine3A::IDENTITY)],
-        &BuildOptions::default(),
-    )
-    .unwrap();
-    let err = CpuBvh::from_flat(inst.bvh()).unwrap_err();
-    assert_eq!(err, ConvertError::Instanced);
-    assert!(err.to_string().contains("bvhtrace_core"));
-}
-
-/// A tree with alpha-masked triangles (the foliage scene, flattened) is refused, since
-/// the layout's walks do not cut candidates by the masks; the same tree without its
-/// masks converts.
-#[test]
-fn masked_trees_are_refused() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
-    let scene = bvhtrace_scene::load(path).unwrap();
-    let traced = scene.tracing_bvh(&BuildOptions::default(), true).unwrap();
-    let bvhtrace_scene::SceneBvh::Flat { bvh, .. } = traced else {
-        panic!("a flattened scene traces as one mesh");
-    };
-    assert!(
-        bvh.masks().is_some(),
-        "the foliage scene has masked triangles"
-    );
-    let err = CpuBvh::from_flat(&bvh).unwrap_err();
-    assert_eq!(err, ConvertError::Masked);
-    assert!(err.to_string().contains("alpha masks"));
-    let mut opaque = bvh.clone();
-    opaque.set_masks(None).unwrap();
-    assert!(CpuBvh::from_flat(&opaque).is_ok());
-}
-
 /// The layout's sizes: 256-byte nodes, 160-byte blocks, and under the binary layout's
 /// bytes per triangle on a closed mesh.
 #[test]
@@ -274,4 +235,32 @@ fn layout_sizes() {
         "{ours:.1} vs binary {binary:.1} bytes per triangle"
     );
     let _: Hit = bvhtrace_cpu::trace_ray(&bvh, &Ray::new(Vec3::Z * 5.0, -Vec3::Z), Query::Any);
+}
+
+/// Rays from beside triangles in the planes `x = 3^(i - 40)` (`common::planes_at_origins`):
+/// f32 rounds the distance of a plane at or behind the origin to a small positive `t`,
+/// where the binary walk has missed that triangle's leaf box. The layout tests the leaf
+/// boxes of such hits (`LeafBoxes`), and gives the full stack's hits to the bit, not
+/// merely within the f32 exception.
+#[test]
+fn hits_at_the_origin_are_judged_by_their_leaf_boxes() {
+    let (flat, rays) = common::planes_at_origins();
+    let bvh = CpuBvh::from_flat(&flat).unwrap();
+    assert!(
+        bvh.kept_leaf_boxes() == 0,
+        "one-triangle leaves: corner boxes"
+    );
+    let want = reference(&flat, &rays, Query::Closest);
+    let got = every_isa(&bvh, &rays, Query::Closest);
+    common::assert_same_hits(&rays, &got, &want);
+    let any = every_isa(&bvh, &rays, Query::Any);
+    let want_any = reference(&flat, &rays, Query::Any);
+    for i in 0..rays.len() {
+        assert_eq!(
+            any[i].is_hit(),
+            want_any[i].is_hit(),
+            "any-hit ray {:?}",
+            rays[i]
+        );
+    }
 }

@@ -61,8 +61,8 @@ pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
-    Backends, CaseReport, DeviceTracers, Differences, OpenTracer, PrecisionRow, RunReport,
-    TRAVERSALS, run_case, run_case_with_timeout,
+    Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, OpenTracer, PrecisionRow,
+    RunReport, TRAVERSALS, run_case, run_case_with_timeout,
 };
 
 /// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.

@@ -278,7 +278,9 @@ pub struct RunReport {
     pub contract_violations: usize,
     /// Hits on exactly zero-area triangles.
     pub zero_area_hits: usize,
-    /// GPU only: rays whose hit differs from the CPU twin's, bit for bit.
+    /// GPU: rays whose hit differs from the CPU twin's, bit for bit. The CPU layout
+    /// (`cpu-layout` rows): rays whose answer differs from the CPU full stack's (closest:
+    /// bit for bit; any: hit or miss).
     pub parity_mismatches: Option<usize>,
     /// GPU only: rays that spent the adapter's loop-trip budget (`TRIP_LIMIT`; lavapipe
     /// silently ends longer loops) and were finished on the CPU twin.
@@ -1089,6 +1091,67 @@ fn upload_failed(backend: &str, queries: &[Query], e: &dyn std::fmt::Display) ->
     rows
 }
 
+/// The backend name of the CPU layout's rows (`bvhtrace-cpu`).
+pub const CPU_LAYOUT_ROWS: &str = "cpu-layout";
+
+/// Any-hit answers alike: both hit (any triangle), or the same miss or invalid ray to
+/// the bit.
+fn same_verdict(a: &Hit, b: &Hit) -> bool {
+    let hit = |h: &Hit| h.prim != MISS && h.prim != INVALID_RAY;
+    if hit(a) || hit(b) {
+        hit(a) && hit(b)
+    } else {
+        hit_bits(a) == hit_bits(b)
+    }
+}
+
+/// The CPU layout's rows: the tree converted to `bvhtrace-cpu`'s layout, each query traced
+/// one ray at a time and in packets, judged like every row and compared with the CPU full
+/// stack's hits (`twin`): closest hits bit for bit, any hits on hit or miss (which
+/// triangle an any-hit walk stops at depends on its order). A tree the layout does not
+/// take gives a note instead of rows.
+fn trace_cpu_layout(
+    bvh: &FlatBvh,
+    case: &Case,
+    queries: &[Query],
+    judge: &Judge<'_>,
+    twin: &Hits,
+) -> Result<Vec<RunReport>, String> {
+    let layout =
+        bvhtrace_cpu::CpuBvh::from_flat(bvh).map_err(|e| format!("{CPU_LAYOUT_ROWS}: {e}"))?;
+    let mut runs = Vec::new();
+    for (walk, packets) in [("single-ray", false), ("packets", true)] {
+        for &q in queries {
+            let t = Instant::now();
+            let hits = if packets {
+                bvhtrace_cpu::trace_packets(&layout, &case.rays, q)
+            } else {
+                bvhtrace_cpu::trace_rays(&layout, &case.rays, q)
+            };
+            let r = RunReport {
+                traversal: walk.into(),
+                trace_ms: ms(t),
+                ..run_report(CPU_LAYOUT_ROWS, Traversal::FullStack, q)
+            };
+            let full_stack = twin.get(&(Traversal::FullStack, q)).map(Vec::as_slice);
+            let mut r = match q {
+                Query::Closest => judge.evaluate(r, q, &hits, full_stack),
+                Query::Any => judge.evaluate(r, q, &hits, None),
+            };
+            if let (Query::Any, Some(f)) = (q, full_stack) {
+                r.parity_mismatches = Some(
+                    hits.iter()
+                        .zip(f)
+                        .filter(|(a, b)| !same_verdict(a, b))
+                        .count(),
+                );
+            }
+            runs.push(r);
+        }
+    }
+    Ok(runs)
+}
+
 /// The device's ray queries' rows: one walk (the driver's) per query, judged like every
 /// row, with no twin to equal.
 fn trace_ray_queries(
@@ -1314,6 +1377,12 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     let cpu = CpuTracer::new(&bvh);
     let (runs, cpu_hits) = trace_all(&cpu, "cpu", case, queries, &judge, None, backends.cpu);
     rep.runs.extend(runs);
+    if backends.cpu {
+        match trace_cpu_layout(&bvh, case, queries, &judge, &cpu_hits) {
+            Ok(runs) => rep.runs.extend(runs),
+            Err(note) => rep.notes.push(note),
+        }
+    }
 
     // Every walk, less the full stack on a tree deeper than its kernel's stack: the
     // full-stack rows then say it refused.

@@ -14,8 +14,8 @@ use std::time::{Duration, Instant};
 use bvhtrace_core::{BuildOptions, Instance, InstanceError, InstancedBvh, Ray};
 use bvhtrace_stress::geom::{IndexedMesh, unit_icosphere};
 use bvhtrace_stress::{
-    Backends, Case, CaseReport, Expect, RunReport, Size, cases_sized, format_table, run_case,
-    run_case_with_timeout, select_cases,
+    Backends, CPU_LAYOUT_ROWS, Case, CaseReport, Expect, RunReport, Size, cases_sized,
+    format_table, run_case, run_case_with_timeout, select_cases,
 };
 use glam::{Affine3A, Vec3};
 
@@ -98,6 +98,11 @@ fn all_runs() -> impl Iterator<Item = (&'static CaseReport, &'static RunReport)>
 /// Every run of a case within the guaranteed range (`scale-limit-*` are measured only).
 fn runs() -> impl Iterator<Item = (&'static CaseReport, &'static RunReport)> {
     all_runs().filter(|(c, _)| c.guaranteed)
+}
+
+/// A run of the GPU kernels (through wgpu or ash), not of a CPU walk.
+fn on_device(r: &RunReport) -> bool {
+    r.backend == "gpu" || r.backend == "vk"
 }
 
 fn label(c: &CaseReport, r: &RunReport) -> String {
@@ -216,7 +221,7 @@ fn gpu_kernels_equal_their_cpu_twins_bit_for_bit() {
     let mut bad = Vec::new();
     let mut compared = 0;
     let mut by_backend = [0, 0];
-    for (c, r) in all_runs().filter(|(_, r)| r.backend != "cpu") {
+    for (c, r) in all_runs().filter(|(_, r)| on_device(r)) {
         compared += 1;
         by_backend[usize::from(r.backend == "vk")] += 1;
         match r.parity_mismatches {
@@ -411,6 +416,75 @@ fn near_rays_separate_surfaces_until_the_input_merges() {
     }
 }
 
+/// The CPU layout (`bvhtrace-cpu`), one ray at a time and in packets, on every case it
+/// takes: the CPU full stack's answers (closest hits bit for bit, any hits on hit or
+/// miss) in the guaranteed range. The tests above hold its rows to every guarantee (escapes, contract, oracle,
+/// brute force, known answers) as they hold every walk's.
+#[test]
+fn the_cpu_layout_gives_the_full_stacks_answers() {
+    let s = suite();
+    let mut bad = Vec::new();
+    let mut taken = 0;
+    for c in s
+        .reports
+        .iter()
+        .filter(|c| c.skipped.is_none() && c.error.is_none())
+    {
+        let rows: Vec<&RunReport> = c
+            .runs
+            .iter()
+            .filter(|r| r.backend == CPU_LAYOUT_ROWS)
+            .collect();
+        if rows.is_empty() {
+            println!(
+                "{}: no {CPU_LAYOUT_ROWS} rows: {:?}",
+                c.name,
+                c.notes.last()
+            );
+            continue;
+        }
+        taken += 1;
+        let queries = c
+            .runs
+            .iter()
+            .filter(|r| r.backend == "cpu" && r.traversal == "full-stack")
+            .count();
+        if rows.len() != 2 * queries {
+            bad.push(format!(
+                "{}: {} rows for {queries} queries",
+                c.name,
+                rows.len()
+            ));
+        }
+        for r in rows {
+            // Past the guaranteed range (`scale-limit-*`: products underflow, ties at
+            // `t = 0` that the full stack itself settles by its order) only measured.
+            if !c.guaranteed && r.status == "ok" {
+                println!(
+                    "{}: {:?} rays differ from the full stack (measured only)",
+                    label(c, r),
+                    r.parity_mismatches
+                );
+                continue;
+            }
+            if r.status != "ok" || r.parity_mismatches != Some(0) {
+                bad.push(with_examples(
+                    c,
+                    r,
+                    format!(
+                        "{} of {} rays differ from the full stack ({})",
+                        r.parity_mismatches.unwrap_or(usize::MAX),
+                        r.rays,
+                        r.status
+                    ),
+                ));
+            }
+        }
+    }
+    check("the CPU layout against the full stack", bad);
+    assert!(taken >= 20, "the CPU layout took only {taken} cases");
+}
+
 /// The loop-trip budget (`TRIP_LIMIT`): on an adapter that bounds the kernels' loops
 /// (lavapipe), the rays through the 70,000-deep stack of duplicates in `coincident` spend
 /// it and are finished on the CPU twin (their answers are checked by the parity and
@@ -423,7 +497,7 @@ fn only_the_long_walks_spend_the_trip_budget() {
         .is_some_and(|d| d.tuning.trip_limit != u32::MAX);
     let mut bad = Vec::new();
     let mut long_walks = 0;
-    for (c, r) in all_runs().filter(|(_, r)| r.backend != "cpu") {
+    for (c, r) in all_runs().filter(|(_, r)| on_device(r)) {
         let n = r.gpu_incomplete.unwrap_or(0);
         if c.name == "coincident" {
             long_walks += n;
