@@ -82,8 +82,8 @@ pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
         if ok == 0 {
             continue;
         }
-        // An any-hit walk takes one hit and stops: its few hits are all re-tested, which
-        // costs less than finding those near an end.
+        // An any-hit walk takes one hit and stops: its few hits are judged one by one,
+        // which costs less than all four lanes.
         let near = if ANY {
             u32::MAX
         } else {
@@ -93,7 +93,10 @@ pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
         while ok != 0 {
             let i = ok.trailing_zeros() as usize;
             ok &= ok - 1;
-            if near >> i & 1 != 0 && !in_leaf_box(bvh, first + k, i, &ray, best.t) {
+            if near >> i & 1 != 0
+                && (!ANY || ray.near_end(t[i], b, i))
+                && !in_leaf_box(bvh, first + k, i, &ray, best.t)
+            {
                 continue;
             }
             let prim = at.prim_base.wrapping_add(b.prim[i]);

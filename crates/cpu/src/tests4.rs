@@ -448,6 +448,25 @@ impl RayAt<'_> {
         }
     }
 
+    /// True when a hit at `t` on lane `i` of block `b` may lie outside the interval
+    /// ([`near_end`]); always true for a ray not prepared in lanes.
+    #[inline(always)]
+    pub fn near_end(&self, t: f32, b: &Tri4, i: usize) -> bool {
+        match *self {
+            RayAt::Lanes {
+                p,
+                i: r,
+                t_min,
+                t_max,
+            } => {
+                let kz = p.kz[r];
+                let zs = [b.v[0][kz][i], b.v[1][kz][i], b.v[2][kz][i]];
+                near_end(t, t_min, t_max, zs, p.org[kz][r], p.shear[2][r])
+            }
+            RayAt::Ray(_) => true,
+        }
+    }
+
     /// The ray as the core's `PreparedRay`.
     #[inline(always)]
     pub fn prepared(&self) -> bvhtrace_core::intersect::PreparedRay {
