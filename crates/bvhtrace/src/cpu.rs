@@ -16,7 +16,9 @@ use web_time::Instant;
 /// two levels (any visibility mask, `TraceOptions::mask`), with or without alpha masks.
 /// Closest hits are then the full stack's bit for bit; any hits agree with every backend
 /// on hit or miss, the triangle reported being the layout walk's first find (which
-/// triangle an any-hit query stops at depends on the walk on every backend). The tree is
+/// triangle an any-hit query stops at depends on the walk on every backend). A batch that
+/// looks coherent (`bvhtrace_cpu::coherent`: camera rays, shadow rays toward one light)
+/// goes in packets, the same answers faster; others one ray at a time. The tree is
 /// converted on the first trace the layout takes (or the first question about it), not
 /// before.
 pub struct FastCpuTracer<B> {
@@ -92,8 +94,14 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
             Some(fast) if self.takes(opts) => {
                 let start = Instant::now();
                 let isa = bvhtrace_cpu::Isa::detect();
-                let hits =
-                    bvhtrace_cpu::trace_rays_with_mask(fast, rays, opts.query, opts.mask, isa);
+                // Packets hold one mesh without masks (and its rays see no instance mask).
+                let packets =
+                    !fast.is_instanced() && fast.masks().is_none() && bvhtrace_cpu::coherent(rays);
+                let hits = if packets {
+                    bvhtrace_cpu::trace_packets_with(fast, rays, opts.query, isa)
+                } else {
+                    bvhtrace_cpu::trace_rays_with_mask(fast, rays, opts.query, opts.mask, isa)
+                };
                 Ok(TraceOutput {
                     hits,
                     counters: None,

@@ -122,7 +122,25 @@ fn main() {
                     mr(ms)
                 );
             }
-            let _: &Vec<Ray> = rays;
+            // Packets of 64 consecutive rays: in the rays' own (row-major) order, and
+            // camera rays put in 8x8 tiles.
+            let tiled: Vec<Ray> = if kind == "primary" {
+                bvhtrace_cpu::tile_order(w, h)
+                    .iter()
+                    .map(|&i| rays[i as usize])
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            for (order, rs) in [("rows", rays.as_slice()), ("tiles", tiled.as_slice())] {
+                if rs.is_empty() {
+                    continue;
+                }
+                let ms = time(runs, || {
+                    std::hint::black_box(bvhtrace_cpu::trace_packets(&bvh, rs, q));
+                });
+                println!("  {kind:8} cpu  packets {order:5} {:7.2} Mrays/s", mr(ms));
+            }
         }
     }
 }

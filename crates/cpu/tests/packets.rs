@@ -161,6 +161,48 @@ fn packets_judge_hits_at_the_origin_by_their_leaf_boxes() {
     }
 }
 
+/// `coherent` takes camera rays (row-major or in tiles) and rays toward one point, and
+/// refuses rays in random directions and batches shorter than a packet.
+#[test]
+fn coherence_is_told_from_the_directions() {
+    let (w, h) = (64u32, 48u32);
+    let camera: Vec<Ray> = (0..w * h)
+        .map(|k| {
+            let (x, y) = (
+                (k % w) as f32 / w as f32 - 0.5,
+                (k / w) as f32 / h as f32 - 0.5,
+            );
+            Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::new(x, y, -1.0))
+        })
+        .collect();
+    assert!(bvhtrace_cpu::coherent(&camera));
+    let tiled: Vec<Ray> = bvhtrace_cpu::tile_order(w, h)
+        .iter()
+        .map(|&i| camera[i as usize])
+        .collect();
+    assert!(bvhtrace_cpu::coherent(&tiled));
+    let light = Vec3::new(3.0, 4.0, 5.0);
+    let shadow: Vec<Ray> = camera
+        .iter()
+        .map(|r| {
+            let p = Vec3::from(r.origin) + Vec3::from(r.dir) * 4.0;
+            Ray::new(p, light - p)
+        })
+        .collect();
+    assert!(bvhtrace_cpu::coherent(&shadow));
+    let mut next = common::xorshift(7);
+    let scattered: Vec<Ray> = (0..4096)
+        .map(|_| {
+            Ray::new(
+                Vec3::ZERO,
+                Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5),
+            )
+        })
+        .collect();
+    assert!(!bvhtrace_cpu::coherent(&scattered));
+    assert!(!bvhtrace_cpu::coherent(&camera[..63]));
+}
+
 #[test]
 fn tile_order_is_a_permutation_in_tiles() {
     for (w, h) in [(16u32, 8u32), (20, 13), (1, 1), (64, 64)] {
