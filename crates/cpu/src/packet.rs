@@ -23,7 +23,7 @@ use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::packet_tri::{ShearRays, tri_rays};
 use crate::single::{self, Best, Entry};
-use crate::tests4::{Prepared4, RayAt, ShearLanes, near_end};
+use crate::tests4::{Prepared4, RayAt, ShearLanes, near_end, sheared_axes};
 
 /// Rays per packet: eight groups of eight lanes.
 pub const PACKET: usize = 64;
@@ -270,9 +270,7 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
             // them are tested with rays in lanes.
             let j = walked.trailing_zeros() as usize;
             let (k, s) = (soa.kz[g][j], swap >> j & 1);
-            let kz = k as usize;
-            let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
-            soa.axes[g] = if s != 0 { [ky, kx, kz] } else { [kx, ky, kz] };
+            soa.axes[g] = sheared_axes(k as usize, s != 0);
             let same = kz_lanes::<W>(&soa.kz[g], k) & !(swap ^ s.wrapping_neg()) & walked;
             lanes_all |= (same as u64) << (8 * g);
         }
@@ -515,11 +513,7 @@ fn leaf_rays<L: Lanes, W: Wide, const ANY: bool>(
         m &= m - 1;
         let (g, j) = (k / 8, k % 8);
         let soa = &mut *st.soa;
-        let kz = soa.kz[g][j] as usize;
-        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
-        if soa.swap >> k & 1 != 0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let [kx, ky, kz] = sheared_axes(soa.kz[g][j] as usize, soa.swap >> k & 1 != 0);
         let shear = ShearLanes {
             kx,
             ky,

@@ -60,6 +60,14 @@ pub(crate) struct Prepared4 {
     pub swap: u32,
 }
 
+/// The triangle test's axes `[kx, ky, kz]` for the dominant axis `kz` (`shear_axes`): the
+/// next two axes in turn, swapped when `swap` (`dir[kz] < 0`) to keep the winding.
+#[inline(always)]
+pub(crate) fn sheared_axes(kz: usize, swap: bool) -> [usize; 3] {
+    let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+    if swap { [ky, kx, kz] } else { [kx, ky, kz] }
+}
+
 /// One value of each of four rays, as lanes.
 #[inline(always)]
 fn gather<L: Lanes>(r: [&Ray; 4], f: impl Fn(&Ray) -> f32) -> L {
@@ -76,11 +84,7 @@ impl Prepared4 {
         t_min: f32,
         t_max: f32,
     ) -> bvhtrace_core::intersect::PreparedRay {
-        let kz = self.kz[i];
-        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
-        if self.swap >> i & 1 != 0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let [kx, ky, kz] = sheared_axes(self.kz[i], self.swap >> i & 1 != 0);
         let v = |a: [[f32; 4]; 3]| glam::Vec3::new(a[0][i], a[1][i], a[2][i]);
         bvhtrace_core::intersect::PreparedRay {
             org: v(self.org),
@@ -215,10 +219,7 @@ impl<L: Lanes> ShearLanes<L> {
     /// The shear of ray `i` of `p`, whose dominant axis is `kz` (`p.kz[i]`).
     #[inline(always)]
     pub fn from4(p: &Prepared4, i: usize, kz: usize) -> Self {
-        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
-        if p.swap >> i & 1 != 0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let [kx, ky, kz] = sheared_axes(kz, p.swap >> i & 1 != 0);
         ShearLanes {
             kx,
             ky,
