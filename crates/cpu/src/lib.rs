@@ -264,13 +264,22 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, cons
 ) {
     // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
     // Rays are prepared four at a time, then walked one by one.
+    // Rays that miss the root node's boxes altogether (most camera rays around a
+    // framed object) are answered without a walk.
+    let scene = bvh.nodes.first().and_then(tests4::SceneBox::around);
     let mut start = 0;
     while start < rays.len() {
         let end = (start + 4).min(rays.len());
         let group = &rays[start..end];
         let p = tests4::Prepared4::new::<L>(group);
+        let enter = match &scene {
+            Some(b) => p.may_enter::<L>(b),
+            None => u32::MAX,
+        };
         for i in 0..group.len() {
-            hits[start + i] = if TWO {
+            hits[start + i] = if (p.valid & !enter) >> i & 1 != 0 {
+                single::Best::start(&group[i]).into_hit()
+            } else if TWO {
                 instanced::trace::<L, W, M, ANY, MASKED>(bvh, &group[i], &p, i, mask, stack)
             } else {
                 single::trace_at::<L, W, ANY, MASKED>(bvh, &group[i], &p, i, stack)

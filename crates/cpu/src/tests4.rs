@@ -7,7 +7,7 @@ use bvhtrace_core::Ray;
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 
 use crate::lanes::{Lanes, Wide};
-use crate::layout::{Node8, Tri4};
+use crate::layout::{Node8, Tri4, WIDTH};
 
 /// A ray prepared for the tests: what `PreparedRay::new` computes, to the bit, built
 /// without its per-axis indexing, and splatted once per ray into the box test's eight
@@ -58,6 +58,43 @@ pub(crate) struct Prepared4 {
     pub shear: [[f32; 4]; 3],
     /// Bit `i`: ray `i`'s `kx` and `ky` are swapped (`dir[kz] < 0`).
     pub swap: u32,
+    /// The intervals' ends, `Ray::t_min` and `Ray::t_max`.
+    pub t_min: [f32; 4],
+    pub t_max: [f32; 4],
+}
+
+/// A box around every box of a tree's root node, plane by plane (`lo`, `hi` per axis):
+/// a ray whose box test misses it misses every box inside it, so it needs no walk (see
+/// [`Prepared4::may_enter`]).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct SceneBox {
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
+}
+
+impl SceneBox {
+    /// The smallest box around both planes of every used slot of `root`, on each axis;
+    /// `None` when a plane is NaN (no such box) or no slot is used.
+    pub fn around(root: &Node8) -> Option<SceneBox> {
+        if root.used == 0 {
+            return None;
+        }
+        let mut b = SceneBox {
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+        };
+        for i in (0..WIDTH).filter(|&i| root.used >> i & 1 != 0) {
+            for a in 0..3 {
+                let (p, q) = (root.planes[2 * a][i], root.planes[2 * a + 1][i]);
+                if p.is_nan() || q.is_nan() {
+                    return None;
+                }
+                b.lo[a] = b.lo[a].min(p.min(q));
+                b.hi[a] = b.hi[a].max(p.max(q));
+            }
+        }
+        Some(b)
+    }
 }
 
 /// The triangle test's axes `[kx, ky, kz]` for the dominant axis `kz` (`shear_axes`): the
@@ -160,7 +197,31 @@ impl Prepared4 {
             parallel: parallel.bits(),
             shear: shear.map(L::store),
             swap: swap.bits(),
+            t_min: t_min.store(),
+            t_max: t_max.store(),
         }
+    }
+
+    /// The rays (bits) whose walk may hit something inside `b`: those whose box test
+    /// against `b` hits, and those along a slab. The test is [`box8`]'s signed one, whose
+    /// every step is monotone (f32 subtraction and multiplication in each operand, `min`,
+    /// `max`, the exit scale); a box inside `b` has both planes of each axis between
+    /// `b`'s, so its entry is at or after `b`'s and its exit at or before: when the ray
+    /// misses `b`, it misses every box of the root node, and the walk finds nothing.
+    #[inline(always)]
+    pub fn may_enter<L: Lanes>(&self, b: &SceneBox) -> u32 {
+        let (mut near, mut far) = (L::load(&self.t_min), L::load(&self.t_max));
+        for a in 0..3 {
+            let (o, n) = (L::load(&self.org[a]), L::load(&self.ninv[a]));
+            let t0 = o.sub(L::splat(b.lo[a])).mul(n);
+            let t1 = o.sub(L::splat(b.hi[a])).mul(n);
+            near = near.max(t0.min(t1));
+            far = far.min(t0.max(t1));
+        }
+        let scale = far
+            .lt(L::splat(0.0))
+            .select(L::splat(BOX_TFAR_SCALE_NEG), L::splat(BOX_TFAR_SCALE));
+        near.le(far.mul(scale)).bits() | self.parallel
     }
 }
 
@@ -376,6 +437,12 @@ pub(crate) fn box_lane(
     bvhtrace_core::intersect::intersect_box(r, lo, hi, t_best).is_some()
 }
 
+/// `p.x q.y - p.y q.x`: [`edge`] up to the sign of a zero.
+#[inline(always)]
+fn edge_fast<L: Lanes>(px: L, py: L, qx: L, qy: L) -> L {
+    px.mul(qy).sub(py.mul(qx))
+}
+
 /// The edge function of `intersect::edge` over lanes: the corners taken in one fixed
 /// order, the sign restored (`-(q.x p.y - q.y p.x)` is not `p.x q.y - p.y q.x` for a zero).
 #[inline(always)]
@@ -401,18 +468,28 @@ pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, 
     let by = rel(1, ky, oy).sub(sy.mul(bz));
     let cx = rel(2, kx, ox).sub(sx.mul(cz));
     let cy = rel(2, ky, oy).sub(sy.mul(cz));
-    let u = edge(cx, cy, bx, by);
-    let v = edge(ax, ay, cx, cy);
-    let w = edge(bx, by, ax, ay);
+    // The edge functions up to the sign of a zero first: comparisons with zero do not
+    // see it, and it reaches `det`, `t` or the weights only through a zero edge function
+    // of a lane that passes the mixed-sign test, where the exact ones are computed.
+    let mut u = edge_fast(cx, cy, bx, by);
+    let mut v = edge_fast(ax, ay, cx, cy);
+    let mut w = edge_fast(bx, by, ax, ay);
     let zero = L::splat(0.0);
     let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero));
     let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero));
-    let det = u.add(v).add(w);
-    let inside = !(negative.and(positive).bits() | det.eq(zero).bits()) & 0b1111;
+    let inside = !negative.and(positive).bits() & 0b1111;
     // Most blocks a ray reaches it misses: no distance to compute.
     if inside == 0 {
         return (0, zero, zero, zero);
     }
+    if u.eq(zero).or(v.eq(zero)).or(w.eq(zero)).bits() & inside != 0 {
+        u = edge(cx, cy, bx, by);
+        v = edge(ax, ay, cx, cy);
+        w = edge(bx, by, ax, ay);
+    }
+    // A lane with `det == 0` is left out (its `t` may be NaN).
+    let det = u.add(v).add(w);
+    let inside = inside & !det.eq(zero).bits();
     let t_scaled = u
         .mul(sz.mul(az))
         .add(v.mul(sz.mul(bz)))
@@ -514,7 +591,9 @@ pub(crate) mod tests {
     use bvhtrace_core::{Aabb, Ray};
     use glam::Vec3;
 
-    use super::{BoxHits, RayLanes, ShearLanes, box_lane, box8, still_hit, tri4};
+    use super::{
+        BoxHits, Prepared4, RayLanes, SceneBox, ShearLanes, box_lane, box8, still_hit, tri4,
+    };
     use crate::lanes::{Lanes, Pair, Portable, Wide};
     use crate::layout::{Node8, Tri4};
 
@@ -768,6 +847,84 @@ pub(crate) mod tests {
         }
         assert!(hits > 10_000, "only {hits} box hits");
         assert!(culled > 300, "only {culled} re-tests culled");
+    }
+
+    /// A ray whose test misses the box around a root node's boxes misses each of them:
+    /// `may_enter` keeps every ray that some used slot's scalar test hits (rays aimed at
+    /// the boxes' corners and face centres as well as anywhere, where the tests come
+    /// closest), and drops many that miss.
+    #[test]
+    fn rays_that_miss_the_scene_box_miss_every_root_box() {
+        let mut s = 0x5eed_0f5c_e4e0_b0c5u64;
+        let (mut kept, mut dropped) = (0, 0);
+        for _ in 0..10_000 {
+            let mut n = Node8::EMPTY;
+            let mut boxes = [Aabb::EMPTY; 8];
+            for (i, bx) in boxes.iter_mut().enumerate() {
+                let (a, b) = (point(&mut s), point(&mut s));
+                *bx = Aabb {
+                    min: a.min(b),
+                    max: a.max(b),
+                };
+                for ax in 0..3 {
+                    n.planes[2 * ax][i] = bx.min[ax];
+                    n.planes[2 * ax + 1][i] = bx.max[ax];
+                }
+            }
+            n.used = (next(&mut s) * 255.0) as u32 + 1;
+            let scene = SceneBox::around(&n).expect("finite planes");
+            #[cfg(target_arch = "x86_64")]
+            use crate::lanes::Sse;
+            let rays: [Ray; 4] = std::array::from_fn(|_| {
+                let r = ray(&mut s);
+                let bx = boxes[(next(&mut s) * 8.0) as usize % 8];
+                let target = match (next(&mut s) * 3.0) as u32 {
+                    0 => return r,
+                    1 => Vec3::select(
+                        glam::BVec3::new(
+                            next(&mut s) < 0.5,
+                            next(&mut s) < 0.5,
+                            next(&mut s) < 0.5,
+                        ),
+                        bx.min,
+                        bx.max,
+                    ),
+                    _ => (bx.min + bx.max) * 0.5,
+                };
+                Ray::with_interval(
+                    r.origin.into(),
+                    target - Vec3::from(r.origin),
+                    r.t_min,
+                    r.t_max,
+                )
+            });
+            let check = |enter: u32, p: &Prepared4| {
+                let (mut k, mut d) = (0, 0);
+                for (i, r) in rays
+                    .iter()
+                    .enumerate()
+                    .filter(|(i, _)| p.valid >> i & 1 != 0)
+                {
+                    let pr = PreparedRay::new(r);
+                    let hit = (0..8).any(|j| n.used >> j & 1 != 0 && box_lane(&n, &pr, j, r.t_max));
+                    let enters = enter >> i & 1 != 0;
+                    assert!(enters || !hit, "{r:?} hits a root box but not {scene:?}");
+                    k += u32::from(hit);
+                    d += u32::from(!enters);
+                }
+                (k, d)
+            };
+            let p = Prepared4::new::<Portable>(&rays);
+            let (k, d) = check(p.may_enter::<Portable>(&scene), &p);
+            (kept, dropped) = (kept + k, dropped + d);
+            #[cfg(target_arch = "x86_64")]
+            {
+                let p = Prepared4::new::<Sse>(&rays);
+                assert_eq!(check(p.may_enter::<Sse>(&scene), &p), (k, d));
+            }
+        }
+        assert!(kept > 5_000, "only {kept} rays hit a root box");
+        assert!(dropped > 5_000, "only {dropped} rays left out");
     }
 
     /// Each lane of the four-triangle test is `intersect_triangle` of its triangle: the
