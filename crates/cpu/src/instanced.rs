@@ -15,7 +15,7 @@ use bvhtrace_core::{Hit, Ray};
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF};
 use crate::single::{self, Best, Entry, Site, order, untraced};
-use crate::tests4::{Prepared4, RayLanes, box8, still_hit};
+use crate::tests4::{Prepared, RayLanes, box8, still_hit};
 
 /// How the top-level walk walks a mesh: a call, not inlined, since each of the nine
 /// top-level walks (per dominant axis and ray kind) would otherwise hold the nine mesh
@@ -102,7 +102,7 @@ fn enter<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     at: Site<'_>,
     stack: &mut [Entry],
 ) -> (Best, bool) {
-    let p = Prepared4::new::<L>(std::slice::from_ref(object));
+    let p = Prepared::new::<W>(std::slice::from_ref(object));
     if p.valid & 1 == 0 {
         return (best, false);
     }
@@ -116,7 +116,7 @@ fn enter<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
 pub(crate) fn trace<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const MASKED: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
-    p: &Prepared4,
+    p: &Prepared,
     i: usize,
     mask: u32,
     stack: &mut [Entry],
@@ -128,7 +128,7 @@ pub(crate) fn trace<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const MASKE
     if bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
         return best.into_hit();
     }
-    let q = RayLanes::<L, W>::from4(p, ray, i);
+    let q = RayLanes::<L, W>::from_prepared(p, ray, i);
     let signed = ray.t_min < 0.0 || q.parallel;
     let w = Top {
         bvh,

@@ -263,17 +263,17 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, cons
     stack: &mut [Entry],
 ) {
     // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
-    // Rays are prepared four at a time, then walked one by one.
+    // Rays are prepared eight at a time, then walked one by one.
     // Rays that miss the root node's boxes altogether (most camera rays around a
     // framed object) are answered without a walk.
     let scene = bvh.nodes.first().and_then(tests4::SceneBox::around);
     let mut start = 0;
     while start < rays.len() {
-        let end = (start + 4).min(rays.len());
+        let end = (start + tests4::RAYS).min(rays.len());
         let group = &rays[start..end];
-        let p = tests4::Prepared4::new::<L>(group);
+        let p = tests4::Prepared::new::<W>(group);
         let enter = match &scene {
-            Some(b) => p.may_enter::<L>(b),
+            Some(b) => p.may_enter::<W>(b),
             None => u32::MAX,
         };
         for i in 0..group.len() {

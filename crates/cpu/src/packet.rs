@@ -23,7 +23,7 @@ use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::packet_tri::{ShearRays, tri_rays};
 use crate::single::{self, Best, Entry};
-use crate::tests4::{Prepared4, RayAt, ShearLanes, near_end, sheared_axes};
+use crate::tests4::{Prepared, RayAt, ShearLanes, near_end, row, sheared_axes};
 
 /// Rays per packet: eight groups of eight lanes.
 pub const PACKET: usize = 64;
@@ -186,21 +186,12 @@ struct State<'a> {
     frustum: Frustum,
 }
 
-/// Ray `r` as the eight f32 of its `repr(C)` layout: origin, `t_min`, direction, `t_max`.
-#[inline(always)]
-fn row(r: &Ray) -> &[f32; 8] {
-    const { assert!(size_of::<Ray>() == size_of::<[f32; 8]>()) };
-    // SAFETY: `Ray` is `repr(C)` with eight f32 fields and no padding (size checked
-    // above), so it has the layout of `[f32; 8]` (whose alignment is f32's).
-    unsafe { &*(r as *const Ray).cast::<[f32; 8]>() }
-}
-
 /// Loads up to [`PACKET`] rays, eight at a time in lanes, into the packet's lanes; returns
 /// the mask of those the packet walks (the others take the single-ray walk: invalid rays,
 /// rays along a slab, empty intervals), the sum of their directions and their bounds.
 ///
 /// The values are `PreparedRay::new`'s to the bit for the walked rays (the operations of
-/// `Prepared4::new`; a walked ray has no zero or subnormal direction component, so its
+/// `Prepared::new`; a walked ray has no zero or subnormal direction component, so its
 /// flushed direction is its direction and `safe_inverse` is `1 / dir`).
 #[inline(always)]
 fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
@@ -759,7 +750,7 @@ fn store_hits<L: Lanes, W: Wide, const ANY: bool>(
         let k = rest.trailing_zeros() as usize;
         rest &= rest - 1;
         let r = order[k] as usize;
-        let p = Prepared4::new::<L>(std::slice::from_ref(&rays[r]));
+        let p = Prepared::new::<W>(std::slice::from_ref(&rays[r]));
         out[r] = single::trace::<L, W, ANY>(bvh, &rays[r], &p, 0, stack);
     }
 }

@@ -8,7 +8,7 @@ use bvhtrace_core::{Hit, Ray};
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::tests4::{
-    BoxHits, Prepared4, RayAt, RayLanes, ShearLanes, box8, near_ends, still_hit, tri4,
+    BoxHits, Prepared, RayAt, RayLanes, ShearLanes, box8, near_ends, still_hit, tri4,
 };
 
 // The core walks' best hit and hit rule, and their answer for a ray not traced: one rule
@@ -230,7 +230,7 @@ pub(crate) fn stack_size(bvh: &CpuBvh) -> usize {
 pub(crate) fn trace<L: Lanes, W: Wide, const ANY: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
-    p: &Prepared4,
+    p: &Prepared,
     i: usize,
     stack: &mut [Entry],
 ) -> Hit {
@@ -242,7 +242,7 @@ pub(crate) fn trace<L: Lanes, W: Wide, const ANY: bool>(
 pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
-    p: &Prepared4,
+    p: &Prepared,
     i: usize,
     stack: &mut [Entry],
 ) -> Hit {
@@ -270,14 +270,14 @@ pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
 pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     bvh: &CpuBvh,
     ray: &Ray,
-    p: &Prepared4,
+    p: &Prepared,
     i: usize,
     best: Best,
     start: u32,
     at: Site<'_>,
     stack: &mut [Entry],
 ) -> (Best, bool) {
-    let q = RayLanes::<L, W>::from4(p, ray, i);
+    let q = RayLanes::<L, W>::from_prepared(p, ray, i);
     // One walk per dominant axis, for rays along a slab, and for rays that start behind
     // their origin (see `box8`): most rays are none of the last two.
     let signed = ray.t_min < 0.0 || q.parallel;
@@ -325,7 +325,7 @@ fn walk<
     const KZ: usize,
 >(
     bvh: &CpuBvh,
-    p: &Prepared4,
+    p: &Prepared,
     i: usize,
     q: &RayLanes<L, W>,
     mut best: Best,
@@ -354,7 +354,7 @@ fn walk<
         } else if leaf_at::<L, ANY, MASKED>(
             bvh,
             q.t_min4,
-            shear.get_or_insert_with(|| ShearLanes::from4(p, i, KZ)),
+            shear.get_or_insert_with(|| ShearLanes::from_prepared(p, i, KZ)),
             ray,
             child,
             &mut best,

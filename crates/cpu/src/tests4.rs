@@ -37,35 +37,38 @@ pub(crate) struct RayLanes<L, W> {
     pub t_min_s: f32,
 }
 
-/// Four rays prepared together, ray `i` in lane `i`: `Ray::is_valid` and the values of
-/// `PreparedRay::new` the walks need, bit for bit, four rays per operation (the per-ray
-/// preparation was most of a primary ray's instructions, since most primary rays test
-/// one or two nodes).
-pub(crate) struct Prepared4 {
+/// Up to [`RAYS`] rays prepared together, ray `i` in lane `i`: `Ray::is_valid` and the
+/// values of `PreparedRay::new` the walks need, bit for bit, eight rays per operation
+/// (the per-ray preparation was most of a primary ray's instructions, since most primary
+/// rays test one or two nodes).
+pub(crate) struct Prepared {
     /// The origins, `org[axis][ray]`.
-    pub org: [[f32; 4]; 3],
+    pub org: [[f32; RAYS]; 3],
     /// `-1 / dir` with `safe_inverse`'s zero handling (see [`RayLanes::ninv`]).
-    pub ninv: [[f32; 4]; 3],
+    pub ninv: [[f32; RAYS]; 3],
     /// The directions with subnormal components flushed (`PreparedRay::dir`).
-    pub dir: [[f32; 4]; 3],
+    pub dir: [[f32; RAYS]; 3],
     /// The dominant axes (`PreparedRay::kz`).
-    pub kz: [usize; 4],
+    pub kz: [usize; RAYS],
     /// Bit `i`: ray `i` is present and valid.
     pub valid: u32,
     /// Bit `i`: ray `i` has a zero component (`PreparedRay::parallel`).
     pub parallel: u32,
     /// The shear constants `sx`, `sy`, `sz`: `shear[k][ray]`.
-    pub shear: [[f32; 4]; 3],
+    pub shear: [[f32; RAYS]; 3],
     /// Bit `i`: ray `i`'s `kx` and `ky` are swapped (`dir[kz] < 0`).
     pub swap: u32,
     /// The intervals' ends, `Ray::t_min` and `Ray::t_max`.
-    pub t_min: [f32; 4],
-    pub t_max: [f32; 4],
+    pub t_min: [f32; RAYS],
+    pub t_max: [f32; RAYS],
 }
+
+/// Rays prepared together by [`Prepared::new`]: one per lane of [`Wide`].
+pub(crate) const RAYS: usize = 8;
 
 /// A box around every box of a tree's root node, plane by plane (`lo`, `hi` per axis):
 /// a ray whose box test misses it misses every box inside it, so it needs no walk (see
-/// [`Prepared4::may_enter`]).
+/// [`Prepared::may_enter`]).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct SceneBox {
     pub lo: [f32; 3],
@@ -105,13 +108,22 @@ pub(crate) fn sheared_axes(kz: usize, swap: bool) -> [usize; 3] {
     if swap { [ky, kx, kz] } else { [kx, ky, kz] }
 }
 
-/// One value of each of four rays, as lanes.
+/// Three lanes' values.
 #[inline(always)]
-fn gather<L: Lanes>(r: [&Ray; 4], f: impl Fn(&Ray) -> f32) -> L {
-    L::load(&[f(r[0]), f(r[1]), f(r[2]), f(r[3])])
+fn store3<W: Wide>(v: [W; 3]) -> [[f32; RAYS]; 3] {
+    [v[0].store(), v[1].store(), v[2].store()]
 }
 
-impl Prepared4 {
+/// A ray's eight f32 fields (origin, `t_min`, direction, `t_max`) as one row.
+#[inline(always)]
+pub(crate) fn row(r: &Ray) -> &[f32; 8] {
+    const { assert!(size_of::<Ray>() == size_of::<[f32; 8]>()) };
+    // SAFETY: `Ray` is `repr(C)` with eight f32 fields and no padding (size checked
+    // above), so it has the layout of `[f32; 8]` (whose alignment is f32's).
+    unsafe { &*(r as *const Ray).cast::<[f32; 8]>() }
+}
+
+impl Prepared {
     /// Ray `i` (its interval `t_min..t_max`) as the core's `PreparedRay`, for its scalar box test: the
     /// same origin, direction, inverse (`1 / d` is `-(-1 / d)` exactly), interval and axes.
     #[inline(always)]
@@ -122,7 +134,7 @@ impl Prepared4 {
         t_max: f32,
     ) -> bvhtrace_core::intersect::PreparedRay {
         let [kx, ky, kz] = sheared_axes(self.kz[i], self.swap >> i & 1 != 0);
-        let v = |a: [[f32; 4]; 3]| glam::Vec3::new(a[0][i], a[1][i], a[2][i]);
+        let v = |a: [[f32; RAYS]; 3]| glam::Vec3::new(a[0][i], a[1][i], a[2][i]);
         bvhtrace_core::intersect::PreparedRay {
             org: v(self.org),
             dir: v(self.dir),
@@ -139,44 +151,45 @@ impl Prepared4 {
         }
     }
 
-    /// Prepares one to four rays.
+    /// Prepares one to [`RAYS`] rays, loaded by one transpose of their rows.
     #[inline(always)]
-    pub fn new<L: Lanes>(rays: &[Ray]) -> Prepared4 {
-        debug_assert!((1..=4).contains(&rays.len()));
-        // Missing lanes repeat the last ray; they are not valid.
-        let r: [&Ray; 4] = std::array::from_fn(|i| &rays[i.min(rays.len() - 1)]);
-        let o = [0, 1, 2].map(|a| gather::<L>(r, |ray| ray.origin[a]));
-        let d = [0, 1, 2].map(|a| gather::<L>(r, |ray| ray.dir[a]));
-        let t_min = gather::<L>(r, |ray| ray.t_min);
-        let t_max = gather::<L>(r, |ray| ray.t_max);
-        let (inf, zero) = (L::splat(f32::INFINITY), L::splat(0.0));
+    pub fn new<W: Wide>(rays: &[Ray]) -> Prepared {
+        debug_assert!((1..=RAYS).contains(&rays.len()));
+        // Missing lanes repeat the last ray; they are not valid. No `array::map` over
+        // AVX lanes here: its closure would be compiled apart from an AVX2 caller.
+        let last = rays.len() - 1;
+        let at = |j: usize| row(&rays[if j < last { j } else { last }]);
+        let r = [at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7)];
+        let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(r);
+        let (o, d) = ([ox, oy, oz], [dx, dy, dz]);
+        let (inf, zero) = (W::splat(f32::INFINITY), W::splat(0.0));
         // `|x| < inf` is false for an infinity and for NaN; `x == x` only for NaN.
         let mut ok = t_min.eq(t_min).and(t_max.eq(t_max));
         for a in 0..3 {
             ok = ok.and(o[a].abs().lt(inf)).and(d[a].abs().lt(inf));
         }
         let zero_dir = d[0].eq(zero).and(d[1].eq(zero)).and(d[2].eq(zero)).bits();
-        let present = (1u32 << rays.len()) - 1;
+        let present = (2u32 << last) - 1;
         let (mut dir, mut ninv, mut abs) = ([zero; 3], [zero; 3], [zero; 3]);
         for a in 0..3 {
             // `flush_subnormal` and `safe_inverse` as lane selects.
-            let sign = d[a].and(L::splat(-0.0));
-            let small = d[a].abs().lt(L::splat(f32::MIN_POSITIVE));
+            let sign = d[a].and(W::splat(-0.0));
+            let small = d[a].abs().lt(W::splat(f32::MIN_POSITIVE));
             dir[a] = small.select(sign, d[a]);
-            let safe = small.select(sign.or(L::splat(f32::MIN_POSITIVE)), d[a]);
-            ninv[a] = L::splat(-1.0).div(safe);
+            let safe = small.select(sign.or(W::splat(f32::MIN_POSITIVE)), d[a]);
+            ninv[a] = W::splat(-1.0).div(safe);
             abs[a] = dir[a].abs();
         }
         // `shear_axes`: the first of the largest magnitudes.
         let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
         let y_over_z = abs[1].ge(abs[2]);
         // Per lane the component on axis `kz`, `(kz + 1) % 3` and `(kz + 2) % 3`.
-        let pick = |a: L, b: L, c: L| x_max.select(a, y_over_z.select(b, c));
+        let pick = |a: W, b: W, c: W| x_max.select(a, y_over_z.select(b, c));
         let dkz = pick(dir[0], dir[1], dir[2]);
         let (d1, d2) = (pick(dir[1], dir[2], dir[0]), pick(dir[2], dir[0], dir[1]));
         let swap = dkz.lt(zero);
         let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
-        let shear = [dkx.div(dkz), dky.div(dkz), L::splat(1.0).div(dkz)];
+        let shear = [dkx.div(dkz), dky.div(dkz), W::splat(1.0).div(dkz)];
         let (x_max, y_over_z) = (x_max.bits(), y_over_z.bits());
         let kz = std::array::from_fn(|i| {
             if x_max >> i & 1 != 0 {
@@ -188,14 +201,14 @@ impl Prepared4 {
             }
         });
         let parallel = dir[0].eq(zero).or(dir[1].eq(zero)).or(dir[2].eq(zero));
-        Prepared4 {
-            org: o.map(L::store),
-            ninv: ninv.map(L::store),
-            dir: dir.map(L::store),
+        Prepared {
+            org: store3(o),
+            ninv: store3(ninv),
+            dir: store3(dir),
             kz,
             valid: ok.bits() & !zero_dir & present,
             parallel: parallel.bits(),
-            shear: shear.map(L::store),
+            shear: store3(shear),
             swap: swap.bits(),
             t_min: t_min.store(),
             t_max: t_max.store(),
@@ -209,18 +222,18 @@ impl Prepared4 {
     /// `b`'s, so its entry is at or after `b`'s and its exit at or before: when the ray
     /// misses `b`, it misses every box of the root node, and the walk finds nothing.
     #[inline(always)]
-    pub fn may_enter<L: Lanes>(&self, b: &SceneBox) -> u32 {
-        let (mut near, mut far) = (L::load(&self.t_min), L::load(&self.t_max));
+    pub fn may_enter<W: Wide>(&self, b: &SceneBox) -> u32 {
+        let (mut near, mut far) = (W::load(&self.t_min), W::load(&self.t_max));
         for a in 0..3 {
-            let (o, n) = (L::load(&self.org[a]), L::load(&self.ninv[a]));
-            let t0 = o.sub(L::splat(b.lo[a])).mul(n);
-            let t1 = o.sub(L::splat(b.hi[a])).mul(n);
+            let (o, n) = (W::load(&self.org[a]), W::load(&self.ninv[a]));
+            let t0 = o.sub(W::splat(b.lo[a])).mul(n);
+            let t1 = o.sub(W::splat(b.hi[a])).mul(n);
             near = near.max(t0.min(t1));
             far = far.min(t0.max(t1));
         }
         let scale = far
-            .lt(L::splat(0.0))
-            .select(L::splat(BOX_TFAR_SCALE_NEG), L::splat(BOX_TFAR_SCALE));
+            .lt(W::splat(0.0))
+            .select(W::splat(BOX_TFAR_SCALE_NEG), W::splat(BOX_TFAR_SCALE));
         near.le(far.mul(scale)).bits() | self.parallel
     }
 }
@@ -228,7 +241,7 @@ impl Prepared4 {
 impl<L: Lanes, W: Wide> RayLanes<L, W> {
     /// Ray `i` of `p` (`ray` itself), splatted.
     #[inline(always)]
-    pub fn from4(p: &Prepared4, ray: &Ray, i: usize) -> Self {
+    pub fn from_prepared(p: &Prepared, ray: &Ray, i: usize) -> Self {
         RayLanes {
             // No closures over AVX lanes here or in the box test: a closure is compiled
             // apart from the AVX2 caller, and its AVX operations would not be inlined.
@@ -256,9 +269,9 @@ impl<L: Lanes, W: Wide> RayLanes<L, W> {
     /// One valid ray, prepared alone.
     #[cfg(test)]
     pub fn prepare(ray: &Ray) -> Self {
-        let p = Prepared4::new::<L>(std::slice::from_ref(ray));
+        let p = Prepared::new::<W>(std::slice::from_ref(ray));
         assert!(p.valid & 1 != 0, "{ray:?} is not valid");
-        Self::from4(&p, ray, 0)
+        Self::from_prepared(&p, ray, 0)
     }
 }
 
@@ -279,7 +292,7 @@ pub(crate) struct ShearLanes<L> {
 impl<L: Lanes> ShearLanes<L> {
     /// The shear of ray `i` of `p`, whose dominant axis is `kz` (`p.kz[i]`).
     #[inline(always)]
-    pub fn from4(p: &Prepared4, i: usize, kz: usize) -> Self {
+    pub fn from_prepared(p: &Prepared, i: usize, kz: usize) -> Self {
         let [kx, ky, kz] = sheared_axes(kz, p.swap >> i & 1 != 0);
         ShearLanes {
             kx,
@@ -293,8 +306,8 @@ impl<L: Lanes> ShearLanes<L> {
     /// One valid ray's shear, prepared alone.
     #[cfg(test)]
     pub fn prepare(ray: &Ray) -> Self {
-        let p = Prepared4::new::<L>(std::slice::from_ref(ray));
-        Self::from4(&p, 0, p.kz[0])
+        let p = Prepared::new::<crate::lanes::Pair<L>>(std::slice::from_ref(ray));
+        Self::from_prepared(&p, 0, p.kz[0])
     }
 }
 
@@ -507,7 +520,7 @@ pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, 
 pub(crate) enum RayAt<'a> {
     /// Ray `i` of a prepared group, with its interval.
     Lanes {
-        p: &'a Prepared4,
+        p: &'a Prepared,
         i: usize,
         t_min: f32,
         t_max: f32,
@@ -592,7 +605,7 @@ pub(crate) mod tests {
     use glam::Vec3;
 
     use super::{
-        BoxHits, Prepared4, RayLanes, SceneBox, ShearLanes, box_lane, box8, still_hit, tri4,
+        BoxHits, Prepared, RayLanes, SceneBox, ShearLanes, box_lane, box8, still_hit, tri4,
     };
     use crate::lanes::{Lanes, Pair, Portable, Wide};
     use crate::layout::{Node8, Tri4};
@@ -733,7 +746,7 @@ pub(crate) mod tests {
                 _ => {}
             }
             group.push(ray);
-            if group.len() < 1 + (next(&mut s) * 4.0) as usize {
+            if group.len() < 1 + (next(&mut s) * 8.0) as usize {
                 continue;
             }
             prepared += check_group::<Portable, Pair<Portable>>(&group);
@@ -749,15 +762,15 @@ pub(crate) mod tests {
         assert!(prepared > 10_000, "only {prepared} valid rays");
     }
 
-    /// Prepares one to four rays together: each is valid as `Ray::is_valid` says, and a
+    /// Prepares one to eight rays together: each is valid as `Ray::is_valid` says, and a
     /// valid one's lanes are `PreparedRay::new`'s values. Returns the valid rays.
     fn check_group<L: Lanes, W: Wide>(group: &[Ray]) -> u32 {
-        let p = super::Prepared4::new::<L>(group);
+        let p = super::Prepared::new::<W>(group);
         assert_eq!(p.valid >> group.len(), 0);
         for (i, ray) in group.iter().enumerate() {
             assert_eq!(p.valid >> i & 1 != 0, ray.is_valid(), "{ray:?}");
             if ray.is_valid() {
-                let q = RayLanes::<L, W>::from4(&p, ray, i);
+                let q = RayLanes::<L, W>::from_prepared(&p, ray, i);
                 check_prepared(&q, &PreparedRay::new(ray), ray);
             }
         }
@@ -875,7 +888,7 @@ pub(crate) mod tests {
             let scene = SceneBox::around(&n).expect("finite planes");
             #[cfg(target_arch = "x86_64")]
             use crate::lanes::Sse;
-            let rays: [Ray; 4] = std::array::from_fn(|_| {
+            let rays: [Ray; 8] = std::array::from_fn(|_| {
                 let r = ray(&mut s);
                 let bx = boxes[(next(&mut s) * 8.0) as usize % 8];
                 let target = match (next(&mut s) * 3.0) as u32 {
@@ -898,7 +911,7 @@ pub(crate) mod tests {
                     r.t_max,
                 )
             });
-            let check = |enter: u32, p: &Prepared4| {
+            let check = |enter: u32, p: &Prepared| {
                 let (mut k, mut d) = (0, 0);
                 for (i, r) in rays
                     .iter()
@@ -914,17 +927,21 @@ pub(crate) mod tests {
                 }
                 (k, d)
             };
-            let p = Prepared4::new::<Portable>(&rays);
-            let (k, d) = check(p.may_enter::<Portable>(&scene), &p);
+            let p = Prepared::new::<Pair<Portable>>(&rays);
+            let (k, d) = check(p.may_enter::<Pair<Portable>>(&scene), &p);
             (kept, dropped) = (kept + k, dropped + d);
             #[cfg(target_arch = "x86_64")]
             {
-                let p = Prepared4::new::<Sse>(&rays);
-                assert_eq!(check(p.may_enter::<Sse>(&scene), &p), (k, d));
+                let p = Prepared::new::<Pair<Sse>>(&rays);
+                assert_eq!(check(p.may_enter::<Pair<Sse>>(&scene), &p), (k, d));
+                if has_avx2() {
+                    let p = Prepared::new::<crate::lanes::Avx8>(&rays);
+                    assert_eq!(check(p.may_enter::<crate::lanes::Avx8>(&scene), &p), (k, d));
+                }
             }
         }
-        assert!(kept > 5_000, "only {kept} rays hit a root box");
-        assert!(dropped > 5_000, "only {dropped} rays left out");
+        assert!(kept > 10_000, "only {kept} rays hit a root box");
+        assert!(dropped > 10_000, "only {dropped} rays left out");
     }
 
     /// Each lane of the four-triangle test is `intersect_triangle` of its triangle: the
