@@ -713,6 +713,16 @@ pub(crate) fn run<L: Lanes, W: Wide, const ANY: bool>(
     }
 }
 
+/// A best as the row `t`, `prim` (as bits), `u`, `v`: the layout of `Hit`, so that the
+/// row is stored as one.
+#[inline(always)]
+fn hit_of(row: &[f32; 4]) -> Hit {
+    const { assert!(size_of::<Hit>() == size_of::<[f32; 4]>()) };
+    // SAFETY: `Hit` is `repr(C)` with four 4-byte fields (`t: f32`, `prim: u32`, `u`, `v`:
+    // f32) and no padding (size checked above), and every bit pattern is a valid `u32`.
+    unsafe { std::mem::transmute::<[f32; 4], Hit>(*row) }
+}
+
 /// Writes the packet's answers: the walked rays' bests (a miss at `t_max` is what the SoA
 /// holds for a ray without a hit), eight at a time, then the single-ray walk's for the
 /// others.
@@ -735,13 +745,8 @@ fn store_hits<L: Lanes, W: Wide, const ANY: bool>(
             W::load(&soa.best_v[g]),
         ]);
         let lanes = (rays.len() - 8 * g).min(8);
-        for (j, &[t, prim, u, v]) in h.iter().enumerate().take(lanes) {
-            out[order[8 * g + j] as usize] = Hit {
-                t,
-                prim: prim.to_bits(),
-                u,
-                v,
-            };
+        for (j, row) in h.iter().enumerate().take(lanes) {
+            out[order[8 * g + j] as usize] = hit_of(row);
         }
         g += 1;
     }

@@ -104,7 +104,9 @@ impl SceneBox {
 /// next two axes in turn, swapped when `swap` (`dir[kz] < 0`) to keep the winding.
 #[inline(always)]
 pub(crate) fn sheared_axes(kz: usize, swap: bool) -> [usize; 3] {
-    let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+    // `(kz + 1) % 3` and `(kz + 2) % 3` without a division.
+    const NEXT: [[usize; 2]; 3] = [[1, 2], [2, 0], [0, 1]];
+    let [kx, ky] = NEXT[kz];
     if swap { [ky, kx, kz] } else { [kx, ky, kz] }
 }
 
