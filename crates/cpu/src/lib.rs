@@ -14,6 +14,9 @@
 //! order two triangles (`oracle::f32_indeterminate`, or `t` within
 //! `oracle::f32_t_error_bound`), a different visit order may rightly keep either. Any-hit
 //! queries agree on hit or miss; which triangle they stop at depends on the order.
+//! Rays are prepared eight at a time, and those that miss the box around the root node's
+//! boxes are answered without a walk: every step of the box test is monotone, so a ray
+//! that misses that box misses every box inside it.
 //!
 //! ```
 //! use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray};
