@@ -266,9 +266,8 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, cons
     stack: &mut [Entry],
 ) {
     // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
-    // Rays are prepared eight at a time, then walked one by one.
-    // Rays that miss the root node's boxes altogether (most camera rays around a
-    // framed object) are answered without a walk.
+    // Rays are prepared eight at a time, then walked one by one; those that miss the root
+    // node's boxes altogether (most camera rays around a framed object) take no walk.
     let scene = bvh.nodes.first().and_then(tests4::SceneBox::around);
     let mut start = 0;
     while start < rays.len() {

@@ -796,6 +796,25 @@ pub(crate) mod tests {
         assert_eq!(q.t_min4.store()[3].to_bits(), r.t_min.to_bits(), "{ray:?}");
     }
 
+    /// A node of eight random boxes (all slots used), and the boxes.
+    fn random_node(s: &mut u64) -> (Node8, [Aabb; 8]) {
+        let mut n = Node8::EMPTY;
+        let mut boxes = [Aabb::EMPTY; 8];
+        for (i, bx) in boxes.iter_mut().enumerate() {
+            let (a, b) = (point(s), point(s));
+            *bx = Aabb {
+                min: a.min(b),
+                max: a.max(b),
+            };
+            for ax in 0..3 {
+                n.planes[2 * ax][i] = bx.min[ax];
+                n.planes[2 * ax + 1][i] = bx.max[ax];
+            }
+        }
+        n.used = 0xff;
+        (n, boxes)
+    }
+
     /// Each lane of the eight-box test is the scalar box test of its box, on every lane
     /// type, including the parallel path and a finite running best.
     #[test]
@@ -803,18 +822,7 @@ pub(crate) mod tests {
         let mut s = 0x1234_5678_9abc_def1u64;
         let (mut hits, mut culled) = (0, 0);
         for _ in 0..20_000 {
-            let mut n = Node8::EMPTY;
-            for i in 0..8 {
-                let (a, b) = (point(&mut s), point(&mut s));
-                let bx = Aabb {
-                    min: a.min(b),
-                    max: a.max(b),
-                };
-                for ax in 0..3 {
-                    n.planes[2 * ax][i] = bx.min[ax];
-                    n.planes[2 * ax + 1][i] = bx.max[ax];
-                }
-            }
+            let (mut n, _) = random_node(&mut s);
             n.used = if next(&mut s) < 0.2 {
                 0b0111_0111
             } else {
@@ -873,19 +881,7 @@ pub(crate) mod tests {
         let mut s = 0x5eed_0f5c_e4e0_b0c5u64;
         let (mut kept, mut dropped) = (0, 0);
         for _ in 0..10_000 {
-            let mut n = Node8::EMPTY;
-            let mut boxes = [Aabb::EMPTY; 8];
-            for (i, bx) in boxes.iter_mut().enumerate() {
-                let (a, b) = (point(&mut s), point(&mut s));
-                *bx = Aabb {
-                    min: a.min(b),
-                    max: a.max(b),
-                };
-                for ax in 0..3 {
-                    n.planes[2 * ax][i] = bx.min[ax];
-                    n.planes[2 * ax + 1][i] = bx.max[ax];
-                }
-            }
+            let (mut n, boxes) = random_node(&mut s);
             n.used = (next(&mut s) * 255.0) as u32 + 1;
             let scene = SceneBox::around(&n).expect("finite planes");
             #[cfg(target_arch = "x86_64")]
