@@ -273,11 +273,23 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, cons
     while start < rays.len() {
         let end = (start + tests4::RAYS).min(rays.len());
         let group = &rays[start..end];
-        let p = tests4::Prepared::new::<W>(group);
+        let mut p = tests4::Prepared::for_boxes::<W>(group);
         let enter = match &scene {
             Some(b) => p.may_enter::<W>(b),
             None => u32::MAX,
         };
+        if p.valid & enter == 0 {
+            // No ray of the group walks: a loop of its own, apart from the walks' code.
+            for (h, ray) in hits[start..end].iter_mut().zip(group) {
+                *h = single::Best::start(ray).into_hit();
+            }
+            for i in (0..group.len()).filter(|&i| p.valid >> i & 1 == 0) {
+                hits[start + i] = single::untraced(&group[i]);
+            }
+            start = end;
+            continue;
+        }
+        p.shear::<W>();
         for i in 0..group.len() {
             hits[start + i] = if (p.valid & !enter) >> i & 1 != 0 {
                 single::Best::start(&group[i]).into_hit()

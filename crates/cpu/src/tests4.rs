@@ -156,6 +156,16 @@ impl Prepared {
     /// Prepares one to [`RAYS`] rays, loaded by one transpose of their rows.
     #[inline(always)]
     pub fn new<W: Wide>(rays: &[Ray]) -> Prepared {
+        let mut p = Self::for_boxes::<W>(rays);
+        p.shear::<W>();
+        p
+    }
+
+    /// [`Prepared::new`] without the triangle test's shear (`kz`, `shear` and `swap`
+    /// are left zero until [`Prepared::shear`]): what the box tests and the validity
+    /// need.
+    #[inline(always)]
+    pub fn for_boxes<W: Wide>(rays: &[Ray]) -> Prepared {
         debug_assert!((1..=RAYS).contains(&rays.len()));
         // Missing lanes repeat the last ray; they are not valid. No `array::map` over
         // AVX lanes here: its closure would be compiled apart from an AVX2 caller.
@@ -172,7 +182,7 @@ impl Prepared {
         }
         let zero_dir = d[0].eq(zero).and(d[1].eq(zero)).and(d[2].eq(zero)).bits();
         let present = (2u32 << last) - 1;
-        let (mut dir, mut ninv, mut abs) = ([zero; 3], [zero; 3], [zero; 3]);
+        let (mut dir, mut ninv) = ([zero; 3], [zero; 3]);
         for a in 0..3 {
             // `flush_subnormal` and `safe_inverse` as lane selects.
             let sign = d[a].and(W::splat(-0.0));
@@ -180,8 +190,33 @@ impl Prepared {
             dir[a] = small.select(sign, d[a]);
             let safe = small.select(sign.or(W::splat(f32::MIN_POSITIVE)), d[a]);
             ninv[a] = W::splat(-1.0).div(safe);
-            abs[a] = dir[a].abs();
         }
+        let parallel = dir[0].eq(zero).or(dir[1].eq(zero)).or(dir[2].eq(zero));
+        Prepared {
+            org: store3(o),
+            ninv: store3(ninv),
+            dir: store3(dir),
+            kz: [0; RAYS],
+            valid: ok.bits() & !zero_dir & present,
+            parallel: parallel.bits(),
+            shear: [[0.0; RAYS]; 3],
+            swap: 0,
+            t_min: t_min.store(),
+            t_max: t_max.store(),
+        }
+    }
+
+    /// The triangle test's shear of the rays (`shear_axes` and the shear constants of
+    /// `PreparedRay::new`), from their flushed directions.
+    #[inline(always)]
+    pub fn shear<W: Wide>(&mut self) {
+        let zero = W::splat(0.0);
+        let dir = [
+            W::load(&self.dir[0]),
+            W::load(&self.dir[1]),
+            W::load(&self.dir[2]),
+        ];
+        let abs = [dir[0].abs(), dir[1].abs(), dir[2].abs()];
         // `shear_axes`: the first of the largest magnitudes.
         let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
         let y_over_z = abs[1].ge(abs[2]);
@@ -202,19 +237,9 @@ impl Prepared {
                 2
             }
         });
-        let parallel = dir[0].eq(zero).or(dir[1].eq(zero)).or(dir[2].eq(zero));
-        Prepared {
-            org: store3(o),
-            ninv: store3(ninv),
-            dir: store3(dir),
-            kz,
-            valid: ok.bits() & !zero_dir & present,
-            parallel: parallel.bits(),
-            shear: store3(shear),
-            swap: swap.bits(),
-            t_min: t_min.store(),
-            t_max: t_max.store(),
-        }
+        self.kz = kz;
+        self.shear = store3(shear);
+        self.swap = swap.bits();
     }
 
     /// The rays (bits) whose walk may hit something inside `b`: those whose box test
