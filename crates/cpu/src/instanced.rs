@@ -136,17 +136,9 @@ pub(crate) fn trace<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const MASKE
         q: &q,
         mask,
     };
-    match (q.parallel, signed, q.kz) {
-        (false, false, 0) => top::<L, W, M, ANY, MASKED, false, false, 0>(&w, best, stack),
-        (false, false, 1) => top::<L, W, M, ANY, MASKED, false, false, 1>(&w, best, stack),
-        (false, false, _) => top::<L, W, M, ANY, MASKED, false, false, 2>(&w, best, stack),
-        (false, true, 0) => top::<L, W, M, ANY, MASKED, true, false, 0>(&w, best, stack),
-        (false, true, 1) => top::<L, W, M, ANY, MASKED, true, false, 1>(&w, best, stack),
-        (false, true, _) => top::<L, W, M, ANY, MASKED, true, false, 2>(&w, best, stack),
-        (true, _, 0) => top::<L, W, M, ANY, MASKED, true, true, 0>(&w, best, stack),
-        (true, _, 1) => top::<L, W, M, ANY, MASKED, true, true, 1>(&w, best, stack),
-        (true, _, _) => top::<L, W, M, ANY, MASKED, true, true, 2>(&w, best, stack),
-    }
+    for_ray_kind!(q.parallel, signed, q.kz, |SIGNED, PARALLEL, KZ| {
+        top::<L, W, M, ANY, MASKED, SIGNED, PARALLEL, KZ>(&w, best, stack)
+    })
 }
 
 /// What the top-level walk reads: the tree, the world ray and its lanes, and the rays'

@@ -57,6 +57,32 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 #![warn(missing_docs)]
 
+/// Evaluates `$body` with three consts fixed for one ray, named by the caller: `SIGNED`
+/// (the box test's exit scale depends on its sign: `t_min < 0`, or along a slab),
+/// `PARALLEL` (along a slab) and `KZ` (the dominant axis), so that each of the nine
+/// walks is monomorphised (see `tests4::box8`).
+macro_rules! for_ray_kind {
+    ($parallel:expr, $signed:expr, $kz:expr, |$s:ident, $p:ident, $k:ident| $body:expr) => {
+        match ($parallel, $signed, $kz) {
+            (false, false, 0) => for_ray_kind!(@ $s = false, $p = false, $k = 0, $body),
+            (false, false, 1) => for_ray_kind!(@ $s = false, $p = false, $k = 1, $body),
+            (false, false, _) => for_ray_kind!(@ $s = false, $p = false, $k = 2, $body),
+            (false, true, 0) => for_ray_kind!(@ $s = true, $p = false, $k = 0, $body),
+            (false, true, 1) => for_ray_kind!(@ $s = true, $p = false, $k = 1, $body),
+            (false, true, _) => for_ray_kind!(@ $s = true, $p = false, $k = 2, $body),
+            (true, _, 0) => for_ray_kind!(@ $s = true, $p = true, $k = 0, $body),
+            (true, _, 1) => for_ray_kind!(@ $s = true, $p = true, $k = 1, $body),
+            (true, _, _) => for_ray_kind!(@ $s = true, $p = true, $k = 2, $body),
+        }
+    };
+    (@ $s:ident = $sv:literal, $p:ident = $pv:literal, $k:ident = $kv:literal, $body:expr) => {{
+        const $s: bool = $sv;
+        const $p: bool = $pv;
+        const $k: usize = $kv;
+        $body
+    }};
+}
+
 mod lanes;
 pub mod layout;
 

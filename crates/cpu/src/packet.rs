@@ -23,7 +23,7 @@ use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::packet_tri::{ShearRays, tri_rays};
 use crate::single::{self, Best, Entry};
-use crate::tests4::{Prepared, RayAt, ShearLanes, near_end, row, sheared_axes};
+use crate::tests4::{Prepared, RayAt, ShearLanes, near_end, row, shear_lanes, sheared_axes};
 
 /// Rays per packet: eight groups of eight lanes.
 pub const PACKET: usize = 64;
@@ -225,17 +225,7 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
         let walked = walk.bits() & ((2u32 << last) - 1);
         let minus_one = W::splat(-1.0);
         let ninv = [minus_one.div(dx), minus_one.div(dy), minus_one.div(dz)];
-        let abs = [dx.abs(), dy.abs(), dz.abs()];
-        // `shear_axes`: the first of the largest magnitudes.
-        let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
-        let y_over_z = abs[1].ge(abs[2]);
-        let pick = |a: W, b: W, c: W| x_max.select(a, y_over_z.select(b, c));
-        let dkz = pick(d[0], d[1], d[2]);
-        let (d1, d2) = (pick(d[1], d[2], d[0]), pick(d[2], d[0], d[1]));
-        let swap = dkz.lt(zero);
-        let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
-        let shear = [dkx.div(dkz), dky.div(dkz), W::splat(1.0).div(dkz)];
-        let kz = pick(zero, W::splat(1.0), W::splat(2.0));
+        let (kz, swap, shear) = shear_lanes(d);
         for a in 0..3 {
             soa.org[g][a] = o[a].store();
             soa.ninv[g][a] = ninv[a].store();
@@ -255,7 +245,6 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
         soa.best_u[g] = [0.0; 8];
         soa.best_v[g] = [0.0; 8];
         soa.kz[g] = kz.store();
-        let swap = swap.bits();
         if walked != 0 {
             // The group's shear axes are its first walked ray's; the rays that share
             // them are tested with rays in lanes.

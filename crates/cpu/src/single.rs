@@ -281,35 +281,9 @@ pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     // One walk per dominant axis, for rays along a slab, and for rays that start behind
     // their origin (see `box8`): most rays are none of the last two.
     let signed = ray.t_min < 0.0 || q.parallel;
-    match (q.parallel, signed, q.kz) {
-        (false, false, 0) => {
-            walk::<L, W, ANY, MASKED, false, false, 0>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (false, false, 1) => {
-            walk::<L, W, ANY, MASKED, false, false, 1>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (false, false, _) => {
-            walk::<L, W, ANY, MASKED, false, false, 2>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (false, true, 0) => {
-            walk::<L, W, ANY, MASKED, true, false, 0>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (false, true, 1) => {
-            walk::<L, W, ANY, MASKED, true, false, 1>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (false, true, _) => {
-            walk::<L, W, ANY, MASKED, true, false, 2>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (true, _, 0) => {
-            walk::<L, W, ANY, MASKED, true, true, 0>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (true, _, 1) => {
-            walk::<L, W, ANY, MASKED, true, true, 1>(bvh, p, i, &q, best, start, at, stack)
-        }
-        (true, _, _) => {
-            walk::<L, W, ANY, MASKED, true, true, 2>(bvh, p, i, &q, best, start, at, stack)
-        }
-    }
+    for_ray_kind!(q.parallel, signed, q.kz, |SIGNED, PARALLEL, KZ| {
+        walk::<L, W, ANY, MASKED, SIGNED, PARALLEL, KZ>(bvh, p, i, &q, best, start, at, stack)
+    })
 }
 
 /// The walk from `start` (see [`mesh`]); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`].

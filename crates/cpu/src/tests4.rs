@@ -110,6 +110,27 @@ pub(crate) fn sheared_axes(kz: usize, swap: bool) -> [usize; 3] {
     if swap { [ky, kx, kz] } else { [kx, ky, kz] }
 }
 
+/// The triangle test's shear of eight rays from their directions `dir` (flushed):
+/// `shear_axes`' dominant axis per lane (0.0, 1.0 or 2.0), the rays whose `kx` and `ky`
+/// swap (`dir[kz] < 0`, as bits), and `PreparedRay::new`'s `sx`, `sy`, `sz`.
+#[inline(always)]
+pub(crate) fn shear_lanes<W: Wide>(dir: [W; 3]) -> (W, u32, [W; 3]) {
+    let zero = W::splat(0.0);
+    let abs = [dir[0].abs(), dir[1].abs(), dir[2].abs()];
+    // `shear_axes`: the first of the largest magnitudes.
+    let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
+    let y_over_z = abs[1].ge(abs[2]);
+    // Per lane the component on axis `kz`, `(kz + 1) % 3` and `(kz + 2) % 3`.
+    let pick = |a: W, b: W, c: W| x_max.select(a, y_over_z.select(b, c));
+    let dkz = pick(dir[0], dir[1], dir[2]);
+    let (d1, d2) = (pick(dir[1], dir[2], dir[0]), pick(dir[2], dir[0], dir[1]));
+    let swap = dkz.lt(zero);
+    let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
+    let shear = [dkx.div(dkz), dky.div(dkz), W::splat(1.0).div(dkz)];
+    let kz = pick(zero, W::splat(1.0), W::splat(2.0));
+    (kz, swap.bits(), shear)
+}
+
 /// Three lanes' values.
 #[inline(always)]
 fn store3<W: Wide>(v: [W; 3]) -> [[f32; RAYS]; 3] {
@@ -210,36 +231,24 @@ impl Prepared {
     /// `PreparedRay::new`), from their flushed directions.
     #[inline(always)]
     pub fn shear<W: Wide>(&mut self) {
-        let zero = W::splat(0.0);
         let dir = [
             W::load(&self.dir[0]),
             W::load(&self.dir[1]),
             W::load(&self.dir[2]),
         ];
-        let abs = [dir[0].abs(), dir[1].abs(), dir[2].abs()];
-        // `shear_axes`: the first of the largest magnitudes.
-        let x_max = abs[0].ge(abs[1]).and(abs[0].ge(abs[2]));
-        let y_over_z = abs[1].ge(abs[2]);
-        // Per lane the component on axis `kz`, `(kz + 1) % 3` and `(kz + 2) % 3`.
-        let pick = |a: W, b: W, c: W| x_max.select(a, y_over_z.select(b, c));
-        let dkz = pick(dir[0], dir[1], dir[2]);
-        let (d1, d2) = (pick(dir[1], dir[2], dir[0]), pick(dir[2], dir[0], dir[1]));
-        let swap = dkz.lt(zero);
-        let (dkx, dky) = (swap.select(d2, d1), swap.select(d1, d2));
-        let shear = [dkx.div(dkz), dky.div(dkz), W::splat(1.0).div(dkz)];
-        let (x_max, y_over_z) = (x_max.bits(), y_over_z.bits());
-        let kz = std::array::from_fn(|i| {
-            if x_max >> i & 1 != 0 {
+        let (kz, swap, shear) = shear_lanes(dir);
+        let (x, y) = (kz.eq(W::splat(0.0)).bits(), kz.eq(W::splat(1.0)).bits());
+        self.kz = std::array::from_fn(|i| {
+            if x >> i & 1 != 0 {
                 0
-            } else if y_over_z >> i & 1 != 0 {
+            } else if y >> i & 1 != 0 {
                 1
             } else {
                 2
             }
         });
-        self.kz = kz;
         self.shear = store3(shear);
-        self.swap = swap.bits();
+        self.swap = swap;
     }
 
     /// The rays (bits) whose walk may hit something inside `b`: those whose box test
