@@ -72,6 +72,8 @@ fn lane_order(len: usize) -> &'static [u8; PACKET] {
 struct Soa {
     /// `org[g][axis]`: the origins.
     org: [[[f32; 8]; 3]; GROUPS],
+    /// The directions, `dir[g][axis]`.
+    dir: [[[f32; 8]; 3]; GROUPS],
     /// `-1 / dir` (see `RayLanes::ninv`).
     ninv: [[[f32; 8]; 3]; GROUPS],
     t_min: [[f32; 8]; GROUPS],
@@ -152,6 +154,7 @@ impl Scratch {
         Scratch {
             soa: Box::new(Soa {
                 org: [[[0.0; 8]; 3]; GROUPS],
+                dir: [[[0.0; 8]; 3]; GROUPS],
                 ninv: [[[0.0; 8]; 3]; GROUPS],
                 t_min: zero,
                 t_max: zero,
@@ -186,32 +189,39 @@ struct State<'a> {
     frustum: Frustum,
 }
 
-/// Loads up to [`PACKET`] rays, eight at a time in lanes, into the packet's lanes; returns
-/// the mask of those the packet walks (the others take the single-ray walk: invalid rays,
-/// rays along a slab, empty intervals), the sum of their directions and their bounds.
-///
-/// The values are `PreparedRay::new`'s to the bit for the walked rays (the operations of
-/// `Prepared::new`; a walked ray has no zero or subnormal direction component, so its
-/// flushed direction is its direction and `safe_inverse` is `1 / dir`).
-#[inline(always)]
+/// Loads up to [`PACKET`] rays into the packet's lanes ([`gather`], then [`prepare`]);
+/// returns the mask of those the packet walks, the sum of their directions and their
+/// bounds.
+#[cfg(test)]
 fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
+    let (active, dir, f) = gather::<W>(bvh, rays, soa);
+    prepare::<W>(rays.len(), active, soa);
+    (active, dir, f)
+}
+
+/// The first pass over up to [`PACKET`] rays, eight at a time: their rows transposed into
+/// the packet's lanes (origin, direction, interval), which of them the packet walks (the
+/// others take the single-ray walk: invalid rays, rays along a slab, empty intervals),
+/// the sum of their directions and their bounds. Enough to tell a packet whose rays all
+/// miss the root's boxes, which then needs nothing more.
+///
+/// The bounds' range of `-1 / dir` on an axis where every walked ray has one sign comes
+/// from the directions' range: `-1 / d` is increasing in `d` on each side of 0, and so
+/// is its correctly rounded value, so the smallest and largest are `-1 / d_lo` and
+/// `-1 / d_hi`, the per-ray values' own extremes to the bit. Where the signs differ the
+/// axis bounds nothing and the range is not used.
+#[inline(always)]
+fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
     let (inf, zero) = (W::splat(f32::INFINITY), W::splat(0.0));
     let (mut o_lo, mut o_hi) = ([inf; 3], [inf.neg(); 3]);
-    let (mut n_lo, mut n_hi) = ([inf; 3], [inf.neg(); 3]);
+    let (mut d_lo, mut d_hi) = ([inf; 3], [inf.neg(); 3]);
     let (mut t_lo, mut t_hi) = (inf, inf.neg());
     let mut sum = [zero; 3];
-    let (mut active, mut swap_all, mut lanes_all) = (0u64, 0u64, 0u64);
-    let order = lane_order(rays.len());
+    let mut active = 0u64;
     let mut g = 0;
     while 8 * g < rays.len() && !bvh.nodes.is_empty() {
-        let base = 8 * g;
-        let last = rays.len().min(base + 8) - base - 1;
-        // Missing lanes repeat the last ray; they are not walked.
-        // No `array::map` with AVX lanes here: its closure is compiled apart from the AVX2
-        // caller, and the AVX operations in it stay out-of-line calls.
-        let at = |j: usize| row(&rays[order[base + if j < last { j } else { last }] as usize]);
-        let r = [at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7)];
-        let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(r);
+        let last = rays.len().min(8 * g + 8) - 8 * g - 1;
+        let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(group_rows(rays, g));
         let (o, d) = ([ox, oy, oz], [dx, dy, dz]);
         // Valid (`Ray::is_valid`: finite origin and direction, no NaN bound), no component
         // zero or subnormal (not along a slab), and a non-empty interval.
@@ -223,43 +233,37 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
                 .and(d[a].abs().ge(W::splat(f32::MIN_POSITIVE)));
         }
         let walked = walk.bits() & ((2u32 << last) - 1);
-        let minus_one = W::splat(-1.0);
-        let ninv = [minus_one.div(dx), minus_one.div(dy), minus_one.div(dz)];
-        let (kz, swap, shear) = shear_lanes(d);
         for a in 0..3 {
             soa.org[g][a] = o[a].store();
-            soa.ninv[g][a] = ninv[a].store();
-            soa.shear[g][a] = shear[a].store();
-            o_lo[a] = walk.select(o[a], inf).min(o_lo[a]);
-            o_hi[a] = walk.select(o[a], inf.neg()).max(o_hi[a]);
-            n_lo[a] = walk.select(ninv[a], inf).min(n_lo[a]);
-            n_hi[a] = walk.select(ninv[a], inf.neg()).max(n_hi[a]);
-            sum[a] = sum[a].add(walk.select(d[a], zero));
+            soa.dir[g][a] = d[a].store();
         }
-        t_lo = walk.select(t_min, inf).min(t_lo);
-        t_hi = walk.select(t_max, inf.neg()).max(t_hi);
+        if walked == 0xff {
+            // Every lane walks (nearly every group of camera rays): no lane to leave out.
+            for a in 0..3 {
+                o_lo[a] = o[a].min(o_lo[a]);
+                o_hi[a] = o[a].max(o_hi[a]);
+                d_lo[a] = d[a].min(d_lo[a]);
+                d_hi[a] = d[a].max(d_hi[a]);
+                sum[a] = sum[a].add(d[a]);
+            }
+            t_lo = t_min.min(t_lo);
+            t_hi = t_max.max(t_hi);
+        } else {
+            for a in 0..3 {
+                o_lo[a] = walk.select(o[a], inf).min(o_lo[a]);
+                o_hi[a] = walk.select(o[a], inf.neg()).max(o_hi[a]);
+                d_lo[a] = walk.select(d[a], inf).min(d_lo[a]);
+                d_hi[a] = walk.select(d[a], inf.neg()).max(d_hi[a]);
+                sum[a] = sum[a].add(walk.select(d[a], zero));
+            }
+            t_lo = walk.select(t_min, inf).min(t_lo);
+            t_hi = walk.select(t_max, inf.neg()).max(t_hi);
+        }
         soa.t_min[g] = t_min.store();
         soa.t_max[g] = t_max.store();
-        soa.best_t[g] = t_max.store();
-        soa.best_prim[g] = [f32::from_bits(MISS); 8];
-        soa.best_u[g] = [0.0; 8];
-        soa.best_v[g] = [0.0; 8];
-        soa.kz[g] = kz.store();
-        if walked != 0 {
-            // The group's shear axes are its first walked ray's; the rays that share
-            // them are tested with rays in lanes.
-            let j = walked.trailing_zeros() as usize;
-            let (k, s) = (soa.kz[g][j], swap >> j & 1);
-            soa.axes[g] = sheared_axes(k as usize, s != 0);
-            let same = kz_lanes::<W>(&soa.kz[g], k) & !(swap ^ s.wrapping_neg()) & walked;
-            lanes_all |= (same as u64) << (8 * g);
-        }
         active |= (walked as u64) << (8 * g);
-        swap_all |= (swap as u64) << (8 * g);
         g += 1;
     }
-    soa.swap = swap_all;
-    soa.lanes = lanes_all;
     let mut f = Frustum {
         t_min: low(t_lo),
         t_max: high(t_hi),
@@ -269,15 +273,19 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
     for a in 0..3 {
         let d = sum[a].store();
         dir[a] = ((d[0] + d[1]) + (d[2] + d[3])) + ((d[4] + d[5]) + (d[6] + d[7]));
-        let (lo, hi) = (low(n_lo[a]), high(n_hi[a]));
-        (f.n_lo[a], f.n_hi[a]) = (lo, hi);
-        // `n < 0` (the rays move up the axis): the lower plane is the near one, and the
-        // largest origin gives the smallest distance to it.
-        let up = hi < 0.0;
+        let (dl, dh) = (low(d_lo[a]), high(d_hi[a]));
+        // `d > 0`, so `n < 0` (the rays move up the axis): the lower plane is the near
+        // one, and the largest origin gives the smallest distance to it.
+        let up = dl > 0.0;
+        let mixed = !(up || dh < 0.0);
+        (f.n_lo[a], f.n_hi[a]) = if mixed {
+            (-1.0, 1.0)
+        } else {
+            (-1.0 / dl, -1.0 / dh)
+        };
         f.near[a] = 2 * a + usize::from(!up);
         let (ol, oh) = (low(o_lo[a]), high(o_hi[a]));
         (f.o_near[a], f.o_far[a]) = if up { (oh, ol) } else { (ol, oh) };
-        let mixed = !(hi < 0.0 || lo > 0.0);
         f.cap_near[a] = if mixed {
             f32::NEG_INFINITY
         } else {
@@ -290,6 +298,77 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
         };
     }
     (active, dir, f)
+}
+
+/// The rows of group `g`'s rays, lane `j` from the ray [`lane_order`] gives it; missing
+/// lanes of a partial group repeat its last ray (they are not walked).
+#[inline(always)]
+fn group_rows(rays: &[Ray], g: usize) -> [&[f32; 8]; 8] {
+    if let Ok(full) = <&[Ray; PACKET]>::try_from(rays) {
+        // `TILE_LANES` for group `g`: a 4x2 block of the 8x8 tile, at row `2 (g / 2)` and
+        // column `4 (g % 2)`.
+        let b = (g & 7) / 2 * 16 + (g & 1) * 4;
+        return [
+            row(&full[b]),
+            row(&full[b + 1]),
+            row(&full[b + 2]),
+            row(&full[b + 3]),
+            row(&full[b + 8]),
+            row(&full[b + 9]),
+            row(&full[b + 10]),
+            row(&full[b + 11]),
+        ];
+    }
+    let (base, order) = (8 * g, lane_order(rays.len()));
+    let last = rays.len().min(base + 8) - base - 1;
+    // No `array::map` with AVX lanes here: its closure is compiled apart from the AVX2
+    // caller, and the AVX operations in it stay out-of-line calls.
+    let at = |j: usize| row(&rays[order[base + if j < last { j } else { last }] as usize]);
+    [at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7)]
+}
+
+/// The second pass, for a packet that walks: per group `-1 / dir`, the shear constants
+/// and dominant axes, the bests at the start, and the group's shear axes (see [`Soa`]).
+///
+/// The values are `PreparedRay::new`'s to the bit for the walked rays (the operations of
+/// `Prepared::new`; a walked ray has no zero or subnormal direction component, so its
+/// flushed direction is its direction and `safe_inverse` is `1 / dir`).
+#[inline(always)]
+fn prepare<W: Wide>(len: usize, active: u64, soa: &mut Soa) {
+    let (mut swap_all, mut lanes_all) = (0u64, 0u64);
+    let mut g = 0;
+    while 8 * g < len {
+        let d = [
+            W::load(&soa.dir[g][0]),
+            W::load(&soa.dir[g][1]),
+            W::load(&soa.dir[g][2]),
+        ];
+        let minus_one = W::splat(-1.0);
+        let (kz, swap, shear) = shear_lanes(d);
+        for a in 0..3 {
+            soa.ninv[g][a] = minus_one.div(d[a]).store();
+            soa.shear[g][a] = shear[a].store();
+        }
+        soa.best_t[g] = soa.t_max[g];
+        soa.best_prim[g] = [f32::from_bits(MISS); 8];
+        soa.best_u[g] = [0.0; 8];
+        soa.best_v[g] = [0.0; 8];
+        soa.kz[g] = kz.store();
+        let walked = (active >> (8 * g) & 0xff) as u32;
+        if walked != 0 {
+            // The group's shear axes are its first walked ray's; the rays that share
+            // them are tested with rays in lanes.
+            let j = walked.trailing_zeros() as usize;
+            let (k, s) = (soa.kz[g][j], swap >> j & 1);
+            soa.axes[g] = sheared_axes(k as usize, s != 0);
+            let same = kz_lanes::<W>(&soa.kz[g], k) & !(swap ^ s.wrapping_neg()) & walked;
+            lanes_all |= (same as u64) << (8 * g);
+        }
+        swap_all |= (swap as u64) << (8 * g);
+        g += 1;
+    }
+    soa.swap = swap_all;
+    soa.lanes = lanes_all;
 }
 
 /// The smallest of eight lanes.
@@ -573,12 +652,17 @@ fn group_leaf<W: Wide, const ANY: bool>(
     };
     let (first, count) = leaf_range(child);
     for (n, b) in bvh.blocks[first..first + count].iter().enumerate() {
+        // A hit of the lane before was refused by its leaf box (see below).
+        let mut refused = false;
         for i in 0..4 {
             // A short block's free lanes repeat its last triangle (and a split builder
-            // may put one triangle twice in a leaf): nothing new to find.
-            if i > 0 && b.prim[i] == b.prim[i - 1] {
+            // may put one triangle twice in a leaf): nothing new to find, unless the
+            // repeat comes from another binary leaf, whose box may take a hit the one
+            // before refused.
+            if i > 0 && b.prim[i] == b.prim[i - 1] && !refused {
                 continue;
             }
+            refused = false;
             let c = [
                 [b.v[0][kx][i], b.v[0][ky][i], b.v[0][kz][i]],
                 [b.v[1][kx][i], b.v[1][ky][i], b.v[1][kz][i]],
@@ -610,6 +694,7 @@ fn group_leaf<W: Wide, const ANY: bool>(
                         best.t,
                     )
                 {
+                    refused = true;
                     continue;
                 }
                 if best.offer(t[j], b.prim[i], u[j], v[j]) {
@@ -678,7 +763,18 @@ pub(crate) fn run<L: Lanes, W: Wide, const ANY: bool>(
     while start < rays.len() {
         let end = (start + PACKET).min(rays.len());
         let group = &rays[start..end];
-        let (active, dir, frustum) = load::<W>(bvh, group, &mut s.soa);
+        let (active, dir, frustum) = gather::<W>(bvh, group, &mut s.soa);
+        let all = u64::MAX >> (PACKET - group.len());
+        if active == all && frustum_hits::<W>(&bvh.nodes[0], &frustum) == 0 {
+            // Every ray walks, and the bounds miss every box of the root: all miss (camera
+            // rays past a framed object, tile by tile).
+            for (h, r) in hits[start..end].iter_mut().zip(group) {
+                *h = Hit::miss(r.t_max);
+            }
+            start = end;
+            continue;
+        }
+        prepare::<W>(group.len(), active, &mut s.soa);
         let mut st = State {
             soa: &mut s.soa,
             rays: group,
@@ -773,7 +869,7 @@ mod tests {
     use bvhtrace_core::{BuildOptions, FlatBvh, Ray};
     use glam::Vec3;
 
-    use super::{PACKET, Scratch, Soa, child_rays, frustum_hits, lane_order, load};
+    use super::{PACKET, Scratch, Soa, child_rays, frustum_hits, group_rows, lane_order, load};
     use crate::CpuBvh;
     use crate::lanes::{Pair, Portable, Wide};
     use crate::layout::Node8;
@@ -803,6 +899,25 @@ mod tests {
     /// random boxes and rays (the generators of the lane tests), bests at the ray's
     /// `t_max`, anywhere, or a few hundred ulps around the box's entry where the culling
     /// slack decides; portable, SSE and (where the CPU has it) AVX lanes.
+    /// Each group's rows are the rays `lane_order` gives its lanes, full packets and
+    /// partial ones (whose missing lanes repeat the last ray).
+    #[test]
+    fn group_rows_follow_the_lane_order() {
+        for len in 1..=PACKET {
+            let rays: Vec<Ray> = (0..len)
+                .map(|k| Ray::new(Vec3::splat(k as f32), Vec3::X))
+                .collect();
+            let order = lane_order(len);
+            for g in 0..len.div_ceil(8) {
+                let rows = group_rows(&rays, g);
+                for (j, r) in rows.iter().enumerate() {
+                    let k = (8 * g + j).min(len - 1);
+                    assert_eq!(r[0], order[k] as f32, "{len} rays, group {g}, lane {j}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn packet_box_lanes_are_the_scalar_test() {
         let tri = [Vec3::ZERO, Vec3::X, Vec3::Y];
