@@ -212,68 +212,43 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
 /// axis bounds nothing and the range is not used.
 #[inline(always)]
 fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
-    let (inf, zero) = (W::splat(f32::INFINITY), W::splat(0.0));
-    let (mut o_lo, mut o_hi) = ([inf; 3], [inf.neg(); 3]);
-    let (mut d_lo, mut d_hi) = ([inf; 3], [inf.neg(); 3]);
-    let (mut t_lo, mut t_hi) = (inf, inf.neg());
-    let mut sum = [zero; 3];
+    // The bounds over the walked rays' rows (origin, `t_min`, direction, `t_max`), field
+    // by field, and the sum of the rows.
+    let inf = W::splat(f32::INFINITY);
+    let mut b = RowBounds {
+        lo: inf,
+        hi: inf.neg(),
+        sum: W::splat(0.0),
+    };
     let mut active = 0u64;
-    let mut g = 0;
-    while 8 * g < rays.len() && !bvh.nodes.is_empty() {
-        let last = rays.len().min(8 * g + 8) - 8 * g - 1;
-        let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(group_rows(rays, g));
-        let (o, d) = ([ox, oy, oz], [dx, dy, dz]);
-        // Valid (`Ray::is_valid`: finite origin and direction, no NaN bound), no component
-        // zero or subnormal (not along a slab), and a non-empty interval.
-        let mut walk = t_min.le(t_max);
-        for a in 0..3 {
-            walk = walk
-                .and(o[a].abs().lt(inf))
-                .and(d[a].abs().lt(inf))
-                .and(d[a].abs().ge(W::splat(f32::MIN_POSITIVE)));
-        }
-        let walked = walk.bits() & ((2u32 << last) - 1);
-        for a in 0..3 {
-            soa.org[g][a] = o[a].store();
-            soa.dir[g][a] = d[a].store();
-        }
-        if walked == 0xff {
-            // Every lane walks (nearly every group of camera rays): no lane to leave out.
-            for a in 0..3 {
-                o_lo[a] = o[a].min(o_lo[a]);
-                o_hi[a] = o[a].max(o_hi[a]);
-                d_lo[a] = d[a].min(d_lo[a]);
-                d_hi[a] = d[a].max(d_hi[a]);
-                sum[a] = sum[a].add(d[a]);
-            }
-            t_lo = t_min.min(t_lo);
-            t_hi = t_max.max(t_hi);
-        } else {
-            for a in 0..3 {
-                o_lo[a] = walk.select(o[a], inf).min(o_lo[a]);
-                o_hi[a] = walk.select(o[a], inf.neg()).max(o_hi[a]);
-                d_lo[a] = walk.select(d[a], inf).min(d_lo[a]);
-                d_hi[a] = walk.select(d[a], inf.neg()).max(d_hi[a]);
-                sum[a] = sum[a].add(walk.select(d[a], zero));
-            }
-            t_lo = walk.select(t_min, inf).min(t_lo);
-            t_hi = walk.select(t_max, inf.neg()).max(t_hi);
-        }
-        soa.t_min[g] = t_min.store();
-        soa.t_max[g] = t_max.store();
-        active |= (walked as u64) << (8 * g);
-        g += 1;
+    if bvh.nodes.is_empty() {
+        return (0, [0.0; 3], Frustum::default());
     }
+    if let Ok(full) = <&[Ray; PACKET]>::try_from(rays) {
+        // Full packets (tiles) apart: their rows need no clamping.
+        for g in 0..GROUPS {
+            active |= (gather_group::<W>(full_rows(full, g), g, 7, soa, &mut b) as u64) << (8 * g);
+        }
+    } else {
+        let mut g = 0;
+        while 8 * g < rays.len() {
+            let last = rays.len().min(8 * g + 8) - 8 * g - 1;
+            let rows = group_rows(rays, g);
+            active |= (gather_group::<W>(rows, g, last, soa, &mut b) as u64) << (8 * g);
+            g += 1;
+        }
+    }
+    let (lo, hi, sum) = (b.lo.store(), b.hi.store(), b.sum.store());
+    let (t_lo, t_hi) = (lo[3], hi[7]);
     let mut f = Frustum {
-        t_min: low(t_lo),
-        t_max: high(t_hi),
+        t_min: t_lo,
+        t_max: t_hi,
         ..Frustum::default()
     };
     let mut dir = [0.0f32; 3];
     for a in 0..3 {
-        let d = sum[a].store();
-        dir[a] = ((d[0] + d[1]) + (d[2] + d[3])) + ((d[4] + d[5]) + (d[6] + d[7]));
-        let (dl, dh) = (low(d_lo[a]), high(d_hi[a]));
+        dir[a] = sum[4 + a];
+        let (dl, dh) = (lo[4 + a], hi[4 + a]);
         // `d > 0`, so `n < 0` (the rays move up the axis): the lower plane is the near
         // one, and the largest origin gives the smallest distance to it.
         let up = dl > 0.0;
@@ -284,7 +259,7 @@ fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3],
             (-1.0 / dl, -1.0 / dh)
         };
         f.near[a] = 2 * a + usize::from(!up);
-        let (ol, oh) = (low(o_lo[a]), high(o_hi[a]));
+        let (ol, oh) = (lo[a], hi[a]);
         (f.o_near[a], f.o_far[a]) = if up { (oh, ol) } else { (ol, oh) };
         f.cap_near[a] = if mixed {
             f32::NEG_INFINITY
@@ -300,24 +275,103 @@ fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3],
     (active, dir, f)
 }
 
+/// Bounds over rays' rows (`[ox, oy, oz, t_min, dx, dy, dz, t_max]`), field by field:
+/// the smallest and largest of each, and their sum.
+struct RowBounds<W> {
+    lo: W,
+    hi: W,
+    sum: W,
+}
+
+/// One group of [`gather`]: the rows `rows` of group `g` (lanes after `last` repeat the
+/// last ray) into the lanes, their walked rays' rows into the bounds; returns the mask of
+/// the walked rays.
+#[inline(always)]
+fn gather_group<W: Wide>(
+    rows: [&[f32; 8]; 8],
+    g: usize,
+    last: usize,
+    soa: &mut Soa,
+    b: &mut RowBounds<W>,
+) -> u32 {
+    let inf = W::splat(f32::INFINITY);
+    let [ox, oy, oz, t_min, dx, dy, dz, t_max] = W::columns(rows);
+    let (o, d) = ([ox, oy, oz], [dx, dy, dz]);
+    // Valid (`Ray::is_valid`: finite origin and direction, no NaN bound), no component
+    // zero or subnormal (not along a slab), and a non-empty interval.
+    let mut walk = t_min.le(t_max);
+    for a in 0..3 {
+        walk = walk
+            .and(o[a].abs().lt(inf))
+            .and(d[a].abs().lt(inf))
+            .and(d[a].abs().ge(W::splat(f32::MIN_POSITIVE)));
+    }
+    let walked = walk.bits() & ((2u32 << last) - 1);
+    for a in 0..3 {
+        soa.org[g][a] = o[a].store();
+        soa.dir[g][a] = d[a].store();
+    }
+    soa.t_min[g] = t_min.store();
+    soa.t_max[g] = t_max.store();
+    // Rows, not columns: three accumulators instead of fifteen.
+    if walked == 0xff {
+        // Every lane walks (nearly every group of camera rays): pairwise, so that no
+        // long chain of dependent operations forms.
+        // No closures or `array::map` over AVX lanes (see above).
+        let r = [
+            W::load(rows[0]),
+            W::load(rows[1]),
+            W::load(rows[2]),
+            W::load(rows[3]),
+            W::load(rows[4]),
+            W::load(rows[5]),
+            W::load(rows[6]),
+            W::load(rows[7]),
+        ];
+        let (lo, hi, sum) = (
+            (r[0].min(r[1]).min(r[2].min(r[3]))).min(r[4].min(r[5]).min(r[6].min(r[7]))),
+            (r[0].max(r[1]).max(r[2].max(r[3]))).max(r[4].max(r[5]).max(r[6].max(r[7]))),
+            (r[0].add(r[1]).add(r[2].add(r[3]))).add(r[4].add(r[5]).add(r[6].add(r[7]))),
+        );
+        b.lo = lo.min(b.lo);
+        b.hi = hi.max(b.hi);
+        b.sum = b.sum.add(sum);
+    } else {
+        for (j, r) in rows.iter().enumerate() {
+            if walked >> j & 1 != 0 {
+                let r = W::load(r);
+                b.lo = r.min(b.lo);
+                b.hi = r.max(b.hi);
+                b.sum = b.sum.add(r);
+            }
+        }
+    }
+    walked
+}
+
+/// Group `g`'s rows of a full packet: [`TILE_LANES`] for it, a 4x2 block of the 8x8 tile
+/// at row `2 (g / 2)` and column `4 (g % 2)`.
+#[inline(always)]
+fn full_rows(full: &[Ray; PACKET], g: usize) -> [&[f32; 8]; 8] {
+    let b = (g & 7) / 2 * 16 + (g & 1) * 4;
+    [
+        row(&full[b]),
+        row(&full[b + 1]),
+        row(&full[b + 2]),
+        row(&full[b + 3]),
+        row(&full[b + 8]),
+        row(&full[b + 9]),
+        row(&full[b + 10]),
+        row(&full[b + 11]),
+    ]
+}
+
 /// The rows of group `g`'s rays, lane `j` from the ray [`lane_order`] gives it; missing
 /// lanes of a partial group repeat its last ray (they are not walked).
 #[inline(always)]
 fn group_rows(rays: &[Ray], g: usize) -> [&[f32; 8]; 8] {
     if let Ok(full) = <&[Ray; PACKET]>::try_from(rays) {
-        // `TILE_LANES` for group `g`: a 4x2 block of the 8x8 tile, at row `2 (g / 2)` and
-        // column `4 (g % 2)`.
-        let b = (g & 7) / 2 * 16 + (g & 1) * 4;
-        return [
-            row(&full[b]),
-            row(&full[b + 1]),
-            row(&full[b + 2]),
-            row(&full[b + 3]),
-            row(&full[b + 8]),
-            row(&full[b + 9]),
-            row(&full[b + 10]),
-            row(&full[b + 11]),
-        ];
+        return full_rows(full, g);
     }
     let (base, order) = (8 * g, lane_order(rays.len()));
     let last = rays.len().min(base + 8) - base - 1;
@@ -369,28 +423,6 @@ fn prepare<W: Wide>(len: usize, active: u64, soa: &mut Soa) {
     }
     soa.swap = swap_all;
     soa.lanes = lanes_all;
-}
-
-/// The smallest of eight lanes.
-#[inline(always)]
-fn low<W: Wide>(x: W) -> f32 {
-    let x = x.store();
-    let mut m = x[0];
-    for v in x {
-        m = if v < m { v } else { m };
-    }
-    m
-}
-
-/// The largest of eight lanes.
-#[inline(always)]
-fn high<W: Wide>(x: W) -> f32 {
-    let x = x.store();
-    let mut m = x[0];
-    for v in x {
-        m = if v > m { v } else { m };
-    }
-    m
 }
 
 /// The lanes of `kz` equal to `k`.
