@@ -317,7 +317,8 @@ fn gather_group<W: Wide>(
     if walked == 0xff {
         // Every lane walks (nearly every group of camera rays): pairwise, so that no
         // long chain of dependent operations forms.
-        // No closures or `array::map` over AVX lanes (see above).
+        // No `array::map` over AVX lanes: its closure would be compiled apart from the
+        // AVX2 caller.
         let r = [
             W::load(rows[0]),
             W::load(rows[1]),
