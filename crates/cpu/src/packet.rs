@@ -214,6 +214,9 @@ fn load<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], F
 fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3], Frustum) {
     // The bounds over the walked rays' rows (origin, `t_min`, direction, `t_max`), field
     // by field, and the sum of the rows.
+    if bvh.nodes.is_empty() {
+        return (0, [0.0; 3], Frustum::default());
+    }
     let inf = W::splat(f32::INFINITY);
     let mut b = RowBounds {
         lo: inf,
@@ -221,9 +224,6 @@ fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3],
         sum: W::splat(0.0),
     };
     let mut active = 0u64;
-    if bvh.nodes.is_empty() {
-        return (0, [0.0; 3], Frustum::default());
-    }
     if let Ok(full) = <&[Ray; PACKET]>::try_from(rays) {
         // Full packets (tiles) apart: their rows need no clamping.
         for g in 0..GROUPS {
@@ -928,10 +928,6 @@ mod tests {
         }
     }
 
-    /// Each lane of the packet's box test is `intersect_box` of its ray at its best hit:
-    /// random boxes and rays (the generators of the lane tests), bests at the ray's
-    /// `t_max`, anywhere, or a few hundred ulps around the box's entry where the culling
-    /// slack decides; portable, SSE and (where the CPU has it) AVX lanes.
     /// Each group's rows are the rays `lane_order` gives its lanes, full packets and
     /// partial ones (whose missing lanes repeat the last ray).
     #[test]
@@ -951,6 +947,10 @@ mod tests {
         }
     }
 
+    /// Each lane of the packet's box test is `intersect_box` of its ray at its best hit:
+    /// random boxes and rays (the generators of the lane tests), bests at the ray's
+    /// `t_max`, anywhere, or a few hundred ulps around the box's entry where the culling
+    /// slack decides; portable, SSE and (where the CPU has it) AVX lanes.
     #[test]
     fn packet_box_lanes_are_the_scalar_test() {
         let tri = [Vec3::ZERO, Vec3::X, Vec3::Y];
