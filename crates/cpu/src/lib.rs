@@ -208,7 +208,8 @@ pub fn trace_rays_with_mask(
 
 /// One thread's run of rays into `hits`.
 fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits: &mut [Hit]) {
-    let mut stack = vec![Entry::default(); single::stack_size(bvh)];
+    // Twice a walk's stack: two walks take turns (`single::trace_turns`).
+    let mut stack = vec![Entry::default(); 2 * single::stack_size(bvh)];
     let s = &mut stack;
     let mask = u32::from(mask);
     // One mesh without masks has walks of its own, compiled apart from the others, so
@@ -217,12 +218,14 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
     type P = lanes::Portable;
     type PP = lanes::Pair<P>;
     match isa.or_available() {
-        Isa::Portable if plain => run::<P, PP>(bvh, rays, query, hits, s),
+        Isa::Portable if plain => run::<P, PP, PORTABLE_TURNS>(bvh, rays, query, hits, s),
         Isa::Portable => {
             run_layered::<P, PP, instanced::Plain<P, PP>>(bvh, rays, query, mask, hits, s)
         }
         #[cfg(target_arch = "x86_64")]
-        Isa::Sse2 if plain => run::<lanes::Sse, lanes::Pair<lanes::Sse>>(bvh, rays, query, hits, s),
+        Isa::Sse2 if plain => {
+            run::<lanes::Sse, lanes::Pair<lanes::Sse>, false>(bvh, rays, query, hits, s)
+        }
         #[cfg(target_arch = "x86_64")]
         Isa::Sse2 => {
             type S = lanes::Sse;
@@ -240,10 +243,16 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
     }
 }
 
+/// Whether the portable walks take turns in pairs (`single::trace_turns`): where they are
+/// the fastest there is. On x86-64 the AVX2 walks do, and the fallbacks keep one walk
+/// each (less code to compile).
+const PORTABLE_TURNS: bool = cfg!(not(target_arch = "x86_64"));
+
 /// The walks of one mesh without masks over `rays`, monomorphised for the triangle lanes
-/// `L`, the box lanes `W` and the query.
+/// `L`, the box lanes `W` and the query; with `TURNS`, rays of a common kind walk in
+/// pairs that take turns (`single::trace_turns`).
 #[inline(always)]
-fn run<L: Lanes, W: Wide>(
+fn run<L: Lanes, W: Wide, const TURNS: bool>(
     bvh: &CpuBvh,
     rays: &[Ray],
     query: Query,
@@ -251,12 +260,12 @@ fn run<L: Lanes, W: Wide>(
     stack: &mut [Entry],
 ) {
     match query {
-        Query::Closest => {
-            run_as::<L, W, instanced::Plain<L, W>, false, false, false>(bvh, rays, 0, hits, stack)
-        }
-        Query::Any => {
-            run_as::<L, W, instanced::Plain<L, W>, true, false, false>(bvh, rays, 0, hits, stack)
-        }
+        Query::Closest => run_as::<L, W, instanced::Plain<L, W>, false, false, false, TURNS>(
+            bvh, rays, 0, hits, stack,
+        ),
+        Query::Any => run_as::<L, W, instanced::Plain<L, W>, true, false, false, TURNS>(
+            bvh, rays, 0, hits, stack,
+        ),
     }
 }
 
@@ -273,18 +282,38 @@ fn run_layered<L: Lanes, W: Wide, M: MeshWalk>(
 ) {
     let any = query == Query::Any;
     match (any, bvh.is_instanced(), bvh.masks.is_some()) {
-        (false, false, _) => run_as::<L, W, M, false, false, true>(bvh, rays, mask, hits, stack),
-        (true, false, _) => run_as::<L, W, M, true, false, true>(bvh, rays, mask, hits, stack),
-        (false, true, false) => run_as::<L, W, M, false, true, false>(bvh, rays, mask, hits, stack),
-        (true, true, false) => run_as::<L, W, M, true, true, false>(bvh, rays, mask, hits, stack),
-        (false, true, true) => run_as::<L, W, M, false, true, true>(bvh, rays, mask, hits, stack),
-        (true, true, true) => run_as::<L, W, M, true, true, true>(bvh, rays, mask, hits, stack),
+        (false, false, _) => {
+            run_as::<L, W, M, false, false, true, false>(bvh, rays, mask, hits, stack)
+        }
+        (true, false, _) => {
+            run_as::<L, W, M, true, false, true, false>(bvh, rays, mask, hits, stack)
+        }
+        (false, true, false) => {
+            run_as::<L, W, M, false, true, false, false>(bvh, rays, mask, hits, stack)
+        }
+        (true, true, false) => {
+            run_as::<L, W, M, true, true, false, false>(bvh, rays, mask, hits, stack)
+        }
+        (false, true, true) => {
+            run_as::<L, W, M, false, true, true, false>(bvh, rays, mask, hits, stack)
+        }
+        (true, true, true) => {
+            run_as::<L, W, M, true, true, true, false>(bvh, rays, mask, hits, stack)
+        }
     }
 }
 
 /// [`run`] for one query (`ANY`), one or two levels (`TWO`), with or without masks.
 #[inline(always)]
-fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, const MASKED: bool>(
+fn run_as<
+    L: Lanes,
+    W: Wide,
+    M: MeshWalk,
+    const ANY: bool,
+    const TWO: bool,
+    const MASKED: bool,
+    const TURNS: bool,
+>(
     bvh: &CpuBvh,
     rays: &[Ray],
     mask: u32,
@@ -316,6 +345,39 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const TWO: bool, cons
             continue;
         }
         p.shear::<W>();
+        if TURNS && !TWO && !MASKED && !bvh.nodes.is_empty() {
+            // Rays of one dominant axis take turns; an axis of one ray, and the rare
+            // kinds, are walked alone.
+            let mut axes = [0u32; 3];
+            let mut walks = p.valid & enter;
+            for (i, ray) in group.iter().enumerate() {
+                if walks >> i & 1 != 0
+                    && ray.t_min <= ray.t_max
+                    && let Some(kz) = single::turns_axis(&p, ray, i)
+                {
+                    axes[kz] |= 1 << i;
+                }
+            }
+            for (kz, same) in axes.into_iter().enumerate() {
+                if same & (same - 1) != 0 {
+                    walks &= !same;
+                    let h = &mut hits[start..end];
+                    single::trace_turns::<L, W, ANY>(bvh, group, &p, same, kz, stack, h);
+                }
+            }
+            for i in 0..group.len() {
+                if walks >> i & 1 != 0 {
+                    hits[start + i] =
+                        single::trace_at::<L, W, ANY, MASKED>(bvh, &group[i], &p, i, stack);
+                } else if (p.valid & !enter) >> i & 1 != 0 {
+                    hits[start + i] = single::Best::start(&group[i]).into_hit();
+                } else if p.valid >> i & 1 == 0 {
+                    hits[start + i] = single::untraced(&group[i]);
+                }
+            }
+            start = end;
+            continue;
+        }
         for i in 0..group.len() {
             hits[start + i] = if (p.valid & !enter) >> i & 1 != 0 {
                 single::Best::start(&group[i]).into_hit()
@@ -343,7 +405,7 @@ unsafe fn run_avx2(
     hits: &mut [Hit],
     stack: &mut [Entry],
 ) {
-    run::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, stack)
+    run::<lanes::Sse, lanes::Avx8, true>(bvh, rays, query, hits, stack)
 }
 
 /// [`run_layered`] with the lanes of [`run_avx2`] (and the mesh walks compiled likewise),

@@ -262,6 +262,96 @@ pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
         .into_hit()
 }
 
+/// The dominant axis of ray `i` of `p` (`ray` itself) when it is of the common kind
+/// (`t_min >= 0`, no zero direction component): two such rays of one axis can take turns
+/// in [`trace_turns`]. The other kinds are rare and walk alone.
+#[inline(always)]
+pub(crate) fn turns_axis(p: &Prepared, ray: &Ray, i: usize) -> Option<usize> {
+    let plain = p.parallel >> i & 1 == 0 && ray.t_min >= 0.0;
+    plain.then_some(p.kz[i])
+}
+
+/// The rays of `group` in `rays` (bits, two or more; each valid, with `t_min <= t_max`,
+/// all of [`turns_axis`] `kz`), prepared in `p`, through one mesh without masks, their
+/// hits written to `hits`, with a stack of twice [`stack_size`] entries: two walks take
+/// turns a step at a time, each taking the next ray when its own ends, so that the CPU
+/// overlaps one ray's chain of dependent loads and tests with the other's. Each ray's walk
+/// is its own, so the hits are those of [`trace`].
+#[inline(always)]
+pub(crate) fn trace_turns<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    group: &[Ray],
+    p: &Prepared,
+    rays: u32,
+    kz: usize,
+    stack: &mut [Entry],
+    hits: &mut [Hit],
+) {
+    debug_assert!(!bvh.nodes.is_empty() && rays.count_ones() >= 2);
+    match kz {
+        0 => walk_turns::<L, W, ANY, 0>(bvh, group, p, rays, stack, hits),
+        1 => walk_turns::<L, W, ANY, 1>(bvh, group, p, rays, stack, hits),
+        _ => walk_turns::<L, W, ANY, 2>(bvh, group, p, rays, stack, hits),
+    }
+}
+
+/// The walks of [`trace_turns`], of dominant axis `KZ`.
+#[inline(always)]
+fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
+    bvh: &CpuBvh,
+    group: &[Ray],
+    p: &Prepared,
+    mut rays: u32,
+    stack: &mut [Entry],
+    hits: &mut [Hit],
+) {
+    let at = Site::PLAIN;
+    let (sa, sb) = stack.split_at_mut(stack.len() / 2);
+    // The lowest ray left, taken off `rays`.
+    fn next(rays: &mut u32) -> usize {
+        let i = rays.trailing_zeros() as usize;
+        *rays &= rays.wrapping_sub(1);
+        i
+    }
+    let (i, j) = (next(&mut rays), next(&mut rays));
+    let mut qa = RayLanes::<L, W>::from_prepared(p, &group[i], i);
+    let mut qb = RayLanes::<L, W>::from_prepared(p, &group[j], j);
+    let (ri, rj) = (&group[i], &group[j]);
+    let mut a = Walk::<L>::new(p, i, [ri.t_min, ri.t_max], Best::start(ri), 0, sa);
+    let mut b = Walk::<L>::new(p, j, [rj.t_min, rj.t_max], Best::start(rj), 0, sb);
+    // Both walks in turns while there are rays to start, then the one left to its end.
+    let last = loop {
+        if a.step::<W, ANY, false, false, false, KZ>(bvh, &qa, at)
+            .is_some()
+        {
+            hits[a.i] = a.best.into_hit();
+            if rays == 0 {
+                break (b, qb);
+            }
+            let i = next(&mut rays);
+            qa = RayLanes::from_prepared(p, &group[i], i);
+            a.restart(i, &group[i]);
+        }
+        if b.step::<W, ANY, false, false, false, KZ>(bvh, &qb, at)
+            .is_some()
+        {
+            hits[b.i] = b.best.into_hit();
+            if rays == 0 {
+                break (a, qa);
+            }
+            let i = next(&mut rays);
+            qb = RayLanes::from_prepared(p, &group[i], i);
+            b.restart(i, &group[i]);
+        }
+    };
+    let (mut last, q) = last;
+    while last
+        .step::<W, ANY, false, false, false, KZ>(bvh, &q, at)
+        .is_none()
+    {}
+    hits[last.i] = last.best.into_hit();
+}
+
 /// The walk of ray `i` of `p` (`ray` itself, valid, with `t_min <= t_max`) through the
 /// mesh whose walk starts at `start` (a node, or a leaf), from the best hit `best`, at
 /// `at`. Returns the best hit, and true when an any-hit query stopped.
@@ -302,50 +392,127 @@ fn walk<
     p: &Prepared,
     i: usize,
     q: &RayLanes<L, W>,
-    mut best: Best,
+    best: Best,
     start: u32,
     at: Site<'_>,
     stack: &mut [Entry],
 ) -> (Best, bool) {
-    let mut sp = 0;
-    let mut shear = None;
-    let mut child = start;
-    let ray = RayAt::Lanes {
-        p,
-        i,
-        t_min: q.t_min_s,
-        t_max: q.t_max_s,
-    };
+    let mut w = Walk::<L>::new(p, i, [q.t_min_s, q.t_max_s], best, start, stack);
     loop {
-        if child & LEAF == 0 {
-            let n = &bvh.nodes[child as usize];
-            // An any-hit walk stops at its first hit, so its best is always `t_max`.
-            let b = box8::<L, W, SIGNED, PARALLEL, KZ>(n, q, best.t, !ANY && best.found);
-            if b.hit != 0 {
-                child = order::<W, ANY>(n, &b, stack, &mut sp);
-                continue;
-            }
-        } else if leaf_at::<L, ANY, MASKED>(
-            bvh,
-            q.t_min4,
-            shear.get_or_insert_with(|| ShearLanes::from_prepared(p, i, KZ)),
-            ray,
-            child,
-            &mut best,
-            at,
-        ) {
-            return (best, true);
+        if let Some(stopped) = w.step::<W, ANY, MASKED, SIGNED, PARALLEL, KZ>(bvh, q, at) {
+            return (w.best, stopped);
         }
-        // Pop the next child still hit against the best so far.
-        loop {
-            if sp == 0 {
-                return (best, false);
+    }
+}
+
+/// A walk under way: one ray's state between [`Walk::step`]s, so that two walks can take
+/// turns (see [`trace_turns`]). The ray's lanes are passed to each step, not kept here, so
+/// that they can stay in registers.
+pub(crate) struct Walk<'a, L> {
+    p: &'a Prepared,
+    i: usize,
+    ray: RayAt<'a>,
+    /// Made at the ray's first leaf.
+    shear: Option<ShearLanes<L>>,
+    /// The best hit so far.
+    pub best: Best,
+    /// The node or leaf to visit next.
+    child: u32,
+    sp: usize,
+    stack: &'a mut [Entry],
+}
+
+impl<'a, L: Lanes> Walk<'a, L> {
+    /// The walk of ray `i` of `p` (interval `t_min..=t_max`) from `start`, from `best`.
+    #[inline(always)]
+    pub fn new(
+        p: &'a Prepared,
+        i: usize,
+        [t_min, t_max]: [f32; 2],
+        best: Best,
+        start: u32,
+        stack: &'a mut [Entry],
+    ) -> Self {
+        Walk {
+            p,
+            i,
+            ray: RayAt::Lanes { p, i, t_min, t_max },
+            shear: None,
+            best,
+            child: start,
+            sp: 0,
+            stack,
+        }
+    }
+
+    /// Starts the walk of ray `i` of the same group (`ray` itself) from the root, in this
+    /// walk's stack.
+    #[inline(always)]
+    pub fn restart(&mut self, i: usize, ray: &Ray) {
+        self.i = i;
+        self.ray = RayAt::Lanes {
+            p: self.p,
+            i,
+            t_min: ray.t_min,
+            t_max: ray.t_max,
+        };
+        self.shear = None;
+        self.best = Best::start(ray);
+        self.child = 0;
+        self.sp = 0;
+    }
+
+    /// Visits the next node (and goes on to its nearest hit child) or leaf (and pops the
+    /// next child still hit against the best so far). Returns `Some` when the walk is
+    /// over: true when an any-hit query stopped.
+    #[inline(always)]
+    pub fn step<
+        W: Wide,
+        const ANY: bool,
+        const MASKED: bool,
+        const SIGNED: bool,
+        const PARALLEL: bool,
+        const KZ: usize,
+    >(
+        &mut self,
+        bvh: &CpuBvh,
+        q: &RayLanes<L, W>,
+        at: Site<'_>,
+    ) -> Option<bool> {
+        if self.child & LEAF == 0 {
+            let n = &bvh.nodes[self.child as usize];
+            // An any-hit walk stops at its first hit, so its best is always `t_max`.
+            let b = box8::<L, W, SIGNED, PARALLEL, KZ>(n, q, self.best.t, !ANY && self.best.found);
+            if b.hit != 0 {
+                self.child = order::<W, ANY>(n, &b, self.stack, &mut self.sp);
+                return None;
             }
-            sp -= 1;
-            let e = stack[sp];
-            if ANY || !best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, best.t) {
-                child = e.child;
-                break;
+        } else {
+            let (p, i) = (self.p, self.i);
+            let shear = self
+                .shear
+                .get_or_insert_with(|| ShearLanes::from_prepared(p, i, KZ));
+            if leaf_at::<L, ANY, MASKED>(
+                bvh,
+                q.t_min4,
+                shear,
+                self.ray,
+                self.child,
+                &mut self.best,
+                at,
+            ) {
+                return Some(true);
+            }
+        }
+        loop {
+            if self.sp == 0 {
+                return Some(false);
+            }
+            self.sp -= 1;
+            let e = self.stack[self.sp];
+            if ANY || !self.best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, self.best.t) {
+                self.child = e.child;
+                return None;
             }
         }
     }
