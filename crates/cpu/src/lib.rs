@@ -218,7 +218,7 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
     type P = lanes::Portable;
     type PP = lanes::Pair<P>;
     match isa.or_available() {
-        Isa::Portable if plain => run::<P, PP, PORTABLE_TURNS>(bvh, rays, query, hits, s),
+        Isa::Portable if plain => run::<P, PP, false>(bvh, rays, query, hits, s),
         Isa::Portable => {
             run_layered::<P, PP, instanced::Plain<P, PP>>(bvh, rays, query, mask, hits, s)
         }
@@ -243,14 +243,10 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
     }
 }
 
-/// Whether the portable walks take turns in pairs (`single::trace_turns`): where they are
-/// the fastest there is. On x86-64 the AVX2 walks do, and the fallbacks keep one walk
-/// each (less code to compile).
-const PORTABLE_TURNS: bool = cfg!(not(target_arch = "x86_64"));
-
 /// The walks of one mesh without masks over `rays`, monomorphised for the triangle lanes
 /// `L`, the box lanes `W` and the query; with `TURNS`, rays of a common kind walk in
-/// pairs that take turns (`single::trace_turns`).
+/// pairs that take turns (`single::trace_turns`; only the AVX2 walks, where it was
+/// measured).
 #[inline(always)]
 fn run<L: Lanes, W: Wide, const TURNS: bool>(
     bvh: &CpuBvh,
