@@ -16,7 +16,9 @@
 //! queries agree on hit or miss; which triangle they stop at depends on the order.
 //! Rays are prepared eight at a time, and those that miss the box around the root node's
 //! boxes are answered without a walk: every step of the box test is monotone, so a ray
-//! that misses that box misses every box inside it.
+//! that misses that box misses every box inside it. Where the CPU has AVX2, two walks take
+//! turns a step at a time, so that the core overlaps their chains of dependent loads;
+//! each walk is still its ray's own, with its own stack and best hit.
 //!
 //! ```
 //! use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray};
