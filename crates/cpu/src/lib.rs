@@ -343,13 +343,13 @@ fn run_as<
             continue;
         }
         p.shear::<W>();
+        // With `TURNS`, the rays of the common kind (`single::turns_axis`) that share a
+        // dominant axis take turns, two or more of them; the rest are walked alone.
+        let mut in_turns = 0;
         if TURNS && !TWO && !MASKED && !bvh.nodes.is_empty() {
-            // Rays of one dominant axis take turns; an axis of one ray, and the rare
-            // kinds, are walked alone.
             let mut axes = [0u32; 3];
-            let mut walks = p.valid & enter;
             for (i, ray) in group.iter().enumerate() {
-                if walks >> i & 1 != 0
+                if (p.valid & enter) >> i & 1 != 0
                     && ray.t_min <= ray.t_max
                     && let Some(kz) = single::turns_axis(&p, ray, i)
                 {
@@ -357,26 +357,14 @@ fn run_as<
                 }
             }
             for (kz, same) in axes.into_iter().enumerate() {
-                if same & (same - 1) != 0 {
-                    walks &= !same;
+                if same.count_ones() >= 2 {
+                    in_turns |= same;
                     let h = &mut hits[start..end];
                     single::trace_turns::<L, W, ANY>(bvh, group, &p, same, kz, stack, h);
                 }
             }
-            for i in 0..group.len() {
-                if walks >> i & 1 != 0 {
-                    hits[start + i] =
-                        single::trace_at::<L, W, ANY, MASKED>(bvh, &group[i], &p, i, stack);
-                } else if (p.valid & !enter) >> i & 1 != 0 {
-                    hits[start + i] = single::Best::start(&group[i]).into_hit();
-                } else if p.valid >> i & 1 == 0 {
-                    hits[start + i] = single::untraced(&group[i]);
-                }
-            }
-            start = end;
-            continue;
         }
-        for i in 0..group.len() {
+        for i in (0..group.len()).filter(|&i| in_turns >> i & 1 == 0) {
             hits[start + i] = if (p.valid & !enter) >> i & 1 != 0 {
                 single::Best::start(&group[i]).into_hit()
             } else if TWO {

@@ -288,6 +288,7 @@ pub(crate) fn trace_turns<L: Lanes, W: Wide, const ANY: bool>(
     hits: &mut [Hit],
 ) {
     debug_assert!(!bvh.nodes.is_empty() && rays.count_ones() >= 2);
+    debug_assert!(stack.len() >= 2 * stack_size(bvh));
     match kz {
         0 => walk_turns::<L, W, ANY, 0>(bvh, group, p, rays, stack, hits),
         1 => walk_turns::<L, W, ANY, 1>(bvh, group, p, rays, stack, hits),
