@@ -151,8 +151,10 @@ struct Top<'a, L, W> {
 }
 
 /// The top-level walk from node 0 (as the mesh walk, `single::mesh`, with instances for
-/// leaves); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`], for the world ray.
-#[inline(always)]
+/// leaves); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`], for the world ray. Inlined only
+/// where optimised (see `single::walk`).
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 fn top<
     L: Lanes,
     W: Wide,

@@ -1000,7 +1000,7 @@ mod tests {
                     (1, Some(e)) if e.is_finite() => {
                         near_best += 1;
                         let ulps = (next(&mut s) * 400.0) as i32 - 300;
-                        f32::from_bits((e.to_bits() as i32 + ulps) as u32)
+                        f32::from_bits((e.to_bits() as i32).wrapping_add(ulps) as u32)
                     }
                     _ => value(&mut s),
                 };

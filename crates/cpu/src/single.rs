@@ -297,7 +297,8 @@ pub(crate) fn trace_turns<L: Lanes, W: Wide, const ANY: bool>(
 }
 
 /// The walks of [`trace_turns`], of dominant axis `KZ`.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
     bvh: &CpuBvh,
     group: &[Ray],
@@ -379,7 +380,11 @@ pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
 
 /// The walk from `start` (see [`mesh`]); `SIGNED`, `PARALLEL` and `KZ` as in [`box8`].
 #[allow(clippy::too_many_arguments)]
-#[inline(always)]
+// Inlined only where optimised: an unoptimised build keeps the locals of every inlined
+// walk apart, and the nine walks of a caller made frames of megabytes (a thread's stack
+// overflowed).
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 fn walk<
     L: Lanes,
     W: Wide,

@@ -882,7 +882,7 @@ pub(crate) mod tests {
             let (tnear, m, far) = (b.tnear.store(), b.m().store(), b.far.store());
             for i in (0..8).filter(|i| want >> i & 1 != 0) {
                 let ulps = (next(&mut s) * 400.0) as i32 - 300;
-                let nearer = f32::from_bits((tnear[i].to_bits() as i32 + ulps) as u32);
+                let nearer = f32::from_bits((tnear[i].to_bits() as i32).wrapping_add(ulps) as u32);
                 if nearer.is_finite() {
                     let full = box_lane(&n, &r, i, nearer);
                     assert_eq!(
