@@ -309,12 +309,6 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
 ) {
     let at = Site::PLAIN;
     let (sa, sb) = stack.split_at_mut(stack.len() / 2);
-    // The lowest ray left, taken off `rays`.
-    fn next(rays: &mut u32) -> usize {
-        let i = rays.trailing_zeros() as usize;
-        *rays &= rays.wrapping_sub(1);
-        i
-    }
     let (i, j) = (next(&mut rays), next(&mut rays));
     let mut qa = RayLanes::<L, W>::from_prepared(p, &group[i], i);
     let mut qb = RayLanes::<L, W>::from_prepared(p, &group[j], j);
@@ -323,27 +317,11 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
     let mut b = Walk::<L>::new(p, j, [rj.t_min, rj.t_max], Best::start(rj), 0, sb);
     // Both walks in turns while there are rays to start, then the one left to its end.
     let last = loop {
-        if a.step::<W, ANY, false, false, false, KZ>(bvh, &qa, at)
-            .is_some()
-        {
-            hits[a.i] = a.best.into_hit();
-            if rays == 0 {
-                break (b, qb);
-            }
-            let i = next(&mut rays);
-            qa = RayLanes::from_prepared(p, &group[i], i);
-            a.restart(i, &group[i]);
+        if !turn::<L, W, ANY, KZ>(bvh, group, p, (&mut a, &mut qa), &mut rays, hits) {
+            break (b, qb);
         }
-        if b.step::<W, ANY, false, false, false, KZ>(bvh, &qb, at)
-            .is_some()
-        {
-            hits[b.i] = b.best.into_hit();
-            if rays == 0 {
-                break (a, qa);
-            }
-            let i = next(&mut rays);
-            qb = RayLanes::from_prepared(p, &group[i], i);
-            b.restart(i, &group[i]);
+        if !turn::<L, W, ANY, KZ>(bvh, group, p, (&mut b, &mut qb), &mut rays, hits) {
+            break (a, qa);
         }
     };
     let (mut last, q) = last;
@@ -354,7 +332,39 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
     hits[last.i] = last.best.into_hit();
 }
 
-/// The walk of ray `i` of `p` (`ray` itself, valid, with `t_min <= t_max`) through the
+/// One step of walk `w` (its ray's lanes `q`) of [`walk_turns`]; a walk that ends stores
+/// its hit and starts the next ray of `rays`. Returns false when it ended with no ray left.
+#[inline(always)]
+fn turn<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
+    bvh: &CpuBvh,
+    group: &[Ray],
+    p: &Prepared,
+    (w, q): (&mut Walk<'_, L>, &mut RayLanes<L, W>),
+    rays: &mut u32,
+    hits: &mut [Hit],
+) -> bool {
+    if w.step::<W, ANY, false, false, false, KZ>(bvh, q, Site::PLAIN)
+        .is_some()
+    {
+        hits[w.i] = w.best.into_hit();
+        if *rays == 0 {
+            return false;
+        }
+        let i = next(rays);
+        *q = RayLanes::from_prepared(p, &group[i], i);
+        w.restart(i, &group[i]);
+    }
+    true
+}
+
+/// The lowest ray left, taken off `rays`.
+#[inline(always)]
+fn next(rays: &mut u32) -> usize {
+    let i = rays.trailing_zeros() as usize;
+    *rays &= rays.wrapping_sub(1);
+    i
+}
+
 /// mesh whose walk starts at `start` (a node, or a leaf), from the best hit `best`, at
 /// `at`. Returns the best hit, and true when an any-hit query stopped.
 #[allow(clippy::too_many_arguments)]
