@@ -529,6 +529,18 @@ fn collapse(
                     }
                 }
             };
+            // The packets' box test takes each slab's entry from the plane the rays' common
+            // direction sign picks, which is the scalar test's `fmin` only when the planes
+            // are in order (a builder's boxes always are).
+            if let Some(a) = (0..3).find(|&a| !(bounds.min[a] <= bounds.max[a])) {
+                let of = match src {
+                    Src::Node(i) => format!("binary node {i}"),
+                    Src::Run(first, _) => format!("the leaf run from triangle {first}"),
+                };
+                return Err(ConvertError::Malformed(format!(
+                    "the box of {of} is inverted or NaN on axis {a}: {bounds:?}"
+                )));
+            }
             nodes[at as usize].set(slot, &bounds, child);
         }
     }

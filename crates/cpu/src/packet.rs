@@ -130,6 +130,10 @@ struct Frustum {
     t_min: f32,
     /// The largest `t_max`.
     t_max: f32,
+    /// Every walked ray has the same origin (then `o_near`) and, per axis, the direction
+    /// sign of every other: [`child_rays`] then takes each slab's distances from the
+    /// origin's distances to the near and far planes, computed once per box.
+    common: bool,
 }
 
 /// What a thread keeps from packet to packet.
@@ -243,6 +247,7 @@ fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3],
     let mut f = Frustum {
         t_min: t_lo,
         t_max: t_hi,
+        common: true,
         ..Frustum::default()
     };
     let mut dir = [0.0f32; 3];
@@ -271,6 +276,7 @@ fn gather<W: Wide>(bvh: &CpuBvh, rays: &[Ray], soa: &mut Soa) -> (u64, [f32; 3],
         } else {
             f32::NEG_INFINITY
         };
+        f.common &= !mixed && ol == oh;
     }
     (active, dir, f)
 }
@@ -469,6 +475,12 @@ fn group_box<W: Wide>(lo: &[W; 3], hi: &[W; 3], soa: &Soa, g: usize, culled: boo
         near[a] = t0.min(t1);
         far[a] = t0.max(t1);
     }
+    group_slabs::<W>(near, far, soa, g, culled)
+}
+
+/// The rest of [`group_box`] from the per-axis entries `near` and exits `far`.
+#[inline(always)]
+fn group_slabs<W: Wide>(near: [W; 3], far: [W; 3], soa: &Soa, g: usize, culled: bool) -> u32 {
     let tnear = near[0]
         .max(near[1])
         .max(near[2].max(W::load(&soa.t_min[g])));
@@ -492,9 +504,47 @@ fn group_box<W: Wide>(lo: &[W; 3], hi: &[W; 3], soa: &Soa, g: usize, culled: boo
     tnear.le(tfar.mul(scale)).bits()
 }
 
-/// The rays of `mask` that hit slot `c` of `n`.
+/// The rays of `mask` that hit slot `c` of `n`: `groups` are the groups `mask` has rays
+/// in and `found` those with a hit ([`groups_of`]), `f` the packet's bounds.
 #[inline(always)]
-fn child_rays<W: Wide>(n: &Node8, c: usize, soa: &Soa, mask: u64, found: u64) -> u64 {
+fn child_rays<W: Wide>(
+    n: &Node8,
+    c: usize,
+    soa: &Soa,
+    (mask, groups): (u64, u32),
+    found: u32,
+    f: &Frustum,
+) -> u64 {
+    let mut out = 0u64;
+    if f.common {
+        // One origin `o` and one sign per axis (camera rays in a tile, mostly): per axis
+        // the ray's `fmin(t0, t1)` is `(o - p) * -inv` at the near plane `p` (the lower
+        // plane for a positive direction), `fmax` at the far one, to the bit but for the
+        // sign of a zero, since the conversion keeps every lower plane at or below its
+        // upper one; `o - p` is the same for every ray.
+        let (mut dn, mut df) = ([W::splat(0.0); 3], [W::splat(0.0); 3]);
+        for a in 0..3 {
+            let near = f.near[a];
+            dn[a] = W::splat(f.o_near[a] - n.planes[near][c]);
+            df[a] = W::splat(f.o_near[a] - n.planes[near ^ 1][c]);
+        }
+        let mut gs = groups;
+        while gs != 0 {
+            let g = gs.trailing_zeros() as usize;
+            gs &= gs - 1;
+            let (m, culled) = (mask >> (8 * g) & 0xff, found >> g & 1 != 0);
+            let mut near = [W::splat(0.0); 3];
+            let mut far = near;
+            for a in 0..3 {
+                let ninv = W::load(&soa.ninv[g][a]);
+                near[a] = dn[a].mul(ninv);
+                far[a] = df[a].mul(ninv);
+            }
+            let bits = group_slabs::<W>(near, far, soa, g, culled) as u64;
+            out |= (bits & m) << (8 * g);
+        }
+        return out;
+    }
     let lo = [
         W::splat(n.planes[0][c]),
         W::splat(n.planes[2][c]),
@@ -505,17 +555,26 @@ fn child_rays<W: Wide>(n: &Node8, c: usize, soa: &Soa, mask: u64, found: u64) ->
         W::splat(n.planes[3][c]),
         W::splat(n.planes[5][c]),
     ];
-    let mut out = 0u64;
-    for g in 0..GROUPS {
-        let m = mask >> (8 * g) & 0xff;
-        if m == 0 {
-            continue;
-        }
-        let culled = found >> (8 * g) & 0xff != 0;
+    let mut gs = groups;
+    while gs != 0 {
+        let g = gs.trailing_zeros() as usize;
+        gs &= gs - 1;
+        let (m, culled) = (mask >> (8 * g) & 0xff, found >> g & 1 != 0);
         let bits = group_box::<W>(&lo, &hi, soa, g, culled) as u64;
         out |= (bits & m) << (8 * g);
     }
     out
+}
+
+/// Bit `g` set when group `g` has a ray in `mask`.
+#[inline(always)]
+fn groups_of(mask: u64) -> u32 {
+    // Each byte's bits gathered into its lowest, then the lowest bits of the eight bytes
+    // into the top byte by one multiplication (no two partial products overlap).
+    let x = mask | mask >> 4;
+    let x = x | x >> 2;
+    let x = (x | x >> 1) & 0x0101_0101_0101_0101;
+    (x.wrapping_mul(0x0102_0408_1020_4080) >> 56) as u32
 }
 
 /// Tests node `node`'s children against the rays of `mask`; pushes the hit children but
@@ -535,10 +594,12 @@ fn visit<W: Wide, const ANY: bool>(
     let mut hit = [0usize; WIDTH];
     let mut len = 0;
     let mut used = frustum_hits::<W>(n, &st.frustum);
+    let groups = (mask, groups_of(mask));
+    let found = if ANY { 0 } else { groups_of(st.found) };
     while used != 0 {
         let c = used.trailing_zeros() as usize;
         used &= used - 1;
-        let r = child_rays::<W>(n, c, st.soa, mask, if ANY { 0 } else { st.found });
+        let r = child_rays::<W>(n, c, st.soa, groups, found, &st.frustum);
         if r != 0 {
             rays[c] = r;
             hit[len] = c;
@@ -550,14 +611,13 @@ fn visit<W: Wide, const ANY: bool>(
     }
     if !ANY && len > 1 {
         // Nearest last: an insertion sort by the box centre along the packet's direction.
-        let mut key = [0.0f32; WIDTH];
-        for &c in &hit[..len] {
-            let mut k = 0.0;
-            for a in 0..3 {
-                k += (n.planes[2 * a][c] + n.planes[2 * a + 1][c]) * st.dir[a];
-            }
-            key[c] = k;
+        // Every slot's key at once (twice the centre: the order is the same).
+        let mut k = W::splat(0.0);
+        for a in 0..3 {
+            let centre = W::load(&n.planes[2 * a]).add(W::load(&n.planes[2 * a + 1]));
+            k = k.add(centre.mul(W::splat(st.dir[a])));
         }
+        let key = k.store();
         for i in 1..len {
             let mut j = i;
             while j > 0 && key[hit[j - 1]] < key[hit[j]] {
@@ -592,7 +652,10 @@ fn leaf_rays<L: Lanes, W: Wide, const ANY: bool>(
     st: &mut State<'_>,
 ) {
     let mut lanes = 0u64;
-    for g in 0..GROUPS {
+    let mut gs = groups_of(mask & st.soa.lanes);
+    while gs != 0 {
+        let g = gs.trailing_zeros() as usize;
+        gs &= gs - 1;
         let m = (mask & st.soa.lanes) >> (8 * g) & 0xff;
         if m.count_ones() >= LANE_MIN {
             lanes |= m << (8 * g);
@@ -774,7 +837,9 @@ fn walk<L: Lanes, W: Wide, const ANY: bool>(
             let n = &bvh.nodes[e.parent as usize];
             mask = e.mask & st.active;
             if !ANY && mask & st.found != 0 {
-                mask = child_rays::<W>(n, e.slot as usize, st.soa, mask, st.found);
+                let (c, groups) = (e.slot as usize, (mask, groups_of(mask)));
+                let found = groups_of(st.found);
+                mask = child_rays::<W>(n, c, st.soa, groups, found, &st.frustum);
             }
             if mask != 0 {
                 child = n.child[e.slot as usize];
@@ -902,7 +967,9 @@ mod tests {
     use bvhtrace_core::{BuildOptions, FlatBvh, Ray};
     use glam::Vec3;
 
-    use super::{PACKET, Scratch, Soa, child_rays, frustum_hits, group_rows, lane_order, load};
+    use super::{
+        PACKET, Scratch, Soa, child_rays, frustum_hits, group_rows, groups_of, lane_order, load,
+    };
     use crate::CpuBvh;
     use crate::lanes::{Pair, Portable, Wide};
     use crate::layout::Node8;
@@ -919,13 +986,49 @@ mod tests {
         want: &[u64; 8],
     ) {
         let kept = frustum_hits::<W>(n, f);
+        // The general test, and the one for a common origin and signs where they hold.
+        let general = super::Frustum {
+            common: false,
+            ..*f
+        };
+        let (groups, found) = ((active, groups_of(active)), groups_of(found));
         for (c, &w) in want.iter().enumerate() {
-            assert_eq!(child_rays::<W>(n, c, soa, active, found), w, "slot {c}");
+            assert_eq!(
+                child_rays::<W>(n, c, soa, groups, found, &general),
+                w,
+                "slot {c}"
+            );
+            assert_eq!(
+                child_rays::<W>(n, c, soa, groups, found, f),
+                w,
+                "slot {c}, {}",
+                f.common
+            );
             assert!(
                 w == 0 || kept >> c & 1 != 0,
                 "slot {c} culled by the bounds"
             );
         }
+    }
+
+    /// `groups_of` marks exactly the bytes with a bit set.
+    #[test]
+    fn groups_of_marks_the_groups_with_rays() {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..20_000 {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            // Sparse masks too: some bytes empty, some with one bit.
+            let mask = s & (s >> 7).rotate_left(13) & (s >> 3).rotate_left(29);
+            let want = (0..8)
+                .filter(|g| mask >> (8 * g) & 0xff != 0)
+                .fold(0, |w, g| w | 1 << g);
+            assert_eq!(groups_of(mask), want, "{mask:#018x}");
+        }
+        assert_eq!(groups_of(0), 0);
+        assert_eq!(groups_of(u64::MAX), 0xff);
+        assert_eq!(groups_of(1 << 63 | 1), 0x81);
     }
 
     /// Each group's rows are the rays `lane_order` gives its lanes, full packets and
@@ -958,7 +1061,7 @@ mod tests {
             CpuBvh::from_flat(&FlatBvh::build(&[tri], &BuildOptions::default()).unwrap()).unwrap();
         let mut scratch = Scratch::new(&bvh);
         let mut s = 0x5eed_1234_abcd_0077u64;
-        let (mut hits, mut near_best, mut culled) = (0, 0, 0);
+        let (mut hits, mut near_best, mut culled, mut commons) = (0, 0, 0, 0);
         for _ in 0..1500 {
             let mut n = Node8::EMPTY;
             for i in 0..8 {
@@ -978,13 +1081,26 @@ mod tests {
             let mut rays: Vec<Ray> = (0..count).map(|_| ray(&mut s)).collect();
             if next(&mut s) < 0.5 {
                 // Coherent rays now and then: the bounds then cull some slots.
-                let (o, d) = (rays[0].origin, Vec3::from(rays[0].dir));
+                let (o, mut d) = (rays[0].origin, Vec3::from(rays[0].dir));
+                let m = d.abs().max_element();
+                // Clear of the axes' planes, with a spread too small to change a sign:
+                // one sign per axis for every ray (the box test for one origin and signs).
+                let clear = next(&mut s) < 0.6 && m.is_finite() && m > 1e-30;
+                if clear {
+                    d = d.signum() * d.abs().max(Vec3::splat(0.3 * m));
+                }
                 for r in &mut rays {
                     r.origin = o;
-                    r.dir = (d + point(&mut s) * 0.01 * d.length()).to_array();
+                    let spread = if clear {
+                        Vec3::new(next(&mut s), next(&mut s), next(&mut s)) * 2.0 - 1.0
+                    } else {
+                        point(&mut s)
+                    };
+                    r.dir = (d + spread * 0.01 * d.length()).to_array();
                 }
             }
             let (active, _, frustum) = load::<Pair<Portable>>(&bvh, &rays, &mut scratch.soa);
+            commons += u32::from(frustum.common);
             let order = lane_order(count);
             let mut found = 0u64;
             let mut best = [0.0f32; PACKET];
@@ -1029,9 +1145,16 @@ mod tests {
             culled += (frustum_hits::<Pair<Portable>>(&n, &frustum) ^ 0xff).count_ones();
         }
         assert!(hits > 7_000, "only {hits} box hits");
-        println!("{hits} box hits, {near_best} bests near an entry, {culled} slots culled");
+        println!(
+            "{hits} box hits, {near_best} bests near an entry, {culled} slots culled, \
+             {commons} packets with one origin and signs"
+        );
         assert!(culled > 500, "only {culled} slots culled by the bounds");
         assert!(near_best > 300, "only {near_best} bests near an entry");
+        assert!(
+            commons > 300,
+            "only {commons} packets with one origin and signs"
+        );
     }
 
     /// The entry distance of `r` into slot `c`'s box, where it hits it.

@@ -335,8 +335,8 @@ fn one_leaf_meshes_and_one_instance() {
     }
 }
 
-/// Trees whose instances point outside the arrays are refused with an error, not a
-/// panic.
+/// Trees whose instances point outside the arrays, or whose boxes are out of order, are
+/// refused with an error, not a panic.
 #[test]
 fn malformed_two_level_trees_are_refused() {
     let mesh = uv_sphere(4, 1.0, Vec3::ZERO);
@@ -367,6 +367,14 @@ fn malformed_two_level_trees_are_refused() {
         p.nodes[leaf].right_or_first = 9;
     });
     assert!(e.to_string().contains("instances"), "{e}");
+    // A box out of order or NaN (the packets' box test takes the planes' order as given).
+    for bad in [f32::NAN, 1e6] {
+        let e = corrupt(&|p| {
+            let leaf = p.nodes.iter().position(|n| n.is_instance_leaf()).unwrap();
+            p.nodes[leaf].min[1] = bad;
+        });
+        assert!(e.to_string().contains("inverted or NaN on axis 1"), "{e}");
+    }
 }
 
 /// The committed scenes that trace in two levels (`skinned.gltf`: a ground placed twice;
