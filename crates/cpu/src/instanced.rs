@@ -15,7 +15,7 @@ use bvhtrace_core::{Hit, Ray};
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF};
 use crate::single::{self, Best, Entry, Site, order, untraced};
-use crate::tests4::{Prepared, RayLanes, box8, still_hit};
+use crate::tests4::{MINMAX, Prepared, RayLanes, box8, still_hit};
 
 /// How the top-level walk walks a mesh: a call, not inlined, since each of the nine
 /// top-level walks (per dominant axis and ray kind) would otherwise hold the nine mesh
@@ -175,7 +175,7 @@ fn top<
     loop {
         if child & LEAF == 0 {
             let n = &bvh.nodes[child as usize];
-            let b = box8::<L, W, SIGNED, PARALLEL, KZ>(n, q, best.t, !ANY && best.found);
+            let b = box8::<L, W, SIGNED, PARALLEL, KZ, MINMAX>(n, q, best.t, !ANY && best.found);
             if b.hit != 0 {
                 child = order::<W, ANY>(n, &b, stack, &mut sp);
                 continue;

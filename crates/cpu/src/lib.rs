@@ -343,24 +343,27 @@ fn run_as<
             continue;
         }
         p.shear::<W>();
-        // With `TURNS`, the rays of the common kind (`single::turns_axis`) that share a
-        // dominant axis take turns, two or more of them; the rest are walked alone.
+        // With `TURNS`, the rays of the common kind that share a class (`single::turns_class`:
+        // a dominant axis, or an octant) take turns, two or more of them; the rest are
+        // walked alone.
         let mut in_turns = 0;
         if TURNS && !TWO && !MASKED && !bvh.nodes.is_empty() {
-            let mut axes = [0u32; 3];
+            let mut classes = [0u32; 8];
             for (i, ray) in group.iter().enumerate() {
                 if (p.valid & enter) >> i & 1 != 0
                     && ray.t_min <= ray.t_max
-                    && let Some(kz) = single::turns_axis(&p, ray, i)
+                    && let Some(c) = single::turns_class::<ANY>(&p, ray, i)
                 {
-                    axes[kz] |= 1 << i;
+                    classes[c] |= 1 << i;
                 }
             }
-            for (kz, same) in axes.into_iter().enumerate() {
+            // Eight octants, or three axes.
+            let n = if ANY { 8 } else { 3 };
+            for (c, same) in classes.into_iter().enumerate().take(n) {
                 if same.count_ones() >= 2 {
                     in_turns |= same;
                     let h = &mut hits[start..end];
-                    single::trace_turns::<L, W, ANY>(bvh, group, &p, same, kz, stack, h);
+                    single::trace_turns::<L, W, ANY>(bvh, group, &p, same, c, stack, h);
                 }
             }
         }

@@ -8,7 +8,8 @@ use bvhtrace_core::{Hit, Ray};
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
 use crate::tests4::{
-    BoxHits, Prepared, RayAt, RayLanes, ShearLanes, box8, near_ends, still_hit, tri4,
+    BoxHits, MINMAX, Prepared, RayAt, RayLanes, ShearLanes, box8, near_ends, octant, still_hit,
+    tri4,
 };
 
 // The core walks' best hit and hit rule, and their answer for a ray not traced: one rule
@@ -262,23 +263,51 @@ pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
         .into_hit()
 }
 
-/// The dominant axis of ray `i` of `p` (`ray` itself) when it is of the common kind
-/// (`t_min >= 0`, no zero direction component): two such rays of one axis can take turns
-/// in [`trace_turns`]. The other kinds are rare and walk alone.
+/// The class of ray `i` of `p` (`ray` itself) whose rays take turns in [`trace_turns`],
+/// when it is of the common kind (`t_min >= 0`, no zero direction component): its
+/// dominant axis for closest hits, its [`octant`] for any hits (whose box test never
+/// reads the axis, and reads each slab's entry from one plane by the octant). The other
+/// kinds are rare and walk alone.
 #[inline(always)]
-pub(crate) fn turns_axis(p: &Prepared, ray: &Ray, i: usize) -> Option<usize> {
+pub(crate) fn turns_class<const ANY: bool>(p: &Prepared, ray: &Ray, i: usize) -> Option<usize> {
     let plain = p.parallel >> i & 1 == 0 && ray.t_min >= 0.0;
-    plain.then_some(p.kz[i])
+    plain.then(|| {
+        if ANY {
+            octant([p.dir[0][i], p.dir[1][i], p.dir[2][i]])
+        } else {
+            p.kz[i]
+        }
+    })
 }
 
 /// The rays of `group` in `rays` (bits, two or more; each valid, with `t_min <= t_max`,
-/// all of [`turns_axis`] `kz`), prepared in `p`, through one mesh without masks, their
-/// hits written to `hits`, with a stack of twice [`stack_size`] entries: two walks take
-/// turns a step at a time, each taking the next ray when its own ends, so that the CPU
-/// overlaps one ray's chain of dependent loads and tests with the other's. Each ray's walk
-/// is its own, so the hits are those of [`trace`].
+/// all of [`turns_class`] `class`), prepared in `p`, through one mesh without masks,
+/// their hits written to `hits`, with a stack of twice [`stack_size`] entries: two walks
+/// take turns a step at a time, each taking the next ray when its own ends, so that the
+/// CPU overlaps one ray's chain of dependent loads and tests with the other's. Each ray's
+/// walk is its own, so the hits are those of [`trace`].
 #[inline(always)]
 pub(crate) fn trace_turns<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CpuBvh,
+    group: &[Ray],
+    p: &Prepared,
+    rays: u32,
+    class: usize,
+    stack: &mut [Entry],
+    hits: &mut [Hit],
+) {
+    debug_assert!(!bvh.nodes.is_empty() && rays.count_ones() >= 2);
+    debug_assert!(stack.len() >= 2 * stack_size(bvh));
+    if ANY {
+        any_turns::<L, W>(bvh, group, p, rays, class, stack, hits)
+    } else {
+        closest_turns::<L, W>(bvh, group, p, rays, class, stack, hits)
+    }
+}
+
+/// [`trace_turns`] for closest hits, of dominant axis `kz`.
+#[inline(always)]
+fn closest_turns<L: Lanes, W: Wide>(
     bvh: &CpuBvh,
     group: &[Ray],
     p: &Prepared,
@@ -287,19 +316,41 @@ pub(crate) fn trace_turns<L: Lanes, W: Wide, const ANY: bool>(
     stack: &mut [Entry],
     hits: &mut [Hit],
 ) {
-    debug_assert!(!bvh.nodes.is_empty() && rays.count_ones() >= 2);
-    debug_assert!(stack.len() >= 2 * stack_size(bvh));
+    const M: usize = MINMAX;
     match kz {
-        0 => walk_turns::<L, W, ANY, 0>(bvh, group, p, rays, stack, hits),
-        1 => walk_turns::<L, W, ANY, 1>(bvh, group, p, rays, stack, hits),
-        _ => walk_turns::<L, W, ANY, 2>(bvh, group, p, rays, stack, hits),
+        0 => walk_turns::<L, W, false, 0, M>(bvh, group, p, rays, stack, hits),
+        1 => walk_turns::<L, W, false, 1, M>(bvh, group, p, rays, stack, hits),
+        _ => walk_turns::<L, W, false, 2, M>(bvh, group, p, rays, stack, hits),
     }
 }
 
-/// The walks of [`trace_turns`], of dominant axis `KZ`.
+/// [`trace_turns`] for any hits, of octant `oct`.
+#[inline(always)]
+fn any_turns<L: Lanes, W: Wide>(
+    bvh: &CpuBvh,
+    group: &[Ray],
+    p: &Prepared,
+    rays: u32,
+    oct: usize,
+    stack: &mut [Entry],
+    hits: &mut [Hit],
+) {
+    match oct {
+        0 => walk_turns::<L, W, true, 0, 0>(bvh, group, p, rays, stack, hits),
+        1 => walk_turns::<L, W, true, 0, 1>(bvh, group, p, rays, stack, hits),
+        2 => walk_turns::<L, W, true, 0, 2>(bvh, group, p, rays, stack, hits),
+        3 => walk_turns::<L, W, true, 0, 3>(bvh, group, p, rays, stack, hits),
+        4 => walk_turns::<L, W, true, 0, 4>(bvh, group, p, rays, stack, hits),
+        5 => walk_turns::<L, W, true, 0, 5>(bvh, group, p, rays, stack, hits),
+        6 => walk_turns::<L, W, true, 0, 6>(bvh, group, p, rays, stack, hits),
+        _ => walk_turns::<L, W, true, 0, 7>(bvh, group, p, rays, stack, hits),
+    }
+}
+
+/// The walks of [`trace_turns`], of dominant axis `KZ` or octant `OCT` (see [`box8`]).
 #[cfg_attr(not(debug_assertions), inline(always))]
 #[cfg_attr(debug_assertions, inline(never))]
-fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
+fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize, const OCT: usize>(
     bvh: &CpuBvh,
     group: &[Ray],
     p: &Prepared,
@@ -317,16 +368,16 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
     let mut b = Walk::<L>::new(p, j, [rj.t_min, rj.t_max], Best::start(rj), 0, sb);
     // Both walks in turns while there are rays to start, then the one left to its end.
     let last = loop {
-        if !turn::<L, W, ANY, KZ>(bvh, group, p, (&mut a, &mut qa), &mut rays, hits) {
+        if !turn::<L, W, ANY, KZ, OCT>(bvh, group, p, (&mut a, &mut qa), &mut rays, hits) {
             break (b, qb);
         }
-        if !turn::<L, W, ANY, KZ>(bvh, group, p, (&mut b, &mut qb), &mut rays, hits) {
+        if !turn::<L, W, ANY, KZ, OCT>(bvh, group, p, (&mut b, &mut qb), &mut rays, hits) {
             break (a, qa);
         }
     };
     let (mut last, q) = last;
     while last
-        .step::<W, ANY, false, false, false, KZ>(bvh, &q, at)
+        .step::<W, ANY, false, false, false, KZ, OCT>(bvh, &q, at)
         .is_none()
     {}
     hits[last.i] = last.best.into_hit();
@@ -335,7 +386,7 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
 /// One step of walk `w` (its ray's lanes `q`) of [`walk_turns`]; a walk that ends stores
 /// its hit and starts the next ray of `rays`. Returns false when it ended with no ray left.
 #[inline(always)]
-fn turn<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
+fn turn<L: Lanes, W: Wide, const ANY: bool, const KZ: usize, const OCT: usize>(
     bvh: &CpuBvh,
     group: &[Ray],
     p: &Prepared,
@@ -343,7 +394,7 @@ fn turn<L: Lanes, W: Wide, const ANY: bool, const KZ: usize>(
     rays: &mut u32,
     hits: &mut [Hit],
 ) -> bool {
-    if w.step::<W, ANY, false, false, false, KZ>(bvh, q, Site::PLAIN)
+    if w.step::<W, ANY, false, false, false, KZ, OCT>(bvh, q, Site::PLAIN)
         .is_some()
     {
         hits[w.i] = w.best.into_hit();
@@ -415,7 +466,7 @@ fn walk<
 ) -> (Best, bool) {
     let mut w = Walk::<L>::new(p, i, [q.t_min_s, q.t_max_s], best, start, stack);
     loop {
-        if let Some(stopped) = w.step::<W, ANY, MASKED, SIGNED, PARALLEL, KZ>(bvh, q, at) {
+        if let Some(stopped) = w.step::<W, ANY, MASKED, SIGNED, PARALLEL, KZ, MINMAX>(bvh, q, at) {
             return (w.best, stopped);
         }
     }
@@ -489,6 +540,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
         const SIGNED: bool,
         const PARALLEL: bool,
         const KZ: usize,
+        const OCT: usize,
     >(
         &mut self,
         bvh: &CpuBvh,
@@ -498,16 +550,17 @@ impl<'a, L: Lanes> Walk<'a, L> {
         if self.child & LEAF == 0 {
             let n = &bvh.nodes[self.child as usize];
             // An any-hit walk stops at its first hit, so its best is always `t_max`.
-            let b = box8::<L, W, SIGNED, PARALLEL, KZ>(n, q, self.best.t, !ANY && self.best.found);
+            let culled = !ANY && self.best.found;
+            let b = box8::<L, W, SIGNED, PARALLEL, KZ, OCT>(n, q, self.best.t, culled);
             if b.hit != 0 {
                 self.child = order::<W, ANY>(n, &b, self.stack, &mut self.sp);
                 return None;
             }
         } else {
             let (p, i) = (self.p, self.i);
-            let shear = self
-                .shear
-                .get_or_insert_with(|| ShearLanes::from_prepared(p, i, KZ));
+            let shear = self.shear.get_or_insert_with(|| {
+                ShearLanes::from_prepared(p, i, if OCT == MINMAX { KZ } else { p.kz[i] })
+            });
             if leaf_at::<L, ANY, MASKED>(
                 bvh,
                 q.t_min4,

@@ -352,6 +352,9 @@ impl<L: Lanes> ShearLanes<L> {
 /// `fmax(t0, t1)`, each `t` negated exactly (see [`RayLanes::ninv`]); no NaN arises off
 /// the parallel path, and the sign of a zero reaches no comparison.
 ///
+/// `OCT` is [`MINMAX`], or the ray's [`octant`] (then `KZ` is not read, and neither is the
+/// culling slack's `m`: only any-hit walks, which never cull, take it).
+///
 /// `PARALLEL` and `KZ` are the ray's `parallel` and `kz`, fixed per walk so that the
 /// dominant axis's lanes stay in registers.
 ///
@@ -362,15 +365,39 @@ impl<L: Lanes> ShearLanes<L> {
 /// takes (neither scale takes it to zero: both are above one half), and the positive
 /// scale serves every lane.
 #[inline(always)]
-pub(crate) fn box8<L: Lanes, W: Wide, const SIGNED: bool, const PARALLEL: bool, const KZ: usize>(
+pub(crate) fn box8<
+    L: Lanes,
+    W: Wide,
+    const SIGNED: bool,
+    const PARALLEL: bool,
+    const KZ: usize,
+    const OCT: usize,
+>(
     n: &Node8,
     q: &RayLanes<L, W>,
     t_best: f32,
     culled: bool,
 ) -> BoxHits<W> {
-    debug_assert_eq!((PARALLEL, KZ), (q.parallel, q.kz));
+    debug_assert!(PARALLEL == q.parallel && (OCT != MINMAX || KZ == q.kz));
     let (near, far) = if PARALLEL {
         parallel_slabs(n, q)
+    } else if OCT != MINMAX {
+        debug_assert_eq!(OCT, octant(q.dir));
+        // The plane the ray enters a slab by gives the smaller distance (`(o - p) * -inv`
+        // is monotone in `p`, and the conversion keeps every lower plane at or below its
+        // upper one): `fmin(t0, t1)` and `fmax(t0, t1)` without either, but for the sign
+        // of a zero.
+        let (mut near, mut far) = ([W::splat(0.0); 3], [W::splat(0.0); 3]);
+        for a in 0..3 {
+            let back = OCT >> a & 1;
+            near[a] = q.org[a]
+                .sub(W::load(&n.planes[2 * a + back]))
+                .mul(q.ninv[a]);
+            far[a] = q.org[a]
+                .sub(W::load(&n.planes[2 * a + 1 - back]))
+                .mul(q.ninv[a]);
+        }
+        (near, far)
     } else {
         let (mut near, mut far) = ([W::splat(0.0); 3], [W::splat(0.0); 3]);
         for a in 0..3 {
@@ -408,6 +435,16 @@ pub(crate) fn box8<L: Lanes, W: Wide, const SIGNED: bool, const PARALLEL: bool, 
         near_kz,
         far_kz,
     }
+}
+
+/// [`box8`]'s `OCT` for the per-axis `fmin` and `fmax` (any ray).
+pub(crate) const MINMAX: usize = 8;
+
+/// The octant of direction `dir` (no zero component): bit `a` set when it goes down axis
+/// `a`. [`box8`] with it as `OCT` reads each slab's entry from one plane.
+#[inline(always)]
+pub(crate) fn octant(dir: [f32; 3]) -> usize {
+    usize::from(dir[0] < 0.0) | usize::from(dir[1] < 0.0) << 1 | usize::from(dir[2] < 0.0) << 2
 }
 
 /// What [`box8`] found: the hit slots, and per lane the entry distance, the slabs' exit
@@ -641,7 +678,8 @@ pub(crate) mod tests {
     use glam::Vec3;
 
     use super::{
-        BoxHits, Prepared, RayLanes, SceneBox, ShearLanes, box_lane, box8, still_hit, tri4,
+        BoxHits, MINMAX, Prepared, RayLanes, SceneBox, ShearLanes, box_lane, box8, octant,
+        still_hit, tri4,
     };
     use crate::lanes::{Lanes, Pair, Portable, Wide};
     use crate::layout::{Node8, Tri4};
@@ -710,13 +748,33 @@ pub(crate) mod tests {
         t_best: f32,
         culled: bool,
     ) -> BoxHits<W> {
+        const M: usize = MINMAX;
         match (q.parallel, q.kz) {
-            (false, 0) => box8::<L, W, SIGNED, false, 0>(n, q, t_best, culled),
-            (false, 1) => box8::<L, W, SIGNED, false, 1>(n, q, t_best, culled),
-            (false, _) => box8::<L, W, SIGNED, false, 2>(n, q, t_best, culled),
-            (true, 0) => box8::<L, W, SIGNED, true, 0>(n, q, t_best, culled),
-            (true, 1) => box8::<L, W, SIGNED, true, 1>(n, q, t_best, culled),
-            (true, _) => box8::<L, W, SIGNED, true, 2>(n, q, t_best, culled),
+            (false, 0) => box8::<L, W, SIGNED, false, 0, M>(n, q, t_best, culled),
+            (false, 1) => box8::<L, W, SIGNED, false, 1, M>(n, q, t_best, culled),
+            (false, _) => box8::<L, W, SIGNED, false, 2, M>(n, q, t_best, culled),
+            (true, 0) => box8::<L, W, SIGNED, true, 0, M>(n, q, t_best, culled),
+            (true, 1) => box8::<L, W, SIGNED, true, 1, M>(n, q, t_best, culled),
+            (true, _) => box8::<L, W, SIGNED, true, 2, M>(n, q, t_best, culled),
+        }
+    }
+
+    /// [`box8`] for the octant of a ray not along a slab (without the culling slack, as
+    /// the any-hit walks run it).
+    fn box8_octant<L: Lanes, W: Wide, const SIGNED: bool>(
+        n: &Node8,
+        q: &RayLanes<L, W>,
+        t_best: f32,
+    ) -> BoxHits<W> {
+        match octant(q.dir) {
+            0 => box8::<L, W, SIGNED, false, 0, 0>(n, q, t_best, false),
+            1 => box8::<L, W, SIGNED, false, 0, 1>(n, q, t_best, false),
+            2 => box8::<L, W, SIGNED, false, 0, 2>(n, q, t_best, false),
+            3 => box8::<L, W, SIGNED, false, 0, 3>(n, q, t_best, false),
+            4 => box8::<L, W, SIGNED, false, 0, 4>(n, q, t_best, false),
+            5 => box8::<L, W, SIGNED, false, 0, 5>(n, q, t_best, false),
+            6 => box8::<L, W, SIGNED, false, 0, 6>(n, q, t_best, false),
+            _ => box8::<L, W, SIGNED, false, 0, 7>(n, q, t_best, false),
         }
     }
 
@@ -742,6 +800,17 @@ pub(crate) mod tests {
             if unsigned {
                 let b = box8_dyn::<L, W, false>(n, q, t_best, false);
                 assert_eq!(b.hit, want, "unsigned, no hit yet {ray:?} {n:?}");
+            }
+            if !q.parallel {
+                // The planes by octant: the same hits, and the same distances (`==`: but
+                // for the sign of a zero).
+                let b = box8_octant::<L, W, true>(n, q, t_best);
+                assert_eq!(b.hit, want, "octant {ray:?} {n:?}");
+                assert_eq!(b.tnear.store(), full.tnear.store(), "octant {ray:?} {n:?}");
+                if unsigned {
+                    let b = box8_octant::<L, W, false>(n, q, t_best);
+                    assert_eq!(b.hit, want, "unsigned octant {ray:?} {n:?}");
+                }
             }
         }
         full
