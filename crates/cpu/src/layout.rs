@@ -204,8 +204,8 @@ impl LeafBoxes {
 /// Why a tree cannot be converted.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum ConvertError {
-    /// The tree's instances or instance leaves point outside its arrays (a tree edited
-    /// by hand): what is wrong.
+    /// The tree's instances or instance leaves point outside its arrays, or a box is out
+    /// of order or NaN (a tree edited by hand): what is wrong.
     #[error("the BVH cannot be converted: {0}")]
     Malformed(String),
     /// More blocks than a leaf reference can address.
@@ -277,7 +277,8 @@ impl CpuBvh {
     /// masks (the tables are shared with `flat`, the walks apply them as the core walks
     /// do). The blocks are written in parallel on the current rayon pool; the node
     /// collapse is one pass over the binary nodes. A tree whose instances or instance
-    /// leaves point outside its arrays is refused ([`ConvertError::Malformed`]).
+    /// leaves point outside its arrays, or with a box whose lower corner is not at or
+    /// below its upper one, is refused ([`ConvertError::Malformed`]).
     pub fn from_flat(flat: &FlatBvh) -> Result<CpuBvh, ConvertError> {
         let (fnodes, ftris) = (flat.nodes(), flat.triangles());
         if fnodes.is_empty() {
