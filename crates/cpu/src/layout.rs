@@ -530,9 +530,10 @@ fn collapse(
                     }
                 }
             };
-            // The packets' box test takes each slab's entry from the plane the rays' common
-            // direction sign picks, which is the scalar test's `fmin` only when the planes
-            // are in order (a builder's boxes always are).
+            // The box tests that take each slab's entry from the plane the direction's sign
+            // picks (the packets' one-origin test, the any-hit walks by octant) give the
+            // scalar test's `fmin` only when the planes are in order (a builder's boxes
+            // always are).
             if let Some(a) = (0..3).find(|&a| !(bounds.min[a] <= bounds.max[a])) {
                 let of = match src {
                     Src::Node(i) => format!("binary node {i}"),

@@ -652,11 +652,12 @@ fn leaf_rays<L: Lanes, W: Wide, const ANY: bool>(
     st: &mut State<'_>,
 ) {
     let mut lanes = 0u64;
-    let mut gs = groups_of(mask & st.soa.lanes);
+    let in_lanes = mask & st.soa.lanes;
+    let mut gs = groups_of(in_lanes);
     while gs != 0 {
         let g = gs.trailing_zeros() as usize;
         gs &= gs - 1;
-        let m = (mask & st.soa.lanes) >> (8 * g) & 0xff;
+        let m = in_lanes >> (8 * g) & 0xff;
         if m.count_ones() >= LANE_MIN {
             lanes |= m << (8 * g);
             group_leaf::<W, ANY>(bvh, child, g, m as u32, st);
