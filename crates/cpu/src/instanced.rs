@@ -76,9 +76,9 @@ impl MeshWalk for Avx2 {
 /// [`enter`] with AVX lanes, compiled with AVX2 enabled.
 ///
 /// # Safety
-/// The CPU must have AVX2.
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT (`Isa::Avx2`).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
 #[inline(never)]
 unsafe fn enter_avx2<const ANY: bool, const MASKED: bool>(
     bvh: &CpuBvh,

@@ -348,7 +348,30 @@ pub(crate) trait Wide: Copy {
     /// The eight rows of the 8x4 matrix whose columns are `cols`: row `j` is lane `j` of
     /// each column.
     fn rows4(cols: [Self; 4]) -> [[f32; 4]; 8];
+    /// Writes the values of `values` whose bit is set in `lanes` (eight bits) to the first
+    /// slots of `out`, in lane order; the other slots of `out` are left unspecified.
+    fn compress(lanes: u32, values: &[u32; 8], out: &mut [u32; 8]);
 }
+
+/// For each eight-bit lane mask, the set lanes' indices in order, three bits each (the
+/// first in bits 0-2): what [`Wide::compress`] permutes by.
+const COMPRESS: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut mask = 0;
+    while mask < 256 {
+        let (mut lane, mut k, mut packed) = (0, 0, 0u32);
+        while lane < 8 {
+            if mask >> lane & 1 != 0 {
+                packed |= (lane as u32) << (3 * k);
+                k += 1;
+            }
+            lane += 1;
+        }
+        table[mask] = packed;
+        mask += 1;
+    }
+    table
+};
 
 /// Eight lanes as two of four: the portable and SSE paths' [`Wide`].
 #[derive(Clone, Copy, Debug)]
@@ -458,6 +481,13 @@ impl<L: Lanes> Wide for Pair<L> {
         std::array::from_fn(|j| [c[0][j], c[1][j], c[2][j], c[3][j]])
     }
     #[inline(always)]
+    fn compress(lanes: u32, values: &[u32; 8], out: &mut [u32; 8]) {
+        let packed = COMPRESS[(lanes & 0xff) as usize];
+        for (k, slot) in out.iter_mut().enumerate().take(lanes.count_ones() as usize) {
+            *slot = values[(packed >> (3 * k) & 7) as usize];
+        }
+    }
+    #[inline(always)]
     fn columns(rows: [&[f32; 8]; 8]) -> [Self; 8] {
         std::array::from_fn(|c| {
             Pair(
@@ -480,7 +510,7 @@ pub(crate) use avx::Avx8;
 mod avx {
     use std::arch::x86_64::*;
 
-    use super::Wide;
+    use super::{COMPRESS, Wide};
 
     /// Eight lanes in an AVX register (see the module docs for where it may be used).
     #[derive(Clone, Copy, Debug)]
@@ -610,6 +640,21 @@ mod avx {
             out
         }
         #[inline(always)]
+        fn compress(lanes: u32, values: &[u32; 8], out: &mut [u32; 8]) {
+            // `values` and `out` are eight readable and writable u32s; the load and the
+            // store are unaligned. `vpermd` reads the low three bits of each index.
+            avx!({
+                let packed = _mm256_set1_epi32(COMPRESS[(lanes & 0xff) as usize] as i32);
+                let index =
+                    _mm256_srlv_epi32(packed, _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21));
+                let v = _mm256_loadu_si256(values.as_ptr().cast());
+                _mm256_storeu_si256(
+                    out.as_mut_ptr().cast(),
+                    _mm256_permutevar8x32_epi32(v, index),
+                );
+            })
+        }
+        #[inline(always)]
         fn columns(rows: [&[f32; 8]; 8]) -> [Self; 8] {
             // Each row is eight readable f32s; the loads are unaligned. The usual 8x8
             // transpose: pairs of rows interleaved, then quads, then the 128-bit halves.
@@ -657,5 +702,45 @@ mod avx {
                 ]
             })
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Pair, Portable, Wide};
+
+    /// [`Wide::compress`] of every lane mask: the set lanes' values, in lane order, on
+    /// every lane type this CPU runs.
+    fn compress_keeps_the_set_lanes<W: Wide>() {
+        let values = [11, 22, 33, 44, 55, 66, 77, 88];
+        for lanes in 0u32..256 {
+            let mut out = [u32::MAX; 8];
+            W::compress(lanes, &values, &mut out);
+            let want: Vec<u32> = (0..8)
+                .filter(|&i| lanes >> i & 1 != 0)
+                .map(|i| values[i])
+                .collect();
+            assert_eq!(&out[..want.len()], &want[..], "lanes {lanes:08b}");
+        }
+    }
+
+    #[test]
+    fn compress_gives_the_set_lanes_in_order() {
+        compress_keeps_the_set_lanes::<Pair<Portable>>();
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2.
+            unsafe { compress_avx2() }
+        }
+    }
+
+    /// The AVX lanes' test, compiled with AVX2 enabled.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn compress_avx2() {
+        compress_keeps_the_set_lanes::<super::Avx8>();
     }
 }

@@ -114,7 +114,8 @@ pub enum Isa {
     /// SSE2 lanes (every x86-64 CPU).
     Sse2,
     /// AVX lanes for a node's eight boxes, the SSE lanes for the triangles, all compiled
-    /// with AVX2 enabled (three-operand VEX code), where the CPU has it.
+    /// with AVX2 enabled (three-operand VEX code) and the bit instructions every AVX2 CPU
+    /// has (BMI1, LZCNT, POPCNT), where the CPU has them.
     Avx2,
 }
 
@@ -123,7 +124,8 @@ impl Isa {
     pub fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx2") {
+            use std::arch::is_x86_feature_detected as has;
+            if has!("avx2") && has!("bmi1") && has!("lzcnt") && has!("popcnt") {
                 return Isa::Avx2;
             }
             Isa::Sse2
@@ -235,7 +237,7 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
             run_layered::<S, SP, instanced::Plain<S, SP>>(bvh, rays, query, mask, hits, s)
         }
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
+        // SAFETY: `or_available` returned Avx2, so the CPU has what `Isa::Avx2` needs.
         Isa::Avx2 if plain => unsafe { run_avx2(bvh, rays, query, hits, s) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
@@ -384,9 +386,9 @@ fn run_as<
 /// AVX2 enabled (with [`run_layered_avx2`], the only places `Avx8` is used).
 ///
 /// # Safety
-/// The CPU must have AVX2.
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT ([`Isa::Avx2`]).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
 unsafe fn run_avx2(
     bvh: &CpuBvh,
     rays: &[Ray],
@@ -401,9 +403,9 @@ unsafe fn run_avx2(
 /// compiled with AVX2 enabled.
 ///
 /// # Safety
-/// The CPU must have AVX2.
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT ([`Isa::Avx2`]).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
 #[inline(never)]
 unsafe fn run_layered_avx2(
     bvh: &CpuBvh,
@@ -485,7 +487,7 @@ pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) ->
                     packet::run::<lanes::Sse, lanes::Pair<lanes::Sse>, true>(bvh, r, h, &mut s)
                 }
                 #[cfg(target_arch = "x86_64")]
-                // SAFETY: `or_available` returned Avx2, so the CPU has AVX2.
+                // SAFETY: `or_available` returned Avx2, so the CPU has what `Isa::Avx2` needs.
                 (Isa::Avx2, q) => unsafe { packets_avx2(bvh, r, q, h, &mut s) },
                 #[cfg(not(target_arch = "x86_64"))]
                 _ => unreachable!("or_available gives Portable off x86-64"),
@@ -498,9 +500,9 @@ pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) ->
 /// compiled with AVX2 enabled.
 ///
 /// # Safety
-/// The CPU must have AVX2.
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT ([`Isa::Avx2`]).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
 unsafe fn packets_avx2(
     bvh: &CpuBvh,
     rays: &[Ray],

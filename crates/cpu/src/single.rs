@@ -6,7 +6,7 @@ use bvhtrace_core::masks::MaskTables;
 use bvhtrace_core::{Hit, Ray};
 
 use crate::lanes::{Lanes, Wide};
-use crate::layout::{CpuBvh, LEAF, Node8, WIDTH, leaf_range};
+use crate::layout::{CpuBvh, EMPTY, LEAF, Node8, WIDTH, leaf_range};
 use crate::tests4::{
     BoxHits, MINMAX, Prepared, RayAt, RayLanes, ShearLanes, box8, near_ends, octant, still_hit,
     tri4,
@@ -16,13 +16,25 @@ use crate::tests4::{
 // for every walk.
 pub(crate) use bvhtrace_core::traverse::{Best, untraced};
 
-/// A child waiting on the stack: its reference, and what [`still_hit`] needs.
+/// A child waiting on the stack: its reference, and what [`still_hit`] needs. An any-hit
+/// walk re-tests nothing at a pop and keeps only references, four to an entry (see
+/// [`refs`]).
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(C)]
 pub(crate) struct Entry {
     pub child: u32,
     pub tnear: f32,
     pub m: f32,
     pub far: f32,
+}
+
+/// `stack` as child references, four to an entry: an any-hit walk's stack.
+#[inline(always)]
+fn refs(stack: &mut [Entry]) -> &mut [u32] {
+    // SAFETY: `Entry` is `repr(C)` with four 4-byte fields and no padding, so `stack` is
+    // `4 * len` initialised u32s, aligned for u32; every bit pattern is a valid u32, f32
+    // and `Entry`; the slice borrows `stack` mutably for its lifetime.
+    unsafe { std::slice::from_raw_parts_mut(stack.as_mut_ptr().cast::<u32>(), 4 * stack.len()) }
 }
 
 /// Where a leaf's triangles are tested (the core walks' `Site`): the primitive base of
@@ -219,7 +231,9 @@ pub(crate) fn order<W: Wide, const ANY: bool>(
 }
 
 /// Stack entries a walk over `bvh` can hold at once: at most `WIDTH - 1` per level (a
-/// node pushes all its hit children but one), and a margin.
+/// node pushes all its hit children but one), and a margin. An any-hit walk's references,
+/// four to an entry, fit with room to spare for its bottom slot and a node's eight
+/// written at once (see [`Walk::any_next`]).
 pub(crate) fn stack_size(bvh: &CpuBvh) -> usize {
     (WIDTH - 1) * bvh.depth as usize + 4
 }
@@ -485,6 +499,7 @@ pub(crate) struct Walk<'a, L> {
     pub best: Best,
     /// The node or leaf to visit next.
     child: u32,
+    /// Entries on the stack (an any-hit walk's references above its bottom slot).
     sp: usize,
     stack: &'a mut [Entry],
 }
@@ -500,6 +515,10 @@ impl<'a, L: Lanes> Walk<'a, L> {
         start: u32,
         stack: &'a mut [Entry],
     ) -> Self {
+        // An any-hit walk's bottom slot (see `Walk::any_next`).
+        if let Some(bottom) = refs(stack).first_mut() {
+            *bottom = EMPTY;
+        }
         Walk {
             p,
             i,
@@ -527,6 +546,9 @@ impl<'a, L: Lanes> Walk<'a, L> {
         self.best = Best::start(ray);
         self.child = 0;
         self.sp = 0;
+        if let Some(bottom) = refs(self.stack).first_mut() {
+            *bottom = EMPTY;
+        }
     }
 
     /// Visits the next node (and goes on to its nearest hit child) or leaf (and pops the
@@ -552,6 +574,10 @@ impl<'a, L: Lanes> Walk<'a, L> {
             // An any-hit walk stops at its first hit, so its best is always `t_max`.
             let culled = !ANY && self.best.found;
             let b = box8::<L, W, SIGNED, PARALLEL, KZ, OCT>(n, q, self.best.t, culled);
+            if ANY {
+                self.child = self.any_next::<W>(n, b.hit);
+                return (self.child == EMPTY).then_some(false);
+            }
             if b.hit != 0 {
                 self.child = order::<W, ANY>(n, &b, self.stack, &mut self.sp);
                 return None;
@@ -573,16 +599,48 @@ impl<'a, L: Lanes> Walk<'a, L> {
                 return Some(true);
             }
         }
+        if ANY {
+            self.child = self.any_pop();
+            return (self.child == EMPTY).then_some(false);
+        }
         loop {
             if self.sp == 0 {
                 return Some(false);
             }
             self.sp -= 1;
             let e = self.stack[self.sp];
-            if ANY || !self.best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, self.best.t) {
+            if !self.best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, self.best.t) {
                 self.child = e.child;
                 return None;
             }
         }
+    }
+
+    /// An any-hit walk's next child after node `n` whose hit slots are `hit` (0 after a
+    /// leaf): all the hit children pushed at once in slot order and the last taken back,
+    /// or the stack's top when none was hit; [`EMPTY`] when the stack is empty. An
+    /// any-hit walk visits every hit child unless it stops, so it keeps no order, and no
+    /// branch depends on how many children were hit (a branch that often mispredicts).
+    /// Its stack is references (see [`refs`]): slot 0 holds [`EMPTY`], the entries
+    /// follow.
+    #[inline(always)]
+    fn any_next<W: Wide>(&mut self, n: &Node8, hit: u32) -> u32 {
+        let refs = refs(self.stack);
+        let above = &mut refs[1 + self.sp..1 + self.sp + WIDTH];
+        W::compress(hit, &n.child, above.try_into().expect("eight slots"));
+        let top = refs[self.sp];
+        let last = n.child[31 - (hit | 1).leading_zeros() as usize];
+        // `sp` wraps past zero only when the walk ends.
+        self.sp = (self.sp + hit.count_ones() as usize).wrapping_sub(1);
+        if hit != 0 { last } else { top }
+    }
+
+    /// An any-hit walk's next child after a leaf: the stack's top, or [`EMPTY`] when the
+    /// stack is empty (see [`Walk::any_next`]).
+    #[inline(always)]
+    fn any_pop(&mut self) -> u32 {
+        let top = refs(self.stack)[self.sp];
+        self.sp = self.sp.wrapping_sub(1);
+        top
     }
 }
