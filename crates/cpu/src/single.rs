@@ -89,7 +89,7 @@ pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
 ) -> bool {
     let (first, count) = leaf_range(child);
     for (k, b) in bvh.blocks[first..first + count].iter().enumerate() {
-        let (mut ok, t, u, v) = tri4(b, t_min, s);
+        let (mut ok, t, u, v) = tri4::<L, ANY>(b, t_min, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.
         ok &= t.le(L::splat(best.t)).bits();
         if ok == 0 {

@@ -539,10 +539,14 @@ fn edge<L: Lanes>(px: L, py: L, qx: L, qy: L) -> L {
 }
 
 /// The watertight test on a block's four triangles (`t_min` the ray's, splatted): the
-/// lanes that hit at `t >= t_min`,
-/// and per lane `t` and the weights of corners 1 and 2.
+/// lanes that hit at `t >= t_min`, and per lane `t` and the weights of corners 1 and 2
+/// (unspecified where no lane hits). `ANY`: for an any-hit walk.
 #[inline(always)]
-pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, L, L) {
+pub(crate) fn tri4<L: Lanes, const ANY: bool>(
+    b: &Tri4,
+    t_min: L,
+    s: &ShearLanes<L>,
+) -> (u32, L, L, L) {
     let (kx, ky, kz) = (s.kx, s.ky, s.kz);
     let [sx, sy, sz] = s.s;
     let [ox, oy, oz] = s.o;
@@ -564,8 +568,10 @@ pub(crate) fn tri4<L: Lanes>(b: &Tri4, t_min: L, s: &ShearLanes<L>) -> (u32, L, 
     let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero));
     let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero));
     let inside = !negative.and(positive).bits() & 0b1111;
-    // Most blocks a ray reaches it misses: no distance to compute.
-    if inside == 0 {
+    // Most blocks a primary ray reaches it misses: no distance to compute. A shadow ray's
+    // first blocks pass the edge tests on the triangle it leaves, so the branch would
+    // often mispredict: an any-hit walk computes every lane.
+    if !ANY && inside == 0 {
         return (0, zero, zero, zero);
     }
     if u.eq(zero).or(v.eq(zero)).or(w.eq(zero)).bits() & inside != 0 {
@@ -1088,7 +1094,7 @@ pub(crate) mod tests {
             let r = PreparedRay::new(&ray);
             let (mask, t, u, v) = {
                 let q = PortableRay::prepare(&ray);
-                tri4(&b, q.t_min4, &ShearLanes::prepare(&ray))
+                tri4::<_, false>(&b, q.t_min4, &ShearLanes::prepare(&ray))
             };
             let (t, u, v) = (t.store(), u.store(), v.store());
             for (lane, tri) in tris.iter().enumerate() {
@@ -1100,18 +1106,31 @@ pub(crate) mod tests {
                     hits += 1;
                 }
             }
+            // The SSE lanes, and the any-hit walks' test (no early exit): the same lanes
+            // and values.
+            let mut others = vec![{
+                let q = PortableRay::prepare(&ray);
+                tri4::<_, true>(&b, q.t_min4, &ShearLanes::prepare(&ray))
+            }];
             #[cfg(target_arch = "x86_64")]
-            {
-                let (m2, t2, u2, v2) = {
-                    let q = SseRay::prepare(&ray);
-                    tri4(&b, q.t_min4, &ShearLanes::prepare(&ray))
+            for any in [false, true] {
+                let q = SseRay::prepare(&ray);
+                let s = ShearLanes::prepare(&ray);
+                let (m, t, u, v) = if any {
+                    tri4::<_, true>(&b, q.t_min4, &s)
+                } else {
+                    tri4::<_, false>(&b, q.t_min4, &s)
                 };
-                assert_eq!(m2, mask);
+                let back = |x: crate::lanes::Sse| Portable::load(&x.store());
+                others.push((m, back(t), back(u), back(v)));
+            }
+            for (m2, t2, u2, v2) in others {
+                assert_eq!(m2, mask, "{ray:?}");
                 for lane in 0..4 {
                     if mask >> lane & 1 != 0 {
                         let a = [t[lane], u[lane], v[lane]].map(f32::to_bits);
                         let b = [t2.store()[lane], u2.store()[lane], v2.store()[lane]];
-                        assert_eq!(a, b.map(f32::to_bits));
+                        assert_eq!(a, b.map(f32::to_bits), "{ray:?}");
                     }
                 }
             }
