@@ -37,6 +37,15 @@ fn refs(stack: &mut [Entry]) -> &mut [u32] {
     unsafe { std::slice::from_raw_parts_mut(stack.as_mut_ptr().cast::<u32>(), 4 * stack.len()) }
 }
 
+/// Puts `EMPTY` in an any-hit walk's bottom slot, where popping it ends the walk (see
+/// `Walk::any_next`).
+#[inline(always)]
+fn mark_bottom(stack: &mut [Entry]) {
+    if let Some(bottom) = refs(stack).first_mut() {
+        *bottom = EMPTY;
+    }
+}
+
 /// Asks for the memory of child `c` of `bvh` (a node, or a leaf's first block) ahead of
 /// its visit, with no branch on which: in turns, the other walk's step runs before it.
 #[inline(always)]
@@ -540,10 +549,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
         start: u32,
         stack: &'a mut [Entry],
     ) -> Self {
-        // An any-hit walk's bottom slot (see `Walk::any_next`).
-        if let Some(bottom) = refs(stack).first_mut() {
-            *bottom = EMPTY;
-        }
+        mark_bottom(stack);
         Walk {
             p,
             i,
@@ -571,9 +577,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
         self.best = Best::start(ray);
         self.child = 0;
         self.sp = 0;
-        if let Some(bottom) = refs(self.stack).first_mut() {
-            *bottom = EMPTY;
-        }
+        mark_bottom(self.stack);
     }
 
     /// Visits the next node (and goes on to its nearest hit child) or leaf (and pops the
