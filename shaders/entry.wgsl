@@ -6,11 +6,11 @@
 //
 // The entry points are `entry_walk.wgsl`, specialised per walk (full stack, short stack,
 // wide) and per output, and a specialised module composes exactly one of them
-// (`bvhtrace_kernels::KernelKey`):
+// (`bvhtrace_engine::KernelKey`):
 // - `bvh_trace_{full_stack,short_stack,wide}_main`: hits only (`bvh_store_hits_only`);
 // - `bvh_trace_{full_stack,short_stack,wide}_counted`: hits and counters, composed with
 //   `entry_counters.wgsl` (the `counters` binding) only when counters are on.
-// `bvhtrace_kernels::kernel_source` composes the four of the binary walks (the
+// `bvhtrace_engine::kernel_source` composes the four of the binary walks (the
 // everything-on module); the wide walk's module holds its own two.
 //
 // Specialisation (pipeline-overridable constants, folded by the driver's compiler):

@@ -1,6 +1,6 @@
 // entry_walk.wgsl: the entry point of one walk, one thread per ray (see `entry.wgsl`).
 // Every entry point is this file, specialised by `ModuleSet::files`
-// (`bvhtrace_kernels::key`), which replaces the three upper-case names below: the entry
+// (`bvhtrace_engine::key`), which replaces the three upper-case names below: the entry
 // point's own (`KernelKey::entry_point`), what it stores (`bvh_store_hits_only`, or
 // `bvh_store_counted` of `entry_counters.wgsl`: hits and counters), and the walk's call
 // on ray `i` with invocation `lid`'s stack (the full stack, the short stack with

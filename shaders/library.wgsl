@@ -1,6 +1,6 @@
 // library.wgsl: the traversal library's calls for your own shader, the same for every
 // upload (one mesh or two levels, binary or wide layout, buffers or textures). Composed
-// after the library's files by `BvhLibrary` (`bvhtrace_kernels::wgsl`), which replaces
+// after the library's files by `BvhLibrary` (`bvhtrace_engine::wgsl`), which replaces
 // `BVH_LIBRARY_CLOSEST` and `BVH_LIBRARY_ANY` with the call of the walk it was composed
 // for (`ray`, `lane` and the query passed on, `k` for the short stack).
 

@@ -17,7 +17,7 @@
 // node, so a tree of at most `WIDE_STACK_GROUPS + 1` levels never fills it. On a deeper one
 // a push that would overflow gives the ray up as incomplete, as a spent trip budget does
 // (`bvh_incomplete`), and the host finishes it with the CPU twin
-// (`bvhtrace_kernels::finish_incomplete`), keeping a host copy for that whenever the
+// (`bvhtrace_engine::finish_incomplete`), keeping a host copy for that whenever the
 // uploaded wide tree is that deep. A wide tree is about a third as deep as a balanced
 // binary one (a seventh of a chain), so the trees that can overflow are ones the full stack
 // (64 entries) refuses outright, and no per-lane storage is spent on them.

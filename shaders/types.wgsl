@@ -1,7 +1,7 @@
 // types.wgsl: the data shared between the CPU and the GPU, field for field.
 //
 // Each struct is the WGSL twin of a `#[repr(C)]` Rust type of `bvhtrace_core`; the test
-// `crates/kernels/tests/wgsl_layout.rs` parses the composed source with naga and checks every
+// `crates/engine/tests/wgsl_layout.rs` parses the composed source with naga and checks every
 // size and field offset against `std::mem::offset_of!`, so the layout has one source of
 // truth (`crates/core/src/flat.rs` and `ray.rs`).
 

@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use bvhtrace_integration::browser::{self, Report};
 
-use bvhtrace_gpu::kernels::{BvhStorage, DriverTuning, KernelKey};
+use bvhtrace_gpu::engine::{BvhStorage, DriverTuning, KernelKey};
 
 /// The variants: every walk, query, counters setting, one mesh or two levels, with the
 /// BVH in buffers (what a page on WebGPU composes) and in textures.

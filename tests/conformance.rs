@@ -370,7 +370,7 @@ fn precisions_equal_the_cpu_on_every_tracer() {
         if bvh.is_instanced() {
             let w = bvh.wide().map(|w| &**w).expect("wide layout");
             let texels = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
-            let row = u64::from(bvhtrace_gpu::kernels::TEXEL_ROW);
+            let row = u64::from(bvhtrace_gpu::engine::storage::TEXEL_ROW);
             assert!(
                 w.nodes.len() as u64 * texels > row,
                 "{scene}: the wide nodes fit one texture row"
@@ -493,10 +493,10 @@ fn deep_wide_trees_finish_on_the_cpu() {
         .map(|w| &**w)
         .expect("built with its wide layout");
     assert!(
-        bvhtrace_gpu::kernels::wide_stack_may_overflow(w.depth),
+        bvhtrace_gpu::engine::walks::may_overflow(Traversal::Wide, w.depth),
         "wide depth {} fits the stack of {} groups",
         w.depth,
-        bvhtrace_gpu::kernels::WIDE_STACK_GROUPS
+        bvhtrace_gpu::engine::walks::WIDE_STACK_GROUPS
     );
     let rays = deep_wide_rays();
     for tuning in [None, Some(DriverTuning::GPU)] {
@@ -643,7 +643,7 @@ fn wide_nodes_across_texture_rows_equal_the_cpu() {
         .bvh
         .with_wide();
     let w = bvh.wide().map(|w| &**w).expect("wide layout");
-    let row = u64::from(bvhtrace_gpu::kernels::TEXEL_ROW);
+    let row = u64::from(bvhtrace_gpu::engine::storage::TEXEL_ROW);
     let texels = (std::mem::size_of::<bvhtrace_core::WideNode>() / 16) as u64;
     let straddling: Vec<usize> = (0..w.nodes.len())
         .filter(|&i| texels * i as u64 % row > row - texels)
@@ -743,7 +743,7 @@ fn interleaved_workgroups_trace_every_ray() {
 /// its slot with the CPU twin's answer.
 #[test]
 fn batches_larger_than_a_dispatch_are_split() {
-    use bvhtrace_gpu::kernels::{MAX_RAYS_PER_DISPATCH, plan_dispatches, rays_per_dispatch};
+    use bvhtrace_gpu::engine::plan::{MAX_RAYS_PER_DISPATCH, plan_dispatches, rays_per_dispatch};
     let devices = Devices::open("split batches");
     let bvh = one_triangle();
     let limits: Vec<_> = (devices.wgpu.iter().map(|c| *c.limits()))

@@ -1,5 +1,5 @@
 //! The device BVH builders on both device backends: the host side is one
-//! (`bvhtrace_kernels::builder`) and the WGSL is one, so on the same device the ash build
+//! (`bvhtrace_engine::builder`) and the WGSL is one, so on the same device the ash build
 //! (`VkContext::build_bvh`) and the wgpu build (`GpuContext::build_bvh`) give the same tree,
 //! node for node and triangle for triangle, bit for bit, for both builders; and it holds
 //! every invariant. A backend without a device prints SKIP.

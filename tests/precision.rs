@@ -16,7 +16,7 @@ use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Precision, Query, TraceOptions, Traversal, Triangle, brute_force,
     trace_rays,
 };
-use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, UploadOptions};
+use bvhtrace_gpu::{AdapterChoice, GpuBvh, GpuContext, GpuError, Tracer, UploadOptions};
 use glam::Vec3;
 
 #[path = "support/rays.rs"]

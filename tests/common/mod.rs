@@ -122,7 +122,7 @@ fn skip_without_device<C>(test: &str, backend: &str, ctx: Result<C, TraceError>)
 pub fn tracers<'a>(devices: &Devices, bvh: &'a FlatBvh) -> Vec<Box<dyn Tracer + 'a>> {
     let mut out: Vec<Box<dyn Tracer + 'a>> = vec![Box::new(CpuTracer::new(bvh))];
     if let Some(ctx) = &devices.wgpu {
-        let walks = if bvh.depth() > bvhtrace_gpu::kernels::FULL_STACK_SIZE {
+        let walks = if bvh.depth() > bvhtrace_gpu::engine::walks::FULL_STACK_SIZE {
             UploadOptions::for_traversal(Traversal::Stackless)
         } else {
             UploadOptions::all()
@@ -149,7 +149,10 @@ pub fn tracers<'a>(devices: &Devices, bvh: &'a FlatBvh) -> Vec<Box<dyn Tracer + 
         }
     }
     if let Some(ctx) = &devices.vk {
-        out.push(Box::new(VkBvh::upload(ctx, bvh).expect("ash upload")));
+        let fitting = UploadOptions::fitting(bvh);
+        out.push(Box::new(
+            VkBvh::upload(ctx, bvh, &fitting).expect("ash upload"),
+        ));
     }
     out
 }

@@ -83,7 +83,7 @@ pub fn deep_tree() -> FlatBvh {
 }
 
 /// A tree whose wide layout is deeper than the wide walk's stack
-/// (`bvhtrace_kernels::WIDE_STACK_GROUPS` groups): [`DEEP_WIDE_TRIANGLES`] triangles along
+/// (`bvhtrace_engine::walks::WIDE_STACK_GROUPS` groups): [`DEEP_WIDE_TRIANGLES`] triangles along
 /// x ([`deep_wide_x`]), midpoint splits, one triangle per leaf. Each binary level splits
 /// off one triangle, so a wide node takes seven leaves and one interior child, and the wide
 /// tree is about a seventh as deep as the binary one. Built with its wide layout.

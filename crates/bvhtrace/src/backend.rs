@@ -3,7 +3,7 @@
 use std::fmt;
 use std::str::FromStr;
 
-use bvhtrace_kernels::Tracer;
+use bvhtrace_engine::Tracer;
 
 /// Which backend traces: every way to trace is named here, and only here.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -136,7 +136,7 @@ mod tests {
             &bvhtrace_core::BuildOptions::default(),
         )
         .expect("one triangle builds");
-        let cpu = bvhtrace_kernels::CpuTracer::new(&bvh);
+        let cpu = bvhtrace_engine::CpuTracer::new(&bvh);
         assert_eq!(Backend::of(&cpu), Some(Backend::Cpu));
     }
 }

@@ -7,7 +7,7 @@ use std::sync::{Arc, OnceLock};
 
 use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Ray, TraceOptions, TraceOutput, Traversal};
 use bvhtrace_cpu::CpuBvh;
-use bvhtrace_kernels::{CpuTracer, TraceError, Tracer};
+use bvhtrace_engine::{CpuTracer, TraceError, Tracer};
 use web_time::Instant;
 
 /// The core walks ([`CpuTracer`]) with the CPU layout beside them. A trace goes to the

@@ -46,18 +46,18 @@ pub use open::{open_on_ray_query, open_on_vulkan};
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
-pub use bvhtrace_gpu::GpuContext;
-pub use bvhtrace_kernels::{
-    ADAPTER_ENV, AdapterChoice, BvhStorage, CpuTracer, DriverTuning, KernelKey, TraceError, Tracer,
-    UploadStats,
+pub use bvhtrace_engine::device::ADAPTER_ENV;
+pub use bvhtrace_engine::{
+    AdapterChoice, BvhStorage, CpuTracer, DriverTuning, KernelKey, TraceError, Tracer, UploadStats,
 };
+pub use bvhtrace_gpu::GpuContext;
 #[cfg(not(target_arch = "wasm32"))]
 pub use bvhtrace_vk::{VALIDATION_ENV, VkContext};
 
 /// Re-exported so users need not depend on the same versions by hand.
 pub use bvhtrace_core as core;
+pub use bvhtrace_engine as engine;
 pub use bvhtrace_gpu as gpu;
 pub use bvhtrace_gpu::glam;
-pub use bvhtrace_kernels as kernels;
 #[cfg(not(target_arch = "wasm32"))]
 pub use bvhtrace_vk as vk;

@@ -5,10 +5,9 @@ use std::fmt;
 use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, HitFilter, TraceOptions, Traversal};
+use bvhtrace_engine::tracer::SendSync;
+use bvhtrace_engine::{AdapterChoice, BvhStorage, CpuTracer, DriverTuning, TraceError, Tracer};
 use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext, UploadOptions};
-use bvhtrace_kernels::{
-    AdapterChoice, BvhStorage, CpuTracer, DriverTuning, SendSync, TraceError, Tracer,
-};
 #[cfg(not(target_arch = "wasm32"))]
 use bvhtrace_vk::{VkBvh, VkContext, VkOptions};
 
@@ -21,7 +20,7 @@ pub struct OpenOptions {
     /// The backend; [`Backend::Auto`] picks.
     pub backend: Backend,
     /// The adapter of a device backend. The library reads no environment variable: a front
-    /// end that honours [`bvhtrace_kernels::ADAPTER_ENV`] passes it on as
+    /// end that honours [`bvhtrace_engine::device::ADAPTER_ENV`] passes it on as
     /// [`AdapterChoice::Named`].
     pub adapter: AdapterChoice,
     /// The walks the caller will trace with, the first its default. Empty: the backend's
@@ -710,11 +709,11 @@ pub fn open_on_vulkan(
     };
     let list = choices(&plain, BvhStorage::Buffers);
     let (vk, choice, fallback) = first_that_fits(&list, |c| {
-        let vk = if c.walks.iter().any(|w| w.is_wide()) && bvh.wide().is_none() {
-            VkBvh::upload(ctx, &bvh.clone().with_wide())?
-        } else {
-            VkBvh::upload(ctx, bvh)?
+        let upload = UploadOptions {
+            traversals: c.walks.clone(),
+            storage: Some(c.storage),
         };
+        let vk = VkBvh::upload(ctx, bvh, &upload)?;
         check_walks(&vk, &c.walks)?;
         Ok(vk)
     })?;

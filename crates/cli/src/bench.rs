@@ -12,7 +12,8 @@ use bvhtrace_core::{
     Triangle, trace_rays,
 };
 use bvhtrace_gpu::{
-    Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions, VertexAttributes,
+    Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, Tracer, UploadOptions,
+    VertexAttributes,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 

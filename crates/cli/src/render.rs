@@ -730,7 +730,7 @@ fn left_out(
     if pipelines.is_empty() {
         return vec!["everything: traced on the CPU, nothing uploaded".into()];
     }
-    if !pipelines.iter().any(|p| p.module_set().escapes) {
+    if !pipelines.iter().any(|p| p.module_set().escapes()) {
         v.push(format!(
             "escape links (the {traversal} walk does not read them)"
         ));
@@ -738,11 +738,13 @@ fn left_out(
     if !pipelines.iter().any(|p| p.counters) {
         v.push("counters (asked for only by --counters or --shade heatmap)".into());
     }
-    if !pipelines.iter().any(|p| p.module_set().short_stack) {
-        v.push("the stackless/short-stack walk".into());
-    }
-    if !pipelines.iter().any(|p| p.module_set().full_stack) {
-        v.push("the full-stack walk".into());
+    for walk in &bvhtrace_gpu::engine::walks::WALKS {
+        if !pipelines
+            .iter()
+            .any(|p| p.module_set().walks.iter().any(|w| w == walk))
+        {
+            v.push(format!("the {} walk", walk.stem.replace('_', "-")));
+        }
     }
     let a = &scene.attributes;
     for (has, what) in [

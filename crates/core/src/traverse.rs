@@ -65,6 +65,20 @@ impl Traversal {
     /// The fastest walk in the GPU kernels: the default of the device backends.
     pub const GPU_DEFAULT: Traversal = Traversal::Stackless;
 
+    /// Every walk, one of each kind (the short stack with [`DEFAULT_SHORT_STACK`] entries),
+    /// the reference first: the list every front end, report and test takes its walks from.
+    pub const ALL: [Traversal; 4] = [
+        Traversal::FullStack,
+        Traversal::Stackless,
+        Traversal::ShortStack(DEFAULT_SHORT_STACK),
+        Traversal::Wide,
+    ];
+
+    /// True when both are the same walk, whatever a short stack's size.
+    pub fn same_kind(&self, other: &Traversal) -> bool {
+        std::mem::discriminant(self) == std::mem::discriminant(other)
+    }
+
     /// The name used on the command line (`short-stack` for any `k`).
     pub fn name(&self) -> &'static str {
         match self {
@@ -890,13 +904,14 @@ fn wide_rays_dispatch<T: TriangleTest, const I: bool>(
 /// has no wide layout.
 fn trace_wide(
     bvh: &FlatBvh,
+    wide: Option<&WideBvh>,
     rays: &[Ray],
     opts: &TraceOptions,
     filter: Option<&dyn HitFilter>,
     hits: &mut [Hit],
     costs: &mut [WalkCost],
 ) {
-    let Some(w) = bvh.wide.as_deref() else {
+    let Some(w) = wide else {
         panic!(
             "{}: the BVH has no wide layout (call FlatBvh::build_wide)",
             opts.traversal
@@ -1050,10 +1065,25 @@ pub fn trace_ray_filtered(
     filter: Option<&dyn HitFilter>,
     stack: &mut Vec<u32>,
 ) -> (Hit, WalkCost) {
+    trace_ray_in(bvh, bvh.wide().map(|w| &**w), ray, opts, filter, stack)
+}
+
+/// [`trace_ray_filtered`] with the wide walk on `wide`, the tree's wide layout held apart
+/// from it (collapsed from it with [`WideBvh::collapse`]): so that a tracer needs no copy
+/// of the tree to take the wide walk.
+pub fn trace_ray_in(
+    bvh: &FlatBvh,
+    wide: Option<&WideBvh>,
+    ray: &Ray,
+    opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
+    stack: &mut Vec<u32>,
+) -> (Hit, WalkCost) {
     if opts.traversal.is_wide() {
         let (mut hit, mut cost) = ([Hit::miss(0.0)], [WalkCost::default()]);
         trace_wide(
             bvh,
+            wide,
             std::slice::from_ref(ray),
             opts,
             filter,
@@ -1135,6 +1165,18 @@ pub fn trace_rays_filtered(
     opts: &TraceOptions,
     filter: Option<&dyn HitFilter>,
 ) -> TraceOutput {
+    trace_rays_in(bvh, bvh.wide().map(|w| &**w), rays, opts, filter)
+}
+
+/// [`trace_rays_filtered`] with the wide walk on `wide`, held apart from the tree
+/// ([`trace_ray_in`]).
+pub fn trace_rays_in(
+    bvh: &FlatBvh,
+    wide: Option<&WideBvh>,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    filter: Option<&dyn HitFilter>,
+) -> TraceOutput {
     // The escape links' one-off build on first use is not the walks' time.
     if opts.traversal.needs_escapes() && !rays.is_empty() {
         bvh.escapes();
@@ -1148,9 +1190,9 @@ pub fn trace_rays_filtered(
         let runs = hits.par_chunks_mut(RUN).zip(rays.par_chunks(RUN));
         if opts.counters {
             runs.zip(costs.par_chunks_mut(RUN))
-                .for_each(|((h, r), c)| trace_wide(bvh, r, opts, filter, h, c));
+                .for_each(|((h, r), c)| trace_wide(bvh, wide, r, opts, filter, h, c));
         } else {
-            runs.for_each(|(h, r)| trace_wide(bvh, r, opts, filter, h, &mut []));
+            runs.for_each(|(h, r)| trace_wide(bvh, wide, r, opts, filter, h, &mut []));
         }
         let counters = opts
             .counters
@@ -1161,7 +1203,7 @@ pub fn trace_rays_filtered(
             .par_iter()
             .with_min_len(256)
             .map_init(stack, |s, ray| {
-                let (hit, cost) = trace_ray_filtered(bvh, ray, opts, filter, s);
+                let (hit, cost) = trace_ray_in(bvh, wide, ray, opts, filter, s);
                 (hit, cost.counters())
             })
             .unzip();
@@ -1171,7 +1213,7 @@ pub fn trace_rays_filtered(
             .par_iter()
             .with_min_len(256)
             .map_init(stack, |s, ray| {
-                trace_ray_filtered(bvh, ray, opts, filter, s).0
+                trace_ray_in(bvh, wide, ray, opts, filter, s).0
             })
             .collect();
         (h, None)

@@ -17,7 +17,7 @@
 use std::time::Instant;
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, UploadOptions};
+use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, Tracer, UploadOptions};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 
 /// The median time, or the best (smallest) with `--best`: on a shared machine the best of
@@ -124,14 +124,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for g in &gpus {
             println!(
                 "  upload ({:?}): {:.1} MB in {:.1} ms",
-                g.storage(),
+                g.tree().storage,
                 g.stats().total_bytes() as f64 / 1e6,
                 g.stats().upload_ms
             );
         }
         print!("{:<16}", "traversal");
         for g in &gpus {
-            let s = format!("{:?}", g.storage()).to_lowercase();
+            let s = format!("{:?}", g.tree().storage).to_lowercase();
             print!(" {:>13} {:>13}", format!("{s} GPU"), format!("{s} wall"));
         }
         println!(

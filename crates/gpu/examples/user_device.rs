@@ -25,8 +25,8 @@ use bvhtrace_gpu::core::surface::{facing_normal, hit_point};
 use bvhtrace_gpu::core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
 };
+use bvhtrace_gpu::engine::plan::{HIT_BYTES, RAY_BYTES};
 use bvhtrace_gpu::glam::Vec3;
-use bvhtrace_gpu::kernels::{HIT_BYTES, RAY_BYTES};
 use bvhtrace_gpu::{GpuBvh, GpuContext, GpuError, RayBatch, UploadOptions, wgpu};
 use bvhtrace_scene::Scene;
 // The light and the colour rounding of `bvhtrace render` and the viewer.
@@ -100,7 +100,7 @@ fn run() -> Result<(), Box<dyn Error>> {
         tris.len(),
         bvh.nodes().len(),
         bvh.depth(),
-        gpu.storage()
+        gpu.tree().storage
     );
 
     // Your buffers: rays in, hits out, and a copy to read the hits back. One set serves

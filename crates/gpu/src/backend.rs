@@ -4,11 +4,12 @@
 use std::sync::Mutex;
 
 use bvhtrace_core::Traversal;
-use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
-use bvhtrace_kernels::upload::{ArrayRole, DeviceArray, texel_extent};
-use bvhtrace_kernels::{
-    Backend, BackendFeatures, DeviceLimits, DriverTuning, KernelKey, TraceError,
-};
+use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
+use bvhtrace_engine::engine::{BackendFeatures, DeviceApi};
+use bvhtrace_engine::plan::DeviceLimits;
+use bvhtrace_engine::storage::texel_extent;
+use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
+use bvhtrace_engine::{DriverTuning, KernelKey, TraceError};
 use wgpu::util::DeviceExt;
 
 use crate::context::GpuContext;
@@ -239,7 +240,7 @@ impl Wgpu {
     }
 }
 
-impl Backend for Wgpu {
+impl DeviceApi for Wgpu {
     type Arrays = WgpuArrays;
     type Scratch = Scratch;
 

@@ -1,19 +1,20 @@
 //! A [`FlatBvh`] on a wgpu device: [`GpuBvh`], the engine
-//! ([`bvhtrace_kernels::Engine`]) over the wgpu backend, and its wgpu-only surfaces (bind
+//! ([`bvhtrace_engine::Engine`]) over the wgpu backend, and its wgpu-only surfaces (bind
 //! groups, buffers and textures for your own shaders, recording into your encoder).
 
 use bvhtrace_core::{FlatBvh, Traversal};
-use bvhtrace_kernels::upload::ArrayRole;
-use bvhtrace_kernels::{Engine, HasEngine, UploadOptions};
 #[cfg(doc)]
-use bvhtrace_kernels::{Tracer, UploadStats};
+use bvhtrace_engine::Tracer;
+use bvhtrace_engine::engine::{HasEngine, UploadedTree};
+use bvhtrace_engine::upload::ArrayRole;
+use bvhtrace_engine::{Engine, UploadOptions, UploadStats};
 
 use crate::GpuError;
 use crate::backend::Wgpu;
 use crate::context::GpuContext;
 
 /// The BVH bind group of one upload, for group 0 of the kernels or any group of your own
-/// shader ([`bvhtrace_kernels::wgsl_library`]), with the layout
+/// shader ([`bvhtrace_engine::wgsl_library`]), with the layout
 /// [`BvhBindGroup::layout`] names.
 #[derive(Clone, Copy, Debug)]
 pub struct BvhBindGroup<'a> {
@@ -43,18 +44,10 @@ impl<'a> BvhBindGroup<'a> {
 /// [`GpuBvh::record`]).
 /// `Send + Sync`: trace it from several threads at once.
 ///
-/// The engine's methods ([`Engine::trace`], [`Engine::supports`], [`Engine::stats`],
-/// [`Engine::finish_incomplete`], ...) are this type's through `Deref`; [`Tracer`] is
-/// implemented by the engine ([`HasEngine`]).
+/// [`Tracer`] is implemented by the engine ([`HasEngine::engine`] gives it, for what
+/// only a backend implementer asks of it).
 pub struct GpuBvh {
     pub(crate) engine: Engine<Wgpu>,
-}
-
-impl std::ops::Deref for GpuBvh {
-    type Target = Engine<Wgpu>;
-    fn deref(&self) -> &Engine<Wgpu> {
-        &self.engine
-    }
 }
 
 impl HasEngine for GpuBvh {
@@ -71,7 +64,7 @@ impl std::fmt::Debug for GpuBvh {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("GpuBvh")
             .field("tree", self.engine.tree())
-            .field("stats", self.stats())
+            .field("stats", self.engine.stats())
             .finish()
     }
 }
@@ -93,6 +86,16 @@ impl GpuBvh {
         })
     }
 
+    /// What the upload holds: storage, one mesh or two levels, masks, layouts, depth.
+    pub fn tree(&self) -> &UploadedTree {
+        self.engine.tree()
+    }
+
+    /// What the upload holds and cost (both layouts together).
+    pub fn stats(&self) -> &UploadStats {
+        self.engine.stats()
+    }
+
     /// Device bytes of the buffers [`trace`](crate::Tracer::trace) keeps between calls:
     /// rays, hits and their readback copy, and the counters (with theirs) only once a trace
     /// asked for them.
@@ -110,16 +113,12 @@ impl GpuBvh {
     /// [`Traversal::Wide`] the wide layout's), with its layout. For your own shader use
     /// [`GpuBvh::bind_group_for`], which checks the library against the upload.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
-        self.supports_traversal(traversal)?;
+        self.engine.supports_traversal(traversal)?;
         let group = (self.engine.arrays().group(traversal))
             .ok_or(GpuError::TraversalNotUploaded { traversal })?;
         let escapes = !traversal.is_wide() && traversal.needs_escapes();
-        let layout = (self.context()).bvh_layout(
-            self.storage(),
-            escapes,
-            self.is_instanced(),
-            self.has_masks(),
-        );
+        let t = self.tree();
+        let layout = (self.context()).bvh_layout(t.storage, escapes, t.instanced, t.masks);
         Ok(BvhBindGroup { group, layout })
     }
 
@@ -150,7 +149,7 @@ impl GpuBvh {
     }
 
     /// The wide layout's textures (five `Rgba32Uint` texels per node, three per triangle,
-    /// [`TEXEL_ROW`](bvhtrace_kernels::TEXEL_ROW) texels a row: `bvh_textures_wide.wgsl`),
+    /// [`TEXEL_ROW`](bvhtrace_engine::storage::TEXEL_ROW) texels a row: `bvh_textures_wide.wgsl`),
     /// when it was uploaded in [`crate::BvhStorage::Textures`].
     pub fn wide_textures(&self) -> Option<(&wgpu::Texture, &wgpu::Texture)> {
         let a = self.engine.arrays();

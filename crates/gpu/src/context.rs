@@ -6,11 +6,14 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::Precision;
-use bvhtrace_kernels::key::ModuleSet;
-use bvhtrace_kernels::{
-    AdapterChoice, BackendFeatures, BvhStorage, Composition, DeviceKind, DeviceLimits,
-    DriverTuning, FULL_STACK_SIZE, KernelKey, RayInput, STACK_LANES, WORKGROUP_SIZE,
-};
+use bvhtrace_engine::compose::ModuleSet;
+use bvhtrace_engine::compose::WORKGROUP_SIZE;
+use bvhtrace_engine::engine::BackendFeatures;
+use bvhtrace_engine::key::Composition;
+use bvhtrace_engine::plan::DeviceLimits;
+use bvhtrace_engine::storage::RayInput;
+use bvhtrace_engine::walks::{FULL_STACK_SIZE, STACK_LANES};
+use bvhtrace_engine::{AdapterChoice, BvhStorage, DeviceKind, DriverTuning, KernelKey};
 
 use crate::GpuError;
 
@@ -150,7 +153,7 @@ impl GpuContext {
     }
 
     /// The features the tracer uses when a device has them: `TIMESTAMP_QUERY` (GPU times
-    /// in [`TraceOutput::gpu_ms`](bvhtrace_kernels::TraceOutput::gpu_ms)) and `SHADER_F64`
+    /// in [`TraceOutput::gpu_ms`](bvhtrace_engine::TraceOutput::gpu_ms)) and `SHADER_F64`
     /// (the f64 triangle test, [`bvhtrace_core::Precision::WatertightF64`]).
     pub fn optional_features() -> wgpu::Features {
         wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::SHADER_F64
@@ -670,7 +673,7 @@ impl GpuContext {
         if let Some(m) = self.inner.modules.lock().map_err(|_| poisoned())?.get(set) {
             return Ok(m.clone());
         }
-        let source = set.compose(bvhtrace_kernels::BVH_GROUP);
+        let source = set.compose(bvhtrace_engine::compose::BVH_GROUP);
         let module = self.scoped("compiling the WGSL kernels", || {
             self.inner
                 .device

@@ -58,7 +58,8 @@ pub use build::{
     RefitVertices,
 };
 pub use bvh::{BvhBindGroup, GpuBvh};
-pub use bvhtrace_kernels::{Update, UploadOptions};
+pub use bvhtrace_engine::UploadOptions;
+pub use bvhtrace_engine::engine::Update;
 pub use context::{ContextOptions, GpuContext, device_kind};
 #[cfg(not(target_arch = "wasm32"))]
 pub use ray_query::RayQueryBvh;
@@ -68,17 +69,20 @@ pub const RAY_QUERY_BACKEND: &str = "ray-query";
 pub use trace::RayBatch;
 
 pub use bvhtrace_core::{InstanceHit, InstanceTable};
-pub use bvhtrace_kernels::{
-    AdapterChoice, BvhLibrary, BvhStorage, Composition, CpuTracer, DeviceLimits, DriverTuning,
-    KernelKey, LibraryShape, TraceError, Tracer, UploadStats, VertexAttributes, wgsl_library,
+pub use bvhtrace_engine::compose::VertexAttributes;
+pub use bvhtrace_engine::core::{Query, TraceOptions, TraceOutput, Traversal};
+pub use bvhtrace_engine::key::Composition;
+pub use bvhtrace_engine::plan::DeviceLimits;
+pub use bvhtrace_engine::{
+    AdapterChoice, BvhLibrary, BvhStorage, CpuTracer, DriverTuning, KernelKey, LibraryShape,
+    TraceError, Tracer, UploadStats, wgsl_library,
 };
-pub use bvhtrace_kernels::{Query, TraceOptions, TraceOutput, Traversal};
 
 /// The error type of this crate: [`TraceError`], shared by every backend.
 pub type GpuError = TraceError;
 
 /// Re-exported so users need not depend on the same versions by hand.
 pub use bvhtrace_core as core;
-pub use bvhtrace_kernels as kernels;
+pub use bvhtrace_engine as engine;
 pub use glam;
 pub use wgpu;

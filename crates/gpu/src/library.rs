@@ -3,20 +3,21 @@
 //! buffers or textures: the shader calls `bvh_trace_closest(ray, lane)` and
 //! `bvh_trace_any(ray, lane)` the same way on each.
 
-use bvhtrace_kernels::{BvhLibrary, LibraryShape, wgsl_library};
+use bvhtrace_engine::{BvhLibrary, LibraryShape, wgsl_library};
 
 use crate::{BvhBindGroup, GpuBvh, GpuError, Traversal};
 
 impl GpuBvh {
     /// What this upload holds, as a library for `traversal` would be composed for it.
     pub fn library_shape(&self, traversal: Traversal) -> LibraryShape {
+        let t = self.tree();
         LibraryShape {
-            masks: self.has_masks(),
-            ..LibraryShape::new(self.storage(), self.is_instanced(), traversal)
+            masks: t.masks,
+            ..LibraryShape::new(t.storage, t.instanced, traversal)
         }
     }
 
-    /// The traversal library for your own shader ([`bvhtrace_kernels::wgsl_library`]),
+    /// The traversal library for your own shader ([`bvhtrace_engine::wgsl_library`]),
     /// composed for this upload (its storage, one mesh or two levels) and `traversal`'s
     /// walk, with the BVH bindings in `@group(group)`. An error when the upload does not
     /// hold what `traversal` reads (the wide layout, the escape links). Bind it with

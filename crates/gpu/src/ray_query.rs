@@ -1,6 +1,6 @@
 //! The ray-query tracer: the tree's triangles handed to the device's own acceleration
 //! structure builder (a BLAS per mesh, a TLAS over the instances) and traced by `rayQuery`
-//! in a compute kernel ([`bvhtrace_kernels::ray_query`]), behind the same [`Tracer`]
+//! in a compute kernel ([`bvhtrace_engine::ray_query`]), behind the same [`Tracer`]
 //! interface, ray and hit layout and ids as our walks.
 //!
 //! Where a device has ray-tracing hardware this is the fast path; on a CPU driver such as
@@ -25,11 +25,12 @@ use std::sync::{Arc, Mutex};
 use bvhtrace_core::flat::{FlatInstance, FlatNode};
 use bvhtrace_core::masks::NO_MASKS;
 use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput};
-use bvhtrace_kernels::{
-    BvhLibrary, HIT_BYTES, LibraryShape, RAY_BYTES, RayInput, TraceError, Tracer, UploadStats,
-    check_buffer_size, check_update_shape, mesh_fingerprint, plan_dispatches, rays_per_dispatch,
-    tree_shape, wgsl_library,
+use bvhtrace_engine::plan::{
+    HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
 };
+use bvhtrace_engine::storage::RayInput;
+use bvhtrace_engine::tracer::{check_update_shape, mesh_fingerprint, tree_shape};
+use bvhtrace_engine::{BvhLibrary, LibraryShape, TraceError, Tracer, UploadStats, wgsl_library};
 use std::time::Instant;
 use wgpu::util::DeviceExt;
 
@@ -263,7 +264,7 @@ impl RayQueryBvh {
             fingerprint: mesh_fingerprint(bvh),
             table: InstanceTable::of(bvh),
             stats: UploadStats {
-                storage: bvhtrace_kernels::BvhStorage::Buffers,
+                storage: bvhtrace_engine::BvhStorage::Buffers,
                 nodes_bytes: 0,
                 triangles_bytes: tri_bytes.len() as u64,
                 escapes_bytes: 0,
@@ -469,7 +470,7 @@ impl RayQueryBvh {
         }
         let device = self.ctx.device();
         let source =
-            bvhtrace_kernels::ray_query::kernel_source(self.is_instanced(), self.has_masks());
+            bvhtrace_engine::ray_query::kernel_source(self.is_instanced(), self.has_masks());
         let constants = [
             ("BVH_ANY_HIT", if any { 1.0 } else { 0.0 }),
             ("BVH_RAY_MASK", f64::from(mask)),
@@ -488,10 +489,10 @@ impl RayQueryBvh {
                 immediate_size: 0,
             });
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(bvhtrace_kernels::ray_query::ENTRY_POINT),
+                label: Some(bvhtrace_engine::ray_query::ENTRY_POINT),
                 layout: Some(&layout),
                 module: &module,
-                entry_point: Some(bvhtrace_kernels::ray_query::ENTRY_POINT),
+                entry_point: Some(bvhtrace_engine::ray_query::ENTRY_POINT),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: false,
@@ -771,7 +772,7 @@ impl Tracer for RayQueryBvh {
         &'a self,
         rays: &'a [Ray],
         opts: &'a TraceOptions,
-    ) -> bvhtrace_kernels::TraceFuture<'a> {
+    ) -> bvhtrace_engine::tracer::TraceFuture<'a> {
         Box::pin(self.trace_chunks(rays, opts))
     }
 

@@ -6,12 +6,11 @@ use std::num::NonZeroU64;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Poll, Waker};
 
-use bvhtrace_core::{Counters, Ray, TraceOptions};
-use bvhtrace_kernels::engine::{Batch, ScratchPlan};
-use bvhtrace_kernels::{
-    COUNTERS_BYTES, HIT_BYTES, KernelKey, RAY_BYTES, RayInput, TEXEL_ROW, plan_dispatches,
-    texel_rows,
-};
+use bvhtrace_core::{Counters, Hit, Ray, TraceOptions};
+use bvhtrace_engine::KernelKey;
+use bvhtrace_engine::engine::{Batch, ScratchPlan};
+use bvhtrace_engine::plan::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, plan_dispatches};
+use bvhtrace_engine::storage::{RayInput, TEXEL_ROW, texel_rows};
 
 use crate::GpuError;
 use crate::backend::WgpuArrays;
@@ -433,7 +432,7 @@ struct Pass<'a> {
 
 impl GpuBvh {
     /// Records the traversal of `batch` into `encoder`, as one compute pass with one
-    /// dispatch per chunk of at most [`rays_per_dispatch`](bvhtrace_kernels::rays_per_dispatch)
+    /// dispatch per chunk of at most [`rays_per_dispatch`](bvhtrace_engine::plan::rays_per_dispatch)
     /// rays. `timestamp_writes`, when given, is attached to that pass (the device needs
     /// `TIMESTAMP_QUERY`). The bind groups for the caller's buffers are made once and
     /// reused while the same buffers come back.
@@ -441,8 +440,8 @@ impl GpuBvh {
     /// The buffers are checked (usage and size) before anything is recorded; the caller
     /// submits the encoder. Rays are never [`bvhtrace_core::INCOMPLETE`] here unless the
     /// context's tuning sets a trip budget (CPU drivers), or the wide walk meets a wide
-    /// tree deeper than its stack ([`bvhtrace_kernels::wide_stack_may_overflow`]): once the
-    /// hits (and counters) are read back, [`Engine::finish_incomplete`](bvhtrace_kernels::Engine::finish_incomplete) finishes those.
+    /// tree deeper than its stack ([`bvhtrace_engine::walks::may_overflow`]): once the hits
+    /// (and counters) are read back, [`GpuBvh::finish_incomplete`] finishes those.
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -463,6 +462,20 @@ impl GpuBvh {
         };
         record_pass(self.context(), self.engine.arrays(), key, encoder, pass)?;
         self.engine.note_used(key)
+    }
+
+    /// Replaces the [`bvhtrace_core::INCOMPLETE`] hits of a recorded trace (read back by
+    /// the caller) by the CPU walk's answer on this upload's host copy, counters too when
+    /// given; returns how many were finished (0 when the upload keeps no host copy: no ray
+    /// can come back incomplete).
+    pub fn finish_incomplete(
+        &self,
+        rays: &[Ray],
+        opts: &TraceOptions,
+        hits: &mut [Hit],
+        counters: Option<&mut [Counters]>,
+    ) -> u64 {
+        self.engine.finish_incomplete(rays, opts, hits, counters)
     }
 }
 

@@ -5,7 +5,7 @@
 use bvhtrace_core::{BuildOptions, FlatBvh, Precision, Ray, TraceOptions, Traversal, trace_rays};
 use bvhtrace_gpu::{
     AdapterChoice, BvhStorage, ContextOptions, DriverTuning, GpuBvh, GpuContext, TraceError,
-    UploadOptions, wgpu,
+    Tracer, UploadOptions, wgpu,
 };
 use glam::Vec3;
 
@@ -156,7 +156,7 @@ fn recommended_limits_buy_the_fast_path() {
         return;
     };
     let cpu_driver =
-        bvhtrace_gpu::device_kind(info.device_type) == bvhtrace_gpu::kernels::DeviceKind::Cpu;
+        bvhtrace_gpu::device_kind(info.device_type) == bvhtrace_gpu::engine::DeviceKind::Cpu;
     let fast = GpuContext::from_device(device, queue, info).expect("recommended limits suffice");
     let expected = if cpu_driver {
         BvhStorage::Textures
@@ -173,7 +173,7 @@ fn recommended_limits_buy_the_fast_path() {
     let opts = TraceOptions::closest(Traversal::Stackless);
     let hits = |ctx: &GpuContext| {
         let gpu = GpuBvh::upload(ctx, &bvh, &UploadOptions::all()).expect("upload");
-        assert_eq!(gpu.storage(), ctx.tuning().storage);
+        assert_eq!(gpu.tree().storage, ctx.tuning().storage);
         gpu.trace(&rays, &opts).expect("trace").hits
     };
     assert_eq!(hits(&fast), hits(&least));
@@ -185,7 +185,7 @@ fn recommended_limits_buy_the_fast_path() {
 #[test]
 fn texture_storage_beyond_the_texture_limit_is_refused_by_name() {
     let limits = wgpu::Limits {
-        max_texture_dimension_2d: bvhtrace_gpu::kernels::TEXEL_ROW / 2,
+        max_texture_dimension_2d: bvhtrace_gpu::engine::storage::TEXEL_ROW / 2,
         max_storage_textures_per_shader_stage: 8,
         ..GpuContext::required_limits()
     };

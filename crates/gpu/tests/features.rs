@@ -4,15 +4,16 @@
 //! bindings declare (for the wide layout too).
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal};
-use bvhtrace_gpu::kernels::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, RayInput, TEXEL_ROW};
+use bvhtrace_gpu::engine::plan::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES};
+use bvhtrace_gpu::engine::storage::{RayInput, TEXEL_ROW};
 use bvhtrace_gpu::{
-    BvhStorage, Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, UploadOptions,
+    BvhStorage, Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, Tracer, UploadOptions,
     VertexAttributes,
 };
 use glam::Vec3;
 use naga::{Module, TypeInner};
 
-#[path = "../../kernels/tests/common/mod.rs"]
+#[path = "../../engine/tests/common/mod.rs"]
 mod kernels_common;
 use kernels_common::{STORAGES, TRAVERSALS};
 
@@ -55,7 +56,7 @@ fn switching_back_to_a_feature_set_does_not_recompile() {
     // Rays and hits: buffers (and the hits' readback), or whole rows of a ray texture (two
     // texels per ray) and of a hit texture (one), and the hit rows' readback
     // (`RayInput::for_storage`).
-    let plain = match RayInput::for_storage(gpu.storage()) {
+    let plain = match RayInput::for_storage(gpu.tree().storage) {
         RayInput::Buffer => n * RAY_BYTES + 2 * n * HIT_BYTES,
         RayInput::Texture => {
             let row = u64::from(TEXEL_ROW);
@@ -167,7 +168,7 @@ fn the_upload_is_exactly_what_the_kernel_reads() {
                 "{f:?}: {stats:?}"
             );
             // Both layouts are in the storage asked for.
-            assert_eq!((f.storage, gpu.storage()), (storage, storage), "{f:?}");
+            assert_eq!((f.storage, gpu.tree().storage), (storage, storage), "{f:?}");
             assert_eq!(
                 (gpu.wide_buffers().is_some(), gpu.wide_textures().is_some()),
                 (
@@ -286,6 +287,6 @@ fn tracer_update_answers_as_a_fresh_upload() {
     assert!(used[0].traversal == Traversal::Stackless && used[1].traversal.is_wide());
     assert!(
         used.iter()
-            .all(|k| k.instances && k.storage == gpu.storage())
+            .all(|k| k.instances && k.storage == gpu.tree().storage)
     );
 }

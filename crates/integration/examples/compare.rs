@@ -19,7 +19,8 @@ use std::error::Error;
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Traversal};
 use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, UploadOptions};
-use bvhtrace_vk::{AdapterChoice, TraceOptions, VkBvh, VkContext};
+use bvhtrace_vk::core::TraceOptions;
+use bvhtrace_vk::{AdapterChoice, Tracer, UploadOptions as VkUploadOptions, VkBvh, VkContext};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -87,7 +88,7 @@ fn main() -> Result<(), Box<dyn Error>> {
         let name = std::path::Path::new(spec.split('#').next().unwrap_or(spec))
             .file_stem()
             .map_or(spec.clone(), |s| s.to_string_lossy().into_owned());
-        let ash_bvh = VkBvh::upload(&vk, &bvh)?;
+        let ash_bvh = VkBvh::upload(&vk, &bvh, &VkUploadOptions::all())?;
         let wgpu_buffers = GpuBvh::upload(
             &wg,
             &bvh,

@@ -10,7 +10,8 @@ use bvhtrace_core::{
     FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, Precision, Query, Ray,
     TraceOptions, TraceOutput, Traversal, Triangle, brute_force,
 };
-use bvhtrace_kernels::{CpuTracer, DriverTuning, FULL_STACK_SIZE, TraceError, Tracer};
+use bvhtrace_engine::walks::FULL_STACK_SIZE;
+use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
 use rayon::prelude::*;
 use serde::Serialize;
 

@@ -17,7 +17,7 @@ use bvhtrace_core::instance::REFIT_REBUILD_ADVISED;
 use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, InstancedBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
-use bvhtrace_gpu::kernels::check_depth;
+use bvhtrace_gpu::engine::walks::check_depth;
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::{Affine3A, Vec3};
 

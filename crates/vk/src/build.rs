@@ -1,4 +1,4 @@
-//! The device BVH builders on ash: [`bvhtrace_kernels::builder`]'s host side (the one the
+//! The device BVH builders on ash: [`bvhtrace_engine::builder`]'s host side (the one the
 //! wgpu backend runs) over Vulkan buffers, descriptor sets, compute pipelines from the
 //! builders' WGSL (through naga, as the trace kernels) and one command buffer.
 
@@ -8,12 +8,13 @@ use std::sync::Arc;
 
 use ash::vk;
 use bvhtrace_core::{FlatBvh, Triangle};
-use bvhtrace_kernels::builder::{
+use bvhtrace_engine::TraceError;
+use bvhtrace_engine::builder::{
     Binding, BufferKind, BuildDevice, Dispatch, GpuBuildOptions, GpuBuildTimes, GpuBuilderKind,
     Grid,
 };
-use bvhtrace_kernels::spirv::{self, EntryBinding};
-use bvhtrace_kernels::{DeviceLimits, TraceError};
+use bvhtrace_engine::plan::DeviceLimits;
+use bvhtrace_engine::spirv::{self, EntryBinding};
 
 use crate::VkContext;
 use crate::context::compute_pipeline;
@@ -73,7 +74,7 @@ impl VkContext {
             ctx: self,
             pending: RefCell::default(),
         };
-        bvhtrace_kernels::builder::build_bvh_blocking(&dev, tris, opts)
+        bvhtrace_engine::builder::build_bvh_blocking(&dev, tris, opts)
     }
 
     /// The entry points of builder `kind`, compiled on first use and kept.
@@ -224,7 +225,7 @@ struct Pending {
     resets: Vec<(vk::QueryPool, u32)>,
 }
 
-/// One build on a [`VkContext`]: what [`bvhtrace_kernels::builder::build_bvh`] needs of
+/// One build on a [`VkContext`]: what [`bvhtrace_engine::builder::build_bvh`] needs of
 /// the device.
 struct AshBuild<'a> {
     ctx: &'a VkContext,

@@ -1,18 +1,21 @@
 //! The BVH in storage buffers and the ray-batch API: [`VkBvh`], the engine
-//! ([`bvhtrace_kernels::Engine`]) over the ash implementation of its [`Backend`].
+//! ([`bvhtrace_engine::Engine`]) over the ash implementation of its [`DeviceApi`].
 
 use bytemuck::Zeroable;
 
 use ash::vk;
 use bvhtrace_core::FlatBvh;
-use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
-use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
-use bvhtrace_kernels::{
-    Backend, BackendFeatures, COUNTERS_BYTES, DeviceLimits, DriverTuning, Engine, HIT_BYTES,
-    HasEngine, KernelKey, RAY_BYTES, TraceError, UploadOptions, plan_dispatches,
-};
 #[cfg(doc)]
-use bvhtrace_kernels::{BvhStorage, Tracer, Traversal};
+use bvhtrace_engine::core::Traversal;
+use bvhtrace_engine::engine::{
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, DeviceApi, HasEngine, ScratchPlan,
+    UploadedTree,
+};
+use bvhtrace_engine::plan::{COUNTERS_BYTES, DeviceLimits, HIT_BYTES, RAY_BYTES, plan_dispatches};
+use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
+#[cfg(doc)]
+use bvhtrace_engine::{BvhStorage, Tracer};
+use bvhtrace_engine::{DriverTuning, Engine, KernelKey, TraceError, UploadOptions, UploadStats};
 
 use crate::context::{Buffer, VkContext, barrier};
 use crate::error::vkerr;
@@ -332,7 +335,7 @@ impl Ash {
     }
 }
 
-impl Backend for Ash {
+impl DeviceApi for Ash {
     type Arrays = Arrays;
     type Scratch = Scratch;
 
@@ -457,20 +460,10 @@ impl Backend for Ash {
 /// A [`FlatBvh`] uploaded to a [`VkContext`]'s device as storage buffers (nodes, triangles,
 /// escapes, instances: the layout of [`bvhtrace_core::flat`], byte for byte), and the wide
 /// layout for [`Traversal::Wide`]. Implements [`Tracer`], the interface shared with the CPU
-/// and wgpu backends: the engine ([`Engine`]) both device backends share.
-///
-/// The engine's methods ([`Engine::trace`], [`Engine::supports`], [`Engine::stats`],
-/// [`Engine::depth`], ...) are this type's through `Deref`; [`Tracer`] is implemented by
-/// the engine ([`HasEngine`]).
+/// and wgpu backends, through the engine ([`Engine`]) every device backend shares
+/// ([`HasEngine::engine`] gives it, for what only a backend implementer asks of it).
 pub struct VkBvh {
     engine: Engine<Ash>,
-}
-
-impl std::ops::Deref for VkBvh {
-    type Target = Engine<Ash>;
-    fn deref(&self) -> &Engine<Ash> {
-        &self.engine
-    }
 }
 
 impl HasEngine for VkBvh {
@@ -493,21 +486,14 @@ impl std::fmt::Debug for VkBvh {
 }
 
 impl VkBvh {
-    /// Uploads `bvh` for every walk it can take ([`UploadOptions::fitting`]): nodes,
-    /// triangles, escape links (built first when they are not yet), instances, and the
-    /// wide layout when the tree has one (`FlatBvh::build_wide`); the full stack is left
-    /// out for a tree deeper than it, and refused at trace time ([`TraceError::TooDeep`]).
-    /// See [`VkBvh::upload_with`].
-    pub fn upload(ctx: &VkContext, bvh: &FlatBvh) -> Result<VkBvh, TraceError> {
-        VkBvh::upload_with(ctx, bvh, &UploadOptions::fitting(bvh))
-    }
-
     /// Uploads `bvh` as `opts` says, to device-local storage buffers (through one
     /// host-visible staging buffer), by the rules every backend follows
-    /// ([`Engine::upload`]; the limits are `maxStorageBufferRange` and
-    /// `maxMemoryAllocationSize`). [`BvhStorage::Textures`] is a
-    /// [`TraceError::MissingFeature`]: this backend has buffers only.
-    pub fn upload_with(
+    /// ([`Engine::upload`]: the arrays the listed walks read, the wide layout collapsed
+    /// when a wide walk is listed and the tree has none; the limits are
+    /// `maxStorageBufferRange` and `maxMemoryAllocationSize`). [`BvhStorage::Textures`] is
+    /// a [`TraceError::MissingFeature`]: this backend has buffers only.
+    /// [`UploadOptions::fitting`] uploads for every walk the tree can take.
+    pub fn upload(
         ctx: &VkContext,
         bvh: &FlatBvh,
         opts: &UploadOptions,
@@ -516,6 +502,16 @@ impl VkBvh {
         Ok(VkBvh {
             engine: Engine::upload(backend, bvh, opts)?,
         })
+    }
+
+    /// What the upload holds: one mesh or two levels, masks, layouts, depth.
+    pub fn tree(&self) -> &UploadedTree {
+        self.engine.tree()
+    }
+
+    /// What the upload holds and cost (both layouts together).
+    pub fn stats(&self) -> &UploadStats {
+        self.engine.stats()
     }
 
     /// The context this BVH lives on.

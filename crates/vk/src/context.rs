@@ -8,11 +8,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
-use bvhtrace_kernels::spirv::{self, SpirvTarget};
-use bvhtrace_kernels::{
-    AdapterChoice, BackendFeatures, BvhStorage, DeviceKind, DeviceLimits, DriverTuning, KernelKey,
-    TraceError,
-};
+use bvhtrace_engine::engine::BackendFeatures;
+use bvhtrace_engine::plan::DeviceLimits;
+use bvhtrace_engine::spirv::{self, SpirvTarget};
+use bvhtrace_engine::{AdapterChoice, BvhStorage, DeviceKind, DriverTuning, KernelKey, TraceError};
 
 use crate::build::{BuildProgram, destroy_program};
 use crate::error::{from_vk, vkerr};
@@ -662,7 +661,7 @@ impl VkContext {
     }
 
     /// The SPIR-V words of `key`'s kernel for this device, with this context's tuning
-    /// ([`bvhtrace_kernels::spirv::kernel`]), when [`VkContext::features`] allow it.
+    /// ([`bvhtrace_engine::spirv::kernel`]), when [`VkContext::features`] allow it.
     pub fn spirv(&self, key: KernelKey) -> Result<Vec<u32>, TraceError> {
         self.features()
             .check(&key, || self.inner.info.name.clone())?;

@@ -2,7 +2,7 @@
 //! and loader failure comes back as one of those, never as a panic.
 
 use ash::vk;
-use bvhtrace_kernels::TraceError;
+use bvhtrace_engine::TraceError;
 
 /// Maps a failing Vulkan result, naming what was being done: out of (device or host)
 /// memory is [`TraceError::OutOfMemory`], a lost device [`TraceError::DeviceLost`], any

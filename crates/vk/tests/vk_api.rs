@@ -7,10 +7,12 @@
 //! crate's tests need no wgpu. Runs on lavapipe in CI; prints SKIP and passes only when
 //! there is no Vulkan loader or device at all.
 
-use bvhtrace_core::{FlatBvh, Precision, Query, Ray, Traversal};
-use bvhtrace_vk::kernels::{BvhStorage, FULL_STACK_SIZE, HasEngine, Update};
+use bvhtrace_core::{FlatBvh, Precision, Query, Ray, TraceOptions, Traversal};
+use bvhtrace_vk::engine::BvhStorage;
+use bvhtrace_vk::engine::engine::{HasEngine, Update};
+use bvhtrace_vk::engine::walks::FULL_STACK_SIZE;
 use bvhtrace_vk::{
-    AdapterChoice, DriverTuning, TraceError, TraceOptions, Tracer, VkBvh, VkContext, VkOptions,
+    AdapterChoice, DriverTuning, TraceError, Tracer, UploadOptions, VkBvh, VkContext, VkOptions,
 };
 use glam::Vec3;
 
@@ -67,7 +69,8 @@ fn create_and_drop_in_a_loop() {
             ..VkOptions::default()
         })
         .unwrap_or_else(|e| panic!("iteration {i}: {e}"));
-        let gpu = VkBvh::upload(&ctx, &bvh).unwrap_or_else(|e| panic!("iteration {i}: {e}"));
+        let gpu = VkBvh::upload(&ctx, &bvh, &UploadOptions::fitting(&bvh))
+            .unwrap_or_else(|e| panic!("iteration {i}: {e}"));
         let opts = TraceOptions::closest(Traversal::ShortStack(4)).with_counters(i % 2 == 0);
         let out = gpu
             .trace(&rays, &opts)
@@ -113,7 +116,7 @@ fn errors_are_errors_not_panics() {
     // A tree deeper than the full-stack kernel's stack is refused for that traversal only.
     let deep = deep_tree();
     assert!(deep.depth() > FULL_STACK_SIZE);
-    let gpu = VkBvh::upload(&ctx, &deep).expect("upload");
+    let gpu = VkBvh::upload(&ctx, &deep, &UploadOptions::fitting(&deep)).expect("upload");
     let rays = [Ray::new(Vec3::new(-1.0, 0.1, 0.0), Vec3::X)];
     let full = TraceOptions::closest(Traversal::FullStack);
     match gpu.trace(&rays, &full) {
@@ -145,7 +148,7 @@ fn errors_are_errors_not_panics() {
         let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
         let mut huge = deep.clone();
         *huge.parts_mut().triangles = vec![bytemuck::Zeroable::zeroed(); n];
-        match VkBvh::upload(&ctx, &huge) {
+        match VkBvh::upload(&ctx, &huge, &UploadOptions::fitting(&huge)) {
             Err(e @ TraceError::TooLarge { .. }) => {
                 let msg = e.to_string();
                 assert!(msg.contains("triangles"), "{msg}");
@@ -160,7 +163,7 @@ fn errors_are_errors_not_panics() {
     // Escape links that do not match the nodes are refused, saying how to make them.
     let mut unlinked = deep.clone();
     unlinked.escapes_mut().truncate(8);
-    match VkBvh::upload(&ctx, &unlinked) {
+    match VkBvh::upload(&ctx, &unlinked, &UploadOptions::fitting(&unlinked)) {
         Err(
             e @ TraceError::BadEscapeLinks(bvhtrace_core::flat::EscapeLinksMismatch {
                 found: 8,
@@ -173,7 +176,7 @@ fn errors_are_errors_not_panics() {
     }
     // An empty tree is refused.
     let nothing = FlatBvh::default();
-    match VkBvh::upload(&ctx, &nothing) {
+    match VkBvh::upload(&ctx, &nothing, &UploadOptions::fitting(&nothing)) {
         Err(TraceError::EmptyBvh) => {}
         other => panic!("expected EmptyBvh, got {other:?}"),
     }
@@ -194,7 +197,7 @@ fn errors_are_errors_not_panics() {
         .expect("empty batch");
     assert!(empty.hits.is_empty());
     // The wide walk on a BVH uploaded without its wide layout: refused, naming the fix.
-    assert!(!gpu.has_wide());
+    assert!(!gpu.tree().wide);
     let wide = TraceOptions::closest(Traversal::Wide);
     for err in [
         gpu.trace(&rays, &wide).expect_err("no wide layout"),
@@ -287,7 +290,7 @@ fn tracer_interface_describes_the_device() {
         panic!("the built-in degenerate scene always loads");
     };
     let rays = parity_rays(&bvh);
-    let vk = VkBvh::upload(&ctx, &bvh).expect("upload");
+    let vk = VkBvh::upload(&ctx, &bvh, &UploadOptions::fitting(&bvh)).expect("upload");
     let tracers: [&dyn Tracer; 1] = [&vk];
     assert_eq!(tracers[0].backend(), "vulkan");
     assert!(
@@ -326,7 +329,12 @@ fn named_updates_and_their_bytes() {
     let mut ib = scene
         .instanced_bvh(&bvhtrace_core::BuildOptions::default())
         .expect("two levels");
-    let mut vk = VkBvh::upload(&ctx, &ib.bvh().clone().with_wide()).expect("upload");
+    let mut vk = VkBvh::upload(
+        &ctx,
+        ib.bvh(),
+        &UploadOptions::fitting(ib.bvh()).with_traversal(Traversal::Wide),
+    )
+    .expect("upload");
     let moved: Vec<glam::Affine3A> = ib
         .instances()
         .iter()

@@ -3,7 +3,7 @@
 //! upload take it as they take a CPU-built tree.
 //!
 //! The builders' host side (upload, sort, linear BVH, clustering loop, read back, timing)
-//! is [`bvhtrace_kernels::builder`], shared with the ash backend; this module gives it
+//! is [`bvhtrace_engine::builder`], shared with the ash backend; this module gives it
 //! wgpu's buffers, bind groups, compute passes and mappings ([`BuildDevice`]). The
 //! programs that move a built tree's vertices (refit, skinning, morph targets) and the
 //! top level's rebuild are here too.
@@ -13,20 +13,21 @@ mod refit;
 mod skin;
 mod top;
 
-pub use bvhtrace_kernels::builder::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
+pub use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
 pub use morph::GpuMorph;
 pub use refit::{GpuRefit, RefitTimes, RefitVertices};
 pub use skin::GpuSkin;
 
 use bvhtrace_core::{FlatBvh, Triangle};
-use bvhtrace_kernels::builder::{BufferKind, BuildDevice, Dispatch, Grid};
-use bvhtrace_kernels::{DeviceLimits, TraceError};
+use bvhtrace_engine::TraceError;
+use bvhtrace_engine::builder::{BufferKind, BuildDevice, Dispatch, Grid};
+use bvhtrace_engine::plan::DeviceLimits;
 use wgpu::util::DeviceExt;
 
 use crate::trace::{map_all, read_mapped};
 use crate::{GpuContext, GpuError};
 
-pub(crate) use bvhtrace_kernels::builder::{PARAMS_STRIDE, grid};
+pub(crate) use bvhtrace_engine::builder::{PARAMS_STRIDE, grid};
 
 /// The timestamp queries around each step, the name of each pair, and the buffers they
 /// are read through.
@@ -250,7 +251,7 @@ impl BuildDevice for Wgpu<'_> {
         &self,
         program: &Self::Program,
         entry: usize,
-        bindings: &[bvhtrace_kernels::builder::Binding<'_, wgpu::Buffer>],
+        bindings: &[bvhtrace_engine::builder::Binding<'_, wgpu::Buffer>],
     ) -> Result<wgpu::BindGroup, TraceError> {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
@@ -358,7 +359,7 @@ impl GpuContext {
     /// for any tree. One triangle is built on the CPU (there is nothing to sort); no
     /// triangle is [`TraceError::EmptyBvh`]; a non-finite corner, an option out of range,
     /// more triangles than the device's buffers hold, or a device with fewer than
-    /// [`bvhtrace_kernels::build::BUILD_STORAGE_BUFFERS`] storage buffers per stage, an
+    /// [`bvhtrace_engine::programs::BUILD_STORAGE_BUFFERS`] storage buffers per stage, an
     /// error naming it. The pipelines are compiled on a builder's first build and kept.
     ///
     /// This waits for the device, so it is an error in a browser, where a page must not
@@ -386,7 +387,7 @@ impl GpuContext {
         tris: &[Triangle],
         opts: &GpuBuildOptions,
     ) -> Result<(FlatBvh, GpuBuildTimes), GpuError> {
-        bvhtrace_kernels::builder::build_bvh(&Wgpu(self), tris, opts).await
+        bvhtrace_engine::builder::build_bvh(&Wgpu(self), tris, opts).await
     }
 
     /// [`GpuContext::build_bvh`] with the linear BVH ([`GpuBuilderKind::Lbvh`]).

@@ -5,7 +5,7 @@
 //! ([`crate::GpuSkin::after_morph`]) or a [`crate::GpuRefit`] reads
 //! ([`GpuMorph::vertices`]).
 
-use bvhtrace_kernels::build::{MORPH_STEP, MorphParams, morph_source};
+use bvhtrace_engine::programs::{MORPH_STEP, MorphParams, morph_source};
 use glam::Vec3;
 
 use super::skin::VertexProgram;

@@ -10,9 +10,11 @@
 use std::time::Instant;
 
 use bvhtrace_core::{FlatBvh, FlatNode, FlatTriangle};
-use bvhtrace_kernels::build::{REFIT_STEPS, RefitParams, refit_source};
-use bvhtrace_kernels::upload::ArrayRole;
-use bvhtrace_kernels::{BvhStorage, HasEngine, check_update_shape};
+use bvhtrace_engine::BvhStorage;
+use bvhtrace_engine::engine::HasEngine;
+use bvhtrace_engine::programs::{REFIT_STEPS, RefitParams, refit_source};
+use bvhtrace_engine::tracer::check_update_shape;
+use bvhtrace_engine::upload::ArrayRole;
 
 use super::{PARAMS_STRIDE, StepQueries, empty, grid, init, read_after, submit_and_map};
 use crate::trace::read_mapped;

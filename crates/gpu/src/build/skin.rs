@@ -5,7 +5,7 @@
 //! ([`GpuSkin::vertices`]). The bind pose can be what a [`GpuMorph`] writes
 //! ([`GpuSkin::after_morph`]): morph targets first, then the skin, as glTF says.
 
-use bvhtrace_kernels::build::{SKIN_STEP, SkinParams, Step, skin_source};
+use bvhtrace_engine::programs::{SKIN_STEP, SkinParams, Step, skin_source};
 use glam::{Mat4, Vec3};
 
 use super::{empty, grid, init, read_after};

@@ -6,7 +6,7 @@
 
 use bvhtrace_core::instance::box_triangle;
 use bvhtrace_core::{Aabb, InstancedBvh, Triangle};
-use bvhtrace_kernels::TraceError;
+use bvhtrace_engine::TraceError;
 use glam::Affine3A;
 
 use crate::{GpuBuildOptions, GpuBuildTimes, GpuContext, GpuError};

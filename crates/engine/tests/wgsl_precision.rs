@@ -4,13 +4,14 @@
 //! every entry point.
 
 use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
-use bvhtrace_kernels::key::{Entries, ModuleSet};
-use bvhtrace_kernels::wgsl::{SHADER_FILES, kernel_source, kernel_source_for, triangle_wgsl};
-use bvhtrace_kernels::{BvhStorage, KernelKey};
+use bvhtrace_engine::compose::{
+    Entries, ModuleSet, kernel_source, kernel_source_for, triangle_wgsl,
+};
+use bvhtrace_engine::{BvhStorage, KernelKey};
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 
 mod common;
-use common::{compile_variant, parse, validate_with};
+use common::{SHARED_FILES, compile_variant, parse, validate_with};
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 
@@ -46,7 +47,7 @@ fn each_precision_composes_its_own_triangle_module() {
                 assert_eq!(src.contains(&marker), p == q, "{p}: {}", triangle_wgsl(q).0);
             }
             // Everything else is shared: every other file is composed once.
-            for (name, _) in SHADER_FILES.iter().filter(|(n, _)| *n != "triangle.wgsl") {
+            for (name, _) in SHARED_FILES.iter().filter(|(n, _)| *n != "triangle.wgsl") {
                 assert_eq!(
                     src.matches(&format!("// ---- {name} ----")).count(),
                     1,

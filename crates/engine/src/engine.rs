@@ -1,5 +1,5 @@
 //! One engine under every device backend. What wgpu, ash and the backends to come share
-//! is written here once, over the small [`Backend`] trait: the upload (arrays, limit
+//! is written here once, over the small [`DeviceApi`] trait: the upload (arrays, limit
 //! checks, stats, the host copy, the depth and wide-layout rules) and the trace driver
 //! (the kernel key, submissions, scratch growth, readback, timing, finishing incomplete
 //! rays, the kernels used, updates). A backend only creates, writes and binds its arrays
@@ -18,13 +18,17 @@ use bvhtrace_core::{
 use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::key::KernelKey;
-use crate::plan::{
-    DeviceLimits, UploadStats, check_depth, check_wide_top_level, plan_submissions,
-    rays_per_dispatch,
+use crate::plan::{DeviceLimits, plan_submissions, rays_per_dispatch};
+use crate::storage::{BvhStorage, RayInput, TEXEL_ROW};
+use crate::tracer::{
+    SendSync, TraceFuture, Tracer, check_update_shape, finish_incomplete_hits, mesh_fingerprint,
+    tree_shape,
 };
-use crate::tracer::{Tracer, check_update_shape, mesh_fingerprint, tree_shape};
-use crate::upload::{ArrayRole, DeviceArray, UploadOptions, binary_arrays, stats_of, wide_arrays};
-use crate::wgsl::{BvhStorage, RayInput, TEXEL_ROW, wide_stack_may_overflow};
+use crate::upload::{
+    ArrayRole, DeviceArray, UploadOptions, UploadStats, binary_arrays, check_wide_top_level,
+    stats_of, wide_arrays,
+};
+use crate::walks::{Layout, check_depth, may_overflow, walk};
 
 /// Where the wide layout is missing, and the fix ([`TraceError::WideLayoutMissing`]).
 pub const WIDE_NOT_UPLOADED: &str = "this upload left out: list Traversal::Wide in \
@@ -88,19 +92,6 @@ pub struct Batch<'a> {
     pub counters: Option<&'a mut Vec<Counters>>,
 }
 
-/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
-/// runs everything.
-#[cfg(not(target_arch = "wasm32"))]
-pub trait SendSync: Send + Sync {}
-#[cfg(not(target_arch = "wasm32"))]
-impl<T: Send + Sync> SendSync for T {}
-/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
-/// runs everything.
-#[cfg(target_arch = "wasm32")]
-pub trait SendSync {}
-#[cfg(target_arch = "wasm32")]
-impl<T> SendSync for T {}
-
 /// What a backend's kernels can read beyond what every backend's read (the BVH, rays and
 /// hits in storage buffers, the f32 triangle tests): the engine refuses, with one error
 /// for every backend, an upload or a kernel that needs more.
@@ -157,15 +148,15 @@ impl BackendFeatures {
     }
 }
 
-/// What a device backend does for the [`Engine`]; everything else is the engine's. A new
-/// backend (WebGPU in a browser, hardware ray queries) is one more implementation.
+/// What a device API does for the [`Engine`]; everything else is the engine's. A new
+/// device backend (wgpu, ash, the test backend over bytes) is one more implementation.
 ///
 /// Methods that make device objects wait until they are ready for the kernels; a batch
 /// waits for its own submission only.
-pub trait Backend: SendSync {
+pub trait DeviceApi: SendSync {
     /// The uploaded arrays, and whatever binds them (bind groups, descriptor sets).
     type Arrays: SendSync;
-    /// The per-tracer scratch of [`Backend::run_batch`] (rays, hits, counters, readback).
+    /// The per-tracer scratch of [`DeviceApi::run_batch`] (rays, hits, counters, readback).
     type Scratch: SendSync;
 
     /// The backend's name ([`Tracer::backend`]).
@@ -198,7 +189,8 @@ pub trait Backend: SendSync {
     ) -> Result<(), TraceError>;
     /// Creates the scratch `plan` asks for.
     fn create_scratch(&self, plan: &ScratchPlan) -> Result<Self::Scratch, TraceError>;
-    /// Uploads the batch's rays, dispatches its kernel (within [`crate::plan_dispatches`]),
+    /// Uploads the batch's rays, dispatches its kernel (within
+    /// [`crate::plan::plan_dispatches`]),
     /// waits for that submission and reads the hits (and counters) back; the GPU time of
     /// the batch in milliseconds when the device measures it. A future, so that a backend
     /// whose readback completes on an event loop (WebGPU in a browser) need not block.
@@ -237,9 +229,16 @@ struct Kept<S> {
     scratch: S,
 }
 
+/// The tree the rays a device gives up on are finished on, with the wide layout that was
+/// uploaded (collapsed from the tree, not a copy of it).
+struct HostCopy {
+    bvh: Arc<FlatBvh>,
+    wide: Option<Arc<WideBvh>>,
+}
+
 /// A BVH on a device through backend `B`, ready to trace: the upload, the trace driver
 /// and the update, written once for every backend. Implements [`Tracer`].
-pub struct Engine<B: Backend> {
+pub struct Engine<B: DeviceApi> {
     backend: B,
     arrays: B::Arrays,
     tree: UploadedTree,
@@ -249,7 +248,8 @@ pub struct Engine<B: Backend> {
     /// The binary layout's part of `stats`, which an update leaves as it is.
     binary_stats: UploadStats,
     /// The tree incomplete rays are finished on ([`Engine::keeps_host_copy`]).
-    host_copy: Option<Arc<FlatBvh>>,
+    host_copy: Option<HostCopy>,
+    /// The scratch between traces; a trace takes it out while it runs.
     scratch: Mutex<Option<Kept<B::Scratch>>>,
     mesh_fingerprint: u64,
     used: Mutex<Vec<KernelKey>>,
@@ -257,7 +257,7 @@ pub struct Engine<B: Backend> {
     instances: Option<Arc<InstanceTable>>,
 }
 
-impl<B: Backend> std::fmt::Debug for Engine<B> {
+impl<B: DeviceApi> std::fmt::Debug for Engine<B> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Engine")
             .field("backend", &self.backend.name())
@@ -306,7 +306,7 @@ pub fn new_output(
     }
 }
 
-impl<B: Backend> Engine<B> {
+impl<B: DeviceApi> Engine<B> {
     /// Uploads `bvh` through `backend` as `opts` says. The rules every backend follows:
     /// an empty tree is [`TraceError::EmptyBvh`]; a tree deeper than the full stack is
     /// [`TraceError::TooDeep`] when [`Traversal::FullStack`] is listed (and at trace time
@@ -388,18 +388,13 @@ impl<B: Backend> Engine<B> {
     /// The tree incomplete rays are finished on, with the wide layout uploaded (`wide`):
     /// kept when the backend's tuning sets a trip budget, or when the wide tree is deep
     /// enough for a ray to overflow the wide walk's stack (on any device).
-    fn host_copy_of(
-        backend: &B,
-        bvh: &FlatBvh,
-        wide: Option<Arc<WideBvh>>,
-    ) -> Option<Arc<FlatBvh>> {
+    fn host_copy_of(backend: &B, bvh: &FlatBvh, wide: Option<Arc<WideBvh>>) -> Option<HostCopy> {
         let deep = wide
             .as_ref()
-            .is_some_and(|w| wide_stack_may_overflow(w.depth));
-        (backend.tuning().finishes_on_cpu() || deep).then(|| {
-            let mut copy = bvh.clone();
-            copy.set_wide(wide.or_else(|| bvh.wide().cloned()));
-            Arc::new(copy)
+            .is_some_and(|w| may_overflow(Traversal::Wide, w.depth));
+        (backend.tuning().finishes_on_cpu() || deep).then(|| HostCopy {
+            wide: wide.or_else(|| bvh.wide().cloned()),
+            bvh: Arc::new(bvh.clone()),
         })
     }
 
@@ -499,18 +494,19 @@ impl<B: Backend> Engine<B> {
     /// Checks that this upload holds what `traversal` reads, and that the tree fits its
     /// stack.
     pub fn supports_traversal(&self, traversal: Traversal) -> Result<(), TraceError> {
-        if traversal.is_wide() {
-            return match self.tree.wide {
-                true => Ok(()),
-                false => Err(TraceError::WideLayoutMissing {
+        let w = walk(traversal);
+        match w.layout {
+            Layout::Wide if !self.tree.wide => {
+                return Err(TraceError::WideLayoutMissing {
                     missing: WIDE_NOT_UPLOADED,
-                }),
-            };
+                });
+            }
+            Layout::Binary if !self.tree.binary => {
+                return Err(TraceError::TraversalNotUploaded { traversal });
+            }
+            _ => {}
         }
-        if !self.tree.binary {
-            return Err(TraceError::TraversalNotUploaded { traversal });
-        }
-        if traversal.needs_escapes() && !self.tree.escapes {
+        if w.escapes && !self.tree.escapes {
             return Err(TraceError::EscapesNotUploaded { traversal });
         }
         check_depth(traversal, self.tree.depth)
@@ -573,9 +569,6 @@ impl<B: Backend> Engine<B> {
     }
 
     /// [`Engine::trace`] as a future: what a program in a browser awaits.
-    // The scratch stays locked while a batch is read back: traces of one upload take turns
-    // on it, as the blocking trace does (and a browser runs one thread).
-    #[allow(clippy::await_holding_lock)]
     pub async fn trace_async(
         &self,
         rays: &[Ray],
@@ -597,36 +590,28 @@ impl<B: Backend> Engine<B> {
             return Ok(out);
         }
         let (per_submit, capacity) = self.submissions(rays.len() as u64, input);
-        let mut guard = self
-            .scratch
-            .lock()
-            .map_err(|_| TraceError::Poisoned("scratch buffers"))?;
-        // Counters only once asked for, kept from then on; the scratch only grows.
-        let grown = match guard.as_ref() {
-            None => Some(ScratchPlan {
-                capacity,
-                counters: opts.counters,
-                input,
-            }),
-            Some(k) if k.plan.capacity < capacity || (opts.counters && !k.plan.counters) => {
-                Some(ScratchPlan {
-                    capacity: capacity.max(k.plan.capacity),
-                    counters: opts.counters || k.plan.counters,
-                    input,
-                })
-            }
-            Some(_) => None,
-        };
-        if let Some(plan) = grown {
-            *guard = None; // free the old scratch first
-            *guard = Some(Kept {
-                plan,
-                scratch: self.backend.create_scratch(&plan)?,
-            });
-        }
-        let Some(kept) = guard.as_ref() else {
-            unreachable!("the scratch was just made")
-        };
+        let kept = self.take_scratch(capacity, opts.counters, input)?;
+        let traced = self
+            .run_batches(&kept, key, rays, per_submit, &mut out)
+            .await;
+        self.keep_scratch(kept);
+        traced?;
+        out.incomplete =
+            self.finish_incomplete(rays, opts, &mut out.hits, out.counters.as_deref_mut());
+        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(out)
+    }
+
+    /// Runs `rays` through `key` in submissions of `per_submit` rays on `kept`'s scratch,
+    /// the hits, counters and GPU times into `out`.
+    async fn run_batches(
+        &self,
+        kept: &Kept<B::Scratch>,
+        key: KernelKey,
+        rays: &[Ray],
+        per_submit: u64,
+        out: &mut TraceOutput,
+    ) -> Result<(), TraceError> {
         for batch in rays.chunks(per_submit as usize) {
             let ms = self
                 .backend
@@ -645,11 +630,51 @@ impl<B: Backend> Engine<B> {
                 *total += ms;
             }
         }
-        drop(guard);
-        out.incomplete =
-            self.finish_incomplete(rays, opts, &mut out.hits, out.counters.as_deref_mut());
-        out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
-        Ok(out)
+        Ok(())
+    }
+
+    /// The scratch for a trace of `capacity` rays (with counters when `counters`), taken
+    /// out of the upload for as long as the trace runs: the one kept when it holds enough,
+    /// else a new one (counters once asked for are kept from then on, and the scratch only
+    /// grows). A trace running beside it on another thread makes its own.
+    fn take_scratch(
+        &self,
+        capacity: u64,
+        counters: bool,
+        input: RayInput,
+    ) -> Result<Kept<B::Scratch>, TraceError> {
+        let kept = self
+            .scratch
+            .lock()
+            .map_err(|_| TraceError::Poisoned("scratch buffers"))?
+            .take();
+        match kept {
+            Some(k) if k.plan.capacity >= capacity && (k.plan.counters || !counters) => Ok(k),
+            old => {
+                let plan = ScratchPlan {
+                    capacity: capacity.max(old.as_ref().map_or(0, |k| k.plan.capacity)),
+                    counters: counters || old.as_ref().is_some_and(|k| k.plan.counters),
+                    input,
+                };
+                drop(old); // the old scratch freed first
+                Ok(Kept {
+                    plan,
+                    scratch: self.backend.create_scratch(&plan)?,
+                })
+            }
+        }
+    }
+
+    /// Puts a trace's scratch back for the next trace; of two traces that ran at once,
+    /// the larger scratch is kept.
+    fn keep_scratch(&self, kept: Kept<B::Scratch>) {
+        if let Ok(mut slot) = self.scratch.lock()
+            && slot
+                .as_ref()
+                .is_none_or(|k| k.plan.capacity < kept.plan.capacity)
+        {
+            *slot = Some(kept);
+        }
     }
 
     /// Replaces every [`INCOMPLETE`] hit by the CPU walk's answer on the host copy (and
@@ -663,8 +688,10 @@ impl<B: Backend> Engine<B> {
         hits: &mut [Hit],
         counters: Option<&mut [Counters]>,
     ) -> u64 {
-        match self.host_copy.as_deref() {
-            Some(bvh) => crate::plan::finish_incomplete_hits(bvh, rays, opts, hits, counters),
+        match &self.host_copy {
+            Some(h) => {
+                finish_incomplete_hits(&h.bvh, h.wide.as_deref(), rays, opts, hits, counters)
+            }
             None => {
                 debug_assert!(!hits.iter().any(|h| h.prim == INCOMPLETE));
                 0
@@ -813,14 +840,14 @@ impl<B: Backend> Engine<B> {
 /// [`Tracer`] by that engine, with nothing to write again.
 pub trait HasEngine: SendSync {
     /// The backend of the engine.
-    type Device: Backend;
+    type Device: DeviceApi;
     /// The engine.
     fn engine(&self) -> &Engine<Self::Device>;
     /// The engine, to update.
     fn engine_mut(&mut self) -> &mut Engine<Self::Device>;
 }
 
-impl<B: Backend> HasEngine for Engine<B> {
+impl<B: DeviceApi> HasEngine for Engine<B> {
     type Device = B;
     fn engine(&self) -> &Engine<B> {
         self
@@ -851,11 +878,7 @@ impl<T: HasEngine> Tracer for T {
         self.engine().trace(rays, opts)
     }
 
-    fn trace_async<'a>(
-        &'a self,
-        rays: &'a [Ray],
-        opts: &'a TraceOptions,
-    ) -> crate::tracer::TraceFuture<'a> {
+    fn trace_async<'a>(&'a self, rays: &'a [Ray], opts: &'a TraceOptions) -> TraceFuture<'a> {
         Box::pin(self.engine().trace_async(rays, opts))
     }
 

@@ -6,10 +6,12 @@
 use std::collections::BTreeSet;
 
 use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
-use bvhtrace_kernels::key::{Entries, ModuleSet};
-use bvhtrace_kernels::{
-    BVH_GROUP, BvhStorage, Composition, KernelKey, RayInput, VertexAttributes, kernel_source,
+use bvhtrace_engine::compose::{
+    BVH_GROUP, Entries, ModuleSet, VertexAttributes, kernel_source, triangle_wgsl,
 };
+use bvhtrace_engine::key::Composition;
+use bvhtrace_engine::storage::{RayInput, TEXEL_ROW};
+use bvhtrace_engine::{BvhStorage, KernelKey};
 use naga::Module;
 
 mod common;
@@ -234,7 +236,7 @@ fn everything_on_declares_everything_and_is_kernel_source() {
     let opts =
         TraceOptions::closest(Traversal::FullStack).with_precision(Precision::MollerTrumboreF32);
     let f = KernelKey::new(BvhStorage::Buffers, &opts);
-    let name = bvhtrace_kernels::wgsl::triangle_wgsl(Precision::MollerTrumboreF32).0;
+    let name = triangle_wgsl(Precision::MollerTrumboreF32).0;
     assert!(f.source().contains(&format!("// ---- {name} ----")));
 }
 
@@ -305,7 +307,7 @@ fn the_masks_are_composed_only_for_masked_trees() {
 /// of buffers while one row holds them, whole rows from the element that starts a second.
 #[test]
 fn texture_uploads_count_whole_rows_for_either_layout() {
-    let row = u64::from(bvhtrace_kernels::TEXEL_ROW);
+    let row = u64::from(TEXEL_ROW);
     for (traversal, node_texels) in [(Traversal::FullStack, 2), (Traversal::Wide, 5)] {
         let opts = TraceOptions::closest(traversal);
         let [buffers, textures] = STORAGES.map(|s| KernelKey::new(s, &opts));

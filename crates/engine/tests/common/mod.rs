@@ -1,10 +1,12 @@
-//! naga helpers the kernels crate's tests share: parse WGSL, validate it, and compile one
+//! naga helpers the engine crate's tests share: parse WGSL, validate it, and compile one
 //! kernel variant's entry point to SPIR-V with its override constants resolved; the
 //! storages and walks the variant tests go through. `crates/gpu/tests/features.rs`
 //! includes it through `#[path]`.
 #![allow(dead_code)]
 
-use bvhtrace_kernels::{BvhStorage, KernelKey, Traversal};
+use bvhtrace_engine::core::Traversal;
+use bvhtrace_engine::shaders::{self, Wgsl};
+use bvhtrace_engine::{BvhStorage, KernelKey};
 use naga::Module;
 use naga::valid::{Capabilities, ModuleInfo, ValidationFlags, Validator};
 
@@ -17,6 +19,21 @@ pub const TRAVERSALS: [Traversal; 4] = [
     Traversal::Stackless,
     Traversal::ShortStack(6),
     Traversal::Wide,
+];
+
+/// The files every module of the binary walks composes, whatever its storage.
+pub const SHARED_FILES: [Wgsl; 11] = [
+    shaders::TYPES,
+    shaders::RAY,
+    shaders::SURFACE,
+    shaders::BOX,
+    shaders::TRIANGLE_HIT,
+    shaders::TRIANGLE,
+    shaders::TRAVERSE_COMMON,
+    shaders::TRAVERSE_INSTANCES,
+    shaders::TRAVERSE_STACK,
+    shaders::TRAVERSE_FULL_STACK,
+    shaders::TRAVERSE_SHORT_STACK,
 ];
 
 /// Parses WGSL, panicking with naga's report.

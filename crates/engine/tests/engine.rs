@@ -9,11 +9,14 @@ use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, INCOMPLETE, Instance, InstancedBvh, Ray, TraceOptions, Traversal,
     Triangle, trace_rays,
 };
-use bvhtrace_kernels::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
-use bvhtrace_kernels::upload::{ArrayRole, DeviceArray};
-use bvhtrace_kernels::{
-    Backend, BackendFeatures, BvhStorage, DeviceLimits, DriverTuning, Engine, FULL_STACK_SIZE,
-    KernelKey, TraceError, Tracer, UploadOptions,
+use bvhtrace_engine::engine::{
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, DeviceApi, ScratchPlan,
+};
+use bvhtrace_engine::plan::DeviceLimits;
+use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
+use bvhtrace_engine::walks::FULL_STACK_SIZE;
+use bvhtrace_engine::{
+    BvhStorage, DriverTuning, Engine, KernelKey, TraceError, Tracer, UploadOptions,
 };
 use glam::{Affine3A, Vec3};
 
@@ -48,7 +51,7 @@ fn mock(tuning: DriverTuning) -> Mock {
 
 type Arrays = Vec<(ArrayRole, Vec<u8>)>;
 
-impl Backend for Mock {
+impl DeviceApi for Mock {
     type Arrays = Arrays;
     type Scratch = ();
 
@@ -343,6 +346,6 @@ fn the_driver_splits_orders_finishes_and_counts_kernels() {
     assert_eq!(*e.device().batches.lock().unwrap(), vec![256, 256, 88]);
     assert_eq!(
         e.kernels_used()[0].rays,
-        bvhtrace_kernels::RayInput::Texture
+        bvhtrace_engine::storage::RayInput::Texture
     );
 }

@@ -1,14 +1,30 @@
-//! One tracing interface over every backend.
+//! One tracing interface over every backend, and the CPU walks behind it: the tracer of
+//! the CPU backend, and what finishes the rays a device gives up on.
 
 use std::borrow::Borrow;
+use std::sync::{Arc, OnceLock};
 
-use std::sync::Arc;
-
-use bvhtrace_core::{FlatBvh, HitFilter, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{
+    Counters, FlatBvh, Hit, HitFilter, INCOMPLETE, Ray, TraceOptions, TraceOutput, Traversal,
+    WideBvh,
+};
 
 use crate::error::TraceError;
 use crate::key::KernelKey;
-use crate::plan::UploadStats;
+use crate::upload::UploadStats;
+
+/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
+/// runs everything.
+#[cfg(not(target_arch = "wasm32"))]
+pub trait SendSync: Send + Sync {}
+#[cfg(not(target_arch = "wasm32"))]
+impl<T: Send + Sync> SendSync for T {}
+/// `Send + Sync`, except in a browser: there wgpu's objects are neither, and one thread
+/// runs everything.
+#[cfg(target_arch = "wasm32")]
+pub trait SendSync {}
+#[cfg(target_arch = "wasm32")]
+impl<T> SendSync for T {}
 
 /// What [`Tracer::trace_async`] returns.
 pub type TraceFuture<'a> =
@@ -20,7 +36,7 @@ pub type TraceFuture<'a> =
 ///
 /// Implementations are `Send + Sync` (except in a browser, which runs one thread): one
 /// uploaded BVH can be traced from several threads at once.
-pub trait Tracer: crate::engine::SendSync {
+pub trait Tracer: SendSync {
     /// The backend's name: `cpu`, `wgpu` or `vulkan`.
     fn backend(&self) -> &'static str;
 
@@ -34,6 +50,15 @@ pub trait Tracer: crate::engine::SendSync {
     /// return (escape links not uploaded, no wide layout for the wide walk, a tree too
     /// deep for the full stack, a precision the device lacks).
     fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError>;
+
+    /// The walks this tracer answers, one of each kind in [`Traversal::ALL`]'s order (a
+    /// short stack listed answers for any size): what a front end offers its user, rather
+    /// than predicting what an upload holds.
+    fn traversals(&self) -> Vec<Traversal> {
+        (Traversal::ALL.into_iter())
+            .filter(|&t| self.supports(&TraceOptions::closest(t)).is_ok())
+            .collect()
+    }
 
     /// Traces `rays` as `opts` says: one hit per ray, in order, with counters when asked
     /// for, and the times.
@@ -144,12 +169,15 @@ pub fn check_update_shape(
 
 /// The CPU walks of [`bvhtrace_core::traverse`] over a borrowed or owned tree (`&FlatBvh`,
 /// `Arc<FlatBvh>` or `FlatBvh`), on the current rayon pool, with a hit filter when given
-/// one ([`CpuTracer::with_filter`]).
+/// one ([`CpuTracer::with_filter`]). The wide walk takes the tree's wide layout, or one
+/// collapsed from it on the first wide trace and kept beside it.
 #[derive(Clone)]
 pub struct CpuTracer<B = std::sync::Arc<FlatBvh>> {
     bvh: B,
     /// The tree given to [`Tracer::update`], which replaces `bvh` from then on.
     updated: Option<Arc<FlatBvh>>,
+    /// The wide layout collapsed for a tree without one.
+    wide: OnceLock<Arc<WideBvh>>,
     filter: Option<Arc<dyn HitFilter + Send>>,
 }
 
@@ -169,6 +197,7 @@ impl<B: Borrow<FlatBvh>> CpuTracer<B> {
         CpuTracer {
             bvh,
             updated: None,
+            wide: OnceLock::new(),
             filter: None,
         }
     }
@@ -189,6 +218,16 @@ impl<B: Borrow<FlatBvh>> CpuTracer<B> {
     pub fn bvh(&self) -> &FlatBvh {
         self.updated.as_deref().unwrap_or_else(|| self.bvh.borrow())
     }
+
+    /// The wide layout: the tree's own, else collapsed from it now (once).
+    pub fn wide(&self) -> &WideBvh {
+        match self.bvh().wide() {
+            Some(w) => w,
+            None => self
+                .wide
+                .get_or_init(|| Arc::new(WideBvh::collapse(self.bvh()))),
+        }
+    }
 }
 
 impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
@@ -208,19 +247,16 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
         if opts.traversal.needs_escapes() {
             self.bvh().check_escape_links()?;
         }
-        if opts.traversal.is_wide() && self.bvh().wide().is_none() {
-            return Err(TraceError::WideLayoutMissing {
-                missing: "this BVH does not have: call FlatBvh::build_wide (or with_wide) first",
-            });
-        }
         Ok(())
     }
 
     fn trace(&self, rays: &[Ray], opts: &TraceOptions) -> Result<TraceOutput, TraceError> {
         self.supports(opts)?;
         let filter = self.filter.as_deref().map(|f| f as &dyn HitFilter);
-        Ok(bvhtrace_core::trace_rays_filtered(
+        let wide = opts.traversal.is_wide().then(|| self.wide());
+        Ok(bvhtrace_core::trace_rays_in(
             self.bvh(),
+            wide,
             rays,
             opts,
             filter,
@@ -230,6 +266,62 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for CpuTracer<B> {
     fn update(&mut self, bvh: &FlatBvh) -> Result<(), TraceError> {
         check_update_shape(tree_shape(self.bvh()), bvh)?;
         self.updated = Some(Arc::new(bvh.clone()));
+        self.wide = OnceLock::new();
         Ok(())
     }
+}
+
+/// Replaces every [`INCOMPLETE`] hit in `out` by the CPU walk's answer for that ray on
+/// `bvh` (same options; counters too when `out` has them) and counts them in
+/// `out.incomplete`: what a device backend does after a kernel that ran under a trip
+/// budget ([`crate::DriverTuning::trip_limit`]), or a wide walk whose stack would have
+/// overflowed ([`crate::walks::DepthRule::FinishOnHost`]). The wide walk takes `bvh`'s wide
+/// layout, or the tree collapsed here first: the same conversion the uploads make.
+pub fn finish_incomplete(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut TraceOutput) {
+    out.incomplete += finish_incomplete_hits(
+        bvh,
+        None,
+        rays,
+        opts,
+        &mut out.hits,
+        out.counters.as_deref_mut(),
+    );
+}
+
+/// [`finish_incomplete`] over the hits (and counters) themselves, as a recording caller
+/// holds them, the wide walk on `wide` when given (else the tree's own, else collapsed
+/// here): returns how many rays were finished.
+pub fn finish_incomplete_hits(
+    bvh: &FlatBvh,
+    wide: Option<&WideBvh>,
+    rays: &[Ray],
+    opts: &TraceOptions,
+    hits: &mut [Hit],
+    mut counters: Option<&mut [Counters]>,
+) -> u64 {
+    if !hits.iter().any(|h| h.prim == INCOMPLETE) {
+        return 0;
+    }
+    let collapsed;
+    let wide = match (opts.traversal.is_wide(), wide.or(bvh.wide().map(|w| &**w))) {
+        (true, None) => {
+            collapsed = WideBvh::collapse(bvh);
+            Some(&collapsed)
+        }
+        (_, w) => w,
+    };
+    let mut stack = Vec::new();
+    let mut finished = 0;
+    for (i, h) in hits.iter_mut().enumerate() {
+        if h.prim != INCOMPLETE {
+            continue;
+        }
+        let (hit, cost) = bvhtrace_core::trace_ray_in(bvh, wide, &rays[i], opts, None, &mut stack);
+        *h = hit;
+        if let Some(cs) = counters.as_deref_mut() {
+            cs[i] = cost.counters();
+        }
+        finished += 1;
+    }
+    finished
 }

@@ -1,8 +1,8 @@
 //! The ray-query kernels and libraries, validated by naga without a device: one mesh and
 //! two levels, with the bindings the wgpu backend binds.
 
-use bvhtrace_kernels::ray_query::{ENTRY_POINT, kernel_source};
-use bvhtrace_kernels::{LibraryShape, wgsl_library};
+use bvhtrace_engine::ray_query::{ENTRY_POINT, kernel_source};
+use bvhtrace_engine::{LibraryShape, wgsl_library};
 
 fn validate(source: &str) -> naga::Module {
     let module = naga::front::wgsl::parse_str(source)

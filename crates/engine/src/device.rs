@@ -1,7 +1,7 @@
 //! Choosing a device, and the measures that only help a CPU driver.
 
 use crate::error::TraceError;
-use crate::wgsl::BvhStorage;
+use crate::storage::BvhStorage;
 
 /// Environment variable front ends read to name the adapter to use: any substring of its
 /// name, case-insensitive (for example `llvmpipe` or `nvidia`), passed on as

@@ -9,16 +9,7 @@
 //! (`GpuRefit`, `GpuMorph`, `GpuSkin`). Each entry point's bindings are listed here and
 //! checked against the WGSL by naga, so a host binds exactly what each step reads.
 
-/// `build_morton.wgsl`.
-const BUILD_MORTON_WGSL: &str = include_str!("../shaders/build_morton.wgsl");
-/// `build_lbvh.wgsl`.
-const BUILD_LBVH_WGSL: &str = include_str!("../shaders/build_lbvh.wgsl");
-/// `build_ploc.wgsl`.
-const BUILD_PLOC_WGSL: &str = include_str!("../shaders/build_ploc.wgsl");
-/// `refit.wgsl`.
-const REFIT_WGSL: &str = include_str!("../shaders/refit.wgsl");
-/// `skin.wgsl`.
-const SKIN_WGSL: &str = include_str!("../shaders/skin.wgsl");
+use crate::shaders::{self, Wgsl};
 
 /// The skinning step (`skin.wgsl`) and its bindings.
 pub const SKIN_STEP: Step = ("skin_vertices", &[0, 1, 2, 3, 4, 5]);
@@ -39,11 +30,8 @@ pub struct SkinParams {
 
 /// The skinning module: `skin.wgsl` alone.
 pub fn skin_source() -> String {
-    SKIN_WGSL.to_string()
+    shaders::SKIN.1.to_string()
 }
-
-/// `morph.wgsl`.
-const MORPH_WGSL: &str = include_str!("../shaders/morph.wgsl");
 
 /// The morph step (`morph.wgsl`) and its bindings.
 pub const MORPH_STEP: Step = ("morph_vertices", &[0, 1, 2, 3, 4]);
@@ -64,7 +52,7 @@ pub struct MorphParams {
 
 /// The morph module: `morph.wgsl` alone.
 pub fn morph_source() -> String {
-    MORPH_WGSL.to_string()
+    shaders::MORPH.1.to_string()
 }
 
 /// A builder step: its entry point and the bindings of group 0 it uses.
@@ -135,36 +123,29 @@ pub const REFIT_STEPS: [Step; 4] = [
 /// The most storage buffers any builder step binds: a device needs this many per stage.
 pub const BUILD_STORAGE_BUFFERS: u32 = 8;
 
-fn types_wgsl() -> &'static str {
-    crate::wgsl::SHADER_FILES
-        .iter()
-        .find(|(name, _)| *name == "types.wgsl")
-        .map_or("", |(_, src)| src)
-}
-
-fn compose(builder: &str, source: &str) -> String {
-    let types = types_wgsl();
-    format!(
-        "{types}\n// ---- build_morton.wgsl ----\n{BUILD_MORTON_WGSL}\n// ---- {builder} ----\n{source}"
-    )
+/// `types.wgsl`, `build_morton.wgsl`, then `builder`'s file.
+fn compose((builder, source): Wgsl) -> String {
+    let (types, morton) = (shaders::TYPES.1, shaders::BUILD_MORTON.1);
+    format!("{types}\n// ---- build_morton.wgsl ----\n{morton}\n// ---- {builder} ----\n{source}")
 }
 
 /// The linear BVH builder's module: `types.wgsl` (`BvhNode`, `BvhTriangle`),
 /// `build_morton.wgsl`, then `build_lbvh.wgsl`.
 pub fn lbvh_source() -> String {
-    compose("build_lbvh.wgsl", BUILD_LBVH_WGSL)
+    compose(shaders::BUILD_LBVH)
 }
 
 /// The clustering builder's module: `types.wgsl`, `build_morton.wgsl`, then
 /// `build_ploc.wgsl`.
 pub fn ploc_source() -> String {
-    compose("build_ploc.wgsl", BUILD_PLOC_WGSL)
+    compose(shaders::BUILD_PLOC)
 }
 
 /// The device refit's module: `types.wgsl` (`BvhNode`, `BvhTriangle`), then
 /// `refit.wgsl`.
 pub fn refit_source() -> String {
-    format!("{}\n// ---- refit.wgsl ----\n{REFIT_WGSL}", types_wgsl())
+    let (types, refit) = (shaders::TYPES.1, shaders::REFIT.1);
+    format!("{types}\n// ---- refit.wgsl ----\n{refit}")
 }
 
 #[cfg(test)]

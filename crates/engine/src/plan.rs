@@ -1,12 +1,11 @@
 //! Planning a batch on a device: how many rays per dispatch and per submission the
 //! device's limits allow, and how big each resource is. The same plan serves every backend.
 
-use bvhtrace_core::{
-    Counters, FlatBvh, Hit, INCOMPLETE, Ray, TraceOptions, TraceOutput, Traversal, WideBvh,
-};
+use bvhtrace_core::{Counters, Hit, Ray};
 
+use crate::compose::WORKGROUP_SIZE;
 use crate::error::TraceError;
-use crate::wgsl::{FULL_STACK_SIZE, TEXEL_ROW, WORKGROUP_SIZE};
+use crate::storage::{TEXEL_ROW, texel_rows};
 
 /// The device limits a backend works within: the fields of `wgpu::Limits` or Vulkan's
 /// `VkPhysicalDeviceLimits` that matter here.
@@ -36,37 +35,6 @@ pub const COUNTERS_BYTES: u64 = std::mem::size_of::<Counters>() as u64;
 /// into several dispatches in one compute pass.
 pub const MAX_RAYS_PER_DISPATCH: u64 = 1 << 22;
 
-/// What an upload holds, and what it cost.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct UploadStats {
-    /// Where the tree was put.
-    pub storage: crate::BvhStorage,
-    /// Bytes of the nodes as uploaded (texture row padding included).
-    pub nodes_bytes: u64,
-    /// Bytes of the triangles as uploaded.
-    pub triangles_bytes: u64,
-    /// Bytes of the escape links as uploaded (0 when not uploaded).
-    pub escapes_bytes: u64,
-    /// Bytes of the instances of a two-level BVH (0 for one mesh).
-    pub instances_bytes: u64,
-    /// Bytes of the alpha masks (0 for a BVH without them).
-    pub masks_bytes: u64,
-    /// Wall time to create and fill the device's copies and wait for the device,
-    /// milliseconds.
-    pub upload_ms: f64,
-}
-
-impl UploadStats {
-    /// All bytes uploaded.
-    pub fn total_bytes(&self) -> u64 {
-        self.nodes_bytes
-            + self.triangles_bytes
-            + self.escapes_bytes
-            + self.instances_bytes
-            + self.masks_bytes
-    }
-}
-
 /// Checks that one storage buffer of `bytes` bytes fits the device's limits.
 pub fn check_buffer_size(
     limits: &DeviceLimits,
@@ -92,88 +60,25 @@ pub fn check_buffer_size(
     Ok(())
 }
 
-/// Checks that a tree `depth` levels deep can be walked with `traversal` by the kernels:
-/// the full stack holds [`FULL_STACK_SIZE`] entries; the other walks take any depth (the
-/// wide walk gives a ray that would overflow its stack up for the host to finish,
-/// [`finish_incomplete`]).
-pub fn check_depth(traversal: Traversal, depth: u32) -> Result<(), TraceError> {
-    if traversal == Traversal::FullStack && depth > FULL_STACK_SIZE {
-        return Err(TraceError::TooDeep {
-            depth,
-            max: FULL_STACK_SIZE,
+/// Checks one texel texture of `texels` texels against the device's limits: its rows are
+/// [`TEXEL_ROW`] wide, and it has [`texel_rows`] of them.
+pub fn check_texels(
+    limits: &DeviceLimits,
+    what: &'static str,
+    texels: u64,
+    texel_bytes: u64,
+) -> Result<(), TraceError> {
+    let max = u64::from(limits.max_texture_dimension_2d);
+    if u64::from(TEXEL_ROW) > max || texel_rows(texels) > max {
+        return Err(TraceError::TooLarge {
+            buffer: what,
+            bytes: texels * texel_bytes,
+            limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
+            limit_name: "texture capacity (max_texture_dimension_2d rows of TEXEL_ROW texels; \
+                         BvhStorage::Buffers holds more)",
         });
     }
     Ok(())
-}
-
-/// Checks a wide tree for the kernels: the one property they rely on beyond the CPU
-/// walk's, that the first instance's mesh starts right after the top level
-/// (`bvh_instances.wgsl` takes `instances[0].root` for the top level's node count), as
-/// `WideBvh::collapse` lays it out.
-pub fn check_wide_top_level(w: &WideBvh) -> Result<(), TraceError> {
-    match w.instances.first() {
-        Some(first) if first.root != w.top_nodes => Err(TraceError::BadBuffer {
-            buffer: "wide instances",
-            problem: format!(
-                "the first instance's mesh starts at node {}, not right after the {} top-level \
-                 nodes: collapse the tree with WideBvh::collapse",
-                first.root, w.top_nodes
-            ),
-        }),
-        _ => Ok(()),
-    }
-}
-
-/// Rows of a [`TEXEL_ROW`]-wide texture holding `texels` texels (at least one).
-pub fn texel_rows(texels: u64) -> u64 {
-    texels.div_ceil(u64::from(TEXEL_ROW)).max(1)
-}
-
-/// Replaces every [`INCOMPLETE`] hit in `out` by the CPU walk's answer for that ray on
-/// `bvh` (same options; counters too when `out` has them) and counts them in
-/// `out.incomplete`: what a device backend does after a kernel that ran under a trip
-/// budget ([`crate::DriverTuning::trip_limit`]), or a wide walk whose stack would have
-/// overflowed ([`crate::WIDE_STACK_GROUPS`]). For [`Traversal::Wide`], pass the tree with
-/// the wide layout that was uploaded (`FlatBvh::wide`); one without it is collapsed here
-/// first, the same conversion the uploads make.
-pub fn finish_incomplete(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions, out: &mut TraceOutput) {
-    out.incomplete +=
-        finish_incomplete_hits(bvh, rays, opts, &mut out.hits, out.counters.as_deref_mut());
-}
-
-/// [`finish_incomplete`] over the hits (and counters) themselves, as a recording caller
-/// holds them: returns how many rays were finished.
-pub fn finish_incomplete_hits(
-    bvh: &FlatBvh,
-    rays: &[Ray],
-    opts: &TraceOptions,
-    hits: &mut [Hit],
-    mut counters: Option<&mut [Counters]>,
-) -> u64 {
-    if !hits.iter().any(|h| h.prim == INCOMPLETE) {
-        return 0;
-    }
-    let collapsed;
-    let bvh = if opts.traversal.is_wide() && bvh.wide().is_none() {
-        collapsed = bvh.clone().with_wide();
-        &collapsed
-    } else {
-        bvh
-    };
-    let mut stack = Vec::new();
-    let mut finished = 0;
-    for (i, h) in hits.iter_mut().enumerate() {
-        if h.prim != INCOMPLETE {
-            continue;
-        }
-        let (hit, c) = bvhtrace_core::trace_ray_with(bvh, &rays[i], opts, &mut stack);
-        *h = hit;
-        if let Some(cs) = counters.as_deref_mut() {
-            cs[i] = c;
-        }
-        finished += 1;
-    }
-    finished
 }
 
 /// One dispatch of a batch: rays `first_ray .. first_ray + ray_count` on a

@@ -7,16 +7,17 @@ use std::borrow::Cow;
 use bvhtrace_core::{FlatBvh, FlatNode, MaskTables, Traversal, WideBvh};
 
 use crate::error::TraceError;
-use crate::plan::{DeviceLimits, UploadStats, check_buffer_size, texel_rows};
-use crate::wgsl::{BvhStorage, TEXEL_ROW};
+use crate::plan::{DeviceLimits, check_buffer_size, check_texels};
+use crate::storage::{BvhStorage, texel_extent};
+use crate::walks::{Layout, check_depth, walk};
 
 /// What to upload for.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct UploadOptions {
-    /// The traversals the BVH will be traced with. The escape links are uploaded only when
-    /// one of them needs them ([`Traversal::needs_escapes`]); a tree deeper than
-    /// [`FULL_STACK_SIZE`](crate::FULL_STACK_SIZE) is refused when [`Traversal::FullStack`]
-    /// is listed. [`Traversal::Wide`] uploads the wide layout (`FlatBvh::wide`, or the tree
+    /// The traversals the BVH will be traced with: the arrays their walks read are
+    /// uploaded ([`crate::walks::WALKS`]), the escape links only when one of them follows
+    /// them; a tree deeper than a listed walk's stack is refused
+    /// ([`crate::walks::DepthRule::Refuse`]). [`Traversal::Wide`] uploads the wide layout (`FlatBvh::wide`, or the tree
     /// collapsed into it when the BVH has none), in buffers or textures of its own; the
     /// binary layout is uploaded when a binary traversal is listed (or none at all).
     pub traversals: Vec<Traversal>,
@@ -41,11 +42,9 @@ impl UploadOptions {
     /// [`Traversal::Wide`] ([`UploadOptions::with_traversal`]) to upload it too.
     pub fn all() -> Self {
         UploadOptions {
-            traversals: vec![
-                Traversal::FullStack,
-                Traversal::Stackless,
-                Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
-            ],
+            traversals: (Traversal::ALL.into_iter())
+                .filter(|&t| walk(t).layout == Layout::Binary)
+                .collect(),
             storage: None,
         }
     }
@@ -55,9 +54,8 @@ impl UploadOptions {
     /// What an upload given no options takes.
     pub fn fitting(bvh: &FlatBvh) -> Self {
         let mut opts = UploadOptions::all();
-        if crate::plan::check_depth(Traversal::FullStack, bvh.depth()).is_err() {
-            opts.traversals.retain(|t| *t != Traversal::FullStack);
-        }
+        opts.traversals
+            .retain(|&t| check_depth(t, bvh.depth()).is_ok());
         if bvh.wide().is_some() {
             opts = opts.with_traversal(Traversal::Wide);
         }
@@ -80,17 +78,22 @@ impl UploadOptions {
 
     /// True when the wide layout is uploaded.
     pub fn wide(&self) -> bool {
-        self.traversals.iter().any(|t| t.is_wide())
+        self.reads(Layout::Wide)
     }
 
     /// True when the binary layout is uploaded (a binary walk listed, or none at all).
     pub fn binary(&self) -> bool {
-        !self.wide() || self.traversals.iter().any(|t| !t.is_wide())
+        !self.wide() || self.reads(Layout::Binary)
     }
 
     /// True when the escape links are uploaded.
     pub fn escapes(&self) -> bool {
-        self.traversals.iter().any(|t| t.needs_escapes())
+        self.traversals.iter().any(|&t| walk(t).escapes)
+    }
+
+    /// True when a listed walk reads `layout`.
+    fn reads(&self, layout: Layout) -> bool {
+        self.traversals.iter().any(|&t| walk(t).layout == layout)
     }
 }
 
@@ -98,6 +101,55 @@ impl Default for UploadOptions {
     /// [`UploadOptions::all`].
     fn default() -> Self {
         Self::all()
+    }
+}
+
+/// What an upload holds, and what it cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct UploadStats {
+    /// Where the tree was put.
+    pub storage: BvhStorage,
+    /// Bytes of the nodes as uploaded (texture row padding included).
+    pub nodes_bytes: u64,
+    /// Bytes of the triangles as uploaded.
+    pub triangles_bytes: u64,
+    /// Bytes of the escape links as uploaded (0 when not uploaded).
+    pub escapes_bytes: u64,
+    /// Bytes of the instances of a two-level BVH (0 for one mesh).
+    pub instances_bytes: u64,
+    /// Bytes of the alpha masks (0 for a BVH without them).
+    pub masks_bytes: u64,
+    /// Wall time to create and fill the device's copies and wait for the device,
+    /// milliseconds.
+    pub upload_ms: f64,
+}
+
+impl UploadStats {
+    /// All bytes uploaded.
+    pub fn total_bytes(&self) -> u64 {
+        self.nodes_bytes
+            + self.triangles_bytes
+            + self.escapes_bytes
+            + self.instances_bytes
+            + self.masks_bytes
+    }
+}
+
+/// Checks a wide tree for the kernels: the one property they rely on beyond the CPU
+/// walk's, that the first instance's mesh starts right after the top level
+/// (`bvh_instances.wgsl` takes `instances[0].root` for the top level's node count), as
+/// `WideBvh::collapse` lays it out.
+pub fn check_wide_top_level(w: &WideBvh) -> Result<(), TraceError> {
+    match w.instances.first() {
+        Some(first) if first.root != w.top_nodes => Err(TraceError::BadBuffer {
+            buffer: "wide instances",
+            problem: format!(
+                "the first instance's mesh starts at node {}, not right after the {} top-level \
+                 nodes: collapse the tree with WideBvh::collapse",
+                first.root, w.top_nodes
+            ),
+        }),
+        _ => Ok(()),
     }
 }
 
@@ -210,39 +262,6 @@ impl DeviceArray<'_> {
             None => check_buffer_size(limits, self.name(), self.bytes.len() as u64),
             Some(b) => check_texels(limits, self.name(), self.texels(), b),
         }
-    }
-}
-
-/// Checks one texel texture of `texels` texels against the device's limits: its rows are
-/// [`TEXEL_ROW`] wide, and it has [`texel_rows`] of them.
-pub fn check_texels(
-    limits: &DeviceLimits,
-    what: &'static str,
-    texels: u64,
-    texel_bytes: u64,
-) -> Result<(), TraceError> {
-    let max = u64::from(limits.max_texture_dimension_2d);
-    if u64::from(TEXEL_ROW) > max || texel_rows(texels) > max {
-        return Err(TraceError::TooLarge {
-            buffer: what,
-            bytes: texels * texel_bytes,
-            limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
-            limit_name: "texture capacity (max_texture_dimension_2d rows of TEXEL_ROW texels; \
-                         BvhStorage::Buffers holds more)",
-        });
-    }
-    Ok(())
-}
-
-/// The `(width, rows)` of the texture holding `texels` texels. One row is only as wide as
-/// its texels (texel `t` is still at `(t, 0)`): no padding the kernel never reads. Taller
-/// textures are [`TEXEL_ROW`] wide and pad their last row.
-pub fn texel_extent(texels: u64) -> (u32, u32) {
-    let rows = texel_rows(texels) as u32;
-    if rows == 1 {
-        ((texels as u32).max(1), 1)
-    } else {
-        (TEXEL_ROW, rows)
     }
 }
 
@@ -388,6 +407,7 @@ pub(crate) fn stats_of(storage: BvhStorage, arrays: &[DeviceArray<'_>]) -> Uploa
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::storage::TEXEL_ROW;
 
     /// A texel texture fits while its rows do: the wide layout's five texels a node reach
     /// the limit at a fifth of the nodes the texels allow, and the error names the texture
@@ -433,14 +453,10 @@ mod tests {
         ));
     }
 
-    /// A one-row texture is as wide as its texels; a taller one pads its last row, and
-    /// the stats count the padding.
+    /// A texture taller than a row pads its last row, and the stats count the padding.
     #[test]
-    fn texel_extents_pad_only_tall_textures() {
-        assert_eq!(texel_extent(5), (5, 1));
-        assert_eq!(texel_extent(0), (1, 1));
+    fn device_bytes_count_the_row_padding() {
         let row = u64::from(TEXEL_ROW);
-        assert_eq!(texel_extent(row + 1), (TEXEL_ROW, 2));
         let a = array(
             ArrayRole::Escapes,
             Cow::Owned(vec![0u8; 4 * (row as usize + 1)]),

@@ -4,6 +4,7 @@
 
 use std::mem::{offset_of, size_of};
 
+use bvhtrace_core::Traversal;
 use bvhtrace_core::flat::{ESCAPE_BLOCK, NO_ESCAPE, OCTANTS};
 use bvhtrace_core::intersect::{BOX_CULL_SLACK, BOX_TFAR_SCALE, BOX_TFAR_SCALE_NEG};
 use bvhtrace_core::surface::{OFFSET_FLOAT_SCALE, OFFSET_INT_SCALE, OFFSET_ORIGIN};
@@ -11,18 +12,16 @@ use bvhtrace_core::traverse::MAX_SHORT_STACK;
 use bvhtrace_core::{
     Counters, FlatInstance, FlatNode, FlatTriangle, Hit, INVALID_RAY, MISS, Ray, WideNode,
 };
-use bvhtrace_kernels::key::{Entries, ModuleSet};
-use bvhtrace_kernels::wgsl::SHADER_FILES;
-use bvhtrace_kernels::{
-    BvhStorage, FULL_STACK_SIZE, KernelKey, LibraryShape, STACK_LANES, TEXEL_ROW, Traversal,
-    WIDE_STACK_GROUPS, WORKGROUP_SIZE, kernel_source, wgsl_library,
-};
+use bvhtrace_engine::compose::{Entries, ModuleSet, WORKGROUP_SIZE, kernel_source};
+use bvhtrace_engine::storage::TEXEL_ROW;
+use bvhtrace_engine::walks::{FULL_STACK_SIZE, STACK_LANES, WIDE_STACK_GROUPS};
+use bvhtrace_engine::{BvhStorage, KernelKey, LibraryShape, wgsl_library};
 
 const STORAGES: [BvhStorage; 2] = [BvhStorage::Buffers, BvhStorage::Textures];
 use naga::{Expression, Literal, Module, TypeInner};
 
 mod common;
-use common::{compile_entry, compile_variant, parse, validate};
+use common::{SHARED_FILES, compile_entry, compile_variant, parse, validate};
 
 /// `(name, offset)` of each member of the struct type called `name`, and its size.
 fn struct_layout(module: &Module, name: &str) -> (Vec<(String, u32)>, u32) {
@@ -110,7 +109,7 @@ fn group0_array(module: &Module, name: &str) -> (String, u32) {
 #[test]
 fn mask_structs_match_rust_layout() {
     use bvhtrace_core::masks::{MaskHeader, MaskMaterial, MaskTriangle};
-    use bvhtrace_kernels::KernelKey;
+    use bvhtrace_engine::KernelKey;
     let key = KernelKey::new(BvhStorage::Buffers, &Default::default()).with_masks(true);
     let module = parse(&key.source());
     check_struct(
@@ -410,7 +409,7 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
             let m = parse(
                 &KernelKey::new(storage, &opts)
                     .with_instances(instances)
-                    .with_composition(bvhtrace_kernels::Composition::EverythingOn)
+                    .with_composition(bvhtrace_engine::key::Composition::EverythingOn)
                     .source(),
             );
             let info = validate(&m);
@@ -419,7 +418,7 @@ fn compile_variants(storage: BvhStorage, seen: &mut std::collections::HashSet<Ke
     });
     assert_eq!(
         KernelKey::new(storage, &Default::default())
-            .with_composition(bvhtrace_kernels::Composition::EverythingOn)
+            .with_composition(bvhtrace_engine::key::Composition::EverythingOn)
             .source(),
         kernel_source(storage)
     );
@@ -463,7 +462,7 @@ fn wide_library_module(lib: &str, bindings: [(u32, &str); 2]) -> naga::Module {
 
 #[test]
 fn the_refit_params_match_rust_layout() {
-    use bvhtrace_kernels::build::{RefitParams, refit_source};
+    use bvhtrace_engine::programs::{RefitParams, refit_source};
     let module = parse(&refit_source());
     check_struct(
         &module,
@@ -484,7 +483,7 @@ fn the_refit_params_match_rust_layout() {
 
 #[test]
 fn the_skin_params_match_rust_layout() {
-    use bvhtrace_kernels::build::{SkinParams, skin_source};
+    use bvhtrace_engine::programs::{SkinParams, skin_source};
     let module = parse(&skin_source());
     check_struct(
         &module,
@@ -501,7 +500,7 @@ fn the_skin_params_match_rust_layout() {
 
 #[test]
 fn the_morph_params_match_rust_layout() {
-    use bvhtrace_kernels::build::{MorphParams, morph_source};
+    use bvhtrace_engine::programs::{MorphParams, morph_source};
     let module = parse(&morph_source());
     check_struct(
         &module,
@@ -524,7 +523,7 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
     // The wide library: the shared files and its own, no binary walk, its bindings
     // rebound too.
     let lib = wide_library(BvhStorage::Buffers);
-    for (name, _) in SHADER_FILES
+    for (name, _) in SHARED_FILES
         .iter()
         .filter(|(n, _)| !["traverse_full_stack.wgsl", "traverse_short_stack.wgsl"].contains(n))
     {
@@ -562,7 +561,7 @@ fn every_file_is_composed_and_the_library_rebinds_its_group() {
 
 fn check_library(storage: BvhStorage) {
     let src = kernel_source(storage);
-    for (name, _) in SHADER_FILES.iter().chain([&storage.wgsl()]) {
+    for (name, _) in SHARED_FILES.iter().chain([&storage.wgsl()]) {
         assert!(src.contains(&format!("// ---- {name} ----")), "{name}");
     }
     let lib = ModuleSet::everything(storage, Default::default(), Entries::None).compose(3);

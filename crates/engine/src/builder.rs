@@ -1,7 +1,7 @@
 //! The device BVH builders' host side, written once for every backend over the small
 //! [`BuildDevice`] trait: the options and their checks, the upload, the Morton sort, the
 //! linear BVH, the clustering loop, the read back into a [`FlatBvh`] and the timing. A
-//! backend only makes buffers, compiles the builder's programs ([`crate::build`]), binds
+//! backend only makes buffers, compiles the builder's programs ([`crate::programs`]), binds
 //! buffers by binding number, records dispatches and submits and reads buffers back.
 //!
 //! Both builders start the same way (`build_morton.wgsl`): the centroids' bounds, 30-bit
@@ -22,9 +22,9 @@ use bvhtrace_core::flat::{FlatNode, FlatTriangle};
 use bvhtrace_core::{FlatBvh, Triangle};
 use web_time::Instant;
 
-use crate::build::{LBVH_STEPS, MORTON_STEPS, PLOC_STEPS, Step};
 use crate::error::TraceError;
 use crate::plan::{DeviceLimits, check_buffer_size};
+use crate::programs::{self, LBVH_STEPS, MORTON_STEPS, PLOC_STEPS, Step};
 
 /// Invocations per workgroup (`MORTON_WG`) and keys per radix block (`MORTON_BLOCK`).
 pub const WG: u32 = 256;
@@ -66,12 +66,11 @@ impl GpuBuilderKind {
         }
     }
 
-    /// The builder's WGSL module ([`crate::build::lbvh_source`],
-    /// [`crate::build::ploc_source`]).
+    /// The builder's WGSL module ([`programs::lbvh_source`], [`programs::ploc_source`]).
     pub fn source(self) -> String {
         match self {
-            GpuBuilderKind::Lbvh => crate::build::lbvh_source(),
-            GpuBuilderKind::Ploc => crate::build::ploc_source(),
+            GpuBuilderKind::Lbvh => programs::lbvh_source(),
+            GpuBuilderKind::Ploc => programs::ploc_source(),
         }
     }
 
@@ -804,7 +803,7 @@ fn check_input<D: BuildDevice>(dev: &D, tris: &[Triangle]) -> Result<Option<Flat
         _ => bvhtrace_core::mesh::validate_triangles(tris).map_err(|e| bad_input(&e))?,
     }
     let have = dev.storage_buffers_per_stage();
-    let need = crate::build::BUILD_STORAGE_BUFFERS;
+    let need = programs::BUILD_STORAGE_BUFFERS;
     if have < need {
         return Err(TraceError::Unsupported {
             backend: "device builder",
@@ -822,7 +821,7 @@ fn check_input<D: BuildDevice>(dev: &D, tris: &[Triangle]) -> Result<Option<Flat
 /// any tree. One triangle is built on the CPU (there is nothing to sort); no triangle is
 /// [`TraceError::EmptyBvh`]; a non-finite corner, an option out of range, more triangles
 /// than the device's buffers hold, or a device with fewer than
-/// [`crate::build::BUILD_STORAGE_BUFFERS`] storage buffers per stage, an error naming it.
+/// [`programs::BUILD_STORAGE_BUFFERS`] storage buffers per stage, an error naming it.
 pub async fn build_bvh<D: BuildDevice>(
     dev: &D,
     tris: &[Triangle],
