@@ -1,4 +1,5 @@
-//! The one list of backends, by name.
+//! Every way to trace, in one table: its name, the other names it is known by, and what
+//! its answers promise.
 
 use std::fmt;
 use std::str::FromStr;
@@ -9,12 +10,14 @@ use bvhtrace_engine::Tracer;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Backend {
     /// The best there is: wgpu on the first Vulkan adapter by preference (a discrete GPU,
-    /// else an integrated or virtual one, else a CPU driver such as lavapipe), and the CPU
-    /// walks when there is no Vulkan adapter at all or the scene exceeds the device's
-    /// limits in every storage, layout and walk (the [`crate::Opened::fallback`] says so).
+    /// else an integrated or virtual one, else a CPU driver such as lavapipe), with the
+    /// device's ray queries where it has them in hardware, and the CPU walks when there is
+    /// no Vulkan adapter at all or the scene exceeds the device's limits in every storage,
+    /// layout and walk (the [`crate::Opened::fallback`] says so).
     #[default]
     Auto,
-    /// The CPU walks of `bvhtrace_core::traverse` on the current rayon pool.
+    /// The CPU walks (the CPU layout's SIMD walks for the full stack) on the current rayon
+    /// pool.
     Cpu,
     /// The WGSL kernels through wgpu (`bvhtrace-gpu`), BVH in buffers or textures.
     Wgpu,
@@ -27,42 +30,112 @@ pub enum Backend {
     RayQuery,
 }
 
+/// One row of [`TABLE`].
+struct Row {
+    backend: Backend,
+    name: &'static str,
+    aliases: &'static [&'static str],
+    /// Answers bit for bit as the CPU twins of our walks do.
+    bit_for_bit: bool,
+    /// What it is, for a command line's help.
+    about: &'static str,
+}
+
+/// The backends, [`Backend::Auto`] first.
+const TABLE: [Row; 5] = [
+    Row {
+        backend: Backend::Auto,
+        name: "auto",
+        aliases: &[],
+        bit_for_bit: true,
+        about: "the best device there is (its ray queries in hardware, else our walks), \
+                else the CPU",
+    },
+    Row {
+        backend: Backend::Cpu,
+        name: "cpu",
+        aliases: &[],
+        bit_for_bit: true,
+        about: "the CPU walks",
+    },
+    Row {
+        backend: Backend::Wgpu,
+        name: "wgpu",
+        aliases: &["gpu"],
+        bit_for_bit: true,
+        about: "our WGSL walks through wgpu",
+    },
+    Row {
+        backend: Backend::Vulkan,
+        name: "vulkan",
+        aliases: &["vk", "ash"],
+        bit_for_bit: true,
+        about: "the same walks on raw Vulkan through ash",
+    },
+    Row {
+        backend: Backend::RayQuery,
+        name: bvhtrace_gpu::RAY_QUERY_BACKEND,
+        aliases: &["rq", "ray-queries"],
+        bit_for_bit: false,
+        about: "the device's own ray queries",
+    },
+];
+
 impl Backend {
     /// Every backend, [`Backend::Auto`] first.
-    pub const ALL: [Backend; 5] = [
-        Backend::Auto,
-        Backend::Cpu,
-        Backend::Wgpu,
-        Backend::Vulkan,
-        Backend::RayQuery,
-    ];
+    pub const ALL: [Backend; TABLE.len()] = {
+        let mut all = [Backend::Auto; TABLE.len()];
+        let mut i = 0;
+        while i < TABLE.len() {
+            all[i] = TABLE[i].backend;
+            i += 1;
+        }
+        all
+    };
+
+    fn row(self) -> &'static Row {
+        let i = Backend::ALL.iter().position(|&b| b == self).unwrap_or(0);
+        &TABLE[i]
+    }
 
     /// The name [`FromStr`] reads and [`fmt::Display`] writes; for the device backends,
     /// what their [`Tracer::backend`] returns.
     pub fn name(self) -> &'static str {
-        match self {
-            Backend::Auto => "auto",
-            Backend::Cpu => "cpu",
-            Backend::Wgpu => "wgpu",
-            Backend::Vulkan => "vulkan",
-            Backend::RayQuery => bvhtrace_gpu::RAY_QUERY_BACKEND,
-        }
+        self.row().name
     }
 
-    /// The other names [`FromStr`] accepts: `gpu` (the command line's name for wgpu),
-    /// `vk`, and `rq` or `ray-queries`.
+    /// The other names [`FromStr`] accepts (`gpu` for wgpu, `vk` for Vulkan, ...).
     pub fn aliases(self) -> &'static [&'static str] {
-        match self {
-            Backend::Wgpu => &["gpu"],
-            Backend::Vulkan => &["vk"],
-            Backend::RayQuery => &["rq", "ray-queries"],
-            Backend::Auto | Backend::Cpu => &[],
-        }
+        self.row().aliases
+    }
+
+    /// What the backend is, in a few words.
+    pub fn about(self) -> &'static str {
+        self.row().about
+    }
+
+    /// True when its answers equal the CPU twins' bit for bit where the device computes
+    /// f32 as the CPU does (our walks); false for the device's own ray queries, which
+    /// answer under a stated rule.
+    pub fn bit_for_bit(self) -> bool {
+        self.row().bit_for_bit
     }
 
     /// The backend a tracer runs on (`None` for a tracer from outside this workspace).
     pub fn of(tracer: &dyn Tracer) -> Option<Backend> {
         tracer.backend().parse().ok()
+    }
+
+    /// Every name and what it is, one `name (aliases): about` per line, for a help text.
+    pub fn help() -> String {
+        let line = |b: Backend| {
+            let aliases = match b.aliases() {
+                [] => String::new(),
+                a => format!(" ({})", a.join(", ")),
+            };
+            format!("{}{aliases}: {}", b.name(), b.about())
+        };
+        Backend::ALL.map(line).join("\n")
     }
 }
 
@@ -78,10 +151,9 @@ pub struct UnknownBackend(pub String);
 
 impl fmt::Display for UnknownBackend {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let names: Vec<String> = Backend::ALL
+        let names: Vec<&str> = Backend::ALL
             .iter()
             .flat_map(|b| std::iter::once(b.name()).chain(b.aliases().iter().copied()))
-            .map(str::to_string)
             .collect();
         write!(
             f,
@@ -127,6 +199,9 @@ mod tests {
             text.contains("\"metal\"") && text.contains("wgpu, gpu"),
             "{text}"
         );
+        let help = Backend::help();
+        assert_eq!(help.lines().count(), Backend::ALL.len(), "{help}");
+        assert!(!Backend::RayQuery.bit_for_bit() && Backend::Vulkan.bit_for_bit());
     }
 
     #[test]

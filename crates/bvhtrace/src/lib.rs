@@ -1,5 +1,5 @@
 //! bvhtrace's front door: open the best tracer for a BVH, or the one named, with a
-//! storage, layout and walk that fit the device.
+//! storage, layout and walk that fit the device; build trees on that device too.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -23,29 +23,32 @@
 //!   `ray-query`).
 //! * [`open`]: the tracer [`OpenOptions`] asks for, as an [`Opened`] that says what was
 //!   chosen (backend, device, storage, walk) and any fallback, as a sentence.
-//! * [`Device`]: a backend opened once, to open tracers on for many trees;
-//!   [`open_on_wgpu`], [`open_on_vulkan`]: the same on a device the caller owns.
-//! * [`Tracer`]: what every opened tracer is; [`Tracer::update`] after the scene moved,
-//!   [`Tracer::kernels_used`] and [`Tracer::upload_stats`] for what ran and what was
-//!   uploaded.
+//! * [`Device`]: a backend opened once, to open tracers on for many trees and to build
+//!   trees on ([`Device::build_bvh`]); [`Device::wgpu`] and [`Device::vulkan`] take a
+//!   device the caller owns.
+//! * [`Tracer`]: what every opened tracer is; [`Tracer::traversals`] for the walks it
+//!   answers, [`Tracer::update`] after the scene moved, [`Tracer::kernels_used`] and
+//!   [`Tracer::upload_stats`] for what ran and what was uploaded.
 //!
-//! The library reads no environment variable: a front end that honours
-//! [`ADAPTER_ENV`] or [`VALIDATION_ENV`] passes them on in [`OpenOptions`].
+//! Each backend is one module behind one object-safe trait; the library reads no
+//! environment variable: a front end that honours [`ADAPTER_ENV`] or `VALIDATION_ENV`
+//! passes them on in [`OpenOptions`].
 #![warn(missing_docs)]
 
 mod backend;
-mod cpu;
+mod backends;
+mod device;
 mod open;
 
 pub use backend::{Backend, UnknownBackend};
-pub use cpu::FastCpuTracer;
-pub use open::{Device, OpenOptions, Opened, SharedFilter, open, open_on_wgpu};
-#[cfg(not(target_arch = "wasm32"))]
-pub use open::{open_on_ray_query, open_on_vulkan};
+pub use backends::cpu::FastCpuTracer;
+pub use device::Device;
+pub use open::{OpenOptions, Opened, SharedFilter, open};
 
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
+pub use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
 pub use bvhtrace_engine::device::ADAPTER_ENV;
 pub use bvhtrace_engine::{
     AdapterChoice, BvhStorage, CpuTracer, DriverTuning, KernelKey, TraceError, Tracer, UploadStats,

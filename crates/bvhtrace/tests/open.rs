@@ -171,7 +171,10 @@ fn a_tree_over_the_texture_limit_goes_to_buffers_or_the_error_names_the_limit() 
     assert_eq!(ctx.tuning().storage, BvhStorage::Textures);
     let bvh = grid();
     let rays = rays();
-    let opened = bvhtrace::open_on_wgpu(&ctx, &bvh, &OpenOptions::default()).expect("buffers fit");
+    let device = bvhtrace::Device::wgpu(ctx.clone());
+    let opened = device
+        .open(&bvh, &OpenOptions::default())
+        .expect("buffers fit");
     assert_eq!(opened.storage, Some(BvhStorage::Buffers));
     assert_eq!(opened.traversal, Traversal::GPU_DEFAULT);
     let why = opened.fallback.as_deref().expect("the fallback is said");
@@ -187,12 +190,16 @@ fn a_tree_over_the_texture_limit_goes_to_buffers_or_the_error_names_the_limit() 
         .expect("traces");
     assert_eq!(out.hits, bvhtrace_core_trace(&bvh, &rays));
 
-    // Textures asked for: every walk is tried in them, and the error names the limit.
+    // Textures asked for: every walk is tried in them, and the error names each, the
+    // limit and the storage.
     let textures = OpenOptions::default().with_storage(BvhStorage::Textures);
-    let err = bvhtrace::open_on_wgpu(&ctx, &bvh, &textures).expect_err("no texture fits");
+    let err = device.open(&bvh, &textures).expect_err("no texture fits");
+    let text = err.to_string();
     assert!(
-        matches!(err, TraceError::TooLarge { .. })
-            && err.to_string().contains("max_texture_dimension_2d"),
+        matches!(&err, TraceError::DoesNotFit { tried, .. } if tried.len() == 3)
+            && text.contains("max_texture_dimension_2d")
+            && text.contains("in texture storage")
+            && text.contains("the full-stack walk in texture storage"),
         "{err}"
     );
 }

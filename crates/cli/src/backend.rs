@@ -2,15 +2,11 @@
 //! with what the library does not read: the environment.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use anyhow::Result;
-use bvhtrace::{
-    ADAPTER_ENV, AdapterChoice, Device, DriverTuning, FlatBvh, OpenOptions, Opened, Traversal,
-};
-use bvhtrace_stress::{DeviceTracers, StressDevice};
+use bvhtrace::{ADAPTER_ENV, AdapterChoice, FlatBvh, OpenOptions, Opened, Traversal};
 
-pub use bvhtrace::Backend;
+pub use bvhtrace::{Backend, Device};
 
 /// The adapter a command opens: the `--adapter` flag, else a non-empty
 /// `$BVHTRACE_ADAPTER`, else the best.
@@ -59,49 +55,6 @@ pub fn open_on<'a>(device: &Device, bvh: &'a FlatBvh, opts: &OpenOptions) -> Res
         eprintln!("note: {why}");
     }
     Ok(opened)
-}
-
-/// Opens `backend` on the adapter named `adapter` (else `$BVHTRACE_ADAPTER`, else the
-/// best) and uploads `bvh` for `traversals`, with every candidate hit passed through
-/// `filter` when there is one (a scene's masked materials: the CPU walks apply it, `auto`
-/// goes to the CPU for it, a device backend refuses it); a fallback is said on stderr.
-pub fn open<'a>(
-    backend: Backend,
-    adapter: Option<&str>,
-    bvh: &'a FlatBvh,
-    traversals: &[Traversal],
-    filter: Option<bvhtrace::SharedFilter>,
-) -> Result<Opened<'a>> {
-    let opts = OpenOptions {
-        filter,
-        ..options(backend, adapter, traversals)
-    };
-    let opened = bvhtrace::open(bvh, &opts)?;
-    for why in opened.fallback.iter().chain(&opened.choice) {
-        eprintln!("note: {why}");
-    }
-    Ok(opened)
-}
-
-/// A device backend for `bvhtrace stress`, opened through the front door (with the
-/// environment): its adapter's name, its measures, and a factory of tracers on it.
-pub fn stress_device(which: StressDevice) -> std::result::Result<DeviceTracers, String> {
-    let backend = match which {
-        StressDevice::Gpu => Backend::Wgpu,
-        StressDevice::Vk => Backend::Vulkan,
-        StressDevice::RayQuery => Backend::RayQuery,
-    };
-    let device = Device::new(&options(backend, None, &[])).map_err(|e| e.to_string())?;
-    let name = match (device.wgpu_context(), device.vulkan_context()) {
-        (Some(c), _) => c.adapter_info().name.clone(),
-        (_, Some(c)) => c.device_info().name.clone(),
-        _ => device.name(),
-    };
-    Ok(DeviceTracers {
-        name,
-        tuning: device.tuning().unwrap_or(DriverTuning::GPU),
-        open: Arc::new(device.tracer_factory()),
-    })
 }
 
 /// Gives the process a private `XDG_RUNTIME_DIR` (under the temp dir, mode 0700) when it

@@ -43,7 +43,7 @@ pub(crate) fn scene_specs(given: &[String]) -> Result<Vec<String>> {
 
 fn load(spec: &str) -> Result<(Vec<Triangle>, bvhtrace_scene::Scene, f64)> {
     let t = Instant::now();
-    let scene = bvhtrace_scene::load(spec)?;
+    let scene = crate::geometry::load_scene(spec)?;
     let tris = scene.flattened_triangles()?;
     Ok((tris, scene, t.elapsed().as_secs_f64() * 1e3))
 }
@@ -841,12 +841,17 @@ pub fn bench_trace(args: BenchTraceArgs) -> Result<()> {
             traversals: traversals.clone(),
             ..Default::default()
         };
-        let gpu = bvhtrace::open_on_wgpu(ctx, &bvh, &upload)?.tracer;
+        let gpu = bvhtrace::Device::wgpu(ctx.clone())
+            .open_owned(&bvh, &upload)?
+            .tracer;
         // The device's ray queries on the same rays, when it has them.
-        let rq = if ctx.has_ray_queries() {
-            Some(bvhtrace::open_on_ray_query(ctx, &bvh, &upload)?.tracer)
-        } else {
-            None
+        let rq = match ctx.has_ray_queries() {
+            true => Some(
+                bvhtrace::Device::ray_query(ctx.clone())?
+                    .open_owned(&bvh, &upload)?
+                    .tracer,
+            ),
+            false => None,
         };
         let dump = match &args.embree {
             Some(_) => Some(Dump::write("trace", &tris, &rays)?),

@@ -106,7 +106,7 @@ pub fn bench_trace_cpu(args: &BenchTraceArgs) -> Result<()> {
         args.traversals.clone()
     };
     for spec in scene_specs(&args.scenes)? {
-        let scene = bvhtrace_scene::load(&spec)?;
+        let scene = crate::geometry::load_scene(&spec)?;
         let tris = scene.flattened_triangles()?;
         let t = Instant::now();
         let mut flat = FlatBvh::build(&tris, &BuildOptions::default())?;

@@ -25,7 +25,7 @@ use crate::accuracy::{self, ErrorStats};
 use crate::bench::median;
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade;
-use bvhtrace::{Backend, CpuTracer, Tracer};
+use bvhtrace::{Backend, CpuTracer, Device, Tracer};
 
 /// Which rays a configuration traces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -76,11 +76,11 @@ pub struct BenchArgs {
     /// Timed runs per configuration; the median is reported (default 3; 1 with --quick).
     #[arg(long)]
     pub runs: Option<usize>,
-    /// Backends to include: gpu (wgpu), vulkan (the same kernels through ash), ray-query
-    /// (the device's own ray queries, where it has them: one row per ray kind, the driver's
-    /// walk over the default builder's tree), cpu.
-    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu,ray-query")]
-    pub backends: Vec<String>,
+    /// Backends to include, comma-separated (`bvhtrace render --help` lists them); the
+    /// device's own ray queries, where it has them, give one row per ray kind (the
+    /// driver's walk over the default builder's tree).
+    #[arg(long, value_delimiter = ',', default_value = "wgpu,cpu,ray-query")]
+    pub backends: Vec<Backend>,
     /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
     /// all three (on the GPU, f64 only where the adapter has SHADER_F64). The non-default
     /// ones are swept with the default builder on every backend and ray kind, stackless and
@@ -156,17 +156,66 @@ fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
     v
 }
 
-/// A built tree, its median build time, and its upload to wgpu (when there is a device).
-type BuiltTree = (FlatBvh, f64, Option<Box<dyn Tracer>>);
+/// A built tree, its median build time, and its tracer on each backend (in
+/// [`open_backends`]' order; `None` where the upload was refused, said once).
+struct BuiltTree {
+    bvh: FlatBvh,
+    build_ms: f64,
+    tracers: Vec<Option<Box<dyn Tracer>>>,
+}
 
-const TRAVERSALS: [Traversal; 6] = [
-    Traversal::Stackless,
-    Traversal::ShortStack(2),
-    Traversal::ShortStack(4),
-    Traversal::ShortStack(8),
-    Traversal::FullStack,
-    Traversal::Wide,
-];
+/// The walks every configuration sweeps: each of [`Traversal::ALL`], the short stack at
+/// 2, 4 and 8 entries.
+fn traversals() -> Vec<Traversal> {
+    (Traversal::ALL.into_iter())
+        .flat_map(|t| match t {
+            Traversal::ShortStack(_) => [2, 4, 8].map(Traversal::ShortStack).to_vec(),
+            t => vec![t],
+        })
+        .collect()
+}
+
+/// A backend of the matrix: its rows' name and its device (none for the CPU walks).
+struct MatrixBackend {
+    name: &'static str,
+    device: Option<Device>,
+}
+
+impl MatrixBackend {
+    /// True for the device's own ray queries: one row per ray kind, the driver's walk.
+    fn driver_walk(&self) -> bool {
+        self.device
+            .as_ref()
+            .is_some_and(|d| !d.backend().bit_for_bit())
+    }
+}
+
+/// Every backend `--backends` lists, each device opened once through the front door; one
+/// that does not open is left out, saying why.
+fn open_backends(args: &BenchArgs) -> Vec<MatrixBackend> {
+    let mut out = Vec::new();
+    for &backend in &args.backends {
+        if backend == Backend::Cpu {
+            out.push(MatrixBackend {
+                name: backend.name(),
+                device: None,
+            });
+            continue;
+        }
+        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
+        match crate::backend::device(&opts) {
+            Ok(d) => {
+                eprintln!("{}: {}", d.backend(), d.name());
+                out.push(MatrixBackend {
+                    name: d.backend().name(),
+                    device: Some(d),
+                });
+            }
+            Err(e) => eprintln!("note: no {backend} device ({e}); leaving it out"),
+        }
+    }
+    out
+}
 
 /// Rays of every kind, generated once per scene from the reference hits so that every
 /// configuration traces exactly the same rays.
@@ -238,26 +287,88 @@ fn normal_image(tris: &[Triangle], rays: &[Ray], prims: impl Iterator<Item = u32
     img
 }
 
+/// The sizes a run uses: primary rays, oracle sample, timed runs, the small image.
+#[derive(Clone, Copy)]
+struct Sizes {
+    w: u32,
+    h: u32,
+    sample: usize,
+    runs: usize,
+    image: (u32, u32),
+}
+
+impl Sizes {
+    fn of(args: &BenchArgs) -> Result<Sizes> {
+        let quick = args.quick;
+        let (w, h) = args
+            .size
+            .unwrap_or(if quick { (160, 120) } else { (512, 384) });
+        let sizes = Sizes {
+            w,
+            h,
+            sample: args.sample.unwrap_or(if quick { 256 } else { 2048 }),
+            runs: args.runs.unwrap_or(if quick { 1 } else { 3 }),
+            image: if quick { (48, 36) } else { (96, 72) },
+        };
+        if sizes.runs == 0 || sizes.sample == 0 {
+            bail!("--runs and --sample must be at least 1");
+        }
+        Ok(sizes)
+    }
+}
+
+/// The output files a run writes, reserved before any work: JSON, CSV, and a plot (PNG
+/// and SVG) per scene.
+struct Outputs {
+    json: Option<JsonOut>,
+    csv: Option<AtomicFile>,
+    plots: Vec<(PathBuf, PathBuf)>,
+    plot_files: Vec<(AtomicFile, AtomicFile)>,
+}
+
+impl Outputs {
+    fn reserve(args: &BenchArgs, specs: &[String]) -> Result<Outputs> {
+        let json = args.json.as_deref().map(JsonOut::create).transpose()?;
+        let csv = args.csv.as_deref().map(AtomicFile::create).transpose()?;
+        let plots: Vec<(PathBuf, PathBuf)> = match &args.plot {
+            None => Vec::new(),
+            Some(prefix) => specs
+                .iter()
+                .map(|s| {
+                    let stem = if specs.len() == 1 {
+                        prefix.display().to_string()
+                    } else {
+                        let name = std::path::Path::new(s.split('#').next().unwrap_or(s))
+                            .file_stem()
+                            .map_or("scene".into(), |n| n.to_string_lossy().to_string());
+                        format!("{}-{}", prefix.display(), name.replace(':', "_"))
+                    };
+                    (
+                        PathBuf::from(format!("{stem}.png")),
+                        PathBuf::from(format!("{stem}.svg")),
+                    )
+                })
+                .collect(),
+        };
+        let plot_files = plots
+            .iter()
+            .map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?)))
+            .collect::<Result<_>>()?;
+        Ok(Outputs {
+            json,
+            csv,
+            plots,
+            plot_files,
+        })
+    }
+}
+
 /// `bvhtrace bench`.
 pub fn bench(args: BenchArgs) -> Result<()> {
     if args.converge.converge {
         return crate::converge::run(&args);
     }
-    let quick = args.quick;
-    let (w, h) = args
-        .size
-        .unwrap_or(if quick { (160, 120) } else { (512, 384) });
-    let sample_n = args.sample.unwrap_or(if quick { 256 } else { 2048 });
-    let runs = args.runs.unwrap_or(if quick { 1 } else { 3 });
-    let (iw, ih) = if quick { (48, 36) } else { (96, 72) };
-    if runs == 0 || sample_n == 0 {
-        bail!("--runs and --sample must be at least 1");
-    }
-    for b in &args.backends {
-        if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu" | "ray-query") {
-            bail!("unknown backend '{b}' (expected gpu, vulkan, ray-query or cpu)");
-        }
-    }
+    let sizes = Sizes::of(&args)?;
     let precisions: Vec<Precision> = if args.precisions.is_empty() {
         Precision::ALL.to_vec()
     } else {
@@ -266,313 +377,14 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             .map(|s| s.parse::<Precision>().map_err(anyhow::Error::msg))
             .collect::<Result<_>>()?
     };
-    // Reserve outputs before any work.
-    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
-    let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
     let specs = crate::bench::scene_specs(&args.scenes)?;
-    let plot_paths: Vec<(PathBuf, PathBuf)> = match &args.plot {
-        None => Vec::new(),
-        Some(prefix) => specs
-            .iter()
-            .map(|s| {
-                let stem = if specs.len() == 1 {
-                    prefix.display().to_string()
-                } else {
-                    let name = std::path::Path::new(s.split('#').next().unwrap_or(s))
-                        .file_stem()
-                        .map_or("scene".into(), |n| n.to_string_lossy().to_string());
-                    format!("{}-{}", prefix.display(), name.replace(':', "_"))
-                };
-                (
-                    PathBuf::from(format!("{stem}.png")),
-                    PathBuf::from(format!("{stem}.svg")),
-                )
-            })
-            .collect(),
-    };
-    let plot_files: Vec<(AtomicFile, AtomicFile)> = plot_paths
-        .iter()
-        .map(|(p, s)| Ok((AtomicFile::create(p)?, AtomicFile::create(s)?)))
-        .collect::<Result<_>>()?;
-
-    // Each device opened once, through the front door; `vulkan` runs the same kernels
-    // through ash (bvhtrace-vk), BVH in storage buffers.
-    let open_device = |name: &str, backend: Backend| {
-        if !args.backends.iter().any(|b| b == name) {
-            return None;
-        }
-        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
-        match crate::backend::device(&opts) {
-            Ok(d) => Some(d),
-            Err(e) => {
-                eprintln!("note: no {backend} device ({e}); leaving out '{name}'");
-                None
-            }
-        }
-    };
-    let gpu_device = open_device("gpu", Backend::Wgpu);
-    let gpu_ctx = gpu_device.as_ref().and_then(|d| d.wgpu_context());
-    let vk_device = open_device("vulkan", Backend::Vulkan);
-    let vk_ctx = vk_device.as_ref().and_then(|d| d.vulkan_context());
-    let rq_device = open_device("ray-query", Backend::RayQuery);
-    let rq_ctx = rq_device.as_ref().and_then(|d| d.wgpu_context());
-    if let Some(c) = &gpu_ctx {
-        eprintln!(
-            "GPU: {} ({:?})",
-            c.adapter_info().name,
-            c.adapter_info().device_type
-        );
-        for p in precisions.iter().filter(|p| !c.supports_precision(**p)) {
-            eprintln!("note: {p} is traced on the CPU only (the adapter has no SHADER_F64)");
-        }
-    }
+    let mut outputs = Outputs::reserve(&args, &specs)?;
+    let backends = open_backends(&args);
     eprintln!("CPU: {} threads", rayon::current_num_threads());
-
     let mut rows = Vec::new();
-    let mut plots = plot_files.into_iter();
+    let mut plots = std::mem::take(&mut outputs.plot_files).into_iter();
     for spec in specs {
-        let t0 = Instant::now();
-        let scene = bvhtrace_scene::load(&spec)?;
-        let tris = scene.flattened_triangles()?;
-        let cam = scene.camera_or_frame(w as f32 / h as f32);
-        let reference = FlatBvh::build(&tris, &BuildOptions::default())?;
-        let sets = ray_sets(&tris, &reference, &cam, w, h);
-        let kinds = [
-            (RayKind::Primary, &sets.primary),
-            (RayKind::Shadow, &sets.shadow),
-            (RayKind::Diffuse, &sets.diffuse),
-        ];
-        // The oracle, once per ray kind, on the sample; and the oracle's small image.
-        let pb_oracle = ProgressBar::new_spinner();
-        pb_oracle.set_message(format!(
-            "{spec}: f64 oracle on {sample_n} rays per kind and a {iw}x{ih} image"
-        ));
-        pb_oracle.enable_steady_tick(std::time::Duration::from_millis(200));
-        let samples: Vec<(Vec<usize>, Vec<OracleHit>)> = kinds
-            .iter()
-            .map(|(_, rays)| {
-                let idx = sample_indices(rays.len(), sample_n);
-                let sampled: Vec<Ray> = idx.iter().map(|&i| rays[i]).collect();
-                let o = oracle_answers(&tris, &sampled);
-                (idx, o)
-            })
-            .collect();
-        let img_rays = cam.rays(iw, ih);
-        let img_oracle = oracle_answers(&tris, &img_rays);
-        let ref_img = normal_image(&tris, &img_rays, img_oracle.iter().map(|o| o.prim));
-        pb_oracle.finish_and_clear();
-        eprintln!(
-            "{spec}: {} triangles; rays: {} primary, {} shadow, {} diffuse; setup {:.1} s",
-            tris.len(),
-            sets.primary.len(),
-            sets.shadow.len(),
-            sets.diffuse.len(),
-            t0.elapsed().as_secs_f64()
-        );
-
-        // The configurations.
-        let builders = builder_configs(args.full);
-        let mut plan: Vec<(usize, Traversal, &str, RayKind, Precision)> = Vec::new();
-        let backends: Vec<&str> = args
-            .backends
-            .iter()
-            .map(|s| s.as_str())
-            .filter(|b| match *b {
-                "gpu" => gpu_ctx.is_some(),
-                "vulkan" => vk_ctx.is_some(),
-                "ray-query" => rq_ctx.is_some(),
-                _ => true,
-            })
-            .collect();
-        for &p in &precisions {
-            for (bi, _) in builders.iter().enumerate() {
-                for &tr in &TRAVERSALS {
-                    for &be in &backends {
-                        if be == "gpu" && gpu_ctx.as_ref().is_some_and(|c| !c.supports_precision(p))
-                        {
-                            continue;
-                        }
-                        // The driver's own walk and triangle test: one row per ray kind,
-                        // over the default builder's leaf order.
-                        if be == "ray-query"
-                            && (bi != 0 || tr != TRAVERSALS[0] || p != Precision::WatertightF32)
-                        {
-                            continue;
-                        }
-                        if be == "vulkan"
-                            && p == Precision::WatertightF64
-                            && vk_ctx.as_ref().is_some_and(|c| !c.features().f64)
-                        {
-                            continue;
-                        }
-                        for (kind, _) in &kinds {
-                            // Sweeps around the default (SAH, stackless, watertight f32):
-                            // every builder on primary rays with the default traversal;
-                            // every traversal and ray kind with the default builder; the
-                            // other precisions with the default builder, on every ray kind,
-                            // stackless and full stack (only stackless with --quick).
-                            let keep = if p == Precision::WatertightF32 {
-                                args.full
-                                    || bi == 0
-                                    || (tr == Traversal::Stackless && *kind == RayKind::Primary)
-                            } else {
-                                args.full
-                                    || (bi == 0
-                                        && (tr == Traversal::Stackless
-                                            || (!quick && tr == Traversal::FullStack)))
-                            };
-                            if keep {
-                                plan.push((bi, tr, be, *kind, p));
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        let pb = ProgressBar::new(plan.len() as u64);
-        pb.set_style(
-            ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
-                .unwrap_or_else(|_| ProgressStyle::default_bar())
-                .progress_chars("=> "),
-        );
-        let mut built: Vec<Option<BuiltTree>> = (0..builders.len()).map(|_| None).collect();
-        let mut scene_rows = Vec::new();
-        for (bi, tr, be, kind, prec) in plan {
-            let (bname, bopts) = &builders[bi];
-            pb.set_message(format!("{bname} {tr} {be} {} {prec}", kind.name()));
-            if built[bi].is_none() {
-                let mut times = Vec::new();
-                let mut bvh = None;
-                for _ in 0..runs {
-                    let t = Instant::now();
-                    bvh = Some(FlatBvh::build(&tris, bopts)?);
-                    times.push(t.elapsed().as_secs_f64() * 1e3);
-                }
-                // The wide layout is converted from the same tree, untimed here.
-                let bvh = bvh.context("no build")?.with_wide();
-                let every = bvhtrace::OpenOptions {
-                    traversals: TRAVERSALS.to_vec(),
-                    ..Default::default()
-                };
-                let gpu = match gpu_ctx {
-                    Some(c) => Some(bvhtrace::open_on_wgpu(c, &bvh, &every)?.tracer),
-                    None => None,
-                };
-                built[bi] = Some((bvh, median(times), gpu));
-            }
-            let Some((bvh, build_ms, gpu)) = built[bi].as_ref() else {
-                continue;
-            };
-            let cpu = CpuTracer::new(bvh);
-            let vk = match (be, &vk_ctx) {
-                ("vulkan", Some(c)) => {
-                    let every = bvhtrace::OpenOptions {
-                        traversals: TRAVERSALS.to_vec(),
-                        ..Default::default()
-                    };
-                    Some(bvhtrace::open_on_vulkan(c, bvh, &every)?.tracer)
-                }
-                _ => None,
-            };
-            let rq = match (be, rq_ctx) {
-                ("ray-query", Some(c)) => {
-                    Some(bvhtrace::open_on_ray_query(c, bvh, &Default::default())?.tracer)
-                }
-                _ => None,
-            };
-            let tracer: &dyn Tracer = match (be, gpu, &vk, &rq) {
-                ("gpu", Some(g), _, _) => &**g,
-                ("vulkan", _, Some(v), _) => &**v,
-                ("ray-query", _, _, Some(r)) => &**r,
-                _ => &cpu,
-            };
-            // The driver's build adds to ours (its input is our leaf order); it counts no
-            // box or triangle tests.
-            let build_ms = build_ms + tracer.device_build_ms().unwrap_or(0.0);
-            let counts = tracer.device_build_ms().is_none();
-            let (kind_idx, rays) = kinds
-                .iter()
-                .enumerate()
-                .find(|(_, k)| k.0 == kind)
-                .map(|(i, k)| (i, k.1))
-                .context("ray kind")?;
-            let q = kind.query();
-            // Warm-up (pipeline creation, caches: the counted pipeline here, the timed
-            // one on a few rays, so that no compilation lands in the timings), then timed
-            // runs.
-            let opts = TraceOptions::new(tr, q).with_precision(prec);
-            let c = if counts {
-                tracer
-                    .trace(rays, &opts.with_counters(true))?
-                    .counters
-                    .unwrap_or_default()
-            } else {
-                Vec::new()
-            };
-            tracer.trace(&rays[..rays.len().min(256)], &opts)?;
-            let n = rays.len().max(1) as f64;
-            // 0 (not -0: an empty sum) where the driver counted nothing.
-            let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
-                c.iter().map(|c| f64::from(f(c))).fold(0.0, |a, b| a + b) / n
-            };
-            let (nodes, tris_per) = (per_ray(|c| c.nodes), per_ray(|c| c.tris));
-            let mut times = Vec::new();
-            let mut hits: Vec<Hit> = Vec::new();
-            for _ in 0..runs {
-                let t = tracer.trace(rays, &opts)?;
-                times.push(t.gpu_ms.unwrap_or(t.wall_ms));
-                hits = t.hits;
-            }
-            let trace_ms = median(times);
-            let (idx, o) = &samples[kind_idx];
-            let ours: Vec<Hit> = idx.iter().map(|&i| hits[i]).collect();
-            let error = accuracy::compare(&ours, o, q);
-            let (image_rmse, image_flip) = if kind == RayKind::Primary {
-                let t = tracer.trace(&img_rays, &TraceOptions::closest(tr).with_precision(prec))?;
-                let img = normal_image(&tris, &img_rays, t.hits.iter().map(|h| h.prim));
-                (
-                    Some(accuracy::rmse(&ref_img, &img)),
-                    Some(accuracy::flip(&ref_img, &img, iw, ih)),
-                )
-            } else {
-                (None, None)
-            };
-            let bytes = match tracer.upload_stats() {
-                Some(u) => u.total_bytes(),
-                None => {
-                    let (nb, eb, tb) = bvh.byte_sizes();
-                    (nb + if tr.needs_escapes() { eb } else { 0 } + tb) as u64
-                }
-            };
-            scene_rows.push(Row {
-                scene: spec.clone(),
-                config: Config {
-                    builder: bname.clone(),
-                    bins: bopts.bins,
-                    traversal: if counts {
-                        tr.to_string()
-                    } else {
-                        "driver".into()
-                    },
-                    backend: be.to_string(),
-                    rays: kind,
-                    precision: prec.name().into(),
-                },
-                ray_count: rays.len(),
-                build_ms,
-                trace_ms,
-                mrays_per_s: rays.len() as f64 / trace_ms / 1e3,
-                nodes_per_ray: nodes,
-                tris_per_ray: tris_per,
-                bytes,
-                error_rate: error.error_rate(),
-                error,
-                image_rmse,
-                image_flip,
-            });
-            pb.inc(1);
-        }
-        pb.finish_and_clear();
+        let scene_rows = bench_scene(&args, &spec, sizes, &precisions, &backends)?;
         print_table(&scene_rows, args.json.as_deref() == Some("-"));
         if let Some((png, svg)) = plots.next() {
             // The file name, not the path: the plots are committed.
@@ -583,16 +395,322 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         }
         rows.extend(scene_rows);
     }
-    if let Some(j) = json_out {
+    if let Some(j) = outputs.json {
         j.write(&serde_json::to_value(&rows)?)?;
     }
-    if let Some(f) = csv_out {
+    if let Some(f) = outputs.csv {
         f.finish_with_bytes(to_csv(&rows).as_bytes())?;
     }
-    for (p, s) in &plot_paths {
+    for (p, s) in &outputs.plots {
         eprintln!("wrote {} and {}", p.display(), s.display());
     }
     Ok(())
+}
+
+/// What every configuration of a scene is judged against: its triangles, the ray sets,
+/// the oracle's answers on each kind's sample, and the oracle's small image.
+struct Reference {
+    tris: Vec<Triangle>,
+    kinds: [(RayKind, Vec<Ray>); 3],
+    samples: Vec<(Vec<usize>, Vec<OracleHit>)>,
+    image_rays: Vec<Ray>,
+    image: Vec<u8>,
+}
+
+impl Reference {
+    /// `spec` loaded, its rays made and the oracle run on the samples.
+    fn of(spec: &str, sizes: Sizes) -> Result<Reference> {
+        let t0 = Instant::now();
+        let scene = crate::geometry::load_scene(spec)?;
+        let tris = scene.flattened_triangles()?;
+        let cam = scene.camera_or_frame(sizes.w as f32 / sizes.h as f32);
+        let reference = FlatBvh::build(&tris, &BuildOptions::default())?;
+        let sets = ray_sets(&tris, &reference, &cam, sizes.w, sizes.h);
+        let kinds = [
+            (RayKind::Primary, sets.primary),
+            (RayKind::Shadow, sets.shadow),
+            (RayKind::Diffuse, sets.diffuse),
+        ];
+        let (iw, ih) = sizes.image;
+        let pb = ProgressBar::new_spinner();
+        pb.set_message(format!(
+            "{spec}: f64 oracle on {} rays per kind and a {iw}x{ih} image",
+            sizes.sample
+        ));
+        pb.enable_steady_tick(std::time::Duration::from_millis(200));
+        let samples = kinds
+            .iter()
+            .map(|(_, rays)| {
+                let idx = sample_indices(rays.len(), sizes.sample);
+                let sampled: Vec<Ray> = idx.iter().map(|&i| rays[i]).collect();
+                let o = oracle_answers(&tris, &sampled);
+                (idx, o)
+            })
+            .collect();
+        let image_rays = cam.rays(iw, ih);
+        let oracle = oracle_answers(&tris, &image_rays);
+        let image = normal_image(&tris, &image_rays, oracle.iter().map(|o| o.prim));
+        pb.finish_and_clear();
+        eprintln!(
+            "{spec}: {} triangles; rays: {} primary, {} shadow, {} diffuse; setup {:.1} s",
+            tris.len(),
+            kinds[0].1.len(),
+            kinds[1].1.len(),
+            kinds[2].1.len(),
+            t0.elapsed().as_secs_f64()
+        );
+        Ok(Reference {
+            tris,
+            kinds,
+            samples,
+            image_rays,
+            image,
+        })
+    }
+}
+
+/// One configuration to measure: a builder, a walk, a backend, a ray kind, a precision.
+#[derive(Clone, Copy)]
+struct Plan {
+    builder: usize,
+    walk: Traversal,
+    backend: usize,
+    kind: RayKind,
+    precision: Precision,
+}
+
+/// The configurations of one scene: sweeps around the default (SAH, stackless,
+/// watertight f32): every builder on primary rays with the default walk; every walk and
+/// ray kind with the default builder; the other precisions with the default builder, on
+/// every ray kind, stackless and full stack (only stackless with `--quick`); `--full`
+/// everything. The driver's walk of ray queries: one row per ray kind.
+fn plan(
+    args: &BenchArgs,
+    builders: usize,
+    precisions: &[Precision],
+    backends: &[MatrixBackend],
+) -> Vec<Plan> {
+    let walks = traversals();
+    let mut plan = Vec::new();
+    for &precision in precisions {
+        for builder in 0..builders {
+            for &walk in &walks {
+                for (backend, b) in backends.iter().enumerate() {
+                    if b.driver_walk()
+                        && (builder != 0
+                            || walk != walks[0]
+                            || precision != Precision::WatertightF32)
+                    {
+                        continue;
+                    }
+                    for kind in [RayKind::Primary, RayKind::Shadow, RayKind::Diffuse] {
+                        let keep = if precision == Precision::WatertightF32 {
+                            args.full
+                                || builder == 0
+                                || (walk == Traversal::Stackless && kind == RayKind::Primary)
+                        } else {
+                            args.full
+                                || (builder == 0
+                                    && (walk == Traversal::Stackless
+                                        || (!args.quick && walk == Traversal::FullStack)))
+                        };
+                        if keep {
+                            plan.push(Plan {
+                                builder,
+                                walk,
+                                backend,
+                                kind,
+                                precision,
+                            });
+                        }
+                    }
+                }
+            }
+        }
+    }
+    plan
+}
+
+/// Builds `opts`' tree `runs` times (the median time kept) and opens it on every backend.
+fn build_tree(
+    tris: &[Triangle],
+    opts: &BuildOptions,
+    runs: usize,
+    backends: &[MatrixBackend],
+) -> Result<BuiltTree> {
+    let mut times = Vec::new();
+    let mut bvh = None;
+    for _ in 0..runs {
+        let t = Instant::now();
+        bvh = Some(FlatBvh::build(tris, opts)?);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    // The wide layout is converted from the same tree, untimed here.
+    let bvh = bvh.context("no build")?.with_wide();
+    let every = bvhtrace::OpenOptions {
+        traversals: traversals(),
+        ..Default::default()
+    };
+    let tracers = backends
+        .iter()
+        .map(|b| match &b.device {
+            None => Ok(None),
+            Some(d) if b.driver_walk() => Ok(Some(d.open_owned(&bvh, &Default::default())?.tracer)),
+            Some(d) => Ok(Some(d.open_owned(&bvh, &every)?.tracer)),
+        })
+        .collect::<Result<_>>()?;
+    Ok(BuiltTree {
+        bvh,
+        build_ms: median(times),
+        tracers,
+    })
+}
+
+/// Every configuration of `spec`, measured.
+fn bench_scene(
+    args: &BenchArgs,
+    spec: &str,
+    sizes: Sizes,
+    precisions: &[Precision],
+    backends: &[MatrixBackend],
+) -> Result<Vec<Row>> {
+    let reference = Reference::of(spec, sizes)?;
+    let builders = builder_configs(args.full);
+    let plan = plan(args, builders.len(), precisions, backends);
+    let pb = ProgressBar::new(plan.len() as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let mut built: Vec<Option<BuiltTree>> = (0..builders.len()).map(|_| None).collect();
+    let mut rows = Vec::new();
+    let mut refused = Vec::new();
+    for p in plan {
+        let (bname, bopts) = &builders[p.builder];
+        let be = &backends[p.backend];
+        pb.set_message(format!(
+            "{bname} {} {} {} {}",
+            p.walk,
+            be.name,
+            p.kind.name(),
+            p.precision
+        ));
+        let tree = match &mut built[p.builder] {
+            Some(t) => t,
+            slot => slot.insert(build_tree(&reference.tris, bopts, sizes.runs, backends)?),
+        };
+        let cpu = CpuTracer::new(&tree.bvh);
+        let tracer: &dyn Tracer = tree.tracers[p.backend].as_deref().unwrap_or(&cpu);
+        let opts = TraceOptions::new(p.walk, p.kind.query()).with_precision(p.precision);
+        if let Err(e) = tracer.supports(&opts) {
+            // A precision the device lacks (f64 without SHADER_F64): said once.
+            let note = format!("{}: {e}", be.name);
+            if !refused.contains(&note) {
+                pb.suspend(|| eprintln!("note: left out {note}"));
+                refused.push(note);
+            }
+            pb.inc(1);
+            continue;
+        }
+        let config = Config {
+            builder: bname.clone(),
+            bins: bopts.bins,
+            traversal: match be.driver_walk() {
+                true => "driver".into(),
+                false => p.walk.to_string(),
+            },
+            backend: be.name.to_string(),
+            rays: p.kind,
+            precision: p.precision.name().into(),
+        };
+        rows.push(measure(spec, config, tracer, tree, &reference, &p, sizes)?);
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    Ok(rows)
+}
+
+/// One configuration's row: counted once, warmed up, timed `sizes.runs` times, its
+/// sample judged by the oracle and, for primary rays, its small image.
+fn measure(
+    spec: &str,
+    config: Config,
+    tracer: &dyn Tracer,
+    tree: &BuiltTree,
+    reference: &Reference,
+    p: &Plan,
+    sizes: Sizes,
+) -> Result<Row> {
+    // The driver's build adds to ours (its input is our leaf order); it counts no box or
+    // triangle tests.
+    let build_ms = tree.build_ms + tracer.device_build_ms().unwrap_or(0.0);
+    let counts = tracer.device_build_ms().is_none();
+    let kind_idx = (reference.kinds.iter())
+        .position(|k| k.0 == p.kind)
+        .context("ray kind")?;
+    let rays = &reference.kinds[kind_idx].1;
+    let q = p.kind.query();
+    // Warm-up (pipeline creation, caches: the counted pipeline here, the timed one on a few
+    // rays, so that no compilation lands in the timings), then timed runs.
+    let opts = TraceOptions::new(p.walk, q).with_precision(p.precision);
+    let c = match counts {
+        true => (tracer.trace(rays, &opts.with_counters(true))?.counters).unwrap_or_default(),
+        false => Vec::new(),
+    };
+    tracer.trace(&rays[..rays.len().min(256)], &opts)?;
+    let n = rays.len().max(1) as f64;
+    // 0 (not -0: an empty sum) where the driver counted nothing.
+    let per_ray = |f: fn(&bvhtrace_core::Counters) -> u32| {
+        c.iter().map(|c| f64::from(f(c))).fold(0.0, |a, b| a + b) / n
+    };
+    let mut times = Vec::new();
+    let mut hits: Vec<Hit> = Vec::new();
+    for _ in 0..sizes.runs {
+        let t = tracer.trace(rays, &opts)?;
+        times.push(t.gpu_ms.unwrap_or(t.wall_ms));
+        hits = t.hits;
+    }
+    let trace_ms = median(times);
+    let (idx, o) = &reference.samples[kind_idx];
+    let ours: Vec<Hit> = idx.iter().map(|&i| hits[i]).collect();
+    let error = accuracy::compare(&ours, o, q);
+    let (image_rmse, image_flip) = match p.kind {
+        RayKind::Primary => {
+            let closest = TraceOptions::closest(p.walk).with_precision(p.precision);
+            let t = tracer.trace(&reference.image_rays, &closest)?;
+            let prims = t.hits.iter().map(|h| h.prim);
+            let img = normal_image(&reference.tris, &reference.image_rays, prims);
+            let (iw, ih) = sizes.image;
+            (
+                Some(accuracy::rmse(&reference.image, &img)),
+                Some(accuracy::flip(&reference.image, &img, iw, ih)),
+            )
+        }
+        _ => (None, None),
+    };
+    let bytes = match tracer.upload_stats() {
+        Some(u) => u.total_bytes(),
+        None => {
+            let (nb, eb, tb) = tree.bvh.byte_sizes();
+            (nb + if p.walk.needs_escapes() { eb } else { 0 } + tb) as u64
+        }
+    };
+    Ok(Row {
+        scene: spec.to_string(),
+        config,
+        ray_count: rays.len(),
+        build_ms,
+        trace_ms,
+        mrays_per_s: rays.len() as f64 / trace_ms / 1e3,
+        nodes_per_ray: per_ray(|c| c.nodes),
+        tris_per_ray: per_ray(|c| c.tris),
+        bytes,
+        error_rate: error.error_rate(),
+        error,
+        image_rmse,
+        image_flip,
+    })
 }
 
 fn fmt_err(x: f64) -> String {

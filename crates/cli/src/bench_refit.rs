@@ -208,7 +208,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
             .find(|s| s.contains("igea"))
             .context("igea.glb is not in the shared scenes folder: name a scene")?,
     };
-    let scene = bvhtrace_scene::load(&spec)?;
+    let scene = crate::geometry::load_scene(&spec)?;
     let tris = scene.flattened_triangles()?;
     let opts = BuildOptions::default();
     let one = vec![Instance::new(0, Affine3A::IDENTITY)];
@@ -307,7 +307,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
             _ => "builtin:grid:icosphere:100x100".into(),
         },
     };
-    let many = bvhtrace_scene::load(&inst_spec)?;
+    let many = crate::geometry::load_scene(&inst_spec)?;
     let (two, full_ms) = time(|| many.instanced_bvh(&opts));
     let mut two = two?;
     let moved: Vec<Affine3A> = two

@@ -249,11 +249,6 @@ impl Plan {
         if runs == 0 {
             bail!("--runs must be at least 1");
         }
-        for b in &args.backends {
-            if !matches!(b.as_str(), "gpu" | "vulkan" | "cpu" | "ray-query") {
-                bail!("unknown backend '{b}' (expected gpu, vulkan, ray-query or cpu)");
-            }
-        }
         let builders = match (c.builders.is_empty(), quick) {
             (false, _) => c.builders.clone(),
             // The default and the quickest to build: the two ends of build time.
@@ -501,22 +496,15 @@ impl Device {
 /// is left out with a note.
 fn open_devices(args: &BenchArgs) -> Vec<Device> {
     let mut v = Vec::new();
-    for b in &args.backends {
-        let (label, backend) = match b.as_str() {
-            "gpu" => ("gpu", Backend::Wgpu),
-            "vulkan" => ("vulkan", Backend::Vulkan),
-            "ray-query" => ("ray-query", Backend::RayQuery),
-            _ => ("cpu", Backend::Cpu),
-        };
+    for &backend in &args.backends {
         let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
         match crate::backend::device(&opts) {
             Ok(device) => {
-                if backend == Backend::Wgpu {
-                    eprintln!("GPU: {}", device.name());
-                }
+                eprintln!("{}: {}", device.backend(), device.name());
+                let label = device.backend().name();
                 v.push(Device { label, device });
             }
-            Err(e) => eprintln!("note: no {backend} device ({e}); leaving out '{b}'"),
+            Err(e) => eprintln!("note: no {backend} device ({e}); leaving it out"),
         }
     }
     v
@@ -577,8 +565,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     let mut plots = plot_files.into_iter();
     let mut written = Vec::new();
     for spec in &specs {
-        let scene =
-            bvhtrace_scene::load(spec).with_context(|| format!("{spec}: cannot load the scene"))?;
+        let scene = crate::geometry::load_scene(spec)
+            .with_context(|| format!("{spec}: cannot load the scene"))?;
         let tris = scene
             .flattened_triangles()
             .with_context(|| format!("{spec}: cannot flatten the scene"))?;
@@ -958,8 +946,8 @@ where
         root
     };
     let panels = root.split_evenly((1, 2));
-    // Colour by builder, marker by walk, line by backend (solid cpu, dashed gpu, dotted
-    // vulkan): 40 curves stay readable with a legend of a dozen entries.
+    // Colour by builder, marker by walk, line by backend (solid cpu, dashed wgpu, dotted
+    // the others): 40 curves stay readable with a legend of a dozen entries.
     let builders = distinct(curves.iter().map(|c| c.builder.as_str()));
     let walks = distinct(curves.iter().map(|c| c.traversal.as_str()));
     let backends = distinct(curves.iter().map(|c| c.backend.as_str()));
@@ -967,7 +955,7 @@ where
     let colour = |c: &Curve| builder_colour(index(&builders, &c.builder));
     let dash = |backend: &str| match backend {
         "cpu" => None,
-        "gpu" => Some((8, 5)),
+        "wgpu" => Some((8, 5)),
         _ => Some((2, 4)),
     };
     let all = || curves.iter().flat_map(|c| c.points.iter());

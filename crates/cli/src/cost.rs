@@ -164,9 +164,8 @@ pub fn cost(args: CostArgs) -> Result<()> {
         assumptions: ASSUMPTIONS,
         scenes: Vec::new(),
     };
-    let builder = args
-        .build
-        .tree_builder(None, crate::backend::Backend::Auto)?;
+    let device = args.build.build_device(None)?;
+    let builder = args.build.tree_builder(device.as_ref())?;
     for spec in &specs {
         let (scene_report, text) = cost_scene(spec, w, h, &args.walks, &builder)?;
         // Each scene's table as soon as it is done: the big scenes take a while.
@@ -201,7 +200,7 @@ fn cost_scene(
     pb.enable_steady_tick(Duration::from_millis(200));
     pb.set_message(format!("{spec}: loading"));
     // The scene error already names the file (or builtin spec).
-    let scene = bvhtrace_scene::load(spec)?;
+    let scene = crate::geometry::load_scene(spec)?;
     let tris = scene
         .flattened_triangles()
         .with_context(|| format!("{spec}: cannot flatten the scene's triangles"))?;

@@ -4,10 +4,9 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
+use bvhtrace::{Device, GpuBuildOptions, GpuBuilderKind};
 use bvhtrace_core::{BuildOptions, BuilderKind, FlatBvh, Triangle};
-use bvhtrace_gpu::{GpuBuildOptions, GpuBuilderKind, GpuContext};
-use bvhtrace_scene::{Scene, SceneBvh, TracingBvhError};
-use bvhtrace_vk::VkContext;
+use bvhtrace_scene::{LoadOptions, Scene, SceneBvh, TracingBvhError};
 use serde_json::{Value, json};
 
 /// A builder the commands offer: one of the CPU's, or one that builds on the device
@@ -51,50 +50,32 @@ impl std::fmt::Display for Builder {
     }
 }
 
-/// The device a device builder runs on: wgpu's, or ash's (`--backend vulkan`).
-enum BuildDevice {
-    Wgpu(GpuContext),
-    Vulkan(VkContext),
-}
-
-/// Builds one-mesh BVHs the way the flags say: on the CPU with its options, or on a
-/// device opened once for every build.
+/// Builds one-mesh BVHs the way the flags say: on the CPU with its options, or on the
+/// command's device ([`Device::build_bvh`]), the one it traces on.
 pub struct TreeBuilder {
     cpu: BuildOptions,
-    device: Option<(BuildDevice, GpuBuildOptions)>,
+    device: Option<(Device, GpuBuildOptions)>,
 }
 
 impl TreeBuilder {
     /// `builder` with the CPU's `cpu` options (their costs also rule a device build's
-    /// leaves); a device builder opens `adapter` (see `backend::adapter_choice`), through
-    /// ash when `vulkan`, else through wgpu.
-    pub fn new(
-        builder: Builder,
-        cpu: BuildOptions,
-        adapter: Option<&str>,
-        vulkan: bool,
-    ) -> Result<Self> {
+    /// leaves); a device builder builds on `device`, an error without one.
+    pub fn new(builder: Builder, cpu: BuildOptions, device: Option<&Device>) -> Result<Self> {
         let device = match builder {
             Builder::Cpu(_) => None,
             Builder::Device(kind) => {
                 if cpu.optimize {
                     anyhow::bail!("--optimize reinserts in the CPU builders' trees, not {kind}'s");
                 }
-                let choice = crate::backend::adapter_choice(adapter);
-                let device = match vulkan {
-                    true => VkContext::new(choice)
-                        .map(BuildDevice::Vulkan)
-                        .with_context(|| format!("--builder {kind} builds on a Vulkan device"))?,
-                    false => GpuContext::new(choice)
-                        .map(BuildDevice::Wgpu)
-                        .with_context(|| format!("--builder {kind} builds on a GPU"))?,
-                };
+                let device = device.with_context(|| {
+                    format!("--builder {kind} builds on a device, and this command opened none")
+                })?;
                 let opts = GpuBuildOptions {
                     cost_traversal: cpu.cost_traversal,
                     cost_intersection: cpu.cost_intersection,
                     ..GpuBuildOptions::with_builder(kind)
                 };
-                Some((device, opts))
+                Some((device.clone(), opts))
             }
         };
         Ok(TreeBuilder { cpu, device })
@@ -104,8 +85,7 @@ impl TreeBuilder {
     pub fn build(&self, tris: &[Triangle]) -> Result<FlatBvh, String> {
         let built = match &self.device {
             None => return FlatBvh::build(tris, &self.cpu).map_err(|e| e.to_string()),
-            Some((BuildDevice::Wgpu(ctx), opts)) => ctx.build_bvh(tris, opts),
-            Some((BuildDevice::Vulkan(ctx), opts)) => ctx.build_bvh(tris, opts),
+            Some((device, opts)) => device.build_bvh(tris, opts),
         };
         built.map(|(bvh, _)| bvh).map_err(|e| e.to_string())
     }
@@ -154,6 +134,12 @@ pub fn shared_scenes_dir() -> Option<std::path::PathBuf> {
     }
 }
 
+/// Loads `spec`, `builtin:grid`'s meshes from the shared scenes folder.
+pub fn load_scene(spec: &str) -> Result<Scene> {
+    let opts = LoadOptions::with_meshes(shared_scenes_dir());
+    Ok(bvhtrace_scene::load_with(spec, &opts)?)
+}
+
 /// Loads `spec` (at time `time` when given), prints its warnings, and builds it with
 /// `builder`.
 pub fn load_and_build(
@@ -163,7 +149,7 @@ pub fn load_and_build(
     time: Option<f32>,
 ) -> Result<Built> {
     let t0 = Instant::now();
-    let mut scene = bvhtrace_scene::load(spec)?;
+    let mut scene = load_scene(spec)?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }

@@ -14,6 +14,7 @@ mod output;
 mod plot;
 mod render;
 mod shade;
+mod stress;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -58,7 +59,7 @@ enum Command {
     /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
     /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
-    Stress(bvhtrace_stress::StressArgs),
+    Stress(stress::StressArgs),
     /// A GPU cost model that needs no GPU: loop trips per warp, lane utilisation and bytes
     /// per ray of each walk, from the CPU walks over rays grouped in warps.
     #[command(long_about = cost::long_about())]
@@ -76,10 +77,7 @@ fn main() {
         Command::BenchBuild(a) => bench::bench_build(a),
         Command::BenchTrace(a) => bench::bench_trace(a),
         Command::BenchRefit(a) => bench_refit::bench_refit(a),
-        Command::Stress(a) => {
-            bvhtrace_stress::set_scenes_dir(geometry::shared_scenes_dir());
-            bvhtrace_stress::run(a, &backend::stress_device)
-        }
+        Command::Stress(a) => stress::run(a),
         Command::Cost(a) => cost::cost(a),
     };
     if let Err(e) = result {

@@ -18,7 +18,7 @@ use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
-use crate::backend::{self, Backend};
+use crate::backend::{self, Backend, Device};
 use crate::geometry::{self, Builder, Built, TreeBuilder};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::shade::{self, Shade, View};
@@ -86,11 +86,21 @@ impl BuildArgs {
         }
     }
 
-    /// The builder the flags say, a device one opened on `adapter` (through ash when
-    /// `backend` is `vulkan`, else through wgpu).
-    pub fn tree_builder(&self, adapter: Option<&str>, backend: Backend) -> Result<TreeBuilder> {
-        let vulkan = backend == Backend::Vulkan;
-        TreeBuilder::new(self.builder, self.options(), adapter, vulkan)
+    /// The builder the flags say, a device builder on `device`.
+    pub fn tree_builder(&self, device: Option<&Device>) -> Result<TreeBuilder> {
+        TreeBuilder::new(self.builder, self.options(), device)
+    }
+
+    /// A command that traces on no device of its own: the device a device builder builds
+    /// on (the best there is, on `adapter`), `None` for a CPU builder.
+    pub fn build_device(&self, adapter: Option<&str>) -> Result<Option<Device>> {
+        match self.builder {
+            Builder::Cpu(_) => Ok(None),
+            Builder::Device(_) => {
+                let opts = backend::options(Backend::Auto, adapter, &[]);
+                backend::device(&opts).map(Some)
+            }
+        }
     }
 }
 
@@ -120,10 +130,9 @@ impl SceneArgs {
 }
 
 /// Loads and builds the scene as the flags say (two levels or flattened, at `--time`; a
-/// device builder on `adapter`, through ash for `Backend::Vulkan`); prints scene
-/// warnings.
-pub fn load_and_build(args: &SceneArgs, adapter: Option<&str>, backend: Backend) -> Result<Built> {
-    let builder = args.build.tree_builder(adapter, backend)?;
+/// device builder on `device`); prints scene warnings.
+pub fn load_and_build(args: &SceneArgs, device: Option<&Device>) -> Result<Built> {
+    let builder = args.build.tree_builder(device)?;
     geometry::load_and_build(args.spec(), &builder, args.flatten, args.time)
 }
 
@@ -304,17 +313,16 @@ pub fn render(args: RenderArgs) -> Result<()> {
         bail!("--ao-samples must be at least 1");
     }
     let walk = args.walk()?;
+    // The device, opened once: it builds the tree (a device builder) and traces it.
+    let walks: Vec<Traversal> = walk.into_iter().collect();
+    let opts = backend::options(args.backend, args.adapter.as_deref(), &walks);
+    let device = backend::device(&opts)?;
     let Built {
         scene,
         geometry: mut geo,
         load_ms,
-        mut build_ms,
-    } = load_and_build(&args.scene, args.adapter.as_deref(), args.backend)?;
-    if walk.is_some_and(|w| w.is_wide()) {
-        let t = std::time::Instant::now();
-        geo.build_wide();
-        build_ms += t.elapsed().as_secs_f64() * 1e3;
-    }
+        build_ms,
+    } = load_and_build(&args.scene, Some(&device))?;
     if args.opaque {
         // Masks the scene's tree was given: dropped, so no walk cuts a candidate.
         geo.set_masks(None).map_err(anyhow::Error::msg)?;
@@ -322,14 +330,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let bvh = geo.bvh();
     let masks = bvh.masks().cloned();
     let cam = camera_for(&args.view, &scene)?;
-    let opened = backend::open(
-        args.backend,
-        args.adapter.as_deref(),
-        bvh,
-        &walk.into_iter().collect::<Vec<_>>(),
-        None,
-    )
-    .map_err(|e| match &masks {
+    let opened = backend::open_on(&device, bvh, &opts).map_err(|e| match &masks {
         Some(_) => e.context("the scene has masked materials (render --opaque traces them opaque)"),
         None => e,
     })?;
@@ -829,7 +830,13 @@ pub fn info(args: InfoArgs) -> Result<()> {
         geometry: geo,
         load_ms,
         build_ms,
-    } = load_and_build(&args.scene, args.adapter.as_deref(), Backend::Auto)?;
+    } = load_and_build(
+        &args.scene,
+        args.scene
+            .build
+            .build_device(args.adapter.as_deref())?
+            .as_ref(),
+    )?;
     let bvh = geo.bvh();
     let s = BvhStats::of(bvh);
     let (lo, hi) = scene.bounds();
@@ -983,7 +990,7 @@ pub struct DumpArgs {
 pub fn dump(args: DumpArgs) -> Result<()> {
     let out = AtomicFile::create(&args.output)?;
     let spec = args.scene.as_deref().unwrap_or(DEFAULT_SCENE);
-    let scene = bvhtrace_scene::load(spec)?;
+    let scene = crate::geometry::load_scene(spec)?;
     let tris = scene.flattened_triangles()?;
     let cam = camera_for(&args.view, &scene)?;
     let (w, h) = args.view.size;

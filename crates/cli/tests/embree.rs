@@ -61,13 +61,13 @@ fn bunny_hits_match_embree() {
     // The device's ray queries too, where it has them (Mesa 25's lavapipe); `.ci/run`
     // sets BVHTRACE_REQUIRE_RAY_QUERIES=1 when it installed such a driver.
     let require_rq = std::env::var("BVHTRACE_REQUIRE_RAY_QUERIES").is_ok_and(|v| v == "1");
-    // The tree built on the device too, traced by the CPU (read back) and the GPU.
+    // The tree built on the device too, traced by our walks on wgpu and on ash.
     for (backend, builder) in [
         ("cpu", "sah"),
-        ("gpu", "sah"),
+        ("wgpu", "sah"),
         ("ray-query", "sah"),
-        ("cpu", "gpu-ploc"),
-        ("gpu", "gpu-ploc"),
+        ("wgpu", "gpu-ploc"),
+        ("vulkan", "gpu-ploc"),
     ] {
         let png = dir.join(format!("{backend}-{builder}.png"));
         let mut args = vec!["--backend", backend, "--builder", builder];

@@ -242,11 +242,33 @@ fn optimize_lowers_the_sah_cost_and_keeps_the_image() {
 
 #[test]
 fn device_builders_keep_the_image_in_one_and_two_levels() {
+    // The device builds on the device it traces on: none on the CPU backend.
+    let out = run(&["info", "--builder", "gpu-ploc"]);
+    if !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("mesa-vulkan") {
+        return eprintln!("SKIP: no Vulkan adapter");
+    }
+    let png = scratch("device build on the cpu").join("o.png");
+    let png = png.to_str().unwrap();
+    let cpu = run(&[
+        "render",
+        "--backend",
+        "cpu",
+        "--builder",
+        "gpu-ploc",
+        "-o",
+        png,
+    ]);
+    let err = String::from_utf8_lossy(&cpu.stderr);
+    assert!(
+        !cpu.status.success() && err.contains("cpu") && err.contains("no device to build on"),
+        "{err}"
+    );
     for scene in [&["builtin:spheres"][..], &["builtin:spheres", "--flatten"]] {
         let args = [scene, &["--shade", "diffuse"]].concat();
         let (sah, img) = render_json("device builds sah", &args);
         for builder in ["gpu-ploc", "gpu-lbvh"] {
-            let (v, got) = render_json(
+            let (v, got) = render_json_on(
+                "wgpu",
                 &format!("device builds {builder}"),
                 &[&args[..], &["--builder", builder]].concat(),
             );
@@ -294,9 +316,14 @@ fn sbvh_builds_within_its_budget_and_keeps_the_image() {
 
 /// Renders `args` on the CPU at 96x72 with JSON on stdout; returns the JSON and the PNG.
 fn render_json(name: &str, args: &[&str]) -> (serde_json::Value, Vec<u8>) {
+    render_json_on("cpu", name, args)
+}
+
+/// [`render_json`] on `backend`.
+fn render_json_on(backend: &str, name: &str, args: &[&str]) -> (serde_json::Value, Vec<u8>) {
     let dir = scratch(name);
     let png = dir.join("o.png");
-    let mut all = vec!["render", "--size", "96x72", "--backend", "cpu", "-o"];
+    let mut all = vec!["render", "--size", "96x72", "--backend", backend, "-o"];
     all.push(png.to_str().unwrap());
     all.extend_from_slice(&["--json", "-"]);
     all.extend_from_slice(args);

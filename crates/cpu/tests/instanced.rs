@@ -390,7 +390,8 @@ fn instanced_scenes_give_the_reference_hits() {
         specs.push("builtin:grid:bunny_69k:3x3".into());
     }
     for spec in specs {
-        let scene = bvhtrace_scene::load(&spec).unwrap();
+        let opts = bvhtrace_scene::LoadOptions::with_meshes(bvhtrace_scene::shared_scenes_dir());
+        let scene = bvhtrace_scene::load_with(&spec, &opts).unwrap();
         let mut traced = scene.tracing_bvh(&BuildOptions::default(), false).unwrap();
         traced.set_masks(None).unwrap();
         let bvhtrace_scene::SceneBvh::Instanced(ib) = &traced else {

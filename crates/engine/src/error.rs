@@ -2,6 +2,13 @@
 
 use bvhtrace_core::{Precision, Traversal};
 
+use crate::storage::BvhStorage;
+
+/// `bytes` in MiB, for a sentence.
+fn mib(bytes: u64) -> String {
+    format!("{:.1} MiB", bytes as f64 / f64::from(1 << 20))
+}
+
 /// Everything that can go wrong while choosing a device, uploading a BVH or tracing, on
 /// any backend. Nothing in bvhtrace panics on bad input or a missing device: it returns
 /// one of these.
@@ -51,13 +58,17 @@ pub enum TraceError {
         /// What needs it.
         needed_for: &'static str,
     },
-    /// A buffer would be larger than the device allows.
+    /// A buffer or texture would be larger than the device allows.
     #[error(
-        "the {buffer} buffer needs {bytes} bytes but the device's {limit_name} is {limit} bytes: \
-         the scene is too large for this device"
+        "the {buffer} {} needs {bytes} bytes ({}) but the device's {limit_name} is {limit} \
+         bytes ({}): the scene is too large for this device{}",
+        if storage.is_some_and(|s| s == BvhStorage::Textures) { "texture" } else { "buffer" },
+        mib(*bytes),
+        mib(*limit),
+        storage.map_or(String::new(), |s| format!(" in {} storage", s.name()))
     )]
     TooLarge {
-        /// Which buffer (`nodes`, `triangles`, `escapes`, `rays`, ...).
+        /// Which array (`nodes`, `triangles`, `escapes`, `rays`, ...).
         buffer: &'static str,
         /// Bytes it needs.
         bytes: u64,
@@ -65,6 +76,17 @@ pub enum TraceError {
         limit: u64,
         /// The limit's name.
         limit_name: &'static str,
+        /// Where the tree was to be kept, for an array of the tree (`None` for the rays).
+        storage: Option<BvhStorage>,
+    },
+    /// The tree fits the device in none of the storages and walks tried: each, and why.
+    #[error("the scene does not fit {device}: {}", tried.join("; "))]
+    DoesNotFit {
+        /// The device.
+        device: String,
+        /// Each storage and walk tried, with the limit it exceeded, and what the device
+        /// does not offer.
+        tried: Vec<String>,
     },
     /// The tree is deeper than the full-stack kernel's stack.
     #[error(

@@ -5,7 +5,7 @@ use bvhtrace_core::{Counters, Hit, Ray};
 
 use crate::compose::WORKGROUP_SIZE;
 use crate::error::TraceError;
-use crate::storage::{TEXEL_ROW, texel_rows};
+use crate::storage::{BvhStorage, TEXEL_ROW, texel_rows};
 
 /// The device limits a backend works within: the fields of `wgpu::Limits` or Vulkan's
 /// `VkPhysicalDeviceLimits` that matter here.
@@ -41,6 +41,17 @@ pub fn check_buffer_size(
     buffer: &'static str,
     bytes: u64,
 ) -> Result<(), TraceError> {
+    check_buffer_in(limits, buffer, bytes, None)
+}
+
+/// [`check_buffer_size`] for an array of the tree kept in `storage`'s buffers (its error
+/// names the storage).
+pub fn check_buffer_in(
+    limits: &DeviceLimits,
+    buffer: &'static str,
+    bytes: u64,
+    storage: Option<BvhStorage>,
+) -> Result<(), TraceError> {
     for (limit, limit_name) in [
         (
             limits.max_storage_buffer_binding_size,
@@ -54,6 +65,7 @@ pub fn check_buffer_size(
                 bytes,
                 limit,
                 limit_name,
+                storage,
             });
         }
     }
@@ -76,6 +88,7 @@ pub fn check_texels(
             limit: u64::from(TEXEL_ROW).min(max) * max * texel_bytes,
             limit_name: "texture capacity (max_texture_dimension_2d rows of TEXEL_ROW texels; \
                          BvhStorage::Buffers holds more)",
+            storage: Some(BvhStorage::Textures),
         });
     }
     Ok(())

@@ -7,7 +7,7 @@ use std::borrow::Cow;
 use bvhtrace_core::{FlatBvh, FlatNode, MaskTables, Traversal, WideBvh};
 
 use crate::error::TraceError;
-use crate::plan::{DeviceLimits, check_buffer_size, check_texels};
+use crate::plan::{DeviceLimits, check_buffer_in, check_texels};
 use crate::storage::{BvhStorage, texel_extent};
 use crate::walks::{Layout, check_depth, walk};
 
@@ -259,7 +259,12 @@ impl DeviceArray<'_> {
     /// Checks the array against the device's limits ([`TraceError::TooLarge`] names it).
     pub fn check(&self, limits: &DeviceLimits) -> Result<(), TraceError> {
         match self.texel_bytes {
-            None => check_buffer_size(limits, self.name(), self.bytes.len() as u64),
+            None => check_buffer_in(
+                limits,
+                self.name(),
+                self.bytes.len() as u64,
+                Some(BvhStorage::Buffers),
+            ),
             Some(b) => check_texels(limits, self.name(), self.texels(), b),
         }
     }

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use glam::{Mat4, Quat, Vec2, Vec3};
 
 use crate::error::{ErrorKind, SceneError};
-use crate::{Camera, Instance, Material, Mesh, Scene};
+use crate::{Camera, Instance, LoadOptions, Material, Mesh, Scene};
 
 /// The builtin scenes, as `(name, description)`; load one as `builtin:NAME`.
 /// Names with parameters are shown with their placeholders (`N`, `MESH`, `AxB`).
@@ -36,7 +36,11 @@ pub fn builtin_names() -> &'static [(&'static str, &'static str)] {
 }
 
 /// Loads `builtin:NAME` (`name` without the prefix; `spec` is the whole spec, for errors).
-pub(crate) fn load_builtin(name: &str, spec: &str) -> Result<Scene, SceneError> {
+pub(crate) fn load_builtin(
+    name: &str,
+    spec: &str,
+    opts: &LoadOptions,
+) -> Result<Scene, SceneError> {
     let bad = |msg: String| SceneError::new(spec, ErrorKind::Spec(msg));
     let scene = match name {
         "cornell" => cornell(),
@@ -69,7 +73,7 @@ pub(crate) fn load_builtin(name: &str, spec: &str) -> Result<Scene, SceneError> 
                     ..Scene::default()
                 }
             } else if let Some(rest) = name.strip_prefix("grid:") {
-                grid(rest, spec)?
+                grid(rest, spec, opts)?
             } else {
                 let known: Vec<&str> = builtin_names().iter().map(|(n, _)| *n).collect();
                 return Err(bad(format!(
@@ -553,12 +557,12 @@ fn degenerate() -> Scene {
     }
 }
 
-/// Where `builtin:grid:MESH:...` finds MESH: the shared folder's `glb/MESH.glb`, then the
-/// repository's `scenes/MESH.glb`.
-fn grid_mesh_candidates(mesh: &str) -> Vec<PathBuf> {
+/// Where `builtin:grid:MESH:...` finds MESH: the `glb/MESH.glb` of the folder `opts`
+/// names, then the repository's `scenes/MESH.glb`.
+fn grid_mesh_candidates(mesh: &str, opts: &LoadOptions) -> Vec<PathBuf> {
     let file = format!("{mesh}.glb");
     let mut out = Vec::new();
-    if let Some(d) = crate::find_shared_scenes_dir() {
+    if let Some(d) = &opts.meshes {
         out.push(d.join("glb").join(&file));
     }
     if let Some(d) = crate::repo_scenes_dir() {
@@ -568,7 +572,7 @@ fn grid_mesh_candidates(mesh: &str) -> Vec<PathBuf> {
 }
 
 /// `grid:MESH:AxB`.
-fn grid(rest: &str, spec: &str) -> Result<Scene, SceneError> {
+fn grid(rest: &str, spec: &str, opts: &LoadOptions) -> Result<Scene, SceneError> {
     let bad = |msg: String| SceneError::new(spec, ErrorKind::Spec(msg));
     let Some((mesh, dims)) = rest.rsplit_once(':') else {
         return Err(bad("expected grid:MESH:AxB, e.g. grid:igea:3x3".into()));
@@ -589,13 +593,13 @@ fn grid(rest: &str, spec: &str) -> Result<Scene, SceneError> {
             "grid mesh {mesh:?}: give a file stem from the shared glb/ folder, e.g. igea"
         )));
     }
-    let candidates = grid_mesh_candidates(mesh);
+    let candidates = grid_mesh_candidates(mesh, opts);
     let Some(path) = candidates.iter().find(|p| p.is_file()) else {
         let looked: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
         return Err(bad(format!(
             "grid mesh {mesh:?} not found (looked for {})",
             if looked.is_empty() {
-                "a shared scenes folder, and found none".to_string()
+                "no folder: name the shared scenes folder, LoadOptions::meshes".to_string()
             } else {
                 looked.join(" and ")
             }
@@ -687,16 +691,20 @@ mod tests {
 
     #[test]
     fn builtins_have_expected_sizes() {
-        let c = load_builtin("cornell", "builtin:cornell").expect("cornell");
+        let c =
+            load_builtin("cornell", "builtin:cornell", &LoadOptions::default()).expect("cornell");
         assert_eq!(c.triangle_count(), 36);
         assert!(c.camera.is_some() && c.attributes.normals && c.attributes.materials);
-        let s = load_builtin("spheres", "builtin:spheres").expect("spheres");
+        let s =
+            load_builtin("spheres", "builtin:spheres", &LoadOptions::default()).expect("spheres");
         assert_eq!(s.triangle_count(), 35_328);
-        let d = load_builtin("degenerate", "builtin:degenerate").expect("degenerate");
+        let d = load_builtin("degenerate", "builtin:degenerate", &LoadOptions::default())
+            .expect("degenerate");
         assert_eq!(d.triangle_count(), 3_580);
         assert_eq!(
             d,
-            load_builtin("degenerate", "builtin:degenerate").expect("again")
+            load_builtin("degenerate", "builtin:degenerate", &LoadOptions::default())
+                .expect("again")
         );
         for sc in [&c, &s, &d] {
             sc.check_invariants().expect("invariants");
@@ -706,7 +714,8 @@ mod tests {
 
     #[test]
     fn cornell_walls_face_the_camera_side() {
-        let c = load_builtin("cornell", "builtin:cornell").expect("cornell");
+        let c =
+            load_builtin("cornell", "builtin:cornell", &LoadOptions::default()).expect("cornell");
         let m = &c.meshes[0];
         // The back wall (triangles 4 and 5) faces +z, towards the camera.
         for t in &m.indices[4..6] {
@@ -746,7 +755,7 @@ mod tests {
             "grid:../x:2x2",
             "grid:no_such_mesh:2x2",
         ] {
-            let e = load_builtin(s, &format!("builtin:{s}")).expect_err(s);
+            let e = load_builtin(s, &format!("builtin:{s}"), &LoadOptions::default()).expect_err(s);
             assert!(e.to_string().starts_with(&format!("builtin:{s}: ")), "{e}");
         }
     }

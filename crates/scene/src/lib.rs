@@ -675,14 +675,37 @@ impl Scene {
     }
 }
 
+/// How [`load_with`] loads.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LoadOptions {
+    /// A folder holding `glb/MESH.glb` (the shared scenes folder, [`shared_scenes_dir`]):
+    /// where `builtin:grid:MESH:AxB` looks for its mesh first, before the repository's own
+    /// `scenes/MESH.glb`. The library looks in no other folder, and at no working
+    /// directory.
+    pub meshes: Option<PathBuf>,
+}
+
+impl LoadOptions {
+    /// `builtin:grid` meshes from `dir` (its `glb/` folder), when given.
+    pub fn with_meshes(dir: Option<PathBuf>) -> LoadOptions {
+        LoadOptions { meshes: dir }
+    }
+}
+
 /// Loads a scene from a spec: a `.gltf`/`.glb` path or a `builtin:` name, with optional
-/// `#scale=S` / `#offset=X,Y,Z` suffixes (see the crate docs).
+/// `#scale=S` / `#offset=X,Y,Z` suffixes (see the crate docs), `builtin:grid`'s meshes
+/// from this repository's `scenes/` only ([`load_with`] names another folder).
 ///
 /// Every error names the file (or spec) and the cause; nothing panics on bad input.
 pub fn load(spec: &str) -> Result<Scene, SceneError> {
+    load_with(spec, &LoadOptions::default())
+}
+
+/// [`load`] as `opts` says.
+pub fn load_with(spec: &str, opts: &LoadOptions) -> Result<Scene, SceneError> {
     let (base, transforms) = split_suffixes(spec)?;
     let mut scene = if let Some(name) = base.strip_prefix("builtin:") {
-        builtin::load_builtin(name, base)?
+        builtin::load_builtin(name, base, opts)?
     } else {
         load_gltf_file(Path::new(base))?
     };
@@ -738,15 +761,10 @@ fn split_suffixes(spec: &str) -> Result<(&str, Vec<Mat4>), SceneError> {
 /// The shared scenes folder (`shared/scenes`, holding `glb/`, `gltf/` and `SOURCES.md`):
 /// the first `shared/scenes` folder found walking up from the current directory, then from
 /// this crate's source directory; `None` when there is none (tests then skip with a
-/// message). A hook for benchmarks and tests; a front end that lets its user name another
-/// folder (the CLI's `$BVHTRACE_SCENES`) checks that first.
-#[cfg(feature = "test-hooks")]
+/// message). For front ends, benchmarks and tests to pass on ([`LoadOptions::meshes`]):
+/// nothing in the library calls it. A front end that lets its user name another folder
+/// (the CLI's `$BVHTRACE_SCENES`) checks that first.
 pub fn shared_scenes_dir() -> Option<PathBuf> {
-    find_shared_scenes_dir()
-}
-
-/// [`shared_scenes_dir`], for `builtin:grid`'s meshes whatever the features.
-pub(crate) fn find_shared_scenes_dir() -> Option<PathBuf> {
     let starts = [
         std::env::current_dir().ok(),
         Some(PathBuf::from(env!("CARGO_MANIFEST_DIR"))),

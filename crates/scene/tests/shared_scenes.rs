@@ -176,7 +176,13 @@ fn grid_of_igea_is_instanced_and_large() {
     let Some(dir) = common::shared("grid_of_igea_is_instanced_and_large") else {
         return;
     };
-    let s = load("builtin:grid:igea:3x3").expect("grid loads");
+    // Only from the folder named: the library looks in no other.
+    assert!(
+        load("builtin:grid:igea:3x3").is_err(),
+        "igea is not in the repository"
+    );
+    let opts = bvhtrace_scene::LoadOptions::with_meshes(Some(dir.clone()));
+    let s = bvhtrace_scene::load_with("builtin:grid:igea:3x3", &opts).expect("grid loads");
     assert!(s.synthetic && s.description.contains("synthetic"));
     assert_eq!(s.meshes.len(), 1);
     assert_eq!(s.instance_count(), 9);

@@ -1,6 +1,6 @@
 //! The stress cases: generators for every group (see [`CASE_GROUPS`]).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use bvhtrace_core::{
     BuildOptions, BuilderKind, FlatBvh, Instance, MISS, Ray, TraceOptions, Traversal, Triangle,
@@ -73,23 +73,42 @@ pub const CASE_GROUPS: &[(&str, &str)] = &[
     ),
 ];
 
-/// Every case at full size (what `bvhtrace stress` runs by default).
-pub fn cases() -> Vec<Case> {
-    cases_sized(Size::Full)
+/// What the cases are made for: their size, and the shared scenes folder (holding `glb/`)
+/// the cases of real meshes read; without one those are skipped, saying so. This crate
+/// reads no environment variable and looks for no folder: a front end passes the one its
+/// user named.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CaseOptions {
+    /// How big to make them.
+    pub size: Size,
+    /// The shared scenes folder.
+    pub scenes: Option<PathBuf>,
 }
 
-/// Every case at the given size.
-pub fn cases_sized(size: Size) -> Vec<Case> {
+impl CaseOptions {
+    /// Cases of `size`, without real meshes.
+    pub fn new(size: Size) -> CaseOptions {
+        CaseOptions { size, scenes: None }
+    }
+
+    /// The same, the real meshes read from `scenes` (its `glb/` folder).
+    pub fn with_scenes(self, scenes: Option<PathBuf>) -> CaseOptions {
+        CaseOptions { scenes, ..self }
+    }
+}
+
+/// Every case.
+pub fn cases_sized(opts: &CaseOptions) -> Vec<Case> {
     CASE_GROUPS
         .iter()
-        .flat_map(|(g, _)| generate(g, size))
+        .flat_map(|(g, _)| generate(g, opts))
         .collect()
 }
 
 /// The cases named in `names` (each a case name, a group name, or a prefix followed by
 /// `-`: `offset` selects every `offset-*`); all cases when `names` is empty. Only the groups
 /// needed are generated. Unknown names are an error listing the groups.
-pub fn select_cases(names: &[String], size: Size) -> Result<Vec<Case>, String> {
+pub fn select_cases(names: &[String], opts: &CaseOptions) -> Result<Vec<Case>, String> {
     let names: Vec<&str> = names
         .iter()
         .flat_map(|n| n.split(','))
@@ -97,7 +116,7 @@ pub fn select_cases(names: &[String], size: Size) -> Result<Vec<Case>, String> {
         .filter(|n| !n.is_empty())
         .collect();
     if names.is_empty() {
-        return Ok(cases_sized(size));
+        return Ok(cases_sized(opts));
     }
     // The longest group that names or prefixes `n` (`scale-limit-1e14` is not `scale`).
     let group_of = |n: &str| {
@@ -132,7 +151,7 @@ pub fn select_cases(names: &[String], size: Size) -> Result<Vec<Case>, String> {
         if !groups.contains(g) {
             continue;
         }
-        for c in generate(g, size) {
+        for c in generate(g, opts) {
             if names
                 .iter()
                 .any(|n| c.name == *n || c.name.starts_with(&format!("{n}-")))
@@ -155,9 +174,10 @@ pub fn select_cases(names: &[String], size: Size) -> Result<Vec<Case>, String> {
     Ok(out)
 }
 
-fn generate(group: &str, size: Size) -> Vec<Case> {
+fn generate(group: &str, opts: &CaseOptions) -> Vec<Case> {
+    let (size, scenes) = (opts.size, opts.scenes.as_deref());
     match group {
-        "watertight" => watertight(size),
+        "watertight" => watertight(size, scenes),
         "offset" => offsets(size),
         "scale" => scales(size),
         "scale-limit" => scale_limits(size),
@@ -166,7 +186,7 @@ fn generate(group: &str, size: Size) -> Vec<Case> {
         "coincident" => vec![coincident(size)],
         "degenerate" => vec![degenerate(size)],
         "extreme-rays" => vec![extreme_rays()],
-        "self-hits" => vec![self_hits(size)],
+        "self-hits" => vec![self_hits(size, scenes)],
         "deep" => vec![deep(size)],
         "precision-limit" => vec![precision_limit(size)],
         "instances" => instance_cases(size),
@@ -222,7 +242,7 @@ fn finish_input(case: &mut Case) {
     case.input.zero_area_triangles = count_zero_area(&case.tris);
 }
 
-fn watertight(size: Size) -> Vec<Case> {
+fn watertight(size: Size, scenes: Option<&Path>) -> Vec<Case> {
     let mut out = Vec::new();
     let mut c = Case::new(
         "watertight",
@@ -260,11 +280,11 @@ fn watertight(size: Size) -> Vec<Case> {
     out.push(c);
 
     // Real closed meshes.
-    let dir = crate::scenes_dir().map(|d| d.join("glb"));
+    let dir = scenes.map(|d| d.join("glb"));
     let Some(dir) = dir.filter(|d| d.is_dir()) else {
         let mut skip = Case::new("watertight-real", "real closed meshes");
         skip.notes.push(
-            "SKIP: no shared scenes folder with a glb/ folder (set BVHTRACE_SCENES or put shared/scenes above the repository)".into(),
+            "SKIP: no shared scenes folder with a glb/ folder (`bvhtrace stress` takes $BVHTRACE_SCENES, or shared/scenes above the working directory)".into(),
         );
         out.push(skip);
         return out;
@@ -1100,7 +1120,7 @@ fn ball_grid_rays(c: &mut Case, ball_c: DVec3) {
     }
 }
 
-fn self_hits(size: Size) -> Case {
+fn self_hits(size: Size, scenes: Option<&Path>) -> Case {
     let q = quick(size);
     let mut c = Case::new(
         "self-hits",
@@ -1111,7 +1131,7 @@ fn self_hits(size: Size) -> Case {
     for center in [DVec3::new(0.3, -0.2, 0.1), DVec3::new(100.0, 200.0, -150.0)] {
         objects.push((icosphere(sub, center, 1.0), center));
     }
-    if let Some(dir) = crate::scenes_dir() {
+    if let Some(dir) = scenes {
         let path = dir.join("glb").join("bunny_npm_3k.glb");
         if let Some(scene) = path.to_str().and_then(|p| bvhtrace_scene::load(p).ok()) {
             let tm = scene.flatten();
@@ -1563,7 +1583,7 @@ mod tests {
 
     #[test]
     fn every_quick_case_is_well_formed() {
-        for c in cases_sized(Size::Quick) {
+        for c in cases_sized(&CaseOptions::new(Size::Quick)) {
             assert_eq!(c.rays.len(), c.expect.len(), "{}", c.name);
             if c.name != "watertight-real" {
                 assert!(!c.tris.is_empty(), "{}", c.name);
@@ -1578,7 +1598,8 @@ mod tests {
 
     #[test]
     fn instance_cases_are_two_levels_with_every_ray_from_inside() {
-        let cases = select_cases(&["instances".into()], Size::Quick).expect("known");
+        let cases =
+            select_cases(&["instances".into()], &CaseOptions::new(Size::Quick)).expect("known");
         assert_eq!(cases.len(), 7);
         for c in &cases {
             let inst = c.instancing.as_ref().expect("two levels");
@@ -1616,12 +1637,14 @@ mod tests {
 
     #[test]
     fn selection_by_group_and_name() {
-        let c = select_cases(&["offset-1e3".into()], Size::Quick).expect("known");
+        let c =
+            select_cases(&["offset-1e3".into()], &CaseOptions::new(Size::Quick)).expect("known");
         assert_eq!(c.len(), 1);
-        let c = select_cases(&["scale".into()], Size::Quick).expect("known");
+        let c = select_cases(&["scale".into()], &CaseOptions::new(Size::Quick)).expect("known");
         assert_eq!(c.len(), 6);
-        assert!(select_cases(&["nope".into()], Size::Quick).is_err());
-        let c = select_cases(&["scale-limit".into()], Size::Quick).expect("known");
+        assert!(select_cases(&["nope".into()], &CaseOptions::new(Size::Quick)).is_err());
+        let c =
+            select_cases(&["scale-limit".into()], &CaseOptions::new(Size::Quick)).expect("known");
         assert!(
             c.iter()
                 .all(|c| c.name.starts_with("scale-limit-") && !c.guaranteed)

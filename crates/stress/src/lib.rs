@@ -1,21 +1,22 @@
 //! Numerical stress cases for bvhtrace (`bvhtrace stress`): where the f32 BVH traversal is
 //! exact, where it is only as good as f32 can be, and where precision runs out.
 //!
-//! * [`cases`] generates every [`Case`]: a scene (triangles), rays, and what each ray's
+//! * [`select_cases`] and [`cases_sized`] generate each [`Case`] ([`CaseOptions`]: the
+//!   size, the shared scenes folder): a scene (triangles), rays, and what each ray's
 //!   answer should be ([`Expect`]): known exactly, or whatever the f64 oracle
 //!   ([`bvhtrace_core::oracle`]) says for the f32 input.
 //! * [`run_case`] builds the BVH (two levels, an [`bvhtrace_core::InstancedBvh`], when
-//!   the case has [`Case::instancing`]) and traces the rays on every [`Backends`] entry
-//!   (the CPU twins, and the GPU kernels through wgpu and, with
-//!   [`Backends::with_vulkan`], through ash, on the tracers the caller's
-//!   [`DeviceTracers`] factories open: this crate opens no backend) with every traversal
-//!   and query,
-//!   and compares: against the known answers, against the f64 oracle (differences
-//!   classified as *f32-indeterminate* or *wrong* with
+//!   the case has [`Case::instancing`]) and traces the rays with every walk
+//!   ([`traversals`]) and query on the CPU twins and on every device of [`Backends`]
+//!   (the tracers its caller's [`DeviceTracers`] factories open: this crate opens no
+//!   backend), and compares: against the known answers, against the f64 oracle
+//!   (differences classified as *f32-indeterminate* or *wrong* with
 //!   [`bvhtrace_core::oracle::f32_indeterminate`] and
 //!   [`bvhtrace_core::oracle::f32_t_error_bound`]), against the f32 brute force (what
-//!   every traversal must return), and GPU against CPU bit for bit.
-//! * [`run`] is the `bvhtrace stress` command ([`StressArgs`]): a table, and JSON.
+//!   every traversal must return), and each device of our walks against the CPU twins
+//!   bit for bit.
+//! * [`table_header`], [`table_rows`] and [`format_table`]: the report as a table; every
+//!   report serialises to JSON. The command line (`bvhtrace stress`) is the CLI's.
 //!
 //! `GUARANTEES.md` beside this crate states what holds and where precision runs out, with
 //! the figures this crate measured.
@@ -25,7 +26,6 @@
 #![warn(missing_docs)]
 
 mod cases;
-mod cli;
 pub mod geom;
 pub mod offset;
 mod report;
@@ -34,35 +34,13 @@ mod runner;
 use bvhtrace_core::{BuildOptions, Instance, Ray, Triangle};
 use serde::Serialize;
 
-pub use cases::{CASE_GROUPS, cases, cases_sized, select_cases};
-
-/// The shared scenes folder set by [`set_scenes_dir`].
-static SCENES_DIR: std::sync::RwLock<Option<std::path::PathBuf>> = std::sync::RwLock::new(None);
-
-/// Where the cases that read real meshes find the shared scenes folder (holding `glb/`):
-/// a front end passes the folder its user named; without one, the cases look for
-/// `shared/scenes` above the working directory. This crate reads no environment variable.
-pub fn set_scenes_dir(dir: Option<std::path::PathBuf>) {
-    if let Ok(mut d) = SCENES_DIR.write() {
-        *d = dir;
-    }
-}
-
-/// The folder [`set_scenes_dir`] named, else the one found above the working directory.
-fn scenes_dir() -> Option<std::path::PathBuf> {
-    SCENES_DIR
-        .read()
-        .ok()
-        .and_then(|d| d.clone())
-        .or_else(bvhtrace_scene::shared_scenes_dir)
-}
-pub use cli::{StressArgs, StressDevice, run};
+pub use cases::{CASE_GROUPS, CaseOptions, cases_sized, select_cases};
 pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
     Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, OpenTracer, PrecisionRow,
-    RunReport, TRAVERSALS, run_case, run_case_with_timeout,
+    RunReport, run_case, run_case_with_timeout, traversals,
 };
 
 /// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.

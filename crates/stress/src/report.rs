@@ -148,8 +148,8 @@ pub fn table_rows(case: &CaseReport) -> Vec<String> {
             String::new()
         },
     ));
-    if let Some(s) = &case.gpu_full_stack {
-        notes.push(format!("GPU full-stack upload: {s}"));
+    for (backend, what) in &case.full_stack {
+        notes.push(format!("{backend} full-stack upload: {what}"));
     }
     let zero_area_hits: usize = case
         .runs

@@ -18,16 +18,22 @@ use serde::Serialize;
 use crate::geom::is_zero_area;
 use crate::{Case, Expect, InputInfo};
 
-/// The traversals every case runs, in table order. The CPU full stack has no depth limit;
-/// the GPU full-stack kernel (64 entries) runs only where the tree allows. The wide walk
-/// runs on the wide layout converted from the same tree.
-pub const TRAVERSALS: [Traversal; 5] = [
-    Traversal::Stackless,
-    Traversal::ShortStack(6),
-    Traversal::ShortStack(1),
-    Traversal::FullStack,
-    Traversal::Wide,
-];
+/// The rings every case runs the short stack with: one that overflows now and then, and
+/// the smallest.
+const SHORT_STACKS: [u32; 2] = [6, 1];
+
+/// The walks every case runs, in table order: each of [`Traversal::ALL`], the short stack
+/// with each of [`SHORT_STACKS`]. The CPU full stack has no depth limit; the GPU
+/// full-stack kernel (64 entries) runs only where the tree allows. The wide walk runs on
+/// the wide layout converted from the same tree.
+pub fn traversals() -> Vec<Traversal> {
+    (Traversal::ALL.into_iter())
+        .flat_map(|t| match t {
+            Traversal::ShortStack(_) => SHORT_STACKS.map(Traversal::ShortStack).to_vec(),
+            t => vec![t],
+        })
+        .collect()
+}
 
 /// Opens a tracer for a case's tree, uploaded for the walks listed: what the caller gives
 /// the runner for each device (the CLI builds it with the front door, `bvhtrace::Device`),
@@ -35,144 +41,75 @@ pub const TRAVERSALS: [Traversal; 5] = [
 pub type OpenTracer =
     Arc<dyn Fn(&FlatBvh, &[Traversal]) -> Result<Box<dyn Tracer>, TraceError> + Send + Sync>;
 
-/// A device backend the caller opened: its name, its CPU-driver measures, and how to open
-/// tracers on it.
+/// A device backend the caller opened: the name its rows take, its adapter, its CPU-driver
+/// measures, what its answers promise, and how to open tracers on it.
 #[derive(Clone)]
 pub struct DeviceTracers {
+    /// The rows' name: the backend's (`wgpu`, `vulkan`, `ray-query`, ...).
+    pub backend: String,
     /// The adapter's name.
     pub name: String,
     /// The measures in force (a bounded loop-trip budget on CPU drivers such as lavapipe).
     pub tuning: DriverTuning,
+    /// Our walks: every walk and query traced and compared with the CPU twins bit for bit,
+    /// and a deep tree's full-stack upload must be refused. Otherwise (the device's own ray
+    /// queries, not watertight by contract) one run per query, the driver's walk, judged
+    /// by the oracle and reported, never failing the run.
+    pub bit_for_bit: bool,
     /// The tracer factory.
     pub open: OpenTracer,
 }
 
-/// Where to trace: the CPU twins, and the GPU kernels on each device the caller opened
-/// (through wgpu, rows `gpu`; through ash, rows `vk`).
+/// Where to trace: the CPU twins, and each device backend the caller opened.
 #[derive(Clone)]
 pub struct Backends {
-    /// Report the CPU twins' rows (they are always traced: the GPU is compared with them).
+    /// Report the CPU twins' rows (they are always traced: the devices are compared with
+    /// them).
     pub cpu: bool,
-    /// The wgpu device, when there is one and it was asked for.
-    pub gpu: Option<DeviceTracers>,
-    /// Why there is no GPU (no adapter, or not asked for).
-    pub gpu_note: Option<String>,
-    /// The same kernels on raw Vulkan through ash ([`Backends::with_vulkan`]).
-    pub vk: Option<DeviceTracers>,
-    /// Why there is no ash device (no Vulkan loader or device, or not asked for).
-    pub vk_note: Option<String>,
-    /// The device's own ray queries ([`Backends::with_ray_queries`]): rows `ray-query`,
-    /// judged by the oracle and reported, never failing the run (ray queries are not
-    /// watertight by contract).
-    pub rq: Option<DeviceTracers>,
-    /// Why there are no ray queries (a device without them, or not asked for).
-    pub rq_note: Option<String>,
+    /// The device backends, in the order their rows come.
+    pub devices: Vec<DeviceTracers>,
 }
-
-/// The row name of the device's ray queries.
-pub const RAY_QUERY_ROWS: &str = "ray-query";
 
 impl std::fmt::Debug for Backends {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let devices: Vec<String> = self.devices.iter().map(DeviceTracers::label).collect();
         f.debug_struct("Backends")
             .field("cpu", &self.cpu)
-            .field("gpu", &self.gpu_name())
-            .field("gpu_note", &self.gpu_note)
-            .field("vk", &self.vk_name())
-            .field("vk_note", &self.vk_note)
-            .field("rq", &self.rq.as_ref().map(|d| d.name.clone()))
-            .field("rq_note", &self.rq_note)
+            .field("devices", &devices)
             .finish()
+    }
+}
+
+impl DeviceTracers {
+    /// `backend (adapter)`.
+    pub fn label(&self) -> String {
+        format!("{} ({})", self.backend, self.name)
     }
 }
 
 impl Backends {
     /// The CPU twins only.
     pub fn cpu_only() -> Backends {
-        Backends {
-            cpu: true,
-            gpu: None,
-            gpu_note: Some("not asked for".into()),
-            vk: None,
-            vk_note: Some("not asked for".into()),
-            rq: None,
-            rq_note: Some("not asked for".into()),
-        }
+        Backends::new(true)
     }
 
     /// The CPU twins, their rows reported when `cpu`.
     pub fn new(cpu: bool) -> Backends {
         Backends {
             cpu,
-            ..Backends::cpu_only()
+            devices: Vec::new(),
         }
     }
 
-    /// These backends plus the wgpu device `gpu` (or, without one, why not).
-    pub fn with_gpu(self, gpu: Result<DeviceTracers, String>) -> Backends {
-        match gpu {
-            Ok(d) => Backends {
-                gpu: Some(d),
-                gpu_note: None,
-                ..self
-            },
-            Err(note) => Backends {
-                gpu: None,
-                gpu_note: Some(note),
-                ..self
-            },
-        }
+    /// These backends and `device`.
+    pub fn with(mut self, device: DeviceTracers) -> Backends {
+        self.devices.push(device);
+        self
     }
 
-    /// These backends plus the kernels on raw Vulkan through ash (or, without a Vulkan
-    /// loader or device, why not), traced and compared with the CPU twins like the wgpu
-    /// rows.
-    pub fn with_vulkan(self, vk: Result<DeviceTracers, String>) -> Backends {
-        match vk {
-            Ok(d) => Backends {
-                vk: Some(d),
-                vk_note: None,
-                ..self
-            },
-            Err(note) => Backends {
-                vk: None,
-                vk_note: Some(note),
-                ..self
-            },
-        }
-    }
-
-    /// These backends plus the device's ray queries (or why not): traced once per query
-    /// (the driver walks), judged by the oracle like every row, reported beside ours, and
-    /// left out of [`CaseReport::clean`].
-    pub fn with_ray_queries(self, rq: Result<DeviceTracers, String>) -> Backends {
-        match rq {
-            Ok(d) => Backends {
-                rq: Some(d),
-                rq_note: None,
-                ..self
-            },
-            Err(note) => Backends {
-                rq: None,
-                rq_note: Some(note),
-                ..self
-            },
-        }
-    }
-
-    /// The ray-query device's name.
-    pub fn rq_name(&self) -> Option<String> {
-        self.rq.as_ref().map(|d| d.name.clone())
-    }
-
-    /// The GPU adapter's name.
-    pub fn gpu_name(&self) -> Option<String> {
-        self.gpu.as_ref().map(|g| g.name.clone())
-    }
-
-    /// The ash device's name.
-    pub fn vk_name(&self) -> Option<String> {
-        self.vk.as_ref().map(|v| v.name.clone())
+    /// The device whose rows are named `backend`.
+    pub fn device(&self, backend: &str) -> Option<&DeviceTracers> {
+        self.devices.iter().find(|d| d.backend == backend)
     }
 }
 
@@ -226,9 +163,11 @@ pub struct PrecisionRow {
 /// One backend x traversal x query over all of a case's rays.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct RunReport {
-    /// `cpu`, `gpu` (the kernels through wgpu), `vk` (through ash) or `ray-query` (the
-    /// device's own ray queries).
+    /// `cpu`, `cpu-layout`, or a device backend's name ([`DeviceTracers::backend`]).
     pub backend: String,
+    /// A run reported beside ours and judged by the oracle, never failing the case (the
+    /// device's own ray queries: [`DeviceTracers::bit_for_bit`] false).
+    pub reported_only: bool,
     /// The traversal (`stackless`, `short-stack(6)`, ...).
     pub traversal: String,
     /// `closest` or `any`.
@@ -352,14 +291,11 @@ pub struct CaseReport {
     pub input: InputInfo,
     /// The case's notes.
     pub notes: Vec<String>,
-    /// The GPU adapter, or why there was none.
-    pub gpu: String,
-    /// The ash device (`vk` rows), or why there was none.
-    pub vk: String,
-    /// The ray-query device (`ray-query` rows), or why there was none.
-    pub rq: String,
-    /// What uploading a tree deeper than the full-stack kernel's stack did (deep trees).
-    pub gpu_full_stack: Option<String>,
+    /// The device backends traced, `backend (adapter)` each.
+    pub devices: Vec<String>,
+    /// What uploading a tree deeper than the full-stack kernel's stack did on each device
+    /// of our walks, `(backend, what)` (deep trees).
+    pub full_stack: Vec<(String, String)>,
     /// One entry per backend x traversal x query.
     pub runs: Vec<RunReport>,
     /// The whole case, wall time.
@@ -381,7 +317,7 @@ impl CaseReport {
     pub fn clean(&self) -> bool {
         self.error.is_none()
             && self.runs.iter().all(|r| {
-                if r.backend == RAY_QUERY_ROWS {
+                if r.reported_only {
                     // Reported, not guaranteed: the driver's test is its own.
                     true
                 } else if self.guaranteed {
@@ -396,9 +332,9 @@ impl CaseReport {
                 }
             })
             && self
-                .gpu_full_stack
-                .as_ref()
-                .is_none_or(|s| s.starts_with("refused"))
+                .full_stack
+                .iter()
+                .all(|(_, s)| s.starts_with("refused"))
     }
 }
 
@@ -1088,7 +1024,7 @@ fn ms(since: Instant) -> f64 {
 /// One row per walk and query of `backend`, saying its upload failed with `e`.
 fn upload_failed(backend: &str, queries: &[Query], e: &dyn std::fmt::Display) -> Vec<RunReport> {
     let mut rows = Vec::new();
-    for tr in TRAVERSALS {
+    for tr in traversals() {
         for &q in queries {
             let mut r = run_report(backend, tr, q);
             r.status = format!("upload failed: {e}");
@@ -1159,15 +1095,20 @@ fn trace_cpu_layout(
     Ok(runs)
 }
 
-/// The device's ray queries' rows: one walk (the driver's) per query, judged like every
-/// row, with no twin to equal.
-fn trace_ray_queries(
+/// The rows of a device's own walk (its ray queries): one walk (the driver's) per query,
+/// judged like every row, with no twin to equal, reported only.
+fn trace_driver_walk(
     device: &DeviceTracers,
     bvh: &FlatBvh,
     case: &Case,
     queries: &[Query],
     judge: &Judge<'_>,
 ) -> Vec<RunReport> {
+    let report = |q| RunReport {
+        traversal: "driver".into(),
+        reported_only: true,
+        ..run_report(&device.backend, Traversal::FullStack, q)
+    };
     let rq = match (device.open)(bvh, &[Traversal::FullStack]) {
         Ok(rq) => rq,
         Err(e) => {
@@ -1175,7 +1116,7 @@ fn trace_ray_queries(
                 .iter()
                 .map(|&q| RunReport {
                     status: format!("upload failed: {e}"),
-                    ..ray_query_report(q)
+                    ..report(q)
                 })
                 .collect();
         }
@@ -1183,7 +1124,7 @@ fn trace_ray_queries(
     queries
         .iter()
         .map(|&q| {
-            let r = ray_query_report(q);
+            let r = report(q);
             let opts = TraceOptions::new(Traversal::FullStack, q);
             match trace_timed(&*rq, &case.rays, &opts) {
                 Ok(out) => judge.evaluate(
@@ -1199,14 +1140,6 @@ fn trace_ray_queries(
             }
         })
         .collect()
-}
-
-/// A `ray-query` row: the driver's walk.
-fn ray_query_report(q: Query) -> RunReport {
-    RunReport {
-        traversal: "driver".into(),
-        ..run_report(RAY_QUERY_ROWS, Traversal::FullStack, q)
-    }
 }
 
 fn run_report(backend: &str, tr: Traversal, q: Query) -> RunReport {
@@ -1262,7 +1195,7 @@ fn trace_all(
     let mut runs = Vec::new();
     let mut hits = Hits::new();
     let device = tracer.backend() != "cpu";
-    for tr in TRAVERSALS {
+    for tr in traversals() {
         for &q in queries {
             let mut r = run_report(backend, tr, q);
             match trace_timed(tracer, &case.rays, &TraceOptions::new(tr, q)) {
@@ -1289,6 +1222,43 @@ fn trace_all(
     (runs, hits)
 }
 
+/// A device of our walks' rows: every walk and query, each compared with the CPU twins'
+/// hits bit for bit; on a tree deeper than the full-stack kernel's stack, every walk but
+/// the full stack, whose upload must be refused (`rep.full_stack` says what it did).
+fn trace_device(
+    device: &DeviceTracers,
+    bvh: &FlatBvh,
+    case: &Case,
+    queries: &[Query],
+    judge: &Judge<'_>,
+    cpu_hits: &Hits,
+    rep: &mut CaseReport,
+) {
+    let deep = bvh.depth() > FULL_STACK_SIZE;
+    if deep {
+        let what = match (device.open)(bvh, &traversals()) {
+            Err(e @ TraceError::TooDeep { .. }) => format!("refused (as it must be): {e}"),
+            Err(e) => format!("ERROR: the upload failed otherwise: {e}"),
+            Ok(_) => format!(
+                "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
+                bvh.depth()
+            ),
+        };
+        rep.full_stack.push((device.backend.clone(), what));
+    }
+    let walks: Vec<Traversal> = (traversals().into_iter())
+        .filter(|t| !deep || *t != Traversal::FullStack)
+        .collect();
+    match (device.open)(bvh, &walks) {
+        Err(e) => (rep.runs).extend(upload_failed(&device.backend, queries, &e)),
+        Ok(tracer) => {
+            let twin = Some(cpu_hits);
+            let (runs, _) = trace_all(&*tracer, &device.backend, case, queries, judge, twin, true);
+            rep.runs.extend(runs);
+        }
+    }
+}
+
 /// Builds the case's BVH (two levels when it has [`Case::instancing`]; an unusable
 /// instance is the report's `error`, naming it), traces its rays with every traversal and
 /// query on every backend (the CPU twins always, to compare the GPU with; reported when
@@ -1304,18 +1274,7 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         input: case.input.clone(),
         notes: case.notes.clone(),
         guaranteed: case.guaranteed,
-        gpu: backends
-            .gpu_name()
-            .or_else(|| backends.gpu_note.clone().map(|n| format!("none: {n}")))
-            .unwrap_or_default(),
-        vk: backends
-            .vk_name()
-            .or_else(|| backends.vk_note.clone().map(|n| format!("none: {n}")))
-            .unwrap_or_default(),
-        rq: backends
-            .rq_name()
-            .or_else(|| backends.rq_note.clone().map(|n| format!("none: {n}")))
-            .unwrap_or_default(),
+        devices: backends.devices.iter().map(DeviceTracers::label).collect(),
         ..Default::default()
     };
     if case.tris.is_empty() {
@@ -1391,49 +1350,12 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         }
     }
 
-    // Every walk, less the full stack on a tree deeper than its kernel's stack: the
-    // full-stack rows then say it refused.
-    let deep = bvh.depth() > FULL_STACK_SIZE;
-    let walks: Vec<Traversal> = TRAVERSALS
-        .iter()
-        .copied()
-        .filter(|t| !deep || *t != Traversal::FullStack)
-        .collect();
-    if let Some(device) = &backends.gpu {
-        if deep {
-            rep.gpu_full_stack = Some(match (device.open)(&bvh, &TRAVERSALS) {
-                Err(e @ TraceError::TooDeep { .. }) => format!("refused (as it must be): {e}"),
-                Err(e) => format!("ERROR: the upload failed otherwise: {e}"),
-                Ok(_) => format!(
-                    "ERROR: a tree {} deep was accepted for the {FULL_STACK_SIZE}-entry full-stack kernel",
-                    bvh.depth()
-                ),
-            });
+    for device in &backends.devices {
+        if device.bit_for_bit {
+            trace_device(device, &bvh, case, queries, &judge, &cpu_hits, &mut rep);
+        } else {
+            (rep.runs).extend(trace_driver_walk(device, &bvh, case, queries, &judge));
         }
-        match (device.open)(&bvh, &walks) {
-            Err(e) => rep.runs.extend(upload_failed("gpu", queries, &e)),
-            Ok(gpu) => {
-                let (runs, _) =
-                    trace_all(&*gpu, "gpu", case, queries, &judge, Some(&cpu_hits), true);
-                rep.runs.extend(runs);
-            }
-        }
-    }
-
-    // The same kernels through ash.
-    if let Some(device) = &backends.vk {
-        match (device.open)(&bvh, &walks) {
-            Err(e) => rep.runs.extend(upload_failed("vk", queries, &e)),
-            Ok(vk) => {
-                let (runs, _) = trace_all(&*vk, "vk", case, queries, &judge, Some(&cpu_hits), true);
-                rep.runs.extend(runs);
-            }
-        }
-    }
-
-    if let Some(device) = &backends.rq {
-        rep.runs
-            .extend(trace_ray_queries(device, &bvh, case, queries, &judge));
     }
     rep.elapsed_ms = ms(start);
     rep

@@ -11,7 +11,7 @@ fn backends() -> Backends {
     Backends::cpu_only()
 }
 
-/// No ash device here.
-fn with_vk(backends: Backends) -> Backends {
-    backends
+/// No device here.
+fn two_level_backends() -> Backends {
+    Backends::cpu_only()
 }

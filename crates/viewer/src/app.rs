@@ -89,20 +89,12 @@ struct Playback {
     poses: u64,
 }
 
-/// The three traversal families the UI offers (the short stack's size is separate).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum TraversalKind {
-    Stackless,
-    ShortStack,
-    FullStack,
-    Wide,
-}
-
 /// What the user chose in the side panel.
 #[derive(Clone, Debug, PartialEq)]
 struct Settings {
     builder: BuilderKind,
-    traversal: TraversalKind,
+    /// The walk, one of [`Traversal::ALL`] (a short stack's size is `short_stack`).
+    traversal: Traversal,
     short_stack: u32,
     shade: Shade,
     heatmap: bool,
@@ -118,10 +110,8 @@ struct Settings {
 impl Settings {
     fn traversal(&self) -> Traversal {
         match self.traversal {
-            TraversalKind::Stackless => Traversal::Stackless,
-            TraversalKind::ShortStack => Traversal::ShortStack(self.short_stack.clamp(1, 32)),
-            TraversalKind::FullStack => Traversal::FullStack,
-            TraversalKind::Wide => Traversal::Wide,
+            Traversal::ShortStack(_) => Traversal::ShortStack(self.short_stack.clamp(1, 32)),
+            t => t,
         }
     }
 
@@ -275,15 +265,13 @@ impl ViewerApp {
             None => (Err("no wgpu device".to_string()), "none".to_string(), true),
         };
         let traversal = args.traversal;
-        let (kind, k) = match traversal {
-            Traversal::Stackless => (TraversalKind::Stackless, DEFAULT_SHORT_STACK),
-            Traversal::ShortStack(k) => (TraversalKind::ShortStack, k),
-            Traversal::FullStack => (TraversalKind::FullStack, DEFAULT_SHORT_STACK),
-            Traversal::Wide => (TraversalKind::Wide, DEFAULT_SHORT_STACK),
+        let k = match traversal {
+            Traversal::ShortStack(k) => k,
+            _ => DEFAULT_SHORT_STACK,
         };
         let settings = Settings {
             builder: args.builder,
-            traversal: kind,
+            traversal,
             short_stack: k,
             // `--shade heatmap` is the heatmap switch over the default surface mode.
             shade: if args.shade == Shade::Heatmap {
@@ -392,7 +380,7 @@ impl ViewerApp {
                 build: self.settings.build_options(),
                 traversal: self.settings.traversal(),
                 time,
-                gpu: self.gpu.clone(),
+                gpu: self.gpu.clone().map(bvhtrace::Device::wgpu),
             },
             what,
             move || wake.request_repaint(),
@@ -1094,24 +1082,29 @@ impl ViewerApp {
         egui::ComboBox::from_label("traversal")
             .selected_text(self.settings.traversal().name())
             .show_ui(ui, |ui| {
-                let t = &mut self.settings.traversal;
-                ui.selectable_value(t, TraversalKind::Stackless, "stackless");
-                ui.selectable_value(t, TraversalKind::ShortStack, "short-stack");
-                ui.selectable_value(t, TraversalKind::FullStack, "full-stack");
-                ui.selectable_value(t, TraversalKind::Wide, "wide");
+                for walk in Traversal::ALL {
+                    let chosen = self.settings.traversal.same_kind(&walk);
+                    if ui.selectable_label(chosen, walk.name()).clicked() {
+                        self.settings.traversal = walk;
+                    }
+                }
             });
-        // The wide walk needs the wide layout, built only when it is chosen.
-        if self.settings.traversal == TraversalKind::Wide
-            && !busy
-            && self
-                .built
-                .as_ref()
-                .is_some_and(|b| b.geometry.bvh().wide().is_none())
+        // A walk the upload, made for another, does not answer (the wide layout, the
+        // escape links) gets a new one; one made for this walk that does not answer it
+        // (a tree too deep for its stack) leaves the walk to the CPU.
+        let walk = self.settings.traversal();
+        if !busy
+            && self.built.as_ref().is_some_and(|b| {
+                !b.walk.same_kind(&walk)
+                    && b.gpu
+                        .as_ref()
+                        .is_ok_and(|g| !crate::jobs::answers(&**g, walk))
+            })
             && let Some(scene) = self.scene.clone()
         {
             self.start_job(ctx, Source::Reuse(scene));
         }
-        if self.settings.traversal == TraversalKind::ShortStack {
+        if matches!(self.settings.traversal, Traversal::ShortStack(_)) {
             ui.add(
                 egui::Slider::new(&mut self.settings.short_stack, 1..=32)
                     .text("short-stack entries"),

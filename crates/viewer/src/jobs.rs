@@ -12,12 +12,11 @@ use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 
 use web_time::Instant;
 
-use bvhtrace::{CpuTracer, GpuContext, OpenOptions, TraceError, Tracer};
+use bvhtrace::{CpuTracer, Device, OpenOptions, TraceError, Tracer};
 use bvhtrace_core::instance::REFIT_REBUILD_ADVISED;
 use bvhtrace_core::{
     BuildOptions, BvhStats, FlatBvh, InstancedBvh, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
-use bvhtrace_gpu::engine::walks::check_depth;
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::{Affine3A, Vec3};
 
@@ -179,7 +178,9 @@ pub struct BuiltBvh {
     /// none. A new pose is written into it in place ([`Tracer::update`]).
     pub gpu: Result<Arc<dyn Tracer>, String>,
     /// The device it is on, for a new upload when a new pose changes the tree's shape.
-    pub context: Option<GpuContext>,
+    pub device: Option<Device>,
+    /// The walk the upload was opened for ([`upload`]).
+    pub walk: Traversal,
     /// Why a GPU trace (or pipeline compile) failed: set, the CPU traces everything until
     /// [`BuiltBvh::retry_gpu`].
     pub gpu_failure: Option<String>,
@@ -265,7 +266,8 @@ impl BuiltBvh {
                         // A deformed mesh rebuilt: another shape, a new upload.
                         Err(TraceError::BadBuffer { .. }) if deformed == Some(true) => {
                             times.reuploaded = true;
-                            upload(self.context.as_ref(), ib.bvh()).map(|fresh| *shared = fresh)
+                            upload(self.device.as_ref(), ib.bvh(), self.walk)
+                                .map(|fresh| *shared = fresh)
                         }
                         other => other,
                     };
@@ -292,15 +294,16 @@ impl BuiltBvh {
                 let t1 = Instant::now();
                 if let Ok(shared) = &mut self.gpu {
                     let g = Arc::get_mut(shared).ok_or_else(busy)?;
-                    // The full stack's depth limit is the upload's: a deeper tree is
-                    // uploaded anew, for the walks it allows.
-                    let same_walks = walks(bvh) == walks(&new_bvh);
+                    // A walk's depth limit is the upload's: when the updated upload no longer
+                    // answers the walk, the tree is uploaded anew.
+                    let walks = g.traversals();
                     let written = match g.update(&new_bvh) {
-                        Ok(()) if same_walks => Ok(()),
+                        Ok(()) if g.traversals() == walks => Ok(()),
                         // Another shape (node or triangle count), or other walks.
                         Ok(()) | Err(TraceError::BadBuffer { .. }) => {
                             times.reuploaded = true;
-                            upload(self.context.as_ref(), &new_bvh).map(|fresh| *shared = fresh)
+                            upload(self.device.as_ref(), &new_bvh, self.walk)
+                                .map(|fresh| *shared = fresh)
                         }
                         Err(e) => Err(e),
                     };
@@ -472,7 +475,7 @@ pub struct JobRequest {
     /// ignored without one).
     pub time: f32,
     /// The shared device, or why there is none.
-    pub gpu: Result<GpuContext, String>,
+    pub gpu: Result<Device, String>,
 }
 
 /// A finished job.
@@ -504,33 +507,34 @@ pub struct Job {
     pub what: String,
 }
 
-/// Opens `bvh` on `ctx` through the front door, for [`walks`]`(bvh)`.
-fn upload(ctx: Option<&GpuContext>, bvh: &FlatBvh) -> Result<Arc<dyn Tracer>, TraceError> {
-    let ctx = ctx.ok_or_else(|| TraceError::NoAdapter {
+/// Opens `bvh` on `device` through the front door for `walk` and the stackless walk (so
+/// that every binary walk the tree allows is answered by one upload; the wide walk adds
+/// its layout).
+fn upload(
+    device: Option<&Device>,
+    bvh: &FlatBvh,
+    walk: Traversal,
+) -> Result<Arc<dyn Tracer>, TraceError> {
+    let device = device.ok_or_else(|| TraceError::NoAdapter {
         details: ": the viewer has no wgpu device".into(),
     })?;
-    let opts = OpenOptions {
-        traversals: walks(bvh),
-        ..OpenOptions::default()
+    let opts = OpenOptions::default()
+        .with_traversal(walk)
+        .with_traversal(Traversal::Stackless);
+    let opened = match device.open_owned(bvh, &opts) {
+        // A tree deeper than the walk's stack: the others, the walk left to the CPU.
+        Err(TraceError::TooDeep { .. }) => {
+            let stackless = OpenOptions::default().with_traversal(Traversal::Stackless);
+            device.open_owned(bvh, &stackless)
+        }
+        other => other,
     };
-    Ok(Arc::from(bvhtrace::open_on_wgpu(ctx, bvh, &opts)?.tracer))
+    Ok(Arc::from(opened?.tracer))
 }
 
-/// The traversals an upload of `bvh` supports: the escape-link ones always, the full
-/// stack when the tree fits its stack, the wide walk when the tree has its wide layout
-/// (built when the wide walk is chosen).
-pub fn walks(bvh: &FlatBvh) -> Vec<Traversal> {
-    let mut traversals = vec![
-        Traversal::Stackless,
-        Traversal::ShortStack(bvhtrace_core::traverse::DEFAULT_SHORT_STACK),
-    ];
-    if check_depth(Traversal::FullStack, bvh.depth()).is_ok() {
-        traversals.push(Traversal::FullStack);
-    }
-    if bvh.wide().is_some() {
-        traversals.push(Traversal::Wide);
-    }
-    traversals
+/// True when `tracer` answers `walk` (a short stack of any size for a short stack).
+pub fn answers(tracer: &dyn Tracer, walk: Traversal) -> bool {
+    tracer.traversals().iter().any(|w| w.same_kind(&walk))
 }
 
 fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
@@ -579,8 +583,8 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
         .unwrap_or(&scene.scene)
         .tracing_bvh(&req.build, false)
         .map_err(|e| format!("{}: {e}", scene.spec))?;
-    // The wide layout only for the wide walk: the side panel asks for a rebuild when it is
-    // chosen later.
+    // The CPU twin's wide walk reads the tree's own wide layout (the upload collapses one
+    // itself): built only for the wide walk.
     let mut geometry = geometry;
     if req.traversal.is_wide() {
         geometry.build_wide();
@@ -591,9 +595,9 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
     let t2 = Instant::now();
     let gpu = match &req.gpu {
         Err(e) => Err(e.clone()),
-        Ok(ctx) => {
+        Ok(device) => {
             stage(format!("uploading {} nodes to the GPU", bvh.nodes().len()));
-            upload(Some(ctx), bvh)
+            upload(Some(device), bvh, req.traversal)
                 .and_then(|g| {
                     stage("compiling the traversal kernels".into());
                     // Primary and shadow rays; a traversal this upload cannot run is
@@ -620,7 +624,8 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             geometry,
             time,
             gpu,
-            context: req.gpu.ok(),
+            device: req.gpu.ok(),
+            walk: req.traversal,
             gpu_failure: None,
             upload_ms,
         },
@@ -710,7 +715,8 @@ mod tests {
             geometry: SceneBvh::Flat { tris, bvh },
             time: 0.0,
             gpu: Err("no Vulkan adapter".into()),
-            context: None,
+            device: None,
+            walk: Traversal::Stackless,
             gpu_failure: None,
             upload_ms: 0.0,
         };
@@ -888,21 +894,21 @@ mod animation_tests {
                 }),
                 ..Default::default()
             };
-            match GpuContext::new_with(bvhtrace::AdapterChoice::Auto, &options) {
+            match bvhtrace::GpuContext::new_with(bvhtrace::AdapterChoice::Auto, &options) {
                 Ok(ctx) => poses_on(ctx),
                 Err(e) => return eprintln!("SKIP: no device ({e})"),
             }
         }
     }
 
-    fn poses_on(ctx: GpuContext) {
+    fn poses_on(ctx: bvhtrace::GpuContext) {
         let (tx, _rx) = mpsc::channel();
         let req = JobRequest {
             source: Source::Load(animated_spec()),
             build: BuildOptions::default(),
             traversal: Traversal::Stackless,
             time: 0.0,
-            gpu: Ok(ctx),
+            gpu: Ok(Device::wgpu(ctx)),
         };
         let JobOutput {
             scene, mut built, ..

@@ -1,9 +1,9 @@
 //! The stress cases at quick size, on the backends the including test gives
-//! (`super::backends()`, and `super::with_vk` for the `instances-*` cases): the CPU twins
-//! (`crates/stress/tests/stress.rs`), and the GPU kernels through wgpu (rows `gpu`) and
-//! ash (rows `vk`) from the front door's tracer factories (`tests/stress_devices.rs` in
-//! the workspace; `bvhtrace stress --backends cpu,gpu,vk` runs every case there): the
-//! guarantees `GUARANTEES.md` states.
+//! (`super::backends()` for every case, `super::two_level_backends()` for the
+//! `instances-*` cases): the CPU twins (`crates/stress/tests/stress.rs`), and the devices
+//! of our walks from the front door's tracer factories, each row named after its backend
+//! (`tests/stress_devices.rs` in the workspace; `bvhtrace stress --backends
+//! cpu,wgpu,vulkan` runs every case there): the guarantees `GUARANTEES.md` states.
 //!
 //! Every case runs once (shared by the tests below), each on its own thread with a time
 //! limit, so a hang fails the run instead of stalling it.
@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use bvhtrace_core::{BuildOptions, Instance, InstanceError, InstancedBvh, Ray};
 use bvhtrace_stress::geom::{IndexedMesh, unit_icosphere};
 use bvhtrace_stress::{
-    Backends, CPU_LAYOUT_ROWS, Case, CaseReport, Expect, RunReport, Size, cases_sized,
+    Backends, CPU_LAYOUT_ROWS, Case, CaseOptions, CaseReport, Expect, RunReport, Size, cases_sized,
     format_table, run_case, run_case_with_timeout, select_cases,
 };
 use glam::{Affine3A, Vec3};
@@ -26,8 +26,24 @@ struct Suite {
     reports: Vec<CaseReport>,
     /// Cases that hung or panicked.
     failures: Vec<String>,
-    gpu: bool,
-    vk: bool,
+    /// The devices of our walks on every case, by row name.
+    devices: Vec<String>,
+    /// Those on the two-level cases only.
+    two_level_devices: Vec<String>,
+}
+
+/// The names of `b`'s devices of our walks (the device's own ray queries are reported,
+/// not judged here).
+fn our_walks(b: &Backends) -> Vec<String> {
+    (b.devices.iter())
+        .filter(|d| d.bit_for_bit)
+        .map(|d| d.backend.clone())
+        .collect()
+}
+
+/// The cases at quick size, with the shared scenes' real meshes when the folder is there.
+fn options() -> CaseOptions {
+    CaseOptions::new(Size::Quick).with_scenes(bvhtrace_scene::shared_scenes_dir())
 }
 
 fn suite() -> &'static Suite {
@@ -35,28 +51,21 @@ fn suite() -> &'static Suite {
     SUITE.get_or_init(|| {
         let start = Instant::now();
         let backends = super::backends();
-        // ash on the two-level cases (the kernels' instanced variants); the one-mesh
-        // kernels' ash = wgpu parity is `bvhtrace-vk`'s own test.
-        let with_vk = super::with_vk(backends.clone());
-        match backends.gpu_name() {
-            Some(n) => println!("GPU: {n}"),
-            None => println!(
-                "SKIP the GPU half: {}",
-                backends.gpu_note.clone().unwrap_or_default()
-            ),
-        }
-        match with_vk.vk_name() {
-            Some(n) => println!("ash (instances-*): {n}"),
-            None => println!(
-                "SKIP the ash rows: {}",
-                with_vk.vk_note.clone().unwrap_or_default()
-            ),
-        }
+        // Some devices only on the two-level cases (the kernels' instanced variants): the
+        // one-mesh kernels' parity with wgpu is their crates' own tests.
+        let two_level = super::two_level_backends();
+        let devices = our_walks(&backends);
+        let two_level_devices: Vec<String> = (our_walks(&two_level).into_iter())
+            .filter(|d| !devices.contains(d))
+            .collect();
+        println!(
+            "every case on: cpu {devices:?}; the two-level cases also on: {two_level_devices:?}"
+        );
         let mut reports = Vec::new();
         let mut failures = Vec::new();
-        for case in cases_sized(Size::Quick) {
+        for case in cases_sized(&options()) {
             let b = if case.instancing.is_some() {
-                &with_vk
+                &two_level
             } else {
                 &backends
             };
@@ -79,8 +88,8 @@ fn suite() -> &'static Suite {
         Suite {
             reports,
             failures,
-            gpu: backends.gpu.is_some(),
-            vk: with_vk.vk.is_some(),
+            devices,
+            two_level_devices,
         }
     })
 }
@@ -100,9 +109,10 @@ fn runs() -> impl Iterator<Item = (&'static CaseReport, &'static RunReport)> {
     all_runs().filter(|(c, _)| c.guaranteed)
 }
 
-/// A run of the GPU kernels (through wgpu or ash), not of a CPU walk.
+/// A run of our walks on a device, not of a CPU walk.
 fn on_device(r: &RunReport) -> bool {
-    r.backend == "gpu" || r.backend == "vk"
+    let s = suite();
+    s.devices.contains(&r.backend) || s.two_level_devices.contains(&r.backend)
 }
 
 fn label(c: &CaseReport, r: &RunReport) -> String {
@@ -214,16 +224,14 @@ fn no_output_is_nan_and_every_hit_keeps_the_contract() {
 #[test]
 fn gpu_kernels_equal_their_cpu_twins_bit_for_bit() {
     let s = suite();
-    if !s.gpu && !s.vk {
-        println!("SKIP: no Vulkan adapter, the GPU kernels were not run");
+    if s.devices.is_empty() && s.two_level_devices.is_empty() {
+        println!("SKIP: no device, the kernels were not run");
         return;
     }
     let mut bad = Vec::new();
-    let mut compared = 0;
-    let mut by_backend = [0, 0];
+    let mut by_backend = std::collections::BTreeMap::<&str, usize>::new();
     for (c, r) in all_runs().filter(|(_, r)| on_device(r)) {
-        compared += 1;
-        by_backend[usize::from(r.backend == "vk")] += 1;
+        *by_backend.entry(&r.backend).or_default() += 1;
         match r.parity_mismatches {
             Some(0) => {}
             Some(n) => bad.push(with_examples(
@@ -234,13 +242,14 @@ fn gpu_kernels_equal_their_cpu_twins_bit_for_bit() {
             None => bad.push(format!("{}: not compared", label(c, r))),
         }
     }
-    check("GPU/CPU parity", bad);
-    assert!(compared >= 100, "only {compared} GPU runs");
-    if s.gpu {
-        assert!(by_backend[0] >= 100, "only {} wgpu runs", by_backend[0]);
+    check("device/CPU parity", bad);
+    for d in &s.devices {
+        let n = by_backend.get(d.as_str()).copied().unwrap_or(0);
+        assert!(n >= 100, "only {n} {d} runs");
     }
-    if s.vk {
-        assert!(by_backend[1] >= 50, "only {} ash runs", by_backend[1]);
+    for d in &s.two_level_devices {
+        let n = by_backend.get(d.as_str()).copied().unwrap_or(0);
+        assert!(n >= 50, "only {n} {d} runs");
     }
 }
 
@@ -330,26 +339,23 @@ fn deep_trees_stay_correct_without_a_full_stack() {
         "depth {} is not deeper than the kernel's stack",
         deep.depth
     );
-    if s.gpu {
-        let msg = deep.gpu_full_stack.clone().unwrap_or_default();
+    for d in &s.devices {
+        let msg = (deep.full_stack.iter())
+            .find(|(b, _)| b == d)
+            .map_or("not tried", |(_, m)| m.as_str());
         assert!(
             msg.starts_with("refused"),
-            "full-stack upload of a tree {} deep: {msg}",
+            "{d}: full-stack upload of a tree {} deep: {msg}",
             deep.depth
         );
-        let gpu_runs: Vec<&RunReport> = deep.runs.iter().filter(|r| r.backend == "gpu").collect();
-        assert!(
-            gpu_runs
-                .iter()
-                .any(|r| r.traversal == "stackless" && r.status == "ok")
-        );
-        assert!(
-            gpu_runs
-                .iter()
-                .any(|r| r.traversal == "short-stack(1)" && r.status == "ok")
-        );
-    } else {
-        println!("SKIP the GPU upload check: no Vulkan adapter");
+        let runs: Vec<&RunReport> = deep.runs.iter().filter(|r| r.backend == *d).collect();
+        for walk in ["stackless", "short-stack(1)"] {
+            let ran = runs.iter().any(|r| r.traversal == walk && r.status == "ok");
+            assert!(ran, "{d}: {walk} on the deep tree");
+        }
+    }
+    if s.devices.is_empty() {
+        println!("SKIP the device upload check: no device");
     }
     for r in deep.runs.iter().filter(|r| r.status == "ok") {
         assert!(
@@ -491,10 +497,8 @@ fn the_cpu_layout_gives_the_full_stacks_answers() {
 /// known-answer tests); no ray of an ordinary case comes near it.
 #[test]
 fn only_the_long_walks_spend_the_trip_budget() {
-    let bounded = super::backends()
-        .gpu
-        .as_ref()
-        .is_some_and(|d| d.tuning.trip_limit != u32::MAX);
+    let bounded = (super::backends().devices.iter())
+        .any(|d| d.bit_for_bit && d.tuning.trip_limit != u32::MAX);
     let mut bad = Vec::new();
     let mut long_walks = 0;
     for (c, r) in all_runs().filter(|(_, r)| on_device(r)) {
@@ -542,16 +546,13 @@ fn instanced_closed_meshes_let_no_ray_escape_on_any_backend() {
         assert!(names.contains(&want), "{want} did not run: {names:?}");
     }
     let mut backends = vec!["cpu"];
-    if s.gpu {
-        backends.push("gpu");
-    } else {
-        println!("SKIP the wgpu rows: no Vulkan adapter");
-    }
-    if s.vk {
-        backends.push("vk");
-    } else {
-        println!("SKIP the ash rows: no Vulkan device");
-    }
+    backends.extend(
+        s.devices
+            .iter()
+            .chain(&s.two_level_devices)
+            .map(String::as_str),
+    );
+    println!("the instanced cases on {backends:?}");
     let mut bad = Vec::new();
     for c in &cases {
         assert!(c.guaranteed, "{}", c.name);
@@ -562,7 +563,7 @@ fn instanced_closed_meshes_let_no_ray_escape_on_any_backend() {
         for b in &backends {
             let runs: Vec<&RunReport> = c.runs.iter().filter(|r| r.backend == *b).collect();
             // Every traversal, closest and any-hit: the trees are shallow, nothing refused.
-            if runs.len() != 2 * bvhtrace_stress::TRAVERSALS.len()
+            if runs.len() != 2 * bvhtrace_stress::traversals().len()
                 || runs.iter().any(|r| r.status != "ok")
             {
                 bad.push(format!(
@@ -706,6 +707,6 @@ fn unusable_transforms_are_errors_naming_the_instance() {
             .all(|r| r.must_hit == 3 && r.escapes.total() == 0)
     );
     // And a group selection names every instance case.
-    let sel = select_cases(&["instances".into()], Size::Quick).expect("the group exists");
+    let sel = select_cases(&["instances".into()], &options()).expect("the group exists");
     assert!(sel.len() >= 7 && sel.iter().all(|c| c.instancing.is_some()));
 }

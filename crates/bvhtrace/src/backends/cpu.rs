@@ -1,14 +1,98 @@
-//! The CPU backend's tracer: the layout made for the CPU ([`bvhtrace_cpu`], SIMD walks
-//! over 8-wide nodes) for full-stack traces (closest hits bit for bit the full stack's,
-//! any hits with its verdicts); the core walks for everything else.
+//! The CPU backend: the core walks, with the layout made for the CPU ([`bvhtrace_cpu`],
+//! SIMD walks over 8-wide nodes) for full-stack traces (closest hits bit for bit the full
+//! stack's, any hits with its verdicts); the core walks for everything else.
 
+use std::any::Any;
 use std::borrow::Borrow;
 use std::sync::{Arc, OnceLock};
 
-use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Ray, TraceOptions, TraceOutput, Traversal};
+use bvhtrace_core::{
+    FlatBvh, InstanceTable, Precision, Ray, TraceOptions, TraceOutput, Traversal, Triangle,
+};
 use bvhtrace_cpu::CpuBvh;
-use bvhtrace_engine::{CpuTracer, TraceError, Tracer};
+use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
 use web_time::Instant;
+
+use super::{DeviceInterface, OpenResult, Tree, no_device_builder};
+use crate::open::check_walks;
+use crate::{Backend, OpenOptions, Opened};
+
+/// The CPU: nothing to open.
+struct CpuDevice;
+
+/// The CPU backend's device.
+pub(crate) fn device() -> Arc<dyn DeviceInterface> {
+    Arc::new(CpuDevice)
+}
+
+impl DeviceInterface for CpuDevice {
+    fn backend(&self) -> Backend {
+        Backend::Cpu
+    }
+
+    fn name(&self) -> String {
+        "cpu".to_string()
+    }
+
+    fn tuning(&self) -> Option<DriverTuning> {
+        None
+    }
+
+    fn applies_rust_filters(&self) -> bool {
+        true
+    }
+
+    fn open<'t, 'a>(
+        &self,
+        tree: Tree<'t, 'a>,
+        opts: &OpenOptions,
+        _auto: bool,
+    ) -> OpenResult<'t, 'a> {
+        // No other backend takes over from the CPU: nothing to give back.
+        open(tree, opts, None).map_err(|e| (e, None))
+    }
+
+    fn build_bvh(
+        &self,
+        _: &[Triangle],
+        _: &GpuBuildOptions,
+    ) -> Result<(FlatBvh, GpuBuildTimes), TraceError> {
+        Err(no_device_builder(Backend::Cpu))
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// The CPU walks on `tree` (kept as given: traced in place) with `opts`' filter and the CPU
+/// layout beside them ([`FastCpuTracer`]); `why` is the fallback that led here.
+pub(crate) fn open<'a>(
+    tree: Tree<'_, 'a>,
+    opts: &OpenOptions,
+    why: Option<String>,
+) -> Result<Opened<'a>, TraceError> {
+    let walks = match opts.traversals.is_empty() {
+        true => vec![Traversal::CPU_DEFAULT],
+        false => opts.traversals.clone(),
+    };
+    let walks_on = CpuTracer::new(tree.keep());
+    let tracer: Box<dyn Tracer + 'a> = match &opts.filter {
+        Some(f) => Box::new(FastCpuTracer::new(walks_on.with_filter(f.0.clone()))),
+        None => Box::new(FastCpuTracer::new(walks_on)),
+    };
+    check_walks(&*tracer, &walks)?;
+    Ok(Opened {
+        device: tracer.device_name(),
+        tracer,
+        backend: Backend::Cpu,
+        storage: None,
+        traversal: walks[0],
+        fallback: why,
+        choice: None,
+    })
+}
 
 /// The core walks ([`CpuTracer`]) with the CPU layout beside them. A trace goes to the
 /// layout when it asks for what the layout answers as the core walks do: the full stack

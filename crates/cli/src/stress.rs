@@ -1,15 +1,18 @@
-//! `bvhtrace stress`: arguments, the table, the JSON.
+//! `bvhtrace stress`: arguments, the devices (through the front door), the table, the
+//! JSON. The cases and their judging are `bvhtrace-stress`'s.
 
 use std::io::Write;
+use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
+use bvhtrace::{Backend, Device, DriverTuning};
 use bvhtrace_core::BuilderKind;
+use bvhtrace_stress::{
+    Backends, CASE_GROUPS, Case, CaseOptions, CaseReport, DeviceTracers, Size, run_case,
+    select_cases, table_header, table_rows,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-
-use crate::report::{table_header, table_rows};
-use crate::runner::{Backends, CaseReport, DeviceTracers, run_case};
-use crate::{CASE_GROUPS, Case, Size, select_cases};
 
 /// Arguments of `bvhtrace stress`.
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -22,13 +25,12 @@ pub struct StressArgs {
     /// goes to standard error).
     #[arg(long, value_name = "FILE")]
     pub json: Option<String>,
-    /// Backends, comma-separated: `gpu` (the WGSL kernels through wgpu, when a Vulkan
-    /// adapter exists), `vk` (the same kernels on raw Vulkan through ash), `cpu` (their CPU
-    /// twins), `ray-query` (the device's own ray queries, when it has them: reported
-    /// beside ours, never failing the run). The CPU twins are always traced to check the
-    /// GPU against.
-    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
-    pub backends: Vec<String>,
+    /// Backends, comma-separated (`bvhtrace render --help` lists them): our walks on a
+    /// device are compared with their CPU twins bit for bit; the device's own ray queries
+    /// (`ray-query`) are reported beside them, never failing the run. The CPU twins are
+    /// always traced, to check the devices against; `cpu` reports their rows.
+    #[arg(long, value_delimiter = ',', default_value = "wgpu,cpu")]
+    pub backends: Vec<Backend>,
     /// Small sizes (what the test suite runs): seconds instead of minutes.
     #[arg(long)]
     pub quick: bool,
@@ -52,41 +54,25 @@ struct JsonReport<'a> {
     optimize: bool,
     builder: Option<String>,
     backends: Vec<String>,
-    gpu: Option<String>,
-    gpu_note: Option<String>,
-    vk: Option<String>,
-    vk_note: Option<String>,
-    ray_query: Option<String>,
-    ray_query_note: Option<String>,
+    /// Each device traced: `backend (adapter)`.
+    devices: Vec<String>,
+    /// Each backend asked for that did not open, and why.
+    skipped: &'a [(String, String)],
     clean: bool,
     cases: &'a [CaseReport],
 }
 
-/// A device backend `bvhtrace stress` asks its caller for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum StressDevice {
-    /// The WGSL kernels through wgpu (rows `gpu`).
-    Gpu,
-    /// The same kernels on raw Vulkan through ash (rows `vk`).
-    Vk,
-    /// The device's own ray queries through wgpu (rows `ray-query`).
-    RayQuery,
-}
-
 /// Runs the selected cases, prints the table (one row per case x backend x traversal,
 /// closest-hit with the any-hit false misses/hits beside it, then notes per case), writes
-/// the JSON, and fails when any run broke a guarantee (see `CaseReport::clean`). `devices`
-/// opens each device backend `--backends` asks for (or says why it cannot): this crate
-/// opens none itself.
-pub fn run(
-    args: StressArgs,
-    devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
-) -> Result<()> {
+/// the JSON, and fails when any run broke a guarantee (see `CaseReport::clean`).
+pub fn run(args: StressArgs) -> Result<()> {
     if args.list {
         list_groups();
         return Ok(());
     }
-    let wanted = Wanted::parse(&args.backends)?;
+    if args.backends.is_empty() {
+        bail!("--backends lists no backend");
+    }
     check_json_path(args.json.as_deref())?;
     let size = if args.quick { Size::Quick } else { Size::Full };
     let to_stdout = args.json.as_deref() == Some("-");
@@ -95,23 +81,26 @@ pub fn run(
     } else {
         Box::new(std::io::stdout())
     };
-    let backends = open_backends(wanted, devices, &mut *out)?;
+    let (backends, skipped) = open_backends(&args.backends, &mut *out)?;
     let cases = prepare_cases(&args, size)?;
-    write_preamble(&mut *out, &args, size, cases.len(), wanted.cpu, &backends)?;
+    write_preamble(&mut *out, &args, size, cases.len(), &backends)?;
     let reports = run_cases(&mut *out, &cases, &backends)?;
     let failed: Vec<&str> = reports
         .iter()
         .filter(|r| !r.clean())
         .map(|r| r.name.as_str())
         .collect();
-    write_json(
-        &mut *out,
-        &args,
+    let j = JsonReport {
         size,
-        &backends,
-        &reports,
-        failed.is_empty(),
-    )?;
+        optimize: args.optimize,
+        builder: args.builder.map(|b| b.name().to_string()),
+        backends: args.backends.iter().map(ToString::to_string).collect(),
+        devices: backends.devices.iter().map(DeviceTracers::label).collect(),
+        skipped: &skipped,
+        clean: failed.is_empty(),
+        cases: &reports,
+    };
+    write_json(&mut *out, args.json.as_deref(), &j)?;
     if !failed.is_empty() {
         bail!(
             "{} case(s) broke a guarantee: {} (see the examples under their rows)",
@@ -129,36 +118,6 @@ fn list_groups() {
     }
 }
 
-/// The backends `--backends` asks for.
-#[derive(Clone, Copy)]
-struct Wanted {
-    cpu: bool,
-    gpu: bool,
-    vk: bool,
-    rq: bool,
-}
-
-impl Wanted {
-    /// Reads `--backends`; an error for an unknown name or when none is named.
-    fn parse(names: &[String]) -> Result<Wanted> {
-        let (mut cpu, mut gpu, mut vk, mut rq) = (false, false, false, false);
-        for b in names {
-            match b.trim() {
-                "cpu" => cpu = true,
-                "gpu" => gpu = true,
-                "vk" | "vulkan" | "ash" => vk = true,
-                "ray-query" | "rq" => rq = true,
-                "" => {}
-                other => bail!("unknown backend '{other}' (expected gpu, vk, cpu, ray-query)"),
-            }
-        }
-        if !cpu && !gpu && !vk && !rq {
-            bail!("--backends lists no backend (expected gpu, vk, cpu, ray-query)");
-        }
-        Ok(Wanted { cpu, gpu, vk, rq })
-    }
-}
-
 /// Fails when the JSON report's file (other than `-`) cannot be written.
 fn check_json_path(json: Option<&str>) -> Result<()> {
     // An unwritable JSON path fails now, not after minutes of work.
@@ -171,47 +130,49 @@ fn check_json_path(json: Option<&str>) -> Result<()> {
     Ok(())
 }
 
-/// Opens the wanted device backends through `devices`; one that cannot open is skipped
-/// with a line on `out`, or fails the run when nothing else is left to trace on.
+/// A device backend for the stress cases, opened through the front door (with the
+/// environment): its adapter's name, its measures, and a factory of tracers on it.
+pub fn device_tracers(backend: Backend) -> Result<DeviceTracers, String> {
+    let opts = crate::backend::options(backend, None, &[]);
+    let device = Device::new(&opts).map_err(|e| e.to_string())?;
+    Ok(DeviceTracers {
+        backend: device.backend().name().to_string(),
+        name: device.name(),
+        tuning: device.tuning().unwrap_or(DriverTuning::GPU),
+        bit_for_bit: device.backend().bit_for_bit(),
+        open: Arc::new(device.tracer_factory()),
+    })
+}
+
+/// Opens the device backends `wanted` lists (`cpu` reports the CPU twins' rows); one that
+/// cannot open is skipped with a line on `out` (and in the JSON), or fails the run when
+/// nothing else is left to trace on.
 fn open_backends(
-    wanted: Wanted,
-    devices: &dyn Fn(StressDevice) -> Result<DeviceTracers, String>,
+    wanted: &[Backend],
     out: &mut dyn Write,
-) -> Result<Backends> {
-    let Wanted { cpu, gpu, vk, rq } = wanted;
-    let mut backends = Backends::new(cpu);
-    if gpu {
-        backends = backends.with_gpu(devices(StressDevice::Gpu));
-    }
-    if vk {
-        backends = backends.with_vulkan(devices(StressDevice::Vk));
-    }
-    if rq {
-        backends = backends.with_ray_queries(devices(StressDevice::RayQuery));
-        if let Some(note) = &backends.rq_note {
-            writeln!(out, "SKIP ray-query: {note}")?;
+) -> Result<(Backends, Vec<(String, String)>)> {
+    let mut backends = Backends::new(wanted.contains(&Backend::Cpu));
+    let mut skipped = Vec::new();
+    for &backend in wanted.iter().filter(|&&b| b != Backend::Cpu) {
+        match device_tracers(backend) {
+            Ok(d) => backends = backends.with(d),
+            Err(note) => {
+                writeln!(out, "SKIP {backend}: {note}")?;
+                skipped.push((backend.to_string(), note));
+            }
         }
     }
-    if gpu && backends.gpu.is_none() {
-        let note = backends.gpu_note.clone().unwrap_or_default();
-        if !cpu && backends.vk.is_none() {
-            bail!("no GPU: {note}");
-        }
-        writeln!(out, "SKIP gpu: {note}")?;
+    if !backends.cpu && backends.devices.is_empty() {
+        let why: Vec<String> = skipped.iter().map(|(b, n)| format!("{b}: {n}")).collect();
+        bail!("no backend to trace on ({})", why.join("; "));
     }
-    if vk && backends.vk.is_none() {
-        let note = backends.vk_note.clone().unwrap_or_default();
-        if !cpu && backends.gpu.is_none() {
-            bail!("no Vulkan device for ash: {note}");
-        }
-        writeln!(out, "SKIP vk: {note}")?;
-    }
-    Ok(backends)
+    Ok((backends, skipped))
 }
 
 /// The selected cases at `size`, with `--optimize` and `--builder` applied.
 fn prepare_cases(args: &StressArgs, size: Size) -> Result<Vec<Case>> {
-    let mut cases = select_cases(&args.case, size).map_err(anyhow::Error::msg)?;
+    let opts = CaseOptions::new(size).with_scenes(crate::geometry::shared_scenes_dir());
+    let mut cases = select_cases(&args.case, &opts).map_err(anyhow::Error::msg)?;
     for c in &mut cases {
         c.build.optimize |= args.optimize;
         // Only the cases built with the default builder: a deliberate choice stays.
@@ -230,12 +191,15 @@ fn write_preamble(
     args: &StressArgs,
     size: Size,
     cases: usize,
-    cpu: bool,
     backends: &Backends,
 ) -> Result<()> {
+    let mut names: Vec<String> = backends.devices.iter().map(DeviceTracers::label).collect();
+    if backends.cpu {
+        names.insert(0, "cpu".into());
+    }
     writeln!(
         out,
-        "bvhtrace stress: {} cases ({:?} size{}{}), backends: {}{}{}",
+        "bvhtrace stress: {} cases ({:?} size{}{}), backends: {}",
         cases,
         size,
         if args.optimize {
@@ -245,13 +209,7 @@ fn write_preamble(
         },
         args.builder
             .map_or(String::new(), |b| format!(", builder {b}")),
-        if cpu { "cpu " } else { "" },
-        backends
-            .gpu_name()
-            .map_or(String::new(), |n| format!("gpu ({n}) ")),
-        backends
-            .vk_name()
-            .map_or(String::new(), |n| format!("vk ({n})"))
+        names.join(" ")
     )?;
     writeln!(
         out,
@@ -288,32 +246,11 @@ fn run_cases(out: &mut dyn Write, cases: &[Case], backends: &Backends) -> Result
 
 /// Writes the JSON report when `--json` asks for one: to standard output for `-`, else
 /// to its file.
-fn write_json(
-    out: &mut dyn Write,
-    args: &StressArgs,
-    size: Size,
-    backends: &Backends,
-    reports: &[CaseReport],
-    clean: bool,
-) -> Result<()> {
-    let Some(path) = &args.json else {
+fn write_json(out: &mut dyn Write, path: Option<&str>, report: &JsonReport<'_>) -> Result<()> {
+    let Some(path) = path else {
         return Ok(());
     };
-    let j = JsonReport {
-        size,
-        optimize: args.optimize,
-        builder: args.builder.map(|b| b.name().to_string()),
-        backends: args.backends.clone(),
-        gpu: backends.gpu_name(),
-        gpu_note: backends.gpu_note.clone(),
-        vk: backends.vk_name(),
-        vk_note: backends.vk_note.clone(),
-        ray_query: backends.rq_name(),
-        ray_query_note: backends.rq_note.clone(),
-        clean,
-        cases: reports,
-    };
-    let text = serde_json::to_string_pretty(&j)?;
+    let text = serde_json::to_string_pretty(report)?;
     if path == "-" {
         println!("{text}");
     } else {

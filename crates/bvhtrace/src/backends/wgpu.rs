@@ -1,0 +1,149 @@
+//! The wgpu backend: our WGSL walks through wgpu (`bvhtrace-gpu`), natively on Vulkan and
+//! in a browser on WebGPU; and [`Backend::Auto`]'s choice, which starts from the best
+//! wgpu adapter.
+
+use std::any::Any;
+use std::sync::Arc;
+
+use bvhtrace_core::{FlatBvh, Triangle};
+use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::{DriverTuning, TraceError};
+use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext};
+
+use super::{DeviceInterface, OpenResult, OpenedDevice, Tree, cpu, ray_query, uploaded};
+use crate::open::{EngineDevice, open_engine};
+use crate::{Backend, Device, OpenOptions, Opened};
+
+/// A wgpu device tracing with our walks.
+pub(crate) struct WgpuDevice {
+    pub(crate) ctx: GpuContext,
+}
+
+/// The adapter's name and type.
+pub(crate) fn adapter_name(ctx: &GpuContext) -> String {
+    let i = ctx.adapter_info();
+    format!("{} ({:?})", i.name, i.device_type)
+}
+
+impl WgpuDevice {
+    /// Our walks on `ctx`, `tree` uploaded for the storage and walks of the ladder.
+    pub(crate) fn upload(
+        &self,
+        bvh: &FlatBvh,
+        opts: &OpenOptions,
+    ) -> Result<Opened<'static>, TraceError> {
+        let device = EngineDevice {
+            backend: Backend::Wgpu,
+            name: &adapter_name(&self.ctx),
+            features: self.ctx.features(),
+            preferred: self.ctx.tuning().storage,
+        };
+        open_engine(&device, opts, |u| GpuBvh::upload(&self.ctx, bvh, u))
+    }
+}
+
+impl DeviceInterface for WgpuDevice {
+    fn backend(&self) -> Backend {
+        Backend::Wgpu
+    }
+
+    fn name(&self) -> String {
+        adapter_name(&self.ctx)
+    }
+
+    fn tuning(&self) -> Option<DriverTuning> {
+        Some(*self.ctx.tuning())
+    }
+
+    fn open<'t, 'a>(
+        &self,
+        tree: Tree<'t, 'a>,
+        opts: &OpenOptions,
+        _auto: bool,
+    ) -> OpenResult<'t, 'a> {
+        uploaded(tree, |bvh| self.upload(bvh, opts))
+    }
+
+    fn build_bvh(
+        &self,
+        tris: &[Triangle],
+        opts: &GpuBuildOptions,
+    ) -> Result<(FlatBvh, GpuBuildTimes), TraceError> {
+        self.ctx.build_bvh(tris, opts)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// The wgpu context `opts` asks for, with ray queries when `ray_queries` and the adapter
+/// has them.
+pub(crate) fn context(opts: &OpenOptions, ray_queries: bool) -> Result<GpuContext, TraceError> {
+    let options = ContextOptions {
+        tuning: opts.tuning,
+        ray_queries,
+        ..ContextOptions::default()
+    };
+    GpuContext::new_with(opts.adapter.clone(), &options)
+}
+
+/// [`Backend::Wgpu`] on the adapter `opts` asks for.
+pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, TraceError> {
+    Ok(Arc::new(WgpuDevice {
+        ctx: context(opts, false)?,
+    }))
+}
+
+/// [`Backend::Auto`]: wgpu on the best adapter, with its ray queries where they run on
+/// ray-tracing hardware (any adapter but a CPU driver, where our walks are several times
+/// faster), saying why when the device offers them; the CPU walks when there is no
+/// adapter at all, saying so.
+pub(crate) fn auto(opts: &OpenOptions) -> Result<OpenedDevice, TraceError> {
+    let ctx = match context(opts, true) {
+        Ok(ctx) => ctx,
+        Err(e @ TraceError::NoAdapter { .. }) => {
+            return Ok(OpenedDevice {
+                fallback: Some(format!(
+                    "there is no Vulkan adapter ({e}); tracing on the CPU"
+                )),
+                ..OpenedDevice::plain(cpu::device())
+            });
+        }
+        Err(e) => return Err(e),
+    };
+    if !ctx.has_ray_queries() {
+        return Ok(OpenedDevice::plain(Arc::new(WgpuDevice { ctx })));
+    }
+    let name = ctx.adapter_info().name.clone();
+    if ctx.adapter_info().device_type == bvhtrace_gpu::wgpu::DeviceType::Cpu {
+        let why = format!(
+            "{name} offers ray queries, but it is a CPU driver, where they run in software and \
+             our walks trace several times faster; tracing with our walks"
+        );
+        return Ok(OpenedDevice {
+            choice: Some(why),
+            ..OpenedDevice::plain(Arc::new(WgpuDevice { ctx }))
+        });
+    }
+    Ok(OpenedDevice {
+        choice: Some(format!(
+            "{name} has ray queries in hardware; tracing with them"
+        )),
+        ..OpenedDevice::plain(ray_query::on(ctx)?)
+    })
+}
+
+impl Device {
+    /// A wgpu device the caller opened (an application's, eframe's), tracing with our
+    /// walks.
+    pub fn wgpu(ctx: GpuContext) -> Device {
+        Device::from_interface(Arc::new(WgpuDevice { ctx }))
+    }
+
+    /// The wgpu context, on a wgpu device (our walks or its ray queries).
+    pub fn wgpu_context(&self) -> Option<&GpuContext> {
+        let any = self.inner.as_any();
+        (any.downcast_ref::<WgpuDevice>().map(|d| &d.ctx)).or_else(|| ray_query::context(any))
+    }
+}
