@@ -12,7 +12,7 @@ mod web {
     };
     use bvhtrace_gpu::{
         AdapterChoice, BvhStorage, ContextOptions, GpuBuildOptions, GpuBuildTimes, GpuBuilderKind,
-        GpuBvh, GpuContext, UploadOptions,
+        GpuBvh, GpuContext, Tracer, UploadOptions,
     };
     use wasm_bindgen::prelude::*;
 
