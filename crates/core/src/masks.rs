@@ -387,6 +387,35 @@ impl MaskTables {
         w
     }
 
+    /// The tables from their words ([`MaskTables::words`]; the instance bases as written,
+    /// in the order of the layout they were written for): what a device holding only the
+    /// words reads back. The texels come back padded to a whole word. Checked as
+    /// [`MaskTables::new`] checks.
+    pub fn from_words(words: &[u32]) -> Result<MaskTables, String> {
+        let header_words = size_of::<MaskHeader>() / 4;
+        let header = words
+            .get(..header_words)
+            .ok_or_else(|| format!("{} words hold no header", words.len()))?;
+        let h: MaskHeader = bytemuck::pod_read_unaligned(bytemuck::cast_slice(header));
+        let part = |from: u32, to: u32| {
+            words.get(from as usize..to as usize).ok_or_else(|| {
+                format!(
+                    "the words {from}..{to} are past the {} written",
+                    words.len()
+                )
+            })
+        };
+        MaskTables::new(
+            part(h.states, h.triangles)?.to_vec(),
+            bytemuck::pod_collect_to_vec(part(h.triangles, h.materials)?),
+            bytemuck::pod_collect_to_vec(part(h.materials, h.texels)?),
+            (words.get(h.texels as usize..).unwrap_or(&[]).iter())
+                .flat_map(|w| w.to_le_bytes())
+                .collect(),
+            part(h.instance_bases, h.states)?.to_vec(),
+        )
+    }
+
     /// The instance bases in another layout's instance order: `order[k]` is the index in
     /// [`MaskTables::instance_bases`] of that layout's instance `k`
     /// ([`WideBvh::instance_order`](crate::WideBvh::instance_order)).
@@ -449,6 +478,30 @@ mod tests {
             tables.materials[0].wraps(),
             [Wrap::ClampToEdge, Wrap::MirroredRepeat]
         );
+        // Read back from the words: the same tables, the bases as written, the texels
+        // padded to a whole word.
+        assert!(
+            MaskTables::from_words(&w).is_err(),
+            "a base past the states"
+        );
+        let w = tables.words(&[2, NO_MASKS]);
+        let back = MaskTables::from_words(&w).expect("the words read back");
+        assert_eq!(back.instance_bases, [2, NO_MASKS]);
+        assert_eq!(back.texels, [1, 2, 3, 4, 5, 6, 0, 0]);
+        let padded = MaskTables {
+            texels: back.texels.clone(),
+            instance_bases: vec![],
+            ..tables.clone()
+        };
+        assert_eq!(
+            MaskTables {
+                instance_bases: vec![],
+                ..back
+            },
+            padded
+        );
+        assert!(MaskTables::from_words(&w[..3]).is_err());
+        assert!(MaskTables::from_words(&w[..h.materials as usize]).is_err());
     }
 
     /// Every point of the triangle falls in the micro-triangle its slot names, and every
