@@ -716,12 +716,7 @@ fn interleaved_workgroups_trace_every_ray() {
             dispatch_threads: threads,
             ..t
         });
-        for tuning in dealt
-            .wgpu
-            .iter()
-            .map(|c| c.tuning())
-            .chain(dealt.vk.iter().map(|c| c.tuning()))
-        {
+        for tuning in dealt.devices.iter().filter_map(|d| d.tuning()) {
             assert_eq!(tuning.dispatch_threads, threads);
         }
         let all = tracers(&dealt, &bvh);
@@ -746,9 +741,7 @@ fn batches_larger_than_a_dispatch_are_split() {
     use bvhtrace_gpu::engine::plan::{MAX_RAYS_PER_DISPATCH, plan_dispatches, rays_per_dispatch};
     let devices = Devices::open("split batches");
     let bvh = one_triangle();
-    let limits: Vec<_> = (devices.wgpu.iter().map(|c| *c.limits()))
-        .chain(devices.vk.iter().map(|c| *c.limits()))
-        .collect();
+    let limits: Vec<_> = devices.devices.iter().filter_map(|d| d.limits()).collect();
     let n = limits
         .iter()
         .map(|l| rays_per_dispatch(l) + 1000)

@@ -30,7 +30,7 @@ fn bits(bvh: &FlatBvh) -> (Vec<u8>, Vec<u8>, u32) {
 /// Builds `tris` with each builder on ash (and on wgpu when it opened) and checks the
 /// ash tree's invariants and that both trees are the same.
 fn check(devices: &Devices, name: &str, tris: &[Triangle]) {
-    let Some(vk) = &devices.vk else { return };
+    let Some(vk) = devices.vk() else { return };
     for kind in GpuBuilderKind::ALL {
         let opts = GpuBuildOptions::with_builder(kind);
         let who = format!("{name} ({kind})");
@@ -60,7 +60,7 @@ fn check(devices: &Devices, name: &str, tris: &[Triangle]) {
             t.build_ms,
             t.readback_ms
         );
-        let Some(wgpu) = &devices.wgpu else { continue };
+        let Some(wgpu) = devices.wgpu() else { continue };
         let (w, wt) = wgpu.build_bvh(tris, &opts).expect("wgpu device build");
         eprintln!(
             "{who}: wgpu {:.1} ms upload, {:.1} ms build, {:.1} ms read back; stages: ash \
@@ -104,7 +104,7 @@ fn ash_builds_the_same_tree_as_wgpu() {
 #[test]
 fn ash_build_errors_name_the_input() {
     let devices = Devices::open("device build errors on ash");
-    let Some(vk) = &devices.vk else { return };
+    let Some(vk) = devices.vk() else { return };
     let t = [Vec3::ZERO, Vec3::X, Vec3::Y];
     for kind in GpuBuilderKind::ALL {
         let opts = GpuBuildOptions::with_builder(kind);
@@ -141,7 +141,7 @@ fn bunny_builds_the_same_on_both_backends() {
     check(devices, "bunny_69k", &tris);
     devices.check_validation();
     // Warm builds (programs compiled, first use done): the best of three on each.
-    let (Some(vk), Some(wgpu)) = (&devices.vk, &devices.wgpu) else {
+    let (Some(vk), Some(wgpu)) = (devices.vk(), devices.wgpu()) else {
         return;
     };
     for kind in GpuBuilderKind::ALL {

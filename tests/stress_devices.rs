@@ -1,22 +1,22 @@
-//! The stress suite (`crates/stress/tests/suite/mod.rs`) on the devices: our walks through
-//! wgpu on every case and through ash on the `instances-*` cases, each compared with the
-//! CPU twins bit for bit, on tracers from the front door's factories
-//! (`bvhtrace::Device::tracer_factory`), rows named after each backend. Without a Vulkan
-//! adapter those rows are skipped, saying why.
+//! The stress suite (`crates/stress/tests/suite/mod.rs`) on the devices of the
+//! conformance suite's factory (`common::BACKENDS`): each on every case, but ash only on
+//! the `instances-*` cases (its one-mesh kernels are wgpu's, checked by the conformance
+//! suite), each compared with the CPU twins bit for bit, on tracers from the front door's
+//! factories (`bvhtrace::Device::tracer_factory`), rows named after each backend. Without a
+//! Vulkan adapter those rows are skipped, saying why.
 
 #[path = "../crates/stress/tests/suite/mod.rs"]
 mod suite;
+
+mod common;
 
 use std::sync::Arc;
 
 use bvhtrace::{ADAPTER_ENV, AdapterChoice, Backend, Device, DriverTuning, OpenOptions};
 use bvhtrace_stress::{Backends, DeviceTracers};
 
-/// The devices every case runs on.
-const EVERY_CASE: [Backend; 1] = [Backend::Wgpu];
-
-/// The devices the two-level cases run on as well.
-const TWO_LEVELS: [Backend; 1] = [Backend::Vulkan];
+/// The devices of the factory that run only the two-level cases.
+const TWO_LEVELS_ONLY: [Backend; 1] = [Backend::Vulkan];
 
 /// `backend` on `$BVHTRACE_ADAPTER` (else the best adapter), as a tracer factory.
 fn device(backend: Backend) -> Result<DeviceTracers, String> {
@@ -51,10 +51,13 @@ fn with_devices(devices: &[Backend]) -> Backends {
 
 /// The CPU twins and the devices of every case.
 fn backends() -> Backends {
-    with_devices(&EVERY_CASE)
+    let every: Vec<Backend> = (common::BACKENDS.into_iter())
+        .filter(|b| !TWO_LEVELS_ONLY.contains(b))
+        .collect();
+    with_devices(&every)
 }
 
-/// `backends` and the devices of the two-level cases.
+/// The CPU twins and every device of the factory.
 fn two_level_backends() -> Backends {
-    with_devices(&[EVERY_CASE.as_slice(), TWO_LEVELS.as_slice()].concat())
+    with_devices(&common::BACKENDS)
 }

@@ -6,6 +6,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, Traversal, Triangle};
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_engine::{DriverTuning, TraceError, Tracer};
 
@@ -90,6 +91,11 @@ impl Device {
     /// The CPU-driver measures in force on a device backend (`None` on the CPU).
     pub fn tuning(&self) -> Option<DriverTuning> {
         self.inner.tuning()
+    }
+
+    /// The limits uploads and batches are planned within (`None` on the CPU).
+    pub fn limits(&self) -> Option<DeviceLimits> {
+        self.inner.limits()
     }
 
     /// Builds a BVH over `tris` on this device, with the device builders

@@ -11,6 +11,7 @@ use bvhtrace_core::{
 };
 use bvhtrace_cpu::CpuBvh;
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
 use web_time::Instant;
 
@@ -36,6 +37,10 @@ impl DeviceInterface for CpuDevice {
     }
 
     fn tuning(&self) -> Option<DriverTuning> {
+        None
+    }
+
+    fn limits(&self) -> Option<DeviceLimits> {
         None
     }
 

@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_engine::{DriverTuning, TraceError};
 
@@ -84,6 +85,9 @@ pub(crate) trait DeviceInterface: SendSync + Any {
 
     /// The CPU-driver measures in force (`None` on the CPU).
     fn tuning(&self) -> Option<DriverTuning>;
+
+    /// The limits uploads and batches are planned within (`None` on the CPU).
+    fn limits(&self) -> Option<DeviceLimits>;
 
     /// True when its tracers apply a hit filter written in Rust (the CPU walks).
     fn applies_rust_filters(&self) -> bool {

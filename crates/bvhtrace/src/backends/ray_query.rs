@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, Traversal, Triangle};
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError, Tracer};
 use bvhtrace_gpu::{GpuContext, RayQueryBvh};
 
@@ -75,6 +76,10 @@ impl DeviceInterface for RayQueryDevice {
 
     fn tuning(&self) -> Option<DriverTuning> {
         Some(*self.walks.ctx.tuning())
+    }
+
+    fn limits(&self) -> Option<DeviceLimits> {
+        Some(*self.walks.ctx.limits())
     }
 
     fn open<'t, 'a>(

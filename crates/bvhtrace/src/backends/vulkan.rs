@@ -6,6 +6,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError};
 use bvhtrace_vk::{VkBvh, VkContext, VkOptions};
 
@@ -40,6 +41,10 @@ impl DeviceInterface for VulkanDevice {
 
     fn tuning(&self) -> Option<DriverTuning> {
         Some(*self.ctx.tuning())
+    }
+
+    fn limits(&self) -> Option<DeviceLimits> {
+        Some(*self.ctx.limits())
     }
 
     fn open<'t, 'a>(
@@ -77,5 +82,11 @@ impl Device {
     /// browser).
     pub fn vulkan(ctx: VkContext) -> Device {
         Device::from_interface(Arc::new(VulkanDevice { ctx }))
+    }
+
+    /// The Vulkan context, on the Vulkan backend (its validation layer's count, its
+    /// device's details).
+    pub fn vulkan_context(&self) -> Option<&VkContext> {
+        (self.inner.as_any().downcast_ref::<VulkanDevice>()).map(|d| &d.ctx)
     }
 }

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes};
+use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError};
 use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext};
 
@@ -53,6 +54,10 @@ impl DeviceInterface for WgpuDevice {
 
     fn tuning(&self) -> Option<DriverTuning> {
         Some(*self.ctx.tuning())
+    }
+
+    fn limits(&self) -> Option<DeviceLimits> {
+        Some(*self.ctx.limits())
     }
 
     fn open<'t, 'a>(
