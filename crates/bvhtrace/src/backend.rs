@@ -30,13 +30,28 @@ pub enum Backend {
     RayQuery,
 }
 
+/// What answers a backend's rays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Kernels {
+    /// The CPU walks, on the host.
+    Cpu,
+    /// Our WGSL walks on a device, each the twin of a CPU walk: where a CPU driver's trip
+    /// budget or the wide walk's stack makes them give a ray up, the host finishes it.
+    Wgsl,
+    /// The CPU walks standing in for a device's kernels over the arrays uploaded to it
+    /// (a test backend): they give no ray up.
+    CpuTwins,
+    /// The device's own ray queries: the driver's walk and triangle test.
+    Driver,
+}
+
 /// One row of [`TABLE`].
 struct Row {
     backend: Backend,
     name: &'static str,
     aliases: &'static [&'static str],
-    /// Answers bit for bit as the CPU twins of our walks do.
-    bit_for_bit: bool,
+    /// What answers its rays.
+    kernels: Kernels,
     /// What it is, for a command line's help.
     about: &'static str,
 }
@@ -47,7 +62,7 @@ const TABLE: [Row; 5] = [
         backend: Backend::Auto,
         name: "auto",
         aliases: &[],
-        bit_for_bit: true,
+        kernels: Kernels::Wgsl,
         about: "the best device there is (its ray queries in hardware, else our walks), \
                 else the CPU",
     },
@@ -55,28 +70,28 @@ const TABLE: [Row; 5] = [
         backend: Backend::Cpu,
         name: "cpu",
         aliases: &[],
-        bit_for_bit: true,
+        kernels: Kernels::Cpu,
         about: "the CPU walks",
     },
     Row {
         backend: Backend::Wgpu,
         name: "wgpu",
         aliases: &["gpu"],
-        bit_for_bit: true,
+        kernels: Kernels::Wgsl,
         about: "our WGSL walks through wgpu",
     },
     Row {
         backend: Backend::Vulkan,
         name: "vulkan",
         aliases: &["vk", "ash"],
-        bit_for_bit: true,
+        kernels: Kernels::Wgsl,
         about: "the same walks on raw Vulkan through ash",
     },
     Row {
         backend: Backend::RayQuery,
         name: bvhtrace_gpu::RAY_QUERY_BACKEND,
         aliases: &["rq", "ray-queries"],
-        bit_for_bit: false,
+        kernels: Kernels::Driver,
         about: "the device's own ray queries",
     },
 ];
@@ -114,11 +129,16 @@ impl Backend {
         self.row().about
     }
 
+    /// What answers its rays ([`Backend::Auto`]: what it opens where there is a device).
+    pub fn kernels(self) -> Kernels {
+        self.row().kernels
+    }
+
     /// True when its answers equal the CPU twins' bit for bit where the device computes
     /// f32 as the CPU does (our walks); false for the device's own ray queries, which
     /// answer under a stated rule.
     pub fn bit_for_bit(self) -> bool {
-        self.row().bit_for_bit
+        self.kernels() != Kernels::Driver
     }
 
     /// The backend a tracer runs on (`None` for a tracer from outside this workspace).

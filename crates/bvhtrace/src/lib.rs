@@ -40,7 +40,7 @@ mod backends;
 mod device;
 mod open;
 
-pub use backend::{Backend, UnknownBackend};
+pub use backend::{Backend, Kernels, UnknownBackend};
 pub use backends::cpu::FastCpuTracer;
 pub use device::Device;
 pub use open::{OpenOptions, Opened, SharedFilter, open};
