@@ -13,7 +13,7 @@ use bvhtrace_gpu::GpuContext;
 use bvhtrace_vk::VkContext;
 
 /// The device backends of our walks the suite checks against the CPU twin, bit for bit.
-pub const BACKENDS: [Backend; 2] = [Backend::Wgpu, Backend::Vulkan];
+pub const BACKENDS: [Backend; 3] = [Backend::Wgpu, Backend::Vulkan, Backend::Mock];
 
 /// The devices the tracers run on; a backend without a device is left out (SKIP printed),
 /// so the suite still checks the others.

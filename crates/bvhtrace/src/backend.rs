@@ -28,6 +28,9 @@ pub enum Backend {
     /// hardware where there is some, the driver's software walk on lavapipe. The same
     /// answers as our walks under a stated rule, not bit for bit.
     RayQuery,
+    /// A test backend: the engine over a device of bytes whose kernels are the CPU twins
+    /// (`bvhtrace-mock`), for testing a front end without a GPU. Not fast.
+    Mock,
 }
 
 /// What answers a backend's rays.
@@ -57,7 +60,7 @@ struct Row {
 }
 
 /// The backends, [`Backend::Auto`] first.
-const TABLE: [Row; 5] = [
+const TABLE: [Row; 6] = [
     Row {
         backend: Backend::Auto,
         name: "auto",
@@ -93,6 +96,13 @@ const TABLE: [Row; 5] = [
         aliases: &["rq", "ray-queries"],
         kernels: Kernels::Driver,
         about: "the device's own ray queries",
+    },
+    Row {
+        backend: Backend::Mock,
+        name: bvhtrace_mock::MOCK_BACKEND,
+        aliases: &[],
+        kernels: Kernels::CpuTwins,
+        about: "a test device: the engine over bytes, the CPU twins for kernels",
     },
 ];
 

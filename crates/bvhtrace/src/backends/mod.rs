@@ -16,6 +16,7 @@ use bvhtrace_engine::{DriverTuning, TraceError};
 use crate::{Backend, OpenOptions, Opened};
 
 pub(crate) mod cpu;
+pub(crate) mod mock;
 #[cfg(not(target_arch = "wasm32"))]
 pub(crate) mod ray_query;
 #[cfg(target_arch = "wasm32")]
@@ -154,6 +155,7 @@ pub(crate) fn open(opts: &OpenOptions) -> Result<OpenedDevice, TraceError> {
         Backend::Wgpu => wgpu::open(opts).map(OpenedDevice::plain),
         Backend::Vulkan => vulkan::open(opts).map(OpenedDevice::plain),
         Backend::RayQuery => ray_query::open(opts).map(OpenedDevice::plain),
+        Backend::Mock => mock::open(opts).map(OpenedDevice::plain),
     }
 }
 
