@@ -6,7 +6,9 @@
 #    built on WebGPU (gpu-ploc, gpu-lbvh) and read back: the tree checked, the rays traced
 #    over it in the browser (GPU and WebAssembly) against the CPU walk over the same tree,
 #    bit for bit, with the build's time: prints `browser device build (gpu-ploc): built in
-#    X ms ...; N hits, 0 differ from the CPU walks over the read-back tree`;
+#    X ms ...; N hits, 0 differ from the CPU walks over the read-back tree`; then a user's
+#    shader with a mistake, compiled after the traversal library on WebGPU: the page is
+#    given an error naming its line (`browser shader error: mine.wgsl:6:...`);
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two

@@ -211,3 +211,8 @@ pub mod browser {
         report.map_err(|_| format!("the page reported nothing within {} s", timeout.as_secs()))
     }
 }
+
+/// README.md's library example, compiled and run as this crate's doctest.
+#[cfg(doctest)]
+#[doc = include_str!("../../README.md")]
+pub struct ReadmeExample;

@@ -379,3 +379,57 @@ fn fast_plain_hits(rays: &[Ray]) -> Vec<bvhtrace::Hit> {
         .expect("trace")
         .hits
 }
+
+/// A tree over a device's buffer limit, on a device without texture storage (WebGPU's
+/// default limits, scaled down to the grid): whichever storage is asked for, or none, the
+/// error names the limit exceeded, the bytes and the storage tried, and says that the
+/// device has no texture storage, rather than only the missing feature.
+#[test]
+fn a_tree_over_the_buffer_limit_is_an_error_naming_the_limit_bytes_and_storage() {
+    use bvhtrace_mock::MockDevice;
+    let limits = bvhtrace::engine::plan::DeviceLimits {
+        max_storage_buffer_binding_size: 16 << 10,
+        max_buffer_size: 16 << 10,
+        max_compute_workgroups_per_dimension: 65_535,
+        min_storage_buffer_offset_alignment: 256,
+        max_texture_dimension_2d: 8192,
+    };
+    let device = bvhtrace::Device::mock(MockDevice::new().with_limits(limits));
+    let bvh = grid();
+    let node_bytes = std::mem::size_of_val(bvh.nodes());
+    assert!(
+        node_bytes > 16 << 10,
+        "the grid's {node_bytes} node bytes fit"
+    );
+    for asked in [None, Some(BvhStorage::Buffers), Some(BvhStorage::Textures)] {
+        let opts = match asked {
+            Some(s) => OpenOptions::default().with_storage(s),
+            None => OpenOptions::default(),
+        };
+        let err = device.open(&bvh, &opts).expect_err("nothing fits");
+        let text = err.to_string();
+        eprintln!("{asked:?}: {text}");
+        assert!(
+            matches!(
+                err,
+                TraceError::DoesNotFit { .. } | TraceError::TooLarge { .. }
+            ),
+            "{text}"
+        );
+        assert!(
+            text.contains("max_storage_buffer_binding_size")
+                && text.contains(&format!("the nodes buffer needs {node_bytes} bytes"))
+                && text.contains("16384 bytes")
+                && text.contains("in buffer storage"),
+            "{asked:?}: {text}"
+        );
+        // Unless buffers were asked for, the missing texture storage is said too: as
+        // well as the limit, never instead of it.
+        if asked != Some(BvhStorage::Buffers) {
+            assert!(
+                text.contains("lacks the texture storage"),
+                "{asked:?}: {text}"
+            );
+        }
+    }
+}

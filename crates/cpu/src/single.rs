@@ -69,6 +69,9 @@ fn fetch(bvh: &CpuBvh, c: u32) {
             unsafe { _mm_prefetch::<_MM_HINT_T0>(at.wrapping_add(64 * line)) };
         }
     }
+    // Other targets have no prefetch to ask for.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (bvh, c);
 }
 
 /// Where a leaf's triangles are tested (the core walks' `Site`): the primitive base of

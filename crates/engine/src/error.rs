@@ -6,7 +6,10 @@ use crate::storage::BvhStorage;
 
 /// `bytes` in MiB, for a sentence.
 fn mib(bytes: u64) -> String {
-    format!("{:.1} MiB", bytes as f64 / f64::from(1 << 20))
+    match bytes < 1 << 20 {
+        true => format!("{:.1} KiB", bytes as f64 / 1024.0),
+        false => format!("{:.1} MiB", bytes as f64 / f64::from(1 << 20)),
+    }
 }
 
 /// Everything that can go wrong while choosing a device, uploading a BVH or tracing, on
@@ -200,6 +203,30 @@ pub enum TraceError {
         /// What the upload holds.
         upload: String,
     },
+    /// A shader of yours, compiled after the traversal library, does not compile: where,
+    /// counted in your own source's lines, and the compiler's words.
+    #[error("{label}{}: {message}", place(*line, *column))]
+    Shader {
+        /// The shader's label.
+        label: String,
+        /// The line of your source (1-based), when the compiler gave one; 0 when the
+        /// error lies in the library itself.
+        line: Option<u32>,
+        /// The column (1-based, in bytes), with the line.
+        column: Option<u32>,
+        /// What the compiler said.
+        message: String,
+    },
+}
+
+/// `:line:column` for a sentence (` (in the bvhtrace library)` for line 0), or nothing.
+fn place(line: Option<u32>, column: Option<u32>) -> String {
+    match (line, column) {
+        (Some(0), _) => " (in the bvhtrace library)".to_string(),
+        (Some(l), Some(c)) => format!(":{l}:{c}"),
+        (Some(l), None) => format!(":{l}"),
+        _ => String::new(),
+    }
 }
 
 impl TraceError {

@@ -174,12 +174,9 @@ fn run() -> Result<(), Box<dyn Error>> {
         library.shape()
     );
 
-    // The shader: the traversal library, then ours.
-    let source = format!("{library}\n{SHADER}");
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("own_shader"),
-        source: wgpu::ShaderSource::Wgsl(source.into()),
-    });
+    // The shader: the traversal library, then ours. A mistake in ours is an error naming
+    // its line in SHADER, not a panic inside wgpu.
+    let module = ctx.shader_module(&library, SHADER, "own_shader.wgsl")?;
 
     // Group 1: our resources.
     let camera = scene.camera_or_frame(WIDTH as f32 / HEIGHT as f32);

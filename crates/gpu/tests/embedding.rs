@@ -723,3 +723,58 @@ fn a_mismatched_library_is_a_clear_error() {
         Err(TraceError::WideLayoutMissing { .. })
     ));
 }
+
+/// A shader of yours that does not compile, after the library: an error, never wgpu's
+/// panic, whose line and column count from your own source (a typo's line, and a type
+/// error the validator finds); the same source corrected compiles.
+#[test]
+fn your_shader_that_does_not_compile_is_an_error_in_your_lines() {
+    let Some(ctx) = support::context("embedding") else {
+        return;
+    };
+    let (bvh, _) = scene();
+    let gpu = GpuBvh::upload(&ctx, &bvh, &UploadOptions::all()).expect("upload");
+    let library = gpu.wgsl_library(Traversal::Stackless, 0).expect("library");
+    let shader = |call: &str, value: &str| {
+        format!(
+            "@group(1) @binding(0) var<storage, read_write> out: array<u32>;\n\
+             \n\
+             @compute @workgroup_size(64)\n\
+             fn main(@builtin(local_invocation_index) lane: u32) {{\n\
+             \x20   let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1e30);\n\
+             \x20   let r = {call}(ray, lane);\n\
+             \x20   let n: u32 = {value};\n\
+             \x20   out[lane] = r.hit.prim + n;\n\
+             }}\n"
+        )
+    };
+    let good = shader("bvh_trace_closest", "1u");
+    ctx.shader_module(&library, &good, "good.wgsl")
+        .expect("the corrected shader compiles");
+    for (source, line, what) in [
+        (shader("bvh_trace_closestt", "1u"), 6, "bvh_trace_closestt"),
+        (shader("bvh_trace_closest", "1.5"), 7, ""),
+    ] {
+        match ctx.shader_module(&library, &source, "mine.wgsl") {
+            Err(e @ TraceError::Shader { .. }) => {
+                let TraceError::Shader {
+                    line: Some(l),
+                    column: Some(c),
+                    ..
+                } = &e
+                else {
+                    panic!("no line and column: {e}")
+                };
+                assert_eq!(*l, line, "{e}");
+                let msg = e.to_string();
+                assert!(
+                    msg.starts_with(&format!("mine.wgsl:{line}:{c}: ")) && msg.contains(what),
+                    "{msg}"
+                );
+                eprintln!("{msg}");
+            }
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("line {line}'s error compiled"),
+        }
+    }
+}

@@ -16,6 +16,11 @@
 //! `browser device build (gpu-ploc): built in X ms ...; N hits, 0 differ from the CPU walks
 //! over the read-back tree`.
 //!
+//! Then a user's shader with a mistake (an unknown function on line 6), compiled after the
+//! traversal library on the browser's WebGPU (`compile_with_library`): the page must be
+//! given an error naming `mine.wgsl:6:` and the identifier, where the corrected shader
+//! compiles. Prints `browser shader error: mine.wgsl:6:...`.
+//!
 //! Last, opens the library's example page (`index.html`) and checks the hits it prints,
 //! then the same page with the BVH built on the device (`?builder=gpu-ploc`).
 //! `web/test.sh` runs it.
@@ -91,6 +96,47 @@ try {
 }
 </script>"#;
 
+/// The shader page (`/shader.html`): compiles [`shader_source`]'s corrected shader after
+/// the traversal library on the browser's WebGPU, then the one with a mistake on line 6,
+/// and posts what the second gave (`compiled` when it did).
+const SHADER_PAGE: &str = r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre>
+<script type="module">
+const post = (path, body) => fetch(path, { method: "POST", body });
+addEventListener("error", (e) => post("/error", `${e.message} (${e.filename}:${e.lineno})`));
+addEventListener("unhandledrejection", (e) => post("/error", String(e.reason)));
+try {
+  const { default: init, compile_with_library } = await import("./bvhtrace_web.js");
+  await init();
+  const text = async (p) => (await fetch(p)).text();
+  await compile_with_library(await text("/good.wgsl"), "good.wgsl");
+  let answer = "compiled";
+  try {
+    await compile_with_library(await text("/mine.wgsl"), "mine.wgsl");
+  } catch (e) {
+    answer = String(e);
+  }
+  document.getElementById("out").textContent = answer;
+  await post("/result", answer);
+} catch (e) {
+  await post("/error", String(e && e.stack || e));
+}
+</script>"#;
+
+/// A user's shader over the traversal library, calling `call` on line 6 (the corrected
+/// one calls `bvh_trace_closest`).
+fn shader_source(call: &str) -> String {
+    format!(
+        "@group(1) @binding(0) var<storage, read_write> out: array<u32>;\n\
+         \n\
+         @compute @workgroup_size(64)\n\
+         fn main(@builtin(local_invocation_index) lane: u32) {{\n\
+         \x20   let ray = BvhRay(vec3<f32>(0.0), 0.0, vec3<f32>(0.0, 0.0, 1.0), 1e30);\n\
+         \x20   let r = {call}(ray, lane);\n\
+         \x20   out[lane] = r.hit.prim;\n\
+         }}\n"
+    )
+}
+
 /// What the pages are served: the wasm and its bindings, the triangles and the rays.
 #[derive(Clone)]
 struct Served {
@@ -101,12 +147,16 @@ struct Served {
 }
 
 impl Served {
-    /// The files by URL path: `/` is [`PAGE`], `/device.html` [`DEVICE_PAGE`].
+    /// The files by URL path: `/` is [`PAGE`], `/device.html` [`DEVICE_PAGE`],
+    /// `/shader.html` [`SHADER_PAGE`] with its two shaders.
     fn files(&self) -> impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static {
         let s = self.clone();
         move |path: &str| match path {
             "/" => Some(PAGE.as_bytes().to_vec()),
             "/device.html" => Some(DEVICE_PAGE.as_bytes().to_vec()),
+            "/shader.html" => Some(SHADER_PAGE.as_bytes().to_vec()),
+            "/good.wgsl" => Some(shader_source("bvh_trace_closest").into_bytes()),
+            "/mine.wgsl" => Some(shader_source("bvh_trace_closestt").into_bytes()),
             "/bvhtrace_web.js" => Some(s.js.to_vec()),
             "/bvhtrace_web_bg.wasm" => Some(s.wasm.to_vec()),
             "/triangles.bin" => Some(s.triangles.to_vec()),
@@ -233,6 +283,7 @@ fn run() -> Result<(), Error> {
     for builder in &args.builders {
         device_build(&chromium, &served, &scene, builder)?;
     }
+    shader_error(&chromium, &served)?;
     example_page(&chromium, dist, None)?;
     match args.builders.first() {
         Some(builder) => example_page(&chromium, dist, Some(builder)),
@@ -477,6 +528,32 @@ fn device_build(
         .into());
     }
     Ok(())
+}
+
+/// The shader check: a user's shader with a mistake, compiled after the traversal library
+/// on the browser's WebGPU, is an error naming its own file, line and identifier (the
+/// line counted in the user's source, not in the library before it), where the corrected
+/// shader compiles.
+fn shader_error(chromium: &str, served: &Served) -> Result<(), Error> {
+    let answer = match browser::open_page(
+        chromium,
+        browser::WebGpu::SwiftShader,
+        served.files(),
+        "/shader.html",
+        (800, 600),
+        Duration::from_secs(300),
+    )? {
+        Report::Result(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
+        Report::Error(e) => return Err(format!("the shader page failed: {e}").into()),
+    };
+    println!("browser shader error: {answer}");
+    match answer.starts_with("mine.wgsl:6:") && answer.contains("bvh_trace_closestt") {
+        true => Ok(()),
+        false => Err(format!(
+            "the shader with a mistake on line 6 gave {answer:?}, not an error naming mine.wgsl:6"
+        )
+        .into()),
+    }
 }
 
 /// The library's example page (`index.html`): four rays over a unit quad of two triangles,

@@ -115,6 +115,27 @@ mod web {
         Ok(result)
     }
 
+    /// Compiles `source`, your own WGSL, after the traversal library on the browser's
+    /// WebGPU ([`GpuContext::shader_module_async`]): the library of the stackless walk over
+    /// a one-triangle upload in buffers, its bindings in `@group(0)`, so that `source` may
+    /// call `bvh_trace_closest(ray, lane)` and the rest. Resolves when it compiles; a
+    /// shader that does not is rejected with the compiler's first error, its line and
+    /// column counted in `source` (`label:line:column: message`).
+    #[wasm_bindgen]
+    pub async fn compile_with_library(source: String, label: String) -> Result<(), JsValue> {
+        let tri = [glam::Vec3::ZERO, glam::Vec3::X, glam::Vec3::Y];
+        let bvh = FlatBvh::build(&[tri], &BuildOptions::default()).map_err(js)?;
+        let ctx = context().await?;
+        let opts =
+            UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+        let gpu = GpuBvh::upload(&ctx, &bvh, &opts).map_err(js)?;
+        let library = gpu.wgsl_library(Traversal::Stackless, 0).map_err(js)?;
+        ctx.shader_module_async(&library, &source, &label)
+            .await
+            .map(|_| ())
+            .map_err(js)
+    }
+
     /// The read-back tree as bytes: its depth, node count and triangle count (three
     /// little-endian `u32`, then a zero one), then the nodes (32 bytes each) and the
     /// triangles (48 bytes each), the layouts of [`bvhtrace_core::FlatNode`] and
