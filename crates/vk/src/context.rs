@@ -262,6 +262,11 @@ impl VkContext {
         unsafe { Self::create(opts) }
     }
 
+    /// The context: instance, device, then its objects, as `opts` says.
+    ///
+    /// # Safety
+    /// Loads libvulkan and runs its initialisers: call it where any Vulkan application may
+    /// (no other thread unloading the library). Everything made is owned by the context.
     unsafe fn create(opts: &VkOptions) -> Result<VkContext, TraceError> {
         // SAFETY: each step uses only the handles the one before made.
         unsafe {
@@ -278,6 +283,10 @@ impl VkContext {
 
     /// The instance, with the validation layer and its messenger when asked for and
     /// installed.
+    ///
+    /// # Safety
+    /// As [`VkContext::create`]: loads libvulkan. The holder destroys the messenger and
+    /// the instance when dropped, after everything made from them.
     unsafe fn instance(opts: &VkOptions) -> Result<InstanceHolder, TraceError> {
         unsafe {
             let entry = ash::Entry::load().map_err(|e| TraceError::NoAdapter {
@@ -346,6 +355,10 @@ impl VkContext {
     }
 
     /// The device `adapter` picks among those with a compute queue.
+    ///
+    /// # Safety
+    /// `instance` is a live instance; the physical device returned is only used while it
+    /// lives.
     unsafe fn choose(
         instance: &ash::Instance,
         adapter: &AdapterChoice,
@@ -394,6 +407,10 @@ impl VkContext {
 
     /// The logical device on `c` with the features the kernels use, its limits and
     /// tuning; no objects yet.
+    ///
+    /// # Safety
+    /// `c` was chosen on `holder`'s instance ([`VkContext::choose`]); the device made is
+    /// owned by the returned [`Inner`], which destroys it before the instance.
     unsafe fn open(
         holder: InstanceHolder,
         c: Chosen,
@@ -539,6 +556,10 @@ impl VkContext {
 
     /// The descriptor set layouts, pipeline layout, command buffer, fence and timestamp
     /// queries of `inner` (dropping `inner` destroys whatever was made).
+    ///
+    /// # Safety
+    /// `inner`'s device is live, with a queue of `family`, and none of these objects is
+    /// made yet (each is written once, over its null handle).
     unsafe fn objects(inner: &mut Inner, family: u32) -> Result<(), TraceError> {
         let timestamps = inner.timestamp_period_ns.is_some();
         unsafe {
