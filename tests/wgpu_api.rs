@@ -36,6 +36,8 @@ fn context() -> Option<GpuContext> {
     }
 }
 
+/// The binary walks' upload checks: escape links left out or not matching, a tree too deep
+/// for the full stack, an empty batch.
 #[test]
 fn upload_checks_and_errors() {
     let Some(ctx) = context() else { return };
@@ -117,6 +119,21 @@ fn upload_checks_and_errors() {
         )
         .is_ok()
     );
+}
+
+/// The wide walk and the wide layout: refused without it, uploaded alone or beside the
+/// binary layout in either storage.
+#[test]
+fn upload_of_the_wide_layout() {
+    let Some(ctx) = context() else { return };
+    let bvh = one_triangle();
+    let gpu = GpuBvh::upload(
+        &ctx,
+        &bvh,
+        &UploadOptions::for_traversal(Traversal::FullStack),
+    )
+    .expect("upload");
+    let rays = [Ray::new(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z)];
     // The wide walk needs the wide layout: refused, naming the fix, by an upload without
     // it; the CPU tracer of a BVH without it collapses one beside the tree.
     let wide = TraceOptions::closest(Traversal::Wide);

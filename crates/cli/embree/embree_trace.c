@@ -7,7 +7,7 @@
  * Prints one JSON object: triangles, rays, hits, t_sum, build_ms and trace_ms (medians of
  * RUNS), mrays_per_s. With BVHTRACE_REFIT=A in the environment it also times a refit
  * (RTC_BUILD_QUALITY_REFIT) after moving every vertex by `bvhtrace bench-refit`'s field of
- * amplitude A (`deform` in crates/cli/src/bench_refit.rs): refit_ms, the median of RUNS.
+ * amplitude A (`deform` in crates/cli/src/bench/refit.rs): refit_ms, the median of RUNS.
  * BVHTRACE_EMBREE_MODE=fast drops RTC_SCENE_FLAG_ROBUST (Embree's default, not watertight);
  * BVHTRACE_EMBREE_QUERY=any traces occlusion (rtcOccluded1: hits counts occluded rays,
  * t_sum is 0). HITS_OUT, if given, receives one u32 primitive index per ray
@@ -157,7 +157,7 @@ int main(int argc, char **argv) {
   double refit_ms = -1;
   const char *refit_env = getenv("BVHTRACE_REFIT");
   if (refit_env) {
-    /* The deformation of bench_refit.rs: p + a*e*(sin(k y), sin(k z), sin(k x)), k = 6/e. */
+    /* The deformation of bench/refit.rs: p + a*e*(sin(k y), sin(k z), sin(k x)), k = 6/e. */
     float a = (float)atof(refit_env), lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
     for (size_t i = 0; i < 3 * (size_t)n_tris; i++)
       for (int c = 0; c < 3; c++) {

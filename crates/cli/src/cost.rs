@@ -14,7 +14,7 @@ use bvhtrace_core::{Query, Ray, TraceOptions, Traversal};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::bench_matrix::ray_sets;
+use crate::bench::ray_sets;
 use crate::output::JsonOut;
 
 /// What the model assumes, in one paragraph: the `--help` text and the JSON's

@@ -1,17 +1,11 @@
 //! `bvhtrace`: render scenes through the BVH on the GPU or CPU, inspect them, benchmark.
 
-mod accuracy;
 mod backend;
 mod bench;
-mod bench_cpu;
-mod bench_matrix;
-mod bench_refit;
-mod converge;
 mod cost;
 mod embree;
 mod geometry;
 mod output;
-mod plot;
 mod render;
 mod shade;
 mod stress;
@@ -38,11 +32,11 @@ enum Command {
     Dump(render::DumpArgs),
     /// Error against run time for every configuration (builder, traversal, backend, ray
     /// kind, precision), with a table, JSON/CSV and an error-vs-time plot.
-    Bench(bench_matrix::BenchArgs),
+    Bench(bench::BenchArgs),
     /// Benchmark the builders: build time, SAH cost in both conventions, box and triangle
     /// tests per ray (primary, shadow, diffuse), CPU traversal speed.
-    #[command(long_about = bench::build_long_about())]
-    BenchBuild(bench::BenchBuildArgs),
+    #[command(long_about = bench::build::long_about())]
+    BenchBuild(bench::build::BenchBuildArgs),
     /// Benchmark the traversals on the GPU beside the CPU reference, on the same rays.
     ///
     /// Columns: Mrays/s on the GPU (timestamp queries) and wall (upload and readback
@@ -55,7 +49,7 @@ enum Command {
     /// What moving things costs: a refit after every vertex of a mesh moved, beside a full
     /// rebuild (SAH cost and box tests per ray of both), and a top-level rebuild of many
     /// instances beside building both levels.
-    BenchRefit(bench_refit::BenchRefitArgs),
+    BenchRefit(bench::refit::BenchRefitArgs),
     /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
     /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
@@ -73,10 +67,14 @@ fn main() {
         Command::Render(a) => render::render(a),
         Command::Info(a) => render::info(a),
         Command::Dump(a) => render::dump(a),
-        Command::Bench(a) => bench_matrix::bench(a),
-        Command::BenchBuild(a) => bench::bench_build(a),
-        Command::BenchTrace(a) => bench::bench_trace(a),
-        Command::BenchRefit(a) => bench_refit::bench_refit(a),
+        Command::Bench(a) if a.converge.converge => bench::converge::run(&a),
+        Command::Bench(a) => bench::matrix::run(&a),
+        Command::BenchBuild(a) => bench::build::run(a),
+        Command::BenchTrace(a) => a.check().and_then(|()| match a.cpu_only {
+            true => bench::trace_cpu::run(&a),
+            false => bench::trace::run(&a),
+        }),
+        Command::BenchRefit(a) => bench::refit::run(a),
         Command::Stress(a) => stress::run(a),
         Command::Cost(a) => cost::cost(a),
     };

@@ -825,24 +825,36 @@ pub fn info(args: InfoArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let Built {
-        scene,
-        geometry: geo,
-        load_ms,
-        build_ms,
-    } = load_and_build(
+    let built = load_and_build(
         &args.scene,
         args.scene
             .build
             .build_device(args.adapter.as_deref())?
             .as_ref(),
     )?;
+    let job = info_job(&args, built.geometry.bvh())?;
+    if args.json {
+        let v = info_json(&args, &built, &job);
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        print_info(&args, &built, &job);
+    }
+    Ok(())
+}
+
+/// `bvhtrace info --json`: what [`print_info`] prints and more (the pipelines' WGSL files,
+/// the scene's camera and warnings), as one object.
+fn info_json(
+    args: &InfoArgs,
+    built: &Built,
+    (traversal, pipelines, upload): &(Traversal, Vec<KernelKey>, Option<UploadStats>),
+) -> Value {
+    let (scene, geo) = (&built.scene, &built.geometry);
     let bvh = geo.bvh();
     let s = BvhStats::of(bvh);
     let (lo, hi) = scene.bounds();
     let a = &scene.attributes;
     let (nb, eb, tb) = bvh.byte_sizes();
-    let (traversal, pipelines, upload) = info_job(&args, bvh)?;
     let mut v = json!({
         "scene": args.scene.spec(),
         "name": scene.name,
@@ -862,19 +874,27 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "leaf_sizes": s.leaf_sizes,
         "bytes": { "nodes": nb, "escapes": eb, "triangles": tb },
         "pipelines": pipelines.iter().map(pipeline_json).collect::<Vec<_>>(),
-        "upload": upload.map(|u| upload_json(&u, geo.triangle_count())),
-        "left_out": left_out(&pipelines, &scene, &geo, traversal),
+        "upload": upload.as_ref().map(|u| upload_json(u, geo.triangle_count())),
+        "left_out": left_out(pipelines, scene, geo, *traversal),
         "traversal": traversal.to_string(),
         "default_traversal": { "cpu": Traversal::CPU_DEFAULT.to_string(), "gpu": Traversal::GPU_DEFAULT.to_string() },
-        "load_ms": load_ms, "build_ms": build_ms,
+        "load_ms": built.load_ms, "build_ms": built.build_ms,
         "warnings": scene.warnings,
         "time": args.scene.time,
     });
-    merge(&mut v, geometry::json(&geo, &scene));
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&v)?);
-        return Ok(());
-    }
+    merge(&mut v, geometry::json(geo, scene));
+    v
+}
+
+/// `bvhtrace info`'s text: the scene, its tree, the job's pipelines and upload.
+fn print_info(
+    args: &InfoArgs,
+    built: &Built,
+    (traversal, pipelines, upload): &(Traversal, Vec<KernelKey>, Option<UploadStats>),
+) {
+    let (scene, geo) = (&built.scene, &built.geometry);
+    let (lo, hi) = scene.bounds();
+    let a = &scene.attributes;
     println!("scene       {} ({})", args.scene.spec(), scene.description);
     println!(
         "triangles   {} in {} meshes, {} instances{}",
@@ -888,46 +908,8 @@ pub fn info(args: InfoArgs) -> Result<()> {
         "attributes  normals {} texcoords {} colors {} materials {}",
         a.normals, a.texcoords, a.colors, a.materials
     );
-    let how = match args.scene.build.builder {
-        Builder::Device(_) => "built on the device".to_string(),
-        Builder::Cpu(_) => format!(
-            "{} bins{}",
-            args.scene.build.bins,
-            if args.scene.build.optimize {
-                ", optimised by reinsertion"
-            } else {
-                ""
-            }
-        ),
-    };
-    println!(
-        "bvh         {} ({how}): {} nodes, {} leaves, depth {}",
-        args.scene.build.builder, s.nodes, s.leaves, s.depth
-    );
-    if args.scene.build.builder == Builder::Cpu(BuilderKind::Sbvh) {
-        // The leaves may share triangles: how many slots the tree has for how many.
-        println!(
-            "references  {} for {} triangles ({:.3}x; split budget {})",
-            s.triangles,
-            s.primitives,
-            s.triangles as f64 / s.primitives.max(1) as f64,
-            args.scene.build.split_budget
-        );
-    }
-    println!(
-        "sah cost    {:.3} (traversal 1, intersection 1)  {:.3} (PBRT 1/8, 1)",
-        s.sah_cost, s.sah_cost_pbrt
-    );
-    let hist: Vec<String> = s
-        .leaf_sizes
-        .iter()
-        .enumerate()
-        .filter(|(_, n)| **n > 0)
-        .map(|(k, n)| format!("{k}:{n}"))
-        .collect();
-    println!("leaf sizes  {}", hist.join(" "));
-    println!("gpu bytes   nodes {nb}, escapes {eb} (stackless/short-stack only), triangles {tb}");
-    for p in &pipelines {
+    print_tree(args, geo.bvh());
+    for p in pipelines {
         let bindings: Vec<String> = p
             .bindings()
             .iter()
@@ -956,7 +938,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
         Traversal::CPU_DEFAULT,
         Traversal::GPU_DEFAULT
     );
-    if let SceneBvh::Instanced(i) = &geo {
+    if let SceneBvh::Instanced(i) = geo {
         let (top, meshes) = i.level_bytes();
         println!(
             "two levels  {} instances of {} meshes: top level {top} bytes, meshes {meshes} bytes",
@@ -964,11 +946,60 @@ pub fn info(args: InfoArgs) -> Result<()> {
             i.meshes().len()
         );
     }
-    for l in left_out(&pipelines, &scene, &geo, traversal) {
+    for l in left_out(pipelines, scene, geo, *traversal) {
         println!("left out    {l}");
     }
-    println!("timing      load {load_ms:.1} ms, build {build_ms:.1} ms");
-    Ok(())
+    println!(
+        "timing      load {:.1} ms, build {:.1} ms",
+        built.load_ms, built.build_ms
+    );
+}
+
+/// `bvhtrace info`'s lines on the tree: how it was built, its shape, its SAH cost, its
+/// leaves and its bytes.
+fn print_tree(args: &InfoArgs, bvh: &FlatBvh) {
+    let build = &args.scene.build;
+    let s = BvhStats::of(bvh);
+    let how = match build.builder {
+        Builder::Device(_) => "built on the device".to_string(),
+        Builder::Cpu(_) => format!(
+            "{} bins{}",
+            build.bins,
+            if build.optimize {
+                ", optimised by reinsertion"
+            } else {
+                ""
+            }
+        ),
+    };
+    println!(
+        "bvh         {} ({how}): {} nodes, {} leaves, depth {}",
+        build.builder, s.nodes, s.leaves, s.depth
+    );
+    if build.builder == Builder::Cpu(BuilderKind::Sbvh) {
+        // The leaves may share triangles: how many slots the tree has for how many.
+        println!(
+            "references  {} for {} triangles ({:.3}x; split budget {})",
+            s.triangles,
+            s.primitives,
+            s.triangles as f64 / s.primitives.max(1) as f64,
+            build.split_budget
+        );
+    }
+    println!(
+        "sah cost    {:.3} (traversal 1, intersection 1)  {:.3} (PBRT 1/8, 1)",
+        s.sah_cost, s.sah_cost_pbrt
+    );
+    let hist: Vec<String> = s
+        .leaf_sizes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| **n > 0)
+        .map(|(k, n)| format!("{k}:{n}"))
+        .collect();
+    println!("leaf sizes  {}", hist.join(" "));
+    let (nb, eb, tb) = bvh.byte_sizes();
+    println!("gpu bytes   nodes {nb}, escapes {eb} (stackless/short-stack only), triangles {tb}");
 }
 
 /// `bvhtrace dump`.

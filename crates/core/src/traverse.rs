@@ -74,6 +74,19 @@ impl Traversal {
         Traversal::Wide,
     ];
 
+    /// Every walk of [`Traversal::ALL`], the short stack once for each of `sizes`: the
+    /// list a sweep over walks takes.
+    pub fn all_with_short_stacks(sizes: &[u32]) -> Vec<Traversal> {
+        (Traversal::ALL.into_iter())
+            .flat_map(|t| match t {
+                Traversal::ShortStack(_) => {
+                    sizes.iter().map(|&k| Traversal::ShortStack(k)).collect()
+                }
+                t => vec![t],
+            })
+            .collect()
+    }
+
     /// True when both are the same walk, whatever a short stack's size.
     pub fn same_kind(&self, other: &Traversal) -> bool {
         std::mem::discriminant(self) == std::mem::discriminant(other)

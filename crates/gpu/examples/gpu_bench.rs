@@ -33,52 +33,83 @@ fn load_avg() -> String {
         .unwrap_or_else(|_| "?".into())
 }
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let mut specs = Vec::new();
-    let (mut w, mut h, mut runs, mut best) = (1024u32, 768u32, 5usize, false);
-    let mut traversals = vec![
-        Traversal::FullStack,
-        Traversal::Stackless,
-        Traversal::ShortStack(2),
-        Traversal::ShortStack(6),
-        Traversal::ShortStack(12),
-    ];
-    let mut storages = vec![BvhStorage::Textures, BvhStorage::Buffers];
-    let mut args = std::env::args().skip(1);
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--size" => {
-                let v = args.next().ok_or("--size needs WxH")?;
-                let (a, b) = v.split_once('x').ok_or("--size needs WxH")?;
-                (w, h) = (a.parse()?, b.parse()?);
-            }
-            "--runs" => runs = args.next().ok_or("--runs needs N")?.parse()?,
-            "--best" => best = true,
-            "--storage" => {
-                storages = match args.next().as_deref() {
-                    Some("buffers") => vec![BvhStorage::Buffers],
-                    Some("textures") => vec![BvhStorage::Textures],
-                    Some("both") => vec![BvhStorage::Textures, BvhStorage::Buffers],
-                    _ => return Err("--storage needs buffers, textures or both".into()),
+/// What the command line asks for.
+struct Options {
+    /// The scenes, as `bvhtrace_scene::load` takes them.
+    specs: Vec<String>,
+    /// Primary rays, `w` x `h`.
+    w: u32,
+    h: u32,
+    /// Timed runs per traversal.
+    runs: usize,
+    /// The best run instead of the median.
+    best: bool,
+    /// The walks timed.
+    traversals: Vec<Traversal>,
+    /// Where the BVH is uploaded: each is a column pair.
+    storages: Vec<BvhStorage>,
+}
+
+impl Options {
+    fn parse() -> Result<Options, Box<dyn std::error::Error>> {
+        let mut o = Options {
+            specs: Vec::new(),
+            w: 1024,
+            h: 768,
+            runs: 5,
+            best: false,
+            traversals: vec![
+                Traversal::FullStack,
+                Traversal::Stackless,
+                Traversal::ShortStack(2),
+                Traversal::ShortStack(6),
+                Traversal::ShortStack(12),
+            ],
+            storages: vec![BvhStorage::Textures, BvhStorage::Buffers],
+        };
+        let mut args = std::env::args().skip(1);
+        while let Some(a) = args.next() {
+            match a.as_str() {
+                "--size" => {
+                    let v = args.next().ok_or("--size needs WxH")?;
+                    let (a, b) = v.split_once('x').ok_or("--size needs WxH")?;
+                    (o.w, o.h) = (a.parse()?, b.parse()?);
                 }
+                "--runs" => o.runs = args.next().ok_or("--runs needs N")?.parse()?,
+                "--best" => o.best = true,
+                "--storage" => {
+                    o.storages = match args.next().as_deref() {
+                        Some("buffers") => vec![BvhStorage::Buffers],
+                        Some("textures") => vec![BvhStorage::Textures],
+                        Some("both") => vec![BvhStorage::Textures, BvhStorage::Buffers],
+                        _ => return Err("--storage needs buffers, textures or both".into()),
+                    }
+                }
+                "--traversals" => {
+                    o.traversals = args
+                        .next()
+                        .ok_or("--traversals needs a list")?
+                        .split(',')
+                        .map(|t| t.parse::<Traversal>())
+                        .collect::<Result<Vec<_>, _>>()?;
+                }
+                _ => o.specs.push(a),
             }
-            "--traversals" => {
-                traversals = args
-                    .next()
-                    .ok_or("--traversals needs a list")?
-                    .split(',')
-                    .map(|t| t.parse::<Traversal>())
-                    .collect::<Result<Vec<_>, _>>()?;
+        }
+        if o.specs.is_empty() {
+            let dir =
+                shared_scenes_dir().ok_or("no shared scenes folder; name scenes explicitly")?;
+            for f in ["bunny_69k.glb", "igea.glb"] {
+                o.specs
+                    .push(dir.join("glb").join(f).to_string_lossy().into_owned());
             }
-            _ => specs.push(a),
         }
+        Ok(o)
     }
-    if specs.is_empty() {
-        let dir = shared_scenes_dir().ok_or("no shared scenes folder; name scenes explicitly")?;
-        for f in ["bunny_69k.glb", "igea.glb"] {
-            specs.push(dir.join("glb").join(f).to_string_lossy().into_owned());
-        }
-    }
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let o = Options::parse()?;
     let ctx = GpuContext::new(AdapterChoice::Auto)?;
     println!(
         "device: {} ({:?}, {}); CPU threads: {}; load average at start: {}",
@@ -88,105 +119,127 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         std::thread::available_parallelism().map_or(0, |n| n.get()),
         load_avg()
     );
-    for spec in &specs {
-        let scene = bvhtrace_scene::load(spec)?;
-        let tris = scene.flatten().triangles()?;
-        let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
-        let wide = traversals.iter().any(|t| t.is_wide());
-        if wide {
-            bvh.build_wide();
-        }
-        let b = bvh.bounds();
-        let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
-        let upload = |st| {
-            let opts = UploadOptions::all().with_storage(st);
-            if wide {
-                opts.with_traversal(Traversal::Wide)
-            } else {
-                opts
-            }
-        };
-        let gpus = storages
-            .iter()
-            .map(|&st| GpuBvh::upload(&ctx, &bvh, &upload(st)))
-            .collect::<Result<Vec<_>, _>>()?;
-        let name = std::path::Path::new(spec)
-            .file_stem()
-            .map_or(spec.clone(), |s| s.to_string_lossy().into_owned());
-        println!(
-            "\n{name}: {} triangles, {} nodes, depth {}; {}x{} primary rays",
-            bvh.triangles().len(),
-            bvh.nodes().len(),
-            bvh.depth(),
-            w,
-            h,
-        );
-        for g in &gpus {
-            println!(
-                "  upload ({:?}): {:.1} MB in {:.1} ms",
-                g.tree().storage,
-                g.stats().total_bytes() as f64 / 1e6,
-                g.stats().upload_ms
-            );
-        }
-        print!("{:<16}", "traversal");
-        for g in &gpus {
-            let s = format!("{:?}", g.tree().storage).to_lowercase();
-            print!(" {:>13} {:>13}", format!("{s} GPU"), format!("{s} wall"));
-        }
-        println!(
-            " {:>10} {:>8} {:>8} {:>8}",
-            "CPU", "nodes/r", "tris/r", "GPU=CPU"
-        );
-        let n = rays.len() as f64;
-        let mrays = |ms: f64| n / ms / 1e3;
-        for &traversal in &traversals {
-            let q = Query::Closest;
-            let opts = TraceOptions::new(traversal, q);
-            let counted_opts = opts.with_counters(true);
-            let cpu = trace_rays(&bvh, &rays, &counted_opts);
-            let (cpu_hits, cpu_counters) = (cpu.hits, cpu.counters.unwrap_or_default());
-            let mut same = true;
-            for gpu in &gpus {
-                // Warm-up (pipeline creation, lavapipe's first-dispatch cost) and checks.
-                let counted = gpu.trace(&rays, &counted_opts)?;
-                same &= counted.hits == cpu_hits
-                    && counted.counters.as_deref() == Some(&cpu_counters[..]);
-                gpu.trace(&rays, &opts)?;
-            }
-            let nodes = cpu_counters.iter().map(|c| u64::from(c.nodes)).sum::<u64>() as f64 / n;
-            let tris_per = cpu_counters.iter().map(|c| u64::from(c.tris)).sum::<u64>() as f64 / n;
-            let mut g = vec![Vec::new(); gpus.len()];
-            let mut wall = vec![Vec::new(); gpus.len()];
-            let mut cpu = Vec::new();
-            // Interleaved, so that a noisy neighbour hurts every column alike.
-            for _ in 0..runs {
-                for (i, gpu) in gpus.iter().enumerate() {
-                    let out = gpu.trace(&rays, &opts)?;
-                    g[i].push(out.gpu_ms.unwrap_or(f64::NAN));
-                    wall[i].push(out.wall_ms);
-                }
-                let t = Instant::now();
-                std::hint::black_box(trace_rays(&bvh, &rays, &opts));
-                cpu.push(t.elapsed().as_secs_f64() * 1e3);
-            }
-            print!("{:<16}", traversal.to_string());
-            for i in 0..gpus.len() {
-                print!(
-                    " {:>13.2} {:>13.2}",
-                    mrays(pick(g[i].clone(), best)),
-                    mrays(pick(wall[i].clone(), best))
-                );
-            }
-            println!(
-                " {:>10.2} {:>8.1} {:>8.2} {:>8}",
-                mrays(pick(cpu, best)),
-                nodes,
-                tris_per,
-                if same { "yes" } else { "NO" }
-            );
-        }
+    for spec in &o.specs {
+        bench_scene(&ctx, &o, spec)?;
     }
     println!("\nload average at end: {}", load_avg());
+    Ok(())
+}
+
+/// One scene: its tree uploaded in each storage, the table's head, a row per traversal.
+fn bench_scene(
+    ctx: &GpuContext,
+    o: &Options,
+    spec: &str,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let (w, h) = (o.w, o.h);
+    let scene = bvhtrace_scene::load(spec)?;
+    let tris = scene.flatten().triangles()?;
+    let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+    let wide = o.traversals.iter().any(|t| t.is_wide());
+    if wide {
+        bvh.build_wide();
+    }
+    let b = bvh.bounds();
+    let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
+    let upload = |st| {
+        let opts = UploadOptions::all().with_storage(st);
+        if wide {
+            opts.with_traversal(Traversal::Wide)
+        } else {
+            opts
+        }
+    };
+    let gpus = (o.storages.iter())
+        .map(|&st| GpuBvh::upload(ctx, &bvh, &upload(st)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let name = std::path::Path::new(spec)
+        .file_stem()
+        .map_or(spec.to_string(), |s| s.to_string_lossy().into_owned());
+    println!(
+        "\n{name}: {} triangles, {} nodes, depth {}; {}x{} primary rays",
+        bvh.triangles().len(),
+        bvh.nodes().len(),
+        bvh.depth(),
+        w,
+        h,
+    );
+    for g in &gpus {
+        println!(
+            "  upload ({:?}): {:.1} MB in {:.1} ms",
+            g.tree().storage,
+            g.stats().total_bytes() as f64 / 1e6,
+            g.stats().upload_ms
+        );
+    }
+    print!("{:<16}", "traversal");
+    for g in &gpus {
+        let s = format!("{:?}", g.tree().storage).to_lowercase();
+        print!(" {:>13} {:>13}", format!("{s} GPU"), format!("{s} wall"));
+    }
+    println!(
+        " {:>10} {:>8} {:>8} {:>8}",
+        "CPU", "nodes/r", "tris/r", "GPU=CPU"
+    );
+    for &traversal in &o.traversals {
+        bench_walk(o, &bvh, &rays, &gpus, traversal)?;
+    }
+    Ok(())
+}
+
+/// One traversal's row: checked against the CPU twin (hits and counters), then timed
+/// `o.runs` times on every upload and on the CPU, interleaved.
+fn bench_walk(
+    o: &Options,
+    bvh: &FlatBvh,
+    rays: &[bvhtrace_core::Ray],
+    gpus: &[GpuBvh],
+    traversal: Traversal,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let n = rays.len() as f64;
+    let mrays = |ms: f64| n / ms / 1e3;
+    let q = Query::Closest;
+    let opts = TraceOptions::new(traversal, q);
+    let counted_opts = opts.with_counters(true);
+    let cpu = trace_rays(bvh, rays, &counted_opts);
+    let (cpu_hits, cpu_counters) = (cpu.hits, cpu.counters.unwrap_or_default());
+    let mut same = true;
+    for gpu in gpus {
+        // Warm-up (pipeline creation, lavapipe's first-dispatch cost) and checks.
+        let counted = gpu.trace(rays, &counted_opts)?;
+        same &= counted.hits == cpu_hits && counted.counters.as_deref() == Some(&cpu_counters[..]);
+        gpu.trace(rays, &opts)?;
+    }
+    let nodes = cpu_counters.iter().map(|c| u64::from(c.nodes)).sum::<u64>() as f64 / n;
+    let tris_per = cpu_counters.iter().map(|c| u64::from(c.tris)).sum::<u64>() as f64 / n;
+    let mut g = vec![Vec::new(); gpus.len()];
+    let mut wall = vec![Vec::new(); gpus.len()];
+    let mut cpu = Vec::new();
+    // Interleaved, so that a noisy neighbour hurts every column alike.
+    for _ in 0..o.runs {
+        for (i, gpu) in gpus.iter().enumerate() {
+            let out = gpu.trace(rays, &opts)?;
+            g[i].push(out.gpu_ms.unwrap_or(f64::NAN));
+            wall[i].push(out.wall_ms);
+        }
+        let t = Instant::now();
+        std::hint::black_box(trace_rays(bvh, rays, &opts));
+        cpu.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    print!("{:<16}", traversal.to_string());
+    for i in 0..gpus.len() {
+        print!(
+            " {:>13.2} {:>13.2}",
+            mrays(pick(g[i].clone(), o.best)),
+            mrays(pick(wall[i].clone(), o.best))
+        );
+    }
+    println!(
+        " {:>10.2} {:>8.1} {:>8.2} {:>8}",
+        mrays(pick(cpu, o.best)),
+        nodes,
+        tris_per,
+        if same { "yes" } else { "NO" }
+    );
     Ok(())
 }

@@ -38,31 +38,70 @@ fn main() {
     }
 }
 
-fn run() -> Result<(), Box<dyn std::error::Error>> {
-    let mut args = std::env::args().skip(1);
-    let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]";
-    let dist = PathBuf::from(args.next().ok_or(usage)?);
-    let (mut window, mut out) = ((960u32, 640u32), dist.clone());
-    let (mut file, mut time, mut play) = (None::<PathBuf>, 0.0f32, false);
-    let mut cpu = false;
-    let (mut extra, mut expect_error) = (String::new(), None::<String>);
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--window" => window = parse_size(&args.next().ok_or("--window needs WxH")?)?,
-            "--out" => out = PathBuf::from(args.next().ok_or("--out needs a folder")?),
-            "--scene" => file = Some(PathBuf::from(args.next().ok_or("--scene needs a file")?)),
-            "--time" => time = args.next().ok_or("--time needs seconds")?.parse()?,
-            "--play" => play = true,
-            "--cpu" => cpu = true,
-            "--flags" => extra = args.next().ok_or("--flags needs the viewer's flags")?,
-            "--expect-error" => {
-                expect_error = Some(args.next().ok_or("--expect-error needs a text")?);
+/// What the command line asks for.
+struct Args {
+    /// The built web folder served to the browser.
+    dist: PathBuf,
+    /// The browser window, WxH.
+    window: (u32, u32),
+    /// Where the screenshot and the images go.
+    out: PathBuf,
+    /// `--scene`: a glTF file instead of the default scene.
+    file: Option<PathBuf>,
+    /// `--time`: the animation's pose, seconds.
+    time: f32,
+    /// `--play`: the animation plays from `time`.
+    play: bool,
+    /// `--cpu`: the viewer traces with the CPU walks in WebAssembly.
+    cpu: bool,
+    /// `--flags`: the viewer's own flags, added.
+    extra: String,
+    /// `--expect-error`: the page must fail with this text.
+    expect_error: Option<String>,
+}
+
+impl Args {
+    fn parse() -> Result<Args, Box<dyn std::error::Error>> {
+        let mut args = std::env::args().skip(1);
+        let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]";
+        let dist = PathBuf::from(args.next().ok_or(usage)?);
+        let mut a = Args {
+            out: dist.clone(),
+            dist,
+            window: (960, 640),
+            file: None,
+            time: 0.0,
+            play: false,
+            cpu: false,
+            extra: String::new(),
+            expect_error: None,
+        };
+        while let Some(arg) = args.next() {
+            match arg.as_str() {
+                "--window" => a.window = parse_size(&args.next().ok_or("--window needs WxH")?)?,
+                "--out" => a.out = PathBuf::from(args.next().ok_or("--out needs a folder")?),
+                "--scene" => {
+                    a.file = Some(PathBuf::from(args.next().ok_or("--scene needs a file")?));
+                }
+                "--time" => a.time = args.next().ok_or("--time needs seconds")?.parse()?,
+                "--play" => a.play = true,
+                "--cpu" => a.cpu = true,
+                "--flags" => a.extra = args.next().ok_or("--flags needs the viewer's flags")?,
+                "--expect-error" => {
+                    a.expect_error = Some(args.next().ok_or("--expect-error needs a text")?);
+                }
+                other => return Err(format!("unknown argument {other}; {usage}").into()),
             }
-            other => return Err(format!("unknown argument {other}; {usage}").into()),
         }
+        Ok(a)
     }
+}
+
+fn run() -> Result<(), Box<dyn std::error::Error>> {
+    let args = Args::parse()?;
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
-    let glb = file.or_else(|| shared_scenes_dir().map(|d| d.join("glb/bunny_69k.glb")));
+    let glb =
+        (args.file.clone()).or_else(|| shared_scenes_dir().map(|d| d.join("glb/bunny_69k.glb")));
     let (spec, scene_bytes) = match &glb {
         Some(path) => (
             path.to_string_lossy().into_owned(),
@@ -74,47 +113,16 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         }
     };
     // A page expected to fail gets a file that need not load here either.
-    let scene = match &expect_error {
+    let scene = match &args.expect_error {
         None => Some(bvhtrace_scene::load(&spec)?),
         Some(_) => None,
     };
     let (lo, hi) = scene
         .as_ref()
         .map_or((Vec3::splat(-1.0), Vec3::ONE), |s| s.bounds());
-    let cam = Camera::frame(lo, hi, 1.0);
-    let v = |p: Vec3| format!("{},{},{}", p.x, p.y, p.z);
-    let mut flags = format!(
-        "--screenshot viewer.png --frames 5 --scale 1 --eye {} --target {} --fov {} --time {time}",
-        v(cam.eye),
-        v(cam.target),
-        cam.fov_y_deg
-    );
-    if play {
-        flags.push_str(" --play");
-    }
-    if cpu {
-        flags.push_str(" --cpu");
-    }
-    if !extra.is_empty() {
-        flags = format!("{flags} {extra}");
-    }
-    let name = match spec.rsplit_once('.') {
-        Some((_, ext)) if ext.eq_ignore_ascii_case("gltf") => "scene.gltf",
-        _ => "scene.glb",
-    };
-    let query = match scene_bytes {
-        Some(_) => format!("scene=/{name}&"),
-        None => {
-            flags = format!("{spec} {flags}");
-            String::new()
-        }
-    };
-    let path = format!(
-        "/viewer.html?{query}report=1&args={}",
-        flags.replace(' ', "+")
-    );
+    let (path, name) = page_path(&args, &spec, scene_bytes.is_some(), (lo, hi));
     let files = {
-        let serve = browser::folder(dist.clone());
+        let serve = browser::folder(args.dist.clone());
         move |p: &str| match &scene_bytes {
             Some(b) if p.strip_prefix('/') == Some(name) => Some(b.clone()),
             _ => serve(p),
@@ -128,102 +136,77 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         WebGpu::Vulkan,
         files,
         &path,
-        window,
+        args.window,
         Duration::from_secs(600),
     )?;
-    let body = match (report, expect_error) {
-        (Report::Result(bytes), None) => bytes,
-        (Report::Error(e), None) => return Err(format!("the page failed: {e}").into()),
-        (Report::Error(e), Some(want)) if e.contains(&want) => {
-            println!("browser viewer: the page shows the error, as expected: {e}");
-            return Ok(());
-        }
-        (Report::Error(e), Some(want)) => {
-            return Err(format!("the page failed without saying {want:?}: {e}").into());
-        }
-        (Report::Result(_), Some(want)) => {
-            return Err(format!("the page ran, where it should have said {want:?}").into());
-        }
+    let Some(body) = expected(report, args.expect_error.as_deref())? else {
+        return Ok(());
     };
     let page_s = start.elapsed().as_secs_f64();
-    let line = body
-        .iter()
-        .position(|&b| b == b'\n')
-        .ok_or("no header in the result")?;
-    let head: serde_json::Value = serde_json::from_slice(&body[..line])?;
-    let num = |k: &str| head[k].as_u64().ok_or(format!("the result has no {k}"));
-    let (w, h) = (num("width")? as u32, num("height")? as u32);
-    let (png_len, traced_len) = (num("png_bytes")? as usize, num("traced_bytes")? as usize);
-    let png = body
-        .get(line + 1..line + 1 + png_len)
-        .ok_or("the PNG is cut short")?;
-    let traced = body
-        .get(line + 1 + png_len..line + 1 + png_len + traced_len)
-        .ok_or("the traced image is cut short")?;
-    let vec3 = |k: &str| -> Result<Vec3, String> {
-        let a: Vec<f32> = (head[k].as_array().ok_or(format!("no {k}"))?.iter())
-            .filter_map(|x| x.as_f64().map(|f| f as f32))
-            .collect();
-        (a.len() == 3)
-            .then(|| Vec3::new(a[0], a[1], a[2]))
-            .ok_or(format!("{k} is not three numbers"))
-    };
-    let shown = Camera {
-        eye: vec3("eye")?,
-        target: vec3("target")?,
-        fov_y_deg: head["fov"].as_f64().ok_or("no fov")? as f32,
-    };
+    let shown = Shown::parse(&body)?;
+    let (w, h) = shown.size;
     println!(
         "browser viewer: {} ({:.1} s from page load to screenshot)",
-        head["message"].as_str().unwrap_or_default(),
+        shown.head["message"].as_str().unwrap_or_default(),
         page_s
     );
-    std::fs::create_dir_all(&out)?;
-    let shot = out.join("viewer-screenshot.png");
-    std::fs::write(&shot, png)?;
-    if head["on_gpu"].as_bool() != Some(true) && !cpu {
+    std::fs::create_dir_all(&args.out)?;
+    let shot = args.out.join("viewer-screenshot.png");
+    std::fs::write(&shot, shown.png)?;
+    if shown.head["on_gpu"].as_bool() != Some(true) && !args.cpu {
         return Err("the viewer traced on the CPU, not the browser's GPU".into());
     }
-    if traced.len() != (w * h * 4) as usize || w == 0 {
-        return Err(format!("the traced image has {} bytes for {w}x{h}", traced.len()).into());
+    if shown.traced.len() != (w * h * 4) as usize || w == 0 {
+        return Err(format!(
+            "the traced image has {} bytes for {w}x{h}",
+            shown.traced.len()
+        )
+        .into());
     }
+    let native = native_render(scene.ok_or("no scene")?, &shown, (hi - lo).length())?;
+    compare(&args.out, &shown, &native, &shot)
+}
 
-    // The native render of the same camera and time: the CPU twin's hits, shaded as
-    // `bvhtrace render` shades them (the viewer's default mode, normals).
-    // The time the viewer shows (it moves on from `--time` when `--play` is given).
-    let shown_time = head["time"].as_f64().ok_or("no time")? as f32;
-    let mut posed = scene.ok_or("no scene")?;
-    posed.set_time(shown_time);
-    let geometry = posed.tracing_bvh(&BuildOptions::default(), false)?;
-    let rays = shown.rays(w, h);
-    let hits = trace_rays(
-        geometry.bvh(),
-        &rays,
-        &TraceOptions::closest(Traversal::Stackless),
-    )
-    .hits;
-    let view = View::for_camera(Shade::Normal, &shown, (hi - lo).length());
-    let pixels = Pixels {
-        size: (w, h),
-        rays: &rays,
-        hits: &hits,
-        counters: &[],
-        owner: &[],
-        secondary: &[],
-        ao_samples: 1,
-    };
-    let native = compose_rgb(&view, &pixels, &|p| {
-        geometry.triangle(p).unwrap_or_default()
-    });
-    let browser_rgb: Vec<u8> = traced
-        .chunks_exact(4)
+/// What the page reported, as `--expect-error` expects it: the result's bytes, or `None`
+/// for the error expected (said); an error for a failure not expected, or for a page that
+/// ran where it should have failed.
+fn expected(
+    report: Report,
+    expect_error: Option<&str>,
+) -> Result<Option<Vec<u8>>, Box<dyn std::error::Error>> {
+    match (report, expect_error) {
+        (Report::Result(bytes), None) => Ok(Some(bytes)),
+        (Report::Error(e), None) => Err(format!("the page failed: {e}").into()),
+        (Report::Error(e), Some(want)) if e.contains(want) => {
+            println!("browser viewer: the page shows the error, as expected: {e}");
+            Ok(None)
+        }
+        (Report::Error(e), Some(want)) => {
+            Err(format!("the page failed without saying {want:?}: {e}").into())
+        }
+        (Report::Result(_), Some(want)) => {
+            Err(format!("the page ran, where it should have said {want:?}").into())
+        }
+    }
+}
+
+/// Saves the traced image and the `native` one in `out`, beside the screenshot `shot`, and
+/// fails when any pixel differs.
+fn compare(
+    out: &std::path::Path,
+    shown: &Shown,
+    native: &[u8],
+    shot: &std::path::Path,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let (w, h) = shown.size;
+    let browser_rgb: Vec<u8> = (shown.traced.chunks_exact(4))
         .flat_map(|p| [p[0], p[1], p[2]])
         .collect();
     let save = |name: &str, rgb: &[u8]| {
         image::save_buffer(out.join(name), rgb, w, h, image::ExtendedColorType::Rgb8)
     };
     save("viewer-traced.png", &browser_rgb)?;
-    save("viewer-native.png", &native)?;
+    save("viewer-native.png", native)?;
     let differ = browser_rgb
         .chunks_exact(3)
         .zip(native.chunks_exact(3))
@@ -238,4 +221,132 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         0 => Ok(()),
         n => Err(format!("{n} of {} pixels differ from the native render", w * h).into()),
     }
+}
+
+/// The page to open, with the viewer's flags (a fixed camera framing `bounds`, the
+/// screenshot, the time, and those asked for), and the name the scene file is served
+/// under; a builtin scene (`served` false) is named in the flags instead.
+fn page_path(
+    args: &Args,
+    spec: &str,
+    served: bool,
+    (lo, hi): (Vec3, Vec3),
+) -> (String, &'static str) {
+    let cam = Camera::frame(lo, hi, 1.0);
+    let v = |p: Vec3| format!("{},{},{}", p.x, p.y, p.z);
+    let mut flags = format!(
+        "--screenshot viewer.png --frames 5 --scale 1 --eye {} --target {} --fov {} --time {}",
+        v(cam.eye),
+        v(cam.target),
+        cam.fov_y_deg,
+        args.time
+    );
+    if args.play {
+        flags.push_str(" --play");
+    }
+    if args.cpu {
+        flags.push_str(" --cpu");
+    }
+    if !args.extra.is_empty() {
+        flags = format!("{flags} {}", args.extra);
+    }
+    let name = match spec.rsplit_once('.') {
+        Some((_, ext)) if ext.eq_ignore_ascii_case("gltf") => "scene.gltf",
+        _ => "scene.glb",
+    };
+    let query = match served {
+        true => format!("scene=/{name}&"),
+        false => {
+            flags = format!("{spec} {flags}");
+            String::new()
+        }
+    };
+    let path = format!(
+        "/viewer.html?{query}report=1&args={}",
+        flags.replace(' ', "+")
+    );
+    (path, name)
+}
+
+/// What the page sent back: a JSON header line (the size, the camera and time shown, the
+/// lengths of what follows), the window's screenshot as PNG, and the traced image as RGBA8.
+struct Shown<'a> {
+    head: serde_json::Value,
+    size: (u32, u32),
+    png: &'a [u8],
+    traced: &'a [u8],
+    cam: Camera,
+}
+
+impl<'a> Shown<'a> {
+    fn parse(body: &'a [u8]) -> Result<Shown<'a>, Box<dyn std::error::Error>> {
+        let line = body
+            .iter()
+            .position(|&b| b == b'\n')
+            .ok_or("no header in the result")?;
+        let head: serde_json::Value = serde_json::from_slice(&body[..line])?;
+        let num = |k: &str| head[k].as_u64().ok_or(format!("the result has no {k}"));
+        let size = (num("width")? as u32, num("height")? as u32);
+        let (png_len, traced_len) = (num("png_bytes")? as usize, num("traced_bytes")? as usize);
+        let png = body
+            .get(line + 1..line + 1 + png_len)
+            .ok_or("the PNG is cut short")?;
+        let traced = body
+            .get(line + 1 + png_len..line + 1 + png_len + traced_len)
+            .ok_or("the traced image is cut short")?;
+        let vec3 = |k: &str| -> Result<Vec3, String> {
+            let a: Vec<f32> = (head[k].as_array().ok_or(format!("no {k}"))?.iter())
+                .filter_map(|x| x.as_f64().map(|f| f as f32))
+                .collect();
+            (a.len() == 3)
+                .then(|| Vec3::new(a[0], a[1], a[2]))
+                .ok_or(format!("{k} is not three numbers"))
+        };
+        let cam = Camera {
+            eye: vec3("eye")?,
+            target: vec3("target")?,
+            fov_y_deg: head["fov"].as_f64().ok_or("no fov")? as f32,
+        };
+        Ok(Shown {
+            head,
+            size,
+            png,
+            traced,
+            cam,
+        })
+    }
+}
+
+/// The native render of the camera and time shown: the CPU twin's hits, shaded as
+/// `bvhtrace render` shades them (the viewer's default mode, normals), as RGB8.
+fn native_render(
+    mut scene: bvhtrace_scene::Scene,
+    shown: &Shown,
+    diagonal: f32,
+) -> Result<Vec<u8>, Box<dyn std::error::Error>> {
+    // The time the viewer shows (it moves on from `--time` when `--play` is given).
+    let shown_time = shown.head["time"].as_f64().ok_or("no time")? as f32;
+    scene.set_time(shown_time);
+    let geometry = scene.tracing_bvh(&BuildOptions::default(), false)?;
+    let (w, h) = shown.size;
+    let rays = shown.cam.rays(w, h);
+    let hits = trace_rays(
+        geometry.bvh(),
+        &rays,
+        &TraceOptions::closest(Traversal::Stackless),
+    )
+    .hits;
+    let view = View::for_camera(Shade::Normal, &shown.cam, diagonal);
+    let pixels = Pixels {
+        size: (w, h),
+        rays: &rays,
+        hits: &hits,
+        counters: &[],
+        owner: &[],
+        secondary: &[],
+        ao_samples: 1,
+    };
+    Ok(compose_rgb(&view, &pixels, &|p| {
+        geometry.triangle(p).unwrap_or_default()
+    }))
 }

@@ -27,12 +27,7 @@ const SHORT_STACKS: [u32; 2] = [6, 1];
 /// full-stack kernel (64 entries) runs only where the tree allows. The wide walk runs on
 /// the wide layout converted from the same tree.
 pub fn traversals() -> Vec<Traversal> {
-    (Traversal::ALL.into_iter())
-        .flat_map(|t| match t {
-            Traversal::ShortStack(_) => SHORT_STACKS.map(Traversal::ShortStack).to_vec(),
-            t => vec![t],
-        })
-        .collect()
+    Traversal::all_with_short_stacks(&SHORT_STACKS)
 }
 
 /// Opens a tracer for a case's tree, uploaded for the walks listed: what the caller gives

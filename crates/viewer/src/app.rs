@@ -1359,51 +1359,7 @@ impl ViewerApp {
                 c
             });
         }
-        if let Some(scene) = &self.scene {
-            let diag = scene.diagonal();
-            let d = resp.drag_delta();
-            if d != egui::Vec2::ZERO {
-                if resp.dragged_by(egui::PointerButton::Primary) {
-                    camera::orbit(&mut self.cam, -d.x * 0.008, d.y * 0.008);
-                } else if resp.dragged_by(egui::PointerButton::Secondary)
-                    || resp.dragged_by(egui::PointerButton::Middle)
-                {
-                    camera::pan(&mut self.cam, d.x, d.y, rect.height());
-                }
-            }
-            if resp.hovered() {
-                let scroll = ctx.input(|i| i.smooth_scroll_delta.y);
-                if scroll != 0.0 {
-                    camera::zoom(&mut self.cam, scroll / 60.0, camera::MIN_DISTANCE * diag);
-                }
-            }
-            if !ctx.egui_wants_keyboard_input() {
-                let (f, r, u, fast, frame, dt, play) = ctx.input(|i| {
-                    use egui::Key;
-                    (
-                        axis(i, Key::W, Key::S),
-                        axis(i, Key::D, Key::A),
-                        axis(i, Key::E, Key::Q),
-                        i.modifiers.shift,
-                        i.key_pressed(Key::F),
-                        i.stable_dt.clamp(0.0, 0.1),
-                        i.key_pressed(Key::Space),
-                    )
-                });
-                if play && scene.animated() {
-                    self.playback.playing = !self.playback.playing;
-                    ctx.request_repaint();
-                }
-                if f != 0.0 || r != 0.0 || u != 0.0 {
-                    let step = self.fly_speed * dt * if fast { 4.0 } else { 1.0 };
-                    camera::fly(&mut self.cam, f * step, r * step, u * step);
-                    ctx.request_repaint();
-                }
-                if frame {
-                    self.frame_scene();
-                }
-            }
-        }
+        self.steer(&ctx, &resp, rect);
         let scale = self.settings.render_scale.clamp(0.1, 2.0);
         let px = |v: f32| ((v * ppp * scale).round() as u32).clamp(1, MAX_SIDE);
         let size = [px(rect.width()), px(rect.height())];
@@ -1424,48 +1380,8 @@ impl ViewerApp {
             let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
             painter.image(id, rect, uv, Color32::WHITE);
         }
-        let mut caption = match (&self.scene, &self.job) {
-            (_, Some(job)) => format!("{}…", job.stage),
-            (None, None) => "no scene".to_string(),
-            (Some(_), None) => String::new(),
-        };
-        if let (Some(scene), Some(key)) = (&self.scene, &self.key) {
-            if !caption.is_empty() {
-                caption.push_str("  ·  ");
-            }
-            let gpu_failed = self
-                .built
-                .as_ref()
-                .is_some_and(|b| b.gpu_problem().is_some() && !self.settings.prefer_cpu);
-            caption.push_str(&format!(
-                "{}  ·  {}  ·  {}",
-                scene.name,
-                key.traversal,
-                match (self.stats.on_gpu, gpu_failed) {
-                    (true, _) => "GPU",
-                    (false, true) => "CPU (the GPU is not available: see the panel)",
-                    (false, false) => "CPU",
-                }
-            ));
-            if let (Some(a), Some(v)) = (&self.accum, &self.view)
-                && v.accumulates()
-            {
-                caption.push_str(&format!("  ·  {} samples", a.samples));
-            }
-            if scene.animated() {
-                caption.push_str(&format!(
-                    "  ·  t = {:.2} s{}",
-                    self.playback.time,
-                    if self.playback.playing {
-                        ""
-                    } else {
-                        " (paused)"
-                    }
-                ));
-            }
-        }
         let galley = painter.layout_no_wrap(
-            caption,
+            self.caption(),
             egui::FontId::proportional(13.0),
             Color32::from_gray(230),
         );
@@ -1492,6 +1408,106 @@ impl ViewerApp {
         if self.accumulating() || self.job.is_some() {
             ctx.request_repaint();
         }
+    }
+
+    /// Moves the camera as the image's pointer input (`resp`, over `rect`) and the keys
+    /// ask: drag to orbit (primary button) or pan (the others), scroll to zoom, WASD/QE to
+    /// fly (shift: faster), F to frame the scene; space plays or pauses an animation.
+    fn steer(&mut self, ctx: &egui::Context, resp: &egui::Response, rect: egui::Rect) {
+        let Some(scene) = &self.scene else {
+            return;
+        };
+        let diag = scene.diagonal();
+        let d = resp.drag_delta();
+        if d != egui::Vec2::ZERO {
+            if resp.dragged_by(egui::PointerButton::Primary) {
+                camera::orbit(&mut self.cam, -d.x * 0.008, d.y * 0.008);
+            } else if resp.dragged_by(egui::PointerButton::Secondary)
+                || resp.dragged_by(egui::PointerButton::Middle)
+            {
+                camera::pan(&mut self.cam, d.x, d.y, rect.height());
+            }
+        }
+        if resp.hovered() {
+            let scroll = ctx.input(|i| i.smooth_scroll_delta.y);
+            if scroll != 0.0 {
+                camera::zoom(&mut self.cam, scroll / 60.0, camera::MIN_DISTANCE * diag);
+            }
+        }
+        if ctx.egui_wants_keyboard_input() {
+            return;
+        }
+        let (f, r, u, fast, frame, dt, play) = ctx.input(|i| {
+            use egui::Key;
+            (
+                axis(i, Key::W, Key::S),
+                axis(i, Key::D, Key::A),
+                axis(i, Key::E, Key::Q),
+                i.modifiers.shift,
+                i.key_pressed(Key::F),
+                i.stable_dt.clamp(0.0, 0.1),
+                i.key_pressed(Key::Space),
+            )
+        });
+        if play && scene.animated() {
+            self.playback.playing = !self.playback.playing;
+            ctx.request_repaint();
+        }
+        if f != 0.0 || r != 0.0 || u != 0.0 {
+            let step = self.fly_speed * dt * if fast { 4.0 } else { 1.0 };
+            camera::fly(&mut self.cam, f * step, r * step, u * step);
+            ctx.request_repaint();
+        }
+        if frame {
+            self.frame_scene();
+        }
+    }
+
+    /// The line over the image: the job under way, the scene, the walk, where it traces,
+    /// the samples accumulated and the animation's time.
+    fn caption(&self) -> String {
+        let mut caption = match (&self.scene, &self.job) {
+            (_, Some(job)) => format!("{}…", job.stage),
+            (None, None) => "no scene".to_string(),
+            (Some(_), None) => String::new(),
+        };
+        let (Some(scene), Some(key)) = (&self.scene, &self.key) else {
+            return caption;
+        };
+        if !caption.is_empty() {
+            caption.push_str("  ·  ");
+        }
+        let gpu_failed = self
+            .built
+            .as_ref()
+            .is_some_and(|b| b.gpu_problem().is_some() && !self.settings.prefer_cpu);
+        caption.push_str(&format!(
+            "{}  ·  {}  ·  {}",
+            scene.name,
+            key.traversal,
+            match (self.stats.on_gpu, gpu_failed) {
+                (true, _) => "GPU",
+                (false, true) => "CPU (the GPU is not available: see the panel)",
+                (false, false) => "CPU",
+            }
+        ));
+        if let (Some(a), Some(v)) = (&self.accum, &self.view)
+            && v.accumulates()
+        {
+            caption.push_str(&format!("  ·  {} samples", a.samples));
+        }
+        if scene.animated() {
+            caption.push_str(&format!(
+                "  ·  t = {:.2} s{}",
+                self.playback.time,
+                if self.playback.playing {
+                    ""
+                } else {
+                    " (paused)"
+                }
+            ));
+        }
+        caption
     }
 
     fn windows(&mut self, ctx: &egui::Context) {

@@ -13,7 +13,7 @@ use bvhtrace_core::{
 use glam::{Affine3A, Quat, Vec3};
 use serde_json::json;
 
-use crate::bench::median;
+use super::{median, scene_specs};
 use crate::embree::{self, Dump};
 use crate::output::JsonOut;
 
@@ -188,42 +188,101 @@ fn boxes_per_ray(bvh: &FlatBvh, rays: &[Ray]) -> f64 {
     c.iter().map(|c| f64::from(c.nodes)).sum::<f64>() / c.len().max(1) as f64
 }
 
-/// `bvhtrace bench-refit`.
-pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
-    // The table goes to standard error when the JSON takes standard output.
-    let to_stderr = args.json.as_deref() == Some("-");
-    macro_rules! say {
-        ($($t:tt)*) => {
-            if to_stderr { eprintln!($($t)*) } else { println!($($t)*) }
-        };
+/// Where the tables go: standard error when the JSON takes standard output.
+struct Out {
+    to_stderr: bool,
+}
+
+impl Out {
+    fn line(&self, line: std::fmt::Arguments) {
+        if self.to_stderr {
+            eprintln!("{line}")
+        } else {
+            println!("{line}")
+        }
     }
+}
+
+/// Prints a line of the tables to `$out` ([`Out`]), formatted as `println!` formats.
+macro_rules! say {
+    ($out:expr, $($t:tt)*) => {
+        $out.line(format_args!($($t)*))
+    };
+}
+
+/// `bvhtrace bench-refit`.
+pub fn run(args: BenchRefitArgs) -> Result<()> {
+    let out = Out {
+        to_stderr: args.json.as_deref() == Some("-"),
+    };
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     let spec = match &args.scene {
         Some(s) => s.clone(),
-        None => crate::bench::scene_specs(&[])?
+        None => scene_specs(&[])?
             .into_iter()
             .find(|s| s.contains("igea"))
             .context("igea.glb is not in the shared scenes folder: name a scene")?,
     };
     let scene = crate::geometry::load_scene(&spec)?;
     let tris = scene.flattened_triangles()?;
-    let opts = BuildOptions::default();
-    let one = vec![Instance::new(0, Affine3A::IDENTITY)];
     let (lo, hi) = scene.bounds();
     let rays = bvhtrace_scene::Camera::frame(lo, hi, 4.0 / 3.0).rays(256, 192);
+    let one = vec![Instance::new(0, Affine3A::IDENTITY)];
+    let built = InstancedBvh::build(std::slice::from_ref(&tris), one, &BuildOptions::default())?;
+    let rows = refit_against_rebuild(&out, &spec, &tris, &built, &rays, args.runs)?;
+    let embree = match &args.embree {
+        Some(exe) => {
+            let (b, r) = embree_refit(exe, &tris, 0.1, args.runs)?;
+            say!(
+                out,
+                "Embree 3 (2 threads), amplitude 0.1: medium build {b:.2} ms, refit {r:.2} ms"
+            );
+            Some(json!({ "amplitude": 0.1, "build_ms": b, "refit_ms": r }))
+        }
+        None => None,
+    };
+    let gpu = match args.gpu {
+        true => Some(say_gpu_refit(&out, &tris, &args)?),
+        false => None,
+    };
+    let top = top_level(&out, &spec, &args)?;
+    if let Some(j) = json_out {
+        j.write(&json!({
+            "scene": spec, "triangles": tris.len(), "runs": args.runs,
+            "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED, "embree": embree,
+            "gpu_refit": gpu,
+            "instances_scene": top.spec, "instances": top.instances,
+            "meshes": top.meshes, "top_rebuild_ms": top.top_ms, "two_level_build_ms": top.full_ms,
+            "top_level_bytes": top.top_bytes, "mesh_bytes": top.mesh_bytes,
+            "gpu_top_rebuild_ms": top.gpu_top_ms,
+        }))?;
+    }
+    Ok(())
+}
 
-    // Refit against rebuild, amplitude by amplitude (each refit starts from the build of
-    // the undeformed mesh, as an animation's frames refit one tree).
-    let built = InstancedBvh::build(std::slice::from_ref(&tris), one.clone(), &opts)?;
+/// Refit against rebuild, amplitude by amplitude (each refit starts from `built`, the
+/// build of the undeformed mesh `tris`, as an animation's frames refit one tree): the table, and
+/// its rows as JSON.
+fn refit_against_rebuild(
+    out: &Out,
+    spec: &str,
+    tris: &[Triangle],
+    built: &InstancedBvh,
+    rays: &[Ray],
+    runs: usize,
+) -> Result<Vec<serde_json::Value>> {
+    let opts = BuildOptions::default();
     say!(
+        out,
         "{spec}: {} triangles; refit after every vertex moved, against a full rebuild (median of {})",
         tris.len(),
-        args.runs
+        runs
     );
     say!(
+        out,
         "{:>9} {:>10} {:>11} {:>9} {:>12} {:>12}",
         "amplitude",
         "refit ms",
@@ -234,10 +293,10 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
     );
     let mut rows = Vec::new();
     for a in [0.001f32, 0.01, 0.03, 0.1, 0.3] {
-        let moved = deform(&tris, a);
+        let moved = deform(tris, a);
         let mut refits = Vec::new();
         let mut refitted = built.clone();
-        for _ in 0..args.runs {
+        for _ in 0..runs {
             refitted = built.clone();
             let (r, ms) = time(|| refitted.refit_mesh(0, &moved));
             r?;
@@ -245,7 +304,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         }
         let mut rebuilds = Vec::new();
         let mut rebuilt = None;
-        for _ in 0..args.runs {
+        for _ in 0..runs {
             let (b, ms) = time(|| FlatBvh::build(&moved, &opts));
             rebuilt = Some(b?);
             rebuilds.push(ms);
@@ -253,52 +312,71 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         let rebuilt = rebuilt.context("no rebuild ran")?;
         let (q, br, bb) = (
             refitted.refit_quality(0),
-            boxes_per_ray(refitted.bvh(), &rays),
-            boxes_per_ray(&rebuilt, &rays),
+            boxes_per_ray(refitted.bvh(), rays),
+            boxes_per_ray(&rebuilt, rays),
         );
         let (rm, bm) = (median(refits), median(rebuilds));
-        say!("{a:>9} {rm:>10.2} {bm:>11.2} {q:>9.3} {br:>12.1} {bb:>12.1}");
+        say!(
+            out,
+            "{a:>9} {rm:>10.2} {bm:>11.2} {q:>9.3} {br:>12.1} {bb:>12.1}"
+        );
         rows.push(json!({
             "amplitude": a, "refit_ms": rm, "rebuild_ms": bm, "sah_ratio": q,
             "boxes_per_ray_refitted": br, "boxes_per_ray_rebuilt": bb,
         }));
     }
-    say!("a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}");
-    let embree = match &args.embree {
-        Some(exe) => {
-            let (b, r) = embree_refit(exe, &tris, 0.1, args.runs)?;
-            say!("Embree 3 (2 threads), amplitude 0.1: medium build {b:.2} ms, refit {r:.2} ms");
-            Some(json!({ "amplitude": 0.1, "build_ms": b, "refit_ms": r }))
-        }
-        None => None,
-    };
+    say!(
+        out,
+        "a rebuild is advised past an SAH ratio of {REFIT_REBUILD_ADVISED}"
+    );
+    Ok(rows)
+}
 
-    let gpu = if args.gpu {
-        let g = gpu_refit(&tris, 0.1, args.runs, args.adapter.as_deref())?;
-        say!(
-            "GPU refit ({}), amplitude 0.1: {:.2} ms ({} of dispatches, {} dispatches), {:.2} ms \
-             with the vertices' upload; the host copy read back {:.2} ms (CPU drivers only)",
-            g.adapter,
-            g.refit_ms,
-            g.gpu_ms
-                .map_or("no timestamps".into(), |ms| format!("{ms:.2} ms")),
-            g.dispatches,
-            g.with_upload_ms,
-            g.host_copy_ms
-        );
-        Some(json!({
-            "amplitude": 0.1, "adapter": g.adapter, "refit_ms": g.refit_ms, "gpu_ms": g.gpu_ms,
-            "with_upload_ms": g.with_upload_ms, "host_copy_ms": g.host_copy_ms,
-            "dispatches": g.dispatches,
-        }))
-    } else {
-        None
-    };
+/// `--gpu`: the refit on the device after the deformation of amplitude 0.1, said and as
+/// JSON.
+fn say_gpu_refit(out: &Out, tris: &[Triangle], args: &BenchRefitArgs) -> Result<serde_json::Value> {
+    let g = gpu_refit(tris, 0.1, args.runs, args.adapter.as_deref())?;
+    say!(
+        out,
+        "GPU refit ({}), amplitude 0.1: {:.2} ms ({} of dispatches, {} dispatches), {:.2} ms \
+         with the vertices' upload; the host copy read back {:.2} ms (CPU drivers only)",
+        g.adapter,
+        g.refit_ms,
+        g.gpu_ms
+            .map_or("no timestamps".into(), |ms| format!("{ms:.2} ms")),
+        g.dispatches,
+        g.with_upload_ms,
+        g.host_copy_ms
+    );
+    Ok(json!({
+        "amplitude": 0.1, "adapter": g.adapter, "refit_ms": g.refit_ms, "gpu_ms": g.gpu_ms,
+        "with_upload_ms": g.with_upload_ms, "host_copy_ms": g.host_copy_ms,
+        "dispatches": g.dispatches,
+    }))
+}
 
-    // The top level of many instances, rebuilt after every instance moved.
+/// The figures of the many-instance scene's top level.
+struct TopLevel {
+    /// The scene, as given or chosen.
+    spec: String,
+    instances: usize,
+    meshes: usize,
+    /// Both levels built, milliseconds.
+    full_ms: f64,
+    /// The top level rebuilt after every instance moved (median), milliseconds.
+    top_ms: f64,
+    /// With `--gpu`: the same on the device, milliseconds.
+    gpu_top_ms: Option<f64>,
+    top_bytes: usize,
+    mesh_bytes: usize,
+}
+
+/// The top level of many instances, rebuilt after every instance moved, beside building
+/// both levels (and on the device with `--gpu`); the line said, and the figures.
+fn top_level(out: &Out, spec: &str, args: &BenchRefitArgs) -> Result<TopLevel> {
     let inst_spec = match &args.instances {
         Some(s) => s.clone(),
-        None => match std::path::Path::new(&spec).file_stem() {
+        None => match std::path::Path::new(spec).file_stem() {
             Some(stem)
                 if crate::geometry::shared_scenes_dir().is_some() && spec.ends_with(".glb") =>
             {
@@ -308,7 +386,7 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         },
     };
     let many = crate::geometry::load_scene(&inst_spec)?;
-    let (two, full_ms) = time(|| many.instanced_bvh(&opts));
+    let (two, full_ms) = time(|| many.instanced_bvh(&BuildOptions::default()));
     let mut two = two?;
     let moved: Vec<Affine3A> = two
         .instances()
@@ -330,19 +408,21 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         tops.push(ms);
     }
     let top_ms = median(tops);
-    let gpu_top_ms = if args.gpu {
-        let moves = [&moved, &original];
-        Some(gpu_top_level(
-            &two,
-            &moves,
-            args.runs,
-            args.adapter.as_deref(),
-        )?)
-    } else {
-        None
+    let gpu_top_ms = match args.gpu {
+        true => {
+            let moves = [&moved, &original];
+            Some(gpu_top_level(
+                &two,
+                &moves,
+                args.runs,
+                args.adapter.as_deref(),
+            )?)
+        }
+        false => None,
     };
     let (top_bytes, mesh_bytes) = two.level_bytes();
     say!(
+        out,
         "{inst_spec}: {} instances of {} meshes ({} triangles instanced): top-level rebuild \
          {top_ms:.2} ms, both levels built {full_ms:.1} ms; top level {top_bytes} bytes, meshes \
          {mesh_bytes} bytes",
@@ -351,18 +431,19 @@ pub fn bench_refit(args: BenchRefitArgs) -> Result<()> {
         two.instanced_primitives()
     );
     if let Some(ms) = gpu_top_ms {
-        say!("  the top level rebuilt on the device (PLOC, with upload and read back): {ms:.2} ms");
+        say!(
+            out,
+            "  the top level rebuilt on the device (PLOC, with upload and read back): {ms:.2} ms"
+        );
     }
-    if let Some(j) = json_out {
-        j.write(&json!({
-            "scene": spec, "triangles": tris.len(), "runs": args.runs,
-            "refit": rows, "rebuild_advised_sah_ratio": REFIT_REBUILD_ADVISED, "embree": embree,
-            "gpu_refit": gpu,
-            "instances_scene": inst_spec, "instances": two.instances().len(),
-            "meshes": two.meshes().len(), "top_rebuild_ms": top_ms, "two_level_build_ms": full_ms,
-            "top_level_bytes": top_bytes, "mesh_bytes": mesh_bytes,
-            "gpu_top_rebuild_ms": gpu_top_ms,
-        }))?;
-    }
-    Ok(())
+    Ok(TopLevel {
+        spec: inst_spec,
+        instances: two.instances().len(),
+        meshes: two.meshes().len(),
+        full_ms,
+        top_ms,
+        gpu_top_ms,
+        top_bytes,
+        mesh_bytes,
+    })
 }

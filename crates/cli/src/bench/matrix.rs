@@ -14,18 +14,20 @@ use anyhow::{Context, Result, bail};
 use bvhtrace_core::oracle::{self, OracleHit};
 use bvhtrace_core::{
     BuildOptions, BuilderKind, FlatBvh, Hit, Precision, Query, Ray, TraceOptions, Traversal,
-    Triangle, trace_rays,
+    Triangle,
 };
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::accuracy::{self, ErrorStats};
-use crate::bench::median;
+use super::accuracy::{self, ErrorStats};
+use super::plot::{one_two_five, pareto, plot_error, write_png_and_svg};
+use super::{BenchArgs, BenchBackend, median, open_backends, ray_sets, scene_specs};
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade;
-use bvhtrace::{Backend, CpuTracer, Device, Tracer};
+use bvhtrace::{CpuTracer, Tracer};
+use plotters::prelude::*;
 
 /// Which rays a configuration traces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -54,55 +56,6 @@ impl RayKind {
             RayKind::Diffuse => "diffuse",
         }
     }
-}
-
-/// `bvhtrace bench`.
-#[derive(clap::Args)]
-pub struct BenchArgs {
-    /// Scenes (default: bunny_69k and igea from ../shared/scenes).
-    pub scenes: Vec<String>,
-    /// A small run that finishes in under a minute.
-    #[arg(long)]
-    pub quick: bool,
-    /// The full cross product of all dimensions (long), instead of one-at-a-time sweeps.
-    #[arg(long)]
-    pub full: bool,
-    /// Primary rays, WxH (default 512x384; 160x120 with --quick).
-    #[arg(long, value_parser = crate::render::parse_size)]
-    pub size: Option<(u32, u32)>,
-    /// Rays per configuration compared with the f64 oracle (default 2048; 256 with --quick).
-    #[arg(long)]
-    pub sample: Option<usize>,
-    /// Timed runs per configuration; the median is reported (default 3; 1 with --quick).
-    #[arg(long)]
-    pub runs: Option<usize>,
-    /// Backends to include, comma-separated (`bvhtrace render --help` lists them); the
-    /// device's own ray queries, where it has them, give one row per ray kind (the
-    /// driver's walk over the default builder's tree).
-    #[arg(long, value_delimiter = ',', default_value = "wgpu,cpu,ray-query")]
-    pub backends: Vec<Backend>,
-    /// Intersection precisions (watertight-f32, moller-trumbore-f32, watertight-f64); default
-    /// all three (on the GPU, f64 only where the adapter has SHADER_F64). The non-default
-    /// ones are swept with the default builder on every backend and ray kind, stackless and
-    /// full stack (with --quick: stackless only; with --full: everything).
-    #[arg(long, value_delimiter = ',')]
-    pub precisions: Vec<String>,
-    /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
-    #[arg(long)]
-    pub adapter: Option<String>,
-    /// Write every row as JSON (`-` for stdout).
-    #[arg(long)]
-    pub json: Option<String>,
-    /// Write every row as CSV.
-    #[arg(long)]
-    pub csv: Option<PathBuf>,
-    /// Write the error-vs-time plot to PREFIX.png and PREFIX.svg (one per scene:
-    /// PREFIX-SCENE.png when there are several).
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
-    // `--converge` and its flags: image error against wall time (crate::converge).
-    #[command(flatten)]
-    pub converge: Box<crate::converge::ConvergeArgs>,
 }
 
 /// One configuration.
@@ -157,7 +110,7 @@ fn builder_configs(full: bool) -> Vec<(String, BuildOptions)> {
 }
 
 /// A built tree, its median build time, and its tracer on each backend (in
-/// [`open_backends`]' order; `None` where the upload was refused, said once).
+/// [`open_backends`]' order; `None` for the CPU walks, a [`CpuTracer`] on the tree).
 struct BuiltTree {
     bvh: FlatBvh,
     build_ms: f64,
@@ -167,98 +120,7 @@ struct BuiltTree {
 /// The walks every configuration sweeps: each of [`Traversal::ALL`], the short stack at
 /// 2, 4 and 8 entries.
 fn traversals() -> Vec<Traversal> {
-    (Traversal::ALL.into_iter())
-        .flat_map(|t| match t {
-            Traversal::ShortStack(_) => [2, 4, 8].map(Traversal::ShortStack).to_vec(),
-            t => vec![t],
-        })
-        .collect()
-}
-
-/// A backend of the matrix: its rows' name and its device (none for the CPU walks).
-struct MatrixBackend {
-    name: &'static str,
-    device: Option<Device>,
-}
-
-impl MatrixBackend {
-    /// True for the device's own ray queries: one row per ray kind, the driver's walk.
-    fn driver_walk(&self) -> bool {
-        self.device
-            .as_ref()
-            .is_some_and(|d| !d.backend().bit_for_bit())
-    }
-}
-
-/// Every backend `--backends` lists, each device opened once through the front door; one
-/// that does not open is left out, saying why.
-fn open_backends(args: &BenchArgs) -> Vec<MatrixBackend> {
-    let mut out = Vec::new();
-    for &backend in &args.backends {
-        if backend == Backend::Cpu {
-            out.push(MatrixBackend {
-                name: backend.name(),
-                device: None,
-            });
-            continue;
-        }
-        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
-        match crate::backend::device(&opts) {
-            Ok(d) => {
-                eprintln!("{}: {}", d.backend(), d.name());
-                out.push(MatrixBackend {
-                    name: d.backend().name(),
-                    device: Some(d),
-                });
-            }
-            Err(e) => eprintln!("note: no {backend} device ({e}); leaving it out"),
-        }
-    }
-    out
-}
-
-/// Rays of every kind, generated once per scene from the reference hits so that every
-/// configuration traces exactly the same rays.
-pub(crate) struct RaySets {
-    pub(crate) primary: Vec<Ray>,
-    pub(crate) shadow: Vec<Ray>,
-    pub(crate) diffuse: Vec<Ray>,
-}
-
-pub(crate) fn ray_sets(
-    tris: &[Triangle],
-    bvh: &FlatBvh,
-    cam: &bvhtrace_scene::Camera,
-    w: u32,
-    h: u32,
-) -> RaySets {
-    let primary = cam.rays(w, h);
-    let hits = trace_rays(bvh, &primary, &TraceOptions::closest(Traversal::FullStack)).hits;
-    let light = shade::point_light(cam);
-    let b = bvh.bounds();
-    let diag = (b.max - b.min).length();
-    let (shadow, _) = shade::secondary_rays(
-        shade::Shade::Diffuse,
-        &|p| tris[p as usize],
-        &primary,
-        &hits,
-        light,
-        1,
-        diag,
-    );
-    let mut diffuse = Vec::new();
-    for (i, (r, h)) in primary.iter().zip(&hits).enumerate() {
-        if h.is_hit() {
-            let p = h.surface(&tris[h.prim as usize], Vec3::from(r.dir));
-            let dir = shade::cosine_dir(p.normal, i as u32, 0);
-            diffuse.push(p.spawn_ray(dir, f32::INFINITY));
-        }
-    }
-    RaySets {
-        primary,
-        shadow,
-        diffuse,
-    }
+    Traversal::all_with_short_stacks(&[2, 4, 8])
 }
 
 /// Evenly spaced sample of at most `n` indices.
@@ -363,12 +225,9 @@ impl Outputs {
     }
 }
 
-/// `bvhtrace bench`.
-pub fn bench(args: BenchArgs) -> Result<()> {
-    if args.converge.converge {
-        return crate::converge::run(&args);
-    }
-    let sizes = Sizes::of(&args)?;
+/// `bvhtrace bench` (without `--converge`).
+pub fn run(args: &BenchArgs) -> Result<()> {
+    let sizes = Sizes::of(args)?;
     let precisions: Vec<Precision> = if args.precisions.is_empty() {
         Precision::ALL.to_vec()
     } else {
@@ -377,21 +236,21 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             .map(|s| s.parse::<Precision>().map_err(anyhow::Error::msg))
             .collect::<Result<_>>()?
     };
-    let specs = crate::bench::scene_specs(&args.scenes)?;
-    let mut outputs = Outputs::reserve(&args, &specs)?;
-    let backends = open_backends(&args);
+    let specs = scene_specs(&args.scenes)?;
+    let mut outputs = Outputs::reserve(args, &specs)?;
+    let backends = open_backends(&args.backends, args.adapter.as_deref());
     eprintln!("CPU: {} threads", rayon::current_num_threads());
     let mut rows = Vec::new();
     let mut plots = std::mem::take(&mut outputs.plot_files).into_iter();
     for spec in specs {
-        let scene_rows = bench_scene(&args, &spec, sizes, &precisions, &backends)?;
+        let scene_rows = bench_scene(args, &spec, sizes, &precisions, &backends)?;
         print_table(&scene_rows, args.json.as_deref() == Some("-"));
         if let Some((png, svg)) = plots.next() {
             // The file name, not the path: the plots are committed.
             let title = std::path::Path::new(&spec)
                 .file_name()
                 .map_or(spec.clone(), |n| n.to_string_lossy().into_owned());
-            crate::plot::error_vs_time(&title, &scene_rows, png, svg)?;
+            error_vs_time(&title, &scene_rows, png, svg)?;
         }
         rows.extend(scene_rows);
     }
@@ -488,7 +347,7 @@ fn plan(
     args: &BenchArgs,
     builders: usize,
     precisions: &[Precision],
-    backends: &[MatrixBackend],
+    backends: &[BenchBackend],
 ) -> Vec<Plan> {
     let walks = traversals();
     let mut plan = Vec::new();
@@ -536,7 +395,7 @@ fn build_tree(
     tris: &[Triangle],
     opts: &BuildOptions,
     runs: usize,
-    backends: &[MatrixBackend],
+    backends: &[BenchBackend],
 ) -> Result<BuiltTree> {
     let mut times = Vec::new();
     let mut bvh = None;
@@ -554,9 +413,9 @@ fn build_tree(
     let tracers = backends
         .iter()
         .map(|b| match &b.device {
-            None => Ok(None),
-            Some(d) if b.driver_walk() => Ok(Some(d.open_owned(&bvh, &Default::default())?.tracer)),
-            Some(d) => Ok(Some(d.open_owned(&bvh, &every)?.tracer)),
+            _ if b.is_cpu() => Ok(None),
+            d if b.driver_walk() => Ok(Some(d.open_owned(&bvh, &Default::default())?.tracer)),
+            d => Ok(Some(d.open_owned(&bvh, &every)?.tracer)),
         })
         .collect::<Result<_>>()?;
     Ok(BuiltTree {
@@ -572,7 +431,7 @@ fn bench_scene(
     spec: &str,
     sizes: Sizes,
     precisions: &[Precision],
-    backends: &[MatrixBackend],
+    backends: &[BenchBackend],
 ) -> Result<Vec<Row>> {
     let reference = Reference::of(spec, sizes)?;
     let builders = builder_configs(args.full);
@@ -713,6 +572,7 @@ fn measure(
     })
 }
 
+/// An error as the table shows it: `0`, or one decimal and the exponent.
 fn fmt_err(x: f64) -> String {
     if x == 0.0 {
         "0".into()
@@ -721,56 +581,178 @@ fn fmt_err(x: f64) -> String {
     }
 }
 
+/// A row's value in one column: the CSV writes it in full, the table as it reads best.
+enum Cell {
+    /// A name.
+    Text(String),
+    /// A count.
+    Count(u64),
+    /// A measure, with this many decimals in the table.
+    Fixed(f64, usize),
+    /// An error ([`fmt_err`] in the table); where the row has none, `-` in the table and
+    /// nothing in the CSV.
+    Error(Option<f64>),
+}
+
+impl Cell {
+    fn csv(&self) -> String {
+        match self {
+            Cell::Text(s) => s.clone(),
+            Cell::Count(n) => n.to_string(),
+            Cell::Fixed(x, _) | Cell::Error(Some(x)) => x.to_string(),
+            Cell::Error(None) => String::new(),
+        }
+    }
+
+    fn table(&self) -> String {
+        match self {
+            Cell::Text(s) => s.clone(),
+            Cell::Count(n) => n.to_string(),
+            Cell::Fixed(x, decimals) => format!("{x:.decimals$}"),
+            Cell::Error(x) => x.map_or("-".into(), fmt_err),
+        }
+    }
+}
+
+/// One column of the matrix's outputs: the table and the CSV are both written from
+/// [`COLUMNS`], so a column is added in one place.
+struct Column {
+    /// The CSV's header.
+    csv: &'static str,
+    /// The table's header and width; `None` for a column of the CSV only.
+    table: Option<(&'static str, usize)>,
+    /// Left-aligned in the table (names); figures are right-aligned.
+    left: bool,
+    /// A `|` before it in the table: where the error columns start.
+    bar: bool,
+    /// The row's value.
+    value: fn(&Row) -> Cell,
+}
+
+impl Column {
+    /// A name, left-aligned in the table.
+    const fn name(
+        csv: &'static str,
+        head: &'static str,
+        width: usize,
+        value: fn(&Row) -> Cell,
+    ) -> Column {
+        Column {
+            csv,
+            table: Some((head, width)),
+            left: true,
+            bar: false,
+            value,
+        }
+    }
+
+    /// A figure, right-aligned in the table.
+    const fn figure(
+        csv: &'static str,
+        head: &'static str,
+        width: usize,
+        value: fn(&Row) -> Cell,
+    ) -> Column {
+        Column {
+            left: false,
+            ..Column::name(csv, head, width, value)
+        }
+    }
+
+    /// A column of the CSV only.
+    const fn csv_only(csv: &'static str, value: fn(&Row) -> Cell) -> Column {
+        Column {
+            table: None,
+            ..Column::name(csv, "", 0, value)
+        }
+    }
+
+    /// The same column, after a `|` in the table.
+    const fn after_bar(self) -> Column {
+        Column { bar: true, ..self }
+    }
+}
+
+/// The columns of the table and the CSV, in order. The CSV's headers and values are what
+/// users parse: keep them.
+const COLUMNS: [Column; 23] = [
+    Column::csv_only("scene", |r| Cell::Text(r.scene.clone())),
+    Column::name("builder", "builder", 9, |r| {
+        Cell::Text(r.config.builder.clone())
+    }),
+    Column::figure("bins", "bins", 5, |r| Cell::Count(r.config.bins as u64)),
+    Column::name("traversal", "traversal", 15, |r| {
+        Cell::Text(r.config.traversal.clone())
+    }),
+    Column::name("backend", "bknd", 4, |r| {
+        Cell::Text(r.config.backend.clone())
+    }),
+    Column::name("rays", "rays", 8, |r| {
+        Cell::Text(r.config.rays.name().into())
+    }),
+    Column::name("precision", "precision", 19, |r| {
+        Cell::Text(r.config.precision.clone())
+    }),
+    Column::csv_only("ray_count", |r| Cell::Count(r.ray_count as u64)),
+    Column::figure("build_ms", "build ms", 8, |r| Cell::Fixed(r.build_ms, 1)),
+    Column::figure("trace_ms", "trace ms", 9, |r| Cell::Fixed(r.trace_ms, 2)),
+    Column::figure("mrays_per_s", "Mrays/s", 8, |r| {
+        Cell::Fixed(r.mrays_per_s, 2)
+    }),
+    Column::figure("nodes_per_ray", "nodes", 6, |r| {
+        Cell::Fixed(r.nodes_per_ray, 1)
+    }),
+    Column::figure("tris_per_ray", "tris", 5, |r| {
+        Cell::Fixed(r.tris_per_ray, 2)
+    }),
+    Column::figure("bytes", "bytes", 9, |r| Cell::Count(r.bytes)),
+    Column::figure("sample", "sample", 6, |r| {
+        Cell::Count(r.error.sample as u64)
+    })
+    .after_bar(),
+    Column::figure("wrong_prim", "wrong", 5, |r| {
+        Cell::Count(r.error.wrong_prim as u64)
+    }),
+    Column::figure("false_misses", "fmiss", 5, |r| {
+        Cell::Count(r.error.false_misses as u64)
+    }),
+    Column::figure("false_hits", "fhit", 5, |r| {
+        Cell::Count(r.error.false_hits as u64)
+    }),
+    Column::figure("t_rel_median", "t med", 8, |r| {
+        Cell::Error(Some(r.error.t_rel_median))
+    }),
+    Column::figure("t_rel_max", "t max", 8, |r| {
+        Cell::Error(Some(r.error.t_rel_max))
+    }),
+    Column::csv_only("error_rate", |r| Cell::Error(Some(r.error_rate))),
+    Column::figure("image_rmse", "img rmse", 8, |r| Cell::Error(r.image_rmse)),
+    Column::figure("image_flip", "img FLIP", 8, |r| Cell::Error(r.image_flip)),
+];
+
+/// One line of the table: `text` of each of its columns, padded to the column's width.
+fn table_line(text: impl Fn(&Column) -> String) -> String {
+    let mut line = String::new();
+    let shown = COLUMNS.iter().filter_map(|c| Some((c, c.table?.1)));
+    for (i, (c, width)) in shown.enumerate() {
+        if i > 0 {
+            line += if c.bar { " | " } else { " " };
+        }
+        let t = text(c);
+        line += &match c.left {
+            true => format!("{t:width$}"),
+            false => format!("{t:>width$}"),
+        };
+    }
+    line
+}
+
+/// Prints the table of `rows`, to stderr when the JSON takes stdout.
 fn print_table(rows: &[Row], to_stderr: bool) {
-    let mut out = String::new();
-    out += &format!(
-        "\n{:9} {:5} {:15} {:4} {:8} {:19} {:>8} {:>9} {:>8} {:>6} {:>5} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
-        "builder",
-        "bins",
-        "traversal",
-        "bknd",
-        "rays",
-        "precision",
-        "build ms",
-        "trace ms",
-        "Mrays/s",
-        "nodes",
-        "tris",
-        "bytes",
-        "sample",
-        "wrong",
-        "fmiss",
-        "fhit",
-        "t med",
-        "t max",
-        "img rmse",
-        "img FLIP"
-    );
-    out.push('\n');
+    let head = table_line(|c| c.table.map_or("", |t| t.0).to_string());
+    let mut out = format!("\n{head}\n");
     for r in rows {
-        out += &format!(
-            "{:9} {:5} {:15} {:4} {:8} {:19} {:>8.1} {:>9.2} {:>8.2} {:>6.1} {:>5.2} {:>9} | {:>6} {:>5} {:>5} {:>5} {:>8} {:>8} {:>8} {:>8}",
-            r.config.builder,
-            r.config.bins,
-            r.config.traversal,
-            r.config.backend,
-            r.config.rays.name(),
-            r.config.precision,
-            r.build_ms,
-            r.trace_ms,
-            r.mrays_per_s,
-            r.nodes_per_ray,
-            r.tris_per_ray,
-            r.bytes,
-            r.error.sample,
-            r.error.wrong_prim,
-            r.error.false_misses,
-            r.error.false_hits,
-            fmt_err(r.error.t_rel_median),
-            fmt_err(r.error.t_rel_max),
-            r.image_rmse.map_or("-".into(), fmt_err),
-            r.image_flip.map_or("-".into(), fmt_err),
-        );
+        out += &table_line(|c| (c.value)(r).table());
         out.push('\n');
     }
     if to_stderr {
@@ -780,38 +762,167 @@ fn print_table(rows: &[Row], to_stderr: bool) {
     }
 }
 
+/// The CSV of `rows`: a header line, then a line per row.
 fn to_csv(rows: &[Row]) -> String {
-    let mut s = String::from(
-        "scene,builder,bins,traversal,backend,rays,precision,ray_count,build_ms,trace_ms,mrays_per_s,nodes_per_ray,tris_per_ray,bytes,sample,wrong_prim,false_misses,false_hits,t_rel_median,t_rel_max,error_rate,image_rmse,image_flip\n",
-    );
+    let line = |cell: &dyn Fn(&Column) -> String| {
+        let cells: Vec<String> = COLUMNS.iter().map(cell).collect();
+        cells.join(",") + "\n"
+    };
+    let mut s = line(&|c| c.csv.to_string());
     for r in rows {
-        let c = &r.config;
-        s += &format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
-            r.scene,
-            c.builder,
-            c.bins,
-            c.traversal,
-            c.backend,
-            c.rays.name(),
-            c.precision,
-            r.ray_count,
-            r.build_ms,
-            r.trace_ms,
-            r.mrays_per_s,
-            r.nodes_per_ray,
-            r.tris_per_ray,
-            r.bytes,
-            r.error.sample,
-            r.error.wrong_prim,
-            r.error.false_misses,
-            r.error.false_hits,
-            r.error.t_rel_median,
-            r.error.t_rel_max,
-            r.error_rate,
-            r.image_rmse.map_or(String::new(), |x| x.to_string()),
-            r.image_flip.map_or(String::new(), |x| x.to_string())
-        );
+        s += &line(&|c| (c.value)(r).csv());
     }
     s
+}
+
+/// Where exact configurations (error 0) are drawn on the log axis.
+const FLOOR: f64 = 1e-9;
+
+/// The plot's label of a row: builder (with its bins when not 32), walk, backend, precision.
+fn label(r: &Row) -> String {
+    let c = &r.config;
+    let b = if c.builder == "sah" && c.bins != 32 {
+        format!("sah{}", c.bins)
+    } else {
+        c.builder.clone()
+    };
+    format!(
+        "{b}/{}/{}/{}",
+        c.traversal,
+        c.backend,
+        match c.precision.as_str() {
+            "watertight-f32" => "wt",
+            "moller-trumbore-f32" => "mt",
+            "watertight-f64" => "wt64",
+            other => other,
+        }
+    )
+}
+
+/// The error-vs-time plot of one scene's rows: error against trace time per ray, log-log,
+/// with the Pareto front of each ray kind.
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    rows: &[Row],
+    text: bool,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE).map_err(plot_error)?;
+    // x: nanoseconds per ray; y: the headline error.
+    let pts: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| {
+            (
+                1e6 * r.trace_ms / r.ray_count.max(1) as f64,
+                r.error.headline().max(FLOOR),
+            )
+        })
+        .collect();
+    let (xmin, xmax) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let ymax = pts.iter().fold(FLOOR * 10.0, |a, p| a.max(p.1));
+    let mut chart = ChartBuilder::on(&root);
+    chart.margin(20);
+    if text {
+        chart
+            .caption(title, ("sans-serif", 20))
+            .x_label_area_size(40)
+            .y_label_area_size(70);
+    }
+    let mut chart = chart
+        .build_cartesian_2d(
+            (xmin * 0.8..xmax * 1.25)
+                .log_scale()
+                .with_key_points(one_two_five(xmin * 0.8, xmax * 1.25)),
+            (FLOOR * 0.5..ymax * 2.0).log_scale(),
+        )
+        .map_err(plot_error)?;
+    if text {
+        chart
+            .configure_mesh()
+            .x_desc("trace time per ray (ns, median)")
+            .x_label_formatter(&|x| format!("{x:.0}"))
+            .y_desc("error vs f64 oracle (wrong-answer rate; else max rel. t error; floor = exact)")
+            .draw()
+            .map_err(plot_error)?;
+    }
+    let colour = |k: RayKind| match k {
+        RayKind::Primary => BLUE,
+        RayKind::Shadow => GREEN,
+        RayKind::Diffuse => RED,
+    };
+    for (r, p) in rows.iter().zip(&pts) {
+        let c = colour(r.config.rays);
+        if r.config.backend != "cpu" {
+            chart
+                .draw_series(std::iter::once(TriangleMarker::new(*p, 6, c.filled())))
+                .map_err(plot_error)?;
+        } else {
+            chart
+                .draw_series(std::iter::once(Circle::new(*p, 4, c.filled())))
+                .map_err(plot_error)?;
+        }
+    }
+    // One Pareto front per ray kind: the kinds are different workloads.
+    for kind in [RayKind::Primary, RayKind::Shadow, RayKind::Diffuse] {
+        let ids: Vec<usize> = (0..rows.len())
+            .filter(|&i| rows[i].config.rays == kind)
+            .collect();
+        let sub: Vec<(f64, f64)> = ids.iter().map(|&i| pts[i]).collect();
+        let mut front: Vec<usize> = pareto(&sub).into_iter().map(|k| ids[k]).collect();
+        front.sort_by(|&a, &b| pts[a].0.total_cmp(&pts[b].0));
+        chart
+            .draw_series(LineSeries::new(
+                front.iter().map(|&i| pts[i]),
+                colour(kind).stroke_width(2),
+            ))
+            .map_err(plot_error)?;
+        if text {
+            for &i in &front {
+                chart
+                    .draw_series(std::iter::once(Text::new(
+                        format!(" {}", label(&rows[i])),
+                        pts[i],
+                        ("sans-serif", 12).into_font(),
+                    )))
+                    .map_err(plot_error)?;
+            }
+        }
+    }
+    if text {
+        chart
+            .draw_series(std::iter::once(Text::new(
+                "exact (0 wrong, 0 t error)".to_string(),
+                (xmin * 0.85, FLOOR * 0.75),
+                ("sans-serif", 12).into_font(),
+            )))
+            .map_err(plot_error)?;
+        chart
+            .draw_series(std::iter::once(Text::new(
+                "blue primary, green shadow, red diffuse; triangles GPU, circles CPU; lines = Pareto fronts, labelled".to_string(),
+                (xmin * 0.85, ymax * 1.6),
+                ("sans-serif", 12).into_font(),
+            )))
+            .map_err(plot_error)?;
+    }
+    root.present().map_err(plot_error)?;
+    Ok(())
+}
+
+/// Writes the plot for one scene's rows as PNG and SVG.
+fn error_vs_time(title: &str, rows: &[Row], png: AtomicFile, svg: AtomicFile) -> Result<()> {
+    if rows.is_empty() {
+        return Ok(());
+    }
+    write_png_and_svg(
+        (1100, 750),
+        png,
+        svg,
+        |area, text| draw(area, title, rows, text),
+        |area| draw(area, title, rows, true),
+    )
 }

@@ -15,12 +15,13 @@
 //! estimate. Every configuration renders the same samples: the walks answer the same
 //! hits, so at a given spp every configuration's image is the same and only time differs.
 
+use std::borrow::Cow;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use bvhtrace::{Backend, CpuTracer, Tracer};
+use bvhtrace::{CpuTracer, Tracer};
 use bvhtrace_core::traverse::DEFAULT_SHORT_STACK;
 use bvhtrace_core::{
     BuildOptions, BuilderKind, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, Triangle,
@@ -31,74 +32,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use plotters::prelude::*;
 use serde::Serialize;
 
-use crate::accuracy;
-use crate::bench::median;
-use crate::bench_matrix::BenchArgs;
+use super::accuracy;
+use super::plot::{one_two_five, plot_error, write_png_and_svg};
+use super::{BenchArgs, BenchBackend, ConvergeArgs, ShadeKind, median, open_backends, scene_specs};
 use crate::output::{AtomicFile, JsonOut};
-use crate::plot::plot_error;
 use crate::shade::{self, Shade, palette};
-
-/// The flags `bench` takes for `--converge` (flattened into [`BenchArgs`]).
-#[derive(clap::Args, Clone, Debug, Default)]
-pub struct ConvergeArgs {
-    /// Image error against wall time instead of hit error: for each shading kind (ao,
-    /// diffuse with one bounce) and configuration (builder x walk x backend), images at
-    /// increasing samples per pixel, each timed from the BVH build to the last pixel and
-    /// compared (mean FLIP, RMSE) with a reference of --reference-spp samples (CPU
-    /// full-stack walk, default builder). Uses the scenes, --quick, --size (image size,
-    /// default 256x192; 96x72 with --quick), --backends, --adapter, --runs (median image
-    /// time; default 1), --json, --csv and --plot (PREFIX-SCENE-SHADE.png/.svg).
-    #[arg(long)]
-    pub converge: bool,
-    /// Builders for --converge (default every builder; with --quick sah and median).
-    #[arg(long, value_delimiter = ',', requires = "converge")]
-    pub builders: Vec<BuilderKind>,
-    /// Walks for --converge (default full-stack, stackless, short-stack, wide; with
-    /// --quick full-stack and stackless).
-    #[arg(long, value_delimiter = ',', requires = "converge")]
-    pub traversals: Vec<Traversal>,
-    /// Shading kinds for --converge (default both).
-    #[arg(long, value_delimiter = ',', value_enum, requires = "converge")]
-    pub shades: Vec<ShadeKind>,
-    /// Samples per pixel of the measured images, increasing (default 1,2,4,...,64; with
-    /// --quick 1,2,4,8,16); they may add up to at most 4096.
-    #[arg(long, value_delimiter = ',', requires = "converge")]
-    pub spp: Vec<u32>,
-    /// Samples per pixel of the reference images (default 1024; 128 with --quick; at
-    /// most 4096).
-    #[arg(long, requires = "converge")]
-    pub reference_spp: Option<u32>,
-    /// Camera position X,Y,Z for --converge (with --target; default: the scene's camera or
-    /// a framing one).
-    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires_all = ["converge", "target"], allow_hyphen_values = true)]
-    pub eye: Option<Vec3>,
-    /// The point the --converge camera looks at (with --eye).
-    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires_all = ["converge", "eye"], allow_hyphen_values = true)]
-    pub target: Option<Vec3>,
-    /// Vertical field of view of the --converge camera, in degrees.
-    #[arg(long, requires = "converge")]
-    pub fov: Option<f32>,
-    /// Mean FLIP levels of the --converge table, every shading kind (default: ao 0.05,
-    /// 0.03, 0.02; diffuse 0.01, 0.007, 0.005).
-    #[arg(long, value_delimiter = ',', requires = "converge")]
-    pub flip_levels: Vec<f64>,
-    /// RMSE levels of the --converge table, every shading kind (default: ao 0.1, 0.05,
-    /// 0.025; diffuse 0.01, 0.005, 0.0025).
-    #[arg(long, value_delimiter = ',', requires = "converge")]
-    pub rmse_levels: Vec<f64>,
-}
-
-/// What an image shows.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum ShadeKind {
-    /// Ambient occlusion: `spp` any-hit rays per pixel, as `render --shade ao`.
-    Ao,
-    /// The point light of `render --shade diffuse` (one shadow ray), plus one bounce:
-    /// `spp` cosine-weighted closest-hit rays per pixel that see the sky or a surface lit
-    /// by the same light (a shadow ray from there).
-    Diffuse,
-}
 
 impl ShadeKind {
     fn name(self) -> &'static str {
@@ -257,13 +195,9 @@ impl Plan {
         };
         let walks = match (c.traversals.is_empty(), quick) {
             (false, _) => c.traversals.clone(),
-            (true, true) => vec![Traversal::FullStack, Traversal::Stackless],
-            (true, false) => vec![
-                Traversal::FullStack,
-                Traversal::Stackless,
-                Traversal::ShortStack(DEFAULT_SHORT_STACK),
-                Traversal::Wide,
-            ],
+            // The reference walk and the GPU default.
+            (true, true) => Traversal::ALL[..2].to_vec(),
+            (true, false) => Traversal::ALL.to_vec(),
         };
         let shades = if c.shades.is_empty() {
             vec![ShadeKind::Ao, ShadeKind::Diffuse]
@@ -471,43 +405,338 @@ fn render(
     Ok((img, traced))
 }
 
-/// A backend opened once per run, with the name `--backends` gave it.
-struct Device {
-    label: &'static str,
-    device: bvhtrace::Device,
+/// Opens a tracer for `bvh` and `walk` on `backend`'s device through the front door; the
+/// tracer and the upload's time.
+fn upload<'a>(
+    backend: &BenchBackend,
+    bvh: &'a FlatBvh,
+    walk: Traversal,
+) -> Result<(Box<dyn Tracer + 'a>, f64)> {
+    let t = Instant::now();
+    let opts = bvhtrace::OpenOptions::default().with_traversal(walk);
+    let tracer = crate::backend::open_on(&backend.device, bvh, &opts)?.tracer;
+    Ok((tracer, t.elapsed().as_secs_f64() * 1e3))
 }
 
-impl Device {
-    fn name(&self) -> &'static str {
-        self.label
-    }
+/// A plot's two files, reserved, and their paths: PNG, SVG.
+type PlotFiles = (AtomicFile, AtomicFile, PathBuf, PathBuf);
 
-    /// Opens a tracer for `bvh` and `walk` through the front door; the tracer and the
-    /// upload's time.
-    fn upload<'a>(&self, bvh: &'a FlatBvh, walk: Traversal) -> Result<(Box<dyn Tracer + 'a>, f64)> {
-        let t = Instant::now();
-        let opts = bvhtrace::OpenOptions::default().with_traversal(walk);
-        let tracer = crate::backend::open_on(&self.device, bvh, &opts)?.tracer;
-        Ok((tracer, t.elapsed().as_secs_f64() * 1e3))
-    }
-}
-
-/// Opens the backends `--backends` names, in its order; a device backend that cannot open
-/// is left out with a note.
-fn open_devices(args: &BenchArgs) -> Vec<Device> {
-    let mut v = Vec::new();
-    for &backend in &args.backends {
-        let opts = crate::backend::options(backend, args.adapter.as_deref(), &[]);
-        match crate::backend::device(&opts) {
-            Ok(device) => {
-                eprintln!("{}: {}", device.backend(), device.name());
-                let label = device.backend().name();
-                v.push(Device { label, device });
+/// Reserves the plots `--plot PREFIX` asks for: one per scene and shading kind,
+/// `PREFIX-SCENE-SHADE.png` and `.svg`, in the order they are drawn.
+fn reserve_plots(prefix: Option<&Path>, specs: &[String], plan: &Plan) -> Result<Vec<PlotFiles>> {
+    let mut plot_files = Vec::new();
+    if let Some(prefix) = prefix {
+        for spec in specs {
+            for kind in &plan.shades {
+                let stem = format!("{}-{}-{}", prefix.display(), scene_stem(spec), kind.name());
+                let (png, svg) = (
+                    PathBuf::from(format!("{stem}.png")),
+                    PathBuf::from(format!("{stem}.svg")),
+                );
+                plot_files.push((
+                    AtomicFile::create(&png)?,
+                    AtomicFile::create(&svg)?,
+                    png,
+                    svg,
+                ));
             }
-            Err(e) => eprintln!("note: no {backend} device ({e}); leaving it out"),
         }
     }
-    v
+    Ok(plot_files)
+}
+
+/// `bvhtrace bench --converge`.
+pub fn run(args: &BenchArgs) -> Result<()> {
+    let plan = Plan::new(args)?;
+    let specs = scene_specs(&args.scenes)?;
+    // Reserve every output before any work, so a bad path fails at once.
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
+    let mut plots = reserve_plots(args.plot.as_deref(), &specs, &plan)?.into_iter();
+    let backends = open_backends(&args.backends, args.adapter.as_deref());
+    if backends.is_empty() {
+        bail!("no backend left to measure");
+    }
+    eprintln!("CPU: {} threads", rayon::current_num_threads());
+    let to_stderr = args.json.as_deref() == Some("-");
+    let mut points = Vec::new();
+    let mut written = Vec::new();
+    for spec in &specs {
+        let scene_points = measure_scene(spec, &args.converge, &plan, &backends)?;
+        for &kind in &plan.shades {
+            let these: Vec<&Point> = scene_points.iter().filter(|p| p.shade == kind).collect();
+            let curves = curves(&these);
+            let levels = plan.error_levels(kind);
+            print_table(spec, kind, &plan, &levels, &curves, to_stderr);
+            if let Some((png, svg, png_path, svg_path)) = plots.next() {
+                plot(&plot_title(spec, kind, &plan), &curves, &levels, png, svg)?;
+                written.push((png_path, svg_path));
+            }
+        }
+        points.extend(scene_points);
+    }
+    if let Some(j) = json_out {
+        j.write(&serde_json::to_value(&points)?)?;
+    }
+    if let Some(f) = csv_out {
+        f.finish_with_bytes(to_csv(&points).as_bytes())?;
+    }
+    for (p, s) in &written {
+        eprintln!("wrote {} and {}", p.display(), s.display());
+    }
+    Ok(())
+}
+
+/// The title of a scene's plot for one shading kind.
+fn plot_title(spec: &str, kind: ShadeKind, plan: &Plan) -> String {
+    let (w, h) = plan.size;
+    format!(
+        "{} - {} ({w}x{h}; reference {} spp, CPU full stack)",
+        Path::new(spec)
+            .file_name()
+            .map_or(spec.to_string(), |n| n.to_string_lossy().into_owned()),
+        match kind {
+            ShadeKind::Ao => "ambient occlusion",
+            ShadeKind::Diffuse => "one-bounce diffuse",
+        },
+        plan.reference_spp
+    )
+}
+
+/// What the images of one scene share: the scene as given, what they show, the reference
+/// image of each shading kind (in `plan.shades`' order), each level's samples, and the
+/// progress bar of the scene's configurations.
+struct SceneRun<'a> {
+    spec: &'a str,
+    view: View<'a>,
+    references: Vec<Vec<u8>>,
+    plan: &'a Plan,
+    ranges: Vec<Range<u32>>,
+    pb: ProgressBar,
+}
+
+/// A tree a configuration traces: the builder's, converted for the walk where it is wide,
+/// with its build time (the conversion included).
+struct Tree<'a> {
+    builder: BuilderKind,
+    walk: Traversal,
+    bvh: &'a FlatBvh,
+    build_ms: f64,
+}
+
+/// Every image of `spec`, measured: its references first, then each builder's tree on
+/// each walk and backend.
+fn measure_scene(
+    spec: &str,
+    args: &ConvergeArgs,
+    plan: &Plan,
+    backends: &[BenchBackend],
+) -> Result<Vec<Point>> {
+    let scene = crate::geometry::load_scene(spec)
+        .with_context(|| format!("{spec}: cannot load the scene"))?;
+    let tris = scene
+        .flattened_triangles()
+        .with_context(|| format!("{spec}: cannot flatten the scene"))?;
+    let (w, h) = plan.size;
+    let cam = camera(args, &scene, (w, h))?;
+    let reference_bvh = FlatBvh::build(&tris, &BuildOptions::default())
+        .with_context(|| format!("{spec}: the reference build failed"))?;
+    let view = View {
+        tris: &tris,
+        light: shade::point_light(&cam),
+        ao_radius: shade::ao_radius(&reference_bvh),
+        cam,
+        w,
+        h,
+    };
+    let references = references(spec, &view, &reference_bvh, plan)?;
+    let configs = plan.builders.len() * plan.walks.len() * backends.len();
+    let pb = ProgressBar::new((configs * plan.shades.len() * plan.levels.len()) as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let run = SceneRun {
+        spec,
+        view,
+        references,
+        plan,
+        ranges: plan.sample_ranges(),
+        pb,
+    };
+    let mut points = Vec::new();
+    for &builder in &plan.builders {
+        run.pb.set_message(format!("building {builder}"));
+        let (binary, binary_ms) = timed_build(&tris, builder, plan.runs)
+            .with_context(|| format!("{spec}: the {builder} build failed"))?;
+        for &walk in &plan.walks {
+            let (bvh, build_ms) = for_walk(&binary, binary_ms, walk, plan.runs)?;
+            let tree = Tree {
+                builder,
+                walk,
+                bvh: &bvh,
+                build_ms,
+            };
+            for backend in backends {
+                points.extend(run.measure(&tree, backend)?);
+            }
+        }
+    }
+    run.pb.finish_and_clear();
+    Ok(points)
+}
+
+/// The reference images of `spec`, once per shading kind: CPU full stack, default builder,
+/// `plan.reference_spp` samples from [`REFERENCE_FIRST_SAMPLE`].
+fn references(spec: &str, view: &View, bvh: &FlatBvh, plan: &Plan) -> Result<Vec<Vec<u8>>> {
+    let (w, h) = (view.w, view.h);
+    let cpu = CpuTracer::new(bvh);
+    let mut references = Vec::new();
+    for &kind in &plan.shades {
+        let sp = ProgressBar::new_spinner();
+        sp.set_message(format!(
+            "{spec}: {} reference, {w}x{h} at {} spp on the CPU",
+            kind.name(),
+            plan.reference_spp
+        ));
+        sp.enable_steady_tick(std::time::Duration::from_millis(200));
+        let t = Instant::now();
+        let samples = REFERENCE_FIRST_SAMPLE..REFERENCE_FIRST_SAMPLE + plan.reference_spp;
+        let (img, _) = render(view, &cpu, Traversal::FullStack, kind, samples)?;
+        sp.finish_and_clear();
+        eprintln!(
+            "{spec}: {} triangles; {} reference ({w}x{h}, {} spp) in {:.1} s",
+            view.tris.len(),
+            kind.name(),
+            plan.reference_spp,
+            t.elapsed().as_secs_f64()
+        );
+        references.push(img);
+    }
+    Ok(references)
+}
+
+/// `builder`'s tree over `tris`, built `runs` times: the last build and the median time.
+fn timed_build(tris: &[Triangle], builder: BuilderKind, runs: usize) -> Result<(FlatBvh, f64)> {
+    let opts = BuildOptions::with_builder(builder);
+    let mut times = Vec::new();
+    let mut built = None;
+    for _ in 0..runs {
+        let t = Instant::now();
+        built = Some(FlatBvh::build(tris, &opts)?);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok((built.context("no build")?, median(times)))
+}
+
+/// The tree `walk` traces and its build time: the binary one for a binary walk; for the
+/// wide walk the binary one converted, the conversion (median of `runs`) added to the time.
+fn for_walk(
+    binary: &FlatBvh,
+    binary_ms: f64,
+    walk: Traversal,
+    runs: usize,
+) -> Result<(Cow<'_, FlatBvh>, f64)> {
+    if !walk.is_wide() {
+        return Ok((Cow::Borrowed(binary), binary_ms));
+    }
+    let mut times = Vec::new();
+    let mut wide = None;
+    for _ in 0..runs {
+        let mut b = binary.clone();
+        let t = Instant::now();
+        b.build_wide();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        wide = Some(b);
+    }
+    let wide = wide.context("no wide conversion")?;
+    Ok((Cow::Owned(wide), binary_ms + median(times)))
+}
+
+impl SceneRun<'_> {
+    /// The images of `tree` on `backend`: every shading kind at every level. None where the
+    /// backend cannot trace the walk (said once), and for the driver's walk under any walk
+    /// but the first: it walks its own structure, one curve per builder (the triangles in
+    /// that builder's leaf order).
+    fn measure(&self, tree: &Tree, backend: &BenchBackend) -> Result<Vec<Point>> {
+        let (plan, walk) = (self.plan, tree.walk);
+        let images = (plan.shades.len() * plan.levels.len()) as u64;
+        if backend.driver_walk() && walk != plan.walks[0] {
+            self.pb.inc(images);
+            return Ok(Vec::new());
+        }
+        let walk_label = match backend.driver_walk() {
+            true => "driver".to_string(),
+            false => walk_name(walk),
+        };
+        let label = format!("{}/{walk_label}/{}", tree.builder, backend.name);
+        self.pb.set_message(label.clone());
+        let (tracer, upload_ms) = upload(backend, tree.bvh, walk)
+            .with_context(|| format!("{}: {label}: upload failed", self.spec))?;
+        let checks = [
+            TraceOptions::closest(walk),
+            TraceOptions::new(walk, Query::Any),
+        ];
+        if let Some(e) = checks.iter().find_map(|o| tracer.prepare(o).err()) {
+            self.pb.suspend(|| eprintln!("note: {label} left out: {e}"));
+            self.pb.inc(images);
+            return Ok(Vec::new());
+        }
+        warm_up(&*tracer, walk, tree.bvh)?;
+        let mut points = Vec::new();
+        for (ki, &kind) in plan.shades.iter().enumerate() {
+            // First use of the shading's code paths and caches, untimed.
+            render(&self.view, &*tracer, walk, kind, self.ranges[0].clone())?;
+            for (spp, samples) in plan.levels.iter().zip(&self.ranges) {
+                let (img, rays, image_ms) = self.timed_image(&*tracer, walk, kind, samples)?;
+                let (w, h) = (self.view.w, self.view.h);
+                let err = image_error(&self.references[ki], &img, w, h);
+                points.push(Point {
+                    scene: self.spec.to_string(),
+                    shade: kind,
+                    builder: tree.builder.name().into(),
+                    traversal: walk_label.clone(),
+                    backend: backend.name.into(),
+                    width: w,
+                    height: h,
+                    spp: *spp,
+                    first_sample: samples.start,
+                    reference_spp: plan.reference_spp,
+                    build_ms: tree.build_ms,
+                    upload_ms,
+                    image_ms,
+                    wall_ms: tree.build_ms + image_ms,
+                    rays,
+                    flip: err.flip,
+                    rmse: err.rmse,
+                });
+                self.pb.inc(1);
+            }
+        }
+        Ok(points)
+    }
+
+    /// One image with `samples`, rendered `plan.runs` times: the last image, its rays
+    /// traced, and the median time.
+    fn timed_image(
+        &self,
+        tracer: &dyn Tracer,
+        walk: Traversal,
+        kind: ShadeKind,
+        samples: &Range<u32>,
+    ) -> Result<(Vec<u8>, u64, f64)> {
+        let mut times = Vec::new();
+        let mut image = None;
+        for _ in 0..self.plan.runs {
+            let t = Instant::now();
+            let out = render(&self.view, tracer, walk, kind, samples.clone())?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            image = Some(out);
+        }
+        let (img, rays) = image.context("no image")?;
+        Ok((img, rays, median(times)))
+    }
 }
 
 /// The files name stem of a scene: its file stem, `:` made `_`.
@@ -529,228 +758,6 @@ fn camera(args: &ConvergeArgs, scene: &bvhtrace_scene::Scene, size: (u32, u32)) 
 }
 
 /// `bvhtrace bench --converge`.
-pub fn run(args: &BenchArgs) -> Result<()> {
-    let plan = Plan::new(args)?;
-    let specs = crate::bench::scene_specs(&args.scenes)?;
-    // Reserve every output before any work, so a bad path fails at once.
-    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
-    let csv_out = args.csv.as_deref().map(AtomicFile::create).transpose()?;
-    let mut plot_files = Vec::new();
-    if let Some(prefix) = &args.plot {
-        for spec in &specs {
-            for kind in &plan.shades {
-                let stem = format!("{}-{}-{}", prefix.display(), scene_stem(spec), kind.name());
-                let (png, svg) = (
-                    PathBuf::from(format!("{stem}.png")),
-                    PathBuf::from(format!("{stem}.svg")),
-                );
-                plot_files.push((
-                    AtomicFile::create(&png)?,
-                    AtomicFile::create(&svg)?,
-                    png,
-                    svg,
-                ));
-            }
-        }
-    }
-    let devices = open_devices(args);
-    if devices.is_empty() {
-        bail!("no backend left to measure");
-    }
-    eprintln!("CPU: {} threads", rayon::current_num_threads());
-    let to_stderr = args.json.as_deref() == Some("-");
-    let (w, h) = plan.size;
-    let ranges = plan.sample_ranges();
-    let mut points = Vec::new();
-    let mut plots = plot_files.into_iter();
-    let mut written = Vec::new();
-    for spec in &specs {
-        let scene = crate::geometry::load_scene(spec)
-            .with_context(|| format!("{spec}: cannot load the scene"))?;
-        let tris = scene
-            .flattened_triangles()
-            .with_context(|| format!("{spec}: cannot flatten the scene"))?;
-        let cam = camera(&args.converge, &scene, (w, h))?;
-        let reference_bvh = FlatBvh::build(&tris, &BuildOptions::default())
-            .with_context(|| format!("{spec}: the reference build failed"))?;
-        let view = View {
-            tris: &tris,
-            light: shade::point_light(&cam),
-            ao_radius: shade::ao_radius(&reference_bvh),
-            cam,
-            w,
-            h,
-        };
-        // The references: once per shading kind, CPU full stack, default builder.
-        let cpu = CpuTracer::new(&reference_bvh);
-        let mut references = Vec::new();
-        for &kind in &plan.shades {
-            let sp = ProgressBar::new_spinner();
-            sp.set_message(format!(
-                "{spec}: {} reference, {w}x{h} at {} spp on the CPU",
-                kind.name(),
-                plan.reference_spp
-            ));
-            sp.enable_steady_tick(std::time::Duration::from_millis(200));
-            let t = Instant::now();
-            let samples = REFERENCE_FIRST_SAMPLE..REFERENCE_FIRST_SAMPLE + plan.reference_spp;
-            let (img, _) = render(&view, &cpu, Traversal::FullStack, kind, samples)?;
-            sp.finish_and_clear();
-            eprintln!(
-                "{spec}: {} triangles; {} reference ({w}x{h}, {} spp) in {:.1} s",
-                tris.len(),
-                kind.name(),
-                plan.reference_spp,
-                t.elapsed().as_secs_f64()
-            );
-            references.push(img);
-        }
-
-        let configs = plan.builders.len() * plan.walks.len() * devices.len();
-        let pb = ProgressBar::new((configs * plan.shades.len() * plan.levels.len()) as u64);
-        pb.set_style(
-            ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
-                .unwrap_or_else(|_| ProgressStyle::default_bar())
-                .progress_chars("=> "),
-        );
-        let mut scene_points = Vec::new();
-        for &builder in &plan.builders {
-            pb.set_message(format!("building {builder}"));
-            let opts = BuildOptions::with_builder(builder);
-            let mut times = Vec::new();
-            let mut built = None;
-            for _ in 0..plan.runs {
-                let t = Instant::now();
-                built = Some(
-                    FlatBvh::build(&tris, &opts)
-                        .with_context(|| format!("{spec}: the {builder} build failed"))?,
-                );
-                times.push(t.elapsed().as_secs_f64() * 1e3);
-            }
-            let binary = built.context("no build")?;
-            let binary_ms = median(times);
-            for &walk in &plan.walks {
-                // The wide walk's tree is the binary one converted: its build time adds
-                // the conversion.
-                let (bvh, build_ms) = if walk.is_wide() {
-                    let mut times = Vec::new();
-                    let mut wide = None;
-                    for _ in 0..plan.runs {
-                        let mut b = binary.clone();
-                        let t = Instant::now();
-                        b.build_wide();
-                        times.push(t.elapsed().as_secs_f64() * 1e3);
-                        wide = Some(b);
-                    }
-                    let wide = wide.context("no wide conversion")?;
-                    (std::borrow::Cow::Owned(wide), binary_ms + median(times))
-                } else {
-                    (std::borrow::Cow::Borrowed(&binary), binary_ms)
-                };
-                for device in &devices {
-                    // The driver walks its own structure: one curve per builder (the
-                    // triangles in that builder's leaf order), under the first walk.
-                    let ray_query = device.device.backend() == Backend::RayQuery;
-                    if ray_query && walk != plan.walks[0] {
-                        pb.inc((plan.shades.len() * plan.levels.len()) as u64);
-                        continue;
-                    }
-                    let walk_label = if ray_query {
-                        "driver".to_string()
-                    } else {
-                        walk_name(walk)
-                    };
-                    let label = format!("{builder}/{walk_label}/{}", device.name());
-                    pb.set_message(label.clone());
-                    let (tracer, upload_ms) = device
-                        .upload(&bvh, walk)
-                        .with_context(|| format!("{spec}: {label}: upload failed"))?;
-                    let checks = [
-                        TraceOptions::closest(walk),
-                        TraceOptions::new(walk, Query::Any),
-                    ];
-                    if let Some(e) = checks.iter().find_map(|o| tracer.prepare(o).err()) {
-                        pb.suspend(|| eprintln!("note: {label} left out: {e}"));
-                        pb.inc((plan.shades.len() * plan.levels.len()) as u64);
-                        continue;
-                    }
-                    warm_up(&*tracer, walk, &bvh)?;
-                    for (ki, &kind) in plan.shades.iter().enumerate() {
-                        // First use of the shading's code paths and caches, untimed.
-                        render(&view, &*tracer, walk, kind, ranges[0].clone())?;
-                        for (spp, samples) in plan.levels.iter().zip(&ranges) {
-                            let mut times = Vec::new();
-                            let mut image = None;
-                            for _ in 0..plan.runs {
-                                let t = Instant::now();
-                                let out = render(&view, &*tracer, walk, kind, samples.clone())?;
-                                times.push(t.elapsed().as_secs_f64() * 1e3);
-                                image = Some(out);
-                            }
-                            let (img, rays) = image.context("no image")?;
-                            let image_ms = median(times);
-                            let err = image_error(&references[ki], &img, w, h);
-                            scene_points.push(Point {
-                                scene: spec.clone(),
-                                shade: kind,
-                                builder: builder.name().into(),
-                                traversal: walk_label.clone(),
-                                backend: device.name().into(),
-                                width: w,
-                                height: h,
-                                spp: *spp,
-                                first_sample: samples.start,
-                                reference_spp: plan.reference_spp,
-                                build_ms,
-                                upload_ms,
-                                image_ms,
-                                wall_ms: build_ms + image_ms,
-                                rays,
-                                flip: err.flip,
-                                rmse: err.rmse,
-                            });
-                            pb.inc(1);
-                        }
-                    }
-                }
-            }
-        }
-        pb.finish_and_clear();
-        for &kind in &plan.shades {
-            let these: Vec<&Point> = scene_points.iter().filter(|p| p.shade == kind).collect();
-            let curves = curves(&these);
-            let levels = plan.error_levels(kind);
-            print_table(spec, kind, &plan, &levels, &curves, to_stderr);
-            if let Some((png, svg, png_path, svg_path)) = plots.next() {
-                let title = format!(
-                    "{} - {} ({w}x{h}; reference {} spp, CPU full stack)",
-                    Path::new(spec)
-                        .file_name()
-                        .map_or(spec.clone(), |n| n.to_string_lossy().into_owned()),
-                    match kind {
-                        ShadeKind::Ao => "ambient occlusion",
-                        ShadeKind::Diffuse => "one-bounce diffuse",
-                    },
-                    plan.reference_spp
-                );
-                plot(&title, &curves, &levels, png, svg)?;
-                written.push((png_path, svg_path));
-            }
-        }
-        points.extend(scene_points);
-    }
-    if let Some(j) = json_out {
-        j.write(&serde_json::to_value(&points)?)?;
-    }
-    if let Some(f) = csv_out {
-        f.finish_with_bytes(to_csv(&points).as_bytes())?;
-    }
-    for (p, s) in &written {
-        eprintln!("wrote {} and {}", p.display(), s.display());
-    }
-    Ok(())
-}
-
 /// One configuration's points, in the order measured.
 struct Curve<'a> {
     label: String,
@@ -891,7 +898,7 @@ fn plot(
     if curves.is_empty() {
         return Ok(());
     }
-    crate::plot::write_png_and_svg(
+    write_png_and_svg(
         (1400, 700),
         png,
         svg,
@@ -929,6 +936,60 @@ fn builder_colour(i: usize) -> RGBColor {
     RGBColor(r, g, b)
 }
 
+/// How the curves are told apart: colour by builder, marker by walk, line by backend (solid
+/// cpu, dashed wgpu, dotted the others), so that 40 curves stay readable with a legend of
+/// a dozen entries.
+struct Styles {
+    builders: Vec<String>,
+    walks: Vec<String>,
+    backends: Vec<String>,
+}
+
+impl Styles {
+    fn of(curves: &[Curve]) -> Styles {
+        Styles {
+            builders: distinct(curves.iter().map(|c| c.builder.as_str())),
+            walks: distinct(curves.iter().map(|c| c.traversal.as_str())),
+            backends: distinct(curves.iter().map(|c| c.backend.as_str())),
+        }
+    }
+
+    /// The curve's builder's colour.
+    fn colour(&self, c: &Curve) -> RGBColor {
+        builder_colour(position(&self.builders, &c.builder))
+    }
+
+    /// The curve's walk's marker, 0 to 3: filled circle, triangle, cross, hollow circle.
+    fn marker(&self, c: &Curve) -> usize {
+        position(&self.walks, &c.traversal) % 4
+    }
+}
+
+/// Where `x` is in `v` (0 when it is not).
+fn position(v: &[String], x: &str) -> usize {
+    v.iter().position(|y| y == x).unwrap_or(0)
+}
+
+/// A backend's line, from what answers its rays: solid (`None`) for the CPU walks, else
+/// the dashes' on and off lengths (long for our WGSL walks, short for the rest).
+fn dash(backend: &str) -> Option<(u32, u32)> {
+    use bvhtrace::Kernels;
+    match backend.parse::<bvhtrace::Backend>().map(|b| b.kernels()) {
+        Ok(Kernels::Cpu) => None,
+        Ok(Kernels::Wgsl) => Some((8, 5)),
+        _ => Some((2, 4)),
+    }
+}
+
+/// One panel of the plot: the error it shows, its axis title and the table's levels.
+struct Panel<'a> {
+    name: &'static str,
+    pick: fn(&Point) -> f64,
+    levels: &'a [f64],
+}
+
+/// The plot of one scene and shading kind on `root`: FLIP and RMSE panels side by side;
+/// without `text` (a PNG with no font), no title, axis labels or legend.
 fn draw<DB: DrawingBackend>(
     root: DrawingArea<DB, plotters::coord::Shift>,
     title: &str,
@@ -946,160 +1007,200 @@ where
         root
     };
     let panels = root.split_evenly((1, 2));
-    // Colour by builder, marker by walk, line by backend (solid cpu, dashed wgpu, dotted
-    // the others): 40 curves stay readable with a legend of a dozen entries.
-    let builders = distinct(curves.iter().map(|c| c.builder.as_str()));
-    let walks = distinct(curves.iter().map(|c| c.traversal.as_str()));
-    let backends = distinct(curves.iter().map(|c| c.backend.as_str()));
-    let index = |v: &[String], x: &str| v.iter().position(|y| y == x).unwrap_or(0);
-    let colour = |c: &Curve| builder_colour(index(&builders, &c.builder));
-    let dash = |backend: &str| match backend {
-        "cpu" => None,
-        "wgpu" => Some((8, 5)),
-        _ => Some((2, 4)),
-    };
-    let all = || curves.iter().flat_map(|c| c.points.iter());
-    let (tmin, tmax) = all().fold((f64::MAX, f64::MIN), |(a, b), p| {
+    let styles = Styles::of(curves);
+    let all = curves.iter().flat_map(|c| c.points.iter());
+    let (tmin, tmax) = all.fold((f64::MAX, f64::MIN), |(a, b), p| {
         (a.min(p.wall_ms), b.max(p.wall_ms))
     });
-    let (tmin, tmax) = (tmin.max(1e-3) * 0.8, tmax.max(1e-3) * 1.25);
-    type Pick = fn(&Point) -> f64;
-    let metrics: [(&str, Pick, &[f64]); 2] = [
-        ("mean FLIP against the reference", |p| p.flip, flip_levels),
-        ("RMSE against the reference", |p| p.rmse, rmse_levels),
+    let times = (tmin.max(1e-3) * 0.8, tmax.max(1e-3) * 1.25);
+    let metrics = [
+        Panel {
+            name: "mean FLIP against the reference",
+            pick: |p| p.flip,
+            levels: flip_levels,
+        },
+        Panel {
+            name: "RMSE against the reference",
+            pick: |p| p.rmse,
+            levels: rmse_levels,
+        },
     ];
-    for (pi, (area, (name, pick, levels))) in panels.iter().zip(metrics).enumerate() {
-        // Identical images (error 0) would have no place on a log axis.
-        let positive = all().map(|p| pick(p)).filter(|e| *e > 0.0);
-        let (emin, emax) = positive.fold((f64::MAX, f64::MIN), |(a, b), e| (a.min(e), b.max(e)));
-        let (emin, emax) = if emin <= emax {
-            (emin * 0.7, emax * 1.4)
-        } else {
-            (1e-4, 1.0)
-        };
-        let mut chart = ChartBuilder::on(area);
-        chart.margin(15);
-        if text {
-            chart.x_label_area_size(40).y_label_area_size(60);
-        }
-        let mut chart = chart
-            .build_cartesian_2d(
-                (tmin..tmax)
-                    .log_scale()
-                    .with_key_points(crate::plot::one_two_five(tmin, tmax)),
-                (emin..emax).log_scale().with_key_points({
-                    // The 1-2-5 marks and the table's levels.
-                    let mut k = crate::plot::one_two_five(emin, emax);
-                    k.extend(levels.iter().filter(|l| (emin..emax).contains(*l)));
-                    k.sort_by(f64::total_cmp);
-                    k.dedup();
-                    k
-                }),
-            )
-            .map_err(plot_error)?;
-        if text {
-            chart
-                .configure_mesh()
-                .x_desc("wall time: build + image (ms)")
-                .x_label_formatter(&|x| format!("{x:.0}"))
-                .y_desc(name.to_string())
-                .y_label_formatter(&|y| format!("{y}"))
-                .draw()
-                .map_err(plot_error)?;
-        }
-        // The table's levels, as thin grey lines.
-        for &l in levels.iter().filter(|l| (emin..emax).contains(*l)) {
-            chart
-                .draw_series(LineSeries::new(
-                    [(tmin, l), (tmax, l)],
-                    RGBColor(170, 170, 170).stroke_width(1),
-                ))
-                .map_err(plot_error)?;
-        }
-        for c in curves {
-            let col = colour(c);
-            let pts: Vec<(f64, f64)> = c
-                .points
-                .iter()
-                .map(|p| (p.wall_ms, pick(p).max(emin)))
-                .collect();
-            let style = col.stroke_width(if c.backend == "cpu" { 2 } else { 1 });
-            match dash(&c.backend) {
-                None => chart
-                    .draw_series(LineSeries::new(pts.clone(), style))
-                    .map(|_| ()),
-                Some((on, off)) => chart
-                    .draw_series(DashedLineSeries::new(pts.clone(), on, off, style))
-                    .map(|_| ()),
-            }
-            .map_err(plot_error)?;
-            // A walk's marker: filled circle, triangle, cross, hollow circle (then again).
-            let (fill, line) = (col.filled(), col.stroke_width(1));
-            let at = pts.iter().copied();
-            match index(&walks, &c.traversal) % 4 {
-                0 => chart.draw_series(at.map(|p| Circle::new(p, 3, fill))),
-                1 => chart.draw_series(at.map(|p| TriangleMarker::new(p, 4, fill))),
-                2 => chart.draw_series(at.map(|p| Cross::new(p, 4, line))),
-                _ => chart.draw_series(at.map(|p| Circle::new(p, 4, line))),
-            }
-            .map_err(plot_error)?;
-        }
-        if pi == 0 && text {
-            // Legend entries of their own: builders (colour), walks (marker), backends
-            // (line).
-            for (i, b) in builders.iter().enumerate() {
-                let col = builder_colour(i);
-                chart
-                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(plot_error)?
-                    .label(format!("builder {b}"))
-                    .legend(move |(x, y)| {
-                        PathElement::new([(x, y), (x + 18, y)], col.stroke_width(3))
-                    });
-            }
-            for (i, wk) in walks.iter().enumerate() {
-                let entry = chart
-                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(plot_error)?
-                    .label(format!("walk {wk}"));
-                let (fill, line) = (BLACK.filled(), BLACK.stroke_width(1));
-                match i % 4 {
-                    0 => entry.legend(move |(x, y)| Circle::new((x + 9, y), 3, fill)),
-                    1 => entry.legend(move |(x, y)| TriangleMarker::new((x + 9, y), 4, fill)),
-                    2 => entry.legend(move |(x, y)| Cross::new((x + 9, y), 4, line)),
-                    _ => entry.legend(move |(x, y)| Circle::new((x + 9, y), 4, line)),
-                };
-            }
-            for be in &backends {
-                let entry = chart
-                    .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-                    .map_err(plot_error)?
-                    .label(format!("backend {be}"));
-                match dash(be) {
-                    None => entry.legend(|(x, y)| {
-                        PathElement::new([(x, y), (x + 18, y)], BLACK.stroke_width(2))
-                    }),
-                    Some((on, off)) => entry.legend(move |(x, y)| {
-                        plotters::element::DashedPathElement::new(
-                            [(x, y), (x + 18, y)],
-                            on,
-                            off,
-                            BLACK.stroke_width(1),
-                        )
-                    }),
-                };
-            }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerLeft)
-                .label_font(("sans-serif", 12))
-                .background_style(WHITE.mix(0.9))
-                .border_style(BLACK)
-                .draw()
-                .map_err(plot_error)?;
-        }
+    for (pi, (area, panel)) in panels.iter().zip(metrics).enumerate() {
+        draw_panel(area, &panel, curves, &styles, times, text, pi == 0 && text)?;
     }
     root.present().map_err(plot_error)?;
+    Ok(())
+}
+
+/// One panel on `area`: `panel`'s error of every curve against wall time (`tmin..tmax`),
+/// log-log, with the table's levels as thin grey lines, and the legend where `legend`.
+fn draw_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+    panel: &Panel,
+    curves: &[Curve],
+    styles: &Styles,
+    (tmin, tmax): (f64, f64),
+    text: bool,
+    legend: bool,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let (pick, levels) = (panel.pick, panel.levels);
+    // Identical images (error 0) would have no place on a log axis.
+    let positive = (curves.iter().flat_map(|c| c.points.iter()))
+        .map(|p| pick(p))
+        .filter(|e| *e > 0.0);
+    let (emin, emax) = positive.fold((f64::MAX, f64::MIN), |(a, b), e| (a.min(e), b.max(e)));
+    let (emin, emax) = if emin <= emax {
+        (emin * 0.7, emax * 1.4)
+    } else {
+        (1e-4, 1.0)
+    };
+    let mut chart = ChartBuilder::on(area);
+    chart.margin(15);
+    if text {
+        chart.x_label_area_size(40).y_label_area_size(60);
+    }
+    let mut chart = chart
+        .build_cartesian_2d(
+            (tmin..tmax)
+                .log_scale()
+                .with_key_points(one_two_five(tmin, tmax)),
+            (emin..emax).log_scale().with_key_points({
+                // The 1-2-5 marks and the table's levels.
+                let mut k = one_two_five(emin, emax);
+                k.extend(levels.iter().filter(|l| (emin..emax).contains(*l)));
+                k.sort_by(f64::total_cmp);
+                k.dedup();
+                k
+            }),
+        )
+        .map_err(plot_error)?;
+    if text {
+        chart
+            .configure_mesh()
+            .x_desc("wall time: build + image (ms)")
+            .x_label_formatter(&|x| format!("{x:.0}"))
+            .y_desc(panel.name.to_string())
+            .y_label_formatter(&|y| format!("{y}"))
+            .draw()
+            .map_err(plot_error)?;
+    }
+    // The table's levels, as thin grey lines.
+    for &l in levels.iter().filter(|l| (emin..emax).contains(*l)) {
+        chart
+            .draw_series(LineSeries::new(
+                [(tmin, l), (tmax, l)],
+                RGBColor(170, 170, 170).stroke_width(1),
+            ))
+            .map_err(plot_error)?;
+    }
+    for c in curves {
+        let pts: Vec<(f64, f64)> = c
+            .points
+            .iter()
+            .map(|p| (p.wall_ms, pick(p).max(emin)))
+            .collect();
+        draw_curve(&mut chart, c, &pts, styles)?;
+    }
+    if legend {
+        draw_legend(&mut chart, styles)?;
+    }
+    Ok(())
+}
+
+/// One curve at `pts`: its backend's line in its builder's colour, its walk's marker at
+/// each point.
+fn draw_curve<'a, DB, CT>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    c: &Curve,
+    pts: &[(f64, f64)],
+    styles: &Styles,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    DB::ErrorType: 'static,
+    CT: CoordTranslate<From = (f64, f64)>,
+{
+    let col = styles.colour(c);
+    let style = col.stroke_width(if dash(&c.backend).is_none() { 2 } else { 1 });
+    match dash(&c.backend) {
+        None => chart
+            .draw_series(LineSeries::new(pts.to_vec(), style))
+            .map(|_| ()),
+        Some((on, off)) => chart
+            .draw_series(DashedLineSeries::new(pts.to_vec(), on, off, style))
+            .map(|_| ()),
+    }
+    .map_err(plot_error)?;
+    let (fill, line) = (col.filled(), col.stroke_width(1));
+    let at = pts.iter().copied();
+    match styles.marker(c) {
+        0 => chart.draw_series(at.map(|p| Circle::new(p, 3, fill))),
+        1 => chart.draw_series(at.map(|p| TriangleMarker::new(p, 4, fill))),
+        2 => chart.draw_series(at.map(|p| Cross::new(p, 4, line))),
+        _ => chart.draw_series(at.map(|p| Circle::new(p, 4, line))),
+    }
+    .map_err(plot_error)?;
+    Ok(())
+}
+
+/// The legend, with entries of their own: builders (colour), walks (marker), backends
+/// (line).
+fn draw_legend<'a, DB, CT>(chart: &mut ChartContext<'a, DB, CT>, styles: &Styles) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    DB::ErrorType: 'static,
+    CT: CoordTranslate<From = (f64, f64)>,
+{
+    for (i, b) in styles.builders.iter().enumerate() {
+        let col = builder_colour(i);
+        chart
+            .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+            .map_err(plot_error)?
+            .label(format!("builder {b}"))
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], col.stroke_width(3)));
+    }
+    for (i, wk) in styles.walks.iter().enumerate() {
+        let entry = chart
+            .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+            .map_err(plot_error)?
+            .label(format!("walk {wk}"));
+        let (fill, line) = (BLACK.filled(), BLACK.stroke_width(1));
+        match i % 4 {
+            0 => entry.legend(move |(x, y)| Circle::new((x + 9, y), 3, fill)),
+            1 => entry.legend(move |(x, y)| TriangleMarker::new((x + 9, y), 4, fill)),
+            2 => entry.legend(move |(x, y)| Cross::new((x + 9, y), 4, line)),
+            _ => entry.legend(move |(x, y)| Circle::new((x + 9, y), 4, line)),
+        };
+    }
+    for be in &styles.backends {
+        let entry = chart
+            .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
+            .map_err(plot_error)?
+            .label(format!("backend {be}"));
+        match dash(be) {
+            None => entry
+                .legend(|(x, y)| PathElement::new([(x, y), (x + 18, y)], BLACK.stroke_width(2))),
+            Some((on, off)) => entry.legend(move |(x, y)| {
+                plotters::element::DashedPathElement::new(
+                    [(x, y), (x + 18, y)],
+                    on,
+                    off,
+                    BLACK.stroke_width(1),
+                )
+            }),
+        };
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerLeft)
+        .label_font(("sans-serif", 12))
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_error)?;
     Ok(())
 }
 

@@ -9,8 +9,7 @@ use anyhow::Result;
 use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal, trace_rays};
 use bvhtrace_cpu::{CpuBvh, Isa};
 
-use crate::bench::{BenchTraceArgs, median, scene_specs};
-use crate::bench_matrix::ray_sets;
+use super::{BenchTraceArgs, median, ray_sets, scene_specs};
 use crate::embree::{self, Dump};
 
 /// A CPU path's batch trace.
@@ -93,7 +92,7 @@ fn differences(got: &[Hit], want: &[Hit], q: Query) -> usize {
 }
 
 /// `bvhtrace bench-trace --cpu-only`.
-pub fn bench_trace_cpu(args: &BenchTraceArgs) -> Result<()> {
+pub fn run(args: &BenchTraceArgs) -> Result<()> {
     let (w, h) = args.size;
     let threads = rayon::current_num_threads();
     println!(
