@@ -10,7 +10,8 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_engine::{DriverTuning, TraceError, Tracer};
 
-use crate::backends::{self, DeviceInterface, Tree};
+use crate::backends;
+use crate::backends::interface::{DeviceInterface, Tree};
 use crate::open::exceeds_a_limit;
 use crate::{Backend, OpenOptions, Opened};
 
@@ -96,6 +97,12 @@ impl Device {
     /// The limits uploads and batches are planned within (`None` on the CPU).
     pub fn limits(&self) -> Option<DeviceLimits> {
         self.inner.limits()
+    }
+
+    /// The wgpu context, on a wgpu device (our walks or its ray queries): for your own
+    /// WGSL on the same device.
+    pub fn wgpu_context(&self) -> Option<&bvhtrace_gpu::GpuContext> {
+        self.inner.wgpu_context()
     }
 
     /// Builds a BVH over `tris` on this device, with the device builders

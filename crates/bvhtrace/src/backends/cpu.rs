@@ -15,7 +15,7 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
 use web_time::Instant;
 
-use super::{DeviceInterface, OpenResult, Tree, no_device_builder};
+use super::interface::{DeviceInterface, OpenResult, Tree, no_device_builder};
 use crate::open::check_walks;
 use crate::{Backend, OpenOptions, Opened};
 

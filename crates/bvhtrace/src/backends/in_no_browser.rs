@@ -1,13 +1,12 @@
 //! A backend that does not run in a browser (ash has no browser, WebGPU no ray queries):
 //! in a browser build its module is this one, and opening it is an error naming why.
 
-use std::any::Any;
 use std::sync::Arc;
 
 use bvhtrace_engine::TraceError;
 use bvhtrace_gpu::GpuContext;
 
-use super::DeviceInterface;
+use super::interface::DeviceInterface;
 use crate::{Backend, OpenOptions};
 
 /// Why `backend` does not open here.
@@ -29,10 +28,4 @@ pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, Trace
 #[allow(dead_code)]
 pub(crate) fn on(_: GpuContext) -> Result<Arc<dyn DeviceInterface>, TraceError> {
     Err(not_in_a_browser(Backend::RayQuery))
-}
-
-/// No device of this backend here.
-#[allow(dead_code)]
-pub(crate) fn context(_: &dyn Any) -> Option<&GpuContext> {
-    None
 }

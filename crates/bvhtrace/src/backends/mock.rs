@@ -13,7 +13,7 @@ use bvhtrace_engine::engine::DeviceApi;
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_mock::{MockBvh, MockDevice};
 
-use super::{DeviceInterface, OpenResult, Tree, no_device_builder, uploaded};
+use super::interface::{DeviceInterface, OpenResult, Tree, no_device_builder, uploaded};
 use crate::open::{EngineDevice, open_engine};
 use crate::{Backend, Device, OpenOptions};
 

@@ -11,8 +11,8 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError, Tracer};
 use bvhtrace_gpu::{GpuContext, RayQueryBvh};
 
-use super::wgpu::{WgpuDevice, adapter_name, context as wgpu_context};
-use super::{DeviceInterface, OpenResult, Tree, uploaded};
+use super::interface::{DeviceInterface, OpenResult, Tree, uploaded};
+use super::wgpu::{WgpuDevice, adapter_name, context};
 use crate::open::exceeds_a_limit;
 use crate::{Backend, Device, OpenOptions, Opened};
 
@@ -38,14 +38,7 @@ pub(crate) fn on(ctx: GpuContext) -> Result<Arc<dyn DeviceInterface>, TraceError
 
 /// [`Backend::RayQuery`] on the adapter `opts` asks for.
 pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, TraceError> {
-    on(wgpu_context(opts, true)?)
-}
-
-/// The wgpu context of a ray-query device.
-pub(crate) fn context(device: &dyn Any) -> Option<&GpuContext> {
-    device
-        .downcast_ref::<RayQueryDevice>()
-        .map(|d| &d.walks.ctx)
+    on(context(opts, true)?)
 }
 
 impl RayQueryDevice {
@@ -106,6 +99,10 @@ impl DeviceInterface for RayQueryDevice {
         opts: &GpuBuildOptions,
     ) -> Result<(FlatBvh, GpuBuildTimes), TraceError> {
         self.walks.ctx.build_bvh(tris, opts)
+    }
+
+    fn wgpu_context(&self) -> Option<&GpuContext> {
+        Some(&self.walks.ctx)
     }
 
     fn as_any(&self) -> &dyn Any {

@@ -10,7 +10,7 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError};
 use bvhtrace_vk::{VkBvh, VkContext, VkOptions};
 
-use super::{DeviceInterface, OpenResult, Tree, uploaded};
+use super::interface::{DeviceInterface, OpenResult, Tree, uploaded};
 use crate::open::{EngineDevice, open_engine};
 use crate::{Backend, Device, OpenOptions};
 

@@ -1,6 +1,5 @@
 //! The wgpu backend: our WGSL walks through wgpu (`bvhtrace-gpu`), natively on Vulkan and
-//! in a browser on WebGPU; and [`Backend::Auto`]'s choice, which starts from the best
-//! wgpu adapter.
+//! in a browser on WebGPU.
 
 use std::any::Any;
 use std::sync::Arc;
@@ -11,7 +10,7 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError};
 use bvhtrace_gpu::{ContextOptions, GpuBvh, GpuContext};
 
-use super::{DeviceInterface, OpenResult, OpenedDevice, Tree, cpu, ray_query, uploaded};
+use super::interface::{DeviceInterface, OpenResult, Tree, uploaded};
 use crate::open::{EngineDevice, open_engine};
 use crate::{Backend, Device, OpenOptions, Opened};
 
@@ -77,6 +76,10 @@ impl DeviceInterface for WgpuDevice {
         self.ctx.build_bvh(tris, opts)
     }
 
+    fn wgpu_context(&self) -> Option<&GpuContext> {
+        Some(&self.ctx)
+    }
+
     fn as_any(&self) -> &dyn Any {
         self
     }
@@ -100,55 +103,10 @@ pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, Trace
     }))
 }
 
-/// [`Backend::Auto`]: wgpu on the best adapter, with its ray queries where they run on
-/// ray-tracing hardware (any adapter but a CPU driver, where our walks are several times
-/// faster), saying why when the device offers them; the CPU walks when there is no
-/// adapter at all, saying so.
-pub(crate) fn auto(opts: &OpenOptions) -> Result<OpenedDevice, TraceError> {
-    let ctx = match context(opts, true) {
-        Ok(ctx) => ctx,
-        Err(e @ TraceError::NoAdapter { .. }) => {
-            return Ok(OpenedDevice {
-                fallback: Some(format!(
-                    "there is no Vulkan adapter ({e}); tracing on the CPU"
-                )),
-                ..OpenedDevice::plain(cpu::device())
-            });
-        }
-        Err(e) => return Err(e),
-    };
-    if !ctx.has_ray_queries() {
-        return Ok(OpenedDevice::plain(Arc::new(WgpuDevice { ctx })));
-    }
-    let name = ctx.adapter_info().name.clone();
-    if ctx.adapter_info().device_type == bvhtrace_gpu::wgpu::DeviceType::Cpu {
-        let why = format!(
-            "{name} offers ray queries, but it is a CPU driver, where they run in software and \
-             our walks trace several times faster; tracing with our walks"
-        );
-        return Ok(OpenedDevice {
-            choice: Some(why),
-            ..OpenedDevice::plain(Arc::new(WgpuDevice { ctx }))
-        });
-    }
-    Ok(OpenedDevice {
-        choice: Some(format!(
-            "{name} has ray queries in hardware; tracing with them"
-        )),
-        ..OpenedDevice::plain(ray_query::on(ctx)?)
-    })
-}
-
 impl Device {
     /// A wgpu device the caller opened (an application's, eframe's), tracing with our
     /// walks.
     pub fn wgpu(ctx: GpuContext) -> Device {
         Device::from_interface(Arc::new(WgpuDevice { ctx }))
-    }
-
-    /// The wgpu context, on a wgpu device (our walks or its ray queries).
-    pub fn wgpu_context(&self) -> Option<&GpuContext> {
-        let any = self.inner.as_any();
-        (any.downcast_ref::<WgpuDevice>().map(|d| &d.ctx)).or_else(|| ray_query::context(any))
     }
 }
