@@ -209,7 +209,8 @@ fn cornell() -> Scene {
         material("white", [0.73, 0.73, 0.73]),
         material("red", [0.65, 0.05, 0.05]),
         material("green", [0.12, 0.45, 0.15]),
-        material("light", [1.0, 1.0, 1.0]),
+        // Emitting about what the classic Cornell box's light does, over its smaller area.
+        material("light", [1.0, 1.0, 1.0]).with_emissive(Vec3::new(17.0, 12.0, 4.0)),
     ];
     let (white, red, green, light) = (0, 1, 2, 3);
     let mut m = Mesh {

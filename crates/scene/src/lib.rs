@@ -103,6 +103,15 @@ pub struct Material {
     pub name: String,
     /// Linear RGBA base colour factor (glTF `pbrMetallicRoughness.baseColorFactor`).
     pub base_color: Vec4,
+    /// Metalness in `[0, 1]` (glTF `metallicFactor`; NaN or out of range is clamped, NaN
+    /// to 0).
+    pub metallic: f32,
+    /// Perceptual roughness in `[0, 1]` (glTF `roughnessFactor`; clamped as `metallic`,
+    /// NaN to 1).
+    pub roughness: f32,
+    /// Linear emitted radiance (glTF `emissiveFactor`): zero for a surface that does not
+    /// glow; negative or non-finite components read as 0.
+    pub emissive: Vec3,
     /// Whether its alpha cuts the surface (glTF `alphaMode`, `alphaCutoff`).
     pub alpha_mode: AlphaMode,
     /// The base colour texture's alpha, for a masked material that has one.
@@ -110,13 +119,26 @@ pub struct Material {
 }
 
 impl Material {
-    /// An opaque material of base colour `base_color`.
+    /// An opaque dielectric (metallic 0, roughness 1, not emissive) of base colour
+    /// `base_color`.
     pub fn opaque(name: impl Into<String>, base_color: Vec4) -> Material {
         Material {
             name: name.into(),
             base_color,
+            metallic: 0.0,
+            roughness: 1.0,
+            emissive: Vec3::ZERO,
             alpha_mode: AlphaMode::Opaque,
             alpha_texture: None,
+        }
+    }
+
+    /// The same material emitting `radiance` (linear RGB; what glTF's `emissiveFactor`
+    /// holds).
+    pub fn with_emissive(self, radiance: Vec3) -> Material {
+        Material {
+            emissive: radiance,
+            ..self
         }
     }
 

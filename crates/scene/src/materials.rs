@@ -10,7 +10,7 @@
 
 use std::path::Path;
 
-use glam::Vec4;
+use glam::{Vec3, Vec4};
 use gltf::json;
 use gltf::json::validation::Checked;
 
@@ -72,9 +72,17 @@ pub(crate) fn load(
                 }
                 _ => None,
             };
+            let pbr = &m.pbr_metallic_roughness;
+            let strength = (m.extensions.as_ref())
+                .and_then(|e| e.emissive_strength.as_ref())
+                .map_or(1.0, |s| s.emissive_strength.0);
             Material {
                 name,
                 base_color,
+                metallic: unit_or(pbr.metallic_factor.0, 0.0),
+                roughness: unit_or(pbr.roughness_factor.0, 1.0),
+                emissive: (Vec3::from(m.emissive_factor.0) * strength)
+                    .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
                 alpha_mode,
                 alpha_texture,
             }
@@ -97,6 +105,11 @@ pub(crate) fn load(
         ));
     }
     (materials, textures)
+}
+
+/// `x` clamped to `[0, 1]`, `nan` for NaN.
+fn unit_or(x: f32, nan: f32) -> f32 {
+    if x.is_nan() { nan } else { x.clamp(0.0, 1.0) }
 }
 
 /// The alpha texture of a masked material's base colour texture `info`, decoded once per

@@ -234,3 +234,38 @@ fn masked_quads_cut_where_their_texture_says() {
     let plain = bvhtrace_core::trace_rays(traced.bvh(), &rays, &opts).hits;
     assert!(plain.iter().all(|h| h.t == 5.0));
 }
+
+#[test]
+fn metallic_roughness_and_emission_are_loaded_and_clamped() {
+    let s = scene(
+        json!([
+            {
+                "pbrMetallicRoughness": {"metallicFactor": 0.25, "roughnessFactor": 0.5},
+                "emissiveFactor": [1, 0.5, 0],
+                "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 4}},
+            },
+            {
+                "pbrMetallicRoughness": {"metallicFactor": 3, "roughnessFactor": -1},
+                "emissiveFactor": [-1, 2, 0.5],
+            },
+            {},
+        ]),
+        json!({}),
+    );
+    let m = &s.materials;
+    assert_eq!((m[0].metallic, m[0].roughness), (0.25, 0.5));
+    assert_eq!(m[0].emissive.to_array(), [4.0, 2.0, 0.0]);
+    assert_eq!((m[1].metallic, m[1].roughness), (1.0, 0.0));
+    assert_eq!(m[1].emissive.to_array(), [0.0, 2.0, 0.5]);
+    // glTF's defaults: a fully metallic, fully rough surface that does not glow.
+    assert_eq!((m[2].metallic, m[2].roughness), (1.0, 1.0));
+    assert_eq!(m[2].emissive.to_array(), [0.0; 3]);
+    // Written and read back through the emissive-strength extension.
+    let back = bvhtrace_scene::load_gltf_slice(
+        bvhtrace_scene::gltf_embedded_string(&s).as_bytes(),
+        "back.gltf",
+        None,
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(back.materials[..2], s.materials[..2]);
+}
