@@ -110,6 +110,12 @@ wgsl_files! {
     MORPH = "morph.wgsl",
     /// Linear blend skinning.
     SKIN = "skin.wgsl",
+    /// The path tracer's random numbers, frames and metallic-roughness material
+    /// (bvhtrace-path), composed after a traversal library like a user's shader.
+    PATH_SAMPLING = "path_sampling.wgsl",
+    /// The path tracer's kernel: camera rays, next-event estimation, bounces, the
+    /// progressive sum (bvhtrace-path).
+    PATH_TRACE = "path_trace.wgsl",
 }
 
 #[cfg(test)]

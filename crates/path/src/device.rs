@@ -1,0 +1,410 @@
+//! The path tracer on a wgpu device: the kernel composed after the traversal library of
+//! an upload (our walk, or the device's ray queries), its resources in group 1, one
+//! dispatch per sample adding to the sums on the device.
+
+use bvhtrace_core::{FlatBvh, Traversal};
+use bvhtrace_engine::shaders::{PATH_SAMPLING, PATH_TRACE};
+use bvhtrace_gpu::wgpu::util::DeviceExt;
+use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, RayQueryBvh, UploadOptions, wgpu};
+
+use crate::scene::{PathLight, PathMaterial, PathParams, PathScene};
+use crate::{Accumulation, PathError, PathStats};
+
+/// What the kernel's rays are walked by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PathWalk {
+    /// Our walk, over the upload of the tree in the context's storage.
+    Walk(Traversal),
+    /// The device's ray queries over its own acceleration structure (wgpu's
+    /// `EXPERIMENTAL_RAY_QUERY`); the hits agree with our walks' under the rule of
+    /// docs/design.md, not bit for bit.
+    RayQueries,
+}
+
+/// The upload the kernel reads, kept alive with its bind group.
+enum Upload {
+    Walk(GpuBvh),
+    RayQueries(RayQueryBvh),
+}
+
+/// The path tracer on a device: the BVH uploaded, the kernel compiled, the sums on the
+/// device. [`GpuPathTracer::restart`] sets the camera and lights and starts the sum over;
+/// each [`GpuPathTracer::add_samples`] adds samples without reading anything back;
+/// [`GpuPathTracer::read`] reads the sums.
+pub struct GpuPathTracer {
+    ctx: GpuContext,
+    _upload: Upload,
+    pipeline: wgpu::ComputePipeline,
+    bvh_group: wgpu::BindGroup,
+    layout: wgpu::BindGroupLayout,
+    scene_buffers: [wgpu::Buffer; 3],
+    params_buffer: wgpu::Buffer,
+    stats_buffer: wgpu::Buffer,
+    accum: Option<(wgpu::Buffer, wgpu::BindGroup)>,
+    params: PathParams,
+    walk: PathWalk,
+}
+
+/// The kernel's WGSL as composed after a traversal library (`bvhtrace_engine::wgsl_library`):
+/// its sampling functions, then the kernel (entry point `path_main`, group 1 its own).
+pub fn kernel_source() -> String {
+    format!("{}\n{}", PATH_SAMPLING.1, PATH_TRACE.1)
+}
+
+impl GpuPathTracer {
+    /// Uploads `bvh` (one mesh: its primitive ids number `scene.prims`) for `traversal`'s
+    /// walk and compiles the kernel for it.
+    pub fn new(
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        scene: &PathScene,
+        traversal: Traversal,
+    ) -> Result<GpuPathTracer, PathError> {
+        Self::with_walk(ctx, bvh, scene, PathWalk::Walk(traversal))
+    }
+
+    /// [`GpuPathTracer::new`] with the rays walked by `walk`.
+    pub fn with_walk(
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        scene: &PathScene,
+        walk: PathWalk,
+    ) -> Result<GpuPathTracer, PathError> {
+        if bvh.is_instanced() {
+            return Err(PathError::Scene(
+                "the path tracer traces one mesh: flatten the scene's instances".into(),
+            ));
+        }
+        if scene.prims.len() != bvh.triangle_count() {
+            return Err(PathError::Scene(format!(
+                "the shading data has {} primitives, the BVH {}",
+                scene.prims.len(),
+                bvh.triangle_count()
+            )));
+        }
+        let (upload, library) = match walk {
+            PathWalk::Walk(t) => {
+                let up = GpuBvh::upload(ctx, bvh, &UploadOptions::for_traversal(t))?;
+                let library = up.wgsl_library(t, 0)?;
+                (Upload::Walk(up), library)
+            }
+            PathWalk::RayQueries => {
+                let up = RayQueryBvh::upload(ctx, bvh)?;
+                let library = up.wgsl_library(0);
+                (Upload::RayQueries(up), library)
+            }
+        };
+        let bvh_group = match &upload {
+            Upload::Walk(u) => u.bind_group_for(&library)?,
+            Upload::RayQueries(u) => u.bind_group_for(&library)?,
+        };
+        let (bvh_group, bvh_layout) = (bvh_group.group().clone(), bvh_group.layout().clone());
+        let layout = group_layout(ctx.device());
+        let pipeline = pipeline(ctx, &library, &bvh_layout, &layout)?;
+        let init = |label, contents: &[u8], usage| {
+            ctx.device()
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage,
+                })
+        };
+        use wgpu::BufferUsages as U;
+        // An empty array cannot be bound: one unused element stands in.
+        let lights: &[PathLight] = if scene.lights.is_empty() {
+            &[PathLight::default()]
+        } else {
+            &scene.lights
+        };
+        let prims: &[[u32; 2]] = if scene.prims.is_empty() {
+            &[[0; 2]]
+        } else {
+            &scene.prims
+        };
+        let materials: &[PathMaterial] = if scene.materials.is_empty() {
+            &[PathMaterial::default()]
+        } else {
+            &scene.materials
+        };
+        let scene_buffers = [
+            init(
+                "path materials",
+                bytemuck::cast_slice(materials),
+                U::STORAGE,
+            ),
+            init("path prims", bytemuck::cast_slice(prims), U::STORAGE),
+            init("path lights", bytemuck::cast_slice(lights), U::STORAGE),
+        ];
+        let params = PathParams::default();
+        let params_buffer = init(
+            "path params",
+            bytemuck::bytes_of(&params),
+            U::UNIFORM | U::COPY_DST,
+        );
+        let stats_buffer = init(
+            "path stats",
+            &[0; 8],
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
+        Ok(GpuPathTracer {
+            ctx: ctx.clone(),
+            _upload: upload,
+            pipeline,
+            bvh_group,
+            layout,
+            scene_buffers,
+            params_buffer,
+            stats_buffer,
+            accum: None,
+            params,
+            walk,
+        })
+    }
+
+    /// What the rays are walked by.
+    pub fn walk(&self) -> PathWalk {
+        self.walk
+    }
+
+    /// Starts the sum over with `params` (camera, size, lights, depth, seed): call it on any
+    /// change of view, scene or setting. The next sample is sample 0, whatever
+    /// `params.sample` says.
+    pub fn restart(&mut self, params: PathParams) {
+        let size = u64::from(params.width) * u64::from(params.height) * 16;
+        let fits = self
+            .accum
+            .as_ref()
+            .is_some_and(|(b, _)| b.size() == size.max(16));
+        if !fits {
+            let buffer = self.ctx.device().create_buffer(&wgpu::BufferDescriptor {
+                label: Some("path accumulation"),
+                size: size.max(16),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            let group = self.group(&buffer);
+            self.accum = Some((buffer, group));
+        }
+        self.params = PathParams {
+            sample: 0,
+            ..params
+        };
+        self.ctx
+            .queue()
+            .write_buffer(&self.stats_buffer, 0, &[0; 8]);
+    }
+
+    /// Samples per pixel summed so far.
+    pub fn samples(&self) -> u32 {
+        self.params.sample
+    }
+
+    /// The parameters of the next sample.
+    pub fn params(&self) -> &PathParams {
+        &self.params
+    }
+
+    /// The device buffer of the sums (`array<vec4<f32>>`, one per pixel row by row: RGB
+    /// and the sample count), for a renderer to show without reading it back; `None`
+    /// before [`GpuPathTracer::restart`].
+    pub fn accumulation_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.accum.as_ref().map(|(b, _)| b)
+    }
+
+    fn group(&self, accum: &wgpu::Buffer) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = [
+            &self.params_buffer,
+            &self.scene_buffers[0],
+            &self.scene_buffers[1],
+            &self.scene_buffers[2],
+            accum,
+            &self.stats_buffer,
+        ]
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+        self.ctx
+            .device()
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("path tracer group 1"),
+                layout: &self.layout,
+                entries: &entries,
+            })
+    }
+
+    /// Records `n` samples into `encoder`: one dispatch each, its parameters written
+    /// through `queue` (so submit the encoder before recording more).
+    fn encode(&mut self, encoder: &mut wgpu::CommandEncoder, n: u32) -> Result<(), PathError> {
+        let Some((_, group)) = &self.accum else {
+            return Err(PathError::Setting("add_samples before restart".into()));
+        };
+        let p = self.params;
+        if p.width == 0 || p.height == 0 {
+            return Err(PathError::Setting(format!(
+                "a {}x{} frame has no pixels",
+                p.width, p.height
+            )));
+        }
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("path tracer"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bvh_group, &[]);
+        pass.set_bind_group(1, group, &[]);
+        for _ in 0..n {
+            pass.dispatch_workgroups(p.width.div_ceil(8), p.height.div_ceil(8), 1);
+        }
+        Ok(())
+    }
+
+    /// Adds `n` samples per pixel on the device: one submission each (each reads its
+    /// index from the parameters); nothing is read back.
+    pub fn add_samples(&mut self, n: u32) -> Result<(), PathError> {
+        for _ in 0..n {
+            self.ctx
+                .queue()
+                .write_buffer(&self.params_buffer, 0, bytemuck::bytes_of(&self.params));
+            let mut encoder = self
+                .ctx
+                .device()
+                .create_command_encoder(&Default::default());
+            self.encode(&mut encoder, 1)?;
+            self.ctx.queue().submit([encoder.finish()]);
+            self.params.sample += 1;
+        }
+        Ok(())
+    }
+
+    /// Reads the sums and the counts of what the paths could not trace back from the
+    /// device (waits for the samples submitted so far).
+    pub fn read(&self) -> Result<(Accumulation, PathStats), PathError> {
+        let Some((accum, _)) = &self.accum else {
+            return Err(PathError::Setting("read before restart".into()));
+        };
+        let bytes = read_buffers(&self.ctx, &[accum, &self.stats_buffer])?;
+        let p = &self.params;
+        let n = p.width as usize * p.height as usize;
+        let sums: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&bytes[0][..n * 16]);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[1][..8]);
+        let image = Accumulation {
+            width: p.width,
+            height: p.height,
+            sums,
+        };
+        let stats = PathStats {
+            incomplete: u64::from(words[0]),
+            not_finite: u64::from(words[1]),
+        };
+        Ok((image, stats))
+    }
+}
+
+/// Copies `buffers` to mappable ones and reads them (blocking).
+fn read_buffers(ctx: &GpuContext, buffers: &[&wgpu::Buffer]) -> Result<Vec<Vec<u8>>, PathError> {
+    let device = ctx.device();
+    let mut encoder = device.create_command_encoder(&Default::default());
+    let staging: Vec<wgpu::Buffer> = (buffers.iter())
+        .map(|b| {
+            let s = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("path readback"),
+                size: b.size(),
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            encoder.copy_buffer_to_buffer(b, 0, &s, 0, b.size());
+            s
+        })
+        .collect();
+    ctx.queue().submit([encoder.finish()]);
+    let device_error = |e: String| {
+        PathError::Gpu(GpuError::Device {
+            during: "reading the path tracer's sums",
+            message: e,
+        })
+    };
+    let mut out = Vec::new();
+    for s in &staging {
+        let (tx, rx) = std::sync::mpsc::channel();
+        s.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| device_error(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| device_error(e.to_string()))?
+            .map_err(|e| device_error(e.to_string()))?;
+        let bytes = s
+            .get_mapped_range(..)
+            .map_err(|e| device_error(e.to_string()))?
+            .to_vec();
+        s.unmap();
+        out.push(bytes);
+    }
+    Ok(out)
+}
+
+/// Group 1: the parameters, materials, primitives, lights, sums and counts.
+fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
+    use wgpu::BufferBindingType as B;
+    let kinds = [
+        B::Uniform,
+        B::Storage { read_only: true },
+        B::Storage { read_only: true },
+        B::Storage { read_only: true },
+        B::Storage { read_only: false },
+        B::Storage { read_only: false },
+    ];
+    let entries: Vec<wgpu::BindGroupLayoutEntry> = (kinds.iter().enumerate())
+        .map(|(i, &ty)| wgpu::BindGroupLayoutEntry {
+            binding: i as u32,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        })
+        .collect();
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("path tracer group 1"),
+        entries: &entries,
+    })
+}
+
+/// The kernel after `library`, its pipeline with the BVH in group 0 and ours in group 1.
+fn pipeline(
+    ctx: &GpuContext,
+    library: &BvhLibrary,
+    bvh_layout: &wgpu::BindGroupLayout,
+    layout: &wgpu::BindGroupLayout,
+) -> Result<wgpu::ComputePipeline, PathError> {
+    let module = ctx.shader_module(library, &kernel_source(), "path_trace.wgsl")?;
+    let device = ctx.device();
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("path tracer"),
+        bind_group_layouts: &[Some(bvh_layout), Some(layout)],
+        immediate_size: 0,
+    });
+    // The device's trip budget: a ray that spends it ends its path (counted), never hangs.
+    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+    Ok(
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("path tracer"),
+            layout: Some(&pipeline_layout),
+            module: &module,
+            entry_point: Some("path_main"),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants: &constants,
+                zero_initialize_workgroup_memory: false,
+            },
+            cache: None,
+        }),
+    )
+}

@@ -1,0 +1,254 @@
+// path_trace.wgsl: a progressive path tracer over the traversal library's public calls
+// (`bvh_trace_closest`, `bvh_trace_any`, `bvh_hit_surface`), composed after the library
+// and path_sampling.wgsl. One invocation per pixel adds one sample to the pixel's sum in
+// `path_accum`; the CPU twin (`bvhtrace_path::twin`) traces the same paths.
+//
+// Per vertex: the emission met (weighted by multiple importance sampling against the light
+// sampling that could have found it), then next-event estimation toward the sun, the
+// environment (cosine-weighted) and one emissive triangle (by power), each with a shadow
+// ray (`bvh_trace_any`), then a bounce sampled from the material; Russian roulette from
+// the third bounce, at most `max_depth` bounces.
+
+// `bvhtrace_path::PathParams`.
+struct PathParams {
+    eye: vec3<f32>,
+    tan_half_fov: f32,
+    forward: vec3<f32>,
+    aspect: f32,
+    right: vec3<f32>,
+    width: u32,
+    up: vec3<f32>,
+    height: u32,
+    sun_dir: vec3<f32>,
+    max_depth: u32,
+    sun: vec3<f32>,
+    light_count: u32,
+    env: vec3<f32>,
+    sample: u32,
+    seed: u32,
+    material_count: u32,
+    prim_count: u32,
+    pad: u32,
+}
+
+// `bvhtrace_path::PathMaterial`.
+struct PathMaterial {
+    base_color: vec4<f32>,
+    emissive: vec3<f32>,
+    metallic: f32,
+    roughness: f32,
+    pad0: f32,
+    pad1: f32,
+    pad2: f32,
+}
+
+// `bvhtrace_path::PathLight`: an emissive triangle `v0`, `v0 + e1`, `v0 + e2`, chosen with
+// probability `cdf[i] - cdf[i - 1]`; `pdf_area` is that over its area.
+struct PathLight {
+    v0: vec3<f32>,
+    cdf: f32,
+    e1: vec3<f32>,
+    pdf_area: f32,
+    e2: vec3<f32>,
+    prim: u32,
+    emission: vec3<f32>,
+    pad: u32,
+}
+
+// Per primitive (the hit's `prim`): its material, and its light (`PATH_NO_LIGHT` for none).
+const PATH_NO_LIGHT: u32 = 0xffffffffu;
+// Longer than any scene: the interval of rays toward the sun and the environment.
+const PATH_FAR: f32 = 1e30;
+
+@group(1) @binding(0) var<uniform> path_params: PathParams;
+@group(1) @binding(1) var<storage, read> path_materials: array<PathMaterial>;
+@group(1) @binding(2) var<storage, read> path_prims: array<vec2<u32>>;
+@group(1) @binding(3) var<storage, read> path_lights: array<PathLight>;
+// Per pixel: the sum of its samples' radiance, and their count in `w`.
+@group(1) @binding(4) var<storage, read_write> path_accum: array<vec4<f32>>;
+// Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite.
+@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 2>;
+
+fn path_scale(v: vec3<f32>, s: f32) -> vec3<f32> {
+    return vec3<f32>(v.x * s, v.y * s, v.z * s);
+}
+
+fn path_mul(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(a.x * b.x, a.y * b.y, a.z * b.z);
+}
+
+fn path_add(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(a.x + b.x, a.y + b.y, a.z + b.z);
+}
+
+fn path_is_black(v: vec3<f32>) -> bool {
+    return !(v.x > 0.0 || v.y > 0.0 || v.z > 0.0);
+}
+
+// Whether anything lies on `ray` in its interval; a ray the walk gave up on counts as
+// blocked (and is counted).
+fn path_blocked(ray: BvhRay, lane: u32) -> bool {
+    let prim = bvh_trace_any(ray, lane).hit.prim;
+    if (prim == BVH_INCOMPLETE) {
+        atomicAdd(&path_stats[0], 1u);
+    }
+    return prim != BVH_MISS && prim != BVH_INVALID_RAY;
+}
+
+// The light whose cdf first exceeds `u` (binary search).
+fn path_pick_light(u: f32) -> u32 {
+    var lo = 0u;
+    var hi = path_params.light_count - 1u;
+    while (lo < hi) {
+        let mid = (lo + hi) / 2u;
+        if (u < path_lights[mid].cdf) {
+            hi = mid;
+        } else {
+            lo = mid + 1u;
+        }
+    }
+    return lo;
+}
+
+// One sample of the radiance reaching the camera through pixel (`x`, `y`).
+fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
+    let p = path_params;
+    var r = path_rng(y * p.width + x, p.sample, p.seed);
+    let jx = path_next(&r);
+    let jy = path_next(&r);
+    let px = (2.0 * (f32(x) + jx) / f32(p.width) - 1.0) * p.tan_half_fov * p.aspect;
+    let py = (1.0 - 2.0 * (f32(y) + jy) / f32(p.height)) * p.tan_half_fov;
+    var ray = BvhRay(p.eye, 0.0, path_normalize(vec3<f32>(
+        p.forward.x + p.right.x * px + p.up.x * py,
+        p.forward.y + p.right.y * px + p.up.y * py,
+        p.forward.z + p.right.z * px + p.up.z * py,
+    )), PATH_FAR);
+    var radiance = vec3<f32>(0.0);
+    var throughput = vec3<f32>(1.0);
+    // The last bounce's density and normal, for the weights of what it finds.
+    var last_pdf = 0.0;
+    var last_n = vec3<f32>(0.0);
+    let has_env = !path_is_black(p.env);
+    for (var depth = 0u; depth < p.max_depth; depth += 1u) {
+        let hit = bvh_trace_closest(ray, lane).hit;
+        if (hit.prim == BVH_INCOMPLETE) {
+            atomicAdd(&path_stats[0], 1u);
+            break;
+        }
+        if (hit.prim >= BVH_INVALID_RAY) {
+            var w = 1.0;
+            if (depth > 0u && has_env) {
+                w = path_mis(last_pdf, max(path_dot(last_n, ray.dir), 0.0) / PATH_PI);
+            }
+            radiance = path_add(radiance, path_scale(path_mul(throughput, p.env), w));
+            break;
+        }
+        let s = bvh_hit_surface(ray, hit);
+        let n = s.normal;
+        let prim = path_prims[hit.prim];
+        let m = path_materials[prim.x];
+        if (!path_is_black(m.emissive)) {
+            var w = 1.0;
+            if (depth > 0u && prim.y != PATH_NO_LIGHT) {
+                let cos_l = abs(path_dot(n, ray.dir));
+                let light_pdf = path_lights[prim.y].pdf_area * (hit.t * hit.t) / cos_l;
+                w = path_mis(last_pdf, light_pdf);
+            }
+            radiance = path_add(radiance, path_scale(path_mul(throughput, m.emissive), w));
+        }
+        let wo = vec3<f32>(-ray.dir.x, -ray.dir.y, -ray.dir.z);
+        let lobes = path_lobes(m.base_color.xyz, m.metallic, m.roughness);
+
+        // The sun: a direction, found only by a shadow ray.
+        if (!path_is_black(p.sun)) {
+            let e = path_eval(lobes, n, wo, p.sun_dir);
+            if (e.pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, p.sun_dir, PATH_FAR), lane)) {
+                radiance = path_add(radiance, path_mul(throughput, path_mul(e.value, p.sun)));
+            }
+        }
+        // The environment, cosine-weighted about the normal.
+        if (has_env) {
+            let wi = path_cosine(path_frame(n), &r);
+            let env_pdf = path_dot(n, wi) / PATH_PI;
+            let e = path_eval(lobes, n, wo, wi);
+            if (e.pdf > 0.0 && env_pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, wi, PATH_FAR), lane)) {
+                let w = path_mis(env_pdf, e.pdf) / env_pdf;
+                radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, p.env)), w));
+            }
+        }
+        // One emissive triangle, chosen by power, a uniform point on it.
+        if (p.light_count > 0u) {
+            let light = path_lights[path_pick_light(path_next(&r))];
+            let su = sqrt(path_next(&r));
+            let b1 = 1.0 - su;
+            let b2 = path_next(&r) * su;
+            let q = vec3<f32>(
+                light.v0.x + light.e1.x * b1 + light.e2.x * b2,
+                light.v0.y + light.e1.y * b1 + light.e2.y * b2,
+                light.v0.z + light.e1.z * b1 + light.e2.z * b2,
+            );
+            let d = vec3<f32>(q.x - s.origin.x, q.y - s.origin.y, q.z - s.origin.z);
+            let dist2 = path_dot(d, d);
+            let dist = sqrt(dist2);
+            let wi = vec3<f32>(d.x / dist, d.y / dist, d.z / dist);
+            let nl = path_normalize(bvh_cross(light.e1, light.e2));
+            let cos_l = abs(path_dot(nl, wi));
+            let e = path_eval(lobes, n, wo, wi);
+            if (e.pdf > 0.0 && cos_l > 0.0) {
+                // The point moved off the light toward the surface, so the light itself
+                // does not block the shadow ray.
+                let toward = select(nl, -nl, path_dot(nl, wi) > 0.0);
+                let target_point = bvh_offset_ray_origin(q, toward);
+                let dt = vec3<f32>(target_point.x - s.origin.x, target_point.y - s.origin.y, target_point.z - s.origin.z);
+                if (!path_blocked(BvhRay(s.origin, 0.0, dt, 1.0), lane)) {
+                    let light_pdf = light.pdf_area * dist2 / cos_l;
+                    let w = path_mis(light_pdf, e.pdf) / light_pdf;
+                    radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, light.emission)), w));
+                }
+            }
+        }
+        // The bounce.
+        let wi = path_sample_lobes(lobes, n, wo, &r);
+        let e = path_eval(lobes, n, wo, wi);
+        if (!(e.pdf > 0.0) || path_is_black(e.value)) {
+            break;
+        }
+        throughput = path_mul(throughput, vec3<f32>(e.value.x / e.pdf, e.value.y / e.pdf, e.value.z / e.pdf));
+        last_pdf = e.pdf;
+        last_n = n;
+        if (depth >= 2u) {
+            let survive = min(max(throughput.x, max(throughput.y, throughput.z)), 0.95);
+            if (path_next(&r) >= survive) {
+                break;
+            }
+            throughput = path_scale(throughput, 1.0 / survive);
+        }
+        ray = BvhRay(s.origin, 0.0, wi, PATH_FAR);
+    }
+    return radiance;
+}
+
+// 8 x 8 invocations: the walks' stacks are laid out for at most 64 lanes a workgroup.
+@compute @workgroup_size(8, 8)
+fn path_main(
+    @builtin(global_invocation_id) id: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let p = path_params;
+    if (id.x >= p.width || id.y >= p.height) {
+        return;
+    }
+    var c = path_radiance(id.x, id.y, lane);
+    // Never a NaN pixel: a sample that is not finite is dropped (and counted).
+    let big = 3.0e38;
+    if (!(abs(c.x) <= big && abs(c.y) <= big && abs(c.z) <= big)) {
+        atomicAdd(&path_stats[1], 1u);
+        c = vec3<f32>(0.0);
+    }
+    let i = id.y * p.width + id.x;
+    var sum = vec4<f32>(0.0);
+    if (p.sample > 0u) {
+        sum = path_accum[i];
+    }
+    path_accum[i] = vec4<f32>(sum.x + c.x, sum.y + c.y, sum.z + c.z, sum.w + 1.0);
+}
