@@ -66,8 +66,12 @@ const PATH_FAR: f32 = 1e30;
 @group(1) @binding(3) var<storage, read> path_lights: array<PathLight>;
 // Per pixel: the sum of its samples' radiance, and their count in `w`.
 @group(1) @binding(4) var<storage, read_write> path_accum: array<vec4<f32>>;
-// Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite.
-@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 2>;
+// Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite,
+// rays traced (closest and any hit; wraps past 2^32).
+@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 4>;
+
+// The invocation's rays, added to `path_stats[2]` once at its end.
+var<private> path_rays: u32;
 
 fn path_scale(v: vec3<f32>, s: f32) -> vec3<f32> {
     return vec3<f32>(v.x * s, v.y * s, v.z * s);
@@ -88,6 +92,7 @@ fn path_is_black(v: vec3<f32>) -> bool {
 // Whether anything lies on `ray` in its interval; a ray the walk gave up on counts as
 // blocked (and is counted).
 fn path_blocked(ray: BvhRay, lane: u32) -> bool {
+    path_rays += 1u;
     let prim = bvh_trace_any(ray, lane).hit.prim;
     if (prim == BVH_INCOMPLETE) {
         atomicAdd(&path_stats[0], 1u);
@@ -131,6 +136,7 @@ fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
     let has_env = !path_is_black(p.env);
     for (var depth = 0u; depth < p.max_depth; depth += 1u) {
         let hit = bvh_trace_closest(ray, lane).hit;
+        path_rays += 1u;
         if (hit.prim == BVH_INCOMPLETE) {
             atomicAdd(&path_stats[0], 1u);
             break;
@@ -238,7 +244,9 @@ fn path_main(
     if (id.x >= p.width || id.y >= p.height) {
         return;
     }
+    path_rays = 0u;
     var c = path_radiance(id.x, id.y, lane);
+    atomicAdd(&path_stats[2], path_rays);
     // Never a NaN pixel: a sample that is not finite is dropped (and counted).
     let big = 3.0e38;
     if (!(abs(c.x) <= big && abs(c.y) <= big && abs(c.z) <= big)) {

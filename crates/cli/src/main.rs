@@ -6,6 +6,7 @@ mod cost;
 mod embree;
 mod geometry;
 mod output;
+mod path;
 mod render;
 mod shade;
 mod stress;

@@ -203,6 +203,8 @@ pub struct RenderArgs {
     /// on every backend.
     #[arg(long)]
     pub opaque: bool,
+    #[command(flatten)]
+    pub path: crate::path::PathArgs,
 }
 
 /// The camera: explicit flags, else the scene's, else framing the bounds. Rays follow the
@@ -281,7 +283,7 @@ pub enum Layout {
 impl RenderArgs {
     /// The walk asked for, `--layout` and `--traversal` together (`None`: the backend's
     /// default).
-    fn walk(&self) -> Result<Option<Traversal>> {
+    pub(crate) fn walk(&self) -> Result<Option<Traversal>> {
         match (self.layout, self.traversal) {
             (Some(Layout::Wide), Some(t)) if !t.is_wide() => {
                 bail!("--layout wide has one walk, wide; --traversal {t} walks the binary layout")
@@ -311,6 +313,9 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
+    }
+    if args.shade == Shade::Path {
+        return crate::path::render(&args, png, json_out);
     }
     let walk = args.walk()?;
     // The device, opened once: it builds the tree (a device builder) and traces it.
@@ -646,6 +651,7 @@ impl RenderArgs {
             Shade::Diffuse => "diffuse",
             Shade::Ao => "ambient occlusion",
             Shade::Heatmap => "heatmap",
+            Shade::Path => "path traced",
         }
     }
 }

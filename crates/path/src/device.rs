@@ -143,7 +143,7 @@ impl GpuPathTracer {
         );
         let stats_buffer = init(
             "path stats",
-            &[0; 8],
+            &[0; 16],
             U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         Ok(GpuPathTracer {
@@ -191,7 +191,7 @@ impl GpuPathTracer {
         };
         self.ctx
             .queue()
-            .write_buffer(&self.stats_buffer, 0, &[0; 8]);
+            .write_buffer(&self.stats_buffer, 0, &[0; 16]);
     }
 
     /// Samples per pixel summed so far.
@@ -280,6 +280,20 @@ impl GpuPathTracer {
         Ok(())
     }
 
+    /// Waits until the device has finished the samples submitted so far (reads nothing).
+    pub fn wait(&self) -> Result<(), PathError> {
+        self.ctx
+            .device()
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| {
+                PathError::Gpu(GpuError::Device {
+                    during: "path tracing",
+                    message: e.to_string(),
+                })
+            })
+    }
+
     /// Reads the sums and the counts of what the paths could not trace back from the
     /// device (waits for the samples submitted so far).
     pub fn read(&self) -> Result<(Accumulation, PathStats), PathError> {
@@ -290,7 +304,7 @@ impl GpuPathTracer {
         let p = &self.params;
         let n = p.width as usize * p.height as usize;
         let sums: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&bytes[0][..n * 16]);
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[1][..8]);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[1][..16]);
         let image = Accumulation {
             width: p.width,
             height: p.height,
@@ -299,6 +313,7 @@ impl GpuPathTracer {
         let stats = PathStats {
             incomplete: u64::from(words[0]),
             not_finite: u64::from(words[1]),
+            rays: u64::from(words[2]),
         };
         Ok((image, stats))
     }

@@ -72,6 +72,8 @@ pub struct PathStats {
     /// Samples whose radiance was not finite (or above 3e38): dropped, so that no pixel is
     /// NaN.
     pub not_finite: u64,
+    /// Rays traced: closest hits and shadow rays (on a device, modulo 2^32).
+    pub rays: u64,
 }
 
 impl std::ops::Add for PathStats {
@@ -80,6 +82,7 @@ impl std::ops::Add for PathStats {
         PathStats {
             incomplete: self.incomplete + o.incomplete,
             not_finite: self.not_finite + o.not_finite,
+            rays: self.rays + o.rays,
         }
     }
 }

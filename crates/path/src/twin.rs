@@ -34,12 +34,14 @@ struct Walker<'a> {
 
 impl Walker<'_> {
     fn closest(&mut self, ray: &Ray) -> Hit {
+        self.stats.rays += 1;
         let opts = TraceOptions::closest(self.tracer.traversal);
         bvhtrace_core::trace_ray_with(self.tracer.bvh, ray, &opts, &mut self.stack).0
     }
 
     /// `path_blocked`.
     fn blocked(&mut self, ray: &Ray) -> bool {
+        self.stats.rays += 1;
         let opts = TraceOptions::any(self.tracer.traversal);
         let prim = bvhtrace_core::trace_ray_with(self.tracer.bvh, ray, &opts, &mut self.stack)
             .0

@@ -5,7 +5,8 @@
 use bvhtrace_core::{BuildOptions, Traversal};
 use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError};
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathWalk,
+    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
+    PathWalk,
 };
 use glam::Vec3;
 
@@ -57,16 +58,17 @@ fn both(ctx: &GpuContext, case: &Case, walk: PathWalk) -> (Accumulation, Accumul
     };
     let cpu = CpuPathTracer::new(&bvh, &tris, &shading, traversal).expect("twin");
     let mut twin = Accumulation::default();
+    let mut twin_stats = PathStats::default();
     for s in 0..case.samples {
-        let stats = cpu.add_sample(
-            &PathParams {
-                sample: s,
-                ..params
-            },
-            &mut twin,
-        );
-        assert_eq!(stats, Default::default());
+        let p = PathParams {
+            sample: s,
+            ..params
+        };
+        twin_stats = twin_stats + cpu.add_sample(&p, &mut twin);
     }
+    // The same rays, counted on both sides.
+    assert_eq!(twin_stats, stats, "{}: the twin's counts", case.spec);
+    assert!(stats.rays > u64::from(case.samples) * twin.sums.len() as u64);
     let differ = (device.sums.iter().zip(&twin.sums))
         .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
         .count();

@@ -19,7 +19,7 @@ pub fn hit_colour(
     value: f32,
 ) -> [u8; 3] {
     match shade {
-        Shade::Normal => palette::normal_colour(normal),
+        Shade::Normal | Shade::Path => palette::normal_colour(normal),
         Shade::Depth => palette::depth_grey(t, depth_range),
         Shade::Diffuse => palette::diffuse_colour(value),
         Shade::Ao => palette::ao_grey(value),

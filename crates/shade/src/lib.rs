@@ -79,16 +79,21 @@ pub enum Shade {
     Ao,
     /// Nodes visited per pixel, with a colour legend.
     Heatmap,
+    /// Path traced on the device (`bvhtrace-path`): camera rays, bounces, lights and the
+    /// progressive sum all in WGSL, or on the CPU twin with the CPU backend. Not shaded
+    /// from hits here: [`compose_rgb`] draws it as [`Shade::Normal`].
+    Path,
 }
 
 impl Shade {
     /// Every mode.
-    pub const ALL: [Shade; 5] = [
+    pub const ALL: [Shade; 6] = [
         Shade::Normal,
         Shade::Depth,
         Shade::Diffuse,
         Shade::Ao,
         Shade::Heatmap,
+        Shade::Path,
     ];
 
     /// The modes that draw the surfaces hit, in the order a UI lists them (the viewer
@@ -103,6 +108,7 @@ impl Shade {
             Shade::Diffuse => "diffuse (soft shadows)",
             Shade::Ao => "ambient occlusion",
             Shade::Heatmap => "heatmap",
+            Shade::Path => "path traced",
         }
     }
 

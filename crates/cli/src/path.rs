@@ -1,0 +1,274 @@
+//! `bvhtrace render --shade path`: the scene path traced on the device (`bvhtrace-path`),
+//! its samples summed there and read back once, or on the CPU twin with `--backend cpu`.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use bvhtrace_core::{FlatBvh, Traversal, Triangle};
+use bvhtrace_path::{
+    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
+    PathWalk,
+};
+use bvhtrace_scene::SceneBvh;
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use crate::backend::{self, Backend, Device};
+use crate::output::{AtomicFile, JsonOut, write_png};
+use crate::render::{RenderArgs, camera_for, load_and_build};
+
+/// The path tracer's flags of `bvhtrace render`.
+#[derive(clap::Args, Clone)]
+pub struct PathArgs {
+    /// Samples per pixel (`--shade path`).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub spp: u32,
+    /// The most bounces a path takes (`--shade path`).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub max_depth: u32,
+    /// Direction toward a sun, X,Y,Z (`--shade path`; default: no sun).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, allow_hyphen_values = true)]
+    pub sun: Option<Vec3>,
+    /// The sun's irradiance on a surface facing it (`--shade path`).
+    #[arg(long, default_value_t = 3.0)]
+    pub sun_power: f32,
+    /// The sky's constant radiance, R,G,B (`--shade path`; 0,0,0 for none).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, default_value = "0.5,0.5,0.5", allow_hyphen_values = true)]
+    pub sky: Vec3,
+    /// Scale of the radiance before tone mapping (`--shade path`).
+    #[arg(long, default_value_t = 1.0)]
+    pub exposure: f32,
+    /// Also write the linear radiance as a portable float map (`.pfm`, `--shade path`).
+    #[arg(long)]
+    pub hdr: Option<std::path::PathBuf>,
+    /// The random numbers' seed (`--shade path`).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u32,
+}
+
+impl PathArgs {
+    fn lighting(&self) -> Result<Lighting> {
+        let bad = |v: Vec3| !v.is_finite() || v.min_element() < 0.0;
+        if bad(self.sky) {
+            bail!(
+                "--sky must be three finite numbers of at least 0, got {}",
+                self.sky
+            );
+        }
+        if !(self.sun_power.is_finite() && self.sun_power >= 0.0) {
+            bail!(
+                "--sun-power must be a finite number of at least 0, got {}",
+                self.sun_power
+            );
+        }
+        if !(self.exposure.is_finite() && self.exposure > 0.0) {
+            bail!(
+                "--exposure must be a finite number above 0, got {}",
+                self.exposure
+            );
+        }
+        let sun_dir = self.sun.unwrap_or(Vec3::ZERO);
+        if self.sun.is_some() && !(sun_dir.is_finite() && sun_dir.length_squared() > 0.0) {
+            bail!("--sun must be a direction (finite, not zero), got {sun_dir}");
+        }
+        Ok(Lighting {
+            sun_dir,
+            sun: if self.sun.is_some() {
+                Vec3::splat(self.sun_power)
+            } else {
+                Vec3::ZERO
+            },
+            env: self.sky,
+        })
+    }
+}
+
+/// Where the samples are traced.
+enum Engine<'a> {
+    Device(Box<GpuPathTracer>),
+    Cpu(CpuPathTracer<'a>, Accumulation),
+}
+
+/// `render --shade path`: the image and, when asked, its linear radiance.
+pub fn render(args: &RenderArgs, png: AtomicFile, json_out: Option<JsonOut>) -> Result<()> {
+    let p = &args.path;
+    let lighting = p.lighting()?;
+    let hdr = p.hdr.as_deref().map(AtomicFile::create).transpose()?;
+    let walk = args.walk()?;
+    let opts = backend::options(args.backend, args.adapter.as_deref(), &Vec::from_iter(walk));
+    let device = backend::device(&opts)?;
+    let mut scene_args = args.scene.clone();
+    // One mesh: the shading data numbers the flattened triangles.
+    scene_args.flatten = true;
+    let built = load_and_build(&scene_args, Some(&device))?;
+    let SceneBvh::Flat { tris, mut bvh } = built.geometry else {
+        bail!("the path tracer traces the scene flattened");
+    };
+    if args.opaque {
+        bvh.set_masks(None).map_err(anyhow::Error::msg)?;
+    }
+    let shading = PathScene::new(&built.scene, &tris)?;
+    let cam = camera_for(&args.view, &built.scene)?;
+    let (w, h) = args.view.size;
+    let params = PathParams::new(&cam, (w, h), &lighting, p.max_depth, &shading);
+    let params = PathParams {
+        seed: p.seed,
+        ..params
+    };
+    let traversal = walk.unwrap_or(match device.backend() {
+        Backend::Cpu => Traversal::FullStack,
+        _ => Traversal::Stackless,
+    });
+    if traversal.is_wide() {
+        bvh.build_wide();
+    }
+    let mut engine = open(&device, &bvh, &tris, &shading, traversal)?;
+    eprintln!(
+        "path tracing {} ({} triangles, {} emissive) at {w}x{h}, {} spp, {} bounces at most, on {} ({})",
+        built.scene.name,
+        tris.len(),
+        shading.lights.len(),
+        p.spp,
+        p.max_depth,
+        device.name(),
+        walk_name(&engine, traversal),
+    );
+    let start = Instant::now();
+    let (image, stats) = trace(&mut engine, params, p.spp)?;
+    let seconds = start.elapsed().as_secs_f64();
+    if image.not_finite_pixels() > 0 {
+        bail!(
+            "{} pixels are not finite (a bug: samples that are not are dropped)",
+            image.not_finite_pixels()
+        );
+    }
+    write_png(png, w, h, image.to_srgb8(p.exposure))?;
+    if let Some(f) = hdr {
+        f.finish_with_bytes(&image.to_pfm())?;
+    }
+    let paths = f64::from(w) * f64::from(h) * f64::from(p.spp);
+    eprintln!(
+        "{} spp in {seconds:.2} s: {:.1} samples per second, {:.2} Mpaths/s, {:.2} Mrays/s ({} rays{}{})",
+        p.spp,
+        f64::from(p.spp) / seconds,
+        paths / seconds / 1e6,
+        stats.rays as f64 / seconds / 1e6,
+        stats.rays,
+        note(stats.incomplete, "given up by the walk's trip budget"),
+        note(stats.not_finite, "samples dropped as not finite"),
+    );
+    eprintln!("wrote {}", args.output.display());
+    if let Some(j) = json_out {
+        j.write(&json!({
+            "scene": built.scene.name,
+            "shade": "path",
+            "backend": format!("{:?}", device.backend()).to_lowercase(),
+            "device": device.name(),
+            "walk": walk_name(&engine, traversal),
+            "size": [w, h],
+            "spp": p.spp,
+            "max_depth": p.max_depth,
+            "seconds": seconds,
+            "samples_per_s": f64::from(p.spp) / seconds,
+            "mpaths_per_s": paths / seconds / 1e6,
+            "rays": stats.rays,
+            "mrays_per_s": stats.rays as f64 / seconds / 1e6,
+            "incomplete": stats.incomplete,
+            "not_finite": stats.not_finite,
+            "load_ms": built.load_ms,
+            "build_ms": built.build_ms,
+        }))?;
+    }
+    Ok(())
+}
+
+fn note(n: u64, what: &str) -> String {
+    if n == 0 {
+        String::new()
+    } else {
+        format!("; {n} {what}")
+    }
+}
+
+fn walk_name(engine: &Engine<'_>, traversal: Traversal) -> String {
+    match engine {
+        Engine::Device(t) if t.walk() == PathWalk::RayQueries => "the device's ray queries".into(),
+        Engine::Device(_) => format!("{} walk, WGSL", traversal.name()),
+        Engine::Cpu(..) => format!("{} walk, the CPU twin", traversal.name()),
+    }
+}
+
+/// The path tracer on `device`: the kernel on a wgpu device, the twin on the CPU.
+fn open<'a>(
+    device: &Device,
+    bvh: &'a FlatBvh,
+    tris: &'a [Triangle],
+    shading: &'a PathScene,
+    traversal: Traversal,
+) -> Result<Engine<'a>> {
+    match device.backend() {
+        Backend::Cpu => Ok(Engine::Cpu(
+            CpuPathTracer::new(bvh, tris, shading, traversal)?,
+            Accumulation::default(),
+        )),
+        b @ (Backend::Wgpu | Backend::RayQuery) => {
+            let ctx = device
+                .wgpu_context()
+                .context("a wgpu backend without its context")?;
+            let walk = match b {
+                Backend::RayQuery => PathWalk::RayQueries,
+                _ => PathWalk::Walk(traversal),
+            };
+            Ok(Engine::Device(Box::new(GpuPathTracer::with_walk(
+                ctx, bvh, shading, walk,
+            )?)))
+        }
+        other => bail!(
+            "--shade path runs on wgpu (--backend gpu or ray-query) or the CPU twin (--backend \
+             cpu), not on {other:?}"
+        ),
+    }
+}
+
+/// `spp` samples of `params`, with a progress bar; the sums and what the paths met.
+fn trace(
+    engine: &mut Engine<'_>,
+    params: PathParams,
+    spp: u32,
+) -> Result<(Accumulation, PathStats)> {
+    let pb = ProgressBar::new(u64::from(spp));
+    pb.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} samples {elapsed_precise} (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let out = match engine {
+        Engine::Device(t) => {
+            t.restart(params);
+            // Each sample waited for, so that the bar tells the truth; nothing read back.
+            for _ in 0..spp {
+                t.add_samples(1)?;
+                t.wait()?;
+                pb.inc(1);
+            }
+            t.read()?
+        }
+        Engine::Cpu(t, sums) => {
+            let mut stats = PathStats::default();
+            for s in 0..spp {
+                stats = stats
+                    + t.add_sample(
+                        &PathParams {
+                            sample: s,
+                            ..params
+                        },
+                        sums,
+                    );
+                pb.inc(1);
+            }
+            (std::mem::take(sums), stats)
+        }
+    };
+    pb.finish_and_clear();
+    Ok(out)
+}
