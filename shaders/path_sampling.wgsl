@@ -91,39 +91,23 @@ fn path_mis(a: f32, b: f32) -> f32 {
     return a * a / (a * a + b * b);
 }
 
-fn path_luminance(c: vec3<f32>) -> f32 {
-    return 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z;
-}
-
-// A material as sampled: the diffuse albedo, the specular reflectance at normal incidence,
-// GGX's alpha and the chance of sampling the specular lobe.
-struct PathLobes {
+// A material as sampled (`bvhtrace_path::PathMaterial`): computed once per material on
+// the host (`bvhtrace_path::sampling::Lobes`), complements included (`1 - f0`,
+// `alpha^2 - 1`, ...). A shader compiler may turn `a + c * (b - a)` into a lerp of its
+// own rounding (Mesa's NIR does), so no expression here has that shape.
+struct PathMaterial {
     diffuse: vec3<f32>,
-    alpha: f32,
+    alpha2: f32,
     f0: vec3<f32>,
     p_spec: f32,
-}
-
-// glTF's metallic-roughness model: Lambert under GGX, the metal tinting the reflection.
-// Roughness is clamped to at least `PATH_MIN_ROUGHNESS` (no perfect mirrors).
-const PATH_MIN_ROUGHNESS: f32 = 0.05;
-
-fn path_lobes(base: vec3<f32>, metallic: f32, roughness: f32) -> PathLobes {
-    let dielectric = 1.0 - metallic;
-    let diffuse = vec3<f32>(base.x * dielectric, base.y * dielectric, base.z * dielectric);
-    let f0 = vec3<f32>(
-        0.04 * dielectric + base.x * metallic,
-        0.04 * dielectric + base.y * metallic,
-        0.04 * dielectric + base.z * metallic,
-    );
-    let r = max(roughness, PATH_MIN_ROUGHNESS);
-    let ls = path_luminance(f0);
-    let ld = path_luminance(diffuse);
-    var p = 1.0;
-    if (ld > 0.0) {
-        p = min(max(ls / (ls + ld), 0.1), 0.9);
-    }
-    return PathLobes(diffuse, r * r, f0, p);
+    f0c: vec3<f32>,
+    alpha2_m1: f32,
+    emissive: vec3<f32>,
+    one_m_alpha2: f32,
+    p_diffuse: f32,
+    base_alpha: f32,
+    pad0: f32,
+    pad1: f32,
 }
 
 // `f(wo, wi) cos(wi)` and the density of `path_sample_lobes` choosing `wi`, about the
@@ -133,11 +117,11 @@ struct PathEval {
     pdf: f32,
 }
 
-fn path_g1(a2: f32, c: f32) -> f32 {
-    return 2.0 * c / (c + sqrt(a2 + (1.0 - a2) * c * c));
+fn path_g1(m: PathMaterial, c: f32) -> f32 {
+    return 2.0 * c / (c + sqrt(m.alpha2 + m.one_m_alpha2 * c * c));
 }
 
-fn path_eval(m: PathLobes, n: vec3<f32>, wo: vec3<f32>, wi: vec3<f32>) -> PathEval {
+fn path_eval(m: PathMaterial, n: vec3<f32>, wo: vec3<f32>, wi: vec3<f32>) -> PathEval {
     let cos_i = path_dot(n, wi);
     let cos_o = path_dot(n, wo);
     if (!(cos_i > 0.0 && cos_o > 0.0)) {
@@ -146,34 +130,32 @@ fn path_eval(m: PathLobes, n: vec3<f32>, wo: vec3<f32>, wi: vec3<f32>) -> PathEv
     let h = path_normalize(vec3<f32>(wo.x + wi.x, wo.y + wi.y, wo.z + wi.z));
     let nh = path_dot(n, h);
     let oh = max(path_dot(wo, h), 1e-8);
-    let a2 = m.alpha * m.alpha;
-    let dd = nh * nh * (a2 - 1.0) + 1.0;
-    let d = a2 / (PATH_PI * dd * dd);
-    let g = path_g1(a2, cos_o) * path_g1(a2, cos_i);
+    let dd = nh * nh * m.alpha2_m1 + 1.0;
+    let d = m.alpha2 / (PATH_PI * dd * dd);
+    let g = path_g1(m, cos_o) * path_g1(m, cos_i);
     let fw = 1.0 - oh;
     let fw5 = fw * fw * fw * fw * fw;
     let spec = d * g / (4.0 * cos_o);
     let diff = cos_i / PATH_PI;
     let value = vec3<f32>(
-        m.diffuse.x * diff + (m.f0.x + (1.0 - m.f0.x) * fw5) * spec,
-        m.diffuse.y * diff + (m.f0.y + (1.0 - m.f0.y) * fw5) * spec,
-        m.diffuse.z * diff + (m.f0.z + (1.0 - m.f0.z) * fw5) * spec,
+        m.diffuse.x * diff + (m.f0.x + m.f0c.x * fw5) * spec,
+        m.diffuse.y * diff + (m.f0.y + m.f0c.y * fw5) * spec,
+        m.diffuse.z * diff + (m.f0.z + m.f0c.z * fw5) * spec,
     );
-    let pdf = (1.0 - m.p_spec) * cos_i / PATH_PI + m.p_spec * d * nh / (4.0 * oh);
+    let pdf = m.p_diffuse * cos_i / PATH_PI + m.p_spec * d * nh / (4.0 * oh);
     return PathEval(value, pdf);
 }
 
 // A direction from the lobes: the specular one with chance `p_spec` (a GGX normal, `wo`
 // reflected about it), else cosine-weighted.
-fn path_sample_lobes(m: PathLobes, n: vec3<f32>, wo: vec3<f32>, r: ptr<function, PathRng>) -> vec3<f32> {
+fn path_sample_lobes(m: PathMaterial, n: vec3<f32>, wo: vec3<f32>, r: ptr<function, PathRng>) -> vec3<f32> {
     let f = path_frame(n);
     if (path_next(r) >= m.p_spec) {
         return path_cosine(f, r);
     }
     let d = path_disk(r);
     let xi = path_next(r);
-    let a2 = m.alpha * m.alpha;
-    let c2 = (1.0 - xi) / (1.0 + (a2 - 1.0) * xi);
+    let c2 = (1.0 - xi) / (1.0 + m.alpha2_m1 * xi);
     let cos_h = sqrt(c2);
     let sin_h = sqrt(max(0.0, 1.0 - c2));
     let len = sqrt(d.x * d.x + d.y * d.y);

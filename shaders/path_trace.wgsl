@@ -31,17 +31,6 @@ struct PathParams {
     pad: u32,
 }
 
-// `bvhtrace_path::PathMaterial`.
-struct PathMaterial {
-    base_color: vec4<f32>,
-    emissive: vec3<f32>,
-    metallic: f32,
-    roughness: f32,
-    pad0: f32,
-    pad1: f32,
-    pad2: f32,
-}
-
 // `bvhtrace_path::PathLight`: an emissive triangle `v0`, `v0 + e1`, `v0 + e2`, chosen with
 // probability `cdf[i] - cdf[i - 1]`; `pdf_area` is that over its area.
 struct PathLight {
@@ -163,7 +152,7 @@ fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
             radiance = path_add(radiance, path_scale(path_mul(throughput, m.emissive), w));
         }
         let wo = vec3<f32>(-ray.dir.x, -ray.dir.y, -ray.dir.z);
-        let lobes = path_lobes(m.base_color.xyz, m.metallic, m.roughness);
+        let lobes = m;
 
         // The sun: a direction, found only by a shadow ray.
         if (!path_is_black(p.sun)) {

@@ -47,7 +47,7 @@ mod scene;
 mod twin;
 
 pub use device::{GpuPathTracer, PathWalk, kernel_source};
-pub use scene::{Lighting, NO_LIGHT, PathLight, PathMaterial, PathParams, PathScene};
+pub use scene::{Lighting, MAX_EMISSION, NO_LIGHT, PathLight, PathMaterial, PathParams, PathScene};
 pub use twin::{CpuPathTracer, mean_luminance};
 
 /// Why a path tracer could not be made or run.

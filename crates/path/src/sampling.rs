@@ -5,6 +5,8 @@
 
 use glam::{Vec2, Vec3};
 
+use crate::scene::PathMaterial;
+
 /// `PATH_PI`.
 pub const PI: f32 = std::f32::consts::PI;
 /// The least roughness shaded (no perfect mirrors).
@@ -118,16 +120,7 @@ pub fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
-/// `PathLobes`: Lambert under GGX, as glTF's metallic-roughness model.
-#[derive(Clone, Copy, Debug)]
-pub struct Lobes {
-    diffuse: Vec3,
-    alpha: f32,
-    f0: Vec3,
-    p_spec: f32,
-}
-
-/// `PathEval`: `f(wo, wi) cos(wi)` and the density of [`Lobes::sample`] choosing `wi`.
+/// `PathEval`: `f(wo, wi) cos(wi)` and the density of [`sample`] choosing `wi`.
 #[derive(Clone, Copy, Debug)]
 pub struct Eval {
     /// `f cos`.
@@ -136,86 +129,91 @@ pub struct Eval {
     pub pdf: f32,
 }
 
-fn g1(a2: f32, c: f32) -> f32 {
-    2.0 * c / (c + (a2 + (1.0 - a2) * c * c).sqrt())
+/// glTF's metallic-roughness model as sampled (Lambert under GGX, the metal tinting the
+/// reflection), worked out once per material on the host, complements included, so the
+/// shader has no `a + c * (b - a)` for its compiler to turn into a lerp of other rounding.
+/// Roughness is clamped to at least [`MIN_ROUGHNESS`]; `emissive` is kept as given.
+pub fn lobes(
+    base: Vec3,
+    metallic: f32,
+    roughness: f32,
+    emissive: Vec3,
+    alpha: f32,
+) -> PathMaterial {
+    let dielectric = 1.0 - metallic;
+    let diffuse = base * dielectric;
+    let f0 = Vec3::splat(0.04 * dielectric) + base * metallic;
+    let r = roughness.max(MIN_ROUGHNESS);
+    let alpha2 = (r * r) * (r * r);
+    let (ls, ld) = (luminance(f0), luminance(diffuse));
+    let p_spec = if ld > 0.0 {
+        (ls / (ls + ld)).clamp(0.1, 0.9)
+    } else {
+        1.0
+    };
+    PathMaterial {
+        diffuse: diffuse.to_array(),
+        alpha2,
+        f0: f0.to_array(),
+        p_spec,
+        f0c: (Vec3::ONE - f0).to_array(),
+        alpha2_m1: alpha2 - 1.0,
+        emissive: emissive.to_array(),
+        one_m_alpha2: 1.0 - alpha2,
+        p_diffuse: 1.0 - p_spec,
+        base_alpha: alpha,
+        pad: [0.0; 2],
+    }
 }
 
-impl Lobes {
-    /// `path_lobes`.
-    pub fn new(base: Vec3, metallic: f32, roughness: f32) -> Lobes {
-        let dielectric = 1.0 - metallic;
-        let diffuse = Vec3::new(
-            base.x * dielectric,
-            base.y * dielectric,
-            base.z * dielectric,
-        );
-        let f0 = Vec3::new(
-            0.04 * dielectric + base.x * metallic,
-            0.04 * dielectric + base.y * metallic,
-            0.04 * dielectric + base.z * metallic,
-        );
-        let r = roughness.max(MIN_ROUGHNESS);
-        let ls = luminance(f0);
-        let ld = luminance(diffuse);
-        let mut p = 1.0;
-        if ld > 0.0 {
-            p = (ls / (ls + ld)).clamp(0.1, 0.9);
-        }
-        Lobes {
-            diffuse,
-            alpha: r * r,
-            f0,
-            p_spec: p,
-        }
-    }
+fn g1(m: &PathMaterial, c: f32) -> f32 {
+    2.0 * c / (c + (m.alpha2 + m.one_m_alpha2 * c * c).sqrt())
+}
 
-    /// `path_eval` about the unit normal `n` on `wo`'s side.
-    pub fn eval(&self, n: Vec3, wo: Vec3, wi: Vec3) -> Eval {
-        let cos_i = dot(n, wi);
-        let cos_o = dot(n, wo);
-        if !(cos_i > 0.0 && cos_o > 0.0) {
-            return Eval {
-                value: Vec3::ZERO,
-                pdf: 0.0,
-            };
-        }
-        let h = normalize(Vec3::new(wo.x + wi.x, wo.y + wi.y, wo.z + wi.z));
-        let nh = dot(n, h);
-        let oh = dot(wo, h).max(1e-8);
-        let a2 = self.alpha * self.alpha;
-        let dd = nh * nh * (a2 - 1.0) + 1.0;
-        let d = a2 / (PI * dd * dd);
-        let g = g1(a2, cos_o) * g1(a2, cos_i);
-        let fw = 1.0 - oh;
-        let fw5 = fw * fw * fw * fw * fw;
-        let spec = d * g / (4.0 * cos_o);
-        let diff = cos_i / PI;
-        let (kd, f0) = (self.diffuse, self.f0);
-        let value = Vec3::new(
-            kd.x * diff + (f0.x + (1.0 - f0.x) * fw5) * spec,
-            kd.y * diff + (f0.y + (1.0 - f0.y) * fw5) * spec,
-            kd.z * diff + (f0.z + (1.0 - f0.z) * fw5) * spec,
-        );
-        let pdf = (1.0 - self.p_spec) * cos_i / PI + self.p_spec * d * nh / (4.0 * oh);
-        Eval { value, pdf }
+/// `path_eval` about the unit normal `n` on `wo`'s side.
+pub fn eval(m: &PathMaterial, n: Vec3, wo: Vec3, wi: Vec3) -> Eval {
+    let cos_i = dot(n, wi);
+    let cos_o = dot(n, wo);
+    if !(cos_i > 0.0 && cos_o > 0.0) {
+        return Eval {
+            value: Vec3::ZERO,
+            pdf: 0.0,
+        };
     }
+    let h = normalize(Vec3::new(wo.x + wi.x, wo.y + wi.y, wo.z + wi.z));
+    let nh = dot(n, h);
+    let oh = dot(wo, h).max(1e-8);
+    let dd = nh * nh * m.alpha2_m1 + 1.0;
+    let d = m.alpha2 / (PI * dd * dd);
+    let g = g1(m, cos_o) * g1(m, cos_i);
+    let fw = 1.0 - oh;
+    let fw5 = fw * fw * fw * fw * fw;
+    let spec = d * g / (4.0 * cos_o);
+    let diff = cos_i / PI;
+    let (kd, f0, f0c) = (m.diffuse, m.f0, m.f0c);
+    let value = Vec3::new(
+        kd[0] * diff + (f0[0] + f0c[0] * fw5) * spec,
+        kd[1] * diff + (f0[1] + f0c[1] * fw5) * spec,
+        kd[2] * diff + (f0[2] + f0c[2] * fw5) * spec,
+    );
+    let pdf = m.p_diffuse * cos_i / PI + m.p_spec * d * nh / (4.0 * oh);
+    Eval { value, pdf }
+}
 
-    /// `path_sample_lobes`: a GGX normal's reflection with chance `p_spec`, else a
-    /// cosine-weighted direction.
-    pub fn sample(&self, n: Vec3, wo: Vec3, r: &mut Rng) -> Vec3 {
-        let f = Frame::new(n);
-        if r.uniform() >= self.p_spec {
-            return f.cosine(r);
-        }
-        let d = r.disk();
-        let xi = r.uniform();
-        let a2 = self.alpha * self.alpha;
-        let c2 = (1.0 - xi) / (1.0 + (a2 - 1.0) * xi);
-        let cos_h = c2.sqrt();
-        let sin_h = (1.0 - c2).max(0.0).sqrt();
-        let len = (d.x * d.x + d.y * d.y).sqrt();
-        let h = f.to_world(Vec3::new(sin_h * (d.x / len), sin_h * (d.y / len), cos_h));
-        let oh2 = 2.0 * dot(wo, h);
-        Vec3::new(h.x * oh2 - wo.x, h.y * oh2 - wo.y, h.z * oh2 - wo.z)
+/// `path_sample_lobes`: a GGX normal's reflection with chance `p_spec`, else a
+/// cosine-weighted direction.
+pub fn sample(m: &PathMaterial, n: Vec3, wo: Vec3, r: &mut Rng) -> Vec3 {
+    let f = Frame::new(n);
+    if r.uniform() >= m.p_spec {
+        return f.cosine(r);
     }
+    let d = r.disk();
+    let xi = r.uniform();
+    let c2 = (1.0 - xi) / (1.0 + m.alpha2_m1 * xi);
+    let cos_h = c2.sqrt();
+    let sin_h = (1.0 - c2).max(0.0).sqrt();
+    let len = (d.x * d.x + d.y * d.y).sqrt();
+    let h = f.to_world(Vec3::new(sin_h * (d.x / len), sin_h * (d.y / len), cos_h));
+    let oh2 = 2.0 * dot(wo, h);
+    Vec3::new(h.x * oh2 - wo.x, h.y * oh2 - wo.y, h.z * oh2 - wo.z)
 }

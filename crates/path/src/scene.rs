@@ -10,20 +10,33 @@ use glam::Vec3;
 
 use crate::PathError;
 
-/// A material as the path tracer shades it (WGSL `PathMaterial`, 48 bytes).
+/// A material as the path tracer samples it (WGSL `PathMaterial`, 80 bytes): glTF's
+/// metallic-roughness worked out into its lobes ([`crate::sampling::lobes`]).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct PathMaterial {
-    /// Linear base colour (alpha unused: masks cut in the walk).
-    pub base_color: [f32; 4],
+    /// The Lambert lobe's albedo: base colour times `1 - metallic`.
+    pub diffuse: [f32; 3],
+    /// GGX's `alpha^2` (`alpha` is roughness squared).
+    pub alpha2: f32,
+    /// Reflectance at normal incidence: 0.04 for a dielectric, the base colour for a metal.
+    pub f0: [f32; 3],
+    /// The chance of sampling the specular lobe.
+    pub p_spec: f32,
+    /// `1 - f0`.
+    pub f0c: [f32; 3],
+    /// `alpha^2 - 1`.
+    pub alpha2_m1: f32,
     /// Emitted radiance.
     pub emissive: [f32; 3],
-    /// Metalness in `[0, 1]`.
-    pub metallic: f32,
-    /// Perceptual roughness in `[0, 1]` (clamped to at least 0.05 when shading).
-    pub roughness: f32,
+    /// `1 - alpha^2`.
+    pub one_m_alpha2: f32,
+    /// `1 - p_spec`.
+    pub p_diffuse: f32,
+    /// The base colour's alpha (masks cut in the walk; kept for reports).
+    pub base_alpha: f32,
     /// Padding to 16 bytes.
-    pub pad: [f32; 3],
+    pub pad: [f32; 2],
 }
 
 /// An emissive triangle (WGSL `PathLight`, 64 bytes): `v0`, `v0 + e1`, `v0 + e2`.
@@ -162,23 +175,29 @@ impl PathScene {
     }
 }
 
-/// A material's shading values, each finite and in range.
+/// The most radiance a material emits per channel: far above any real light, far enough
+/// below `f32::MAX` that no path's sum overflows.
+pub const MAX_EMISSION: f32 = 1.0e6;
+
+/// A material's shading values, each finite and in range: factors clamped to `[0, 1]`
+/// (NaN to the glTF default), emission to `[0, MAX_EMISSION]` (not finite: 0).
 fn material(m: &bvhtrace_scene::Material) -> PathMaterial {
     let unit = |x: f32, nan: f32| if x.is_nan() { nan } else { x.clamp(0.0, 1.0) };
-    let glow = |x: f32| if x.is_finite() { x.max(0.0) } else { 0.0 };
+    let glow = |x: f32| {
+        if x.is_finite() {
+            x.clamp(0.0, MAX_EMISSION)
+        } else {
+            0.0
+        }
+    };
     let c = m.base_color;
-    PathMaterial {
-        base_color: [
-            unit(c.x, 0.8),
-            unit(c.y, 0.8),
-            unit(c.z, 0.8),
-            unit(c.w, 1.0),
-        ],
-        emissive: m.emissive.to_array().map(glow),
-        metallic: unit(m.metallic, 0.0),
-        roughness: unit(m.roughness, 1.0),
-        pad: [0.0; 3],
-    }
+    crate::sampling::lobes(
+        Vec3::new(unit(c.x, 0.8), unit(c.y, 0.8), unit(c.z, 0.8)),
+        unit(m.metallic, 0.0),
+        unit(m.roughness, 1.0),
+        m.emissive.map(glow),
+        unit(c.w, 1.0),
+    )
 }
 
 /// The emissive triangles of non-zero area, each sampled in proportion to its power

@@ -10,8 +10,8 @@ use bvhtrace_core::{
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::sampling::{Frame, Lobes, PI, Rng, cross, dot, luminance, mis, normalize};
-use crate::scene::{NO_LIGHT, PathParams, PathScene};
+use crate::sampling::{Frame, PI, Rng, cross, dot, eval, luminance, mis, normalize, sample};
+use crate::scene::{NO_LIGHT, PathMaterial, PathParams, PathScene};
 use crate::{Accumulation, PathError, PathStats};
 
 /// `PATH_FAR`.
@@ -187,11 +187,10 @@ impl Walker<'_> {
                 radiance += scale(throughput * emissive, w);
             }
             let wo = Vec3::new(-dir.x, -dir.y, -dir.z);
-            let base = Vec3::new(m.base_color[0], m.base_color[1], m.base_color[2]);
-            let lobes = Lobes::new(base, m.metallic, m.roughness);
+            let lobes = &m;
 
             if !black(sun) {
-                let e = lobes.eval(n, wo, sun_dir);
+                let e = eval(lobes, n, wo, sun_dir);
                 if e.pdf > 0.0 && !self.blocked(&Ray::with_interval(s.origin, sun_dir, 0.0, FAR)) {
                     radiance += throughput * (e.value * sun);
                 }
@@ -199,7 +198,7 @@ impl Walker<'_> {
             if has_env {
                 let wi = Frame::new(n).cosine(&mut r);
                 let env_pdf = dot(n, wi) / PI;
-                let e = lobes.eval(n, wo, wi);
+                let e = eval(lobes, n, wo, wi);
                 if e.pdf > 0.0
                     && env_pdf > 0.0
                     && !self.blocked(&Ray::with_interval(s.origin, wi, 0.0, FAR))
@@ -209,10 +208,10 @@ impl Walker<'_> {
                 }
             }
             if !scene.lights.is_empty() {
-                radiance += self.light_sample(&mut r, &lobes, s.origin, n, wo, throughput);
+                radiance += self.light_sample(&mut r, lobes, s.origin, n, wo, throughput);
             }
-            let wi = lobes.sample(n, wo, &mut r);
-            let e = lobes.eval(n, wo, wi);
+            let wi = sample(lobes, n, wo, &mut r);
+            let e = eval(lobes, n, wo, wi);
             if e.pdf.is_nan() || e.pdf <= 0.0 || black(e.value) {
                 break;
             }
@@ -236,7 +235,7 @@ impl Walker<'_> {
     fn light_sample(
         &mut self,
         r: &mut Rng,
-        lobes: &Lobes,
+        lobes: &PathMaterial,
         origin: Vec3,
         n: Vec3,
         wo: Vec3,
@@ -273,7 +272,7 @@ impl Walker<'_> {
         let wi = Vec3::new(d.x / dist, d.y / dist, d.z / dist);
         let nl = normalize(cross(e1, e2));
         let cos_l = dot(nl, wi).abs();
-        let e = lobes.eval(n, wo, wi);
+        let e = eval(lobes, n, wo, wi);
         if !(e.pdf > 0.0 && cos_l > 0.0) {
             return Vec3::ZERO;
         }

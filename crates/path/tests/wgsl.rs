@@ -114,10 +114,16 @@ fn the_rust_types_are_the_wgsl_structs() {
         "PathMaterial",
         size_of::<PathMaterial>(),
         &[
-            ("base_color", offset_of!(PathMaterial, base_color)),
+            ("diffuse", offset_of!(PathMaterial, diffuse)),
+            ("alpha2", offset_of!(PathMaterial, alpha2)),
+            ("f0", offset_of!(PathMaterial, f0)),
+            ("p_spec", offset_of!(PathMaterial, p_spec)),
+            ("f0c", offset_of!(PathMaterial, f0c)),
+            ("alpha2_m1", offset_of!(PathMaterial, alpha2_m1)),
             ("emissive", offset_of!(PathMaterial, emissive)),
-            ("metallic", offset_of!(PathMaterial, metallic)),
-            ("roughness", offset_of!(PathMaterial, roughness)),
+            ("one_m_alpha2", offset_of!(PathMaterial, one_m_alpha2)),
+            ("p_diffuse", offset_of!(PathMaterial, p_diffuse)),
+            ("base_alpha", offset_of!(PathMaterial, base_alpha)),
         ],
     );
     check(
