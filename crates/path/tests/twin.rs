@@ -28,8 +28,16 @@ struct Case {
     lighting: Lighting,
 }
 
-/// The device's sums and the twin's, for `walk`, and the pixels that differ.
-fn both(ctx: &GpuContext, case: &Case, walk: PathWalk) -> (Accumulation, Accumulation, usize) {
+/// The scene of `case`, flattened with its masks, its shading data and parameters.
+fn setup(
+    case: &Case,
+    wide: bool,
+) -> (
+    Vec<bvhtrace_core::Triangle>,
+    bvhtrace_core::FlatBvh,
+    PathScene,
+    PathParams,
+) {
     let scene = bvhtrace_scene::load(case.spec).unwrap_or_else(|e| panic!("{e}"));
     // Flattened, with the scene's alpha masks on the tree.
     let traced = scene
@@ -38,19 +46,47 @@ fn both(ctx: &GpuContext, case: &Case, walk: PathWalk) -> (Accumulation, Accumul
     let bvhtrace_scene::SceneBvh::Flat { tris, mut bvh } = traced else {
         panic!("flattened");
     };
-    if matches!(walk, PathWalk::Walk(t) if t.is_wide()) {
+    if wide {
         bvh.build_wide();
     }
     let shading = PathScene::new(&scene, &tris).expect("shading");
     let camera = scene.camera_or_frame(case.size.0 as f32 / case.size.1 as f32);
     let params = PathParams::new(&camera, case.size, &case.lighting, 6, &shading);
+    (tris, bvh, shading, params)
+}
 
-    let mut gpu = GpuPathTracer::with_walk(ctx, &bvh, &shading, walk).expect("tracer");
+/// The device's sums and counts for `case` walked by `walk`.
+fn both_device(
+    ctx: &GpuContext,
+    case: &Case,
+    walk: PathWalk,
+) -> (Accumulation, PathStats, PathParams) {
+    let (_, bvh, shading, params) = setup(case, false);
+    device_sums(ctx, case, &bvh, &shading, params, walk)
+}
+
+fn device_sums(
+    ctx: &GpuContext,
+    case: &Case,
+    bvh: &bvhtrace_core::FlatBvh,
+    shading: &PathScene,
+    params: PathParams,
+    walk: PathWalk,
+) -> (Accumulation, PathStats, PathParams) {
+    let mut gpu = GpuPathTracer::with_walk(ctx, bvh, shading, walk).expect("tracer");
     gpu.restart(params);
     gpu.add_samples(case.samples).expect("samples");
     let (device, stats) = gpu.read().expect("read");
     assert_eq!(stats.incomplete, 0, "{}: rays given up", case.spec);
     assert_eq!(stats.not_finite, 0, "{}: samples not finite", case.spec);
+    (device, stats, params)
+}
+
+/// The device's sums and the twin's, for `walk`, and the pixels that differ.
+fn both(ctx: &GpuContext, case: &Case, walk: PathWalk) -> (Accumulation, Accumulation, usize) {
+    let wide = matches!(walk, PathWalk::Walk(t) if t.is_wide());
+    let (tris, bvh, shading, params) = setup(case, wide);
+    let (device, stats, _) = device_sums(ctx, case, &bvh, &shading, params, walk);
 
     let traversal = match walk {
         PathWalk::Walk(t) => t,
@@ -124,5 +160,53 @@ fn the_device_traces_the_twins_paths_bit_for_bit_on_every_walk() {
                 t.name()
             );
         }
+    }
+}
+
+/// The rule for the device's ray queries (docs/design.md, "The path tracer"): their hits
+/// are the driver's, so the paths are ours wherever the hits agree; at 8 samples over the
+/// Cornell box and the alpha-masked foliage, the mean radiance is within 0.1% of our
+/// walk's, the RMSE under 1% of the mean, and most pixels are the same bits.
+#[test]
+fn ray_queries_trace_the_same_image_under_the_rule() {
+    let required = std::env::var("BVHTRACE_REQUIRE_RAY_QUERIES").is_ok_and(|v| v == "1");
+    let options = bvhtrace_gpu::ContextOptions {
+        ray_queries: true,
+        ..Default::default()
+    };
+    let ctx = match GpuContext::new_with(AdapterChoice::Auto, &options) {
+        Ok(ctx) if ctx.has_ray_queries() => ctx,
+        Ok(_) | Err(GpuError::NoAdapter { .. }) if !required => {
+            eprintln!("SKIP ray-query path tracing: no device with ray queries");
+            return;
+        }
+        Ok(_) => panic!("no ray queries with BVHTRACE_REQUIRE_RAY_QUERIES=1"),
+        Err(e) => panic!("cannot open a GPU: {e}"),
+    };
+    for mut case in cases() {
+        case.samples = 8;
+        let (walk, _, _) = both_device(&ctx, &case, PathWalk::Walk(Traversal::Stackless));
+        let (rq, _, _) = both_device(&ctx, &case, PathWalk::RayQueries);
+        let (a, b) = (walk.linear(), rq.linear());
+        let n = (a.len() * 3) as f64;
+        let mean = |v: &[[f32; 3]]| v.iter().flatten().map(|&x| f64::from(x)).sum::<f64>() / n;
+        let (ma, mb) = (mean(&a), mean(&b));
+        let se: f64 = (a.iter().flatten().zip(b.iter().flatten()))
+            .map(|(x, y)| f64::from(x - y).powi(2))
+            .sum();
+        let rmse = (se / n).sqrt();
+        let same = a.iter().zip(&b).filter(|(x, y)| x == y).count();
+        println!(
+            "{}: ray queries' mean {mb:.5} against the walk's {ma:.5}, RMSE {rmse:.5}, {same} of {} pixels the same bits",
+            case.spec,
+            a.len()
+        );
+        assert!(
+            (mb - ma).abs() <= 1e-3 * ma,
+            "{}: means {ma} and {mb}",
+            case.spec
+        );
+        assert!(rmse <= 1e-2 * ma, "{}: RMSE {rmse}", case.spec);
+        assert!(same * 4 >= a.len(), "{}: {same} pixels the same", case.spec);
     }
 }
