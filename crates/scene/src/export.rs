@@ -186,43 +186,46 @@ fn build(scene: &Scene) -> (Value, Vec<u8>) {
     }
     root["scenes"] = json!([sc]);
     root["nodes"] = json!(nodes);
-    let mut used_emissive_strength = false;
     if !scene.materials.is_empty() {
-        root["materials"] = Value::Array(
-            scene
-                .materials
-                .iter()
-                .map(|m| {
-                    let mut j = json!({
-                        "name": m.name,
-                        "pbrMetallicRoughness": {
-                            "baseColorFactor": m.base_color.to_array(),
-                            "metallicFactor": m.metallic,
-                            "roughnessFactor": m.roughness,
-                        },
-                    });
-                    // glTF's emissiveFactor stops at 1: brighter light is a strength.
-                    let strength = m.emissive.max_element();
-                    if strength > 0.0 {
-                        j["emissiveFactor"] = json!((m.emissive / strength.max(1.0)).to_array());
-                    }
-                    if strength > 1.0 {
-                        j["extensions"] = json!({
-                            "KHR_materials_emissive_strength": {"emissiveStrength": strength}
-                        });
-                        used_emissive_strength = true;
-                    }
-                    j
-                })
-                .collect(),
-        );
-    }
-    if used_emissive_strength {
-        root["extensionsUsed"] = json!(["KHR_materials_emissive_strength"]);
+        let (materials, strength) = materials_json(scene);
+        root["materials"] = materials;
+        if strength {
+            root["extensionsUsed"] = json!(["KHR_materials_emissive_strength"]);
+        }
     }
     root["bufferViews"] = Value::Array(b.views);
     root["accessors"] = Value::Array(b.accessors);
     (root, b.bin)
+}
+
+/// The scene's materials as glTF JSON, and whether one needs KHR_materials_emissive_strength
+/// (glTF's emissiveFactor stops at 1: brighter light is a strength).
+fn materials_json(scene: &Scene) -> (Value, bool) {
+    let mut used_strength = false;
+    let materials = (scene.materials.iter())
+        .map(|m| {
+            let mut j = json!({
+                "name": m.name,
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": m.base_color.to_array(),
+                    "metallicFactor": m.metallic,
+                    "roughnessFactor": m.roughness,
+                },
+            });
+            let strength = m.emissive.max_element();
+            if strength > 0.0 {
+                j["emissiveFactor"] = json!((m.emissive / strength.max(1.0)).to_array());
+            }
+            if strength > 1.0 {
+                j["extensions"] = json!({
+                    "KHR_materials_emissive_strength": {"emissiveStrength": strength}
+                });
+                used_strength = true;
+            }
+            j
+        })
+        .collect();
+    (Value::Array(materials), used_strength)
 }
 
 /// The scene as a binary glTF (GLB) file's bytes.
