@@ -116,6 +116,8 @@ wgsl_files! {
     /// The path tracer's kernel: camera rays, next-event estimation, bounces, the
     /// progressive sum (bvhtrace-path).
     PATH_TRACE = "path_trace.wgsl",
+    /// The path tracer's sums tone mapped into a texture, shown without a readback.
+    PATH_DISPLAY = "path_display.wgsl",
 }
 
 #[cfg(test)]

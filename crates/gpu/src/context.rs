@@ -96,6 +96,8 @@ struct Inner {
     /// Shader modules and pipelines created so far ([`GpuContext::compile_counts`]).
     modules_compiled: AtomicU64,
     pipelines_compiled: AtomicU64,
+    /// Mappings for reading made so far ([`GpuContext::readbacks`]).
+    readbacks: AtomicU64,
     /// The pipelines of the device builders (`GpuContext::build_bvh`) and the refit
     /// (`GpuRefit`), by program name, made on first use.
     device_programs: Mutex<HashMap<&'static str, Vec<wgpu::ComputePipeline>>>,
@@ -432,6 +434,7 @@ impl GpuContext {
                 pipelines: Mutex::new(HashMap::new()),
                 device_programs: Mutex::new(HashMap::new()),
                 modules_compiled: AtomicU64::new(0),
+                readbacks: AtomicU64::new(0),
                 pipelines_compiled: AtomicU64::new(0),
             }),
         })
@@ -616,6 +619,66 @@ impl GpuContext {
             self.inner.modules_compiled.load(Ordering::Relaxed),
             self.inner.pipelines_compiled.load(Ordering::Relaxed),
         )
+    }
+
+    /// Readbacks made through this context so far: each wait for buffers mapped for
+    /// reading (a trace's hits, a device build's tree, [`GpuContext::read_buffers`]) counts
+    /// one. What a renderer checks to keep its steady frames free of them.
+    pub fn readbacks(&self) -> u64 {
+        self.inner.readbacks.load(Ordering::Relaxed)
+    }
+
+    pub(crate) fn count_readback(&self) {
+        self.inner.readbacks.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Copies the whole of each of `buffers` (each with `COPY_SRC`) to a mappable buffer
+    /// after the work submitted so far, and reads them (one readback, counted by
+    /// [`GpuContext::readbacks`]). `during` names the step in an error. Blocks: in a
+    /// browser use [`GpuContext::read_buffers_async`].
+    pub fn read_buffers(
+        &self,
+        during: &'static str,
+        buffers: &[&wgpu::Buffer],
+    ) -> Result<Vec<Vec<u8>>, GpuError> {
+        pollster::block_on(self.read_buffers_async(during, buffers))
+    }
+
+    /// [`GpuContext::read_buffers`] as a future (what a page awaits).
+    pub async fn read_buffers_async(
+        &self,
+        during: &'static str,
+        buffers: &[&wgpu::Buffer],
+    ) -> Result<Vec<Vec<u8>>, GpuError> {
+        let device = self.device();
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("bvhtrace read back"),
+        });
+        let staging: Vec<(wgpu::Buffer, u64)> = (buffers.iter())
+            .map(|b| {
+                let s = device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("bvhtrace read back"),
+                    size: b.size(),
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                encoder.copy_buffer_to_buffer(b, 0, &s, 0, b.size());
+                (s, b.size())
+            })
+            .collect();
+        let index = self.scoped(during, || self.queue().submit([encoder.finish()]))?;
+        let maps: Vec<(&wgpu::Buffer, u64)> = staging.iter().map(|(b, n)| (b, *n)).collect();
+        let mapped = crate::trace::map_all(self, index, &maps).await;
+        self.deferred_errors().await?;
+        mapped?;
+        let mut out = Vec::with_capacity(staging.len());
+        for (b, n) in &staging {
+            let mut bytes: Vec<u8> = Vec::new();
+            crate::trace::read_mapped(b, *n, &mut bytes)?;
+            b.unmap();
+            out.push(bytes);
+        }
+        Ok(out)
     }
 
     /// A device builder's pipelines, in [`crate::GpuBuilderKind::entries`] order, compiled

@@ -623,7 +623,7 @@ impl RayQueryBvh {
                 enc.copy_buffer_to_buffer(&hit_buf, 0, &read, 0, n * HIT_BYTES);
                 self.ctx.queue().submit([enc.finish()])
             })?;
-            let mapped = map_all(device, index, &[(&read, n * HIT_BYTES)]).await;
+            let mapped = map_all(&self.ctx, index, &[(&read, n * HIT_BYTES)]).await;
             self.ctx.deferred_errors().await?;
             mapped?;
             let got = read_mapped(&read, n * HIT_BYTES, &mut hits);

@@ -341,7 +341,7 @@ pub(crate) async fn run_batch(
     let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
     maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
     maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
-    let mapped = map_all(device, index, &maps).await;
+    let mapped = map_all(ctx, index, &maps).await;
     // In a browser, a kernel the browser's compiler rejected (or any failed step before)
     // is only known now: its error comes first.
     ctx.deferred_errors().await?;
@@ -379,10 +379,12 @@ fn lock(m: &Mutex<Mappings>) -> MutexGuard<'_, Mappings> {
 /// Maps the first bytes of each buffer for reading, after the submission `index` (and
 /// only it, with what came before it on the queue) has completed.
 pub(crate) async fn map_all(
-    device: &wgpu::Device,
+    ctx: &GpuContext,
     index: wgpu::SubmissionIndex,
     maps: &[(&wgpu::Buffer, u64)],
 ) -> Result<(), GpuError> {
+    ctx.count_readback();
+    let device = ctx.device();
     let state = Arc::new(Mutex::new(Mappings {
         left: maps.len(),
         failed: None,

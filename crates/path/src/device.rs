@@ -3,7 +3,7 @@
 //! dispatch per sample adding to the sums on the device.
 
 use bvhtrace_core::{FlatBvh, Traversal};
-use bvhtrace_engine::shaders::{PATH_SAMPLING, PATH_TRACE};
+use bvhtrace_engine::shaders::{PATH_DISPLAY, PATH_SAMPLING, PATH_TRACE};
 use bvhtrace_gpu::wgpu::util::DeviceExt;
 use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, RayQueryBvh, UploadOptions, wgpu};
 
@@ -43,6 +43,15 @@ pub struct GpuPathTracer {
     accum: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     params: PathParams,
     walk: PathWalk,
+    display: Option<Display>,
+}
+
+/// The tone-mapping pass and the texture it writes (`shaders/path_display.wgsl`).
+struct Display {
+    pipeline: wgpu::ComputePipeline,
+    uniform: wgpu::Buffer,
+    texture: wgpu::Texture,
+    group: wgpu::BindGroup,
 }
 
 /// The kernel's WGSL as composed after a traversal library (`bvhtrace_engine::wgsl_library`):
@@ -158,6 +167,7 @@ impl GpuPathTracer {
             accum: None,
             params,
             walk,
+            display: None,
         })
     }
 
@@ -184,6 +194,8 @@ impl GpuPathTracer {
             });
             let group = self.group(&buffer);
             self.accum = Some((buffer, group));
+            // Its bind group read the old sums.
+            self.display = None;
         }
         self.params = PathParams {
             sample: 0,
@@ -280,6 +292,102 @@ impl GpuPathTracer {
         Ok(())
     }
 
+    /// Tone maps the sums into an RGBA8 texture of the frame's size (sRGB-encoded, as a
+    /// renderer such as egui shows an `Rgba8Unorm` texture), on the device, reading nothing
+    /// back: what a viewer draws each frame. The texture is the same one until the frame's
+    /// size changes; `exposure` scales the radiance first.
+    pub fn display(&mut self, exposure: f32) -> Result<&wgpu::Texture, PathError> {
+        let Some((accum, _)) = &self.accum else {
+            return Err(PathError::Setting("display before restart".into()));
+        };
+        let (w, h) = (self.params.width, self.params.height);
+        let size = wgpu::Extent3d {
+            width: w.max(1),
+            height: h.max(1),
+            depth_or_array_layers: 1,
+        };
+        let device = self.ctx.device();
+        let fits = (self.display.as_ref()).is_some_and(|d| d.texture.size() == size);
+        if !fits {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(PATH_DISPLAY.0),
+                source: wgpu::ShaderSource::Wgsl(PATH_DISPLAY.1.into()),
+            });
+            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("path display"),
+                layout: None,
+                module: &module,
+                entry_point: Some("path_display_main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            let texture = device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("path display"),
+                size,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba8Unorm,
+                usage: wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            });
+            let uniform = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("path display"),
+                size: 16,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let view = texture.create_view(&Default::default());
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("path display"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: accum.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: wgpu::BindingResource::TextureView(&view),
+                    },
+                ],
+            });
+            self.display = Some(Display {
+                pipeline,
+                uniform,
+                texture,
+                group,
+            });
+        }
+        let Some(d) = &self.display else {
+            return Err(PathError::Setting("no display".into()));
+        };
+        let words = [w, h, exposure.to_bits(), 0];
+        self.ctx
+            .queue()
+            .write_buffer(&d.uniform, 0, bytemuck::cast_slice(&words));
+        let mut encoder = device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&d.pipeline);
+            pass.set_bind_group(0, &d.group, &[]);
+            pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
+        }
+        self.ctx.queue().submit([encoder.finish()]);
+        Ok(&d.texture)
+    }
+
+    /// The texture [`GpuPathTracer::display`] last wrote (`None` before it ran).
+    pub fn display_texture(&self) -> Option<&wgpu::Texture> {
+        self.display.as_ref().map(|d| &d.texture)
+    }
+
     /// Waits until the device has finished the samples submitted so far (reads nothing).
     pub fn wait(&self) -> Result<(), PathError> {
         self.ctx
@@ -295,12 +403,16 @@ impl GpuPathTracer {
     }
 
     /// Reads the sums and the counts of what the paths could not trace back from the
-    /// device (waits for the samples submitted so far).
+    /// device (waits for the samples submitted so far): one readback
+    /// (`GpuContext::readbacks`).
     pub fn read(&self) -> Result<(Accumulation, PathStats), PathError> {
         let Some((accum, _)) = &self.accum else {
             return Err(PathError::Setting("read before restart".into()));
         };
-        let bytes = read_buffers(&self.ctx, &[accum, &self.stats_buffer])?;
+        let bytes = (self.ctx).read_buffers(
+            "reading the path tracer's sums",
+            &[accum, &self.stats_buffer],
+        )?;
         let p = &self.params;
         let n = p.width as usize * p.height as usize;
         let sums: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&bytes[0][..n * 16]);
@@ -317,51 +429,6 @@ impl GpuPathTracer {
         };
         Ok((image, stats))
     }
-}
-
-/// Copies `buffers` to mappable ones and reads them (blocking).
-fn read_buffers(ctx: &GpuContext, buffers: &[&wgpu::Buffer]) -> Result<Vec<Vec<u8>>, PathError> {
-    let device = ctx.device();
-    let mut encoder = device.create_command_encoder(&Default::default());
-    let staging: Vec<wgpu::Buffer> = (buffers.iter())
-        .map(|b| {
-            let s = device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("path readback"),
-                size: b.size(),
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            encoder.copy_buffer_to_buffer(b, 0, &s, 0, b.size());
-            s
-        })
-        .collect();
-    ctx.queue().submit([encoder.finish()]);
-    let device_error = |e: String| {
-        PathError::Gpu(GpuError::Device {
-            during: "reading the path tracer's sums",
-            message: e,
-        })
-    };
-    let mut out = Vec::new();
-    for s in &staging {
-        let (tx, rx) = std::sync::mpsc::channel();
-        s.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| device_error(e.to_string()))?;
-        rx.recv()
-            .map_err(|e| device_error(e.to_string()))?
-            .map_err(|e| device_error(e.to_string()))?;
-        let bytes = s
-            .get_mapped_range(..)
-            .map_err(|e| device_error(e.to_string()))?
-            .to_vec();
-        s.unmap();
-        out.push(bytes);
-    }
-    Ok(out)
 }
 
 /// Group 1: the parameters, materials, primitives, lights, sums and counts.

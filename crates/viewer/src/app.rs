@@ -21,6 +21,7 @@ use crate::display::Display;
 use crate::jobs::{
     Batch, BuiltBvh, Job, JobOutput, JobRequest, PoseTimes, SceneData, Source, Traced,
 };
+use crate::path_mode::PathMode;
 use crate::shade::{self, Accumulation, Comparison, Shade, View};
 
 /// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
@@ -239,6 +240,8 @@ pub struct ViewerApp {
     started: web_time::Instant,
     first_image_ms: Option<f64>,
     playback: Playback,
+    /// The path mode's tracer, made when the mode is first shown for a scene and pose.
+    path: Option<PathMode>,
 }
 
 impl ViewerApp {
@@ -341,6 +344,7 @@ impl ViewerApp {
             shared,
             started: web_time::Instant::now(),
             first_image_ms: None,
+            path: None,
             playback: Playback {
                 time: args.time,
                 playing: args.play,
@@ -743,7 +747,11 @@ impl ViewerApp {
         }
         match shot.requested_at {
             None => {
-                if self.display.id().is_some() {
+                let shown = match &self.path {
+                    Some(p) if self.settings.shade == Shade::Path => p.samples() > 0,
+                    _ => self.display.id().is_some(),
+                };
+                if shown {
                     shot.frames_done += 1;
                 }
                 if shot.frames_done >= shot.frames {
@@ -764,12 +772,17 @@ impl ViewerApp {
                     let path = shot.path.clone();
                     let [w, h] = img.size;
                     let why = self.built.as_ref().and_then(|b| b.gpu_problem());
-                    let backend = match (self.stats.on_gpu, why) {
+                    let path_mode = self.settings.shade == Shade::Path;
+                    let backend = match (self.stats.on_gpu || path_mode, why) {
+                        (true, _) if path_mode => "GPU, path traced with no readback".to_string(),
                         (true, _) => "GPU".to_string(),
                         (false, Some(why)) => format!("CPU ({why})"),
                         (false, None) => "CPU".to_string(),
                     };
-                    let samples = self.accum.as_ref().map_or(0, |a| a.samples);
+                    let samples = match &self.path {
+                        Some(p) if self.settings.shade == Shade::Path => p.samples(),
+                        _ => self.accum.as_ref().map_or(0, |a| a.samples),
+                    };
                     let animation = match (&self.scene, &self.built) {
                         (Some(s), Some(b)) if s.animated() => format!(
                             "; animation at t = {:.4} s, {} new poses ({}){}",
@@ -1188,7 +1201,30 @@ impl ViewerApp {
                 for s in Shade::SURFACE {
                     ui.selectable_value(&mut self.settings.shade, s, s.label());
                 }
+                if self.gpu.is_ok() {
+                    ui.selectable_value(&mut self.settings.shade, Shade::Path, Shade::Path.label());
+                }
             });
+        if self.settings.shade == Shade::Path {
+            ui.add(
+                egui::Slider::new(&mut self.settings.samples_per_frame, 1..=64)
+                    .text("samples / frame"),
+            );
+            ui.add(
+                egui::Slider::new(&mut self.settings.max_samples, 1..=65536)
+                    .logarithmic(true)
+                    .text("max samples"),
+            );
+            if let Some(p) = &self.path {
+                let rate = p
+                    .samples_per_second()
+                    .map_or(String::new(), |r| format!(", {r:.1} / s"));
+                ui.label(format!(
+                    "{} samples{rate}, on the GPU, no readback",
+                    p.samples()
+                ));
+            }
+        }
         ui.checkbox(&mut self.settings.heatmap, "heatmap (box tests per pixel)");
         if self.settings.heatmap {
             let max = self.accum.as_ref().map_or(1, Accumulation::max_nodes);
@@ -1364,7 +1400,10 @@ impl ViewerApp {
         let px = |v: f32| ((v * ppp * scale).round() as u32).clamp(1, MAX_SIDE);
         let size = [px(rect.width()), px(rect.height())];
         self.pose();
-        if self.step(&ctx, size) {
+        let path_mode = self.settings.shade == Shade::Path;
+        if path_mode {
+            self.path_frame(size);
+        } else if self.step(&ctx, size) {
             self.display.set(
                 &ctx,
                 self.render_state.as_ref(),
@@ -1376,7 +1415,12 @@ impl ViewerApp {
         let painter = ui.painter_at(rect);
         let [r, g, b] = shade::BACKGROUND;
         painter.rect_filled(rect, 0.0, Color32::from_rgb(r, g, b));
-        if let Some(id) = self.display.id() {
+        let shown = match (path_mode, &mut self.path, &self.render_state) {
+            (true, Some(p), Some(rs)) => p.texture_id(rs).ok(),
+            (true, _, _) => None,
+            (false, _, _) => self.display.id(),
+        };
+        if let Some(id) = shown {
             let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
             painter.image(id, rect, uv, Color32::WHITE);
         }
@@ -1405,8 +1449,53 @@ impl ViewerApp {
                 Color32::WHITE,
             );
         }
-        if self.accumulating() || self.job.is_some() {
+        let path_running = path_mode
+            && (self.path.as_ref()).is_some_and(|p| p.samples() < self.settings.max_samples);
+        if self.accumulating() || self.job.is_some() || path_running {
             ctx.request_repaint();
+        }
+    }
+
+    /// A frame of the path mode: its tracer made for the scene's current pose when there
+    /// is none for it, then samples added and shown, all on the device.
+    fn path_frame(&mut self, size: [u32; 2]) {
+        let (Some(data), Ok(gpu)) = (&self.scene, &self.gpu) else {
+            if let Err(e) = &self.gpu {
+                self.error = Some(format!("the path mode traces on the GPU: {e}"));
+                self.settings.shade = Shade::Normal;
+            }
+            return;
+        };
+        let time = self.built.as_ref().map_or(0.0, |b| b.time);
+        let made_for = (self.generation, time);
+        if self.path.as_ref().map(PathMode::made_for) != Some(made_for) {
+            let mut scene = data.scene.clone();
+            if data.animated() {
+                scene.set_time(time);
+            }
+            match PathMode::new(gpu, &scene, self.settings.traversal(), made_for) {
+                Ok(p) => self.path = Some(p),
+                Err(e) => {
+                    self.error = Some(format!("path mode: {e}"));
+                    self.settings.shade = Shade::Normal;
+                    return;
+                }
+            }
+        }
+        let (k, max) = (
+            self.settings.samples_per_frame.max(1),
+            self.settings.max_samples,
+        );
+        let Some(path) = &mut self.path else { return };
+        match path.advance(&self.cam, size, k, max) {
+            Ok(_) => {
+                self.first_image_ms
+                    .get_or_insert_with(|| self.started.elapsed().as_secs_f64() * 1e3);
+            }
+            Err(e) => {
+                self.error = Some(format!("path tracing failed: {e}"));
+                self.settings.shade = Shade::Normal;
+            }
         }
     }
 
@@ -1466,6 +1555,18 @@ impl ViewerApp {
     /// The line over the image: the job under way, the scene, the walk, where it traces,
     /// the samples accumulated and the animation's time.
     fn caption(&self) -> String {
+        if self.settings.shade == Shade::Path
+            && let (Some(scene), Some(p)) = (&self.scene, &self.path)
+        {
+            let rate = p
+                .samples_per_second()
+                .map_or(String::new(), |r| format!(" ({r:.1} / s)"));
+            return format!(
+                "{}  ·  path traced on the GPU  ·  {} samples{rate}",
+                scene.name,
+                p.samples()
+            );
+        }
         let mut caption = match (&self.scene, &self.job) {
             (_, Some(job)) => format!("{}…", job.stage),
             (None, None) => "no scene".to_string(),

@@ -19,16 +19,6 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
-/// A shading mode the viewer draws: every mode but `path`, which `bvhtrace render --shade
-/// path` renders.
-fn parse_shade(s: &str) -> Result<Shade, String> {
-    let shade = <Shade as clap::ValueEnum>::from_str(s, true)?;
-    if shade == Shade::Path {
-        return Err("the viewer has no path mode yet: use `bvhtrace render --shade path`".into());
-    }
-    Ok(shade)
-}
-
 fn parse_scale(s: &str) -> Result<f32, String> {
     let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
     if (0.1..=2.0).contains(&v) {
@@ -79,9 +69,9 @@ pub struct Args {
     /// Window size in points, WxH.
     #[arg(long, default_value = "1280x800", value_parser = parse_size)]
     pub size: (u32, u32),
-    /// Initial shading: normal, depth, diffuse, ao or heatmap (`heatmap` is the same as
-    /// `--heatmap`).
-    #[arg(long, default_value = "normal", value_parser = parse_shade)]
+    /// Initial shading (`heatmap` is the same as `--heatmap`; `path` path traces on the
+    /// GPU, progressively).
+    #[arg(long, value_enum, default_value_t = Shade::Normal)]
     pub shade: Shade,
     /// Start with the node-visit heatmap on.
     #[arg(long)]

@@ -24,6 +24,7 @@ pub mod camera;
 pub mod cli;
 pub mod display;
 pub mod jobs;
+pub mod path_mode;
 pub mod png;
 pub mod setup;
 pub mod shade;

@@ -168,7 +168,7 @@ async fn submit_and_map_async(
     maps: &[(&wgpu::Buffer, u64)],
 ) -> Result<(), GpuError> {
     let index = ctx.scoped(during, || ctx.queue().submit([enc.finish()]))?;
-    let mapped = map_all(ctx.device(), index, maps).await;
+    let mapped = map_all(ctx, index, maps).await;
     ctx.deferred_errors().await?;
     mapped
 }
