@@ -4,8 +4,10 @@
 
 use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_engine::shaders::{PATH_DISPLAY, PATH_SAMPLING, PATH_TRACE};
+#[cfg(not(target_arch = "wasm32"))]
+use bvhtrace_gpu::RayQueryBvh;
 use bvhtrace_gpu::wgpu::util::DeviceExt;
-use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, RayQueryBvh, UploadOptions, wgpu};
+use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, UploadOptions, wgpu};
 
 use crate::scene::{PathLight, PathMaterial, PathParams, PathScene};
 use crate::{Accumulation, PathError, PathStats};
@@ -24,6 +26,7 @@ pub enum PathWalk {
 /// The upload the kernel reads, kept alive with its bind group.
 enum Upload {
     Walk(GpuBvh),
+    #[cfg(not(target_arch = "wasm32"))]
     RayQueries(RayQueryBvh),
 }
 
@@ -72,8 +75,25 @@ impl GpuPathTracer {
         Self::with_walk(ctx, bvh, scene, PathWalk::Walk(traversal))
     }
 
-    /// [`GpuPathTracer::new`] with the rays walked by `walk`.
+    /// [`GpuPathTracer::new`] with the rays walked by `walk`. Blocks until the device has
+    /// compiled the kernel: in a browser use [`GpuPathTracer::with_walk_async`].
     pub fn with_walk(
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        scene: &PathScene,
+        walk: PathWalk,
+    ) -> Result<GpuPathTracer, PathError> {
+        if cfg!(target_arch = "wasm32") {
+            return Err(PathError::Setting(
+                "a browser cannot wait for its GPU: use GpuPathTracer::with_walk_async".into(),
+            ));
+        }
+        pollster::block_on(Self::with_walk_async(ctx, bvh, scene, walk))
+    }
+
+    /// [`GpuPathTracer::with_walk`] as a future: what a page awaits (the browser compiles
+    /// the kernel on its event loop).
+    pub async fn with_walk_async(
         ctx: &GpuContext,
         bvh: &FlatBvh,
         scene: &PathScene,
@@ -97,19 +117,25 @@ impl GpuPathTracer {
                 let library = up.wgsl_library(t, 0)?;
                 (Upload::Walk(up), library)
             }
+            #[cfg(not(target_arch = "wasm32"))]
             PathWalk::RayQueries => {
                 let up = RayQueryBvh::upload(ctx, bvh)?;
                 let library = up.wgsl_library(0);
                 (Upload::RayQueries(up), library)
             }
+            #[cfg(target_arch = "wasm32")]
+            PathWalk::RayQueries => {
+                return Err(PathError::Setting("WebGPU has no ray queries".into()));
+            }
         };
         let bvh_group = match &upload {
             Upload::Walk(u) => u.bind_group_for(&library)?,
+            #[cfg(not(target_arch = "wasm32"))]
             Upload::RayQueries(u) => u.bind_group_for(&library)?,
         };
         let (bvh_group, bvh_layout) = (bvh_group.group().clone(), bvh_group.layout().clone());
         let layout = group_layout(ctx.device());
-        let pipeline = pipeline(ctx, &library, &bvh_layout, &layout)?;
+        let pipeline = pipeline(ctx, &library, &bvh_layout, &layout).await?;
         let init = |label, contents: &[u8], usage| {
             ctx.device()
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -461,13 +487,13 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
 }
 
 /// The kernel after `library`, its pipeline with the BVH in group 0 and ours in group 1.
-fn pipeline(
+async fn pipeline(
     ctx: &GpuContext,
     library: &BvhLibrary,
     bvh_layout: &wgpu::BindGroupLayout,
     layout: &wgpu::BindGroupLayout,
 ) -> Result<wgpu::ComputePipeline, PathError> {
-    let module = ctx.shader_module(library, &kernel_source(), "path_trace.wgsl")?;
+    let module = (ctx.shader_module_async(library, &kernel_source(), "path_trace.wgsl")).await?;
     let device = ctx.device();
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("path tracer"),

@@ -652,6 +652,7 @@ pub(crate) fn grid_of(src: Scene, mesh_name: &str, a: u32, b: u32) -> Scene {
         instances,
         materials: src.materials,
         alpha_textures: src.alpha_textures,
+        textures: src.textures,
         attributes: src.attributes,
         camera: None,
         warnings: src.warnings,

@@ -25,7 +25,9 @@
 //! once. [`Scene::flatten`] gives the world-space [`TriangleMesh`] the BVH builders take.
 //! [`Attributes`] says which optional per-vertex data (normals, texture coordinates,
 //! colours) and per-triangle materials the scene has: when a flag is set, *every* mesh has
-//! that array, filled with defaults where the source had none.
+//! that array, filled with defaults where the source had none. [`Material`]s hold glTF's
+//! metallic-roughness factors and their base colour, metallic-roughness, emissive and
+//! normal textures, decoded once each (PNG and JPEG) into [`Scene::textures`].
 //!
 //! # Animation
 //!
@@ -96,7 +98,8 @@ pub struct Attributes {
     pub materials: bool,
 }
 
-/// A material: only what the tracer shades with, and what cuts its surface.
+/// A material: only what the tracer shades with, and what cuts its surface. Each
+/// texture, where there is one, multiplies its factor.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {
     /// The material's name (may be empty).
@@ -116,6 +119,24 @@ pub struct Material {
     pub alpha_mode: AlphaMode,
     /// The base colour texture's alpha, for a masked material that has one.
     pub alpha_texture: Option<AlphaTextureRef>,
+    /// The base colour texture (glTF `baseColorTexture`): sRGB-encoded RGB, linear
+    /// alpha; the surface's colour is [`Material::base_color`] times the texel decoded to
+    /// linear.
+    pub base_color_texture: Option<TextureRef>,
+    /// The metallic-roughness texture (glTF `metallicRoughnessTexture`): linear;
+    /// roughness is [`Material::roughness`] times G, metalness [`Material::metallic`]
+    /// times B.
+    pub metallic_roughness_texture: Option<TextureRef>,
+    /// The emissive texture (glTF `emissiveTexture`): sRGB-encoded RGB; the emission is
+    /// [`Material::emissive`] times the texel decoded to linear.
+    pub emissive_texture: Option<TextureRef>,
+    /// The normal map (glTF `normalTexture`): linear RGB `c` holds the tangent-space
+    /// normal `2 c - 1`, its x and y scaled by [`Material::normal_scale`]. The scene keeps
+    /// no tangents (glTF `TANGENT` is not loaded): derive them as glTF asks where a file
+    /// has none, MikkTSpace over the positions, normals and texture coordinates.
+    pub normal_texture: Option<TextureRef>,
+    /// glTF `normalTexture.scale` (1 when absent or not finite).
+    pub normal_scale: f32,
 }
 
 impl Material {
@@ -130,6 +151,11 @@ impl Material {
             emissive: Vec3::ZERO,
             alpha_mode: AlphaMode::Opaque,
             alpha_texture: None,
+            base_color_texture: None,
+            metallic_roughness_texture: None,
+            emissive_texture: None,
+            normal_texture: None,
+            normal_scale: 1.0,
         }
     }
 
@@ -205,6 +231,44 @@ pub struct AlphaTexture {
     pub height: u32,
     /// Alpha, 8 bits per texel, row by row from the top (`v = 0`).
     pub alpha: Vec<u8>,
+}
+
+/// A material's texture: which [`Scene::textures`] entry, and how coordinates outside
+/// `0..1` wrap along `u` and `v`. It is sampled at the vertices' [`Mesh::texcoords`]
+/// (glTF `TEXCOORD_0`; textures on other sets are not loaded).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TextureRef {
+    /// Index into [`Scene::textures`].
+    pub texture: usize,
+    /// The sampler's `wrapS` and `wrapT`.
+    pub wrap: [Wrap; 2],
+}
+
+/// A decoded texture image, shared by every material slot that samples it.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct Texture {
+    /// The image's name or URI, for messages.
+    pub name: String,
+    /// Texels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// 8-bit RGBA, 4 bytes per texel, row by row from the top (`v = 0`), as the file
+    /// stores them: not converted from sRGB (whether a channel is sRGB depends on the slot
+    /// that samples it).
+    pub rgba: Vec<u8>,
+}
+
+// By hand: the derived Debug would print megabytes of texels.
+impl std::fmt::Debug for Texture {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Texture")
+            .field("name", &self.name)
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("rgba", &format_args!("[{} bytes]", self.rgba.len()))
+            .finish()
+    }
 }
 
 /// A triangle mesh in its own (object) space, with optional attributes.
@@ -327,6 +391,9 @@ pub struct Scene {
     /// The alpha channels of the textures masked materials sample
     /// ([`Material::alpha_texture`]); empty when no material is masked with a texture.
     pub alpha_textures: Vec<AlphaTexture>,
+    /// The images materials' textures sample ([`TextureRef::texture`]), each decoded
+    /// once; empty when no material has a usable texture.
+    pub textures: Vec<Texture>,
     /// Which optional arrays the meshes have.
     pub attributes: Attributes,
     /// The file's camera (the first perspective camera on a node, in world space), or a

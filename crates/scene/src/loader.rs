@@ -1210,9 +1210,9 @@ impl<'a, 'b> Loader<'a, 'b> {
 
     fn load(&mut self, base_dir: Option<&Path>) -> Result<Scene, ErrorKind> {
         let root = self.root;
-        let (materials, alpha_textures) = self.materials(base_dir);
+        let loaded = self.materials(base_dir);
         let mut walk = Walk {
-            materials,
+            materials: loaded.materials,
             mesh_map: vec![None; root.meshes.len()],
             ..Walk::default()
         };
@@ -1242,7 +1242,8 @@ impl<'a, 'b> Loader<'a, 'b> {
             meshes: walk.meshes,
             instances: walk.instances,
             materials: walk.materials,
-            alpha_textures,
+            alpha_textures: loaded.alpha_textures,
+            textures: loaded.textures,
             warnings: std::mem::take(&mut self.warnings),
             animation,
             ..Scene::default()
@@ -1266,8 +1267,8 @@ impl<'a, 'b> Loader<'a, 'b> {
     }
 
     /// The file's materials, named by index when they have no name (a base colour that
-    /// is not finite becomes white), and the alpha textures masked ones sample.
-    fn materials(&mut self, base_dir: Option<&Path>) -> (Vec<Material>, Vec<crate::AlphaTexture>) {
+    /// is not finite becomes white), and the textures they sample.
+    fn materials(&mut self, base_dir: Option<&Path>) -> crate::materials::Loaded {
         let view = |vi: usize| self.whole_view(vi);
         let src = crate::materials::ImageSource {
             root: self.root,
@@ -1784,7 +1785,8 @@ impl<'a, 'b> Loader<'a, 'b> {
         }))
     }
 
-    /// One warning listing image files that are missing (textures are never loaded).
+    /// One warning listing image files that are missing (the materials' texture warning
+    /// says which of them were needed).
     fn warn_missing_images(&mut self, base_dir: Option<&Path>) {
         let Some(dir) = base_dir else { return };
         let files: Vec<&str> = self
@@ -1802,7 +1804,7 @@ impl<'a, 'b> Loader<'a, 'b> {
         if !missing.is_empty() {
             let shown: Vec<&str> = missing.iter().copied().take(4).collect();
             self.warnings.push(format!(
-                "{} of {} image file(s) are missing ({}{}); only masked materials' alpha is read from images",
+                "{} of {} image file(s) are missing ({}{})",
                 missing.len(),
                 files.len(),
                 shown.join(", "),

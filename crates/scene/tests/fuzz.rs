@@ -3,7 +3,8 @@
 //! the container's lengths fixed up so that the edit reaches the loader), overwritten
 //! binary data. Every case must give `Ok` (a scene whose invariants hold and whose
 //! `flatten().triangles()` is `Ok` or a clean `Err`) or a `SceneError` naming the file,
-//! and never a panic. Deterministic: case `i` of a run is reproducible from its seed.
+//! and never a panic (a textured GLB sends mutated PNG and JPEG bytes to the decoders).
+//! Deterministic: case `i` of a run is reproducible from its seed.
 //!
 //! `BVHTRACE_FUZZ_CASES` overrides the number of cases (default 40,000: about a second).
 
@@ -96,6 +97,66 @@ fn feature_file() -> String {
     }))
 }
 
+/// A GLB whose materials sample a PNG and a JPEG stored in its binary chunk, so that
+/// mutations reach the image decoders: every texture slot, a mask, shared images.
+fn textured_glb() -> Vec<u8> {
+    let encode = |format: image::ImageFormat| {
+        let img = image::RgbaImage::from_fn(8, 8, |x, y| {
+            image::Rgba([x as u8 * 30, y as u8 * 30, 90, (x * y) as u8 * 4])
+        });
+        let mut out = std::io::Cursor::new(Vec::new());
+        match format {
+            image::ImageFormat::Jpeg => image::DynamicImage::from(img)
+                .to_rgb8()
+                .write_to(&mut out, format),
+            _ => img.write_to(&mut out, format),
+        }
+        .expect("encode");
+        out.into_inner()
+    };
+    let mut g = Gltf::default();
+    let p = g.positions(&TRI);
+    let uv = g.raw(
+        bytemuck::cast_slice(&[[0.0f32, 0.0], [1.0, 0.0], [0.0, 1.0]]),
+        3,
+        "VEC2",
+        common::F32,
+        json!({}),
+    );
+    let i = g.indices_u8(&[0, 1, 2]);
+    for bytes in [
+        encode(image::ImageFormat::Png),
+        encode(image::ImageFormat::Jpeg),
+    ] {
+        g.views
+            .push(json!({"buffer": 0, "byteOffset": g.bin.len(), "byteLength": bytes.len()}));
+        g.bin.extend_from_slice(&bytes);
+    }
+    let n = g.views.len();
+    let doc = g.document(
+        json!({
+            "materials": [
+                {"alphaMode": "MASK", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1}}},
+                {"emissiveTexture": {"index": 1}, "normalTexture": {"index": 0, "scale": 0.5}},
+            ],
+            "textures": [{"source": 0, "sampler": 0}, {"source": 1}],
+            "samplers": [{"wrapS": 33071, "wrapT": 33648}],
+            "images": [
+                {"bufferView": n - 2, "mimeType": "image/png"},
+                {"bufferView": n - 1, "mimeType": "image/jpeg"},
+            ],
+            "meshes": [
+                {"primitives": [{"attributes": {"POSITION": p, "TEXCOORD_0": uv}, "indices": i, "material": 0}]},
+                {"primitives": [{"attributes": {"POSITION": p, "TEXCOORD_0": uv}, "indices": i, "material": 1}]},
+            ],
+            "nodes": [{"mesh": 0}, {"mesh": 1, "translation": [0, 0, 1]}],
+            "scenes": [{"nodes": [0, 1]}],
+        }),
+        json!([{"byteLength": g.bin.len()}]),
+    );
+    join_glb(doc.to_string().as_bytes(), &g.bin)
+}
+
 fn sources() -> Vec<Source> {
     let cornell = load("builtin:cornell").expect("cornell");
     let mut v = vec![
@@ -115,6 +176,18 @@ fn sources() -> Vec<Source> {
             base_dir: None,
         },
     ];
+    let textured = textured_glb();
+    let s = load_gltf_slice(&textured, "textured.glb", None).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        s.warnings.is_empty() && s.textures.len() == 2,
+        "{:?}",
+        s.warnings
+    );
+    v.push(Source {
+        label: "textured.glb".into(),
+        bytes: textured,
+        base_dir: None,
+    });
     let ico = bvhtrace_scene::glb_bytes(&load("builtin:icosphere:1").expect("icosphere"));
     v.push(Source {
         label: "icosphere.glb".into(),

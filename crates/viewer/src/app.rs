@@ -242,7 +242,12 @@ pub struct ViewerApp {
     playback: Playback,
     /// The path mode's tracer, made when the mode is first shown for a scene and pose.
     path: Option<PathMode>,
+    /// One being made (its kernel compiling: in a browser, across frames), and for what.
+    path_pending: Option<((u64, f32), PathSlot)>,
 }
+
+/// Where a path tracer being made lands.
+type PathSlot = std::rc::Rc<std::cell::RefCell<Option<Result<PathMode, String>>>>;
 
 impl ViewerApp {
     /// Creates the app from eframe's creation context: wraps eframe's wgpu device (the one
@@ -345,6 +350,7 @@ impl ViewerApp {
             started: web_time::Instant::now(),
             first_image_ms: None,
             path: None,
+            path_pending: None,
             playback: Playback {
                 time: args.time,
                 playing: args.play,
@@ -1468,18 +1474,41 @@ impl ViewerApp {
         };
         let time = self.built.as_ref().map_or(0.0, |b| b.time);
         let made_for = (self.generation, time);
-        if self.path.as_ref().map(PathMode::made_for) != Some(made_for) {
+        let pending_for = self.path_pending.as_ref().map(|(m, _)| *m);
+        if self.path.as_ref().map(PathMode::made_for) != Some(made_for)
+            && pending_for != Some(made_for)
+        {
             let mut scene = data.scene.clone();
             if data.animated() {
                 scene.set_time(time);
             }
-            match PathMode::new(gpu, &scene, self.settings.traversal(), made_for) {
-                Ok(p) => self.path = Some(p),
-                Err(e) => {
+            let slot = PathSlot::default();
+            let (gpu, traversal, into) = (gpu.clone(), self.settings.traversal(), slot.clone());
+            let made = async move {
+                let mode = PathMode::new(&gpu, &scene, traversal, made_for).await;
+                *into.borrow_mut() = Some(mode);
+            };
+            #[cfg(target_arch = "wasm32")]
+            wasm_bindgen_futures::spawn_local(made);
+            #[cfg(not(target_arch = "wasm32"))]
+            pollster::block_on(made);
+            self.path_pending = Some((made_for, slot));
+        }
+        if let Some((_, slot)) = &self.path_pending {
+            let made = slot.borrow_mut().take();
+            match made {
+                Some(Ok(p)) => {
+                    self.path = Some(p);
+                    self.path_pending = None;
+                }
+                Some(Err(e)) => {
+                    self.path_pending = None;
                     self.error = Some(format!("path mode: {e}"));
                     self.settings.shade = Shade::Normal;
                     return;
                 }
+                // Still compiling: the frame shows what there was.
+                None => return,
             }
         }
         let (k, max) = (

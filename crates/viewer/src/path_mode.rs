@@ -28,8 +28,9 @@ pub struct PathMode {
 
 impl PathMode {
     /// The tracer of `scene` flattened (an animated scene posed at its current time), its
-    /// tree built on the CPU, walked by `traversal` on `ctx`'s device.
-    pub fn new(
+    /// tree built on the CPU, walked by `traversal` on `ctx`'s device; ready once the
+    /// device has compiled its kernel (in a browser, on the page's event loop).
+    pub async fn new(
         ctx: &GpuContext,
         scene: &Scene,
         traversal: Traversal,
@@ -41,8 +42,9 @@ impl PathMode {
             bvh.build_wide();
         }
         let shading = PathScene::new(scene, &tris).map_err(|e| e.to_string())?;
-        let tracer =
-            GpuPathTracer::new(ctx, &bvh, &shading, traversal).map_err(|e| e.to_string())?;
+        let walk = bvhtrace_path::PathWalk::Walk(traversal);
+        let tracer = (GpuPathTracer::with_walk_async(ctx, &bvh, &shading, walk).await)
+            .map_err(|e| e.to_string())?;
         Ok(PathMode {
             tracer,
             shading,
@@ -149,7 +151,8 @@ mod tests {
             Err(e) => panic!("{e}"),
         };
         let scene = bvhtrace_scene::load("builtin:cornell").expect("cornell");
-        let mut mode = PathMode::new(&ctx, &scene, Traversal::Stackless, (1, 0.0)).expect("mode");
+        let made = PathMode::new(&ctx, &scene, Traversal::Stackless, (1, 0.0));
+        let mut mode = pollster::block_on(made).expect("mode");
         let cam = scene.camera_or_frame(1.0);
         assert!(mode.advance(&cam, [32, 32], 2, 100).expect("frame"));
         mode.tracer().wait().expect("wait");
