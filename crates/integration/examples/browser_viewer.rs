@@ -9,7 +9,7 @@
 //! `web/test.sh` runs it.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR] [--scene FILE.glb|.gltf] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]
+//! cargo run --release -p bvhtrace-integration --example browser_viewer -- DIST [--window WxH] [--out DIR] [--scene FILE.glb|.gltf] [--time T] [--play] [--cpu] [--path] [--flags FLAGS] [--expect-error TEXT]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
@@ -17,7 +17,9 @@
 //! embedded buffers, or a `.glb`), `--time` poses an animated one at T seconds (in two
 //! levels when it places meshes more than once, as the viewer does), and `--play` plays it
 //! from there (each frame a new pose, written into the upload in place). `--cpu` has the
-//! viewer trace with the CPU walks in WebAssembly instead of the GPU. `--flags` adds the
+//! viewer trace with the CPU walks in WebAssembly instead of the GPU. `--path` opens the
+//! viewer's path mode: its sums, read back once with the screenshot, tone mapped, against
+//! the path tracer's CPU twin at the same camera and samples per pixel. `--flags` adds the
 //! viewer's own flags; with `--expect-error TEXT` the page must fail and show an error
 //! containing TEXT (a bad flag, a file that does not load) instead of an image.
 
@@ -58,12 +60,14 @@ struct Args {
     extra: String,
     /// `--expect-error`: the page must fail with this text.
     expect_error: Option<String>,
+    /// `--path`: the viewer's path mode, its sums against the CPU twin's.
+    path: bool,
 }
 
 impl Args {
     fn parse() -> Result<Args, Box<dyn std::error::Error>> {
         let mut args = std::env::args().skip(1);
-        let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu] [--flags FLAGS] [--expect-error TEXT]";
+        let usage = "usage: browser_viewer DIST [--window WxH] [--out DIR] [--scene FILE] [--time T] [--play] [--cpu] [--path] [--flags FLAGS] [--expect-error TEXT]";
         let dist = PathBuf::from(args.next().ok_or(usage)?);
         let mut a = Args {
             out: dist.clone(),
@@ -75,6 +79,7 @@ impl Args {
             cpu: false,
             extra: String::new(),
             expect_error: None,
+            path: false,
         };
         while let Some(arg) = args.next() {
             match arg.as_str() {
@@ -86,6 +91,7 @@ impl Args {
                 "--time" => a.time = args.next().ok_or("--time needs seconds")?.parse()?,
                 "--play" => a.play = true,
                 "--cpu" => a.cpu = true,
+                "--path" => a.path = true,
                 "--flags" => a.extra = args.next().ok_or("--flags needs the viewer's flags")?,
                 "--expect-error" => {
                     a.expect_error = Some(args.next().ok_or("--expect-error needs a text")?);
@@ -163,7 +169,11 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         )
         .into());
     }
-    let native = native_render(scene.ok_or("no scene")?, &shown, (hi - lo).length())?;
+    let scene = scene.ok_or("no scene")?;
+    let native = match args.path {
+        true => native_path(&scene, &shown)?,
+        false => native_render(scene, &shown, (hi - lo).length())?,
+    };
     compare(&args.out, &shown, &native, &shot)
 }
 
@@ -247,6 +257,9 @@ fn page_path(
     if args.cpu {
         flags.push_str(" --cpu");
     }
+    if args.path {
+        flags.push_str(" --shade path");
+    }
     if !args.extra.is_empty() {
         flags = format!("{flags} {}", args.extra);
     }
@@ -315,6 +328,36 @@ impl<'a> Shown<'a> {
             cam,
         })
     }
+}
+
+/// The path tracer's CPU twin at the camera, size and samples per pixel the page shows
+/// (the viewer's walk and lighting), tone mapped as the page's image is, as RGB8.
+fn native_path(
+    scene: &bvhtrace_scene::Scene,
+    shown: &Shown,
+) -> Result<Vec<u8>, Box<dyn std::error::Error>> {
+    use bvhtrace_path::{Accumulation, CpuPathTracer, Lighting, PathParams, PathScene};
+    let samples = shown.head["samples"]
+        .as_u64()
+        .ok_or("the page reported no samples")? as u32;
+    if samples == 0 {
+        return Err("the page's path mode added no sample".into());
+    }
+    let tris = scene.flattened_triangles()?;
+    let bvh = bvhtrace_core::FlatBvh::build(&tris, &BuildOptions::default())?;
+    let shading = PathScene::new(scene, &tris)?;
+    let params = PathParams::new(&shown.cam, shown.size, &Lighting::default(), 8, &shading);
+    let twin = CpuPathTracer::new(&bvh, &tris, &shading, Traversal::Stackless)?;
+    let start = Instant::now();
+    let mut sums = Accumulation::default();
+    for sample in 0..samples {
+        twin.add_sample(&PathParams { sample, ..params }, &mut sums);
+    }
+    println!(
+        "browser viewer: the CPU twin traced the page's {samples} samples per pixel in {:.1} s",
+        start.elapsed().as_secs_f64()
+    );
+    Ok(sums.to_srgb8(1.0))
 }
 
 /// The native render of the camera and time shown: the CPU twin's hits, shaded as

@@ -430,31 +430,46 @@ impl GpuPathTracer {
 
     /// Reads the sums and the counts of what the paths could not trace back from the
     /// device (waits for the samples submitted so far): one readback
-    /// (`GpuContext::readbacks`).
+    /// (`GpuContext::readbacks`). Blocks: in a browser use [`GpuPathTracer::read_async`].
     pub fn read(&self) -> Result<(Accumulation, PathStats), PathError> {
-        let Some((accum, _)) = &self.accum else {
-            return Err(PathError::Setting("read before restart".into()));
-        };
-        let bytes = (self.ctx).read_buffers(
-            "reading the path tracer's sums",
-            &[accum, &self.stats_buffer],
-        )?;
-        let p = &self.params;
-        let n = p.width as usize * p.height as usize;
-        let sums: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&bytes[0][..n * 16]);
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[1][..16]);
-        let image = Accumulation {
-            width: p.width,
-            height: p.height,
-            sums,
-        };
-        let stats = PathStats {
-            incomplete: u64::from(words[0]),
-            not_finite: u64::from(words[1]),
-            rays: u64::from(words[2]),
-        };
-        Ok((image, stats))
+        pollster::block_on(self.read_async())
     }
+
+    /// [`GpuPathTracer::read`] as a future (what a page awaits); it owns what it reads,
+    /// so it may outlive the borrow (`spawn_local`).
+    pub fn read_async(
+        &self,
+    ) -> impl std::future::Future<Output = Result<(Accumulation, PathStats), PathError>> + 'static
+    {
+        let ctx = self.ctx.clone();
+        let accum = self.accum.as_ref().map(|(b, _)| b.clone());
+        let stats = self.stats_buffer.clone();
+        let params = self.params;
+        async move {
+            let accum = accum.ok_or(PathError::Setting("read before restart".into()))?;
+            let during = "reading the path tracer's sums";
+            let bytes = ctx.read_buffers_async(during, &[&accum, &stats]).await?;
+            Ok(unpack(&params, &bytes))
+        }
+    }
+}
+
+/// The sums and counts from their bytes.
+fn unpack(p: &PathParams, bytes: &[Vec<u8>]) -> (Accumulation, PathStats) {
+    let n = p.width as usize * p.height as usize;
+    let sums: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&bytes[0][..n * 16]);
+    let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[1][..16]);
+    let image = Accumulation {
+        width: p.width,
+        height: p.height,
+        sums,
+    };
+    let stats = PathStats {
+        incomplete: u64::from(words[0]),
+        not_finite: u64::from(words[1]),
+        rays: u64::from(words[2]),
+    };
+    (image, stats)
 }
 
 /// Group 1: the parameters, materials, primitives, lights, sums and counts.

@@ -102,7 +102,8 @@ mod web {
         /// How a `--screenshot` run ended: `undefined` while it runs, else an object with
         /// `message` (or `error`), and when it ended well `window_png` (the window as a
         /// PNG file), `traced` (the traced image, RGBA8), `width`, `height`, `eye`,
-        /// `target`, `fov` (its camera), `time` (the animation time it shows) and `on_gpu`.
+        /// `target`, `fov` (its camera), `time` (the animation time it shows), `on_gpu` and
+        /// `samples` (per pixel, in the path mode).
         pub fn screenshot(&self) -> Result<JsValue, JsValue> {
             let outcome = self.shared.outcome.lock().ok().and_then(|o| o.clone());
             let Some(outcome) = outcome else {
@@ -132,6 +133,7 @@ mod web {
                 set("fov", s.camera.fov_y_deg.into())?;
                 set("on_gpu", s.on_gpu.into())?;
                 set("time", s.time.into())?;
+                set("samples", s.samples.into())?;
             }
             Ok(o.into())
         }

@@ -21,7 +21,7 @@ use crate::display::Display;
 use crate::jobs::{
     Batch, BuiltBvh, Job, JobOutput, JobRequest, PoseTimes, SceneData, Source, Traced,
 };
-use crate::path_mode::PathMode;
+use crate::path_mode::{PathMode, SumsSlot};
 use crate::shade::{self, Accumulation, Comparison, Shade, View};
 
 /// How a screenshot run ended: `Ok(message)` or `Err(message)`; `None` while it runs (or
@@ -60,6 +60,8 @@ pub struct ShotImages {
     /// The animation time of the traced image, seconds (in a browser, a frame behind the
     /// latest pose while an animation plays).
     pub time: f32,
+    /// Samples per pixel of a path-traced image (0 in the other modes).
+    pub samples: u32,
 }
 
 /// The largest traced image side, pixels.
@@ -192,6 +194,8 @@ struct Shot {
     frames_done: u32,
     requested_at: Option<u32>,
     image: Arc<Mutex<Option<Arc<egui::ColorImage>>>>,
+    /// In the path mode, the sums read back with the screenshot (its one readback).
+    sums: Option<SumsSlot>,
 }
 
 /// The viewer.
@@ -343,6 +347,7 @@ impl ViewerApp {
                 frames_done: 0,
                 requested_at: None,
                 image: Arc::new(Mutex::new(None)),
+                sums: None,
             }),
             compare_pending: args.compare,
             image_rect: egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(800.0, 600.0)),
@@ -708,19 +713,39 @@ impl ViewerApp {
 
     /// Writes the screenshot to `path`; in a browser, keeps it and the traced image in
     /// [`Shared::shot`] instead.
-    fn save_shot(&self, path: &std::path::Path, img: &egui::ColorImage) -> Result<(), String> {
+    fn save_shot(
+        &self,
+        path: &std::path::Path,
+        img: &egui::ColorImage,
+        sums: Option<Result<bvhtrace_path::Accumulation, String>>,
+    ) -> Result<(), String> {
         if cfg!(not(target_arch = "wasm32")) {
+            sums.transpose()?;
             return crate::png::write_png_atomic(path, img);
         }
         let size = self.accum.as_ref().map_or([0, 0], |a| [a.width, a.height]);
-        let images = ShotImages {
+        let mut images = ShotImages {
             window_png: crate::png::encode_png(img)?,
             traced_rgba: self.image.clone(),
             size,
             camera: self.key.as_ref().map_or(self.cam, |k| k.camera),
             on_gpu: self.stats.on_gpu,
             time: self.key.as_ref().map_or(0.0, |k| k.time),
+            samples: 0,
         };
+        // The path mode's image is its sums, tone mapped as `bvhtrace render` maps them.
+        if let (Some(sums), Some((camera, _))) = (
+            sums.transpose()?,
+            self.path.as_ref().and_then(PathMode::view),
+        ) {
+            images.traced_rgba = (sums.to_srgb8(1.0).chunks_exact(3))
+                .flat_map(|p| [p[0], p[1], p[2], 255])
+                .collect();
+            images.size = [sums.width, sums.height];
+            images.samples = sums.samples();
+            images.camera = camera;
+            images.on_gpu = true;
+        }
         if let Ok(mut s) = self.shared.shot.lock() {
             *s = Some(images);
         }
@@ -738,6 +763,7 @@ impl ViewerApp {
     /// Advances a `--screenshot` run: counts frames once the scene is shown, asks for the
     /// screenshot, saves it and closes the window.
     fn screenshot_step(&mut self, ctx: &egui::Context) {
+        let path_mode = self.settings.shade == Shade::Path;
         let Some(shot) = &mut self.shot else { return };
         ctx.request_repaint();
         if self.job.is_some() {
@@ -762,6 +788,10 @@ impl ViewerApp {
                 }
                 if shot.frames_done >= shot.frames {
                     shot.requested_at = Some(shot.frames_done);
+                    // A page has no file system: it hands the sums to its caller.
+                    if path_mode && cfg!(target_arch = "wasm32") {
+                        shot.sums = self.path.as_ref().map(PathMode::read_sums);
+                    }
                     let slot = shot.image.clone();
                     let wake = ctx.clone();
                     ctx.request_screenshot(move |img| {
@@ -773,7 +803,11 @@ impl ViewerApp {
                 }
             }
             Some(at) => {
-                let taken = shot.image.lock().ok().and_then(|mut g| g.take());
+                let sums_ready = (shot.sums.as_ref()).is_none_or(|s| s.borrow().is_some());
+                let taken = match sums_ready {
+                    true => shot.image.lock().ok().and_then(|mut g| g.take()),
+                    false => None,
+                };
                 if let Some(img) = taken {
                     let path = shot.path.clone();
                     let [w, h] = img.size;
@@ -809,10 +843,21 @@ impl ViewerApp {
                     };
                     let frames = shot.frames;
                     let first = self.first_image_ms.unwrap_or(f64::NAN);
-                    let r = self.save_shot(&path, &img).map(|()| {
+                    let sums = shot.sums.take().and_then(|s| s.borrow_mut().take());
+                    let samples = match &sums {
+                        Some(Ok(s)) => s.samples(),
+                        _ => samples,
+                    };
+                    let rate = match (&self.path, path_mode) {
+                        (Some(p), true) => p
+                            .samples_per_second()
+                            .map_or(String::new(), |r| format!(" at {r:.1} samples/s")),
+                        _ => String::new(),
+                    };
+                    let r = self.save_shot(&path, &img, sums).map(|()| {
                         format!(
                             "wrote {} ({w}x{h}; {frames} frames, traced on the {backend}, \
-                             {samples} accumulated samples per pixel{animation}; first image \
+                             {samples} accumulated samples per pixel{rate}{animation}; first image \
                              {first:.0} ms after the start)",
                             path.display(),
                         )

@@ -10,6 +10,10 @@ use eframe::egui;
 use eframe::egui_wgpu::RenderState;
 use eframe::wgpu;
 
+/// Where the sums read back for a screenshot land.
+pub type SumsSlot =
+    std::rc::Rc<std::cell::RefCell<Option<Result<bvhtrace_path::Accumulation, String>>>>;
+
 /// The path tracer over one pose of one scene, and the texture egui shows.
 pub struct PathMode {
     tracer: GpuPathTracer,
@@ -69,6 +73,28 @@ impl PathMode {
     /// Samples per second over the last frames (`None` before two frames).
     pub fn samples_per_second(&self) -> Option<f64> {
         self.rate
+    }
+
+    /// The camera and size the sums are for (`None` before the first frame).
+    pub fn view(&self) -> Option<(Camera, [u32; 2])> {
+        self.view
+    }
+
+    /// Starts reading the sums back (a screenshot's one readback); the slot is filled when
+    /// they arrive (natively, before this returns; in a browser, on the event loop).
+    pub fn read_sums(&self) -> SumsSlot {
+        let slot = SumsSlot::default();
+        let into = slot.clone();
+        let reading = self.tracer.read_async();
+        let read = async move {
+            let r = reading.await.map(|(sums, _)| sums);
+            *into.borrow_mut() = Some(r.map_err(|e| e.to_string()));
+        };
+        #[cfg(target_arch = "wasm32")]
+        wasm_bindgen_futures::spawn_local(read);
+        #[cfg(not(target_arch = "wasm32"))]
+        pollster::block_on(read);
+        slot
     }
 
     /// The tracer, for tests and reports.
