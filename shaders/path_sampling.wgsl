@@ -106,9 +106,17 @@ struct PathMaterial {
     one_m_alpha2: f32,
     p_diffuse: f32,
     base_alpha: f32,
-    pad0: f32,
-    pad1: f32,
+    // Textures (`PATH_NO_TEXTURE` for none): base colour, metallic-roughness, emissive,
+    // and the offset of the material's table in `path_data` (`bvhtrace_path::textures`).
+    base_tex: u32,
+    mr_tex: u32,
+    base_factor: vec3<f32>,
+    emissive_tex: u32,
+    emissive_factor: vec3<f32>,
+    table: u32,
 }
+
+const PATH_NO_TEXTURE: u32 = 0xffffffffu;
 
 // `f(wo, wi) cos(wi)` and the density of `path_sample_lobes` choosing `wi`, about the
 // unit normal `n` on `wo`'s side.

@@ -55,6 +55,10 @@ const PATH_FAR: f32 = 1e30;
 @group(1) @binding(3) var<storage, read> path_lights: array<PathLight>;
 // Per pixel: the sum of its samples' radiance, and their count in `w`.
 @group(1) @binding(4) var<storage, read_write> path_accum: array<vec4<f32>>;
+// The textures, one array (`bvhtrace_path::textures`): word 0 the texture coordinates'
+// offset, word 1 the sRGB table's, word 2 the headers' (4 words a texture: texels' offset,
+// width, height, wraps), then those and each textured material's table.
+@group(1) @binding(6) var<storage, read> path_data: array<u32>;
 // Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite,
 // rays traced (closest and any hit; wraps past 2^32).
 @group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 4>;
@@ -87,6 +91,110 @@ fn path_blocked(ray: BvhRay, lane: u32) -> bool {
         atomicAdd(&path_stats[0], 1u);
     }
     return prim != BVH_MISS && prim != BVH_INVALID_RAY;
+}
+
+// `bvhtrace_core::alpha::texel_index`: the nearest texel along an axis.
+fn path_texel_index(x: f32, size: u32, wrap: u32) -> u32 {
+    if ((bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u) {
+        return 0u;
+    }
+    var f = x - floor(x);
+    if (wrap == 1u) {
+        f = clamp(x, 0.0, 1.0);
+    } else if (wrap == 2u) {
+        let g = x - 2.0 * floor(x * 0.5);
+        f = select(g, 2.0 - g, g > 1.0);
+    }
+    return min(u32(floor(f * f32(size))), size - 1u);
+}
+
+// The RGBA8 texel of texture `t` nearest `uv`.
+fn path_texel(t: u32, uv: vec2<f32>) -> vec4<u32> {
+    let h = path_data[2] + 4u * t;
+    let w = path_data[h + 1u];
+    let x = path_texel_index(uv.x, w, path_data[h + 3u] & 3u);
+    let y = path_texel_index(uv.y, path_data[h + 2u], path_data[h + 3u] >> 2u);
+    let c = path_data[path_data[h] + y * w + x];
+    return vec4<u32>(c & 255u, (c >> 8u) & 255u, (c >> 16u) & 255u, c >> 24u);
+}
+
+// An sRGB-encoded texel's colour, linear (the table of `bvhtrace_path::textures`).
+fn path_srgb(c: vec4<u32>) -> vec3<f32> {
+    let t = path_data[1];
+    return vec3<f32>(
+        bitcast<f32>(path_data[t + c.x]),
+        bitcast<f32>(path_data[t + c.y]),
+        bitcast<f32>(path_data[t + c.z]),
+    );
+}
+
+// `bvhtrace_core::alpha::interpolate_uv` of primitive `prim` at barycentrics `u`, `v`.
+fn path_uv(prim: u32, u: f32, v: f32) -> vec2<f32> {
+    let b = path_data[0] + 6u * prim;
+    let c = array<f32, 6>(
+        bitcast<f32>(path_data[b]), bitcast<f32>(path_data[b + 1u]),
+        bitcast<f32>(path_data[b + 2u]), bitcast<f32>(path_data[b + 3u]),
+        bitcast<f32>(path_data[b + 4u]), bitcast<f32>(path_data[b + 5u]),
+    );
+    return vec2<f32>(
+        (c[0] + (c[2] - c[0]) * u) + (c[4] - c[0]) * v,
+        (c[1] + (c[3] - c[1]) * u) + (c[5] - c[1]) * v,
+    );
+}
+
+fn path_word(i: u32) -> f32 {
+    return bitcast<f32>(path_data[i]);
+}
+
+// Material `m` at barycentrics `u`, `v` of `prim`: its textures read and its lobes worked
+// out (`bvhtrace_path::sampling::textured`), with each complement from the material's
+// table rather than `1 - x` here (see path_sampling.wgsl).
+fn path_textured(m: PathMaterial, prim: u32, u: f32, v: f32) -> PathMaterial {
+    if (m.base_tex == PATH_NO_TEXTURE && m.mr_tex == PATH_NO_TEXTURE && m.emissive_tex == PATH_NO_TEXTURE) {
+        return m;
+    }
+    let uv = path_uv(prim, u, v);
+    var base = m.base_factor;
+    if (m.base_tex != PATH_NO_TEXTURE) {
+        let c = path_srgb(path_texel(m.base_tex, uv));
+        base = vec3<f32>(base.x * c.x, base.y * c.y, base.z * c.z);
+    }
+    var g = 255u;
+    var b = 255u;
+    if (m.mr_tex != PATH_NO_TEXTURE) {
+        let c = path_texel(m.mr_tex, uv);
+        g = c.y;
+        b = c.z;
+    }
+    var out = m;
+    // Roughness from G: alpha^2, alpha^2 - 1, 1 - alpha^2; metalness from B: metallic,
+    // 1 - metallic, 0.04 (1 - metallic), 1 - 0.04 (1 - metallic).
+    let r = m.table + 4u * g;
+    let k = m.table + 1024u + 4u * b;
+    out.alpha2 = path_word(r);
+    out.alpha2_m1 = path_word(r + 1u);
+    out.one_m_alpha2 = path_word(r + 2u);
+    let metallic = path_word(k);
+    let dielectric = path_word(k + 1u);
+    let c1 = path_word(k + 2u);
+    let e1 = path_word(k + 3u);
+    out.diffuse = vec3<f32>(base.x * dielectric, base.y * dielectric, base.z * dielectric);
+    out.f0 = vec3<f32>(c1 + base.x * metallic, c1 + base.y * metallic, c1 + base.z * metallic);
+    out.f0c = vec3<f32>(e1 - base.x * metallic, e1 - base.y * metallic, e1 - base.z * metallic);
+    let ls = 0.2126 * out.f0.x + 0.7152 * out.f0.y + 0.0722 * out.f0.z;
+    let ld = 0.2126 * out.diffuse.x + 0.7152 * out.diffuse.y + 0.0722 * out.diffuse.z;
+    var p = 1.0;
+    if (ld > 0.0) {
+        p = min(max(ls / (ls + ld), 0.1), 0.9);
+    }
+    out.p_spec = p;
+    out.p_diffuse = 1.0 - p;
+    if (m.emissive_tex != PATH_NO_TEXTURE) {
+        let c = path_srgb(path_texel(m.emissive_tex, uv));
+        let e = m.emissive_factor;
+        out.emissive = vec3<f32>(e.x * c.x, e.y * c.y, e.z * c.z);
+    }
+    return out;
 }
 
 // The light whose cdf first exceeds `u` (binary search).
@@ -141,7 +249,7 @@ fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
         let s = bvh_hit_surface(ray, hit);
         let n = s.normal;
         let prim = path_prims[hit.prim];
-        let m = path_materials[prim.x];
+        let m = path_textured(path_materials[prim.x], hit.prim, hit.u, hit.v);
         if (!path_is_black(m.emissive)) {
             var w = 1.0;
             if (depth > 0u && prim.y != PATH_NO_LIGHT) {
@@ -198,7 +306,12 @@ fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
                 if (!path_blocked(BvhRay(s.origin, 0.0, dt, 1.0), lane)) {
                     let light_pdf = light.pdf_area * dist2 / cos_l;
                     let w = path_mis(light_pdf, e.pdf) / light_pdf;
-                    radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, light.emission)), w));
+                    let lm = path_materials[path_prims[light.prim].x];
+                    var emission = light.emission;
+                    if (lm.emissive_tex != PATH_NO_TEXTURE) {
+                        emission = path_textured(lm, light.prim, b1, b2).emissive;
+                    }
+                    radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, emission)), w));
                 }
             }
         }

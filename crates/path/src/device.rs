@@ -40,7 +40,7 @@ pub struct GpuPathTracer {
     pipeline: wgpu::ComputePipeline,
     bvh_group: wgpu::BindGroup,
     layout: wgpu::BindGroupLayout,
-    scene_buffers: [wgpu::Buffer; 3],
+    scene_buffers: [wgpu::Buffer; 4],
     params_buffer: wgpu::Buffer,
     stats_buffer: wgpu::Buffer,
     accum: Option<(wgpu::Buffer, wgpu::BindGroup)>,
@@ -169,6 +169,11 @@ impl GpuPathTracer {
             ),
             init("path prims", bytemuck::cast_slice(prims), U::STORAGE),
             init("path lights", bytemuck::cast_slice(lights), U::STORAGE),
+            init(
+                "path textures",
+                bytemuck::cast_slice(&scene.textures.words),
+                U::STORAGE,
+            ),
         ];
         let params = PathParams::default();
         let params_buffer = init(
@@ -257,6 +262,7 @@ impl GpuPathTracer {
             &self.scene_buffers[2],
             accum,
             &self.stats_buffer,
+            &self.scene_buffers[3],
         ]
         .iter()
         .enumerate()
@@ -472,7 +478,7 @@ fn unpack(p: &PathParams, bytes: &[Vec<u8>]) -> (Accumulation, PathStats) {
     (image, stats)
 }
 
-/// Group 1: the parameters, materials, primitives, lights, sums and counts.
+/// Group 1: the parameters, materials, primitives, lights, sums, counts and textures.
 fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     use wgpu::BufferBindingType as B;
     let kinds = [
@@ -482,6 +488,7 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
         B::Storage { read_only: true },
         B::Storage { read_only: false },
         B::Storage { read_only: false },
+        B::Storage { read_only: true },
     ];
     let entries: Vec<wgpu::BindGroupLayoutEntry> = (kinds.iter().enumerate())
         .map(|(i, &ty)| wgpu::BindGroupLayoutEntry {

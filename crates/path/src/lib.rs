@@ -44,10 +44,13 @@
 mod device;
 pub mod sampling;
 mod scene;
+pub mod textures;
 mod twin;
 
 pub use device::{GpuPathTracer, PathWalk, kernel_source};
-pub use scene::{Lighting, MAX_EMISSION, NO_LIGHT, PathLight, PathMaterial, PathParams, PathScene};
+pub use scene::{
+    Lighting, MAX_EMISSION, NO_LIGHT, NO_TEXTURE, PathLight, PathMaterial, PathParams, PathScene,
+};
 pub use twin::{CpuPathTracer, mean_luminance};
 
 /// Why a path tracer could not be made or run.

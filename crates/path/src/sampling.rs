@@ -5,7 +5,7 @@
 
 use glam::{Vec2, Vec3};
 
-use crate::scene::PathMaterial;
+use crate::scene::{NO_TEXTURE, PathMaterial};
 
 /// `PATH_PI`.
 pub const PI: f32 = std::f32::consts::PI;
@@ -152,6 +152,12 @@ pub fn lobes(
         1.0
     };
     PathMaterial {
+        base_tex: NO_TEXTURE,
+        mr_tex: NO_TEXTURE,
+        base_factor: base.to_array(),
+        emissive_tex: NO_TEXTURE,
+        emissive_factor: emissive.to_array(),
+        table: 0,
         diffuse: diffuse.to_array(),
         alpha2,
         f0: f0.to_array(),
@@ -162,7 +168,6 @@ pub fn lobes(
         one_m_alpha2: 1.0 - alpha2,
         p_diffuse: 1.0 - p_spec,
         base_alpha: alpha,
-        pad: [0.0; 2],
     }
 }
 

@@ -35,9 +35,23 @@ pub struct PathMaterial {
     pub p_diffuse: f32,
     /// The base colour's alpha (masks cut in the walk; kept for reports).
     pub base_alpha: f32,
-    /// Padding to 16 bytes.
-    pub pad: [f32; 2],
+    /// The base colour texture's index in the textures ([`NO_TEXTURE`] for none).
+    pub base_tex: u32,
+    /// The metallic-roughness texture's ([`NO_TEXTURE`] for none).
+    pub mr_tex: u32,
+    /// The base colour factor, which a texture's linear colour multiplies.
+    pub base_factor: [f32; 3],
+    /// The emissive texture's ([`NO_TEXTURE`] for none).
+    pub emissive_tex: u32,
+    /// The emissive factor, which a texture's linear colour multiplies.
+    pub emissive_factor: [f32; 3],
+    /// The offset of a textured material's table in the texture data
+    /// ([`crate::textures::TextureData`]).
+    pub table: u32,
 }
+
+/// A material slot without a texture.
+pub const NO_TEXTURE: u32 = u32::MAX;
 
 /// An emissive triangle (WGSL `PathLight`, 64 bytes): `v0`, `v0 + e1`, `v0 + e2`.
 #[repr(C)]
@@ -139,6 +153,8 @@ pub struct PathScene {
     pub prims: Vec<[u32; 2]>,
     /// The emissive triangles of non-zero area, chances by power.
     pub lights: Vec<PathLight>,
+    /// The material textures and what reads them.
+    pub textures: crate::textures::TextureData,
 }
 
 impl PathScene {
@@ -166,11 +182,15 @@ impl PathScene {
                 [m.min(default), NO_LIGHT]
             })
             .collect();
+        let n = scene.materials.len();
+        let textures =
+            crate::textures::TextureData::new(scene, &mut materials[..n], triangles.len());
         let lights = lights(&materials, triangles, &mut prims);
         Ok(PathScene {
             materials,
             prims,
             lights,
+            textures,
         })
     }
 }

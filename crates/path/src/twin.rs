@@ -11,7 +11,8 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::sampling::{Frame, PI, Rng, cross, dot, eval, luminance, mis, normalize, sample};
-use crate::scene::{NO_LIGHT, PathMaterial, PathParams, PathScene};
+use crate::scene::{NO_LIGHT, NO_TEXTURE, PathMaterial, PathParams, PathScene};
+use crate::textures::textured;
 use crate::{Accumulation, PathError, PathStats};
 
 /// `PATH_FAR`.
@@ -175,7 +176,13 @@ impl Walker<'_> {
             let s = hit.surface(&self.tracer.triangles[hit.prim as usize], dir);
             let n = s.normal;
             let [mi, li] = scene.prims[hit.prim as usize];
-            let m = scene.materials[mi as usize];
+            let m = textured(
+                &scene.materials[mi as usize],
+                &scene.textures,
+                hit.prim,
+                hit.u,
+                hit.v,
+            );
             let emissive = Vec3::from(m.emissive);
             if !black(emissive) {
                 let mut w = 1.0;
@@ -288,7 +295,13 @@ impl Walker<'_> {
         }
         let light_pdf = light.pdf_area * dist2 / cos_l;
         let w = mis(light_pdf, e.pdf) / light_pdf;
-        scale(throughput * (e.value * Vec3::from(light.emission)), w)
+        let scene = self.tracer.scene;
+        let lm = &scene.materials[scene.prims[light.prim as usize][0] as usize];
+        let mut emission = Vec3::from(light.emission);
+        if lm.emissive_tex != NO_TEXTURE {
+            emission = Vec3::from(textured(lm, &scene.textures, light.prim, b1, b2).emissive);
+        }
+        scale(throughput * (e.value * emission), w)
     }
 }
 

@@ -124,6 +124,12 @@ fn the_rust_types_are_the_wgsl_structs() {
             ("one_m_alpha2", offset_of!(PathMaterial, one_m_alpha2)),
             ("p_diffuse", offset_of!(PathMaterial, p_diffuse)),
             ("base_alpha", offset_of!(PathMaterial, base_alpha)),
+            ("base_tex", offset_of!(PathMaterial, base_tex)),
+            ("mr_tex", offset_of!(PathMaterial, mr_tex)),
+            ("base_factor", offset_of!(PathMaterial, base_factor)),
+            ("emissive_tex", offset_of!(PathMaterial, emissive_tex)),
+            ("emissive_factor", offset_of!(PathMaterial, emissive_factor)),
+            ("table", offset_of!(PathMaterial, table)),
         ],
     );
     check(

@@ -17,6 +17,10 @@ pub fn builtin_names() -> &'static [(&'static str, &'static str)] {
             "the default scene: a Cornell box (floor, ceiling, back, red left and green right walls, a ceiling light) with a short and a tall block; 36 triangles, with normals, materials and a camera",
         ),
         (
+            "cornell-textured",
+            "the Cornell box with textures: a checkered base colour and a metallic-roughness texture (rough to smooth, metal on every other row) on its white walls and blocks, a patterned emissive texture on its light; 36 triangles, with texture coordinates",
+        ),
+        (
             "spheres",
             "icospheres of five sizes (subdivision 2 to 5, instanced) on a ground grid; 35,328 triangles, with normals, materials and a camera",
         ),
@@ -44,6 +48,7 @@ pub(crate) fn load_builtin(
     let bad = |msg: String| SceneError::new(spec, ErrorKind::Spec(msg));
     let scene = match name {
         "cornell" => cornell(),
+        "cornell-textured" => cornell_textured(),
         "spheres" => spheres(),
         "degenerate" => degenerate(),
         _ => {
@@ -307,6 +312,53 @@ fn cornell() -> Scene {
         }),
         ..Scene::default()
     }
+}
+
+/// An `n` x `n` texture whose texel (x, y) is `f(x, y)`.
+fn texture(name: &str, n: u32, f: impl Fn(u32, u32) -> [u8; 4]) -> crate::Texture {
+    crate::Texture {
+        name: name.into(),
+        width: n,
+        height: n,
+        rgba: (0..n * n).flat_map(|i| f(i % n, i / n)).collect(),
+    }
+}
+
+/// The Cornell box with a texture in each slot the path tracer reads: a checkered base
+/// colour and a metallic-roughness texture on the white material, a glowing pattern on
+/// the light; coordinates from the positions (`1.5 (x + z, y)`), in every wrap mode.
+fn cornell_textured() -> Scene {
+    use crate::{TextureRef, Wrap};
+    let mut scene = cornell();
+    scene.name = "cornell-textured".into();
+    scene.description = "the Cornell box with textures (procedural)".into();
+    scene.textures = vec![
+        texture("checker", 8, |x, y| match (x + y) % 2 {
+            0 => [240, 240, 240, 255],
+            _ => [60, 90, 200, 255],
+        }),
+        // Roughness in G from 0.1 to 1 along x, metal in B on every other row.
+        texture("metal-rough", 4, |x, y| {
+            [0, 25 + 76 * x as u8, if y % 2 == 0 { 255 } else { 0 }, 255]
+        }),
+        texture("glow", 2, |x, y| {
+            let c = if x == y { 255 } else { 40 };
+            [c, c, c, 255]
+        }),
+    ];
+    let r = |texture: usize, wrap: [Wrap; 2]| Some(TextureRef { texture, wrap });
+    let white = &mut scene.materials[0];
+    white.base_color_texture = r(0, [Wrap::Repeat, Wrap::MirroredRepeat]);
+    white.metallic_roughness_texture = r(1, [Wrap::Repeat, Wrap::ClampToEdge]);
+    white.metallic = 1.0;
+    scene.materials[3].emissive_texture = r(2, [Wrap::Repeat; 2]);
+    for mesh in &mut scene.meshes {
+        mesh.texcoords = (mesh.positions.iter())
+            .map(|p| Vec2::new(p.x + p.z, p.y) * 1.5)
+            .collect();
+    }
+    scene.attributes.texcoords = true;
+    scene
 }
 
 /// A flat grid of `n x n` quads over `[-half, half]^2` at height `y`, facing +y.
