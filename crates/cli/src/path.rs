@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use bvhtrace_core::{FlatBvh, Traversal, Triangle};
+use bvhtrace_core::Traversal;
 use bvhtrace_path::{
     Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
     PathWalk,
@@ -98,16 +98,18 @@ pub fn render(args: &RenderArgs, png: AtomicFile, json_out: Option<JsonOut>) -> 
     let walk = args.walk()?;
     let opts = backend::options(args.backend, args.adapter.as_deref(), &Vec::from_iter(walk));
     let device = backend::device(&opts)?;
-    let mut scene_args = args.scene.clone();
-    // One mesh: the shading data numbers the flattened triangles.
-    scene_args.flatten = true;
-    let built = load_and_build(&scene_args, Some(&device))?;
-    let SceneBvh::Flat { tris, mut bvh } = built.geometry else {
-        bail!("the path tracer traces the scene flattened");
-    };
+    // One mesh, or two levels when the scene places meshes more than once (not with
+    // --flatten): either numbers the flattened scene's triangles, as the shading data does.
+    let mut built = load_and_build(&args.scene, Some(&device))?;
     if args.opaque {
-        bvh.set_masks(None).map_err(anyhow::Error::msg)?;
+        (built.geometry)
+            .set_masks(None)
+            .map_err(anyhow::Error::msg)?;
     }
+    let tris = match &built.geometry {
+        SceneBvh::Flat { tris, .. } => tris.clone(),
+        SceneBvh::Instanced(_) => built.scene.flattened_triangles()?,
+    };
     let shading = PathScene::new(&built.scene, &tris)?;
     let cam = camera_for(&args.view, &built.scene)?;
     let (w, h) = args.view.size;
@@ -121,9 +123,9 @@ pub fn render(args: &RenderArgs, png: AtomicFile, json_out: Option<JsonOut>) -> 
         _ => Traversal::Stackless,
     });
     if traversal.is_wide() {
-        bvh.build_wide();
+        built.geometry.build_wide();
     }
-    let mut engine = open(&device, &bvh, &tris, &shading, traversal)?;
+    let mut engine = open(&device, &built.geometry, &shading, traversal)?;
     eprintln!(
         "path tracing {} ({} triangles, {} emissive) at {w}x{h}, {} spp, {} bounces at most, on {} ({})",
         built.scene.name,
@@ -202,16 +204,19 @@ fn walk_name(engine: &Engine<'_>, traversal: Traversal) -> String {
 /// The path tracer on `device`: the kernel on a wgpu device, the twin on the CPU.
 fn open<'a>(
     device: &Device,
-    bvh: &'a FlatBvh,
-    tris: &'a [Triangle],
+    geometry: &'a SceneBvh,
     shading: &'a PathScene,
     traversal: Traversal,
 ) -> Result<Engine<'a>> {
+    let bvh = geometry.bvh();
     match device.backend() {
-        Backend::Cpu => Ok(Engine::Cpu(
-            CpuPathTracer::new(bvh, tris, shading, traversal)?,
-            Accumulation::default(),
-        )),
+        Backend::Cpu => {
+            let twin = match geometry {
+                SceneBvh::Flat { tris, bvh } => CpuPathTracer::new(bvh, tris, shading, traversal)?,
+                SceneBvh::Instanced(ib) => CpuPathTracer::instanced(ib, shading, traversal)?,
+            };
+            Ok(Engine::Cpu(twin, Accumulation::default()))
+        }
         b @ (Backend::Wgpu | Backend::RayQuery) => {
             let ctx = device
                 .wgpu_context()

@@ -8,8 +8,15 @@ use common::*;
 
 #[test]
 fn path_tracing_gives_the_same_image_on_the_device_and_the_cpu_twin() {
+    let foliage = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
+    // Alpha masks in one mesh; instanced spheres in two levels.
+    for scene in [foliage, "builtin:spheres"] {
+        same_image_on_device_and_twin(scene);
+    }
+}
+
+fn same_image_on_device_and_twin(scene: &str) {
     let dir = scratch("path");
-    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
     let mut runs = Vec::new();
     for backend in ["auto", "cpu"] {
         let png = dir.join(format!("{backend}.png"));

@@ -605,6 +605,17 @@ impl InstancedBvh {
         Some(corners.map(|c| inst.transform.transform_point3(c)))
     }
 
+    /// The object-space corners of the primitive a hit reports, with its instance as
+    /// traced (what `hits::instance_surface` takes); `None` as for
+    /// [`InstancedBvh::locate`].
+    pub fn object_triangle(&self, prim: u32) -> Option<(Triangle, &FlatInstance)> {
+        let (i, local) = self.locate(prim)?;
+        let mesh = &self.meshes[self.instances[i as usize].mesh as usize];
+        let slot = mesh.tri_base + self.slots[(mesh.tri_base + local) as usize];
+        let corners = self.bvh.triangles[slot as usize].corners();
+        Some((corners, &self.bvh.instances[i as usize]))
+    }
+
     /// Bytes of the top level (nodes, their escape links, the instances) and of the
     /// meshes (nodes, escape links, triangles), as uploaded with escape links.
     pub fn level_bytes(&self) -> (usize, usize) {

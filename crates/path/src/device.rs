@@ -64,8 +64,8 @@ pub fn kernel_source() -> String {
 }
 
 impl GpuPathTracer {
-    /// Uploads `bvh` (one mesh: its primitive ids number `scene.prims`) for `traversal`'s
-    /// walk and compiles the kernel for it.
+    /// Uploads `bvh` (one mesh, or two levels: its primitive ids number `scene.prims`) for
+    /// `traversal`'s walk and compiles the kernel for it.
     pub fn new(
         ctx: &GpuContext,
         bvh: &FlatBvh,
@@ -99,12 +99,8 @@ impl GpuPathTracer {
         scene: &PathScene,
         walk: PathWalk,
     ) -> Result<GpuPathTracer, PathError> {
-        if bvh.is_instanced() {
-            return Err(PathError::Scene(
-                "the path tracer traces one mesh: flatten the scene's instances".into(),
-            ));
-        }
-        if scene.prims.len() != bvh.triangle_count() {
+        // Two levels number the flattened scene's triangles instance by instance.
+        if !bvh.is_instanced() && scene.prims.len() != bvh.triangle_count() {
             return Err(PathError::Scene(format!(
                 "the shading data has {} primitives, the BVH {}",
                 scene.prims.len(),

@@ -3,9 +3,11 @@
 //! [`crate::sampling`], summed in the same order. On a device that rounds as IEEE 754 says
 //! (lavapipe) its sums equal the device's bit for bit.
 
-use bvhtrace_core::surface::offset_ray_origin;
+use bvhtrace_core::hits::instance_surface;
+use bvhtrace_core::surface::{SurfacePoint, offset_ray_origin};
 use bvhtrace_core::{
-    FlatBvh, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray, TraceOptions, Traversal, Triangle,
+    FlatBvh, Hit, INCOMPLETE, INVALID_RAY, InstancedBvh, MISS, Ray, TraceOptions, Traversal,
+    Triangle,
 };
 use glam::Vec3;
 use rayon::prelude::*;
@@ -18,12 +20,37 @@ use crate::{Accumulation, PathError, PathStats};
 /// `PATH_FAR`.
 const FAR: f32 = 1e30;
 
-/// The CPU path tracer over one mesh's BVH: what the device traces, on the CPU.
+/// The CPU path tracer over one mesh's BVH or two levels: what the device traces, on the
+/// CPU.
 pub struct CpuPathTracer<'a> {
     bvh: &'a FlatBvh,
-    triangles: &'a [Triangle],
+    geometry: Geometry<'a>,
     scene: &'a PathScene,
     traversal: Traversal,
+}
+
+/// Where a hit's surface is found: the triangles of one mesh, or the instances'.
+#[derive(Clone, Copy)]
+enum Geometry<'a> {
+    Flat(&'a [Triangle]),
+    Instanced(&'a InstancedBvh),
+}
+
+impl Geometry<'_> {
+    /// `bvh_hit_surface` of `hit` on `ray`: `Hit::surface` for one mesh,
+    /// `hits::instance_surface` for two levels.
+    fn surface(&self, hit: &Hit, ray: &Ray) -> Option<SurfacePoint> {
+        match self {
+            Geometry::Flat(tris) => {
+                let t = tris.get(hit.prim as usize)?;
+                Some(hit.surface(t, Vec3::from(ray.dir)))
+            }
+            Geometry::Instanced(i) => {
+                let (t, inst) = i.object_triangle(hit.prim)?;
+                Some(instance_surface(hit, &t, inst, ray))
+            }
+        }
+    }
 }
 
 /// The walk's answer and the stack it reuses.
@@ -99,7 +126,35 @@ impl<'a> CpuPathTracer<'a> {
         }
         Ok(CpuPathTracer {
             bvh,
-            triangles,
+            geometry: Geometry::Flat(triangles),
+            scene,
+            traversal,
+        })
+    }
+
+    /// The tracer of a two-level BVH (instances over meshes), shading with `scene` made
+    /// over the flattened scene (whose triangles the instances number in the same order).
+    /// An error as for [`CpuPathTracer::new`].
+    pub fn instanced(
+        bvh: &'a InstancedBvh,
+        scene: &'a PathScene,
+        traversal: Traversal,
+    ) -> Result<CpuPathTracer<'a>, PathError> {
+        if scene.prims.len() as u64 != bvh.instanced_primitives() {
+            return Err(PathError::Scene(format!(
+                "the shading data has {} primitives, the instances {}",
+                scene.prims.len(),
+                bvh.instanced_primitives()
+            )));
+        }
+        if traversal.is_wide() && bvh.bvh().wide().is_none() {
+            return Err(PathError::Setting(
+                "the wide walk needs the tree's wide layout (InstancedBvh::build_wide)".into(),
+            ));
+        }
+        Ok(CpuPathTracer {
+            bvh: bvh.bvh(),
+            geometry: Geometry::Instanced(bvh),
             scene,
             traversal,
         })
@@ -173,7 +228,9 @@ impl Walker<'_> {
                 radiance += scale(throughput * env, w);
                 break;
             }
-            let s = hit.surface(&self.tracer.triangles[hit.prim as usize], dir);
+            let Some(s) = self.tracer.geometry.surface(&hit, &ray) else {
+                break;
+            };
             let n = s.normal;
             let [mi, li] = scene.prims[hit.prim as usize];
             let m = textured(

@@ -210,3 +210,75 @@ fn ray_queries_trace_the_same_image_under_the_rule() {
         assert!(same * 4 >= a.len(), "{}: {same} pixels the same", case.spec);
     }
 }
+
+/// Two levels (instances over meshes): the kernel's surfaces are the library's
+/// `bvh_hit_surface` through the instances, the twin's `hits::instance_surface`; the
+/// instances number the flattened scene's triangles, so the shading data is the same.
+#[test]
+fn two_levels_trace_the_twins_paths_bit_for_bit() {
+    let Some(ctx) = context("path tracer over two levels") else {
+        return;
+    };
+    for spec in ["builtin:spheres", "../../scenes/animated.gltf"] {
+        let scene = bvhtrace_scene::load(spec).unwrap_or_else(|e| panic!("{e}"));
+        let traced = scene
+            .tracing_bvh(&BuildOptions::default(), false)
+            .expect("build");
+        let bvhtrace_scene::SceneBvh::Instanced(mut ib) = traced else {
+            panic!("{spec}: not two levels");
+        };
+        let tris = scene.flattened_triangles().expect("triangles");
+        for (p, t) in tris.iter().enumerate() {
+            let w = ib.world_triangle(p as u32).expect("the instances hold it");
+            let close =
+                (0..3).all(|k| w[k].abs_diff_eq(t[k], 1e-4 * (1.0 + t[k].abs().max_element())));
+            assert!(close, "{spec}: primitive {p} is not the flattened scene's");
+        }
+        let shading = PathScene::new(&scene, &tris).expect("shading");
+        let camera = scene.camera_or_frame(4.0 / 3.0);
+        let lighting = Lighting {
+            sun_dir: Vec3::new(0.3, 1.0, 0.5),
+            sun: Vec3::splat(3.0),
+            env: Vec3::splat(0.4),
+        };
+        let params = PathParams::new(&camera, (40, 30), &lighting, 6, &shading);
+        for walk in [Traversal::Stackless, Traversal::Wide] {
+            if walk.is_wide() {
+                ib.build_wide();
+            }
+            let mut gpu = GpuPathTracer::new(&ctx, ib.bvh(), &shading, walk).expect("tracer");
+            gpu.restart(params);
+            gpu.add_samples(2).expect("samples");
+            let (device, stats) = gpu.read().expect("read");
+            let twin = CpuPathTracer::instanced(&ib, &shading, walk).expect("twin");
+            let mut sums = Accumulation::default();
+            let mut twin_stats = PathStats::default();
+            for s in 0..2 {
+                twin_stats = twin_stats
+                    + twin.add_sample(
+                        &PathParams {
+                            sample: s,
+                            ..params
+                        },
+                        &mut sums,
+                    );
+            }
+            let differ = (device.sums.iter().zip(&sums.sums))
+                .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+                .count();
+            println!(
+                "{spec} in two levels, {}: {differ} of {} pixels differ",
+                walk.name(),
+                sums.sums.len()
+            );
+            assert_eq!(
+                differ,
+                0,
+                "{spec} {}: pixels differ from the twin",
+                walk.name()
+            );
+            assert_eq!(stats, twin_stats, "{spec}: the counts");
+            assert!(bvhtrace_path::mean_luminance(&sums) > 0.01);
+        }
+    }
+}
