@@ -65,6 +65,8 @@ fn main() {
     backend::private_runtime_dir();
     let cli = Cli::parse();
     let result: Result<()> = match cli.command {
+        // The path tracer makes, shades and sums its rays on the device: a pipeline of its own.
+        Command::Render(a) if a.shade == bvhtrace_shade::Shade::Path => path::render(a),
         Command::Render(a) => render::render(a),
         Command::Info(a) => render::info(a),
         Command::Dump(a) => render::dump(a),

@@ -6,83 +6,15 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::Traversal;
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
-    PathWalk,
+    Accumulation, CpuPathTracer, GpuPathTracer, PathParams, PathScene, PathStats, PathWalk,
 };
 use bvhtrace_scene::SceneBvh;
-use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use crate::backend::{self, Backend, Device};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::render::{RenderArgs, camera_for, load_and_build};
-
-/// The path tracer's flags of `bvhtrace render`.
-#[derive(clap::Args, Clone)]
-pub struct PathArgs {
-    /// Samples per pixel (`--shade path`).
-    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub spp: u32,
-    /// The most bounces a path takes (`--shade path`).
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
-    pub max_depth: u32,
-    /// Direction toward a sun, X,Y,Z (`--shade path`; default: no sun).
-    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, allow_hyphen_values = true)]
-    pub sun: Option<Vec3>,
-    /// The sun's irradiance on a surface facing it (`--shade path`).
-    #[arg(long, default_value_t = 3.0)]
-    pub sun_power: f32,
-    /// The sky's constant radiance, R,G,B (`--shade path`; 0,0,0 for none).
-    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, default_value = "0.5,0.5,0.5", allow_hyphen_values = true)]
-    pub sky: Vec3,
-    /// Scale of the radiance before tone mapping (`--shade path`).
-    #[arg(long, default_value_t = 1.0)]
-    pub exposure: f32,
-    /// Also write the linear radiance as a portable float map (`.pfm`, `--shade path`).
-    #[arg(long)]
-    pub hdr: Option<std::path::PathBuf>,
-    /// The random numbers' seed (`--shade path`).
-    #[arg(long, default_value_t = 0)]
-    pub seed: u32,
-}
-
-impl PathArgs {
-    fn lighting(&self) -> Result<Lighting> {
-        let bad = |v: Vec3| !v.is_finite() || v.min_element() < 0.0;
-        if bad(self.sky) {
-            bail!(
-                "--sky must be three finite numbers of at least 0, got {}",
-                self.sky
-            );
-        }
-        if !(self.sun_power.is_finite() && self.sun_power >= 0.0) {
-            bail!(
-                "--sun-power must be a finite number of at least 0, got {}",
-                self.sun_power
-            );
-        }
-        if !(self.exposure.is_finite() && self.exposure > 0.0) {
-            bail!(
-                "--exposure must be a finite number above 0, got {}",
-                self.exposure
-            );
-        }
-        let sun_dir = self.sun.unwrap_or(Vec3::ZERO);
-        if self.sun.is_some() && !(sun_dir.is_finite() && sun_dir.length_squared() > 0.0) {
-            bail!("--sun must be a direction (finite, not zero), got {sun_dir}");
-        }
-        Ok(Lighting {
-            sun_dir,
-            sun: if self.sun.is_some() {
-                Vec3::splat(self.sun_power)
-            } else {
-                Vec3::ZERO
-            },
-            env: self.sky,
-        })
-    }
-}
 
 /// Where the samples are traced.
 enum Engine<'a> {
@@ -91,7 +23,11 @@ enum Engine<'a> {
 }
 
 /// `render --shade path`: the image and, when asked, its linear radiance.
-pub fn render(args: &RenderArgs, png: AtomicFile, json_out: Option<JsonOut>) -> Result<()> {
+pub fn render(args: RenderArgs) -> Result<()> {
+    // Fail on bad flags and output paths before any work.
+    let png = AtomicFile::create(&args.output)?;
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let args = &args;
     let p = &args.path;
     let lighting = p.lighting()?;
     let hdr = p.hdr.as_deref().map(AtomicFile::create).transpose()?;

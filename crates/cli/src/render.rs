@@ -204,7 +204,73 @@ pub struct RenderArgs {
     #[arg(long)]
     pub opaque: bool,
     #[command(flatten)]
-    pub path: crate::path::PathArgs,
+    pub path: PathArgs,
+}
+
+/// The path tracer's flags of `bvhtrace render`.
+#[derive(clap::Args, Clone)]
+pub struct PathArgs {
+    /// Samples per pixel (`--shade path`).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub spp: u32,
+    /// The most bounces a path takes (`--shade path`).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub max_depth: u32,
+    /// Direction toward a sun, X,Y,Z (`--shade path`; default: no sun).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, allow_hyphen_values = true)]
+    pub sun: Option<Vec3>,
+    /// The sun's irradiance on a surface facing it (`--shade path`).
+    #[arg(long, default_value_t = 3.0)]
+    pub sun_power: f32,
+    /// The sky's constant radiance, R,G,B (`--shade path`; 0,0,0 for none).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, default_value = "0.5,0.5,0.5", allow_hyphen_values = true)]
+    pub sky: Vec3,
+    /// Scale of the radiance before tone mapping (`--shade path`).
+    #[arg(long, default_value_t = 1.0)]
+    pub exposure: f32,
+    /// Also write the linear radiance as a portable float map (`.pfm`, `--shade path`).
+    #[arg(long)]
+    pub hdr: Option<std::path::PathBuf>,
+    /// The random numbers' seed (`--shade path`).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u32,
+}
+
+impl PathArgs {
+    pub(crate) fn lighting(&self) -> Result<bvhtrace_path::Lighting> {
+        let bad = |v: Vec3| !v.is_finite() || v.min_element() < 0.0;
+        if bad(self.sky) {
+            bail!(
+                "--sky must be three finite numbers of at least 0, got {}",
+                self.sky
+            );
+        }
+        if !(self.sun_power.is_finite() && self.sun_power >= 0.0) {
+            bail!(
+                "--sun-power must be a finite number of at least 0, got {}",
+                self.sun_power
+            );
+        }
+        if !(self.exposure.is_finite() && self.exposure > 0.0) {
+            bail!(
+                "--exposure must be a finite number above 0, got {}",
+                self.exposure
+            );
+        }
+        let sun_dir = self.sun.unwrap_or(Vec3::ZERO);
+        if self.sun.is_some() && !(sun_dir.is_finite() && sun_dir.length_squared() > 0.0) {
+            bail!("--sun must be a direction (finite, not zero), got {sun_dir}");
+        }
+        Ok(bvhtrace_path::Lighting {
+            sun_dir,
+            sun: if self.sun.is_some() {
+                Vec3::splat(self.sun_power)
+            } else {
+                Vec3::ZERO
+            },
+            env: self.sky,
+        })
+    }
 }
 
 /// The camera: explicit flags, else the scene's, else framing the bounds. Rays follow the
@@ -313,9 +379,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     if args.shade == Shade::Ao && args.ao_samples == 0 {
         bail!("--ao-samples must be at least 1");
-    }
-    if args.shade == Shade::Path {
-        return crate::path::render(&args, png, json_out);
     }
     let walk = args.walk()?;
     // The device, opened once: it builds the tree (a device builder) and traces it.

@@ -2,6 +2,9 @@
 
 mod common;
 
+use std::path::Path;
+use std::process::Output;
+
 use common::*;
 
 #[test]
@@ -143,28 +146,32 @@ fn bench_refit_gpu_reports_the_device_refit() {
 fn bench_converge_quick_errors_fall_as_samples_grow() {
     let dir = scratch("converge");
     let csv = dir.join("c.csv");
-    let out = run(&[
-        "bench",
-        "builtin:cornell",
-        "--converge",
-        "--quick",
-        "--backends",
-        "cpu",
-        "--size",
-        "48x36",
-        "--spp",
-        "1,4,16",
-        "--reference-spp",
-        "64",
-        "--json",
-        "-",
-        "--csv",
-        csv.to_str().unwrap(),
-    ]);
+    let cache = dir.join("references");
+    let converge = |extra: &[&str]| {
+        let mut args = vec![
+            "bench",
+            "builtin:cornell",
+            "--converge",
+            "--quick",
+            "--size",
+            "48x36",
+            "--spp",
+            "1,4,16",
+            "--reference-spp",
+            "64",
+            "--reference-cache",
+            cache.to_str().unwrap(),
+            "--json",
+            "-",
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    let out = converge(&["--backends", "cpu", "--csv", csv.to_str().unwrap()]);
     assert!(out.status.success());
     let points: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON");
-    // 2 builders x 2 walks x 1 backend x 2 shading kinds x 3 levels.
-    assert_eq!(points.len(), 24);
+    // 2 builders x 2 walks x 1 backend x 3 shading kinds (ao, diffuse, path) x 3 levels.
+    assert_eq!(points.len(), 36);
     for curve in points.chunks(3) {
         let spp: Vec<u64> = curve.iter().map(|p| p["spp"].as_u64().unwrap()).collect();
         assert_eq!(spp, [1, 4, 16]);
@@ -183,6 +190,97 @@ fn bench_converge_quick_errors_fall_as_samples_grow() {
     let text = std::fs::read_to_string(&csv).unwrap();
     assert_eq!(text.lines().count(), points.len() + 1);
     assert!(text.starts_with("scene,shade,builder,traversal,backend"));
+    assert!(
+        text.lines()
+            .next()
+            .unwrap()
+            .ends_with(",max_depth,readback_ms,reference_cached")
+    );
+    check_path_rows(&points, &cache, &out, false);
+
+    // Again, the path tracer alone, on the device too: its reference is read back from the
+    // cache, and gives the CPU twin's images the same errors as the first time.
+    let again = converge(&["--backends", "wgpu,cpu", "--shades", "path"]);
+    assert_ok(&again);
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&again.stdout).expect("JSON");
+    check_path_rows(&rows, &cache, &again, true);
+    let first: Vec<&serde_json::Value> = points.iter().filter(|p| p["shade"] == "path").collect();
+    let cpu: Vec<&serde_json::Value> = rows.iter().filter(|p| p["backend"] == "cpu").collect();
+    assert_eq!(cpu.len(), first.len());
+    for (a, b) in first.iter().zip(&cpu) {
+        assert_eq!(
+            (&a["flip"], &a["rmse"]),
+            (&b["flip"], &b["rmse"]),
+            "{a}\n{b}"
+        );
+    }
+    let err = String::from_utf8_lossy(&again.stderr);
+    let device: Vec<&serde_json::Value> = rows.iter().filter(|p| p["backend"] == "wgpu").collect();
+    if device.is_empty() {
+        eprintln!("SKIP the path tracer on the device: {err}");
+    } else if err.contains("llvmpipe") {
+        // lavapipe sums exactly as the twin does: the same images, the same errors.
+        assert_eq!(device.len(), cpu.len());
+        for (d, c) in device.iter().zip(&cpu) {
+            assert_eq!(
+                (&d["flip"], &d["rmse"]),
+                (&c["flip"], &c["rmse"]),
+                "{d}\n{c}"
+            );
+        }
+    }
+}
+
+/// The path tracer's rows of a `--converge` run: one progressive image per configuration,
+/// its errors falling as its samples grow, its reference cached in `cache` (one file) and
+/// read from there when `reused`.
+fn check_path_rows(points: &[serde_json::Value], cache: &Path, out: &Output, reused: bool) {
+    let path: Vec<&serde_json::Value> = points.iter().filter(|p| p["shade"] == "path").collect();
+    // 2 builders x 2 walks x each backend x 3 levels.
+    assert!(
+        !path.is_empty() && path.len().is_multiple_of(12),
+        "{} path rows",
+        path.len()
+    );
+    for curve in path.chunks(3) {
+        let spp: Vec<u64> = curve.iter().map(|p| p["spp"].as_u64().unwrap()).collect();
+        assert_eq!(spp, [1, 4, 16]);
+        for metric in ["flip", "rmse"] {
+            let e: Vec<f64> = curve.iter().map(|p| p[metric].as_f64().unwrap()).collect();
+            assert!(e[0] > e[1] && e[1] > e[2], "{metric} {e:?}: {}", curve[0]);
+        }
+        // One image growing: its time and rays grow with it.
+        for w in curve.windows(2) {
+            assert!(
+                w[1]["image_ms"].as_f64() > w[0]["image_ms"].as_f64(),
+                "{}",
+                w[1]
+            );
+            assert!(w[1]["rays"].as_u64() > w[0]["rays"].as_u64(), "{}", w[1]);
+        }
+        for p in curve {
+            assert_eq!(p["first_sample"], 0);
+            assert_eq!(p["max_depth"], 8);
+            assert_eq!(p["reference_cached"], reused, "{p}");
+            assert!(p["readback_ms"].as_f64().unwrap() >= 0.0, "{p}");
+        }
+    }
+    for p in points.iter().filter(|p| p["shade"] != "path") {
+        assert!(
+            p["max_depth"].is_null() && p["reference_cached"].is_null(),
+            "{p}"
+        );
+    }
+    let files: Vec<_> = std::fs::read_dir(cache)
+        .expect("the cache folder")
+        .collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        err.contains("path reference (48x36, 64 spp) read from"),
+        reused,
+        "{err}"
+    );
 }
 
 /// `bench` and `bench --converge` measure the device's ray queries beside our walks where
@@ -224,6 +322,7 @@ fn bench_and_converge_measure_ray_queries() {
         assert!(r["wrong_prim"].is_u64(), "{r}");
     }
 
+    let cache = scratch("converge-ray-queries");
     let out = run(&[
         "bench",
         "builtin:cornell",
@@ -237,6 +336,8 @@ fn bench_and_converge_measure_ray_queries() {
         "1,4,16",
         "--reference-spp",
         "64",
+        "--reference-cache",
+        cache.to_str().unwrap(),
         "--json",
         "-",
     ]);
@@ -250,8 +351,9 @@ fn bench_and_converge_measure_ray_queries() {
         .iter()
         .filter(|p| p["backend"] == "ray-query")
         .collect();
-    // 2 builders x the driver's walk x 2 shading kinds x 3 levels.
-    assert_eq!(rq.len(), 12, "{} ray-query points", rq.len());
+    // 2 builders x the driver's walk x 3 shading kinds (the path tracer's kernel over ray
+    // queries among them) x 3 levels.
+    assert_eq!(rq.len(), 18, "{} ray-query points", rq.len());
     for curve in rq.chunks(3) {
         assert_eq!(curve[0]["traversal"], "driver");
         let flip: Vec<f64> = curve.iter().map(|p| p["flip"].as_f64().unwrap()).collect();

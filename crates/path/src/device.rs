@@ -9,7 +9,8 @@ use bvhtrace_gpu::RayQueryBvh;
 use bvhtrace_gpu::wgpu::util::DeviceExt;
 use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, UploadOptions, wgpu};
 
-use crate::scene::{PathLight, PathMaterial, PathParams, PathScene};
+use crate::material::PathMaterial;
+use crate::scene::{PathLight, PathParams, PathScene};
 use crate::{Accumulation, PathError, PathStats};
 
 /// What the kernel's rays are walked by.
@@ -100,11 +101,11 @@ impl GpuPathTracer {
         walk: PathWalk,
     ) -> Result<GpuPathTracer, PathError> {
         // Two levels number the flattened scene's triangles instance by instance.
-        if !bvh.is_instanced() && scene.prims.len() != bvh.triangle_count() {
+        if !bvh.is_instanced() && scene.prims.len() != crate::scene::primitives(bvh) {
             return Err(PathError::Scene(format!(
                 "the shading data has {} primitives, the BVH {}",
                 scene.prims.len(),
-                bvh.triangle_count()
+                crate::scene::primitives(bvh)
             )));
         }
         let (upload, library) = match walk {

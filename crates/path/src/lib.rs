@@ -42,15 +42,15 @@
 #![warn(missing_docs)]
 
 mod device;
+mod material;
 pub mod sampling;
 mod scene;
 pub mod textures;
 mod twin;
 
 pub use device::{GpuPathTracer, PathWalk, kernel_source};
-pub use scene::{
-    Lighting, MAX_EMISSION, NO_LIGHT, NO_TEXTURE, PathLight, PathMaterial, PathParams, PathScene,
-};
+pub use material::{NO_TEXTURE, PathMaterial};
+pub use scene::{Lighting, MAX_EMISSION, NO_LIGHT, PathLight, PathParams, PathScene};
 pub use twin::{CpuPathTracer, mean_luminance};
 
 /// Why a path tracer could not be made or run.

@@ -5,7 +5,7 @@
 
 use glam::{Vec2, Vec3};
 
-use crate::scene::{NO_TEXTURE, PathMaterial};
+use crate::material::{NO_TEXTURE, PathMaterial};
 
 /// `PATH_PI`.
 pub const PI: f32 = std::f32::consts::PI;

@@ -9,49 +9,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use crate::PathError;
-
-/// A material as the path tracer samples it (WGSL `PathMaterial`, 80 bytes): glTF's
-/// metallic-roughness worked out into its lobes ([`crate::sampling::lobes`]).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct PathMaterial {
-    /// The Lambert lobe's albedo: base colour times `1 - metallic`.
-    pub diffuse: [f32; 3],
-    /// GGX's `alpha^2` (`alpha` is roughness squared).
-    pub alpha2: f32,
-    /// Reflectance at normal incidence: 0.04 for a dielectric, the base colour for a metal.
-    pub f0: [f32; 3],
-    /// The chance of sampling the specular lobe.
-    pub p_spec: f32,
-    /// `1 - f0`.
-    pub f0c: [f32; 3],
-    /// `alpha^2 - 1`.
-    pub alpha2_m1: f32,
-    /// Emitted radiance.
-    pub emissive: [f32; 3],
-    /// `1 - alpha^2`.
-    pub one_m_alpha2: f32,
-    /// `1 - p_spec`.
-    pub p_diffuse: f32,
-    /// The base colour's alpha (masks cut in the walk; kept for reports).
-    pub base_alpha: f32,
-    /// The base colour texture's index in the textures ([`NO_TEXTURE`] for none).
-    pub base_tex: u32,
-    /// The metallic-roughness texture's ([`NO_TEXTURE`] for none).
-    pub mr_tex: u32,
-    /// The base colour factor, which a texture's linear colour multiplies.
-    pub base_factor: [f32; 3],
-    /// The emissive texture's ([`NO_TEXTURE`] for none).
-    pub emissive_tex: u32,
-    /// The emissive factor, which a texture's linear colour multiplies.
-    pub emissive_factor: [f32; 3],
-    /// The offset of a textured material's table in the texture data
-    /// ([`crate::textures::TextureData`]).
-    pub table: u32,
-}
-
-/// A material slot without a texture.
-pub const NO_TEXTURE: u32 = u32::MAX;
+use crate::material::PathMaterial;
 
 /// An emissive triangle (WGSL `PathLight`, 64 bytes): `v0`, `v0 + e1`, `v0 + e2`.
 #[repr(C)]
@@ -198,6 +156,15 @@ impl PathScene {
 /// The most radiance a material emits per channel: far above any real light, far enough
 /// below `f32::MAX` that no path's sum overflows.
 pub const MAX_EMISSION: f32 = 1.0e6;
+
+/// The primitives a one-mesh tree numbers: one more than its largest primitive id (an
+/// SBVH's leaves may hold a triangle more than once).
+pub(crate) fn primitives(bvh: &bvhtrace_core::FlatBvh) -> usize {
+    (bvh.triangles().iter())
+        .map(|t| t.prim as usize + 1)
+        .max()
+        .unwrap_or(0)
+}
 
 /// A material's shading values, each finite and in range: factors clamped to `[0, 1]`
 /// (NaN to the glTF default), emission to `[0, MAX_EMISSION]` (not finite: 0).

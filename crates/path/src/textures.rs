@@ -13,8 +13,8 @@ use bvhtrace_core::alpha::{Wrap, interpolate_uv, texel_index};
 use bvhtrace_scene::{Scene, TextureRef};
 use glam::{Vec2, Vec3};
 
+use crate::material::{NO_TEXTURE, PathMaterial};
 use crate::sampling::{MIN_ROUGHNESS, luminance};
-use crate::scene::{NO_TEXTURE, PathMaterial};
 
 /// Words of a material's table: 256 roughness entries, then 256 metalness entries, four
 /// words each.

@@ -12,8 +12,9 @@ use bvhtrace_core::{
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::material::{NO_TEXTURE, PathMaterial};
 use crate::sampling::{Frame, PI, Rng, cross, dot, eval, luminance, mis, normalize, sample};
-use crate::scene::{NO_LIGHT, NO_TEXTURE, PathMaterial, PathParams, PathScene};
+use crate::scene::{NO_LIGHT, PathParams, PathScene};
 use crate::textures::textured;
 use crate::{Accumulation, PathError, PathStats};
 
@@ -100,11 +101,12 @@ impl<'a> CpuPathTracer<'a> {
         scene: &'a PathScene,
         traversal: Traversal,
     ) -> Result<CpuPathTracer<'a>, PathError> {
-        if bvh.is_instanced() || triangles.len() != bvh.triangle_count() {
+        if bvh.is_instanced() || triangles.len() != crate::scene::primitives(bvh) {
             return Err(PathError::Scene(format!(
-                "the CPU path tracer traces one mesh: {} triangles given, the tree has {}{}",
+                "{} triangles given, the tree has {} primitives{} (two levels: \
+                 CpuPathTracer::instanced)",
                 triangles.len(),
-                bvh.triangle_count(),
+                crate::scene::primitives(bvh),
                 if bvh.is_instanced() {
                     " in two levels"
                 } else {

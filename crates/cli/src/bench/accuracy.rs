@@ -75,6 +75,17 @@ pub fn rmse(a: &[u8], b: &[u8]) -> f64 {
     (sum / a.len().max(1) as f64).sqrt()
 }
 
+/// Root-mean-square difference of two linear RGB images (radiance, unbounded), over every
+/// channel: the path tracer's error before tone mapping, which would hide its bright
+/// outliers.
+pub fn rmse_linear(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let sum: f64 = (a.iter().flatten().zip(b.iter().flatten()))
+        .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
+        .sum();
+    (sum / (3 * a.len()).max(1) as f64).sqrt()
+}
+
 /// Mean FLIP error (NVIDIA's perceptual image difference) of `test` against `reference`.
 pub fn flip(reference: &[u8], test: &[u8], w: u32, h: u32) -> f64 {
     let r = nv_flip::FlipImageRgb8::with_data(w, h, reference);
@@ -186,5 +197,11 @@ mod tests {
         let (w, h) = (4, 4);
         assert!(flip(&a, &a, w, h) < 1e-6);
         assert!(flip(&a, &b, w, h) > 0.5);
+        // Linear: one channel of two pixels off by 3, the rest equal: sqrt(9 / 6).
+        let x = [[1.0f32, 2.0, 0.5], [4.0, 0.0, 8.0]];
+        let mut y = x;
+        y[1][2] += 3.0;
+        assert_eq!(rmse_linear(&x, &x), 0.0);
+        assert!((rmse_linear(&x, &y) - 1.5f64.sqrt()).abs() < 1e-12);
     }
 }

@@ -14,6 +14,13 @@
 //! so no two images share a sample and each level's error is that of an independent
 //! estimate. Every configuration renders the same samples: the walks answer the same
 //! hits, so at a given spp every configuration's image is the same and only time differs.
+//!
+//! The path tracer (`path`, [`path`]) is measured as a progressive renderer is used: one
+//! image's sums grow sample by sample (seed 0, as `render --shade path`), and at each level
+//! the clock stops, the sums are read back (the device waited for first), the error is
+//! measured (FLIP of the tone-mapped image, RMSE of the linear radiance) and the clock goes
+//! on. Its levels are therefore one image at growing spp, not independent estimates. Its
+//! reference is the CPU twin's (seed 1: no sample in common), kept on disk between runs.
 
 use std::borrow::Cow;
 use std::ops::Range;
@@ -38,21 +45,30 @@ use super::{BenchArgs, BenchBackend, ConvergeArgs, ShadeKind, median, open_backe
 use crate::output::{AtomicFile, JsonOut};
 use crate::shade::{self, Shade, palette};
 
+mod path;
+
+use path::{Engine, PathFrame, PathReference, PathSettings};
+
 impl ShadeKind {
     fn name(self) -> &'static str {
         match self {
             ShadeKind::Ao => "ao",
             ShadeKind::Diffuse => "diffuse",
+            ShadeKind::Path => "path",
         }
     }
 
     /// The table's default error levels, (FLIP, RMSE): where a 69k-triangle mesh filling
     /// a 256x192 image crosses them between 1 and 32 spp. The diffuse images are far less
-    /// noisy (the point light's direct term has no noise), so their levels are lower.
+    /// noisy (the point light's direct term has no noise), so their levels are lower. The
+    /// path tracer's errors depend on the lighting far more than on the mesh (256x192 at
+    /// 64 spp: FLIP 0.054 in the Cornell box, 0.016 in the foliage, 0.004 on the sky-lit
+    /// bunny), so its levels span more than a decade: each of those crosses one or more.
     fn default_levels(self) -> (Vec<f64>, Vec<f64>) {
         match self {
             ShadeKind::Ao => (vec![0.05, 0.03, 0.02], vec![0.1, 0.05, 0.025]),
             ShadeKind::Diffuse => (vec![0.01, 0.007, 0.005], vec![0.01, 0.005, 0.0025]),
+            ShadeKind::Path => (vec![0.1, 0.02, 0.006], vec![0.3, 0.03, 0.01]),
         }
     }
 }
@@ -75,7 +91,7 @@ const CHUNK: usize = 1 << 18;
 pub struct Point {
     /// The scene as given.
     pub scene: String,
-    /// Ambient occlusion or one-bounce diffuse.
+    /// Ambient occlusion, one-bounce diffuse or the path tracer.
     pub shade: ShadeKind,
     /// The builder's name.
     pub builder: String,
@@ -89,24 +105,35 @@ pub struct Point {
     pub height: u32,
     /// Samples per pixel of this image.
     pub spp: u32,
-    /// The image's first sample index (its samples are `first_sample..first_sample + spp`).
+    /// The image's first sample index (its samples are `first_sample..first_sample + spp`;
+    /// 0 for `path`, whose levels are one image growing).
     pub first_sample: u32,
     /// Samples per pixel of the reference.
     pub reference_spp: u32,
     /// The BVH build (median of `--runs`), with the wide conversion for the wide walk.
     pub build_ms: f64,
-    /// The upload to the device (0 on the CPU); not in `wall_ms`.
+    /// The upload to the device (0 on the CPU; for `path` the kernel's compilation too);
+    /// not in `wall_ms`.
     pub upload_ms: f64,
-    /// The image: camera rays, every trace, secondary rays, shading (median of `--runs`).
+    /// The image: camera rays, every trace, secondary rays, shading (median of `--runs`);
+    /// for `path` every sample from the first to this level's last, the device waited for.
     pub image_ms: f64,
     /// `build_ms + image_ms`.
     pub wall_ms: f64,
     /// Rays traced for the image.
     pub rays: u64,
-    /// Mean FLIP against the reference.
+    /// Mean FLIP against the reference (for `path` of the tone-mapped sRGB images).
     pub flip: f64,
-    /// RMSE against the reference (channels in [0, 1]).
+    /// RMSE against the reference (RGB8 channels in [0, 1]; for `path` of the linear
+    /// radiance).
     pub rmse: f64,
+    /// `path`: the most bounces of a path (`null` for the other kinds).
+    pub max_depth: Option<u32>,
+    /// `path`: reading the sums back to measure the error (a copy on the CPU; median of
+    /// `--runs`); not in `image_ms` or `wall_ms`.
+    pub readback_ms: Option<f64>,
+    /// `path`: whether the reference was read from `--reference-cache` rather than rendered.
+    pub reference_cached: Option<bool>,
 }
 
 /// The error of an image against the reference.
@@ -156,6 +183,10 @@ struct Plan {
     walks: Vec<Traversal>,
     shades: Vec<ShadeKind>,
     runs: usize,
+    /// The path tracer's lights and depth.
+    path: PathSettings,
+    /// Where the path tracer's references are kept.
+    reference_cache: PathBuf,
 }
 
 impl Plan {
@@ -200,10 +231,17 @@ impl Plan {
             (true, false) => Traversal::ALL.to_vec(),
         };
         let shades = if c.shades.is_empty() {
-            vec![ShadeKind::Ao, ShadeKind::Diffuse]
+            vec![ShadeKind::Ao, ShadeKind::Diffuse, ShadeKind::Path]
         } else {
             c.shades.clone()
         };
+        let reference_cache = (c.reference_cache.clone()).unwrap_or_else(path::default_cache_dir);
+        if reference_cache.exists() && !reference_cache.is_dir() {
+            bail!(
+                "--reference-cache {}: not a folder",
+                reference_cache.display()
+            );
+        }
         for l in c.flip_levels.iter().chain(&c.rmse_levels) {
             if !(*l > 0.0 && l.is_finite()) {
                 bail!("error levels must be positive, got {l}");
@@ -221,7 +259,14 @@ impl Plan {
             walks,
             shades,
             runs,
+            path: PathSettings::from_args(c)?,
+            reference_cache,
         })
+    }
+
+    /// True when the path tracer is among the shading kinds.
+    fn has_path(&self) -> bool {
+        self.shades.contains(&ShadeKind::Path)
     }
 
     /// The table's error levels for `kind`, (FLIP, RMSE): the flags', else the defaults.
@@ -401,6 +446,7 @@ fn render(
                 });
             }
         }
+        ShadeKind::Path => bail!("the path tracer's images are its own (path::progressive)"),
     }
     Ok((img, traced))
 }
@@ -457,6 +503,14 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     if backends.is_empty() {
         bail!("no backend left to measure");
     }
+    if plan.has_path() {
+        for b in backends.iter().filter(|b| !path::runs_on(b)) {
+            eprintln!(
+                "note: the path tracer runs on wgpu and the CPU: {} measures the other kinds only",
+                b.name
+            );
+        }
+    }
     eprintln!("CPU: {} threads", rayon::current_num_threads());
     let to_stderr = args.json.as_deref() == Some("-");
     let mut points = Vec::new();
@@ -490,26 +544,34 @@ pub fn run(args: &BenchArgs) -> Result<()> {
 /// The title of a scene's plot for one shading kind.
 fn plot_title(spec: &str, kind: ShadeKind, plan: &Plan) -> String {
     let (w, h) = plan.size;
+    let depth = format!("path traced, {} bounces at most", plan.path.max_depth);
     format!(
-        "{} - {} ({w}x{h}; reference {} spp, CPU full stack)",
+        "{} - {} ({w}x{h}; reference {} spp, {})",
         Path::new(spec)
             .file_name()
             .map_or(spec.to_string(), |n| n.to_string_lossy().into_owned()),
         match kind {
             ShadeKind::Ao => "ambient occlusion",
             ShadeKind::Diffuse => "one-bounce diffuse",
+            ShadeKind::Path => &depth,
         },
-        plan.reference_spp
+        plan.reference_spp,
+        match kind {
+            ShadeKind::Path => "CPU twin",
+            _ => "CPU full stack",
+        },
     )
 }
 
 /// What the images of one scene share: the scene as given, what they show, the reference
-/// image of each shading kind (in `plan.shades`' order), each level's samples, and the
+/// image of each traced shading kind (ao, diffuse; in `plan.shades`' order), the path
+/// tracer's frame and reference when it is measured, each level's samples, and the
 /// progress bar of the scene's configurations.
 struct SceneRun<'a> {
     spec: &'a str,
     view: View<'a>,
-    references: Vec<Vec<u8>>,
+    references: Vec<(ShadeKind, Vec<u8>)>,
+    path: Option<(PathFrame<'a>, PathReference)>,
     plan: &'a Plan,
     ranges: Vec<Range<u32>>,
     pb: ProgressBar,
@@ -550,6 +612,10 @@ fn measure_scene(
         h,
     };
     let references = references(spec, &view, &reference_bvh, plan)?;
+    let path = match plan.has_path() {
+        true => Some(path_reference(spec, &scene, &view, &reference_bvh, plan)?),
+        false => None,
+    };
     let configs = plan.builders.len() * plan.walks.len() * backends.len();
     let pb = ProgressBar::new((configs * plan.shades.len() * plan.levels.len()) as u64);
     pb.set_style(
@@ -561,6 +627,7 @@ fn measure_scene(
         spec,
         view,
         references,
+        path,
         plan,
         ranges: plan.sample_ranges(),
         pb,
@@ -580,6 +647,7 @@ fn measure_scene(
             };
             for backend in backends {
                 points.extend(run.measure(&tree, backend)?);
+                points.extend(run.measure_path(&tree, backend)?);
             }
         }
     }
@@ -587,13 +655,18 @@ fn measure_scene(
     Ok(points)
 }
 
-/// The reference images of `spec`, once per shading kind: CPU full stack, default builder,
-/// `plan.reference_spp` samples from [`REFERENCE_FIRST_SAMPLE`].
-fn references(spec: &str, view: &View, bvh: &FlatBvh, plan: &Plan) -> Result<Vec<Vec<u8>>> {
+/// The reference images of `spec`, once per traced shading kind (ao, diffuse): CPU full
+/// stack, default builder, `plan.reference_spp` samples from [`REFERENCE_FIRST_SAMPLE`].
+fn references(
+    spec: &str,
+    view: &View,
+    bvh: &FlatBvh,
+    plan: &Plan,
+) -> Result<Vec<(ShadeKind, Vec<u8>)>> {
     let (w, h) = (view.w, view.h);
     let cpu = CpuTracer::new(bvh);
     let mut references = Vec::new();
-    for &kind in &plan.shades {
+    for &kind in plan.shades.iter().filter(|&&k| k != ShadeKind::Path) {
         let sp = ProgressBar::new_spinner();
         sp.set_message(format!(
             "{spec}: {} reference, {w}x{h} at {} spp on the CPU",
@@ -612,9 +685,28 @@ fn references(spec: &str, view: &View, bvh: &FlatBvh, plan: &Plan) -> Result<Vec
             plan.reference_spp,
             t.elapsed().as_secs_f64()
         );
-        references.push(img);
+        references.push((kind, img));
     }
     Ok(references)
+}
+
+/// The path tracer's frame of `spec` and its reference: the CPU twin at
+/// `plan.reference_spp` samples over the default builder's tree `bvh`, read from
+/// `plan.reference_cache` when an earlier run left it there.
+fn path_reference<'a>(
+    spec: &str,
+    scene: &bvhtrace_scene::Scene,
+    view: &View<'a>,
+    bvh: &FlatBvh,
+    plan: &Plan,
+) -> Result<(PathFrame<'a>, PathReference)> {
+    let size = (view.w, view.h);
+    let frame = PathFrame::new(scene, view.tris, bvh, &view.cam, size, &plan.path)
+        .with_context(|| format!("{spec}: the path tracer cannot shade this scene"))?;
+    let stem = scene_stem(spec);
+    let cache = &plan.reference_cache;
+    let reference = path::reference(spec, &stem, &frame, bvh, plan.reference_spp, cache)?;
+    Ok((frame, reference))
 }
 
 /// `builder`'s tree over `tris`, built `runs` times: the last build and the median time.
@@ -661,7 +753,10 @@ impl SceneRun<'_> {
     /// that builder's leaf order).
     fn measure(&self, tree: &Tree, backend: &BenchBackend) -> Result<Vec<Point>> {
         let (plan, walk) = (self.plan, tree.walk);
-        let images = (plan.shades.len() * plan.levels.len()) as u64;
+        let images = (self.references.len() * plan.levels.len()) as u64;
+        if images == 0 {
+            return Ok(Vec::new());
+        }
         if backend.driver_walk() && walk != plan.walks[0] {
             self.pb.inc(images);
             return Ok(Vec::new());
@@ -685,13 +780,14 @@ impl SceneRun<'_> {
         }
         warm_up(&*tracer, walk, tree.bvh)?;
         let mut points = Vec::new();
-        for (ki, &kind) in plan.shades.iter().enumerate() {
+        for (kind, reference) in &self.references {
+            let kind = *kind;
             // First use of the shading's code paths and caches, untimed.
             render(&self.view, &*tracer, walk, kind, self.ranges[0].clone())?;
             for (spp, samples) in plan.levels.iter().zip(&self.ranges) {
                 let (img, rays, image_ms) = self.timed_image(&*tracer, walk, kind, samples)?;
                 let (w, h) = (self.view.w, self.view.h);
-                let err = image_error(&self.references[ki], &img, w, h);
+                let err = image_error(reference, &img, w, h);
                 points.push(Point {
                     scene: self.spec.to_string(),
                     shade: kind,
@@ -710,6 +806,9 @@ impl SceneRun<'_> {
                     rays,
                     flip: err.flip,
                     rmse: err.rmse,
+                    max_depth: None,
+                    readback_ms: None,
+                    reference_cached: None,
                 });
                 self.pb.inc(1);
             }
@@ -737,6 +836,67 @@ impl SceneRun<'_> {
         let (img, rays) = image.context("no image")?;
         Ok((img, rays, median(times)))
     }
+
+    /// The path tracer's image of `tree` on `backend`, grown to every level and measured
+    /// at each. None where the path tracer is not measured or the backend does not run it
+    /// (said once by [`run`]), and for the driver's walk under any walk but the first (as
+    /// [`SceneRun::measure`]).
+    fn measure_path(&self, tree: &Tree, backend: &BenchBackend) -> Result<Vec<Point>> {
+        let Some((frame, reference)) = &self.path else {
+            return Ok(Vec::new());
+        };
+        let (plan, walk) = (self.plan, tree.walk);
+        if !path::runs_on(backend) || (backend.driver_walk() && walk != plan.walks[0]) {
+            self.pb.inc(plan.levels.len() as u64);
+            return Ok(Vec::new());
+        }
+        let walk_label = match backend.driver_walk() {
+            true => "driver".to_string(),
+            false => walk_name(walk),
+        };
+        let label = format!("{}/{walk_label}/{}", tree.builder, backend.name);
+        self.pb.set_message(format!("path {label}"));
+        let bvh = frame.tree(tree.bvh)?;
+        let (mut engine, upload_ms) = match Engine::open(backend, &bvh, frame, walk) {
+            Ok(opened) => opened,
+            Err(e) => {
+                self.pb
+                    .suspend(|| eprintln!("note: path {label} left out: {e:#}"));
+                self.pb.inc(plan.levels.len() as u64);
+                return Ok(Vec::new());
+            }
+        };
+        let levels = path::progressive(&mut engine, frame, &plan.levels, plan.runs)
+            .with_context(|| format!("{}: path {label}: tracing failed", self.spec))?;
+        let (w, h) = (self.view.w, self.view.h);
+        let mut points = Vec::new();
+        for (spp, level) in plan.levels.iter().zip(levels) {
+            points.push(Point {
+                scene: self.spec.to_string(),
+                shade: ShadeKind::Path,
+                builder: tree.builder.name().into(),
+                traversal: walk_label.clone(),
+                backend: backend.name.into(),
+                width: w,
+                height: h,
+                spp: *spp,
+                first_sample: 0,
+                reference_spp: plan.reference_spp,
+                build_ms: tree.build_ms,
+                upload_ms,
+                image_ms: level.image_ms,
+                wall_ms: tree.build_ms + level.image_ms,
+                rays: level.rays,
+                flip: accuracy::flip(&reference.srgb, &level.image.to_srgb8(1.0), w, h),
+                rmse: accuracy::rmse_linear(&reference.linear, &level.image.linear()),
+                max_depth: Some(plan.path.max_depth),
+                readback_ms: Some(level.readback_ms),
+                reference_cached: Some(reference.cached),
+            });
+            self.pb.inc(1);
+        }
+        Ok(points)
+    }
 }
 
 /// The files name stem of a scene: its file stem, `:` made `_`.
@@ -757,7 +917,6 @@ fn camera(args: &ConvergeArgs, scene: &bvhtrace_scene::Scene, size: (u32, u32)) 
     crate::render::camera_for(&view, scene)
 }
 
-/// `bvhtrace bench --converge`.
 /// One configuration's points, in the order measured.
 struct Curve<'a> {
     label: String,
@@ -859,11 +1018,15 @@ fn print_table(
 
 fn to_csv(points: &[Point]) -> String {
     let mut s = String::from(
-        "scene,shade,builder,traversal,backend,width,height,spp,first_sample,reference_spp,build_ms,upload_ms,image_ms,wall_ms,rays,flip,rmse\n",
+        "scene,shade,builder,traversal,backend,width,height,spp,first_sample,reference_spp,build_ms,upload_ms,image_ms,wall_ms,rays,flip,rmse,max_depth,readback_ms,reference_cached\n",
     );
+    // The path tracer's own columns are empty on the other kinds' rows.
+    fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
+        v.map_or(String::new(), |v| v.to_string())
+    }
     for p in points {
         s += &format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             p.scene,
             p.shade.name(),
             p.builder,
@@ -880,7 +1043,10 @@ fn to_csv(points: &[Point]) -> String {
             p.wall_ms,
             p.rays,
             p.flip,
-            p.rmse
+            p.rmse,
+            opt(p.max_depth),
+            opt(p.readback_ms),
+            opt(p.reference_cached),
         );
     }
     s
@@ -1013,6 +1179,8 @@ where
         (a.min(p.wall_ms), b.max(p.wall_ms))
     });
     let times = (tmin.max(1e-3) * 0.8, tmax.max(1e-3) * 1.25);
+    // The path tracer's RMSE is of the linear radiance, the others' of the RGB8 image.
+    let path = (curves.iter().flat_map(|c| &c.points)).any(|p| p.shade == ShadeKind::Path);
     let metrics = [
         Panel {
             name: "mean FLIP against the reference",
@@ -1020,7 +1188,10 @@ where
             levels: flip_levels,
         },
         Panel {
-            name: "RMSE against the reference",
+            name: match path {
+                true => "RMSE of the linear radiance against the reference",
+                false => "RMSE against the reference",
+            },
             pick: |p| p.rmse,
             levels: rmse_levels,
         },
@@ -1292,6 +1463,8 @@ mod tests {
             walks: vec![],
             shades: vec![],
             runs: 1,
+            path: PathSettings::from_args(&ConvergeArgs::default()).unwrap(),
+            reference_cache: PathBuf::new(),
         };
         assert_eq!(plan.sample_ranges(), vec![0..1, 1..3, 3..7, 7..15]);
     }

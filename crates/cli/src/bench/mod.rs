@@ -266,12 +266,13 @@ impl BenchTraceArgs {
 #[derive(clap::Args, Clone, Debug, Default)]
 pub struct ConvergeArgs {
     /// Image error against wall time instead of hit error: for each shading kind (ao,
-    /// diffuse with one bounce) and configuration (builder x walk x backend), images at
-    /// increasing samples per pixel, each timed from the BVH build to the last pixel and
+    /// diffuse with one bounce, path) and configuration (builder x walk x backend), images
+    /// at increasing samples per pixel, each timed from the BVH build to the last pixel and
     /// compared (mean FLIP, RMSE) with a reference of --reference-spp samples (CPU
-    /// full-stack walk, default builder). Uses the scenes, --quick, --size (image size,
-    /// default 256x192; 96x72 with --quick), --backends, --adapter, --runs (median image
-    /// time; default 1), --json, --csv and --plot (PREFIX-SCENE-SHADE.png/.svg).
+    /// full-stack walk, default builder; for `path` the path tracer's CPU twin, cached in
+    /// --reference-cache). Uses the scenes, --quick, --size (image size, default 256x192;
+    /// 96x72 with --quick), --backends, --adapter, --runs (median image time; default 1),
+    /// --json, --csv and --plot (PREFIX-SCENE-SHADE.png/.svg).
     #[arg(long)]
     pub converge: bool,
     /// Builders for --converge (default every builder; with --quick sah and median).
@@ -281,7 +282,7 @@ pub struct ConvergeArgs {
     /// --quick full-stack and stackless).
     #[arg(long, value_delimiter = ',', requires = "converge")]
     pub traversals: Vec<Traversal>,
-    /// Shading kinds for --converge (default both).
+    /// Shading kinds for --converge (default all three: ao, diffuse, path).
     #[arg(long, value_delimiter = ',', value_enum, requires = "converge")]
     pub shades: Vec<ShadeKind>,
     /// Samples per pixel of the measured images, increasing (default 1,2,4,...,64; with
@@ -292,6 +293,25 @@ pub struct ConvergeArgs {
     /// most 4096).
     #[arg(long, requires = "converge")]
     pub reference_spp: Option<u32>,
+    /// Where the path tracer's references are kept between runs, one file per scene
+    /// content, size, camera, lighting, --max-depth, --reference-spp and tracer version
+    /// (default: `target/bvhtrace-cache/converge` when the binary runs from a cargo
+    /// `target` folder, else `bvhtrace-cache/converge` in the system's temporary folder).
+    /// The run says which file it read or wrote; delete one to render it again.
+    #[arg(long, requires = "converge")]
+    pub reference_cache: Option<PathBuf>,
+    /// The most bounces of a path, 1 to 64 (--converge's `path` kind; default 8, as
+    /// `render --shade path`).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=64), requires = "converge")]
+    pub max_depth: Option<u32>,
+    /// Direction toward a sun of irradiance 3, X,Y,Z (--converge's `path` kind; default:
+    /// no sun).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires = "converge", allow_hyphen_values = true)]
+    pub sun: Option<Vec3>,
+    /// The sky's constant radiance, R,G,B (--converge's `path` kind; 0,0,0 for none;
+    /// default 0.5,0.5,0.5).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires = "converge", allow_hyphen_values = true)]
+    pub sky: Option<Vec3>,
     /// Camera position X,Y,Z for --converge (with --target; default: the scene's camera or
     /// a framing one).
     #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, requires_all = ["converge", "target"], allow_hyphen_values = true)]
@@ -303,11 +323,11 @@ pub struct ConvergeArgs {
     #[arg(long, requires = "converge")]
     pub fov: Option<f32>,
     /// Mean FLIP levels of the --converge table, every shading kind (default: ao 0.05,
-    /// 0.03, 0.02; diffuse 0.01, 0.007, 0.005).
+    /// 0.03, 0.02; diffuse 0.01, 0.007, 0.005; path 0.1, 0.02, 0.006).
     #[arg(long, value_delimiter = ',', requires = "converge")]
     pub flip_levels: Vec<f64>,
     /// RMSE levels of the --converge table, every shading kind (default: ao 0.1, 0.05,
-    /// 0.025; diffuse 0.01, 0.005, 0.0025).
+    /// 0.025; diffuse 0.01, 0.005, 0.0025; path, of the linear radiance: 0.3, 0.03, 0.01).
     #[arg(long, value_delimiter = ',', requires = "converge")]
     pub rmse_levels: Vec<f64>,
 }
@@ -322,4 +342,7 @@ pub enum ShadeKind {
     /// `spp` cosine-weighted closest-hit rays per pixel that see the sky or a surface lit
     /// by the same light (a shadow ray from there).
     Diffuse,
+    /// The progressive path tracer of `render --shade path` (its materials, lights and
+    /// bounces): one image's sums grown sample by sample, its error read at each level.
+    Path,
 }
