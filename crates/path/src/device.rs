@@ -48,10 +48,16 @@ pub struct GpuPathTracer {
     params: PathParams,
     walk: PathWalk,
     display: Option<Display>,
+    /// Samples the device has finished (counted by `on_submitted_work_done`).
+    finished: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    /// The sample count the display texture shows (`None`: none yet, or stale).
+    shown: Option<u32>,
 }
 
 /// The tone-mapping pass and the texture it writes (`shaders/path_display.wgsl`).
 struct Display {
+    /// The exposure it was last written with.
+    exposure: f32,
     pipeline: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
     texture: wgpu::Texture,
@@ -196,6 +202,8 @@ impl GpuPathTracer {
             params,
             walk,
             display: None,
+            finished: Default::default(),
+            shown: None,
         })
     }
 
@@ -317,8 +325,23 @@ impl GpuPathTracer {
             self.encode(&mut encoder, 1)?;
             self.ctx.queue().submit([encoder.finish()]);
             self.params.sample += 1;
+            let (finished, sample) = (self.finished.clone(), self.params.sample);
+            self.ctx.queue().on_submitted_work_done(move || {
+                finished.fetch_max(sample, std::sync::atomic::Ordering::Relaxed);
+            });
         }
         Ok(())
+    }
+
+    /// Samples submitted that the device has not finished yet: a renderer that adds
+    /// samples each frame keeps this small, so that the device's queue (and a readback
+    /// behind it) does not grow without end where frames outrun the device (a page without
+    /// vsync). Counted when the device reports the work done.
+    pub fn samples_in_flight(&self) -> u32 {
+        // Natively the callbacks run as the device is polled: without waiting.
+        let _ = self.ctx.device().poll(wgpu::PollType::Poll);
+        let finished = self.finished.load(std::sync::atomic::Ordering::Relaxed);
+        self.params.sample.saturating_sub(finished)
     }
 
     /// Tone maps the sums into an RGBA8 texture of the frame's size (sRGB-encoded, as a
@@ -329,6 +352,16 @@ impl GpuPathTracer {
         let Some((accum, _)) = &self.accum else {
             return Err(PathError::Setting("display before restart".into()));
         };
+        // Nothing new to show: no work for the device.
+        let fresh = matches!((&self.display, self.shown),
+            (Some(d), Some(n)) if n == self.params.sample && d.exposure == exposure);
+        if fresh {
+            let d = self
+                .display
+                .as_ref()
+                .ok_or(PathError::Setting("no display".into()))?;
+            return Ok(&d.texture);
+        }
         let (w, h) = (self.params.width, self.params.height);
         let size = wgpu::Extent3d {
             width: w.max(1),
@@ -388,15 +421,17 @@ impl GpuPathTracer {
                 ],
             });
             self.display = Some(Display {
+                exposure,
                 pipeline,
                 uniform,
                 texture,
                 group,
             });
         }
-        let Some(d) = &self.display else {
+        let Some(d) = &mut self.display else {
             return Err(PathError::Setting("no display".into()));
         };
+        d.exposure = exposure;
         let words = [w, h, exposure.to_bits(), 0];
         self.ctx
             .queue()
@@ -409,6 +444,7 @@ impl GpuPathTracer {
             pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
         }
         self.ctx.queue().submit([encoder.finish()]);
+        self.shown = Some(self.params.sample);
         Ok(&d.texture)
     }
 
