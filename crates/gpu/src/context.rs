@@ -650,35 +650,13 @@ impl GpuContext {
         during: &'static str,
         buffers: &[&wgpu::Buffer],
     ) -> Result<Vec<Vec<u8>>, GpuError> {
-        let device = self.device();
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("bvhtrace read back"),
-        });
-        let staging: Vec<(wgpu::Buffer, u64)> = (buffers.iter())
-            .map(|b| {
-                let s = device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("bvhtrace read back"),
-                    size: b.size(),
-                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                encoder.copy_buffer_to_buffer(b, 0, &s, 0, b.size());
-                (s, b.size())
-            })
-            .collect();
-        let index = self.scoped(during, || self.queue().submit([encoder.finish()]))?;
-        let maps: Vec<(&wgpu::Buffer, u64)> = staging.iter().map(|(b, n)| (b, *n)).collect();
-        let mapped = crate::trace::map_all(self, index, &maps).await;
-        self.deferred_errors().await?;
-        mapped?;
-        let mut out = Vec::with_capacity(staging.len());
-        for (b, n) in &staging {
-            let mut bytes: Vec<u8> = Vec::new();
-            crate::trace::read_mapped(b, *n, &mut bytes)?;
-            b.unmap();
-            out.push(bytes);
-        }
-        Ok(out)
+        let encoder = self
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("bvhtrace read back"),
+            });
+        let reads: Vec<(&wgpu::Buffer, u64)> = buffers.iter().map(|b| (*b, b.size())).collect();
+        crate::build::read_after_async(self, during, encoder, &reads).await
     }
 
     /// A device builder's pipelines, in [`crate::GpuBuilderKind::entries`] order, compiled

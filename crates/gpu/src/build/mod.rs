@@ -192,8 +192,20 @@ fn read_after(
     enc: wgpu::CommandEncoder,
     sources: &[(&wgpu::Buffer, u64)],
 ) -> Result<Vec<u8>, GpuError> {
-    let (parts, _) = pollster::block_on(Wgpu(ctx).submit_and_read(enc, during, sources, None))?;
-    Ok(parts.concat())
+    Ok(pollster::block_on(read_after_async(ctx, during, enc, sources))?.concat())
+}
+
+/// [`read_after`] as a future, each source's bytes apart (`GpuContext::read_buffers`).
+pub(crate) async fn read_after_async(
+    ctx: &GpuContext,
+    during: &'static str,
+    enc: wgpu::CommandEncoder,
+    sources: &[(&wgpu::Buffer, u64)],
+) -> Result<Vec<Vec<u8>>, GpuError> {
+    let (parts, _) = Wgpu(ctx)
+        .submit_and_read(enc, during, sources, None)
+        .await?;
+    Ok(parts)
 }
 
 /// The wgpu side of the device builder: buffers, bind groups, compute passes (with
