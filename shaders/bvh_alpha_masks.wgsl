@@ -83,22 +83,6 @@ fn bvh_load_mask_material(at: u32) -> BvhMaskMaterial {
     return BvhMaskMaterial(bvh_masks[at], bvh_masks[at + 1u], bvh_masks[at + 2u], bvh_masks[at + 3u], bvh_masks[at + 4u]);
 }
 
-// `alpha::texel_index`: the texel along an axis of `size` texels for coordinate `x`, wrapped
-// by mode `wrap` (0 repeat, 1 clamp to edge, 2 mirrored repeat).
-fn bvh_texel_index(x: f32, size: u32, wrap: u32) -> u32 {
-    if ((bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u) {
-        return 0u;
-    }
-    var f = x - floor(x);
-    if (wrap == 1u) {
-        f = clamp(x, 0.0, 1.0);
-    } else if (wrap == 2u) {
-        let g = x - 2.0 * floor(x * 0.5);
-        f = select(g, 2.0 - g, g > 1.0);
-    }
-    return min(u32(floor(f * f32(size))), size - 1u);
-}
-
 // Whether a candidate at barycentrics `(u, v)` on mesh primitive `prim` counts as a hit
 // (`MaskTables::accept`): settled by the triangle's state, or its texel's alpha.
 fn bvh_alpha_accept(prim: u32, u: f32, v: f32) -> bool {

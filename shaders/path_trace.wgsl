@@ -93,27 +93,12 @@ fn path_blocked(ray: BvhRay, lane: u32) -> bool {
     return prim != BVH_MISS && prim != BVH_INVALID_RAY;
 }
 
-// `bvhtrace_core::alpha::texel_index`: the nearest texel along an axis.
-fn path_texel_index(x: f32, size: u32, wrap: u32) -> u32 {
-    if ((bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u) {
-        return 0u;
-    }
-    var f = x - floor(x);
-    if (wrap == 1u) {
-        f = clamp(x, 0.0, 1.0);
-    } else if (wrap == 2u) {
-        let g = x - 2.0 * floor(x * 0.5);
-        f = select(g, 2.0 - g, g > 1.0);
-    }
-    return min(u32(floor(f * f32(size))), size - 1u);
-}
-
 // The RGBA8 texel of texture `t` nearest `uv`.
 fn path_texel(t: u32, uv: vec2<f32>) -> vec4<u32> {
     let h = path_data[2] + 4u * t;
     let w = path_data[h + 1u];
-    let x = path_texel_index(uv.x, w, path_data[h + 3u] & 3u);
-    let y = path_texel_index(uv.y, path_data[h + 2u], path_data[h + 3u] >> 2u);
+    let x = bvh_texel_index(uv.x, w, path_data[h + 3u] & 3u);
+    let y = bvh_texel_index(uv.y, path_data[h + 2u], path_data[h + 3u] >> 2u);
     let c = path_data[path_data[h] + y * w + x];
     return vec4<u32>(c & 255u, (c >> 8u) & 255u, (c >> 16u) & 255u, c >> 24u);
 }

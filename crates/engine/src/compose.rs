@@ -248,6 +248,7 @@ impl ModuleSet {
         for file in [
             shaders::RAY,
             shaders::SURFACE,
+            shaders::TEXEL,
             shaders::BOX,
             shaders::TRIANGLE_HIT,
             triangle_wgsl(self.precision),

@@ -41,6 +41,7 @@ pub fn files(instanced: bool, masks: bool) -> Vec<(&'static str, Cow<'static, st
     push(shaders::TYPES);
     push(shaders::RAY);
     push(shaders::SURFACE);
+    push(shaders::TEXEL);
     push(BvhStorage::Buffers.triangles_wgsl());
     push(match instanced {
         true => shaders::BVH_INSTANCES,

@@ -28,6 +28,8 @@ wgsl_files! {
     RAY = "ray.wgsl",
     /// `bvh_offset_ray_origin`, for secondary rays.
     SURFACE = "surface.wgsl",
+    /// `bvh_texel_index`: the nearest texel along an axis, for the masks and your textures.
+    TEXEL = "texel.wgsl",
     /// The conservative slab test.
     BOX = "box.wgsl",
     /// `BvhTriHit`, what every triangle test returns.

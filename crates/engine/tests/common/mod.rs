@@ -22,10 +22,11 @@ pub const TRAVERSALS: [Traversal; 4] = [
 ];
 
 /// The files every module of the binary walks composes, whatever its storage.
-pub const SHARED_FILES: [Wgsl; 11] = [
+pub const SHARED_FILES: [Wgsl; 12] = [
     shaders::TYPES,
     shaders::RAY,
     shaders::SURFACE,
+    shaders::TEXEL,
     shaders::BOX,
     shaders::TRIANGLE_HIT,
     shaders::TRIANGLE,
