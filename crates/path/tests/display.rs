@@ -2,19 +2,16 @@
 //! the display texture reads nothing back (`GpuContext::readbacks` unchanged over steady
 //! frames), and the texture shows what `Accumulation::to_srgb8` makes on the host.
 
+mod support;
+
 use bvhtrace_core::{BuildOptions, FlatBvh, Traversal};
-use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError, wgpu};
+use bvhtrace_gpu::{GpuContext, wgpu};
 use bvhtrace_path::{GpuPathTracer, Lighting, PathParams, PathScene};
 
 #[test]
 fn steady_frames_read_nothing_back_and_show_the_sums() {
-    let ctx = match GpuContext::new(AdapterChoice::Auto) {
-        Ok(ctx) => ctx,
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP: {e}");
-            return;
-        }
-        Err(e) => panic!("{e}"),
+    let Some(ctx) = support::context("the path display") else {
+        return;
     };
     let scene = bvhtrace_scene::load("builtin:cornell").expect("cornell");
     let tris = scene.flattened_triangles().expect("triangles");

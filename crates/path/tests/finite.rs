@@ -4,6 +4,8 @@
 //! twin, and the hostile one on the device too: no pixel is NaN or infinite, no sample was
 //! dropped as not finite.
 
+mod support;
+
 use bvhtrace_core::{BuildOptions, Traversal};
 use bvhtrace_path::{Accumulation, CpuPathTracer, Lighting, PathParams, PathScene, PathStats};
 use bvhtrace_scene::{Camera, Material, Mesh, Scene, SceneBvh};
@@ -130,13 +132,8 @@ fn no_scene_makes_a_nan_pixel() {
 
 #[test]
 fn the_device_makes_no_nan_pixel_from_the_hostile_scene_and_agrees_with_the_twin() {
-    let ctx = match bvhtrace_gpu::GpuContext::new(bvhtrace_gpu::AdapterChoice::Auto) {
-        Ok(ctx) => ctx,
-        Err(e @ bvhtrace_gpu::GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP: {e}");
-            return;
-        }
-        Err(e) => panic!("{e}"),
+    let Some(ctx) = support::context("the hostile scene on the device") else {
+        return;
     };
     let scene = hostile();
     let traced = scene

@@ -2,8 +2,10 @@
 //! hit (and at each light sample), on the device as on the twin, bit for bit; the
 //! textures change the image.
 
+mod support;
+
 use bvhtrace_core::{BuildOptions, Traversal};
-use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError};
+use bvhtrace_gpu::GpuContext;
 use bvhtrace_path::{Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene};
 use bvhtrace_scene::{Scene, SceneBvh};
 use glam::Vec3;
@@ -49,14 +51,7 @@ fn render(
 
 #[test]
 fn textures_shade_on_the_device_as_on_the_twin() {
-    let ctx = match GpuContext::new(AdapterChoice::Auto) {
-        Ok(ctx) => Some(ctx),
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP the device: {e}");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    };
+    let ctx = support::context("textures on the device");
     let scene = textured_cornell();
     let shading =
         PathScene::new(&scene, &scene.flattened_triangles().expect("tris")).expect("shading");

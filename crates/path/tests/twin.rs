@@ -2,6 +2,8 @@
 //! on a device that rounds as IEEE 754 says (lavapipe), over every walk, with the sun, the
 //! sky and the emissive triangles all lighting; no pixel is NaN.
 
+mod support;
+
 use bvhtrace_core::{BuildOptions, Traversal};
 use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError};
 use bvhtrace_path::{
@@ -9,17 +11,6 @@ use bvhtrace_path::{
     PathWalk,
 };
 use glam::Vec3;
-
-fn context(what: &str) -> Option<GpuContext> {
-    match GpuContext::new(AdapterChoice::Auto) {
-        Ok(ctx) => Some(ctx),
-        Err(e @ GpuError::NoAdapter { .. }) => {
-            eprintln!("SKIP {what}: {e}");
-            None
-        }
-        Err(e) => panic!("cannot open a GPU: {e}"),
-    }
-}
 
 struct Case {
     spec: &'static str,
@@ -136,7 +127,7 @@ fn cases() -> Vec<Case> {
 
 #[test]
 fn the_device_traces_the_twins_paths_bit_for_bit_on_every_walk() {
-    let Some(ctx) = context("path tracer twin") else {
+    let Some(ctx) = support::context("path tracer twin") else {
         return;
     };
     for case in cases() {
@@ -216,7 +207,7 @@ fn ray_queries_trace_the_same_image_under_the_rule() {
 /// instances number the flattened scene's triangles, so the shading data is the same.
 #[test]
 fn two_levels_trace_the_twins_paths_bit_for_bit() {
-    let Some(ctx) = context("path tracer over two levels") else {
+    let Some(ctx) = support::context("path tracer over two levels") else {
         return;
     };
     for spec in ["builtin:spheres", "../../scenes/animated.gltf"] {
