@@ -142,31 +142,35 @@ fn bench_refit_gpu_reports_the_device_refit() {
     assert!(err.contains("GPU refit ("), "{err}");
 }
 
+/// `bench builtin:cornell --converge --quick` at 48x36, 1, 4 and 16 spp against a 64-spp
+/// reference kept in `cache`, JSON on stdout, with `extra` flags.
+fn quick_converge(cache: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "bench",
+        "builtin:cornell",
+        "--converge",
+        "--quick",
+        "--size",
+        "48x36",
+        "--spp",
+        "1,4,16",
+        "--reference-spp",
+        "64",
+        "--reference-cache",
+        cache.to_str().unwrap(),
+        "--json",
+        "-",
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
 #[test]
 fn bench_converge_quick_errors_fall_as_samples_grow() {
     let dir = scratch("converge");
     let csv = dir.join("c.csv");
     let cache = dir.join("references");
-    let converge = |extra: &[&str]| {
-        let mut args = vec![
-            "bench",
-            "builtin:cornell",
-            "--converge",
-            "--quick",
-            "--size",
-            "48x36",
-            "--spp",
-            "1,4,16",
-            "--reference-spp",
-            "64",
-            "--reference-cache",
-            cache.to_str().unwrap(),
-            "--json",
-            "-",
-        ];
-        args.extend_from_slice(extra);
-        run(&args)
-    };
+    let converge = |extra: &[&str]| quick_converge(&cache, extra);
     let out = converge(&["--backends", "cpu", "--csv", csv.to_str().unwrap()]);
     assert!(out.status.success());
     let points: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).expect("JSON");
@@ -323,24 +327,7 @@ fn bench_and_converge_measure_ray_queries() {
     }
 
     let cache = scratch("converge-ray-queries");
-    let out = run(&[
-        "bench",
-        "builtin:cornell",
-        "--converge",
-        "--quick",
-        "--backends",
-        "ray-query,cpu",
-        "--size",
-        "48x36",
-        "--spp",
-        "1,4,16",
-        "--reference-spp",
-        "64",
-        "--reference-cache",
-        cache.to_str().unwrap(),
-        "--json",
-        "-",
-    ]);
+    let out = quick_converge(&cache, &["--backends", "ray-query,cpu"]);
     assert!(
         out.status.success(),
         "{}",
