@@ -4,9 +4,10 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use bvhtrace_core::Traversal;
+use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, PathParams, PathScene, PathStats, PathWalk,
+    Accumulation, CpuPathTracer, GpuPathTracer, PathError, PathParams, PathScene, PathStats,
+    PathWalk,
 };
 use bvhtrace_scene::SceneBvh;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -16,10 +17,79 @@ use crate::backend::{self, Backend, Device};
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::render::{RenderArgs, camera_for, load_and_build};
 
-/// Where the samples are traced.
-enum Engine<'a> {
+/// Where a path tracer's samples are traced, for `render` and `bench --converge` alike: the
+/// kernel on a wgpu device (its sums stay there until read), or the CPU twin with its sums,
+/// the next sample's parameters and what its paths met.
+pub enum Engine<'a> {
+    /// The kernel on a wgpu device: our walk or its ray queries.
     Device(Box<GpuPathTracer>),
-    Cpu(CpuPathTracer<'a>, Accumulation),
+    /// The CPU twin.
+    Cpu(
+        CpuPathTracer<'a>,
+        Box<(Accumulation, PathParams, PathStats)>,
+    ),
+}
+
+impl<'a> Engine<'a> {
+    /// The path tracer over `bvh` on `device`: the kernel walked by `walk` (the device's
+    /// ray queries on the ray-query backend), or on the CPU the twin `twin` makes; `None`
+    /// on a backend without a path tracer (raw Vulkan, the mock).
+    pub fn open(
+        device: &Device,
+        bvh: &'a FlatBvh,
+        shading: &PathScene,
+        walk: Traversal,
+        twin: impl FnOnce() -> Result<CpuPathTracer<'a>, PathError>,
+    ) -> Result<Option<Engine<'a>>> {
+        Ok(Some(match device.backend() {
+            Backend::Cpu => Engine::Cpu(twin()?, Box::default()),
+            b @ (Backend::Wgpu | Backend::RayQuery) => {
+                let ctx = (device.wgpu_context()).context("a wgpu backend without its context")?;
+                let walk = match b {
+                    Backend::RayQuery => PathWalk::RayQueries,
+                    _ => PathWalk::Walk(walk),
+                };
+                Engine::Device(Box::new(GpuPathTracer::with_walk(ctx, bvh, shading, walk)?))
+            }
+            _ => return Ok(None),
+        }))
+    }
+
+    /// Starts the sums over at sample 0.
+    pub fn restart(&mut self, params: PathParams) {
+        match self {
+            Engine::Device(t) => t.restart(params),
+            Engine::Cpu(_, state) => {
+                **state = (Accumulation::default(), params, PathStats::default())
+            }
+        }
+    }
+
+    /// Adds `n` samples and returns once they are done (the device waited for).
+    pub fn add(&mut self, n: u32) -> Result<()> {
+        match self {
+            Engine::Device(t) => {
+                t.add_samples(n)?;
+                t.wait()?;
+            }
+            Engine::Cpu(twin, state) => {
+                let (sums, params, stats) = &mut **state;
+                for _ in 0..n {
+                    *stats = *stats + twin.add_sample(params, sums);
+                    params.sample += 1;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The sums so far and what the paths met (read back from a device).
+    pub fn read(&self) -> Result<(Accumulation, PathStats)> {
+        match self {
+            Engine::Device(t) => Ok(t.read()?),
+            Engine::Cpu(_, state) => Ok((state.0.clone(), state.2)),
+        }
+    }
 }
 
 /// `render --shade path`: the image and, when asked, its linear radiance.
@@ -137,37 +207,24 @@ fn walk_name(engine: &Engine<'_>, traversal: Traversal) -> String {
     }
 }
 
-/// The path tracer on `device`: the kernel on a wgpu device, the twin on the CPU.
+/// The path tracer of `geometry` on `device`: the kernel on a wgpu device, the twin on the
+/// CPU (over one mesh or two levels).
 fn open<'a>(
     device: &Device,
     geometry: &'a SceneBvh,
     shading: &'a PathScene,
     traversal: Traversal,
 ) -> Result<Engine<'a>> {
-    let bvh = geometry.bvh();
-    match device.backend() {
-        Backend::Cpu => {
-            let twin = match geometry {
-                SceneBvh::Flat { tris, bvh } => CpuPathTracer::new(bvh, tris, shading, traversal)?,
-                SceneBvh::Instanced(ib) => CpuPathTracer::instanced(ib, shading, traversal)?,
-            };
-            Ok(Engine::Cpu(twin, Accumulation::default()))
-        }
-        b @ (Backend::Wgpu | Backend::RayQuery) => {
-            let ctx = device
-                .wgpu_context()
-                .context("a wgpu backend without its context")?;
-            let walk = match b {
-                Backend::RayQuery => PathWalk::RayQueries,
-                _ => PathWalk::Walk(traversal),
-            };
-            Ok(Engine::Device(Box::new(GpuPathTracer::with_walk(
-                ctx, bvh, shading, walk,
-            )?)))
-        }
-        other => bail!(
+    let twin = || match geometry {
+        SceneBvh::Flat { tris, bvh } => CpuPathTracer::new(bvh, tris, shading, traversal),
+        SceneBvh::Instanced(ib) => CpuPathTracer::instanced(ib, shading, traversal),
+    };
+    match Engine::open(device, geometry.bvh(), shading, traversal, twin)? {
+        Some(engine) => Ok(engine),
+        None => bail!(
             "--shade path runs on wgpu (--backend gpu or ray-query) or the CPU twin (--backend \
-             cpu), not on {other:?}"
+             cpu), not on {:?}",
+            device.backend()
         ),
     }
 }
@@ -183,33 +240,13 @@ fn trace(
         ProgressStyle::with_template("{bar:40} {pos}/{len} samples {elapsed_precise} (eta {eta})")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let out = match engine {
-        Engine::Device(t) => {
-            t.restart(params);
-            // Each sample waited for, so that the bar tells the truth; nothing read back.
-            for _ in 0..spp {
-                t.add_samples(1)?;
-                t.wait()?;
-                pb.inc(1);
-            }
-            t.read()?
-        }
-        Engine::Cpu(t, sums) => {
-            let mut stats = PathStats::default();
-            for s in 0..spp {
-                stats = stats
-                    + t.add_sample(
-                        &PathParams {
-                            sample: s,
-                            ..params
-                        },
-                        sums,
-                    );
-                pb.inc(1);
-            }
-            (std::mem::take(sums), stats)
-        }
-    };
+    engine.restart(params);
+    // Each sample waited for, so that the bar tells the truth; nothing read back.
+    for _ in 0..spp {
+        engine.add(1)?;
+        pb.inc(1);
+    }
+    let out = engine.read()?;
     pb.finish_and_clear();
     Ok(out)
 }

@@ -47,7 +47,7 @@ use crate::shade::{self, Shade, palette};
 
 mod path;
 
-use path::{Engine, PathFrame, PathReference, PathSettings};
+use path::{PathFrame, PathReference, PathSettings};
 
 impl ShadeKind {
     fn name(self) -> &'static str {
@@ -857,7 +857,7 @@ impl SceneRun<'_> {
         let label = format!("{}/{walk_label}/{}", tree.builder, backend.name);
         self.pb.set_message(format!("path {label}"));
         let bvh = frame.tree(tree.bvh)?;
-        let (mut engine, upload_ms) = match Engine::open(backend, &bvh, frame, walk) {
+        let (mut engine, upload_ms) = match path::open(backend, &bvh, frame, walk) {
             Ok(opened) => opened,
             Err(e) => {
                 self.pb

@@ -14,16 +14,14 @@ use anyhow::{Context, Result, bail};
 use bvhtrace::Backend;
 use bvhtrace_core::masks::MaskTables;
 use bvhtrace_core::{FlatBvh, Traversal, Triangle};
-use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
-    PathWalk,
-};
+use bvhtrace_path::{Accumulation, CpuPathTracer, Lighting, PathParams, PathScene};
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::bench::{BenchBackend, ConvergeArgs, median};
 use crate::output::AtomicFile;
+use crate::path::Engine;
 
 /// The measured images' seed: `render --shade path`'s default.
 const SEED: u32 = 0;
@@ -320,83 +318,25 @@ fn store(file: &Path, key: u64, image: &Accumulation) -> Result<()> {
     AtomicFile::create(file)?.finish_with_bytes(&bytes)
 }
 
-/// Where a configuration's samples are traced.
-pub(super) enum Engine<'a> {
-    /// The kernel on a wgpu device: its sums stay there until read.
-    Device(Box<GpuPathTracer>),
-    /// The CPU twin, its sums, the next sample's parameters and what its paths met.
-    Cpu(
-        CpuPathTracer<'a>,
-        Box<(Accumulation, PathParams, PathStats)>,
-    ),
-}
-
-impl<'a> Engine<'a> {
-    /// The path tracer of `frame` over `bvh` (masked as the frame says) on `backend`,
-    /// walked by `walk` (the device's ray queries on the ray-query backend), and the time
-    /// opening took (the upload and the kernel's compilation on a device).
-    pub(super) fn open(
-        backend: &BenchBackend,
-        bvh: &'a FlatBvh,
-        frame: &'a PathFrame,
-        walk: Traversal,
-    ) -> Result<(Engine<'a>, f64)> {
-        let t = Instant::now();
-        let engine = match backend.device.backend() {
-            Backend::Cpu => Engine::Cpu(
-                CpuPathTracer::new(bvh, frame.tris, &frame.shading, walk)?,
-                Box::default(),
-            ),
-            b @ (Backend::Wgpu | Backend::RayQuery) => {
-                let ctx = (backend.device.wgpu_context())
-                    .context("a wgpu backend without its context")?;
-                let walk = match b {
-                    Backend::RayQuery => PathWalk::RayQueries,
-                    _ => PathWalk::Walk(walk),
-                };
-                let tracer = GpuPathTracer::with_walk(ctx, bvh, &frame.shading, walk)?;
-                Engine::Device(Box::new(tracer))
-            }
-            other => bail!("the path tracer runs on wgpu and the CPU, not on {other}"),
-        };
-        Ok((engine, t.elapsed().as_secs_f64() * 1e3))
-    }
-
-    /// Starts the sums over at sample 0.
-    fn restart(&mut self, params: PathParams) {
-        match self {
-            Engine::Device(t) => t.restart(params),
-            Engine::Cpu(_, state) => {
-                **state = (Accumulation::default(), params, PathStats::default())
-            }
-        }
-    }
-
-    /// Adds `n` samples and returns once they are done (the device waited for).
-    fn add(&mut self, n: u32) -> Result<()> {
-        match self {
-            Engine::Device(t) => {
-                t.add_samples(n)?;
-                t.wait()?;
-            }
-            Engine::Cpu(twin, state) => {
-                let (sums, params, stats) = &mut **state;
-                for _ in 0..n {
-                    *stats = *stats + twin.add_sample(params, sums);
-                    params.sample += 1;
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// The sums so far and what the paths met (read back from a device).
-    fn read(&self) -> Result<(Accumulation, PathStats)> {
-        match self {
-            Engine::Device(t) => Ok(t.read()?),
-            Engine::Cpu(_, state) => Ok((state.0.clone(), state.2)),
-        }
-    }
+/// The path tracer of `frame` over `bvh` (masked as the frame says) on `backend`, walked by
+/// `walk` (the device's ray queries on the ray-query backend), and the time opening took
+/// (the upload and the kernel's compilation on a device).
+pub(super) fn open<'a>(
+    backend: &BenchBackend,
+    bvh: &'a FlatBvh,
+    frame: &'a PathFrame,
+    walk: Traversal,
+) -> Result<(Engine<'a>, f64)> {
+    let t = Instant::now();
+    let twin = || CpuPathTracer::new(bvh, frame.tris, &frame.shading, walk);
+    let engine = match Engine::open(&backend.device, bvh, &frame.shading, walk, twin)? {
+        Some(engine) => engine,
+        None => bail!(
+            "the path tracer runs on wgpu and the CPU, not on {}",
+            backend.device.backend()
+        ),
+    };
+    Ok((engine, t.elapsed().as_secs_f64() * 1e3))
 }
 
 /// One level of a progressive image.
