@@ -1533,10 +1533,7 @@ impl ViewerApp {
                 let mode = PathMode::new(&gpu, &scene, traversal, made_for).await;
                 *into.borrow_mut() = Some(mode);
             };
-            #[cfg(target_arch = "wasm32")]
-            wasm_bindgen_futures::spawn_local(made);
-            #[cfg(not(target_arch = "wasm32"))]
-            pollster::block_on(made);
+            crate::jobs::run_future(made);
             self.path_pending = Some((made_for, slot));
         }
         if let Some((_, slot)) = &self.path_pending {

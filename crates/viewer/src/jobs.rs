@@ -379,10 +379,7 @@ impl BuiltBvh {
                     *slot.borrow_mut() = Some((rays, result));
                     wake();
                 };
-                #[cfg(target_arch = "wasm32")]
-                wasm_bindgen_futures::spawn_local(traced);
-                #[cfg(not(target_arch = "wasm32"))]
-                pollster::block_on(traced);
+                run_future(traced);
                 true
             }
             _ => {
@@ -630,6 +627,15 @@ fn run(req: JobRequest, tx: &Sender<Msg>) -> Result<JobOutput, String> {
             upload_ms,
         },
     })
+}
+
+/// Runs `work` to its end: natively at once, in a browser on the page's event loop (whose
+/// GPU answers arrive there), after this returns.
+pub fn run_future(work: impl std::future::Future<Output = ()> + 'static) {
+    #[cfg(target_arch = "wasm32")]
+    wasm_bindgen_futures::spawn_local(work);
+    #[cfg(not(target_arch = "wasm32"))]
+    pollster::block_on(work);
 }
 
 impl Job {

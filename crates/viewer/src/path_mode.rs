@@ -90,10 +90,7 @@ impl PathMode {
             let r = reading.await.map(|(sums, _)| sums);
             *into.borrow_mut() = Some(r.map_err(|e| e.to_string()));
         };
-        #[cfg(target_arch = "wasm32")]
-        wasm_bindgen_futures::spawn_local(read);
-        #[cfg(not(target_arch = "wasm32"))]
-        pollster::block_on(read);
+        crate::jobs::run_future(read);
         slot
     }
 
