@@ -125,7 +125,7 @@ impl PathScene {
             "default",
             glam::Vec4::new(0.8, 0.8, 0.8, 1.0),
         )));
-        let (_, attributes) = scene.flatten_with_attributes();
+        let (mesh, attributes) = scene.flatten_with_attributes();
         if attributes.materials.len() != triangles.len() && !attributes.materials.is_empty() {
             return Err(PathError::Scene(format!(
                 "{}: {} triangles but {} per-triangle materials",
@@ -141,8 +141,12 @@ impl PathScene {
             })
             .collect();
         let n = scene.materials.len();
-        let textures =
-            crate::textures::TextureData::new(scene, &mut materials[..n], triangles.len());
+        let textures = crate::textures::TextureData::new(
+            scene,
+            (&mesh, &attributes),
+            &mut materials[..n],
+            triangles.len(),
+        );
         let lights = lights(&materials, triangles, &mut prims);
         Ok(PathScene {
             materials,

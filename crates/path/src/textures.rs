@@ -10,7 +10,8 @@
 //! the shader writes no `1 - x` for its compiler to fold into a lerp of its own rounding.
 
 use bvhtrace_core::alpha::{Wrap, interpolate_uv, texel_index};
-use bvhtrace_scene::{Scene, TextureRef};
+use bvhtrace_core::mesh::TriangleMesh;
+use bvhtrace_scene::{FlatAttributes, Scene, TextureRef};
 use glam::{Vec2, Vec3};
 
 use crate::material::{NO_TEXTURE, PathMaterial};
@@ -46,10 +47,16 @@ fn srgb_to_linear(c: u32) -> f32 {
 }
 
 impl TextureData {
-    /// The data of `scene` traced as one mesh over the flattened `triangles`, for
-    /// `materials` (their texture slots and tables filled in here). Empty words but the
-    /// three offsets when no material has a texture.
-    pub fn new(scene: &Scene, materials: &mut [PathMaterial], triangles: usize) -> TextureData {
+    /// The data of `scene`, whose primitives number its flattened triangles (the mesh and
+    /// attributes of `Scene::flatten_with_attributes`), for `materials` (their texture slots and tables
+    /// filled in here), `triangles` primitives. Empty words but the three offsets when no
+    /// material has a texture.
+    pub fn new(
+        scene: &Scene,
+        (mesh, attributes): (&TriangleMesh, &FlatAttributes),
+        materials: &mut [PathMaterial],
+        triangles: usize,
+    ) -> TextureData {
         let textured = |m: &bvhtrace_scene::Material| {
             m.base_color_texture.is_some()
                 || m.metallic_roughness_texture.is_some()
@@ -60,7 +67,6 @@ impl TextureData {
             return TextureData { words };
         }
         // Texture coordinates: three corners a primitive, flattened like the triangles.
-        let (mesh, attributes) = scene.flatten_with_attributes();
         words[0] = words.len() as u32;
         for i in 0..triangles {
             let corners = mesh.indices.get(i).copied().unwrap_or([0; 3]);

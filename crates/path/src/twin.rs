@@ -364,7 +364,8 @@ impl Walker<'_> {
     }
 }
 
-/// `luminance` is the shader's; kept public for reports on images.
+/// The mean over the pixels of their mean radiance's luminance (the shader's weights): a
+/// figure for reports and tests on an image.
 pub fn mean_luminance(accum: &Accumulation) -> f64 {
     let n = accum.sums.len().max(1) as f64;
     (accum.sums.iter())
