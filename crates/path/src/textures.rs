@@ -47,10 +47,10 @@ fn srgb_to_linear(c: u32) -> f32 {
 }
 
 impl TextureData {
-    /// The data of `scene`, whose primitives number its flattened triangles (the mesh and
-    /// attributes of `Scene::flatten_with_attributes`), for `materials` (their texture slots and tables
-    /// filled in here), `triangles` primitives. Empty words but the three offsets when no
-    /// material has a texture.
+    /// The data of `scene`, whose `triangles` primitives number its flattened triangles
+    /// (the mesh and attributes of `Scene::flatten_with_attributes`), for `materials`
+    /// (their texture slots and tables filled in here). Empty words but the three offsets
+    /// when no material has a texture.
     pub fn new(
         scene: &Scene,
         (mesh, attributes): (&TriangleMesh, &FlatAttributes),
