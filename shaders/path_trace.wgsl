@@ -197,128 +197,204 @@ fn path_pick_light(u: f32) -> u32 {
     return lo;
 }
 
-// One sample of the radiance reaching the camera through pixel (`x`, `y`).
-fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
+// A path between its vertices: the ray it goes on along, its random numbers' key and
+// count, the bounces taken, the throughput, the last bounce's density and normal (for the
+// weights of what the next vertex finds) and the radiance gathered so far. The
+// wavefront kernels keep it in a buffer between waves (`path_wavefront.wgsl`).
+struct PathState {
+    origin: vec3<f32>,
+    depth: u32,
+    dir: vec3<f32>,
+    last_pdf: f32,
+    throughput: vec3<f32>,
+    key: u32,
+    last_n: vec3<f32>,
+    count: u32,
+    radiance: vec3<f32>,
+    pad: u32,
+}
+
+// The path of a sample through pixel (`x`, `y`), before its first vertex.
+fn path_camera(x: u32, y: u32) -> PathState {
     let p = path_params;
     var r = path_rng(y * p.width + x, p.sample, p.seed);
     let jx = path_next(&r);
     let jy = path_next(&r);
     let px = (2.0 * (f32(x) + jx) / f32(p.width) - 1.0) * p.tan_half_fov * p.aspect;
     let py = (1.0 - 2.0 * (f32(y) + jy) / f32(p.height)) * p.tan_half_fov;
-    var ray = BvhRay(p.eye, 0.0, path_normalize(vec3<f32>(
+    let dir = path_normalize(vec3<f32>(
         p.forward.x + p.right.x * px + p.up.x * py,
         p.forward.y + p.right.y * px + p.up.y * py,
         p.forward.z + p.right.z * px + p.up.z * py,
-    )), PATH_FAR);
-    var radiance = vec3<f32>(0.0);
-    var throughput = vec3<f32>(1.0);
-    // The last bounce's density and normal, for the weights of what it finds.
-    var last_pdf = 0.0;
-    var last_n = vec3<f32>(0.0);
-    let has_env = !path_is_black(p.env);
-    for (var depth = 0u; depth < p.max_depth; depth += 1u) {
-        let hit = bvh_trace_closest(ray, lane).hit;
-        path_rays += 1u;
-        if (hit.prim == BVH_INCOMPLETE) {
-            atomicAdd(&path_stats[0], 1u);
-            break;
-        }
-        if (hit.prim >= BVH_INVALID_RAY) {
-            var w = 1.0;
-            if (depth > 0u && has_env) {
-                w = path_mis(last_pdf, max(path_dot(last_n, ray.dir), 0.0) / PATH_PI);
-            }
-            radiance = path_add(radiance, path_scale(path_mul(throughput, p.env), w));
-            break;
-        }
-        let s = bvh_hit_surface(ray, hit);
-        let n = s.normal;
-        let prim = path_prims[hit.prim];
-        let m = path_textured(path_materials[prim.x], hit.prim, hit.u, hit.v);
-        if (!path_is_black(m.emissive)) {
-            var w = 1.0;
-            if (depth > 0u && prim.y != PATH_NO_LIGHT) {
-                let cos_l = abs(path_dot(n, ray.dir));
-                let light_pdf = path_lights[prim.y].pdf_area * (hit.t * hit.t) / cos_l;
-                w = path_mis(last_pdf, light_pdf);
-            }
-            radiance = path_add(radiance, path_scale(path_mul(throughput, m.emissive), w));
-        }
-        let wo = vec3<f32>(-ray.dir.x, -ray.dir.y, -ray.dir.z);
-        let lobes = m;
+    ));
+    let zero = vec3<f32>(0.0);
+    return PathState(p.eye, 0u, dir, 0.0, vec3<f32>(1.0), r.key, zero, r.n, zero, 0u);
+}
 
-        // The sun: a direction, found only by a shadow ray.
-        if (!path_is_black(p.sun)) {
-            let e = path_eval(lobes, n, wo, p.sun_dir);
-            if (e.pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, p.sun_dir, PATH_FAR), lane)) {
-                radiance = path_add(radiance, path_mul(throughput, path_mul(e.value, p.sun)));
-            }
+// The next vertex of path `st`: the ray traced, the emission met, the lights sampled and
+// the bounce taken. Whether the path goes on.
+fn path_vertex(st: ptr<function, PathState>, lane: u32) -> bool {
+    var r = PathRng((*st).key, (*st).count);
+    let more = path_step(st, &r, lane);
+    (*st).count = r.n;
+    return more;
+}
+
+fn path_step(st: ptr<function, PathState>, r: ptr<function, PathRng>, lane: u32) -> bool {
+    let p = path_params;
+    let depth = (*st).depth;
+    let ray = BvhRay((*st).origin, 0.0, (*st).dir, PATH_FAR);
+    let throughput = (*st).throughput;
+    let has_env = !path_is_black(p.env);
+    let hit = bvh_trace_closest(ray, lane).hit;
+    path_rays += 1u;
+    if (hit.prim == BVH_INCOMPLETE) {
+        atomicAdd(&path_stats[0], 1u);
+        return false;
+    }
+    if (hit.prim >= BVH_INVALID_RAY) {
+        var w = 1.0;
+        if (depth > 0u && has_env) {
+            w = path_mis((*st).last_pdf, max(path_dot((*st).last_n, ray.dir), 0.0) / PATH_PI);
         }
-        // The environment, cosine-weighted about the normal.
-        if (has_env) {
-            let wi = path_cosine(path_frame(n), &r);
-            let env_pdf = path_dot(n, wi) / PATH_PI;
-            let e = path_eval(lobes, n, wo, wi);
-            if (e.pdf > 0.0 && env_pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, wi, PATH_FAR), lane)) {
-                let w = path_mis(env_pdf, e.pdf) / env_pdf;
-                radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, p.env)), w));
-            }
+        (*st).radiance = path_add((*st).radiance, path_scale(path_mul(throughput, p.env), w));
+        return false;
+    }
+    let s = bvh_hit_surface(ray, hit);
+    let n = s.normal;
+    let prim = path_prims[hit.prim];
+    let m = path_textured(path_materials[prim.x], hit.prim, hit.u, hit.v);
+    if (!path_is_black(m.emissive)) {
+        var w = 1.0;
+        if (depth > 0u && prim.y != PATH_NO_LIGHT) {
+            let cos_l = abs(path_dot(n, ray.dir));
+            let light_pdf = path_lights[prim.y].pdf_area * (hit.t * hit.t) / cos_l;
+            w = path_mis((*st).last_pdf, light_pdf);
         }
-        // One emissive triangle, chosen by power, a uniform point on it.
-        if (p.light_count > 0u) {
-            let light = path_lights[path_pick_light(path_next(&r))];
-            let su = sqrt(path_next(&r));
-            let b1 = 1.0 - su;
-            let b2 = path_next(&r) * su;
-            let q = vec3<f32>(
-                light.v0.x + light.e1.x * b1 + light.e2.x * b2,
-                light.v0.y + light.e1.y * b1 + light.e2.y * b2,
-                light.v0.z + light.e1.z * b1 + light.e2.z * b2,
-            );
-            let d = vec3<f32>(q.x - s.origin.x, q.y - s.origin.y, q.z - s.origin.z);
-            let dist2 = path_dot(d, d);
-            let dist = sqrt(dist2);
-            let wi = vec3<f32>(d.x / dist, d.y / dist, d.z / dist);
-            let nl = path_normalize(bvh_cross(light.e1, light.e2));
-            let cos_l = abs(path_dot(nl, wi));
-            let e = path_eval(lobes, n, wo, wi);
-            if (e.pdf > 0.0 && cos_l > 0.0) {
-                // The point moved off the light toward the surface, so the light itself
-                // does not block the shadow ray.
-                let toward = select(nl, -nl, path_dot(nl, wi) > 0.0);
-                let target_point = bvh_offset_ray_origin(q, toward);
-                let dt = vec3<f32>(target_point.x - s.origin.x, target_point.y - s.origin.y, target_point.z - s.origin.z);
-                if (!path_blocked(BvhRay(s.origin, 0.0, dt, 1.0), lane)) {
-                    let light_pdf = light.pdf_area * dist2 / cos_l;
-                    let w = path_mis(light_pdf, e.pdf) / light_pdf;
-                    let lm = path_materials[path_prims[light.prim].x];
-                    var emission = light.emission;
-                    if (lm.emissive_tex != PATH_NO_TEXTURE) {
-                        emission = path_textured(lm, light.prim, b1, b2).emissive;
-                    }
-                    radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, emission)), w));
-                }
-            }
+        (*st).radiance = path_add((*st).radiance, path_scale(path_mul(throughput, m.emissive), w));
+    }
+    let wo = vec3<f32>(-ray.dir.x, -ray.dir.y, -ray.dir.z);
+    path_direct(st, m, s, wo, r, lane);
+    // The bounce.
+    let wi = path_sample_lobes(m, n, wo, r);
+    let e = path_eval(m, n, wo, wi);
+    if (!(e.pdf > 0.0) || path_is_black(e.value)) {
+        return false;
+    }
+    var t = path_mul(throughput, vec3<f32>(e.value.x / e.pdf, e.value.y / e.pdf, e.value.z / e.pdf));
+    (*st).last_pdf = e.pdf;
+    (*st).last_n = n;
+    if (depth >= 2u) {
+        let survive = min(max(t.x, max(t.y, t.z)), 0.95);
+        if (path_next(r) >= survive) {
+            return false;
         }
-        // The bounce.
-        let wi = path_sample_lobes(lobes, n, wo, &r);
-        let e = path_eval(lobes, n, wo, wi);
-        if (!(e.pdf > 0.0) || path_is_black(e.value)) {
-            break;
+        t = path_scale(t, 1.0 / survive);
+    }
+    (*st).throughput = t;
+    (*st).origin = s.origin;
+    (*st).dir = wi;
+    (*st).depth = depth + 1u;
+    return depth + 1u < p.max_depth;
+}
+
+// Next-event estimation at surface point `s` of material `m` seen from `wo`: the light
+// reaching it from the sun, the environment and one emissive triangle, each through a
+// shadow ray, added to path `st`'s radiance through its throughput.
+fn path_direct(st: ptr<function, PathState>, m: PathMaterial, s: BvhSurface, wo: vec3<f32>, r: ptr<function, PathRng>, lane: u32) {
+    let p = path_params;
+    let n = s.normal;
+    let throughput = (*st).throughput;
+    var radiance = (*st).radiance;
+    // The sun: a direction, found only by a shadow ray.
+    if (!path_is_black(p.sun)) {
+        let e = path_eval(m, n, wo, p.sun_dir);
+        if (e.pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, p.sun_dir, PATH_FAR), lane)) {
+            radiance = path_add(radiance, path_mul(throughput, path_mul(e.value, p.sun)));
         }
-        throughput = path_mul(throughput, vec3<f32>(e.value.x / e.pdf, e.value.y / e.pdf, e.value.z / e.pdf));
-        last_pdf = e.pdf;
-        last_n = n;
-        if (depth >= 2u) {
-            let survive = min(max(throughput.x, max(throughput.y, throughput.z)), 0.95);
-            if (path_next(&r) >= survive) {
+    }
+    // The environment, cosine-weighted about the normal.
+    if (!path_is_black(p.env)) {
+        let wi = path_cosine(path_frame(n), r);
+        let env_pdf = path_dot(n, wi) / PATH_PI;
+        let e = path_eval(m, n, wo, wi);
+        if (e.pdf > 0.0 && env_pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, wi, PATH_FAR), lane)) {
+            let w = path_mis(env_pdf, e.pdf) / env_pdf;
+            radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, p.env)), w));
+        }
+    }
+    // One emissive triangle, chosen by power, a uniform point on it.
+    if (p.light_count > 0u) {
+        radiance = path_add(radiance, path_triangle_light(throughput, m, s, wo, r, lane));
+    }
+    (*st).radiance = radiance;
+}
+
+fn path_triangle_light(throughput: vec3<f32>, m: PathMaterial, s: BvhSurface, wo: vec3<f32>, r: ptr<function, PathRng>, lane: u32) -> vec3<f32> {
+    let light = path_lights[path_pick_light(path_next(r))];
+    let su = sqrt(path_next(r));
+    let b1 = 1.0 - su;
+    let b2 = path_next(r) * su;
+    let q = vec3<f32>(
+        light.v0.x + light.e1.x * b1 + light.e2.x * b2,
+        light.v0.y + light.e1.y * b1 + light.e2.y * b2,
+        light.v0.z + light.e1.z * b1 + light.e2.z * b2,
+    );
+    let d = vec3<f32>(q.x - s.origin.x, q.y - s.origin.y, q.z - s.origin.z);
+    let dist2 = path_dot(d, d);
+    let dist = sqrt(dist2);
+    let wi = vec3<f32>(d.x / dist, d.y / dist, d.z / dist);
+    let nl = path_normalize(bvh_cross(light.e1, light.e2));
+    let cos_l = abs(path_dot(nl, wi));
+    let e = path_eval(m, s.normal, wo, wi);
+    if (!(e.pdf > 0.0 && cos_l > 0.0)) {
+        return vec3<f32>(0.0);
+    }
+    // The point moved off the light toward the surface, so the light itself does not
+    // block the shadow ray.
+    let toward = select(nl, -nl, path_dot(nl, wi) > 0.0);
+    let target_point = bvh_offset_ray_origin(q, toward);
+    let dt = vec3<f32>(target_point.x - s.origin.x, target_point.y - s.origin.y, target_point.z - s.origin.z);
+    if (path_blocked(BvhRay(s.origin, 0.0, dt, 1.0), lane)) {
+        return vec3<f32>(0.0);
+    }
+    let light_pdf = light.pdf_area * dist2 / cos_l;
+    let w = path_mis(light_pdf, e.pdf) / light_pdf;
+    let lm = path_materials[path_prims[light.prim].x];
+    var emission = light.emission;
+    if (lm.emissive_tex != PATH_NO_TEXTURE) {
+        emission = path_textured(lm, light.prim, b1, b2).emissive;
+    }
+    return path_scale(path_mul(throughput, path_mul(e.value, emission)), w);
+}
+
+// One sample of the radiance reaching the camera through pixel (`x`, `y`).
+fn path_radiance(x: u32, y: u32, lane: u32) -> vec3<f32> {
+    var st = path_camera(x, y);
+    if (path_params.max_depth > 0u) {
+        loop {
+            if (!path_vertex(&st, lane)) {
                 break;
             }
-            throughput = path_scale(throughput, 1.0 / survive);
         }
-        ray = BvhRay(s.origin, 0.0, wi, PATH_FAR);
     }
-    return radiance;
+    return st.radiance;
+}
+
+// Adds sample `c` to pixel `i`'s sum (the first sample replaces it). Never a NaN pixel: a
+// sample that is not finite is dropped (and counted).
+fn path_accumulate(i: u32, sample: vec3<f32>) {
+    var c = sample;
+    let big = 3.0e38;
+    if (!(abs(c.x) <= big && abs(c.y) <= big && abs(c.z) <= big)) {
+        atomicAdd(&path_stats[1], 1u);
+        c = vec3<f32>(0.0);
+    }
+    var sum = vec4<f32>(0.0);
+    if (path_params.sample > 0u) {
+        sum = path_accum[i];
+    }
+    path_accum[i] = vec4<f32>(sum.x + c.x, sum.y + c.y, sum.z + c.z, sum.w + 1.0);
 }
 
 // 8 x 8 invocations: the walks' stacks are laid out for at most 64 lanes a workgroup.
@@ -332,18 +408,7 @@ fn path_main(
         return;
     }
     path_rays = 0u;
-    var c = path_radiance(id.x, id.y, lane);
+    let c = path_radiance(id.x, id.y, lane);
     atomicAdd(&path_stats[2], path_rays);
-    // Never a NaN pixel: a sample that is not finite is dropped (and counted).
-    let big = 3.0e38;
-    if (!(abs(c.x) <= big && abs(c.y) <= big && abs(c.z) <= big)) {
-        atomicAdd(&path_stats[1], 1u);
-        c = vec3<f32>(0.0);
-    }
-    let i = id.y * p.width + id.x;
-    var sum = vec4<f32>(0.0);
-    if (p.sample > 0u) {
-        sum = path_accum[i];
-    }
-    path_accum[i] = vec4<f32>(sum.x + c.x, sum.y + c.y, sum.z + c.z, sum.w + 1.0);
+    path_accumulate(id.y * p.width + id.x, c);
 }

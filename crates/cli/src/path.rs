@@ -6,8 +6,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, PathError, PathParams, PathScene, PathStats,
-    PathWalk,
+    Accumulation, CpuPathTracer, GpuPathTracer, PathError, PathKernel, PathParams, PathScene,
+    PathStats, PathWalk,
 };
 use bvhtrace_scene::SceneBvh;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -31,14 +31,14 @@ pub enum Engine<'a> {
 }
 
 impl<'a> Engine<'a> {
-    /// The path tracer over `bvh` on `device`: the kernel walked by `walk` (the device's
+    /// The path tracer over `bvh` on `device`: `kernel` walked by `walk` (the device's
     /// ray queries on the ray-query backend), or on the CPU the twin `twin` makes; `None`
     /// on a backend without a path tracer (raw Vulkan, the mock).
     pub fn open(
         device: &Device,
         bvh: &'a FlatBvh,
         shading: &PathScene,
-        walk: Traversal,
+        (walk, kernel): (Traversal, PathKernel),
         twin: impl FnOnce() -> Result<CpuPathTracer<'a>, PathError>,
     ) -> Result<Option<Engine<'a>>> {
         Ok(Some(match device.backend() {
@@ -49,7 +49,8 @@ impl<'a> Engine<'a> {
                     Backend::RayQuery => PathWalk::RayQueries,
                     _ => PathWalk::Walk(walk),
                 };
-                Engine::Device(Box::new(GpuPathTracer::with_walk(ctx, bvh, shading, walk)?))
+                let t = GpuPathTracer::with_kernel(ctx, bvh, shading, walk, kernel)?;
+                Engine::Device(Box::new(t))
             }
             _ => return Ok(None),
         }))
@@ -131,7 +132,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if traversal.is_wide() {
         built.geometry.build_wide();
     }
-    let mut engine = open(&device, &built.geometry, &shading, traversal)?;
+    let kernel = p.kernel.into();
+    let mut engine = open(&device, &built.geometry, &shading, (traversal, kernel))?;
     eprintln!(
         "path tracing {} ({} triangles, {} emissive) at {w}x{h}, {} spp, {} bounces at most, on {} ({})",
         built.scene.name,
@@ -213,13 +215,13 @@ fn open<'a>(
     device: &Device,
     geometry: &'a SceneBvh,
     shading: &'a PathScene,
-    traversal: Traversal,
+    (traversal, kernel): (Traversal, PathKernel),
 ) -> Result<Engine<'a>> {
     let twin = || match geometry {
         SceneBvh::Flat { tris, bvh } => CpuPathTracer::new(bvh, tris, shading, traversal),
         SceneBvh::Instanced(ib) => CpuPathTracer::instanced(ib, shading, traversal),
     };
-    match Engine::open(device, geometry.bvh(), shading, traversal, twin)? {
+    match Engine::open(device, geometry.bvh(), shading, (traversal, kernel), twin)? {
         Some(engine) => Ok(engine),
         None => bail!(
             "--shade path runs on wgpu (--backend gpu or ray-query) or the CPU twin (--backend \

@@ -234,6 +234,27 @@ pub struct PathArgs {
     /// The random numbers' seed (`--shade path`).
     #[arg(long, default_value_t = 0)]
     pub seed: u32,
+    /// How the device follows the paths (`--shade path`).
+    #[arg(long, value_enum, default_value_t = KernelArg::Megakernel)]
+    pub kernel: KernelArg,
+}
+
+/// `--kernel`: `bvhtrace_path::PathKernel`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum KernelArg {
+    /// One invocation follows its pixel's path to the end.
+    Megakernel,
+    /// Waves of one vertex per live path, the paths in a device buffer between them.
+    Wavefront,
+}
+
+impl From<KernelArg> for bvhtrace_path::PathKernel {
+    fn from(k: KernelArg) -> Self {
+        match k {
+            KernelArg::Megakernel => bvhtrace_path::PathKernel::Megakernel,
+            KernelArg::Wavefront => bvhtrace_path::PathKernel::Wavefront,
+        }
+    }
 }
 
 impl PathArgs {

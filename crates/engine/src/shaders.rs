@@ -118,6 +118,11 @@ wgsl_files! {
     /// The path tracer's kernel: camera rays, next-event estimation, bounces, the
     /// progressive sum (bvhtrace-path).
     PATH_TRACE = "path_trace.wgsl",
+    /// The path tracer as waves of one vertex per live path (bvhtrace-path's
+    /// `PathKernel::Wavefront`), composed after its kernel.
+    PATH_WAVEFRONT = "path_wavefront.wgsl",
+    /// Between two waves: the next wave's size and indirect dispatch.
+    PATH_WAVE_PREPARE = "path_wave_prepare.wgsl",
     /// The path tracer's sums tone mapped into a texture, shown without a readback.
     PATH_DISPLAY = "path_display.wgsl",
 }

@@ -11,6 +11,7 @@ use bvhtrace_gpu::{BvhLibrary, GpuBvh, GpuContext, GpuError, UploadOptions, wgpu
 
 use crate::material::PathMaterial;
 use crate::scene::{PathLight, PathParams, PathScene};
+use crate::wavefront::{PathKernel, Wavefront};
 use crate::{Accumulation, PathError, PathStats};
 
 /// What the kernel's rays are walked by.
@@ -38,7 +39,7 @@ enum Upload {
 pub struct GpuPathTracer {
     ctx: GpuContext,
     _upload: Upload,
-    pipeline: wgpu::ComputePipeline,
+    kernel: Kernel,
     bvh_group: wgpu::BindGroup,
     layout: wgpu::BindGroupLayout,
     scene_buffers: [wgpu::Buffer; 4],
@@ -52,6 +53,12 @@ pub struct GpuPathTracer {
     finished: std::sync::Arc<std::sync::atomic::AtomicU32>,
     /// The sample count the display texture shows (`None`: none yet, or stale).
     shown: Option<u32>,
+}
+
+/// The kernel that follows the paths.
+enum Kernel {
+    Mega(wgpu::ComputePipeline),
+    Waves(Box<Wavefront>),
 }
 
 /// The tone-mapping pass and the texture it writes (`shaders/path_display.wgsl`).
@@ -90,12 +97,24 @@ impl GpuPathTracer {
         scene: &PathScene,
         walk: PathWalk,
     ) -> Result<GpuPathTracer, PathError> {
+        Self::with_kernel(ctx, bvh, scene, walk, PathKernel::default())
+    }
+
+    /// [`GpuPathTracer::with_walk`] with the paths followed by `kernel`. Blocks until the
+    /// device has compiled it: in a browser use [`GpuPathTracer::with_kernel_async`].
+    pub fn with_kernel(
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        scene: &PathScene,
+        walk: PathWalk,
+        kernel: PathKernel,
+    ) -> Result<GpuPathTracer, PathError> {
         if cfg!(target_arch = "wasm32") {
             return Err(PathError::Setting(
-                "a browser cannot wait for its GPU: use GpuPathTracer::with_walk_async".into(),
+                "a browser cannot wait for its GPU: use GpuPathTracer::with_kernel_async".into(),
             ));
         }
-        pollster::block_on(Self::with_walk_async(ctx, bvh, scene, walk))
+        pollster::block_on(Self::with_kernel_async(ctx, bvh, scene, walk, kernel))
     }
 
     /// [`GpuPathTracer::with_walk`] as a future: what a page awaits (the browser compiles
@@ -105,6 +124,17 @@ impl GpuPathTracer {
         bvh: &FlatBvh,
         scene: &PathScene,
         walk: PathWalk,
+    ) -> Result<GpuPathTracer, PathError> {
+        Self::with_kernel_async(ctx, bvh, scene, walk, PathKernel::default()).await
+    }
+
+    /// [`GpuPathTracer::with_walk_async`] with the paths followed by `kernel`.
+    pub async fn with_kernel_async(
+        ctx: &GpuContext,
+        bvh: &FlatBvh,
+        scene: &PathScene,
+        walk: PathWalk,
+        kernel: PathKernel,
     ) -> Result<GpuPathTracer, PathError> {
         // Two levels number the flattened scene's triangles instance by instance.
         if !bvh.is_instanced() && scene.prims.len() != crate::scene::primitives(bvh) {
@@ -138,7 +168,17 @@ impl GpuPathTracer {
         };
         let (bvh_group, bvh_layout) = (bvh_group.group().clone(), bvh_group.layout().clone());
         let layout = group_layout(ctx.device());
-        let pipeline = pipeline(ctx, &library, &bvh_layout, &layout).await?;
+        // The device's trip budget: a ray that spends it ends its path (counted), never hangs.
+        let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+        let kernel = match kernel {
+            PathKernel::Megakernel => {
+                Kernel::Mega(pipeline(ctx, &library, [&bvh_layout, &layout], &constants).await?)
+            }
+            PathKernel::Wavefront => {
+                let w = Wavefront::new(ctx, &library, [&bvh_layout, &layout], &constants);
+                Kernel::Waves(Box::new(w.await?))
+            }
+        };
         let init = |label, contents: &[u8], usage| {
             ctx.device()
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -192,7 +232,7 @@ impl GpuPathTracer {
         Ok(GpuPathTracer {
             ctx: ctx.clone(),
             _upload: upload,
-            pipeline,
+            kernel,
             bvh_group,
             layout,
             scene_buffers,
@@ -210,6 +250,23 @@ impl GpuPathTracer {
     /// What the rays are walked by.
     pub fn walk(&self) -> PathWalk {
         self.walk
+    }
+
+    /// Bounds the paths one run of waves keeps ([`PathKernel::Wavefront`]; 80 bytes each,
+    /// [`crate::wavefront::MAX_WAVE_PATHS`] at most), from the next restart: fewer use less
+    /// device memory and take more runs a sample. The single kernel keeps none.
+    pub fn set_max_wave_paths(&mut self, paths: u32) {
+        if let Kernel::Waves(w) = &mut self.kernel {
+            w.max_paths = paths.clamp(1, crate::wavefront::MAX_WAVE_PATHS);
+        }
+    }
+
+    /// What follows the paths.
+    pub fn kernel(&self) -> PathKernel {
+        match self.kernel {
+            Kernel::Mega(_) => PathKernel::Megakernel,
+            Kernel::Waves(_) => PathKernel::Wavefront,
+        }
     }
 
     /// Starts the sum over with `params` (camera, size, lights, depth, seed): call it on any
@@ -232,6 +289,12 @@ impl GpuPathTracer {
             self.accum = Some((buffer, group));
             // Its bind group read the old sums.
             self.display = None;
+        }
+        if let Kernel::Waves(w) = &mut self.kernel {
+            w.resize(
+                &self.ctx,
+                u64::from(params.width) * u64::from(params.height),
+            );
         }
         self.params = PathParams {
             sample: 0,
@@ -285,9 +348,8 @@ impl GpuPathTracer {
             })
     }
 
-    /// Records `n` samples into `encoder`: one dispatch each, its parameters written
-    /// through `queue` (so submit the encoder before recording more).
-    fn encode(&mut self, encoder: &mut wgpu::CommandEncoder, n: u32) -> Result<(), PathError> {
+    /// Submits one sample (its parameters written through the queue first).
+    fn submit_sample(&self) -> Result<(), PathError> {
         let Some((_, group)) = &self.accum else {
             return Err(PathError::Setting("add_samples before restart".into()));
         };
@@ -298,16 +360,27 @@ impl GpuPathTracer {
                 p.width, p.height
             )));
         }
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("path tracer"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &self.bvh_group, &[]);
-        pass.set_bind_group(1, group, &[]);
-        for _ in 0..n {
+        let queue = self.ctx.queue();
+        queue.write_buffer(&self.params_buffer, 0, bytemuck::bytes_of(&p));
+        let pipeline = match &self.kernel {
+            Kernel::Mega(pipeline) => pipeline,
+            Kernel::Waves(w) => return w.submit_sample(&self.ctx, [&self.bvh_group, group], &p),
+        };
+        let mut encoder = self
+            .ctx
+            .device()
+            .create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("path tracer"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &self.bvh_group, &[]);
+            pass.set_bind_group(1, group, &[]);
             pass.dispatch_workgroups(p.width.div_ceil(8), p.height.div_ceil(8), 1);
         }
+        queue.submit([encoder.finish()]);
         Ok(())
     }
 
@@ -315,15 +388,7 @@ impl GpuPathTracer {
     /// index from the parameters); nothing is read back.
     pub fn add_samples(&mut self, n: u32) -> Result<(), PathError> {
         for _ in 0..n {
-            self.ctx
-                .queue()
-                .write_buffer(&self.params_buffer, 0, bytemuck::bytes_of(&self.params));
-            let mut encoder = self
-                .ctx
-                .device()
-                .create_command_encoder(&Default::default());
-            self.encode(&mut encoder, 1)?;
-            self.ctx.queue().submit([encoder.finish()]);
+            self.submit_sample()?;
             self.params.sample += 1;
             let (finished, sample) = (self.finished.clone(), self.params.sample);
             self.ctx.queue().on_submitted_work_done(move || {
@@ -545,18 +610,16 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
 async fn pipeline(
     ctx: &GpuContext,
     library: &BvhLibrary,
-    bvh_layout: &wgpu::BindGroupLayout,
-    layout: &wgpu::BindGroupLayout,
+    layouts: [&wgpu::BindGroupLayout; 2],
+    constants: &[(&str, f64)],
 ) -> Result<wgpu::ComputePipeline, PathError> {
     let module = (ctx.shader_module_async(library, &kernel_source(), "path_trace.wgsl")).await?;
     let device = ctx.device();
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("path tracer"),
-        bind_group_layouts: &[Some(bvh_layout), Some(layout)],
+        bind_group_layouts: &[Some(layouts[0]), Some(layouts[1])],
         immediate_size: 0,
     });
-    // The device's trip budget: a ray that spends it ends its path (counted), never hangs.
-    let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
     Ok(
         device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("path tracer"),
@@ -564,7 +627,7 @@ async fn pipeline(
             module: &module,
             entry_point: Some("path_main"),
             compilation_options: wgpu::PipelineCompilationOptions {
-                constants: &constants,
+                constants,
                 zero_initialize_workgroup_memory: false,
             },
             cache: None,

@@ -10,7 +10,6 @@
 //! asked.
 //!
 //! Shading: glTF metallic-roughness (Lambert under GGX, sampled by lobe), emission, next
-//! event estimation toward a sun, a constant environment and the emissive triangles (by
 //! power), each with an any-hit shadow ray, combined by multiple importance sampling
 //! (power heuristic); Russian roulette from the third bounce.
 //!
@@ -47,11 +46,13 @@ pub mod sampling;
 mod scene;
 pub mod textures;
 mod twin;
+pub mod wavefront;
 
 pub use device::{GpuPathTracer, PathWalk, kernel_source};
 pub use material::{NO_TEXTURE, PathMaterial};
 pub use scene::{Lighting, MAX_EMISSION, NO_LIGHT, PathLight, PathParams, PathScene};
 pub use twin::{CpuPathTracer, mean_luminance};
+pub use wavefront::PathKernel;
 
 /// Why a path tracer could not be made or run.
 #[derive(Debug, thiserror::Error)]

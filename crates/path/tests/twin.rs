@@ -7,8 +7,8 @@ mod support;
 use bvhtrace_core::{BuildOptions, Traversal};
 use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError};
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathParams, PathScene, PathStats,
-    PathWalk,
+    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathKernel, PathParams, PathScene,
+    PathStats, PathWalk,
 };
 use glam::Vec3;
 
@@ -53,18 +53,27 @@ fn both_device(
     walk: PathWalk,
 ) -> (Accumulation, PathStats, PathParams) {
     let (_, bvh, shading, params) = setup(case, false);
-    device_sums(ctx, case, &bvh, &shading, params, walk)
+    device_sums(ctx, case, (&bvh, &shading), params, (walk, None))
 }
 
+/// The device's sums for `case`, walked by `walk`, in waves of at most `waves` paths
+/// (`None`: the single kernel).
 fn device_sums(
     ctx: &GpuContext,
     case: &Case,
-    bvh: &bvhtrace_core::FlatBvh,
-    shading: &PathScene,
+    (bvh, shading): (&bvhtrace_core::FlatBvh, &PathScene),
     params: PathParams,
-    walk: PathWalk,
+    (walk, waves): (PathWalk, Option<u32>),
 ) -> (Accumulation, PathStats, PathParams) {
-    let mut gpu = GpuPathTracer::with_walk(ctx, bvh, shading, walk).expect("tracer");
+    let kernel = match waves {
+        Some(_) => PathKernel::Wavefront,
+        None => PathKernel::Megakernel,
+    };
+    let mut gpu = GpuPathTracer::with_kernel(ctx, bvh, shading, walk, kernel).expect("tracer");
+    assert_eq!(gpu.kernel(), kernel);
+    if let Some(n) = waves {
+        gpu.set_max_wave_paths(n);
+    }
     gpu.restart(params);
     gpu.add_samples(case.samples).expect("samples");
     let (device, stats) = gpu.read().expect("read");
@@ -75,9 +84,18 @@ fn device_sums(
 
 /// The device's sums and the twin's, for `walk`, and the pixels that differ.
 fn both(ctx: &GpuContext, case: &Case, walk: PathWalk) -> (Accumulation, Accumulation, usize) {
+    both_in(ctx, case, (walk, None))
+}
+
+/// [`both`] in waves of at most `waves` paths (`None`: the single kernel).
+fn both_in(
+    ctx: &GpuContext,
+    case: &Case,
+    (walk, waves): (PathWalk, Option<u32>),
+) -> (Accumulation, Accumulation, usize) {
     let wide = matches!(walk, PathWalk::Walk(t) if t.is_wide());
     let (tris, bvh, shading, params) = setup(case, wide);
-    let (device, stats, _) = device_sums(ctx, case, &bvh, &shading, params, walk);
+    let (device, stats, _) = device_sums(ctx, case, (&bvh, &shading), params, (walk, waves));
 
     let traversal = match walk {
         PathWalk::Walk(t) => t,
@@ -147,6 +165,30 @@ fn the_device_traces_the_twins_paths_bit_for_bit_on_every_walk() {
                 differ,
                 0,
                 "{} {}: pixels differ from the twin",
+                case.spec,
+                t.name()
+            );
+        }
+    }
+}
+
+/// The wavefront kernel follows the same paths as the single kernel and the twin, to the
+/// same bits: in runs of 500 paths (three runs of the 40 x 30 frame, the last one short),
+/// on a stack walk and the stackless one.
+#[test]
+fn the_waves_trace_the_twins_paths_bit_for_bit() {
+    let Some(ctx) = support::context("path tracer waves") else {
+        return;
+    };
+    for case in cases() {
+        for t in [Traversal::FullStack, Traversal::Stackless] {
+            let (device, twin, differ) = both_in(&ctx, &case, (PathWalk::Walk(t), Some(500)));
+            assert_eq!(device.samples(), case.samples);
+            assert!(bvhtrace_path::mean_luminance(&twin) > 0.01, "{}", case.spec);
+            assert_eq!(
+                differ,
+                0,
+                "{} {}: waves differ from the twin",
                 case.spec,
                 t.name()
             );

@@ -3,10 +3,16 @@
 
 use bvhtrace_core::Traversal;
 use bvhtrace_engine::{BvhStorage, LibraryShape, wgsl_library};
+use bvhtrace_path::wavefront::{PathState, WaveParams, wavefront_source};
 use bvhtrace_path::{PathLight, PathMaterial, PathParams, kernel_source};
 
 fn module(shape: LibraryShape) -> naga::Module {
-    let source = format!("{}\n{}", wgsl_library(shape, 0).source(), kernel_source());
+    validated(shape, &kernel_source())
+}
+
+/// `kernel` composed after the library of `shape`, parsed and validated.
+fn validated(shape: LibraryShape, kernel: &str) -> naga::Module {
+    let source = format!("{}\n{}", wgsl_library(shape, 0).source(), kernel);
     let module = naga::front::wgsl::parse_str(&source)
         .unwrap_or_else(|e| panic!("{shape}: {}", e.emit_to_string(&source)));
     naga::valid::Validator::new(
@@ -52,6 +58,29 @@ fn the_kernel_validates_after_every_library() {
             "{shape}: no path_main"
         );
     }
+}
+
+#[test]
+fn the_waves_validate_after_every_library() {
+    let source = wavefront_source();
+    for shape in shapes() {
+        let m = validated(shape, &source);
+        for entry in ["path_wave_start", "path_wave_extend", "path_wave_finish"] {
+            assert!(
+                m.entry_points.iter().any(|e| e.name == entry),
+                "{shape}: no {entry}"
+            );
+        }
+    }
+    // The step between waves is a module of its own.
+    let prepare = bvhtrace_engine::shaders::PATH_WAVE_PREPARE.1;
+    let m = naga::front::wgsl::parse_str(prepare).expect("path_wave_prepare.wgsl parses");
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::empty(),
+    )
+    .validate(&m)
+    .expect("path_wave_prepare.wgsl validates");
 }
 
 /// `(name, offset)` of each member of WGSL struct `name`, and its size.
@@ -145,4 +174,42 @@ fn the_rust_types_are_the_wgsl_structs() {
             ("emission", offset_of!(PathLight, emission)),
         ],
     );
+    let m = validated(
+        LibraryShape::new(BvhStorage::Buffers, false, Traversal::Stackless),
+        &wavefront_source(),
+    );
+    let (wgsl, span) = layout(&m, "PathState");
+    assert_eq!(span as usize, size_of::<PathState>(), "PathState: size");
+    let rust = [
+        ("origin", offset_of!(PathState, origin)),
+        ("depth", offset_of!(PathState, depth)),
+        ("dir", offset_of!(PathState, dir)),
+        ("last_pdf", offset_of!(PathState, last_pdf)),
+        ("throughput", offset_of!(PathState, throughput)),
+        ("key", offset_of!(PathState, key)),
+        ("last_n", offset_of!(PathState, last_n)),
+        ("count", offset_of!(PathState, count)),
+        ("radiance", offset_of!(PathState, radiance)),
+    ];
+    for (field, offset) in rust {
+        assert!(
+            wgsl.iter()
+                .any(|(n, o)| n == field && *o as usize == offset),
+            "PathState.{field}: Rust offset {offset}, WGSL {wgsl:?}"
+        );
+    }
+    let (wgsl, span) = layout(&m, "PathWave");
+    assert_eq!(span as usize, size_of::<WaveParams>(), "PathWave: size");
+    let rust = [
+        ("first", offset_of!(WaveParams, first)),
+        ("pixels", offset_of!(WaveParams, pixels)),
+        ("capacity", offset_of!(WaveParams, capacity)),
+    ];
+    for (field, offset) in rust {
+        assert!(
+            wgsl.iter()
+                .any(|(n, o)| n == field && *o as usize == offset),
+            "PathWave.{field}: Rust offset {offset}, WGSL {wgsl:?}"
+        );
+    }
 }

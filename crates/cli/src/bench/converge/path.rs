@@ -329,7 +329,13 @@ pub(super) fn open<'a>(
 ) -> Result<(Engine<'a>, f64)> {
     let t = Instant::now();
     let twin = || CpuPathTracer::new(bvh, frame.tris, &frame.shading, walk);
-    let engine = match Engine::open(&backend.device, bvh, &frame.shading, walk, twin)? {
+    let engine = match Engine::open(
+        &backend.device,
+        bvh,
+        &frame.shading,
+        (walk, Default::default()),
+        twin,
+    )? {
         Some(engine) => engine,
         None => bail!(
             "the path tracer runs on wgpu and the CPU, not on {}",

@@ -1,0 +1,310 @@
+//! The path tracer as waves ([`PathKernel::Wavefront`], `shaders/path_wavefront.wgsl`):
+//! each wave takes every live path one vertex further and queues those that go on, the
+//! paths kept in a device buffer between waves; runs of at most [`MAX_WAVE_PATHS`] pixels
+//! bound that buffer. The sums equal the single kernel's bit for bit.
+
+use bvhtrace_engine::shaders::{PATH_SAMPLING, PATH_TRACE, PATH_WAVE_PREPARE, PATH_WAVEFRONT};
+use bvhtrace_gpu::{BvhLibrary, GpuContext, wgpu};
+use bytemuck::{Pod, Zeroable};
+
+use crate::PathError;
+use crate::scene::PathParams;
+
+/// How the device follows a sample's paths.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PathKernel {
+    /// One invocation per pixel follows its path to the end (`path_main`): the paths'
+    /// state stays in registers. The default: it wins on lavapipe (docs/design.md).
+    #[default]
+    Megakernel,
+    /// Waves of one vertex per live path, the paths in a device buffer between waves and
+    /// the live ones queued, so that no invocation idles beside a longer path.
+    Wavefront,
+}
+
+/// The most paths one run of waves keeps (80 bytes each).
+pub const MAX_WAVE_PATHS: u32 = 1 << 20;
+
+/// A path between two waves (WGSL `PathState`, 80 bytes): its ray, random numbers'
+/// key and count, bounces, throughput, last bounce's density and normal, and radiance.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct PathState {
+    /// The ray's origin.
+    pub origin: [f32; 3],
+    /// Bounces taken.
+    pub depth: u32,
+    /// The ray's direction.
+    pub dir: [f32; 3],
+    /// The last bounce's density.
+    pub last_pdf: f32,
+    /// The product of the bounces' weights.
+    pub throughput: [f32; 3],
+    /// The random numbers' key.
+    pub key: u32,
+    /// The last bounce's normal.
+    pub last_n: [f32; 3],
+    /// Random numbers drawn.
+    pub count: u32,
+    /// The radiance gathered so far.
+    pub radiance: [f32; 3],
+    /// Padding to 16 bytes.
+    pub pad: u32,
+}
+
+/// One run of waves (WGSL `PathWave`): its first pixel, its pixels, and the queues'
+/// capacity.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct WaveParams {
+    /// The run's first pixel (row by row).
+    pub first: u32,
+    /// Pixels in the run.
+    pub pixels: u32,
+    /// Paths each of the two queues holds.
+    pub capacity: u32,
+    /// Padding to 16 bytes.
+    pub pad: u32,
+}
+
+/// The wavefront kernel's WGSL as composed after a traversal library.
+pub fn wavefront_source() -> String {
+    format!(
+        "{}\n{}\n{}",
+        PATH_SAMPLING.1, PATH_TRACE.1, PATH_WAVEFRONT.1
+    )
+}
+
+/// The wavefront's pipelines and the buffers its waves share.
+pub(crate) struct Wavefront {
+    start: wgpu::ComputePipeline,
+    extend: wgpu::ComputePipeline,
+    finish: wgpu::ComputePipeline,
+    prepare: wgpu::ComputePipeline,
+    prepare_group: wgpu::BindGroup,
+    layout: wgpu::BindGroupLayout,
+    uniform: wgpu::Buffer,
+    ctl: wgpu::Buffer,
+    args: wgpu::Buffer,
+    /// The paths and queues for runs of `capacity` pixels, and their group.
+    paths: Option<(u32, wgpu::BindGroup)>,
+    /// The most paths a run keeps.
+    pub(crate) max_paths: u32,
+}
+
+fn buffer(ctx: &GpuContext, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+    ctx.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage,
+        mapped_at_creation: false,
+    })
+}
+
+fn storage_layout(
+    device: &wgpu::Device,
+    label: &str,
+    uniform: bool,
+    n: u32,
+) -> wgpu::BindGroupLayout {
+    let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..n)
+        .map(|i| wgpu::BindGroupLayoutEntry {
+            binding: i,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: if uniform && i == 0 {
+                    wgpu::BufferBindingType::Uniform
+                } else {
+                    wgpu::BufferBindingType::Storage { read_only: false }
+                },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        })
+        .collect();
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries: &entries,
+    })
+}
+
+fn bind(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = (buffers.iter().enumerate())
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("path waves"),
+        layout,
+        entries: &entries,
+    })
+}
+
+impl Wavefront {
+    /// Compiles the waves' kernels after `library`, with the BVH's group 0 and the path
+    /// tracer's group 1 laid out as `layouts`.
+    pub(crate) async fn new(
+        ctx: &GpuContext,
+        library: &BvhLibrary,
+        layouts: [&wgpu::BindGroupLayout; 2],
+        constants: &[(&str, f64)],
+    ) -> Result<Wavefront, PathError> {
+        let module =
+            (ctx.shader_module_async(library, &wavefront_source(), "path_wavefront.wgsl")).await?;
+        let device = ctx.device();
+        let layout = storage_layout(device, "path waves", true, 4);
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("path waves"),
+            bind_group_layouts: &[Some(layouts[0]), Some(layouts[1]), Some(&layout)],
+            immediate_size: 0,
+        });
+        let make = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants,
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            })
+        };
+        let (start, extend, finish) = (
+            make("path_wave_start"),
+            make("path_wave_extend"),
+            make("path_wave_finish"),
+        );
+        use wgpu::BufferUsages as U;
+        let uniform = buffer(ctx, "path wave", 16, U::UNIFORM | U::COPY_DST);
+        let ctl = buffer(ctx, "path wave control", 16, U::STORAGE | U::COPY_DST);
+        let args = buffer(
+            ctx,
+            "path wave dispatch",
+            12,
+            U::STORAGE | U::INDIRECT | U::COPY_DST,
+        );
+        let prepare_layout = storage_layout(device, "path wave prepare", false, 2);
+        let prepare_module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(PATH_WAVE_PREPARE.0),
+            source: wgpu::ShaderSource::Wgsl(PATH_WAVE_PREPARE.1.into()),
+        });
+        let prepare = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("path_wave_prepare"),
+            layout: Some(
+                &device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some("path wave prepare"),
+                    bind_group_layouts: &[Some(&prepare_layout)],
+                    immediate_size: 0,
+                }),
+            ),
+            module: &prepare_module,
+            entry_point: Some("path_wave_prepare"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        let prepare_group = bind(device, &prepare_layout, &[&ctl, &args]);
+        Ok(Wavefront {
+            start,
+            extend,
+            finish,
+            prepare,
+            prepare_group,
+            layout,
+            uniform,
+            ctl,
+            args,
+            paths: None,
+            max_paths: MAX_WAVE_PATHS,
+        })
+    }
+
+    /// Sizes the paths and queues for a frame of `pixels` pixels (runs of at most
+    /// [`MAX_WAVE_PATHS`], fewer where the device binds less).
+    pub(crate) fn resize(&mut self, ctx: &GpuContext, pixels: u64) {
+        let state = std::mem::size_of::<PathState>() as u64;
+        let limit = u64::from(ctx.device().limits().max_storage_buffer_binding_size) / state;
+        let capacity = pixels.min(u64::from(self.max_paths)).min(limit).max(1) as u32;
+        if self.paths.as_ref().is_some_and(|(c, _)| *c == capacity) {
+            return;
+        }
+        use wgpu::BufferUsages as U;
+        let states = buffer(ctx, "path states", u64::from(capacity) * state, U::STORAGE);
+        let queues = buffer(ctx, "path queues", u64::from(capacity) * 8, U::STORAGE);
+        let group = bind(
+            ctx.device(),
+            &self.layout,
+            &[&self.uniform, &states, &queues, &self.ctl],
+        );
+        self.paths = Some((capacity, group));
+    }
+
+    /// Submits one sample of `params`' frame: per run of pixels, the camera paths, one
+    /// wave per bounce and the sums.
+    pub(crate) fn submit_sample(
+        &self,
+        ctx: &GpuContext,
+        groups: [&wgpu::BindGroup; 2],
+        params: &PathParams,
+    ) -> Result<(), PathError> {
+        let Some((capacity, group)) = &self.paths else {
+            return Err(PathError::Setting("a wave before restart".into()));
+        };
+        let total = params.width * params.height;
+        let mut first = 0;
+        while first < total {
+            let pixels = (total - first).min(*capacity);
+            let wave = WaveParams {
+                first,
+                pixels,
+                capacity: *capacity,
+                pad: 0,
+            };
+            let queued = if params.max_depth > 0 { pixels } else { 0 };
+            let queue = ctx.queue();
+            queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&wave));
+            queue.write_buffer(&self.ctl, 0, bytemuck::cast_slice(&[queued, 0u32, 0, 0]));
+            queue.write_buffer(
+                &self.args,
+                0,
+                bytemuck::cast_slice(&[queued.div_ceil(64), 1u32, 1]),
+            );
+            let mut encoder = ctx.device().create_command_encoder(&Default::default());
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("path waves"),
+                    timestamp_writes: None,
+                });
+                pass.set_bind_group(0, groups[0], &[]);
+                pass.set_bind_group(1, groups[1], &[]);
+                pass.set_bind_group(2, group, &[]);
+                pass.set_pipeline(&self.start);
+                pass.dispatch_workgroups(pixels.div_ceil(64), 1, 1);
+                for _ in 0..params.max_depth {
+                    pass.set_pipeline(&self.extend);
+                    pass.set_bind_group(0, groups[0], &[]);
+                    pass.set_bind_group(1, groups[1], &[]);
+                    pass.set_bind_group(2, group, &[]);
+                    pass.dispatch_workgroups_indirect(&self.args, 0);
+                    pass.set_pipeline(&self.prepare);
+                    pass.set_bind_group(0, &self.prepare_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
+                }
+                pass.set_pipeline(&self.finish);
+                pass.set_bind_group(0, groups[0], &[]);
+                pass.dispatch_workgroups(pixels.div_ceil(64), 1, 1);
+            }
+            ctx.queue().submit([encoder.finish()]);
+            first += pixels;
+        }
+        Ok(())
+    }
+}
