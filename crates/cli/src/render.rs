@@ -235,7 +235,7 @@ pub struct PathArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u32,
     /// How the device follows the paths (`--shade path`).
-    #[arg(long, value_enum, default_value_t = KernelArg::Megakernel)]
+    #[arg(long, value_enum, default_value_t = KernelArg::Wavefront)]
     pub kernel: KernelArg,
 }
 

@@ -1,6 +1,7 @@
 //! The path tracer on a wgpu device: the kernel composed after the traversal library of
 //! an upload (our walk, or the device's ray queries), its resources in group 1, one
-//! dispatch per sample adding to the sums on the device.
+//! submission per sample adding to the sums on the device (one dispatch, or the waves of
+//! `wavefront.rs`).
 
 use bvhtrace_core::{FlatBvh, Traversal};
 use bvhtrace_engine::shaders::{PATH_DISPLAY, PATH_SAMPLING, PATH_TRACE};
@@ -291,10 +292,7 @@ impl GpuPathTracer {
             self.display = None;
         }
         if let Kernel::Waves(w) = &mut self.kernel {
-            w.resize(
-                &self.ctx,
-                u64::from(params.width) * u64::from(params.height),
-            );
+            w.resize(&self.ctx, (params.width, params.height));
         }
         self.params = PathParams {
             sample: 0,

@@ -7,9 +7,12 @@
 //! whatever the upload holds (buffers or textures, binary or wide layout, alpha masks) and
 //! over the device's ray queries. Camera rays are made on the device, each pixel's sample
 //! added to a sum kept on the device ([`GpuPathTracer`]); nothing is read back until
-//! asked.
+//! asked. The paths are followed in waves of one vertex per live path by default
+//! ([`PathKernel::Wavefront`]), or each by one invocation to its end
+//! ([`PathKernel::Megakernel`]): the same function per vertex, the same sums.
 //!
 //! Shading: glTF metallic-roughness (Lambert under GGX, sampled by lobe), emission, next
+//! event estimation toward a sun, a constant environment and the emissive triangles (by
 //! power), each with an any-hit shadow ray, combined by multiple importance sampling
 //! (power heuristic); Russian roulette from the third bounce.
 //!

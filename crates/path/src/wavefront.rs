@@ -1,7 +1,8 @@
 //! The path tracer as waves ([`PathKernel::Wavefront`], `shaders/path_wavefront.wgsl`):
 //! each wave takes every live path one vertex further and queues those that go on, the
-//! paths kept in a device buffer between waves; runs of at most [`MAX_WAVE_PATHS`] pixels
-//! bound that buffer. The sums equal the single kernel's bit for bit.
+//! paths kept in a device buffer between waves; runs of whole rows, at most
+//! [`MAX_WAVE_PATHS`] pixels, bound that buffer. The sums equal the single kernel's bit
+//! for bit.
 
 use bvhtrace_engine::shaders::{PATH_SAMPLING, PATH_TRACE, PATH_WAVE_PREPARE, PATH_WAVEFRONT};
 use bvhtrace_gpu::{BvhLibrary, GpuContext, wgpu};
@@ -14,11 +15,13 @@ use crate::scene::PathParams;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum PathKernel {
     /// One invocation per pixel follows its path to the end (`path_main`): the paths'
-    /// state stays in registers. The default: it wins on lavapipe (docs/design.md).
-    #[default]
+    /// state stays in registers, but a workgroup runs until its longest path ends.
     Megakernel,
     /// Waves of one vertex per live path, the paths in a device buffer between waves and
-    /// the live ones queued, so that no invocation idles beside a longer path.
+    /// the live ones queued, so that no invocation idles beside a longer path. The
+    /// default: 1.1-1.3x the single kernel's samples per second on lavapipe
+    /// (docs/design.md).
+    #[default]
     Wavefront,
 }
 
@@ -52,15 +55,14 @@ pub struct PathState {
     pub pad: u32,
 }
 
-/// One run of waves (WGSL `PathWave`): its first pixel, its pixels, and the queues'
-/// capacity.
+/// One run of waves (WGSL `PathWave`): its rows, and the queues' capacity.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
 pub struct WaveParams {
-    /// The run's first pixel (row by row).
-    pub first: u32,
-    /// Pixels in the run.
-    pub pixels: u32,
+    /// The run's first row.
+    pub first_row: u32,
+    /// Rows in the run.
+    pub rows: u32,
     /// Paths each of the two queues holds.
     pub capacity: u32,
     /// Padding to 16 bytes.
@@ -79,15 +81,14 @@ pub fn wavefront_source() -> String {
 pub(crate) struct Wavefront {
     start: wgpu::ComputePipeline,
     extend: wgpu::ComputePipeline,
-    finish: wgpu::ComputePipeline,
     prepare: wgpu::ComputePipeline,
     prepare_group: wgpu::BindGroup,
     layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
     ctl: wgpu::Buffer,
     args: wgpu::Buffer,
-    /// The paths and queues for runs of `capacity` pixels, and their group.
-    paths: Option<(u32, wgpu::BindGroup)>,
+    /// The paths and queues for runs of `rows` rows of `capacity` pixels, and their group.
+    paths: Option<Paths>,
     /// The most paths a run keeps.
     pub(crate) max_paths: u32,
 }
@@ -178,11 +179,7 @@ impl Wavefront {
                 cache: None,
             })
         };
-        let (start, extend, finish) = (
-            make("path_wave_start"),
-            make("path_wave_extend"),
-            make("path_wave_finish"),
-        );
+        let (start, extend) = (make("path_wave_start"), make("path_wave_extend"));
         use wgpu::BufferUsages as U;
         let uniform = buffer(ctx, "path wave", 16, U::UNIFORM | U::COPY_DST);
         let ctl = buffer(ctx, "path wave control", 16, U::STORAGE | U::COPY_DST);
@@ -215,7 +212,6 @@ impl Wavefront {
         Ok(Wavefront {
             start,
             extend,
-            finish,
             prepare,
             prepare_group,
             layout,
@@ -227,13 +223,20 @@ impl Wavefront {
         })
     }
 
-    /// Sizes the paths and queues for a frame of `pixels` pixels (runs of at most
-    /// [`MAX_WAVE_PATHS`], fewer where the device binds less).
-    pub(crate) fn resize(&mut self, ctx: &GpuContext, pixels: u64) {
+    /// Sizes the paths and queues for a `width` x `height` frame: runs of as many whole
+    /// rows as [`Wavefront::max_paths`] and the device's bindings allow (one row at least).
+    pub(crate) fn resize(&mut self, ctx: &GpuContext, (width, height): (u32, u32)) {
         let state = std::mem::size_of::<PathState>() as u64;
-        let limit = u64::from(ctx.device().limits().max_storage_buffer_binding_size) / state;
-        let capacity = pixels.min(u64::from(self.max_paths)).min(limit).max(1) as u32;
-        if self.paths.as_ref().is_some_and(|(c, _)| *c == capacity) {
+        let limit = ctx.device().limits().max_storage_buffer_binding_size / state;
+        let most = limit.min(u64::from(self.max_paths));
+        let width = u64::from(width.max(1));
+        let rows = (most / width).clamp(1, u64::from(height.max(1)));
+        let capacity = (rows * width) as u32;
+        if self
+            .paths
+            .as_ref()
+            .is_some_and(|p| (p.capacity, p.rows) == (capacity, rows as u32))
+        {
             return;
         }
         use wgpu::BufferUsages as U;
@@ -244,67 +247,68 @@ impl Wavefront {
             &self.layout,
             &[&self.uniform, &states, &queues, &self.ctl],
         );
-        self.paths = Some((capacity, group));
+        self.paths = Some(Paths {
+            capacity,
+            rows: rows as u32,
+            group,
+        });
     }
 
-    /// Submits one sample of `params`' frame: per run of pixels, the camera paths, one
-    /// wave per bounce and the sums.
+    /// Submits one sample of `params`' frame: per run of rows, the camera paths and their
+    /// first vertex, then one wave per further bounce.
     pub(crate) fn submit_sample(
         &self,
         ctx: &GpuContext,
         groups: [&wgpu::BindGroup; 2],
         params: &PathParams,
     ) -> Result<(), PathError> {
-        let Some((capacity, group)) = &self.paths else {
+        let Some(paths) = &self.paths else {
             return Err(PathError::Setting("a wave before restart".into()));
         };
-        let total = params.width * params.height;
-        let mut first = 0;
-        while first < total {
-            let pixels = (total - first).min(*capacity);
+        let mut first_row = 0;
+        while first_row < params.height {
+            let rows = (params.height - first_row).min(paths.rows);
             let wave = WaveParams {
-                first,
-                pixels,
-                capacity: *capacity,
+                first_row,
+                rows,
+                capacity: paths.capacity,
                 pad: 0,
             };
-            let queued = if params.max_depth > 0 { pixels } else { 0 };
             let queue = ctx.queue();
             queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&wave));
-            queue.write_buffer(&self.ctl, 0, bytemuck::cast_slice(&[queued, 0u32, 0, 0]));
-            queue.write_buffer(
-                &self.args,
-                0,
-                bytemuck::cast_slice(&[queued.div_ceil(64), 1u32, 1]),
-            );
+            queue.write_buffer(&self.ctl, 0, &[0; 16]);
             let mut encoder = ctx.device().create_command_encoder(&Default::default());
             {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("path waves"),
                     timestamp_writes: None,
                 });
+                pass.set_pipeline(&self.start);
                 pass.set_bind_group(0, groups[0], &[]);
                 pass.set_bind_group(1, groups[1], &[]);
-                pass.set_bind_group(2, group, &[]);
-                pass.set_pipeline(&self.start);
-                pass.dispatch_workgroups(pixels.div_ceil(64), 1, 1);
-                for _ in 0..params.max_depth {
-                    pass.set_pipeline(&self.extend);
-                    pass.set_bind_group(0, groups[0], &[]);
-                    pass.set_bind_group(1, groups[1], &[]);
-                    pass.set_bind_group(2, group, &[]);
-                    pass.dispatch_workgroups_indirect(&self.args, 0);
+                pass.set_bind_group(2, &paths.group, &[]);
+                pass.dispatch_workgroups(params.width.div_ceil(8), rows.div_ceil(8), 1);
+                for _ in 1..params.max_depth {
                     pass.set_pipeline(&self.prepare);
                     pass.set_bind_group(0, &self.prepare_group, &[]);
                     pass.dispatch_workgroups(1, 1, 1);
+                    pass.set_pipeline(&self.extend);
+                    pass.set_bind_group(0, groups[0], &[]);
+                    pass.dispatch_workgroups_indirect(&self.args, 0);
                 }
-                pass.set_pipeline(&self.finish);
-                pass.set_bind_group(0, groups[0], &[]);
-                pass.dispatch_workgroups(pixels.div_ceil(64), 1, 1);
             }
             ctx.queue().submit([encoder.finish()]);
-            first += pixels;
+            first_row += rows;
         }
         Ok(())
     }
+}
+
+/// The paths and queues of a run of waves.
+struct Paths {
+    /// Paths a run keeps: its rows' pixels.
+    capacity: u32,
+    /// Rows a run takes.
+    rows: u32,
+    group: wgpu::BindGroup,
 }

@@ -173,7 +173,8 @@ fn the_device_traces_the_twins_paths_bit_for_bit_on_every_walk() {
 }
 
 /// The wavefront kernel follows the same paths as the single kernel and the twin, to the
-/// same bits: in runs of 500 paths (three runs of the 40 x 30 frame, the last one short),
+/// same bits: in runs of at most 500 paths (twelve rows of the 40 x 30 frame: three runs,
+/// the last one short),
 /// on a stack walk and the stackless one.
 #[test]
 fn the_waves_trace_the_twins_paths_bit_for_bit() {

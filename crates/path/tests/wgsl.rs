@@ -65,7 +65,7 @@ fn the_waves_validate_after_every_library() {
     let source = wavefront_source();
     for shape in shapes() {
         let m = validated(shape, &source);
-        for entry in ["path_wave_start", "path_wave_extend", "path_wave_finish"] {
+        for entry in ["path_wave_start", "path_wave_extend"] {
             assert!(
                 m.entry_points.iter().any(|e| e.name == entry),
                 "{shape}: no {entry}"
@@ -201,8 +201,8 @@ fn the_rust_types_are_the_wgsl_structs() {
     let (wgsl, span) = layout(&m, "PathWave");
     assert_eq!(span as usize, size_of::<WaveParams>(), "PathWave: size");
     let rust = [
-        ("first", offset_of!(WaveParams, first)),
-        ("pixels", offset_of!(WaveParams, pixels)),
+        ("first_row", offset_of!(WaveParams, first_row)),
+        ("rows", offset_of!(WaveParams, rows)),
         ("capacity", offset_of!(WaveParams, capacity)),
     ];
     for (field, offset) in rust {
