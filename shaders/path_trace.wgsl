@@ -57,7 +57,8 @@ const PATH_FAR: f32 = 1e30;
 @group(1) @binding(4) var<storage, read_write> path_accum: array<vec4<f32>>;
 // The textures, one array (`bvhtrace_path::textures`): word 0 the texture coordinates'
 // offset, word 1 the sRGB table's, word 2 the headers' (4 words a texture: texels' offset,
-// width, height, wraps), then those and each textured material's table.
+// width, height, wraps), word 3 the environment map's (path_environment.wgsl; 0 for a
+// constant sky), then those and each textured material's table.
 @group(1) @binding(6) var<storage, read> path_data: array<u32>;
 // Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite,
 // rays traced (closest and any hit; wraps past 2^32).
@@ -253,6 +254,17 @@ fn path_step(st: ptr<function, PathState>, r: ptr<function, PathRng>, lane: u32)
         return false;
     }
     if (hit.prim >= BVH_INVALID_RAY) {
+        let map = path_data[3];
+        if (has_env && map != 0u) {
+            let l = path_env_lookup(map, ray.dir);
+            var w = 1.0;
+            if (depth > 0u) {
+                w = path_mis((*st).last_pdf, l.pdf);
+            }
+            let le = path_mul(l.radiance, p.env);
+            (*st).radiance = path_add((*st).radiance, path_scale(path_mul(throughput, le), w));
+            return false;
+        }
         var w = 1.0;
         if (depth > 0u && has_env) {
             w = path_mis((*st).last_pdf, max(path_dot((*st).last_n, ray.dir), 0.0) / PATH_PI);
@@ -313,8 +325,22 @@ fn path_direct(st: ptr<function, PathState>, m: PathMaterial, s: BvhSurface, wo:
             radiance = path_add(radiance, path_mul(throughput, path_mul(e.value, p.sun)));
         }
     }
-    // The environment, cosine-weighted about the normal.
-    if (!path_is_black(p.env)) {
+    // The environment map, by its luminance.
+    let map = path_data[3];
+    if (!path_is_black(p.env) && map != 0u) {
+        let u0 = path_next(r);
+        let u1 = path_next(r);
+        let u2 = path_next(r);
+        let l = path_env_sample(map, u0, u1, u2);
+        let e = path_eval(m, n, wo, l.dir);
+        if (e.pdf > 0.0 && l.pdf > 0.0 && !path_blocked(BvhRay(s.origin, 0.0, l.dir, PATH_FAR), lane)) {
+            let w = path_mis(l.pdf, e.pdf) / l.pdf;
+            let le = path_mul(l.radiance, p.env);
+            radiance = path_add(radiance, path_scale(path_mul(throughput, path_mul(e.value, le)), w));
+        }
+    }
+    // A constant environment, cosine-weighted about the normal.
+    if (!path_is_black(p.env) && map == 0u) {
         let wi = path_cosine(path_frame(n), r);
         let env_pdf = path_dot(n, wi) / PATH_PI;
         let e = path_eval(m, n, wo, wi);

@@ -101,6 +101,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let args = &args;
     let p = &args.path;
     let lighting = p.lighting()?;
+    let environment = p.environment()?;
     let hdr = p.hdr.as_deref().map(AtomicFile::create).transpose()?;
     let walk = args.walk()?;
     let opts = backend::options(args.backend, args.adapter.as_deref(), &Vec::from_iter(walk));
@@ -117,7 +118,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         SceneBvh::Flat { tris, .. } => tris.clone(),
         SceneBvh::Instanced(_) => built.scene.flattened_triangles()?,
     };
-    let shading = PathScene::new(&built.scene, &tris)?;
+    let mut shading = PathScene::new(&built.scene, &tris)?;
+    shading.set_environment(environment);
     let cam = camera_for(&args.view, &built.scene)?;
     let (w, h) = args.view.size;
     let params = PathParams::new(&cam, (w, h), &lighting, p.max_depth, &shading);

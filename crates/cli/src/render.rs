@@ -222,9 +222,14 @@ pub struct PathArgs {
     /// The sun's irradiance on a surface facing it (`--shade path`).
     #[arg(long, default_value_t = 3.0)]
     pub sun_power: f32,
-    /// The sky's constant radiance, R,G,B (`--shade path`; 0,0,0 for none).
-    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, default_value = "0.5,0.5,0.5", allow_hyphen_values = true)]
-    pub sky: Vec3,
+    /// The sky's constant radiance, R,G,B (`--shade path`; 0,0,0 for none; default
+    /// 0.5,0.5,0.5), or with --environment the scale of the map's radiance (default 1,1,1).
+    #[arg(long, value_parser = bvhtrace_shade::args::parse_vec3, allow_hyphen_values = true)]
+    pub sky: Option<Vec3>,
+    /// An equirectangular Radiance HDR image (`.hdr`, +Y up, its centre column toward -Z)
+    /// the sky's radiance comes from, sampled by its luminance (`--shade path`).
+    #[arg(long, value_name = "FILE.hdr")]
+    pub environment: Option<std::path::PathBuf>,
     /// Scale of the radiance before tone mapping (`--shade path`).
     #[arg(long, default_value_t = 1.0)]
     pub exposure: f32,
@@ -260,11 +265,12 @@ impl From<KernelArg> for bvhtrace_path::PathKernel {
 impl PathArgs {
     pub(crate) fn lighting(&self) -> Result<bvhtrace_path::Lighting> {
         let bad = |v: Vec3| !v.is_finite() || v.min_element() < 0.0;
-        if bad(self.sky) {
-            bail!(
-                "--sky must be three finite numbers of at least 0, got {}",
-                self.sky
-            );
+        let sky = (self.sky).unwrap_or(match self.environment {
+            Some(_) => Vec3::ONE,
+            None => Vec3::splat(0.5),
+        });
+        if bad(sky) {
+            bail!("--sky must be three finite numbers of at least 0, got {sky}");
         }
         if !(self.sun_power.is_finite() && self.sun_power >= 0.0) {
             bail!(
@@ -289,8 +295,17 @@ impl PathArgs {
             } else {
                 Vec3::ZERO
             },
-            env: self.sky,
+            env: sky,
         })
+    }
+
+    /// The map of `--environment`, loaded and resampled; `None` without the flag.
+    pub(crate) fn environment(&self) -> Result<Option<bvhtrace_path::Environment>> {
+        use bvhtrace_path::environment::{DEFAULT_SIZE, Environment};
+        let Some(path) = &self.environment else {
+            return Ok(None);
+        };
+        Ok(Some(Environment::load(path, DEFAULT_SIZE)?))
     }
 }
 

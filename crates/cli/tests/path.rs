@@ -9,38 +9,41 @@ use common::*;
 #[test]
 fn path_tracing_gives_the_same_image_on_the_device_and_the_cpu_twin() {
     let foliage = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
-    // Alpha masks in one mesh; instanced spheres in two levels.
-    for scene in [foliage, "builtin:spheres"] {
-        same_image_on_device_and_twin(scene);
+    let sky = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/sky.hdr");
+    // Alpha masks in one mesh; instanced spheres in two levels; the sky from a map.
+    for (scene, flags) in [
+        (foliage, &[][..]),
+        ("builtin:spheres", &[]),
+        (foliage, &["--environment", sky]),
+    ] {
+        same_image_on_device_and_twin(scene, flags);
     }
 }
 
-fn same_image_on_device_and_twin(scene: &str) {
+fn same_image_on_device_and_twin(scene: &str, flags: &[&str]) {
     let dir = scratch("path");
     let mut runs = Vec::new();
     for backend in ["auto", "cpu"] {
         let png = dir.join(format!("{backend}.png"));
         let hdr = dir.join(format!("{backend}.pfm"));
-        let out = render(
-            scene,
-            &png,
-            &[
-                "--size",
-                "96x72",
-                "--shade",
-                "path",
-                "--spp",
-                "3",
-                "--sun",
-                "0.3,1,0.5",
-                "--backend",
-                backend,
-                "--traversal",
-                "stackless",
-                "--hdr",
-                hdr.to_str().expect("path"),
-            ],
-        );
+        let mut args = flags.to_vec();
+        args.extend_from_slice(&[
+            "--size",
+            "96x72",
+            "--shade",
+            "path",
+            "--spp",
+            "3",
+            "--sun",
+            "0.3,1,0.5",
+            "--backend",
+            backend,
+            "--traversal",
+            "stackless",
+            "--hdr",
+            hdr.to_str().expect("path"),
+        ]);
+        let out = render(scene, &png, &args);
         assert!(out.status.success(), "path on {backend}");
         let stats = json(&out);
         if backend == "auto" && stats["backend"] != "wgpu" {
@@ -73,6 +76,7 @@ fn same_image_on_device_and_twin(scene: &str) {
 
 #[test]
 fn path_flags_out_of_range_are_clear_errors_that_write_nothing() {
+    let foliage = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
     let dir = scratch("path-flags");
     let png = dir.join("o.png");
     for (flags, says) in [
@@ -82,6 +86,8 @@ fn path_flags_out_of_range_are_clear_errors_that_write_nothing() {
         (&["--sun", "0,0,0"][..], "--sun"),
         (&["--exposure", "nan"][..], "--exposure"),
         (&["--backend", "vulkan"][..], "--shade path runs on wgpu"),
+        (&["--environment", "no-such-sky.hdr"][..], "no-such-sky.hdr"),
+        (&["--environment", foliage][..], "foliage.gltf"),
     ] {
         let mut args = vec!["--shade", "path", "--size", "8x8"];
         args.extend_from_slice(flags);

@@ -118,6 +118,9 @@ wgsl_files! {
     /// The path tracer's kernel: camera rays, next-event estimation, bounces, the
     /// progressive sum (bvhtrace-path).
     PATH_TRACE = "path_trace.wgsl",
+    /// The path tracer's environment map: octahedral, looked up and sampled by
+    /// luminance without a transcendental function (bvhtrace-path).
+    PATH_ENVIRONMENT = "path_environment.wgsl",
     /// The path tracer as waves of one vertex per live path (bvhtrace-path's
     /// `PathKernel::Wavefront`), composed after its kernel.
     PATH_WAVEFRONT = "path_wavefront.wgsl",

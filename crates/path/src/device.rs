@@ -4,7 +4,7 @@
 //! `wavefront.rs`).
 
 use bvhtrace_core::{FlatBvh, Traversal};
-use bvhtrace_engine::shaders::{PATH_DISPLAY, PATH_SAMPLING, PATH_TRACE};
+use bvhtrace_engine::shaders::{PATH_DISPLAY, PATH_ENVIRONMENT, PATH_SAMPLING, PATH_TRACE};
 #[cfg(not(target_arch = "wasm32"))]
 use bvhtrace_gpu::RayQueryBvh;
 use bvhtrace_gpu::wgpu::util::DeviceExt;
@@ -75,7 +75,10 @@ struct Display {
 /// The kernel's WGSL as composed after a traversal library (`bvhtrace_engine::wgsl_library`):
 /// its sampling functions, then the kernel (entry point `path_main`, group 1 its own).
 pub fn kernel_source() -> String {
-    format!("{}\n{}", PATH_SAMPLING.1, PATH_TRACE.1)
+    format!(
+        "{}\n{}\n{}",
+        PATH_SAMPLING.1, PATH_ENVIRONMENT.1, PATH_TRACE.1
+    )
 }
 
 impl GpuPathTracer {
@@ -205,6 +208,9 @@ impl GpuPathTracer {
         } else {
             &scene.materials
         };
+        // The header's offsets at least (none for a scene made by hand).
+        let mut words = scene.textures.words.clone();
+        words.resize(words.len().max(crate::textures::HEADER_WORDS), 0);
         let scene_buffers = [
             init(
                 "path materials",
@@ -213,11 +219,7 @@ impl GpuPathTracer {
             ),
             init("path prims", bytemuck::cast_slice(prims), U::STORAGE),
             init("path lights", bytemuck::cast_slice(lights), U::STORAGE),
-            init(
-                "path textures",
-                bytemuck::cast_slice(&scene.textures.words),
-                U::STORAGE,
-            ),
+            init("path textures", bytemuck::cast_slice(&words), U::STORAGE),
         ];
         let params = PathParams::default();
         let params_buffer = init(

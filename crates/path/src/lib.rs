@@ -44,6 +44,7 @@
 #![warn(missing_docs)]
 
 mod device;
+pub mod environment;
 mod material;
 pub mod sampling;
 mod scene;
@@ -52,6 +53,7 @@ mod twin;
 pub mod wavefront;
 
 pub use device::{GpuPathTracer, PathWalk, kernel_source};
+pub use environment::Environment;
 pub use material::{NO_TEXTURE, PathMaterial};
 pub use scene::{Lighting, MAX_EMISSION, NO_LIGHT, PathLight, PathParams, PathScene};
 pub use twin::{CpuPathTracer, mean_luminance};

@@ -9,7 +9,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use crate::PathError;
+use crate::environment::Environment;
 use crate::material::PathMaterial;
+use crate::textures::HEADER_WORDS;
 
 /// An emissive triangle (WGSL `PathLight`, 64 bytes): `v0`, `v0 + e1`, `v0 + e2`.
 #[repr(C)]
@@ -65,7 +67,8 @@ pub struct PathParams {
     pub sun: [f32; 3],
     /// Emissive triangles ([`PathScene::lights`]).
     pub light_count: u32,
-    /// The environment's radiance, the same from every direction.
+    /// The environment's radiance, the same from every direction; with an environment
+    /// map, the scale of its radiance.
     pub env: [f32; 3],
     /// This frame's sample index (0 starts the sum over).
     pub sample: u32,
@@ -86,7 +89,8 @@ pub struct Lighting {
     pub sun_dir: Vec3,
     /// The sun's irradiance on a surface facing it (linear RGB; zero for none).
     pub sun: Vec3,
-    /// The environment's constant radiance (linear RGB; zero for none).
+    /// The environment's constant radiance (linear RGB; zero for none); with an
+    /// environment map ([`PathScene::set_environment`]), the scale of its radiance.
     pub env: Vec3,
 }
 
@@ -111,11 +115,31 @@ pub struct PathScene {
     pub prims: Vec<[u32; 2]>,
     /// The emissive triangles of non-zero area, chances by power.
     pub lights: Vec<PathLight>,
-    /// The material textures and what reads them.
+    /// The material textures and what reads them, and the environment map's words.
     pub textures: crate::textures::TextureData,
+    /// The environment map the sky's radiance comes from ([`Lighting::env`] scales it);
+    /// `None` for a constant sky.
+    pub environment: Option<Environment>,
 }
 
 impl PathScene {
+    /// Lights the scene by `environment` (a map's radiance times [`Lighting::env`]) in
+    /// place of a constant sky; `None`, or a map that is black everywhere, for the
+    /// constant sky. Its words follow the textures' in [`PathScene::textures`].
+    pub fn set_environment(&mut self, environment: Option<Environment>) {
+        let words = &mut self.textures.words;
+        words.resize(words.len().max(HEADER_WORDS), 0);
+        if words[3] != 0 {
+            words.truncate(words[3] as usize);
+            words[3] = 0;
+        }
+        self.environment = environment.filter(|e| !e.is_black());
+        if let Some(e) = &self.environment {
+            words[3] = words.len() as u32;
+            words.extend(e.words());
+        }
+    }
+
     /// The shading data of `scene` traced as one mesh whose primitive ids number
     /// `triangles` (`Scene::flattened_triangles`: instance after instance).
     pub fn new(scene: &Scene, triangles: &[Triangle]) -> Result<PathScene, PathError> {
@@ -153,6 +177,7 @@ impl PathScene {
             prims,
             lights,
             textures,
+            environment: None,
         })
     }
 }

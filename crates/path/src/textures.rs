@@ -21,6 +21,11 @@ use crate::sampling::{MIN_ROUGHNESS, luminance};
 /// words each.
 const TABLE_WORDS: usize = 2048;
 
+/// Words before the data: the offsets of the texture coordinates, the sRGB table, the
+/// textures' headers and the environment map ([`crate::PathScene::set_environment`]), 0
+/// for none.
+pub const HEADER_WORDS: usize = 4;
+
 /// The texture data (`path_data`): see the module's documentation.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TextureData {
@@ -49,8 +54,8 @@ fn srgb_to_linear(c: u32) -> f32 {
 impl TextureData {
     /// The data of `scene`, whose `triangles` primitives number its flattened triangles
     /// (the mesh and attributes of `Scene::flatten_with_attributes`), for `materials`
-    /// (their texture slots and tables filled in here). Empty words but the three offsets
-    /// when no material has a texture.
+    /// (their texture slots and tables filled in here). Empty words but the
+    /// [`HEADER_WORDS`] offsets when no material has a texture.
     pub fn new(
         scene: &Scene,
         (mesh, attributes): (&TriangleMesh, &FlatAttributes),
@@ -62,7 +67,7 @@ impl TextureData {
                 || m.metallic_roughness_texture.is_some()
                 || m.emissive_texture.is_some()
         };
-        let mut words = vec![0u32; 3];
+        let mut words = vec![0u32; HEADER_WORDS];
         if !scene.materials.iter().any(textured) {
             return TextureData { words };
         }

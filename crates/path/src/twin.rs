@@ -223,6 +223,12 @@ impl Walker<'_> {
                 break;
             }
             if hit.prim >= INVALID_RAY {
+                if let (true, Some(map)) = (has_env, &scene.environment) {
+                    let (l, pdf) = map.lookup(dir);
+                    let w = if depth > 0 { mis(last_pdf, pdf) } else { 1.0 };
+                    radiance += scale(throughput * (l * env), w);
+                    break;
+                }
                 let mut w = 1.0;
                 if depth > 0 && has_env {
                     w = mis(last_pdf, dot(last_n, dir).max(0.0) / PI);
@@ -261,7 +267,19 @@ impl Walker<'_> {
                     radiance += throughput * (e.value * sun);
                 }
             }
-            if has_env {
+            if let (true, Some(map)) = (has_env, &scene.environment) {
+                let (u0, u1, u2) = (r.uniform(), r.uniform(), r.uniform());
+                let (wi, l, pdf) = map.sample(u0, u1, u2);
+                let e = eval(lobes, n, wo, wi);
+                if e.pdf > 0.0
+                    && pdf > 0.0
+                    && !self.blocked(&Ray::with_interval(s.origin, wi, 0.0, FAR))
+                {
+                    let w = mis(pdf, e.pdf) / pdf;
+                    radiance += scale(throughput * (e.value * (l * env)), w);
+                }
+            }
+            if has_env && scene.environment.is_none() {
                 let wi = Frame::new(n).cosine(&mut r);
                 let env_pdf = dot(n, wi) / PI;
                 let e = eval(lobes, n, wo, wi);

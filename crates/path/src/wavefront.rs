@@ -4,7 +4,7 @@
 //! [`MAX_WAVE_PATHS`] pixels, bound that buffer. The sums equal the single kernel's bit
 //! for bit.
 
-use bvhtrace_engine::shaders::{PATH_SAMPLING, PATH_TRACE, PATH_WAVE_PREPARE, PATH_WAVEFRONT};
+use bvhtrace_engine::shaders::{PATH_WAVE_PREPARE, PATH_WAVEFRONT};
 use bvhtrace_gpu::{BvhLibrary, GpuContext, wgpu};
 use bytemuck::{Pod, Zeroable};
 
@@ -71,10 +71,7 @@ pub struct WaveParams {
 
 /// The wavefront kernel's WGSL as composed after a traversal library.
 pub fn wavefront_source() -> String {
-    format!(
-        "{}\n{}\n{}",
-        PATH_SAMPLING.1, PATH_TRACE.1, PATH_WAVEFRONT.1
-    )
+    format!("{}\n{}", crate::kernel_source(), PATH_WAVEFRONT.1)
 }
 
 /// The wavefront's pipelines and the buffers its waves share.

@@ -7,8 +7,8 @@ mod support;
 use bvhtrace_core::{BuildOptions, Traversal};
 use bvhtrace_gpu::{AdapterChoice, GpuContext, GpuError};
 use bvhtrace_path::{
-    Accumulation, CpuPathTracer, GpuPathTracer, Lighting, PathKernel, PathParams, PathScene,
-    PathStats, PathWalk,
+    Accumulation, CpuPathTracer, Environment, GpuPathTracer, Lighting, PathKernel, PathParams,
+    PathScene, PathStats, PathWalk,
 };
 use glam::Vec3;
 
@@ -17,6 +17,8 @@ struct Case {
     size: (u32, u32),
     samples: u32,
     lighting: Lighting,
+    /// An equirectangular `.hdr` the sky comes from (`None`: the constant sky).
+    environment: Option<&'static str>,
 }
 
 /// The scene of `case`, flattened with its masks, its shading data and parameters.
@@ -40,7 +42,12 @@ fn setup(
     if wide {
         bvh.build_wide();
     }
-    let shading = PathScene::new(&scene, &tris).expect("shading");
+    let mut shading = PathScene::new(&scene, &tris).expect("shading");
+    if let Some(path) = case.environment {
+        let map = Environment::load(std::path::Path::new(path), 64).expect("the sky");
+        shading.set_environment(Some(map));
+        assert!(shading.environment.is_some(), "{path}: a black map");
+    }
     let camera = scene.camera_or_frame(case.size.0 as f32 / case.size.1 as f32);
     let params = PathParams::new(&camera, case.size, &case.lighting, 6, &shading);
     (tris, bvh, shading, params)
@@ -128,6 +135,7 @@ fn cases() -> Vec<Case> {
             size: (40, 30),
             samples: 3,
             lighting: Lighting::default(),
+            environment: None,
         },
         // Sun and sky over alpha-masked leaves: shadow rays cut by the masks.
         Case {
@@ -139,6 +147,19 @@ fn cases() -> Vec<Case> {
                 sun: Vec3::splat(3.0),
                 env: Vec3::new(0.3, 0.4, 0.6),
             },
+            environment: None,
+        },
+        // The sky from an environment map (its sun among it), sampled by luminance.
+        Case {
+            spec: "../../scenes/foliage.gltf",
+            size: (40, 30),
+            samples: 2,
+            lighting: Lighting {
+                sun: Vec3::ZERO,
+                env: Vec3::ONE,
+                ..Lighting::default()
+            },
+            environment: Some("../../scenes/sky.hdr"),
         },
     ]
 }
