@@ -61,8 +61,9 @@ const PATH_FAR: f32 = 1e30;
 // constant sky), then those and each textured material's table.
 @group(1) @binding(6) var<storage, read> path_data: array<u32>;
 // Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite,
-// rays traced (closest and any hit; wraps past 2^32).
-@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 4>;
+// rays traced (closest and any hit; wraps past 2^32), one unused; then the wavefront's
+// control words (path_wavefront.wgsl), here so that the waves bind no storage more.
+@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 8>;
 
 // The invocation's rays, added to `path_stats[2]` once at its end.
 var<private> path_rays: u32;

@@ -20,13 +20,52 @@ struct PathWave {
 }
 
 @group(2) @binding(0) var<uniform> path_wave: PathWave;
-// The run's paths, by their pixel's place in the run.
-@group(2) @binding(1) var<storage, read_write> path_states: array<PathState>;
-// Two queues of `path_wave.capacity` path indices: the wave's, and the next one's.
-@group(2) @binding(2) var<storage, read_write> path_queues: array<u32>;
-// The paths in the wave's queue, those queued for the next, and which half of
-// `path_queues` is the wave's.
-@group(2) @binding(3) var<storage, read_write> path_wave_ctl: array<atomic<u32>, 4>;
+// The run's paths, 20 words each (a `PathState`) by their pixel's place in the run, then
+// two queues of `path_wave.capacity` path indices: the wave's and the next one's. One
+// array, and the control words in `path_stats`, so that the waves bind one storage buffer
+// more than the single kernel (WebGPU allows 8 to 10 a stage).
+@group(2) @binding(1) var<storage, read_write> path_paths: array<u32>;
+// `path_stats` words: the paths in the wave's queue, those queued for the next, and
+// which queue is the wave's.
+const PATH_WAVE_COUNT: u32 = 4u;
+const PATH_WAVE_NEXT: u32 = 5u;
+const PATH_WAVE_HALF: u32 = 6u;
+
+fn path_paths_f32(i: u32) -> f32 {
+    return bitcast<f32>(path_paths[i]);
+}
+
+fn path_paths_vec3(i: u32) -> vec3<f32> {
+    return vec3<f32>(path_paths_f32(i), path_paths_f32(i + 1u), path_paths_f32(i + 2u));
+}
+
+fn path_paths_set_vec3(i: u32, v: vec3<f32>, w: u32) {
+    path_paths[i] = bitcast<u32>(v.x);
+    path_paths[i + 1u] = bitcast<u32>(v.y);
+    path_paths[i + 2u] = bitcast<u32>(v.z);
+    path_paths[i + 3u] = w;
+}
+
+// Path `j`, in the order of `PathState`'s members.
+fn path_wave_load(j: u32) -> PathState {
+    let b = 20u * j;
+    return PathState(
+        path_paths_vec3(b), path_paths[b + 3u],
+        path_paths_vec3(b + 4u), path_paths_f32(b + 7u),
+        path_paths_vec3(b + 8u), path_paths[b + 11u],
+        path_paths_vec3(b + 12u), path_paths[b + 15u],
+        path_paths_vec3(b + 16u), 0u,
+    );
+}
+
+fn path_wave_store(j: u32, st: PathState) {
+    let b = 20u * j;
+    path_paths_set_vec3(b, st.origin, st.depth);
+    path_paths_set_vec3(b + 4u, st.dir, bitcast<u32>(st.last_pdf));
+    path_paths_set_vec3(b + 8u, st.throughput, st.key);
+    path_paths_set_vec3(b + 12u, st.last_n, st.count);
+    path_paths_set_vec3(b + 16u, st.radiance, 0u);
+}
 
 // Path `j` of the run one vertex further: kept and queued if it goes on, else its
 // radiance added to its pixel's sum.
@@ -36,9 +75,9 @@ fn path_wave_vertex(j: u32, path: PathState, half: u32, lane: u32) {
     let more = path_vertex(&st, lane);
     atomicAdd(&path_stats[2], path_rays);
     if (more) {
-        path_states[j] = st;
-        let slot = atomicAdd(&path_wave_ctl[1], 1u);
-        path_queues[(half ^ 1u) * path_wave.capacity + slot] = j;
+        path_wave_store(j, st);
+        let slot = atomicAdd(&path_stats[PATH_WAVE_NEXT], 1u);
+        path_paths[(20u + (half ^ 1u)) * path_wave.capacity + slot] = j;
     } else {
         path_accumulate(path_wave.first_row * path_params.width + j, st.radiance);
     }
@@ -68,10 +107,10 @@ fn path_wave_extend(
     @builtin(global_invocation_id) id: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let half = atomicLoad(&path_wave_ctl[2]);
-    if (id.x >= atomicLoad(&path_wave_ctl[0])) {
+    let half = atomicLoad(&path_stats[PATH_WAVE_HALF]);
+    if (id.x >= atomicLoad(&path_stats[PATH_WAVE_COUNT])) {
         return;
     }
-    let j = path_queues[half * path_wave.capacity + id.x];
-    path_wave_vertex(j, path_states[j], half, lane);
+    let j = path_paths[(20u + half) * path_wave.capacity + id.x];
+    path_wave_vertex(j, path_wave_load(j), half, lane);
 }

@@ -12,8 +12,9 @@
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
-#    levels, playing, and for an alpha-tested one; then that a bad flag and a broken file
-#    show their errors on the page.
+#    levels, playing, for an alpha-tested one and for the path mode (its sums against the
+#    path tracer's CPU twin); then that a bad flag and a broken file show their errors on
+#    the page.
 # The library check also opens the example page (index.html) and checks the hits it prints,
 # with the BVH built in WebAssembly and on the device. Exits non-zero on any difference or
 # page error. Flags go to the library check (`--size WxH`, `--device-builders LIST|none`).
@@ -31,9 +32,10 @@ cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/d
 # on the page's WebGPU as the native render cuts them.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --scene scenes/foliage.gltf --out web/dist/foliage
-# The path mode's page (`browser_viewer --path`, its sums against the CPU twin's) is not
-# run here: its screenshot's readback takes minutes on lavapipe and misses the page's
-# wait at small windows (docs/benchmarks.md, "The path tracer").
+# The path mode: the scene path traced on the page's WebGPU (the wavefront kernel), its
+# sums read back once with the screenshot against the CPU twin's, bit for bit.
+cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
+  --path --out web/dist/path
 # Errors reach the page (and the test), never a blank canvas: a bad flag, a broken file.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --flags "--shade sepia" --expect-error "invalid value 'sepia'"

@@ -56,6 +56,9 @@ pub struct GpuPathTracer {
     shown: Option<u32>,
 }
 
+/// The counts of `path_stats` and the wavefront's control words after them.
+pub(crate) const STATS_BYTES: usize = 32;
+
 /// The kernel that follows the paths.
 enum Kernel {
     Mega(wgpu::ComputePipeline),
@@ -172,17 +175,6 @@ impl GpuPathTracer {
         };
         let (bvh_group, bvh_layout) = (bvh_group.group().clone(), bvh_group.layout().clone());
         let layout = group_layout(ctx.device());
-        // The device's trip budget: a ray that spends it ends its path (counted), never hangs.
-        let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
-        let kernel = match kernel {
-            PathKernel::Megakernel => {
-                Kernel::Mega(pipeline(ctx, &library, [&bvh_layout, &layout], &constants).await?)
-            }
-            PathKernel::Wavefront => {
-                let w = Wavefront::new(ctx, &library, [&bvh_layout, &layout], &constants);
-                Kernel::Waves(Box::new(w.await?))
-            }
-        };
         let init = |label, contents: &[u8], usage| {
             ctx.device()
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -229,9 +221,24 @@ impl GpuPathTracer {
         );
         let stats_buffer = init(
             "path stats",
-            &[0; 16],
+            &[0; STATS_BYTES],
             U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
+        // The device's trip budget: a ray that spends it ends its path (counted), never hangs.
+        let constants = [("BVH_TRIP_LIMIT", f64::from(ctx.tuning().trip_limit))];
+        let layouts = [&bvh_layout, &layout];
+        let waves = match kernel {
+            PathKernel::Megakernel => None,
+            // Where the device binds too few storage buffers a stage for the waves (one
+            // more than the single kernel), the single kernel.
+            PathKernel::Wavefront => {
+                (Wavefront::new(ctx, &library, layouts, (&constants, &stats_buffer)).await).ok()
+            }
+        };
+        let kernel = match waves {
+            Some(w) => Kernel::Waves(Box::new(w)),
+            None => Kernel::Mega(pipeline(ctx, &library, layouts, &constants).await?),
+        };
         Ok(GpuPathTracer {
             ctx: ctx.clone(),
             _upload: upload,
@@ -302,7 +309,7 @@ impl GpuPathTracer {
         };
         self.ctx
             .queue()
-            .write_buffer(&self.stats_buffer, 0, &[0; 16]);
+            .write_buffer(&self.stats_buffer, 0, &[0; STATS_BYTES]);
     }
 
     /// Samples per pixel summed so far.
@@ -615,22 +622,29 @@ async fn pipeline(
 ) -> Result<wgpu::ComputePipeline, PathError> {
     let module = (ctx.shader_module_async(library, &kernel_source(), "path_trace.wgsl")).await?;
     let device = ctx.device();
+    // A device that binds fewer storage buffers a stage than the kernel reads refuses it.
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("path tracer"),
         bind_group_layouts: &[Some(layouts[0]), Some(layouts[1])],
         immediate_size: 0,
     });
-    Ok(
-        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("path tracer"),
-            layout: Some(&pipeline_layout),
-            module: &module,
-            entry_point: Some("path_main"),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants,
-                zero_initialize_workgroup_memory: false,
-            },
-            cache: None,
-        }),
-    )
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("path tracer"),
+        layout: Some(&pipeline_layout),
+        module: &module,
+        entry_point: Some("path_main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    });
+    match scope.pop().await {
+        Some(e) => Err(PathError::Gpu(GpuError::Device {
+            during: "making the path tracer's kernel",
+            message: e.to_string(),
+        })),
+        None => Ok(pipeline),
+    }
 }

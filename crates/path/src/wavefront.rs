@@ -5,7 +5,7 @@
 //! for bit.
 
 use bvhtrace_engine::shaders::{PATH_WAVE_PREPARE, PATH_WAVEFRONT};
-use bvhtrace_gpu::{BvhLibrary, GpuContext, wgpu};
+use bvhtrace_gpu::{BvhLibrary, GpuContext, GpuError, wgpu};
 use bytemuck::{Pod, Zeroable};
 
 use crate::PathError;
@@ -20,7 +20,9 @@ pub enum PathKernel {
     /// Waves of one vertex per live path, the paths in a device buffer between waves and
     /// the live ones queued, so that no invocation idles beside a longer path. The
     /// default: 1.1-1.3x the single kernel's samples per second on lavapipe
-    /// (docs/design.md).
+    /// (docs/design.md). It binds one storage buffer more than the single kernel: a
+    /// device that binds too few a stage gets the single kernel
+    /// ([`crate::GpuPathTracer::kernel`] says which).
     #[default]
     Wavefront,
 }
@@ -82,7 +84,8 @@ pub(crate) struct Wavefront {
     prepare_group: wgpu::BindGroup,
     layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
-    ctl: wgpu::Buffer,
+    /// `path_stats`, its words 4 to 7 the waves' control.
+    stats: wgpu::Buffer,
     args: wgpu::Buffer,
     /// The paths and queues for runs of `rows` rows of `capacity` pixels, and their group.
     paths: Option<Paths>,
@@ -147,17 +150,20 @@ fn bind(
 
 impl Wavefront {
     /// Compiles the waves' kernels after `library`, with the BVH's group 0 and the path
-    /// tracer's group 1 laid out as `layouts`.
+    /// tracer's group 1 laid out as `layouts`, its counts in `stats` (`path_stats`, whose
+    /// words 4 to 7 the waves' control). An error where the device refuses them (more
+    /// storage buffers than it binds a stage).
     pub(crate) async fn new(
         ctx: &GpuContext,
         library: &BvhLibrary,
         layouts: [&wgpu::BindGroupLayout; 2],
-        constants: &[(&str, f64)],
+        (constants, stats): (&[(&str, f64)], &wgpu::Buffer),
     ) -> Result<Wavefront, PathError> {
         let module =
             (ctx.shader_module_async(library, &wavefront_source(), "path_wavefront.wgsl")).await?;
         let device = ctx.device();
-        let layout = storage_layout(device, "path waves", true, 4);
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let layout = storage_layout(device, "path waves", true, 2);
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("path waves"),
             bind_group_layouts: &[Some(layouts[0]), Some(layouts[1]), Some(&layout)],
@@ -179,7 +185,6 @@ impl Wavefront {
         let (start, extend) = (make("path_wave_start"), make("path_wave_extend"));
         use wgpu::BufferUsages as U;
         let uniform = buffer(ctx, "path wave", 16, U::UNIFORM | U::COPY_DST);
-        let ctl = buffer(ctx, "path wave control", 16, U::STORAGE | U::COPY_DST);
         let args = buffer(
             ctx,
             "path wave dispatch",
@@ -205,7 +210,13 @@ impl Wavefront {
             compilation_options: Default::default(),
             cache: None,
         });
-        let prepare_group = bind(device, &prepare_layout, &[&ctl, &args]);
+        let prepare_group = bind(device, &prepare_layout, &[stats, &args]);
+        if let Some(e) = scope.pop().await {
+            return Err(PathError::Gpu(GpuError::Device {
+                during: "making the path tracer's waves",
+                message: e.to_string(),
+            }));
+        }
         Ok(Wavefront {
             start,
             extend,
@@ -213,7 +224,7 @@ impl Wavefront {
             prepare_group,
             layout,
             uniform,
-            ctl,
+            stats: stats.clone(),
             args,
             paths: None,
             max_paths: MAX_WAVE_PATHS,
@@ -224,7 +235,12 @@ impl Wavefront {
     /// rows as [`Wavefront::max_paths`] and the device's bindings allow (one row at least).
     pub(crate) fn resize(&mut self, ctx: &GpuContext, (width, height): (u32, u32)) {
         let state = std::mem::size_of::<PathState>() as u64;
-        let limit = ctx.device().limits().max_storage_buffer_binding_size / state;
+        let limits = ctx.device().limits();
+        let bound = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        // A path's state and its place in each of the two queues.
+        let limit = bound / (state + 8);
         let most = limit.min(u64::from(self.max_paths));
         let width = u64::from(width.max(1));
         let rows = (most / width).clamp(1, u64::from(height.max(1)));
@@ -237,13 +253,10 @@ impl Wavefront {
             return;
         }
         use wgpu::BufferUsages as U;
-        let states = buffer(ctx, "path states", u64::from(capacity) * state, U::STORAGE);
-        let queues = buffer(ctx, "path queues", u64::from(capacity) * 8, U::STORAGE);
-        let group = bind(
-            ctx.device(),
-            &self.layout,
-            &[&self.uniform, &states, &queues, &self.ctl],
-        );
+        // The states, then two queues of a word a path.
+        let bytes = u64::from(capacity) * (state + 8);
+        let paths = buffer(ctx, "path states and queues", bytes, U::STORAGE);
+        let group = bind(ctx.device(), &self.layout, &[&self.uniform, &paths]);
         self.paths = Some(Paths {
             capacity,
             rows: rows as u32,
@@ -273,7 +286,7 @@ impl Wavefront {
             };
             let queue = ctx.queue();
             queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&wave));
-            queue.write_buffer(&self.ctl, 0, &[0; 16]);
+            queue.write_buffer(&self.stats, 16, &[0; 16]);
             let mut encoder = ctx.device().create_command_encoder(&Default::default());
             {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
