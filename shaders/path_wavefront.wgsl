@@ -20,51 +20,60 @@ struct PathWave {
 }
 
 @group(2) @binding(0) var<uniform> path_wave: PathWave;
-// The run's paths, 20 words each (a `PathState`) by their pixel's place in the run, then
-// two queues of `path_wave.capacity` path indices: the wave's and the next one's. One
-// array, and the control words in `path_stats`, so that the waves bind one storage buffer
-// more than the single kernel (WebGPU allows 8 to 10 a stage).
-@group(2) @binding(1) var<storage, read_write> path_paths: array<u32>;
+// The run's paths, five vec4 words each (a `PathState`) by their pixel's place in the
+// run, then two queues of `path_wave.capacity` path indices (four to a vec4): the wave's
+// and the next one's. One array, and the control words in `path_stats`, so that the waves
+// bind one storage buffer more than the single kernel (WebGPU allows 8 to 10 a stage).
+@group(2) @binding(1) var<storage, read_write> path_paths: array<vec4<u32>>;
 // `path_stats` words: the paths in the wave's queue, those queued for the next, and
 // which queue is the wave's.
 const PATH_WAVE_COUNT: u32 = 4u;
 const PATH_WAVE_NEXT: u32 = 5u;
 const PATH_WAVE_HALF: u32 = 6u;
 
-fn path_paths_f32(i: u32) -> f32 {
-    return bitcast<f32>(path_paths[i]);
+fn path_paths_vec3(v: vec4<u32>) -> vec3<f32> {
+    return vec3<f32>(bitcast<f32>(v.x), bitcast<f32>(v.y), bitcast<f32>(v.z));
 }
 
-fn path_paths_vec3(i: u32) -> vec3<f32> {
-    return vec3<f32>(path_paths_f32(i), path_paths_f32(i + 1u), path_paths_f32(i + 2u));
+fn path_paths_word(v: vec3<f32>, w: u32) -> vec4<u32> {
+    return vec4<u32>(bitcast<u32>(v.x), bitcast<u32>(v.y), bitcast<u32>(v.z), w);
 }
 
-fn path_paths_set_vec3(i: u32, v: vec3<f32>, w: u32) {
-    path_paths[i] = bitcast<u32>(v.x);
-    path_paths[i + 1u] = bitcast<u32>(v.y);
-    path_paths[i + 2u] = bitcast<u32>(v.z);
-    path_paths[i + 3u] = w;
-}
-
-// Path `j`, in the order of `PathState`'s members.
+// Path `j`, in the order of `PathState`'s members: five vec4 words.
 fn path_wave_load(j: u32) -> PathState {
-    let b = 20u * j;
+    let b = 5u * j;
+    let a0 = path_paths[b];
+    let a1 = path_paths[b + 1u];
+    let a2 = path_paths[b + 2u];
+    let a3 = path_paths[b + 3u];
+    let a4 = path_paths[b + 4u];
     return PathState(
-        path_paths_vec3(b), path_paths[b + 3u],
-        path_paths_vec3(b + 4u), path_paths_f32(b + 7u),
-        path_paths_vec3(b + 8u), path_paths[b + 11u],
-        path_paths_vec3(b + 12u), path_paths[b + 15u],
-        path_paths_vec3(b + 16u), 0u,
+        path_paths_vec3(a0), a0.w,
+        path_paths_vec3(a1), bitcast<f32>(a1.w),
+        path_paths_vec3(a2), a2.w,
+        path_paths_vec3(a3), a3.w,
+        path_paths_vec3(a4), 0u,
     );
 }
 
 fn path_wave_store(j: u32, st: PathState) {
-    let b = 20u * j;
-    path_paths_set_vec3(b, st.origin, st.depth);
-    path_paths_set_vec3(b + 4u, st.dir, bitcast<u32>(st.last_pdf));
-    path_paths_set_vec3(b + 8u, st.throughput, st.key);
-    path_paths_set_vec3(b + 12u, st.last_n, st.count);
-    path_paths_set_vec3(b + 16u, st.radiance, 0u);
+    let b = 5u * j;
+    path_paths[b] = path_paths_word(st.origin, st.depth);
+    path_paths[b + 1u] = path_paths_word(st.dir, bitcast<u32>(st.last_pdf));
+    path_paths[b + 2u] = path_paths_word(st.throughput, st.key);
+    path_paths[b + 3u] = path_paths_word(st.last_n, st.count);
+    path_paths[b + 4u] = path_paths_word(st.radiance, 0u);
+}
+
+// Entry `i` of queue `half`: the queues follow the states, four entries a vec4.
+fn path_queue_entry(half: u32, i: u32) -> u32 {
+    let k = (5u * 4u + half) * path_wave.capacity + i;
+    return path_paths[k / 4u][k % 4u];
+}
+
+fn path_queue_set(half: u32, i: u32, j: u32) {
+    let k = (5u * 4u + half) * path_wave.capacity + i;
+    path_paths[k / 4u][k % 4u] = j;
 }
 
 // Path `j` of the run one vertex further: kept and queued if it goes on, else its
@@ -77,7 +86,7 @@ fn path_wave_vertex(j: u32, path: PathState, half: u32, lane: u32) {
     if (more) {
         path_wave_store(j, st);
         let slot = atomicAdd(&path_stats[PATH_WAVE_NEXT], 1u);
-        path_paths[(20u + (half ^ 1u)) * path_wave.capacity + slot] = j;
+        path_queue_set(half ^ 1u, slot, j);
     } else {
         path_accumulate(path_wave.first_row * path_params.width + j, st.radiance);
     }
@@ -111,6 +120,6 @@ fn path_wave_extend(
     if (id.x >= atomicLoad(&path_stats[PATH_WAVE_COUNT])) {
         return;
     }
-    let j = path_paths[(20u + half) * path_wave.capacity + id.x];
+    let j = path_queue_entry(half, id.x);
     path_wave_vertex(j, path_wave_load(j), half, lane);
 }

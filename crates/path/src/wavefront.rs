@@ -254,7 +254,8 @@ impl Wavefront {
         }
         use wgpu::BufferUsages as U;
         // The states, then two queues of a word a path.
-        let bytes = u64::from(capacity) * (state + 8);
+        // Read as vec4 words: whole ones.
+        let bytes = (u64::from(capacity) * (state + 8)).next_multiple_of(16);
         let paths = buffer(ctx, "path states and queues", bytes, U::STORAGE);
         let group = bind(ctx.device(), &self.layout, &[&self.uniform, &paths]);
         self.paths = Some(Paths {
