@@ -50,20 +50,20 @@ const PATH_NO_LIGHT: u32 = 0xffffffffu;
 const PATH_FAR: f32 = 1e30;
 
 @group(1) @binding(0) var<uniform> path_params: PathParams;
-@group(1) @binding(1) var<storage, read> path_materials: array<PathMaterial>;
-@group(1) @binding(2) var<storage, read> path_prims: array<vec2<u32>>;
-@group(1) @binding(3) var<storage, read> path_lights: array<PathLight>;
 // Per pixel: the sum of its samples' radiance, and their count in `w`.
-@group(1) @binding(4) var<storage, read_write> path_accum: array<vec4<f32>>;
-// The textures, one array (`bvhtrace_path::textures`): word 0 the texture coordinates'
-// offset, word 1 the sRGB table's, word 2 the headers' (4 words a texture: texels' offset,
-// width, height, wraps), word 3 the environment map's (path_environment.wgsl; 0 for a
-// constant sky), then those and each textured material's table.
-@group(1) @binding(6) var<storage, read> path_data: array<u32>;
+@group(1) @binding(1) var<storage, read_write> path_accum: array<vec4<f32>>;
+// The scene's shading data, one array (`bvhtrace_path::textures`), so that the kernel
+// binds three storage buffers besides the BVH's: word 0 the texture coordinates' offset,
+// word 1 the sRGB table's, word 2 the texture headers' (4 words a texture: texels'
+// offset, width, height, wraps), word 3 the environment map's (path_environment.wgsl; 0
+// for a constant sky), words 4, 5 and 6 the materials' (`path_material`), the
+// primitives' (`path_prim`) and the lights' (`path_light`); then those, the texels and
+// each textured material's table.
+@group(1) @binding(3) var<storage, read> path_data: array<u32>;
 // Rays the walk gave up on (a CPU driver's trip budget), samples dropped as not finite,
 // rays traced (closest and any hit; wraps past 2^32), one unused; then the wavefront's
 // control words (path_wavefront.wgsl), here so that the waves bind no storage more.
-@group(1) @binding(5) var<storage, read_write> path_stats: array<atomic<u32>, 8>;
+@group(1) @binding(2) var<storage, read_write> path_stats: array<atomic<u32>, 8>;
 
 // The invocation's rays, added to `path_stats[2]` once at its end.
 var<private> path_rays: u32;
@@ -133,6 +133,41 @@ fn path_word(i: u32) -> f32 {
     return bitcast<f32>(path_data[i]);
 }
 
+fn path_vec3(i: u32) -> vec3<f32> {
+    return vec3<f32>(path_word(i), path_word(i + 1u), path_word(i + 2u));
+}
+
+// Material `i`: 28 words, `PathMaterial`'s members in order (its vec3s padded to 16 bytes).
+fn path_material(i: u32) -> PathMaterial {
+    let b = path_data[4] + 28u * i;
+    return PathMaterial(
+        path_vec3(b), path_word(b + 3u),
+        path_vec3(b + 4u), path_word(b + 7u),
+        path_vec3(b + 8u), path_word(b + 11u),
+        path_vec3(b + 12u), path_word(b + 15u),
+        path_word(b + 16u), path_word(b + 17u), path_data[b + 18u], path_data[b + 19u],
+        path_vec3(b + 20u), path_data[b + 23u],
+        path_vec3(b + 24u), path_data[b + 27u],
+    );
+}
+
+// Primitive `i`'s material and light (`PATH_NO_LIGHT` for none).
+fn path_prim(i: u32) -> vec2<u32> {
+    let b = path_data[5] + 2u * i;
+    return vec2<u32>(path_data[b], path_data[b + 1u]);
+}
+
+// Light `i`: 16 words, `PathLight`'s members in order.
+fn path_light(i: u32) -> PathLight {
+    let b = path_data[6] + 16u * i;
+    return PathLight(
+        path_vec3(b), path_word(b + 3u),
+        path_vec3(b + 4u), path_word(b + 7u),
+        path_vec3(b + 8u), path_data[b + 11u],
+        path_vec3(b + 12u), 0u,
+    );
+}
+
 // Material `m` at barycentrics `u`, `v` of `prim`: its textures read and its lobes worked
 // out (`bvhtrace_path::sampling::textured`), with each complement from the material's
 // table rather than `1 - x` here (see path_sampling.wgsl).
@@ -190,7 +225,7 @@ fn path_pick_light(u: f32) -> u32 {
     var hi = path_params.light_count - 1u;
     while (lo < hi) {
         let mid = (lo + hi) / 2u;
-        if (u < path_lights[mid].cdf) {
+        if (u < path_word(path_data[6] + 16u * mid + 3u)) {
             hi = mid;
         } else {
             lo = mid + 1u;
@@ -275,13 +310,13 @@ fn path_step(st: ptr<function, PathState>, r: ptr<function, PathRng>, lane: u32)
     }
     let s = bvh_hit_surface(ray, hit);
     let n = s.normal;
-    let prim = path_prims[hit.prim];
-    let m = path_textured(path_materials[prim.x], hit.prim, hit.u, hit.v);
+    let prim = path_prim(hit.prim);
+    let m = path_textured(path_material(prim.x), hit.prim, hit.u, hit.v);
     if (!path_is_black(m.emissive)) {
         var w = 1.0;
         if (depth > 0u && prim.y != PATH_NO_LIGHT) {
             let cos_l = abs(path_dot(n, ray.dir));
-            let light_pdf = path_lights[prim.y].pdf_area * (hit.t * hit.t) / cos_l;
+            let light_pdf = path_word(path_data[6] + 16u * prim.y + 7u) * (hit.t * hit.t) / cos_l;
             w = path_mis((*st).last_pdf, light_pdf);
         }
         (*st).radiance = path_add((*st).radiance, path_scale(path_mul(throughput, m.emissive), w));
@@ -358,7 +393,7 @@ fn path_direct(st: ptr<function, PathState>, m: PathMaterial, s: BvhSurface, wo:
 }
 
 fn path_triangle_light(throughput: vec3<f32>, m: PathMaterial, s: BvhSurface, wo: vec3<f32>, r: ptr<function, PathRng>, lane: u32) -> vec3<f32> {
-    let light = path_lights[path_pick_light(path_next(r))];
+    let light = path_light(path_pick_light(path_next(r)));
     let su = sqrt(path_next(r));
     let b1 = 1.0 - su;
     let b2 = path_next(r) * su;
@@ -387,7 +422,7 @@ fn path_triangle_light(throughput: vec3<f32>, m: PathMaterial, s: BvhSurface, wo
     }
     let light_pdf = light.pdf_area * dist2 / cos_l;
     let w = path_mis(light_pdf, e.pdf) / light_pdf;
-    let lm = path_materials[path_prims[light.prim].x];
+    let lm = path_material(path_prim(light.prim).x);
     var emission = light.emission;
     if (lm.emissive_tex != PATH_NO_TEXTURE) {
         emission = path_textured(lm, light.prim, b1, b2).emissive;

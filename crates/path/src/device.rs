@@ -43,7 +43,8 @@ pub struct GpuPathTracer {
     kernel: Kernel,
     bvh_group: wgpu::BindGroup,
     layout: wgpu::BindGroupLayout,
-    scene_buffers: [wgpu::Buffer; 4],
+    /// The shading data (`path_data`: [`shading_words`]).
+    data: wgpu::Buffer,
     params_buffer: wgpu::Buffer,
     stats_buffer: wgpu::Buffer,
     accum: Option<(wgpu::Buffer, wgpu::BindGroup)>,
@@ -184,35 +185,11 @@ impl GpuPathTracer {
                 })
         };
         use wgpu::BufferUsages as U;
-        // An empty array cannot be bound: one unused element stands in.
-        let lights: &[PathLight] = if scene.lights.is_empty() {
-            &[PathLight::default()]
-        } else {
-            &scene.lights
-        };
-        let prims: &[[u32; 2]] = if scene.prims.is_empty() {
-            &[[0; 2]]
-        } else {
-            &scene.prims
-        };
-        let materials: &[PathMaterial] = if scene.materials.is_empty() {
-            &[PathMaterial::default()]
-        } else {
-            &scene.materials
-        };
-        // The header's offsets at least (none for a scene made by hand).
-        let mut words = scene.textures.words.clone();
-        words.resize(words.len().max(crate::textures::HEADER_WORDS), 0);
-        let scene_buffers = [
-            init(
-                "path materials",
-                bytemuck::cast_slice(materials),
-                U::STORAGE,
-            ),
-            init("path prims", bytemuck::cast_slice(prims), U::STORAGE),
-            init("path lights", bytemuck::cast_slice(lights), U::STORAGE),
-            init("path textures", bytemuck::cast_slice(&words), U::STORAGE),
-        ];
+        let data = init(
+            "path shading data",
+            bytemuck::cast_slice(&shading_words(scene)),
+            U::STORAGE,
+        );
         let params = PathParams::default();
         let params_buffer = init(
             "path params",
@@ -245,7 +222,7 @@ impl GpuPathTracer {
             kernel,
             bvh_group,
             layout,
-            scene_buffers,
+            data,
             params_buffer,
             stats_buffer,
             accum: None,
@@ -330,22 +307,15 @@ impl GpuPathTracer {
     }
 
     fn group(&self, accum: &wgpu::Buffer) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = [
-            &self.params_buffer,
-            &self.scene_buffers[0],
-            &self.scene_buffers[1],
-            &self.scene_buffers[2],
-            accum,
-            &self.stats_buffer,
-            &self.scene_buffers[3],
-        ]
-        .iter()
-        .enumerate()
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: b.as_entire_binding(),
-        })
-        .collect();
+        let entries: Vec<wgpu::BindGroupEntry> =
+            [&self.params_buffer, accum, &self.stats_buffer, &self.data]
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
         self.ctx
             .device()
             .create_bind_group(&wgpu::BindGroupDescriptor {
@@ -565,6 +535,23 @@ impl GpuPathTracer {
     }
 }
 
+/// `path_data`: the scene's texture words and environment map, then its materials,
+/// primitives and lights, their offsets in header words 4, 5 and 6
+/// (`shaders/path_trace.wgsl`).
+pub(crate) fn shading_words(scene: &PathScene) -> Vec<u32> {
+    use crate::textures::HEADER_WORDS;
+    let mut words = scene.textures.words.clone();
+    // The header's offsets at least (none for a scene made by hand).
+    words.resize(words.len().max(HEADER_WORDS), 0);
+    words[4] = words.len() as u32;
+    words.extend_from_slice(bytemuck::cast_slice::<PathMaterial, u32>(&scene.materials));
+    words[5] = words.len() as u32;
+    words.extend(scene.prims.iter().flatten());
+    words[6] = words.len() as u32;
+    words.extend_from_slice(bytemuck::cast_slice::<PathLight, u32>(&scene.lights));
+    words
+}
+
 /// The sums and counts from their bytes.
 fn unpack(p: &PathParams, bytes: &[Vec<u8>]) -> (Accumulation, PathStats) {
     let n = p.width as usize * p.height as usize;
@@ -588,9 +575,6 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     use wgpu::BufferBindingType as B;
     let kinds = [
         B::Uniform,
-        B::Storage { read_only: true },
-        B::Storage { read_only: true },
-        B::Storage { read_only: true },
         B::Storage { read_only: false },
         B::Storage { read_only: false },
         B::Storage { read_only: true },

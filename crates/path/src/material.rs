@@ -3,7 +3,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-/// A material as the path tracer samples it (WGSL `PathMaterial`, 80 bytes): glTF's
+/// A material as the path tracer samples it (WGSL `PathMaterial`, 112 bytes): glTF's
 /// metallic-roughness worked out into its lobes ([`crate::sampling::lobes`]).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]

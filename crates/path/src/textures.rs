@@ -23,8 +23,9 @@ const TABLE_WORDS: usize = 2048;
 
 /// Words before the data: the offsets of the texture coordinates, the sRGB table, the
 /// textures' headers and the environment map ([`crate::PathScene::set_environment`]), 0
-/// for none.
-pub const HEADER_WORDS: usize = 4;
+/// for none; then those of the materials, primitives and lights, which the device's
+/// upload appends (`GpuPathTracer`).
+pub const HEADER_WORDS: usize = 7;
 
 /// The texture data (`path_data`): see the module's documentation.
 #[derive(Clone, Debug, Default, PartialEq)]
