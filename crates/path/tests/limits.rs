@@ -3,8 +3,6 @@
 //! binds fewer storage buffers than the waves need, the single kernel takes over with the
 //! same sums, and says so.
 
-mod support;
-
 use bvhtrace_core::{BuildOptions, FlatBvh, Traversal};
 use bvhtrace_gpu::{AdapterChoice, GpuContext, wgpu};
 use bvhtrace_path::{
