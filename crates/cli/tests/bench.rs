@@ -347,3 +347,51 @@ fn bench_and_converge_measure_ray_queries() {
         assert!(flip[0] > flip[2], "{flip:?}");
     }
 }
+
+/// `bench-trace --cpu-only` traces diffuse-bounce rays beside primary and shadow rays, every
+/// path with the full stack's answers, and sweeps thread counts; a count of 0 or a sweep
+/// without `--cpu-only` is refused.
+#[test]
+fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
+    let out = run(&[
+        "bench-trace",
+        "--cpu-only",
+        "--runs",
+        "1",
+        "--size",
+        "64x48",
+        "--threads",
+        "1,2",
+        "builtin:icosphere:2",
+    ]);
+    assert_ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for kind in ["primary", "shadow", "diffuse"] {
+        let table = (text.split(&format!("{kind} (")).nth(1))
+            .unwrap_or_else(|| panic!("no {kind} table:\n{text}"));
+        let rows: Vec<&str> = (table.lines().skip(2))
+            .take_while(|l| !l.is_empty() && !l.contains(" ("))
+            .collect();
+        assert!(rows.len() >= 3, "{kind}: {rows:?}");
+        for row in rows {
+            let differ = row.split_whitespace().last().unwrap_or_default();
+            assert!(differ == "0" || differ == "-", "{kind}: {row}");
+        }
+    }
+    let sweep = (text.split("thread sweep").nth(1)).unwrap_or_else(|| panic!("no sweep:\n{text}"));
+    let lines: Vec<&str> = sweep.lines().filter(|l| l.contains(" diffuse ")).collect();
+    assert!(!lines.is_empty(), "{sweep}");
+    for l in lines {
+        assert!(l.contains("1: ") && l.contains("2: "), "{l}");
+    }
+    for flags in [&["--cpu-only", "--threads", "0"][..], &["--threads", "2"]] {
+        let mut args = vec!["bench-trace", "--runs", "1"];
+        args.extend_from_slice(flags);
+        let out = run(&args);
+        assert!(!out.status.success(), "{flags:?} succeeded");
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains("--threads"),
+            "{flags:?}"
+        );
+    }
+}

@@ -245,11 +245,18 @@ pub struct BenchTraceArgs {
     pub everything_on: bool,
     /// Only the CPU paths, without a device: the core walks (`--traversals`, default
     /// full-stack and wide) and the CPU layout (`bvhtrace-cpu`, each instruction set the
-    /// CPU has) on primary (closest-hit) and shadow (any-hit) rays, beside Embree 3's
+    /// CPU has) on primary (closest-hit), shadow (any-hit) and diffuse-bounce (closest-hit,
+    /// incoherent) rays, beside Embree 3's
     /// default and robust modes with `--embree`, and each path's differences from the
     /// full stack's answers.
     #[arg(long)]
     pub cpu_only: bool,
+    /// With `--cpu-only`: thread counts to sweep, comma-separated (ours and Embree's
+    /// alike); the tables are printed for each, then each path's rate per count and its
+    /// scaling efficiency (rate over the count times the first count's rate per thread).
+    /// Default: the machine's threads.
+    #[arg(long, value_delimiter = ',')]
+    pub threads: Vec<usize>,
 }
 
 impl BenchTraceArgs {
@@ -257,6 +264,12 @@ impl BenchTraceArgs {
     pub fn check(&self) -> Result<()> {
         if self.runs == 0 {
             bail!("--runs must be at least 1");
+        }
+        if self.threads.contains(&0) {
+            bail!("--threads counts must be at least 1");
+        }
+        if !self.threads.is_empty() && !self.cpu_only {
+            bail!("--threads sweeps the CPU paths: it goes with --cpu-only");
         }
         Ok(())
     }

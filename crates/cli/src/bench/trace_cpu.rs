@@ -1,7 +1,9 @@
 //! `bvhtrace bench-trace --cpu-only`: every CPU path (the core walks, the CPU layout of
 //! `bvhtrace-cpu` on each instruction set) beside Embree 3 in its default and robust
-//! modes, on primary (closest-hit) and shadow (any-hit) rays, same rays, same run; and
-//! the packet walk on the same rays put in 8x8 screen tiles (`tiles` rows).
+//! modes, on primary (closest-hit), shadow (any-hit) and diffuse-bounce (closest-hit,
+//! incoherent: one cosine-weighted bounce from each primary hit, seeded) rays, same rays,
+//! same run; and the packet walk on the same rays put in 8x8 screen tiles (the diffuse
+//! rays in the primary hits' order: their origins are coherent, their directions not).
 
 use std::time::Instant;
 
@@ -93,10 +95,59 @@ fn differences(got: &[Hit], want: &[Hit], q: Query) -> usize {
 
 /// `bvhtrace bench-trace --cpu-only`.
 pub fn run(args: &BenchTraceArgs) -> Result<()> {
+    let counts = match args.threads.is_empty() {
+        true => vec![rayon::current_num_threads()],
+        false => args.threads.clone(),
+    };
+    let mut sweep = Sweep::default();
+    for &n in &counts {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build()?;
+        pool.install(|| run_scenes(args, &mut sweep))?;
+    }
+    if counts.len() > 1 {
+        sweep.print(&counts);
+    }
+    Ok(())
+}
+
+/// Mrays/s per scene, ray kind and path, one entry per thread count swept.
+#[derive(Default)]
+struct Sweep {
+    rows: Vec<((String, String, String), Vec<f64>)>,
+}
+
+impl Sweep {
+    fn add(&mut self, key: (String, String, String), mrays: f64) {
+        match self.rows.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(mrays),
+            None => self.rows.push((key, vec![mrays])),
+        }
+    }
+
+    /// Each path's rate per count and its efficiency at each count against the first.
+    fn print(&self, counts: &[usize]) {
+        println!(
+            "\nthread sweep: Mrays/s (scaling efficiency against {} threads)",
+            counts[0]
+        );
+        for ((spec, kind, path), rates) in &self.rows {
+            let cells: Vec<String> = (counts.iter().zip(rates))
+                .map(|(&n, r)| {
+                    let per = rates[0] / counts[0] as f64;
+                    format!("{n}: {r:.2} ({:.0}%)", 100.0 * r / (per * n as f64))
+                })
+                .collect();
+            println!("{spec} {kind} {path:22} {}", cells.join("  "));
+        }
+    }
+}
+
+/// Every scene at the current pool's thread count: its sizes, then each ray kind's table.
+fn run_scenes(args: &BenchTraceArgs, sweep: &mut Sweep) -> Result<()> {
     let (w, h) = args.size;
     let threads = rayon::current_num_threads();
     println!(
-        "CPU only: {threads} threads; {} rounds, medians; ratios are medians of per-round ratios",
+        "\nCPU only: {threads} threads; {} rounds, medians; ratios are medians of per-round ratios",
         args.runs
     );
     let walks = if args.traversals.is_empty() {
@@ -147,18 +198,26 @@ pub fn run(args: &BenchTraceArgs) -> Result<()> {
         let kinds = [
             ("primary", [sets.primary, primary_tiled], Query::Closest),
             ("shadow", [sets.shadow, shadow_tiled], Query::Any),
+            (
+                "diffuse",
+                [sets.diffuse.clone(), sets.diffuse],
+                Query::Closest,
+            ),
         ];
         let paths = paths(&flat, &cpu, &walks);
         for (kind, rays, q) in kinds {
-            bench_kind(args, &spec, kind, &tris, &flat, &paths, &rays, q)?;
+            let rates = bench_kind(args, &spec, kind, &tris, &flat, &paths, &rays, q)?;
+            for (path, mrays) in rates {
+                sweep.add((spec.clone(), kind.to_string(), path), mrays);
+            }
         }
     }
     Ok(())
 }
 
-/// One ray kind: rounds of every path and of Embree, then the table. `sets` holds the
-/// rays as the image has them (Embree's) and the same rays in 8x8 tiles (the packet
-/// paths').
+/// One ray kind: rounds of every path and of Embree, then the table; each path's Mrays/s.
+/// `sets` holds the rays as the image has them (Embree's) and the same rays in 8x8 tiles
+/// (the packet paths').
 #[allow(clippy::too_many_arguments)]
 fn bench_kind(
     args: &BenchTraceArgs,
@@ -169,7 +228,7 @@ fn bench_kind(
     paths: &[Path<'_>],
     sets: &[Vec<Ray>; 2],
     q: Query,
-) -> Result<()> {
+) -> Result<Vec<(String, f64)>> {
     let rays = &sets[0];
     let opts = TraceOptions::new(Traversal::FullStack, q);
     let refs = [
@@ -233,10 +292,12 @@ fn bench_kind(
         .iter()
         .map(|(s, _, _)| s.as_str())
         .chain(EMBREE_MODES.iter().map(|m| m.0));
+    let mut rates = Vec::new();
     for (i, name) in names.enumerate() {
         if ms[i].is_empty() {
             continue;
         }
+        rates.push((name.to_string(), mrays(&ms[i])));
         println!(
             "{:22} {:>9.2} {:>9} {:>12} {:>13} {:>7}",
             name,
@@ -247,5 +308,5 @@ fn bench_kind(
             diffs.get(i).map_or("-".to_string(), |d| d.to_string()),
         );
     }
-    Ok(())
+    Ok(rates)
 }
