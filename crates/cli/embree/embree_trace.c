@@ -4,6 +4,12 @@
  *   cc -O2 embree_trace.c -lembree3 -lpthread -lm -o embree_trace
  *   embree_trace DUMP [THREADS] [RUNS] [HITS_OUT]
  *
+ * Against Embree 4 (its API: no intersect context, optional arguments), with its headers in
+ * E4/include and its library at E4/libembree4.so.4 (docs/cpu-tracer.md says how to get 4.4):
+ *
+ *   cc -O2 -DBVHTRACE_EMBREE4 -IE4/include embree_trace.c E4/libembree4.so.4 \
+ *     -Wl,-rpath,E4 -lpthread -lm -o embree4_trace
+ *
  * Prints one JSON object: triangles, rays, hits, t_sum, build_ms and trace_ms (medians of
  * RUNS), mrays_per_s. With BVHTRACE_REFIT=A in the environment it also times a refit
  * (RTC_BUILD_QUALITY_REFIT) after moving every vertex by `bvhtrace bench-refit`'s field of
@@ -13,7 +19,11 @@
  * t_sum is 0). HITS_OUT, if given, receives one u32 primitive index per ray
  * (0xFFFFFFFF for a miss). Dump format (little endian): "BVHD", u32 version = 1, u32 n_tris,
  * u32 n_rays, n_tris * 9 f32 corners, n_rays * 8 f32 rays (origin, t_min, dir, t_max). */
+#ifdef BVHTRACE_EMBREE4
+#include <embree4/rtcore.h>
+#else
 #include <embree3/rtcore.h>
+#endif
 #include <math.h>
 #include <pthread.h>
 #include <stdint.h>
@@ -41,8 +51,10 @@ static void *worker(void *arg) {
   uintptr_t id = (uintptr_t)arg;
   uint32_t chunk = (n_rays + n_threads - 1) / n_threads;
   uint32_t lo = id * chunk, hi = lo + chunk > n_rays ? n_rays : lo + chunk;
+#ifndef BVHTRACE_EMBREE4
   struct RTCIntersectContext ctx;
   rtcInitIntersectContext(&ctx);
+#endif
   for (uint32_t i = lo; i < hi; i++) {
     const Ray *r = &rays[i];
     struct RTCRayHit rh;
@@ -54,12 +66,20 @@ static void *worker(void *arg) {
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
     if (occlusion) {
       /* An occluded ray comes back with tfar = -inf; the primitive is not reported. */
+#ifdef BVHTRACE_EMBREE4
+      rtcOccluded1(scene, &rh.ray, NULL);
+#else
       rtcOccluded1(scene, &ctx, &rh.ray);
+#endif
       hit_prim[i] = rh.ray.tfar < 0.0f ? 0u : 0xFFFFFFFFu;
       hit_t[i] = 0.0f;
       continue;
     }
+#ifdef BVHTRACE_EMBREE4
+    rtcIntersect1(scene, &rh, NULL);
+#else
     rtcIntersect1(scene, &ctx, &rh);
+#endif
     int hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
     hit_prim[i] = hit ? rh.hit.primID : 0xFFFFFFFFu;
     hit_t[i] = hit ? rh.ray.tfar : 0.0f;

@@ -251,6 +251,11 @@ pub struct BenchTraceArgs {
     /// full stack's answers.
     #[arg(long)]
     pub cpu_only: bool,
+    /// With `--cpu-only`: an `embree_trace` built against Embree 4
+    /// (`crates/cli/embree/embree_trace.c` with `-DBVHTRACE_EMBREE4`), traced in every round
+    /// after Embree 3's: its fast and robust rows, and each path's ratio to its fast mode.
+    #[arg(long)]
+    pub embree4: Option<std::path::PathBuf>,
     /// With `--cpu-only`: thread counts to sweep, comma-separated (ours and Embree's
     /// alike); the tables are printed for each, then each path's rate per count and its
     /// scaling efficiency (rate over the count times the first count's rate per thread).
@@ -270,6 +275,9 @@ impl BenchTraceArgs {
         }
         if !self.threads.is_empty() && !self.cpu_only {
             bail!("--threads sweeps the CPU paths: it goes with --cpu-only");
+        }
+        if self.embree4.is_some() && !self.cpu_only {
+            bail!("--embree4 times the CPU paths' rays: it goes with --cpu-only");
         }
         Ok(())
     }

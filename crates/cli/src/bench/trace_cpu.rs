@@ -81,6 +81,9 @@ fn tiled_sets(
 /// The two Embree modes timed: its default (not watertight) and `RTC_SCENE_FLAG_ROBUST`.
 const EMBREE_MODES: [(&str, &str); 2] = [("embree fast", "fast"), ("embree robust", "robust")];
 
+/// Embree 4's rows (`--embree4`), after Embree 3's.
+const EMBREE4_MODES: [(&str, &str); 2] = [("embree4 fast", "fast"), ("embree4 robust", "robust")];
+
 /// Rays whose answer differs from the reference's: closest hits to the bit (primitive
 /// and `t`), any hits on hit or miss.
 fn differences(got: &[Hit], want: &[Hit], q: Query) -> usize {
@@ -235,12 +238,14 @@ fn bench_kind(
         trace_rays(flat, rays, &opts).hits,
         trace_rays(flat, &sets[1], &opts).hits,
     ];
-    let dump = match &args.embree {
-        Some(_) => Some(Dump::write(kind, tris, rays)?),
-        None => None,
+    let dump = match args.embree.is_some() || args.embree4.is_some() {
+        true => Some(Dump::write(kind, tris, rays)?),
+        false => None,
     };
     let query_env = if q == Query::Any { "any" } else { "closest" };
-    let mut ms = vec![Vec::new(); paths.len() + EMBREE_MODES.len()];
+    // Our paths, then Embree 3's modes, then Embree 4's.
+    let helpers = [(&args.embree, EMBREE_MODES), (&args.embree4, EMBREE4_MODES)];
+    let mut ms = vec![Vec::new(); paths.len() + 4];
     let mut diffs = vec![0; paths.len()];
     // Untimed warm-up, which also checks the answers.
     for (i, (_, f, tiled)) in paths.iter().enumerate() {
@@ -254,14 +259,17 @@ fn bench_kind(
             std::hint::black_box(f(rays, q));
             ms[i].push(t.elapsed().as_secs_f64() * 1e3);
         }
-        if let (Some(exe), Some(dump)) = (&args.embree, &dump) {
-            for (k, (_, mode)) in EMBREE_MODES.iter().enumerate() {
+        for (h, (exe, modes)) in helpers.iter().enumerate() {
+            let (Some(exe), Some(dump)) = (exe, &dump) else {
+                continue;
+            };
+            for (k, (_, mode)) in modes.iter().enumerate() {
                 let env = [
                     ("BVHTRACE_EMBREE_MODE", mode.to_string()),
                     ("BVHTRACE_EMBREE_QUERY", query_env.to_string()),
                 ];
                 let v = dump.run(exe, rayon::current_num_threads(), 1, &env)?;
-                ms[paths.len() + k].push(embree::field(&v, "trace_ms", exe)?);
+                ms[paths.len() + 2 * h + k].push(embree::field(&v, "trace_ms", exe)?);
             }
         }
     }
@@ -278,20 +286,22 @@ fn bench_kind(
         }
     };
     println!(
-        "{spec} {kind} ({} rays, {q:?}):\n{:22} {:>9} {:>9} {:>12} {:>13} {:>7}",
+        "{spec} {kind} ({} rays, {q:?}):\n{:22} {:>9} {:>9} {:>12} {:>13} {:>13} {:>7}",
         rays.len(),
         "path",
         "Mrays/s",
         "/full",
         "/embree fast",
         "/embree robust",
+        "/embree4 fast",
         "differ"
     );
     let (fast, robust) = (&ms[paths.len()], &ms[paths.len() + 1]);
+    let fast4 = &ms[paths.len() + 2];
     let names = paths
         .iter()
         .map(|(s, _, _)| s.as_str())
-        .chain(EMBREE_MODES.iter().map(|m| m.0));
+        .chain(EMBREE_MODES.iter().chain(&EMBREE4_MODES).map(|m| m.0));
     let mut rates = Vec::new();
     for (i, name) in names.enumerate() {
         if ms[i].is_empty() {
@@ -299,12 +309,13 @@ fn bench_kind(
         }
         rates.push((name.to_string(), mrays(&ms[i])));
         println!(
-            "{:22} {:>9.2} {:>9} {:>12} {:>13} {:>7}",
+            "{:22} {:>9.2} {:>9} {:>12} {:>13} {:>13} {:>7}",
             name,
             mrays(&ms[i]),
             ratio(&ms[0], &ms[i]),
             ratio(fast, &ms[i]),
             ratio(robust, &ms[i]),
+            ratio(fast4, &ms[i]),
             diffs.get(i).map_or("-".to_string(), |d| d.to_string()),
         );
     }
