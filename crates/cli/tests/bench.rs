@@ -349,8 +349,8 @@ fn bench_and_converge_measure_ray_queries() {
 }
 
 /// `bench-trace --cpu-only` traces diffuse-bounce rays beside primary and shadow rays, every
-/// path with the full stack's answers, and sweeps thread counts; a count of 0 or a sweep
-/// without `--cpu-only` is refused.
+/// path with the full stack's answers, and sweeps thread counts; a count of 0, or a sweep
+/// or Embree 4's helper without `--cpu-only`, is refused.
 #[test]
 fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
     let out = run(&[
@@ -384,13 +384,17 @@ fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
     for l in lines {
         assert!(l.contains("1: ") && l.contains("2: "), "{l}");
     }
-    for flags in [&["--cpu-only", "--threads", "0"][..], &["--threads", "2"]] {
+    for (flags, says) in [
+        (&["--cpu-only", "--threads", "0"][..], "--threads"),
+        (&["--threads", "2"], "--threads"),
+        (&["--embree4", "embree4_trace"], "--embree4"),
+    ] {
         let mut args = vec!["bench-trace", "--runs", "1"];
         args.extend_from_slice(flags);
         let out = run(&args);
         assert!(!out.status.success(), "{flags:?} succeeded");
         assert!(
-            String::from_utf8_lossy(&out.stderr).contains("--threads"),
+            String::from_utf8_lossy(&out.stderr).contains(says),
             "{flags:?}"
         );
     }
