@@ -343,8 +343,12 @@ fn native_path(
     if samples == 0 {
         return Err("the page's path mode added no sample".into());
     }
-    let tris = scene.flattened_triangles()?;
-    let bvh = bvhtrace_core::FlatBvh::build(&tris, &BuildOptions::default())?;
+    // Flattened with its alpha masks, as the viewer's path mode traces it.
+    let bvhtrace_scene::SceneBvh::Flat { tris, bvh } =
+        scene.tracing_bvh(&BuildOptions::default(), true)?
+    else {
+        return Err("a flattened scene traced in two levels".into());
+    };
     let shading = PathScene::new(scene, &tris)?;
     let params = PathParams::new(&shown.cam, shown.size, &Lighting::default(), 8, &shading);
     let twin = CpuPathTracer::new(&bvh, &tris, &shading, Traversal::Stackless)?;

@@ -248,6 +248,8 @@ pub struct ViewerApp {
     path: Option<PathMode>,
     /// One being made (its kernel compiling: in a browser, across frames), and for what.
     path_pending: Option<((u64, f32), PathSlot)>,
+    /// The path mode's environment map (`--environment`), loaded once.
+    environment: Option<std::sync::Arc<bvhtrace_path::Environment>>,
 }
 
 /// Where a path tracer being made lands.
@@ -356,6 +358,7 @@ impl ViewerApp {
             first_image_ms: None,
             path: None,
             path_pending: None,
+            environment: None,
             playback: Playback {
                 time: args.time,
                 playing: args.play,
@@ -365,6 +368,16 @@ impl ViewerApp {
                 poses: 0,
             },
         };
+        if let Some(path) = &args.environment {
+            use bvhtrace_path::environment::{DEFAULT_SIZE, Environment};
+            match Environment::load(path, DEFAULT_SIZE) {
+                Ok(e) => app.environment = Some(std::sync::Arc::new(e)),
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    app.error = Some(e.to_string());
+                }
+            }
+        }
         if !app.open_from_inbox(&cc.egui_ctx) {
             app.start_job(&cc.egui_ctx, Source::Load(spec));
         }
@@ -1529,8 +1542,10 @@ impl ViewerApp {
             }
             let slot = PathSlot::default();
             let (gpu, traversal, into) = (gpu.clone(), self.settings.traversal(), slot.clone());
+            let environment = self.environment.clone();
             let made = async move {
-                let mode = PathMode::new(&gpu, &scene, traversal, made_for).await;
+                let env = environment.as_deref().cloned();
+                let mode = PathMode::new(&gpu, (&scene, env), traversal, made_for).await;
                 *into.borrow_mut() = Some(mode);
             };
             crate::jobs::run_future(made);

@@ -114,6 +114,11 @@ pub struct Args {
     /// on the machine's speed.
     #[arg(long)]
     pub play: bool,
+    /// An equirectangular Radiance HDR image (`.hdr`, +Y up) the path mode's sky comes
+    /// from, sampled by its luminance (`--shade path`; a file of this machine, so not in a
+    /// browser).
+    #[arg(long, value_name = "FILE.hdr")]
+    pub environment: Option<PathBuf>,
 }
 
 #[cfg(test)]

@@ -10,6 +10,20 @@ use eframe::egui;
 use eframe::egui_wgpu::RenderState;
 use eframe::wgpu;
 
+/// `scene` flattened and its tree built, with the scene's alpha masks on it (so that the
+/// walks cut leaves as the other modes do): what the path tracer and its twin trace.
+pub fn flattened_with_masks(
+    scene: &Scene,
+) -> Result<(Vec<bvhtrace_core::Triangle>, FlatBvh), String> {
+    let traced = (scene.tracing_bvh(&BuildOptions::default(), true)).map_err(|e| e.to_string())?;
+    match traced {
+        bvhtrace_scene::SceneBvh::Flat { tris, bvh } => Ok((tris, bvh)),
+        bvhtrace_scene::SceneBvh::Instanced(_) => {
+            Err("the path mode traces the scene flattened".into())
+        }
+    }
+}
+
 /// Where the sums read back for a screenshot land.
 pub type SumsSlot =
     std::rc::Rc<std::cell::RefCell<Option<Result<bvhtrace_path::Accumulation, String>>>>;
@@ -19,6 +33,9 @@ pub struct PathMode {
     tracer: GpuPathTracer,
     /// The scene's shading data, for each restart's parameters.
     shading: PathScene,
+    /// The light besides the scene's emissive triangles: a constant sky, or the
+    /// environment map's radiance as it is.
+    lighting: Lighting,
     /// The scene generation and animation time it traces.
     made_for: (u64, f32),
     /// The camera and size the sums are for.
@@ -32,26 +49,35 @@ pub struct PathMode {
 
 impl PathMode {
     /// The tracer of `scene` flattened (an animated scene posed at its current time), its
-    /// tree built on the CPU, walked by `traversal` on `ctx`'s device; ready once the
-    /// device has compiled its kernel (in a browser, on the page's event loop).
+    /// tree built on the CPU, walked by `traversal` on `ctx`'s device, its sky
+    /// `environment`'s or a constant one; ready once the device has compiled its kernel
+    /// (in a browser, on the page's event loop).
     pub async fn new(
         ctx: &GpuContext,
-        scene: &Scene,
+        (scene, environment): (&Scene, Option<bvhtrace_path::Environment>),
         traversal: Traversal,
         made_for: (u64, f32),
     ) -> Result<PathMode, String> {
-        let tris = scene.flattened_triangles().map_err(|e| e.to_string())?;
-        let mut bvh = FlatBvh::build(&tris, &BuildOptions::default()).map_err(|e| e.to_string())?;
+        let (tris, mut bvh) = flattened_with_masks(scene)?;
         if traversal.is_wide() {
             bvh.build_wide();
         }
-        let shading = PathScene::new(scene, &tris).map_err(|e| e.to_string())?;
+        let mut shading = PathScene::new(scene, &tris).map_err(|e| e.to_string())?;
+        shading.set_environment(environment);
+        let lighting = match shading.environment {
+            Some(_) => Lighting {
+                env: glam::Vec3::ONE,
+                ..Lighting::default()
+            },
+            None => Lighting::default(),
+        };
         let walk = bvhtrace_path::PathWalk::Walk(traversal);
         let tracer = (GpuPathTracer::with_walk_async(ctx, &bvh, &shading, walk).await)
             .map_err(|e| e.to_string())?;
         Ok(PathMode {
             tracer,
             shading,
+            lighting,
             made_for,
             view: None,
             shown: None,
@@ -111,8 +137,7 @@ impl PathMode {
     ) -> Result<bool, String> {
         if self.view != Some((*camera, size)) {
             let (w, h) = (size[0], size[1]);
-            let lighting = Lighting::default();
-            let params = PathParams::new(camera, (w, h), &lighting, 8, &self.shading);
+            let params = PathParams::new(camera, (w, h), &self.lighting, 8, &self.shading);
             self.tracer.restart(params);
             self.view = Some((*camera, size));
             self.rate = None;
@@ -179,7 +204,7 @@ mod tests {
             Err(e) => panic!("{e}"),
         };
         let scene = bvhtrace_scene::load("builtin:cornell").expect("cornell");
-        let made = PathMode::new(&ctx, &scene, Traversal::Stackless, (1, 0.0));
+        let made = PathMode::new(&ctx, (&scene, None), Traversal::Stackless, (1, 0.0));
         let mut mode = pollster::block_on(made).expect("mode");
         let cam = scene.camera_or_frame(1.0);
         assert!(mode.advance(&cam, [32, 32], 2, 100).expect("frame"));
@@ -206,5 +231,25 @@ mod tests {
         };
         mode.advance(&moved, [32, 32], 2, 100).expect("frame");
         assert_eq!(mode.samples(), 2);
+    }
+}
+
+#[cfg(test)]
+mod mask_tests {
+    /// The path mode traces an alpha-tested scene with its masks on the tree (the leaves
+    /// cut, as the other modes cut them), one mesh, every triangle numbered once.
+    #[test]
+    fn the_path_mode_traces_with_the_alpha_masks() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
+        let scene = bvhtrace_scene::load(path).expect("foliage");
+        let (tris, bvh) = super::flattened_with_masks(&scene).expect("flattened");
+        assert!(
+            bvh.masks().is_some(),
+            "the foliage's masks are not on the tree"
+        );
+        assert_eq!(tris.len(), scene.flattened_triangles().expect("tris").len());
+        let cornell = bvhtrace_scene::load("builtin:cornell").expect("cornell");
+        let (_, plain) = super::flattened_with_masks(&cornell).expect("flattened");
+        assert!(plain.masks().is_none(), "an opaque scene has no masks");
     }
 }
