@@ -32,10 +32,11 @@ cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/d
 # on the page's WebGPU as the native render cuts them.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --scene scenes/foliage.gltf --out web/dist/foliage
-# The path mode: the scene path traced on the page's WebGPU (the wavefront kernel), its
-# sums read back once with the screenshot against the CPU twin's, bit for bit.
+# The path mode: the alpha-tested scene path traced on the page's WebGPU (the wavefront
+# kernel, its shadow rays cut by the masks), its sums read back once with the screenshot
+# against the CPU twin's, bit for bit.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
-  --path --out web/dist/path
+  --path --scene scenes/foliage.gltf --out web/dist/path
 # Errors reach the page (and the test), never a blank canvas: a bad flag, a broken file.
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist \
   --flags "--shade sepia" --expect-error "invalid value 'sepia'"
