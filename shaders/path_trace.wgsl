@@ -312,7 +312,14 @@ fn path_step(st: ptr<function, PathState>, r: ptr<function, PathRng>, lane: u32)
     let n = s.normal;
     let prim = path_prim(hit.prim);
     let m = path_textured(path_material(prim.x), hit.prim, hit.u, hit.v);
-    if (!path_is_black(m.emissive)) {
+    // An emissive triangle lights its front only (the side its corners wind about, as
+    // light sampling assumes); one that is no light (of no area) both sides.
+    var front = true;
+    if (prim.y != PATH_NO_LIGHT) {
+        let lt = path_light(prim.y);
+        front = path_dot(bvh_cross(lt.e1, lt.e2), ray.dir) < 0.0;
+    }
+    if (!path_is_black(m.emissive) && front) {
         var w = 1.0;
         if (depth > 0u && prim.y != PATH_NO_LIGHT) {
             let cos_l = abs(path_dot(n, ray.dir));
@@ -409,7 +416,8 @@ fn path_triangle_light(throughput: vec3<f32>, m: PathMaterial, s: BvhSurface, wo
     let nl = path_normalize(bvh_cross(light.e1, light.e2));
     let cos_l = abs(path_dot(nl, wi));
     let e = path_eval(m, s.normal, wo, wi);
-    if (!(e.pdf > 0.0 && cos_l > 0.0)) {
+    // Emission leaves a triangle's front only (the side its corners wind about).
+    if (!(e.pdf > 0.0 && cos_l > 0.0) || path_dot(nl, wi) > 0.0) {
         return vec3<f32>(0.0);
     }
     // The point moved off the light toward the surface, so the light itself does not

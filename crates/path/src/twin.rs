@@ -249,7 +249,13 @@ impl Walker<'_> {
                 hit.v,
             );
             let emissive = Vec3::from(m.emissive);
-            if !black(emissive) {
+            let front = match scene.lights.get(li as usize) {
+                Some(lt) if li != NO_LIGHT => {
+                    dot(cross(Vec3::from(lt.e1), Vec3::from(lt.e2)), dir) < 0.0
+                }
+                _ => true,
+            };
+            if !black(emissive) && front {
                 let mut w = 1.0;
                 if depth > 0 && li != NO_LIGHT {
                     let cos_l = dot(n, dir).abs();
@@ -357,7 +363,7 @@ impl Walker<'_> {
         let nl = normalize(cross(e1, e2));
         let cos_l = dot(nl, wi).abs();
         let e = eval(lobes, n, wo, wi);
-        if !(e.pdf > 0.0 && cos_l > 0.0) {
+        if !(e.pdf > 0.0 && cos_l > 0.0) || dot(nl, wi) > 0.0 {
             return Vec3::ZERO;
         }
         let toward = if dot(nl, wi) > 0.0 { -nl } else { nl };
