@@ -307,22 +307,13 @@ impl GpuPathTracer {
     }
 
     fn group(&self, accum: &wgpu::Buffer) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> =
-            [&self.params_buffer, accum, &self.stats_buffer, &self.data]
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect();
-        self.ctx
-            .device()
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("path tracer group 1"),
-                layout: &self.layout,
-                entries: &entries,
-            })
+        let buffers = [&self.params_buffer, accum, &self.stats_buffer, &self.data];
+        bind_buffers(
+            self.ctx.device(),
+            "path tracer group 1",
+            &self.layout,
+            &buffers,
+        )
     }
 
     /// Submits one sample (its parameters written through the queue first).
@@ -579,6 +570,15 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
         B::Storage { read_only: false },
         B::Storage { read_only: true },
     ];
+    buffer_layout(device, "path tracer group 1", &kinds)
+}
+
+/// A compute bind group layout of buffers, binding `i` of kind `kinds[i]`.
+pub(crate) fn buffer_layout(
+    device: &wgpu::Device,
+    label: &str,
+    kinds: &[wgpu::BufferBindingType],
+) -> wgpu::BindGroupLayout {
     let entries: Vec<wgpu::BindGroupLayoutEntry> = (kinds.iter().enumerate())
         .map(|(i, &ty)| wgpu::BindGroupLayoutEntry {
             binding: i as u32,
@@ -592,9 +592,68 @@ fn group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
         })
         .collect();
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some("path tracer group 1"),
+        label: Some(label),
         entries: &entries,
     })
+}
+
+/// `buffers`, whole, at bindings 0, 1, ... of `layout`.
+pub(crate) fn bind_buffers(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = (buffers.iter().enumerate())
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
+}
+
+/// Entry point `entry` of `module` over the bind groups `layouts`, its override
+/// `constants` set (workgroup memory not zeroed: the walks write before they read).
+pub(crate) fn compute_pipeline(
+    device: &wgpu::Device,
+    (module, entry): (&wgpu::ShaderModule, &str),
+    layouts: &[&wgpu::BindGroupLayout],
+    constants: &[(&str, f64)],
+) -> wgpu::ComputePipeline {
+    let groups: Vec<Option<&wgpu::BindGroupLayout>> = layouts.iter().map(|&l| Some(l)).collect();
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(entry),
+        bind_group_layouts: &groups,
+        immediate_size: 0,
+    });
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: Some(&pipeline_layout),
+        module,
+        entry_point: Some(entry),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    })
+}
+
+/// What a validation scope `caught` while making `during`'s pipelines (a device that
+/// binds fewer storage buffers a stage than they read refuses them), as an error.
+pub(crate) fn refused(caught: Option<wgpu::Error>, during: &'static str) -> Result<(), PathError> {
+    match caught {
+        Some(e) => Err(PathError::Gpu(GpuError::Device {
+            during,
+            message: e.to_string(),
+        })),
+        None => Ok(()),
+    }
 }
 
 /// The kernel after `library`, its pipeline with the BVH in group 0 and ours in group 1.
@@ -606,29 +665,8 @@ async fn pipeline(
 ) -> Result<wgpu::ComputePipeline, PathError> {
     let module = (ctx.shader_module_async(library, &kernel_source(), "path_trace.wgsl")).await?;
     let device = ctx.device();
-    // A device that binds fewer storage buffers a stage than the kernel reads refuses it.
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-        label: Some("path tracer"),
-        bind_group_layouts: &[Some(layouts[0]), Some(layouts[1])],
-        immediate_size: 0,
-    });
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("path tracer"),
-        layout: Some(&pipeline_layout),
-        module: &module,
-        entry_point: Some("path_main"),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants,
-            zero_initialize_workgroup_memory: false,
-        },
-        cache: None,
-    });
-    match scope.pop().await {
-        Some(e) => Err(PathError::Gpu(GpuError::Device {
-            during: "making the path tracer's kernel",
-            message: e.to_string(),
-        })),
-        None => Ok(pipeline),
-    }
+    let pipeline = compute_pipeline(device, (&module, "path_main"), &layouts, constants);
+    refused(scope.pop().await, "making the path tracer's kernel")?;
+    Ok(pipeline)
 }

@@ -5,10 +5,11 @@
 //! for bit.
 
 use bvhtrace_engine::shaders::{PATH_WAVE_PREPARE, PATH_WAVEFRONT};
-use bvhtrace_gpu::{BvhLibrary, GpuContext, GpuError, wgpu};
+use bvhtrace_gpu::{BvhLibrary, GpuContext, wgpu};
 use bytemuck::{Pod, Zeroable};
 
 use crate::PathError;
+use crate::device::{bind_buffers, buffer_layout, compute_pipeline, refused};
 use crate::scene::PathParams;
 
 /// How the device follows a sample's paths.
@@ -105,52 +106,6 @@ fn buffer(ctx: &GpuContext, label: &str, size: u64, usage: wgpu::BufferUsages) -
     })
 }
 
-fn storage_layout(
-    device: &wgpu::Device,
-    label: &str,
-    uniform: bool,
-    n: u32,
-) -> wgpu::BindGroupLayout {
-    let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..n)
-        .map(|i| wgpu::BindGroupLayoutEntry {
-            binding: i,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: if uniform && i == 0 {
-                    wgpu::BufferBindingType::Uniform
-                } else {
-                    wgpu::BufferBindingType::Storage { read_only: false }
-                },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        })
-        .collect();
-    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some(label),
-        entries: &entries,
-    })
-}
-
-fn bind(
-    device: &wgpu::Device,
-    layout: &wgpu::BindGroupLayout,
-    buffers: &[&wgpu::Buffer],
-) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry> = (buffers.iter().enumerate())
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: b.as_entire_binding(),
-        })
-        .collect();
-    device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("path waves"),
-        layout,
-        entries: &entries,
-    })
-}
-
 impl Wavefront {
     /// Compiles the waves' kernels after `library`, with the BVH's group 0 and the path
     /// tracer's group 1 laid out as `layouts`, its counts in `stats` (`path_stats`, whose
@@ -166,26 +121,12 @@ impl Wavefront {
             (ctx.shader_module_async(library, &wavefront_source(), "path_wavefront.wgsl")).await?;
         let device = ctx.device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let layout = storage_layout(device, "path waves", true, 2);
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("path waves"),
-            bind_group_layouts: &[Some(layouts[0]), Some(layouts[1]), Some(&layout)],
-            immediate_size: 0,
-        });
-        let make = |entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants,
-                    zero_initialize_workgroup_memory: false,
-                },
-                cache: None,
-            })
-        };
-        let (start, extend) = (make("path_wave_start"), make("path_wave_extend"));
+        use wgpu::BufferBindingType as B;
+        let rw = B::Storage { read_only: false };
+        let layout = buffer_layout(device, "path waves", &[B::Uniform, rw]);
+        let groups = [layouts[0], layouts[1], &layout];
+        let start = compute_pipeline(device, (&module, "path_wave_start"), &groups, constants);
+        let extend = compute_pipeline(device, (&module, "path_wave_extend"), &groups, constants);
         use wgpu::BufferUsages as U;
         let uniform = buffer(ctx, "path wave", 16, U::UNIFORM | U::COPY_DST);
         let args = buffer(
@@ -194,32 +135,20 @@ impl Wavefront {
             12,
             U::STORAGE | U::INDIRECT | U::COPY_DST,
         );
-        let prepare_layout = storage_layout(device, "path wave prepare", false, 2);
+        let prepare_layout = buffer_layout(device, "path wave prepare", &[rw, rw]);
         let prepare_module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some(PATH_WAVE_PREPARE.0),
             source: wgpu::ShaderSource::Wgsl(PATH_WAVE_PREPARE.1.into()),
         });
-        let prepare = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("path_wave_prepare"),
-            layout: Some(
-                &device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                    label: Some("path wave prepare"),
-                    bind_group_layouts: &[Some(&prepare_layout)],
-                    immediate_size: 0,
-                }),
-            ),
-            module: &prepare_module,
-            entry_point: Some("path_wave_prepare"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
-        let prepare_group = bind(device, &prepare_layout, &[stats, &args]);
-        if let Some(e) = scope.pop().await {
-            return Err(PathError::Gpu(GpuError::Device {
-                during: "making the path tracer's waves",
-                message: e.to_string(),
-            }));
-        }
+        let entry = (&prepare_module, "path_wave_prepare");
+        let prepare = compute_pipeline(device, entry, &[&prepare_layout], &[]);
+        let prepare_group = bind_buffers(
+            device,
+            "path wave prepare",
+            &prepare_layout,
+            &[stats, &args],
+        );
+        refused(scope.pop().await, "making the path tracer's waves")?;
         Ok(Wavefront {
             start,
             extend,
@@ -260,7 +189,12 @@ impl Wavefront {
         // Read as vec4 words: whole ones.
         let bytes = (u64::from(capacity) * (state + 8)).next_multiple_of(16);
         let paths = buffer(ctx, "path states and queues", bytes, U::STORAGE);
-        let group = bind(ctx.device(), &self.layout, &[&self.uniform, &paths]);
+        let group = bind_buffers(
+            ctx.device(),
+            "path waves",
+            &self.layout,
+            &[&self.uniform, &paths],
+        );
         self.paths = Some(Paths {
             capacity,
             rows: rows as u32,
