@@ -399,3 +399,43 @@ fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
         );
     }
 }
+
+#[test]
+fn bench_trace_cpu_only_times_the_scene_as_the_front_door_traces_it() {
+    // The foliage places its meshes several times and cuts its leaves with alpha masks:
+    // the CPU layout over that tree gets its own rows, checked against the full stack over
+    // the same tree; one mesh without masks (the icosphere) gets none.
+    let foliage = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/foliage.gltf");
+    for (scene, rows_expected) in [(foliage, 1), ("builtin:icosphere:2", 0)] {
+        let out = run(&[
+            "bench-trace",
+            "--cpu-only",
+            "--runs",
+            "1",
+            "--size",
+            "64x48",
+            scene,
+        ]);
+        assert_ok(&out);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(
+            text.contains("as traced (two-level masked)"),
+            rows_expected > 0,
+            "{text}"
+        );
+        for kind in ["primary", "shadow", "diffuse"] {
+            let table = (text.split(&format!("{kind} (")).nth(1))
+                .unwrap_or_else(|| panic!("no {kind} table:\n{text}"));
+            let rows: Vec<&str> = (table.lines().skip(2))
+                .take_while(|l| !l.is_empty() && !l.contains(" ("))
+                .filter(|l| l.contains(" two-level masked "))
+                .collect();
+            // One row per instruction set this CPU has.
+            assert_eq!(rows.len().min(1), rows_expected, "{kind}:\n{table}");
+            for row in rows {
+                let differ = row.split_whitespace().last().unwrap_or_default();
+                assert_eq!(differ, "0", "{kind}: {row}");
+            }
+        }
+    }
+}

@@ -28,6 +28,36 @@ fn time(runs: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
+/// One cosine-weighted bounce from each primary hit (seeded), as `bench-trace` makes them.
+fn diffuse_rays(
+    tris: &[bvhtrace_core::Triangle],
+    flat: &bvhtrace_core::FlatBvh,
+    primary: &[Ray],
+) -> Vec<Ray> {
+    let hits = common::reference(flat, primary, Query::Closest);
+    let mut rnd = common::xorshift(7);
+    primary
+        .iter()
+        .zip(&hits)
+        .filter(|(_, h)| h.is_hit())
+        .map(|(r, h)| {
+            let p = h.surface(&tris[h.prim as usize], glam::Vec3::from(r.dir));
+            let n = p.normal;
+            let (a, b) = (rnd(), rnd());
+            let t = if n.x.abs() > 0.5 {
+                glam::Vec3::Y
+            } else {
+                glam::Vec3::X
+            };
+            let u = n.cross(t).normalize();
+            let v = n.cross(u);
+            let (phi, s) = (std::f32::consts::TAU * a, b.sqrt());
+            let d = u * phi.cos() * s + v * phi.sin() * s + n * (1.0 - b).max(0.0).sqrt();
+            p.spawn_ray(d, f32::INFINITY)
+        })
+        .collect()
+}
+
 fn main() {
     let args: Vec<usize> = std::env::args()
         .skip(1)
@@ -60,9 +90,12 @@ fn main() {
             bvh.bytes_per_triangle(),
             bvh.depth()
         );
+        let diffuse = diffuse_rays(&tris, &flat, &primary);
         for (kind, rays, q) in [
             ("primary", &primary, Query::Closest),
             ("shadow", &shadow, Query::Any),
+            ("diffuse", &diffuse, Query::Closest),
+            ("diffany", &diffuse, Query::Any),
         ] {
             if only("SPEED_KIND", kind) {
                 continue;

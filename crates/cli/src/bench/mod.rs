@@ -246,9 +246,10 @@ pub struct BenchTraceArgs {
     /// Only the CPU paths, without a device: the core walks (`--traversals`, default
     /// full-stack and wide) and the CPU layout (`bvhtrace-cpu`, each instruction set the
     /// CPU has) on primary (closest-hit), shadow (any-hit) and diffuse-bounce (closest-hit,
-    /// incoherent) rays, beside Embree 3's
-    /// default and robust modes with `--embree`, and each path's differences from the
-    /// full stack's answers.
+    /// incoherent) rays, beside Embree 3's default and robust modes with `--embree`, and
+    /// each path's differences from the full stack's answers. A scene traced in two levels
+    /// or with alpha masks also gets the CPU layout over that tree (rows `two-level`,
+    /// `masked`), checked against the full stack over the same tree.
     #[arg(long)]
     pub cpu_only: bool,
     /// With `--cpu-only`: an `embree_trace` built against Embree 4

@@ -4,6 +4,10 @@
 //! incoherent: one cosine-weighted bounce from each primary hit, seeded) rays, same rays,
 //! same run; and the packet walk on the same rays put in 8x8 screen tiles (the diffuse
 //! rays in the primary hits' order: their origins are coherent, their directions not).
+//! A scene the front door traces in two levels or with alpha masks also gets rows of the
+//! CPU layout over that tree (named `two-level`, `masked`), on the same rays, checked
+//! against the full stack over the same tree; Embree traces the flattened triangles
+//! without masks.
 
 use std::time::Instant;
 
@@ -17,24 +21,42 @@ use crate::embree::{self, Dump};
 /// A CPU path's batch trace.
 type TraceFn<'a> = Box<dyn Fn(&[Ray], Query) -> Vec<Hit> + 'a>;
 
-/// A path timed: its name, its trace, and whether it takes the rays in 8x8 tiles.
-type Path<'a> = (String, TraceFn<'a>, bool);
+/// A path timed: its name, its trace, whether it takes the rays in 8x8 tiles, and the tree
+/// whose full-stack answers it is checked against (0: the flattened triangles', 1: the
+/// scene as traced, with two levels or masks).
+type Path<'a> = (String, TraceFn<'a>, bool, usize);
+
+/// The scene as the front door traces it when that is not one mesh without masks: its
+/// name in the rows (`two-level`, `masked`), its tree and the tree's CPU layout.
+type Traced<'a> = Option<(&'static str, &'a FlatBvh, &'a CpuBvh)>;
 
 /// The paths timed: the core walks asked for, then the CPU layout on each instruction set
-/// this CPU has, one ray at a time and in packets (on the rays in tiles).
-fn paths<'a>(flat: &'a FlatBvh, cpu: &'a CpuBvh, walks: &[Traversal]) -> Vec<Path<'a>> {
+/// this CPU has, one ray at a time and in packets (on the rays in tiles), then the CPU
+/// layout of the scene as traced (two levels, masks) one ray at a time.
+fn paths<'a>(
+    flat: &'a FlatBvh,
+    cpu: &'a CpuBvh,
+    walks: &[Traversal],
+    traced: Traced<'a>,
+) -> Vec<Path<'a>> {
     let mut out: Vec<Path<'a>> = Vec::new();
     for &tr in walks {
         let f = move |rays: &[Ray], q| trace_rays(flat, rays, &TraceOptions::new(tr, q)).hits;
-        out.push((format!("core {tr}"), Box::new(f), false));
+        out.push((format!("core {tr}"), Box::new(f), false, 0));
     }
     for isa in Isa::all_available() {
         let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_rays_with(cpu, rays, q, isa);
-        out.push((format!("cpu8 {isa}"), Box::new(f), false));
+        out.push((format!("cpu8 {isa}"), Box::new(f), false, 0));
     }
     for isa in Isa::all_available() {
         let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_packets_with(cpu, rays, q, isa);
-        out.push((format!("cpu8 {isa} packets"), Box::new(f), true));
+        out.push((format!("cpu8 {isa} packets"), Box::new(f), true, 0));
+    }
+    if let Some((name, _, cpu)) = traced {
+        for isa in Isa::all_available() {
+            let f = move |rays: &[Ray], q| bvhtrace_cpu::trace_rays_with(cpu, rays, q, isa);
+            out.push((format!("cpu8 {isa} {name}"), Box::new(f), false, 1));
+        }
     }
     out
 }
@@ -140,7 +162,7 @@ impl Sweep {
                     format!("{n}: {r:.2} ({:.0}%)", 100.0 * r / (per * n as f64))
                 })
                 .collect();
-            println!("{spec} {kind} {path:22} {}", cells.join("  "));
+            println!("{spec} {kind} {path:28} {}", cells.join("  "));
         }
     }
 }
@@ -194,6 +216,29 @@ fn run_scenes(args: &BenchTraceArgs, sweep: &mut Sweep) -> Result<()> {
             cpu.nodes().len(),
             cpu.blocks().len(),
         );
+        // The scene as the front door traces it (two levels where it places meshes more
+        // than once, its alpha masks), timed beside the flattened triangles when it differs.
+        let traced = scene.tracing_bvh(&BuildOptions::default(), false)?;
+        let traced_name = match (traced.is_two_level(), traced.bvh().masks().is_some()) {
+            (false, false) => None,
+            (true, false) => Some("two-level"),
+            (false, true) => Some("masked"),
+            (true, true) => Some("two-level masked"),
+        };
+        let traced_cpu = match traced_name {
+            Some(_) => CpuBvh::from_flat(traced.bvh())?,
+            None => CpuBvh::default(),
+        };
+        let traced = traced_name.map(|name| (name, traced.bvh(), &traced_cpu));
+        if let Some((name, t, c)) = traced {
+            println!(
+                "as traced ({name}): {} nodes, {} instances; CPU layout {} nodes, {} blocks",
+                t.nodes().len(),
+                t.instances().len(),
+                c.nodes().len(),
+                c.blocks().len()
+            );
+        }
         let cam = scene.camera_or_frame(w as f32 / h as f32);
         let sets = ray_sets(&tris, &flat, &cam, w, h);
         let (primary_tiled, shadow_tiled) =
@@ -207,9 +252,10 @@ fn run_scenes(args: &BenchTraceArgs, sweep: &mut Sweep) -> Result<()> {
                 Query::Closest,
             ),
         ];
-        let paths = paths(&flat, &cpu, &walks);
+        let paths = paths(&flat, &cpu, &walks, traced);
+        let trees = [&flat, traced.map_or(&flat, |t| t.1)];
         for (kind, rays, q) in kinds {
-            let rates = bench_kind(args, &spec, kind, &tris, &flat, &paths, &rays, q)?;
+            let rates = bench_kind(args, &spec, kind, &tris, trees, &paths, &rays, q)?;
             for (path, mrays) in rates {
                 sweep.add((spec.clone(), kind.to_string(), path), mrays);
             }
@@ -227,17 +273,15 @@ fn bench_kind(
     spec: &str,
     kind: &str,
     tris: &[bvhtrace_core::Triangle],
-    flat: &FlatBvh,
+    trees: [&FlatBvh; 2],
     paths: &[Path<'_>],
     sets: &[Vec<Ray>; 2],
     q: Query,
 ) -> Result<Vec<(String, f64)>> {
     let rays = &sets[0];
     let opts = TraceOptions::new(Traversal::FullStack, q);
-    let refs = [
-        trace_rays(flat, rays, &opts).hits,
-        trace_rays(flat, &sets[1], &opts).hits,
-    ];
+    // Each tree's full-stack answers, on the rays in order and in tiles.
+    let refs = trees.map(|t| [0, 1].map(|k| trace_rays(t, &sets[k], &opts).hits));
     let dump = match args.embree.is_some() || args.embree4.is_some() {
         true => Some(Dump::write(kind, tris, rays)?),
         false => None,
@@ -248,12 +292,12 @@ fn bench_kind(
     let mut ms = vec![Vec::new(); paths.len() + 4];
     let mut diffs = vec![0; paths.len()];
     // Untimed warm-up, which also checks the answers.
-    for (i, (_, f, tiled)) in paths.iter().enumerate() {
+    for (i, (_, f, tiled, tree)) in paths.iter().enumerate() {
         let k = usize::from(*tiled);
-        diffs[i] = differences(&f(&sets[k], q), &refs[k], q);
+        diffs[i] = differences(&f(&sets[k], q), &refs[*tree][k], q);
     }
     for _ in 0..args.runs {
-        for (i, (_, f, tiled)) in paths.iter().enumerate() {
+        for (i, (_, f, tiled, _)) in paths.iter().enumerate() {
             let rays = &sets[usize::from(*tiled)];
             let t = Instant::now();
             std::hint::black_box(f(rays, q));
@@ -286,7 +330,7 @@ fn bench_kind(
         }
     };
     println!(
-        "{spec} {kind} ({} rays, {q:?}):\n{:22} {:>9} {:>9} {:>12} {:>13} {:>13} {:>7}",
+        "{spec} {kind} ({} rays, {q:?}):\n{:28} {:>9} {:>9} {:>12} {:>13} {:>13} {:>7}",
         rays.len(),
         "path",
         "Mrays/s",
@@ -300,7 +344,7 @@ fn bench_kind(
     let fast4 = &ms[paths.len() + 2];
     let names = paths
         .iter()
-        .map(|(s, _, _)| s.as_str())
+        .map(|(s, _, _, _)| s.as_str())
         .chain(EMBREE_MODES.iter().chain(&EMBREE4_MODES).map(|m| m.0));
     let mut rates = Vec::new();
     for (i, name) in names.enumerate() {
@@ -309,7 +353,7 @@ fn bench_kind(
         }
         rates.push((name.to_string(), mrays(&ms[i])));
         println!(
-            "{:22} {:>9.2} {:>9} {:>12} {:>13} {:>13} {:>7}",
+            "{:28} {:>9.2} {:>9} {:>12} {:>13} {:>13} {:>7}",
             name,
             mrays(&ms[i]),
             ratio(&ms[0], &ms[i]),
