@@ -120,7 +120,7 @@ impl Node8 {
 
 /// Four triangles in SoA (see the module docs).
 #[repr(C, align(16))]
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Zeroable)]
 pub struct Tri4 {
     /// `v[corner][axis][lane]`.
     pub v: [[[f32; BLOCK]; 3]; 3],
@@ -166,7 +166,7 @@ pub const CORNER_BOXES: u32 = u32::MAX;
 /// leaf (a triangle at or behind the ray's origin, its `t` rounded into the interval), and
 /// the binary walk's answer is what the layout's must be.
 #[repr(C, align(32))]
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Zeroable)]
 pub struct LeafBoxes {
     /// `planes[2 * axis][lane]` the lower corner, `planes[2 * axis + 1][lane]` the upper.
     pub planes: [[f32; BLOCK]; 6],
@@ -255,7 +255,7 @@ enum Level {
 }
 
 /// What a wide node's slot is made from while converting.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, PartialEq)]
 enum Src {
     /// A binary node.
     Node(u32),
@@ -468,7 +468,7 @@ fn collapse(
     nodes.push(Node8::EMPTY);
     let mut depth = 1;
     let root_src = if fnodes[root as usize].is_leaf() {
-        vec![Src::Node(root)]
+        SrcList::of(&[Src::Node(root)])
     } else {
         children_of(fnodes, root)
     };
@@ -477,7 +477,7 @@ fn collapse(
     while let Some((at, srcs, depth_here)) = work.pop() {
         depth = depth.max(depth_here);
         let srcs = expand(fnodes, spans, level, srcs);
-        for (slot, src) in srcs.into_iter().enumerate() {
+        for (slot, &src) in srcs.as_slice().iter().enumerate() {
             let mut pending = |first: u32, count: u32| {
                 leaves.push(PendingLeaf {
                     node: at,
@@ -549,32 +549,75 @@ fn collapse(
     Ok(depth)
 }
 
+/// A wide node's slots while converting: up to [`WIDTH`], in order, with no allocation
+/// (the collapse makes one per wide node).
+#[derive(Clone, Copy)]
+struct SrcList {
+    items: [Src; WIDTH],
+    len: usize,
+}
+
+impl SrcList {
+    fn of(srcs: &[Src]) -> SrcList {
+        let mut items = [Src::Run(0, 0); WIDTH];
+        items[..srcs.len()].copy_from_slice(srcs);
+        SrcList {
+            items,
+            len: srcs.len(),
+        }
+    }
+
+    fn as_slice(&self) -> &[Src] {
+        &self.items[..self.len]
+    }
+}
+
 /// A binary interior node's two children.
-fn children_of(fnodes: &[FlatNode], i: u32) -> Vec<Src> {
-    vec![
+fn children_of(fnodes: &[FlatNode], i: u32) -> SrcList {
+    SrcList::of(&[
         Src::Node(i + 1),
         Src::Node(fnodes[i as usize].right_or_first),
-    ]
+    ])
 }
 
 /// Grows a slot list to eight: the interior child of largest surface area is replaced by
-/// its two children while there is one (the first of equal areas, so the result is
-/// deterministic).
-fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, mut srcs: Vec<Src>) -> Vec<Src> {
-    while srcs.len() < WIDTH {
+/// its two children, in its place, while there is one (the first of equal areas, so the
+/// result is deterministic).
+fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, mut srcs: SrcList) -> SrcList {
+    // Each slot's area when it can be opened, else none: computed once per slot.
+    let openable = |s: Src| match s {
+        Src::Node(i) if !is_leaf_child(fnodes, spans, level, i) => {
+            Some(fnodes[i as usize].aabb().surface_area())
+        }
+        _ => None,
+    };
+    let mut area = [None; WIDTH];
+    for (a, &s) in area.iter_mut().zip(srcs.as_slice()) {
+        *a = openable(s);
+    }
+    while srcs.len < WIDTH {
         let mut pick: Option<(usize, f32)> = None;
-        for (k, s) in srcs.iter().enumerate() {
-            if let Src::Node(i) = *s {
-                let n = &fnodes[i as usize];
-                let area = n.aabb().surface_area();
-                if !is_leaf_child(fnodes, spans, level, i) && pick.is_none_or(|(_, a)| area > a) {
-                    pick = Some((k, area));
-                }
+        for (k, a) in area[..srcs.len].iter().enumerate() {
+            if let Some(a) = *a
+                && pick.is_none_or(|(_, best)| a > best)
+            {
+                pick = Some((k, a));
             }
         }
         let Some((k, _)) = pick else { break };
-        let Src::Node(i) = srcs[k] else { break };
-        srcs.splice(k..=k, children_of(fnodes, i));
+        let Src::Node(i) = srcs.items[k] else { break };
+        let [a, b] = [
+            Src::Node(i + 1),
+            Src::Node(fnodes[i as usize].right_or_first),
+        ];
+        // The slots after `k` move up one; `k` and `k + 1` take the two children.
+        srcs.items.copy_within(k + 1..srcs.len, k + 2);
+        area.copy_within(k + 1..srcs.len, k + 2);
+        srcs.items[k] = a;
+        srcs.items[k + 1] = b;
+        area[k] = openable(a);
+        area[k + 1] = openable(b);
+        srcs.len += 1;
     }
     srcs
 }
@@ -613,13 +656,17 @@ fn is_leaf_child(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, i: u32
 }
 
 /// A long run of triangles as up to eight shorter runs.
-fn split_run(first: u32, count: u32) -> Vec<Src> {
+fn split_run(first: u32, count: u32) -> SrcList {
     let per = count.div_ceil(WIDTH as u32);
-    (0..WIDTH as u32)
-        .map(|k| (first + k * per, per.min(count.saturating_sub(k * per))))
-        .filter(|&(_, c)| c > 0)
-        .map(|(f, c)| Src::Run(f, c))
-        .collect()
+    let mut out = SrcList::of(&[]);
+    for k in 0..WIDTH as u32 {
+        let c = per.min(count.saturating_sub(k * per));
+        if c > 0 {
+            out.items[out.len] = Src::Run(first + k * per, c);
+            out.len += 1;
+        }
+    }
+    out
 }
 
 /// Each triangle slot's binary leaf box: the box the binary walk tests before the
@@ -676,51 +723,49 @@ fn write_blocks(
         let count = l.tris.div_ceil(BLOCK as u32);
         nodes[l.node as usize].child[l.slot as usize] = leaf_ref(s as u32, count);
     }
-    let mut blocks = vec![
-        Tri4 {
-            v: [[[0.0; BLOCK]; 3]; 3],
-            prim: [0; BLOCK],
-        };
-        total
-    ];
-    let mut boxes = vec![
-        LeafBoxes {
-            planes: [[0.0; BLOCK]; 6]
-        };
-        total
-    ];
+    // Zeroed memory comes from the allocator lazily: the blocks are written once, in
+    // parallel below, not first on one thread.
+    let mut blocks: Vec<Tri4> = bytemuck::zeroed_vec(total);
+    let mut boxes: Vec<LeafBoxes> = bytemuck::zeroed_vec(total);
+    let mut corner: Vec<bool> = vec![false; total];
     // Each leaf's blocks are a disjoint run: split the output by leaf and fill in parallel.
     let mut runs = Vec::with_capacity(leaves.len());
-    let (mut rest, mut rest_boxes) = (blocks.as_mut_slice(), boxes.as_mut_slice());
+    let mut rest = (
+        blocks.as_mut_slice(),
+        boxes.as_mut_slice(),
+        corner.as_mut_slice(),
+    );
     for l in leaves {
         let n = l.tris.div_ceil(BLOCK as u32) as usize;
-        let (head, tail) = rest.split_at_mut(n);
-        let (head_boxes, tail_boxes) = rest_boxes.split_at_mut(n);
-        runs.push((head, head_boxes, l));
-        (rest, rest_boxes) = (tail, tail_boxes);
+        let (head, tail) = rest.0.split_at_mut(n);
+        let (head_boxes, tail_boxes) = rest.1.split_at_mut(n);
+        let (head_corner, tail_corner) = rest.2.split_at_mut(n);
+        runs.push((head, head_boxes, head_corner, l));
+        rest = (tail, tail_boxes, tail_corner);
     }
     runs.into_par_iter()
         .with_min_len(1024)
-        .for_each(|(out, out_boxes, l)| {
-            // Written in full here; only the blocks whose boxes are not their corners'
-            // are kept (below).
+        .for_each(|(out, out_boxes, out_corner, l)| {
             let range = l.first_tri as usize..(l.first_tri + l.tris) as usize;
             let chunks = ftris[range.clone()]
                 .chunks(BLOCK)
                 .zip(tri_box[range].chunks(BLOCK));
-            for ((b, bx), (chunk, cb)) in out.iter_mut().zip(out_boxes.iter_mut()).zip(chunks) {
+            let outs = out.iter_mut().zip(out_boxes.iter_mut()).zip(out_corner);
+            for (((b, bx), c), (chunk, cb)) in outs.zip(chunks) {
                 *b = Tri4::of(chunk);
                 *bx = LeafBoxes::of(cb);
+                *c = bx.are_corner_boxes(b);
             }
         });
+    // Only the blocks whose boxes are not their triangles' own keep theirs.
     let mut box_index = Vec::with_capacity(total);
     let mut kept = Vec::new();
-    for (b, bx) in blocks.iter().zip(boxes) {
-        if bx.are_corner_boxes(b) {
+    for (bx, &is_corner) in boxes.iter().zip(&corner) {
+        if is_corner {
             box_index.push(CORNER_BOXES);
         } else {
             box_index.push(kept.len() as u32);
-            kept.push(bx);
+            kept.push(*bx);
         }
     }
     Ok((blocks, box_index, kept))
