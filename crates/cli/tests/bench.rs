@@ -348,6 +348,16 @@ fn bench_and_converge_measure_ray_queries() {
     }
 }
 
+/// The rows of `bench-trace --cpu-only`'s first table of ray kind `kind` in `text` (the
+/// lines below its head, up to the next blank line or table).
+fn cpu_table_rows<'a>(text: &'a str, kind: &str) -> Vec<&'a str> {
+    let table = (text.split(&format!("{kind} (")).nth(1))
+        .unwrap_or_else(|| panic!("no {kind} table:\n{text}"));
+    (table.lines().skip(2))
+        .take_while(|l| !l.is_empty() && !l.contains(" ("))
+        .collect()
+}
+
 /// `bench-trace --cpu-only` traces diffuse-bounce rays beside primary and shadow rays, every
 /// path with the full stack's answers, and sweeps thread counts; a count of 0, or a sweep
 /// or Embree 4's helper without `--cpu-only`, is refused.
@@ -367,11 +377,7 @@ fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
     assert_ok(&out);
     let text = String::from_utf8_lossy(&out.stdout);
     for kind in ["primary", "shadow", "diffuse"] {
-        let table = (text.split(&format!("{kind} (")).nth(1))
-            .unwrap_or_else(|| panic!("no {kind} table:\n{text}"));
-        let rows: Vec<&str> = (table.lines().skip(2))
-            .take_while(|l| !l.is_empty() && !l.contains(" ("))
-            .collect();
+        let rows = cpu_table_rows(&text, kind);
         assert!(rows.len() >= 3, "{kind}: {rows:?}");
         for row in rows {
             let differ = row.split_whitespace().last().unwrap_or_default();
@@ -424,14 +430,11 @@ fn bench_trace_cpu_only_times_the_scene_as_the_front_door_traces_it() {
             "{text}"
         );
         for kind in ["primary", "shadow", "diffuse"] {
-            let table = (text.split(&format!("{kind} (")).nth(1))
-                .unwrap_or_else(|| panic!("no {kind} table:\n{text}"));
-            let rows: Vec<&str> = (table.lines().skip(2))
-                .take_while(|l| !l.is_empty() && !l.contains(" ("))
+            let rows: Vec<&str> = (cpu_table_rows(&text, kind).into_iter())
                 .filter(|l| l.contains(" two-level masked "))
                 .collect();
             // One row per instruction set this CPU has.
-            assert_eq!(rows.len().min(1), rows_expected, "{kind}:\n{table}");
+            assert_eq!(rows.len().min(1), rows_expected, "{kind}:\n{text}");
             for row in rows {
                 let differ = row.split_whitespace().last().unwrap_or_default();
                 assert_eq!(differ, "0", "{kind}: {row}");

@@ -28,32 +28,20 @@ fn time(runs: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
-/// One cosine-weighted bounce from each primary hit (seeded), as `bench-trace` makes them.
+/// One cosine-weighted bounce from each primary hit, as `bench-trace` makes them (the
+/// core's `cosine_dir`, seeded by the pixel).
 fn diffuse_rays(
     tris: &[bvhtrace_core::Triangle],
     flat: &bvhtrace_core::FlatBvh,
     primary: &[Ray],
 ) -> Vec<Ray> {
     let hits = common::reference(flat, primary, Query::Closest);
-    let mut rnd = common::xorshift(7);
-    primary
-        .iter()
-        .zip(&hits)
-        .filter(|(_, h)| h.is_hit())
-        .map(|(r, h)| {
+    (primary.iter().zip(&hits).enumerate())
+        .filter(|(_, (_, h))| h.is_hit())
+        .map(|(i, (r, h))| {
             let p = h.surface(&tris[h.prim as usize], glam::Vec3::from(r.dir));
-            let n = p.normal;
-            let (a, b) = (rnd(), rnd());
-            let t = if n.x.abs() > 0.5 {
-                glam::Vec3::Y
-            } else {
-                glam::Vec3::X
-            };
-            let u = n.cross(t).normalize();
-            let v = n.cross(u);
-            let (phi, s) = (std::f32::consts::TAU * a, b.sqrt());
-            let d = u * phi.cos() * s + v * phi.sin() * s + n * (1.0 - b).max(0.0).sqrt();
-            p.spawn_ray(d, f32::INFINITY)
+            let dir = bvhtrace_core::surface::cosine_dir(p.normal, i as u32, 0);
+            p.spawn_ray(dir, f32::INFINITY)
         })
         .collect()
 }

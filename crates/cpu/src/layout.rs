@@ -255,7 +255,7 @@ enum Level {
 }
 
 /// What a wide node's slot is made from while converting.
-#[derive(Clone, Copy, PartialEq)]
+#[derive(Clone, Copy)]
 enum Src {
     /// A binary node.
     Node(u32),
@@ -581,11 +581,16 @@ impl SrcList {
 }
 
 /// A binary interior node's two children.
-fn children_of(fnodes: &[FlatNode], i: u32) -> SrcList {
-    SrcList::of(&[
+fn child_nodes(fnodes: &[FlatNode], i: u32) -> [Src; 2] {
+    [
         Src::Node(i + 1),
         Src::Node(fnodes[i as usize].right_or_first),
-    ])
+    ]
+}
+
+/// [`child_nodes`] as a wide node's slots.
+fn children_of(fnodes: &[FlatNode], i: u32) -> SrcList {
+    SrcList::of(&child_nodes(fnodes, i))
 }
 
 /// Grows a slot list to eight: the interior child of largest surface area is replaced by
@@ -614,10 +619,7 @@ fn expand(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, mut srcs: Src
         }
         let Some((k, _)) = pick else { break };
         let Src::Node(i) = srcs.items[k] else { break };
-        let [a, b] = [
-            Src::Node(i + 1),
-            Src::Node(fnodes[i as usize].right_or_first),
-        ];
+        let [a, b] = child_nodes(fnodes, i);
         // The slots after `k` move up one; `k` and `k + 1` take the two children.
         srcs.items.copy_within(k + 1..srcs.len, k + 2);
         area.copy_within(k + 1..srcs.len, k + 2);

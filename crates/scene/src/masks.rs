@@ -94,16 +94,22 @@ impl<'a> Tables<'a> {
 }
 
 impl Scene {
+    /// True when some material is alpha-tested: [`Scene::tracing_bvh`] then attaches
+    /// [`Scene::alpha_masks`] to the tree, and the walks cut candidates by them.
+    pub fn has_alpha_masks(&self) -> bool {
+        (self.materials.iter()).any(|m| m.alpha_mask(&self.alpha_textures).is_some())
+    }
+
     /// The alpha-tested triangles of `traced` (this scene's BVH, flattened or two-level,
     /// as [`Scene::tracing_bvh`] made it), as every walk reads them; `None` when no
     /// triangle's material is masked. [`Scene::tracing_bvh`] attaches them already.
     pub fn alpha_masks(&self, traced: &SceneBvh) -> Option<MaskTables> {
+        if !self.has_alpha_masks() {
+            return None;
+        }
         let masks: Vec<Option<AlphaMask<'_>>> = (self.materials.iter())
             .map(|m| m.alpha_mask(&self.alpha_textures))
             .collect();
-        if masks.iter().all(Option::is_none) {
-            return None;
-        }
         let mut t = Tables {
             masks,
             materials: Vec::new(),

@@ -217,19 +217,26 @@ fn run_scenes(args: &BenchTraceArgs, sweep: &mut Sweep) -> Result<()> {
             cpu.blocks().len(),
         );
         // The scene as the front door traces it (two levels where it places meshes more
-        // than once, its alpha masks), timed beside the flattened triangles when it differs.
-        let traced = scene.tracing_bvh(&BuildOptions::default(), false)?;
-        let traced_name = match (traced.is_two_level(), traced.bvh().masks().is_some()) {
+        // than once, its alpha masks), built and timed beside the flattened triangles only
+        // when it differs from them.
+        let traced_name = match (scene.traces_in_two_levels(false), scene.has_alpha_masks()) {
             (false, false) => None,
             (true, false) => Some("two-level"),
             (false, true) => Some("masked"),
             (true, true) => Some("two-level masked"),
         };
-        let traced_cpu = match traced_name {
-            Some(_) => CpuBvh::from_flat(traced.bvh())?,
-            None => CpuBvh::default(),
+        let traced_bvh = match traced_name {
+            Some(_) => Some(scene.tracing_bvh(&BuildOptions::default(), false)?),
+            None => None,
         };
-        let traced = traced_name.map(|name| (name, traced.bvh(), &traced_cpu));
+        let traced_cpu = match &traced_bvh {
+            Some(t) => Some(CpuBvh::from_flat(t.bvh())?),
+            None => None,
+        };
+        let traced = (traced_name
+            .zip(traced_bvh.as_ref())
+            .zip(traced_cpu.as_ref()))
+        .map(|((name, t), c)| (name, t.bvh(), c));
         if let Some((name, t, c)) = traced {
             println!(
                 "as traced ({name}): {} nodes, {} instances; CPU layout {} nodes, {} blocks",
