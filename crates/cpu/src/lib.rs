@@ -202,12 +202,77 @@ pub fn trace_rays_with_mask(
     mask: u8,
     isa: Isa,
 ) -> Vec<Hit> {
-    const RUN: usize = 256;
     let mut hits = vec![Hit::miss(0.0); rays.len()];
-    hits.par_chunks_mut(RUN)
-        .zip(rays.par_chunks(RUN))
-        .for_each(|(h, r)| trace_rays_into(bvh, r, query, mask, isa, h));
+    hits.par_chunks_mut(CLASS_RUN)
+        .zip(rays.par_chunks(CLASS_RUN))
+        .for_each(|(h, r)| trace_run(bvh, r, query, mask, isa, h));
     hits
+}
+
+/// One thread's run of at most [`CLASS_RUN`] rays into `hits`. Where rays take turns
+/// (the AVX2 walks of one mesh without masks), they do so only with rays of their own
+/// class in their group of eight, so rays of many classes (incoherent bounces) are walked
+/// in order of class and their hits put back in the rays' order.
+fn trace_run(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits: &mut [Hit]) {
+    let turns = isa.or_available() == Isa::Avx2 && !bvh.is_instanced() && bvh.masks.is_none();
+    let Some(order) = turns
+        .then(|| class_order(rays, query == Query::Any))
+        .flatten()
+    else {
+        return trace_rays_into(bvh, rays, query, mask, isa, hits);
+    };
+    let order = &order[..rays.len()];
+    let sorted: Vec<Ray> = order.iter().map(|&i| rays[usize::from(i)]).collect();
+    let mut sorted_hits = vec![Hit::miss(0.0); rays.len()];
+    trace_rays_into(bvh, &sorted, query, mask, isa, &mut sorted_hits);
+    for (h, &i) in sorted_hits.iter().zip(order) {
+        hits[usize::from(i)] = *h;
+    }
+}
+
+/// The most rays [`class_order`] orders at once.
+const CLASS_RUN: usize = 256;
+
+/// The order (indices into `rays`, at most [`CLASS_RUN`] of them) that puts rays of one
+/// class ([`single::class_guess`]) together, each class in the rays' own order; `None`
+/// when most groups of eight are of one class as they are.
+#[inline(always)]
+fn class_order(rays: &[Ray], any: bool) -> Option<[u8; CLASS_RUN]> {
+    debug_assert!(rays.len() <= CLASS_RUN);
+    // Camera rays and shadow rays toward one light mostly share a class: their first
+    // two groups of eight say so, for less than reading every ray.
+    let classes =
+        |group: &[Ray]| (group.iter()).fold(0u32, |m, r| m | 1 << single::class_guess(r, any));
+    let first = rays.chunks(tests4::RAYS).take(2);
+    if first.map(|g| classes(g).count_ones()).sum::<u32>() <= 2 {
+        return None;
+    }
+    let mut class = [0u8; CLASS_RUN];
+    let mut count = [0u16; single::CLASSES + 1];
+    // Each class in a group has a tail walked alone, once the class's other rays are done.
+    let mut tails = 0;
+    for (g, group) in rays.chunks(tests4::RAYS).enumerate() {
+        let mut in_group = 0u32;
+        for (i, r) in group.iter().enumerate() {
+            let c = single::class_guess(r, any);
+            class[g * tests4::RAYS + i] = c as u8;
+            count[c + 1] += 1;
+            in_group |= 1 << c;
+        }
+        tails += in_group.count_ones() as usize;
+    }
+    if tails * tests4::RAYS <= rays.len() * 5 / 4 {
+        return None;
+    }
+    for c in 1..count.len() {
+        count[c] += count[c - 1];
+    }
+    let mut order = [0u8; CLASS_RUN];
+    for (i, &c) in class[..rays.len()].iter().enumerate() {
+        order[usize::from(count[usize::from(c)])] = i as u8;
+        count[usize::from(c)] += 1;
+    }
+    Some(order)
 }
 
 /// One thread's run of rays into `hits`.
@@ -513,5 +578,94 @@ unsafe fn packets_avx2(
     match query {
         Query::Closest => packet::run::<lanes::Sse, lanes::Avx8, false>(bvh, rays, hits, s),
         Query::Any => packet::run::<lanes::Sse, lanes::Avx8, true>(bvh, rays, hits, s),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// Rays from one point, each direction's class given by `dirs`.
+    fn rays(dirs: &[Vec3]) -> Vec<Ray> {
+        dirs.iter().map(|&d| Ray::new(Vec3::ONE, d)).collect()
+    }
+
+    #[test]
+    fn rays_of_one_class_keep_their_order() {
+        let one = rays(&[Vec3::new(1.0, 0.5, 0.25); CLASS_RUN]);
+        assert_eq!(class_order(&one, false), None);
+        assert_eq!(class_order(&one, true), None);
+    }
+
+    #[test]
+    fn rays_of_many_classes_are_put_together_by_class() {
+        // Closest hits by dominant axis, any hits by octant, cycling from ray to ray.
+        let axes = [
+            Vec3::new(1.0, 0.5, 0.5),
+            Vec3::new(0.5, -1.0, 0.5),
+            Vec3::new(0.5, 0.5, 1.0),
+        ];
+        let dirs: Vec<Vec3> = (0..200)
+            .map(|i| axes[i % 3] * if i % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
+        let rs = rays(&dirs);
+        for any in [false, true] {
+            let order = class_order(&rs, any).expect("rays of many classes are ordered");
+            let order = &order[..rs.len()];
+            let mut seen = order.to_vec();
+            seen.sort_unstable();
+            assert!(
+                seen.iter().enumerate().all(|(i, &s)| usize::from(s) == i),
+                "a permutation"
+            );
+            let classes: Vec<usize> = order
+                .iter()
+                .map(|&i| single::class_guess(&rs[usize::from(i)], any))
+                .collect();
+            assert!(
+                classes.is_sorted(),
+                "classes together, in order: {classes:?}"
+            );
+            // Within a class, the rays' own order.
+            for w in order.windows(2) {
+                let c = |i: u8| single::class_guess(&rs[usize::from(i)], any);
+                assert!(c(w[0]) < c(w[1]) || w[0] < w[1]);
+            }
+        }
+    }
+
+    #[test]
+    fn rays_walked_in_order_of_class_answer_as_one_at_a_time() {
+        let tris: Vec<_> = (0..64)
+            .map(|i| {
+                let c = Vec3::new((i % 4) as f32, (i / 4 % 4) as f32, (i / 16) as f32);
+                [c, c + Vec3::X * 0.8, c + Vec3::Y * 0.8]
+            })
+            .collect();
+        let flat = bvhtrace_core::FlatBvh::build(&tris, &Default::default()).unwrap();
+        let bvh = CpuBvh::from_flat(&flat).unwrap();
+        // Every direction's class from ray to ray, from points among the triangles.
+        let rs: Vec<Ray> = (0..600)
+            .map(|i| {
+                let f = |k: u32| bvhtrace_core::surface::uniform2(i, k).0 * 2.0 - 1.0;
+                let o = Vec3::new(f(0) * 2.0 + 2.0, f(1) * 2.0 + 2.0, f(2) * 2.0 + 2.0);
+                Ray::new(o, Vec3::new(f(3), f(4), f(5)))
+            })
+            .collect();
+        for q in [Query::Closest, Query::Any] {
+            assert!(class_order(&rs[..CLASS_RUN], q == Query::Any).is_some());
+            let batch = trace_rays(&bvh, &rs, q);
+            let hits = batch.iter().filter(|h| h.is_hit()).count();
+            assert!(hits > 50 && hits < 550, "{hits} hits: rays of both kinds");
+            for (r, h) in rs.iter().zip(&batch) {
+                let one = trace_ray(&bvh, r, q);
+                assert_eq!(
+                    (one.t.to_bits(), one.prim),
+                    (h.t.to_bits(), h.prim),
+                    "{r:?}"
+                );
+            }
+        }
     }
 }

@@ -331,6 +331,32 @@ pub(crate) fn turns_class<const ANY: bool>(p: &Prepared, ray: &Ray, i: usize) ->
     })
 }
 
+/// The number of classes [`class_guess`] gives.
+pub(crate) const CLASSES: usize = 9;
+
+/// [`turns_class`] of `ray` read from the ray itself, before it is prepared (its
+/// direction not flushed), so that rays can be put in order of class ahead of their
+/// groups: closest hits by dominant axis, any hits by octant; 8 for the rare kinds. A
+/// guess that differs costs only a turn.
+#[inline(always)]
+pub(crate) fn class_guess(ray: &Ray, any: bool) -> usize {
+    let d = ray.dir;
+    if !(ray.t_min >= 0.0) || d.contains(&0.0) {
+        return 8;
+    }
+    if any {
+        return octant(d);
+    }
+    let a = d.map(f32::abs);
+    if a[0] >= a[1] && a[0] >= a[2] {
+        0
+    } else if a[1] >= a[2] {
+        1
+    } else {
+        2
+    }
+}
+
 /// The rays of `group` in `rays` (bits, two or more; each valid, with `t_min <= t_max`,
 /// all of [`turns_class`] `class`), prepared in `p`, through one mesh without masks,
 /// their hits written to `hits`, with a stack of twice [`stack_size`] entries: two walks
