@@ -169,7 +169,13 @@ fn check(label: &str, tris: &[Triangle], bvh: &FlatBvh, rays: &[Ray], rq: &RayQu
         TraceOptions::closest(Traversal::FullStack),
         TraceOptions::any(Traversal::FullStack),
     ] {
+        // A smaller batch first, then the whole: each answers as alone.
+        let half = rq
+            .trace(&rays[..rays.len() / 2], &opts)
+            .expect("half the rays");
         let got = rq.trace(rays, &opts).expect("ray-query trace");
+        assert_eq!(half.hits, got.hits[..rays.len() / 2], "{label}");
+        assert!(got.phases.is_some_and(|p| p.device_ms > 0.0), "{label}");
         let t = tally(tris, bvh, rays, &opts, &got);
         let label = format!("{label}, {:?}", opts.query);
         eprintln!("{}", t.report(&label, rays.len()));

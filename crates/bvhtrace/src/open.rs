@@ -115,6 +115,14 @@ pub struct Opened<'a> {
 }
 
 impl Opened<'_> {
+    /// The wgpu backend's tracer (our walks), for tracing from and into your own device
+    /// buffers with no host copy: [`GpuBvh::record`](bvhtrace_gpu::GpuBvh::record)
+    /// records the walk into your command encoder, reading your rays and writing your
+    /// hits. `None` on the other backends.
+    pub fn wgpu_bvh(&self) -> Option<&bvhtrace_gpu::GpuBvh> {
+        self.tracer.as_any()?.downcast_ref()
+    }
+
     /// One line: backend, device, storage and walk.
     pub fn summary(&self) -> String {
         if !self.backend.bit_for_bit() {

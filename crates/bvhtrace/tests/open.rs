@@ -433,3 +433,66 @@ fn a_tree_over_the_buffer_limit_is_an_error_naming_the_limit_bytes_and_storage()
         }
     }
 }
+
+/// The wgpu tracer the front door opened records its walk into the caller's encoder,
+/// reading the caller's rays and writing the caller's hits: the hits of its own trace,
+/// with the phases of that trace's wall time reported; other backends offer no such call.
+#[test]
+fn the_front_door_records_into_the_callers_buffers() {
+    let (bvh, rays) = (grid(), rays());
+    let cpu = bvhtrace::open(&bvh, &OpenOptions::new(Backend::Cpu)).expect("the CPU opens");
+    assert!(cpu.wgpu_bvh().is_none());
+    let opened = match bvhtrace::open(&bvh, &OpenOptions::new(Backend::Wgpu)) {
+        Ok(o) => o,
+        Err(e) if no_device(&e) => return eprintln!("SKIP: {e}"),
+        Err(e) => panic!("{e}"),
+    };
+    let opts = TraceOptions::closest(opened.traversal);
+    let traced = opened
+        .tracer
+        .trace(&rays, &opts)
+        .expect("the device traces");
+    let phases = traced
+        .phases
+        .expect("a device trace says where its time went");
+    assert!(phases.upload_ms >= 0.0 && phases.device_ms > 0.0 && phases.readback_ms >= 0.0);
+    assert!(phases.upload_ms + phases.device_ms + phases.readback_ms <= traced.wall_ms);
+
+    let gpu = opened.wgpu_bvh().expect("the wgpu backend's tracer");
+    let (device, queue) = (gpu.context().device(), gpu.context().queue());
+    use wgpu::BufferUsages as U;
+    let n = rays.len() as u64;
+    let buffer = |size: u64, usage| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("the caller's"),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    let (ray_buf, hit_buf) = (
+        buffer(32 * n, U::STORAGE | U::COPY_DST),
+        buffer(16 * n, U::STORAGE | U::COPY_SRC),
+    );
+    let read = buffer(16 * n, U::MAP_READ | U::COPY_DST);
+    queue.write_buffer(&ray_buf, 0, bytemuck::cast_slice(&rays));
+    let mut encoder = device.create_command_encoder(&Default::default());
+    let batch = bvhtrace::gpu::RayBatch {
+        rays: &ray_buf,
+        hits: &hit_buf,
+        counters: None,
+        ray_count: n,
+    };
+    gpu.record(&mut encoder, &batch, &opts, None)
+        .expect("recorded");
+    encoder.copy_buffer_to_buffer(&hit_buf, 0, &read, 0, 16 * n);
+    queue.submit([encoder.finish()]);
+    read.slice(..)
+        .map_async(wgpu::MapMode::Read, |r| r.expect("mapped"));
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("polled");
+    let hits: Vec<bvhtrace::Hit> =
+        bytemuck::pod_collect_to_vec(&read.slice(..).get_mapped_range().expect("the hits"));
+    assert_eq!(hits, traced.hits);
+}

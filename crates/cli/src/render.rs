@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Hit, MaskTables, Query, Ray,
-    TraceOptions, TraceOutput, Traversal,
+    TraceOptions, TraceOutput, TracePhases, Traversal,
 };
 use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats};
 use bvhtrace_scene::{Camera, DEFAULT_SCENE, Scene, SceneBvh};
@@ -339,6 +339,8 @@ struct Timing {
     rays: u64,
     wall_ms: f64,
     gpu_ms: Option<f64>,
+    /// Where the wall time went on a device.
+    phases: Option<TracePhases>,
 }
 
 impl Timing {
@@ -346,6 +348,11 @@ impl Timing {
         let first = self.rays == 0;
         self.rays += n as u64;
         self.wall_ms += t.wall_ms;
+        self.phases = match (self.phases, t.phases) {
+            (Some(a), Some(b)) => Some(a + b),
+            (None, Some(b)) if first => Some(b),
+            _ => None,
+        };
         self.gpu_ms = match (self.gpu_ms, t.gpu_ms) {
             (Some(a), Some(b)) => Some(a + b),
             (None, Some(b)) if first => Some(b),
@@ -358,7 +365,19 @@ impl Timing {
     }
 
     fn json(&self) -> Value {
-        json!({ "trace_ms": self.wall_ms, "gpu_ms": self.gpu_ms, "mrays_per_s": self.mrays_per_s() })
+        json!({
+            "trace_ms": self.wall_ms,
+            "gpu_ms": self.gpu_ms,
+            "mrays_per_s": self.mrays_per_s(),
+            "phases": self.phases_json(),
+        })
+    }
+
+    /// The phases of the wall time on a device, milliseconds (`null` on the CPU).
+    fn phases_json(&self) -> Value {
+        self.phases.map_or(Value::Null, |p| {
+            json!({ "rays_up_ms": p.upload_ms, "device_ms": p.device_ms, "hits_back_ms": p.readback_ms })
+        })
     }
 }
 
@@ -640,6 +659,15 @@ impl Report<'_> {
             t.wall_ms,
             t.mrays_per_s(),
         );
+        if let Some(p) = t.phases {
+            let kernels = t
+                .gpu_ms
+                .map_or(String::new(), |g| format!(" ({g:.1} ms of kernels)"));
+            eprintln!(
+                "wall: rays up {:.1} ms, on the device {:.1} ms{kernels}, hits back {:.1} ms",
+                p.upload_ms, p.device_ms, p.readback_ms
+            );
+        }
         if let Some(up) = self.masks.and(self.tracer.upload_stats()) {
             eprintln!(
                 "alpha masks: cut by the kernels ({} bytes uploaded)",
@@ -727,6 +755,7 @@ impl Report<'_> {
             "camera": { "eye": self.cam.eye.to_array(), "target": self.cam.target.to_array(), "fov": self.cam.fov_y_deg },
             "time": args.scene.time,
         });
+        v["phases"] = t.phases_json();
         if let Some(m) = self.masks {
             v["alpha_masks"] = match self.tracer.upload_stats() {
                 // On a device the kernels cut them and count nothing.

@@ -39,8 +39,8 @@ pub use precision::Precision;
 pub use ray::{Counters, Hit, INCOMPLETE, INVALID_RAY, MISS, Ray};
 pub use stats::BvhStats;
 pub use traverse::{
-    Candidate, HitFilter, Query, TraceOptions, TraceOutput, Traversal, WalkCost, brute_force,
-    brute_force_filtered, trace_ray, trace_ray_cost, trace_ray_filtered, trace_ray_in,
+    Candidate, HitFilter, Query, TraceOptions, TraceOutput, TracePhases, Traversal, WalkCost,
+    brute_force, brute_force_filtered, trace_ray, trace_ray_cost, trace_ray_filtered, trace_ray_in,
     trace_ray_with, trace_rays, trace_rays_filtered, trace_rays_in,
 };
 pub use wide::{WideBvh, WideNode};

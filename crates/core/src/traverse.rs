@@ -1044,6 +1044,41 @@ pub struct TraceOutput {
     /// The traced BVH's instances, for a two-level BVH (`None` for one mesh): what
     /// [`TraceOutput::instance_hit`] splits a hit's primitive id with.
     pub instances: Option<std::sync::Arc<crate::hits::InstanceTable>>,
+    /// Where a device trace's wall time went, summed over its submissions; `None` on the
+    /// CPU.
+    pub phases: Option<TracePhases>,
+}
+
+/// Where the wall time of a trace on a device went, measured on the host, milliseconds.
+/// With [`TraceOutput::gpu_ms`] (the kernels alone) it tells a slow walk from a slow bus.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TracePhases {
+    /// Writing the rays for the device and recording and submitting the work.
+    pub upload_ms: f64,
+    /// From the submission to its completion: the rays' copy to the device, the walk and
+    /// the hits' copy back to memory the host can map.
+    pub device_ms: f64,
+    /// Mapping the hits (and counters) and copying them out.
+    pub readback_ms: f64,
+}
+
+impl std::ops::Add for TracePhases {
+    type Output = TracePhases;
+
+    /// The three phases of two traces (or submissions) added.
+    fn add(self, other: TracePhases) -> TracePhases {
+        TracePhases {
+            upload_ms: self.upload_ms + other.upload_ms,
+            device_ms: self.device_ms + other.device_ms,
+            readback_ms: self.readback_ms + other.readback_ms,
+        }
+    }
+}
+
+impl std::ops::AddAssign for TracePhases {
+    fn add_assign(&mut self, other: TracePhases) {
+        *self = *self + other;
+    }
 }
 
 /// Traces one ray as `opts` says, returning its hit and its counters (counted whatever
@@ -1238,6 +1273,7 @@ pub fn trace_rays_in(
         wall_ms: start.elapsed().as_secs_f64() * 1e3,
         incomplete: 0,
         instances: crate::hits::InstanceTable::of(bvh),
+        phases: None,
     }
 }
 

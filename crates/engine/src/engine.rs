@@ -11,8 +11,8 @@ use std::sync::{Arc, Mutex};
 use web_time::Instant;
 
 use bvhtrace_core::{
-    Counters, FlatBvh, Hit, INCOMPLETE, InstanceTable, Ray, TraceOptions, TraceOutput, Traversal,
-    WideBvh,
+    Counters, FlatBvh, Hit, INCOMPLETE, InstanceTable, Ray, TraceOptions, TraceOutput, TracePhases,
+    Traversal, WideBvh,
 };
 
 use crate::device::DriverTuning;
@@ -90,6 +90,16 @@ pub struct Batch<'a> {
     pub hits: &'a mut Vec<Hit>,
     /// Where the counters go, when asked for.
     pub counters: Option<&'a mut Vec<Counters>>,
+}
+
+/// What one submission of a trace took: the kernels' time on the device when it measures
+/// it, and where the wall time went.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BatchTimes {
+    /// The kernels, from timestamp queries, milliseconds.
+    pub gpu_ms: Option<f64>,
+    /// Upload, device and readback, measured on the host.
+    pub phases: TracePhases,
 }
 
 /// What a backend's kernels can read beyond what every backend's read (the BVH, rays and
@@ -192,14 +202,14 @@ pub trait DeviceApi: SendSync {
     /// Uploads the batch's rays, dispatches its kernel (within
     /// [`crate::plan::plan_dispatches`]),
     /// waits for that submission and reads the hits (and counters) back; the GPU time of
-    /// the batch in milliseconds when the device measures it. A future, so that a backend
+    /// the batch when the device measures it, and its phases. A future, so that a backend
     /// whose readback completes on an event loop (WebGPU in a browser) need not block.
     fn run_batch<'a>(
         &'a self,
         arrays: &'a Self::Arrays,
         scratch: &'a Self::Scratch,
         batch: Batch<'a>,
-    ) -> impl Future<Output = Result<Option<f64>, TraceError>> + 'a;
+    ) -> impl Future<Output = Result<BatchTimes, TraceError>> + 'a;
 }
 
 /// What an upload holds.
@@ -303,6 +313,7 @@ pub fn new_output(
         wall_ms: 0.0,
         incomplete: 0,
         instances,
+        phases: Some(TracePhases::default()),
     }
 }
 
@@ -613,7 +624,7 @@ impl<B: DeviceApi> Engine<B> {
         out: &mut TraceOutput,
     ) -> Result<(), TraceError> {
         for batch in rays.chunks(per_submit as usize) {
-            let ms = self
+            let times = self
                 .backend
                 .run_batch(
                     &self.arrays,
@@ -626,9 +637,10 @@ impl<B: DeviceApi> Engine<B> {
                     },
                 )
                 .await?;
-            if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), ms) {
+            if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), times.gpu_ms) {
                 *total += ms;
             }
+            out.phases = out.phases.map(|p| p + times.phases);
         }
         Ok(())
     }
@@ -857,7 +869,7 @@ impl<B: DeviceApi> HasEngine for Engine<B> {
     }
 }
 
-impl<T: HasEngine> Tracer for T {
+impl<T: HasEngine + 'static> Tracer for T {
     fn backend(&self) -> &'static str {
         self.engine().backend.name()
     }
@@ -897,5 +909,9 @@ impl<T: HasEngine> Tracer for T {
     fn kernels_used(&self) -> Vec<KernelKey> {
         let used = self.engine().used.lock();
         used.map(|u| u.clone()).unwrap_or_default()
+    }
+
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        Some(self)
     }
 }

@@ -107,6 +107,13 @@ pub trait Tracer: SendSync {
     fn kernels_used(&self) -> Vec<KernelKey> {
         Vec::new()
     }
+
+    /// The tracer as its own type, for its backend's own calls (the wgpu backend's
+    /// `GpuBvh::record`, into the caller's encoder and buffers), by downcasting; `None`
+    /// for a tracer that borrows its tree.
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        None
+    }
 }
 
 /// The shape an update must keep: node, triangle and instance counts and the top level's

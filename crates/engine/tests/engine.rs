@@ -6,11 +6,11 @@
 use std::sync::Mutex;
 
 use bvhtrace_core::{
-    BuildOptions, FlatBvh, Hit, INCOMPLETE, Instance, InstancedBvh, Ray, TraceOptions, Traversal,
-    Triangle, trace_rays,
+    BuildOptions, FlatBvh, Hit, INCOMPLETE, Instance, InstancedBvh, Ray, TraceOptions, TracePhases,
+    Traversal, Triangle, trace_rays,
 };
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, DeviceApi, ScratchPlan,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, ScratchPlan,
 };
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
@@ -117,7 +117,7 @@ impl DeviceApi for Mock {
         _: &'a Arrays,
         _: &'a (),
         batch: Batch<'a>,
-    ) -> Result<Option<f64>, TraceError> {
+    ) -> Result<BatchTimes, TraceError> {
         self.batches.lock().unwrap().push(batch.rays.len());
         for r in batch.rays {
             let prim = if r.origin[1] > 0.0 {
@@ -133,7 +133,14 @@ impl DeviceApi for Mock {
         if let Some(c) = batch.counters {
             c.resize(batch.hits.len(), Default::default());
         }
-        Ok(Some(0.5))
+        Ok(BatchTimes {
+            gpu_ms: Some(0.5),
+            phases: TracePhases {
+                upload_ms: 0.25,
+                device_ms: 1.0,
+                readback_ms: 0.125,
+            },
+        })
     }
 }
 
@@ -313,6 +320,13 @@ fn the_driver_splits_orders_finishes_and_counts_kernels() {
     let out = e.trace(&rays, &opts).expect("trace");
     assert_eq!(*e.device().batches.lock().unwrap(), vec![4096, 4096, 1808]);
     assert_eq!(out.gpu_ms, Some(1.5));
+    // Each submission's phases, summed.
+    let phases = TracePhases {
+        upload_ms: 0.75,
+        device_ms: 3.0,
+        readback_ms: 0.375,
+    };
+    assert_eq!(out.phases, Some(phases));
     assert_eq!(out.incomplete, 2);
     let cpu = trace_rays(&bvh, &rays, &opts).hits;
     for (i, h) in out.hits.iter().enumerate() {

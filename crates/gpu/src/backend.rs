@@ -4,7 +4,7 @@
 use std::sync::Mutex;
 
 use bvhtrace_core::Traversal;
-use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, ScratchPlan};
+use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, BatchTimes, ScratchPlan};
 use bvhtrace_engine::engine::{BackendFeatures, DeviceApi};
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::storage::texel_extent;
@@ -339,7 +339,7 @@ impl DeviceApi for Wgpu {
         arrays: &'a WgpuArrays,
         scratch: &'a Scratch,
         batch: Batch<'a>,
-    ) -> impl Future<Output = Result<Option<f64>, TraceError>> + 'a {
+    ) -> impl Future<Output = Result<BatchTimes, TraceError>> + 'a {
         crate::trace::run_batch(&self.ctx, arrays, scratch, batch)
     }
 }

@@ -24,7 +24,9 @@ use std::sync::{Arc, Mutex};
 
 use bvhtrace_core::flat::{FlatInstance, FlatNode};
 use bvhtrace_core::masks::NO_MASKS;
-use bvhtrace_core::{FlatBvh, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput};
+use bvhtrace_core::{
+    FlatBvh, Hit, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput, TracePhases,
+};
 use bvhtrace_engine::plan::{
     HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
 };
@@ -80,6 +82,45 @@ pub struct RayQueryBvh {
     stats: UploadStats,
     /// Wall time of the last acceleration-structure build (or update), milliseconds.
     build_ms: f64,
+}
+
+/// The buffers of a ray-query trace: `capacity` rays, their hits, and the hits' readback.
+/// Made per trace: docs/gpu-wall.md says why they are not kept.
+struct RayQueryScratch {
+    rays: wgpu::Buffer,
+    hits: wgpu::Buffer,
+    read: wgpu::Buffer,
+}
+
+impl RayQueryScratch {
+    fn new(device: &wgpu::Device, capacity: u64) -> RayQueryScratch {
+        use wgpu::BufferUsages as U;
+        let buffer = |label, bytes, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        RayQueryScratch {
+            rays: buffer(
+                "bvhtrace ray-query rays",
+                capacity * RAY_BYTES,
+                U::STORAGE | U::COPY_DST,
+            ),
+            hits: buffer(
+                "bvhtrace ray-query hits",
+                capacity * HIT_BYTES,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            read: buffer(
+                "bvhtrace ray-query readback",
+                capacity * HIT_BYTES,
+                U::MAP_READ | U::COPY_DST,
+            ),
+        }
+    }
 }
 
 impl std::fmt::Debug for RayQueryBvh {
@@ -554,54 +595,57 @@ impl RayQueryBvh {
         let start = Instant::now();
         let pipeline = self.pipeline(opts.query == Query::Any, opts.mask)?;
         let group = self.group()?;
-        let device = self.ctx.device();
         let chunk = rays_per_dispatch(self.ctx.limits()).min(rays.len().max(1) as u64);
-        let buffer = |label, bytes, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        use wgpu::BufferUsages as U;
-        let (ray_buf, hit_buf, read) = self.ctx.scoped("allocating the ray batch", || {
-            (
-                buffer(
-                    "bvhtrace ray-query rays",
-                    chunk * RAY_BYTES,
-                    U::STORAGE | U::COPY_DST,
-                ),
-                buffer(
-                    "bvhtrace ray-query hits",
-                    chunk * HIT_BYTES,
-                    U::STORAGE | U::COPY_SRC,
-                ),
-                buffer(
-                    "bvhtrace ray-query readback",
-                    chunk * HIT_BYTES,
-                    U::MAP_READ | U::COPY_DST,
-                ),
-            )
+        let device = self.ctx.device();
+        let scratch = self.ctx.scoped("allocating the ray batch", || {
+            RayQueryScratch::new(device, chunk)
         })?;
+        let traced = self.trace_in(&scratch, rays, chunk, &pipeline, group).await;
+        let (hits, phases) = traced?;
+        Ok(TraceOutput {
+            hits,
+            counters: None,
+            gpu_ms: None,
+            wall_ms: start.elapsed().as_secs_f64() * 1e3,
+            incomplete: 0,
+            instances: self.table.clone(),
+            phases: Some(phases),
+        })
+    }
+
+    /// Traces `rays` in chunks of `chunk` through `pipeline` on `scratch`'s buffers: the
+    /// hits, and where the wall time went.
+    async fn trace_in(
+        &self,
+        scratch: &RayQueryScratch,
+        rays: &[Ray],
+        chunk: u64,
+        pipeline: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+    ) -> Result<(Vec<Hit>, TracePhases), GpuError> {
+        let device = self.ctx.device();
+        let (ray_buf, hit_buf, read) = (&scratch.rays, &scratch.hits, &scratch.read);
+        let mut phases = TracePhases::default();
+        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         let mut hits = Vec::with_capacity(rays.len());
         for part in rays.chunks(chunk as usize) {
             let n = part.len() as u64;
+            let started = Instant::now();
             let index = self.ctx.scoped("tracing a ray batch", || {
                 self.ctx
                     .queue()
-                    .write_buffer(&ray_buf, 0, bytemuck::cast_slice(part));
+                    .write_buffer(ray_buf, 0, bytemuck::cast_slice(part));
                 let batch = device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("bvhtrace ray-query batch"),
                     layout: self.ctx.batch_layout(false, RayInput::Buffer),
                     entries: &[
                         wgpu::BindGroupEntry {
                             binding: 0,
-                            resource: binding(&ray_buf, 0, n, RAY_BYTES),
+                            resource: binding(ray_buf, 0, n, RAY_BYTES),
                         },
                         wgpu::BindGroupEntry {
                             binding: 1,
-                            resource: binding(&hit_buf, 0, n, HIT_BYTES),
+                            resource: binding(hit_buf, 0, n, HIT_BYTES),
                         },
                     ],
                 });
@@ -613,31 +657,31 @@ impl RayQueryBvh {
                         label: Some("bvhtrace ray queries"),
                         timestamp_writes: None,
                     });
-                    pass.set_pipeline(&pipeline);
+                    pass.set_pipeline(pipeline);
                     pass.set_bind_group(0, group, &[]);
                     pass.set_bind_group(1, &batch, &[]);
                     for d in plan_dispatches(n, self.ctx.limits()) {
                         pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
                     }
                 }
-                enc.copy_buffer_to_buffer(&hit_buf, 0, &read, 0, n * HIT_BYTES);
+                enc.copy_buffer_to_buffer(hit_buf, 0, read, 0, n * HIT_BYTES);
                 self.ctx.queue().submit([enc.finish()])
             })?;
-            let mapped = map_all(&self.ctx, index, &[(&read, n * HIT_BYTES)]).await;
+            let submitted = Instant::now();
+            let mapped = map_all(&self.ctx, index, &[(read, n * HIT_BYTES)]).await;
             self.ctx.deferred_errors().await?;
             mapped?;
-            let got = read_mapped(&read, n * HIT_BYTES, &mut hits);
+            let done = Instant::now();
+            let got = read_mapped(read, n * HIT_BYTES, &mut hits);
             read.unmap();
             got?;
+            phases += TracePhases {
+                upload_ms: ms(started, submitted),
+                device_ms: ms(submitted, done),
+                readback_ms: ms(done, Instant::now()),
+            };
         }
-        Ok(TraceOutput {
-            hits,
-            counters: None,
-            gpu_ms: None,
-            wall_ms: start.elapsed().as_secs_f64() * 1e3,
-            incomplete: 0,
-            instances: self.table.clone(),
-        })
+        Ok((hits, phases))
     }
 }
 

@@ -6,11 +6,12 @@ use std::num::NonZeroU64;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Poll, Waker};
 
-use bvhtrace_core::{Counters, Hit, Ray, TraceOptions};
+use bvhtrace_core::{Counters, Hit, Ray, TraceOptions, TracePhases};
 use bvhtrace_engine::KernelKey;
-use bvhtrace_engine::engine::{Batch, ScratchPlan};
+use bvhtrace_engine::engine::{Batch, BatchTimes, ScratchPlan};
 use bvhtrace_engine::plan::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, plan_dispatches};
 use bvhtrace_engine::storage::{RayInput, TEXEL_ROW, texel_rows};
+use web_time::Instant;
 
 use crate::GpuError;
 use crate::backend::WgpuArrays;
@@ -294,13 +295,14 @@ pub(crate) fn read_mapped<T: bytemuck::Pod>(
 
 /// Uploads `batch`'s rays to the scratch, records its kernel and the readback copies,
 /// submits, waits for that submission only, and appends the hits (and counters); the
-/// GPU time in milliseconds when the device measures it.
+/// GPU time in milliseconds when the device measures it, and the phases.
 pub(crate) async fn run_batch(
     ctx: &GpuContext,
     arrays: &WgpuArrays,
     s: &Scratch,
     batch: Batch<'_>,
-) -> Result<Option<f64>, GpuError> {
+) -> Result<BatchTimes, GpuError> {
+    let start = Instant::now();
     let count = batch.rays.len() as u64;
     let counter_buffers = if batch.key.counters {
         s.counters.as_ref()
@@ -338,6 +340,7 @@ pub(crate) async fn run_batch(
         }
         Ok(queue.submit([enc.finish()]))
     })??;
+    let submitted = Instant::now();
     let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
     maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
     maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
@@ -346,6 +349,7 @@ pub(crate) async fn run_batch(
     // is only known now: its error comes first.
     ctx.deferred_errors().await?;
     mapped?;
+    let done = Instant::now();
     let read = (|| -> Result<Option<f64>, GpuError> {
         read_mapped(&s.hits_read, count * HIT_BYTES, batch.hits)?;
         if let (Some(c), Some(b)) = (batch.counters, counter_buffers) {
@@ -360,7 +364,15 @@ pub(crate) async fn run_batch(
     for (b, _) in &maps {
         b.unmap();
     }
-    read
+    let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+    Ok(BatchTimes {
+        gpu_ms: read?,
+        phases: TracePhases {
+            upload_ms: ms(start, submitted),
+            device_ms: ms(submitted, done),
+            readback_ms: ms(done, Instant::now()),
+        },
+    })
 }
 
 /// Buffer mappings not yet completed: their callbacks count down and wake the waiting

@@ -28,10 +28,10 @@
 
 use std::sync::Arc;
 
-use bvhtrace_core::{FlatBvh, FlatInstance, MaskTables, Ray, TraceOptions, WideBvh};
+use bvhtrace_core::{FlatBvh, FlatInstance, MaskTables, Ray, TraceOptions, TracePhases, WideBvh};
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, DeviceApi, HasEngine, ScratchPlan,
-    UploadedTree,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
+    ScratchPlan, UploadedTree,
 };
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
@@ -289,13 +289,22 @@ impl DeviceApi for MockDevice {
         arrays: &'a MockArrays,
         _: &'a (),
         batch: Batch<'a>,
-    ) -> Result<Option<f64>, TraceError> {
+    ) -> Result<BatchTimes, TraceError> {
+        // Nothing to upload or read back: the twins' time is the device's.
+        let start = web_time::Instant::now();
         let out = arrays.trace(&batch.key, batch.rays)?;
         batch.hits.extend(out.hits);
         if let Some(c) = batch.counters {
             c.extend(out.counters.unwrap_or_default());
         }
-        Ok(None)
+        let phases = TracePhases {
+            device_ms: start.elapsed().as_secs_f64() * 1e3,
+            ..TracePhases::default()
+        };
+        Ok(BatchTimes {
+            gpu_ms: None,
+            phases,
+        })
     }
 }
 

@@ -1,15 +1,18 @@
 //! The BVH in storage buffers and the ray-batch API: [`VkBvh`], the engine
 //! ([`bvhtrace_engine::Engine`]) over the ash implementation of its [`DeviceApi`].
 
+use std::time::Instant;
+
 use bytemuck::Zeroable;
 
 use ash::vk;
-use bvhtrace_core::FlatBvh;
+
+use bvhtrace_core::{FlatBvh, TracePhases};
 #[cfg(doc)]
 use bvhtrace_engine::core::Traversal;
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, DeviceApi, HasEngine, ScratchPlan,
-    UploadedTree,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
+    ScratchPlan, UploadedTree,
 };
 use bvhtrace_engine::plan::{COUNTERS_BYTES, DeviceLimits, HIT_BYTES, RAY_BYTES, plan_dispatches};
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
@@ -436,7 +439,8 @@ impl DeviceApi for Ash {
         arrays: &'a Arrays,
         s: &'a Scratch,
         batch: Batch<'a>,
-    ) -> Result<Option<f64>, TraceError> {
+    ) -> Result<BatchTimes, TraceError> {
+        let start = Instant::now();
         let count = batch.rays.len() as u64;
         let sub = self.ctx.submitter()?;
         s.rays.write(bytemuck::cast_slice(batch.rays));
@@ -445,15 +449,27 @@ impl DeviceApi for Ash {
         let sets = Sets::new(&self.ctx, 1, dispatches)?;
         let record = self.dispatch(arrays, s, batch.key, count, &sets)?;
         let queries = sub.queries;
+        // The command buffer is recorded inside the submission: its time is the device's.
+        let submitted = Instant::now();
         self.ctx
             .submit_and_wait(&sub, "tracing a ray batch", |d, cmd| {
                 record(d, cmd, queries)
             })?;
+        let done = Instant::now();
         s.hits.read_into((count * HIT_BYTES) as usize, batch.hits);
         if let Some(c) = batch.counters {
             s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
         }
-        self.gpu_ms(queries)
+        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+        let phases = TracePhases {
+            upload_ms: ms(start, submitted),
+            device_ms: ms(submitted, done),
+            readback_ms: ms(done, Instant::now()),
+        };
+        Ok(BatchTimes {
+            gpu_ms: self.gpu_ms(queries)?,
+            phases,
+        })
     }
 }
 

@@ -201,6 +201,7 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
                         .instances
                         .get_or_init(|| InstanceTable::of(self.walks.bvh()))
                         .clone(),
+                    phases: None,
                 })
             }
             _ => self.walks.trace(rays, opts),

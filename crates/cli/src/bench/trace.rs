@@ -5,7 +5,9 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray, TraceOptions, Traversal, trace_rays};
+use bvhtrace_core::{
+    BuildOptions, FlatBvh, Query, Ray, TraceOptions, TracePhases, Traversal, trace_rays,
+};
 use bvhtrace_gpu::{
     Composition, ContextOptions, GpuBvh, GpuContext, KernelKey, Tracer, UploadOptions,
     VertexAttributes,
@@ -13,6 +15,19 @@ use bvhtrace_gpu::{
 
 use super::{BenchTraceArgs, load, median, primary_rays, scene_specs};
 use crate::embree::{self, Dump};
+
+/// Where a walk's wall time went on the device, medians over the rounds: the rays
+/// written and submitted, the submission on the device (copies and kernels), the hits
+/// read back.
+fn print_phases(name: &str, query: &str, phases: &[TracePhases]) {
+    let med = |f: fn(&TracePhases) -> f64| median(phases.iter().map(f).collect());
+    println!(
+        "{name:16} {query:8} wall: rays up {:.1} ms, on the device {:.1} ms, hits back {:.1} ms",
+        med(|p| p.upload_ms),
+        med(|p| p.device_ms),
+        med(|p| p.readback_ms),
+    );
+}
 
 /// The CPU layout's rows of `bench-trace`'s table: one per instruction set, its Mrays/s
 /// over `n` rays (medians of `ms`) and its speed against Embree's (`embree_ms`, the same
@@ -122,6 +137,9 @@ struct Rounds {
     embree_ms: Vec<f64>,
     embree_build_ms: Vec<f64>,
     rq_ms: Vec<f64>,
+    /// Where each walk's wall time went on the device, and the ray queries'.
+    phases: Vec<Vec<TracePhases>>,
+    rq_phases: Vec<TracePhases>,
 }
 
 impl<'a> Subject<'a> {
@@ -242,20 +260,24 @@ impl<'a> Subject<'a> {
             embree_ms: Vec::new(),
             embree_build_ms: Vec::new(),
             rq_ms: Vec::new(),
+            phases: vec![Vec::new(); walks.len()],
+            rq_phases: Vec::new(),
         };
         if let Some(rq) = &self.rq {
             rq.trace(rays, &TraceOptions::new(walks[0], q))?;
         }
         for _ in 0..args.runs {
             if let Some(rq) = &self.rq {
-                r.rq_ms
-                    .push(rq.trace(rays, &TraceOptions::new(walks[0], q))?.wall_ms);
+                let o = rq.trace(rays, &TraceOptions::new(walks[0], q))?;
+                r.rq_ms.push(o.wall_ms);
+                r.rq_phases.extend(o.phases);
             }
             for (i, &tr) in walks.iter().enumerate() {
                 let opts = TraceOptions::new(tr, q);
                 let o = self.gpu.trace(rays, &opts)?;
                 r.wall_ms[i].push(o.wall_ms);
                 r.gpu_ms[i].push(o.gpu_ms.unwrap_or(o.wall_ms));
+                r.phases[i].extend(o.phases);
                 let t = Instant::now();
                 std::hint::black_box(trace_rays(&self.bvh, rays, &opts));
                 r.cpu_ms[i].push(t.elapsed().as_secs_f64() * 1e3);
@@ -324,6 +346,14 @@ impl<'a> Subject<'a> {
                 ratio(&r.cpu_ms[0], &r.rq_ms),
                 "-",
             );
+        }
+        let walks = self.traversals.iter().map(|t| t.to_string());
+        let phases = walks.zip(&r.phases).chain(
+            (!r.rq_phases.is_empty())
+                .then(|| (bvhtrace::Backend::RayQuery.name().to_string(), &r.rq_phases)),
+        );
+        for (name, p) in phases.filter(|(_, p)| !p.is_empty()) {
+            print_phases(&name, &query, p);
         }
         if !r.embree_ms.is_empty() {
             println!(
