@@ -600,8 +600,7 @@ impl RayQueryBvh {
         let scratch = self.ctx.scoped("allocating the ray batch", || {
             RayQueryScratch::new(device, chunk)
         })?;
-        let traced = self.trace_in(&scratch, rays, chunk, &pipeline, group).await;
-        let (hits, phases) = traced?;
+        let (hits, phases) = (self.trace_in(&scratch, rays, chunk, &pipeline, group)).await?;
         Ok(TraceOutput {
             hits,
             counters: None,
