@@ -78,8 +78,34 @@ impl Drop for Dump {
     }
 }
 
+/// The Embree `embree_trace` ran, from its JSON's `tracer` (`embree 4.4.0 robust, medium
+/// build`): `Embree 4.4.0`, or `Embree` when it does not say.
+pub fn version(v: &serde_json::Value) -> String {
+    let tracer = v["tracer"].as_str().unwrap_or_default();
+    let mut words = tracer.split_whitespace().skip(1);
+    match words.next() {
+        Some(version) if tracer.starts_with("embree ") => format!("Embree {version}"),
+        _ => "Embree".to_string(),
+    }
+}
+
 /// Field `k` of `embree_trace`'s JSON as a number.
 pub fn field(v: &serde_json::Value, k: &str, exe: &Path) -> Result<f64> {
     v[k].as_f64()
         .with_context(|| format!("no {k} from {}", exe.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::version;
+    use serde_json::json;
+
+    #[test]
+    fn the_helpers_embree_is_named_by_its_version() {
+        let four = json!({ "tracer": "embree 4.4.0 robust, medium build" });
+        assert_eq!(version(&four), "Embree 4.4.0");
+        let three = json!({ "tracer": "embree 3.13.5 fast, medium build" });
+        assert_eq!(version(&three), "Embree 3.13.5");
+        assert_eq!(version(&json!({})), "Embree");
+    }
 }

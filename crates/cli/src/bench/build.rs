@@ -200,8 +200,8 @@ pub struct BenchBuildArgs {
     /// Write every figure as JSON (`-` for stdout; the tables then go to stderr).
     #[arg(long, value_name = "FILE|-")]
     pub json: Option<String>,
-    /// An `embree_trace` binary (`crates/cli/embree/embree_trace.c`): Embree 3's medium
-    /// build of the same triangles, with the same thread count and number of runs, is timed
+    /// An `embree_trace` binary (`crates/cli/embree/embree_trace.c`, built against Embree
+    /// 3 or 4): Embree's medium build of the same triangles, with the same thread count and number of runs, is timed
     /// before and after the configurations, and each row gets its build time over
     /// Embree's (`/embree`: the mean of the two medians).
     #[arg(long, value_name = "BIN")]
@@ -234,7 +234,7 @@ struct BuildScene {
     load_ms: f64,
     /// One entry per configuration, in order.
     configs: Vec<BuildRow>,
-    /// With `--embree`: Embree 3's medium build, median of `runs` before the
+    /// With `--embree`: Embree's medium build, median of `runs` before the
     /// configurations and after them, milliseconds.
     #[serde(skip_serializing_if = "Option::is_none")]
     embree_build_ms: Option<[f64; 2]>,
@@ -488,7 +488,7 @@ impl Bench<'_> {
                     .set_message(format!("{spec}: writing the Embree dump"));
                 let primary = &sets.primary[..sets.primary.len().min(1024)];
                 let dump = Dump::write("build", &tris, primary)?;
-                let before = self.embree_build(spec, &dump, exe)?;
+                let (before, _) = self.embree_build(spec, &dump, exe)?;
                 Some((exe, dump, before))
             }
             None => None,
@@ -528,12 +528,18 @@ impl Bench<'_> {
         })
     }
 
-    /// Embree's medium build of the dump's triangles, median of `--runs`, milliseconds.
-    fn embree_build(&self, spec: &str, dump: &Dump, exe: &std::path::Path) -> Result<f64> {
+    /// Embree's medium build of the dump's triangles, median of `--runs`, milliseconds,
+    /// and the Embree the helper runs (`Embree 4.4.0`).
+    fn embree_build(
+        &self,
+        spec: &str,
+        dump: &Dump,
+        exe: &std::path::Path,
+    ) -> Result<(f64, String)> {
         self.pb.set_message(format!("{spec}: Embree builds"));
         let threads = self.pool.current_num_threads();
         let v = dump.run(exe, threads, self.args.runs, &[])?;
-        embree::field(&v, "build_ms", exe)
+        Ok((embree::field(&v, "build_ms", exe)?, embree::version(&v)))
     }
 
     /// Embree's builds after the configurations, and each row's build time over the mean
@@ -547,10 +553,10 @@ impl Bench<'_> {
         rows: &mut [BuildRow],
         name_w: usize,
     ) -> Result<[f64; 2]> {
-        let after = self.embree_build(spec, dump, exe)?;
+        let (after, version) = self.embree_build(spec, dump, exe)?;
         let e = (before + after) / 2.0;
         self.out.say(&format!(
-            "Embree 3 medium build, {} threads: {before:.1} ms before, {after:.1} ms \
+            "{version} medium build, {} threads: {before:.1} ms before, {after:.1} ms \
              after (medians of {}); build ms / Embree:",
             self.pool.current_num_threads(),
             self.args.runs
