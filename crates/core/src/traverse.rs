@@ -1053,7 +1053,8 @@ pub struct TraceOutput {
 /// With [`TraceOutput::gpu_ms`] (the kernels alone) it tells a slow walk from a slow bus.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TracePhases {
-    /// Writing the rays for the device and recording and submitting the work.
+    /// Reading the rays once (the kernel's specialisation), writing them for the device,
+    /// and recording and submitting the work.
     pub upload_ms: f64,
     /// From the submission to its completion: the rays' copy to the device, the walk and
     /// the hits' copy back to memory the host can map.
