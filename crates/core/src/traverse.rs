@@ -1063,6 +1063,23 @@ pub struct TracePhases {
     pub readback_ms: f64,
 }
 
+impl TracePhases {
+    /// The phases of one submission from the instants that end them: started, submitted,
+    /// completed, and now (its results read back).
+    pub fn since(
+        started: web_time::Instant,
+        submitted: web_time::Instant,
+        done: web_time::Instant,
+    ) -> TracePhases {
+        let ms = |a: web_time::Instant, b: web_time::Instant| (b - a).as_secs_f64() * 1e3;
+        TracePhases {
+            upload_ms: ms(started, submitted),
+            device_ms: ms(submitted, done),
+            readback_ms: ms(done, web_time::Instant::now()),
+        }
+    }
+}
+
 impl std::ops::Add for TracePhases {
     type Output = TracePhases;
 

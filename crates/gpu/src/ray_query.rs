@@ -33,7 +33,7 @@ use bvhtrace_engine::plan::{
 use bvhtrace_engine::storage::RayInput;
 use bvhtrace_engine::tracer::{check_update_shape, mesh_fingerprint, tree_shape};
 use bvhtrace_engine::{BvhLibrary, LibraryShape, TraceError, Tracer, UploadStats, wgsl_library};
-use std::time::Instant;
+use web_time::Instant;
 use wgpu::util::DeviceExt;
 
 use crate::context::storage_entry;
@@ -625,7 +625,6 @@ impl RayQueryBvh {
         let device = self.ctx.device();
         let (ray_buf, hit_buf, read) = (&scratch.rays, &scratch.hits, &scratch.read);
         let mut phases = TracePhases::default();
-        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         let mut hits = Vec::with_capacity(rays.len());
         for part in rays.chunks(chunk as usize) {
             let n = part.len() as u64;
@@ -674,11 +673,7 @@ impl RayQueryBvh {
             let got = read_mapped(read, n * HIT_BYTES, &mut hits);
             read.unmap();
             got?;
-            phases += TracePhases {
-                upload_ms: ms(started, submitted),
-                device_ms: ms(submitted, done),
-                readback_ms: ms(done, Instant::now()),
-            };
+            phases += TracePhases::since(started, submitted, done);
         }
         Ok((hits, phases))
     }

@@ -364,14 +364,9 @@ pub(crate) async fn run_batch(
     for (b, _) in &maps {
         b.unmap();
     }
-    let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
     Ok(BatchTimes {
         gpu_ms: read?,
-        phases: TracePhases {
-            upload_ms: ms(start, submitted),
-            device_ms: ms(submitted, done),
-            readback_ms: ms(done, Instant::now()),
-        },
+        phases: TracePhases::since(start, submitted, done),
     })
 }
 

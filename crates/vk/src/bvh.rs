@@ -460,12 +460,7 @@ impl DeviceApi for Ash {
         if let Some(c) = batch.counters {
             s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
         }
-        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
-        let phases = TracePhases {
-            upload_ms: ms(start, submitted),
-            device_ms: ms(submitted, done),
-            readback_ms: ms(done, Instant::now()),
-        };
+        let phases = TracePhases::since(start, submitted, done);
         Ok(BatchTimes {
             gpu_ms: self.gpu_ms(queries)?,
             phases,
