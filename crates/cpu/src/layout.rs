@@ -458,6 +458,12 @@ impl CpuBvh {
     pub fn masks(&self) -> Option<&Arc<MaskTables>> {
         self.masks.as_ref()
     }
+
+    /// True for one mesh without alpha masks: the tree the packet walk and the walks in
+    /// turns take (the others go ray by ray, alone).
+    pub fn is_plain(&self) -> bool {
+        !self.is_instanced() && self.masks.is_none()
+    }
 }
 
 /// Collapses the binary tree at `root` (a whole mesh, or the top level) into wide nodes

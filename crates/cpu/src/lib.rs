@@ -214,7 +214,7 @@ pub fn trace_rays_with_mask(
 /// class in their group of eight, so rays of many classes (incoherent bounces) are walked
 /// in order of class and their hits put back in the rays' order.
 fn trace_run(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits: &mut [Hit]) {
-    let turns = isa.or_available() == Isa::Avx2 && !bvh.is_instanced() && bvh.masks.is_none();
+    let turns = isa.or_available() == Isa::Avx2 && bvh.is_plain();
     let Some(order) = turns
         .then(|| class_order(rays, query == Query::Any))
         .flatten()
@@ -283,7 +283,7 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
     let mask = u32::from(mask);
     // One mesh without masks has walks of its own, compiled apart from the others, so
     // that the others change nothing of its code.
-    let plain = !bvh.is_instanced() && bvh.masks.is_none();
+    let plain = bvh.is_plain();
     type P = lanes::Portable;
     type PP = lanes::Pair<P>;
     match isa.or_available() {
@@ -523,7 +523,7 @@ pub fn trace_packets(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
 /// lacks `isa`): the answers are the same whichever runs.
 pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
     // The packet walk holds one mesh without masks; the others go ray by ray.
-    if bvh.is_instanced() || bvh.masks.is_some() {
+    if !bvh.is_plain() {
         return trace_rays_with(bvh, rays, query, isa);
     }
     const RUN: usize = 16 * PACKET;

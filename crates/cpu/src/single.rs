@@ -334,15 +334,18 @@ pub(crate) fn turns_class<const ANY: bool>(p: &Prepared, ray: &Ray, i: usize) ->
 /// The number of classes [`class_guess`] gives.
 pub(crate) const CLASSES: usize = 9;
 
+/// [`class_guess`]'s class for the rare kinds, which walk alone.
+const RARE: usize = CLASSES - 1;
+
 /// [`turns_class`] of `ray` read from the ray itself, before it is prepared (its
 /// direction not flushed), so that rays can be put in order of class ahead of their
-/// groups: closest hits by dominant axis, any hits by octant; 8 for the rare kinds. A
-/// guess that differs costs only a turn.
+/// groups: closest hits by dominant axis, any hits by octant; [`RARE`] for the rare
+/// kinds. A guess that differs costs only a turn.
 #[inline(always)]
 pub(crate) fn class_guess(ray: &Ray, any: bool) -> usize {
     let d = ray.dir;
     if !(ray.t_min >= 0.0) || d.contains(&0.0) {
-        return 8;
+        return RARE;
     }
     if any {
         return octant(d);

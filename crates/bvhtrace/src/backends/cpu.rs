@@ -184,8 +184,7 @@ impl<B: Borrow<FlatBvh> + Send + Sync> Tracer for FastCpuTracer<B> {
                 let start = Instant::now();
                 let isa = bvhtrace_cpu::Isa::detect();
                 // Packets hold one mesh without masks (and its rays see no instance mask).
-                let packets =
-                    !fast.is_instanced() && fast.masks().is_none() && bvhtrace_cpu::coherent(rays);
+                let packets = fast.is_plain() && bvhtrace_cpu::coherent(rays);
                 let hits = if packets {
                     bvhtrace_cpu::trace_packets_with(fast, rays, opts.query, isa)
                 } else {
