@@ -343,21 +343,27 @@ struct Timing {
     phases: Option<TracePhases>,
 }
 
+/// `total` plus `next`, where every trace so far measured it (`first`: none had run):
+/// `None` once one did not.
+fn sum_of_every<T: std::ops::Add<Output = T>>(
+    total: Option<T>,
+    next: Option<T>,
+    first: bool,
+) -> Option<T> {
+    match (total, next) {
+        (Some(a), Some(b)) => Some(a + b),
+        (None, Some(b)) if first => Some(b),
+        _ => None,
+    }
+}
+
 impl Timing {
     fn add(&mut self, n: usize, t: &TraceOutput) {
         let first = self.rays == 0;
         self.rays += n as u64;
         self.wall_ms += t.wall_ms;
-        self.phases = match (self.phases, t.phases) {
-            (Some(a), Some(b)) => Some(a + b),
-            (None, Some(b)) if first => Some(b),
-            _ => None,
-        };
-        self.gpu_ms = match (self.gpu_ms, t.gpu_ms) {
-            (Some(a), Some(b)) => Some(a + b),
-            (None, Some(b)) if first => Some(b),
-            _ => None,
-        };
+        self.phases = sum_of_every(self.phases, t.phases, first);
+        self.gpu_ms = sum_of_every(self.gpu_ms, t.gpu_ms, first);
     }
 
     fn mrays_per_s(&self) -> f64 {

@@ -201,9 +201,9 @@ pub struct BenchBuildArgs {
     #[arg(long, value_name = "FILE|-")]
     pub json: Option<String>,
     /// An `embree_trace` binary (`crates/cli/embree/embree_trace.c`, built against Embree
-    /// 3 or 4): Embree's medium build of the same triangles, with the same thread count and number of runs, is timed
-    /// before and after the configurations, and each row gets its build time over
-    /// Embree's (`/embree`: the mean of the two medians).
+    /// 3 or 4): Embree's medium build of the same triangles, with the same thread count
+    /// and number of runs, is timed before and after the configurations, and each row
+    /// gets its build time over Embree's (`/embree`: the mean of the two medians).
     #[arg(long, value_name = "BIN")]
     pub embree: Option<std::path::PathBuf>,
 }

@@ -137,6 +137,8 @@ struct Rounds {
     embree_ms: Vec<f64>,
     embree_build_ms: Vec<f64>,
     rq_ms: Vec<f64>,
+    /// The Embree the helper ran (`Embree 4.4.0`), once it has.
+    embree_version: String,
     /// Where each walk's wall time went on the device, and the ray queries'.
     phases: Vec<Vec<TracePhases>>,
     rq_phases: Vec<TracePhases>,
@@ -260,6 +262,7 @@ impl<'a> Subject<'a> {
             embree_ms: Vec::new(),
             embree_build_ms: Vec::new(),
             rq_ms: Vec::new(),
+            embree_version: String::new(),
             phases: vec![Vec::new(); walks.len()],
             rq_phases: Vec::new(),
         };
@@ -292,6 +295,7 @@ impl<'a> Subject<'a> {
                 let v = dump.run(exe, 2, 1, &[])?;
                 r.embree_ms.push(embree::field(&v, "trace_ms", exe)?);
                 r.embree_build_ms.push(embree::field(&v, "build_ms", exe)?);
+                r.embree_version = embree::version(&v);
             }
         }
         Ok(r)
@@ -357,12 +361,13 @@ impl<'a> Subject<'a> {
         }
         if !r.embree_ms.is_empty() {
             println!(
-                "{:16} {:8} {:>9} {:>9} {:>9.2}   (Embree 3 rtcIntersect1, 2 threads; build {:.1} ms)",
+                "{:16} {:8} {:>9} {:>9} {:>9.2}   ({} rtcIntersect1, 2 threads; build {:.1} ms)",
                 "embree",
                 "closest",
                 "-",
                 "-",
                 mrays(&r.embree_ms),
+                r.embree_version,
                 median(r.embree_build_ms.clone()),
             );
         }
