@@ -956,3 +956,79 @@ fn every_tracer_locates_the_instance_of_a_hit() {
     }
     devices.check_validation();
 }
+
+/// A tree larger than one storage binding (devices opened with `max_binding_bytes` below
+/// its arrays) is split into pages, one binding each (`bvhtrace::engine::pages`): every
+/// walk, one mesh and two levels, in buffers on every device equals the CPU twin bit for
+/// bit, and the kernels that ran were the split ones. A device with WebGPU's 8 storage
+/// buffers per stage (the mock) refuses the upload when its walks would bind more, naming
+/// the limit.
+#[test]
+fn trees_over_one_binding_trace_in_pages_equal_to_the_cpu() {
+    use bvhtrace::{AdapterChoice, Backend, BvhStorage, Device, OpenOptions, TraceError};
+    let one = load_scene("builtin:icosphere:4", "icosphere:4").expect("builtin scene");
+    let two = load_instanced_scene("builtin:spheres", "spheres").expect("builtin scene");
+    for (scene, bvh) in [("icosphere:4", one.bvh), ("spheres", two.bvh)] {
+        // A third of the triangles: three pages of them or more, more of nodes and links.
+        let binding = std::mem::size_of_val(bvh.triangles()) as u64 / 3;
+        let mut all: Vec<Box<dyn Tracer + '_>> = vec![Box::new(bvhtrace::CpuTracer::new(&bvh))];
+        for backend in common::BACKENDS {
+            let device = Device::new(&OpenOptions {
+                adapter: AdapterChoice::Auto,
+                validation: true,
+                max_binding_bytes: Some(binding),
+                ..OpenOptions::new(backend)
+            });
+            let device = match device {
+                Ok(d) => d,
+                Err(e @ TraceError::NoAdapter { .. }) => {
+                    eprintln!("SKIP pages on {backend}: {e}");
+                    continue;
+                }
+                Err(e) => panic!("pages: cannot open {backend}: {e}"),
+            };
+            let opts = OpenOptions {
+                traversals: Traversal::ALL.to_vec(),
+                storage: Some(BvhStorage::Buffers),
+                ..OpenOptions::default()
+            };
+            match device.open_owned(&bvh, &opts) {
+                Ok(opened) => all.push(opened.tracer),
+                Err(TraceError::LimitTooLow { limit, needs, .. }) if backend == Backend::Mock => {
+                    assert_eq!(limit, "max_storage_buffers_per_shader_stage", "{scene}");
+                    assert!(needs > 8, "{scene}: {needs}");
+                }
+                Err(e) => panic!("{scene} on {backend}: {e}"),
+            }
+        }
+        let rays = ray_set(&bvh, 11);
+        // Every walk once, each query, on both scenes; the hits-only kernels on one.
+        let cases: &[(Traversal, Query)] = match scene {
+            "icosphere:4" => &[
+                (Traversal::FullStack, Query::Closest),
+                (Traversal::Stackless, Query::Any),
+                (Traversal::ShortStack(4), Query::Closest),
+                (Traversal::Wide, Query::Closest),
+            ],
+            _ => &[
+                (Traversal::Stackless, Query::Closest),
+                (Traversal::FullStack, Query::Any),
+            ],
+        };
+        for (i, &(t, query)) in cases.iter().enumerate() {
+            let label = format!("{scene} in pages, {t:?} {query:?}");
+            let on: Vec<&dyn Tracer> = all.iter().map(|x| &**x).collect();
+            let opts = TraceOptions::new(t, query);
+            let c = compare_with(&label, &on, &rays, &opts, i == 0);
+            assert!(c.failures.is_empty(), "{}", c.failures.join("\n"));
+            assert!(c.cpu.0.iter().any(|h| h.is_hit()), "{label}: nothing hit");
+        }
+        for t in &all[1..] {
+            let used = t.kernels_used();
+            assert!(!used.is_empty(), "{scene} on {}", name(&**t));
+            for k in used {
+                assert!(!k.pages.is_one(), "{scene} on {}: {k:?}", name(&**t));
+            }
+        }
+    }
+}

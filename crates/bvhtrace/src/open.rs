@@ -44,6 +44,11 @@ pub struct OpenOptions {
     /// backend cuts them; on a device write your rule in WGSL
     /// (`LibraryShape::with_filter`).
     pub filter: Option<SharedFilter>,
+    /// The largest storage binding a device backend makes, when below the device's own
+    /// (`None`: the device's): a tree larger than it is split into pages of at most this
+    /// size (`bvhtrace_engine::pages`), as on a device with that limit. To try a browser's
+    /// 128 MiB bindings natively, or the split on a small scene.
+    pub max_binding_bytes: Option<u64>,
 }
 
 /// A [`HitFilter`] shared by the tracers that apply it ([`OpenOptions::filter`]).

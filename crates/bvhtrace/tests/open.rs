@@ -7,7 +7,7 @@ use bvhtrace::glam::Vec3;
 use bvhtrace::gpu::{ContextOptions, wgpu};
 use bvhtrace::{
     AdapterChoice, Backend, BvhStorage, DriverTuning, GpuContext, OpenOptions, TraceError,
-    TraceOptions,
+    TraceOptions, Tracer,
 };
 
 /// A 16 x 16 grid of quads (512 triangles) in the z = 0 plane, from -1 to 1.
@@ -381,22 +381,42 @@ fn fast_plain_hits(rays: &[Ray]) -> Vec<bvhtrace::Hit> {
 }
 
 /// A tree over a device's buffer limit, on a device without texture storage (WebGPU's
-/// default limits, scaled down to the grid): whichever storage is asked for, or none, the
-/// error names the limit exceeded, the bytes and the storage tried, and says that the
-/// device has no texture storage, rather than only the missing feature.
+/// default limits, scaled down to the grid): in pages of one binding each when they are
+/// few enough (traced as the CPU traces it); else, whichever storage is asked for, or
+/// none, the error names the limit exceeded, the bytes and the storage tried, and says
+/// that the device has no texture storage, rather than only the missing feature.
 #[test]
 fn a_tree_over_the_buffer_limit_is_an_error_naming_the_limit_bytes_and_storage() {
     use bvhtrace_mock::MockDevice;
-    let limits = bvhtrace::engine::plan::DeviceLimits {
-        max_storage_buffer_binding_size: 16 << 10,
-        max_buffer_size: 16 << 10,
+    let bvh = grid();
+    let node_bytes = std::mem::size_of_val(bvh.nodes());
+    let mut limits = bvhtrace::engine::plan::DeviceLimits {
+        max_storage_buffer_binding_size: (node_bytes / 2) as u64,
+        max_buffer_size: (node_bytes / 2) as u64,
         max_compute_workgroups_per_dimension: 65_535,
         min_storage_buffer_offset_alignment: 256,
         max_texture_dimension_2d: 8192,
+        max_storage_buffers_per_shader_stage: 8,
     };
     let device = bvhtrace::Device::mock(MockDevice::new().with_limits(limits));
-    let bvh = grid();
-    let node_bytes = std::mem::size_of_val(bvh.nodes());
+    let opened = (device.open(&bvh, &OpenOptions::default())).expect("the tree in pages");
+    let rays = [Ray::new(Vec3::new(0.1, 0.2, 5.0), Vec3::NEG_Z)];
+    let opts = TraceOptions::closest(opened.traversal);
+    let hits = opened.tracer.trace(&rays, &opts).expect("trace").hits;
+    assert!(hits[0].is_hit());
+    assert_eq!(
+        hits,
+        bvhtrace::CpuTracer::new(&bvh)
+            .trace(&rays, &opts)
+            .expect("cpu")
+            .hits
+    );
+    // A kilobyte a binding: more pages than a tree may have.
+    (
+        limits.max_storage_buffer_binding_size,
+        limits.max_buffer_size,
+    ) = (1 << 10, 1 << 10);
+    let device = bvhtrace::Device::mock(MockDevice::new().with_limits(limits));
     assert!(
         node_bytes > 16 << 10,
         "the grid's {node_bytes} node bytes fit"

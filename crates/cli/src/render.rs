@@ -170,6 +170,15 @@ pub struct RenderArgs {
     /// Adapter name substring (overrides $BVHTRACE_ADAPTER).
     #[arg(long)]
     pub adapter: Option<String>,
+    /// Where a device keeps the tree: buffers (the exact flat layout) or textures (what
+    /// CPU adapters such as lavapipe trace fastest) [default: the device's choice].
+    #[arg(long, value_parser = parse_storage)]
+    pub storage: Option<BvhStorage>,
+    /// The largest storage binding a device backend makes, in MiB, when below the
+    /// device's own: a tree in buffers larger than it is split into pages of one binding
+    /// each (128 is a browser's WebGPU default).
+    #[arg(long, value_name = "MIB", value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
+    pub max_binding_mib: Option<u64>,
     /// stackless, short-stack, short-stack:K, full-stack or wide [default: the backend's
     /// fastest: full-stack on the CPU, stackless on a GPU; wide with `--layout wide`].
     #[arg(long)]
@@ -444,7 +453,11 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let walk = args.walk()?;
     // The device, opened once: it builds the tree (a device builder) and traces it.
     let walks: Vec<Traversal> = walk.into_iter().collect();
-    let opts = backend::options(args.backend, args.adapter.as_deref(), &walks);
+    let opts = bvhtrace::OpenOptions {
+        storage: args.storage,
+        max_binding_bytes: args.max_binding_mib.map(|m| m << 20),
+        ..backend::options(args.backend, args.adapter.as_deref(), &walks)
+    };
     let device = backend::device(&opts)?;
     let Built {
         scene,

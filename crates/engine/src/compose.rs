@@ -40,6 +40,7 @@ use std::borrow::Cow;
 
 use bvhtrace_core::{Precision, Traversal};
 
+use crate::pages::Pages;
 use crate::shaders::{self, Wgsl};
 use crate::storage::{BvhStorage, RayInput};
 use crate::walks::{self, WALKS, Walk};
@@ -162,6 +163,9 @@ pub struct ModuleSet {
     /// The name of a WGSL function of yours, `fn(BvhCandidate) -> bool`, asked about every
     /// candidate that would become the hit (after the masks), with `candidate.wgsl`.
     pub filter: Option<&'static str>,
+    /// How the tree's arrays in storage buffers are split over bindings
+    /// ([`Pages::specialise`]); [`Pages::ONE`] for a tree that fits one binding.
+    pub pages: Pages,
 }
 
 impl ModuleSet {
@@ -178,6 +182,7 @@ impl ModuleSet {
             rays: RayInput::Buffer,
             masks: false,
             filter: None,
+            pages: Pages::ONE,
         }
     }
 
@@ -225,16 +230,22 @@ impl ModuleSet {
     fn tree_files(&self) -> Vec<(&'static str, Cow<'static, str>)> {
         let wide = self.walks.wide();
         let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(24);
-        let mut push = |(name, src): Wgsl| out.push((name, src.into()));
-        push(shaders::TYPES);
-        push(match wide {
+        out.push((shaders::TYPES.0, shaders::TYPES.1.into()));
+        let mut bindings = vec![match wide {
             true => self.storage.wide_wgsl(),
             false => self.storage.wgsl(),
-        });
-        push(self.storage.triangles_wgsl());
+        }];
+        bindings.push(self.storage.triangles_wgsl());
         if self.escapes() {
-            push(self.storage.escapes_wgsl());
+            bindings.push(self.storage.escapes_wgsl());
         }
+        for (name, src) in bindings {
+            out.push(match self.pages.is_one() {
+                true => (name, src.into()),
+                false => (name, self.pages.specialise(src).into()),
+            });
+        }
+        let mut push = |(name, src): Wgsl| out.push((name, src.into()));
         push(match self.instances {
             true => shaders::BVH_INSTANCES,
             false => shaders::BVH_NO_INSTANCES,

@@ -18,6 +18,7 @@ use bvhtrace_core::{
 use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::key::KernelKey;
+use crate::pages::Pages;
 use crate::plan::{DeviceLimits, plan_submissions, rays_per_dispatch};
 use crate::storage::{BvhStorage, RayInput, TEXEL_ROW};
 use crate::tracer::{
@@ -55,6 +56,20 @@ pub struct ArraysLayout {
     pub instanced: bool,
     /// Alpha masks: the bind groups have them (binding 5).
     pub masks: bool,
+    /// How the binary layout's arrays are split over bindings ([`crate::pages`]).
+    pub pages: Pages,
+    /// How the wide layout's arrays are split.
+    pub wide_pages: Pages,
+}
+
+impl ArraysLayout {
+    /// The split of the layout `traversal` reads.
+    pub fn pages_for(&self, traversal: Traversal) -> Pages {
+        match walk(traversal).is_wide() {
+            true => self.wide_pages,
+            false => self.pages,
+        }
+    }
 }
 
 /// One write of an update: the array's bytes from its start (`replace` false: the device
@@ -231,6 +246,8 @@ pub struct UploadedTree {
     pub depth: u32,
     /// [`tree_shape`] of the uploaded tree.
     pub shape: (usize, usize, usize, u32),
+    /// How the arrays are split over bindings, and what the bind groups hold.
+    pub layout: ArraysLayout,
 }
 
 /// The scratch kept between traces, with the plan it was made for.
@@ -253,7 +270,7 @@ pub struct Engine<B: DeviceApi> {
     arrays: B::Arrays,
     tree: UploadedTree,
     /// Bytes of each uploaded array's data, to learn whether an update keeps its size.
-    sizes: Vec<(ArrayRole, usize)>,
+    sizes: Vec<((ArrayRole, u8), usize)>,
     stats: UploadStats,
     /// The binary layout's part of `stats`, which an update leaves as it is.
     binary_stats: UploadStats,
@@ -283,6 +300,35 @@ fn wide_of(bvh: &FlatBvh) -> Arc<WideBvh> {
     bvh.wide()
         .cloned()
         .unwrap_or_else(|| Arc::new(WideBvh::collapse(bvh)))
+}
+
+/// Checks that the kernel tracing `opts` on an upload laid out as `layout` binds no more
+/// storage buffers than the device allows: only a tree split into pages can bind more
+/// than every device allows ([`crate::pages`]).
+fn check_bindings(
+    layout: &ArraysLayout,
+    opts: &TraceOptions,
+    limits: &DeviceLimits,
+) -> Result<(), TraceError> {
+    let pages = layout.pages_for(opts.traversal);
+    if pages.is_one() || layout.storage == BvhStorage::Textures {
+        return Ok(());
+    }
+    let key = KernelKey::new(layout.storage, opts)
+        .with_instances(layout.instanced)
+        .with_masks(layout.masks)
+        .with_pages(pages);
+    let needs = key.bindings().len() as u64;
+    let has = u64::from(limits.max_storage_buffers_per_shader_stage);
+    if needs > has {
+        return Err(TraceError::LimitTooLow {
+            limit: "max_storage_buffers_per_shader_stage",
+            has,
+            needs,
+            needed_for: "a tree larger than one binding, split into pages of one binding each,",
+        });
+    }
+    Ok(())
 }
 
 /// Escape links of the top level's blocks: whole blocks hold its links (the last one may
@@ -345,22 +391,34 @@ impl<B: DeviceApi> Engine<B> {
         if let Some(w) = &wide {
             check_wide_top_level(w)?;
         }
-        let mut arrays = Vec::new();
+        let limits = backend.limits();
+        let (mut arrays, mut pages) = (Vec::new(), Pages::ONE);
         if binary {
             let links = with_escapes.then(|| bvh.escapes().len());
-            arrays = binary_arrays(bvh, storage, bvh.nodes().len(), true, links);
+            let part = binary_arrays(bvh, storage, bvh.nodes().len(), true, links);
+            pages = Pages::plan(storage, &part, limits)?;
+            arrays = pages.split(part);
         }
+        let mut wide_pages = Pages::ONE;
         if let Some(w) = &wide {
-            arrays.extend(wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
+            let part = wide_arrays(w, storage, bvh.masks().map(|m| &**m));
+            wide_pages = Pages::plan(storage, &part, limits)?;
+            arrays.extend(wide_pages.split(part));
         }
         for a in &arrays {
-            a.check(backend.limits())?;
+            a.check(limits)?;
         }
         let layout = ArraysLayout {
             storage,
             instanced: bvh.is_instanced(),
             masks: bvh.masks().is_some(),
+            pages,
+            wide_pages,
         };
+        for &traversal in &opts.traversals {
+            let opts = TraceOptions::closest(traversal);
+            check_bindings(&layout, &opts, limits)?;
+        }
         let start = Instant::now();
         let made = backend.create_arrays(layout, &arrays)?;
         let stats = UploadStats {
@@ -382,8 +440,12 @@ impl<B: DeviceApi> Engine<B> {
                 wide: opts.wide(),
                 depth: bvh.depth(),
                 shape: tree_shape(bvh),
+                layout,
             },
-            sizes: arrays.iter().map(|a| (a.role, a.bytes.len())).collect(),
+            sizes: arrays
+                .iter()
+                .map(|a| ((a.role, a.page), a.bytes.len()))
+                .collect(),
             stats,
             binary_stats,
             host_copy,
@@ -499,6 +561,7 @@ impl<B: DeviceApi> Engine<B> {
                 .with_rays(input)
                 .with_instances(self.tree.instanced)
                 .with_masks(self.tree.masks)
+                .with_pages(self.tree.layout.pages_for(opts.traversal))
         }
     }
 
@@ -526,6 +589,7 @@ impl<B: DeviceApi> Engine<B> {
     /// Checks that `opts` can run on this upload and device ([`Tracer::supports`]).
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.supports_traversal(opts.traversal)?;
+        check_bindings(&self.tree.layout, opts, self.backend.limits())?;
         let key = self.key(opts, self.ray_input(), true);
         (self.backend.features()).check(&key, || self.backend.device_name())
     }
@@ -794,6 +858,22 @@ impl<B: DeviceApi> Engine<B> {
             check_wide_top_level(w)?;
             arrays.extend(wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
         }
+        let layout = self.tree.layout;
+        let wide_from = arrays.iter().take_while(|a| !a.role.is_wide()).count();
+        let wide_part = arrays.split_off(wide_from);
+        let mut arrays = layout.pages.split(arrays);
+        if !wide_part.is_empty() {
+            let limits = self.backend.limits();
+            if Pages::plan(storage, &wide_part, limits)? != layout.wide_pages {
+                return Err(TraceError::BadBuffer {
+                    buffer: "wide nodes",
+                    problem: "the wide layout collapsed again needs another split over the \
+                              device's bindings than the upload's: upload again"
+                        .into(),
+                });
+            }
+            arrays.extend(layout.wide_pages.split(wide_part));
+        }
         for a in &arrays {
             a.check(self.backend.limits())?;
         }
@@ -802,7 +882,8 @@ impl<B: DeviceApi> Engine<B> {
         let wide_stats = stats_of(storage, &arrays[wide_from..]);
         let mut writes = Vec::with_capacity(arrays.len());
         for array in arrays {
-            let old = self.sizes.iter_mut().find(|(r, _)| *r == array.role);
+            let at = (array.role, array.page);
+            let old = self.sizes.iter_mut().find(|(r, _)| *r == at);
             // Only the wide layout's sizes may change (the collapse follows the boxes).
             let replace = match old {
                 Some((_, size))
@@ -814,17 +895,12 @@ impl<B: DeviceApi> Engine<B> {
                 }
                 Some(_) => false,
                 None => {
-                    self.sizes.push((array.role, array.bytes.len()));
+                    self.sizes.push((at, array.bytes.len()));
                     true
                 }
             };
             writes.push(ArrayWrite { array, replace });
         }
-        let layout = ArraysLayout {
-            storage,
-            instanced: self.tree.instanced,
-            masks: self.tree.masks,
-        };
         self.backend
             .write_arrays(&mut self.arrays, layout, &writes)?;
         if wide.is_some() {

@@ -21,6 +21,7 @@ use bvhtrace_core::flat::{ESCAPE_BLOCK, OCTANTS};
 use bvhtrace_core::{Precision, Query, TraceOptions, Traversal};
 
 use crate::compose::{BATCH_GROUP, BVH_GROUP, Entries, ModuleSet, VertexAttributes, WalkSet};
+use crate::pages::{PAGE_BINDING_STRIDE, PAGE_NAMES, Pages};
 use crate::plan::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES};
 use crate::storage::{BvhStorage, RayInput, TEXEL_ROW};
 use crate::upload::UploadStats;
@@ -41,6 +42,27 @@ fn node_bytes(wide: bool) -> u64 {
 /// Blocks of escape links for `nodes` nodes.
 fn escape_blocks(nodes: u64) -> u64 {
     nodes.div_ceil(ESCAPE_BLOCK as u64)
+}
+
+/// The bindings of the further pages of `whole`'s array when `pages` split it
+/// ([`Pages::specialise`] names them): none for pages 0 (`whole` itself) or an array left
+/// whole. The first page's binding counts every element (see
+/// [`KernelKey::declared_bvh_bytes`]); the others count none.
+fn page_bindings(pages: &Pages, whole: BindingInfo) -> Vec<BindingInfo> {
+    let count = u32::from(pages.of_binding(whole.binding));
+    if whole.group != BVH_GROUP || !whole.uploaded || count <= 1 {
+        return Vec::new();
+    }
+    (1..count)
+        .map(|p| BindingInfo {
+            binding: whole.binding + PAGE_BINDING_STRIDE * p,
+            name: (PAGE_NAMES.iter())
+                .find(|(n, _)| *n == whole.name)
+                .map_or("", |(_, names)| names[p as usize - 1]),
+            per: PerElement::Page,
+            ..whole
+        })
+        .collect()
 }
 
 /// How a pipeline's module is composed.
@@ -70,6 +92,9 @@ pub enum PerElement {
     Instance,
     /// One element per ray of the batch.
     Ray,
+    /// A further page of a split array ([`crate::pages`]): its elements are counted by
+    /// the array's first binding.
+    Page,
     /// One word of the alpha masks (`MaskTables::words`): as many as the tables have,
     /// not counted by [`KernelKey::declared_bvh_bytes`].
     MaskWord,
@@ -125,6 +150,9 @@ pub struct KernelKey {
     pub masks: bool,
     /// Only what is needed, or everything.
     pub composition: Composition,
+    /// How the tree's arrays are split over bindings ([`crate::pages`]): [`Pages::ONE`]
+    /// unless the upload is larger than one of the device's bindings.
+    pub pages: Pages,
 }
 
 impl KernelKey {
@@ -150,6 +178,7 @@ impl KernelKey {
             mask: opts.mask,
             masks: false,
             composition: Composition::Specialised,
+            pages: Pages::ONE,
         }
     }
 
@@ -188,6 +217,11 @@ impl KernelKey {
     /// The same key for a BVH with alpha masks (`FlatBvh::masks`) or without.
     pub fn with_masks(self, masks: bool) -> KernelKey {
         KernelKey { masks, ..self }
+    }
+
+    /// The same key for an upload split into `pages`.
+    pub fn with_pages(self, pages: Pages) -> KernelKey {
+        KernelKey { pages, ..self }
     }
 
     /// The same key reading its rays from `rays`.
@@ -273,6 +307,7 @@ impl KernelKey {
                 rays: self.rays,
                 instances: self.instances,
                 masks: self.masks,
+                pages: self.pages,
                 ..if walks::walk(self.traversal).is_wide() {
                     ModuleSet::wide_in(self.storage, self.precision, Entries::All)
                 } else {
@@ -293,6 +328,7 @@ impl KernelKey {
                 rays: self.rays,
                 masks: self.masks,
                 filter: None,
+                pages: self.pages,
             },
         }
     }
@@ -343,6 +379,10 @@ impl KernelKey {
         if set.escapes() {
             b.push(bvh(2, escapes, ESCAPE_BLOCK_BYTES, PerElement::NodeBlock));
         }
+        let paged: Vec<BindingInfo> = b
+            .iter()
+            .flat_map(|&w| page_bindings(&set.pages, w))
+            .collect();
         if set.attributes.normals {
             b.push(bvh(3, "vertex_normals", 48, PerElement::Triangle));
         }
@@ -363,6 +403,8 @@ impl KernelKey {
                 b.push(batch(2, "counters", COUNTERS_BYTES));
             }
         }
+        b.extend(paged);
+        b.sort_by_key(|x| (x.group, x.binding));
         b
     }
 
@@ -382,7 +424,7 @@ impl KernelKey {
                         PerElement::NodeBlock => escape_blocks(nodes),
                         PerElement::Triangle => triangles,
                         PerElement::Instance => instances,
-                        PerElement::Ray | PerElement::MaskWord => 0,
+                        PerElement::Ray | PerElement::MaskWord | PerElement::Page => 0,
                     }
             })
             .sum()

@@ -20,7 +20,7 @@
 //!
 //! For backend implementers, in their modules: [`engine`] (the device trait and the
 //! engine), [`walks`] (the table of walks), [`compose`] and [`shaders`] (the WGSL),
-//! [`upload`] (the arrays), [`plan`] (dispatches within a device's limits), [`tracer`]
+//! [`upload`] (the arrays), [`pages`] (arrays over one binding), [`plan`] (dispatches within a device's limits), [`tracer`]
 //! (finishing rays on the host), [`builder`] and [`programs`] (the device builders, the
 //! refit, skins and morphs), [`ray_query`] (the device's own ray queries), `spirv` (the
 //! kernels for Vulkan, with the `spirv` feature).
@@ -33,6 +33,7 @@ pub mod engine;
 mod error;
 pub mod key;
 mod library;
+pub mod pages;
 pub mod plan;
 pub mod programs;
 pub mod ray_query;

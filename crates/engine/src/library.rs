@@ -5,6 +5,7 @@
 use bvhtrace_core::{Precision, Traversal};
 
 use crate::compose::{Entries, ModuleSet, WalkSet};
+use crate::pages::Pages;
 use crate::ray_query;
 use crate::shaders;
 use crate::storage::BvhStorage;
@@ -37,6 +38,9 @@ pub struct LibraryShape {
     /// `fn(BvhCandidate) -> bool` of your shader, asked about every candidate that would
     /// become the hit.
     pub filter: Option<&'static str>,
+    /// How the upload's arrays are split over bindings ([`crate::pages`]; `GpuBvh` fills
+    /// it in): [`Pages::ONE`] unless the tree is larger than one of the device's bindings.
+    pub pages: Pages,
 }
 
 impl LibraryShape {
@@ -51,6 +55,7 @@ impl LibraryShape {
             ray_queries: false,
             masks: false,
             filter: None,
+            pages: Pages::ONE,
         }
     }
 
@@ -85,6 +90,7 @@ impl LibraryShape {
             instances: self.instanced,
             masks: self.masks,
             filter: self.filter,
+            pages: self.pages,
             ..ModuleSet::everything(self.storage, self.precision, Entries::None)
         }
     }
@@ -117,7 +123,11 @@ impl std::fmt::Display for LibraryShape {
             "{levels}{masks}, {layout} layout in {:?}, {} walk",
             self.storage,
             self.traversal.name()
-        )
+        )?;
+        match self.pages.is_one() {
+            true => Ok(()),
+            false => write!(f, ", split into pages ({:?})", self.pages),
+        }
     }
 }
 

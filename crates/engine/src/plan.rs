@@ -22,6 +22,9 @@ pub struct DeviceLimits {
     /// Largest 2D texture side, texels (bounds the texture storage of
     /// [`crate::BvhStorage::Textures`]).
     pub max_texture_dimension_2d: u32,
+    /// Most storage buffers one kernel binds (a tree split into pages binds one per page:
+    /// [`crate::pages`]).
+    pub max_storage_buffers_per_shader_stage: u32,
 }
 
 /// Bytes of one [`Ray`] on the device.
@@ -164,6 +167,7 @@ mod tests {
             max_compute_workgroups_per_dimension: dim,
             min_storage_buffer_offset_alignment: align,
             max_texture_dimension_2d: 8192,
+            max_storage_buffers_per_shader_stage: 8,
         }
     }
 

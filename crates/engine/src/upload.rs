@@ -231,12 +231,39 @@ pub struct DeviceArray<'a> {
     /// Bytes of one texel (16: four `u32`; 4: one) when the array is a texture; `None` for
     /// a storage buffer.
     pub texel_bytes: Option<u64>,
+    /// Which page of its array this is (0 for an array not split: [`crate::pages`]).
+    pub page: u8,
 }
 
-impl DeviceArray<'_> {
+impl<'a> DeviceArray<'a> {
     /// The name errors and labels give it.
     pub fn name(&self) -> &'static str {
         self.role.name(self.texel_bytes.is_some())
+    }
+
+    /// The binding it fills in its layout's bind group: its role's, or for a further page
+    /// of a split array, [`crate::pages::PAGE_BINDING_STRIDE`] on per page.
+    pub fn binding(&self) -> u32 {
+        self.role.binding() + crate::pages::PAGE_BINDING_STRIDE * u32::from(self.page)
+    }
+
+    /// This array (a buffer) cut into pages of `bytes` bytes, the last one shorter.
+    pub(crate) fn pages(self, bytes: usize) -> Vec<DeviceArray<'a>> {
+        let (role, texel_bytes) = (self.role, self.texel_bytes);
+        let piece = |page: usize, bytes: Cow<'a, [u8]>| DeviceArray {
+            role,
+            bytes,
+            texel_bytes,
+            page: page as u8,
+        };
+        match self.bytes {
+            Cow::Borrowed(all) => (all.chunks(bytes.max(1)).enumerate())
+                .map(|(i, c)| piece(i, Cow::Borrowed(c)))
+                .collect(),
+            Cow::Owned(all) => (all.chunks(bytes.max(1)).enumerate())
+                .map(|(i, c)| piece(i, Cow::Owned(c.to_vec())))
+                .collect(),
+        }
     }
 
     /// Texels of a texture's data (0 for a buffer).
@@ -296,6 +323,7 @@ fn array<'a>(role: ArrayRole, bytes: Cow<'a, [u8]>, texel_bytes: Option<u64>) ->
         role,
         bytes,
         texel_bytes,
+        page: 0,
     }
 }
 
@@ -425,6 +453,7 @@ mod tests {
             max_compute_workgroups_per_dimension: 65_535,
             min_storage_buffer_offset_alignment: 256,
             max_texture_dimension_2d: max,
+            max_storage_buffers_per_shader_stage: 8,
         };
         let row = u64::from(TEXEL_ROW);
         let l = limits(TEXEL_ROW);

@@ -41,6 +41,7 @@ fn mock(tuning: DriverTuning) -> Mock {
             max_compute_workgroups_per_dimension: 65_535,
             min_storage_buffer_offset_alignment: 256,
             max_texture_dimension_2d: 16_384,
+            max_storage_buffers_per_shader_stage: 8,
         },
         tuning,
         writes: Mutex::new(Vec::new()),

@@ -332,3 +332,50 @@ fn texture_uploads_count_whole_rows_for_either_layout() {
         }
     }
 }
+
+/// A tree split into pages (`bvhtrace_engine::pages`): every walk's kernel, one mesh and
+/// two levels, declares a binding per page of each split array (and nothing more), reads
+/// every element through the page function, validates and compiles; a key that splits
+/// nothing composes the module it always did.
+#[test]
+fn split_trees_declare_a_binding_per_page() {
+    use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages};
+    let pages = Pages {
+        log2_bytes: 20,
+        nodes: 3,
+        triangles: 2,
+        escapes: 4,
+    };
+    for traversal in TRAVERSALS {
+        for instances in [false, true] {
+            let opts = TraceOptions::new(traversal, Query::Any).with_counters(true);
+            let whole = KernelKey::new(BvhStorage::Buffers, &opts).with_instances(instances);
+            let split = whole.with_pages(pages);
+            assert_eq!(whole.with_pages(Pages::ONE).source(), whole.source());
+            let module = parse(&split.source());
+            let got = declared(&module);
+            assert_eq!(
+                got,
+                listed(&split),
+                "{split:?}: declared vs KernelKey::bindings"
+            );
+            let extra = got.len() - declared(&parse(&whole.source())).len();
+            let wide = traversal == Traversal::Wide;
+            let escapes = !wide && traversal != Traversal::FullStack;
+            let want = 2 + 1 + if escapes { 3 } else { 0 };
+            assert_eq!(extra, want, "{split:?}");
+            for (g, b, name) in &got {
+                if *g == 0 && *b >= PAGE_BINDING_STRIDE {
+                    assert!(
+                        name.ends_with(&format!("_{}", b / PAGE_BINDING_STRIDE)),
+                        "{name}"
+                    );
+                }
+            }
+            let nodes = if wide { "bvh_wide_nodes" } else { "bvh_nodes" };
+            assert!(has_function(&module, &format!("{nodes}_at")), "{split:?}");
+            assert!(has_function(&module, "bvh_triangles_at"), "{split:?}");
+            compile(&module, &split);
+        }
+    }
+}

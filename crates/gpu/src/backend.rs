@@ -6,13 +6,14 @@ use std::sync::Mutex;
 use bvhtrace_core::Traversal;
 use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, BatchTimes, ScratchPlan};
 use bvhtrace_engine::engine::{BackendFeatures, DeviceApi};
+use bvhtrace_engine::pages::PAGE_BINDING_STRIDE;
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::storage::texel_extent;
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
 use bvhtrace_engine::{DriverTuning, KernelKey, TraceError};
 use wgpu::util::DeviceExt;
 
-use crate::context::GpuContext;
+use crate::context::{BvhGroupShape, GpuContext};
 use crate::trace::{BatchGroups, Scratch};
 
 /// The wgpu device behind a [`crate::GpuBvh`]: the engine's backend on wgpu.
@@ -38,32 +39,42 @@ impl Resource {
     }
 }
 
+/// A bind group and its layout.
+type Group = (wgpu::BindGroup, wgpu::BindGroupLayout);
+
 /// The uploaded arrays and their bind groups.
 pub struct WgpuArrays {
-    resources: Vec<(ArrayRole, Resource)>,
+    /// Each array (each page of a split one) by role and page.
+    resources: Vec<((ArrayRole, u8), Resource)>,
     /// The BVH group for the full-stack kernels (nodes, triangles).
-    plain: Option<wgpu::BindGroup>,
+    plain: Option<Group>,
     /// The BVH group for the escape-link kernels.
-    escapes: Option<wgpu::BindGroup>,
+    escapes: Option<Group>,
     /// The wide layout's group.
-    wide: Option<wgpu::BindGroup>,
+    wide: Option<Group>,
     /// The batch bind groups made so far ([`crate::trace`]).
     pub(crate) batch_groups: Mutex<BatchGroups>,
 }
 
 impl WgpuArrays {
-    /// The array in `role`, when uploaded.
+    /// The array in `role` (its first page, when split), when uploaded.
     pub(crate) fn get(&self, role: ArrayRole) -> Option<&Resource> {
         self.resources
             .iter()
-            .find(|(r, _)| *r == role)
+            .find(|(r, _)| *r == (role, 0))
             .map(|(_, res)| res)
     }
 
-    /// The buffer in `role`, when uploaded as one.
+    /// True when some array was split into pages: the accessors of single buffers
+    /// ([`WgpuArrays::buffer`]) then answer `None`.
+    pub(crate) fn is_split(&self) -> bool {
+        self.resources.iter().any(|((_, page), _)| *page > 0)
+    }
+
+    /// The buffer in `role`, when uploaded as one (and not split into pages).
     pub(crate) fn buffer(&self, role: ArrayRole) -> Option<&wgpu::Buffer> {
         match self.get(role) {
-            Some(Resource::Buffer(b)) => Some(b),
+            Some(Resource::Buffer(b)) if !self.is_split() => Some(b),
             _ => None,
         }
     }
@@ -76,30 +87,49 @@ impl WgpuArrays {
         }
     }
 
-    /// The BVH bind group `traversal` reads, when uploaded.
-    pub(crate) fn group(&self, traversal: Traversal) -> Option<&wgpu::BindGroup> {
-        if traversal.is_wide() {
+    /// The BVH bind group `traversal` reads and its layout, when uploaded.
+    pub(crate) fn group(
+        &self,
+        traversal: Traversal,
+    ) -> Option<(&wgpu::BindGroup, &wgpu::BindGroupLayout)> {
+        let g = if traversal.is_wide() {
             self.wide.as_ref()
         } else if traversal.needs_escapes() {
             self.escapes.as_ref()
         } else {
             self.plain.as_ref()
-        }
+        };
+        g.map(|(group, layout)| (group, layout))
     }
 
     /// (Re)makes the bind groups of the arrays there are.
     fn bind(&mut self, ctx: &GpuContext, layout: ArraysLayout) {
         let device = ctx.device();
         let group = |label: &str, escapes: bool, roles: &[ArrayRole]| {
-            let entries: Vec<_> = roles
-                .iter()
-                .filter_map(|&r| self.get(r).map(|res| res.entry(r.binding())))
+            let wide = roles.contains(&ArrayRole::WideNodes);
+            let entries: Vec<_> = (self.resources.iter())
+                .filter(|((r, _), _)| roles.contains(r))
+                .map(|&((r, page), ref res)| {
+                    res.entry(r.binding() + PAGE_BINDING_STRIDE * u32::from(page))
+                })
                 .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
+            let bgl = ctx.bvh_layout_of(BvhGroupShape {
+                storage: layout.storage,
+                escapes,
+                instances: layout.instanced,
+                masks: layout.masks,
+                pages: if wide {
+                    layout.wide_pages
+                } else {
+                    layout.pages
+                },
+            });
+            let bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
-                layout: ctx.bvh_layout(layout.storage, escapes, layout.instanced, layout.masks),
+                layout: &bgl,
                 entries: &entries,
-            })
+            });
+            (bg, bgl)
         };
         use ArrayRole as R;
         let binary = self.get(R::Nodes).is_some();
@@ -279,7 +309,9 @@ impl DeviceApi for Wgpu {
         arrays: &[DeviceArray<'_>],
     ) -> Result<WgpuArrays, TraceError> {
         let mut made = self.ctx.scoped("uploading the BVH", || WgpuArrays {
-            resources: arrays.iter().map(|a| (a.role, self.make(a))).collect(),
+            resources: (arrays.iter())
+                .map(|a| ((a.role, a.page), self.make(a)))
+                .collect(),
             plain: None,
             escapes: None,
             wide: None,
@@ -301,7 +333,7 @@ impl DeviceApi for Wgpu {
             let mut rebind = false;
             for w in writes {
                 let a = &w.array;
-                let at = arrays.resources.iter().position(|(r, _)| *r == a.role);
+                let at = (arrays.resources.iter()).position(|(r, _)| *r == (a.role, a.page));
                 match (at, w.replace) {
                     (Some(i), false) => match (&arrays.resources[i].1, a.texel_bytes) {
                         (Resource::Buffer(b), _) => self.ctx.queue().write_buffer(b, 0, &a.bytes),
@@ -315,7 +347,7 @@ impl DeviceApi for Wgpu {
                         rebind = true;
                     }
                     (None, _) => {
-                        arrays.resources.push((a.role, self.make(a)));
+                        arrays.resources.push(((a.role, a.page), self.make(a)));
                         rebind = true;
                     }
                 }

@@ -114,11 +114,8 @@ impl GpuBvh {
     /// [`GpuBvh::bind_group_for`], which checks the library against the upload.
     pub fn bind_group(&self, traversal: Traversal) -> Result<BvhBindGroup<'_>, GpuError> {
         self.engine.supports_traversal(traversal)?;
-        let group = (self.engine.arrays().group(traversal))
+        let (group, layout) = (self.engine.arrays().group(traversal))
             .ok_or(GpuError::TraversalNotUploaded { traversal })?;
-        let escapes = !traversal.is_wide() && traversal.needs_escapes();
-        let t = self.tree();
-        let layout = (self.context()).bvh_layout(t.storage, escapes, t.instanced, t.masks);
         Ok(BvhBindGroup { group, layout })
     }
 

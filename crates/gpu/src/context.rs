@@ -10,6 +10,7 @@ use bvhtrace_engine::compose::ModuleSet;
 use bvhtrace_engine::compose::WORKGROUP_SIZE;
 use bvhtrace_engine::engine::BackendFeatures;
 use bvhtrace_engine::key::Composition;
+use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages};
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::storage::RayInput;
 use bvhtrace_engine::walks::{FULL_STACK_SIZE, STACK_LANES};
@@ -67,6 +68,11 @@ pub struct ContextOptions {
     /// ray-query tracer ([`crate::RayQueryBvh`]). Off by default: wgpu's experimental
     /// features are opted into one by one.
     pub ray_queries: bool,
+    /// The largest storage binding the tracer makes, when below the device's own (`None`:
+    /// the device's): a tree larger than it is split into pages of at most this size
+    /// (`bvhtrace_engine::pages`), as on a device with that limit. To test the split on
+    /// small scenes, or a browser's 128 MiB bindings natively.
+    pub max_binding_bytes: Option<u64>,
 }
 
 /// A device and queue with the tracer's shared state. Cheap to clone (reference counted);
@@ -135,6 +141,80 @@ fn scope_error(during: &'static str, e: wgpu::Error) -> GpuError {
 }
 
 /// A compute-stage storage-buffer binding.
+/// What a BVH bind group (group 0 of the kernels) holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct BvhGroupShape {
+    pub storage: BvhStorage,
+    /// The escape links (binding 2).
+    pub escapes: bool,
+    /// The instances of a two-level tree (binding 4).
+    pub instances: bool,
+    /// The alpha masks (binding 5).
+    pub masks: bool,
+    /// How the nodes, triangles and escape links are split over bindings.
+    pub pages: Pages,
+}
+
+impl BvhGroupShape {
+    fn label(&self) -> String {
+        let BvhGroupShape {
+            storage,
+            escapes,
+            instances,
+            masks,
+            pages,
+        } = self;
+        format!(
+            "bvhtrace bvh ({storage:?}, escapes {escapes}, instances {instances}, masks \
+             {masks}, {pages:?})"
+        )
+    }
+
+    /// The layout's entries: nodes, triangles (and escape links) as buffers or read-only
+    /// storage textures, a buffer per further page, the instances and masks as buffers.
+    fn entries(&self) -> Vec<wgpu::BindGroupLayoutEntry> {
+        let texture = |binding, format| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::StorageTexture {
+                access: wgpu::StorageTextureAccess::ReadOnly,
+                format,
+                view_dimension: wgpu::TextureViewDimension::D2,
+            },
+            count: None,
+        };
+        let (rgba, r) = (
+            wgpu::TextureFormat::Rgba32Uint,
+            wgpu::TextureFormat::R32Uint,
+        );
+        let mut split = vec![0, 1];
+        if self.escapes {
+            split.push(2);
+        }
+        let mut entries = Vec::new();
+        for &b in &split {
+            entries.push(match (self.storage, b) {
+                (BvhStorage::Buffers, _) => storage_entry(b, true),
+                (BvhStorage::Textures, 2) => texture(b, r),
+                (BvhStorage::Textures, _) => texture(b, rgba),
+            });
+        }
+        // The instances are a buffer with either storage (few, and read once a visit).
+        if self.instances {
+            entries.push(storage_entry(4, true));
+        }
+        if self.masks {
+            entries.push(storage_entry(5, true));
+        }
+        for &b in &split {
+            for p in 1..u32::from(self.pages.of_binding(b)) {
+                entries.push(storage_entry(b + PAGE_BINDING_STRIDE * p, true));
+            }
+        }
+        entries
+    }
+}
+
 pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
@@ -186,7 +266,8 @@ impl GpuContext {
     /// * on a CPU driver (lavapipe), the texture storage that is several times faster there
     ///   also needs 5 storage textures per stage and texture sides beyond WebGPU's defaults,
     ///   which these limits include when the adapter has them;
-    /// * larger buffer and binding sizes allow larger scenes on any device.
+    /// * larger buffer and binding sizes allow larger scenes on any device, and more storage
+    ///   buffers per stage let a tree larger than one binding be split into pages.
     pub fn recommended_limits(adapter: &wgpu::Adapter) -> wgpu::Limits {
         let a = adapter.limits();
         let r = Self::required_limits();
@@ -198,6 +279,10 @@ impl GpuContext {
             max_storage_buffer_binding_size: a
                 .max_storage_buffer_binding_size
                 .max(r.max_storage_buffer_binding_size),
+            // A tree over one binding is split into pages, one binding each.
+            max_storage_buffers_per_shader_stage: a
+                .max_storage_buffers_per_shader_stage
+                .max(r.max_storage_buffers_per_shader_stage),
             max_buffer_size: a.max_buffer_size.max(r.max_buffer_size),
             max_compute_workgroups_per_dimension: a
                 .max_compute_workgroups_per_dimension
@@ -334,11 +419,13 @@ impl GpuContext {
             }
         };
         let limits = DeviceLimits {
-            max_storage_buffer_binding_size: wl.max_storage_buffer_binding_size,
+            max_storage_buffer_binding_size: (wl.max_storage_buffer_binding_size)
+                .min(options.max_binding_bytes.unwrap_or(u64::MAX)),
             max_buffer_size: wl.max_buffer_size,
             max_compute_workgroups_per_dimension: wl.max_compute_workgroups_per_dimension,
             min_storage_buffer_offset_alignment: wl.min_storage_buffer_offset_alignment,
             max_texture_dimension_2d: wl.max_texture_dimension_2d,
+            max_storage_buffers_per_shader_stage: wl.max_storage_buffers_per_shader_stage,
         };
         let timestamps = device.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let layout = |label: &str, entries: &[wgpu::BindGroupLayoutEntry]| {
@@ -363,36 +450,17 @@ impl GpuContext {
         let texture_entry = |binding, format| {
             storage_texture_entry(binding, format, wgpu::StorageTextureAccess::ReadOnly)
         };
-        let (rgba, r) = (
-            wgpu::TextureFormat::Rgba32Uint,
-            wgpu::TextureFormat::R32Uint,
-        );
+        let rgba = wgpu::TextureFormat::Rgba32Uint;
         // [buffers, textures] x [escapes or not] x [instances or not] x [masks or not].
         let bvh_layout = |storage: BvhStorage, escapes: bool, instances: bool, masks: bool| {
-            let mut entries = match storage {
-                BvhStorage::Buffers => vec![storage_entry(0, true), storage_entry(1, true)],
-                BvhStorage::Textures => vec![texture_entry(0, rgba), texture_entry(1, rgba)],
+            let shape = BvhGroupShape {
+                storage,
+                escapes,
+                instances,
+                masks,
+                pages: Pages::ONE,
             };
-            if escapes {
-                entries.push(match storage {
-                    BvhStorage::Buffers => storage_entry(2, true),
-                    BvhStorage::Textures => texture_entry(2, r),
-                });
-            }
-            // The instances are a buffer with either storage (few, and read once a visit).
-            if instances {
-                entries.push(storage_entry(4, true));
-            }
-            if masks {
-                entries.push(storage_entry(5, true));
-            }
-            layout(
-                &format!(
-                    "bvhtrace bvh ({storage:?}, escapes {escapes}, instances {instances}, \
-                     masks {masks})"
-                ),
-                &entries,
-            )
+            layout(&shape.label(), &shape.entries())
         };
         let bvh_layouts = [BvhStorage::Buffers, BvhStorage::Textures].map(|s| {
             [false, true]
@@ -493,6 +561,21 @@ impl GpuContext {
     ) -> &wgpu::BindGroupLayout {
         &self.inner.bvh_layouts[usize::from(storage == BvhStorage::Textures)]
             [usize::from(with_escapes)][usize::from(with_instances)][usize::from(with_masks)]
+    }
+
+    /// [`GpuContext::bvh_layout`] for a BVH group of any shape: a tree split into pages
+    /// ([`bvhtrace_engine::pages`]) binds one buffer per page, in a layout made for it
+    /// (WebGPU takes layouts with the same entries as one).
+    pub(crate) fn bvh_layout_of(&self, shape: BvhGroupShape) -> wgpu::BindGroupLayout {
+        if shape.pages.is_one() {
+            return (self.bvh_layout(shape.storage, shape.escapes, shape.instances, shape.masks))
+                .clone();
+        }
+        let desc = wgpu::BindGroupLayoutDescriptor {
+            label: Some(&shape.label()),
+            entries: &shape.entries(),
+        };
+        self.inner.device.create_bind_group_layout(&desc)
     }
 
     /// The layout of the batch bind group (group 1): bindings 0 (rays) and 1 (hits) read
@@ -757,12 +840,13 @@ impl GpuContext {
             let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("bvhtrace trace"),
                 bind_group_layouts: &[
-                    Some(self.bvh_layout(
-                        key.storage,
-                        key.needs_escapes(),
-                        key.instances,
-                        key.masks,
-                    )),
+                    Some(&self.bvh_layout_of(BvhGroupShape {
+                        storage: key.storage,
+                        escapes: key.needs_escapes(),
+                        instances: key.instances,
+                        masks: key.masks,
+                        pages: key.pages,
+                    })),
                     Some(self.batch_layout(key.counters, key.rays)),
                 ],
                 immediate_size: 0,

@@ -13,6 +13,7 @@ impl GpuBvh {
         let t = self.tree();
         LibraryShape {
             masks: t.masks,
+            pages: t.layout.pages_for(traversal),
             ..LibraryShape::new(t.storage, t.instanced, traversal)
         }
     }
@@ -35,7 +36,7 @@ impl GpuBvh {
     pub fn bind_group_for(&self, library: &BvhLibrary) -> Result<BvhBindGroup<'_>, GpuError> {
         let wanted = library.shape();
         let holds = self.library_shape(wanted.traversal);
-        let shape = |s: &LibraryShape| (s.storage, s.instanced, s.masks);
+        let shape = |s: &LibraryShape| (s.storage, s.instanced, s.masks, s.pages);
         if shape(&wanted) != shape(&holds) {
             return Err(GpuError::LibraryMismatch {
                 library: wanted.to_string(),

@@ -514,7 +514,7 @@ fn record_pass(
     };
     let pipeline = ctx.pipeline(key)?;
     // The engine checked that the upload holds what the traversal reads.
-    let group0 = arrays
+    let (group0, _) = arrays
         .group(key.traversal)
         .ok_or(GpuError::TraversalNotUploaded {
             traversal: key.traversal,

@@ -66,6 +66,7 @@ impl MockDevice {
                 max_compute_workgroups_per_dimension: 65_535,
                 min_storage_buffer_offset_alignment: 256,
                 max_texture_dimension_2d: 8192,
+                max_storage_buffers_per_shader_stage: 8,
             },
             tuning: DriverTuning::GPU,
             features: BackendFeatures {
@@ -97,7 +98,8 @@ impl MockDevice {
 /// every write.
 #[derive(Debug, Default)]
 pub struct MockArrays {
-    bytes: Vec<(ArrayRole, Vec<u8>)>,
+    /// Each array (each page of one split over bindings) by role and page.
+    bytes: Vec<((ArrayRole, u8), Vec<u8>)>,
     /// The binary layout: nodes, triangles, escape links, instances, masks.
     binary: Option<FlatBvh>,
     /// The wide layout, with a tree of its instances and masks beside it for the walk.
@@ -105,17 +107,24 @@ pub struct MockArrays {
 }
 
 impl MockArrays {
-    /// The bytes of `role`, when uploaded.
-    fn get(&self, role: ArrayRole) -> Option<&[u8]> {
-        (self.bytes.iter())
-            .find(|(r, _)| *r == role)
-            .map(|(_, b)| &b[..])
+    /// The bytes of `role`, its pages joined in order, when uploaded.
+    fn get(&self, role: ArrayRole) -> Option<Vec<u8>> {
+        let mut pages: Vec<_> = (self.bytes.iter())
+            .filter(|((r, _), _)| *r == role)
+            .collect();
+        pages.sort_by_key(|((_, page), _)| *page);
+        let first = pages.first()?;
+        let mut out = first.1.clone();
+        for (_, b) in &pages[1..] {
+            out.extend_from_slice(b);
+        }
+        Some(out)
     }
 
     /// The elements of `role`, when uploaded.
     fn elements<T: bytemuck::Pod>(&self, role: ArrayRole) -> Vec<T> {
         self.get(role)
-            .map_or_else(Vec::new, bytemuck::pod_collect_to_vec)
+            .map_or_else(Vec::new, |b| bytemuck::pod_collect_to_vec(&b))
     }
 
     /// The tables of `role`'s mask words, when uploaded.
@@ -123,7 +132,7 @@ impl MockArrays {
         let Some(bytes) = self.get(role) else {
             return Ok(None);
         };
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
         let tables = MaskTables::from_words(&words).map_err(|problem| TraceError::BadBuffer {
             buffer: role.name(false),
             problem,
@@ -255,7 +264,9 @@ impl DeviceApi for MockDevice {
         arrays: &[DeviceArray<'_>],
     ) -> Result<MockArrays, TraceError> {
         let mut made = MockArrays {
-            bytes: arrays.iter().map(|a| (a.role, a.bytes.to_vec())).collect(),
+            bytes: (arrays.iter())
+                .map(|a| ((a.role, a.page), a.bytes.to_vec()))
+                .collect(),
             ..MockArrays::default()
         };
         made.remake()?;
@@ -270,10 +281,11 @@ impl DeviceApi for MockDevice {
     ) -> Result<(), TraceError> {
         for w in writes {
             let a = &w.array;
-            match arrays.bytes.iter_mut().find(|(r, _)| *r == a.role) {
+            let at = (a.role, a.page);
+            match arrays.bytes.iter_mut().find(|(r, _)| *r == at) {
                 Some((_, bytes)) if !w.replace => bytes[..a.bytes.len()].copy_from_slice(&a.bytes),
                 Some((_, bytes)) => *bytes = a.bytes.to_vec(),
-                None => arrays.bytes.push((a.role, a.bytes.to_vec())),
+                None => arrays.bytes.push((at, a.bytes.to_vec())),
             }
         }
         arrays.remake()

@@ -28,9 +28,9 @@ pub enum PathWalk {
 
 /// The upload the kernel reads, kept alive with its bind group.
 enum Upload {
-    Walk(GpuBvh),
+    Walk(Box<GpuBvh>),
     #[cfg(not(target_arch = "wasm32"))]
-    RayQueries(RayQueryBvh),
+    RayQueries(Box<RayQueryBvh>),
 }
 
 /// The path tracer on a device: the BVH uploaded, the kernel compiled, the sums on the
@@ -156,13 +156,13 @@ impl GpuPathTracer {
             PathWalk::Walk(t) => {
                 let up = GpuBvh::upload(ctx, bvh, &UploadOptions::for_traversal(t))?;
                 let library = up.wgsl_library(t, 0)?;
-                (Upload::Walk(up), library)
+                (Upload::Walk(Box::new(up)), library)
             }
             #[cfg(not(target_arch = "wasm32"))]
             PathWalk::RayQueries => {
                 let up = RayQueryBvh::upload(ctx, bvh)?;
                 let library = up.wgsl_library(0);
-                (Upload::RayQueries(up), library)
+                (Upload::RayQueries(Box::new(up)), library)
             }
             #[cfg(target_arch = "wasm32")]
             PathWalk::RayQueries => {

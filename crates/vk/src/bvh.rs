@@ -14,6 +14,7 @@ use bvhtrace_engine::engine::{
     ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
     ScratchPlan, UploadedTree,
 };
+use bvhtrace_engine::pages::PAGE_BINDING_STRIDE;
 use bvhtrace_engine::plan::{COUNTERS_BYTES, DeviceLimits, HIT_BYTES, RAY_BYTES, plan_dispatches};
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
 #[cfg(doc)]
@@ -37,7 +38,8 @@ pub struct Scratch {
 
 /// The uploaded arrays, each in a device-local storage buffer, and their descriptor sets.
 pub struct Arrays {
-    buffers: Vec<(ArrayRole, Buffer)>,
+    /// Each array (each page of a split one) by role and page.
+    buffers: Vec<((ArrayRole, u8), Buffer)>,
     /// One zeroed instance, bound where the upload has no array: every binding of a set is
     /// bound (the instances of one mesh, escape links the wide walk never reads, the masks
     /// of a BVH without them).
@@ -59,7 +61,7 @@ impl Sets {
         let d = &ctx.inner.device;
         let sizes = [vk::DescriptorPoolSize {
             ty: vk::DescriptorType::STORAGE_BUFFER,
-            descriptor_count: 5 * count,
+            descriptor_count: ctx.inner.set_bindings[layout].len() as u32 * count,
         }];
         let info = vk::DescriptorPoolCreateInfo::default()
             .max_sets(count)
@@ -95,42 +97,52 @@ impl Drop for Sets {
 }
 
 impl Arrays {
-    fn raw(&self, role: ArrayRole) -> vk::Buffer {
+    /// Page `page` of the array in `role`, or the filler where there is none.
+    fn raw(&self, role: ArrayRole, page: u8) -> vk::Buffer {
         self.buffers
             .iter()
-            .find(|(r, _)| *r == role)
+            .find(|(r, _)| *r == (role, page))
             .map_or(self.filler.raw, |(_, b)| b.raw)
     }
 
-    fn has(&self, role: ArrayRole) -> bool {
-        self.buffers.iter().any(|(r, _)| *r == role)
+    fn has(&self, role: ArrayRole, page: u8) -> bool {
+        self.buffers.iter().any(|(r, _)| *r == (role, page))
     }
 
     /// Points the sets at the buffers: the wide set at the wide layout's arrays, with the
-    /// binary escape links at binding 2 as every binding is bound.
+    /// binary escape links at binding 2 as every binding is bound; each binding of the
+    /// set layout gets its array's page, or the filler.
     fn bind(&self) {
         use ArrayRole as R;
-        let whole = |binding, role| (binding, self.raw(role), 0, vk::WHOLE_SIZE);
-        let d = &self.sets.ctx.inner.device;
-        if self.has(R::Nodes) {
-            let e = [
-                whole(0, R::Nodes),
-                whole(1, R::Triangles),
-                whole(2, R::Escapes),
-                whole(4, R::Instances),
-                whole(5, R::Masks),
-            ];
-            write_set(d, self.sets.sets[0], &e);
-        }
-        if self.has(R::WideNodes) {
-            let e = [
-                whole(0, R::WideNodes),
-                whole(1, R::WideTriangles),
-                whole(2, R::Escapes),
-                whole(4, R::WideInstances),
-                whole(5, R::WideMasks),
-            ];
-            write_set(d, self.sets.sets[1], &e);
+        let ctx = &self.sets.ctx.inner;
+        let d = &ctx.device;
+        for (set, roles) in [
+            [R::Nodes, R::Triangles, R::Escapes, R::Instances, R::Masks],
+            [
+                R::WideNodes,
+                R::WideTriangles,
+                R::Escapes,
+                R::WideInstances,
+                R::WideMasks,
+            ],
+        ]
+        .iter()
+        .enumerate()
+        {
+            if !self.has(roles[0], 0) {
+                continue;
+            }
+            let e: Vec<_> = (ctx.set_bindings[0].iter())
+                .map(|&binding| {
+                    let page = (binding / PAGE_BINDING_STRIDE) as u8;
+                    let role = roles
+                        .iter()
+                        .find(|r| r.binding() == binding % PAGE_BINDING_STRIDE);
+                    let raw = role.map_or(self.filler.raw, |&r| self.raw(r, page));
+                    (binding, raw, 0, vk::WHOLE_SIZE)
+                })
+                .collect();
+            write_set(d, self.sets.sets[set], &e);
         }
     }
 }
@@ -377,6 +389,15 @@ impl DeviceApi for Ash {
         _layout: ArraysLayout,
         arrays: &[DeviceArray<'_>],
     ) -> Result<Arrays, TraceError> {
+        let slots = self.ctx.page_slots();
+        if let Some(a) = arrays.iter().find(|a| a.page >= slots) {
+            return Err(TraceError::LimitTooLow {
+                limit: "max_storage_buffers_per_shader_stage",
+                has: u64::from(self.ctx.limits().max_storage_buffers_per_shader_stage),
+                needs: 8 + 3 * u64::from(a.page),
+                needed_for: "a tree split into pages of one binding each",
+            });
+        }
         let zero = [bvhtrace_core::FlatInstance::zeroed()];
         let mut named: Vec<(&'static str, &[u8])> = vec![("filler", bytemuck::cast_slice(&zero))];
         named.extend(arrays.iter().map(|a| (a.name(), &*a.bytes)));
@@ -384,7 +405,7 @@ impl DeviceApi for Ash {
         let filler = made
             .next()
             .unwrap_or_else(|| unreachable!("a buffer per array"));
-        let buffers = arrays.iter().map(|a| a.role).zip(made).collect();
+        let buffers = arrays.iter().map(|a| (a.role, a.page)).zip(made).collect();
         let out = Arrays {
             buffers,
             filler,
@@ -402,10 +423,10 @@ impl DeviceApi for Ash {
     ) -> Result<(), TraceError> {
         let (copies, remake): (Vec<_>, Vec<_>) = writes
             .iter()
-            .partition(|w| !w.replace && arrays.has(w.array.role));
+            .partition(|w| !w.replace && arrays.has(w.array.role, w.array.page));
         let copies: Vec<(vk::Buffer, &[u8])> = copies
             .iter()
-            .map(|w| (arrays.raw(w.array.role), &*w.array.bytes))
+            .map(|w| (arrays.raw(w.array.role, w.array.page), &*w.array.bytes))
             .collect();
         copy_to_device(&self.ctx, "updating the BVH", &copies)?;
         if remake.is_empty() {
@@ -417,12 +438,12 @@ impl DeviceApi for Ash {
             .collect();
         let made = device_buffers(&self.ctx, "updating the BVH", &named)?;
         for (w, b) in remake.iter().zip(made) {
-            let role = w.array.role;
+            let at = (w.array.role, w.array.page);
             // Every submission that read the old buffer has completed: it may drop.
-            if let Some(i) = arrays.buffers.iter().position(|(r, _)| *r == role) {
-                arrays.buffers[i] = (role, b);
+            if let Some(i) = arrays.buffers.iter().position(|(r, _)| *r == at) {
+                arrays.buffers[i] = (at, b);
             } else {
-                arrays.buffers.push((role, b));
+                arrays.buffers.push((at, b));
             }
         }
         arrays.bind();

@@ -9,6 +9,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
 use bvhtrace_engine::engine::BackendFeatures;
+use bvhtrace_engine::pages::{MAX_PAGES, PAGE_BINDING_STRIDE};
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::spirv::{self, SpirvTarget};
 use bvhtrace_engine::{AdapterChoice, BvhStorage, DeviceKind, DriverTuning, KernelKey, TraceError};
@@ -53,6 +54,11 @@ pub struct VkOptions {
     /// reads the BVH and the rays from storage buffers only, so
     /// [`DriverTuning::storage`] is always [`BvhStorage::Buffers`] here, whatever is given.
     pub tuning: Option<DriverTuning>,
+    /// The largest storage binding the tracer makes, when below the device's own (`None`:
+    /// the device's): a tree larger than it is split into pages of at most this size
+    /// (`bvhtrace_engine::pages`), as on a device with that limit. To test the split on
+    /// small scenes, or a browser's 128 MiB bindings natively.
+    pub max_binding_bytes: Option<u64>,
 }
 
 /// The chosen device's description.
@@ -153,6 +159,9 @@ pub(crate) struct Inner {
     /// `shaderFloat64` is enabled (the f64 triangle test can run).
     float64: bool,
     pub(crate) set_layouts: [vk::DescriptorSetLayout; 2],
+    /// The binding numbers of each set layout (set 0: the tree, with a slot per page of
+    /// each array that may be split; set 1: the batch).
+    pub(crate) set_bindings: [Vec<u32>; 2],
     pub(crate) pipeline_layout: vk::PipelineLayout,
     pipelines: Mutex<HashMap<KernelKey, vk::Pipeline>>,
     /// The device builders' programs, by builder name.
@@ -252,6 +261,7 @@ impl VkContext {
             adapter: choice,
             validation: false,
             tuning: None,
+            max_binding_bytes: None,
         })
     }
 
@@ -506,12 +516,14 @@ impl VkContext {
                 u64::from(u32::MAX)
             };
             let limits = DeviceLimits {
-                max_storage_buffer_binding_size: u64::from(l.max_storage_buffer_range),
+                max_storage_buffer_binding_size: u64::from(l.max_storage_buffer_range)
+                    .min(opts.max_binding_bytes.unwrap_or(u64::MAX)),
                 max_buffer_size: max_allocation,
                 max_compute_workgroups_per_dimension: l.max_compute_work_group_count[0]
                     .min(l.max_compute_work_group_count[1]),
                 min_storage_buffer_offset_alignment: l.min_storage_buffer_offset_alignment as u32,
                 max_texture_dimension_2d: l.max_image_dimension2_d,
+                max_storage_buffers_per_shader_stage: l.max_per_stage_descriptor_storage_buffers,
             };
             // `timestampValidBits` is 0 on queues without timestamps (whatever
             // `timestampComputeAndGraphics` says for the device as a whole).
@@ -539,6 +551,7 @@ impl VkContext {
                 tuning,
                 float64: supported.shader_float64 == vk::TRUE,
                 set_layouts: [vk::DescriptorSetLayout::null(); 2],
+                set_bindings: [Vec::new(), Vec::new()],
                 pipeline_layout: vk::PipelineLayout::null(),
                 pipelines: Mutex::new(HashMap::new()),
                 build_programs: Mutex::new(HashMap::new()),
@@ -568,12 +581,9 @@ impl VkContext {
             // counters. The kernels' binding numbers; every binding is always bound
             // (unused ones are not declared in the SPIR-V of an entry point that does not
             // use them).
+            inner.set_bindings = [tree_bindings(&inner.limits), vec![0, 1, 2]];
             for set in 0..2 {
-                let numbers: &[u32] = if set == 0 {
-                    &[0, 1, 2, 4, 5]
-                } else {
-                    &[0, 1, 2]
-                };
+                let numbers = &inner.set_bindings[set];
                 let bindings: Vec<vk::DescriptorSetLayoutBinding> = numbers
                     .iter()
                     .map(|&b| {
@@ -633,6 +643,11 @@ impl VkContext {
 
             Ok(())
         }
+    }
+
+    /// The most pages of one array the tree's set binds ([`bvhtrace_engine::pages`]).
+    pub(crate) fn page_slots(&self) -> u8 {
+        page_slots(&self.inner.limits)
     }
 
     /// The device's description.
@@ -944,6 +959,29 @@ impl Drop for Buffer {
             d.free_memory(self.memory, None);
         }
     }
+}
+
+/// Pages per split array the tree's set layout has room for: as many as keep the set
+/// layout and the batch's within the device's storage buffers per stage, at most
+/// [`MAX_PAGES`].
+fn page_slots(limits: &DeviceLimits) -> u8 {
+    let fixed = 5 + 3;
+    let spare = limits
+        .max_storage_buffers_per_shader_stage
+        .saturating_sub(fixed)
+        / 3;
+    (spare + 1).min(u32::from(MAX_PAGES)) as u8
+}
+
+/// The tree's set layout: nodes, triangles, escape links, instances, masks, and the
+/// further pages' slots of the first three ([`PAGE_BINDING_STRIDE`] apart). Every binding
+/// is bound (unused ones with a filler), as kernels of every shape share the layout.
+fn tree_bindings(limits: &DeviceLimits) -> Vec<u32> {
+    let mut b = vec![0, 1, 2, 4, 5];
+    for p in 1..u32::from(page_slots(limits)) {
+        b.extend([0, 1, 2].map(|x| x + PAGE_BINDING_STRIDE * p));
+    }
+    b
 }
 
 #[cfg(test)]

@@ -32,6 +32,7 @@ fn context_with(test: &str, tuning: Option<DriverTuning>) -> Option<VkContext> {
         adapter: AdapterChoice::Auto,
         validation: true,
         tuning,
+        max_binding_bytes: None,
     }) {
         Ok(ctx) => {
             eprintln!(
@@ -141,24 +142,39 @@ fn errors_are_errors_not_panics() {
     let (cpu, cpu_counters) = cpu_counted(&deep, &rays, &stackless);
     assert_eq!(out.hits, cpu);
     assert_eq!(out.counters.as_deref(), Some(&cpu_counters[..]));
-    // An array larger than one storage binding is refused before anything is allocated,
-    // naming both sizes (only tried where the limit is small enough to allocate here).
-    let limit = ctx.limits().max_storage_buffer_binding_size;
-    if limit <= 256 << 20 {
-        let n = (limit / std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64 + 1) as usize;
-        let mut huge = deep.clone();
-        *huge.parts_mut().triangles = vec![bytemuck::Zeroable::zeroed(); n];
-        match VkBvh::upload(&ctx, &huge, &UploadOptions::fitting(&huge)) {
-            Err(e @ TraceError::TooLarge { .. }) => {
-                let msg = e.to_string();
-                assert!(msg.contains("triangles"), "{msg}");
-                assert!(msg.contains(&limit.to_string()), "{msg}");
-                assert!(msg.contains(&(n as u64 * 48).to_string()), "{msg}");
-            }
-            other => panic!("expected TooLarge, got {other:?}"),
+    // An array larger than one storage binding is split into pages (traced above the
+    // binding as below it); one over `MAX_PAGES` bindings is refused before anything is
+    // allocated, naming both sizes. On a context whose bindings are capped at 64 KiB.
+    let small = VkContext::with_options(&VkOptions {
+        max_binding_bytes: Some(64 << 10),
+        ..VkOptions::default()
+    })
+    .expect("the same device again");
+    let per_page = (64 << 10) / std::mem::size_of::<bvhtrace_core::FlatTriangle>();
+    let split = load_scene("builtin:icosphere:4", "icosphere:4")
+        .expect("builtin scene")
+        .bvh;
+    assert!(split.triangles().len() > 2 * per_page);
+    let split_rays = parity_rays(&split);
+    let stackless = TraceOptions::any(Traversal::Stackless);
+    let got = VkBvh::upload(&small, &split, &UploadOptions::fitting(&split))
+        .expect("in pages")
+        .trace(&split_rays, &stackless)
+        .expect("trace");
+    assert_eq!(got.hits, cpu_counted(&split, &split_rays, &stackless).0);
+    let max = usize::from(bvhtrace_vk::engine::pages::MAX_PAGES);
+    let n = max * per_page + 1;
+    let mut huge = deep.clone();
+    *huge.parts_mut().triangles = vec![bytemuck::Zeroable::zeroed(); n];
+    match VkBvh::upload(&small, &huge, &UploadOptions::fitting(&huge)) {
+        Err(e @ TraceError::TooLarge { .. }) => {
+            let msg = e.to_string();
+            assert!(msg.contains("triangles"), "{msg}");
+            assert!(msg.contains("max_storage_buffer_binding_size"), "{msg}");
+            assert!(msg.contains(&(max * per_page * 48).to_string()), "{msg}");
+            assert!(msg.contains(&(n as u64 * 48).to_string()), "{msg}");
         }
-    } else {
-        eprintln!("SKIP the too-large upload: maxStorageBufferRange is {limit} bytes");
+        other => panic!("expected TooLarge, got {other:?}"),
     }
     // Escape links that do not match the nodes are refused, saying how to make them.
     let mut unlinked = deep.clone();

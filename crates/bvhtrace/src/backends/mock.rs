@@ -22,10 +22,16 @@ struct Mock {
     device: MockDevice,
 }
 
-/// [`Backend::Mock`] with WebGPU's default limits and the tuning asked for (there is one
+/// [`Backend::Mock`] with WebGPU's default limits (the binding size capped as asked) and
+/// the tuning asked for (there is one
 /// mock: the adapter asked for is not read).
 pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, TraceError> {
-    let device = MockDevice::new();
+    let mut device = MockDevice::new();
+    if let Some(most) = opts.max_binding_bytes {
+        let mut limits = *device.limits();
+        limits.max_storage_buffer_binding_size = limits.max_storage_buffer_binding_size.min(most);
+        device = device.with_limits(limits);
+    }
     Ok(Arc::new(Mock {
         device: match opts.tuning {
             Some(t) => device.with_tuning(t),

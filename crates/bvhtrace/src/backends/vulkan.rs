@@ -25,6 +25,7 @@ pub(crate) fn open(opts: &OpenOptions) -> Result<Arc<dyn DeviceInterface>, Trace
         adapter: opts.adapter.clone(),
         validation: opts.validation,
         tuning: opts.tuning,
+        max_binding_bytes: opts.max_binding_bytes,
     })?;
     Ok(Arc::new(VulkanDevice { ctx }))
 }

@@ -91,6 +91,7 @@ pub(crate) fn context(opts: &OpenOptions, ray_queries: bool) -> Result<GpuContex
     let options = ContextOptions {
         tuning: opts.tuning,
         ray_queries,
+        max_binding_bytes: opts.max_binding_bytes,
         ..ContextOptions::default()
     };
     GpuContext::new_with(opts.adapter.clone(), &options)

@@ -119,6 +119,12 @@ fn target_arrays(
     GpuError,
 > {
     let arrays = bvh.engine().arrays();
+    if arrays.is_split() {
+        return Err(unsupported(
+            "a tree split over several bindings (crates/engine/src/pages.rs): refit on the CPU \
+             and update",
+        ));
+    }
     let missing = || unsupported("an upload without its binary layout");
     match bvh.engine().storage() {
         BvhStorage::Buffers => {
