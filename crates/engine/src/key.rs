@@ -473,7 +473,8 @@ impl KernelKey {
     }
 
     /// What was included, in words, for listings: the query, the walk, and each optional
-    /// part present (`escape-links`, `counters`, `vertex-normals`, `everything-on`).
+    /// part present (`escape-links`, `counters`, `vertex-normals`, `instances`,
+    /// `alpha-masks`, `pages` for a tree split over bindings, `everything-on`).
     pub fn names(&self) -> Vec<&'static str> {
         let set = self.module_set();
         let mut n = vec![match self.query {
@@ -495,6 +496,9 @@ impl KernelKey {
         }
         if set.masks {
             n.push("alpha-masks");
+        }
+        if !self.pages.is_one() {
+            n.push("pages");
         }
         #[cfg(feature = "bench-hooks")]
         if self.composition == Composition::EverythingOn {

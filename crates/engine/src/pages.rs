@@ -4,7 +4,7 @@
 //! the page ([`Pages::specialise`]). A tree that fits one binding composes none of it.
 //!
 //! Page `p` of the array at binding `b` is bound at `b + PAGE_BINDING_STRIDE * p`; every
-//! page but the last holds [`Pages::per_page`] elements.
+//! page but the last holds [`Pages::per_page`] elements, a power of two.
 
 use crate::error::TraceError;
 use crate::plan::DeviceLimits;
@@ -105,9 +105,11 @@ impl Pages {
         (63 - most.leading_zeros()) as u8
     }
 
-    /// Elements of `element_bytes` bytes in one page (every page but the last is full).
+    /// Elements of `element_bytes` bytes in one page (every page but the last is full): a
+    /// power of two, so that the kernels find an element's page with a shift.
     pub fn per_page(&self, element_bytes: u64) -> u64 {
-        ((1u64 << self.log2_bytes) / element_bytes).max(1)
+        let most = ((1u64 << self.log2_bytes) / element_bytes).max(1);
+        1 << (63 - most.leading_zeros())
     }
 
     /// Pages of the array at `binding` (1 for an array never split).
@@ -315,7 +317,7 @@ mod tests {
         let l = limits(1024);
         let pages = Pages::plan(BvhStorage::Buffers, &arrays, &l).unwrap();
         assert_eq!((pages.log2_bytes, pages.nodes, pages.triangles), (10, 4, 1));
-        assert_eq!(pages.per_page(32), 32);
+        assert_eq!((pages.per_page(32), pages.per_page(48)), (32, 16));
         let split = pages.split(arrays);
         let sizes: Vec<_> = split.iter().map(|a| (a.page, a.bytes.len())).collect();
         assert_eq!(sizes, [(0, 1024), (1, 1024), (2, 1024), (3, 128), (0, 480)]);

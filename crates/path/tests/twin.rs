@@ -337,3 +337,39 @@ fn two_levels_trace_the_twins_paths_bit_for_bit() {
         }
     }
 }
+
+/// The tree in buffers split over bindings (a context whose bindings hold half the
+/// Cornell box's nodes): the traversal library reads each array through its pages, and
+/// the device still follows the twin's paths to the bit.
+#[test]
+fn a_tree_split_over_bindings_traces_the_twins_paths() {
+    use bvhtrace_gpu::{BvhStorage, ContextOptions, DriverTuning};
+    let Some(plain) = support::context("path tracer in pages") else {
+        return;
+    };
+    let case = &cases()[0];
+    let (_, bvh, _, _) = setup(case, false);
+    let options = ContextOptions {
+        tuning: Some(DriverTuning {
+            storage: BvhStorage::Buffers,
+            ..*plain.tuning()
+        }),
+        max_binding_bytes: Some(two_pages(&bvh)),
+        ..ContextOptions::default()
+    };
+    let ctx = GpuContext::new_with(AdapterChoice::Auto, &options).expect("the same adapter");
+    // The stackless walk reads the most arrays: nodes, escape links and triangles.
+    let t = Traversal::Stackless;
+    let up = bvhtrace_gpu::GpuBvh::upload(&ctx, &bvh, &Default::default()).expect("upload");
+    assert!(!up.library_shape(t).pages.is_one(), "{:?}", up.tree());
+    let (device, _, differ) = both(&ctx, case, PathWalk::Walk(t));
+    assert_eq!(device.samples(), case.samples);
+    assert_eq!(differ, 0, "{} {} in pages", case.spec, t.name());
+}
+
+/// A binding size that splits `bvh`'s nodes (and escape links) into two pages: a split
+/// kernel compiles several times slower than a whole one on lavapipe, the more so the
+/// more pages.
+fn two_pages(bvh: &bvhtrace_core::FlatBvh) -> u64 {
+    (std::mem::size_of_val(bvh.nodes()) as u64).next_power_of_two() / 2
+}

@@ -191,31 +191,55 @@ fn write_set(d: &ash::Device, set: vk::DescriptorSet, entries: &[(u32, vk::Buffe
     unsafe { d.update_descriptor_sets(&writes, &[]) };
 }
 
-/// Writes each `(buffer, bytes)` at the start of its device-local buffer through one
-/// host-visible staging buffer, and waits until the kernels can read them.
+/// Bytes one staging buffer holds at most: larger uploads are staged in turns.
+const STAGING_BYTES: u64 = 256 << 20;
+
+/// Writes each `(buffer, bytes)` at the start of its device-local buffer through
+/// host-visible staging buffers of at most [`STAGING_BYTES`] (or one array, when larger),
+/// and waits until the kernels can read them.
 fn copy_to_device(
     ctx: &VkContext,
     during: &'static str,
     copies: &[(vk::Buffer, &[u8])],
 ) -> Result<(), TraceError> {
     let align = |x: u64| x.div_ceil(16) * 16;
-    let total: u64 = copies.iter().map(|(_, b)| align(b.len() as u64)).sum();
+    let mut start = 0;
+    while start < copies.len() {
+        let mut end = start + 1;
+        let mut total = align(copies[start].1.len() as u64);
+        while end < copies.len() && total + align(copies[end].1.len() as u64) <= STAGING_BYTES {
+            total += align(copies[end].1.len() as u64);
+            end += 1;
+        }
+        stage(ctx, during, &copies[start..end], total)?;
+        start = end;
+    }
+    Ok(())
+}
+
+/// [`copy_to_device`] of `copies`, `total` bytes with their alignment, through one
+/// staging buffer.
+fn stage(
+    ctx: &VkContext,
+    during: &'static str,
+    copies: &[(vk::Buffer, &[u8])],
+    total: u64,
+) -> Result<(), TraceError> {
+    let align = |x: u64| x.div_ceil(16) * 16;
     let staging = ctx.buffer(
         "staging",
-        total,
+        total.max(16),
         vk::BufferUsageFlags::TRANSFER_SRC,
         vk::MemoryPropertyFlags::HOST_VISIBLE | vk::MemoryPropertyFlags::HOST_COHERENT,
         vk::MemoryPropertyFlags::empty(),
     )?;
-    let mut data = vec![0u8; total as usize];
     let mut regions = Vec::with_capacity(copies.len());
     let mut offset = 0u64;
     for &(dst, bytes) in copies {
-        data[offset as usize..offset as usize + bytes.len()].copy_from_slice(bytes);
+        staging.write_at(offset, bytes);
         regions.push((dst, offset, bytes.len() as u64));
         offset += align(bytes.len() as u64);
     }
-    staging.write(&data);
     let s = ctx.submitter()?;
     ctx.submit_and_wait(&s, during, |d, cmd| {
         for &(dst, src_offset, size) in &regions {

@@ -928,10 +928,17 @@ unsafe impl Sync for Buffer {}
 impl Buffer {
     /// Copies `data` to the start of a mapped (host-coherent) buffer.
     pub(crate) fn write(&self, data: &[u8]) {
+        self.write_at(0, data);
+    }
+
+    /// Writes `data` into a mapped (host-coherent) buffer from byte `offset` on, as much
+    /// as fits.
+    pub(crate) fn write_at(&self, offset: u64, data: &[u8]) {
         let Some(p) = self.mapped else { return };
-        let n = data.len().min(self.size as usize);
-        // SAFETY: the mapping covers `size` bytes and no submission touching it is pending.
-        unsafe { std::ptr::copy_nonoverlapping(data.as_ptr(), p.as_ptr(), n) };
+        let n = data.len().min(self.size.saturating_sub(offset) as usize);
+        // SAFETY: the mapping covers `size` bytes, `offset + n` of them at most, and no
+        // submission touching it is pending.
+        unsafe { std::ptr::copy_nonoverlapping(data.as_ptr(), p.as_ptr().add(offset as usize), n) };
     }
 
     /// Appends the first `bytes` bytes of a mapped (host-coherent) buffer to `out` as `T`s.
