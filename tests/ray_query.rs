@@ -475,3 +475,49 @@ fn an_update_keeps_the_masks_and_refuses_a_tree_that_lost_them() {
         "{err}"
     );
 }
+
+/// Triangles over one binding (a context capped at a third of them) are bound in pages,
+/// ranges of the one buffer the BLASes read: the answers are the same device's with them
+/// in one binding, ray for ray and bit for bit, one mesh and two levels.
+#[test]
+fn triangles_over_one_binding_answer_as_in_one() {
+    let Some(whole) = context("ray queries in pages") else {
+        return;
+    };
+    let one = support::load_scene("builtin:icosphere:4", "icosphere:4").expect("builtin");
+    let two = support::load_instanced_scene("builtin:spheres", "spheres").expect("builtin");
+    for (name, bvh) in [("icosphere:4", one.bvh), ("spheres", two.bvh)] {
+        let third = std::mem::size_of_val(bvh.triangles()) as u64 / 3;
+        let options = ContextOptions {
+            ray_queries: true,
+            max_binding_bytes: Some(third),
+            ..ContextOptions::default()
+        };
+        let split = GpuContext::new_with(AdapterChoice::Auto, &options).expect("the same device");
+        let a = RayQueryBvh::upload(&whole, &bvh).expect("upload");
+        let b = RayQueryBvh::upload(&split, &bvh).expect("upload in pages");
+        let library = b.wgsl_library(0);
+        assert!(
+            library.source().contains("bvh_triangles_2"),
+            "{name}: not split"
+        );
+        let rays = ray_set(&bvh, 5);
+        for query in [Query::Closest, Query::Any] {
+            let opts = TraceOptions::new(Traversal::FullStack, query);
+            let want = a.trace(&rays, &opts).expect("trace");
+            let got = b.trace(&rays, &opts).expect("trace in pages");
+            assert!(want.hits.iter().any(|h| h.is_hit()), "{name}: nothing hit");
+            // Bit for bit: an invalid ray's NaN distance too.
+            let bits = |h: &[bvhtrace_core::Hit]| bytemuck::cast_slice::<_, u32>(h).to_vec();
+            let differ = (got.hits.iter().zip(&want.hits))
+                .filter(|(a, b)| bits(&[**a]) != bits(&[**b]))
+                .count();
+            assert_eq!(
+                differ,
+                0,
+                "{name} {query:?}: {differ} of {} rays",
+                rays.len()
+            );
+        }
+    }
+}

@@ -258,7 +258,10 @@ impl std::fmt::Display for BvhLibrary {
 pub fn wgsl_library(shape: LibraryShape, bvh_group: u32) -> BvhLibrary {
     let (mut source, closest, any) = if shape.ray_queries {
         (
-            ray_query::compose(&ray_query::files(shape.instanced, shape.masks), bvh_group),
+            ray_query::compose(
+                &ray_query::files(shape.instanced, shape.masks, shape.pages),
+                bvh_group,
+            ),
             "bvh_trace_ray_query(ray, false)".to_string(),
             "bvh_trace_ray_query(ray, true)".to_string(),
         )

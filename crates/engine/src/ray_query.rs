@@ -7,6 +7,7 @@
 //! |---|---|---|
 //! | 0 | the TLAS (`acceleration_structure`) | always |
 //! | 1 | the triangles, `FlatTriangle` in leaf order (the BLAS vertices too) | always |
+//! | 9, 17, ... | further pages of the triangles, ranges of the same buffer | a split ([`crate::pages`]) |
 //! | 2 | each mesh's first triangle slot, `u32` | two levels |
 //! | 4 | the instances, `FlatInstance` | two levels |
 //! | 5 | the alpha masks, `MaskTables::words` (`bvh_alpha_masks.wgsl`) | masks |
@@ -21,6 +22,7 @@
 use std::borrow::Cow;
 
 use crate::compose::{BVH_GROUP, join, specialise_entry};
+use crate::pages::Pages;
 use crate::shaders::{self, Wgsl};
 use crate::storage::{BvhStorage, RayInput};
 
@@ -34,15 +36,19 @@ pub const ENTRY_POINT: &str = "bvh_trace_ray_query_main";
 /// The files of the ray-query walk for one mesh or two levels (`instanced`), with or
 /// without alpha masks (`masks`: `FlatBvh::masks`), without the `enable` line
 /// ([`ENABLE`]), without entry points: the types, the ray's validity, the offset of
-/// secondary rays, the triangle, instance and masks bindings and the query itself.
-pub fn files(instanced: bool, masks: bool) -> Vec<(&'static str, Cow<'static, str>)> {
+/// secondary rays, the triangle, instance and masks bindings and the query itself. The
+/// triangles are read through `pages` (only their triangle pages: the device's structure
+/// takes the nodes' place).
+pub fn files(instanced: bool, masks: bool, pages: Pages) -> Vec<(&'static str, Cow<'static, str>)> {
     let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(10);
     let mut push = |(name, src): Wgsl| out.push((name, src.into()));
     push(shaders::TYPES);
     push(shaders::RAY);
     push(shaders::SURFACE);
     push(shaders::TEXEL);
-    push(BvhStorage::Buffers.triangles_wgsl());
+    let (name, triangles) = BvhStorage::Buffers.triangles_wgsl();
+    out.push((name, pages.specialise(triangles).into()));
+    let mut push = |(name, src): Wgsl| out.push((name, src.into()));
     push(match instanced {
         true => shaders::BVH_INSTANCES,
         false => shaders::BVH_NO_INSTANCES,
@@ -65,8 +71,8 @@ pub fn files(instanced: bool, masks: bool) -> Vec<(&'static str, Cow<'static, st
 /// The kernel that traces a batch with ray queries: [`files`], then `entry.wgsl`, the
 /// buffer rays and hits, and one entry point ([`ENTRY_POINT`]). Group 0 is the BVH, group
 /// 1 the batch (rays at 0, hits at 1).
-pub fn kernel_source(instanced: bool, masks: bool) -> String {
-    let mut parts = files(instanced, masks);
+pub fn kernel_source(instanced: bool, masks: bool, pages: Pages) -> String {
+    let mut parts = files(instanced, masks, pages);
     parts.push((shaders::ENTRY.0, shaders::ENTRY.1.into()));
     let (name, src) = RayInput::Buffer.wgsl();
     parts.push((name, src.into()));

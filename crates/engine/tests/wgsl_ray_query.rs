@@ -1,6 +1,7 @@
 //! The ray-query kernels and libraries, validated by naga without a device: one mesh and
 //! two levels, with the bindings the wgpu backend binds.
 
+use bvhtrace_engine::pages::Pages;
 use bvhtrace_engine::ray_query::{ENTRY_POINT, kernel_source};
 use bvhtrace_engine::{LibraryShape, wgsl_library};
 
@@ -33,7 +34,7 @@ fn bindings(module: &naga::Module) -> Vec<(u32, u32, String)> {
 #[test]
 fn the_kernel_binds_the_tlas_triangles_and_for_two_levels_meshes_and_instances() {
     for instanced in [false, true] {
-        let source = kernel_source(instanced, false);
+        let source = kernel_source(instanced, false, Pages::ONE);
         assert!(source.starts_with("enable wgpu_ray_query;"), "{source:.80}");
         let module = validate(&source);
         assert!(
@@ -101,7 +102,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation
 #[test]
 fn a_masked_kernel_binds_the_masks_at_5_and_confirms_candidates_by_the_walks_test() {
     for instanced in [false, true] {
-        let source = kernel_source(instanced, true);
+        let source = kernel_source(instanced, true, Pages::ONE);
         let module = validate(&source);
         let names: Vec<(u32, u32)> = bindings(&module).iter().map(|b| (b.0, b.1)).collect();
         let want: &[(u32, u32)] = if instanced {
@@ -115,7 +116,7 @@ fn a_masked_kernel_binds_the_masks_at_5_and_confirms_candidates_by_the_walks_tes
         assert!(source.contains("// ---- bvh_alpha_masks.wgsl ----"));
         assert!(source.contains("rayQueryConfirmIntersection(&rq)"));
         assert!(source.contains("const BVH_RAY_QUERY_OPAQUE: bool = false;"));
-        let plain = kernel_source(instanced, false);
+        let plain = kernel_source(instanced, false, Pages::ONE);
         assert!(
             !plain.contains("bvh_alpha") && !plain.contains("bvh_masks"),
             "an unmasked kernel composes nothing of the masks"
@@ -148,5 +149,35 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation
             "{:?}",
             bindings(&module)
         );
+    }
+}
+
+/// Triangles split over three bindings: the kernel declares pages 1 and 2 of them at
+/// bindings 9 and 17 (and nothing else more), reads them through the page function, and
+/// validates; the library for such an upload declares the same.
+#[test]
+fn split_triangles_are_bound_a_page_each() {
+    let pages = Pages {
+        log2_bytes: 20,
+        triangles: 3,
+        ..Pages::ONE
+    };
+    for instanced in [false, true] {
+        let whole = bindings(&validate(&kernel_source(instanced, false, Pages::ONE)));
+        let source = kernel_source(instanced, false, pages);
+        assert!(source.contains("fn bvh_triangles_at("), "no page function");
+        let split = bindings(&validate(&source));
+        let extra: Vec<_> = split.iter().filter(|b| !whole.contains(b)).collect();
+        let want = [(0, 9, "bvh_triangles_1"), (0, 17, "bvh_triangles_2")];
+        assert_eq!(extra.len(), 2, "{extra:?}");
+        for ((g, b, n), (wg, wb, wn)) in extra.iter().map(|x| (x.0, x.1, &x.2)).zip(want) {
+            assert_eq!((g, b, n.as_str()), (wg, wb, wn));
+        }
+        let shape = LibraryShape {
+            pages,
+            ..LibraryShape::ray_queries(instanced)
+        };
+        let library = wgsl_library(shape, 0);
+        assert!(library.source().contains("bvh_triangles_2"));
     }
 }

@@ -27,11 +27,14 @@ use bvhtrace_core::masks::NO_MASKS;
 use bvhtrace_core::{
     FlatBvh, Hit, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput, TracePhases,
 };
+use bvhtrace_engine::BvhStorage;
+use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages};
 use bvhtrace_engine::plan::{
-    HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
+    DeviceLimits, HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
 };
 use bvhtrace_engine::storage::RayInput;
 use bvhtrace_engine::tracer::{check_update_shape, mesh_fingerprint, tree_shape};
+use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
 use bvhtrace_engine::{BvhLibrary, LibraryShape, TraceError, Tracer, UploadStats, wgsl_library};
 use web_time::Instant;
 use wgpu::util::DeviceExt;
@@ -59,6 +62,9 @@ pub struct RayQueryBvh {
     ctx: GpuContext,
     /// `FlatBvh::triangles`: the BLAS vertices (16-byte stride) and binding 1.
     triangles: wgpu::Buffer,
+    /// How the triangles are bound: one binding, or pages of one binding each over the
+    /// same buffer when they exceed the device's largest binding ([`Pages`]).
+    pages: Pages,
     /// Binding 2 (two levels): each mesh's first triangle slot.
     mesh_firsts: Option<wgpu::Buffer>,
     /// Binding 4 (two levels): `FlatBvh::instances`.
@@ -210,7 +216,9 @@ impl RayQueryBvh {
     /// documentation](self) for the rule that holds there).
     ///
     /// [`TraceError::MissingFeature`] when the device lacks `EXPERIMENTAL_RAY_QUERY`; a
-    /// limit error when the triangles or the masks exceed a storage binding.
+    /// limit error when the triangles exceed a buffer or the masks a storage binding.
+    /// Triangles over one binding are bound in pages of one binding each, ranges of the
+    /// one buffer the BLASes read.
     pub fn upload(ctx: &GpuContext, bvh: &FlatBvh) -> Result<RayQueryBvh, GpuError> {
         if !ctx.has_ray_queries() {
             return Err(TraceError::MissingFeature {
@@ -224,13 +232,27 @@ impl RayQueryBvh {
         }
         let start = Instant::now();
         let tri_bytes: &[u8] = bytemuck::cast_slice(bvh.triangles());
-        check_buffer_size(ctx.limits(), "triangles", tri_bytes.len() as u64)?;
+        let pages = triangle_pages(ctx, tri_bytes)?;
         let mask_words = masks_words(bvh);
         if let Some(w) = &mask_words {
             check_buffer_size(ctx.limits(), "alpha masks", 4 * w.len() as u64)?;
         }
         let instanced = bvh.is_instanced();
         let (meshes, instance_mesh) = meshes_of(bvh)?;
+        // wgpu counts an unindexed BLAS's vertices against its primitive limit.
+        let most = u64::from(ctx.device().limits().max_blas_primitive_count);
+        if let Some(m) = meshes.iter().find(|m| 3 * u64::from(m.count) > most) {
+            return Err(TraceError::Unsupported {
+                backend: RAY_QUERY_BACKEND,
+                what: format!(
+                    "a mesh of {} triangles: the device's max_blas_primitive_count ({most}) \
+                     counts its {} vertices (unindexed); trace it with our walks, or as \
+                     instances of smaller meshes",
+                    m.count,
+                    3 * u64::from(m.count)
+                ),
+            });
+        }
         let device = ctx.device();
         let made = ctx.scoped("building the acceleration structures", || {
             let triangles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -287,11 +309,12 @@ impl RayQueryBvh {
             (triangles, blases, tlas, mesh_firsts, instances, masks)
         })?;
         let (triangles, blases, tlas, mesh_firsts, instances, masks) = made;
-        let layout = group_layout(device, instanced, masks.is_some());
+        let layout = group_layout(device, instanced, masks.is_some(), pages);
         let mut rq = RayQueryBvh {
             ctx: ctx.clone(),
             group: None,
             triangles,
+            pages,
             mesh_firsts,
             instances,
             masks,
@@ -325,16 +348,26 @@ impl RayQueryBvh {
     /// The bind group of binding 0 (the TLAS), 1, for two levels 2 and 4, and for a masked
     /// BVH 5.
     fn make_group(&self) -> Result<wgpu::BindGroup, GpuError> {
-        let mut entries = vec![
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: self.tlas.as_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: self.triangles.as_entire_binding(),
-            },
-        ];
+        let mut entries = vec![wgpu::BindGroupEntry {
+            binding: 0,
+            resource: self.tlas.as_binding(),
+        }];
+        let total = self.triangles.size();
+        let page = match self.pages.is_one() {
+            true => total,
+            false => self.pages.per_page(TRIANGLE_BYTES) * TRIANGLE_BYTES,
+        };
+        for p in 0..u64::from(self.pages.triangles) {
+            let offset = p * page;
+            entries.push(wgpu::BindGroupEntry {
+                binding: 1 + PAGE_BINDING_STRIDE * p as u32,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: &self.triangles,
+                    offset,
+                    size: std::num::NonZeroU64::new(page.min(total - offset)),
+                }),
+            });
+        }
         if let (Some(f), Some(i)) = (&self.mesh_firsts, &self.instances) {
             entries.push(wgpu::BindGroupEntry {
                 binding: 2,
@@ -457,6 +490,7 @@ impl RayQueryBvh {
     fn library_shape(&self) -> LibraryShape {
         LibraryShape {
             masks: self.has_masks(),
+            pages: self.pages,
             ..LibraryShape::ray_queries(self.is_instanced())
         }
     }
@@ -480,8 +514,8 @@ impl RayQueryBvh {
     pub fn bind_group_for(&self, library: &BvhLibrary) -> Result<BvhBindGroup<'_>, GpuError> {
         let holds = self.library_shape();
         let wanted = library.shape();
-        if !wanted.ray_queries || (wanted.instanced, wanted.masks) != (holds.instanced, holds.masks)
-        {
+        let shape = |s: &LibraryShape| (s.instanced, s.masks, s.pages);
+        if !wanted.ray_queries || shape(&wanted) != shape(&holds) {
             return Err(TraceError::LibraryMismatch {
                 library: wanted.to_string(),
                 upload: holds.to_string(),
@@ -510,8 +544,11 @@ impl RayQueryBvh {
             return Ok(p.clone());
         }
         let device = self.ctx.device();
-        let source =
-            bvhtrace_engine::ray_query::kernel_source(self.is_instanced(), self.has_masks());
+        let source = bvhtrace_engine::ray_query::kernel_source(
+            self.is_instanced(),
+            self.has_masks(),
+            self.pages,
+        );
         let constants = [
             ("BVH_ANY_HIT", if any { 1.0 } else { 0.0 }),
             ("BVH_RAY_MASK", f64::from(mask)),
@@ -742,20 +779,71 @@ fn meshes_of(bvh: &FlatBvh) -> Result<(Vec<Mesh>, Vec<u32>), TraceError> {
     Ok((meshes, instance_mesh))
 }
 
-/// The BVH group's layout: the TLAS (0), the triangles (1), for two levels the meshes'
-/// first slots (2) and the instances (4), for a masked BVH the masks (5).
-fn group_layout(device: &wgpu::Device, instanced: bool, masks: bool) -> wgpu::BindGroupLayout {
-    let mut entries = vec![
-        wgpu::BindGroupLayoutEntry {
-            binding: 0,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::AccelerationStructure {
-                vertex_return: false,
-            },
-            count: None,
+/// Bytes of one `FlatTriangle`.
+const TRIANGLE_BYTES: u64 = std::mem::size_of::<bvhtrace_core::FlatTriangle>() as u64;
+
+/// How the triangles `bytes` are bound on `ctx`'s device: in one binding, or in pages of
+/// one binding each (ranges of the one buffer, whose size the device's largest buffer
+/// bounds), within its storage buffers per stage.
+fn triangle_pages(ctx: &GpuContext, bytes: &[u8]) -> Result<Pages, GpuError> {
+    let limits = ctx.limits();
+    if bytes.len() as u64 <= limits.max_storage_buffer_binding_size {
+        return Ok(Pages::ONE);
+    }
+    check_buffer_size(
+        &DeviceLimits {
+            max_storage_buffer_binding_size: limits.max_buffer_size,
+            ..*limits
         },
-        storage_entry(1, true),
-    ];
+        "triangles",
+        bytes.len() as u64,
+    )?;
+    let page_limits = DeviceLimits {
+        // A page starts at a multiple of its size: a power of two, aligned as offsets must be.
+        max_buffer_size: limits.max_storage_buffer_binding_size,
+        ..*limits
+    };
+    let array = DeviceArray {
+        role: ArrayRole::Triangles,
+        bytes: std::borrow::Cow::Borrowed(bytes),
+        texel_bytes: None,
+        page: 0,
+    };
+    let pages = Pages::plan(BvhStorage::Buffers, &[array], &page_limits)?;
+    // The batch's rays and hits, the TLAS, the meshes' firsts, the instances and the masks.
+    let needs = u64::from(pages.triangles) + 5;
+    let has = u64::from(limits.max_storage_buffers_per_shader_stage);
+    if needs > has {
+        return Err(TraceError::LimitTooLow {
+            limit: "max_storage_buffers_per_shader_stage",
+            has,
+            needs,
+            needed_for: "triangles larger than one binding, split into pages of one binding each,",
+        });
+    }
+    Ok(pages)
+}
+
+/// The BVH group's layout: the TLAS (0), the triangles (1, and a binding per further
+/// page), for two levels the meshes' first slots (2) and the instances (4), for a masked
+/// BVH the masks (5).
+fn group_layout(
+    device: &wgpu::Device,
+    instanced: bool,
+    masks: bool,
+    pages: Pages,
+) -> wgpu::BindGroupLayout {
+    let mut entries = vec![wgpu::BindGroupLayoutEntry {
+        binding: 0,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::AccelerationStructure {
+            vertex_return: false,
+        },
+        count: None,
+    }];
+    for p in 0..u32::from(pages.triangles) {
+        entries.push(storage_entry(1 + PAGE_BINDING_STRIDE * p, true));
+    }
     if instanced {
         entries.extend([storage_entry(2, true), storage_entry(4, true)]);
     }
