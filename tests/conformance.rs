@@ -1035,3 +1035,31 @@ fn trees_over_one_binding_trace_in_pages_equal_to_the_cpu() {
         }
     }
 }
+
+/// Each device opens a tree with its tuning's walk when none is asked for
+/// (`DriverTuning::walk`: the full stack with a GPU's tuning, the stackless walk with a CPU
+/// driver's), and its tracer says so; a tree deeper than the full stack's stack takes the
+/// stackless walk instead, and the front door says why.
+#[test]
+fn each_device_takes_its_tunings_walk() {
+    use bvhtrace::OpenOptions;
+    let (box_, deep) = (cornell(), deep_tree());
+    for tuning in [DriverTuning::GPU, DriverTuning::cpu_driver(2)] {
+        let devices = Devices::with_tuning("default walks", Some(tuning));
+        for d in &devices.devices {
+            let want = tuning.walk;
+            let who = format!("{} with {tuning:?}", d.backend());
+            let opened = d.open(&box_, &OpenOptions::default()).expect("open");
+            assert_eq!(opened.traversal, want, "{who}");
+            assert_eq!(opened.tracer.default_traversal(), want, "{who}");
+            let opened = d.open(&deep, &OpenOptions::default()).expect("open deep");
+            assert_eq!(opened.traversal, Traversal::Stackless, "{who}: deep");
+            if want == Traversal::FullStack {
+                let why = opened.fallback.as_deref().unwrap_or_default();
+                assert!(why.contains("full-stack"), "{who}: {why:?}");
+            }
+        }
+        devices.check_validation();
+    }
+    assert_eq!(DriverTuning::GPU.walk, Traversal::FullStack);
+}

@@ -22,7 +22,7 @@ pub struct OpenOptions {
     /// [`AdapterChoice::Named`].
     pub adapter: AdapterChoice,
     /// The walks the caller will trace with, the first its default. Empty: the backend's
-    /// fastest walk ([`Traversal::GPU_DEFAULT`] on a device, [`Traversal::CPU_DEFAULT`] on
+    /// fastest walk ([`DriverTuning::walk`] on a device, [`Traversal::CPU_DEFAULT`] on
     /// the CPU), settled before the upload so that only what it reads is uploaded, and
     /// another walk (the full stack, the wide layout) when it exceeds a device limit.
     /// [`Tracer::traversals`] says what the opened tracer answers.
@@ -234,13 +234,13 @@ fn storages(
     (out, notes)
 }
 
-/// The choices to try, best first: the walks asked for (else the device's default, then
-/// each other walk that reads other arrays, in [`Traversal::ALL`]'s order: the full stack,
-/// the wide layout), each in the storages [`storages`] gives.
-pub(crate) fn choices(opts: &OpenOptions, storages: &[BvhStorage]) -> Vec<Choice> {
+/// The choices to try, best first: the walks asked for (else the device's default `walk`,
+/// then each other walk that reads other arrays, in [`Traversal::ALL`]'s order: the full
+/// stack, the stackless walk, the wide layout), each in the storages [`storages`] gives.
+pub(crate) fn choices(opts: &OpenOptions, storages: &[BvhStorage], walk: Traversal) -> Vec<Choice> {
     let walk_sets: Vec<Vec<Traversal>> = if opts.traversals.is_empty() {
         let mut seen: Vec<&walks::Walk> = Vec::new();
-        std::iter::once(Traversal::GPU_DEFAULT)
+        std::iter::once(walk)
             .chain(Traversal::ALL)
             .filter(|&t| {
                 let w = walks::walk(t);
@@ -317,12 +317,13 @@ pub(crate) fn check_walks(tracer: &dyn Tracer, walks: &[Traversal]) -> Result<()
 }
 
 /// What an engine backend's device offers the ladder: its name, what its kernels can read
-/// and the storage it prefers ([`DriverTuning::storage`]).
+/// and its tuning (the storage it prefers, [`DriverTuning::storage`], and the walk,
+/// [`DriverTuning::walk`]).
 pub(crate) struct EngineDevice<'d> {
     pub(crate) backend: Backend,
     pub(crate) name: &'d str,
     pub(crate) features: BackendFeatures,
-    pub(crate) preferred: BvhStorage,
+    pub(crate) tuning: DriverTuning,
 }
 
 /// Opens our walks on an engine backend's device: every choice of the ladder uploaded with
@@ -335,11 +336,11 @@ pub(crate) fn open_engine<T: Tracer + 'static>(
 ) -> Result<Opened<'static>, TraceError> {
     let (storages, notes) = storages(
         opts.storage,
-        device.preferred,
+        device.tuning.storage,
         &device.features,
         device.name,
     );
-    let list = choices(opts, &storages);
+    let list = choices(opts, &storages, device.tuning.walk);
     let (tracer, choice, fallback) = first_that_fits(device.name, &list, &notes, |c| {
         let upload_opts = UploadOptions {
             traversals: c.walks.clone(),
@@ -392,7 +393,7 @@ mod tests {
     #[test]
     fn storages_are_tried_before_walks() {
         let (tried, _) = storages(None, BvhStorage::Textures, &BOTH, "d");
-        let list = choices(&OpenOptions::default(), &tried);
+        let list = choices(&OpenOptions::default(), &tried, Traversal::GPU_DEFAULT);
         let seen: Vec<(Traversal, BvhStorage)> =
             list.iter().map(|c| (c.walks[0], c.storage)).collect();
         use BvhStorage::{Buffers, Textures};
@@ -413,7 +414,7 @@ mod tests {
             .with_traversal(Traversal::Stackless)
             .with_storage(BvhStorage::Buffers);
         let (tried, _) = storages(asked.storage, BvhStorage::Textures, &BOTH, "d");
-        let list = choices(&asked, &tried);
+        let list = choices(&asked, &tried, Traversal::GPU_DEFAULT);
         assert_eq!(list.len(), 1);
         assert_eq!(list[0].walks, [Traversal::FullStack, Traversal::Stackless]);
     }
@@ -443,7 +444,7 @@ mod tests {
     fn the_escape_links_over_the_limit_fall_back_to_another_walk() {
         // Textures only: the escape texels are too many, as for a 27M-triangle scene.
         let opts = OpenOptions::default().with_storage(BvhStorage::Textures);
-        let list = choices(&opts, &[BvhStorage::Textures]);
+        let list = choices(&opts, &[BvhStorage::Textures], Traversal::GPU_DEFAULT);
         let (walk, choice, why) = first_that_fits("d", &list, &[], |c| {
             if c.walks[0].needs_escapes() {
                 Err(too_large("escape texels"))
@@ -465,7 +466,11 @@ mod tests {
 
     #[test]
     fn nothing_fits_names_every_refusal_and_other_errors_stop() {
-        let list = choices(&OpenOptions::default(), &BvhStorage::ALL);
+        let list = choices(
+            &OpenOptions::default(),
+            &BvhStorage::ALL,
+            Traversal::GPU_DEFAULT,
+        );
         let mut tried = 0;
         let notes = ["texture storage: none here".to_string()];
         let err = first_that_fits::<()>("the device", &list, &notes, |_| {
@@ -487,6 +492,7 @@ mod tests {
         let one = choices(
             &OpenOptions::default().with_traversal(Traversal::Wide),
             &[BvhStorage::Buffers],
+            Traversal::GPU_DEFAULT,
         );
         let err = first_that_fits::<()>("d", &one, &[], |_| Err(too_large("nodes")));
         assert!(matches!(err, Err(TraceError::TooLarge { .. })), "{err:?}");

@@ -51,6 +51,10 @@ enum Command {
     /// rebuild (SAH cost and box tests per ray of both), and a top-level rebuild of many
     /// instances beside building both levels.
     BenchRefit(bench::refit::BenchRefitArgs),
+    /// Time every walk in every storage on the device (primary rays of one scene, ranked
+    /// by wall time) and print them beside the walk and storage the device takes by
+    /// default.
+    Tune(bench::tune::TuneArgs),
     /// Numerical stress cases (watertightness, huge offsets and scales, slivers,
     /// coincident and degenerate triangles, extreme rays, deep trees) on the CPU twins and
     /// the GPU kernels, against the f64 oracle; fails when a guarantee is broken.
@@ -78,6 +82,7 @@ fn main() {
             false => bench::trace::run(&a),
         }),
         Command::BenchRefit(a) => bench::refit::run(a),
+        Command::Tune(a) => bench::tune::run(&a),
         Command::Stress(a) => stress::run(a),
         Command::Cost(a) => cost::cost(a),
     };

@@ -1030,7 +1030,11 @@ fn info_json(
         "upload": upload.as_ref().map(|u| upload_json(u, geo.triangle_count())),
         "left_out": left_out(pipelines, scene, geo, *traversal),
         "traversal": traversal.to_string(),
-        "default_traversal": { "cpu": Traversal::CPU_DEFAULT.to_string(), "gpu": Traversal::GPU_DEFAULT.to_string() },
+        "default_traversal": {
+            "cpu": Traversal::CPU_DEFAULT.to_string(),
+            "gpu": bvhtrace::DriverTuning::GPU.walk.to_string(),
+            "cpu_driver": bvhtrace::DriverTuning::cpu_driver(1).walk.to_string(),
+        },
         "load_ms": built.load_ms, "build_ms": built.build_ms,
         "warnings": scene.warnings,
         "time": args.scene.time,
@@ -1087,9 +1091,11 @@ fn print_info(
         );
     }
     println!(
-        "traversals  default {} on the CPU, {} on a GPU (the fastest on each)",
+        "traversals  default {} on the CPU, {} on a GPU, {} on a CPU driver (the fastest \
+         measured on each)",
         Traversal::CPU_DEFAULT,
-        Traversal::GPU_DEFAULT
+        bvhtrace::DriverTuning::GPU.walk,
+        bvhtrace::DriverTuning::cpu_driver(1).walk,
     );
     if let SceneBvh::Instanced(i) = geo {
         let (top, meshes) = i.level_bytes();

@@ -442,3 +442,33 @@ fn bench_trace_cpu_only_times_the_scene_as_the_front_door_traces_it() {
         }
     }
 }
+
+/// `tune --json` times every walk the device opens in each storage it offers, names the
+/// fastest among them, and the device's default beside it (the stackless walk in textures
+/// on lavapipe, no faster than the fastest); the CPU is not a device to tune.
+#[test]
+fn tune_times_every_walk_beside_the_devices_default() {
+    let out = run(&["tune", "--json", "--runs", "1", "--size", "32x24"]);
+    if !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("Vulkan") {
+        eprintln!("SKIP tune: no device");
+        return;
+    }
+    assert!(out.status.success());
+    let v = json(&out);
+    let rows = v["measured"].as_array().expect("rows");
+    let walks: std::collections::BTreeSet<&str> =
+        rows.iter().filter_map(|r| r["walk"].as_str()).collect();
+    assert_eq!(walks.len(), 4, "{walks:?}");
+    assert!(rows.contains(&v["fastest"]), "{}", v["fastest"]);
+    assert!(
+        rows.iter()
+            .all(|r| r["mrays_per_s"].as_f64().unwrap() > 0.0)
+    );
+    let over = v["default_over_fastest"]
+        .as_f64()
+        .expect("the default was timed");
+    assert!(over >= 1.0, "{over}");
+    let refused = run(&["tune", "--backend", "cpu"]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--backend gpu or vulkan"));
+}

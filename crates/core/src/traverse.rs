@@ -62,7 +62,9 @@ pub enum Traversal {
 impl Traversal {
     /// The fastest walk on the CPU: the default of [`TraceOptions`] and of the CPU backend.
     pub const CPU_DEFAULT: Traversal = Traversal::FullStack;
-    /// The fastest walk in the GPU kernels: the default of the device backends.
+    /// The kernels' default walk on a CPU driver (lavapipe, where CI traces them). Each
+    /// device tracer reports its own (`Tracer::default_traversal`, from the engine's
+    /// `DriverTuning::walk`: the full stack on GPUs, measured fastest there).
     pub const GPU_DEFAULT: Traversal = Traversal::Stackless;
 
     /// Every walk, one of each kind (the short stack with [`DEFAULT_SHORT_STACK`] entries),

@@ -2,6 +2,7 @@
 
 use crate::error::TraceError;
 use crate::storage::BvhStorage;
+use bvhtrace_core::Traversal;
 
 /// Environment variable front ends read to name the adapter to use: any substring of its
 /// name, case-insensitive (for example `llvmpipe` or `nvidia`), passed on as
@@ -131,6 +132,12 @@ pub struct DriverTuning {
     /// back as [`bvhtrace_core::INCOMPLETE`] and is finished on the CPU, for which the
     /// upload keeps a host copy of the tree.
     pub trip_limit: u32,
+    /// The walk a trace takes when none is asked for (`Tracer::default_traversal`, the
+    /// front door's first choice), the fastest measured on devices of this kind: the full
+    /// stack on a GPU (1.5x the stackless walk on an NVIDIA H200, the first discrete GPU
+    /// measured: docs/benchmarks.md), the stackless walk on a CPU driver. A device no
+    /// figure covers takes the GPU's.
+    pub walk: Traversal,
 }
 
 impl DriverTuning {
@@ -139,6 +146,7 @@ impl DriverTuning {
         storage: BvhStorage::Buffers,
         dispatch_threads: 1,
         trip_limit: u32::MAX,
+        walk: Traversal::FullStack,
     };
 
     /// For a CPU driver running `threads` worker threads: textures, the dispatch dealt
@@ -148,6 +156,7 @@ impl DriverTuning {
             storage: BvhStorage::Textures,
             dispatch_threads: threads.clamp(1, MAX_DISPATCH_THREADS),
             trip_limit: CPU_DRIVER_TRIP_LIMIT,
+            walk: Traversal::Stackless,
         }
     }
 

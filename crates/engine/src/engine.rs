@@ -962,7 +962,7 @@ impl<T: HasEngine + 'static> Tracer for T {
     }
 
     fn default_traversal(&self) -> Traversal {
-        Traversal::GPU_DEFAULT
+        self.engine().backend.tuning().walk
     }
 
     fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {

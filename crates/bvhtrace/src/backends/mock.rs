@@ -67,7 +67,7 @@ impl DeviceInterface for Mock {
             backend: Backend::Mock,
             name: &self.device.name(),
             features: self.device.features(),
-            preferred: DeviceApi::tuning(&self.device).storage,
+            tuning: *DeviceApi::tuning(&self.device),
         };
         uploaded(tree, |bvh| {
             open_engine(&device, opts, |u| MockBvh::upload(&self.device, bvh, u))

@@ -58,7 +58,7 @@ impl DeviceInterface for VulkanDevice {
             backend: Backend::Vulkan,
             name: &self.name(),
             features: self.ctx.features(),
-            preferred: self.ctx.tuning().storage,
+            tuning: *self.ctx.tuning(),
         };
         uploaded(tree, |bvh| {
             open_engine(&device, opts, |u| VkBvh::upload(&self.ctx, bvh, u))

@@ -36,7 +36,7 @@ impl WgpuDevice {
             backend: Backend::Wgpu,
             name: &adapter_name(&self.ctx),
             features: self.ctx.features(),
-            preferred: self.ctx.tuning().storage,
+            tuning: *self.ctx.tuning(),
         };
         open_engine(&device, opts, |u| GpuBvh::upload(&self.ctx, bvh, u))
     }

@@ -2,7 +2,8 @@
 //! run time for every configuration ([`matrix`]) or, with `--converge`, image error against
 //! wall time ([`converge`]); `bench-build` the builders ([`build`]); `bench-trace` the walks
 //! on a device beside the CPU ([`trace`]) or, with `--cpu-only`, every CPU path
-//! ([`trace_cpu`]); `bench-refit` what moving things costs ([`refit`]).
+//! ([`trace_cpu`]); `bench-refit` what moving things costs ([`refit`]); `tune` each walk
+//! and storage on one device beside its default ([`tune`]).
 //!
 //! This module holds what they share (the scenes, the rays, the backends opened once, the
 //! median) and the arguments of the two commands with more than one mode; `main` chooses
@@ -18,6 +19,7 @@ mod plot;
 pub mod refit;
 pub mod trace;
 pub mod trace_cpu;
+pub mod tune;
 
 use std::path::PathBuf;
 use std::time::Instant;
