@@ -111,9 +111,11 @@ pub const CPU_DRIVER_TRIP_LIMIT: u32 = 3_800;
 /// lower).
 pub const MAX_DISPATCH_THREADS: u32 = 64;
 
-/// The measures that only help a driver that runs on the CPU (Mesa's lavapipe), kept out of
-/// the rest of the API. A backend picks [`DriverTuning::for_device`] for its adapter;
-/// pass your own to override it. Every setting gives the same hits.
+/// What a backend takes per kind of device: the storage and the walk measured fastest
+/// there, and the measures that only help a driver that runs on the CPU (Mesa's lavapipe:
+/// threads, the trip budget), kept out of the rest of the API. A backend picks
+/// [`DriverTuning::for_device`] for its adapter; pass your own to override it
+/// (`bvhtrace tune` times the choices on a device). Every setting gives the same hits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct DriverTuning {
     /// Where the convenience trace keeps the BVH (both layouts) and the rays: textures on
