@@ -12,14 +12,27 @@ use std::time::Duration;
 
 use bvhtrace_integration::browser::{self, Report};
 
+use bvhtrace_gpu::engine::pages::Pages;
 use bvhtrace_gpu::engine::{BvhStorage, DriverTuning, KernelKey};
+use bvhtrace_gpu::{TraceOptions, Traversal};
 
 /// The variants: every walk, query, counters setting, one mesh or two levels, with the
-/// BVH in buffers (what a page on WebGPU composes) and in textures.
+/// BVH in buffers (what a page on WebGPU composes) and in textures; and each walk over a
+/// tree split into two pages an array (`bvhtrace_engine::pages`), within WebGPU's default
+/// of 8 storage buffers per stage.
 fn variants() -> Vec<KernelKey> {
+    let split = Pages {
+        log2_bytes: 27,
+        nodes: 2,
+        triangles: 2,
+        escapes: 2,
+    };
+    let paged = Traversal::ALL
+        .map(|t| KernelKey::new(BvhStorage::Buffers, &TraceOptions::closest(t)).with_pages(split));
     [BvhStorage::Buffers, BvhStorage::Textures]
         .into_iter()
         .flat_map(|storage| KernelKey::all_for_k(storage, 6))
+        .chain(paged)
         .collect()
 }
 
