@@ -10,6 +10,7 @@ mod path;
 mod render;
 mod shade;
 mod stress;
+mod tuned;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

@@ -453,12 +453,24 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let walk = args.walk()?;
     // The device, opened once: it builds the tree (a device builder) and traces it.
     let walks: Vec<Traversal> = walk.into_iter().collect();
-    let opts = bvhtrace::OpenOptions {
+    let mut opts = bvhtrace::OpenOptions {
         storage: args.storage,
         max_binding_bytes: args.max_binding_mib.map(|m| m << 20),
         ..backend::options(args.backend, args.adapter.as_deref(), &walks)
     };
     let device = backend::device(&opts)?;
+    // What `tune --save` measured fastest on this adapter, unless a walk or storage was
+    // asked for.
+    if let Some(t) = (walks.is_empty() && args.storage.is_none())
+        .then(|| crate::tuned::load(&device.name()))
+        .flatten()
+    {
+        eprintln!(
+            "note: {} in {:?} storage, measured fastest here by `tune --save`",
+            t.walk, t.storage
+        );
+        (opts.traversals, opts.storage) = (vec![t.walk], Some(t.storage));
+    }
     let Built {
         scene,
         geometry: mut geo,

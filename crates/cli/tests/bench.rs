@@ -472,3 +472,66 @@ fn tune_times_every_walk_beside_the_devices_default() {
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("--backend gpu or vulkan"));
 }
+
+/// `tune --save` records the fastest walk and storage for the adapter in the cache
+/// (`$XDG_CACHE_HOME/bvhtrace/tuned.json`), and `render` on that adapter takes them when no
+/// walk or storage is asked for, saying so; one asked for wins.
+#[test]
+fn tune_save_is_what_render_takes_on_that_adapter() {
+    let dir = scratch("tuned");
+    let with_cache = |args: &[&str]| {
+        let out = bvhtrace()
+            .env("XDG_CACHE_HOME", &dir)
+            .args(args)
+            .output()
+            .expect("bvhtrace runs");
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        out
+    };
+    let probe = run(&["tune", "--json", "--runs", "1", "--size", "8x6"]);
+    if !probe.status.success() {
+        eprintln!("SKIP tune --save: no device");
+        return;
+    }
+    let tuned = json(&with_cache(&[
+        "tune", "--save", "--json", "--runs", "1", "--size", "32x24",
+    ]));
+    let cache: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("bvhtrace/tuned.json")).expect("saved"))
+            .expect("JSON");
+    let entry = &cache["adapters"][tuned["device"].as_str().expect("device")];
+    // The cache spells a short stack as `--traversal` takes it, reports as `short-stack(K)`.
+    let saved = entry["walk"].as_str().expect("walk");
+    let saved = match saved.strip_prefix("short-stack:") {
+        Some(k) => format!("short-stack({k})"),
+        None => saved.to_string(),
+    };
+    assert_eq!(tuned["fastest"]["walk"], saved.as_str(), "{cache}");
+    let png = dir.join("r.png");
+    let p = png.to_str().unwrap();
+    let out = with_cache(&["render", "--size", "32x24", "-o", p, "--json", "-"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("tune --save"));
+    assert_eq!(json(&out)["traversal"], saved.as_str());
+    let other = if saved == "wide" {
+        "full-stack"
+    } else {
+        "wide"
+    };
+    let out = with_cache(&[
+        "render",
+        "--size",
+        "32x24",
+        "--traversal",
+        other,
+        "-o",
+        p,
+        "--json",
+        "-",
+    ]);
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("tune --save"));
+    assert_eq!(json(&out)["traversal"], other);
+}

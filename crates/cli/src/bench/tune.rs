@@ -32,6 +32,11 @@ pub struct TuneArgs {
     /// Print as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Remember the fastest walk and storage for this adapter
+    /// (`$XDG_CACHE_HOME/bvhtrace/tuned.json`): `render` then takes them there when no
+    /// `--traversal` or `--storage` is given.
+    #[arg(long)]
+    pub save: bool,
 }
 
 /// One walk in one storage, timed.
@@ -106,6 +111,18 @@ pub fn run(args: &TuneArgs) -> Result<()> {
         .iter()
         .find(|r| r.walk == tuning.walk && r.storage == tuning.storage);
     let n = rays.len() as f64;
+    if args.save {
+        let tuned = crate::tuned::Tuned {
+            walk: best.walk,
+            storage: best.storage,
+        };
+        let detail = json!({ "scene": spec, "rays": rays.len(), "wall_ms": best.wall_ms });
+        let path = crate::tuned::save(&device.name(), tuned, detail)?;
+        eprintln!(
+            "saved to {}: render takes them on this adapter",
+            path.display()
+        );
+    }
     if args.json {
         let row = |r: &Timed| {
             json!({
@@ -136,7 +153,7 @@ pub fn run(args: &TuneArgs) -> Result<()> {
             if d.walk == best.walk && d.storage == best.storage {
                 ""
             } else {
-                "; pass --traversal to take another"
+                "; pass --traversal to take another, or tune --save"
             }
         ),
         None => println!(
