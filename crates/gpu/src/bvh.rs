@@ -120,25 +120,28 @@ impl GpuBvh {
     }
 
     /// The node buffer (`array<Node>`), for [`crate::BvhStorage::Buffers`] uploads of the binary
-    /// layout.
+    /// layout in one binding (`None` for a tree split into pages: bind it with
+    /// [`GpuBvh::bind_group_for`]).
     pub fn nodes_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Nodes)
     }
 
     /// The triangle buffer (`array<Triangle>`), for [`crate::BvhStorage::Buffers`] uploads of the
-    /// binary layout.
+    /// binary layout in one binding (`None` for a tree split into pages).
     pub fn triangles_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Triangles)
     }
 
     /// The escape-link buffer (`array<u32>`, eight links per node), for
-    /// [`crate::BvhStorage::Buffers`] uploads with the escape links.
+    /// [`crate::BvhStorage::Buffers`] uploads with the escape links in one binding (`None`
+    /// for a tree split into pages).
     pub fn escapes_buffer(&self) -> Option<&wgpu::Buffer> {
         self.engine.arrays().buffer(ArrayRole::Escapes)
     }
 
     /// The wide layout's buffers (`array<BvhWideNode>`, its triangles), when it was
-    /// uploaded in [`crate::BvhStorage::Buffers`].
+    /// uploaded in [`crate::BvhStorage::Buffers`] in one binding each (`None` for a tree
+    /// split into pages).
     pub fn wide_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer)> {
         let a = self.engine.arrays();
         a.buffer(ArrayRole::WideNodes)
