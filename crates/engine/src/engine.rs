@@ -18,7 +18,7 @@ use bvhtrace_core::{
 use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::key::KernelKey;
-use crate::pages::Pages;
+use crate::pages::{Pages, check_storage_buffers};
 use crate::plan::{DeviceLimits, plan_submissions, rays_per_dispatch};
 use crate::storage::{BvhStorage, RayInput, TEXEL_ROW};
 use crate::tracer::{
@@ -246,8 +246,23 @@ pub struct UploadedTree {
     pub depth: u32,
     /// [`tree_shape`] of the uploaded tree.
     pub shape: (usize, usize, usize, u32),
-    /// How the arrays are split over bindings, and what the bind groups hold.
-    pub layout: ArraysLayout,
+    /// How the binary layout's arrays are split over bindings ([`crate::pages`]).
+    pub pages: Pages,
+    /// How the wide layout's arrays are split.
+    pub wide_pages: Pages,
+}
+
+impl UploadedTree {
+    /// What the bind groups hold, as a backend binds them.
+    pub fn layout(&self) -> ArraysLayout {
+        ArraysLayout {
+            storage: self.storage,
+            instanced: self.instanced,
+            masks: self.masks,
+            pages: self.pages,
+            wide_pages: self.wide_pages,
+        }
+    }
 }
 
 /// The scratch kept between traces, with the plan it was made for.
@@ -318,17 +333,8 @@ fn check_bindings(
         .with_instances(layout.instanced)
         .with_masks(layout.masks)
         .with_pages(pages);
-    let needs = key.bindings().len() as u64;
-    let has = u64::from(limits.max_storage_buffers_per_shader_stage);
-    if needs > has {
-        return Err(TraceError::LimitTooLow {
-            limit: "max_storage_buffers_per_shader_stage",
-            has,
-            needs,
-            needed_for: "a tree larger than one binding, split into pages of one binding each,",
-        });
-    }
-    Ok(())
+    let needed_for = "a tree larger than one binding, split into pages of one binding each,";
+    check_storage_buffers(key.bindings().len() as u64, limits, needed_for)
 }
 
 /// Escape links of the top level's blocks: whole blocks hold its links (the last one may
@@ -440,7 +446,8 @@ impl<B: DeviceApi> Engine<B> {
                 wide: opts.wide(),
                 depth: bvh.depth(),
                 shape: tree_shape(bvh),
-                layout,
+                pages,
+                wide_pages,
             },
             sizes: arrays
                 .iter()
@@ -561,7 +568,7 @@ impl<B: DeviceApi> Engine<B> {
                 .with_rays(input)
                 .with_instances(self.tree.instanced)
                 .with_masks(self.tree.masks)
-                .with_pages(self.tree.layout.pages_for(opts.traversal))
+                .with_pages(self.tree.layout().pages_for(opts.traversal))
         }
     }
 
@@ -589,7 +596,7 @@ impl<B: DeviceApi> Engine<B> {
     /// Checks that `opts` can run on this upload and device ([`Tracer::supports`]).
     pub fn supports(&self, opts: &TraceOptions) -> Result<(), TraceError> {
         self.supports_traversal(opts.traversal)?;
-        check_bindings(&self.tree.layout, opts, self.backend.limits())?;
+        check_bindings(&self.tree.layout(), opts, self.backend.limits())?;
         let key = self.key(opts, self.ray_input(), true);
         (self.backend.features()).check(&key, || self.backend.device_name())
     }
@@ -858,10 +865,11 @@ impl<B: DeviceApi> Engine<B> {
             check_wide_top_level(w)?;
             arrays.extend(wide_arrays(w, storage, bvh.masks().map(|m| &**m)));
         }
-        let layout = self.tree.layout;
-        let wide_from = arrays.iter().take_while(|a| !a.role.is_wide()).count();
-        let wide_part = arrays.split_off(wide_from);
+        let layout = self.tree.layout();
+        let wide_part = arrays.split_off(arrays.iter().take_while(|a| !a.role.is_wide()).count());
         let mut arrays = layout.pages.split(arrays);
+        // The wide arrays come last: their stats before the arrays go to the writes.
+        let wide_from = arrays.len();
         if !wide_part.is_empty() {
             let limits = self.backend.limits();
             if Pages::plan(storage, &wide_part, limits)? != layout.wide_pages {
@@ -877,8 +885,6 @@ impl<B: DeviceApi> Engine<B> {
         for a in &arrays {
             a.check(self.backend.limits())?;
         }
-        // The wide arrays come last: their stats before the arrays go to the writes.
-        let wide_from = arrays.iter().take_while(|a| !a.role.is_wide()).count();
         let wide_stats = stats_of(storage, &arrays[wide_from..]);
         let mut writes = Vec::with_capacity(arrays.len());
         for array in arrays {

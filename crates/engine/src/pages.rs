@@ -228,6 +228,31 @@ impl Pages {
     }
 }
 
+/// The error of a kernel that would bind `needs` storage buffers, a split array's pages
+/// among them, on a device allowing `has` per stage; `needed_for` says what needs them.
+pub fn too_many_buffers(has: u64, needs: u64, needed_for: &'static str) -> TraceError {
+    TraceError::LimitTooLow {
+        limit: "max_storage_buffers_per_shader_stage",
+        has,
+        needs,
+        needed_for,
+    }
+}
+
+/// Checks that a kernel binding `needs` storage buffers fits `limits`
+/// ([`too_many_buffers`] otherwise).
+pub fn check_storage_buffers(
+    needs: u64,
+    limits: &DeviceLimits,
+    needed_for: &'static str,
+) -> Result<(), TraceError> {
+    let has = u64::from(limits.max_storage_buffers_per_shader_stage);
+    match needs > has {
+        true => Err(too_many_buffers(has, needs, needed_for)),
+        false => Ok(()),
+    }
+}
+
 /// Bytes of one element of `role`'s array when it may be split.
 fn paged_element(role: ArrayRole) -> Option<u64> {
     match role {

@@ -173,15 +173,8 @@ impl BvhGroupShape {
     /// The layout's entries: nodes, triangles (and escape links) as buffers or read-only
     /// storage textures, a buffer per further page, the instances and masks as buffers.
     fn entries(&self) -> Vec<wgpu::BindGroupLayoutEntry> {
-        let texture = |binding, format| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::StorageTexture {
-                access: wgpu::StorageTextureAccess::ReadOnly,
-                format,
-                view_dimension: wgpu::TextureViewDimension::D2,
-            },
-            count: None,
+        let texture = |binding, format| {
+            storage_texture_entry(binding, format, wgpu::StorageTextureAccess::ReadOnly)
         };
         let (rgba, r) = (
             wgpu::TextureFormat::Rgba32Uint,
@@ -212,6 +205,27 @@ impl BvhGroupShape {
             }
         }
         entries
+    }
+}
+
+/// A storage texture's entry. Read-only storage textures, not sampled ones, hold the tree:
+/// lavapipe fetches a sampled texel through its per-lane mip-level logic (about 140
+/// instructions per fetch), a storage texel with one address computation and a vector
+/// gather (`bvh_textures.wgsl`).
+fn storage_texture_entry(
+    binding: u32,
+    format: wgpu::TextureFormat,
+    access: wgpu::StorageTextureAccess,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::StorageTexture {
+            access,
+            format,
+            view_dimension: wgpu::TextureViewDimension::D2,
+        },
+        count: None,
     }
 }
 
@@ -433,19 +447,6 @@ impl GpuContext {
                 label: Some(label),
                 entries,
             })
-        };
-        // Read-only storage textures, not sampled ones: lavapipe fetches a sampled texel
-        // through its per-lane mip-level logic (about 140 instructions per fetch), a storage
-        // texel with one address computation and a vector gather (`bvh_textures.wgsl`).
-        let storage_texture_entry = |binding, format, access| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::StorageTexture {
-                access,
-                format,
-                view_dimension: wgpu::TextureViewDimension::D2,
-            },
-            count: None,
         };
         let texture_entry = |binding, format| {
             storage_texture_entry(binding, format, wgpu::StorageTextureAccess::ReadOnly)

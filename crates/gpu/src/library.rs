@@ -13,7 +13,7 @@ impl GpuBvh {
         let t = self.tree();
         LibraryShape {
             masks: t.masks,
-            pages: t.layout.pages_for(traversal),
+            pages: t.layout().pages_for(traversal),
             ..LibraryShape::new(t.storage, t.instanced, traversal)
         }
     }

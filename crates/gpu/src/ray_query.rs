@@ -28,7 +28,7 @@ use bvhtrace_core::{
     FlatBvh, Hit, InstanceTable, Precision, Query, Ray, TraceOptions, TraceOutput, TracePhases,
 };
 use bvhtrace_engine::BvhStorage;
-use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages};
+use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages, check_storage_buffers};
 use bvhtrace_engine::plan::{
     DeviceLimits, HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
 };
@@ -810,17 +810,11 @@ fn triangle_pages(ctx: &GpuContext, bytes: &[u8]) -> Result<Pages, GpuError> {
         page: 0,
     };
     let pages = Pages::plan(BvhStorage::Buffers, &[array], &page_limits)?;
-    // The batch's rays and hits, the TLAS, the meshes' firsts, the instances and the masks.
+    // Beside the pages: the batch's rays and hits, the meshes' firsts, the instances and
+    // the masks (the TLAS is no storage buffer).
     let needs = u64::from(pages.triangles) + 5;
-    let has = u64::from(limits.max_storage_buffers_per_shader_stage);
-    if needs > has {
-        return Err(TraceError::LimitTooLow {
-            limit: "max_storage_buffers_per_shader_stage",
-            has,
-            needs,
-            needed_for: "triangles larger than one binding, split into pages of one binding each,",
-        });
-    }
+    let needed_for = "triangles larger than one binding, split into pages of one binding each,";
+    check_storage_buffers(needs, limits, needed_for)?;
     Ok(pages)
 }
 

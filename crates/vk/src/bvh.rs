@@ -14,7 +14,7 @@ use bvhtrace_engine::engine::{
     ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
     ScratchPlan, UploadedTree,
 };
-use bvhtrace_engine::pages::PAGE_BINDING_STRIDE;
+use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, too_many_buffers};
 use bvhtrace_engine::plan::{COUNTERS_BYTES, DeviceLimits, HIT_BYTES, RAY_BYTES, plan_dispatches};
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
 #[cfg(doc)]
@@ -415,12 +415,11 @@ impl DeviceApi for Ash {
     ) -> Result<Arrays, TraceError> {
         let slots = self.ctx.page_slots();
         if let Some(a) = arrays.iter().find(|a| a.page >= slots) {
-            return Err(TraceError::LimitTooLow {
-                limit: "max_storage_buffers_per_shader_stage",
-                has: u64::from(self.ctx.limits().max_storage_buffers_per_shader_stage),
-                needs: 8 + 3 * u64::from(a.page),
-                needed_for: "a tree split into pages of one binding each",
-            });
+            return Err(too_many_buffers(
+                u64::from(self.ctx.limits().max_storage_buffers_per_shader_stage),
+                8 + 3 * u64::from(a.page),
+                "a tree split into pages of one binding each",
+            ));
         }
         let zero = [bvhtrace_core::FlatInstance::zeroed()];
         let mut named: Vec<(&'static str, &[u8])> = vec![("filler", bytemuck::cast_slice(&zero))];
