@@ -295,7 +295,9 @@ fn ploc_compact(
 @compute @workgroup_size(MORTON_WG)
 fn ploc_flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = morton_index(gid);
-    if (k >= 2u * morton.n - 1u) {
+    // Recorded after the iterations a build usually needs: while clusters are left the
+    // host records more, then this again.
+    if (k >= 2u * morton.n - 1u || atomicLoad(&ploc_state[2]) > 1u) {
         return;
     }
     var at = 0u;

@@ -709,6 +709,33 @@ fn batches_of_any_size_equal_the_cpu() {
     devices.check_validation();
 }
 
+/// With submissions in flight (a GPU's tuning: the next batch's rays written and walked
+/// while the last one's hits are read back), a trace goes in several submissions on
+/// scratches taken in turn: every tracer's hits and counters equal the CPU twin's, in
+/// order, whatever the batch size.
+#[test]
+fn submissions_in_flight_equal_the_cpu() {
+    let devices = Devices::open("submissions in flight");
+    let flying = devices.retuned(|t| DriverTuning {
+        in_flight: 2,
+        submission_rays: 1000,
+        ..t
+    });
+    let bvh = cornell();
+    let set = ray_set(&bvh, 13);
+    let all = tracers(&flying, &bvh);
+    for n in [999, 2001, 4097] {
+        let rays = &set[set.len() - n..];
+        let label = format!("{n} rays, two submissions in flight");
+        for query in [Query::Closest, Query::Any] {
+            let opts = TraceOptions::new(Traversal::FullStack, query);
+            let c = compare(&label, &refs(&all), rays, &opts);
+            assert!(c.failures.is_empty(), "{}", c.failures.join("\n"));
+        }
+    }
+    flying.check_validation();
+}
+
 /// Whatever number of threads the workgroups are dealt out to (`DISPATCH_THREADS`), every
 /// ray of a batch is traced once, by its own invocation: every tracer's hits equal the
 /// CPU twin's for batch sizes that leave partial workgroups and a remainder of workgroups.

@@ -117,6 +117,12 @@ pub struct GpuBuildOptions {
     pub cost_traversal: f32,
     /// [`GpuBuilderKind::Ploc`]: the SAH cost of a triangle test.
     pub cost_intersection: f32,
+    /// [`GpuBuilderKind::Ploc`]: the clustering iterations submitted with the sort, before
+    /// the host first reads the cluster count back (1..=4096); `None`, as many as builds of
+    /// this size usually need, so that most builds wait on the device once. Iterations
+    /// past the last merge dispatch nothing; too few cost more submissions, never
+    /// another tree.
+    pub first_iterations: Option<u32>,
 }
 
 impl Default for GpuBuildOptions {
@@ -128,6 +134,7 @@ impl Default for GpuBuildOptions {
             max_leaf_size: cpu.max_leaf_size as u32,
             cost_traversal: cpu.cost_traversal,
             cost_intersection: cpu.cost_intersection,
+            first_iterations: None,
         }
     }
 }
@@ -157,6 +164,9 @@ impl GpuBuildOptions {
                 "max_leaf_size {} is outside 1..=16",
                 self.max_leaf_size
             ));
+        }
+        if let Some(k) = self.first_iterations.filter(|k| !(1..=4096).contains(k)) {
+            return bad(format!("first_iterations {k} is outside 1..=4096"));
         }
         let costs = [self.cost_traversal, self.cost_intersection];
         if costs.iter().any(|c| !c.is_finite() || *c <= 0.0) {
@@ -273,17 +283,36 @@ pub trait BuildDevice {
         timed: Option<(&Self::Timer, u32)>,
         dispatches: &[Dispatch<'_, Self>],
     );
-    /// Submits `rec` (a failure named `during`) and, once it is done, the first bytes of
-    /// each of `reads`, and the milliseconds of the first `pairs` of `timer` when given. A
+    /// Submits `rec` (a failure named `during`) and, once it is done, copies the first
+    /// bytes of each of `reads`' buffers into its slice (as many as the slice holds); the
+    /// milliseconds of the first `pairs` of `timer` when given, and of the copies. A
     /// future, so that a device whose read back completes on an event loop (WebGPU in a
     /// browser) need not block.
-    fn submit_and_read<'a>(
+    fn submit_and_read<'a, 'b: 'a>(
         &'a self,
         rec: Self::Recording,
         during: &'static str,
-        reads: &'a [(&'a Self::Buffer, u64)],
+        reads: &'a mut [Read<'b, Self::Buffer>],
         timer: Option<(&'a Self::Timer, u32)>,
-    ) -> impl Future<Output = Result<(Vec<Vec<u8>>, Vec<f64>), TraceError>> + 'a;
+    ) -> impl Future<Output = Result<ReadDone, TraceError>> + 'a;
+}
+
+/// What [`BuildDevice::submit_and_read`] measured.
+#[derive(Clone, Debug, Default)]
+pub struct ReadDone {
+    /// Device milliseconds of each timestamp pair asked for.
+    pub pairs_ms: Vec<f64>,
+    /// Host milliseconds copying the mapped bytes out.
+    pub copy_ms: f64,
+}
+
+/// One buffer read back by [`BuildDevice::submit_and_read`]: its first `into.len()` bytes,
+/// copied into `into` (the caller's typed vector, so the bytes are copied once).
+pub struct Read<'a, B> {
+    /// The buffer read.
+    pub buffer: &'a B,
+    /// Where its bytes go.
+    pub into: &'a mut [u8],
 }
 
 /// The uniform block of the Morton steps (`MortonParams`), one per radix pass at
@@ -337,8 +366,8 @@ const LEFT: usize = 2;
 const DEPTH: usize = 3;
 const ITERATIONS: usize = 5;
 
-/// Iterations a batch records. Clusters shrink by about a third an iteration, so the
-/// first batch finishes most builds; iterations past the last cluster dispatch nothing.
+/// Iterations a batch records when the first submission left clusters (rare: see
+/// [`first_iterations`]); iterations past the last cluster dispatch nothing.
 const BATCH: u32 = 24;
 
 /// Batches that get timestamps.
@@ -364,6 +393,8 @@ struct Build<'d, D: BuildDevice> {
     n: u64,
     nodes: u64,
     blocks: u32,
+    /// [`GpuBuildOptions::first_iterations`].
+    first_iterations: Option<u32>,
 }
 
 /// A build's tree as read back, with the words of its depth buffer, each step's device
@@ -467,6 +498,7 @@ impl<'d, D: BuildDevice> Build<'d, D> {
             n,
             nodes,
             blocks,
+            first_iterations: opts.first_iterations,
         })
     }
 
@@ -573,35 +605,44 @@ impl<'d, D: BuildDevice> Build<'d, D> {
         &self,
         rec: D::Recording,
         outputs: [usize; 3],
-        depth_words: u64,
+        depth_words: usize,
         depth_at: usize,
     ) -> Result<ReadBack, TraceError> {
-        let reads = [
-            (&self.buffers[outputs[0]], self.nodes * 32),
-            (&self.buffers[outputs[1]], self.n * 48),
-            (&self.buffers[outputs[2]], depth_words * 4),
+        let t = Instant::now();
+        // Zeroed vectors are fresh pages the copy writes once: the bytes move only there.
+        let mut nodes: Vec<FlatNode> = bytemuck::zeroed_vec(self.nodes as usize);
+        let mut tris: Vec<FlatTriangle> = bytemuck::zeroed_vec(self.n as usize);
+        let mut words = vec![0u32; depth_words];
+        let mut reads = [
+            Read {
+                buffer: &self.buffers[outputs[0]],
+                into: bytemuck::cast_slice_mut(&mut nodes),
+            },
+            Read {
+                buffer: &self.buffers[outputs[1]],
+                into: bytemuck::cast_slice_mut(&mut tris),
+            },
+            Read {
+                buffer: &self.buffers[outputs[2]],
+                into: bytemuck::cast_slice_mut(&mut words),
+            },
         ];
         let used = self.timed.len() as u32;
         let timer = self.timer.as_ref().map(|t| (t, used));
-        let (bytes, ms) = self
+        let submitted = Instant::now();
+        let done = self
             .dev
-            .submit_and_read(rec, BUILDING, &reads, timer)
+            .submit_and_read(rec, BUILDING, &mut reads, timer)
             .await?;
+        // The wait for the device counts as building; the copies and the rest, reading.
+        let waited = submitted.elapsed().as_secs_f64() * 1e3 - done.copy_ms;
         let mut stages_ms: Vec<(&'static str, f64)> = Vec::new();
-        for (name, ms) in self.timed.iter().zip(ms) {
+        for (name, ms) in self.timed.iter().zip(done.pairs_ms) {
             match stages_ms.iter_mut().find(|(n, _)| n == name) {
                 Some((_, sum)) => *sum += ms,
                 None => stages_ms.push((name, ms)),
             }
         }
-        let t = Instant::now();
-        let [nodes, tris, words] = match <[Vec<u8>; 3]>::try_from(bytes) {
-            Ok(b) => b,
-            Err(got) => return Err(short_read(got.len())),
-        };
-        let mut nodes: Vec<FlatNode> = bytemuck::pod_collect_to_vec(&nodes);
-        let tris: Vec<FlatTriangle> = bytemuck::pod_collect_to_vec(&tris);
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&words);
         let depth = *words.get(depth_at).ok_or_else(|| short_read(words.len()))?;
         // A collapsed tree has fewer flat nodes than were allocated: a leaf's count says
         // how many triangles it holds, and the nodes are in depth-first order.
@@ -612,7 +653,7 @@ impl<'d, D: BuildDevice> Build<'d, D> {
             bvh,
             words,
             stages_ms,
-            readback_ms: t.elapsed().as_secs_f64() * 1e3,
+            readback_ms: t.elapsed().as_secs_f64() * 1e3 - waited,
         })
     }
 }
@@ -628,12 +669,18 @@ fn short_read(got: usize) -> TraceError {
 /// How many nodes of a depth-first flat layout the root's tree covers.
 fn flat_nodes_used(nodes: &[FlatNode]) -> usize {
     let mut k = 0usize;
-    // The last node in depth-first order is the right-most leaf: follow right children.
+    // The last node in depth-first order is the right-most leaf: follow right children,
+    // which come after their parents (a layout that does not, such as the zeroes of an
+    // unfinished clustering, is left whole).
     while let Some(node) = nodes.get(k) {
         if node.count() > 0 {
             return k + 1;
         }
-        k = node.right_or_first as usize;
+        let right = node.right_or_first as usize;
+        if right <= k {
+            break;
+        }
+        k = right;
     }
     nodes.len()
 }
@@ -705,13 +752,13 @@ fn ploc_buffers<D: BuildDevice>(
 }
 
 impl<D: BuildDevice> Build<'_, D> {
-    /// `BATCH` iterations in one pass, the sizes of all but the fixed ones read from the
-    /// dispatch-size buffer `ploc_prepare` writes.
-    fn record_batch(&mut self, rec: &mut D::Recording) {
+    /// `iterations` iterations in one pass, the sizes of all but the fixed ones read from
+    /// the dispatch-size buffer `ploc_prepare` writes (none once one cluster is left).
+    fn record_iterations(&mut self, rec: &mut D::Recording, iterations: u32) {
         let k = self.next_pair("clustering");
         let args = &self.buffers[ARGS];
-        let mut list: Vec<Dispatch<'_, D>> = Vec::with_capacity(6 * BATCH as usize);
-        for _ in 0..BATCH {
+        let mut list: Vec<Dispatch<'_, D>> = Vec::with_capacity(6 * iterations as usize);
+        for _ in 0..iterations {
             for (e, indirect) in [
                 (PREPARE, None),
                 (NEIGHBOURS, Some(0)),
@@ -734,56 +781,83 @@ impl<D: BuildDevice> Build<'_, D> {
         self.dev.pass(rec, &self.program, timed, &list);
     }
 
-    /// The clustering build: the sort, the leaves and a first batch in one submission,
-    /// more batches while clusters are left, then the flat layout. Returns the tree read
-    /// back and the iterations that ran. Each batch's count is awaited, so in a browser
-    /// the event loop runs meanwhile.
+    /// The clustering build. One submission holds the sort, the leaves, the iterations
+    /// most builds of this size need ([`first_iterations`]), the flat layout (which does
+    /// nothing while clusters are left) and the read back: one wait in all. When clusters
+    /// were left, batches of [`BATCH`] iterations follow, each reading the count back, then
+    /// the flat layout and the read back again. Returns the tree and the iterations run.
+    /// Each submission is awaited, so in a browser the event loop runs meanwhile.
     async fn run_ploc(&mut self) -> Result<(ReadBack, u32), TraceError> {
         let max_dim = self.dev.limits().max_compute_workgroups_per_dimension;
         let mut rec = self.dev.begin()?;
         self.record_sort(&mut rec);
         let per_item = grid(self.n, max_dim);
         self.pass(&mut rec, "clustering", &[(LEAVES, 0, per_item)]);
-        let mut left = self.n as u32;
-        let mut batches = 0u32;
-        let mut first = Some(rec);
-        while left > 1 {
-            let mut rec = match first.take() {
-                Some(rec) => rec,
-                None => self.dev.begin()?,
-            };
-            self.record_batch(&mut rec);
-            let reads = [(&self.buffers[STATE], 32)];
-            let (bytes, _) = self
-                .dev
-                .submit_and_read(rec, BUILDING, &reads, None)
-                .await?;
-            let state: Vec<u32> = bytes
-                .first()
-                .map(|b| bytemuck::pod_collect_to_vec(b))
-                .unwrap_or_default();
-            let now = *state.get(LEFT).ok_or_else(|| short_read(state.len()))?;
-            batches += 1;
-            // Every iteration merges at least once, so the count falls every batch; a
-            // batch in which it does not is a fault, reported rather than looped on.
-            if now >= left {
-                return Err(TraceError::Unsupported {
-                    backend: "device builder",
-                    what: format!(
-                        "a finished clustering: it stopped at {now} clusters after {batches} \
-                         batches"
-                    ),
-                });
+        let first = self.first_iterations.unwrap_or(first_iterations(self.n));
+        self.record_iterations(&mut rec, first);
+        self.record_flatten(&mut rec);
+        let mut done = self.read_back(rec, PLOC_OUTPUTS, 8, DEPTH).await?;
+        let mut left = clusters_left(&done.words)?;
+        if left > 1 {
+            let mut batches = 0u32;
+            while left > 1 {
+                let mut rec = self.dev.begin()?;
+                self.record_iterations(&mut rec, BATCH);
+                let mut state = [0u32; 8];
+                let mut reads = [Read {
+                    buffer: &self.buffers[STATE],
+                    into: bytemuck::cast_slice_mut(&mut state),
+                }];
+                self.dev
+                    .submit_and_read(rec, BUILDING, &mut reads, None)
+                    .await?;
+                let now = clusters_left(&state)?;
+                batches += 1;
+                // Every iteration merges at least once, so the count falls every batch; a
+                // batch in which it does not is a fault, reported rather than looped on.
+                if now >= left {
+                    return Err(TraceError::Unsupported {
+                        backend: "device builder",
+                        what: format!(
+                            "a finished clustering: it stopped at {now} clusters after \
+                             {batches} more batches"
+                        ),
+                    });
+                }
+                left = now;
             }
-            left = now;
+            let mut rec = self.dev.begin()?;
+            self.record_flatten(&mut rec);
+            done = self.read_back(rec, PLOC_OUTPUTS, 8, DEPTH).await?;
         }
-        let mut rec = self.dev.begin()?;
-        let per_node = grid(self.nodes, max_dim);
-        self.pass(&mut rec, "flat layout", &[(FLATTEN, 0, per_node)]);
-        let done = self.read_back(rec, PLOC_OUTPUTS, 8, DEPTH).await?;
         let iterations = done.words.get(ITERATIONS).copied().unwrap_or(0);
         Ok((done, iterations))
     }
+
+    /// The flat layout of the clustered tree, one pass.
+    fn record_flatten(&mut self, rec: &mut D::Recording) {
+        let per_node = grid(
+            self.nodes,
+            self.dev.limits().max_compute_workgroups_per_dimension,
+        );
+        self.pass(rec, "flat layout", &[(FLATTEN, 0, per_node)]);
+    }
+}
+
+/// Clusters left, from the words of the PLOC state.
+fn clusters_left(state: &[u32]) -> Result<u32, TraceError> {
+    state
+        .get(LEFT)
+        .copied()
+        .ok_or_else(|| short_read(state.len()))
+}
+
+/// Iterations the first submission of a clustering build of `n` triangles records: about
+/// as many as most builds of that size run (43 for 69K triangles, 49 for 269K, 57 for
+/// 6.7M), with room; one cluster left, an iteration dispatches nothing.
+fn first_iterations(n: u64) -> u32 {
+    let log2 = 64 - n.max(1).leading_zeros();
+    3 * log2 + 8
 }
 
 /// The checks before a device build: no triangle is an error, one triangle is built on
@@ -900,6 +974,10 @@ mod tests {
                 cost_traversal: f32::NAN,
                 ..Default::default()
             },
+            GpuBuildOptions {
+                first_iterations: Some(0),
+                ..Default::default()
+            },
         ] {
             assert!(bad.check().is_err(), "{bad:?}");
         }
@@ -915,5 +993,22 @@ mod tests {
         }
         assert_eq!(GpuBuilderKind::Ploc.step(LEAVES).0, "ploc_leaves");
         assert_eq!(GpuBuilderKind::Ploc.step(FLATTEN).0, "ploc_flatten");
+    }
+
+    #[test]
+    fn the_first_submission_covers_the_iterations_builds_took() {
+        // Iterations measured on lavapipe and the H200 (docs/benchmarks.md).
+        for (n, took) in [
+            (69_451, 43),
+            (268_686, 49),
+            (1_612_116, 57),
+            (6_717_150, 57),
+        ] {
+            let first = first_iterations(n);
+            assert!(
+                first >= took && first <= 2 * took,
+                "{n}: {first} against {took}"
+            );
+        }
     }
 }

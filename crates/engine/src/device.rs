@@ -140,6 +140,14 @@ pub struct DriverTuning {
     /// measured: docs/benchmarks.md), the stackless walk on a CPU driver. A device no
     /// figure covers takes the GPU's.
     pub walk: Traversal,
+    /// Submissions of one trace in flight at once, each on scratch of its own: with 2, a
+    /// batch's rays are written and the last one's hits copied out while the device walks
+    /// (double buffering). 1 on a CPU driver, whose device is the same cores the copies
+    /// would take. The ash backend waits for each submission: 1 there whatever is set.
+    pub in_flight: u32,
+    /// The most rays one submission of a trace carries when `in_flight` is above 1 (so
+    /// that a trace has several to overlap), within the device's buffer limit either way.
+    pub submission_rays: u64,
 }
 
 impl DriverTuning {
@@ -149,6 +157,8 @@ impl DriverTuning {
         dispatch_threads: 1,
         trip_limit: u32::MAX,
         walk: Traversal::FullStack,
+        in_flight: 2,
+        submission_rays: 1 << 18,
     };
 
     /// For a CPU driver running `threads` worker threads: textures, the dispatch dealt
@@ -159,6 +169,8 @@ impl DriverTuning {
             dispatch_threads: threads.clamp(1, MAX_DISPATCH_THREADS),
             trip_limit: CPU_DRIVER_TRIP_LIMIT,
             walk: Traversal::Stackless,
+            in_flight: 1,
+            submission_rays: u64::MAX,
         }
     }
 

@@ -5,6 +5,7 @@
 //! rays, the kernels used, updates). A backend only creates, writes and binds its arrays
 //! and scratch, and runs one batch.
 
+use std::collections::VecDeque;
 use std::future::Future;
 use std::sync::{Arc, Mutex};
 
@@ -15,6 +16,7 @@ use bvhtrace_core::{
     Traversal, WideBvh,
 };
 
+use crate::compose::WORKGROUP_SIZE;
 use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::key::KernelKey;
@@ -95,13 +97,18 @@ pub struct ScratchPlan {
 }
 
 /// One submission of a trace: `rays` through the kernel `key` (the BVH group of
-/// `key.traversal`), hits and counters appended to `hits` and `counters`.
+/// `key.traversal`).
+#[derive(Clone, Copy)]
 pub struct Batch<'a> {
     /// The kernel.
     pub key: KernelKey,
     /// The rays, at most the scratch's capacity.
     pub rays: &'a [Ray],
-    /// Where the hits go, in order.
+}
+
+/// Where a finished submission's hits and counters are appended, in order.
+pub struct BatchOut<'a> {
+    /// Where the hits go.
     pub hits: &'a mut Vec<Hit>,
     /// Where the counters go, when asked for.
     pub counters: Option<&'a mut Vec<Counters>>,
@@ -181,8 +188,10 @@ impl BackendFeatures {
 pub trait DeviceApi: SendSync {
     /// The uploaded arrays, and whatever binds them (bind groups, descriptor sets).
     type Arrays: SendSync;
-    /// The per-tracer scratch of [`DeviceApi::run_batch`] (rays, hits, counters, readback).
+    /// The per-tracer scratch of a submission (rays, hits, counters, readback).
     type Scratch: SendSync;
+    /// A submission not yet read back ([`DeviceApi::submit_batch`]).
+    type Submitted: SendSync;
 
     /// The backend's name ([`Tracer::backend`]).
     fn name(&self) -> &'static str;
@@ -214,16 +223,26 @@ pub trait DeviceApi: SendSync {
     ) -> Result<(), TraceError>;
     /// Creates the scratch `plan` asks for.
     fn create_scratch(&self, plan: &ScratchPlan) -> Result<Self::Scratch, TraceError>;
-    /// Uploads the batch's rays, dispatches its kernel (within
-    /// [`crate::plan::plan_dispatches`]),
-    /// waits for that submission and reads the hits (and counters) back; the GPU time of
-    /// the batch when the device measures it, and its phases. A future, so that a backend
-    /// whose readback completes on an event loop (WebGPU in a browser) need not block.
-    fn run_batch<'a>(
+    /// Writes the batch's rays to `scratch` and submits its kernel (within
+    /// [`crate::plan::plan_dispatches`]) and the copies of its hits (and counters) for
+    /// reading back. A backend may return before the device is done; the engine submits
+    /// on other scratch meanwhile ([`DriverTuning::in_flight`]) and reuses this scratch
+    /// only after [`DeviceApi::finish_batch`].
+    fn submit_batch(
+        &self,
+        arrays: &Self::Arrays,
+        scratch: &Self::Scratch,
+        batch: Batch<'_>,
+    ) -> Result<Self::Submitted, TraceError>;
+    /// Waits for `submitted` (made on `scratch`) and appends its hits (and counters) to
+    /// `out`; the GPU time of the batch when the device measures it, and its phases from
+    /// the submission's start. A future, so that a backend whose readback completes on an
+    /// event loop (WebGPU in a browser) need not block.
+    fn finish_batch<'a>(
         &'a self,
-        arrays: &'a Self::Arrays,
         scratch: &'a Self::Scratch,
-        batch: Batch<'a>,
+        submitted: Self::Submitted,
+        out: BatchOut<'a>,
     ) -> impl Future<Output = Result<BatchTimes, TraceError>> + 'a;
 }
 
@@ -291,8 +310,9 @@ pub struct Engine<B: DeviceApi> {
     binary_stats: UploadStats,
     /// The tree incomplete rays are finished on ([`Engine::keeps_host_copy`]).
     host_copy: Option<HostCopy>,
-    /// The scratch between traces; a trace takes it out while it runs.
-    scratch: Mutex<Option<Kept<B::Scratch>>>,
+    /// The scratch between traces, one per submission in flight; a trace takes it out
+    /// while it runs.
+    scratch: Mutex<Vec<Kept<B::Scratch>>>,
     mesh_fingerprint: u64,
     used: Mutex<Vec<KernelKey>>,
     /// The instances' table every output carries, for a two-level tree.
@@ -456,7 +476,7 @@ impl<B: DeviceApi> Engine<B> {
             stats,
             binary_stats,
             host_copy,
-            scratch: Mutex::new(None),
+            scratch: Mutex::new(Vec::new()),
             mesh_fingerprint: mesh_fingerprint(bvh),
             used: Mutex::new(Vec::new()),
             instances: InstanceTable::of(bvh),
@@ -624,16 +644,24 @@ impl<B: DeviceApi> Engine<B> {
         Ok(())
     }
 
-    /// `(rays per submission, scratch capacity)` for a batch of `n` rays from `input`: a
-    /// ray texture holds one dispatch.
-    fn submissions(&self, n: u64, input: RayInput) -> (u64, u64) {
+    /// `(rays per submission, scratch capacity, scratches)` for a batch of `n` rays from
+    /// `input`: a ray texture holds one dispatch; with submissions in flight
+    /// ([`DriverTuning::in_flight`]) each carries at most the tuning's `submission_rays`,
+    /// on as many scratches as are in flight at once.
+    fn submissions(&self, n: u64, input: RayInput) -> (u64, u64, usize) {
         let limits = self.backend.limits();
-        let (mut per_submit, mut capacity) = plan_submissions(n, limits);
+        let (mut per_submit, _) = plan_submissions(n, limits);
         if input == RayInput::Texture {
             per_submit = per_submit.min(ray_texture_capacity(limits));
-            capacity = capacity.min(per_submit);
         }
-        (per_submit, capacity)
+        let tuning = self.backend.tuning();
+        if tuning.in_flight > 1 {
+            per_submit = per_submit.min(tuning.submission_rays.max(u64::from(WORKGROUP_SIZE)));
+        }
+        let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
+        let submissions = n.div_ceil(per_submit).max(1);
+        let slots = submissions.min(u64::from(tuning.in_flight.max(1))) as usize;
+        (per_submit, capacity, slots)
     }
 
     /// Traces `rays` as `opts` says: the kernel built first (an unsupported option fails
@@ -675,10 +703,10 @@ impl<B: DeviceApi> Engine<B> {
         if rays.is_empty() {
             return Ok(out);
         }
-        let (per_submit, capacity) = self.submissions(rays.len() as u64, input);
-        let kept = self.take_scratch(capacity, opts.counters, input)?;
+        let (per_submit, capacity, slots) = self.submissions(rays.len() as u64, input);
+        let kept = self.take_scratch(slots, capacity, opts.counters, input)?;
         let traced = self
-            .run_batches(&kept, key, rays, per_submit, &mut out)
+            .run_batches(&kept[..slots], key, rays, per_submit, &mut out)
             .await;
         self.keep_scratch(kept);
         traced?;
@@ -691,79 +719,105 @@ impl<B: DeviceApi> Engine<B> {
         Ok(out)
     }
 
-    /// Runs `rays` through `key` in submissions of `per_submit` rays on `kept`'s scratch,
-    /// the hits, counters and GPU times into `out`.
+    /// Runs `rays` through `key` in submissions of `per_submit` rays, one on each of
+    /// `kept`'s scratches in turn, as many in flight as there are scratches: the oldest is
+    /// read back before its scratch takes the next. The hits, counters and GPU times go
+    /// into `out`, in order.
     async fn run_batches(
         &self,
-        kept: &Kept<B::Scratch>,
+        kept: &[Kept<B::Scratch>],
         key: KernelKey,
         rays: &[Ray],
         per_submit: u64,
         out: &mut TraceOutput,
     ) -> Result<(), TraceError> {
-        for batch in rays.chunks(per_submit as usize) {
-            let times = self
-                .backend
-                .run_batch(
-                    &self.arrays,
-                    &kept.scratch,
-                    Batch {
-                        key,
-                        rays: batch,
-                        hits: &mut out.hits,
-                        counters: out.counters.as_mut(),
-                    },
-                )
-                .await?;
-            if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), times.gpu_ms) {
-                *total += ms;
+        let mut in_flight: VecDeque<(usize, B::Submitted)> = VecDeque::with_capacity(kept.len());
+        for (i, part) in rays.chunks(per_submit as usize).enumerate() {
+            if in_flight.len() == kept.len() {
+                self.finish_oldest(kept, &mut in_flight, out).await?;
             }
-            out.phases = out.phases.map(|p| p + times.phases);
+            let slot = i % kept.len();
+            let batch = Batch { key, rays: part };
+            let submitted = self
+                .backend
+                .submit_batch(&self.arrays, &kept[slot].scratch, batch)?;
+            in_flight.push_back((slot, submitted));
+        }
+        while !in_flight.is_empty() {
+            self.finish_oldest(kept, &mut in_flight, out).await?;
         }
         Ok(())
     }
 
-    /// The scratch for a trace of `capacity` rays (with counters when `counters`), taken
-    /// out of the upload for as long as the trace runs: the one kept when it holds enough,
-    /// else a new one (counters once asked for are kept from then on, and the scratch only
-    /// grows). A trace running beside it on another thread makes its own.
+    /// Reads the oldest submission of `in_flight` back into `out`.
+    async fn finish_oldest(
+        &self,
+        kept: &[Kept<B::Scratch>],
+        in_flight: &mut VecDeque<(usize, B::Submitted)>,
+        out: &mut TraceOutput,
+    ) -> Result<(), TraceError> {
+        let Some((slot, submitted)) = in_flight.pop_front() else {
+            return Ok(());
+        };
+        let to = BatchOut {
+            hits: &mut out.hits,
+            counters: out.counters.as_mut(),
+        };
+        let times = self
+            .backend
+            .finish_batch(&kept[slot].scratch, submitted, to)
+            .await?;
+        if let (Some(total), Some(ms)) = (out.gpu_ms.as_mut(), times.gpu_ms) {
+            *total += ms;
+        }
+        out.phases = out.phases.map(|p| p + times.phases);
+        Ok(())
+    }
+
+    /// At least `slots` scratches for a trace of `capacity` rays a submission (with
+    /// counters when `counters`), taken out of the upload for as long as the trace runs:
+    /// those kept when they hold enough, else new ones (counters once asked for are kept
+    /// from then on, and scratch only grows). A trace running beside it on another thread
+    /// makes its own.
     fn take_scratch(
         &self,
+        slots: usize,
         capacity: u64,
         counters: bool,
         input: RayInput,
-    ) -> Result<Kept<B::Scratch>, TraceError> {
-        let kept = self
-            .scratch
-            .lock()
-            .map_err(|_| TraceError::Poisoned("scratch buffers"))?
-            .take();
-        match kept {
-            Some(k) if k.plan.capacity >= capacity && (k.plan.counters || !counters) => Ok(k),
-            old => {
-                let plan = ScratchPlan {
-                    capacity: capacity.max(old.as_ref().map_or(0, |k| k.plan.capacity)),
-                    counters: counters || old.as_ref().is_some_and(|k| k.plan.counters),
-                    input,
-                };
-                drop(old); // the old scratch freed first
-                Ok(Kept {
-                    plan,
-                    scratch: self.backend.create_scratch(&plan)?,
-                })
-            }
+    ) -> Result<Vec<Kept<B::Scratch>>, TraceError> {
+        let mut kept = std::mem::take(
+            &mut *self
+                .scratch
+                .lock()
+                .map_err(|_| TraceError::Poisoned("scratch buffers"))?,
+        );
+        let held = kept.iter().map(|k| k.plan.capacity).max().unwrap_or(0);
+        let had_counters = kept.iter().any(|k| k.plan.counters);
+        // Scratch too small, or without counters when they are asked for, is freed first.
+        kept.retain(|k| k.plan.capacity >= capacity && (k.plan.counters || !counters));
+        let plan = ScratchPlan {
+            capacity: capacity.max(held),
+            counters: counters || had_counters,
+            input,
+        };
+        while kept.len() < slots {
+            kept.push(Kept {
+                plan,
+                scratch: self.backend.create_scratch(&plan)?,
+            });
         }
+        Ok(kept)
     }
 
-    /// Puts a trace's scratch back for the next trace; of two traces that ran at once,
-    /// the larger scratch is kept.
-    fn keep_scratch(&self, kept: Kept<B::Scratch>) {
+    /// Puts a trace's scratches back for the next trace; of two traces that ran at once,
+    /// the one with more scratch is kept.
+    fn keep_scratch(&self, kept: Vec<Kept<B::Scratch>>) {
+        let total = |v: &[Kept<B::Scratch>]| v.iter().map(|k| k.plan.capacity).sum::<u64>();
         if let Ok(mut slot) = self.scratch.lock()
-            && slot
-                .as_ref()
-                .is_none_or(|k| k.plan.capacity < kept.plan.capacity)
+            && total(&slot) < total(&kept)
         {
-            *slot = Some(kept);
+            *slot = kept;
         }
     }
 
@@ -927,12 +981,12 @@ impl<B: DeviceApi> Engine<B> {
         Ok(())
     }
 
-    /// Runs `f` on the scratch kept between traces (`None` before the first trace).
-    pub fn with_scratch<T>(&self, f: impl FnOnce(Option<&B::Scratch>) -> T) -> T {
-        let guard = self.scratch.lock();
-        match guard {
-            Ok(g) => f(g.as_ref().map(|k| &k.scratch)),
-            Err(_) => f(None),
+    /// Runs `f` on the scratches kept between traces (none before the first trace; one per
+    /// submission in flight).
+    pub fn with_scratch<T>(&self, f: impl FnOnce(&[&B::Scratch]) -> T) -> T {
+        match self.scratch.lock() {
+            Ok(g) => f(&g.iter().map(|k| &k.scratch).collect::<Vec<_>>()),
+            Err(_) => f(&[]),
         }
     }
 }

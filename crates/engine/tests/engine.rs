@@ -10,7 +10,7 @@ use bvhtrace_core::{
     Traversal, Triangle, trace_rays,
 };
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, ScratchPlan,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchOut, BatchTimes, DeviceApi, ScratchPlan,
 };
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::upload::{ArrayRole, DeviceArray};
@@ -31,6 +31,8 @@ struct Mock {
     /// Rays per submission seen.
     batches: Mutex<Vec<usize>>,
     scratch: Mutex<Vec<ScratchPlan>>,
+    /// Submissions (`'s'`) and read backs (`'f'`), with the scratch each used.
+    order: Mutex<Vec<(char, usize)>>,
 }
 
 fn mock(tuning: DriverTuning) -> Mock {
@@ -47,6 +49,7 @@ fn mock(tuning: DriverTuning) -> Mock {
         writes: Mutex::new(Vec::new()),
         batches: Mutex::new(Vec::new()),
         scratch: Mutex::new(Vec::new()),
+        order: Mutex::new(Vec::new()),
     }
 }
 
@@ -54,7 +57,9 @@ type Arrays = Vec<(ArrayRole, Vec<u8>)>;
 
 impl DeviceApi for Mock {
     type Arrays = Arrays;
-    type Scratch = ();
+    /// Which scratch, in the order they were made.
+    type Scratch = usize;
+    type Submitted = Vec<Hit>;
 
     fn name(&self) -> &'static str {
         "mock"
@@ -109,30 +114,45 @@ impl DeviceApi for Mock {
         }
         Ok(())
     }
-    fn create_scratch(&self, plan: &ScratchPlan) -> Result<(), TraceError> {
-        self.scratch.lock().unwrap().push(*plan);
-        Ok(())
+    fn create_scratch(&self, plan: &ScratchPlan) -> Result<usize, TraceError> {
+        let mut plans = self.scratch.lock().unwrap();
+        plans.push(*plan);
+        Ok(plans.len() - 1)
     }
-    async fn run_batch<'a>(
-        &'a self,
-        _: &'a Arrays,
-        _: &'a (),
-        batch: Batch<'a>,
-    ) -> Result<BatchTimes, TraceError> {
+    fn submit_batch(
+        &self,
+        _: &Arrays,
+        scratch: &usize,
+        batch: Batch<'_>,
+    ) -> Result<Vec<Hit>, TraceError> {
         self.batches.lock().unwrap().push(batch.rays.len());
-        for r in batch.rays {
-            let prim = if r.origin[1] > 0.0 {
-                INCOMPLETE
-            } else {
-                r.origin[0] as u32
-            };
-            batch.hits.push(Hit {
-                prim,
-                ..Hit::miss(r.t_max)
-            });
-        }
-        if let Some(c) = batch.counters {
-            c.resize(batch.hits.len(), Default::default());
+        self.order.lock().unwrap().push(('s', *scratch));
+        Ok(batch
+            .rays
+            .iter()
+            .map(|r| {
+                let prim = if r.origin[1] > 0.0 {
+                    INCOMPLETE
+                } else {
+                    r.origin[0] as u32
+                };
+                Hit {
+                    prim,
+                    ..Hit::miss(r.t_max)
+                }
+            })
+            .collect())
+    }
+    async fn finish_batch<'a>(
+        &'a self,
+        scratch: &'a usize,
+        hits: Vec<Hit>,
+        out: BatchOut<'a>,
+    ) -> Result<BatchTimes, TraceError> {
+        self.order.lock().unwrap().push(('f', *scratch));
+        out.hits.extend(hits);
+        if let Some(c) = out.counters {
+            c.resize(out.hits.len(), Default::default());
         }
         Ok(BatchTimes {
             gpu_ms: Some(0.5),
@@ -360,4 +380,49 @@ fn the_driver_splits_orders_finishes_and_counts_kernels() {
         e.kernels_used()[0].rays,
         bvhtrace_engine::storage::RayInput::Texture
     );
+}
+
+/// With two submissions in flight (a GPU's tuning), a trace is split into submissions of
+/// `submission_rays` on two scratches in turn, each read back before its scratch takes the
+/// next one, the hits in order; a second trace reuses both scratches.
+#[test]
+fn two_submissions_in_flight_alternate_scratch_and_keep_the_order() {
+    let tuning = DriverTuning {
+        submission_rays: 256,
+        ..DriverTuning::GPU
+    };
+    assert_eq!(tuning.in_flight, 2);
+    let e = Engine::upload(mock(tuning), &one_mesh(), &UploadOptions::all()).expect("upload");
+    let rays: Vec<Ray> = (0..1000)
+        .map(|i| Ray::new(Vec3::new(i as f32, -1.0, 0.5), Vec3::Y))
+        .collect();
+    let opts = TraceOptions::closest(Traversal::FullStack);
+    let out = e.trace(&rays, &opts).expect("trace");
+    assert!(out.hits.iter().enumerate().all(|(i, h)| h.prim == i as u32));
+    assert_eq!(out.gpu_ms, Some(2.0));
+    assert_eq!(
+        *e.device().batches.lock().unwrap(),
+        vec![256, 256, 256, 232]
+    );
+    let order = e.device().order.lock().unwrap().clone();
+    let want = [
+        ('s', 0),
+        ('s', 1),
+        ('f', 0),
+        ('s', 0),
+        ('f', 1),
+        ('s', 1),
+        ('f', 0),
+        ('f', 1),
+    ];
+    assert_eq!(order, want);
+    let plans = e.device().scratch.lock().unwrap().clone();
+    assert_eq!(plans.len(), 2, "{plans:?}");
+    assert!(plans.iter().all(|p| p.capacity == 256));
+    e.trace(&rays[..300], &opts).expect("again");
+    assert_eq!(e.device().scratch.lock().unwrap().len(), 2, "reused");
+    // A trace of one submission needs one scratch: the kept ones serve.
+    e.trace(&rays[..10], &opts).expect("one");
+    assert_eq!(e.device().order.lock().unwrap().len(), 8 + 4 + 2);
+    assert_eq!(e.device().scratch.lock().unwrap().len(), 2);
 }

@@ -12,12 +12,17 @@
 //! interleaved; nodes and triangles tested per ray, and whether every GPU hit and counter
 //! equals the CPU twin's. `--traversals full-stack,stackless,short-stack:6,wide` picks them
 //! (`wide` uploads the wide layout too, in the same storage); `--best` reports the best run
-//! instead of the median (steadier on a shared machine).
+//! instead of the median (steadier on a shared machine). `--in-flight N` sets the
+//! submissions a trace keeps in flight (`DriverTuning::in_flight`; the device's default
+//! otherwise).
 
 use std::time::Instant;
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Query, TraceOptions, Traversal, trace_rays};
-use bvhtrace_gpu::{AdapterChoice, BvhStorage, GpuBvh, GpuContext, Tracer, UploadOptions};
+use bvhtrace_gpu::{
+    AdapterChoice, BvhStorage, ContextOptions, DriverTuning, GpuBvh, GpuContext, Tracer,
+    UploadOptions,
+};
 use bvhtrace_scene::{Camera, shared_scenes_dir};
 
 /// The median time, or the best (smallest) with `--best`: on a shared machine the best of
@@ -48,6 +53,8 @@ struct Options {
     traversals: Vec<Traversal>,
     /// Where the BVH is uploaded: each is a column pair.
     storages: Vec<BvhStorage>,
+    /// `DriverTuning::in_flight`, when given.
+    in_flight: Option<u32>,
 }
 
 impl Options {
@@ -66,6 +73,7 @@ impl Options {
                 Traversal::ShortStack(12),
             ],
             storages: vec![BvhStorage::Textures, BvhStorage::Buffers],
+            in_flight: None,
         };
         let mut args = std::env::args().skip(1);
         while let Some(a) = args.next() {
@@ -77,6 +85,9 @@ impl Options {
                 }
                 "--runs" => o.runs = args.next().ok_or("--runs needs N")?.parse()?,
                 "--best" => o.best = true,
+                "--in-flight" => {
+                    o.in_flight = Some(args.next().ok_or("--in-flight needs N")?.parse()?)
+                }
                 "--storage" => {
                     o.storages = match args.next().as_deref() {
                         Some("buffers") => vec![BvhStorage::Buffers],
@@ -110,7 +121,18 @@ impl Options {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let o = Options::parse()?;
-    let ctx = GpuContext::new(AdapterChoice::Auto)?;
+    let mut ctx = GpuContext::new(AdapterChoice::Auto)?;
+    if let Some(in_flight) = o.in_flight {
+        let tuning = DriverTuning {
+            in_flight,
+            ..*ctx.tuning()
+        };
+        let options = ContextOptions {
+            tuning: Some(tuning),
+            ..Default::default()
+        };
+        ctx = GpuContext::new_with(AdapterChoice::Auto, &options)?;
+    }
     println!(
         "device: {} ({:?}, {}); CPU threads: {}; load average at start: {}",
         ctx.adapter_info().name,
@@ -133,7 +155,8 @@ fn bench_scene(
     spec: &str,
 ) -> Result<(), Box<dyn std::error::Error>> {
     let (w, h) = (o.w, o.h);
-    let scene = bvhtrace_scene::load(spec)?;
+    let opts = bvhtrace_scene::LoadOptions::with_meshes(bvhtrace_scene::shared_scenes_dir());
+    let scene = bvhtrace_scene::load_with(spec, &opts)?;
     let tris = scene.flatten().triangles()?;
     let mut bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
     let wide = o.traversals.iter().any(|t| t.is_wide());

@@ -70,7 +70,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "xCPU"
     );
     for spec in &specs {
-        let tris = bvhtrace_scene::load(spec)?.flattened_triangles()?;
+        let opts = bvhtrace_scene::LoadOptions::with_meshes(bvhtrace_scene::shared_scenes_dir());
+        let tris = bvhtrace_scene::load_with(spec, &opts)?.flattened_triangles()?;
         let name = std::path::Path::new(spec)
             .file_name()
             .map_or(spec.clone(), |f| f.to_string_lossy().into_owned());

@@ -4,7 +4,7 @@
 use std::sync::Mutex;
 
 use bvhtrace_core::Traversal;
-use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, BatchTimes, ScratchPlan};
+use bvhtrace_engine::engine::{ArrayWrite, ArraysLayout, Batch, BatchOut, BatchTimes, ScratchPlan};
 use bvhtrace_engine::engine::{BackendFeatures, DeviceApi};
 use bvhtrace_engine::pages::PAGE_BINDING_STRIDE;
 use bvhtrace_engine::plan::DeviceLimits;
@@ -14,7 +14,7 @@ use bvhtrace_engine::{DriverTuning, KernelKey, TraceError};
 use wgpu::util::DeviceExt;
 
 use crate::context::{BvhGroupShape, GpuContext};
-use crate::trace::{BatchGroups, Scratch};
+use crate::trace::{BatchGroups, Scratch, Submitted};
 
 /// The wgpu device behind a [`crate::GpuBvh`]: the engine's backend on wgpu.
 pub struct Wgpu {
@@ -273,6 +273,7 @@ impl Wgpu {
 impl DeviceApi for Wgpu {
     type Arrays = WgpuArrays;
     type Scratch = Scratch;
+    type Submitted = Submitted;
 
     fn name(&self) -> &'static str {
         "wgpu"
@@ -366,12 +367,21 @@ impl DeviceApi for Wgpu {
             .scoped("allocating ray buffers", || Scratch::new(&self.ctx, plan))
     }
 
-    fn run_batch<'a>(
+    fn submit_batch(
+        &self,
+        arrays: &WgpuArrays,
+        scratch: &Scratch,
+        batch: Batch<'_>,
+    ) -> Result<Submitted, TraceError> {
+        crate::trace::submit_batch(&self.ctx, arrays, scratch, batch)
+    }
+
+    fn finish_batch<'a>(
         &'a self,
-        arrays: &'a WgpuArrays,
         scratch: &'a Scratch,
-        batch: Batch<'a>,
+        submitted: Submitted,
+        out: BatchOut<'a>,
     ) -> impl Future<Output = Result<BatchTimes, TraceError>> + 'a {
-        crate::trace::run_batch(&self.ctx, arrays, scratch, batch)
+        crate::trace::finish_batch(&self.ctx, scratch, submitted, out)
     }
 }

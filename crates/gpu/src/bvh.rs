@@ -98,9 +98,10 @@ impl GpuBvh {
 
     /// Device bytes of the buffers [`trace`](crate::Tracer::trace) keeps between calls:
     /// rays, hits and their readback copy, and the counters (with theirs) only once a trace
-    /// asked for them.
+    /// asked for them; a set for each submission in flight (`DriverTuning::in_flight`).
     pub fn scratch_bytes(&self) -> u64 {
-        self.engine.with_scratch(|s| s.map_or(0, |s| s.bytes()))
+        self.engine
+            .with_scratch(|s| s.iter().map(|s| s.bytes()).sum())
     }
 
     /// The context this BVH lives in.

@@ -8,7 +8,7 @@ use std::task::{Poll, Waker};
 
 use bvhtrace_core::{Counters, Hit, Ray, TraceOptions, TracePhases};
 use bvhtrace_engine::KernelKey;
-use bvhtrace_engine::engine::{Batch, BatchTimes, ScratchPlan};
+use bvhtrace_engine::engine::{Batch, BatchOut, BatchTimes, ScratchPlan};
 use bvhtrace_engine::plan::{COUNTERS_BYTES, HIT_BYTES, RAY_BYTES, plan_dispatches};
 use bvhtrace_engine::storage::{RayInput, TEXEL_ROW, texel_rows};
 use web_time::Instant;
@@ -293,15 +293,23 @@ pub(crate) fn read_mapped<T: bytemuck::Pod>(
     Ok(())
 }
 
-/// Uploads `batch`'s rays to the scratch, records its kernel and the readback copies,
-/// submits, waits for that submission only, and appends the hits (and counters); the
-/// GPU time in milliseconds when the device measures it, and the phases.
-pub(crate) async fn run_batch(
+/// A batch submitted on a [`Scratch`] and not yet read back.
+pub struct Submitted {
+    index: wgpu::SubmissionIndex,
+    count: u64,
+    counters: bool,
+    start: Instant,
+    submitted: Instant,
+}
+
+/// Uploads `batch`'s rays to the scratch, records its kernel and the readback copies and
+/// submits them, without waiting.
+pub(crate) fn submit_batch(
     ctx: &GpuContext,
     arrays: &WgpuArrays,
     s: &Scratch,
     batch: Batch<'_>,
-) -> Result<BatchTimes, GpuError> {
+) -> Result<Submitted, GpuError> {
     let start = Instant::now();
     let count = batch.rays.len() as u64;
     let counter_buffers = if batch.key.counters {
@@ -340,7 +348,32 @@ pub(crate) async fn run_batch(
         }
         Ok(queue.submit([enc.finish()]))
     })??;
-    let submitted = Instant::now();
+    Ok(Submitted {
+        index,
+        count,
+        counters: counter_buffers.is_some(),
+        start,
+        submitted: Instant::now(),
+    })
+}
+
+/// Waits for `sub` (made on `s`), and appends its hits (and counters) to `out`; the GPU
+/// time in milliseconds when the device measures it, and the phases.
+pub(crate) async fn finish_batch(
+    ctx: &GpuContext,
+    s: &Scratch,
+    sub: Submitted,
+    out: BatchOut<'_>,
+) -> Result<BatchTimes, GpuError> {
+    let Submitted {
+        index,
+        count,
+        counters,
+        start,
+        submitted,
+    } = sub;
+    let counter_buffers = if counters { s.counters.as_ref() } else { None };
+    let queue = ctx.queue();
     let mut maps = vec![(&s.hits_read, count * HIT_BYTES)];
     maps.extend(counter_buffers.map(|c| (&c.read, count * COUNTERS_BYTES)));
     maps.extend(s.queries.as_ref().map(|q| (&q.read, 16)));
@@ -351,8 +384,8 @@ pub(crate) async fn run_batch(
     mapped?;
     let done = Instant::now();
     let read = (|| -> Result<Option<f64>, GpuError> {
-        read_mapped(&s.hits_read, count * HIT_BYTES, batch.hits)?;
-        if let (Some(c), Some(b)) = (batch.counters, counter_buffers) {
+        read_mapped(&s.hits_read, count * HIT_BYTES, out.hits)?;
+        if let (Some(c), Some(b)) = (out.counters, counter_buffers) {
             read_mapped::<Counters>(&b.read, count * COUNTERS_BYTES, c)?;
         }
         let Some(q) = &s.queries else { return Ok(None) };

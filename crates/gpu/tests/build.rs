@@ -64,8 +64,15 @@ fn check_one(ctx: &GpuContext, name: &str, tris: &[Triangle], kind: GpuBuilderKi
     if kind == GpuBuilderKind::Lbvh {
         assert_eq!(leaves, tris.len(), "{name}: one triangle a leaf");
     }
-    // The second build through the future (what a browser awaits): the same tree.
-    let (again, _) = pollster::block_on(ctx.build_bvh_async(tris, &opts)).expect("device build");
+    // The second build through the future (what a browser awaits), reading the cluster
+    // count back after each iteration's batch: the same tree.
+    let batched = GpuBuildOptions {
+        first_iterations: Some(1),
+        ..opts
+    };
+    let (again, at) =
+        pollster::block_on(ctx.build_bvh_async(tris, &batched)).expect("device build");
+    assert_eq!(at.iterations, times.iterations, "{name}: iterations");
     assert!(
         bytemuck::cast_slice::<_, u8>(bvh.nodes()) == bytemuck::cast_slice::<_, u8>(again.nodes())
             && bytemuck::cast_slice::<_, u8>(bvh.triangles())

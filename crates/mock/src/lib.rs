@@ -30,7 +30,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::{FlatBvh, FlatInstance, MaskTables, Ray, TraceOptions, TracePhases, WideBvh};
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchOut, BatchTimes, DeviceApi, HasEngine,
     ScratchPlan, UploadedTree,
 };
 use bvhtrace_engine::plan::DeviceLimits;
@@ -229,6 +229,7 @@ impl MockArrays {
 impl DeviceApi for MockDevice {
     type Arrays = MockArrays;
     type Scratch = ();
+    type Submitted = (bvhtrace_core::TraceOutput, f64);
 
     fn name(&self) -> &'static str {
         MOCK_BACKEND
@@ -295,22 +296,31 @@ impl DeviceApi for MockDevice {
         Ok(())
     }
 
-    // The CPU twins answer at once: ready when first polled.
-    async fn run_batch<'a>(
-        &'a self,
-        arrays: &'a MockArrays,
-        _: &'a (),
-        batch: Batch<'a>,
-    ) -> Result<BatchTimes, TraceError> {
+    // The CPU twins answer at once, when submitted.
+    fn submit_batch(
+        &self,
+        arrays: &MockArrays,
+        _: &(),
+        batch: Batch<'_>,
+    ) -> Result<(bvhtrace_core::TraceOutput, f64), TraceError> {
         // Nothing to upload or read back: the twins' time is the device's.
         let start = web_time::Instant::now();
         let out = arrays.trace(&batch.key, batch.rays)?;
-        batch.hits.extend(out.hits);
-        if let Some(c) = batch.counters {
-            c.extend(out.counters.unwrap_or_default());
+        Ok((out, start.elapsed().as_secs_f64() * 1e3))
+    }
+
+    async fn finish_batch<'a>(
+        &'a self,
+        _: &'a (),
+        (done, device_ms): (bvhtrace_core::TraceOutput, f64),
+        out: BatchOut<'a>,
+    ) -> Result<BatchTimes, TraceError> {
+        out.hits.extend(done.hits);
+        if let Some(c) = out.counters {
+            c.extend(done.counters.unwrap_or_default());
         }
         let phases = TracePhases {
-            device_ms: start.elapsed().as_secs_f64() * 1e3,
+            device_ms,
             ..TracePhases::default()
         };
         Ok(BatchTimes {

@@ -11,7 +11,7 @@ use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_engine::TraceError;
 use bvhtrace_engine::builder::{
     Binding, BufferKind, BuildDevice, Dispatch, GpuBuildOptions, GpuBuildTimes, GpuBuilderKind,
-    Grid,
+    Grid, Read, ReadDone,
 };
 use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::spirv::{self, EntryBinding};
@@ -303,11 +303,11 @@ impl AshBuild<'_> {
         &self,
         rec: Vec<Cmd>,
         during: &'static str,
-        reads: &[(&Buffer, u64)],
+        reads: &mut [Read<'_, Buffer>],
         timer: Option<(&Timer, u32)>,
-    ) -> Result<(Vec<Vec<u8>>, Vec<f64>), TraceError> {
+    ) -> Result<ReadDone, TraceError> {
         use vk::MemoryPropertyFlags as M;
-        let total: u64 = reads.iter().map(|(_, n)| n).sum();
+        let total: u64 = reads.iter().map(|r| r.into.len() as u64).sum();
         let read = self.ctx.buffer(
             "build read back",
             total,
@@ -323,7 +323,8 @@ impl AshBuild<'_> {
             unsafe {
                 self.record(d, cmd, &pending, &rec);
                 let mut at = 0;
-                for &(src, n) in reads {
+                for r in reads.iter() {
+                    let (src, n) = (r.buffer, r.into.len() as u64);
                     let region = [vk::BufferCopy {
                         src_offset: 0,
                         dst_offset: at,
@@ -343,19 +344,18 @@ impl AshBuild<'_> {
         })?;
         drop(s);
         drop(pending);
-        let mut bytes: Vec<u8> = Vec::with_capacity(total as usize);
-        read.read_into(total as usize, &mut bytes);
-        let mut out = Vec::with_capacity(reads.len());
+        let copying = std::time::Instant::now();
         let mut at = 0usize;
-        for &(_, n) in reads {
-            out.push(bytes.get(at..at + n as usize).unwrap_or_default().to_vec());
-            at += n as usize;
+        for r in reads.iter_mut() {
+            read.read_at(at, r.into);
+            at += r.into.len();
         }
-        let ms = match timer {
+        let copy_ms = copying.elapsed().as_secs_f64() * 1e3;
+        let pairs_ms = match timer {
             Some((t, used)) if used > 0 => self.pairs_ms(t, used)?,
             _ => Vec::new(),
         };
-        Ok((out, ms))
+        Ok(ReadDone { pairs_ms, copy_ms })
     }
 
     /// The milliseconds of the first `used` pairs of `timer`.
@@ -562,13 +562,13 @@ impl BuildDevice for AshBuild<'_> {
         rec.extend(stamp(1, true));
     }
 
-    fn submit_and_read<'a>(
+    fn submit_and_read<'a, 'b: 'a>(
         &'a self,
         rec: Vec<Cmd>,
         during: &'static str,
-        reads: &'a [(&'a Buffer, u64)],
+        reads: &'a mut [Read<'b, Buffer>],
         timer: Option<(&'a Timer, u32)>,
-    ) -> impl Future<Output = Result<(Vec<Vec<u8>>, Vec<f64>), TraceError>> + 'a {
+    ) -> impl Future<Output = Result<ReadDone, TraceError>> + 'a {
         std::future::ready(self.submit_blocking(rec, during, reads, timer))
     }
 }

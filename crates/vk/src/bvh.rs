@@ -11,7 +11,7 @@ use bvhtrace_core::{FlatBvh, TracePhases};
 #[cfg(doc)]
 use bvhtrace_engine::core::Traversal;
 use bvhtrace_engine::engine::{
-    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchTimes, DeviceApi, HasEngine,
+    ArrayWrite, ArraysLayout, BackendFeatures, Batch, BatchOut, BatchTimes, DeviceApi, HasEngine,
     ScratchPlan, UploadedTree,
 };
 use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, too_many_buffers};
@@ -374,9 +374,19 @@ impl Ash {
     }
 }
 
+/// A ray batch submitted and waited for: its hits are in the scratch's mapped buffers.
+pub struct Waited {
+    count: u64,
+    start: Instant,
+    submitted: Instant,
+    done: Instant,
+    gpu_ms: Option<f64>,
+}
+
 impl DeviceApi for Ash {
     type Arrays = Arrays;
     type Scratch = Scratch;
+    type Submitted = Waited;
 
     fn name(&self) -> &'static str {
         "vulkan"
@@ -478,12 +488,14 @@ impl DeviceApi for Ash {
     }
 
     // The submission is waited for on its fence: ready when first polled.
-    async fn run_batch<'a>(
-        &'a self,
-        arrays: &'a Arrays,
-        s: &'a Scratch,
-        batch: Batch<'a>,
-    ) -> Result<BatchTimes, TraceError> {
+    // Each submission is waited for here: the hits are in the mapped scratch when
+    // `finish_batch` reads them.
+    fn submit_batch(
+        &self,
+        arrays: &Arrays,
+        s: &Scratch,
+        batch: Batch<'_>,
+    ) -> Result<Waited, TraceError> {
         let start = Instant::now();
         let count = batch.rays.len() as u64;
         let sub = self.ctx.submitter()?;
@@ -499,15 +511,28 @@ impl DeviceApi for Ash {
             .submit_and_wait(&sub, "tracing a ray batch", |d, cmd| {
                 record(d, cmd, queries)
             })?;
-        let done = Instant::now();
-        s.hits.read_into((count * HIT_BYTES) as usize, batch.hits);
-        if let Some(c) = batch.counters {
-            s.counters.read_into((count * COUNTERS_BYTES) as usize, c);
-        }
-        let phases = TracePhases::since(start, submitted, done);
-        Ok(BatchTimes {
+        Ok(Waited {
+            count,
+            start,
+            submitted,
+            done: Instant::now(),
             gpu_ms: self.gpu_ms(queries)?,
-            phases,
+        })
+    }
+
+    async fn finish_batch<'a>(
+        &'a self,
+        s: &'a Scratch,
+        w: Waited,
+        out: BatchOut<'a>,
+    ) -> Result<BatchTimes, TraceError> {
+        s.hits.read_into((w.count * HIT_BYTES) as usize, out.hits);
+        if let Some(c) = out.counters {
+            s.counters.read_into((w.count * COUNTERS_BYTES) as usize, c);
+        }
+        Ok(BatchTimes {
+            gpu_ms: w.gpu_ms,
+            phases: TracePhases::since(w.start, w.submitted, w.done),
         })
     }
 }

@@ -429,8 +429,10 @@ impl VkContext {
         unsafe {
             let (pd, props, family, kind) = (c.pd, c.props, c.family, c.kind);
             let instance = &holder.instance;
+            // Buffers only, and each submission waited for (one command buffer).
             let tuning = DriverTuning {
                 storage: BvhStorage::Buffers,
+                in_flight: 1,
                 ..opts
                     .tuning
                     .unwrap_or_else(|| DriverTuning::for_device(kind))
@@ -939,6 +941,16 @@ impl Buffer {
         // SAFETY: the mapping covers `size` bytes, `offset + n` of them at most, and no
         // submission touching it is pending.
         unsafe { std::ptr::copy_nonoverlapping(data.as_ptr(), p.as_ptr().add(offset as usize), n) };
+    }
+
+    /// Copies the mapped (host-coherent) buffer's bytes from `at` into `out`, as many as
+    /// both hold.
+    pub(crate) fn read_at(&self, at: usize, out: &mut [u8]) {
+        let Some(p) = self.mapped else { return };
+        let n = out.len().min((self.size as usize).saturating_sub(at));
+        // SAFETY: `at + n` is within the mapping's `size` bytes; the GPU finished writing
+        // (fence waited).
+        unsafe { std::ptr::copy_nonoverlapping(p.as_ptr().add(at), out.as_mut_ptr(), n) };
     }
 
     /// Appends the first `bytes` bytes of a mapped (host-coherent) buffer to `out` as `T`s.

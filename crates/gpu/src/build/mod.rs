@@ -20,12 +20,13 @@ pub use skin::GpuSkin;
 
 use bvhtrace_core::{FlatBvh, Triangle};
 use bvhtrace_engine::TraceError;
-use bvhtrace_engine::builder::{BufferKind, BuildDevice, Dispatch, Grid};
+use bvhtrace_engine::builder::{BufferKind, BuildDevice, Dispatch, Grid, Read, ReadDone};
 use bvhtrace_engine::plan::DeviceLimits;
 use wgpu::util::DeviceExt;
 
 use crate::trace::{map_all, read_mapped};
 use crate::{GpuContext, GpuError};
+use web_time::Instant;
 
 pub(crate) use bvhtrace_engine::builder::{PARAMS_STRIDE, grid};
 
@@ -202,9 +203,15 @@ pub(crate) async fn read_after_async(
     enc: wgpu::CommandEncoder,
     sources: &[(&wgpu::Buffer, u64)],
 ) -> Result<Vec<Vec<u8>>, GpuError> {
-    let (parts, _) = Wgpu(ctx)
-        .submit_and_read(enc, during, sources, None)
-        .await?;
+    let mut parts: Vec<Vec<u8>> = sources.iter().map(|&(_, n)| vec![0; n as usize]).collect();
+    let mut reads: Vec<Read<'_, wgpu::Buffer>> = sources
+        .iter()
+        .zip(&mut parts)
+        .map(|(&(buffer, _), into)| Read { buffer, into })
+        .collect();
+    let dev = Wgpu(ctx);
+    dev.submit_and_read(enc, during, &mut reads, None).await?;
+    drop(reads);
     Ok(parts)
 }
 
@@ -323,44 +330,51 @@ impl BuildDevice for Wgpu<'_> {
         }
     }
 
-    async fn submit_and_read<'a>(
+    async fn submit_and_read<'a, 'b: 'a>(
         &'a self,
         mut enc: wgpu::CommandEncoder,
         during: &'static str,
-        reads: &'a [(&'a wgpu::Buffer, u64)],
+        reads: &'a mut [Read<'b, wgpu::Buffer>],
         timer: Option<(&'a StepQueries, u32)>,
-    ) -> Result<(Vec<Vec<u8>>, Vec<f64>), TraceError> {
+    ) -> Result<ReadDone, TraceError> {
         let ctx = self.0;
-        let total: u64 = reads.iter().map(|(_, n)| n).sum();
+        let total: u64 = reads.iter().map(|r| r.into.len() as u64).sum();
         let usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        let read = empty(ctx.device(), "read back", total, usage);
+        let read = empty(ctx.device(), "read back", total.max(4), usage);
         let mut at = 0;
-        for &(src, n) in reads {
-            enc.copy_buffer_to_buffer(src, 0, &read, at, n);
+        for r in reads.iter() {
+            let n = r.into.len() as u64;
+            enc.copy_buffer_to_buffer(r.buffer, 0, &read, at, n);
             at += n;
         }
         let timer = timer.filter(|(_, used)| *used > 0);
         if let Some((q, used)) = timer {
             q.resolve_pairs(&mut enc, used);
         }
-        let mut maps = vec![(&read, total)];
+        let mut maps = vec![(&read, total.max(4))];
         maps.extend(timer.map(|(q, used)| (&q.read, 16 * u64::from(used))));
         submit_and_map_async(ctx, during, enc, &maps).await?;
-        let mut bytes: Vec<u8> = Vec::new();
-        let got = read_mapped(&read, total, &mut bytes);
+        let copying = Instant::now();
+        let got = read
+            .slice(..)
+            .get_mapped_range()
+            .map_err(|e| GpuError::device("reading results back", e))
+            .map(|view| {
+                let mut at = 0usize;
+                for r in reads.iter_mut() {
+                    let n = r.into.len();
+                    r.into.copy_from_slice(&view[at..at + n]);
+                    at += n;
+                }
+            });
         read.unmap();
         got?;
-        let ms = match timer {
+        let copy_ms = copying.elapsed().as_secs_f64() * 1e3;
+        let pairs_ms = match timer {
             Some((q, used)) => q.pairs_ms(ctx.queue(), used)?,
             None => Vec::new(),
         };
-        let mut out = Vec::with_capacity(reads.len());
-        let mut at = 0usize;
-        for &(_, n) in reads {
-            out.push(bytes[at..at + n as usize].to_vec());
-            at += n as usize;
-        }
-        Ok((out, ms))
+        Ok(ReadDone { pairs_ms, copy_ms })
     }
 }
 
