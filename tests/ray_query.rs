@@ -521,3 +521,48 @@ fn triangles_over_one_binding_answer_as_in_one() {
         }
     }
 }
+
+/// With submissions in flight (a GPU's tuning), the ray queries go in chunks on buffers of
+/// their own, kept from trace to trace: the hits are those of one chunk at a time, bit for
+/// bit, in order, on the first trace and the next.
+#[test]
+fn submissions_in_flight_answer_as_one_at_a_time() {
+    let Some(one) = context("ray queries in flight") else {
+        return;
+    };
+    let tuning = bvhtrace_gpu::DriverTuning {
+        in_flight: 2,
+        submission_rays: 1000,
+        ..*one.tuning()
+    };
+    let options = ContextOptions {
+        ray_queries: true,
+        tuning: Some(tuning),
+        ..ContextOptions::default()
+    };
+    let flying = GpuContext::new_with(AdapterChoice::Auto, &options).expect("the same device");
+    let bvh = support::load_scene("builtin:icosphere:4", "icosphere:4")
+        .expect("builtin")
+        .bvh;
+    let a = RayQueryBvh::upload(&one, &bvh).expect("upload");
+    let b = RayQueryBvh::upload(&flying, &bvh).expect("upload");
+    let rays = ray_set(&bvh, 9);
+    assert!(rays.len() > 3000, "{} rays: too few chunks", rays.len());
+    let bits = |h: &[bvhtrace_core::Hit]| bytemuck::cast_slice::<_, u32>(h).to_vec();
+    for query in [Query::Closest, Query::Any, Query::Closest] {
+        let opts = TraceOptions::new(Traversal::FullStack, query);
+        let want = a.trace(&rays, &opts).expect("trace");
+        let got = b.trace(&rays, &opts).expect("trace in flight");
+        assert!(want.hits.iter().any(|h| h.is_hit()), "nothing hit");
+        assert!(
+            bits(&got.hits) == bits(&want.hits),
+            "{query:?}: hits differ"
+        );
+        // Fewer rays than one chunk: one submission, on the kept buffers.
+        let few = b.trace(&rays[..10], &opts).expect("trace a few");
+        assert!(
+            bits(&few.hits) == bits(&want.hits[..10]),
+            "{query:?}: a few"
+        );
+    }
+}

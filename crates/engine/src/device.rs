@@ -144,6 +144,8 @@ pub struct DriverTuning {
     /// batch's rays are written and the last one's hits copied out while the device walks
     /// (double buffering). 1 on a CPU driver, whose device is the same cores the copies
     /// would take. The ash backend waits for each submission: 1 there whatever is set.
+    /// The ray-query tracer keeps its buffers between traces only with more than 1 (on a
+    /// CPU driver, buffers made per trace left the other uploads faster: docs/gpu-wall.md).
     pub in_flight: u32,
     /// The most rays one submission of a trace carries when `in_flight` is above 1 (so
     /// that a trace has several to overlap), within the device's buffer limit either way.

@@ -88,14 +88,28 @@ pub struct RayQueryBvh {
     stats: UploadStats,
     /// Wall time of the last acceleration-structure build (or update), milliseconds.
     build_ms: f64,
+    /// The ray batches' buffers kept between traces, one per submission in flight; only
+    /// with submissions in flight (a GPU's tuning): docs/gpu-wall.md says why not on a
+    /// CPU driver.
+    scratch: Mutex<Vec<RayQueryScratch>>,
 }
 
-/// The buffers of a ray-query trace: `capacity` rays, their hits, and the hits' readback.
-/// Made per trace: docs/gpu-wall.md says why they are not kept.
+/// The buffers of a ray-query submission: `capacity` rays, their hits, and the hits'
+/// readback.
 struct RayQueryScratch {
+    capacity: u64,
     rays: wgpu::Buffer,
     hits: wgpu::Buffer,
     read: wgpu::Buffer,
+}
+
+/// A ray-query submission not yet read back: on scratch `slot`, `count` rays.
+struct InFlight {
+    slot: usize,
+    index: wgpu::SubmissionIndex,
+    count: u64,
+    started: Instant,
+    submitted: Instant,
 }
 
 impl RayQueryScratch {
@@ -110,6 +124,7 @@ impl RayQueryScratch {
             })
         };
         RayQueryScratch {
+            capacity,
             rays: buffer(
                 "bvhtrace ray-query rays",
                 capacity * RAY_BYTES,
@@ -337,6 +352,7 @@ impl RayQueryBvh {
                 upload_ms: 0.0,
             },
             build_ms: 0.0,
+            scratch: Mutex::new(Vec::new()),
         };
         rq.set_instances(bvh)?;
         rq.build(true)?;
@@ -622,7 +638,9 @@ impl RayQueryBvh {
         Ok(words)
     }
 
-    /// Traces `rays` in chunks of one dispatch each: upload, dispatch, read back.
+    /// Traces `rays` in chunks of one dispatch each: upload, dispatch, read back, with as
+    /// many chunks in flight as the tuning says ([`bvhtrace_engine::DriverTuning::in_flight`],
+    /// each at most its `submission_rays` then), each on buffers of its own.
     async fn trace_chunks(
         &self,
         rays: &[Ray],
@@ -632,12 +650,22 @@ impl RayQueryBvh {
         let start = Instant::now();
         let pipeline = self.pipeline(opts.query == Query::Any, opts.mask)?;
         let group = self.group()?;
-        let chunk = rays_per_dispatch(self.ctx.limits()).min(rays.len().max(1) as u64);
-        let device = self.ctx.device();
-        let scratch = self.ctx.scoped("allocating the ray batch", || {
-            RayQueryScratch::new(device, chunk)
-        })?;
-        let (hits, phases) = (self.trace_in(&scratch, rays, chunk, &pipeline, group)).await?;
+        let tuning = self.ctx.tuning();
+        let mut chunk = rays_per_dispatch(self.ctx.limits()).min(rays.len().max(1) as u64);
+        let keep = tuning.in_flight > 1;
+        if keep {
+            chunk = chunk.min(tuning.submission_rays.max(64));
+        }
+        let chunks = (rays.len() as u64).div_ceil(chunk).max(1);
+        let slots = chunks.min(u64::from(tuning.in_flight.max(1))) as usize;
+        let scratch = self.take_scratch(slots, chunk, keep)?;
+        let traced = self
+            .trace_in(&scratch[..slots], rays, chunk, &pipeline, group)
+            .await;
+        if keep && let Ok(mut kept) = self.scratch.lock() {
+            *kept = scratch;
+        }
+        let (hits, phases) = traced?;
         Ok(TraceOutput {
             hits,
             counters: None,
@@ -649,70 +677,138 @@ impl RayQueryBvh {
         })
     }
 
-    /// Traces `rays` in chunks of `chunk` through `pipeline` on `scratch`'s buffers: the
-    /// hits, and where the wall time went.
+    /// At least `slots` scratches of `capacity` rays or more: the kept ones when `keep`
+    /// and they are large enough, else new ones.
+    fn take_scratch(
+        &self,
+        slots: usize,
+        capacity: u64,
+        keep: bool,
+    ) -> Result<Vec<RayQueryScratch>, GpuError> {
+        let mut out = match keep {
+            true => std::mem::take(
+                &mut *self
+                    .scratch
+                    .lock()
+                    .map_err(|_| TraceError::Poisoned("ray-query scratch buffers"))?,
+            ),
+            false => Vec::new(),
+        };
+        out.retain(|s| s.capacity >= capacity);
+        let device = self.ctx.device();
+        while out.len() < slots {
+            let made = self.ctx.scoped("allocating the ray batch", || {
+                RayQueryScratch::new(device, capacity)
+            })?;
+            out.push(made);
+        }
+        Ok(out)
+    }
+
+    /// Traces `rays` in chunks of `chunk` through `pipeline`, chunk `i` on scratch
+    /// `i % scratch.len()`, as many in flight as there are scratches (the oldest read back
+    /// before its scratch takes the next): the hits, and where the wall time went.
     async fn trace_in(
         &self,
-        scratch: &RayQueryScratch,
+        scratch: &[RayQueryScratch],
         rays: &[Ray],
         chunk: u64,
         pipeline: &wgpu::ComputePipeline,
         group: &wgpu::BindGroup,
     ) -> Result<(Vec<Hit>, TracePhases), GpuError> {
-        let device = self.ctx.device();
-        let (ray_buf, hit_buf, read) = (&scratch.rays, &scratch.hits, &scratch.read);
         let mut phases = TracePhases::default();
         let mut hits = Vec::with_capacity(rays.len());
-        for part in rays.chunks(chunk as usize) {
-            let n = part.len() as u64;
-            let started = Instant::now();
-            let index = self.ctx.scoped("tracing a ray batch", || {
-                self.ctx
-                    .queue()
-                    .write_buffer(ray_buf, 0, bytemuck::cast_slice(part));
-                let batch = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("bvhtrace ray-query batch"),
-                    layout: self.ctx.batch_layout(false, RayInput::Buffer),
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: binding(ray_buf, 0, n, RAY_BYTES),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: binding(hit_buf, 0, n, HIT_BYTES),
-                        },
-                    ],
-                });
-                let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("bvhtrace ray queries"),
-                });
-                {
-                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                        label: Some("bvhtrace ray queries"),
-                        timestamp_writes: None,
-                    });
-                    pass.set_pipeline(pipeline);
-                    pass.set_bind_group(0, group, &[]);
-                    pass.set_bind_group(1, &batch, &[]);
-                    for d in plan_dispatches(n, self.ctx.limits()) {
-                        pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
-                    }
-                }
-                enc.copy_buffer_to_buffer(hit_buf, 0, read, 0, n * HIT_BYTES);
-                self.ctx.queue().submit([enc.finish()])
-            })?;
-            let submitted = Instant::now();
-            let mapped = map_all(&self.ctx, index, &[(read, n * HIT_BYTES)]).await;
-            self.ctx.deferred_errors().await?;
-            mapped?;
-            let done = Instant::now();
-            let got = read_mapped(read, n * HIT_BYTES, &mut hits);
-            read.unmap();
-            got?;
-            phases += TracePhases::since(started, submitted, done);
+        let mut in_flight: std::collections::VecDeque<InFlight> = Default::default();
+        for (i, part) in rays.chunks(chunk as usize).enumerate() {
+            if in_flight.len() == scratch.len()
+                && let Some(oldest) = in_flight.pop_front()
+            {
+                phases += self.read_chunk(scratch, oldest, &mut hits).await?;
+            }
+            let slot = i % scratch.len();
+            let submitted = self.submit_chunk(&scratch[slot], part, pipeline, group)?;
+            in_flight.push_back(InFlight { slot, ..submitted });
+        }
+        while let Some(oldest) = in_flight.pop_front() {
+            phases += self.read_chunk(scratch, oldest, &mut hits).await?;
         }
         Ok((hits, phases))
+    }
+
+    /// Writes `part` to `s`, records its queries and the hits' copy for reading back, and
+    /// submits them without waiting.
+    fn submit_chunk(
+        &self,
+        s: &RayQueryScratch,
+        part: &[Ray],
+        pipeline: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+    ) -> Result<InFlight, GpuError> {
+        let device = self.ctx.device();
+        let n = part.len() as u64;
+        let started = Instant::now();
+        let index = self.ctx.scoped("tracing a ray batch", || {
+            self.ctx
+                .queue()
+                .write_buffer(&s.rays, 0, bytemuck::cast_slice(part));
+            let batch = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("bvhtrace ray-query batch"),
+                layout: self.ctx.batch_layout(false, RayInput::Buffer),
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: binding(&s.rays, 0, n, RAY_BYTES),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: binding(&s.hits, 0, n, HIT_BYTES),
+                    },
+                ],
+            });
+            let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("bvhtrace ray queries"),
+            });
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("bvhtrace ray queries"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, group, &[]);
+                pass.set_bind_group(1, &batch, &[]);
+                for d in plan_dispatches(n, self.ctx.limits()) {
+                    pass.dispatch_workgroups(d.groups_x, d.groups_y, 1);
+                }
+            }
+            enc.copy_buffer_to_buffer(&s.hits, 0, &s.read, 0, n * HIT_BYTES);
+            self.ctx.queue().submit([enc.finish()])
+        })?;
+        Ok(InFlight {
+            slot: 0,
+            index,
+            count: n,
+            started,
+            submitted: Instant::now(),
+        })
+    }
+
+    /// Waits for `f`, appends its hits to `hits`, and says where its time went.
+    async fn read_chunk(
+        &self,
+        scratch: &[RayQueryScratch],
+        f: InFlight,
+        hits: &mut Vec<Hit>,
+    ) -> Result<TracePhases, GpuError> {
+        let read = &scratch[f.slot].read;
+        let bytes = f.count * HIT_BYTES;
+        let mapped = map_all(&self.ctx, f.index, &[(read, bytes)]).await;
+        self.ctx.deferred_errors().await?;
+        mapped?;
+        let done = Instant::now();
+        let got = read_mapped(read, bytes, hits);
+        read.unmap();
+        got?;
+        Ok(TracePhases::since(f.started, f.submitted, done))
     }
 }
 
