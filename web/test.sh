@@ -8,7 +8,8 @@
 #    bit for bit, with the build's time: prints `browser device build (gpu-ploc): built in
 #    X ms ...; N hits, 0 differ from the CPU walks over the read-back tree`; then a user's
 #    shader with a mistake, compiled after the traversal library on WebGPU: the page is
-#    given an error naming its line (`browser shader error: mine.wgsl:6:...`);
+#    given an error naming its line (`browser shader error: mine.wgsl:6:...`); then, with
+#    WebGPU's default limits, a 2.4M-triangle grid whose tree is bound in pages;
 #  - the viewer (WebGPU on the system's Vulkan driver): its traced image against the
 #    native render, pixel for pixel, and its window saved as web/dist/viewer-screenshot.png:
 #    prints `browser viewer: N pixels, 0 differ`; then the same for an animated scene in two
@@ -23,6 +24,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 web/build.sh
 cargo run --release -q -p bvhtrace-integration --example browser_parity -- web/dist "$@"
+# A tree larger than one binding: 2.4M triangles whose 131 MB of nodes the page, asking
+# for WebGPU's default limits (128 MiB bindings, 8 storage buffers), binds in pages.
+if [ -f ../shared/scenes/glb/igea.glb ]; then
+  cargo run --release -q -p bvhtrace-integration --example browser_parity -- web/dist \
+    --scene builtin:grid:igea:3x3 --default-limits --device-builders none
+else
+  echo "SKIP: the tree in pages in the browser: no ../shared/scenes/glb/igea.glb"
+fi
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist
 # Two levels and animation: the viewer plays scenes/animated.gltf from t = 1 s, each pose
 # written into the upload in place; the image it shows against the native render at its time.

@@ -4,7 +4,8 @@
 //! the page ([`Pages::specialise`]). A tree that fits one binding composes none of it.
 //!
 //! Page `p` of the array at binding `b` is bound at `b + PAGE_BINDING_STRIDE * p`; every
-//! page but the last holds [`Pages::per_page`] elements, a power of two.
+//! page but the last holds [`Pages::per_page`] elements, as many as the page's bytes hold
+//! ending on a [`PAGE_ALIGN`] boundary.
 
 use crate::error::TraceError;
 use crate::plan::DeviceLimits;
@@ -16,6 +17,11 @@ pub const PAGE_BINDING_STRIDE: u32 = 8;
 
 /// The most pages one array is split into.
 pub const MAX_PAGES: u8 = 16;
+
+/// Bytes every page but the last is a multiple of: the largest storage-buffer offset
+/// alignment WebGPU allows, so that the pages may also be ranges of one buffer (the ray
+/// queries bind their triangles so).
+pub const PAGE_ALIGN: u64 = 256;
 
 /// The arrays a walk reads in storage buffers that may be split: the binding, the WGSL
 /// variable, its element type and the element's bytes.
@@ -105,11 +111,15 @@ impl Pages {
         (63 - most.leading_zeros()) as u8
     }
 
-    /// Elements of `element_bytes` bytes in one page (every page but the last is full): a
-    /// power of two, so that the kernels find an element's page with a shift.
+    /// Elements of `element_bytes` bytes in one page (every page but the last is full):
+    /// as many as the page holds, rounded down so that the page's bytes are a multiple of
+    /// [`PAGE_ALIGN`]. The kernels divide by it, a constant (a power of two, as for 48-byte
+    /// triangles, would leave up to half of each binding empty: a page more, a binding
+    /// more, where WebGPU's default limits allow 8).
     pub fn per_page(&self, element_bytes: u64) -> u64 {
-        let most = ((1u64 << self.log2_bytes) / element_bytes).max(1);
-        1 << (63 - most.leading_zeros())
+        let step = PAGE_ALIGN / gcd(element_bytes, PAGE_ALIGN);
+        let most = (1u64 << self.log2_bytes) / element_bytes;
+        (most / step * step).max(step)
     }
 
     /// Pages of the array at `binding` (1 for an array never split).
@@ -228,6 +238,14 @@ impl Pages {
     }
 }
 
+/// The greatest common divisor of `a` and `b`.
+fn gcd(a: u64, b: u64) -> u64 {
+    match b {
+        0 => a.max(1),
+        _ => gcd(b, a % b),
+    }
+}
+
 /// The error of a kernel that would bind `needs` storage buffers, a split array's pages
 /// among them, on a device allowing `has` per stage; `needed_for` says what needs them.
 pub fn too_many_buffers(has: u64, needs: u64, needed_for: &'static str) -> TraceError {
@@ -343,6 +361,22 @@ mod tests {
         let pages = Pages::plan(BvhStorage::Buffers, &arrays, &l).unwrap();
         assert_eq!((pages.log2_bytes, pages.nodes, pages.triangles), (10, 4, 1));
         assert_eq!((pages.per_page(32), pages.per_page(48)), (32, 16));
+        // WebGPU's default 128 MiB binding: 48-byte triangles fill it to within 768 bytes
+        // (a power of two would leave a quarter empty), every page 256-byte aligned.
+        let webgpu = Pages {
+            log2_bytes: 27,
+            ..pages
+        };
+        assert_eq!(webgpu.per_page(48), 2_796_192);
+        assert_eq!(webgpu.per_page(32), 1 << 22);
+        for element in [4, 8, 16, 32, 48, 64, 80] {
+            let bytes = webgpu.per_page(element) * element;
+            let step = element * PAGE_ALIGN / gcd(element, PAGE_ALIGN);
+            assert!(
+                bytes.is_multiple_of(PAGE_ALIGN) && bytes + step > 1 << 27,
+                "{element}"
+            );
+        }
         let split = pages.split(arrays);
         let sizes: Vec<_> = split.iter().map(|a| (a.page, a.bytes.len())).collect();
         assert_eq!(sizes, [(0, 1024), (1, 1024), (2, 1024), (3, 128), (0, 480)]);

@@ -73,6 +73,11 @@ pub struct ContextOptions {
     /// (`bvhtrace_engine::pages`), as on a device with that limit. To test the split on
     /// small scenes, or a browser's 128 MiB bindings natively.
     pub max_binding_bytes: Option<u64>,
+    /// Create the device with WebGPU's default limits (`wgpu::Limits::default()`: what a
+    /// page's `requestDevice()` gets when it asks for nothing: 128 MiB storage bindings,
+    /// 8 storage buffers per stage) instead of the adapter's own. Where a program shares
+    /// its device with a page that asked for nothing, or to see what such a device takes.
+    pub webgpu_default_limits: bool,
 }
 
 /// A device and queue with the tracer's shared state. Cheap to clone (reference counted);
@@ -355,7 +360,10 @@ impl GpuContext {
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("bvhtrace"),
                 required_features: features,
-                required_limits: adapter.limits(),
+                required_limits: match options.webgpu_default_limits {
+                    true => wgpu::Limits::default(),
+                    false => adapter.limits(),
+                },
                 experimental_features: if ray_queries {
                     // SAFETY: wgpu asks callers to acknowledge that its experimental
                     // features may hold bugs; only the ray-query tracer uses this one,

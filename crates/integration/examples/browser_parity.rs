@@ -26,11 +26,15 @@
 //! `web/test.sh` runs it.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_parity -- DIST [--size WxH] [--device-builders gpu-ploc,gpu-lbvh|none]
+//! cargo run --release -p bvhtrace-integration --example browser_parity -- DIST [--size WxH] [--device-builders gpu-ploc,gpu-lbvh|none] [--scene SPEC]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
-//! builtin icosphere (said in the output).
+//! builtin icosphere (said in the output); `--scene` names another (`builtin:grid` meshes
+//! from the shared scenes), such as `builtin:grid:igea:5x5`, whose tree is larger than a
+//! browser's 128 MiB storage binding. `--default-limits` has the page ask for WebGPU's
+//! default limits (128 MiB bindings, 8 storage buffers per stage) and trace with the full
+//! stack: a tree over 128 MiB must then go in pages, or the run fails.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -59,7 +63,9 @@ try {
   await init();
   await post("/log", "tracing");
   const get = async (p) => new Float32Array(await (await fetch(p)).arrayBuffer());
-  const [hits, adapter] = await trace_closest(await get("/triangles.bin"), await get("/rays.bin"));
+  const defaultLimits = new URLSearchParams(location.search).get("limits") === "default";
+  const [hits, adapter] = await trace_closest(
+    await get("/triangles.bin"), await get("/rays.bin"), defaultLimits);
   document.getElementById("out").textContent = `${adapter}: ${hits.length} bytes`;
   const total = new Float64Array([performance.now() - start]);
   await post("/result", new Blob([hits, new Uint8Array(total.buffer), adapter]));
@@ -178,14 +184,19 @@ struct Args {
     dist: PathBuf,
     size: (u32, u32),
     builders: Vec<String>,
+    scene: Option<String>,
+    default_limits: bool,
 }
 
 fn parse_args() -> Result<Args, Error> {
-    let usage = "usage: browser_parity DIST [--size WxH] [--device-builders LIST|none]";
+    let usage = "usage: browser_parity DIST [--size WxH] [--device-builders LIST|none] [--scene SPEC] \
+         [--default-limits]";
     let mut args = std::env::args().skip(1);
     let dist = PathBuf::from(args.next().ok_or(usage)?);
     let mut size = (256u32, 192u32);
     let mut builders = vec!["gpu-ploc".to_string(), "gpu-lbvh".to_string()];
+    let mut scene = None;
+    let mut default_limits = false;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--size" => size = parse_size(&args.next().ok_or("--size needs WxH")?)?,
@@ -196,6 +207,8 @@ fn parse_args() -> Result<Args, Error> {
                     _ => list.split(',').map(str::to_string).collect(),
                 };
             }
+            "--scene" => scene = Some(args.next().ok_or("--scene needs a scene")?),
+            "--default-limits" => default_limits = true,
             other => return Err(format!("unknown argument {other}\n{usage}").into()),
         }
     }
@@ -203,6 +216,8 @@ fn parse_args() -> Result<Args, Error> {
         dist,
         size,
         builders,
+        scene,
+        default_limits,
     })
 }
 
@@ -210,14 +225,18 @@ fn run() -> Result<(), Error> {
     let args = parse_args()?;
     let (dist, (w, h)) = (&args.dist, args.size);
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
-    let spec = match shared_scenes_dir() {
-        Some(dir) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
-        None => {
+    let spec = match (&args.scene, shared_scenes_dir()) {
+        (Some(spec), _) => spec.clone(),
+        (None, Some(dir)) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
+        (None, None) => {
             println!("no shared scenes folder: using builtin:icosphere:6 instead of bunny_69k");
             "builtin:icosphere:6".to_string()
         }
     };
-    let tris = bvhtrace_scene::load(&spec)?.flatten().triangles()?;
+    let load = bvhtrace_scene::LoadOptions::with_meshes(shared_scenes_dir());
+    let tris = bvhtrace_scene::load_with(&spec, &load)?
+        .flatten()
+        .triangles()?;
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
     let b = bvh.bounds();
     let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
@@ -238,12 +257,25 @@ fn run() -> Result<(), Error> {
         rays: Arc::new(bytemuck::cast_slice(&rays).to_vec()),
     };
     println!(
-        "{spec}: {} triangles, {} rays; wasm {} bytes",
+        "{spec}: {} triangles ({} MB of nodes, {} MB of triangles), {} rays; wasm {} bytes",
         bvh.triangles().len(),
+        std::mem::size_of_val(bvh.nodes()) >> 20,
+        std::mem::size_of_val(bvh.triangles()) >> 20,
         w * h,
         served.wasm.len()
     );
-    let bytes = match browser::run_page(&chromium, served.files(), Duration::from_secs(600))? {
+    let page = match args.default_limits {
+        true => "/?limits=default",
+        false => "/",
+    };
+    let bytes = match browser::open_page(
+        &chromium,
+        browser::WebGpu::SwiftShader,
+        served.files(),
+        page,
+        (800, 600),
+        Duration::from_secs(600),
+    )? {
         Report::Result(bytes) => bytes,
         Report::Error(e) => return Err(format!("the page failed: {e}").into()),
     };
@@ -259,6 +291,14 @@ fn run() -> Result<(), Error> {
         "browser: {adapter}; trace {trace_ms:.1} ms ({:.2} Mrays/s), page load to hits {page_ms:.0} ms (build, upload, two traces)",
         cpu.len() as f64 / trace_ms / 1e3
     );
+    // WebGPU's default storage binding is 128 MiB; the adapter may offer more.
+    let largest = std::mem::size_of_val(bvh.nodes()).max(std::mem::size_of_val(bvh.triangles()));
+    if largest > 128 << 20 && !adapter.contains("in pages") {
+        match args.default_limits {
+            true => return Err("a tree over 128 MiB was not split under default limits".into()),
+            false => println!("note: the tree was bound whole: the adapter's limit holds it"),
+        }
+    }
     let differ = differing(&gpu, &cpu);
     println!(
         "browser parity: {} hits, {} differ",

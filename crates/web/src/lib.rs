@@ -52,24 +52,45 @@ mod web {
 
     /// The browser's WebGPU device.
     async fn context() -> Result<GpuContext, JsValue> {
-        GpuContext::new_async(AdapterChoice::Auto, &ContextOptions::default())
+        context_with(&ContextOptions::default()).await
+    }
+
+    /// The browser's WebGPU device, made with `options`.
+    async fn context_with(options: &ContextOptions) -> Result<GpuContext, JsValue> {
+        GpuContext::new_async(AdapterChoice::Auto, options)
             .await
             .map_err(js)
     }
 
-    /// Uploads `bvh` with the BVH in buffers and traces `rays` with the stackless walk,
-    /// closest hit, twice: the first trace builds the pipeline, the second is returned.
+    /// Uploads `bvh` with the BVH in buffers and traces `rays` with `walk`, closest hit,
+    /// twice: the first trace builds the pipeline, the second is returned, with how the
+    /// tree was bound (`""`, or its pages when it was larger than one of the device's
+    /// storage bindings).
     async fn trace_twice(
         ctx: &GpuContext,
         bvh: &FlatBvh,
         rays: &[Ray],
-    ) -> Result<TraceOutput, JsValue> {
-        let opts =
-            UploadOptions::for_traversal(Traversal::Stackless).with_storage(BvhStorage::Buffers);
+        walk: Traversal,
+    ) -> Result<(TraceOutput, String), JsValue> {
+        let opts = UploadOptions::for_traversal(walk).with_storage(BvhStorage::Buffers);
         let gpu = GpuBvh::upload(ctx, bvh, &opts).map_err(js)?;
-        let opts = TraceOptions::closest(Traversal::Stackless);
+        let opts = TraceOptions::closest(walk);
         gpu.trace_async(rays, &opts).await.map_err(js)?;
-        gpu.trace_async(rays, &opts).await.map_err(js)
+        let out = gpu.trace_async(rays, &opts).await.map_err(js)?;
+        let p = gpu.tree().pages;
+        let pages = match !p.is_one() {
+            true => format!(
+                "; the tree in pages of {} MiB (nodes {}, triangles {}, escape links {}) under \
+                 a {} MiB storage binding",
+                (1u64 << p.log2_bytes) >> 20,
+                p.nodes,
+                p.triangles,
+                p.escapes,
+                ctx.limits().max_storage_buffer_binding_size >> 20
+            ),
+            false => String::new(),
+        };
+        Ok((out, pages))
     }
 
     /// The hits (16 bytes each, the layout of [`bvhtrace_core::Hit`]) followed by the
@@ -94,24 +115,38 @@ mod web {
     /// WebGPU with the BVH in buffers, and traces `rays` (eight floats each: origin,
     /// `t_min`, direction, `t_max`, the layout of [`Ray`]) with the stackless walk,
     /// closest hit, twice: the first trace builds the pipeline, the second is timed and
-    /// returned. Resolves to `[bytes, adapter]`: the hits (16 bytes each, the layout of
+    /// returned. With `default_limits` the device gets WebGPU's default limits rather
+    /// than the adapter's (128 MiB storage bindings, 8 storage buffers per stage:
+    /// [`ContextOptions::webgpu_default_limits`]) and the walk is the full stack, which
+    /// binds the fewest buffers when a large tree goes in pages. Resolves to `[bytes, adapter]`: the hits (16 bytes each, the layout of
     /// [`bvhtrace_core::Hit`]) followed by the second trace's wall time in milliseconds (an
     /// f64), and a description of the adapter with what it leaves out
-    /// ([`GpuContext::left_out`]). Float counts that are not whole triangles or rays are
-    /// an error.
+    /// ([`GpuContext::left_out`]) and, for a tree larger than one storage binding, the
+    /// pages it was bound in. Float counts that are not whole triangles or rays are an
+    /// error.
     #[wasm_bindgen]
     pub async fn trace_closest(
         triangles: Vec<f32>,
         rays: Vec<f32>,
+        default_limits: Option<bool>,
     ) -> Result<js_sys::Array, JsValue> {
         let tris = self::triangles(&triangles)?;
         let rays = self::rays(&rays)?;
         let bvh = FlatBvh::build(&tris, &BuildOptions::default()).map_err(js)?;
-        let ctx = context().await?;
-        let out = trace_twice(&ctx, &bvh, &rays).await?;
+        let default_limits = default_limits.unwrap_or(false);
+        let options = ContextOptions {
+            webgpu_default_limits: default_limits,
+            ..ContextOptions::default()
+        };
+        let ctx = context_with(&options).await?;
+        let walk = match default_limits {
+            true => Traversal::FullStack,
+            false => Traversal::Stackless,
+        };
+        let (out, pages) = trace_twice(&ctx, &bvh, &rays, walk).await?;
         let result = js_sys::Array::new();
         result.push(&hit_bytes(&out));
-        result.push(&JsValue::from_str(&adapter(&ctx)));
+        result.push(&JsValue::from_str(&(adapter(&ctx) + &pages)));
         Ok(result)
     }
 
@@ -208,7 +243,7 @@ mod web {
         let same_tree = first.nodes() == bvh.nodes()
             && first.triangles() == bvh.triangles()
             && first.depth() == bvh.depth();
-        let gpu = trace_twice(&ctx, &bvh, &rays).await?;
+        let (gpu, _) = trace_twice(&ctx, &bvh, &rays, Traversal::Stackless).await?;
         let cpu = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless));
         let stats = BvhStats::of(&bvh);
         let invariants = bvh.check_invariants().err().unwrap_or_default();
