@@ -23,20 +23,24 @@ pub const ASSUMPTIONS: &str = "The model runs each walk on the CPU, step for ste
 kernels do, over rays grouped as a GPU runs them: warps of 32 lanes, one ray per lane, \
 32 consecutive rays per warp (for primary rays, 32 neighbouring pixels of a row). A warp \
 runs in lock step until its slowest lane is done, so it costs that lane's loop trips \
-(trips/warp); lane utilisation is the share of lane-trips doing work. Every load is \
+(trips/warp); lane utilisation is the share of lane-trips doing work. Trips of different \
+walks differ in cost (a full-stack trip tests two boxes, a stackless one one, a wide one up \
+to eight), so a lane's work is its trips plus 0.65 trips per box it tests, a weight fitted \
+to an NVIDIA H200's walks; the warp's work is its slowest lane's (work/warp), the model's \
+estimate of its time. Every load is \
 counted as going to memory, with no cache and no coalescing: 32 bytes per binary box \
 tested, 80 per wide node, 4 per escape link followed, 48 per triangle tested. So the \
-bytes rank walks by the traffic they cause rather than predicting bandwidth, and trips \
-of different walks differ in cost (a wide trip tests eight boxes). See the docs of \
-bvhtrace_core::cost (crates/core/src/cost.rs).";
+bytes rank walks by the traffic they cause rather than predicting bandwidth. See the docs \
+of bvhtrace_core::cost (crates/core/src/cost.rs).";
 
 /// The subcommand's long help: what it does, then [`ASSUMPTIONS`].
 pub fn long_about() -> String {
     format!(
         "The GPU cost model, without a GPU: for each scene, ray kind (primary; shadow, \
-         any hit; diffuse) and walk, loop trips per warp and per ray, lane utilisation, \
-         box and triangle tests per ray and the bytes of nodes and triangles loaded per \
-         ray, with the trips/warp and bytes/ray ratios against the first walk listed.\n\n\
+         any hit; diffuse) and walk, loop trips and work per warp, trips per ray, lane \
+         utilisation, box and triangle tests per ray and the bytes of nodes and triangles \
+         loaded per ray, with the work/warp and bytes/ray ratios against the first walk \
+         listed.\n\n\
          {ASSUMPTIONS}"
     )
 }
@@ -104,6 +108,9 @@ struct CostRow {
     warps: usize,
     /// Mean over warps of the slowest lane's loop trips.
     trips_per_warp: f64,
+    /// Mean over warps of the slowest lane's work (trips plus `BOX_TEST_TRIPS` per box
+    /// test): the model's time per warp.
+    work_per_warp: f64,
     /// Mean loop trips per ray.
     trips_per_ray: f64,
     /// Lane-trips doing work over lane-trips spent (0..=1).
@@ -120,6 +127,8 @@ struct CostRow {
     bytes_per_ray: f64,
     /// `trips_per_warp` over the first walk's on the same rays (null when that is 0).
     trips_per_warp_ratio: Option<f64>,
+    /// `work_per_warp` over the first walk's on the same rays (null when that is 0).
+    work_per_warp_ratio: Option<f64>,
     /// `bytes_per_ray` over the first walk's on the same rays (null when that is 0).
     bytes_per_ray_ratio: Option<f64>,
 }
@@ -136,6 +145,7 @@ impl CostRow {
             ray_count: c.rays,
             warps: c.warps,
             trips_per_warp: c.trips_per_warp,
+            work_per_warp: c.work_per_warp,
             trips_per_ray: c.trips_per_ray,
             lane_utilisation: c.lane_utilisation,
             nodes_per_ray: c.nodes_per_ray,
@@ -144,6 +154,7 @@ impl CostRow {
             triangle_bytes_per_ray: c.triangle_bytes_per_ray,
             bytes_per_ray: c.bytes_per_ray(),
             trips_per_warp_ratio: ratio(c.trips_per_warp, first.trips_per_warp),
+            work_per_warp_ratio: ratio(c.work_per_warp, first.work_per_warp),
             bytes_per_ray_ratio: ratio(c.bytes_per_ray(), first.bytes_per_ray()),
         }
     }
@@ -270,10 +281,11 @@ fn table(r: &SceneReport, w: u32, h: u32, counts: [usize; 3], first: Traversal) 
     );
     let _ = writeln!(
         s,
-        "{:8} {:16} {:>10} {:>9} {:>6} {:>9} {:>8} {:>10} {:>9} {:>9} {:>9} {:>9}",
+        "{:8} {:16} {:>10} {:>9} {:>9} {:>6} {:>9} {:>8} {:>10} {:>9} {:>9} {:>9} {:>9}",
         "rays",
         "walk",
         "trips/warp",
+        "work/warp",
         "trips/ray",
         "lanes%",
         "boxes/ray",
@@ -281,17 +293,18 @@ fn table(r: &SceneReport, w: u32, h: u32, counts: [usize; 3], first: Traversal) 
         "node B/ray",
         "tri B/ray",
         "B/ray",
-        "trips/1st",
+        "work/1st",
         "B/1st"
     );
     let ratio = |x: Option<f64>| x.map_or("-".to_string(), |x| format!("{x:.2}x"));
     for row in &r.rows {
         let _ = writeln!(
             s,
-            "{:8} {:16} {:>10.1} {:>9.1} {:>6.1} {:>9.1} {:>8.2} {:>10.0} {:>9.0} {:>9.0} {:>9} {:>9}",
+            "{:8} {:16} {:>10.1} {:>9.1} {:>9.1} {:>6.1} {:>9.1} {:>8.2} {:>10.0} {:>9.0} {:>9.0} {:>9} {:>9}",
             row.rays,
             row.walk,
             row.trips_per_warp,
+            row.work_per_warp,
             row.trips_per_ray,
             row.lane_utilisation * 100.0,
             row.nodes_per_ray,
@@ -299,7 +312,7 @@ fn table(r: &SceneReport, w: u32, h: u32, counts: [usize; 3], first: Traversal) 
             row.node_bytes_per_ray,
             row.triangle_bytes_per_ray,
             row.bytes_per_ray,
-            ratio(row.trips_per_warp_ratio),
+            ratio(row.work_per_warp_ratio),
             ratio(row.bytes_per_ray_ratio)
         );
     }

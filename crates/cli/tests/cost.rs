@@ -92,6 +92,14 @@ fn cost_json_has_every_walk_and_consistent_figures() {
             // last warp can tip the means over, so only whole warps are held to it.
             if rays % 32 == 0 {
                 assert!(at_least(per_warp, per_ray), "{r}");
+                // A lane's work is its trips and 0.65 trips a box test, the slowest lane's
+                // at least the mean lane's.
+                let work = num(r, "work_per_warp");
+                assert!(
+                    at_least(work, per_ray + 0.65 * num(r, "nodes_per_ray")),
+                    "{r}"
+                );
+                assert!(at_least(work, per_warp), "{r}");
             }
             // Utilisation is work over lane-trips spent: the two means say the same.
             let spent = 32.0 * per_warp * warps as f64;
@@ -149,6 +157,11 @@ fn cost_walks_option_orders_the_ratios() {
         let want = num(&pair[1], "trips_per_warp") / num(&pair[0], "trips_per_warp");
         assert!(
             close(num(&pair[1], "trips_per_warp_ratio"), want),
+            "{pair:?}"
+        );
+        let want = num(&pair[1], "work_per_warp") / num(&pair[0], "work_per_warp");
+        assert!(
+            close(num(&pair[1], "work_per_warp_ratio"), want),
             "{pair:?}"
         );
     }

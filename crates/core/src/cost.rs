@@ -15,8 +15,13 @@
 //!   upper levels of the tree stay in cache, so this ranks walks by the traffic they
 //!   cause rather than predicting bandwidth.
 //! * One trip is one pass through a walk's loop: a node visited (binary walks), or a
-//!   child taken or a group popped (the wide walk). Trips differ in cost (a wide trip
-//!   tests eight boxes); the trip count is what divergence multiplies.
+//!   child taken or a group popped (the wide walk). Trips differ in cost (a full-stack
+//!   trip tests two boxes, a stackless one one, a wide one up to eight); the trip count is
+//!   what divergence multiplies.
+//! * **Work**: a lane's loop trips plus [`BOX_TEST_TRIPS`] per box it tests, the warp's
+//!   the slowest lane's ([`WarpCost::work_per_warp`]): the model's estimate of a warp's
+//!   time, which ranks walks of different trip costs. Trips alone rank the wide walk
+//!   first; on the one real GPU measured it is second, behind the full stack.
 
 use rayon::prelude::*;
 
@@ -27,6 +32,14 @@ use crate::traverse::{TraceOptions, WalkCost, trace_ray_cost};
 /// Lanes per warp.
 pub const WARP: usize = 32;
 
+/// What a box test costs beside a loop trip, in trips: the one weight of
+/// [`WarpCost::work_per_warp`], fitted to an NVIDIA H200's primary rays (bunny_69k and
+/// igea, 1024x768: the stackless and wide walks' dispatch rates against the full stack's,
+/// four ratios; docs/benchmarks.md). With it the model ranks the walks as that GPU did
+/// (full stack, wide, stackless) within 8-14% of each ratio; with trips alone it put the
+/// wide walk first, at 0.60-0.63x the full stack's time where the GPU took 1.23-1.27x.
+pub const BOX_TEST_TRIPS: f64 = 0.65;
+
 /// What one walk costs a batch of rays on the model GPU (see the module docs).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct WarpCost {
@@ -36,6 +49,9 @@ pub struct WarpCost {
     pub warps: usize,
     /// Mean over warps of the slowest lane's loop trips.
     pub trips_per_warp: f64,
+    /// Mean over warps of the slowest lane's work: its loop trips plus [`BOX_TEST_TRIPS`]
+    /// per box test (the model's time per warp, in trips).
+    pub work_per_warp: f64,
     /// Mean trips per ray.
     pub trips_per_ray: f64,
     /// Lane-trips doing work over lane-trips spent: `sum(trips) / (lanes * max trips)`
@@ -61,25 +77,28 @@ impl WarpCost {
 /// Runs `opts`' walk over `rays` on the CPU and tallies it in warps of [`WARP`]
 /// consecutive rays. The wide walk needs `bvh.wide()` ([`FlatBvh::build_wide`]).
 pub fn warp_cost(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> WarpCost {
-    let per_warp: Vec<(u64, u64, usize, WalkTotals)> = rays
+    let per_warp: Vec<(u64, f64, WalkTotals)> = rays
         .par_chunks(WARP)
         .map_init(Vec::new, |stack, warp| {
             let mut totals = WalkTotals::default();
-            let mut slowest = 0u64;
+            let (mut slowest, mut most_work) = (0u64, 0f64);
             for ray in warp {
                 let (_, c) = trace_ray_cost(bvh, ray, opts, stack);
                 slowest = slowest.max(u64::from(c.trips));
+                let work = f64::from(c.trips) + BOX_TEST_TRIPS * f64::from(c.nodes);
+                most_work = most_work.max(work);
                 totals.add(&c);
             }
-            (slowest, totals.trips, warp.len(), totals)
+            (slowest, most_work, totals)
         })
         .collect();
     let n = rays.len().max(1) as f64;
     let warps = per_warp.len();
     let mut all = WalkTotals::default();
-    let (mut slowest_sum, mut lane_trips_spent) = (0u64, 0u64);
-    for (slowest, _, _, t) in &per_warp {
+    let (mut slowest_sum, mut lane_trips_spent, mut work_sum) = (0u64, 0u64, 0f64);
+    for (slowest, work, t) in &per_warp {
         slowest_sum += slowest;
+        work_sum += work;
         lane_trips_spent += slowest * WARP as u64;
         all.merge(t);
     }
@@ -87,6 +106,7 @@ pub fn warp_cost(bvh: &FlatBvh, rays: &[Ray], opts: &TraceOptions) -> WarpCost {
         rays: rays.len(),
         warps,
         trips_per_warp: slowest_sum as f64 / warps.max(1) as f64,
+        work_per_warp: work_sum / warps.max(1) as f64,
         trips_per_ray: all.trips as f64 / n,
         lane_utilisation: if lane_trips_spent == 0 {
             1.0

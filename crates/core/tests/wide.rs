@@ -2,7 +2,7 @@
 //! meshes leak no ray), its lanes are the scalar box test's, it is smaller than the binary
 //! upload, and the cost model tallies walks as documented.
 
-use bvhtrace_core::cost::{WARP, warp_cost};
+use bvhtrace_core::cost::{BOX_TEST_TRIPS, WARP, warp_cost};
 use bvhtrace_core::intersect::{PreparedRay, intersect_box};
 use bvhtrace_core::wide::{WIDTH, hit_children};
 use bvhtrace_core::{
@@ -189,12 +189,20 @@ fn warp_cost_counts_lock_step_and_bytes() {
             "{walk}: {same:?}"
         );
         assert_eq!(same.trips_per_warp, same.trips_per_ray);
+        // Every lane alike: the warp's work is one lane's trips and weighted box tests.
+        let work = same.trips_per_ray + BOX_TEST_TRIPS * same.nodes_per_ray;
+        assert!((same.work_per_warp - work).abs() < 1e-9, "{walk}: {same:?}");
         let mixed: Vec<Ray> = (0..WARP)
             .map(|i| if i % 2 == 0 { hit } else { miss })
             .collect();
         let m = warp_cost(&bvh, &mixed, &opts);
         assert!(m.lane_utilisation < 0.9, "{walk}: {m:?}");
         assert!(m.trips_per_warp >= m.trips_per_ray);
+        let mean_work = m.trips_per_ray + BOX_TEST_TRIPS * m.nodes_per_ray;
+        assert!(
+            m.work_per_warp > mean_work,
+            "{walk}: the slowest lane's, not the mean"
+        );
         assert_eq!(m.triangle_bytes_per_ray, 48.0 * m.tris_per_ray);
         if walk == Traversal::FullStack {
             assert_eq!(m.node_bytes_per_ray, 32.0 * m.nodes_per_ray);
