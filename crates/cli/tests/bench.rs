@@ -394,6 +394,7 @@ fn bench_trace_cpu_only_sweeps_threads_over_every_ray_kind() {
         (&["--cpu-only", "--threads", "0"][..], "--threads"),
         (&["--threads", "2"], "--threads"),
         (&["--embree4", "embree4_trace"], "--embree4"),
+        (&["--cpu-only", "--rays", "shadow"], "--rays"),
     ] {
         let mut args = vec!["bench-trace", "--runs", "1"];
         args.extend_from_slice(flags);
@@ -534,4 +535,42 @@ fn tune_save_is_what_render_takes_on_that_adapter() {
     ]);
     assert!(!String::from_utf8_lossy(&out.stderr).contains("tune --save"));
     assert_eq!(json(&out)["traversal"], other);
+}
+
+/// `bench-trace --rays shadow` traces the shadow rays `bvhtrace cost` models on the device:
+/// fewer rays than pixels (only primary hits cast one), many more box tests each.
+#[test]
+fn bench_trace_traces_the_ray_kind_asked_for() {
+    let counts = |kind: &str| {
+        let out = run(&[
+            "bench-trace",
+            "--runs",
+            "1",
+            "--size",
+            "64x48",
+            "--traversals",
+            "full-stack",
+            "--any-hit",
+            "--rays",
+            kind,
+            "builtin:icosphere:3",
+        ]);
+        if !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("adapter") {
+            return None;
+        }
+        assert_ok(&out);
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        let rays: usize = (text.lines())
+            .find_map(|l| l.split(" triangles, depth ").nth(1))
+            .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+            .unwrap_or_else(|| panic!("no ray count:\n{text}"));
+        Some((rays, text))
+    };
+    let Some((primary, p)) = counts("primary") else {
+        return eprintln!("SKIP: no adapter");
+    };
+    let (shadow, s) = counts("shadow").expect("the same adapter");
+    assert_eq!(primary, 64 * 48, "{p}");
+    assert!(shadow > 0 && shadow < primary, "{s}");
+    assert!(s.contains(" shadow rays (from 64x48)"), "{s}");
 }

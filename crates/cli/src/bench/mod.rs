@@ -69,6 +69,17 @@ fn primary_rays(scene: &bvhtrace_scene::Scene, w: u32, h: u32) -> Vec<Ray> {
     scene.camera_or_frame(w as f32 / h as f32).rays(w, h)
 }
 
+/// The kind of rays `bench-trace --rays` traces.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RayKind {
+    /// The camera's rays.
+    Primary,
+    /// From each primary hit to a point light near the eye.
+    Shadow,
+    /// One cosine-distributed bounce from each primary hit.
+    Diffuse,
+}
+
 /// Rays of every kind, generated once per scene from the reference hits so that every
 /// configuration traces exactly the same rays.
 pub(crate) struct RaySets {
@@ -239,6 +250,12 @@ pub struct BenchTraceArgs {
     /// Also trace any-hit (occlusion) queries on the same rays.
     #[arg(long)]
     pub any_hit: bool,
+    /// Which rays the device walks trace: the camera's (`primary`), from each primary hit
+    /// to a light near the eye (`shadow`: trace them with `--any-hit`), or one diffuse
+    /// bounce from each primary hit (`diffuse`): the ray kinds `bvhtrace cost` models. Not
+    /// with `--cpu-only` (which traces all three) or `--embree`.
+    #[arg(long, value_enum, default_value_t = RayKind::Primary)]
+    pub rays: RayKind,
     /// Instead, compare each traversal's specialised pipeline (only the bindings and code
     /// the closest-hit job reads) with the everything-on one (every module composed, the
     /// escape links uploaded, counters written): bytes uploaded per triangle, pipeline
@@ -281,6 +298,9 @@ impl BenchTraceArgs {
         }
         if self.embree4.is_some() && !self.cpu_only {
             bail!("--embree4 times the CPU paths' rays: it goes with --cpu-only");
+        }
+        if self.rays != RayKind::Primary && (self.cpu_only || self.embree.is_some()) {
+            bail!("--rays picks the device walks' rays: not with --cpu-only or --embree");
         }
         Ok(())
     }

@@ -13,7 +13,7 @@ use bvhtrace_gpu::{
     VertexAttributes,
 };
 
-use super::{BenchTraceArgs, load, median, primary_rays, scene_specs};
+use super::{BenchTraceArgs, RayKind, load, median, primary_rays, scene_specs};
 use crate::embree::{self, Dump};
 
 /// Where a walk's wall time went on the device, medians over the rounds: the rays
@@ -165,7 +165,17 @@ impl<'a> Subject<'a> {
         // The CPU layout (`bvhtrace-cpu`), timed beside the walks on each instruction set.
         let cpu_layout = bvhtrace_cpu::CpuBvh::from_flat(&bvh)?;
         let isas = bvhtrace_cpu::Isa::all_available();
-        let rays = primary_rays(&scene, w, h);
+        let rays = match args.rays {
+            RayKind::Primary => primary_rays(&scene, w, h),
+            kind => {
+                let cam = scene.camera_or_frame(w as f32 / h as f32);
+                let sets = super::ray_sets(&tris, &bvh, &cam, w, h);
+                match kind {
+                    RayKind::Shadow => sets.shadow,
+                    _ => sets.diffuse,
+                }
+            }
+        };
         let upload = bvhtrace::OpenOptions {
             traversals: traversals.to_vec(),
             ..Default::default()
@@ -187,11 +197,12 @@ impl<'a> Subject<'a> {
             None => None,
         };
         println!(
-            "\n{spec}: {} triangles, depth {}, {} rays ({w}x{h}); our build {build_ms:.1} ms \
-             (+{wide_ms:.1} ms to the wide layout)",
+            "\n{spec}: {} triangles, depth {}, {} {} rays (from {w}x{h}); our build \
+             {build_ms:.1} ms (+{wide_ms:.1} ms to the wide layout)",
             tris.len(),
             bvh.depth(),
-            rays.len()
+            rays.len(),
+            format!("{:?}", args.rays).to_lowercase()
         );
         if let Some(build) = rq.as_ref().and_then(|t| t.device_build_ms()) {
             println!(
