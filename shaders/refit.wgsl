@@ -83,10 +83,13 @@ fn refit_corners(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (s >= refit_params.triangles || atomicLoad(&refit_status) != 0u) {
         return;
     }
-    let t = refit_triangles[s].prim;
-    refit_triangles[s].v0 = refit_position(refit_vertex(t, 0u));
-    refit_triangles[s].v1 = refit_position(refit_vertex(t, 1u));
-    refit_triangles[s].v2 = refit_position(refit_vertex(t, 2u));
+    // Whole elements read and written: a tree split into pages reads and writes them
+    // through functions (`Pages::specialise_read_write`).
+    var tri = refit_triangles[s];
+    tri.v0 = refit_position(refit_vertex(tri.prim, 0u));
+    tri.v1 = refit_position(refit_vertex(tri.prim, 1u));
+    tri.v2 = refit_position(refit_vertex(tri.prim, 2u));
+    refit_triangles[s] = tri;
 }
 
 @compute @workgroup_size(256)
@@ -96,7 +99,7 @@ fn refit_boxes(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let i = refit_order[refit_params.first + k];
-    let n = refit_nodes[i];
+    var n = refit_nodes[i];
     let count = n.meta_bits >> 2u;
     var lo: vec3<f32>;
     var hi: vec3<f32>;
@@ -115,8 +118,9 @@ fn refit_boxes(@builtin(global_invocation_id) gid: vec3<u32>) {
         lo = min(l.min, r.min);
         hi = max(l.max, r.max);
     }
-    refit_nodes[i].min = lo;
-    refit_nodes[i].max = hi;
+    n.min = lo;
+    n.max = hi;
+    refit_nodes[i] = n;
 }
 
 // A BVH in textures (`BvhStorage::Textures`) keeps each node as two texels,

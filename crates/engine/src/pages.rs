@@ -209,33 +209,130 @@ impl Pages {
         let mut s = source.to_string();
         for (binding, name, ty, element) in PAGED_ARRAYS {
             let count = self.of_binding(binding);
-            let decl = format!("var<storage, read> {name}: array<{ty}>;");
-            if count <= 1 || !s.contains(&decl) {
-                continue;
-            }
-            s = index_to_call(&s, name, &format!("{name}_at"));
-            let per = self.per_page(element);
-            let mut extra = String::new();
-            let mut cases = String::new();
-            for p in 1..u32::from(count) {
-                let b = binding + PAGE_BINDING_STRIDE * p;
-                extra.push_str(&format!(
-                    "@group(0) @binding({b}) var<storage, read> {name}_{p}: array<{ty}>;\n"
-                ));
-                cases.push_str(&format!(
-                    "        case {p}u: {{ return {name}_{p}[i % {per}u]; }}\n"
-                ));
-            }
-            extra.push_str(&format!(
-                "// Element `i` of `{name}`, split into pages of {per} elements.\n\
-                 fn {name}_at(i: u32) -> {ty} {{\n    switch i / {per}u {{\n{cases}        \
-                 default: {{ return {name}[i % {per}u]; }}\n    }}\n}}\n"
-            ));
-            let at = s.find(&decl).map_or(s.len(), |i| i + decl.len());
-            s.insert_str(at, &format!("\n{extra}"));
+            s = split_array(s, binding, name, ty, self.per_page(element), count, false);
         }
         s
     }
+
+    /// `source` with the `read_write` array `name` of `ty` (`element_bytes` each) at
+    /// `binding` split into `count` pages of these pages' size: reads go through
+    /// `{name}_at(i)` and whole-element writes (`name[i] = value;`, the only writes
+    /// allowed) through `{name}_put(i, value)`. Unchanged for one page. For the programs
+    /// that write a tree in place (the device refit).
+    pub fn specialise_read_write(
+        &self,
+        source: &str,
+        (binding, name, ty): (u32, &str, &str),
+        element_bytes: u64,
+        count: u8,
+    ) -> String {
+        let per = self.per_page(element_bytes);
+        split_array(source.to_string(), binding, name, ty, per, count, true)
+    }
+}
+
+/// `s` with array `name` (at `binding`, of `ty`, `read` or, when `write`, `read_write`)
+/// split into `count` pages of `per` elements (see [`Pages::specialise`] and
+/// [`Pages::specialise_read_write`]); unchanged for one page or when `s` does not
+/// declare it.
+fn split_array(
+    mut s: String,
+    binding: u32,
+    name: &str,
+    ty: &str,
+    per: u64,
+    count: u8,
+    write: bool,
+) -> String {
+    let access = if write { "read_write" } else { "read" };
+    let decl = format!("var<storage, {access}> {name}: array<{ty}>;");
+    if count <= 1 || !s.contains(&decl) {
+        return s;
+    }
+    if write {
+        s = write_to_call(&s, name, &format!("{name}_put"));
+    }
+    s = index_to_call(&s, name, &format!("{name}_at"));
+    let mut extra = String::new();
+    let (mut cases, mut puts) = (String::new(), String::new());
+    for p in 1..u32::from(count) {
+        let b = binding + PAGE_BINDING_STRIDE * p;
+        extra.push_str(&format!(
+            "@group(0) @binding({b}) var<storage, {access}> {name}_{p}: array<{ty}>;\n"
+        ));
+        cases.push_str(&format!(
+            "        case {p}u: {{ return {name}_{p}[i % {per}u]; }}\n"
+        ));
+        puts.push_str(&format!(
+            "        case {p}u: {{ {name}_{p}[i % {per}u] = v; }}\n"
+        ));
+    }
+    extra.push_str(&format!(
+        "// Element `i` of `{name}`, split into pages of {per} elements.\n\
+         fn {name}_at(i: u32) -> {ty} {{\n    switch i / {per}u {{\n{cases}        \
+         default: {{ return {name}[i % {per}u]; }}\n    }}\n}}\n"
+    ));
+    if write {
+        extra.push_str(&format!(
+            "fn {name}_put(i: u32, v: {ty}) {{\n    switch i / {per}u {{\n{puts}        \
+             default: {{ {name}[i % {per}u] = v; }}\n    }}\n}}\n"
+        ));
+    }
+    let at = s.find(&decl).map_or(s.len(), |i| i + decl.len());
+    s.insert_str(at, &format!("\n{extra}"));
+    s
+}
+
+/// `src` with every whole-element write `name[index] = value;` made `put(index, value);`.
+fn write_to_call(src: &str, name: &str, put: &str) -> String {
+    let open = format!("{name}[");
+    let mut out = String::with_capacity(src.len());
+    let mut rest = src;
+    while let Some(at) = rest.find(&open) {
+        let word_start = at == 0 || {
+            let c = rest.as_bytes()[at - 1];
+            !(c.is_ascii_alphanumeric() || c == b'_')
+        };
+        let (before, from) = rest.split_at(at);
+        out.push_str(before);
+        let inner = &from[open.len()..];
+        let close = word_start.then(|| matching_bracket(inner)).flatten();
+        let assigned = close.and_then(|end| {
+            let after = inner[end + 1..].trim_start();
+            let value = after.strip_prefix('=').filter(|v| !v.starts_with('='))?;
+            let stop = value.find(';')?;
+            Some((
+                end,
+                value[..stop].trim(),
+                inner.len() - value.len() + stop + 1,
+            ))
+        });
+        match assigned {
+            Some((end, value, taken)) => {
+                out.push_str(&format!("{put}({}, {value});", &inner[..end]));
+                rest = &inner[taken..];
+            }
+            None => {
+                out.push_str(&open);
+                rest = inner;
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
+/// Where the `]` closing an opened `[` is in `s` (which starts after it).
+fn matching_bracket(s: &str) -> Option<usize> {
+    let mut depth = 1;
+    s.char_indices().find_map(|(i, c)| {
+        match c {
+            '[' => depth += 1,
+            ']' => depth -= 1,
+            _ => {}
+        }
+        (depth == 0).then_some(i)
+    })
 }
 
 /// The greatest common divisor of `a` and `b`.
@@ -330,6 +427,16 @@ mod tests {
             max_texture_dimension_2d: 8192,
             max_storage_buffers_per_shader_stage: 8,
         }
+    }
+
+    /// Whole-element writes become calls, comparisons and other names untouched.
+    #[test]
+    fn writes_become_put_calls() {
+        let src = "a[f(x[1])] = b[2];\nif (a[0] == c) { a[i + 1u] = m; }\nxa[3] = 4;";
+        assert_eq!(
+            write_to_call(src, "a", "a_put"),
+            "a_put(f(x[1]), b[2]);\nif (a[0] == c) { a_put(i + 1u, m); }\nxa[3] = 4;"
+        );
     }
 
     /// Indexing becomes a call, nested brackets and longer names untouched.

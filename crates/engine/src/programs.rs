@@ -148,6 +148,20 @@ pub fn refit_source() -> String {
     format!("{types}\n// ---- refit.wgsl ----\n{refit}")
 }
 
+/// [`refit_source`] for a tree split as `pages` says: the nodes (binding 1) and triangles
+/// (binding 2) it writes in place read and written page by page; page `p` of binding `b`
+/// at `b + PAGE_BINDING_STRIDE * p` ([`REFIT_STEPS`] lists the first pages only).
+pub fn refit_source_for(pages: crate::pages::Pages) -> String {
+    let s = refit_source();
+    let s = pages.specialise_read_write(&s, (1, "refit_nodes", "BvhNode"), 32, pages.nodes);
+    pages.specialise_read_write(
+        &s,
+        (2, "refit_triangles", "BvhTriangle"),
+        48,
+        pages.triangles,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -224,5 +238,39 @@ mod tests {
     #[test]
     fn the_refit_module_validates_and_lists_each_steps_bindings() {
         check_steps(&refit_source(), &REFIT_STEPS);
+    }
+
+    /// Split into pages, the refit module validates, and the steps that write the tree
+    /// bind its further pages as well.
+    #[test]
+    fn the_refit_module_split_into_pages_validates() {
+        use crate::pages::{PAGE_BINDING_STRIDE, Pages};
+        let pages = Pages {
+            log2_bytes: 20,
+            nodes: 3,
+            triangles: 2,
+            escapes: 1,
+        };
+        let source = refit_source_for(pages);
+        assert!(source.contains("fn refit_nodes_put(") && source.contains("refit_triangles_1"));
+        let (module, info) = validated(&source);
+        let bound = |entry: &str| -> BTreeSet<u32> {
+            let i = module
+                .entry_points
+                .iter()
+                .position(|e| e.name == entry)
+                .unwrap();
+            let f = info.get_entry_point(i);
+            module
+                .global_variables
+                .iter()
+                .filter(|(h, _)| !f[*h].is_empty())
+                .filter_map(|(_, v)| v.binding.as_ref().map(|b| b.binding))
+                .collect()
+        };
+        let (s1, s2) = (PAGE_BINDING_STRIDE, 2 * PAGE_BINDING_STRIDE);
+        assert!(bound("refit_boxes").is_superset(&[1, 1 + s1, 1 + s2, 2, 2 + s1].into()));
+        assert!(bound("refit_corners").is_superset(&[2, 2 + s1].into()));
+        assert_eq!(refit_source_for(Pages::ONE), refit_source());
     }
 }

@@ -79,6 +79,19 @@ impl WgpuArrays {
         }
     }
 
+    /// The buffers of `role`'s pages in page order (one for an array not split; none when
+    /// not uploaded, or in a texture).
+    pub(crate) fn buffer_pages(&self, role: ArrayRole) -> Vec<&wgpu::Buffer> {
+        let mut pages: Vec<(u8, &wgpu::Buffer)> = (self.resources.iter())
+            .filter_map(|((r, p), res)| match res {
+                Resource::Buffer(b) if *r == role => Some((*p, b)),
+                _ => None,
+            })
+            .collect();
+        pages.sort_by_key(|(p, _)| *p);
+        pages.into_iter().map(|(_, b)| b).collect()
+    }
+
     /// The texture in `role`, when uploaded as one.
     pub(crate) fn texture(&self, role: ArrayRole) -> Option<&wgpu::Texture> {
         match self.get(role) {

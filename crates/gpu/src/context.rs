@@ -111,7 +111,7 @@ struct Inner {
     readbacks: AtomicU64,
     /// The pipelines of the device builders (`GpuContext::build_bvh`) and the refit
     /// (`GpuRefit`), by program name, made on first use.
-    device_programs: Mutex<HashMap<&'static str, Vec<wgpu::ComputePipeline>>>,
+    device_programs: Mutex<HashMap<String, Vec<wgpu::ComputePipeline>>>,
     /// In a browser, the error scopes of the work done since the last trace, popped and
     /// awaited by that trace ([`GpuContext::deferred_errors`]).
     #[cfg(target_arch = "wasm32")]
@@ -766,7 +766,7 @@ impl GpuContext {
     /// on first use and kept.
     pub(crate) fn device_program(
         &self,
-        name: &'static str,
+        name: &str,
         source: impl FnOnce() -> String,
         entries: &[&'static str],
     ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
@@ -798,7 +798,7 @@ impl GpuContext {
                 })
                 .collect::<Vec<_>>()
         })?;
-        cached.insert(name, made.clone());
+        cached.insert(name.to_string(), made.clone());
         Ok(made)
     }
 

@@ -1,8 +1,8 @@
 //! The refit on the device (`GpuRefit`): after the vertices move on the device, the boxes
 //! and corners read back equal the CPU refit's (`FlatBvh::refit`), and the GPU walks
 //! answer as the CPU walks do on the CPU-refitted tree; indexed and packed vertices, a bad
-//! vertex refused with the tree left as it was, and the uploads it cannot refit refused by
-//! name; skins and morph targets applied on the device as the CPU applies them. Without a
+//! vertex refused with the tree left as it was, a tree split over several bindings, and the
+//! uploads it cannot refit refused by name; skins and morph targets applied on the device as the CPU applies them. Without a
 //! Vulkan adapter the tests print SKIP.
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Ray, TraceOptions, Traversal, Triangle};
@@ -208,6 +208,33 @@ fn a_device_refit_equals_the_cpu_refit() {
         .write_buffer(&positions, 0, bytemuck::cast_slice(&start));
     refit.refit(&mut gpu).expect("refit");
     assert_same(&refit, &gpu, &tree, "moved back");
+}
+
+/// A tree split over several bindings (a device whose bindings hold a third of its nodes)
+/// is refitted in place page by page: the CPU refit's boxes and corners, and its hits.
+#[test]
+fn a_tree_split_into_pages_refits_as_the_cpu_does() {
+    let (pos, idx) = grid(40);
+    let tree = FlatBvh::build(&triangles(&pos, &idx), &BuildOptions::default()).expect("build");
+    let third = std::mem::size_of_val(tree.nodes()) as u64 / 3;
+    let options = bvhtrace_gpu::ContextOptions {
+        max_binding_bytes: Some(third),
+        ..Default::default()
+    };
+    let Some(ctx) = support::context_with("device refit in pages", &options) else {
+        return;
+    };
+    let after = moved(&pos);
+    let mut want = tree.clone();
+    want.refit(&triangles(&after, &idx)).expect("CPU refit");
+    let mut gpu = upload(&ctx, &tree);
+    let pages = gpu.tree().pages;
+    assert!(pages.nodes >= 3 && pages.triangles >= 2, "{pages:?}");
+    let (positions, indices) = indexed(&ctx, &after, &idx);
+    let refit = GpuRefit::new(&gpu, &tree, packed(&positions, after.len(), &indices))
+        .expect("prepare in pages");
+    refit.refit(&mut gpu).expect("refit in pages");
+    assert_same(&refit, &gpu, &want, "in pages");
 }
 
 #[test]

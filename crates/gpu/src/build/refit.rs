@@ -12,7 +12,8 @@ use std::time::Instant;
 use bvhtrace_core::{FlatBvh, FlatNode, FlatTriangle};
 use bvhtrace_engine::BvhStorage;
 use bvhtrace_engine::engine::HasEngine;
-use bvhtrace_engine::programs::{REFIT_STEPS, RefitParams, refit_source};
+use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages};
+use bvhtrace_engine::programs::{REFIT_STEPS, RefitParams, refit_source_for};
 use bvhtrace_engine::tracer::check_update_shape;
 use bvhtrace_engine::upload::ArrayRole;
 
@@ -63,10 +64,13 @@ pub struct GpuRefit {
     dispatches: Vec<(usize, wgpu::BindGroup, (u32, u32))>,
     status: wgpu::Buffer,
     status_read: wgpu::Buffer,
-    /// The nodes and triangles the refit writes (the upload's, or its own when the upload
-    /// is in textures), and the tree's depth, for the host copy.
-    nodes: wgpu::Buffer,
-    triangles: wgpu::Buffer,
+    /// The nodes and triangles the refit writes (the upload's, page by page when split
+    /// into pages, or its own when the upload is in textures), and the tree's depth, for
+    /// the host copy.
+    nodes: Vec<wgpu::Buffer>,
+    triangles: Vec<wgpu::Buffer>,
+    /// How the tree is split over bindings.
+    pages: Pages,
     /// For an upload in textures: the nodes as texels, and the node and triangle
     /// textures they and `triangles` are copied over after each refit.
     textures: Option<(wgpu::Buffer, (wgpu::Texture, wgpu::Texture))>,
@@ -103,8 +107,8 @@ fn levels(nodes: &[FlatNode]) -> (Vec<u32>, Vec<u32>) {
 }
 
 /// The node and triangle buffers a refit of `bvh` (uploaded from `tree`) writes: the
-/// upload's own in buffers; in textures, buffers of the refit's own holding `tree`, with
-/// the textures they are copied over.
+/// upload's own in buffers (each page of a tree split into pages); in textures, buffers of
+/// the refit's own holding `tree`, with the textures they are copied over.
 #[allow(clippy::type_complexity)]
 fn target_arrays(
     ctx: &GpuContext,
@@ -112,25 +116,24 @@ fn target_arrays(
     tree: &FlatBvh,
 ) -> Result<
     (
-        wgpu::Buffer,
-        wgpu::Buffer,
+        Vec<wgpu::Buffer>,
+        Vec<wgpu::Buffer>,
         Option<(wgpu::Texture, wgpu::Texture)>,
     ),
     GpuError,
 > {
     let arrays = bvh.engine().arrays();
-    if arrays.is_split() {
-        return Err(unsupported(
-            "a tree split over several bindings (crates/engine/src/pages.rs): refit on the CPU \
-             and update",
-        ));
-    }
     let missing = || unsupported("an upload without its binary layout");
     match bvh.engine().storage() {
         BvhStorage::Buffers => {
-            let n = arrays.buffer(ArrayRole::Nodes).ok_or_else(missing)?;
-            let t = arrays.buffer(ArrayRole::Triangles).ok_or_else(missing)?;
-            Ok((n.clone(), t.clone(), None))
+            let pages = |role| -> Result<Vec<wgpu::Buffer>, GpuError> {
+                let pages = arrays.buffer_pages(role);
+                match pages.is_empty() {
+                    true => Err(missing()),
+                    false => Ok(pages.into_iter().cloned().collect()),
+                }
+            };
+            Ok((pages(ArrayRole::Nodes)?, pages(ArrayRole::Triangles)?, None))
         }
         BvhStorage::Textures => {
             let n = arrays.texture(ArrayRole::Nodes).ok_or_else(missing)?;
@@ -138,22 +141,31 @@ fn target_arrays(
             let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
             let device = ctx.device();
             Ok((
-                init(
+                vec![init(
                     device,
                     "refit nodes",
                     bytemuck::cast_slice(tree.nodes()),
                     usage,
-                ),
-                init(
+                )],
+                vec![init(
                     device,
                     "refit triangles",
                     bytemuck::cast_slice(tree.triangles()),
                     usage,
-                ),
+                )],
                 Some((n.clone(), t.clone())),
             ))
         }
     }
+}
+
+/// Each page of an array of `bytes` bytes with the bytes it holds: full pages of
+/// `page_bytes`, then what is left in the last (one page holds them all).
+fn page_sources(pages: &[wgpu::Buffer], bytes: u64, page_bytes: u64) -> Vec<(&wgpu::Buffer, u64)> {
+    let page = if pages.len() == 1 { bytes } else { page_bytes };
+    (pages.iter().enumerate())
+        .map(|(p, b)| (b, page.min(bytes.saturating_sub(page * p as u64))))
+        .collect()
 }
 
 /// Copies `texels` 16-byte texels of `buffer` over `texture` from its first texel: the
@@ -261,8 +273,14 @@ impl GpuRefit {
         check(bvh, tree, &v)?;
         let ctx = bvh.context().clone();
         let (nodes, triangles, textures) = target_arrays(&ctx, bvh, tree)?;
+        let pages = bvh.tree().pages;
         let entries: Vec<&'static str> = REFIT_STEPS.iter().map(|(e, _)| *e).collect();
-        let pipelines = ctx.device_program("refit", refit_source, &entries)?;
+        // One program per split: its page counts and size are in its text.
+        let name = match pages.is_one() {
+            true => "refit".to_string(),
+            false => format!("refit {pages:?}"),
+        };
+        let pipelines = ctx.device_program(&name, || refit_source_for(pages), &entries)?;
         let device = ctx.device();
         let (order, runs) = levels(tree.nodes());
         let n_tris = tree.triangle_count() as u32;
@@ -327,13 +345,30 @@ impl GpuRefit {
                 offset: k as u64 * PARAMS_STRIDE,
                 size: std::num::NonZeroU64::new(32),
             }),
-            1 => nodes.as_entire_binding(),
-            2 => triangles.as_entire_binding(),
             3 => order.as_entire_binding(),
             4 => v.positions.as_entire_binding(),
             5 => v.indices.unwrap_or(&no_indices).as_entire_binding(),
             6 => status.as_entire_binding(),
-            _ => node_texels.as_entire_binding(),
+            7 => node_texels.as_entire_binding(),
+            // Binding 1 (the nodes) or 2 (the triangles), page `b / 8`.
+            _ => {
+                let array = if b % PAGE_BINDING_STRIDE == 1 {
+                    &nodes
+                } else {
+                    &triangles
+                };
+                array[(b / PAGE_BINDING_STRIDE) as usize].as_entire_binding()
+            }
+        };
+        // Each step's bindings, with the further pages of the tree's arrays it writes.
+        let bound = |bindings: &[u32]| -> Vec<u32> {
+            let mut out = bindings.to_vec();
+            for (b, count) in [(1, pages.nodes), (2, pages.triangles)] {
+                if bindings.contains(&b) {
+                    out.extend((1..u32::from(count)).map(|p| b + PAGE_BINDING_STRIDE * p));
+                }
+            }
+            out
         };
         let dispatches = ctx.scoped("preparing a refit on the device", || {
             plan.iter()
@@ -341,9 +376,9 @@ impl GpuRefit {
                 .enumerate()
                 .map(|(k, (&(step, _, _), &g))| {
                     let (entry, bindings) = REFIT_STEPS[step];
-                    let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
-                        .iter()
-                        .map(|&b| wgpu::BindGroupEntry {
+                    let entries: Vec<wgpu::BindGroupEntry<'_>> = bound(bindings)
+                        .into_iter()
+                        .map(|b| wgpu::BindGroupEntry {
                             binding: b,
                             resource: resource(b, k),
                         })
@@ -364,6 +399,7 @@ impl GpuRefit {
             status_read,
             nodes,
             triangles,
+            pages,
             textures: textures.map(|t| (node_texels, t)),
             counts: (tree.nodes().len() as u64, u64::from(n_tris)),
             depth: tree.depth(),
@@ -400,7 +436,7 @@ impl GpuRefit {
         }
         if let Some((node_texels, (nodes, triangles))) = &self.textures {
             copy_texels(enc, node_texels, nodes, self.counts.0 * 2);
-            copy_texels(enc, &self.triangles, triangles, self.counts.1 * 3);
+            copy_texels(enc, &self.triangles[0], triangles, self.counts.1 * 3);
         }
         enc.copy_buffer_to_buffer(&self.status, 0, &self.status_read, 0, 16);
     }
@@ -482,7 +518,9 @@ impl GpuRefit {
             .ctx
             .device()
             .create_command_encoder(&Default::default());
-        let sources = [(&self.nodes, nodes_bytes), (&self.triangles, tris_bytes)];
+        let page = |element: u64| self.pages.per_page(element) * element;
+        let mut sources = page_sources(&self.nodes, nodes_bytes, page(32));
+        sources.extend(page_sources(&self.triangles, tris_bytes, page(48)));
         let bytes = read_after(&self.ctx, "reading a refitted tree back", enc, &sources)?;
         let (n, t) = bytes.split_at(nodes_bytes as usize);
         let nodes: Vec<FlatNode> = bytemuck::pod_collect_to_vec(n);
