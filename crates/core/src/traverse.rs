@@ -127,7 +127,7 @@ impl fmt::Display for Traversal {
 impl FromStr for Traversal {
     type Err = String;
     /// `full-stack`, `stackless`, `short-stack` (k = [`DEFAULT_SHORT_STACK`]) or
-    /// `short-stack:K`.
+    /// `short-stack:K`, or `short-stack(K)` as [`Traversal`]'s `Display` prints it.
     fn from_str(s: &str) -> Result<Self, String> {
         match s {
             "full-stack" => Ok(Traversal::FullStack),
@@ -135,7 +135,10 @@ impl FromStr for Traversal {
             "wide" => Ok(Traversal::Wide),
             "short-stack" => Ok(Traversal::ShortStack(DEFAULT_SHORT_STACK)),
             _ => {
-                if let Some(k) = s.strip_prefix("short-stack:") {
+                let printed = s
+                    .strip_prefix("short-stack(")
+                    .and_then(|k| k.strip_suffix(')'));
+                if let Some(k) = s.strip_prefix("short-stack:").or(printed) {
                     let k: u32 = k
                         .parse()
                         .map_err(|_| format!("bad short-stack size in '{s}'"))?;

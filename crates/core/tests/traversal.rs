@@ -543,3 +543,29 @@ fn walks_name_missing_escape_links() {
         );
     }
 }
+
+/// Every walk reads back as it prints (`short-stack(6)`), and as the command lines write
+/// it (`short-stack:6`); sizes out of range and unknown names are errors.
+#[test]
+fn traversals_parse_as_they_print() {
+    for t in [
+        Traversal::FullStack,
+        Traversal::Stackless,
+        Traversal::ShortStack(6),
+        Traversal::Wide,
+    ] {
+        assert_eq!(t.to_string().parse::<Traversal>(), Ok(t), "{t}");
+    }
+    assert_eq!(
+        "short-stack:6".parse::<Traversal>(),
+        Ok(Traversal::ShortStack(6))
+    );
+    for bad in [
+        "short-stack(0)",
+        "short-stack:x",
+        "short-stack(6",
+        "sideways",
+    ] {
+        assert!(bad.parse::<Traversal>().is_err(), "{bad}");
+    }
+}
