@@ -285,6 +285,27 @@ fn split_array(
 
 /// `src` with every whole-element write `name[index] = value;` made `put(index, value);`.
 fn write_to_call(src: &str, name: &str, put: &str) -> String {
+    rewrite_indexing(src, name, |index, after| {
+        let value = (after.trim_start().strip_prefix('=')).filter(|v| !v.starts_with('='))?;
+        let stop = value.find(';')?;
+        let taken = after.len() - value.len() + stop + 1;
+        Some((format!("{put}({index}, {});", value[..stop].trim()), taken))
+    })
+}
+
+/// `src` with every `name[index]` written `call(index)` (brackets inside `index` kept).
+fn index_to_call(src: &str, name: &str, call: &str) -> String {
+    rewrite_indexing(src, name, |index, _| Some((format!("{call}({index})"), 0)))
+}
+
+/// `src` with each `name[index]` (the whole word `name`, brackets inside `index` kept)
+/// replaced as `rewrite(index, what follows the `]`)` says: the text to put instead and
+/// how many bytes after the `]` it takes in; `None` leaves that one as it was.
+fn rewrite_indexing(
+    src: &str,
+    name: &str,
+    mut rewrite: impl FnMut(&str, &str) -> Option<(String, usize)>,
+) -> String {
     let open = format!("{name}[");
     let mut out = String::with_capacity(src.len());
     let mut rest = src;
@@ -293,24 +314,14 @@ fn write_to_call(src: &str, name: &str, put: &str) -> String {
             let c = rest.as_bytes()[at - 1];
             !(c.is_ascii_alphanumeric() || c == b'_')
         };
-        let (before, from) = rest.split_at(at);
-        out.push_str(before);
-        let inner = &from[open.len()..];
-        let close = word_start.then(|| matching_bracket(inner)).flatten();
-        let assigned = close.and_then(|end| {
-            let after = inner[end + 1..].trim_start();
-            let value = after.strip_prefix('=').filter(|v| !v.starts_with('='))?;
-            let stop = value.find(';')?;
-            Some((
-                end,
-                value[..stop].trim(),
-                inner.len() - value.len() + stop + 1,
-            ))
-        });
-        match assigned {
-            Some((end, value, taken)) => {
-                out.push_str(&format!("{put}({}, {value});", &inner[..end]));
-                rest = &inner[taken..];
+        out.push_str(&rest[..at]);
+        let inner = &rest[at + open.len()..];
+        let done = (word_start.then(|| matching_bracket(inner)).flatten())
+            .and_then(|end| Some((end, rewrite(&inner[..end], &inner[end + 1..])?)));
+        match done {
+            Some((end, (text, taken))) => {
+                out.push_str(&text);
+                rest = &inner[end + 1 + taken..];
             }
             None => {
                 out.push_str(&open);
@@ -377,41 +388,6 @@ fn paged_element(role: ArrayRole) -> Option<u64> {
         ArrayRole::Escapes => Some(4),
         _ => None,
     }
-}
-
-/// `src` with every `name[index]` written `call(index)` (brackets inside `index` kept).
-fn index_to_call(src: &str, name: &str, call: &str) -> String {
-    let open = format!("{name}[");
-    let mut out = String::with_capacity(src.len());
-    let mut rest = src;
-    while let Some(at) = rest.find(&open) {
-        let word_start = at == 0 || {
-            let c = rest.as_bytes()[at - 1];
-            !(c.is_ascii_alphanumeric() || c == b'_')
-        };
-        out.push_str(&rest[..at]);
-        rest = &rest[at + open.len()..];
-        if !word_start {
-            out.push_str(&open);
-            continue;
-        }
-        let mut depth = 1;
-        let end = rest
-            .char_indices()
-            .find(|&(_, c)| {
-                match c {
-                    '[' => depth += 1,
-                    ']' => depth -= 1,
-                    _ => {}
-                }
-                depth == 0
-            })
-            .map_or(rest.len(), |(i, _)| i);
-        out.push_str(&format!("{call}({})", &rest[..end]));
-        rest = rest.get(end + 1..).unwrap_or("");
-    }
-    out.push_str(rest);
-    out
 }
 
 #[cfg(test)]
