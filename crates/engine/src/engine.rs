@@ -21,7 +21,7 @@ use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::key::KernelKey;
 use crate::pages::{Pages, check_storage_buffers};
-use crate::plan::{DeviceLimits, plan_submissions, rays_per_dispatch};
+use crate::plan::{DeviceLimits, rays_per_dispatch, rays_per_submission, submissions_in_flight};
 use crate::storage::{BvhStorage, RayInput, TEXEL_ROW};
 use crate::tracer::{
     SendSync, TraceFuture, Tracer, check_update_shape, finish_incomplete_hits, mesh_fingerprint,
@@ -650,17 +650,12 @@ impl<B: DeviceApi> Engine<B> {
     /// on as many scratches as are in flight at once.
     fn submissions(&self, n: u64, input: RayInput) -> (u64, u64, usize) {
         let limits = self.backend.limits();
-        let (mut per_submit, _) = plan_submissions(n, limits);
+        let mut most = rays_per_submission(limits);
         if input == RayInput::Texture {
-            per_submit = per_submit.min(ray_texture_capacity(limits));
+            most = most.min(ray_texture_capacity(limits));
         }
-        let tuning = self.backend.tuning();
-        if tuning.in_flight > 1 {
-            per_submit = per_submit.min(tuning.submission_rays.max(u64::from(WORKGROUP_SIZE)));
-        }
+        let (per_submit, slots) = submissions_in_flight(n, most, self.backend.tuning());
         let capacity = n.min(per_submit).max(u64::from(WORKGROUP_SIZE));
-        let submissions = n.div_ceil(per_submit).max(1);
-        let slots = submissions.min(u64::from(tuning.in_flight.max(1))) as usize;
         (per_submit, capacity, slots)
     }
 

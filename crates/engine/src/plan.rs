@@ -4,6 +4,7 @@
 use bvhtrace_core::{Counters, Hit, Ray};
 
 use crate::compose::WORKGROUP_SIZE;
+use crate::device::DriverTuning;
 use crate::error::TraceError;
 use crate::storage::{BvhStorage, TEXEL_ROW, texel_rows};
 
@@ -124,15 +125,26 @@ pub fn rays_per_dispatch(limits: &DeviceLimits) -> u64 {
     (max / step * step).max(step)
 }
 
-/// How a batch of `ray_count` rays is submitted: `(rays per submission, scratch capacity
-/// in rays)`. A submission holds as many whole dispatches as one device buffer allows (at
-/// least one); the scratch buffers hold one submission, and at least a workgroup.
-pub fn plan_submissions(ray_count: u64, limits: &DeviceLimits) -> (u64, u64) {
+/// The most rays one submission of a trace carries: as many whole dispatches as one
+/// device buffer allows (at least one).
+pub fn rays_per_submission(limits: &DeviceLimits) -> u64 {
     let chunk = rays_per_dispatch(limits);
     let by_buffer = limits.max_buffer_size / RAY_BYTES / chunk * chunk;
-    let per_submit = by_buffer.max(chunk);
-    let capacity = ray_count.min(per_submit).max(u64::from(WORKGROUP_SIZE));
-    (per_submit, capacity)
+    by_buffer.max(chunk)
+}
+
+/// How a trace of `ray_count` rays goes to a device whose submissions carry at most `most`
+/// rays, as `tuning` says: `(rays per submission, submissions in flight at once)`. With
+/// more than one in flight ([`DriverTuning::in_flight`]) each carries at most the tuning's
+/// `submission_rays` (and at least a workgroup), so that a trace has several to overlap.
+pub fn submissions_in_flight(ray_count: u64, most: u64, tuning: &DriverTuning) -> (u64, usize) {
+    let per_submit = match tuning.in_flight > 1 {
+        true => most.min(tuning.submission_rays.max(u64::from(WORKGROUP_SIZE))),
+        false => most,
+    };
+    let submissions = ray_count.div_ceil(per_submit).max(1);
+    let in_flight = submissions.min(u64::from(tuning.in_flight.max(1)));
+    (per_submit, in_flight as usize)
 }
 
 /// Splits a batch of `ray_count` rays into dispatches (see [`rays_per_dispatch`]).

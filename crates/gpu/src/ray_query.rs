@@ -31,6 +31,7 @@ use bvhtrace_engine::BvhStorage;
 use bvhtrace_engine::pages::{PAGE_BINDING_STRIDE, Pages, check_storage_buffers};
 use bvhtrace_engine::plan::{
     DeviceLimits, HIT_BYTES, RAY_BYTES, check_buffer_size, plan_dispatches, rays_per_dispatch,
+    submissions_in_flight,
 };
 use bvhtrace_engine::storage::RayInput;
 use bvhtrace_engine::tracer::{check_update_shape, mesh_fingerprint, tree_shape};
@@ -651,13 +652,11 @@ impl RayQueryBvh {
         let pipeline = self.pipeline(opts.query == Query::Any, opts.mask)?;
         let group = self.group()?;
         let tuning = self.ctx.tuning();
-        let mut chunk = rays_per_dispatch(self.ctx.limits()).min(rays.len().max(1) as u64);
+        let n = rays.len() as u64;
+        let most = rays_per_dispatch(self.ctx.limits());
+        let (chunk, slots) = submissions_in_flight(n, most, tuning);
+        let chunk = chunk.min(n.max(1));
         let keep = tuning.in_flight > 1;
-        if keep {
-            chunk = chunk.min(tuning.submission_rays.max(64));
-        }
-        let chunks = (rays.len() as u64).div_ceil(chunk).max(1);
-        let slots = chunks.min(u64::from(tuning.in_flight.max(1))) as usize;
         let scratch = self.take_scratch(slots, chunk, keep)?;
         let traced = self
             .trace_in(&scratch[..slots], rays, chunk, &pipeline, group)
