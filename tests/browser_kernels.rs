@@ -110,7 +110,7 @@ fn every_kernel_variant_compiles_in_chromium() {
     let keys = variants();
     let page = page(&keys).into_bytes();
     let served = move |path: &str| (path == "/").then(|| page.clone());
-    let dom = match browser::run_page(&chromium, served, Duration::from_secs(600)) {
+    let dom = match browser::run_page(&chromium, served, "/", Duration::from_secs(600)) {
         Ok(Report::Result(bytes)) => String::from_utf8_lossy(&bytes).into_owned(),
         other => panic!("the page failed: {other:?}"),
     };

@@ -146,26 +146,26 @@ pub mod browser {
         }
     }
 
-    /// Opens `/` of a server for `files` in headless `chromium` with WebGPU on SwiftShader
-    /// and returns the page's first report, or an error after `timeout` (the browser is
-    /// closed either way).
+    /// Opens `path` (with its query) of a server for `files` in headless `chromium` with
+    /// WebGPU on SwiftShader and returns the page's first report, or an error after
+    /// `timeout` (the browser is closed either way).
     pub fn run_page(
         chromium: &str,
         files: impl Fn(&str) -> Option<Vec<u8>> + Send + Sync + 'static,
+        path: &str,
         timeout: Duration,
     ) -> Result<Report, String> {
         open_page(
             chromium,
             WebGpu::SwiftShader,
             files,
-            "/",
+            path,
             (800, 600),
             timeout,
         )
     }
 
-    /// [`run_page`] for the page at `path` (with its query), in a window of `size` pixels,
-    /// with WebGPU on `webgpu`.
+    /// [`run_page`] in a window of `size` pixels, with WebGPU on `webgpu`.
     pub fn open_page(
         chromium: &str,
         webgpu: WebGpu,

@@ -268,14 +268,8 @@ fn run() -> Result<(), Error> {
         true => "/?limits=default",
         false => "/",
     };
-    let bytes = match browser::open_page(
-        &chromium,
-        browser::WebGpu::SwiftShader,
-        served.files(),
-        page,
-        (800, 600),
-        Duration::from_secs(600),
-    )? {
+    let bytes = match browser::run_page(&chromium, served.files(), page, Duration::from_secs(600))?
+    {
         Report::Result(bytes) => bytes,
         Report::Error(e) => return Err(format!("the page failed: {e}").into()),
     };
@@ -494,12 +488,10 @@ fn device_build(
     scene: &Scene<'_>,
     builder: &str,
 ) -> Result<(), Error> {
-    let bytes = match browser::open_page(
+    let bytes = match browser::run_page(
         chromium,
-        browser::WebGpu::SwiftShader,
         served.files(),
         &format!("/device.html?builder={builder}"),
-        (800, 600),
         Duration::from_secs(600),
     )? {
         Report::Result(bytes) => bytes,
@@ -575,12 +567,10 @@ fn device_build(
 /// line counted in the user's source, not in the library before it), where the corrected
 /// shader compiles.
 fn shader_error(chromium: &str, served: &Served) -> Result<(), Error> {
-    let answer = match browser::open_page(
+    let answer = match browser::run_page(
         chromium,
-        browser::WebGpu::SwiftShader,
         served.files(),
         "/shader.html",
-        (800, 600),
         Duration::from_secs(300),
     )? {
         Report::Result(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
@@ -602,12 +592,10 @@ fn shader_error(chromium: &str, served: &Served) -> Result<(), Error> {
 /// `builder`, the page builds the BVH on the device and says so on one more line.
 fn example_page(chromium: &str, dist: &Path, builder: Option<&String>) -> Result<(), Error> {
     let query = builder.map(|b| format!("&builder={b}")).unwrap_or_default();
-    let text = match browser::open_page(
+    let text = match browser::run_page(
         chromium,
-        browser::WebGpu::SwiftShader,
         browser::folder(dist.to_path_buf()),
         &format!("/index.html?report=1{query}"),
-        (800, 600),
         Duration::from_secs(300),
     )? {
         Report::Result(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
