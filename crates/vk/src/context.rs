@@ -955,13 +955,13 @@ impl Buffer {
 
     /// Appends the first `bytes` bytes of a mapped (host-coherent) buffer to `out` as `T`s.
     pub(crate) fn read_into<T: bytemuck::Pod>(&self, bytes: usize, out: &mut Vec<T>) {
-        let Some(p) = self.mapped else { return };
+        if self.mapped.is_none() {
+            return;
+        }
         let n = bytes.min(self.size as usize) / std::mem::size_of::<T>();
         let start = out.len();
         out.resize(start + n, T::zeroed());
-        let dst: &mut [u8] = bytemuck::cast_slice_mut(&mut out[start..]);
-        // SAFETY: the mapping covers `size` bytes; the GPU finished writing (fence waited).
-        unsafe { std::ptr::copy_nonoverlapping(p.as_ptr(), dst.as_mut_ptr(), dst.len()) };
+        self.read_at(0, bytemuck::cast_slice_mut(&mut out[start..]));
     }
 }
 
