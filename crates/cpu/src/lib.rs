@@ -111,6 +111,9 @@ use single::Entry;
 pub enum Isa {
     /// Plain f32 code, on any CPU: the same answers, bit for bit.
     Portable,
+    /// WebAssembly's 128-bit SIMD lanes, in a build for `wasm32` with
+    /// `target-feature=+simd128` (every browser since 2021, Node 16 and later).
+    Simd128,
     /// SSE2 lanes (every x86-64 CPU).
     Sse2,
     /// AVX lanes for a node's eight boxes, the SSE lanes for the triangles, all compiled
@@ -120,7 +123,7 @@ pub enum Isa {
 }
 
 impl Isa {
-    /// The fastest this CPU has.
+    /// The fastest this CPU (or this WebAssembly build) has.
     pub fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
         {
@@ -130,18 +133,27 @@ impl Isa {
             }
             Isa::Sse2
         }
-        #[cfg(not(target_arch = "x86_64"))]
+        #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+        return Isa::Simd128;
+        #[cfg(not(any(
+            target_arch = "x86_64",
+            all(target_arch = "wasm32", target_feature = "simd128")
+        )))]
         Isa::Portable
     }
 
     /// True when this CPU can run it.
     pub fn available(self) -> bool {
-        self <= Isa::detect()
+        match self {
+            Isa::Portable => true,
+            Isa::Simd128 => Isa::detect() == Isa::Simd128,
+            Isa::Sse2 | Isa::Avx2 => self <= Isa::detect() && Isa::detect() >= Isa::Sse2,
+        }
     }
 
     /// Every instruction set this CPU can run, slowest first.
     pub fn all_available() -> Vec<Isa> {
-        [Isa::Portable, Isa::Sse2, Isa::Avx2]
+        [Isa::Portable, Isa::Simd128, Isa::Sse2, Isa::Avx2]
             .into_iter()
             .filter(|i| i.available())
             .collect()
@@ -149,7 +161,10 @@ impl Isa {
 
     /// `isa`, or the fastest this CPU has when it has not that one.
     fn or_available(self) -> Isa {
-        self.min(Isa::detect())
+        match self.available() {
+            true => self,
+            false => Isa::detect(),
+        }
     }
 }
 
@@ -157,6 +172,7 @@ impl fmt::Display for Isa {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.pad(match self {
             Isa::Portable => "portable",
+            Isa::Simd128 => "simd128",
             Isa::Sse2 => "sse2",
             Isa::Avx2 => "avx2",
         })
@@ -307,8 +323,18 @@ fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa,
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx2 => unsafe { run_layered_avx2(bvh, rays, query, mask, hits, s) },
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => unreachable!("or_available gives Portable off x86-64"),
+        #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+        Isa::Simd128 if plain => {
+            run::<lanes::Simd128, lanes::Pair<lanes::Simd128>, false>(bvh, rays, query, hits, s)
+        }
+        #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+        Isa::Simd128 => {
+            type S = lanes::Simd128;
+            type SP = lanes::Pair<S>;
+            run_layered::<S, SP, instanced::Plain<S, SP>>(bvh, rays, query, mask, hits, s)
+        }
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("or_available gives only what this target compiles"),
     }
 }
 
@@ -554,8 +580,18 @@ pub fn trace_packets_with(bvh: &CpuBvh, rays: &[Ray], query: Query, isa: Isa) ->
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `or_available` returned Avx2, so the CPU has what `Isa::Avx2` needs.
                 (Isa::Avx2, q) => unsafe { packets_avx2(bvh, r, q, h, &mut s) },
-                #[cfg(not(target_arch = "x86_64"))]
-                _ => unreachable!("or_available gives Portable off x86-64"),
+                #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+                (Isa::Simd128, Query::Closest) => {
+                    type S = lanes::Simd128;
+                    packet::run::<S, lanes::Pair<S>, false>(bvh, r, h, &mut s)
+                }
+                #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+                (Isa::Simd128, Query::Any) => {
+                    type S = lanes::Simd128;
+                    packet::run::<S, lanes::Pair<S>, true>(bvh, r, h, &mut s)
+                }
+                #[allow(unreachable_patterns)]
+                _ => unreachable!("or_available gives only what this target compiles"),
             }
         });
     hits

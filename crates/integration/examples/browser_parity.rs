@@ -146,6 +146,8 @@ fn shader_source(call: &str) -> String {
 /// What the pages are served: the wasm and its bindings, the triangles and the rays.
 #[derive(Clone)]
 struct Served {
+    /// The rest of the wasm-bindgen output (its `snippets/`), by path.
+    dist: PathBuf,
     js: Arc<Vec<u8>>,
     wasm: Arc<Vec<u8>>,
     triangles: Arc<Vec<u8>>,
@@ -167,7 +169,7 @@ impl Served {
             "/bvhtrace_web_bg.wasm" => Some(s.wasm.to_vec()),
             "/triangles.bin" => Some(s.triangles.to_vec()),
             "/rays.bin" => Some(s.rays.to_vec()),
-            _ => None,
+            p => browser::folder(s.dist.clone())(p),
         }
     }
 }
@@ -251,6 +253,7 @@ fn run() -> Result<(), Error> {
         std::fs::read(dist.join(name)).map_err(|e| format!("{}: {e}", dist.join(name).display()))
     };
     let served = Served {
+        dist: dist.clone(),
         js: Arc::new(read("bvhtrace_web.js")?),
         wasm: Arc::new(read("bvhtrace_web_bg.wasm")?),
         triangles: Arc::new(bytemuck::cast_slice::<f32, u8>(&flat).to_vec()),

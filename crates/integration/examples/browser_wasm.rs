@@ -1,0 +1,288 @@
+//! The npm package's WebAssembly walk in a browser, hit for hit and against three-mesh-bvh:
+//! serves the package (DIST, `web/package.sh`'s `web/dist/pkg`) to headless Chromium,
+//! whose page builds a `Bvh` over the scene's triangles and traces a camera's rays with
+//! it on one thread, in a batch (`intersect`) and one ray at a time (`raycastFirst`).
+//! Both answers must equal the CPU walk's here (`trace_rays`, same triangles, same rays)
+//! bit for bit. Where three.js and three-mesh-bvh are installed (`web/node_modules`,
+//! `npm ci` in `web/`), the same page builds a `MeshBVH` over the same triangles and
+//! traces the same rays with its `raycastFirst` (both sides of each triangle), and the
+//! two libraries' hits are compared ray for ray (the rule of `web/tests/three.mjs`: the
+//! same triangle, or a tie at a shared edge, at distances within 1e-5 relative).
+//!
+//! Prints the rays per second of each on the page's one thread, and the page load to
+//! first hits (the wasm fetched and compiled, the scene fetched, the BVH built and the
+//! rays traced); exits non-zero on any difference, page error or timeout.
+//!
+//! ```text
+//! cargo run --release -p bvhtrace-integration --example browser_wasm -- DIST [--size WxH] [--scene SPEC]
+//! ```
+//!
+//! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
+//! builtin icosphere (said in the output).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, TraceOptions, Traversal, trace_rays};
+use bvhtrace_integration::browser::{self, Report};
+use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_shade::args::parse_size;
+
+type Error = Box<dyn std::error::Error>;
+
+/// The page: builds the Bvh, traces, and posts the hits of both calls, the figures
+/// ([`Figures`], f64 each) and a line on three-mesh-bvh.
+const PAGE: &str = r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre>
+<script type="importmap">{"imports": {
+  "three": "/node_modules/three/build/three.module.js",
+  "three-mesh-bvh": "/node_modules/three-mesh-bvh/src/index.js"}}</script>
+<script type="module">
+const post = (path, body) => fetch(path, { method: "POST", body });
+addEventListener("error", (e) => post("/error", `${e.message} (${e.filename}:${e.lineno})`));
+addEventListener("unhandledrejection", (e) => post("/error", String(e.reason)));
+const best = (runs, f) => {
+  let ms = Infinity, out;
+  for (let k = 0; k < runs; k++) {
+    const t0 = performance.now();
+    out = f();
+    ms = Math.min(ms, performance.now() - t0);
+  }
+  return [ms, out];
+};
+try {
+  const { default: init, Bvh } = await import("./bvhtrace_web.js");
+  const get = async (p) => new Float32Array(await (await fetch(p)).arrayBuffer());
+  const [, tris, rays] = await Promise.all([init(), get("/triangles.bin"), get("/rays.bin")]);
+  const n = rays.length / 8;
+  const origins = new Float32Array(3 * n), dirs = new Float32Array(3 * n);
+  for (let i = 0; i < n; i++) {
+    origins.set(rays.subarray(8 * i, 8 * i + 3), 3 * i);
+    dirs.set(rays.subarray(8 * i + 4, 8 * i + 7), 3 * i);
+  }
+  const [near, far] = [rays[3], rays[7]];
+  const buildStart = performance.now();
+  const bvh = new Bvh(tris);
+  const buildMs = performance.now() - buildStart;
+  bvh.intersect(origins, dirs, { near, far });
+  const firstHits = performance.now();
+  const [batchMs, hits] = best(3, () => bvh.intersect(origins, dirs, { near, far }));
+  // Hits in the layout of bvhtrace_core::Hit: t, prim, u, v (16 bytes each).
+  const packed = new Uint32Array(4 * n), asFloat = new Float32Array(packed.buffer);
+  for (let i = 0; i < n; i++) {
+    asFloat[4 * i] = hits.t[i]; packed[4 * i + 1] = hits.primitive[i];
+    asFloat[4 * i + 2] = hits.u[i]; asFloat[4 * i + 3] = hits.v[i];
+  }
+  const single = new Uint32Array(4 * n), singleF = new Float32Array(single.buffer);
+  const [singleMs] = best(3, () => {
+    for (let i = 0, j = 0; i < n; i++, j += 3) {
+      const h = bvh.raycastFirst(origins[j], origins[j + 1], origins[j + 2], dirs[j], dirs[j + 1],
+        dirs[j + 2], near, far);
+      if (h) { singleF[4 * i] = h.t; single[4 * i + 1] = h.primitive; singleF[4 * i + 2] = h.u; singleF[4 * i + 3] = h.v; }
+      else { singleF[4 * i] = far; single[4 * i + 1] = 0xffffffff; }
+    }
+  });
+  let threeMs = 0, threeHits = -1, same = 0, tie = 0, differ = 0, three = "three-mesh-bvh: not installed";
+  try {
+    const THREE = await import("three");
+    const { MeshBVH } = await import("three-mesh-bvh");
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(tris, 3));
+    const mesh = new MeshBVH(geometry);
+    // MeshBVH indexes a non-indexed geometry and reorders that index: triangle
+    // index[3 f] / 3 is its face f.
+    const index = geometry.index.array;
+    const ray = new THREE.Ray();
+    const t = new Float64Array(n), prim = new Int32Array(n);
+    [threeMs] = best(3, () => {
+      for (let i = 0; i < n; i++) {
+        ray.origin.fromArray(origins, 3 * i);
+        ray.direction.fromArray(dirs, 3 * i);
+        const h = mesh.raycastFirst(ray, THREE.DoubleSide, near, far);
+        t[i] = h ? h.distance : Infinity;
+        prim[i] = h ? Math.floor(index[3 * h.faceIndex] / 3) : -1;
+      }
+    });
+    threeHits = 0;
+    for (let i = 0; i < n; i++) {
+      const ours = hits.primitive[i] !== 0xffffffff, theirs = prim[i] >= 0;
+      threeHits += theirs;
+      // Directions are not unit here: three's distance is t times the direction's length.
+      const len = Math.hypot(dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]);
+      if (!ours && !theirs) same++;
+      else if (ours && theirs && Math.abs(hits.t[i] * len - t[i]) <= 1e-5 * t[i]) {
+        if (hits.primitive[i] === prim[i]) same++; else tie++;
+      } else differ++;
+    }
+    three = `three ${THREE.REVISION}`;
+  } catch (e) {
+    if (!String(e).includes("Failed to fetch") && !String(e).includes("resolve")) throw e;
+  }
+  const figures = new Float64Array([buildMs, firstHits, batchMs, singleMs, threeMs, threeHits,
+    same, tie, differ]);
+  document.getElementById("out").textContent = "done";
+  await post("/result", new Blob([figures, packed, single, `${hits.backend}; ${three}`]));
+} catch (e) {
+  await post("/error", String(e && e.stack || e));
+}
+</script>"#;
+
+/// The page's figures, in the order it posts them.
+struct Figures {
+    build_ms: f64,
+    first_hits_ms: f64,
+    batch_ms: f64,
+    single_ms: f64,
+    three_ms: f64,
+    three_hits: f64,
+    same: f64,
+    tie: f64,
+    differ: f64,
+}
+
+impl Figures {
+    const COUNT: usize = 9;
+
+    fn parse(bytes: &[u8]) -> Figures {
+        let f =
+            |i: usize| f64::from_le_bytes(bytes[8 * i..8 * i + 8].try_into().unwrap_or_default());
+        Figures {
+            build_ms: f(0),
+            first_hits_ms: f(1),
+            batch_ms: f(2),
+            single_ms: f(3),
+            three_ms: f(4),
+            three_hits: f(5),
+            same: f(6),
+            tie: f(7),
+            differ: f(8),
+        }
+    }
+}
+
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> Result<(), Error> {
+    let usage = "usage: browser_wasm DIST [--size WxH] [--scene SPEC]";
+    let mut args = std::env::args().skip(1);
+    let dist = PathBuf::from(args.next().ok_or(usage)?);
+    let (mut size, mut scene) = ((1024u32, 768u32), None);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--size" => size = parse_size(&args.next().ok_or("--size needs WxH")?)?,
+            "--scene" => scene = Some(args.next().ok_or("--scene needs a scene")?),
+            other => return Err(format!("unknown argument {other}\n{usage}").into()),
+        }
+    }
+    let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
+    let spec = match (scene, shared_scenes_dir()) {
+        (Some(spec), _) => spec,
+        (None, Some(dir)) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
+        (None, None) => {
+            println!("no shared scenes folder: using builtin:icosphere:6 instead of bunny_69k");
+            "builtin:icosphere:6".to_string()
+        }
+    };
+    let load = bvhtrace_scene::LoadOptions::with_meshes(shared_scenes_dir());
+    let tris = bvhtrace_scene::load_with(&spec, &load)?
+        .flatten()
+        .triangles()?;
+    let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
+    let b = bvh.bounds();
+    let (w, h) = size;
+    let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);
+    let cpu = trace_rays(&bvh, &rays, &TraceOptions::closest(Traversal::Stackless)).hits;
+    let flat: Vec<f32> = tris
+        .iter()
+        .flat_map(|t| t.iter().flat_map(|v| v.to_array()))
+        .collect();
+    let triangles = Arc::new(bytemuck::cast_slice::<f32, u8>(&flat).to_vec());
+    let ray_bytes = Arc::new(bytemuck::cast_slice(&rays).to_vec());
+    let package = browser::folder(dist.clone());
+    let modules = browser::folder(dist.join("../../node_modules"));
+    let files = move |path: &str| match path {
+        "/" => Some(PAGE.as_bytes().to_vec()),
+        "/triangles.bin" => Some(triangles.to_vec()),
+        "/rays.bin" => Some(ray_bytes.to_vec()),
+        p if p.starts_with("/node_modules/") => modules(&p["/node_modules".len()..]),
+        p => package(p),
+    };
+    let bytes = match browser::run_page(&chromium, files, "/", Duration::from_secs(600))? {
+        Report::Result(bytes) => bytes,
+        Report::Error(e) => return Err(format!("the page failed: {e}").into()),
+    };
+    let n = cpu.len() * std::mem::size_of::<Hit>();
+    let head = 8 * Figures::COUNT;
+    if bytes.len() < head + 2 * n {
+        return Err(format!("the page sent {} bytes for {} hits", bytes.len(), cpu.len()).into());
+    }
+    let f = Figures::parse(&bytes);
+    let batch: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head..head + n]);
+    let single: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head + n..head + 2 * n]);
+    let note = String::from_utf8_lossy(&bytes[head + 2 * n..]);
+    report(&spec, tris.len(), &cpu, &batch, &single, &f, &note)
+}
+
+/// Prints the comparison and the rates; an error when any hit differs.
+fn report(
+    spec: &str,
+    triangles: usize,
+    cpu: &[Hit],
+    batch: &[Hit],
+    single: &[Hit],
+    f: &Figures,
+    note: &str,
+) -> Result<(), Error> {
+    let differ = |got: &[Hit]| {
+        got.iter()
+            .zip(cpu)
+            .filter(|(a, b)| bytemuck::bytes_of(*a) != bytemuck::bytes_of(*b))
+            .count()
+    };
+    let (db, ds) = (differ(batch), differ(single));
+    let n = cpu.len();
+    let hits = cpu.iter().filter(|h| h.prim < MISS - 1).count();
+    let rate = |ms: f64| n as f64 / ms / 1e3;
+    println!(
+        "browser wasm walk ({spec}, {triangles} triangles; {note}): {n} rays, {hits} hits; \
+         {db} differ from the CPU walk (intersect), {ds} (raycastFirst)"
+    );
+    println!(
+        "browser wasm walk: Mrays/s on the page's one thread: intersect {:.2}, raycastFirst {:.2}; \
+         BVH built in {:.0} ms; page load to first hits {:.0} ms",
+        rate(f.batch_ms),
+        rate(f.single_ms),
+        f.build_ms,
+        f.first_hits_ms
+    );
+    if f.three_hits >= 0.0 {
+        println!(
+            "three-mesh-bvh raycastFirst on the same rays: {:.2} Mrays/s (intersect {:.2}x, \
+             raycastFirst {:.2}x it); hits {} (ours {hits}): same {}, a tie at a shared edge {}, \
+             {} differ",
+            rate(f.three_ms),
+            f.three_ms / f.batch_ms,
+            f.three_ms / f.single_ms,
+            f.three_hits,
+            f.same,
+            f.tie,
+            f.differ
+        );
+    } else {
+        println!("SKIP: three-mesh-bvh beside it: not installed (npm ci in web/)");
+    }
+    if db + ds > 0 || f.differ > 0.0 {
+        return Err(format!(
+            "{db} (intersect) and {ds} (raycastFirst) of {n} hits differ from the CPU walk's; \
+             {} from three-mesh-bvh's",
+            f.differ
+        )
+        .into());
+    }
+    Ok(())
+}

@@ -1,0 +1,26 @@
+// A program written from the package's README, compiled by tsc (web/package.sh) against
+// the declarations the package ships: the types must describe what the README promises.
+import init, { Bvh, type Hits, type Hit, type TraceOptions } from "bvhtrace";
+import { computeBvh, raycastFirst, acceleratedRaycast, type GeometryLike } from "bvhtrace/three";
+
+export async function example(geometry: GeometryLike): Promise<number> {
+  await init();
+  const positions = new Float32Array([0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0]);
+  const bvh = new Bvh(positions, new Uint32Array([0, 1, 2, 0, 2, 3]));
+  const hit: Hit | undefined = bvh.raycastFirst(0.25, 0.75, 5, 0, 0, -1);
+  const options: TraceOptions = { anyHit: true, far: 1 };
+  const hits: Hits = bvh.intersect(new Float32Array(3), new Float32Array([0, 0, -1]), options);
+  const first: number = hits.primitive[0] + hits.t[0] + hits.hitCount;
+  const onDevice = await Bvh.create(positions, undefined, { backend: "auto" });
+  const later: Hits = await onDevice.intersectAsync(new Float32Array(3), new Float32Array(3));
+  const note: string = onDevice.backend + onDevice.backendNote + later.backend;
+  bvh.refit(positions);
+  const three = computeBvh(geometry);
+  const fallback = (_raycaster: unknown, _intersects: unknown[]) => {};
+  const raycast = acceleratedRaycast(fallback);
+  const none = raycastFirst({}, {}) === null;
+  bvh.free();
+  onDevice.free();
+  three.free();
+  return first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
+}
