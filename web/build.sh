@@ -8,7 +8,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # One crate per build, so that neither gets the other's dependencies' features.
-cargo build --release --target wasm32-unknown-unknown -p bvhtrace-web
+cargo build --release --target wasm32-unknown-unknown -p bvhtrace-web --features one-shot
 cargo build --release --target wasm32-unknown-unknown -p bvhtrace-viewer-web
 mkdir -p web/dist
 for crate in bvhtrace_web bvhtrace_viewer_web; do

@@ -3,7 +3,8 @@
 # web/dist/bvhtrace-VERSION.tgz: the wasm bound to JavaScript by wasm-bindgen (with its
 # TypeScript declarations), optimised by wasm-opt from npm's binaryen (Debian 12's 108
 # breaks wasm-bindgen's reference types), the three.js helpers and the package's README
-# and package.json from web/package/. Then checks the declarations with tsc against a
+# and package.json from web/package/, unpacked again into web/dist/packed/package for the
+# tests. Then checks the declarations with tsc against a
 # program written from the README (web/tests/types.ts). Installs web/package.json's
 # devDependencies (npm ci) when they are missing. Honours CARGO_TARGET_DIR.
 set -euo pipefail
@@ -26,6 +27,17 @@ version=$(sed -n 's/^version = "\(.*\)"/\1/p' Cargo.toml | head -1)
 sed "s/@VERSION@/$version/" web/package/package.json > "$out/package.json"
 cp web/package/README.md web/package/three.js web/package/three.d.ts "$out/"
 (cd web/dist && npm pack ./pkg --loglevel=warn)
+# What the tests load: the packed files, as `npm install` unpacks them.
+rm -rf web/dist/packed
+mkdir -p web/dist/packed
+tar -xzf "web/dist/bvhtrace-$version.tgz" -C web/dist/packed
+echo "packed: $(wc -c < "web/dist/bvhtrace-$version.tgz") bytes, unpacked into web/dist/packed/package"
+# The three.js example page (web/three.html), served from web/dist beside the package
+# and three's module, as a project that installed both would import them.
+mkdir -p web/dist/three
+cp web/node_modules/three/build/three.module.js web/node_modules/three/build/three.core.js \
+  web/dist/three/
+cp web/three.html web/dist/
 # The declarations, as a TypeScript user compiles against them.
 web/node_modules/.bin/tsc -p web/tests/tsconfig.json
 echo "tsc: web/tests/types.ts compiles against the package's declarations"

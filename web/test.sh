@@ -16,6 +16,7 @@
 #    levels, playing, for an alpha-tested one and for the path mode (its sums against the
 #    path tracer's CPU twin); then that a bad flag and a broken file show their errors on
 #    the page.
+# Then the npm package (web/package.sh), in Node and in Chromium (see below).
 # The library check also opens the example page (index.html) and checks the hits it prints,
 # with the BVH built in WebAssembly and on the device. Exits non-zero on any difference or
 # page error. Flags go to the library check (`--size WxH`, `--device-builders LIST|none`).
@@ -32,6 +33,17 @@ if [ -f ../shared/scenes/glb/igea.glb ]; then
 else
   echo "SKIP: the tree in pages in the browser: no ../shared/scenes/glb/igea.glb"
 fi
+# The npm package (web/package.sh: packed, its TypeScript declarations compiled by tsc),
+# as a user installs it: its API in Node; our hits against three-mesh-bvh's in Node, ray
+# for ray; its WebAssembly walk in Chromium against the CPU walk here, bit for bit, and
+# beside three-mesh-bvh on the same rays.
+web/package.sh
+pkg=web/dist/packed/package
+node web/tests/api.mjs "$pkg" scenes/cornell.gltf
+three_scenes=(scenes/cornell.gltf)
+[ -f ../shared/scenes/glb/bunny_69k.glb ] && three_scenes+=(../shared/scenes/glb/bunny_69k.glb)
+node web/tests/three.mjs "$pkg" "${three_scenes[@]}"
+cargo run --release -q -p bvhtrace-integration --example browser_wasm -- "$pkg" --example web/dist
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist
 # Two levels and animation: the viewer plays scenes/animated.gltf from t = 1 s, each pose
 # written into the upload in place; the image it shows against the native render at its time.

@@ -1,20 +1,25 @@
 //! The npm package's WebAssembly walk in a browser, hit for hit and against three-mesh-bvh:
-//! serves the package (DIST, `web/package.sh`'s `web/dist/pkg`) to headless Chromium,
+//! serves the package (DIST: `web/package.sh`'s `web/dist/packed/package`, as `npm
+//! install` unpacks it) to headless Chromium,
 //! whose page builds a `Bvh` over the scene's triangles and traces a camera's rays with
 //! it on one thread, in a batch (`intersect`) and one ray at a time (`raycastFirst`).
 //! Both answers must equal the CPU walk's here (`trace_rays`, same triangles, same rays)
-//! bit for bit. Where three.js and three-mesh-bvh are installed (`web/node_modules`,
-//! `npm ci` in `web/`), the same page builds a `MeshBVH` over the same triangles and
+//! bit for bit. Where three.js and three-mesh-bvh are installed (`--modules DIR`, by
+//! default `web/node_modules`: `npm ci` in `web/`), the same page builds a `MeshBVH` over the same triangles and
 //! traces the same rays with its `raycastFirst` (both sides of each triangle), and the
 //! two libraries' hits are compared ray for ray (the rule of `web/tests/three.mjs`: the
 //! same triangle, or a tie at a shared edge, at distances within 1e-5 relative).
+//!
+//! With `--example DIR`, also opens the three.js example page (DIR/three.html, which
+//! `web/package.sh` puts in `web/dist`) and checks that bvhtrace's `acceleratedRaycast`
+//! gave the same closest hit as three.js's own `Mesh.raycast` for every one of its rays.
 //!
 //! Prints the rays per second of each on the page's one thread, and the page load to
 //! first hits (the wasm fetched and compiled, the scene fetched, the BVH built and the
 //! rays traced); exits non-zero on any difference, page error or timeout.
 //!
 //! ```text
-//! cargo run --release -p bvhtrace-integration --example browser_wasm -- DIST [--size WxH] [--scene SPEC]
+//! cargo run --release -p bvhtrace-integration --example browser_wasm -- DIST [--size WxH] [--scene SPEC] [--modules DIR] [--example DIR]
 //! ```
 //!
 //! The scene is `bunny_69k` from the shared scenes when that folder is there, else the
@@ -53,7 +58,9 @@ const best = (runs, f) => {
 try {
   const { default: init, Bvh } = await import("./bvhtrace_web.js");
   const get = async (p) => new Float32Array(await (await fetch(p)).arrayBuffer());
-  const [, tris, rays] = await Promise.all([init(), get("/triangles.bin"), get("/rays.bin")]);
+  let compiled = 0;
+  const [, tris, rays] = await Promise.all([init().then(() => (compiled = performance.now())),
+    get("/triangles.bin"), get("/rays.bin")]);
   const n = rays.length / 8;
   const origins = new Float32Array(3 * n), dirs = new Float32Array(3 * n);
   for (let i = 0; i < n; i++) {
@@ -119,7 +126,7 @@ try {
     if (!String(e).includes("Failed to fetch") && !String(e).includes("resolve")) throw e;
   }
   const figures = new Float64Array([buildMs, firstHits, batchMs, singleMs, threeMs, threeHits,
-    same, tie, differ]);
+    same, tie, differ, compiled]);
   document.getElementById("out").textContent = "done";
   await post("/result", new Blob([figures, packed, single, `${hits.backend}; ${three}`]));
 } catch (e) {
@@ -138,10 +145,11 @@ struct Figures {
     same: f64,
     tie: f64,
     differ: f64,
+    compiled_ms: f64,
 }
 
 impl Figures {
-    const COUNT: usize = 9;
+    const COUNT: usize = 10;
 
     fn parse(bytes: &[u8]) -> Figures {
         let f =
@@ -156,6 +164,7 @@ impl Figures {
             same: f(6),
             tie: f(7),
             differ: f(8),
+            compiled_ms: f(9),
         }
     }
 }
@@ -168,14 +177,23 @@ fn main() {
 }
 
 fn run() -> Result<(), Error> {
-    let usage = "usage: browser_wasm DIST [--size WxH] [--scene SPEC]";
+    let usage =
+        "usage: browser_wasm DIST [--size WxH] [--scene SPEC] [--modules DIR] [--example DIR]";
     let mut args = std::env::args().skip(1);
     let dist = PathBuf::from(args.next().ok_or(usage)?);
     let (mut size, mut scene) = ((1024u32, 768u32), None);
+    let mut modules = PathBuf::from("web/node_modules");
+    let mut example = None;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--size" => size = parse_size(&args.next().ok_or("--size needs WxH")?)?,
             "--scene" => scene = Some(args.next().ok_or("--scene needs a scene")?),
+            "--modules" => modules = PathBuf::from(args.next().ok_or("--modules needs a folder")?),
+            "--example" => {
+                example = Some(PathBuf::from(
+                    args.next().ok_or("--example needs a folder")?,
+                ))
+            }
             other => return Err(format!("unknown argument {other}\n{usage}").into()),
         }
     }
@@ -204,7 +222,7 @@ fn run() -> Result<(), Error> {
     let triangles = Arc::new(bytemuck::cast_slice::<f32, u8>(&flat).to_vec());
     let ray_bytes = Arc::new(bytemuck::cast_slice(&rays).to_vec());
     let package = browser::folder(dist.clone());
-    let modules = browser::folder(dist.join("../../node_modules"));
+    let modules = browser::folder(modules);
     let files = move |path: &str| match path {
         "/" => Some(PAGE.as_bytes().to_vec()),
         "/triangles.bin" => Some(triangles.to_vec()),
@@ -225,7 +243,37 @@ fn run() -> Result<(), Error> {
     let batch: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head..head + n]);
     let single: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head + n..head + 2 * n]);
     let note = String::from_utf8_lossy(&bytes[head + 2 * n..]);
-    report(&spec, tris.len(), &cpu, &batch, &single, &f, &note)
+    report(&spec, tris.len(), &cpu, &batch, &single, &f, &note)?;
+    match example {
+        Some(dir) => example_page(&chromium, dir),
+        None => Ok(()),
+    }
+}
+
+/// The three.js example page: every ray's closest hit the same with bvhtrace's
+/// `acceleratedRaycast` as with three.js's own raycast.
+fn example_page(chromium: &str, dir: PathBuf) -> Result<(), Error> {
+    let page = "/three.html?report=1";
+    let text = match browser::run_page(
+        chromium,
+        browser::folder(dir),
+        page,
+        Duration::from_secs(300),
+    )? {
+        Report::Result(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
+        Report::Error(e) => return Err(format!("the three.js example failed: {e}").into()),
+    };
+    println!("three.js example page: {}", text.replace('\n', " | "));
+    let rays = text
+        .split(" rays")
+        .next()
+        .and_then(|s| s.rsplit(' ').next());
+    let same =
+        rays.is_some_and(|n| text.contains(&format!("{n} of {n} rays: the same closest hit")));
+    match same && !text.starts_with("error") {
+        true => Ok(()),
+        false => Err(format!("the three.js example page printed:\n{text}").into()),
+    }
 }
 
 /// Prints the comparison and the rates; an error when any hit differs.
@@ -254,11 +302,12 @@ fn report(
     );
     println!(
         "browser wasm walk: Mrays/s on the page's one thread: intersect {:.2}, raycastFirst {:.2}; \
-         BVH built in {:.0} ms; page load to first hits {:.0} ms",
+         page load to first hits {:.0} ms (the wasm compiled at {:.0} ms, the BVH built in {:.0} ms)",
         rate(f.batch_ms),
         rate(f.single_ms),
-        f.build_ms,
-        f.first_hits_ms
+        f.first_hits_ms,
+        f.compiled_ms,
+        f.build_ms
     );
     if f.three_hits >= 0.0 {
         println!(

@@ -10,5 +10,5 @@
 pub mod bvh;
 #[cfg(target_arch = "wasm32")]
 pub mod choice;
-#[cfg(target_arch = "wasm32")]
+#[cfg(all(target_arch = "wasm32", feature = "one-shot"))]
 pub mod oneshot;
