@@ -25,7 +25,7 @@ mv "$wasm.opt" "$wasm"
 echo "$wasm: $before bytes from wasm-bindgen, $(wc -c < "$wasm") after wasm-opt -O1"
 version=$(sed -n 's/^version = "\(.*\)"/\1/p' Cargo.toml | head -1)
 sed "s/@VERSION@/$version/" web/package/package.json > "$out/package.json"
-cp web/package/README.md web/package/three.js web/package/three.d.ts "$out/"
+cp web/package/{README.md,three.js,three.d.ts,workers.js,workers.d.ts,worker.js} "$out/"
 (cd web/dist && npm pack ./pkg --loglevel=warn)
 # What the tests load: the packed files, as `npm install` unpacks them.
 rm -rf web/dist/packed

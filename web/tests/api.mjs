@@ -99,6 +99,23 @@ check("bad input: an Error naming the item and the cause", () => {
   bad(() => Bvh.fromGltf(new Uint8Array([1, 2, 3]), "broken.glb"), /broken.glb/);
 });
 
+check("toBytes and fromBytes: the same tree, the same hits; other bytes an Error", () => {
+  const copy = Bvh.fromBytes(bvh.toBytes());
+  assert.equal(copy.nodeCount, bvh.nodeCount);
+  assert.deepEqual(copy.raycastFirst(0.3, 0.6, 5, 0, 0, -1), bvh.raycastFirst(0.3, 0.6, 5, 0, 0, -1));
+  copy.free();
+  const bytes = bvh.toBytes();
+  assert.throws(() => Bvh.fromBytes(bytes.slice(0, 30)), /Bvh.fromBytes: .* bytes for/);
+  assert.throws(() => Bvh.fromBytes(new Uint8Array(40)), /not a bvhtrace tree/);
+  // A child link pointing past the nodes: refused by the checks, not walked.
+  const broken = bytes.slice();
+  new DataView(broken.buffer).setUint32(20 + 12, 1000, true);
+  assert.throws(() => Bvh.fromBytes(broken), /Bvh.fromBytes: node 0: bad children 1, 1000/);
+  const shallow = bytes.slice();
+  new DataView(shallow.buffer).setUint32(8, 0, true);
+  assert.throws(() => Bvh.fromBytes(shallow), /Bvh.fromBytes: depth 0 stated/);
+});
+
 // The automatic choice: Node has no WebGPU, so the WebAssembly walk, saying why; asking
 // for WebGPU there is an error, and an unknown backend too.
 const auto = await Bvh.create(positions, indices);

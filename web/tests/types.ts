@@ -2,6 +2,7 @@
 // the declarations the package ships: the types must describe what the README promises.
 import init, { Bvh, type Hits, type Hit, type TraceOptions } from "bvhtrace";
 import { computeBvh, raycastFirst, acceleratedRaycast, type GeometryLike } from "bvhtrace/three";
+import { BvhWorkers } from "bvhtrace/workers";
 
 export async function example(geometry: GeometryLike): Promise<number> {
   await init();
@@ -15,6 +16,11 @@ export async function example(geometry: GeometryLike): Promise<number> {
   const later: Hits = await onDevice.intersectAsync(new Float32Array(3), new Float32Array(3));
   const note: string = onDevice.backend + onDevice.backendNote + later.backend;
   bvh.refit(positions);
+  const copy: Bvh = Bvh.fromBytes(bvh.toBytes());
+  const pool = await BvhWorkers.create(copy, 2);
+  const parallel: Hits = await pool.intersect(new Float32Array(3), new Float32Array(3), { near: 0 });
+  pool.terminate();
+  copy.free();
   const three = computeBvh(geometry);
   const fallback = (_raycaster: unknown, _intersects: unknown[]) => {};
   const raycast = acceleratedRaycast(fallback);
@@ -22,5 +28,5 @@ export async function example(geometry: GeometryLike): Promise<number> {
   bvh.free();
   onDevice.free();
   three.free();
-  return first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
+  return parallel.count + first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
 }

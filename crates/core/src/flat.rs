@@ -783,6 +783,13 @@ impl FlatBvh {
         let mut seen = vec![false; n_tris];
         let mut covered = vec![false; n_tris];
         let mut coverage = Coverage::default();
+        // Children in range first: the escape links are computed from them.
+        for (i, n) in self.nodes.iter().enumerate() {
+            let r = n.right_or_first as usize;
+            if !n.is_leaf() && (r <= i + 1 || r >= n_nodes || n.axis() > 2) {
+                return Err(format!("node {i}: bad children {}, {r}", i + 1));
+            }
+        }
         self.check_escape_links().map_err(|e| e.to_string())?;
         let escapes = self.escapes_or_computed();
         if (0..OCTANTS).any(|o| escapes[escape_index(0, o)] != NO_ESCAPE) {

@@ -133,3 +133,17 @@ fn new_transforms_leave_unbuilt_links_unbuilt_and_right_once_built() {
     let fresh = InstancedBvh::build(&[tris], instances, &BuildOptions::default()).unwrap();
     assert_eq!(ib.bvh(), fresh.bvh());
 }
+
+#[test]
+fn a_tree_whose_links_leave_it_is_refused_before_its_escape_links_are_made() {
+    // Read-back or deserialised nodes may point anywhere: the check says which node,
+    // where computing the escape links from them would index past the array.
+    let bvh = FlatBvh::build(&sphere(), &BuildOptions::default()).unwrap();
+    for bad in [u32::MAX, bvh.nodes().len() as u32, 1, 0] {
+        let mut nodes = bvh.nodes().to_vec();
+        nodes[0].right_or_first = bad;
+        let broken = FlatBvh::from_parts(nodes, bvh.triangles().to_vec(), bvh.depth());
+        let e = broken.check_invariants().unwrap_err();
+        assert!(e.starts_with("node 0: bad children"), "{bad}: {e}");
+    }
+}

@@ -181,14 +181,33 @@ impl fmt::Display for Isa {
 
 /// Traces one ray with the fastest instruction set this CPU has (every instance visible).
 pub fn trace_ray(bvh: &CpuBvh, ray: &Ray, query: Query) -> Hit {
+    trace_ray_in(bvh, ray, query, &mut RayScratch::default())
+}
+
+/// The walk's stack, kept between calls of [`trace_ray_in`]: a program that asks one ray
+/// at a time (a pick, a raycaster) then allocates and clears nothing per ray.
+#[derive(Clone, Debug, Default)]
+pub struct RayScratch {
+    stack: Vec<Entry>,
+}
+
+/// [`trace_ray`] on `scratch`'s stack, grown to what `bvh` needs (and kept).
+pub fn trace_ray_in(bvh: &CpuBvh, ray: &Ray, query: Query, scratch: &mut RayScratch) -> Hit {
     let mut hit = [Hit::miss(0.0)];
-    trace_rays_into(
+    let need = 2 * single::stack_size(bvh);
+    if scratch.stack.len() < need {
+        scratch.stack.resize(need, Entry::default());
+    }
+    let rays = std::slice::from_ref(ray);
+    let isa = Isa::detect();
+    trace_rays_on(
         bvh,
-        std::slice::from_ref(ray),
+        rays,
         query,
         ALL_VISIBLE,
-        Isa::detect(),
+        isa,
         &mut hit,
+        &mut scratch.stack,
     );
     hit[0]
 }
@@ -295,7 +314,20 @@ fn class_order(rays: &[Ray], any: bool) -> Option<[u8; CLASS_RUN]> {
 fn trace_rays_into(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits: &mut [Hit]) {
     // Twice a walk's stack: two walks take turns (`single::trace_turns`).
     let mut stack = vec![Entry::default(); 2 * single::stack_size(bvh)];
-    let s = &mut stack;
+    trace_rays_on(bvh, rays, query, mask, isa, hits, &mut stack);
+}
+
+/// [`trace_rays_into`] on `s`, twice a walk's stack ([`single::stack_size`]) or more.
+fn trace_rays_on(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    mask: u8,
+    isa: Isa,
+    hits: &mut [Hit],
+    s: &mut [Entry],
+) {
+    debug_assert!(s.len() >= 2 * single::stack_size(bvh));
     let mask = u32::from(mask);
     // One mesh without masks has walks of its own, compiled apart from the others, so
     // that the others change nothing of its code.

@@ -269,3 +269,35 @@ fn hits_at_the_origin_are_judged_by_their_leaf_boxes() {
         );
     }
 }
+
+#[test]
+fn one_scratch_serves_rays_of_trees_small_and_deep() {
+    // A stack kept for a shallow tree grows for a deep one, and a deep tree's stack serves a
+    // shallow one: every answer is trace_ray's, whichever came first.
+    let small = common::uv_sphere(4, 1.0, Vec3::ZERO);
+    let large = common::uv_sphere(96, 1.0, Vec3::new(0.5, 0.0, 0.0));
+    let trees: Vec<(FlatBvh, CpuBvh, Vec<Ray>)> =
+        [small, large, common::uv_sphere(4, 1.0, Vec3::ZERO)]
+            .iter()
+            .enumerate()
+            .map(|(k, tris)| {
+                let flat = FlatBvh::build(tris, &BuildOptions::default()).unwrap();
+                let bvh = CpuBvh::from_flat(&flat).unwrap();
+                (flat, bvh, common::rays_for(tris, 7 + k as u64, 300))
+            })
+            .collect();
+    assert!(
+        trees[1].1.depth() > trees[0].1.depth(),
+        "the second tree must be deeper"
+    );
+    let mut scratch = bvhtrace_cpu::RayScratch::default();
+    for (_, bvh, rays) in &trees {
+        for q in [Query::Closest, Query::Any] {
+            for ray in rays {
+                let want = bvhtrace_cpu::trace_ray(bvh, ray, q);
+                let got = bvhtrace_cpu::trace_ray_in(bvh, ray, q, &mut scratch);
+                assert!(same(&got, &want), "{ray:?}: {got:?} vs {want:?}");
+            }
+        }
+    }
+}

@@ -10,6 +10,9 @@
 //! two libraries' hits are compared ray for ray (the rule of `web/tests/three.mjs`: the
 //! same triangle, or a tie at a shared edge, at distances within 1e-5 relative).
 //!
+//! The same rays go over web workers too (`bvhtrace/workers`' `BvhWorkers`, as many as the
+//! page's hardware concurrency), whose hits must be the one thread's.
+//!
 //! With `--example DIR`, also opens the three.js example page (DIR/three.html, which
 //! `web/package.sh` puts in `web/dist`) and checks that bvhtrace's `acceleratedRaycast`
 //! gave the same closest hit as three.js's own `Mesh.raycast` for every one of its rays.
@@ -89,6 +92,21 @@ try {
       else { singleF[4 * i] = far; single[4 * i + 1] = 0xffffffff; }
     }
   });
+  // The same rays over web workers, each with a copy of the tree.
+  const { BvhWorkers } = await import("./workers.js");
+  const pool = await BvhWorkers.create(bvh);
+  let workersMs = Infinity, workersDiffer = 0;
+  for (let k = 0; k < 3; k++) {
+    const w = await pool.intersect(origins, dirs, { near, far });
+    workersMs = Math.min(workersMs, w.ms);
+    workersDiffer = 0;
+    for (let i = 0; i < n; i++) {
+      workersDiffer += w.primitive[i] !== hits.primitive[i] || !Object.is(w.t[i], hits.t[i])
+        || !Object.is(w.u[i], hits.u[i]) || !Object.is(w.v[i], hits.v[i]);
+    }
+  }
+  const workers = pool.count;
+  pool.terminate();
   let threeMs = 0, threeHits = -1, same = 0, tie = 0, differ = 0, three = "three-mesh-bvh: not installed";
   try {
     const THREE = await import("three");
@@ -126,7 +144,7 @@ try {
     if (!String(e).includes("Failed to fetch") && !String(e).includes("resolve")) throw e;
   }
   const figures = new Float64Array([buildMs, firstHits, batchMs, singleMs, threeMs, threeHits,
-    same, tie, differ, compiled]);
+    same, tie, differ, compiled, workersMs, workers, workersDiffer]);
   document.getElementById("out").textContent = "done";
   await post("/result", new Blob([figures, packed, single, `${hits.backend}; ${three}`]));
 } catch (e) {
@@ -146,10 +164,13 @@ struct Figures {
     tie: f64,
     differ: f64,
     compiled_ms: f64,
+    workers_ms: f64,
+    workers: f64,
+    workers_differ: f64,
 }
 
 impl Figures {
-    const COUNT: usize = 10;
+    const COUNT: usize = 13;
 
     fn parse(bytes: &[u8]) -> Figures {
         let f =
@@ -165,6 +186,9 @@ impl Figures {
             tie: f(7),
             differ: f(8),
             compiled_ms: f(9),
+            workers_ms: f(10),
+            workers: f(11),
+            workers_differ: f(12),
         }
     }
 }
@@ -309,6 +333,14 @@ fn report(
         f.compiled_ms,
         f.build_ms
     );
+    println!(
+        "browser wasm walk over {} web workers (BvhWorkers): {:.2} Mrays/s ({:.2}x one thread), \
+         {} hits differ from one thread's",
+        f.workers,
+        rate(f.workers_ms),
+        f.batch_ms / f.workers_ms,
+        f.workers_differ
+    );
     if f.three_hits >= 0.0 {
         println!(
             "three-mesh-bvh raycastFirst on the same rays: {:.2} Mrays/s (intersect {:.2}x, \
@@ -325,11 +357,11 @@ fn report(
     } else {
         println!("SKIP: three-mesh-bvh beside it: not installed (npm ci in web/)");
     }
-    if db + ds > 0 || f.differ > 0.0 {
+    if db + ds > 0 || f.differ > 0.0 || f.workers_differ > 0.0 {
         return Err(format!(
             "{db} (intersect) and {ds} (raycastFirst) of {n} hits differ from the CPU walk's; \
-             {} from three-mesh-bvh's",
-            f.differ
+             {} from three-mesh-bvh's; {} over the workers from one thread's",
+            f.differ, f.workers_differ
         )
         .into());
     }

@@ -5,10 +5,11 @@
 //! answers as every other bvhtrace backend.
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, Query, Ray, TraceOptions, Traversal};
-use bvhtrace_cpu::{CpuBvh, Isa};
+use bvhtrace_cpu::{CpuBvh, Isa, RayScratch};
 use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, Tracer, UploadOptions};
 use glam::Vec3;
 use js_sys::{Float32Array, Object, Reflect, Uint32Array};
+use std::cell::RefCell;
 use wasm_bindgen::prelude::*;
 
 use crate::choice::{self, Backend};
@@ -270,6 +271,8 @@ pub struct Bvh {
     indices: Option<Vec<u32>>,
     device: Option<Device>,
     note: String,
+    /// The one-ray walks' stack, kept between calls.
+    scratch: RefCell<RayScratch>,
 }
 
 impl Bvh {
@@ -283,6 +286,7 @@ impl Bvh {
             indices,
             device: None,
             note: choice::wasm_note(),
+            scratch: RefCell::default(),
         })
     }
 
@@ -300,6 +304,12 @@ impl Bvh {
             self.device = Some(Device::upload(ctx, &self.flat)?);
         }
         Ok(())
+    }
+
+    /// One ray on the kept stack.
+    fn trace_one(&self, ray: &Ray, query: Query) -> Hit {
+        let mut scratch = self.scratch.borrow_mut();
+        bvhtrace_cpu::trace_ray_in(&self.cpu, ray, query, &mut scratch)
     }
 
     /// The name of the WebAssembly walk this build has.
@@ -344,6 +354,44 @@ impl Bvh {
         let scene = bvhtrace_scene::load_gltf_slice(bytes, &label, None).map_err(err)?;
         let tris = scene.flattened_triangles().map_err(err)?;
         Bvh::over(&tris, None)
+    }
+
+    /// The tree as bytes, for `Bvh.fromBytes` in another worker or a later visit (a
+    /// 16-byte head: `BVHT`, the format's version, the depth, then the node and triangle
+    /// counts; then the nodes, 32 bytes each, and the triangles, 48 bytes each). The
+    /// WebAssembly walk's layout is made again from them, not stored.
+    #[wasm_bindgen(js_name = toBytes)]
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let (nodes, tris) = (self.flat.nodes(), self.flat.triangles());
+        let mut out = Vec::with_capacity(20 + 32 * nodes.len() + 48 * tris.len());
+        out.extend_from_slice(SERIAL_MAGIC);
+        for x in [
+            SERIAL_VERSION,
+            self.flat.depth(),
+            nodes.len() as u32,
+            tris.len() as u32,
+        ] {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+        out.extend_from_slice(bytemuck::cast_slice(nodes));
+        out.extend_from_slice(bytemuck::cast_slice(tris));
+        out
+    }
+
+    /// A BVH from `toBytes`' bytes, checked (every node, box and triangle) before use:
+    /// bytes that are not such a tree are an error, never a wrong answer.
+    #[wasm_bindgen(js_name = fromBytes)]
+    pub fn from_bytes(bytes: &[u8]) -> Result<Bvh, JsError> {
+        let flat = parse_serial(bytes).map_err(|why| err(format!("Bvh.fromBytes: {why}")))?;
+        let cpu = CpuBvh::from_flat(&flat).map_err(err)?;
+        Ok(Bvh {
+            flat,
+            cpu,
+            indices: None,
+            device: None,
+            note: choice::wasm_note(),
+            scratch: RefCell::default(),
+        })
     }
 
     /// [`Bvh::new`], then the backend `options.backend` asks for (see `CreateOptions`):
@@ -463,7 +511,7 @@ impl Bvh {
         far: Option<f32>,
     ) -> HitOut {
         let ray = one_ray([ox, oy, oz], [dx, dy, dz], near, far);
-        let h = bvhtrace_cpu::trace_ray(&self.cpu, &ray, Query::Closest);
+        let h = self.trace_one(&ray, Query::Closest);
         if h.prim >= MISS - 1 {
             return JsValue::UNDEFINED.unchecked_into();
         }
@@ -486,7 +534,7 @@ impl Bvh {
         far: Option<f32>,
     ) -> bool {
         let ray = one_ray([ox, oy, oz], [dx, dy, dz], near, far);
-        bvhtrace_cpu::trace_ray(&self.cpu, &ray, Query::Any).prim < MISS - 1
+        self.trace_one(&ray, Query::Any).prim < MISS - 1
     }
 
     /// The vertices moved: `positions` holds the same vertices in their new places (the
@@ -519,6 +567,56 @@ impl Bvh {
             .map_err(err)?;
         Ok(lib.source().to_string())
     }
+}
+
+/// The first bytes of `Bvh.toBytes`.
+const SERIAL_MAGIC: &[u8; 4] = b"BVHT";
+
+/// The version of `Bvh.toBytes`' format.
+const SERIAL_VERSION: u32 = 1;
+
+/// The tree in `toBytes`' bytes, or what is wrong with them.
+fn parse_serial(bytes: &[u8]) -> Result<FlatBvh, String> {
+    if bytes.len() < 20 || &bytes[..4] != SERIAL_MAGIC {
+        return Err("not a bvhtrace tree (no BVHT head)".into());
+    }
+    let word = |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+    let (version, depth, nodes, tris) = (word(4), word(8), word(12) as usize, word(16) as usize);
+    if version != SERIAL_VERSION {
+        return Err(format!(
+            "format version {version}; this build reads {SERIAL_VERSION}"
+        ));
+    }
+    let (node_bytes, tri_bytes) = (32 * nodes, 48 * tris);
+    if bytes.len() != 20 + node_bytes + tri_bytes {
+        return Err(format!(
+            "{} bytes for {nodes} nodes and {tris} triangles ({} expected)",
+            bytes.len(),
+            20 + node_bytes + tri_bytes
+        ));
+    }
+    let nodes = bytemuck::pod_collect_to_vec(&bytes[20..20 + node_bytes]);
+    let tris = bytemuck::pod_collect_to_vec(&bytes[20 + node_bytes..]);
+    let flat = FlatBvh::from_parts(nodes, tris, depth);
+    flat.check_invariants()?;
+    let longest = longest_path(flat.nodes());
+    if longest != depth {
+        return Err(format!("depth {depth} stated, {longest} found"));
+    }
+    Ok(flat)
+}
+
+/// The longest root-to-leaf path of a checked tree, in edges (parents come before
+/// their children).
+fn longest_path(nodes: &[bvhtrace_core::FlatNode]) -> u32 {
+    let mut depth = vec![0u32; nodes.len()];
+    for (i, n) in nodes.iter().enumerate() {
+        if !n.is_leaf() {
+            depth[i + 1] = depth[i] + 1;
+            depth[n.right_or_first as usize] = depth[i] + 1;
+        }
+    }
+    depth.into_iter().max().unwrap_or(0)
 }
 
 /// One ray from JavaScript's numbers.
