@@ -10,6 +10,8 @@
 //! two libraries' hits are compared ray for ray (the rule of `web/tests/three.mjs`: the
 //! same triangle, or a tie at a shared edge, at distances within 1e-5 relative).
 //!
+//! `Bvh.create` must choose the WebAssembly walk on SwiftShader (a CPU device), saying so,
+//! and the WebGPU backend asked for must give the WebAssembly walk's hits, bit for bit.
 //! The same rays go over web workers too (`bvhtrace/workers`' `BvhWorkers`, as many as the
 //! page's hardware concurrency), whose hits must be the one thread's.
 //!
@@ -107,6 +109,22 @@ try {
   }
   const workers = pool.count;
   pool.terminate();
+  // The automatic choice on this page's adapter, and the WebGPU backend asked for: its
+  // kernels' hits must be the WebAssembly walk's.
+  const auto = await Bvh.create(new Float32Array([0, 0, 0, 1, 0, 0, 0, 1, 0]));
+  const choice = `${auto.backend}: ${auto.backendNote}`;
+  auto.free();
+  const gpu = await Bvh.create(tris, undefined, { backend: "webgpu" });
+  const g = await gpu.intersectAsync(origins, dirs, { near, far });
+  let gpuDiffer = 0;
+  for (let i = 0; i < n; i++) {
+    gpuDiffer += g.primitive[i] !== hits.primitive[i] || !Object.is(g.t[i], hits.t[i])
+      || !Object.is(g.u[i], hits.u[i]) || !Object.is(g.v[i], hits.v[i]);
+  }
+  const library = gpu.wgslLibrary().length;
+  const gpuNote = `${gpu.backend} (${gpu.backendNote}): ${gpuDiffer} of ${n} hits differ from the ` +
+    `WebAssembly walk's, ${g.ms.toFixed(0)} ms; its WGSL library ${library} characters`;
+  gpu.free();
   let threeMs = 0, threeHits = -1, same = 0, tie = 0, differ = 0, three = "three-mesh-bvh: not installed";
   try {
     const THREE = await import("three");
@@ -146,7 +164,8 @@ try {
   const figures = new Float64Array([buildMs, firstHits, batchMs, singleMs, threeMs, threeHits,
     same, tie, differ, compiled, workersMs, workers, workersDiffer]);
   document.getElementById("out").textContent = "done";
-  await post("/result", new Blob([figures, packed, single, `${hits.backend}; ${three}`]));
+  await post("/result", new Blob([figures, packed, single,
+    [`${hits.backend}; ${three}`, choice, gpuNote, gpuDiffer].join("\n")]));
 } catch (e) {
   await post("/error", String(e && e.stack || e));
 }
@@ -266,8 +285,24 @@ fn run() -> Result<(), Error> {
     let f = Figures::parse(&bytes);
     let batch: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head..head + n]);
     let single: Vec<Hit> = bytemuck::pod_collect_to_vec(&bytes[head + n..head + 2 * n]);
-    let note = String::from_utf8_lossy(&bytes[head + 2 * n..]);
-    report(&spec, tris.len(), &cpu, &batch, &single, &f, &note)?;
+    let text = String::from_utf8_lossy(&bytes[head + 2 * n..]).into_owned();
+    let lines: Vec<&str> = text.lines().collect();
+    let [note, choice, gpu, gpu_differ] = lines[..] else {
+        return Err(format!("the page's notes: {text:?}").into());
+    };
+    report(&spec, tris.len(), &cpu, &batch, &single, &f, note)?;
+    println!(
+        "browser automatic choice ({} here): {choice}",
+        "SwiftShader"
+    );
+    println!("browser WebGPU backend: {gpu}");
+    if !choice.starts_with("wasm") || gpu_differ != "0" || !gpu.starts_with("webgpu") {
+        return Err(
+            "the automatic choice took WebGPU on SwiftShader, or the WebGPU backend's \
+                    hits differ from the WebAssembly walk's"
+                .into(),
+        );
+    }
     match example {
         Some(dir) => example_page(&chromium, dir),
         None => Ok(()),
