@@ -291,10 +291,7 @@ fn run() -> Result<(), Error> {
         return Err(format!("the page's notes: {text:?}").into());
     };
     report(&spec, tris.len(), &cpu, &batch, &single, &f, note)?;
-    println!(
-        "browser automatic choice ({} here): {choice}",
-        "SwiftShader"
-    );
+    println!("browser automatic choice: {choice}");
     println!("browser WebGPU backend: {gpu}");
     if !choice.starts_with("wasm") || gpu_differ != "0" || !gpu.starts_with("webgpu") {
         return Err(
