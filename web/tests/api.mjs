@@ -7,7 +7,7 @@ import fs from "node:fs";
 import path from "node:path";
 
 const [pkg, gltf] = process.argv.slice(2);
-const { default: init, Bvh } = await import(path.resolve(pkg, "bvhtrace_web.js"));
+const { default: init, Bvh, InstancedBvh } = await import(path.resolve(pkg, "bvhtrace_web.js"));
 await init({ module_or_path: fs.readFileSync(path.resolve(pkg, "bvhtrace_web_bg.wasm")) });
 
 const MISS = 0xffffffff;
@@ -114,6 +114,40 @@ check("toBytes and fromBytes: the same tree, the same hits; other bytes an Error
   const shallow = bytes.slice();
   new DataView(shallow.buffer).setUint32(8, 0, true);
   assert.throws(() => Bvh.fromBytes(shallow), /Bvh.fromBytes: depth 0 stated/);
+});
+
+check("instances: one mesh placed twice, moved, each hit naming its instance", () => {
+  const scene = new InstancedBvh();
+  const mesh = scene.addMesh(bvh);
+  // Column-major 4x4 matrices (three.js Matrix4.elements): a translation by (x, 0, 0).
+  const shift = (x) => new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, x, 0, 0, 1]);
+  assert.equal(scene.addInstance(mesh, shift(0)), 0);
+  assert.equal(scene.addInstance(mesh, shift(5)), 1);
+  const o = new Float32Array([0.75, 0.25, 5, 5.75, 0.25, 5, 3, 0.5, 5]);
+  const d = new Float32Array([0, 0, -1, 0, 0, -1, 0, 0, -1]);
+  const h = scene.intersect(o, d);
+  assert.deepEqual(Array.from(h.instance), [0, 1, MISS]);
+  assert.deepEqual(Array.from(h.meshPrimitive), [0, 0, MISS]);
+  assert.deepEqual(Array.from(h.t), [5, 5, Infinity]);
+  assert.equal(h.primitive[1], 4 + h.primitive[0], "primitive numbers the instances' triangles in turn");
+  const one = scene.raycastFirst(5.75, 0.25, 5, 0, 0, -1);
+  assert.equal(one.instance, 1);
+  assert.deepEqual(one.point.map((x) => Math.round(x * 1e6) / 1e6), [5.75, 0.25, 0]);
+  // Moved: the second instance to x = 2.5, lifted by 1.
+  const lifted = shift(2.5);
+  lifted[14] = 1;
+  scene.setTransforms(new Float32Array([...shift(0), ...lifted]));
+  assert.equal(scene.raycastFirst(3, 0.5, 5, 0, 0, -1).t, 4);
+  assert.equal(scene.raycastFirst(5.75, 0.25, 5, 0, 0, -1), undefined);
+  assert.throws(() => scene.addInstance(3, shift(0)), /instance 2: mesh 3 was not added/);
+  const projective = shift(0);
+  projective[3] = 0.5;
+  assert.throws(() => scene.addInstance(mesh, projective), /instance 2: the transform's last row/);
+  const flat = shift(0);
+  flat[0] = 0;
+  assert.throws(() => scene.setTransforms(new Float32Array([...flat, ...shift(1)])), /instance 0/);
+  assert.equal(scene.raycastFirst(3, 0.5, 5, 0, 0, -1).t, 4, "a refused move moves nothing");
+  scene.free();
 });
 
 // The automatic choice: Node has no WebGPU, so the WebAssembly walk, saying why; asking

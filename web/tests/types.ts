@@ -1,6 +1,6 @@
 // A program written from the package's README, compiled by tsc (web/package.sh) against
 // the declarations the package ships: the types must describe what the README promises.
-import init, { Bvh, type Hits, type Hit, type TraceOptions } from "bvhtrace";
+import init, { Bvh, InstancedBvh, type Hits, type Hit, type InstancedHits, type TraceOptions } from "bvhtrace";
 import { computeBvh, raycastFirst, acceleratedRaycast, type GeometryLike } from "bvhtrace/three";
 import { BvhWorkers } from "bvhtrace/workers";
 
@@ -16,6 +16,11 @@ export async function example(geometry: GeometryLike): Promise<number> {
   const later: Hits = await onDevice.intersectAsync(new Float32Array(3), new Float32Array(3));
   const note: string = onDevice.backend + onDevice.backendNote + later.backend;
   bvh.refit(positions);
+  const scene = new InstancedBvh();
+  scene.addInstance(scene.addMesh(bvh), new Float32Array(16));
+  const placed: InstancedHits = scene.intersect(new Float32Array(3), new Float32Array(3));
+  const which: number = placed.instance[0] + placed.meshPrimitive[0] + scene.instanceCount;
+  scene.free();
   const copy: Bvh = Bvh.fromBytes(bvh.toBytes());
   const pool = await BvhWorkers.create(copy, 2);
   const parallel: Hits = await pool.intersect(new Float32Array(3), new Float32Array(3), { near: 0 });
@@ -28,5 +33,5 @@ export async function example(geometry: GeometryLike): Promise<number> {
   bvh.free();
   onDevice.free();
   three.free();
-  return parallel.count + first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
+  return which + parallel.count + first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
 }

@@ -60,6 +60,22 @@ export interface Hit {
   point: [number, number, number];
 }
 
+/** `Hits` over an `InstancedBvh`: which instance each ray hit, and the triangle in its mesh. */
+export interface InstancedHits extends Hits {
+  /** The instance hit (in the order added), 0xffffffff for a miss. */
+  instance: Uint32Array;
+  /** The triangle's index in its mesh's input order, 0xffffffff for a miss. */
+  meshPrimitive: Uint32Array;
+}
+
+/** A `Hit` over an `InstancedBvh`. */
+export interface InstancedHit extends Hit {
+  /** The instance hit. */
+  instance: number;
+  /** The triangle's index in its mesh's input order (`primitive` numbers every instance's). */
+  meshPrimitive: number;
+}
+
 /** Where `Bvh.create` traces. */
 export interface CreateOptions {
   /**
@@ -94,11 +110,19 @@ extern "C" {
 extern "C" {
     /// A `Hit` from its numbers.
     #[allow(clippy::too_many_arguments)]
-    fn hit_object(t: f32, primitive: u32, u: f32, v: f32, x: f32, y: f32, z: f32) -> HitOut;
+    pub(crate) fn hit_object(
+        t: f32,
+        primitive: u32,
+        u: f32,
+        v: f32,
+        x: f32,
+        y: f32,
+        z: f32,
+    ) -> HitOut;
 }
 
 /// An error for JavaScript: an `Error` with the library's message.
-fn err(e: impl std::fmt::Display) -> JsError {
+pub(crate) fn err(e: impl std::fmt::Display) -> JsError {
     JsError::new(&e.to_string())
 }
 
@@ -110,7 +134,7 @@ fn field(object: &JsValue, key: &str) -> Option<JsValue> {
 }
 
 /// Sets `object[key] = value`.
-fn set(object: &Object, key: &str, value: &JsValue) -> Result<(), JsError> {
+pub(crate) fn set(object: &Object, key: &str, value: &JsValue) -> Result<(), JsError> {
     Reflect::set(object, &JsValue::from_str(key), value)
         .map(|_| ())
         .map_err(|_| err(format!("cannot set {key} on the result")))
@@ -159,15 +183,15 @@ fn triangles(
 
 /// What a trace was asked: the query and the interval.
 #[derive(Clone, Copy)]
-struct Asked {
-    query: Query,
-    near: f32,
-    far: f32,
+pub(crate) struct Asked {
+    pub query: Query,
+    pub near: f32,
+    pub far: f32,
 }
 
 impl Asked {
     /// Reads `TraceOptions` (every field optional).
-    fn of(options: Option<&TraceOptionsArg>) -> Result<Asked, JsError> {
+    pub(crate) fn of(options: Option<&TraceOptionsArg>) -> Result<Asked, JsError> {
         let o: Option<&JsValue> = options.map(|o| o.as_ref());
         let number = |key: &str, default: f32| -> Result<f32, JsError> {
             match o.and_then(|o| field(o, key)) {
@@ -191,7 +215,7 @@ impl Asked {
 }
 
 /// The rays from `origins` and `directions` (three floats each, as many of both).
-fn rays(origins: &[f32], directions: &[f32], asked: Asked) -> Result<Vec<Ray>, JsError> {
+pub(crate) fn rays(origins: &[f32], directions: &[f32], asked: Asked) -> Result<Vec<Ray>, JsError> {
     if origins.len() != directions.len() || !origins.len().is_multiple_of(3) {
         return Err(err(format!(
             "{} origin floats and {} direction floats: three per ray, as many of each",
@@ -214,7 +238,7 @@ fn rays(origins: &[f32], directions: &[f32], asked: Asked) -> Result<Vec<Ray>, J
 }
 
 /// The hits as [`TYPES`]' `Hits`.
-fn hits_out(hits: &[Hit], backend: &str, ms: f64) -> Result<HitsOut, JsError> {
+pub(crate) fn hits_out(hits: &[Hit], backend: &str, ms: f64) -> Result<HitsOut, JsError> {
     let n = hits.len();
     let (mut t, mut prim, mut u, mut v) = (
         Vec::with_capacity(n),
@@ -266,7 +290,7 @@ impl Device {
 /// collector's.
 #[wasm_bindgen]
 pub struct Bvh {
-    flat: FlatBvh,
+    pub(crate) flat: FlatBvh,
     cpu: CpuBvh,
     indices: Option<Vec<u32>>,
     device: Option<Device>,
@@ -313,7 +337,7 @@ impl Bvh {
     }
 
     /// The name of the WebAssembly walk this build has.
-    fn wasm_name() -> &'static str {
+    pub(crate) fn wasm_name() -> &'static str {
         match Isa::detect() {
             Isa::Simd128 => "wasm-simd128",
             _ => "wasm",
@@ -620,7 +644,7 @@ fn longest_path(nodes: &[bvhtrace_core::FlatNode]) -> u32 {
 }
 
 /// One ray from JavaScript's numbers.
-fn one_ray(origin: [f32; 3], dir: [f32; 3], near: Option<f32>, far: Option<f32>) -> Ray {
+pub(crate) fn one_ray(origin: [f32; 3], dir: [f32; 3], near: Option<f32>, far: Option<f32>) -> Ray {
     Ray::with_interval(
         Vec3::from(origin),
         Vec3::from(dir),

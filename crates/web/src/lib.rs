@@ -10,5 +10,7 @@
 pub mod bvh;
 #[cfg(target_arch = "wasm32")]
 pub mod choice;
+#[cfg(target_arch = "wasm32")]
+pub mod instanced;
 #[cfg(all(target_arch = "wasm32", feature = "one-shot"))]
 pub mod oneshot;
