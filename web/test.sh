@@ -42,8 +42,13 @@ pkg=web/dist/packed/package
 node web/tests/api.mjs "$pkg" scenes/cornell.gltf
 three_scenes=(scenes/cornell.gltf)
 [ -f ../shared/scenes/glb/bunny_69k.glb ] && three_scenes+=(../shared/scenes/glb/bunny_69k.glb)
-node web/tests/three.mjs "$pkg" "${three_scenes[@]}"
-cargo run --release -q -p bvhtrace-integration --example browser_wasm -- "$pkg" --example web/dist
+if [ -d web/node_modules/three-mesh-bvh ]; then
+  node web/tests/three.mjs "$pkg" "${three_scenes[@]}"
+  cargo run --release -q -p bvhtrace-integration --example browser_wasm -- "$pkg" --example web/dist
+else
+  echo "SKIP: three.js and three-mesh-bvh beside the package: web/node_modules has none (npm ci failed)"
+  cargo run --release -q -p bvhtrace-integration --example browser_wasm -- "$pkg"
+fi
 cargo run --release -q -p bvhtrace-integration --example browser_viewer -- web/dist
 # Two levels and animation: the viewer plays scenes/animated.gltf from t = 1 s, each pose
 # written into the upload in place; the image it shows against the native render at its time.
