@@ -16,6 +16,8 @@ export async function example(geometry: GeometryLike): Promise<number> {
   const later: Hits = await onDevice.intersectAsync(new Float32Array(3), new Float32Array(3));
   const note: string = onDevice.backend + onDevice.backendNote + later.backend;
   bvh.refit(positions);
+  const wgsl = bvh.wgsl(0);
+  const bytes: number = wgsl.bindings[0].data.byteLength + wgsl.source.length + wgsl.stackLanes;
   const scene = new InstancedBvh();
   scene.addInstance(scene.addMesh(bvh), new Float32Array(16));
   const placed: InstancedHits = scene.intersect(new Float32Array(3), new Float32Array(3));
@@ -33,5 +35,5 @@ export async function example(geometry: GeometryLike): Promise<number> {
   bvh.free();
   onDevice.free();
   three.free();
-  return which + parallel.count + first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
+  return bytes + which + parallel.count + first + (hit ? hit.t + hit.point[0] : 0) + note.length + (none ? 1 : 0) + raycast.length;
 }

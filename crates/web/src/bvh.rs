@@ -6,6 +6,8 @@
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, Query, Ray, TraceOptions, Traversal};
 use bvhtrace_cpu::{CpuBvh, Isa, RayScratch};
+use bvhtrace_gpu::engine::walks::STACK_LANES;
+use bvhtrace_gpu::engine::{LibraryShape, wgsl_library};
 use bvhtrace_gpu::{BvhStorage, GpuBvh, GpuContext, Tracer, UploadOptions};
 use glam::Vec3;
 use js_sys::{Float32Array, Object, Reflect, Uint32Array};
@@ -76,6 +78,18 @@ export interface InstancedHit extends Hit {
   meshPrimitive: number;
 }
 
+/** The WGSL traversal library for a shader of your own, and what to bind for it. */
+export interface Wgsl {
+  /** Prepend it to your WGSL. */
+  source: string;
+  /** The bind group its arrays are declared in. */
+  group: number;
+  /** Each array: upload `data` into a storage buffer, bind it read-only at `binding`. */
+  bindings: { binding: number; name: string; data: Uint8Array }[];
+  /** The most invocations a workgroup may have (the walks' stacks are per lane). */
+  stackLanes: number;
+}
+
 /** Where `Bvh.create` traces. */
 export interface CreateOptions {
   /**
@@ -98,6 +112,9 @@ extern "C" {
     /// [`TYPES`]' `Hit`, or undefined.
     #[wasm_bindgen(typescript_type = "Hit | undefined")]
     pub type HitOut;
+    /// [`TYPES`]' `Wgsl`.
+    #[wasm_bindgen(typescript_type = "Wgsl")]
+    pub type WgslOut;
     /// [`TYPES`]' `CreateOptions`.
     #[wasm_bindgen(typescript_type = "CreateOptions")]
     pub type CreateOptionsArg;
@@ -577,19 +594,36 @@ impl Bvh {
         Ok(())
     }
 
-    /// The WGSL traversal library for your own WebGPU shader, its bindings in
-    /// `@group(group)` (see the crate's docs for the bind group it expects): needs the
-    /// WebGPU backend, whose upload it describes.
-    #[wasm_bindgen(js_name = wgslLibrary)]
-    pub fn wgsl_library(&self, group: Option<u32>) -> Result<String, JsError> {
-        let d = self.device.as_ref().ok_or_else(|| {
-            err("the WGSL library describes a WebGPU upload: create the BVH with backend \"webgpu\"")
-        })?;
-        let lib = d
-            .bvh
-            .wgsl_library(d.walk, group.unwrap_or(0))
-            .map_err(err)?;
-        Ok(lib.source().to_string())
+    /// The WGSL traversal library for a compute shader of your own on your own WebGPU
+    /// device, with what to bind: `source` (prepend it to your WGSL: it declares
+    /// `bvh_trace_closest(ray: BvhRay, lane: u32)`, `bvh_trace_any`, `bvh_hit_surface` and
+    /// their structs, every name starting with `bvh_`, `Bvh` or `BVH_`), and `bindings`:
+    /// for each, its `binding` number in `@group(group)` and the `data` to upload into a
+    /// storage buffer bound there read-only (the tree's nodes at 0, its triangles at 1).
+    /// The walk is the full stack, its stacks in workgroup memory: workgroups of at most
+    /// `stackLanes` invocations, `lane` each one's `local_invocation_index`. Each array
+    /// must fit one of your device's storage bindings (`maxStorageBufferBindingSize`).
+    pub fn wgsl(&self, group: Option<u32>) -> Result<WgslOut, JsError> {
+        let shape = LibraryShape::new(BvhStorage::Buffers, false, Traversal::FullStack);
+        let library = wgsl_library(shape, group.unwrap_or(0));
+        let arrays: [(u32, &str, &[u8]); 2] = [
+            (0, "nodes", bytemuck::cast_slice(self.flat.nodes())),
+            (1, "triangles", bytemuck::cast_slice(self.flat.triangles())),
+        ];
+        let bindings = js_sys::Array::new();
+        for (binding, name, bytes) in arrays {
+            let entry = Object::new();
+            set(&entry, "binding", &JsValue::from(binding))?;
+            set(&entry, "name", &JsValue::from_str(name))?;
+            set(&entry, "data", &js_sys::Uint8Array::from(bytes))?;
+            bindings.push(&entry);
+        }
+        let out = Object::new();
+        set(&out, "source", &JsValue::from_str(library.source()))?;
+        set(&out, "group", &JsValue::from(library.group()))?;
+        set(&out, "bindings", &bindings)?;
+        set(&out, "stackLanes", &JsValue::from(STACK_LANES))?;
+        Ok(out.unchecked_into())
     }
 }
 
