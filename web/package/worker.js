@@ -5,6 +5,15 @@ import init, { Bvh } from "./bvhtrace_web.js";
 let bvh = null;
 onmessage = async ({ data }) => {
   try {
+    if (data.build) {
+      // buildInWorker: the tree built here, off the page's thread, and sent back as bytes.
+      await init();
+      const built = new Bvh(data.build.positions, data.build.indices);
+      const tree = built.toBytes();
+      built.free();
+      postMessage({ tree }, [tree.buffer]);
+      return;
+    }
     if (data.tree) {
       await init();
       bvh?.free();

@@ -15,3 +15,9 @@ export class BvhWorkers {
   /** Stops the workers and frees their trees. */
   terminate(): void;
 }
+
+/**
+ * `new Bvh(positions, indices)` built in a module worker, off the page's thread (call
+ * `init()` first): the same tree, bit for bit.
+ */
+export function buildInWorker(positions: Float32Array, indices?: Uint32Array): Promise<Bvh>;

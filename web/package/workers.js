@@ -3,6 +3,34 @@
 // Rust build; a copy costs the tree's memory once per worker). Each batch is cut into one
 // run of neighbouring rays per worker, and the answers are the one-thread walk's.
 
+import { Bvh } from "./bvhtrace_web.js";
+
+/**
+ * `new Bvh(positions, indices)` built in a module worker, so that the page's thread stays
+ * free while it builds (the module must be initialised here already, by `init()`): resolves
+ * to the same tree, bit for bit, checked as `Bvh.fromBytes` checks it.
+ */
+export function buildInWorker(positions, indices) {
+  return new Promise((resolve, reject) => {
+    const w = new Worker(new URL("./worker.js", import.meta.url), { type: "module" });
+    w.onmessage = ({ data }) => {
+      w.terminate();
+      if (data.tree) {
+        try {
+          resolve(Bvh.fromBytes(data.tree));
+        } catch (e) {
+          reject(e);
+        }
+      } else reject(new Error(data.error));
+    };
+    w.onerror = (e) => {
+      w.terminate();
+      reject(new Error(`bvhtrace worker: ${e.message}`));
+    };
+    w.postMessage({ build: { positions, indices } });
+  });
+}
+
 /** The hits of `parts`, in order, as one `Hits`. */
 function join(parts, ms) {
   const count = parts.reduce((n, p) => n + p.count, 0);

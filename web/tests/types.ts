@@ -2,7 +2,7 @@
 // the declarations the package ships: the types must describe what the README promises.
 import init, { Bvh, InstancedBvh, type Hits, type Hit, type InstancedHits, type TraceOptions } from "bvhtrace";
 import { computeBvh, raycastFirst, acceleratedRaycast, type GeometryLike } from "bvhtrace/three";
-import { BvhWorkers } from "bvhtrace/workers";
+import { BvhWorkers, buildInWorker } from "bvhtrace/workers";
 
 export async function example(geometry: GeometryLike): Promise<number> {
   await init();
@@ -23,7 +23,8 @@ export async function example(geometry: GeometryLike): Promise<number> {
   const placed: InstancedHits = scene.intersect(new Float32Array(3), new Float32Array(3));
   const which: number = placed.instance[0] + placed.meshPrimitive[0] + scene.instanceCount;
   scene.free();
-  const copy: Bvh = Bvh.fromBytes(bvh.toBytes());
+  const copy: Bvh = await buildInWorker(positions);
+  Bvh.fromBytes(copy.toBytes()).free();
   const pool = await BvhWorkers.create(copy, 2);
   const parallel: Hits = await pool.intersect(new Float32Array(3), new Float32Array(3), { near: 0 });
   pool.terminate();

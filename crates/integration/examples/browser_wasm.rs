@@ -14,6 +14,7 @@
 //! and the WebGPU backend asked for must give the WebAssembly walk's hits, bit for bit, as
 //! must a compute shader of the page's own on a WebGPU device of its own, composed after
 //! the library `bvh.wgsl()` gives and bound to the arrays it gives.
+//! The tree built in a worker (`buildInWorker`) must be the page's, byte for byte.
 //! The same rays go over web workers too (`bvhtrace/workers`' `BvhWorkers`, as many as the
 //! page's hardware concurrency), whose hits must be the one thread's.
 //!
@@ -147,7 +148,12 @@ try {
     }
   });
   // The same rays over web workers, each with a copy of the tree.
-  const { BvhWorkers } = await import("./workers.js");
+  const { BvhWorkers, buildInWorker } = await import("./workers.js");
+  // The same tree built off the page's thread.
+  const elsewhere = await buildInWorker(tris);
+  const [a, b] = [bvh.toBytes(), elsewhere.toBytes()];
+  const sameTree = a.length === b.length && a.every((x, i) => x === b[i]);
+  elsewhere.free();
   const pool = await BvhWorkers.create(bvh);
   let workersMs = Infinity, workersDiffer = 0;
   for (let k = 0; k < 3; k++) {
@@ -177,7 +183,8 @@ try {
   const own = await ownShader(bvh, rays, packed);
   const gpuNote = `${g.backend} (asked for): ${gpuDiffer} of ` +
     `${n} hits differ from the WebAssembly walk's, ${g.ms.toFixed(0)} ms; a shader of the page's ` +
-    `own on its own device (bvh.wgsl()): ${own.differ} differ, ${own.ms.toFixed(0)} ms`;
+    `own on its own device (bvh.wgsl()): ${own.differ} differ, ${own.ms.toFixed(0)} ms; the tree ` +
+    `built in a worker (buildInWorker) ${sameTree ? "the same" : "a different one"}`;
   let threeMs = 0, threeHits = -1, same = 0, tie = 0, differ = 0, three = "three-mesh-bvh: not installed";
   try {
     const THREE = await import("three");
@@ -218,7 +225,8 @@ try {
     same, tie, differ, compiled, workersMs, workers, workersDiffer]);
   document.getElementById("out").textContent = "done";
   await post("/result", new Blob([figures, packed, single,
-    [`${hits.backend}; ${three}`, choice, gpuNote, gpuDiffer + own.differ].join("\n")]));
+    [`${hits.backend}; ${three}`, choice, gpuNote, gpuDiffer + own.differ + (sameTree ? 0 : 1)]
+      .join("\n")]));
 } catch (e) {
   await post("/error", String(e && e.stack || e));
 }
