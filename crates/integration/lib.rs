@@ -50,6 +50,28 @@ pub mod browser {
         }
     }
 
+    /// The triangles of the scene the browser checks trace: `spec`, or `bunny_69k` from
+    /// the shared scenes when that folder is there, else the builtin icosphere (said on
+    /// stdout); with the spec that was loaded.
+    pub fn scene_or_bunny(
+        spec: Option<String>,
+    ) -> Result<(String, Vec<bvhtrace_core::Triangle>), Box<dyn std::error::Error>> {
+        use bvhtrace_scene::shared_scenes_dir;
+        let spec = match (spec, shared_scenes_dir()) {
+            (Some(spec), _) => spec,
+            (None, Some(dir)) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
+            (None, None) => {
+                println!("no shared scenes folder: using builtin:icosphere:6 instead of bunny_69k");
+                "builtin:icosphere:6".to_string()
+            }
+        };
+        let load = bvhtrace_scene::LoadOptions::with_meshes(shared_scenes_dir());
+        let tris = bvhtrace_scene::load_with(&spec, &load)?
+            .flatten()
+            .triangles()?;
+        Ok((spec, tris))
+    }
+
     /// The Chromium binary: `$BVHTRACE_CHROMIUM`, else `chromium`; `None` when it does not
     /// run.
     pub fn chromium() -> Option<String> {

@@ -45,7 +45,7 @@ use bvhtrace_core::{
     Triangle, trace_rays,
 };
 use bvhtrace_integration::browser::{self, Report};
-use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_scene::Camera;
 use bvhtrace_shade::args::parse_size;
 
 type Error = Box<dyn std::error::Error>;
@@ -227,18 +227,7 @@ fn run() -> Result<(), Error> {
     let args = parse_args()?;
     let (dist, (w, h)) = (&args.dist, args.size);
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
-    let spec = match (&args.scene, shared_scenes_dir()) {
-        (Some(spec), _) => spec.clone(),
-        (None, Some(dir)) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
-        (None, None) => {
-            println!("no shared scenes folder: using builtin:icosphere:6 instead of bunny_69k");
-            "builtin:icosphere:6".to_string()
-        }
-    };
-    let load = bvhtrace_scene::LoadOptions::with_meshes(shared_scenes_dir());
-    let tris = bvhtrace_scene::load_with(&spec, &load)?
-        .flatten()
-        .triangles()?;
+    let (spec, tris) = browser::scene_or_bunny(args.scene.clone())?;
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
     let b = bvh.bounds();
     let rays = Camera::frame(b.min, b.max, w as f32 / h as f32).rays(w, h);

@@ -39,7 +39,7 @@ use std::time::Duration;
 
 use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, TraceOptions, Traversal, trace_rays};
 use bvhtrace_integration::browser::{self, Report};
-use bvhtrace_scene::{Camera, shared_scenes_dir};
+use bvhtrace_scene::Camera;
 use bvhtrace_shade::args::parse_size;
 
 type Error = Box<dyn std::error::Error>;
@@ -302,18 +302,7 @@ fn run() -> Result<(), Error> {
         }
     }
     let chromium = browser::chromium().ok_or("no chromium installed (apt-get install chromium)")?;
-    let spec = match (scene, shared_scenes_dir()) {
-        (Some(spec), _) => spec,
-        (None, Some(dir)) => dir.join("glb/bunny_69k.glb").to_string_lossy().into_owned(),
-        (None, None) => {
-            println!("no shared scenes folder: using builtin:icosphere:6 instead of bunny_69k");
-            "builtin:icosphere:6".to_string()
-        }
-    };
-    let load = bvhtrace_scene::LoadOptions::with_meshes(shared_scenes_dir());
-    let tris = bvhtrace_scene::load_with(&spec, &load)?
-        .flatten()
-        .triangles()?;
+    let (spec, tris) = browser::scene_or_bunny(scene)?;
     let bvh = FlatBvh::build(&tris, &BuildOptions::default())?;
     let b = bvh.bounds();
     let (w, h) = size;
