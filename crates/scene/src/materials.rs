@@ -12,7 +12,6 @@
 //! factors (a masked one is cut by the base colour factor's alpha alone), and one warning
 //! names such materials and their images.
 
-use std::io::Cursor;
 use std::path::Path;
 
 use glam::{Vec3, Vec4};
@@ -26,6 +25,7 @@ const MAX_IMAGE_BYTES: u64 = 1 << 28;
 
 /// The most texels a texture may have (8192 x 8192, 256 MiB decoded): larger ones are
 /// left out rather than risking the memory of a whole scene on one image.
+#[cfg(feature = "textures")]
 const MAX_TEXELS: u64 = 1 << 26;
 
 /// How many unusable textures the warning names one by one.
@@ -304,12 +304,20 @@ fn image_bytes(src: &ImageSource<'_>, image: &json::Image) -> Result<Vec<u8>, St
     }
 }
 
+/// Without the `textures` feature no image is decoded: the texture is left out, with a
+/// warning, as an unreadable one is.
+#[cfg(not(feature = "textures"))]
+fn decode(_bytes: &[u8], _name: String) -> Result<(Texture, bool), String> {
+    Err("textures are left out of this build (bvhtrace-scene's `textures` feature)".into())
+}
+
 /// An encoded PNG or JPEG image as an 8-bit RGBA texture named `name`, and whether its
 /// alpha can cut (false for a JPEG).
+#[cfg(feature = "textures")]
 fn decode(bytes: &[u8], name: String) -> Result<(Texture, bool), String> {
     use image::ImageFormat;
     let reader = || {
-        image::ImageReader::new(Cursor::new(bytes))
+        image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
             .map_err(|e| format!("not a readable PNG or JPEG: {e}"))
     };
