@@ -435,9 +435,9 @@ impl Bvh {
         })
     }
 
-    /// [`Bvh::new`], then the backend `options.backend` asks for (see `CreateOptions`):
-    /// resolves to the BVH, whose `backend` says where `intersectAsync` traces and
-    /// `backendNote` why.
+    /// `new Bvh(positions, indices)`, then the backend `options.backend` asks for (see
+    /// `CreateOptions`): resolves to the BVH, whose `backend` says where `intersectAsync`
+    /// traces and `backendNote` why.
     pub async fn create(
         positions: Vec<f32>,
         indices: Option<Vec<u32>>,
@@ -448,7 +448,8 @@ impl Bvh {
         Ok(bvh)
     }
 
-    /// [`Bvh::from_gltf`], then the backend `options.backend` asks for, as `create` does.
+    /// `Bvh.fromGltf(bytes, label)`, then the backend `options.backend` asks for, as
+    /// `create` does.
     #[wasm_bindgen(js_name = createFromGltf)]
     pub async fn create_from_gltf(
         bytes: Vec<u8>,
@@ -516,7 +517,7 @@ impl Bvh {
         hits_out(&hits, Bvh::wasm_name(), ms)
     }
 
-    /// [`Bvh::intersect`] on the backend chosen at `create` (WebGPU or the WebAssembly
+    /// `intersect` on the backend chosen at `create` (WebGPU or the WebAssembly
     /// walk): the same answers, bit for bit.
     #[wasm_bindgen(js_name = intersectAsync)]
     pub async fn intersect_async(
