@@ -46,6 +46,12 @@ mkdir -p web/dist/three
 cp web/node_modules/three/build/three.module.js web/node_modules/three/build/three.core.js \
   web/dist/three/
 cp web/three.html web/dist/
-# The declarations, as a TypeScript user compiles against them.
+# The declarations, as a TypeScript user compiles against them: web/tests/types.ts in a
+# project with the packed package in its node_modules, resolved through its exports.
+rm -rf web/dist/tsuser
+mkdir -p web/dist/tsuser/node_modules
+ln -s ../../packed/package web/dist/tsuser/node_modules/bvhtrace
+echo '{ "type": "module" }' > web/dist/tsuser/package.json
+cp web/tests/types.ts web/dist/tsuser/index.ts
 web/node_modules/.bin/tsc -p web/tests/tsconfig.json
 echo "tsc: web/tests/types.ts compiles against the package's declarations"
