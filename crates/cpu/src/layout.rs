@@ -232,6 +232,9 @@ pub struct CpuBvh {
     pub(crate) instances: Vec<CpuInstance>,
     /// The alpha masks the walks cut candidates by (the tree's own tables, shared).
     pub(crate) masks: Option<Arc<MaskTables>>,
+    /// The box around the root's children ([`crate::tests4::SceneBox::around`]), made once:
+    /// rays that miss it take no walk.
+    pub(crate) scene_box: Option<crate::tests4::SceneBox>,
 }
 
 /// One instance as the two-level walk reads it.
@@ -309,6 +312,7 @@ impl CpuBvh {
             // The reserve given back: a large allocation shrinks in place.
             nodes.shrink_to_fit();
             return Ok(CpuBvh {
+                scene_box: nodes.first().and_then(crate::tests4::SceneBox::around),
                 nodes,
                 blocks,
                 box_index,
@@ -376,6 +380,7 @@ impl CpuBvh {
             }
         }
         Ok(CpuBvh {
+            scene_box: nodes.first().and_then(crate::tests4::SceneBox::around),
             nodes,
             blocks,
             box_index,

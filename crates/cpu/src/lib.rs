@@ -446,7 +446,7 @@ fn run_as<
     // Plain loops: an iterator adaptor could be compiled apart from an AVX2 caller.
     // Rays are prepared eight at a time, then walked one by one; those that miss the root
     // node's boxes altogether (most camera rays around a framed object) take no walk.
-    let scene = bvh.nodes.first().and_then(tests4::SceneBox::around);
+    let scene = bvh.scene_box;
     let mut start = 0;
     while start < rays.len() {
         let end = (start + tests4::RAYS).min(rays.len());
