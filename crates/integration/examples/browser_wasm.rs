@@ -37,7 +37,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, TraceOptions, Traversal, trace_rays};
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, TraceOptions, Traversal, trace_rays};
 use bvhtrace_integration::browser::{self, Report};
 use bvhtrace_scene::Camera;
 use bvhtrace_shade::args::parse_size;
@@ -108,7 +108,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(local_invocation_
   await read.mapAsync(GPUMapMode.READ);
   const got = new Uint32Array(read.getMappedRange());
   let differ = 0;
-  for (let i = 0; i < 4 * n; i++) differ += got[i] !== want[i];
+  for (let i = 0; i < 4 * n; i += 4) {
+    differ += got[i] !== want[i] || got[i + 1] !== want[i + 1] || got[i + 2] !== want[i + 2]
+      || got[i + 3] !== want[i + 3];
+  }
   const ms = performance.now() - start;
   device.destroy();
   return { differ, ms };
@@ -154,16 +157,21 @@ try {
   const [a, b] = [bvh.toBytes(), elsewhere.toBytes()];
   const sameTree = a.length === b.length && a.every((x, i) => x === b[i]);
   elsewhere.free();
+  // The rays whose hit in `x` is not the WebAssembly walk's, bit for bit.
+  const differing = (x) => {
+    let d = 0;
+    for (let i = 0; i < n; i++) {
+      d += x.primitive[i] !== hits.primitive[i] || !Object.is(x.t[i], hits.t[i])
+        || !Object.is(x.u[i], hits.u[i]) || !Object.is(x.v[i], hits.v[i]);
+    }
+    return d;
+  };
   const pool = await BvhWorkers.create(bvh);
   let workersMs = Infinity, workersDiffer = 0;
   for (let k = 0; k < 3; k++) {
     const w = await pool.intersect(origins, dirs, { near, far });
     workersMs = Math.min(workersMs, w.ms);
-    workersDiffer = 0;
-    for (let i = 0; i < n; i++) {
-      workersDiffer += w.primitive[i] !== hits.primitive[i] || !Object.is(w.t[i], hits.t[i])
-        || !Object.is(w.u[i], hits.u[i]) || !Object.is(w.v[i], hits.v[i]);
-    }
+    workersDiffer = differing(w);
   }
   const workers = pool.count;
   pool.terminate();
@@ -174,11 +182,7 @@ try {
   auto.free();
   const gpu = await Bvh.create(tris, undefined, { backend: "webgpu" });
   const g = await gpu.intersectAsync(origins, dirs, { near, far });
-  let gpuDiffer = 0;
-  for (let i = 0; i < n; i++) {
-    gpuDiffer += g.primitive[i] !== hits.primitive[i] || !Object.is(g.t[i], hits.t[i])
-      || !Object.is(g.u[i], hits.u[i]) || !Object.is(g.v[i], hits.v[i]);
-  }
+  const gpuDiffer = differing(g);
   gpu.free();
   const own = await ownShader(bvh, rays, packed);
   const gpuNote = `${g.backend} (asked for): ${gpuDiffer} of ` +
@@ -400,7 +404,7 @@ fn report(
     };
     let (db, ds) = (differ(batch), differ(single));
     let n = cpu.len();
-    let hits = cpu.iter().filter(|h| h.prim < MISS - 1).count();
+    let hits = cpu.iter().filter(|h| h.is_hit()).count();
     let rate = |ms: f64| n as f64 / ms / 1e3;
     println!(
         "browser wasm walk ({spec}, {triangles} triangles; {note}): {n} rays, {hits} hits; \

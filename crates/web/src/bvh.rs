@@ -4,7 +4,7 @@
 //! through the kernels on the page's WebGPU when it is a real GPU; both give the same
 //! answers as every other bvhtrace backend.
 
-use bvhtrace_core::{BuildOptions, FlatBvh, Hit, MISS, Query, Ray, TraceOptions, Traversal};
+use bvhtrace_core::{BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, Traversal};
 use bvhtrace_cpu::{CpuBvh, Isa, RayScratch};
 use bvhtrace_gpu::engine::walks::STACK_LANES;
 use bvhtrace_gpu::engine::{LibraryShape, wgsl_library};
@@ -127,15 +127,13 @@ extern "C" {
 extern "C" {
     /// A `Hit` from its numbers.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn hit_object(
-        t: f32,
-        primitive: u32,
-        u: f32,
-        v: f32,
-        x: f32,
-        y: f32,
-        z: f32,
-    ) -> HitOut;
+    fn hit_object(t: f32, primitive: u32, u: f32, v: f32, x: f32, y: f32, z: f32) -> HitOut;
+}
+
+/// The `Hit` object of `ray`'s hit `h`, with its point.
+pub(crate) fn hit_of(ray: &Ray, h: &Hit) -> HitOut {
+    let p = Vec3::from(ray.origin) + h.t * Vec3::from(ray.dir);
+    hit_object(h.t, h.prim, h.u, h.v, p.x, p.y, p.z)
 }
 
 /// An error for JavaScript: an `Error` with the library's message.
@@ -170,17 +168,14 @@ fn triangles(
         )));
     }
     let vertices: Vec<Vec3> = positions.chunks_exact(3).map(Vec3::from_slice).collect();
-    let mesh = match indices {
+    let indices: Vec<[u32; 3]> = match indices {
         Some(idx) if !idx.len().is_multiple_of(3) => {
             return Err(err(format!(
                 "indices: {} is not a whole number of triangles (three indices each)",
                 idx.len()
             )));
         }
-        Some(idx) => bvhtrace_core::TriangleMesh {
-            positions: vertices,
-            indices: idx.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-        },
+        Some(idx) => idx.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
         None if !vertices.len().is_multiple_of(3) => {
             return Err(err(format!(
                 "positions: {} vertices without indices is not a whole number of triangles \
@@ -188,12 +183,14 @@ fn triangles(
                 vertices.len()
             )));
         }
-        None => bvhtrace_core::TriangleMesh::from_triangles(
-            &vertices
-                .chunks_exact(3)
-                .map(|c| [c[0], c[1], c[2]])
-                .collect::<Vec<_>>(),
-        ),
+        // Without indices, every three vertices in turn.
+        None => (0..vertices.len() as u32 / 3)
+            .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+            .collect(),
+    };
+    let mesh = bvhtrace_core::TriangleMesh {
+        positions: vertices,
+        indices,
     };
     mesh.triangles().map_err(err)
 }
@@ -257,6 +254,7 @@ pub(crate) fn rays(origins: &[f32], directions: &[f32], asked: Asked) -> Result<
 /// The hits as [`TYPES`]' `Hits`.
 pub(crate) fn hits_out(hits: &[Hit], backend: &str, ms: f64) -> Result<HitsOut, JsError> {
     let n = hits.len();
+    let hit_count = hits.iter().filter(|h| h.is_hit()).count();
     let (mut t, mut prim, mut u, mut v) = (
         Vec::with_capacity(n),
         Vec::with_capacity(n),
@@ -269,7 +267,6 @@ pub(crate) fn hits_out(hits: &[Hit], backend: &str, ms: f64) -> Result<HitsOut, 
         u.push(h.u);
         v.push(h.v);
     }
-    let hit_count = prim.iter().filter(|&&p| p < MISS - 1).count();
     let out = Object::new();
     set(&out, "count", &JsValue::from(n as u32))?;
     set(&out, "hitCount", &JsValue::from(hit_count as u32))?;
@@ -320,6 +317,11 @@ impl Bvh {
     /// Builds the tree and its CPU layout over `tris`.
     fn over(tris: &[bvhtrace_core::Triangle], indices: Option<Vec<u32>>) -> Result<Bvh, JsError> {
         let flat = FlatBvh::build(tris, &BuildOptions::default()).map_err(err)?;
+        Bvh::of(flat, indices)
+    }
+
+    /// `flat` with its CPU layout, traced by the WebAssembly walk.
+    fn of(flat: FlatBvh, indices: Option<Vec<u32>>) -> Result<Bvh, JsError> {
         let cpu = CpuBvh::from_flat(&flat).map_err(err)?;
         Ok(Bvh {
             flat,
@@ -424,15 +426,7 @@ impl Bvh {
     #[wasm_bindgen(js_name = fromBytes)]
     pub fn from_bytes(bytes: &[u8]) -> Result<Bvh, JsError> {
         let flat = parse_serial(bytes).map_err(|why| err(format!("Bvh.fromBytes: {why}")))?;
-        let cpu = CpuBvh::from_flat(&flat).map_err(err)?;
-        Ok(Bvh {
-            flat,
-            cpu,
-            indices: None,
-            device: None,
-            note: choice::wasm_note(),
-            scratch: RefCell::default(),
-        })
+        Bvh::of(flat, None)
     }
 
     /// `new Bvh(positions, indices)`, then the backend `options.backend` asks for (see
@@ -554,11 +548,10 @@ impl Bvh {
     ) -> HitOut {
         let ray = one_ray([ox, oy, oz], [dx, dy, dz], near, far);
         let h = self.trace_one(&ray, Query::Closest);
-        if h.prim >= MISS - 1 {
-            return JsValue::UNDEFINED.unchecked_into();
+        match h.is_hit() {
+            true => hit_of(&ray, &h),
+            false => JsValue::UNDEFINED.unchecked_into(),
         }
-        let p = Vec3::from(ray.origin) + h.t * Vec3::from(ray.dir);
-        hit_object(h.t, h.prim, h.u, h.v, p.x, p.y, p.z)
     }
 
     /// Whether any triangle lies on the ray from `(ox, oy, oz)` along `(dx, dy, dz)` within
@@ -576,7 +569,7 @@ impl Bvh {
         far: Option<f32>,
     ) -> bool {
         let ray = one_ray([ox, oy, oz], [dx, dy, dz], near, far);
-        self.trace_one(&ray, Query::Any).prim < MISS - 1
+        self.trace_one(&ray, Query::Any).is_hit()
     }
 
     /// The vertices moved: `positions` holds the same vertices in their new places (the

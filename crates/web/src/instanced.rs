@@ -8,7 +8,7 @@ use glam::{Affine3A, Mat4};
 use js_sys::{Object, Uint32Array};
 use wasm_bindgen::prelude::*;
 
-use crate::bvh::{Asked, Bvh, TraceOptionsArg, err, hit_object, hits_out, one_ray, rays, set};
+use crate::bvh::{Asked, Bvh, TraceOptionsArg, err, hit_of, hits_out, one_ray, rays, set};
 
 #[wasm_bindgen]
 extern "C" {
@@ -23,7 +23,7 @@ extern "C" {
 /// Meshes placed by transforms (Embree's instances, three.js's `InstancedMesh`): add each
 /// mesh once (`addMesh`, from a `Bvh`), place it as often as needed (`addInstance`, a
 /// column-major 4x4 matrix such as three.js's `Matrix4.elements`), then trace. Moving the
-/// instances (`setTransforms`) rebuilds only the top tree. Call `free()` when done.
+/// instances (`setTransforms`) keeps the meshes' trees. Call `free()` when done.
 #[wasm_bindgen]
 #[derive(Default)]
 pub struct InstancedBvh {
@@ -104,8 +104,9 @@ impl InstancedBvh {
         self.instances.len() as u32
     }
 
-    /// Moves every instance: 16 numbers per instance, in the order they were added. Only
-    /// the top tree is rebuilt. An unusable transform (not affine, NaN, not invertible) is
+    /// Moves every instance: 16 numbers per instance, in the order they were added. The
+    /// meshes' trees are kept and the top tree rebuilt (the CPU layout is converted again,
+    /// the meshes' parts too). An unusable transform (not affine, NaN, not invertible) is
     /// an error naming the instance, and moves nothing.
     #[wasm_bindgen(js_name = setTransforms)]
     pub fn set_transforms(&mut self, transforms: &[f32]) -> Result<(), JsError> {
@@ -181,12 +182,11 @@ impl InstancedBvh {
             return Err(err("the instances were not built"));
         };
         let h: Hit = bvhtrace_cpu::trace_ray_in(cpu, &ray, Query::Closest, &mut self.scratch);
-        let Some((instance, local)) = (h.prim < MISS - 1).then(|| two.locate(h.prim)).flatten()
-        else {
+        // A miss code is no instance's primitive.
+        let Some((instance, local)) = two.locate(h.prim) else {
             return Ok(JsValue::UNDEFINED.unchecked_into());
         };
-        let p = glam::Vec3::from(ray.origin) + h.t * glam::Vec3::from(ray.dir);
-        let out: Object = hit_object(h.t, h.prim, h.u, h.v, p.x, p.y, p.z).unchecked_into();
+        let out: Object = hit_of(&ray, &h).unchecked_into();
         set(&out, "instance", &JsValue::from(instance))?;
         set(&out, "meshPrimitive", &JsValue::from(local))?;
         Ok(out.unchecked_into())
