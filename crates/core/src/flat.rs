@@ -783,12 +783,22 @@ impl FlatBvh {
         let mut seen = vec![false; n_tris];
         let mut covered = vec![false; n_tris];
         let mut coverage = Coverage::default();
-        // Children in range first: the escape links are computed from them.
+        // Children in range first: the escape links are computed from them. Parents come
+        // before their children, so one pass also measures the depth the walks size by.
+        let mut depth = vec![0u32; n_nodes];
         for (i, n) in self.nodes.iter().enumerate() {
             let r = n.right_or_first as usize;
-            if !n.is_leaf() && (r <= i + 1 || r >= n_nodes || n.axis() > 2) {
+            if n.is_leaf() {
+                continue;
+            }
+            if r <= i + 1 || r >= n_nodes || n.axis() > 2 {
                 return Err(format!("node {i}: bad children {}, {r}", i + 1));
             }
+            (depth[i + 1], depth[r]) = (depth[i] + 1, depth[i] + 1);
+        }
+        let longest = depth.into_iter().max().unwrap_or(0);
+        if longest != self.depth {
+            return Err(format!("depth {} stated, {longest} found", self.depth));
         }
         self.check_escape_links().map_err(|e| e.to_string())?;
         let escapes = self.escapes_or_computed();

@@ -147,3 +147,15 @@ fn a_tree_whose_links_leave_it_is_refused_before_its_escape_links_are_made() {
         assert!(e.starts_with("node 0: bad children"), "{bad}: {e}");
     }
 }
+
+#[test]
+fn a_tree_whose_stated_depth_is_not_its_own_is_refused() {
+    // The walks size their stacks by the depth: one stated too small would overflow them.
+    let bvh = FlatBvh::build(&sphere(), &BuildOptions::default()).unwrap();
+    assert!(bvh.check_invariants().is_ok());
+    for wrong in [0, bvh.depth() - 1, bvh.depth() + 1] {
+        let parts = FlatBvh::from_parts(bvh.nodes().to_vec(), bvh.triangles().to_vec(), wrong);
+        let e = parts.check_invariants().unwrap_err();
+        assert_eq!(e, format!("depth {wrong} stated, {} found", bvh.depth()));
+    }
+}

@@ -651,24 +651,7 @@ fn parse_serial(bytes: &[u8]) -> Result<FlatBvh, String> {
     let tris = bytemuck::pod_collect_to_vec(&bytes[20 + node_bytes..]);
     let flat = FlatBvh::from_parts(nodes, tris, depth);
     flat.check_invariants()?;
-    let longest = longest_path(flat.nodes());
-    if longest != depth {
-        return Err(format!("depth {depth} stated, {longest} found"));
-    }
     Ok(flat)
-}
-
-/// The longest root-to-leaf path of a checked tree, in edges (parents come before
-/// their children).
-fn longest_path(nodes: &[bvhtrace_core::FlatNode]) -> u32 {
-    let mut depth = vec![0u32; nodes.len()];
-    for (i, n) in nodes.iter().enumerate() {
-        if !n.is_leaf() {
-            depth[i + 1] = depth[i] + 1;
-            depth[n.right_or_first as usize] = depth[i] + 1;
-        }
-    }
-    depth.into_iter().max().unwrap_or(0)
 }
 
 /// One ray from JavaScript's numbers.
