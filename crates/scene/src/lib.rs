@@ -51,6 +51,7 @@ mod glb;
 mod loader;
 mod masks;
 mod materials;
+mod shutter;
 mod two_level;
 
 use std::path::{Path, PathBuf};
@@ -69,6 +70,7 @@ pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
 pub use loader::{load_gltf_file, load_gltf_slice};
+pub use shutter::SHUTTER_TOLERANCE;
 pub use two_level::{SceneBvh, TracingBvhError};
 
 /// The scene tools load when given none: the Cornell box.
