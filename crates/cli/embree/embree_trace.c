@@ -18,7 +18,11 @@
  * BVHTRACE_EMBREE_QUERY=any traces occlusion (rtcOccluded1: hits counts occluded rays,
  * t_sum is 0). HITS_OUT, if given, receives one u32 primitive index per ray
  * (0xFFFFFFFF for a miss). Dump format (little endian): "BVHD", u32 version = 1, u32 n_tris,
- * u32 n_rays, n_tris * 9 f32 corners, n_rays * 8 f32 rays (origin, t_min, dir, t_max). */
+ * u32 n_rays, n_tris * 9 f32 corners, n_rays * 8 f32 rays (origin, t_min, dir, t_max).
+ * Version 2 (`bvhtrace dump --shutter`) is a moving mesh: after n_rays a u32 time step count
+ * S, then S * n_tris * 9 f32 corners (step 0's triangles first), the rays, and n_rays f32
+ * times; the triangles get S time steps (rtcSetGeometryTimeStepCount) and each ray its
+ * time. */
 #ifdef BVHTRACE_EMBREE4
 #include <embree4/rtcore.h>
 #else
@@ -36,6 +40,7 @@ typedef struct { float org[3], tmin, dir[3], tmax; } Ray;
 
 static RTCScene scene;
 static const Ray *rays;
+static const float *times;
 static uint32_t n_rays, n_threads;
 static uint32_t *hit_prim;
 static float *hit_t;
@@ -61,7 +66,7 @@ static void *worker(void *arg) {
     rh.ray.org_x = r->org[0]; rh.ray.org_y = r->org[1]; rh.ray.org_z = r->org[2];
     rh.ray.dir_x = r->dir[0]; rh.ray.dir_y = r->dir[1]; rh.ray.dir_z = r->dir[2];
     rh.ray.tnear = r->tmin; rh.ray.tfar = r->tmax;
-    rh.ray.mask = 0xFFFFFFFF; rh.ray.flags = 0; rh.ray.time = 0;
+    rh.ray.mask = 0xFFFFFFFF; rh.ray.flags = 0; rh.ray.time = times ? times[i] : 0.0f;
     rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
     if (occlusion) {
@@ -87,14 +92,20 @@ static void *worker(void *arg) {
   return NULL;
 }
 
-/* A committed triangle-soup geometry of `n` triangles (9 floats each), built with
- * `quality`; `*vertices` (when not NULL) receives its vertex buffer. */
-static RTCGeometry soup(RTCDevice dev, const float *tris, uint32_t n, enum RTCBuildQuality quality, float **vertices) {
+/* A committed triangle-soup geometry of `n` triangles (9 floats each) at `steps` time
+ * steps (step k's triangles at tris + 9 n k), built with `quality`; `*vertices` (when not
+ * NULL) receives step 0's vertex buffer. */
+static RTCGeometry soup(RTCDevice dev, const float *tris, uint32_t n, uint32_t steps, enum RTCBuildQuality quality, float **vertices) {
   RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
   rtcSetGeometryBuildQuality(g, quality);
-  float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n);
+  if (steps > 1) rtcSetGeometryTimeStepCount(g, steps);
+  float *v = NULL;
+  for (uint32_t k = 0; k < steps; k++) {
+    float *vk = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, k, RTC_FORMAT_FLOAT3, 12, 3 * (size_t)n);
+    memcpy(vk, tris + 9 * (size_t)n * k, 36 * (size_t)n);
+    if (k == 0) v = vk;
+  }
   unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, n);
-  memcpy(v, tris, 36 * (size_t)n);
   for (uint32_t i = 0; i < 3 * n; i++) ix[i] = i;
   rtcCommitGeometry(g);
   if (vertices) *vertices = v;
@@ -122,22 +133,28 @@ int main(int argc, char **argv) {
   if (!f) { perror(argv[1]); return 1; }
   char magic[4];
   uint32_t hdr[3];
-  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || hdr[0] != 1) {
-    fprintf(stderr, "%s: not a bvhtrace dump (version 1)\n", argv[1]);
+  uint32_t steps = 1;
+  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || (hdr[0] != 1 && hdr[0] != 2) ||
+      (hdr[0] == 2 && (fread(&steps, 4, 1, f) != 1 || steps < 2 || steps > RTC_MAX_TIME_STEP_COUNT))) {
+    fprintf(stderr, "%s: not a bvhtrace dump (version 1 or 2)\n", argv[1]);
     return 1;
   }
   uint32_t n_tris = hdr[1];
   n_rays = hdr[2];
-  float *tris = malloc(sizeof(float) * 9 * (size_t)n_tris);
+  size_t n_corners = 9 * (size_t)n_tris * steps;
+  float *tris = malloc(sizeof(float) * n_corners);
   Ray *r = malloc(sizeof(Ray) * (size_t)n_rays);
+  float *ray_times = steps > 1 ? malloc(4 * (size_t)n_rays) : NULL;
   hit_prim = malloc(4 * (size_t)n_rays);
   hit_t = malloc(4 * (size_t)n_rays);
-  if (!tris || !r || !hit_prim || !hit_t || fread(tris, 36, n_tris, f) != n_tris || fread(r, sizeof(Ray), n_rays, f) != n_rays) {
+  if (!tris || !r || !hit_prim || !hit_t || (steps > 1 && !ray_times) || fread(tris, 4, n_corners, f) != n_corners ||
+      fread(r, sizeof(Ray), n_rays, f) != n_rays || (ray_times && fread(ray_times, 4, n_rays, f) != n_rays)) {
     fprintf(stderr, "%s: truncated dump\n", argv[1]);
     return 1;
   }
   fclose(f);
   rays = r;
+  times = ray_times;
 
   char cfg[64];
   snprintf(cfg, sizeof cfg, "threads=%u", n_threads);
@@ -148,7 +165,7 @@ int main(int argc, char **argv) {
     scene = rtcNewScene(dev);
     rtcSetSceneFlags(scene, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
     rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
-    RTCGeometry g = soup(dev, tris, n_tris, RTC_BUILD_QUALITY_MEDIUM, NULL);
+    RTCGeometry g = soup(dev, tris, n_tris, steps, RTC_BUILD_QUALITY_MEDIUM, NULL);
     rtcAttachGeometry(scene, g);
     rtcReleaseGeometry(g);
     rtcCommitScene(scene);
@@ -201,7 +218,7 @@ int main(int argc, char **argv) {
       RTCScene rs = rtcNewScene(dev);
       rtcSetSceneFlags(rs, RTC_SCENE_FLAG_ROBUST | RTC_SCENE_FLAG_DYNAMIC);
       float *v;
-      RTCGeometry g = soup(dev, tris, n_tris, RTC_BUILD_QUALITY_REFIT, &v);
+      RTCGeometry g = soup(dev, tris, n_tris, 1, RTC_BUILD_QUALITY_REFIT, &v);
       rtcAttachGeometry(rs, g);
       rtcCommitScene(rs);
       /* Timed: the vertices move, the geometry and the scene are committed again. */
@@ -220,11 +237,11 @@ int main(int argc, char **argv) {
     free(refit);
   }
   double tm = trace[runs / 2];
-  printf("{\"tracer\": \"embree %d.%d.%d %s, medium build%s\", \"threads\": %u, \"triangles\": %u, \"rays\": %u, "
+  printf("{\"tracer\": \"embree %d.%d.%d %s, medium build%s\", \"threads\": %u, \"triangles\": %u, \"time_steps\": %u, \"rays\": %u, "
          "\"hits\": %llu, \"t_sum\": %.6f, \"build_ms\": %.3f, \"trace_ms\": %.3f, \"mrays_per_s\": %.3f, "
          "\"refit_ms\": %.3f}\n",
          RTC_VERSION_MAJOR, RTC_VERSION_MINOR, RTC_VERSION_PATCH, robust ? "robust" : "fast",
-         occlusion ? ", occlusion" : "", n_threads, n_tris, n_rays,
+         occlusion ? ", occlusion" : "", n_threads, n_tris, steps, n_rays,
          (unsigned long long)hits, t_sum, build[runs / 2], tm, n_rays / tm / 1e3, refit_ms);
   rtcReleaseScene(scene);
   rtcReleaseDevice(dev);

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
+use bvhtrace_core::motion::MotionMesh;
 use bvhtrace_core::{Ray, Triangle};
 
 /// The dump format: "BVHD", u32 version 1, u32 triangle count, u32 ray count, 9 f32 per
@@ -14,11 +15,40 @@ pub fn dump_bytes(tris: &[Triangle], rays: &[Ray]) -> Vec<u8> {
     for v in [1u32, tris.len() as u32, rays.len() as u32] {
         bytes.extend_from_slice(&v.to_le_bytes());
     }
+    put_triangles(&mut bytes, tris);
+    put_rays(&mut bytes, rays);
+    bytes
+}
+
+/// Version 2, a moving mesh: "BVHD", u32 version 2, u32 triangle count, u32 ray count, u32
+/// time steps, the 9 f32 of every triangle at step 0, then at step 1, ..., the rays as in
+/// version 1, then one f32 time in `[0, 1]` per ray, little endian.
+pub fn motion_dump_bytes(mesh: &MotionMesh, rays: &[Ray], times: &[f32]) -> Vec<u8> {
+    let steps = mesh.time_steps();
+    let mut bytes = Vec::with_capacity(20 + steps * mesh.len() * 36 + rays.len() * 36);
+    bytes.extend_from_slice(b"BVHD");
+    for v in [2, mesh.len(), rays.len(), steps] {
+        bytes.extend_from_slice(&(v as u32).to_le_bytes());
+    }
+    for k in 0..steps {
+        put_triangles(&mut bytes, mesh.step(k));
+    }
+    put_rays(&mut bytes, rays);
+    for t in times {
+        bytes.extend_from_slice(&t.to_le_bytes());
+    }
+    bytes
+}
+
+fn put_triangles(bytes: &mut Vec<u8>, tris: &[Triangle]) {
     for p in tris.iter().flatten() {
         for c in p.to_array() {
             bytes.extend_from_slice(&c.to_le_bytes());
         }
     }
+}
+
+fn put_rays(bytes: &mut Vec<u8>, rays: &[Ray]) {
     for r in rays {
         for c in r
             .origin
@@ -30,7 +60,6 @@ pub fn dump_bytes(tris: &[Triangle], rays: &[Ray]) -> Vec<u8> {
             bytes.extend_from_slice(&c.to_le_bytes());
         }
     }
-    bytes
 }
 
 /// A dump written to a temporary file, removed when dropped.

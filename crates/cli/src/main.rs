@@ -5,6 +5,7 @@ mod bench;
 mod cost;
 mod embree;
 mod geometry;
+mod motion;
 mod output;
 mod path;
 mod render;
@@ -71,7 +72,11 @@ fn main() {
     let cli = Cli::parse();
     let result: Result<()> = match cli.command {
         // The path tracer makes, shades and sums its rays on the device: a pipeline of its own.
-        Command::Render(a) if a.shade == bvhtrace_shade::Shade::Path => path::render(a),
+        Command::Render(a)
+            if a.shade == bvhtrace_shade::Shade::Path && a.shutter.shutter.is_none() =>
+        {
+            path::render(a)
+        }
         Command::Render(a) => render::render(a),
         Command::Info(a) => render::info(a),
         Command::Dump(a) => render::dump(a),

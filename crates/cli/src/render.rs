@@ -214,6 +214,12 @@ pub struct RenderArgs {
     pub opaque: bool,
     #[command(flatten)]
     pub path: PathArgs,
+    #[command(flatten)]
+    pub shutter: crate::motion::ShutterArgs,
+    /// How the tree bounds motion (with --shutter): linear (each node's box at every time
+    /// step, interpolated at the ray's time) or merged (one box over the whole shutter).
+    #[arg(long, value_enum, default_value_t = crate::motion::TimeBoundsArg::Linear)]
+    pub time_bounds: crate::motion::TimeBoundsArg,
 }
 
 /// The path tracer's flags of `bvhtrace render`.
@@ -444,6 +450,9 @@ struct Job<'a> {
 
 /// `bvhtrace render`: scene, tree, rays, trace, shading, image.
 pub fn render(args: RenderArgs) -> Result<()> {
+    if let Some(shutter) = args.shutter.shutter {
+        return crate::motion::render(&args, shutter);
+    }
     // Fail on bad flags and output paths before any work.
     let png = AtomicFile::create(&args.output)?;
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
@@ -1183,27 +1192,44 @@ pub struct DumpArgs {
     /// Output file.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// With --shutter: the rays of every sample, each with its time, and the triangles at
+    /// every time step (version 2 of the format).
+    #[command(flatten)]
+    pub shutter: crate::motion::ShutterArgs,
 }
 
 /// Writes the scene's triangles (world space, input order) and the camera's primary rays in
-/// a flat binary form for other tracers (`crates/cli/embree/embree_trace.c`): "BVHD",
-/// u32 version 1, u32 triangle count, u32 ray count, 9 f32 per triangle, 8 f32 per ray
-/// (origin, t_min, dir, t_max), little endian.
+/// a flat binary form for other tracers (`crates/cli/embree/embree_trace.c`; the format is
+/// [`crate::embree::dump_bytes`]'s, or with `--shutter` [`crate::embree::motion_dump_bytes`]'s:
+/// the rays `render --shutter` traces, with their times).
 pub fn dump(args: DumpArgs) -> Result<()> {
     let out = AtomicFile::create(&args.output)?;
     let spec = args.scene.as_deref().unwrap_or(DEFAULT_SCENE);
     let scene = crate::geometry::load_scene(spec)?;
-    let tris = scene.flattened_triangles()?;
     let cam = camera_for(&args.view, &scene)?;
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);
-    let bytes = crate::embree::dump_bytes(&tris, &rays);
+    let (bytes, tris, rays, steps) = match args.shutter.shutter {
+        Some((open, close)) => {
+            let mesh = scene.motion(open, close)?;
+            let (rays, times) = crate::motion::sample_rays(&rays, args.shutter.shutter_samples);
+            let bytes = crate::embree::motion_dump_bytes(&mesh, &rays, &times);
+            (bytes, mesh.len(), rays.len(), mesh.time_steps())
+        }
+        None => {
+            let tris = scene.flattened_triangles()?;
+            (
+                crate::embree::dump_bytes(&tris, &rays),
+                tris.len(),
+                rays.len(),
+                1,
+            )
+        }
+    };
     out.finish_with_bytes(&bytes)?;
     eprintln!(
-        "wrote {}: {} triangles, {} rays ({w}x{h})",
+        "wrote {}: {tris} triangles in {steps} time step(s), {rays} rays ({w}x{h})",
         args.output.display(),
-        tris.len(),
-        rays.len()
     );
     Ok(())
 }

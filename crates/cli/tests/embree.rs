@@ -1,25 +1,26 @@
-//! The bunny hit count against an independent tracer (Embree 3, robust mode) on exactly the
-//! same rays (written by `bvhtrace dump`): the CPU walks, the GPU walks, and the device's
-//! ray queries where it has them. Skips, saying so, without a C compiler and Embree
-//! (`apt-get install libembree-dev`) or without the shared scenes.
+//! Our answers against an independent tracer (Embree 3, robust mode) on exactly the same
+//! rays (written by `bvhtrace dump`): the bunny's hit count on the CPU walks, the GPU walks,
+//! and the device's ray queries where it has them; and moving meshes (node animations,
+//! skins, morph targets over a shutter) ray by ray. Skips, saying so, without a C compiler
+//! and Embree (`apt-get install libembree-dev`), or without the shared scenes for the bunny.
 
 mod common;
 
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use bvhtrace_core::motion::{MotionBvh, MotionMesh, TimeBounds};
+use bvhtrace_core::oracle::{PreparedRay64, agreement};
+use bvhtrace_core::{BuildOptions, Hit, MISS, Query, Ray, Triangle};
 use common::*;
+use glam::Vec3;
 
-#[test]
-fn bunny_hits_match_embree() {
-    let Some(shared) = shared() else {
-        eprintln!("SKIP: ../shared/scenes is absent");
-        return;
-    };
-    if !std::path::Path::new("/usr/include/embree3/rtcore.h").exists() {
+/// `embree_trace` compiled against Embree 3 into `dir`, or `None` (saying why).
+fn embree_trace(dir: &Path) -> Option<PathBuf> {
+    if !Path::new("/usr/include/embree3/rtcore.h").exists() {
         eprintln!("SKIP: Embree 3 headers not found (apt-get install libembree-dev)");
-        return;
+        return None;
     }
-    let dir = scratch("embree");
     let exe = dir.join("embree_trace");
     let src = concat!(env!("CARGO_MANIFEST_DIR"), "/embree/embree_trace.c");
     let cc = Command::new("cc")
@@ -28,8 +29,21 @@ fn bunny_hits_match_embree() {
         .status();
     if !matches!(cc, Ok(s) if s.success()) {
         eprintln!("SKIP: could not compile {src} against Embree");
-        return;
+        return None;
     }
+    Some(exe)
+}
+
+#[test]
+fn bunny_hits_match_embree() {
+    let Some(shared) = shared() else {
+        eprintln!("SKIP: ../shared/scenes is absent");
+        return;
+    };
+    let dir = scratch("embree");
+    let Some(exe) = embree_trace(&dir) else {
+        return;
+    };
     let bunny = shared.join("glb/bunny_69k.glb");
     let cam = [
         "--eye",
@@ -97,6 +111,153 @@ fn bunny_hits_match_embree() {
         assert!(
             (ts - tt).abs() <= 1e-4 * tt,
             "{backend} {builder}: t_sum {ts} vs {tt}"
+        );
+    }
+}
+
+/// A version 2 dump (`bvhtrace dump --shutter`) read back: the moving mesh, the rays and
+/// their times.
+fn read_motion_dump(bytes: &[u8]) -> (MotionMesh, Vec<Ray>, Vec<f32>) {
+    let words: Vec<u32> = bytes[4..]
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert_eq!((&bytes[..4], words[0]), (&b"BVHD"[..], 2));
+    let (n, rays, steps) = (words[1] as usize, words[2] as usize, words[3] as usize);
+    let f: Vec<f32> = words[4..].iter().map(|&w| f32::from_bits(w)).collect();
+    assert_eq!(f.len(), steps * n * 9 + rays * 9, "the dump's length");
+    let tri = |t: &[f32]| [0, 3, 6].map(|k| Vec3::new(t[k], t[k + 1], t[k + 2]));
+    let mesh_steps = (0..steps)
+        .map(|k| f[k * n * 9..(k + 1) * n * 9].chunks(9).map(tri).collect())
+        .collect();
+    let ray_floats = &f[steps * n * 9..steps * n * 9 + rays * 8];
+    let rays_v = ray_floats
+        .chunks(8)
+        .map(|r| Ray {
+            origin: [r[0], r[1], r[2]],
+            t_min: r[3],
+            dir: [r[4], r[5], r[6]],
+            t_max: r[7],
+        })
+        .collect();
+    let times = f[steps * n * 9 + rays * 8..].to_vec();
+    (MotionMesh::new(mesh_steps).unwrap(), rays_v, times)
+}
+
+/// Embree's answer for one ray as a hit: its primitive, at the distance the f64 oracle
+/// finds on that triangle (NaN where the oracle misses it), so the oracle's agreement rule
+/// can judge it.
+fn embree_hit(at: &[Triangle], ray: &Ray, prim: u32) -> Hit {
+    if prim == MISS {
+        return Hit::miss(ray.t_max);
+    }
+    let (t, u, v) = PreparedRay64::new(ray)
+        .intersect(&at[prim as usize])
+        .unwrap_or((f64::NAN, 0.0, 0.0));
+    Hit {
+        t: t as f32,
+        prim,
+        u: u as f32,
+        v: v as f32,
+    }
+}
+
+/// Moving meshes ray by ray against Embree 3's motion blur (a vertex buffer per time step,
+/// `RTCRay::time`), on the rays `render --shutter` traces: the same primitive, or answers
+/// the oracle's rule for tracers that are not watertight by contract allows (a silhouette
+/// edge, or distances f32 cannot tell apart), since Embree interpolates the corners with
+/// its own rounding. Both tree bounds; and the render's hit count is the dump's.
+#[test]
+fn moving_meshes_match_embree_ray_by_ray() {
+    let dir = scratch("embree-motion");
+    let Some(exe) = embree_trace(&dir) else {
+        return;
+    };
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
+    for (file, shutter) in [
+        ("skinned.gltf", "0.1,0.7"),
+        ("morph.gltf", "0.3,0.8"),
+        ("animated.gltf", "0.2,1.9"),
+    ] {
+        let scene = scenes.join(file);
+        let scene = scene.to_str().unwrap();
+        let dump = dir.join(format!("{file}.bin"));
+        let size = [
+            "--size",
+            "200x150",
+            "--shutter",
+            shutter,
+            "--shutter-samples",
+            "3",
+        ];
+        let mut args = vec!["dump", scene, "-o", dump.to_str().unwrap()];
+        args.extend(size);
+        assert_ok(&run(&args));
+        let hits_file = dir.join(format!("{file}.hits"));
+        let out = Command::new(&exe)
+            .arg(&dump)
+            .args(["2", "1"])
+            .arg(&hits_file)
+            .output()
+            .expect("embree_trace runs");
+        assert_ok(&out);
+        let embree: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let theirs: Vec<u32> = std::fs::read(&hits_file)
+            .unwrap()
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let (mesh, rays, times) = read_motion_dump(&std::fs::read(&dump).unwrap());
+        assert!(mesh.time_steps() >= 2 && embree["time_steps"] == mesh.time_steps());
+        assert_eq!(theirs.len(), rays.len());
+        for bounds in [TimeBounds::Linear, TimeBounds::Merged] {
+            let bvh = MotionBvh::build(&mesh, &BuildOptions::default(), bounds).unwrap();
+            let ours = bvh.trace_rays(&rays, &times, Query::Closest);
+            let (mut same, mut excused, mut hits) = (0, 0, 0);
+            for (i, (o, &p)) in ours.iter().zip(&theirs).enumerate() {
+                hits += o.is_hit() as usize;
+                let o_prim = if o.is_hit() { o.prim } else { MISS };
+                if o_prim == p {
+                    same += 1;
+                    continue;
+                }
+                let at = mesh.at(times[i]);
+                let e = embree_hit(&at, &rays[i], p);
+                let rule = agreement(&at, &rays[i], o, &e, false);
+                assert!(
+                    rule.agrees(),
+                    "{file} {bounds:?} ray {i} at {}: ours {o:?}, Embree's {e:?}",
+                    times[i]
+                );
+                excused += 1;
+            }
+            eprintln!(
+                "{file} ({} steps, {bounds:?}): {same} of {} rays the same primitive as Embree, {excused} excused; {hits} hits, Embree {}",
+                mesh.time_steps(),
+                rays.len(),
+                embree["hits"]
+            );
+            assert!(hits > rays.len() / 20, "{file}: the rays miss the scene");
+            assert!(
+                excused * 1000 <= rays.len(),
+                "{file}: {excused} rays differ"
+            );
+        }
+        // The render traces the rays the dump holds.
+        let png = dir.join(format!("{file}.png"));
+        let mut args = vec!["--backend", "cpu"];
+        args.extend(size);
+        let r = render(scene, &png, &args);
+        assert_ok(&r);
+        let ours = json(&r);
+        assert_eq!(ours["rays"], embree["rays"], "{file}");
+        let (h, e) = (
+            ours["hits"].as_f64().unwrap(),
+            embree["hits"].as_f64().unwrap(),
+        );
+        assert!(
+            (h - e).abs() <= 1e-3 * e,
+            "{file}: render {h} hits, Embree {e}"
         );
     }
 }

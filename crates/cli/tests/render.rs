@@ -543,3 +543,86 @@ fn masked_materials_are_cut_alike_on_every_backend() {
         );
     }
 }
+
+/// `--shutter`: a scene that does not move renders as without a shutter, pixel for pixel;
+/// a moving one blurs between its poses at the shutter's ends; flags the blurred render
+/// cannot honour are refused, naming them.
+#[test]
+fn blurred_renders_over_the_shutter() {
+    let still = ["builtin:cornell", "--ao-samples", "4"];
+    for mode in ["normal", "diffuse", "ao"] {
+        let (_, sharp) = render_json(
+            &format!("still-{mode}"),
+            &[&still[..], &["--shade", mode]].concat(),
+        );
+        let blur = [
+            &still[..],
+            &[
+                "--shade",
+                mode,
+                "--shutter",
+                "0,1",
+                "--shutter-samples",
+                "1",
+            ],
+        ];
+        let (j, blurred) = render_json(&format!("still-blur-{mode}"), &blur.concat());
+        assert_eq!(j["time_steps"], 2);
+        assert_eq!(
+            sharp, blurred,
+            "{mode}: a still scene changed under the shutter"
+        );
+    }
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/skinned.gltf");
+    let (_, open) = render_json("blur-open", &[scene, "--time", "0.2"]);
+    let (_, close) = render_json("blur-close", &[scene, "--time", "0.6"]);
+    for bounds in ["linear", "merged"] {
+        let args = [scene, "--shutter", "0.2,0.6", "--time-bounds", bounds];
+        let (j, blurred) = render_json(&format!("blur-{bounds}"), &args);
+        assert_eq!(j["time_bounds"], bounds);
+        assert!(j["time_steps"].as_u64().unwrap() > 2, "{j}");
+        assert_eq!(j["rays"], 96 * 72 * 8);
+        assert!(
+            blurred != open && blurred != close,
+            "the blur is one of its ends"
+        );
+    }
+    for bad in [
+        &["--backend", "gpu"][..],
+        &["--shade", "path"],
+        &["--time", "0.3"],
+        &["--traversal", "stackless"],
+    ] {
+        let mut args = vec![
+            "render",
+            scene,
+            "--shutter",
+            "0.2,0.6",
+            "-o",
+            "/tmp/never.png",
+        ];
+        args.extend(bad);
+        let out = run(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("--shutter"),
+            "{bad:?}: {err}"
+        );
+    }
+    for shutter in ["0.6,0.2", "nan,1", "0.5", "0.5,0.5"] {
+        let out = run(&[
+            "render",
+            scene,
+            "--shutter",
+            shutter,
+            "-o",
+            "/tmp/never.png",
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("OPEN,CLOSE"),
+            "{shutter}: {err}"
+        );
+    }
+    assert!(!std::path::Path::new("/tmp/never.png").exists());
+}

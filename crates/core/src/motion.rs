@@ -296,6 +296,11 @@ impl MotionBvh {
         self.depth
     }
 
+    /// The box around every triangle over the whole shutter.
+    pub fn bounds(&self) -> Aabb {
+        self.nodes[0].aabb()
+    }
+
     /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.prims.len()

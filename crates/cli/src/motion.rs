@@ -1,0 +1,312 @@
+//! Motion blur in `bvhtrace render --shutter` and `bvhtrace dump --shutter`: the scene's
+//! animation over the shutter (`Scene::motion`), a `MotionBvh` over it, and rays that each
+//! carry a time.
+//!
+//! Each pixel takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as
+//! many equal parts of the shutter (stratified, jittered by a hash of the pixel), so the
+//! samples of one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO)
+//! leave at its time and meet the scene at that time.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use bvhtrace_core::motion::{MotionBvh, MotionMesh, TimeBounds};
+use bvhtrace_core::{Counters, Hit, Query, Ray, Triangle};
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde_json::json;
+
+use crate::backend::Backend;
+use crate::geometry::Builder;
+use crate::output::{AtomicFile, JsonOut, write_png};
+use crate::render::{RenderArgs, camera_for};
+use crate::shade::{self, Pixels, Shade, View};
+
+/// The shutter flags of `render` and `dump`.
+#[derive(clap::Args, Clone)]
+pub struct ShutterArgs {
+    /// Open the shutter from OPEN to CLOSE seconds of the scene's animation and blur what
+    /// moves: each pixel's samples spread over the shutter, each meeting the scene where
+    /// it is at its time (node animations, skins and morphs, followed in as many time
+    /// steps as keep the motion between them straight). Traced on the CPU.
+    #[arg(long, value_name = "OPEN,CLOSE", value_parser = parse_shutter, allow_hyphen_values = true)]
+    pub shutter: Option<(f32, f32)>,
+    /// Samples per pixel over the shutter (with --shutter).
+    #[arg(long, value_name = "N", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub shutter_samples: u32,
+}
+
+/// `--time-bounds`: [`TimeBounds`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum TimeBoundsArg {
+    /// A box per time step, interpolated at the ray's time.
+    Linear,
+    /// One box over the whole shutter.
+    Merged,
+}
+
+impl From<TimeBoundsArg> for TimeBounds {
+    fn from(b: TimeBoundsArg) -> Self {
+        match b {
+            TimeBoundsArg::Linear => TimeBounds::Linear,
+            TimeBoundsArg::Merged => TimeBounds::Merged,
+        }
+    }
+}
+
+fn parse_shutter(s: &str) -> Result<(f32, f32), String> {
+    let parsed = s
+        .split_once(',')
+        .and_then(|(a, b)| Some((a.trim().parse().ok()?, b.trim().parse().ok()?)));
+    match parsed {
+        Some((open, close)) if f32::is_finite(open) && f32::is_finite(close) && open < close => {
+            Ok((open, close))
+        }
+        _ => Err(format!(
+            "expected OPEN,CLOSE in seconds with OPEN before CLOSE (e.g. 0.5,0.55), got {s}"
+        )),
+    }
+}
+
+/// Sample `sample` of `samples` of pixel `pixel`: its time in `[0, 1]`, the shutter's
+/// fraction (stratified: the `sample`-th part of the shutter, jittered by a hash).
+pub fn ray_time(pixel: u32, sample: u32, samples: u32) -> f32 {
+    let mut h = pixel.wrapping_mul(0x9E37_79B1) ^ sample.wrapping_mul(0x85EB_CA77) ^ 0x2545_F491;
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x7FEB_352D);
+    h ^= h >> 15;
+    h = h.wrapping_mul(0x846C_A68B);
+    h ^= h >> 16;
+    let jitter = (h >> 8) as f32 / (1u32 << 24) as f32;
+    ((sample as f32 + jitter) / samples as f32).min(1.0)
+}
+
+/// Every sample's rays and times: the camera's rays once per sample, sample 0 first.
+pub fn sample_rays(camera_rays: &[Ray], samples: u32) -> (Vec<Ray>, Vec<f32>) {
+    let rays = (0..samples)
+        .flat_map(|_| camera_rays.iter().copied())
+        .collect();
+    let times = (0..samples)
+        .flat_map(|s| (0..camera_rays.len() as u32).map(move |p| ray_time(p, s, samples)))
+        .collect();
+    (rays, times)
+}
+
+/// The flags a blurred render cannot honour yet, refused before any work.
+fn check_flags(args: &RenderArgs) -> Result<()> {
+    if !matches!(args.backend, Backend::Cpu | Backend::Auto) {
+        bail!("--shutter traces on the CPU so far: use --backend cpu (or auto)");
+    }
+    let unsupported = [
+        (args.walk()?.is_some(), "--traversal and --layout"),
+        (args.storage.is_some(), "--storage"),
+        (args.max_binding_mib.is_some(), "--max-binding-mib"),
+        (args.scene.time.is_some(), "--time (the shutter says when)"),
+        (
+            args.scene.flatten,
+            "--flatten (a blurred scene is always flattened)",
+        ),
+        (args.shade == Shade::Path, "--shade path"),
+        (
+            matches!(args.scene.build.builder, Builder::Device(_)),
+            "a device --builder",
+        ),
+    ];
+    if let Some((_, flag)) = unsupported.iter().find(|(on, _)| *on) {
+        bail!("--shutter does not take {flag}");
+    }
+    Ok(())
+}
+
+/// What the samples traced, summed.
+#[derive(Default)]
+struct Totals {
+    rays: u64,
+    hits: u64,
+    t_sum: f64,
+    primary_ms: f64,
+    secondary_rays: u64,
+    trace_ms: f64,
+}
+
+/// `bvhtrace render --shutter`: the samples of every pixel over the shutter, each shaded
+/// as `--shade` says, averaged.
+pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
+    check_flags(args)?;
+    let png = AtomicFile::create(&args.output)?;
+    let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
+    let spec = args
+        .scene
+        .scene
+        .as_deref()
+        .unwrap_or(bvhtrace_scene::DEFAULT_SCENE);
+    let t0 = Instant::now();
+    let scene = crate::geometry::load_scene(spec)?;
+    let mesh = scene.motion(shutter.0, shutter.1)?;
+    let load_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let t1 = Instant::now();
+    let bounds = TimeBounds::from(args.time_bounds);
+    let bvh = MotionBvh::build(&mesh, &args.scene.build.options(), bounds)
+        .with_context(|| format!("building the BVH of {spec}"))?;
+    let build_ms = t1.elapsed().as_secs_f64() * 1e3;
+    let cam = camera_for(&args.view, &scene)?;
+    let b = bvh.bounds();
+    let view = View {
+        shade: args.shade,
+        ao_radius: shade::ao_radius_of((b.max - b.min).length().max(f32::MIN_POSITIVE)),
+        light: shade::point_light(&cam),
+        light_radius: 0.0,
+    };
+    let (w, h) = args.view.size;
+    let rays = cam.rays(w, h);
+    let samples = args.shutter.shutter_samples;
+    let pb = ProgressBar::new(u64::from(samples));
+    pb.set_style(
+        ProgressStyle::with_template(
+            "{spinner} blurring over the shutter [{bar:40}] {pos}/{len} samples ({eta})",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let mut sum = vec![0u32; rays.len() * 3];
+    let mut totals = Totals::default();
+    for s in 0..samples {
+        let times: Vec<f32> = (0..rays.len() as u32)
+            .map(|p| ray_time(p, s, samples))
+            .collect();
+        let img = trace_sample(args, &view, (&bvh, &mesh), (&rays, &times), s, &mut totals);
+        for (a, v) in sum.iter_mut().zip(img) {
+            *a += u32::from(v);
+        }
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let img = sum
+        .iter()
+        .map(|&a| ((a + samples / 2) / samples) as u8)
+        .collect();
+    write_png(png, w, h, img)?;
+    let mrays = |n: u64, ms: f64| n as f64 / ms.max(1e-9) / 1e3;
+    eprintln!(
+        "wrote {} ({w}x{h}, {} triangles in {} time steps, {samples} samples over {}..{} s, {} bounds on the cpu): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
+        args.output.display(),
+        mesh.len(),
+        mesh.time_steps(),
+        shutter.0,
+        shutter.1,
+        bounds_name(bounds),
+        totals.rays + totals.secondary_rays,
+        totals.trace_ms,
+        mrays(totals.rays + totals.secondary_rays, totals.trace_ms),
+        mrays(totals.rays, totals.primary_ms),
+    );
+    if let Some(j) = json_out {
+        j.write(&json!({
+            "scene": spec,
+            "width": w, "height": h,
+            "triangles": mesh.len(),
+            "shutter": [shutter.0, shutter.1],
+            "time_steps": mesh.time_steps(),
+            "time_bounds": bounds_name(bounds),
+            "samples": samples,
+            "nodes": bvh.nodes().len(),
+            "depth": bvh.depth(),
+            "bvh_bytes": bvh.byte_size(),
+            "load_ms": load_ms,
+            "build_ms": build_ms,
+            "rays": totals.rays,
+            "hits": totals.hits,
+            "t_sum": totals.t_sum,
+            "primary_ms": totals.primary_ms,
+            "primary_mrays_per_s": mrays(totals.rays, totals.primary_ms),
+            "secondary_rays": totals.secondary_rays,
+            "trace_ms": totals.trace_ms,
+            "mrays_per_s": mrays(totals.rays + totals.secondary_rays, totals.trace_ms),
+            "backend": "cpu",
+            "traversal": "full-stack",
+            "shade": args.shade,
+            "builder": args.scene.build.builder.name(),
+            "camera": { "eye": cam.eye.to_array(), "target": cam.target.to_array(), "fov": cam.fov_y_deg },
+        }))?;
+    }
+    Ok(())
+}
+
+fn bounds_name(b: TimeBounds) -> &'static str {
+    match b {
+        TimeBounds::Linear => "linear",
+        TimeBounds::Merged => "merged",
+    }
+}
+
+/// One sample of every pixel, at `times`: primary rays, the secondary rays the shading
+/// asks for at the same times, the image. Adds what it traced to `totals`.
+fn trace_sample(
+    args: &RenderArgs,
+    view: &View,
+    (bvh, mesh): (&MotionBvh, &MotionMesh),
+    (rays, times): (&[Ray], &[f32]),
+    sample: u32,
+    totals: &mut Totals,
+) -> Vec<u8> {
+    let t = Instant::now();
+    let (hits, counters): (Vec<Hit>, Vec<Counters>) = rays
+        .par_iter()
+        .zip(times)
+        .with_min_len(256)
+        .map(|(r, &time)| bvh.trace(r, time, Query::Closest))
+        .unzip();
+    let primary_ms = t.elapsed().as_secs_f64() * 1e3;
+    // The shading asks for a hit's triangle by primitive; a blurred hit's triangle is
+    // where it was at its ray's time, so each hit names its ray and `posed` holds them.
+    let posed: Vec<Triangle> = hits
+        .iter()
+        .zip(times)
+        .map(|(h, &time)| match h.is_hit() {
+            true => mesh.triangle_at(h.prim as usize, time),
+            false => [Vec3::ZERO; 3],
+        })
+        .collect();
+    let by_ray: Vec<Hit> = (hits.iter().enumerate())
+        .map(|(i, h)| match h.is_hit() {
+            true => Hit {
+                prim: i as u32,
+                ..*h
+            },
+            false => *h,
+        })
+        .collect();
+    let triangle = |p: u32| posed[p as usize];
+    let ao = args.ao_samples;
+    let (sec_rays, owner) = shade::secondary_rays_from(
+        args.shade,
+        &triangle,
+        rays,
+        &by_ray,
+        view.light,
+        sample.saturating_mul(ao)..(sample + 1).saturating_mul(ao),
+        view.ao_radius,
+    );
+    let t = Instant::now();
+    let sec_times: Vec<f32> = owner.iter().map(|&o| times[o as usize]).collect();
+    let secondary = bvh.trace_rays(&sec_rays, &sec_times, Query::Any);
+    let secondary_ms = t.elapsed().as_secs_f64() * 1e3;
+    let hit = hits.iter().filter(|h| h.is_hit());
+    totals.rays += rays.len() as u64;
+    totals.hits += hit.clone().count() as u64;
+    totals.t_sum += hit.map(|h| f64::from(h.t)).sum::<f64>();
+    totals.primary_ms += primary_ms;
+    totals.secondary_rays += sec_rays.len() as u64;
+    totals.trace_ms += primary_ms + secondary_ms;
+    let pixels = Pixels {
+        size: args.view.size,
+        rays,
+        hits: &by_ray,
+        counters: &counters,
+        owner: &owner,
+        secondary: &secondary,
+        ao_samples: ao,
+    };
+    shade::compose_rgb(view, &pixels, &triangle)
+}
