@@ -36,6 +36,10 @@ pub fn builtin_names() -> &'static [(&'static str, &'static str)] {
             "grid:MESH:AxB",
             "synthetic: A*B copies of one mesh, instanced (one mesh, A*B instances) on a grid in the XY plane, each slightly rotated and scaled; MESH is <shared scenes>/glb/MESH.glb, or scenes/MESH.glb in this repository (e.g. grid:igea:3x3 has 2,418,174 triangles)",
         ),
+        (
+            "moving:MESH",
+            "synthetic motion: two copies of one mesh side by side, the left one still, the right one moving right by a third of its size while it turns 30 degrees about +Y over one second (a LINEAR node animation, for `render --shutter 0,1`); MESH as for grid",
+        ),
     ]
 }
 
@@ -79,6 +83,8 @@ pub(crate) fn load_builtin(
                 }
             } else if let Some(rest) = name.strip_prefix("grid:") {
                 grid(rest, spec, opts)?
+            } else if let Some(mesh) = name.strip_prefix("moving:") {
+                moving_of(crate::load_gltf_file(&find_mesh(mesh, spec, opts)?)?, mesh)
             } else {
                 let known: Vec<&str> = builtin_names().iter().map(|(n, _)| *n).collect();
                 return Err(bad(format!(
@@ -641,16 +647,23 @@ fn grid(rest: &str, spec: &str, opts: &LoadOptions) -> Result<Scene, SceneError>
     if a as u64 * b as u64 > 1_000_000 {
         return Err(bad(format!("grid {a}x{b}: at most 1,000,000 copies")));
     }
+    let src = crate::load_gltf_file(&find_mesh(mesh, spec, opts)?)?;
+    Ok(grid_of(src, mesh, a, b))
+}
+
+/// The file of a builtin's MESH ([`grid_mesh_candidates`]).
+fn find_mesh(mesh: &str, spec: &str, opts: &LoadOptions) -> Result<PathBuf, SceneError> {
+    let bad = |msg: String| SceneError::new(spec, ErrorKind::Spec(msg));
     if mesh.is_empty() || mesh.contains(['/', '\\']) || mesh.contains("..") {
         return Err(bad(format!(
-            "grid mesh {mesh:?}: give a file stem from the shared glb/ folder, e.g. igea"
+            "mesh {mesh:?}: give a file stem from the shared glb/ folder, e.g. igea"
         )));
     }
     let candidates = grid_mesh_candidates(mesh, opts);
     let Some(path) = candidates.iter().find(|p| p.is_file()) else {
         let looked: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
         return Err(bad(format!(
-            "grid mesh {mesh:?} not found (looked for {})",
+            "mesh {mesh:?} not found (looked for {})",
             if looked.is_empty() {
                 "no folder: name the shared scenes folder, LoadOptions::meshes".to_string()
             } else {
@@ -658,8 +671,92 @@ fn grid(rest: &str, spec: &str, opts: &LoadOptions) -> Result<Scene, SceneError>
             }
         )));
     };
-    let src = crate::load_gltf_file(path)?;
-    Ok(grid_of(src, mesh, a, b))
+    Ok(path.clone())
+}
+
+/// `moving:MESH`: `src` twice, centred side by side along +x; the right copy's node moves
+/// right by a third of the mesh's size and turns 30 degrees about +Y in one second.
+pub(crate) fn moving_of(src: Scene, mesh_name: &str) -> Scene {
+    use crate::animation::{
+        Animation, AnimationNode, Channel, Interpolation, NodeTransform, Property,
+    };
+    let (lo, hi) = src.bounds();
+    let center = (lo + hi) * 0.5;
+    let size = (hi - lo).max_element().max(f32::MIN_POSITIVE);
+    let half = Vec3::new(size * 0.65, 0.0, 0.0);
+    // Node 0 carries the motion; every moving instance hangs from it.
+    let mut nodes = vec![AnimationNode {
+        gltf_node: 0,
+        parent: None,
+        local: NodeTransform::Trs {
+            translation: half,
+            rotation: Quat::IDENTITY,
+            scale: Vec3::ONE,
+        },
+    }];
+    let (mut instances, mut instance_nodes) = (Vec::new(), Vec::new());
+    for (moves, offset) in [(false, -half), (true, Vec3::ZERO)] {
+        for inst in &src.instances {
+            let local = Mat4::from_translation(offset - center) * inst.transform;
+            nodes.push(AnimationNode {
+                gltf_node: nodes.len(),
+                parent: moves.then_some(0),
+                local: NodeTransform::Matrix(local),
+            });
+            instance_nodes.push(nodes.len() - 1);
+            let parent = if moves {
+                Mat4::from_translation(half)
+            } else {
+                Mat4::IDENTITY
+            };
+            instances.push(Instance {
+                mesh: inst.mesh,
+                transform: parent * local,
+            });
+        }
+    }
+    let keys = |a: glam::Vec4, b: glam::Vec4| vec![a, b];
+    let channels = [
+        (
+            Property::Translation,
+            keys(half.extend(0.0), (half + Vec3::X * size / 3.0).extend(0.0)),
+        ),
+        (
+            Property::Rotation,
+            keys(
+                Quat::IDENTITY.into(),
+                Quat::from_rotation_y(30f32.to_radians()).into(),
+            ),
+        ),
+    ]
+    .into_iter()
+    .map(|(p, v)| Channel::new(0, p, Interpolation::Linear, vec![0.0, 1.0], v))
+    .collect::<Result<Vec<_>, _>>()
+    .expect("two finite keys in order");
+    let tris = src.triangle_count();
+    Scene {
+        name: format!("moving:{mesh_name}"),
+        description: format!(
+            "synthetic motion: {mesh_name} ({tris} triangles) twice, the left copy still, the right one moving and turning over one second"
+        ),
+        synthetic: true,
+        meshes: src.meshes,
+        instances,
+        materials: src.materials,
+        alpha_textures: src.alpha_textures,
+        textures: src.textures,
+        attributes: src.attributes,
+        camera: None,
+        warnings: src.warnings,
+        animation: Some(Animation {
+            nodes,
+            instance_nodes,
+            channels,
+            globals: Vec::new(),
+            skins: Vec::new(),
+            morphs: Vec::new(),
+        }),
+    }
 }
 
 /// `a x b` copies of every instance of `src`, centred on the origin, on a grid in the XY

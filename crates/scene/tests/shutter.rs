@@ -67,3 +67,28 @@ fn a_still_scene_has_two_equal_steps_and_bad_shutters_are_refused() {
         assert!(e.contains("the shutter must open before it closes"), "{e}");
     }
 }
+
+#[test]
+fn the_moving_builtin_moves_its_right_copy_only() {
+    let Some(_) = repo_scenes_dir() else {
+        println!("skipped: no scenes/ folder");
+        return;
+    };
+    let scene = load("builtin:moving:icosphere").unwrap_or_else(|e| panic!("{e}"));
+    let n = scene.triangle_count() / 2;
+    let mesh = scene.motion(0.0, 1.0).unwrap();
+    // A 30-degree turn is not straight enough for two steps.
+    assert!(mesh.time_steps() > 2, "{} steps", mesh.time_steps());
+    let (first, last) = (mesh.step(0), mesh.step(mesh.time_steps() - 1));
+    assert_eq!(first[..n], last[..n], "the left copy moved");
+    let centre = |t: &[[Vec3; 3]]| t.iter().flatten().sum::<Vec3>() / (3 * t.len()) as f32;
+    let moved = centre(&last[n..]) - centre(&first[n..]);
+    // Right by a third of the mesh's size (2, the unit sphere's diameter).
+    assert!(
+        (moved.x - 2.0 / 3.0).abs() < 1e-3 && moved.y.abs() < 1e-3,
+        "{moved}"
+    );
+    // Past the animation's end nothing moves.
+    let still = scene.motion(2.0, 3.0).unwrap();
+    assert_eq!((still.time_steps(), still.step(0)), (2, still.step(1)));
+}
