@@ -2,22 +2,25 @@
 //! animation over the shutter (`Scene::motion`), a `MotionBvh` over it, and rays that each
 //! carry a time.
 //!
-//! Each pixel takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as
+//! It traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on the CPU
+//! twin, which answer alike bit for bit. Each pixel takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as
 //! many equal parts of the shutter (stratified, jittered by a hash of the pixel), so the
 //! samples of one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO)
 //! leave at its time and meet the scene at that time.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, Hit, Query, Ray, Triangle};
+use bvhtrace_gpu::GpuMotionBvh;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde_json::json;
 
-use crate::backend::Backend;
+use crate::backend::{self, Backend};
 use crate::geometry::Builder;
 use crate::output::{AtomicFile, JsonOut, write_png};
 use crate::render::{RenderArgs, camera_for};
@@ -29,7 +32,8 @@ pub struct ShutterArgs {
     /// Open the shutter from OPEN to CLOSE seconds of the scene's animation and blur what
     /// moves: each pixel's samples spread over the shutter, each meeting the scene where
     /// it is at its time (node animations, skins and morphs, followed in as many time
-    /// steps as keep the motion between them straight). Traced on the CPU.
+    /// steps as keep the motion between them straight). Traced by our walks through wgpu
+    /// or on the CPU.
     #[arg(long, value_name = "OPEN,CLOSE", value_parser = parse_shutter, allow_hyphen_values = true)]
     pub shutter: Option<(f32, f32)>,
     /// Samples per pixel over the shutter (with --shutter).
@@ -95,8 +99,13 @@ pub fn sample_rays(camera_rays: &[Ray], samples: u32) -> (Vec<Ray>, Vec<f32>) {
 
 /// The flags a blurred render cannot honour yet, refused before any work.
 fn check_flags(args: &RenderArgs) -> Result<()> {
-    if !matches!(args.backend, Backend::Cpu | Backend::Auto) {
-        bail!("--shutter traces on the CPU so far: use --backend cpu (or auto)");
+    if !matches!(args.backend, Backend::Cpu | Backend::Auto | Backend::Wgpu) {
+        bail!(
+            "--shutter traces with our walks through wgpu or on the CPU: use --backend gpu, cpu or auto"
+        );
+    }
+    if args.shade == Shade::Heatmap && args.backend != Backend::Cpu {
+        bail!("--shutter counts the heatmap's box tests on the CPU: use --backend cpu");
     }
     let unsupported = [
         (args.walk()?.is_some(), "--traversal and --layout"),
@@ -117,6 +126,69 @@ fn check_flags(args: &RenderArgs) -> Result<()> {
         bail!("--shutter does not take {flag}");
     }
     Ok(())
+}
+
+/// Where a blurred render traces: the device, or the CPU twin (which also counts).
+enum Walker {
+    Cpu(Arc<MotionBvh>),
+    Gpu(GpuMotionBvh),
+}
+
+impl Walker {
+    /// The device `--backend` names (the best one for auto), or the CPU; auto falls back
+    /// to the CPU, saying why, where the device cannot take the tree.
+    fn open(args: &RenderArgs, bvh: Arc<MotionBvh>) -> Result<Walker> {
+        if args.backend == Backend::Cpu {
+            return Ok(Walker::Cpu(bvh));
+        }
+        let opts = backend::options(args.backend, args.adapter.as_deref(), &[]);
+        let device = backend::device(&opts)?;
+        let Some(ctx) = device.wgpu_context() else {
+            return Ok(Walker::Cpu(bvh));
+        };
+        match GpuMotionBvh::upload(ctx, bvh.clone()) {
+            Ok(gpu) => Ok(Walker::Gpu(gpu)),
+            Err(e) if args.backend == Backend::Auto => {
+                eprintln!("note: tracing on the CPU: {e}");
+                Ok(Walker::Cpu(bvh))
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    fn name(&self) -> &'static str {
+        match self {
+            Walker::Cpu(_) => "cpu",
+            Walker::Gpu(_) => "wgpu",
+        }
+    }
+
+    fn bvh(&self) -> &MotionBvh {
+        match self {
+            Walker::Cpu(b) => b,
+            Walker::Gpu(g) => g.bvh(),
+        }
+    }
+
+    /// Closest hits, with counters on the CPU (none from the device).
+    fn closest(&self, rays: &[Ray], times: &[f32]) -> Result<(Vec<Hit>, Vec<Counters>)> {
+        match self {
+            Walker::Cpu(bvh) => Ok(rays
+                .par_iter()
+                .zip(times)
+                .with_min_len(256)
+                .map(|(r, &time)| bvh.trace(r, time, Query::Closest))
+                .unzip()),
+            Walker::Gpu(g) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
+        }
+    }
+
+    fn any(&self, rays: &[Ray], times: &[f32]) -> Result<Vec<Hit>> {
+        match self {
+            Walker::Cpu(bvh) => Ok(bvh.trace_rays(rays, times, Query::Any)),
+            Walker::Gpu(g) => Ok(g.trace(rays, times, Query::Any)?),
+        }
+    }
 }
 
 /// What the samples traced, summed.
@@ -150,6 +222,8 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     let bvh = MotionBvh::build(&mesh, &args.scene.build.options(), bounds)
         .with_context(|| format!("building the BVH of {spec}"))?;
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
+    let walker = Walker::open(args, Arc::new(bvh))?;
+    let bvh = walker.bvh();
     let cam = camera_for(&args.view, &scene)?;
     let b = bvh.bounds();
     let view = View {
@@ -175,7 +249,14 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
         let times: Vec<f32> = (0..rays.len() as u32)
             .map(|p| ray_time(p, s, samples))
             .collect();
-        let img = trace_sample(args, &view, (&bvh, &mesh), (&rays, &times), s, &mut totals);
+        let img = trace_sample(
+            args,
+            &view,
+            (&walker, &mesh),
+            (&rays, &times),
+            s,
+            &mut totals,
+        )?;
         for (a, v) in sum.iter_mut().zip(img) {
             *a += u32::from(v);
         }
@@ -189,13 +270,14 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     write_png(png, w, h, img)?;
     let mrays = |n: u64, ms: f64| n as f64 / ms.max(1e-9) / 1e3;
     eprintln!(
-        "wrote {} ({w}x{h}, {} triangles in {} time steps, {samples} samples over {}..{} s, {} bounds on the cpu): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
+        "wrote {} ({w}x{h}, {} triangles in {} time steps, {samples} samples over {}..{} s, {} bounds on {}): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
         args.output.display(),
         mesh.len(),
         mesh.time_steps(),
         shutter.0,
         shutter.1,
         bounds_name(bounds),
+        walker.name(),
         totals.rays + totals.secondary_rays,
         totals.trace_ms,
         mrays(totals.rays + totals.secondary_rays, totals.trace_ms),
@@ -223,7 +305,7 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
             "secondary_rays": totals.secondary_rays,
             "trace_ms": totals.trace_ms,
             "mrays_per_s": mrays(totals.rays + totals.secondary_rays, totals.trace_ms),
-            "backend": "cpu",
+            "backend": walker.name(),
             "traversal": "full-stack",
             "shade": args.shade,
             "builder": args.scene.build.builder.name(),
@@ -245,18 +327,13 @@ fn bounds_name(b: TimeBounds) -> &'static str {
 fn trace_sample(
     args: &RenderArgs,
     view: &View,
-    (bvh, mesh): (&MotionBvh, &MotionMesh),
+    (walker, mesh): (&Walker, &MotionMesh),
     (rays, times): (&[Ray], &[f32]),
     sample: u32,
     totals: &mut Totals,
-) -> Vec<u8> {
+) -> Result<Vec<u8>> {
     let t = Instant::now();
-    let (hits, counters): (Vec<Hit>, Vec<Counters>) = rays
-        .par_iter()
-        .zip(times)
-        .with_min_len(256)
-        .map(|(r, &time)| bvh.trace(r, time, Query::Closest))
-        .unzip();
+    let (hits, counters) = walker.closest(rays, times)?;
     let primary_ms = t.elapsed().as_secs_f64() * 1e3;
     // The shading asks for a hit's triangle by primitive; a blurred hit's triangle is
     // where it was at its ray's time, so each hit names its ray and `posed` holds them.
@@ -290,7 +367,7 @@ fn trace_sample(
     );
     let t = Instant::now();
     let sec_times: Vec<f32> = owner.iter().map(|&o| times[o as usize]).collect();
-    let secondary = bvh.trace_rays(&sec_rays, &sec_times, Query::Any);
+    let secondary = walker.any(&sec_rays, &sec_times)?;
     let secondary_ms = t.elapsed().as_secs_f64() * 1e3;
     let hit = hits.iter().filter(|h| h.is_hit());
     totals.rays += rays.len() as u64;
@@ -308,5 +385,5 @@ fn trace_sample(
         secondary: &secondary,
         ao_samples: ao,
     };
-    shade::compose_rgb(view, &pixels, &triangle)
+    Ok(shade::compose_rgb(view, &pixels, &triangle))
 }

@@ -545,8 +545,8 @@ fn masked_materials_are_cut_alike_on_every_backend() {
 }
 
 /// `--shutter`: a scene that does not move renders as without a shutter, pixel for pixel;
-/// a moving one blurs between its poses at the shutter's ends; flags the blurred render
-/// cannot honour are refused, naming them.
+/// a moving one blurs between its poses at the shutter's ends, alike on the device and
+/// the CPU; flags the blurred render cannot honour are refused, naming them.
 #[test]
 fn blurred_renders_over_the_shutter() {
     let still = ["builtin:cornell", "--ao-samples", "4"];
@@ -586,9 +586,15 @@ fn blurred_renders_over_the_shutter() {
             blurred != open && blurred != close,
             "the blur is one of its ends"
         );
+        let diffuse = [&args[..], &["--shade", "diffuse"]].concat();
+        let (_, cpu) = render_json(&format!("blur-cpu-{bounds}"), &diffuse);
+        let (g, gpu) = render_json_on("gpu", &format!("blur-gpu-{bounds}"), &diffuse);
+        assert_eq!(g["backend"], "wgpu");
+        assert!(cpu == gpu, "{bounds}: the device's blur is not the CPU's");
     }
     for bad in [
-        &["--backend", "gpu"][..],
+        &["--backend", "vulkan"][..],
+        &["--backend", "auto", "--shade", "heatmap"],
         &["--shade", "path"],
         &["--time", "0.3"],
         &["--traversal", "stackless"],

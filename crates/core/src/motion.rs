@@ -14,10 +14,11 @@
 //! [`TimeBounds::Merged`] the walk tests the box over the whole shutter instead, which is
 //! smaller in memory and looser for every ray.
 
+use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use crate::build::{BuildError, BuildNode, BuildOptions, build_boxes};
-use crate::flat::{FlatNode, MAX_PRIMITIVES};
+use crate::flat::{FlatNode, FlatTriangle, MAX_PRIMITIVES};
 use crate::geometry::Aabb;
 use crate::intersect::{PreparedRay, intersect_box, intersect_triangle};
 use crate::mesh::{MeshError, Triangle, validate_triangles};
@@ -181,19 +182,53 @@ pub enum TimeBounds {
     Merged,
 }
 
+/// A node's box at one time step. GPU layout: WGSL `BvhMotionBox` in
+/// `shaders/bvh_motion_buffers.wgsl` (32 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct MotionBox {
+    /// The lower corner.
+    pub min: [f32; 3],
+    /// Padding to 16 bytes (zero).
+    pub _pad0: u32,
+    /// The upper corner.
+    pub max: [f32; 3],
+    /// Padding to 16 bytes (zero).
+    pub _pad1: u32,
+}
+
+impl MotionBox {
+    fn of(b: &Aabb) -> MotionBox {
+        MotionBox {
+            min: b.min.to_array(),
+            max: b.max.to_array(),
+            ..MotionBox::default()
+        }
+    }
+
+    /// The box as an [`Aabb`].
+    #[inline(always)]
+    pub fn aabb(&self) -> Aabb {
+        Aabb {
+            min: Vec3::from(self.min),
+            max: Vec3::from(self.max),
+        }
+    }
+}
+
 /// A BVH over a [`MotionMesh`]: the binary layout's nodes ([`FlatNode`], each box over the
 /// whole shutter), each node's box at every time step, and the triangles at every step in
-/// leaf order.
+/// leaf order. The kernels read these arrays as they are (`bvh_motion_buffers.wgsl`).
 #[derive(Clone, Debug)]
 pub struct MotionBvh {
     nodes: Vec<FlatNode>,
     /// Node `i`'s box at step `k`: `step_boxes[i * steps + k]`; empty with
     /// [`TimeBounds::Merged`].
-    step_boxes: Vec<Aabb>,
-    /// Leaf order's triangle `j` at step `k`: `tris[k * n + j]`.
-    tris: Vec<Triangle>,
-    /// Leaf order's input ids.
-    prims: Vec<u32>,
+    step_boxes: Vec<MotionBox>,
+    /// Leaf order's triangle `j` at step `k`: `tris[k * n + j]`, each with its input id.
+    tris: Vec<FlatTriangle>,
+    /// Triangles per step.
+    count: usize,
     steps: usize,
     bounds: TimeBounds,
     depth: u32,
@@ -218,20 +253,28 @@ impl MotionBvh {
             nodes: Vec::with_capacity(tree.node_count),
             step_boxes: Vec::new(),
             tris: Vec::with_capacity(steps * tree.prim_order.len()),
-            prims: tree.prim_order.clone(),
+            count: tree.prim_order.len(),
             steps,
             bounds,
             depth: 0,
         };
         for k in 0..steps {
             let step = mesh.step(k);
-            bvh.tris
-                .extend(tree.prim_order.iter().map(|&p| step[p as usize]));
+            bvh.tris.extend(tree.prim_order.iter().map(|&p| {
+                let [v0, v1, v2] = step[p as usize].map(|v| v.to_array());
+                FlatTriangle {
+                    v0,
+                    prim: p,
+                    v1,
+                    v2,
+                    ..FlatTriangle::zeroed()
+                }
+            }));
         }
         let mut per_node = Vec::with_capacity(tree.node_count);
         bvh.depth = bvh.lay_out(&tree.root, 1, &mut per_node);
         if bounds == TimeBounds::Linear {
-            bvh.step_boxes = per_node.into_iter().flatten().collect();
+            bvh.step_boxes = per_node.iter().flatten().map(MotionBox::of).collect();
         }
         Ok(bvh)
     }
@@ -269,11 +312,11 @@ impl MotionBvh {
 
     /// The box of leaf triangles `first..first + count` at step `k`.
     fn leaf_box(&self, first: u32, count: u32, k: usize) -> Aabb {
-        let n = self.prims.len();
+        let n = self.count;
         let range = k * n + first as usize..k * n + (first + count) as usize;
-        self.tris[range]
-            .iter()
-            .fold(Aabb::EMPTY, |b, t| b.union(&Aabb::from_triangle(t)))
+        self.tris[range].iter().fold(Aabb::EMPTY, |b, t| {
+            b.union(&Aabb::from_triangle(&t.corners()))
+        })
     }
 
     /// Number of time steps.
@@ -303,16 +346,27 @@ impl MotionBvh {
 
     /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
-        self.prims.len()
+        self.count
     }
 
-    /// Bytes the walk reads: nodes, per-step boxes, triangles at every step and ids.
+    /// Each node's box at every time step: node `i`'s at step `k` is entry
+    /// `i * time_steps() + k` (empty with [`TimeBounds::Merged`]).
+    pub fn step_boxes(&self) -> &[MotionBox] {
+        &self.step_boxes
+    }
+
+    /// The triangles in leaf order at every time step: step `k`'s are entries
+    /// `k * triangle_count()..(k + 1) * triangle_count()`.
+    pub fn triangles(&self) -> &[FlatTriangle] {
+        &self.tris
+    }
+
+    /// Bytes the walk reads: nodes, per-step boxes and triangles at every step.
     pub fn byte_size(&self) -> usize {
         use std::mem::size_of;
         self.nodes.len() * size_of::<FlatNode>()
-            + self.step_boxes.len() * 24
-            + self.tris.len() * 36
-            + self.prims.len() * 4
+            + self.step_boxes.len() * size_of::<MotionBox>()
+            + self.tris.len() * size_of::<FlatTriangle>()
     }
 
     /// Node `i`'s box at the time of `segment` (`(s, f)` from [`time_segment`]).
@@ -321,7 +375,7 @@ impl MotionBvh {
         match self.bounds {
             TimeBounds::Linear => {
                 let b = &self.step_boxes[i * self.steps + s..];
-                lerp_box(&b[0], &b[1], f)
+                lerp_box(&b[0].aabb(), &b[1].aabb(), f)
             }
             TimeBounds::Merged => self.nodes[i].aabb(),
         }
@@ -402,15 +456,16 @@ impl MotionBvh {
         best: &mut Best,
         c: &mut Counters,
     ) -> bool {
-        let len = self.prims.len();
+        let len = self.count;
         let first = n.right_or_first as usize;
         let mut taken = false;
         for j in first..first + n.count() as usize {
             c.tris += 1;
-            let tri = lerp_triangle(&self.tris[s * len + j], &self.tris[(s + 1) * len + j], f);
+            let (a, b) = (&self.tris[s * len + j], &self.tris[(s + 1) * len + j]);
+            let tri = lerp_triangle(&a.corners(), &b.corners(), f);
             // `offer` takes only hits nearer than the best, which starts at `t_max`.
             if let Some(h) = intersect_triangle(r, tri[0], tri[1], tri[2]) {
-                taken |= best.offer(h.t, self.prims[j], h.u, h.v);
+                taken |= best.offer(h.t, a.prim, h.u, h.v);
             }
         }
         taken

@@ -166,6 +166,10 @@ pub struct ModuleSet {
     /// How the tree's arrays in storage buffers are split over bindings
     /// ([`Pages::specialise`]); [`Pages::ONE`] for a tree that fits one binding.
     pub pages: Pages,
+    /// A moving mesh's tree (`bvh_motion_buffers.wgsl`, in buffers, in place of the
+    /// storage's node and triangle files), and each ray's time (`entry_ray_times.wgsl`)
+    /// loaded by the entry points.
+    pub motion: bool,
 }
 
 impl ModuleSet {
@@ -183,6 +187,22 @@ impl ModuleSet {
             masks: false,
             filter: None,
             pages: Pages::ONE,
+            motion: false,
+        }
+    }
+
+    /// The full-stack walk over a moving mesh's tree, hits only: what
+    /// `bvhtrace_gpu::GpuMotionBvh` traces with.
+    pub fn motion() -> ModuleSet {
+        ModuleSet {
+            walks: WalkSet::of(Traversal::FullStack),
+            entries: Entries::Plain,
+            motion: true,
+            ..ModuleSet::everything(
+                BvhStorage::Buffers,
+                Precision::WatertightF32,
+                Entries::Plain,
+            )
         }
     }
 
@@ -231,11 +251,11 @@ impl ModuleSet {
         let wide = self.walks.wide();
         let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(24);
         out.push((shaders::TYPES.0, shaders::TYPES.1.into()));
-        let mut bindings = vec![match wide {
-            true => self.storage.wide_wgsl(),
-            false => self.storage.wgsl(),
-        }];
-        bindings.push(self.storage.triangles_wgsl());
+        let mut bindings = match (self.motion, wide) {
+            (true, _) => vec![shaders::BVH_MOTION_BUFFERS],
+            (false, true) => vec![self.storage.wide_wgsl(), self.storage.triangles_wgsl()],
+            (false, false) => vec![self.storage.wgsl(), self.storage.triangles_wgsl()],
+        };
         if self.escapes() {
             bindings.push(self.storage.escapes_wgsl());
         }
@@ -290,6 +310,12 @@ impl ModuleSet {
         out.push((shaders::ENTRY.0, shaders::ENTRY.1.into()));
         let (name, src) = self.rays.wgsl();
         out.push((name, src.into()));
+        if self.motion {
+            out.push((
+                shaders::ENTRY_RAY_TIMES.0,
+                shaders::ENTRY_RAY_TIMES.1.into(),
+            ));
+        }
         if self.has_counters() {
             out.push((shaders::ENTRY_COUNTERS.0, shaders::ENTRY_COUNTERS.1.into()));
         }
@@ -299,7 +325,10 @@ impl ModuleSet {
             for counted in [false, true] {
                 if (counted && self.has_counters()) || (!counted && plain) {
                     let i = usize::from(counted);
-                    out.push((w.entry_labels[i], entry_point(w, counted).into()));
+                    out.push((
+                        w.entry_labels[i],
+                        entry_point(w, counted, self.motion).into(),
+                    ));
                 }
             }
         }
@@ -324,10 +353,15 @@ impl ModuleSet {
     }
 }
 
-/// `entry_walk.wgsl` specialised as `walk`'s entry point, counted or hits only.
-fn entry_point(walk: &Walk, counted: bool) -> String {
+/// `entry_walk.wgsl` specialised as `walk`'s entry point, counted or hits only; with
+/// `timed`, the ray's time set as it is loaded.
+fn entry_point(walk: &Walk, counted: bool, timed: bool) -> String {
     let call = walk.call_with(
-        "bvh_load_ray(i)",
+        if timed {
+            "bvh_timed_ray(i)"
+        } else {
+            "bvh_load_ray(i)"
+        },
         "BVH_ANY_HIT",
         "BVH_SHORT_STACK_SIZE",
         "lid",

@@ -329,6 +329,7 @@ impl KernelKey {
                 masks: self.masks,
                 filter: None,
                 pages: self.pages,
+                motion: false,
             },
         }
     }

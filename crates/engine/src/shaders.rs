@@ -56,6 +56,8 @@ wgsl_files! {
     BVH_BUFFERS = "bvh_buffers.wgsl",
     /// The binary layout's nodes in a texel texture.
     BVH_TEXTURES = "bvh_textures.wgsl",
+    /// A moving mesh's tree in storage buffers, its boxes and triangles at the ray's time.
+    BVH_MOTION_BUFFERS = "bvh_motion_buffers.wgsl",
     /// The wide layout's nodes in a storage buffer.
     BVH_BUFFERS_WIDE = "bvh_buffers_wide.wgsl",
     /// The wide layout's nodes in a texel texture, five texels each.
@@ -86,6 +88,8 @@ wgsl_files! {
     ENTRY_RAYS_TEXTURE = "entry_rays_texture.wgsl",
     /// The `counters` binding, for counted entry points.
     ENTRY_COUNTERS = "entry_counters.wgsl",
+    /// Each ray's time, for a moving mesh's tree.
+    ENTRY_RAY_TIMES = "entry_ray_times.wgsl",
     /// Every entry point, specialised per walk and output.
     ENTRY_WALK = "entry_walk.wgsl",
     /// `bvh_trace_closest`, `bvh_trace_any` and the hit helpers of a user's library.

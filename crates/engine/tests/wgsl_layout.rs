@@ -666,3 +666,63 @@ fn every_library_shape_has_the_same_calls_and_its_upload_bindings() {
         }
     }
 }
+
+/// The moving mesh's module (`ModuleSet::motion`): the step boxes have `MotionBox`'s
+/// layout, the nodes and triangles the static layout's, the ray times are f32; its one
+/// entry point validates and compiles for both queries, both bounds and several step
+/// counts, with the driver's constants.
+#[test]
+fn the_motion_module_matches_rust_and_compiles() {
+    use bvhtrace_core::motion::MotionBox;
+    let src = ModuleSet::motion().compose(0);
+    for (name, composed) in [
+        ("bvh_motion_buffers.wgsl", true),
+        ("entry_ray_times.wgsl", true),
+        ("traverse_full_stack.wgsl", true),
+        ("bvh_buffers.wgsl", false),
+        ("bvh_buffers_triangles.wgsl", false),
+        ("traverse_short_stack.wgsl", false),
+    ] {
+        assert_eq!(
+            src.contains(&format!("// ---- {name} ----")),
+            composed,
+            "{name}"
+        );
+    }
+    let module = parse(&src);
+    check_structs(&module);
+    check_struct(
+        &module,
+        "BvhMotionBox",
+        size_of::<MotionBox>(),
+        &[
+            ("min", offset_of!(MotionBox, min)),
+            ("max", offset_of!(MotionBox, max)),
+        ],
+    );
+    for (name, ty, stride) in [
+        ("bvh_step_boxes", "BvhMotionBox", size_of::<MotionBox>()),
+        ("bvh_nodes", "BvhNode", size_of::<FlatNode>()),
+        ("bvh_triangles", "BvhTriangle", size_of::<FlatTriangle>()),
+    ] {
+        let (t, s) = group0_array(&module, name);
+        assert_eq!((t.as_str(), s as usize), (ty, stride), "{name}");
+    }
+    let info = validate(&module);
+    for any in [0.0, 1.0] {
+        for linear in [0.0, 1.0] {
+            for steps in [2.0, 9.0, 129.0] {
+                let mut c = naga::back::PipelineConstants::default();
+                for (k, v) in [
+                    ("BVH_ANY_HIT", any),
+                    ("BVH_LINEAR_BOUNDS", linear),
+                    ("BVH_TIME_STEPS", steps),
+                    ("BVH_TRIP_LIMIT", 65535.0),
+                ] {
+                    c.insert(k.to_string(), v);
+                }
+                compile_entry(&module, &info, "bvh_trace_full_stack_main", &c, "motion");
+            }
+        }
+    }
+}

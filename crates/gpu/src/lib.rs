@@ -49,6 +49,7 @@ mod build;
 mod bvh;
 mod context;
 mod library;
+mod motion;
 #[cfg(not(target_arch = "wasm32"))]
 mod ray_query;
 mod trace;
@@ -61,6 +62,7 @@ pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_engine::UploadOptions;
 pub use bvhtrace_engine::engine::Update;
 pub use context::{ContextOptions, GpuContext, device_kind};
+pub use motion::GpuMotionBvh;
 #[cfg(not(target_arch = "wasm32"))]
 pub use ray_query::RayQueryBvh;
 
