@@ -99,7 +99,7 @@ pub fn sample_rays(camera_rays: &[Ray], samples: u32) -> (Vec<Ray>, Vec<f32>) {
 
 /// The flags a blurred render cannot honour yet, refused before any work.
 fn check_flags(args: &RenderArgs) -> Result<()> {
-    if !matches!(args.backend, Backend::Cpu | Backend::Auto | Backend::Wgpu) {
+    if args.backend == Backend::Vulkan || args.backend == Backend::Mock {
         bail!(
             "--shutter traces with our walks through wgpu or on the CPU: use --backend gpu, cpu or auto"
         );
@@ -141,7 +141,17 @@ impl Walker {
         if args.backend == Backend::Cpu {
             return Ok(Walker::Cpu(bvh));
         }
-        let opts = backend::options(args.backend, args.adapter.as_deref(), &[]);
+        let wanted = match args.backend {
+            Backend::RayQuery => {
+                // wgpu's ray queries know no time: the device's own walk is ours.
+                eprintln!(
+                    "note: ray queries have no motion blur in wgpu: our walk traces on the device"
+                );
+                Backend::Wgpu
+            }
+            b => b,
+        };
+        let opts = backend::options(wanted, args.adapter.as_deref(), &[]);
         let device = backend::device(&opts)?;
         let Some(ctx) = device.wgpu_context() else {
             return Ok(Walker::Cpu(bvh));
