@@ -22,7 +22,13 @@
  * Version 2 (`bvhtrace dump --shutter`) is a moving mesh: after n_rays a u32 time step count
  * S, then S * n_tris * 9 f32 corners (step 0's triangles first), the rays, and n_rays f32
  * times; the triangles get S time steps (rtcSetGeometryTimeStepCount) and each ray its
- * time. */
+ * time. Version 3 (`bvhtrace dump --shutter --instances`) is meshes under moving instances:
+ * after n_rays (here the mesh count M is in n_tris' place) a u32 instance count I and the
+ * u32 step count S; M meshes, each a u32 triangle count and its 9 f32 corners per
+ * triangle; I instances, each a u32 mesh, a u32 transform count (1 or S) and 12 f32 per
+ * transform (3x4, column major); the rays; n_rays f32 times. Each instance is an Embree
+ * instance of its mesh's scene with its transforms as time steps; a hit reports the
+ * instance's first primitive (the flattened scene's numbering) plus the mesh's. */
 #ifdef BVHTRACE_EMBREE4
 #include <embree4/rtcore.h>
 #else
@@ -45,6 +51,13 @@ static uint32_t n_rays, n_threads;
 static uint32_t *hit_prim;
 static float *hit_t;
 static int occlusion;
+
+/* Version 3's meshes and moving instances, and each instance's first primitive id. */
+typedef struct { uint32_t n_tris; float *tris; } Mesh;
+typedef struct { uint32_t mesh, steps; float *xfm; } Instance;
+static Mesh *meshes;
+static Instance *insts;
+static uint32_t n_meshes, n_insts, *first_ids;
 
 static double now_ms(void) {
   struct timespec ts;
@@ -86,7 +99,8 @@ static void *worker(void *arg) {
     rtcIntersect1(scene, &ctx, &rh);
 #endif
     int hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
-    hit_prim[i] = hit ? rh.hit.primID : 0xFFFFFFFFu;
+    uint32_t base = first_ids && hit ? first_ids[rh.hit.instID[0]] : 0;
+    hit_prim[i] = hit ? base + rh.hit.primID : 0xFFFFFFFFu;
     hit_t[i] = hit ? rh.ray.tfar : 0.0f;
   }
   return NULL;
@@ -112,6 +126,63 @@ static RTCGeometry soup(RTCDevice dev, const float *tris, uint32_t n, uint32_t s
   return g;
 }
 
+/* Version 3's meshes and instances from `f` (after the header); 0 on success. */
+static int read_instances(FILE *f, uint32_t steps) {
+  meshes = calloc(n_meshes, sizeof(Mesh));
+  insts = calloc(n_insts, sizeof(Instance));
+  first_ids = calloc(n_insts ? n_insts : 1, 4);
+  if (!meshes || !insts || !first_ids) return 1;
+  for (uint32_t m = 0; m < n_meshes; m++) {
+    if (fread(&meshes[m].n_tris, 4, 1, f) != 1) return 1;
+    size_t n = 9 * (size_t)meshes[m].n_tris;
+    meshes[m].tris = malloc(4 * n + 4);
+    if (!meshes[m].tris || fread(meshes[m].tris, 4, n, f) != n) return 1;
+  }
+  uint32_t next = 0;
+  for (uint32_t i = 0; i < n_insts; i++) {
+    Instance *in = &insts[i];
+    if (fread(&in->mesh, 4, 1, f) != 1 || fread(&in->steps, 4, 1, f) != 1 || in->mesh >= n_meshes ||
+        (in->steps != 1 && in->steps != steps))
+      return 1;
+    in->xfm = malloc(48 * (size_t)in->steps);
+    if (!in->xfm || fread(in->xfm, 48, in->steps, f) != in->steps) return 1;
+    first_ids[i] = next;
+    next += meshes[in->mesh].n_tris;
+  }
+  return 0;
+}
+
+/* Version 3's scene: one scene per mesh, one instance geometry per instance (geometry id =
+ * instance index) with its transforms as time steps. */
+static RTCScene instanced_scene(RTCDevice dev, int robust) {
+  RTCScene top = rtcNewScene(dev);
+  rtcSetSceneFlags(top, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
+  rtcSetSceneBuildQuality(top, RTC_BUILD_QUALITY_MEDIUM);
+  RTCScene *mesh_scenes = malloc(sizeof(RTCScene) * (n_meshes ? n_meshes : 1));
+  for (uint32_t m = 0; m < n_meshes; m++) {
+    mesh_scenes[m] = rtcNewScene(dev);
+    rtcSetSceneFlags(mesh_scenes[m], robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
+    RTCGeometry g = soup(dev, meshes[m].tris, meshes[m].n_tris, 1, RTC_BUILD_QUALITY_MEDIUM, NULL);
+    rtcAttachGeometry(mesh_scenes[m], g);
+    rtcReleaseGeometry(g);
+    rtcCommitScene(mesh_scenes[m]);
+  }
+  for (uint32_t i = 0; i < n_insts; i++) {
+    RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_INSTANCE);
+    rtcSetGeometryInstancedScene(g, mesh_scenes[insts[i].mesh]);
+    if (insts[i].steps > 1) rtcSetGeometryTimeStepCount(g, insts[i].steps);
+    for (uint32_t k = 0; k < insts[i].steps; k++)
+      rtcSetGeometryTransform(g, k, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, insts[i].xfm + 12 * k);
+    rtcCommitGeometry(g);
+    rtcAttachGeometryByID(top, g, i);
+    rtcReleaseGeometry(g);
+  }
+  rtcCommitScene(top);
+  for (uint32_t m = 0; m < n_meshes; m++) rtcReleaseScene(mesh_scenes[m]);
+  free(mesh_scenes);
+  return top;
+}
+
 static int cmp(const void *a, const void *b) {
   double x = *(const double *)a, y = *(const double *)b;
   return (x > y) - (x < y);
@@ -134,13 +205,22 @@ int main(int argc, char **argv) {
   char magic[4];
   uint32_t hdr[3];
   uint32_t steps = 1;
-  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || (hdr[0] != 1 && hdr[0] != 2) ||
-      (hdr[0] == 2 && (fread(&steps, 4, 1, f) != 1 || steps < 2 || steps > RTC_MAX_TIME_STEP_COUNT))) {
-    fprintf(stderr, "%s: not a bvhtrace dump (version 1 or 2)\n", argv[1]);
+  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || hdr[0] < 1 || hdr[0] > 3 ||
+      (hdr[0] == 3 && fread(&n_insts, 4, 1, f) != 1) ||
+      (hdr[0] >= 2 && (fread(&steps, 4, 1, f) != 1 || steps < 2 || steps > RTC_MAX_TIME_STEP_COUNT))) {
+    fprintf(stderr, "%s: not a bvhtrace dump (version 1, 2 or 3)\n", argv[1]);
     return 1;
   }
   uint32_t n_tris = hdr[1];
   n_rays = hdr[2];
+  if (hdr[0] == 3) {
+    n_meshes = n_tris;
+    n_tris = 0;
+    if (read_instances(f, steps)) {
+      fprintf(stderr, "%s: truncated or bad instances\n", argv[1]);
+      return 1;
+    }
+  }
   size_t n_corners = 9 * (size_t)n_tris * steps;
   float *tris = malloc(sizeof(float) * n_corners);
   Ray *r = malloc(sizeof(Ray) * (size_t)n_rays);
@@ -162,13 +242,17 @@ int main(int argc, char **argv) {
   double *build = malloc(sizeof(double) * runs), *trace = malloc(sizeof(double) * runs);
   for (int run = 0; run < runs; run++) {
     double t0 = now_ms();
-    scene = rtcNewScene(dev);
-    rtcSetSceneFlags(scene, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
-    rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
-    RTCGeometry g = soup(dev, tris, n_tris, steps, RTC_BUILD_QUALITY_MEDIUM, NULL);
-    rtcAttachGeometry(scene, g);
-    rtcReleaseGeometry(g);
-    rtcCommitScene(scene);
+    if (insts) {
+      scene = instanced_scene(dev, robust);
+    } else {
+      scene = rtcNewScene(dev);
+      rtcSetSceneFlags(scene, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
+      rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
+      RTCGeometry g = soup(dev, tris, n_tris, steps, RTC_BUILD_QUALITY_MEDIUM, NULL);
+      rtcAttachGeometry(scene, g);
+      rtcReleaseGeometry(g);
+      rtcCommitScene(scene);
+    }
     build[run] = now_ms() - t0;
 
     pthread_t th[64];

@@ -9,7 +9,9 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use bvhtrace_core::motion::{MotionBvh, MotionMesh, TimeBounds};
+use bvhtrace_core::motion::{
+    MotionBvh, MotionInstancedBvh, MotionMesh, MovingInstance, TimeBounds,
+};
 use bvhtrace_core::oracle::{PreparedRay64, agreement};
 use bvhtrace_core::{BuildOptions, Hit, MISS, Query, Ray, Triangle};
 use common::*;
@@ -258,6 +260,145 @@ fn moving_meshes_match_embree_ray_by_ray() {
         assert!(
             (h - e).abs() <= 1e-3 * e,
             "{file}: render {h} hits, Embree {e}"
+        );
+    }
+}
+
+/// A version 3 dump (`bvhtrace dump --shutter --instances`) read back: the meshes, the
+/// moving instances, the rays and their times.
+fn read_instanced_dump(
+    bytes: &[u8],
+) -> (Vec<Vec<Triangle>>, Vec<MovingInstance>, Vec<Ray>, Vec<f32>) {
+    let mut words = bytes[4..]
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes(c.try_into().unwrap()));
+    let mut next = || words.next().expect("the dump's length");
+    assert_eq!(next(), 3);
+    let (n_meshes, n_rays, n_insts, _steps) = (next(), next(), next(), next());
+    let mut float = || f32::from_bits(next());
+    let point = |f: &mut dyn FnMut() -> f32| Vec3::new(f(), f(), f());
+    let meshes: Vec<Vec<Triangle>> = (0..n_meshes)
+        .map(|_| {
+            let n = f32::to_bits(float());
+            (0..n).map(|_| [0; 3].map(|_| point(&mut float))).collect()
+        })
+        .collect();
+    let instances = (0..n_insts)
+        .map(|_| {
+            let mesh = f32::to_bits(float()) as usize;
+            let count = f32::to_bits(float());
+            let transforms = (0..count)
+                .map(|_| {
+                    let c: [Vec3; 4] = [0; 4].map(|_| point(&mut float));
+                    glam::Mat4::from_cols(
+                        c[0].extend(0.0),
+                        c[1].extend(0.0),
+                        c[2].extend(0.0),
+                        c[3].extend(1.0),
+                    )
+                })
+                .collect();
+            MovingInstance { mesh, transforms }
+        })
+        .collect();
+    let rays = (0..n_rays)
+        .map(|_| {
+            let o = point(&mut float);
+            let t_min = float();
+            let d = point(&mut float);
+            Ray::with_interval(o, d, t_min, float())
+        })
+        .collect();
+    let times = (0..n_rays).map(|_| float()).collect();
+    (meshes, instances, rays, times)
+}
+
+/// Moving instances ray by ray against Embree 3's (instance geometries with their
+/// transforms as time steps), under the rule of `moving_meshes_match_embree_ray_by_ray`,
+/// judged on the instances' triangles placed at each ray's time.
+#[test]
+fn moving_instances_match_embree_ray_by_ray() {
+    let dir = scratch("embree-instances");
+    let Some(exe) = embree_trace(&dir) else {
+        return;
+    };
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
+    let animated = scenes.join("animated.gltf");
+    for (scene, shutter) in [
+        (animated.to_str().unwrap(), "0.2,1.9"),
+        ("builtin:moving:icosphere", "0,1"),
+    ] {
+        let dump = dir.join("instances.bin");
+        let hits_file = dir.join("instances.hits");
+        let mut args = vec!["dump", scene, "-o", dump.to_str().unwrap(), "--instances"];
+        args.extend([
+            "--size",
+            "200x150",
+            "--shutter",
+            shutter,
+            "--shutter-samples",
+            "3",
+        ]);
+        assert_ok(&run(&args));
+        let out = Command::new(&exe)
+            .arg(&dump)
+            .args(["2", "1"])
+            .arg(&hits_file)
+            .output()
+            .unwrap();
+        assert_ok(&out);
+        let theirs: Vec<u32> = std::fs::read(&hits_file)
+            .unwrap()
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let (meshes, instances, rays, times) = read_instanced_dump(&std::fs::read(&dump).unwrap());
+        assert!(
+            instances.iter().any(|i| i.transforms.len() > 1),
+            "{scene}: nothing moves"
+        );
+        let bvh = MotionInstancedBvh::build(
+            &meshes,
+            instances.clone(),
+            &BuildOptions::default(),
+            TimeBounds::Linear,
+        )
+        .unwrap();
+        let ours = bvh.trace_rays(&rays, &times, Query::Closest);
+        let steps = instances.iter().map(|i| i.transforms.len()).max().unwrap();
+        let (mut same, mut excused, mut hits) = (0, 0, 0);
+        for (i, (o, &p)) in ours.iter().zip(&theirs).enumerate() {
+            hits += o.is_hit() as usize;
+            if (if o.is_hit() { o.prim } else { MISS }) == p {
+                same += 1;
+                continue;
+            }
+            let seg = bvhtrace_core::motion::time_segment(times[i], steps);
+            let at: Vec<Triangle> = (instances.iter())
+                .flat_map(|inst| {
+                    let m = inst.transform_at(seg);
+                    meshes[inst.mesh]
+                        .iter()
+                        .map(move |t| t.map(|v| m.transform_point3(v)))
+                })
+                .collect();
+            let e = embree_hit(&at, &rays[i], p);
+            let rule = agreement(&at, &rays[i], o, &e, false);
+            assert!(
+                rule.agrees(),
+                "{scene} ray {i} at {}: ours {o:?}, Embree's {e:?}",
+                times[i]
+            );
+            excused += 1;
+        }
+        eprintln!(
+            "{scene} ({steps} steps): {same} of {} rays the same primitive as Embree, {excused} excused; {hits} hits",
+            rays.len()
+        );
+        assert!(hits > rays.len() / 20, "{scene}: the rays miss the scene");
+        assert!(
+            excused * 1000 <= rays.len(),
+            "{scene}: {excused} rays differ"
         );
     }
 }

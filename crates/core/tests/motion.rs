@@ -4,11 +4,13 @@
 
 mod common;
 
-use bvhtrace_core::motion::{MotionBvh, MotionError, MotionMesh, TimeBounds};
+use bvhtrace_core::motion::{
+    MotionBvh, MotionError, MotionInstancedBvh, MotionMesh, MovingInstance, TimeBounds,
+};
 use bvhtrace_core::traverse::Best;
 use bvhtrace_core::*;
 use common::{rays_for, soup, uv_sphere, xorshift};
-use glam::{Mat3, Vec3};
+use glam::{Mat3, Mat4, Vec3};
 use proptest::prelude::*;
 
 #[path = "../../../tests/support/rays.rs"]
@@ -320,4 +322,128 @@ proptest! {
             }
         }
     }
+}
+
+/// Spheres placed by moving transforms: `(meshes, instances, the same as one moving mesh)`.
+fn moving_spheres() -> (Vec<Vec<Triangle>>, Vec<MovingInstance>, MotionMesh) {
+    let sphere = uv_sphere(8, 1.0, Vec3::ZERO);
+    let instances: Vec<MovingInstance> = (0..6)
+        .map(|i| {
+            let x = i as f32 * 2.5;
+            let at = |k: f32| {
+                Mat4::from_scale_rotation_translation(
+                    Vec3::splat(1.0 + 0.2 * k),
+                    glam::Quat::from_rotation_y(0.3 * k * i as f32),
+                    Vec3::new(x + k * (i % 3) as f32, 0.5 * k, 0.0),
+                )
+            };
+            let transforms = if i == 2 {
+                vec![at(0.0)]
+            } else {
+                vec![at(0.0), at(1.0), at(1.5)]
+            };
+            MovingInstance {
+                mesh: 0,
+                transforms,
+            }
+        })
+        .collect();
+    let steps = (0..3)
+        .map(|k| {
+            instances
+                .iter()
+                .flat_map(|inst| {
+                    let m = inst.transforms[k.min(inst.transforms.len() - 1)];
+                    sphere.iter().map(move |t| t.map(|p| m.transform_point3(p)))
+                })
+                .collect()
+        })
+        .collect();
+    (vec![sphere], instances, MotionMesh::new(steps).unwrap())
+}
+
+#[test]
+fn moving_instances_answer_as_the_same_moving_mesh_flattened() {
+    let (meshes, instances, flat) = moving_spheres();
+    let opts = BuildOptions::default();
+    let mut rnd = xorshift(31);
+    for bounds in BOUNDS {
+        let two = MotionInstancedBvh::build(&meshes, instances.clone(), &opts, bounds).unwrap();
+        let one = MotionBvh::build(&flat, &opts, bounds).unwrap();
+        let (mut same, mut hits) = (0, 0);
+        let rays = rays_for(flat.step(1), 41, 4000);
+        for (i, ray) in rays.iter().enumerate() {
+            let time = rnd();
+            let (a, b) = (
+                one.trace(ray, time, Query::Closest).0,
+                two.trace(ray, time, Query::Closest).0,
+            );
+            hits += a.is_hit() as usize;
+            if a.prim == b.prim {
+                same += 1;
+                continue;
+            }
+            // The instance is walked in its own space: the same surface, rounded apart.
+            let at = flat.at(time);
+            let rule = oracle::agreement(&at, ray, &a, &b, false);
+            assert!(
+                rule.agrees(),
+                "{bounds:?} ray {i} at {time}: {a:?} vs {b:?}"
+            );
+            let any = two.trace(ray, time, Query::Any).0;
+            assert_eq!(any.is_hit(), b.is_hit(), "{bounds:?} ray {i}: any hit");
+        }
+        eprintln!(
+            "{bounds:?}: {same} of {} the same primitive, {hits} hits",
+            rays.len()
+        );
+        assert!(same * 1000 >= rays.len() * 995 && hits > rays.len() / 4);
+    }
+}
+
+#[test]
+fn no_ray_escapes_a_moving_instance_at_any_time() {
+    let (meshes, instances, _) = moving_spheres();
+    let bvh = MotionInstancedBvh::build(
+        &meshes,
+        instances.clone(),
+        &BuildOptions::default(),
+        TimeBounds::Linear,
+    )
+    .unwrap();
+    let mut rnd = xorshift(77);
+    for inst in &instances {
+        for time in [0.0, 0.3, 0.5, 0.77, 1.0] {
+            let m = inst.transform_at(motion::time_segment(time, 3));
+            let centre = m.transform_point3(Vec3::ZERO);
+            let rays: Vec<Ray> = (0..500)
+                .map(|_| Ray::new(centre, Vec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5)))
+                .collect();
+            let hits = bvh.trace_rays(&rays, &vec![time; rays.len()], Query::Closest);
+            assert!(hits.iter().all(|h| h.is_hit()), "a ray escaped at {time}");
+        }
+    }
+}
+
+#[test]
+fn bad_moving_instances_are_refused_by_name() {
+    let (meshes, mut instances, _) = moving_spheres();
+    let build = |i: Vec<MovingInstance>| {
+        MotionInstancedBvh::build(&meshes, i, &BuildOptions::default(), TimeBounds::Linear)
+            .unwrap_err()
+            .to_string()
+    };
+    instances[1].transforms.pop();
+    assert_eq!(
+        build(instances.clone()),
+        "instance 1 has 2 transforms; each has 1 or 3 (at most 129)"
+    );
+    instances[1].mesh = 4;
+    assert!(build(instances.clone()).starts_with("instance 1: mesh 4 does not exist"));
+    instances[1] = MovingInstance {
+        mesh: 0,
+        transforms: vec![Mat4::ZERO],
+    };
+    assert!(build(instances.clone()).contains("instance 1, time step 0"));
+    assert_eq!(build(Vec::new()), "no instances to build over");
 }

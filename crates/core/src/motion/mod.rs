@@ -17,13 +17,19 @@
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
-use crate::build::{BuildError, BuildNode, BuildOptions, build_boxes};
-use crate::flat::{FlatNode, FlatTriangle, MAX_PRIMITIVES};
+use crate::build::{BuildError, BuildOptions};
+use crate::flat::{FlatNode, FlatTriangle};
 use crate::geometry::Aabb;
-use crate::intersect::{PreparedRay, intersect_box, intersect_triangle};
+use crate::intersect::{PreparedRay, intersect_triangle};
 use crate::mesh::{MeshError, Triangle, validate_triangles};
 use crate::ray::{Counters, Hit, Ray};
 use crate::traverse::{Best, Query, untraced};
+
+mod instances;
+mod tree;
+
+pub use instances::{InstanceMotionError, MotionInstancedBvh, MovingInstance};
+use tree::TimeTree;
 
 /// Why a motion mesh was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -163,13 +169,6 @@ impl MotionMesh {
     pub fn at(&self, time: f32) -> Vec<Triangle> {
         (0..self.len()).map(|i| self.triangle_at(i, time)).collect()
     }
-
-    /// Triangle `prim`'s box over the whole shutter.
-    fn merged_box(&self, prim: usize) -> Aabb {
-        self.steps
-            .iter()
-            .fold(Aabb::EMPTY, |b, s| b.union(&Aabb::from_triangle(&s[prim])))
-    }
 }
 
 /// How a node of a [`MotionBvh`] bounds its triangles in time.
@@ -198,7 +197,7 @@ pub struct MotionBox {
 }
 
 impl MotionBox {
-    fn of(b: &Aabb) -> MotionBox {
+    pub(crate) fn of(b: &Aabb) -> MotionBox {
         MotionBox {
             min: b.min.to_array(),
             max: b.max.to_array(),
@@ -221,17 +220,11 @@ impl MotionBox {
 /// leaf order. The kernels read these arrays as they are (`bvh_motion_buffers.wgsl`).
 #[derive(Clone, Debug)]
 pub struct MotionBvh {
-    nodes: Vec<FlatNode>,
-    /// Node `i`'s box at step `k`: `step_boxes[i * steps + k]`; empty with
-    /// [`TimeBounds::Merged`].
-    step_boxes: Vec<MotionBox>,
+    tree: TimeTree,
     /// Leaf order's triangle `j` at step `k`: `tris[k * n + j]`, each with its input id.
     tris: Vec<FlatTriangle>,
     /// Triangles per step.
     count: usize,
-    steps: usize,
-    bounds: TimeBounds,
-    depth: u32,
 }
 
 impl MotionBvh {
@@ -243,24 +236,15 @@ impl MotionBvh {
         opts: &BuildOptions,
         bounds: TimeBounds,
     ) -> Result<MotionBvh, BuildError> {
-        if mesh.len() > MAX_PRIMITIVES {
-            return Err(MeshError::TooMany(mesh.len()).into());
-        }
-        let boxes: Vec<Aabb> = (0..mesh.len()).map(|i| mesh.merged_box(i)).collect();
-        let tree = build_boxes(&boxes, opts)?;
         let steps = mesh.time_steps();
-        let mut bvh = MotionBvh {
-            nodes: Vec::with_capacity(tree.node_count),
-            step_boxes: Vec::new(),
-            tris: Vec::with_capacity(steps * tree.prim_order.len()),
-            count: tree.prim_order.len(),
-            steps,
-            bounds,
-            depth: 0,
-        };
+        let boxes: Vec<Aabb> = (0..mesh.len())
+            .flat_map(|p| (0..steps).map(move |k| Aabb::from_triangle(&mesh.step(k)[p])))
+            .collect();
+        let (tree, order) = TimeTree::build(&boxes, steps, opts, bounds)?;
+        let mut tris = Vec::with_capacity(steps * order.len());
         for k in 0..steps {
             let step = mesh.step(k);
-            bvh.tris.extend(tree.prim_order.iter().map(|&p| {
+            tris.extend(order.iter().map(|&p| {
                 let [v0, v1, v2] = step[p as usize].map(|v| v.to_array());
                 FlatTriangle {
                     v0,
@@ -271,77 +255,36 @@ impl MotionBvh {
                 }
             }));
         }
-        let mut per_node = Vec::with_capacity(tree.node_count);
-        bvh.depth = bvh.lay_out(&tree.root, 1, &mut per_node);
-        if bounds == TimeBounds::Linear {
-            bvh.step_boxes = per_node.iter().flatten().map(MotionBox::of).collect();
-        }
-        Ok(bvh)
-    }
-
-    /// Lays `node` out depth first (first child next), with its boxes at every step in
-    /// `per_node`; returns the subtree's depth counted from `level`.
-    fn lay_out(&mut self, node: &BuildNode, level: u32, per_node: &mut Vec<Vec<Aabb>>) -> u32 {
-        let index = self.nodes.len();
-        self.nodes.push(FlatNode {
-            min: node.bounds().min.to_array(),
-            right_or_first: 0,
-            max: node.bounds().max.to_array(),
-            meta: 0,
-        });
-        per_node.push(Vec::new());
-        let (meta, right_or_first, boxes, depth) = match node {
-            BuildNode::Leaf { first, count, .. } => {
-                let boxes = (0..self.steps).map(|k| self.leaf_box(*first, *count, k));
-                (count << 2, *first, boxes.collect(), level)
-            }
-            BuildNode::Interior { axis, children, .. } => {
-                let dl = self.lay_out(&children[0], level + 1, per_node);
-                let right = self.nodes.len();
-                let dr = self.lay_out(&children[1], level + 1, per_node);
-                let (l, r) = (&per_node[index + 1], &per_node[right]);
-                let boxes = l.iter().zip(r).map(|(a, b)| a.union(b)).collect();
-                (*axis as u32, right as u32, boxes, dl.max(dr))
-            }
-        };
-        let n = &mut self.nodes[index];
-        (n.meta, n.right_or_first) = (meta, right_or_first);
-        per_node[index] = boxes;
-        depth
-    }
-
-    /// The box of leaf triangles `first..first + count` at step `k`.
-    fn leaf_box(&self, first: u32, count: u32, k: usize) -> Aabb {
-        let n = self.count;
-        let range = k * n + first as usize..k * n + (first + count) as usize;
-        self.tris[range].iter().fold(Aabb::EMPTY, |b, t| {
-            b.union(&Aabb::from_triangle(&t.corners()))
+        Ok(MotionBvh {
+            tree,
+            tris,
+            count: order.len(),
         })
     }
 
     /// Number of time steps.
     pub fn time_steps(&self) -> usize {
-        self.steps
+        self.tree.steps
     }
 
     /// How the nodes bound time.
     pub fn time_bounds(&self) -> TimeBounds {
-        self.bounds
+        self.tree.bounds
     }
 
     /// The nodes (depth first; each box over the whole shutter).
     pub fn nodes(&self) -> &[FlatNode] {
-        &self.nodes
+        &self.tree.nodes
     }
 
     /// Levels from the root to the deepest leaf (a lone leaf is 1).
     pub fn depth(&self) -> u32 {
-        self.depth
+        self.tree.depth
     }
 
     /// The box around every triangle over the whole shutter.
     pub fn bounds(&self) -> Aabb {
-        self.nodes[0].aabb()
+        self.tree.nodes[0].aabb()
     }
 
     /// Number of triangles.
@@ -352,7 +295,7 @@ impl MotionBvh {
     /// Each node's box at every time step: node `i`'s at step `k` is entry
     /// `i * time_steps() + k` (empty with [`TimeBounds::Merged`]).
     pub fn step_boxes(&self) -> &[MotionBox] {
-        &self.step_boxes
+        &self.tree.step_boxes
     }
 
     /// The triangles in leaf order at every time step: step `k`'s are entries
@@ -363,22 +306,7 @@ impl MotionBvh {
 
     /// Bytes the walk reads: nodes, per-step boxes and triangles at every step.
     pub fn byte_size(&self) -> usize {
-        use std::mem::size_of;
-        self.nodes.len() * size_of::<FlatNode>()
-            + self.step_boxes.len() * size_of::<MotionBox>()
-            + self.tris.len() * size_of::<FlatTriangle>()
-    }
-
-    /// Node `i`'s box at the time of `segment` (`(s, f)` from [`time_segment`]).
-    #[inline(always)]
-    fn node_box(&self, i: usize, (s, f): (usize, f32)) -> Aabb {
-        match self.bounds {
-            TimeBounds::Linear => {
-                let b = &self.step_boxes[i * self.steps + s..];
-                lerp_box(&b[0].aabb(), &b[1].aabb(), f)
-            }
-            TimeBounds::Merged => self.nodes[i].aabb(),
-        }
+        self.tree.byte_size() + self.tris.len() * std::mem::size_of::<FlatTriangle>()
     }
 
     /// Traces one ray at `time` (clamped to `[0, 1]`; a NaN time is an invalid ray):
@@ -388,8 +316,21 @@ impl MotionBvh {
         if !ray.is_valid() || time.is_nan() {
             return (untraced(ray), Counters::default());
         }
-        let mut stack = Vec::with_capacity(self.depth as usize);
-        self.walk(ray, time_segment(time, self.steps), query, &mut stack)
+        let seg = time_segment(time, self.tree.steps);
+        let r = PreparedRay::new(ray);
+        let mut best = Best::start(ray);
+        let mut c = Counters::default();
+        let mut stack = Vec::with_capacity(self.tree.depth as usize);
+        self.tree.walk(
+            &r,
+            seg,
+            &mut best,
+            &mut c,
+            query,
+            &mut stack,
+            |n, best, c| self.visit_leaf(&r, n, seg, best, c),
+        );
+        (best.into_hit(), c)
     }
 
     /// Traces `rays[i]` at `times[i]` in parallel (see [`MotionBvh::trace`]).
@@ -404,47 +345,6 @@ impl MotionBvh {
             .with_min_len(256)
             .map(|(r, &t)| self.trace(r, t, query).0)
             .collect()
-    }
-
-    /// The full-stack walk: the nearer child first (by entry distance), the other pushed.
-    fn walk(
-        &self,
-        ray: &Ray,
-        seg: (usize, f32),
-        query: Query,
-        stack: &mut Vec<u32>,
-    ) -> (Hit, Counters) {
-        let r = PreparedRay::new(ray);
-        let mut best = Best::start(ray);
-        let mut c = Counters { nodes: 1, tris: 0 };
-        let hit_box = |i: u32, t_best: f32| {
-            let b = self.node_box(i as usize, seg);
-            intersect_box(&r, b.min, b.max, t_best)
-        };
-        let mut node = hit_box(0, best.t).map(|_| 0u32);
-        while let Some(i) = node.or_else(|| stack.pop()) {
-            let n = &self.nodes[i as usize];
-            node = None;
-            if n.is_leaf() {
-                if self.visit_leaf(&r, n, seg, &mut best, &mut c) && query == Query::Any {
-                    break;
-                }
-                continue;
-            }
-            let (l, rt) = (i + 1, n.right_or_first);
-            c.nodes += 2;
-            match (hit_box(l, best.t), hit_box(rt, best.t)) {
-                (Some(tl), Some(tr)) => {
-                    let (near, far) = if tr < tl { (rt, l) } else { (l, rt) };
-                    stack.push(far);
-                    node = Some(near);
-                }
-                (Some(_), None) => node = Some(l),
-                (None, Some(_)) => node = Some(rt),
-                (None, None) => {}
-            }
-        }
-        (best.into_hit(), c)
     }
 
     /// Tests a leaf's triangles at the ray's time; true when one was taken.

@@ -1,0 +1,302 @@
+//! Moving instances: meshes placed by transforms that move over the shutter, as Embree's
+//! instances with time steps move (the matrices interpolated entry by entry between
+//! evenly spaced steps), traced in two levels: a moving top level over the instances, each
+//! mesh's own static tree below, walked with the ray taken into the instance's space at
+//! its time.
+
+use glam::{Affine3A, Mat4, Vec3};
+
+use crate::build::{BuildError, BuildOptions};
+use crate::flat::FlatBvh;
+use crate::geometry::Aabb;
+use crate::intersect::PreparedRay;
+use crate::mesh::Triangle;
+use crate::ray::{Counters, Hit, Ray};
+use crate::traverse::{Best, Query, TraceOptions, Traversal, trace_ray, untraced};
+
+use super::tree::TimeTree;
+use super::{MAX_TIME_STEPS, TimeBounds, time_segment};
+
+/// A mesh placed by a transform that may move.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MovingInstance {
+    /// The mesh it places: an index into the meshes given to [`MotionInstancedBvh::build`].
+    pub mesh: usize,
+    /// Its object-to-world transforms (affine) at the time steps, evenly over the shutter;
+    /// one for an instance that stays where it is.
+    pub transforms: Vec<Mat4>,
+}
+
+impl MovingInstance {
+    /// Its transform at the time of `(s, f)` ([`time_segment`]): step `s`'s and `s + 1`'s
+    /// mixed entry by entry, `(1 - f) a + f b`.
+    pub fn transform_at(&self, (s, f): (usize, f32)) -> Mat4 {
+        match self.transforms.len() {
+            1 => self.transforms[0],
+            _ => self.transforms[s] * (1.0 - f) + self.transforms[s + 1] * f,
+        }
+    }
+}
+
+/// Why moving instances were refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InstanceMotionError {
+    /// An instance names a mesh that is not there.
+    #[error("instance {instance}: mesh {mesh} does not exist ({meshes} meshes)")]
+    NoMesh {
+        /// The instance.
+        instance: usize,
+        /// The mesh it names.
+        mesh: usize,
+        /// How many meshes there are.
+        meshes: usize,
+    },
+    /// An instance has neither one transform nor as many as the others' steps.
+    #[error(
+        "instance {instance} has {got} transforms; each has 1 or {steps} (at most {MAX_TIME_STEPS})"
+    )]
+    Steps {
+        /// The instance.
+        instance: usize,
+        /// Its transforms.
+        got: usize,
+        /// The steps of the instances that move.
+        steps: usize,
+    },
+    /// A transform is not finite, not affine, or not invertible.
+    #[error(
+        "instance {instance}, time step {step}: the transform is not a finite, invertible affine matrix"
+    )]
+    Transform {
+        /// The instance.
+        instance: usize,
+        /// The step.
+        step: usize,
+    },
+    /// There is no instance to build over.
+    #[error("no instances to build over")]
+    NoInstances,
+    /// A mesh could not be built.
+    #[error("mesh {mesh}: {error}")]
+    Mesh {
+        /// The mesh.
+        mesh: usize,
+        /// Why.
+        error: BuildError,
+    },
+}
+
+/// Moving instances over static meshes, in two levels (see the module docs). Primitive
+/// ids are numbered as the flattened scene numbers them: instance `i`'s triangles follow
+/// those of the instances before it, in its mesh's order.
+#[derive(Clone, Debug)]
+pub struct MotionInstancedBvh {
+    top: TimeTree,
+    meshes: Vec<FlatBvh>,
+    /// The instances in the top level's leaf order, each with its first primitive id.
+    instances: Vec<(MovingInstance, u32)>,
+}
+
+impl MotionInstancedBvh {
+    /// Builds each mesh's tree and the moving top level over the instances' boxes at
+    /// every step (`bounds` as for [`super::MotionBvh`]), both with `opts`.
+    pub fn build(
+        meshes: &[Vec<Triangle>],
+        instances: Vec<MovingInstance>,
+        opts: &BuildOptions,
+        bounds: TimeBounds,
+    ) -> Result<MotionInstancedBvh, InstanceMotionError> {
+        let steps = check(meshes, &instances)?;
+        let trees = (meshes.iter().enumerate())
+            .map(|(mesh, t)| {
+                FlatBvh::build(t, opts).map_err(|error| InstanceMotionError::Mesh { mesh, error })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut boxes = Vec::with_capacity(instances.len() * steps);
+        for inst in &instances {
+            let object = trees[inst.mesh].bounds();
+            boxes
+                .extend((0..steps).map(|k| {
+                    world_box(&object, inst.transforms[k.min(inst.transforms.len() - 1)])
+                }));
+        }
+        // Every mesh built, so the options are good: the top level cannot fail.
+        let (top, order) = TimeTree::build(&boxes, steps, opts, bounds)
+            .map_err(|_| InstanceMotionError::NoInstances)?;
+        let mut first = Vec::with_capacity(instances.len());
+        let mut next = 0u32;
+        for inst in &instances {
+            first.push(next);
+            next += trees[inst.mesh].triangle_count() as u32;
+        }
+        let instances = order
+            .iter()
+            .map(|&i| (instances[i as usize].clone(), first[i as usize]))
+            .collect();
+        Ok(MotionInstancedBvh {
+            top,
+            meshes: trees,
+            instances,
+        })
+    }
+
+    /// Number of time steps of the top level.
+    pub fn time_steps(&self) -> usize {
+        self.top.steps
+    }
+
+    /// Levels of the top tree.
+    pub fn depth(&self) -> u32 {
+        self.top.depth
+    }
+
+    /// Bytes of both levels: the top level's nodes and step boxes, the meshes' nodes and
+    /// triangles.
+    pub fn byte_size(&self) -> usize {
+        let (n, t, _) = self.meshes.iter().fold((0, 0, 0), |(a, b, c), m| {
+            let (x, y, z) = m.byte_sizes();
+            (a + x, b + y, c + z)
+        });
+        self.top.byte_size() + n + t
+    }
+
+    /// Traces one ray at `time` (clamped to `[0, 1]`; a NaN time is an invalid ray): the
+    /// closest hit (the walks' hit rule over every instance) or any hit.
+    pub fn trace(&self, ray: &Ray, time: f32, query: Query) -> (Hit, Counters) {
+        if !ray.is_valid() || time.is_nan() {
+            return (untraced(ray), Counters::default());
+        }
+        let seg = time_segment(time, self.top.steps);
+        let r = PreparedRay::new(ray);
+        let mut best = Best::start(ray);
+        let mut c = Counters::default();
+        let mut stack = Vec::with_capacity(self.top.depth as usize);
+        self.top.walk(
+            &r,
+            seg,
+            &mut best,
+            &mut c,
+            query,
+            &mut stack,
+            |n, best, c| {
+                let first = n.right_or_first as usize;
+                let mut taken = false;
+                for j in first..first + n.count() as usize {
+                    taken |= self.visit_instance(j, ray, seg, query, best, c);
+                    if taken && query == Query::Any {
+                        break;
+                    }
+                }
+                taken
+            },
+        );
+        (best.into_hit(), c)
+    }
+
+    /// Traces `rays[i]` at `times[i]` in parallel (see [`MotionInstancedBvh::trace`]).
+    ///
+    /// # Panics
+    /// When the two slices differ in length.
+    pub fn trace_rays(&self, rays: &[Ray], times: &[f32], query: Query) -> Vec<Hit> {
+        use rayon::prelude::*;
+        assert_eq!(rays.len(), times.len(), "one time per ray");
+        rays.par_iter()
+            .zip(times)
+            .with_min_len(64)
+            .map(|(r, &t)| self.trace(r, t, query).0)
+            .collect()
+    }
+
+    /// Walks instance `j`'s mesh with the ray in its space at the ray's time, for hits
+    /// nearer than the best (or as near, for the hit rule's lower id); true when one was
+    /// taken.
+    fn visit_instance(
+        &self,
+        j: usize,
+        ray: &Ray,
+        seg: (usize, f32),
+        query: Query,
+        best: &mut Best,
+        c: &mut Counters,
+    ) -> bool {
+        let (inst, first) = &self.instances[j];
+        let to_object = Affine3A::from_mat4(inst.transform_at(seg)).inverse();
+        let t_max = if best.found { best.t.next_up() } else { best.t };
+        let object = Ray::with_interval(
+            to_object.transform_point3(Vec3::from(ray.origin)),
+            to_object.transform_vector3(Vec3::from(ray.dir)),
+            ray.t_min,
+            t_max,
+        );
+        if !object.is_valid() {
+            return false;
+        }
+        let opts = TraceOptions::new(Traversal::FullStack, query).with_counters(true);
+        let (h, k) = trace_ray(&self.meshes[inst.mesh], &object, &opts);
+        *c += k;
+        h.is_hit() && best.offer(h.t, first + h.prim, h.u, h.v)
+    }
+}
+
+/// The common step count of `instances` (1 when none moves), after checking each.
+fn check(
+    meshes: &[Vec<Triangle>],
+    instances: &[MovingInstance],
+) -> Result<usize, InstanceMotionError> {
+    if instances.is_empty() {
+        return Err(InstanceMotionError::NoInstances);
+    }
+    let steps = instances
+        .iter()
+        .map(|i| i.transforms.len())
+        .max()
+        .unwrap_or(1);
+    for (instance, inst) in instances.iter().enumerate() {
+        if inst.mesh >= meshes.len() {
+            return Err(InstanceMotionError::NoMesh {
+                instance,
+                mesh: inst.mesh,
+                meshes: meshes.len(),
+            });
+        }
+        let got = inst.transforms.len();
+        if !(got == 1 || got == steps) || steps > MAX_TIME_STEPS || got == 0 {
+            return Err(InstanceMotionError::Steps {
+                instance,
+                got,
+                steps,
+            });
+        }
+        if let Some(step) = inst
+            .transforms
+            .iter()
+            .position(|m| !is_invertible_affine(m))
+        {
+            return Err(InstanceMotionError::Transform { instance, step });
+        }
+    }
+    Ok(steps.max(2))
+}
+
+fn is_invertible_affine(m: &Mat4) -> bool {
+    m.is_finite() && m.row(3) == glam::Vec4::W && m.determinant() != 0.0 && m.inverse().is_finite()
+}
+
+/// The world box of `object` (a mesh's box) under `m`: its eight corners transformed,
+/// widened by `2^-20` of its largest coordinate (the transform's rounding is far below).
+fn world_box(object: &Aabb, m: Mat4) -> Aabb {
+    let b = (0..8).fold(Aabb::EMPTY, |b, i| {
+        let pick = |bit: usize, lo: f32, hi: f32| if i >> bit & 1 == 0 { lo } else { hi };
+        let p = Vec3::new(
+            pick(0, object.min.x, object.max.x),
+            pick(1, object.min.y, object.max.y),
+            pick(2, object.min.z, object.max.z),
+        );
+        b.union(&Aabb::from_point(m.transform_point3(p)))
+    });
+    let slack = b.min.abs().max(b.max.abs()) * (1.0 / (1 << 20) as f32);
+    Aabb {
+        min: b.min - slack,
+        max: b.max + slack,
+    }
+}
