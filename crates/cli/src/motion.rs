@@ -12,9 +12,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use bvhtrace_core::motion::{MotionBvh, MotionMesh, TimeBounds};
+use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, Hit, Query, Ray, Triangle};
 use bvhtrace_gpu::GpuMotionBvh;
+use bvhtrace_scene::Scene;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -39,6 +40,11 @@ pub struct ShutterArgs {
     /// Samples per pixel over the shutter (with --shutter).
     #[arg(long, value_name = "N", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=4096))]
     pub shutter_samples: u32,
+    /// With --shutter: two levels, the meshes under their instances' moving transforms
+    /// (for a scene whose animation moves instances without deforming meshes; traced on
+    /// the CPU), instead of the flattened moving triangles.
+    #[arg(long, requires = "shutter")]
+    pub instances: bool,
 }
 
 /// `--time-bounds`: [`TimeBounds`].
@@ -128,18 +134,33 @@ fn check_flags(args: &RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// Where a blurred render traces: the device, or the CPU twin (which also counts).
+/// What a blurred render traces, and where: one moving mesh on the device or on the CPU
+/// twin (which also counts), or moving instances in two levels on the CPU.
 enum Walker {
-    Cpu(Arc<MotionBvh>),
-    Gpu(GpuMotionBvh),
+    Cpu(Arc<MotionBvh>, MotionMesh),
+    Gpu(GpuMotionBvh, MotionMesh),
+    Instanced(MotionInstancedBvh),
 }
 
 impl Walker {
-    /// The device `--backend` names (the best one for auto), or the CPU; auto falls back
-    /// to the CPU, saying why, where the device cannot take the tree.
-    fn open(args: &RenderArgs, bvh: Arc<MotionBvh>) -> Result<Walker> {
+    /// The scene over the shutter as the flags say, built, on the device `--backend`
+    /// names (the best one for auto) or the CPU; auto falls back to the CPU, saying why,
+    /// where the device cannot take the tree.
+    fn build(args: &RenderArgs, scene: &Scene, (open, close): (f32, f32)) -> Result<Walker> {
+        let opts = args.scene.build.options();
+        let bounds = TimeBounds::from(args.time_bounds);
+        if args.shutter.instances {
+            if args.backend != Backend::Auto && args.backend != Backend::Cpu {
+                bail!("--shutter --instances traces on the CPU so far: use --backend cpu or auto");
+            }
+            let (meshes, instances) = scene.moving_instances(open, close)?;
+            let bvh = MotionInstancedBvh::build(&meshes, instances, &opts, bounds)?;
+            return Ok(Walker::Instanced(bvh));
+        }
+        let mesh = scene.motion(open, close)?;
+        let bvh = Arc::new(MotionBvh::build(&mesh, &opts, bounds)?);
         if args.backend == Backend::Cpu {
-            return Ok(Walker::Cpu(bvh));
+            return Ok(Walker::Cpu(bvh, mesh));
         }
         let wanted = match args.backend {
             Backend::RayQuery => {
@@ -151,16 +172,15 @@ impl Walker {
             }
             b => b,
         };
-        let opts = backend::options(wanted, args.adapter.as_deref(), &[]);
-        let device = backend::device(&opts)?;
+        let device = backend::device(&backend::options(wanted, args.adapter.as_deref(), &[]))?;
         let Some(ctx) = device.wgpu_context() else {
-            return Ok(Walker::Cpu(bvh));
+            return Ok(Walker::Cpu(bvh, mesh));
         };
         match GpuMotionBvh::upload(ctx, bvh.clone()) {
-            Ok(gpu) => Ok(Walker::Gpu(gpu)),
+            Ok(gpu) => Ok(Walker::Gpu(gpu, mesh)),
             Err(e) if args.backend == Backend::Auto => {
                 eprintln!("note: tracing on the CPU: {e}");
-                Ok(Walker::Cpu(bvh))
+                Ok(Walker::Cpu(bvh, mesh))
             }
             Err(e) => Err(e.into()),
         }
@@ -168,35 +188,61 @@ impl Walker {
 
     fn name(&self) -> &'static str {
         match self {
-            Walker::Cpu(_) => "cpu",
-            Walker::Gpu(_) => "wgpu",
+            Walker::Gpu(..) => "wgpu",
+            _ => "cpu",
         }
     }
 
-    fn bvh(&self) -> &MotionBvh {
+    /// `(triangles, time steps, tree bytes, depth)`.
+    fn sizes(&self) -> (usize, usize, usize, u32) {
         match self {
-            Walker::Cpu(b) => b,
-            Walker::Gpu(g) => g.bvh(),
+            Walker::Cpu(b, _) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+            Walker::Gpu(g, _) => {
+                let b = g.bvh();
+                (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
+            }
+            Walker::Instanced(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+        }
+    }
+
+    /// The box around everything over the shutter.
+    fn bounds(&self) -> bvhtrace_core::Aabb {
+        match self {
+            Walker::Cpu(b, _) => b.bounds(),
+            Walker::Gpu(g, _) => g.bvh().bounds(),
+            Walker::Instanced(b) => b.bounds(),
+        }
+    }
+
+    /// Triangle `prim` where it is at `time`.
+    fn triangle_at(&self, prim: u32, time: f32) -> Triangle {
+        match self {
+            Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(prim as usize, time),
+            Walker::Instanced(b) => b.triangle_at(prim, time).unwrap_or_default(),
         }
     }
 
     /// Closest hits, with counters on the CPU (none from the device).
     fn closest(&self, rays: &[Ray], times: &[f32]) -> Result<(Vec<Hit>, Vec<Counters>)> {
-        match self {
-            Walker::Cpu(bvh) => Ok(rays
-                .par_iter()
+        let on_cpu = |trace: &(dyn Fn(&Ray, f32) -> (Hit, Counters) + Sync)| {
+            rays.par_iter()
                 .zip(times)
-                .with_min_len(256)
-                .map(|(r, &time)| bvh.trace(r, time, Query::Closest))
-                .unzip()),
-            Walker::Gpu(g) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
+                .with_min_len(64)
+                .map(|(r, &time)| trace(r, time))
+                .unzip()
+        };
+        match self {
+            Walker::Cpu(b, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
+            Walker::Instanced(b) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
+            Walker::Gpu(g, _) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
         }
     }
 
     fn any(&self, rays: &[Ray], times: &[f32]) -> Result<Vec<Hit>> {
         match self {
-            Walker::Cpu(bvh) => Ok(bvh.trace_rays(rays, times, Query::Any)),
-            Walker::Gpu(g) => Ok(g.trace(rays, times, Query::Any)?),
+            Walker::Cpu(b, _) => Ok(b.trace_rays(rays, times, Query::Any)),
+            Walker::Instanced(b) => Ok(b.trace_rays(rays, times, Query::Any)),
+            Walker::Gpu(g, _) => Ok(g.trace(rays, times, Query::Any)?),
         }
     }
 }
@@ -225,17 +271,16 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
         .unwrap_or(bvhtrace_scene::DEFAULT_SCENE);
     let t0 = Instant::now();
     let scene = crate::geometry::load_scene(spec)?;
-    let mesh = scene.motion(shutter.0, shutter.1)?;
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
     let bounds = TimeBounds::from(args.time_bounds);
-    let bvh = MotionBvh::build(&mesh, &args.scene.build.options(), bounds)
-        .with_context(|| format!("building the BVH of {spec}"))?;
+    let walker = Walker::build(args, &scene, shutter)
+        .with_context(|| format!("{spec} over the shutter {}..{} s", shutter.0, shutter.1))?;
+    // Sampling the animation into steps, the build and the upload.
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
-    let walker = Walker::open(args, Arc::new(bvh))?;
-    let bvh = walker.bvh();
+    let (triangles, steps, bytes, depth) = walker.sizes();
     let cam = camera_for(&args.view, &scene)?;
-    let b = bvh.bounds();
+    let b = walker.bounds();
     let view = View {
         shade: args.shade,
         ao_radius: shade::ao_radius_of((b.max - b.min).length().max(f32::MIN_POSITIVE)),
@@ -259,14 +304,7 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
         let times: Vec<f32> = (0..rays.len() as u32)
             .map(|p| ray_time(p, s, samples))
             .collect();
-        let img = trace_sample(
-            args,
-            &view,
-            (&walker, &mesh),
-            (&rays, &times),
-            s,
-            &mut totals,
-        )?;
+        let img = trace_sample(args, &view, &walker, (&rays, &times), s, &mut totals)?;
         for (a, v) in sum.iter_mut().zip(img) {
             *a += u32::from(v);
         }
@@ -282,8 +320,8 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     eprintln!(
         "wrote {} ({w}x{h}, {} triangles in {} time steps, {samples} samples over {}..{} s, {} bounds on {}): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
         args.output.display(),
-        mesh.len(),
-        mesh.time_steps(),
+        triangles,
+        steps,
         shutter.0,
         shutter.1,
         bounds_name(bounds),
@@ -297,14 +335,14 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
         j.write(&json!({
             "scene": spec,
             "width": w, "height": h,
-            "triangles": mesh.len(),
+            "triangles": triangles,
             "shutter": [shutter.0, shutter.1],
-            "time_steps": mesh.time_steps(),
+            "time_steps": steps,
+            "levels": if args.shutter.instances { 2 } else { 1 },
             "time_bounds": bounds_name(bounds),
             "samples": samples,
-            "nodes": bvh.nodes().len(),
-            "depth": bvh.depth(),
-            "bvh_bytes": bvh.byte_size(),
+            "depth": depth,
+            "bvh_bytes": bytes,
             "load_ms": load_ms,
             "build_ms": build_ms,
             "rays": totals.rays,
@@ -337,7 +375,7 @@ fn bounds_name(b: TimeBounds) -> &'static str {
 fn trace_sample(
     args: &RenderArgs,
     view: &View,
-    (walker, mesh): (&Walker, &MotionMesh),
+    walker: &Walker,
     (rays, times): (&[Ray], &[f32]),
     sample: u32,
     totals: &mut Totals,
@@ -351,7 +389,7 @@ fn trace_sample(
         .iter()
         .zip(times)
         .map(|(h, &time)| match h.is_hit() {
-            true => mesh.triangle_at(h.prim as usize, time),
+            true => walker.triangle_at(h.prim, time),
             false => [Vec3::ZERO; 3],
         })
         .collect();

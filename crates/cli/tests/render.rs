@@ -592,8 +592,37 @@ fn blurred_renders_over_the_shutter() {
         assert_eq!(g["backend"], "wgpu");
         assert!(cpu == gpu, "{bounds}: the device's blur is not the CPU's");
     }
+    // Moving instances in two levels: the moving builtin's two copies.
+    let two = [
+        "builtin:moving:icosphere",
+        "--shutter",
+        "0,1",
+        "--shade",
+        "diffuse",
+    ];
+    let (j, instanced) = render_json("blur-instances", &[&two[..], &["--instances"]].concat());
+    let (_, flattened) = render_json("blur-flattened", &two);
+    assert_eq!(
+        (j["levels"].as_u64(), j["time_steps"].as_u64()),
+        (Some(2), Some(5))
+    );
+    // The same surfaces, rounded apart (each instance walked in its own space): a few
+    // silhouette pixels may differ.
+    let pixels = |png: &[u8]| image::load_from_memory(png).unwrap().to_rgb8().into_raw();
+    let (a, b) = (pixels(&instanced), pixels(&flattened));
+    let differ = a
+        .iter()
+        .zip(&b)
+        .filter(|(x, y)| x.abs_diff(**y) > 8)
+        .count();
+    assert!(
+        differ * 200 < a.len(),
+        "{differ} of {} channels differ from the flattened blur",
+        a.len()
+    );
     for bad in [
         &["--backend", "vulkan"][..],
+        &["--backend", "gpu", "--instances"],
         &["--backend", "auto", "--shade", "heatmap"],
         &["--shade", "path"],
         &["--time", "0.3"],

@@ -93,8 +93,12 @@ pub enum InstanceMotionError {
 pub struct MotionInstancedBvh {
     top: TimeTree,
     meshes: Vec<FlatBvh>,
+    /// The meshes' triangles in input order, for [`MotionInstancedBvh::triangle_at`].
+    mesh_triangles: Vec<Vec<Triangle>>,
     /// The instances in the top level's leaf order, each with its first primitive id.
     instances: Vec<(MovingInstance, u32)>,
+    /// `(first primitive id, index into instances)`, by first id.
+    by_first: Vec<(u32, usize)>,
 }
 
 impl MotionInstancedBvh {
@@ -129,20 +133,52 @@ impl MotionInstancedBvh {
             first.push(next);
             next += trees[inst.mesh].triangle_count() as u32;
         }
-        let instances = order
+        let instances: Vec<(MovingInstance, u32)> = order
             .iter()
             .map(|&i| (instances[i as usize].clone(), first[i as usize]))
             .collect();
+        let mut by_first: Vec<(u32, usize)> = (instances.iter().enumerate())
+            .map(|(j, (_, f))| (*f, j))
+            .collect();
+        by_first.sort_unstable();
         Ok(MotionInstancedBvh {
             top,
             meshes: trees,
+            mesh_triangles: meshes.to_vec(),
             instances,
+            by_first,
         })
     }
 
     /// Number of time steps of the top level.
     pub fn time_steps(&self) -> usize {
         self.top.steps
+    }
+
+    /// The box around every instance over the whole shutter.
+    pub fn bounds(&self) -> Aabb {
+        self.top.nodes[0].aabb()
+    }
+
+    /// Triangle `prim` (the flattened numbering) in world space where its instance places
+    /// it at `time`; `None` for an id past the last.
+    pub fn triangle_at(&self, prim: u32, time: f32) -> Option<Triangle> {
+        let k = self
+            .by_first
+            .partition_point(|&(f, _)| f <= prim)
+            .checked_sub(1)?;
+        let (first, j) = self.by_first[k];
+        let (inst, _) = &self.instances[j];
+        let tri = self.mesh_triangles[inst.mesh].get((prim - first) as usize)?;
+        let m = inst.transform_at(time_segment(time, self.top.steps));
+        Some(tri.map(|p| m.transform_point3(p)))
+    }
+
+    /// Triangles placed: every instance's mesh's, counted once per instance.
+    pub fn triangle_count(&self) -> usize {
+        (self.instances.iter())
+            .map(|(i, _)| self.mesh_triangles[i.mesh].len())
+            .sum()
     }
 
     /// Levels of the top tree.
