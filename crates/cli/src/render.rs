@@ -1196,10 +1196,6 @@ pub struct DumpArgs {
     /// every time step (version 2 of the format).
     #[command(flatten)]
     pub shutter: crate::motion::ShutterArgs,
-    /// With --shutter: the meshes and their instances' moving transforms (version 3),
-    /// for a scene whose animation moves instances without deforming meshes.
-    #[arg(long, requires = "shutter")]
-    pub instances: bool,
 }
 
 /// Writes the scene's triangles (world space, input order) and the camera's primary rays in
@@ -1214,7 +1210,7 @@ pub fn dump(args: DumpArgs) -> Result<()> {
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);
     let (bytes, tris, rays, steps) = match args.shutter.shutter {
-        Some((open, close)) if args.instances => {
+        Some((open, close)) if args.shutter.instances => {
             let (meshes, instances) = scene.moving_instances(open, close)?;
             let (rays, times) = crate::motion::sample_rays(&rays, args.shutter.shutter_samples);
             let bytes = crate::embree::instanced_dump_bytes(&meshes, &instances, &rays, &times);
