@@ -1,12 +1,13 @@
 //! Motion blur in `bvhtrace render --shutter` and `bvhtrace dump --shutter`: the scene's
-//! animation over the shutter (`Scene::motion`), a `MotionBvh` over it, and rays that each
-//! carry a time.
+//! animation over the shutter (`Scene::motion`, or `Scene::moving_instances` in two
+//! levels), its moving tree, and rays that each carry a time.
 //!
-//! It traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on the CPU
-//! twin, which answer alike bit for bit. Each pixel takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as
-//! many equal parts of the shutter (stratified, jittered by a hash of the pixel), so the
-//! samples of one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO)
-//! leave at its time and meet the scene at that time.
+//! One moving mesh traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on
+//! the CPU twin, which answer alike bit for bit; two levels trace on the CPU. Each pixel
+//! takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as many equal
+//! parts of the shutter (stratified, jittered by a hash of the pixel), so the samples of
+//! one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO) leave at its
+//! time and meet the scene at that time.
 
 use std::sync::Arc;
 use std::time::Instant;
