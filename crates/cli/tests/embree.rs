@@ -164,6 +164,64 @@ fn embree_hit(at: &[Triangle], ray: &Ray, prim: u32) -> Hit {
     }
 }
 
+/// `embree_trace` (2 threads, 1 run) on `dump`: its JSON, and its primitive per ray
+/// (`MISS` for a miss).
+fn embree_answers(exe: &Path, dump: &Path) -> (serde_json::Value, Vec<u32>) {
+    let hits_file = dump.with_extension("hits");
+    let out = Command::new(exe)
+        .arg(dump)
+        .args(["2", "1"])
+        .arg(&hits_file)
+        .output()
+        .expect("embree_trace runs");
+    assert_ok(&out);
+    let prims = std::fs::read(&hits_file)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    (serde_json::from_slice(&out.stdout).unwrap(), prims)
+}
+
+/// Our closest hits against Embree's primitives, ray by ray: the same primitive, or
+/// answers the oracle's rule for tracers that are not watertight by contract allows,
+/// judged on the triangles `at` a ray's time; at most 1 ray in 1,000 excused, and the
+/// rays must hit something. Prints the tally after `what`.
+fn match_embree(
+    what: &str,
+    (ours, theirs): (&[Hit], &[u32]),
+    (rays, times): (&[Ray], &[f32]),
+    at: impl Fn(f32) -> Vec<Triangle>,
+) {
+    assert_eq!(theirs.len(), rays.len(), "{what}");
+    let (mut same, mut excused, mut hits) = (0, 0, 0);
+    for (i, (o, &p)) in ours.iter().zip(theirs).enumerate() {
+        hits += o.is_hit() as usize;
+        if (if o.is_hit() { o.prim } else { MISS }) == p {
+            same += 1;
+            continue;
+        }
+        let at = at(times[i]);
+        let e = embree_hit(&at, &rays[i], p);
+        let rule = agreement(&at, &rays[i], o, &e, false);
+        assert!(
+            rule.agrees(),
+            "{what} ray {i} at {}: ours {o:?}, Embree's {e:?}",
+            times[i]
+        );
+        excused += 1;
+    }
+    eprintln!(
+        "{what}: {same} of {} rays the same primitive as Embree, {excused} excused; {hits} hits",
+        rays.len()
+    );
+    assert!(hits > rays.len() / 20, "{what}: the rays miss the scene");
+    assert!(
+        excused * 1000 <= rays.len(),
+        "{what}: {excused} rays differ"
+    );
+}
+
 /// Moving meshes ray by ray against Embree 3's motion blur (a vertex buffer per time step,
 /// `RTCRay::time`), on the rays `render --shutter` traces: the same primitive, or answers
 /// the oracle's rule for tracers that are not watertight by contract allows (a silhouette
@@ -195,55 +253,14 @@ fn moving_meshes_match_embree_ray_by_ray() {
         let mut args = vec!["dump", scene, "-o", dump.to_str().unwrap()];
         args.extend(size);
         assert_ok(&run(&args));
-        let hits_file = dir.join(format!("{file}.hits"));
-        let out = Command::new(&exe)
-            .arg(&dump)
-            .args(["2", "1"])
-            .arg(&hits_file)
-            .output()
-            .expect("embree_trace runs");
-        assert_ok(&out);
-        let embree: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        let theirs: Vec<u32> = std::fs::read(&hits_file)
-            .unwrap()
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
-            .collect();
+        let (embree, theirs) = embree_answers(&exe, &dump);
         let (mesh, rays, times) = read_motion_dump(&std::fs::read(&dump).unwrap());
         assert!(mesh.time_steps() >= 2 && embree["time_steps"] == mesh.time_steps());
-        assert_eq!(theirs.len(), rays.len());
         for bounds in [TimeBounds::Linear, TimeBounds::Merged] {
             let bvh = MotionBvh::build(&mesh, &BuildOptions::default(), bounds).unwrap();
             let ours = bvh.trace_rays(&rays, &times, Query::Closest);
-            let (mut same, mut excused, mut hits) = (0, 0, 0);
-            for (i, (o, &p)) in ours.iter().zip(&theirs).enumerate() {
-                hits += o.is_hit() as usize;
-                let o_prim = if o.is_hit() { o.prim } else { MISS };
-                if o_prim == p {
-                    same += 1;
-                    continue;
-                }
-                let at = mesh.at(times[i]);
-                let e = embree_hit(&at, &rays[i], p);
-                let rule = agreement(&at, &rays[i], o, &e, false);
-                assert!(
-                    rule.agrees(),
-                    "{file} {bounds:?} ray {i} at {}: ours {o:?}, Embree's {e:?}",
-                    times[i]
-                );
-                excused += 1;
-            }
-            eprintln!(
-                "{file} ({} steps, {bounds:?}): {same} of {} rays the same primitive as Embree, {excused} excused; {hits} hits, Embree {}",
-                mesh.time_steps(),
-                rays.len(),
-                embree["hits"]
-            );
-            assert!(hits > rays.len() / 20, "{file}: the rays miss the scene");
-            assert!(
-                excused * 1000 <= rays.len(),
-                "{file}: {excused} rays differ"
-            );
+            let what = format!("{file} ({} steps, {bounds:?})", mesh.time_steps());
+            match_embree(&what, (&ours, &theirs), (&rays, &times), |t| mesh.at(t));
         }
         // The render traces the rays the dump holds.
         let png = dir.join(format!("{file}.png"));
@@ -329,7 +346,6 @@ fn moving_instances_match_embree_ray_by_ray() {
         ("builtin:moving:icosphere", "0,1"),
     ] {
         let dump = dir.join("instances.bin");
-        let hits_file = dir.join("instances.hits");
         let mut args = vec!["dump", scene, "-o", dump.to_str().unwrap(), "--instances"];
         args.extend([
             "--size",
@@ -340,18 +356,7 @@ fn moving_instances_match_embree_ray_by_ray() {
             "3",
         ]);
         assert_ok(&run(&args));
-        let out = Command::new(&exe)
-            .arg(&dump)
-            .args(["2", "1"])
-            .arg(&hits_file)
-            .output()
-            .unwrap();
-        assert_ok(&out);
-        let theirs: Vec<u32> = std::fs::read(&hits_file)
-            .unwrap()
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
-            .collect();
+        let (_, theirs) = embree_answers(&exe, &dump);
         let (meshes, instances, rays, times) = read_instanced_dump(&std::fs::read(&dump).unwrap());
         assert!(
             instances.iter().any(|i| i.transforms.len() > 1),
@@ -359,46 +364,13 @@ fn moving_instances_match_embree_ray_by_ray() {
         );
         let bvh = MotionInstancedBvh::build(
             &meshes,
-            instances.clone(),
+            instances,
             &BuildOptions::default(),
             TimeBounds::Linear,
         )
         .unwrap();
         let ours = bvh.trace_rays(&rays, &times, Query::Closest);
-        let steps = instances.iter().map(|i| i.transforms.len()).max().unwrap();
-        let (mut same, mut excused, mut hits) = (0, 0, 0);
-        for (i, (o, &p)) in ours.iter().zip(&theirs).enumerate() {
-            hits += o.is_hit() as usize;
-            if (if o.is_hit() { o.prim } else { MISS }) == p {
-                same += 1;
-                continue;
-            }
-            let seg = bvhtrace_core::motion::time_segment(times[i], steps);
-            let at: Vec<Triangle> = (instances.iter())
-                .flat_map(|inst| {
-                    let m = inst.transform_at(seg);
-                    meshes[inst.mesh]
-                        .iter()
-                        .map(move |t| t.map(|v| m.transform_point3(v)))
-                })
-                .collect();
-            let e = embree_hit(&at, &rays[i], p);
-            let rule = agreement(&at, &rays[i], o, &e, false);
-            assert!(
-                rule.agrees(),
-                "{scene} ray {i} at {}: ours {o:?}, Embree's {e:?}",
-                times[i]
-            );
-            excused += 1;
-        }
-        eprintln!(
-            "{scene} ({steps} steps): {same} of {} rays the same primitive as Embree, {excused} excused; {hits} hits",
-            rays.len()
-        );
-        assert!(hits > rays.len() / 20, "{scene}: the rays miss the scene");
-        assert!(
-            excused * 1000 <= rays.len(),
-            "{scene}: {excused} rays differ"
-        );
+        let what = format!("{scene} ({} steps)", bvh.time_steps());
+        match_embree(&what, (&ours, &theirs), (&rays, &times), |t| bvh.at(t));
     }
 }

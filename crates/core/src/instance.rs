@@ -146,7 +146,10 @@ fn top_options() -> BuildOptions {
 }
 
 /// `m` in f64 and its world-to-object rows, or why `m` cannot place an instance.
-fn check_transform(index: usize, m: &Affine3A) -> Result<(DAffine3, [[f32; 4]; 3]), InstanceError> {
+pub(crate) fn check_transform(
+    index: usize,
+    m: &Affine3A,
+) -> Result<(DAffine3, [[f32; 4]; 3]), InstanceError> {
     let bad = |problem: &str| InstanceError::BadInstance {
         index,
         problem: problem.into(),
@@ -177,7 +180,7 @@ fn check_transform(index: usize, m: &Affine3A) -> Result<(DAffine3, [[f32; 4]; 3
 }
 
 /// The world box of object box `b` under `d`, conservative (see [`WORLD_BOX_PAD`]).
-fn world_box(d: &DAffine3, b: &Aabb) -> Aabb {
+pub(crate) fn world_box(d: &DAffine3, b: &Aabb) -> Aabb {
     let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
     for k in 0..8 {
         let c = DVec3::new(

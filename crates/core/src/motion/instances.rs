@@ -4,17 +4,17 @@
 //! mesh's own static tree below, walked with the ray taken into the instance's space at
 //! its time.
 
-use glam::{Affine3A, Mat4, Vec3};
+use glam::{Affine3A, Mat4, Vec3, Vec4};
 
 use crate::build::{BuildError, BuildOptions};
 use crate::flat::FlatBvh;
 use crate::geometry::Aabb;
-use crate::intersect::PreparedRay;
+use crate::instance::{InstanceError, check_transform, world_box};
 use crate::mesh::Triangle;
 use crate::ray::{Counters, Hit, Ray};
-use crate::traverse::{Best, Query, TraceOptions, Traversal, trace_ray, untraced};
+use crate::traverse::{Best, Query, TraceOptions, Traversal, trace_ray};
 
-use super::tree::TimeTree;
+use super::tree::{TimeTree, trace_all};
 use super::{MAX_TIME_STEPS, TimeBounds, time_segment};
 
 /// A mesh placed by a transform that may move.
@@ -63,15 +63,15 @@ pub enum InstanceMotionError {
         /// The steps of the instances that move.
         steps: usize,
     },
-    /// A transform is not finite, not affine, or not invertible.
-    #[error(
-        "instance {instance}, time step {step}: the transform is not a finite, invertible affine matrix"
-    )]
+    /// A transform is not finite, not affine, or not invertible (in f32).
+    #[error("instance {instance}, time step {step}: {problem}")]
     Transform {
         /// The instance.
         instance: usize,
         /// The step.
         step: usize,
+        /// What is wrong with it.
+        problem: String,
     },
     /// There is no instance to build over.
     #[error("no instances to build over")]
@@ -117,12 +117,13 @@ impl MotionInstancedBvh {
             })
             .collect::<Result<Vec<_>, _>>()?;
         let mut boxes = Vec::with_capacity(instances.len() * steps);
-        for inst in &instances {
+        for (instance, inst) in instances.iter().enumerate() {
             let object = trees[inst.mesh].bounds();
-            boxes
-                .extend((0..steps).map(|k| {
-                    world_box(&object, inst.transforms[k.min(inst.transforms.len() - 1)])
-                }));
+            for k in 0..steps {
+                let step = k.min(inst.transforms.len() - 1);
+                let placed = placement(instance, step, &inst.transforms[step])?;
+                boxes.push(world_box(&placed, &object));
+            }
         }
         // Every mesh built, so the options are good: the top level cannot fail.
         let (top, order) = TimeTree::build(&boxes, steps, opts, bounds)
@@ -174,6 +175,20 @@ impl MotionInstancedBvh {
         Some(tri.map(|p| m.transform_point3(p)))
     }
 
+    /// Every triangle placed, in world space where its instance places it at `time`, by
+    /// primitive id (what the f64 oracle judges a ray at that time against).
+    pub fn at(&self, time: f32) -> Vec<Triangle> {
+        let seg = time_segment(time, self.top.steps);
+        (self.by_first.iter())
+            .flat_map(|&(_, j)| {
+                let (inst, _) = &self.instances[j];
+                let m = inst.transform_at(seg);
+                let tris = &self.mesh_triangles[inst.mesh];
+                tris.iter().map(move |t| t.map(|p| m.transform_point3(p)))
+            })
+            .collect()
+    }
+
     /// Triangles placed: every instance's mesh's, counted once per instance.
     pub fn triangle_count(&self) -> usize {
         (self.instances.iter())
@@ -199,34 +214,17 @@ impl MotionInstancedBvh {
     /// Traces one ray at `time` (clamped to `[0, 1]`; a NaN time is an invalid ray): the
     /// closest hit (the walks' hit rule over every instance) or any hit.
     pub fn trace(&self, ray: &Ray, time: f32, query: Query) -> (Hit, Counters) {
-        if !ray.is_valid() || time.is_nan() {
-            return (untraced(ray), Counters::default());
-        }
-        let seg = time_segment(time, self.top.steps);
-        let r = PreparedRay::new(ray);
-        let mut best = Best::start(ray);
-        let mut c = Counters::default();
-        let mut stack = Vec::with_capacity(self.top.depth as usize);
-        self.top.walk(
-            &r,
-            seg,
-            &mut best,
-            &mut c,
-            query,
-            &mut stack,
-            |n, best, c| {
-                let first = n.right_or_first as usize;
-                let mut taken = false;
-                for j in first..first + n.count() as usize {
-                    taken |= self.visit_instance(j, ray, seg, query, best, c);
-                    if taken && query == Query::Any {
-                        break;
-                    }
+        self.top.trace(ray, time, query, |_, seg, n, best, c| {
+            let first = n.right_or_first as usize;
+            let mut taken = false;
+            for j in first..first + n.count() as usize {
+                taken |= self.visit_instance(j, ray, seg, query, best, c);
+                if taken && query == Query::Any {
+                    break;
                 }
-                taken
-            },
-        );
-        (best.into_hit(), c)
+            }
+            taken
+        })
     }
 
     /// Traces `rays[i]` at `times[i]` in parallel (see [`MotionInstancedBvh::trace`]).
@@ -234,13 +232,7 @@ impl MotionInstancedBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace_rays(&self, rays: &[Ray], times: &[f32], query: Query) -> Vec<Hit> {
-        use rayon::prelude::*;
-        assert_eq!(rays.len(), times.len(), "one time per ray");
-        rays.par_iter()
-            .zip(times)
-            .with_min_len(64)
-            .map(|(r, &t)| self.trace(r, t, query).0)
-            .collect()
+        trace_all(rays, times, |r, t| self.trace(r, t, query).0)
     }
 
     /// Walks instance `j`'s mesh with the ray in its space at the ray's time, for hits
@@ -303,36 +295,30 @@ fn check(
                 steps,
             });
         }
-        if let Some(step) = inst
-            .transforms
-            .iter()
-            .position(|m| !is_invertible_affine(m))
-        {
-            return Err(InstanceMotionError::Transform { instance, step });
-        }
     }
     Ok(steps.max(2))
 }
 
-fn is_invertible_affine(m: &Mat4) -> bool {
-    m.is_finite() && m.row(3) == glam::Vec4::W && m.determinant() != 0.0 && m.inverse().is_finite()
-}
-
-/// The world box of `object` (a mesh's box) under `m`: its eight corners transformed,
-/// widened by `2^-20` of its largest coordinate (the transform's rounding is far below).
-fn world_box(object: &Aabb, m: Mat4) -> Aabb {
-    let b = (0..8).fold(Aabb::EMPTY, |b, i| {
-        let pick = |bit: usize, lo: f32, hi: f32| if i >> bit & 1 == 0 { lo } else { hi };
-        let p = Vec3::new(
-            pick(0, object.min.x, object.max.x),
-            pick(1, object.min.y, object.max.y),
-            pick(2, object.min.z, object.max.z),
-        );
-        b.union(&Aabb::from_point(m.transform_point3(p)))
-    });
-    let slack = b.min.abs().max(b.max.abs()) * (1.0 / (1 << 20) as f32);
-    Aabb {
-        min: b.min - slack,
-        max: b.max + slack,
+/// Instance `instance`'s transform at `step` in f64, checked as the static two levels check
+/// an instance's ([`check_transform`]), and affine.
+fn placement(
+    instance: usize,
+    step: usize,
+    m: &Mat4,
+) -> Result<glam::DAffine3, InstanceMotionError> {
+    let refused = |problem: String| InstanceMotionError::Transform {
+        instance,
+        step,
+        problem,
+    };
+    if m.row(3) != Vec4::W {
+        return Err(refused(
+            "the transform is not affine (its last row is not 0, 0, 0, 1)".into(),
+        ));
+    }
+    match check_transform(instance, &Affine3A::from_mat4(*m)) {
+        Ok((placed, _)) => Ok(placed),
+        Err(InstanceError::BadInstance { problem, .. }) => Err(refused(problem)),
+        Err(e) => Err(refused(e.to_string())),
     }
 }

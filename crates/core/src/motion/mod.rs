@@ -23,7 +23,7 @@ use crate::geometry::Aabb;
 use crate::intersect::{PreparedRay, intersect_triangle};
 use crate::mesh::{MeshError, Triangle, validate_triangles};
 use crate::ray::{Counters, Hit, Ray};
-use crate::traverse::{Best, Query, untraced};
+use crate::traverse::{Best, Query};
 
 mod instances;
 mod tree;
@@ -313,24 +313,9 @@ impl MotionBvh {
     /// the closest hit (the walks' hit rule) or any hit, with the boxes and triangles it
     /// tested.
     pub fn trace(&self, ray: &Ray, time: f32, query: Query) -> (Hit, Counters) {
-        if !ray.is_valid() || time.is_nan() {
-            return (untraced(ray), Counters::default());
-        }
-        let seg = time_segment(time, self.tree.steps);
-        let r = PreparedRay::new(ray);
-        let mut best = Best::start(ray);
-        let mut c = Counters::default();
-        let mut stack = Vec::with_capacity(self.tree.depth as usize);
-        self.tree.walk(
-            &r,
-            seg,
-            &mut best,
-            &mut c,
-            query,
-            &mut stack,
-            |n, best, c| self.visit_leaf(&r, n, seg, best, c),
-        );
-        (best.into_hit(), c)
+        self.tree.trace(ray, time, query, |r, seg, n, best, c| {
+            self.visit_leaf(r, n, seg, best, c)
+        })
     }
 
     /// Traces `rays[i]` at `times[i]` in parallel (see [`MotionBvh::trace`]).
@@ -338,13 +323,7 @@ impl MotionBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace_rays(&self, rays: &[Ray], times: &[f32], query: Query) -> Vec<Hit> {
-        use rayon::prelude::*;
-        assert_eq!(rays.len(), times.len(), "one time per ray");
-        rays.par_iter()
-            .zip(times)
-            .with_min_len(256)
-            .map(|(r, &t)| self.trace(r, t, query).0)
-            .collect()
+        tree::trace_all(rays, times, |r, t| self.trace(r, t, query).0)
     }
 
     /// Tests a leaf's triangles at the ray's time; true when one was taken.

@@ -7,10 +7,28 @@ use crate::flat::{FlatNode, MAX_PRIMITIVES};
 use crate::geometry::Aabb;
 use crate::intersect::{PreparedRay, intersect_box};
 use crate::mesh::MeshError;
-use crate::ray::Counters;
-use crate::traverse::{Best, Query};
+use crate::ray::{Counters, Hit, Ray};
+use crate::traverse::{Best, Query, untraced};
 
-use super::{MotionBox, TimeBounds, lerp_box};
+use super::{MotionBox, TimeBounds, lerp_box, time_segment};
+
+/// `trace(rays[i], times[i])` for every ray, in parallel.
+///
+/// # Panics
+/// When the two slices differ in length.
+pub(crate) fn trace_all(
+    rays: &[Ray],
+    times: &[f32],
+    trace: impl Fn(&Ray, f32) -> Hit + Sync,
+) -> Vec<Hit> {
+    use rayon::prelude::*;
+    assert_eq!(rays.len(), times.len(), "one time per ray");
+    rays.par_iter()
+        .zip(times)
+        .with_min_len(64)
+        .map(|(r, &t)| trace(r, t))
+        .collect()
+}
 
 /// Nodes, and each node's box at every time step (see [`super::MotionBvh`]).
 #[derive(Clone, Debug)]
@@ -117,20 +135,43 @@ impl TimeTree {
         }
     }
 
+    /// Traces one ray at `time` (clamped to `[0, 1]`; a NaN time is an invalid ray): the
+    /// closest hit (the walks' hit rule) or any hit of the primitives `leaf` tests (for the
+    /// prepared ray at its time segment, offering hits to the best; true when it took
+    /// one), with the boxes and primitives tested.
+    pub fn trace(
+        &self,
+        ray: &Ray,
+        time: f32,
+        query: Query,
+        leaf: impl Fn(&PreparedRay, (usize, f32), &FlatNode, &mut Best, &mut Counters) -> bool,
+    ) -> (Hit, Counters) {
+        if !ray.is_valid() || time.is_nan() {
+            return (untraced(ray), Counters::default());
+        }
+        let seg = time_segment(time, self.steps);
+        let r = PreparedRay::new(ray);
+        let mut best = Best::start(ray);
+        let mut c = Counters::default();
+        self.walk(&r, seg, &mut best, &mut c, query, |n, best, c| {
+            leaf(&r, seg, n, best, c)
+        });
+        (best.into_hit(), c)
+    }
+
     /// The full-stack walk at the time of `seg`: the nearer child first (by entry
     /// distance), the other pushed; `leaf` tests a leaf's primitives and says whether it
     /// took a hit (an any-hit walk then stops).
-    #[allow(clippy::too_many_arguments)]
-    pub fn walk(
+    fn walk(
         &self,
         r: &PreparedRay,
         seg: (usize, f32),
         best: &mut Best,
         c: &mut Counters,
         query: Query,
-        stack: &mut Vec<u32>,
         mut leaf: impl FnMut(&FlatNode, &mut Best, &mut Counters) -> bool,
     ) {
+        let mut stack = Vec::with_capacity(self.depth as usize);
         let hit_box = |i: u32, t_best: f32| {
             let b = self.node_box(i as usize, seg);
             intersect_box(r, b.min, b.max, t_best)
