@@ -740,14 +740,8 @@ pub(crate) fn moving_of(src: Scene, mesh_name: &str) -> Scene {
             "synthetic motion: {mesh_name} ({tris} triangles) twice, the left copy still, the right one moving and turning over one second"
         ),
         synthetic: true,
-        meshes: src.meshes,
         instances,
-        materials: src.materials,
-        alpha_textures: src.alpha_textures,
-        textures: src.textures,
-        attributes: src.attributes,
         camera: None,
-        warnings: src.warnings,
         animation: Some(Animation {
             nodes,
             instance_nodes,
@@ -756,6 +750,7 @@ pub(crate) fn moving_of(src: Scene, mesh_name: &str) -> Scene {
             skins: Vec::new(),
             morphs: Vec::new(),
         }),
+        ..src
     }
 }
 
@@ -797,15 +792,10 @@ pub(crate) fn grid_of(src: Scene, mesh_name: &str, a: u32, b: u32) -> Scene {
             per_copy * copies
         ),
         synthetic: true,
-        meshes: src.meshes,
         instances,
-        materials: src.materials,
-        alpha_textures: src.alpha_textures,
-        textures: src.textures,
-        attributes: src.attributes,
         camera: None,
-        warnings: src.warnings,
         animation: None,
+        ..src
     }
 }
 

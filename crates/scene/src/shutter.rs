@@ -2,6 +2,8 @@
 //! a [`MotionMesh`] (node animations, skins and morph targets alike).
 
 use bvhtrace_core::motion::{MAX_TIME_STEPS, MotionMesh, MovingInstance};
+use std::borrow::Cow;
+
 use bvhtrace_core::{Aabb, Triangle};
 use glam::{Mat4, Vec3};
 
@@ -20,45 +22,16 @@ impl Scene {
     /// followed as closely as straight motion. A scene without animation gives two equal
     /// steps. `open` must be before `close`, both finite.
     pub fn motion(&self, open: f32, close: f32) -> Result<MotionMesh, SceneError> {
-        let bad = |what: String| SceneError::new(self.name.clone(), ErrorKind::Invalid(what));
-        if !(open.is_finite() && close.is_finite() && open < close) {
-            return Err(bad(format!(
-                "the shutter must open before it closes, got {open} to {close} seconds"
-            )));
-        }
-        let pose = |k: usize, segments: usize| {
-            let t = open + (close - open) * (k as f32 / segments as f32);
+        self.check_shutter(open, close)?;
+        let pose = |f: f32| {
             let mut s = self.clone();
-            s.set_time(t);
+            s.set_time(open + (close - open) * f);
             s.flattened_triangles()
         };
-        let mut steps = vec![pose(0, 1)?, pose(1, 1)?];
-        let tolerance = SHUTTER_TOLERANCE * diagonal(steps[0].as_flattened());
-        while 2 * steps.len() - 1 <= MAX_TIME_STEPS {
-            let segments = steps.len() - 1;
-            let mids = (0..segments)
-                .map(|k| pose(2 * k + 1, 2 * segments))
-                .collect::<Result<Vec<_>, _>>()?;
-            let worst = (0..segments)
-                .map(|k| {
-                    stray(
-                        steps[k].as_flattened(),
-                        steps[k + 1].as_flattened(),
-                        mids[k].as_flattened(),
-                    )
-                })
-                .fold(0.0f32, f32::max);
-            if worst <= tolerance {
-                break;
-            }
-            let mut mids = mids.into_iter();
-            steps = std::mem::take(&mut steps)
-                .into_iter()
-                .flat_map(|s| [Some(s), mids.next()])
-                .flatten()
-                .collect();
-        }
-        MotionMesh::new(steps).map_err(|e| bad(format!("bad motion: {e}")))
+        let steps = time_steps(pose, |tris: &Vec<Triangle>| {
+            Cow::Borrowed(tris.as_flattened())
+        })?;
+        MotionMesh::new(steps).map_err(|e| self.invalid(format!("bad motion: {e}")))
     }
 }
 
@@ -74,18 +47,13 @@ impl Scene {
         open: f32,
         close: f32,
     ) -> Result<(Vec<Vec<Triangle>>, Vec<MovingInstance>), SceneError> {
-        let bad = |what: String| SceneError::new(self.name.clone(), ErrorKind::Invalid(what));
-        if !(open.is_finite() && close.is_finite() && open < close) {
-            return Err(bad(format!(
-                "the shutter must open before it closes, got {open} to {close} seconds"
-            )));
-        }
+        self.check_shutter(open, close)?;
         if self
             .animation
             .as_ref()
             .is_some_and(|a| !a.skins.is_empty() || !a.morphs.is_empty())
         {
-            return Err(bad(
+            return Err(self.invalid(
                 "its animation deforms meshes (skins or morph targets): trace it flattened".into(),
             ));
         }
@@ -102,40 +70,13 @@ impl Scene {
             .iter()
             .map(|i| box_corners(&meshes[i.mesh]))
             .collect();
-        let pose = |k: usize, segments: usize| {
-            self.instance_transforms_at(open + (close - open) * (k as f32 / segments as f32))
-        };
-        let mut steps = vec![pose(0, 1), pose(1, 1)];
-        let placed = |m: &[Mat4]| -> Vec<Vec3> {
+        let pose = |f: f32| Ok(self.instance_transforms_at(open + (close - open) * f));
+        // Each instance's mesh box, placed.
+        let steps = time_steps(pose, |m: &Vec<Mat4>| {
             (corners.iter().zip(m))
                 .flat_map(|(c, m)| c.map(|p| m.transform_point3(p)))
                 .collect()
-        };
-        let tolerance = SHUTTER_TOLERANCE * diagonal(&placed(&steps[0]));
-        while 2 * steps.len() - 1 <= MAX_TIME_STEPS {
-            let segments = steps.len() - 1;
-            let mids: Vec<Vec<Mat4>> = (0..segments)
-                .map(|k| pose(2 * k + 1, 2 * segments))
-                .collect();
-            let worst = (0..segments)
-                .map(|k| {
-                    stray(
-                        &placed(&steps[k]),
-                        &placed(&steps[k + 1]),
-                        &placed(&mids[k]),
-                    )
-                })
-                .fold(0.0f32, f32::max);
-            if worst <= tolerance {
-                break;
-            }
-            let mut mids = mids.into_iter();
-            steps = std::mem::take(&mut steps)
-                .into_iter()
-                .flat_map(|s| [Some(s), mids.next()])
-                .flatten()
-                .collect();
-        }
+        })?;
         let instances = (self.instances.iter().enumerate())
             .map(|(i, inst)| MovingInstance {
                 mesh: inst.mesh,
@@ -144,6 +85,60 @@ impl Scene {
             .collect();
         Ok((meshes, instances))
     }
+}
+
+impl Scene {
+    /// Refuses a shutter that is not open: `open` before `close`, both finite.
+    fn check_shutter(&self, open: f32, close: f32) -> Result<(), SceneError> {
+        if open.is_finite() && close.is_finite() && open < close {
+            return Ok(());
+        }
+        Err(self.invalid(format!(
+            "the shutter must open before it closes, got {open} to {close} seconds"
+        )))
+    }
+
+    fn invalid(&self, what: String) -> SceneError {
+        SceneError::new(self.name.clone(), ErrorKind::Invalid(what))
+    }
+}
+
+/// Poses at evenly spaced time steps over the shutter (`pose(f)` is the pose `f` of the way
+/// through it): the ends, then the steps doubled (3, 5, 9, ... up to [`MAX_TIME_STEPS`])
+/// while the `points` of some segment's middle pose stray more than
+/// [`SHUTTER_TOLERANCE`] of the first pose's diagonal from the midpoints of its ends'.
+fn time_steps<T>(
+    pose: impl Fn(f32) -> Result<T, SceneError>,
+    points: impl for<'a> Fn(&'a T) -> Cow<'a, [Vec3]>,
+) -> Result<Vec<T>, SceneError> {
+    let at = |k: usize, segments: usize| pose(k as f32 / segments as f32);
+    let mut steps = vec![at(0, 1)?, at(1, 1)?];
+    let tolerance = SHUTTER_TOLERANCE * diagonal(&points(&steps[0]));
+    while 2 * steps.len() - 1 <= MAX_TIME_STEPS {
+        let segments = steps.len() - 1;
+        let mids = (0..segments)
+            .map(|k| at(2 * k + 1, 2 * segments))
+            .collect::<Result<Vec<_>, _>>()?;
+        let worst = (0..segments)
+            .map(|k| {
+                stray(
+                    &points(&steps[k]),
+                    &points(&steps[k + 1]),
+                    &points(&mids[k]),
+                )
+            })
+            .fold(0.0f32, f32::max);
+        if worst <= tolerance {
+            break;
+        }
+        let mut mids = mids.into_iter();
+        steps = std::mem::take(&mut steps)
+            .into_iter()
+            .flat_map(|s| [Some(s), mids.next()])
+            .flatten()
+            .collect();
+    }
+    Ok(steps)
 }
 
 /// The eight corners of the box around `tris`.
