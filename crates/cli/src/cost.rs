@@ -11,7 +11,6 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::cost::{WARP, WarpCost, warp_cost};
 use bvhtrace_core::{Query, Ray, TraceOptions, Traversal};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use crate::bench::ray_sets;
@@ -202,11 +201,9 @@ fn cost_scene(
     walks: &[Traversal],
     builder: &crate::geometry::TreeBuilder,
 ) -> Result<(SceneReport, String)> {
-    let pb = ProgressBar::new((3 * walks.len()) as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:48} [{bar:30}] {pos}/{len} ({elapsed})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+    let pb = crate::output::progress_bar(
+        (3 * walks.len()) as u64,
+        "{msg:48} [{bar:30}] {pos}/{len} ({elapsed})",
     );
     pb.enable_steady_tick(Duration::from_millis(200));
     pb.set_message(format!("{spec}: loading"));

@@ -18,7 +18,6 @@ use bvhtrace_core::{Counters, Hit, Query, Ray, Triangle};
 use bvhtrace_gpu::GpuMotionBvh;
 use bvhtrace_scene::Scene;
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde_json::json;
 
@@ -291,13 +290,9 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);
     let samples = args.shutter.shutter_samples;
-    let pb = ProgressBar::new(u64::from(samples));
-    pb.set_style(
-        ProgressStyle::with_template(
-            "{spinner} blurring over the shutter [{bar:40}] {pos}/{len} samples ({eta})",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
+    let pb = crate::output::progress_bar(
+        u64::from(samples),
+        "{spinner} blurring over the shutter [{bar:40}] {pos}/{len} samples ({eta})",
     );
     let mut sum = vec![0u32; rays.len() * 3];
     let mut totals = Totals::default();

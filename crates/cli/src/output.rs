@@ -1,4 +1,5 @@
-//! Files the CLI writes: checked before any work, written atomically.
+//! Files the CLI writes: checked before any work, written atomically; and its progress
+//! bars.
 
 use std::fs::File;
 use std::io::Write;
@@ -113,4 +114,16 @@ pub fn write_png(file: AtomicFile, w: u32, h: u32, rgb: Vec<u8>) -> Result<()> {
     )
     .context("PNG encoding failed")?;
     file.finish_with_bytes(&bytes)
+}
+
+/// A progress bar of `len` steps on stderr, drawn by `template` (indicatif's syntax; the
+/// default bar if the template does not parse).
+pub fn progress_bar(len: u64, template: &str) -> indicatif::ProgressBar {
+    let pb = indicatif::ProgressBar::new(len);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template(template)
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb
 }

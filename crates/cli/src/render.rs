@@ -15,7 +15,7 @@ use bvhtrace_gpu::{BvhStorage, KernelKey, Tracer, UploadStats};
 use bvhtrace_scene::{Camera, DEFAULT_SCENE, Scene, SceneBvh};
 use bvhtrace_shade::args as flags;
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use serde_json::{Value, json};
 
 use crate::backend::{self, Backend, Device};
@@ -562,11 +562,9 @@ fn trace_runs(
     rays: &[Ray],
 ) -> Result<(Frame, Vec<Timing>)> {
     let per_run = rays.len() as u64 * (1 + job.secondary_per_pixel());
-    let pb = ProgressBar::new(per_run * u64::from(job.args.runs));
-    pb.set_style(
-        ProgressStyle::with_template("{spinner} {msg} [{bar:40}] {percent}% ({eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+    let pb = crate::output::progress_bar(
+        per_run * u64::from(job.args.runs),
+        "{spinner} {msg} [{bar:40}] {percent}% ({eta})",
     );
     pb.set_message(format!(
         "tracing {} on {}",

@@ -14,6 +14,7 @@ use bvhtrace_engine::walks::FULL_STACK_SIZE;
 use wgpu::util::DeviceExt;
 
 use crate::build::read_after_async;
+use crate::context::storage_entry;
 use crate::{GpuContext, GpuError, TraceError};
 
 /// The entry point of the motion module (the full-stack walk's, hits only).
@@ -28,20 +29,6 @@ pub struct GpuMotionBvh {
     pipelines: [wgpu::ComputePipeline; 2],
     batch_layout: wgpu::BindGroupLayout,
     tree: wgpu::BindGroup,
-}
-
-/// A read-only (or, for the hits, writable) storage buffer entry of a bind group layout.
-fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
 }
 
 impl GpuMotionBvh {

@@ -9,7 +9,7 @@ use bvhtrace_core::{
     BuildOptions, BuilderKind, BvhStats, Counters, FlatBvh, Query, Ray, TraceOptions, Traversal,
     Triangle, trace_rays,
 };
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use super::{load, median, ray_sets};
 use crate::embree::{self, Dump};
@@ -440,11 +440,9 @@ pub fn run(args: BenchBuildArgs) -> Result<()> {
 
 /// The progress bar of `len` steps (builds, counted traces, timed walks), on stderr.
 fn progress_bar(len: u64) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:56} [{bar:30}] {pos}/{len} ({elapsed}, eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+    let pb = crate::output::progress_bar(
+        len,
+        "{msg:56} [{bar:30}] {pos}/{len} ({elapsed}, eta {eta})",
     );
     pb.enable_steady_tick(Duration::from_millis(200));
     pb

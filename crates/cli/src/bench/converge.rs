@@ -35,7 +35,7 @@ use bvhtrace_core::{
 };
 use bvhtrace_scene::Camera;
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use plotters::prelude::*;
 use serde::Serialize;
 
@@ -617,11 +617,9 @@ fn measure_scene(
         false => None,
     };
     let configs = plan.builders.len() * plan.walks.len() * backends.len();
-    let pb = ProgressBar::new((configs * plan.shades.len() * plan.levels.len()) as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+    let pb = crate::output::progress_bar(
+        (configs * plan.shades.len() * plan.levels.len()) as u64,
+        "{msg:40} [{bar:30}] {pos}/{len} ({eta})",
     );
     let run = SceneRun {
         spec,

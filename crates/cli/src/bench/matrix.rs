@@ -17,7 +17,7 @@ use bvhtrace_core::{
     Triangle,
 };
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -436,12 +436,8 @@ fn bench_scene(
     let reference = Reference::of(spec, sizes)?;
     let builders = builder_configs(args.full);
     let plan = plan(args, builders.len(), precisions, backends);
-    let pb = ProgressBar::new(plan.len() as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:40} [{bar:30}] {pos}/{len} ({eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
+    let pb =
+        crate::output::progress_bar(plan.len() as u64, "{msg:40} [{bar:30}] {pos}/{len} ({eta})");
     let mut built: Vec<Option<BuiltTree>> = (0..builders.len()).map(|_| None).collect();
     let mut rows = Vec::new();
     let mut refused = Vec::new();

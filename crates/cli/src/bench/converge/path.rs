@@ -17,7 +17,6 @@ use bvhtrace_core::{FlatBvh, Traversal, Triangle};
 use bvhtrace_path::{Accumulation, CpuPathTracer, Lighting, PathParams, PathScene};
 use bvhtrace_scene::{Camera, Scene, SceneBvh};
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::bench::{BenchBackend, ConvergeArgs, median};
 use crate::output::AtomicFile;
@@ -204,12 +203,7 @@ pub(super) fn reference(
     }
     let tree = frame.tree(bvh)?;
     let twin = CpuPathTracer::new(&tree, frame.tris, &frame.shading, REFERENCE_WALK)?;
-    let pb = ProgressBar::new(u64::from(spp));
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} ({eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
+    let pb = crate::output::progress_bar(u64::from(spp), "{msg} [{bar:30}] {pos}/{len} ({eta})");
     pb.set_message(format!("{spec}: path reference on the CPU twin"));
     let t = Instant::now();
     let mut image = Accumulation::default();
