@@ -23,8 +23,11 @@ impl Scene {
     /// steps. `open` must be before `close`, both finite.
     pub fn motion(&self, open: f32, close: f32) -> Result<MotionMesh, SceneError> {
         self.check_shutter(open, close)?;
+        // One copy posed again and again: `set_time` places everything from the animation
+        // afresh.
+        let posed = std::cell::RefCell::new(self.clone());
         let pose = |f: f32| {
-            let mut s = self.clone();
+            let mut s = posed.borrow_mut();
             s.set_time(open + (close - open) * f);
             s.flattened_triangles()
         };
