@@ -2,7 +2,7 @@
  * and speed can be compared with an independent tracer on exactly the same rays.
  *
  *   cc -O2 embree_trace.c -lembree3 -lpthread -lm -o embree_trace
- *   embree_trace DUMP [THREADS] [RUNS] [HITS_OUT]
+ *   embree_trace DUMP [THREADS] [RUNS] [HITS_OUT] [T_OUT]
  *
  * Against Embree 4 (its API: no intersect context, optional arguments), with its headers in
  * E4/include and its library at E4/libembree4.so.4 (docs/cpu-tracer.md says how to get 4.4):
@@ -28,7 +28,13 @@
  * triangle; I instances, each a u32 mesh, a u32 transform count (1 or S) and 12 f32 per
  * transform (3x4, column major); the rays; n_rays f32 times. Each instance is an Embree
  * instance of its mesh's scene with its transforms as time steps; a hit reports the
- * instance's first primitive (the flattened scene's numbering) plus the mesh's. */
+ * instance's first primitive (the flattened scene's numbering) plus the mesh's. Version 4
+ * (`bvhtrace dump builtin:hair`) adds curves beside the triangles: after n_rays a u32
+ * curve kind (0 round linear, 1 flat linear, 2 round Bezier, 3 round B-spline), a u32
+ * point count P and a u32 segment count C; after the triangles P * 4 f32 points (xyz,
+ * radius), C u32 first points, C u8 neighbour flags (RTC_CURVE_FLAG_NEIGHBOR_LEFT = 1,
+ * RIGHT = 2), then the rays. A curve hit reports n_tris plus its segment. T_OUT, a fifth
+ * argument, receives two f32 per ray: the hit's t and u (0 for a miss). */
 #ifdef BVHTRACE_EMBREE4
 #include <embree4/rtcore.h>
 #else
@@ -58,6 +64,15 @@ typedef struct { uint32_t mesh, steps; float *xfm; } Instance;
 static Mesh *meshes;
 static Instance *insts;
 static uint32_t n_meshes, n_insts, *first_ids;
+
+/* Version 4's curves. */
+static const enum RTCGeometryType curve_types[4] = {
+    RTC_GEOMETRY_TYPE_ROUND_LINEAR_CURVE, RTC_GEOMETRY_TYPE_FLAT_LINEAR_CURVE,
+    RTC_GEOMETRY_TYPE_ROUND_BEZIER_CURVE, RTC_GEOMETRY_TYPE_ROUND_BSPLINE_CURVE};
+static uint32_t curve_kind, n_points, n_segments, n_tris_global;
+static float *points, *hit_u;
+static uint32_t *segments;
+static uint8_t *seg_flags;
 
 static double now_ms(void) {
   struct timespec ts;
@@ -100,8 +115,10 @@ static void *worker(void *arg) {
 #endif
     int hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
     uint32_t base = first_ids && hit ? first_ids[rh.hit.instID[0]] : 0;
+    if (hit && points && rh.hit.geomID == 1) base = n_tris_global;
     hit_prim[i] = hit ? base + rh.hit.primID : 0xFFFFFFFFu;
     hit_t[i] = hit ? rh.ray.tfar : 0.0f;
+    hit_u[i] = hit ? rh.hit.u : 0.0f;
   }
   return NULL;
 }
@@ -183,6 +200,37 @@ static RTCScene instanced_scene(RTCDevice dev, int robust) {
   return top;
 }
 
+/* Version 4's curves from `f` (after the triangles); 0 on success. */
+static int read_curves(FILE *f) {
+  points = malloc(16 * (size_t)n_points + 16);
+  segments = malloc(4 * (size_t)n_segments + 4);
+  seg_flags = malloc((size_t)n_segments + 1);
+  if (!points || !segments || !seg_flags || curve_kind > 3) return 1;
+  if (fread(points, 16, n_points, f) != n_points || fread(segments, 4, n_segments, f) != n_segments ||
+      fread(seg_flags, 1, n_segments, f) != n_segments)
+    return 1;
+  uint32_t degree = curve_kind < 2 ? 1 : 3;
+  for (uint32_t i = 0; i < n_segments; i++)
+    if ((uint64_t)segments[i] + degree >= n_points) return 1;
+  return 0;
+}
+
+/* Version 4's curve geometry, attached to `s` as geometry 1. */
+static void attach_curves(RTCDevice dev, RTCScene s) {
+  RTCGeometry g = rtcNewGeometry(dev, curve_types[curve_kind]);
+  float *v = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT4, 16, n_points);
+  memcpy(v, points, 16 * (size_t)n_points);
+  unsigned *ix = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT, 4, n_segments);
+  memcpy(ix, segments, 4 * (size_t)n_segments);
+  if (curve_kind < 2) {
+    uint8_t *fl = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_FLAGS, 0, RTC_FORMAT_UCHAR, 1, n_segments);
+    memcpy(fl, seg_flags, n_segments);
+  }
+  rtcCommitGeometry(g);
+  rtcAttachGeometryByID(s, g, 1);
+  rtcReleaseGeometry(g);
+}
+
 static int cmp(const void *a, const void *b) {
   double x = *(const double *)a, y = *(const double *)b;
   return (x > y) - (x < y);
@@ -190,7 +238,7 @@ static int cmp(const void *a, const void *b) {
 
 int main(int argc, char **argv) {
   if (argc < 2) {
-    fprintf(stderr, "usage: %s DUMP [THREADS] [RUNS] [HITS_OUT]\n", argv[0]);
+    fprintf(stderr, "usage: %s DUMP [THREADS] [RUNS] [HITS_OUT] [T_OUT]\n", argv[0]);
     return 2;
   }
   n_threads = argc > 2 ? (uint32_t)atoi(argv[2]) : 2;
@@ -205,10 +253,11 @@ int main(int argc, char **argv) {
   char magic[4];
   uint32_t hdr[3];
   uint32_t steps = 1;
-  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || hdr[0] < 1 || hdr[0] > 3 ||
+  if (fread(magic, 1, 4, f) != 4 || memcmp(magic, "BVHD", 4) || fread(hdr, 4, 3, f) != 3 || hdr[0] < 1 || hdr[0] > 4 ||
       (hdr[0] == 3 && fread(&n_insts, 4, 1, f) != 1) ||
-      (hdr[0] >= 2 && (fread(&steps, 4, 1, f) != 1 || steps < 2 || steps > RTC_MAX_TIME_STEP_COUNT))) {
-    fprintf(stderr, "%s: not a bvhtrace dump (version 1, 2 or 3)\n", argv[1]);
+      (hdr[0] == 4 && (fread(&curve_kind, 4, 1, f) != 1 || fread(&n_points, 4, 1, f) != 1 || fread(&n_segments, 4, 1, f) != 1)) ||
+      ((hdr[0] == 2 || hdr[0] == 3) && (fread(&steps, 4, 1, f) != 1 || steps < 2 || steps > RTC_MAX_TIME_STEP_COUNT))) {
+    fprintf(stderr, "%s: not a bvhtrace dump (version 1 to 4)\n", argv[1]);
     return 1;
   }
   uint32_t n_tris = hdr[1];
@@ -227,7 +276,10 @@ int main(int argc, char **argv) {
   float *ray_times = steps > 1 ? malloc(4 * (size_t)n_rays) : NULL;
   hit_prim = malloc(4 * (size_t)n_rays);
   hit_t = malloc(4 * (size_t)n_rays);
-  if (!tris || !r || !hit_prim || !hit_t || (steps > 1 && !ray_times) || fread(tris, 4, n_corners, f) != n_corners ||
+  hit_u = malloc(4 * (size_t)n_rays);
+  n_tris_global = n_tris;
+  if (!tris || !r || !hit_prim || !hit_t || !hit_u || (steps > 1 && !ray_times) || fread(tris, 4, n_corners, f) != n_corners ||
+      (hdr[0] == 4 && read_curves(f)) ||
       fread(r, sizeof(Ray), n_rays, f) != n_rays || (ray_times && fread(ray_times, 4, n_rays, f) != n_rays)) {
     fprintf(stderr, "%s: truncated dump\n", argv[1]);
     return 1;
@@ -248,9 +300,12 @@ int main(int argc, char **argv) {
       scene = rtcNewScene(dev);
       rtcSetSceneFlags(scene, robust ? RTC_SCENE_FLAG_ROBUST : RTC_SCENE_FLAG_NONE);
       rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
-      RTCGeometry g = soup(dev, tris, n_tris, steps, RTC_BUILD_QUALITY_MEDIUM, NULL);
-      rtcAttachGeometry(scene, g);
-      rtcReleaseGeometry(g);
+      if (n_tris) {
+        RTCGeometry g = soup(dev, tris, n_tris, steps, RTC_BUILD_QUALITY_MEDIUM, NULL);
+        rtcAttachGeometryByID(scene, g, 0);
+        rtcReleaseGeometry(g);
+      }
+      if (points) attach_curves(dev, scene);
       rtcCommitScene(scene);
     }
     build[run] = now_ms() - t0;
@@ -273,6 +328,13 @@ int main(int argc, char **argv) {
   if (argc > 4) {
     FILE *o = fopen(argv[4], "wb");
     if (!o || fwrite(hit_prim, 4, n_rays, o) != n_rays) { perror(argv[4]); return 1; }
+    fclose(o);
+  }
+  if (argc > 5) {
+    FILE *o = fopen(argv[5], "wb");
+    for (uint32_t i = 0; o && i < n_rays; i++)
+      if (fwrite(&hit_t[i], 4, 1, o) != 1 || fwrite(&hit_u[i], 4, 1, o) != 1) { fclose(o); o = NULL; }
+    if (!o) { perror(argv[5]); return 1; }
     fclose(o);
   }
   double refit_ms = -1;

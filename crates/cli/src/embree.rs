@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionMesh, MovingInstance};
-use bvhtrace_core::{Ray, Triangle};
+use bvhtrace_core::{CurveKind, Curves, Ray, Triangle};
 
 /// The dump format: "BVHD", u32 version 1, u32 triangle count, u32 ray count, 9 f32 per
 /// triangle, 8 f32 per ray (origin, t_min, dir, t_max), little endian.
@@ -82,6 +82,42 @@ pub fn instanced_dump_bytes(
     for t in times {
         bytes.extend_from_slice(&t.to_le_bytes());
     }
+    bytes
+}
+
+/// Version 4, triangles and curves: "BVHD", u32 version 4, u32 triangle count, u32 ray
+/// count, u32 curve kind (0 round linear, 1 flat linear, 2 round Bezier, 3 round B-spline:
+/// [`CurveKind::ALL`]'s order), u32 point count, u32 segment count; 9 f32 per triangle, 4
+/// f32 per point (xyz, radius), a u32 first point per segment, a u8 of Embree's neighbour
+/// flags per segment (1 left, 2 right; linear kinds), the rays as in version 1. A curve's
+/// primitive id is the triangle count plus its segment.
+pub fn curve_dump_bytes(tris: &[Triangle], curves: &Curves, rays: &[Ray]) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    bytes.extend_from_slice(b"BVHD");
+    let kind = CurveKind::ALL.iter().position(|&k| k == curves.kind);
+    let (n_points, n_segments) = (curves.points.len(), curves.len());
+    for v in [
+        4,
+        tris.len(),
+        rays.len(),
+        kind.unwrap_or(0),
+        n_points,
+        n_segments,
+    ] {
+        bytes.extend_from_slice(&(v as u32).to_le_bytes());
+    }
+    put_triangles(&mut bytes, tris);
+    for c in curves.points.iter().flat_map(|p| p.to_array()) {
+        bytes.extend_from_slice(&c.to_le_bytes());
+    }
+    for s in &curves.segments {
+        bytes.extend_from_slice(&s.to_le_bytes());
+    }
+    bytes.extend((0..n_segments).map(|s| {
+        let (left, right) = curves.neighbours(s);
+        u8::from(left) | (u8::from(right) << 1)
+    }));
+    put_rays(&mut bytes, rays);
     bytes
 }
 

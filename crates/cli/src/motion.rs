@@ -1,6 +1,8 @@
 //! Motion blur in `bvhtrace render --shutter` and `bvhtrace dump --shutter`: the scene's
 //! animation over the shutter (`Scene::motion`, or `Scene::moving_instances` in two
-//! levels), its moving tree, and rays that each carry a time.
+//! levels), its moving tree, and rays that each carry a time. Scenes with curves
+//! (`builtin:hair`) render through the same samples, shading and image, on the CPU tree
+//! that holds their triangles and curve segments ([`CurveBvh`]).
 //!
 //! One moving mesh traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on
 //! the CPU twin, which answer alike bit for bit; two levels trace on the CPU. Each pixel
@@ -14,7 +16,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
-use bvhtrace_core::{Counters, Hit, Query, Ray, Triangle};
+use bvhtrace_core::{Counters, CurveBvh, Hit, Query, Ray, Triangle};
 use bvhtrace_gpu::GpuMotionBvh;
 use bvhtrace_scene::Scene;
 use glam::Vec3;
@@ -103,8 +105,17 @@ pub fn sample_rays(camera_rays: &[Ray], samples: u32) -> (Vec<Ray>, Vec<f32>) {
     (rays, times)
 }
 
-/// The flags a blurred render cannot honour yet, refused before any work.
-fn check_flags(args: &RenderArgs) -> Result<()> {
+/// The flags a blurred render (or one with curves, `shutter` `None`) cannot honour yet,
+/// refused before any work.
+fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
+    let what = if shutter.is_some() {
+        "--shutter"
+    } else {
+        "a scene with curves"
+    };
+    if shutter.is_none() && !matches!(args.backend, Backend::Auto | Backend::Cpu) {
+        bail!("curves are traced on the CPU so far: use --backend cpu or auto");
+    }
     if args.backend == Backend::Vulkan || args.backend == Backend::Mock {
         bail!(
             "--shutter traces with our walks through wgpu or on the CPU: use --backend gpu, cpu or auto"
@@ -117,7 +128,7 @@ fn check_flags(args: &RenderArgs) -> Result<()> {
         (args.walk()?.is_some(), "--traversal and --layout"),
         (args.storage.is_some(), "--storage"),
         (args.max_binding_mib.is_some(), "--max-binding-mib"),
-        (args.scene.time.is_some(), "--time (the shutter says when)"),
+        (args.scene.time.is_some(), "--time"),
         (
             args.scene.flatten,
             "--flatten (a blurred scene is always flattened)",
@@ -129,26 +140,35 @@ fn check_flags(args: &RenderArgs) -> Result<()> {
         ),
     ];
     if let Some((_, flag)) = unsupported.iter().find(|(on, _)| *on) {
-        bail!("--shutter does not take {flag}");
+        bail!("{what} does not take {flag}");
     }
     Ok(())
 }
 
 /// What a blurred render traces, and where: one moving mesh on the device or on the CPU
-/// twin (which also counts), or moving instances in two levels on the CPU.
+/// twin (which also counts), or moving instances in two levels on the CPU; or, for a
+/// scene with curves, its triangles and curves on the CPU.
 enum Walker {
     Cpu(Arc<MotionBvh>, MotionMesh),
     Gpu(GpuMotionBvh, MotionMesh),
     Instanced(MotionInstancedBvh),
+    Curves(CurveBvh),
 }
 
 impl Walker {
     /// The scene over the shutter as the flags say, built, on the device `--backend`
     /// names (the best one for auto) or the CPU; auto falls back to the CPU, saying why,
     /// where the device cannot take the tree.
-    fn build(args: &RenderArgs, scene: &Scene, (open, close): (f32, f32)) -> Result<Walker> {
+    fn build(args: &RenderArgs, scene: &Scene, shutter: Option<(f32, f32)>) -> Result<Walker> {
         let opts = args.scene.build.options();
         let bounds = TimeBounds::from(args.time_bounds);
+        let Some((open, close)) = shutter else {
+            let Some(curves) = scene.curves.clone() else {
+                bail!("the scene has no curves");
+            };
+            let tris = scene.flattened_triangles()?;
+            return Ok(Walker::Curves(CurveBvh::build(&tris, curves, &opts)?));
+        };
         if args.shutter.instances {
             if args.backend != Backend::Auto && args.backend != Backend::Cpu {
                 bail!("--shutter --instances traces on the CPU so far: use --backend cpu or auto");
@@ -202,6 +222,7 @@ impl Walker {
                 (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
             }
             Walker::Instanced(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+            Walker::Curves(b) => (b.triangle_count(), 1, b.byte_size(), b.depth()),
         }
     }
 
@@ -211,14 +232,17 @@ impl Walker {
             Walker::Cpu(b, _) => b.bounds(),
             Walker::Gpu(g, _) => g.bvh().bounds(),
             Walker::Instanced(b) => b.bounds(),
+            Walker::Curves(b) => b.bounds(),
         }
     }
 
-    /// Triangle `prim` where it is at `time`.
-    fn triangle_at(&self, prim: u32, time: f32) -> Triangle {
+    /// The triangle `hit` of `ray` is on where it is at `time` (for a curve, the triangle
+    /// in its tangent plane that shades it: [`CurveBvh::shading_triangle`]).
+    fn triangle_at(&self, hit: &Hit, ray: &Ray, time: f32) -> Triangle {
         match self {
-            Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(prim as usize, time),
-            Walker::Instanced(b) => b.triangle_at(prim, time).unwrap_or_default(),
+            Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
+            Walker::Instanced(b) => b.triangle_at(hit.prim, time).unwrap_or_default(),
+            Walker::Curves(b) => b.shading_triangle(hit, ray),
         }
     }
 
@@ -234,6 +258,7 @@ impl Walker {
         match self {
             Walker::Cpu(b, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
             Walker::Instanced(b) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
+            Walker::Curves(b) => Ok(on_cpu(&|r, _| b.trace(r, Query::Closest))),
             Walker::Gpu(g, _) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
         }
     }
@@ -242,6 +267,7 @@ impl Walker {
         match self {
             Walker::Cpu(b, _) => Ok(b.trace_rays(rays, times, Query::Any)),
             Walker::Instanced(b) => Ok(b.trace_rays(rays, times, Query::Any)),
+            Walker::Curves(b) => Ok(b.trace_rays(rays, Query::Any)),
             Walker::Gpu(g, _) => Ok(g.trace(rays, times, Query::Any)?),
         }
     }
@@ -260,8 +286,10 @@ struct Totals {
 
 /// `bvhtrace render --shutter`: the samples of every pixel over the shutter, each shaded
 /// as `--shade` says, averaged.
-pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
-    check_flags(args)?;
+///
+/// Without a shutter (`None`), the scene's curves and triangles, one sample per pixel.
+pub fn render(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
+    check_flags(args, shutter)?;
     let png = AtomicFile::create(&args.output)?;
     let json_out = args.json.as_deref().map(JsonOut::create).transpose()?;
     let spec = args
@@ -274,8 +302,10 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
     let bounds = TimeBounds::from(args.time_bounds);
-    let walker = Walker::build(args, &scene, shutter)
-        .with_context(|| format!("{spec} over the shutter {}..{} s", shutter.0, shutter.1))?;
+    let walker = Walker::build(args, &scene, shutter).with_context(|| match shutter {
+        Some((open, close)) => format!("{spec} over the shutter {open}..{close} s"),
+        None => format!("{spec} with its curves"),
+    })?;
     // Sampling the animation into steps, the build and the upload.
     let build_ms = t1.elapsed().as_secs_f64() * 1e3;
     let (triangles, steps, bytes, depth) = walker.sizes();
@@ -289,7 +319,11 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
     };
     let (w, h) = args.view.size;
     let rays = cam.rays(w, h);
-    let samples = args.shutter.shutter_samples;
+    let samples = if shutter.is_some() {
+        args.shutter.shutter_samples
+    } else {
+        1
+    };
     let pb = crate::output::progress_bar(
         u64::from(samples),
         "{spinner} blurring over the shutter [{bar:40}] {pos}/{len} samples ({eta})",
@@ -313,14 +347,21 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
         .collect();
     write_png(png, w, h, img)?;
     let mrays = |n: u64, ms: f64| n as f64 / ms.max(1e-9) / 1e3;
+    let what = match (shutter, &walker) {
+        (Some((open, close)), _) => format!(
+            "{triangles} triangles in {steps} time steps, {samples} samples over {open}..{close} s, {} bounds",
+            bounds_name(bounds)
+        ),
+        (None, Walker::Curves(b)) => format!(
+            "{triangles} triangles and {} {} curve segments",
+            b.curves().len(),
+            b.curves().kind.name()
+        ),
+        (None, _) => format!("{triangles} triangles"),
+    };
     eprintln!(
-        "wrote {} ({w}x{h}, {} triangles in {} time steps, {samples} samples over {}..{} s, {} bounds on {}): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
+        "wrote {} ({w}x{h}, {what} on {}): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
         args.output.display(),
-        triangles,
-        steps,
-        shutter.0,
-        shutter.1,
-        bounds_name(bounds),
         walker.name(),
         totals.rays + totals.secondary_rays,
         totals.trace_ms,
@@ -332,7 +373,11 @@ pub fn render(args: &RenderArgs, shutter: (f32, f32)) -> Result<()> {
             "scene": spec,
             "width": w, "height": h,
             "triangles": triangles,
-            "shutter": [shutter.0, shutter.1],
+            "shutter": shutter.map(|(open, close)| [open, close]),
+            "curves": match &walker {
+                Walker::Curves(b) => json!({ "kind": b.curves().kind.name(), "segments": b.curves().len() }),
+                _ => json!(null),
+            },
             "time_steps": steps,
             "levels": if args.shutter.instances { 2 } else { 1 },
             "time_bounds": bounds_name(bounds),
@@ -380,12 +425,11 @@ fn trace_sample(
     let (hits, counters) = walker.closest(rays, times)?;
     let primary_ms = t.elapsed().as_secs_f64() * 1e3;
     // The shading asks for a hit's triangle by primitive; a blurred hit's triangle is
-    // where it was at its ray's time, so each hit names its ray and `posed` holds them.
-    let posed: Vec<Triangle> = hits
-        .iter()
-        .zip(times)
-        .map(|(h, &time)| match h.is_hit() {
-            true => walker.triangle_at(h.prim, time),
+    // where it was at its ray's time (a curve's, in its tangent plane at the hit), so each
+    // hit names its ray and `posed` holds them.
+    let posed: Vec<Triangle> = (hits.iter().zip(rays).zip(times))
+        .map(|((h, r), &time)| match h.is_hit() {
+            true => walker.triangle_at(h, r, time),
             false => [Vec3::ZERO; 3],
         })
         .collect();

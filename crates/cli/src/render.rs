@@ -450,8 +450,14 @@ struct Job<'a> {
 
 /// `bvhtrace render`: scene, tree, rays, trace, shading, image.
 pub fn render(args: RenderArgs) -> Result<()> {
-    if let Some(shutter) = args.shutter.shutter {
-        return crate::motion::render(&args, shutter);
+    if args.shutter.shutter.is_some()
+        || args
+            .scene
+            .scene
+            .as_deref()
+            .is_some_and(bvhtrace_scene::has_curves)
+    {
+        return crate::motion::render(&args, args.shutter.shutter);
     }
     // Fail on bad flags and output paths before any work.
     let png = AtomicFile::create(&args.output)?;
@@ -1225,15 +1231,26 @@ pub fn dump(args: DumpArgs) -> Result<()> {
             let bytes = crate::embree::motion_dump_bytes(&mesh, &rays, &times);
             (bytes, mesh.len(), rays.len(), mesh.time_steps())
         }
-        None => {
-            let tris = scene.flattened_triangles()?;
-            (
-                crate::embree::dump_bytes(&tris, &rays),
-                tris.len(),
-                rays.len(),
-                1,
-            )
-        }
+        None => match &scene.curves {
+            Some(curves) => {
+                let tris = scene.flattened_triangles()?;
+                let bytes = crate::embree::curve_dump_bytes(&tris, curves, &rays);
+                eprintln!(
+                    "the dump holds {} curve segments beside the triangles (version 4)",
+                    curves.len()
+                );
+                (bytes, tris.len(), rays.len(), 1)
+            }
+            None => {
+                let tris = scene.flattened_triangles()?;
+                (
+                    crate::embree::dump_bytes(&tris, &rays),
+                    tris.len(),
+                    rays.len(),
+                    1,
+                )
+            }
+        },
     };
     out.finish_with_bytes(&bytes)?;
     eprintln!(

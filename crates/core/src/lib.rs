@@ -12,6 +12,7 @@
 pub mod alpha;
 pub mod build;
 pub mod cost;
+pub mod curves;
 pub mod flat;
 pub mod geometry;
 pub mod hits;
@@ -30,6 +31,7 @@ pub mod wide;
 
 pub use build::reinsert::{ReinsertOptions, optimize, optimize_with};
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
+pub use curves::{CurveBvh, CurveError, CurveKind, Curves};
 pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle, RefitError};
 pub use geometry::Aabb;
 pub use hits::{InstanceHit, InstanceTable};

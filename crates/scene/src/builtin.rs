@@ -37,6 +37,10 @@ pub fn builtin_names() -> &'static [(&'static str, &'static str)] {
             "synthetic: A*B copies of one mesh, instanced (one mesh, A*B instances) on a grid in the XY plane, each slightly rotated and scaled; MESH is <shared scenes>/glb/MESH.glb, or scenes/MESH.glb in this repository (e.g. grid:igea:3x3 has 2,418,174 triangles)",
         ),
         (
+            "hair[:KIND[:N]]",
+            "synthetic hair: a head (an icosphere of 1,280 triangles) with N strands (default 10,000) of curves of KIND: round-linear, flat-linear, round-bezier or round-bspline (the default), nine linear or seven cubic segments each",
+        ),
+        (
             "moving:MESH",
             "synthetic motion: two copies of one mesh side by side, the left one still, the right one moving right by a third of its size while it turns 30 degrees about +Y over one second (a LINEAR node animation, for `render --shutter 0,1`); MESH as for grid",
         ),
@@ -83,6 +87,8 @@ pub(crate) fn load_builtin(
                 }
             } else if let Some(rest) = name.strip_prefix("grid:") {
                 grid(rest, spec, opts)?
+            } else if let Some(rest) = name.strip_prefix("hair") {
+                crate::hair::hair(rest.strip_prefix(':').unwrap_or(rest), spec)?
             } else if let Some(mesh) = name.strip_prefix("moving:") {
                 moving_of(crate::load_gltf_file(&find_mesh(mesh, spec, opts)?)?, mesh)
             } else {

@@ -48,6 +48,7 @@ pub mod camera;
 mod error;
 mod export;
 mod glb;
+mod hair;
 mod loader;
 mod masks;
 mod materials;
@@ -58,6 +59,7 @@ use std::path::{Path, PathBuf};
 
 use bvhtrace_core::alpha::AlphaMask;
 pub use bvhtrace_core::alpha::Wrap;
+use bvhtrace_core::curves::Curves;
 use bvhtrace_core::mesh::TriangleMesh;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
@@ -69,6 +71,7 @@ pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
+pub use hair::{DEFAULT_STRANDS, has_curves};
 pub use loader::{load_gltf_file, load_gltf_slice};
 pub use shutter::SHUTTER_TOLERANCE;
 pub use two_level::{SceneBvh, TracingBvhError};
@@ -410,6 +413,9 @@ pub struct Scene {
     /// It matches the instances as loaded: a scene whose instances are added or removed
     /// afterwards is no longer animated by [`Scene::set_time`].
     pub animation: Option<Animation>,
+    /// Strands of curves (hair, fur, grass) in world space beside the triangles, traced
+    /// by [`bvhtrace_core::CurveBvh`]; `None` for scenes without them.
+    pub curves: Option<Curves>,
 }
 
 impl Scene {
@@ -748,6 +754,10 @@ impl Scene {
                 "{verts} vertices over all instances (at most {})",
                 u32::MAX
             ))));
+        }
+        if let Some(c) = &self.curves {
+            c.validate()
+                .map_err(|e| err(ErrorKind::Invalid(format!("curves: {e}"))))?;
         }
         let (lo, hi) = self.bounds();
         if !lo.is_finite() || !hi.is_finite() {

@@ -26,7 +26,7 @@ use crate::ray::{Counters, Hit, Ray};
 use crate::traverse::{Best, Query};
 
 mod instances;
-mod tree;
+pub(crate) mod tree;
 
 pub use instances::{InstanceMotionError, MotionInstancedBvh, MovingInstance};
 use tree::TimeTree;

@@ -45,6 +45,7 @@ pub(crate) struct TimeTree {
 impl TimeTree {
     /// Builds the tree over primitives whose box at step `k` is `boxes[p * steps + k]`;
     /// returns it with the primitives in leaf order (its leaves index that order).
+    /// With one step the tree is static, and its bounds must be [`TimeBounds::Merged`].
     pub fn build(
         boxes: &[Aabb],
         steps: usize,
@@ -149,7 +150,11 @@ impl TimeTree {
         if !ray.is_valid() || time.is_nan() {
             return (untraced(ray), Counters::default());
         }
-        let seg = time_segment(time, self.steps);
+        // One step is a static tree (curves): every time is its only step.
+        let seg = match self.steps {
+            1 => (0, 0.0),
+            steps => time_segment(time, steps),
+        };
         let r = PreparedRay::new(ray);
         let mut best = Best::start(ray);
         let mut c = Counters::default();

@@ -1,0 +1,323 @@
+//! Round cubic curves, as Embree 3 defines them: the surface swept by a circle of the
+//! curve's radius in the plane normal to the curve, along a cubic Bezier (or a B-spline,
+//! turned into its Bezier form), open at both ends.
+//!
+//! The intersection is Embree's (`curve_intersector_sweep.h`): the curve is cut into
+//! pieces, each bounded by a cylinder about its chord and the planes normal to the curve
+//! at its ends; where the ray crosses such a bound on a piece short enough, Newton's
+//! method solves for the point of the ray that lies in the curve's normal plane at `u`
+//! at the radius `r(u)`, starting from where it enters (and, for the far side, leaves) the
+//! bound. A hit is accepted when both equations hold within Embree's error bounds, so
+//! hits agree with Embree's to about the curve's rounding; a ray that grazes the surface
+//! may converge in one tracer and not the other.
+
+use glam::{Vec3, Vec4};
+
+use super::CurveHit;
+
+/// Pieces a curve piece is cut into at each level (Embree's 8 lanes less one).
+const PIECES: usize = 7;
+/// Levels of cutting before Newton's method, one more where the bound is seen edge on
+/// (Embree's with AVX).
+const LEVELS: u32 = 2;
+/// Newton steps before a start is given up.
+const NEWTON_STEPS: usize = 5;
+
+/// A cubic Bezier curve with a radius (`w`) per control point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Bezier(pub [Vec4; 4]);
+
+impl Bezier {
+    /// The point, first and second derivatives at `u`.
+    pub fn eval(&self, u: f32) -> (Vec4, Vec4, Vec4) {
+        let [p0, p1, p2, p3] = self.0;
+        let s = 1.0 - u;
+        let p = s * s * s * p0 + 3.0 * s * s * u * p1 + 3.0 * s * u * u * p2 + u * u * u * p3;
+        let d = 3.0 * (s * s * (p1 - p0) + 2.0 * s * u * (p2 - p1) + u * u * (p3 - p2));
+        let dd = 6.0 * (s * (p2 - 2.0 * p1 + p0) + u * (p3 - 2.0 * p2 + p1));
+        (p, d, dd)
+    }
+
+    /// The box of the control points, grown by the largest radius: the swept surface lies
+    /// inside it (the basis is non-negative, so neither point nor radius leaves the hull).
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let r = self.0.iter().fold(0.0f32, |m, p| m.max(p.w));
+        let (lo, hi) = self.0.iter().fold(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |(lo, hi), p| (lo.min(p.truncate()), hi.max(p.truncate())),
+        );
+        (lo - r, hi + r)
+    }
+
+    fn translated(&self, by: Vec3) -> Bezier {
+        Bezier(self.0.map(|p| p - by.extend(0.0)))
+    }
+}
+
+/// An interval of `t`, empty when `lo > hi`.
+#[derive(Clone, Copy, Debug)]
+struct Span {
+    lo: f32,
+    hi: f32,
+}
+
+impl Span {
+    const EMPTY: Span = Span {
+        lo: f32::INFINITY,
+        hi: f32::NEG_INFINITY,
+    };
+    const ALL: Span = Span {
+        lo: f32::NEG_INFINITY,
+        hi: f32::INFINITY,
+    };
+
+    fn and(self, o: Span) -> Span {
+        Span {
+            lo: self.lo.max(o.lo),
+            hi: self.hi.min(o.hi),
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        !(self.lo <= self.hi)
+    }
+}
+
+/// Where the ray `t dir` (from the origin) is within `r` of the line through `p0` and `p1`,
+/// and the fractions along `p0`..`p1` of its entry and exit.
+fn cylinder(dir: Vec3, p0: Vec3, p1: Vec3, r: f32) -> Option<(Span, f32, f32)> {
+    let axis = p1 - p0;
+    let rl = axis.length().recip();
+    let dp = axis * rl;
+    let o = -p0;
+    let (dd, od, oo) = (dir.dot(dir), dir.dot(o), o.dot(o));
+    let (doz, oz) = (dp.dot(dir), dp.dot(o));
+    let a = dd - doz * doz;
+    let b = 2.0 * (od - doz * oz);
+    let c = oo - oz * oz - r * r;
+    let disc = b * b - 4.0 * a * c;
+    if !(disc >= 0.0) {
+        return None;
+    }
+    if a.abs() < 16.0 * f32::EPSILON * dd.abs().max(doz * doz) {
+        // Along the axis: inside for every t, or for none.
+        return (c <= 0.0).then_some((Span::ALL, 0.0, 1.0));
+    }
+    let q = disc.sqrt();
+    let rcp_2a = (2.0 * a).recip();
+    let (t0, t1) = ((-b - q) * rcp_2a, (-b + q) * rcp_2a);
+    let span = Span { lo: t0, hi: t1 };
+    Some((span, (t0 * doz + oz) * rl, (t1 * doz + oz) * rl))
+}
+
+/// Where the ray `t dir` is on the side of the plane through `p` that `n` points to.
+fn half_space(dir: Vec3, p: Vec3, n: Vec3) -> Span {
+    let (a, b) = (-p.dot(n), dir.dot(n));
+    let t = -a / b;
+    if b > 0.0 {
+        Span {
+            lo: t,
+            hi: f32::INFINITY,
+        }
+    } else if b < 0.0 {
+        Span {
+            lo: f32::NEG_INFINITY,
+            hi: t,
+        }
+    } else if a >= 0.0 {
+        Span::ALL
+    } else {
+        Span::EMPTY
+    }
+}
+
+/// The round cubic `curve` against the ray `org + t dir`: the nearest hit in
+/// `[t_min, t_max]`.
+pub(crate) fn round_cubic(
+    org: Vec3,
+    dir: Vec3,
+    (t_min, t_max): (f32, f32),
+    curve: &Bezier,
+) -> Option<CurveHit> {
+    // Solve near the curve, with the ray's origin moved to its middle.
+    let center = 0.5 * (curve.0[0].truncate() + curve.0[3].truncate());
+    let dt = (center - org).dot(dir) / dir.dot(dir);
+    let near = Sweep {
+        curve: curve.translated(org + dt * dir),
+        dir,
+        dt,
+        range: (t_min, t_max),
+    };
+    let mut best: Option<CurveHit> = None;
+    near.pieces(0.0, 1.0, 1, &mut best);
+    best
+}
+
+/// One ray against one curve, in the curve's frame moved to the ray.
+struct Sweep {
+    curve: Bezier,
+    dir: Vec3,
+    /// Where the moved origin is along the ray.
+    dt: f32,
+    range: (f32, f32),
+}
+
+impl Sweep {
+    /// The end of the interval still open: the best hit's distance, or `t_max`.
+    fn t_far(&self, best: &Option<CurveHit>) -> f32 {
+        best.as_ref().map_or(self.range.1, |h| h.t)
+    }
+
+    /// Cuts `u0..u1` into pieces and, for each whose bound the ray crosses, cuts it again
+    /// or (at the last level) starts Newton's method where the ray enters and leaves it.
+    fn pieces(&self, u0: f32, u1: f32, depth: u32, best: &mut Option<CurveHit>) {
+        let dscale = (u1 - u0) / (3.0 * PIECES as f32);
+        let at = |k: usize| {
+            let u = u0 + (u1 - u0) * (k as f32 / PIECES as f32);
+            let (p, d, _) = self.curve.eval(u);
+            (u, p, d * dscale)
+        };
+        let mut start = at(0);
+        for k in 0..PIECES {
+            let end = at(k + 1);
+            let (ua, p0, d0) = start;
+            let (ub, p3, d3) = end;
+            start = end;
+            let (p1, p2) = (p0 + d0, p3 - d3);
+            // Cylinders about the chord that hold the piece's surface, and are held by it.
+            let chord = (p3 - p0).truncate();
+            let off = |d: Vec4| {
+                let d = d.truncate();
+                let l = chord.length_squared();
+                if l > 0.0 {
+                    (d - chord * (d.dot(chord) / l)).length()
+                } else {
+                    d.length()
+                }
+            };
+            let bend = off(d0).max(off(d3));
+            let (rmax, rmin) = [p0.w, p1.w, p2.w, p3.w]
+                .iter()
+                .fold((0.0f32, f32::INFINITY), |(a, b), &w| (a.max(w), b.min(w)));
+            let r_outer = (rmax + bend) * (1.0 + 2.0 * f32::EPSILON);
+            let r_inner = ((rmin - bend) * (1.0 - 2.0 * f32::EPSILON)).max(0.0);
+            let (a, b) = (p0.truncate(), p3.truncate());
+            let Some((outer, ua_out, ub_out)) = cylinder(self.dir, a, b, r_outer) else {
+                continue;
+            };
+            let t_far = self.t_far(best);
+            let span = Span {
+                lo: self.range.0 - self.dt,
+                hi: t_far - self.dt,
+            }
+            .and(outer)
+            .and(half_space(self.dir, a, d0.truncate()))
+            .and(half_space(self.dir, b, -d3.truncate()));
+            if span.is_empty() {
+                continue;
+            }
+            // The part of the span inside the inner cylinder holds no surface.
+            let inner = cylinder(self.dir, a, b, r_inner);
+            let (front, back) = match inner {
+                Some((i, _, _)) => (
+                    Span {
+                        lo: span.lo,
+                        hi: span.hi.min(i.lo),
+                    },
+                    Span {
+                        lo: span.lo.max(i.hi),
+                        hi: span.hi,
+                    },
+                ),
+                None => (span, span),
+            };
+            // Where the ray grazes the inner cylinder, Newton's method needs a shorter piece.
+            let grazes = |t: f32, f: f32| {
+                let across = t * self.dir - (a + f * (b - a));
+                self.dir.normalize().dot(across.normalize_or_zero()).abs() < 0.3
+            };
+            let edge_on = inner.is_none_or(|(i, f0, f1)| grazes(i.lo, f0) || grazes(i.hi, f1));
+            let last = if edge_on { LEVELS + 1 } else { LEVELS };
+            let piece_u = |f: f32| ua + (ub - ua) * f.clamp(0.0, 1.0);
+            if depth < last {
+                if !front.is_empty() || !back.is_empty() {
+                    self.pieces(ua, ub, depth + 1, best);
+                }
+                continue;
+            }
+            if !front.is_empty() {
+                self.newton(piece_u(ua_out), front.lo, best);
+            }
+            if !back.is_empty() && back.lo + self.dt <= self.t_far(best) {
+                self.newton(piece_u(ub_out), back.hi, best);
+            }
+        }
+    }
+
+    /// Newton's method on `(u, t)` from a start: the ray's point `q = t dir` lies in the
+    /// curve's normal plane at `u` (`f = (q - p).T = 0`) at its radius (`g = |q - p|_perp -
+    /// r = 0`). Keeps the hit if it is nearer than the best.
+    fn newton(&self, mut u: f32, mut t: f32, best: &mut Option<CurveHit>) {
+        let dir = self.dir;
+        let len_dir = dir.length();
+        let (lo, hi) = self.curve_box();
+        let p_err = 16.0 * f32::EPSILON * lo.abs().max(hi.abs()).truncate().max_element();
+        let w_err = 16.0 * f32::EPSILON * hi.w;
+        for _ in 0..NEWTON_STEPS {
+            let q = t * dir;
+            let (p, dp, ddp) = self.curve.eval(u);
+            let (p3, dp3, ddp3) = (p.truncate(), dp.truncate(), ddp.truncate());
+            let r = q - p3;
+            let len_r = r.length();
+            let r_err = (16.0 * f32::EPSILON * len_dir * t).max(p_err);
+            let len_dp = dp3.length();
+            let tan = dp3 / len_dp;
+            // d/du of dp / |dp|.
+            let dtan = (ddp3 * dp3.dot(dp3) - dp3 * dp3.dot(ddp3)) / (len_dp * len_dp * len_dp);
+            let cos_err = p_err / len_dp;
+            let f = r.dot(tan);
+            let f_err = len_r * p_err + r_err + cos_err * (1.0 + len_r);
+            let dfdu = (-dp3).dot(tan) + r.dot(dtan);
+            let dfdt = dir.dot(tan);
+            let k = r.dot(r) - f * f;
+            let dkdu = r.dot(-dp3) - f * dfdu;
+            let dkdt = r.dot(dir) - f * dfdt;
+            let rsqrt_k = k.sqrt().recip();
+            let g = k.sqrt() - p.w;
+            let g_err = r_err + f_err + w_err;
+            let dgdu = dkdu * rsqrt_k - dp.w;
+            let dgdt = dkdt * rsqrt_k;
+            // Solve [[dfdu, dfdt], [dgdu, dgdt]] (du, dt) = (f, g).
+            let det = dfdu * dgdt - dfdt * dgdu;
+            let du = (dgdt * f - dfdt * g) / det;
+            let dtt = (dfdu * g - dgdu * f) / det;
+            u -= du;
+            t -= dtt;
+            if f.abs() < f_err && g.abs() < g_err {
+                let t_hit = t + self.dt;
+                let ok =
+                    self.range.0 <= t_hit && t_hit <= self.t_far(best) && (0.0..=1.0).contains(&u);
+                if ok && best.is_none_or(|b| t_hit < b.t) {
+                    // Embree's normal: across the tube, bent by the radius' slope.
+                    let rn = r.normalize();
+                    let across = dp.w * rn + dp3;
+                    let normal = dp3.cross(rn).cross(across);
+                    *best = Some(CurveHit {
+                        t: t_hit,
+                        u,
+                        normal,
+                    });
+                }
+                return;
+            }
+        }
+    }
+
+    /// The box of the moved control points with their radii (`w` the largest).
+    fn curve_box(&self) -> (Vec4, Vec4) {
+        self.curve.0.iter().fold(
+            (Vec4::splat(f32::INFINITY), Vec4::splat(f32::NEG_INFINITY)),
+            |(lo, hi), &p| (lo.min(p), hi.max(p)),
+        )
+    }
+}

@@ -1,0 +1,521 @@
+//! Curves: hair, fur and grass as strands of segments with a radius per control point,
+//! in one BVH beside triangles (the node, its build and its walk together).
+//!
+//! The four kinds are Embree 3's: [`CurveKind::RoundLinear`] (cones between spheres),
+//! [`CurveKind::FlatLinear`] (ribbons that face the ray), and round cubic curves, the
+//! surface swept by a circle normal to a [`CurveKind::RoundBezier`] or
+//! [`CurveKind::RoundBSpline`] curve. Each segment is a primitive of its own, with its own
+//! box; [`CurveBvh`] builds one tree over a scene's triangles and segments, whose leaves
+//! hold either, and answers with the hit's curve parameter in [`Hit::u`] and a normal
+//! ([`CurveBvh::normal`]). The intersections follow Embree's in f32 (see `linear.rs` and
+//! `cubic.rs`), so hits can be checked against Embree's on the same rays.
+
+use glam::{Vec3, Vec4};
+
+use crate::build::{BuildError, BuildOptions};
+use crate::flat::FlatNode;
+use crate::geometry::Aabb;
+use crate::intersect::{PreparedRay, intersect_triangle};
+use crate::mesh::{MeshError, Triangle, validate_triangles};
+use crate::motion::TimeBounds;
+use crate::motion::tree::{TimeTree, trace_all};
+use crate::ray::{Counters, Hit, Ray};
+use crate::traverse::{Best, Query};
+
+mod cubic;
+mod linear;
+
+use cubic::Bezier;
+use linear::RaySpace;
+
+/// What a strand's segments are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum CurveKind {
+    /// Straight segments swept by a sphere: cones between spheres at the points
+    /// (Embree's `RTC_GEOMETRY_TYPE_ROUND_LINEAR_CURVE`).
+    RoundLinear,
+    /// Straight ribbons of the points' width that turn to face the ray
+    /// (`RTC_GEOMETRY_TYPE_FLAT_LINEAR_CURVE`).
+    FlatLinear,
+    /// Cubic Bezier segments of four control points, swept by a circle normal to the
+    /// curve (`RTC_GEOMETRY_TYPE_ROUND_BEZIER_CURVE`).
+    RoundBezier,
+    /// Uniform cubic B-spline segments of four control points, swept likewise
+    /// (`RTC_GEOMETRY_TYPE_ROUND_BSPLINE_CURVE`).
+    RoundBSpline,
+}
+
+impl CurveKind {
+    /// Every kind, in the order the dump format numbers them.
+    pub const ALL: [CurveKind; 4] = [
+        CurveKind::RoundLinear,
+        CurveKind::FlatLinear,
+        CurveKind::RoundBezier,
+        CurveKind::RoundBSpline,
+    ];
+
+    /// Control points a segment takes after its first: 1 for linear, 3 for cubic.
+    pub fn degree(self) -> usize {
+        match self {
+            CurveKind::RoundLinear | CurveKind::FlatLinear => 1,
+            CurveKind::RoundBezier | CurveKind::RoundBSpline => 3,
+        }
+    }
+
+    /// The kind's name on the command line (`round-linear`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            CurveKind::RoundLinear => "round-linear",
+            CurveKind::FlatLinear => "flat-linear",
+            CurveKind::RoundBezier => "round-bezier",
+            CurveKind::RoundBSpline => "round-bspline",
+        }
+    }
+}
+
+/// Strands of one kind: control points with a radius each, and segments that name their
+/// first control point (the rest follow it), as Embree's vertex and index buffers do.
+///
+/// A linear segment's neighbours are the segments listed just before and after it that
+/// share its points (`segments[i - 1] + 1 == segments[i]`): a strand is its segments in
+/// order. The round linear surface cuts a neighbour's cone out of a segment, and caps a
+/// strand's first point with a sphere (Embree's `RTC_CURVE_FLAG_NEIGHBOR_LEFT/RIGHT`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Curves {
+    /// What the segments are.
+    pub kind: CurveKind,
+    /// Control points: position in `xyz`, radius in `w`.
+    pub points: Vec<Vec4>,
+    /// Each segment's first control point.
+    pub segments: Vec<u32>,
+}
+
+/// Why curves were refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CurveError {
+    /// A control point has a NaN or infinite coordinate or radius, or a negative radius.
+    #[error("curve point {point}: {value:?} is not a finite position with a radius of 0 or more")]
+    BadPoint {
+        /// The point at fault.
+        point: usize,
+        /// Its position and radius.
+        value: [f32; 4],
+    },
+    /// A segment's control points run past the end of the points.
+    #[error("curve segment {segment} starts at point {first}, but a {kind} segment needs points up to {last} and there are {points}", kind = kind.name(), last = first + kind.degree() as u64)]
+    OutOfRange {
+        /// The segment at fault.
+        segment: usize,
+        /// Its first point.
+        first: u64,
+        /// The kind of segment.
+        kind: CurveKind,
+        /// The number of points.
+        points: usize,
+    },
+    /// The triangles beside the curves are bad, or the scene is too large or empty.
+    #[error(transparent)]
+    Build(#[from] BuildError),
+}
+
+impl Curves {
+    /// Checks every point and segment.
+    pub fn validate(&self) -> Result<(), CurveError> {
+        for (i, p) in self.points.iter().enumerate() {
+            if !p.is_finite() || !(p.w >= 0.0) {
+                return Err(CurveError::BadPoint {
+                    point: i,
+                    value: p.to_array(),
+                });
+            }
+        }
+        for (s, &first) in self.segments.iter().enumerate() {
+            let last = u64::from(first) + self.kind.degree() as u64;
+            if last >= self.points.len() as u64 {
+                return Err(CurveError::OutOfRange {
+                    segment: s,
+                    first: first.into(),
+                    kind: self.kind,
+                    points: self.points.len(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of segments.
+    pub fn len(&self) -> usize {
+        self.segments.len()
+    }
+
+    /// True when there are no segments.
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    /// Whether linear segment `s` continues one before it and one after it.
+    pub fn neighbours(&self, s: usize) -> (bool, bool) {
+        let first = self.segments[s];
+        let left = s > 0 && self.segments[s - 1].wrapping_add(1) == first;
+        let right = self
+            .segments
+            .get(s + 1)
+            .is_some_and(|&n| n == first.wrapping_add(1));
+        (left, right)
+    }
+
+    /// Segment `s`'s control points (two or four).
+    fn control(&self, s: usize) -> &[Vec4] {
+        let first = self.segments[s] as usize;
+        &self.points[first..=first + self.kind.degree()]
+    }
+
+    /// Segment `s` as a Bezier curve (cubic kinds only).
+    fn bezier(&self, s: usize) -> Bezier {
+        let c = self.control(s);
+        let b = [c[0], c[1], c[2], c[3]];
+        match self.kind {
+            CurveKind::RoundBSpline => Bezier(bspline_to_bezier(b)),
+            _ => Bezier(b),
+        }
+    }
+
+    /// The box around segment `s`'s surface.
+    pub fn segment_box(&self, s: usize) -> Aabb {
+        let (min, max) = match self.kind.degree() {
+            1 => {
+                let c = self.control(s);
+                let (a, b) = (c[0], c[1]);
+                let lo = (a.truncate() - a.w).min(b.truncate() - b.w);
+                let hi = (a.truncate() + a.w).max(b.truncate() + b.w);
+                (lo, hi)
+            }
+            _ => self.bezier(s).bounds(),
+        };
+        Aabb { min, max }
+    }
+
+    /// Segment `s` against a ray from `org` along `dir`: its first hit in
+    /// `t_min..=t_max`. `space` is the ray's space (flat segments use it).
+    fn intersect(
+        &self,
+        s: usize,
+        (org, dir, space): (Vec3, Vec3, &RaySpace),
+        range: (f32, f32),
+    ) -> Option<CurveHit> {
+        let c = self.control(s);
+        match self.kind {
+            CurveKind::FlatLinear => linear::flat_linear(org, space, range, c[0], c[1]),
+            CurveKind::RoundLinear => {
+                let (left, right) = self.neighbours(s);
+                let first = self.segments[s] as usize;
+                let vl = left.then(|| self.points[first - 1]);
+                let vr = right.then(|| self.points[first + 2]);
+                linear::round_linear(org, dir, range, [c[0], c[1]], [vl, vr])
+            }
+            CurveKind::RoundBezier | CurveKind::RoundBSpline => {
+                cubic::round_cubic(org, dir, range, &self.bezier(s))
+            }
+        }
+    }
+}
+
+/// The Bezier control points of the uniform cubic B-spline segment with control points
+/// `b`: the same curve (and radius), the form the round cubic intersection takes.
+pub fn bspline_to_bezier(b: [Vec4; 4]) -> [Vec4; 4] {
+    [
+        (b[0] + 4.0 * b[1] + b[2]) * (1.0 / 6.0),
+        (2.0 * b[1] + b[2]) * (1.0 / 3.0),
+        (b[1] + 2.0 * b[2]) * (1.0 / 3.0),
+        (b[1] + 4.0 * b[2] + b[3]) * (1.0 / 6.0),
+    ]
+}
+
+/// A curve hit: distance, curve parameter, and a normal (not unit length; for flat
+/// curves the side that faces the ray).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct CurveHit {
+    pub t: f32,
+    pub u: f32,
+    pub normal: Vec3,
+}
+
+/// One tree over triangles and curve segments, their leaves holding either. Primitive
+/// ids: the triangles' own index, then `triangle_count() + segment`.
+#[derive(Clone, Debug)]
+pub struct CurveBvh {
+    tree: TimeTree,
+    /// Primitive ids in leaf order.
+    order: Vec<u32>,
+    triangles: Vec<Triangle>,
+    curves: Curves,
+}
+
+impl CurveBvh {
+    /// Builds the tree over `triangles` (may be empty) and `curves` with any CPU builder's
+    /// options; the two together must not be empty.
+    pub fn build(
+        triangles: &[Triangle],
+        curves: Curves,
+        opts: &BuildOptions,
+    ) -> Result<CurveBvh, CurveError> {
+        validate_triangles(triangles).map_err(BuildError::from)?;
+        curves.validate()?;
+        let total = triangles.len() + curves.len();
+        if total > crate::flat::MAX_PRIMITIVES {
+            return Err(BuildError::from(MeshError::TooMany(total)).into());
+        }
+        let boxes: Vec<Aabb> = (triangles.iter())
+            .map(|t| {
+                t.iter()
+                    .fold(Aabb::EMPTY, |b, &p| b.union(&Aabb::from_point(p)))
+            })
+            .chain((0..curves.len()).map(|s| curves.segment_box(s)))
+            .collect();
+        let (tree, order) = TimeTree::build(&boxes, 1, opts, TimeBounds::Merged)?;
+        Ok(CurveBvh {
+            tree,
+            order,
+            triangles: triangles.to_vec(),
+            curves,
+        })
+    }
+
+    /// Number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    /// The curves.
+    pub fn curves(&self) -> &Curves {
+        &self.curves
+    }
+
+    /// The tree's depth (levels, the root's counted).
+    pub fn depth(&self) -> u32 {
+        self.tree.depth
+    }
+
+    /// The box around everything.
+    pub fn bounds(&self) -> Aabb {
+        self.tree.nodes[0].aabb()
+    }
+
+    /// Bytes the walk reads: nodes, leaf order, triangles, points and segments.
+    pub fn byte_size(&self) -> usize {
+        use std::mem::size_of;
+        self.tree.byte_size()
+            + self.order.len() * 4
+            + self.triangles.len() * size_of::<Triangle>()
+            + self.curves.points.len() * size_of::<Vec4>()
+            + self.curves.segments.len() * 4
+    }
+
+    /// The segment a primitive id names, `None` for a triangle.
+    pub fn segment_of(&self, prim: u32) -> Option<usize> {
+        (prim as usize).checked_sub(self.triangles.len())
+    }
+
+    /// Traces one ray: the closest hit (the walks' hit rule: the nearest, a lower id on a
+    /// tie) or any hit, with the boxes and primitives tested. A curve hit's [`Hit::u`] is
+    /// its curve parameter in `[0, 1]` and [`Hit::v`] is 0.
+    pub fn trace(&self, ray: &Ray, query: Query) -> (Hit, Counters) {
+        let org = Vec3::from(ray.origin);
+        let dir = Vec3::from(ray.dir);
+        let space = RaySpace::new(dir);
+        self.tree.trace(ray, 0.0, query, |r, _, n, best, c| {
+            self.visit_leaf(r, (org, dir, &space), ray.t_min, n, best, c)
+        })
+    }
+
+    /// Traces every ray in parallel (see [`CurveBvh::trace`]).
+    pub fn trace_rays(&self, rays: &[Ray], query: Query) -> Vec<Hit> {
+        let times = vec![0.0; rays.len()];
+        trace_all(rays, &times, |r, _| self.trace(r, query).0)
+    }
+
+    fn visit_leaf(
+        &self,
+        r: &PreparedRay,
+        ray: (Vec3, Vec3, &RaySpace),
+        t_min: f32,
+        n: &FlatNode,
+        best: &mut Best,
+        c: &mut Counters,
+    ) -> bool {
+        let first = n.right_or_first as usize;
+        let mut taken = false;
+        for &prim in &self.order[first..first + n.count() as usize] {
+            c.tris += 1;
+            match self.segment_of(prim) {
+                None => {
+                    let t = &self.triangles[prim as usize];
+                    if let Some(h) = intersect_triangle(r, t[0], t[1], t[2]) {
+                        taken |= best.offer(h.t, prim, h.u, h.v);
+                    }
+                }
+                Some(s) => {
+                    if let Some(h) = self.curves.intersect(s, ray, (t_min, best.t)) {
+                        taken |= best.offer(h.t, prim, h.u, 0.0);
+                    }
+                }
+            }
+        }
+        taken
+    }
+
+    /// The geometric normal at `hit` (a hit of `ray` this tree returned), unit length: a
+    /// triangle's, a round curve's surface normal, or the side of a flat curve that
+    /// faces the ray.
+    pub fn normal(&self, hit: &Hit, ray: &Ray) -> Vec3 {
+        let dir = Vec3::from(ray.dir);
+        let n = match self.segment_of(hit.prim) {
+            None => self
+                .triangles
+                .get(hit.prim as usize)
+                .map_or(-dir, |t| (t[1] - t[0]).cross(t[2] - t[0])),
+            // The segment's own first hit up to the tree's is the tree's hit.
+            Some(s) => {
+                let org = Vec3::from(ray.origin);
+                let space = RaySpace::new(dir);
+                let ray = (org, dir, &space);
+                (self.curves.intersect(s, ray, (ray_t_min(hit), hit.t))).map_or(-dir, |h| h.normal)
+            }
+        };
+        n.normalize_or(-dir.normalize_or_zero())
+    }
+
+    /// A triangle through the hit point in the surface's tangent plane, for shading code
+    /// that takes triangles: its normal is [`CurveBvh::normal`]'s, and its point at the
+    /// barycentric weights `(hit.u, hit.v)` is the hit point. A triangle's hit gives the
+    /// triangle itself.
+    pub fn shading_triangle(&self, hit: &Hit, ray: &Ray) -> Triangle {
+        if self.segment_of(hit.prim).is_none() {
+            return self.triangles[hit.prim as usize];
+        }
+        let n = self.normal(hit, ray);
+        let p = Vec3::from(ray.origin) + hit.t * Vec3::from(ray.dir);
+        let a = n.any_orthonormal_vector();
+        let b = n.cross(a);
+        let c0 = p - hit.u * a - hit.v * b;
+        [c0, c0 + a, c0 + b]
+    }
+}
+
+/// The start of the interval to look again for a curve hit's normal: a little before it.
+fn ray_t_min(hit: &Hit) -> f32 {
+    hit.t - hit.t.abs() * 1e-3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ray(origin: [f32; 3], dir: [f32; 3]) -> Ray {
+        Ray {
+            origin,
+            t_min: 0.0,
+            dir,
+            t_max: f32::INFINITY,
+        }
+    }
+
+    fn one(kind: CurveKind, points: Vec<Vec4>) -> CurveBvh {
+        let curves = Curves {
+            kind,
+            segments: (0..(points.len() - kind.degree()) as u32)
+                .step_by(kind.degree())
+                .collect(),
+            points,
+        };
+        CurveBvh::build(&[], curves, &BuildOptions::default()).unwrap()
+    }
+
+    #[test]
+    fn a_round_segment_is_hit_at_its_radius() {
+        // Along x from -1 to 1, radius 0.25; a ray down -z at x = 0.3 meets it at z = 0.25.
+        let bvh = one(
+            CurveKind::RoundLinear,
+            vec![
+                Vec4::new(-1.0, 0.0, 0.0, 0.25),
+                Vec4::new(1.0, 0.0, 0.0, 0.25),
+            ],
+        );
+        let r = ray([0.3, 0.0, 5.0], [0.0, 0.0, -1.0]);
+        let (h, _) = bvh.trace(&r, Query::Closest);
+        assert_eq!(h.prim, 0);
+        assert!((h.t - 4.75).abs() < 1e-5, "{h:?}");
+        assert!((h.u - 0.65).abs() < 1e-5, "{h:?}");
+        assert!(bvh.normal(&h, &r).abs_diff_eq(Vec3::Z, 1e-5));
+        // The end spheres: past x = 1 the ray meets the sphere at (1, 0, 0).
+        let (h, _) = bvh.trace(&ray([1.2, 0.0, 5.0], [0.0, 0.0, -1.0]), Query::Closest);
+        assert!(
+            (h.t - (5.0 - (0.25f32 * 0.25 - 0.04).sqrt())).abs() < 1e-5,
+            "{h:?}"
+        );
+        assert_eq!(h.u, 1.0);
+        let (h, _) = bvh.trace(&ray([0.0, 0.3, 5.0], [0.0, 0.0, -1.0]), Query::Closest);
+        assert!(!h.is_hit());
+    }
+
+    #[test]
+    fn a_flat_segment_faces_the_ray() {
+        let bvh = one(
+            CurveKind::FlatLinear,
+            vec![
+                Vec4::new(-1.0, 0.0, 0.0, 0.25),
+                Vec4::new(1.0, 0.0, 0.0, 0.25),
+            ],
+        );
+        let r = ray([0.5, 0.2, 5.0], [0.0, 0.0, -2.0]);
+        let (h, _) = bvh.trace(&r, Query::Closest);
+        assert!((h.t - 2.5).abs() < 1e-6, "{h:?}");
+        assert!((h.u - 0.75).abs() < 1e-6, "{h:?}");
+        assert!(bvh.normal(&h, &r).abs_diff_eq(Vec3::Z, 1e-6));
+        let (h, _) = bvh.trace(&ray([0.5, 0.3, 5.0], [0.0, 0.0, -1.0]), Query::Closest);
+        assert!(!h.is_hit());
+    }
+
+    #[test]
+    fn a_straight_cubic_is_a_tube() {
+        // A Bezier along x with its control points evenly spaced: a cylinder of radius
+        // 0.25, open at its ends.
+        let pts = [-1.5f32, -0.5, 0.5, 1.5].map(|x| Vec4::new(x, 0.0, 0.0, 0.25));
+        for kind in [CurveKind::RoundBezier, CurveKind::RoundBSpline] {
+            let bvh = one(kind, pts.to_vec());
+            let r = ray([0.1, 0.15, 5.0], [0.0, 0.0, -1.0]);
+            let (h, _) = bvh.trace(&r, Query::Closest);
+            let z = (0.25f32 * 0.25 - 0.15 * 0.15).sqrt();
+            assert!((h.t - (5.0 - z)).abs() < 1e-4, "{kind:?} {h:?}");
+            let n = bvh.normal(&h, &r);
+            assert!(n.abs_diff_eq(Vec3::new(0.0, 0.15, z) / 0.25, 1e-3), "{n}");
+            let (h, _) = bvh.trace(&ray([0.1, 0.26, 5.0], [0.0, 0.0, -1.0]), Query::Closest);
+            assert!(!h.is_hit(), "{kind:?} {h:?}");
+        }
+    }
+
+    #[test]
+    fn bad_curves_are_refused_by_name() {
+        let good = Vec4::new(0.0, 0.0, 0.0, 0.1);
+        let bad = |points: Vec<Vec4>, segments: Vec<u32>| {
+            let c = Curves {
+                kind: CurveKind::RoundBezier,
+                points,
+                segments,
+            };
+            CurveBvh::build(&[], c, &BuildOptions::default()).unwrap_err()
+        };
+        let nan = Vec4::new(0.0, f32::NAN, 0.0, 0.1);
+        assert!(matches!(
+            bad(vec![good, nan, good, good], vec![0]),
+            CurveError::BadPoint { point: 1, .. }
+        ));
+        let e = bad(vec![good; 4], vec![0, 1]);
+        assert!(e.to_string().contains("segment 1 starts at point 1"), "{e}");
+        let neg = Vec4::new(0.0, 0.0, 0.0, -1.0);
+        assert!(matches!(
+            bad(vec![good, good, good, neg], vec![0]),
+            CurveError::BadPoint { point: 3, .. }
+        ));
+    }
+}
