@@ -44,6 +44,15 @@ impl RaySpace {
         }
     }
 
+    /// The space of the direction scaled by `k` (a power of two: exact).
+    pub fn scaled(&self, k: f32) -> RaySpace {
+        RaySpace {
+            z: self.z / k,
+            depth_scale: self.depth_scale / k,
+            ..*self
+        }
+    }
+
     fn apply(&self, p: Vec3) -> Vec3 {
         Vec3::new(self.x.dot(p), self.y.dot(p), self.z.dot(p))
     }
@@ -198,8 +207,13 @@ pub(crate) fn round_linear(
     let b = 2.0 * (g * dir.dot(o) - ddp * yp);
     let c = g * o.dot(o) - odp * odp - cone.r0 * cone.r0 * cone.dpdp - 2.0 * cone.r0dr * odp;
     let disc = b * b - 4.0 * a * c;
-    let cone_valid = disc >= 0.0 && g > 0.0 && a.abs() > 1e-18;
-    if !cone_valid && g > 0.0 {
+    // A ray along the cone's axis (a = 0) cannot cross its side, but can its end spheres;
+    // Embree gives it up, which leaves a hole in a strand seen end on.
+    let parallel = a.abs() <= 16.0 * f32::EPSILON * (g * dd).max(ddp * ddp);
+    let cone_valid = disc >= 0.0 && g > 0.0 && !parallel;
+    if !cone_valid && g > 0.0 && !parallel {
+        // The spheres lie inside the cone's infinite extension: a ray that misses it
+        // misses them.
         return None;
     }
     let y_at = |t: f32| yp + t * ddp;

@@ -170,29 +170,40 @@ impl Curves {
         &self.points[first..=first + self.kind.degree()]
     }
 
-    /// Segment `s` as a Bezier curve (cubic kinds only).
-    fn bezier(&self, s: usize) -> Bezier {
+    /// Segment `s`'s control points relative to its first point, scaled by `k`; a cubic
+    /// segment's in Bezier form. The intersections and the box both start from these.
+    fn local(&self, s: usize, k: f32) -> [Vec4; 4] {
         let c = self.control(s);
-        let b = [c[0], c[1], c[2], c[3]];
+        let base = c[0].truncate().extend(0.0);
+        let p = |i: usize| (c[i.min(c.len() - 1)] - base) * k;
+        let b = [p(0), p(1), p(2), p(3)];
         match self.kind {
-            CurveKind::RoundBSpline => Bezier(bspline_to_bezier(b)),
-            _ => Bezier(b),
+            CurveKind::RoundBSpline => bspline_to_bezier(b),
+            _ => b,
         }
     }
 
-    /// The box around segment `s`'s surface.
+    /// The box around segment `s`'s surface, found relative to its first point and
+    /// widened by a few units in the last place of the largest coordinate, so it holds
+    /// the surface the intersection sees wherever the strand is.
     pub fn segment_box(&self, s: usize) -> Aabb {
-        let (min, max) = match self.kind.degree() {
+        let base = self.control(s)[0].truncate();
+        let c = self.local(s, 1.0);
+        let (lo, hi) = match self.kind.degree() {
             1 => {
-                let c = self.control(s);
                 let (a, b) = (c[0], c[1]);
                 let lo = (a.truncate() - a.w).min(b.truncate() - b.w);
                 let hi = (a.truncate() + a.w).max(b.truncate() + b.w);
                 (lo, hi)
             }
-            _ => self.bezier(s).bounds(),
+            _ => Bezier(c).bounds(),
         };
-        Aabb { min, max }
+        let scale = base.abs().max(lo.abs()).max(hi.abs()).max_element();
+        let slack = scale * (1.0 / (1 << 21) as f32);
+        Aabb {
+            min: base + lo - slack,
+            max: base + hi + slack,
+        }
     }
 
     /// Segment `s` against a ray from `org` along `dir`: its first hit in
@@ -204,20 +215,62 @@ impl Curves {
         range: (f32, f32),
     ) -> Option<CurveHit> {
         let c = self.control(s);
-        match self.kind {
-            CurveKind::FlatLinear => linear::flat_linear(org, space, range, c[0], c[1]),
+        // Positions and the direction scaled by powers of two to about unit size: exact,
+        // so the answers are those of the unscaled arithmetic wherever that neither
+        // underflows nor overflows, and tiny or huge strands are solved as well as unit
+        // ones. Distances along the ray scale by `k / m`.
+        let (ek, em) = (
+            unit_exponent(c, org),
+            unit_exponent_of(dir.abs().max_element()),
+        );
+        let (k, m, f) = (ek.exp2(), em.exp2(), (ek - em).clamp(-126.0, 126.0).exp2());
+        // Relative to the segment's first point, so a strand far from the origin loses no
+        // more than its own size's precision.
+        let base = c[0].truncate();
+        let (org, dir, space) = ((org - base) * k, dir * m, space.scaled(m));
+        let range = (range.0 * f, range.1 * f);
+        let p = |i: usize| (self.points[i] - base.extend(0.0)) * k;
+        let first = self.segments[s] as usize;
+        let hit = match self.kind {
+            CurveKind::FlatLinear => {
+                linear::flat_linear(org, &space, range, p(first), p(first + 1))
+            }
             CurveKind::RoundLinear => {
                 let (left, right) = self.neighbours(s);
-                let first = self.segments[s] as usize;
-                let vl = left.then(|| self.points[first - 1]);
-                let vr = right.then(|| self.points[first + 2]);
-                linear::round_linear(org, dir, range, [c[0], c[1]], [vl, vr])
+                let vl = left.then(|| p(first - 1));
+                let vr = right.then(|| p(first + 2));
+                linear::round_linear(org, dir, range, [p(first), p(first + 1)], [vl, vr])
             }
             CurveKind::RoundBezier | CurveKind::RoundBSpline => {
-                cubic::round_cubic(org, dir, range, &self.bezier(s))
+                cubic::round_cubic(org, dir, range, &Bezier(self.local(s, k)))
             }
-        }
+        };
+        hit.map(|h| CurveHit { t: h.t / f, ..h })
     }
+}
+
+/// The exponent `e` for which `x 2^e` is in `[1, 2)` (0 for 0 and non-finite `x`).
+fn unit_exponent_of(x: f32) -> f32 {
+    if x > 0.0 && x.is_finite() {
+        (-x.log2().floor()).clamp(-126.0, 126.0)
+    } else {
+        0.0
+    }
+}
+
+/// The exponent of the power of two that brings a segment's size (its control points'
+/// spread and radii) to about 1, lowered where the ray's origin or the points (relative
+/// to the first point) would pass `2^100`.
+fn unit_exponent(control: &[Vec4], org: Vec3) -> f32 {
+    let size = control.iter().fold(0.0f32, |m, p| {
+        m.max((p.truncate() - control[0].truncate()).abs().max_element())
+            .max(p.w)
+    });
+    let far = control.iter().fold(org.abs().max_element(), |m, p| {
+        m.max(p.truncate().abs().max_element())
+    });
+    let room = 100.0 - far.log2().ceil();
+    unit_exponent_of(size).min(room.max(-126.0))
 }
 
 /// The Bezier control points of the uniform cubic B-spline segment with control points
