@@ -13,7 +13,7 @@
 
 use glam::{Vec3, Vec4};
 
-use super::CurveHit;
+use super::{CurveHit, length, unit};
 
 /// Pieces a curve piece is cut into at each level (Embree's 8 lanes less one).
 const PIECES: usize = 7;
@@ -87,7 +87,7 @@ impl Span {
 /// and the fractions along `p0`..`p1` of its entry and exit.
 fn cylinder(dir: Vec3, p0: Vec3, p1: Vec3, r: f32) -> Option<(Span, f32, f32)> {
     let axis = p1 - p0;
-    let rl = axis.length().recip();
+    let rl = 1.0 / length(axis);
     let dp = axis * rl;
     let o = -p0;
     let (dd, od, oo) = (dir.dot(dir), dir.dot(o), o.dot(o));
@@ -149,7 +149,7 @@ pub(crate) fn round_cubic(
         range: (t_min, t_max),
     };
     let mut best: Option<CurveHit> = None;
-    near.pieces(0.0, 1.0, 1, &mut best);
+    near.pieces(&mut best);
     best
 }
 
@@ -168,90 +168,111 @@ impl Sweep {
         best.as_ref().map_or(self.range.1, |h| h.t)
     }
 
-    /// Cuts `u0..u1` into pieces and, for each whose bound the ray crosses, cuts it again
-    /// or (at the last level) starts Newton's method where the ray enters and leaves it.
-    fn pieces(&self, u0: f32, u1: f32, depth: u32, best: &mut Option<CurveHit>) {
+    /// Cuts the curve into pieces, and each piece whose bound the ray crosses again, down
+    /// to the last level, where Newton's method starts from where the ray enters and
+    /// leaves the bound. Depth first, pieces in order, with an explicit stack (the
+    /// kernel's twin has no recursion).
+    fn pieces(&self, best: &mut Option<CurveHit>) {
+        // (u0, u1, depth, next piece) of each level being cut.
+        let mut stack = [(0.0f32, 1.0f32, 1u32, 0usize); LEVELS as usize + 1];
+        let mut sp = 1;
+        while sp > 0 {
+            let (u0, u1, depth, k) = stack[sp - 1];
+            if k == PIECES {
+                sp -= 1;
+                continue;
+            }
+            stack[sp - 1].3 = k + 1;
+            if let Some((ua, ub)) = self.piece(u0, u1, k, depth, best) {
+                stack[sp] = (ua, ub, depth + 1, 0);
+                sp += 1;
+            }
+        }
+    }
+
+    /// Piece `k` of `PIECES` of `u0..u1` at `depth`: `Some` of its interval when the ray
+    /// crosses its bound and it is to be cut again, else `None` (after Newton's method at
+    /// the last level).
+    fn piece(
+        &self,
+        u0: f32,
+        u1: f32,
+        k: usize,
+        depth: u32,
+        best: &mut Option<CurveHit>,
+    ) -> Option<(f32, f32)> {
         let dscale = (u1 - u0) / (3.0 * PIECES as f32);
         let at = |k: usize| {
             let u = u0 + (u1 - u0) * (k as f32 / PIECES as f32);
             let (p, d, _) = self.curve.eval(u);
             (u, p, d * dscale)
         };
-        let mut start = at(0);
-        for k in 0..PIECES {
-            let end = at(k + 1);
-            let (ua, p0, d0) = start;
-            let (ub, p3, d3) = end;
-            start = end;
-            let (p1, p2) = (p0 + d0, p3 - d3);
-            // Cylinders about the chord that hold the piece's surface, and are held by it.
-            let chord = (p3 - p0).truncate();
-            let off = |d: Vec4| {
-                let d = d.truncate();
-                let l = chord.length_squared();
-                if l > 0.0 {
-                    (d - chord * (d.dot(chord) / l)).length()
-                } else {
-                    d.length()
-                }
-            };
-            let bend = off(d0).max(off(d3));
-            let (rmax, rmin) = [p0.w, p1.w, p2.w, p3.w]
-                .iter()
-                .fold((0.0f32, f32::INFINITY), |(a, b), &w| (a.max(w), b.min(w)));
-            let r_outer = (rmax + bend) * (1.0 + 2.0 * f32::EPSILON);
-            let r_inner = ((rmin - bend) * (1.0 - 2.0 * f32::EPSILON)).max(0.0);
-            let (a, b) = (p0.truncate(), p3.truncate());
-            let Some((outer, ua_out, ub_out)) = cylinder(self.dir, a, b, r_outer) else {
-                continue;
-            };
-            let t_far = self.t_far(best);
-            let span = Span {
-                lo: self.range.0 - self.dt,
-                hi: t_far - self.dt,
+        let ((ua, p0, d0), (ub, p3, d3)) = (at(k), at(k + 1));
+        let (p1, p2) = (p0 + d0, p3 - d3);
+        // Cylinders about the chord that hold the piece's surface, and are held by it.
+        let chord = (p3 - p0).truncate();
+        let off = |d: Vec4| {
+            let d = d.truncate();
+            let l = chord.dot(chord);
+            if l > 0.0 {
+                length(d - chord * (d.dot(chord) / l))
+            } else {
+                length(d)
             }
-            .and(outer)
-            .and(half_space(self.dir, a, d0.truncate()))
-            .and(half_space(self.dir, b, -d3.truncate()));
-            if span.is_empty() {
-                continue;
-            }
-            // The part of the span inside the inner cylinder holds no surface.
-            let inner = cylinder(self.dir, a, b, r_inner);
-            let (front, back) = match inner {
-                Some((i, _, _)) => (
-                    Span {
-                        lo: span.lo,
-                        hi: span.hi.min(i.lo),
-                    },
-                    Span {
-                        lo: span.lo.max(i.hi),
-                        hi: span.hi,
-                    },
-                ),
-                None => (span, span),
-            };
-            // Where the ray grazes the inner cylinder, Newton's method needs a shorter piece.
-            let grazes = |t: f32, f: f32| {
-                let across = t * self.dir - (a + f * (b - a));
-                self.dir.normalize().dot(across.normalize_or_zero()).abs() < 0.3
-            };
-            let edge_on = inner.is_none_or(|(i, f0, f1)| grazes(i.lo, f0) || grazes(i.hi, f1));
-            let last = if edge_on { LEVELS + 1 } else { LEVELS };
-            let piece_u = |f: f32| ua + (ub - ua) * f.clamp(0.0, 1.0);
-            if depth < last {
-                if !front.is_empty() || !back.is_empty() {
-                    self.pieces(ua, ub, depth + 1, best);
-                }
-                continue;
-            }
-            if !front.is_empty() {
-                self.newton(piece_u(ua_out), front.lo, best);
-            }
-            if !back.is_empty() && back.lo + self.dt <= self.t_far(best) {
-                self.newton(piece_u(ub_out), back.hi, best);
-            }
+        };
+        let bend = off(d0).max(off(d3));
+        let rmax = p0.w.max(p1.w).max(p2.w).max(p3.w).max(0.0);
+        let rmin = p0.w.min(p1.w).min(p2.w).min(p3.w);
+        let r_outer = (rmax + bend) * (1.0 + 2.0 * f32::EPSILON);
+        let r_inner = ((rmin - bend) * (1.0 - 2.0 * f32::EPSILON)).max(0.0);
+        let (a, b) = (p0.truncate(), p3.truncate());
+        let (outer, ua_out, ub_out) = cylinder(self.dir, a, b, r_outer)?;
+        let span = Span {
+            lo: self.range.0 - self.dt,
+            hi: self.t_far(best) - self.dt,
         }
+        .and(outer)
+        .and(half_space(self.dir, a, d0.truncate()))
+        .and(half_space(self.dir, b, -d3.truncate()));
+        if span.is_empty() {
+            return None;
+        }
+        // The part of the span inside the inner cylinder holds no surface.
+        let inner = cylinder(self.dir, a, b, r_inner);
+        let (front, back) = match inner {
+            Some((i, _, _)) => (
+                Span {
+                    lo: span.lo,
+                    hi: span.hi.min(i.lo),
+                },
+                Span {
+                    lo: span.lo.max(i.hi),
+                    hi: span.hi,
+                },
+            ),
+            None => (span, span),
+        };
+        // Where the ray grazes the inner cylinder, Newton's method needs a shorter piece.
+        let grazes = |t: f32, f: f32| {
+            let across = t * self.dir - (a + f * (b - a));
+            unit(self.dir).dot(unit(across)).abs() < 0.3
+        };
+        let edge_on = match inner {
+            Some((i, f0, f1)) => grazes(i.lo, f0) || grazes(i.hi, f1),
+            None => true,
+        };
+        let last = if edge_on { LEVELS + 1 } else { LEVELS };
+        if depth < last {
+            return (!front.is_empty() || !back.is_empty()).then_some((ua, ub));
+        }
+        let piece_u = |f: f32| ua + (ub - ua) * f.clamp(0.0, 1.0);
+        if !front.is_empty() {
+            self.newton(piece_u(ua_out), front.lo, best);
+        }
+        if !back.is_empty() && back.lo + self.dt <= self.t_far(best) {
+            self.newton(piece_u(ub_out), back.hi, best);
+        }
+        None
     }
 
     /// Newton's method on `(u, t)` from a start: the ray's point `q = t dir` lies in the
@@ -259,7 +280,7 @@ impl Sweep {
     /// r = 0`). Keeps the hit if it is nearer than the best.
     fn newton(&self, mut u: f32, mut t: f32, best: &mut Option<CurveHit>) {
         let dir = self.dir;
-        let len_dir = dir.length();
+        let len_dir = length(dir);
         let (lo, hi) = self.curve_box();
         let p_err = 16.0 * f32::EPSILON * lo.abs().max(hi.abs()).truncate().max_element();
         let w_err = 16.0 * f32::EPSILON * hi.w;
@@ -268,9 +289,9 @@ impl Sweep {
             let (p, dp, ddp) = self.curve.eval(u);
             let (p3, dp3, ddp3) = (p.truncate(), dp.truncate(), ddp.truncate());
             let r = q - p3;
-            let len_r = r.length();
+            let len_r = length(r);
             let r_err = (16.0 * f32::EPSILON * len_dir * t).max(p_err);
-            let len_dp = dp3.length();
+            let len_dp = length(dp3);
             let tan = dp3 / len_dp;
             // d/du of dp / |dp|.
             let dtan = (ddp3 * dp3.dot(dp3) - dp3 * dp3.dot(ddp3)) / (len_dp * len_dp * len_dp);
@@ -282,7 +303,7 @@ impl Sweep {
             let k = r.dot(r) - f * f;
             let dkdu = r.dot(-dp3) - f * dfdu;
             let dkdt = r.dot(dir) - f * dfdt;
-            let rsqrt_k = k.sqrt().recip();
+            let rsqrt_k = 1.0 / k.sqrt();
             let g = k.sqrt() - p.w;
             let g_err = r_err + f_err + w_err;
             let dgdu = dkdu * rsqrt_k - dp.w;
@@ -299,7 +320,7 @@ impl Sweep {
                     self.range.0 <= t_hit && t_hit <= self.t_far(best) && (0.0..=1.0).contains(&u);
                 if ok && best.is_none_or(|b| t_hit < b.t) {
                     // Embree's normal: across the tube, bent by the radius' slope.
-                    let rn = r.normalize();
+                    let rn = unit(r);
                     let across = dp.w * rn + dp3;
                     let normal = dp3.cross(rn).cross(across);
                     *best = Some(CurveHit {

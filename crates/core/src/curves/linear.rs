@@ -10,7 +10,7 @@
 
 use glam::{Vec3, Vec4};
 
-use super::CurveHit;
+use super::{CurveHit, unit};
 
 /// Ray space for a flat segment: two axes across the ray and the depth axis
 /// `dir / |dir|^2`, so a point's third coordinate is its distance in ray units.
@@ -25,17 +25,12 @@ pub(crate) struct RaySpace {
 
 impl RaySpace {
     pub fn new(dir: Vec3) -> RaySpace {
-        let depth_scale = dir.length_squared().sqrt().recip();
+        let depth_scale = 1.0 / dir.dot(dir).sqrt();
         let n = dir * depth_scale;
         // Embree's `frame`: the longer of two vectors perpendicular to n.
         let (a, b) = (Vec3::new(0.0, n.z, -n.y), Vec3::new(-n.z, 0.0, n.x));
-        let x = if a.length_squared() > b.length_squared() {
-            a
-        } else {
-            b
-        }
-        .normalize();
-        let y = n.cross(x).normalize();
+        let x = unit(if a.dot(a) > b.dot(b) { a } else { b });
+        let y = unit(n.cross(x));
         RaySpace {
             x,
             y,

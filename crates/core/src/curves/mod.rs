@@ -219,14 +219,14 @@ impl Curves {
         // so the answers are those of the unscaled arithmetic wherever that neither
         // underflows nor overflows, and tiny or huge strands are solved as well as unit
         // ones. Distances along the ray scale by `k / m`.
-        let (ek, em) = (
-            unit_exponent(c, org),
-            unit_exponent_of(dir.abs().max_element()),
-        );
-        let (k, m, f) = (ek.exp2(), em.exp2(), (ek - em).clamp(-126.0, 126.0).exp2());
         // Relative to the segment's first point, so a strand far from the origin loses no
         // more than its own size's precision.
         let base = c[0].truncate();
+        let (ek, em) = (
+            unit_exponent(c, org - base),
+            unit_exponent_of(dir.abs().max_element()),
+        );
+        let (k, m, f) = (pow2(ek), pow2(em), pow2((ek - em).clamp(-126, 126)));
         let (org, dir, space) = ((org - base) * k, dir * m, space.scaled(m));
         let range = (range.0 * f, range.1 * f);
         let p = |i: usize| (self.points[i] - base.extend(0.0)) * k;
@@ -249,28 +249,47 @@ impl Curves {
     }
 }
 
-/// The exponent `e` for which `x 2^e` is in `[1, 2)` (0 for 0 and non-finite `x`).
-fn unit_exponent_of(x: f32) -> f32 {
-    if x > 0.0 && x.is_finite() {
-        (-x.log2().floor()).clamp(-126.0, 126.0)
+/// `2^e` for `e` in `[-126, 127]`, from its bits.
+fn pow2(e: i32) -> f32 {
+    f32::from_bits(((e + 127) as u32) << 23)
+}
+
+/// The exponent `e` for which `x 2^e` is in `[1, 2)`, clamped to `[-126, 126]`, from the
+/// bits of `x` (0 for zero, subnormal and non-finite `x`).
+fn unit_exponent_of(x: f32) -> i32 {
+    let biased = ((x.to_bits() >> 23) & 0xff) as i32;
+    if x > 0.0 && (1..255).contains(&biased) {
+        (127 - biased).clamp(-126, 126)
     } else {
-        0.0
+        0
     }
 }
 
 /// The exponent of the power of two that brings a segment's size (its control points'
-/// spread and radii) to about 1, lowered where the ray's origin or the points (relative
-/// to the first point) would pass `2^100`.
-fn unit_exponent(control: &[Vec4], org: Vec3) -> f32 {
-    let size = control.iter().fold(0.0f32, |m, p| {
-        m.max((p.truncate() - control[0].truncate()).abs().max_element())
-            .max(p.w)
-    });
-    let far = control.iter().fold(org.abs().max_element(), |m, p| {
-        m.max(p.truncate().abs().max_element())
-    });
-    let room = 100.0 - far.log2().ceil();
-    unit_exponent_of(size).min(room.max(-126.0))
+/// spread and radii) to `[1, 2)`, lowered where the ray's origin or the points (all
+/// relative to the first point) would pass `2^100`.
+fn unit_exponent(control: &[Vec4], org: Vec3) -> i32 {
+    let base = control[0].truncate();
+    let (size, far) = control
+        .iter()
+        .fold((0.0f32, org.abs().max_element()), |(s, f), p| {
+            let d = (p.truncate() - base).abs().max_element();
+            (s.max(d).max(p.w), f.max(d))
+        });
+    // `far` is below `2^(1 - unit_exponent_of(far))`.
+    let room = 100 - (1 - unit_exponent_of(far));
+    unit_exponent_of(size).min(room.max(-126))
+}
+
+/// `|v|` as `sqrt(v.v)`, spelled out so the kernel's twin computes it alike.
+pub(crate) fn length(v: Vec3) -> f32 {
+    v.dot(v).sqrt()
+}
+
+/// `v / |v|` as `v (1 / |v|)`, or zero for a zero vector.
+pub(crate) fn unit(v: Vec3) -> Vec3 {
+    let l = length(v);
+    if l > 0.0 { v * (1.0 / l) } else { Vec3::ZERO }
 }
 
 /// The Bezier control points of the uniform cubic B-spline segment with control points
@@ -373,8 +392,9 @@ impl CurveBvh {
     /// tie) or any hit, with the boxes and primitives tested. A curve hit's [`Hit::u`] is
     /// its curve parameter in `[0, 1]` and [`Hit::v`] is 0.
     pub fn trace(&self, ray: &Ray, query: Query) -> (Hit, Counters) {
-        let org = Vec3::from(ray.origin);
-        let dir = Vec3::from(ray.dir);
+        // The prepared ray's direction (subnormal components flushed, as the kernels do).
+        let prepared = PreparedRay::new(ray);
+        let (org, dir) = (prepared.org, prepared.dir);
         let space = RaySpace::new(dir);
         self.tree.trace(ray, 0.0, query, |r, _, n, best, c| {
             self.visit_leaf(r, (org, dir, &space), ray.t_min, n, best, c)
