@@ -17,7 +17,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, CurveBvh, Hit, Query, Ray, Triangle};
-use bvhtrace_gpu::GpuMotionBvh;
+use bvhtrace_gpu::{GpuCurveBvh, GpuMotionBvh};
 use bvhtrace_scene::Scene;
 use glam::Vec3;
 use rayon::prelude::*;
@@ -113,16 +113,13 @@ fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
     } else {
         "a scene with curves"
     };
-    if shutter.is_none() && !matches!(args.backend, Backend::Auto | Backend::Cpu) {
-        bail!("curves are traced on the CPU so far: use --backend cpu or auto");
-    }
     if args.backend == Backend::Vulkan || args.backend == Backend::Mock {
         bail!(
-            "--shutter traces with our walks through wgpu or on the CPU: use --backend gpu, cpu or auto"
+            "{what} traces with our walks through wgpu or on the CPU: use --backend gpu, cpu or auto"
         );
     }
     if args.shade == Shade::Heatmap && args.backend != Backend::Cpu {
-        bail!("--shutter counts the heatmap's box tests on the CPU: use --backend cpu");
+        bail!("{what} counts the heatmap's box tests on the CPU: use --backend cpu");
     }
     let unsupported = [
         (args.walk()?.is_some(), "--traversal and --layout"),
@@ -147,12 +144,13 @@ fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
 
 /// What a blurred render traces, and where: one moving mesh on the device or on the CPU
 /// twin (which also counts), or moving instances in two levels on the CPU; or, for a
-/// scene with curves, its triangles and curves on the CPU.
+/// scene with curves, its triangles and curves on the device or the CPU twin.
 enum Walker {
     Cpu(Arc<MotionBvh>, MotionMesh),
     Gpu(GpuMotionBvh, MotionMesh),
     Instanced(MotionInstancedBvh),
     Curves(CurveBvh),
+    GpuCurves(GpuCurveBvh),
 }
 
 impl Walker {
@@ -167,7 +165,12 @@ impl Walker {
                 bail!("the scene has no curves");
             };
             let tris = scene.flattened_triangles()?;
-            return Ok(Walker::Curves(CurveBvh::build(&tris, curves, &opts)?));
+            let bvh = Arc::new(CurveBvh::build(&tris, curves, &opts)?);
+            let gpu = on_device(args, "curves", |ctx| GpuCurveBvh::upload(ctx, bvh.clone()))?;
+            return Ok(match gpu {
+                Some(gpu) => Walker::GpuCurves(gpu),
+                None => Walker::Curves(Arc::unwrap_or_clone(bvh)),
+            });
         };
         if args.shutter.instances {
             if args.backend != Backend::Auto && args.backend != Backend::Cpu {
@@ -179,37 +182,28 @@ impl Walker {
         }
         let mesh = scene.motion(open, close)?;
         let bvh = Arc::new(MotionBvh::build(&mesh, &opts, bounds)?);
-        if args.backend == Backend::Cpu {
-            return Ok(Walker::Cpu(bvh, mesh));
-        }
-        let wanted = match args.backend {
-            Backend::RayQuery => {
-                // wgpu's ray queries know no time: the device's own walk is ours.
-                eprintln!(
-                    "note: ray queries have no motion blur in wgpu: our walk traces on the device"
-                );
-                Backend::Wgpu
-            }
-            b => b,
-        };
-        let device = backend::device(&backend::options(wanted, args.adapter.as_deref(), &[]))?;
-        let Some(ctx) = device.wgpu_context() else {
-            return Ok(Walker::Cpu(bvh, mesh));
-        };
-        match GpuMotionBvh::upload(ctx, bvh.clone()) {
-            Ok(gpu) => Ok(Walker::Gpu(gpu, mesh)),
-            Err(e) if args.backend == Backend::Auto => {
-                eprintln!("note: tracing on the CPU: {e}");
-                Ok(Walker::Cpu(bvh, mesh))
-            }
-            Err(e) => Err(e.into()),
-        }
+        let gpu = on_device(args, "motion blur", |ctx| {
+            GpuMotionBvh::upload(ctx, bvh.clone())
+        })?;
+        Ok(match gpu {
+            Some(gpu) => Walker::Gpu(gpu, mesh),
+            None => Walker::Cpu(bvh, mesh),
+        })
     }
 
     fn name(&self) -> &'static str {
         match self {
-            Walker::Gpu(..) => "wgpu",
+            Walker::Gpu(..) | Walker::GpuCurves(..) => "wgpu",
             _ => "cpu",
+        }
+    }
+
+    /// The curves it traces, if any.
+    fn curves(&self) -> Option<&bvhtrace_core::Curves> {
+        match self {
+            Walker::Curves(b) => Some(b.curves()),
+            Walker::GpuCurves(g) => Some(g.bvh().curves()),
+            _ => None,
         }
     }
 
@@ -223,6 +217,10 @@ impl Walker {
             }
             Walker::Instanced(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
             Walker::Curves(b) => (b.triangle_count(), 1, b.byte_size(), b.depth()),
+            Walker::GpuCurves(g) => {
+                let b = g.bvh();
+                (b.triangle_count(), 1, b.byte_size(), b.depth())
+            }
         }
     }
 
@@ -233,6 +231,7 @@ impl Walker {
             Walker::Gpu(g, _) => g.bvh().bounds(),
             Walker::Instanced(b) => b.bounds(),
             Walker::Curves(b) => b.bounds(),
+            Walker::GpuCurves(g) => g.bvh().bounds(),
         }
     }
 
@@ -243,6 +242,7 @@ impl Walker {
             Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
             Walker::Instanced(b) => b.triangle_at(hit.prim, time).unwrap_or_default(),
             Walker::Curves(b) => b.shading_triangle(hit, ray),
+            Walker::GpuCurves(g) => g.bvh().shading_triangle(hit, ray),
         }
     }
 
@@ -259,6 +259,7 @@ impl Walker {
             Walker::Cpu(b, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
             Walker::Instanced(b) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
             Walker::Curves(b) => Ok(on_cpu(&|r, _| b.trace(r, Query::Closest))),
+            Walker::GpuCurves(g) => Ok((g.trace(rays, Query::Closest)?, Vec::new())),
             Walker::Gpu(g, _) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
         }
     }
@@ -268,8 +269,40 @@ impl Walker {
             Walker::Cpu(b, _) => Ok(b.trace_rays(rays, times, Query::Any)),
             Walker::Instanced(b) => Ok(b.trace_rays(rays, times, Query::Any)),
             Walker::Curves(b) => Ok(b.trace_rays(rays, Query::Any)),
+            Walker::GpuCurves(g) => Ok(g.trace(rays, Query::Any)?),
             Walker::Gpu(g, _) => Ok(g.trace(rays, times, Query::Any)?),
         }
+    }
+}
+
+/// `upload` done on the device `--backend` names (the best one for auto), or `None` to
+/// trace on the CPU: with `--backend cpu`, a device without wgpu, or (for auto) an upload
+/// the device refused, saying why. Ray queries have no `what` in wgpu: our walk traces
+/// on their device, saying so.
+fn on_device<T>(
+    args: &RenderArgs,
+    what: &str,
+    upload: impl FnOnce(&bvhtrace_gpu::GpuContext) -> Result<T, bvhtrace_gpu::GpuError>,
+) -> Result<Option<T>> {
+    let wanted = match args.backend {
+        Backend::Cpu => return Ok(None),
+        Backend::RayQuery => {
+            eprintln!("note: ray queries have no {what} in wgpu: our walk traces on the device");
+            Backend::Wgpu
+        }
+        b => b,
+    };
+    let device = backend::device(&backend::options(wanted, args.adapter.as_deref(), &[]))?;
+    let Some(ctx) = device.wgpu_context() else {
+        return Ok(None);
+    };
+    match upload(ctx) {
+        Ok(gpu) => Ok(Some(gpu)),
+        Err(e) if args.backend == Backend::Auto => {
+            eprintln!("note: tracing on the CPU: {e}");
+            Ok(None)
+        }
+        Err(e) => Err(e.into()),
     }
 }
 
@@ -352,12 +385,14 @@ pub fn render(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
             "{triangles} triangles in {steps} time steps, {samples} samples over {open}..{close} s, {} bounds",
             bounds_name(bounds)
         ),
-        (None, Walker::Curves(b)) => format!(
-            "{triangles} triangles and {} {} curve segments",
-            b.curves().len(),
-            b.curves().kind.name()
-        ),
-        (None, _) => format!("{triangles} triangles"),
+        (None, _) => match walker.curves() {
+            Some(c) => format!(
+                "{triangles} triangles and {} {} curve segments",
+                c.len(),
+                c.kind.name()
+            ),
+            None => format!("{triangles} triangles"),
+        },
     };
     eprintln!(
         "wrote {} ({w}x{h}, {what} on {}): {} rays in {:.1} ms, {:.2} Mrays/s (primary {:.2})",
@@ -374,10 +409,7 @@ pub fn render(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
             "width": w, "height": h,
             "triangles": triangles,
             "shutter": shutter.map(|(open, close)| [open, close]),
-            "curves": match &walker {
-                Walker::Curves(b) => json!({ "kind": b.curves().kind.name(), "segments": b.curves().len() }),
-                _ => json!(null),
-            },
+            "curves": walker.curves().map(|c| json!({ "kind": c.kind.name(), "segments": c.len() })),
             "time_steps": steps,
             "levels": if args.shutter.instances { 2 } else { 1 },
             "time_bounds": bounds_name(bounds),

@@ -56,6 +56,17 @@ pub const WORKGROUP_SIZE: u32 = 64;
 /// [`ModuleSet::masks`] and [`ModuleSet::filter`].
 const ACCEPT_MARK: &str = "/*BVH_ACCEPT*/";
 
+/// The leaf visit's triangle test (`traverse_common.wgsl`), and what a tree with curves
+/// tests instead: the slot's triangle or curve segment (`bvh_curve_buffers.wgsl`).
+const TRIANGLE_TEST: &str = "        let tri = bvh_load_triangle(i);
+        let h = bvh_intersect_triangle(r, tri.v0, tri.v1, tri.v2);
+        let prim = bvh_hit_prim(tri.prim);
+";
+const SLOT_TEST: &str = "        let slot = bvh_test_slot(r, i, (*best).t);
+        let h = slot.hit;
+        let prim = slot.prim;
+";
+
 /// The triangle test of `precision`: it takes `triangle.wgsl`'s place and defines the same
 /// `bvh_intersect_triangle`, so the walks are shared by every precision.
 pub fn triangle_wgsl(precision: Precision) -> Wgsl {
@@ -170,6 +181,10 @@ pub struct ModuleSet {
     /// storage's node and triangle files), and each ray's time (`entry_ray_times.wgsl`)
     /// loaded by the entry points.
     pub motion: bool,
+    /// A tree over triangles and curve segments (`bvh_curve_buffers.wgsl` and
+    /// `curve.wgsl`, in buffers, in place of the storage's node and triangle files), its
+    /// leaves tested slot by slot (`bvh_test_slot`).
+    pub curves: bool,
 }
 
 impl ModuleSet {
@@ -188,6 +203,7 @@ impl ModuleSet {
             filter: None,
             pages: Pages::ONE,
             motion: false,
+            curves: false,
         }
     }
 
@@ -198,6 +214,21 @@ impl ModuleSet {
             walks: WalkSet::of(Traversal::FullStack),
             entries: Entries::Plain,
             motion: true,
+            ..ModuleSet::everything(
+                BvhStorage::Buffers,
+                Precision::WatertightF32,
+                Entries::Plain,
+            )
+        }
+    }
+
+    /// The full-stack walk over a tree of triangles and curve segments, hits only: what
+    /// `bvhtrace_gpu::GpuCurveBvh` traces with.
+    pub fn curves() -> ModuleSet {
+        ModuleSet {
+            walks: WalkSet::of(Traversal::FullStack),
+            entries: Entries::Plain,
+            curves: true,
             ..ModuleSet::everything(
                 BvhStorage::Buffers,
                 Precision::WatertightF32,
@@ -235,6 +266,13 @@ impl ModuleSet {
     /// (`traverse_common.wgsl`) has the masks' and filter's tests when there are some.
     pub fn files(&self) -> Vec<(&'static str, Cow<'static, str>)> {
         let mut out = self.tree_files();
+        if self.curves {
+            for (name, src) in &mut out {
+                if *name == shaders::TRAVERSE_COMMON.0 {
+                    *src = src.replace(TRIANGLE_TEST, SLOT_TEST).into();
+                }
+            }
+        }
         if self.masks || self.filter.is_some() {
             for (name, src) in &mut out {
                 if *name == shaders::TRAVERSE_COMMON.0 {
@@ -252,6 +290,7 @@ impl ModuleSet {
         let mut out: Vec<(&'static str, Cow<'static, str>)> = Vec::with_capacity(24);
         out.push((shaders::TYPES.0, shaders::TYPES.1.into()));
         let mut bindings = match (self.motion, wide) {
+            _ if self.curves => vec![shaders::BVH_CURVE_BUFFERS, shaders::CURVE],
             (true, _) => vec![shaders::BVH_MOTION_BUFFERS],
             (false, true) => vec![self.storage.wide_wgsl(), self.storage.triangles_wgsl()],
             (false, false) => vec![self.storage.wgsl(), self.storage.triangles_wgsl()],

@@ -330,6 +330,7 @@ impl KernelKey {
                 filter: None,
                 pages: self.pages,
                 motion: false,
+                curves: false,
             },
         }
     }

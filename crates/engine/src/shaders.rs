@@ -58,6 +58,10 @@ wgsl_files! {
     BVH_TEXTURES = "bvh_textures.wgsl",
     /// A moving mesh's tree in storage buffers, its boxes and triangles at the ray's time.
     BVH_MOTION_BUFFERS = "bvh_motion_buffers.wgsl",
+    /// A tree over triangles and curve segments in storage buffers, and its leaf test.
+    BVH_CURVE_BUFFERS = "bvh_curve_buffers.wgsl",
+    /// A ray against one curve segment: round and flat linear, round cubic.
+    CURVE = "curve.wgsl",
     /// The wide layout's nodes in a storage buffer.
     BVH_BUFFERS_WIDE = "bvh_buffers_wide.wgsl",
     /// The wide layout's nodes in a texel texture, five texels each.

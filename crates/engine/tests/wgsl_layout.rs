@@ -726,3 +726,66 @@ fn the_motion_module_matches_rust_and_compiles() {
         }
     }
 }
+
+/// The curves' module (`ModuleSet::curves`): the segments have `CurveSegment`'s layout,
+/// the points are 16 bytes, the nodes and triangles the static layout's; the leaf visit
+/// tests slots; its entry point validates and compiles for both queries and every kind.
+#[test]
+fn the_curves_module_matches_rust_and_compiles() {
+    use bvhtrace_core::CurveSegment;
+    let src = ModuleSet::curves().compose(0);
+    for (name, composed) in [
+        ("bvh_curve_buffers.wgsl", true),
+        ("curve.wgsl", true),
+        ("traverse_full_stack.wgsl", true),
+        ("bvh_buffers.wgsl", false),
+        ("bvh_buffers_triangles.wgsl", false),
+        ("entry_ray_times.wgsl", false),
+    ] {
+        assert_eq!(
+            src.contains(&format!("// ---- {name} ----")),
+            composed,
+            "{name}"
+        );
+    }
+    assert!(src.contains("let slot = bvh_test_slot(r, i, (*best).t);"));
+    assert!(!src.contains("let tri = bvh_load_triangle(i);"));
+    let module = parse(&src);
+    check_structs(&module);
+    check_struct(
+        &module,
+        "BvhCurveSegment",
+        size_of::<CurveSegment>(),
+        &[
+            ("first", offset_of!(CurveSegment, first)),
+            ("neighbours", offset_of!(CurveSegment, neighbours)),
+        ],
+    );
+    for (name, ty, stride) in [
+        (
+            "bvh_curve_segments",
+            "BvhCurveSegment",
+            size_of::<CurveSegment>(),
+        ),
+        ("bvh_nodes", "BvhNode", size_of::<FlatNode>()),
+        ("bvh_triangles", "BvhTriangle", size_of::<FlatTriangle>()),
+    ] {
+        let (t, s) = group0_array(&module, name);
+        assert_eq!((t.as_str(), s as usize), (ty, stride), "{name}");
+    }
+    let info = validate(&module);
+    for any in [0.0, 1.0] {
+        for kind in [0.0, 1.0, 2.0, 3.0] {
+            let mut c = naga::back::PipelineConstants::default();
+            for (k, v) in [
+                ("BVH_ANY_HIT", any),
+                ("BVH_CURVE_KIND", kind),
+                ("BVH_CURVE_TRIANGLES", 1280.0),
+                ("BVH_TRIP_LIMIT", 65535.0),
+            ] {
+                c.insert(k.to_string(), v);
+            }
+            compile_entry(&module, &info, "bvh_trace_full_stack_main", &c, "curves");
+        }
+    }
+}

@@ -48,6 +48,7 @@ pub mod backend;
 mod build;
 mod bvh;
 mod context;
+mod curves;
 mod library;
 mod motion;
 #[cfg(not(target_arch = "wasm32"))]
@@ -62,6 +63,7 @@ pub use bvh::{BvhBindGroup, GpuBvh};
 pub use bvhtrace_engine::UploadOptions;
 pub use bvhtrace_engine::engine::Update;
 pub use context::{ContextOptions, GpuContext, device_kind};
+pub use curves::GpuCurveBvh;
 pub use motion::GpuMotionBvh;
 #[cfg(not(target_arch = "wasm32"))]
 pub use ray_query::RayQueryBvh;

@@ -144,7 +144,7 @@ fn head_of_hair(kind: CurveKind, n: u32) -> Scene {
         materials: vec![Material::opaque("skin", Vec4::new(0.85, 0.65, 0.55, 1.0))],
         camera: Some(Camera {
             eye: Vec3::new(2.8, 1.3, 4.6),
-            target: Vec3::new(0.0, -0.2, 0.0),
+            target: Vec3::new(0.0, 0.1, 0.0),
             fov_y_deg: 40.0,
         }),
         curves: Some(curves),

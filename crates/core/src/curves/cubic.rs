@@ -87,8 +87,10 @@ impl Span {
 /// and the fractions along `p0`..`p1` of its entry and exit.
 fn cylinder(dir: Vec3, p0: Vec3, p1: Vec3, r: f32) -> Option<(Span, f32, f32)> {
     let axis = p1 - p0;
-    let rl = 1.0 / length(axis);
-    let dp = axis * rl;
+    // Divisions by the lengths (not products with reciprocals, which a shader compiler
+    // may fuse into an approximate reciprocal square root).
+    let len = length(axis);
+    let dp = axis / len;
     let o = -p0;
     let (dd, od, oo) = (dir.dot(dir), dir.dot(o), o.dot(o));
     let (doz, oz) = (dp.dot(dir), dp.dot(o));
@@ -107,7 +109,7 @@ fn cylinder(dir: Vec3, p0: Vec3, p1: Vec3, r: f32) -> Option<(Span, f32, f32)> {
     let rcp_2a = (2.0 * a).recip();
     let (t0, t1) = ((-b - q) * rcp_2a, (-b + q) * rcp_2a);
     let span = Span { lo: t0, hi: t1 };
-    Some((span, (t0 * doz + oz) * rl, (t1 * doz + oz) * rl))
+    Some((span, (t0 * doz + oz) / len, (t1 * doz + oz) / len))
 }
 
 /// Where the ray `t dir` is on the side of the plane through `p` that `n` points to.
@@ -201,9 +203,11 @@ impl Sweep {
         depth: u32,
         best: &mut Option<CurveHit>,
     ) -> Option<(f32, f32)> {
-        let dscale = (u1 - u0) / (3.0 * PIECES as f32);
+        // Products with the reciprocals, as Embree writes them (and as a shader compiler
+        // may rewrite a division by a constant).
+        let dscale = (u1 - u0) * (1.0 / (3.0 * PIECES as f32));
         let at = |k: usize| {
-            let u = u0 + (u1 - u0) * (k as f32 / PIECES as f32);
+            let u = u0 + (u1 - u0) * (k as f32 * (1.0 / PIECES as f32));
             let (p, d, _) = self.curve.eval(u);
             (u, p, d * dscale)
         };
@@ -303,11 +307,11 @@ impl Sweep {
             let k = r.dot(r) - f * f;
             let dkdu = r.dot(-dp3) - f * dfdu;
             let dkdt = r.dot(dir) - f * dfdt;
-            let rsqrt_k = 1.0 / k.sqrt();
-            let g = k.sqrt() - p.w;
+            let sqrt_k = k.sqrt();
+            let g = sqrt_k - p.w;
             let g_err = r_err + f_err + w_err;
-            let dgdu = dkdu * rsqrt_k - dp.w;
-            let dgdt = dkdt * rsqrt_k;
+            let dgdu = dkdu / sqrt_k - dp.w;
+            let dgdt = dkdt / sqrt_k;
             // Solve [[dfdu, dfdt], [dgdu, dgdt]] (du, dt) = (f, g).
             let det = dfdu * dgdt - dfdt * dgdu;
             let du = (dgdt * f - dfdt * g) / det;

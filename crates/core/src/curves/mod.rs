@@ -10,10 +10,11 @@
 //! ([`CurveBvh::normal`]). The intersections follow Embree's in f32 (see `linear.rs` and
 //! `cubic.rs`), so hits can be checked against Embree's on the same rays.
 
+use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec4};
 
 use crate::build::{BuildError, BuildOptions};
-use crate::flat::FlatNode;
+use crate::flat::{FlatNode, FlatTriangle};
 use crate::geometry::Aabb;
 use crate::intersect::{PreparedRay, intersect_triangle};
 use crate::mesh::{MeshError, Triangle, validate_triangles};
@@ -303,6 +304,17 @@ pub fn bspline_to_bezier(b: [Vec4; 4]) -> [Vec4; 4] {
     ]
 }
 
+/// A segment as the kernels read it (`bvh_curve_buffers.wgsl`): its first control point
+/// and its neighbours (bit 0: one before it in the strand, bit 1: one after), 8 bytes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct CurveSegment {
+    /// The segment's first control point.
+    pub first: u32,
+    /// Bit 0: a segment before it in the strand; bit 1: one after it.
+    pub neighbours: u32,
+}
+
 /// A curve hit: distance, curve parameter, and a normal (not unit length; for flat
 /// curves the side that faces the ray).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -381,6 +393,43 @@ impl CurveBvh {
             + self.triangles.len() * size_of::<Triangle>()
             + self.curves.points.len() * size_of::<Vec4>()
             + self.curves.segments.len() * 4
+    }
+
+    /// The nodes, depth first (a node's first child follows it).
+    pub fn nodes(&self) -> &[FlatNode] {
+        &self.tree.nodes
+    }
+
+    /// Each leaf slot's primitive id: a leaf's `first .. first + count` index this.
+    pub fn leaf_prims(&self) -> &[u32] {
+        &self.order
+    }
+
+    /// The triangles by primitive id, as the kernels read them.
+    pub fn flat_triangles(&self) -> Vec<FlatTriangle> {
+        (self.triangles.iter().enumerate())
+            .map(|(i, t)| FlatTriangle {
+                v0: t[0].to_array(),
+                prim: i as u32,
+                v1: t[1].to_array(),
+                _pad1: 0,
+                v2: t[2].to_array(),
+                _pad2: 0,
+            })
+            .collect()
+    }
+
+    /// The segments as the kernels read them, with their neighbours.
+    pub fn kernel_segments(&self) -> Vec<CurveSegment> {
+        (0..self.curves.len())
+            .map(|s| {
+                let (left, right) = self.curves.neighbours(s);
+                CurveSegment {
+                    first: self.curves.segments[s],
+                    neighbours: u32::from(left) | (u32::from(right) << 1),
+                }
+            })
+            .collect()
     }
 
     /// The segment a primitive id names, `None` for a triangle.
