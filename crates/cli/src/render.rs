@@ -107,8 +107,8 @@ impl BuildArgs {
 /// Scene and BVH choices shared by the commands.
 #[derive(clap::Args, Clone)]
 pub struct SceneArgs {
-    /// A .gltf/.glb file or a `builtin:` name (see `bvhtrace info --list`); default: the
-    /// Cornell box.
+    /// A .gltf/.glb file, a .hair file or a `builtin:` name (see `bvhtrace info --list`);
+    /// default: the Cornell box.
     pub scene: Option<String>,
     #[command(flatten)]
     pub build: BuildArgs,
@@ -1085,6 +1085,14 @@ fn print_info(
         scene.instance_count(),
         if scene.synthetic { " (synthetic)" } else { "" }
     );
+    if let Some(c) = &scene.curves {
+        println!(
+            "curves      {} {} segments, {} points (render traces them beside the triangles; the tree below is the triangles')",
+            c.len(),
+            c.kind.name(),
+            c.points.len()
+        );
+    }
     println!("bounds      {:?} .. {:?}", lo.to_array(), hi.to_array());
     println!(
         "attributes  normals {} texcoords {} colors {} materials {}",
@@ -1189,7 +1197,7 @@ fn print_tree(args: &InfoArgs, bvh: &FlatBvh) {
 /// `bvhtrace dump`.
 #[derive(clap::Args)]
 pub struct DumpArgs {
-    /// A .gltf/.glb file or a `builtin:` name.
+    /// A .gltf/.glb file, a .hair file or a `builtin:` name.
     pub scene: Option<String>,
     #[command(flatten)]
     pub view: CameraArgs,

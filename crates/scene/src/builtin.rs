@@ -38,7 +38,7 @@ pub fn builtin_names() -> &'static [(&'static str, &'static str)] {
         ),
         (
             "hair[:KIND[:N]]",
-            "synthetic hair: a head (an icosphere of 1,280 triangles) with N strands (default 10,000) of curves of KIND: round-linear, flat-linear, round-bezier or round-bspline (the default), nine linear or seven cubic segments each",
+            "synthetic hair: a head (an icosphere of 1,280 triangles) with N strands (default 10,000) of curves of KIND: round-linear, flat-linear, round-bezier or round-bspline (the default), nine linear or seven cubic segments each; or tubes: the round-linear strands as 8-sided tubes of triangles",
         ),
         (
             "moving:MESH",

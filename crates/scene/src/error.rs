@@ -44,6 +44,10 @@ pub enum ErrorKind {
     /// The file ends before its own headers say it does.
     #[error("the file is truncated: {0}")]
     Truncated(String),
+    /// A `.hair` file (Cem Yuksel's format) that is malformed: its magic, its counts, or
+    /// its strands.
+    #[error("malformed .hair file: {0}")]
+    Hair(String),
     /// The GLB container is malformed (version, chunk types, lengths).
     #[error("malformed GLB container: {0}")]
     Glb(String),

@@ -71,7 +71,7 @@ pub use builtin::{builtin_names, icosphere};
 pub use camera::Camera;
 pub use error::{ErrorKind, SceneError};
 pub use export::{glb_bytes, gltf_embedded_string, write_glb, write_gltf_embedded};
-pub use hair::{DEFAULT_STRANDS, has_curves};
+pub use hair::{DEFAULT_STRANDS, hair_file_bytes, has_curves, load_hair_file};
 pub use loader::{load_gltf_file, load_gltf_slice};
 pub use shutter::SHUTTER_TOLERANCE;
 pub use two_level::{SceneBvh, TracingBvhError};
@@ -456,6 +456,10 @@ impl Scene {
                 hi = hi.max(w);
             }
         }
+        for p in self.curves.iter().flat_map(|c| &c.points) {
+            lo = lo.min(p.truncate() - p.w);
+            hi = hi.max(p.truncate() + p.w);
+        }
         (lo, hi)
     }
 
@@ -559,6 +563,13 @@ impl Scene {
         }
         if let Some(c) = &mut self.camera {
             *c = c.transformed(m);
+        }
+        if let Some(curves) = &mut self.curves {
+            // Radii scale as lengths do: by the cube root of the volume's scale.
+            let r = m.determinant().abs().cbrt();
+            for p in &mut curves.points {
+                *p = m.transform_point3(p.truncate()).extend(p.w * r);
+            }
         }
     }
 
@@ -739,7 +750,7 @@ impl Scene {
         self.instances
             .retain(|_| k.next().copied().unwrap_or(false));
         let tris = self.triangle_count();
-        if tris == 0 {
+        if tris == 0 && self.curves.as_ref().is_none_or(|c| c.is_empty()) {
             return Err(err(ErrorKind::NoTriangles(String::new())));
         }
         if tris > MAX_INSTANCED_TRIANGLES {
@@ -807,6 +818,8 @@ pub fn load_with(spec: &str, opts: &LoadOptions) -> Result<Scene, SceneError> {
     let (base, transforms) = split_suffixes(spec)?;
     let mut scene = if let Some(name) = base.strip_prefix("builtin:") {
         builtin::load_builtin(name, base, opts)?
+    } else if base.to_ascii_lowercase().ends_with(".hair") {
+        load_hair_file(Path::new(base))?
     } else {
         load_gltf_file(Path::new(base))?
     };
