@@ -176,14 +176,27 @@ impl TimeTree {
         query: Query,
         mut leaf: impl FnMut(&FlatNode, &mut Best, &mut Counters) -> bool,
     ) {
-        let mut stack = Vec::with_capacity(self.depth as usize);
+        // At most one entry per level: on the stack for the usual depths, no allocation.
+        let mut small = [0u32; 64];
+        let mut deep = Vec::new();
+        let stack: &mut [u32] = match self.depth as usize {
+            d if d <= small.len() => &mut small,
+            d => {
+                deep.resize(d, 0);
+                &mut deep
+            }
+        };
+        let mut sp = 0usize;
         let hit_box = |i: u32, t_best: f32| {
             let b = self.node_box(i as usize, seg);
             intersect_box(r, b.min, b.max, t_best)
         };
         c.nodes += 1;
         let mut node = hit_box(0, best.t).map(|_| 0u32);
-        while let Some(i) = node.or_else(|| stack.pop()) {
+        while let Some(i) = node.or_else(|| {
+            sp = sp.checked_sub(1)?;
+            Some(stack[sp])
+        }) {
             let n = &self.nodes[i as usize];
             node = None;
             if n.is_leaf() {
@@ -197,7 +210,8 @@ impl TimeTree {
             match (hit_box(l, best.t), hit_box(rt, best.t)) {
                 (Some(tl), Some(tr)) => {
                     let (near, far) = if tr < tl { (rt, l) } else { (l, rt) };
-                    stack.push(far);
+                    stack[sp] = far;
+                    sp += 1;
                     node = Some(near);
                 }
                 (Some(_), None) => node = Some(l),
