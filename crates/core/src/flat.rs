@@ -175,18 +175,6 @@ fn link_children(nodes: &[FlatNode], escapes: &mut [u32], range: Range<usize>) {
     }
 }
 
-/// Triangle `t`, the builder's input number `prim`, as the flat layout stores it.
-fn flat_triangle(t: &Triangle, prim: u32) -> FlatTriangle {
-    FlatTriangle {
-        v0: t[0].to_array(),
-        prim,
-        v1: t[1].to_array(),
-        _pad1: 0,
-        v2: t[2].to_array(),
-        _pad2: 0,
-    }
-}
-
 /// Why [`FlatBvh::refit`] refused (the BVH is left as it was).
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RefitError {
@@ -294,6 +282,18 @@ pub struct FlatTriangle {
 }
 
 impl FlatTriangle {
+    /// Triangle `t`, the builder's input number `prim`, as the layouts store it.
+    pub fn new(t: &Triangle, prim: u32) -> FlatTriangle {
+        FlatTriangle {
+            v0: t[0].to_array(),
+            prim,
+            v1: t[1].to_array(),
+            _pad1: 0,
+            v2: t[2].to_array(),
+            _pad2: 0,
+        }
+    }
+
     /// The three corners.
     #[inline(always)]
     pub fn corners(&self) -> [Vec3; 3] {
@@ -436,7 +436,7 @@ impl FlatBvh {
             triangles: tree
                 .prim_order
                 .iter()
-                .map(|&p| flat_triangle(&tris[p as usize], p))
+                .map(|&p| FlatTriangle::new(&tris[p as usize], p))
                 .collect(),
             ..FlatBvh::default()
         };
@@ -490,7 +490,7 @@ impl FlatBvh {
         let triangles = prim_order
             .par_iter()
             .with_min_len(4096)
-            .map(|&p| flat_triangle(&tris[p as usize], p))
+            .map(|&p| FlatTriangle::new(&tris[p as usize], p))
             .collect();
         FlatBvh {
             nodes,

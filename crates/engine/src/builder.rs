@@ -408,16 +408,8 @@ struct ReadBack {
 
 /// The triangles as the builder reads them, numbered in input order.
 fn flat_input(tris: &[Triangle]) -> Vec<FlatTriangle> {
-    tris.iter()
-        .enumerate()
-        .map(|(i, t)| FlatTriangle {
-            v0: t[0].to_array(),
-            prim: i as u32,
-            v1: t[1].to_array(),
-            _pad1: 0,
-            v2: t[2].to_array(),
-            _pad2: 0,
-        })
+    (tris.iter().enumerate())
+        .map(|(i, t)| FlatTriangle::new(t, i as u32))
         .collect()
 }
 

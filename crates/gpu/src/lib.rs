@@ -54,6 +54,7 @@ mod motion;
 #[cfg(not(target_arch = "wasm32"))]
 mod ray_query;
 mod trace;
+mod tree_kernel;
 
 pub use build::{
     GpuBuildOptions, GpuBuildTimes, GpuBuilderKind, GpuMorph, GpuRefit, GpuSkin, RefitTimes,

@@ -408,14 +408,7 @@ impl CurveBvh {
     /// The triangles by primitive id, as the kernels read them.
     pub fn flat_triangles(&self) -> Vec<FlatTriangle> {
         (self.triangles.iter().enumerate())
-            .map(|(i, t)| FlatTriangle {
-                v0: t[0].to_array(),
-                prim: i as u32,
-                v1: t[1].to_array(),
-                _pad1: 0,
-                v2: t[2].to_array(),
-                _pad2: 0,
-            })
+            .map(|(i, t)| FlatTriangle::new(t, i as u32))
             .collect()
     }
 
