@@ -72,8 +72,11 @@ fn main() {
     let cli = Cli::parse();
     let result: Result<()> = match cli.command {
         // The path tracer makes, shades and sums its rays on the device: a pipeline of its own.
+        // Blurred renders and scenes with curves refuse it in `render`.
         Command::Render(a)
-            if a.shade == bvhtrace_shade::Shade::Path && a.shutter.shutter.is_none() =>
+            if a.shade == bvhtrace_shade::Shade::Path
+                && a.shutter.shutter.is_none()
+                && !(a.scene.scene.as_deref()).is_some_and(bvhtrace_scene::has_curves) =>
         {
             path::render(a)
         }

@@ -1003,6 +1003,13 @@ pub fn info(args: InfoArgs) -> Result<()> {
         }
         return Ok(());
     }
+    // A scene of curves alone has no triangles' tree to describe: its own tree instead.
+    if let Some(spec) = (args.scene.scene.as_deref()).filter(|s| bvhtrace_scene::has_curves(s)) {
+        let scene = crate::geometry::load_scene(spec)?;
+        if scene.triangle_count() == 0 {
+            return info_curves_only(&args, spec, &scene);
+        }
+    }
     let built = load_and_build(
         &args.scene,
         args.scene
@@ -1017,6 +1024,40 @@ pub fn info(args: InfoArgs) -> Result<()> {
     } else {
         print_info(&args, &built, &job);
     }
+    Ok(())
+}
+
+/// `bvhtrace info` for a scene of curves alone: the curves and the tree `render` builds
+/// over them.
+fn info_curves_only(args: &InfoArgs, spec: &str, scene: &bvhtrace_scene::Scene) -> Result<()> {
+    let Some(curves) = scene.curves.clone() else {
+        bail!("{spec}: no triangles and no curves");
+    };
+    let (kind, segments, points) = (curves.kind.name(), curves.len(), curves.points.len());
+    let t = std::time::Instant::now();
+    let bvh = bvhtrace_core::CurveBvh::build(&[], curves, &args.scene.build.options())?;
+    let build_ms = t.elapsed().as_secs_f64() * 1e3;
+    let (lo, hi) = scene.bounds();
+    if args.json {
+        let v = json!({
+            "scene": spec,
+            "description": scene.description,
+            "triangles": 0,
+            "curves": { "kind": kind, "segments": segments, "points": points },
+            "bounds": [lo.to_array(), hi.to_array()],
+            "bvh": { "depth": bvh.depth(), "bytes": bvh.byte_size(), "build_ms": build_ms },
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!("scene       {spec} ({})", scene.description);
+    println!("curves      {segments} {kind} segments, {points} points, no triangles");
+    println!("bounds      {:?} .. {:?}", lo.to_array(), hi.to_array());
+    println!(
+        "bvh         over the segments: depth {}, {} bytes, built in {build_ms:.1} ms (render traces it on wgpu or the CPU)",
+        bvh.depth(),
+        bvh.byte_size()
+    );
     Ok(())
 }
 

@@ -661,3 +661,75 @@ fn blurred_renders_over_the_shutter() {
     }
     assert!(!std::path::Path::new("/tmp/never.png").exists());
 }
+
+/// Scenes with curves render through the tree of curves on the CPU twin and on wgpu (the
+/// same hits and image for linear curves), a `.hair` file renders and `info` describes
+/// it, `dump` writes version 4, and flags a scene with curves cannot honour are refused
+/// by name.
+#[test]
+fn hair_renders_with_curves() {
+    let hair = ["builtin:hair:round-linear:400", "--shade", "diffuse"];
+    let (cpu, cpu_png) = render_json("hair-cpu", &hair);
+    let (gpu, gpu_png) = render_json_on("gpu", "hair-gpu", &hair);
+    assert_eq!(cpu["curves"]["segments"], 400 * 9);
+    assert_eq!(gpu["backend"], "wgpu");
+    assert!(cpu["hits"].as_u64().unwrap() > 1000, "{cpu}");
+    assert_eq!(
+        (cpu["hits"].as_u64(), cpu["t_sum"].as_f64()),
+        (gpu["hits"].as_u64(), gpu["t_sum"].as_f64())
+    );
+    assert!(cpu_png == gpu_png, "the device's hair is not the CPU's");
+    // A .hair file: its strands alone, framed by the camera.
+    let dir = scratch("hair-strands");
+    let file = dir.join("strands.hair");
+    let scene = bvhtrace_scene::load("builtin:hair:round-linear:50").unwrap();
+    std::fs::write(
+        &file,
+        bvhtrace_scene::hair_file_bytes(scene.curves.as_ref().unwrap()),
+    )
+    .unwrap();
+    let (j, _) = render_json("hair-file", &[file.to_str().unwrap()]);
+    assert_eq!(
+        (j["triangles"].as_u64(), j["curves"]["segments"].as_u64()),
+        (Some(0), Some(450))
+    );
+    assert!(j["hits"].as_u64().unwrap() > 0, "{j}");
+    let info = run(&["info", file.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        info.status.success() && text.contains("450 round-linear segments"),
+        "{text}"
+    );
+    let dump = dir.join("hair.bin");
+    assert!(
+        run(&[
+            "dump",
+            "builtin:hair:flat-linear:20",
+            "-o",
+            dump.to_str().unwrap()
+        ])
+        .status
+        .success()
+    );
+    let bytes = std::fs::read(&dump).unwrap();
+    assert_eq!((&bytes[..4], bytes[4]), (&b"BVHD"[..], 4));
+    for bad in [
+        ["--shade", "path"],
+        ["--backend", "vulkan"],
+        ["--time", "0.5"],
+    ] {
+        let mut args = vec![
+            "render",
+            "builtin:hair:round-linear:10",
+            "-o",
+            "/tmp/never.png",
+        ];
+        args.extend(bad);
+        let out = run(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(bad[0]),
+            "{bad:?}: {err}"
+        );
+    }
+}
