@@ -713,6 +713,7 @@ fn hair_renders_with_curves() {
     );
     let bytes = std::fs::read(&dump).unwrap();
     assert_eq!((&bytes[..4], bytes[4]), (&b"BVHD"[..], 4));
+    let never = dir.join("never.png");
     for bad in [
         ["--shade", "path"],
         ["--backend", "vulkan"],
@@ -722,7 +723,7 @@ fn hair_renders_with_curves() {
             "render",
             "builtin:hair:round-linear:10",
             "-o",
-            "/tmp/never.png",
+            never.to_str().unwrap(),
         ];
         args.extend(bad);
         let out = run(&args);
@@ -732,4 +733,5 @@ fn hair_renders_with_curves() {
             "{bad:?}: {err}"
         );
     }
+    assert!(!never.exists(), "a refused render wrote its image");
 }
