@@ -216,13 +216,13 @@ impl Curves {
         range: (f32, f32),
     ) -> Option<CurveHit> {
         let c = self.control(s);
+        // Relative to the segment's first point, so a strand far from the origin loses no
+        // more than its own size's precision.
+        let base = c[0].truncate();
         // Positions and the direction scaled by powers of two to about unit size: exact,
         // so the answers are those of the unscaled arithmetic wherever that neither
         // underflows nor overflows, and tiny or huge strands are solved as well as unit
         // ones. Distances along the ray scale by `k / m`.
-        // Relative to the segment's first point, so a strand far from the origin loses no
-        // more than its own size's precision.
-        let base = c[0].truncate();
         let (ek, em) = (
             unit_exponent(c, org - base),
             unit_exponent_of(dir.abs().max_element()),
