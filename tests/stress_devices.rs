@@ -13,7 +13,7 @@ mod common;
 use std::sync::Arc;
 
 use bvhtrace::{ADAPTER_ENV, AdapterChoice, Backend, Device, DriverTuning, OpenOptions};
-use bvhtrace_stress::{Backends, DeviceTracers};
+use bvhtrace_stress::{Backends, DeviceTracers, wgpu_trees};
 
 /// The devices of the factory that run only the two-level cases.
 const TWO_LEVELS_ONLY: [Backend; 1] = [Backend::Vulkan];
@@ -34,6 +34,8 @@ fn device(backend: Backend) -> Result<DeviceTracers, String> {
         tuning: device.tuning().unwrap_or(DriverTuning::GPU),
         bit_for_bit: device.backend().bit_for_bit(),
         open: Arc::new(device.tracer_factory()),
+        open_motion: device.wgpu_context().cloned().map(wgpu_trees::motion_on),
+        open_curves: device.wgpu_context().cloned().map(wgpu_trees::curves_on),
     })
 }
 

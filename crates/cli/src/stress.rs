@@ -9,7 +9,7 @@ use bvhtrace::{Backend, Device, DriverTuning};
 use bvhtrace_core::BuilderKind;
 use bvhtrace_stress::{
     Backends, CASE_GROUPS, Case, CaseOptions, CaseReport, DeviceTracers, Size, run_case,
-    select_cases, table_header, table_rows,
+    select_cases, table_header, table_rows, wgpu_trees,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -141,6 +141,8 @@ pub fn device_tracers(backend: Backend) -> Result<DeviceTracers, String> {
         tuning: device.tuning().unwrap_or(DriverTuning::GPU),
         bit_for_bit: device.backend().bit_for_bit(),
         open: Arc::new(device.tracer_factory()),
+        open_motion: device.wgpu_context().cloned().map(wgpu_trees::motion_on),
+        open_curves: device.wgpu_context().cloned().map(wgpu_trees::curves_on),
     })
 }
 

@@ -71,6 +71,14 @@ pub const CASE_GROUPS: &[(&str, &str)] = &[
         "instances",
         "two levels: a closed icosphere instanced rotated, scaled by 1e-6 and 1e6, non-uniformly (axis ratios to 1e6), mirrored, translated by 1e5, and all of these at once; rays from inside each instance aimed exactly at its world-space vertices and edge points (targets placed in f64); a miss is an escape",
     ),
+    (
+        "motion",
+        "motion-t0 .. motion-after, motion-flip-*: a closed icosphere moving, turning and growing over 3 time steps, and one turning inside out over 2 (every winding flips; flat at mid-shutter), each traced at one time (the shutter's ends exactly, a step, between steps, outside the shutter): rays from inside at that time and a camera; every walk of moving meshes, both ways of bounding time",
+    ),
+    (
+        "curves",
+        "curves-round-linear .. curves-round-bspline: straight strands of each kind with rays aimed at each segment's axis (known hits) and past it (known misses), triangles beside them, zero-length segments, radius 0, a radius 50 times a segment's length, rays along the strands and a camera; against the tree's brute force (no f64 oracle for curves)",
+    ),
 ];
 
 /// What the cases are made for: their size, and the shared scenes folder (holding `glb/`)
@@ -190,16 +198,18 @@ fn generate(group: &str, opts: &CaseOptions) -> Vec<Case> {
         "deep" => vec![deep(size)],
         "precision-limit" => vec![precision_limit(size)],
         "instances" => instance_cases(size),
+        "motion" => crate::motion::motion_cases(size),
+        "curves" => crate::curves::curve_cases(size),
         _ => Vec::new(),
     }
 }
 
-fn quick(size: Size) -> bool {
+pub(crate) fn quick(size: Size) -> bool {
     size == Size::Quick
 }
 
 /// Edge fractions for the watertightness rays.
-fn fractions(size: Size) -> &'static [f64] {
+pub(crate) fn fractions(size: Size) -> &'static [f64] {
     if quick(size) {
         &[0.5, 1.0 / 3.0]
     } else {
@@ -209,7 +219,7 @@ fn fractions(size: Size) -> &'static [f64] {
 
 /// Adds `from`-rays aimed at every vertex and edge point of `mesh` when `from` is inside
 /// `closed` (the f64 oracle's parity): `MustHit`; else a note and `Oracle`.
-fn add_inside_rays(
+pub(crate) fn add_inside_rays(
     case: &mut Case,
     mesh: &IndexedMesh,
     closed: &[Triangle],
@@ -238,7 +248,7 @@ fn thin(rays: Vec<Ray>, max: usize) -> Vec<Ray> {
     (0..max).map(|i| rays[i * n / max]).collect()
 }
 
-fn finish_input(case: &mut Case) {
+pub(crate) fn finish_input(case: &mut Case) {
     case.input.zero_area_triangles = count_zero_area(&case.tris);
 }
 
@@ -380,7 +390,7 @@ fn budget(size: Size) -> usize {
 }
 
 /// Sets the oracle sample so that `sample x triangles` stays within the budget.
-fn set_budget(case: &mut Case, size: Size) {
+pub(crate) fn set_budget(case: &mut Case, size: Size) {
     case.oracle_budget = (budget(size) / case.tris.len().max(1)).clamp(256, 1 << 20);
 }
 

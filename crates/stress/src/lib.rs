@@ -26,12 +26,16 @@
 #![warn(missing_docs)]
 
 mod cases;
+mod curves;
 pub mod geom;
+mod motion;
 pub mod offset;
 mod report;
 mod runner;
+#[cfg(feature = "wgpu")]
+pub mod wgpu_trees;
 
-use bvhtrace_core::{BuildOptions, Instance, Ray, Triangle};
+use bvhtrace_core::{BuildOptions, Curves, Instance, Ray, Triangle};
 use serde::Serialize;
 
 pub use cases::{CASE_GROUPS, CaseOptions, cases_sized, select_cases};
@@ -39,8 +43,8 @@ pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
-    Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, OpenTracer, PrecisionRow,
-    RunReport, run_case, run_case_with_timeout, traversals,
+    Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, OpenCurves, OpenMotion,
+    OpenTracer, PrecisionRow, RunReport, TraceTimed, run_case, run_case_with_timeout, traversals,
 };
 
 /// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.
@@ -166,6 +170,26 @@ pub struct Case {
     /// in primitive order), for the table and the inside tests. The oracle traces each
     /// instance's mesh with the ray as the walks transform it (see `GUARANTEES.md`).
     pub instancing: Option<Instancing>,
+    /// A moving mesh traced at one time: the runner builds a [`bvhtrace_core::MotionBvh`]
+    /// over its steps (with each of [`bvhtrace_core::TimeBounds`]) and traces every ray
+    /// at [`Motion::time`], and `tris` holds the mesh at that time
+    /// ([`bvhtrace_core::MotionMesh::at`]: the triangles the walks test), which the
+    /// oracle, the brute force and the inside tests judge.
+    pub motion: Option<Motion>,
+    /// Curves beside `tris` (which may be empty): the runner builds a
+    /// [`bvhtrace_core::CurveBvh`] over both, numbering the segments after the triangles,
+    /// and judges its answers against the known ones and its own brute force (there is no
+    /// f64 oracle for curves).
+    pub curves: Option<Curves>,
+}
+
+/// The moving mesh of a case (see [`Case::motion`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Motion {
+    /// The triangles at each time step, spread evenly over the shutter `[0, 1]`.
+    pub steps: Vec<Vec<Triangle>>,
+    /// The time every ray is traced at (clamped to `[0, 1]` by the walks).
+    pub time: f32,
 }
 
 /// The two levels of an instanced case (see [`Case::instancing`]).
@@ -197,6 +221,8 @@ impl Case {
             precision: None,
             guaranteed: true,
             instancing: None,
+            motion: None,
+            curves: None,
         }
     }
 

@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 use bvhtrace_core::intersect::flush_subnormal;
 use bvhtrace_core::oracle::{self, OracleHit, PreparedRay64};
 use bvhtrace_core::{
-    FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, Precision, Query, Ray,
-    TraceOptions, TraceOutput, Traversal, Triangle, brute_force,
+    CurveBvh, FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, MotionBvh, Precision,
+    Query, Ray, TraceOptions, TraceOutput, Traversal, Triangle, brute_force,
 };
 use bvhtrace_engine::walks::FULL_STACK_SIZE;
 use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
@@ -17,6 +17,9 @@ use serde::Serialize;
 
 use crate::geom::is_zero_area;
 use crate::{Case, Expect, InputInfo};
+
+mod curves;
+mod motion;
 
 /// The rings every case runs the short stack with: one that overflows now and then, and
 /// the smallest.
@@ -53,7 +56,22 @@ pub struct DeviceTracers {
     pub bit_for_bit: bool,
     /// The tracer factory.
     pub open: OpenTracer,
+    /// Our walk of a moving mesh on this device, where it has one (the `motion-*` cases;
+    /// without it their rows are this device's note).
+    pub open_motion: Option<OpenMotion>,
+    /// Our walk of curves on this device, where it has one (the `curves-*` cases).
+    pub open_curves: Option<OpenCurves>,
 }
+
+/// Traces rays with one query on a tree a device uploaded, each ray at its time (curves
+/// have no time: the times are ignored). `Err` says why it could not.
+pub type TraceTimed = Box<dyn Fn(&[Ray], &[f32], Query) -> Result<Vec<Hit>, String> + Send + Sync>;
+
+/// Uploads a moving mesh's tree to a device, for [`DeviceTracers::open_motion`].
+pub type OpenMotion = Arc<dyn Fn(Arc<MotionBvh>) -> Result<TraceTimed, String> + Send + Sync>;
+
+/// Uploads a tree of curves to a device, for [`DeviceTracers::open_curves`].
+pub type OpenCurves = Arc<dyn Fn(Arc<CurveBvh>) -> Result<TraceTimed, String> + Send + Sync>;
 
 /// Where to trace: the CPU twins, and each device backend the caller opened.
 #[derive(Clone)]
@@ -686,7 +704,9 @@ impl Judge<'_> {
         if h.prim == INVALID_RAY {
             r.invalid_flagged += 1;
         }
-        if !keeps_contract(ray, h, tris.len()) {
+        // A case's curve segments are numbered after its triangles.
+        let prims = tris.len() + self.case.curves.as_ref().map_or(0, |c| c.len());
+        if !keeps_contract(ray, h, prims) {
             r.contract_violations += 1;
             examples.push(describe(ray, &format!("ray {i}: contract"), h));
         }
@@ -1272,6 +1292,11 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
         devices: backends.devices.iter().map(DeviceTracers::label).collect(),
         ..Default::default()
     };
+    if let Some(curves) = &case.curves {
+        curves::run(case, curves, backends, &mut rep);
+        rep.elapsed_ms = ms(start);
+        return rep;
+    }
     if case.tris.is_empty() {
         rep.skipped = Some("skipped: no triangles (its inputs are absent; see the notes)".into());
         return rep;
@@ -1332,6 +1357,12 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
     } else {
         &[Query::Closest]
     };
+
+    if let Some(m) = &case.motion {
+        motion::run(case, m, queries, &judge, backends, &mut rep);
+        rep.elapsed_ms = ms(start);
+        return rep;
+    }
 
     // The CPU twins first (always: the GPU is compared with them), then the GPU kernels,
     // both through the one `Tracer` interface.

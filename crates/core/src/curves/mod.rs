@@ -21,7 +21,7 @@ use crate::mesh::{MeshError, Triangle, validate_triangles};
 use crate::motion::TimeBounds;
 use crate::motion::tree::{TimeTree, trace_all};
 use crate::ray::{Counters, Hit, Ray};
-use crate::traverse::{Best, Query};
+use crate::traverse::{Best, Query, untraced};
 
 mod cubic;
 mod linear;
@@ -439,7 +439,7 @@ impl CurveBvh {
         let (org, dir) = (prepared.org, prepared.dir);
         let space = RaySpace::new(dir);
         self.tree.trace(ray, 0.0, query, |r, _, n, best, c| {
-            self.visit_leaf(r, (org, dir, &space), ray.t_min, n, best, c)
+            self.visit_leaf(r, (org, dir, &space), ray.t_min, n, best, c, query)
         })
     }
 
@@ -449,6 +449,26 @@ impl CurveBvh {
         trace_all(rays, &times, |r, _| self.trace(r, query).0)
     }
 
+    /// The closest hit of testing every primitive in id order with the walk's tests and
+    /// hit rule (each segment asked for its first hit up to the best so far): what every
+    /// walk of this tree must return for a closest-hit query, and hit or miss alike for an
+    /// any-hit one.
+    pub fn brute_force(&self, ray: &Ray) -> Hit {
+        if !ray.is_valid() {
+            return untraced(ray);
+        }
+        let r = PreparedRay::new(ray);
+        let space = RaySpace::new(r.dir);
+        let mut best = Best::start(ray);
+        for prim in 0..(self.triangles.len() + self.curves.len()) as u32 {
+            self.test_prim(prim, &r, (r.org, r.dir, &space), ray.t_min, &mut best);
+        }
+        best.into_hit()
+    }
+
+    /// Tests a leaf's primitives; true when one was taken (an any-hit walk stops at the
+    /// first, as the kernels do).
+    #[allow(clippy::too_many_arguments)]
     fn visit_leaf(
         &self,
         r: &PreparedRay,
@@ -457,26 +477,39 @@ impl CurveBvh {
         n: &FlatNode,
         best: &mut Best,
         c: &mut Counters,
+        query: Query,
     ) -> bool {
         let first = n.right_or_first as usize;
         let mut taken = false;
         for &prim in &self.order[first..first + n.count() as usize] {
             c.tris += 1;
-            match self.segment_of(prim) {
-                None => {
-                    let t = &self.triangles[prim as usize];
-                    if let Some(h) = intersect_triangle(r, t[0], t[1], t[2]) {
-                        taken |= best.offer(h.t, prim, h.u, h.v);
-                    }
-                }
-                Some(s) => {
-                    if let Some(h) = self.curves.intersect(s, ray, (t_min, best.t)) {
-                        taken |= best.offer(h.t, prim, h.u, 0.0);
-                    }
-                }
+            taken |= self.test_prim(prim, r, ray, t_min, best);
+            if taken && query == Query::Any {
+                break;
             }
         }
         taken
+    }
+
+    /// Tests primitive `prim` (a triangle or a segment), offering its hit to `best`; true
+    /// when it was taken.
+    fn test_prim(
+        &self,
+        prim: u32,
+        r: &PreparedRay,
+        ray: (Vec3, Vec3, &RaySpace),
+        t_min: f32,
+        best: &mut Best,
+    ) -> bool {
+        match self.segment_of(prim) {
+            None => {
+                let t = &self.triangles[prim as usize];
+                intersect_triangle(r, t[0], t[1], t[2])
+                    .is_some_and(|h| best.offer(h.t, prim, h.u, h.v))
+            }
+            Some(s) => (self.curves.intersect(s, ray, (t_min, best.t)))
+                .is_some_and(|h| best.offer(h.t, prim, h.u, 0.0)),
+        }
     }
 
     /// The geometric normal at `hit` (a hit of `ray` this tree returned), unit length: a

@@ -314,7 +314,7 @@ impl MotionBvh {
     /// tested.
     pub fn trace(&self, ray: &Ray, time: f32, query: Query) -> (Hit, Counters) {
         self.tree.trace(ray, time, query, |r, seg, n, best, c| {
-            self.visit_leaf(r, n, seg, best, c)
+            self.visit_leaf(r, n, seg, best, c, query == Query::Any)
         })
     }
 
@@ -326,7 +326,8 @@ impl MotionBvh {
         tree::trace_all(rays, times, |r, t| self.trace(r, t, query).0)
     }
 
-    /// Tests a leaf's triangles at the ray's time; true when one was taken.
+    /// Tests a leaf's triangles at the ray's time; true when one was taken (an any-hit
+    /// walk, `any`, stops at the first, as the kernels do).
     fn visit_leaf(
         &self,
         r: &PreparedRay,
@@ -334,6 +335,7 @@ impl MotionBvh {
         (s, f): (usize, f32),
         best: &mut Best,
         c: &mut Counters,
+        any: bool,
     ) -> bool {
         let len = self.count;
         let first = n.right_or_first as usize;
@@ -345,6 +347,9 @@ impl MotionBvh {
             // `offer` takes only hits nearer than the best, which starts at `t_max`.
             if let Some(h) = intersect_triangle(r, tri[0], tri[1], tri[2]) {
                 taken |= best.offer(h.t, a.prim, h.u, h.v);
+            }
+            if taken && any {
+                break;
             }
         }
         taken

@@ -30,6 +30,8 @@ struct Suite {
     devices: Vec<String>,
     /// Those on the two-level cases only.
     two_level_devices: Vec<String>,
+    /// Those with walks of moving meshes and of curves.
+    timed_devices: Vec<String>,
 }
 
 /// The names of `b`'s devices of our walks (the device's own ray queries are reported,
@@ -37,6 +39,14 @@ struct Suite {
 fn our_walks(b: &Backends) -> Vec<String> {
     (b.devices.iter())
         .filter(|d| d.bit_for_bit)
+        .map(|d| d.backend.clone())
+        .collect()
+}
+
+/// The names of `b`'s devices with our walks of moving meshes and of curves.
+fn timed_walks(b: &Backends) -> Vec<String> {
+    (b.devices.iter())
+        .filter(|d| d.bit_for_bit && d.open_motion.is_some() && d.open_curves.is_some())
         .map(|d| d.backend.clone())
         .collect()
 }
@@ -88,6 +98,7 @@ fn suite() -> &'static Suite {
         Suite {
             reports,
             failures,
+            timed_devices: timed_walks(&backends),
             devices,
             two_level_devices,
         }
@@ -709,4 +720,160 @@ fn unusable_transforms_are_errors_naming_the_instance() {
     // And a group selection names every instance case.
     let sel = select_cases(&["instances".into()], &options()).expect("the group exists");
     assert!(sel.len() >= 7 && sel.iter().all(|c| c.instancing.is_some()));
+}
+
+/// The reports of the cases named `prefix...`, each checked to have run without error, and
+/// the backends whose rows they must have: the CPU twin and every device with walks of
+/// moving meshes and curves.
+fn timed_cases(prefix: &str, want: usize) -> (Vec<&'static CaseReport>, Vec<String>) {
+    let s = suite();
+    let cases: Vec<&CaseReport> = (s.reports.iter())
+        .filter(|c| c.name.starts_with(prefix))
+        .collect();
+    assert_eq!(cases.len(), want, "{prefix}* cases ran");
+    for c in &cases {
+        assert!(
+            c.error.is_none() && c.skipped.is_none(),
+            "{}: {:?}",
+            c.name,
+            c.error
+        );
+    }
+    let mut backends = vec!["cpu".to_string()];
+    backends.extend(s.timed_devices.iter().cloned());
+    println!("the {prefix}* cases on {backends:?}");
+    (cases, backends)
+}
+
+/// Every row of a moving mesh's or curves' case on backend `b` (`walks` x closest and
+/// any), each ran, clean, and on a device equal to the CPU twin.
+fn timed_rows<'a>(
+    c: &'a CaseReport,
+    b: &str,
+    walks: usize,
+    bad: &mut Vec<String>,
+) -> Vec<&'a RunReport> {
+    let runs: Vec<&RunReport> = c.runs.iter().filter(|r| r.backend == b).collect();
+    if runs.len() != 2 * walks || runs.iter().any(|r| r.status != "ok") {
+        bad.push(format!(
+            "{} {b}: {} runs: {:?}",
+            c.name,
+            runs.len(),
+            c.notes
+        ));
+    }
+    for r in &runs {
+        if !r.clean() || (b != "cpu" && r.parity_mismatches != Some(0)) {
+            bad.push(with_examples(
+                c,
+                r,
+                format!("not clean (parity {:?})", r.parity_mismatches),
+            ));
+        }
+    }
+    runs
+}
+
+/// The `motion-*` cases: a moving, turning, growing sphere at the shutter's ends, a step,
+/// between steps and outside the shutter, and a sphere turning inside out. At every time,
+/// with either way of bounding time, on the CPU twin and the devices: no ray from inside
+/// escapes, the f64 oracle and the brute force of the mesh at that time agree, and the
+/// devices equal the twin bit for bit. A time outside the shutter is its end.
+#[test]
+fn moving_meshes_stay_closed_at_every_time_on_every_walk() {
+    let (cases, backends) = timed_cases("motion-", 9);
+    let mut bad = Vec::new();
+    for c in &cases {
+        for b in &backends {
+            for r in timed_rows(c, b, 2, &mut bad) {
+                // Flat at mid-shutter: no inside; everywhere else rays from inside.
+                if (r.must_hit == 0) != (c.name == "motion-flip-t0.5") || r.escapes.total() > 0 {
+                    bad.push(with_examples(
+                        c,
+                        r,
+                        format!(
+                            "{} escapes of {} rays from inside",
+                            r.escapes.total(),
+                            r.must_hit
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    check("moving meshes", bad);
+    let names = ["motion-before", "motion-t0", "motion-after", "motion-t1"].map(String::from);
+    let picked = select_cases(&names, &options()).expect("the motion cases");
+    let tris = |n: &str| {
+        let c = picked.iter().find(|c| c.name == n).expect("picked");
+        c.tris.clone()
+    };
+    assert!(
+        tris("motion-before") == tris("motion-t0"),
+        "before the shutter is its start"
+    );
+    assert!(
+        tris("motion-after") == tris("motion-t1"),
+        "after the shutter is its end"
+    );
+    assert!(tris("motion-t0") != tris("motion-t1"), "the mesh moves");
+}
+
+/// The `curves-*` cases, one per kind: every ray with a known answer (a segment hit from
+/// beside it, a miss at 2.5 radii, the triangles under the strands, the huge radius) gets
+/// it, degenerate strands (zero length, radius 0) break no contract, every walk equals
+/// the tree's brute force, and the devices equal the twin (cubic curves under the
+/// kernels' rule).
+#[test]
+fn curves_give_their_known_answers_on_every_walk() {
+    let (cases, backends) = timed_cases("curves-", 4);
+    let mut bad = Vec::new();
+    for c in &cases {
+        for b in &backends {
+            for r in timed_rows(c, b, 1, &mut bad) {
+                if r.known < 100 || r.brute_mismatch.total() > 0 || r.sample != r.rays {
+                    bad.push(with_examples(
+                        c,
+                        r,
+                        format!(
+                            "{} known answers, {} differences from the brute force on {} of {} rays",
+                            r.known,
+                            r.brute_mismatch.total(),
+                            r.sample,
+                            r.rays
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    check("curves", bad);
+}
+
+/// The judging of moving meshes and curves can fail: a known answer changed, or a case
+/// traced at a time other than the one its scene was made at, is caught.
+#[test]
+fn wrong_answers_of_moving_meshes_and_curves_are_caught() {
+    let names = ["curves-round-bezier", "motion-t0.3"].map(String::from);
+    let mut picked = select_cases(&names, &options()).expect("the cases");
+    picked.sort_by(|a, b| a.name.cmp(&b.name));
+    let cpu = Backends::cpu_only();
+    let curves = &mut picked[0];
+    let k = (curves.expect.iter())
+        .position(|e| matches!(e, Expect::Prim(p) if *p >= 2))
+        .expect("a known curve hit");
+    curves.expect[k] = Expect::Miss;
+    let rep = run_case(curves, &cpu);
+    assert!(
+        !rep.clean() && rep.runs.iter().all(|r| r.known_wrong == 1),
+        "{rep:?}"
+    );
+    let moving = &mut picked[1];
+    moving.motion.as_mut().expect("a moving mesh").time = 0.7;
+    let rep = run_case(moving, &cpu);
+    assert!(
+        !rep.runs.is_empty() && rep.runs.iter().all(|r| !r.clean()),
+        "{}",
+        format_table(std::slice::from_ref(&rep))
+    );
 }

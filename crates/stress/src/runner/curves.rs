@@ -1,0 +1,178 @@
+//! The rows of a case of curves: one tree over its triangles and segments, traced on the
+//! CPU twin and on each device with a walk of curves, judged against the known answers,
+//! the output contract and the tree's own brute force (there is no f64 oracle for
+//! curves), each device compared with the twin: linear curves bit for bit, cubic curves
+//! under the kernels' stated rule.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bvhtrace_core::{CurveBvh, Curves, Hit, Query};
+use rayon::prelude::*;
+
+use super::{
+    Backends, CaseReport, Examples, Geometry, Judge, RunReport, as_traced, describe, hit_bits, ms,
+    query_name, same_verdict,
+};
+use crate::Case;
+use crate::geom::is_zero_area;
+
+/// The rows' traversal name: the tree's full-stack walk.
+const WALK: &str = "curves";
+
+fn row(backend: &str, q: Query) -> RunReport {
+    RunReport {
+        backend: backend.into(),
+        traversal: WALK.into(),
+        query: query_name(q).into(),
+        status: "ok".into(),
+        ..Default::default()
+    }
+}
+
+/// A device's hit of a cubic curve as its CPU twin's, under the kernels' rule: the shader
+/// compiler may reassociate the curve's evaluation, so Newton's method can end an ulp
+/// away; the same answer with `t` within `1e-5` of the twin's (of 1 below 1) and `u`
+/// within `1e-5`.
+fn cubic_alike(g: &Hit, c: &Hit) -> bool {
+    hit_bits(g) == hit_bits(c)
+        || (g.is_hit()
+            && g.prim == c.prim
+            && (g.t - c.t).abs() <= 1e-5 * c.t.max(1.0)
+            && (g.u - c.u).abs() <= 1e-5)
+}
+
+/// Every row of `case` into `rep`.
+pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut CaseReport) {
+    let t = Instant::now();
+    let bvh = match CurveBvh::build(&case.tris, curves.clone(), &case.build) {
+        Ok(b) => Arc::new(b),
+        Err(e) => {
+            rep.error = Some(format!("build failed: {e}"));
+            return;
+        }
+    };
+    rep.build_ms = ms(t);
+    rep.depth = bvh.depth();
+    rep.nodes = bvh.nodes().len();
+    let judge = Judge {
+        case,
+        geo: Geometry::Flat(&case.tris),
+        sample: Vec::new(),
+        position: vec![usize::MAX; case.rays.len()],
+        oracle: Vec::new(),
+        brute: Vec::new(),
+        zero_area: case.tris.iter().map(is_zero_area).collect(),
+        traced: case.rays.iter().map(as_traced).collect(),
+    };
+    let t = Instant::now();
+    let brute: Vec<Hit> = case.rays.par_iter().map(|r| bvh.brute_force(r)).collect();
+    rep.oracle_ms = ms(t);
+    rep.notes.push(format!(
+        "{} {} segments beside the triangles; every ray compared with the tree's brute force ({:.0} ms; no f64 oracle for curves)",
+        curves.len(),
+        curves.kind.name(),
+        rep.oracle_ms
+    ));
+    let queries: &[Query] = if case.any_hit {
+        &[Query::Closest, Query::Any]
+    } else {
+        &[Query::Closest]
+    };
+    let cubic = curves.kind.degree() == 3;
+    let times = vec![0.0; case.rays.len()];
+    for &q in queries {
+        let t = Instant::now();
+        let twin = bvh.trace_rays(&case.rays, q);
+        if backends.cpu {
+            let r = RunReport {
+                trace_ms: ms(t),
+                ..row("cpu", q)
+            };
+            let r = judge.evaluate(r, q, &twin, None);
+            rep.runs.push(against_brute(&judge, r, q, &twin, &brute));
+        }
+        for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
+            let Some(open) = &device.open_curves else {
+                let note = format!("{}: no walk of curves, not traced", device.backend);
+                if !rep.notes.contains(&note) {
+                    rep.notes.push(note);
+                }
+                continue;
+            };
+            let r = row(&device.backend, q);
+            let t = Instant::now();
+            let traced = open(bvh.clone())
+                .map_err(|e| format!("upload failed: {e}"))
+                .and_then(|trace| {
+                    trace(&case.rays, &times, q).map_err(|e| format!("trace failed: {e}"))
+                });
+            let hits = match traced {
+                Ok(hits) => hits,
+                Err(status) => {
+                    rep.runs.push(RunReport { status, ..r });
+                    continue;
+                }
+            };
+            let r = RunReport {
+                trace_ms: ms(t),
+                ..r
+            };
+            let r = if cubic {
+                let mut r = judge.evaluate(r, q, &hits, None);
+                r.parity_mismatches = Some(cubic_parity(&judge, &mut r, &hits, &twin));
+                r
+            } else {
+                judge.evaluate(r, q, &hits, Some(&twin))
+            };
+            rep.runs.push(against_brute(&judge, r, q, &hits, &brute));
+        }
+    }
+}
+
+/// Counts the rays whose answer is not the brute force's (closest: bit for bit; any: hit
+/// or miss alike) as determinate differences from it.
+fn against_brute(
+    judge: &Judge<'_>,
+    mut r: RunReport,
+    q: Query,
+    hits: &[Hit],
+    brute: &[Hit],
+) -> RunReport {
+    let mut examples = Examples(std::mem::take(&mut r.examples));
+    for (i, (h, b)) in hits.iter().zip(brute).enumerate() {
+        let alike = match q {
+            Query::Closest => hit_bits(h) == hit_bits(b),
+            Query::Any => same_verdict(h, b),
+        };
+        if !alike {
+            r.brute_mismatch.add(false);
+            let what = format!("ray {i}: differs from the brute force ({b:?})");
+            examples.push(describe(&judge.case.rays[i], &what, h));
+        }
+    }
+    r.sample = hits.len();
+    r.examples = examples.0;
+    r
+}
+
+/// The rays on which a device's cubic-curve answers differ from the twin's beyond
+/// [`cubic_alike`] (closest), or on hit or miss (any), with examples in `r`.
+fn cubic_parity(judge: &Judge<'_>, r: &mut RunReport, hits: &[Hit], twin: &[Hit]) -> usize {
+    let mut examples = Examples(std::mem::take(&mut r.examples));
+    let mut n = 0;
+    for (i, (g, c)) in hits.iter().zip(twin).enumerate() {
+        let alike = if r.query == query_name(Query::Closest) {
+            cubic_alike(g, c)
+        } else {
+            same_verdict(g, c)
+        };
+        if !alike {
+            n += 1;
+            let what = format!("ray {i}: differs from the CPU twin ({c:?})");
+            examples.push(describe(&judge.case.rays[i], &what, g));
+        }
+    }
+    r.examples = examples.0;
+    n
+}
