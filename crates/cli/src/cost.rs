@@ -208,7 +208,7 @@ fn cost_scene(
     pb.enable_steady_tick(Duration::from_millis(200));
     pb.set_message(format!("{spec}: loading"));
     // The scene error already names the file (or builtin spec).
-    let scene = crate::geometry::load_scene(spec)?;
+    let scene = crate::geometry::load_triangle_scene(spec)?;
     let tris = scene
         .flattened_triangles()
         .with_context(|| format!("{spec}: cannot flatten the scene's triangles"))?;

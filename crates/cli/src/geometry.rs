@@ -140,6 +140,20 @@ pub fn load_scene(spec: &str) -> Result<Scene> {
     Ok(bvhtrace_scene::load_with(spec, &opts)?)
 }
 
+/// Loads `spec` for a command that traces triangles alone (the benchmarks, `cost`): a scene
+/// with curves is refused, naming them, rather than timed without them.
+pub fn load_triangle_scene(spec: &str) -> Result<Scene> {
+    let scene = load_scene(spec)?;
+    if let Some(c) = scene.curves.as_ref().filter(|c| !c.is_empty()) {
+        anyhow::bail!(
+            "{spec}: this command traces triangles, and the scene's {} {} curve segments would be left out (`bvhtrace render` traces curves; docs/curves-bench.sh times them)",
+            c.len(),
+            c.kind.name()
+        );
+    }
+    Ok(scene)
+}
+
 /// Loads `spec` (at time `time` when given), prints its warnings, and builds it with
 /// `builder`.
 pub fn load_and_build(

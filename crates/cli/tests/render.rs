@@ -734,4 +734,18 @@ fn hair_renders_with_curves() {
         );
     }
     assert!(!never.exists(), "a refused render wrote its image");
+    // The commands that trace triangles alone refuse curves rather than time without them.
+    for cmd in [
+        &["cost", "builtin:hair:round-linear:10"][..],
+        &["bench", "--quick", "builtin:hair:round-linear:10"],
+        &["bench-build", "builtin:hair:round-linear:10"],
+    ] {
+        let out = run(cmd);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success()
+                && err.contains("90 round-linear curve segments would be left out"),
+            "{cmd:?}: {err}"
+        );
+    }
 }

@@ -49,7 +49,14 @@ pub struct SceneData {
 impl SceneData {
     /// What the UI shows about `scene`, loaded from `spec` since `started`.
     fn new(spec: String, scene: Scene, started: Instant) -> SceneData {
-        let warnings = scene.warnings.clone();
+        let mut warnings = scene.warnings.clone();
+        if let Some(c) = scene.curves.as_ref().filter(|c| !c.is_empty()) {
+            warnings.push(format!(
+                "its {} {} curve segments are not shown: the viewer traces triangles (`bvhtrace render` traces curves)",
+                c.len(),
+                c.kind.name()
+            ));
+        }
         SceneData {
             name: scene.name.clone(),
             description: scene.description.clone(),

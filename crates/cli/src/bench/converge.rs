@@ -594,7 +594,7 @@ fn measure_scene(
     plan: &Plan,
     backends: &[BenchBackend],
 ) -> Result<Vec<Point>> {
-    let scene = crate::geometry::load_scene(spec)
+    let scene = crate::geometry::load_triangle_scene(spec)
         .with_context(|| format!("{spec}: cannot load the scene"))?;
     let tris = scene
         .flattened_triangles()

@@ -280,7 +280,7 @@ impl Reference {
     /// `spec` loaded, its rays made and the oracle run on the samples.
     fn of(spec: &str, sizes: Sizes) -> Result<Reference> {
         let t0 = Instant::now();
-        let scene = crate::geometry::load_scene(spec)?;
+        let scene = crate::geometry::load_triangle_scene(spec)?;
         let tris = scene.flattened_triangles()?;
         let cam = scene.camera_or_frame(sizes.w as f32 / sizes.h as f32);
         let reference = FlatBvh::build(&tris, &BuildOptions::default())?;

@@ -59,7 +59,7 @@ pub(crate) fn scene_specs(given: &[String]) -> Result<Vec<String>> {
 /// `spec` loaded: its triangles flattened, the scene, and the load time in milliseconds.
 fn load(spec: &str) -> Result<(Vec<Triangle>, bvhtrace_scene::Scene, f64)> {
     let t = Instant::now();
-    let scene = crate::geometry::load_scene(spec)?;
+    let scene = crate::geometry::load_triangle_scene(spec)?;
     let tris = scene.flattened_triangles()?;
     Ok((tris, scene, t.elapsed().as_secs_f64() * 1e3))
 }

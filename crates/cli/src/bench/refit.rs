@@ -226,7 +226,7 @@ pub fn run(args: BenchRefitArgs) -> Result<()> {
             .find(|s| s.contains("igea"))
             .context("igea.glb is not in the shared scenes folder: name a scene")?,
     };
-    let scene = crate::geometry::load_scene(&spec)?;
+    let scene = crate::geometry::load_triangle_scene(&spec)?;
     let tris = scene.flattened_triangles()?;
     let (lo, hi) = scene.bounds();
     let rays = bvhtrace_scene::Camera::frame(lo, hi, 4.0 / 3.0).rays(256, 192);
@@ -385,7 +385,7 @@ fn top_level(out: &Out, spec: &str, args: &BenchRefitArgs) -> Result<TopLevel> {
             _ => "builtin:grid:icosphere:100x100".into(),
         },
     };
-    let many = crate::geometry::load_scene(&inst_spec)?;
+    let many = crate::geometry::load_triangle_scene(&inst_spec)?;
     let (two, full_ms) = time(|| many.instanced_bvh(&BuildOptions::default()));
     let mut two = two?;
     let moved: Vec<Affine3A> = two

@@ -181,7 +181,7 @@ fn run_scenes(args: &BenchTraceArgs, sweep: &mut Sweep) -> Result<()> {
         args.traversals.clone()
     };
     for spec in scene_specs(&args.scenes)? {
-        let scene = crate::geometry::load_scene(&spec)?;
+        let scene = crate::geometry::load_triangle_scene(&spec)?;
         let tris = scene.flattened_triangles()?;
         let t = Instant::now();
         let mut flat = FlatBvh::build(&tris, &BuildOptions::default())?;
