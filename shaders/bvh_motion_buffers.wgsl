@@ -3,6 +3,8 @@
 // binary walks run on it unchanged: its fetch functions give a node's box and a triangle
 // where they are at the current ray's time (`bvh_set_time`, which `entry_ray_times.wgsl`
 // calls as it loads a ray). Twin of `MotionBvh::node_box` and `MotionBvh::visit_leaf`.
+// Composed with `bvh_motion_instances.wgsl`, it holds moving instances' joined tree
+// (`MovingInstancesLayout`) instead: the top level's boxes move, the meshes' are static.
 //
 // Binding 0: the nodes, each box over the whole shutter (`FlatNode`); binding 1: the
 // triangles at every time step, step `k`'s at `k * count` (`MotionBvh::triangles`);
@@ -54,7 +56,8 @@ fn bvh_lerp_point(a: vec3<f32>, b: vec3<f32>, f: f32) -> vec3<f32> {
 
 fn bvh_load_node(i: u32) -> BvhNode {
     var n = bvh_nodes[i];
-    if (BVH_LINEAR_BOUNDS) {
+    // With moving instances (`bvh_motion_instances.wgsl`) only the top level moves.
+    if (BVH_LINEAR_BOUNDS && (!BVH_INSTANCED || i < bvh_top_nodes())) {
         let k = i * BVH_TIME_STEPS + bvh_time_segment;
         let b = bvh_lerp_box(bvh_step_boxes[k], bvh_step_boxes[k + 1u], bvh_time_fraction);
         n.min = b.min;
@@ -68,6 +71,10 @@ fn bvh_load_node_links(i: u32) -> vec2<u32> {
 }
 
 fn bvh_load_triangle(i: u32) -> BvhTriangle {
+    // The meshes under moving instances are static: one copy of their triangles.
+    if (BVH_INSTANCED) {
+        return bvh_triangles[i];
+    }
     let count = arrayLength(&bvh_triangles) / BVH_TIME_STEPS;
     let a = bvh_triangles[bvh_time_segment * count + i];
     let b = bvh_triangles[(bvh_time_segment + 1u) * count + i];

@@ -17,7 +17,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, CurveBvh, Hit, Query, Ray, Triangle};
-use bvhtrace_gpu::{GpuCurveBvh, GpuMotionBvh};
+use bvhtrace_gpu::{GpuCurveBvh, GpuMotionBvh, GpuMotionInstancedBvh};
 use bvhtrace_scene::Scene;
 use glam::Vec3;
 use rayon::prelude::*;
@@ -142,13 +142,14 @@ fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
     Ok(())
 }
 
-/// What a blurred render traces, and where: one moving mesh on the device or on the CPU
-/// twin (which also counts), or moving instances in two levels on the CPU; or, for a
-/// scene with curves, its triangles and curves on the device or the CPU twin.
+/// What a blurred render traces, and where: one moving mesh, or moving instances in two
+/// levels, on the device or on the CPU twin (which also counts); or, for a scene with
+/// curves, its triangles and curves on the device or the CPU twin.
 enum Walker {
     Cpu(Arc<MotionBvh>, MotionMesh),
     Gpu(GpuMotionBvh, MotionMesh),
-    Instanced(MotionInstancedBvh),
+    Instanced(Arc<MotionInstancedBvh>),
+    GpuInstanced(GpuMotionInstancedBvh),
     Curves(CurveBvh),
     GpuCurves(GpuCurveBvh),
 }
@@ -173,12 +174,17 @@ impl Walker {
             });
         };
         if args.shutter.instances {
-            if args.backend != Backend::Auto && args.backend != Backend::Cpu {
-                bail!("--shutter --instances traces on the CPU so far: use --backend cpu or auto");
-            }
             let (meshes, instances) = scene.moving_instances(open, close)?;
-            let bvh = MotionInstancedBvh::build(&meshes, instances, &opts, bounds)?;
-            return Ok(Walker::Instanced(bvh));
+            let bvh = Arc::new(MotionInstancedBvh::build(
+                &meshes, instances, &opts, bounds,
+            )?);
+            let gpu = on_device(args, "moving instances", |ctx| {
+                GpuMotionInstancedBvh::upload(ctx, bvh.clone())
+            })?;
+            return Ok(match gpu {
+                Some(gpu) => Walker::GpuInstanced(gpu),
+                None => Walker::Instanced(bvh),
+            });
         }
         let mesh = scene.motion(open, close)?;
         let bvh = Arc::new(MotionBvh::build(&mesh, &opts, bounds)?);
@@ -193,7 +199,7 @@ impl Walker {
 
     fn name(&self) -> &'static str {
         match self {
-            Walker::Gpu(..) | Walker::GpuCurves(..) => "wgpu",
+            Walker::Gpu(..) | Walker::GpuInstanced(..) | Walker::GpuCurves(..) => "wgpu",
             _ => "cpu",
         }
     }
@@ -216,6 +222,10 @@ impl Walker {
                 (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
             }
             Walker::Instanced(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+            Walker::GpuInstanced(g) => {
+                let b = g.bvh();
+                (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
+            }
             Walker::Curves(b) => (b.triangle_count(), 1, b.byte_size(), b.depth()),
             Walker::GpuCurves(g) => {
                 let b = g.bvh();
@@ -230,6 +240,7 @@ impl Walker {
             Walker::Cpu(b, _) => b.bounds(),
             Walker::Gpu(g, _) => g.bvh().bounds(),
             Walker::Instanced(b) => b.bounds(),
+            Walker::GpuInstanced(g) => g.bvh().bounds(),
             Walker::Curves(b) => b.bounds(),
             Walker::GpuCurves(g) => g.bvh().bounds(),
         }
@@ -241,6 +252,7 @@ impl Walker {
         match self {
             Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
             Walker::Instanced(b) => b.triangle_at(hit.prim, time).unwrap_or_default(),
+            Walker::GpuInstanced(g) => g.bvh().triangle_at(hit.prim, time).unwrap_or_default(),
             Walker::Curves(b) => b.shading_triangle(hit, ray),
             Walker::GpuCurves(g) => g.bvh().shading_triangle(hit, ray),
         }
@@ -261,6 +273,7 @@ impl Walker {
             Walker::Curves(b) => Ok(on_cpu(&|r, _| b.trace(r, Query::Closest))),
             Walker::GpuCurves(g) => Ok((g.trace(rays, Query::Closest)?, Vec::new())),
             Walker::Gpu(g, _) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
+            Walker::GpuInstanced(g) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
         }
     }
 
@@ -271,6 +284,7 @@ impl Walker {
             Walker::Curves(b) => Ok(b.trace_rays(rays, Query::Any)),
             Walker::GpuCurves(g) => Ok(g.trace(rays, Query::Any)?),
             Walker::Gpu(g, _) => Ok(g.trace(rays, times, Query::Any)?),
+            Walker::GpuInstanced(g) => Ok(g.trace(rays, times, Query::Any)?),
         }
     }
 }

@@ -261,6 +261,12 @@ fn moving_meshes_match_embree_ray_by_ray() {
             let ours = bvh.trace_rays(&rays, &times, Query::Closest);
             let what = format!("{file} ({} steps, {bounds:?})", mesh.time_steps());
             match_embree(&what, (&ours, &theirs), (&rays, &times), |t| mesh.at(t));
+            if let Some(ctx) = wgpu_context(&what) {
+                let gpu = bvhtrace_gpu::GpuMotionBvh::upload(&ctx, bvh.into()).unwrap();
+                let ours = gpu.trace(&rays, &times, Query::Closest).unwrap();
+                let what = format!("{what} on wgpu");
+                match_embree(&what, (&ours, &theirs), (&rays, &times), |t| mesh.at(t));
+            }
         }
         // The render traces the rays the dump holds.
         let png = dir.join(format!("{file}.png"));
@@ -330,6 +336,18 @@ fn read_instanced_dump(
     (meshes, instances, rays, times)
 }
 
+/// The wgpu device the tests trace on beside the CPU twin, or `None` (SKIP printed).
+fn wgpu_context(what: &str) -> Option<bvhtrace_gpu::GpuContext> {
+    let opts = bvhtrace::OpenOptions::new(bvhtrace::Backend::Wgpu);
+    match bvhtrace::Device::new(&opts) {
+        Ok(device) => device.wgpu_context().cloned(),
+        Err(e) => {
+            println!("SKIP {what} on wgpu: {e}");
+            None
+        }
+    }
+}
+
 /// Moving instances ray by ray against Embree 3's (instance geometries with their
 /// transforms as time steps), under the rule of `moving_meshes_match_embree_ray_by_ray`,
 /// judged on the instances' triangles placed at each ray's time.
@@ -372,6 +390,13 @@ fn moving_instances_match_embree_ray_by_ray() {
         let ours = bvh.trace_rays(&rays, &times, Query::Closest);
         let what = format!("{scene} ({} steps)", bvh.time_steps());
         match_embree(&what, (&ours, &theirs), (&rays, &times), |t| bvh.at(t));
+        if let Some(ctx) = wgpu_context(&what) {
+            let bvh = std::sync::Arc::new(bvh);
+            let gpu = bvhtrace_gpu::GpuMotionInstancedBvh::upload(&ctx, bvh.clone()).unwrap();
+            let ours = gpu.trace(&rays, &times, Query::Closest).unwrap();
+            let what = format!("{what} on wgpu");
+            match_embree(&what, (&ours, &theirs), (&rays, &times), |t| bvh.at(t));
+        }
     }
 }
 
@@ -456,36 +481,55 @@ fn curves_match_embree_ray_by_ray() {
             .collect();
         let (tris, curves, rays) = read_curve_dump(&std::fs::read(&dump).unwrap());
         let bvh = CurveBvh::build(&tris, curves, &BuildOptions::default()).unwrap();
-        let ours = bvh.trace_rays(&rays, Query::Closest);
-        let (mut same, mut curve_hits, mut worst) = (0, 0, (0f32, 0f32));
-        for (i, o) in ours.iter().enumerate() {
-            let p = if o.is_hit() { o.prim } else { MISS };
-            let curve = p != MISS && bvh.segment_of(p).is_some();
-            let (t, u) = (their_tu[2 * i], their_tu[2 * i + 1]);
-            let (dt, du) = ((o.t - t).abs() / t, (o.u - u).abs());
-            if p != theirs[i] || (curve && (dt > 1e-4 || du > 1e-3)) {
-                continue;
-            }
-            same += 1;
-            if curve {
-                curve_hits += 1;
-                worst = (worst.0.max(dt), worst.1.max(du));
-            }
+        let mut answers = vec![("cpu", bvh.trace_rays(&rays, Query::Closest))];
+        if let Some(ctx) = wgpu_context(&scene) {
+            let gpu = bvhtrace_gpu::GpuCurveBvh::upload(&ctx, bvh.clone().into()).unwrap();
+            answers.push(("wgpu", gpu.trace(&rays, Query::Closest).unwrap()));
         }
-        let differ = rays.len() - same;
-        eprintln!(
-            "{scene}: {same} of {} rays the same answer as Embree ({curve_hits} on curves; t within {:.1e} of Embree's, u within {:.1e}), {differ} differ",
-            rays.len(),
-            worst.0,
-            worst.1
-        );
-        assert!(
-            curve_hits > rays.len() / 10,
-            "{scene}: the rays miss the hair"
-        );
-        assert!(
-            differ * 1000 <= 2 * rays.len(),
-            "{scene}: {differ} rays differ"
-        );
+        for (backend, ours) in answers {
+            let scene = format!("{scene} on {backend}");
+            check_curves(&scene, &bvh, (&ours, &theirs, &their_tu), &rays);
+        }
     }
+}
+
+/// Our closest hits on curves against Embree's primitives, distances and curve parameters:
+/// the same answer (on a curve, `t` within 1e-4 and `u` within 1e-3 of Embree's) on all
+/// but 2 rays in 1,000, and the rays hit the hair.
+fn check_curves(
+    scene: &str,
+    bvh: &CurveBvh,
+    (ours, theirs, their_tu): (&[Hit], &[u32], &[f32]),
+    rays: &[Ray],
+) {
+    let (mut same, mut curve_hits, mut worst) = (0, 0, (0f32, 0f32));
+    for (i, o) in ours.iter().enumerate() {
+        let p = if o.is_hit() { o.prim } else { MISS };
+        let curve = p != MISS && bvh.segment_of(p).is_some();
+        let (t, u) = (their_tu[2 * i], their_tu[2 * i + 1]);
+        let (dt, du) = ((o.t - t).abs() / t, (o.u - u).abs());
+        if p != theirs[i] || (curve && (dt > 1e-4 || du > 1e-3)) {
+            continue;
+        }
+        same += 1;
+        if curve {
+            curve_hits += 1;
+            worst = (worst.0.max(dt), worst.1.max(du));
+        }
+    }
+    let differ = rays.len() - same;
+    eprintln!(
+        "{scene}: {same} of {} rays the same answer as Embree ({curve_hits} on curves; t within {:.1e} of Embree's, u within {:.1e}), {differ} differ",
+        rays.len(),
+        worst.0,
+        worst.1
+    );
+    assert!(
+        curve_hits > rays.len() / 10,
+        "{scene}: the rays miss the hair"
+    );
+    assert!(
+        differ * 1000 <= 2 * rays.len(),
+        "{scene}: {differ} rays differ"
+    );
 }

@@ -606,6 +606,20 @@ fn blurred_renders_over_the_shutter() {
         (j["levels"].as_u64(), j["time_steps"].as_u64()),
         (Some(2), Some(5))
     );
+    // On the device and on the CPU twin: the same image.
+    let (g, gpu_instanced) = render_json_on(
+        "gpu",
+        "blur-instances-gpu",
+        &[&two[..], &["--instances"]].concat(),
+    );
+    assert_eq!(
+        (j["backend"].as_str(), g["backend"].as_str()),
+        (Some("cpu"), Some("wgpu"))
+    );
+    assert!(
+        gpu_instanced == instanced,
+        "the device's moving instances are not the CPU's"
+    );
     // The same surfaces, rounded apart (each instance walked in its own space): a few
     // silhouette pixels may differ.
     let pixels = |png: &[u8]| image::load_from_memory(png).unwrap().to_rgb8().into_raw();
@@ -622,7 +636,7 @@ fn blurred_renders_over_the_shutter() {
     );
     for bad in [
         &["--backend", "vulkan"][..],
-        &["--backend", "gpu", "--instances"],
+        &["--backend", "vulkan", "--instances"],
         &["--backend", "auto", "--shade", "heatmap"],
         &["--shade", "path"],
         &["--time", "0.3"],

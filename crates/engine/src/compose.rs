@@ -222,6 +222,16 @@ impl ModuleSet {
         }
     }
 
+    /// The full-stack walk over moving instances joined in one tree
+    /// (`MovingInstancesLayout`: a moving top level over static meshes), hits only: what
+    /// `bvhtrace_gpu::GpuMotionInstancedBvh` traces with.
+    pub fn motion_instances() -> ModuleSet {
+        ModuleSet {
+            instances: true,
+            ..ModuleSet::motion()
+        }
+    }
+
     /// The full-stack walk over a tree of triangles and curve segments, hits only: what
     /// `bvhtrace_gpu::GpuCurveBvh` traces with.
     pub fn curves() -> ModuleSet {
@@ -305,9 +315,10 @@ impl ModuleSet {
             });
         }
         let mut push = |(name, src): Wgsl| out.push((name, src.into()));
-        push(match self.instances {
-            true => shaders::BVH_INSTANCES,
-            false => shaders::BVH_NO_INSTANCES,
+        push(match (self.instances, self.motion) {
+            (true, true) => shaders::BVH_MOTION_INSTANCES,
+            (true, false) => shaders::BVH_INSTANCES,
+            (false, _) => shaders::BVH_NO_INSTANCES,
         });
         if self.masks {
             push(shaders::BVH_ALPHA_MASKS);

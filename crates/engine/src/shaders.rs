@@ -78,6 +78,8 @@ wgsl_files! {
     BVH_INSTANCES = "bvh_instances.wgsl",
     /// The same names for one mesh, folded away.
     BVH_NO_INSTANCES = "bvh_no_instances.wgsl",
+    /// Moving instances (bindings 4 and 7): each one's transform at the ray's time, inverted.
+    BVH_MOTION_INSTANCES = "bvh_motion_instances.wgsl",
     /// The alpha masks (binding 5) and `bvh_alpha_accept`.
     BVH_ALPHA_MASKS = "bvh_alpha_masks.wgsl",
     /// `BvhCandidate`, what a library's hit filter is asked about.

@@ -708,7 +708,13 @@ fn the_motion_module_matches_rust_and_compiles() {
         let (t, s) = group0_array(&module, name);
         assert_eq!((t.as_str(), s as usize), (ty, stride), "{name}");
     }
-    let info = validate(&module);
+    compile_moving(&module, "motion");
+}
+
+/// Validates a moving tree's module and compiles its one entry point for both queries,
+/// both bounds and several step counts, with the driver's constants.
+fn compile_moving(module: &naga::Module, what: &str) {
+    let info = validate(module);
     for any in [0.0, 1.0] {
         for linear in [0.0, 1.0] {
             for steps in [2.0, 9.0, 129.0] {
@@ -721,10 +727,63 @@ fn the_motion_module_matches_rust_and_compiles() {
                 ] {
                     c.insert(k.to_string(), v);
                 }
-                compile_entry(&module, &info, "bvh_trace_full_stack_main", &c, "motion");
+                compile_entry(module, &info, "bvh_trace_full_stack_main", &c, what);
             }
         }
     }
+}
+
+/// Moving instances' module (`ModuleSet::motion_instances`): the moving tree's files with
+/// `bvh_motion_instances.wgsl` in place of the static instances; the instances have
+/// `MovingInstanceRecord`'s layout, the transforms three rows of 16 bytes; it compiles as
+/// the moving mesh's does.
+#[test]
+fn the_moving_instances_module_matches_rust_and_compiles() {
+    use bvhtrace_core::motion::{MotionBox, MovingInstanceRecord};
+    let src = ModuleSet::motion_instances().compose(0);
+    for (name, composed) in [
+        ("bvh_motion_buffers.wgsl", true),
+        ("bvh_motion_instances.wgsl", true),
+        ("traverse_instances.wgsl", true),
+        ("bvh_instances.wgsl", false),
+        ("bvh_no_instances.wgsl", false),
+    ] {
+        let here = src.contains(&format!("// ---- {name} ----"));
+        assert_eq!(here, composed, "{name}");
+    }
+    let module = parse(&src);
+    check_structs(&module);
+    check_struct(
+        &module,
+        "BvhMovingInstance",
+        size_of::<MovingInstanceRecord>(),
+        &[
+            ("root", offset_of!(MovingInstanceRecord, root)),
+            ("prim_base", offset_of!(MovingInstanceRecord, prim_base)),
+            (
+                "first_transform",
+                offset_of!(MovingInstanceRecord, first_transform),
+            ),
+            ("transforms", offset_of!(MovingInstanceRecord, transforms)),
+        ],
+    );
+    check_struct(
+        &module,
+        "BvhRows",
+        size_of::<[[f32; 4]; 3]>(),
+        &[("rows", 0)],
+    );
+    for (name, ty, stride) in [
+        ("bvh_moving_instances", "BvhMovingInstance", 16),
+        ("bvh_instance_transforms", "BvhRows", 48),
+        ("bvh_step_boxes", "BvhMotionBox", size_of::<MotionBox>()),
+        ("bvh_nodes", "BvhNode", size_of::<FlatNode>()),
+        ("bvh_triangles", "BvhTriangle", size_of::<FlatTriangle>()),
+    ] {
+        let (t, s) = group0_array(&module, name);
+        assert_eq!((t.as_str(), s as usize), (ty, stride), "{name}");
+    }
+    compile_moving(&module, "moving instances");
 }
 
 /// The curves' module (`ModuleSet::curves`): the segments have `CurveSegment`'s layout,

@@ -65,7 +65,7 @@ pub use bvhtrace_engine::UploadOptions;
 pub use bvhtrace_engine::engine::Update;
 pub use context::{ContextOptions, GpuContext, device_kind};
 pub use curves::GpuCurveBvh;
-pub use motion::GpuMotionBvh;
+pub use motion::{GpuMotionBvh, GpuMotionInstancedBvh};
 #[cfg(not(target_arch = "wasm32"))]
 pub use ray_query::RayQueryBvh;
 

@@ -5,11 +5,11 @@
 
 use std::sync::Arc;
 
-use bvhtrace_core::motion::{MotionBox, MotionBvh, TimeBounds};
+use bvhtrace_core::motion::{MotionBox, MotionBvh, MotionInstancedBvh, TimeBounds};
 use bvhtrace_core::traverse::untraced;
 use bvhtrace_core::{Hit, INCOMPLETE, Query, Ray};
 use bvhtrace_engine::compose::ModuleSet;
-use bvhtrace_engine::plan::{Dispatch, plan_dispatches};
+use bvhtrace_engine::plan::plan_dispatches;
 use bvhtrace_engine::walks::FULL_STACK_SIZE;
 
 use crate::tree_kernel::{TreeKernel, TreeKernelDesc};
@@ -81,13 +81,7 @@ impl GpuMotionBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, GpuError> {
-        if cfg!(target_arch = "wasm32") {
-            return Err(TraceError::Device {
-                during: "tracing a moving mesh",
-                message: "a browser cannot wait for its GPU: use trace_async".into(),
-            });
-        }
-        pollster::block_on(self.trace_async(rays, times, query))
+        block_on(self.trace_async(rays, times, query))
     }
 
     /// [`GpuMotionBvh::trace`] as a future.
@@ -97,39 +91,149 @@ impl GpuMotionBvh {
         times: &[f32],
         query: Query,
     ) -> Result<Vec<Hit>, GpuError> {
-        assert_eq!(rays.len(), times.len(), "one time per ray");
-        let mut hits = Vec::with_capacity(rays.len());
-        for d in plan_dispatches(rays.len() as u64, self.ctx.limits()) {
-            let range = d.first_ray as usize..d.first_ray as usize + d.ray_count as usize;
-            let (r, t) = (&rays[range.clone()], &times[range]);
-            hits.extend(self.trace_chunk(r, t, query, &d).await?);
+        let twin = |r: &Ray, t: f32| self.bvh.trace(r, t, query).0;
+        trace_timed(&self.ctx, &self.kernel, (rays, times), query, twin).await
+    }
+}
+
+/// Waits for `trace`, where the platform can (not in a browser).
+fn block_on(
+    trace: impl std::future::Future<Output = Result<Vec<Hit>, GpuError>>,
+) -> Result<Vec<Hit>, GpuError> {
+    if cfg!(target_arch = "wasm32") {
+        return Err(TraceError::Device {
+            during: DURING,
+            message: "a browser cannot wait for its GPU: use trace_async".into(),
+        });
+    }
+    pollster::block_on(trace)
+}
+
+/// What a moving tree's errors say it was doing.
+const DURING: &str = "tracing a moving scene";
+
+/// `rays[i]` at `times[i]` traced on `kernel` (a tree of the moving layouts), in as many
+/// dispatches as the device's limits need; rays whose time is NaN, and rays the driver's
+/// trip budget cut short, answered by `twin`.
+async fn trace_timed(
+    ctx: &GpuContext,
+    kernel: &TreeKernel,
+    (rays, times): (&[Ray], &[f32]),
+    query: Query,
+    twin: impl Fn(&Ray, f32) -> Hit,
+) -> Result<Vec<Hit>, GpuError> {
+    assert_eq!(rays.len(), times.len(), "one time per ray");
+    let mut hits = Vec::with_capacity(rays.len());
+    for d in plan_dispatches(rays.len() as u64, ctx.limits()) {
+        let range = d.first_ray as usize..d.first_ray as usize + d.ray_count as usize;
+        // NaN times are answered on the host; the kernel sees 0.
+        let t: Vec<f32> = (times[range.clone()].iter())
+            .map(|&t| if t.is_nan() { 0.0 } else { t })
+            .collect();
+        let extra = [(3, bytemuck::cast_slice(&t))];
+        let r = &rays[range];
+        hits.extend(kernel.dispatch(ctx, DURING, (r, &extra), query, &d).await?);
+    }
+    for (i, h) in hits.iter_mut().enumerate() {
+        if times[i].is_nan() {
+            *h = untraced(&rays[i]);
+        } else if h.prim == INCOMPLETE {
+            *h = twin(&rays[i], times[i]);
         }
-        for (i, h) in hits.iter_mut().enumerate() {
-            if times[i].is_nan() {
-                *h = untraced(&rays[i]);
-            } else if h.prim == INCOMPLETE {
-                *h = self.bvh.trace(&rays[i], times[i], query).0;
-            }
+    }
+    Ok(hits)
+}
+
+/// Moving instances on the device: a [`MotionInstancedBvh`] joined into one tree
+/// ([`bvhtrace_core::motion::MovingInstancesLayout`]: the moving top level, then the static meshes) and traced by
+/// the full-stack walk, which enters each instance with its transform at the ray's time
+/// ([`ModuleSet::motion_instances`]), the twin of [`MotionInstancedBvh::trace`] bit for
+/// bit.
+#[derive(Debug)]
+pub struct GpuMotionInstancedBvh {
+    ctx: GpuContext,
+    bvh: Arc<MotionInstancedBvh>,
+    kernel: TreeKernel,
+}
+
+impl GpuMotionInstancedBvh {
+    /// Uploads `bvh` joined ([`MotionInstancedBvh::kernel_layout`]) and compiles its two
+    /// pipelines, specialised for its steps and bounds. Refuses a tree whose two levels
+    /// together are deeper than the full-stack kernel's stack ([`TraceError::TooDeep`]) and
+    /// arrays over the device's binding limit ([`TraceError::TooLarge`]).
+    pub fn upload(
+        ctx: &GpuContext,
+        bvh: Arc<MotionInstancedBvh>,
+    ) -> Result<GpuMotionInstancedBvh, GpuError> {
+        let layout = bvh.kernel_layout();
+        if layout.depth > FULL_STACK_SIZE {
+            return Err(TraceError::TooDeep {
+                depth: layout.depth,
+                max: FULL_STACK_SIZE,
+            });
         }
-        Ok(hits)
+        // Merged bounds read no step box; the binding still needs a buffer.
+        let dummy = [MotionBox::default()];
+        let linear = bvh.time_bounds() == TimeBounds::Linear;
+        let boxes = if linear {
+            &layout.step_boxes[..]
+        } else {
+            &dummy[..]
+        };
+        let kernel = TreeKernel::new(
+            ctx,
+            TreeKernelDesc {
+                label: "moving instances' tree",
+                arrays: &[
+                    ("nodes", bytemuck::cast_slice(&layout.nodes)),
+                    ("triangles", bytemuck::cast_slice(&layout.triangles)),
+                    ("instances", bytemuck::cast_slice(&layout.instances)),
+                    ("step boxes", bytemuck::cast_slice(boxes)),
+                    (
+                        "instance transforms",
+                        bytemuck::cast_slice(&layout.transforms),
+                    ),
+                ],
+                bindings: &[0, 1, 4, 6, 7],
+                batch: &[0, 1, 3],
+                source: ModuleSet::motion_instances().compose(0),
+                constants: vec![
+                    ("BVH_TIME_STEPS", bvh.time_steps() as f64),
+                    ("BVH_LINEAR_BOUNDS", if linear { 1.0 } else { 0.0 }),
+                ],
+            },
+        )?;
+        Ok(GpuMotionInstancedBvh {
+            ctx: ctx.clone(),
+            bvh,
+            kernel,
+        })
     }
 
-    /// One dispatch `d` over `rays` at `times`: their hits.
-    async fn trace_chunk(
+    /// The instances it traces.
+    pub fn bvh(&self) -> &Arc<MotionInstancedBvh> {
+        &self.bvh
+    }
+
+    /// Traces `rays[i]` at `times[i]` (see [`MotionInstancedBvh::trace`]: the same answers,
+    /// bit for bit): closest or any hit. Rays the driver's trip budget cut short, and rays
+    /// whose time is NaN, are answered on the CPU twin. Waits for the device: in a browser,
+    /// await [`GpuMotionInstancedBvh::trace_async`].
+    ///
+    /// # Panics
+    /// When the two slices differ in length.
+    pub fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, GpuError> {
+        block_on(self.trace_async(rays, times, query))
+    }
+
+    /// [`GpuMotionInstancedBvh::trace`] as a future.
+    pub async fn trace_async(
         &self,
         rays: &[Ray],
         times: &[f32],
         query: Query,
-        d: &Dispatch,
     ) -> Result<Vec<Hit>, GpuError> {
-        // NaN times are answered on the host; the kernel sees 0.
-        let times: Vec<f32> = times
-            .iter()
-            .map(|&t| if t.is_nan() { 0.0 } else { t })
-            .collect();
-        let extra = [(3, bytemuck::cast_slice(&times))];
-        (self.kernel)
-            .dispatch(&self.ctx, "tracing a moving mesh", (rays, &extra), query, d)
-            .await
+        let twin = |r: &Ray, t: f32| self.bvh.trace(r, t, query).0;
+        trace_timed(&self.ctx, &self.kernel, (rays, times), query, twin).await
     }
 }

@@ -169,3 +169,56 @@ fn a_tree_too_deep_for_the_stack_is_refused_by_name() {
         other => panic!("expected TooDeep, got {other:?}"),
     }
 }
+
+/// Moving instances (`GpuMotionInstancedBvh`): the joined tree's walk enters each instance
+/// with its transform at the ray's time, as the CPU twin (`MotionInstancedBvh::trace`)
+/// does, bit for bit, closest and any hit, both bounds: node animations over 129 steps
+/// (instances that move and instances that stay), and a moving builtin.
+#[test]
+fn moving_instances_answer_as_the_cpu_twin_bit_for_bit() {
+    use bvhtrace_core::motion::MotionInstancedBvh;
+    use bvhtrace_gpu::GpuMotionInstancedBvh;
+    let Some(ctx) = support::context("moving instances") else {
+        return;
+    };
+    let scenes = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes");
+    for (spec, open, close) in [
+        (format!("{scenes}/animated.gltf"), 0.2, 1.9),
+        ("builtin:moving:icosphere".to_string(), 0.0, 1.0),
+    ] {
+        let scene = bvhtrace_scene::load(&spec).unwrap_or_else(|e| panic!("{e}"));
+        let (meshes, instances) = scene.moving_instances(open, close).unwrap();
+        assert!(
+            instances.iter().any(|i| i.transforms.len() > 1),
+            "{spec}: nothing moves"
+        );
+        let (rays, times) = timed_rays(&scene, 96, 72);
+        for bounds in [TimeBounds::Linear, TimeBounds::Merged] {
+            let opts = BuildOptions::default();
+            let bvh = MotionInstancedBvh::build(&meshes, instances.clone(), &opts, bounds).unwrap();
+            let bvh = Arc::new(bvh);
+            let gpu = GpuMotionInstancedBvh::upload(&ctx, bvh.clone()).expect("upload");
+            for query in [Query::Closest, Query::Any] {
+                let want = bvh.trace_rays(&rays, &times, query);
+                let got = gpu.trace(&rays, &times, query).expect("trace");
+                let differ = same_bits(&got, &want);
+                let hits = want.iter().filter(|h| h.is_hit()).count();
+                eprintln!(
+                    "{spec} {bounds:?} {query:?}: {} rays, {hits} hits, {} differ",
+                    rays.len(),
+                    differ.len()
+                );
+                assert!(hits > rays.len() / 20, "{spec}: the rays miss");
+                if let Some(&i) = differ.first() {
+                    panic!(
+                        "{spec} {bounds:?} {query:?}: {} rays differ, first {i} at time {}: device {:?}, CPU {:?}",
+                        differ.len(),
+                        times[i],
+                        got[i],
+                        want[i]
+                    );
+                }
+            }
+        }
+    }
+}

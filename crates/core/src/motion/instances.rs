@@ -4,10 +4,11 @@
 //! mesh's own static tree below, walked with the ray taken into the instance's space at
 //! its time.
 
-use glam::{Affine3A, Mat4, Vec3, Vec4};
+use bytemuck::{Pod, Zeroable};
+use glam::{Affine3A, Mat4, Vec4};
 
 use crate::build::{BuildError, BuildOptions};
-use crate::flat::FlatBvh;
+use crate::flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle, INSTANCE_LEAF};
 use crate::geometry::Aabb;
 use crate::instance::{InstanceError, check_transform, world_box};
 use crate::mesh::Triangle;
@@ -15,7 +16,7 @@ use crate::ray::{Counters, Hit, Ray};
 use crate::traverse::{Best, Query, TraceOptions, Traversal, trace_ray};
 
 use super::tree::{TimeTree, trace_all};
-use super::{MAX_TIME_STEPS, TimeBounds, time_segment};
+use super::{MAX_TIME_STEPS, MotionBox, TimeBounds, time_segment};
 
 /// A mesh placed by a transform that may move.
 #[derive(Clone, Debug, PartialEq)]
@@ -36,6 +37,43 @@ impl MovingInstance {
             _ => self.transforms[s] * (1.0 - f) + self.transforms[s + 1] * f,
         }
     }
+
+    /// Its world-to-object transform at the time of `seg`, as rows
+    /// ([`FlatInstance::world_to_object`]): [`invert_rows`] of [`rows_of`] its transform
+    /// then, the arithmetic the kernel of moving instances repeats.
+    pub fn world_to_object_at(&self, seg: (usize, f32)) -> [[f32; 4]; 3] {
+        invert_rows(&rows_of(&self.transform_at(seg)))
+    }
+}
+
+/// The three rows of an affine transform (its last row is `0, 0, 0, 1`).
+pub fn rows_of(m: &Mat4) -> [[f32; 4]; 3] {
+    [m.row(0), m.row(1), m.row(2)].map(|r| r.to_array())
+}
+
+/// The inverse of the affine transform whose rows are `m`, as rows: its 3x3 part's inverse
+/// is the cross products of its columns over its determinant, and the translation is taken
+/// back through it. Every product and sum in the order written, as the kernels'
+/// `bvh_invert_rows` has them, so the CPU and the device take a ray into a moving instance
+/// alike. A singular transform gives infinite or NaN rows (the ray then enters nothing).
+pub fn invert_rows(m: &[[f32; 4]; 3]) -> [[f32; 4]; 3] {
+    let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
+    let (c0, c1, c2) = (col(0), col(1), col(2));
+    let cross = |a: [f32; 3], b: [f32; 3]| {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    let rows = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
+    let det = c0[0] * rows[0][0] + c0[1] * rows[0][1] + c0[2] * rows[0][2];
+    let inv = 1.0 / det;
+    let t = [m[0][3], m[1][3], m[2][3]];
+    rows.map(|r| {
+        let s = [r[0] * inv, r[1] * inv, r[2] * inv];
+        [s[0], s[1], s[2], -(s[0] * t[0] + s[1] * t[1] + s[2] * t[2])]
+    })
 }
 
 /// Why moving instances were refused.
@@ -125,8 +163,13 @@ impl MotionInstancedBvh {
                 boxes.push(world_box(&placed, &object));
             }
         }
-        // Every mesh built, so the options are good: the top level cannot fail.
-        let (top, order) = TimeTree::build(&boxes, steps, opts, bounds)
+        // Every mesh built, so the options are good: the top level cannot fail. One
+        // instance per leaf, as the kernel's layout has it ([`MovingInstancesLayout`]).
+        let top_opts = BuildOptions {
+            max_leaf_size: 1,
+            ..*opts
+        };
+        let (top, order) = TimeTree::build(&boxes, steps, &top_opts, bounds)
             .map_err(|_| InstanceMotionError::NoInstances)?;
         let mut first = Vec::with_capacity(instances.len());
         let mut next = 0u32;
@@ -211,6 +254,61 @@ impl MotionInstancedBvh {
         self.top.byte_size() + n + t
     }
 
+    /// How the top level bounds time.
+    pub fn time_bounds(&self) -> TimeBounds {
+        self.top.bounds
+    }
+
+    /// Both levels joined as the kernel of moving instances reads them (see
+    /// [`MovingInstancesLayout`]).
+    pub fn kernel_layout(&self) -> MovingInstancesLayout {
+        let top_nodes = self.top.nodes.len() as u32;
+        let mut nodes: Vec<FlatNode> = (self.top.nodes.iter())
+            .map(|n| match n.is_leaf() {
+                // One instance per leaf: its index in leaf order is the leaf's first.
+                true => FlatNode {
+                    meta: (1 << 2) | INSTANCE_LEAF,
+                    ..*n
+                },
+                false => *n,
+            })
+            .collect();
+        let (mut triangles, mut roots) = (Vec::new(), Vec::new());
+        let mut depth = 0;
+        for mesh in &self.meshes {
+            let (base, tri_base) = (nodes.len() as u32, triangles.len() as u32);
+            roots.push(base);
+            nodes.extend(mesh.nodes().iter().map(|n| FlatNode {
+                right_or_first: n.right_or_first + if n.is_leaf() { tri_base } else { base },
+                ..*n
+            }));
+            triangles.extend_from_slice(mesh.triangles());
+            depth = depth.max(mesh.depth() + 1);
+        }
+        let mut transforms = Vec::new();
+        let instances = (self.instances.iter())
+            .map(|(inst, first)| {
+                let record = MovingInstanceRecord {
+                    root: roots[inst.mesh],
+                    prim_base: *first,
+                    first_transform: transforms.len() as u32,
+                    transforms: inst.transforms.len() as u32,
+                };
+                transforms.extend(inst.transforms.iter().map(rows_of));
+                record
+            })
+            .collect();
+        MovingInstancesLayout {
+            nodes,
+            top_nodes,
+            step_boxes: self.top.step_boxes.clone(),
+            triangles,
+            instances,
+            transforms,
+            depth: self.top.depth + depth,
+        }
+    }
+
     /// Traces one ray at `time` (clamped to `[0, 1]`; a NaN time is an invalid ray): the
     /// closest hit (the walks' hit rule over every instance) or any hit.
     pub fn trace(&self, ray: &Ray, time: f32, query: Query) -> (Hit, Counters) {
@@ -248,14 +346,14 @@ impl MotionInstancedBvh {
         c: &mut Counters,
     ) -> bool {
         let (inst, first) = &self.instances[j];
-        let to_object = Affine3A::from_mat4(inst.transform_at(seg)).inverse();
-        let t_max = if best.found { best.t.next_up() } else { best.t };
-        let object = Ray::with_interval(
-            to_object.transform_point3(Vec3::from(ray.origin)),
-            to_object.transform_vector3(Vec3::from(ray.dir)),
-            ray.t_min,
-            t_max,
-        );
+        let placed = FlatInstance {
+            world_to_object: inst.world_to_object_at(seg),
+            ..FlatInstance::zeroed()
+        };
+        let object = Ray {
+            t_max: if best.found { best.t.next_up() } else { best.t },
+            ..placed.ray_to_object(ray)
+        };
         if !object.is_valid() {
             return false;
         }
@@ -264,6 +362,48 @@ impl MotionInstancedBvh {
         *c += k;
         h.is_hit() && best.offer(h.t, first + h.prim, h.u, h.v)
     }
+}
+
+/// One moving instance as the kernel reads it: where its mesh's tree starts among the
+/// joined nodes, its first primitive id, and its transforms. GPU layout: WGSL
+/// `BvhMovingInstance` in `shaders/bvh_motion_instances.wgsl` (16 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct MovingInstanceRecord {
+    /// Its mesh's root in [`MovingInstancesLayout::nodes`].
+    pub root: u32,
+    /// Its first primitive id: a hit on its mesh's triangle `p` reports `prim_base + p`.
+    pub prim_base: u32,
+    /// Its first transform in [`MovingInstancesLayout::transforms`].
+    pub first_transform: u32,
+    /// How many it has: 1 (it stays where it is) or the time steps.
+    pub transforms: u32,
+}
+
+/// A [`MotionInstancedBvh`] joined into one tree for a device: the top level's nodes
+/// (each leaf an instance leaf, [`INSTANCE_LEAF`], naming its instance) then every mesh's,
+/// with child and triangle indices moved to where they now are; the top level's boxes at
+/// every step; the meshes' triangles one after another; the instances in the top level's
+/// leaf order; and their object-to-world transforms as rows ([`rows_of`]). A walk enters
+/// an instance with [`MovingInstance::world_to_object_at`] the ray's time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MovingInstancesLayout {
+    /// The nodes: the top level's first.
+    pub nodes: Vec<FlatNode>,
+    /// How many of them are the top level's (`2n - 1` for `n` instances).
+    pub top_nodes: u32,
+    /// The top level's node `i`'s box at step `k`: entry `i * steps + k` (empty with
+    /// merged bounds).
+    pub step_boxes: Vec<MotionBox>,
+    /// The meshes' triangles, each mesh's in its tree's leaf order.
+    pub triangles: Vec<FlatTriangle>,
+    /// The instances, in the top level's leaf order.
+    pub instances: Vec<MovingInstanceRecord>,
+    /// The instances' transforms, each as three rows.
+    pub transforms: Vec<[[f32; 4]; 3]>,
+    /// At most this many nodes on a full-stack walk's stack: the top level's depth and the
+    /// deepest mesh's.
+    pub depth: u32,
 }
 
 /// The common step count of `instances` (1 when none moves), after checking each.

@@ -28,7 +28,10 @@ use crate::traverse::{Best, Query};
 mod instances;
 pub(crate) mod tree;
 
-pub use instances::{InstanceMotionError, MotionInstancedBvh, MovingInstance};
+pub use instances::{
+    InstanceMotionError, MotionInstancedBvh, MovingInstance, MovingInstanceRecord,
+    MovingInstancesLayout, invert_rows, rows_of,
+};
 use tree::TimeTree;
 
 /// Why a motion mesh was refused.
