@@ -73,7 +73,7 @@ pub const CASE_GROUPS: &[(&str, &str)] = &[
     ),
     (
         "motion",
-        "motion-t0 .. motion-after, motion-flip-*: a closed icosphere moving, turning and growing over 3 time steps, and one turning inside out over 2 (every winding flips; flat at mid-shutter), each traced at one time (the shutter's ends exactly, a step, between steps, outside the shutter): rays from inside at that time and a camera; every walk of moving meshes, both ways of bounding time",
+        "motion-t0 .. motion-after, motion-flip-*: a closed icosphere moving, turning and growing over 3 time steps, one turning inside out over 2 (every winding flips; flat at mid-shutter), and one placed by moving instances (still, moving and stretching, mirrored), each traced at one time (the shutter's ends exactly, a step, between steps, outside the shutter): rays from inside at that time and a camera; every walk of moving meshes, both ways of bounding time",
     ),
     (
         "curves",

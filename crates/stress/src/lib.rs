@@ -35,6 +35,7 @@ mod runner;
 #[cfg(feature = "wgpu")]
 pub mod wgpu_trees;
 
+use bvhtrace_core::motion::MovingInstance;
 use bvhtrace_core::{BuildOptions, Curves, Instance, Ray, Triangle};
 use serde::Serialize;
 
@@ -43,8 +44,9 @@ pub use geom::flatten_instances;
 pub use offset::offset_ray_origin;
 pub use report::{format_table, table_header, table_rows};
 pub use runner::{
-    Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, OpenCurves, OpenMotion,
-    OpenTracer, PrecisionRow, RunReport, TraceTimed, run_case, run_case_with_timeout, traversals,
+    Backends, CPU_LAYOUT_ROWS, CaseReport, DeviceTracers, Differences, MovingTree, OpenCurves,
+    OpenMotion, OpenTracer, PrecisionRow, RunReport, TraceTimed, run_case, run_case_with_timeout,
+    traversals,
 };
 
 /// How big to make the cases: `Quick` for the tests (seconds), `Full` for the command.
@@ -170,11 +172,11 @@ pub struct Case {
     /// in primitive order), for the table and the inside tests. The oracle traces each
     /// instance's mesh with the ray as the walks transform it (see `GUARANTEES.md`).
     pub instancing: Option<Instancing>,
-    /// A moving mesh traced at one time: the runner builds a [`bvhtrace_core::MotionBvh`]
-    /// over its steps (with each of [`bvhtrace_core::TimeBounds`]) and traces every ray
-    /// at [`Motion::time`], and `tris` holds the mesh at that time
-    /// ([`bvhtrace_core::MotionMesh::at`]: the triangles the walks test), which the
-    /// oracle, the brute force and the inside tests judge.
+    /// A moving scene traced at one time: the runner builds its moving tree (with each of
+    /// [`bvhtrace_core::TimeBounds`]) and traces every ray at [`Motion::time`], and `tris`
+    /// holds the scene at that time (for a mesh, [`bvhtrace_core::MotionMesh::at`]: the
+    /// triangles the walks test), which the oracle, the brute force and the inside tests
+    /// judge.
     pub motion: Option<Motion>,
     /// Curves beside `tris` (which may be empty): the runner builds a
     /// [`bvhtrace_core::CurveBvh`] over both, numbering the segments after the triangles,
@@ -183,13 +185,32 @@ pub struct Case {
     pub curves: Option<Curves>,
 }
 
-/// The moving mesh of a case (see [`Case::motion`]).
+/// What moves in a case, and when its rays are traced (see [`Case::motion`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Motion {
-    /// The triangles at each time step, spread evenly over the shutter `[0, 1]`.
-    pub steps: Vec<Vec<Triangle>>,
+    /// The moving scene.
+    pub scene: MovingScene,
     /// The time every ray is traced at (clamped to `[0, 1]` by the walks).
     pub time: f32,
+}
+
+/// A moving scene: one mesh, or meshes placed by moving instances.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MovingScene {
+    /// The triangles at each time step, spread evenly over the shutter `[0, 1]`; the
+    /// runner builds a [`bvhtrace_core::MotionBvh`].
+    Mesh(Vec<Vec<Triangle>>),
+    /// Static meshes placed by instances whose transforms move; the runner builds a
+    /// [`bvhtrace_core::motion::MotionInstancedBvh`]. The case's [`Case::instancing`]
+    /// holds the same meshes placed where the instances are at the case's time, and each
+    /// instance is judged in its mesh's space with the ray as the walks take it there
+    /// ([`MovingInstance::world_to_object_at`]).
+    Instances {
+        /// The meshes.
+        meshes: Vec<Vec<Triangle>>,
+        /// The instances, numbering primitives as [`Case::instancing`] does.
+        instances: Vec<MovingInstance>,
+    },
 }
 
 /// The two levels of an instanced case (see [`Case::instancing`]).

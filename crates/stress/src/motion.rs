@@ -6,13 +6,20 @@
 //! [`MotionMesh::at`] gives, the ones the walks test, so each case's `tris` is that scene
 //! and it is judged as a static one: rays from inside aimed at its vertices and edges (a
 //! miss is a crack, at any time), a camera against the f64 oracle, and the brute force.
+//! The `motion-instances-*` cases place the sphere by instances that move (one still, one
+//! moving, turning, growing and stretching, one mirrored), judged in each instance's space
+//! as the two-level cases are, with the rays the moving walks take into it then.
 
-use bvhtrace_core::{MotionMesh, Triangle};
-use glam::{DQuat, DVec3, Vec3};
+use bvhtrace_core::motion::MovingInstance;
+use bvhtrace_core::{Instance, MotionMesh, Triangle};
+use glam::{Affine3A, DQuat, DVec3, Mat4, Quat, Vec3};
 
 use crate::cases::{add_inside_rays, finish_input, fractions, quick, set_budget};
-use crate::geom::{IndexedMesh, camera_rays, unit_icosphere};
-use crate::{Case, Expect, Motion, Size};
+use crate::geom::{
+    IndexedMesh, aim_at_placed_vertices_and_edges, camera_rays, flatten_instances, is_inside,
+    to_f64, unit_icosphere,
+};
+use crate::{Case, Expect, Motion, MovingScene, Size};
 
 /// A step of a moving mesh: the base mesh's points placed in f64, rounded once.
 type Place = fn(DVec3) -> DVec3;
@@ -85,7 +92,99 @@ pub(crate) fn motion_cases(size: Size) -> Vec<Case> {
             size,
         ));
     }
+    for time in [0.0, 1.0, 0.5, 0.3, 0.8] {
+        out.push(instances_case(&base, time, size));
+    }
     out
+}
+
+/// Three instances of the base mesh: one that stays, one that moves, turns, grows and
+/// stretches over 3 steps, and a mirrored one that moves and turns.
+fn moving_instances() -> Vec<MovingInstance> {
+    let place = |s: Vec3, axis: Vec3, angle: f32, t: Vec3| {
+        Mat4::from_scale_rotation_translation(s, Quat::from_axis_angle(axis.normalize(), angle), t)
+    };
+    let mirror = Vec3::new(-1.0, 1.0, 1.0);
+    vec![
+        MovingInstance {
+            mesh: 0,
+            transforms: vec![Mat4::IDENTITY],
+        },
+        MovingInstance {
+            mesh: 0,
+            transforms: vec![
+                place(Vec3::ONE, Vec3::Y, 0.0, Vec3::new(4.0, 0.0, 0.0)),
+                place(Vec3::splat(2.0), Vec3::Y, 1.05, Vec3::new(6.0, 1.0, 0.0)),
+                place(
+                    Vec3::new(0.5, 1.0, 2.0),
+                    Vec3::X,
+                    0.5,
+                    Vec3::new(8.0, 0.0, 1.0),
+                ),
+            ],
+        },
+        MovingInstance {
+            mesh: 0,
+            transforms: vec![
+                place(mirror, Vec3::Y, 0.0, Vec3::new(0.0, 4.0, 0.0)),
+                place(mirror * 1.5, Vec3::Z, 0.7, Vec3::new(2.0, 5.0, 0.0)),
+                place(mirror, Vec3::Y, 1.57, Vec3::new(4.0, 4.0, 1.0)),
+            ],
+        },
+    ]
+}
+
+/// The moving instances traced at `time`: rays from each instance's centre then, aimed at
+/// its vertices and edge points there, and a camera.
+fn instances_case(base: &IndexedMesh, time: f32, size: Size) -> Case {
+    let moving = moving_instances();
+    let seg = bvhtrace_core::motion::time_segment(time, 3);
+    let placed: Vec<Instance> = (moving.iter())
+        .map(|m| Instance::new(0, Affine3A::from_mat4(m.transform_at(seg))))
+        .collect();
+    let meshes = vec![base.triangles()];
+    let mut c = Case::instanced(
+        format!("motion-instances-t{time}"),
+        format!(
+            "a closed icosphere placed by 3 instances, one still, one moving, turning, growing and stretching over 3 steps, one mirrored and moving, at time {time}: rays from inside each and a camera"
+        ),
+        meshes.clone(),
+        placed.clone(),
+    );
+    for (i, inst) in placed.iter().enumerate() {
+        let from = inst.transform.transform_point3(Vec3::ZERO);
+        let one = flatten_instances(&meshes, std::slice::from_ref(inst));
+        let m = to_f64(&inst.transform);
+        let rays = aim_at_placed_vertices_and_edges(
+            base,
+            |p| m.transform_point3(p),
+            from,
+            fractions(size),
+        );
+        if is_inside(&one, from, 0.0) {
+            c.push_rays(rays, Expect::MustHit);
+        } else {
+            c.notes
+                .push(format!("instance {i}: its centre is not verified inside"));
+            c.push_rays(rays, Expect::Oracle);
+        }
+    }
+    let (w, h) = if quick(size) { (24, 24) } else { (96, 96) };
+    let eye = DVec3::new(4.0, 2.0, -12.0);
+    c.push_rays(
+        camera_rays(eye, DVec3::new(4.0, 2.0, 0.0), 60.0, w, h),
+        Expect::Oracle,
+    );
+    c.motion = Some(Motion {
+        scene: MovingScene::Instances {
+            meshes,
+            instances: moving,
+        },
+        time,
+    });
+    set_budget(&mut c, size);
+    finish_input(&mut c);
+    c
 }
 
 /// The base mesh's points at each step, as indexed meshes.
@@ -143,7 +242,7 @@ fn case(
         Expect::Oracle,
     );
     c.motion = Some(Motion {
-        steps: tri_steps,
+        scene: MovingScene::Mesh(tri_steps),
         time,
     });
     set_budget(&mut c, size);

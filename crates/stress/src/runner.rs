@@ -5,6 +5,7 @@ use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
 
 use bvhtrace_core::intersect::flush_subnormal;
+use bvhtrace_core::motion::MotionInstancedBvh;
 use bvhtrace_core::oracle::{self, OracleHit, PreparedRay64};
 use bvhtrace_core::{
     CurveBvh, FlatBvh, FlatInstance, Hit, INVALID_RAY, InstancedBvh, MISS, MotionBvh, Precision,
@@ -67,8 +68,17 @@ pub struct DeviceTracers {
 /// have no time: the times are ignored). `Err` says why it could not.
 pub type TraceTimed = Box<dyn Fn(&[Ray], &[f32], Query) -> Result<Vec<Hit>, String> + Send + Sync>;
 
-/// Uploads a moving mesh's tree to a device, for [`DeviceTracers::open_motion`].
-pub type OpenMotion = Arc<dyn Fn(Arc<MotionBvh>) -> Result<TraceTimed, String> + Send + Sync>;
+/// A moving scene's tree, to upload.
+#[derive(Clone, Debug)]
+pub enum MovingTree {
+    /// One moving mesh.
+    Mesh(Arc<MotionBvh>),
+    /// Moving instances.
+    Instances(Arc<MotionInstancedBvh>),
+}
+
+/// Uploads a moving scene's tree to a device, for [`DeviceTracers::open_motion`].
+pub type OpenMotion = Arc<dyn Fn(MovingTree) -> Result<TraceTimed, String> + Send + Sync>;
 
 /// Uploads a tree of curves to a device, for [`DeviceTracers::open_curves`].
 pub type OpenCurves = Arc<dyn Fn(Arc<CurveBvh>) -> Result<TraceTimed, String> + Send + Sync>;
@@ -1310,13 +1320,16 @@ pub fn run_case(case: &Case, backends: &Backends) -> CaseReport {
             .map(|ib| ib.bvh().clone())
             .map_err(|e| format!("two levels: {e}")),
     };
-    let bvh = match built {
+    let mut bvh = match built {
         Ok(b) => b.with_wide(),
         Err(e) => {
             rep.error = Some(format!("build failed: {e}"));
             return rep;
         }
     };
+    if let Some(m) = &case.motion {
+        motion::place_at_time(&mut bvh, m);
+    }
     rep.build_ms = ms(t);
     rep.nodes = bvh.nodes().len();
     rep.depth = bvh.depth();

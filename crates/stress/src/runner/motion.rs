@@ -1,15 +1,16 @@
-//! The rows of a moving mesh's case: the tree over its time steps, built with each way of
-//! bounding time, traced at the case's time on the CPU twin and on each device with a
-//! walk of moving meshes (compared with the twin bit for bit), and judged as the static
-//! scene the walks see at that time.
+//! The rows of a moving scene's case: the scene's moving tree (one mesh's, or moving
+//! instances' two levels), built with each way of bounding time, traced at the case's time
+//! on the CPU twin and on each device with a walk of moving scenes (compared with the twin
+//! bit for bit), and judged as the static scene the walks see at that time.
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use bvhtrace_core::{MotionBvh, MotionMesh, Query, TimeBounds};
+use bvhtrace_core::motion::{MotionInstancedBvh, time_segment};
+use bvhtrace_core::{FlatBvh, Hit, MotionBvh, MotionMesh, Query, Ray, TimeBounds};
 
-use super::{Backends, CaseReport, Judge, RunReport, ms, query_name};
-use crate::{Case, Motion};
+use super::{Backends, CaseReport, Judge, MovingTree, RunReport, ms, query_name};
+use crate::{Case, Motion, MovingScene};
 
 /// The rows' traversal name for trees bounding time as `bounds` says.
 fn walk_name(bounds: TimeBounds) -> &'static str {
@@ -29,6 +30,57 @@ fn row(backend: &str, bounds: TimeBounds, q: Query) -> RunReport {
     }
 }
 
+/// Moving instances' static twin at `m`'s time: each instance entered with the rows the
+/// moving walks take a ray into it with ([`bvhtrace_core::motion::MovingInstance::world_to_object_at`]),
+/// so the judging's oracle and brute force test what the walks test.
+pub(super) fn place_at_time(bvh: &mut FlatBvh, m: &Motion) {
+    let MovingScene::Instances { instances, .. } = &m.scene else {
+        return;
+    };
+    let steps = (instances.iter()).map(|i| i.transforms.len()).max();
+    let seg = time_segment(m.time, steps.unwrap_or(1).max(2));
+    for (flat, inst) in bvh.parts_mut().instances.iter_mut().zip(instances) {
+        flat.world_to_object = inst.world_to_object_at(seg);
+    }
+}
+
+/// A moving tree built, and the CPU twin's trace of it.
+struct Built {
+    tree: MovingTree,
+    nodes: usize,
+    depth: u32,
+}
+
+impl Built {
+    fn new(m: &Motion, case: &Case, bounds: TimeBounds) -> Result<Built, String> {
+        let opts = &case.build;
+        Ok(match &m.scene {
+            MovingScene::Mesh(steps) => {
+                let mesh = MotionMesh::new(steps.clone()).map_err(|e| e.to_string())?;
+                let b = MotionBvh::build(&mesh, opts, bounds).map_err(|e| e.to_string())?;
+                let (nodes, depth) = (b.nodes().len(), b.depth());
+                let tree = MovingTree::Mesh(Arc::new(b));
+                Built { tree, nodes, depth }
+            }
+            MovingScene::Instances { meshes, instances } => {
+                let b = MotionInstancedBvh::build(meshes, instances.clone(), opts, bounds)
+                    .map_err(|e| e.to_string())?;
+                let layout = b.kernel_layout();
+                let tree = MovingTree::Instances(Arc::new(b));
+                let (nodes, depth) = (layout.nodes.len(), layout.depth);
+                Built { tree, nodes, depth }
+            }
+        })
+    }
+
+    fn trace(&self, rays: &[Ray], times: &[f32], q: Query) -> Vec<Hit> {
+        match &self.tree {
+            MovingTree::Mesh(b) => b.trace_rays(rays, times, q),
+            MovingTree::Instances(b) => b.trace_rays(rays, times, q),
+        }
+    }
+}
+
 /// Every row of `case` (whose rays all trace at `m.time`) into `rep`: per way of bounding
 /// time and query, the CPU twin's (reported when `backends.cpu`) and each device's.
 pub(super) fn run(
@@ -39,30 +91,23 @@ pub(super) fn run(
     backends: &Backends,
     rep: &mut CaseReport,
 ) {
-    let mesh = match MotionMesh::new(m.steps.clone()) {
-        Ok(mesh) => mesh,
-        Err(e) => {
-            rep.error = Some(format!("moving mesh: {e}"));
-            return;
-        }
-    };
     let times = vec![m.time; case.rays.len()];
+    rep.build_ms = 0.0;
     for bounds in [TimeBounds::Linear, TimeBounds::Merged] {
         let t = Instant::now();
-        let bvh = match MotionBvh::build(&mesh, &case.build, bounds) {
-            Ok(b) => Arc::new(b),
+        let built = match Built::new(m, case, bounds) {
+            Ok(b) => b,
             Err(e) => {
                 rep.error = Some(format!("build failed ({}): {e}", walk_name(bounds)));
                 return;
             }
         };
         rep.build_ms += ms(t);
-        rep.nodes = bvh.nodes().len();
-        rep.depth = bvh.depth();
+        (rep.nodes, rep.depth) = (built.nodes, built.depth);
         let mut twin = Vec::new();
         for &q in queries {
             let t = Instant::now();
-            let hits = bvh.trace_rays(&case.rays, &times, q);
+            let hits = built.trace(&case.rays, &times, q);
             if backends.cpu {
                 let r = RunReport {
                     trace_ms: ms(t),
@@ -74,13 +119,13 @@ pub(super) fn run(
         }
         for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
             let Some(open) = &device.open_motion else {
-                let note = format!("{}: no walk of moving meshes, not traced", device.backend);
+                let note = format!("{}: no walk of moving scenes, not traced", device.backend);
                 if !rep.notes.contains(&note) {
                     rep.notes.push(note);
                 }
                 continue;
             };
-            let traced = open(bvh.clone());
+            let traced = open(built.tree.clone());
             for (&q, cpu) in queries.iter().zip(&twin) {
                 let r = row(&device.backend, bounds, q);
                 let t = Instant::now();

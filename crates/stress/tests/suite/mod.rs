@@ -775,13 +775,14 @@ fn timed_rows<'a>(
 }
 
 /// The `motion-*` cases: a moving, turning, growing sphere at the shutter's ends, a step,
-/// between steps and outside the shutter, and a sphere turning inside out. At every time,
+/// between steps and outside the shutter, a sphere turning inside out, and spheres placed
+/// by moving instances (still, moving and stretching, mirrored). At every time,
 /// with either way of bounding time, on the CPU twin and the devices: no ray from inside
 /// escapes, the f64 oracle and the brute force of the mesh at that time agree, and the
 /// devices equal the twin bit for bit. A time outside the shutter is its end.
 #[test]
 fn moving_meshes_stay_closed_at_every_time_on_every_walk() {
-    let (cases, backends) = timed_cases("motion-", 9);
+    let (cases, backends) = timed_cases("motion-", 14);
     let mut bad = Vec::new();
     for c in &cases {
         for b in &backends {
