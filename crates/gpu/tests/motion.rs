@@ -41,6 +41,27 @@ fn same_bits(a: &[Hit], b: &[Hit]) -> Vec<usize> {
         .collect()
 }
 
+/// `got` (the device's) is `want` (the CPU twin's) bit for bit, and the rays hit.
+fn assert_twins(what: &str, (got, want): (&[Hit], &[Hit]), times: &[f32]) {
+    let differ = same_bits(got, want);
+    let hits = want.iter().filter(|h| h.is_hit()).count();
+    eprintln!(
+        "{what}: {} rays, {hits} hits, {} differ",
+        want.len(),
+        differ.len()
+    );
+    assert!(hits > want.len() / 20, "{what}: the rays miss");
+    if let Some(&i) = differ.first() {
+        panic!(
+            "{what}: {} rays differ, first {i} at time {}: device {:?}, CPU {:?}",
+            differ.len(),
+            times[i],
+            got[i],
+            want[i]
+        );
+    }
+}
+
 /// Both bounds, both queries: the device's hits are the CPU twin's.
 fn check(
     what: &str,
@@ -55,23 +76,11 @@ fn check(
         for query in [Query::Closest, Query::Any] {
             let want = bvh.trace_rays(rays, times, query);
             let got = gpu.trace(rays, times, query).expect("trace");
-            let differ = same_bits(&got, &want);
-            let hits = want.iter().filter(|h| h.is_hit()).count();
-            eprintln!(
-                "{what} {bounds:?} {query:?}: {} rays, {hits} hits, {} differ",
-                rays.len(),
-                differ.len()
+            assert_twins(
+                &format!("{what} {bounds:?} {query:?}"),
+                (&got, &want),
+                times,
             );
-            assert!(hits > rays.len() / 20, "{what}: the rays miss");
-            if let Some(&i) = differ.first() {
-                panic!(
-                    "{what} {bounds:?} {query:?}: {} rays differ, first {i} at time {}: device {:?}, CPU {:?}",
-                    differ.len(),
-                    times[i],
-                    got[i],
-                    want[i]
-                );
-            }
         }
     }
 }
@@ -201,23 +210,8 @@ fn moving_instances_answer_as_the_cpu_twin_bit_for_bit() {
             for query in [Query::Closest, Query::Any] {
                 let want = bvh.trace_rays(&rays, &times, query);
                 let got = gpu.trace(&rays, &times, query).expect("trace");
-                let differ = same_bits(&got, &want);
-                let hits = want.iter().filter(|h| h.is_hit()).count();
-                eprintln!(
-                    "{spec} {bounds:?} {query:?}: {} rays, {hits} hits, {} differ",
-                    rays.len(),
-                    differ.len()
-                );
-                assert!(hits > rays.len() / 20, "{spec}: the rays miss");
-                if let Some(&i) = differ.first() {
-                    panic!(
-                        "{spec} {bounds:?} {query:?}: {} rays differ, first {i} at time {}: device {:?}, CPU {:?}",
-                        differ.len(),
-                        times[i],
-                        got[i],
-                        want[i]
-                    );
-                }
+                let what = format!("{spec} {bounds:?} {query:?}");
+                assert_twins(&what, (&got, &want), &times);
             }
         }
     }

@@ -1177,6 +1177,22 @@ fn run_report(backend: &str, tr: Traversal, q: Query) -> RunReport {
     }
 }
 
+/// A row of a walk not among [`traversals`] (of moving scenes, of curves), named `walk`.
+fn walk_row(backend: &str, walk: &str, q: Query) -> RunReport {
+    RunReport {
+        traversal: walk.into(),
+        ..run_report(backend, Traversal::FullStack, q)
+    }
+}
+
+/// Notes, once, that `backend` has no walk of `what`: the case's rows are the CPU twin's.
+fn note_no_walk(rep: &mut CaseReport, backend: &str, what: &str) {
+    let note = format!("{backend}: no walk of {what}, not traced");
+    if !rep.notes.contains(&note) {
+        rep.notes.push(note);
+    }
+}
+
 /// Each traversal and query's hits on one backend.
 type Hits = HashMap<(Traversal, Query), Vec<Hit>>;
 

@@ -12,7 +12,7 @@ use rayon::prelude::*;
 
 use super::{
     Backends, CaseReport, Examples, Geometry, Judge, RunReport, as_traced, describe, hit_bits, ms,
-    query_name, same_verdict,
+    note_no_walk, query_name, same_verdict, walk_row,
 };
 use crate::Case;
 use crate::geom::is_zero_area;
@@ -21,13 +21,7 @@ use crate::geom::is_zero_area;
 const WALK: &str = "curves";
 
 fn row(backend: &str, q: Query) -> RunReport {
-    RunReport {
-        backend: backend.into(),
-        traversal: WALK.into(),
-        query: query_name(q).into(),
-        status: "ok".into(),
-        ..Default::default()
-    }
+    walk_row(backend, WALK, q)
 }
 
 /// A device's hit of a cubic curve as its CPU twin's, under the kernels' rule: the shader
@@ -94,10 +88,7 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
         }
         for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
             let Some(open) = &device.open_curves else {
-                let note = format!("{}: no walk of curves, not traced", device.backend);
-                if !rep.notes.contains(&note) {
-                    rep.notes.push(note);
-                }
+                note_no_walk(rep, &device.backend, "curves");
                 continue;
             };
             let r = row(&device.backend, q);

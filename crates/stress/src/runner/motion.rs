@@ -9,7 +9,7 @@ use std::time::Instant;
 use bvhtrace_core::motion::{MotionInstancedBvh, time_segment};
 use bvhtrace_core::{FlatBvh, Hit, MotionBvh, MotionMesh, Query, Ray, TimeBounds};
 
-use super::{Backends, CaseReport, Judge, MovingTree, RunReport, ms, query_name};
+use super::{Backends, CaseReport, Judge, MovingTree, RunReport, ms, note_no_walk, walk_row};
 use crate::{Case, Motion, MovingScene};
 
 /// The rows' traversal name for trees bounding time as `bounds` says.
@@ -21,13 +21,7 @@ fn walk_name(bounds: TimeBounds) -> &'static str {
 }
 
 fn row(backend: &str, bounds: TimeBounds, q: Query) -> RunReport {
-    RunReport {
-        backend: backend.into(),
-        traversal: walk_name(bounds).into(),
-        query: query_name(q).into(),
-        status: "ok".into(),
-        ..Default::default()
-    }
+    walk_row(backend, walk_name(bounds), q)
 }
 
 /// Moving instances' static twin at `m`'s time: each instance entered with the rows the
@@ -119,10 +113,7 @@ pub(super) fn run(
         }
         for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
             let Some(open) = &device.open_motion else {
-                let note = format!("{}: no walk of moving scenes, not traced", device.backend);
-                if !rep.notes.contains(&note) {
-                    rep.notes.push(note);
-                }
+                note_no_walk(rep, &device.backend, "moving scenes");
                 continue;
             };
             let traced = open(built.tree.clone());
