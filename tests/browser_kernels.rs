@@ -1,5 +1,6 @@
 //! Every kernel variant compiles in a browser: the composed WGSL of each key (both
-//! storages, every walk, query, counters, one mesh or two levels) goes to headless Chromium's WebGPU (Tint, the compiler Chrome uses,
+//! storages, every walk, query, counters, one mesh or two levels), and of the trees of
+//! their own layout (moving meshes, moving instances, curves), goes to headless Chromium's WebGPU (Tint, the compiler Chrome uses,
 //! on SwiftShader), which compiles the module and builds the pipeline with the key's
 //! override constants. naga accepting the WGSL is not enough: Tint also applies WGSL's
 //! rules on constant expressions and uniformity. Any compiler message or pipeline error
@@ -12,6 +13,7 @@ use std::time::Duration;
 
 use bvhtrace_integration::browser::{self, Report};
 
+use bvhtrace_gpu::engine::compose::ModuleSet;
 use bvhtrace_gpu::engine::pages::Pages;
 use bvhtrace_gpu::engine::{BvhStorage, DriverTuning, KernelKey};
 use bvhtrace_gpu::{TraceOptions, Traversal};
@@ -36,26 +38,71 @@ fn variants() -> Vec<KernelKey> {
         .collect()
 }
 
+/// One variant for the page: its name, WGSL, entry point and override constants (the
+/// driver's added).
+fn variant(
+    name: String,
+    source: String,
+    entry: &str,
+    constants: &[(&str, f64)],
+) -> serde_json::Value {
+    let constants: serde_json::Map<String, serde_json::Value> = (constants.iter().copied())
+        .chain(DriverTuning::GPU.constants())
+        .map(|(name, v)| (name.to_string(), v.into()))
+        .collect();
+    serde_json::json!({ "name": name, "source": source, "entry": entry, "constants": constants })
+}
+
+/// The trees of their own layout (`bvhtrace_gpu::GpuMotionBvh`, `GpuMotionInstancedBvh`,
+/// `GpuCurveBvh`): the moving modules' full-stack entry point for closest hits with
+/// linear bounds and any hit with merged ones, the curves' for closest hits of every kind
+/// (each pipeline costs SwiftShader seconds: the constants pick code paths, covered so).
+fn tree_variants() -> Vec<serde_json::Value> {
+    let entry = "bvh_trace_full_stack_main";
+    let mut out = Vec::new();
+    for (name, module) in [
+        ("motion", ModuleSet::motion()),
+        ("motion-instances", ModuleSet::motion_instances()),
+    ] {
+        let source = module.compose(0);
+        for (any, linear) in [(0.0, 1.0), (1.0, 0.0)] {
+            let c = [
+                ("BVH_ANY_HIT", any),
+                ("BVH_LINEAR_BOUNDS", linear),
+                ("BVH_TIME_STEPS", 9.0),
+            ];
+            out.push(variant(format!("{name} {c:?}"), source.clone(), entry, &c));
+        }
+    }
+    let source = ModuleSet::curves().compose(0);
+    for kind in 0..4 {
+        let c = [
+            ("BVH_ANY_HIT", 0.0),
+            ("BVH_CURVE_KIND", kind as f64),
+            ("BVH_CURVE_TRIANGLES", 2.0),
+        ];
+        out.push(variant(format!("curves {c:?}"), source.clone(), entry, &c));
+    }
+    out
+}
+
 /// The page: compiles each variant with `getCompilationInfo`, builds its pipeline, and
 /// writes one line per variant (`ok NAME` or `error NAME: MESSAGE`) into `<pre id=out>`.
-fn page(keys: &[KernelKey]) -> String {
-    let tuning = DriverTuning::GPU.constants();
-    let list: Vec<serde_json::Value> = keys
+fn page(keys: &[KernelKey]) -> (String, usize) {
+    let mut list: Vec<serde_json::Value> = keys
         .iter()
         .map(|k| {
-            let constants: serde_json::Map<String, serde_json::Value> = (k.constants().into_iter())
-                .chain(tuning)
-                .map(|(name, v)| (name.to_string(), v.into()))
-                .collect();
-            serde_json::json!({
-                "name": format!("{k:?}"),
-                "source": k.source(),
-                "entry": k.entry_point(),
-                "constants": constants,
-            })
+            variant(
+                format!("{k:?}"),
+                k.source(),
+                k.entry_point(),
+                &k.constants(),
+            )
         })
         .collect();
-    format!(
+    list.extend(tree_variants());
+    let count = list.len();
+    let page = format!(
         r#"<!doctype html><meta charset="utf-8"><pre id="out">running</pre><script>
 const variants = {};
 (async () => {{
@@ -98,7 +145,8 @@ const variants = {};
 }})();
 </script>"#,
         serde_json::Value::Array(list)
-    )
+    );
+    (page, count)
 }
 
 #[test]
@@ -108,7 +156,8 @@ fn every_kernel_variant_compiles_in_chromium() {
         return;
     };
     let keys = variants();
-    let page = page(&keys).into_bytes();
+    let (page, count) = page(&keys);
+    let page = page.into_bytes();
     let served = move |path: &str| (path == "/").then(|| page.clone());
     let dom = match browser::run_page(&chromium, served, "/", Duration::from_secs(600)) {
         Ok(Report::Result(bytes)) => String::from_utf8_lossy(&bytes).into_owned(),
@@ -123,7 +172,7 @@ fn every_kernel_variant_compiles_in_chromium() {
         errors.is_empty(),
         "{} of {} variants failed in Chromium:\n{}",
         errors.len(),
-        keys.len(),
+        count,
         errors
             .iter()
             .map(|e| e.chars().take(600).collect::<String>())
@@ -134,6 +183,6 @@ fn every_kernel_variant_compiles_in_chromium() {
         lines.iter().any(|l| l.trim_end().ends_with("done")),
         "the page did not finish:\n{dom}"
     );
-    assert_eq!(ok, keys.len(), "variants compiled");
+    assert_eq!(ok, count, "variants compiled");
     eprintln!("browser kernels: {ok} variants compile in Chromium");
 }
