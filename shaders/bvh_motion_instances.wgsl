@@ -25,7 +25,7 @@ struct BvhRows {
 @group(0) @binding(4) var<storage, read> bvh_moving_instances: array<BvhMovingInstance>;
 @group(0) @binding(7) var<storage, read> bvh_instance_transforms: array<BvhRows>;
 
-// The cross products of `motion::invert_rows`: each component in the order written.
+// `a x b` as glam's `Vec3::cross` computes it (`motion::invert_rows`).
 fn bvh_cross_ordered(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
 }

@@ -5,7 +5,7 @@
 //! its time.
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Affine3A, Mat4, Vec4};
+use glam::{Affine3A, Mat4, Vec3, Vec4};
 
 use crate::build::{BuildError, BuildOptions};
 use crate::flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle, INSTANCE_LEAF};
@@ -53,26 +53,18 @@ pub fn rows_of(m: &Mat4) -> [[f32; 4]; 3] {
 
 /// The inverse of the affine transform whose rows are `m`, as rows: its 3x3 part's inverse
 /// is the cross products of its columns over its determinant, and the translation is taken
-/// back through it. Every product and sum in the order written, as the kernels'
-/// `bvh_invert_rows` has them, so the CPU and the device take a ray into a moving instance
-/// alike. A singular transform gives infinite or NaN rows (the ray then enters nothing).
+/// back through it. glam's `Vec3::cross` and `Vec3::dot` (scalar, no fused operations),
+/// which the kernels' `bvh_invert_rows` writes out in their order, so the CPU and the
+/// device take a ray into a moving instance alike. A singular transform gives infinite or
+/// NaN rows (the ray then enters nothing).
 pub fn invert_rows(m: &[[f32; 4]; 3]) -> [[f32; 4]; 3] {
-    let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
-    let (c0, c1, c2) = (col(0), col(1), col(2));
-    let cross = |a: [f32; 3], b: [f32; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let rows = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
-    let det = c0[0] * rows[0][0] + c0[1] * rows[0][1] + c0[2] * rows[0][2];
-    let inv = 1.0 / det;
-    let t = [m[0][3], m[1][3], m[2][3]];
+    let col = |j: usize| Vec3::new(m[0][j], m[1][j], m[2][j]);
+    let (c0, c1, c2, t) = (col(0), col(1), col(2), col(3));
+    let rows = [c1.cross(c2), c2.cross(c0), c0.cross(c1)];
+    let inv = 1.0 / c0.dot(rows[0]);
     rows.map(|r| {
-        let s = [r[0] * inv, r[1] * inv, r[2] * inv];
-        [s[0], s[1], s[2], -(s[0] * t[0] + s[1] * t[1] + s[2] * t[2])]
+        let s = r * inv;
+        s.extend(-s.dot(t)).to_array()
     })
 }
 
@@ -262,7 +254,6 @@ impl MotionInstancedBvh {
     /// Both levels joined as the kernel of moving instances reads them (see
     /// [`MovingInstancesLayout`]).
     pub fn kernel_layout(&self) -> MovingInstancesLayout {
-        let top_nodes = self.top.nodes.len() as u32;
         let mut nodes: Vec<FlatNode> = (self.top.nodes.iter())
             .map(|n| match n.is_leaf() {
                 // One instance per leaf: its index in leaf order is the leaf's first.
@@ -300,7 +291,6 @@ impl MotionInstancedBvh {
             .collect();
         MovingInstancesLayout {
             nodes,
-            top_nodes,
             step_boxes: self.top.step_boxes.clone(),
             triangles,
             instances,
@@ -388,10 +378,8 @@ pub struct MovingInstanceRecord {
 /// an instance with [`MovingInstance::world_to_object_at`] the ray's time.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MovingInstancesLayout {
-    /// The nodes: the top level's first.
+    /// The nodes: the top level's `2n - 1` for `n` instances (one per leaf) first.
     pub nodes: Vec<FlatNode>,
-    /// How many of them are the top level's (`2n - 1` for `n` instances).
-    pub top_nodes: u32,
     /// The top level's node `i`'s box at step `k`: entry `i * steps + k` (empty with
     /// merged bounds).
     pub step_boxes: Vec<MotionBox>,
