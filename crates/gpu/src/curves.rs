@@ -5,12 +5,11 @@
 
 use std::sync::Arc;
 
-use bvhtrace_core::{CurveBvh, CurveKind, Hit, INCOMPLETE, Query, Ray};
+use bvhtrace_core::{CurveBvh, CurveKind, Hit, Query, Ray};
 use bvhtrace_engine::compose::ModuleSet;
-use bvhtrace_engine::plan::{Dispatch, plan_dispatches};
 use bvhtrace_engine::walks::FULL_STACK_SIZE;
 
-use crate::tree_kernel::{TreeKernel, TreeKernelDesc};
+use crate::tree_kernel::{TreeKernel, TreeKernelDesc, block_on};
 use crate::{GpuContext, GpuError, TraceError};
 
 /// A tree of triangles and curves on the device (see the module docs).
@@ -77,39 +76,17 @@ impl GpuCurveBvh {
     /// Rays the driver's trip budget cut short are answered on the CPU twin. Waits for the
     /// device: in a browser, await [`GpuCurveBvh::trace_async`].
     pub fn trace(&self, rays: &[Ray], query: Query) -> Result<Vec<Hit>, GpuError> {
-        if cfg!(target_arch = "wasm32") {
-            return Err(TraceError::Device {
-                during: "tracing curves",
-                message: "a browser cannot wait for its GPU: use trace_async".into(),
-            });
-        }
-        pollster::block_on(self.trace_async(rays, query))
+        block_on(DURING, self.trace_async(rays, query))
     }
 
     /// [`GpuCurveBvh::trace`] as a future.
     pub async fn trace_async(&self, rays: &[Ray], query: Query) -> Result<Vec<Hit>, GpuError> {
-        let mut hits = Vec::with_capacity(rays.len());
-        for d in plan_dispatches(rays.len() as u64, self.ctx.limits()) {
-            let range = d.first_ray as usize..d.first_ray as usize + d.ray_count as usize;
-            hits.extend(self.trace_chunk(&rays[range], query, &d).await?);
-        }
-        for (h, r) in hits.iter_mut().zip(rays) {
-            if h.prim == INCOMPLETE {
-                *h = self.bvh.trace(r, query).0;
-            }
-        }
-        Ok(hits)
-    }
-
-    /// One dispatch `d` over `rays`: their hits.
-    async fn trace_chunk(
-        &self,
-        rays: &[Ray],
-        query: Query,
-        d: &Dispatch,
-    ) -> Result<Vec<Hit>, GpuError> {
+        let twin = |i: usize| self.bvh.trace(&rays[i], query).0;
         (self.kernel)
-            .dispatch(&self.ctx, "tracing curves", (rays, &[]), query, d)
+            .trace(&self.ctx, DURING, (rays, None), query, twin)
             .await
     }
 }
+
+/// What the curves' errors say they were doing.
+const DURING: &str = "tracing curves";

@@ -7,12 +7,11 @@ use std::sync::Arc;
 
 use bvhtrace_core::motion::{MotionBox, MotionBvh, MotionInstancedBvh, TimeBounds};
 use bvhtrace_core::traverse::untraced;
-use bvhtrace_core::{Hit, INCOMPLETE, Query, Ray};
+use bvhtrace_core::{Hit, Query, Ray};
 use bvhtrace_engine::compose::ModuleSet;
-use bvhtrace_engine::plan::plan_dispatches;
 use bvhtrace_engine::walks::FULL_STACK_SIZE;
 
-use crate::tree_kernel::{TreeKernel, TreeKernelDesc};
+use crate::tree_kernel::{TreeKernel, TreeKernelDesc, block_on};
 use crate::{GpuContext, GpuError, TraceError};
 
 /// A moving mesh's tree on the device (see the module docs).
@@ -81,7 +80,7 @@ impl GpuMotionBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, GpuError> {
-        block_on(self.trace_async(rays, times, query))
+        block_on(DURING, self.trace_async(rays, times, query))
     }
 
     /// [`GpuMotionBvh::trace`] as a future.
@@ -96,25 +95,12 @@ impl GpuMotionBvh {
     }
 }
 
-/// Waits for `trace`, where the platform can (not in a browser).
-fn block_on(
-    trace: impl std::future::Future<Output = Result<Vec<Hit>, GpuError>>,
-) -> Result<Vec<Hit>, GpuError> {
-    if cfg!(target_arch = "wasm32") {
-        return Err(TraceError::Device {
-            during: DURING,
-            message: "a browser cannot wait for its GPU: use trace_async".into(),
-        });
-    }
-    pollster::block_on(trace)
-}
-
 /// What a moving tree's errors say it was doing.
 const DURING: &str = "tracing a moving scene";
 
-/// `rays[i]` at `times[i]` traced on `kernel` (a tree of the moving layouts), in as many
-/// dispatches as the device's limits need; rays whose time is NaN, and rays the driver's
-/// trip budget cut short, answered by `twin`.
+/// `rays[i]` at `times[i]` traced on `kernel` (a tree of the moving layouts); rays whose
+/// time is NaN are invalid ([`untraced`]), and rays the driver's trip budget cut short are
+/// answered by `twin`.
 async fn trace_timed(
     ctx: &GpuContext,
     kernel: &TreeKernel,
@@ -122,23 +108,11 @@ async fn trace_timed(
     query: Query,
     twin: impl Fn(&Ray, f32) -> Hit,
 ) -> Result<Vec<Hit>, GpuError> {
-    assert_eq!(rays.len(), times.len(), "one time per ray");
-    let mut hits = Vec::with_capacity(rays.len());
-    for d in plan_dispatches(rays.len() as u64, ctx.limits()) {
-        let range = d.first_ray as usize..d.first_ray as usize + d.ray_count as usize;
-        // NaN times are answered on the host; the kernel sees 0.
-        let t: Vec<f32> = (times[range.clone()].iter())
-            .map(|&t| if t.is_nan() { 0.0 } else { t })
-            .collect();
-        let extra = [(3, bytemuck::cast_slice(&t))];
-        let r = &rays[range];
-        hits.extend(kernel.dispatch(ctx, DURING, (r, &extra), query, &d).await?);
-    }
-    for (i, h) in hits.iter_mut().enumerate() {
-        if times[i].is_nan() {
-            *h = untraced(&rays[i]);
-        } else if h.prim == INCOMPLETE {
-            *h = twin(&rays[i], times[i]);
+    let twin = |i: usize| twin(&rays[i], times[i]);
+    let mut hits = (kernel.trace(ctx, DURING, (rays, Some(times)), query, twin)).await?;
+    for (h, (r, t)) in hits.iter_mut().zip(rays.iter().zip(times)) {
+        if t.is_nan() {
+            *h = untraced(r);
         }
     }
     Ok(hits)
@@ -223,7 +197,7 @@ impl GpuMotionInstancedBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, GpuError> {
-        block_on(self.trace_async(rays, times, query))
+        block_on(DURING, self.trace_async(rays, times, query))
     }
 
     /// [`GpuMotionInstancedBvh::trace`] as a future.

@@ -1,10 +1,10 @@
 //! What the tracers over a tree of their own layout (moving meshes, curves) share: their
 //! arrays checked against the device's binding limit and uploaded to group 0, the
-//! full-stack walk's entry point compiled for closest and any hit, and one dispatch over
+//! full-stack walk's entry point compiled for closest and any hit, and the dispatches over
 //! a batch of rays (group 1: rays at binding 0, hits at 1, the batch's other inputs after).
 
-use bvhtrace_core::{Hit, Query, Ray};
-use bvhtrace_engine::plan::Dispatch;
+use bvhtrace_core::{Hit, INCOMPLETE, Query, Ray};
+use bvhtrace_engine::plan::{Dispatch, plan_dispatches};
 use wgpu::util::DeviceExt;
 
 use crate::build::read_after_async;
@@ -13,6 +13,21 @@ use crate::{GpuContext, GpuError, TraceError};
 
 /// The entry point (the full-stack walk's, hits only).
 const ENTRY: &str = "bvh_trace_full_stack_main";
+
+/// Waits for a trace on the device where the platform can; a browser cannot (the error
+/// says what was `during`: await the tracer's `trace_async` there).
+pub(crate) fn block_on<T>(
+    during: &'static str,
+    trace: impl std::future::Future<Output = Result<T, GpuError>>,
+) -> Result<T, GpuError> {
+    if cfg!(target_arch = "wasm32") {
+        return Err(TraceError::Device {
+            during,
+            message: "a browser cannot wait for its GPU: use trace_async".into(),
+        });
+    }
+    pollster::block_on(trace)
+}
 
 /// A tree's bind group and the two pipelines that walk it.
 #[derive(Debug)]
@@ -120,9 +135,43 @@ impl TreeKernel {
         })
     }
 
+    /// `rays` traced in as many dispatches as the device's limits need, each ray's time
+    /// at batch binding 3 when `times` are given (a NaN time given as 0: the caller
+    /// answers those rays itself); rays the driver's trip budget cut short are answered by
+    /// `twin(i)`, the CPU twin's hit of ray `i`.
+    pub async fn trace(
+        &self,
+        ctx: &GpuContext,
+        during: &'static str,
+        (rays, times): (&[Ray], Option<&[f32]>),
+        query: Query,
+        twin: impl Fn(usize) -> Hit,
+    ) -> Result<Vec<Hit>, GpuError> {
+        if let Some(times) = times {
+            assert_eq!(rays.len(), times.len(), "one time per ray");
+        }
+        let mut hits = Vec::with_capacity(rays.len());
+        for d in plan_dispatches(rays.len() as u64, ctx.limits()) {
+            let range = d.first_ray as usize..d.first_ray as usize + d.ray_count as usize;
+            let t: Vec<f32> = (times.map_or(&[][..], |t| &t[range.clone()]).iter())
+                .map(|&t| if t.is_nan() { 0.0 } else { t })
+                .collect();
+            let times_input = [(3, bytemuck::cast_slice(&t))];
+            let extra: &[(u32, &[u8])] = if times.is_some() { &times_input } else { &[] };
+            let r = &rays[range];
+            hits.extend(self.dispatch(ctx, during, (r, extra), query, &d).await?);
+        }
+        for (i, h) in hits.iter_mut().enumerate() {
+            if h.prim == INCOMPLETE {
+                *h = twin(i);
+            }
+        }
+        Ok(hits)
+    }
+
     /// One dispatch `d` over `rays`, with the batch's other inputs `extra` (each at its
     /// binding): their hits.
-    pub async fn dispatch(
+    async fn dispatch(
         &self,
         ctx: &GpuContext,
         during: &'static str,
