@@ -960,14 +960,32 @@ impl Judge<'_> {
 
     /// The number of GPU hits that differ bit for bit from the CPU twin's.
     fn parity(&self, examples: &mut Examples, hits: &[Hit], cpu: &[Hit]) -> usize {
+        let same_bits = |g: &Hit, c: &Hit| hit_bits(g) == hit_bits(c);
+        self.count_unlike(
+            examples,
+            (hits, cpu),
+            "GPU differs from the CPU twin's",
+            same_bits,
+        )
+    }
+
+    /// The rays whose hit in `hits` is not `alike` the reference's in `reference`, each
+    /// described in `examples` as `what`, followed by the reference's answer.
+    fn count_unlike(
+        &self,
+        examples: &mut Examples,
+        (hits, reference): (&[Hit], &[Hit]),
+        what: &str,
+        alike: impl Fn(&Hit, &Hit) -> bool,
+    ) -> usize {
         let mut n = 0;
-        for (i, (g, c)) in hits.iter().zip(cpu).enumerate() {
-            if hit_bits(g) != hit_bits(c) {
+        for (i, (g, c)) in hits.iter().zip(reference).enumerate() {
+            if !alike(g, c) {
                 n += 1;
                 examples.push(describe(
                     &self.case.rays[i],
                     &format!(
-                        "ray {i}: GPU differs from the CPU twin (cpu prim {} t {:e} u {:e} v {:e})",
+                        "ray {i}: {what} (prim {} t {:e} u {:e} v {:e})",
                         prim_name(c.prim),
                         c.t,
                         c.u,

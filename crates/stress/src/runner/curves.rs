@@ -11,8 +11,8 @@ use bvhtrace_core::{CurveBvh, Curves, Hit, Query};
 use rayon::prelude::*;
 
 use super::{
-    Backends, CaseReport, Examples, Geometry, Judge, RunReport, as_traced, describe, hit_bits, ms,
-    note_no_walk, query_name, same_verdict, walk_row,
+    Backends, CaseReport, Examples, Geometry, Judge, RunReport, as_traced, hit_bits, ms,
+    note_no_walk, same_verdict, walk_row,
 };
 use crate::Case;
 use crate::geom::is_zero_area;
@@ -111,7 +111,7 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
             };
             let r = if cubic {
                 let mut r = judge.evaluate(r, q, &hits, None);
-                r.parity_mismatches = Some(cubic_parity(&judge, &mut r, &hits, &twin));
+                r.parity_mismatches = Some(cubic_parity(&judge, &mut r, q, &hits, &twin));
                 r
             } else {
                 judge.evaluate(r, q, &hits, Some(&twin))
@@ -122,7 +122,7 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
 }
 
 /// Counts the rays whose answer is not the brute force's (closest: bit for bit; any: hit
-/// or miss alike) as determinate differences from it.
+/// or miss alike) as determinate differences from it; every answer is compared.
 fn against_brute(
     judge: &Judge<'_>,
     mut r: RunReport,
@@ -131,17 +131,13 @@ fn against_brute(
     brute: &[Hit],
 ) -> RunReport {
     let mut examples = Examples(std::mem::take(&mut r.examples));
-    for (i, (h, b)) in hits.iter().zip(brute).enumerate() {
-        let alike = match q {
-            Query::Closest => hit_bits(h) == hit_bits(b),
-            Query::Any => same_verdict(h, b),
-        };
-        if !alike {
-            r.brute_mismatch.add(false);
-            let what = format!("ray {i}: differs from the brute force ({b:?})");
-            examples.push(describe(&judge.case.rays[i], &what, h));
-        }
-    }
+    let alike = |h: &Hit, b: &Hit| match q {
+        Query::Closest => hit_bits(h) == hit_bits(b),
+        Query::Any => same_verdict(h, b),
+    };
+    let what = "differs from the brute force's";
+    let n = judge.count_unlike(&mut examples, (hits, brute), what, alike);
+    r.brute_mismatch.wrong += n;
     r.sample = hits.len();
     r.examples = examples.0;
     r
@@ -149,21 +145,20 @@ fn against_brute(
 
 /// The rays on which a device's cubic-curve answers differ from the twin's beyond
 /// [`cubic_alike`] (closest), or on hit or miss (any), with examples in `r`.
-fn cubic_parity(judge: &Judge<'_>, r: &mut RunReport, hits: &[Hit], twin: &[Hit]) -> usize {
+fn cubic_parity(
+    judge: &Judge<'_>,
+    r: &mut RunReport,
+    q: Query,
+    hits: &[Hit],
+    twin: &[Hit],
+) -> usize {
     let mut examples = Examples(std::mem::take(&mut r.examples));
-    let mut n = 0;
-    for (i, (g, c)) in hits.iter().zip(twin).enumerate() {
-        let alike = if r.query == query_name(Query::Closest) {
-            cubic_alike(g, c)
-        } else {
-            same_verdict(g, c)
-        };
-        if !alike {
-            n += 1;
-            let what = format!("ray {i}: differs from the CPU twin ({c:?})");
-            examples.push(describe(&judge.case.rays[i], &what, g));
-        }
-    }
+    let alike = |g: &Hit, c: &Hit| match q {
+        Query::Closest => cubic_alike(g, c),
+        Query::Any => same_verdict(g, c),
+    };
+    let what = "GPU differs from the CPU twin's beyond the cubic rule";
+    let n = judge.count_unlike(&mut examples, (hits, twin), what, alike);
     r.examples = examples.0;
     n
 }

@@ -722,15 +722,25 @@ fn unusable_transforms_are_errors_naming_the_instance() {
     assert!(sel.len() >= 7 && sel.iter().all(|c| c.instancing.is_some()));
 }
 
-/// The reports of the cases named `prefix...`, each checked to have run without error, and
-/// the backends whose rows they must have: the CPU twin and every device with walks of
-/// moving meshes and curves.
-fn timed_cases(prefix: &str, want: usize) -> (Vec<&'static CaseReport>, Vec<String>) {
+/// Checks the `want` cases named `prefix...`: each ran without error, and on the CPU twin
+/// and every device with walks of moving scenes and curves it has its rows (`walks` x
+/// closest and any), each ran, clean, on a device equal to the twin, and passing `also`
+/// (a violation's description, or `None`). Fails with every violation as `what`.
+fn check_timed_rows(
+    (prefix, want): (&str, usize),
+    walks: usize,
+    what: &str,
+    also: impl Fn(&CaseReport, &RunReport) -> Option<String>,
+) {
     let s = suite();
     let cases: Vec<&CaseReport> = (s.reports.iter())
         .filter(|c| c.name.starts_with(prefix))
         .collect();
     assert_eq!(cases.len(), want, "{prefix}* cases ran");
+    let mut backends = vec!["cpu".to_string()];
+    backends.extend(s.timed_devices.iter().cloned());
+    println!("the {prefix}* cases on {backends:?}");
+    let mut bad = Vec::new();
     for c in &cases {
         assert!(
             c.error.is_none() && c.skipped.is_none(),
@@ -738,40 +748,28 @@ fn timed_cases(prefix: &str, want: usize) -> (Vec<&'static CaseReport>, Vec<Stri
             c.name,
             c.error
         );
-    }
-    let mut backends = vec!["cpu".to_string()];
-    backends.extend(s.timed_devices.iter().cloned());
-    println!("the {prefix}* cases on {backends:?}");
-    (cases, backends)
-}
-
-/// Every row of a moving mesh's or curves' case on backend `b` (`walks` x closest and
-/// any), each ran, clean, and on a device equal to the CPU twin.
-fn timed_rows<'a>(
-    c: &'a CaseReport,
-    b: &str,
-    walks: usize,
-    bad: &mut Vec<String>,
-) -> Vec<&'a RunReport> {
-    let runs: Vec<&RunReport> = c.runs.iter().filter(|r| r.backend == b).collect();
-    if runs.len() != 2 * walks || runs.iter().any(|r| r.status != "ok") {
-        bad.push(format!(
-            "{} {b}: {} runs: {:?}",
-            c.name,
-            runs.len(),
-            c.notes
-        ));
-    }
-    for r in &runs {
-        if !r.clean() || (b != "cpu" && r.parity_mismatches != Some(0)) {
-            bad.push(with_examples(
-                c,
-                r,
-                format!("not clean (parity {:?})", r.parity_mismatches),
-            ));
+        for b in &backends {
+            let runs: Vec<&RunReport> = c.runs.iter().filter(|r| r.backend == *b).collect();
+            if runs.len() != 2 * walks || runs.iter().any(|r| r.status != "ok") {
+                bad.push(format!(
+                    "{} {b}: {} runs: {:?}",
+                    c.name,
+                    runs.len(),
+                    c.notes
+                ));
+            }
+            for r in runs {
+                if !r.clean() || (b != "cpu" && r.parity_mismatches != Some(0)) {
+                    let msg = format!("not clean (parity {:?})", r.parity_mismatches);
+                    bad.push(with_examples(c, r, msg));
+                }
+                if let Some(msg) = also(c, r) {
+                    bad.push(with_examples(c, r, msg));
+                }
+            }
         }
     }
-    runs
+    check(what, bad);
 }
 
 /// The `motion-*` cases: a moving, turning, growing sphere at the shutter's ends, a step,
@@ -782,27 +780,17 @@ fn timed_rows<'a>(
 /// devices equal the twin bit for bit. A time outside the shutter is its end.
 #[test]
 fn moving_meshes_stay_closed_at_every_time_on_every_walk() {
-    let (cases, backends) = timed_cases("motion-", 14);
-    let mut bad = Vec::new();
-    for c in &cases {
-        for b in &backends {
-            for r in timed_rows(c, b, 2, &mut bad) {
-                // Flat at mid-shutter: no inside; everywhere else rays from inside.
-                if (r.must_hit == 0) != (c.name == "motion-flip-t0.5") || r.escapes.total() > 0 {
-                    bad.push(with_examples(
-                        c,
-                        r,
-                        format!(
-                            "{} escapes of {} rays from inside",
-                            r.escapes.total(),
-                            r.must_hit
-                        ),
-                    ));
-                }
-            }
-        }
-    }
-    check("moving meshes", bad);
+    check_timed_rows(("motion-", 14), 2, "moving meshes", |c, r| {
+        // Flat at mid-shutter: no inside; everywhere else rays from inside.
+        let wrong_inside_count = (r.must_hit == 0) != (c.name == "motion-flip-t0.5");
+        (wrong_inside_count || r.escapes.total() > 0).then(|| {
+            format!(
+                "{} escapes of {} rays from inside",
+                r.escapes.total(),
+                r.must_hit
+            )
+        })
+    });
     let names = ["motion-before", "motion-t0", "motion-after", "motion-t1"].map(String::from);
     let picked = select_cases(&names, &options()).expect("the motion cases");
     let tris = |n: &str| {
@@ -827,28 +815,17 @@ fn moving_meshes_stay_closed_at_every_time_on_every_walk() {
 /// kernels' rule).
 #[test]
 fn curves_give_their_known_answers_on_every_walk() {
-    let (cases, backends) = timed_cases("curves-", 4);
-    let mut bad = Vec::new();
-    for c in &cases {
-        for b in &backends {
-            for r in timed_rows(c, b, 1, &mut bad) {
-                if r.known < 100 || r.brute_mismatch.total() > 0 || r.sample != r.rays {
-                    bad.push(with_examples(
-                        c,
-                        r,
-                        format!(
-                            "{} known answers, {} differences from the brute force on {} of {} rays",
-                            r.known,
-                            r.brute_mismatch.total(),
-                            r.sample,
-                            r.rays
-                        ),
-                    ));
-                }
-            }
-        }
-    }
-    check("curves", bad);
+    check_timed_rows(("curves-", 4), 1, "curves", |_, r| {
+        (r.known < 100 || r.brute_mismatch.total() > 0 || r.sample != r.rays).then(|| {
+            format!(
+                "{} known answers, {} differences from the brute force on {} of {} rays",
+                r.known,
+                r.brute_mismatch.total(),
+                r.sample,
+                r.rays
+            )
+        })
+    });
 }
 
 /// The judging of moving meshes and curves can fail: a known answer changed, or a case
