@@ -5,7 +5,9 @@
 //! that holds their triangles and curve segments ([`CurveBvh`]).
 //!
 //! One moving mesh traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on
-//! the CPU twin, which answer alike bit for bit; two levels trace on the CPU. Each pixel
+//! the CPU, in the CPU layout (`MovingCpuBvh`; the twin where the heatmap counts its
+//! tests), which answer as the twin does bit for bit; two levels trace on the device or
+//! the CPU twin. Each pixel
 //! takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as many equal
 //! parts of the shutter (stratified, jittered by a hash of the pixel), so the samples of
 //! one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO) leave at its
@@ -17,6 +19,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, CurveBvh, Hit, Query, Ray, Triangle};
+use bvhtrace_cpu::MovingCpuBvh;
 use bvhtrace_gpu::{GpuCurveBvh, GpuMotionBvh, GpuMotionInstancedBvh};
 use bvhtrace_scene::Scene;
 use glam::Vec3;
@@ -143,10 +146,11 @@ fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
 }
 
 /// What a blurred render traces, and where: one moving mesh, or moving instances in two
-/// levels, on the device or on the CPU twin (which also counts); or, for a scene with
-/// curves, its triangles and curves on the device or the CPU twin.
+/// levels, on the device or on the CPU (one mesh in the CPU layout, but where the twin
+/// counts for the heatmap); or, for a scene with curves, its triangles and curves on the
+/// device or the CPU twin.
 enum Walker {
-    Cpu(Arc<MotionBvh>, MotionMesh),
+    Cpu(Arc<MotionBvh>, Option<MovingCpuBvh>, MotionMesh),
     Gpu(GpuMotionBvh, MotionMesh),
     Instanced(Arc<MotionInstancedBvh>),
     GpuInstanced(GpuMotionInstancedBvh),
@@ -193,7 +197,12 @@ impl Walker {
         })?;
         Ok(match gpu {
             Some(gpu) => Walker::Gpu(gpu, mesh),
-            None => Walker::Cpu(bvh, mesh),
+            None => {
+                let layout = (args.shade != Shade::Heatmap)
+                    .then(|| MovingCpuBvh::from_motion(&bvh))
+                    .transpose()?;
+                Walker::Cpu(bvh, layout, mesh)
+            }
         })
     }
 
@@ -216,7 +225,7 @@ impl Walker {
     /// `(triangles, time steps, tree bytes, depth)`.
     fn sizes(&self) -> (usize, usize, usize, u32) {
         match self {
-            Walker::Cpu(b, _) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+            Walker::Cpu(b, ..) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
             Walker::Gpu(g, _) => {
                 let b = g.bvh();
                 (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
@@ -237,7 +246,7 @@ impl Walker {
     /// The box around everything over the shutter.
     fn bounds(&self) -> bvhtrace_core::Aabb {
         match self {
-            Walker::Cpu(b, _) => b.bounds(),
+            Walker::Cpu(b, ..) => b.bounds(),
             Walker::Gpu(g, _) => g.bvh().bounds(),
             Walker::Instanced(b) => b.bounds(),
             Walker::GpuInstanced(g) => g.bvh().bounds(),
@@ -250,7 +259,7 @@ impl Walker {
     /// in its tangent plane that shades it: [`CurveBvh::shading_triangle`]).
     fn triangle_at(&self, hit: &Hit, ray: &Ray, time: f32) -> Triangle {
         match self {
-            Walker::Cpu(_, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
+            Walker::Cpu(_, _, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
             Walker::Instanced(b) => b.triangle_at(hit.prim, time).unwrap_or_default(),
             Walker::GpuInstanced(g) => g.bvh().triangle_at(hit.prim, time).unwrap_or_default(),
             Walker::Curves(b) => b.shading_triangle(hit, ray),
@@ -268,7 +277,10 @@ impl Walker {
                 .unzip()
         };
         match self {
-            Walker::Cpu(b, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
+            Walker::Cpu(_, Some(l), _) => {
+                Ok((l.trace_rays(rays, times, Query::Closest), Vec::new()))
+            }
+            Walker::Cpu(b, None, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
             Walker::Instanced(b) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
             Walker::Curves(b) => Ok(on_cpu(&|r, _| b.trace(r, Query::Closest))),
             Walker::GpuCurves(g) => Ok((g.trace(rays, Query::Closest)?, Vec::new())),
@@ -279,7 +291,8 @@ impl Walker {
 
     fn any(&self, rays: &[Ray], times: &[f32]) -> Result<Vec<Hit>> {
         match self {
-            Walker::Cpu(b, _) => Ok(b.trace_rays(rays, times, Query::Any)),
+            Walker::Cpu(_, Some(l), _) => Ok(l.trace_rays(rays, times, Query::Any)),
+            Walker::Cpu(b, None, _) => Ok(b.trace_rays(rays, times, Query::Any)),
             Walker::Instanced(b) => Ok(b.trace_rays(rays, times, Query::Any)),
             Walker::Curves(b) => Ok(b.trace_rays(rays, Query::Any)),
             Walker::GpuCurves(g) => Ok(g.trace(rays, Query::Any)?),

@@ -106,7 +106,7 @@ fn enter<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     if p.valid & 1 == 0 {
         return (best, false);
     }
-    single::mesh::<L, W, ANY, MASKED>(bvh, object, &p, 0, best, start, at, stack)
+    single::mesh::<_, L, W, ANY, MASKED>(bvh, object, &p, 0, best, start, at, stack)
 }
 
 /// Ray `i` of a prepared group, `ray` itself, through a two-level tree, with the rays'

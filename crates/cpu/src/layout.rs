@@ -59,7 +59,7 @@ pub const EMPTY: u32 = u32::MAX;
 pub const MAX_LEAF_BLOCKS: u32 = 16;
 
 /// Bits of a leaf's first block (the rest hold the block count).
-const FIRST_BITS: u32 = 27;
+pub(crate) const FIRST_BITS: u32 = 27;
 
 /// The leaf child over `count` blocks from `first`.
 #[inline(always)]
@@ -136,7 +136,7 @@ impl Tri4 {
     }
 
     /// The block of `tris` (one to four), its free lanes repeating the last triangle.
-    fn of(tris: &[FlatTriangle]) -> Tri4 {
+    pub(crate) fn of(tris: &[FlatTriangle]) -> Tri4 {
         let mut b = Tri4 {
             v: [[[0.0; BLOCK]; 3]; 3],
             prim: [0; BLOCK],
@@ -252,14 +252,14 @@ pub(crate) struct CpuInstance {
 /// Which level a collapse converts: a mesh (leaves of triangles), or the top level of a
 /// two-level tree (leaves of one instance each, of this many instances).
 #[derive(Clone, Copy, PartialEq, Eq)]
-enum Level {
+pub(crate) enum Level {
     Mesh,
     Top(u32),
 }
 
 /// What a wide node's slot is made from while converting.
 #[derive(Clone, Copy)]
-enum Src {
+pub(crate) enum Src {
     /// A binary node.
     Node(u32),
     /// A run of the binary tree's triangles (`first`, `count`), too long for one leaf.
@@ -267,11 +267,11 @@ enum Src {
 }
 
 /// A leaf child's triangles, before their blocks are written.
-struct PendingLeaf {
-    node: u32,
-    slot: u8,
-    first_tri: u32,
-    tris: u32,
+pub(crate) struct PendingLeaf {
+    pub node: u32,
+    pub slot: u8,
+    pub first_tri: u32,
+    pub tris: u32,
 }
 
 impl CpuBvh {
@@ -306,6 +306,7 @@ impl CpuBvh {
                 Level::Mesh,
                 &mut nodes,
                 &mut leaves,
+                &mut |_, _, _| {},
             )?;
             let (blocks, box_index, leaf_boxes) =
                 write_blocks(&mut nodes, &leaves, ftris, &tri_box)?;
@@ -331,7 +332,16 @@ impl CpuBvh {
             )));
         }
         let top = Level::Top(finst.len() as u32);
-        let top_depth = collapse(fnodes, &spans, &tri_box, 0, top, &mut nodes, &mut leaves)?;
+        let top_depth = collapse(
+            fnodes,
+            &spans,
+            &tri_box,
+            0,
+            top,
+            &mut nodes,
+            &mut leaves,
+            &mut |_, _, _| {},
+        )?;
         // Each mesh once: its root's start reference, by binary root.
         let mut meshes = std::collections::HashMap::new();
         let mut mesh_depth = 0;
@@ -357,6 +367,7 @@ impl CpuBvh {
                         Level::Mesh,
                         &mut nodes,
                         &mut leaves,
+                        &mut |_, _, _| {},
                     )?;
                     mesh_depth = mesh_depth.max(d);
                     meshes.insert(fi.root, at as u32);
@@ -473,8 +484,10 @@ impl CpuBvh {
 
 /// Collapses the binary tree at `root` (a whole mesh, or the top level) into wide nodes
 /// appended to `nodes`, the mesh's leaves appended to `leaves` (their blocks written
-/// later); its first node is the tree's root. Returns its levels of nodes.
-fn collapse(
+/// later); its first node is the tree's root; `on_slot(node, slot, src)` hears what each
+/// slot was made from. Returns its levels of nodes.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn collapse(
     fnodes: &[FlatNode],
     spans: &[(u32, u32)],
     tri_box: &[Aabb],
@@ -482,6 +495,7 @@ fn collapse(
     level: Level,
     nodes: &mut Vec<Node8>,
     leaves: &mut Vec<PendingLeaf>,
+    on_slot: &mut impl FnMut(u32, usize, Src),
 ) -> Result<u32, ConvertError> {
     let at = nodes.len() as u32;
     nodes.push(Node8::EMPTY);
@@ -563,6 +577,7 @@ fn collapse(
                 )));
             }
             nodes[at as usize].set(slot, &bounds, child);
+            on_slot(at, slot, src);
         }
     }
     Ok(depth)
@@ -650,7 +665,7 @@ pub const MERGE_TRIANGLES: u32 = BLOCK as u32;
 
 /// Each binary node's triangles as a run `(first, count)`, or `count == u32::MAX` when
 /// they are not one contiguous run (a tree flattened by hand).
-fn subtree_spans(fnodes: &[FlatNode]) -> Vec<(u32, u32)> {
+pub(crate) fn subtree_spans(fnodes: &[FlatNode]) -> Vec<(u32, u32)> {
     let mut spans = vec![(0u32, 0u32); fnodes.len()];
     // Children come after their parent in the depth-first order: one backward pass.
     for i in (0..fnodes.len()).rev() {
@@ -695,18 +710,12 @@ fn split_run(first: u32, count: u32) -> SrcList {
 /// binary walk tests no box of the mesh's root: the instance leaf's box stood for it).
 fn leaf_box_of_triangles(flat: &FlatBvh) -> Vec<Aabb> {
     let (fnodes, triangles) = (flat.nodes(), flat.triangles().len());
-    let mut boxes = vec![Aabb::EMPTY; triangles];
+    let mut boxes = leaf_of_triangles(fnodes, triangles, |_, n| n.aabb());
     let mut fill = |n: &FlatNode, b: Aabb| {
         let first = (n.right_or_first as usize).min(triangles);
         let end = (first + n.count() as usize).min(triangles);
         boxes[first..end].fill(b);
     };
-    for n in fnodes
-        .iter()
-        .filter(|n| n.is_leaf() && !n.is_instance_leaf())
-    {
-        fill(n, n.aabb());
-    }
     let everywhere = Aabb {
         min: Vec3::splat(f32::NEG_INFINITY),
         max: Vec3::splat(f32::INFINITY),
@@ -718,6 +727,24 @@ fn leaf_box_of_triangles(flat: &FlatBvh) -> Vec<Aabb> {
         }
     }
     boxes
+}
+
+/// `of(i, node)` for each triangle slot's binary leaf `i` (`T::default()` for a slot no
+/// leaf holds).
+pub(crate) fn leaf_of_triangles<T: Clone + Default>(
+    fnodes: &[FlatNode],
+    triangles: usize,
+    of: impl Fn(u32, &FlatNode) -> T,
+) -> Vec<T> {
+    let mut out = vec![T::default(); triangles];
+    for (i, n) in fnodes.iter().enumerate() {
+        if n.is_leaf() && !n.is_instance_leaf() {
+            let first = (n.right_or_first as usize).min(triangles);
+            let end = (first + n.count() as usize).min(triangles);
+            out[first..end].fill(of(i as u32, n));
+        }
+    }
+    out
 }
 
 /// The triangle blocks, each block's place in the kept leaf boxes, and those boxes.

@@ -89,6 +89,7 @@ mod lanes;
 pub mod layout;
 
 mod instanced;
+pub mod moving;
 mod packet;
 mod packet_tri;
 mod single;
@@ -100,6 +101,7 @@ use bvhtrace_core::{Hit, Query, Ray};
 use rayon::prelude::*;
 
 pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
+pub use moving::MovingCpuBvh;
 pub use packet::{PACKET, tile_order};
 
 use instanced::MeshWalk;

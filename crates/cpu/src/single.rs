@@ -2,11 +2,13 @@
 //! children visited nearest first, popped children re-tested against the best hit, and a
 //! leaf's triangles tested four at a time.
 
+use std::borrow::Borrow;
+
 use bvhtrace_core::masks::MaskTables;
-use bvhtrace_core::{Hit, Ray};
+use bvhtrace_core::{Aabb, Hit, Ray};
 
 use crate::lanes::{Lanes, Wide};
-use crate::layout::{CpuBvh, EMPTY, LEAF, Node8, WIDTH, leaf_range};
+use crate::layout::{CpuBvh, EMPTY, LEAF, Node8, Tri4, WIDTH, leaf_range};
 use crate::tests4::{
     BoxHits, MINMAX, Prepared, RayAt, RayLanes, ShearLanes, box8, near_ends, octant, still_hit,
     tri4,
@@ -15,6 +17,55 @@ use crate::tests4::{
 // The core walks' best hit and hit rule, and their answer for a ray not traced: one rule
 // for every walk.
 pub(crate) use bvhtrace_core::traverse::{Best, untraced};
+
+/// What a walk reads of a tree: its nodes, its leaves' blocks and their lanes' binary
+/// leaf boxes. The converted layout lends its own; a moving tree
+/// ([`crate::moving`]) gives each interpolated at the ray's time, so that one walk serves
+/// both.
+pub(crate) trait WalkTree {
+    /// A node as the walk tests it.
+    type Node<'a>: Borrow<Node8>
+    where
+        Self: 'a;
+    /// A block as the walk tests it.
+    type Block<'a>: Borrow<Tri4>
+    where
+        Self: 'a;
+    /// Node `i`.
+    fn node(&self, i: u32) -> Self::Node<'_>;
+    /// Blocks `first..first + count`.
+    fn blocks(&self, first: usize, count: usize) -> impl Iterator<Item = Self::Block<'_>>;
+    /// Block `block`'s lane `i`'s binary leaf box (see [`crate::layout::LeafBoxes`]).
+    fn leaf_box(&self, block: usize, i: usize) -> Aabb;
+    /// Asks for the memory of child `c` (a node, or a leaf's first block) ahead of its
+    /// visit.
+    fn fetch(&self, c: u32);
+}
+
+impl WalkTree for CpuBvh {
+    type Node<'a> = &'a Node8;
+    type Block<'a> = &'a Tri4;
+
+    #[inline(always)]
+    fn node(&self, i: u32) -> &Node8 {
+        &self.nodes[i as usize]
+    }
+
+    #[inline(always)]
+    fn blocks(&self, first: usize, count: usize) -> impl Iterator<Item = &Tri4> {
+        self.blocks[first..first + count].iter()
+    }
+
+    #[inline(always)]
+    fn leaf_box(&self, block: usize, i: usize) -> Aabb {
+        CpuBvh::leaf_box(self, block, i)
+    }
+
+    #[inline(always)]
+    fn fetch(&self, c: u32) {
+        fetch(self, c)
+    }
+}
 
 /// A child waiting on the stack: its reference, and what [`still_hit`] needs. An any-hit
 /// walk re-tests nothing at a pop and keeps only references, four to an entry (see
@@ -104,7 +155,7 @@ pub(crate) fn leaf<L: Lanes, const ANY: bool>(
     child: u32,
     best: &mut Best,
 ) -> bool {
-    leaf_at::<L, ANY, false>(bvh, t_min, s, ray, child, best, Site::PLAIN)
+    leaf_at::<_, L, ANY, false>(bvh, t_min, s, ray, child, best, Site::PLAIN)
 }
 
 /// [`leaf`] at `at`: hits report `at.prim_base` plus the block's id, and with `MASKED` a
@@ -115,8 +166,8 @@ pub(crate) fn leaf<L: Lanes, const ANY: bool>(
 /// requires (see [`crate::layout::LeafBoxes`]).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
-    bvh: &CpuBvh,
+pub(crate) fn leaf_at<T: WalkTree, L: Lanes, const ANY: bool, const MASKED: bool>(
+    bvh: &T,
     t_min: L,
     s: &ShearLanes<L>,
     ray: RayAt<'_>,
@@ -125,7 +176,8 @@ pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
     at: Site<'_>,
 ) -> bool {
     let (first, count) = leaf_range(child);
-    for (k, b) in bvh.blocks[first..first + count].iter().enumerate() {
+    for (k, block) in bvh.blocks(first, count).enumerate() {
+        let b = block.borrow();
         let (mut ok, t, u, v) = tri4::<L, ANY>(b, t_min, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.
         ok &= t.le(L::splat(best.t)).bits();
@@ -180,8 +232,8 @@ pub(crate) fn leaf_at<L: Lanes, const ANY: bool, const MASKED: bool>(
 /// (see [`crate::layout::LeafBoxes`]).
 #[cold]
 #[inline(never)]
-pub(crate) fn in_leaf_box(
-    bvh: &CpuBvh,
+pub(crate) fn in_leaf_box<T: WalkTree>(
+    bvh: &T,
     block: usize,
     i: usize,
     ray: &RayAt<'_>,
@@ -309,7 +361,7 @@ pub(crate) fn trace_at<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
         masks: if MASKED { bvh.masks.as_deref() } else { None },
         ..Site::PLAIN
     };
-    mesh::<L, W, ANY, MASKED>(bvh, ray, p, i, best, 0, at, stack)
+    mesh::<_, L, W, ANY, MASKED>(bvh, ray, p, i, best, 0, at, stack)
         .0
         .into_hit()
 }
@@ -457,7 +509,7 @@ fn walk_turns<L: Lanes, W: Wide, const ANY: bool, const KZ: usize, const OCT: us
     };
     let (mut last, q) = last;
     while last
-        .step::<W, ANY, false, false, false, KZ, OCT>(bvh, &q, at)
+        .step::<_, W, ANY, false, false, false, KZ, OCT>(bvh, &q, at)
         .is_none()
     {}
     hits[last.i] = last.best.into_hit();
@@ -474,7 +526,7 @@ fn turn<L: Lanes, W: Wide, const ANY: bool, const KZ: usize, const OCT: usize>(
     rays: &mut u32,
     hits: &mut [Hit],
 ) -> bool {
-    if w.step::<W, ANY, false, false, false, KZ, OCT>(bvh, q, Site::PLAIN)
+    if w.step::<_, W, ANY, false, false, false, KZ, OCT>(bvh, q, Site::PLAIN)
         .is_some()
     {
         hits[w.i] = w.best.into_hit();
@@ -500,8 +552,8 @@ fn next(rays: &mut u32) -> usize {
 /// `at`. Returns the best hit, and true when an any-hit query stopped.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
-    bvh: &CpuBvh,
+pub(crate) fn mesh<T: WalkTree, L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
+    bvh: &T,
     ray: &Ray,
     p: &Prepared,
     i: usize,
@@ -515,7 +567,7 @@ pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
     // their origin (see `box8`): most rays are none of the last two.
     let signed = ray.t_min < 0.0 || q.parallel;
     for_ray_kind!(q.parallel, signed, q.kz, |SIGNED, PARALLEL, KZ| {
-        walk::<L, W, ANY, MASKED, SIGNED, PARALLEL, KZ>(bvh, p, i, &q, best, start, at, stack)
+        walk::<T, L, W, ANY, MASKED, SIGNED, PARALLEL, KZ>(bvh, p, i, &q, best, start, at, stack)
     })
 }
 
@@ -527,6 +579,7 @@ pub(crate) fn mesh<L: Lanes, W: Wide, const ANY: bool, const MASKED: bool>(
 #[cfg_attr(not(debug_assertions), inline(always))]
 #[cfg_attr(debug_assertions, inline(never))]
 fn walk<
+    T: WalkTree,
     L: Lanes,
     W: Wide,
     const ANY: bool,
@@ -535,7 +588,7 @@ fn walk<
     const PARALLEL: bool,
     const KZ: usize,
 >(
-    bvh: &CpuBvh,
+    bvh: &T,
     p: &Prepared,
     i: usize,
     q: &RayLanes<L, W>,
@@ -546,7 +599,8 @@ fn walk<
 ) -> (Best, bool) {
     let mut w = Walk::<L>::new(p, i, [q.t_min_s, q.t_max_s], best, start, stack);
     loop {
-        if let Some(stopped) = w.step::<W, ANY, MASKED, SIGNED, PARALLEL, KZ, MINMAX>(bvh, q, at) {
+        if let Some(stopped) = w.step::<_, W, ANY, MASKED, SIGNED, PARALLEL, KZ, MINMAX>(bvh, q, at)
+        {
             return (w.best, stopped);
         }
     }
@@ -617,6 +671,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
     /// over: true when an any-hit query stopped.
     #[inline(always)]
     pub fn step<
+        T: WalkTree,
         W: Wide,
         const ANY: bool,
         const MASKED: bool,
@@ -626,18 +681,19 @@ impl<'a, L: Lanes> Walk<'a, L> {
         const OCT: usize,
     >(
         &mut self,
-        bvh: &CpuBvh,
+        bvh: &T,
         q: &RayLanes<L, W>,
         at: Site<'_>,
     ) -> Option<bool> {
         if self.child & LEAF == 0 {
-            let n = &bvh.nodes[self.child as usize];
+            let node = bvh.node(self.child);
+            let n = node.borrow();
             // An any-hit walk stops at its first hit, so its best is always `t_max`.
             let culled = !ANY && self.best.found;
             let b = box8::<L, W, SIGNED, PARALLEL, KZ, OCT>(n, q, self.best.t, culled);
             if ANY {
                 self.child = self.any_next::<W>(n, b.hit);
-                fetch(bvh, self.child);
+                bvh.fetch(self.child);
                 return (self.child == EMPTY).then_some(false);
             }
             if b.hit != 0 {
@@ -649,7 +705,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
             let shear = self.shear.get_or_insert_with(|| {
                 ShearLanes::from_prepared(p, i, if OCT == MINMAX { KZ } else { p.kz[i] })
             });
-            if leaf_at::<L, ANY, MASKED>(
+            if leaf_at::<T, L, ANY, MASKED>(
                 bvh,
                 q.t_min4,
                 shear,
@@ -663,7 +719,7 @@ impl<'a, L: Lanes> Walk<'a, L> {
         }
         if ANY {
             self.child = self.any_pop();
-            fetch(bvh, self.child);
+            bvh.fetch(self.child);
             return (self.child == EMPTY).then_some(false);
         }
         loop {
