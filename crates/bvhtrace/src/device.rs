@@ -21,7 +21,7 @@ use crate::{Backend, OpenOptions, Opened};
 pub struct Device {
     pub(crate) inner: Arc<dyn DeviceInterface>,
     /// Opened as [`Backend::Auto`]: a tree over the device's limits goes to the CPU.
-    auto: bool,
+    pub(crate) auto: bool,
     /// Why this is not the backend asked for.
     fallback: Option<String>,
     /// Why [`Backend::Auto`] chose what it did on a device with ray queries.

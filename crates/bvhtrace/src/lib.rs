@@ -30,6 +30,9 @@
 //!   answers, [`Tracer::update`] after the scene moved, [`Tracer::kernels_used`] and
 //!   [`Tracer::upload_stats`] for what ran and what was uploaded.
 //!
+//! * [`open_timed`]: a scene in time (a moving mesh, moving instances) or with curves
+//!   ([`TimedScene`]), traced with a time per ray ([`TimedTracer`]) on the CPU or wgpu.
+//!
 //! Each backend is one module behind one object-safe trait; the library reads no
 //! environment variable: a front end that honours [`ADAPTER_ENV`] or `VALIDATION_ENV`
 //! passes them on in [`OpenOptions`].
@@ -39,11 +42,13 @@ mod backend;
 mod backends;
 mod device;
 mod open;
+mod timed;
 
 pub use backend::{Backend, Kernels, UnknownBackend};
 pub use backends::cpu::FastCpuTracer;
 pub use device::Device;
 pub use open::{OpenOptions, Opened, SharedFilter, open};
+pub use timed::{OpenedTimed, TimedScene, TimedTracer, open_timed};
 
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,

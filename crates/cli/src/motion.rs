@@ -4,10 +4,9 @@
 //! (`builtin:hair`) render through the same samples, shading and image, on the CPU tree
 //! that holds their triangles and curve segments ([`CurveBvh`]).
 //!
-//! One moving mesh traces on the device (`GpuMotionBvh`, our full-stack walk in WGSL) or on
-//! the CPU, in the CPU layout (`MovingCpuBvh`; the twin where the heatmap counts its
-//! tests), which answer as the twin does bit for bit; two levels trace on the device or
-//! the CPU twin. Each pixel
+//! Each traces through the front door (`bvhtrace::open_timed`): on the device (our walks in
+//! WGSL) or on the CPU (a moving mesh in the CPU layout, the others on the core walks),
+//! which answer alike; the heatmap counts the CPU twin's tests. Each pixel
 //! takes `--shutter-samples` samples, sample `s` at a time in the `s`-th of as many equal
 //! parts of the shutter (stratified, jittered by a hash of the pixel), so the samples of
 //! one pixel cover the shutter evenly. A sample's secondary rays (shadow, AO) leave at its
@@ -17,10 +16,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use bvhtrace::{TimedScene, TimedTracer};
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MotionMesh, TimeBounds};
 use bvhtrace_core::{Counters, CurveBvh, Hit, Query, Ray, Triangle};
-use bvhtrace_cpu::MovingCpuBvh;
-use bvhtrace_gpu::{GpuCurveBvh, GpuMotionBvh, GpuMotionInstancedBvh};
 use bvhtrace_scene::Scene;
 use glam::Vec3;
 use rayon::prelude::*;
@@ -145,130 +143,122 @@ fn check_flags(args: &RenderArgs, shutter: Option<(f32, f32)>) -> Result<()> {
     Ok(())
 }
 
-/// What a blurred render traces, and where: one moving mesh, or moving instances in two
-/// levels, on the device or on the CPU (one mesh in the CPU layout, but where the twin
-/// counts for the heatmap); or, for a scene with curves, its triangles and curves on the
-/// device or the CPU twin.
-enum Walker {
-    Cpu(Arc<MotionBvh>, Option<MovingCpuBvh>, MotionMesh),
-    Gpu(GpuMotionBvh, MotionMesh),
-    Instanced(Arc<MotionInstancedBvh>),
-    GpuInstanced(GpuMotionInstancedBvh),
-    Curves(CurveBvh),
-    GpuCurves(GpuCurveBvh),
+/// What a blurred render traces, and where: one moving mesh, moving instances in two
+/// levels, or a scene's triangles and curves ([`TimedScene`]), traced through the front
+/// door ([`bvhtrace::open_timed`]: wgpu, or the CPU); for the heatmap, the CPU twin, which
+/// counts its tests.
+struct Walker {
+    scene: TimedScene,
+    /// The moving triangles a hit is shaded on (one moving mesh).
+    mesh: Option<MotionMesh>,
+    tracer: Box<dyn TimedTracer>,
+    backend: bvhtrace::Backend,
+    /// The heatmap's closest hits come from the CPU twin, with its counters.
+    counted: bool,
 }
 
 impl Walker {
-    /// The scene over the shutter as the flags say, built, on the device `--backend`
-    /// names (the best one for auto) or the CPU; auto falls back to the CPU, saying why,
-    /// where the device cannot take the tree.
+    /// The scene over the shutter as the flags say, built, and opened on the backend
+    /// `--backend` names (the best one for auto, which falls back to the CPU, saying why,
+    /// where the device cannot take the tree).
     fn build(args: &RenderArgs, scene: &Scene, shutter: Option<(f32, f32)>) -> Result<Walker> {
         let opts = args.scene.build.options();
         let bounds = TimeBounds::from(args.time_bounds);
-        let Some((open, close)) = shutter else {
-            let Some(curves) = scene.curves.clone() else {
-                bail!("the scene has no curves");
-            };
-            let tris = scene.flattened_triangles()?;
-            let bvh = Arc::new(CurveBvh::build(&tris, curves, &opts)?);
-            let gpu = on_device(args, "curves", |ctx| GpuCurveBvh::upload(ctx, bvh.clone()))?;
-            return Ok(match gpu {
-                Some(gpu) => Walker::GpuCurves(gpu),
-                None => Walker::Curves(Arc::unwrap_or_clone(bvh)),
-            });
-        };
-        if args.shutter.instances {
-            let (meshes, instances) = scene.moving_instances(open, close)?;
-            let bvh = Arc::new(MotionInstancedBvh::build(
-                &meshes, instances, &opts, bounds,
-            )?);
-            let gpu = on_device(args, "moving instances", |ctx| {
-                GpuMotionInstancedBvh::upload(ctx, bvh.clone())
-            })?;
-            return Ok(match gpu {
-                Some(gpu) => Walker::GpuInstanced(gpu),
-                None => Walker::Instanced(bvh),
-            });
-        }
-        let mesh = scene.motion(open, close)?;
-        let bvh = Arc::new(MotionBvh::build(&mesh, &opts, bounds)?);
-        let gpu = on_device(args, "motion blur", |ctx| {
-            GpuMotionBvh::upload(ctx, bvh.clone())
-        })?;
-        Ok(match gpu {
-            Some(gpu) => Walker::Gpu(gpu, mesh),
+        let (timed, mesh) = match shutter {
             None => {
-                let layout = (args.shade != Shade::Heatmap)
-                    .then(|| MovingCpuBvh::from_motion(&bvh))
-                    .transpose()?;
-                Walker::Cpu(bvh, layout, mesh)
+                let Some(curves) = scene.curves.clone() else {
+                    bail!("the scene has no curves");
+                };
+                let tris = scene.flattened_triangles()?;
+                let bvh = CurveBvh::build(&tris, curves, &opts)?;
+                (TimedScene::Curves(Arc::new(bvh)), None)
             }
+            Some((open, close)) if args.shutter.instances => {
+                let (meshes, instances) = scene.moving_instances(open, close)?;
+                let bvh = MotionInstancedBvh::build(&meshes, instances, &opts, bounds)?;
+                (TimedScene::MovingInstances(Arc::new(bvh)), None)
+            }
+            Some((open, close)) => {
+                let mesh = scene.motion(open, close)?;
+                let bvh = MotionBvh::build(&mesh, &opts, bounds)?;
+                (TimedScene::Moving(Arc::new(bvh)), Some(mesh))
+            }
+        };
+        let device = backend::device(&backend::options(
+            args.backend,
+            args.adapter.as_deref(),
+            &[],
+        ))?;
+        let opened = device.open_timed(timed.clone())?;
+        if let Some(why) = opened
+            .fallback
+            .as_deref()
+            .filter(|w| Some(*w) != device.fallback())
+        {
+            eprintln!("note: {why}");
+        }
+        Ok(Walker {
+            scene: timed,
+            mesh,
+            tracer: opened.tracer,
+            backend: opened.backend,
+            counted: args.shade == Shade::Heatmap,
         })
     }
 
     fn name(&self) -> &'static str {
-        match self {
-            Walker::Gpu(..) | Walker::GpuInstanced(..) | Walker::GpuCurves(..) => "wgpu",
-            _ => "cpu",
+        match self.backend {
+            bvhtrace::Backend::Cpu => "cpu",
+            _ => "wgpu",
         }
     }
 
     /// The curves it traces, if any.
     fn curves(&self) -> Option<&bvhtrace_core::Curves> {
-        match self {
-            Walker::Curves(b) => Some(b.curves()),
-            Walker::GpuCurves(g) => Some(g.bvh().curves()),
+        match &self.scene {
+            TimedScene::Curves(b) => Some(b.curves()),
             _ => None,
         }
     }
 
     /// `(triangles, time steps, tree bytes, depth)`.
     fn sizes(&self) -> (usize, usize, usize, u32) {
-        match self {
-            Walker::Cpu(b, ..) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
-            Walker::Gpu(g, _) => {
-                let b = g.bvh();
+        match &self.scene {
+            TimedScene::Moving(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
+            TimedScene::MovingInstances(b) => {
                 (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
             }
-            Walker::Instanced(b) => (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth()),
-            Walker::GpuInstanced(g) => {
-                let b = g.bvh();
-                (b.triangle_count(), b.time_steps(), b.byte_size(), b.depth())
-            }
-            Walker::Curves(b) => (b.triangle_count(), 1, b.byte_size(), b.depth()),
-            Walker::GpuCurves(g) => {
-                let b = g.bvh();
-                (b.triangle_count(), 1, b.byte_size(), b.depth())
-            }
+            TimedScene::Curves(b) => (b.triangle_count(), 1, b.byte_size(), b.depth()),
         }
     }
 
     /// The box around everything over the shutter.
     fn bounds(&self) -> bvhtrace_core::Aabb {
-        match self {
-            Walker::Cpu(b, ..) => b.bounds(),
-            Walker::Gpu(g, _) => g.bvh().bounds(),
-            Walker::Instanced(b) => b.bounds(),
-            Walker::GpuInstanced(g) => g.bvh().bounds(),
-            Walker::Curves(b) => b.bounds(),
-            Walker::GpuCurves(g) => g.bvh().bounds(),
+        match &self.scene {
+            TimedScene::Moving(b) => b.bounds(),
+            TimedScene::MovingInstances(b) => b.bounds(),
+            TimedScene::Curves(b) => b.bounds(),
         }
     }
 
     /// The triangle `hit` of `ray` is on where it is at `time` (for a curve, the triangle
     /// in its tangent plane that shades it: [`CurveBvh::shading_triangle`]).
     fn triangle_at(&self, hit: &Hit, ray: &Ray, time: f32) -> Triangle {
-        match self {
-            Walker::Cpu(_, _, m) | Walker::Gpu(_, m) => m.triangle_at(hit.prim as usize, time),
-            Walker::Instanced(b) => b.triangle_at(hit.prim, time).unwrap_or_default(),
-            Walker::GpuInstanced(g) => g.bvh().triangle_at(hit.prim, time).unwrap_or_default(),
-            Walker::Curves(b) => b.shading_triangle(hit, ray),
-            Walker::GpuCurves(g) => g.bvh().shading_triangle(hit, ray),
+        match (&self.scene, &self.mesh) {
+            (TimedScene::Moving(_), Some(m)) => m.triangle_at(hit.prim as usize, time),
+            (TimedScene::MovingInstances(b), _) => {
+                b.triangle_at(hit.prim, time).unwrap_or_default()
+            }
+            (TimedScene::Curves(b), _) => b.shading_triangle(hit, ray),
+            (TimedScene::Moving(_), None) => Triangle::default(),
         }
     }
 
-    /// Closest hits, with counters on the CPU (none from the device).
+    /// Closest hits, with the twin's counters for the heatmap (none otherwise).
     fn closest(&self, rays: &[Ray], times: &[f32]) -> Result<(Vec<Hit>, Vec<Counters>)> {
+        if !self.counted {
+            return Ok((self.tracer.trace(rays, times, Query::Closest)?, Vec::new()));
+        }
         let on_cpu = |trace: &(dyn Fn(&Ray, f32) -> (Hit, Counters) + Sync)| {
             rays.par_iter()
                 .zip(times)
@@ -276,60 +266,15 @@ impl Walker {
                 .map(|(r, &time)| trace(r, time))
                 .unzip()
         };
-        match self {
-            Walker::Cpu(_, Some(l), _) => {
-                Ok((l.trace_rays(rays, times, Query::Closest), Vec::new()))
-            }
-            Walker::Cpu(b, None, _) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
-            Walker::Instanced(b) => Ok(on_cpu(&|r, t| b.trace(r, t, Query::Closest))),
-            Walker::Curves(b) => Ok(on_cpu(&|r, _| b.trace(r, Query::Closest))),
-            Walker::GpuCurves(g) => Ok((g.trace(rays, Query::Closest)?, Vec::new())),
-            Walker::Gpu(g, _) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
-            Walker::GpuInstanced(g) => Ok((g.trace(rays, times, Query::Closest)?, Vec::new())),
-        }
+        Ok(match &self.scene {
+            TimedScene::Moving(b) => on_cpu(&|r, t| b.trace(r, t, Query::Closest)),
+            TimedScene::MovingInstances(b) => on_cpu(&|r, t| b.trace(r, t, Query::Closest)),
+            TimedScene::Curves(b) => on_cpu(&|r, _| b.trace(r, Query::Closest)),
+        })
     }
 
     fn any(&self, rays: &[Ray], times: &[f32]) -> Result<Vec<Hit>> {
-        match self {
-            Walker::Cpu(_, Some(l), _) => Ok(l.trace_rays(rays, times, Query::Any)),
-            Walker::Cpu(b, None, _) => Ok(b.trace_rays(rays, times, Query::Any)),
-            Walker::Instanced(b) => Ok(b.trace_rays(rays, times, Query::Any)),
-            Walker::Curves(b) => Ok(b.trace_rays(rays, Query::Any)),
-            Walker::GpuCurves(g) => Ok(g.trace(rays, Query::Any)?),
-            Walker::Gpu(g, _) => Ok(g.trace(rays, times, Query::Any)?),
-            Walker::GpuInstanced(g) => Ok(g.trace(rays, times, Query::Any)?),
-        }
-    }
-}
-
-/// `upload` done on the device `--backend` names (the best one for auto), or `None` to
-/// trace on the CPU: with `--backend cpu`, a device without wgpu, or (for auto) an upload
-/// the device refused, saying why. Ray queries have no `what` in wgpu: our walk traces
-/// on their device, saying so.
-fn on_device<T>(
-    args: &RenderArgs,
-    what: &str,
-    upload: impl FnOnce(&bvhtrace_gpu::GpuContext) -> Result<T, bvhtrace_gpu::GpuError>,
-) -> Result<Option<T>> {
-    let wanted = match args.backend {
-        Backend::Cpu => return Ok(None),
-        Backend::RayQuery => {
-            eprintln!("note: ray queries have no {what} in wgpu: our walk traces on the device");
-            Backend::Wgpu
-        }
-        b => b,
-    };
-    let device = backend::device(&backend::options(wanted, args.adapter.as_deref(), &[]))?;
-    let Some(ctx) = device.wgpu_context() else {
-        return Ok(None);
-    };
-    match upload(ctx) {
-        Ok(gpu) => Ok(Some(gpu)),
-        Err(e) if args.backend == Backend::Auto => {
-            eprintln!("note: tracing on the CPU: {e}");
-            Ok(None)
-        }
-        Err(e) => Err(e.into()),
+        Ok(self.tracer.trace(rays, times, Query::Any)?)
     }
 }
 

@@ -364,12 +364,9 @@ impl<const LINEAR: bool> WalkTree for At<'_, LINEAR> {
     }
 
     #[inline(always)]
-    fn blocks(&self, first: usize, count: usize) -> impl Iterator<Item = Tri4> {
-        let (steps, s, f) = (self.bvh.steps, self.s, self.f);
-        (first..first + count).map(move |b| {
-            let at = &self.bvh.blocks[b * steps + s..b * steps + s + 2];
-            lerp_block(&at[0], &at[1], f)
-        })
+    fn block(&self, b: usize) -> Tri4 {
+        let at = &self.bvh.blocks[b * self.bvh.steps + self.s..][..2];
+        lerp_block(&at[0], &at[1], self.f)
     }
 
     #[inline(always)]

@@ -33,8 +33,8 @@ pub(crate) trait WalkTree {
         Self: 'a;
     /// Node `i`.
     fn node(&self, i: u32) -> Self::Node<'_>;
-    /// Blocks `first..first + count`.
-    fn blocks(&self, first: usize, count: usize) -> impl Iterator<Item = Self::Block<'_>>;
+    /// Block `b`.
+    fn block(&self, b: usize) -> Self::Block<'_>;
     /// Block `block`'s lane `i`'s binary leaf box (see [`crate::layout::LeafBoxes`]).
     fn leaf_box(&self, block: usize, i: usize) -> Aabb;
     /// Asks for the memory of child `c` (a node, or a leaf's first block) ahead of its
@@ -52,8 +52,8 @@ impl WalkTree for CpuBvh {
     }
 
     #[inline(always)]
-    fn blocks(&self, first: usize, count: usize) -> impl Iterator<Item = &Tri4> {
-        self.blocks[first..first + count].iter()
+    fn block(&self, b: usize) -> &Tri4 {
+        &self.blocks[b]
     }
 
     #[inline(always)]
@@ -176,7 +176,9 @@ pub(crate) fn leaf_at<T: WalkTree, L: Lanes, const ANY: bool, const MASKED: bool
     at: Site<'_>,
 ) -> bool {
     let (first, count) = leaf_range(child);
-    for (k, block) in bvh.blocks(first, count).enumerate() {
+    // An index loop: an iterator's `next` may be compiled apart from an AVX2 caller.
+    for k in 0..count {
+        let block = bvh.block(first + k);
         let b = block.borrow();
         let (mut ok, t, u, v) = tri4::<L, ANY>(b, t_min, s);
         // Only lanes at or before the best can be taken; the rule settles the ties.

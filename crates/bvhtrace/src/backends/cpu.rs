@@ -15,9 +15,9 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{CpuTracer, DriverTuning, TraceError, Tracer};
 use web_time::Instant;
 
-use super::interface::{DeviceInterface, OpenResult, Tree, no_device_builder};
+use super::interface::{DeviceInterface, OpenResult, TimedOpen, Tree, no_device_builder};
 use crate::open::check_walks;
-use crate::{Backend, OpenOptions, Opened};
+use crate::{Backend, OpenOptions, Opened, TimedScene};
 
 /// The CPU: nothing to open.
 struct CpuDevice;
@@ -46,6 +46,10 @@ impl DeviceInterface for CpuDevice {
 
     fn applies_rust_filters(&self) -> bool {
         true
+    }
+
+    fn open_timed(&self, scene: &TimedScene) -> Result<TimedOpen, TraceError> {
+        Ok((crate::timed::on_cpu(scene)?, None))
     }
 
     fn open<'t, 'a>(

@@ -13,7 +13,7 @@ use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_engine::{DriverTuning, TraceError};
 use bvhtrace_gpu::GpuContext;
 
-use crate::{Backend, OpenOptions, Opened};
+use crate::{Backend, OpenOptions, Opened, TimedScene, TimedTracer};
 
 /// A tree kept for as long as a tracer lives, borrowed, shared or owned.
 pub(crate) struct Kept<'a>(Box<dyn Borrow<FlatBvh> + Send + Sync + 'a>);
@@ -57,6 +57,10 @@ impl<'t, 'a> Tree<'t, 'a> {
     }
 }
 
+/// What [`DeviceInterface::open_timed`] returns: the tracer, and a note when it is not
+/// what the backend's name promises.
+pub(crate) type TimedOpen = (Box<dyn TimedTracer>, Option<String>);
+
 /// What [`DeviceInterface::open`] returns: the opened tracer, or the error with the tree
 /// given back when another backend may take it (so that [`Backend::Auto`] can open the
 /// CPU walks on it instead).
@@ -96,6 +100,16 @@ pub(crate) trait DeviceInterface: SendSync + Any {
         tris: &[Triangle],
         opts: &GpuBuildOptions,
     ) -> Result<(FlatBvh, GpuBuildTimes), TraceError>;
+
+    /// Opens a tracer for a scene in time or with curves, with a note when it is not
+    /// traced as this backend traces flat trees. By default our walks on the device's wgpu
+    /// context, where it has one.
+    fn open_timed(&self, scene: &TimedScene) -> Result<TimedOpen, TraceError> {
+        match self.wgpu_context() {
+            Some(ctx) => Ok((crate::timed::on_wgpu(ctx, scene)?, None)),
+            None => Err(crate::timed::unsupported(self.backend(), scene)),
+        }
+    }
 
     /// The wgpu context it traces on (our walks or the device's ray queries), for a caller
     /// that composes its own WGSL on the same device.

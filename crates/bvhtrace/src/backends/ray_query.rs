@@ -11,10 +11,10 @@ use bvhtrace_engine::plan::DeviceLimits;
 use bvhtrace_engine::{DriverTuning, TraceError, Tracer};
 use bvhtrace_gpu::{GpuContext, RayQueryBvh};
 
-use super::interface::{DeviceInterface, OpenResult, Tree, uploaded};
+use super::interface::{DeviceInterface, OpenResult, TimedOpen, Tree, uploaded};
 use super::wgpu::{WgpuDevice, adapter_name, context};
 use crate::open::exceeds_a_limit;
-use crate::{Backend, Device, OpenOptions, Opened};
+use crate::{Backend, Device, OpenOptions, Opened, TimedScene};
 
 /// A wgpu device with ray queries, tracing with them; our walks on the same device when
 /// [`Backend::Auto`]'s tree exceeds a limit of the ray-query upload.
@@ -91,6 +91,15 @@ impl DeviceInterface for RayQueryDevice {
             }
             other => other,
         })
+    }
+
+    fn open_timed(&self, scene: &TimedScene) -> Result<TimedOpen, TraceError> {
+        let note = format!(
+            "wgpu's ray queries have no motion blur or curves: {} traces with our walks on \
+             the device",
+            scene.name()
+        );
+        Ok((crate::timed::on_wgpu(&self.walks.ctx, scene)?, Some(note)))
     }
 
     fn build_bvh(
