@@ -27,7 +27,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh};
 use bvhtrace_core::{CurveBvh, Hit, Query, Ray};
-use bvhtrace_cpu::MovingCpuBvh;
+use bvhtrace_cpu::{MovingCpuBvh, MovingInstancesCpuBvh};
 use bvhtrace_engine::TraceError;
 use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_gpu::{GpuContext, GpuCurveBvh, GpuMotionBvh, GpuMotionInstancedBvh};
@@ -91,9 +91,9 @@ impl fmt::Debug for OpenedTimed {
 
 /// Opens a tracer for `scene` on the backend `opts` asks for ([`Backend::Auto`]: wgpu on
 /// the best adapter, else the CPU; a scene over the device's limits goes to the CPU,
-/// saying why). The CPU traces a moving mesh in the CPU layout ([`MovingCpuBvh`]), the
-/// others with the core walks; wgpu with our walks (`GpuMotionBvh`, `GpuMotionInstancedBvh`,
-/// `GpuCurveBvh`). Ray queries have neither motion nor curves in wgpu: [`Backend::RayQuery`]
+/// saying why). The CPU traces moving meshes and instances in the CPU layout
+/// ([`MovingCpuBvh`], [`MovingInstancesCpuBvh`]), curves with the core walks; wgpu with
+/// our walks (`GpuMotionBvh`, `GpuMotionInstancedBvh`, `GpuCurveBvh`). Ray queries have neither motion nor curves in wgpu: [`Backend::RayQuery`]
 /// traces our walks on its device, and says so. The Vulkan backend (ash) has no kernels
 /// for them and refuses.
 pub fn open_timed(scene: TimedScene, opts: &OpenOptions) -> Result<OpenedTimed, TraceError> {
@@ -146,7 +146,14 @@ pub(crate) fn on_cpu(scene: &TimedScene) -> Result<Box<dyn TimedTracer>, TraceEr
             })?;
             Box::new(CpuTimed(layout))
         }
-        TimedScene::MovingInstances(b) => Box::new(CpuTimed(b.clone())),
+        TimedScene::MovingInstances(b) => {
+            let layout =
+                MovingInstancesCpuBvh::from_motion(b).map_err(|e| TraceError::Unsupported {
+                    backend: Backend::Cpu.name(),
+                    what: format!("these moving instances in the CPU layout: {e}"),
+                })?;
+            Box::new(CpuTimed(layout))
+        }
         TimedScene::Curves(b) => Box::new(CpuTimed(b.clone())),
     })
 }
@@ -183,7 +190,7 @@ impl TimedTracer for CpuTimed<MovingCpuBvh> {
     }
 }
 
-impl TimedTracer for CpuTimed<Arc<MotionInstancedBvh>> {
+impl TimedTracer for CpuTimed<MovingInstancesCpuBvh> {
     fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, TraceError> {
         check_times(rays, times)?;
         Ok(self.0.trace_rays(rays, times, query))

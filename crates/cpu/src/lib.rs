@@ -90,6 +90,7 @@ pub mod layout;
 
 mod instanced;
 pub mod moving;
+pub mod moving_instances;
 mod packet;
 mod packet_tri;
 mod single;
@@ -102,6 +103,7 @@ use rayon::prelude::*;
 
 pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
 pub use moving::MovingCpuBvh;
+pub use moving_instances::MovingInstancesCpuBvh;
 pub use packet::{PACKET, tile_order};
 
 use instanced::MeshWalk;

@@ -31,7 +31,7 @@ type Planes = [[f32; WIDTH]; 6];
 #[derive(Clone, Debug)]
 pub struct MovingCpuBvh {
     /// The nodes: children, and their boxes over the whole shutter.
-    nodes: Vec<Node8>,
+    pub(crate) nodes: Vec<Node8>,
     /// Node `i`'s child boxes at step `k`: `step_planes[i * steps + k]` (linear bounds).
     step_planes: Vec<Planes>,
     /// Block `b` at step `k`: `blocks[b * steps + k]`.
@@ -41,19 +41,36 @@ pub struct MovingCpuBvh {
     /// Binary node `i`'s box at step `k`: `leaf_boxes[i * steps + k]` (linear bounds), or
     /// over the shutter: `leaf_boxes[i]` (merged).
     leaf_boxes: Vec<Aabb>,
-    steps: usize,
-    bounds: TimeBounds,
-    depth: u32,
+    pub(crate) steps: usize,
+    pub(crate) bounds: TimeBounds,
+    pub(crate) depth: u32,
     triangles: usize,
     /// A box around the root's boxes at every time: rays that miss it take no walk.
-    scene_box: Option<SceneBox>,
+    pub(crate) scene_box: Option<SceneBox>,
 }
 
 impl MovingCpuBvh {
     /// Converts `m`. The blocks are written in parallel on the current rayon pool.
     pub fn from_motion(m: &MotionBvh) -> Result<MovingCpuBvh, ConvertError> {
-        let (fnodes, steps, count) = (m.nodes(), m.time_steps(), m.triangle_count());
-        let (bounds, step_boxes) = (m.time_bounds(), m.step_boxes());
+        let tree = MovingTree {
+            nodes: m.nodes(),
+            step_boxes: m.step_boxes(),
+            steps: m.time_steps(),
+            bounds: m.time_bounds(),
+        };
+        MovingCpuBvh::convert(&tree, Level::Mesh, m.triangles(), m.triangle_count())
+    }
+
+    /// Converts `tree` at `level`: a mesh over `count` triangles (`tris`, every step's in
+    /// turn), or a top level whose leaves are instance leaves (no triangles).
+    pub(crate) fn convert(
+        tree: &MovingTree<'_>,
+        level: Level,
+        tris: &[FlatTriangle],
+        count: usize,
+    ) -> Result<MovingCpuBvh, ConvertError> {
+        let (fnodes, steps, bounds, step_boxes) =
+            (tree.nodes, tree.steps, tree.bounds, tree.step_boxes);
         let spans = subtree_spans(fnodes);
         let leaf_of = leaf_of_triangles(fnodes, count, |i, _| i);
         let tri_box: Vec<Aabb> = leaf_of.iter().map(|&i| fnodes[i as usize].aabb()).collect();
@@ -74,7 +91,7 @@ impl MovingCpuBvh {
         let depth = if fnodes.is_empty() {
             0
         } else {
-            let (root, level) = (0, Level::Mesh);
+            let root = 0;
             collapse(
                 fnodes,
                 &spans,
@@ -115,7 +132,6 @@ impl MovingCpuBvh {
                 around_steps(nodes.first(), &step_planes[..steps.min(step_planes.len())])
             }
         };
-        let tris = m.triangles();
         let (blocks, lane_leaf) = write_blocks(&mut nodes, &leaves, tris, count, steps, &leaf_of)?;
         Ok(MovingCpuBvh {
             nodes,
@@ -331,12 +347,21 @@ fn lerp_block(a: &Tri4, b: &Tri4, f: f32) -> Tri4 {
     out
 }
 
+/// A binary moving tree to convert: its nodes, their boxes at every step, and how they
+/// bound time.
+pub(crate) struct MovingTree<'a> {
+    pub nodes: &'a [bvhtrace_core::FlatNode],
+    pub step_boxes: &'a [bvhtrace_core::motion::MotionBox],
+    pub steps: usize,
+    pub bounds: TimeBounds,
+}
+
 /// The tree at one ray's time: segment `s` (steps `s` and `s + 1`), fraction `f`.
 #[derive(Clone, Copy)]
-struct At<'a, const LINEAR: bool> {
-    bvh: &'a MovingCpuBvh,
-    s: usize,
-    f: f32,
+pub(crate) struct At<'a, const LINEAR: bool> {
+    pub bvh: &'a MovingCpuBvh,
+    pub s: usize,
+    pub f: f32,
 }
 
 impl<const LINEAR: bool> WalkTree for At<'_, LINEAR> {

@@ -5,11 +5,11 @@
 
 mod common;
 
-use bvhtrace_core::motion::MotionBvh;
+use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh, MovingInstance};
 use bvhtrace_core::{BuildOptions, BuilderKind, Hit, MotionMesh, Query, Ray, TimeBounds, Triangle};
-use bvhtrace_cpu::{Isa, MovingCpuBvh};
+use bvhtrace_cpu::{Isa, MovingCpuBvh, MovingInstancesCpuBvh};
 use common::{f32_departure, rays_for, same, uv_sphere, xorshift};
-use glam::Vec3;
+use glam::{Mat4, Vec3};
 use proptest::prelude::*;
 
 /// Times that cover the shutter's ends, the steps, between them, outside and NaN.
@@ -198,4 +198,129 @@ fn empty_and_one_triangle_meshes() {
         "moved up: {hits:?}"
     );
     assert!(!hits[3].is_hit(), "a NaN time is not traced");
+}
+
+/// Checks moving instances in the layout against the core walk on `rays` at `times`, with
+/// both bounds (merged only where nothing moves); returns the closest hits found.
+fn check_instances(
+    meshes: &[Vec<Triangle>],
+    instances: &[MovingInstance],
+    rays: &[Ray],
+    times: &[f32],
+) -> usize {
+    let still = instances.iter().all(|i| i.transforms.len() == 1);
+    let bounds: &[TimeBounds] = match still {
+        true => &[TimeBounds::Merged],
+        false => &[TimeBounds::Linear, TimeBounds::Merged],
+    };
+    let mut found = 0;
+    for &b in bounds {
+        let opts = BuildOptions::default();
+        let m = MotionInstancedBvh::build(meshes, instances.to_vec(), &opts, b).expect("built");
+        let bvh = MovingInstancesCpuBvh::from_motion(&m).expect("converted");
+        assert_eq!(bvh.time_steps(), m.time_steps());
+        let want = m.trace_rays(rays, times, Query::Closest);
+        let isas = Isa::all_available();
+        let got = bvh.trace_rays_with(rays, times, Query::Closest, isas[0]);
+        for &isa in &isas[1..] {
+            let h = bvh.trace_rays_with(rays, times, Query::Closest, isa);
+            assert!(got.iter().zip(&h).all(|(a, b)| same(a, b)), "{isa} differs");
+        }
+        for i in 0..rays.len() {
+            let (g, w) = (&got[i], &want[i]);
+            if !same(g, w) {
+                let at = m.at(times[i]);
+                assert!(
+                    f32_departure(&at, &rays[i], g, w),
+                    "{b:?}: ray {i} {:?} at {}: {g:?}, the core walk {w:?}",
+                    rays[i],
+                    times[i]
+                );
+            }
+        }
+        found += got.iter().filter(|h| h.is_hit()).count();
+        let any = bvh.trace_rays(rays, times, Query::Any);
+        for i in 0..rays.len() {
+            assert_eq!(any[i].is_hit(), got[i].is_hit(), "{b:?}: any hit, ray {i}");
+        }
+    }
+    found
+}
+
+/// `n` random triangles in the unit cube, from `seed`.
+fn soup(n: usize, seed: u64) -> Vec<Triangle> {
+    let mut rnd = xorshift(seed);
+    let mut p = || Vec3::new(rnd(), rnd(), rnd()) * 2.0 - 1.0;
+    (0..n).map(|_| [p(), p(), p()]).collect()
+}
+
+/// An instance of `mesh` at `steps` steps: turned about `axis` by up to `turn`, moved to
+/// `at` plus up to `reach`, scaled by up to `grow`.
+fn placed(
+    mesh: usize,
+    steps: usize,
+    (axis, turn): (Vec3, f32),
+    (at, reach): (Vec3, Vec3),
+    grow: f32,
+) -> MovingInstance {
+    let transforms = (0..steps)
+        .map(|k| {
+            let f = k as f32 / (steps.max(2) - 1) as f32;
+            Mat4::from_translation(at + reach * f)
+                * Mat4::from_axis_angle(axis.normalize(), turn * f)
+                * Mat4::from_scale(Vec3::splat(1.0 + (grow - 1.0) * f))
+        })
+        .collect();
+    MovingInstance { mesh, transforms }
+}
+
+/// `i` mirrored in x at every step.
+fn mirrored(mut i: MovingInstance) -> MovingInstance {
+    for t in &mut i.transforms {
+        *t *= Mat4::from_scale(Vec3::new(-1.0, 1.0, 1.0));
+    }
+    i
+}
+
+#[test]
+fn moving_instances_give_the_core_walks_hits() {
+    let meshes = vec![
+        uv_sphere(12, 1.0, Vec3::ZERO),
+        uv_sphere(6, 0.7, Vec3::new(0.2, 0.0, 0.0)),
+        soup(40, 5),
+    ];
+    let (x, y, z) = (Vec3::X, Vec3::Y, Vec3::Z);
+    let instances = vec![
+        placed(0, 5, (y, 0.8), (Vec3::ZERO, 2.0 * x), 1.3),
+        placed(0, 5, (x, -1.0), (2.5 * y, Vec3::ZERO), 1.0),
+        mirrored(placed(1, 5, (z, 0.3), (z - 2.0 * x, -2.0 * z), 0.8)),
+        placed(2, 1, (y, 0.0), (x - 2.0 * y, Vec3::ZERO), 1.0),
+        placed(
+            1,
+            5,
+            (Vec3::ONE, 2.0),
+            (Vec3::splat(0.5), Vec3::splat(0.1)),
+            0.5,
+        ),
+    ];
+    let world: Vec<Triangle> = MotionInstancedBvh::build(
+        &meshes,
+        instances.clone(),
+        &BuildOptions::default(),
+        TimeBounds::Linear,
+    )
+    .expect("built")
+    .at(0.5);
+    let rays = rays_for(&world, 11, 6000);
+    let times = times_for(rays.len(), 5, 11);
+    let found = check_instances(&meshes, &instances, &rays, &times);
+    assert!(found > 3000, "{found} hits of 2 x 6000 rays");
+    // Nothing moves: one step, merged bounds.
+    let still: Vec<MovingInstance> = (instances.iter())
+        .map(|i| MovingInstance {
+            mesh: i.mesh,
+            transforms: vec![i.transforms[i.transforms.len() / 2]],
+        })
+        .collect();
+    assert!(check_instances(&meshes, &still, &rays, &times) > 1000);
 }

@@ -251,6 +251,28 @@ impl MotionInstancedBvh {
         self.top.bounds
     }
 
+    /// The top level's nodes (depth first, one instance per leaf: a leaf's first is its
+    /// instance's index in [`MotionInstancedBvh::placed`]; each box over the whole shutter).
+    pub fn top_nodes(&self) -> &[FlatNode] {
+        &self.top.nodes
+    }
+
+    /// The top level's nodes' boxes at every time step: node `i`'s at step `k` is entry
+    /// `i * time_steps() + k` (empty with [`TimeBounds::Merged`]).
+    pub fn top_step_boxes(&self) -> &[MotionBox] {
+        &self.top.step_boxes
+    }
+
+    /// The meshes' trees, as [`MovingInstance::mesh`] numbers them.
+    pub fn mesh_trees(&self) -> &[FlatBvh] {
+        &self.meshes
+    }
+
+    /// The instances in the top level's leaf order, each with its first primitive id.
+    pub fn placed(&self) -> &[(MovingInstance, u32)] {
+        &self.instances
+    }
+
     /// Both levels joined as the kernel of moving instances reads them (see
     /// [`MovingInstancesLayout`]).
     pub fn kernel_layout(&self) -> MovingInstancesLayout {
