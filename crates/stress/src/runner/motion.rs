@@ -1,6 +1,7 @@
 //! The rows of a moving scene's case: the scene's moving tree (one mesh's, or moving
 //! instances' two levels), built with each way of bounding time, traced at the case's time
-//! on the CPU twin and on each device with a walk of moving scenes (compared with the twin
+//! on the CPU twin, in the CPU layout (`MovingCpuBvh`, `MovingInstancesCpuBvh`) and on each
+//! device with a walk of moving scenes (the layout and the devices compared with the twin
 //! bit for bit), and judged as the static scene the walks see at that time.
 
 use std::sync::Arc;
@@ -9,7 +10,12 @@ use std::time::Instant;
 use bvhtrace_core::motion::{MotionInstancedBvh, time_segment};
 use bvhtrace_core::{FlatBvh, Hit, MotionBvh, MotionMesh, Query, Ray, TimeBounds};
 
-use super::{Backends, CaseReport, Judge, MovingTree, RunReport, ms, note_no_walk, walk_row};
+use bvhtrace_cpu::{MovingCpuBvh, MovingInstancesCpuBvh};
+
+use super::{
+    Backends, CPU_LAYOUT_ROWS, CaseReport, Judge, MovingTree, RunReport, ms, note_no_walk,
+    same_verdict, walk_row,
+};
 use crate::{Case, Motion, MovingScene};
 
 /// The rows' traversal name for trees bounding time as `bounds` says.
@@ -111,6 +117,12 @@ pub(super) fn run(
             }
             twin.push(hits);
         }
+        if backends.cpu {
+            match layout_rows(&built, case, &times, queries, judge, (bounds, &twin)) {
+                Ok(runs) => rep.runs.extend(runs),
+                Err(note) => rep.notes.push(note),
+            }
+        }
         for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
             let Some(open) = &device.open_motion else {
                 note_no_walk(rep, &device.backend, "moving scenes");
@@ -138,4 +150,47 @@ pub(super) fn run(
             }
         }
     }
+}
+
+/// The CPU layout's rows of `built` (bounding time as `bounds` says): each query traced
+/// and judged like every row, closest hits compared with the twin's (`twin`, per query)
+/// bit for bit, any hits on hit or miss. A tree the layout does not take gives a note.
+fn layout_rows(
+    built: &Built,
+    case: &Case,
+    times: &[f32],
+    queries: &[Query],
+    judge: &Judge<'_>,
+    (bounds, twin): (TimeBounds, &[Vec<Hit>]),
+) -> Result<Vec<RunReport>, String> {
+    let note = |e: bvhtrace_cpu::ConvertError| format!("{CPU_LAYOUT_ROWS}: {e}");
+    let trace: Box<dyn Fn(Query) -> Vec<Hit>> = match &built.tree {
+        MovingTree::Mesh(b) => {
+            let layout = MovingCpuBvh::from_motion(b).map_err(note)?;
+            Box::new(move |q| layout.trace_rays(&case.rays, times, q))
+        }
+        MovingTree::Instances(b) => {
+            let layout = MovingInstancesCpuBvh::from_motion(b).map_err(note)?;
+            Box::new(move |q| layout.trace_rays(&case.rays, times, q))
+        }
+    };
+    let mut runs = Vec::new();
+    for (&q, cpu) in queries.iter().zip(twin) {
+        let t = Instant::now();
+        let hits = trace(q);
+        let r = RunReport {
+            trace_ms: ms(t),
+            ..row(CPU_LAYOUT_ROWS, bounds, q)
+        };
+        runs.push(match q {
+            Query::Closest => judge.evaluate(r, q, &hits, Some(cpu)),
+            Query::Any => {
+                let mut r = judge.evaluate(r, q, &hits, None);
+                let differ = hits.iter().zip(cpu).filter(|(a, b)| !same_verdict(a, b));
+                r.parity_mismatches = Some(differ.count());
+                r
+            }
+        });
+    }
+    Ok(runs)
 }
