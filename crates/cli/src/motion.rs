@@ -44,8 +44,8 @@ pub struct ShutterArgs {
     #[arg(long, value_name = "N", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=4096))]
     pub shutter_samples: u32,
     /// With --shutter: two levels, the meshes under their instances' moving transforms
-    /// (for a scene whose animation moves instances without deforming meshes; traced on
-    /// the CPU), instead of the flattened moving triangles.
+    /// (for a scene whose animation moves instances without deforming meshes), instead of
+    /// the flattened moving triangles.
     #[arg(long, requires = "shutter")]
     pub instances: bool,
 }
