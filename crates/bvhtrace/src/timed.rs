@@ -180,6 +180,17 @@ pub(crate) fn unsupported(backend: Backend, scene: &TimedScene) -> TraceError {
     }
 }
 
+/// Curves' `hits`, the same at every time, with the rays whose time is NaN answered as
+/// invalid, as on every scene.
+fn nan_times_untraced(mut hits: Vec<Hit>, rays: &[Ray], times: &[f32]) -> Vec<Hit> {
+    for (h, (r, t)) in hits.iter_mut().zip(rays.iter().zip(times)) {
+        if t.is_nan() {
+            *h = bvhtrace_core::traverse::untraced(r);
+        }
+    }
+    hits
+}
+
 /// A CPU tree that traces rays with times.
 struct CpuTimed<T>(T);
 
@@ -200,14 +211,11 @@ impl TimedTracer for CpuTimed<MovingInstancesCpuBvh> {
 impl TimedTracer for CpuTimed<Arc<CurveBvh>> {
     fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, TraceError> {
         check_times(rays, times)?;
-        // The same at every time, but a NaN time is an invalid ray on every scene.
-        let mut hits = self.0.trace_rays(rays, query);
-        for (h, (r, t)) in hits.iter_mut().zip(rays.iter().zip(times)) {
-            if t.is_nan() {
-                *h = bvhtrace_core::traverse::untraced(r);
-            }
-        }
-        Ok(hits)
+        Ok(nan_times_untraced(
+            self.0.trace_rays(rays, query),
+            rays,
+            times,
+        ))
     }
 }
 
@@ -231,12 +239,6 @@ impl TimedTracer for WgpuTimed<GpuMotionInstancedBvh> {
 impl TimedTracer for WgpuTimed<GpuCurveBvh> {
     fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, TraceError> {
         check_times(rays, times)?;
-        let mut hits = self.0.trace(rays, query)?;
-        for (h, (r, t)) in hits.iter_mut().zip(rays.iter().zip(times)) {
-            if t.is_nan() {
-                *h = bvhtrace_core::traverse::untraced(r);
-            }
-        }
-        Ok(hits)
+        Ok(nan_times_untraced(self.0.trace(rays, query)?, rays, times))
     }
 }

@@ -195,13 +195,7 @@ impl MovingCpuBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace_rays_with(&self, rays: &[Ray], times: &[f32], query: Query, isa: Isa) -> Vec<Hit> {
-        assert_eq!(rays.len(), times.len(), "one time per ray");
-        const RUN: usize = 256;
-        let mut hits = vec![Hit::miss(0.0); rays.len()];
-        hits.par_chunks_mut(RUN)
-            .zip(rays.par_chunks(RUN).zip(times.par_chunks(RUN)))
-            .for_each(|(h, (r, t))| self.trace_run(r, t, query, isa, h));
-        hits
+        in_runs(rays, times, |r, t, h| self.trace_run(r, t, query, isa, h))
     }
 
     /// One thread's run of rays into `hits`.
@@ -255,6 +249,25 @@ fn around_steps(root: Option<&Node8>, steps: &[Planes]) -> Option<SceneBox> {
         (b.lo[a], b.hi[a]) = (b.lo[a] - slack, b.hi[a] + slack);
     }
     Some(b)
+}
+
+/// `run(rays, times, hits)` over runs of the rays in parallel on the current rayon pool,
+/// each run a thread's (one stack allocated per run).
+///
+/// # Panics
+/// When the two slices differ in length.
+pub(crate) fn in_runs(
+    rays: &[Ray],
+    times: &[f32],
+    run: impl Fn(&[Ray], &[f32], &mut [Hit]) + Sync,
+) -> Vec<Hit> {
+    assert_eq!(rays.len(), times.len(), "one time per ray");
+    const RUN: usize = 256;
+    let mut hits = vec![Hit::miss(0.0); rays.len()];
+    hits.par_chunks_mut(RUN)
+        .zip(rays.par_chunks(RUN).zip(times.par_chunks(RUN)))
+        .for_each(|(h, (r, t))| run(r, t, h));
+    hits
 }
 
 /// Allocates every leaf's blocks in leaf order, sets the leaf references, and writes each

@@ -11,17 +11,15 @@
 
 use std::borrow::Borrow;
 
-use bvhtrace_core::flat::INSTANCE_LEAF;
 use bvhtrace_core::motion::{MotionInstancedBvh, MovingInstance, TimeBounds, time_segment};
-use bvhtrace_core::{FlatInstance, FlatNode, Hit, Query, Ray};
+use bvhtrace_core::{FlatInstance, Hit, Query, Ray};
 use bytemuck::Zeroable;
-use rayon::prelude::*;
 
 use crate::Isa;
 use crate::instanced::{self, MeshWalk};
 use crate::lanes::{self, Lanes, Wide};
 use crate::layout::{ConvertError, CpuBvh, LEAF, Level};
-use crate::moving::{At, MovingCpuBvh, MovingTree};
+use crate::moving::{At, MovingCpuBvh, MovingTree, in_runs};
 use crate::single::{Best, Entry, Site, WalkTree, order, untraced};
 use crate::tests4::{self, MINMAX, Prepared, RayLanes, box8, still_hit};
 
@@ -42,16 +40,7 @@ pub struct MovingInstancesCpuBvh {
 impl MovingInstancesCpuBvh {
     /// Converts `m`: its top level, and each mesh once.
     pub fn from_motion(m: &MotionInstancedBvh) -> Result<MovingInstancesCpuBvh, ConvertError> {
-        // One instance per leaf: a leaf's first is its instance, as an instance leaf.
-        let nodes: Vec<FlatNode> = (m.top_nodes().iter())
-            .map(|n| match n.is_leaf() {
-                true => FlatNode {
-                    meta: (1 << 2) | INSTANCE_LEAF,
-                    ..*n
-                },
-                false => *n,
-            })
-            .collect();
+        let nodes = m.top_instance_nodes();
         let tree = MovingTree {
             nodes: &nodes,
             step_boxes: m.top_step_boxes(),
@@ -109,13 +98,7 @@ impl MovingInstancesCpuBvh {
     /// # Panics
     /// When the two slices differ in length.
     pub fn trace_rays_with(&self, rays: &[Ray], times: &[f32], query: Query, isa: Isa) -> Vec<Hit> {
-        assert_eq!(rays.len(), times.len(), "one time per ray");
-        const RUN: usize = 256;
-        let mut hits = vec![Hit::miss(0.0); rays.len()];
-        hits.par_chunks_mut(RUN)
-            .zip(rays.par_chunks(RUN).zip(times.par_chunks(RUN)))
-            .for_each(|(h, (r, t))| self.trace_run(r, t, query, isa, h));
-        hits
+        in_runs(rays, times, |r, t, h| self.trace_run(r, t, query, isa, h))
     }
 
     /// One thread's run of rays into `hits`.

@@ -257,6 +257,20 @@ impl MotionInstancedBvh {
         &self.top.nodes
     }
 
+    /// [`MotionInstancedBvh::top_nodes`] with each leaf an instance leaf
+    /// ([`INSTANCE_LEAF`]): one instance per leaf, its index in leaf order the leaf's first.
+    pub fn top_instance_nodes(&self) -> Vec<FlatNode> {
+        (self.top.nodes.iter())
+            .map(|n| match n.is_leaf() {
+                true => FlatNode {
+                    meta: (1 << 2) | INSTANCE_LEAF,
+                    ..*n
+                },
+                false => *n,
+            })
+            .collect()
+    }
+
     /// The top level's nodes' boxes at every time step: node `i`'s at step `k` is entry
     /// `i * time_steps() + k` (empty with [`TimeBounds::Merged`]).
     pub fn top_step_boxes(&self) -> &[MotionBox] {
@@ -276,16 +290,7 @@ impl MotionInstancedBvh {
     /// Both levels joined as the kernel of moving instances reads them (see
     /// [`MovingInstancesLayout`]).
     pub fn kernel_layout(&self) -> MovingInstancesLayout {
-        let mut nodes: Vec<FlatNode> = (self.top.nodes.iter())
-            .map(|n| match n.is_leaf() {
-                // One instance per leaf: its index in leaf order is the leaf's first.
-                true => FlatNode {
-                    meta: (1 << 2) | INSTANCE_LEAF,
-                    ..*n
-                },
-                false => *n,
-            })
-            .collect();
+        let mut nodes = self.top_instance_nodes();
         let (mut triangles, mut roots) = (Vec::new(), Vec::new());
         let mut depth = 0;
         for mesh in &self.meshes {
