@@ -197,17 +197,28 @@ fn top<
                 }
             }
         }
-        // Pop the next child still hit against the best so far.
-        loop {
-            if sp == 0 {
-                return best.into_hit();
-            }
-            sp -= 1;
-            let e = stack[sp];
-            if ANY || !best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, best.t) {
-                child = e.child;
-                break;
-            }
+        match pop_still_hit::<ANY>(stack, &mut sp, q.t_max_s, &best) {
+            Some(c) => child = c,
+            None => return best.into_hit(),
         }
     }
+}
+
+/// A top-level walk's next child: the nearest on `stack` (below `sp`) still hit against
+/// `best` (an any-hit walk re-tests nothing); `None` when the stack is empty.
+#[inline(always)]
+pub(crate) fn pop_still_hit<const ANY: bool>(
+    stack: &[Entry],
+    sp: &mut usize,
+    t_max: f32,
+    best: &Best,
+) -> Option<u32> {
+    while *sp > 0 {
+        *sp -= 1;
+        let e = stack[*sp];
+        if ANY || !best.found || still_hit(t_max, e.tnear, e.m, e.far, best.t) {
+            return Some(e.child);
+        }
+    }
+    None
 }

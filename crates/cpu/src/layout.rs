@@ -59,7 +59,7 @@ pub const EMPTY: u32 = u32::MAX;
 pub const MAX_LEAF_BLOCKS: u32 = 16;
 
 /// Bits of a leaf's first block (the rest hold the block count).
-pub(crate) const FIRST_BITS: u32 = 27;
+const FIRST_BITS: u32 = 27;
 
 /// The leaf child over `count` blocks from `first`.
 #[inline(always)]
@@ -750,6 +750,25 @@ pub(crate) fn leaf_of_triangles<T: Clone + Default>(
 /// The triangle blocks, each block's place in the kept leaf boxes, and those boxes.
 type Blocks = (Vec<Tri4>, Vec<u32>, Vec<LeafBoxes>);
 
+/// Gives every leaf its blocks, in leaf order, and sets its node's leaf reference; returns
+/// the blocks in all, or the error when they exceed what a reference addresses.
+pub(crate) fn place_leaves(
+    nodes: &mut [Node8],
+    leaves: &[PendingLeaf],
+) -> Result<usize, ConvertError> {
+    let blocks = |l: &PendingLeaf| l.tris.div_ceil(BLOCK as u32);
+    let total: usize = leaves.iter().map(|l| blocks(l) as usize).sum();
+    if total > 1 << FIRST_BITS {
+        return Err(ConvertError::TooLarge(total));
+    }
+    let mut first = 0;
+    for l in leaves {
+        nodes[l.node as usize].child[l.slot as usize] = leaf_ref(first, blocks(l));
+        first += blocks(l);
+    }
+    Ok(total)
+}
+
 /// Allocates every leaf's blocks in leaf order, sets the leaf references, and fills the
 /// blocks in parallel.
 fn write_blocks(
@@ -758,19 +777,7 @@ fn write_blocks(
     ftris: &[FlatTriangle],
     tri_box: &[Aabb],
 ) -> Result<Blocks, ConvertError> {
-    let mut starts = Vec::with_capacity(leaves.len());
-    let mut total = 0usize;
-    for l in leaves {
-        starts.push(total);
-        total += l.tris.div_ceil(BLOCK as u32) as usize;
-    }
-    if total > 1 << FIRST_BITS {
-        return Err(ConvertError::TooLarge(total));
-    }
-    for (l, &s) in leaves.iter().zip(&starts) {
-        let count = l.tris.div_ceil(BLOCK as u32);
-        nodes[l.node as usize].child[l.slot as usize] = leaf_ref(s as u32, count);
-    }
+    let total = place_leaves(nodes, leaves)?;
     // Zeroed memory comes from the allocator lazily: the blocks are written once, in
     // parallel below, not first on one thread.
     let mut blocks: Vec<Tri4> = bytemuck::zeroed_vec(total);

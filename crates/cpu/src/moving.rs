@@ -17,8 +17,8 @@ use rayon::prelude::*;
 use crate::Isa;
 use crate::lanes::{self, Lanes, Wide};
 use crate::layout::{
-    BLOCK, ConvertError, FIRST_BITS, Level, Node8, PendingLeaf, Src, Tri4, WIDTH, collapse,
-    leaf_of_triangles, leaf_ref, subtree_spans,
+    BLOCK, ConvertError, Level, Node8, PendingLeaf, Src, Tri4, WIDTH, collapse, leaf_of_triangles,
+    place_leaves, subtree_spans,
 };
 use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
 use crate::tests4::{self, Prepared, SceneBox};
@@ -280,21 +280,11 @@ fn write_blocks(
     steps: usize,
     leaf_of: &[u32],
 ) -> Result<(Vec<Tri4>, Vec<[u32; BLOCK]>), ConvertError> {
-    let mut starts = Vec::with_capacity(leaves.len());
-    let mut total = 0usize;
-    for l in leaves {
-        starts.push(total);
-        total += l.tris.div_ceil(BLOCK as u32) as usize;
-    }
-    if total > 1 << FIRST_BITS {
-        return Err(ConvertError::TooLarge(total));
-    }
-    // One block per leaf's run of four: (first triangle, triangles).
+    let total = place_leaves(nodes, leaves)?;
+    // One block per leaf's run of four, in the same order: (first triangle, triangles).
     let mut runs = Vec::with_capacity(total);
-    for (l, &s) in leaves.iter().zip(&starts) {
-        let n = l.tris.div_ceil(BLOCK as u32);
-        nodes[l.node as usize].child[l.slot as usize] = leaf_ref(s as u32, n);
-        for b in 0..n {
+    for l in leaves {
+        for b in 0..l.tris.div_ceil(BLOCK as u32) {
             let first = l.first_tri + b * BLOCK as u32;
             runs.push((
                 first as usize,
@@ -488,6 +478,8 @@ fn run_as<L: Lanes, W: Wide, const ANY: bool, const LINEAR: bool>(
     hits: &mut [Hit],
     stack: &mut [Entry],
 ) {
+    // Plain loops, no closures: a closure is compiled apart from the AVX2 caller (as
+    // `moving_instances::run_as`' twin of this loop).
     let mut start = 0;
     while start < rays.len() {
         let end = (start + tests4::RAYS).min(rays.len());

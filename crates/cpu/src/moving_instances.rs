@@ -16,12 +16,12 @@ use bvhtrace_core::{FlatInstance, Hit, Query, Ray};
 use bytemuck::Zeroable;
 
 use crate::Isa;
-use crate::instanced::{self, MeshWalk};
+use crate::instanced::{self, MeshWalk, pop_still_hit};
 use crate::lanes::{self, Lanes, Wide};
 use crate::layout::{ConvertError, CpuBvh, LEAF, Level};
 use crate::moving::{At, MovingCpuBvh, MovingTree, in_runs};
 use crate::single::{Best, Entry, Site, WalkTree, order, untraced};
-use crate::tests4::{self, MINMAX, Prepared, RayLanes, box8, still_hit};
+use crate::tests4::{self, MINMAX, Prepared, RayLanes, box8};
 
 /// A [`MotionInstancedBvh`] in the CPU layout (see the module docs), converted by
 /// [`MovingInstancesCpuBvh::from_motion`].
@@ -163,6 +163,7 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const LINEAR: bool>(
     hits: &mut [Hit],
     stack: &mut [Entry],
 ) {
+    // Plain loops, no closures: a closure is compiled apart from the AVX2 caller.
     let mut start = 0;
     while start < rays.len() {
         let end = (start + tests4::RAYS).min(rays.len());
@@ -253,17 +254,9 @@ fn top<
         {
             return best.into_hit();
         }
-        // Pop the next child still hit against the best so far.
-        loop {
-            if sp == 0 {
-                return best.into_hit();
-            }
-            sp -= 1;
-            let e = stack[sp];
-            if ANY || !best.found || still_hit(q.t_max_s, e.tnear, e.m, e.far, best.t) {
-                child = e.child;
-                break;
-            }
+        match pop_still_hit::<ANY>(stack, &mut sp, q.t_max_s, &best) {
+            Some(c) => child = c,
+            None => return best.into_hit(),
         }
     }
 }
