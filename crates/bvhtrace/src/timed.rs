@@ -27,7 +27,7 @@ use std::sync::Arc;
 
 use bvhtrace_core::motion::{MotionBvh, MotionInstancedBvh};
 use bvhtrace_core::{CurveBvh, Hit, Query, Ray};
-use bvhtrace_cpu::{MovingCpuBvh, MovingInstancesCpuBvh};
+use bvhtrace_cpu::{ConvertError, CurveCpuBvh, MovingCpuBvh, MovingInstancesCpuBvh};
 use bvhtrace_engine::TraceError;
 use bvhtrace_engine::tracer::SendSync;
 use bvhtrace_gpu::{GpuContext, GpuCurveBvh, GpuMotionBvh, GpuMotionInstancedBvh};
@@ -91,10 +91,10 @@ impl fmt::Debug for OpenedTimed {
 
 /// Opens a tracer for `scene` on the backend `opts` asks for ([`Backend::Auto`]: wgpu on
 /// the best adapter, else the CPU; a scene over the device's limits goes to the CPU,
-/// saying why). The CPU traces moving meshes and instances in the CPU layout
-/// ([`MovingCpuBvh`], [`MovingInstancesCpuBvh`]), curves with the core walks; wgpu with
-/// our walks (`GpuMotionBvh`, `GpuMotionInstancedBvh`, `GpuCurveBvh`). Ray queries have neither motion nor curves in wgpu: [`Backend::RayQuery`]
-/// traces our walks on its device, and says so. The Vulkan backend (ash) has no kernels
+/// saying why). The CPU traces each in the CPU layout ([`MovingCpuBvh`],
+/// [`MovingInstancesCpuBvh`], [`CurveCpuBvh`]); wgpu with our walks (`GpuMotionBvh`,
+/// `GpuMotionInstancedBvh`, `GpuCurveBvh`). Ray queries have neither motion nor curves in
+/// wgpu: [`Backend::RayQuery`] traces our walks on its device, and says so. The Vulkan backend (ash) has no kernels
 /// for them and refuses.
 pub fn open_timed(scene: TimedScene, opts: &OpenOptions) -> Result<OpenedTimed, TraceError> {
     Device::new(opts)?.open_timed(scene)
@@ -136,25 +136,20 @@ fn check_times(rays: &[Ray], times: &[f32]) -> Result<(), TraceError> {
     })
 }
 
-/// The CPU's tracer for `scene`.
+/// The CPU's tracer for `scene`: its CPU layout.
 pub(crate) fn on_cpu(scene: &TimedScene) -> Result<Box<dyn TimedTracer>, TraceError> {
+    let refused = |e: ConvertError| TraceError::Unsupported {
+        backend: Backend::Cpu.name(),
+        what: format!("{} in the CPU layout: {e}", scene.name()),
+    };
     Ok(match scene {
-        TimedScene::Moving(b) => {
-            let layout = MovingCpuBvh::from_motion(b).map_err(|e| TraceError::Unsupported {
-                backend: Backend::Cpu.name(),
-                what: format!("this moving mesh in the CPU layout: {e}"),
-            })?;
-            Box::new(CpuTimed(layout))
-        }
-        TimedScene::MovingInstances(b) => {
-            let layout =
-                MovingInstancesCpuBvh::from_motion(b).map_err(|e| TraceError::Unsupported {
-                    backend: Backend::Cpu.name(),
-                    what: format!("these moving instances in the CPU layout: {e}"),
-                })?;
-            Box::new(CpuTimed(layout))
-        }
-        TimedScene::Curves(b) => Box::new(CpuTimed(b.clone())),
+        TimedScene::Moving(b) => Box::new(CpuTimed(MovingCpuBvh::from_motion(b).map_err(refused)?)),
+        TimedScene::MovingInstances(b) => Box::new(CpuTimed(
+            MovingInstancesCpuBvh::from_motion(b).map_err(refused)?,
+        )),
+        TimedScene::Curves(b) => Box::new(CpuTimed(
+            CurveCpuBvh::from_curves(b.clone()).map_err(refused)?,
+        )),
     })
 }
 
@@ -208,7 +203,7 @@ impl TimedTracer for CpuTimed<MovingInstancesCpuBvh> {
     }
 }
 
-impl TimedTracer for CpuTimed<Arc<CurveBvh>> {
+impl TimedTracer for CpuTimed<CurveCpuBvh> {
     fn trace(&self, rays: &[Ray], times: &[f32], query: Query) -> Result<Vec<Hit>, TraceError> {
         check_times(rays, times)?;
         Ok(nan_times_untraced(

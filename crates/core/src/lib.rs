@@ -31,7 +31,7 @@ pub mod wide;
 
 pub use build::reinsert::{ReinsertOptions, optimize, optimize_with};
 pub use build::{BuildError, BuildOptions, BuilderKind, build};
-pub use curves::{CurveBvh, CurveError, CurveKind, CurveSegment, Curves};
+pub use curves::{CurveBvh, CurveError, CurveKind, CurveRay, CurveSegment, Curves};
 pub use flat::{FlatBvh, FlatInstance, FlatNode, FlatTriangle, RefitError};
 pub use geometry::Aabb;
 pub use hits::{InstanceHit, InstanceTable};

@@ -85,6 +85,7 @@ macro_rules! for_ray_kind {
     }};
 }
 
+pub mod curves;
 mod lanes;
 pub mod layout;
 
@@ -101,6 +102,7 @@ use std::fmt;
 use bvhtrace_core::{Hit, Query, Ray};
 use rayon::prelude::*;
 
+pub use curves::CurveCpuBvh;
 pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
 pub use moving::MovingCpuBvh;
 pub use moving_instances::MovingInstancesCpuBvh;

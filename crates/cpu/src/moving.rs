@@ -20,7 +20,7 @@ use crate::layout::{
     BLOCK, ConvertError, Level, Node8, PendingLeaf, Src, Tri4, WIDTH, collapse, leaf_of_triangles,
     place_leaves, subtree_spans,
 };
-use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
+use crate::single::{self, Best, BlockTree, Entry, Site, WalkTree, untraced};
 use crate::tests4::{self, Prepared, SceneBox};
 
 /// A node's eight child boxes at one time step, plane by plane (as [`Node8::planes`]).
@@ -367,29 +367,11 @@ pub(crate) struct At<'a, const LINEAR: bool> {
     pub f: f32,
 }
 
-impl<const LINEAR: bool> WalkTree for At<'_, LINEAR> {
-    type Node<'b>
-        = Node8
-    where
-        Self: 'b;
+impl<const LINEAR: bool> BlockTree for At<'_, LINEAR> {
     type Block<'b>
         = Tri4
     where
         Self: 'b;
-
-    #[inline(always)]
-    fn node(&self, i: u32) -> Node8 {
-        let n = &self.bvh.nodes[i as usize];
-        if !LINEAR {
-            return *n;
-        }
-        let at = i as usize * self.bvh.steps + self.s;
-        let steps = &self.bvh.step_planes[at..at + 2];
-        Node8 {
-            planes: lerp_planes(&steps[0], &steps[1], self.f),
-            ..*n
-        }
-    }
 
     #[inline(always)]
     fn block(&self, b: usize) -> Tri4 {
@@ -409,6 +391,29 @@ impl<const LINEAR: bool> WalkTree for At<'_, LINEAR> {
             &self.bvh.leaf_boxes[at + 1],
             self.f,
         )
+    }
+}
+
+impl<const LINEAR: bool> WalkTree for At<'_, LINEAR> {
+    type Node<'b>
+        = Node8
+    where
+        Self: 'b;
+
+    single::block_leaf!();
+
+    #[inline(always)]
+    fn node(&self, i: u32) -> Node8 {
+        let n = &self.bvh.nodes[i as usize];
+        if !LINEAR {
+            return *n;
+        }
+        let at = i as usize * self.bvh.steps + self.s;
+        let steps = &self.bvh.step_planes[at..at + 2];
+        Node8 {
+            planes: lerp_planes(&steps[0], &steps[1], self.f),
+            ..*n
+        }
     }
 
     #[inline(always)]

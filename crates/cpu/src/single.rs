@@ -18,38 +18,84 @@ use crate::tests4::{
 // for every walk.
 pub(crate) use bvhtrace_core::traverse::{Best, untraced};
 
-/// What a walk reads of a tree: its nodes, its leaves' blocks and their lanes' binary
-/// leaf boxes. The converted layout lends its own; a moving tree
-/// ([`crate::moving`]) gives each interpolated at the ray's time, so that one walk serves
-/// both.
+/// What a walk reads of a tree: its nodes, and how a leaf is tested. The converted
+/// layout lends its own nodes; a moving tree ([`crate::moving`]) gives each interpolated
+/// at the ray's time; a tree of curves ([`crate::curves`]) tests its leaves with the core's
+/// curve test, so that one walk serves all three.
 pub(crate) trait WalkTree {
     /// A node as the walk tests it.
     type Node<'a>: Borrow<Node8>
     where
         Self: 'a;
+    /// Node `i`.
+    fn node(&self, i: u32) -> Self::Node<'_>;
+    /// Asks for the memory of child `c` (a node, or a leaf's first block) ahead of its
+    /// visit.
+    fn fetch(&self, c: u32);
+    /// Tests leaf `child`'s primitives as [`leaf_at`] does; true when an any-hit query
+    /// can stop.
+    #[allow(clippy::too_many_arguments)]
+    fn leaf<L: Lanes, const ANY: bool, const MASKED: bool>(
+        &self,
+        t_min: L,
+        s: &ShearLanes<L>,
+        ray: RayAt<'_>,
+        child: u32,
+        best: &mut Best,
+        at: Site<'_>,
+    ) -> bool;
+}
+
+/// A tree whose leaves are 4-triangle blocks ([`leaf_at`]'s): its blocks and their lanes'
+/// binary leaf boxes.
+pub(crate) trait BlockTree: WalkTree {
     /// A block as the walk tests it.
     type Block<'a>: Borrow<Tri4>
     where
         Self: 'a;
-    /// Node `i`.
-    fn node(&self, i: u32) -> Self::Node<'_>;
     /// Block `b`.
     fn block(&self, b: usize) -> Self::Block<'_>;
     /// Block `block`'s lane `i`'s binary leaf box (see [`crate::layout::LeafBoxes`]).
     fn leaf_box(&self, block: usize, i: usize) -> Aabb;
-    /// Asks for the memory of child `c` (a node, or a leaf's first block) ahead of its
-    /// visit.
-    fn fetch(&self, c: u32);
 }
+
+/// [`WalkTree::leaf`] for a [`BlockTree`]: [`leaf_at`].
+macro_rules! block_leaf {
+    () => {
+        #[inline(always)]
+        fn leaf<L: crate::lanes::Lanes, const ANY: bool, const MASKED: bool>(
+            &self,
+            t_min: L,
+            s: &crate::tests4::ShearLanes<L>,
+            ray: crate::tests4::RayAt<'_>,
+            child: u32,
+            best: &mut crate::single::Best,
+            at: crate::single::Site<'_>,
+        ) -> bool {
+            crate::single::leaf_at::<Self, L, ANY, MASKED>(self, t_min, s, ray, child, best, at)
+        }
+    };
+}
+pub(crate) use block_leaf;
 
 impl WalkTree for CpuBvh {
     type Node<'a> = &'a Node8;
-    type Block<'a> = &'a Tri4;
 
     #[inline(always)]
     fn node(&self, i: u32) -> &Node8 {
         &self.nodes[i as usize]
     }
+
+    #[inline(always)]
+    fn fetch(&self, c: u32) {
+        fetch(self, c)
+    }
+
+    block_leaf!();
+}
+
+impl BlockTree for CpuBvh {
+    type Block<'a> = &'a Tri4;
 
     #[inline(always)]
     fn block(&self, b: usize) -> &Tri4 {
@@ -59,11 +105,6 @@ impl WalkTree for CpuBvh {
     #[inline(always)]
     fn leaf_box(&self, block: usize, i: usize) -> Aabb {
         CpuBvh::leaf_box(self, block, i)
-    }
-
-    #[inline(always)]
-    fn fetch(&self, c: u32) {
-        fetch(self, c)
     }
 }
 
@@ -166,7 +207,7 @@ pub(crate) fn leaf<L: Lanes, const ANY: bool>(
 /// requires (see [`crate::layout::LeafBoxes`]).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(crate) fn leaf_at<T: WalkTree, L: Lanes, const ANY: bool, const MASKED: bool>(
+pub(crate) fn leaf_at<T: BlockTree, L: Lanes, const ANY: bool, const MASKED: bool>(
     bvh: &T,
     t_min: L,
     s: &ShearLanes<L>,
@@ -234,7 +275,7 @@ pub(crate) fn leaf_at<T: WalkTree, L: Lanes, const ANY: bool, const MASKED: bool
 /// (see [`crate::layout::LeafBoxes`]).
 #[cold]
 #[inline(never)]
-pub(crate) fn in_leaf_box<T: WalkTree>(
+pub(crate) fn in_leaf_box<T: BlockTree>(
     bvh: &T,
     block: usize,
     i: usize,
@@ -707,15 +748,8 @@ impl<'a, L: Lanes> Walk<'a, L> {
             let shear = self.shear.get_or_insert_with(|| {
                 ShearLanes::from_prepared(p, i, if OCT == MINMAX { KZ } else { p.kz[i] })
             });
-            if leaf_at::<T, L, ANY, MASKED>(
-                bvh,
-                q.t_min4,
-                shear,
-                self.ray,
-                self.child,
-                &mut self.best,
-                at,
-            ) {
+            if bvh.leaf::<L, ANY, MASKED>(q.t_min4, shear, self.ray, self.child, &mut self.best, at)
+            {
                 return Some(true);
             }
         }

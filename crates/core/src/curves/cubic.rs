@@ -83,33 +83,64 @@ impl Span {
     }
 }
 
-/// Where the ray `t dir` (from the origin) is within `r` of the line through `p0` and `p1`,
-/// and the fractions along `p0`..`p1` of its entry and exit.
-fn cylinder(dir: Vec3, p0: Vec3, p1: Vec3, r: f32) -> Option<(Span, f32, f32)> {
-    let axis = p1 - p0;
-    // Divisions by the lengths (not products with reciprocals, which a shader compiler
-    // may fuse into an approximate reciprocal square root).
-    let len = length(axis);
-    let dp = axis / len;
-    let o = -p0;
-    let (dd, od, oo) = (dir.dot(dir), dir.dot(o), o.dot(o));
-    let (doz, oz) = (dp.dot(dir), dp.dot(o));
-    let a = dd - doz * doz;
-    let b = 2.0 * (od - doz * oz);
-    let c = oo - oz * oz - r * r;
-    let disc = b * b - 4.0 * a * c;
-    if !(disc >= 0.0) {
-        return None;
+/// The line through `p0` and `p1` as the ray `t dir` (from the origin) sees it: what
+/// [`Chord::cylinder`] needs for any radius, found once for a piece's two cylinders.
+struct Chord {
+    len: f32,
+    dd: f32,
+    doz: f32,
+    oz: f32,
+    /// `od` and `oo` of the ray against the line: `dir.o` and `o.o`, `o = -p0`.
+    od: f32,
+    oo: f32,
+}
+
+impl Chord {
+    fn new(dir: Vec3, p0: Vec3, p1: Vec3) -> Chord {
+        let axis = p1 - p0;
+        // Divisions by the lengths (not products with reciprocals, which a shader
+        // compiler may fuse into an approximate reciprocal square root).
+        let len = length(axis);
+        let dp = axis / len;
+        let o = -p0;
+        Chord {
+            len,
+            dd: dir.dot(dir),
+            od: dir.dot(o),
+            oo: o.dot(o),
+            doz: dp.dot(dir),
+            oz: dp.dot(o),
+        }
     }
-    if a.abs() < 16.0 * f32::EPSILON * dd.abs().max(doz * doz) {
-        // Along the axis: inside for every t, or for none.
-        return (c <= 0.0).then_some((Span::ALL, 0.0, 1.0));
+
+    /// Where the ray is within `r` of the line, and the fractions along `p0`..`p1` of its
+    /// entry and exit.
+    fn cylinder(&self, r: f32) -> Option<(Span, f32, f32)> {
+        let Chord {
+            len,
+            dd,
+            doz,
+            oz,
+            od,
+            oo,
+        } = *self;
+        let a = dd - doz * doz;
+        let b = 2.0 * (od - doz * oz);
+        let c = oo - oz * oz - r * r;
+        let disc = b * b - 4.0 * a * c;
+        if !(disc >= 0.0) {
+            return None;
+        }
+        if a.abs() < 16.0 * f32::EPSILON * dd.abs().max(doz * doz) {
+            // Along the axis: inside for every t, or for none.
+            return (c <= 0.0).then_some((Span::ALL, 0.0, 1.0));
+        }
+        let q = disc.sqrt();
+        let rcp_2a = (2.0 * a).recip();
+        let (t0, t1) = ((-b - q) * rcp_2a, (-b + q) * rcp_2a);
+        let span = Span { lo: t0, hi: t1 };
+        Some((span, (t0 * doz + oz) / len, (t1 * doz + oz) / len))
     }
-    let q = disc.sqrt();
-    let rcp_2a = (2.0 * a).recip();
-    let (t0, t1) = ((-b - q) * rcp_2a, (-b + q) * rcp_2a);
-    let span = Span { lo: t0, hi: t1 };
-    Some((span, (t0 * doz + oz) / len, (t1 * doz + oz) / len))
 }
 
 /// Where the ray `t dir` is on the side of the plane through `p` that `n` points to.
@@ -155,6 +186,23 @@ pub(crate) fn round_cubic(
     best
 }
 
+/// A level of cutting: the curve at its `PIECES + 1` cuts (`u`, the point, the
+/// derivative scaled to a piece's handle), its depth, and the next piece to visit.
+#[derive(Clone, Copy)]
+struct Cut {
+    at: [(f32, Vec4, Vec4); PIECES + 1],
+    depth: u32,
+    next: usize,
+}
+
+impl Cut {
+    const EMPTY: Cut = Cut {
+        at: [(0.0, Vec4::ZERO, Vec4::ZERO); PIECES + 1],
+        depth: 0,
+        next: PIECES,
+    };
+}
+
 /// One ray against one curve, in the curve's frame moved to the ray.
 struct Sweep {
     curve: Bezier,
@@ -175,43 +223,46 @@ impl Sweep {
     /// leaves the bound. Depth first, pieces in order, with an explicit stack (the
     /// kernel's twin has no recursion).
     fn pieces(&self, best: &mut Option<CurveHit>) {
-        // (u0, u1, depth, next piece) of each level being cut.
-        let mut stack = [(0.0f32, 1.0f32, 1u32, 0usize); LEVELS as usize + 1];
+        // Each level being cut, with its next piece.
+        let mut stack = [Cut::EMPTY; LEVELS as usize + 1];
+        stack[0] = self.cut(0.0, 1.0, 1);
         let mut sp = 1;
         while sp > 0 {
-            let (u0, u1, depth, k) = stack[sp - 1];
+            let k = stack[sp - 1].next;
             if k == PIECES {
                 sp -= 1;
                 continue;
             }
-            stack[sp - 1].3 = k + 1;
-            if let Some((ua, ub)) = self.piece(u0, u1, k, depth, best) {
-                stack[sp] = (ua, ub, depth + 1, 0);
+            stack[sp - 1].next = k + 1;
+            let level = &stack[sp - 1];
+            let depth = level.depth;
+            if let Some((ua, ub)) = self.piece(level, k, best) {
+                stack[sp] = self.cut(ua, ub, depth + 1);
                 sp += 1;
             }
         }
     }
 
-    /// Piece `k` of `PIECES` of `u0..u1` at `depth`: `Some` of its interval when the ray
-    /// crosses its bound and it is to be cut again, else `None` (after Newton's method at
-    /// the last level).
-    fn piece(
-        &self,
-        u0: f32,
-        u1: f32,
-        k: usize,
-        depth: u32,
-        best: &mut Option<CurveHit>,
-    ) -> Option<(f32, f32)> {
+    /// `u0..u1` cut into `PIECES` at `depth`: the curve at each cut, its derivative
+    /// scaled to a piece's Bezier handle.
+    fn cut(&self, u0: f32, u1: f32, depth: u32) -> Cut {
         // Products with the reciprocals, as Embree writes them (and as a shader compiler
         // may rewrite a division by a constant).
         let dscale = (u1 - u0) * (1.0 / (3.0 * PIECES as f32));
-        let at = |k: usize| {
+        let mut at = [(0.0, Vec4::ZERO, Vec4::ZERO); PIECES + 1];
+        for (k, a) in at.iter_mut().enumerate() {
             let u = u0 + (u1 - u0) * (k as f32 * (1.0 / PIECES as f32));
             let (p, d, _) = self.curve.eval(u);
-            (u, p, d * dscale)
-        };
-        let ((ua, p0, d0), (ub, p3, d3)) = (at(k), at(k + 1));
+            *a = (u, p, d * dscale);
+        }
+        Cut { at, depth, next: 0 }
+    }
+
+    /// Piece `k` of `level`: `Some` of its interval when the ray crosses its bound and it
+    /// is to be cut again, else `None` (after Newton's method at the last level).
+    fn piece(&self, level: &Cut, k: usize, best: &mut Option<CurveHit>) -> Option<(f32, f32)> {
+        let ((ua, p0, d0), (ub, p3, d3)) = (level.at[k], level.at[k + 1]);
+        let depth = level.depth;
         let (p1, p2) = (p0 + d0, p3 - d3);
         // Cylinders about the chord that hold the piece's surface, and are held by it.
         let chord = (p3 - p0).truncate();
@@ -230,7 +281,8 @@ impl Sweep {
         let r_outer = (rmax + bend) * (1.0 + 2.0 * f32::EPSILON);
         let r_inner = ((rmin - bend) * (1.0 - 2.0 * f32::EPSILON)).max(0.0);
         let (a, b) = (p0.truncate(), p3.truncate());
-        let (outer, ua_out, ub_out) = cylinder(self.dir, a, b, r_outer)?;
+        let axis = Chord::new(self.dir, a, b);
+        let (outer, ua_out, ub_out) = axis.cylinder(r_outer)?;
         let span = Span {
             lo: self.range.0 - self.dt,
             hi: self.t_far(best) - self.dt,
@@ -242,7 +294,7 @@ impl Sweep {
             return None;
         }
         // The part of the span inside the inner cylinder holds no surface.
-        let inner = cylinder(self.dir, a, b, r_inner);
+        let inner = axis.cylinder(r_inner);
         let (front, back) = match inner {
             Some((i, _, _)) => (
                 Span {

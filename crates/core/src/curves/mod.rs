@@ -349,13 +349,7 @@ impl CurveBvh {
         if total > crate::flat::MAX_PRIMITIVES {
             return Err(BuildError::from(MeshError::TooMany(total)).into());
         }
-        let boxes: Vec<Aabb> = (triangles.iter())
-            .map(|t| {
-                t.iter()
-                    .fold(Aabb::EMPTY, |b, &p| b.union(&Aabb::from_point(p)))
-            })
-            .chain((0..curves.len()).map(|s| curves.segment_box(s)))
-            .collect();
+        let boxes = CurveBvh::prim_boxes(triangles, &curves);
         let (tree, order) = TimeTree::build(&boxes, 1, opts, TimeBounds::Merged)?;
         Ok(CurveBvh {
             tree,
@@ -449,6 +443,13 @@ impl CurveBvh {
         trace_all(rays, &times, |r, _| self.trace(r, query).0)
     }
 
+    /// The boxes the tree was built over, by primitive id.
+    fn prim_boxes(triangles: &[Triangle], curves: &Curves) -> Vec<Aabb> {
+        (triangles.iter().map(triangle_box))
+            .chain((0..curves.len()).map(|s| curves.segment_box(s)))
+            .collect()
+    }
+
     /// The closest hit of testing every primitive in id order with the walk's tests and
     /// hit rule (each segment asked for its first hit up to the best so far): what every
     /// walk of this tree must return for a closest-hit query, and hit or miss alike for an
@@ -464,6 +465,44 @@ impl CurveBvh {
             self.test_prim(prim, &r, (r.org, r.dir, &space), ray.t_min, &mut best);
         }
         best.into_hit()
+    }
+
+    /// Primitive `prim`'s box (a triangle's corners, or [`Curves::segment_box`]): the
+    /// box the tree was built over.
+    pub fn prim_box(&self, prim: u32) -> Aabb {
+        match self.segment_of(prim) {
+            None => triangle_box(&self.triangles[prim as usize]),
+            Some(s) => self.curves.segment_box(s),
+        }
+    }
+
+    /// Tests primitive `prim` (a triangle or a segment; below
+    /// `triangle_count() + curves().len()`) against `ray` with the walk's own test,
+    /// offering its hit to `best` under the hit rule; true when it was taken. A walk over
+    /// another layout of this tree (bvhtrace-cpu) that tests every primitive the tree's
+    /// walk tests, each at its best so far, returns the same closest hit.
+    #[inline]
+    pub fn test(&self, prim: u32, ray: &CurveRay, best: &mut Best) -> bool {
+        let r = &ray.prepared;
+        match &ray.space {
+            Some(space) => self.test_prim(prim, r, (r.org, r.dir, space), ray.t_min, best),
+            // Made where it is read: only flat segments read it.
+            None => {
+                let space = RaySpace::new(r.dir);
+                self.test_prim(prim, r, (r.org, r.dir, &space), ray.t_min, best)
+            }
+        }
+    }
+
+    /// Prepares `ray` for [`CurveBvh::test`] on this tree's primitives: as
+    /// [`CurveRay::new`], less what they do not read.
+    pub fn prepare(&self, ray: &Ray) -> CurveRay {
+        let prepared = PreparedRay::new(ray);
+        CurveRay {
+            space: (self.curves.kind == CurveKind::FlatLinear).then(|| RaySpace::new(prepared.dir)),
+            prepared,
+            t_min: ray.t_min,
+        }
     }
 
     /// Tests a leaf's primitives; true when one was taken (an any-hit walk stops at the
@@ -547,6 +586,39 @@ impl CurveBvh {
         let b = n.cross(a);
         let c0 = p - hit.u * a - hit.v * b;
         [c0, c0 + a, c0 + b]
+    }
+}
+
+/// The box around a triangle's corners.
+fn triangle_box(t: &Triangle) -> Aabb {
+    t.iter()
+        .fold(Aabb::EMPTY, |b, &p| b.union(&Aabb::from_point(p)))
+}
+
+/// A ray made ready for [`CurveBvh::test`]: what a walk computes once per ray (the
+/// prepared ray, and the frame flat segments are seen in).
+#[derive(Clone, Copy, Debug)]
+pub struct CurveRay {
+    prepared: PreparedRay,
+    /// The frame flat segments are seen in; `None` where the tree has none.
+    space: Option<RaySpace>,
+    t_min: f32,
+}
+
+impl CurveRay {
+    /// Prepares `ray` as [`CurveBvh::trace`] does.
+    pub fn new(ray: &Ray) -> CurveRay {
+        let prepared = PreparedRay::new(ray);
+        CurveRay {
+            space: Some(RaySpace::new(prepared.dir)),
+            prepared,
+            t_min: ray.t_min,
+        }
+    }
+
+    /// The prepared ray, for box tests ([`crate::intersect::intersect_box`]).
+    pub fn prepared(&self) -> &PreparedRay {
+        &self.prepared
     }
 }
 

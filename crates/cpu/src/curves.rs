@@ -1,0 +1,327 @@
+//! Curves in the CPU layout: a [`CurveBvh`]'s tree (triangles and curve segments in one
+//! tree) collapsed into 8-wide nodes as a triangle tree is ([`crate::layout`]), its leaves
+//! blocks of four primitives with each primitive's own box. The walk is the static
+//! layout's ([`crate::single`]: the eight child boxes tested together, children visited
+//! nearest first); at a leaf each primitive whose own box the ray enters before its best
+//! hit is tested with the core's own test ([`CurveBvh::test`]), segments and triangles
+//! alike.
+//!
+//! Each child's box is its binary node's, and a primitive's box lies inside its binary
+//! leaf's, so every primitive the core walk ([`CurveBvh::trace`]) would take is tested, at
+//! a best hit no nearer than the core walk's: the closest hit is the core walk's, bit for
+//! bit, under the core walks' one exception (where f32 cannot order two hits, either may
+//! rightly be kept). Any-hit queries agree on hit or miss.
+
+use std::sync::Arc;
+
+use bvhtrace_core::intersect::intersect_box;
+use bvhtrace_core::{CurveBvh, CurveRay, Hit, Query, Ray};
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::Isa;
+use crate::lanes::{self, Lanes, Wide};
+use crate::layout::{
+    BLOCK, ConvertError, LEAF, Level, Node8, WIDTH, collapse, leaf_of_triangles, leaf_range,
+    place_leaves, subtree_spans,
+};
+use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
+use crate::tests4::{self, Prepared, RayAt, SceneBox, ShearLanes};
+
+/// A block lane that holds no primitive.
+const NONE: u32 = u32::MAX;
+
+/// Four primitives of a leaf and their own boxes, plane by plane (min x, y, z, then max).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct PrimBlock {
+    planes: [[f32; BLOCK]; 6],
+    prim: [u32; BLOCK],
+}
+
+impl PrimBlock {
+    /// The block of `prims` (one to four) in `bvh`.
+    fn of(bvh: &CurveBvh, prims: &[u32]) -> PrimBlock {
+        let mut b = PrimBlock {
+            planes: [[0.0; BLOCK]; 6],
+            prim: [NONE; BLOCK],
+        };
+        for (i, &prim) in prims.iter().enumerate() {
+            let bx = bvh.prim_box(prim);
+            for a in 0..3 {
+                b.planes[a][i] = bx.min[a];
+                b.planes[3 + a][i] = bx.max[a];
+            }
+            b.prim[i] = prim;
+        }
+        b
+    }
+
+    /// Lane `i`'s box.
+    fn lane(&self, i: usize) -> (Vec3, Vec3) {
+        let p = &self.planes;
+        (
+            Vec3::new(p[0][i], p[1][i], p[2][i]),
+            Vec3::new(p[3][i], p[4][i], p[5][i]),
+        )
+    }
+}
+
+/// A [`CurveBvh`] in the CPU layout (see the module docs), converted by
+/// [`CurveCpuBvh::from_curves`].
+#[derive(Clone, Debug)]
+pub struct CurveCpuBvh {
+    bvh: Arc<CurveBvh>,
+    nodes: Vec<Node8>,
+    blocks: Vec<PrimBlock>,
+    depth: u32,
+    /// A box around the root's boxes: rays that miss it take no walk.
+    scene_box: Option<SceneBox>,
+}
+
+impl CurveCpuBvh {
+    /// Converts `bvh`'s tree; the primitives stay `bvh`'s (shared, not copied).
+    pub fn from_curves(bvh: Arc<CurveBvh>) -> Result<CurveCpuBvh, ConvertError> {
+        let fnodes = bvh.nodes();
+        let order = bvh.leaf_prims();
+        let spans = subtree_spans(fnodes);
+        // Each slot's binary leaf box: a run split off a long leaf is bounded by it.
+        let leaf_box = leaf_of_triangles(fnodes, order.len(), |_, n| n.aabb());
+        let mut nodes = Vec::new();
+        let mut leaves = Vec::new();
+        let depth = if fnodes.is_empty() {
+            0
+        } else {
+            let mut no_hook = |_, _, _| {};
+            collapse(
+                fnodes,
+                &spans,
+                &leaf_box,
+                0,
+                Level::Mesh,
+                &mut nodes,
+                &mut leaves,
+                &mut no_hook,
+            )?
+        };
+        place_leaves(&mut nodes, &leaves)?;
+        let blocks = leaves
+            .par_iter()
+            .flat_map_iter(|l| {
+                let prims = &order[l.first_tri as usize..(l.first_tri + l.tris) as usize];
+                prims.chunks(BLOCK).map(|c| PrimBlock::of(&bvh, c))
+            })
+            .collect();
+        Ok(CurveCpuBvh {
+            scene_box: nodes.first().and_then(SceneBox::around),
+            bvh,
+            nodes,
+            blocks,
+            depth,
+        })
+    }
+
+    /// The tree and primitives converted.
+    pub fn curves(&self) -> &Arc<CurveBvh> {
+        &self.bvh
+    }
+
+    /// Levels of wide nodes (the root's counted).
+    pub fn depth(&self) -> u32 {
+        self.depth
+    }
+
+    /// Bytes of wide nodes and of leaf blocks (the primitives are the core tree's).
+    pub fn byte_sizes(&self) -> (usize, usize) {
+        (
+            std::mem::size_of_val(self.nodes.as_slice()),
+            std::mem::size_of_val(self.blocks.as_slice()),
+        )
+    }
+
+    /// Traces `rays` on all threads of the current rayon pool, with the fastest
+    /// instruction set this CPU has: the closest hit ([`CurveBvh::trace`]'s) or any hit.
+    pub fn trace_rays(&self, rays: &[Ray], query: Query) -> Vec<Hit> {
+        self.trace_rays_with(rays, query, Isa::detect())
+    }
+
+    /// [`CurveCpuBvh::trace_rays`] with the instruction set `isa` (or the fastest this CPU
+    /// has, when it lacks `isa`): the answers are the same whichever runs.
+    pub fn trace_rays_with(&self, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
+        const RUN: usize = 256;
+        let mut hits = vec![Hit::miss(0.0); rays.len()];
+        hits.par_chunks_mut(RUN)
+            .zip(rays.par_chunks(RUN))
+            .for_each(|(h, r)| self.trace_run(r, query, isa, h));
+        hits
+    }
+
+    /// One thread's run of rays into `hits`.
+    fn trace_run(&self, rays: &[Ray], query: Query, isa: Isa, hits: &mut [Hit]) {
+        let mut stack = vec![Entry::default(); (WIDTH - 1) * self.depth as usize + 4];
+        let s = stack.as_mut_slice();
+        type P = lanes::Portable;
+        match isa.or_available() {
+            Isa::Portable => run::<P, lanes::Pair<P>>(self, rays, query, hits, s),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse2 => run::<lanes::Sse, lanes::Pair<lanes::Sse>>(self, rays, query, hits, s),
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `or_available` returned Avx2, so the CPU has what `Isa::Avx2` needs.
+            Isa::Avx2 => unsafe { run_avx2(self, rays, query, hits, s) },
+            #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+            Isa::Simd128 => {
+                run::<lanes::Simd128, lanes::Pair<lanes::Simd128>>(self, rays, query, hits, s)
+            }
+            #[allow(unreachable_patterns)]
+            _ => unreachable!("or_available gives only what this target compiles"),
+        }
+    }
+}
+
+/// The tree as one ray's walk reads it: the ray made ready for the core's tests.
+struct At<'a> {
+    bvh: &'a CurveCpuBvh,
+    ray: CurveRay,
+}
+
+impl WalkTree for At<'_> {
+    type Node<'b>
+        = &'b Node8
+    where
+        Self: 'b;
+
+    #[inline(always)]
+    fn node(&self, i: u32) -> &Node8 {
+        &self.bvh.nodes[i as usize]
+    }
+
+    #[inline(always)]
+    fn fetch(&self, c: u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+            // Wrapping arithmetic, as `c` may be `EMPTY`; a prefetch never faults.
+            let (at, lines) = if c & LEAF != 0 {
+                let b = self.bvh.blocks.as_ptr().wrapping_add(leaf_range(c).0);
+                (b.cast::<i8>(), 2)
+            } else {
+                (self.bvh.nodes.as_ptr().wrapping_add(c as usize).cast(), 4)
+            };
+            for line in 0..lines {
+                // SAFETY: a prefetch only hints the cache; any address is allowed.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(at.wrapping_add(64 * line)) };
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = c;
+    }
+
+    /// Each primitive whose own box the ray enters before the best is tested with the
+    /// core's test, in the leaf's order.
+    #[inline(always)]
+    fn leaf<L: Lanes, const ANY: bool, const MASKED: bool>(
+        &self,
+        _t_min: L,
+        _s: &ShearLanes<L>,
+        _ray: RayAt<'_>,
+        child: u32,
+        best: &mut Best,
+        _at: Site<'_>,
+    ) -> bool {
+        let (first, count) = leaf_range(child);
+        let prepared = self.ray.prepared();
+        // Index loops: an iterator's `next` may be compiled apart from an AVX2 caller.
+        for k in first..first + count {
+            let b = &self.bvh.blocks[k];
+            for i in 0..BLOCK {
+                let prim = b.prim[i];
+                if prim == NONE {
+                    break;
+                }
+                let (lo, hi) = b.lane(i);
+                if intersect_box(prepared, lo, hi, best.t).is_none() {
+                    continue;
+                }
+                if self.bvh.bvh.test(prim, &self.ray, best) && ANY {
+                    return true;
+                }
+            }
+        }
+        false
+    }
+}
+
+/// The walks over `rays`, monomorphised for the lanes and the query.
+#[inline(always)]
+fn run<L: Lanes, W: Wide>(
+    bvh: &CurveCpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    match query {
+        Query::Closest => run_as::<L, W, false>(bvh, rays, hits, stack),
+        Query::Any => run_as::<L, W, true>(bvh, rays, hits, stack),
+    }
+}
+
+/// [`run`] for one query: rays prepared eight at a time for the boxes, then each walked.
+#[inline(always)]
+fn run_as<L: Lanes, W: Wide, const ANY: bool>(
+    bvh: &CurveCpuBvh,
+    rays: &[Ray],
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    // Plain loops, no closures: a closure is compiled apart from the AVX2 caller.
+    let mut start = 0;
+    while start < rays.len() {
+        let end = (start + tests4::RAYS).min(rays.len());
+        let group = &rays[start..end];
+        let mut p = Prepared::for_boxes::<W>(group);
+        let enter = match &bvh.scene_box {
+            Some(b) => p.may_enter::<W>(b),
+            None => u32::MAX,
+        };
+        // The walk makes a triangle shear at a ray's first leaf, though curve leaves do
+        // not read it.
+        if p.valid & enter != 0 {
+            p.shear::<W>();
+        }
+        for (i, ray) in group.iter().enumerate() {
+            hits[start + i] = if p.valid >> i & 1 == 0 {
+                untraced(ray)
+            } else if enter >> i & 1 == 0 || bvh.nodes.is_empty() || !(ray.t_min <= ray.t_max) {
+                Best::start(ray).into_hit()
+            } else {
+                let at = At {
+                    bvh,
+                    ray: bvh.bvh.prepare(ray),
+                };
+                let best = Best::start(ray);
+                single::mesh::<_, L, W, ANY, false>(&at, ray, &p, i, best, 0, Site::PLAIN, stack)
+                    .0
+                    .into_hit()
+            };
+        }
+        start = end;
+    }
+}
+
+/// [`run`] with SSE lanes and AVX lanes for the boxes, compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT ([`Isa::Avx2`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
+unsafe fn run_avx2(
+    bvh: &CurveCpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    stack: &mut [Entry],
+) {
+    run::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, stack)
+}
