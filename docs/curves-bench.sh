@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Curves against Embree 3 on the same rays, and against the same strands as triangles:
-# for each kind of `builtin:hair` (and `hair:tubes`), our CPU twin and our wgpu walk
+# for each kind of `builtin:hair` (and `hair:tubes`), our CPU layout and our wgpu walk
 # (`render --json`'s primary rays per second, the trace alone), and Embree 3's robust
 # mode on the rays `bvhtrace dump` writes (its trace alone, 2 threads). Medians of RUNS
 # alternated rounds; one line per row.

@@ -1,5 +1,6 @@
 //! The rows of a case of curves: one tree over its triangles and segments, traced on the
-//! CPU twin and on each device with a walk of curves, judged against the known answers,
+//! CPU twin, in the CPU layout (compared with the twin bit for bit) and on each device
+//! with a walk of curves, judged against the known answers,
 //! the output contract and the tree's own brute force (there is no f64 oracle for
 //! curves), each device compared with the twin: linear curves bit for bit, cubic curves
 //! under the kernels' stated rule.
@@ -8,11 +9,12 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bvhtrace_core::{CurveBvh, Curves, Hit, Query};
+use bvhtrace_cpu::CurveCpuBvh;
 use rayon::prelude::*;
 
 use super::{
-    Backends, CaseReport, Examples, Geometry, Judge, RunReport, as_traced, hit_bits, ms,
-    note_no_walk, same_verdict, walk_row,
+    Backends, CPU_LAYOUT_ROWS, CaseReport, Examples, Geometry, Judge, RunReport, as_traced,
+    hit_bits, ms, note_no_walk, same_verdict, walk_row,
 };
 use crate::Case;
 use crate::geom::is_zero_area;
@@ -75,6 +77,13 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
     };
     let cubic = curves.kind.degree() == 3;
     let times = vec![0.0; case.rays.len()];
+    let layout = match CurveCpuBvh::from_curves(bvh.clone()) {
+        Ok(l) => Some(l),
+        Err(e) => {
+            rep.notes.push(format!("{CPU_LAYOUT_ROWS}: {e}"));
+            None
+        }
+    };
     for &q in queries {
         let t = Instant::now();
         let twin = bvh.trace_rays(&case.rays, q);
@@ -85,6 +94,9 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
             };
             let r = judge.evaluate(r, q, &twin, None);
             rep.runs.push(against_brute(&judge, r, q, &twin, &brute));
+            if let Some(layout) = &layout {
+                rep.runs.push(layout_row(&judge, layout, q, &twin, &brute));
+            }
         }
         for device in backends.devices.iter().filter(|d| d.bit_for_bit) {
             let Some(open) = &device.open_curves else {
@@ -119,6 +131,33 @@ pub(super) fn run(case: &Case, curves: &Curves, backends: &Backends, rep: &mut C
             rep.runs.push(against_brute(&judge, r, q, &hits, &brute));
         }
     }
+}
+
+/// The CPU layout's row of `q`: closest hits compared with the twin's (`twin`) bit for
+/// bit, any hits on hit or miss, and every answer with the brute force's.
+fn layout_row(
+    judge: &Judge<'_>,
+    layout: &CurveCpuBvh,
+    q: Query,
+    twin: &[Hit],
+    brute: &[Hit],
+) -> RunReport {
+    let t = Instant::now();
+    let hits = layout.trace_rays(&judge.case.rays, q);
+    let r = RunReport {
+        trace_ms: ms(t),
+        ..row(CPU_LAYOUT_ROWS, q)
+    };
+    let r = match q {
+        Query::Closest => judge.evaluate(r, q, &hits, Some(twin)),
+        Query::Any => {
+            let mut r = judge.evaluate(r, q, &hits, None);
+            let differ = hits.iter().zip(twin).filter(|(a, b)| !same_verdict(a, b));
+            r.parity_mismatches = Some(differ.count());
+            r
+        }
+    };
+    against_brute(judge, r, q, &hits, brute)
 }
 
 /// Counts the rays whose answer is not the brute force's (closest: bit for bit; any: hit

@@ -462,7 +462,7 @@ fn the_cpu_layout_gives_the_full_stacks_answers() {
         }
         taken += 1;
         // Per query: a static tree's single-ray and packet rows; a moving tree's one row
-        // per way of bounding time, as the twin's.
+        // per way of bounding time, as the twin's; a tree of curves' one row.
         let cpu = |walk: &dyn Fn(&str) -> bool| {
             (c.runs.iter())
                 .filter(|r| r.backend == "cpu" && walk(&r.traversal))
@@ -470,9 +470,10 @@ fn the_cpu_layout_gives_the_full_stacks_answers() {
         };
         let queries = cpu(&|t| t == "full-stack");
         let moving = cpu(&|t| t.starts_with("motion-"));
-        if rows.len() != 2 * queries + moving {
+        let curves = cpu(&|t| t == "curves");
+        if rows.len() != 2 * queries + moving + curves {
             bad.push(format!(
-                "{}: {} rows for {queries} queries and {moving} moving rows",
+                "{}: {} rows for {queries} queries, {moving} moving rows and {curves} of curves",
                 c.name,
                 rows.len()
             ));
