@@ -1,10 +1,10 @@
 //! Curves in the CPU layout: a [`CurveBvh`]'s tree (triangles and curve segments in one
-//! tree) collapsed into 8-wide nodes as a triangle tree is ([`crate::layout`]), its leaves
-//! blocks of four primitives with each primitive's own box. The walk is the static
-//! layout's ([`crate::single`]: the eight child boxes tested together, children visited
-//! nearest first); at a leaf each primitive whose own box the ray enters before its best
-//! hit is tested with the core's own test ([`CurveBvh::test`]), segments and triangles
-//! alike.
+//! tree) collapsed into 8-wide nodes as a triangle tree is ([`crate::layout`]), each leaf
+//! its primitives eight to a node, each slot the primitive's own box. The walk is the
+//! static layout's ([`crate::single`]: the eight child boxes tested together, children
+//! visited nearest first); at a leaf, the primitives' boxes are tested eight at a time with
+//! the same box test, and each primitive whose box the ray enters before its best hit is
+//! tested with the core's own test ([`CurveBvh::test`]), segments and triangles alike.
 //!
 //! Each child's box is its binary node's, and a primitive's box lies inside its binary
 //! leaf's, so every primitive the core walk ([`CurveBvh::trace`]) would take is tested, at
@@ -12,60 +12,35 @@
 //! bit, under the core walks' one exception (where f32 cannot order two hits, either may
 //! rightly be kept). Any-hit queries agree on hit or miss.
 
+use std::cell::OnceCell;
 use std::sync::Arc;
 
-use bvhtrace_core::intersect::intersect_box;
 use bvhtrace_core::{CurveBvh, CurveRay, Hit, Query, Ray};
-use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::Isa;
 use crate::lanes::{self, Lanes, Wide};
 use crate::layout::{
-    BLOCK, ConvertError, LEAF, Level, Node8, WIDTH, collapse, leaf_of_triangles, leaf_range,
-    place_leaves, subtree_spans,
+    ConvertError, Level, Node8, WIDTH, collapse, leaf_of_triangles, leaf_range, place_leaves_of,
+    subtree_spans,
 };
 use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
-use crate::tests4::{self, Prepared, RayAt, SceneBox, ShearLanes};
+use crate::tests4::{self, Prepared, RayAt, RayLanes, SceneBox, ShearLanes, box8};
 
-/// A block lane that holds no primitive.
-const NONE: u32 = u32::MAX;
-
-/// Four primitives of a leaf and their own boxes, plane by plane (min x, y, z, then max).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct PrimBlock {
-    planes: [[f32; BLOCK]; 6],
-    prim: [u32; BLOCK],
-}
-
-impl PrimBlock {
-    /// The block of `prims` (one to four) in `bvh`.
-    fn of(bvh: &CurveBvh, prims: &[u32]) -> PrimBlock {
-        let mut b = PrimBlock {
-            planes: [[0.0; BLOCK]; 6],
-            prim: [NONE; BLOCK],
-        };
-        for (i, &prim) in prims.iter().enumerate() {
-            let bx = bvh.prim_box(prim);
-            for a in 0..3 {
-                b.planes[a][i] = bx.min[a];
-                b.planes[3 + a][i] = bx.max[a];
-            }
-            b.prim[i] = prim;
+/// Up to eight primitives of a leaf as a node: each slot's box the primitive's own, its
+/// child the primitive's id, tested together with the walk's own box test ([`box8`]).
+fn prim_node(bvh: &CurveBvh, prims: &[u32]) -> Node8 {
+    let mut n = Node8::EMPTY;
+    for (i, &prim) in prims.iter().enumerate() {
+        let b = bvh.prim_box(prim);
+        for a in 0..3 {
+            n.planes[2 * a][i] = b.min[a];
+            n.planes[2 * a + 1][i] = b.max[a];
         }
-        b
+        n.child[i] = prim;
+        n.used |= 1 << i;
     }
-
-    /// Lane `i`'s box.
-    fn lane(&self, i: usize) -> (Vec3, Vec3) {
-        let p = &self.planes;
-        (
-            Vec3::new(p[0][i], p[1][i], p[2][i]),
-            Vec3::new(p[3][i], p[4][i], p[5][i]),
-        )
-    }
+    n
 }
 
 /// A [`CurveBvh`] in the CPU layout (see the module docs), converted by
@@ -74,7 +49,8 @@ impl PrimBlock {
 pub struct CurveCpuBvh {
     bvh: Arc<CurveBvh>,
     nodes: Vec<Node8>,
-    blocks: Vec<PrimBlock>,
+    /// Each leaf's primitives, eight to a node ([`prim_node`]).
+    blocks: Vec<Node8>,
     depth: u32,
     /// A box around the root's boxes: rays that miss it take no walk.
     scene_box: Option<SceneBox>,
@@ -105,12 +81,12 @@ impl CurveCpuBvh {
                 &mut no_hook,
             )?
         };
-        place_leaves(&mut nodes, &leaves)?;
+        place_leaves_of(&mut nodes, &leaves, WIDTH as u32)?;
         let blocks = leaves
             .par_iter()
             .flat_map_iter(|l| {
                 let prims = &order[l.first_tri as usize..(l.first_tri + l.tris) as usize];
-                prims.chunks(BLOCK).map(|c| PrimBlock::of(&bvh, c))
+                prims.chunks(WIDTH).map(|c| prim_node(&bvh, c))
             })
             .collect();
         Ok(CurveCpuBvh {
@@ -179,10 +155,12 @@ impl CurveCpuBvh {
     }
 }
 
-/// The tree as one ray's walk reads it: the ray made ready for the core's tests.
+/// The tree as one ray's walk reads it: the ray, made ready for the core's tests at its
+/// first leaf (many rays reach none).
 struct At<'a> {
     bvh: &'a CurveCpuBvh,
-    ray: CurveRay,
+    src: &'a Ray,
+    ray: OnceCell<CurveRay>,
 }
 
 impl WalkTree for At<'_> {
@@ -200,11 +178,12 @@ impl WalkTree for At<'_> {
     fn fetch(&self, c: u32) {
         #[cfg(target_arch = "x86_64")]
         {
+            use crate::layout::LEAF;
             use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
             // Wrapping arithmetic, as `c` may be `EMPTY`; a prefetch never faults.
             let (at, lines) = if c & LEAF != 0 {
                 let b = self.bvh.blocks.as_ptr().wrapping_add(leaf_range(c).0);
-                (b.cast::<i8>(), 2)
+                (b.cast::<i8>(), 4)
             } else {
                 (self.bvh.nodes.as_ptr().wrapping_add(c as usize).cast(), 4)
             };
@@ -217,11 +196,21 @@ impl WalkTree for At<'_> {
         let _ = c;
     }
 
-    /// Each primitive whose own box the ray enters before the best is tested with the
-    /// core's test, in the leaf's order.
+    /// Each primitive whose own box the ray enters before the best (the walk's box test,
+    /// eight at a time) is tested with the core's test, in the leaf's order.
     #[inline(always)]
-    fn leaf<L: Lanes, const ANY: bool, const MASKED: bool>(
+    fn leaf<
+        L: Lanes,
+        W: Wide,
+        const ANY: bool,
+        const MASKED: bool,
+        const SIGNED: bool,
+        const PARALLEL: bool,
+        const KZ: usize,
+        const OCT: usize,
+    >(
         &self,
+        q: &RayLanes<L, W>,
         _t_min: L,
         _s: &ShearLanes<L>,
         _ray: RayAt<'_>,
@@ -230,20 +219,16 @@ impl WalkTree for At<'_> {
         _at: Site<'_>,
     ) -> bool {
         let (first, count) = leaf_range(child);
-        let prepared = self.ray.prepared();
+        let ray = self.ray.get_or_init(|| self.bvh.bvh.prepare(self.src));
         // Index loops: an iterator's `next` may be compiled apart from an AVX2 caller.
         for k in first..first + count {
-            let b = &self.bvh.blocks[k];
-            for i in 0..BLOCK {
-                let prim = b.prim[i];
-                if prim == NONE {
-                    break;
-                }
-                let (lo, hi) = b.lane(i);
-                if intersect_box(prepared, lo, hi, best.t).is_none() {
-                    continue;
-                }
-                if self.bvh.bvh.test(prim, &self.ray, best) && ANY {
+            let n = &self.bvh.blocks[k];
+            let culled = !ANY && best.found;
+            let mut hit = box8::<L, W, SIGNED, PARALLEL, KZ, OCT>(n, q, best.t, culled).hit;
+            while hit != 0 {
+                let i = hit.trailing_zeros() as usize;
+                hit &= hit - 1;
+                if self.bvh.bvh.test(n.child[i], ray, best) && ANY {
                     return true;
                 }
             }
@@ -298,7 +283,8 @@ fn run_as<L: Lanes, W: Wide, const ANY: bool>(
             } else {
                 let at = At {
                     bvh,
-                    ray: bvh.bvh.prepare(ray),
+                    src: ray,
+                    ray: OnceCell::new(),
                 };
                 let best = Best::start(ray);
                 single::mesh::<_, L, W, ANY, false>(&at, ray, &p, i, best, 0, Site::PLAIN, stack)

@@ -756,7 +756,16 @@ pub(crate) fn place_leaves(
     nodes: &mut [Node8],
     leaves: &[PendingLeaf],
 ) -> Result<usize, ConvertError> {
-    let blocks = |l: &PendingLeaf| l.tris.div_ceil(BLOCK as u32);
+    place_leaves_of(nodes, leaves, BLOCK as u32)
+}
+
+/// [`place_leaves`] with `per_block` primitives to a block.
+pub(crate) fn place_leaves_of(
+    nodes: &mut [Node8],
+    leaves: &[PendingLeaf],
+    per_block: u32,
+) -> Result<usize, ConvertError> {
+    let blocks = |l: &PendingLeaf| l.tris.div_ceil(per_block);
     let total: usize = leaves.iter().map(|l| blocks(l) as usize).sum();
     if total > 1 << FIRST_BITS {
         return Err(ConvertError::TooLarge(total));

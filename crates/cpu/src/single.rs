@@ -32,11 +32,21 @@ pub(crate) trait WalkTree {
     /// Asks for the memory of child `c` (a node, or a leaf's first block) ahead of its
     /// visit.
     fn fetch(&self, c: u32);
-    /// Tests leaf `child`'s primitives as [`leaf_at`] does; true when an any-hit query
-    /// can stop.
+    /// Tests leaf `child`'s primitives as [`leaf_at`] does (`q` the ray's lanes, and the
+    /// walk's kind as [`box8`] takes it); true when an any-hit query can stop.
     #[allow(clippy::too_many_arguments)]
-    fn leaf<L: Lanes, const ANY: bool, const MASKED: bool>(
+    fn leaf<
+        L: Lanes,
+        W: Wide,
+        const ANY: bool,
+        const MASKED: bool,
+        const SIGNED: bool,
+        const PARALLEL: bool,
+        const KZ: usize,
+        const OCT: usize,
+    >(
         &self,
+        q: &RayLanes<L, W>,
         t_min: L,
         s: &ShearLanes<L>,
         ray: RayAt<'_>,
@@ -63,8 +73,18 @@ pub(crate) trait BlockTree: WalkTree {
 macro_rules! block_leaf {
     () => {
         #[inline(always)]
-        fn leaf<L: crate::lanes::Lanes, const ANY: bool, const MASKED: bool>(
+        fn leaf<
+            L: crate::lanes::Lanes,
+            W: crate::lanes::Wide,
+            const ANY: bool,
+            const MASKED: bool,
+            const SIGNED: bool,
+            const PARALLEL: bool,
+            const KZ: usize,
+            const OCT: usize,
+        >(
             &self,
+            _q: &crate::tests4::RayLanes<L, W>,
             t_min: L,
             s: &crate::tests4::ShearLanes<L>,
             ray: crate::tests4::RayAt<'_>,
@@ -748,8 +768,15 @@ impl<'a, L: Lanes> Walk<'a, L> {
             let shear = self.shear.get_or_insert_with(|| {
                 ShearLanes::from_prepared(p, i, if OCT == MINMAX { KZ } else { p.kz[i] })
             });
-            if bvh.leaf::<L, ANY, MASKED>(q.t_min4, shear, self.ray, self.child, &mut self.best, at)
-            {
+            if bvh.leaf::<L, W, ANY, MASKED, SIGNED, PARALLEL, KZ, OCT>(
+                q,
+                q.t_min4,
+                shear,
+                self.ray,
+                self.child,
+                &mut self.best,
+                at,
+            ) {
                 return Some(true);
             }
         }

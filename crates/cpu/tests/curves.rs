@@ -176,10 +176,11 @@ fn the_layout_is_small_beside_the_primitives() {
     let layout = CurveCpuBvh::from_curves(bvh.clone()).expect("converted");
     let (nodes, blocks) = layout.byte_sizes();
     let prims = bvh.triangle_count() + bvh.curves().len();
-    // One block per leaf child of up to four primitives: at most one per primitive.
+    // One node per leaf child of up to eight primitives: at most one per primitive.
+    let node = std::mem::size_of::<bvhtrace_cpu::Node8>();
     assert!(
-        blocks <= prims * 112,
-        "{blocks} bytes of blocks for {prims}"
+        blocks <= prims * node && blocks % node == 0,
+        "{blocks} bytes of leaf nodes for {prims}"
     );
     assert!(
         nodes > 0 && layout.depth() >= 2,
