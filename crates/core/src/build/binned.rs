@@ -2,9 +2,9 @@
 //! sweep the bin boundaries, partition at the cheapest. The children's boxes come out of
 //! the bins and their centroid bounds out of the partition, so no other pass is needed.
 
-use glam::Vec3A;
+use glam::{BVec3A, Mat3A, Vec3A};
 
-use super::{BuildOptions, PrimRef, Split, split_weight};
+use super::{BuildOptions, PrimRef, Split};
 use crate::geometry::Aabb;
 
 const MAX_BINS: usize = 256;
@@ -27,14 +27,6 @@ impl BoxA {
             min: self.min.min(o.min),
             max: self.max.max(o.max),
         }
-    }
-    #[inline(always)]
-    fn area(self) -> f32 {
-        let e = self.max - self.min;
-        if e.x < 0.0 {
-            return 0.0;
-        }
-        2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)
     }
     fn aabb(self) -> Aabb {
         Aabb {
@@ -196,42 +188,7 @@ pub(super) fn split(
     };
 
     let area = bounds.surface_area();
-    let mut best = (f32::INFINITY, 0usize, 0usize); // cost, axis, last bin on the left
-    let mut right_area = [0f32; MAX_BINS];
-    for (a, &s) in scale.iter().enumerate() {
-        if s == 0.0 {
-            continue;
-        }
-        let o = a * bins;
-        // Suffix areas, then a prefix sweep.
-        let mut acc = BoxA::EMPTY;
-        for k in (1..bins).rev() {
-            let b = &binned.0[o + k];
-            acc = acc.union(BoxA {
-                min: b.min,
-                max: b.max,
-            });
-            right_area[k] = acc.area();
-        }
-        let mut left = BoxA::EMPTY;
-        let mut n_l = 0usize;
-        for k in 0..bins - 1 {
-            let b = &binned.0[o + k];
-            left = left.union(BoxA {
-                min: b.min,
-                max: b.max,
-            });
-            n_l += b.count as usize;
-            let n_r = n - n_l;
-            if n_l == 0 || n_r == 0 {
-                continue;
-            }
-            let w = split_weight(n_l, left.area(), n_r, right_area[k + 1]);
-            if w < best.0 {
-                best = (w, a, k);
-            }
-        }
-    }
+    let best = cheapest(&binned, bins, n, &scale);
     let (w, axis, k) = best;
     let cost = opts.cost_traversal + opts.cost_intersection * w / area;
     if !cost.is_finite() {
@@ -253,6 +210,66 @@ pub(super) fn split(
             (binned.box_of(o + k + 1..o + bins).aabb(), centroids[1]),
         ],
     }
+}
+
+/// The cheapest split between bins over all three axes: (weight, axis, last bin on the
+/// left). The axes are swept in lock step, one SIMD lane each (their three boxes'
+/// extents transposed, so one multiply gives three areas), with each lane's arithmetic
+/// the scalar sweep's: the same weights, and ties to the lowest axis, then the first bin.
+fn cheapest(binned: &Bins, bins: usize, n: usize, scale: &[f32; 3]) -> (f32, usize, usize) {
+    let b = &binned.0;
+    // The three axes' boxes grown by bin `k` of each, and their areas in lanes.
+    let grow = |lo: &mut [Vec3A; 3], hi: &mut [Vec3A; 3], k: usize| {
+        for a in 0..3 {
+            let bin = &b[a * bins + k];
+            lo[a] = lo[a].min(bin.min);
+            hi[a] = hi[a].max(bin.max);
+        }
+        let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
+        let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
+        2.0 * (x * y + y * z + z * x)
+    };
+    let empty = || ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
+    let mut right_area = [Vec3A::ZERO; MAX_BINS];
+    let (mut lo, mut hi) = empty();
+    for k in (1..bins).rev() {
+        right_area[k] = grow(&mut lo, &mut hi, k);
+    }
+    let (mut lo, mut hi) = empty();
+    let mut n_l = [0u32; 3];
+    let (mut best, mut at) = (Vec3A::INFINITY, [0usize; 3]);
+    for k in 0..bins - 1 {
+        let left = grow(&mut lo, &mut hi, k);
+        for (a, c) in n_l.iter_mut().enumerate() {
+            *c += b[a * bins + k].count;
+        }
+        let nl = Vec3A::new(n_l[0] as f32, n_l[1] as f32, n_l[2] as f32);
+        let nr = Vec3A::new(
+            (n - n_l[0] as usize) as f32,
+            (n - n_l[1] as usize) as f32,
+            (n - n_l[2] as usize) as f32,
+        );
+        // A side with no refs is no split.
+        let [a, b2, c] = n_l.map(|c| c > 0 && (c as usize) < n);
+        let both = BVec3A::new(a, b2, c);
+        let w = nl * left + nr * right_area[k + 1];
+        let better = both & w.cmplt(best);
+        best = Vec3A::select(better, w, best);
+        let mask = better.bitmask();
+        for (a, at) in at.iter_mut().enumerate() {
+            if mask & (1 << a) != 0 {
+                *at = k;
+            }
+        }
+    }
+    let mut out = (f32::INFINITY, 0usize, 0usize);
+    for (a, &s) in scale.iter().enumerate() {
+        // An axis along which every centroid is the same is not split.
+        if s != 0.0 && best[a] < out.0 {
+            out = (best[a], a, at[a]);
+        }
+    }
+    out
 }
 
 /// In-place partition (Hoare's: each misplaced pair swapped once): refs satisfying `left`

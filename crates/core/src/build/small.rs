@@ -14,6 +14,7 @@ use crate::geometry::Aabb;
 
 /// Subtrees of at most this many primitives are built here.
 pub(super) const SMALL_NODE: usize = 48;
+const _: () = assert!(SMALL_NODE <= 64, "ids and counts are masked to 64");
 
 /// One subtree's primitives, copied out of the shared array.
 struct Subtree<'a> {
@@ -203,25 +204,27 @@ impl Subtree<'_> {
             }
         };
         // Hand each child its part of every list, still sorted.
-        let mut left = [false; SMALL_NODE];
+        let mut left = [false; 64];
         for &id in &lists[axis][..mid] {
-            left[id as usize] = true;
+            left[id as usize & 63] = true;
         }
         let [mut a0, mut a1, mut a2] = lists;
         for (a, l) in [&mut a0, &mut a1, &mut a2].into_iter().enumerate() {
             if a != axis {
-                let mut tmp = [0u8; SMALL_NODE];
-                let (mut i, mut j) = (0, mid);
+                // Without a branch on the side (it is as likely either way): each id is
+                // written to both lists, and only its own side's count moves on. Ids and
+                // counts are below 64, so the masks only spare the bounds checks.
+                let (mut to_left, mut to_right) = ([0u8; 64], [0u8; 64]);
+                let (mut i, mut j) = (0, 0);
                 for &id in l.iter() {
-                    if left[id as usize] {
-                        tmp[i] = id;
-                        i += 1;
-                    } else {
-                        tmp[j] = id;
-                        j += 1;
-                    }
+                    let is_left = left[id as usize & 63] as usize;
+                    to_left[i & 63] = id;
+                    to_right[j & 63] = id;
+                    i += is_left;
+                    j += 1 - is_left;
                 }
-                l.copy_from_slice(&tmp[..n]);
+                l[..mid].copy_from_slice(&to_left[..mid]);
+                l[mid..].copy_from_slice(&to_right[..n - mid]);
             }
         }
         let (l0, r0) = a0.split_at_mut(mid);
