@@ -186,11 +186,6 @@ impl LeafBoxes {
         LeafBoxes { planes }
     }
 
-    /// True when each lane's box is its triangle's own (see [`CORNER_BOXES`]).
-    fn are_corner_boxes(&self, b: &Tri4) -> bool {
-        (0..BLOCK).all(|i| self.lane(i) == b.corner_box(i))
-    }
-
     /// Lane `i`'s box.
     pub fn lane(&self, i: usize) -> Aabb {
         let p = &self.planes;
@@ -779,7 +774,7 @@ pub(crate) fn place_leaves_of(
 }
 
 /// Allocates every leaf's blocks in leaf order, sets the leaf references, and fills the
-/// blocks in parallel.
+/// blocks in parallel; then keeps the leaf boxes of the blocks that need theirs.
 fn write_blocks(
     nodes: &mut [Node8],
     leaves: &[PendingLeaf],
@@ -787,49 +782,40 @@ fn write_blocks(
     tri_box: &[Aabb],
 ) -> Result<Blocks, ConvertError> {
     let total = place_leaves(nodes, leaves)?;
+    // Each block's triangles, (first, count), in leaf order: the blocks are then filled
+    // in parallel, each on its own.
+    let mut block_tris: Vec<(u32, u32)> = Vec::with_capacity(total);
+    for l in leaves {
+        for k in (0..l.tris).step_by(BLOCK) {
+            block_tris.push((l.first_tri + k, (l.tris - k).min(BLOCK as u32)));
+        }
+    }
+    let range = |&(first, count): &(u32, u32)| first as usize..(first + count) as usize;
     // Zeroed memory comes from the allocator lazily: the blocks are written once, in
     // parallel below, not first on one thread.
     let mut blocks: Vec<Tri4> = bytemuck::zeroed_vec(total);
-    let mut boxes: Vec<LeafBoxes> = bytemuck::zeroed_vec(total);
     let mut corner: Vec<bool> = vec![false; total];
-    // Each leaf's blocks are a disjoint run: split the output by leaf and fill in parallel.
-    let mut runs = Vec::with_capacity(leaves.len());
-    let mut rest = (
-        blocks.as_mut_slice(),
-        boxes.as_mut_slice(),
-        corner.as_mut_slice(),
-    );
-    for l in leaves {
-        let n = l.tris.div_ceil(BLOCK as u32) as usize;
-        let (head, tail) = rest.0.split_at_mut(n);
-        let (head_boxes, tail_boxes) = rest.1.split_at_mut(n);
-        let (head_corner, tail_corner) = rest.2.split_at_mut(n);
-        runs.push((head, head_boxes, head_corner, l));
-        rest = (tail, tail_boxes, tail_corner);
-    }
-    runs.into_par_iter()
+    blocks
+        .par_iter_mut()
+        .zip(corner.par_iter_mut())
+        .zip(block_tris.par_iter())
         .with_min_len(1024)
-        .for_each(|(out, out_boxes, out_corner, l)| {
-            let range = l.first_tri as usize..(l.first_tri + l.tris) as usize;
-            let chunks = ftris[range.clone()]
-                .chunks(BLOCK)
-                .zip(tri_box[range].chunks(BLOCK));
-            let outs = out.iter_mut().zip(out_boxes.iter_mut()).zip(out_corner);
-            for (((b, bx), c), (chunk, cb)) in outs.zip(chunks) {
-                *b = Tri4::of(chunk);
-                *bx = LeafBoxes::of(cb);
-                *c = bx.are_corner_boxes(b);
-            }
+        .for_each(|((b, c), t)| {
+            let boxes = &tri_box[range(t)];
+            *b = Tri4::of(&ftris[range(t)]);
+            // A free lane repeats the last triangle and its box: the used lanes decide.
+            *c = (0..boxes.len()).all(|i| boxes[i] == b.corner_box(i));
         });
-    // Only the blocks whose boxes are not their triangles' own keep theirs.
+    // Only the blocks whose boxes are not their triangles' own keep theirs, made here:
+    // most blocks need none.
     let mut box_index = Vec::with_capacity(total);
-    let mut kept = Vec::new();
-    for (bx, &is_corner) in boxes.iter().zip(&corner) {
+    let mut kept = Vec::with_capacity(corner.iter().filter(|&&c| !c).count());
+    for (t, &is_corner) in block_tris.iter().zip(&corner) {
         if is_corner {
             box_index.push(CORNER_BOXES);
         } else {
             box_index.push(kept.len() as u32);
-            kept.push(*bx);
+            kept.push(LeafBoxes::of(&tri_box[range(t)]));
         }
     }
     Ok((blocks, box_index, kept))
