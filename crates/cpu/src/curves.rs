@@ -63,7 +63,12 @@ impl CurveCpuBvh {
         let order = bvh.leaf_prims();
         let spans = subtree_spans(fnodes);
         // Each slot's binary leaf box: a run split off a long leaf is bounded by it.
-        let leaf_box = leaf_of_triangles(fnodes, order.len(), |_, n| n.aabb());
+        let leaf_box = leaf_of_triangles(
+            fnodes,
+            order.len(),
+            |_, n| n.aabb(),
+            bvhtrace_core::Aabb::EMPTY,
+        );
         let mut nodes = Vec::new();
         let mut leaves = Vec::new();
         let depth = if fnodes.is_empty() {
@@ -73,7 +78,7 @@ impl CurveCpuBvh {
             collapse(
                 fnodes,
                 &spans,
-                &leaf_box,
+                &|t| leaf_box[t],
                 0,
                 Level::Mesh,
                 &mut nodes,

@@ -284,7 +284,8 @@ impl CpuBvh {
         }
         let masks = flat.masks().cloned();
         let spans = subtree_spans(fnodes);
-        let tri_box = leaf_box_of_triangles(flat);
+        let leaf_box = LeafBoxOf::of(flat);
+        let tri_box = |t: usize| leaf_box.get(t);
         // Reserved ahead, so that the arrays are rarely copied as they grow: builders'
         // trees give a wide node per 8 to 12 binary leaves and a leaf child per 3 (a
         // margin of 2 to 3), and the reserve is given back after (an over-reserve in
@@ -485,7 +486,7 @@ impl CpuBvh {
 pub(crate) fn collapse(
     fnodes: &[FlatNode],
     spans: &[(u32, u32)],
-    tri_box: &[Aabb],
+    tri_box: &impl Fn(usize) -> Aabb,
     root: u32,
     level: Level,
     nodes: &mut Vec<Node8>,
@@ -546,7 +547,7 @@ pub(crate) fn collapse(
                 Src::Run(first, count) => {
                     // The binary leaf's own box: a tighter one would cull triangles the
                     // binary walk tests (see `LeafBoxes`).
-                    let b = tri_box[first as usize];
+                    let b = tri_box(first as usize);
                     if count.div_ceil(BLOCK as u32) > MAX_LEAF_BLOCKS {
                         let next = nodes.len() as u32;
                         nodes.push(Node8::EMPTY);
@@ -703,35 +704,56 @@ fn split_run(first: u32, count: u32) -> SrcList {
 /// Each triangle slot's binary leaf box: the box the binary walk tests before the
 /// triangle, or an infinite one for a mesh whose root is a leaf (inside an instance, the
 /// binary walk tests no box of the mesh's root: the instance leaf's box stood for it).
-fn leaf_box_of_triangles(flat: &FlatBvh) -> Vec<Aabb> {
-    let (fnodes, triangles) = (flat.nodes(), flat.triangles().len());
-    let mut boxes = leaf_of_triangles(fnodes, triangles, |_, n| n.aabb());
-    let mut fill = |n: &FlatNode, b: Aabb| {
-        let first = (n.right_or_first as usize).min(triangles);
-        let end = (first + n.count() as usize).min(triangles);
-        boxes[first..end].fill(b);
-    };
-    let everywhere = Aabb {
-        min: Vec3::splat(f32::NEG_INFINITY),
-        max: Vec3::splat(f32::INFINITY),
-    };
-    for fi in flat.instances() {
-        match fnodes.get(fi.root as usize) {
-            Some(n) if n.is_leaf() && !n.is_instance_leaf() => fill(n, everywhere),
-            _ => {}
-        }
-    }
-    boxes
+/// Kept as each slot's leaf index, a quarter of the memory of the boxes themselves.
+struct LeafBoxOf<'a> {
+    fnodes: &'a [FlatNode],
+    leaf: Vec<u32>,
 }
 
-/// `of(i, node)` for each triangle slot's binary leaf `i` (`T::default()` for a slot no
-/// leaf holds).
-pub(crate) fn leaf_of_triangles<T: Clone + Default>(
+impl<'a> LeafBoxOf<'a> {
+    /// A slot no leaf holds (a tree flattened by hand): the empty box.
+    const NONE: u32 = u32::MAX;
+    /// A slot of a mesh whose root is a leaf: the infinite box.
+    const EVERYWHERE: u32 = u32::MAX - 1;
+
+    fn of(flat: &'a FlatBvh) -> LeafBoxOf<'a> {
+        let (fnodes, triangles) = (flat.nodes(), flat.triangles().len());
+        let mut leaf = leaf_of_triangles(fnodes, triangles, |i, _| i, Self::NONE);
+        for fi in flat.instances() {
+            match fnodes.get(fi.root as usize) {
+                Some(n) if n.is_leaf() && !n.is_instance_leaf() => {
+                    let first = (n.right_or_first as usize).min(triangles);
+                    let end = (first + n.count() as usize).min(triangles);
+                    leaf[first..end].fill(Self::EVERYWHERE);
+                }
+                _ => {}
+            }
+        }
+        LeafBoxOf { fnodes, leaf }
+    }
+
+    /// Triangle slot `t`'s box.
+    fn get(&self, t: usize) -> Aabb {
+        match self.leaf[t] {
+            Self::NONE => Aabb::EMPTY,
+            Self::EVERYWHERE => Aabb {
+                min: Vec3::splat(f32::NEG_INFINITY),
+                max: Vec3::splat(f32::INFINITY),
+            },
+            i => self.fnodes[i as usize].aabb(),
+        }
+    }
+}
+
+/// `of(i, node)` for each triangle slot's binary leaf `i` (`none` for a slot no leaf
+/// holds).
+pub(crate) fn leaf_of_triangles<T: Clone>(
     fnodes: &[FlatNode],
     triangles: usize,
     of: impl Fn(u32, &FlatNode) -> T,
+    none: T,
 ) -> Vec<T> {
-    let mut out = vec![T::default(); triangles];
+    let mut out = vec![none; triangles];
     for (i, n) in fnodes.iter().enumerate() {
         if n.is_leaf() && !n.is_instance_leaf() {
             let first = (n.right_or_first as usize).min(triangles);
@@ -779,7 +801,7 @@ fn write_blocks(
     nodes: &mut [Node8],
     leaves: &[PendingLeaf],
     ftris: &[FlatTriangle],
-    tri_box: &[Aabb],
+    tri_box: &(impl Fn(usize) -> Aabb + Sync),
 ) -> Result<Blocks, ConvertError> {
     let total = place_leaves(nodes, leaves)?;
     // Each block's triangles, (first, count), in leaf order: the blocks are then filled
@@ -801,10 +823,11 @@ fn write_blocks(
         .zip(block_tris.par_iter())
         .with_min_len(1024)
         .for_each(|((b, c), t)| {
-            let boxes = &tri_box[range(t)];
             *b = Tri4::of(&ftris[range(t)]);
             // A free lane repeats the last triangle and its box: the used lanes decide.
-            *c = (0..boxes.len()).all(|i| boxes[i] == b.corner_box(i));
+            *c = range(t)
+                .enumerate()
+                .all(|(i, t)| tri_box(t) == b.corner_box(i));
         });
     // Only the blocks whose boxes are not their triangles' own keep theirs, made here:
     // most blocks need none.
@@ -815,7 +838,8 @@ fn write_blocks(
             box_index.push(CORNER_BOXES);
         } else {
             box_index.push(kept.len() as u32);
-            kept.push(LeafBoxes::of(&tri_box[range(t)]));
+            let boxes: Vec<Aabb> = range(t).map(tri_box).collect();
+            kept.push(LeafBoxes::of(&boxes));
         }
     }
     Ok((blocks, box_index, kept))

@@ -72,7 +72,7 @@ impl MovingCpuBvh {
         let (fnodes, steps, bounds, step_boxes) =
             (tree.nodes, tree.steps, tree.bounds, tree.step_boxes);
         let spans = subtree_spans(fnodes);
-        let leaf_of = leaf_of_triangles(fnodes, count, |i, _| i);
+        let leaf_of = leaf_of_triangles(fnodes, count, |i, _| i, 0);
         let tri_box: Vec<Aabb> = leaf_of.iter().map(|&i| fnodes[i as usize].aabb()).collect();
         let mut nodes = Vec::new();
         let mut leaves = Vec::new();
@@ -95,7 +95,7 @@ impl MovingCpuBvh {
             collapse(
                 fnodes,
                 &spans,
-                &tri_box,
+                &|t| tri_box[t],
                 root,
                 level,
                 &mut nodes,
