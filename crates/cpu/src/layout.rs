@@ -838,8 +838,11 @@ fn write_blocks(
             box_index.push(CORNER_BOXES);
         } else {
             box_index.push(kept.len() as u32);
-            let boxes: Vec<Aabb> = range(t).map(tri_box).collect();
-            kept.push(LeafBoxes::of(&boxes));
+            let mut boxes = [Aabb::EMPTY; BLOCK];
+            for (b, t) in boxes.iter_mut().zip(range(t)) {
+                *b = tri_box(t);
+            }
+            kept.push(LeafBoxes::of(&boxes[..t.1 as usize]));
         }
     }
     Ok((blocks, box_index, kept))
