@@ -2,9 +2,9 @@
 //! sweep the bin boundaries, partition at the cheapest. The children's boxes come out of
 //! the bins and their centroid bounds out of the partition, so no other pass is needed.
 
-use glam::{BVec3A, Mat3A, Vec3A};
+use glam::{BVec3A, Vec3A};
 
-use super::{BuildOptions, PrimRef, Split};
+use super::{BuildOptions, PrimRef, Split, half_areas};
 use crate::geometry::Aabb;
 
 const MAX_BINS: usize = 256;
@@ -213,9 +213,9 @@ pub(super) fn split(
 }
 
 /// The cheapest split between bins over all three axes: (weight, axis, last bin on the
-/// left). The axes are swept in lock step, one SIMD lane each (their three boxes'
-/// extents transposed, so one multiply gives three areas), with each lane's arithmetic
-/// the scalar sweep's: the same weights, and ties to the lowest axis, then the first bin.
+/// left). The axes are swept in lock step, one SIMD lane each ([`half_areas`]), with
+/// each lane's arithmetic the scalar sweep's: the same weights, and ties to the lowest
+/// axis, then the first bin.
 fn cheapest(binned: &Bins, bins: usize, n: usize, scale: &[f32; 3]) -> (f32, usize, usize) {
     let b = &binned.0;
     // The three axes' boxes grown by bin `k` of each, and their areas in lanes.
@@ -225,9 +225,7 @@ fn cheapest(binned: &Bins, bins: usize, n: usize, scale: &[f32; 3]) -> (f32, usi
             lo[a] = lo[a].min(bin.min);
             hi[a] = hi[a].max(bin.max);
         }
-        let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
-        let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
-        2.0 * (x * y + y * z + z * x)
+        2.0 * half_areas(lo, hi)
     };
     let empty = || ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
     let mut right_area = [Vec3A::ZERO; MAX_BINS];

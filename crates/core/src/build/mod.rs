@@ -16,7 +16,7 @@ mod sweep;
 use std::fmt;
 use std::str::FromStr;
 
-use glam::Vec3;
+use glam::{Mat3A, Vec3, Vec3A};
 
 use crate::flat::{FlatBvh, FlatNode};
 use crate::geometry::Aabb;
@@ -296,6 +296,16 @@ pub(crate) fn split_cost(
 #[inline(always)]
 pub(crate) fn split_weight(n_l: usize, a_l: f32, n_r: usize, a_r: f32) -> f32 {
     n_l as f32 * a_l + n_r as f32 * a_r
+}
+
+/// Half the surface areas of three boxes, box `i` in lane `i` (`lo[i]` to `hi[i]`): the
+/// sweeps grow one box per axis in lock step, and with the extents transposed one
+/// multiply gives all three.
+#[inline(always)]
+pub(crate) fn half_areas(lo: &[Vec3A; 3], hi: &[Vec3A; 3]) -> Vec3A {
+    let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
+    let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
+    x * y + y * z + z * x
 }
 
 /// Splits at the object median along `axis` (ties broken by primitive index, so the

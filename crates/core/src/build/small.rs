@@ -6,7 +6,7 @@
 //! filter keeps them sorted) makes every level linear, and all of it stays on the stack.
 //! The decisions are the sweep's: the same keys, the same areas, the same costs.
 
-use glam::{Mat3A, Vec3A};
+use glam::Vec3A;
 
 use super::{BuildOptions, PrimRef};
 use crate::flat::FlatNode;
@@ -112,8 +112,7 @@ impl Subtree<'_> {
 
     /// The cheapest split over the three sorted lists: (cost, axis, left count).
     ///
-    /// The three axes are swept in lock step, one SIMD lane each: the three boxes'
-    /// extents are transposed so that one multiply gives all three areas.
+    /// The three axes are swept in lock step, one SIMD lane each ([`super::half_areas`]).
     fn sweep(&self, lists: &[&mut [u8]; 3], bounds: &Aabb, cb: &Aabb) -> (f32, usize, usize) {
         let n = lists[0].len();
         let [l0, l1, l2] = lists;
@@ -126,9 +125,7 @@ impl Subtree<'_> {
             hi[1] = hi[1].max(self.max[ids[1]]);
             hi[2] = hi[2].max(self.max[ids[2]]);
             // Half areas: the factor 2 cancels in every comparison and in the cost.
-            let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
-            let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
-            x * y + y * z + z * x
+            super::half_areas(lo, hi)
         };
         let empty = || ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
         let mut right_area = [Vec3A::ZERO; SMALL_NODE];
