@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use crate::Isa;
 use crate::lanes::{self, Lanes, Wide};
 use crate::layout::{
-    ConvertError, Level, Node8, WIDTH, collapse, leaf_of_triangles, leaf_range, place_leaves_of,
+    ConvertError, LeafBoxOf, Level, Node8, WIDTH, collapse, leaf_range, place_leaves_of,
     subtree_spans,
 };
 use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
@@ -63,12 +63,7 @@ impl CurveCpuBvh {
         let order = bvh.leaf_prims();
         let spans = subtree_spans(fnodes);
         // Each slot's binary leaf box: a run split off a long leaf is bounded by it.
-        let leaf_box = leaf_of_triangles(
-            fnodes,
-            order.len(),
-            |_, n| n.aabb(),
-            bvhtrace_core::Aabb::EMPTY,
-        );
+        let leaf_box = LeafBoxOf::new(fnodes, order.len());
         let mut nodes = Vec::new();
         let mut leaves = Vec::new();
         let depth = if fnodes.is_empty() {
@@ -78,7 +73,7 @@ impl CurveCpuBvh {
             collapse(
                 fnodes,
                 &spans,
-                &|t| leaf_box[t],
+                &|t| leaf_box.get(t),
                 0,
                 Level::Mesh,
                 &mut nodes,

@@ -705,7 +705,7 @@ fn split_run(first: u32, count: u32) -> SrcList {
 /// triangle, or an infinite one for a mesh whose root is a leaf (inside an instance, the
 /// binary walk tests no box of the mesh's root: the instance leaf's box stood for it).
 /// Kept as each slot's leaf index, a quarter of the memory of the boxes themselves.
-struct LeafBoxOf<'a> {
+pub(crate) struct LeafBoxOf<'a> {
     fnodes: &'a [FlatNode],
     leaf: Vec<u32>,
 }
@@ -716,9 +716,16 @@ impl<'a> LeafBoxOf<'a> {
     /// A slot of a mesh whose root is a leaf: the infinite box.
     const EVERYWHERE: u32 = u32::MAX - 1;
 
+    /// The leaf boxes of a tree of one mesh over `triangles` slots.
+    pub(crate) fn new(fnodes: &'a [FlatNode], triangles: usize) -> LeafBoxOf<'a> {
+        let leaf = leaf_of_triangles(fnodes, triangles, |i, _| i, Self::NONE);
+        LeafBoxOf { fnodes, leaf }
+    }
+
+    /// The leaf boxes of `flat`, its instances' meshes included.
     fn of(flat: &'a FlatBvh) -> LeafBoxOf<'a> {
         let (fnodes, triangles) = (flat.nodes(), flat.triangles().len());
-        let mut leaf = leaf_of_triangles(fnodes, triangles, |i, _| i, Self::NONE);
+        let LeafBoxOf { mut leaf, .. } = LeafBoxOf::new(fnodes, triangles);
         for fi in flat.instances() {
             match fnodes.get(fi.root as usize) {
                 Some(n) if n.is_leaf() && !n.is_instance_leaf() => {
@@ -733,7 +740,7 @@ impl<'a> LeafBoxOf<'a> {
     }
 
     /// Triangle slot `t`'s box.
-    fn get(&self, t: usize) -> Aabb {
+    pub(crate) fn get(&self, t: usize) -> Aabb {
         match self.leaf[t] {
             Self::NONE => Aabb::EMPTY,
             Self::EVERYWHERE => Aabb {

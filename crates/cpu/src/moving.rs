@@ -73,7 +73,6 @@ impl MovingCpuBvh {
             (tree.nodes, tree.steps, tree.bounds, tree.step_boxes);
         let spans = subtree_spans(fnodes);
         let leaf_of = leaf_of_triangles(fnodes, count, |i, _| i, 0);
-        let tri_box: Vec<Aabb> = leaf_of.iter().map(|&i| fnodes[i as usize].aabb()).collect();
         let mut nodes = Vec::new();
         let mut leaves = Vec::new();
         // Each slot's binary node: a run split off a long leaf stands for the leaf.
@@ -95,7 +94,7 @@ impl MovingCpuBvh {
             collapse(
                 fnodes,
                 &spans,
-                &|t| tri_box[t],
+                &|t| fnodes[leaf_of[t] as usize].aabb(),
                 root,
                 level,
                 &mut nodes,
