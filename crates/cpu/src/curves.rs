@@ -24,6 +24,7 @@ use crate::layout::{
     ConvertError, LeafBoxOf, Level, Node8, WIDTH, collapse, leaf_range, place_leaves_of,
     subtree_spans,
 };
+use crate::plan::Plan;
 use crate::single::{self, Best, Entry, Site, WalkTree, untraced};
 use crate::tests4::{self, Prepared, RayAt, RayLanes, SceneBox, ShearLanes, box8};
 
@@ -79,6 +80,7 @@ impl CurveCpuBvh {
                 &mut nodes,
                 &mut leaves,
                 &mut no_hook,
+                Some(&Plan::new(fnodes, &spans)),
             )?
         };
         place_leaves_of(&mut nodes, &leaves, WIDTH as u32)?;

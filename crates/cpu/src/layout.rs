@@ -13,10 +13,13 @@
 //!   which finds nothing the triangle itself does not, so no lane mask is needed.
 //!
 //! # Collapse
-//! Greedy, top down: a wide node starts from its binary node's two children, and while it
-//! has fewer than eight, the interior child of largest surface area is replaced by its two
-//! children. A binary leaf, or a binary subtree of at most
-//! [`MERGE_TRIANGLES`] triangles, becomes one leaf child. A leaf of more than
+//! A binary leaf, or a binary subtree of at most [`MERGE_TRIANGLES`] triangles, becomes
+//! one leaf child. Which binary nodes above those become wide nodes is the least-cost
+//! choice (`plan`: the sum of the wide nodes' surface areas, Ylitie et al.'s dynamic
+//! programme), which fills the nodes near the leaves that a greedy collapse leaves with
+//! two or three children. The top level over instances is collapsed greedily, top down:
+//! a wide node starts from its binary node's two children, and while it has fewer than
+//! eight, the interior child of largest surface area is replaced by its two children. A leaf of more than
 //! [`MAX_LEAF_BLOCKS`]` * 4` triangles (only with a large `max_leaf_size`) is split into a
 //! node over runs of the leaf's triangles, boxed by their corners.
 //!
@@ -39,6 +42,8 @@ use bvhtrace_core::masks::MaskTables;
 use bvhtrace_core::{Aabb, FlatBvh, FlatInstance, FlatNode, FlatTriangle};
 use glam::Vec3;
 use rayon::prelude::*;
+
+use crate::plan::Plan;
 
 /// Children per node: one AVX register per plane of a node's boxes.
 pub const WIDTH: usize = 8;
@@ -286,6 +291,7 @@ impl CpuBvh {
         let spans = subtree_spans(fnodes);
         let leaf_box = LeafBoxOf::of(flat);
         let tri_box = |t: usize| leaf_box.get(t);
+        let plan = Plan::new(fnodes, &spans);
         // Reserved ahead, so that the arrays are rarely copied as they grow: builders'
         // trees give a wide node per 8 to 12 binary leaves and a leaf child per 3 (a
         // margin of 2 to 3), and the reserve is given back after (an over-reserve in
@@ -303,6 +309,7 @@ impl CpuBvh {
                 &mut nodes,
                 &mut leaves,
                 &mut |_, _, _| {},
+                Some(&plan),
             )?;
             let (blocks, box_index, leaf_boxes) =
                 write_blocks(&mut nodes, &leaves, ftris, &tri_box)?;
@@ -337,6 +344,7 @@ impl CpuBvh {
             &mut nodes,
             &mut leaves,
             &mut |_, _, _| {},
+            None,
         )?;
         // Each mesh once: its root's start reference, by binary root.
         let mut meshes = std::collections::HashMap::new();
@@ -364,6 +372,7 @@ impl CpuBvh {
                         &mut nodes,
                         &mut leaves,
                         &mut |_, _, _| {},
+                        Some(&plan),
                     )?;
                     mesh_depth = mesh_depth.max(d);
                     meshes.insert(fi.root, at as u32);
@@ -481,7 +490,9 @@ impl CpuBvh {
 /// Collapses the binary tree at `root` (a whole mesh, or the top level) into wide nodes
 /// appended to `nodes`, the mesh's leaves appended to `leaves` (their blocks written
 /// later); its first node is the tree's root; `on_slot(node, slot, src)` hears what each
-/// slot was made from. Returns its levels of nodes.
+/// slot was made from. A mesh's nodes take their slots from its `plan` (the least-cost
+/// collapse); without one (the top level over instances), [`expand`] fills each node
+/// greedily. Returns its levels of nodes.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn collapse(
     fnodes: &[FlatNode],
@@ -492,20 +503,24 @@ pub(crate) fn collapse(
     nodes: &mut Vec<Node8>,
     leaves: &mut Vec<PendingLeaf>,
     on_slot: &mut impl FnMut(u32, usize, Src),
+    plan: Option<&Plan>,
 ) -> Result<u32, ConvertError> {
+    let slots_of = |i: u32| match plan {
+        Some(p) => p.slots(fnodes, i),
+        None => expand(fnodes, spans, level, children_of(fnodes, i)),
+    };
     let at = nodes.len() as u32;
     nodes.push(Node8::EMPTY);
     let mut depth = 1;
     let root_src = if fnodes[root as usize].is_leaf() {
         SrcList::of(&[Src::Node(root)])
     } else {
-        children_of(fnodes, root)
+        slots_of(root)
     };
     // Depth first: each work item fills its node's slots, appending child nodes.
     let mut work = vec![(at, root_src, 1u32)];
     while let Some((at, srcs, depth_here)) = work.pop() {
         depth = depth.max(depth_here);
-        let srcs = expand(fnodes, spans, level, srcs);
         for (slot, &src) in srcs.as_slice().iter().enumerate() {
             let mut pending = |first: u32, count: u32| {
                 leaves.push(PendingLeaf {
@@ -541,7 +556,7 @@ pub(crate) fn collapse(
                 Src::Node(i) => {
                     let next = nodes.len() as u32;
                     nodes.push(Node8::EMPTY);
-                    work.push((next, children_of(fnodes, i), depth_here + 1));
+                    work.push((next, slots_of(i), depth_here + 1));
                     (fnodes[i as usize].aabb(), next)
                 }
                 Src::Run(first, count) => {
@@ -582,13 +597,13 @@ pub(crate) fn collapse(
 /// A wide node's slots while converting: up to [`WIDTH`], in order, with no allocation
 /// (the collapse makes one per wide node).
 #[derive(Clone, Copy)]
-struct SrcList {
+pub(crate) struct SrcList {
     items: [Src; WIDTH],
     len: usize,
 }
 
 impl SrcList {
-    fn of(srcs: &[Src]) -> SrcList {
+    pub(crate) fn of(srcs: &[Src]) -> SrcList {
         let mut items = [Src::Run(0, 0); WIDTH];
         items[..srcs.len()].copy_from_slice(srcs);
         SrcList {
@@ -599,6 +614,12 @@ impl SrcList {
 
     fn as_slice(&self) -> &[Src] {
         &self.items[..self.len]
+    }
+
+    /// Appends a slot (at most [`WIDTH`] in all).
+    pub(crate) fn push(&mut self, src: Src) {
+        self.items[self.len] = src;
+        self.len += 1;
     }
 }
 
@@ -683,7 +704,12 @@ pub(crate) fn subtree_spans(fnodes: &[FlatNode]) -> Vec<(u32, u32)> {
 /// True when binary node `i` becomes a leaf child: a leaf, or in a mesh a subtree of at
 /// most [`MERGE_TRIANGLES`] contiguous triangles (the top level keeps one instance per
 /// leaf).
-fn is_leaf_child(fnodes: &[FlatNode], spans: &[(u32, u32)], level: Level, i: u32) -> bool {
+pub(crate) fn is_leaf_child(
+    fnodes: &[FlatNode],
+    spans: &[(u32, u32)],
+    level: Level,
+    i: u32,
+) -> bool {
     fnodes[i as usize].is_leaf() || (level == Level::Mesh && spans[i as usize].1 <= MERGE_TRIANGLES)
 }
 

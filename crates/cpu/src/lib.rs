@@ -94,6 +94,7 @@ pub mod moving;
 pub mod moving_instances;
 mod packet;
 mod packet_tri;
+mod plan;
 mod single;
 mod tests4;
 

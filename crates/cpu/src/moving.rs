@@ -20,6 +20,7 @@ use crate::layout::{
     BLOCK, ConvertError, Level, Node8, PendingLeaf, Src, Tri4, WIDTH, collapse, leaf_of_triangles,
     place_leaves, subtree_spans,
 };
+use crate::plan::Plan;
 use crate::single::{self, Best, BlockTree, Entry, Site, WalkTree, untraced};
 use crate::tests4::{self, Prepared, SceneBox};
 
@@ -100,6 +101,9 @@ impl MovingCpuBvh {
                 &mut nodes,
                 &mut leaves,
                 &mut on_slot,
+                (level == Level::Mesh)
+                    .then(|| Plan::new(fnodes, &spans))
+                    .as_ref(),
             )?
         };
         origin.resize(nodes.len(), [0; WIDTH]);
