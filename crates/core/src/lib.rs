@@ -11,6 +11,7 @@
 
 pub mod alpha;
 pub mod build;
+pub mod collapse;
 pub mod cost;
 pub mod curves;
 pub mod flat;

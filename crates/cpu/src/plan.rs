@@ -1,134 +1,31 @@
-//! Which binary nodes become wide nodes: the collapse of least SAH cost (Ylitie, Karras
-//! and Laine 2017, "Efficient incoherent ray traversal on GPUs through compressed wide
-//! BVHs", section 3.1), over the leaf children the layout fixes ([`is_leaf_child`]).
-//!
-//! The leaf children are the same whatever the nodes above them, so the cost left to
-//! choose is the nodes': each wide node costs its box's surface area (the chance that a
-//! ray enters it). A greedy collapse (open the child of largest area until eight) fills
-//! the top well but leaves many nodes at the bottom with two or three leaf children; the
-//! plan pulls those leaves up into their parents: igea's layout goes from 30,408 nodes to
-//! 16,125 for the same 82,375 leaf children.
+//! Which binary nodes of a mesh become the layout's wide nodes: the core's least-cost
+//! collapse ([`CollapsePlan`]) over the leaf children [`is_leaf_child`] fixes.
 
 use bvhtrace_core::FlatNode;
+use bvhtrace_core::collapse::CollapsePlan;
 
-use crate::layout::{Level, Src, SrcList, WIDTH, is_leaf_child};
+use crate::layout::{Level, Src, SrcList, is_leaf_child};
 
-/// Each planned binary node's least cost as at most `j` slots, `j` = 1 to [`WIDTH`].
-type Costs = [f32; WIDTH];
-
-/// The least-cost slot distribution of every binary interior node that is not a leaf
-/// child (the others' cost is their own area, computed when asked).
-pub(crate) struct Plan {
-    /// Index + 1 into `costs` per binary node; 0 where the node was not planned.
-    at: Vec<u32>,
-    /// `costs[k][j - 1]`: the least cost of the node's subtree as at most `j` slots.
-    costs: Vec<Costs>,
-}
+/// The planned slots of a mesh's wide nodes.
+pub(crate) struct Plan(CollapsePlan);
 
 impl Plan {
-    /// Plans every mesh node of `fnodes` (one backward pass: children come after their
-    /// parent in the depth-first order).
+    /// Plans every mesh node of `fnodes`.
     pub(crate) fn new(fnodes: &[FlatNode], spans: &[(u32, u32)]) -> Plan {
-        // Zeroed memory: only the planned nodes' entries are written.
-        let mut plan = Plan {
-            at: bytemuck::zeroed_vec(fnodes.len()),
-            // A wide tree has a node per two to three leaf children and a binary tree a
-            // node per leaf: this is rarely outgrown.
-            costs: Vec::with_capacity(fnodes.len() / 4),
-        };
-        for i in (0..fnodes.len() as u32).rev() {
-            if !is_leaf_child(fnodes, spans, Level::Mesh, i) {
-                let [l, r] = children(fnodes, i).map(|c| plan.costs_of(fnodes, c));
-                // As a wide node of its own: its area and its best eight slots. As `j`
-                // slots: the cheaper of that and the best split of `j` between its
-                // children.
-                let splits = splits(&l, &r);
-                let whole = fnodes[i as usize].aabb().surface_area() + splits[WIDTH - 1];
-                plan.costs.push(splits.map(|c| whole.min(c)));
-                plan.at[i as usize] = plan.costs.len() as u32;
-            }
-        }
-        plan
-    }
-
-    /// Binary node `i`'s costs. A leaf child's are its area for any number of slots: the
-    /// nodes above it do not change how often it is entered, so that is only a constant.
-    /// A node not planned yet (out of the depth-first order: a tree flattened by hand) is
-    /// taken as one slot too.
-    #[inline(always)]
-    fn costs_of(&self, fnodes: &[FlatNode], i: u32) -> Costs {
-        match self.at.get(i as usize) {
-            Some(&k) if k > 0 => self.costs[k as usize - 1],
-            _ => {
-                [fnodes
-                    .get(i as usize)
-                    .map_or(0.0, |n| n.aabb().surface_area()); WIDTH]
-            }
-        }
+        // The AVX box test takes a node's eight slots at once: used slots cost nothing.
+        let leaf_child = |i| is_leaf_child(fnodes, spans, Level::Mesh, i);
+        Plan(CollapsePlan::new(fnodes, leaf_child, 0.0))
     }
 
     /// The slots of the wide node made from binary interior node `i`.
     pub(crate) fn slots(&self, fnodes: &[FlatNode], i: u32) -> SrcList {
+        let (slots, len) = self.0.slots(fnodes, i);
         let mut out = SrcList::of(&[]);
-        self.split_into(fnodes, i, WIDTH, &mut out);
+        for &s in &slots[..len] {
+            out.push(Src::Node(s));
+        }
         out
     }
-
-    /// Node `i`'s subtree as at most `j` slots, appended to `out` in depth-first order.
-    fn distribute(&self, fnodes: &[FlatNode], i: u32, j: usize, out: &mut SrcList) {
-        let planned = self.at.get(i as usize).is_some_and(|&k| k > 0);
-        if j > 1 && planned {
-            let whole = self.costs_of(fnodes, i)[0];
-            let [l, r] = children(fnodes, i).map(|c| self.costs_of(fnodes, c));
-            if split(&l, &r, j).0 < whole {
-                self.split_into(fnodes, i, j, out);
-                return;
-            }
-        }
-        out.push(Src::Node(i));
-    }
-
-    /// Node `i`'s two children, sharing `j` slots as cheaply as they can.
-    fn split_into(&self, fnodes: &[FlatNode], i: u32, j: usize, out: &mut SrcList) {
-        let [a, b] = children(fnodes, i);
-        let [l, r] = [a, b].map(|c| self.costs_of(fnodes, c));
-        let (_, k) = split(&l, &r, j);
-        self.distribute(fnodes, a, k, out);
-        self.distribute(fnodes, b, j - k, out);
-    }
-}
-
-/// A binary interior node's two children.
-fn children(fnodes: &[FlatNode], i: u32) -> [u32; 2] {
-    [i + 1, fnodes[i as usize].right_or_first]
-}
-
-/// The cheapest split of `j` slots between two children for every `j` (index `j - 1`;
-/// infinite for `j = 1`), without branches: the same sums and minima as [`split`].
-#[inline(always)]
-fn splits(l: &Costs, r: &Costs) -> Costs {
-    let mut out = [f32::INFINITY; WIDTH];
-    for k in 1..WIDTH {
-        for j in k + 1..=WIDTH {
-            out[j - 1] = out[j - 1].min(l[k - 1] + r[j - k - 1]);
-        }
-    }
-    out
-}
-
-/// The cheapest way for two children to share `j >= 2` slots: (cost, the first child's
-/// slots); the fewest slots to the first child among equal costs, so the plan is
-/// deterministic.
-#[inline(always)]
-fn split(l: &Costs, r: &Costs, j: usize) -> (f32, usize) {
-    let mut best = (f32::INFINITY, 1);
-    for k in 1..j {
-        let c = l[k - 1] + r[j - k - 1];
-        if c < best.0 {
-            best = (c, k);
-        }
-    }
-    best
 }
 
 #[cfg(test)]
@@ -224,7 +121,7 @@ mod tests {
                     let (planned, runs) = collapsed(&flat, Some(&plan));
                     let (greedy, greedy_runs) = collapsed(&flat, None);
                     assert_eq!(runs, greedy_runs, "{builder:?} {max_leaf_size}");
-                    let predicted = plan.costs_of(fnodes, 0)[0] as f64;
+                    let predicted = plan.0.cost(fnodes, 0) as f64;
                     let case = format!("seed {seed} {builder:?} leaves of {max_leaf_size}");
                     assert!(
                         (planned - predicted).abs() <= 1e-5 * predicted,
