@@ -19,9 +19,10 @@
 //! programme), which fills the nodes near the leaves that a greedy collapse leaves with
 //! two or three children. The top level over instances is collapsed greedily, top down:
 //! a wide node starts from its binary node's two children, and while it has fewer than
-//! eight, the interior child of largest surface area is replaced by its two children. A leaf of more than
-//! [`MAX_LEAF_BLOCKS`]` * 4` triangles (only with a large `max_leaf_size`) is split into a
-//! node over runs of the leaf's triangles, boxed by their corners.
+//! eight, the interior child of largest surface area is replaced by its two children. A
+//! leaf of more than [`MAX_LEAF_BLOCKS`]` * 4` triangles (only with a large
+//! `max_leaf_size`) is split into a node over runs of the leaf's triangles, boxed by
+//! their corners.
 //!
 //! # Two levels
 //! A two-level tree (instances over meshes, `bvhtrace_core::flat`'s *Two levels*) is the
