@@ -10,9 +10,7 @@
 //! the GPU's wide layout ([`crate::wide`]) is still collapsed greedily.
 
 use crate::flat::FlatNode;
-
-/// Slots of a wide node.
-pub const WIDTH: usize = 8;
+use crate::wide::WIDTH;
 
 /// A node's least cost as exactly `j` slots, `j` = 1 to [`WIDTH`] (index `j - 1`;
 /// infinite where its subtree cannot make `j`).

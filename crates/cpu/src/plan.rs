@@ -6,6 +6,9 @@ use bvhtrace_core::collapse::CollapsePlan;
 
 use crate::layout::{Level, Src, SrcList, is_leaf_child};
 
+// The plan hands out up to the core's wide width of slots, which `SrcList` holds.
+const _: () = assert!(bvhtrace_core::wide::WIDTH == crate::layout::WIDTH);
+
 /// The planned slots of a mesh's wide nodes.
 pub(crate) struct Plan(CollapsePlan);
 
