@@ -96,6 +96,7 @@ mod packet;
 mod packet_tri;
 mod plan;
 mod single;
+mod stream;
 mod tests4;
 
 use std::fmt;
@@ -245,6 +246,25 @@ pub fn trace_rays_with_mask(
     isa: Isa,
 ) -> Vec<Hit> {
     let mut hits = vec![Hit::miss(0.0); rays.len()];
+    let isa = isa.or_available();
+    // Plain f32 lanes keep the single walks: as streams they were no faster.
+    let lanes = isa != Isa::Portable;
+    if lanes && bvh.is_plain() && !bvh.nodes.is_empty() && rays.len() >= STREAM_MIN {
+        // Chunks of a few thousand rays: enough for the streams to share nodes, and
+        // four or more per thread for a short tail.
+        let threads = rayon::current_num_threads().max(1);
+        let chunk = (rays.len() / (4 * threads)).clamp(STREAM_MIN, STREAM_CHUNK);
+        hits.par_chunks_mut(chunk)
+            .zip(rays.par_chunks(chunk))
+            .for_each_init(
+                || {
+                    let stack = vec![Entry::default(); single::stack_size(bvh)];
+                    (stream::StreamScratch::default(), stack)
+                },
+                |(s, stack), (h, r)| trace_stream_on(bvh, r, query, isa, h, s, stack),
+            );
+        return hits;
+    }
     hits.par_chunks_mut(CLASS_RUN)
         .zip(rays.par_chunks(CLASS_RUN))
         .for_each(|(h, r)| trace_run(bvh, r, query, mask, isa, h));
@@ -269,6 +289,57 @@ fn trace_run(bvh: &CpuBvh, rays: &[Ray], query: Query, mask: u8, isa: Isa, hits:
     trace_rays_into(bvh, &sorted, query, mask, isa, &mut sorted_hits);
     for (h, &i) in sorted_hits.iter().zip(order) {
         hits[usize::from(i)] = *h;
+    }
+}
+
+/// The fewest rays [`trace_rays_with_mask`] walks as streams (see [`stream`]): fewer
+/// share too few nodes to pay for the streams' lists.
+const STREAM_MIN: usize = 256;
+
+/// The most rays one stream takes: more share no more nodes, and their lists leave the
+/// caches.
+const STREAM_CHUNK: usize = 8192;
+
+/// Traces `rays` through one mesh without masks as one stream ([`stream::trace_stream`])
+/// with the lanes of `isa` (one this CPU has), on `s` and `stack`.
+fn trace_stream_on(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    isa: Isa,
+    hits: &mut [Hit],
+    s: &mut stream::StreamScratch,
+    stack: &mut [Entry],
+) {
+    type P = lanes::Portable;
+    type PP = lanes::Pair<P>;
+    let any = query == Query::Any;
+    match isa {
+        Isa::Portable if any => stream::trace_stream::<P, PP, true>(bvh, rays, hits, s, stack),
+        Isa::Portable => stream::trace_stream::<P, PP, false>(bvh, rays, hits, s, stack),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Sse2 => {
+            type S = lanes::Sse;
+            type SP = lanes::Pair<S>;
+            match any {
+                true => stream::trace_stream::<S, SP, true>(bvh, rays, hits, s, stack),
+                false => stream::trace_stream::<S, SP, false>(bvh, rays, hits, s, stack),
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `isa` is one this CPU has, so it has what `Isa::Avx2` needs.
+        Isa::Avx2 => unsafe { stream_avx2(bvh, rays, query, hits, s, stack) },
+        #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
+        Isa::Simd128 => {
+            type S = lanes::Simd128;
+            type SP = lanes::Pair<S>;
+            match any {
+                true => stream::trace_stream::<S, SP, true>(bvh, rays, hits, s, stack),
+                false => stream::trace_stream::<S, SP, false>(bvh, rays, hits, s, stack),
+            }
+        }
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("or_available gives only what this target compiles"),
     }
 }
 
@@ -529,6 +600,28 @@ unsafe fn run_avx2(
     run::<lanes::Sse, lanes::Avx8, true>(bvh, rays, query, hits, stack)
 }
 
+/// The stream walk with the lanes of [`run_avx2`].
+///
+/// # Safety
+/// The CPU must have AVX2, BMI1, LZCNT and POPCNT ([`Isa::Avx2`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,bmi1,lzcnt,popcnt")]
+unsafe fn stream_avx2(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    s: &mut stream::StreamScratch,
+    stack: &mut [Entry],
+) {
+    type L = lanes::Sse;
+    type W = lanes::Avx8;
+    match query {
+        Query::Closest => stream::trace_stream::<L, W, false>(bvh, rays, hits, s, stack),
+        Query::Any => stream::trace_stream::<L, W, true>(bvh, rays, hits, s, stack),
+    }
+}
+
 /// [`run_layered`] with the lanes of [`run_avx2`] (and the mesh walks compiled likewise),
 /// compiled with AVX2 enabled.
 ///
@@ -730,7 +823,10 @@ mod tests {
             .collect();
         for q in [Query::Closest, Query::Any] {
             assert!(class_order(&rs[..CLASS_RUN], q == Query::Any).is_some());
-            let batch = trace_rays(&bvh, &rs, q);
+            let mut batch = vec![Hit::miss(0.0); rs.len()];
+            for (r, h) in rs.chunks(CLASS_RUN).zip(batch.chunks_mut(CLASS_RUN)) {
+                trace_run(&bvh, r, q, ALL_VISIBLE, Isa::detect(), h);
+            }
             let hits = batch.iter().filter(|h| h.is_hit()).count();
             assert!(hits > 50 && hits < 550, "{hits} hits: rays of both kinds");
             for (r, h) in rs.iter().zip(&batch) {
@@ -738,7 +834,7 @@ mod tests {
                 assert_eq!(
                     (one.t.to_bits(), one.prim),
                     (h.t.to_bits(), h.prim),
-                    "{r:?}"
+                    "{q:?} {r:?}"
                 );
             }
         }

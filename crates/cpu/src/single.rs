@@ -161,7 +161,7 @@ fn mark_bottom(stack: &mut [Entry]) {
 /// Asks for the memory of child `c` of `bvh` (a node, or a leaf's first block) ahead of
 /// its visit, with no branch on which: in turns, the other walk's step runs before it.
 #[inline(always)]
-fn fetch(bvh: &CpuBvh, c: u32) {
+pub(crate) fn fetch(bvh: &CpuBvh, c: u32) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};

@@ -356,7 +356,7 @@ impl<L: Lanes> ShearLanes<L> {
 /// culling slack's `m`: only any-hit walks, which never cull, take it).
 ///
 /// `PARALLEL` and `KZ` are the ray's `parallel` and `kz`, fixed per walk so that the
-/// dominant axis's lanes stay in registers.
+/// dominant axis's lanes stay in registers, or `KZ` is [`RUN_AXIS`].
 ///
 /// `culled` says the best hit `t_best` may lie before the ray's `t_max`; without it the
 /// culling slack is left out, since `fmin(t_max + slack, t_max)` is `t_max` (the slack
@@ -378,7 +378,7 @@ pub(crate) fn box8<
     t_best: f32,
     culled: bool,
 ) -> BoxHits<W> {
-    debug_assert!(PARALLEL == q.parallel && (OCT != MINMAX || KZ == q.kz));
+    debug_assert!(PARALLEL == q.parallel && (OCT != MINMAX || KZ == q.kz || KZ == RUN_AXIS));
     let (near, far) = if PARALLEL {
         parallel_slabs(n, q)
     } else if OCT != MINMAX {
@@ -409,7 +409,11 @@ pub(crate) fn box8<
         (near, far)
     };
     let tnear = near[0].max(near[1]).max(near[2].max(q.t_min));
-    let (near_kz, far_kz) = (near[KZ], far[KZ]);
+    let (near_kz, far_kz) = if KZ == RUN_AXIS {
+        (near[q.kz], far[q.kz])
+    } else {
+        (near[KZ], far[KZ])
+    };
     let slabs = far[0].min(far[1]).min(far[2]);
     let tfar = if culled {
         let m = near_kz.abs().max(far_kz.abs());
@@ -439,6 +443,10 @@ pub(crate) fn box8<
 
 /// [`box8`]'s `OCT` for the per-axis `fmin` and `fmax` (any ray).
 pub(crate) const MINMAX: usize = 8;
+
+/// [`box8`]'s `KZ` for a dominant axis read from the ray at run time (a stream's rays,
+/// of one octant but any axis).
+pub(crate) const RUN_AXIS: usize = 3;
 
 /// The octant of direction `dir` (no zero component): bit `a` set when it goes down axis
 /// `a`. [`box8`] with it as `OCT` reads each slab's entry from one plane.
