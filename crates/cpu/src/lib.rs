@@ -18,7 +18,10 @@
 //! boxes are answered without a walk: every step of the box test is monotone, so a ray
 //! that misses that box misses every box inside it. Where the CPU has AVX2, two walks take
 //! turns a step at a time, so that the core overlaps their chains of dependent loads;
-//! each walk is still its ray's own, with its own stack and best hit.
+//! each walk is still its ray's own, with its own stack and best hit. Batches of 256 rays
+//! or more through one mesh without masks walk as streams (Barringer and Akenine-Möller's
+//! dynamic ray stream traversal): each node is tested against every ray that reached it,
+//! and each ray's closest hit is still the one its own walk finds.
 //!
 //! ```
 //! use bvhtrace_core::{BuildOptions, FlatBvh, Query, Ray};
@@ -223,8 +226,9 @@ pub fn trace_ray_in(bvh: &CpuBvh, ray: &Ray, query: Query, scratch: &mut RayScra
 /// The rays' visibility mask that sees every instance (`TraceOptions`' default).
 pub const ALL_VISIBLE: u8 = 0xff;
 
-/// Traces a batch of rays one at a time on all threads of the current rayon pool, with
-/// the fastest instruction set this CPU has (every instance visible).
+/// Traces a batch of rays on all threads of the current rayon pool, with the fastest
+/// instruction set this CPU has (every instance visible): one at a time, or as streams
+/// (see the crate docs): the same closest hits and any-hit verdicts either way.
 pub fn trace_rays(bvh: &CpuBvh, rays: &[Ray], query: Query) -> Vec<Hit> {
     trace_rays_with(bvh, rays, query, Isa::detect())
 }
