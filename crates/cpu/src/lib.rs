@@ -304,8 +304,8 @@ const STREAM_MIN: usize = 256;
 /// caches.
 const STREAM_CHUNK: usize = 8192;
 
-/// Traces `rays` through one mesh without masks as one stream ([`stream::trace_stream`])
-/// with the lanes of `isa` (one this CPU has), on `s` and `stack`.
+/// Traces `rays` through one mesh without masks as one stream ([`stream::trace`]) with
+/// the lanes of `isa` (one this CPU has), on `s` and `stack`.
 fn trace_stream_on(
     bvh: &CpuBvh,
     rays: &[Ray],
@@ -315,20 +315,15 @@ fn trace_stream_on(
     s: &mut stream::StreamScratch,
     stack: &mut [Entry],
 ) {
-    type P = lanes::Portable;
-    type PP = lanes::Pair<P>;
-    let any = query == Query::Any;
     match isa {
-        Isa::Portable if any => stream::trace_stream::<P, PP, true>(bvh, rays, hits, s, stack),
-        Isa::Portable => stream::trace_stream::<P, PP, false>(bvh, rays, hits, s, stack),
+        Isa::Portable => {
+            type P = lanes::Portable;
+            stream::trace::<P, lanes::Pair<P>>(bvh, rays, query, hits, s, stack)
+        }
         #[cfg(target_arch = "x86_64")]
         Isa::Sse2 => {
             type S = lanes::Sse;
-            type SP = lanes::Pair<S>;
-            match any {
-                true => stream::trace_stream::<S, SP, true>(bvh, rays, hits, s, stack),
-                false => stream::trace_stream::<S, SP, false>(bvh, rays, hits, s, stack),
-            }
+            stream::trace::<S, lanes::Pair<S>>(bvh, rays, query, hits, s, stack)
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `isa` is one this CPU has, so it has what `Isa::Avx2` needs.
@@ -336,11 +331,7 @@ fn trace_stream_on(
         #[cfg(all(target_arch = "wasm32", target_feature = "simd128"))]
         Isa::Simd128 => {
             type S = lanes::Simd128;
-            type SP = lanes::Pair<S>;
-            match any {
-                true => stream::trace_stream::<S, SP, true>(bvh, rays, hits, s, stack),
-                false => stream::trace_stream::<S, SP, false>(bvh, rays, hits, s, stack),
-            }
+            stream::trace::<S, lanes::Pair<S>>(bvh, rays, query, hits, s, stack)
         }
         #[allow(unreachable_patterns)]
         _ => unreachable!("or_available gives only what this target compiles"),
@@ -618,12 +609,7 @@ unsafe fn stream_avx2(
     s: &mut stream::StreamScratch,
     stack: &mut [Entry],
 ) {
-    type L = lanes::Sse;
-    type W = lanes::Avx8;
-    match query {
-        Query::Closest => stream::trace_stream::<L, W, false>(bvh, rays, hits, s, stack),
-        Query::Any => stream::trace_stream::<L, W, true>(bvh, rays, hits, s, stack),
-    }
+    stream::trace::<lanes::Sse, lanes::Avx8>(bvh, rays, query, hits, s, stack)
 }
 
 /// [`run_layered`] with the lanes of [`run_avx2`] (and the mesh walks compiled likewise),

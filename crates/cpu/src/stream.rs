@@ -10,7 +10,7 @@
 //! hit from is tested for it (the box tests are [`box8`]'s, culled by the ray's own best
 //! hit), and the hit rule does not depend on the order.
 
-use bvhtrace_core::{Hit, Ray};
+use bvhtrace_core::{Hit, Query, Ray};
 
 use crate::lanes::{Lanes, Wide};
 use crate::layout::{CpuBvh, LEAF, WIDTH};
@@ -56,12 +56,28 @@ pub(crate) struct StreamScratch {
 /// The rays a stream takes at most (their ids, times [`WIDTH`], fit a `u32`).
 pub(crate) const STREAM_MAX: usize = 1 << 24;
 
+/// [`trace_stream`] for `query`.
+#[inline(always)]
+pub(crate) fn trace<L: Lanes, W: Wide>(
+    bvh: &CpuBvh,
+    rays: &[Ray],
+    query: Query,
+    hits: &mut [Hit],
+    s: &mut StreamScratch,
+    stack: &mut [Entry],
+) {
+    match query {
+        Query::Closest => trace_stream::<L, W, false>(bvh, rays, hits, s, stack),
+        Query::Any => trace_stream::<L, W, true>(bvh, rays, hits, s, stack),
+    }
+}
+
 /// Traces `rays` (at most [`STREAM_MAX`]) through one mesh without masks as one stream,
 /// their hits written to `hits`; the rays of the rare kinds (along a slab, or starting
 /// behind their origin) walk alone on `stack` ([`crate::single::stack_size`] entries or
 /// more).
 #[inline(always)]
-pub(crate) fn trace_stream<L: Lanes, W: Wide, const ANY: bool>(
+fn trace_stream<L: Lanes, W: Wide, const ANY: bool>(
     bvh: &CpuBvh,
     rays: &[Ray],
     hits: &mut [Hit],
@@ -306,8 +322,7 @@ mod tests {
     fn streams_answer_as_rays_walked_alone() {
         let bvh = scene();
         let rs = rays(3000);
-        let mut isas = Isa::all_available();
-        isas.retain(|&i| i != Isa::Simd128);
+        let isas = Isa::all_available();
         for q in [Query::Closest, Query::Any] {
             let one: Vec<Hit> = rs.iter().map(|r| trace_ray(&bvh, r, q)).collect();
             let hits = one.iter().filter(|h| h.is_hit()).count();
