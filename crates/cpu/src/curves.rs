@@ -268,10 +268,7 @@ fn run_as<L: Lanes, W: Wide, const ANY: bool>(
         let end = (start + tests4::RAYS).min(rays.len());
         let group = &rays[start..end];
         let mut p = Prepared::for_boxes::<W>(group);
-        let enter = match &bvh.scene_box {
-            Some(b) => p.may_enter::<W>(b),
-            None => u32::MAX,
-        };
+        let enter = p.may_enter::<W>(bvh.scene_box.as_ref());
         // The walk makes a triangle shear at a ray's first leaf, though curve leaves do
         // not read it.
         if p.valid & enter != 0 {

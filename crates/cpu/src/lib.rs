@@ -525,10 +525,7 @@ fn run_as<
         let end = (start + tests4::RAYS).min(rays.len());
         let group = &rays[start..end];
         let mut p = tests4::Prepared::for_boxes::<W>(group);
-        let enter = match &scene {
-            Some(b) => p.may_enter::<W>(b),
-            None => u32::MAX,
-        };
+        let enter = p.may_enter::<W>(scene.as_ref());
         if p.valid & enter == 0 {
             // No ray of the group walks: a loop of its own, apart from the walks' code.
             for (h, ray) in hits[start..end].iter_mut().zip(group) {

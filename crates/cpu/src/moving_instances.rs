@@ -169,10 +169,7 @@ fn run_as<L: Lanes, W: Wide, M: MeshWalk, const ANY: bool, const LINEAR: bool>(
         let end = (start + tests4::RAYS).min(rays.len());
         let group = &rays[start..end];
         let p = Prepared::for_boxes::<W>(group);
-        let enter = match &bvh.top.scene_box {
-            Some(b) => p.may_enter::<W>(b),
-            None => u32::MAX,
-        };
+        let enter = p.may_enter::<W>(bvh.top.scene_box.as_ref());
         for (i, ray) in group.iter().enumerate() {
             let time = times[start + i];
             hits[start + i] = if p.valid >> i & 1 == 0 || time.is_nan() {

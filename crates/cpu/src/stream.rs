@@ -126,10 +126,7 @@ fn prepare<L: Lanes, W: Wide, const ANY: bool>(
     s.streamed.clear();
     for (g, group) in rays.chunks(RAYS).enumerate() {
         let mut p = Prepared::for_boxes::<W>(group);
-        let enter = match &bvh.scene_box {
-            Some(b) => p.may_enter::<W>(b),
-            None => u32::MAX,
-        };
+        let enter = p.may_enter::<W>(bvh.scene_box.as_ref());
         p.shear::<W>();
         for (i, ray) in group.iter().enumerate() {
             let id = g * RAYS + i;

@@ -251,14 +251,18 @@ impl Prepared {
         self.swap = swap;
     }
 
-    /// The rays (bits) whose walk may hit something inside `b`: those whose box test
+    /// The rays (bits) whose walk may hit something inside `b` (every ray when the tree
+    /// has no such box, see [`SceneBox::around`]): those whose box test
     /// against `b` hits, and those along a slab. The test is [`box8`]'s signed one, whose
     /// every step is monotone (f32 subtraction and multiplication in each operand, `min`,
     /// `max`, the exit scale); a box inside `b` has both planes of each axis between
     /// `b`'s, so its entry is at or after `b`'s and its exit at or before: when the ray
     /// misses `b`, it misses every box of the root node, and the walk finds nothing.
     #[inline(always)]
-    pub fn may_enter<W: Wide>(&self, b: &SceneBox) -> u32 {
+    pub fn may_enter<W: Wide>(&self, b: Option<&SceneBox>) -> u32 {
+        let Some(b) = b else {
+            return u32::MAX;
+        };
         let (mut near, mut far) = (W::load(&self.t_min), W::load(&self.t_max));
         for a in 0..3 {
             let (o, n) = (W::load(&self.org[a]), W::load(&self.ninv[a]));
@@ -1043,15 +1047,18 @@ pub(crate) mod tests {
                 (k, d)
             };
             let p = Prepared::new::<Pair<Portable>>(&rays);
-            let (k, d) = check(p.may_enter::<Pair<Portable>>(&scene), &p);
+            let (k, d) = check(p.may_enter::<Pair<Portable>>(Some(&scene)), &p);
             (kept, dropped) = (kept + k, dropped + d);
             #[cfg(target_arch = "x86_64")]
             {
                 let p = Prepared::new::<Pair<Sse>>(&rays);
-                assert_eq!(check(p.may_enter::<Pair<Sse>>(&scene), &p), (k, d));
+                assert_eq!(check(p.may_enter::<Pair<Sse>>(Some(&scene)), &p), (k, d));
                 if has_avx2() {
                     let p = Prepared::new::<crate::lanes::Avx8>(&rays);
-                    assert_eq!(check(p.may_enter::<crate::lanes::Avx8>(&scene), &p), (k, d));
+                    assert_eq!(
+                        check(p.may_enter::<crate::lanes::Avx8>(Some(&scene)), &p),
+                        (k, d)
+                    );
                 }
             }
         }
