@@ -115,7 +115,7 @@ fn truncate(k: f32) -> usize {
 fn bin_refs(refs: &[PrimRef], at: &Binning, bins: usize) -> Bins {
     let mut out = [Bins::new(bins), Bins::new(bins)];
     let add = |out: &mut Bins, r: &PrimRef| {
-        let (min, max) = (Vec3A::from(r.min), Vec3A::from(r.max));
+        let (min, max) = (r.min(), r.max());
         let k = at.of(min, max);
         for (a, k) in k.into_iter().enumerate() {
             debug_assert!(k < bins);
@@ -197,11 +197,14 @@ pub(super) fn split(
     if n <= opts.max_leaf_size && cost >= opts.cost_intersection * n as f32 {
         return Split::Leaf;
     }
-    let (mid, centroids) = partition(refs, |r| at.of_axis(r.min[axis], r.max[axis], axis) <= k);
+    let o = axis * bins;
+    let lefts = binned.0[o..=o + k].iter().map(|b| b.count as usize).sum();
+    let (mid, centroids) = partition_at(refs, lefts, |r| {
+        at.of_axis(r.min()[axis], r.max()[axis], axis) <= k
+    });
     if mid == 0 || mid == n {
         return super::median_split(refs, axis);
     }
-    let o = axis * bins;
     Split::Known {
         axis,
         mid,
@@ -270,12 +273,92 @@ fn cheapest(binned: &Bins, bins: usize, n: usize, scale: &[f32; 3]) -> (f32, usi
     out
 }
 
+/// In-place partition of refs of which `lefts` satisfy `left` (the bins counted them):
+/// those first. Returns their count and both sides' centroid bounds.
+///
+/// Knowing the count, the refs in `[0, lefts)` that belong right and those in
+/// `[lefts, n)` that belong left are equally many, and are swapped pairwise. Each side is
+/// scanned a block at a time, the misplaced refs' offsets recorded without a branch on
+/// their side (after BlockQuicksort, Edelkamp and Weiß 2016): which side a ref falls is
+/// close to a coin toss, and a branch on it mispredicts about every other ref. Should the
+/// count be wrong, the refs are partitioned again by [`partition`].
+fn partition_at(
+    refs: &mut [PrimRef],
+    lefts: usize,
+    left: impl Fn(&PrimRef) -> bool,
+) -> (usize, [Aabb; 2]) {
+    const BLOCK: usize = 64;
+    let n = refs.len();
+    if lefts > n {
+        return partition(refs, left);
+    }
+    let mut c = [BoxA::EMPTY; 2];
+    // Scans `refs[from..to]` (at most BLOCK), growing each side's centroid bounds, and
+    // records the offsets of the refs whose side is `misplaced` (left: true). Returns
+    // how many.
+    let scan = |refs: &[PrimRef],
+                from: usize,
+                misplaced: bool,
+                off: &mut [u8; BLOCK],
+                c: &mut [BoxA; 2]| {
+        let mut k = 0;
+        for (t, r) in refs[from..].iter().take(BLOCK).enumerate() {
+            let (min, max) = (r.min(), r.max());
+            let p = (min + max) * 0.5;
+            let l = left(r);
+            off[k] = t as u8;
+            k += (l == misplaced) as usize;
+            let s = BVec3A::splat(l);
+            c[0].min = c[0].min.min(Vec3A::select(s, p, Vec3A::INFINITY));
+            c[0].max = c[0].max.max(Vec3A::select(s, p, Vec3A::NEG_INFINITY));
+            c[1].min = c[1].min.min(Vec3A::select(s, Vec3A::INFINITY, p));
+            c[1].max = c[1].max.max(Vec3A::select(s, Vec3A::NEG_INFINITY, p));
+        }
+        k
+    };
+    // Each side: the next ref to scan, the scanned block's start, its misplaced offsets,
+    // how many there are and how many have been swapped.
+    let (mut l_next, mut l_at, mut l_off, mut l_len, mut l_done) = (0, 0, [0u8; BLOCK], 0, 0);
+    let (mut r_next, mut r_at, mut r_off, mut r_len, mut r_done) =
+        (lefts, lefts, [0u8; BLOCK], 0, 0);
+    loop {
+        if l_done == l_len && l_next < lefts {
+            let to = (l_next + BLOCK).min(lefts);
+            l_len = scan(&refs[..to], l_next, false, &mut l_off, &mut c);
+            (l_at, l_done, l_next) = (l_next, 0, to);
+            continue;
+        }
+        if r_done == r_len && r_next < n {
+            r_len = scan(refs, r_next, true, &mut r_off, &mut c);
+            (r_at, r_done, r_next) = (r_next, 0, (r_next + BLOCK).min(n));
+            continue;
+        }
+        if l_done == l_len || r_done == r_len {
+            break;
+        }
+        let k = (l_len - l_done).min(r_len - r_done);
+        for (&a, &b) in l_off[l_done..l_done + k]
+            .iter()
+            .zip(&r_off[r_done..r_done + k])
+        {
+            refs.swap(l_at + a as usize, r_at + b as usize);
+        }
+        l_done += k;
+        r_done += k;
+    }
+    if l_done == l_len && r_done == r_len {
+        (lefts, c.map(BoxA::aabb))
+    } else {
+        partition(refs, left)
+    }
+}
+
 /// In-place partition (Hoare's: each misplaced pair swapped once): refs satisfying `left`
 /// first. Returns their count and both sides' centroid bounds, gathered on the way.
 fn partition(refs: &mut [PrimRef], left: impl Fn(&PrimRef) -> bool) -> (usize, [Aabb; 2]) {
     let mut c = [BoxA::EMPTY; 2];
     let centre = |r: &PrimRef| {
-        let (min, max) = (Vec3A::from(r.min), Vec3A::from(r.max));
+        let (min, max) = (r.min(), r.max());
         ((min + max) * 0.5, left(r))
     };
     let (mut i, mut j) = (0, refs.len());
@@ -304,4 +387,71 @@ fn partition(refs: &mut [PrimRef], left: impl Fn(&PrimRef) -> bool) -> (usize, [
         refs.swap(i, j - 1);
     }
     (i, c.map(BoxA::aabb))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// Refs along x in a scrambled order, each a small box around its centre.
+    fn refs(n: usize) -> Vec<PrimRef> {
+        (0..n)
+            .map(|i| {
+                let x = ((i * 7919) % n) as f32;
+                let c = Vec3::new(x, (i % 5) as f32, -(i as f32));
+                PrimRef::new(c - 0.25, c + 0.25, i as u32)
+            })
+            .collect()
+    }
+
+    /// Checks a partition at `x < cut` against the refs it started from.
+    fn check(before: &[PrimRef], after: &[PrimRef], mid: usize, bounds: [Aabb; 2], cut: f32) {
+        let is_left = |r: &PrimRef| r.centroid().x < cut;
+        assert_eq!(mid, before.iter().filter(|r| is_left(r)).count());
+        assert!(after[..mid].iter().all(is_left));
+        assert!(!after[mid..].iter().any(is_left));
+        let mut ids: Vec<u32> = after.iter().map(PrimRef::index).collect();
+        ids.sort_unstable();
+        assert!(ids.iter().enumerate().all(|(i, &id)| id as usize == i));
+        for (side, refs) in [&after[..mid], &after[mid..]].into_iter().enumerate() {
+            let mut c = Aabb::EMPTY;
+            for r in refs {
+                c.grow(r.centroid().into());
+            }
+            assert_eq!(bounds[side], c, "side {side}");
+        }
+    }
+
+    #[test]
+    fn block_partition_matches_the_count_and_gathers_both_sides_centroid_bounds() {
+        // Sizes around the block's, cuts that leave either side empty, small or large.
+        for n in [1, 2, 63, 64, 65, 200, 1000] {
+            for cut in [
+                -1.0,
+                0.5,
+                3.5,
+                n as f32 / 2.0,
+                n as f32 - 1.5,
+                n as f32 + 1.0,
+            ] {
+                let before = refs(n);
+                let mut after = before.clone();
+                let lefts = before.iter().filter(|r| r.centroid().x < cut).count();
+                let (mid, bounds) = partition_at(&mut after, lefts, |r| r.centroid().x < cut);
+                check(&before, &after, mid, bounds, cut);
+            }
+        }
+    }
+
+    #[test]
+    fn block_partition_told_a_wrong_count_still_partitions() {
+        let before = refs(300);
+        let cut = 120.5;
+        for lefts in [0, 100, 150, 300, 301] {
+            let mut after = before.clone();
+            let (mid, bounds) = partition_at(&mut after, lefts, |r| r.centroid().x < cut);
+            check(&before, &after, mid, bounds, cut);
+        }
+    }
 }

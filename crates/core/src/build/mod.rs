@@ -16,7 +16,7 @@ mod sweep;
 use std::fmt;
 use std::str::FromStr;
 
-use glam::{Mat3A, Vec3, Vec3A};
+use glam::{BVec4A, Mat3A, Vec3, Vec3A, Vec4};
 
 use crate::flat::{FlatBvh, FlatNode};
 use crate::geometry::Aabb;
@@ -222,27 +222,62 @@ pub enum BuildError {
     Options(String),
 }
 
-/// What the recursion keeps per primitive: its box and its original index.
+/// What the recursion keeps per primitive: its box and its original index, as two
+/// 16-byte vectors (Embree's layout): a ref loads in two aligned moves and never
+/// straddles a cache line.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
 pub(crate) struct PrimRef {
-    pub min: Vec3,
-    pub index: u32,
-    pub max: Vec3,
+    /// The box's min corner; the fourth lane holds the index's bits.
+    lo: Vec4,
+    /// The box's max corner; the fourth lane is 0.
+    hi: Vec4,
 }
 
 impl PrimRef {
+    /// The ref of primitive `index` with box `min`..`max`.
     #[inline(always)]
-    pub fn centroid(&self) -> Vec3 {
-        (self.min + self.max) * 0.5
+    pub fn new(min: Vec3, max: Vec3, index: u32) -> PrimRef {
+        PrimRef {
+            lo: min.extend(f32::from_bits(index)),
+            hi: max.extend(0.0),
+        }
+    }
+    /// The box's min corner (the index's lane cleared: as a float it is often subnormal,
+    /// which arithmetic on some CPUs takes slow paths for).
+    #[inline(always)]
+    pub fn min(&self) -> Vec3A {
+        Vec3A::from_vec4(Vec4::select(XYZ, self.lo, Vec4::ZERO))
+    }
+    /// The box's max corner.
+    #[inline(always)]
+    pub fn max(&self) -> Vec3A {
+        Vec3A::from_vec4(self.hi)
+    }
+    /// The primitive's index in the input.
+    #[inline(always)]
+    pub fn index(&self) -> u32 {
+        self.lo.w.to_bits()
+    }
+    #[inline(always)]
+    pub fn centroid(&self) -> Vec3A {
+        (self.min() + self.max()) * 0.5
     }
     #[inline(always)]
     pub fn bounds(&self) -> Aabb {
         Aabb {
-            min: self.min,
-            max: self.max,
+            min: self.min().into(),
+            max: self.max().into(),
         }
     }
+    /// Replaces the box, keeping the index.
+    pub fn set_bounds(&mut self, b: &Aabb) {
+        *self = PrimRef::new(b.min, b.max, self.index());
+    }
 }
+
+/// The lanes of a [`PrimRef`] vector that hold its box.
+const XYZ: BVec4A = BVec4A::new(true, true, true, false);
 
 /// A chosen split: primitives `[0, mid)` go left after the strategy's partition.
 pub(crate) enum Split {
@@ -262,7 +297,7 @@ pub(crate) enum Split {
 pub(crate) fn bounds_of(refs: &[PrimRef], parallel: bool) -> (Aabb, Aabb) {
     let fold = |(mut b, mut c): (Aabb, Aabb), r: &PrimRef| {
         b = b.union(&r.bounds());
-        c.grow(r.centroid());
+        c.grow(r.centroid().into());
         (b, c)
     };
     if parallel && refs.len() >= 32 * 1024 {
@@ -315,7 +350,7 @@ pub(crate) fn median_split(refs: &mut [PrimRef], axis: usize) -> Split {
     refs.select_nth_unstable_by(mid, |a, b| {
         a.centroid()[axis]
             .total_cmp(&b.centroid()[axis])
-            .then(a.index.cmp(&b.index))
+            .then(a.index().cmp(&b.index()))
     });
     Split::At { axis, mid }
 }
@@ -445,11 +480,7 @@ fn triangle_refs(tris: &[Triangle]) -> Vec<PrimRef> {
         .enumerate()
         .map(|(i, t)| {
             let b = Aabb::from_triangle(t);
-            PrimRef {
-                min: b.min,
-                index: i as u32,
-                max: b.max,
-            }
+            PrimRef::new(b.min, b.max, i as u32)
         })
         .collect()
 }
@@ -461,11 +492,7 @@ pub fn build_boxes(boxes: &[Aabb], opts: &BuildOptions) -> Result<BuildTree, Bui
     let refs = boxes
         .iter()
         .enumerate()
-        .map(|(i, b)| PrimRef {
-            min: b.min,
-            index: i as u32,
-            max: b.max,
-        })
+        .map(|(i, b)| PrimRef::new(b.min, b.max, i as u32))
         .collect();
     let (nodes, prim_order) = build_refs(refs, opts)?;
     Ok(reinsert::finish(tree_of(&nodes.nodes, prim_order), opts))
@@ -487,7 +514,7 @@ fn build_refs(
         use rayon::prelude::*;
         refs.par_iter()
             .with_min_len(4096)
-            .map(|r| r.index)
+            .map(|r| r.index())
             .collect()
     };
     Ok((slots, prim_order))

@@ -90,11 +90,7 @@ pub(super) fn build(tris: &[Triangle], opts: &BuildOptions) -> Result<BuildTree,
     let mut buf: Vec<PrimRef> = Vec::with_capacity(cap);
     buf.extend(tris.iter().enumerate().map(|(i, t)| {
         let b = Aabb::from_triangle(t);
-        PrimRef {
-            min: b.min,
-            index: i as u32,
-            max: b.max,
-        }
+        PrimRef::new(b.min, b.max, i as u32)
     }));
     // The free room: placeholders, overwritten before they are read.
     buf.resize(cap, buf[0]);
@@ -129,7 +125,7 @@ fn gather(node: &mut BuildNode, buf: &[PrimRef], out: &mut Vec<u32>) {
         BuildNode::Leaf { first, count, .. } => {
             let f = *first as usize;
             *first = out.len() as u32;
-            out.extend(buf[f..f + *count as usize].iter().map(|r| r.index));
+            out.extend(buf[f..f + *count as usize].iter().map(|r| r.index()));
         }
         BuildNode::Interior { children, .. } => {
             let [l, r] = &mut **children;
@@ -395,7 +391,7 @@ fn binned_object(
 fn key_cmp(a: &PrimRef, b: &PrimRef, axis: usize) -> std::cmp::Ordering {
     a.centroid()[axis]
         .total_cmp(&b.centroid()[axis])
-        .then(a.index.cmp(&b.index))
+        .then(a.index().cmp(&b.index()))
 }
 
 /// [`key_cmp`]'s order as an integer: the centroid's bits made to sort as
@@ -404,7 +400,7 @@ fn key_cmp(a: &PrimRef, b: &PrimRef, axis: usize) -> std::cmp::Ordering {
 fn sort_key(r: &PrimRef, axis: usize) -> u64 {
     let b = r.centroid()[axis].to_bits();
     let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
-    (u64::from(ord) << 32) | u64::from(r.index)
+    (u64::from(ord) << 32) | u64::from(r.index())
 }
 
 /// Full sweep SAH over sorted centroids, for small nodes (evaluated on a copy).
@@ -545,14 +541,22 @@ fn binned_spatial(
                 let bin = &mut out[a * bins..(a + 1) * bins];
                 let (lo, scale) = (bounds.min[a], scale[a]);
                 let guess = |x: f32| ((x - lo) * scale).max(0.0) as usize;
-                let (first, last) = span(planes, guess, r.min[a], r.max[a]);
+                let (first, last) = span(planes, guess, r.min()[a], r.max()[a]);
                 bin[first].entry += 1;
                 bin[last].exit += 1;
                 if first == last {
                     bin[first].bounds = bin[first].bounds.union(&r.bounds());
                     continue;
                 }
-                chop(&ctx.tris[r.index as usize], r, a, planes, first, last, bin);
+                chop(
+                    &ctx.tris[r.index() as usize],
+                    r,
+                    a,
+                    planes,
+                    first,
+                    last,
+                    bin,
+                );
             }
         }
         out
@@ -637,15 +641,15 @@ fn side_of_crossing(ctx: &Ctx, r: &mut PrimRef, s: &SpatialSplit, whole: f32) ->
     if to_right < whole {
         return RIGHT;
     }
-    let (l, right) = split_box(&ctx.tris[r.index as usize], &b, s.axis, s.pos);
+    let (l, right) = split_box(&ctx.tris[r.index() as usize], &b, s.axis, s.pos);
     match (l.is_empty(), right.is_empty()) {
         (false, false) => BOTH,
         (true, false) => {
-            (r.min, r.max) = (right.min, right.max);
+            r.set_bounds(&right);
             RIGHT
         }
         (false, true) => {
-            (r.min, r.max) = (l.min, l.max);
+            r.set_bounds(&l);
             LEFT
         }
         // The box holds no point of the triangle (it can only come from outward rounding):
@@ -668,9 +672,9 @@ fn split_spatial(
     let (axis, pos) = (s.axis, s.pos);
     let whole = s.left.surface_area() * s.n_l as f32 + s.right.surface_area() * s.n_r as f32;
     let classify = |r: &mut PrimRef| {
-        if r.max[axis] <= pos {
+        if r.max()[axis] <= pos {
             LEFT
-        } else if r.min[axis] >= pos {
+        } else if r.min()[axis] >= pos {
             RIGHT
         } else {
             side_of_crossing(ctx, r, s, whole)
@@ -716,17 +720,9 @@ fn split_spatial(
     buf.copy_within(hi..count, left_cap + both);
     for k in 0..both {
         let r = buf[lo + k];
-        let (l, right) = split_box(&ctx.tris[r.index as usize], &r.bounds(), axis, pos);
-        buf[lo + k] = PrimRef {
-            min: l.min,
-            index: r.index,
-            max: l.max,
-        };
-        buf[left_cap + k] = PrimRef {
-            min: right.min,
-            index: r.index,
-            max: right.max,
-        };
+        let (l, right) = split_box(&ctx.tris[r.index() as usize], &r.bounds(), axis, pos);
+        buf[lo + k] = PrimRef::new(l.min, l.max, r.index());
+        buf[left_cap + k] = PrimRef::new(right.min, right.max, r.index());
     }
     Some((axis, n_l, left_cap, n_r))
 }
@@ -786,7 +782,7 @@ fn chop(
     // the next vector load).
     let on_axis = BVec3A::new(axis == 0, axis == 1, axis == 2);
     // What is left of the reference right of the last plane cut.
-    let (mut rest_min, mut rest_max) = (Vec3A::from(r.min), Vec3A::from(r.max));
+    let (mut rest_min, mut rest_max) = (r.min(), r.max());
     for (k, &pos) in planes.iter().enumerate().take(last).skip(first) {
         let plane = Vec3A::splat(pos);
         let inf = Vec3A::splat(f32::INFINITY);

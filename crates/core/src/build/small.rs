@@ -25,15 +25,52 @@ struct Subtree<'a> {
     refs: [PrimRef; SMALL_NODE],
     /// Where the subtree's first primitive sits in the final order.
     offset: usize,
+    /// The sweep's areas of the boxes right of each position, reused by every node.
+    right_area: [Vec3A; SMALL_NODE],
 }
 
-/// A key ordered as `(centroid, primitive index)`, as the sweep orders them, then the
-/// position, so the order is total even for a primitive referenced twice.
+/// A centroid coordinate's bits, ordered as the floats are.
 #[inline(always)]
-fn key(c: f32, index: u32, pos: usize) -> (u64, u8) {
+fn ordered(c: f32) -> u64 {
     let b = c.to_bits();
-    let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
-    (((ord as u64) << 32) | index as u64, pos as u8)
+    u64::from(if b >> 31 == 1 { !b } else { b | 0x8000_0000 })
+}
+
+/// Indices below this fit a packed key beside a position.
+const PACKED_INDEX: u32 = 1 << 26;
+
+/// Each axis's positions ordered as `(centroid, primitive index, position)`, the sweep's
+/// order (the position makes it total even for a primitive referenced twice). With
+/// indices below [`PACKED_INDEX`] the three fit one `u64`, which sorts faster than a pair.
+fn sorted_lists(s: &Subtree, n: usize) -> [[u8; SMALL_NODE]; 3] {
+    let mut lists = [[0u8; SMALL_NODE]; 3];
+    if s.refs[..n].iter().all(|r| r.index() < PACKED_INDEX) {
+        for (a, l) in lists.iter_mut().enumerate() {
+            let mut keys = [0u64; SMALL_NODE];
+            for (i, (k, r)) in keys.iter_mut().zip(&s.refs[..n]).enumerate() {
+                *k = (ordered(s.centre[i][a]) << 32) | u64::from(r.index()) << 6 | i as u64;
+            }
+            keys[..n].sort_unstable();
+            for (l, k) in l.iter_mut().zip(&keys[..n]) {
+                *l = (k & 63) as u8;
+            }
+        }
+    } else {
+        for (a, l) in lists.iter_mut().enumerate() {
+            let mut keys = [(0u64, 0u8); SMALL_NODE];
+            for (i, (k, r)) in keys.iter_mut().zip(&s.refs[..n]).enumerate() {
+                *k = (
+                    (ordered(s.centre[i][a]) << 32) | u64::from(r.index()),
+                    i as u8,
+                );
+            }
+            keys[..n].sort_unstable();
+            for (l, k) in l.iter_mut().zip(&keys[..n]) {
+                *l = k.1;
+            }
+        }
+    }
+    lists
 }
 
 /// Builds the subtree over `refs` (at most [`SMALL_NODE`]; the first at `offset` in the
@@ -52,33 +89,8 @@ pub(super) fn subtree(
 ) -> u32 {
     let n = refs.len();
     debug_assert!((1..=SMALL_NODE).contains(&n));
-    let mut s = Subtree {
-        opts,
-        min: [Vec3A::ZERO; SMALL_NODE],
-        max: [Vec3A::ZERO; SMALL_NODE],
-        centre: [Vec3A::ZERO; SMALL_NODE],
-        refs: [refs[0]; SMALL_NODE],
-        offset,
-    };
-    let mut keys = [[(0u64, 0u8); SMALL_NODE]; 3];
-    for (i, r) in refs.iter().enumerate() {
-        s.refs[i] = *r;
-        s.min[i] = r.min.into();
-        s.max[i] = r.max.into();
-        let c = r.centroid();
-        s.centre[i] = c.into();
-        for (a, k) in keys.iter_mut().enumerate() {
-            k[i] = key(c[a], r.index, i);
-        }
-    }
-    let mut lists = [[0u8; SMALL_NODE]; 3];
-    for (k, l) in keys.iter_mut().zip(lists.iter_mut()) {
-        let k = &mut k[..n];
-        k.sort_unstable();
-        for (l, k) in l.iter_mut().zip(k.iter()) {
-            *l = k.1;
-        }
-    }
+    let mut s = Subtree::new(refs, opts, offset);
+    let mut lists = sorted_lists(&s, n);
     let [l0, l1, l2] = &mut lists;
     s.node(
         [&mut l0[..n], &mut l1[..n], &mut l2[..n]],
@@ -92,7 +104,27 @@ pub(super) fn subtree(
     )
 }
 
-impl Subtree<'_> {
+impl<'a> Subtree<'a> {
+    /// A copy of `refs` (at most [`SMALL_NODE`]) with their corners and centroids.
+    fn new(refs: &[PrimRef], opts: &'a BuildOptions, offset: usize) -> Subtree<'a> {
+        let mut s = Subtree {
+            opts,
+            min: [Vec3A::ZERO; SMALL_NODE],
+            max: [Vec3A::ZERO; SMALL_NODE],
+            centre: [Vec3A::ZERO; SMALL_NODE],
+            refs: [refs[0]; SMALL_NODE],
+            offset,
+            right_area: [Vec3A::ZERO; SMALL_NODE],
+        };
+        for (i, r) in refs.iter().enumerate() {
+            s.refs[i] = *r;
+            s.min[i] = r.min();
+            s.max[i] = r.max();
+            s.centre[i] = r.centroid();
+        }
+        s
+    }
+
     fn bounds_of(&self, ids: &[u8]) -> (Aabb, Aabb) {
         let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
@@ -113,7 +145,7 @@ impl Subtree<'_> {
     /// The cheapest split over the three sorted lists: (cost, axis, left count).
     ///
     /// The three axes are swept in lock step, one SIMD lane each ([`super::half_areas`]).
-    fn sweep(&self, lists: &[&mut [u8]; 3], bounds: &Aabb, cb: &Aabb) -> (f32, usize, usize) {
+    fn sweep(&mut self, lists: &[&mut [u8]; 3], bounds: &Aabb, cb: &Aabb) -> (f32, usize, usize) {
         let n = lists[0].len();
         let [l0, l1, l2] = lists;
         let grow = |lo: &mut [Vec3A; 3], hi: &mut [Vec3A; 3], i: usize| {
@@ -128,17 +160,16 @@ impl Subtree<'_> {
             super::half_areas(lo, hi)
         };
         let empty = || ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
-        let mut right_area = [Vec3A::ZERO; SMALL_NODE];
         let (mut lo, mut hi) = empty();
         for i in (1..n).rev() {
-            right_area[i] = grow(&mut lo, &mut hi, i);
+            self.right_area[i] = grow(&mut lo, &mut hi, i);
         }
         let (mut lo, mut hi) = empty();
         let (mut best, mut at) = (Vec3A::INFINITY, Vec3A::ZERO);
         for i in 0..n - 1 {
             let left = grow(&mut lo, &mut hi, i);
             let (nl, nr) = ((i + 1) as f32, (n - i - 1) as f32);
-            let w = Vec3A::splat(nl) * left + Vec3A::splat(nr) * right_area[i + 1];
+            let w = Vec3A::splat(nl) * left + Vec3A::splat(nr) * self.right_area[i + 1];
             let better = w.cmplt(best);
             best = Vec3A::select(better, w, best);
             at = Vec3A::select(better, Vec3A::splat(nl), at);
@@ -159,7 +190,7 @@ impl Subtree<'_> {
 
     #[allow(clippy::too_many_arguments)]
     fn node(
-        &self,
+        &mut self,
         lists: [&mut [u8]; 3],
         out: &mut [PrimRef],
         offset: usize,
@@ -171,28 +202,29 @@ impl Subtree<'_> {
     ) -> u32 {
         let n = lists[0].len();
         let opts = self.opts;
-        let leaf = |lists: &[&mut [u8]; 3], out: &mut [PrimRef], slots: &mut [FlatNode]| {
-            let at = offset - self.offset;
-            for (o, &id) in out[at..at + n].iter_mut().zip(lists[0].iter()) {
-                *o = self.refs[id as usize];
-            }
-            super::recursion::write_leaf(slots, &bounds, offset, n);
-            0
-        };
+        let leaf =
+            |s: &Self, lists: &[&mut [u8]; 3], out: &mut [PrimRef], slots: &mut [FlatNode]| {
+                let at = offset - s.offset;
+                for (o, &id) in out[at..at + n].iter_mut().zip(lists[0].iter()) {
+                    *o = s.refs[id as usize];
+                }
+                super::recursion::write_leaf(slots, &bounds, offset, n);
+                0
+            };
         if n == 1 {
-            return leaf(&lists, out, slots);
+            return leaf(self, &lists, out, slots);
         }
         let degenerate = cb.extent().max_element() <= 0.0;
         let (axis, mid) = if degenerate || depth >= opts.max_depth {
             if n <= opts.max_leaf_size {
-                return leaf(&lists, out, slots);
+                return leaf(self, &lists, out, slots);
             }
             // The object median, as `median_split` takes it.
             (cb.longest_axis(), n / 2)
         } else {
             let (cost, axis, mid) = self.sweep(&lists, &bounds, &cb);
             if n <= opts.max_leaf_size && !(cost < opts.cost_intersection * n as f32) {
-                return leaf(&lists, out, slots);
+                return leaf(self, &lists, out, slots);
             }
             if cost.is_finite() {
                 (axis, mid)
@@ -201,26 +233,27 @@ impl Subtree<'_> {
             }
         };
         // Hand each child its part of every list, still sorted.
-        let mut left = [false; 64];
+        let mut left = 0u64;
         for &id in &lists[axis][..mid] {
-            left[id as usize & 63] = true;
+            left |= 1 << (id & 63);
         }
         let [mut a0, mut a1, mut a2] = lists;
         for (a, l) in [&mut a0, &mut a1, &mut a2].into_iter().enumerate() {
             if a != axis {
                 // Without a branch on the side (it is as likely either way): each id is
-                // written to both lists, and only its own side's count moves on. Ids and
-                // counts are below 64, so the masks only spare the bounds checks.
-                let (mut to_left, mut to_right) = ([0u8; 64], [0u8; 64]);
+                // written to both sides, and only its own side's count moves on. The left
+                // ids move down in place (never past the one being read); ids and counts
+                // are below 64, so the mask only spares the bounds check.
+                let mut to_right = [0u8; 64];
                 let (mut i, mut j) = (0, 0);
-                for &id in l.iter() {
-                    let is_left = left[id as usize & 63] as usize;
-                    to_left[i & 63] = id;
+                for t in 0..n {
+                    let id = l[t];
+                    let is_left = (left >> (id & 63)) as usize & 1;
+                    l[i] = id;
                     to_right[j & 63] = id;
                     i += is_left;
                     j += 1 - is_left;
                 }
-                l[..mid].copy_from_slice(&to_left[..mid]);
                 l[mid..].copy_from_slice(&to_right[..n - mid]);
             }
         }
@@ -253,5 +286,45 @@ impl Subtree<'_> {
             right,
         );
         1 + dl.max(dr)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    #[test]
+    fn packed_and_paired_keys_order_alike() {
+        // Centroids with many ties on every axis, so that the index decides often.
+        let refs = |base: u32| -> Vec<PrimRef> {
+            (0..SMALL_NODE as u32)
+                .map(|i| {
+                    let c = Vec3::new((i % 3) as f32, -((i % 4) as f32), (i * 37 % 11) as f32);
+                    // Indices in an order of their own, not the positions'.
+                    PrimRef::new(c - 0.5, c + 0.5, base + (i * 29) % 97)
+                })
+                .collect()
+        };
+        let opts = BuildOptions::default();
+        let (small, large) = (refs(0), refs(PACKED_INDEX));
+        for n in [1, 2, 7, SMALL_NODE] {
+            let packed = sorted_lists(&Subtree::new(&small[..n], &opts, 0), n);
+            let paired = sorted_lists(&Subtree::new(&large[..n], &opts, 0), n);
+            assert_eq!(packed, paired, "n = {n}");
+            // And both follow (centroid, index), axis by axis.
+            for (a, list) in packed.iter().enumerate() {
+                for w in list[..n].windows(2) {
+                    let (p, q) = (&small[w[0] as usize], &small[w[1] as usize]);
+                    let key = |r: &PrimRef| (r.centroid()[a], r.index());
+                    assert!(
+                        key(p) < key(q),
+                        "axis {a}: {:?} before {:?}",
+                        key(p),
+                        key(q)
+                    );
+                }
+            }
+        }
     }
 }

@@ -75,7 +75,7 @@ fn sweep(
     let area_node = bounds.surface_area();
     let boxes = |i: u32| {
         let r = &refs[i as usize];
-        (Vec3A::from(r.min), Vec3A::from(r.max))
+        (r.min(), r.max())
     };
     let mut best = (f32::INFINITY, 0usize, 0usize);
     let ext = cb.extent();
@@ -86,7 +86,7 @@ fn sweep(
             continue;
         }
         for (i, (k, r)) in ks.iter_mut().zip(refs.iter()).enumerate() {
-            *k = key(r.centroid()[axis], r.index, i);
+            *k = key(r.centroid()[axis], r.index(), i);
         }
         ks.sort_unstable();
         let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
@@ -123,7 +123,7 @@ fn sweep(
         let (mut b, mut c) = (Aabb::EMPTY, Aabb::EMPTY);
         for r in s {
             b = b.union(&r.bounds());
-            c.grow(r.centroid());
+            c.grow(r.centroid().into());
         }
         (b, c)
     };
