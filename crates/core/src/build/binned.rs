@@ -308,11 +308,13 @@ fn partition_at(
             let l = left(r);
             off[k] = t as u8;
             k += (l == misplaced) as usize;
-            let s = BVec3A::splat(l);
-            c[0].min = c[0].min.min(Vec3A::select(s, p, Vec3A::INFINITY));
-            c[0].max = c[0].max.max(Vec3A::select(s, p, Vec3A::NEG_INFINITY));
-            c[1].min = c[1].min.min(Vec3A::select(s, Vec3A::INFINITY, p));
-            c[1].max = c[1].max.max(Vec3A::select(s, Vec3A::NEG_INFINITY, p));
+            // -inf for a left ref, +inf for a right one: clamping the centroid by it
+            // (or its negation) gives the centroid on its own side, an identity there.
+            let side = Vec3A::splat(f32::from_bits(f32::INFINITY.to_bits() | (l as u32) << 31));
+            c[0].min = c[0].min.min(p.max(side));
+            c[0].max = c[0].max.max(p.min(-side));
+            c[1].min = c[1].min.min(p.max(-side));
+            c[1].max = c[1].max.max(p.min(side));
         }
         k
     };
