@@ -1,27 +1,38 @@
 //! The recursion the object-split builders share, writing the flat layout directly.
 //!
 //! A subtree over `n` primitives has at most `2n - 1` nodes, so every node gets a
-//! range of that many slots in one preallocated array: the node itself, then its first
-//! child's range (`2 mid - 1` slots), then its second child's. Both children can thus be
-//! built in parallel without knowing each other's size, straight into their final
-//! depth-first order. A leaf of `c` primitives leaves `2c - 2` slots unused; one
-//! sequential pass ([`compact`]) closes those gaps. No tree of boxed nodes is ever
-//! allocated, which is what bounds the build's memory to the flat layout's.
+//! range of that many slots in one preallocated array. Where the two children are built
+//! in parallel, the second child's range starts after the first's `2 mid - 1` slots, so
+//! neither waits on the other's size, and the first's unused slots are a gap. Built on
+//! one thread, the second child starts right after the first child's last node: no gap.
+//! One sequential pass ([`compact`]) then closes the forks' gaps, keeping the depth-first
+//! order. No tree of boxed nodes is ever allocated, which is what bounds the build's
+//! memory to the flat layout's.
 
 use super::small::{self, SMALL_NODE};
 use super::{BuildOptions, BuilderKind, PrimRef, Split, binned, bounds_of, sweep};
 use crate::flat::FlatNode;
 use crate::geometry::Aabb;
 
-/// `meta` of a slot no node was written to.
-const UNUSED: u32 = u32::MAX;
-
-/// The nodes of a build, in depth-first order with gaps marked [`UNUSED`].
+/// The nodes of a build, in depth-first order.
 pub(super) struct Slots {
     pub nodes: Vec<FlatNode>,
     /// Longest root-to-leaf path, in edges.
     pub depth: u32,
 }
+
+/// What building a subtree returns.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Built {
+    /// Longest path from the subtree's root to a leaf, in edges.
+    pub depth: u32,
+    /// Slots from the subtree's root to one past its last node: its node count when no
+    /// part of it was built in parallel.
+    pub extent: usize,
+}
+
+/// A run of unused slots: (first, count).
+type Gap = (usize, usize);
 
 /// Builds the nodes over `refs` (their order becomes the leaf order), compacted.
 pub(super) fn build_nodes(
@@ -31,15 +42,19 @@ pub(super) fn build_nodes(
     cb: Aabb,
 ) -> Slots {
     let n = refs.len();
-    // Zeroed memory comes from the allocator lazily; every slot is written once below.
+    // Zeroed memory comes from the allocator lazily; the gaps and the slots past the
+    // last node are never touched.
     let mut nodes: Vec<FlatNode> = bytemuck::zeroed_vec(2 * n - 1);
-    let depth = recurse(refs, 0, 0, opts, bounds, cb, &mut nodes, 0);
-    compact(&mut nodes);
-    Slots { nodes, depth }
+    let mut gaps = Vec::new();
+    let built = recurse(refs, 0, 0, opts, bounds, cb, &mut nodes, 0, &mut gaps);
+    compact(&mut nodes, built.extent, &gaps);
+    Slots {
+        nodes,
+        depth: built.depth,
+    }
 }
 
-/// Writes a leaf of `count` primitives from `first` into the first of its slots and marks
-/// the rest unused.
+/// Writes a leaf of `count` primitives from `first` into the first of `slots`.
 pub(super) fn write_leaf(slots: &mut [FlatNode], bounds: &Aabb, first: usize, count: usize) {
     slots[0] = FlatNode {
         min: bounds.min.to_array(),
@@ -47,9 +62,6 @@ pub(super) fn write_leaf(slots: &mut [FlatNode], bounds: &Aabb, first: usize, co
         max: bounds.max.to_array(),
         meta: (count as u32) << 2,
     };
-    for s in &mut slots[1..] {
-        s.meta = UNUSED;
-    }
 }
 
 /// Writes an interior node whose second child is at slot `right` (before compaction).
@@ -63,7 +75,8 @@ pub(super) fn write_interior(slots: &mut [FlatNode], bounds: &Aabb, axis: usize,
 }
 
 /// Builds the subtree over `refs` (the first at `offset` in the final primitive order)
-/// into `slots`, whose first slot has index `base`. Returns the subtree's depth.
+/// into `slots` (at least `2 n - 1`), whose first slot has index `base`, and appends the
+/// gaps it leaves to `gaps`, in order.
 #[allow(clippy::too_many_arguments)]
 fn recurse(
     refs: &mut [PrimRef],
@@ -74,13 +87,17 @@ fn recurse(
     cb: Aabb,
     slots: &mut [FlatNode],
     base: usize,
-) -> u32 {
+    gaps: &mut Vec<Gap>,
+) -> Built {
     let n = refs.len();
-    debug_assert_eq!(slots.len(), 2 * n - 1);
+    debug_assert!(slots.len() >= 2 * n - 1);
     let parallel = n >= opts.parallel_threshold;
     let make_leaf = |slots: &mut [FlatNode]| {
         write_leaf(slots, &bounds, offset, n);
-        0
+        Built {
+            depth: 0,
+            extent: 1,
+        }
     };
     if n == 1 {
         return make_leaf(slots);
@@ -120,7 +137,7 @@ fn recurse(
         Split::Leaf => super::median_split(refs, cb.longest_axis()),
         s => s,
     };
-    let (axis, mid, [lb, rb]) = match split {
+    let (axis, mid, children) = match split {
         Split::Known {
             axis,
             mid,
@@ -137,70 +154,98 @@ fn recurse(
         Split::Leaf => unreachable!("median_split always splits"),
     };
     debug_assert!(mid > 0 && mid < n);
-    let right = base + 2 * mid;
-    write_interior(slots, &bounds, axis, right);
     let (left_refs, right_refs) = refs.split_at_mut(mid);
-    let (left_slots, right_slots) = slots[1..].split_at_mut(2 * mid - 1);
-    let mut first = move || {
-        let (b, c) = lb;
+    let [(lb, lc), (rb, rc)] = children;
+    let mut first = |slots: &mut [FlatNode], gaps: &mut Vec<Gap>| {
         recurse(
             left_refs,
             offset,
             depth + 1,
             opts,
-            b,
-            c,
-            left_slots,
+            lb,
+            lc,
+            slots,
             base + 1,
+            gaps,
         )
     };
-    let mut second = move || {
-        let (b, c) = rb;
+    // The second child, `at` slots after this node.
+    let mut second = |at: usize, slots: &mut [FlatNode], gaps: &mut Vec<Gap>| {
+        let o = offset + mid;
         recurse(
             right_refs,
-            offset + mid,
+            o,
             depth + 1,
             opts,
-            b,
-            c,
-            right_slots,
-            right,
+            rb,
+            rc,
+            slots,
+            base + at,
+            gaps,
         )
     };
-    let (dl, dr) = if parallel {
-        rayon::join(first, second)
+    let (l, r, at) = if parallel {
+        // The second child starts past the most the first can take, `2 mid - 1` slots.
+        let at = 2 * mid;
+        let (left_slots, right_slots) = slots[1..].split_at_mut(at - 1);
+        let mut right_gaps = Vec::new();
+        let (l, r) = rayon::join(
+            || first(left_slots, gaps),
+            || second(at, right_slots, &mut right_gaps),
+        );
+        if 1 + l.extent < at {
+            gaps.push((base + 1 + l.extent, at - 1 - l.extent));
+        }
+        gaps.append(&mut right_gaps);
+        (l, r, at)
     } else {
-        (first(), second())
+        let l = first(&mut slots[1..], gaps);
+        let at = 1 + l.extent;
+        let r = second(at, &mut slots[at..], gaps);
+        (l, r, at)
     };
-    1 + dl.max(dr)
+    write_interior(slots, &bounds, axis, base + at);
+    Built {
+        depth: 1 + l.depth.max(r.depth),
+        extent: at + r.extent,
+    }
 }
 
-/// Removes the unused slots, keeping depth-first order, and renumbers second children.
-/// In depth-first order a second child comes right after its parent's first subtree, so
-/// the parents still waiting for theirs form a stack, and its top is the one to fix.
-fn compact(nodes: &mut Vec<FlatNode>) {
+/// Removes the gaps (in order) from the first `extent` slots, keeping depth-first order,
+/// and renumbers second children. A second child lies past a gap only when its parent
+/// forked; such parents wait on a stack (in depth-first order the one waiting longest
+/// is at the bottom) until the walk reaches their second child. Every other node moves
+/// down with its second child, by the gaps before both.
+fn compact(nodes: &mut Vec<FlatNode>, extent: usize, gaps: &[Gap]) {
     let mut waiting: Vec<(usize, u32)> = Vec::new(); // (parent's new index, old second child)
-    let mut next = 0;
-    for i in 0..nodes.len() {
-        let n = nodes[i];
-        if n.meta == UNUSED {
-            continue;
+    let (mut shift, mut from) = (0, 0);
+    // Each run of nodes ends at the next gap, the last at `extent`.
+    let ends = gaps.iter().map(|&(at, _)| at).chain([extent]);
+    for (k, end) in ends.enumerate() {
+        for i in from..end {
+            let mut n = nodes[i];
+            if let Some(&(parent, right)) = waiting.last()
+                && right as usize == i
+            {
+                nodes[parent].right_or_first = (i - shift) as u32;
+                waiting.pop();
+            }
+            if !n.is_leaf() {
+                if (n.right_or_first as usize) < end {
+                    n.right_or_first -= shift as u32;
+                } else {
+                    waiting.push((i - shift, n.right_or_first));
+                }
+            }
+            nodes[i - shift] = n;
         }
-        if let Some(&(parent, right)) = waiting.last()
-            && right as usize == i
-        {
-            nodes[parent].right_or_first = next as u32;
-            waiting.pop();
+        if let Some(&(at, len)) = gaps.get(k) {
+            shift += len;
+            from = at + len;
         }
-        // `next <= i`: slots only move down, over ones already read.
-        nodes[next] = n;
-        if !n.is_leaf() {
-            waiting.push((next, n.right_or_first));
-        }
-        next += 1;
     }
     debug_assert!(waiting.is_empty());
-    nodes.truncate(next);
-    // Give the gaps' memory back: a big allocation shrinks in place.
+    nodes.truncate(extent - shift);
+    // Give the unused tail's memory back: a big allocation shrinks in place.
     nodes.shrink_to_fit();
 }

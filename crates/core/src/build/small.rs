@@ -8,6 +8,7 @@
 
 use glam::Vec3A;
 
+use super::recursion::Built;
 use super::{BuildOptions, PrimRef};
 use crate::flat::FlatNode;
 use crate::geometry::Aabb;
@@ -75,7 +76,7 @@ fn sorted_lists(s: &Subtree, n: usize) -> [[u8; SMALL_NODE]; 3] {
 
 /// Builds the subtree over `refs` (at most [`SMALL_NODE`]; the first at `offset` in the
 /// final order) into `slots` (first slot index `base`), rearranging `refs` into leaf
-/// order. Returns the subtree's depth.
+/// order.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn subtree(
     refs: &mut [PrimRef],
@@ -86,7 +87,7 @@ pub(super) fn subtree(
     cb: Aabb,
     slots: &mut [FlatNode],
     base: usize,
-) -> u32 {
+) -> Built {
     let n = refs.len();
     debug_assert!((1..=SMALL_NODE).contains(&n));
     let mut s = Subtree::new(refs, opts, offset);
@@ -199,7 +200,7 @@ impl<'a> Subtree<'a> {
         cb: Aabb,
         slots: &mut [FlatNode],
         base: usize,
-    ) -> u32 {
+    ) -> Built {
         let n = lists[0].len();
         let opts = self.opts;
         let leaf =
@@ -209,7 +210,10 @@ impl<'a> Subtree<'a> {
                     *o = s.refs[id as usize];
                 }
                 super::recursion::write_leaf(slots, &bounds, offset, n);
-                0
+                Built {
+                    depth: 0,
+                    extent: 1,
+                }
             };
         if n == 1 {
             return leaf(self, &lists, out, slots);
@@ -254,7 +258,10 @@ impl<'a> Subtree<'a> {
                     i += is_left;
                     j += 1 - is_left;
                 }
-                l[mid..].copy_from_slice(&to_right[..n - mid]);
+                // Byte by byte: a call to `memcpy` costs more at these lengths.
+                for (t, &id) in to_right[..n - mid].iter().enumerate() {
+                    l[mid + t] = id;
+                }
             }
         }
         let (l0, r0) = a0.split_at_mut(mid);
@@ -262,30 +269,33 @@ impl<'a> Subtree<'a> {
         let (l2, r2) = a2.split_at_mut(mid);
         let (lb, lc) = self.bounds_of(l0);
         let (rb, rc) = self.bounds_of(r0);
-        let right = base + 2 * mid;
-        super::recursion::write_interior(slots, &bounds, axis, right);
-        let (left_slots, right_slots) = slots[1..].split_at_mut(2 * mid - 1);
-        let dl = self.node(
+        let l = self.node(
             [l0, l1, l2],
             out,
             offset,
             depth + 1,
             lb,
             lc,
-            left_slots,
+            &mut slots[1..],
             base + 1,
         );
-        let dr = self.node(
+        // Built on one thread: the second child right after the first's last node.
+        let at = 1 + l.extent;
+        let r = self.node(
             [r0, r1, r2],
             out,
             offset + mid,
             depth + 1,
             rb,
             rc,
-            right_slots,
-            right,
+            &mut slots[at..],
+            base + at,
         );
-        1 + dl.max(dr)
+        super::recursion::write_interior(slots, &bounds, axis, base + at);
+        Built {
+            depth: 1 + l.depth.max(r.depth),
+            extent: at + r.extent,
+        }
     }
 }
 
