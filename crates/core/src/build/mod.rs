@@ -432,12 +432,12 @@ pub(crate) fn partition(refs: &mut [PrimRef], pred: impl Fn(&PrimRef) -> bool) -
 /// Builds a BVH over triangles (validated first: a NaN or infinite corner is an error
 /// naming the triangle).
 pub fn build(tris: &[Triangle], opts: &BuildOptions) -> Result<BuildTree, BuildError> {
-    validate(tris)?;
     if opts.builder == BuilderKind::Sbvh {
         // References change during an SBVH build: it has its own recursion.
+        validate_triangles(tris)?;
         return Ok(reinsert::finish(sbvh::build(tris, opts)?, opts));
     }
-    let (nodes, prim_order) = build_refs(triangle_refs(tris), opts)?;
+    let (nodes, prim_order) = build_refs(triangle_refs(tris)?, opts)?;
     Ok(reinsert::finish(tree_of(&nodes.nodes, prim_order), opts))
 }
 
@@ -448,8 +448,7 @@ pub(crate) fn build_flat(tris: &[Triangle], opts: &BuildOptions) -> Result<FlatB
         // The optimiser works on the boxed tree, and so does the SBVH.
         return Ok(FlatBvh::flatten(&build(tris, opts)?, tris));
     }
-    validate(tris)?;
-    let (slots, prim_order) = build_refs(triangle_refs(tris), opts)?;
+    let (slots, prim_order) = build_refs(triangle_refs(tris)?, opts)?;
     Ok(FlatBvh::from_nodes(
         slots.nodes,
         slots.depth,
@@ -458,31 +457,29 @@ pub(crate) fn build_flat(tris: &[Triangle], opts: &BuildOptions) -> Result<FlatB
     ))
 }
 
-/// [`validate_triangles`], with the common case (every corner finite) checked in
-/// parallel; the sequential pass then only names the first bad triangle.
-fn validate(tris: &[Triangle]) -> Result<(), MeshError> {
+/// Each triangle's ref, the triangles checked on the way ([`validate_triangles`]'s
+/// checks): with every corner finite, in one parallel pass; otherwise the sequential
+/// check names the first bad triangle.
+fn triangle_refs(tris: &[Triangle]) -> Result<Vec<PrimRef>, MeshError> {
     use rayon::prelude::*;
-    let finite = tris
-        .par_iter()
-        .with_min_len(4096)
-        .all(|t| t.iter().all(|p| p.is_finite()));
-    if finite && tris.len() <= crate::flat::MAX_PRIMITIVES {
-        Ok(())
-    } else {
-        validate_triangles(tris)
+    let make = |(i, t): (usize, &Triangle)| {
+        let b = Aabb::from_triangle(t);
+        PrimRef::new(b.min, b.max, i as u32)
+    };
+    if tris.len() <= crate::flat::MAX_PRIMITIVES {
+        let refs: Option<Vec<PrimRef>> = tris
+            .par_iter()
+            .with_min_len(4096)
+            .enumerate()
+            .map(|(i, t)| t.iter().all(|p| p.is_finite()).then(|| make((i, t))))
+            .collect();
+        if let Some(refs) = refs {
+            return Ok(refs);
+        }
     }
-}
-
-fn triangle_refs(tris: &[Triangle]) -> Vec<PrimRef> {
-    use rayon::prelude::*;
-    tris.par_iter()
-        .with_min_len(4096)
-        .enumerate()
-        .map(|(i, t)| {
-            let b = Aabb::from_triangle(t);
-            PrimRef::new(b.min, b.max, i as u32)
-        })
-        .collect()
+    validate_triangles(tris)?;
+    // Not reached: the check accepts only what the parallel pass did.
+    Ok(tris.iter().enumerate().map(make).collect())
 }
 
 /// Builds a BVH over boxes, as [`build`] does over triangles' boxes: the top level over
