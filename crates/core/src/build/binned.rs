@@ -200,11 +200,7 @@ pub(super) fn split(
     let o = axis * bins;
     let lefts = binned.0[o..=o + k].iter().map(|b| b.count as usize).sum();
     let left = |r: &PrimRef| at.of_axis(r.min()[axis], r.max()[axis], axis) <= k;
-    let (mid, centroids) = if parallel && n >= PARALLEL_PARTITION {
-        partition_in_parallel(refs, lefts, left)
-    } else {
-        partition_at(refs, lefts, left)
-    };
+    let (mid, centroids) = partition_at(refs, lefts, left);
     if mid == 0 || mid == n {
         return super::median_split(refs, axis);
     }
@@ -274,79 +270,6 @@ fn cheapest(binned: &Bins, bins: usize, n: usize, scale: &[f32; 3]) -> (f32, usi
         }
     }
     out
-}
-
-/// Nodes of at least this many refs are partitioned on several threads.
-const PARALLEL_PARTITION: usize = 64 * 1024;
-
-/// [`partition_at`] on several threads: each chunk of refs is partitioned on its own,
-/// then the chunks' right parts that lie before `lefts` are swapped, range against range,
-/// with their left parts that lie after it. The chunks do not depend on the thread count,
-/// so neither does the order.
-fn partition_in_parallel(
-    refs: &mut [PrimRef],
-    lefts: usize,
-    left: impl Fn(&PrimRef) -> bool + Sync,
-) -> (usize, [Aabb; 2]) {
-    use rayon::prelude::*;
-    const CHUNK: usize = 16 * 1024;
-    let parts: Vec<(usize, [Aabb; 2])> = refs
-        .par_chunks_mut(CHUNK)
-        .map(|chunk| {
-            let count = chunk.iter().filter(|r| left(r)).count();
-            partition_at(chunk, count, &left)
-        })
-        .collect();
-    let centroids = parts.iter().fold([Aabb::EMPTY; 2], |c, (_, p)| {
-        [c[0].union(&p[0]), c[1].union(&p[1])]
-    });
-    if parts.iter().map(|p| p.0).sum::<usize>() != lefts {
-        return partition_at(refs, lefts, left);
-    }
-    // The misplaced ranges, in order: each chunk's right refs before `lefts` and its left
-    // refs at or after it. Both lists hold as many refs.
-    let (mut wrong_left, mut wrong_right) = (Vec::new(), Vec::new());
-    for (c, &(m, _)) in parts.iter().enumerate() {
-        let (start, end) = (c * CHUNK, (c * CHUNK + CHUNK).min(refs.len()));
-        let split = start + m;
-        if split < lefts.min(end) {
-            wrong_left.push(split..lefts.min(end));
-        }
-        if start.max(lefts) < split {
-            wrong_right.push(start.max(lefts)..split);
-        }
-    }
-    // Pair them into equal pieces, each a disjoint slice on its side of `lefts`.
-    let (before, after) = refs.split_at_mut(lefts);
-    let (mut before, mut after): (&mut [PrimRef], &mut [PrimRef]) = (before, after);
-    let (mut before_at, mut after_at) = (0, lefts);
-    let mut pieces = Vec::new();
-    let (mut a, mut b) = (wrong_left.into_iter(), wrong_right.into_iter());
-    let (mut x, mut y) = (a.next(), b.next());
-    while let (Some(p), Some(q)) = (x.clone(), y.clone()) {
-        let len = p.len().min(q.len());
-        let (_, rest) = std::mem::take(&mut before).split_at_mut(p.start - before_at);
-        let (piece_a, rest) = rest.split_at_mut(len);
-        (before, before_at) = (rest, p.start + len);
-        let (_, rest) = std::mem::take(&mut after).split_at_mut(q.start - after_at);
-        let (piece_b, rest) = rest.split_at_mut(len);
-        (after, after_at) = (rest, q.start + len);
-        pieces.push((piece_a, piece_b));
-        x = if len < p.len() {
-            Some(p.start + len..p.end)
-        } else {
-            a.next()
-        };
-        y = if len < q.len() {
-            Some(q.start + len..q.end)
-        } else {
-            b.next()
-        };
-    }
-    pieces
-        .into_par_iter()
-        .for_each(|(p, q)| p.swap_with_slice(q));
-    (lefts, centroids)
 }
 
 /// In-place partition of refs of which `lefts` satisfy `left` (the bins counted them):
@@ -519,26 +442,6 @@ mod tests {
                 let (mid, bounds) = partition_at(&mut after, lefts, |r| r.centroid().x < cut);
                 check(&before, &after, mid, bounds, cut);
             }
-        }
-    }
-
-    #[test]
-    fn parallel_partition_matches_the_count() {
-        // Several chunks and a ragged last one; cuts inside a chunk and at the ends.
-        let n = 100_003;
-        for cut in [
-            -1.0,
-            7.5,
-            16_384.5,
-            50_000.5,
-            n as f32 - 3.5,
-            n as f32 + 1.0,
-        ] {
-            let before = refs(n);
-            let mut after = before.clone();
-            let lefts = before.iter().filter(|r| r.centroid().x < cut).count();
-            let (mid, bounds) = partition_in_parallel(&mut after, lefts, |r| r.centroid().x < cut);
-            check(&before, &after, mid, bounds, cut);
         }
     }
 
