@@ -462,24 +462,29 @@ pub(crate) fn build_flat(tris: &[Triangle], opts: &BuildOptions) -> Result<FlatB
 /// check names the first bad triangle.
 fn triangle_refs(tris: &[Triangle]) -> Result<Vec<PrimRef>, MeshError> {
     use rayon::prelude::*;
-    let make = |(i, t): (usize, &Triangle)| {
-        let b = Aabb::from_triangle(t);
-        PrimRef::new(b.min, b.max, i as u32)
-    };
-    if tris.len() <= crate::flat::MAX_PRIMITIVES {
-        let refs: Option<Vec<PrimRef>> = tris
-            .par_iter()
-            .with_min_len(4096)
-            .enumerate()
-            .map(|(i, t)| t.iter().all(|p| p.is_finite()).then(|| make((i, t))))
-            .collect();
-        if let Some(refs) = refs {
-            return Ok(refs);
-        }
+    use std::sync::atomic::{AtomicBool, Ordering};
+    if tris.len() > crate::flat::MAX_PRIMITIVES {
+        validate_triangles(tris)?;
     }
-    validate_triangles(tris)?;
-    // Not reached: the check accepts only what the parallel pass did.
-    Ok(tris.iter().enumerate().map(make).collect())
+    // A flag rather than a fallible collect: rayon collects an `Option<Vec>` through
+    // a list of pieces and a copy, a `Vec` in place.
+    let bad = AtomicBool::new(false);
+    let refs = tris
+        .par_iter()
+        .with_min_len(4096)
+        .enumerate()
+        .map(|(i, t)| {
+            if !t.iter().all(|p| p.is_finite()) {
+                bad.store(true, Ordering::Relaxed);
+            }
+            let b = Aabb::from_triangle(t);
+            PrimRef::new(b.min, b.max, i as u32)
+        })
+        .collect();
+    if bad.into_inner() {
+        validate_triangles(tris)?;
+    }
+    Ok(refs)
 }
 
 /// Builds a BVH over boxes, as [`build`] does over triangles' boxes: the top level over
