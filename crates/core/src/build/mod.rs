@@ -333,6 +333,14 @@ pub(crate) fn split_weight(n_l: usize, a_l: f32, n_r: usize, a_r: f32) -> f32 {
     n_l as f32 * a_l + n_r as f32 * a_r
 }
 
+/// A float's bits flipped as `f32::total_cmp` orders it, so that integer order is float
+/// order: the sweeps sort centroids on integer keys made of it.
+#[inline(always)]
+pub(crate) fn ordered_bits(c: f32) -> u32 {
+    let b = c.to_bits();
+    if b >> 31 == 1 { !b } else { b | 0x8000_0000 }
+}
+
 /// Half the surface areas of three boxes, box `i` in lane `i` (`lo[i]` to `hi[i]`): the
 /// sweeps grow one box per axis in lock step, and with the extents transposed one
 /// multiply gives all three.

@@ -398,9 +398,7 @@ fn key_cmp(a: &PrimRef, b: &PrimRef, axis: usize) -> std::cmp::Ordering {
 /// `f32::total_cmp` does, then the primitive index.
 #[inline]
 fn sort_key(r: &PrimRef, axis: usize) -> u64 {
-    let b = r.centroid()[axis].to_bits();
-    let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
-    (u64::from(ord) << 32) | u64::from(r.index())
+    (u64::from(super::ordered_bits(r.centroid()[axis])) << 32) | u64::from(r.index())
 }
 
 /// Full sweep SAH over sorted centroids, for small nodes (evaluated on a copy).

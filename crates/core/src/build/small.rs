@@ -30,13 +30,6 @@ struct Subtree<'a> {
     right_area: [Vec3A; SMALL_NODE],
 }
 
-/// A centroid coordinate's bits, ordered as the floats are.
-#[inline(always)]
-fn ordered(c: f32) -> u64 {
-    let b = c.to_bits();
-    u64::from(if b >> 31 == 1 { !b } else { b | 0x8000_0000 })
-}
-
 /// Indices below this fit a packed key beside a position.
 const PACKED_INDEX: u32 = 1 << 26;
 
@@ -49,7 +42,8 @@ fn sorted_lists(s: &Subtree, n: usize) -> [[u8; SMALL_NODE]; 3] {
         for (a, l) in lists.iter_mut().enumerate() {
             let mut keys = [0u64; SMALL_NODE];
             for (i, (k, r)) in keys.iter_mut().zip(&s.refs[..n]).enumerate() {
-                *k = (ordered(s.centre[i][a]) << 32) | u64::from(r.index()) << 6 | i as u64;
+                let c = u64::from(super::ordered_bits(s.centre[i][a]));
+                *k = (c << 32) | u64::from(r.index()) << 6 | i as u64;
             }
             keys[..n].sort_unstable();
             for (l, k) in l.iter_mut().zip(&keys[..n]) {
@@ -58,16 +52,14 @@ fn sorted_lists(s: &Subtree, n: usize) -> [[u8; SMALL_NODE]; 3] {
         }
     } else {
         for (a, l) in lists.iter_mut().enumerate() {
-            let mut keys = [(0u64, 0u8); SMALL_NODE];
+            // The exact sweep's own key ([`super::sweep`]).
+            let mut keys = [(0u64, 0u32); SMALL_NODE];
             for (i, (k, r)) in keys.iter_mut().zip(&s.refs[..n]).enumerate() {
-                *k = (
-                    (ordered(s.centre[i][a]) << 32) | u64::from(r.index()),
-                    i as u8,
-                );
+                *k = super::sweep::key(s.centre[i][a], r.index(), i);
             }
             keys[..n].sort_unstable();
             for (l, k) in l.iter_mut().zip(&keys[..n]) {
-                *l = k.1;
+                *l = k.1 as u8;
             }
         }
     }

@@ -19,11 +19,11 @@ const STACK: usize = 32;
 type Key = (u64, u32);
 
 #[inline(always)]
-fn key(c: f32, index: u32, pos: usize) -> Key {
-    let b = c.to_bits();
-    // Flip as `f32::total_cmp` does, so integer order is float order.
-    let ord = if b >> 31 == 1 { !b } else { b | 0x8000_0000 };
-    (((ord as u64) << 32) | index as u64, pos as u32)
+pub(super) fn key(c: f32, index: u32, pos: usize) -> Key {
+    (
+        (u64::from(super::ordered_bits(c)) << 32) | u64::from(index),
+        pos as u32,
+    )
 }
 
 #[inline(always)]
