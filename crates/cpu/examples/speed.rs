@@ -46,6 +46,29 @@ fn diffuse_rays(
         .collect()
 }
 
+/// The shadow rays of each 8x8 tile as one packet, as `bench-trace` puts them: a pixel
+/// whose primary ray missed holds a ray with an empty interval; tiles without any shadow
+/// ray are left out (`w` and `h` multiples of 8).
+fn shadow_tiles(
+    flat: &bvhtrace_core::FlatBvh,
+    primary: &[Ray],
+    shadow: &[Ray],
+    (w, h): (u32, u32),
+) -> Vec<Ray> {
+    let hits = common::reference(flat, primary, Query::Closest);
+    let mut of_pixel = vec![None; primary.len()];
+    let hit_pixels = hits.iter().enumerate().filter(|(_, h)| h.is_hit());
+    for ((p, _), r) in hit_pixels.zip(shadow) {
+        of_pixel[p] = Some(*r);
+    }
+    let idle = Ray::with_interval(glam::Vec3::ZERO, glam::Vec3::Z, 1.0, 0.0);
+    let order = bvhtrace_cpu::tile_order(w, h);
+    (order.chunks(bvhtrace_cpu::PACKET))
+        .filter(|t| t.iter().any(|&p| of_pixel[p as usize].is_some()))
+        .flat_map(|t| t.iter().map(|&p| of_pixel[p as usize].unwrap_or(idle)))
+        .collect()
+}
+
 fn main() {
     let args: Vec<usize> = std::env::args()
         .skip(1)
@@ -144,14 +167,14 @@ fn main() {
                 );
             }
             // Packets of 64 consecutive rays: in the rays' own (row-major) order, and
-            // camera rays put in 8x8 tiles.
-            let tiled: Vec<Ray> = if kind == "primary" {
-                bvhtrace_cpu::tile_order(w, h)
+            // camera rays and their shadow rays put in 8x8 tiles.
+            let tiled: Vec<Ray> = match kind {
+                "primary" => bvhtrace_cpu::tile_order(w, h)
                     .iter()
                     .map(|&i| rays[i as usize])
-                    .collect()
-            } else {
-                Vec::new()
+                    .collect(),
+                "shadow" => shadow_tiles(&flat, &primary, rays, (w, h)),
+                _ => Vec::new(),
             };
             for (order, rs) in [("rows", rays.as_slice()), ("tiles", tiled.as_slice())] {
                 if rs.is_empty() || only("SPEED_ORDER", order) {
