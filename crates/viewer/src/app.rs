@@ -620,6 +620,7 @@ impl ViewerApp {
                         built.prepare(key.traversal);
                     }
                     let rays = key.camera.rays(key.size[0], key.size[1]);
+                    let rays = crate::shade::in_tiles(&rays, key.size);
                     let opts = TraceOptions::closest(key.traversal).with_counters(key.heatmap);
                     (rays, opts)
                 }
@@ -646,12 +647,14 @@ impl ViewerApp {
             return false;
         }
         self.primary_on_gpu = on_gpu;
+        // Traced in tiles (see `start`): back in pixel order.
+        use crate::shade::from_tiles;
         self.accum = Some(Accumulation::new(
             key.size[0],
             key.size[1],
-            rays,
-            t.hits,
-            t.counters.unwrap_or_default(),
+            from_tiles(&rays, key.size),
+            from_tiles(&t.hits, key.size),
+            from_tiles(&t.counters.unwrap_or_default(), key.size),
             |p| built.geometry.triangle(p),
         ));
         let mode = if key.heatmap {
