@@ -127,12 +127,7 @@ impl CurveCpuBvh {
     /// [`CurveCpuBvh::trace_rays`] with the instruction set `isa` (or the fastest this CPU
     /// has, when it lacks `isa`): the answers are the same whichever runs.
     pub fn trace_rays_with(&self, rays: &[Ray], query: Query, isa: Isa) -> Vec<Hit> {
-        const RUN: usize = 256;
-        let mut hits = vec![Hit::miss(0.0); rays.len()];
-        hits.par_chunks_mut(RUN)
-            .zip(rays.par_chunks(RUN))
-            .for_each(|(h, r)| self.trace_run(r, query, isa, h));
-        hits
+        crate::moving::par_runs(rays.len(), |at, h| self.trace_run(&rays[at], query, isa, h))
     }
 
     /// One thread's run of rays into `hits`.

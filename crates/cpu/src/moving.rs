@@ -254,8 +254,7 @@ fn around_steps(root: Option<&Node8>, steps: &[Planes]) -> Option<SceneBox> {
     Some(b)
 }
 
-/// `run(rays, times, hits)` over runs of the rays in parallel on the current rayon pool,
-/// each run a thread's (one stack allocated per run).
+/// `run(rays, times, hits)` over runs of the rays in parallel ([`par_runs`]).
 ///
 /// # Panics
 /// When the two slices differ in length.
@@ -265,11 +264,20 @@ pub(crate) fn in_runs(
     run: impl Fn(&[Ray], &[f32], &mut [Hit]) + Sync,
 ) -> Vec<Hit> {
     assert_eq!(rays.len(), times.len(), "one time per ray");
+    par_runs(rays.len(), |at, h| run(&rays[at.clone()], &times[at], h))
+}
+
+/// The answers for `n` rays, `run(range, hits)` filling those of each run of 256 rays in
+/// parallel on the current rayon pool, each run a thread's (one stack allocated per run).
+pub(crate) fn par_runs(
+    n: usize,
+    run: impl Fn(std::ops::Range<usize>, &mut [Hit]) + Sync,
+) -> Vec<Hit> {
     const RUN: usize = 256;
-    let mut hits = vec![Hit::miss(0.0); rays.len()];
+    let mut hits = vec![Hit::miss(0.0); n];
     hits.par_chunks_mut(RUN)
-        .zip(rays.par_chunks(RUN).zip(times.par_chunks(RUN)))
-        .for_each(|(h, (r, t))| run(r, t, h));
+        .enumerate()
+        .for_each(|(k, h)| run(k * RUN..k * RUN + h.len(), h));
     hits
 }
 
