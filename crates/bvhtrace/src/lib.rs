@@ -53,7 +53,7 @@ pub use timed::{OpenedTimed, TimedScene, TimedTracer, open_timed};
 pub use bvhtrace_core::{
     BuildOptions, FlatBvh, Hit, Query, Ray, TraceOptions, TraceOutput, Traversal,
 };
-pub use bvhtrace_cpu::tile_order;
+pub use bvhtrace_cpu::{Tiles, tile_order};
 pub use bvhtrace_engine::builder::{GpuBuildOptions, GpuBuildTimes, GpuBuilderKind};
 pub use bvhtrace_engine::device::ADAPTER_ENV;
 pub use bvhtrace_engine::{

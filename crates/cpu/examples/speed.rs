@@ -46,9 +46,8 @@ fn diffuse_rays(
         .collect()
 }
 
-/// The shadow rays of each 8x8 tile as one packet, as `bench-trace` puts them: a pixel
-/// whose primary ray missed holds a ray with an empty interval; tiles without any shadow
-/// ray are left out (`w` and `h` multiples of 8).
+/// The shadow rays of each 8x8 tile as one packet, as `bench-trace` puts them
+/// ([`bvhtrace_cpu::Tiles::packets`]); `shadow` holds one per hit pixel, in pixel order.
 fn shadow_tiles(
     flat: &bvhtrace_core::FlatBvh,
     primary: &[Ray],
@@ -56,17 +55,10 @@ fn shadow_tiles(
     (w, h): (u32, u32),
 ) -> Vec<Ray> {
     let hits = common::reference(flat, primary, Query::Closest);
-    let mut of_pixel = vec![None; primary.len()];
-    let hit_pixels = hits.iter().enumerate().filter(|(_, h)| h.is_hit());
-    for ((p, _), r) in hit_pixels.zip(shadow) {
-        of_pixel[p] = Some(*r);
-    }
-    let idle = Ray::with_interval(glam::Vec3::ZERO, glam::Vec3::Z, 1.0, 0.0);
-    let order = bvhtrace_cpu::tile_order(w, h);
-    (order.chunks(bvhtrace_cpu::PACKET))
-        .filter(|t| t.iter().any(|&p| of_pixel[p as usize].is_some()))
-        .flat_map(|t| t.iter().map(|&p| of_pixel[p as usize].unwrap_or(idle)))
-        .collect()
+    let owner: Vec<u32> = (0..hits.len() as u32)
+        .filter(|&p| hits[p as usize].is_hit())
+        .collect();
+    bvhtrace_cpu::Tiles::new(w, h).packets(shadow, &owner).0
 }
 
 fn main() {

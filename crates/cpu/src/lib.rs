@@ -101,6 +101,7 @@ mod plan;
 mod single;
 mod stream;
 mod tests4;
+mod tiles;
 
 use std::fmt;
 
@@ -112,6 +113,7 @@ pub use layout::{ConvertError, CpuBvh, Node8, Tri4};
 pub use moving::MovingCpuBvh;
 pub use moving_instances::MovingInstancesCpuBvh;
 pub use packet::{PACKET, tile_order};
+pub use tiles::Tiles;
 
 use instanced::MeshWalk;
 use lanes::{Lanes, Wide};

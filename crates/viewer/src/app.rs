@@ -620,7 +620,9 @@ impl ViewerApp {
                         built.prepare(key.traversal);
                     }
                     let rays = key.camera.rays(key.size[0], key.size[1]);
-                    let rays = crate::shade::in_tiles(&rays, key.size);
+                    // In 8x8 tiles, one packet each on the CPU tracer; back in pixel
+                    // order in `primary_done`.
+                    let rays = bvhtrace::Tiles::new(key.size[0], key.size[1]).gather(&rays);
                     let opts = TraceOptions::closest(key.traversal).with_counters(key.heatmap);
                     (rays, opts)
                 }
@@ -648,13 +650,13 @@ impl ViewerApp {
         }
         self.primary_on_gpu = on_gpu;
         // Traced in tiles (see `start`): back in pixel order.
-        use crate::shade::from_tiles;
+        let tiles = bvhtrace::Tiles::new(key.size[0], key.size[1]);
         self.accum = Some(Accumulation::new(
             key.size[0],
             key.size[1],
-            from_tiles(&rays, key.size),
-            from_tiles(&t.hits, key.size),
-            from_tiles(&t.counters.unwrap_or_default(), key.size),
+            tiles.scatter(&rays),
+            tiles.scatter(&t.hits),
+            t.counters.map_or_else(Vec::new, |c| tiles.scatter(&c)),
             |p| built.geometry.triangle(p),
         ));
         let mode = if key.heatmap {

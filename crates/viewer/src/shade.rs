@@ -15,27 +15,6 @@ use glam::Vec3;
 // shading crate's, so the viewer's images match `bvhtrace render`.
 pub use bvhtrace_shade::{BACKGROUND, Shade, View};
 
-/// Per-pixel `v` of a `size` image in 8x8 tiles ([`bvhtrace::tile_order`]): camera rays
-/// in that order make one packet per tile on the CPU tracer (1.3-1.5x faster than rows);
-/// [`from_tiles`] puts the answers back.
-pub fn in_tiles<T: Copy>(v: &[T], size: [u32; 2]) -> Vec<T> {
-    let order = bvhtrace::tile_order(size[0], size[1]);
-    order.iter().map(|&p| v[p as usize]).collect()
-}
-
-/// [`in_tiles`] undone: tile-ordered `v` back in pixel order (`v` as it is when it is not
-/// one per pixel, as the counters of a pass without them).
-pub fn from_tiles<T: Copy>(v: &[T], size: [u32; 2]) -> Vec<T> {
-    let order = bvhtrace::tile_order(size[0], size[1]);
-    let mut out = v.to_vec();
-    if v.len() == order.len() {
-        for (&p, x) in order.iter().zip(v) {
-            out[p as usize] = *x;
-        }
-    }
-    out
-}
-
 /// One primary pass and the secondary samples accumulated on top of it.
 #[derive(Clone, Debug, Default)]
 pub struct Accumulation {
@@ -238,16 +217,6 @@ mod tests {
             Vec3::new(-1.0, 1.0, 0.0),
         );
         vec![[a, b, c], [a, c, d]]
-    }
-
-    #[test]
-    fn tiles_round_trip() {
-        let size = [21, 13];
-        let px: Vec<u32> = (0..21 * 13).collect();
-        let tiled = in_tiles(&px, size);
-        assert_eq!(tiled[..9], [0, 1, 2, 3, 4, 5, 6, 7, 21]);
-        assert_eq!(from_tiles(&tiled, size), px);
-        assert!(from_tiles::<u32>(&[], size).is_empty());
     }
 
     #[test]

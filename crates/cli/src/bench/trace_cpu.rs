@@ -63,7 +63,8 @@ fn paths<'a>(
 
 /// The primary and shadow rays in 8x8 tiles of the `w` x `h` image: the same rays, the
 /// primary rays in [`bvhtrace_cpu::tile_order`], the shadow rays one tile per packet
-/// ([`shadow_in_tiles`]).
+/// ([`bvhtrace_cpu::Tiles::packets`]: a pixel without one holds a ray with an empty
+/// interval, which every tracer answers with a miss; tiles without any are left out).
 fn tiled_sets(
     tris: &[bvhtrace_core::Triangle],
     flat: &FlatBvh,
@@ -72,8 +73,7 @@ fn tiled_sets(
     shadow: &[Ray],
     (w, h): (u32, u32),
 ) -> Result<(Vec<Ray>, Vec<Ray>)> {
-    let order = bvhtrace_cpu::tile_order(w, h);
-    let tiled: Vec<Ray> = order.iter().map(|&p| primary[p as usize]).collect();
+    let tiles = bvhtrace_cpu::Tiles::new(w, h);
     let hits = trace_rays(flat, primary, &TraceOptions::closest(Traversal::FullStack)).hits;
     let b = flat.bounds();
     let (again, owner) = crate::shade::secondary_rays(
@@ -89,43 +89,8 @@ fn tiled_sets(
         again.len() == shadow.len(),
         "the shadow rays could not be matched"
     );
-    let mut of_pixel = vec![u32::MAX; primary.len()];
-    for (k, &p) in owner.iter().enumerate() {
-        of_pixel[p as usize] = k as u32;
-    }
-    Ok((tiled, shadow_in_tiles(&order, &of_pixel, shadow, (w, h))))
-}
-
-/// The shadow rays of each 8x8 tile as one packet of [`bvhtrace_cpu::PACKET`] rays: a
-/// pixel without a shadow ray (its primary ray missed) holds a ray with an empty interval,
-/// which no tracer walks and every tracer answers with a miss, so that no packet spans two
-/// tiles; tiles without any shadow ray are left out. `of_pixel` is each pixel's shadow ray
-/// (`u32::MAX`: none), `order` the pixels in [`bvhtrace_cpu::tile_order`].
-fn shadow_in_tiles(
-    order: &[u32],
-    of_pixel: &[u32],
-    shadow: &[Ray],
-    (w, h): (u32, u32),
-) -> Vec<Ray> {
-    let idle = Ray::with_interval(glam::Vec3::ZERO, glam::Vec3::Z, 1.0, 0.0);
-    let mut out = Vec::new();
-    let mut at = 0;
-    for ty in (0..h).step_by(8) {
-        for tx in (0..w).step_by(8) {
-            let size = ((w - tx).min(8) * (h - ty).min(8)) as usize;
-            let tile = &order[at..at + size];
-            at += size;
-            let of = |p: &u32| of_pixel[*p as usize];
-            if tile.iter().all(|p| of(p) == u32::MAX) {
-                continue;
-            }
-            for k in 0..bvhtrace_cpu::PACKET {
-                let ray = tile.get(k).map(of).filter(|&s| s != u32::MAX);
-                out.push(ray.map_or(idle, |s| shadow[s as usize]));
-            }
-        }
-    }
-    out
+    // One tile's shadow rays per packet, pixels without one holding idle rays.
+    Ok((tiles.gather(primary), tiles.packets(shadow, &owner).0))
 }
 
 /// The two Embree modes timed: its default (not watertight) and `RTC_SCENE_FLAG_ROBUST`.
