@@ -5,8 +5,7 @@
 //! in parallel, the second child's range starts after the first's `2 mid - 1` slots, so
 //! neither waits on the other's size, and the first's unused slots are a gap. Built on
 //! one thread, the second child starts right after the first child's last node: no gap.
-//! One sequential pass ([`compact`]) then closes the forks' gaps, keeping the depth-first
-//! order. No tree of boxed nodes is ever allocated, which is what bounds the build's
+//! [`compact`] then closes the forks' gaps, keeping the depth-first order. No tree of boxed nodes is ever allocated, which is what bounds the build's
 //! memory to the flat layout's.
 
 use super::small::{self, SMALL_NODE};
@@ -211,40 +210,41 @@ fn recurse(
     }
 }
 
-/// Removes the gaps (in order) from the first `extent` slots, keeping depth-first order,
-/// and renumbers second children. A second child lies past a gap only when its parent
-/// forked; such parents wait on a stack (in depth-first order the one waiting longest
-/// is at the bottom) until the walk reaches their second child. Every other node moves
-/// down with its second child, by the gaps before both.
+/// Removes the gaps (in order) from the first `extent` slots, keeping depth-first order.
+/// The slots between two gaps are a run, and every node of a run moves down by the same
+/// shift (the gaps before it); a second child's new index is its old one less the shift
+/// of the run it lies in. So the runs renumber their second children in parallel, then
+/// move down in order, each move writing only over slots already moved or in a gap.
 fn compact(nodes: &mut Vec<FlatNode>, extent: usize, gaps: &[Gap]) {
-    let mut waiting: Vec<(usize, u32)> = Vec::new(); // (parent's new index, old second child)
-    let (mut shift, mut from) = (0, 0);
-    // Each run of nodes ends at the next gap, the last at `extent`.
-    let ends = gaps.iter().map(|&(at, _)| at).chain([extent]);
-    for (k, end) in ends.enumerate() {
-        for i in from..end {
-            let mut n = nodes[i];
-            if let Some(&(parent, right)) = waiting.last()
-                && right as usize == i
-            {
-                nodes[parent].right_or_first = (i - shift) as u32;
-                waiting.pop();
-            }
-            if !n.is_leaf() {
-                if (n.right_or_first as usize) < end {
-                    n.right_or_first -= shift as u32;
-                } else {
-                    waiting.push((i - shift, n.right_or_first));
-                }
-            }
-            nodes[i - shift] = n;
-        }
-        if let Some(&(at, len)) = gaps.get(k) {
-            shift += len;
-            from = at + len;
-        }
+    use rayon::prelude::*;
+    // (first slot, one past the last, shift) of each run.
+    let mut runs = Vec::with_capacity(gaps.len() + 1);
+    let (mut from, mut shift) = (0, 0);
+    for &(at, len) in gaps.iter().chain(&[(extent, 0)]) {
+        runs.push((from, at, shift));
+        shift += len;
+        from = at + len;
     }
-    debug_assert!(waiting.is_empty());
+    // The run that slot `x` (not in a gap) lies in: the last one starting at or before it.
+    let shift_of = |x: usize| runs[runs.partition_point(|r| r.0 <= x) - 1].2;
+    let mut parts = Vec::with_capacity(runs.len());
+    let mut rest = &mut nodes[..extent];
+    let mut at = 0;
+    for &(from, end, shift) in &runs {
+        let (run, tail) = std::mem::take(&mut rest)[from - at..].split_at_mut(end - from);
+        parts.push((run, end, shift));
+        (rest, at) = (tail, end);
+    }
+    parts.into_par_iter().for_each(|(run, end, shift)| {
+        for n in run.iter_mut().filter(|n| !n.is_leaf()) {
+            let right = n.right_or_first as usize;
+            // Most second children lie in their parent's run; a forked parent's does not.
+            n.right_or_first -= if right < end { shift } else { shift_of(right) } as u32;
+        }
+    });
+    for &(from, end, shift) in &runs[1..] {
+        nodes.copy_within(from..end, from - shift);
+    }
     nodes.truncate(extent - shift);
     // Give the unused tail's memory back: a big allocation shrinks in place.
     nodes.shrink_to_fit();

@@ -135,6 +135,26 @@ impl<'a> Subtree<'a> {
         (aabb(lo, hi), aabb(clo, chi))
     }
 
+    /// [`Subtree::bounds_of`] `ids`, and their mask (bit `id` set for each).
+    fn bounds_and_mask(&self, ids: &[u8]) -> (Aabb, Aabb, u64) {
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        let mut mask = 0u64;
+        for &i in ids {
+            mask |= 1 << (i & 63);
+            let i = i as usize;
+            lo = lo.min(self.min[i]);
+            hi = hi.max(self.max[i]);
+            clo = clo.min(self.centre[i]);
+            chi = chi.max(self.centre[i]);
+        }
+        let aabb = |min: Vec3A, max: Vec3A| Aabb {
+            min: min.into(),
+            max: max.into(),
+        };
+        (aabb(lo, hi), aabb(clo, chi), mask)
+    }
+
     /// The cheapest split over the three sorted lists: (cost, axis, left count).
     ///
     /// The three axes are swept in lock step, one SIMD lane each ([`super::half_areas`]).
@@ -179,6 +199,33 @@ impl<'a> Subtree<'a> {
         let half_area = bounds.surface_area() * 0.5;
         let cost = self.opts.cost_traversal + self.opts.cost_intersection * w / half_area;
         (cost, axis, at[axis] as usize)
+    }
+
+    /// A node of two primitives split into two leaves, `ids` in the sweep's order: what
+    /// [`Subtree::node`] would write, without splitting lists or recursing (on igea, two
+    /// in five of the interior nodes).
+    #[allow(clippy::too_many_arguments)]
+    fn two_leaves(
+        &self,
+        ids: &[u8],
+        out: &mut [PrimRef],
+        offset: usize,
+        bounds: Aabb,
+        axis: usize,
+        slots: &mut [FlatNode],
+        base: usize,
+    ) -> Built {
+        let at = offset - self.offset;
+        for (k, &id) in ids[..2].iter().enumerate() {
+            out[at + k] = self.refs[id as usize];
+            let (b, _) = self.bounds_of(&ids[k..k + 1]);
+            super::recursion::write_leaf(&mut slots[1 + k..], &b, offset + k, 1);
+        }
+        super::recursion::write_interior(slots, &bounds, axis, base + 2);
+        Built {
+            depth: 1,
+            extent: 3,
+        }
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -228,39 +275,48 @@ impl<'a> Subtree<'a> {
                 (cb.longest_axis(), n / 2)
             }
         };
-        // Hand each child its part of every list, still sorted.
-        let mut left = 0u64;
-        for &id in &lists[axis][..mid] {
-            left |= 1 << (id & 63);
+        if n == 2 {
+            debug_assert_eq!(mid, 1);
+            return self.two_leaves(lists[axis], out, offset, bounds, axis, slots, base);
         }
+        // Each side's bounds, and the left side as a mask of ids, from the split axis's
+        // list; then the other two lists split in one loop. Short loops of unpredictable
+        // length each cost a mispredicted exit, so there are few of them.
+        let (lb, lc, left) = self.bounds_and_mask(&lists[axis][..mid]);
+        let (rb, rc) = self.bounds_of(&lists[axis][mid..]);
         let [mut a0, mut a1, mut a2] = lists;
-        for (a, l) in [&mut a0, &mut a1, &mut a2].into_iter().enumerate() {
-            if a != axis {
-                // Without a branch on the side (it is as likely either way): each id is
-                // written to both sides, and only its own side's count moves on. The left
-                // ids move down in place (never past the one being read); ids and counts
-                // are below 64, so the mask only spares the bounds check.
-                let mut to_right = [0u8; 64];
-                let (mut i, mut j) = (0, 0);
-                for t in 0..n {
-                    let id = l[t];
-                    let is_left = (left >> (id & 63)) as usize & 1;
-                    l[i] = id;
-                    to_right[j & 63] = id;
-                    i += is_left;
-                    j += 1 - is_left;
-                }
-                // Byte by byte: a call to `memcpy` costs more at these lengths.
-                for (t, &id) in to_right[..n - mid].iter().enumerate() {
-                    l[mid + t] = id;
-                }
-            }
+        let (p, q) = match axis {
+            0 => (&mut a1, &mut a2),
+            1 => (&mut a0, &mut a2),
+            _ => (&mut a0, &mut a1),
+        };
+        // Without a branch on the side (it is as likely either way): each id is written
+        // to both sides, and only its own side's count moves on. The left ids move down in
+        // place (never past the one being read); ids and counts are below 64, so the mask
+        // only spares the bounds check.
+        let (mut p_right, mut q_right) = ([0u8; 64], [0u8; 64]);
+        let (mut pi, mut pj, mut qi, mut qj) = (0, 0, 0, 0);
+        for t in 0..n {
+            let (x, y) = (p[t], q[t]);
+            let x_left = (left >> (x & 63)) as usize & 1;
+            let y_left = (left >> (y & 63)) as usize & 1;
+            p[pi] = x;
+            p_right[pj & 63] = x;
+            pi += x_left;
+            pj += 1 - x_left;
+            q[qi] = y;
+            q_right[qj & 63] = y;
+            qi += y_left;
+            qj += 1 - y_left;
+        }
+        // Byte by byte: a call to `memcpy` costs more at these lengths.
+        for (t, (&x, &y)) in p_right[..n - mid].iter().zip(&q_right).enumerate() {
+            p[mid + t] = x;
+            q[mid + t] = y;
         }
         let (l0, r0) = a0.split_at_mut(mid);
         let (l1, r1) = a1.split_at_mut(mid);
         let (l2, r2) = a2.split_at_mut(mid);
-        let (lb, lc) = self.bounds_of(l0);
-        let (rb, rc) = self.bounds_of(r0);
         let l = self.node(
             [l0, l1, l2],
             out,
