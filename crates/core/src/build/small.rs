@@ -118,24 +118,14 @@ impl<'a> Subtree<'a> {
         s
     }
 
+    /// [`Subtree::bounds_and_mask`] without the mask.
     fn bounds_of(&self, ids: &[u8]) -> (Aabb, Aabb) {
-        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-        let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-        for &i in ids {
-            let i = i as usize;
-            lo = lo.min(self.min[i]);
-            hi = hi.max(self.max[i]);
-            clo = clo.min(self.centre[i]);
-            chi = chi.max(self.centre[i]);
-        }
-        let aabb = |min: Vec3A, max: Vec3A| Aabb {
-            min: min.into(),
-            max: max.into(),
-        };
-        (aabb(lo, hi), aabb(clo, chi))
+        let (b, c, _) = self.bounds_and_mask(ids);
+        (b, c)
     }
 
-    /// [`Subtree::bounds_of`] `ids`, and their mask (bit `id` set for each).
+    /// The box and the centroid bounds of the primitives `ids`, and their mask (bit `id`
+    /// set for each).
     fn bounds_and_mask(&self, ids: &[u8]) -> (Aabb, Aabb, u64) {
         let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
